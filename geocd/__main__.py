@@ -1,0 +1,3 @@
+from geocd.cli import main
+
+main()

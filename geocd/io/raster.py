@@ -1,0 +1,324 @@
+"""Raster input and output.
+
+* Images keep their native dtype (uint8, uint16 11-bit, multi-band) with a valid
+  mask; DEMs are float32 with NaN for nodata.
+* Every writer is atomic (:mod:`geocd.io.atomic`); products are Cloud-Optimized
+  GeoTIFFs with band descriptions and tags.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..errors import CRSError, EmptyDataError, InputFileNotFoundError, OutputError, UnsupportedFormatError
+from ..geodesy import AOIGrid, as_crs, normalize_datum_name, vertical_datum_of
+from .atomic import atomic_path
+
+RESAMPLING = ("nearest", "bilinear", "cubic", "average", "min", "max", "med")
+
+
+def _open(path: os.PathLike | str):
+    import rasterio
+    from rasterio.errors import RasterioIOError
+
+    p = Path(path)
+    if not p.exists() and "://" not in str(path) and not str(path).startswith("/vsi"):
+        raise InputFileNotFoundError(f"raster {p} does not exist; check the path")
+    try:
+        return rasterio.open(p)
+    except RasterioIOError as exc:
+        raise UnsupportedFormatError(f"cannot read {p} as a raster ({exc}); give a GeoTIFF or another GDAL format") from exc
+
+
+@dataclass
+class Image:
+    """An image as geocd sees it.
+
+    Attributes
+    ----------
+    data : ndarray, shape (bands, rows, cols), native dtype
+    valid : ndarray of bool, shape (rows, cols); False where any band is nodata
+    path : str
+    bit_depth : int
+        Effective bits per sample (8 for uint8; 11 for 11-bit data in uint16, ...).
+    crs, transform : georeference of the file when it has one (may be None)
+    """
+
+    data: np.ndarray
+    valid: np.ndarray
+    path: str = ""
+    bit_depth: int = 8
+    crs: Any = None
+    transform: Any = None
+    tags: dict = field(default_factory=dict)
+
+    @property
+    def bands(self) -> int:
+        return self.data.shape[0]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.data.shape[1:]
+
+    def gray(self) -> np.ndarray:
+        """float32 (rows, cols) mean over bands (NaN where invalid)."""
+        g = self.data.astype(np.float32).mean(axis=0)
+        g[~self.valid] = np.nan
+        return g
+
+
+def effective_bit_depth(data: np.ndarray, tags: Mapping[str, str] | None = None) -> int:
+    """Bits per sample: NBITS metadata when present, else from the dtype and the data range."""
+    if tags:
+        for k in ("NBITS", "nbits"):
+            if k in tags:
+                try:
+                    return int(tags[k])
+                except ValueError:
+                    pass
+    if data.dtype == np.uint8:
+        return 8
+    if np.issubdtype(data.dtype, np.integer):
+        mx = int(data.max()) if data.size else 0
+        return max(8, int(np.ceil(np.log2(mx + 1)))) if mx > 0 else 8
+    return 32
+
+
+def read_image(path: os.PathLike | str, window: Any = None, bands: Sequence[int] | None = None) -> Image:
+    """Read an image (all bands by default) with its valid mask and bit depth."""
+    with _open(path) as ds:
+        idx = list(bands) if bands is not None else list(range(1, ds.count + 1))
+        data = ds.read(idx, window=window)
+        masks = ds.read_masks(idx, window=window)
+        valid = np.all(masks > 0, axis=0)
+        tags = ds.tags(1) | ds.tags(1, "IMAGE_STRUCTURE") if ds.count else {}
+        bit_depth = effective_bit_depth(data[:, valid] if valid.any() else data, tags)
+        crs = ds.crs
+        transform = ds.transform
+    if not valid.any():
+        raise EmptyDataError(f"image {path} is entirely nodata; check the file or its nodata value")
+    return Image(data=data, valid=valid, path=str(path), bit_depth=bit_depth, crs=crs, transform=transform, tags=tags)
+
+
+@dataclass
+class DEM:
+    """A DEM on a grid: float32 heights (NaN = nodata) with its vertical datum.
+
+    Attributes
+    ----------
+    height_m : ndarray float32 (rows, cols)
+    grid : AOIGrid
+    vertical_datum : str or None
+        "ellipsoid", "egm96", "egm2008", another datum name, or None (unknown).
+    path : str
+    """
+
+    height_m: np.ndarray
+    grid: AOIGrid
+    vertical_datum: str | None = None
+    path: str = ""
+
+    @property
+    def valid(self) -> np.ndarray:
+        return np.isfinite(self.height_m)
+
+    def to_ellipsoidal(self, *, allow_substitute: bool = False) -> "DEM":
+        """The same DEM with WGS84 ellipsoidal heights (geoid grid needed for EGM heights)."""
+        from ..geodesy import ELLIPSOID, to_ellipsoidal
+
+        if self.vertical_datum in (None, ELLIPSOID):
+            return self
+        lon, lat = self.grid.lonlat()
+        h = to_ellipsoidal(self.height_m, lon, lat, self.vertical_datum, allow_substitute=allow_substitute)
+        return DEM(h.astype(np.float32), self.grid, ELLIPSOID, self.path)
+
+
+def read_dem(path: os.PathLike | str, grid: AOIGrid | None = None, resampling: str = "bilinear",
+             vertical_datum: str | None = None, band: int = 1) -> DEM:
+    """Read a DEM: float32 heights, nodata → NaN, optionally resampled onto ``grid``.
+
+    Parameters
+    ----------
+    grid : AOIGrid, optional
+        Target grid; the DEM is reprojected/resampled onto it (cells outside the
+        DEM become NaN).
+    resampling : str
+        One of :data:`RESAMPLING` (explicit; bilinear by default for heights).
+    vertical_datum : str, optional
+        Overrides the datum read from the file's CRS ("ellipsoid", "egm96", ...).
+        SRTM .hgt tiles carry no vertical CRS but are EGM96 by specification:
+        declare it.
+    """
+    with _open(path) as ds:
+        if ds.crs is None:
+            raise CRSError(f"DEM {path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...) before using it")
+        nodata = ds.nodata
+        vd = normalize_datum_name(vertical_datum) or vertical_datum_of(ds.crs)
+        if grid is None:
+            arr = ds.read(band, masked=True).astype(np.float32)
+            h = arr.filled(np.nan)
+            g = AOIGrid(as_crs(ds.crs), ds.transform, ds.width, ds.height)
+        else:
+            h = reproject_band(ds, band, grid, resampling)
+            g = grid
+    if nodata is not None and np.isfinite(nodata):
+        h[h == np.float32(nodata)] = np.nan
+    # common nodata sentinels that some DEMs do not declare
+    h[(h < -1e4) | (h > 1e5)] = np.nan
+    if not np.isfinite(h).any():
+        where = "on the requested grid" if grid is not None else ""
+        raise EmptyDataError(
+            f"DEM {path} has no valid heights {where}(all nodata); check its nodata value and that it covers the AOI"
+        )
+    return DEM(h, g, vd, str(path))
+
+
+def reproject_band(ds, band: int, grid: AOIGrid, resampling: str = "bilinear") -> np.ndarray:
+    """Reproject one band of an open dataset onto ``grid`` (float32, NaN outside/nodata)."""
+    from rasterio.crs import CRS as RioCRS
+    from rasterio.enums import Resampling
+    from rasterio.warp import reproject
+
+    if resampling not in RESAMPLING:
+        raise ValueError(f"resampling must be one of {RESAMPLING}, got {resampling!r}")
+    out = np.full(grid.shape, np.nan, dtype=np.float32)
+    src = ds.read(band).astype(np.float32)
+    if ds.nodata is not None and np.isfinite(ds.nodata):
+        src[src == np.float32(ds.nodata)] = np.nan
+    reproject(src, out, src_transform=ds.transform, src_crs=ds.crs, src_nodata=np.nan,
+              dst_transform=grid.transform, dst_crs=RioCRS.from_wkt(grid.crs.to_wkt()), dst_nodata=np.nan,
+              resampling=getattr(Resampling, resampling))
+    return out
+
+
+def reproject_array(array: np.ndarray, src_grid: AOIGrid, dst_grid: AOIGrid, resampling: str = "bilinear") -> np.ndarray:
+    """Reproject a float array from one grid to another (NaN = nodata)."""
+    from rasterio.crs import CRS as RioCRS
+    from rasterio.enums import Resampling
+    from rasterio.warp import reproject
+
+    out = np.full(dst_grid.shape, np.nan, dtype=np.float32)
+    reproject(array.astype(np.float32), out, src_transform=src_grid.transform,
+              src_crs=RioCRS.from_wkt(src_grid.crs.to_wkt()), src_nodata=np.nan,
+              dst_transform=dst_grid.transform, dst_crs=RioCRS.from_wkt(dst_grid.crs.to_wkt()),
+              dst_nodata=np.nan, resampling=getattr(Resampling, resampling))
+    return out
+
+
+def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarray], grid: AOIGrid, *,
+              nodata: float | int | None = None, dtype: str | None = None, tags: Mapping[str, Any] | None = None,
+              band_tags: Sequence[Mapping[str, Any]] | None = None, overwrite: bool = True,
+              compress: str = "deflate", colormap: Mapping[int, tuple] | None = None,
+              overview_resampling: str = "average") -> Path:
+    """Write a Cloud-Optimized GeoTIFF atomically.
+
+    Parameters
+    ----------
+    bands : ndarray (rows, cols) or (bands, rows, cols), or mapping name → 2-D array
+        Mapping keys become band descriptions (what QGIS shows as band names).
+    grid : AOIGrid
+    nodata : number, optional
+        NaN in float data is nodata by default.
+    tags : mapping, optional
+        Dataset metadata (e.g. units, method, provenance JSON).
+    """
+    import rasterio
+    from rasterio.io import MemoryFile
+    from rasterio.shutil import copy as rio_copy
+
+    if isinstance(bands, Mapping):
+        names = list(bands.keys())
+        arr = np.stack([np.asarray(bands[k]) for k in names])
+    else:
+        arr = np.asarray(bands)
+        if arr.ndim == 2:
+            arr = arr[None]
+        names = [None] * arr.shape[0]
+    if arr.shape[1:] != grid.shape:
+        raise OutputError(f"array shape {arr.shape[1:]} does not match the grid {grid.shape}")
+    dtype = dtype or str(arr.dtype)
+    if nodata is None and np.issubdtype(np.dtype(dtype), np.floating):
+        nodata = float("nan")
+    profile = grid.rasterio_profile(dtype=dtype, count=arr.shape[0], nodata=nodata)
+    profile.update(tiled=True, blockxsize=256, blockysize=256)
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        with MemoryFile() as mem:
+            with mem.open(**profile) as dst:
+                dst.write(arr.astype(dtype))
+                for i, name in enumerate(names, start=1):
+                    if name:
+                        dst.set_band_description(i, str(name))
+                    if band_tags and i - 1 < len(band_tags) and band_tags[i - 1]:
+                        dst.update_tags(i, **{k: str(v) for k, v in band_tags[i - 1].items()})
+                if tags:
+                    dst.update_tags(**{k: str(v) for k, v in tags.items()})
+                if colormap is not None:
+                    dst.write_colormap(1, colormap)
+                ov = [f for f in (2, 4, 8, 16, 32) if min(grid.shape) // f >= 64]
+                if ov:
+                    from rasterio.enums import Resampling
+
+                    dst.build_overviews(ov, getattr(Resampling, overview_resampling))
+            rio_copy(mem.open(), str(tmp), driver="COG", compress=compress.upper(),
+                     overview_resampling=overview_resampling.upper() if overview_resampling != "average" else "AVERAGE")
+    return Path(path)
+
+
+def write_image(path: os.PathLike | str, data: np.ndarray, *, rpc=None, crs: Any = None, transform: Any = None,
+                nodata: float | int | None = None, nbits: int | None = None, tags: Mapping[str, Any] | None = None,
+                overwrite: bool = True, photometric: str | None = None) -> Path:
+    """Write a (bands, rows, cols) image as GeoTIFF atomically, optionally with RPC tags.
+
+    Parameters
+    ----------
+    rpc : RPCModel, optional
+        Written as GeoTIFF RPC tags (``RPCCoefficientTag``), readable by GDAL.
+    nbits : int, optional
+        e.g. 11 for 11-bit data in uint16 (sets the NBITS creation option).
+    """
+    import rasterio
+
+    arr = np.asarray(data)
+    if arr.ndim == 2:
+        arr = arr[None]
+    profile: dict[str, Any] = {"driver": "GTiff", "width": arr.shape[2], "height": arr.shape[1],
+                               "count": arr.shape[0], "dtype": str(arr.dtype), "compress": "deflate",
+                               "tiled": True, "blockxsize": 256, "blockysize": 256}
+    if nodata is not None:
+        profile["nodata"] = nodata
+    if crs is not None:
+        profile["crs"] = crs
+    if transform is not None:
+        profile["transform"] = transform
+    if nbits is not None:
+        profile["nbits"] = int(nbits)
+    if photometric is not None:
+        profile["photometric"] = photometric
+    if rpc is not None:
+        profile["rpcs"] = rpc.to_rasterio()
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        import warnings
+
+        from rasterio.errors import NotGeoreferencedWarning
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(tmp, "w", **profile) as dst:
+                dst.write(arr)
+                if tags:
+                    dst.update_tags(**{k: str(v) for k, v in tags.items()})
+    return Path(path)
+
+
+def read_band(path: os.PathLike | str, band: int = 1) -> tuple[np.ndarray, AOIGrid]:
+    """Read one band of a georeferenced product as float32 (nodata → NaN) with its grid."""
+    with _open(path) as ds:
+        if ds.crs is None:
+            raise CRSError(f"{path} has no CRS")
+        a = ds.read(band, masked=True).astype(np.float32).filled(np.nan)
+        return a, AOIGrid(as_crs(ds.crs), ds.transform, ds.width, ds.height)

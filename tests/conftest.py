@@ -1,0 +1,39 @@
+"""Shared fixtures.
+
+Real data lives in ``../shared/data`` beside the repository (never copied in).
+Tests that read it carry ``@pytest.mark.realdata`` and use :func:`shared_data`,
+which skips with a clear reason when the folder (or the file) is absent.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("GEOCD_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def shared_data(*parts: str) -> Path:
+    """Path under ../shared/data; skips the test when it is missing."""
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"real data not available: {p} is absent (set GEOCD_SHARED_DATA or place ../shared beside the repo)")
+    return p
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is absent")
+    return SHARED_DATA
+
+
+@pytest.fixture
+def sample_aoi() -> Path:
+    p = REPO / "sample_aoi"
+    if not (p / "scene.yaml").is_file():
+        pytest.fail("sample_aoi/scene.yaml is missing: the committed sample AOI must be present")
+    return p
