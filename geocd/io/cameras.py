@@ -1,0 +1,98 @@
+"""Find and load the camera model of an image, whatever its kind.
+
+Order: an explicit camera file (from the manifest or the command line), then
+RPC tags in the image, then an RPC sidecar, then a frame-camera sidecar. The
+result is a :class:`geocd.camera.Camera` with the image size set.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from ..camera import Camera, camera_from_dict
+from ..errors import InputFileNotFoundError, NoCameraError, RPCNotFoundError
+
+
+def _image_size(image: Path) -> tuple[int | None, int | None]:
+    try:
+        import rasterio
+
+        with rasterio.open(image) as ds:
+            return ds.width, ds.height
+    except Exception:
+        return None, None
+
+
+def _with_size(cam: Camera, width: int | None, height: int | None) -> Camera:
+    if width is None or (cam.width == width and cam.height == height):
+        return cam
+    d = cam.to_dict()
+    d["width"], d["height"] = width, height
+    return camera_from_dict(d)
+
+
+def read_camera_file(path: os.PathLike | str, image_path: os.PathLike | str | None = None) -> Camera:
+    """Read a camera file: geocd JSON/YAML (any kind) or any vendor RPC format."""
+    p = Path(path)
+    if not p.exists():
+        raise InputFileNotFoundError(f"camera file {p} does not exist; check the path in the manifest")
+    if p.suffix.lower() in (".json", ".yaml", ".yml"):
+        text = p.read_text(encoding="utf-8", errors="replace")
+        try:
+            if p.suffix.lower() == ".json":
+                d = json.loads(text)
+            else:
+                import yaml
+
+                d = yaml.safe_load(text)
+        except Exception:
+            d = None
+        if isinstance(d, dict) and d.get("kind") == "frame":
+            from .frame import read_frame_sidecar
+
+            return read_frame_sidecar(p)
+        if isinstance(d, dict) and "kind" in d:
+            return camera_from_dict(d)
+    from .rpc import read_rpc
+
+    return read_rpc(p, image_path=image_path)
+
+
+def load_camera(image_path: os.PathLike | str, camera_path: os.PathLike | str | None = None) -> Camera:
+    """The camera model of an image.
+
+    Parameters
+    ----------
+    image_path : the image file
+    camera_path : optional explicit camera file (RPC in any vendor format, or a geocd
+        frame/RPC JSON/YAML sidecar)
+
+    Raises
+    ------
+    NoCameraError
+        When the image has no RPC tags, no RPC sidecar and no frame sidecar.
+    """
+    image = Path(image_path)
+    if not image.exists():
+        raise InputFileNotFoundError(f"image {image} does not exist; check the path")
+    width, height = _image_size(image)
+    if camera_path is not None:
+        return _with_size(read_camera_file(camera_path, image_path=image), width, height)
+    from .rpc import load_rpc_for_image
+
+    try:
+        return load_rpc_for_image(image)
+    except RPCNotFoundError:
+        pass
+    from .frame import find_frame_sidecar, read_frame_sidecar
+
+    side = find_frame_sidecar(image)
+    if side is not None:
+        return _with_size(read_frame_sidecar(side), width, height)
+    raise NoCameraError(
+        f"{image} has no camera model: no RPC tags, no RPC sidecar (_rpc.txt, .RPB, RPC_*.XML, .geom, ...) and no "
+        f"frame-camera sidecar ({image.stem}.camera.json/.yaml); put the camera file next to the image or name it "
+        "with 'camera:' in the manifest"
+    )

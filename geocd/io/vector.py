@@ -1,0 +1,128 @@
+"""Vector input and output (footprints, change polygons, tables).
+
+* :func:`read_footprints`: any OGR vector → GeoDataFrame in the AOI CRS.
+* :func:`write_gpkg`: several layers (features or plain tables) into one
+  GeoPackage, atomically, with optional QGIS styles stored in the GeoPackage's
+  ``layer_styles`` table so layers open styled in QGIS.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..errors import CRSError, EmptyDataError, InputFileNotFoundError, UnsupportedFormatError
+from ..geodesy import as_crs
+from .atomic import atomic_path
+
+
+def read_footprints(path: os.PathLike | str, crs: Any = None, layer: str | int | None = None,
+                    bbox: tuple[float, float, float, float] | None = None):
+    """Read building footprints (or any polygons) into a GeoDataFrame.
+
+    Parameters
+    ----------
+    crs : target CRS (the AOI's); the layer is reprojected to it.
+    layer : layer name or index for multi-layer sources (default: the first).
+    bbox : optional (left, bottom, right, top) filter in the layer's CRS.
+
+    Raises
+    ------
+    InputFileNotFoundError, UnsupportedFormatError, CRSError, EmptyDataError
+    """
+    import geopandas as gpd
+    import pyogrio
+
+    p = Path(path)
+    if not p.exists():
+        raise InputFileNotFoundError(f"footprint file {p} does not exist; check the path")
+    try:
+        gdf = gpd.read_file(p, layer=layer, bbox=bbox, engine="pyogrio")
+    except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError) as exc:
+        raise UnsupportedFormatError(f"cannot read {p} as a vector layer ({exc}); give a GeoPackage, GeoJSON or shapefile") from exc
+    if gdf.crs is None:
+        raise CRSError(f"footprints {p} have no CRS; set one (e.g. ogr2ogr -a_srs EPSG:...) before using them")
+    gdf = gdf[gdf.geometry.notna() & ~gdf.geometry.is_empty]
+    gdf = gdf[gdf.geometry.geom_type.isin(["Polygon", "MultiPolygon"])]
+    if gdf.empty:
+        raise EmptyDataError(f"{p} holds no polygon features; footprints must be polygons")
+    if crs is not None:
+        gdf = gdf.to_crs(as_crs(crs))
+    if not gdf.geometry.is_valid.all():
+        gdf = gdf.copy()
+        gdf["geometry"] = gdf.geometry.make_valid()
+    return gdf.reset_index(drop=True)
+
+
+def _styles_frame(styles: Mapping[str, str], geometry_columns: Mapping[str, str]):
+    import pandas as pd
+
+    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    rows = []
+    for layer, qml in styles.items():
+        rows.append({
+            "f_table_catalog": "", "f_table_schema": "", "f_table_name": layer,
+            "f_geometry_column": geometry_columns.get(layer, "geom"), "styleName": layer, "styleQML": qml,
+            "styleSLD": "", "useAsDefault": True, "description": "geocd default style", "owner": "geocd",
+            "ui": None, "update_time": now,
+        })
+    return pd.DataFrame(rows)
+
+
+def write_gpkg(path: os.PathLike | str, layers: Mapping[str, Any], *, styles: Mapping[str, str] | None = None,
+               overwrite: bool = True) -> Path:
+    """Write several layers into one GeoPackage atomically.
+
+    Parameters
+    ----------
+    layers : mapping layer name → GeoDataFrame (features) or DataFrame (attribute table)
+    styles : mapping layer name → QML text, stored in ``layer_styles`` (QGIS loads it as the
+        layer's default style).
+
+    Empty GeoDataFrames are written as empty layers (with their schema), so a
+    consumer can tell "no changes" from "not computed".
+    """
+    import geopandas as gpd
+    import pyogrio
+
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        geom_cols: dict[str, str] = {}
+        for name, df in layers.items():
+            if isinstance(df, gpd.GeoDataFrame):
+                geom_cols[name] = "geom"
+                pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", promote_to_multi=False)
+            else:
+                pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG")
+        if styles:
+            pyogrio.write_dataframe(_styles_frame(styles, geom_cols), tmp, layer="layer_styles", driver="GPKG")
+    return Path(path)
+
+
+def qml_for(name: str) -> str:
+    """A QML style shipped with geocd (``geocd/styles/<name>.qml``)."""
+    from importlib.resources import files
+
+    try:
+        return files("geocd").joinpath("styles", f"{name}.qml").read_text(encoding="utf-8")
+    except FileNotFoundError as exc:  # pragma: no cover - packaging error
+        raise UnsupportedFormatError(f"style {name!r} is not shipped with geocd") from exc
+
+
+def polygons_to_mask(gdf, grid, attribute: str | None = None, fill: float = 0) -> np.ndarray:
+    """Rasterize polygons onto an AOI grid (value 1, or ``attribute``)."""
+    from rasterio.features import rasterize
+
+    g = gdf.to_crs(grid.crs) if gdf.crs is not None and not as_crs(gdf.crs).equals(grid.crs) else gdf
+    if attribute is None:
+        shapes = [(geom, 1) for geom in g.geometry]
+        dtype = "uint8"
+    else:
+        shapes = list(zip(g.geometry, g[attribute]))
+        dtype = "float32"
+    if not shapes:
+        return np.full(grid.shape, fill, dtype=dtype)
+    return rasterize(shapes, out_shape=grid.shape, transform=grid.transform, fill=fill, dtype=dtype)
