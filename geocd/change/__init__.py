@@ -1,0 +1,1 @@
+"""Change products shared by every method: regions (polygons), layers, plots."""
