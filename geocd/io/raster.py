@@ -30,7 +30,14 @@ def _open(path: os.PathLike | str):
     if not p.exists() and "://" not in str(path) and not str(path).startswith("/vsi"):
         raise InputFileNotFoundError(f"raster {p} does not exist; check the path")
     try:
-        return rasterio.open(p)
+        import warnings
+
+        from rasterio.errors import NotGeoreferencedWarning
+
+        with warnings.catch_warnings():
+            # images with RPCs or crop-offset geotransforms are legitimately "not georeferenced"
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            return rasterio.open(p)
     except RasterioIOError as exc:
         raise UnsupportedFormatError(f"cannot read {p} as a raster ({exc}); give a GeoTIFF or another GDAL format") from exc
 
