@@ -1,0 +1,126 @@
+"""Self-consistency test on synthetic reconstructions with a known error model."""
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from geocd.consistency import (CHANGE_NODATA, ChangeParams, ConsistencyParams, DEMAsEpoch, SelfConsistencyModel,
+                               change_test, learn_self_consistency, match_pairs, naive_threshold)
+from geocd.errors import ConfigError, GridError, ProcessingError
+
+
+@dataclass
+class Rec:
+    z_m: np.ndarray
+    score: np.ndarray
+    g_px_per_m: np.ndarray
+    valid: np.ndarray
+    grid: object = None
+    name: str = "rec"
+
+
+SHAPE = (120, 120)
+
+
+def make_rec(truth, rng, name, g=1.0, outlier_frac=0.0):
+    """A reconstruction whose disparity error (px) grows with the score (as real matchers do)."""
+    score = rng.uniform(-2.0, 1.0, SHAPE).astype(np.float32)  # lower = better
+    sigma_px = 0.1 + 0.3 * (score + 2.0)  # 0.1 .. 1.0 px
+    err_px = rng.normal(size=SHAPE) * sigma_px
+    bad = rng.random(SHAPE) < outlier_frac * (score + 2) / 3
+    err_px[bad] += rng.normal(scale=10, size=bad.sum())
+    gg = np.full(SHAPE, g, np.float32)
+    z = truth + err_px / gg
+    valid = rng.random(SHAPE) > 0.05
+    return Rec(np.where(valid, z, np.nan).astype(np.float32), score, gg, valid, None, name)
+
+
+@pytest.fixture
+def scene():
+    rng = np.random.default_rng(42)
+    truth_a = np.zeros(SHAPE, np.float32)
+    truth_b = truth_a.copy()
+    truth_b[20:50, 20:50] += 9.0  # new building (+9 m)
+    truth_b[70:100, 60:90] -= 8.0  # demolished/lowered
+    A = [make_rec(truth_a, rng, f"A{i}", outlier_frac=0.02) for i in range(3)]
+    B = [make_rec(truth_b, rng, f"B{i}", outlier_frac=0.02) for i in range(3)]
+    return A, B, truth_b - truth_a
+
+
+def test_match_pairs_normalization():
+    z = np.zeros((2, 2), np.float32)
+    p = Rec(z, np.zeros((2, 2)), np.full((2, 2), 0.5), np.ones((2, 2), bool), name="p")
+    q = Rec(z + 2.0, np.ones((2, 2)), np.full((2, 2), 0.5), np.ones((2, 2), bool), name="q")
+    dt, sc, dz, both = match_pairs(p, q)
+    # 2 m at 0.5 px/m on both sides: 2 / sqrt(4 + 4) = 0.7071 px
+    assert np.allclose(dt, 2 / np.sqrt(8)) and np.all(sc == 1) and np.all(dz == 2) and both.all()
+    d = DEMAsEpoch(z + 2.0, None, "lidar")
+    dt2, sc2, _, _ = match_pairs(p, d)
+    assert np.allclose(dt2, 2 * 0.5) and np.all(sc2 == 0)  # only the stereo side's uncertainty and score
+    with pytest.raises(GridError):
+        match_pairs(p, Rec(np.zeros((3, 3)), np.zeros((3, 3)), np.ones((3, 3)), np.ones((3, 3), bool)))
+
+
+def test_curves_follow_the_error_model(scene):
+    A, B, _ = scene
+    model = learn_self_consistency([A, B[:0]], ConsistencyParams(n_score_bins=10, min_bin_count=500))
+    # |Δ̃| between two recs of the same score s: normal with sigma sqrt(2)*sigma_px(s)/sqrt(2) ... combine
+    c99 = np.asarray(model.curves["99"])
+    c90 = np.asarray(model.curves["90"])
+    assert np.all(np.diff(c99) >= -1e-9), "curves must be non-decreasing in score"
+    assert np.all(c99 >= c90)
+    assert c99[-1] > 2 * c99[0], "worse scores must get wider thresholds"
+    assert model.bin_counts.sum() == model.provenance["n_match_pairs"]
+    # fraction of same-epoch match pairs above the 99% curve ≈ 1%
+    dt, sc, _, both = match_pairs(A[0], A[1])
+    frac = np.mean(np.abs(dt[both]) > model.threshold(sc[both], 99))
+    assert 0.003 < frac < 0.03
+
+
+def test_change_test_finds_changes_with_low_false_alarms(scene):
+    A, B, dz_true = scene
+    model = learn_self_consistency([A, B])
+    res = change_test(A, B, model, ChangeParams(confidences=(90, 95, 99)))
+    truth = np.sign(dz_true)
+    ch99 = res.changed_at(99)
+    obs = res.observed
+    inner_up = np.zeros(SHAPE, bool)
+    inner_up[22:48, 22:48] = True
+    ch95 = res.changed_at(95)
+    # outliers at bad scores widen the 99% curve: most, not all, changed cells pass at 99%
+    assert np.mean(ch99[inner_up & obs] == 1) > 0.6
+    assert np.mean(ch95[inner_up & obs] == 1) > 0.9
+    assert np.mean(ch95[70:100, 60:90][obs[70:100, 60:90]] == -1) > 0.85
+    static = (truth == 0) & obs
+    fa = np.mean(ch99[static] != 0)
+    assert fa < 0.01, f"false-alarm rate {fa:.4f} on static cells at 99%"
+    assert np.all(res.change[~obs] == CHANGE_NODATA)
+    # naive |Δ̃| > 3 raises more false alarms where scores are bad
+    naive = naive_threshold(A, B, 3.0)
+    assert np.mean(naive[static] != 0) > fa
+
+
+def test_model_round_trip_and_new_confidence(tmp_path, scene):
+    A, B, _ = scene
+    model = learn_self_consistency([A], provenance={"scene_class": "synthetic"})
+    p = model.save(tmp_path / "m.json")
+    back = SelfConsistencyModel.load(p)
+    assert back.provenance["scene_class"] == "synthetic"
+    s = np.linspace(-2, 1, 7)
+    assert np.allclose(back.threshold(s, 99), model.threshold(s, 99))
+    t80 = back.threshold(s, 80)  # not stored: recomputed from the histogram
+    assert np.all(t80 <= back.threshold(s, 90) + 1e-9)
+    with pytest.raises(ConfigError):
+        back.threshold(s, 100)
+
+
+def test_one_pair_per_epoch_needs_a_model(scene):
+    A, B, _ = scene
+    with pytest.raises(ProcessingError, match="scene-class model"):
+        learn_self_consistency([A[:1], B[:1]])
+    # with a model learned elsewhere, one pair per epoch works
+    model = learn_self_consistency([A])
+    res = change_test(A[:1], B[:1], model)
+    assert res.comparisons == ["A0 vs B0"]
+    assert (res.changed_at(95)[25:45, 25:45] == 1).mean() > 0.8
