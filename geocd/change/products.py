@@ -1,0 +1,84 @@
+"""Write the change layers analysts open (rasters, GeoPackage, plots) — atomically.
+
+Layout of an output folder (``prefix`` defaults to the method name)::
+
+    <prefix>_change.tif        COG, bands dz_m, dtilde, score, confidence (float32, NaN = unobserved)
+    <prefix>_change.qml        QGIS style sidecar (confidence classes)
+    <prefix>_change_mask.tif   COG int8: +1 raised, −1 lowered, 0 unchanged, −128 nodata (not observable)
+    <prefix>_change_mask.qml   QGIS style sidecar (paletted)
+    <prefix>_changes.gpkg      layers: changes (polygons), buildings (attributed footprints),
+                               curves (significance curves table), layer_styles
+    <prefix>_scatter.png       score × |Δ̃| with significance curves (when a model is given)
+    <prefix>_quicklook.png     map of Δz with changed regions outlined
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..consistency import CHANGE_NODATA, ChangeResult, SelfConsistencyModel
+from ..io.raster import write_cog
+from ..io.vector import qml_for, write_gpkg
+from .styles import buildings_qml, write_raster_style
+
+
+def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid, *, method: str = "self-consistency",
+                          epoch_a: str = "A", epoch_b: str = "B", region_confidence: float = 99.0,
+                          model: SelfConsistencyModel | None = None, buildings=None, extra_layers: dict | None = None,
+                          provenance: dict | None = None, prefix: str | None = None, min_region_cells: int = 4,
+                          plots: bool = True) -> dict[str, Path]:
+    """Write every product of one change test; returns {product name: path}."""
+    from .regions import change_regions
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    prefix = prefix or method.replace(" ", "_").replace("-", "_")
+    tags = {"method": method, "epoch_a": epoch_a, "epoch_b": epoch_b,
+            "confidences": ",".join(f"{c:g}" for c in result.confidences),
+            "comparisons": "; ".join(result.comparisons)}
+    if provenance:
+        import json
+
+        tags["provenance"] = json.dumps(provenance, default=str)
+    paths: dict[str, Path] = {}
+    paths["change"] = write_cog(out / f"{prefix}_change.tif",
+                                {"dz_m": result.dz_m, "dtilde": result.dtilde, "score": result.score,
+                                 "confidence": result.confidence}, grid, tags=tags)
+    write_raster_style(paths["change"], qml_for("confidence"))
+    paths["change_mask"] = write_cog(out / f"{prefix}_change_mask.tif", result.change.astype(np.int8), grid,
+                                     nodata=CHANGE_NODATA, dtype="int8", tags=tags, overview_resampling="nearest")
+    write_raster_style(paths["change_mask"], qml_for("change_mask"))
+
+    sign = result.changed_at(region_confidence) if region_confidence in result.confidences else \
+        np.where(result.confidence > 0, result.change, 0)
+    sign = np.where(result.observed, sign, 0).astype(np.int8)
+    regions = change_regions(sign, result.dz_m, grid, confidence=_region_conf(result), method=method,
+                             epoch_a=epoch_a, epoch_b=epoch_b, min_cells=min_region_cells)
+    layers: dict[str, Any] = {"changes": regions}
+    styles = {"changes": qml_for("changes")}
+    if buildings is not None:
+        layers["buildings"] = buildings
+        styles["buildings"] = buildings_qml()
+    if model is not None:
+        layers["curves"] = model.curves_table()
+    if extra_layers:
+        layers.update(extra_layers)
+    paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", layers, styles=styles)
+    if plots:
+        from .plots_sc import plot_change_quicklook, plot_scatter_curves
+
+        if model is not None:
+            paths["scatter"] = plot_scatter_curves(model, out / f"{prefix}_scatter.png")
+        paths["quicklook"] = plot_change_quicklook(result.dz_m, sign, grid, out / f"{prefix}_quicklook.png",
+                                                   title=f"{method}: {epoch_a} → {epoch_b}, changed at {region_confidence:g}%")
+    return paths
+
+
+def _region_conf(result: ChangeResult) -> np.ndarray:
+    """Per-cell confidence as a fraction (0–1) for the regions layer."""
+    c = np.asarray(result.confidence, float) / 100.0
+    return np.where(np.isfinite(c), c, np.nan)

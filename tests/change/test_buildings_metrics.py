@@ -1,0 +1,75 @@
+import numpy as np
+import pytest
+from shapely.geometry import box
+
+from geocd.change.buildings import building_scores, classify_buildings
+from geocd.change.metrics import best_threshold_f1, binary_scores, roc_curve
+from geocd.change.styles import buildings_qml, categorized_polygon_qml
+from geocd.geodesy import AOIGrid
+
+
+@pytest.fixture
+def grid():
+    return AOIGrid.from_bounds(500000, 4000000, 500060, 4000060, 0.5, "EPSG:32631")
+
+
+def test_classify_buildings(grid):
+    import geopandas as gpd
+
+    l, b, r, t = grid.bounds
+    fps = gpd.GeoDataFrame({"bid": [1, 2, 3, 4, 5]}, geometry=[
+        box(l + 2, b + 2, l + 12, b + 12),     # new: ground in A, +8 m in B
+        box(l + 20, b + 2, l + 30, b + 12),    # demolished: 9 m in A, ground in B
+        box(l + 40, b + 2, l + 50, b + 12),    # raised: 6 m → 9 m
+        box(l + 2, b + 30, l + 12, b + 40),    # unchanged 6 m
+        box(l + 30, b + 30, l + 40, b + 40),   # unobserved
+    ], crs=grid.crs)
+    from geocd.io.vector import polygons_to_mask
+
+    def burn(i):
+        return polygons_to_mask(fps.iloc[[i]], grid).astype(bool)
+
+    za = np.zeros(grid.shape, np.float32)
+    zb = np.zeros(grid.shape, np.float32)
+    zb[burn(0)] = 8
+    za[burn(1)] = 9
+    za[burn(2)] = 6
+    zb[burn(2)] = 9
+    za[burn(3)] = 6
+    zb[burn(3)] = 6
+    dz = zb - za
+    mask = np.sign(dz).astype(np.int8)
+    mask[burn(4)] = -128
+    out = classify_buildings(fps, mask, dz, grid, z_a=za, z_b=zb, id_field="bid")
+    assert list(out["class"]) == ["new", "demolished", "raised", "unchanged", "unobserved"]
+    assert out.loc[0, "mean_dz_m"] == pytest.approx(8, abs=1e-5)
+    assert out.loc[0, "volume_m3"] == pytest.approx(8 * 100, rel=0.05)
+    assert list(out["building_id"]) == [1, 2, 3, 4, 5]
+    s = building_scores(out["class"], ["new", "demolished", "raised", "unchanged", "unchanged"])
+    assert s["f1"] == 1.0 and s["class_accuracy_on_changed"] == 1.0
+
+
+def test_binary_scores_and_roc():
+    truth = np.zeros((10, 10), bool)
+    truth[:3] = True
+    pred = truth.copy()
+    pred[5, 5] = True
+    s = binary_scores(pred, truth)
+    assert s["tp"] == 30 and s["fp"] == 1 and s["fn"] == 0
+    assert s["false_alarm_rate"] == pytest.approx(1 / 70)
+    rng = np.random.default_rng(0)
+    score = truth + rng.normal(scale=0.3, size=truth.shape)
+    fpr, tpr, thr, auc = roc_curve(score, truth)
+    assert 0.95 < auc <= 1.0 and fpr[0] == 0 and tpr[-1] == 1
+    best, sc = best_threshold_f1(score, truth)
+    assert sc["f1"] > 0.9
+
+
+def test_qml_is_well_formed_xml():
+    import xml.etree.ElementTree as ET
+
+    for q in (buildings_qml(), categorized_polygon_qml("sign", {1: ("#ff0000", "raised"), -1: ("#0000ff", "lowered")})):
+        root = ET.fromstring(q.split("\n", 1)[1])
+        r = root.find("renderer-v2")
+        assert r.get("type") == "categorizedSymbol"
+        assert len(r.find("categories")) == len(r.find("symbols"))
