@@ -215,7 +215,7 @@ class AOIGrid:
         """A window of this grid (for tiling)."""
         if row0 < 0 or col0 < 0 or row0 + height > self.height or col0 + width > self.width:
             raise GridError(f"window ({row0}, {col0}, {height}, {width}) exceeds the grid {self.shape}")
-        return AOIGrid(self.crs, self.transform * Affine.translation(col0, row0), width, height)
+        return AOIGrid(self.crs, self.transform @ Affine.translation(col0, row0), width, height)
 
     def same_as(self, other: "AOIGrid", tol: float = 1e-6) -> bool:
         """True when ``other`` is the same grid (CRS, size, transform within ``tol`` cells)."""
@@ -505,9 +505,13 @@ def geoid_undulation(lon: Any, lat: Any, model: str, *, allow_substitute: bool =
             + ("; for EGM2008 you may also allow the EGM96 substitute (--allow-geoid-substitute)" if m == EGM2008 else "")
         )
     arr, t = _load_geoid(str(path))
-    lon = np.asarray(lon, float)
-    lat = np.asarray(lat, float)
-    return _bilinear_global(arr, t, lon, lat)
+    lon, lat = np.broadcast_arrays(np.asarray(lon, float), np.asarray(lat, float))
+    ok = np.isfinite(lon) & np.isfinite(lat)
+    if ok.all():
+        return _bilinear_global(arr, t, lon, lat)
+    out = np.full(lon.shape, np.nan)  # NaN in → NaN out (no invalid integer casts)
+    out[ok] = _bilinear_global(arr, t, lon[ok], lat[ok])
+    return out
 
 
 def to_ellipsoidal(height: Any, lon: Any, lat: Any, datum: str | None, **kw: Any) -> np.ndarray:
