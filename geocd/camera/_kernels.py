@@ -17,33 +17,53 @@ TERMS_RPC00B = ("1", "L", "P", "H", "LP", "LH", "PH", "LL", "PP", "HH",
                 "PLH", "LLL", "LPP", "LHH", "LLP", "PPP", "PHH", "LLH", "PPH", "HHH")
 
 
-@njit(cache=True, inline="always")
-def _poly(c, L, P, H):
-    return (c[0] + c[1] * L + c[2] * P + c[3] * H + c[4] * L * P + c[5] * L * H + c[6] * P * H
-            + c[7] * L * L + c[8] * P * P + c[9] * H * H + c[10] * P * L * H + c[11] * L * L * L
-            + c[12] * L * P * P + c[13] * L * H * H + c[14] * L * L * P + c[15] * P * P * P
-            + c[16] * P * H * H + c[17] * L * L * H + c[18] * P * P * H + c[19] * H * H * H)
+# Kernels use error_model="numpy" (a float division by zero gives inf/NaN instead of raising,
+# so the loops have no hidden branches and vectorize) and fastmath "contract" (FMA only; NaN/inf
+# semantics are kept, the localization relies on them).
 
 
-@njit(cache=True, inline="always")
-def _poly_dL(c, L, P, H):
-    return (c[1] + c[4] * P + c[5] * H + 2.0 * c[7] * L + c[10] * P * H + 3.0 * c[11] * L * L
-            + c[12] * P * P + c[13] * H * H + 2.0 * c[14] * L * P + 2.0 * c[17] * L * H)
+@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _monomials(L, P, H):
+    """The 20 RPC00B monomials (and the products the derivatives reuse)."""
+    LP = L * P
+    LH = L * H
+    PH = P * H
+    LL = L * L
+    PP = P * P
+    HH = H * H
+    return (L, P, H, LP, LH, PH, LL, PP, HH, LP * H, LL * L, L * PP, L * HH, LL * P, PP * P, P * HH,
+            LL * H, PP * H, HH * H)
 
 
-@njit(cache=True, inline="always")
-def _poly_dP(c, L, P, H):
-    return (c[2] + c[4] * L + c[6] * H + 2.0 * c[8] * P + c[10] * L * H + 2.0 * c[12] * L * P
-            + c[14] * L * L + 3.0 * c[15] * P * P + c[16] * H * H + 2.0 * c[18] * P * H)
+@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _dot(c, t):
+    """c · (1, t...) for the 20-term RPC00B polynomial with monomials ``t`` from :func:`_monomials`."""
+    return (c[0] + c[1] * t[0] + c[2] * t[1] + c[3] * t[2] + c[4] * t[3] + c[5] * t[4] + c[6] * t[5]
+            + c[7] * t[6] + c[8] * t[7] + c[9] * t[8] + c[10] * t[9] + c[11] * t[10] + c[12] * t[11]
+            + c[13] * t[12] + c[14] * t[13] + c[15] * t[14] + c[16] * t[15] + c[17] * t[16] + c[18] * t[17]
+            + c[19] * t[18])
 
 
-@njit(cache=True, inline="always")
-def _poly_dH(c, L, P, H):
-    return (c[3] + c[5] * L + c[6] * P + 2.0 * c[9] * H + c[10] * P * L + 2.0 * c[13] * L * H
-            + 2.0 * c[16] * P * H + c[17] * L * L + c[18] * P * P + 3.0 * c[19] * H * H)
+@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _dot_dL(c, L, P, H, t):
+    # d/dL of (1, L, P, H, LP, LH, PH, LL, PP, HH, PLH, LLL, LPP, LHH, LLP, PPP, PHH, LLH, PPH, HHH)
+    return (c[1] + c[4] * P + c[5] * H + 2.0 * c[7] * L + c[10] * t[5] + 3.0 * c[11] * t[6]
+            + c[12] * t[7] + c[13] * t[8] + 2.0 * c[14] * t[3] + 2.0 * c[17] * t[4])
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _dot_dP(c, L, P, H, t):
+    return (c[2] + c[4] * L + c[6] * H + 2.0 * c[8] * P + c[10] * t[4] + 2.0 * c[12] * t[3]
+            + c[14] * t[6] + 3.0 * c[15] * t[7] + c[16] * t[8] + 2.0 * c[18] * t[5])
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _dot_dH(c, L, P, H, t):
+    return (c[3] + c[5] * L + c[6] * P + 2.0 * c[9] * H + c[10] * t[3] + 2.0 * c[13] * t[4]
+            + 2.0 * c[16] * t[5] + c[17] * t[6] + c[18] * t[7] + 3.0 * c[19] * t[8])
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract"})
 def rpc_project(lon, lat, h, coefs, norm, out_samp, out_line):
     """Ground (flat float64 arrays) → RPC (samp, line), RPC pixel convention."""
     ln_c, ld_c, sn_c, sd_c = coefs[0], coefs[1], coefs[2], coefs[3]
@@ -51,11 +71,12 @@ def rpc_project(lon, lat, h, coefs, norm, out_samp, out_line):
         L = (lon[i] - norm[3]) / norm[8]
         P = (lat[i] - norm[2]) / norm[7]
         H = (h[i] - norm[4]) / norm[9]
-        out_line[i] = _poly(ln_c, L, P, H) / _poly(ld_c, L, P, H) * norm[5] + norm[0]
-        out_samp[i] = _poly(sn_c, L, P, H) / _poly(sd_c, L, P, H) * norm[6] + norm[1]
+        t = _monomials(L, P, H)
+        out_line[i] = _dot(ln_c, t) / _dot(ld_c, t) * norm[5] + norm[0]
+        out_samp[i] = _dot(sn_c, t) / _dot(sd_c, t) * norm[6] + norm[1]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract"})
 def rpc_dproj_dh(lon, lat, h, coefs, norm, out_dsamp, out_dline):
     """∂(samp, line)/∂h (pixels per metre) at fixed lon/lat."""
     ln_c, ld_c, sn_c, sd_c = coefs[0], coefs[1], coefs[2], coefs[3]
@@ -63,45 +84,186 @@ def rpc_dproj_dh(lon, lat, h, coefs, norm, out_dsamp, out_dline):
         L = (lon[i] - norm[3]) / norm[8]
         P = (lat[i] - norm[2]) / norm[7]
         H = (h[i] - norm[4]) / norm[9]
-        n = _poly(ln_c, L, P, H)
-        d = _poly(ld_c, L, P, H)
-        out_dline[i] = (_poly_dH(ln_c, L, P, H) * d - n * _poly_dH(ld_c, L, P, H)) / (d * d) * norm[5] / norm[9]
-        n = _poly(sn_c, L, P, H)
-        d = _poly(sd_c, L, P, H)
-        out_dsamp[i] = (_poly_dH(sn_c, L, P, H) * d - n * _poly_dH(sd_c, L, P, H)) / (d * d) * norm[6] / norm[9]
+        t = _monomials(L, P, H)
+        n = _dot(ln_c, t)
+        d = _dot(ld_c, t)
+        out_dline[i] = (_dot_dH(ln_c, L, P, H, t) * d - n * _dot_dH(ld_c, L, P, H, t)) / (d * d) * norm[5] / norm[9]
+        n = _dot(sn_c, t)
+        d = _dot(sd_c, t)
+        out_dsamp[i] = (_dot_dH(sn_c, L, P, H, t) * d - n * _dot_dH(sd_c, L, P, H, t)) / (d * d) * norm[6] / norm[9]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _residual(coefs, L, P, H, st, lt, ss, ls):
+    """Image residual (pixels) of the normalised model at (L, P, H) against targets st, lt."""
+    t = _monomials(L, P, H)
+    rs = (_dot(coefs[2], t) / _dot(coefs[3], t) - st) * ss
+    rl = (_dot(coefs[0], t) / _dot(coefs[1], t) - lt) * ls
+    return rs, rl
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract"})
 def _residual_and_jacobian(coefs, L, P, H, st, lt, ss, ls):
     """Residual (pixels) of the normalised model against targets st, lt, and its Jacobian."""
     ln_c, ld_c, sn_c, sd_c = coefs[0], coefs[1], coefs[2], coefs[3]
-    nl = _poly(ln_c, L, P, H)
-    dl = _poly(ld_c, L, P, H)
-    ns = _poly(sn_c, L, P, H)
-    ds = _poly(sd_c, L, P, H)
+    t = _monomials(L, P, H)
+    nl = _dot(ln_c, t)
+    dl = _dot(ld_c, t)
+    ns = _dot(sn_c, t)
+    ds = _dot(sd_c, t)
     rs = (ns / ds - st) * ss
     rl = (nl / dl - lt) * ls
     # quotient rule, scaled to pixels per normalised unit
-    j_sL = (_poly_dL(sn_c, L, P, H) * ds - ns * _poly_dL(sd_c, L, P, H)) / (ds * ds) * ss
-    j_sP = (_poly_dP(sn_c, L, P, H) * ds - ns * _poly_dP(sd_c, L, P, H)) / (ds * ds) * ss
-    j_lL = (_poly_dL(ln_c, L, P, H) * dl - nl * _poly_dL(ld_c, L, P, H)) / (dl * dl) * ls
-    j_lP = (_poly_dP(ln_c, L, P, H) * dl - nl * _poly_dP(ld_c, L, P, H)) / (dl * dl) * ls
+    qs = ss / (ds * ds)
+    ql = ls / (dl * dl)
+    j_sL = (_dot_dL(sn_c, L, P, H, t) * ds - ns * _dot_dL(sd_c, L, P, H, t)) * qs
+    j_sP = (_dot_dP(sn_c, L, P, H, t) * ds - ns * _dot_dP(sd_c, L, P, H, t)) * qs
+    j_lL = (_dot_dL(ln_c, L, P, H, t) * dl - nl * _dot_dL(ld_c, L, P, H, t)) * ql
+    j_lP = (_dot_dP(ln_c, L, P, H, t) * dl - nl * _dot_dP(ld_c, L, P, H, t)) * ql
     return rs, rl, j_sL, j_sP, j_lL, j_lP
 
 
-@njit(cache=True, parallel=True)
-def rpc_localize(samp, line, h, coefs, norm, init, tol_px, max_iter, out_lon, out_lat, out_iter):
-    """RPC (samp, line) + height → (lon, lat) by damped Newton on the exact Jacobian.
+#: layout of the ``init`` vector of :func:`rpc_localize`
+INIT_AFFINE = slice(0, 8)
+INIT_INNER = slice(8, 48)
+INIT_OUTER = slice(48, 88)
+INIT_BOX = slice(88, 92)
+INIT_SIZE = 92
+#: the cubic start is used inside its fit box, enlarged by this factor
+CUBIC_START_LIMIT = 1.25
 
-    ``init`` (8,) holds an affine start: [L, P] = M @ ([sn, ln] - a - b*H) with
-    M = init[0:4] (row-major 2x2), a = init[4:6], b = init[6:8].
-    Converges when the image residual is below ``tol_px`` pixels. A full Newton
-    step that does not reduce the residual is halved (up to 40 times), so the
-    iteration cannot wander off. Non-converged samples get NaN and
-    ``out_iter = -1``; otherwise ``out_iter`` is the number of iterations.
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _start(init, st, lt, H):
+    """Newton start (L, P): cubic inverse fits inside their boxes, affine inverse elsewhere."""
+    if abs(st) <= CUBIC_START_LIMIT and abs(lt) <= CUBIC_START_LIMIT:
+        t = _monomials(st, lt, H)
+        return _dot(init[8:28], t), _dot(init[28:48], t)
+    u = (st - init[88]) / init[89]
+    v = (lt - init[90]) / init[91]
+    if abs(u) <= CUBIC_START_LIMIT and abs(v) <= CUBIC_START_LIMIT:
+        t = _monomials(u, v, H)
+        return _dot(init[48:68], t), _dot(init[68:88], t)
+    u = st - init[4] - init[6] * H
+    v = lt - init[5] - init[7] * H
+    return init[0] * u + init[1] * v, init[2] * u + init[3] * v
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _newton(coefs, L, P, H, st, lt, ss, ls, tol2, max_iter):
+    """Damped Newton from (L, P); returns (L, P, iterations, converged)."""
+    rs, rl, a, b, c, d = _residual_and_jacobian(coefs, L, P, H, st, lt, ss, ls)
+    r2 = rs * rs + rl * rl
+    it = 0
+    if not np.isfinite(r2):
+        return L, P, it, False
+    ok = r2 <= tol2
+    while not ok and it < max_iter:
+        it += 1
+        det = a * d - b * c
+        if det == 0.0 or not np.isfinite(det):
+            break
+        dL = (d * rs - b * rl) / det
+        dP = (-c * rs + a * rl) / det
+        step = 1.0
+        improved = False
+        Ln = L
+        Pn = P
+        rs2 = rs
+        rl2 = rl
+        r2n = r2
+        for _ in range(40):
+            Ln = L - step * dL
+            Pn = P - step * dP
+            rs2, rl2 = _residual(coefs, Ln, Pn, H, st, lt, ss, ls)
+            r2n = rs2 * rs2 + rl2 * rl2
+            if np.isfinite(r2n) and r2n < r2:
+                improved = True
+                break
+            step *= 0.5
+        if not improved:
+            # no descent possible: either converged to machine precision or stuck
+            ok = r2 <= tol2 * 1e4
+            break
+        L = Ln
+        P = Pn
+        r2 = r2n
+        ok = r2 <= tol2
+        if not ok:
+            rs, rl, a, b, c, d = _residual_and_jacobian(coefs, L, P, H, st, lt, ss, ls)
+    return L, P, it, ok
+
+
+@njit(cache=True, error_model="numpy", fastmath={"contract"})
+def _multistart(coefs, H, st, lt, ss, ls, tol2, max_iter):
+    """Fallback: Newton from the grid node whose image is nearest the target.
+
+    The grid covers the validity box [-1, 1]² first, then [-2, 2]² (RPCs can fold outside
+    their validity box, so the wider grid alone may pick a node of another branch).
+    """
+    n = 41
+    for half in (1.0, 2.0):
+        best = np.inf
+        bL = 0.0
+        bP = 0.0
+        for j in range(n):
+            Lg = half * (-1.0 + 2.0 * j / (n - 1))
+            for k in range(n):
+                Pg = half * (-1.0 + 2.0 * k / (n - 1))
+                rs, rl = _residual(coefs, Lg, Pg, H, st, lt, ss, ls)
+                r2 = rs * rs + rl * rl
+                if np.isfinite(r2) and r2 < best:
+                    best = r2
+                    bL = Lg
+                    bP = Pg
+        if np.isfinite(best):
+            L, P, it, ok = _newton(coefs, bL, bP, H, st, lt, ss, ls, tol2, max_iter)
+            if ok:
+                return L, P, it, ok
+    return 0.0, 0.0, 0, False
+
+
+#: ``out_iter`` marker of the fast pass for samples the robust pass must redo
+_REDO = -2
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract"})
+def _localize_fast(samp, line, h, coefs, norm, init, tol2, out_lon, out_lat, out_iter):
+    """One full Newton step from the cubic start, without branches (the loop vectorizes).
+
+    Samples whose residual after the step is not below the tolerance get ``out_iter = -2``.
     """
     ss, ls = norm[6], norm[5]
+    ci0, ci1, co0, co1 = init[8:28], init[28:48], init[48:68], init[68:88]
+    cu, hu, cv, hv = init[88], init[89], init[90], init[91]
+    lim = CUBIC_START_LIMIT
     for i in prange(samp.shape[0]):
+        st = (samp[i] - norm[1]) / ss
+        lt = (line[i] - norm[0]) / ls
+        H = (h[i] - norm[4]) / norm[9]
+        inner = (abs(st) <= lim) and (abs(lt) <= lim)
+        ti = _monomials(st, lt, H)
+        to = _monomials((st - cu) / hu, (lt - cv) / hv, H)
+        L0 = _dot(ci0, ti) if inner else _dot(co0, to)
+        P0 = _dot(ci1, ti) if inner else _dot(co1, to)
+        rs, rl, a, b, c, d = _residual_and_jacobian(coefs, L0, P0, H, st, lt, ss, ls)
+        det = a * d - b * c
+        L1 = L0 - (d * rs - b * rl) / det
+        P1 = P0 - (a * rl - c * rs) / det
+        rs1, rl1 = _residual(coefs, L1, P1, H, st, lt, ss, ls)
+        ok = rs1 * rs1 + rl1 * rl1 <= tol2  # False for NaN
+        out_lon[i] = L1 * norm[8] + norm[3]
+        out_lat[i] = P1 * norm[7] + norm[2]
+        out_iter[i] = 1 if ok else _REDO
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract"})
+def _localize_robust(samp, line, h, coefs, norm, init, tol2, max_iter, out_lon, out_lat, out_iter):
+    """Damped Newton (with the multi-start fallback) for the samples marked by the fast pass."""
+    ss, ls = norm[6], norm[5]
+    for i in prange(samp.shape[0]):
+        if out_iter[i] != _REDO:
+            continue
         st = (samp[i] - norm[1]) / ss
         lt = (line[i] - norm[0]) / ls
         H = (h[i] - norm[4]) / norm[9]
@@ -110,38 +272,11 @@ def rpc_localize(samp, line, h, coefs, norm, init, tol_px, max_iter, out_lon, ou
             out_lat[i] = np.nan
             out_iter[i] = -1
             continue
-        u = st - init[4] - init[6] * H
-        v = lt - init[5] - init[7] * H
-        L = init[0] * u + init[1] * v
-        P = init[2] * u + init[3] * v
-        rs, rl, a, b, c, d = _residual_and_jacobian(coefs, L, P, H, st, lt, ss, ls)
-        r2 = rs * rs + rl * rl
-        it = 0
-        ok = r2 <= tol_px * tol_px
-        while not ok and it < max_iter:
-            it += 1
-            det = a * d - b * c
-            if det == 0.0 or not np.isfinite(det):
-                break
-            dL = (d * rs - b * rl) / det
-            dP = (-c * rs + a * rl) / det
-            step = 1.0
-            improved = False
-            for _ in range(40):
-                Ln = L - step * dL
-                Pn = P - step * dP
-                rs2, rl2, a2, b2, c2, d2 = _residual_and_jacobian(coefs, Ln, Pn, H, st, lt, ss, ls)
-                r2n = rs2 * rs2 + rl2 * rl2
-                if np.isfinite(r2n) and r2n < r2:
-                    improved = True
-                    break
-                step *= 0.5
-            if not improved:
-                # no descent possible: either converged to machine precision or stuck
-                ok = r2 <= tol_px * tol_px * 1e4
-                break
-            L, P, rs, rl, a, b, c, d, r2 = Ln, Pn, rs2, rl2, a2, b2, c2, d2, r2n
-            ok = r2 <= tol_px * tol_px
+        L0, P0 = _start(init, st, lt, H)
+        L, P, it, ok = _newton(coefs, L0, P0, H, st, lt, ss, ls, tol2, max_iter)
+        if not ok:
+            L, P, it, ok = _multistart(coefs, H, st, lt, ss, ls, tol2, max_iter)
+            it += max_iter
         if ok:
             out_lon[i] = L * norm[8] + norm[3]
             out_lat[i] = P * norm[7] + norm[2]
@@ -150,6 +285,32 @@ def rpc_localize(samp, line, h, coefs, norm, init, tol_px, max_iter, out_lon, ou
             out_lon[i] = np.nan
             out_lat[i] = np.nan
             out_iter[i] = -1
+
+
+def rpc_localize(samp, line, h, coefs, norm, init, tol_px, max_iter, out_lon, out_lat, out_iter):
+    """RPC (samp, line) + height → (lon, lat) by Newton on the exact Jacobian.
+
+    ``init`` (92,) holds three starts, all in normalised coordinates:
+    ``init[0:8]`` an affine inverse [L, P] = M @ ([sn, ln] - a - b*H) with M = init[0:4]
+    (row-major 2x2), a = init[4:6], b = init[6:8]; ``init[8:48]`` a cubic inverse over
+    the image box, L = init[8:28] · T(sn, ln, H), P = init[28:48] · T(sn, ln, H)
+    (T = RPC00B monomials), used where |sn|, |ln| <= 1.25; ``init[48:88]`` the same over
+    the image of the validity cube, in u = (sn - init[88]) / init[89],
+    v = (ln - init[90]) / init[91], used where |u|, |v| <= 1.25.
+
+    Two passes. The fast pass (:func:`_localize_fast`, vectorized) takes one full Newton
+    step from the cubic start and keeps it when the image residual is below ``tol_px``
+    pixels (nearly every sample: the cubic start is within ~1e-3 px). The robust pass
+    (:func:`_localize_robust`) redoes the others with damped Newton: a step that does not
+    reduce the residual is halved (up to 40 times), so the iteration cannot wander off;
+    samples that still do not converge are retried from the nearest node of a coarse grid
+    over the validity box, then over [-2, 2]². Non-converged samples get NaN and
+    ``out_iter = -1``; otherwise ``out_iter`` is the number of Newton iterations (of the
+    retry, plus ``max_iter``, when the retry was needed).
+    """
+    tol2 = float(tol_px) * float(tol_px)
+    _localize_fast(samp, line, h, coefs, norm, init, tol2, out_lon, out_lat, out_iter)
+    _localize_robust(samp, line, h, coefs, norm, init, tol2, int(max_iter), out_lon, out_lat, out_iter)
 
 
 # ---------------------------------------------------------------------------------------

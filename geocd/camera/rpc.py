@@ -90,6 +90,7 @@ class RPCModel(Camera):
     _coefs: np.ndarray = field(init=False, repr=False)
     _norm: np.ndarray = field(init=False, repr=False)
     _init: np.ndarray = field(init=False, repr=False)
+    _cubic_ready: bool = field(init=False, repr=False, default=False)
 
     kind: ClassVar[str] = "rpc"
 
@@ -152,38 +153,99 @@ class RPCModel(Camera):
                             source=f"{self.source} cropped at col={col0:g} row={row0:g}")
 
     def _affine_start(self) -> np.ndarray:
-        """Affine fit (sn, ln) ≈ a + A [L, P] + b H over the validity cube; inverse as Newton start."""
+        """Newton start vector (see :func:`_kernels.rpc_localize`), affine part only.
+
+        Affine fit (sn, ln) ≈ a + A [L, P] + b H over the validity cube, inverted; the cubic
+        slot holds the same affine map until :meth:`_fit_cubic_start` refines it.
+        """
         g = np.linspace(-1.0, 1.0, 7)
         L, P, H = (a.ravel() for a in np.meshgrid(g, g, g, indexing="ij"))
         T = K.terms_ref(L, P, H)
         with np.errstate(all="ignore"):
             sn = (self._coefs[2] @ T) / (self._coefs[3] @ T)
             ln = (self._coefs[0] @ T) / (self._coefs[1] @ T)
-        ok = np.isfinite(sn) & np.isfinite(ln)
+        ok = np.isfinite(sn) & np.isfinite(ln) & (np.abs(sn) < 1e150) & (np.abs(ln) < 1e150)
+        if ok.sum() < 4:
+            raise RPCParseError("the RPC has no finite image coordinates over its validity box; the file is corrupt")
         X = np.column_stack([np.ones(ok.sum()), L[ok], P[ok], H[ok]])
-        cs, *_ = np.linalg.lstsq(X, sn[ok], rcond=None)
-        cl, *_ = np.linalg.lstsq(X, ln[ok], rcond=None)
-        A = np.array([[cs[1], cs[2]], [cl[1], cl[2]]])
         try:
+            with np.errstate(all="ignore"):
+                cs, *_ = np.linalg.lstsq(X, sn[ok], rcond=None)
+                cl, *_ = np.linalg.lstsq(X, ln[ok], rcond=None)
+            A = np.array([[cs[1], cs[2]], [cl[1], cl[2]]])
             M = np.linalg.inv(A)
         except np.linalg.LinAlgError as exc:
             raise RPCParseError(
                 "the RPC does not map ground to image one-to-one (singular affine part); the file is corrupt"
             ) from exc
-        return np.array([M[0, 0], M[0, 1], M[1, 0], M[1, 1], cs[0], cl[0], cs[3], cl[3]])
+        init = np.zeros(K.INIT_SIZE)
+        init[K.INIT_AFFINE] = [M[0, 0], M[0, 1], M[1, 0], M[1, 1], cs[0], cl[0], cs[3], cl[3]]
+        if not np.all(np.isfinite(init[K.INIT_AFFINE])):
+            raise RPCParseError("the RPC's affine part is not finite; the file is corrupt")
+        # the cubic start's box: the image box [-1, 1]² and the image of the validity cube
+        with np.errstate(all="ignore"):
+            s0, s1 = min(-1.0, np.percentile(sn[ok], 0.0)), max(1.0, np.percentile(sn[ok], 100.0))
+            l0, l1 = min(-1.0, np.percentile(ln[ok], 0.0)), max(1.0, np.percentile(ln[ok], 100.0))
+        s0, s1, l0, l1 = (float(np.clip(v, -1e6, 1e6)) for v in (s0, s1, l0, l1))
+        init[K.INIT_BOX] = [(s0 + s1) / 2, (s1 - s0) / 2, (l0 + l1) / 2, (l1 - l0) / 2]
+        # until _fit_cubic_start runs, the cubic slots hold the same affine map:
+        # L = c0 + c1 u + c2 v + c3 H with sn = cu + hu u, ln = cv + hv v
+        a0, a1, b0, b1 = cs[0], cl[0], cs[3], cl[3]
+        for base, (cu, hu, cv, hv) in ((8, (0.0, 1.0, 0.0, 1.0)), (48, tuple(init[K.INIT_BOX]))):
+            for row, (m0, m1) in ((base, (M[0, 0], M[0, 1])), (base + 20, (M[1, 0], M[1, 1]))):
+                init[row:row + 4] = [m0 * (cu - a0) + m1 * (cv - a1), m0 * hu, m1 * hv, -m0 * b0 - m1 * b1]
+        return init
+
+    def _fit_cubic_start(self) -> None:
+        """Refine the Newton starts: cubic (L, P) = f(sn, ln, H) fitted on exact image-space grids.
+
+        Two fits: over the image box (|sn|, |ln| <= 1) and over the image of the validity
+        cube (which is larger for RPCs of crops). Done once, on the first localization, not at
+        construction (reading a file stays cheap).
+        """
+        init = self._init.copy()
+        for base, (cu, hu, cv, hv) in ((8, (0.0, 1.0, 0.0, 1.0)), (48, tuple(self._init[K.INIT_BOX]))):
+            g = np.linspace(-1.0, 1.0, 13)
+            u, v, H = (a.ravel() for a in np.meshgrid(g, g, np.linspace(-1.0, 1.0, 5), indexing="ij"))
+            st, lt = cu + hu * u, cv + hv * v
+            n = st.size
+            lon = np.empty(n)
+            lat = np.empty(n)
+            its = np.empty(n, dtype=np.int32)
+            K.rpc_localize(st * self.samp_scale + self.samp_off, lt * self.line_scale + self.line_off,
+                           H * self.height_scale + self.height_off, self._coefs, self._norm, self._init,
+                           1e-10, 60, lon, lat, its)
+            ok = its >= 0
+            if ok.sum() < 60:
+                continue  # keep the affine start there
+            X = K.terms_ref(u[ok], v[ok], H[ok]).T
+            Lt = (lon[ok] - self.lon_off) / self.lon_scale
+            Pt = (lat[ok] - self.lat_off) / self.lat_scale
+            try:
+                cL, *_ = np.linalg.lstsq(X, Lt, rcond=None)
+                cP, *_ = np.linalg.lstsq(X, Pt, rcond=None)
+            except np.linalg.LinAlgError:
+                continue
+            if np.all(np.isfinite(cL)) and np.all(np.isfinite(cP)):
+                init[base:base + 20] = cL
+                init[base + 20:base + 40] = cP
+        object.__setattr__(self, "_init", init)
+        object.__setattr__(self, "_cubic_ready", True)
 
     # --- the camera protocol ---------------------------------------------------------
     def project(self, lon, lat, h):
+        shape = np.broadcast_shapes(np.shape(lon), np.shape(lat), np.shape(h))  # scalars in, scalars out
         lon, lat, h = _as_f64(lon, lat, h)
-        shape = lon.shape
         s = np.empty(lon.size)
         ln = np.empty(lon.size)
         K.rpc_project(lon.ravel(), lat.ravel(), h.ravel(), self._coefs, self._norm, s, ln)
-        return (s + PIXEL_SHIFT).reshape(shape), (ln + PIXEL_SHIFT).reshape(shape)
+        s += PIXEL_SHIFT
+        ln += PIXEL_SHIFT
+        return s.reshape(shape), ln.reshape(shape)
 
     def dproj_dh(self, lon, lat, h):
+        shape = np.broadcast_shapes(np.shape(lon), np.shape(lat), np.shape(h))  # scalars in, scalars out
         lon, lat, h = _as_f64(lon, lat, h)
-        shape = lon.shape
         ds = np.empty(lon.size)
         dl = np.empty(lon.size)
         K.rpc_dproj_dh(lon.ravel(), lat.ravel(), h.ravel(), self._coefs, self._norm, ds, dl)
@@ -203,11 +265,13 @@ class RPCModel(Camera):
             Raise :class:`LocalizationError` if any finite sample did not converge
             (default: such samples are NaN).
         """
+        shape = np.broadcast_shapes(np.shape(col), np.shape(row), np.shape(h))
         col, row, h = _as_f64(col, row, h)
-        shape = col.shape
         lon = np.empty(col.size)
         lat = np.empty(col.size)
         its = np.empty(col.size, dtype=np.int32)
+        if not self._cubic_ready:
+            self._fit_cubic_start()
         K.rpc_localize((col - PIXEL_SHIFT).ravel(), (row - PIXEL_SHIFT).ravel(), h.ravel(),
                        self._coefs, self._norm, self._init, float(tol_px), int(max_iter), lon, lat, its)
         if strict:
