@@ -68,7 +68,10 @@ def raster_summary(path: Path) -> dict[str, Any]:
                              "height": ds.height, "bands": ds.count, "dtype": ds.dtypes[0],
                              "nodata": ds.nodata}
         if ds.crs:
-            d["crs"] = ds.crs.to_string()
+            from .geodesy import as_crs
+
+            c = as_crs(ds.crs)
+            d["crs"] = f"EPSG:{c.to_epsg()}" if c.to_epsg() else c.name
             d["vertical_datum"] = vertical_datum_of(ds.crs)
             d["bounds"] = list(ds.bounds)
             d["resolution"] = list(ds.res)
@@ -90,6 +93,7 @@ def raster_summary(path: Path) -> dict[str, Any]:
         d["camera"] = camera_summary(load_camera(path))
     except NoCameraError:
         d["camera"] = None
+        d["georeferenced"] = "crs" in d
     return d
 
 

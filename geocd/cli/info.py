@@ -42,7 +42,10 @@ def format_info(d: dict) -> str:
             out.append(f"  values: {d['min']:g} .. {d['max']:g}, valid {100 * d['valid_fraction']:.1f}%")
         else:
             out.append("  values: all nodata")
-        out += _fmt_camera(d.get("camera"))
+        if d.get("camera") is None and d.get("georeferenced"):
+            out.append("  camera: none (a georeferenced raster: DEM or orthoimage)")
+        else:
+            out += _fmt_camera(d.get("camera"))
     elif t == "camera":
         out.append(f"{d['path']}: camera file")
         out += _fmt_camera(d["camera"])

@@ -1,0 +1,171 @@
+"""``geocd run``, ``geocd consistency`` and ``geocd change``: the self-consistency change detection."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+def _confidences(values) -> tuple[float, ...]:
+    return tuple(sorted(set(float(v) for v in values))) if values else (90.0, 95.0, 99.0)
+
+
+@click.command("run")
+@click.argument("manifest", type=click.Path(path_type=str), default="sample_aoi")
+@click.option("--out", "out_dir", type=click.Path(path_type=str), default=None,
+              help="Output folder (default: the manifest's 'output', e.g. sample_aoi/out).")
+@click.option("--model", "model_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
+              help="Scene-class self-consistency model (JSON) to use instead of learning one here.")
+@click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
+              help="Run configuration (YAML/JSON, same tree as the run_config.json written by a run).")
+@click.option("--confidence", "confidences", type=float, multiple=True,
+              help="Confidence levels in percent (repeatable; default 90 95 99).")
+@click.option("--report-confidence", type=float, default=None, help="Level for regions and buildings (default 99).")
+@click.option("--footprints", type=click.Path(exists=True, path_type=str), default=None,
+              help="Building footprints to attribute (default: the manifest's).")
+@click.option("--posting", "posting_m", type=float, default=None, help="Grid posting, metres.")
+@click.option("--epoch-a", default=None, help="Earlier epoch (default: the first).")
+@click.option("--epoch-b", default=None, help="Later epoch (default: the last).")
+@click.pass_context
+def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_confidence, footprints, posting_m,
+        epoch_a, epoch_b):
+    """Full run on MANIFEST (default: sample_aoi): stereo → self-consistency baseline → change test → layers.
+
+    Writes pair-DEMs (OUT/stereo), the scene-class model, change rasters (COG + QGIS styles), the changes/buildings/
+    curves GeoPackage, plots, run_config.json and run_summary.json.
+    """
+    from ..consistency import ChangeParams, ConsistencyParams
+    from ..pipeline import RunConfig, run as run_pipeline
+    from . import emit_result, make_progress
+
+    cfg = RunConfig.load(config_path) if config_path else RunConfig()
+    changes = {}
+    if confidences:
+        c = _confidences(confidences)
+        changes["consistency"] = ConsistencyParams(**{**cfg.consistency.__dict__, "confidences": c})
+        changes["change"] = ChangeParams(**{**cfg.change.__dict__, "confidences": c})
+    for k, v in (("model_path", model_path), ("region_confidence", report_confidence), ("posting_m", posting_m),
+                 ("epoch_a", epoch_a), ("epoch_b", epoch_b)):
+        if v is not None:
+            changes[k] = v
+    import dataclasses
+
+    cfg = dataclasses.replace(cfg, **changes)
+    progress = make_progress(ctx, "run")
+    try:
+        res = run_pipeline(manifest, out_dir=out_dir, config=cfg, progress=progress, footprints=footprints)
+    finally:
+        if hasattr(progress, "close"):
+            progress.close()
+    s = res["summary"]
+    if (ctx.find_root().obj or {}).get("progress_mode") != "json":
+        click.echo(f"compared {s['epoch_a']} → {s['epoch_b']} on a {s['grid']['width']}x{s['grid']['height']} grid; "
+                   f"observed {100 * s['observed_fraction']:.1f}% of cells; changed: "
+                   + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items()), err=True)
+        if "buildings" in s:
+            click.echo(f"buildings: {s['buildings']}", err=True)
+    emit_result(ctx, {k: v for k, v in res["outputs"].items() if not k.startswith("stereo:")})
+
+
+def _read_pairs(paths):
+    from ..stereo import read_pair_dem
+
+    return [read_pair_dem(p) for p in paths]
+
+
+@click.command("consistency")
+@click.argument("pair_dems", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=str))
+@click.option("--out", "out_path", required=True, type=click.Path(dir_okay=False, path_type=str),
+              help="Scene-class model to write (JSON).")
+@click.option("--group-by", type=click.Choice(["epoch", "none"]), default="epoch", show_default=True,
+              help="Compare pair-DEMs within each epoch (from their tags), or all together (one static scene).")
+@click.option("--confidence", "confidences", type=float, multiple=True, help="Levels in percent (default 90 95 99).")
+@click.option("--scene-class", default="", help="Scene class recorded in the model (e.g. urban, suburban, rural).")
+@click.option("--sensor", default="", help="Sensor recorded in the model.")
+@click.option("--bins", "n_bins", type=int, default=24, show_default=True, help="Number of score bins.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=str), default=None,
+              help="Also write the scatter + curves PNG.")
+@click.pass_context
+def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, sensor, n_bins, plot_path):
+    """Learn a self-consistency model (stage 1) from pair-DEMs of a static scene (GeoTIFFs from `geocd stereo`)."""
+    from ..consistency import ConsistencyParams, learn_self_consistency
+    from . import emit_result, make_progress
+
+    pairs = _read_pairs(pair_dems)
+    groups: dict[str, list] = {}
+    for p in pairs:
+        groups.setdefault(p.epoch if group_by == "epoch" else "all", []).append(p)
+    params = ConsistencyParams(confidences=_confidences(confidences), n_score_bins=n_bins)
+    prov = {"scene_class": scene_class, "sensor": sensor, "pair_dems": [str(Path(p).resolve()) for p in pair_dems],
+            "gsd_m": pairs[0].grid.posting_m, "score": pairs[0].meta.get("score_kind", "")}
+    progress = make_progress(ctx, "consistency")
+    model = learn_self_consistency(list(groups.values()), params, provenance=prov, progress=progress)
+    outputs = {"model": model.save(out_path)}
+    if plot_path:
+        from ..change.plots_sc import plot_scatter_curves
+
+        outputs["scatter"] = plot_scatter_curves(model, plot_path)
+    if (ctx.find_root().obj or {}).get("progress_mode") != "json":
+        click.echo(model.curves_table().to_string(index=False, float_format=lambda v: f"{v:.3f}"), err=True)
+    emit_result(ctx, outputs)
+
+
+@click.command("change")
+@click.option("-a", "--epoch-a", "a_paths", multiple=True, type=click.Path(exists=True, dir_okay=False, path_type=str),
+              help="Pair-DEM GeoTIFF of the earlier epoch (repeatable).")
+@click.option("-b", "--epoch-b", "b_paths", multiple=True, type=click.Path(exists=True, dir_okay=False, path_type=str),
+              help="Pair-DEM GeoTIFF of the later epoch (repeatable).")
+@click.option("--dem-a", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
+              help="A DEM standing for the earlier epoch (treated as exact: only the stereo side's uncertainty counts).")
+@click.option("--dem-b", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
+              help="A DEM standing for the later epoch.")
+@click.option("--dem-vertical-datum", default=None, help="Vertical datum of --dem-a/--dem-b (ellipsoid, egm96, egm2008).")
+@click.option("--model", "model_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=str),
+              help="Self-consistency model (from `geocd consistency` or a run).")
+@click.option("--footprints", type=click.Path(exists=True, path_type=str), default=None, help="Footprints to attribute.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str), help="Output folder.")
+@click.option("--confidence", "confidences", type=float, multiple=True, help="Levels in percent (default 90 95 99).")
+@click.option("--report-confidence", type=float, default=99.0, show_default=True)
+@click.option("--combine", type=click.Choice(["majority", "all", "any"]), default="majority", show_default=True)
+@click.pass_context
+def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, footprints, out_dir, confidences,
+           report_confidence, combine):
+    """Stage 2: test cross-epoch pair-DEMs (or a DEM standing for an epoch) against a self-consistency model."""
+    from ..change.buildings import classify_buildings
+    from ..change.products import write_change_products
+    from ..consistency import ChangeParams, DEMAsEpoch, SelfConsistencyModel, change_test
+    from ..errors import ConfigError
+    from ..io.raster import read_dem
+    from ..io.vector import read_footprints
+    from ..pipeline import _median_surface
+    from . import emit_result, make_progress
+
+    A, B = _read_pairs(a_paths), _read_pairs(b_paths)
+    if not (A or B):
+        raise ConfigError("give pair-DEMs of both epochs (-a ... -b ...), or one epoch's pair-DEMs and a DEM for the other")
+    grid = (A or B)[0].grid
+    for p in A + B:
+        if not p.grid.same_as(grid):
+            raise ConfigError(f"pair-DEM {p.name} is on another grid than {(A or B)[0].name}; run stereo on one AOI grid")
+    if dem_a:
+        A.append(DEMAsEpoch(read_dem(dem_a, grid=grid, vertical_datum=dem_vertical_datum).to_ellipsoidal().height_m, grid, "dem_a"))
+    if dem_b:
+        B.append(DEMAsEpoch(read_dem(dem_b, grid=grid, vertical_datum=dem_vertical_datum).to_ellipsoidal().height_m, grid, "dem_b"))
+    if not A or not B:
+        raise ConfigError("each epoch needs at least one pair-DEM or a DEM (--dem-a/--dem-b)")
+    model = SelfConsistencyModel.load(model_path)
+    params = ChangeParams(confidences=_confidences(confidences), combine=combine)
+    progress = make_progress(ctx, "change")
+    res = change_test(A, B, model, params, progress=progress)
+    buildings = None
+    if footprints:
+        fps = read_footprints(footprints, crs=grid.crs)
+        id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
+        mask = res.changed_at(report_confidence) if report_confidence in res.confidences else res.change
+        buildings = classify_buildings(fps, mask, res.dz_m, grid, z_a=_median_surface(A), z_b=_median_surface(B),
+                                       confidence=res.confidence, id_field=id_field)
+    paths = write_change_products(out_dir, res, grid, method="self-consistency", epoch_a=A[0].epoch if hasattr(A[0], "epoch") else "A",
+                                  epoch_b=B[0].epoch if hasattr(B[0], "epoch") else "B", region_confidence=report_confidence,
+                                  model=model, buildings=buildings, prefix="sc")
+    emit_result(ctx, paths)

@@ -1,0 +1,228 @@
+"""The full run: stereo → self-consistency baseline → change test → products.
+
+One config tree (:class:`RunConfig`, frozen dataclasses) drives it and is
+written beside the outputs (``run_config.json``) as a record of the run,
+together with ``run_summary.json`` (inputs, grid, counts, outputs).
+
+Epoch roles: the first and last epochs of the manifest (by date, else by
+order) are compared; every epoch with two or more pair-DEMs contributes its
+within-epoch comparisons to the baseline (unless a scene-class model is given).
+An epoch given as a DEM (``epochs[].dem``, no images) stands for that epoch
+(:class:`geocd.consistency.DEMAsEpoch`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .change.buildings import BuildingParams
+from .consistency import ChangeParams, ConsistencyParams, DEMAsEpoch, SelfConsistencyModel, change_test, learn_self_consistency
+from .errors import ConfigError, ProcessingError
+from .progress import Progress, ensure_progress, sub_progress
+
+
+def _stereo_params_cls():
+    from .stereo import StereoParams
+
+    return StereoParams
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Every parameter of ``geocd run`` (written to ``run_config.json``).
+
+    Attributes
+    ----------
+    stereo : StereoParams
+    consistency : ConsistencyParams
+    change : ChangeParams
+    buildings : BuildingParams
+    region_confidence : float
+        Confidence (percent) at which changed regions/buildings are reported.
+    model_path : str, optional
+        A saved scene-class model to use instead of learning one (needed with one pair per epoch).
+    posting_m : float, optional
+        Grid posting override.
+    epoch_a, epoch_b : str, optional
+        Epochs to compare (default: first and last).
+    """
+
+    stereo: Any = field(default_factory=lambda: _stereo_params_cls()())
+    consistency: ConsistencyParams = ConsistencyParams()
+    change: ChangeParams = ChangeParams()
+    buildings: BuildingParams = BuildingParams()
+    region_confidence: float = 99.0
+    model_path: str | None = None
+    posting_m: float | None = None
+    epoch_a: str | None = None
+    epoch_b: str | None = None
+
+    def to_dict(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d["stereo"] = self.stereo.to_dict()
+        for k in ("consistency", "change", "buildings"):
+            d[k] = dataclasses.asdict(getattr(self, k))
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RunConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ConfigError(f"unknown run configuration keys {sorted(unknown)}; known: {sorted(known)}")
+        kw = dict(d)
+        if "stereo" in kw:
+            kw["stereo"] = _stereo_params_cls().from_dict(kw["stereo"])
+        for k, c in (("consistency", ConsistencyParams), ("change", ChangeParams), ("buildings", BuildingParams)):
+            if k in kw:
+                sub = dict(kw[k])
+                for t in ("confidences",):
+                    if t in sub:
+                        sub[t] = tuple(sub[t])
+                try:
+                    kw[k] = c(**sub)
+                except TypeError as exc:
+                    raise ConfigError(f"bad '{k}' configuration: {exc}") from exc
+        return cls(**kw)
+
+    @classmethod
+    def load(cls, path: os.PathLike | str) -> "RunConfig":
+        import yaml
+
+        p = Path(path)
+        try:
+            d = yaml.safe_load(p.read_text(encoding="utf-8"))
+        except Exception as exc:
+            raise ConfigError(f"cannot read the run configuration {p}: {exc}") from exc
+        return cls.from_dict(d or {})
+
+
+def pick_epochs(manifest, epoch_a: str | None = None, epoch_b: str | None = None):
+    """The two epochs to compare (explicit, else first and last by date/order)."""
+    eps = list(manifest.epochs)
+    if len(eps) < 2 and not (epoch_a and epoch_b):
+        raise ConfigError(f"change detection needs two epochs; the manifest has {len(eps)}")
+    if all(e.date for e in eps):
+        eps = sorted(eps, key=lambda e: e.date)
+    a = manifest.epoch(epoch_a) if epoch_a else eps[0]
+    b = manifest.epoch(epoch_b) if epoch_b else eps[-1]
+    if a.name == b.name:
+        raise ConfigError(f"epoch_a and epoch_b are both {a.name!r}; pick two different epochs")
+    return a, b
+
+
+def _dem_epoch(spec, grid, name: str) -> DEMAsEpoch:
+    from .io.raster import read_dem
+
+    dem = read_dem(spec.path, grid=grid, vertical_datum=spec.vertical_datum).to_ellipsoidal()
+    return DEMAsEpoch(dem.height_m, grid, name=f"{name}:dem")
+
+
+def _median_surface(recs: Sequence[Any]) -> np.ndarray:
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs]), axis=0).astype(np.float32)
+
+
+def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig = RunConfig(),
+        progress: Progress | None = None, footprints: os.PathLike | str | None = None) -> dict[str, Any]:
+    """Run the whole self-consistency change detection on a manifest.
+
+    Returns
+    -------
+    dict: outputs ({name: path}), summary (dict written to run_summary.json).
+    """
+    from .change.buildings import classify_buildings
+    from .change.products import write_change_products
+    from .io.atomic import write_text_atomic
+    from .io.manifest import Manifest, load_manifest
+    from .io.vector import read_footprints
+    from .stereo.pipeline import run_stereo
+
+    prog = ensure_progress(progress)
+    m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
+    out = Path(out_dir) if out_dir is not None else Path(m.output)
+    out.mkdir(parents=True, exist_ok=True)
+    ea, eb = pick_epochs(m, config.epoch_a, config.epoch_b)
+    model = SelfConsistencyModel.load(config.model_path) if config.model_path else None
+    for e in (ea, eb):
+        if len(e.images) < 2 and e.dem is None:
+            raise ConfigError(
+                f"epoch {e.name!r} has {len(e.images)} image(s) and no DEM: a stereo pair needs two images. Add an "
+                "image, or give a DEM standing for this epoch (epochs[].dem)")
+    stereo_epochs = [e.name for e in m.epochs if len(e.images) >= 2]
+    prog(0.0, "stereo")
+    st = run_stereo(m, epochs=stereo_epochs, out_dir=out / "stereo", params=config.stereo, posting_m=config.posting_m,
+                    keep_arrays=True, progress=sub_progress(prog, 0.0, 0.75, "stereo: "))
+    grid = st["grid"]
+    by_epoch: dict[str, list] = {}
+    for key, pdem in st["pairs"].items():
+        by_epoch.setdefault(pdem.epoch or key.split("/")[0], []).append(pdem)
+    recs_a = by_epoch.get(ea.name, []) or ([_dem_epoch(ea.dem, grid, ea.name)] if ea.dem else [])
+    recs_b = by_epoch.get(eb.name, []) or ([_dem_epoch(eb.dem, grid, eb.name)] if eb.dem else [])
+    if model is None:
+        groups = [g for g in by_epoch.values() if len(g) >= 2]
+        if not groups:
+            raise ConfigError(
+                "no epoch has two or more image pairs, so the self-consistency distribution cannot be learned here; "
+                "pass a scene-class model learned on another scene of the same class (--model MODEL.json, made with "
+                "`geocd consistency`)")
+        prog(0.76, "learning the self-consistency distribution")
+        prov = {"scene": m.name, "scene_class": m.scene_class,
+                "epochs": {e: [p.name for p in g] for e, g in by_epoch.items() if len(g) >= 2},
+                "dates": {e.name: e.date.isoformat() if e.date else None for e in m.epochs},
+                "sensors": {e.name: e.sensor for e in m.epochs}, "gsd_m": grid.posting_m,
+                "score": config.stereo.score}
+        model = learn_self_consistency(groups, config.consistency, provenance=prov,
+                                       progress=sub_progress(prog, 0.76, 0.82))
+    model_path = model.save(out / "self_consistency_model.json")
+    prog(0.83, "cross-epoch change test")
+    res = change_test(recs_a, recs_b, model, config.change, progress=sub_progress(prog, 0.83, 0.9))
+    buildings = None
+    fp_path = footprints or (m.footprints.path if m.footprints is not None else None)
+    if fp_path is not None:
+        fps = read_footprints(fp_path, crs=grid.crs, layer=m.footprints.layer if (m.footprints and not footprints) else None)
+        id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
+        buildings = classify_buildings(fps, res.changed_at(config.region_confidence) if config.region_confidence in res.confidences
+                                       else res.change, res.dz_m, grid, z_a=_median_surface(recs_a),
+                                       z_b=_median_surface(recs_b), confidence=res.confidence, params=config.buildings,
+                                       id_field=id_field)
+    prog(0.9, "writing products")
+    paths = write_change_products(out, res, grid, method="self-consistency", epoch_a=ea.name, epoch_b=eb.name,
+                                  region_confidence=config.region_confidence, model=model, buildings=buildings,
+                                  provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
+                                  prefix="sc")
+    paths["model"] = model_path
+    paths.update({f"stereo:{k}": v for k, v in st["outputs"].items()})
+    cfg_path = write_text_atomic(out / "run_config.json", json.dumps(config.to_dict(), indent=2, default=list))
+    observed = res.observed
+    summary = {
+        "geocd_run": 1, "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "manifest": str(m.path or m.root), "epoch_a": ea.name, "epoch_b": eb.name,
+        "grid": grid.to_dict(), "pairs": {e: [p.name for p in g] for e, g in by_epoch.items()},
+        "completeness": {p.name: round(p.completeness, 4) for g in by_epoch.values() for p in g},
+        "observed_fraction": round(float(observed.mean()), 4),
+        "changed_fraction": {f"{c:g}": round(float((res.changed_at(c) != 0)[observed].mean()), 5) for c in res.confidences},
+        "model": {"bins": len(model.score_centres), "match_pairs": int(model.bin_counts.sum()),
+                  "learned_here": config.model_path is None},
+        "outputs": {k: str(v) for k, v in paths.items()},
+    }
+    if buildings is not None:
+        summary["buildings"] = buildings["class"].value_counts().to_dict()
+    write_text_atomic(out / "run_summary.json", json.dumps(summary, indent=2, default=str))
+    paths["config"] = cfg_path
+    paths["summary"] = out / "run_summary.json"
+    prog(1.0, "done")
+    return {"outputs": paths, "summary": summary, "result": res, "model": model, "grid": grid,
+            "pairs": by_epoch, "buildings": buildings}
+
