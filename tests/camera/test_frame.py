@@ -13,7 +13,7 @@ from geocd.camera import camera_from_dict
 from geocd.camera import _frame_kernels as K
 from geocd.camera.frame import FrameCamera, FrameGroundProjector, opk_to_rotation, rotation_to_opk
 from geocd.errors import FrameCameraError, InputFileNotFoundError
-from geocd.geodesy import find_geoid_grid, from_lonlat, to_lonlat, utm_crs_for
+from geocd.geodesy import find_geoid_grid, from_lonlat, to_lonlat
 from geocd.io.frame import (
     find_frame_sidecar,
     read_frame_sidecar,
@@ -230,8 +230,10 @@ def test_ground_projector_matches_project(datum):
 
 def test_footprint_and_position():
     cam = make_cam(opk_deg=(0, 0, 0))
+    from shapely.geometry import Point
+
     fp = cam.footprint(0.0)
-    assert fp.is_valid and fp.contains(__import__("shapely").geometry.Point(LON0, LAT0))
+    assert fp.is_valid and fp.contains(Point(LON0, LAT0))
     lon, lat, h = cam.position_lonlat_h()
     assert lon == pytest.approx(LON0, abs=1e-9) and lat == pytest.approx(LAT0, abs=1e-9) and h == 3000.0
 
