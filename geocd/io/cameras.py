@@ -28,6 +28,14 @@ def _image_size(image: Path) -> tuple[int | None, int | None]:
 def _with_size(cam: Camera, width: int | None, height: int | None) -> Camera:
     if width is None or (cam.width == width and cam.height == height):
         return cam
+    if cam.width is not None and hasattr(cam, "rescaled"):
+        # the image was resampled after the camera was calibrated (e.g. a downsampled aerial frame):
+        # scale the interior orientation, never just relabel the size
+        import warnings
+
+        warnings.warn(f"camera was calibrated for {cam.width}x{cam.height} px but the image is {width}x{height} px; "
+                      "rescaling its interior orientation to the image", stacklevel=3)
+        return cam.rescaled(width, height)
     d = cam.to_dict()
     d["width"], d["height"] = width, height
     return camera_from_dict(d)
