@@ -1,0 +1,473 @@
+"""The object-space stereo matcher (issue 4).
+
+For every cell of the AOI grid and every candidate height, both images are
+warped onto the grid (:class:`~geocd.stereo.sweep.PlaneSweep`), window
+statistics are aggregated with running sums (O(cells × heights), whatever the
+window size), and the height with the best regularized NCC is kept, refined to
+sub-step precision with a parabola. Large height ranges are narrowed
+coarse-to-fine (grids 2×, 4×, … coarser, anti-aliased images). Each match gets
+the MDL score (and NCC, SSD), the disparity-per-metre factor ``g`` and a valid
+mask; see :func:`match_pair`.
+
+Left–right consistency in object space: an image pixel can see only one
+surface point, so after matching every cell is projected into each image at its
+height and a cell hidden behind a higher cell that lands on the same pixel is
+invalid (z-buffer). Together with the uniqueness test (no other height matches
+almost as well) this replaces the image-space left–right check.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from typing import Any, Sequence
+
+import numpy as np
+from scipy import ndimage
+
+from ..camera import Camera
+from ..errors import ConfigError, CRSError, EmptyDataError, NoOverlapError
+from ..geodesy import AOIGrid
+from ..progress import Progress, ensure_progress, sub_progress
+from . import _kernels as K
+from .params import StereoParams
+from .products import FLAGS, PairDEM
+from .scores import mdl_from_stats, ncc_from_stats, score_from_stats, ssd_from_stats
+from .sweep import (HeightSearch, ImageChip, PlaneSweep, chip_valid_at, coarse_grid, image_sampling_px_per_m,
+                    sample_cells, sweep_progress, upsample_nearest)
+
+
+class StereoGeometryWarning(UserWarning):
+    """A pair's viewing geometry makes its heights unreliable (e.g. near-zero base/height)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# height range
+# ---------------------------------------------------------------------------------------------
+def _fill_nearest(a: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(a)
+    if ok.all():
+        return a
+    idx = ndimage.distance_transform_edt(~ok, return_distances=False, return_indices=True)
+    return a[tuple(idx)]
+
+
+def dem_on_grid(dem: Any, grid: AOIGrid) -> np.ndarray:
+    """A prior DEM as float64 ellipsoidal heights on ``grid`` (NaN = nodata).
+
+    ``dem`` is an array already on ``grid`` (ellipsoidal heights) or a
+    :class:`geocd.io.raster.DEM` (converted to ellipsoidal heights and resampled).
+    """
+    if hasattr(dem, "height_m") and hasattr(dem, "grid"):
+        from ..io.raster import reproject_array
+
+        d = dem.to_ellipsoidal()
+        h = d.height_m if d.grid.same_as(grid) else reproject_array(d.height_m, d.grid, grid, "bilinear")
+        return np.asarray(h, np.float64)
+    a = np.asarray(dem, np.float64)
+    if a.shape != grid.shape:
+        raise ConfigError(f"prior DEM array has shape {a.shape}, the AOI grid {grid.shape}; resample it onto the "
+                          "grid (geocd.io.raster.read_dem(path, grid=grid)) first")
+    return a
+
+
+def height_bounds(grid: AOIGrid, cameras: Sequence[Camera], dem: Any = None,
+                  params: StereoParams = StereoParams()) -> tuple[np.ndarray, np.ndarray, str]:
+    """Per-cell ellipsoidal search bounds ``(lo, hi)`` and where they came from.
+
+    A prior DEM gives ``[min − margin, max + margin]`` of the DEM over a
+    ``params.dem_window`` neighbourhood (clipped to ``params.height_range_m`` when
+    given); otherwise ``params.height_range_m``; otherwise the intersection of the
+    cameras' own height ranges (RPC validity).
+
+    Raises
+    ------
+    ConfigError
+        No range at all (frame cameras and no DEM), or camera ranges that do not overlap.
+    EmptyDataError
+        The DEM has no valid height over the AOI.
+    """
+    if dem is not None:
+        d = dem_on_grid(dem, grid)
+        if not np.isfinite(d).any():
+            raise EmptyDataError("the prior DEM has no valid height over the AOI grid; check that it covers the AOI "
+                                 "or drop it (the cameras' height range is then used)")
+        d = _fill_nearest(d)
+        w = max(1, int(params.dem_window))
+        lo = ndimage.minimum_filter(d, size=w, mode="nearest") - params.dem_margin_m
+        hi = ndimage.maximum_filter(d, size=w, mode="nearest") + params.dem_margin_m
+        if params.height_range_m is not None:
+            lo = np.maximum(lo, params.height_range_m[0])
+            hi = np.minimum(hi, params.height_range_m[1])
+            if np.any(hi <= lo):
+                raise ConfigError(f"the prior DEM ± {params.dem_margin_m} m lies outside the height range "
+                                  f"{params.height_range_m}; widen the range or check the DEM's vertical datum")
+        return lo, hi, "dem"
+    if params.height_range_m is not None:
+        lo_v, hi_v = params.height_range_m
+        return np.full(grid.shape, lo_v), np.full(grid.shape, hi_v), "parameter"
+    ranges = [c.height_range() for c in cameras]
+    ranges = [r for r in ranges if r is not None]
+    if not ranges:
+        raise ConfigError(
+            "this pair has no height search range: its cameras give none (frame cameras) and no prior DEM was "
+            "given; add 'dem:' to the manifest (a coarse DEM is enough), or pass --height-range MIN MAX "
+            "(ellipsoidal metres)"
+        )
+    lo_v = max(float(r[0]) for r in ranges)
+    hi_v = min(float(r[1]) for r in ranges)
+    if not hi_v > lo_v:
+        raise ConfigError(f"the cameras' height ranges {ranges} do not overlap, so no height is valid for both; "
+                          "check the camera files or pass --height-range MIN MAX")
+    return np.full(grid.shape, lo_v), np.full(grid.shape, hi_v), "cameras"
+
+
+# ---------------------------------------------------------------------------------------------
+# pair geometry on sample cells
+# ---------------------------------------------------------------------------------------------
+def pair_geometry(grid: AOIGrid, cameras: Sequence[Camera], chips: Sequence[ImageChip], lo: np.ndarray,
+                  hi: np.ndarray, n_sample: int = 48) -> dict[str, Any]:
+    """Overlap test and geometry summary of a pair on sample cells.
+
+    Returns a dict with ``jmax`` (largest |∂u/∂z| in either image, px/m), ``g``
+    (disparity per metre at sample cells), ``rho`` (image pixels per ground metre,
+    one per camera), ``base_height`` (≈ g / rho at sample cells) and ``overlap``
+    (fraction of sample cells seen by both images at some candidate height).
+
+    Raises
+    ------
+    NoOverlapError
+        When no sample cell falls in both images at any candidate height.
+    """
+    rows, cols = sample_cells(grid.shape, n_sample)
+    x, y = grid.xy(rows, cols)
+    lo_s, hi_s = lo[rows, cols], hi[rows, cols]
+    mid_s = 0.5 * (lo_s + hi_s)
+    seen = np.zeros(rows.shape, bool)
+    jmax = 0.0
+    J = []
+    projs = [cam.ground_projector(x, y, grid.crs) for cam in cameras]
+    for h in (lo_s, mid_s, hi_s):
+        ok = np.ones(rows.shape, bool)
+        for pr, chip in zip(projs, chips):
+            c, r = pr.project(h)
+            ok &= chip_valid_at(chip, c, r)
+            dc, dr = pr.dproj_dh(h)
+            jmax = max(jmax, float(np.nanmax(np.hypot(dc, dr))))
+        seen |= ok
+    if not seen.any():
+        names = " and ".join(repr(c.name or f"image {i + 1}") for i, c in enumerate(chips))
+        raise NoOverlapError(
+            f"images {names} do not overlap over the AOI at any height in the search range "
+            f"[{float(np.min(lo)):.0f}, {float(np.max(hi)):.0f}] m; pick a pair that sees the same ground, or check "
+            "the AOI and the height range (a wrong vertical datum shifts footprints)"
+        )
+    for pr in projs:
+        dc, dr = pr.dproj_dh(mid_s)
+        J.append(np.stack([dc, dr]))
+    g = np.hypot(*(J[0] - J[1]))
+    rho = [float(np.nanmedian(image_sampling_px_per_m(cam, grid, rows, cols, mid_s))) for cam in cameras]
+    return {"jmax": jmax, "g": g, "rho": rho, "base_height": g / np.mean(rho), "overlap": float(seen.mean()),
+            "seen": seen}
+
+
+# ---------------------------------------------------------------------------------------------
+# one level of the sweep
+# ---------------------------------------------------------------------------------------------
+_PLANES = {"best_c": K.BEST_C, "best_k": K.BEST_K, "best_cm": K.BEST_CM, "best_cp": K.BEST_CP,
+           "va": K.BEST_VA, "vb": K.BEST_VB, "cov": K.BEST_COV, "n": K.BEST_N, "sec_c": K.SEC_C,
+           "sec_k": K.SEC_K, "nfinite": K.NFINITE}
+
+
+def sweep_ncc(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camera], search: HeightSearch,
+              params: StereoParams, *, noise_sigma: float, excl_steps: float,
+              progress: Progress | None = None, prefix: str = "") -> tuple[dict[str, np.ndarray], int]:
+    """Sweep the heights of ``search`` and keep, per cell, the best NCC match.
+
+    Returns
+    -------
+    planes : dict of float64 (rows, cols)
+        best_c (1 − NCC_reg), best_k, best_cm, best_cp (costs one step below/above),
+        va, vb, cov, n (window statistics at the best height), sec_c, sec_k (best other
+        minimum), nfinite (heights with a defined cost), z_raw (sub-step height, m).
+    evaluations : int
+        Cell × height evaluations (core cells).
+    """
+    r = params.radius
+    min_n = float(math.ceil(params.min_valid_fraction * params.window ** 2))
+    eps = float(noise_sigma) ** 2
+    sweep = PlaneSweep(grid, chips[:2], cameras[:2], search, tile_size=params.tile_size, margin=r)
+    out = {k: np.full(grid.shape, np.nan) for k in _PLANES}
+    out["best_k"][:] = -1
+    for tile in sweep.tiles():
+        k0, k1 = sweep.k_range(tile)
+        nk = k1 - k0
+        if nk <= 0:
+            continue
+        shape = tile.outer_shape
+        st = K.new_state(shape)
+        mom = np.empty((6, *shape))
+        work = np.empty((6, *shape))
+        kmin = sweep.kmin(tile)
+        kmax = sweep.kmax(tile)
+        k0, k1 = sweep.k_range(tile)
+        for sl in sweep.slices(tile):
+            K.box_moments(sl.stack[0], sl.stack[1], r, mom, work)
+            K.sweep_update(mom, sl.k, kmin, kmax, min_n, eps, float(excl_steps), st)
+            if (sl.k - k0) % 8 == 0:
+                sweep_progress(progress, tile, sl.k - k0, nk, prefix)
+        K.sweep_finish(k1, float(excl_steps), st)
+        for name, p in _PLANES.items():
+            out[name][tile.core] = st[p][tile.inner]
+    # sub-step height: parabola through (k−1, k, k+1)
+    k = out["best_k"]
+    cm, c0, cp = out["best_cm"], out["best_c"], out["best_cp"]
+    with np.errstate(all="ignore"):
+        den = cm - 2.0 * c0 + cp
+        delta = np.where(np.isfinite(den) & (den > 0), 0.5 * (cm - cp) / den, 0.0)
+    delta = np.clip(np.nan_to_num(delta), -0.5, 0.5)
+    has = k >= 0
+    out["z_raw"] = np.where(has, search.height(k + delta), np.nan)
+    return out, sweep.n_evaluations()
+
+
+def _block_reduce(a: np.ndarray, f: int, fn) -> np.ndarray:
+    if f == 1:
+        return a
+    H, W = a.shape
+    Hc, Wc = -(-H // f), -(-W // f)
+    pad = np.pad(a, ((0, Hc * f - H), (0, Wc * f - W)), mode="edge")
+    return fn(fn(pad.reshape(Hc, f, Wc, f), axis=3), axis=1)
+
+
+def refine_search(planes: dict[str, np.ndarray], lo_f: np.ndarray, hi_f: np.ndarray, factor: int,
+                  step_coarse: float, step_fine: float, params: StereoParams) -> HeightSearch:
+    """Narrow the fine level's search around a coarse level's heights (3×3 min/max ± margin)."""
+    z = planes["z_raw"]
+    usable = np.isfinite(z) & (planes["best_c"] < 0.8)
+    if not usable.any():
+        return HeightSearch(lo_f, hi_f, step_fine)
+    zf = _fill_nearest(np.where(usable, z, np.nan))
+    zf = ndimage.median_filter(zf, size=3, mode="nearest")
+    m = params.refine_margin_steps * step_coarse
+    w = 3
+    lo_c = ndimage.minimum_filter(zf, size=w, mode="nearest") - m
+    hi_c = ndimage.maximum_filter(zf, size=w, mode="nearest") + m
+    lo = np.maximum(upsample_nearest(lo_c, factor, lo_f.shape), lo_f)
+    hi = np.minimum(upsample_nearest(hi_c, factor, hi_f.shape), hi_f)
+    bad = ~(hi > lo)
+    lo = np.where(bad, lo_f, lo)
+    hi = np.where(bad, hi_f, hi)
+    return HeightSearch(lo, hi, step_fine)
+
+
+# ---------------------------------------------------------------------------------------------
+# the matcher
+# ---------------------------------------------------------------------------------------------
+def pad_grid(grid: AOIGrid, pad: int) -> AOIGrid:
+    """The grid grown by ``pad`` cells on every side."""
+    from affine import Affine
+
+    if pad <= 0:
+        return grid
+    return AOIGrid(grid.crs, grid.transform @ Affine.translation(-pad, -pad), grid.width + 2 * pad,
+                   grid.height + 2 * pad)
+
+
+def _crop(a: np.ndarray, pad: int) -> np.ndarray:
+    return a[pad:a.shape[0] - pad, pad:a.shape[1] - pad] if pad > 0 else a
+
+
+def _check_grid(grid: AOIGrid) -> None:
+    if grid.crs.is_geographic:
+        raise CRSError("the stereo AOI grid must be in a projected CRS in metres (e.g. UTM: geocd.geodesy.utm_crs_for)"
+                       f", got {grid.crs.name}")
+
+
+def _empty_pair(grid, name, names, epoch, g, flags_value, meta) -> PairDEM:
+    nan = np.full(grid.shape, np.nan, np.float32)
+    return PairDEM(z_m=nan.copy(), score=nan.copy(), g_px_per_m=g.astype(np.float32), valid=np.zeros(grid.shape, bool),
+                   grid=grid, name=name, camera_names=names, ncc=nan.copy(), ssd=nan.copy(),
+                   flags=np.full(grid.shape, flags_value, np.uint8), z_raw_m=nan.copy(), epoch=epoch, meta=meta)
+
+
+def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b: Camera, grid: AOIGrid, *,
+               dem: Any = None, params: StereoParams = StereoParams(), name: str | None = None, epoch: str = "",
+               progress: Progress | None = None) -> PairDEM:
+    """Dense heights of one image pair on an AOI grid (object-space sweep).
+
+    Parameters
+    ----------
+    chip_a, chip_b : ImageChip
+        Normalized images (:func:`geocd.stereo.prepare_chip`; windows of large images
+        carry their offset).
+    camera_a, camera_b : Camera
+        Any camera kinds (RPC, frame, mixed).
+    grid : AOIGrid
+        Projected CRS (metres); heights are WGS84 ellipsoidal.
+    dem : array on ``grid`` or geocd DEM, optional
+        Prior surface for the height search (± ``params.dem_margin_m``).
+    params : StereoParams
+    name : str, optional
+        Pair name (default "<a>__<b>" from the chips' names).
+    progress : callable, optional
+        ``progress(fraction, message)``, called between tiles and heights.
+
+    Returns
+    -------
+    PairDEM
+
+    Raises
+    ------
+    NoOverlapError, ConfigError, EmptyDataError, CRSError
+        Images that do not overlap over the AOI, no height range, empty images,
+        geographic grid.
+
+    Warns
+    -----
+    StereoGeometryWarning
+        When the pair's base/height ratio is below ``params.min_base_height`` (the
+        cells concerned are invalid; the whole pair when it is below everywhere).
+    """
+    t_start = time.perf_counter()
+    _check_grid(grid)
+    prog = ensure_progress(progress)
+    chips = [chip_a, chip_b]
+    cams = [camera_a, camera_b]
+    for i, c in enumerate(chips):
+        if not np.isfinite(c.data).any():
+            raise EmptyDataError(f"image {c.name or i + 1} is entirely nodata; check its nodata value and that it "
+                                 "covers the AOI")
+    names = (chip_a.name or "a", chip_b.name or "b")
+    name = name or f"{names[0]}__{names[1]}"
+    # match on the grid padded by the window radius, so border cells get whole windows
+    out_grid = grid
+    pad = params.radius
+    grid = pad_grid(out_grid, pad)
+    if dem is not None and not (hasattr(dem, "height_m") and hasattr(dem, "grid")):
+        dem = np.pad(dem_on_grid(dem, out_grid), pad, mode="edge")
+    lo, hi, source = height_bounds(grid, cams, dem, params)
+    geo = pair_geometry(grid, cams, chips, lo, hi)
+    sig = params.noise_sigma
+    if sig is None:
+        s = [c.noise_sigma for c in chips if np.isfinite(c.noise_sigma)]
+        sig = float(np.sqrt(np.mean(np.square(s)))) if s else 1.0
+    sig = max(float(sig), 0.5)
+    bh_med = float(np.nanmedian(geo["base_height"]))
+    meta: dict[str, Any] = {"score_kind": params.score, "noise_sigma": sig, "height_source": source,
+                            "base_height_median": bh_med, "g_median_px_per_m": float(np.nanmedian(geo["g"])),
+                            "jmax_px_per_m": geo["jmax"], "rho_px_per_m": geo["rho"], "overlap": geo["overlap"],
+                            "params": params.to_dict()}
+    # --- degenerate geometry: warn, and skip the sweep when hopeless everywhere
+    if geo["jmax"] < 1e-6 or np.all(geo["base_height"] < params.min_base_height):
+        warnings.warn(f"pair {name}: base/height ratio ≈ {bh_med:.3f} is below {params.min_base_height} everywhere "
+                      "(the two views are nearly the same): its heights would be noise, so every cell is invalid; "
+                      "use a pair with a wider base", StereoGeometryWarning, stacklevel=2)
+        g = _g_field(out_grid, cams, _crop(0.5 * (lo + hi), pad))[0]
+        meta.update(step_m=float("nan"), levels=0, evaluations=0, wall_s=time.perf_counter() - t_start)
+        return _empty_pair(out_grid, name, names, epoch, g, FLAGS["weak_geometry"], meta)
+    if bh_med < params.min_base_height:
+        warnings.warn(f"pair {name}: median base/height ratio ≈ {bh_med:.3f} is below {params.min_base_height}; cells "
+                      "with too weak a geometry are invalidated", StereoGeometryWarning, stacklevel=2)
+    step0 = params.max_step_px / geo["jmax"]
+    g_med = max(float(np.nanmedian(geo["g"])), 1e-9)
+    excl_steps = max(1.0, params.uniqueness_exclusion_px / (g_med * step0))
+    # --- levels: coarse-to-fine while the range needs too many heights
+    k0 = float(np.nanmax(hi - lo)) / step0
+    level = 0
+    while (k0 / 2 ** level > params.max_heights
+           and min(grid.shape) / 2 ** (level + 1) >= 4 * params.window):
+        level += 1
+    evaluations = 0
+    planes = None
+    n_levels = level + 1
+    for L in range(level, -1, -1):
+        f = 2 ** L
+        g_l = coarse_grid(grid, f)
+        step_l = step0 * f
+        lo_l = _block_reduce(lo, f, np.min)
+        hi_l = _block_reduce(hi, f, np.max)
+        if L == level:
+            search = HeightSearch(lo_l, hi_l, step_l)
+        else:
+            search = refine_search(planes, lo_l, hi_l, 2, step_l * 2, step_l, params)
+        blur = [max(1, int(round(g_l.posting_m * rho))) for rho in geo["rho"]]
+        chips_l = [c.blurred(b) for c, b in zip(chips, blur)]
+        p_lo = 0.9 * (n_levels - 1 - L) / n_levels
+        p_hi = 0.9 * (n_levels - L) / n_levels
+        planes, ev = sweep_ncc(g_l, chips_l, cams, search, params, noise_sigma=sig, excl_steps=excl_steps,
+                               progress=sub_progress(prog, p_lo, p_hi),
+                               prefix=f"{name}: level {L} ({g_l.posting_m:g} m) ")
+        evaluations += ev
+    prog(0.92, f"{name}: scores and checks")
+    out = _finalize(grid, cams, chips, planes, search, params, sig, geo, lo, hi)
+    out = {k: _crop(v, pad) for k, v in out.items()}
+    grid = out_grid
+    meta.update(step_m=step0, levels=n_levels, evaluations=evaluations, excl_steps=excl_steps,
+                wall_s=time.perf_counter() - t_start)
+    prog(1.0, f"{name}: done")
+    return PairDEM(grid=grid, name=name, camera_names=names, epoch=epoch, meta=meta, **out)
+
+
+def _g_field(grid: AOIGrid, cams: Sequence[Camera], z: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """g = ‖J_a − J_b‖ on the grid at heights z, and |J| per camera (px/m)."""
+    x, y = grid.xy()
+    J = []
+    for cam in cams:
+        dc, dr = cam.ground_projector(x, y, grid.crs).dproj_dh(z)
+        J.append((dc, dr))
+    g = np.hypot(J[0][0] - J[1][0], J[0][1] - J[1][1])
+    return g, [np.hypot(*j) for j in J]
+
+
+def occlusion_mask(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageChip], z: np.ndarray,
+                   cost: np.ndarray, tol_m: Sequence[np.ndarray]) -> np.ndarray:
+    """Cells that lose an image pixel to a better-matched cell at another height (see ``zbuffer_occluded``)."""
+    ok = np.isfinite(z)
+    occ = np.zeros(grid.shape, bool)
+    if not ok.any():
+        return occ
+    x, y = grid.xy()
+    xs, ys, zs = x[ok], y[ok], z[ok].astype(np.float64)
+    cs = np.ascontiguousarray(np.where(np.isfinite(cost[ok]), cost[ok], np.inf), np.float64)
+    for cam, chip, tol in zip(cams, chips, tol_m):
+        c, r = cam.ground_projector(xs, ys, grid.crs).project(zs)
+        c0, r0, c1, r1 = chip.box
+        o = np.zeros(zs.shape, bool)
+        K.zbuffer_occluded(np.ascontiguousarray(c, np.float64), np.ascontiguousarray(r, np.float64), zs, cs,
+                           np.ascontiguousarray(tol[ok], np.float64), c0, r0, c1 - c0, r1 - r0, o)
+        occ[ok] |= o
+    return occ
+
+
+def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: float, geo, lo, hi) -> dict[str, Any]:
+    k = planes["best_k"]
+    has = k >= 0
+    z_raw = planes["z_raw"]
+    va, vb, cov = planes["va"], planes["vb"], planes["cov"]
+    ncc = np.where(has, ncc_from_stats(va, vb, cov), np.nan)
+    ssd = np.where(has, ssd_from_stats(va, vb, cov), np.nan)
+    mdl = np.where(has, mdl_from_stats(va, vb, cov, sig), np.nan)
+    score = {"mdl": mdl, "ncc": 1.0 - ncc, "ssd": ssd}[params.score]
+    flags = np.zeros(grid.shape, np.uint8)
+    flags[~has] |= FLAGS["out_of_image"]
+    with np.errstate(invalid="ignore"):
+        flags[has & (np.minimum(va, vb) < (params.texture_min_snr * sig) ** 2)] |= FLAGS["low_texture"]
+        sec = planes["sec_c"]
+        flags[has & np.isfinite(sec) & (planes["best_c"] > params.uniqueness_ratio * sec)] |= FLAGS["not_unique"]
+        flags[has & ~(np.isfinite(planes["best_cm"]) & np.isfinite(planes["best_cp"]))] |= FLAGS["range_limit"]
+        flags[has & ~(ncc >= params.min_ncc)] |= FLAGS["low_ncc"]
+    z_eval = np.where(np.isfinite(z_raw), z_raw, 0.5 * (lo + hi))
+    g, jn = _g_field(grid, cams, z_eval)
+    rho = float(np.mean(geo["rho"]))
+    flags[g / rho < params.min_base_height] |= FLAGS["weak_geometry"]
+    if params.occlusion_check:
+        cand = np.where(flags == 0, z_raw, np.nan)
+        tol = [np.maximum(params.occlusion_tol_px / np.maximum(j, 1e-9), 2.0 * search.step_m) for j in jn]
+        flags[occlusion_mask(grid, cams, chips, cand, planes["best_c"], tol)] |= FLAGS["occluded"]
+    valid = flags == 0
+    f32 = np.float32
+    return {"z_m": np.where(valid, z_raw, np.nan).astype(f32), "score": score.astype(f32),
+            "g_px_per_m": g.astype(f32), "valid": valid, "ncc": ncc.astype(f32), "ssd": ssd.astype(f32),
+            "flags": flags, "z_raw_m": z_raw.astype(f32)}

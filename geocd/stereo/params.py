@@ -1,0 +1,132 @@
+"""Parameters of the object-space stereo matcher."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+from ..errors import ConfigError
+from .scores import SCORES
+
+
+@dataclass(frozen=True)
+class StereoParams:
+    """Everything that tunes :func:`geocd.stereo.match_pair`.
+
+    Attributes
+    ----------
+    window : int
+        Matching window side in grid cells (odd).
+    max_step_px : float
+        Height step: one step moves the projection by at most this many pixels in
+        the more sensitive image (issue 4: 0.5).
+    height_range_m : (float, float), optional
+        Ellipsoidal height search range; overrides the cameras' range (not a DEM).
+    dem_margin_m : float
+        With a prior DEM, search ``[min − margin, max + margin]`` of the DEM over a
+        ``dem_window``-cell neighbourhood (buildings and trees are not in a bare DEM).
+    dem_window : int
+        Neighbourhood (cells) of the DEM min/max above.
+    max_heights : int
+        When a cell would need more height steps than this at full resolution, the
+        range is first narrowed coarse-to-fine (grids 2×, 4×, … coarser).
+    refine_margin_steps : float
+        Margin around the coarser level's heights, in that level's height steps.
+    min_valid_fraction : float
+        A window needs this fraction of cells valid in both images.
+    noise_sigma : float, optional
+        Image noise σ_n on the normalized 8-bit scale; None = estimated per image.
+    min_ncc : float
+        Matches with a lower NCC are invalid.
+    uniqueness_ratio : float
+        Invalid when ``(1 − NCC_best) > uniqueness_ratio · (1 − NCC_second)`` for the best
+        other local minimum more than ``uniqueness_exclusion_px`` of disparity away.
+    uniqueness_exclusion_px : float
+    texture_min_snr : float
+        Invalid when either window's standard deviation is below ``texture_min_snr · σ_n``.
+    occlusion_check : bool
+        Z-buffer test in each image: cells hidden behind a higher cell are invalid.
+    occlusion_tol_px : float
+        Height tolerance of that test, in pixels of image motion.
+    min_base_height : float
+        Cells whose pair geometry has a base/height ratio (≈ g / image sampling) below
+        this are invalid; a pair below it everywhere is skipped with a warning.
+    score : str
+        What ``PairDEM.score`` holds (lower = better): "mdl" (bits/pixel), "ncc"
+        (1 − NCC) or "ssd". All three are written to the products anyway.
+    norm_block_px : int
+        Region size of the local photometric normalization (image pixels).
+    tile_size : int
+        Tile side (grid cells); memory per tile ≈ 0.3 KB per cell.
+    """
+
+    window: int = 7
+    max_step_px: float = 0.5
+    height_range_m: tuple[float, float] | None = None
+    dem_margin_m: float = 30.0
+    dem_window: int = 5
+    max_heights: int = 128
+    refine_margin_steps: float = 3.0
+    min_valid_fraction: float = 0.75
+    noise_sigma: float | None = None
+    min_ncc: float = 0.3
+    uniqueness_ratio: float = 0.95
+    uniqueness_exclusion_px: float = 1.5
+    texture_min_snr: float = 1.0
+    occlusion_check: bool = True
+    occlusion_tol_px: float = 1.0
+    min_base_height: float = 0.05
+    score: str = "mdl"
+    norm_block_px: int = 256
+    tile_size: int = 256
+
+    def __post_init__(self) -> None:
+        if self.window < 3 or self.window % 2 == 0:
+            raise ConfigError(f"stereo window must be an odd number ≥ 3 of cells, got {self.window}")
+        if not (0.0 < self.max_step_px <= 2.0):
+            raise ConfigError(f"max_step_px must be in (0, 2], got {self.max_step_px}")
+        if self.height_range_m is not None:
+            lo, hi = (float(v) for v in self.height_range_m)
+            if not hi > lo:
+                raise ConfigError(f"height range {self.height_range_m} is empty; give (min, max) with max > min (metres)")
+            object.__setattr__(self, "height_range_m", (lo, hi))
+        if self.dem_margin_m < 0:
+            raise ConfigError(f"dem_margin_m must be ≥ 0, got {self.dem_margin_m}")
+        if self.max_heights < 8:
+            raise ConfigError(f"max_heights must be ≥ 8, got {self.max_heights}")
+        if not (0.0 < self.min_valid_fraction <= 1.0):
+            raise ConfigError(f"min_valid_fraction must be in (0, 1], got {self.min_valid_fraction}")
+        if self.score not in SCORES:
+            raise ConfigError(f"score must be one of {SCORES}, got {self.score!r}")
+        if self.tile_size < 32:
+            raise ConfigError(f"tile_size must be ≥ 32 cells, got {self.tile_size}")
+        if self.noise_sigma is not None and not self.noise_sigma > 0:
+            raise ConfigError(f"noise_sigma must be positive, got {self.noise_sigma}")
+
+    @property
+    def radius(self) -> int:
+        return self.window // 2
+
+    def replace(self, **changes: Any) -> "StereoParams":
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        if d["height_range_m"] is not None:
+            d["height_range_m"] = list(d["height_range_m"])
+        return d
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "StereoParams":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ConfigError(f"unknown stereo parameters {sorted(unknown)}; known: {sorted(known)}")
+        d = dict(d)
+        if d.get("height_range_m") is not None:
+            d["height_range_m"] = tuple(d["height_range_m"])
+        return cls(**d)

@@ -1,0 +1,309 @@
+"""Stereo on a scene manifest: every pair of every epoch → pair-DEM GeoTIFFs.
+
+This is the only part of :mod:`geocd.stereo` that touches files (with
+:mod:`geocd.stereo.products`): it reads image windows for the AOI grid, the
+prior DEM and the cameras, and writes ``<out>/stereo/<epoch>/<a>__<b>.tif``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import ConfigError, EmptyDataError, NoOverlapError
+from ..geodesy import AOIGrid, as_crs, from_lonlat, utm_crs_for
+from ..progress import Progress, ensure_progress, sub_progress
+from .match import height_bounds, match_pair
+from .params import StereoParams
+from .products import PairDEM, write_pair_dem
+from .sweep import ImageChip, image_sampling_px_per_m, prepare_chip
+
+
+@dataclass(frozen=True)
+class EpochImage:
+    """An image of an epoch with its camera."""
+
+    name: str
+    path: Path
+    camera: Camera
+
+
+def load_epoch_images(manifest, epoch) -> list[EpochImage]:
+    """The images of an epoch with their cameras (any kind), in manifest order."""
+    from ..io.cameras import load_camera
+
+    out = []
+    for spec in epoch.images:
+        cam = load_camera(spec.path, spec.camera)
+        out.append(EpochImage(spec.name or spec.path.stem, Path(spec.path), cam))
+    return out
+
+
+def pair_path(out_dir: os.PathLike | str, epoch: str, a: str, b: str) -> Path:
+    """Where the pair-DEM of images ``a`` and ``b`` of ``epoch`` goes."""
+    return Path(out_dir) / "stereo" / epoch / f"{a}__{b}.tif"
+
+
+# ---------------------------------------------------------------------------------------------
+# image windows
+# ---------------------------------------------------------------------------------------------
+def grid_outline_xy(grid: AOIGrid, n: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """Points along the grid's border and a coarse interior lattice (map coordinates)."""
+    l, b, r, t = grid.bounds
+    u = np.linspace(0.0, 1.0, n)
+    X, Y = np.meshgrid(l + (r - l) * u, b + (t - b) * u)
+    return X.ravel(), Y.ravel()
+
+
+def image_window_for_grid(camera: Camera, grid: AOIGrid, lo_m: float, hi_m: float, margin_px: int,
+                          width: int, height: int) -> tuple[int, int, int, int] | None:
+    """(col0, row0, col1, row1) of the image pixels the grid can project to; None when outside."""
+    x, y = grid_outline_xy(grid)
+    pr = camera.ground_projector(x, y, grid.crs)
+    cols, rows = [], []
+    for h in (lo_m, 0.5 * (lo_m + hi_m), hi_m):
+        c, r = pr.project(np.full(x.shape, h))
+        cols.append(c)
+        rows.append(r)
+    c = np.concatenate(cols)
+    r = np.concatenate(rows)
+    ok = np.isfinite(c) & np.isfinite(r)
+    if not ok.any():
+        return None
+    c0 = max(int(math.floor(c[ok].min())) - margin_px, 0)
+    r0 = max(int(math.floor(r[ok].min())) - margin_px, 0)
+    c1 = min(int(math.ceil(c[ok].max())) + margin_px, width)
+    r1 = min(int(math.ceil(r[ok].max())) + margin_px, height)
+    if c1 - c0 < 2 or r1 - r0 < 2:
+        return None
+    return c0, r0, c1, r1
+
+
+def read_chip(path: os.PathLike | str, camera: Camera, grid: AOIGrid, lo_m: float, hi_m: float, *,
+              name: str = "", margin_px: int = 16, block_px: int = 256) -> ImageChip:
+    """Read and normalize the window of an image that the AOI grid sees between two heights.
+
+    Raises
+    ------
+    NoOverlapError
+        The image does not see the AOI at any height in [lo_m, hi_m].
+    EmptyDataError
+        The window is entirely nodata.
+    """
+    from rasterio.windows import Window
+
+    from ..io.raster import _open, read_image
+
+    with _open(path) as ds:
+        W, H = ds.width, ds.height
+    box = image_window_for_grid(camera, grid, lo_m, hi_m, margin_px, W, H)
+    if box is None:
+        raise NoOverlapError(f"image {path} does not see the AOI {grid.bounds} ({grid.crs.name}) at heights "
+                             f"{lo_m:.0f}..{hi_m:.0f} m; check the AOI, the image's camera and the height range")
+    c0, r0, c1, r1 = box
+    img = read_image(path, window=Window(c0, r0, c1 - c0, r1 - r0))
+    return prepare_chip(img.data, img.valid, col0=c0, row0=r0, name=name or Path(path).stem, block_px=block_px)
+
+
+# ---------------------------------------------------------------------------------------------
+# AOI
+# ---------------------------------------------------------------------------------------------
+def _footprint_xy(camera: Camera, h: float, crs) -> Any:
+    from shapely.geometry import Polygon
+
+    fp = camera.footprint(h)
+    lon, lat = np.asarray(fp.exterior.coords).T
+    x, y = from_lonlat(lon, lat, crs)
+    return Polygon(np.column_stack([x, y]))
+
+
+def _ground_height_hint(images: Sequence[EpochImage], crs, dem_median: float | None,
+                        params: StereoParams) -> float:
+    """A typical ground height of the scene: the prior DEM's median, else a coarse match of the first pair."""
+    if dem_median is not None and np.isfinite(dem_median):
+        return float(dem_median)
+    ranges = [im.camera.height_range() for im in images]
+    ranges = [r for r in ranges if r is not None]
+    if params.height_range_m is not None:
+        lo, hi = params.height_range_m
+    elif ranges:
+        lo, hi = max(r[0] for r in ranges), min(r[1] for r in ranges)
+    else:
+        raise ConfigError("no height range to place the AOI: the cameras give none and no DEM was given; add "
+                          "'dem:' or 'aoi:' to the manifest, or pass --height-range MIN MAX")
+    mid = 0.5 * (lo + hi)
+    if len(images) < 2:
+        return mid
+    a, b = images[0], images[1]
+    try:
+        inter = _footprint_xy(a.camera, mid, crs).intersection(_footprint_xy(b.camera, mid, crs))
+        if inter.is_empty:
+            return mid
+        l, bt, r, t = inter.bounds
+        posting = max((r - l), (t - bt)) / 48.0
+        grid = AOIGrid.from_bounds(l, bt, r, t, posting, crs)
+        p = params.replace(height_range_m=(lo, hi), window=5, occlusion_check=False, min_base_height=0.0)
+        ca = read_chip(a.path, a.camera, grid, lo, hi, name=a.name, block_px=params.norm_block_px)
+        cb = read_chip(b.path, b.camera, grid, lo, hi, name=b.name, block_px=params.norm_block_px)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            pd = match_pair(ca, cb, a.camera, b.camera, grid, params=p)
+        z = pd.z_m[pd.valid]
+        return float(np.median(z)) if z.size >= 10 else mid
+    except Exception:  # a hint only: fall back on the middle of the range
+        return mid
+
+
+def default_aoi_grid(manifest, images_by_epoch: dict[str, list[EpochImage]], *, posting_m: float | None = None,
+                     dem_median: float | None = None, params: StereoParams = StereoParams()) -> AOIGrid:
+    """The AOI grid of a manifest: its ``aoi`` when given, else what every image sees.
+
+    Default extent: the intersection of all images' ground footprints (at the
+    scene's typical height), so every pair-DEM of every epoch lives on one grid;
+    when that is empty, the union of the pairwise overlaps within epochs.
+    Default CRS: the UTM zone of the centre; default posting: the images' median
+    ground sampling distance (rounded to 5 cm).
+    """
+    from shapely.ops import unary_union
+
+    all_images = [im for ims in images_by_epoch.values() for im in ims]
+    if not all_images:
+        raise ConfigError("the manifest has no images to match; list images under epochs[].images")
+    spec = manifest.aoi
+    crs = as_crs(spec.crs) if spec is not None and spec.crs else None
+    if spec is not None and spec.vector is not None and spec.bounds is None:
+        from ..io.vector import read_footprints
+
+        gdf = read_footprints(spec.vector, crs=crs)
+        crs = crs or as_crs(gdf.crs)
+        bounds = tuple(gdf.total_bounds)
+    else:
+        bounds = spec.bounds if spec is not None else None
+    if crs is None or bounds is None:
+        r0 = all_images[0].camera.height_range() or (0.0, 0.0)
+        fp = all_images[0].camera.footprint(0.5 * (r0[0] + r0[1]) if dem_median is None else dem_median)
+        c = fp.centroid
+        crs = crs or utm_crs_for(c.x, c.y)
+    h = _ground_height_hint(all_images, crs, dem_median, params)
+    if bounds is None:
+        fps = {im.name: _footprint_xy(im.camera, h, crs) for im in all_images}
+        inter = None
+        for f in fps.values():
+            inter = f if inter is None else inter.intersection(f)
+        if inter is None or inter.is_empty or inter.area <= 0:
+            parts = []
+            for ims in images_by_epoch.values():
+                for a, b in itertools.combinations(ims, 2):
+                    o = fps[a.name].intersection(fps[b.name])
+                    if not o.is_empty:
+                        parts.append(o)
+            if not parts:
+                raise NoOverlapError("no two images of the manifest overlap on the ground; there is nothing to match")
+            inter = unary_union(parts)
+            warnings.warn("the images have no area in common; the AOI is the union of the pairwise overlaps, so "
+                          "pair-DEMs cover different parts of it", stacklevel=2)
+        bounds = inter.bounds
+    if posting_m is None and spec is not None and spec.posting_m:
+        posting_m = spec.posting_m
+    if posting_m is None:
+        l, b, r, t = bounds
+        probe = AOIGrid.from_bounds(l, b, r, t, max((r - l), (t - b)) / 8.0, crs)
+        rows, cols = np.array([probe.height // 2]), np.array([probe.width // 2])
+        gsd = [1.0 / float(image_sampling_px_per_m(im.camera, probe, rows, cols, h)[0]) for im in all_images]
+        posting_m = max(0.05, round(float(np.median(gsd)) / 0.05) * 0.05)
+    l, b, r, t = bounds
+    return AOIGrid.from_bounds(l, b, r, t, float(posting_m), crs)
+
+
+# ---------------------------------------------------------------------------------------------
+# the run
+# ---------------------------------------------------------------------------------------------
+def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.PathLike | str | None = None,
+               params: StereoParams = StereoParams(), grid: AOIGrid | None = None, posting_m: float | None = None,
+               overwrite: bool = True, progress: Progress | None = None,
+               keep_arrays: bool = False) -> dict[str, Any]:
+    """Match every pair of images of the selected epochs and write their pair-DEMs.
+
+    Parameters
+    ----------
+    manifest : geocd.io.manifest.Manifest or a path to one
+    epochs : names of the epochs to process (default: all with ≥ 2 images)
+    out_dir : output folder (default: the manifest's ``output``)
+    grid : AOI grid (default: :func:`default_aoi_grid`)
+    keep_arrays : also return the :class:`PairDEM` objects
+
+    Returns
+    -------
+    dict with ``outputs`` ({"<epoch>/<a>__<b>": path}), ``grid`` and, with
+    ``keep_arrays``, ``pairs`` ({key: PairDEM}).
+
+    Raises
+    ------
+    ConfigError
+        A selected epoch has fewer than two images.
+    """
+    from ..io.atomic import protect_inputs
+    from ..io.manifest import Manifest, load_manifest
+    from ..io.raster import read_dem
+
+    m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
+    prog = ensure_progress(progress)
+    selected = [m.epoch(e) for e in epochs] if epochs else [e for e in m.epochs if len(e.images) >= 2]
+    if not selected:
+        raise ConfigError("no epoch of the manifest has two images or more, so there is no stereo pair to match; "
+                          "add images or name an epoch with --epoch")
+    for e in selected:
+        if len(e.images) < 2:
+            raise ConfigError(f"epoch {e.name!r} has {len(e.images)} image(s); stereo needs at least two")
+    out = Path(out_dir) if out_dir is not None else (m.output or m.root / "out")
+    images = {e.name: load_epoch_images(m, e) for e in selected}
+    protect_inputs(*[im.path for ims in images.values() for im in ims])
+    dem_median = None
+    if grid is None and m.dem is not None:
+        d0 = read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal()
+        dem_median = float(np.nanmedian(d0.height_m))
+    if grid is None:
+        grid = default_aoi_grid(m, images, posting_m=posting_m, dem_median=dem_median, params=params)
+    dem = None
+    if m.dem is not None:
+        dem = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
+    pairs = [(e, a, b) for e in selected for a, b in itertools.combinations(images[e.name], 2)]
+    outputs: dict[str, Path] = {}
+    kept: dict[str, PairDEM] = {}
+    chips: dict[tuple[str, str], ImageChip] = {}
+    # each image is read once, over the heights of every pair it belongs to
+    span: dict[tuple[str, str], tuple[float, float]] = {}
+    for e, a, b in pairs:
+        lo, hi, _ = height_bounds(grid, [a.camera, b.camera], dem, params)
+        for im in (a, b):
+            k = (e.name, im.name)
+            old = span.get(k, (np.inf, -np.inf))
+            span[k] = (min(old[0], float(np.min(lo))), max(old[1], float(np.max(hi))))
+    for i, (e, a, b) in enumerate(pairs):
+        key = f"{e.name}/{a.name}__{b.name}"
+        p = sub_progress(prog, i / len(pairs), (i + 1) / len(pairs), prefix=f"pair {i + 1}/{len(pairs)} ")
+        for im in (a, b):
+            if (e.name, im.name) not in chips:
+                chips[(e.name, im.name)] = read_chip(im.path, im.camera, grid, *span[(e.name, im.name)],
+                                                     name=im.name, margin_px=16 + 2 * params.window,
+                                                     block_px=params.norm_block_px)
+        pd = match_pair(chips[(e.name, a.name)], chips[(e.name, b.name)], a.camera, b.camera, grid, dem=dem,
+                        params=params, epoch=e.name, progress=p)
+        path = write_pair_dem(pair_path(out, e.name, a.name, b.name), pd, overwrite=overwrite,
+                              tags={"images": [str(a.path), str(b.path)], "manifest": str(m.path or "")})
+        outputs[key] = path
+        if keep_arrays:
+            kept[key] = pd
+    prog(1.0, "stereo done")
+    res: dict[str, Any] = {"outputs": outputs, "grid": grid}
+    if keep_arrays:
+        res["pairs"] = kept
+    return res

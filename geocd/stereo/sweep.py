@@ -1,0 +1,396 @@
+"""The object-space height sweep: reusable warping machinery.
+
+A :class:`PlaneSweep` walks the AOI grid tile by tile (tiles with margins, so
+memory stays bounded for any AOI) and, for every horizontal plane ``k`` of
+height ``origin + k·step`` that the tile's cells search, warps every image onto
+the tile's cells (bilinear). Any per-height cost can plug in::
+
+    sweep = PlaneSweep(grid, chips, cameras, search, tile_size=256, margin=2)
+    for tile in sweep.tiles():
+        kmin, kmax = sweep.kmin(tile), sweep.kmax(tile)   # each cell's own plane range
+        for sl in sweep.slices(tile):        # sl.k, sl.height_m, sl.stack (N, h, w)
+            cost_k = my_cost(sl.stack)       # NaN in the stack = outside the image / nodata
+            ...
+        keep results on tile.core (= tile.inner inside the tile's arrays)
+
+For each camera ``camera.ground_projector(x, y, grid.crs)`` is built once per
+tile and only ``.project(h)`` runs per height, so RPC and frame cameras go
+through the same code (never a branch on the camera kind). The stack array is
+reused between slices: copy what you keep.
+
+Heights are ellipsoidal metres. All cells share the planes (fronto-parallel
+windows never mix heights) but each cell searches only its own range
+``[lo_m, hi_m]`` (:class:`HeightSearch`), e.g. a prior DEM ± margin, and a tile
+sweeps only the planes its cells need.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import EmptyDataError, GridError
+from ..geodesy import AOIGrid
+from ..progress import Progress, ensure_progress
+from . import _kernels as K
+from .photometry import box_blur_nan, estimate_noise_sigma, local_normalize, to_gray
+
+
+# ---------------------------------------------------------------------------------------------
+# images
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ImageChip:
+    """A normalized gray image window ready for warping.
+
+    Attributes
+    ----------
+    data : float32 (rows, cols)
+        Locally normalized gray levels (0–255 scale), NaN where invalid.
+    col0, row0 : int
+        Position of ``data[0, 0]`` in the full image the camera describes (pixels),
+        so camera coordinates ``(col, row)`` sample ``data`` at ``(col − col0, row − row0)``.
+    name : str
+    noise_sigma : float
+        Noise standard deviation on the normalized scale (estimated).
+    """
+
+    data: np.ndarray
+    col0: int = 0
+    row0: int = 0
+    name: str = ""
+    noise_sigma: float = float("nan")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.data.shape
+
+    @property
+    def box(self) -> tuple[int, int, int, int]:
+        """(col0, row0, col1, row1) in full-image pixels."""
+        return (self.col0, self.row0, self.col0 + self.data.shape[1], self.row0 + self.data.shape[0])
+
+    def warp(self, col: np.ndarray, row: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Bilinear samples at full-image coordinates (pixel-corner convention); NaN outside/invalid."""
+        c = np.asarray(col, np.float64) - self.col0
+        r = np.asarray(row, np.float64) - self.row0
+        if c.ndim == 2 and out is not None:
+            K.warp_bilinear(self.data, np.ascontiguousarray(c), np.ascontiguousarray(r), out)
+            return out
+        shape = c.shape
+        o = np.empty((1, c.size), np.float32)
+        K.warp_bilinear(self.data, np.ascontiguousarray(c.reshape(1, -1)), np.ascontiguousarray(r.reshape(1, -1)), o)
+        o = o.reshape(shape)
+        if out is not None:
+            out[...] = o
+            return out
+        return o
+
+    def blurred(self, size: int) -> "ImageChip":
+        """The chip box-blurred over ``size`` pixels (anti-aliasing for a coarser grid)."""
+        if size <= 1:
+            return self
+        return replace(self, data=box_blur_nan(self.data, int(size)))
+
+
+def prepare_chip(data: np.ndarray, valid: np.ndarray | None = None, *, col0: int = 0, row0: int = 0,
+                 name: str = "", block_px: int = 256) -> ImageChip:
+    """Gray, locally normalized chip from raw image data (any dtype, 1 or more bands).
+
+    Parameters
+    ----------
+    data : (rows, cols) or (bands, rows, cols)
+    valid : bool (rows, cols), optional
+    col0, row0 : position of ``data`` in the full image (for windows read from a large image)
+
+    Raises
+    ------
+    EmptyDataError
+        When no pixel is valid.
+    """
+    g = to_gray(data, valid)
+    if not np.isfinite(g).any():
+        raise EmptyDataError(f"image {name or ''} is entirely nodata over the area to match; check its nodata "
+                             "value and that it covers the AOI")
+    norm = local_normalize(g, block_px=block_px)
+    sigma = estimate_noise_sigma(norm)
+    return ImageChip(np.ascontiguousarray(norm, np.float32), int(col0), int(row0), name, sigma)
+
+
+# ---------------------------------------------------------------------------------------------
+# height hypotheses
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class HeightSearch:
+    """Horizontal height planes ``origin_m + k · step_m`` and the range each cell searches.
+
+    Every cell is tested on the same planes (windows are fronto-parallel, so a
+    window never mixes heights), but only for ``kmin ≤ k ≤ kmax`` — its own
+    ``[lo_m, hi_m]``. A tile sweeps the indices its cells need, so the cost
+    follows the local relief, not the whole scene's.
+
+    Attributes
+    ----------
+    lo_m, hi_m : float64 (rows, cols), ellipsoidal metres (NaN = do not search)
+    step_m : float
+    origin_m : float, height of plane k = 0 (default: the lowest ``lo_m``)
+    """
+
+    lo_m: np.ndarray
+    hi_m: np.ndarray
+    step_m: float
+    origin_m: float = float("nan")
+
+    def __post_init__(self) -> None:
+        if self.lo_m.shape != self.hi_m.shape:
+            raise GridError("height search lo and hi must have the same shape")
+        if not (self.step_m > 0 and math.isfinite(self.step_m)):
+            raise GridError(f"height step must be positive, got {self.step_m}")
+        if not math.isfinite(self.origin_m):
+            lo = self.lo_m[np.isfinite(self.lo_m)]
+            object.__setattr__(self, "origin_m", float(lo.min()) if lo.size else 0.0)
+
+    @classmethod
+    def uniform(cls, shape: tuple[int, int], lo_m: float, hi_m: float, step_m: float) -> "HeightSearch":
+        return cls(np.full(shape, float(lo_m)), np.full(shape, float(hi_m)), float(step_m))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.lo_m.shape
+
+    def kmin(self) -> np.ndarray:
+        """int32 (rows, cols): first plane index of each cell."""
+        ok = np.isfinite(self.lo_m) & np.isfinite(self.hi_m)
+        k = np.ceil((np.where(ok, self.lo_m, self.origin_m) - self.origin_m) / self.step_m - 1e-9)
+        return np.where(ok, k, 0).astype(np.int32)
+
+    def kmax(self) -> np.ndarray:
+        """int32 (rows, cols): last plane index of each cell (−1 where not searched)."""
+        ok = np.isfinite(self.lo_m) & np.isfinite(self.hi_m)
+        k = np.floor((np.where(ok, self.hi_m, self.origin_m) - self.origin_m) / self.step_m + 1e-9)
+        k = np.maximum(k, self.kmin())
+        return np.where(ok, k, -1).astype(np.int32)
+
+    def n_planes(self) -> int:
+        """Planes from the origin to the highest searched one."""
+        return int(self.kmax().max()) + 1
+
+    def height(self, k: int | float | np.ndarray) -> np.ndarray | float:
+        """Height (m) of plane index ``k`` (fractional indices allowed)."""
+        return self.origin_m + np.asarray(k, np.float64) * self.step_m
+
+
+# ---------------------------------------------------------------------------------------------
+# tiles
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Tile:
+    """A tile of the grid: ``core`` cells (results) inside ``outer`` (core + margin, clipped).
+
+    ``core`` and ``outer`` are (row slice, col slice) in the grid; ``inner`` is
+    the core inside the outer window's arrays.
+    """
+
+    index: int
+    count: int
+    core: tuple[slice, slice]
+    outer: tuple[slice, slice]
+    inner: tuple[slice, slice]
+
+    @property
+    def outer_shape(self) -> tuple[int, int]:
+        return (self.outer[0].stop - self.outer[0].start, self.outer[1].stop - self.outer[1].start)
+
+    @property
+    def core_cells(self) -> int:
+        return (self.core[0].stop - self.core[0].start) * (self.core[1].stop - self.core[1].start)
+
+
+def iter_tiles(shape: tuple[int, int], tile_size: int, margin: int) -> list[Tile]:
+    """Tiles of ``tile_size`` cells with ``margin`` cells of context on each side."""
+    H, W = shape
+    rows = list(range(0, H, tile_size))
+    cols = list(range(0, W, tile_size))
+    out = []
+    n = len(rows) * len(cols)
+    for r0 in rows:
+        for c0 in cols:
+            r1, c1 = min(r0 + tile_size, H), min(c0 + tile_size, W)
+            R0, C0 = max(r0 - margin, 0), max(c0 - margin, 0)
+            R1, C1 = min(r1 + margin, H), min(c1 + margin, W)
+            out.append(Tile(len(out), n, (slice(r0, r1), slice(c0, c1)), (slice(R0, R1), slice(C0, C1)),
+                            (slice(r0 - R0, r1 - R0), slice(c0 - C0, c1 - C0))))
+    return out
+
+
+@dataclass
+class SweepSlice:
+    """One height index of one tile: every image warped onto the tile's outer cells.
+
+    Attributes
+    ----------
+    k : int, plane index
+    height_m : float, the plane's ellipsoidal height (m)
+    stack : float32 (N, h, w), image n warped onto the cells (NaN = outside / nodata);
+        reused for the next slice — copy what you keep
+    tile : Tile
+    """
+
+    k: int
+    height_m: float
+    stack: np.ndarray
+    tile: Tile
+
+
+class PlaneSweep:
+    """Warp N images onto an AOI grid for every height hypothesis, tile by tile.
+
+    Parameters
+    ----------
+    grid : AOIGrid
+    chips : sequence of ImageChip (normalized images)
+    cameras : sequence of Camera, one per chip
+    search : HeightSearch on ``grid``
+    tile_size : int, tile side in cells
+    margin : int, context cells around each tile (e.g. the window radius)
+    """
+
+    def __init__(self, grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camera], search: HeightSearch,
+                 *, tile_size: int = 256, margin: int = 0):
+        if len(chips) != len(cameras) or not chips:
+            raise ValueError("PlaneSweep needs one camera per image chip, and at least one")
+        if search.shape != grid.shape:
+            raise GridError(f"height search shape {search.shape} differs from the grid {grid.shape}")
+        self.grid = grid
+        self.chips = list(chips)
+        self.cameras = list(cameras)
+        self.search = search
+        self.tile_size = int(tile_size)
+        self.margin = int(margin)
+        self._kmin = search.kmin()
+        self._kmax = search.kmax()
+        self._tiles = iter_tiles(grid.shape, self.tile_size, self.margin)
+
+    def tiles(self) -> list[Tile]:
+        return list(self._tiles)
+
+    def kmin(self, tile: Tile) -> np.ndarray:
+        """int32 first plane index of the tile's outer cells."""
+        return np.ascontiguousarray(self._kmin[tile.outer])
+
+    def kmax(self, tile: Tile) -> np.ndarray:
+        """int32 last plane index of the tile's outer cells (−1: not searched)."""
+        return np.ascontiguousarray(self._kmax[tile.outer])
+
+    def k_range(self, tile: Tile) -> tuple[int, int]:
+        """[start, stop) of the plane indices the tile's core cells need (empty when none)."""
+        kmax = self._kmax[tile.core]
+        ok = kmax >= 0
+        if not ok.any():
+            return (0, 0)
+        return int(self._kmin[tile.core][ok].min()), int(kmax[ok].max()) + 1
+
+    def n_evaluations(self) -> int:
+        """Cell × plane evaluations of the whole sweep (core cells, for benchmarks)."""
+        n = 0
+        for t in self._tiles:
+            k0, k1 = self.k_range(t)
+            n += t.core_cells * max(k1 - k0, 0)
+        return int(n)
+
+    def projectors(self, tile: Tile) -> list:
+        """Ground projectors of the tile's outer cell centres, one per camera."""
+        sub = self.grid.subgrid(tile.outer[0].start, tile.outer[1].start, *tile.outer_shape)
+        x, y = sub.xy()
+        return [cam.ground_projector(x, y, self.grid.crs) for cam in self.cameras]
+
+    def slices(self, tile: Tile, k_range: tuple[int, int] | None = None) -> Iterator[SweepSlice]:
+        """Yield the tile's warped stack for each plane index (default: :meth:`k_range`)."""
+        projs = self.projectors(tile)
+        k0, k1 = k_range if k_range is not None else self.k_range(tile)
+        stack = np.empty((len(self.chips), *tile.outer_shape), np.float32)
+        for k in range(k0, k1):
+            h = float(self.search.height(k))
+            for n, (chip, pr) in enumerate(zip(self.chips, projs)):
+                col, row = pr.project(h)
+                chip.warp(col, row, out=stack[n])
+            yield SweepSlice(k, h, stack, tile)
+
+    def warp_at(self, height_m: np.ndarray) -> np.ndarray:
+        """Every image warped onto the whole grid at given per-cell heights: float32 (N, rows, cols)."""
+        x, y = self.grid.xy()
+        out = np.empty((len(self.chips), *self.grid.shape), np.float32)
+        for n, (chip, cam) in enumerate(zip(self.chips, self.cameras)):
+            col, row = cam.ground_projector(x, y, self.grid.crs).project(height_m)
+            chip.warp(col, row, out=out[n])
+        return out
+
+
+def sweep_progress(progress: Progress | None, tile: Tile, k: int, n_k: int, prefix: str = "") -> None:
+    """Report the fraction of a sweep done (between heights and tiles)."""
+    p = ensure_progress(progress)
+    frac = (tile.index + (k / max(n_k, 1))) / max(tile.count, 1)
+    p(frac, f"{prefix}tile {tile.index + 1}/{tile.count} height {k}/{n_k}")
+
+
+# ---------------------------------------------------------------------------------------------
+# geometry on the grid
+# ---------------------------------------------------------------------------------------------
+def sample_cells(shape: tuple[int, int], n: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of about n×n cells spread over a grid, borders included."""
+    H, W = shape
+    r = np.unique(np.linspace(0, H - 1, min(n, H)).round().astype(int))
+    c = np.unique(np.linspace(0, W - 1, min(n, W)).round().astype(int))
+    R, C = np.meshgrid(r, c, indexing="ij")
+    return R.ravel(), C.ravel()
+
+
+def image_sampling_px_per_m(camera: Camera, grid: AOIGrid, rows: np.ndarray, cols: np.ndarray,
+                            height_m: np.ndarray | float, d_m: float = 1.0) -> np.ndarray:
+    """Image pixels per ground metre at grid cells: sqrt(|det ∂(col,row)/∂(x,y)|) (x, y metres)."""
+    x, y = grid.xy(rows, cols)
+    h = np.broadcast_to(np.asarray(height_m, float), x.shape)
+    pr = camera.ground_projector(np.concatenate([x, x + d_m, x]), np.concatenate([y, y, y + d_m]), grid.crs)
+    c, r = pr.project(np.concatenate([h, h, h]))
+    n = x.size
+    dcx, drx = (c[n:2 * n] - c[:n]) / d_m, (r[n:2 * n] - r[:n]) / d_m
+    dcy, dry = (c[2 * n:] - c[:n]) / d_m, (r[2 * n:] - r[:n]) / d_m
+    return np.sqrt(np.abs(dcx * dry - dcy * drx))
+
+
+def grid_metres_per_unit(grid: AOIGrid) -> float:
+    """Metres per CRS unit of the grid (1 for projected CRSs in metres)."""
+    try:
+        u = grid.crs.axis_info[0].unit_conversion_factor
+        return float(u) if u else 1.0
+    except (IndexError, AttributeError):  # pragma: no cover
+        return 1.0
+
+
+def chip_valid_at(chip: ImageChip, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Whether full-image points fall on valid pixels of a chip (bilinear support)."""
+    v = chip.warp(col, row)
+    return np.isfinite(v)
+
+
+def coarse_grid(grid: AOIGrid, factor: int) -> AOIGrid:
+    """The grid ``factor`` times coarser, aligned on the same upper-left corner."""
+    from affine import Affine
+
+    if factor == 1:
+        return grid
+    return AOIGrid(grid.crs, grid.transform @ Affine.scale(factor), -(-grid.width // factor),
+                   -(-grid.height // factor))
+
+
+def upsample_nearest(a: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """Coarse-grid array → fine grid (each fine cell takes the coarse cell containing it)."""
+    if factor == 1:
+        return a
+    r = np.minimum(np.arange(shape[0]) // factor, a.shape[0] - 1)
+    c = np.minimum(np.arange(shape[1]) // factor, a.shape[1] - 1)
+    return a[np.ix_(r, c)]

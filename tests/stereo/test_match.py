@@ -1,0 +1,100 @@
+"""End-to-end matching on the synthetic pair (statistical tolerances)."""
+
+import numpy as np
+import pytest
+
+from geocd.stereo import FLAGS, StereoParams, match_pair, prepare_chip
+from geocd.stereo.photometry import estimate_noise_sigma, local_normalize, to_gray
+
+
+def test_heights_match_truth(scene, pair_dem):
+    pd = pair_dem
+    dz = pd.z_m - scene.truth
+    ok = pd.valid
+    assert np.median(np.abs(dz[ok])) < 0.15            # 0.3 px of disparity at g = 1 px/m
+    assert np.percentile(np.abs(dz[ok]), 90) < 0.6
+    # completeness over the cells both images see
+    assert pd.valid[scene.visible].mean() > 0.85
+    assert pd.z_m.dtype == np.float32 and np.isnan(pd.z_m[~pd.valid]).all()
+
+
+def test_g_is_the_disparity_per_metre(scene, pair_dem):
+    # affine cameras: parallax (0.55, 0.05) and (−0.45, 0.02) px/m → g = ‖(1.0, 0.03)‖
+    np.testing.assert_allclose(pair_dem.g_px_per_m, np.hypot(1.0, 0.03), rtol=2e-3)
+    assert pair_dem.meta["base_height_median"] == pytest.approx(0.5, rel=0.02)  # g / (2 px per m)
+
+
+def test_score_predicts_errors(scene, pair_dem):
+    """Cells with a worse (higher) MDL score are more often wrong than the best-scored ones."""
+    pd = pair_dem
+    ok = np.isfinite(pd.z_raw_m)
+    err = np.abs(pd.z_raw_m - scene.truth)[ok] > 0.5
+    s = pd.score[ok]
+    q = np.quantile(s, [0.5])
+    assert err[s > q[0]].mean() > 2 * err[s <= q[0]].mean()
+    assert np.nanmedian(pd.score[pd.valid]) < -0.5       # textured correct matches explain the data
+    # alternative scores present
+    assert np.nanmedian(pd.ncc[pd.valid]) > 0.8
+    assert np.isfinite(pd.ssd[pd.valid]).all()
+
+
+def test_occlusions_are_flagged(scene, pair_dem):
+    from scipy import ndimage
+
+    occ = (pair_dem.flags & FLAGS["occluded"]) > 0
+    hidden = ~scene.visible
+    # half the truly hidden cells are invalid, the z-buffer flags many of them, and what it
+    # flags lies mostly next to hidden cells
+    assert (~pair_dem.valid[hidden]).mean() > 0.45
+    assert occ[hidden].mean() > 0.3
+    assert ndimage.binary_dilation(hidden, iterations=3)[occ].mean() > 0.7
+    # hidden cells left valid are not wild
+    assert np.median(np.abs(pair_dem.z_m - scene.truth)[hidden & pair_dem.valid]) < 1.5
+
+
+def test_tiling_does_not_change_results(scene, chips, pair_dem):
+    pd = match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid,
+                    params=StereoParams(tile_size=32))
+    both = np.isfinite(pd.z_raw_m) & np.isfinite(pair_dem.z_raw_m)
+    assert both.mean() > 0.95
+    np.testing.assert_allclose(pd.z_raw_m[both], pair_dem.z_raw_m[both], atol=1e-3)
+
+
+def test_dem_prior_and_progress(scene, chips):
+    calls = []
+    dem = np.full(scene.grid.shape, np.median(scene.truth))
+    pd = match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid, dem=dem,
+                    params=StereoParams(dem_margin_m=15.0), progress=lambda f, m="": calls.append(f))
+    assert pd.meta["height_source"] == "dem" and pd.meta["levels"] == 1
+    ok = pd.valid
+    assert np.median(np.abs(pd.z_m - scene.truth)[ok]) < 0.15
+    fr = [c for c in calls if c is not None]
+    assert fr[-1] == 1.0 and all(b >= a - 1e-9 for a, b in zip(fr, fr[1:]))
+
+
+def test_illumination_gain_offset_invariance(scene, chips, pair_dem):
+    img = scene.images[1].astype(np.float32)
+    brighter = prepare_chip(0.5 * img + 40, name="img_b")
+    pd = match_pair(chips[0], brighter, scene.cameras[0], scene.cameras[1], scene.grid)
+    both = pd.valid & pair_dem.valid
+    assert np.median(np.abs(pd.z_m[both] - pair_dem.z_m[both])) < 0.02
+
+
+def test_photometry_handles_bit_depths_and_bands():
+    rng = np.random.default_rng(0)
+    base = rng.normal(0, 1, (300, 300))
+    u16 = np.clip(1000 + 200 * base, 0, 2047).astype(np.uint16)
+    rgb = np.stack([np.clip(120 + 30 * base * f, 0, 255) for f in (1, 0.9, 0.8)]).astype(np.uint8)
+    a = local_normalize(to_gray(u16), block_px=128)
+    b = local_normalize(to_gray(rgb), block_px=128)
+    for x in (a, b):
+        assert x.dtype == np.float32 and 0 <= np.nanmin(x) and np.nanmax(x) <= 255
+        assert np.nanpercentile(x, 99) - np.nanpercentile(x, 1) > 150
+    assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.98
+    # noise estimate of pure noise on a flat image
+    flat = 100 + rng.normal(0, 3.0, (200, 200))
+    assert estimate_noise_sigma(flat) == pytest.approx(3.0, rel=0.1)
+    # invalid pixels stay invalid
+    v = np.ones(u16.shape, bool)
+    v[:10] = False
+    assert np.isnan(local_normalize(to_gray(u16, v))[:10]).all()
