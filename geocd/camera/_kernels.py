@@ -338,3 +338,32 @@ def dproj_dh_ref(lon, lat, h, coefs, norm, eps_m: float = 1e-3):
     s1, l1 = project_ref(lon, lat, np.asarray(h, float) + eps_m, coefs, norm)
     s0, l0 = project_ref(lon, lat, np.asarray(h, float) - eps_m, coefs, norm)
     return (s1 - s0) / (2 * eps_m), (l1 - l0) / (2 * eps_m)
+
+
+def localize_ref(samp, line, h, coefs, norm, tol_px: float = 1e-9, max_iter: int = 50):
+    """Plain Newton on :func:`project_ref` with a central-difference Jacobian, from the box centre.
+
+    RPC pixel convention (like the kernels). Samples not converged after ``max_iter``
+    iterations are NaN. Slow and simple: the reference for :func:`rpc_localize` on tame RPCs.
+    """
+    samp, line, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (samp, line, h)))
+    lon = np.full(samp.shape, float(norm[3]))
+    lat = np.full(samp.shape, float(norm[2]))
+    e_lon, e_lat = 1e-6 * abs(norm[8]), 1e-6 * abs(norm[7])
+    done = np.zeros(samp.shape, bool)
+    for _ in range(max_iter):
+        s, l = project_ref(lon, lat, h, coefs, norm)
+        rs, rl = s - samp, l - line
+        done = np.hypot(rs, rl) <= tol_px
+        if done.all():
+            break
+        sp, lp = project_ref(lon + e_lon, lat, h, coefs, norm)
+        sm, lm = project_ref(lon - e_lon, lat, h, coefs, norm)
+        a, c = (sp - sm) / (2 * e_lon), (lp - lm) / (2 * e_lon)
+        sp, lp = project_ref(lon, lat + e_lat, h, coefs, norm)
+        sm, lm = project_ref(lon, lat - e_lat, h, coefs, norm)
+        b, d = (sp - sm) / (2 * e_lat), (lp - lm) / (2 * e_lat)
+        det = a * d - b * c
+        lon = np.where(done, lon, lon - (d * rs - b * rl) / det)
+        lat = np.where(done, lat, lat - (a * rl - c * rs) / det)
+    return np.where(done, lon, np.nan), np.where(done, lat, np.nan)

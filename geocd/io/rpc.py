@@ -176,7 +176,8 @@ class _Fields:
             if missing:
                 parts.append("lacks " + ", ".join(missing))
             if self.bad:
-                parts.append("; ".join(self.bad))
+                more = f"; and {len(self.bad) - 4} more unreadable values" if len(self.bad) > 5 else ""
+                parts.append("; ".join(self.bad[:4] if more else self.bad) + more)
             raise RPCParseError(
                 f"{self.path}: this {self.label} file {'; '.join(parts)}. The file is truncated, garbled or not "
                 "an RPC file; re-export it from the original product (an RPC needs 10 offsets/scales and "
@@ -313,8 +314,8 @@ def detect_rpc_format(path: os.PathLike | str) -> str:
     head = _read_head(p, 4096)
     if head[:4] in _TIFF_MAGIC or head[:4] in (b"NITF", b"NSIF") or head[:12] == b"\x00\x00\x00\x0cjP  \r\n\x87\n":
         return "gdal"
-    if b"\x00" in head:
-        return "gdal"
+    if b"\x00" in head:  # binary: a raster GDAL may know, unless the extension says text
+        return _EXT_FALLBACK.get(p.suffix.lower(), "gdal")
     txt = head.decode("utf-8", errors="replace").lstrip("\ufeff \t\r\n")
     if txt.startswith("<"):
         return "xml"
@@ -336,20 +337,30 @@ def detect_rpc_format(path: os.PathLike | str) -> str:
 # =====================================================================================
 # readers, one per format; each gets (path, image_path) and returns an RPCModel
 # =====================================================================================
-def _open_raster(path: Path):
+def _open_raster(path: Path, *, own_metadata_only: bool = False):
+    """rasterio dataset; ``own_metadata_only`` hides sibling files from GDAL.
+
+    GDAL's metadata readers fill the RPC domain from sidecars (.RPB, _rpc.txt, DigitalGlobe
+    .XML, Pléiades RPC_*.XML, ...) and prefer them to the file's own tags. geocd reads the
+    tags alone (``GDAL_DISABLE_READDIR_ON_OPEN=EMPTY_DIR``) and finds sidecars itself, with
+    its own parsers (DIMAP 1-based offsets, crops), so that ``source`` says the truth.
+    """
     import rasterio
     from rasterio.errors import NotGeoreferencedWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        if own_metadata_only:
+            with rasterio.Env(GDAL_DISABLE_READDIR_ON_OPEN="EMPTY_DIR"):
+                return rasterio.open(path)
         return rasterio.open(path)
 
 
-def _read_gdal(path: Path, image_path: Path | None) -> RPCModel:
+def _read_gdal(path: Path, image_path: Path | None, *, own_metadata_only: bool = True) -> RPCModel:
     from rasterio.errors import RasterioError
 
     try:
-        ds = _open_raster(path)
+        ds = _open_raster(path, own_metadata_only=own_metadata_only)
     except RasterioError as exc:
         raise RPCParseError(
             f"{path}: GDAL cannot open this file as a raster ({exc}); it is truncated, garbled or not an "
@@ -367,7 +378,7 @@ def _read_gdal(path: Path, image_path: Path | None) -> RPCModel:
                 f"{path} ({ds.driver}) has no RPC metadata (no RPC tags / RPC00B TRE); give its RPC sidecar "
                 "file instead (_rpc.txt, .RPB, RPC_*.XML, .geom, ...) or put it next to the image"
             )
-        sidecars = [f for f in (ds.files or []) if f.lower().endswith((".rpb", "_rpc.txt"))]
+        sidecars = [] if own_metadata_only else [f for f in (ds.files or [])[1:] if not f.lower().endswith(".aux.xml")]
         if ds.driver == "NITF":
             label = "NITF RPC00B TRE"
             try:
@@ -377,10 +388,13 @@ def _read_gdal(path: Path, image_path: Path | None) -> RPCModel:
                 pass
         elif ds.driver == "GTiff":
             label = "GeoTIFF RPC tags"
+            if Path(f"{path}.aux.xml").is_file():
+                label += " (or its .aux.xml)"
         else:
             label = f"{ds.driver} RPC metadata"
-        if sidecars:
-            label += f" read by GDAL from {', '.join(Path(s).name for s in sidecars)}"
+        if not own_metadata_only:
+            label = (f"RPC found by GDAL's metadata readers in {', '.join(Path(s).name for s in sidecars)}"
+                     if sidecars else label)
         try:
             kw = dict(
                 line_num=rpc.line_num_coeff, line_den=rpc.line_den_coeff, samp_num=rpc.samp_num_coeff,
@@ -809,7 +823,7 @@ def load_rpc_for_image(image_path: os.PathLike | str) -> RPCModel:
     from rasterio.errors import RasterioError
 
     try:
-        with _open_raster(image) as ds:
+        with _open_raster(image, own_metadata_only=True) as ds:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 has_tags = ds.rpcs is not None
@@ -820,11 +834,18 @@ def load_rpc_for_image(image_path: os.PathLike | str) -> RPCModel:
     if has_tags:
         return read_rpc(image)
     side = find_rpc_sidecar(image)
-    if side is None:
-        tried = ", ".join(_sidecar_candidates(image)[:8])
-        raise RPCNotFoundError(
-            f"{image} has no RPC: no RPC tags in the file and no sidecar next to it (tried {tried}, a unique "
-            "RPC_*.XML, ...). Put the vendor RPC file beside the image under one of these names, or name it "
-            "explicitly (manifest 'camera:' / geocd.io.rpc.read_rpc(rpc_file, image_path=image))"
-        )
-    return read_rpc(side, image_path=image)
+    if side is not None:
+        return read_rpc(side, image_path=image)
+    # last resort: GDAL's metadata readers know a few more vendor layouts (DIM_*.XML, ...)
+    try:
+        model = _read_gdal(image, None, own_metadata_only=False)
+    except RPCNotFoundError:
+        model = None
+    if model is not None:
+        return _fit_to_image(model, image, apply_crop=True)
+    tried = ", ".join(_sidecar_candidates(image)[:8])
+    raise RPCNotFoundError(
+        f"{image} has no RPC: no RPC tags in the file and no sidecar next to it (tried {tried}, a unique "
+        "RPC_*.XML, ...). Put the vendor RPC file beside the image under one of these names, or name it "
+        "explicitly (manifest 'camera:' / geocd.io.rpc.read_rpc(rpc_file, image_path=image))"
+    )
