@@ -1,0 +1,732 @@
+"""numba kernels of the scene renderer, with pure-numpy references.
+
+The scene is packed into :class:`SceneArrays` (a namedtuple of arrays, see
+:func:`geocd.synth.render.pack_scene`) in map space: ``x, y`` metres from the
+scene origin, ``z`` ellipsoidal metres.
+
+* Terrain: a bilinear height field; a ray is marched in steps of at most 1 m
+  (horizontal and vertical) and the first crossing refined by bisection to
+  1e-9 m. The terrain is smooth (bumps of tens of metres), so no crossing hides
+  between two steps.
+* Objects: convex polyhedra (intersections of half-spaces ``n·p ≤ d``: building
+  parts with flat or gabled roofs, car bodies and cabins), intersected exactly
+  by Cyrus–Beck clipping, and ellipsoids (tree crowns). A uniform 2-D grid of
+  bins (CSR lists) is walked with a 2-D DDA along the ray, so a ray tests only
+  the objects near its path and stops at the first hit.
+* Shading: Lambertian with a sun term (a shadow ray towards the sun against the
+  same geometry: cast shadows are real) and a sky term; albedo from procedural
+  textures in *world* coordinates (value noise), identical for every view.
+
+Object ids: ``out_obj`` is the object index (≥ 0), −1 for the terrain and −2
+when nothing was hit.
+"""
+
+from __future__ import annotations
+
+from collections import namedtuple
+
+import numpy as np
+from numba import njit, prange
+
+SceneArrays = namedtuple("SceneArrays", [
+    "terr",        # (ny, nx) float64 heights
+    "terr_meta",   # (5,) x0, y0, step, hmin, hmax
+    "kind",        # (n,) int64: 0 polyhedron, 1 ellipsoid
+    "cls",         # (n,) int64: 1 building, 2 car, 3 tree
+    "planes",      # (n, 8, 4) float64: n·p <= d
+    "nplanes",     # (n,) int64
+    "ell",         # (n, 5) float64: cx, cy, cz, r, rz
+    "rgb",         # (n, 3) primary colour (roof, car, tree tint)
+    "rgb2",        # (n, 3) secondary colour (walls)
+    "par",         # (n, 4): ground_m, storey_m, role (0 flat roof, 1 gabled, 2 car body, 3 car cabin, 4 tree), seed
+    "grid_meta",   # (5,) gx0, gy0, gsize, gnx, gny
+    "grid_start",  # (gnx*gny + 1,) int64
+    "grid_items",  # (m,) int64
+    "zrange",      # (2,) min and max z of all objects
+    "streets",     # (ns, 7): x0, y0, ux, uy, length, half_width, sidewalk
+    "patches",     # (np, 6): cx, cy, half_len, half_wid, angle, material
+    "colours",     # (9, 3): grass, vegetation multiplier, asphalt, pavement, soil, marking, glass, tree base,
+                   #   near-infrared albedo of (grass, trees, unused)
+])
+
+M_GRASS, M_ASPHALT, M_PAVEMENT, M_SOIL, M_MARKING = 0, 1, 2, 3, 10
+INF = np.inf
+
+
+# ------------------------------------------------------------------------------------------
+# hashing and value noise
+# ------------------------------------------------------------------------------------------
+@njit(cache=True, inline="always")
+def _hash3(ix, iy, iz, seed):
+    h = np.uint64(ix) * np.uint64(0x9E3779B97F4A7C15)
+    h ^= np.uint64(iy) * np.uint64(0xC2B2AE3D27D4EB4F)
+    h ^= np.uint64(iz) * np.uint64(0x165667B19E3779F9)
+    h ^= np.uint64(seed) * np.uint64(0x27D4EB2F165667C5)
+    h ^= h >> np.uint64(33)
+    h *= np.uint64(0xFF51AFD7ED558CCD)
+    h ^= h >> np.uint64(33)
+    h *= np.uint64(0xC4CEB9FE1A85EC53)
+    h ^= h >> np.uint64(33)
+    return np.float64(h >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@njit(cache=True)
+def vnoise(x, y, z, seed):
+    """3-D value noise in [0, 1): smoothstep interpolation of hashed lattice values."""
+    fx = np.floor(x)
+    fy = np.floor(y)
+    fz = np.floor(z)
+    ix = np.int64(fx)
+    iy = np.int64(fy)
+    iz = np.int64(fz)
+    tx = x - fx
+    ty = y - fy
+    tz = z - fz
+    sx = tx * tx * (3.0 - 2.0 * tx)
+    sy = ty * ty * (3.0 - 2.0 * ty)
+    sz = tz * tz * (3.0 - 2.0 * tz)
+    c000 = _hash3(ix, iy, iz, seed)
+    c100 = _hash3(ix + 1, iy, iz, seed)
+    c010 = _hash3(ix, iy + 1, iz, seed)
+    c110 = _hash3(ix + 1, iy + 1, iz, seed)
+    c001 = _hash3(ix, iy, iz + 1, seed)
+    c101 = _hash3(ix + 1, iy, iz + 1, seed)
+    c011 = _hash3(ix, iy + 1, iz + 1, seed)
+    c111 = _hash3(ix + 1, iy + 1, iz + 1, seed)
+    a = c000 + sx * (c100 - c000)
+    b = c010 + sx * (c110 - c010)
+    c = c001 + sx * (c101 - c001)
+    d = c011 + sx * (c111 - c011)
+    e = a + sy * (b - a)
+    f = c + sy * (d - c)
+    return e + sz * (f - e)
+
+
+@njit(cache=True)
+def fbm(x, y, z, seed, octaves):
+    """Fractal sum of value noise (octaves halving in size), normalised to [0, 1)."""
+    s = 0.0
+    amp = 1.0
+    tot = 0.0
+    f = 1.0
+    for o in range(octaves):
+        s += amp * vnoise(x * f, y * f, z * f, seed + o)
+        tot += amp
+        amp *= 0.5
+        f *= 2.0
+    return s / tot
+
+
+@njit(cache=True, parallel=True)
+def vnoise_many(x, y, z, seed, out):
+    for i in prange(x.shape[0]):
+        out[i] = vnoise(x[i], y[i], z[i], seed)
+
+
+# ------------------------------------------------------------------------------------------
+# geometry
+# ------------------------------------------------------------------------------------------
+@njit(cache=True)
+def terrain_at(terr, meta, x, y):
+    """Bilinear height and its gradient (clamped at the grid edges)."""
+    ny, nx = terr.shape
+    fj = (x - meta[0]) / meta[2]
+    fi = (y - meta[1]) / meta[2]
+    if fj < 0.0:
+        fj = 0.0
+    if fj > nx - 1.000001:
+        fj = nx - 1.000001
+    if fi < 0.0:
+        fi = 0.0
+    if fi > ny - 1.000001:
+        fi = ny - 1.000001
+    j = np.int64(np.floor(fj))
+    i = np.int64(np.floor(fi))
+    a = fj - j
+    b = fi - i
+    h00 = terr[i, j]
+    h01 = terr[i, j + 1]
+    h10 = terr[i + 1, j]
+    h11 = terr[i + 1, j + 1]
+    h = (1 - a) * (1 - b) * h00 + a * (1 - b) * h01 + (1 - a) * b * h10 + a * b * h11
+    hx = ((1 - b) * (h01 - h00) + b * (h11 - h10)) / meta[2]
+    hy = ((1 - a) * (h10 - h00) + a * (h11 - h01)) / meta[2]
+    return h, hx, hy
+
+
+@njit(cache=True)
+def _terrain_f(terr, meta, ox, oy, oz, dx, dy, dz, t):
+    h, _, _ = terrain_at(terr, meta, ox + t * dx, oy + t * dy)
+    return oz + t * dz - h
+
+
+@njit(cache=True)
+def terrain_hit(terr, meta, ox, oy, oz, dx, dy, dz, t0, t1):
+    """First t in [t0, t1] where the ray meets the terrain (inf when it does not)."""
+    hmin = meta[3] - 0.01
+    hmax = meta[4] + 0.01
+    ta = t0
+    tb = t1
+    if dz < 0.0:
+        ta = max(ta, (hmax - oz) / dz)
+        tb = min(tb, (hmin - oz) / dz)
+    elif dz > 0.0:
+        tb = min(tb, (hmax - oz) / dz)
+    if ta > tb:
+        return INF
+    hs = np.sqrt(dx * dx + dy * dy)
+    step = INF
+    if hs > 0.0:
+        step = 1.0 / hs
+    if dz != 0.0:
+        step = min(step, 1.0 / abs(dz))
+    t = ta
+    f = _terrain_f(terr, meta, ox, oy, oz, dx, dy, dz, t)
+    if f <= 0.0:
+        return t
+    while t < tb:
+        tn = min(t + step, tb)
+        fn = _terrain_f(terr, meta, ox, oy, oz, dx, dy, dz, tn)
+        if fn <= 0.0:
+            # Illinois (modified regula falsi): f > 0 at lo, f <= 0 at hi
+            lo = t
+            hi = tn
+            flo = f
+            fhi = fn
+            side = 0
+            for _ in range(100):
+                if hi - lo < 1e-10 or fhi == 0.0:
+                    break
+                mid = (lo * fhi - hi * flo) / (fhi - flo)
+                if not (lo < mid < hi):
+                    mid = 0.5 * (lo + hi)
+                fm = _terrain_f(terr, meta, ox, oy, oz, dx, dy, dz, mid)
+                if fm > 0.0:
+                    lo = mid
+                    flo = fm
+                    if side == 1:
+                        fhi *= 0.5
+                    side = 1
+                else:
+                    hi = mid
+                    fhi = fm
+                    if side == -1:
+                        flo *= 0.5
+                    side = -1
+                if abs(fm) < 1e-10:
+                    return mid
+            return hi
+        t = tn
+    return INF
+
+
+@njit(cache=True)
+def poly_hit(planes, npl, ox, oy, oz, dx, dy, dz, tlo, thi):
+    """Entry of the ray into a convex polyhedron within [tlo, thi]: (t, face) or (inf, -1)."""
+    tin = -INF
+    tout = INF
+    face = -1
+    for p in range(npl):
+        nx = planes[p, 0]
+        ny = planes[p, 1]
+        nz = planes[p, 2]
+        den = nx * dx + ny * dy + nz * dz
+        num = planes[p, 3] - (nx * ox + ny * oy + nz * oz)
+        if den == 0.0:
+            if num < 0.0:
+                return INF, -1
+            continue
+        t = num / den
+        if den < 0.0:
+            if t > tin:
+                tin = t
+                face = p
+        else:
+            if t < tout:
+                tout = t
+        if tin > tout:
+            return INF, -1
+    if face < 0 or tin < tlo or tin > thi:
+        return INF, -1
+    return tin, face
+
+
+@njit(cache=True)
+def ellipsoid_hit(e, ox, oy, oz, dx, dy, dz, tlo, thi):
+    """First intersection with the ellipsoid (cx, cy, cz, r, rz) within [tlo, thi], or inf."""
+    r = e[3]
+    rz = e[4]
+    qx = (ox - e[0]) / r
+    qy = (oy - e[1]) / r
+    qz = (oz - e[2]) / rz
+    ux = dx / r
+    uy = dy / r
+    uz = dz / rz
+    a = ux * ux + uy * uy + uz * uz
+    b = qx * ux + qy * uy + qz * uz
+    c = qx * qx + qy * qy + qz * qz - 1.0
+    disc = b * b - a * c
+    if disc < 0.0:
+        return INF
+    t = (-b - np.sqrt(disc)) / a
+    if t < tlo or t > thi:
+        return INF
+    return t
+
+
+@njit(cache=True)
+def _test_object(S, k, ox, oy, oz, dx, dy, dz, tlo, thi):
+    if S.kind[k] == 0:
+        return poly_hit(S.planes[k], S.nplanes[k], ox, oy, oz, dx, dy, dz, tlo, thi)
+    t = ellipsoid_hit(S.ell[k], ox, oy, oz, dx, dy, dz, tlo, thi)
+    return t, 0
+
+
+@njit(cache=True)
+def objects_hit(S, ox, oy, oz, dx, dy, dz, t0, t1):
+    """Nearest object hit in [t0, t1] by a 2-D DDA over the bin grid: (t, obj, face)."""
+    best = t1
+    bobj = -2
+    bface = -1
+    zlo = S.zrange[0]
+    zhi = S.zrange[1]
+    if dz != 0.0:
+        ta = (zlo - oz) / dz
+        tb = (zhi - oz) / dz
+        if ta > tb:
+            ta, tb = tb, ta
+        t0 = max(t0, ta)
+        t1 = min(t1, tb)
+    elif oz < zlo or oz > zhi:
+        return INF, -2, -1
+    gx0 = S.grid_meta[0]
+    gy0 = S.grid_meta[1]
+    gs = S.grid_meta[2]
+    gnx = np.int64(S.grid_meta[3])
+    gny = np.int64(S.grid_meta[4])
+    gx1 = gx0 + gnx * gs
+    gy1 = gy0 + gny * gs
+    # clip to the grid box in x and y
+    if dx != 0.0:
+        ta = (gx0 - ox) / dx
+        tb = (gx1 - ox) / dx
+        if ta > tb:
+            ta, tb = tb, ta
+        t0 = max(t0, ta)
+        t1 = min(t1, tb)
+    elif ox < gx0 or ox > gx1:
+        return INF, -2, -1
+    if dy != 0.0:
+        ta = (gy0 - oy) / dy
+        tb = (gy1 - oy) / dy
+        if ta > tb:
+            ta, tb = tb, ta
+        t0 = max(t0, ta)
+        t1 = min(t1, tb)
+    elif oy < gy0 or oy > gy1:
+        return INF, -2, -1
+    if t0 > t1:
+        return INF, -2, -1
+    x = ox + t0 * dx
+    y = oy + t0 * dy
+    ix = np.int64(np.floor((x - gx0) / gs))
+    iy = np.int64(np.floor((y - gy0) / gs))
+    ix = min(max(ix, 0), gnx - 1)
+    iy = min(max(iy, 0), gny - 1)
+    if dx > 0.0:
+        sx = 1
+        tmx = (gx0 + (ix + 1) * gs - ox) / dx
+        tdx = gs / dx
+    elif dx < 0.0:
+        sx = -1
+        tmx = (gx0 + ix * gs - ox) / dx
+        tdx = -gs / dx
+    else:
+        sx = 0
+        tmx = INF
+        tdx = INF
+    if dy > 0.0:
+        sy = 1
+        tmy = (gy0 + (iy + 1) * gs - oy) / dy
+        tdy = gs / dy
+    elif dy < 0.0:
+        sy = -1
+        tmy = (gy0 + iy * gs - oy) / dy
+        tdy = -gs / dy
+    else:
+        sy = 0
+        tmy = INF
+        tdy = INF
+    tlo = t0
+    while True:
+        cell = iy * gnx + ix
+        for q in range(S.grid_start[cell], S.grid_start[cell + 1]):
+            k = S.grid_items[q]
+            t, f = _test_object(S, k, ox, oy, oz, dx, dy, dz, tlo, best)
+            if t < best or (t == best and bobj < 0 and t < INF):
+                best = t
+                bobj = k
+                bface = f
+        texit = min(tmx, tmy)
+        if bobj >= 0 and best <= texit:
+            break
+        if texit >= t1:
+            break
+        if tmx < tmy:
+            ix += sx
+            tmx += tdx
+        else:
+            iy += sy
+            tmy += tdy
+        if ix < 0 or iy < 0 or ix >= gnx or iy >= gny:
+            break
+    if bobj < 0:
+        return INF, -2, -1
+    return best, bobj, bface
+
+
+@njit(cache=True)
+def first_hit(S, ox, oy, oz, dx, dy, dz, t0, t1):
+    """First surface along the ray: (t, obj, face) with obj −1 = terrain, −2 = nothing."""
+    tt = terrain_hit(S.terr, S.terr_meta, ox, oy, oz, dx, dy, dz, t0, t1)
+    tb = tt if tt < t1 else t1
+    t, k, f = objects_hit(S, ox, oy, oz, dx, dy, dz, t0, tb)
+    if k >= 0 and t <= tb:
+        return t, k, f
+    if tt < INF:
+        return tt, -1, -1
+    return INF, -2, -1
+
+
+@njit(cache=True)
+def surface_normal(S, obj, face, x, y, z):
+    if obj == -1:
+        _, hx, hy = terrain_at(S.terr, S.terr_meta, x, y)
+        n = np.sqrt(hx * hx + hy * hy + 1.0)
+        return -hx / n, -hy / n, 1.0 / n
+    if S.kind[obj] == 0:
+        p = S.planes[obj, face]
+        return p[0], p[1], p[2]
+    e = S.ell[obj]
+    gx = (x - e[0]) / (e[3] * e[3])
+    gy = (y - e[1]) / (e[3] * e[3])
+    gz = (z - e[2]) / (e[4] * e[4])
+    n = np.sqrt(gx * gx + gy * gy + gz * gz)
+    return gx / n, gy / n, gz / n
+
+
+@njit(cache=True, parallel=True)
+def trace_first_hit(orig, dirs, t_max, S, out_t, out_obj, out_face):
+    """First hit of many rays (geometry only). orig, dirs: (N, 3); t_max: (N,)."""
+    for i in prange(orig.shape[0]):
+        t, k, f = first_hit(S, orig[i, 0], orig[i, 1], orig[i, 2], dirs[i, 0], dirs[i, 1], dirs[i, 2], 0.0, t_max[i])
+        out_t[i] = t
+        out_obj[i] = k
+        out_face[i] = f
+
+
+@njit(cache=True)
+def _cubic_map(coef, scale, h0, e, n, u):
+    a = e / scale
+    b = n / scale
+    c = u / scale
+    T = (1.0, a, b, c, a * a, b * b, c * c, a * b, a * c, b * c,
+         a * a * a, b * b * b, c * c * c, a * a * b, a * a * c, b * b * a, b * b * c, c * c * a, c * c * b, a * b * c)
+    x = 0.0
+    y = 0.0
+    z = 0.0
+    for k in range(20):
+        x += T[k] * coef[k, 0]
+        y += T[k] * coef[k, 1]
+        z += T[k] * coef[k, 2]
+    return x, y, z + h0
+
+
+@njit(cache=True, parallel=True)
+def enu_rays_to_map(o, d, u_top, u_bot, coef, scale, h0, out_o, out_d, out_len):
+    """ENU rays (origin, unit direction) → map-space chords between the ENU heights u_top and u_bot.
+
+    ``coef`` (20, 3), ``scale``, ``h0``: the scene frame's cubic ENU → map polynomial
+    (:meth:`geocd.synth.scene.SceneFrame.enu_to_map` is the numpy reference).
+    """
+    for i in prange(o.shape[0]):
+        st = (u_top - o[i, 2]) / d[i, 2]
+        sb = (u_bot - o[i, 2]) / d[i, 2]
+        xa, ya, za = _cubic_map(coef, scale, h0, o[i, 0] + st * d[i, 0], o[i, 1] + st * d[i, 1], o[i, 2] + st * d[i, 2])
+        xb, yb, zb = _cubic_map(coef, scale, h0, o[i, 0] + sb * d[i, 0], o[i, 1] + sb * d[i, 1], o[i, 2] + sb * d[i, 2])
+        vx = xb - xa
+        vy = yb - ya
+        vz = zb - za
+        L = np.sqrt(vx * vx + vy * vy + vz * vz)
+        out_o[i, 0] = xa
+        out_o[i, 1] = ya
+        out_o[i, 2] = za
+        out_d[i, 0] = vx / L
+        out_d[i, 1] = vy / L
+        out_d[i, 2] = vz / L
+        out_len[i] = L
+
+
+# ------------------------------------------------------------------------------------------
+# materials
+# ------------------------------------------------------------------------------------------
+@njit(cache=True)
+def ground_material(S, x, y):
+    """Material of the ground at (x, y): patches, then streets/sidewalks/markings, else grass."""
+    for q in range(S.patches.shape[0]):
+        pa = S.patches[q]
+        c = np.cos(pa[4])
+        s = np.sin(pa[4])
+        u = (x - pa[0]) * c + (y - pa[1]) * s
+        v = -(x - pa[0]) * s + (y - pa[1]) * c
+        if abs(u) <= pa[2] and abs(v) <= pa[3]:
+            return np.int64(pa[5])
+    mat = M_GRASS
+    for q in range(S.streets.shape[0]):
+        st = S.streets[q]
+        px = x - st[0]
+        py = y - st[1]
+        al = px * st[2] + py * st[3]
+        if al < 0.0 or al > st[4]:
+            continue
+        ac = abs(-px * st[3] + py * st[2])
+        if ac <= st[5]:
+            if ac < 0.1 and (al % 6.0) < 3.0:
+                return M_MARKING
+            return M_ASPHALT
+        if ac <= st[5] + st[6]:
+            mat = M_PAVEMENT
+    return mat
+
+
+@njit(cache=True, parallel=True)
+def ground_material_many(S, x, y, out):
+    for i in prange(x.shape[0]):
+        out[i] = ground_material(S, x[i], y[i])
+
+
+@njit(cache=True, inline="always")
+def _grey(r, g, b, bump):
+    """Man-made materials: near-infrared reflectance close to the visible mean."""
+    return r, g, b, 1.05 * (r + g + b) / 3.0, bump
+
+
+@njit(cache=True)
+def albedo(S, obj, face, x, y, z, nx, ny, nz):
+    """Albedo (r, g, b, nir) and a normal perturbation amplitude at a surface point."""
+    C = S.colours
+    if obj < 0:
+        m = ground_material(S, x, y)
+        if m == M_GRASS:
+            t = (0.70 + 0.55 * fbm(x / 1.3, y / 1.3, 0.0, 11, 3)) * (0.80 + 0.40 * vnoise(x / 9.0, y / 9.0, 0.5, 12))
+            return C[0, 0] * C[1, 0] * t, C[0, 1] * C[1, 1] * t, C[0, 2] * C[1, 2] * t, C[8, 0] * t, 0.0
+        if m == M_ASPHALT:
+            t = (0.78 + 0.45 * fbm(x / 0.7, y / 0.7, 0.0, 21, 2)) * (0.85 + 0.3 * vnoise(x / 6.0, y / 6.0, 0.0, 22))
+            return _grey(C[2, 0] * t, C[2, 1] * t, C[2, 2] * t, 0.0)
+        if m == M_PAVEMENT:
+            t = 0.80 + 0.40 * fbm(x / 0.8, y / 0.8, 0.0, 31, 2)
+            return _grey(C[3, 0] * t, C[3, 1] * t, C[3, 2] * t, 0.0)
+        if m == M_SOIL:
+            t = 0.65 + 0.65 * fbm(x / 0.9, y / 0.9, 0.0, 41, 3)
+            return _grey(C[4, 0] * t, C[4, 1] * t, C[4, 2] * t, 0.0)
+        if m == M_MARKING:
+            return _grey(C[5, 0], C[5, 1], C[5, 2], 0.0)
+        return _grey(0.3, 0.3, 0.3, 0.0)
+    role = np.int64(S.par[obj, 2])
+    seed = np.int64(S.par[obj, 3])
+    if role == 4:  # tree crown
+        t = (0.45 + 1.1 * fbm(x / 0.7, y / 0.7, z / 0.7, seed, 3))
+        return (C[7, 0] * C[1, 0] * S.rgb[obj, 0] * t, C[7, 1] * C[1, 1] * S.rgb[obj, 1] * t,
+                C[7, 2] * C[1, 2] * S.rgb[obj, 2] * t, C[8, 1] * S.rgb[obj, 0] * t, 0.6)
+    if role == 2 or role == 3:  # car body / cabin
+        if role == 3 and nz < 0.5:
+            return _grey(C[6, 0], C[6, 1], C[6, 2], 0.0)
+        t = 0.92 + 0.12 * vnoise(x / 0.5, y / 0.5, z / 0.5, seed)
+        return _grey(S.rgb[obj, 0] * t, S.rgb[obj, 1] * t, S.rgb[obj, 2] * t, 0.0)
+    # building: roof or wall
+    if nz > 0.3:
+        if role == 1:  # tiles
+            t = (0.78 + 0.40 * fbm(x / 0.9, y / 0.9, z / 0.9, seed, 3)) * (0.85 + 0.3 * vnoise(x / 4.0, y / 4.0, z, seed + 7))
+        else:  # gravel / membrane with equipment
+            t = 0.74 + 0.48 * fbm(x / 1.1, y / 1.1, 0.0, seed, 3)
+            if vnoise(x / 2.2, y / 2.2, 3.0, seed + 5) > 0.78:
+                t *= 0.55
+        return _grey(S.rgb[obj, 0] * t, S.rgb[obj, 1] * t, S.rgb[obj, 2] * t, 0.0)
+    # wall with windows
+    s = -x * ny + y * nx
+    zz = (z - S.par[obj, 0]) / S.par[obj, 1]
+    fz = zz - np.floor(zz)
+    fs = s / 2.8 - np.floor(s / 2.8)
+    if zz > 0.0 and 0.32 < fz < 0.75 and 0.25 < fs < 0.72:
+        return _grey(C[6, 0], C[6, 1], C[6, 2], 0.0)
+    t = 0.85 + 0.25 * vnoise(s / 0.8, z / 0.8, 0.0, seed + 3)
+    return _grey(S.rgb2[obj, 0] * t, S.rgb2[obj, 1] * t, S.rgb2[obj, 2] * t, 0.0)
+
+
+@njit(cache=True)
+def in_shadow(S, x, y, z, nx, ny, nz, sx, sy, sz):
+    """True when the sun is hidden from the point (x, y, z) with normal n."""
+    ox = x + 2e-3 * nx + 1e-4 * sx
+    oy = y + 2e-3 * ny + 1e-4 * sy
+    oz = z + 2e-3 * nz + 1e-4 * sz
+    if terrain_hit(S.terr, S.terr_meta, ox, oy, oz, sx, sy, sz, 0.0, INF) < INF:
+        return True
+    t, k, f = objects_hit(S, ox, oy, oz, sx, sy, sz, 0.0, INF)
+    return k >= 0
+
+
+@njit(cache=True)
+def shade_one(S, ox, oy, oz, dx, dy, dz, t_max, sun, light):
+    """Radiance (r, g, b, nir) seen along one ray, plus the hit (t, obj)."""
+    t, k, f = first_hit(S, ox, oy, oz, dx, dy, dz, 0.0, t_max)
+    if k == -2:
+        return 0.0, 0.0, 0.0, 0.0, t, k
+    x = ox + t * dx
+    y = oy + t * dy
+    z = oz + t * dz
+    nx, ny, nz = surface_normal(S, k, f, x, y, z)
+    ar, ag, ab, an, bump = albedo(S, k, f, x, y, z, nx, ny, nz)
+    mx, my, mz = nx, ny, nz
+    if bump > 0.0:
+        seed = np.int64(S.par[k, 3])
+        mx += bump * (vnoise(x / 0.5, y / 0.5, z / 0.5, seed + 101) - 0.5)
+        my += bump * (vnoise(x / 0.5, y / 0.5, z / 0.5, seed + 102) - 0.5)
+        mz += bump * (vnoise(x / 0.5, y / 0.5, z / 0.5, seed + 103) - 0.5)
+        nn = np.sqrt(mx * mx + my * my + mz * mz)
+        mx /= nn
+        my /= nn
+        mz /= nn
+    cos_i = mx * sun[0] + my * sun[1] + mz * sun[2]
+    direct = 0.0
+    if cos_i > 0.0 and (nx * sun[0] + ny * sun[1] + nz * sun[2]) > 0.0:
+        if not in_shadow(S, x, y, z, nx, ny, nz, sun[0], sun[1], sun[2]):
+            direct = light[0] * cos_i
+    sky = light[1] * (0.6 + 0.4 * mz)
+    e = direct + sky
+    return ar * e, ag * e, ab * e, an * e, t, k
+
+
+@njit(cache=True, parallel=True)
+def render_rays(orig, dirs, t_max, sun, light, S, out_rgb, out_t, out_obj):
+    """Shade many rays. orig, dirs: (N, 3) map space; sun: (3,) unit; light: (E_sun, E_sky).
+
+    out_rgb: (N, 4) radiance in R, G, B and near-infrared; out_t, out_obj: the first hit.
+    """
+    for i in prange(orig.shape[0]):
+        r, g, b, nir, t, k = shade_one(S, orig[i, 0], orig[i, 1], orig[i, 2], dirs[i, 0], dirs[i, 1], dirs[i, 2],
+                                       t_max[i], sun, light)
+        out_rgb[i, 0] = r
+        out_rgb[i, 1] = g
+        out_rgb[i, 2] = b
+        out_rgb[i, 3] = nir
+        out_t[i] = t
+        out_obj[i] = k
+
+
+# ------------------------------------------------------------------------------------------
+# pure-numpy references (slow, obviously correct; tests compare the kernels with them)
+# ------------------------------------------------------------------------------------------
+_M64 = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+def _hash3_ref(ix, iy, iz, seed):
+    with np.errstate(over="ignore"):
+        ix = np.asarray(ix, np.int64).astype(np.uint64)
+        iy = np.asarray(iy, np.int64).astype(np.uint64)
+        iz = np.asarray(iz, np.int64).astype(np.uint64)
+        s = np.asarray(seed, np.int64).astype(np.uint64)
+        h = ix * np.uint64(0x9E3779B97F4A7C15)
+        h ^= iy * np.uint64(0xC2B2AE3D27D4EB4F)
+        h ^= iz * np.uint64(0x165667B19E3779F9)
+        h ^= s * np.uint64(0x27D4EB2F165667C5)
+        h ^= h >> np.uint64(33)
+        h *= np.uint64(0xFF51AFD7ED558CCD)
+        h ^= h >> np.uint64(33)
+        h *= np.uint64(0xC4CEB9FE1A85EC53)
+        h ^= h >> np.uint64(33)
+    return (h >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+
+
+def vnoise_ref(x, y, z, seed):
+    x, y, z = (np.asarray(a, float) for a in (x, y, z))
+    fx, fy, fz = np.floor(x), np.floor(y), np.floor(z)
+    ix, iy, iz = fx.astype(np.int64), fy.astype(np.int64), fz.astype(np.int64)
+    sx, sy, sz = ((t * t * (3 - 2 * t)) for t in (x - fx, y - fy, z - fz))
+    c = {(a, b, d): _hash3_ref(ix + a, iy + b, iz + d, seed) for a in (0, 1) for b in (0, 1) for d in (0, 1)}
+    lerp = lambda p, q, s: p + s * (q - p)  # noqa: E731
+    e = lerp(lerp(c[0, 0, 0], c[1, 0, 0], sx), lerp(c[0, 1, 0], c[1, 1, 0], sx), sy)
+    f = lerp(lerp(c[0, 0, 1], c[1, 0, 1], sx), lerp(c[0, 1, 1], c[1, 1, 1], sx), sy)
+    return lerp(e, f, sz)
+
+
+def first_hit_ref(S: SceneArrays, orig: np.ndarray, dirs: np.ndarray, t_max: np.ndarray,
+                  terrain_step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Brute force: every object for every ray, terrain by fine sampling (accuracy ~1e-4 m).
+
+    Returns (t, obj) like :func:`trace_first_hit`.
+    """
+    n = orig.shape[0]
+    best = np.full(n, np.inf)
+    obj = np.full(n, -2, dtype=np.int64)
+    o, d = orig, dirs
+    # terrain: sample the ray densely within the terrain's height band
+    from types import SimpleNamespace  # noqa: F401
+
+    meta = S.terr_meta
+    for i in range(n):
+        if d[i, 2] >= 0:
+            continue
+        ta = max(0.0, (meta[4] + 0.01 - o[i, 2]) / d[i, 2])
+        tb = min(t_max[i], (meta[3] - 0.01 - o[i, 2]) / d[i, 2])
+        if ta > tb:
+            continue
+        ts = np.arange(ta, tb + terrain_step, terrain_step)
+        x, y, z = o[i, 0] + ts * d[i, 0], o[i, 1] + ts * d[i, 1], o[i, 2] + ts * d[i, 2]
+        h = _terrain_ref(S, x, y)
+        below = np.nonzero(z - h <= 0)[0]
+        if below.size:
+            j = below[0]
+            if j == 0:
+                best[i] = ts[0]
+            else:
+                f0, f1 = z[j - 1] - h[j - 1], z[j] - h[j]
+                best[i] = ts[j - 1] + (ts[j] - ts[j - 1]) * f0 / (f0 - f1)
+            obj[i] = -1
+    for k in range(S.kind.shape[0]):
+        if S.kind[k] == 0:
+            P = S.planes[k, : S.nplanes[k]]
+            den = d @ P[:, :3].T  # (n, p)
+            num = P[:, 3][None, :] - o @ P[:, :3].T
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = num / den
+            tin = np.where(den < 0, t, -np.inf).max(axis=1)
+            tout = np.where(den > 0, t, np.inf).min(axis=1)
+            parallel_out = ((den == 0) & (num < 0)).any(axis=1)
+            hit = (tin <= tout) & ~parallel_out & (tin >= 0) & np.isfinite(tin)
+        else:
+            e = S.ell[k]
+            sc = np.array([e[3], e[3], e[4]])
+            q = (o - e[:3]) / sc
+            u = d / sc
+            a = (u * u).sum(1)
+            b = (q * u).sum(1)
+            c = (q * q).sum(1) - 1
+            disc = b * b - a * c
+            with np.errstate(invalid="ignore"):
+                tin = (-b - np.sqrt(disc)) / a
+            hit = (disc >= 0) & (tin >= 0)
+        upd = hit & (tin <= t_max) & (tin < best)
+        best[upd] = tin[upd]
+        obj[upd] = k
+    return best, obj
+
+
+def _terrain_ref(S: SceneArrays, x, y):
+    meta = S.terr_meta
+    ny, nx = S.terr.shape
+    fj = np.clip((x - meta[0]) / meta[2], 0, nx - 1.000001)
+    fi = np.clip((y - meta[1]) / meta[2], 0, ny - 1.000001)
+    j, i = np.floor(fj).astype(int), np.floor(fi).astype(int)
+    a, b = fj - j, fi - i
+    T = S.terr
+    return (1 - a) * (1 - b) * T[i, j] + a * (1 - b) * T[i, j + 1] + (1 - a) * b * T[i + 1, j] + a * b * T[i + 1, j + 1]
