@@ -24,6 +24,7 @@ from ..errors import GeoCDError
 
 SUBCOMMANDS: dict[str, str] = {
     "info": "geocd.cli.info:info",
+    "synth": "geocd.cli.synth:synth",
     "stereo": "geocd.cli.stereo:stereo",
 }
 
