@@ -1,0 +1,524 @@
+"""The table of geocd Processing algorithms: one entry per ``geocd`` CLI call.
+
+This module is plain Python (no ``qgis`` import) so that geocd's own test suite
+can check the table against the CLI (every option named here must exist in the
+click command, with the same default). :mod:`.algorithm` turns each
+:class:`AlgSpec` into a ``QgsProcessingAlgorithm``.
+
+Adding an algorithm when a new ``geocd`` command lands is one :class:`AlgSpec`
+entry in :data:`ALGORITHMS`: the command, its parameters (QGIS parameter name →
+CLI option) and the outputs named in the command's ``result`` line.
+
+Parameter kinds
+---------------
+``raster``            raster layer (file based) → its path
+``rasters``           several raster layers → the option repeated per layer (or positionals)
+``vector``            vector features (any layer; "selected features only" honoured) → a file path
+``file``              a file (``extension``/``file_filter`` filter the dialog) → its path
+``folder``            an existing folder → its path
+``number`` / ``int``  a float / an integer (``unit`` is shown in the label)
+``numbers``           comma-separated floats → the option repeated per value
+``enum``              one of ``options`` ((label, CLI value), ...)
+``bool``              flag: ``cli`` is passed when true
+``string``            free text; ``multiple=True``: comma-separated → the option repeated
+``crs``               a CRS → its authid (e.g. ``EPSG:32610``) or WKT
+``range``             two numbers (min, max) → ``--opt MIN MAX``
+``extent``            a map extent → (xmin, ymin, xmax, ymax, crs) (manifest AOI only)
+``folder_destination`` / ``file_destination``   where geocd writes
+
+``cli=None`` marks a positional argument (in table order). A parameter with a
+``manifest`` role is not passed on the command line: it goes into a scene
+manifest the plugin writes (see :func:`build_manifest`), which is then the
+command's positional argument; this is how image layers picked in QGIS become a
+geocd scene.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Optional
+
+#: the output folder parameter (``--out``) of every algorithm that writes a folder of products
+OUTPUT_FOLDER = "OUTPUT"
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    kind: str
+    label: str
+    cli: Optional[str] = None
+    default: Any = None
+    optional: bool = False
+    advanced: bool = False
+    help: str = ""
+    unit: str = ""
+    options: tuple = ()  # enum: ((label, cli value), ...)
+    min: Optional[float] = None
+    max: Optional[float] = None
+    extension: str = ""  # file: e.g. "yaml"
+    file_filter: str = ""  # file / file_destination: Qt filter, e.g. "Scene manifests (*.yaml *.yml *.json)"
+    geometry: str = "any"  # vector: polygon|point|line|any
+    multiple: bool = False  # string: comma-separated values → repeated option
+    #: the default is also the CLI's own default: the option is not passed when the value equals it
+    #: (keeps command lines short and lets CLI-side precedence rules, e.g. `synth --params`, work)
+    cli_default: bool = True
+    #: role in a manifest the plugin writes: images_a, images_b, dem, dem_datum, footprints, aoi, aoi_vector,
+    #: posting, scene_class (not passed on the command line)
+    manifest: Optional[str] = None
+
+
+@dataclass(frozen=True)
+class Output:
+    """One product announced in geocd's ``result`` line (``outputs[key]``).
+
+    kind: ``raster`` | ``vector`` (a GeoPackage; ``layers`` names the layers to load, those present are) |
+    ``file`` | ``folder``. ``style``: a QML file in ``geocd_qgis/styles`` applied when the product carries no
+    style of its own (rasters: a ``<name>.qml`` sidecar; GeoPackages: the ``layer_styles`` table).
+    """
+
+    key: str
+    name: str
+    kind: str
+    label: str
+    layers: tuple = ()
+    style: Optional[str] = None
+    load: bool = True
+
+
+@dataclass(frozen=True)
+class AlgSpec:
+    name: str
+    display: str
+    group: str
+    group_id: str
+    command: tuple
+    short_help: str
+    params: tuple
+    outputs: tuple = ()
+    #: load every raster/GeoPackage of the result that no :class:`Output` names (e.g. one pair-DEM per pair)
+    load_unlisted: bool = False
+    #: result keys with this prefix are not loaded by ``load_unlisted``
+    skip_prefixes: tuple = ()
+    #: name of a string output that receives the command's stdout
+    stdout_output: Optional[str] = None
+    tags: tuple = ()
+    #: extra CLI tokens always passed after the command
+    fixed_args: tuple = ()
+    #: the plugin writes a scene manifest from the ``manifest`` parameters and passes it as the positional argument
+    writes_manifest: bool = False
+    #: the geocd command is not in the CLI yet: the entry is kept out of the provider
+    pending: bool = False
+
+
+def _out_folder(help_: str = "Folder for geocd's products (created if missing).") -> Param:
+    return Param(OUTPUT_FOLDER, "folder_destination", "Output folder", cli="--out", help=help_)
+
+
+_MANIFEST = Param("MANIFEST", "file", "Scene manifest", extension="yaml",
+                  file_filter="Scene manifests (*.yaml *.yml *.json);;All files (*)",
+                  help="scene.yaml listing the epochs, images and cameras (see geocd's README).")
+_CONFIDENCES = Param("CONFIDENCES", "numbers", "Confidence levels (comma-separated)", cli="--confidence", unit="%",
+                     optional=True, advanced=True, help="Default 90, 95, 99.")
+_POSTING = Param("POSTING", "number", "Grid posting", cli="--posting", unit="m", optional=True, min=0.0,
+                 help="Default: the manifest's AOI posting, else the images' GSD.")
+_DATUMS = (("from the file's CRS", ""), ("ellipsoid", "ellipsoid"), ("EGM96 geoid", "egm96"),
+           ("EGM2008 geoid", "egm2008"))
+
+#: products of a change test (geocd.change.products.write_change_products)
+_CHANGE_OUTPUTS = (
+    Output("change", "CHANGE", "raster", "Change: dz, dtilde, score, confidence"),
+    Output("change_mask", "CHANGE_MASK", "raster", "Change mask (raised / lowered / unchanged)"),
+    Output("changes", "CHANGES", "vector", "Changed regions and buildings", layers=("changes", "buildings")),
+    Output("quicklook", "QUICKLOOK", "file", "Quick-look map (PNG)", load=False),
+    Output("scatter", "SCATTER", "file", "Score × |Δ| scatter with significance curves (PNG)", load=False),
+)
+
+GROUP_INSPECT = ("Inspect", "inspect")
+GROUP_DEM = ("DEMs and stereo", "dems")
+GROUP_CHANGE = ("3-D change", "change")
+GROUP_VOLUME = ("Volumetric model", "volume")
+GROUP_DATA = ("Data", "data")
+
+
+ALGORITHMS: tuple[AlgSpec, ...] = (
+    AlgSpec(
+        name="info", display="Describe a geocd input", group=GROUP_INSPECT[0], group_id=GROUP_INSPECT[1],
+        command=("info",),
+        short_help="Shows what geocd sees in an image, camera file, DEM, vector file or scene manifest: camera kind "
+                   "(RPC or frame), ground footprint, CRS, vertical datum, data type and the RPC height range. "
+                   "Use it to check that geocd reads your inputs before a long run.",
+        params=(
+            Param("INPUT", "file", "Input (image, camera file, DEM, vector or scene manifest)",
+                  help="Any file geocd reads: GeoTIFF/NITF with RPC tags or a camera sidecar, a vendor RPC file, "
+                       "a DEM, a vector file or a scene manifest (scene.yaml)."),
+        ),
+        stdout_output="INFO", tags=("metadata", "rpc", "camera")),
+    AlgSpec(
+        name="stereo", display="Stereo pair-DEMs (scene manifest)", group=GROUP_DEM[0], group_id=GROUP_DEM[1],
+        command=("stereo",),
+        short_help="Matches every image pair of the chosen epochs of a scene manifest in object space (RPC and frame "
+                   "cameras alike) and writes one pair-DEM per pair: a Cloud-Optimized GeoTIFF with bands z "
+                   "(ellipsoidal height, m), score, g (px of disparity per m), valid, ncc, ssd and flags. "
+                   "Every pair-DEM is loaded when the run ends (output 'All loaded layers' feeds the "
+                   "self-consistency model in a graphical model).",
+        params=(
+            _MANIFEST,
+            Param("EPOCHS", "string", "Epochs (comma-separated; empty = every epoch with 2+ images)", cli="--epoch",
+                  optional=True, multiple=True),
+            _out_folder("Pair-DEMs go to OUTPUT/stereo/EPOCH/A__B.tif."),
+            _POSTING,
+            Param("WINDOW", "int", "Matching window side (odd)", cli="--window", unit="cells", optional=True,
+                  min=3, max=63, advanced=True, help="Default 7."),
+            Param("HEIGHT_RANGE", "range", "Height search range (ellipsoidal)", cli="--height-range", unit="m",
+                  optional=True, advanced=True,
+                  help="Default: prior DEM ± margin, else the cameras' RPC height range."),
+            Param("DEM_MARGIN", "number", "Search margin around the prior DEM", cli="--dem-margin", unit="m",
+                  optional=True, min=0.0, advanced=True, help="Default 30 m."),
+            Param("SCORE", "enum", "Score band", cli="--score", optional=True, advanced=True,
+                  options=(("MDL (bits/pixel, default)", "mdl"), ("NCC", "ncc"), ("SSD", "ssd"))),
+            Param("TILE_SIZE", "int", "Tile side (memory bound)", cli="--tile-size", unit="cells", optional=True,
+                  min=32, advanced=True, help="Default 256."),
+        ),
+        load_unlisted=True, tags=("stereo", "dem", "rpc", "matching", "photogrammetry")),
+    AlgSpec(
+        name="stereopair", display="Stereo DEM from an image pair (layers)", group=GROUP_DEM[0],
+        group_id=GROUP_DEM[1], command=("stereo",), writes_manifest=True,
+        short_help="Matches two images of the same date (GeoTIFF/NITF with RPC tags or an RPC/frame camera sidecar) "
+                   "and writes their pair-DEM (bands z = ellipsoidal height in m, score, g, valid, ncc, ssd, flags). "
+                   "A prior DEM narrows the height search; the AOI limits the grid. The scene manifest written "
+                   "for geocd is kept in the output folder (scene_from_qgis.json) to rerun the same thing with "
+                   "the command line.",
+        params=(
+            Param("IMAGE_A", "raster", "Image 1", manifest="images_a"),
+            Param("IMAGE_B", "raster", "Image 2", manifest="images_a"),
+            Param("DEM", "raster", "Prior DEM (optional)", optional=True, manifest="dem"),
+            Param("DEM_DATUM", "enum", "Vertical datum of the prior DEM", options=_DATUMS, default=0,
+                  optional=True, manifest="dem_datum", advanced=True),
+            Param("AOI", "extent", "Area of interest (default: the images' overlap)", optional=True, manifest="aoi"),
+            Param("POSTING", "number", "Grid posting", unit="m", optional=True, min=0.0, manifest="posting",
+                  help="Default: the images' GSD."),
+            _out_folder("The pair-DEM goes to OUTPUT/stereo/A/<image1>__<image2>.tif."),
+            Param("WINDOW", "int", "Matching window side (odd)", cli="--window", unit="cells", optional=True,
+                  min=3, max=63, advanced=True, help="Default 7."),
+            Param("HEIGHT_RANGE", "range", "Height search range (ellipsoidal)", cli="--height-range", unit="m",
+                  optional=True, advanced=True),
+        ),
+        load_unlisted=True, tags=("stereo", "dem", "rpc", "pair")),
+    AlgSpec(
+        name="consistency", display="Self-consistency model from pair-DEMs", group=GROUP_CHANGE[0],
+        group_id=GROUP_CHANGE[1], command=("consistency",),
+        short_help="Learns a scene-class self-consistency model (stage 1) from pair-DEMs of a static scene, e.g. the "
+                   "pair-DEMs of one epoch: how far two pair-DEMs of unchanged ground disagree, as a function of "
+                   "their matching score. The model (JSON) is what the change test uses to tell change from noise; "
+                   "it carries over to other scenes of the same class and sensor.",
+        params=(
+            Param("PAIR_DEMS", "rasters", "Pair-DEMs (from geocd stereo)"),
+            Param("OUTPUT_MODEL", "file_destination", "Self-consistency model", cli="--out",
+                  file_filter="JSON files (*.json)"),
+            Param("GROUP_BY", "enum", "Compare pair-DEMs", cli="--group-by", default=0,
+                  options=(("within each epoch (from their tags)", "epoch"), ("all together (one static scene)", "none"))),
+            Param("SCENE_CLASS", "string", "Scene class (e.g. urban, suburban, rural)", cli="--scene-class",
+                  default="", optional=True),
+            Param("SENSOR", "string", "Sensor", cli="--sensor", default="", optional=True, advanced=True),
+            _CONFIDENCES,
+            Param("BINS", "int", "Number of score bins", cli="--bins", default=24, min=4, advanced=True),
+            Param("PLOT", "file_destination", "Scatter and curves plot", cli="--plot", optional=True,
+                  file_filter="PNG files (*.png)"),
+        ),
+        tags=("self-consistency", "model", "uncertainty", "calibration")),
+    AlgSpec(
+        name="change", display="3-D change from pair-DEMs (layers)", group=GROUP_CHANGE[0],
+        group_id=GROUP_CHANGE[1], command=("change",),
+        short_help="Stage 2: tests the pair-DEMs of two epochs against a self-consistency model and maps where the "
+                   "3-D shape changed, at the chosen confidence levels. A DEM may stand for either epoch (e.g. a "
+                   "lidar DEM before, stereo after). With building footprints, each building is classed new, "
+                   "raised, demolished, lowered, unchanged or unobserved. Loads the change raster, the change "
+                   "mask and the changes/buildings layers, styled.",
+        params=(
+            Param("EPOCH_A", "rasters", "Pair-DEMs, earlier epoch", cli="--epoch-a", optional=True),
+            Param("EPOCH_B", "rasters", "Pair-DEMs, later epoch", cli="--epoch-b", optional=True),
+            Param("DEM_A", "raster", "DEM standing for the earlier epoch", cli="--dem-a", optional=True),
+            Param("DEM_B", "raster", "DEM standing for the later epoch", cli="--dem-b", optional=True),
+            Param("DEM_DATUM", "enum", "Vertical datum of these DEMs", cli="--dem-vertical-datum", options=_DATUMS,
+                  default=0, optional=True, advanced=True),
+            Param("MODEL", "file", "Self-consistency model", cli="--model", extension="json",
+                  file_filter="JSON files (*.json)"),
+            Param("FOOTPRINTS", "vector", "Building footprints", cli="--footprints", optional=True,
+                  geometry="polygon"),
+            _out_folder(),
+            _CONFIDENCES,
+            Param("REPORT_CONFIDENCE", "number", "Confidence for regions and buildings", cli="--report-confidence",
+                  unit="%", default=99.0, min=50.0, max=99.999),
+            Param("COMBINE", "enum", "Combine the pair comparisons", cli="--combine", default=0, advanced=True,
+                  options=(("majority", "majority"), ("all", "all"), ("any", "any"))),
+        ),
+        outputs=_CHANGE_OUTPUTS, tags=("change detection", "3d", "buildings", "dem")),
+    AlgSpec(
+        name="run", display="Full change detection (scene manifest)", group=GROUP_CHANGE[0],
+        group_id=GROUP_CHANGE[1], command=("run",),
+        short_help="The whole pipeline on a scene manifest: stereo pair-DEMs → self-consistency baseline (learned "
+                   "here, or a scene-class model) → cross-epoch change test → change raster, change mask, changed "
+                   "regions and attributed buildings, loaded styled. Also writes run_config.json and "
+                   "run_summary.json for reproducibility.",
+        params=(
+            _MANIFEST,
+            _out_folder(),
+            Param("MODEL", "file", "Scene-class self-consistency model (optional: learned here)", cli="--model",
+                  optional=True, extension="json", file_filter="JSON files (*.json)"),
+            Param("FOOTPRINTS", "vector", "Building footprints (default: the manifest's)", cli="--footprints",
+                  optional=True, geometry="polygon"),
+            _POSTING,
+            Param("EPOCH_A", "string", "Earlier epoch (default: the first)", cli="--epoch-a", optional=True,
+                  advanced=True),
+            Param("EPOCH_B", "string", "Later epoch (default: the last)", cli="--epoch-b", optional=True,
+                  advanced=True),
+            _CONFIDENCES,
+            Param("REPORT_CONFIDENCE", "number", "Confidence for regions and buildings", cli="--report-confidence",
+                  unit="%", optional=True, min=50.0, max=99.999, advanced=True, help="Default 99 %."),
+            Param("CONFIG", "file", "Run configuration (YAML/JSON)", cli="--config", optional=True, advanced=True,
+                  file_filter="Run configurations (*.json *.yaml *.yml)"),
+        ),
+        outputs=(*_CHANGE_OUTPUTS,
+                 Output("model", "MODEL_OUT", "file", "Self-consistency model (JSON)", load=False),
+                 Output("summary", "SUMMARY", "file", "Run summary (JSON)", load=False)),
+        tags=("change detection", "pipeline", "stereo", "buildings")),
+    AlgSpec(
+        name="runlayers", display="Full change detection (image layers)", group=GROUP_CHANGE[0],
+        group_id=GROUP_CHANGE[1], command=("run",), writes_manifest=True,
+        short_help="The whole pipeline on images picked in QGIS: epoch A and epoch B images (RPC or frame cameras, "
+                   "found from the images' tags or sidecars), an optional prior DEM, building footprints and an "
+                   "AOI. An epoch may be given by a DEM instead of images. The plugin writes the scene manifest "
+                   "(kept as OUTPUT/scene_from_qgis.json) and runs `geocd run` on it.",
+        params=(
+            Param("IMAGES_A", "rasters", "Images, earlier epoch (A)", optional=True, manifest="images_a"),
+            Param("IMAGES_B", "rasters", "Images, later epoch (B)", optional=True, manifest="images_b"),
+            Param("DEM_A", "raster", "DEM standing for epoch A (instead of images)", optional=True,
+                  manifest="dem_a", advanced=True),
+            Param("DEM_B", "raster", "DEM standing for epoch B (instead of images)", optional=True,
+                  manifest="dem_b", advanced=True),
+            Param("DEM", "raster", "Prior DEM (narrows the height search)", optional=True, manifest="dem"),
+            Param("DEM_DATUM", "enum", "Vertical datum of the DEMs", options=_DATUMS, default=0, optional=True,
+                  manifest="dem_datum", advanced=True),
+            Param("FOOTPRINTS", "vector", "Building footprints", optional=True, geometry="polygon",
+                  manifest="footprints"),
+            Param("AOI", "extent", "Area of interest (default: the images' overlap)", optional=True, manifest="aoi"),
+            Param("POSTING", "number", "Grid posting", unit="m", optional=True, min=0.0, manifest="posting"),
+            Param("SCENE_CLASS", "string", "Scene class (e.g. urban)", optional=True, manifest="scene_class",
+                  advanced=True),
+            _out_folder(),
+            Param("MODEL", "file", "Scene-class self-consistency model (needed when an epoch has one pair)",
+                  cli="--model", optional=True, extension="json", file_filter="JSON files (*.json)"),
+            _CONFIDENCES,
+            Param("REPORT_CONFIDENCE", "number", "Confidence for regions and buildings", cli="--report-confidence",
+                  unit="%", optional=True, min=50.0, max=99.999, advanced=True, help="Default 99 %."),
+        ),
+        outputs=(*_CHANGE_OUTPUTS,
+                 Output("model", "MODEL_OUT", "file", "Self-consistency model (JSON)", load=False),
+                 Output("summary", "SUMMARY", "file", "Run summary (JSON)", load=False)),
+        tags=("change detection", "pipeline", "stereo", "layers")),
+    AlgSpec(
+        name="demdiff", display="DEM-to-DEM change", group=GROUP_CHANGE[0], group_id=GROUP_CHANGE[1],
+        command=("demdiff",),
+        short_help="Compares two DEMs of the same place (any CRS, vertical datum and posting): writes the height "
+                   "change dh = B − A and the changed regions as styled polygons.",
+        params=(
+            Param("DEM_A", "raster", "DEM before (A)", cli=None),
+            Param("DEM_B", "raster", "DEM after (B)", cli=None),
+            _out_folder(),
+        ),
+        load_unlisted=True, tags=("dem", "difference", "change"), pending=True),
+    AlgSpec(
+        name="synth", display="Synthetic test scene", group=GROUP_DATA[0], group_id=GROUP_DATA[1],
+        command=("synth",),
+        short_help="Generates a synthetic town with two epochs, satellite (RPC) and aerial (frame) views and exact "
+                   "truth (DSMs, change masks, footprints): a scene folder with scene.yaml that every geocd "
+                   "algorithm accepts. Seed 0 with the defaults regenerates geocd's sample_aoi.",
+        params=(
+            _out_folder("The scene folder (must be empty unless 'Replace' is ticked)."),
+            Param("SEED", "int", "Random seed", cli="--seed", default=0),
+            Param("TINY", "bool", "Tiny preset (64 m, 2+2 satellite views, 2 frames; for tests)", cli="--tiny",
+                  default=False),
+            Param("SIZE_M", "number", "Side of the square AOI", cli="--size-m", unit="m", default=300.0, min=16.0,
+                  advanced=True),
+            Param("GSD_M", "number", "Satellite ground sampling distance", cli="--gsd-m", unit="m", default=0.5,
+                  min=0.05, advanced=True),
+            Param("POSTING_M", "number", "Truth grid posting", cli="--posting-m", unit="m", default=0.5, min=0.05,
+                  advanced=True),
+            Param("N_SAT_A", "int", "Satellite views, epoch A", cli="--n-sat-a", default=4, min=0, advanced=True),
+            Param("N_SAT_B", "int", "Satellite views, epoch B", cli="--n-sat-b", default=3, min=0, advanced=True),
+            Param("N_AERIAL", "int", "Aerial frames, epoch A", cli="--n-aerial", default=3, min=0, advanced=True),
+            Param("CHANGES", "string", "Change types (comma-separated; empty = all)", cli="--changes",
+                  optional=True, advanced=True,
+                  help="new, demolished, raised, lowered, cars, trees, repaint, season."),
+            Param("SAME_SUN", "bool", "Render epoch B under epoch A's sun", cli="--same-sun", default=False,
+                  advanced=True),
+            Param("SUPERSAMPLE", "int", "Rays per pixel side", cli="--supersample", default=2, min=1, max=8,
+                  advanced=True),
+            Param("NAME", "string", "Scene name", cli="--name", optional=True, advanced=True),
+            Param("OVERWRITE", "bool", "Replace the files of an existing scene folder", cli="--overwrite",
+                  default=False, advanced=True),
+        ),
+        outputs=(Output("manifest", "SCENE", "file", "Scene manifest (scene.yaml)", load=False),
+                 Output("report", "REPORT", "file", "Truth report (JSON)", load=False)),
+        tags=("synthetic", "simulation", "test data")),
+)
+
+
+def spec(name: str) -> AlgSpec:
+    for s in ALGORITHMS:
+        if s.name == name:
+            return s
+    raise KeyError(name)
+
+
+def active() -> tuple[AlgSpec, ...]:
+    """The algorithms the provider offers (those whose geocd command exists)."""
+    return tuple(s for s in ALGORITHMS if not s.pending)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# plain values → command line / manifest (pure: values are already resolved from the QGIS parameters)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _fmt_number(v: Any) -> str:
+    f = float(v)
+    return str(int(f)) if f.is_integer() and abs(f) < 1e15 else repr(f)
+
+
+def _empty(v: Any) -> bool:
+    return v is None or (isinstance(v, str) and v.strip() == "") or (isinstance(v, (list, tuple)) and not v)
+
+
+def build_args(alg: AlgSpec, values: dict, manifest_path: Optional[str] = None) -> list[str]:
+    """geocd arguments after the global options: ``[command..., options..., "--", positionals...]``.
+
+    ``values`` maps parameter names to plain values (paths as str, numbers, bools, enum index, CRS string,
+    range as (min, max), lists of paths); ``None`` or missing means "not given" (the CLI default applies).
+    """
+    positional: list[str] = [manifest_path] if manifest_path else []
+    options: list[str] = []
+    for p in alg.params:
+        if p.manifest:
+            continue
+        v = values.get(p.name)
+        if _empty(v):
+            if not p.optional and p.cli is None:
+                raise ValueError(f"parameter {p.name} ({p.label}) is required")
+            continue
+        if p.cli_default and p.default is not None and v == p.default and p.cli is not None:
+            continue
+        if p.kind == "bool":
+            if v and p.cli:
+                options.append(p.cli)
+            continue
+        if p.kind == "enum":
+            value = p.options[int(v)][1]
+            if value == "":
+                continue
+            tokens = [[value]]
+        elif p.kind == "range":
+            lo, hi = v
+            if lo is None or hi is None:
+                continue
+            tokens = [[_fmt_number(lo), _fmt_number(hi)]]
+        elif p.kind == "number":
+            tokens = [[_fmt_number(v)]]
+        elif p.kind == "int":
+            tokens = [[str(int(v))]]
+        elif p.kind == "numbers":
+            items = v if isinstance(v, (list, tuple)) else [s for s in str(v).replace(";", ",").split(",") if s.strip()]
+            try:
+                tokens = [[_fmt_number(x)] for x in items]
+            except ValueError as exc:
+                raise ValueError(f"{p.label}: give numbers separated by commas, got {v!r}") from exc
+        elif p.kind == "string" and p.multiple:
+            tokens = [[s.strip()] for s in str(v).split(",") if s.strip()]
+        elif p.kind == "rasters":
+            tokens = [[str(x)] for x in v]
+        else:
+            tokens = [[str(v)]]
+        for t in tokens:
+            if p.cli is None:
+                positional += t
+            else:
+                options += [p.cli, *t]
+    # "--" ends the options, so a positional path that starts with "-" is not read as an option
+    return [*alg.command, *alg.fixed_args, *options, *(["--", *positional] if positional else [])]
+
+
+def _dem_entry(path: str, datum: Optional[str]) -> Any:
+    return {"path": path, "vertical_datum": datum} if datum else path
+
+
+def _vector_entry(path: str) -> Any:
+    """``file.gpkg|layername=x`` (QGIS source) → ``{path, layer}`` (manifest)."""
+    if "|layername=" in path:
+        p, rest = path.split("|layername=", 1)
+        return {"path": p, "layer": rest.split("|", 1)[0]}
+    return path.split("|", 1)[0]
+
+
+def build_manifest(alg: AlgSpec, values: dict, name: str = "qgis_layers", output: Optional[str] = None) -> dict:
+    """A geocd scene manifest (``geocd_manifest: 1``, see geocd/io/manifest.py) from the ``manifest`` parameters.
+
+    Roles: images_a / images_b (one path or a list; images_a alone = one epoch), dem_a / dem_b (a DEM standing
+    for an epoch), dem (prior DEM), dem_datum (CLI value of the datum enum), footprints (vector path), aoi
+    ((xmin, ymin, xmax, ymax, crs)), posting (m), scene_class.
+    """
+    roles: dict[str, Any] = {}
+    datum_param = next((p for p in alg.params if p.manifest == "dem_datum"), None)
+    for p in alg.params:
+        if not p.manifest:
+            continue
+        v = values.get(p.name)
+        if _empty(v):
+            continue
+        if p.manifest in ("images_a", "images_b"):
+            roles.setdefault(p.manifest, []).extend(v if isinstance(v, (list, tuple)) else [v])
+        else:
+            roles[p.manifest] = v
+    datum = None
+    if datum_param is not None and roles.get("dem_datum") is not None:
+        datum = datum_param.options[int(roles["dem_datum"])][1] or None
+    m: dict[str, Any] = {"geocd_manifest": 1, "name": name}
+    if roles.get("scene_class"):
+        m["scene_class"] = str(roles["scene_class"])
+    aoi: dict[str, Any] = {}
+    if roles.get("aoi"):
+        xmin, ymin, xmax, ymax, crs = roles["aoi"]
+        aoi.update({"crs": crs, "bounds": [float(xmin), float(ymin), float(xmax), float(ymax)]})
+    if roles.get("posting"):
+        aoi["posting_m"] = float(roles["posting"])
+    if aoi:
+        m["aoi"] = aoi
+    if output:
+        m["output"] = output
+    if roles.get("dem"):
+        m["dem"] = _dem_entry(roles["dem"], datum)
+    if roles.get("footprints"):
+        m["footprints"] = _vector_entry(roles["footprints"])
+    epochs = []
+    for ep, img_role, dem_role in (("A", "images_a", "dem_a"), ("B", "images_b", "dem_b")):
+        imgs = roles.get(img_role, [])
+        dem = roles.get(dem_role)
+        if not imgs and not dem:
+            continue
+        e: dict[str, Any] = {"name": ep, "images": [{"path": str(i), "name": _image_name(str(i), k, imgs)}
+                                                   for k, i in enumerate(imgs)]}
+        if dem:
+            e["dem"] = _dem_entry(dem, datum)
+        epochs.append(e)
+    if not epochs:
+        raise ValueError("give images (or a DEM) for at least one epoch")
+    m["epochs"] = epochs
+    return m
+
+
+def _image_name(path: str, k: int, all_paths: list) -> str:
+    import os
+
+    stem = os.path.splitext(os.path.basename(path))[0] or f"image{k + 1}"
+    stems = [os.path.splitext(os.path.basename(str(p)))[0] for p in all_paths]
+    return stem if stems.count(stem) == 1 else f"{stem}_{k + 1}"
