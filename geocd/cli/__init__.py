@@ -24,7 +24,11 @@ from ..errors import GeoCDError
 
 SUBCOMMANDS: dict[str, str] = {
     "info": "geocd.cli.info:info",
+    "plugin-zip": "geocd.cli.plugin:plugin_zip",
     "synth": "geocd.cli.synth:synth",
+    "run": "geocd.cli.change:run",
+    "consistency": "geocd.cli.change:consistency",
+    "change": "geocd.cli.change:change",
     "stereo": "geocd.cli.stereo:stereo",
 }
 
