@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import LocalizationError, RPCParseError
 from . import _kernels as K
-from .base import Camera, _as_f64, register_camera
+from .base import Camera, register_camera
 
 #: RPC00A index for each RPC00B term: ``b[k] = a[RPC00A_FROM_B[k]]``
 #: RPC00A order: 1, L, P, H, LP, LH, PH, LPH, L², P², H², L³, L²P, L²H, LP², P³, P²H, LH², PH², H³
@@ -37,6 +37,13 @@ PIXEL_SHIFT = 0.5
 
 _NORM_FIELDS = ("line_off", "samp_off", "lat_off", "lon_off", "height_off",
                 "line_scale", "samp_scale", "lat_scale", "lon_scale", "height_scale")
+
+
+def _flat_f64(*arrays) -> tuple[tuple[int, ...], tuple[np.ndarray, ...]]:
+    """Broadcast shape and contiguous 1-D float64 views (copies only when needed)."""
+    arrs = [np.asarray(a, dtype=np.float64) for a in arrays]
+    shape = np.broadcast_shapes(*(a.shape for a in arrs))
+    return shape, tuple(np.ascontiguousarray(np.broadcast_to(a, shape)).reshape(-1) for a in arrs)
 
 
 def rpc00a_to_rpc00b(coefs20: np.ndarray) -> np.ndarray:
@@ -89,6 +96,7 @@ class RPCModel(Camera):
     source: str = ""
     _coefs: np.ndarray = field(init=False, repr=False)
     _norm: np.ndarray = field(init=False, repr=False)
+    _norm_px: np.ndarray = field(init=False, repr=False)
     _init: np.ndarray = field(init=False, repr=False)
     _cubic_ready: bool = field(init=False, repr=False, default=False)
 
@@ -127,6 +135,9 @@ class RPCModel(Camera):
             raise RPCParseError("an RPC denominator is identically zero; the RPC file is corrupt")
         object.__setattr__(self, "_coefs", np.ascontiguousarray(np.stack(coefs)))
         object.__setattr__(self, "_norm", np.asarray(norm, dtype=np.float64))
+        norm_px = np.array(norm, dtype=np.float64)
+        norm_px[:2] += PIXEL_SHIFT  # line_off, samp_off in GDAL's corner-origin convention
+        object.__setattr__(self, "_norm_px", norm_px)
         object.__setattr__(self, "_init", self._affine_start())
 
     # --- construction helpers ---------------------------------------------------
@@ -234,21 +245,18 @@ class RPCModel(Camera):
 
     # --- the camera protocol ---------------------------------------------------------
     def project(self, lon, lat, h):
-        shape = np.broadcast_shapes(np.shape(lon), np.shape(lat), np.shape(h))  # scalars in, scalars out
-        lon, lat, h = _as_f64(lon, lat, h)
-        s = np.empty(lon.size)
-        ln = np.empty(lon.size)
-        K.rpc_project(lon.ravel(), lat.ravel(), h.ravel(), self._coefs, self._norm, s, ln)
-        s += PIXEL_SHIFT
-        ln += PIXEL_SHIFT
-        return s.reshape(shape), ln.reshape(shape)
+        shape, (lon, lat, h) = _flat_f64(lon, lat, h)
+        col = np.empty(lon.size)
+        row = np.empty(lon.size)
+        # _norm_px: offsets + 0.5, so the kernel writes GDAL's corner-origin pixels directly
+        K.rpc_project(lon, lat, h, self._coefs, self._norm_px, col, row)
+        return col.reshape(shape), row.reshape(shape)
 
     def dproj_dh(self, lon, lat, h):
-        shape = np.broadcast_shapes(np.shape(lon), np.shape(lat), np.shape(h))  # scalars in, scalars out
-        lon, lat, h = _as_f64(lon, lat, h)
+        shape, (lon, lat, h) = _flat_f64(lon, lat, h)
         ds = np.empty(lon.size)
         dl = np.empty(lon.size)
-        K.rpc_dproj_dh(lon.ravel(), lat.ravel(), h.ravel(), self._coefs, self._norm, ds, dl)
+        K.rpc_dproj_dh(lon, lat, h, self._coefs, self._norm, ds, dl)
         return ds.reshape(shape), dl.reshape(shape)
 
     def localize(self, col, row, h, *, tol_px: float = 1e-9, max_iter: int = 60,
@@ -265,17 +273,16 @@ class RPCModel(Camera):
             Raise :class:`LocalizationError` if any finite sample did not converge
             (default: such samples are NaN).
         """
-        shape = np.broadcast_shapes(np.shape(col), np.shape(row), np.shape(h))
-        col, row, h = _as_f64(col, row, h)
+        shape, (col, row, h) = _flat_f64(col, row, h)
         lon = np.empty(col.size)
         lat = np.empty(col.size)
         its = np.empty(col.size, dtype=np.int32)
         if not self._cubic_ready:
             self._fit_cubic_start()
-        K.rpc_localize((col - PIXEL_SHIFT).ravel(), (row - PIXEL_SHIFT).ravel(), h.ravel(),
-                       self._coefs, self._norm, self._init, float(tol_px), int(max_iter), lon, lat, its)
+        K.rpc_localize(col, row, h, self._coefs, self._norm_px, self._init, float(tol_px), int(max_iter),
+                       lon, lat, its)
         if strict:
-            bad = (its < 0) & np.isfinite(col.ravel()) & np.isfinite(row.ravel()) & np.isfinite(h.ravel())
+            bad = (its < 0) & np.isfinite(col) & np.isfinite(row) & np.isfinite(h)
             if bad.any():
                 raise LocalizationError(
                     f"RPC localization did not converge for {int(bad.sum())} of {bad.size} samples "
