@@ -1,0 +1,61 @@
+"""The change layers: every file readable by rasterio/OGR, styled, written atomically."""
+
+import sqlite3
+
+import numpy as np
+import pyogrio
+import pytest
+import rasterio
+
+from geocd.change.products import write_change_products
+from geocd.consistency import CHANGE_NODATA, learn_self_consistency, change_test
+from geocd.geodesy import AOIGrid
+from tests.test_consistency import SHAPE, make_rec
+
+
+@pytest.fixture
+def result():
+    rng = np.random.default_rng(3)
+    grid = AOIGrid.from_bounds(500000, 4000000, 500000 + SHAPE[1] * 0.5, 4000000 + SHAPE[0] * 0.5, 0.5, "EPSG:32631")
+    ta = np.zeros(SHAPE, np.float32)
+    tb = ta.copy()
+    tb[20:50, 20:50] += 9
+    A = [make_rec(ta, rng, f"A{i}") for i in range(3)]
+    B = [make_rec(tb, rng, f"B{i}") for i in range(3)]
+    for r in A + B:
+        r.grid = grid
+    model = learn_self_consistency([A, B])
+    return change_test(A, B, model), model, grid
+
+
+def test_products_are_readable_and_styled(tmp_path, result):
+    import geopandas as gpd
+    from shapely.geometry import box
+
+    res, model, grid = result
+    l, b, r, t = grid.bounds
+    fps = gpd.GeoDataFrame({"building_id": [7, 8]}, geometry=[box(l + 10, t - 25, l + 25, t - 10), box(l + 40, b + 5, l + 50, b + 15)],
+                           crs=grid.crs)
+    from geocd.change.buildings import classify_buildings
+
+    bld = classify_buildings(fps, res.changed_at(95), res.dz_m, grid, z_a=np.zeros(SHAPE, np.float32), id_field="building_id")
+    paths = write_change_products(tmp_path, res, grid, model=model, buildings=bld, region_confidence=95, prefix="sc")
+    with rasterio.open(paths["change"]) as ds:
+        assert ds.descriptions == ("dz_m", "dtilde", "score", "confidence")
+        assert ds.tags()["method"] == "self-consistency"
+    with rasterio.open(paths["change_mask"]) as ds:
+        m = ds.read(1)
+        assert ds.nodata == CHANGE_NODATA and set(np.unique(m)) <= {-128, -1, 0, 1}
+    assert (tmp_path / "sc_change_mask.qml").exists() and (tmp_path / "sc_change.qml").exists()
+    layers = dict(pyogrio.list_layers(paths["changes"]))
+    assert {"changes", "buildings", "curves", "layer_styles"} <= set(layers)
+    ch = gpd.read_file(paths["changes"], layer="changes")
+    assert len(ch) >= 1 and (ch["sign"] == 1).any()
+    big = ch.loc[ch["area_m2"].idxmax()]
+    assert big["area_m2"] == pytest.approx(15 * 15, rel=0.25) and big["mean_dz_m"] == pytest.approx(9, abs=1.5)
+    b = gpd.read_file(paths["changes"], layer="buildings")
+    assert list(b["class"]) == ["new", "unchanged"]
+    styles = sqlite3.connect(paths["changes"]).execute("select f_table_name from layer_styles").fetchall()
+    assert {s[0] for s in styles} == {"changes", "buildings"}
+    assert paths["scatter"].stat().st_size > 10_000 and paths["quicklook"].stat().st_size > 10_000
+    assert not list(tmp_path.glob(".*part*"))
