@@ -32,7 +32,7 @@ import os
 import re
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping
+from typing import Any, Callable, Mapping
 from xml.etree import ElementTree as ET
 
 import numpy as np
@@ -126,10 +126,6 @@ class _Fields:
         self.values[canon] = value
         return True
 
-    def put_all(self, items: Iterable[tuple[Any, Any]]) -> None:
-        for k, v in items:
-            self.put(k, v)
-
     # -- conversion ---------------------------------------------------------------------
     def _float(self, name: str, value: Any) -> float | None:
         try:
@@ -161,7 +157,7 @@ class _Fields:
                 missing.append(f"{_VENDOR_KEY[name]}_{{{','.join(map(str, lost))}}}"
                                f" (indices {self.index_base}..{self.index_base + 19})")
                 continue
-            vals = [self._float(f"{name} #{i}", idx[i]) for i in want]
+            vals = [self._float(f"{_VENDOR_KEY[name]}_{i}", idx[i]) for i in want]
             if all(v is not None for v in vals):
                 kw[name] = vals
         for name in _SCALAR_NAMES:
