@@ -25,7 +25,9 @@ changed; any other value (e.g. the −128 nodata of change-mask rasters) counts 
 not changed, so a change-mask raster can be passed as is. Regions are 8-connected
 components of the +1 cells and of the −1 cells separately.
 
-**σ and confidence.** ``volume_sigma_fn(mask) → σ`` (e.g. the variogram-based
+**σ and confidence.** ``volume_sigma_fn(mask) → σ`` (called with a full-grid bool
+mask; when the callable also has ``windowed(mask_window, slices)``, that is used
+instead, which avoids full-grid scans for many small regions) (e.g. the variogram-based
 :meth:`geocd.demdiff.uncertainty.Uncertainty.volume_sigma_fn`) gives the honest σ of
 the region's volume. Without it, a per-cell ``dz_sigma_m`` gives a *conservative*
 σ that assumes errors fully correlated inside the region (cell area × Σ σ_i).
@@ -59,6 +61,20 @@ def empty_regions(crs: Any = None):
     return gpd.GeoDataFrame(df, geometry=gpd.GeoSeries([], crs=crs), crs=crs)
 
 
+def _cell_area_m2(grid) -> float:
+    """Cell area in m² (local scale at the grid centre for geographic grids)."""
+    if not grid.crs.is_geographic:
+        return float(grid.cell_area_m2)
+    a, f = 6378137.0, 1.0 / 298.257223563
+    e2 = f * (2 - f)
+    l, b, r, t = grid.bounds
+    lat = math.radians(0.5 * (b + t))
+    w = 1 - e2 * math.sin(lat) ** 2
+    n = a / math.sqrt(w)
+    mm = a * (1 - e2) / w ** 1.5
+    return float(math.radians(grid.posting[0]) * n * math.cos(lat) * math.radians(grid.posting[1]) * mm)
+
+
 def _gauss_level(v: float, s: float) -> float:
     if not (math.isfinite(v) and math.isfinite(s)) or s <= 0:
         return float("nan")
@@ -68,7 +84,7 @@ def _gauss_level(v: float, s: float) -> float:
 def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: float | np.ndarray | None = None,
                    dz_sigma_m: float | np.ndarray | None = None,
                    volume_sigma_fn: Callable[[np.ndarray], float] | None = None, method: str = "", epoch_a: str = "",
-                   epoch_b: str = "", min_cells: int = 4):
+                   epoch_b: str = "", min_cells: int = 4, cell_area_m2: float | None = None):
     """Connected changed regions as polygons with area, volume ± σ and confidence.
 
     Parameters
@@ -80,6 +96,8 @@ def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: floa
     dz_sigma_m : optional scalar or per-cell 1σ of dz (m), used when ``volume_sigma_fn`` is None
     volume_sigma_fn : optional callable(bool mask) → 1σ of the region's volume (m³)
     min_cells : regions smaller than this are dropped
+    cell_area_m2 : optional cell area; default the grid's (the local metric area for
+        geographic grids)
 
     Returns
     -------
@@ -99,7 +117,7 @@ def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: floa
         from ..errors import ConfigError
 
         raise ConfigError(f"sign {s.shape} and dz {dz.shape} must both have the grid's shape {grid.shape}")
-    cell = grid.cell_area_m2
+    cell = float(cell_area_m2) if cell_area_m2 is not None else _cell_area_m2(grid)
     conf_arr = None
     conf_scalar = float("nan")
     if confidence is not None:
@@ -138,9 +156,13 @@ def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: floa
             mx = float(d[fin][np.argmax(np.abs(d[fin]))]) if fin.any() else float("nan")
             vs = float("nan")
             if volume_sigma_fn is not None:
-                full = np.zeros(grid.shape, bool)
-                full[sl] = m
-                vs = float(volume_sigma_fn(full))
+                win = getattr(volume_sigma_fn, "windowed", None)
+                if win is not None:  # fast path: the set given by its bounding window
+                    vs = float(win(m, sl))
+                else:
+                    full = np.zeros(grid.shape, bool)
+                    full[sl] = m
+                    vs = float(volume_sigma_fn(full))
             elif sig_arr is not None:
                 sg = sig_arr[sl][m]
                 vs = float(np.nansum(sg) * cell) if np.isfinite(sg).any() else float("nan")

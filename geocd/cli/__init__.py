@@ -24,6 +24,7 @@ from ..errors import GeoCDError
 
 SUBCOMMANDS: dict[str, str] = {
     "info": "geocd.cli.info:info",
+    "demdiff": "geocd.cli.demdiff:demdiff",
     "plugin-zip": "geocd.cli.plugin:plugin_zip",
     "synth": "geocd.cli.synth:synth",
     "run": "geocd.cli.change:run",

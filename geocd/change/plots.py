@@ -1,0 +1,137 @@
+"""Plots shared by the change methods: height-change maps and volume time series (PNG, atomic)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: os.PathLike | str, dpi: int = 130) -> Path:
+    from ..io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
+    _plt().close(fig)
+    return Path(path)
+
+
+def hillshade(height_m: np.ndarray, posting_xy_m: tuple[float, float] = (1.0, 1.0), azimuth_deg: float = 315.0,
+              altitude_deg: float = 45.0) -> np.ndarray:
+    """Simple hillshade (0–1) for backdrops."""
+    h = np.asarray(height_m, np.float64)
+    gy, gx = np.gradient(np.where(np.isfinite(h), h, np.nanmean(h)), posting_xy_m[1], posting_xy_m[0])
+    slope = np.pi / 2 - np.arctan(np.hypot(gx, gy))
+    aspect = np.arctan2(-gx, gy)
+    az, alt = np.radians(azimuth_deg), np.radians(altitude_deg)
+    hs = np.sin(alt) * np.sin(slope) + np.cos(alt) * np.cos(slope) * np.cos(az - np.pi / 2 - aspect)
+    return np.where(np.isfinite(h), np.clip(hs, 0, 1), np.nan)
+
+
+def plot_dh_map(dz_m: np.ndarray, grid, path: os.PathLike | str, *, sign: np.ndarray | None = None,
+                backdrop_m: np.ndarray | None = None, title: str = "", vmax: float | None = None,
+                stable: np.ndarray | None = None, label: str = "Δh (m), B − A", cmap: str = "RdBu_r",
+                note: str = "", backdrop_posting_xy_m: tuple[float, float] | None = None) -> Path:
+    """Map of a height change (diverging colours centred on 0) with changed regions outlined.
+
+    Parameters
+    ----------
+    dz_m : float (rows, cols)
+    sign : optional int8 (+1 raised / −1 lowered; other values ignored) → red / blue outlines
+    backdrop_m : optional DEM drawn as a grey hillshade under the change (its metric cell size
+        ``backdrop_posting_xy_m``, default the grid's posting)
+    stable : optional bool mask drawn as a light hatch-free tint (stable terrain)
+    vmax : colour limit (default: 98th percentile of |dz|)
+    """
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.8, 6.4))
+    l, b, r, t = grid.bounds
+    ext = (l, r, b, t)
+    fin = np.isfinite(dz_m)
+    if vmax is None:
+        vmax = float(np.nanpercentile(np.abs(dz_m[fin]), 98)) if fin.any() else 1.0
+    vmax = max(float(vmax), 1e-3)
+    if backdrop_m is not None:
+        hs = hillshade(backdrop_m, backdrop_posting_xy_m or grid.posting)
+        ax.imshow(hs, cmap="Greys_r", vmin=0, vmax=1, extent=ext, interpolation="nearest")
+    im = ax.imshow(np.ma.masked_invalid(dz_m), cmap=cmap, vmin=-vmax, vmax=vmax, extent=ext,
+                   interpolation="nearest", alpha=0.85 if backdrop_m is not None else 1.0)
+    fig.colorbar(im, ax=ax, shrink=0.8, label=label, extend="both")
+    if stable is not None and np.any(stable):
+        ax.contour(np.asarray(stable, float), levels=[0.5], colors="0.35", linewidths=0.4, linestyles=":",
+                   extent=(l, r, b, t), origin="upper")
+    if sign is not None:
+        for s, colour in ((1, "darkred"), (-1, "navy")):
+            m = np.asarray(sign) == s
+            if m.any():
+                ax.contour(m.astype(float), levels=[0.5], colors=colour, linewidths=0.7, extent=(l, r, b, t),
+                           origin="upper")
+    ax.set_title(title, fontsize=9)
+    if note:
+        ax.text(0.01, 0.01, note, transform=ax.transAxes, fontsize=7, va="bottom", ha="left",
+                bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"})
+    geographic = bool(getattr(grid.crs, "is_geographic", False))
+    ax.set_xlabel("longitude (°)" if geographic else "easting (m)")
+    ax.set_ylabel("latitude (°)" if geographic else "northing (m)")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    return _save(fig, path)
+
+
+def plot_volume_series(series: Sequence[dict[str, Any]], path: os.PathLike | str, *, title: str = "",
+                       ylabel: str = "volume (10⁶ m³)", scale: float = 1e-6, reference: Sequence[dict[str, Any]] = (),
+                       bars: Sequence[dict[str, Any]] = ()) -> Path:
+    """Volume (or any quantity) vs date with 1σ error bars, for one or more series.
+
+    Parameters
+    ----------
+    series : list of {"label": str, "dates": [date], "values": [float], "sigmas": [float], "style": "o-" (optional)}
+    reference : optional published points, same keys (drawn as black markers)
+    bars : optional per-interval quantities, same keys plus "dates_a": drawn as steps on a second axis
+    scale : multiply values and σ by this for display (default m³ → 10⁶ m³)
+    """
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 4.8))
+    for sdef in series:
+        d = list(sdef["dates"])
+        v = np.asarray(sdef["values"], float) * scale
+        s = np.asarray(sdef.get("sigmas", np.full(len(d), np.nan)), float) * scale
+        ax.errorbar(d, v, yerr=np.where(np.isfinite(s), s, 0.0), fmt=sdef.get("style", "o-"), ms=4, capsize=2.5,
+                    lw=1.2, label=sdef["label"])
+    for rdef in reference:
+        d = list(rdef["dates"])
+        v = np.asarray(rdef["values"], float) * scale
+        s = np.asarray(rdef.get("sigmas", np.full(len(d), np.nan)), float) * scale
+        ax.errorbar(d, v, yerr=np.where(np.isfinite(s), s, 0.0), fmt=rdef.get("style", "ks"), ms=5, capsize=2.5,
+                    mfc="none", label=rdef["label"])
+    if bars:
+        ax2 = ax.twinx()
+        for bdef in bars:
+            da, db = list(bdef["dates_a"]), list(bdef["dates"])
+            v = np.asarray(bdef["values"], float) * scale
+            for k, (x0, x1) in enumerate(zip(da, db)):
+                ax2.fill_between([x0, x1], [0, 0], [v[k], v[k]], step="pre", color="0.8", alpha=0.6, lw=0,
+                                 label=bdef["label"] if k == 0 else None)
+        ax2.set_ylabel(bars[0].get("ylabel", "per interval (10⁶ m³)"))
+        ax2.set_zorder(ax.get_zorder() - 1)
+        ax.patch.set_visible(False)
+        h2, l2 = ax2.get_legend_handles_labels()
+    else:
+        h2, l2 = [], []
+    h1, l1 = ax.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, loc="upper left", fontsize=8)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+    fig.autofmt_xdate()
+    return _save(fig, path)

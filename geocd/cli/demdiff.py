@@ -1,0 +1,187 @@
+"""``geocd demdiff``: DEM-vs-DEM change (two DEMs, a list or a manifest for a time series)."""
+
+from __future__ import annotations
+
+import datetime as _dt
+from pathlib import Path
+
+import click
+
+DEM_LIST_HELP = """DEMS: two DEM files (A = reference/earlier, B = later), three or more (a time series, in date
+order or with --dates), or ONE list file (.txt/.csv: one `path[,date[,name]]` per line, # comments) or geocd manifest
+(.yaml/.json, epochs with a `dem:`)."""
+
+
+def _read_dem(path: str, datum: str | None):
+    from ..io.raster import read_dem
+
+    if Path(path).suffix.lower() == ".e00":
+        from ..io.e00 import read_e00_dem
+
+        return read_e00_dem(path, vertical_datum=datum)
+    return read_dem(path, vertical_datum=datum)
+
+
+def _parse_list(path: Path) -> list[tuple[str, _dt.date | None, str]]:
+    from ..errors import ManifestError
+
+    out = []
+    for k, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        s = line.split("#", 1)[0].strip()
+        if not s:
+            continue
+        parts = [p.strip() for p in s.replace("\t", ",").split(",")]
+        p = Path(parts[0])
+        if not p.is_absolute():
+            p = path.parent / p
+        date = None
+        if len(parts) > 1 and parts[1]:
+            try:
+                date = _dt.date.fromisoformat(parts[1].replace("_", "-"))
+            except ValueError:
+                raise ManifestError(f"{path}:{k}: cannot read {parts[1]!r} as a date; use YYYY-MM-DD") from None
+        name = parts[2] if len(parts) > 2 and parts[2] else p.stem
+        out.append((str(p), date, name))
+    if len(out) < 2:
+        raise ManifestError(f"{path} lists {len(out)} DEM(s); a comparison needs at least two")
+    return out
+
+
+def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
+    """→ list of (path, date, name, vertical datum or None)."""
+    from ..errors import ConfigError, InputFileNotFoundError
+
+    if len(dems) == 1:
+        p = Path(dems[0])
+        if not p.exists():
+            raise InputFileNotFoundError(f"{p} does not exist; check the path")
+        if p.suffix.lower() in (".yaml", ".yml", ".json"):
+            from ..io.manifest import load_manifest
+
+            m = load_manifest(p)
+            ents = [(str(e.dem.path), e.date, e.name, e.dem.vertical_datum) for e in m.epochs if e.dem is not None]
+            if len(ents) < 2:
+                from ..errors import ManifestError
+
+                raise ManifestError(f"{p} has {len(ents)} epoch(s) with a `dem:`; DEM differencing needs two or more")
+            return ents
+        if p.suffix.lower() in (".txt", ".csv", ".lst", ".list"):
+            return [(a, b, c, None) for a, b, c in _parse_list(p)]
+        raise ConfigError(f"give two DEMs, or one list (.txt/.csv) or manifest (.yaml/.json); got only {p}")
+    ents = [(d, None, Path(d).stem, None) for d in dems]
+    if dates:
+        ds = [s.strip() for s in dates.split(",")]
+        if len(ds) != len(ents):
+            raise ConfigError(f"--dates lists {len(ds)} dates for {len(ents)} DEMs")
+        try:
+            ents = [(p, _dt.date.fromisoformat(d), n, v) for (p, _, n, v), d in zip(ents, ds)]
+        except ValueError as exc:
+            raise ConfigError(f"--dates: {exc}; use YYYY-MM-DD") from None
+    if names:
+        ns = [s.strip() for s in names.split(",")]
+        if len(ns) != len(ents):
+            raise ConfigError(f"--names lists {len(ns)} names for {len(ents)} DEMs")
+        ents = [(p, d, n, v) for (p, d, _, v), n in zip(ents, ns)]
+    return ents
+
+
+@click.command("demdiff", help="Height change between DEMs, with co-registration and honest uncertainty.\n\n"
+               + DEM_LIST_HELP)
+@click.argument("dems", nargs=-1, required=True, type=click.Path(path_type=str))
+@click.option("--out", "out_dir", type=click.Path(path_type=str), default="out_demdiff", show_default=True,
+              help="Output folder.")
+@click.option("--prefix", default="demdiff", show_default=True, help="Prefix of the output file names.")
+@click.option("--stable-mask", type=click.Path(path_type=str), default=None,
+              help="Stable terrain: a raster (non-zero = inside) or polygons (inside). Default: automatic.")
+@click.option("--mask-is", type=click.Choice(["stable", "unstable"]), default="stable", show_default=True,
+              help="Whether --stable-mask marks stable terrain or unstable areas (e.g. glacier outlines).")
+@click.option("--footprints", type=click.Path(path_type=str), default=None,
+              help="Building footprints: excluded from stable terrain and attributed (layer `buildings`).")
+@click.option("--confidence", type=float, default=0.95, show_default=True,
+              help="Confidence level (0–1) at which cells are called changed.")
+@click.option("--datum-a", default=None, help="Vertical datum of DEM A when its file does not say (ellipsoid, egm96, egm2008).")
+@click.option("--datum-b", default=None, help="Vertical datum of DEM B (and of every series DEM after the first).")
+@click.option("--resampling", type=click.Choice(["nearest", "bilinear", "cubic", "average"]), default="bilinear",
+              show_default=True, help="How DEM B is resampled onto A's grid.")
+@click.option("--no-coreg", is_flag=True, help="Do not co-register (compare the DEMs as they are).")
+@click.option("--tilt", is_flag=True, help="Also remove a planar vertical tilt after the shift.")
+@click.option("--on-underconstrained", type=click.Choice(["vertical_only", "apply", "none", "raise"]),
+              default="vertical_only", show_default=True,
+              help="What to do when the co-registration fit is under-constrained.")
+@click.option("--min-region-cells", type=int, default=4, show_default=True, help="Smallest changed region kept.")
+@click.option("--fallback-threshold", type=float, default=None,
+              help="|dh| (m) that marks change when no stable terrain exists (no significance then).")
+@click.option("--base", type=click.Path(path_type=str), default=None,
+              help="Base DEM the series DEMs were merged onto (e.g. an .e00): each epoch's survey is where it "
+                   "differs from the base; comparisons use only the shared survey area; adds base → epoch volumes.")
+@click.option("--dates", default=None, help="Comma-separated dates (YYYY-MM-DD) of the DEMs given as arguments.")
+@click.option("--names", default=None, help="Comma-separated epoch names of the DEMs given as arguments.")
+@click.option("--pair-products", is_flag=True, help="For a series, also write every interval's rasters and layers.")
+@click.option("--no-plots", is_flag=True, help="Do not draw PNG plots.")
+@click.pass_context
+def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, footprints, confidence, datum_a, datum_b,
+            resampling, no_coreg, tilt, on_underconstrained, min_region_cells, fallback_threshold, base, dates, names,
+            pair_products, no_plots) -> None:
+    from ..demdiff import CoregParams, DEMDiffParams, dem_difference
+    from ..demdiff.products import write_demdiff_products, write_json, write_timeseries_products
+    from ..demdiff.timeseries import Epoch, dem_time_series, survey_footprint
+    from ..io.atomic import protect_inputs
+    from . import emit_result, make_progress
+
+    ents = _entries(tuple(dems), dates, names)
+    protect_inputs(*[e[0] for e in ents], *(p for p in (stable_mask, footprints, base) if p))
+    params = DEMDiffParams(coreg=CoregParams(tilt=tilt, on_underconstrained=on_underconstrained),
+                           coregister=not no_coreg, confidence=confidence, min_region_cells=min_region_cells,
+                           resampling=resampling, fallback_threshold_m=fallback_threshold)
+    fp = None
+    loaded = []
+    for k, (path, date, name, vd) in enumerate(ents):
+        loaded.append(Epoch(name, date, _read_dem(path, vd or (datum_a if k == 0 else datum_b))))
+    base_ep = Epoch(Path(base).stem, None, _read_dem(base, datum_a)) if base else None
+    if footprints:
+        from ..io.vector import read_footprints
+
+        fp = read_footprints(footprints, crs=loaded[0].dem.grid.crs)
+    progress = make_progress(ctx, "demdiff")
+    outputs: dict = {}
+    try:
+        if len(loaded) == 2:
+            a, b = loaded
+            if base_ep is not None:
+                from ..demdiff.align import align_dems
+
+                pair = align_dems(a.dem, b.dem, a.dem.grid, resampling=resampling, crop=False)
+                bh = align_dems(a.dem, base_ep.dem, a.dem.grid, crop=False).height_b_m
+                obs = survey_footprint(pair.height_a_m, bh) & survey_footprint(pair.height_b_m, bh)
+                res = dem_difference(pair, observed=obs, stable_mask=stable_mask, mask_is=mask_is, footprints=fp,
+                                     params=params, epoch_a=a.name, epoch_b=b.name, progress=progress)
+            else:
+                res = dem_difference(a.dem, b.dem, stable_mask=stable_mask, mask_is=mask_is, footprints=fp,
+                                     params=params, epoch_a=a.name, epoch_b=b.name, progress=progress)
+            outputs = write_demdiff_products(out_dir, res, footprints=fp, prefix=prefix, plots=not no_plots,
+                                             provenance={"dem_a": ents[0][0], "dem_b": ents[1][0],
+                                                         "stable_mask": stable_mask, "base": base})
+            s = res.summary
+            for n in res.notes:
+                click.echo(f"geocd: note: {n}", err=True)
+            click.echo(f"{res.coreg.summary()}", err=True)
+            click.echo(f"stable NMAD {s['stable_nmad_m']:.2f} m on {s['n_stable']} cells; changed "
+                       f"{s['changed_area_m2'] / 1e6:.4f} km², volume {s['volume_changed_m3'] / 1e6:+.4f} ± "
+                       f"{s['volume_changed_sigma_m3'] / 1e6:.4f} Mm³ (1σ)", err=True)
+        else:
+            ts = dem_time_series(loaded, base=base_ep, params=params, stable_mask=stable_mask, mask_is=mask_is,
+                                 keep_arrays=pair_products, progress=progress)
+            outputs = write_timeseries_products(out_dir, ts, prefix=prefix, plots=not no_plots)
+            if pair_products:
+                for r in ts.intervals + ts.vs_base:
+                    sub = Path(out_dir) / f"{r.epoch_a}__{r.epoch_b}"
+                    pp = write_demdiff_products(sub, r, prefix=prefix, plots=not no_plots)
+                    outputs.update({f"{r.epoch_a}__{r.epoch_b}_{k}": v for k, v in pp.items()})
+            for n in ts.notes:
+                click.echo(f"geocd: note: {n}", err=True)
+            outputs["notes"] = write_json(Path(out_dir) / f"{prefix}_notes.json", ts.notes) if ts.notes else None
+            outputs = {k: v for k, v in outputs.items() if v is not None}
+    finally:
+        if hasattr(progress, "close"):
+            progress.close()
+    emit_result(ctx, outputs)

@@ -1,0 +1,444 @@
+"""Co-registration of a DEM onto a reference on stable terrain (Nuth & Kääb 2011).
+
+If DEM B is DEM A displaced horizontally by d = (d_e, d_n) and raised by d_z, then
+on terrain of slope α and aspect ψ (azimuth of steepest descent)
+
+    dh = B − A ≈ tan α · (d_e sin ψ + d_n cos ψ) + d_z,
+
+so ``dh / tan α = a cos(b − ψ) + c`` with d_e = a sin b, d_n = a cos b (Nuth & Kääb
+2011, eq. 3). Each iteration takes the stable cells, removes the median dh, takes
+the median of dh / tan α in aspect bins, fits the three coefficients by linear least
+squares (the cosine is linear in a cos b, a sin b, c), moves B by −d and repeats
+until the increment is below ``tolerance_px``. The vertical shift is then the median
+of −dh on all stable cells; an optional plane (``tilt=True``) removes a residual
+vertical tilt.
+
+**Convention**: the reported shift ``t = (t_e, t_n, t_z)`` is the translation
+applied to B: ``B_aligned(x, y) = B(x − t_e, y − t_n) + t_z`` (the same as xDEM's
+``shift_x, shift_y, shift_z``).
+
+**Honesty checks.** A fit is *under-constrained* when too few stable cells carry
+slope (``min_cells``), when their aspects do not cover enough of the compass
+(``min_octants`` of 8 octants), when the block-jackknife 1σ of the horizontal shift
+exceeds ``max_sigma_px`` pixels, or when the iteration does not converge. What
+happens then is ``on_underconstrained``: ``"vertical_only"`` (default: keep B's
+position, apply only the median vertical offset when at least
+``min_vertical_cells`` stable cells exist), ``"apply"`` (apply anyway, as xDEM
+does), ``"none"`` (apply nothing) or ``"raise"``. Without stable terrain nothing is
+applied and the status says so: geocd never invents a shift.
+
+The jackknife: stable cells are grouped in ``block_px`` × ``block_px`` blocks; the
+linearized model ``dh = tan α (e sin ψ + n cos ψ) + z`` is refitted leaving out one
+block at a time on the final residuals; the spread of those fits (× (K−1)/K) is the
+shift's variance. Blocks larger than the error correlation length make it honest
+about spatially correlated errors.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError, ProcessingError
+from ..progress import Progress, ensure_progress
+from ._kernels import shift_grid, terrain_attributes
+from .stable import nmad
+
+UNDERCONSTRAINED_ACTIONS = ("vertical_only", "apply", "none", "raise")
+
+
+@dataclass(frozen=True)
+class CoregParams:
+    """Parameters of :func:`nuth_kaab`."""
+
+    max_iterations: int = 15
+    tolerance_px: float = 0.01
+    aspect_bins: int = 36
+    min_bin_cells: int = 8
+    min_slope_deg: float = 3.0
+    max_slope_deg: float = 70.0
+    outlier_nmad: float = 5.0
+    min_cells: int = 300
+    min_octants: int = 6
+    max_sigma_px: float = 0.35
+    block_px: int = 16
+    min_blocks: int = 6
+    resampling: str = "bilinear"
+    horizontal: bool = True
+    vertical: bool = True
+    tilt: bool = False
+    on_underconstrained: str = "vertical_only"
+    min_vertical_cells: int = 30
+
+    def __post_init__(self) -> None:
+        if self.on_underconstrained not in UNDERCONSTRAINED_ACTIONS:
+            raise ConfigError(f"on_underconstrained must be one of {UNDERCONSTRAINED_ACTIONS}, got {self.on_underconstrained!r}")
+        if self.resampling not in ("bilinear", "cubic"):
+            raise ConfigError(f"resampling must be 'bilinear' or 'cubic', got {self.resampling!r}")
+        if self.max_iterations < 1 or self.tolerance_px <= 0 or self.aspect_bins < 8:
+            raise ConfigError("max_iterations ≥ 1, tolerance_px > 0 and aspect_bins ≥ 8 are required")
+        if not (0 <= self.min_slope_deg < self.max_slope_deg <= 90):
+            raise ConfigError("0 ≤ min_slope_deg < max_slope_deg ≤ 90 is required")
+
+
+@dataclass(frozen=True)
+class CoregResult:
+    """What co-registration found and what it applied.
+
+    Attributes
+    ----------
+    shift_m : (east, north, up) translation **applied** to B (zeros when nothing was applied)
+    fitted_shift_m : (east, north, up) what the fit found, applied or not
+    shift_sigma_m : (east, north, up) block-jackknife 1σ of the fitted shift (inf when unknown)
+    tilt : (dz/dx, dz/dy) of the applied vertical plane (m per m), or None
+    status : "ok", "underconstrained", "no_stable_terrain", "not_converged" or "disabled"
+    applied : "horizontal+vertical", "vertical", "none"
+    reasons : why the fit is not trusted (empty when ok)
+    """
+
+    shift_m: tuple[float, float, float]
+    fitted_shift_m: tuple[float, float, float]
+    shift_sigma_m: tuple[float, float, float]
+    status: str
+    applied: str
+    reasons: tuple[str, ...] = ()
+    tilt: tuple[float, float] | None = None
+    iterations: int = 0
+    converged: bool = False
+    n_stable: int = 0
+    n_fit: int = 0
+    octants: int = 0
+    n_blocks: int = 0
+    median_before_m: float = float("nan")
+    nmad_before_m: float = float("nan")
+    median_after_m: float = float("nan")
+    nmad_after_m: float = float("nan")
+    posting_xy_m: tuple[float, float] = (float("nan"), float("nan"))
+    history_m: tuple[tuple[float, float], ...] = field(default_factory=tuple)
+
+    @property
+    def shift_px(self) -> tuple[float, float]:
+        """Applied horizontal shift in pixels (east, north)."""
+        return (self.shift_m[0] / self.posting_xy_m[0], self.shift_m[1] / self.posting_xy_m[1])
+
+    @property
+    def fitted_shift_px(self) -> tuple[float, float]:
+        return (self.fitted_shift_m[0] / self.posting_xy_m[0], self.fitted_shift_m[1] / self.posting_xy_m[1])
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["shift_px"] = self.shift_px
+        d["fitted_shift_px"] = self.fitted_shift_px
+        return d
+
+    def summary(self) -> str:
+        e, n, z = self.fitted_shift_m
+        se, sn, sz = self.shift_sigma_m
+        s = (f"Nuth–Kääb: fitted shift (E {e:+.2f} ± {se:.2f}, N {n:+.2f} ± {sn:.2f}, Z {z:+.2f} ± {sz:.2f}) m "
+             f"on {self.n_fit} stable cells ({self.octants}/8 aspect octants), {self.iterations} iterations; "
+             f"status {self.status}, applied {self.applied}")
+        if self.reasons:
+            s += " (" + "; ".join(self.reasons) + ")"
+        return s
+
+
+def apply_shift(height_m: np.ndarray, shift_m: tuple[float, float, float], posting_xy_m: tuple[float, float], *,
+                tilt: tuple[float, float] | None = None, resampling: str = "bilinear") -> np.ndarray:
+    """Translate a DEM by ``shift_m`` = (east, north, up) metres (and add an optional plane).
+
+    ``out(x, y) = h(x − t_e, y − t_n) + t_z [+ a (x − x_c) + b (y − y_c)]`` on a north-up
+    grid with posting ``posting_xy_m``; (x_c, y_c) is the grid centre.
+    """
+    te, tn, tz = shift_m
+    h = np.asarray(height_m, np.float64)
+    if te != 0.0 or tn != 0.0:
+        h = shift_grid(h, te / posting_xy_m[0], -tn / posting_xy_m[1], resampling)
+    out = h + tz
+    if tilt is not None:
+        out = out + _plane(h.shape, posting_xy_m, tilt)
+    return out.astype(np.float32)
+
+
+def _plane(shape, posting_xy_m, tilt) -> np.ndarray:
+    nr, nc = shape
+    x = (np.arange(nc) - (nc - 1) / 2.0) * posting_xy_m[0]
+    y = -(np.arange(nr) - (nr - 1) / 2.0) * posting_xy_m[1]
+    return tilt[0] * x[None, :] + tilt[1] * y[:, None]
+
+
+def _fit_bins(y: np.ndarray, aspect: np.ndarray, nbins: int, min_cells: int) -> tuple[np.ndarray, int] | None:
+    """Least-squares fit of y = A cos ψ + B sin ψ + C to the aspect-bin medians of y."""
+    idx = np.minimum((aspect / (2 * math.pi) * nbins).astype(np.int64), nbins - 1)
+    order = np.argsort(idx, kind="stable")
+    idx_s = idx[order]
+    y_s = y[order]
+    bounds = np.searchsorted(idx_s, np.arange(nbins + 1))
+    med = np.full(nbins, np.nan)
+    cnt = np.diff(bounds)
+    for k in range(nbins):
+        if cnt[k] >= min_cells:
+            med[k] = np.median(y_s[bounds[k]:bounds[k + 1]])
+    ok = np.isfinite(med)
+    if ok.sum() < 4:
+        return None
+    centre = (np.arange(nbins) + 0.5) * 2 * math.pi / nbins
+    X = np.column_stack([np.cos(centre[ok]), np.sin(centre[ok]), np.ones(ok.sum())])
+    coef, *_ = np.linalg.lstsq(X, med[ok], rcond=None)
+    return coef, int(ok.sum())
+
+
+def _octants(aspect: np.ndarray, min_cells: int) -> int:
+    o = np.minimum((aspect / (2 * math.pi) * 8).astype(np.int64), 7)
+    return int(np.sum(np.bincount(o, minlength=8) >= min_cells))
+
+
+def _jackknife(dh: np.ndarray, tan_a: np.ndarray, aspect: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+               block_px: int, min_blocks: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Block-jackknife of the linearized shift model; returns (beta, sigma, n_blocks)."""
+    X = np.column_stack([tan_a * np.sin(aspect), tan_a * np.cos(aspect), np.ones_like(dh)])
+    ncb = int(cols.max()) // block_px + 1 if cols.size else 1
+    blk = (rows // block_px) * ncb + (cols // block_px)
+    ub, inv = np.unique(blk, return_inverse=True)
+    K = ub.size
+    xtx = np.zeros((K, 3, 3))
+    xty = np.zeros((K, 3))
+    for i in range(3):
+        xty[:, i] = np.bincount(inv, weights=X[:, i] * dh, minlength=K)
+        for j in range(i, 3):
+            v = np.bincount(inv, weights=X[:, i] * X[:, j], minlength=K)
+            xtx[:, i, j] = v
+            xtx[:, j, i] = v
+    A = xtx.sum(0)
+    b = xty.sum(0)
+    try:
+        beta = np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        return np.full(3, np.nan), np.full(3, np.inf), K
+    if K < min_blocks:
+        return beta, np.full(3, np.inf), K
+    loo = np.empty((K, 3))
+    for k in range(K):
+        try:
+            loo[k] = np.linalg.solve(A - xtx[k], b - xty[k])
+        except np.linalg.LinAlgError:
+            return beta, np.full(3, np.inf), K
+    var = (K - 1) / K * np.sum((loo - loo.mean(0)) ** 2, axis=0)
+    return beta, np.sqrt(var), K
+
+
+def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_xy_m: tuple[float, float],
+              params: CoregParams = CoregParams(), progress: Progress | None = None,
+              initial_shift_m: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, CoregResult]:
+    """Co-register ``tba_m`` (B) onto ``ref_m`` (A) on stable terrain.
+
+    Parameters
+    ----------
+    ref_m, tba_m : float (rows, cols) on the same north-up grid, NaN = nodata
+    stable : bool (rows, cols), stable terrain
+    posting_xy_m : (x, y) cell size in metres
+    initial_shift_m : (east, north) start of the iteration (e.g. from a previous pass)
+
+    Returns
+    -------
+    aligned : float32 (rows, cols), B after the applied shift (B itself when nothing was applied)
+    result : CoregResult
+    """
+    prog = ensure_progress(progress)
+    p = params
+    A = np.asarray(ref_m, np.float64)
+    B = np.asarray(tba_m, np.float64)
+    if A.shape != B.shape or np.shape(stable) != A.shape:
+        raise ConfigError(f"reference {A.shape}, DEM {B.shape} and stable mask {np.shape(stable)} must share one grid")
+    px, py = float(posting_xy_m[0]), float(posting_xy_m[1])
+    st = np.asarray(stable, bool) & np.isfinite(A) & np.isfinite(B)
+    n_stable = int(st.sum())
+    dh0 = B - A
+    med0 = float(np.median(dh0[st])) if n_stable else float("nan")
+    nm0 = nmad(dh0[st]) if n_stable else float("nan")
+    base = dict(n_stable=n_stable, median_before_m=med0, nmad_before_m=nm0, posting_xy_m=(px, py))
+    zero = (0.0, 0.0, 0.0)
+    inf3 = (math.inf, math.inf, math.inf)
+    if not (p.horizontal or p.vertical or p.tilt):
+        return B.astype(np.float32), CoregResult(zero, zero, inf3, "disabled", "none", **base,
+                                                 median_after_m=med0, nmad_after_m=nm0)
+    if n_stable < max(p.min_vertical_cells, 3):
+        reason = (f"no stable terrain ({n_stable} stable cells with heights in both DEMs, "
+                  f"at least {max(p.min_vertical_cells, 3)} needed)")
+        if p.on_underconstrained == "raise":
+            raise ProcessingError(reason + "; give a stable-terrain mask (--stable-mask) or disable co-registration")
+        return B.astype(np.float32), CoregResult(zero, zero, inf3, "no_stable_terrain", "none", (reason,), **base,
+                                                 median_after_m=med0, nmad_after_m=nm0)
+
+    terr = terrain_attributes(A, (px, py))
+    slope = terr["slope_rad"].astype(np.float64)
+    aspect = terr["aspect_rad"].astype(np.float64)
+    fit_mask = st & np.isfinite(slope) & (slope >= math.radians(p.min_slope_deg)) & (slope <= math.radians(p.max_slope_deg))
+    rows, cols = np.nonzero(fit_mask)
+    tan_a = np.tan(slope[rows, cols])
+    asp = aspect[rows, cols]
+    reasons: list[str] = []
+    te, tn = float(initial_shift_m[0]), float(initial_shift_m[1])
+    history: list[tuple[float, float]] = []
+    converged = False
+    it = 0
+    n_fit = int(rows.size)
+    if p.horizontal and n_fit >= max(p.min_cells // 4, 20):
+        Bs = B
+        for it in range(1, p.max_iterations + 1):
+            if te != 0.0 or tn != 0.0:
+                Bs = shift_grid(B, te / px, -tn / py, p.resampling)
+            d = Bs[rows, cols] - A[rows, cols]
+            ok = np.isfinite(d)
+            if ok.sum() < 20:
+                reasons.append("the shifted DEM left the stable cells (shift diverged)")
+                break
+            dd = d[ok]
+            m = np.median(dd)
+            s = nmad(dd)
+            keep = np.abs(dd - m) <= max(p.outlier_nmad * s, 1e-6) if s > 0 else np.ones(dd.size, bool)
+            y = (dd[keep] - m) / tan_a[ok][keep]
+            fit = _fit_bins(y, asp[ok][keep], p.aspect_bins, p.min_bin_cells)
+            if fit is None:
+                reasons.append("too few aspect bins with enough stable cells for the Nuth–Kääb fit")
+                break
+            (ca, cb, _), _nb = fit
+            # displacement of the current B relative to A: d_n = ca (cos term), d_e = cb (sin term)
+            de, dn = float(cb), float(ca)
+            te -= de
+            tn -= dn
+            history.append((te, tn))
+            prog(min(0.9, it / p.max_iterations), f"Nuth–Kääb iteration {it}: shift E {te:+.3f} N {tn:+.3f} m")
+            if math.hypot(de / px, dn / py) < p.tolerance_px:
+                converged = True
+                break
+            if math.hypot(te / px, tn / py) > 0.25 * min(A.shape):
+                reasons.append("the horizontal shift diverged beyond a quarter of the grid")
+                break
+        if not converged and not reasons:
+            reasons.append(f"no convergence to {p.tolerance_px} px in {p.max_iterations} iterations")
+    elif p.horizontal:
+        reasons.append(f"only {n_fit} stable cells with slope in [{p.min_slope_deg}, {p.max_slope_deg}]° "
+                       f"(at least {p.min_cells} needed)")
+
+    # vertical offset after the horizontal fit
+    Bh = shift_grid(B, te / px, -tn / py, p.resampling) if (te or tn) else B
+    dh1 = Bh - A
+    st1 = st & np.isfinite(dh1)
+    tz = -float(np.median(dh1[st1])) if st1.sum() else 0.0
+
+    # jackknife and coverage diagnostics on the final residuals
+    sig = np.full(3, math.inf)
+    octs = 0
+    nblk = 0
+    if n_fit:
+        d = dh1[rows, cols] + tz
+        ok = np.isfinite(d)
+        keep = ok.copy()
+        if ok.any():
+            s, m = nmad(d[ok]), float(np.median(d[ok]))
+            if s > 0:
+                keep = ok & (np.abs(np.where(ok, d, m) - m) <= p.outlier_nmad * s)
+        octs = _octants(asp[keep], max(p.min_bin_cells, int(0.01 * keep.sum())))
+        if keep.sum() >= 10:
+            _, sig, nblk = _jackknife(d[keep], tan_a[keep], asp[keep], rows[keep], cols[keep], p.block_px, p.min_blocks)
+            n_fit = int(keep.sum())
+    # vertical σ: jackknife over all stable cells (flat ones included)
+    rs, cs = np.nonzero(st1)
+    sz = _block_sigma_of_median(dh1[rs, cs], rs, cs, p.block_px, p.min_blocks)
+    sig = np.array([sig[0], sig[1], sz])
+
+    if p.horizontal:
+        if n_fit < p.min_cells:
+            reasons.append(f"{n_fit} stable cells with usable slope (at least {p.min_cells} needed)")
+        if octs < p.min_octants:
+            reasons.append(f"stable slopes face only {octs} of 8 aspect octants (at least {p.min_octants} needed)")
+        hs = math.hypot(sig[0] / px, sig[1] / py)
+        if not math.isfinite(hs):
+            reasons.append(f"horizontal uncertainty unknown (stable cells in {nblk} blocks of {p.block_px} px, "
+                           f"at least {p.min_blocks} needed)")
+        elif hs > p.max_sigma_px:
+            reasons.append(f"horizontal shift 1σ {hs:.2f} px exceeds {p.max_sigma_px} px")
+    reasons = list(dict.fromkeys(reasons))
+    status = "ok" if not reasons else ("not_converged" if (p.horizontal and not converged and len(reasons) == 1
+                                                           and reasons[0].startswith("no convergence"))
+                                       else "underconstrained")
+    fitted = (te, tn, tz)
+    trusted = status == "ok"
+    action = p.on_underconstrained
+    if not trusted and action == "raise":
+        raise ProcessingError("co-registration is under-constrained: " + "; ".join(reasons)
+                              + "; give a better stable-terrain mask or pass on_underconstrained='vertical_only'")
+    apply_h = p.horizontal and (trusted or action == "apply")
+    apply_v = p.vertical and (trusted or action in ("apply", "vertical_only")) and st1.sum() >= p.min_vertical_cells
+    if apply_h:
+        Bout = Bh
+    else:
+        Bout = B
+    tz_applied = 0.0
+    if apply_v:
+        tz_applied = -float(np.median((Bout - A)[st & np.isfinite(Bout)])) if apply_h else -med0
+    out = Bout + tz_applied
+    tilt = None
+    if p.tilt and (trusted or action == "apply") and st.sum() >= max(p.min_vertical_cells, 10):
+        tilt = _fit_plane(out - A, st, (px, py))
+        out = out - _plane(A.shape, (px, py), tilt)
+        tilt = (-tilt[0], -tilt[1])
+    applied = "horizontal+vertical" if (apply_h and apply_v) else ("horizontal" if apply_h else
+                                                                    ("vertical" if apply_v else "none"))
+    dh_after = out - A
+    sa = st & np.isfinite(dh_after)
+    prog(1.0, "co-registration done")
+    res = CoregResult(
+        shift_m=(te if apply_h else 0.0, tn if apply_h else 0.0, tz_applied), fitted_shift_m=fitted,
+        shift_sigma_m=tuple(float(v) for v in sig), status=status, applied=applied, reasons=tuple(reasons), tilt=tilt,
+        iterations=it, converged=converged, n_fit=n_fit, octants=octs, n_blocks=nblk,
+        median_after_m=float(np.median(dh_after[sa])) if sa.any() else float("nan"),
+        nmad_after_m=nmad(dh_after[sa]) if sa.any() else float("nan"), history_m=tuple(history), **base)
+    return out.astype(np.float32), res
+
+
+def _block_sigma_of_median(d: np.ndarray, rows: np.ndarray, cols: np.ndarray, block_px: int, min_blocks: int) -> float:
+    """Jackknife 1σ of the mean of block means (a proxy for the median's σ under correlated errors)."""
+    ok = np.isfinite(d)
+    d, rows, cols = d[ok], rows[ok], cols[ok]
+    if d.size < 3:
+        return math.inf
+    s = nmad(d)
+    if s > 0:
+        keep = np.abs(d - np.median(d)) <= 5 * s
+        d, rows, cols = d[keep], rows[keep], cols[keep]
+    ncb = int(cols.max()) // block_px + 1
+    blk = (rows // block_px) * ncb + (cols // block_px)
+    ub, inv = np.unique(blk, return_inverse=True)
+    K = ub.size
+    if K < min_blocks:
+        return math.inf
+    sums = np.bincount(inv, weights=d, minlength=K)
+    cnt = np.bincount(inv, minlength=K).astype(float)
+    tot, n = sums.sum(), cnt.sum()
+    loo = (tot - sums) / (n - cnt)
+    return float(math.sqrt((K - 1) / K * np.sum((loo - loo.mean()) ** 2)))
+
+
+def _fit_plane(dh: np.ndarray, stable: np.ndarray, posting_xy_m) -> tuple[float, float]:
+    """Robust (iteratively reweighted, Tukey-like cut at 3 NMAD) plane slope of dh on stable cells."""
+    nr, nc = dh.shape
+    r, c = np.nonzero(stable & np.isfinite(dh))
+    x = (c - (nc - 1) / 2.0) * posting_xy_m[0]
+    y = -(r - (nr - 1) / 2.0) * posting_xy_m[1]
+    z = dh[r, c]
+    keep = np.ones(z.size, bool)
+    coef = np.zeros(3)
+    for _ in range(5):
+        X = np.column_stack([x[keep], y[keep], np.ones(keep.sum())])
+        coef, *_ = np.linalg.lstsq(X, z[keep], rcond=None)
+        res = z - (coef[0] * x + coef[1] * y + coef[2])
+        s = nmad(res)
+        new = np.abs(res - np.median(res)) <= 3 * max(s, 1e-9)
+        if np.array_equal(new, keep) or new.sum() < 10:
+            break
+        keep = new
+    return float(coef[0]), float(coef[1])
