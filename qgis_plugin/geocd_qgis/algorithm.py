@@ -284,11 +284,11 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
             raise QgsProcessingException(msg)
         vals = self._values(parameters, context, feedback)
         out_dir = vals.get(OUTPUT_FOLDER)
-        if out_dir:
-            Path(out_dir).mkdir(parents=True, exist_ok=True)
         file_outs = [vals[p.name] for p in self.spec.params if p.kind == "file_destination" and vals.get(p.name)]
         watched = [d for d in {out_dir, *(str(Path(f).parent) for f in file_outs)} if d]
-        before = {d: runner.snapshot(d) for d in watched}
+        before = {d: runner.snapshot(d) for d in watched}  # before creating anything: a new folder goes on cancel
+        if out_dir:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
         manifest_path = None
         if self.spec.writes_manifest:
             try:

@@ -1,0 +1,112 @@
+"""The geocd Processing provider in real headless QGIS (qgis_process.bin and standalone PyQGIS; no mocks).
+
+Skipped with a reason when QGIS is not installed (.ci/install_qgis.sh installs it). geocd runs as the plugin's
+child process from the environment running these tests (GEOCD_EXECUTABLE).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from .compare import compare_trees
+from .qgis_env import QGIS, REPO, geocd_executable, require_qgis
+
+sys.path.insert(0, str(REPO / "qgis_plugin"))
+from geocd_qgis import specs  # noqa: E402
+
+pytestmark = pytest.mark.qgis
+
+
+@pytest.fixture(scope="module")
+def qgis(tmp_path_factory) -> QGIS:
+    require_qgis()
+    return QGIS(tmp_path_factory.mktemp("qgis_profile"))
+
+
+def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([geocd_executable(), *args], capture_output=True, text=True, cwd=cwd, timeout=900)
+
+
+def test_provider_loads_and_lists_every_algorithm(qgis):
+    r = qgis.process("plugins")
+    assert "* geocd_qgis" in r.stdout, r.stdout  # enabled
+    r = qgis.process("list")
+    assert r.returncode == 0, r.stderr
+    listed = {line.split("\t")[1] for line in r.stdout.splitlines() if line.startswith("\tgeocd:")}
+    expected = {f"geocd:{a.name}" for a in specs.active()}
+    assert listed == expected, f"listed {sorted(listed)}, table {sorted(expected)}"
+    assert "\ngeocd\n" in r.stdout  # the provider's own group
+
+
+@pytest.mark.parametrize("alg", ["stereo", "change", "runlayers"])
+def test_help_prints_parameters(qgis, alg):
+    r = qgis.process("help", f"geocd:{alg}")
+    assert r.returncode == 0, r.stderr
+    spec = specs.spec(alg)
+    for p in spec.params:
+        assert f"\n{p.name}: " in r.stdout, f"{p.name} missing from help:\n{r.stdout}"
+    for o in spec.outputs:
+        assert f"\n{o.name}: " in r.stdout
+    assert spec.short_help[:60] in r.stdout
+
+
+def test_run_in_qgis_matches_cli(qgis, tmp_path):
+    """`qgis_process run geocd:synth` writes the same products as `geocd synth` with the same options."""
+    cli_out, qgis_out = tmp_path / "cli", tmp_path / "qgis"
+    r = _cli("--progress", "none", "synth", "--tiny", "--seed", "3", "--out", str(cli_out))
+    assert r.returncode == 0, r.stderr
+    r, doc = qgis.run_json("geocd:synth", {"TINY": "true", "SEED": 3, "OUTPUT": str(qgis_out)})
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    res = doc["results"]
+    assert res["OUTPUT"] == str(qgis_out)
+    assert res["SCENE"] == str(qgis_out / "scene.yaml") and Path(res["REPORT"]).is_file()
+    diffs = compare_trees(cli_out, qgis_out)
+    assert not diffs, "\n".join(diffs)
+
+
+def test_error_carries_geocds_message(qgis, tmp_path):
+    """A bad input: the QgsProcessingException says what geocd says on the command line."""
+    bad = tmp_path / "scene.yaml"
+    bad.write_text("epochs: [unclosed\n")
+    r = _cli("stereo", str(bad), "--out", str(tmp_path / "cli"))
+    assert r.returncode != 0
+    cli_message = r.stderr[r.stderr.index("geocd: error: ") + len("geocd: error: "):].strip()
+    rep = qgis.pyqgis("error", "geocd:stereo", f"MANIFEST={bad}", f"OUTPUT={tmp_path / 'qgis'}")
+    assert rep.get("exception") == "QgsProcessingException", rep
+    assert rep["message"] == cli_message
+    assert rep["pid_alive"] is False
+    # qgis_process reports it too, with a non-zero exit
+    r = qgis.process("run", "geocd:stereo", "--", f"MANIFEST={bad}", f"OUTPUT={tmp_path / 'qgis2'}")
+    assert r.returncode != 0 and cli_message in r.stdout + r.stderr
+
+
+def test_cancel_kills_child_and_leaves_no_partial_output(qgis, tmp_path):
+    out = tmp_path / "cancelled"
+    rep = qgis.pyqgis("cancel", "geocd:synth", "0.1", "TINY=true", f"OUTPUT={out}")
+    assert rep.get("exception") == "QgsProcessingException" and "cancelled" in rep["message"], rep
+    assert rep["pid"] and rep["pid_alive"] is False
+    assert rep["stop_after_cancel_s"] < 5.0
+    assert 10 <= rep["max_progress"] < 100
+    assert not out.exists(), f"partial output left: {sorted(p.name for p in out.rglob('*'))}"
+
+
+@pytest.mark.slow
+def test_full_run_on_sample_aoi_matches_cli_and_loads_styled_layers(qgis, tmp_path, sample_aoi):
+    """`geocd:run` on sample_aoi: same layers as `geocd run`, loaded with their styles (not default grey)."""
+    cli_out, qgis_out = tmp_path / "cli", tmp_path / "qgis"
+    r = _cli("--progress", "none", "run", str(sample_aoi / "scene.yaml"), "--out", str(cli_out))
+    assert r.returncode == 0, r.stderr[-3000:]
+    rep = qgis.pyqgis("run", "geocd:run", f"MANIFEST={sample_aoi / 'scene.yaml'}", f"OUTPUT={qgis_out}")
+    assert rep.get("ok"), rep
+    diffs = compare_trees(cli_out, qgis_out, ignore=(".png",))
+    assert not diffs, "\n".join(diffs)
+    loaded = {d["name"]: d for d in rep["loaded"]}
+    assert all(d["valid"] for d in loaded.values()), loaded
+    renderers = {d["renderer"] for d in loaded.values()}
+    assert "categorizedSymbol" in renderers or "graduatedSymbol" in renderers, loaded
+    assert "singlebandgray" not in {d["renderer"] for d in loaded.values() if d["output"] == "CHANGE_MASK"}
