@@ -92,6 +92,16 @@ def _ground_box(camera: Camera, h_range: tuple[float, float], densify: int = 16)
     return (float(min(lons)), float(max(lons))), (float(min(lats)), float(max(lats)))
 
 
+def _single_thread_blas():
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
+        import contextlib
+
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def _solve_coordinate(T: np.ndarray, c: np.ndarray, ridge: float, max_iter: int, tol: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Fit normalised coordinate c ≈ (num·T)/(den·T), den[0] = 1.
 
@@ -220,8 +230,10 @@ def fit_rpc(camera: Camera, h_range: tuple[float, float], *, lon_range: tuple[fl
     P = (lat - norm[2]) / norm[7]
     H = (h - norm[4]) / norm[9]
     T = K.terms_ref(L, P, H)
-    ln, ld, it_l = _solve_coordinate(T, (line - norm[0]) / norm[5], ridge, max_iter, 1e-3)
-    sn, sd, it_s = _solve_coordinate(T, (samp - norm[1]) / norm[6], ridge, max_iter, 1e-3)
+    # tiny dense products: a multi-threaded BLAS only loses time here (by 100x on a busy machine)
+    with _single_thread_blas():
+        ln, ld, it_l = _solve_coordinate(T, (line - norm[0]) / norm[5], ridge, max_iter, 1e-3)
+        sn, sd, it_s = _solve_coordinate(T, (samp - norm[1]) / norm[6], ridge, max_iter, 1e-3)
     if progress is not None:
         progress(0.8, "RPC fit: solved")
     w = width if width is not None else camera.width

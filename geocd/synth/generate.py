@@ -306,6 +306,14 @@ def generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: bool
     rare pixels by ±1 count (documented tolerance: ≤ 1 count on ≤ 0.1% of the
     pixels, truth rasters equal to 1e-6 m).
     """
+    from ..camera.rpc_fit import _single_thread_blas
+
+    with _single_thread_blas():  # numba does the parallel work; BLAS threads would only contend with it
+        return _generate(params, out_dir, overwrite=overwrite, progress=progress)
+
+
+def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: bool = False,
+              progress: Callable | None = None) -> SynthResult:
     from ..camera.rpc_fit import fit_rpc
     from ..errors import OutputError
     from ..io.atomic import write_text_atomic

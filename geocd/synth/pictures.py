@@ -28,7 +28,6 @@ def write_pictures(scene_dir: os.PathLike | str, out_dir: os.PathLike | str, pre
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import rasterio
-    from matplotlib.colors import ListedColormap
 
     from ..io.manifest import load_manifest
     from ..io.raster import read_band
@@ -93,7 +92,7 @@ def write_pictures(scene_dir: os.PathLike | str, out_dir: os.PathLike | str, pre
     colours = {1: (0.85, 0.1, 0.1), 2: (0.1, 0.3, 0.9), 3: (0.1, 0.6, 0.1)}
     for k, c in colours.items():
         img[cls == k] = c
-    fig, ax = plt.subplots(figsize=(8.2, 7.6))
+    fig, ax = plt.subplots(figsize=(10.5, 7.6))
     ax.imshow(img, extent=ext, interpolation="nearest")
     fp = read_footprints(m.truth_path("footprints_all"))
     style = {"new": "#d62728", "demolished": "#9467bd", "raised": "#ff7f0e", "lowered": "#17becf", "unchanged": "#444444"}
@@ -114,8 +113,7 @@ def write_pictures(scene_dir: os.PathLike | str, out_dir: os.PathLike | str, pre
     ax.set_title(f"truth change mask |ΔDSM| > {thr} m, footprints by status", fontsize=10)
     fig.tight_layout()
     p = out / f"{prefix}change.png"
-    fig.savefig(p, dpi=80)
+    fig.savefig(p, dpi=80, bbox_inches="tight")
     plt.close(fig)
     written["change"] = p
-    _ = ListedColormap  # (kept for colour maps of later figures)
     return written

@@ -566,7 +566,7 @@ def build_town(p: TownParams) -> Town:
             c = np.array([lot.cx, lot.cy])
             main = Rect(float(c[0]), float(c[1]), L, W, lot.angle)
             ext = max(1.5, min(rng.uniform(3.0, 6.0), Wmax - W))
-            ww = rng.uniform(3.0, min(4.0, L * 0.5))
+            ww = rng.uniform(min(3.0, 0.4 * L), min(4.0, 0.5 * L))
             side = 1 if rng.random() < 0.5 else -1
             end = 1 if rng.random() < 0.5 else -1
             wl = (W + ext) / 2.0  # wing spans v in [0, W + ext] on one side: overlaps the main wing
@@ -801,7 +801,8 @@ def build_town(p: TownParams) -> Town:
                 d = rng.choice([-1, 1]) * rng.uniform(5.5, 9.0)
                 nc = np.array([c.body.cx, c.body.cy]) + d * u_
                 body = replace(c.body, cx=float(nc[0]), cy=float(nc[1]))
-                if any(body.polygon().buffer(0.4).intersects(o.body.polygon()) for o in cars_b if o.car_id != c.car_id):
+                if (any(body.polygon().buffer(0.4).intersects(o.body.polygon()) for o in cars_b if o.car_id != c.car_id)
+                        or any(body.polygon().buffer(0.5).intersects(bb.polygon()) for bb in b_list)):
                     cars_b.remove(c)
                     changes.append(Change("car_removed", c.car_id, True, -c.height_m))
                     continue
