@@ -195,13 +195,14 @@ def _newton(coefs, L, P, H, st, lt, ss, ls, tol2, max_iter):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract"})
-def _multistart(coefs, H, st, lt, ss, ls, tol2, max_iter):
+def _multistart(coefs, H, st, lt, ss, ls, tol2, max_iter):  # returns (L, P, iterations, converged)
     """Fallback: Newton from the grid node whose image is nearest the target.
 
     The grid covers the validity box [-1, 1]² first, then [-2, 2]² (RPCs can fold outside
     their validity box, so the wider grid alone may pick a node of another branch).
     """
     n = 41
+    total = 0
     for half in (1.0, 2.0):
         best = np.inf
         bL = 0.0
@@ -218,9 +219,10 @@ def _multistart(coefs, H, st, lt, ss, ls, tol2, max_iter):
                     bP = Pg
         if np.isfinite(best):
             L, P, it, ok = _newton(coefs, bL, bP, H, st, lt, ss, ls, tol2, max_iter)
+            total += it
             if ok:
-                return L, P, it, ok
-    return 0.0, 0.0, 0, False
+                return L, P, total, ok
+    return 0.0, 0.0, total, False
 
 
 #: ``out_iter`` marker of the fast pass for samples the robust pass must redo
@@ -273,14 +275,22 @@ def _localize_robust(samp, line, h, coefs, norm, init, tol2, max_iter, out_lon, 
             out_iter[i] = -1
             continue
         L0, P0 = _start(init, st, lt, H)
-        L, P, it, ok = _newton(coefs, L0, P0, H, st, lt, ss, ls, tol2, max_iter)
+        # from a good start Newton converges in a few steps: do not insist (<= 12) before the next start
+        L, P, it, ok = _newton(coefs, L0, P0, H, st, lt, ss, ls, tol2, min(max_iter, 12))
+        its = 1 + it  # the fast pass's step counts too
+        if not ok:  # the cubic start may extrapolate badly far outside the image: affine start
+            u = st - init[4] - init[6] * H
+            v = lt - init[5] - init[7] * H
+            L, P, it, ok = _newton(coefs, init[0] * u + init[1] * v, init[2] * u + init[3] * v, H, st, lt,
+                                   ss, ls, tol2, max_iter)
+            its += it
         if not ok:
             L, P, it, ok = _multistart(coefs, H, st, lt, ss, ls, tol2, max_iter)
-            it += max_iter
+            its += it
         if ok:
             out_lon[i] = L * norm[8] + norm[3]
             out_lat[i] = P * norm[7] + norm[2]
-            out_iter[i] = it
+            out_iter[i] = its
         else:
             out_lon[i] = np.nan
             out_lat[i] = np.nan
@@ -303,10 +313,10 @@ def rpc_localize(samp, line, h, coefs, norm, init, tol_px, max_iter, out_lon, ou
     pixels (nearly every sample: the cubic start is within ~1e-3 px). The robust pass
     (:func:`_localize_robust`) redoes the others with damped Newton: a step that does not
     reduce the residual is halved (up to 40 times), so the iteration cannot wander off;
-    samples that still do not converge are retried from the nearest node of a coarse grid
-    over the validity box, then over [-2, 2]². Non-converged samples get NaN and
-    ``out_iter = -1``; otherwise ``out_iter`` is the number of Newton iterations (of the
-    retry, plus ``max_iter``, when the retry was needed).
+    samples that do not converge are retried from the affine start, then from the nearest
+    node of a coarse grid over the validity box, then over [-2, 2]² (each attempt at most
+    ``max_iter`` iterations). Non-converged samples get NaN and ``out_iter = -1``;
+    otherwise ``out_iter`` is the number of Newton iterations over all attempts.
     """
     tol2 = float(tol_px) * float(tol_px)
     _localize_fast(samp, line, h, coefs, norm, init, tol2, out_lon, out_lat, out_iter)
