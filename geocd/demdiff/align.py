@@ -93,8 +93,8 @@ def crop_to_overlap(grid: AOIGrid, other: AOIGrid) -> AOIGrid:
             f"{tuple(round(v, 3) for v in ob)} (in A's CRS {grid.crs.to_string()}); give two DEMs of the same area"
         ) from None
     inv = ~grid.transform
-    c0, r0 = inv * (l, t)
-    c1, r1 = inv * (r, b)
+    c0, r0 = inv @ (l, t)
+    c1, r1 = inv @ (r, b)
     c0 = max(0, int(math.floor(c0 + 1e-6)))
     r0 = max(0, int(math.floor(r0 + 1e-6)))
     c1 = min(grid.width, int(math.ceil(c1 - 1e-6)))
@@ -111,7 +111,7 @@ def _resample(dem: DEM, grid: AOIGrid, resampling: str) -> np.ndarray:
     if dem.grid.crs.equals(grid.crs, ignore_axis_order=True) and np.allclose(
             np.array(dem.grid.transform)[[0, 1, 3, 4]], np.array(grid.transform)[[0, 1, 3, 4]]):
         inv = ~dem.grid.transform
-        c, r = inv * (grid.transform.c, grid.transform.f)
+        c, r = inv @ (grid.transform.c, grid.transform.f)
         if abs(c - round(c)) < 1e-6 and abs(r - round(r)) < 1e-6:
             c, r = int(round(c)), int(round(r))
             out = np.full(grid.shape, np.nan, np.float32)

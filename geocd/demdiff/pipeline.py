@@ -5,8 +5,11 @@ Steps of :func:`dem_difference` (arrays in, arrays out; files only in the CLI):
 1. :func:`~geocd.demdiff.align.align_dems` puts B on A's grid and datum (or takes an
    :class:`~geocd.demdiff.align.AlignedPair`); ``observed`` restricts the comparison
    (e.g. the survey area both epochs share).
-2. A first, loose stable-terrain selection on the raw dh (``nmad_factor`` ×
-   ``coreg_stable_factor``) feeds Nuth & Kääb co-registration of B onto A.
+2. Nuth & Kääb co-registration of B onto A: with a user mask, on its stable cells;
+   otherwise twice — pass 1 on every valid cell (the aspect-bin medians are robust to
+   a minority of changed cells), pass 2 on the automatic stable terrain of the
+   pass-1-aligned dh (``nmad_factor`` × ``coreg_stable_factor``), started from the
+   pass-1 shift.
 3. The final stable terrain is selected on the co-registered dh (or taken from the
    user mask), and the error model (σ per cell, variogram, stable-mean σ) is learned
    on it.
@@ -50,7 +53,7 @@ class DEMDiffParams:
     stable: StableParams = StableParams()
     error: ErrorParams = ErrorParams()
     coregister: bool = True
-    coreg_stable_factor: float = 5.0 / 3.0
+    coreg_stable_factor: float = 1.0
     confidence: float = 0.95
     min_region_cells: int = 4
     resampling: str = "bilinear"
@@ -169,9 +172,6 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
     dh_raw = np.where(valid, B - A, np.nan)
 
     # --- co-registration -------------------------------------------------------------------------
-    # user mask: one pass on it. Automatic: pass 1 on every valid cell (outside footprints; the
-    # Nuth–Kääb bin medians are robust to a minority of changed cells), pass 2 on the loose
-    # automatic stable terrain of the pass-1-aligned dh, started from the pass-1 shift.
     loose = replace(p.stable, nmad_factor=p.stable.nmad_factor * p.coreg_stable_factor)
     Bv = np.where(valid, B, np.nan) if observed is not None else B
     if not p.coregister:

@@ -195,8 +195,9 @@ def variogram_fft(values: np.ndarray, mask: np.ndarray, posting_xy_m: tuple[floa
         return np.full(nb, np.nan), np.zeros(nb, np.int64)
     sl = (slice(r.min(), r.max() + 1), slice(c.min(), c.max() + 1))
     mm = m[sl].astype(np.float64)
-    z = np.where(m[sl], values[sl], 0.0).astype(np.float64)
-    z = z - z[m[sl]].mean()
+    ms = m[sl]
+    z = np.where(ms, values[sl], 0.0).astype(np.float64)
+    z = np.where(ms, z - z[ms].mean(), 0.0)
     n = _fft_autocorr(mm)
     z1 = _fft_autocorr(mm, z * z)        # Σ m(x) m(x+l) z(x+l)²
     z2 = _fft_autocorr(z * z, mm)        # Σ m(x) z(x)² m(x+l)
@@ -431,22 +432,50 @@ def n_effective(sigma_m: np.ndarray, mask: np.ndarray, model: VariogramModel, po
 
 @dataclass(frozen=True)
 class Uncertainty:
-    """Everything needed to put an honest σ on dh sums over any set of cells."""
+    """Everything needed to put an honest σ on dh sums over any set of cells.
+
+    The dh were centred on the stable terrain S (the vertical co-registration), so the
+    error of Σ_R dh is Σ_R e − N_R · mean_S(e), whose variance is
+
+        Var(Σ_R e) + N_R² Var(mean_S e) − 2 (N_R / N_S) Σ_{i∈R} σ_i K_i,
+
+    with K_i = Σ_{j∈S} σ_j C(d_ij) precomputed for every cell (``k_field``, one FFT
+    convolution). Without ``k_field`` the cross term is dropped (conservative).
+    """
 
     error_model: ErrorModel
     variogram: VariogramModel
     sigma_m: np.ndarray                    # per-cell 1σ (m), float32 (rows, cols)
     posting_xy_m: tuple[float, float]
-    bias_sigma_m: float = 0.0              # σ of the stable-terrain mean (fully correlated term)
+    bias_sigma_m: float = 0.0              # σ of the stable-terrain mean
     n_eff_stable: float = float("nan")
+    n_stable: int = 0
+    k_field: np.ndarray | None = None      # Σ_{j∈S} σ_j C(d_ij), float64 (rows, cols)
+
+    def _variance(self, w: np.ndarray, k: np.ndarray | None, include_bias: bool) -> float:
+        var = _window_variance(w, self.variogram, self.posting_xy_m)
+        if include_bias and self.n_stable:
+            n = float(np.count_nonzero(w))
+            var += (n * self.bias_sigma_m) ** 2
+            if k is not None:
+                var -= 2.0 * n / self.n_stable * float(np.sum(w * k))
+        return max(var, 0.0)
 
     def sum_sigma_m(self, mask: np.ndarray, include_bias: bool = True) -> float:
         """1σ of Σ dh over ``mask`` (m)."""
-        var = correlated_sum_variance(self.sigma_m, mask, self.variogram, self.posting_xy_m)
-        n = int(np.sum(np.asarray(mask, bool) & np.isfinite(self.sigma_m)))
-        if include_bias:
-            var += (n * self.bias_sigma_m) ** 2
-        return float(math.sqrt(var))
+        m = np.asarray(mask, bool) & np.isfinite(self.sigma_m)
+        r, c = np.nonzero(m)
+        if r.size == 0:
+            return 0.0
+        sl = (slice(r.min(), r.max() + 1), slice(c.min(), c.max() + 1))
+        return self._window_sigma(m[sl], sl, include_bias)
+
+    def _window_sigma(self, m: np.ndarray, sl: tuple[slice, slice], include_bias: bool) -> float:
+        sig = self.sigma_m[sl]
+        m = np.asarray(m, bool) & np.isfinite(sig)
+        w = np.where(m, sig, 0.0).astype(np.float64)
+        k = None if self.k_field is None else self.k_field[sl]
+        return float(math.sqrt(self._variance(w, k, include_bias)))
 
     def volume_sigma_m3(self, mask: np.ndarray, cell_area_m2: float, include_bias: bool = True) -> float:
         """1σ of the volume Σ dh × cell area over ``mask`` (m³)."""
@@ -481,12 +510,7 @@ class VolumeSigma:
         return self.unc.volume_sigma_m3(mask, self.cell_area_m2, self.include_bias)
 
     def windowed(self, mask_window: np.ndarray, slices: tuple[slice, slice]) -> float:
-        sig = self.unc.sigma_m[slices]
-        m = np.asarray(mask_window, bool) & np.isfinite(sig)
-        var = _window_variance(np.where(m, sig, 0.0), self.unc.variogram, self.unc.posting_xy_m)
-        if self.include_bias:
-            var += (int(m.sum()) * self.unc.bias_sigma_m) ** 2
-        return float(math.sqrt(var) * self.cell_area_m2)
+        return self.unc._window_sigma(mask_window, slices, self.include_bias) * self.cell_area_m2
 
 
 def estimate_uncertainty(dh_m: np.ndarray, stable: np.ndarray, slope_rad: np.ndarray, q: np.ndarray | None,
@@ -503,8 +527,19 @@ def estimate_uncertainty(dh_m: np.ndarray, stable: np.ndarray, slope_rad: np.nda
     ext = math.hypot((r.max() - r.min() + 1) * posting_xy_m[1], (c.max() - c.min() + 1) * posting_xy_m[0])
     vg = fit_variogram(lags, g, n, params.n_components, max_range_m=ext)
     st = np.isfinite(z)
-    var_sum = correlated_sum_variance(sigma, st, vg, posting_xy_m)
+    w = np.where(st, sigma, 0.0).astype(np.float64)
+    k = _k_field(w, vg, posting_xy_m)
+    var_sum = float(max(np.sum(w * k), 0.0))
     nst = int(st.sum())
     bias = math.sqrt(var_sum) / nst if nst else float("nan")
-    neff = float(np.sum(sigma[st].astype(np.float64)) ** 2 * vg.total_sill / var_sum) if var_sum > 0 else float("nan")
-    return Uncertainty(em, vg, sigma, (float(posting_xy_m[0]), float(posting_xy_m[1])), bias, neff)
+    neff = float(np.sum(w) ** 2 * vg.total_sill / var_sum) if var_sum > 0 else float("nan")
+    return Uncertainty(em, vg, sigma, (float(posting_xy_m[0]), float(posting_xy_m[1])), bias, neff, nst, k)
+
+
+def _k_field(w: np.ndarray, model: VariogramModel, posting_xy_m: tuple[float, float]) -> np.ndarray:
+    """K(x) = Σ_j w_j C(|x − x_j|) on the whole grid (FFT convolution with the covariance kernel)."""
+    from scipy.signal import fftconvolve
+
+    h, wd = w.shape
+    cov = model.covariance(_lag_distance((2 * h - 1, 2 * wd - 1), posting_xy_m))
+    return fftconvolve(w, cov, mode="same")
