@@ -381,8 +381,8 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
             names = [ln for ln in layers if ln in available] if layers else available
             for ln in names:
                 uri = f"{path}|layername={ln}" if path.lower().endswith(".gpkg") else path
-                uris.append((uri, label if len(names) == 1 else f"{label}: {ln}",
-                             QgsProcessingUtils.LayerHint.Vector))
+                title = specs.LAYER_TITLES.get(ln, label if len(names) == 1 else f"{label}: {ln}")
+                uris.append((uri, title, QgsProcessingUtils.LayerHint.Vector))
         else:
             return []
         out = []

@@ -38,6 +38,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Optional
 
+#: titles of GeoPackage layers in the layer tree
+LAYER_TITLES = {"changes": "Changed regions", "buildings": "Buildings by change class", "curves": "Significance curves"}
+
 #: the output folder parameter (``--out``) of every algorithm that writes a folder of products
 OUTPUT_FOLDER = "OUTPUT"
 
@@ -129,7 +132,7 @@ _DATUMS = (("from the file's CRS", ""), ("ellipsoid", "ellipsoid"), ("EGM96 geoi
 _CHANGE_OUTPUTS = (
     Output("change", "CHANGE", "raster", "Change: dz, dtilde, score, confidence"),
     Output("change_mask", "CHANGE_MASK", "raster", "Change mask (raised / lowered / unchanged)"),
-    Output("changes", "CHANGES", "vector", "Changed regions and buildings", layers=("changes", "buildings")),
+    Output("changes", "CHANGES", "vector", "Changed regions", layers=("changes", "buildings")),
     Output("quicklook", "QUICKLOOK", "file", "Quick-look map (PNG)", load=False),
     Output("scatter", "SCATTER", "file", "Score × |Δ| scatter with significance curves (PNG)", load=False),
 )
@@ -320,14 +323,81 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
     AlgSpec(
         name="demdiff", display="DEM-to-DEM change", group=GROUP_CHANGE[0], group_id=GROUP_CHANGE[1],
         command=("demdiff",),
-        short_help="Compares two DEMs of the same place (any CRS, vertical datum and posting): writes the height "
-                   "change dh = B − A and the changed regions as styled polygons.",
+        short_help="Height change between two DEMs of the same place (any CRS, vertical datum and posting; B is "
+                   "resampled onto A's grid), with co-registration on stable terrain and honest uncertainty: "
+                   "dh = B − A (m), its significance (confidence %, sigma, z), a change mask and the changed "
+                   "regions (and attributed buildings, with footprints) as polygons. Layers load styled.",
         params=(
-            Param("DEM_A", "raster", "DEM before (A)", cli=None),
-            Param("DEM_B", "raster", "DEM after (B)", cli=None),
+            Param("DEM_A", "raster", "DEM A (reference, earlier)"),
+            Param("DEM_B", "raster", "DEM B (later)"),
             _out_folder(),
+            Param("FOOTPRINTS", "vector", "Building footprints (excluded from stable terrain; attributed)",
+                  cli="--footprints", optional=True, geometry="polygon"),
+            Param("STABLE_MASK", "file", "Stable-terrain mask (raster or polygons; default: automatic)",
+                  cli="--stable-mask", optional=True,
+                  file_filter="Rasters and vectors (*.tif *.tiff *.gpkg *.shp *.geojson);;All files (*)"),
+            Param("MASK_IS", "enum", "The mask marks", cli="--mask-is", default=0,
+                  options=(("stable terrain", "stable"), ("unstable areas (e.g. glacier outlines)", "unstable"))),
+            Param("CONFIDENCE", "number", "Confidence level for 'changed' (0–1)", cli="--confidence", default=0.95,
+                  min=0.5, max=0.99999),
+            Param("DATUM_A", "enum", "Vertical datum of DEM A (when its file does not say)", cli="--datum-a",
+                  options=_DATUMS, default=0, optional=True, advanced=True),
+            Param("DATUM_B", "enum", "Vertical datum of DEM B", cli="--datum-b", options=_DATUMS, default=0,
+                  optional=True, advanced=True),
+            Param("RESAMPLING", "enum", "Resampling of B onto A's grid", cli="--resampling", default=1,
+                  advanced=True, options=(("nearest", "nearest"), ("bilinear", "bilinear"), ("cubic", "cubic"),
+                                          ("average", "average"))),
+            Param("NO_COREG", "bool", "Do not co-register (compare the DEMs as they are)", cli="--no-coreg",
+                  default=False, advanced=True),
+            Param("TILT", "bool", "Also remove a planar vertical tilt", cli="--tilt", default=False, advanced=True),
+            Param("ON_UNDERCONSTRAINED", "enum", "When the co-registration fit is under-constrained",
+                  cli="--on-underconstrained", default=0, advanced=True,
+                  options=(("vertical shift only", "vertical_only"), ("apply it anyway", "apply"),
+                           ("do not co-register", "none"), ("fail", "raise"))),
+            Param("MIN_REGION_CELLS", "int", "Smallest changed region kept", cli="--min-region-cells", unit="cells",
+                  default=4, min=1, advanced=True),
+            Param("FALLBACK_THRESHOLD", "number", "|dh| marking change when there is no stable terrain",
+                  cli="--fallback-threshold", unit="m", optional=True, min=0.0, advanced=True),
+            Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",
+                  advanced=True),
+            Param("NO_PLOTS", "bool", "Do not draw PNG plots", cli="--no-plots", default=False, advanced=True),
         ),
-        load_unlisted=True, tags=("dem", "difference", "change"), pending=True),
+        outputs=(
+            Output("dh", "DH", "raster", "Height change dh = B − A (m)"),
+            Output("significance", "SIGNIFICANCE", "raster", "Significance: confidence %, sigma (m), z"),
+            Output("change_mask", "CHANGE_MASK", "raster", "Change mask (raised / lowered / unchanged)"),
+            Output("changes", "CHANGES", "vector", "Changed regions", layers=("changes", "buildings")),
+            Output("report", "REPORT", "file", "Report (JSON: co-registration, uncertainty, volumes)", load=False),
+            Output("dh_png", "DH_PNG", "file", "Map of dh (PNG)", load=False),
+        ),
+        tags=("dem", "difference", "change", "coregistration", "volume")),
+    AlgSpec(
+        name="demseries", display="DEM time series (volumes)", group=GROUP_CHANGE[0], group_id=GROUP_CHANGE[1],
+        command=("demdiff",),
+        short_help="Height change along a series of three or more DEMs of one place (in date order, or with "
+                   "dates): co-registers each to the first and tabulates the volume gained and lost per interval "
+                   "with its uncertainty (CSV, JSON, GeoPackage table and a plot). With a base DEM the DEMs were "
+                   "merged onto, each epoch's survey is where it differs from the base.",
+        params=(
+            Param("DEMS", "rasters", "DEMs (in date order unless dates are given)"),
+            _out_folder(),
+            Param("DATES", "string", "Dates of the DEMs (comma-separated YYYY-MM-DD)", cli="--dates", optional=True),
+            Param("NAMES", "string", "Epoch names (comma-separated)", cli="--names", optional=True),
+            Param("BASE", "file", "Base DEM the series was merged onto (optional)", cli="--base", optional=True,
+                  advanced=True),
+            Param("STABLE_MASK", "file", "Stable-terrain mask (raster or polygons; default: automatic)",
+                  cli="--stable-mask", optional=True, advanced=True),
+            Param("CONFIDENCE", "number", "Confidence level (0–1)", cli="--confidence", default=0.95, min=0.5,
+                  max=0.99999),
+            Param("PAIR_PRODUCTS", "bool", "Also write every interval's rasters and layers", cli="--pair-products",
+                  default=False),
+            Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",
+                  advanced=True),
+        ),
+        outputs=(Output("timeseries_csv", "TABLE", "file", "Volume table (CSV)", load=False),
+                 Output("timeseries_json", "TABLE_JSON", "file", "Volume table and notes (JSON)", load=False),
+                 Output("timeseries_png", "PLOT", "file", "Volume plot (PNG)", load=False)),
+        load_unlisted=True, skip_prefixes=("timeseries_gpkg",), tags=("dem", "time series", "volume")),
     AlgSpec(
         name="synth", display="Synthetic test scene", group=GROUP_DATA[0], group_id=GROUP_DATA[1],
         command=("synth",),

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from ..conftest import shared_data
 from .compare import compare_trees
 from .qgis_env import QGIS, REPO, geocd_executable, require_qgis
 
@@ -93,6 +94,27 @@ def test_cancel_kills_child_and_leaves_no_partial_output(qgis, tmp_path):
     assert rep["stop_after_cancel_s"] < 5.0
     assert 10 <= rep["max_progress"] < 100
     assert not out.exists(), f"partial output left: {sorted(p.name for p in out.rglob('*'))}"
+
+
+@pytest.mark.realdata
+def test_demdiff_in_qgis_matches_cli_and_loads_styled_layers(qgis, tmp_path):
+    """`geocd:demdiff` on two Mount St Helens DEMs: the CLI's products, loaded styled (not default grey)."""
+    dems = shared_data("usgs_msh_dome_dems", "geotiff_utm10n")
+    a, b = dems / "2.tif", dems / "27.tif"
+    cli_out, qgis_out = tmp_path / "cli", tmp_path / "qgis"
+    r = _cli("--progress", "none", "demdiff", str(a), str(b), "--out", str(cli_out))
+    assert r.returncode == 0, r.stderr[-3000:]
+    rep = qgis.pyqgis("run", "geocd:demdiff", f"DEM_A={a}", f"DEM_B={b}", f"OUTPUT={qgis_out}")
+    assert rep.get("ok"), rep
+    diffs = compare_trees(cli_out, qgis_out)
+    assert not diffs, "\n".join(diffs)
+    loaded = {d["output"]: d for d in rep["loaded"]}
+    assert set(loaded) == {"DH", "SIGNIFICANCE", "CHANGE_MASK", "CHANGES"}, loaded
+    assert all(d["valid"] for d in loaded.values()), loaded
+    assert loaded["DH"]["renderer"] == "singlebandpseudocolor"
+    assert loaded["CHANGE_MASK"]["renderer"] == "paletted"
+    assert loaded["CHANGES"]["renderer"] == "categorizedSymbol" and loaded["CHANGES"]["features"] > 0
+    assert rep["results"]["DH"] == str(qgis_out / "demdiff_dh.tif")
 
 
 @pytest.mark.slow
