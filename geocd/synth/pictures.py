@@ -27,7 +27,10 @@ def write_pictures(scene_dir: os.PathLike | str, out_dir: os.PathLike | str, pre
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import warnings
+
     import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
 
     from ..io.manifest import load_manifest
     from ..io.raster import read_band
@@ -47,9 +50,11 @@ def write_pictures(scene_dir: os.PathLike | str, out_dir: os.PathLike | str, pre
             panels.append(airs[len(airs) // 2])
         fig, axs = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 6.8), squeeze=False)
         for ax, im in zip(axs[0], panels):
-            with rasterio.open(im.path) as ds:
-                a = ds.read()
-                tags = ds.tags()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", NotGeoreferencedWarning)  # frames: no geotransform, by design
+                with rasterio.open(im.path) as ds:
+                    a = ds.read()
+                    tags = ds.tags()
             if a.shape[0] == 1:
                 ax.imshow(_stretch(a[0]), cmap="gray", interpolation="nearest")
                 kind = "satellite pan, 11-bit, RPC"
