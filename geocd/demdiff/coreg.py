@@ -9,11 +9,8 @@ so ``dh / tan α = a cos(b − ψ) + c`` with d_e = a sin b, d_n = a cos b (Nuth
 2011, eq. 3). Each iteration takes the stable cells, removes the median dh, takes
 the median of dh / tan α in aspect bins, fits the three coefficients by linear least
 squares (the cosine is linear in a cos b, a sin b, c), moves B by −d and repeats
-until the increment is below ``tolerance_px``; a few Gauss–Newton steps on the
-linearized model (least squares of dh on tan α sin ψ, tan α cos ψ, 1 with a
-``outlier_nmad`` trim; ``refine_steps``) then polish the shift — the N&K bin medians
-give a robust start, the least squares the efficient final estimate whose
-jackknife σ is reported. The vertical shift is then the median
+until the increment is below ``tolerance_px`` (0.001 px, as xDEM). The vertical
+shift is then the median
 of −dh on all stable cells; an optional plane (``tilt=True``) removes a residual
 vertical tilt.
 
@@ -31,11 +28,17 @@ position, apply only the median vertical offset when at least
 does), ``"none"`` (apply nothing) or ``"raise"``. Without stable terrain nothing is
 applied and the status says so: geocd never invents a shift.
 
-The jackknife: stable cells are grouped in ``block_px`` × ``block_px`` blocks; the
-linearized model ``dh = tan α (e sin ψ + n cos ψ) + z`` is refitted leaving out one
-block at a time on the final residuals; the spread of those fits (× (K−1)/K) is the
-shift's variance. Blocks larger than the error correlation length make it honest
-about spatially correlated errors.
+**σ of the shift.** Stable cells are grouped in ``block_px`` × ``block_px`` blocks,
+the blocks dealt into ``jackknife_groups`` groups, and the Nuth–Kääb bin fit repeated
+without each group on the final residuals (delete-a-group jackknife); blocks larger
+than the error correlation length make it honest about spatially correlated
+errors. As a model check, the least-squares fit of the linearized model
+``dh = tan α (e sin ψ + n cos ψ) + z`` is evaluated at the solution: the two
+estimators weight slopes differently and agree when B really is A translated; where
+they do not (systematic DEM errors that depend on slope and aspect), half their
+disagreement (``model_disagreement_m``) is added to the σ in quadrature. Optional
+Gauss–Newton steps on the linearized model (``refine_steps``, default 0) replace the
+Nuth–Kääb estimate by the least-squares one.
 """
 
 from __future__ import annotations
@@ -58,8 +61,8 @@ UNDERCONSTRAINED_ACTIONS = ("vertical_only", "apply", "none", "raise")
 class CoregParams:
     """Parameters of :func:`nuth_kaab`."""
 
-    max_iterations: int = 15
-    tolerance_px: float = 0.01
+    max_iterations: int = 30
+    tolerance_px: float = 0.001
     aspect_bins: int = 36
     min_bin_cells: int = 8
     min_slope_deg: float = 3.0
@@ -71,7 +74,8 @@ class CoregParams:
     block_px: int = 16
     min_blocks: int = 6
     resampling: str = "bilinear"
-    refine_steps: int = 3
+    refine_steps: int = 0
+    jackknife_groups: int = 20
     horizontal: bool = True
     vertical: bool = True
     tilt: bool = False
@@ -97,7 +101,9 @@ class CoregResult:
     ----------
     shift_m : (east, north, up) translation **applied** to B (zeros when nothing was applied)
     fitted_shift_m : (east, north, up) what the fit found, applied or not
-    shift_sigma_m : (east, north, up) block-jackknife 1σ of the fitted shift (inf when unknown)
+    shift_sigma_m : (east, north, up) 1σ of the fitted shift: block jackknife (+ half the
+        Nuth–Kääb / least-squares disagreement for the horizontal components); inf when unknown
+    model_disagreement_m : (east, north) least-squares shift still seen at the Nuth–Kääb solution
     tilt : (dz/dx, dz/dy) of the applied vertical plane (m per m), or None
     status : "ok", "underconstrained", "no_stable_terrain", "not_converged" or "disabled"
     applied : "horizontal+vertical", "vertical", "none"
@@ -122,6 +128,7 @@ class CoregResult:
     median_after_m: float = float("nan")
     nmad_after_m: float = float("nan")
     posting_xy_m: tuple[float, float] = (float("nan"), float("nan"))
+    model_disagreement_m: tuple[float, float] = (float("nan"), float("nan"))
     history_m: tuple[tuple[float, float], ...] = field(default_factory=tuple)
 
     @property
@@ -301,6 +308,8 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
                 reasons.append("the shifted DEM left the stable cells (shift diverged)")
                 break
             dd = d[ok]
+            if p.tilt:
+                dd = dd - _plane_at(dd, rows[ok], cols[ok], A.shape, (px, py))
             m = np.median(dd)
             s = nmad(dd)
             keep = np.abs(dd - m) <= max(p.outlier_nmad * s, 1e-6) if s > 0 else np.ones(dd.size, bool)
@@ -356,9 +365,12 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     sig = np.full(3, math.inf)
     octs = 0
     nblk = 0
+    disagree = (math.nan, math.nan)
     if n_fit:
         d = dh1[rows, cols] + tz
         ok = np.isfinite(d)
+        if p.tilt and ok.sum() >= 10:
+            d = np.where(ok, d - _plane_at(np.where(ok, d, 0.0), rows, cols, A.shape, (px, py), ok), np.nan)
         keep = ok.copy()
         if ok.any():
             s, m = nmad(d[ok]), float(np.median(d[ok]))
@@ -366,8 +378,20 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
                 keep = ok & (np.abs(np.where(ok, d, m) - m) <= p.outlier_nmad * s)
         octs = _octants(asp[keep], max(p.min_bin_cells, int(0.01 * keep.sum())))
         if keep.sum() >= 10:
-            _, sig, nblk = _jackknife(d[keep], tan_a[keep], asp[keep], rows[keep], cols[keep], p.block_px, p.min_blocks)
             n_fit = int(keep.sum())
+            dk = d[keep]
+            yk = (dk - np.median(dk)) / tan_a[keep]
+            se, sn, nblk = _nk_jackknife(yk, asp[keep], rows[keep], cols[keep], p.aspect_bins, p.min_bin_cells,
+                                         p.block_px, p.jackknife_groups, p.min_blocks)
+            # cross-check: the least-squares shift still seen at the Nuth–Kääb solution. The two estimators
+            # weight slopes differently; where the pure-translation model does not hold they disagree,
+            # and half the disagreement is added to the σ (honest about model error).
+            beta, _, _ = _jackknife(dk, tan_a[keep], asp[keep], rows[keep], cols[keep], p.block_px, 1)
+            if np.all(np.isfinite(beta)):
+                disagree = (float(beta[0]), float(beta[1]))
+                se = math.hypot(se, 0.5 * beta[0])
+                sn = math.hypot(sn, 0.5 * beta[1])
+            sig[:2] = (se, sn)
     # vertical σ: jackknife over all stable cells (flat ones included)
     rs, cs = np.nonzero(st1)
     sz = _block_sigma_of_median(dh1[rs, cs], rs, cs, p.block_px, p.min_blocks)
@@ -417,10 +441,38 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     res = CoregResult(
         shift_m=(te if apply_h else 0.0, tn if apply_h else 0.0, tz_applied), fitted_shift_m=fitted,
         shift_sigma_m=tuple(float(v) for v in sig), status=status, applied=applied, reasons=tuple(reasons), tilt=tilt,
-        iterations=it, converged=converged, n_fit=n_fit, octants=octs, n_blocks=nblk,
+        iterations=it, converged=converged, n_fit=n_fit, octants=octs, n_blocks=nblk, model_disagreement_m=disagree,
         median_after_m=float(np.median(dh_after[sa])) if sa.any() else float("nan"),
         nmad_after_m=nmad(dh_after[sa]) if sa.any() else float("nan"), history_m=tuple(history), **base)
     return out.astype(np.float32), res
+
+
+def _nk_jackknife(y: np.ndarray, aspect: np.ndarray, rows: np.ndarray, cols: np.ndarray, nbins: int,
+                  min_cells: int, block_px: int, groups: int, min_blocks: int) -> tuple[float, float, int]:
+    """Delete-a-group block jackknife of the Nuth–Kääb bin fit → 1σ of (d_e, d_n) and the block count.
+
+    Cells are grouped in ``block_px`` blocks; blocks are dealt (seeded shuffle) into ``groups``
+    groups; the fit is repeated without each group.
+    """
+    ncb = int(cols.max()) // block_px + 1
+    blk = (rows // block_px) * ncb + (cols // block_px)
+    ub, inv = np.unique(blk, return_inverse=True)
+    K = ub.size
+    if K < min_blocks:
+        return math.inf, math.inf, K
+    G = min(groups, K)
+    perm = np.random.default_rng(12345).permutation(K)
+    grp = (perm % G)[inv]
+    est = []
+    for k in range(G):
+        keep = grp != k
+        f = _fit_bins(y[keep], aspect[keep], nbins, min_cells)
+        if f is None:
+            return math.inf, math.inf, K
+        est.append((f[0][1], f[0][0]))
+    e = np.asarray(est)
+    var = (G - 1) / G * np.sum((e - e.mean(0)) ** 2, axis=0)
+    return float(math.sqrt(var[0])), float(math.sqrt(var[1])), K
 
 
 def _block_sigma_of_median(d: np.ndarray, rows: np.ndarray, cols: np.ndarray, block_px: int, min_blocks: int) -> float:
@@ -446,6 +498,28 @@ def _block_sigma_of_median(d: np.ndarray, rows: np.ndarray, cols: np.ndarray, bl
     loo = (tot - sums) / (n - cnt)
     # × sqrt(π/2): the median's σ relative to the mean's for Gaussian errors
     return float(1.2533 * math.sqrt((K - 1) / K * np.sum((loo - loo.mean()) ** 2)))
+
+
+def _plane_at(d: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape, posting_xy_m,
+              use: np.ndarray | None = None) -> np.ndarray:
+    """A robust plane fitted to values ``d`` at cells (rows, cols), evaluated there (intercept excluded)."""
+    nr, nc = shape
+    x = (cols - (nc - 1) / 2.0) * posting_xy_m[0]
+    y = -(rows - (nr - 1) / 2.0) * posting_xy_m[1]
+    keep = np.ones(d.size, bool) if use is None else use.copy()
+    coef = np.zeros(3)
+    for _ in range(4):
+        X = np.column_stack([x[keep], y[keep], np.ones(int(keep.sum()))])
+        coef, *_ = np.linalg.lstsq(X, d[keep], rcond=None)
+        res = d - (coef[0] * x + coef[1] * y + coef[2])
+        s = nmad(res[keep])
+        new = (np.abs(res - np.median(res[keep])) <= 3 * max(s, 1e-9))
+        if use is not None:
+            new &= use
+        if np.array_equal(new, keep) or new.sum() < 10:
+            break
+        keep = new
+    return coef[0] * x + coef[1] * y
 
 
 def _fit_plane(dh: np.ndarray, stable: np.ndarray, posting_xy_m) -> tuple[float, float]:

@@ -59,6 +59,8 @@ class DEMDiffParams:
     resampling: str = "bilinear"
     fallback_threshold_m: float | None = None
     min_stable_cells: int = 50
+    reliable_stable_cells: int = 300
+    reliable_stable_blocks: int = 6
 
     def __post_init__(self) -> None:
         if not 0 < self.confidence < 1:
@@ -80,7 +82,9 @@ class DEMDiffResult:
     confidence : float32, 0–1 (NaN unobserved or unknown)
     sign : int8, +1/−1/0 in kept regions, CHANGE_NODATA (−128) where not observed
     stable : bool, final stable terrain
-    summary : dict of the headline figures (see :meth:`summary_table`)
+    status : "ok", "uncertainty_indicative" (σ from too few / too clustered stable cells) or
+        "no_stable_terrain" (σ and confidence unknown)
+    summary : dict of the headline figures (see :func:`summary_table`)
     """
 
     grid: AOIGrid
@@ -216,6 +220,13 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
                      "mask (--stable-mask) to test significance")
     else:
         prog(0.5, "error model and variogram")
+        rs_, cs_ = np.nonzero(st)
+        nblk = len(np.unique((rs_ // p.coreg.block_px) * (g.width // p.coreg.block_px + 1) + cs_ // p.coreg.block_px))
+        if info.n_cells < p.reliable_stable_cells or nblk < p.reliable_stable_blocks:
+            status = "uncertainty_indicative"
+            notes.append(f"σ learned from only {info.n_cells} stable cells in {nblk} blocks of {p.coreg.block_px} px "
+                         f"(reliable from {p.reliable_stable_cells} cells in {p.reliable_stable_blocks} blocks): "
+                         "the error model and variogram are indicative only")
         unc = estimate_uncertainty(dh, st, slope, q, post, p.error)
         sigma = np.where(obs, unc.sigma_m, np.nan).astype(np.float32)
         sig_model = fit_significance(dh, sigma, st)

@@ -9,8 +9,11 @@ Three sources, combined by :func:`stable_terrain`:
 3. **automatic** (when no user mask is given): every valid cell with slope ≤
    ``max_slope_deg``, minus *coherent* change. Candidate change cells are those with
    |dh − median| > ``nmad_factor`` × NMAD; candidates that form 8-connected groups of at
-   least ``min_region_cells`` cells (and a ``dilate_cells`` buffer around them) are
-   removed; the median and NMAD are re-estimated on the remaining cells and the
+   least ``min_region_cells`` cells, plus a ``dilate_cells`` buffer, are removed
+   (optionally grown first into the connected cells beyond ``grow_factor`` × NMAD:
+   hysteresis that also removes the sub-threshold tails of smooth change; off by
+   default because with spatially correlated errors it percolates through the noise
+   and truncates the error distribution, which makes σ too small); the median and NMAD are re-estimated on the remaining cells and the
    selection repeats until it no longer changes (``max_iterations``). When the
    selected cells still have an NMAD above ``max_nmad_m`` (default 10 m: more than
    DEM errors plausibly reach on unchanged terrain) there is no stable population
@@ -49,6 +52,7 @@ class StableParams:
 
     max_slope_deg: float = 60.0
     nmad_factor: float = 3.0
+    grow_factor: float | None = None
     min_threshold_m: float = 0.0
     min_region_cells: int = 5
     dilate_cells: int = 1
@@ -84,11 +88,18 @@ class StableInfo:
 
 
 def coherent_change(dh_m: np.ndarray, valid: np.ndarray, center_m: float, threshold_m: float,
-                    min_region_cells: int, dilate_cells: int) -> np.ndarray:
-    """Cells in 8-connected groups (≥ ``min_region_cells``) with |dh − center| > threshold, dilated."""
+                    min_region_cells: int, dilate_cells: int, grow_threshold_m: float | None = None) -> np.ndarray:
+    """Cells of coherent change around ``center_m``.
+
+    Groups (8-connected) of at least ``min_region_cells`` cells with |dh − center| >
+    ``threshold_m`` are the seeds; they grow (hysteresis) into connected cells with
+    |dh − center| > ``grow_threshold_m`` (the sub-threshold tails of smooth change), and
+    are dilated by ``dilate_cells``.
+    """
     from scipy import ndimage
 
-    cand = valid & (np.abs(np.nan_to_num(dh_m - center_m, nan=0.0)) > threshold_m)
+    a = np.abs(np.nan_to_num(dh_m - center_m, nan=0.0))
+    cand = valid & (a > threshold_m)
     if not cand.any():
         return cand
     lab, n = ndimage.label(cand, structure=_EIGHT)
@@ -96,6 +107,12 @@ def coherent_change(dh_m: np.ndarray, valid: np.ndarray, center_m: float, thresh
     big = sizes >= min_region_cells
     big[0] = False
     out = big[lab]
+    if grow_threshold_m is not None and grow_threshold_m < threshold_m and out.any():
+        weak = valid & (a > grow_threshold_m)
+        lab2, _ = ndimage.label(weak | out, structure=_EIGHT)
+        keep = np.unique(lab2[out])
+        keep = keep[keep > 0]
+        out = np.isin(lab2, keep) & (weak | out)
     if dilate_cells > 0 and out.any():
         out = ndimage.binary_dilation(out, structure=_EIGHT, iterations=dilate_cells)
     return out
@@ -138,7 +155,8 @@ def auto_stable_mask(dh_m: np.ndarray, valid: np.ndarray | None = None, slope_ra
         thr = max(params.nmad_factor * nm, params.min_threshold_m)
         if not np.isfinite(thr) or thr <= 0:
             break
-        change = coherent_change(dh, ok, med, thr, params.min_region_cells, params.dilate_cells)
+        change = coherent_change(dh, ok, med, thr, params.min_region_cells, params.dilate_cells,
+                                 params.grow_factor * nm if params.grow_factor else None)
         new = base & ~change
         excluded = int((base & change).sum())
         toggled = int(np.count_nonzero(new != mask))

@@ -123,7 +123,9 @@ def test_time_series_over_common_survey_areas():
     rng = np.random.default_rng(0)
     eps = []
     rr, cc = np.mgrid[0:100, 0:100]
-    dome = np.exp(-((rr - 50) ** 2 + (cc - 50) ** 2) / (2 * 7 ** 2))  # leaves a stable ring in each survey
+    # a compact dome: each survey keeps a wide stable ring (the sub-threshold tails of smooth change
+    # otherwise bias the stable median, a documented limitation of automatic stable terrain)
+    dome = np.exp(-((rr - 50) ** 2 + (cc - 50) ** 2) / (2 * 5 ** 2))
     for k, (amp, half) in enumerate([(10, 30), (20, 35), (35, 40)]):
         h = base.height_m + amp * dome
         surveyed = (np.abs(rr - 50) < half) & (np.abs(cc - 50) < half)
