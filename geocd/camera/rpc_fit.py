@@ -81,7 +81,8 @@ def _grid(lo: float, hi: float, n: int, shifted: bool) -> np.ndarray:
     return g
 
 
-def _ground_box(camera: Camera, h_range: tuple[float, float], densify: int = 16) -> tuple[tuple[float, float], tuple[float, float]]:
+def _ground_box(camera: Camera, h_range: tuple[float, float],
+                densify: int = 16) -> tuple[tuple[float, float], tuple[float, float]]:
     """Bounding lon/lat box of the image footprint over the height range."""
     lons, lats = [], []
     for h in np.linspace(h_range[0], h_range[1], 3):
@@ -102,7 +103,8 @@ def _single_thread_blas():
     return threadpool_limits(limits=1, user_api="blas")
 
 
-def _solve_coordinate(T: np.ndarray, c: np.ndarray, ridge: float, max_iter: int, tol: float) -> tuple[np.ndarray, np.ndarray, int]:
+def _solve_coordinate(T: np.ndarray, c: np.ndarray, ridge: float, max_iter: int,
+                      tol: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Fit normalised coordinate c ≈ (num·T)/(den·T), den[0] = 1.
 
     Parameters

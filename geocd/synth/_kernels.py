@@ -546,7 +546,8 @@ def albedo(S, obj, face, x, y, z, nx, ny, nz):
     # building: roof or wall
     if nz > 0.3:
         if role == 1:  # tiles
-            t = (0.78 + 0.40 * fbm(x / 0.9, y / 0.9, z / 0.9, seed, 3)) * (0.85 + 0.3 * vnoise(x / 4.0, y / 4.0, z, seed + 7))
+            t = ((0.78 + 0.40 * fbm(x / 0.9, y / 0.9, z / 0.9, seed, 3))
+                 * (0.85 + 0.3 * vnoise(x / 4.0, y / 4.0, z, seed + 7)))
         else:  # gravel / membrane with equipment
             t = 0.74 + 0.48 * fbm(x / 1.1, y / 1.1, 0.0, seed, 3)
             if vnoise(x / 2.2, y / 2.2, 3.0, seed + 5) > 0.78:
@@ -730,3 +731,136 @@ def _terrain_ref(S: SceneArrays, x, y):
     a, b = fj - j, fi - i
     T = S.terr
     return (1 - a) * (1 - b) * T[i, j] + a * (1 - b) * T[i, j + 1] + (1 - a) * b * T[i + 1, j] + a * b * T[i + 1, j + 1]
+
+
+def fbm_ref(x, y, z, seed, octaves):
+    s, amp, tot, f = 0.0, 1.0, 0.0, 1.0
+    for o in range(octaves):
+        s = s + amp * vnoise_ref(x * f, y * f, z * f, seed + o)
+        tot += amp
+        amp *= 0.5
+        f *= 2.0
+    return s / tot
+
+
+def ground_material_ref(S: SceneArrays, x: float, y: float) -> int:
+    for pa in S.patches:
+        c, s = np.cos(pa[4]), np.sin(pa[4])
+        u = (x - pa[0]) * c + (y - pa[1]) * s
+        v = -(x - pa[0]) * s + (y - pa[1]) * c
+        if abs(u) <= pa[2] and abs(v) <= pa[3]:
+            return int(pa[5])
+    mat = M_GRASS
+    for st in S.streets:
+        px, py = x - st[0], y - st[1]
+        al = px * st[2] + py * st[3]
+        if al < 0.0 or al > st[4]:
+            continue
+        ac = abs(-px * st[3] + py * st[2])
+        if ac <= st[5]:
+            return M_MARKING if (ac < 0.1 and (al % 6.0) < 3.0) else M_ASPHALT
+        if ac <= st[5] + st[6]:
+            mat = M_PAVEMENT
+    return mat
+
+
+def albedo_ref(S: SceneArrays, obj: int, x: float, y: float, z: float, n: np.ndarray):
+    """(r, g, b, nir, bump) — the same texture rules as :func:`albedo`, written plainly."""
+    C = S.colours
+    f = lambda *a: float(fbm_ref(*a))  # noqa: E731
+    v = lambda *a: float(vnoise_ref(*a))  # noqa: E731
+    grey = lambda r, g, b: (r, g, b, 1.05 * (r + g + b) / 3.0, 0.0)  # noqa: E731
+    if obj < 0:
+        m = ground_material_ref(S, x, y)
+        if m == M_GRASS:
+            t = (0.70 + 0.55 * f(x / 1.3, y / 1.3, 0.0, 11, 3)) * (0.80 + 0.40 * v(x / 9.0, y / 9.0, 0.5, 12))
+            return (*(C[0] * C[1] * t), C[8, 0] * t, 0.0)
+        if m == M_ASPHALT:
+            t = (0.78 + 0.45 * f(x / 0.7, y / 0.7, 0.0, 21, 2)) * (0.85 + 0.3 * v(x / 6.0, y / 6.0, 0.0, 22))
+            return grey(*(C[2] * t))
+        if m == M_PAVEMENT:
+            return grey(*(C[3] * (0.80 + 0.40 * f(x / 0.8, y / 0.8, 0.0, 31, 2))))
+        if m == M_SOIL:
+            return grey(*(C[4] * (0.65 + 0.65 * f(x / 0.9, y / 0.9, 0.0, 41, 3))))
+        if m == M_MARKING:
+            return grey(*C[5])
+        return grey(0.3, 0.3, 0.3)
+    role, seed = int(S.par[obj, 2]), int(S.par[obj, 3])
+    if role == 4:
+        t = 0.45 + 1.1 * f(x / 0.7, y / 0.7, z / 0.7, seed, 3)
+        return (*(C[7] * C[1] * S.rgb[obj] * t), C[8, 1] * S.rgb[obj, 0] * t, 0.6)
+    if role in (2, 3):
+        if role == 3 and n[2] < 0.5:
+            return grey(*C[6])
+        return grey(*(S.rgb[obj] * (0.92 + 0.12 * v(x / 0.5, y / 0.5, z / 0.5, seed))))
+    if n[2] > 0.3:
+        if role == 1:
+            t = (0.78 + 0.40 * f(x / 0.9, y / 0.9, z / 0.9, seed, 3)) * (0.85 + 0.3 * v(x / 4.0, y / 4.0, z, seed + 7))
+        else:
+            t = 0.74 + 0.48 * f(x / 1.1, y / 1.1, 0.0, seed, 3)
+            if v(x / 2.2, y / 2.2, 3.0, seed + 5) > 0.78:
+                t *= 0.55
+        return grey(*(S.rgb[obj] * t))
+    s = -x * n[1] + y * n[0]
+    zz = (z - S.par[obj, 0]) / S.par[obj, 1]
+    fz, fs = zz - np.floor(zz), s / 2.8 - np.floor(s / 2.8)
+    if zz > 0.0 and 0.32 < fz < 0.75 and 0.25 < fs < 0.72:
+        return grey(*C[6])
+    return grey(*(S.rgb2[obj] * (0.85 + 0.25 * v(s / 0.8, z / 0.8, 0.0, seed + 3))))
+
+
+def _normal_ref(S: SceneArrays, obj: int, p: np.ndarray, d: np.ndarray) -> np.ndarray:
+    if obj == -1:  # the bilinear patch's gradient from the cell's corner values
+        meta = S.terr_meta
+        ny, nx = S.terr.shape
+        fj = min(max((p[0] - meta[0]) / meta[2], 0.0), nx - 1.000001)
+        fi = min(max((p[1] - meta[1]) / meta[2], 0.0), ny - 1.000001)
+        j, i = int(np.floor(fj)), int(np.floor(fi))
+        a, b = fj - j, fi - i
+        T = S.terr
+        hx = ((1 - b) * (T[i, j + 1] - T[i, j]) + b * (T[i + 1, j + 1] - T[i + 1, j])) / meta[2]
+        hy = ((1 - a) * (T[i + 1, j] - T[i, j]) + a * (T[i + 1, j + 1] - T[i, j + 1])) / meta[2]
+        n = np.array([-hx, -hy, 1.0])
+        return n / np.linalg.norm(n)
+    if S.kind[obj] == 0:
+        # the face the ray enters through: the entering plane with the largest entry parameter
+        P = S.planes[obj, : S.nplanes[obj]]
+        den = P[:, :3] @ d
+        return P[np.argmin(np.where(den < 0, np.abs(P[:, :3] @ p - P[:, 3]), np.inf)), :3].copy()
+    e = S.ell[obj]
+    g = np.array([(p[0] - e[0]) / e[3] ** 2, (p[1] - e[1]) / e[3] ** 2, (p[2] - e[2]) / e[4] ** 2])
+    return g / np.linalg.norm(g)
+
+
+def shade_ref(S: SceneArrays, orig: np.ndarray, dirs: np.ndarray, t_max: np.ndarray, sun: np.ndarray,
+              light: np.ndarray) -> np.ndarray:
+    """Plain re-implementation of :func:`render_rays` (brute-force hits, shadows by brute force too)."""
+    t, obj = first_hit_ref(S, orig, dirs, t_max, terrain_step=0.002)
+    out = np.zeros((orig.shape[0], 4))
+    for i in range(orig.shape[0]):
+        if obj[i] == -2:
+            continue
+        p = orig[i] + t[i] * dirs[i]
+        n = _normal_ref(S, int(obj[i]), p, dirs[i])
+        r, g, b, nir, bump = albedo_ref(S, int(obj[i]), *p, n)
+        m = n.copy()
+        if bump > 0:
+            seed = int(S.par[obj[i], 3])
+            m = m + bump * np.array([float(vnoise_ref(*(p / 0.5), seed + k)) - 0.5 for k in (101, 102, 103)])
+            m /= np.linalg.norm(m)
+        cos_i = float(m @ sun)
+        direct = 0.0
+        if cos_i > 0 and float(n @ sun) > 0:
+            o2 = (p + 2e-3 * n + 1e-4 * sun)[None]
+            t2, ob2 = first_hit_ref(S, o2, sun[None], np.array([1e4]), terrain_step=0.002)
+            up_ok = True
+            # first_hit_ref only casts downward rays at the terrain: test upward terrain crossings here
+            ts = np.arange(0.0, max(0.0, (S.terr_meta[4] + 0.01 - o2[0, 2]) / sun[2]) + 0.5, 0.05)
+            q = o2[0] + ts[:, None] * sun
+            if (q[:, 2] - _terrain_ref(S, q[:, 0], q[:, 1]) <= 0).any():
+                up_ok = False
+            if ob2[0] < 0 and up_ok:
+                direct = light[0] * cos_i
+        e = direct + light[1] * (0.6 + 0.4 * m[2])
+        out[i] = (r * e, g * e, b * e, nir * e)
+    return out

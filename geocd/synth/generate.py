@@ -502,7 +502,8 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
             res.append(d)
         return res
 
-    sens_a = f"pushbroom-sim {p.gsd_m:g} m pan 11-bit" + (f" + frame-sim {p.aerial_gsd_m:g} m RGB" if p.n_aerial else "")
+    sens_b = f"pushbroom-sim {p.gsd_m:g} m pan 11-bit"
+    sens_a = sens_b + (f" + frame-sim {p.aerial_gsd_m:g} m RGB" if p.n_aerial else "")
     truth = {
         "dsm_A": "truth/dsm_A.tif", "dsm_B": "truth/dsm_B.tif", "dem_bare": "truth/dem_bare.tif",
         "dem_prior": "truth/dem_prior.tif", "dsm_diff": "truth/dsm_diff.tif",
@@ -531,7 +532,7 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
         "footprints": "truth/footprints_A.gpkg",
         "epochs": [
             {"name": "A", "date": p.date_a[:10], "sensor": sens_a, "images": imgs("A")},
-            {"name": "B", "date": p.date_b[:10], "sensor": f"pushbroom-sim {p.gsd_m:g} m pan 11-bit", "images": imgs("B")},
+            {"name": "B", "date": p.date_b[:10], "sensor": sens_b, "images": imgs("B")},
         ],
         "truth": truth,
     }

@@ -34,8 +34,7 @@ from ..camera.base import Camera
 from ..errors import ConfigError
 from ..progress import ensure_progress
 from . import _kernels as K
-from .scene import (C_BUILDING, C_CAR, C_TREE, K_ELLIPSOID, K_POLY, M_ASPHALT, M_MARKING, M_PAVEMENT,
-                    M_SOIL, Epoch, Town)
+from .scene import (C_BUILDING, C_CAR, C_TREE, K_ELLIPSOID, K_POLY, Epoch, Town)
 
 #: bin size of the acceleration grid (metres)
 GRID_BIN_M = 4.0
@@ -115,7 +114,8 @@ def pack_scene(town: Town, epoch: Epoch | str) -> K.SceneArrays:
             [g, 3.0, 3.0, 50000 + c.car_id], [xs.min(), ys.min(), g + 0.5, xs.max(), ys.max(), g + c.height_m])
     for t in ep.trees:
         e = [t.cx, t.cy, t.crown_cz, t.crown_r, t.crown_rz]
-        add(K_ELLIPSOID, C_TREE, [], e, (t.tint, t.tint, t.tint), (0.0, 0.0, 0.0), [t.ground_m, 3.0, 4.0, 90000 + t.tree_id],
+        add(K_ELLIPSOID, C_TREE, [], e, (t.tint, t.tint, t.tint), (0.0, 0.0, 0.0),
+            [t.ground_m, 3.0, 4.0, 90000 + t.tree_id],
             [t.cx - t.crown_r, t.cy - t.crown_r, t.crown_cz - t.crown_rz, t.cx + t.crown_r, t.cy + t.crown_r, t.top_m])
     n = len(kinds)
     if n == 0:  # a dummy object far below the terrain keeps the arrays non-empty

@@ -135,7 +135,8 @@ class SceneFrame:
 def _cubic_terms(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     one = np.ones_like(a)
     return np.stack([one, a, b, c, a * a, b * b, c * c, a * b, a * c, b * c,
-                     a ** 3, b ** 3, c ** 3, a * a * b, a * a * c, b * b * a, b * b * c, c * c * a, c * c * b, a * b * c])
+                     a ** 3, b ** 3, c ** 3, a * a * b, a * a * c, b * b * a, b * b * c, c * c * a, c * c * b,
+                     a * b * c])
 
 
 # ------------------------------------------------------------------------------------------

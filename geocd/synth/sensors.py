@@ -38,7 +38,7 @@ import numpy as np
 
 from ..camera.base import Camera, _as_f64, register_camera
 from ..errors import CameraError, ConfigError
-from ..geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
+from ..geodesy import LocalFrame
 
 GM_EARTH = 3.986004418e14  # m^3/s^2
 R_EARTH = 6378137.0
@@ -231,7 +231,8 @@ class PushbroomCamera(Camera):
         se, sn, su = g_fr.to_enu(float(lon_s), float(lat_s), float(h_s))
         az = math.degrees(math.atan2(float(se), float(sn))) % 360.0
         return {"off_nadir_deg": off, "incidence_deg": inc, "view_azimuth_deg": az,
-                "satellite_height_m": float(h_s), "slant_range_m": float(np.linalg.norm(o - np.array([e, n, u]).ravel()))}
+                "satellite_height_m": float(h_s),
+                "slant_range_m": float(np.linalg.norm(o - np.array([e, n, u]).ravel()))}
 
     # --- serialisation ----------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -293,7 +294,6 @@ def make_pushbroom(lon0: float, lat0: float, h0: float, *, along_deg: float, acr
     if not (gsd_m > 0 and altitude_m > 1e4):
         raise ConfigError(f"gsd_m must be positive and altitude_m orbital (> 10 km), got {gsd_m}, {altitude_m}")
     fr = LocalFrame(lon0, lat0, h0)
-    o_ecef = np.array(geodetic_to_ecef(lon0, lat0, h0))
     heading = math.radians(heading_deg)
     track = np.array([math.sin(heading), math.cos(heading), 0.0])  # ENU at the scene
     ta, tc = math.tan(math.radians(along_deg)), math.tan(math.radians(across_deg))

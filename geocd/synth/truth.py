@@ -26,7 +26,7 @@ import numpy as np
 from ..camera.base import Camera
 from ..geodesy import AOIGrid
 from . import _kernels as K
-from .render import camera_rays, scene_z_band, surface_height, trace_view
+from .render import camera_rays, scene_z_band, surface_height
 from .scene import C_BUILDING, C_CAR, C_TREE, M_GRASS, Town, building_status
 
 #: change-mask threshold on |ΔDSM| (metres) and minimum region area (m²), unless given
@@ -40,8 +40,8 @@ NON3D_CODES = {"none": 0, "repainted_roof": 1, "vegetation_season": 2}
 
 def truth_grid(town: Town, posting_m: float = 0.5) -> AOIGrid:
     """The AOI grid in the town's UTM CRS (cell edges on multiples of the posting)."""
-    l, b, r, t = town.aoi_bounds_utm
-    return AOIGrid.from_bounds(l, b, r, t, posting_m, town.frame.crs)
+    left, bottom, right, top = town.aoi_bounds_utm
+    return AOIGrid.from_bounds(left, bottom, right, top, posting_m, town.frame.crs)
 
 
 def _grid_xy(town: Town, grid: AOIGrid) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +134,8 @@ def image_change_mask(town: Town, camera: Camera, scene_a: K.SceneArrays, scene_
     h, w = int(camera.height), int(camera.width)
     k = supersample
     off = (np.arange(k) + 0.5) / k - 0.5
-    band = (min(scene_z_band(scene_a)[0], scene_z_band(scene_b)[0]), max(scene_z_band(scene_a)[1], scene_z_band(scene_b)[1]))
+    za, zb = scene_z_band(scene_a), scene_z_band(scene_b)
+    band = (min(za[0], zb[0]), max(za[1], zb[1]))
     frac = np.zeros((h, w), np.float32)
     for b0 in range(0, h, block_rows):
         b1 = min(h, b0 + block_rows)

@@ -107,7 +107,8 @@ def test_regenerates_bit_for_bit(sample_aoi, sample, tmp_path):
 
     m, rep = sample
     out = tmp_path / "regen"
-    r = CliRunner().invoke(main, ["--progress", "none", "synth", "--out", str(out), "--seed", str(rep["params"]["seed"])])
+    seed = str(rep["params"]["seed"])
+    r = CliRunner().invoke(main, ["--progress", "none", "synth", "--out", str(out), "--seed", seed])
     assert r.exit_code == 0, r.output
     for f in sorted(Path(sample_aoi).rglob("*.tif")):
         g = out / f.relative_to(sample_aoi)

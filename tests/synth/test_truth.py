@@ -104,7 +104,8 @@ def test_truth_dsm_change_mask_and_footprints(tiny_town, tiny_scenes):
     assert fa.crs.to_epsg() == tiny_town.frame.epsg
     assert len(fall) == len(set(fa.building_id) | set(fb.building_id))
     common = set(fa.building_id) & set(fb.building_id)
-    assert all(fa.set_index("building_id").loc[i, "status"] == fb.set_index("building_id").loc[i, "status"] for i in common)
+    sa, sb = fa.set_index("building_id")["status"], fb.set_index("building_id")["status"]
+    assert all(sa[i] == sb[i] for i in common)
     n3 = non3d_mask(tiny_town, tiny_scenes["A"], tiny_scenes["B"], grid, mask)
     assert (n3 == 2).any() and not (n3.astype(bool) & mask.astype(bool)).any()
 
