@@ -229,7 +229,7 @@ def default_aoi_grid(manifest, images_by_epoch: dict[str, list[EpochImage]], *, 
 def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.PathLike | str | None = None,
                params: StereoParams = StereoParams(), grid: AOIGrid | None = None, posting_m: float | None = None,
                overwrite: bool = True, progress: Progress | None = None,
-               keep_arrays: bool = False) -> dict[str, Any]:
+               keep_arrays: bool = False, pairs: str = "all") -> dict[str, Any]:
     """Match every pair of images of the selected epochs and write their pair-DEMs.
 
     Parameters
@@ -239,6 +239,9 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
     out_dir : output folder (default: the manifest's ``output``)
     grid : AOI grid (default: :func:`default_aoi_grid`)
     keep_arrays : also return the :class:`PairDEM` objects
+    pairs : "all" (every pair of an epoch) or "same-kind" (only pairs of images whose cameras are of
+        the same kind, e.g. satellite–satellite and aerial–aerial: mixed pairs differ in GSD and
+        spectral band and match poorly)
 
     Returns
     -------
@@ -275,7 +278,13 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
     dem = None
     if m.dem is not None:
         dem = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
-    pairs = [(e, a, b) for e in selected for a, b in itertools.combinations(images[e.name], 2)]
+    if pairs not in ("all", "same-kind"):
+        raise ConfigError(f"pairs must be 'all' or 'same-kind', got {pairs!r}")
+    pairs = [(e, a, b) for e in selected for a, b in itertools.combinations(images[e.name], 2)
+             if pairs == "all" or a.camera.kind == b.camera.kind]
+    if not pairs:
+        raise ConfigError("no image pair left to match (with pairs='same-kind', each epoch needs two images whose "
+                          "cameras are of the same kind); use pairs='all'")
     outputs: dict[str, Path] = {}
     kept: dict[str, PairDEM] = {}
     chips: dict[tuple[str, str], ImageChip] = {}
