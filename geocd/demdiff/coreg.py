@@ -76,6 +76,7 @@ class CoregParams:
     resampling: str = "bilinear"
     refine_steps: int = 0
     jackknife_groups: int = 20
+    max_fit_cells: int = 200_000
     horizontal: bool = True
     vertical: bool = True
     tilt: bool = False
@@ -289,6 +290,10 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     aspect = terr["aspect_rad"].astype(np.float64)
     fit_mask = st & np.isfinite(slope) & (slope >= math.radians(p.min_slope_deg)) & (slope <= math.radians(p.max_slope_deg))
     rows, cols = np.nonzero(fit_mask)
+    if p.max_fit_cells and rows.size > p.max_fit_cells:
+        # a fixed random subsample (as xDEM's): the fit and its jackknife stay fast on large DEMs
+        pick = np.sort(np.random.default_rng(0).choice(rows.size, p.max_fit_cells, replace=False))
+        rows, cols = rows[pick], cols[pick]
     tan_a = np.tan(slope[rows, cols])
     asp = aspect[rows, cols]
     reasons: list[str] = []

@@ -12,7 +12,8 @@ terms), and the volume of the significantly changed cells.
   anti-correlated and the quadrature sum is conservative). When consecutive surveys
   cover different areas, the chain misses the change outside each common area.
 * **base-referenced** volume: Σ (epoch k − base) over epoch k's survey area, the way
-  dome volumes are usually reported against a pre-eruption surface.
+  dome volumes are usually reported against a pre-eruption surface (not co-registered
+  by default, see ``base_params``; σ only where stable terrain is found).
 
 **Survey footprints of merged DEMs.** Some archives (the Mount St Helens set)
 store each epoch as the base DEM with the epoch's survey pasted over its own
@@ -101,7 +102,8 @@ def _light(r: DEMDiffResult) -> DEMDiffResult:
 
 
 def dem_time_series(epochs: Sequence[Epoch], *, base: Epoch | None = None, merged_with_base: bool = True,
-                    params: DEMDiffParams = DEMDiffParams(), stable_mask: Any = None, mask_is: str = "stable",
+                    params: DEMDiffParams = DEMDiffParams(), base_params: DEMDiffParams | None = None,
+                    stable_mask: Any = None, mask_is: str = "stable",
                     keep_arrays: bool = False, progress: Progress | None = None) -> TimeSeriesResult:
     """Volume change through a series of DEMs (see module docstring).
 
@@ -110,9 +112,16 @@ def dem_time_series(epochs: Sequence[Epoch], *, base: Epoch | None = None, merge
     epochs : at least two :class:`Epoch` (sorted by date here when all have dates)
     base : optional base DEM (e.g. the pre-eruption surface); with ``merged_with_base`` each
         epoch's survey footprint is where it differs from the base
+    base_params : parameters of the base → epoch comparisons; default ``params`` without
+        co-registration (a base surveyed years earlier rarely shares enough stable terrain
+        with a survey footprint for a trustworthy fit, and a vertical-only correction from
+        a doubtful stable set moves the volume by more than it fixes)
     keep_arrays : keep the per-cell arrays of every interval (memory: ~10 arrays per interval)
     """
     prog = ensure_progress(progress)
+    from dataclasses import replace
+
+    bparams = base_params if base_params is not None else replace(params, coregister=False)
     eps = list(epochs)
     if len(eps) < 2:
         raise ConfigError("a time series needs at least two DEMs")
@@ -152,7 +161,8 @@ def dem_time_series(epochs: Sequence[Epoch], *, base: Epoch | None = None, merge
         try:
             pair = align_dems(a.dem, b.dem, grid, resampling=params.resampling, crop=False)
             r = dem_difference(pair, observed=obs, stable_mask=stable_mask, mask_is=mask_is,
-                               params=params, epoch_a=a.name, epoch_b=b.name, progress=sub)
+                               params=params if kind == "interval" else bparams, epoch_a=a.name, epoch_b=b.name,
+                               progress=sub)
         except GeoCDError as exc:
             table.append(_row(kind, a, b, None, str(exc)))
             notes.append(f"{a.name} → {b.name}: {exc}")
