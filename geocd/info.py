@@ -13,15 +13,20 @@ from .errors import GeoCDError, InputFileNotFoundError, NoCameraError, Unsupport
 VECTOR_SUFFIXES = (".gpkg", ".geojson", ".json", ".shp", ".fgb", ".kml", ".gml")
 
 
-def camera_summary(cam) -> dict[str, Any]:
-    """Kind, height range, footprint and GSD of a camera (ground at mid height range)."""
+def camera_summary(cam, ground_h_m: float | None = None) -> dict[str, Any]:
+    """Kind, height range, footprint and GSD of a camera.
+
+    The ground is taken at ``ground_h_m`` (ellipsoidal; e.g. a DEM's median), else
+    at the middle of the camera's height range, else at 0 m.
+    """
     from .geodesy import LocalFrame
 
     d: dict[str, Any] = {"kind": cam.kind, "width": cam.width, "height": cam.height}
     hr = cam.height_range()
     if hr is not None:
         d["height_range_m"] = [float(hr[0]), float(hr[1])]
-    h0 = 0.5 * (hr[0] + hr[1]) if hr is not None else 0.0
+    h0 = ground_h_m if ground_h_m is not None else (0.5 * (hr[0] + hr[1]) if hr is not None else 0.0)
+    d["ground_height_m"] = round(float(h0), 2)
     if getattr(cam, "source", ""):
         d["source"] = cam.source
     try:
@@ -59,10 +64,9 @@ def raster_summary(path: Path) -> dict[str, Any]:
     from .geodesy import vertical_datum_of
     from .io.raster import effective_bit_depth
 
-    try:
-        ds = rasterio.open(path)
-    except rasterio.errors.RasterioIOError as exc:
-        raise UnsupportedFormatError(f"cannot read {path} as a raster ({exc})") from exc
+    from .io.raster import _open
+
+    ds = _open(path)
     with ds:
         d: dict[str, Any] = {"type": "raster", "path": str(path), "driver": ds.driver, "width": ds.width,
                              "height": ds.height, "bands": ds.count, "dtype": ds.dtypes[0],
@@ -125,12 +129,20 @@ def manifest_summary(path: Path) -> dict[str, Any]:
         d["dem"] = str(m.dem.path)
     if m.footprints is not None:
         d["footprints"] = str(m.footprints.path)
+    ground = None
+    if m.dem is not None:
+        from .io.raster import read_dem
+
+        try:
+            ground = float(np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m))
+        except GeoCDError:
+            ground = None
     for e in m.epochs:
         ed: dict[str, Any] = {"name": e.name, "date": e.date.isoformat() if e.date else None,
                               "sensor": e.sensor, "images": []}
         for im in e.images:
             cam = load_camera(im.path, im.camera)
-            s = camera_summary(cam)
+            s = camera_summary(cam, ground)
             ed["images"].append({"name": im.name, "path": str(im.path), "camera": s})
         if e.dem is not None:
             ed["dem"] = str(e.dem.path)

@@ -53,6 +53,8 @@ class RunConfig:
         Grid posting override.
     epoch_a, epoch_b : str, optional
         Epochs to compare (default: first and last).
+    pairs : str
+        "same-kind" (default: satellite–satellite and aerial–aerial pairs) or "all".
     """
 
     stereo: Any = field(default_factory=lambda: _stereo_params_cls()())
@@ -64,6 +66,7 @@ class RunConfig:
     posting_m: float | None = None
     epoch_a: str | None = None
     epoch_b: str | None = None
+    pairs: str = "same-kind"
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -162,8 +165,8 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
                 "image, or give a DEM standing for this epoch (epochs[].dem)")
     stereo_epochs = [e.name for e in m.epochs if len(e.images) >= 2]
     prog(0.0, "stereo")
-    st = run_stereo(m, epochs=stereo_epochs, out_dir=out / "stereo", params=config.stereo, posting_m=config.posting_m,
-                    keep_arrays=True, progress=sub_progress(prog, 0.0, 0.75, "stereo: "))
+    st = run_stereo(m, epochs=stereo_epochs, out_dir=out, params=config.stereo, posting_m=config.posting_m,
+                    keep_arrays=True, pairs=config.pairs, progress=sub_progress(prog, 0.0, 0.75, "stereo: "))
     grid = st["grid"]
     by_epoch: dict[str, list] = {}
     for key, pdem in st["pairs"].items():

@@ -27,9 +27,11 @@ def _confidences(values) -> tuple[float, ...]:
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting, metres.")
 @click.option("--epoch-a", default=None, help="Earlier epoch (default: the first).")
 @click.option("--epoch-b", default=None, help="Later epoch (default: the last).")
+@click.option("--pairs", type=click.Choice(["same-kind", "all"]), default=None,
+              help="Image pairs to match: same camera kind only (default) or all.")
 @click.pass_context
 def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_confidence, footprints, posting_m,
-        epoch_a, epoch_b):
+        epoch_a, epoch_b, pairs):
     """Full run on MANIFEST (default: sample_aoi): stereo → self-consistency baseline → change test → layers.
 
     Writes pair-DEMs (OUT/stereo), the scene-class model, change rasters (COG + QGIS styles), the changes/buildings/
@@ -46,7 +48,7 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
         changes["consistency"] = ConsistencyParams(**{**cfg.consistency.__dict__, "confidences": c})
         changes["change"] = ChangeParams(**{**cfg.change.__dict__, "confidences": c})
     for k, v in (("model_path", model_path), ("region_confidence", report_confidence), ("posting_m", posting_m),
-                 ("epoch_a", epoch_a), ("epoch_b", epoch_b)):
+                 ("epoch_a", epoch_a), ("epoch_b", epoch_b), ("pairs", pairs)):
         if v is not None:
             changes[k] = v
     import dataclasses

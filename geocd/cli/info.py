@@ -19,7 +19,7 @@ def _fmt_camera(c: dict | None, indent: str = "  ") -> list[str]:
     if "centre_lonlat" in c:
         lines.append(f"{indent}  ground centre (lon, lat): {c['centre_lonlat'][0]:.6f}, {c['centre_lonlat'][1]:.6f}")
         lines.append(f"{indent}  footprint: {c['footprint_area_km2']} km2  GSD (col,row): {c['gsd_m'][0]} / {c['gsd_m'][1]} m"
-                     f"  off-nadir ~{c['off_nadir_deg']} deg")
+                     f"  off-nadir ~{c['off_nadir_deg']} deg (ground at {c['ground_height_m']:g} m)")
         lines.append(f"{indent}  footprint (lon/lat WKT): {c['footprint_lonlat_wkt'][:160]}"
                      + ("..." if len(c['footprint_lonlat_wkt']) > 160 else ""))
     if "footprint_error" in c:

@@ -16,12 +16,13 @@ from ..errors import InputFileNotFoundError, NoCameraError, RPCNotFoundError
 
 
 def _image_size(image: Path) -> tuple[int | None, int | None]:
-    try:
-        import rasterio
+    from ..errors import GeoCDError
+    from .raster import _open
 
-        with rasterio.open(image) as ds:
+    try:
+        with _open(image) as ds:
             return ds.width, ds.height
-    except Exception:
+    except GeoCDError:
         return None, None
 
 
