@@ -302,7 +302,7 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     converged = False
     it = 0
     n_fit = int(rows.size)
-    if p.horizontal and n_fit >= max(p.min_cells // 4, 20):
+    if p.horizontal and n_fit >= 20:
         Bs = B
         for it in range(1, p.max_iterations + 1):
             if te != 0.0 or tn != 0.0:
@@ -338,7 +338,7 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
                 break
         if not converged and not reasons:
             reasons.append(f"no convergence to {p.tolerance_px} px in {p.max_iterations} iterations")
-    elif p.horizontal:
+    if p.horizontal and n_fit < p.min_cells:
         reasons.append(f"only {n_fit} stable cells with slope in [{p.min_slope_deg}, {p.max_slope_deg}]° "
                        f"(at least {p.min_cells} needed)")
 
@@ -403,7 +403,7 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     sig = np.array([sig[0], sig[1], sz])
 
     if p.horizontal:
-        if n_fit < p.min_cells:
+        if n_fit < p.min_cells and not any(r.startswith("only ") for r in reasons):
             reasons.append(f"{n_fit} stable cells with usable slope (at least {p.min_cells} needed)")
         if octs < p.min_octants:
             reasons.append(f"stable slopes face only {octs} of 8 aspect octants (at least {p.min_octants} needed)")
