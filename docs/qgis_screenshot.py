@@ -13,10 +13,15 @@ Run it with the system Python that has PyQGIS (not geocd's venv), e.g.::
         --hide "Change mask (raised / lowered / unchanged)" --hide "Significance: confidence %, sigma (m), z" \\
         --title "Mount St Helens dome growth, 2004-10-04 → 2007-07-05 (geocd:demdiff run in QGIS)" --out docs/qgis_msh_demdiff.png
 
-    # the sample AOI (full run):
-    QT_QPA_PLATFORM=offscreen GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd /usr/bin/python3 docs/qgis_screenshot.py \\
-        --alg geocd:run --param MANIFEST=sample_aoi/scene.yaml --title "sample_aoi: 3-D change (geocd:run in QGIS)" \\
-        --hide "Change: dz, dtilde, score, confidence" --out docs/qgis_sample_aoi_change.png
+    # sample_aoi, a 100 m crop with three images per epoch (the full AOI works the same, with geocd:run):
+    S=sample_aoi; QT_QPA_PLATFORM=offscreen GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd /usr/bin/python3 \\
+        docs/qgis_screenshot.py --alg geocd:runlayers \\
+        --param IMAGES_A=$S/images/A_sat1.tif --param IMAGES_A=$S/images/A_sat2.tif --param IMAGES_A=$S/images/A_sat3.tif \\
+        --param IMAGES_B=$S/images/B_sat1.tif --param IMAGES_B=$S/images/B_sat2.tif --param IMAGES_B=$S/images/B_sat3.tif \\
+        --param DEM=$S/truth/dem_prior.tif --param DEM_DATUM=1 --param FOOTPRINTS=$S/truth/footprints_all.gpkg \\
+        --param "AOI=374344,374444,4824244,4824344 [EPSG:32631]" \\
+        --hide "Change mask (raised / lowered / unchanged)" \\
+        --title "sample_aoi, 100 m crop: 3-D change A → B (geocd:runlayers run in QGIS)" --out docs/qgis_sample_aoi_change.png
 
 ``--workdir`` keeps the products (default: a temporary folder).
 """
@@ -35,10 +40,14 @@ REPO = Path(__file__).resolve().parents[1]
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--alg", required=True, help="algorithm id, e.g. geocd:demdiff")
-    ap.add_argument("--param", action="append", default=[], help="NAME=VALUE (repeatable)")
+    ap.add_argument("--param", action="append", default=[],
+                    help="NAME=VALUE (repeatable; repeat a NAME for a list, e.g. several image layers)")
     ap.add_argument("--out", required=True, help="PNG to write")
     ap.add_argument("--title", default="")
     ap.add_argument("--backdrop", help="a DEM drawn as a hillshade under the layers")
+    ap.add_argument("--backdrop-title", default="Hillshade (DEM B)")
+    ap.add_argument("--extent", choices=["rasters", "all"], default="rasters",
+                    help="map extent: the rasters' (default) or every layer's")
     ap.add_argument("--hide", action="append", default=[], help="name of a loaded layer to leave out (repeatable)")
     ap.add_argument("--workdir", help="output folder of the run (default: temporary)")
     ap.add_argument("--size", default="1400x1000", help="map size in pixels, WxH")
@@ -73,7 +82,10 @@ def main(argv=None) -> int:
     plugin.initProcessing()
 
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="geocd_qgis_shot_"))
-    params = dict(p.split("=", 1) for p in args.param)
+    params: dict = {}
+    for kv in args.param:  # a name given twice or more becomes a list (multiple-layer parameters)
+        k, v = kv.split("=", 1)
+        params[k] = [*params[k], v] if isinstance(params.get(k), list) else ([params[k], v] if k in params else v)
     params.setdefault("OUTPUT", str(workdir))
     project = QgsProject.instance()
     context = QgsProcessingContext()
@@ -104,7 +116,7 @@ def main(argv=None) -> int:
 
     layers.sort(key=order)
     if args.backdrop:
-        bd = QgsRasterLayer(args.backdrop, "Hillshade (DEM B)")
+        bd = QgsRasterLayer(args.backdrop, args.backdrop_title)
         hs = QgsHillshadeRenderer(bd.dataProvider(), 1, 315, 45)
         bd.setRenderer(hs)
         bd.setOpacity(0.7)
@@ -115,7 +127,8 @@ def main(argv=None) -> int:
         layers.append(bd)
 
     extent = QgsRectangle()
-    for l in layers:
+    rasters = [l for l in layers if isinstance(l, QgsRasterLayer) and l.name() != args.backdrop_title]
+    for l in (rasters if args.extent == "rasters" and rasters else layers):
         if extent.isEmpty():
             extent = QgsRectangle(l.extent())
         else:

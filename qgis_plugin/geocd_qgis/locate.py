@@ -132,6 +132,14 @@ def geocd_version(argv: list[str], timeout_s: float = 60.0) -> Optional[str]:
     return _VERSION_CACHE[key]
 
 
+def cached_version() -> Optional[str]:
+    """The geocd version found by the last successful check (no child process started), else None."""
+    for v in _VERSION_CACHE.values():
+        if v:
+            return v
+    return None
+
+
 def check_geocd(configured: Optional[str] = None) -> tuple[Optional[list[str]], str]:
     """(argv prefix or None, message): a runnable geocd, or why there is none and how to install it."""
     found = find_geocd(configured)

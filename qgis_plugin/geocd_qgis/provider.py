@@ -42,7 +42,9 @@ class GeocdProvider(QgsProcessingProvider):
         return str(ICON_PATH)
 
     def versionInfo(self):  # noqa: N802
-        return f"plugin {plugin_version()}"
+        # geocd's own version once a check has run it (never start a child process while QGIS starts up)
+        geocd = locate.cached_version()
+        return f"plugin {plugin_version()}" + (f", geocd {geocd}" if geocd else "")
 
     def load(self):
         try:

@@ -38,7 +38,10 @@ def main(argv: list[str]) -> dict:
     mode, alg = argv[0], argv[1]
     rest = argv[2:]
     threshold = float(rest.pop(0)) if mode == "cancel" else None
-    params = dict(kv.split("=", 1) for kv in rest)
+    params: dict = {}
+    for kv in rest:  # a name given twice or more becomes a list (multiple-layer parameters)
+        k, v = kv.split("=", 1)
+        params[k] = [*params[k], v] if isinstance(params.get(k), list) else ([params[k], v] if k in params else v)
     report: dict = {"mode": mode, "alg": alg}
 
     class Feedback(QgsProcessingFeedback):

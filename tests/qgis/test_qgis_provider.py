@@ -118,17 +118,27 @@ def test_demdiff_in_qgis_matches_cli_and_loads_styled_layers(qgis, tmp_path):
 
 
 @pytest.mark.slow
-def test_full_run_on_sample_aoi_matches_cli_and_loads_styled_layers(qgis, tmp_path, sample_aoi):
-    """`geocd:run` on sample_aoi: same layers as `geocd run`, loaded with their styles (not default grey)."""
-    cli_out, qgis_out = tmp_path / "cli", tmp_path / "qgis"
-    r = _cli("--progress", "none", "run", str(sample_aoi / "scene.yaml"), "--out", str(cli_out))
-    assert r.returncode == 0, r.stderr[-3000:]
-    rep = qgis.pyqgis("run", "geocd:run", f"MANIFEST={sample_aoi / 'scene.yaml'}", f"OUTPUT={qgis_out}")
+def test_change_from_layers_on_sample_aoi_matches_cli(qgis, tmp_path, sample_aoi):
+    """`geocd:runlayers` on a 60 m crop of sample_aoi (3 + 3 satellite images, prior DEM, footprints): the scene
+    manifest the plugin writes, run by `geocd run`, gives the same layers; QGIS loads them styled."""
+    img = sample_aoi / "images"
+    qgis_out, cli_out = tmp_path / "qgis", tmp_path / "cli"
+    params = [*(f"IMAGES_A={img / f'A_sat{k}.tif'}" for k in (1, 2, 3)),
+              *(f"IMAGES_B={img / f'B_sat{k}.tif'}" for k in (1, 2, 3)),
+              f"DEM={sample_aoi / 'truth' / 'dem_prior.tif'}", "DEM_DATUM=1",
+              f"FOOTPRINTS={sample_aoi / 'truth' / 'footprints_all.gpkg'}",
+              "AOI=374364,374424,4824264,4824324 [EPSG:32631]", f"OUTPUT={qgis_out}"]
+    rep = qgis.pyqgis("run", "geocd:runlayers", *params)
     assert rep.get("ok"), rep
-    diffs = compare_trees(cli_out, qgis_out, ignore=(".png",))
+    manifest = qgis_out / "scene_from_qgis.json"
+    assert rep["results"]["SCENE_MANIFEST"] == str(manifest)
+    r = _cli("--progress", "none", "run", str(manifest), "--out", str(cli_out))
+    assert r.returncode == 0, r.stderr[-3000:]
+    diffs = compare_trees(cli_out, qgis_out, ignore=(".png", "scene_from_qgis.json"))
     assert not diffs, "\n".join(diffs)
     loaded = {d["name"]: d for d in rep["loaded"]}
     assert all(d["valid"] for d in loaded.values()), loaded
-    renderers = {d["renderer"] for d in loaded.values()}
-    assert "categorizedSymbol" in renderers or "graduatedSymbol" in renderers, loaded
-    assert "singlebandgray" not in {d["renderer"] for d in loaded.values() if d["output"] == "CHANGE_MASK"}
+    assert loaded["Buildings by change class"]["renderer"] == "categorizedSymbol"
+    assert loaded["Buildings by change class"]["features"] > 0
+    assert loaded["Changed regions"]["renderer"] == "categorizedSymbol"
+    assert loaded["Change mask (raised / lowered / unchanged)"]["renderer"] == "paletted"
