@@ -86,6 +86,40 @@ def warp_bilinear_ref(img: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.n
     return v
 
 
+@njit(cache=True, parallel=True)
+def warp_bilinear_lerp(img, col_a, row_a, col_b, row_b, t, col0, row0, out):
+    """:func:`warp_bilinear` at coordinates interpolated between two projections.
+
+    Samples ``img`` at ``(col_a + t (col_b − col_a) − col0, row_a + t (row_b − row_a) − row0)``:
+    the sweep projects exactly every few planes and interpolates in between.
+    """
+    H, W = img.shape
+    h, w = col_a.shape
+    for i in prange(h):
+        for j in range(w):
+            x = col_a[i, j] + t * (col_b[i, j] - col_a[i, j]) - col0 - 0.5
+            y = row_a[i, j] + t * (row_b[i, j] - row_a[i, j]) - row0 - 0.5
+            if not (x >= 0.0 and y >= 0.0 and x <= W - 1 and y <= H - 1):
+                out[i, j] = np.nan
+                continue
+            j0 = int(x)
+            i0 = int(y)
+            if j0 > W - 2:
+                j0 = W - 2
+            if i0 > H - 2:
+                i0 = H - 2
+            if j0 < 0 or i0 < 0:
+                out[i, j] = np.nan
+                continue
+            fx = x - j0
+            fy = y - i0
+            v00 = img[i0, j0]
+            v01 = img[i0, j0 + 1]
+            v10 = img[i0 + 1, j0]
+            v11 = img[i0 + 1, j0 + 1]
+            out[i, j] = ((v00 * (1.0 - fx) + v01 * fx) * (1.0 - fy) + (v10 * (1.0 - fx) + v11 * fx) * fy)
+
+
 # ---------------------------------------------------------------------------------------------
 # window moments by running sums (separable box filter)
 # ---------------------------------------------------------------------------------------------
@@ -321,6 +355,107 @@ def sweep_finish(k_end, excl, st):
                             st[PREV_COV, i, j], st[PREV_N, i, j], excl)
             st[PREV2, i, j] = p1
             st[PREV1, i, j] = np.inf
+
+
+@njit(cache=True, parallel=True)
+def sweep_step(a, b, r, k, kmin, kmax, min_n, eps, excl, st, work):
+    """:func:`box_moments` followed by :func:`sweep_update`, fused (the moments are never stored).
+
+    Parameters as those two kernels; ``work`` is float64 (6, h, w) scratch.
+    """
+    h, w = a.shape
+    for i in prange(h):
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        s3 = 0.0
+        s4 = 0.0
+        s5 = 0.0
+        for j in range(min(r, w)):
+            x = np.float64(a[i, j])
+            y = np.float64(b[i, j])
+            if x == x and y == y:
+                s0 += 1.0
+                s1 += x
+                s2 += y
+                s3 += x * x
+                s4 += y * y
+                s5 += x * y
+        for j in range(w):
+            jin = j + r
+            if jin < w:
+                x = np.float64(a[i, jin])
+                y = np.float64(b[i, jin])
+                if x == x and y == y:
+                    s0 += 1.0
+                    s1 += x
+                    s2 += y
+                    s3 += x * x
+                    s4 += y * y
+                    s5 += x * y
+            jout = j - r - 1
+            if jout >= 0:
+                x = np.float64(a[i, jout])
+                y = np.float64(b[i, jout])
+                if x == x and y == y:
+                    s0 -= 1.0
+                    s1 -= x
+                    s2 -= y
+                    s3 -= x * x
+                    s4 -= y * y
+                    s5 -= x * y
+            work[0, i, j] = s0
+            work[1, i, j] = s1
+            work[2, i, j] = s2
+            work[3, i, j] = s3
+            work[4, i, j] = s4
+            work[5, i, j] = s5
+    nblk = (w + 31) // 32
+    for bk in prange(nblk):
+        j0 = bk * 32
+        j1 = min(w, j0 + 32)
+        nb = j1 - j0
+        acc = np.zeros((6, nb))
+        for i in range(min(r, h)):
+            for c in range(6):
+                for jj in range(nb):
+                    acc[c, jj] += work[c, i, j0 + jj]
+        for i in range(h):
+            iin = i + r
+            iout = i - r - 1
+            for c in range(6):
+                for jj in range(nb):
+                    v = acc[c, jj]
+                    if iin < h:
+                        v += work[c, iin, j0 + jj]
+                    if iout >= 0:
+                        v -= work[c, iout, j0 + jj]
+                    acc[c, jj] = v
+            for jj in range(nb):
+                j = j0 + jj
+                if k > kmax[i, j] or k < kmin[i, j]:
+                    c_ = np.inf
+                    va = 0.0
+                    vb = 0.0
+                    cov = 0.0
+                    n = 0.0
+                else:
+                    n = acc[0, jj]
+                    c_, va, vb, cov = _ncc_cost(n, acc[1, jj], acc[2, jj], acc[3, jj], acc[4, jj], acc[5, jj],
+                                                min_n, eps)
+                if c_ < np.inf:
+                    st[NFINITE, i, j] += 1.0
+                p1 = st[PREV1, i, j]
+                p2 = st[PREV2, i, j]
+                if p1 < p2 and p1 <= c_:
+                    _insert_min(st, i, j, p1, k - 1.0, p2, c_, st[PREV_VA, i, j], st[PREV_VB, i, j],
+                                st[PREV_COV, i, j], st[PREV_N, i, j], excl)
+                st[PREV2, i, j] = p1
+                st[PREV1, i, j] = c_
+                st[PREV_VA, i, j] = va
+                st[PREV_VB, i, j] = vb
+                st[PREV_COV, i, j] = cov
+                st[PREV_N, i, j] = n
 
 
 def ncc_cost_ref(mom: np.ndarray, min_n: float, eps: float) -> tuple[np.ndarray, ...]:

@@ -32,6 +32,7 @@ from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
 from . import _kernels as K
 from .params import StereoParams
+from .pointing import relative_pointing
 from .products import FLAGS, PairDEM
 from .scores import mdl_from_stats, ncc_from_stats, score_from_stats, ssd_from_stats
 from .sweep import (HeightSearch, ImageChip, PlaneSweep, chip_valid_at, coarse_grid, image_sampling_px_per_m,
@@ -207,14 +208,11 @@ def sweep_ncc(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camer
             continue
         shape = tile.outer_shape
         st = K.new_state(shape)
-        mom = np.empty((6, *shape))
         work = np.empty((6, *shape))
         kmin = sweep.kmin(tile)
         kmax = sweep.kmax(tile)
-        k0, k1 = sweep.k_range(tile)
         for sl in sweep.slices(tile):
-            K.box_moments(sl.stack[0], sl.stack[1], r, mom, work)
-            K.sweep_update(mom, sl.k, kmin, kmax, min_n, eps, float(excl_steps), st)
+            K.sweep_step(sl.stack[0], sl.stack[1], r, sl.k, kmin, kmax, min_n, eps, float(excl_steps), st, work)
             if (sl.k - k0) % 8 == 0:
                 sweep_progress(progress, tile, sl.k - k0, nk, prefix)
         K.sweep_finish(k1, float(excl_steps), st)
@@ -230,6 +228,157 @@ def sweep_ncc(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camer
     has = k >= 0
     out["z_raw"] = np.where(has, search.height(k + delta), np.nan)
     return out, sweep.n_evaluations()
+
+
+def coherent_neighbours(z: np.ndarray, tol_m: float, radius: int = 2) -> np.ndarray:
+    """For each cell, how many cells of its (2r+1)² neighbourhood have a height within ``tol_m`` (NaN = none)."""
+    H, W = z.shape
+    pad = np.pad(z, radius, mode="constant", constant_values=np.nan)
+    n = np.zeros(z.shape, np.int32)
+    with np.errstate(invalid="ignore"):
+        for di in range(-radius, radius + 1):
+            for dj in range(-radius, radius + 1):
+                if di == 0 and dj == 0:
+                    continue
+                nb = pad[radius + di:radius + di + H, radius + dj:radius + dj + W]
+                n += (np.abs(nb - z) <= tol_m)
+    return n
+
+
+def robust_height_interval(planes: dict[str, np.ndarray], lo: np.ndarray, hi: np.ndarray, bin_m: float,
+                           min_ncc: float = 0.7, frac: float = 0.1) -> tuple[float, float] | None:
+    """Height interval of the scene from a coarse level's confident matches, or None.
+
+    Right matches pile up at the scene's heights, wrong ones scatter. Histogram
+    the heights of matches with NCC ≥ ``min_ncc``; start from the fullest bin and
+    grow while neighbouring bins hold at least ``frac`` of it (one weaker bin may
+    be bridged); keep one bin of margin each side. None when there are too few
+    matches or when the interval would not narrow the range at least twofold.
+    """
+    z = planes["z_raw"]
+    good = np.isfinite(z) & (planes["best_c"] <= 1.0 - min_ncc)
+    # right matches also agree with their neighbours (a surface); wrong ones scatter
+    good &= coherent_neighbours(np.where(good, z, np.nan), tol_m=0.3 * bin_m, radius=2) >= 3
+    if good.sum() < 50:
+        return None
+    glo, ghi = float(np.nanmin(lo)), float(np.nanmax(hi))
+    nb = int(np.ceil((ghi - glo) / bin_m))
+    if nb < 8:
+        return None
+    h, e = np.histogram(z[good], bins=nb, range=(glo, glo + nb * bin_m))
+    m = int(np.argmax(h))
+    thr = frac * h[m]
+    i0 = i1 = m
+    while True:
+        if i0 - 1 >= 0 and h[i0 - 1] >= thr:
+            i0 -= 1
+        elif i0 - 2 >= 0 and h[i0 - 2] >= thr:
+            i0 -= 2
+        else:
+            break
+    while True:
+        if i1 + 1 < nb and h[i1 + 1] >= thr:
+            i1 += 1
+        elif i1 + 2 < nb and h[i1 + 2] >= thr:
+            i1 += 2
+        else:
+            break
+    a, b = e[max(i0 - 1, 0)], e[min(i1 + 2, nb)]
+    if (b - a) > 0.5 * (ghi - glo):
+        return None
+    return float(a), float(b)
+
+
+def epipolar_normal(grid: AOIGrid, cams: Sequence[Camera], h: float) -> np.ndarray:
+    """Unit vector across the epipolar direction in image b's pixels, at the grid centre and height h.
+
+    As the height of a point seen at a fixed pixel of image a changes, its image in
+    b moves along ``e_b = ∂u_b/∂z − ∂u_b/∂(x,y) · A_a`` with ``A_a`` image a's relief
+    displacement; the normal is ``e_b`` turned by 90°.
+    """
+    from .pointing import _jacobians
+
+    H, W = grid.shape
+    xc, yc = grid.xy(np.array([H // 2]), np.array([W // 2]))
+    Ja_xy, Ja = _jacobians(cams[0], grid, float(xc[0]), float(yc[0]), h)
+    Jb_xy, Jb = _jacobians(cams[1], grid, float(xc[0]), float(yc[0]), h)
+    e = Jb - Jb_xy @ np.linalg.solve(Ja_xy, Ja)
+    n = np.array([-e[1], e[0]])
+    return n / max(float(np.linalg.norm(n)), 1e-12)
+
+
+def _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig, excl_steps, progress, prefix):
+    """The coarsest level: cross-epipolar offset search, robust height interval, final coarse sweep.
+
+    1. With ``pointing_correction``, sweep the heights for several shifts of image b
+       across the epipolar direction (up to ``max_pointing_px``) and keep the shift
+       whose matches correlate best (median NCC): a relative pointing error of a few
+       pixels otherwise spoils even the coarse matches.
+    2. Narrow the height range to the heights where coherent confident matches pile up
+       (:func:`robust_height_interval`) and sweep again.
+    """
+    info: dict[str, Any] = {}
+    evaluations = 0
+    lo_l = _block_reduce(lo, f, np.min)
+    hi_l = _block_reduce(hi, f, np.max)
+    shift = np.zeros(2)
+    offsets = [0.0]
+    if params.pointing_correction and params.max_pointing_px > 0:
+        h_mid = float(np.nanmedian(0.5 * (lo + hi)))
+        normal = epipolar_normal(grid, cams, h_mid)
+        d = max(1.0, 0.5 * f)
+        n = int(np.floor(params.max_pointing_px / d))
+        offsets = [k * d for k in range(-n, n + 1)]
+
+    def run(search, off, pfx):
+        cb = chips[1].shifted(*(off * normal)) if off else chips[1]
+        cl = [chips[0].blurred(blur[0]), cb.blurred(blur[1])]
+        return sweep_ncc(g_l, cl, cams, search, params, noise_sigma=sig, excl_steps=excl_steps, progress=progress,
+                         prefix=pfx)
+
+    search = HeightSearch(lo_l, hi_l, step_l)
+    best = None
+    scores = []
+    for off in offsets:
+        planes, ev = run(search, off, f"{prefix}offset {off:+.1f} px ")
+        evaluations += ev
+        c = planes["best_c"]
+        q = float(np.median(1.0 - c[np.isfinite(c)])) if np.isfinite(c).any() else -np.inf
+        scores.append(q)
+        if best is None or q > best[0]:
+            best = (q, off, planes)
+    _, off, planes = best
+    if len(offsets) > 1:
+        i = offsets.index(off)
+        if 0 < i < len(offsets) - 1:
+            cm, c0, cp = scores[i - 1], scores[i], scores[i + 1]
+            den = cm - 2 * c0 + cp
+            if den < 0:
+                off = off + 0.5 * (cm - cp) / den * (offsets[1] - offsets[0])
+        shift = off * normal
+        info["coarse_pointing_px"] = [float(shift[0]), float(shift[1])]
+        info["coarse_pointing_scores"] = {f"{o:+.1f}": round(q, 4) for o, q in zip(offsets, scores)}
+    iv = robust_height_interval(planes, lo_l, hi_l, 10.0 * step_l)
+    if iv is not None:
+        info["coarse_interval_m"] = [float(iv[0]), float(iv[1])]
+        lo = np.maximum(lo, iv[0])
+        hi = np.minimum(hi, iv[1])
+        bad = ~(hi > lo)
+        lo, hi = np.where(bad, iv[0], lo), np.where(bad, iv[1], hi)
+        planes, ev = run(HeightSearch(_block_reduce(lo, f, np.min), _block_reduce(hi, f, np.max), step_l),
+                         float(off) if len(offsets) > 1 else 0.0, f"{prefix}narrowed ")
+        evaluations += ev
+    return planes, lo, hi, evaluations, info
+
+
+def _surface_from_planes(planes: dict[str, np.ndarray], factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """A smooth approximate surface on the fine grid from a coarse level's matches."""
+    z = planes["z_raw"]
+    usable = np.isfinite(z) & (planes["best_c"] < 0.8)
+    if not usable.any():
+        return np.full(shape, np.nan)
+    zf = ndimage.median_filter(_fill_nearest(np.where(usable, z, np.nan)), size=5, mode="nearest")
+    return upsample_nearest(zf, factor, shape)
 
 
 def _block_reduce(a: np.ndarray, f: int, fn) -> np.ndarray:
@@ -379,6 +528,11 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
     while (k0 / 2 ** level > params.max_heights
            and min(grid.shape) / 2 ** (level + 1) >= 4 * params.window):
         level += 1
+    if params.pointing_correction and level < 2:
+        # the pointing correction needs an approximate surface: a coarse pass gives it
+        while level < 2 and min(grid.shape) / 2 ** (level + 1) >= 4 * params.window:
+            level += 1
+    pointing: dict[str, Any] = {"applied": False}
     evaluations = 0
     planes = None
     n_levels = level + 1
@@ -388,23 +542,36 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
         step_l = step0 * f
         lo_l = _block_reduce(lo, f, np.min)
         hi_l = _block_reduce(hi, f, np.max)
-        if L == level:
-            search = HeightSearch(lo_l, hi_l, step_l)
-        else:
-            search = refine_search(planes, lo_l, hi_l, 2, step_l * 2, step_l, params)
         blur = [max(1, int(round(g_l.posting_m * rho))) for rho in geo["rho"]]
-        chips_l = [c.blurred(b) for c, b in zip(chips, blur)]
         p_lo = 0.9 * (n_levels - 1 - L) / n_levels
         p_hi = 0.9 * (n_levels - L) / n_levels
+        sub = sub_progress(prog, p_lo, p_hi)
+        prefix = f"{name}: level {L} ({g_l.posting_m:g} m) "
+        if L == level and L > 0:
+            planes, lo, hi, ev, info = _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
+                                                      excl_steps, sub, prefix)
+            evaluations += ev
+            meta.update(info)
+            if params.pointing_correction:
+                if info.get("coarse_pointing_px"):
+                    chips[1] = chips[1].shifted(*info["coarse_pointing_px"])
+                surf = _surface_from_planes(planes, f, grid.shape)
+                pointing = relative_pointing(grid, chips, cams, surf)
+                if pointing["applied"]:
+                    chips[1] = chips[1].shifted(pointing["dcol"], pointing["drow"])
+                pointing["total_shift_px"] = list(chips[1].shift)
+            continue
+        search = (HeightSearch(lo_l, hi_l, step_l) if planes is None
+                  else refine_search(planes, lo_l, hi_l, 2, step_l * 2, step_l, params))
+        chips_l = [c.blurred(b) for c, b in zip(chips, blur)]
         planes, ev = sweep_ncc(g_l, chips_l, cams, search, params, noise_sigma=sig, excl_steps=excl_steps,
-                               progress=sub_progress(prog, p_lo, p_hi),
-                               prefix=f"{name}: level {L} ({g_l.posting_m:g} m) ")
+                               progress=sub, prefix=prefix)
         evaluations += ev
     prog(0.92, f"{name}: scores and checks")
     out = _finalize(grid, cams, chips, planes, search, params, sig, geo, lo, hi)
     out = {k: _crop(v, pad) for k, v in out.items()}
     grid = out_grid
-    meta.update(step_m=step0, levels=n_levels, evaluations=evaluations, excl_steps=excl_steps,
+    meta.update(step_m=step0, levels=n_levels, evaluations=evaluations, excl_steps=excl_steps, pointing=pointing,
                 wall_s=time.perf_counter() - t_start)
     prog(1.0, f"{name}: done")
     return PairDEM(grid=grid, name=name, camera_names=names, epoch=epoch, meta=meta, **out)
@@ -433,6 +600,8 @@ def occlusion_mask(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageC
     cs = np.ascontiguousarray(np.where(np.isfinite(cost[ok]), cost[ok], np.inf), np.float64)
     for cam, chip, tol in zip(cams, chips, tol_m):
         c, r = cam.ground_projector(xs, ys, grid.crs).project(zs)
+        c = c + chip.shift[0]
+        r = r + chip.shift[1]
         c0, r0, c1, r1 = chip.box
         o = np.zeros(zs.shape, bool)
         K.zbuffer_occluded(np.ascontiguousarray(c, np.float64), np.ascontiguousarray(r, np.float64), zs, cs,

@@ -59,6 +59,11 @@ class StereoParams:
         Region size of the local photometric normalization (image pixels).
     tile_size : int
         Tile side (grid cells); memory per tile ≈ 0.3 KB per cell.
+    pointing_correction : bool
+        Estimate and remove the pair's relative pointing error across the epipolar
+        direction (:mod:`geocd.stereo.pointing`) from a coarse match before the fine one.
+    max_pointing_px : float
+        Largest relative pointing error searched at the coarse level (pixels).
     """
 
     window: int = 7
@@ -80,6 +85,8 @@ class StereoParams:
     score: str = "mdl"
     norm_block_px: int = 256
     tile_size: int = 256
+    pointing_correction: bool = True
+    max_pointing_px: float = 6.0
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:

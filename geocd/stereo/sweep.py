@@ -53,10 +53,14 @@ class ImageChip:
         Locally normalized gray levels (0–255 scale), NaN where invalid.
     col0, row0 : int
         Position of ``data[0, 0]`` in the full image the camera describes (pixels),
-        so camera coordinates ``(col, row)`` sample ``data`` at ``(col − col0, row − row0)``.
+        so camera coordinates ``(col, row)`` sample ``data`` at
+        ``(col + shift[0] − col0, row + shift[1] − row0)``.
     name : str
     noise_sigma : float
         Noise standard deviation on the normalized scale (estimated).
+    shift : (float, float)
+        Pointing correction added to the camera's image coordinates (pixels), e.g. the
+        relative pointing error of a pair (:func:`geocd.stereo.pointing.relative_pointing`).
     """
 
     data: np.ndarray
@@ -64,6 +68,16 @@ class ImageChip:
     row0: int = 0
     name: str = ""
     noise_sigma: float = float("nan")
+    shift: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def origin(self) -> tuple[float, float]:
+        """Camera coordinates of ``data``'s upper-left corner (``col0 − shift``, ``row0 − shift``)."""
+        return (self.col0 - float(self.shift[0]), self.row0 - float(self.shift[1]))
+
+    def shifted(self, dcol: float, drow: float) -> "ImageChip":
+        """The chip with an extra pointing correction (pixels)."""
+        return replace(self, shift=(float(self.shift[0]) + dcol, float(self.shift[1]) + drow))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -71,13 +85,14 @@ class ImageChip:
 
     @property
     def box(self) -> tuple[int, int, int, int]:
-        """(col0, row0, col1, row1) in full-image pixels."""
+        """(col0, row0, col1, row1) in full-image pixels (without the pointing shift)."""
         return (self.col0, self.row0, self.col0 + self.data.shape[1], self.row0 + self.data.shape[0])
 
     def warp(self, col: np.ndarray, row: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Bilinear samples at full-image coordinates (pixel-corner convention); NaN outside/invalid."""
-        c = np.asarray(col, np.float64) - self.col0
-        r = np.asarray(row, np.float64) - self.row0
+        c0, r0 = self.origin
+        c = np.asarray(col, np.float64) - c0
+        r = np.asarray(row, np.float64) - r0
         if c.ndim == 2 and out is not None:
             K.warp_bilinear(self.data, np.ascontiguousarray(c), np.ascontiguousarray(r), out)
             return out
@@ -257,10 +272,14 @@ class PlaneSweep:
     search : HeightSearch on ``grid``
     tile_size : int, tile side in cells
     margin : int, context cells around each tile (e.g. the window radius)
+    interp_tol_px : float
+        Cameras are evaluated exactly every few planes and projections are
+        interpolated linearly in between when that stays within this many pixels
+        (checked per tile at both ends of its range; 0 = project every plane).
     """
 
     def __init__(self, grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camera], search: HeightSearch,
-                 *, tile_size: int = 256, margin: int = 0):
+                 *, tile_size: int = 256, margin: int = 0, interp_tol_px: float = 0.01):
         if len(chips) != len(cameras) or not chips:
             raise ValueError("PlaneSweep needs one camera per image chip, and at least one")
         if search.shape != grid.shape:
@@ -271,6 +290,7 @@ class PlaneSweep:
         self.search = search
         self.tile_size = int(tile_size)
         self.margin = int(margin)
+        self.interp_tol_px = float(interp_tol_px)
         self._kmin = search.kmin()
         self._kmax = search.kmax()
         self._tiles = iter_tiles(grid.shape, self.tile_size, self.margin)
@@ -308,17 +328,55 @@ class PlaneSweep:
         x, y = sub.xy()
         return [cam.ground_projector(x, y, self.grid.crs) for cam in self.cameras]
 
+    def interval(self, projs: list, k0: int, k1: int) -> int:
+        """Planes between exact projections so linear interpolation errs < interp_tol_px."""
+        if self.interp_tol_px <= 0 or k1 - k0 < 3:
+            return 1
+        for m in (16, 8, 4, 2):
+            if 2 * m > k1 - k0 + m:
+                continue
+            ok = True
+            for ka in (k0, max(k0, k1 - 1 - m)):
+                ha, hm, hb = (float(self.search.height(ka + d)) for d in (0, m / 2, m))
+                for pr in projs:
+                    ca, ra = pr.project(ha)
+                    cm, rm = pr.project(hm)
+                    cb, rb = pr.project(hb)
+                    err = max(float(np.nanmax(np.abs(0.5 * (ca + cb) - cm))), float(np.nanmax(np.abs(0.5 * (ra + rb) - rm))))
+                    if not err < self.interp_tol_px:
+                        ok = False
+                        break
+                if not ok:
+                    break
+            if ok:
+                return m
+        return 1
+
     def slices(self, tile: Tile, k_range: tuple[int, int] | None = None) -> Iterator[SweepSlice]:
         """Yield the tile's warped stack for each plane index (default: :meth:`k_range`)."""
         projs = self.projectors(tile)
         k0, k1 = k_range if k_range is not None else self.k_range(tile)
         stack = np.empty((len(self.chips), *tile.outer_shape), np.float32)
+        m = self.interval(projs, k0, k1)
+        knots: dict[int, list] = {}
+
+        def exact(kk: int) -> list:
+            if kk not in knots:
+                h = float(self.search.height(kk))
+                knots[kk] = [tuple(np.ascontiguousarray(v, np.float64) for v in pr.project(h)) for pr in projs]
+                for old in [q for q in knots if q < kk - m]:
+                    del knots[old]
+            return knots[kk]
+
         for k in range(k0, k1):
-            h = float(self.search.height(k))
-            for n, (chip, pr) in enumerate(zip(self.chips, projs)):
-                col, row = pr.project(h)
-                chip.warp(col, row, out=stack[n])
-            yield SweepSlice(k, h, stack, tile)
+            ka = k0 + ((k - k0) // m) * m
+            t = (k - ka) / m
+            A = exact(ka)
+            B = exact(ka + m) if m > 1 else A
+            for n, chip in enumerate(self.chips):
+                c0, r0 = chip.origin
+                K.warp_bilinear_lerp(chip.data, A[n][0], A[n][1], B[n][0], B[n][1], t, c0, r0, stack[n])
+            yield SweepSlice(k, float(self.search.height(k)), stack, tile)
 
     def warp_at(self, height_m: np.ndarray) -> np.ndarray:
         """Every image warped onto the whole grid at given per-cell heights: float32 (N, rows, cols)."""

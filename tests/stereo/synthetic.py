@@ -39,10 +39,23 @@ def affine_rpc(gsd_m: float, parallax_px_per_m: tuple[float, float], width: int,
     line_num[3] = parallax_px_per_m[1] * s_h
     den = z.copy()
     den[0] = 1.0
-    return RPCModel(line_num=line_num, line_den=den, samp_num=samp_num, samp_den=den.copy(),
+    cam = RPCModel(line_num=line_num, line_den=den, samp_num=samp_num, samp_den=den.copy(),
                     line_off=cy - 0.5, samp_off=cx - 0.5, lat_off=lat0, lon_off=lon0, height_off=h0,
                     line_scale=1.0, samp_scale=1.0, lat_scale=s_lat, lon_scale=s_lon, height_scale=s_h,
                     width=width, height=height, source="synthetic affine")
+    _AFFINE[id(cam)] = (cx, cy, dlon_px, dlat_px, parallax_px_per_m, lon0, lat0, h0, cam)
+    return cam
+
+
+_AFFINE: dict = {}
+
+
+def localize_affine(cam, col, row, h):
+    """Closed-form inverse of :func:`affine_rpc` (what ``cam.localize`` computes iteratively)."""
+    cx, cy, dlon, dlat, (pc, pr), lon0, lat0, h0, _ = _AFFINE[id(cam)]
+    lon = lon0 + (np.asarray(col) - cx - pc * (np.asarray(h) - h0)) * dlon
+    lat = lat0 - (np.asarray(row) - cy - pr * (np.asarray(h) - h0)) * dlat
+    return lon, lat
 
 
 @dataclass
@@ -97,7 +110,7 @@ def render(cam: RPCModel, tex: Texture, h_lo: float = H0 - 6.0, h_hi: float = H0
         todo = ~found
         if not todo.any():
             break
-        lon, lat = cam.localize(cols[todo], rows[todo], np.full(todo.sum(), h))
+        lon, lat = localize_affine(cam, cols[todo], rows[todo], h)
         x, y = _local_xy(lon, lat)
         below = h <= dsm_local(x, y)
         idx = np.flatnonzero(todo)[below]
@@ -156,7 +169,7 @@ def render_at(cam, cols, rows, h_lo=H0 - 6.0, h_hi=H0 + 16.0, dh=0.04):
         todo = ~found
         if not todo.any():
             break
-        lon, lat = cam.localize(cols[todo], rows[todo], np.full(todo.sum(), h))
+        lon, lat = localize_affine(cam, cols[todo], rows[todo], h)
         below = h <= dsm_local(*_local_xy(lon, lat))
         idx = np.flatnonzero(todo)[below]
         found[idx] = True

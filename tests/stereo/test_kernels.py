@@ -152,3 +152,34 @@ def test_mdl_score_orders_matches():
     assert abs(flat) < 0.5        # textureless: little evidence either way
     # three windows work in the reference too
     assert mdl_score_ref(np.stack([a, a, a]), 1.0) < mdl_score_ref(np.stack([a, a, rng.normal(0, 20, 49)]), 1.0)
+
+
+def test_fused_sweep_step_equals_moments_then_update(rng):
+    K_, shape = 25, (33, 70)       # > 32 columns: several column blocks
+    r, min_n, eps, excl = 2, 12.0, 4.0, 2.0
+    kmin = rng.integers(0, 4, size=shape).astype(np.int32)
+    kmax = rng.integers(15, K_, size=shape).astype(np.int32)
+    st1, st2 = K.new_state(shape), K.new_state(shape)
+    mom = np.empty((6, *shape))
+    work = np.empty_like(mom)
+    for k in range(K_):
+        a = rng.normal(128, 20, size=shape).astype(np.float32)
+        b = (a + rng.normal(0, 10, size=shape)).astype(np.float32)
+        b[rng.random(shape) < 0.03] = np.nan
+        K.box_moments(a, b, r, mom, work)
+        K.sweep_update(mom, k, kmin, kmax, min_n, eps, excl, st1)
+        K.sweep_step(a, b, r, k, kmin, kmax, min_n, eps, excl, st2, work)
+    K.sweep_finish(K_, excl, st1)
+    K.sweep_finish(K_, excl, st2)
+    np.testing.assert_allclose(st2, st1, rtol=1e-9, atol=1e-9)
+
+
+def test_warp_lerp_equals_warp_of_interpolated_coordinates(rng):
+    img = rng.normal(100, 20, size=(40, 50)).astype(np.float32)
+    ca, ra = rng.uniform(0, 50, (20, 21)), rng.uniform(0, 40, (20, 21))
+    cb, rb = ca + rng.normal(0, 2, ca.shape), ra + rng.normal(0, 2, ra.shape)
+    out = np.empty(ca.shape, np.float32)
+    K.warp_bilinear_lerp(img, ca, ra, cb, rb, 0.25, 3.0, 2.0, out)
+    ref = K.warp_bilinear_ref(img, ca + 0.25 * (cb - ca) - 3.0, ra + 0.25 * (rb - ra) - 2.0)
+    assert np.array_equal(np.isnan(out), np.isnan(ref))
+    np.testing.assert_allclose(out[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-5, atol=1e-3)

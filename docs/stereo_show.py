@@ -1,0 +1,248 @@
+"""Figures and tables of docs/stereo.md (issue 4's Show list).
+
+Usage (from the repository root)::
+
+    .venv/bin/python docs/stereo_show.py s2p        # Réunion pair + Marseille triplet vs s2p's DSMs
+    .venv/bin/python docs/stereo_show.py ventoux    # Pléiades Ventoux pair vs SRTM
+    .venv/bin/python docs/stereo_show.py sample     # sample_aoi pairs vs the truth DSM
+    .venv/bin/python docs/stereo_show.py all
+
+Each writes ``docs/stereo_<name>.json`` (numbers) and ``docs/stereo_<name>*.png``.
+Real data are read in place from ../shared/data.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+DOCS = REPO / "docs"
+sys.path.insert(0, str(REPO))
+
+from geocd.geodesy import AOIGrid  # noqa: E402
+from geocd.stereo import StereoParams, match_pair  # noqa: E402
+from geocd.stereo.pipeline import read_chip  # noqa: E402
+
+
+def nmad(x: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+
+
+def compare(pd, ref: np.ndarray) -> dict:
+    """Heights vs a reference DSM on the same grid, after removing the median offset."""
+    both = pd.valid & np.isfinite(ref)
+    d = (pd.z_m - ref)[both].astype(np.float64)
+    off = float(np.median(d))
+    e = d - off
+    return {"offset_m": off, "median_abs_m": float(np.median(np.abs(e))), "nmad_m": nmad(e),
+            "within_1m": float(np.mean(np.abs(e) < 1.0)), "p95_abs_m": float(np.percentile(np.abs(e), 95)),
+            "completeness_on_ref": float(pd.valid[np.isfinite(ref)].mean()), "completeness_all": float(pd.valid.mean()),
+            "cells_compared": int(both.sum())}
+
+
+def score_table(pd, ref: np.ndarray, offset: float, n_bins: int = 10, thresh_m: float = 1.0) -> dict:
+    """Per score bin (equal counts), the fraction of valid matches with |Δz| > thresh_m, for mdl/ncc/ssd."""
+    both = pd.valid & np.isfinite(ref)
+    bad = (np.abs(pd.z_m - ref - offset) > thresh_m)[both]
+    out = {}
+    from geocd.stereo.scores import mdl_from_stats  # noqa: F401  (definition documented there)
+
+    scores = {"mdl": pd.score if pd.meta.get("score_kind") == "mdl" else None, "1-ncc": 1.0 - pd.ncc, "ssd": pd.ssd}
+    for name, s in scores.items():
+        if s is None:
+            continue
+        v = s[both].astype(np.float64)
+        ok = np.isfinite(v)
+        edges = np.quantile(v[ok], np.linspace(0, 1, n_bins + 1))
+        idx = np.clip(np.searchsorted(edges, v[ok], side="right") - 1, 0, n_bins - 1)
+        frac = [float(bad[ok][idx == i].mean()) for i in range(n_bins)]
+        cnt = [int((idx == i).sum()) for i in range(n_bins)]
+        # AUC of the score as a detector of bad matches (higher score = worse)
+        from scipy.stats import mannwhitneyu
+
+        b = bad[ok]
+        auc = float(mannwhitneyu(v[ok][b], v[ok][~b]).statistic / (b.sum() * (~b).sum())) if b.any() and (~b).any() else float("nan")
+        rises = int(sum(1 for a, c in zip(frac, frac[1:]) if c >= a))
+        out[name] = {"edges": [float(e) for e in edges], "frac_bad": frac, "count": cnt, "auc": auc,
+                     "non_decreasing_steps": f"{rises}/{n_bins - 1}"}
+    return out
+
+
+def load_rpc_chip(path: Path, grid: AOIGrid, lo: float, hi: float, name: str):
+    from geocd.io.cameras import load_camera
+
+    cam = load_camera(path)
+    return cam, read_chip(path, cam, grid, lo, hi, name=name, margin_px=40)
+
+
+def quicklook(path: Path, panels: list[tuple[str, np.ndarray, dict]], title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.6))
+    for ax, (t, a, kw) in zip(np.atleast_1d(axes), panels):
+        im = ax.imshow(a, interpolation="nearest", **kw)
+        ax.set_title(t, fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
+    fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def s2p(params: StereoParams = StereoParams()) -> dict:
+    import rasterio
+
+    res: dict = {"params": params.to_dict()}
+    sets = {"pair": ("input_pair", [("img_01", "img_02")]),
+            "triplet": ("input_triplet", [("img_01", "img_02"), ("img_01", "img_03"), ("img_02", "img_03")])}
+    for key, (folder, pairs) in sets.items():
+        with rasterio.open(DATA / "s2p_pleiades" / "expected_output" / key / "dsm.tif") as ds:
+            grid = AOIGrid.from_raster(ds)
+            ref = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+        lo, hi = np.nanmin(ref) - 300, np.nanmax(ref) + 300   # only to size the image windows
+        cams, chips = {}, {}
+        for n in sorted({i for p in pairs for i in p}):
+            cams[n], chips[n] = load_rpc_chip(DATA / "s2p_pleiades" / folder / f"{n}.tif", grid, lo, hi, n)
+        for a, b in pairs:
+            t = time.perf_counter()
+            pd = match_pair(chips[a], chips[b], cams[a], cams[b], grid, params=params)
+            wall = time.perf_counter() - t
+            c = compare(pd, ref)
+            c.update(wall_s=wall, evaluations=pd.meta["evaluations"], levels=pd.meta["levels"],
+                     base_height=pd.meta["base_height_median"], g_median_px_per_m=pd.meta["g_median_px_per_m"],
+                     step_m=pd.meta["step_m"], flags=pd.flag_counts(), grid=f"{grid.width}x{grid.height}",
+                     height_source=pd.meta["height_source"])
+            c["scores"] = score_table(pd, ref, c["offset_m"])
+            res[f"{key}:{a}__{b}"] = c
+            print(key, a, b, {k: (round(v, 3) if isinstance(v, float) else v) for k, v in c.items() if k != "scores"},
+                  flush=True)
+            d = pd.z_m - ref - c["offset_m"]
+            lo_v, hi_v = np.nanpercentile(ref, [2, 98])
+            quicklook(DOCS / f"stereo_s2p_{key}_{a}__{b}.png", [
+                ("s2p DSM (m, ellipsoidal)", ref, {"vmin": lo_v, "vmax": hi_v, "cmap": "terrain"}),
+                ("geocd z (valid cells)", pd.z_m, {"vmin": lo_v, "vmax": hi_v, "cmap": "terrain"}),
+                ("geocd − s2p − offset (m)", d, {"vmin": -2, "vmax": 2, "cmap": "RdBu_r"}),
+                ("MDL score (bits/px)", pd.score, {"vmin": -3, "vmax": 0, "cmap": "viridis_r"}),
+            ], f"s2p {key} {a}/{b}: median |dz| {c['median_abs_m']:.2f} m, completeness {c['completeness_on_ref']:.1%}")
+    (DOCS / "stereo_s2p.json").write_text(json.dumps(res, indent=1))
+    return res
+
+
+def ventoux(params: StereoParams = StereoParams()) -> dict:
+    from geocd.io.cameras import load_camera
+    from geocd.io.raster import read_dem
+    from geocd.geodesy import from_lonlat, utm_crs_for
+
+    root = DATA / "cnes_pleiades_ventoux"
+    cams = {n: load_camera(root / f"{n}.tif") for n in ("left_image", "right_image")}
+    srtm_ll = read_dem(root / "srtm" / "N44E005.hgt", vertical_datum="egm96")
+    crs = utm_crs_for(5.195, 44.206)
+    # AOI: the two images' common footprint at the SRTM height of the spot
+    h0 = 540.0
+    from geocd.geodesy import geoid_undulation
+
+    h_ell = h0 + float(geoid_undulation(5.195, 44.206, "egm96"))
+    fps = []
+    for c in cams.values():
+        fp = c.footprint(h_ell)
+        lon, lat = np.asarray(fp.exterior.coords).T
+        x, y = from_lonlat(lon, lat, crs)
+        from shapely.geometry import Polygon
+
+        fps.append(Polygon(np.column_stack([x, y])))
+    inter = fps[0].intersection(fps[1])
+    l, b, r, t = inter.bounds
+    grid = AOIGrid.from_bounds(l, b, r, t, 0.5, crs)
+    srtm = read_dem(root / "srtm" / "N44E005.hgt", grid=grid, vertical_datum="egm96").to_ellipsoidal()
+    ref = srtm.height_m.astype(np.float64)
+    inside = np.zeros(grid.shape, bool)
+    gx, gy = grid.xy()
+    from shapely import contains_xy
+
+    inside = contains_xy(inter, gx, gy)
+    res: dict = {"grid": f"{grid.width}x{grid.height} at 0.5 m, {crs.to_string()}", "srtm": "N44E005.hgt (EGM96 → ellipsoidal)",
+                 "overlap_area_m2": float(inter.area)}
+    chips = {n: read_chip(root / f"{n}.tif", c, grid, h_ell - 400, h_ell + 400, name=n, margin_px=40)
+             for n, c in cams.items()}
+    for label, dem in (("no prior (RPC height range, coarse-to-fine)", None), ("SRTM prior ± 30 m", srtm)):
+        t0 = time.perf_counter()
+        pd = match_pair(chips["left_image"], chips["right_image"], cams["left_image"], cams["right_image"], grid,
+                        dem=dem, params=params)
+        wall = time.perf_counter() - t0
+        v = pd.valid & inside & np.isfinite(ref)
+        d = (pd.z_m - ref)[v].astype(np.float64)
+        # also at SRTM's own scale: 3-arc-second cells (~65 m × 93 m) averaged
+        r_ = {"median_dz_m": float(np.median(d)), "nmad_m": nmad(d), "mean_dz_m": float(np.mean(d)),
+              "completeness_overlap": float(pd.valid[inside].mean()), "cells": int(v.sum()), "wall_s": wall,
+              "levels": pd.meta["levels"], "base_height": pd.meta["base_height_median"],
+              "g_median_px_per_m": pd.meta["g_median_px_per_m"], "flags": pd.flag_counts()}
+        res[label] = r_
+        print(label, {k: (round(x, 3) if isinstance(x, float) else x) for k, x in r_.items()}, flush=True)
+        if dem is None:
+            lo_v, hi_v = np.nanpercentile(ref[inside], [1, 99])
+            lo_v, hi_v = lo_v - 15, hi_v + 15
+            quicklook(DOCS / "stereo_ventoux.png", [
+                ("SRTM 2000 (m, ellipsoidal, bilinear)", np.where(inside, ref, np.nan), {"vmin": lo_v, "vmax": hi_v, "cmap": "terrain"}),
+                ("geocd z 2013 (valid cells)", np.where(inside, pd.z_m, np.nan), {"vmin": lo_v, "vmax": hi_v, "cmap": "terrain"}),
+                ("geocd − SRTM (m)", np.where(inside, pd.z_m - ref, np.nan), {"vmin": -20, "vmax": 20, "cmap": "RdBu_r"}),
+            ], f"Ventoux: median dz {r_['median_dz_m']:.1f} m, NMAD {r_['nmad_m']:.1f} m (SRTM is 90 m, 2000)")
+    (DOCS / "stereo_ventoux.json").write_text(json.dumps(res, indent=1))
+    return res
+
+
+def sample(params: StereoParams = StereoParams()) -> dict:
+    """sample_aoi: every pair of every epoch vs the truth DSM of its epoch."""
+    from geocd.io.manifest import load_manifest
+    from geocd.io.raster import read_dem
+    from geocd.stereo.pipeline import run_stereo
+
+    m = load_manifest(REPO / "sample_aoi" / "scene.yaml")
+    out = Path("/tmp/geocd_stereo_sample_out")
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        run = run_stereo(m, out_dir=out, params=params, keep_arrays=True)
+    wall = time.perf_counter() - t0
+    grid = run["grid"]
+    res: dict = {"wall_s_all_pairs": wall, "grid": f"{grid.width}x{grid.height} at {grid.posting_m} m"}
+    truth_keys = [k for k in m.truth if "dsm" in k.lower()]
+    for key, pd in run["pairs"].items():
+        ep = key.split("/")[0]
+        tk = next((k for k in truth_keys if ep.lower() in k.lower()), truth_keys[0] if truth_keys else None)
+        if tk is None:
+            continue
+        ref = read_dem(m.truth_path(tk), grid=grid).to_ellipsoidal().height_m.astype(np.float64)
+        both = pd.valid & np.isfinite(ref)
+        d = (pd.z_m - ref)[both]
+        vis_path = None
+        r_ = {"truth": tk, "median_abs_m": float(np.median(np.abs(d))), "median_dz_m": float(np.median(d)),
+              "nmad_m": nmad(d), "completeness_all": float(pd.valid.mean()), "flags": pd.flag_counts(),
+              "base_height": pd.meta["base_height_median"], "wall_s": pd.meta["wall_s"]}
+        r_["scores"] = score_table(pd, ref, 0.0)
+        res[key] = r_
+        print(key, {k: (round(x, 3) if isinstance(x, float) else x) for k, x in r_.items() if k != "scores"}, flush=True)
+    (DOCS / "stereo_sample.json").write_text(json.dumps(res, indent=1))
+    return res
+
+
+if __name__ == "__main__":
+    what = sys.argv[1] if len(sys.argv) > 1 else "all"
+    if what in ("s2p", "all"):
+        s2p()
+    if what in ("ventoux", "all"):
+        ventoux()
+    if what in ("sample", "all"):
+        sample()
