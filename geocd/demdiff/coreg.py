@@ -25,7 +25,10 @@ exceeds ``max_sigma_px`` pixels, or when the iteration does not converge. What
 happens then is ``on_underconstrained``: ``"vertical_only"`` (default: keep B's
 position, apply only the median vertical offset when at least
 ``min_vertical_cells`` stable cells exist), ``"apply"`` (apply anyway, as xDEM
-does), ``"none"`` (apply nothing) or ``"raise"``. Without stable terrain nothing is
+does), ``"none"`` (apply nothing) or ``"raise"``. The same action follows when a
+well-constrained shift does not lower the stable-terrain NMAD
+(``require_improvement``, status ``"not_improving"``): then B is not simply A
+translated (systematic DEM errors dominate) and moving it does not help. Without stable terrain nothing is
 applied and the status says so: geocd never invents a shift.
 
 **σ of the shift.** Stable cells are grouped in ``block_px`` × ``block_px`` blocks,
@@ -82,6 +85,8 @@ class CoregParams:
     tilt: bool = False
     on_underconstrained: str = "vertical_only"
     min_vertical_cells: int = 30
+    require_improvement: bool = True
+    min_improvement: float = 0.0
 
     def __post_init__(self) -> None:
         if self.on_underconstrained not in UNDERCONSTRAINED_ACTIONS:
@@ -106,7 +111,7 @@ class CoregResult:
         Nuth–Kääb / least-squares disagreement for the horizontal components); inf when unknown
     model_disagreement_m : (east, north) least-squares shift still seen at the Nuth–Kääb solution
     tilt : (dz/dx, dz/dy) of the applied vertical plane (m per m), or None
-    status : "ok", "underconstrained", "no_stable_terrain", "not_converged" or "disabled"
+    status : "ok", "underconstrained", "not_improving", "no_stable_terrain", "not_converged" or "disabled"
     applied : "horizontal+vertical", "vertical", "none"
     reasons : why the fit is not trusted (empty when ok)
     """
@@ -417,6 +422,22 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     status = "ok" if not reasons else ("not_converged" if (p.horizontal and not converged and len(reasons) == 1
                                                            and reasons[0].startswith("no convergence"))
                                        else "underconstrained")
+    # a well-constrained shift must also make the stable terrain agree better (NMAD is blind to the
+    # vertical offset, so this compares B moved horizontally with B as it is, on the same cells)
+    nm_shift = nm_raw = float("nan")
+    if status == "ok" and p.horizontal and p.require_improvement and (te or tn):
+        both = st1 & np.isfinite(dh0)
+        if both.sum() >= 10:
+            d1, d0 = dh1[both], dh0[both]
+            if p.tilt:  # compare after removing each one's plane
+                rb, cb_ = np.nonzero(both)
+                d1 = d1 - _plane_at(d1, rb, cb_, A.shape, (px, py))
+                d0 = d0 - _plane_at(d0, rb, cb_, A.shape, (px, py))
+            nm_shift, nm_raw = nmad(d1), nmad(d0)
+            if nm_shift > nm_raw * (1.0 - p.min_improvement):
+                status = "not_improving"
+                reasons.append(f"the horizontal shift does not improve the stable terrain (NMAD {nm_shift:.2f} m with "
+                               f"it, {nm_raw:.2f} m without): B is not simply A translated")
     fitted = (te, tn, tz)
     trusted = status == "ok"
     action = p.on_underconstrained
