@@ -42,7 +42,9 @@ def log(msg):
 
 
 def finish(code=0):
-    QgsApplication.exit(code)
+    # QgsApplication.exit() would stop at QGIS's "save the project?" prompt; nothing here needs saving
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def safe(fn):

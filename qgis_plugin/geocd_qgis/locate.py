@@ -31,7 +31,7 @@ ENV_VAR = "GEOCD_EXECUTABLE"
 HINT_FILE = PLUGIN_DIR / "environment.json"
 
 INSTALL_HELP = (
-    "geocd was not found. Install it into a Python environment of its own, e.g.\n"
+    "Install geocd into a Python environment of its own, e.g.\n"
     "    python3 -m venv ~/.venvs/geocd && ~/.venvs/geocd/bin/pip install geocd\n"
     "(or `pip install -e .` in a geocd checkout), then either put its `geocd` on PATH, set the environment "
     "variable GEOCD_EXECUTABLE, or set Processing ▸ Options ▸ Providers ▸ geocd ▸ \"geocd executable\" to the "
@@ -148,11 +148,11 @@ def check_geocd(configured: Optional[str] = None) -> tuple[Optional[list[str]], 
         if explicit:
             s, p = explicit[0]
             return None, (f"the geocd executable set in {s} ({p}) does not exist or is not executable; "
-                          f"fix the path or clear it to let the plugin search.\n" + INSTALL_HELP)
-        return None, INSTALL_HELP
+                          f"fix the path, or clear it to let the plugin search. " + INSTALL_HELP)
+        return None, "geocd was not found. " + INSTALL_HELP
     argv, source = found
     version = geocd_version(argv)
     if version is None:
         return None, (f"{' '.join(argv)} (found via {source}) does not run (`--version` failed); "
-                      f"check that environment.\n" + INSTALL_HELP)
+                      f"check that environment. " + INSTALL_HELP)
     return argv, f"geocd {version} ({' '.join(argv)}, via {source})"
