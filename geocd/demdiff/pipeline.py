@@ -230,6 +230,8 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
         unc = estimate_uncertainty(dh, st, slope, q, post, p.error)
         sigma = np.where(obs, unc.sigma_m, np.nan).astype(np.float32)
         sig_model = fit_significance(dh, sigma, st)
+        # a vertical offset the co-registration did not remove stays in every sum: count it
+        unc = unc.with_offset(sig_model.center_m)
         center = sig_model.center_m
         z, conf = significance_map(dh, sigma, sig_model)
         if p.confidence > sig_model.max_level():

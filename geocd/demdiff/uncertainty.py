@@ -440,7 +440,9 @@ class Uncertainty:
         Var(Σ_R e) + N_R² Var(mean_S e) − 2 (N_R / N_S) Σ_{i∈R} σ_i K_i,
 
     with K_i = Σ_{j∈S} σ_j C(d_ij) precomputed for every cell (``k_field``, one FFT
-    convolution). Without ``k_field`` the cross term is dropped (conservative).
+    convolution). Without ``k_field`` the cross term is dropped (conservative). A median
+    offset left on stable terrain (``offset_m``: the DEMs were not vertically co-registered)
+    is a systematic error of N_R × offset on the sum and is added in quadrature.
     """
 
     error_model: ErrorModel
@@ -451,6 +453,12 @@ class Uncertainty:
     n_eff_stable: float = float("nan")
     n_stable: int = 0
     k_field: np.ndarray | None = None      # Σ_{j∈S} σ_j C(d_ij), float64 (rows, cols)
+    offset_m: float = 0.0                  # median dh left on stable terrain (not removed): systematic
+
+    def with_offset(self, offset_m: float) -> "Uncertainty":
+        from dataclasses import replace
+
+        return replace(self, offset_m=float(offset_m) if np.isfinite(offset_m) else 0.0)
 
     def _variance(self, w: np.ndarray, k: np.ndarray | None, include_bias: bool) -> float:
         var = _window_variance(w, self.variogram, self.posting_xy_m)
@@ -459,6 +467,7 @@ class Uncertainty:
             var += (n * self.bias_sigma_m) ** 2
             if k is not None:
                 var -= 2.0 * n / self.n_stable * float(np.sum(w * k))
+            var = max(var, 0.0) + (n * self.offset_m) ** 2
         return max(var, 0.0)
 
     def sum_sigma_m(self, mask: np.ndarray, include_bias: bool = True) -> float:
