@@ -69,12 +69,12 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
         layers.update(extra_layers)
     paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", layers, styles=styles)
     if plots:
-        from .plots_sc import plot_change_quicklook, plot_scatter_curves
+        from .plots import plot_dh_map, plot_scatter_curves
 
         if model is not None:
             paths["scatter"] = plot_scatter_curves(model, out / f"{prefix}_scatter.png")
-        paths["quicklook"] = plot_change_quicklook(result.dz_m, sign, grid, out / f"{prefix}_quicklook.png",
-                                                   title=f"{method}: {epoch_a} → {epoch_b}, changed at {region_confidence:g}%")
+        paths["quicklook"] = plot_dh_map(result.dz_m, grid, out / f"{prefix}_quicklook.png", sign=sign,
+                                         title=f"{method}: {epoch_a} → {epoch_b}, changed at {region_confidence:g}%")
     return paths
 
 

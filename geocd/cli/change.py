@@ -105,7 +105,7 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
     model = learn_self_consistency(list(groups.values()), params, provenance=prov, progress=progress)
     outputs = {"model": model.save(out_path)}
     if plot_path:
-        from ..change.plots_sc import plot_scatter_curves
+        from ..change.plots import plot_scatter_curves
 
         outputs["scatter"] = plot_scatter_curves(model, plot_path)
     if (ctx.find_root().obj or {}).get("progress_mode") != "json":
