@@ -10,11 +10,12 @@ runs it there and grabs the dialog with geocd's progress in its log.
     GEOCD_SHOT_ALG=geocd:demdiff GEOCD_SHOT_PARAMS="DEM_A=$D/2.tif;DEM_B=$D/27.tif" \\
     GEOCD_SHOT_HIDE="Significance: confidence %, sigma (m), z;Change mask (raised / lowered / unchanged)" \\
     GEOCD_SHOT_BACKDROP=$D/27.tif \\
-    GEOCD_SHOT_DIR=docs GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd QGIS_PLUGINPATH=$PWD/qgis_plugin \\
+    GEOCD_SHOT_DIR=docs GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd QGIS_PLUGINPATH=$PWD/qgis_plugin GDAL_PAM_ENABLED=NO \\
     QGIS_CUSTOM_CONFIG_PATH=$(mktemp -d) xvfb-run -a -s "-screen 0 1600x1000x24" \\
         /usr/bin/qgis.bin --nologo --noversioncheck --code docs/qgis_gui_screenshot.py
 
-Writes ``$GEOCD_SHOT_DIR/qgis_toolbox.png`` and ``$GEOCD_SHOT_DIR/qgis_dialog.png``; QGIS quits when done.
+(GDAL_PAM_ENABLED=NO: QGIS computes statistics of the input layers, which GDAL would otherwise store beside
+them as .aux.xml.) Writes ``$GEOCD_SHOT_DIR/qgis_toolbox.png`` and ``$GEOCD_SHOT_DIR/qgis_dialog.png``; QGIS quits when done.
 The script starts the plugin when the profile has not enabled it.
 """
 

@@ -60,6 +60,8 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     os.environ.setdefault("QGIS_PLUGINPATH", str(REPO / "qgis_plugin"))
+    # QGIS computes statistics of raster parameter layers; GDAL would store them beside the inputs (.aux.xml)
+    os.environ.setdefault("GDAL_PAM_ENABLED", "NO")
     from qgis.core import (QgsApplication, QgsHillshadeRenderer, QgsLayerTree, QgsLayerTreeModel,
                            QgsLegendRenderer, QgsLegendSettings, QgsMapRendererParallelJob, QgsMapSettings,
                            QgsProcessingContext, QgsProcessingFeedback, QgsProject, QgsRasterLayer, QgsRectangle,

@@ -34,6 +34,7 @@ from qgis.core import (
     QgsProcessingParameterRasterLayer,
     QgsProcessingParameterString,
     QgsProcessingUtils,
+    QgsRasterLayer,
     QgsVectorLayer,
 )
 from qgis.PyQt.QtCore import QCoreApplication
@@ -73,19 +74,55 @@ def configured_executable() -> str:
 
 
 class StylePostProcessor(QgsProcessingLayerPostProcessorInterface):
-    """Apply the product's own style (QML sidecar / GeoPackage layer_styles), else the plugin's fallback QML."""
+    """Apply the product's own style (QML sidecar / GeoPackage layer_styles), else the plugin's fallback.
 
-    def __init__(self, fallback_qml: Path | None):
+    ``fallback``: a QML file, or ``auto:probability`` / ``auto:height`` (a colour ramp built for the layer).
+    """
+
+    def __init__(self, fallback: str | None):
         super().__init__()
-        self.fallback_qml = fallback_qml
+        self.fallback = fallback
 
     def postProcessLayer(self, layer, context, feedback):  # noqa: N802 - Qt naming
         if layer is None or not layer.isValid():
             return
         _msg, ok = layer.loadDefaultStyle()
-        if not ok and self.fallback_qml is not None and self.fallback_qml.is_file():
-            layer.loadNamedStyle(str(self.fallback_qml))
+        if not ok and self.fallback:
+            if self.fallback.startswith("auto:"):
+                apply_ramp(layer, self.fallback[5:])
+            elif (STYLES_DIR / self.fallback).is_file():
+                layer.loadNamedStyle(str(STYLES_DIR / self.fallback))
         layer.triggerRepaint()
+
+
+def apply_ramp(layer, kind: str) -> bool:
+    """A pseudocolour renderer on band 1: 0–1 for ``probability``, the band's range for ``height``."""
+    from qgis.core import (QgsColorRampShader, QgsRasterBandStats, QgsRasterShader,
+                           QgsSingleBandPseudoColorRenderer, QgsStyle)
+
+    if not isinstance(layer, QgsRasterLayer):
+        return False
+    if kind == "probability":
+        lo, hi, ramp_name, invert = 0.0, 1.0, "YlOrRd", False
+    else:
+        stats = layer.dataProvider().bandStatistics(1, QgsRasterBandStats.Min | QgsRasterBandStats.Max)
+        lo, hi, ramp_name, invert = stats.minimumValue, stats.maximumValue, "Spectral", True
+        if not hi > lo:
+            return False
+    ramp = QgsStyle.defaultStyle().colorRamp(ramp_name)
+    if ramp is None:
+        return False
+    if invert:
+        ramp.invert()
+    fn = QgsColorRampShader(lo, hi, ramp, QgsColorRampShader.Interpolated)
+    fn.classifyColorRamp(9, -1)
+    shader = QgsRasterShader(lo, hi)
+    shader.setRasterShaderFunction(fn)
+    renderer = QgsSingleBandPseudoColorRenderer(layer.dataProvider(), 1, shader)
+    renderer.setClassificationMin(lo)
+    renderer.setClassificationMax(hi)
+    layer.setRenderer(renderer)
+    return True
 
 
 def _flag_advanced(p):
@@ -170,7 +207,7 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
             return QgsProcessingParameterRasterLayer(p.name, label, optional=p.optional)
         if p.kind == "rasters":
             return QgsProcessingParameterMultipleLayers(p.name, label, QgsProcessing.TypeRaster, optional=p.optional)
-        if p.kind == "numbers":
+        if p.kind in ("numbers", "pair"):
             return QgsProcessingParameterString(p.name, label, p.default, False, p.optional)
         if p.kind == "extent":
             return QgsProcessingParameterExtent(p.name, label, p.default, p.optional)
@@ -252,7 +289,7 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
                 vals[p.name] = self.parameterAsEnum(parameters, p.name, context)
             elif k == "bool":
                 vals[p.name] = self.parameterAsBoolean(parameters, p.name, context)
-            elif k in ("string", "numbers"):
+            elif k in ("string", "numbers", "pair"):
                 vals[p.name] = self.parameterAsString(parameters, p.name, context)
             elif k == "crs":
                 crs = self.parameterAsCrs(parameters, p.name, context)
@@ -339,7 +376,7 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
         if out_dir:
             results[OUTPUT_FOLDER] = out_dir
         for p in self.spec.params:
-            if p.kind == "file_destination" and vals.get(p.name):
+            if p.kind in ("file_destination", "folder_destination") and vals.get(p.name):
                 results[p.name] = vals[p.name]
         if self.spec.stdout_output:
             results[self.spec.stdout_output] = res.stdout  # already shown line by line as console output
@@ -372,7 +409,7 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
 
     def _load(self, path: str, kind: str, label: str, output_name: str, layers: tuple, style, context) -> list[str]:
         """Queue ``path`` (the ``layers`` of a GeoPackage that exist) to load, styled, when the run completes."""
-        fallback = STYLES_DIR / style if style else None
+        fallback = style or None
         uris = []
         if kind == "raster":
             uris.append((path, label, QgsProcessingUtils.LayerHint.Raster))

@@ -23,6 +23,7 @@ Parameter kinds
 ``string``            free text; ``multiple=True``: comma-separated → the option repeated
 ``crs``               a CRS → its authid (e.g. ``EPSG:32610``) or WKT
 ``range``             two numbers (min, max) → ``--opt MIN MAX``
+``pair``              two numbers typed "a, b" (e.g. sun azimuth, elevation) → ``--opt A B``
 ``extent``            a map extent → (xmin, ymin, xmax, ymax, crs) (manifest AOI only)
 ``folder_destination`` / ``file_destination``   where geocd writes
 
@@ -76,8 +77,9 @@ class Output:
     """One product announced in geocd's ``result`` line (``outputs[key]``).
 
     kind: ``raster`` | ``vector`` (a GeoPackage; ``layers`` names the layers to load, those present are) |
-    ``file`` | ``folder``. ``style``: a QML file in ``geocd_qgis/styles`` applied when the product carries no
-    style of its own (rasters: a ``<name>.qml`` sidecar; GeoPackages: the ``layer_styles`` table).
+    ``file`` | ``folder``. ``style``: applied when the product carries no style of its own (rasters: a
+    ``<name>.qml`` sidecar; GeoPackages: the ``layer_styles`` table): a QML file in ``geocd_qgis/styles``, or
+    ``auto:probability`` (0–1 ramp) / ``auto:height`` (colour ramp over the layer's range).
     """
 
     key: str
@@ -399,6 +401,92 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                  Output("timeseries_png", "PLOT", "file", "Volume plot (PNG)", load=False)),
         load_unlisted=True, skip_prefixes=("timeseries_gpkg",), tags=("dem", "time series", "volume")),
     AlgSpec(
+        name="volumeupdate", display="Volumetric model: learn from images", group=GROUP_VOLUME[0],
+        group_id=GROUP_VOLUME[1], command=("volume", "update"),
+        short_help="Creates or updates an octree occlusion-density and appearance model of the scene (Crispell et "
+                   "al.) from images with RPC or frame cameras: the images of a manifest's epoch, or image layers. "
+                   "The model folder is saved atomically after each pass, so a cancelled update keeps the last "
+                   "complete pass. Learn from epoch A's images, then detect change in epoch B's images.",
+        params=(
+            Param("MODEL", "folder_destination", "Model folder (created, or updated when it exists)"),
+            Param("MANIFEST", "file", "Scene manifest (its AOI and DEM define a new model)", cli="--manifest",
+                  optional=True, file_filter="Scene manifests (*.yaml *.yml *.json);;All files (*)"),
+            Param("EPOCHS", "string", "Epochs of the manifest to learn from (comma-separated; default: the first)",
+                  cli="--epoch", optional=True, multiple=True),
+            Param("IMAGES", "rasters", "Images to learn from instead of the manifest's", cli="--image",
+                  optional=True),
+            Param("EXCLUDE", "string", "Image names to leave out (comma-separated)", cli="--exclude", optional=True,
+                  multiple=True, advanced=True),
+            Param("PASSES", "int", "Passes over the images", cli="--passes", default=3, min=1),
+            Param("FINEST_CELL", "number", "Finest octree cell edge (new models)", cli="--finest-cell", unit="m",
+                  default=0.5, min=0.01),
+            Param("MAX_DEPTH", "int", "Octree levels below a block (new models)", cli="--max-depth", default=3,
+                  min=0, max=8, advanced=True),
+            Param("INIT_DEPTH", "int", "Initial refinement level (new models)", cli="--init-depth", default=1,
+                  min=0, max=8, advanced=True),
+            Param("ABOVE", "number", "Volume top above the DEM's highest point (new models)", cli="--above",
+                  unit="m", default=30.0, min=0.0, advanced=True),
+            Param("FIXED_GRID", "bool", "Fixed grid at the finest level (no refinement)", cli="--fixed-grid",
+                  default=False, advanced=True),
+            Param("SUPERSAMPLE", "int", "Rays per pixel side", cli="--supersample", default=1, min=1, max=8,
+                  advanced=True),
+            Param("NORMALIZE", "enum", "Radiometric normalisation", cli="--normalize", default=0, advanced=True,
+                  options=(("equalize", "equalize"), ("percentile", "percentile"), ("scale", "scale"))),
+            Param("SUN", "pair", "Sun azimuth, elevation of all images (when their metadata lacks it)",
+                  cli="--sun", unit="°", optional=True, advanced=True),
+            Param("SEED", "int", "Seed of the image order", cli="--seed", default=0, advanced=True),
+        ),
+        outputs=(Output("model", "MODEL_OUT", "folder", "Model folder", load=False),),
+        tags=("volumetric", "octree", "voxel", "3d", "appearance")),
+    AlgSpec(
+        name="volumedetect", display="Volumetric model: change probability of an image", group=GROUP_VOLUME[0],
+        group_id=GROUP_VOLUME[1], command=("volume", "detect"),
+        short_help="Probability that each pixel of a new image shows a change against the volumetric model "
+                   "(Crispell et al., eq. 27), in the image's geometry and orthorectified on the model's expected "
+                   "height map. Both rasters load with a 0–1 probability ramp.",
+        params=(
+            Param("MODEL", "folder", "Model folder (from 'learn from images')"),
+            Param("IMAGE", "raster", "Image to test"),
+            Param("CAMERA", "file", "Camera file of the image (default: found next to it)", cli="--camera",
+                  optional=True, advanced=True),
+            _out_folder(),
+            Param("NEIGHBORHOOD", "int", "n of the n×n neighbourhood variant (odd)", cli="--neighborhood",
+                  default=1, min=1, max=15),
+            Param("PRIOR", "number", "Prior probability of change", cli="--prior", default=0.5, min=0.001,
+                  max=0.999),
+            Param("NO_RELIGHT", "bool", "Use the nearest sun bin's appearance as is (no relighting)",
+                  cli="--no-relight", default=False, advanced=True),
+            Param("POSTING", "number", "Posting of the orthorectified output (default: the finest cell)",
+                  cli="--posting", unit="m", optional=True, min=0.0, advanced=True),
+            Param("NORMALIZE", "enum", "Radiometric normalisation", cli="--normalize", default=0, advanced=True,
+                  options=(("equalize", "equalize"), ("percentile", "percentile"), ("scale", "scale"))),
+            Param("SUN", "pair", "Sun azimuth, elevation of the image", cli="--sun", unit="°", optional=True,
+                  advanced=True),
+        ),
+        outputs=(
+            Output("change_probability_ortho", "PROBABILITY_ORTHO", "raster", "Change probability (orthorectified)",
+                   style="auto:probability"),
+            Output("change_probability", "PROBABILITY", "raster",
+                   "Change probability, expected intensity, visibility (image geometry)", style="auto:probability"),
+            Output("summary", "SUMMARY", "file", "Summary (JSON)", load=False),
+        ),
+        tags=("volumetric", "change detection", "probability")),
+    AlgSpec(
+        name="volumerender", display="Volumetric model: expected images and height map", group=GROUP_VOLUME[0],
+        group_id=GROUP_VOLUME[1], command=("volume", "render"),
+        short_help="Renders what the volumetric model expects: the image of each given view, and/or its expected "
+                   "height map (ellipsoidal heights, Cloud-Optimized GeoTIFF).",
+        params=(
+            Param("MODEL", "folder", "Model folder"),
+            Param("IMAGES", "rasters", "Views to render (their cameras)", cli="--image", optional=True),
+            Param("HEIGHT_MAP", "bool", "Expected height map", cli="--height-map", default=True, cli_default=False),
+            Param("POSTING", "number", "Height-map posting", cli="--posting", unit="m", optional=True, min=0.0),
+            _out_folder(),
+        ),
+        outputs=(Output("height_map", "HEIGHT_MAP", "raster", "Expected height map (ellipsoidal, m)",
+                        style="auto:height"),),
+        load_unlisted=True, tags=("volumetric", "render", "dem")),
+    AlgSpec(
         name="synth", display="Synthetic test scene", group=GROUP_DATA[0], group_id=GROUP_DATA[1],
         command=("synth",),
         short_help="Generates a synthetic town with two epochs, satellite (RPC) and aerial (frame) views and exact "
@@ -493,6 +581,14 @@ def build_args(alg: AlgSpec, values: dict, manifest_path: Optional[str] = None) 
             if lo is None or hi is None:
                 continue
             tokens = [[_fmt_number(lo), _fmt_number(hi)]]
+        elif p.kind == "pair":
+            items = v if isinstance(v, (list, tuple)) else [x for x in str(v).replace(";", ",").split(",") if x.strip()]
+            try:
+                if len(items) != 2:
+                    raise ValueError
+                tokens = [[_fmt_number(items[0]), _fmt_number(items[1])]]
+            except ValueError as exc:
+                raise ValueError(f"{p.label}: give two numbers separated by a comma, got {v!r}") from exc
         elif p.kind == "number":
             tokens = [[_fmt_number(v)]]
         elif p.kind == "int":

@@ -41,7 +41,10 @@ def qgis_env(profile: Path) -> dict:
            if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "QGIS_PLUGINPATH")}
     env.update({"QT_QPA_PLATFORM": "offscreen", "QGIS_PLUGINPATH": str(PLUGIN_PARENT),
                 "QGIS_CUSTOM_CONFIG_PATH": str(profile), "GEOCD_EXECUTABLE": geocd_executable(),
-                "XDG_RUNTIME_DIR": str(profile / "xdg"), "PYTHONDONTWRITEBYTECODE": "1"})
+                "XDG_RUNTIME_DIR": str(profile / "xdg"), "PYTHONDONTWRITEBYTECODE": "1",
+                # QGIS computes statistics of raster parameter layers and GDAL would store them beside the
+                # inputs (.aux.xml in sample_aoi/, ../shared/data): keep the inputs untouched
+                "GDAL_PAM_ENABLED": "NO"})
     (profile / "xdg").mkdir(parents=True, exist_ok=True, mode=0o700)
     return env
 

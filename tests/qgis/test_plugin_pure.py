@@ -22,13 +22,21 @@ from geocd_qgis import locate, runner, specs  # noqa: E402
 GEOCD = [str(Path(sys.executable).parent / "geocd")]
 
 
-def _command(name: str) -> click.Command | None:
+def _command(*names: str) -> click.Command | None:
+    """The click command of ``geocd NAME [SUBNAME...]`` (None when it does not exist)."""
     from geocd.cli import SUBCOMMANDS, main
 
-    if name not in SUBCOMMANDS:
+    if names[0] not in SUBCOMMANDS:
         return None
-    with click.Context(main) as ctx:
-        return main.get_command(ctx, name)
+    cmd = main
+    for name in names:
+        if not isinstance(cmd, click.Group):
+            return None
+        with click.Context(cmd) as ctx:
+            cmd = cmd.get_command(ctx, name)
+        if cmd is None:
+            return None
+    return cmd
 
 
 # --- the table against the CLI -------------------------------------------------------------------------------------
@@ -36,8 +44,8 @@ def _command(name: str) -> click.Command | None:
 
 @pytest.mark.parametrize("alg", specs.active(), ids=lambda a: a.name)
 def test_spec_matches_cli(alg):
-    cmd = _command(alg.command[0])
-    assert cmd is not None, f"geocd has no command {alg.command[0]!r} but the plugin offers geocd:{alg.name}"
+    cmd = _command(*alg.command)
+    assert cmd is not None, f"geocd has no command {' '.join(alg.command)!r} but the plugin offers geocd:{alg.name}"
     opts = {o: prm for prm in cmd.params if isinstance(prm, click.Option) for o in prm.opts + prm.secondary_opts}
     args = [prm for prm in cmd.params if isinstance(prm, click.Argument)]
     positional = [p for p in alg.params if p.cli is None and not p.manifest
@@ -50,7 +58,7 @@ def test_spec_matches_cli(alg):
     for p in alg.params:
         if p.cli is None:
             continue
-        assert p.cli in opts, f"geocd {alg.command[0]} has no option {p.cli} (plugin parameter {alg.name}.{p.name})"
+        assert p.cli in opts, f"geocd {' '.join(alg.command)} has no option {p.cli} (plugin parameter {alg.name}.{p.name})"
         o = opts[p.cli]
         if p.kind == "enum" and isinstance(o.type, click.Choice):
             values = [v for _, v in p.options if v != ""]
@@ -59,7 +67,7 @@ def test_spec_matches_cli(alg):
             assert o.is_flag, f"{alg.name}.{p.name}: {p.cli} is not a flag"
         if p.kind in ("rasters", "numbers") or (p.kind == "string" and p.multiple):
             assert o.multiple, f"{alg.name}.{p.name}: {p.cli} must be repeatable"
-        if p.kind == "range":
+        if p.kind in ("range", "pair"):
             assert o.nargs == 2, f"{alg.name}.{p.name}: {p.cli} must take two values"
         if p.cli_default and p.default is not None and p.kind != "bool":
             default = (p.options[p.default][1] or None) if p.kind == "enum" else p.default
@@ -69,7 +77,7 @@ def test_spec_matches_cli(alg):
 
 
 def test_pending_algorithms_stay_pending_only_while_the_command_is_missing():
-    landed = [a.name for a in specs.ALGORITHMS if a.pending and _command(a.command[0]) is not None]
+    landed = [a.name for a in specs.ALGORITHMS if a.pending and _command(*a.command) is not None]
     assert not landed, (f"geocd now has the command(s) of pending plugin algorithm(s) {landed}: check their "
                         "parameters against `geocd CMD --help` and set pending=False in qgis_plugin/geocd_qgis/specs.py")
 
@@ -125,6 +133,12 @@ def test_build_args_defaults_and_repeats():
                     "--model", "/m.json", "--out", "/o", "--confidence", "95", "--confidence", "99.5"]
     with pytest.raises(ValueError, match="numbers"):
         specs.build_args(alg, {"CONFIDENCES": "ninety"})
+    upd = specs.build_args(specs.spec("volumeupdate"), {"MODEL": "/m", "IMAGES": ["/a.tif"], "PASSES": 3,
+                                                        "SUN": "135, 40.5", "NORMALIZE": 1})
+    assert upd == ["volume", "update", "--image", "/a.tif", "--normalize", "percentile", "--sun", "135", "40.5",
+                   "--", "/m"]
+    with pytest.raises(ValueError, match="two numbers"):
+        specs.build_args(specs.spec("volumedetect"), {"MODEL": "/m", "IMAGE": "/i.tif", "SUN": "135"})
     syn = specs.build_args(specs.spec("synth"), {"OUTPUT": "/s", "SEED": 3, "TINY": True, "SIZE_M": 300.0})
     assert syn == ["synth", "--out", "/s", "--seed", "3", "--tiny"]
 

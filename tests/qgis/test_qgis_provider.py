@@ -6,7 +6,7 @@ child process from the environment running these tests (GEOCD_EXECUTABLE).
 
 from __future__ import annotations
 
-import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -30,7 +30,9 @@ def qgis(tmp_path_factory) -> QGIS:
 
 
 def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([geocd_executable(), *args], capture_output=True, text=True, cwd=cwd, timeout=900)
+    """geocd on the command line, in the environment its QGIS child gets (GDAL_PAM_ENABLED=NO, see qgis_env)."""
+    env = {**os.environ, "GDAL_PAM_ENABLED": "NO"}
+    return subprocess.run([geocd_executable(), *args], capture_output=True, text=True, cwd=cwd, timeout=900, env=env)
 
 
 def test_provider_loads_and_lists_every_algorithm(qgis):
@@ -59,9 +61,11 @@ def test_help_prints_parameters(qgis, alg):
 def test_run_in_qgis_matches_cli(qgis, tmp_path):
     """`qgis_process run geocd:synth` writes the same products as `geocd synth` with the same options."""
     cli_out, qgis_out = tmp_path / "cli", tmp_path / "qgis"
-    r = _cli("--progress", "none", "synth", "--tiny", "--seed", "3", "--out", str(cli_out))
+    r = _cli("--progress", "none", "synth", "--tiny", "--seed", "3", "--supersample", "1", "--n-aerial", "0",
+             "--out", str(cli_out))
     assert r.returncode == 0, r.stderr
-    r, doc = qgis.run_json("geocd:synth", {"TINY": "true", "SEED": 3, "OUTPUT": str(qgis_out)})
+    r, doc = qgis.run_json("geocd:synth", {"TINY": "true", "SEED": 3, "SUPERSAMPLE": 1, "N_AERIAL": 0,
+                                           "OUTPUT": str(qgis_out)})
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     res = doc["results"]
     assert res["OUTPUT"] == str(qgis_out)
