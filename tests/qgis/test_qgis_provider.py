@@ -74,6 +74,22 @@ def test_run_in_qgis_matches_cli(qgis, tmp_path):
     assert not diffs, "\n".join(diffs)
 
 
+def test_executable_from_processing_settings(tmp_path):
+    """Processing ▸ Options ▸ Providers ▸ geocd ▸ "geocd executable" wins over $GEOCD_EXECUTABLE; a Python
+    interpreter there runs `python -m geocd`."""
+    require_qgis()
+    q = QGIS(tmp_path / "profile")
+    ini = tmp_path / "profile" / "profiles" / "default" / "QGIS" / "QGIS3.ini"
+    text = ini.read_text(encoding="utf-8") if ini.exists() else ""
+    ini.parent.mkdir(parents=True, exist_ok=True)
+    ini.write_text(text + f"\n[Processing]\nConfiguration\\GEOCD_EXECUTABLE={sys.executable}\n", encoding="utf-8")
+    q.env["GEOCD_EXECUTABLE"] = str(tmp_path / "not" / "geocd")
+    r = q.process("run", "geocd:info", "--", f"INPUT={REPO / 'sample_aoi' / 'scene.yaml'}")
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert f"{sys.executable} -m geocd --progress json info" in r.stdout
+    assert "scene 'sample_aoi'" in r.stdout
+
+
 def test_error_carries_geocds_message(qgis, tmp_path):
     """A bad input: the QgsProcessingException says what geocd says on the command line."""
     bad = tmp_path / "scene.yaml"
