@@ -52,8 +52,9 @@ def camera_from_dict(d: dict) -> "Camera":
 
 def _as_f64(*arrays: ArrayLike) -> tuple[np.ndarray, ...]:
     arrs = np.broadcast_arrays(*[np.asarray(a, dtype=np.float64) for a in arrays])
-    # np.array(order="C") keeps 0-d inputs 0-d (np.ascontiguousarray would make them (1,))
-    return tuple(np.array(a, dtype=np.float64, order="C") for a in arrs)
+    # asarray(order="C") copies only non-contiguous (broadcast) inputs and keeps 0-d inputs 0-d
+    # (np.ascontiguousarray would make them (1,))
+    return tuple(np.asarray(a, dtype=np.float64, order="C") for a in arrs)
 
 
 class Camera(ABC):
