@@ -216,8 +216,10 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
         if p.kind == "vector":
             return QgsProcessingParameterFeatureSource(p.name, label, [_GEOMETRY[p.geometry]], optional=p.optional)
         if p.kind == "file":
-            return QgsProcessingParameterFile(p.name, label, QgsProcessingParameterFile.File, p.extension,
-                                              p.default, p.optional, p.file_filter)
+            # QGIS accepts only names ending in `extension` when one is set: a filter alone keeps .yml/.json open
+            return QgsProcessingParameterFile(p.name, label, QgsProcessingParameterFile.File,
+                                              "" if p.file_filter else p.extension, p.default, p.optional,
+                                              p.file_filter)
         if p.kind == "folder":
             return QgsProcessingParameterFile(p.name, label, QgsProcessingParameterFile.Folder,
                                               defaultValue=p.default, optional=p.optional)
@@ -273,9 +275,10 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
                     path, layer_name = self.parameterAsCompatibleSourceLayerPathAndLayerName(
                         parameters, p.name, context, ["gpkg", "shp", "geojson", "fgb"], "gpkg", feedback)
                     vals[p.name] = _abs(f"{path}|layername={layer_name}" if layer_name else path) or None
-                else:  # the CLI takes a file: selections, memory layers and multi-layer sources are exported
+                else:  # the CLI takes a file (its first layer): selections, memory layers, other formats and a
+                    # named layer of a GeoPackage are exported to a temporary GeoPackage by QGIS
                     vals[p.name] = _abs(self.parameterAsCompatibleSourceLayerPath(
-                        parameters, p.name, context, ["shp", "geojson", "fgb"], "gpkg", feedback)) or None
+                        parameters, p.name, context, ["gpkg", "shp", "geojson", "fgb"], "gpkg", feedback)) or None
             elif k in ("file", "folder"):
                 vals[p.name] = _abs(self.parameterAsFile(parameters, p.name, context)) or None
             elif k == "number":

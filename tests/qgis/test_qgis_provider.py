@@ -15,7 +15,7 @@ import pytest
 
 from ..conftest import shared_data
 from .compare import compare_trees
-from .qgis_env import QGIS, REPO, geocd_executable, require_qgis
+from .qgis_env import QGIS, QGIS_PROCESS, REPO, geocd_executable, qgis_env, require_qgis
 
 sys.path.insert(0, str(REPO / "qgis_plugin"))
 from geocd_qgis import specs  # noqa: E402
@@ -72,6 +72,36 @@ def test_run_in_qgis_matches_cli(qgis, tmp_path):
     assert res["SCENE"] == str(qgis_out / "scene.yaml") and Path(res["REPORT"]).is_file()
     diffs = compare_trees(cli_out, qgis_out)
     assert not diffs, "\n".join(diffs)
+
+
+def test_zip_installs_into_a_profile_and_finds_geocd(tmp_path):
+    """`geocd plugin-zip`, unzipped into a QGIS profile's plugins folder (what "Install from ZIP" does): the provider
+    loads and finds geocd through the zip's environment.json (no PATH, no GEOCD_EXECUTABLE, not in a checkout)."""
+    import zipfile
+
+    require_qgis()
+    zpath = tmp_path / "geocd_qgis.zip"
+    r = _cli("plugin-zip", "--out", str(zpath))
+    assert r.returncode == 0, r.stderr
+    profile = tmp_path / "profile"
+    plugins_dir = profile / "profiles" / "default" / "python" / "plugins"
+    plugins_dir.mkdir(parents=True)
+    with zipfile.ZipFile(zpath) as zf:
+        zf.extractall(plugins_dir)
+    env = qgis_env(profile)
+    for k in ("QGIS_PLUGINPATH", "GEOCD_EXECUTABLE"):
+        env.pop(k)
+    env["PATH"] = "/usr/bin:/bin"
+    env["HOME"] = str(tmp_path)  # no ~/.venvs/geocd and the like
+
+    def qp(*args):
+        return subprocess.run([str(QGIS_PROCESS), *args], env=env, capture_output=True, text=True, timeout=300)
+
+    assert qp("plugins", "enable", "geocd_qgis").returncode == 0
+    r = qp("run", "geocd:info", "--", f"INPUT={REPO / 'sample_aoi' / 'scene.yaml'}")
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert f"{geocd_executable()} --progress json info" in r.stdout
+    assert "scene 'sample_aoi'" in r.stdout
 
 
 def test_executable_from_processing_settings(tmp_path):
