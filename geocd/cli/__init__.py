@@ -31,6 +31,7 @@ SUBCOMMANDS: dict[str, str] = {
     "consistency": "geocd.cli.change:consistency",
     "change": "geocd.cli.change:change",
     "stereo": "geocd.cli.stereo:stereo",
+    "probchange": "geocd.cli.probchange:probchange",
 }
 
 
