@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 #: keys whose values legitimately differ between two runs (clock, absolute paths of the two output folders)
-VOLATILE_KEYS = {"created", "update_time", "elapsed_s", "timings", "output", "manifest", "provenance", "pair_dems",
+VOLATILE_KEYS = {"created", "update_time", "elapsed_s", "seconds", "timings", "output", "manifest", "provenance", "pair_dems",
                  "path"}
 RASTER_EXT = {".tif", ".tiff"}
 VECTOR_EXT = {".gpkg"}

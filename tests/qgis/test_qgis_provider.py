@@ -120,6 +120,31 @@ def test_executable_from_processing_settings(tmp_path):
     assert "scene 'sample_aoi'" in r.stdout
 
 
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("tiny") / "scene"
+    r = _cli("--progress", "none", "synth", "--tiny", "--seed", "5", "--supersample", "1", "--n-aerial", "0",
+             "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    return out / "scene.yaml"
+
+
+def test_probchange_in_qgis_matches_cli_and_loads_styled_layers(qgis, tmp_path, tiny_scene):
+    """`geocd:probchange` on a tiny synthetic scene: the CLI's change layers, loaded styled."""
+    cli_out, qgis_out = tmp_path / "cli", tmp_path / "qgis"
+    r = _cli("--progress", "none", "probchange", str(tiny_scene), "--out", str(cli_out))
+    assert r.returncode == 0, r.stderr[-3000:]
+    rep = qgis.pyqgis("run", "geocd:probchange", f"MANIFEST={tiny_scene}", f"OUTPUT={qgis_out}")
+    assert rep.get("ok"), rep
+    diffs = compare_trees(cli_out, qgis_out)
+    assert not diffs, "\n".join(diffs)
+    loaded = {d["output"]: d for d in rep["loaded"]}
+    assert set(loaded) == {"PROBABILITY", "CHANGE_MASK", "CHANGES"}, loaded
+    assert loaded["PROBABILITY"]["renderer"] == "singlebandpseudocolor"
+    assert loaded["CHANGE_MASK"]["renderer"] == "paletted"
+    assert loaded["CHANGES"]["renderer"] == "categorizedSymbol"
+
+
 def test_error_carries_geocds_message(qgis, tmp_path):
     """A bad input: the QgsProcessingException says what geocd says on the command line."""
     bad = tmp_path / "scene.yaml"
