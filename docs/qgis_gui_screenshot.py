@@ -24,7 +24,7 @@ import sys
 import tempfile
 
 from qgis.core import QgsApplication, QgsHillshadeRenderer, QgsProject, QgsRasterLayer, QgsVectorLayer
-from qgis.PyQt.QtCore import QTimer
+from qgis.PyQt.QtCore import Qt, QTimer
 from qgis.PyQt.QtWidgets import QDockWidget, QTabWidget
 from qgis.utils import iface, loadPlugin, startPlugin, plugins
 
@@ -104,6 +104,7 @@ def step_run():
     toolbox = mw.findChild(QDockWidget, "ProcessingToolbox")
     toolbox.show()
     toolbox.raise_()
+    mw.resizeDocks([toolbox], [430], Qt.Horizontal)
     toolbox.searchBox.setText("geocd")
     toolbox.algorithmTree.expandAll()
     for layer in project.mapLayers().values():

@@ -453,7 +453,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                  Output("timeseries_png", "PLOT", "file", "Volume plot (PNG)", load=False)),
         load_unlisted=True, skip_prefixes=("timeseries_gpkg",), tags=("dem", "time series", "volume")),
     AlgSpec(
-        name="volumeupdate", display="Volumetric model: learn from images", group=GROUP_VOLUME[0],
+        name="volumeupdate", display="Volumetric model from images (create/update)", group=GROUP_VOLUME[0],
         group_id=GROUP_VOLUME[1], command=("volume", "update"),
         short_help="Creates or updates an octree occlusion-density and appearance model of the scene (Crispell et "
                    "al.) from images with RPC or frame cameras: the images of a manifest's epoch, or image layers. "
@@ -491,7 +491,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
         outputs=(Output("model", "MODEL_OUT", "folder", "Model folder", load=False),),
         tags=("volumetric", "octree", "voxel", "3d", "appearance")),
     AlgSpec(
-        name="volumedetect", display="Volumetric model: change probability of an image", group=GROUP_VOLUME[0],
+        name="volumedetect", display="Volumetric change probability of an image", group=GROUP_VOLUME[0],
         group_id=GROUP_VOLUME[1], command=("volume", "detect"),
         short_help="Probability that each pixel of a new image shows a change against the volumetric model "
                    "(Crispell et al., eq. 27), in the image's geometry and orthorectified on the model's expected "
@@ -524,7 +524,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
         ),
         tags=("volumetric", "change detection", "probability")),
     AlgSpec(
-        name="volumerender", display="Volumetric model: expected images and height map", group=GROUP_VOLUME[0],
+        name="volumerender", display="Volumetric rendering: expected images, height map", group=GROUP_VOLUME[0],
         group_id=GROUP_VOLUME[1], command=("volume", "render"),
         short_help="Renders what the volumetric model expects: the image of each given view, and/or its expected "
                    "height map (ellipsoidal heights, Cloud-Optimized GeoTIFF).",
