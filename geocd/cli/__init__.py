@@ -27,6 +27,7 @@ SUBCOMMANDS: dict[str, str] = {
     "demdiff": "geocd.cli.demdiff:demdiff",
     "plugin-zip": "geocd.cli.plugin:plugin_zip",
     "synth": "geocd.cli.synth:synth",
+    "volume": "geocd.cli.volume:volume",
     "run": "geocd.cli.change:run",
     "consistency": "geocd.cli.change:consistency",
     "change": "geocd.cli.change:change",

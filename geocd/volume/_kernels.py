@@ -184,6 +184,31 @@ def mog_density(app, cell, b, x, w0):
 
 
 @njit(cache=True)
+def mog_density_mapped(app, cell, b, x, w0, ma, mb, ms):
+    """:func:`mog_density` of the mixture mapped by ``μ → ma + mb μ``, ``σ → sqrt((mb σ)² + ms²)``
+    (relighting; ``mb = 1, ma = ms = 0`` is the identity)."""
+    if b < 0:
+        return 1.0
+    p = 0.0
+    ws = 0.0
+    nobs = 0.0
+    amb = abs(mb)
+    for k in range(app.shape[2]):
+        w = app[cell, b, k, 2]
+        if w > 0.0:
+            sg = app[cell, b, k, 1] * amb
+            s = math.sqrt(sg * sg + ms * ms)
+            mu = ma + mb * app[cell, b, k, 0]
+            z = (x - mu) / s
+            p += w * math.exp(-0.5 * z * z) / s
+            ws += w
+            nobs += app[cell, b, k, 3]
+    if ws <= 0.0:
+        return 1.0
+    return (nobs * p * INV_SQRT_2PI / ws + w0) / (nobs + w0)
+
+
+@njit(cache=True)
 def mog_mean(app, cell, b, w0):
     """Mean intensity of the cell's blended density in bin ``b`` (0.5 when empty; see :func:`mog_density`)."""
     if b < 0:
@@ -388,11 +413,15 @@ def finalize_update(acc_len, acc_log, acc_obs, acc_vis, alpha, app, b, alpha_min
 # ------------------------------------------------------------------------------------------
 @njit(cache=True)
 def render_rays(orig, dirs, obs, lo, hi, geo, block_root, child, alpha, app, b, p_bg, mean_bg, w0,
-                out_density, out_expected, out_visinf, out_tmed, seg_cell, seg_len, seg_t):
+                map_a, map_b, map_s, out_density, out_expected, out_visinf, out_tmed, seg_cell, seg_len, seg_t):
     """Per ray: density of ``obs[r]`` (eq. 27, + vis_∞ p_bg; NaN when obs is NaN),
     expected intensity ``Σ vis_i P(Q_i) E[p_i] + vis_∞ mean_bg``, ``vis_∞`` and the
     distance where visibility falls to 0.5 (NaN if it never does).
+
+    ``map_a, map_b, map_s`` (length N, or empty for none) map every mixture along ray
+    ``r`` (see :func:`mog_density_mapped`) for the density and the expected value.
     Returns the number of segments traced."""
+    use_map = map_a.shape[0] > 0
     total = 0
     for r in range(orig.shape[0]):
         c = obs[r]
@@ -413,14 +442,23 @@ def render_rays(orig, dirs, obs, lo, hi, geo, block_root, child, alpha, app, b, 
         expv = 0.0
         tmed = np.nan
         has_obs = math.isfinite(c)
+        ma = map_a[r] if use_map else 0.0
+        mb = map_b[r] if use_map else 1.0
+        ms = map_s[r] if use_map else 0.0
         for i in range(n):
             cell = seg_cell[i]
             a = alpha[cell]
             pq = 1.0 - math.exp(-a * seg_len[i])
             w = vis * pq
             if has_obs:
-                dens += w * mog_density(app, cell, b, c, w0)
-            expv += w * mog_mean(app, cell, b, w0)
+                if use_map:
+                    dens += w * mog_density_mapped(app, cell, b, c, w0, ma, mb, ms)
+                else:
+                    dens += w * mog_density(app, cell, b, c, w0)
+            if use_map:
+                expv += w * (ma + mb * mog_mean(app, cell, b, w0))
+            else:
+                expv += w * mog_mean(app, cell, b, w0)
             nv = vis * (1.0 - pq)
             if vis >= 0.5 and nv < 0.5 and not math.isfinite(tmed):
                 tmed = seg_t[i] + math.log(vis / 0.5) / a
@@ -434,10 +472,11 @@ def render_rays(orig, dirs, obs, lo, hi, geo, block_root, child, alpha, app, b, 
 
 @njit(cache=True)
 def density_nxn(orig, dirs, img, width, half, lo, hi, geo, block_root, child, alpha, app, b, p_bg, w0,
-                out_max, seg_cell, seg_len, seg_t, s_w):
+                map_a, map_b, map_s, out_max, seg_cell, seg_len, seg_t, s_w):
     """n×n change variant: ``out_max[q]`` = max over the rays of q's (2·half+1)² neighbours of
     the density of q's intensity. Rays are row-major over an image of ``width`` columns
     (``orig.shape[0] == rows * width``); ``out_max`` must start at 0. Returns segments traced."""
+    use_map = map_a.shape[0] > 0
     total = 0
     nr = orig.shape[0]
     rows = nr // width
@@ -473,8 +512,12 @@ def density_nxn(orig, dirs, img, width, half, lo, hi, geo, block_root, child, al
                 if not math.isfinite(c):
                     continue
                 p = vis * p_bg
-                for i in range(n):
-                    p += s_w[i] * mog_density(app, seg_cell[i], b, c, w0)
+                if use_map:
+                    for i in range(n):
+                        p += s_w[i] * mog_density_mapped(app, seg_cell[i], b, c, w0, map_a[r], map_b[r], map_s[r])
+                else:
+                    for i in range(n):
+                        p += s_w[i] * mog_density(app, seg_cell[i], b, c, w0)
                 if p > out_max[qi, qj]:
                     out_max[qi, qj] = p
     return total
@@ -622,3 +665,235 @@ def mog_update_ref(m, x, w, sigma_init, sigma_min, match_sigmas):
     key = np.where(m[:, 2] > 0, m[:, 2] / m[:, 1], -1.0)
     order = np.argsort(-key, kind="stable")
     return m[order]
+
+
+# ------------------------------------------------------------------------------------------
+# cell geometry, sun visibility and ray-weighted cell values (relighting)
+# ------------------------------------------------------------------------------------------
+@njit(cache=True)
+def node_boxes(geo, block_root, child, out_center, out_size):
+    """Centre (ENU m) and edge (m) of every node, walking each block's tree from its root."""
+    x0 = geo[0]
+    y0 = geo[1]
+    z0 = geo[2]
+    bs = geo[3]
+    nbx = int(geo[4])
+    nby = int(geo[5])
+    nbz = int(geo[6])
+    stack = np.empty(64 * 8, dtype=np.int64)
+    for bx in range(nbx):
+        for by in range(nby):
+            for bz in range(nbz):
+                root = block_root[bx, by, bz]
+                out_center[root, 0] = x0 + (bx + 0.5) * bs
+                out_center[root, 1] = y0 + (by + 0.5) * bs
+                out_center[root, 2] = z0 + (bz + 0.5) * bs
+                out_size[root] = bs
+                sp = 0
+                stack[sp] = root
+                sp += 1
+                while sp > 0:
+                    sp -= 1
+                    node = stack[sp]
+                    c = child[node]
+                    if c < 0:
+                        continue
+                    h = 0.5 * out_size[node]
+                    for k in range(8):
+                        ch = c + k
+                        out_size[ch] = h
+                        out_center[ch, 0] = out_center[node, 0] + (((k & 1) * 2 - 1) * 0.5) * h
+                        out_center[ch, 1] = out_center[node, 1] + ((((k >> 1) & 1) * 2 - 1) * 0.5) * h
+                        out_center[ch, 2] = out_center[node, 2] + ((((k >> 2) & 1) * 2 - 1) * 0.5) * h
+                        stack[sp] = ch
+                        sp += 1
+
+
+@njit(cache=True)
+def sun_visibility(cells, centers, sizes, sun_dir, skip_cells, lo, hi, geo, block_root, child, alpha, out,
+                   seg_cell, seg_len, seg_t):
+    """``out[j] = exp(-Σ α ℓ)`` along the ray towards the sun from the centre of the top face of
+    ``cells[j]`` (the surface a cell of the visible top layer offers to the sun), ignoring the
+    first ``skip_cells`` cell edges of the path (neighbours of the same surface layer).
+    Returns the number of segments traced."""
+    total = 0
+    dx = sun_dir[0]
+    dy = sun_dir[1]
+    dz = sun_dir[2]
+    for j in range(cells.shape[0]):
+        c = cells[j]
+        ox = centers[c, 0]
+        oy = centers[c, 1]
+        oz = centers[c, 2] + 0.5 * sizes[c]
+        skip = skip_cells * sizes[c]
+        t0, t1 = clip_ray(ox, oy, oz, dx, dy, dz, lo, hi)
+        if t0 < skip:
+            t0 = skip
+        tau = 0.0
+        if t1 > t0:
+            n = trace_ray(ox, oy, oz, dx, dy, dz, t0, t1, geo, block_root, child, seg_cell, seg_len, seg_t)
+            total += n
+            for i in range(n):
+                tau += alpha[seg_cell[i]] * seg_len[i]
+        out[j] = math.exp(-tau)
+    return total
+
+
+@njit(cache=True)
+def ray_cell_average(orig, dirs, lo, hi, geo, block_root, child, alpha, values, out, out_wsum,
+                     seg_cell, seg_len, seg_t):
+    """Per ray, the average of per-cell ``values[cell, :]`` weighted by ``vis_i (1 - e^{-α_i ℓ_i})``
+    (what the ray sees), and the total weight ``1 - vis_∞``. NaN where the weight is 0."""
+    nv = values.shape[1]
+    total = 0
+    for r in range(orig.shape[0]):
+        for k in range(nv):
+            out[r, k] = 0.0
+        n = 0
+        if math.isfinite(orig[r, 0]) and math.isfinite(dirs[r, 0]):
+            t0, t1 = clip_ray(orig[r, 0], orig[r, 1], orig[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], lo, hi)
+            if t1 > t0:
+                n = trace_ray(orig[r, 0], orig[r, 1], orig[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], t0, t1, geo,
+                              block_root, child, seg_cell, seg_len, seg_t)
+        total += n
+        vis = 1.0
+        for i in range(n):
+            c = seg_cell[i]
+            pq = 1.0 - math.exp(-alpha[c] * seg_len[i])
+            w = vis * pq
+            for k in range(nv):
+                out[r, k] += w * values[c, k]
+            vis *= 1.0 - pq
+        ws = 1.0 - vis
+        out_wsum[r] = ws
+        for k in range(nv):
+            out[r, k] = out[r, k] / ws if ws > 0.0 else np.nan
+    return total
+
+
+def sun_visibility_ref(cells, centers, sizes, sun_dir, skip_cells, lo, hi, geo, block_root, child, alpha):
+    """Reference of :func:`sun_visibility`."""
+    out = np.empty(len(cells))
+    for j, c in enumerate(cells):
+        o = centers[c] + np.array([0.0, 0.0, 0.5 * sizes[c]])
+        cc, ll, tt = trace_ray_ref(o, sun_dir, geo, block_root, child, lo, hi)
+        skip = skip_cells * sizes[c]
+        # keep the parts of the segments beyond the skip distance
+        end = tt + ll
+        part = np.clip(end - np.maximum(tt, skip), 0.0, None)
+        out[j] = np.exp(-np.sum(alpha[cc].astype(float) * part))
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# coarsening: merge sibling leaves back into their parent, compact the arrays
+# ------------------------------------------------------------------------------------------
+@njit(cache=True)
+def merge_pass(child, level, alpha, app, block_size, threshold):
+    """Merge every inner node whose 8 children are leaves that eq. 26 would not split even at
+    the parent's size (``1 - exp(-ℓ_max(parent) α_child) < threshold`` for all 8). The parent
+    takes the children's mean α and the appearance of the child with the most observations.
+    Children become unreachable (compact afterwards). Returns the number of merges."""
+    n = child.shape[0]
+    merged = 0
+    sqrt3 = math.sqrt(3.0)
+    for node in range(n):
+        c = child[node]
+        if c < 0:
+            continue
+        ok = True
+        for k in range(8):
+            if child[c + k] >= 0:
+                ok = False
+                break
+        if not ok:
+            continue
+        lmax = sqrt3 * block_size / (1 << level[node])
+        amax = 0.0
+        asum = 0.0
+        for k in range(8):
+            a = alpha[c + k]
+            asum += a
+            if a > amax:
+                amax = a
+        if 1.0 - math.exp(-lmax * amax) >= threshold:
+            continue
+        best = c
+        best_n = -1.0
+        for k in range(8):
+            tot = 0.0
+            for b in range(app.shape[1]):
+                for m in range(app.shape[2]):
+                    tot += app[c + k, b, m, 3]
+            if tot > best_n:
+                best_n = tot
+                best = c + k
+        alpha[node] = asum / 8.0
+        for b in range(app.shape[1]):
+            for m in range(app.shape[2]):
+                for f in range(app.shape[3]):
+                    app[node, b, m, f] = app[best, b, m, f]
+        child[node] = -1
+        merged += 1
+    return merged
+
+
+@njit(cache=True)
+def compact_order(block_root, child):
+    """Reachable nodes in a new order (each block breadth-first, children contiguous).
+
+    Returns ``order`` (old index of each new node), ``new_child`` and ``new_root``."""
+    n = child.shape[0]
+    order = np.empty(n, dtype=np.int64)
+    new_child = np.full(n, -1, dtype=np.int32)
+    new_root = np.empty(block_root.shape, dtype=np.int32)
+    nb0, nb1, nb2 = block_root.shape
+    m = 0
+    for bx in range(nb0):
+        for by in range(nb1):
+            for bz in range(nb2):
+                head = m
+                order[m] = block_root[bx, by, bz]
+                new_root[bx, by, bz] = m
+                m += 1
+                while head < m:
+                    old = order[head]
+                    c = child[old]
+                    if c >= 0:
+                        new_child[head] = m
+                        for k in range(8):
+                            order[m] = c + k
+                            m += 1
+                    head += 1
+    return order[:m], new_child[:m], new_root
+
+
+@njit(cache=True)
+def surface_sun(orig, dirs, tmed, sun_dir, lift, skip, lo, hi, geo, block_root, child, alpha, out,
+                seg_cell, seg_len, seg_t):
+    """Sun visibility of the median visible surface point of each ray: from
+    ``o + tmed d`` lifted by ``lift`` metres, ``exp(-Σ α ℓ)`` towards the sun beyond ``skip``
+    metres (1 where ``tmed`` is NaN). Returns the number of segments traced."""
+    total = 0
+    dx = sun_dir[0]
+    dy = sun_dir[1]
+    dz = sun_dir[2]
+    for r in range(orig.shape[0]):
+        t = tmed[r]
+        if not math.isfinite(t):
+            out[r] = 1.0
+            continue
+        ox = orig[r, 0] + t * dirs[r, 0]
+        oy = orig[r, 1] + t * dirs[r, 1]
+        oz = orig[r, 2] + t * dirs[r, 2] + lift
+        t0, t1 = clip_ray(ox, oy, oz, dx, dy, dz, lo, hi)
+        if t0 < skip:
+            t0 = skip
+        tau = 0.0
+        if t1 > t0:
+            n = trace_ray(ox, oy, oz, dx, dy, dz, t0, t1, geo, block_root, child, seg_cell, seg_len, seg_t)
+            total += n
+            for i in range(n):
+                tau += alpha[seg_cell[i]] * seg_len[i]
+        out[r] = math.exp(-tau)
+    return total

@@ -168,7 +168,14 @@ def read_view(image_path: os.PathLike | str, camera_path: os.PathLike | str | No
     cam = load_camera(image_path, camera_path)
     tags = dict(img.tags)
     try:
-        with rasterio.open(image_path) as ds:
+        import warnings
+
+        from rasterio.errors import NotGeoreferencedWarning
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            ds = rasterio.open(image_path)
+        with ds:
             tags.update(ds.tags())
             for dom in ("IMD", "IMAGERY"):
                 try:
@@ -185,3 +192,46 @@ def read_view(image_path: os.PathLike | str, camera_path: os.PathLike | str | No
 def disk_bytes(path: os.PathLike | str) -> int:
     """Bytes of a saved model folder."""
     return sum(f.stat().st_size for f in Path(path).iterdir() if f.is_file())
+
+
+def geometry_from_manifest(manifest: Any, *, finest_cell_m: float = 0.5, max_depth: int = 3,
+                           above_m: float = 30.0, below_m: float = 3.0, posting_m: float | None = None):
+    """The volume box of a manifest's AOI: from the prior DEM's range (``below_m`` under its
+    minimum to ``above_m`` over its maximum, ellipsoidal), or from the images' RPC height
+    range when the manifest has no DEM.
+
+    Returns
+    -------
+    (VolumeGeometry, AOIGrid)
+    """
+    from ..errors import ManifestError
+    from ..geodesy import AOIGrid
+    from ..io.raster import read_dem
+    from .scene import geometry_for_aoi
+
+    a = manifest.aoi
+    if a is None or a.bounds is None or a.crs is None:
+        raise ManifestError("the volume model needs the manifest's AOI (aoi: crs, bounds, posting_m); add it to "
+                            "scene.yaml")
+    grid = AOIGrid.from_bounds(*a.bounds, posting_m or a.posting_m or finest_cell_m, a.crs)
+    if manifest.dem is not None:
+        dem = read_dem(manifest.dem.path, grid=grid, vertical_datum=manifest.dem.vertical_datum)
+        dem = dem.to_ellipsoidal()
+        z0, z1 = float(np.nanmin(dem.height_m)), float(np.nanmax(dem.height_m))
+    else:
+        from ..io.cameras import load_camera
+
+        spans = []
+        for e in manifest.epochs:
+            for im in e.images:
+                hr = load_camera(im.path, im.camera).height_range()
+                if hr is not None:
+                    spans.append(hr)
+        if not spans:
+            raise ManifestError("the manifest has no DEM and no image gives a height range; add 'dem:' to scene.yaml")
+        z0 = float(np.median([s[0] for s in spans]))
+        z1 = float(np.median([s[1] for s in spans]))
+        above_m = 0.0
+    geom = geometry_for_aoi(grid, z_min_m=z0 - below_m, z_max_m=z1 + above_m, finest_cell_m=finest_cell_m,
+                            max_depth=max_depth)
+    return geom, grid

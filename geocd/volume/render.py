@@ -25,6 +25,7 @@ from .scene import VolumeModel
 from .update import P_BACKGROUND, TILE_PIXELS, RayScratch
 
 MEAN_BACKGROUND = 0.5
+_E = np.zeros(0)
 
 
 @dataclass
@@ -62,6 +63,8 @@ def appearance_bin(model: VolumeModel, sun: tuple[float, float] | None) -> int:
 
 def render_image(model: VolumeModel, camera: Any, shape: tuple[int, int], *, intensity: np.ndarray | None = None,
                  sun: tuple[float, float] | None = None, stride: int = 1, name: str = "the view",
+                 app: np.ndarray | None = None, app_bin: int | None = None,
+                 mapping: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
                  progress: Optional[Progress] = None) -> RenderResult:
     """Trace every pixel ray of a view (every ``stride``-th pixel; others NaN).
 
@@ -70,12 +73,16 @@ def render_image(model: VolumeModel, camera: Any, shape: tuple[int, int], *, int
     shape : (rows, cols) of the image
     intensity : optional (rows, cols) intensities in [0, 1] (NaN invalid) whose
         density is evaluated (change detection).
+    app, app_bin : optional appearance array and bin to use instead of the model's.
+    mapping : optional per-pixel radiometric map ``(a, b, s)`` of the mixtures, each (rows, cols)
+        (relighting, :mod:`geocd.volume.relight`).
     """
     prog = ensure_progress(progress)
     rows, cols = int(shape[0]), int(shape[1])
     geom = model.geometry
     check_camera_sees_volume(camera, geom, cols, rows, name)
-    b = appearance_bin(model, sun)
+    b = appearance_bin(model, sun) if app_bin is None else int(app_bin)
+    app_arr = model.app if app is None else app
     stride = max(int(stride), 1)
     out = {k: np.full((rows, cols), np.nan, dtype=np.float32) for k in ("expected", "vis_inf", "density", "depth_m")}
     geo = geom.geo_array()
@@ -91,8 +98,13 @@ def render_image(model: VolumeModel, camera: Any, shape: tuple[int, int], *, int
         expv = np.empty(rr.size)
         vinf = np.empty(rr.size)
         tmed = np.empty(rr.size)
-        n_segs += K.render_rays(o, d, obs, lo, hi, geo, model.block_root, model.child, model.alpha, model.app, b,
-                                P_BACKGROUND, MEAN_BACKGROUND, model.params.appearance_prior_weight, dens, expv, vinf, tmed, sc.seg_cell, sc.seg_len,
+        if mapping is None:
+            ma = mb = ms = np.zeros(0)
+        else:
+            ma, mb, ms = (np.ascontiguousarray(m_[rr, cc], dtype=np.float64) for m_ in mapping)
+        n_segs += K.render_rays(o, d, obs, lo, hi, geo, model.block_root, model.child, model.alpha, app_arr, b,
+                                P_BACKGROUND, MEAN_BACKGROUND, model.params.appearance_prior_weight, ma, mb, ms,
+                                dens, expv, vinf, tmed, sc.seg_cell, sc.seg_len,
                                 sc.seg_t)
         bad = ~np.isfinite(o[:, 0])
         for arr in (dens, expv, vinf, tmed):
@@ -150,6 +162,7 @@ def expected_height_map(model: VolumeModel, grid: AOIGrid | None = None, *, post
         sl = slice(s, min(N, s + step))
         K.render_rays(o[sl], d[sl], np.full(sl.stop - sl.start, np.nan), geom.box_lo, geom.box_hi, geo,
                       model.block_root, model.child, model.alpha, model.app, -1, P_BACKGROUND, MEAN_BACKGROUND, 0.0,
+                      _E, _E, _E,
                       dens[sl], expv[sl], vinf[sl], tmed[sl], sc.seg_cell, sc.seg_len, sc.seg_t)
         prog(sl.stop / N, "height map")
     u = o[:, 2] - tmed

@@ -53,6 +53,10 @@ class VolumeParams:
     refine : bool
         Adaptive refinement (eq. 26) after each update; False with
         ``init_depth == max_depth`` gives the fixed-grid model.
+    coarsen : bool
+        With ``refine``, merge sibling leaves back into their parent after each
+        update when none would be split at the parent's size with half the
+        threshold (:func:`geocd.volume.refine.coarsen_model`; not in the paper).
     refine_threshold : float
         Split a leaf when ``1 - exp(-ℓ_max α) > refine_threshold`` with
         ``ℓ_max`` the cell diagonal.
@@ -77,6 +81,7 @@ class VolumeParams:
 
     p_init: float = 0.01
     refine: bool = True
+    coarsen: bool = True
     refine_threshold: float = 0.3
     alpha_min: float = 1e-4
     alpha_max: float = 200.0

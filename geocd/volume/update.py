@@ -25,7 +25,7 @@ from ..errors import CameraError, ConfigError, EmptyDataError
 from ..progress import Progress, ensure_progress
 from . import _kernels as K
 from .rays import check_camera_sees_volume, image_rays
-from .refine import refine_model
+from .refine import coarsen_model, refine_model
 from .scene import VolumeModel
 
 #: background density of an intensity seen through the whole volume (uniform on [0, 1])
@@ -44,6 +44,7 @@ class UpdateStats:
     segments: int
     cells_updated: int
     leaves_split: int
+    leaves_merged: int
     nodes_after: int
     seconds: float
 
@@ -226,10 +227,13 @@ def update_model(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun:
                               p.alpha_max, p.sigma_init, p.sigma_min, p.match_sigmas, p.min_obs_weight)
     model.sun_bins[b][2] += 1
     split = 0
+    merged = 0
     if (p.refine if refine is None else refine):
+        if p.coarsen:
+            merged = coarsen_model(model)
         split = refine_model(model)
     stats = UpdateStats(name=name, sun_bin=b, rays=n_rays, segments=int(n_segs), cells_updated=int(n_upd),
-                        leaves_split=split, nodes_after=model.n_nodes, seconds=time.perf_counter() - t_start)
+                        leaves_split=split, leaves_merged=merged, nodes_after=model.n_nodes, seconds=time.perf_counter() - t_start)
     entry = stats.to_dict()
     entry["time_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     if sun is not None:

@@ -10,6 +10,8 @@ from geocd.volume import VolumeGeometry, VolumeModel, VolumeParams, refine_model
 from geocd.volume import _kernels as K
 from geocd.volume.update import RayScratch
 
+E = np.zeros(0)
+
 
 def _random_model(seed=0, n_bins=2):
     geom = VolumeGeometry(LocalFrame(10.0, 45.0, 100.0), (-6.0, -4.0, -2.0), 4.0, (3, 2, 2), 3, "EPSG:32632",
@@ -136,7 +138,8 @@ def test_render_rays_matches_reference():
     obs[::5] = np.nan
     out = np.zeros((4, len(o)))
     sc = RayScratch(geo)
-    K.render_rays(o, d, obs, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.5, 0.7, out[0], out[1],
+    K.render_rays(o, d, obs, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.5, 0.7, E, E, E,
+                  out[0], out[1],
                   out[2], out[3], sc.seg_cell, sc.seg_len, sc.seg_t)
     ref = K.render_rays_ref(o, d, obs, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.5, 0.7)
     np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-6, equal_nan=True)
@@ -152,7 +155,7 @@ def test_density_nxn_matches_brute_force():
     img[1, 2] = np.nan
     out = np.zeros((rows, cols))
     sc = RayScratch(geo)
-    K.density_nxn(o, d, img, cols, 1, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.7, out,
+    K.density_nxn(o, d, img, cols, 1, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.7, E, E, E, out,
                   sc.seg_cell, sc.seg_len, sc.seg_t, sc.a)
     ref = np.zeros((rows, cols))
     for i in range(rows):
@@ -198,3 +201,129 @@ def test_mog_density_and_mean_match_reference():
         for b in (0, 1, -1):
             assert abs(K.mog_density(m.app, c, b, x, 0.7) - K.mog_density_ref(m.app, c, b, x, 0.7)) < 1e-6
             assert abs(K.mog_mean(m.app, c, b, 0.7) - K.mog_mean_ref(m.app, c, b, 0.7)) < 1e-6
+
+
+def test_node_boxes_contain_their_rays_points():
+    m = _random_model()
+    from geocd.volume.relight import node_boxes
+
+    c, s = node_boxes(m)
+    geo = m.geometry.geo_array()
+    rng = np.random.default_rng(14)
+    leaves = np.nonzero(m.child < 0)[0]
+    for node in rng.choice(leaves, 60, replace=False):
+        p = c[node] + rng.uniform(-0.49, 0.49, 3) * s[node]
+        assert K._leaf_at_ref(p, geo, m.block_root, m.child) == node
+    np.testing.assert_allclose(s[leaves], 4.0 / 2.0 ** m.level[leaves])
+
+
+def test_sun_visibility_matches_reference():
+    m = _random_model()
+    from geocd.volume.relight import node_boxes, sun_vector_enu
+
+    c, s = node_boxes(m)
+    geo = m.geometry.geo_array()
+    lo, hi = m.geometry.box_lo, m.geometry.box_hi
+    cells = np.nonzero(m.child < 0)[0][::3].astype(np.int64)
+    sun = sun_vector_enu((140.0, 50.0))
+    out = np.empty(cells.size)
+    sc = RayScratch(geo)
+    K.sun_visibility(cells, c, s, sun, 1.0, lo, hi, geo, m.block_root, m.child, m.alpha, out, sc.seg_cell, sc.seg_len,
+                     sc.seg_t)
+    ref = K.sun_visibility_ref(cells, c, s, sun, 1.0, lo, hi, geo, m.block_root, m.child, m.alpha)
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-9)
+
+
+def test_ray_cell_average_matches_reference():
+    m = _random_model()
+    geo = m.geometry.geo_array()
+    lo, hi = m.geometry.box_lo, m.geometry.box_hi
+    o, d = _random_rays(m.geometry, 80, seed=15)
+    vals = np.random.default_rng(16).uniform(0, 1, (m.n_nodes, 2))
+    out = np.empty((len(o), 2))
+    ws = np.empty(len(o))
+    sc = RayScratch(geo)
+    K.ray_cell_average(o, d, lo, hi, geo, m.block_root, m.child, m.alpha, vals, out, ws, sc.seg_cell, sc.seg_len,
+                       sc.seg_t)
+    for r in range(len(o)):
+        cells, lens, _ = K.trace_ray_ref(o[r], d[r], geo, m.block_root, m.child, lo, hi)
+        pq = 1 - np.exp(-m.alpha[cells].astype(float) * lens)
+        vis = np.concatenate([[1.0], np.cumprod(1 - pq)])
+        w = vis[:-1] * pq
+        assert abs(ws[r] - w.sum()) < 1e-9
+        if w.sum() > 0:
+            np.testing.assert_allclose(out[r], (w[:, None] * vals[cells]).sum(0) / w.sum(), rtol=1e-9)
+
+
+def test_compaction_and_coarsening_keep_rays_consistent():
+    from geocd.volume.refine import coarsen_model, compact_model
+
+    m = _random_model()
+    geo = m.geometry.geo_array()
+    lo, hi = m.geometry.box_lo, m.geometry.box_hi
+    o, d = _random_rays(m.geometry, 60, seed=17)
+    obs = np.random.default_rng(18).uniform(0, 1, len(o))
+
+    def render(mm):
+        out = np.zeros((4, len(o)))
+        sc = RayScratch(geo)
+        K.render_rays(o, d, obs, lo, hi, geo, mm.block_root, mm.child, mm.alpha, mm.app, 0, 1.0, 0.5, 0.7, E, E, E,
+                      out[0],
+                      out[1], out[2], out[3], sc.seg_cell, sc.seg_len, sc.seg_t)
+        return out
+
+    before = render(m)
+    m2 = m.copy()
+    compact_model(m2)
+    np.testing.assert_allclose(render(m2), before, rtol=1e-12, equal_nan=True)
+    # free space everywhere: every split is undone, α is preserved as a density
+    m3 = m.copy()
+    m3.alpha[:] = 1e-3
+    coarsen_model(m3, 0.3)
+    assert m3.n_nodes == int(np.prod(m3.geometry.n_blocks))
+    assert np.all(m3.child < 0)
+    np.testing.assert_allclose(m3.alpha, 1e-3, rtol=1e-6)
+    # dense cells stay refined
+    m4 = m.copy()
+    m4.alpha[:] = 50.0
+    n4 = m4.n_nodes
+    coarsen_model(m4, 0.3)
+    assert m4.n_nodes == n4
+
+
+def test_mapped_density_matches_reference_and_identity():
+    m = _random_model()
+    rng = np.random.default_rng(19)
+    for c in rng.integers(0, m.n_nodes, 40):
+        x = rng.uniform()
+        assert abs(K.mog_density_mapped(m.app, c, 0, x, 0.7, 0.0, 1.0, 0.0) - K.mog_density(m.app, c, 0, x, 0.7)) < 1e-9
+        a, b, s = 0.1, 0.8, 0.05
+        mm = m.app.copy()
+        mm[c, 0, :, 0] = a + b * mm[c, 0, :, 0]
+        mm[c, 0, :, 1] = np.sqrt((b * mm[c, 0, :, 1]) ** 2 + s * s)
+        assert abs(K.mog_density_mapped(m.app, c, 0, x, 0.7, a, b, s) - K.mog_density_ref(mm, c, 0, x, 0.7)) < 1e-5
+
+
+def test_surface_sun_matches_reference():
+    m = _random_model()
+    geo = m.geometry.geo_array()
+    lo, hi = m.geometry.box_lo, m.geometry.box_hi
+    o, d = _random_rays(m.geometry, 50, seed=20)
+    out = np.zeros((4, len(o)))
+    sc = RayScratch(geo)
+    K.render_rays(o, d, np.full(len(o), np.nan), lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.5, 0.7,
+                  E, E, E, out[0], out[1], out[2], out[3], sc.seg_cell, sc.seg_len, sc.seg_t)
+    from geocd.volume.relight import sun_vector_enu
+
+    sun = sun_vector_enu((150.0, 45.0))
+    s = np.empty(len(o))
+    K.surface_sun(o, d, out[3], sun, 0.25, 0.5, lo, hi, geo, m.block_root, m.child, m.alpha, s, sc.seg_cell,
+                  sc.seg_len, sc.seg_t)
+    for r in range(len(o)):
+        if not np.isfinite(out[3, r]):
+            assert s[r] == 1.0
+            continue
+        p = o[r] + out[3, r] * d[r] + np.array([0, 0, 0.25])
+        cells, lens, tt = K.trace_ray_ref(p, sun, geo, m.block_root, m.child, lo, hi)
+        part = np.clip(tt + lens - np.maximum(tt, 0.5), 0, None)
+        assert abs(s[r] - np.exp(-np.sum(m.alpha[cells] * part))) < 1e-6

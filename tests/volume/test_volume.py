@@ -1,0 +1,211 @@
+"""End-to-end behaviour of geocd.volume on the tiny town of toyscene.py (frame cameras, boxes on a plane)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from geocd.change.metrics import roc_curve
+from geocd.errors import CameraError, CancelledError, CRSError, NoOverlapError, ProcessingError
+from geocd.geodesy import AOIGrid, to_lonlat
+from geocd.volume import (DetectParams, VolumeModel, VolumeParams, detect_change, expected_height_map,
+                          expected_image, load_model, save_model, update_model)
+
+from geocd.volume.prior import seed_from_dem
+
+from . import toyscene as T
+
+
+@pytest.fixture(scope="module")
+def toy():
+    return T.make_toy()
+
+
+def _train(toy, params=None, passes=3, init_depth=1, geom=None, dem_prior=True):
+    geom = geom or T.volume_geometry()
+    m = VolumeModel.create(geom, params or VolumeParams(), init_depth=init_depth)
+    if dem_prior:  # the flat ground of the toy town as the prior DEM
+        grid = T.aoi_grid(0.5)
+        seed_from_dem(m, np.full(grid.shape, T.H0), grid)
+    for _ in range(passes):
+        for i, (c, im) in enumerate(zip(toy.cameras, toy.images)):
+            update_model(m, im, c, name=f"v{i}", supersample=2)
+    return m
+
+
+@pytest.fixture(scope="module")
+def trained(toy):
+    return _train(toy)
+
+
+def _truth_height(grid):
+    x, y = grid.xy()
+    lon, lat = to_lonlat(x, y, grid.crs)
+    e, n, _ = T.FRAME.to_enu(lon, lat, np.full(lon.shape, T.H0))
+    z, _ = T.dsm(e, n)
+    return z + T.H0, (np.abs(e) < 12) & (np.abs(n) < 12)
+
+
+def test_model_learns_the_scene(toy, trained):
+    h, grid = expected_height_map(trained)
+    truth, centre = _truth_height(grid)
+    dz = np.abs(h - truth)[centre]
+    assert np.nanmedian(dz) < 0.8
+    assert np.mean(dz < 1.0) > 0.6
+    # the held-out view is predicted better than a flat grey image
+    r = expected_image(trained, toy.test_camera, toy.test_image_a.shape)
+    known = r.vis_inf < 0.2
+    mse = np.mean((r.expected[known] - toy.test_image_a[known]) ** 2)
+    mse_flat = np.mean((toy.test_image_a[known] - toy.test_image_a[known].mean()) ** 2)
+    assert mse < 0.75 * mse_flat
+    # variable resolution: only part of the volume is refined to the finest level
+    rep = trained.size_report()
+    assert rep["leaves_per_level"][3] < 0.5 * rep["fixed_grid_cells"]
+
+
+def test_change_detection_finds_the_new_building(toy, trained):
+    res = detect_change(trained, toy.test_image_b, toy.test_camera)
+    ok = ~res.unknown
+    _, _, _, auc = roc_curve(res.probability, toy.change_mask_b, ok)
+    assert auc > 0.9
+    res_a = detect_change(trained, toy.test_image_a, toy.test_camera)
+    assert np.nanmedian(res_a.probability) < np.nanmedian(res.probability[toy.change_mask_b & ok])
+    # the n×n variant tolerates misregistration: a 1-pixel shift hurts it less than the plain density
+    shifted = np.roll(toy.test_image_a, 1, axis=1)
+    p1 = detect_change(trained, shifted, toy.test_camera).probability
+    p3 = detect_change(trained, shifted, toy.test_camera, params=DetectParams(neighborhood=3)).probability
+    assert np.nanmean(p3) < np.nanmean(p1)
+
+
+def test_fixed_grid_mode_never_refines(toy):
+    geom = T.volume_geometry()
+    m = VolumeModel.create(geom, VolumeParams(refine=False), init_depth=geom.max_depth)
+    n0 = m.n_nodes
+    update_model(m, toy.images[0], toy.cameras[0])
+    update_model(m, toy.images[1], toy.cameras[1])
+    assert m.n_nodes == n0
+    assert m.size_report()["fixed_grid_ratio"] < 1.0  # the grid plus its tree is larger than a plain grid
+
+
+def test_save_load_roundtrip_and_incremental_update(toy, trained, tmp_path):
+    p = save_model(trained, tmp_path / "model")
+    m2 = load_model(p)
+    for k in ("child", "level", "alpha", "app", "block_root"):
+        np.testing.assert_array_equal(getattr(m2, k), getattr(trained, k))
+    assert m2.geometry == trained.geometry
+    assert m2.params == trained.params
+    assert len(m2.history) == len(trained.history)
+    r1 = detect_change(trained, toy.test_image_b, toy.test_camera)
+    r2 = detect_change(m2, toy.test_image_b, toy.test_camera)
+    np.testing.assert_array_equal(r1.probability, r2.probability)
+    update_model(m2, toy.images[2], toy.cameras[2], name="again")
+    save_model(m2, p)
+    m3 = load_model(p)
+    assert m3.history[-1]["name"] == "again"
+    assert len(m3.history) == len(trained.history) + 1
+
+
+def test_cancel_mid_update_leaves_model_and_disk_untouched(toy, trained, tmp_path):
+    p = save_model(trained, tmp_path / "model")
+    m = load_model(p)
+    before = {k: getattr(m, k).copy() for k in ("child", "alpha", "app")}
+    calls = []
+
+    def cancel(f, msg=""):
+        calls.append(f)
+        if len(calls) > 1:
+            raise CancelledError("stop")
+
+    with pytest.raises(CancelledError):
+        update_model(m, toy.images[0], toy.cameras[0], progress=cancel)
+    for k, v in before.items():
+        np.testing.assert_array_equal(getattr(m, k), v)
+    assert len(m.history) == len(trained.history)
+
+
+def test_crash_while_saving_keeps_the_previous_model(toy, trained, tmp_path, monkeypatch):
+    p = save_model(trained, tmp_path / "model")
+    m = load_model(p)
+    update_model(m, toy.images[0], toy.cameras[0], name="lost")
+    import geocd.volume.io as vio
+
+    real_save = np.save
+    n = {"k": 0}
+
+    def failing_save(path, arr, **kw):
+        n["k"] += 1
+        if n["k"] == 3:
+            raise OSError("disk full (simulated)")
+        return real_save(path, arr, **kw)
+
+    monkeypatch.setattr(vio.np, "save", failing_save)
+    with pytest.raises(OSError):
+        save_model(m, p)
+    monkeypatch.setattr(vio.np, "save", real_save)
+    back = load_model(p)
+    assert len(back.history) == len(trained.history)
+    np.testing.assert_array_equal(back.alpha, trained.alpha)
+    assert not [f for f in p.parent.iterdir() if f.name.endswith(".part")]
+
+
+def test_bad_inputs_give_clear_errors(toy, trained):
+    # camera looking away from the volume (far to the east)
+    far = T.look_at_camera(0, 0)
+    d = far.to_dict()
+    d["position"] = [d["position"][0] + 5000.0, d["position"][1], d["position"][2]]
+    from geocd.camera import camera_from_dict
+
+    away = camera_from_dict(d)
+    with pytest.raises(NoOverlapError, match="does not see the volume"):
+        update_model(trained.copy(), toy.images[0], away)
+    # a camera whose rays are all NaN (NaN parameters got through a lenient reader)
+
+    class NaNCamera:
+        width, height = toy.cameras[0].width, toy.cameras[0].height
+
+        def localize(self, col, row, h):
+            return np.full(np.shape(col), np.nan), np.full(np.shape(col), np.nan)
+
+        def project(self, lon, lat, h):
+            return np.full(np.shape(lon), np.nan), np.full(np.shape(lon), np.nan)
+
+    with pytest.raises(CameraError, match="no finite viewing ray"):
+        update_model(trained.copy(), toy.images[0], NaNCamera())
+    # a frame camera with NaN parameters is refused by the camera itself
+    d = toy.cameras[0].to_dict()
+    d["position"] = [math.nan, d["position"][1], d["position"][2]]
+    with pytest.raises(CameraError):
+        camera_from_dict(d)
+    # image and camera sizes disagree
+    with pytest.raises(CameraError, match="pixels but its camera"):
+        update_model(trained.copy(), toy.images[0][:40], toy.cameras[0])
+    # a grid (or manifest) in another CRS than the model's
+    cx, cy = 500000.0, 4980000.0
+    other = AOIGrid.from_bounds(cx, cy, cx + 10, cy + 10, 1.0, "EPSG:32633")
+    with pytest.raises(CRSError, match="was built in"):
+        expected_height_map(trained, other)
+    # detection with a model that has seen nothing
+    fresh = VolumeModel.create(T.volume_geometry())
+    with pytest.raises(ProcessingError, match="no appearance"):
+        detect_change(fresh, toy.test_image_b, toy.test_camera)
+
+
+def test_sun_bins_and_relighting(toy):
+    geom = T.volume_geometry()
+    m = VolumeModel.create(geom, VolumeParams(n_bins=2))
+    sun_a = (135.0, 60.0)
+    for _ in range(2):
+        for c, im in zip(toy.cameras, toy.images):
+            update_model(m, im, c, sun=sun_a, supersample=2)
+    assert len(m.sun_bins) == 1 and m.sun_bins[0][2] == 2 * len(toy.cameras)
+    assert m.sun_bin((140.0, 58.0), create=False) == 0
+    res = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 45.0))
+    assert res.relight is not None and res.sun_offset_deg > 12
+    assert set(res.relight["fit"]) == {"lit>lit", "lit>shadow", "shadow>lit", "shadow>shadow"}
+    ok = ~res.unknown
+    assert roc_curve(res.probability, toy.change_mask_b, ok)[3] > 0.85
+    plain = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 45.0),
+                          params=DetectParams(relight=False))
+    assert plain.relight is None
