@@ -375,12 +375,19 @@ class ChangeParams:
         How several cross-epoch comparisons of a cell are combined: a cell is
         changed at level s when more than half ("majority"), all, or any of its
         observed comparisons exceed the curve at s, with a consistent sign.
+    min_region_cells : int
+        Changed cells in 8-connected groups (per sign) smaller than this are not
+        reported at that level (default 4 cells = 1 m² at 0.5 m, the same minimum
+        as the ``changes`` polygons and the simulator's truth mask).
     """
 
     confidences: tuple[float, ...] = (90.0, 95.0, 99.0)
     combine: str = "majority"
+    min_region_cells: int = 4
 
     def __post_init__(self) -> None:
+        if self.min_region_cells < 1:
+            raise ConfigError(f"min_region_cells must be ≥ 1, got {self.min_region_cells}")
         if self.combine not in ("majority", "all", "any"):
             raise ConfigError(f"combine must be majority, all or any, got {self.combine!r}")
         for c in self.confidences:
@@ -476,17 +483,38 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
             hit = (agree == nobs) & observed
         else:
             hit = agree > 0
-        conf = np.where(hit & observed, np.float32(lev), conf)
+        hit &= observed
+        if params.min_region_cells > 1:
+            hit = _drop_small(hit, sign, params.min_region_cells)
+        conf = np.where(hit, np.float32(lev), conf)
     change = np.where(observed, np.where(conf > 0, sign, 0), CHANGE_NODATA).astype(np.int8)
     return ChangeResult(dz_med.astype(np.float32), dt_med.astype(np.float32), score, conf, change, nobs,
                         grid=getattr(epoch_a[0], "grid", None), confidences=tuple(levels),
                         comparisons=[f"{p.name} vs {q.name}" for p, q in comps])
 
 
+def _drop_small(hit: np.ndarray, sign: np.ndarray, min_cells: int) -> np.ndarray:
+    """Remove 8-connected groups of same-sign hits smaller than ``min_cells``."""
+    from scipy import ndimage
+
+    out = np.zeros_like(hit)
+    for s in (1, -1):
+        lab, n = ndimage.label(hit & (sign == s), structure=np.ones((3, 3), bool))
+        if n == 0:
+            continue
+        size = np.bincount(lab.ravel())
+        keep = size >= min_cells
+        keep[0] = False
+        out |= keep[lab]
+    return out
+
+
 def naive_threshold(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], threshold: float,
-                    units: str = "dtilde", combine: str = "majority") -> np.ndarray:
+                    units: str = "dtilde", combine: str = "majority", min_region_cells: int = 4) -> np.ndarray:
     """The baseline the SRI paper compares against (its Fig. 1 c, d): |Δ̃| (or |Δz|) > threshold.
 
+    Comparisons are combined and small groups dropped exactly as in :func:`change_test`,
+    so the two differ only in the threshold. ``units``: "dtilde" (pixels of disparity) or "m".
     Returns a signed change mask (+1/−1/0, :data:`CHANGE_NODATA` unobserved).
     """
     comps = [(p, q) for p in epoch_a for q in epoch_b]
@@ -511,5 +539,9 @@ def naive_threshold(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLik
         hit = (votes == nobs) & (nobs > 0)
     else:
         hit = votes > 0
-    out = np.where(hit, np.sign(np.nan_to_num(dz_med)), 0).astype(np.int8)
+    sign = np.sign(np.nan_to_num(dz_med)).astype(np.int8)
+    hit &= (nobs > 0) & (sign != 0)
+    if min_region_cells > 1:
+        hit = _drop_small(hit, sign, min_region_cells)
+    out = np.where(hit, sign, 0).astype(np.int8)
     return np.where(nobs > 0, out, CHANGE_NODATA).astype(np.int8)
