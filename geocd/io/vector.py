@@ -58,6 +58,10 @@ def read_footprints(path: os.PathLike | str, crs: Any = None, layer: str | int |
     return gdf.reset_index(drop=True)
 
 
+#: GeoPackage 1.2: QGIS 3.22 (GDAL 3.6) warns that the 1.4 written by newer GDALs "may only be partially supported"
+_GPKG_OPTS = {"dataset_options": {"VERSION": "1.2"}}
+
+
 def _styles_frame(styles: Mapping[str, str], geometry_columns: Mapping[str, str]):
     import pandas as pd
 
@@ -94,11 +98,12 @@ def write_gpkg(path: os.PathLike | str, layers: Mapping[str, Any], *, styles: Ma
         for name, df in layers.items():
             if isinstance(df, gpd.GeoDataFrame):
                 geom_cols[name] = "geom"
-                pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", promote_to_multi=False)
+                pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", promote_to_multi=False, **_GPKG_OPTS)
             else:
-                pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG")
+                pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", **_GPKG_OPTS)
         if styles:
-            pyogrio.write_dataframe(_styles_frame(styles, geom_cols), tmp, layer="layer_styles", driver="GPKG")
+            pyogrio.write_dataframe(_styles_frame(styles, geom_cols), tmp, layer="layer_styles", driver="GPKG",
+                                    **_GPKG_OPTS)
     return Path(path)
 
 
