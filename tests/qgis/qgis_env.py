@@ -32,7 +32,7 @@ def geocd_executable() -> str:
 
 def require_qgis() -> None:
     if not QGIS_PROCESS.is_file():
-        pytest.skip(f"QGIS is not installed ({QGIS_PROCESS} is absent): run .ci/install_qgis.sh "
+        pytest.skip(f"QGIS is not installed ({QGIS_PROCESS} is absent): run .ci/install_system.sh "
                     "(apt-get install qgis python3-qgis) to run the QGIS plugin tests")
 
 

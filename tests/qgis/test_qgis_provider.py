@@ -1,6 +1,6 @@
 """The geocd Processing provider in real headless QGIS (qgis_process.bin and standalone PyQGIS; no mocks).
 
-Skipped with a reason when QGIS is not installed (.ci/install_qgis.sh installs it). geocd runs as the plugin's
+Skipped with a reason when QGIS is not installed (.ci/install_system.sh installs it). geocd runs as the plugin's
 child process from the environment running these tests (GEOCD_EXECUTABLE).
 """
 
