@@ -9,7 +9,8 @@ import click
 @click.argument("manifest", type=click.Path(path_type=str))
 @click.option("--variant", type=click.Choice(["objectspace", "keyframe"]), default="objectspace", show_default=True,
               help="objectspace: vertical rays on the AOI grid (satellites); keyframe: rays of a key frame's pixels.")
-@click.option("--key", default=None, help="Key-frame image name (keyframe variant; default: the first image of epoch A).")
+@click.option("--key", default=None,
+              help="Key-frame image name (keyframe variant; default: the first image of epoch A).")
 @click.option("--epoch-a", default=None, help="First epoch (default: the earliest).")
 @click.option("--epoch-b", default=None, help="Second epoch (default: the latest).")
 @click.option("--images-a", default=None, help="Comma-separated image names of epoch A to use (default: all).")
@@ -21,22 +22,25 @@ import click
                    "all pairs (see docs/probchange.md).")
 @click.option("--prior", "prior_change", type=float, default=None, help="Prior p(c=1) (default 0.5).")
 @click.option("--bins", "n_bins", type=int, default=None, help="Hypotheses per ray (default 128).")
-@click.option("--sigma", type=float, default=None, help="σ of the depth epoch (0-255 scale; default: estimated, §5.3.5).")
+@click.option("--sigma", type=float, default=None,
+              help="σ of the depth epoch (0-255 scale; default: estimated, §5.3.5).")
 @click.option("--sigma-prime", type=float, default=None, help="σ' of the other epoch (default: estimated).")
 @click.option("--threshold", type=float, default=None, help="Binary change where p > threshold (default 0.5).")
 @click.option("--pairs", type=click.Choice(["star", "consecutive", "all"]), default=None,
               help="Pairs within an epoch (default: star for thesis, all for robust).")
 @click.option("--symmetric/--no-symmetric", default=None, help="Also swap the epochs and combine (default: no).")
 @click.option("--height-range", nargs=2, type=float, default=None, metavar="MIN MAX",
-              help="Ellipsoidal height range of the hypotheses, metres (default: prior DEM − 5 / + 40 m, else cameras).")
-@click.option("--posting", "posting_m", type=float, default=None, help="Grid posting in metres (default: manifest aoi).")
+              help="Ellipsoidal height range of the hypotheses, metres (default: prior DEM − 5 / + 40 m, "
+                   "else cameras).")
+@click.option("--posting", "posting_m", type=float, default=None,
+              help="Grid posting in metres (default: manifest aoi).")
 @click.option("--prefix", default=None, help="File name prefix of the products (default probchange).")
 @click.pass_context
 def probchange(ctx: click.Context, manifest: str, variant: str, key: str | None, epoch_a: str | None,
                epoch_b: str | None, images_a: str | None, images_b: str | None, out_dir: str | None, model: str,
                prior_change: float | None, n_bins: int | None, sigma: float | None, sigma_prime: float | None,
-               threshold: float | None, pairs: str | None, symmetric: bool | None, height_range, posting_m: float | None,
-               prefix: str | None) -> None:
+               threshold: float | None, pairs: str | None, symmetric: bool | None, height_range,
+               posting_m: float | None, prefix: str | None) -> None:
     """Probability that the 3-D structure changed between two epochs of MANIFEST, never deciding the depth.
 
     Patches are compared only within an epoch (5x5 mean absolute differences), so a different sun or sensor

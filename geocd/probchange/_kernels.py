@@ -348,8 +348,8 @@ def lattice_to_pixels_ref(lat: np.ndarray, step: int, shape: tuple[int, int]) ->
         lat = np.hstack([lat, lat])
         rb = np.array([0.0, 1e9])
     f = RegularGridInterpolator((ra, rb), lat, method="linear", bounds_error=False, fill_value=None)
-    I, J = np.meshgrid(np.arange(shape[0], dtype=float), np.arange(shape[1], dtype=float), indexing="ij")
-    return f(np.stack([I.ravel(), J.ravel()], axis=1)).reshape(shape)
+    ii, jj = np.meshgrid(np.arange(shape[0], dtype=float), np.arange(shape[1], dtype=float), indexing="ij")
+    return f(np.stack([ii.ravel(), jj.ravel()], axis=1)).reshape(shape)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -161,7 +161,9 @@ def ray_hypotheses(key: Camera, ref_cameras: Sequence[Camera], col: np.ndarray, 
         count += ok
     with np.errstate(invalid="ignore", divide="ignore"):
         motion = motion / count
-    seg_mean = np.nanmean(np.where(np.isfinite(motion), motion, np.nan), axis=0) if motion.size else np.full(c.size, np.nan)
+    with np.errstate(all="ignore"):
+        seg_mean = np.nansum(np.where(np.isfinite(motion), motion, 0.0), axis=0) / np.maximum(
+            np.isfinite(motion).sum(axis=0), 1)
     seg_mean = np.where(np.isfinite(seg_mean) & (seg_mean > 0), seg_mean, 1.0)
     motion = np.where(np.isfinite(motion) & (motion > 0), motion, seg_mean[None])
     cum = np.vstack([np.zeros((1, c.size)), np.cumsum(motion, axis=0)])
@@ -315,18 +317,18 @@ class _KeySweep:
         jj = np.arange(s // 2, shape[1], s)
         if ii.size == 0 or jj.size == 0:
             return 0.0
-        I, J = np.meshgrid(ii, jj, indexing="ij")
+        II, JJ = np.meshgrid(ii, jj, indexing="ij")
         err = 0.0
         n = Hn.shape[0]
         for d in sorted({0, n // 2, n - 1}):
-            hp = self.interpolated(Hn[d], shape)[I, J]
-            cp = (tile.outer[1].start + J + 0.5 + self.ox).astype(np.float64)
-            rp = (tile.outer[0].start + I + 0.5 + self.oy).astype(np.float64)
+            hp = self.interpolated(Hn[d], shape)[II, JJ]
+            cp = (tile.outer[1].start + JJ + 0.5 + self.ox).astype(np.float64)
+            rp = (tile.outer[0].start + II + 0.5 + self.oy).astype(np.float64)
             exact = self.node_projections(cp, rp, hp)
             approx = self.node_projections(C, R, Hn[d])
             for (ec, er), (ac, ar) in zip(exact, approx):
-                ic = self.interpolated(ac, shape)[I, J]
-                ir = self.interpolated(ar, shape)[I, J]
+                ic = self.interpolated(ac, shape)[II, JJ]
+                ir = self.interpolated(ar, shape)[II, JJ]
                 e = np.hypot(ic - ec, ir - er)
                 e = e[np.isfinite(e)]
                 if e.size:

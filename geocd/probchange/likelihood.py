@@ -67,7 +67,8 @@ def fit_half_laplace(samples: np.ndarray, quantile: float = 0.95) -> float:
     s = s[np.isfinite(s) & (s >= 0)]
     if s.size < 50:
         raise ProcessingError(f"only {s.size} patch dissimilarities to estimate σ from (≥ 50 needed): the images of "
-                              "the epoch hardly overlap over the area; check the AOI/key frame or give sigma explicitly")
+                              "the epoch hardly overlap over the area; check the AOI/key frame or give sigma "
+                              "explicitly")
     c = 1.0
     if quantile < 1.0:
         s = s[s <= np.quantile(s, quantile)]
@@ -80,7 +81,8 @@ def uniform_range(samples: np.ndarray, quantile: float = 0.99) -> float:
     s = np.asarray(samples, np.float64)
     s = s[np.isfinite(s)]
     if s.size < 50:
-        raise ProcessingError("too few patch dissimilarities to estimate the uniform range; give uniform_range explicitly")
+        raise ProcessingError("too few patch dissimilarities to estimate the uniform range; give uniform_range "
+                              "explicitly")
     return float(max(np.quantile(s, quantile), 1e-3))
 
 

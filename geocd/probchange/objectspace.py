@@ -76,7 +76,7 @@ class ProbChangeResult:
         return self.observed & (np.nan_to_num(self.probability, nan=0.0) > t)
 
     def change_mask(self, threshold: float | None = None, nodata: int = -128) -> np.ndarray:
-        """int8: +1 changed and higher in B (or direction unknown), −1 changed and lower, 0 not, ``nodata`` unobserved."""
+        """int8: +1 changed, higher in B (or direction unknown); −1 changed, lower; 0 not; ``nodata`` unobserved."""
         ch = self.changed(threshold)
         dz = self.dz_m
         sign = np.where(np.nan_to_num(dz, nan=0.0) < 0, -1, 1)

@@ -168,7 +168,8 @@ class ProbChangeParams:
         if self.height_range_m is not None:
             lo, hi = (float(v) for v in self.height_range_m)
             if not hi > lo:
-                raise ConfigError(f"height range {self.height_range_m} is empty; give (min, max) with max > min (metres)")
+                raise ConfigError(f"height range {self.height_range_m} is empty; give (min, max) with max > min "
+                                  "(metres)")
             object.__setattr__(self, "height_range_m", (lo, hi))
         if self.height_below_m < 0 or self.height_above_m < 0 or self.height_below_m + self.height_above_m <= 0:
             raise ConfigError("height_below_m and height_above_m must be ≥ 0 and not both 0")

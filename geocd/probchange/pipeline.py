@@ -168,7 +168,8 @@ def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = 
                 box = image_window_for_grid(im.camera, grid, lo_v, hi_v, margin, W, H)
                 if box is None:
                     raise NoOverlapError(f"image {im.name!r} of epoch {e!r} does not see the AOI {grid.bounds} at "
-                                         f"heights {lo_v:.0f}..{hi_v:.0f} m; drop it (--images-{'a' if e == ea.name else 'b'}) "
+                                         f"heights {lo_v:.0f}..{hi_v:.0f} m; drop it "
+                                         f"(--images-{'a' if e == ea.name else 'b'}) "
                                          "or check its camera")
                 views[e].append(read_view(im, box, params))
         res = detect_objectspace(views[ea.name], views[eb.name], grid, dem=dem_grid, params=params,

@@ -44,7 +44,8 @@ def probability_qml(band: int = 1) -> str:
     <rasterrenderer type="singlebandpseudocolor" band="{band}" opacity="1" alphaBand="-1" nodataColor="">
       <rasterTransparency/>
       <rastershader>
-        <colorrampshader colorRampType="DISCRETE" classificationMode="1" minimumValue="0" maximumValue="1" clip="0" labelPrecision="2">
+        <colorrampshader colorRampType="DISCRETE" classificationMode="1" minimumValue="0" maximumValue="1"
+                         clip="0" labelPrecision="2">
 {rows}
         </colorrampshader>
       </rastershader>
