@@ -80,8 +80,8 @@ def difference_score(test: np.ndarray, ref_warped: np.ndarray) -> np.ndarray:
 def carlotto_score(test: np.ndarray, ref_warped: np.ndarray, bins: int = 64) -> np.ndarray:
     """Residual of the joint-histogram predictor ``E[test | ref]`` in conditional standard deviations."""
     ok = np.isfinite(test) & np.isfinite(ref_warped)
-    k = np.clip((ref_warped * bins).astype(int), 0, bins - 1)
-    k[~ok] = 0
+    k = np.zeros(test.shape, dtype=int)
+    k[ok] = np.clip((ref_warped[ok] * bins).astype(int), 0, bins - 1)
     n = np.bincount(k[ok], minlength=bins).astype(float)
     s1 = np.bincount(k[ok], weights=test[ok], minlength=bins)
     s2 = np.bincount(k[ok], weights=test[ok] ** 2, minlength=bins)

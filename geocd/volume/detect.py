@@ -199,7 +199,7 @@ def aggregate_log_odds(probability: np.ndarray, size_px: int) -> np.ndarray:
     den = uniform_filter(ok.astype(np.float64), size_px, mode="constant")
     with np.errstate(invalid="ignore", divide="ignore"):
         m = num / den
-    out = 1.0 / (1.0 + np.exp(-m))
+    out = 1.0 / (1.0 + np.exp(-np.clip(m, -50.0, 50.0)))
     out[den <= 0] = np.nan
     out[~ok] = np.nan
     return out.astype(np.float32)

@@ -41,7 +41,7 @@ from .baseline import (carlotto_score, difference_score, edge_zone, first_surfac
                        warp_reference)
 from .detect import aggregate_log_odds
 from .io import geometry_from_manifest, read_view
-from .prior import seed_from_dem
+from .prior import DEMPrior, seed_from_dem
 from .scene import geometry_for_aoi
 
 
@@ -53,6 +53,8 @@ class TrainConfig:
     init_depth: int = 1
     above_m: float = 30.0
     dem_prior: bool = True
+    ground_band_m: float = 0.5
+    ground_p: float = 0.3
     seed: int = 0
 
 
@@ -62,7 +64,7 @@ def train(views: list, geom, grid: AOIGrid, dem_m: np.ndarray | None, cfg: Train
     params = VolumeParams(refine=not fixed_grid)
     model = VolumeModel.create(geom, params, init_depth=geom.max_depth if fixed_grid else cfg.init_depth)
     if cfg.dem_prior and dem_m is not None:
-        seed_from_dem(model, dem_m, grid)
+        seed_from_dem(model, dem_m, grid, DEMPrior(ground_band_m=cfg.ground_band_m, ground_p=cfg.ground_p))
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
     segs = 0
@@ -385,8 +387,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--subarea", type=float, default=150.0, help="side of the octree/grid comparison area (m)")
     ap.add_argument("--no-grid", action="store_true")
     ap.add_argument("--no-dem-prior", action="store_true")
+    ap.add_argument("--ground-band", type=float, default=0.5, help="DEM prior: ground band half-height (m)")
+    ap.add_argument("--ground-p", type=float, default=0.3, help="DEM prior: occlusion probability per finest cell")
     a = ap.parse_args(argv)
-    cfg = TrainConfig(passes=a.passes, finest_cell_m=a.finest, dem_prior=not a.no_dem_prior)
+    cfg = TrainConfig(passes=a.passes, finest_cell_m=a.finest, dem_prior=not a.no_dem_prior,
+                      ground_band_m=a.ground_band, ground_p=a.ground_p)
     t0 = time.perf_counter()
     res = evaluate(a.scene, a.out, a.work, holdout=a.holdout, cfg=cfg, subarea_m=a.subarea, do_grid=not a.no_grid,
                    log=lambda m: print(m, flush=True))
