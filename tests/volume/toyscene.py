@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from geocd.camera.frame import FrameCamera, rotation_to_opk
-from geocd.geodesy import AOIGrid, LocalFrame, from_lonlat, to_lonlat
+from geocd.geodesy import AOIGrid, LocalFrame, from_lonlat
 from geocd.volume import geometry_for_aoi
 from geocd.volume.rays import pixel_rays
 
