@@ -203,39 +203,142 @@ def ventoux(params: StereoParams = StereoParams()) -> dict:
     return res
 
 
+def visibility(cam, grid: AOIGrid, dsm: np.ndarray, tol_m: float = 0.3, step_m: float = 0.25) -> np.ndarray:
+    """Cells of ``grid`` whose surface point (``dsm``) the camera sees: inside the image and not occluded.
+
+    Marches each cell's line of sight towards the camera (``X − A·t`` at height ``z + t``, with
+    ``A = (∂u/∂(x,y))⁻¹ ∂u/∂z`` the local relief displacement) and checks that the DSM stays
+    below it.
+    """
+    from scipy import ndimage
+
+    x, y = grid.xy()
+    z = np.where(np.isfinite(dsm), dsm, np.nanmin(dsm)).astype(np.float64)
+    pr = cam.ground_projector(x, y, grid.crs)
+    c, r = pr.project(z)
+    inside = (c >= 0) & (r >= 0) & (c < cam.width) & (r < cam.height)
+    cx, rx = cam.ground_projector(x + 1.0, y, grid.crs).project(z)
+    cy, ry = cam.ground_projector(x, y + 1.0, grid.crs).project(z)
+    dc, dr = pr.dproj_dh(z)
+    a11, a12, a21, a22 = cx - c, cy - c, rx - r, ry - r
+    det = a11 * a22 - a12 * a21
+    Ax = (a22 * dc - a12 * dr) / det
+    Ay = (-a21 * dc + a11 * dr) / det
+    seen = inside.copy()
+    top = float(np.nanmax(dsm))
+    for t in np.arange(step_m, top - float(np.nanmin(z)) + 2 * step_m, step_m):
+        active = seen & (z + t <= top + step_m)
+        if not active.any():
+            break
+        rr, cc = grid.rowcol(x[active] - Ax[active] * t, y[active] - Ay[active] * t)
+        h = ndimage.map_coordinates(dsm, [rr - 0.5, cc - 0.5], order=1, mode="nearest")
+        blocked = h > z[active] + t + tol_m
+        idx = np.flatnonzero(active)
+        seen.flat[idx[blocked]] = False
+    return seen
+
+
 def sample(params: StereoParams = StereoParams()) -> dict:
     """sample_aoi: every pair of every epoch vs the truth DSM of its epoch."""
     from geocd.io.manifest import load_manifest
     from geocd.io.raster import read_dem
-    from geocd.stereo.pipeline import run_stereo
+    from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images
 
     m = load_manifest(REPO / "sample_aoi" / "scene.yaml")
-    out = Path("/tmp/geocd_stereo_sample_out")
-    t0 = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        run = run_stereo(m, out_dir=out, params=params, keep_arrays=True)
-    wall = time.perf_counter() - t0
-    grid = run["grid"]
-    res: dict = {"wall_s_all_pairs": wall, "grid": f"{grid.width}x{grid.height} at {grid.posting_m} m"}
-    truth_keys = [k for k in m.truth if "dsm" in k.lower()]
-    for key, pd in run["pairs"].items():
-        ep = key.split("/")[0]
-        tk = next((k for k in truth_keys if ep.lower() in k.lower()), truth_keys[0] if truth_keys else None)
-        if tk is None:
-            continue
-        ref = read_dem(m.truth_path(tk), grid=grid).to_ellipsoidal().height_m.astype(np.float64)
-        both = pd.valid & np.isfinite(ref)
-        d = (pd.z_m - ref)[both]
-        vis_path = None
-        r_ = {"truth": tk, "median_abs_m": float(np.median(np.abs(d))), "median_dz_m": float(np.median(d)),
-              "nmad_m": nmad(d), "completeness_all": float(pd.valid.mean()), "flags": pd.flag_counts(),
-              "base_height": pd.meta["base_height_median"], "wall_s": pd.meta["wall_s"]}
-        r_["scores"] = score_table(pd, ref, 0.0)
-        res[key] = r_
-        print(key, {k: (round(x, 3) if isinstance(x, float) else x) for k, x in r_.items() if k != "scores"}, flush=True)
+    images = {e.name: load_epoch_images(m, e) for e in m.epochs}
+    grid = default_aoi_grid(m, images)
+    dem = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
+    sats = set(m.truth.get("satellite_images", []))
+    res: dict = {"grid": f"{grid.width}x{grid.height} at {grid.posting_m} m", "params": params.to_dict(), "pairs": {}}
+    pooled = []
+    for e in m.epochs:
+        truth = read_dem(m.truth_path(f"dsm_{e.name}"), grid=grid).height_m.astype(np.float64)
+        vis = {im.name: visibility(im.camera, grid, truth) for im in images[e.name]}
+        chips = {im.name: read_chip(im.path, im.camera, grid, float(np.nanmin(dem)) - 35, float(np.nanmax(dem)) + 35,
+                                    name=im.name, margin_px=40) for im in images[e.name]}
+        for a, b in itertools.combinations(images[e.name], 2):
+            kind = {2: "satellite-satellite", 0: "aerial-aerial", 1: "satellite-aerial"}[(a.name in sats) + (b.name in sats)]
+            t0 = time.perf_counter()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                pd = match_pair(chips[a.name], chips[b.name], a.camera, b.camera, grid, dem=dem, params=params,
+                                epoch=e.name)
+            wall = time.perf_counter() - t0
+            both_vis = vis[a.name] & vis[b.name]
+            d = (pd.z_m - truth)[pd.valid]
+            r_ = {"kind": kind, "median_abs_m": float(np.median(np.abs(d))), "median_dz_m": float(np.median(d)),
+                  "nmad_m": nmad(d), "frac_abs_gt_1m": float(np.mean(np.abs(d) > 1.0)),
+                  "completeness_visible_both": float(pd.valid[both_vis].mean()),
+                  "visible_both_fraction": float(both_vis.mean()), "completeness_all": float(pd.valid.mean()),
+                  "base_height": pd.meta["base_height_median"], "g_median_px_per_m": pd.meta["g_median_px_per_m"],
+                  "pointing_px": pd.meta.get("pointing", {}).get("total_shift_px"), "wall_s": wall,
+                  "evaluations": pd.meta["evaluations"], "flags": pd.flag_counts()}
+            res["pairs"][f"{e.name}/{a.name}__{b.name}"] = r_
+            print(f"{e.name}/{a.name}__{b.name}", {k: (round(x, 3) if isinstance(x, float) else x) for k, x in r_.items()
+                                                   if k != "flags"}, flush=True)
+            v = pd.valid & np.isfinite(truth)
+            pooled.append(np.stack([pd.score[v], 1.0 - pd.ncc[v], pd.ssd[v], np.abs(pd.z_m - truth)[v]]))
+            if (e.name, a.name, b.name) in (("A", "A_sat2", "A_sat3"), ("A", "A_air1", "A_air2"), ("A", "A_sat1", "A_air2")):
+                lo_v, hi_v = np.nanpercentile(truth, [1, 99])
+                quicklook(DOCS / f"stereo_sample_{a.name}__{b.name}.png", [
+                    ("truth DSM A (m)", truth, {"vmin": lo_v, "vmax": hi_v, "cmap": "terrain"}),
+                    ("geocd z (valid)", pd.z_m, {"vmin": lo_v, "vmax": hi_v, "cmap": "terrain"}),
+                    ("z − truth (m)", pd.z_m - truth, {"vmin": -2, "vmax": 2, "cmap": "RdBu_r"}),
+                    ("MDL score (bits/px)", pd.score, {"vmin": -3, "vmax": 0, "cmap": "viridis_r"}),
+                ], f"sample_aoi {kind} {a.name}/{b.name}: median |dz| {r_['median_abs_m']:.2f} m, "
+                   f"completeness (visible in both) {r_['completeness_visible_both']:.1%}")
+    # summaries per kind
+    summ = {}
+    for kind in ("satellite-satellite", "aerial-aerial", "satellite-aerial"):
+        rs = [r for r in res["pairs"].values() if r["kind"] == kind]
+        if rs:
+            summ[kind] = {"pairs": len(rs),
+                          "median_abs_m (median over pairs)": float(np.median([r["median_abs_m"] for r in rs])),
+                          "worst median_abs_m": float(max(r["median_abs_m"] for r in rs)),
+                          "completeness_visible_both (median)": float(np.median([r["completeness_visible_both"] for r in rs])),
+                          "worst completeness_visible_both": float(min(r["completeness_visible_both"] for r in rs))}
+    res["summary"] = summ
+    # score informativeness, pooled over every pair: fraction of valid matches with |Δz| > 1 m per score decile
+    P = np.concatenate(pooled, axis=1)
+    err = P[3] > 1.0
+    table = {}
+    from scipy.stats import mannwhitneyu
+
+    for i, name in enumerate(("mdl", "1-ncc", "ssd")):
+        v = P[i]
+        ok = np.isfinite(v)
+        edges = np.quantile(v[ok], np.linspace(0, 1, 11))
+        idx = np.clip(np.searchsorted(edges, v[ok], side="right") - 1, 0, 9)
+        frac = [float(err[ok][idx == k].mean()) for k in range(10)]
+        b = err[ok]
+        auc = float(mannwhitneyu(v[ok][b], v[ok][~b]).statistic / (b.sum() * (~b).sum()))
+        table[name] = {"edges": [float(x) for x in edges], "frac_abs_dz_gt_1m": frac, "auc": auc,
+                       "non_decreasing_steps": f"{sum(1 for x, y in zip(frac, frac[1:]) if y >= x)}/9"}
+        print(name, "AUC", round(auc, 3), "frac>1m by decile", [round(f, 3) for f in frac])
+    res["score_informativeness"] = table
+    res["pooled_matches"] = int(P.shape[1])
+    _score_plot(table, DOCS / "stereo_sample_scores.png")
     (DOCS / "stereo_sample.json").write_text(json.dumps(res, indent=1))
     return res
+
+
+def _score_plot(table: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, t in table.items():
+        ax.plot(np.arange(1, 11), 100 * np.array(t["frac_abs_dz_gt_1m"]), "o-", label=f"{name} (AUC {t['auc']:.2f})")
+    ax.set_xlabel("score decile (1 = best scores)")
+    ax.set_ylabel("% of valid matches with |z − truth| > 1 m")
+    ax.set_title("sample_aoi, all pairs pooled")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

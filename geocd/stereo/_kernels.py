@@ -230,6 +230,70 @@ def box_moments_ref(a: np.ndarray, b: np.ndarray, r: int) -> np.ndarray:
     return out
 
 
+@njit(cache=True, parallel=True)
+def box_mean(x, r, out, count, work):
+    """Mean of the valid (finite) values of ``x`` over ``(2r+1)²`` windows, by running sums.
+
+    Parameters
+    ----------
+    x : float32 or float64 (h, w), NaN = invalid
+    out : float64 (h, w), written (NaN where the window holds no valid value)
+    count : float64 (h, w), written: valid values per window
+    work : float64 (2, h, w), scratch
+    """
+    h, w = x.shape
+    for i in prange(h):
+        s = 0.0
+        n = 0.0
+        for j in range(min(r, w)):
+            v = np.float64(x[i, j])
+            if v == v:
+                s += v
+                n += 1.0
+        for j in range(w):
+            jin = j + r
+            if jin < w:
+                v = np.float64(x[i, jin])
+                if v == v:
+                    s += v
+                    n += 1.0
+            jout = j - r - 1
+            if jout >= 0:
+                v = np.float64(x[i, jout])
+                if v == v:
+                    s -= v
+                    n -= 1.0
+            work[0, i, j] = s
+            work[1, i, j] = n
+    for j in prange(w):
+        s = 0.0
+        n = 0.0
+        for i in range(min(r, h)):
+            s += work[0, i, j]
+            n += work[1, i, j]
+        for i in range(h):
+            iin = i + r
+            iout = i - r - 1
+            if iin < h:
+                s += work[0, iin, j]
+                n += work[1, iin, j]
+            if iout >= 0:
+                s -= work[0, iout, j]
+                n -= work[1, iout, j]
+            count[i, j] = n
+            out[i, j] = s / n if n > 0.5 else np.nan
+
+
+def box_mean_ref(x: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+    """numpy reference of :func:`box_mean`: (mean, count)."""
+    ok = np.isfinite(x)
+    m = box_moments_ref(np.where(ok, x, np.nan).astype(np.float64), np.zeros_like(x, np.float64), r)
+    n = m[0]
+    with np.errstate(all="ignore"):
+        mean = np.where(n > 0.5, m[1] / n, np.nan)
+    return mean, n
+
+
 # ---------------------------------------------------------------------------------------------
 # the sweep state: best / second-best local minima of the cost along k
 # ---------------------------------------------------------------------------------------------

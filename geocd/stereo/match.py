@@ -183,7 +183,8 @@ _PLANES = {"best_c": K.BEST_C, "best_k": K.BEST_K, "best_cm": K.BEST_CM, "best_c
 
 def sweep_ncc(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camera], search: HeightSearch,
               params: StereoParams, *, noise_sigma: float, excl_steps: float,
-              progress: Progress | None = None, prefix: str = "") -> tuple[dict[str, np.ndarray], int]:
+              progress: Progress | None = None, prefix: str = "",
+              lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict[str, np.ndarray], int]:
     """Sweep the heights of ``search`` and keep, per cell, the best NCC match.
 
     Returns
@@ -198,7 +199,7 @@ def sweep_ncc(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camer
     r = params.radius
     min_n = float(math.ceil(params.min_valid_fraction * params.window ** 2))
     eps = float(noise_sigma) ** 2
-    sweep = PlaneSweep(grid, chips[:2], cameras[:2], search, tile_size=params.tile_size, margin=r)
+    sweep = PlaneSweep(grid, chips[:2], cameras[:2], search, tile_size=params.tile_size, margin=r, lonlat=lonlat)
     out = {k: np.full(grid.shape, np.nan) for k in _PLANES}
     out["best_k"][:] = -1
     for tile in sweep.tiles():
@@ -330,24 +331,36 @@ def _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
         n = int(np.floor(params.max_pointing_px / d))
         offsets = [k * d for k in range(-n, n + 1)]
 
-    def run(search, off, pfx):
-        cb = chips[1].shifted(*(off * normal)) if off else chips[1]
-        cl = [chips[0].blurred(blur[0]), cb.blurred(blur[1])]
-        return sweep_ncc(g_l, cl, cams, search, params, noise_sigma=sig, excl_steps=excl_steps, progress=progress,
-                         prefix=pfx)
+    blurred = [chips[0].blurred(blur[0]), chips[1].blurred(blur[1])]
+
+    def run(grid_, search, off, pfx):
+        cb = blurred[1].shifted(*(off * normal)) if off else blurred[1]
+        return sweep_ncc(grid_, [blurred[0], cb], cams, search, params, noise_sigma=sig, excl_steps=excl_steps,
+                         progress=progress, prefix=pfx)
 
     search = HeightSearch(lo_l, hi_l, step_l)
-    best = None
-    scores = []
-    for off in offsets:
-        planes, ev = run(search, off, f"{prefix}offset {off:+.1f} px ")
-        evaluations += ev
-        c = planes["best_c"]
-        q = float(np.median(1.0 - c[np.isfinite(c)])) if np.isfinite(c).any() else -np.inf
-        scores.append(q)
-        if best is None or q > best[0]:
-            best = (q, off, planes)
-    _, off, planes = best
+    off = 0.0
+    if len(offsets) > 1:
+        # the offset is one number for the pair: a central block of the coarse grid is enough to find it
+        H, W = g_l.shape
+        n = 96
+        r0, c0 = max(0, (H - n) // 2), max(0, (W - n) // 2)
+        sg = g_l.subgrid(r0, c0, min(n, H), min(n, W))
+        ss = HeightSearch(lo_l[r0:r0 + sg.height, c0:c0 + sg.width], hi_l[r0:r0 + sg.height, c0:c0 + sg.width], step_l,
+                          search.origin_m)
+        best = None
+        scores = []
+        for o in offsets:
+            pl, ev = run(sg, ss, o, f"{prefix}pointing offset {o:+.1f} px ")
+            evaluations += ev
+            c = pl["best_c"]
+            q = float(np.median(1.0 - c[np.isfinite(c)])) if np.isfinite(c).any() else -np.inf
+            scores.append(q)
+            if best is None or q > best[0]:
+                best = (q, o)
+        off = best[1]
+    planes, ev = run(g_l, search, off, prefix)
+    evaluations += ev
     if len(offsets) > 1:
         i = offsets.index(off)
         if 0 < i < len(offsets) - 1:
@@ -365,8 +378,8 @@ def _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
         hi = np.minimum(hi, iv[1])
         bad = ~(hi > lo)
         lo, hi = np.where(bad, iv[0], lo), np.where(bad, iv[1], hi)
-        planes, ev = run(HeightSearch(_block_reduce(lo, f, np.min), _block_reduce(hi, f, np.max), step_l),
-                         float(off) if len(offsets) > 1 else 0.0, f"{prefix}narrowed ")
+        planes, ev = run(g_l, HeightSearch(_block_reduce(lo, f, np.min), _block_reduce(hi, f, np.max), step_l),
+                         float(off), f"{prefix}narrowed ")
         evaluations += ev
     return planes, lo, hi, evaluations, info
 
@@ -392,7 +405,7 @@ def _block_reduce(a: np.ndarray, f: int, fn) -> np.ndarray:
 
 def refine_search(planes: dict[str, np.ndarray], lo_f: np.ndarray, hi_f: np.ndarray, factor: int,
                   step_coarse: float, step_fine: float, params: StereoParams) -> HeightSearch:
-    """Narrow the fine level's search around a coarse level's heights (3×3 min/max ± margin)."""
+    """Narrow the fine level's search around a coarse level's heights (5×5 min/max ± margin)."""
     z = planes["z_raw"]
     usable = np.isfinite(z) & (planes["best_c"] < 0.8)
     if not usable.any():
@@ -400,7 +413,7 @@ def refine_search(planes: dict[str, np.ndarray], lo_f: np.ndarray, hi_f: np.ndar
     zf = _fill_nearest(np.where(usable, z, np.nan))
     zf = ndimage.median_filter(zf, size=3, mode="nearest")
     m = params.refine_margin_steps * step_coarse
-    w = 3
+    w = 5
     lo_c = ndimage.minimum_filter(zf, size=w, mode="nearest") - m
     hi_c = ndimage.maximum_filter(zf, size=w, mode="nearest") + m
     lo = np.maximum(upsample_nearest(lo_c, factor, lo_f.shape), lo_f)
@@ -498,6 +511,7 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
         dem = np.pad(dem_on_grid(dem, out_grid), pad, mode="edge")
     lo, hi, source = height_bounds(grid, cams, dem, params)
     geo = pair_geometry(grid, cams, chips, lo, hi)
+    lonlat = grid.lonlat()          # one CRS transform of the (padded) grid for the whole match
     sig = params.noise_sigma
     if sig is None:
         s = [c.noise_sigma for c in chips if np.isfinite(c.noise_sigma)]
@@ -528,26 +542,27 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
     while (k0 / 2 ** level > params.max_heights
            and min(grid.shape) / 2 ** (level + 1) >= 4 * params.window):
         level += 1
+    level_needed = level
     if params.pointing_correction and level < 2:
-        # the pointing correction needs an approximate surface: a coarse pass gives it
+        # the pointing correction needs an approximate surface: a coarse pass gives it (it does not
+        # narrow the fine search: only the levels the range needs do)
         while level < 2 and min(grid.shape) / 2 ** (level + 1) >= 4 * params.window:
             level += 1
+    order = [level] + [L for L in range(level - 1, -1, -1) if L <= level_needed]
     pointing: dict[str, Any] = {"applied": False}
     evaluations = 0
     planes = None
-    n_levels = level + 1
-    for L in range(level, -1, -1):
+    n_levels = len(order)
+    for i, L in enumerate(order):
         f = 2 ** L
         g_l = coarse_grid(grid, f)
         step_l = step0 * f
         lo_l = _block_reduce(lo, f, np.min)
         hi_l = _block_reduce(hi, f, np.max)
         blur = [max(1, int(round(g_l.posting_m * rho))) for rho in geo["rho"]]
-        p_lo = 0.9 * (n_levels - 1 - L) / n_levels
-        p_hi = 0.9 * (n_levels - L) / n_levels
-        sub = sub_progress(prog, p_lo, p_hi)
+        sub = sub_progress(prog, 0.9 * i / n_levels, 0.9 * (i + 1) / n_levels)
         prefix = f"{name}: level {L} ({g_l.posting_m:g} m) "
-        if L == level and L > 0:
+        if i == 0 and L > 0:
             planes, lo, hi, ev, info = _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
                                                       excl_steps, sub, prefix)
             evaluations += ev
@@ -560,15 +575,17 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
                 if pointing["applied"]:
                     chips[1] = chips[1].shifted(pointing["dcol"], pointing["drow"])
                 pointing["total_shift_px"] = list(chips[1].shift)
+            if L > level_needed:
+                planes = None      # this pass was for the pointing only
             continue
         search = (HeightSearch(lo_l, hi_l, step_l) if planes is None
                   else refine_search(planes, lo_l, hi_l, 2, step_l * 2, step_l, params))
         chips_l = [c.blurred(b) for c, b in zip(chips, blur)]
         planes, ev = sweep_ncc(g_l, chips_l, cams, search, params, noise_sigma=sig, excl_steps=excl_steps,
-                               progress=sub, prefix=prefix)
+                               progress=sub, prefix=prefix, lonlat=lonlat if L == 0 else None)
         evaluations += ev
     prog(0.92, f"{name}: scores and checks")
-    out = _finalize(grid, cams, chips, planes, search, params, sig, geo, lo, hi)
+    out = _finalize(grid, cams, chips, planes, search, params, sig, geo, lo, hi, lonlat)
     out = {k: _crop(v, pad) for k, v in out.items()}
     grid = out_grid
     meta.update(step_m=step0, levels=n_levels, evaluations=evaluations, excl_steps=excl_steps, pointing=pointing,
@@ -577,29 +594,31 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
     return PairDEM(grid=grid, name=name, camera_names=names, epoch=epoch, meta=meta, **out)
 
 
-def _g_field(grid: AOIGrid, cams: Sequence[Camera], z: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+def _g_field(grid: AOIGrid, cams: Sequence[Camera], z: np.ndarray,
+             lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
     """g = ‖J_a − J_b‖ on the grid at heights z, and |J| per camera (px/m)."""
-    x, y = grid.xy()
+    lon, lat = lonlat if lonlat is not None else grid.lonlat()
     J = []
     for cam in cams:
-        dc, dr = cam.ground_projector(x, y, grid.crs).dproj_dh(z)
+        dc, dr = cam.ground_projector(lon, lat, None).dproj_dh(z)
         J.append((dc, dr))
     g = np.hypot(J[0][0] - J[1][0], J[0][1] - J[1][1])
     return g, [np.hypot(*j) for j in J]
 
 
 def occlusion_mask(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageChip], z: np.ndarray,
-                   cost: np.ndarray, tol_m: Sequence[np.ndarray]) -> np.ndarray:
+                   cost: np.ndarray, tol_m: Sequence[np.ndarray],
+                   lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Cells that lose an image pixel to a better-matched cell at another height (see ``zbuffer_occluded``)."""
     ok = np.isfinite(z)
     occ = np.zeros(grid.shape, bool)
     if not ok.any():
         return occ
-    x, y = grid.xy()
-    xs, ys, zs = x[ok], y[ok], z[ok].astype(np.float64)
+    lon, lat = lonlat if lonlat is not None else grid.lonlat()
+    xs, ys, zs = lon[ok], lat[ok], z[ok].astype(np.float64)
     cs = np.ascontiguousarray(np.where(np.isfinite(cost[ok]), cost[ok], np.inf), np.float64)
     for cam, chip, tol in zip(cams, chips, tol_m):
-        c, r = cam.ground_projector(xs, ys, grid.crs).project(zs)
+        c, r = cam.ground_projector(xs, ys, None).project(zs)
         c = c + chip.shift[0]
         r = r + chip.shift[1]
         c0, r0, c1, r1 = chip.box
@@ -610,7 +629,8 @@ def occlusion_mask(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageC
     return occ
 
 
-def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: float, geo, lo, hi) -> dict[str, Any]:
+def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: float, geo, lo, hi,
+              lonlat=None) -> dict[str, Any]:
     k = planes["best_k"]
     has = k >= 0
     z_raw = planes["z_raw"]
@@ -628,13 +648,13 @@ def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: floa
         flags[has & ~(np.isfinite(planes["best_cm"]) & np.isfinite(planes["best_cp"]))] |= FLAGS["range_limit"]
         flags[has & ~(ncc >= params.min_ncc)] |= FLAGS["low_ncc"]
     z_eval = np.where(np.isfinite(z_raw), z_raw, 0.5 * (lo + hi))
-    g, jn = _g_field(grid, cams, z_eval)
+    g, jn = _g_field(grid, cams, z_eval, lonlat)
     rho = float(np.mean(geo["rho"]))
     flags[g / rho < params.min_base_height] |= FLAGS["weak_geometry"]
     if params.occlusion_check:
         cand = np.where(flags == 0, z_raw, np.nan)
         tol = [np.maximum(params.occlusion_tol_px / np.maximum(j, 1e-9), 2.0 * search.step_m) for j in jn]
-        flags[occlusion_mask(grid, cams, chips, cand, planes["best_c"], tol)] |= FLAGS["occluded"]
+        flags[occlusion_mask(grid, cams, chips, cand, planes["best_c"], tol, lonlat)] |= FLAGS["occluded"]
     valid = flags == 0
     f32 = np.float32
     return {"z_m": np.where(valid, z_raw, np.nan).astype(f32), "score": score.astype(f32),

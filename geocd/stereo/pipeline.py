@@ -298,6 +298,8 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
             span[k] = (min(old[0], float(np.min(lo))), max(old[1], float(np.max(hi))))
     for i, (e, a, b) in enumerate(pairs):
         key = f"{e.name}/{a.name}__{b.name}"
+        for k in [k for k in chips if k[0] != e.name]:   # one epoch's images in memory at a time
+            del chips[k]
         p = sub_progress(prog, i / len(pairs), (i + 1) / len(pairs), prefix=f"pair {i + 1}/{len(pairs)} ")
         for im in (a, b):
             if (e.name, im.name) not in chips:

@@ -276,10 +276,13 @@ class PlaneSweep:
         Cameras are evaluated exactly every few planes and projections are
         interpolated linearly in between when that stays within this many pixels
         (checked per tile at both ends of its range; 0 = project every plane).
+    lonlat : (lon, lat) arrays of the grid's cell centres, optional
+        Computed once here when not given (one CRS transform for the whole sweep).
     """
 
     def __init__(self, grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camera], search: HeightSearch,
-                 *, tile_size: int = 256, margin: int = 0, interp_tol_px: float = 0.01):
+                 *, tile_size: int = 256, margin: int = 0, interp_tol_px: float = 0.01,
+                 lonlat: tuple[np.ndarray, np.ndarray] | None = None):
         if len(chips) != len(cameras) or not chips:
             raise ValueError("PlaneSweep needs one camera per image chip, and at least one")
         if search.shape != grid.shape:
@@ -294,6 +297,11 @@ class PlaneSweep:
         self._kmin = search.kmin()
         self._kmax = search.kmax()
         self._tiles = iter_tiles(grid.shape, self.tile_size, self.margin)
+        if lonlat is None:
+            lonlat = grid.lonlat()
+        if lonlat[0].shape != grid.shape:
+            raise GridError(f"lon/lat arrays {lonlat[0].shape} do not match the grid {grid.shape}")
+        self._lonlat = lonlat
 
     def tiles(self) -> list[Tile]:
         return list(self._tiles)
@@ -324,9 +332,8 @@ class PlaneSweep:
 
     def projectors(self, tile: Tile) -> list:
         """Ground projectors of the tile's outer cell centres, one per camera."""
-        sub = self.grid.subgrid(tile.outer[0].start, tile.outer[1].start, *tile.outer_shape)
-        x, y = sub.xy()
-        return [cam.ground_projector(x, y, self.grid.crs) for cam in self.cameras]
+        lon, lat = (a[tile.outer] for a in self._lonlat)
+        return [cam.ground_projector(lon, lat, None) for cam in self.cameras]
 
     def interval(self, projs: list, k0: int, k1: int) -> int:
         """Planes between exact projections so linear interpolation errs < interp_tol_px."""
@@ -380,12 +387,33 @@ class PlaneSweep:
 
     def warp_at(self, height_m: np.ndarray) -> np.ndarray:
         """Every image warped onto the whole grid at given per-cell heights: float32 (N, rows, cols)."""
-        x, y = self.grid.xy()
+        lon, lat = self._lonlat
         out = np.empty((len(self.chips), *self.grid.shape), np.float32)
         for n, (chip, cam) in enumerate(zip(self.chips, self.cameras)):
-            col, row = cam.ground_projector(x, y, self.grid.crs).project(height_m)
+            col, row = cam.ground_projector(lon, lat, None).project(height_m)
             chip.warp(col, row, out=out[n])
         return out
+
+
+def window_mean(x: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of the finite values of ``x`` over ``(2·radius+1)²`` windows and their count.
+
+    O(cells) whatever the window (running sums, numba): the building block of any
+    per-height window cost plugged into a :class:`PlaneSweep` (e.g. the mean absolute
+    difference of two warped images: ``window_mean(abs(a − b), 2)``).
+
+    Returns
+    -------
+    mean : float64 (h, w), NaN where the window holds no finite value
+    count : float64 (h, w)
+    """
+    a = np.ascontiguousarray(x)
+    if a.dtype not in (np.float32, np.float64):
+        a = a.astype(np.float64)
+    out = np.empty(a.shape)
+    cnt = np.empty(a.shape)
+    K.box_mean(a, int(radius), out, cnt, np.empty((2, *a.shape)))
+    return out, cnt
 
 
 def sweep_progress(progress: Progress | None, tile: Tile, k: int, n_k: int, prefix: str = "") -> None:

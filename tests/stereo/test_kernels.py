@@ -183,3 +183,16 @@ def test_warp_lerp_equals_warp_of_interpolated_coordinates(rng):
     ref = K.warp_bilinear_ref(img, ca + 0.25 * (cb - ca) - 3.0, ra + 0.25 * (rb - ra) - 2.0)
     assert np.array_equal(np.isnan(out), np.isnan(ref))
     np.testing.assert_allclose(out[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-5, atol=1e-3)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_window_mean_matches_reference(rng, dtype):
+    from geocd.stereo import window_mean
+
+    x = rng.normal(0, 1, size=(29, 41)).astype(dtype)
+    x[rng.random(x.shape) < 0.1] = np.nan
+    x[:4, :4] = np.nan
+    m, n = window_mean(x, 2)
+    mr, nr = K.box_mean_ref(x, 2)
+    np.testing.assert_array_equal(n, nr)
+    np.testing.assert_allclose(m, mr, rtol=1e-9, atol=1e-9, equal_nan=True)

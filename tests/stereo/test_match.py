@@ -98,6 +98,10 @@ def test_photometry_handles_bit_depths_and_bands():
     # noise estimate of pure noise on a flat image
     flat = 100 + rng.normal(0, 3.0, (200, 200))
     assert estimate_noise_sigma(flat) == pytest.approx(3.0, rel=0.1)
+    # texture barely moves it (flat blocks dominate)
+    tex = flat.copy()
+    tex[:, :100] += 40 * np.sin(np.arange(100) / 1.5)
+    assert estimate_noise_sigma(tex) == pytest.approx(3.0, rel=0.15)
     # invalid pixels stay invalid
     v = np.ones(u16.shape, bool)
     v[:10] = False
@@ -120,3 +124,15 @@ def test_relative_pointing_error_is_corrected(scene, chips, pair_dem):
     off = match_pair(chips[0], chips[1], scene.cameras[0], biased, scene.grid,
                      params=StereoParams(pointing_correction=False))
     assert off.valid[scene.visible].mean() < pd.valid[scene.visible].mean() - 0.1
+
+
+def test_blur_does_not_shift_the_image():
+    from geocd.stereo.photometry import box_blur_nan
+
+    img = np.zeros((21, 21), np.float32)
+    img[10, 10] = 1.0
+    for size in (2, 3, 4, 8):
+        b = box_blur_nan(img, size)
+        r, c = np.nonzero(b > 0)
+        w = b[r, c]
+        assert np.average(r, weights=w) == pytest.approx(10.0) and np.average(c, weights=w) == pytest.approx(10.0)
