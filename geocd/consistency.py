@@ -17,6 +17,16 @@ The learned :class:`SelfConsistencyModel` keeps the full 2-D histogram
 recomputed from a saved model; curves are made non-decreasing in score
 (isotonic regression weighted by bin counts) and thin bins are merged.
 
+**Vertical alignment.** RPC biases that the matcher's pointing correction cannot
+see (their along-epipolar part) shift each pair-DEM vertically by a constant:
+metres between the pairs of the real Pléiades triplet, i.e. most of a pixel of
+disparity. Before comparing, every reconstruction is therefore shifted by the
+median height difference to a reference reconstruction over their common,
+well-matched cells (``align="vertical"``, the default; the median ignores a
+minority of changed cells). The reference is the given DEM when an epoch is a
+DEM, else the first reconstruction. This also removes a real, uniform change of
+the whole AOI (e.g. subsidence); use ``align="none"`` where that matters.
+
 A DEM standing for an epoch (LiDAR, last year's product) is a "pair-DEM" with
 ``g = ∞`` (no disparity error) and no score: Δ̃ then carries only the stereo
 side's uncertainty. This is an approximation — it treats the given DEM as exact
@@ -37,6 +47,8 @@ import numpy as np
 
 from .errors import ConfigError, GridError, ProcessingError
 from .progress import Progress, ensure_progress
+
+ALIGN_MODES = ("vertical", "none")
 
 #: log-spaced |Δ̃| histogram edges (pixels of disparity) used for every model
 DTILDE_EDGES = np.concatenate([[0.0], np.logspace(-3, 3, 241)])
@@ -89,11 +101,19 @@ class ConsistencyParams:
         Number of equal-count score bins (fewer when data are thin).
     min_bin_count : int
         Minimum match pairs per score bin; thinner bins are merged.
+    align : {"vertical", "none"}
+        Remove each reconstruction's constant vertical offset to the group's first one
+        (see the module notes).
     """
 
     confidences: tuple[float, ...] = (90.0, 95.0, 99.0)
     n_score_bins: int = 24
     min_bin_count: int = 200
+    align: str = "vertical"
+
+    def __post_init__(self) -> None:
+        if self.align not in ALIGN_MODES:
+            raise ConfigError(f"align must be one of {ALIGN_MODES}, got {self.align!r}")
 
 
 def match_pairs(p: PairDEMLike, q: PairDEMLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -132,6 +152,63 @@ def match_pairs(p: PairDEMLike, q: PairDEMLike) -> tuple[np.ndarray, np.ndarray,
     both &= np.isfinite(score)
     dt = np.where(both, dt, np.nan).astype(np.float32)
     return dt, np.where(both, score, np.nan).astype(np.float32), np.where(both, dz, np.nan).astype(np.float32), both
+
+
+class _Shifted:
+    """A reconstruction seen through a constant vertical shift (nothing copied but z)."""
+
+    def __init__(self, rec: PairDEMLike, offset_m: float):
+        self._rec = rec
+        self.offset_m = float(offset_m)
+        self.z_m = (np.asarray(rec.z_m, np.float32) - np.float32(offset_m)).astype(np.float32)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._rec, name)
+
+
+def vertical_offset(rec: PairDEMLike, ref: PairDEMLike, min_cells: int = 100) -> float:
+    """Median z_rec − z_ref over common valid cells, the better-scored half of them when scores exist.
+
+    Returns 0 when the two share fewer than ``min_cells`` cells.
+    """
+    both = (np.asarray(rec.valid, bool) & np.asarray(ref.valid, bool) & np.isfinite(rec.z_m) & np.isfinite(ref.z_m))
+    if both.sum() < min_cells:
+        return 0.0
+    dz = (np.asarray(rec.z_m, np.float64) - np.asarray(ref.z_m, np.float64))[both]
+    sc = np.fmax(np.asarray(rec.score, np.float64), np.asarray(ref.score, np.float64))[both]
+    if np.isfinite(sc).sum() >= 2 * min_cells:
+        good = np.isfinite(sc) & (sc <= np.nanmedian(sc))
+        dz = dz[good]
+    return float(np.median(dz))
+
+
+def align_reconstructions(recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None,
+                          mode: str = "vertical") -> tuple[list, dict[str, float]]:
+    """Shift reconstructions onto a common vertical reference.
+
+    Parameters
+    ----------
+    recs : reconstructions on one grid
+    reference : the reference (default: a :class:`DEMAsEpoch` among ``recs`` if any, else ``recs[0]``)
+    mode : "vertical" or "none"
+
+    Returns
+    -------
+    aligned : list of reconstructions (same order), offsets : {name: offset removed, m}
+    """
+    if mode not in ALIGN_MODES:
+        raise ConfigError(f"align must be one of {ALIGN_MODES}, got {mode!r}")
+    recs = list(recs)
+    if mode == "none" or len(recs) < 2:
+        return recs, {r.name: 0.0 for r in recs}
+    if reference is None:
+        reference = next((r for r in recs if isinstance(r, DEMAsEpoch)), recs[0])
+    out, offsets = [], {}
+    for r in recs:
+        off = 0.0 if r is reference else vertical_offset(r, reference)
+        offsets[r.name] = off
+        out.append(r if off == 0.0 else _Shifted(r, off))
+    return out, offsets
 
 
 def _quantile_from_hist(counts: np.ndarray, edges: np.ndarray, q: float) -> float:
@@ -325,7 +402,13 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
         possible): give a scene-class model instead (learned on another scene).
     """
     prog = ensure_progress(progress)
-    comps = [c for g in groups for c in comparisons_within(list(g))]
+    offsets: dict[str, float] = {}
+    aligned_groups = []
+    for g in groups:
+        ag, off = align_reconstructions(list(g), mode=params.align)
+        aligned_groups.append(ag)
+        offsets.update(off)
+    comps = [c for g in aligned_groups for c in comparisons_within(g)]
     if not comps:
         raise ProcessingError(
             "self-consistency needs at least two reconstructions of the same static scene (an epoch with 3 images "
@@ -351,6 +434,7 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
     prov.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
     prov.setdefault("comparisons", [f"{p.name} vs {q.name}" for p, q in comps])
     prov.setdefault("n_match_pairs", int(adt.size))
+    prov.setdefault("alignment", {"mode": params.align, "vertical_offsets_m": {k: round(v, 4) for k, v in offsets.items()}})
     from . import __version__
 
     prov.setdefault("geocd_version", __version__)
@@ -379,13 +463,19 @@ class ChangeParams:
         Changed cells in 8-connected groups (per sign) smaller than this are not
         reported at that level (default 4 cells = 1 m² at 0.5 m, the same minimum
         as the ``changes`` polygons and the simulator's truth mask).
+    align : {"vertical", "none"}
+        Shift every reconstruction of both epochs onto one vertical reference (a DEM
+        epoch if given, else the first reconstruction of epoch A) before testing.
     """
 
     confidences: tuple[float, ...] = (90.0, 95.0, 99.0)
     combine: str = "majority"
     min_region_cells: int = 4
+    align: str = "vertical"
 
     def __post_init__(self) -> None:
+        if self.align not in ALIGN_MODES:
+            raise ConfigError(f"align must be one of {ALIGN_MODES}, got {self.align!r}")
         if self.min_region_cells < 1:
             raise ConfigError(f"min_region_cells must be ≥ 1, got {self.min_region_cells}")
         if self.combine not in ("majority", "all", "any"):
@@ -419,6 +509,7 @@ class ChangeResult:
     grid: Any = None
     confidences: tuple[float, ...] = ()
     comparisons: list[str] = field(default_factory=list)
+    vertical_offsets_m: dict[str, float] = field(default_factory=dict)
 
     @property
     def observed(self) -> np.ndarray:
@@ -446,6 +537,9 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
     prog = ensure_progress(progress)
     if not epoch_a or not epoch_b:
         raise ProcessingError("the change test needs at least one reconstruction (pair-DEM or DEM) per epoch")
+    na = len(epoch_a)
+    aligned, offsets = align_reconstructions(list(epoch_a) + list(epoch_b), mode=params.align)
+    epoch_a, epoch_b = aligned[:na], aligned[na:]
     shape = epoch_a[0].z_m.shape
     comps = [(p, q) for p in epoch_a for q in epoch_b]
     levels = sorted(params.confidences)
@@ -490,7 +584,7 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
     change = np.where(observed, np.where(conf > 0, sign, 0), CHANGE_NODATA).astype(np.int8)
     return ChangeResult(dz_med.astype(np.float32), dt_med.astype(np.float32), score, conf, change, nobs,
                         grid=getattr(epoch_a[0], "grid", None), confidences=tuple(levels),
-                        comparisons=[f"{p.name} vs {q.name}" for p, q in comps])
+                        comparisons=[f"{p.name} vs {q.name}" for p, q in comps], vertical_offsets_m=offsets)
 
 
 def _drop_small(hit: np.ndarray, sign: np.ndarray, min_cells: int) -> np.ndarray:
@@ -510,13 +604,17 @@ def _drop_small(hit: np.ndarray, sign: np.ndarray, min_cells: int) -> np.ndarray
 
 
 def naive_threshold(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], threshold: float,
-                    units: str = "dtilde", combine: str = "majority", min_region_cells: int = 4) -> np.ndarray:
+                    units: str = "dtilde", combine: str = "majority", min_region_cells: int = 4,
+                    align: str = "vertical") -> np.ndarray:
     """The baseline the SRI paper compares against (its Fig. 1 c, d): |Δ̃| (or |Δz|) > threshold.
 
     Comparisons are combined and small groups dropped exactly as in :func:`change_test`,
     so the two differ only in the threshold. ``units``: "dtilde" (pixels of disparity) or "m".
     Returns a signed change mask (+1/−1/0, :data:`CHANGE_NODATA` unobserved).
     """
+    na = len(epoch_a)
+    aligned, _ = align_reconstructions(list(epoch_a) + list(epoch_b), mode=align)
+    epoch_a, epoch_b = aligned[:na], aligned[na:]
     comps = [(p, q) for p in epoch_a for q in epoch_b]
     shape = epoch_a[0].z_m.shape
     votes = np.zeros(shape, np.int16)

@@ -127,3 +127,21 @@ def test_one_pair_per_epoch_needs_a_model(scene):
     res = change_test(A[:1], B[:1], model)
     assert res.comparisons == ["A0 vs B0"]
     assert (res.changed_at(95)[25:45, 25:45] == 1).mean() > 0.8
+
+
+def test_vertical_offsets_between_reconstructions_are_removed(scene):
+    """RPC biases shift whole pair-DEMs: a +3 m offset on one epoch-B rec must not become a change."""
+    from geocd.consistency import align_reconstructions
+
+    A, B, dz_true = scene
+    shifted = Rec(B[1].z_m + 3.0, B[1].score, B[1].g_px_per_m, B[1].valid, None, "B1+3m")
+    recs, off = align_reconstructions([A[0], A[1], shifted])
+    assert off["A0"] == 0.0 and abs(off["A1"]) < 0.05 and abs(off["B1+3m"] - 3.0) < 0.1
+    model = learn_self_consistency([A, B])
+    res = change_test(A, [B[0], shifted, B[2]], model)
+    static = (dz_true == 0) & res.observed
+    assert np.mean(res.changed_at(99)[static] != 0) < 0.01
+    raw = change_test(A, [B[0], shifted, B[2]], model, ChangeParams(align="none"))
+    assert np.mean(raw.changed_at(95)[static] != 0) > np.mean(res.changed_at(95)[static] != 0)
+    with pytest.raises(ConfigError):
+        ChangeParams(align="sideways")
