@@ -39,6 +39,7 @@ import datetime as _dt
 import itertools
 import json
 import os
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Protocol, Sequence
@@ -404,8 +405,13 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
     prog = ensure_progress(progress)
     offsets: dict[str, float] = {}
     aligned_groups = []
+    empty = [r.name for g in groups for r in g if not np.any(r.valid)]
+    if empty:
+        warnings.warn(f"reconstructions with no valid cell left out of the self-consistency model: {', '.join(empty)}",
+                      UserWarning, stacklevel=2)
     for g in groups:
-        ag, off = align_reconstructions(list(g), mode=params.align)
+        g = [r for r in g if np.any(r.valid)]
+        ag, off = align_reconstructions(g, mode=params.align)
         aligned_groups.append(ag)
         offsets.update(off)
     comps = [c for g in aligned_groups for c in comparisons_within(g)]
@@ -414,6 +420,7 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
             "self-consistency needs at least two reconstructions of the same static scene (an epoch with 3 images "
             "gives 3 pair-DEMs); with one pair per epoch, pass a scene-class model learned on another scene "
             "(geocd change --model MODEL.json)"
+            + (f"; these had no valid cell at all: {', '.join(empty)}" if empty else "")
         )
     dts, scs = [], []
     for i, (p, q) in enumerate(comps):
