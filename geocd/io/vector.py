@@ -98,7 +98,7 @@ def write_gpkg(path: os.PathLike | str, layers: Mapping[str, Any], *, styles: Ma
         for name, df in layers.items():
             if isinstance(df, gpd.GeoDataFrame):
                 geom_cols[name] = "geom"
-                pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", promote_to_multi=False, **_GPKG_OPTS)
+                pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", **_GPKG_OPTS)
             else:
                 pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", **_GPKG_OPTS)
         if styles:

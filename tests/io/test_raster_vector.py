@@ -122,3 +122,20 @@ def test_read_footprints_errors(tmp_path):
     pts.to_file(tmp_path / "pts.gpkg")
     with pytest.raises(EmptyDataError, match="no polygon"):
         read_footprints(tmp_path / "pts.gpkg")
+
+
+def test_gpkg_mixed_polygons_get_one_declared_type(tmp_path, grid):
+    """Regions are Polygon or MultiPolygon: the layer must declare MultiPolygon, not 'Unknown (any)'."""
+    import geopandas as gpd
+    import pyogrio
+    from shapely.geometry import MultiPolygon, box
+
+    l, b, _, _ = grid.bounds
+    mixed = gpd.GeoDataFrame({"id": [1, 2]}, geometry=[box(l + 1, b + 1, l + 5, b + 5),
+                                                      MultiPolygon([box(l + 10, b + 10, l + 12, b + 12),
+                                                                    box(l + 14, b + 14, l + 16, b + 16)])],
+                             crs=grid.crs)
+    pure = gpd.GeoDataFrame({"id": [1]}, geometry=[box(l + 1, b + 1, l + 5, b + 5)], crs=grid.crs)
+    p = write_gpkg(tmp_path / "m.gpkg", {"changes": mixed, "buildings": pure})
+    assert pyogrio.read_info(p, layer="changes")["geometry_type"] == "MultiPolygon"
+    assert pyogrio.read_info(p, layer="buildings")["geometry_type"] == "Polygon"   # footprints keep their type
