@@ -198,7 +198,7 @@ def test_runner_cancel_kills_child_and_cleanup_leaves_nothing(tmp_path):
             return True
         return False
 
-    res = runner.run_geocd([*GEOCD, "--progress", "json", "synth", "--tiny", "--out", str(out)],
+    res = runner.run_geocd([*GEOCD, "--progress", "json", "synth", "--tiny", "--supersample", "8", "--out", str(out)],
                            on_progress=lambda f, m, s: progress.append((f, m, s)), is_cancelled=cancelled,
                            env=locate.child_env(), grace_s=3.0)
     stopped_s = time.monotonic() - t_cancel["t"]

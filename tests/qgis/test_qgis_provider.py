@@ -163,7 +163,8 @@ def test_error_carries_geocds_message(qgis, tmp_path):
 
 def test_cancel_kills_child_and_leaves_no_partial_output(qgis, tmp_path):
     out = tmp_path / "cancelled"
-    rep = qgis.pyqgis("cancel", "geocd:synth", "0.1", "TINY=true", f"OUTPUT={out}")
+    # 8x8 rays per pixel: a ~30 s job (plain tiny takes ~1 s and can finish before the cancel lands)
+    rep = qgis.pyqgis("cancel", "geocd:synth", "0.1", "TINY=true", "SUPERSAMPLE=8", f"OUTPUT={out}")
     assert rep.get("exception") == "QgsProcessingException" and "cancelled" in rep["message"], rep
     assert rep["pid"] and rep["pid_alive"] is False
     assert rep["stop_after_cancel_s"] < 5.0
