@@ -76,6 +76,8 @@ def numpy_box(stack_fn, K, r, eps, min_n):
     """Best 1 − NCC over planes with scipy box filters (O(cells × planes))."""
     from scipy import ndimage
 
+    from geocd.stereo._kernels import ncc_cost_ref
+
     best = None
     for k in range(K):
         a, b = stack_fn(k)
@@ -84,13 +86,8 @@ def numpy_box(stack_fn, K, r, eps, min_n):
         B = np.where(ok, b, 0.0).astype(np.float64)
         w = 2 * r + 1
         f = lambda x: ndimage.uniform_filter(x, w, mode="constant") * (w * w)  # noqa: E731
-        n, sa, sb, saa, sbb, sab = f(ok.astype(np.float64)), f(A), f(B), f(A * A), f(B * B), f(A * B)
-        with np.errstate(all="ignore"):
-            ma, mb = sa / n, sb / n
-            va = np.maximum(saa / n - ma * ma, 0)
-            vb = np.maximum(sbb / n - mb * mb, 0)
-            c = 1 - (sab / n - ma * mb) / np.sqrt((va + eps) * (vb + eps))
-        c[n < min_n] = np.inf
+        mom = (f(ok.astype(np.float64)), f(A), f(B), f(A * A), f(B * B), f(A * B))   # indexable like (6, h, w)
+        c = ncc_cost_ref(mom, min_n, eps)[0]
         best = c if best is None else np.minimum(best, c)
     return best
 
@@ -98,6 +95,8 @@ def numpy_box(stack_fn, K, r, eps, min_n):
 def numpy_direct(stack_fn, K, r, eps, min_n):
     """Best 1 − NCC over planes with explicit windows (O(cells × planes × window²))."""
     from numpy.lib.stride_tricks import sliding_window_view
+
+    from geocd.stereo._kernels import ncc_cost_ref
 
     best = None
     w = 2 * r + 1
@@ -108,15 +107,8 @@ def numpy_direct(stack_fn, K, r, eps, min_n):
         B = np.pad(np.where(ok, b, 0.0).astype(np.float64), r)
         O = np.pad(ok.astype(np.float64), r)
         wa, wb, wo = (sliding_window_view(x, (w, w)) for x in (A, B, O))
-        n = wo.sum(axis=(2, 3))
-        sa, sb = wa.sum(axis=(2, 3)), wb.sum(axis=(2, 3))
-        saa, sbb, sab = (wa * wa).sum(axis=(2, 3)), (wb * wb).sum(axis=(2, 3)), (wa * wb).sum(axis=(2, 3))
-        with np.errstate(all="ignore"):
-            ma, mb = sa / n, sb / n
-            va = np.maximum(saa / n - ma * ma, 0)
-            vb = np.maximum(sbb / n - mb * mb, 0)
-            c = 1 - (sab / n - ma * mb) / np.sqrt((va + eps) * (vb + eps))
-        c[n < min_n] = np.inf
+        mom = tuple(x.sum(axis=(2, 3)) for x in (wo, wa, wb, wa * wa, wb * wb, wa * wb))
+        c = ncc_cost_ref(mom, min_n, eps)[0]
         best = c if best is None else np.minimum(best, c)
     return best
 

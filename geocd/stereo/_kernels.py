@@ -125,6 +125,59 @@ def warp_bilinear_lerp(img, col_a, row_a, col_b, row_b, t, col0, row0, out):
 # ---------------------------------------------------------------------------------------------
 
 
+@njit(cache=True, inline="always")
+def _row_moments(a, b, r, i, work):
+    """Running sums of row ``i`` over windows of ``2r+1`` columns (both-valid pixels) into ``work[:, i, :]``:
+    n, Σa, Σb, Σa², Σb², Σab (the horizontal pass of :func:`box_moments` and :func:`sweep_step`)."""
+    w = a.shape[1]
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    s4 = 0.0
+    s5 = 0.0
+    # prime with columns [0, r-1]
+    for j in range(min(r, w)):
+        x = np.float64(a[i, j])
+        y = np.float64(b[i, j])
+        if x == x and y == y:
+            s0 += 1.0
+            s1 += x
+            s2 += y
+            s3 += x * x
+            s4 += y * y
+            s5 += x * y
+    for j in range(w):
+        jin = j + r
+        if jin < w:
+            x = np.float64(a[i, jin])
+            y = np.float64(b[i, jin])
+            if x == x and y == y:
+                s0 += 1.0
+                s1 += x
+                s2 += y
+                s3 += x * x
+                s4 += y * y
+                s5 += x * y
+        jout = j - r - 1
+        if jout >= 0:
+            x = np.float64(a[i, jout])
+            y = np.float64(b[i, jout])
+            if x == x and y == y:
+                s0 -= 1.0
+                s1 -= x
+                s2 -= y
+                s3 -= x * x
+                s4 -= y * y
+                s5 -= x * y
+        work[0, i, j] = s0
+        work[1, i, j] = s1
+        work[2, i, j] = s2
+        work[3, i, j] = s3
+        work[4, i, j] = s4
+        work[5, i, j] = s5
+
+
 @njit(cache=True, parallel=True)
 def box_moments(a, b, r, out, work):
     """Window moments of two images over ``(2r+1)²`` windows, both-valid pixels only.
@@ -141,52 +194,7 @@ def box_moments(a, b, r, out, work):
     h, w = a.shape
     # horizontal running sums, one row per thread
     for i in prange(h):
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        s3 = 0.0
-        s4 = 0.0
-        s5 = 0.0
-        # prime with columns [0, r-1]
-        for j in range(min(r, w)):
-            x = np.float64(a[i, j])
-            y = np.float64(b[i, j])
-            if x == x and y == y:
-                s0 += 1.0
-                s1 += x
-                s2 += y
-                s3 += x * x
-                s4 += y * y
-                s5 += x * y
-        for j in range(w):
-            jin = j + r
-            if jin < w:
-                x = np.float64(a[i, jin])
-                y = np.float64(b[i, jin])
-                if x == x and y == y:
-                    s0 += 1.0
-                    s1 += x
-                    s2 += y
-                    s3 += x * x
-                    s4 += y * y
-                    s5 += x * y
-            jout = j - r - 1
-            if jout >= 0:
-                x = np.float64(a[i, jout])
-                y = np.float64(b[i, jout])
-                if x == x and y == y:
-                    s0 -= 1.0
-                    s1 -= x
-                    s2 -= y
-                    s3 -= x * x
-                    s4 -= y * y
-                    s5 -= x * y
-            work[0, i, j] = s0
-            work[1, i, j] = s1
-            work[2, i, j] = s2
-            work[3, i, j] = s3
-            work[4, i, j] = s4
-            work[5, i, j] = s5
+        _row_moments(a, b, r, i, work)
     # vertical running sums, one block of columns per thread (rows stay contiguous)
     nblk = (w + 31) // 32
     for bk in prange(nblk):
@@ -356,6 +364,32 @@ def _insert_min(st, i, j, c0, kk, cm, cp, va, vb, cov, n, excl):
         st[SEC_K, i, j] = kk
 
 
+@njit(cache=True, inline="always")
+def _fold_cell(st, i, j, k, kmin_ij, kmax_ij, n, sa, sb, saa, sbb, sab, min_n, eps, excl):
+    """Fold height index ``k`` of cell (i, j), given its window sums, into the sweep state (see :func:`sweep_update`)."""
+    if k > kmax_ij or k < kmin_ij:
+        c = np.inf
+        va = 0.0
+        vb = 0.0
+        cov = 0.0
+        n = 0.0
+    else:
+        c, va, vb, cov = _ncc_cost(n, sa, sb, saa, sbb, sab, min_n, eps)
+    if c < np.inf:
+        st[NFINITE, i, j] += 1.0
+    p1 = st[PREV1, i, j]
+    p2 = st[PREV2, i, j]
+    if p1 < p2 and p1 <= c:
+        _insert_min(st, i, j, p1, k - 1.0, p2, c, st[PREV_VA, i, j], st[PREV_VB, i, j],
+                    st[PREV_COV, i, j], st[PREV_N, i, j], excl)
+    st[PREV2, i, j] = p1
+    st[PREV1, i, j] = c
+    st[PREV_VA, i, j] = va
+    st[PREV_VB, i, j] = vb
+    st[PREV_COV, i, j] = cov
+    st[PREV_N, i, j] = n
+
+
 @njit(cache=True, parallel=True)
 def sweep_update(mom, k, kmin, kmax, min_n, eps, excl, st):
     """Fold height index ``k`` into the sweep state.
@@ -380,29 +414,8 @@ def sweep_update(mom, k, kmin, kmax, min_n, eps, excl, st):
     h, w = kmax.shape
     for i in prange(h):
         for j in range(w):
-            if k > kmax[i, j] or k < kmin[i, j]:
-                c = np.inf
-                va = 0.0
-                vb = 0.0
-                cov = 0.0
-                n = 0.0
-            else:
-                n = mom[0, i, j]
-                c, va, vb, cov = _ncc_cost(n, mom[1, i, j], mom[2, i, j], mom[3, i, j], mom[4, i, j],
-                                           mom[5, i, j], min_n, eps)
-            if c < np.inf:
-                st[NFINITE, i, j] += 1.0
-            p1 = st[PREV1, i, j]
-            p2 = st[PREV2, i, j]
-            if p1 < p2 and p1 <= c:
-                _insert_min(st, i, j, p1, k - 1.0, p2, c, st[PREV_VA, i, j], st[PREV_VB, i, j],
-                            st[PREV_COV, i, j], st[PREV_N, i, j], excl)
-            st[PREV2, i, j] = p1
-            st[PREV1, i, j] = c
-            st[PREV_VA, i, j] = va
-            st[PREV_VB, i, j] = vb
-            st[PREV_COV, i, j] = cov
-            st[PREV_N, i, j] = n
+            _fold_cell(st, i, j, k, kmin[i, j], kmax[i, j], mom[0, i, j], mom[1, i, j], mom[2, i, j], mom[3, i, j],
+                       mom[4, i, j], mom[5, i, j], min_n, eps, excl)
 
 
 @njit(cache=True, parallel=True)
@@ -429,51 +442,7 @@ def sweep_step(a, b, r, k, kmin, kmax, min_n, eps, excl, st, work):
     """
     h, w = a.shape
     for i in prange(h):
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        s3 = 0.0
-        s4 = 0.0
-        s5 = 0.0
-        for j in range(min(r, w)):
-            x = np.float64(a[i, j])
-            y = np.float64(b[i, j])
-            if x == x and y == y:
-                s0 += 1.0
-                s1 += x
-                s2 += y
-                s3 += x * x
-                s4 += y * y
-                s5 += x * y
-        for j in range(w):
-            jin = j + r
-            if jin < w:
-                x = np.float64(a[i, jin])
-                y = np.float64(b[i, jin])
-                if x == x and y == y:
-                    s0 += 1.0
-                    s1 += x
-                    s2 += y
-                    s3 += x * x
-                    s4 += y * y
-                    s5 += x * y
-            jout = j - r - 1
-            if jout >= 0:
-                x = np.float64(a[i, jout])
-                y = np.float64(b[i, jout])
-                if x == x and y == y:
-                    s0 -= 1.0
-                    s1 -= x
-                    s2 -= y
-                    s3 -= x * x
-                    s4 -= y * y
-                    s5 -= x * y
-            work[0, i, j] = s0
-            work[1, i, j] = s1
-            work[2, i, j] = s2
-            work[3, i, j] = s3
-            work[4, i, j] = s4
-            work[5, i, j] = s5
+        _row_moments(a, b, r, i, work)
     nblk = (w + 31) // 32
     for bk in prange(nblk):
         j0 = bk * 32
@@ -497,40 +466,16 @@ def sweep_step(a, b, r, k, kmin, kmax, min_n, eps, excl, st, work):
                     acc[c, jj] = v
             for jj in range(nb):
                 j = j0 + jj
-                if k > kmax[i, j] or k < kmin[i, j]:
-                    c_ = np.inf
-                    va = 0.0
-                    vb = 0.0
-                    cov = 0.0
-                    n = 0.0
-                else:
-                    n = acc[0, jj]
-                    c_, va, vb, cov = _ncc_cost(n, acc[1, jj], acc[2, jj], acc[3, jj], acc[4, jj], acc[5, jj],
-                                                min_n, eps)
-                if c_ < np.inf:
-                    st[NFINITE, i, j] += 1.0
-                p1 = st[PREV1, i, j]
-                p2 = st[PREV2, i, j]
-                if p1 < p2 and p1 <= c_:
-                    _insert_min(st, i, j, p1, k - 1.0, p2, c_, st[PREV_VA, i, j], st[PREV_VB, i, j],
-                                st[PREV_COV, i, j], st[PREV_N, i, j], excl)
-                st[PREV2, i, j] = p1
-                st[PREV1, i, j] = c_
-                st[PREV_VA, i, j] = va
-                st[PREV_VB, i, j] = vb
-                st[PREV_COV, i, j] = cov
-                st[PREV_N, i, j] = n
+                _fold_cell(st, i, j, k, kmin[i, j], kmax[i, j], acc[0, jj], acc[1, jj], acc[2, jj], acc[3, jj],
+                           acc[4, jj], acc[5, jj], min_n, eps, excl)
 
 
 def ncc_cost_ref(mom: np.ndarray, min_n: float, eps: float) -> tuple[np.ndarray, ...]:
     """numpy reference of the cost: (cost, va, vb, cov) arrays from moments (6, ...)."""
-    n = mom[0]
+    from .scores import window_stats
+
+    n, va, vb, cov = window_stats(mom)
     with np.errstate(all="ignore"):
-        ma = mom[1] / n
-        mb = mom[2] / n
-        va = np.maximum(mom[3] / n - ma * ma, 0.0)
-        vb = np.maximum(mom[4] / n - mb * mb, 0.0)
-        cov = mom[5] / n - ma * mb
         c = 1.0 - cov / np.sqrt((va + eps) * (vb + eps))
     bad = (n < min_n) | (n <= 0)
     c = np.where(bad, np.inf, c)
