@@ -2,19 +2,19 @@
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass
 from typing import Any
 
 from ..errors import ConfigError
+from ..params import ParamsMixin
 
 PAIR_MODES = ("star", "consecutive", "all")
 BAND_MODES = ("all", "gray")
 
 
 @dataclass(frozen=True)
-class ProbChangeParams:
+class ProbChangeParams(ParamsMixin):
     """Everything that tunes :func:`geocd.probchange.detect_keyframe` and :func:`~geocd.probchange.detect_objectspace`.
 
     Attributes
@@ -193,6 +193,8 @@ class ProbChangeParams:
         base.update(changes)
         return cls(**base)
 
+    _kind = "probchange"   # names the parameter set in ConfigError messages
+
     @property
     def radius(self) -> int:
         return self.window // 2
@@ -201,26 +203,3 @@ class ProbChangeParams:
     def min_count(self) -> int:
         """Valid pixels a patch needs (at least 1)."""
         return max(1, int(math.ceil(self.min_valid_fraction * self.window ** 2)))
-
-    def replace(self, **changes: Any) -> "ProbChangeParams":
-        return replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        if d["height_range_m"] is not None:
-            d["height_range_m"] = list(d["height_range_m"])
-        return d
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ProbChangeParams":
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ConfigError(f"unknown probchange parameters {sorted(unknown)}; known: {sorted(known)}")
-        d = dict(d)
-        if d.get("height_range_m") is not None:
-            d["height_range_m"] = tuple(d["height_range_m"])
-        return cls(**d)

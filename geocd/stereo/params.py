@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, dataclass, fields, replace
-from typing import Any
+from dataclasses import dataclass
 
 from ..errors import ConfigError
+from ..params import ParamsMixin
 from .scores import SCORES
 
 
 @dataclass(frozen=True)
-class StereoParams:
+class StereoParams(ParamsMixin):
     """Everything that tunes :func:`geocd.stereo.match_pair`.
 
     Attributes
@@ -111,29 +110,8 @@ class StereoParams:
         if self.noise_sigma is not None and not self.noise_sigma > 0:
             raise ConfigError(f"noise_sigma must be positive, got {self.noise_sigma}")
 
+    _kind = "stereo"   # names the parameter set in ConfigError messages
+
     @property
     def radius(self) -> int:
         return self.window // 2
-
-    def replace(self, **changes: Any) -> "StereoParams":
-        return replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        if d["height_range_m"] is not None:
-            d["height_range_m"] = list(d["height_range_m"])
-        return d
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "StereoParams":
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ConfigError(f"unknown stereo parameters {sorted(unknown)}; known: {sorted(known)}")
-        d = dict(d)
-        if d.get("height_range_m") is not None:
-            d["height_range_m"] = tuple(d["height_range_m"])
-        return cls(**d)

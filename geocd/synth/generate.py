@@ -28,13 +28,14 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from ..errors import ConfigError
+from ..params import ParamsMixin
 from ..progress import ensure_progress, sub_progress
 from .scene import CHANGE_TYPES, Town, TownParams, build_town
 
@@ -43,7 +44,7 @@ HEADING_DEG = 192.0
 
 
 @dataclass(frozen=True)
-class SynthParams:
+class SynthParams(ParamsMixin):
     """Everything that defines a synthetic scene folder (frozen; ``seed`` makes it reproducible).
 
     Attributes
@@ -130,21 +131,7 @@ class SynthParams:
                           n_trees_changed=self.n_trees_changed, n_repainted=self.n_repainted,
                           season="season" in self.changes, changes=tuple(self.changes))
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        for k, v in d.items():
-            if isinstance(v, tuple):
-                d[k] = list(v)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "SynthParams":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ConfigError(f"unknown synth parameters {sorted(unknown)}")
-        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
-        return cls(**kw)
+    _kind = "synth"   # names the parameter set in ConfigError messages
 
     @classmethod
     def tiny(cls, **kw: Any) -> "SynthParams":
