@@ -58,6 +58,16 @@ def _distort_jac(x, y, k1, k2, k3, p1, p2):
     return a, b, c, d
 
 
+@njit(cache=True, inline="always")
+def _to_camera(x, y, z, tx, ty, tz, m):
+    """World point → camera frame: M · (X − T), with M the row-major 3×3 rotation ``m``."""
+    dx = x - tx
+    dy = y - ty
+    dz = z - tz
+    return (m[0] * dx + m[1] * dy + m[2] * dz, m[3] * dx + m[4] * dy + m[5] * dz,
+            m[6] * dx + m[7] * dy + m[8] * dz)
+
+
 @njit(cache=True, parallel=True)
 def frame_project(x, y, z, params, out_col, out_row):
     """World (x, y, z) flat float64 arrays → (col, row) pixels; NaN behind the camera."""
@@ -66,12 +76,7 @@ def frame_project(x, y, z, params, out_col, out_row):
     tx, ty, tz = params[9], params[10], params[11]
     m = params[12:21]
     for i in prange(x.shape[0]):
-        dx = x[i] - tx
-        dy = y[i] - ty
-        dz = z[i] - tz
-        xc = m[0] * dx + m[1] * dy + m[2] * dz
-        yc = m[3] * dx + m[4] * dy + m[5] * dz
-        zc = m[6] * dx + m[7] * dy + m[8] * dz
+        xc, yc, zc = _to_camera(x[i], y[i], z[i], tx, ty, tz, m)
         if not zc > 0.0:
             out_col[i] = np.nan
             out_row[i] = np.nan
@@ -89,12 +94,7 @@ def frame_dproj_dz(x, y, z, params, out_dcol, out_drow):
     tx, ty, tz = params[9], params[10], params[11]
     m = params[12:21]
     for i in prange(x.shape[0]):
-        dx = x[i] - tx
-        dy = y[i] - ty
-        dz = z[i] - tz
-        xc = m[0] * dx + m[1] * dy + m[2] * dz
-        yc = m[3] * dx + m[4] * dy + m[5] * dz
-        zc = m[6] * dx + m[7] * dy + m[8] * dz
+        xc, yc, zc = _to_camera(x[i], y[i], z[i], tx, ty, tz, m)
         if not zc > 0.0:
             out_dcol[i] = np.nan
             out_drow[i] = np.nan
