@@ -25,6 +25,29 @@ from numba import njit, prange
 # ---------------------------------------------------------------------------------------------
 
 
+@njit(cache=True, inline="always")
+def _bilinear(img, x, y):
+    """Bilinear sample of ``img`` at ``(x, y)`` = (col, row) − 0.5; NaN outside (see :func:`warp_bilinear`)."""
+    H, W = img.shape
+    if not (x >= 0.0 and y >= 0.0 and x <= W - 1 and y <= H - 1):
+        return np.nan
+    j0 = int(x)
+    i0 = int(y)
+    if j0 > W - 2:
+        j0 = W - 2
+    if i0 > H - 2:
+        i0 = H - 2
+    if j0 < 0 or i0 < 0:  # 1-pixel-wide image
+        return np.nan
+    fx = x - j0
+    fy = y - i0
+    v00 = img[i0, j0]
+    v01 = img[i0, j0 + 1]
+    v10 = img[i0 + 1, j0]
+    v11 = img[i0 + 1, j0 + 1]
+    return (v00 * (1.0 - fx) + v01 * fx) * (1.0 - fy) + (v10 * (1.0 - fx) + v11 * fx) * fy
+
+
 @njit(cache=True, parallel=True)
 def warp_bilinear(img, col, row, out):
     """Sample ``img`` at continuous ``(col, row)`` (pixel-corner convention), bilinear.
@@ -37,31 +60,10 @@ def warp_bilinear(img, col, row, out):
     col, row : float64 (h, w), image coordinates relative to ``img``
     out : float32 (h, w), written
     """
-    H, W = img.shape
     h, w = col.shape
     for i in prange(h):
         for j in range(w):
-            x = col[i, j] - 0.5
-            y = row[i, j] - 0.5
-            if not (x >= 0.0 and y >= 0.0 and x <= W - 1 and y <= H - 1):
-                out[i, j] = np.nan
-                continue
-            j0 = int(x)
-            i0 = int(y)
-            if j0 > W - 2:
-                j0 = W - 2
-            if i0 > H - 2:
-                i0 = H - 2
-            if j0 < 0 or i0 < 0:  # 1-pixel-wide image
-                out[i, j] = np.nan
-                continue
-            fx = x - j0
-            fy = y - i0
-            v00 = img[i0, j0]
-            v01 = img[i0, j0 + 1]
-            v10 = img[i0 + 1, j0]
-            v11 = img[i0 + 1, j0 + 1]
-            out[i, j] = ((v00 * (1.0 - fx) + v01 * fx) * (1.0 - fy) + (v10 * (1.0 - fx) + v11 * fx) * fy)
+            out[i, j] = _bilinear(img, col[i, j] - 0.5, row[i, j] - 0.5)
 
 
 def warp_bilinear_ref(img: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
@@ -99,25 +101,7 @@ def warp_bilinear_lerp(img, col_a, row_a, col_b, row_b, t, col0, row0, out):
         for j in range(w):
             x = col_a[i, j] + t * (col_b[i, j] - col_a[i, j]) - col0 - 0.5
             y = row_a[i, j] + t * (row_b[i, j] - row_a[i, j]) - row0 - 0.5
-            if not (x >= 0.0 and y >= 0.0 and x <= W - 1 and y <= H - 1):
-                out[i, j] = np.nan
-                continue
-            j0 = int(x)
-            i0 = int(y)
-            if j0 > W - 2:
-                j0 = W - 2
-            if i0 > H - 2:
-                i0 = H - 2
-            if j0 < 0 or i0 < 0:
-                out[i, j] = np.nan
-                continue
-            fx = x - j0
-            fy = y - i0
-            v00 = img[i0, j0]
-            v01 = img[i0, j0 + 1]
-            v10 = img[i0 + 1, j0]
-            v11 = img[i0 + 1, j0 + 1]
-            out[i, j] = ((v00 * (1.0 - fx) + v01 * fx) * (1.0 - fy) + (v10 * (1.0 - fx) + v11 * fx) * fy)
+            out[i, j] = _bilinear(img, x, y)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -519,6 +503,137 @@ def sweep_ref(costs: np.ndarray, excl: float) -> dict[str, np.ndarray]:
         best_cp = np.where(better, cp, best_cp)
     return {"best_c": best_c, "best_k": best_k, "best_cm": best_cm, "best_cp": best_cp,
             "sec_c": sec_c, "sec_k": sec_k}
+
+
+# ---------------------------------------------------------------------------------------------
+# the MDL score of a match from its sub-windows
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _mdl_bits(va, vb, cov, s2):
+    """MDL score (bits/pixel) of two windows from their variances and covariance (k = 2), as
+    :func:`geocd.stereo.scores.mdl_from_stats`."""
+    st2 = max((va + vb + 2.0 * cov) / 4.0, 0.0)
+    v = max((va + vb - 2.0 * cov) / 2.0, 0.0)
+    return 0.5 * (np.log2(st2 + s2) + np.log2(v + s2) - np.log2(va + s2) - np.log2(vb + s2))
+
+
+@njit(cache=True, parallel=True)
+def subwindow_mdl(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2, out):
+    """Worst MDL score over the sub-windows of each cell's matching window, at the cell's height.
+
+    The ``(2r+1)²`` window of cell ``(i, j)`` is sampled in each image at the cell's
+    own height through the local affine map of the projection: window cell ``(u, v)``
+    (rows, cols from the centre) lies at ``col + v·∂col/∂j + u·∂col/∂i`` (same for
+    rows). Every ``(2q+1)²`` sub-window centred on ``centres × centres`` with at least
+    ``min_n`` pixels valid in both images is scored with the MDL formula; ``out`` is
+    the largest (worst) of these scores, NaN when none qualifies.
+
+    Parameters
+    ----------
+    img_a, img_b : float32 (H, W) image chips (NaN = invalid)
+    geo_a, geo_b : float64 (6, h, w): col, row (relative to the chip, pixel-corner
+        convention), ∂col/∂j, ∂row/∂j, ∂col/∂i, ∂row/∂i per grid cell; NaN col = no match
+    r, q : window and sub-window radii (cells); centres : int64 (m,) sub-window centre offsets
+    min_n : float, valid pixels a sub-window needs; s2 : noise variance σ_n²
+    out : float64 (h, w), written
+    """
+    h, w = out.shape
+    side = 2 * r + 1
+    m = centres.shape[0]
+    for i in prange(h):
+        wa = np.empty((side, side))
+        wb = np.empty((side, side))
+        for j in range(w):
+            ca = geo_a[0, i, j]
+            cb = geo_b[0, i, j]
+            if not (np.isfinite(ca) and np.isfinite(cb)):
+                out[i, j] = np.nan
+                continue
+            for u in range(-r, r + 1):
+                for v in range(-r, r + 1):
+                    xa = ca + v * geo_a[2, i, j] + u * geo_a[4, i, j] - 0.5
+                    ya = geo_a[1, i, j] + v * geo_a[3, i, j] + u * geo_a[5, i, j] - 0.5
+                    xb = cb + v * geo_b[2, i, j] + u * geo_b[4, i, j] - 0.5
+                    yb = geo_b[1, i, j] + v * geo_b[3, i, j] + u * geo_b[5, i, j] - 0.5
+                    wa[u + r, v + r] = _bilinear(img_a, xa, ya)
+                    wb[u + r, v + r] = _bilinear(img_b, xb, yb)
+            worst = -np.inf
+            for p in range(m):
+                for t in range(m):
+                    n = 0.0
+                    sa = 0.0
+                    sb = 0.0
+                    saa = 0.0
+                    sbb = 0.0
+                    sab = 0.0
+                    for u in range(centres[p] - q, centres[p] + q + 1):
+                        for v in range(centres[t] - q, centres[t] + q + 1):
+                            a = wa[u + r, v + r]
+                            b = wb[u + r, v + r]
+                            if np.isfinite(a) and np.isfinite(b):
+                                n += 1.0
+                                sa += a
+                                sb += b
+                                saa += a * a
+                                sbb += b * b
+                                sab += a * b
+                    if n < min_n or n < 2.0:
+                        continue
+                    ma = sa / n
+                    mb = sb / n
+                    sc = _mdl_bits(max(saa / n - ma * ma, 0.0), max(sbb / n - mb * mb, 0.0), sab / n - ma * mb, s2)
+                    if sc > worst:
+                        worst = sc
+            out[i, j] = worst if worst > -np.inf else np.nan
+
+
+def subwindow_mdl_ref(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2) -> np.ndarray:
+    """numpy reference of :func:`subwindow_mdl` (windows warped with :func:`warp_bilinear_ref`,
+    scores with :func:`geocd.stereo.scores.mdl_from_stats`)."""
+    from .scores import mdl_from_stats
+
+    side = 2 * r + 1
+    win = []
+    for img, g in ((img_a, geo_a), (img_b, geo_b)):
+        st = np.empty((side, side, *g.shape[1:]), np.float64)
+        for u in range(-r, r + 1):
+            for v in range(-r, r + 1):
+                col = g[0] + v * g[2] + u * g[4]
+                row = g[1] + v * g[3] + u * g[5]
+                st[u + r, v + r] = warp_bilinear_ref(img, np.nan_to_num(col, nan=-1e9), np.nan_to_num(row, nan=-1e9))
+        win.append(st)
+    A, B = win
+    scores = []
+    for cu in centres:
+        for cv in centres:
+            a = A[cu - q + r:cu + q + r + 1, cv - q + r:cv + q + r + 1].reshape(-1, *A.shape[2:])
+            b = B[cu - q + r:cu + q + r + 1, cv - q + r:cv + q + r + 1].reshape(-1, *B.shape[2:])
+            ok = np.isfinite(a) & np.isfinite(b)
+            n = ok.sum(axis=0).astype(np.float64)
+            a0 = np.where(ok, a, 0.0)
+            b0 = np.where(ok, b, 0.0)
+            with np.errstate(all="ignore"):
+                ma = a0.sum(0) / n
+                mb = b0.sum(0) / n
+                va = np.maximum((a0 * a0).sum(0) / n - ma * ma, 0.0)
+                vb = np.maximum((b0 * b0).sum(0) / n - mb * mb, 0.0)
+                cov = (a0 * b0).sum(0) / n - ma * mb
+            sc = mdl_from_stats(va, vb, cov, np.sqrt(s2))
+            scores.append(np.where((n >= min_n) & (n >= 2), sc, -np.inf))
+    worst = np.max(scores, axis=0)
+    worst[~(np.isfinite(geo_a[0]) & np.isfinite(geo_b[0]))] = -np.inf
+    return np.where(np.isfinite(worst), worst, np.nan)
+
+
+def subwindow_centres(r: int, q: int) -> np.ndarray:
+    """Centre offsets (cells) of sub-windows of radius ``q`` that tile a window of radius ``r``,
+    neighbours overlapping by at least one cell (r = 3, q = 1 → −2, 0, 2; q ≥ r → the window itself)."""
+    if q >= r:
+        return np.zeros(1, np.int64)
+    m = int(np.ceil((r - q) / q)) + 1
+    return np.unique(np.round(np.linspace(-(r - q), r - q, m)).astype(np.int64))
 
 
 # ---------------------------------------------------------------------------------------------

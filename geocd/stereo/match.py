@@ -583,7 +583,8 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
                                progress=sub, prefix=prefix, lonlat=lonlat if L == 0 else None)
         evaluations += ev
     prog(0.92, f"{name}: scores and checks")
-    out = _finalize(grid, cams, chips, planes, search, params, sig, geo, lo, hi, lonlat)
+    # chips_l: the images as the finest level matched them (same boxes and shifts as chips)
+    out = _finalize(grid, cams, chips_l, planes, search, params, sig, geo, lo, hi, lonlat)
     out = {k: _crop(v, pad) for k, v in out.items()}
     grid = out_grid
     meta.update(step_m=step0, levels=n_levels, evaluations=evaluations, excl_steps=excl_steps, pointing=pointing,
@@ -627,6 +628,68 @@ def occlusion_mask(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageC
     return occ
 
 
+def local_projection(grid: AOIGrid, cam: Camera, chip: ImageChip, z: np.ndarray,
+                     lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Where each grid cell lands in a chip at height ``z``, and how that moves per grid column and row.
+
+    Returns float64 ``(6, rows, cols)``: col, row (relative to the chip's data, pixel-corner
+    convention), ∂col/∂j, ∂row/∂j, ∂col/∂i, ∂row/∂i — the next column's / row's ground
+    position projected at the *same* height (forward differences; the last column/row
+    extrapolates). NaN where ``z`` is not finite.
+    """
+    lon, lat = lonlat if lonlat is not None else grid.lonlat()
+
+    def nxt(a: np.ndarray, axis: int) -> np.ndarray:
+        a1 = np.take(a, np.arange(1, a.shape[axis]), axis=axis)
+        last = 2.0 * np.take(a, [-1], axis=axis) - np.take(a, [-2], axis=axis)
+        return np.concatenate([a1, last], axis=axis)
+
+    ok = np.isfinite(z)
+    zf = np.where(ok, z, float(np.nanmedian(z)) if ok.any() else 0.0).astype(np.float64)
+    c0, r0 = chip.origin
+    out = np.empty((6, *z.shape))
+    col, row = cam.ground_projector(lon, lat, None).project(zf)
+    out[0] = np.where(ok, col - c0, np.nan)
+    out[1] = row - r0
+    for n, axis in ((2, 1), (4, 0)):
+        c, r = cam.ground_projector(nxt(lon, axis), nxt(lat, axis), None).project(zf)
+        out[n] = c - col
+        out[n + 1] = r - row
+    return out
+
+
+def subwindow_mdl(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageChip], z: np.ndarray,
+                  params: StereoParams, noise_sigma: float,
+                  lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """The MDL score of each cell's match as the worst of its sub-windows' scores (bits/pixel).
+
+    Each cell's ``window``² matching window is sampled in both images at the cell's
+    height ``z`` (the local projection is affine over a window), cut into
+    ``score_subwindow``² sub-windows that tile it (:func:`geocd.stereo._kernels.subwindow_centres`),
+    and each sub-window is scored with the MDL formula of :mod:`geocd.stereo.scores`; the
+    largest (worst) is returned. A window whose contrast is explained by one surface but
+    whose other part is not (it straddles a height step, the classic source of
+    "foreground fattening") thus scores like its unexplained part.
+
+    Parameters
+    ----------
+    grid : AOIGrid; cams, chips : the pair (chips as matched); z : float (rows, cols), m
+    params : StereoParams (window, score_subwindow, min_valid_fraction); noise_sigma : σ_n
+
+    Returns
+    -------
+    float64 (rows, cols), NaN where ``z`` is not finite or no sub-window has enough valid pixels.
+    """
+    r = params.radius
+    q = params.score_subwindow // 2
+    geo_ab = [local_projection(grid, cam, chip, z, lonlat) for cam, chip in zip(cams[:2], chips[:2])]
+    min_n = float(math.ceil(params.min_valid_fraction * (2 * min(q, r) + 1) ** 2))
+    out = np.empty(z.shape)
+    K.subwindow_mdl(chips[0].data, chips[1].data, geo_ab[0], geo_ab[1], r, q, K.subwindow_centres(r, q), min_n,
+                    float(noise_sigma) ** 2, out)
+    return out
+
+
 def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: float, geo, lo, hi,
               lonlat=None) -> dict[str, Any]:
     k = planes["best_k"]
@@ -635,7 +698,11 @@ def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: floa
     va, vb, cov = planes["va"], planes["vb"], planes["cov"]
     ncc = np.where(has, ncc_from_stats(va, vb, cov), np.nan)
     ssd = np.where(has, ssd_from_stats(va, vb, cov), np.nan)
-    mdl = np.where(has, mdl_from_stats(va, vb, cov, sig), np.nan)
+    mdl_window = np.where(has, mdl_from_stats(va, vb, cov, sig), np.nan)
+    mdl = mdl_window
+    if params.score == "mdl" and params.score_subwindow < params.window:
+        mdl = subwindow_mdl(grid, cams, chips, z_raw, params, sig, lonlat)
+        mdl = np.where(has & np.isfinite(mdl), mdl, mdl_window)
     score = {"mdl": mdl, "ncc": 1.0 - ncc, "ssd": ssd}[params.score]
     flags = np.zeros(grid.shape, np.uint8)
     flags[~has] |= FLAGS["out_of_image"]
@@ -657,4 +724,4 @@ def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: floa
     f32 = np.float32
     return {"z_m": np.where(valid, z_raw, np.nan).astype(f32), "score": score.astype(f32),
             "g_px_per_m": g.astype(f32), "valid": valid, "ncc": ncc.astype(f32), "ssd": ssd.astype(f32),
-            "flags": flags, "z_raw_m": z_raw.astype(f32)}
+            "flags": flags, "z_raw_m": z_raw.astype(f32), "mdl_window": mdl_window.astype(f32)}

@@ -54,6 +54,12 @@ class StereoParams(ParamsMixin):
     score : str
         What ``PairDEM.score`` holds (lower = better): "mdl" (bits/pixel), "ncc"
         (1 − NCC) or "ssd". All three are written to the products anyway.
+    score_subwindow : int
+        The MDL score of a match is the worst (largest) MDL score of the
+        ``score_subwindow``-cell sub-windows tiling its matching window, at the matched
+        height (:func:`geocd.stereo.subwindow_mdl`): a window that only part of the
+        surface explains (one straddling a height step) does not pass for a good
+        match. ``≥ window`` scores the matching window as a whole.
     norm_block_px : int
         Region size of the local photometric normalization (image pixels).
     tile_size : int
@@ -82,6 +88,7 @@ class StereoParams(ParamsMixin):
     occlusion_tol_px: float = 1.0
     min_base_height: float = 0.05
     score: str = "mdl"
+    score_subwindow: int = 3
     norm_block_px: int = 256
     tile_size: int = 256
     pointing_correction: bool = True
@@ -105,6 +112,8 @@ class StereoParams(ParamsMixin):
             raise ConfigError(f"min_valid_fraction must be in (0, 1], got {self.min_valid_fraction}")
         if self.score not in SCORES:
             raise ConfigError(f"score must be one of {SCORES}, got {self.score!r}")
+        if self.score_subwindow < 3 or self.score_subwindow % 2 == 0:
+            raise ConfigError(f"score_subwindow must be an odd number ≥ 3 of cells, got {self.score_subwindow}")
         if self.tile_size < 32:
             raise ConfigError(f"tile_size must be ≥ 32 cells, got {self.tile_size}")
         if self.noise_sigma is not None and not self.noise_sigma > 0:

@@ -44,7 +44,8 @@ BANDS = ("z", "score", "g", "valid", "ncc", "ssd", "flags")
 
 SCORE_DEFINITION = ("MDL score (reconstruction, see geocd.stereo.scores): (L_match - L_ind)/n bits/pixel, "
                     "L_ind = sum_j n/2 log2(s_j^2 + sigma_n^2), L_match = n/2 log2(s_t^2 + sigma_n^2) + "
-                    "(k-1) n/2 log2(v + sigma_n^2), k=2; lower = better")
+                    "(k-1) n/2 log2(v + sigma_n^2), k=2, the worst (largest) over the score_subwindow-cell "
+                    "sub-windows tiling the matching window; lower = better")
 
 
 @dataclass
@@ -70,6 +71,9 @@ class PairDEM:
     flags : uint8 (rows, cols), bit set of :data:`FLAGS` (0 = valid)
     z_raw_m : float32 (rows, cols), optional
         The matched height before validity checks (NaN where nothing matched).
+    mdl_window : float32 (rows, cols), optional
+        The MDL score of the whole matching window (``score`` holds the worst of its
+        sub-windows, ``StereoParams.score_subwindow``); in memory only, not written.
     epoch : str
     meta : dict
         step_m, noise_sigma, score_kind, base_height_median, levels, evaluations, ...
@@ -86,6 +90,7 @@ class PairDEM:
     ssd: np.ndarray | None = None
     flags: np.ndarray | None = None
     z_raw_m: np.ndarray | None = None
+    mdl_window: np.ndarray | None = None
     epoch: str = ""
     meta: dict = field(default_factory=dict)
 

@@ -196,3 +196,63 @@ def test_window_mean_matches_reference(rng, dtype):
     mr, nr = K.box_mean_ref(x, 2)
     np.testing.assert_array_equal(n, nr)
     np.testing.assert_allclose(m, mr, rtol=1e-9, atol=1e-9, equal_nan=True)
+
+
+def _affine_geo(rng, shape, img_shape, shift=(0.0, 0.0)):
+    """Per-cell (col, row, ∂col/∂j, ∂row/∂j, ∂col/∂i, ∂row/∂i) of a slightly rotated, scaled grid."""
+    ii, jj = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    a, b, c, d = 1.3, 0.2, -0.15, 1.1          # ∂col/∂j, ∂row/∂j, ∂col/∂i, ∂row/∂i
+    geo = np.empty((6, *shape))
+    geo[0] = 4.0 + a * jj + c * ii + shift[0]
+    geo[1] = 5.0 + b * jj + d * ii + shift[1]
+    geo[2:] = np.array([a, b, c, d])[:, None, None]
+    return geo
+
+
+@pytest.mark.parametrize("r,q", [(3, 1), (2, 1), (3, 2), (2, 2)])
+def test_subwindow_mdl_matches_reference(rng, r, q):
+    img_a = rng.normal(100, 20, size=(40, 48)).astype(np.float32)
+    img_b = (0.8 * img_a + rng.normal(5, 4, size=img_a.shape)).astype(np.float32)
+    img_a[10, 12] = np.nan
+    geo_a = _affine_geo(rng, (26, 29), img_a.shape)
+    geo_b = _affine_geo(rng, (26, 29), img_b.shape, shift=(0.3, -0.2))
+    geo_b[:2] += rng.normal(0, 0.5, size=geo_b[:2].shape)          # per-cell height errors
+    geo_a[0, 3, 4] = np.nan                                       # a cell without a match
+    centres = K.subwindow_centres(r, q)
+    out = np.empty(geo_a.shape[1:])
+    K.subwindow_mdl(img_a, img_b, geo_a, geo_b, r, q, centres, 6.0, 4.0, out)
+    ref = K.subwindow_mdl_ref(img_a, img_b, geo_a, geo_b, r, q, centres, 6.0, 4.0)
+    assert np.array_equal(np.isnan(out), np.isnan(ref))
+    assert np.isnan(out[3, 4]) and np.isfinite(out).mean() > 0.5  # windows near the chip edge lose pixels
+    np.testing.assert_allclose(out[np.isfinite(ref)], ref[np.isfinite(ref)], atol=1e-6)
+
+
+def test_subwindow_mdl_of_whole_window_is_the_window_score(rng):
+    """q ≥ r: one sub-window, the matching window itself → the plain MDL score of the window."""
+    img_a = rng.normal(100, 20, size=(30, 30)).astype(np.float32)
+    img_b = (img_a + rng.normal(0, 3, size=img_a.shape)).astype(np.float32)
+    geo = np.zeros((6, 1, 1))
+    geo[:, 0, 0] = [15.5, 14.5, 1.0, 0.0, 0.0, 1.0]
+    out = np.empty((1, 1))
+    K.subwindow_mdl(img_a, img_b, geo, geo, 3, 3, K.subwindow_centres(3, 3), 1.0, 4.0, out)
+    win = np.stack([img_a[11:18, 12:19].ravel(), img_b[11:18, 12:19].ravel()]).astype(np.float64)
+    assert out[0, 0] == pytest.approx(mdl_score_ref(win, 2.0), abs=1e-9)
+
+
+def test_subwindow_mdl_sees_a_window_explained_only_in_part(rng):
+    """A window straddling a height step: one side matches, the other is shifted by 3 px.
+    The whole-window MDL still reads as a good match; its worst sub-window does not."""
+    base = rng.normal(0, 25, size=(40, 40))
+    img_a = base.astype(np.float32)
+    img_b = base.copy()
+    img_b[:, 20:] = np.roll(base, 3, axis=1)[:, 20:]       # right part of the scene at another height
+    img_b = (img_b + rng.normal(0, 1, size=base.shape)).astype(np.float32)
+    geo = np.zeros((6, 1, 1))
+    geo[:, 0, 0] = [19.5, 20.5, 1.0, 0.0, 0.0, 1.0]        # window columns 16…22: 4 matched, 3 not
+    out_sub = np.empty((1, 1))
+    K.subwindow_mdl(img_a, img_b, geo, geo, 3, 1, K.subwindow_centres(3, 1), 6.0, 1.0, out_sub)
+    whole = mdl_score_ref(np.stack([img_a[17:24, 16:23].ravel(), img_b[17:24, 16:23].ravel()]).astype(float), 1.0)
+    good = mdl_score_ref(np.stack([img_a[17:24, 10:17].ravel(), img_b[17:24, 10:17].ravel()]).astype(float), 1.0)
+    assert good < -3.0 and good < whole < -0.8     # the whole window still reads as a (weaker) match ...
+    # ... its worst 3 × 3 part scores like two unrelated windows (≈ −½ bit/pixel, scores.py)
+    assert out_sub[0, 0] > whole + 0.3 and out_sub[0, 0] > -0.7
