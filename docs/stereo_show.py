@@ -53,9 +53,8 @@ def score_table(pd, ref: np.ndarray, offset: float, n_bins: int = 10, thresh_m: 
     both = pd.valid & np.isfinite(ref)
     bad = (np.abs(pd.z_m - ref - offset) > thresh_m)[both]
     out = {}
-    from geocd.stereo.scores import mdl_from_stats  # noqa: F401  (definition documented there)
-
-    scores = {"mdl": pd.score if pd.meta.get("score_kind") == "mdl" else None, "1-ncc": 1.0 - pd.ncc, "ssd": pd.ssd}
+    scores = {"mdl": pd.score if pd.meta.get("score_kind") == "mdl" else None, "mdl (whole window)": pd.mdl_window,
+              "1-ncc": 1.0 - pd.ncc, "ssd": pd.ssd}
     for name, s in scores.items():
         if s is None:
             continue
@@ -277,7 +276,10 @@ def sample(params: StereoParams = StereoParams()) -> dict:
             print(f"{e.name}/{a.name}__{b.name}", {k: (round(x, 3) if isinstance(x, float) else x) for k, x in r_.items()
                                                    if k != "flags"}, flush=True)
             v = pd.valid & np.isfinite(truth)
-            pooled.append(np.stack([pd.score[v], 1.0 - pd.ncc[v], pd.ssd[v], np.abs(pd.z_m - truth)[v]]))
+            pooled.append(np.stack([pd.score[v], pd.mdl_window[v], 1.0 - pd.ncc[v], pd.ssd[v],
+                                    np.abs(pd.z_m - truth)[v], (np.abs(pd.z_m - truth) * pd.g_px_per_m)[v],
+                                    np.full(int(v.sum()), {"satellite-satellite": 0, "satellite-aerial": 1,
+                                                           "aerial-aerial": 2}[kind])]))
             if (e.name, a.name, b.name) in (("A", "A_sat2", "A_sat3"), ("A", "A_air1", "A_air2"), ("A", "A_sat1", "A_air2")):
                 lo_v, hi_v = np.nanpercentile(truth, [1, 99])
                 quicklook(DOCS / f"stereo_sample_{a.name}__{b.name}.png", [
@@ -299,22 +301,32 @@ def sample(params: StereoParams = StereoParams()) -> dict:
                           "worst completeness_visible_both": float(min(r["completeness_visible_both"] for r in rs))}
     res["summary"] = summ
     # score informativeness, pooled over every pair: fraction of valid matches with |Δz| > 1 m per score decile
+    # (and, the paper's unit, with |Δz|·g > 1 px of disparity; and per pair kind)
     P = np.concatenate(pooled, axis=1)
-    err = P[3] > 1.0
     table = {}
     from scipy.stats import mannwhitneyu
 
-    for i, name in enumerate(("mdl", "1-ncc", "ssd")):
-        v = P[i]
+    def deciles(v: np.ndarray, err: np.ndarray) -> dict:
         ok = np.isfinite(v)
-        edges = np.quantile(v[ok], np.linspace(0, 1, 11))
-        idx = np.clip(np.searchsorted(edges, v[ok], side="right") - 1, 0, 9)
-        frac = [float(err[ok][idx == k].mean()) for k in range(10)]
-        b = err[ok]
-        auc = float(mannwhitneyu(v[ok][b], v[ok][~b]).statistic / (b.sum() * (~b).sum()))
-        table[name] = {"edges": [float(x) for x in edges], "frac_abs_dz_gt_1m": frac, "auc": auc,
-                       "non_decreasing_steps": f"{sum(1 for x, y in zip(frac, frac[1:]) if y >= x)}/9"}
-        print(name, "AUC", round(auc, 3), "frac>1m by decile", [round(f, 3) for f in frac])
+        v, err = v[ok], err[ok]
+        edges = np.quantile(v, np.linspace(0, 1, 11))
+        idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, 9)
+        frac = [float(err[idx == k].mean()) for k in range(10)]
+        auc = float(mannwhitneyu(v[err], v[~err]).statistic / (err.sum() * (~err).sum()))
+        return {"edges": [float(x) for x in edges], "frac_bad": frac, "auc": auc,
+                "non_decreasing_steps": f"{sum(1 for x, y in zip(frac, frac[1:]) if y >= x)}/9"}
+
+    names = ("mdl (worst 3x3 sub-window, the score)", "mdl (whole 7x7 window)", "1-ncc", "ssd")
+    kinds = {"all pairs": None, "satellite-satellite": 0, "satellite-aerial": 1, "aerial-aerial": 2}
+    for i, name in enumerate(names):
+        table[name] = {}
+        for kname, kcode in kinds.items():
+            sel = np.ones(P.shape[1], bool) if kcode is None else P[6] == kcode
+            table[name][kname] = {"abs_dz_gt_1m": deciles(P[i][sel], P[4][sel] > 1.0),
+                                  "disparity_gt_1px": deciles(P[i][sel], P[5][sel] > 1.0)}
+            t = table[name][kname]["abs_dz_gt_1m"]
+            print(f"{name} [{kname}] AUC {t['auc']:.3f} {t['non_decreasing_steps']} frac>1m by decile",
+                  [round(100 * f, 2) for f in t["frac_bad"]])
     res["score_informativeness"] = table
     res["pooled_matches"] = int(P.shape[1])
     _score_plot(table, DOCS / "stereo_sample_scores.png")
@@ -327,15 +339,23 @@ def _score_plot(table: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for name, t in table.items():
-        ax.plot(np.arange(1, 11), 100 * np.array(t["frac_abs_dz_gt_1m"]), "o-", label=f"{name} (AUC {t['auc']:.2f})")
-    ax.set_xlabel("score decile (1 = best scores)")
-    ax.set_ylabel("% of valid matches with |z − truth| > 1 m")
-    ax.set_title("sample_aoi, all pairs pooled")
-    ax.legend()
-    ax.grid(alpha=0.3)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for ax, (crit, label) in zip(axes, (("abs_dz_gt_1m", "|z − truth| > 1 m"),
+                                        ("disparity_gt_1px", "|z − truth|·g > 1 px of disparity"))):
+        for name, t in table.items():
+            t = t["all pairs"][crit]
+            ax.plot(np.arange(1, 11), 100 * np.array(t["frac_bad"]), "o-",
+                    label=f"{name} (AUC {t['auc']:.2f}, {t['non_decreasing_steps']} steps rise)")
+        ax.set_xlabel("score decile (1 = best scores)")
+        ax.set_ylabel(f"% of valid matches with {label}")
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(ScalarFormatter())
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.set_title(f"sample_aoi, all 24 pairs pooled: {label}", fontsize=10)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -349,3 +369,6 @@ if __name__ == "__main__":
         ventoux()
     if what in ("sample", "all"):
         sample()
+    if what == "score-plot":        # redraw the score figure from docs/stereo_sample.json
+        _score_plot(json.loads((DOCS / "stereo_sample.json").read_text())["score_informativeness"],
+                    DOCS / "stereo_sample_scores.png")

@@ -31,7 +31,7 @@ def shared() -> Path:
     return SHARED_DATA
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def sample_aoi() -> Path:
     p = REPO / "sample_aoi"
     if not (p / "scene.yaml").is_file():

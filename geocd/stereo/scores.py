@@ -26,6 +26,17 @@ Choices made here (documented because the formula leaves them open):
 * intensities are on the locally normalized 8-bit scale
   (:mod:`geocd.stereo.photometry`), ``σ_n`` estimated from the images.
 
+* **the score of a match is the worst of its sub-windows**: the matching window
+  (7 × 7 cells by default) is cut into 3 × 3-cell sub-windows that tile it
+  (``StereoParams.score_subwindow``), each scored with the formula above at the
+  matched height, and the largest (worst) is kept
+  (:func:`geocd.stereo.subwindow_mdl`). A window whose contrast one surface explains
+  but whose other part it does not — it straddles a height step, and its height is
+  that of the stronger side ("foreground fattening") — then scores like its
+  unexplained part instead of passing for a good match. On sample_aoi this turns the
+  score deciles from non-monotonic into rising (docs/stereo.md); the whole-window
+  score stays available (``score_subwindow ≥ window``, ``PairDEM.mdl_window``).
+
 Consequences worth knowing: a perfect match of texture ``s`` scores
 ``½ log2(σ_n²/(s² + σ_n²))`` (very negative for strong texture); a textureless
 window scores ≈ 0 (no evidence either way); two independent windows of equal

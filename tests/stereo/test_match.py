@@ -136,3 +136,37 @@ def test_blur_does_not_shift_the_image():
         r, c = np.nonzero(b > 0)
         w = b[r, c]
         assert np.average(r, weights=w) == pytest.approx(10.0) and np.average(c, weights=w) == pytest.approx(10.0)
+
+
+def test_score_is_the_worst_subwindow_mdl(scene, chips, pair_dem):
+    """score = the worst 3 × 3 sub-window's MDL (worse than the whole window's on the same match), and
+    score_subwindow ≥ window gives back the whole-window MDL. How the two rank errors on sample_aoi:
+    tests/stereo/test_sample_aoi_pairs.py."""
+    pd = pair_dem
+    ok = pd.valid
+    assert np.isfinite(pd.score[ok]).all() and np.isfinite(pd.mdl_window[ok]).all()
+    assert np.median(pd.score[ok]) > np.median(pd.mdl_window[ok])        # a worst part scores worse than the whole
+    whole = match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid,
+                       params=StereoParams(height_range_m=(185.0, 225.0), score_subwindow=7))
+    np.testing.assert_array_equal(whole.score, whole.mdl_window)
+    np.testing.assert_allclose(whole.mdl_window[ok], pd.mdl_window[ok], atol=1e-6)
+    with pytest.raises(Exception, match="score_subwindow"):
+        StereoParams(score_subwindow=4)
+
+
+def test_local_projection_is_the_projection_of_the_next_cells(scene):
+    from geocd.stereo import local_projection
+
+    grid, cam, chip = scene.grid, scene.cameras[0], prepare_chip(scene.images[0])
+    z = scene.truth.astype(np.float64)
+    geo = local_projection(grid, cam, chip, z)
+    lon, lat = grid.lonlat()
+    i, j = 10, 12
+    c0, r0 = cam.ground_projector(lon[i, j + 1:j + 2], lat[i, j + 1:j + 2], None).project(np.array([z[i, j]]))
+    c1, r1 = cam.ground_projector(lon[i + 1:i + 2, j], lat[i + 1:i + 2, j], None).project(np.array([z[i, j]]))
+    assert geo[0, i, j] + geo[2, i, j] == pytest.approx(c0[0] - chip.origin[0], abs=1e-6)
+    assert geo[1, i, j] + geo[3, i, j] == pytest.approx(r0[0] - chip.origin[1], abs=1e-6)
+    assert geo[0, i, j] + geo[4, i, j] == pytest.approx(c1[0] - chip.origin[0], abs=1e-6)
+    assert geo[1, i, j] + geo[5, i, j] == pytest.approx(r1[0] - chip.origin[1], abs=1e-6)
+    z[3, 4] = np.nan
+    assert np.isnan(local_projection(grid, cam, chip, z)[0, 3, 4])
