@@ -13,7 +13,7 @@
    Reported: cell-plane evaluations per second and the ratios.
 
 2. The whole pair: :func:`geocd.stereo.match_pair` on s2p's DSM grid (721 × 739 cells at
-   0.5 m) from the RPCs' own height range (coarse-to-fine, pointing correction): wall
+   0.5 m) from the RPCs' own height range (coarse-to-fine, pointing correction): best-of-``--repeat`` wall
    time, CPU time, cell-height evaluations and evaluations per second.
 
 3. The same pair on the whole overlap of the two images (the CLI's default AOI, what CARS
@@ -174,24 +174,26 @@ def kernel_bench(grid, ref, cams, chips, crop: int, planes: int, repeat: int) ->
             "evals_per_s": {k: n_eval / v for k, v in best.items()}, "agreement": agree}
 
 
-def pair_bench(grid, ref, cams, chips) -> dict:
+def pair_bench(grid, ref, cams, chips, repeat: int = 1) -> dict:
     from geocd.stereo import StereoParams, match_pair
 
     small = grid.subgrid(0, 0, 128, 128)
     match_pair(chips[0], chips[1], cams[0], cams[1], small, params=StereoParams(height_range_m=(2250.0, 2400.0)))
-    t, c = time.perf_counter(), time.process_time()
-    pd = match_pair(chips[0], chips[1], cams[0], cams[1], grid)
-    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    wall = cpu = np.inf
+    for _ in range(repeat):         # best of `repeat`: the machine is shared
+        t, c = time.perf_counter(), time.process_time()
+        pd = match_pair(chips[0], chips[1], cams[0], cams[1], grid)
+        wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - c)
     both = pd.valid & np.isfinite(ref)
     d = (pd.z_m - ref)[both]
     d = d - np.median(d)
-    return {"grid": f"{grid.width}x{grid.height} at {grid.posting_m} m", "wall_s": wall, "cpu_s": cpu,
+    return {"grid": f"{grid.width}x{grid.height} at {grid.posting_m} m", "wall_s": wall, "cpu_s": cpu, "repeat": repeat,
             "evaluations": pd.meta["evaluations"], "evals_per_s_wall": pd.meta["evaluations"] / wall,
             "levels": pd.meta["levels"], "completeness": float(pd.valid[np.isfinite(ref)].mean()),
             "median_abs_dz_vs_s2p_m": float(np.median(np.abs(d)))}
 
 
-def full_overlap_bench(cams, chips_unused=None) -> dict:
+def full_overlap_bench(cams, chips_unused=None, repeat: int = 1) -> dict:
     """geocd on the whole overlap of the two images (the CLI's default AOI), as CARS covers it."""
     from geocd.io.manifest import parse_manifest
     from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images, read_chip
@@ -206,10 +208,12 @@ def full_overlap_bench(cams, chips_unused=None) -> dict:
     t_aoi = time.perf_counter() - t
     lo, hi = 2200.0, 2450.0
     chips = [read_chip(im.path, im.camera, grid, lo, hi, name=im.name, margin_px=40) for im in ims]
-    t, c = time.perf_counter(), time.process_time()
-    pd = match_pair(chips[0], chips[1], ims[0].camera, ims[1].camera, grid)
-    wall, cpu = time.perf_counter() - t, time.process_time() - c
-    return {"grid": f"{grid.width}x{grid.height} at {grid.posting_m} m", "cells": grid.width * grid.height,
+    wall = cpu = np.inf
+    for _ in range(repeat):
+        t, c = time.perf_counter(), time.process_time()
+        pd = match_pair(chips[0], chips[1], ims[0].camera, ims[1].camera, grid)
+        wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - c)
+    return {"grid": f"{grid.width}x{grid.height} at {grid.posting_m} m", "cells": grid.width * grid.height, "repeat": repeat,
             "valid_cells": int(pd.valid.sum()), "aoi_s": t_aoi, "wall_s": wall, "cpu_s": cpu,
             "evaluations": pd.meta["evaluations"]}
 
@@ -276,13 +280,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {name:40s} {s * 1e3:9.1f} ms  {k['evals_per_s'][name] / 1e6:8.2f} M evals/s  "
               f"x{base / s:6.2f} vs numpy box filters")
     print(f"  agreement: {k['agreement']}")
-    p = pair_bench(grid, ref, cams, chips)
+    p = pair_bench(grid, ref, cams, chips, args.repeat)
     res["pair"] = p
-    print(f"pair (s2p img_01/img_02, {p['grid']}, RPC height range, {p['levels']} levels): wall {p['wall_s']:.1f} s, "
+    print(f"pair (s2p img_01/img_02, {p['grid']}, RPC height range, {p['levels']} levels): wall {p['wall_s']:.1f} s "
+          f"(best of {args.repeat}), "
           f"cpu {p['cpu_s']:.1f} s, {p['evaluations'] / 1e6:.1f} M evaluations, "
           f"{p['evals_per_s_wall'] / 1e6:.2f} M evals/s; completeness {p['completeness']:.1%}, "
           f"median |dz| vs s2p {p['median_abs_dz_vs_s2p_m']:.2f} m")
-    fo = full_overlap_bench(cams)
+    fo = full_overlap_bench(cams, repeat=args.repeat)
     res["pair_full_overlap"] = fo
     print(f"pair on the whole overlap (CLI default AOI {fo['grid']}): wall {fo['wall_s']:.1f} s (+{fo['aoi_s']:.1f} s to "
           f"place the AOI), cpu {fo['cpu_s']:.1f} s, {fo['evaluations'] / 1e6:.1f} M evaluations, "

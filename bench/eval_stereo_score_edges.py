@@ -1,4 +1,7 @@
-"""Where the MDL score's non-monotonic deciles come from (docs/stereo.md, "Is the score informative?").
+"""Where windows straddling a height step fall in the MDL score's deciles (docs/stereo.md, "Is the score informative?").
+
+With the whole-window MDL they gathered in deciles 2–3 (the deciles' bump); with the score of a match taken as
+its worst 3 × 3 sub-window they gather in decile 10.
 
 Usage: ``geocd run sample_aoi --out /tmp/run3`` then ``.venv/bin/python bench/eval_stereo_score_edges.py [/tmp/run3]``.
 For the satellite–satellite pair-DEMs of the run: per MDL-score decile, the fraction of matches with

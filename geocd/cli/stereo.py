@@ -17,12 +17,15 @@ import click
 @click.option("--dem-margin", type=float, default=None, help="Search margin around the prior DEM, metres (default 30).")
 @click.option("--score", type=click.Choice(["mdl", "ncc", "ssd"]), default=None,
               help="What the score band holds (default mdl; ncc and ssd bands are written anyway).")
+@click.option("--score-subwindow", type=int, default=None,
+              help="MDL score = the worst of the sub-windows of this side (cells, odd) tiling the matching window "
+                   "(default 3; a value ≥ --window scores the whole window).")
 @click.option("--tile-size", type=int, default=None, help="Tile side in cells (memory bound; default 256).")
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing pair-DEMs.")
 @click.pass_context
 def stereo(ctx: click.Context, manifest: str, epochs: tuple[str, ...], out_dir: str | None, posting_m: float | None,
-           window: int | None, height_range, dem_margin: float | None, score: str | None, tile_size: int | None,
-           no_overwrite: bool) -> None:
+           window: int | None, height_range, dem_margin: float | None, score: str | None,
+           score_subwindow: int | None, tile_size: int | None, no_overwrite: bool) -> None:
     """Match every image pair of each epoch of MANIFEST in object space (RPC and frame cameras alike).
 
     For each pair, writes a Cloud-Optimized GeoTIFF on the AOI grid with bands z (ellipsoidal m), score
@@ -41,6 +44,8 @@ def stereo(ctx: click.Context, manifest: str, epochs: tuple[str, ...], out_dir: 
         kw["dem_margin_m"] = dem_margin
     if score is not None:
         kw["score"] = score
+    if score_subwindow is not None:
+        kw["score_subwindow"] = score_subwindow
     if tile_size is not None:
         kw["tile_size"] = tile_size
     params = StereoParams(**kw)

@@ -182,6 +182,10 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   optional=True, min=0.0, advanced=True, help="Default 30 m."),
             Param("SCORE", "enum", "Score band", cli="--score", optional=True, advanced=True,
                   options=(("MDL (bits/pixel, default)", "mdl"), ("NCC", "ncc"), ("SSD", "ssd"))),
+            Param("SCORE_SUBWINDOW", "int", "MDL score: sub-window side (odd)", cli="--score-subwindow", unit="cells",
+                  optional=True, min=3, max=63, advanced=True,
+                  help="The MDL score of a match is the worst of these sub-windows of its matching window. "
+                       "Default 3; a value ≥ the window scores the whole window."),
             Param("TILE_SIZE", "int", "Tile side (memory bound)", cli="--tile-size", unit="cells", optional=True,
                   min=32, advanced=True, help="Default 256."),
         ),
