@@ -568,13 +568,19 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
             evaluations += ev
             meta.update(info)
             if params.pointing_correction:
+                chip_b0 = chips[1]
                 if info.get("coarse_pointing_px"):
                     chips[1] = chips[1].shifted(*info["coarse_pointing_px"])
                 surf = _surface_from_planes(planes, f, grid.shape)
-                pointing = relative_pointing(grid, chips, cams, surf)
+                pointing = relative_pointing(grid, chips, cams, surf, min_patches=params.min_pointing_patches)
                 if pointing["applied"]:
                     chips[1] = chips[1].shifted(pointing["dcol"], pointing["drow"])
                 pointing["total_shift_px"] = list(chips[1].shift)
+                moved = float(np.hypot(chips[1].shift[0] - chip_b0.shift[0], chips[1].shift[1] - chip_b0.shift[1]))
+                if moved < params.min_pointing_px:   # below the estimator's own bias: leave b where its camera puts it
+                    chips[1] = chip_b0
+                    pointing.update(applied=False, not_applied="below min_pointing_px", estimated_shift_px=moved,
+                                    total_shift_px=list(chip_b0.shift))
             continue
         search = (HeightSearch(lo_l, hi_l, step_l) if planes is None
                   else refine_search(planes, lo_l, hi_l, 2, step_l * 2, step_l, params))

@@ -69,6 +69,12 @@ class StereoParams(ParamsMixin):
         direction (:mod:`geocd.stereo.pointing`) from a coarse match before the fine one.
     max_pointing_px : float
         Largest relative pointing error searched at the coarse level (pixels).
+    min_pointing_px : float
+        A relative pointing correction smaller than this (pixels, coarse + fine) is not
+        applied: on sample_aoi's exact cameras the estimator returns 0.05–0.14 px of bias.
+    min_pointing_patches : int
+        The fine (patch) estimate is used only when at least this many 48-cell patches
+        agree on it (the coarse level's estimate alone stands otherwise).
     """
 
     window: int = 7
@@ -93,6 +99,8 @@ class StereoParams(ParamsMixin):
     tile_size: int = 256
     pointing_correction: bool = True
     max_pointing_px: float = 6.0
+    min_pointing_px: float = 0.25
+    min_pointing_patches: int = 16
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:

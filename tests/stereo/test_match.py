@@ -170,3 +170,10 @@ def test_local_projection_is_the_projection_of_the_next_cells(scene):
     assert geo[1, i, j] + geo[5, i, j] == pytest.approx(r1[0] - chip.origin[1], abs=1e-6)
     z[3, 4] = np.nan
     assert np.isnan(local_projection(grid, cam, chip, z)[0, 3, 4])
+
+
+def test_pointing_correction_below_its_bias_is_not_applied(pair_dem):
+    """Exact cameras: whatever small shift the estimator returns (< min_pointing_px) is left out."""
+    p = pair_dem.meta["pointing"]
+    assert p["total_shift_px"] == [0.0, 0.0]
+    assert p["applied"] is False and p["estimated_shift_px"] < StereoParams().min_pointing_px
