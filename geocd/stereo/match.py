@@ -34,7 +34,7 @@ from . import _kernels as K
 from .params import StereoParams
 from .pointing import relative_pointing
 from .products import FLAGS, PairDEM
-from .scores import mdl_from_stats, ncc_from_stats, score_from_stats, ssd_from_stats
+from .scores import mdl_from_stats, ncc_from_stats, ssd_from_stats
 from .sweep import (HeightSearch, ImageChip, PlaneSweep, chip_valid_at, coarse_grid, image_sampling_px_per_m,
                     sample_cells, sweep_progress, upsample_nearest)
 

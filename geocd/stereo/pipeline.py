@@ -18,7 +18,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..camera import Camera
-from ..errors import ConfigError, EmptyDataError, NoOverlapError
+from ..errors import ConfigError, NoOverlapError
 from ..geodesy import AOIGrid, as_crs, from_lonlat, utm_crs_for
 from ..progress import Progress, ensure_progress, sub_progress
 from .match import height_bounds, match_pair

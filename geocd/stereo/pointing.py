@@ -24,7 +24,7 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import signal
 
 from ..camera import Camera
 from ..geodesy import AOIGrid
@@ -45,7 +45,6 @@ def _ncc_shift(a: np.ndarray, b: np.ndarray, max_shift: int) -> tuple[float, flo
 
     ``a`` is (P, P), ``b`` is (P + 2M, P + 2M) centred on it. NaN = invalid.
     """
-    P = a.shape[0]
     M = max_shift
     ta = np.where(np.isfinite(a), a, np.nan)
     ta = ta - np.nanmean(ta)
