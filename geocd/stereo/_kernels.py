@@ -511,12 +511,13 @@ def sweep_ref(costs: np.ndarray, excl: float) -> dict[str, np.ndarray]:
 
 
 @njit(cache=True, inline="always")
-def _mdl_bits(va, vb, cov, s2):
-    """MDL score (bits/pixel) of two windows from their variances and covariance (k = 2), as
-    :func:`geocd.stereo.scores.mdl_from_stats`."""
+def _mdl_ratio(va, vb, cov, s2):
+    """2^(2·MDL score) of two windows from their variances and covariance (k = 2): the score of
+    :func:`geocd.stereo.scores.mdl_from_stats` is ½·log2 of it, so the worst of several windows is
+    found without a logarithm each."""
     st2 = max((va + vb + 2.0 * cov) / 4.0, 0.0)
     v = max((va + vb - 2.0 * cov) / 2.0, 0.0)
-    return 0.5 * (np.log2(st2 + s2) + np.log2(v + s2) - np.log2(va + s2) - np.log2(vb + s2))
+    return (st2 + s2) * (v + s2) / ((va + s2) * (vb + s2))
 
 
 @njit(cache=True, parallel=True)
@@ -559,7 +560,7 @@ def subwindow_mdl(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2, out):
                     yb = geo_b[1, i, j] + v * geo_b[3, i, j] + u * geo_b[5, i, j] - 0.5
                     wa[u + r, v + r] = _bilinear(img_a, xa, ya)
                     wb[u + r, v + r] = _bilinear(img_b, xb, yb)
-            worst = -np.inf
+            worst = -1.0                # largest 2^(2·score) so far (ratios are > 0)
             for p in range(m):
                 for t in range(m):
                     n = 0.0
@@ -583,10 +584,10 @@ def subwindow_mdl(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2, out):
                         continue
                     ma = sa / n
                     mb = sb / n
-                    sc = _mdl_bits(max(saa / n - ma * ma, 0.0), max(sbb / n - mb * mb, 0.0), sab / n - ma * mb, s2)
-                    if sc > worst:
-                        worst = sc
-            out[i, j] = worst if worst > -np.inf else np.nan
+                    q2 = _mdl_ratio(max(saa / n - ma * ma, 0.0), max(sbb / n - mb * mb, 0.0), sab / n - ma * mb, s2)
+                    if q2 > worst:
+                        worst = q2
+            out[i, j] = 0.5 * np.log2(worst) if worst > 0.0 else np.nan
 
 
 def subwindow_mdl_ref(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2) -> np.ndarray:
