@@ -23,6 +23,11 @@ Run it with the system Python that has PyQGIS (not geocd's venv), e.g.::
         --hide "Change mask (raised / lowered / unchanged)" \\
         --title "sample_aoi, 100 m crop: 3-D change A → B (geocd:runlayers run in QGIS)" --out docs/qgis_sample_aoi_change.png
 
+    # sample_aoi, the whole AOI through the manifest (docs/qgis_sample_aoi_full.png):
+    QT_QPA_PLATFORM=offscreen GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd /usr/bin/python3 docs/qgis_screenshot.py \\
+        --alg geocd:run --param MANIFEST=sample_aoi/scene.yaml --hide "Change mask (raised / lowered / unchanged)" \\
+        --title "sample_aoi: 3-D change A → B (geocd:run in QGIS)" --out docs/qgis_sample_aoi_full.png
+
 ``--workdir`` keeps the products (default: a temporary folder).
 """
 
