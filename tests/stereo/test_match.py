@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from geocd.errors import ConfigError
 from geocd.stereo import FLAGS, StereoParams, match_pair, prepare_chip
 from geocd.stereo.photometry import estimate_noise_sigma, local_normalize, to_gray
 
@@ -150,8 +151,10 @@ def test_score_is_the_worst_subwindow_mdl(scene, chips, pair_dem):
                        params=StereoParams(height_range_m=(185.0, 225.0), score_subwindow=7))
     np.testing.assert_array_equal(whole.score, whole.mdl_window)
     np.testing.assert_allclose(whole.mdl_window[ok], pd.mdl_window[ok], atol=1e-6)
-    with pytest.raises(Exception, match="score_subwindow"):
+    with pytest.raises(ConfigError, match="score_subwindow"):
         StereoParams(score_subwindow=4)
+    with pytest.raises(ConfigError, match="min_pointing_px"):
+        StereoParams(min_pointing_px=-0.1)
 
 
 def test_local_projection_is_the_projection_of_the_next_cells(scene):
