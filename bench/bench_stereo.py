@@ -174,16 +174,23 @@ def kernel_bench(grid, ref, cams, chips, crop: int, planes: int, repeat: int) ->
             "evals_per_s": {k: n_eval / v for k, v in best.items()}, "agreement": agree}
 
 
+def best_of(fn, repeat: int):
+    """``(result, best wall s, best CPU s)`` of ``repeat`` calls: the machine is shared."""
+    wall = cpu = np.inf
+    out = None
+    for _ in range(max(1, repeat)):
+        t, c = time.perf_counter(), time.process_time()
+        out = fn()
+        wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - c)
+    return out, wall, cpu
+
+
 def pair_bench(grid, ref, cams, chips, repeat: int = 1) -> dict:
     from geocd.stereo import StereoParams, match_pair
 
     small = grid.subgrid(0, 0, 128, 128)
     match_pair(chips[0], chips[1], cams[0], cams[1], small, params=StereoParams(height_range_m=(2250.0, 2400.0)))
-    wall = cpu = np.inf
-    for _ in range(repeat):         # best of `repeat`: the machine is shared
-        t, c = time.perf_counter(), time.process_time()
-        pd = match_pair(chips[0], chips[1], cams[0], cams[1], grid)
-        wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - c)
+    pd, wall, cpu = best_of(lambda: match_pair(chips[0], chips[1], cams[0], cams[1], grid), repeat)
     both = pd.valid & np.isfinite(ref)
     d = (pd.z_m - ref)[both]
     d = d - np.median(d)
@@ -208,11 +215,7 @@ def full_overlap_bench(cams, chips_unused=None, repeat: int = 1) -> dict:
     t_aoi = time.perf_counter() - t
     lo, hi = 2200.0, 2450.0
     chips = [read_chip(im.path, im.camera, grid, lo, hi, name=im.name, margin_px=40) for im in ims]
-    wall = cpu = np.inf
-    for _ in range(repeat):
-        t, c = time.perf_counter(), time.process_time()
-        pd = match_pair(chips[0], chips[1], ims[0].camera, ims[1].camera, grid)
-        wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - c)
+    pd, wall, cpu = best_of(lambda: match_pair(chips[0], chips[1], ims[0].camera, ims[1].camera, grid), repeat)
     return {"grid": f"{grid.width}x{grid.height} at {grid.posting_m} m", "cells": grid.width * grid.height, "repeat": repeat,
             "valid_cells": int(pd.valid.sum()), "aoi_s": t_aoi, "wall_s": wall, "cpu_s": cpu,
             "evaluations": pd.meta["evaluations"]}

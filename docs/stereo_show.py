@@ -48,31 +48,30 @@ def compare(pd, ref: np.ndarray) -> dict:
             "cells_compared": int(both.sum())}
 
 
+def decile_table(score: np.ndarray, bad: np.ndarray, n_bins: int = 10) -> dict:
+    """Per score bin (equal counts; finite scores only), the fraction of ``bad`` matches, and the score's AUC
+    as a detector of bad matches (higher score = worse)."""
+    from scipy.stats import mannwhitneyu
+
+    ok = np.isfinite(score)
+    v, b = np.asarray(score, np.float64)[ok], np.asarray(bad, bool)[ok]
+    edges = np.quantile(v, np.linspace(0, 1, n_bins + 1))
+    idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, n_bins - 1)
+    frac = [float(b[idx == i].mean()) for i in range(n_bins)]
+    auc = (float(mannwhitneyu(v[b], v[~b]).statistic / (b.sum() * (~b).sum())) if b.any() and (~b).any()
+           else float("nan"))
+    rises = int(sum(1 for x, y in zip(frac, frac[1:]) if y >= x))
+    return {"edges": [float(e) for e in edges], "frac_bad": frac, "count": [int((idx == i).sum()) for i in range(n_bins)],
+            "auc": auc, "non_decreasing_steps": f"{rises}/{n_bins - 1}"}
+
+
 def score_table(pd, ref: np.ndarray, offset: float, n_bins: int = 10, thresh_m: float = 1.0) -> dict:
     """Per score bin (equal counts), the fraction of valid matches with |Δz| > thresh_m, for mdl/ncc/ssd."""
     both = pd.valid & np.isfinite(ref)
     bad = (np.abs(pd.z_m - ref - offset) > thresh_m)[both]
-    out = {}
     scores = {"mdl": pd.score if pd.meta.get("score_kind") == "mdl" else None, "mdl (whole window)": pd.mdl_window,
               "1-ncc": 1.0 - pd.ncc, "ssd": pd.ssd}
-    for name, s in scores.items():
-        if s is None:
-            continue
-        v = s[both].astype(np.float64)
-        ok = np.isfinite(v)
-        edges = np.quantile(v[ok], np.linspace(0, 1, n_bins + 1))
-        idx = np.clip(np.searchsorted(edges, v[ok], side="right") - 1, 0, n_bins - 1)
-        frac = [float(bad[ok][idx == i].mean()) for i in range(n_bins)]
-        cnt = [int((idx == i).sum()) for i in range(n_bins)]
-        # AUC of the score as a detector of bad matches (higher score = worse)
-        from scipy.stats import mannwhitneyu
-
-        b = bad[ok]
-        auc = float(mannwhitneyu(v[ok][b], v[ok][~b]).statistic / (b.sum() * (~b).sum())) if b.any() and (~b).any() else float("nan")
-        rises = int(sum(1 for a, c in zip(frac, frac[1:]) if c >= a))
-        out[name] = {"edges": [float(e) for e in edges], "frac_bad": frac, "count": cnt, "auc": auc,
-                     "non_decreasing_steps": f"{rises}/{n_bins - 1}"}
-    return out
+    return {name: decile_table(s[both], bad, n_bins) for name, s in scores.items() if s is not None}
 
 
 def load_rpc_chip(path: Path, grid: AOIGrid, lo: float, hi: float, name: str):
@@ -147,7 +146,6 @@ def ventoux(params: StereoParams = StereoParams()) -> dict:
 
     root = DATA / "cnes_pleiades_ventoux"
     cams = {n: load_camera(root / f"{n}.tif") for n in ("left_image", "right_image")}
-    srtm_ll = read_dem(root / "srtm" / "N44E005.hgt", vertical_datum="egm96")
     crs = utm_crs_for(5.195, 44.206)
     # AOI: the two images' common footprint at the SRTM height of the spot
     h0 = 540.0
@@ -304,26 +302,14 @@ def sample(params: StereoParams = StereoParams()) -> dict:
     # (and, the paper's unit, with |Δz|·g > 1 px of disparity; and per pair kind)
     P = np.concatenate(pooled, axis=1)
     table = {}
-    from scipy.stats import mannwhitneyu
-
-    def deciles(v: np.ndarray, err: np.ndarray) -> dict:
-        ok = np.isfinite(v)
-        v, err = v[ok], err[ok]
-        edges = np.quantile(v, np.linspace(0, 1, 11))
-        idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, 9)
-        frac = [float(err[idx == k].mean()) for k in range(10)]
-        auc = float(mannwhitneyu(v[err], v[~err]).statistic / (err.sum() * (~err).sum()))
-        return {"edges": [float(x) for x in edges], "frac_bad": frac, "auc": auc,
-                "non_decreasing_steps": f"{sum(1 for x, y in zip(frac, frac[1:]) if y >= x)}/9"}
-
     names = ("mdl (worst 3x3 sub-window, the score)", "mdl (whole 7x7 window)", "1-ncc", "ssd")
     kinds = {"all pairs": None, "satellite-satellite": 0, "satellite-aerial": 1, "aerial-aerial": 2}
     for i, name in enumerate(names):
         table[name] = {}
         for kname, kcode in kinds.items():
             sel = np.ones(P.shape[1], bool) if kcode is None else P[6] == kcode
-            table[name][kname] = {"abs_dz_gt_1m": deciles(P[i][sel], P[4][sel] > 1.0),
-                                  "disparity_gt_1px": deciles(P[i][sel], P[5][sel] > 1.0)}
+            table[name][kname] = {"abs_dz_gt_1m": decile_table(P[i][sel], P[4][sel] > 1.0),
+                                  "disparity_gt_1px": decile_table(P[i][sel], P[5][sel] > 1.0)}
             t = table[name][kname]["abs_dz_gt_1m"]
             print(f"{name} [{kname}] AUC {t['auc']:.3f} {t['non_decreasing_steps']} frac>1m by decile",
                   [round(100 * f, 2) for f in t["frac_bad"]])

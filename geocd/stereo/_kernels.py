@@ -593,7 +593,7 @@ def subwindow_mdl(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2, out):
 def subwindow_mdl_ref(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2) -> np.ndarray:
     """numpy reference of :func:`subwindow_mdl` (windows warped with :func:`warp_bilinear_ref`,
     scores with :func:`geocd.stereo.scores.mdl_from_stats`)."""
-    from .scores import mdl_from_stats
+    from .scores import mdl_from_stats, window_stats
 
     side = 2 * r + 1
     win = []
@@ -612,16 +612,12 @@ def subwindow_mdl_ref(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2) -> n
             a = A[cu - q + r:cu + q + r + 1, cv - q + r:cv + q + r + 1].reshape(-1, *A.shape[2:])
             b = B[cu - q + r:cu + q + r + 1, cv - q + r:cv + q + r + 1].reshape(-1, *B.shape[2:])
             ok = np.isfinite(a) & np.isfinite(b)
-            n = ok.sum(axis=0).astype(np.float64)
             a0 = np.where(ok, a, 0.0)
             b0 = np.where(ok, b, 0.0)
+            mom = np.stack([ok.sum(0), a0.sum(0), b0.sum(0), (a0 * a0).sum(0), (b0 * b0).sum(0), (a0 * b0).sum(0)])
+            n, va, vb, cov = window_stats(mom.astype(np.float64))
             with np.errstate(all="ignore"):
-                ma = a0.sum(0) / n
-                mb = b0.sum(0) / n
-                va = np.maximum((a0 * a0).sum(0) / n - ma * ma, 0.0)
-                vb = np.maximum((b0 * b0).sum(0) / n - mb * mb, 0.0)
-                cov = (a0 * b0).sum(0) / n - ma * mb
-            sc = mdl_from_stats(va, vb, cov, np.sqrt(s2))
+                sc = mdl_from_stats(va, vb, cov, np.sqrt(s2))
             scores.append(np.where((n >= min_n) & (n >= 2), sc, -np.inf))
     worst = np.max(scores, axis=0)
     worst[~(np.isfinite(geo_a[0]) & np.isfinite(geo_b[0]))] = -np.inf

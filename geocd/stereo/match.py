@@ -656,7 +656,7 @@ def local_projection(grid: AOIGrid, cam: Camera, chip: ImageChip, z: np.ndarray,
     out = np.empty((6, *z.shape))
     col, row = cam.ground_projector(lon, lat, None).project(zf)
     out[0] = np.where(ok, col - c0, np.nan)
-    out[1] = row - r0
+    out[1] = np.where(ok, row - r0, np.nan)
     for n, axis in ((2, 1), (4, 0)):
         c, r = cam.ground_projector(nxt(lon, axis), nxt(lat, axis), None).project(zf)
         out[n] = c - col

@@ -709,6 +709,21 @@ def node_boxes(geo, block_root, child, out_center, out_size):
                         sp += 1
 
 
+@njit(cache=True, inline="always")
+def _transmittance(ox, oy, oz, dx, dy, dz, skip, lo, hi, geo, block_root, child, alpha, seg_cell, seg_len, seg_t):
+    """``(exp(-Σ α ℓ), segments traced)`` along the ray ``o + t d`` inside the volume, beyond ``t = skip``."""
+    t0, t1 = clip_ray(ox, oy, oz, dx, dy, dz, lo, hi)
+    if t0 < skip:
+        t0 = skip
+    tau = 0.0
+    n = 0
+    if t1 > t0:
+        n = trace_ray(ox, oy, oz, dx, dy, dz, t0, t1, geo, block_root, child, seg_cell, seg_len, seg_t)
+        for i in range(n):
+            tau += alpha[seg_cell[i]] * seg_len[i]
+    return math.exp(-tau), n
+
+
 @njit(cache=True)
 def sun_visibility(cells, centers, sizes, sun_dir, skip_cells, lo, hi, geo, block_root, child, alpha, out,
                    seg_cell, seg_len, seg_t):
@@ -726,16 +741,9 @@ def sun_visibility(cells, centers, sizes, sun_dir, skip_cells, lo, hi, geo, bloc
         oy = centers[c, 1]
         oz = centers[c, 2] + 0.5 * sizes[c]
         skip = skip_cells * sizes[c]
-        t0, t1 = clip_ray(ox, oy, oz, dx, dy, dz, lo, hi)
-        if t0 < skip:
-            t0 = skip
-        tau = 0.0
-        if t1 > t0:
-            n = trace_ray(ox, oy, oz, dx, dy, dz, t0, t1, geo, block_root, child, seg_cell, seg_len, seg_t)
-            total += n
-            for i in range(n):
-                tau += alpha[seg_cell[i]] * seg_len[i]
-        out[j] = math.exp(-tau)
+        out[j], n = _transmittance(ox, oy, oz, dx, dy, dz, skip, lo, hi, geo, block_root, child, alpha,
+                                   seg_cell, seg_len, seg_t)
+        total += n
     return total
 
 
@@ -886,14 +894,7 @@ def surface_sun(orig, dirs, tmed, sun_dir, lift, skip, lo, hi, geo, block_root, 
         ox = orig[r, 0] + t * dirs[r, 0]
         oy = orig[r, 1] + t * dirs[r, 1]
         oz = orig[r, 2] + t * dirs[r, 2] + lift
-        t0, t1 = clip_ray(ox, oy, oz, dx, dy, dz, lo, hi)
-        if t0 < skip:
-            t0 = skip
-        tau = 0.0
-        if t1 > t0:
-            n = trace_ray(ox, oy, oz, dx, dy, dz, t0, t1, geo, block_root, child, seg_cell, seg_len, seg_t)
-            total += n
-            for i in range(n):
-                tau += alpha[seg_cell[i]] * seg_len[i]
-        out[r] = math.exp(-tau)
+        out[r], n = _transmittance(ox, oy, oz, dx, dy, dz, skip, lo, hi, geo, block_root, child, alpha,
+                                   seg_cell, seg_len, seg_t)
+        total += n
     return total

@@ -293,6 +293,18 @@ def _json(o):
     raise TypeError(type(o).__name__)
 
 
+def _save_maps(fig, axes, path: Path) -> None:
+    """Write a row of map panels (no axis ticks) and close the figure."""
+    import matplotlib.pyplot as plt
+
+    for a in axes:
+        a.set_xticks([])
+        a.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def _figures(out: Path, figs: dict, curves: dict, res: dict, agg: int) -> None:
     import matplotlib
 
@@ -334,12 +346,7 @@ def _figures(out: Path, figs: dict, curves: dict, res: dict, agg: int) -> None:
         c = np.clip(carl / np.nanpercentile(carl, 99), 0, 1)
         im = ax[4].imshow(c, cmap="viridis", vmin=0, vmax=1)
         ax[4].set_title("2-D Carlotto residual (scaled)")
-        for a in ax:
-            a.set_xticks([])
-            a.set_yticks([])
-        fig.tight_layout()
-        fig.savefig(out / "volume_change_maps.png", dpi=90)
-        plt.close(fig)
+        _save_maps(fig, ax, out / "volume_change_maps.png")
     if "expected" in figs:
         real, expv, known = figs["expected"]
         fig, ax = plt.subplots(1, 3, figsize=(15, 5))
@@ -351,12 +358,7 @@ def _figures(out: Path, figs: dict, curves: dict, res: dict, agg: int) -> None:
         im = ax[2].imshow(np.abs(e - real), cmap="magma", vmin=0, vmax=0.5)
         ax[2].set_title("|expected − real|")
         plt.colorbar(im, ax=ax[2], fraction=0.046)
-        for a in ax:
-            a.set_xticks([])
-            a.set_yticks([])
-        fig.tight_layout()
-        fig.savefig(out / "volume_expected.png", dpi=90)
-        plt.close(fig)
+        _save_maps(fig, ax, out / "volume_expected.png")
     if "height" in figs:
         h, dsm = figs["height"]
         lo, hi = np.nanpercentile(dsm, [1, 99.5])
@@ -368,12 +370,7 @@ def _figures(out: Path, figs: dict, curves: dict, res: dict, agg: int) -> None:
         im = ax[2].imshow(h - dsm, cmap="RdBu_r", vmin=-4, vmax=4)
         ax[2].set_title(f"model − truth, median |Δz| {res['height_map']['median_abs_dz_m']:.2f} m")
         plt.colorbar(im, ax=ax[2], fraction=0.046, label="m")
-        for a in ax:
-            a.set_xticks([])
-            a.set_yticks([])
-        fig.tight_layout()
-        fig.savefig(out / "volume_height.png", dpi=90)
-        plt.close(fig)
+        _save_maps(fig, ax, out / "volume_height.png")
 
 
 def main(argv: list[str] | None = None) -> None:
