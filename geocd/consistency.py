@@ -523,9 +523,15 @@ class ChangeResult:
         return self.n_comparisons > 0
 
     def changed_at(self, confidence: float) -> np.ndarray:
-        """Signed change mask (+1/−1/0) at ``confidence`` percent (must be a tested level)."""
+        """Signed change mask at ``confidence`` percent.
+
+        int8 (rows, cols): +1 raised, −1 lowered, 0 unchanged, :data:`CHANGE_NODATA` where no
+        comparison observed the cell (so building statistics can tell "unchanged" from "unseen").
+        """
         c = np.nan_to_num(self.confidence, nan=0.0)
-        return np.where(c >= confidence, np.sign(np.nan_to_num(self.dz_m)), 0).astype(np.int8)
+        out = np.where(c >= confidence, np.sign(np.nan_to_num(self.dz_m)), 0).astype(np.int8)
+        out[~self.observed] = CHANGE_NODATA
+        return out
 
 
 CHANGE_NODATA = -128

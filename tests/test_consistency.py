@@ -145,3 +145,16 @@ def test_vertical_offsets_between_reconstructions_are_removed(scene):
     assert np.mean(raw.changed_at(95)[static] != 0) > np.mean(res.changed_at(95)[static] != 0)
     with pytest.raises(ConfigError):
         ChangeParams(align="sideways")
+
+
+def test_unobserved_cells_are_nodata_at_every_level(scene):
+    """changed_at must say "not seen" where no comparison observed a cell, not "unchanged"."""
+    A, B, _ = scene
+    hole = np.zeros(SHAPE, bool)
+    hole[20:50, 20:50] = True  # the new building is hidden in every epoch-B reconstruction
+    B2 = [Rec(np.where(hole, np.nan, r.z_m), r.score, r.g_px_per_m, r.valid & ~hole, None, r.name) for r in B]
+    res = change_test(A, B2, learn_self_consistency([A, B]))
+    for lev in (90, 95, 99):
+        m = res.changed_at(lev)
+        assert np.all(m[hole] == CHANGE_NODATA) and np.all(m[~res.observed] == CHANGE_NODATA)
+        assert set(np.unique(m[res.observed])) <= {-1, 0, 1}

@@ -51,22 +51,26 @@ def _ring_median(z: np.ndarray, inside: np.ndarray, other: np.ndarray, ring_cell
 def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, grid, *, z_a: np.ndarray | None = None,
                        z_b: np.ndarray | None = None, dem_m: np.ndarray | None = None,
                        confidence: np.ndarray | None = None, params: BuildingParams = BuildingParams(),
-                       id_field: str | None = None):
+                       id_field: str | None = None, confidence_level: float | None = None):
     """Attribute footprints with their change.
 
     Parameters
     ----------
     footprints : GeoDataFrame (any CRS; reprojected to the grid's)
-    change_mask : int8 (rows, cols), +1/−1/0, negative nodata (e.g. −128) where unobserved
+    change_mask : int8 (rows, cols), +1/−1/0, any other value (e.g. the −128 nodata) where unobserved
     dz_m : float (rows, cols), z_B − z_A
     z_a, z_b : float (rows, cols), optional, the epochs' surfaces (for new/demolished)
     dem_m : float (rows, cols), optional bare-earth DEM (replaces the ring test)
     confidence : float (rows, cols), optional per-cell confidence (percent)
+    confidence_level : float, optional
+        The confidence (percent) ``change_mask`` was made at; named in the ``rule`` attribute.
 
     Returns
     -------
-    GeoDataFrame with columns building_id, frac_observed, frac_changed, frac_raised, frac_lowered,
-    mean_dz_m, volume_m3, class, confidence, geometry.
+    GeoDataFrame with columns building_id, n_cells, frac_observed (observed share of the whole footprint),
+    frac_inside (share of the footprint on the grid), frac_changed, frac_raised, frac_lowered (of the observed
+    cells), mean_dz_m, volume_m3, confidence (percent), rule (the rule that set the class, in words), class,
+    geometry.
     """
     from rasterio.features import rasterize
 
@@ -77,21 +81,26 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
     any_fp = labels > 0
     ring_cells = int(round(params.ring_m / grid.posting_m))
     cell_area = grid.cell_area_m2
+    pct = f"{confidence_level:g}% " if confidence_level is not None else ""
     rows = []
     for i in range(len(gdf)):
         inside = labels == (i + 1)
         n = int(inside.sum())
+        area = max(float(gdf.geometry.iloc[i].area), 1e-9)
         rec = {"building_id": ids[i], "n_cells": n}
         if n == 0:
-            rec.update(frac_observed=0.0, frac_changed=np.nan, frac_raised=np.nan, frac_lowered=np.nan,
-                       mean_dz_m=np.nan, volume_m3=np.nan, confidence=np.nan, **{"class": "unobserved"})
+            rec.update(frac_observed=0.0, frac_inside=0.0, frac_changed=np.nan, frac_raised=np.nan,
+                       frac_lowered=np.nan, mean_dz_m=np.nan, volume_m3=np.nan, confidence=np.nan,
+                       rule=f"unobserved: no grid cell inside the footprint (min_inside {params.min_inside:g})",
+                       **{"class": "unobserved"})
             rows.append(rec)
             continue
-        inside_frac = n * cell_area / max(float(gdf.geometry.iloc[i].area), 1e-9)
+        inside_frac = min(1.0, n * cell_area / area)
         cm = change_mask[inside]
-        obs = cm >= -1
+        obs = (cm >= -1) & (cm <= 1)
         nobs = int(obs.sum())
-        fobs = nobs / n
+        # observed share of the whole footprint (cells off the grid count as unobserved)
+        fobs = min(1.0, nobs * cell_area / area)
         raised = float(np.sum(cm == 1)) / max(nobs, 1)
         lowered = float(np.sum(cm == -1)) / max(nobs, 1)
         dzin = dz_m[inside]
@@ -103,15 +112,21 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
             cin = cin[np.isfinite(cin) & (cin > 0)]
             conf = float(np.median(cin)) if cin.size else 0.0
         cls = "unchanged"
-        if fobs < params.min_observed or inside_frac < params.min_inside:
+        rule = (f"unchanged: {100 * max(raised, lowered):.0f}% of observed cells changed at {pct}"
+                f"(< min_changed {100 * params.min_changed:g}%)")
+        if inside_frac < params.min_inside:
             cls = "unobserved"
+            rule = f"unobserved: {100 * inside_frac:.0f}% of the footprint on the grid (< min_inside {100 * params.min_inside:g}%)"
+        elif nobs < params.min_observed * n:
+            cls = "unobserved"
+            rule = (f"unobserved: {100 * nobs / n:.0f}% of its cells observed in both epochs "
+                    f"(< min_observed {100 * params.min_observed:g}%)")
         elif max(raised, lowered) >= params.min_changed:
             if raised >= lowered:
-                cls = "raised"
-                z = z_a
+                cls, frac, z = "raised", raised, z_a
             else:
-                cls = "lowered"
-                z = z_b
+                cls, frac, z = "lowered", lowered, z_b
+            rule = f"{cls}: {100 * frac:.0f}% of observed cells {cls} at {pct}(≥ min_changed {100 * params.min_changed:g}%)"
             if z is not None:
                 zin = z[inside]
                 zin = zin[np.isfinite(zin)]
@@ -120,12 +135,17 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
                     ground = float(np.nanmedian(ground)) if np.isfinite(ground).any() else np.nan
                 else:
                     ground = _ring_median(z, inside, any_fp, ring_cells)
-                if zin.size and np.isfinite(ground) and float(np.median(zin)) - ground < params.ground_tol_m:
-                    cls = "new" if cls == "raised" else "demolished"
-        rec.update(frac_observed=round(fobs, 4), frac_changed=round(raised + lowered, 4), frac_raised=round(raised, 4),
-                   frac_lowered=round(lowered, 4), mean_dz_m=mean_dz,
-                   volume_m3=float(np.nansum(dz_m[inside] * (change_mask[inside] != 0)) * cell_area) if nobs else np.nan,
-                   confidence=conf, **{"class": cls})
+                if zin.size and np.isfinite(ground):
+                    above = float(np.median(zin)) - ground
+                    if above < params.ground_tol_m:
+                        epoch = "A" if cls == "raised" else "B"
+                        cls = "new" if cls == "raised" else "demolished"
+                        rule += (f"; at ground level in {epoch} (median {above:.1f} m above its surroundings "
+                                 f"< ground_tol {params.ground_tol_m:g} m)")
+        rec.update(frac_observed=round(fobs, 4), frac_inside=round(inside_frac, 4), frac_changed=round(raised + lowered, 4),
+                   frac_raised=round(raised, 4), frac_lowered=round(lowered, 4), mean_dz_m=mean_dz,
+                   volume_m3=float(np.nansum(dz_m[inside] * ((cm == 1) | (cm == -1))) * cell_area) if nobs else np.nan,
+                   confidence=conf, rule=rule, **{"class": cls})
         rows.append(rec)
     import geopandas as gpd
     import pandas as pd

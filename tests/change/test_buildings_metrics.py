@@ -73,3 +73,43 @@ def test_qml_is_well_formed_xml():
         r = root.find("renderer-v2")
         assert r.get("type") == "categorizedSymbol"
         assert len(r.find("categories")) == len(r.find("symbols"))
+
+
+def test_unobserved_building_from_a_change_result_says_why(grid):
+    """A footprint on cells no comparison saw is `unobserved` (not `unchanged`), with the rule in words."""
+    import geopandas as gpd
+
+    from geocd.consistency import change_test, learn_self_consistency
+    from tests.test_consistency import Rec
+
+    rng = np.random.default_rng(5)
+    shape = grid.shape
+    l, b, r, t = grid.bounds
+
+    def rec(name, hide=None):
+        z = rng.normal(scale=0.2, size=shape).astype(np.float32)
+        valid = np.ones(shape, bool)
+        if hide is not None:
+            valid[hide] = False
+        return Rec(np.where(valid, z, np.nan).astype(np.float32), rng.uniform(0, 1, shape).astype(np.float32),
+                   np.ones(shape, np.float32), valid, grid, name)
+
+    hide = (slice(10, 50), slice(10, 50))  # rows 10..49, cols 10..49: x l+5..l+25, y t-25..t-5
+    A = [rec(f"A{i}") for i in range(3)]
+    B = [rec(f"B{i}", hide) for i in range(3)]
+    res = change_test(A, B, learn_self_consistency([A]))
+    fps = gpd.GeoDataFrame({"building_id": [1, 2, 3]}, geometry=[
+        box(l + 8, t - 22, l + 22, t - 8),     # entirely in the hole
+        box(l + 20, t - 22, l + 34, t - 8),    # 5/14 of it in the hole: observed on 64%
+        box(l + 40, b + 5, l + 50, b + 15)],   # fully observed
+        crs=grid.crs)
+    out = classify_buildings(fps, res.changed_at(99), res.dz_m, grid, id_field="building_id", confidence_level=99)
+    assert list(out["class"]) == ["unobserved", "unchanged", "unchanged"]
+    assert out.loc[0, "frac_observed"] == 0.0 and "min_observed" in out.loc[0, "rule"]
+    assert out.loc[1, "frac_observed"] == pytest.approx(9 / 14, abs=0.05)
+    assert out.loc[2, "frac_observed"] == pytest.approx(1.0) and out.loc[2, "rule"].startswith("unchanged")
+    # 60 % outside the grid: unobserved by the AOI rule, and frac_observed counts the part off the grid
+    half = gpd.GeoDataFrame({"building_id": [9]}, geometry=[box(r - 4, b + 5, r + 6, b + 15)], crs=grid.crs)
+    o = classify_buildings(half, res.changed_at(99), res.dz_m, grid, id_field="building_id")
+    assert o.loc[0, "class"] == "unobserved" and "min_inside" in o.loc[0, "rule"]
+    assert o.loc[0, "frac_observed"] == pytest.approx(0.4, abs=0.05)
