@@ -40,7 +40,11 @@ class DetectParams:
     fg_density : float
         Density of a changed pixel's intensity (uniform on [0, 1] → 1).
     neighborhood : int
-        n of the n×n variant (1 = plain per-pixel density).
+        n of the n×n variant (1 = plain per-pixel density). Default 3: the finest cell is one
+        pixel wide, so the cells a pixel's ray crosses are registered to its footprint only to
+        about ±1 px; on sample_aoi and two more towns the 3×3 variant lifts the per-pixel AUC by
+        0.045–0.056 (above both 2-D baselines on every town) while the same tolerance given to the
+        2-D baselines lowers theirs (docs/volume.md).
     vis_unknown : float
         Pixels with ``vis_∞`` above this are unknown (NaN probability).
     relight : bool
@@ -52,7 +56,7 @@ class DetectParams:
 
     prior: float = 0.5
     fg_density: float = 1.0
-    neighborhood: int = 1
+    neighborhood: int = 3
     vis_unknown: float = 0.2
     relight: bool = True
 

@@ -167,10 +167,11 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
     for v in views_b:
         truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
         t0 = time.perf_counter()
-        det = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name)
+        det = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
+                            params=DetectParams(neighborhood=1))
         t_det = time.perf_counter() - t0
         det_plain = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
-                                  params=DetectParams(relight=False))
+                                  params=DetectParams(relight=False, neighborhood=1))
         det_nxn = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
                                 params=DetectParams(neighborhood=3))
         k = nearest_view(v.camera, v.intensity.shape, ref_pool, geom)
