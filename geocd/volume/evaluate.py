@@ -267,7 +267,8 @@ def _grid_comparison(man, grid, dem, train_views, views_b, cfg, subarea_m, work,
     aucs = {"octree": [], "fixed grid": []}
     for v in views_b:
         truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
-        dets = {k: detect_change(m, v.intensity, v.camera, sun=v.sun, name=v.name) for k, m in models.items()}
+        dets = {k: detect_change(m, v.intensity, v.camera, sun=v.sun, name=v.name,
+                                 params=DetectParams(neighborhood=1)) for k, m in models.items()}
         valid = ~dets["octree"].unknown & ~dets["fixed grid"].unknown
         for k, d in dets.items():
             aucs[k].append(roc_curve(d.probability, truth, valid)[3])
@@ -275,6 +276,48 @@ def _grid_comparison(man, grid, dem, train_views, views_b, cfg, subarea_m, work,
     out["auc_mean"] = {k: float(np.mean(v)) for k, v in aucs.items()}
     log(f"sub-area: storage ratio {out['storage_ratio']:.1f}x, AUC octree {out['auc_mean']['octree']:.3f}, "
         f"fixed grid {out['auc_mean']['fixed grid']:.3f}")
+    return out
+
+
+def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdout: str = "A_sat3",
+                 cfg: TrainConfig | None = None, log=print) -> dict:
+    """Pooled per-pixel AUCs of the octree (plain and 3×3) and both 2-D baselines on a sub-area.
+
+    The octree is trained on ``bounds`` (AOI CRS) only, so this is a fast, reduced version of
+    :func:`evaluate` for tests; every method is scored on the same pixels (known to the model,
+    defined for the baselines) of every epoch-B satellite image.
+    """
+    cfg = cfg or TrainConfig()
+    man = load_manifest(scene)
+    geom_full, grid = geometry_from_manifest(man, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth,
+                                             above_m=cfg.above_m)
+    dem = read_dem(man.dem.path, grid=grid, vertical_datum=man.dem.vertical_datum).to_ellipsoidal().height_m
+    sub = AOIGrid.from_bounds(*bounds, grid.posting_m, grid.crs)
+    geom = geometry_for_aoi(sub, z_min_m=float(np.nanmin(dem)) - 3.0, z_max_m=float(np.nanmax(dem)) + cfg.above_m,
+                            finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth, frame=geom_full.frame)
+    views_a = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("A").images]
+    views_b = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("B").images if "sat" in s.name]
+    model, _ = train([v for v in views_a if v.name != holdout], geom, sub, dem_sub(dem, grid, sub), cfg, log=log)
+    ref_pool = [v for v in views_a if "sat" in v.name and v.name != holdout]
+    pooled: dict[str, list] = {}
+    for v in views_b:
+        truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
+        d1 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=1))
+        d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=3))
+        ref = ref_pool[nearest_view(v.camera, v.intensity.shape, ref_pool, geom)]
+        warped = warp_reference(v.camera, v.intensity.shape, ref.intensity, ref.camera, dem, grid)
+        scores = {"3-D octree (relit)": d1.probability, "3-D octree 3×3 (relit)": d3.probability,
+                  "2-D DEM warp + difference": difference_score(v.intensity, warped),
+                  "2-D Carlotto joint histogram": carlotto_score(v.intensity, warped)}
+        valid = ~d1.unknown & np.all([np.isfinite(sc) for sc in scores.values()], axis=0)
+        for k, sc in scores.items():
+            pooled.setdefault(k, []).append((sc[valid], truth[valid]))
+    out = {}
+    for k, parts in pooled.items():
+        t = np.concatenate([p[1] for p in parts])
+        out[k] = _roc(np.concatenate([p[0] for p in parts]), t, np.ones(t.size, bool))["auc"]
+    out["n_pixels"] = int(t.size)
+    out["changed_fraction"] = float(t.mean())
     return out
 
 
