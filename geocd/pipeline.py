@@ -137,6 +137,14 @@ def _median_surface(recs: Sequence[Any]) -> np.ndarray:
         return np.nanmedian(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs]), axis=0).astype(np.float32)
 
 
+def orientation_summary(report: dict) -> dict:
+    """The part of an orientation report a run summary carries (applied or not, why, residuals)."""
+    keys = ("applied", "reason", "model", "tracks", "observations", "before", "after", "held_out")
+    out = {k: report[k] for k in keys if k in report}
+    out["corrections_px"] = dict(zip(report.get("images", []), report.get("corrections", [])))
+    return out
+
+
 def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig = RunConfig(),
         progress: Progress | None = None, footprints: os.PathLike | str | None = None) -> dict[str, Any]:
     """Run the whole self-consistency change detection on a manifest.
@@ -164,9 +172,15 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
                 f"epoch {e.name!r} has {len(e.images)} image(s) and no DEM: a stereo pair needs two images. Add an "
                 "image, or give a DEM standing for this epoch (epochs[].dem)")
     stereo_epochs = [e.name for e in m.epochs if len(e.images) >= 2]
-    prog(0.0, "stereo")
+    from .orientation import orient_manifest
+
+    prog(0.0, "relative orientation")
+    m, orientation = orient_manifest(m, out_dir=out, stereo_params=config.stereo,
+                                     progress=sub_progress(prog, 0.0, 0.1, "orientation: "))
+    prog(0.1, "stereo")
     st = run_stereo(m, epochs=stereo_epochs, out_dir=out, params=config.stereo, posting_m=config.posting_m,
-                    keep_arrays=True, pairs=config.pairs, progress=sub_progress(prog, 0.0, 0.75, "stereo: "))
+                    keep_arrays=True, pairs=config.pairs, orient=False,
+                    progress=sub_progress(prog, 0.1, 0.75, "stereo: "))
     grid = st["grid"]
     by_epoch: dict[str, list] = {}
     for key, pdem in st["pairs"].items():
@@ -222,6 +236,8 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
     }
     if buildings is not None:
         summary["buildings"] = buildings["class"].value_counts().to_dict()
+    if orientation is not None:
+        summary["orientation"] = orientation_summary(orientation)
     write_text_atomic(out / "run_summary.json", json.dumps(summary, indent=2, default=str))
     paths["config"] = cfg_path
     paths["summary"] = out / "run_summary.json"

@@ -87,6 +87,7 @@ class Manifest:
     footprints: DEMSpec | None = None
     scene_class: str = ""
     truth: dict = field(default_factory=dict)
+    orientation: Any = None
 
     @property
     def root(self) -> Path:
@@ -150,7 +151,7 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
     if not isinstance(data, dict):
         raise ManifestError(f"manifest {path or ''} must be a mapping at the top level, got {type(data).__name__}")
     known = {"geocd_manifest", "name", "description", "scene_class", "aoi", "output", "dem", "footprints",
-             "epochs", "truth"}
+             "epochs", "truth", "orientation"}
     unknown = set(data) - known
     if unknown:
         raise ManifestError(f"manifest has unknown keys {sorted(unknown)}; allowed: {sorted(known)}")
@@ -211,7 +212,22 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
         output=out if out.is_absolute() else out.resolve(), dem=_dem_spec(root, data.get("dem"), "dem"),
         footprints=_dem_spec(root, data.get("footprints"), "footprints"),
         scene_class=str(data.get("scene_class", "")), truth=dict(data.get("truth") or {}),
+        orientation=_orientation_spec(data.get("orientation")),
     )
+
+
+def _orientation_spec(value: Any) -> Any:
+    """``orientation``: true/false/auto, or a mapping of :class:`geocd.orientation.OrientationParams` fields."""
+    if value is None or isinstance(value, bool):
+        return value
+    if value == "auto":
+        return {"enabled": "auto"}
+    if not isinstance(value, dict):
+        raise _err("orientation", f"must be true, false, auto or a mapping (model, gauge, ...), got {value!r}")
+    from ..orientation.params import OrientationParams
+
+    OrientationParams.from_dict(value)   # validates keys and values now, not mid-run
+    return dict(value)
 
 
 def load_manifest(path: os.PathLike | str) -> Manifest:
@@ -328,4 +344,6 @@ def manifest_to_dict(m: Manifest) -> dict:
         d["epochs"].append(ed)
     if m.truth:
         d["truth"] = m.truth
+    if m.orientation is not None:
+        d["orientation"] = m.orientation
     return d

@@ -518,6 +518,8 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
         "dem": {"path": "truth/dem_prior.tif", "vertical_datum": "ellipsoid"},
         # the buildings known at either date (as a current cadastre holds them): new ones are attributed too
         "footprints": "truth/footprints_all.gpkg",
+        # the simulated cameras are exact: no cross-epoch bias to estimate
+        "orientation": False,
         "epochs": [
             {"name": "A", "date": p.date_a[:10], "sensor": sens_a, "images": imgs("A")},
             {"name": "B", "date": p.date_b[:10], "sensor": sens_b, "images": imgs("B")},
