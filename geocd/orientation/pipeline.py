@@ -145,6 +145,7 @@ def orient_manifest(manifest, *, out_dir: os.PathLike | str, params: Orientation
             c = images[0][1].camera.footprint(float(np.mean(images[0][1].camera.height_range() or (0.0, 0.0)))).centroid
             crs0 = utm_crs_for(c.x, c.y)
         h0 = _ground_height_hint([im for _, im in images], crs0, None, sp)
+        check_epoch_overlap(by_epoch, crs0, h0, manifest.aoi.bounds if manifest.aoi is not None else None)
         grid = default_aoi_grid(manifest, by_epoch, params=sp, dem_median=h0)
     out = Path(out_dir) / "orientation"
     sig = _signature(images, p, grid)
@@ -182,6 +183,37 @@ def orient_manifest(manifest, *, out_dir: os.PathLike | str, params: Orientation
                       OrientationWarning, stacklevel=2)
         return manifest, report
     return corrected_manifest(manifest, report), report
+
+
+def check_epoch_overlap(by_epoch: dict, crs, h_m: float, aoi_bounds=None) -> None:
+    """Raise :class:`~geocd.errors.NoOverlapError` when two epochs' ground footprints (at ``h_m``) do not overlap.
+
+    ``by_epoch``: {epoch name: [EpochImage, ...]}; each epoch's footprint is the union of its images'. With an
+    AOI (``aoi_bounds`` in ``crs``), each epoch must also reach it.
+    """
+    from shapely.geometry import box
+    from shapely.ops import unary_union
+
+    from ..errors import NoOverlapError
+    from ..stereo.pipeline import _footprint_xy
+
+    fps = {e: unary_union([_footprint_xy(im.camera, h_m, crs) for im in ims]) for e, ims in by_epoch.items() if ims}
+    names = list(fps)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            inter = fps[a].intersection(fps[b])
+            if inter.is_empty or inter.area <= 0:
+                ca, cb = fps[a].centroid, fps[b].centroid
+                raise NoOverlapError(
+                    f"epochs {a!r} and {b!r} do not overlap on the ground (at {h_m:.0f} m their footprints are "
+                    f"{ca.distance(cb) / 1000:.1f} km apart, centres ({ca.x:.0f}, {ca.y:.0f}) and ({cb.x:.0f}, "
+                    f"{cb.y:.0f}) in {getattr(crs, 'name', crs)}); list images of the same place in both epochs")
+    if aoi_bounds is not None:
+        aoi = box(*aoi_bounds)
+        for e, f in fps.items():
+            if not f.intersects(aoi):
+                raise NoOverlapError(f"the images of epoch {e!r} do not reach the AOI {tuple(aoi_bounds)}; fix the "
+                                     "AOI or the images of that epoch")
 
 
 def corrected_manifest(manifest, report: dict):
