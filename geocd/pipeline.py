@@ -154,7 +154,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
 
     prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
-    out = Path(out_dir) if out_dir is not None else Path(m.output)
+    out = Path(out_dir) if out_dir is not None else m.output_dir()
     out.mkdir(parents=True, exist_ok=True)
     ea, eb = pick_epochs(m, config.epoch_a, config.epoch_b)
     model = SelfConsistencyModel.load(config.model_path) if config.model_path else None

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from .common import check_confidence
+
 
 def _confidences(values) -> tuple[float, ...]:
     return tuple(sorted(set(float(v) for v in values))) if values else (90.0, 95.0, 99.0)
@@ -14,14 +16,15 @@ def _confidences(values) -> tuple[float, ...]:
 @click.command("run")
 @click.argument("manifest", type=click.Path(path_type=str), default="sample_aoi")
 @click.option("--out", "out_dir", type=click.Path(path_type=str), default=None,
-              help="Output folder (default: the manifest's 'output', e.g. sample_aoi/out).")
+              help="Output folder (default: the manifest's 'output:' if it names one, else ./geocd_out/<scene name>).")
 @click.option("--model", "model_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
               help="Scene-class self-consistency model (JSON) to use instead of learning one here.")
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
               help="Run configuration (YAML/JSON, same tree as the run_config.json written by a run).")
-@click.option("--confidence", "confidences", type=float, multiple=True,
+@click.option("--confidence", "confidences", type=float, multiple=True, callback=check_confidence,
               help="Confidence levels in percent (repeatable; default 90 95 99).")
-@click.option("--report-confidence", type=float, default=None, help="Level for regions and buildings (default 99).")
+@click.option("--report-confidence", type=float, default=None, callback=check_confidence,
+              help="Level in percent for the change mask, regions and buildings (default 99).")
 @click.option("--footprints", type=click.Path(exists=True, path_type=str), default=None,
               help="Building footprints to attribute (default: the manifest's).")
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting, metres.")
@@ -37,6 +40,15 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
     Writes pair-DEMs (OUT/stereo), the scene-class model, change rasters (COG + QGIS styles), the changes/buildings/
     curves GeoPackage, plots, run_config.json and run_summary.json.
     """
+    from .common import require_inputs, resolve_out_dir, session
+
+    require_inputs(manifest, what="manifest")
+    from ..io.manifest import load_manifest
+
+    m = load_manifest(manifest)
+    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name)
+    sess = session(ctx)
+    sess.open_log(out)
     from ..consistency import ChangeParams, ConsistencyParams
     from ..pipeline import RunConfig, run as run_pipeline
     from . import emit_result, make_progress
@@ -56,17 +68,20 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
     cfg = dataclasses.replace(cfg, **changes)
     progress = make_progress(ctx, "run")
     try:
-        res = run_pipeline(manifest, out_dir=out_dir, config=cfg, progress=progress, footprints=footprints)
+        res = run_pipeline(m, out_dir=out, config=cfg, progress=progress, footprints=footprints)
     finally:
-        if hasattr(progress, "close"):
-            progress.close()
+        progress.close()
     s = res["summary"]
-    if (ctx.find_root().obj or {}).get("progress_mode") != "json":
-        click.echo(f"compared {s['epoch_a']} → {s['epoch_b']} on a {s['grid']['width']}x{s['grid']['height']} grid; "
-                   f"observed {100 * s['observed_fraction']:.1f}% of cells; changed: "
-                   + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items()), err=True)
-        if "buildings" in s:
-            click.echo(f"buildings: {s['buildings']}", err=True)
+    sess.say(f"compared {s['epoch_a']} → {s['epoch_b']} on a {s['grid']['width']}x{s['grid']['height']} grid; "
+             f"observed {100 * s['observed_fraction']:.1f}% of cells; changed: "
+             + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items()))
+    if "buildings" in s:
+        sess.say("buildings: " + ", ".join(f"{n} {k}" for k, n in s["buildings"].items()))
+    sess.data(**{k: s[k] for k in ("epoch_a", "epoch_b", "observed_fraction", "changed_fraction", "buildings")
+                 if k in s})
+    n_pairs = sum(1 for k in res["outputs"] if k.startswith("stereo:"))
+    if n_pairs:
+        sess.say(f"{n_pairs} pair-DEMs in {out / 'stereo'}")
     emit_result(ctx, {k: v for k, v in res["outputs"].items() if not k.startswith("stereo:")})
 
 
@@ -82,7 +97,8 @@ def _read_pairs(paths):
               help="Scene-class model to write (JSON).")
 @click.option("--group-by", type=click.Choice(["epoch", "none"]), default="epoch", show_default=True,
               help="Compare pair-DEMs within each epoch (from their tags), or all together (one static scene).")
-@click.option("--confidence", "confidences", type=float, multiple=True, help="Levels in percent (default 90 95 99).")
+@click.option("--confidence", "confidences", type=float, multiple=True, callback=check_confidence,
+              help="Levels in percent (default 90 95 99).")
 @click.option("--scene-class", default="", help="Scene class recorded in the model (e.g. urban, suburban, rural).")
 @click.option("--sensor", default="", help="Sensor recorded in the model.")
 @click.option("--bins", "n_bins", type=int, default=24, show_default=True, help="Number of score bins.")
@@ -91,6 +107,10 @@ def _read_pairs(paths):
 @click.pass_context
 def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, sensor, n_bins, plot_path):
     """Learn a self-consistency model (stage 1) from pair-DEMs of a static scene (GeoTIFFs from `geocd stereo`)."""
+    from .common import resolve_out_dir, session
+
+    sess = session(ctx)
+    sess.open_log(resolve_out_dir(Path(out_path).parent, "consistency"))
     from ..consistency import ConsistencyParams, learn_self_consistency
     from . import emit_result, make_progress
 
@@ -102,14 +122,16 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
     prov = {"scene_class": scene_class, "sensor": sensor, "pair_dems": [str(Path(p).resolve()) for p in pair_dems],
             "gsd_m": pairs[0].grid.posting_m, "score": pairs[0].meta.get("score_kind", "")}
     progress = make_progress(ctx, "consistency")
-    model = learn_self_consistency(list(groups.values()), params, provenance=prov, progress=progress)
+    try:
+        model = learn_self_consistency(list(groups.values()), params, provenance=prov, progress=progress)
+    finally:
+        progress.close()
     outputs = {"model": model.save(out_path)}
     if plot_path:
         from ..change.plots import plot_scatter_curves
 
         outputs["scatter"] = plot_scatter_curves(model, plot_path)
-    if (ctx.find_root().obj or {}).get("progress_mode") != "json":
-        click.echo(model.curves_table().to_string(index=False, float_format=lambda v: f"{v:.3f}"), err=True)
+    sess.say(model.curves_table().to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     emit_result(ctx, outputs)
 
 
@@ -127,8 +149,10 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
               help="Self-consistency model (from `geocd consistency` or a run).")
 @click.option("--footprints", type=click.Path(exists=True, path_type=str), default=None, help="Footprints to attribute.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str), help="Output folder.")
-@click.option("--confidence", "confidences", type=float, multiple=True, help="Levels in percent (default 90 95 99).")
-@click.option("--report-confidence", type=float, default=99.0, show_default=True)
+@click.option("--confidence", "confidences", type=float, multiple=True, callback=check_confidence,
+              help="Levels in percent (default 90 95 99).")
+@click.option("--report-confidence", type=float, default=99.0, show_default=True, callback=check_confidence,
+              help="Level in percent for the change mask, regions and buildings.")
 @click.option("--combine", type=click.Choice(["majority", "all", "any"]), default="majority", show_default=True)
 @click.pass_context
 def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, footprints, out_dir, confidences,
@@ -142,7 +166,9 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     from ..io.vector import read_footprints
     from ..pipeline import _median_surface
     from . import emit_result, make_progress
+    from .common import resolve_out_dir, session
 
+    session(ctx).open_log(resolve_out_dir(out_dir, "change"))
     A, B = _read_pairs(a_paths), _read_pairs(b_paths)
     if not (A or B):
         raise ConfigError("give pair-DEMs of both epochs (-a ... -b ...), or one epoch's pair-DEMs and a DEM for the other")
@@ -159,7 +185,10 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     model = SelfConsistencyModel.load(model_path)
     params = ChangeParams(confidences=_confidences(confidences), combine=combine)
     progress = make_progress(ctx, "change")
-    res = change_test(A, B, model, params, progress=progress)
+    try:
+        res = change_test(A, B, model, params, progress=progress)
+    finally:
+        progress.close()
     buildings = None
     if footprints:
         fps = read_footprints(footprints, crs=grid.crs)
