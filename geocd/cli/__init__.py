@@ -44,6 +44,7 @@ SUBCOMMANDS: dict[str, str] = {
     "info": "geocd.cli.info:info",
     "demdiff": "geocd.cli.demdiff:demdiff",
     "plugin-zip": "geocd.cli.plugin:plugin_zip",
+    "plugin-install": "geocd.cli.plugin:plugin_install",
     "synth": "geocd.cli.synth:synth",
     "volume": "geocd.cli.volume:volume",
     "run": "geocd.cli.change:run",

@@ -216,6 +216,8 @@ class Session:
         self._finished = False
         #: the command printed its own result on stdout (e.g. ``info``): finish() adds nothing there
         self.stdout_done = False
+        #: write a log file (commands whose output folder is published, e.g. plugin-zip, turn it off)
+        self.log_enabled = True
         self._old_showwarning = None
         self._log_line(f"==== geocd {self._version()} {self.command} — {_now()}")
         self._log_line(f"argv: {' '.join(sys.argv)}")
@@ -248,7 +250,7 @@ class Session:
 
         Returns the log path, or None (with a warning on stderr) when the folder cannot be written.
         """
-        if self._log is not None:
+        if self._log is not None or not self.log_enabled:
             return self.log_path
         name = LOG_PREFIX + self.command.replace(" ", "_").replace("-", "_") + ".log"
         path = Path(folder) / name

@@ -396,8 +396,14 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   file_filter="Rasters and vectors (*.tif *.tiff *.gpkg *.shp *.geojson);;All files (*)"),
             Param("MASK_IS", "enum", "The mask marks", cli="--mask-is", default=0,
                   options=(("stable terrain", "stable"), ("unstable areas (e.g. glacier outlines)", "unstable"))),
-            Param("CONFIDENCE", "number", "Confidence level for 'changed' (0–1)", cli="--confidence", default=0.95,
-                  min=0.5, max=0.99999),
+            Param("CONFIDENCE", "number", "Confidence level for 'changed'", cli="--confidence", unit="%",
+                  default=95.0, min=50.0, max=99.999, help="A percentage: 95 means 95 %."),
+            Param("BASE", "file", "Base DEM both DEMs were merged onto (optional)", cli="--base", optional=True,
+                  file_filter="DEMs (*.tif *.tiff *.e00 *.vrt *.asc);;All files (*)",
+                  help="When each DEM is a survey pasted on a common base DEM (e.g. the Mount St Helens archive), "
+                       "give the base: only cells where both DEMs differ from it (both epochs surveyed) are "
+                       "compared. Without it the pasted base is identical in both DEMs, the stable terrain is "
+                       "degenerate (NMAD 0) and geocd warns that σ is not credible."),
             Param("DATUM_A", "enum", "Vertical datum of DEM A (when its file does not say)", cli="--datum-a",
                   options=_DATUMS, default=0, optional=True, advanced=True),
             Param("DATUM_B", "enum", "Vertical datum of DEM B", cli="--datum-b", options=_DATUMS, default=0,
@@ -445,8 +451,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   advanced=True),
             Param("STABLE_MASK", "file", "Stable-terrain mask (raster or polygons; default: automatic)",
                   cli="--stable-mask", optional=True, advanced=True),
-            Param("CONFIDENCE", "number", "Confidence level (0–1)", cli="--confidence", default=0.95, min=0.5,
-                  max=0.99999),
+            Param("CONFIDENCE", "number", "Confidence level", cli="--confidence", unit="%", default=95.0, min=50.0,
+                  max=99.999, help="A percentage: 95 means 95 %."),
             Param("PAIR_PRODUCTS", "bool", "Also write every interval's rasters and layers", cli="--pair-products",
                   default=False),
             Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",
