@@ -157,16 +157,16 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     if not A or not B:
         raise ConfigError("each epoch needs at least one pair-DEM or a DEM (--dem-a/--dem-b)")
     model = SelfConsistencyModel.load(model_path)
-    params = ChangeParams(confidences=_confidences(confidences), combine=combine)
+    params = ChangeParams(confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})), combine=combine)
     progress = make_progress(ctx, "change")
     res = change_test(A, B, model, params, progress=progress)
     buildings = None
     if footprints:
         fps = read_footprints(footprints, crs=grid.crs)
         id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
-        mask = res.changed_at(report_confidence) if report_confidence in res.confidences else res.change
-        buildings = classify_buildings(fps, mask, res.dz_m, grid, z_a=_median_surface(A), z_b=_median_surface(B),
-                                       confidence=res.confidence, id_field=id_field)
+        buildings = classify_buildings(fps, res.changed_at(report_confidence), res.dz_m, grid, z_a=_median_surface(A),
+                                       z_b=_median_surface(B), confidence=res.confidence, id_field=id_field,
+                                       confidence_level=report_confidence)
     paths = write_change_products(out_dir, res, grid, method="self-consistency", epoch_a=A[0].epoch if hasattr(A[0], "epoch") else "A",
                                   epoch_b=B[0].epoch if hasattr(B[0], "epoch") else "B", region_confidence=report_confidence,
                                   model=model, buildings=buildings, prefix="sc")

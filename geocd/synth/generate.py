@@ -516,8 +516,8 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
         "scene_class": "suburban",
         "aoi": {"crs": f"EPSG:{town.frame.epsg}", "bounds": [float(b) for b in grid.bounds], "posting_m": p.posting_m},
         "dem": {"path": "truth/dem_prior.tif", "vertical_datum": "ellipsoid"},
-        # the buildings known at either date (as a current cadastre holds them): new ones are attributed too
-        "footprints": "truth/footprints_all.gpkg",
+        # the buildings of the earlier date only (what a user has at best): new ones must come from detection
+        "footprints": "truth/footprints_A.gpkg",
         "epochs": [
             {"name": "A", "date": p.date_a[:10], "sensor": sens_a, "images": imgs("A")},
             {"name": "B", "date": p.date_b[:10], "sensor": sens_b, "images": imgs("B")},
