@@ -29,6 +29,10 @@ from .errors import ConfigError, ProcessingError
 from .progress import Progress, ensure_progress, sub_progress
 
 
+#: what ``geocd run`` writes into its output folder (globs, relative to it): see geocd.io.outputs.open_outputs
+PRODUCTS = ("sc_*", "stereo/*", "self_consistency_model.json", "run_config.json", "run_summary.json")
+
+
 def _stereo_params_cls():
     from .stereo import StereoParams
 
@@ -119,6 +123,9 @@ def pick_epochs(manifest, epoch_a: str | None = None, epoch_b: str | None = None
     b = manifest.epoch(epoch_b) if epoch_b else eps[-1]
     if a.name == b.name:
         raise ConfigError(f"epoch_a and epoch_b are both {a.name!r}; pick two different epochs")
+    if a.date is not None and b.date is not None and a.date > b.date:
+        raise ConfigError(f"epoch_a {a.name!r} ({a.date}) is dated after epoch_b {b.name!r} ({b.date}): the change "
+                          "would be computed backwards; swap --epoch-a and --epoch-b, or fix the dates")
     return a, b
 
 

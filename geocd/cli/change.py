@@ -38,10 +38,15 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
     curves GeoPackage, plots, run_config.json and run_summary.json.
     """
     from ..consistency import ChangeParams, ConsistencyParams
-    from ..pipeline import RunConfig, run as run_pipeline
+    from ..io.manifest import load_manifest
+    from ..io.outputs import open_outputs
+    from ..pipeline import PRODUCTS, RunConfig, run as run_pipeline
     from . import emit_result, make_progress
 
     cfg = RunConfig.load(config_path) if config_path else RunConfig()
+    manifest = load_manifest(manifest)
+    open_outputs(out_dir or manifest.output, inputs=[*manifest.input_paths(), model_path, config_path, footprints],
+                 products=PRODUCTS)
     changes = {}
     if confidences:
         c = _confidences(confidences)
@@ -92,8 +97,10 @@ def _read_pairs(paths):
 def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, sensor, n_bins, plot_path):
     """Learn a self-consistency model (stage 1) from pair-DEMs of a static scene (GeoTIFFs from `geocd stereo`)."""
     from ..consistency import ConsistencyParams, learn_self_consistency
+    from ..io.outputs import open_outputs
     from . import emit_result, make_progress
 
+    open_outputs(None, files=[out_path, plot_path], inputs=pair_dems)
     pairs = _read_pairs(pair_dems)
     groups: dict[str, list] = {}
     for p in pairs:
@@ -140,9 +147,11 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     from ..errors import ConfigError
     from ..io.raster import read_dem
     from ..io.vector import read_footprints
+    from ..io.outputs import open_outputs
     from ..pipeline import _median_surface
     from . import emit_result, make_progress
 
+    open_outputs(out_dir, inputs=[*a_paths, *b_paths, dem_a, dem_b, model_path, footprints], products=("sc_*",))
     A, B = _read_pairs(a_paths), _read_pairs(b_paths)
     if not (A or B):
         raise ConfigError("give pair-DEMs of both epochs (-a ... -b ...), or one epoch's pair-DEMs and a DEM for the other")

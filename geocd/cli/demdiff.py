@@ -125,11 +125,13 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
     from ..demdiff import CoregParams, DEMDiffParams, dem_difference
     from ..demdiff.products import write_demdiff_products, write_json, write_timeseries_products
     from ..demdiff.timeseries import Epoch, dem_time_series, survey_footprint
-    from ..io.atomic import protect_inputs
+    from ..io.outputs import check_prefix, open_outputs
     from . import emit_result, make_progress
 
+    check_prefix(prefix)
     ents = _entries(tuple(dems), dates, names)
-    protect_inputs(*[e[0] for e in ents], *(p for p in (stable_mask, footprints, base) if p))
+    open_outputs(out_dir, inputs=[*dems, *[e[0] for e in ents], stable_mask, footprints, base],
+                 products=(f"{prefix}_*", f"*__*/{prefix}_*"), prefix=prefix)
     params = DEMDiffParams(coreg=CoregParams(tilt=tilt, on_underconstrained=on_underconstrained),
                            coregister=not no_coreg, confidence=confidence, min_region_cells=min_region_cells,
                            resampling=resampling, fallback_threshold_m=fallback_threshold)

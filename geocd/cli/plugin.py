@@ -97,7 +97,9 @@ def plugin_zip(ctx: click.Context, out: str | None, no_environment_hint: bool) -
     The plugin (Processing provider "geocd") runs this geocd installation as a child process; the zip records
     where it is unless --no-environment-hint is given.
     """
+    from ..io.outputs import open_outputs
     from . import emit_result
 
+    open_outputs(None, files=[out or "dist"])
     path = build_plugin_zip(out, environment_hint=not no_environment_hint)
     emit_result(ctx, {"plugin_zip": path})

@@ -48,10 +48,15 @@ def probchange(ctx: click.Context, manifest: str, variant: str, key: str | None,
     key frame's geometry), the binary change at p > 0.5 and its polygons (GeoPackage layer 'changes',
     method 'probchange').
     """
+    from ..io.manifest import load_manifest
+    from ..io.outputs import open_outputs
     from ..probchange import ProbChangeParams
     from ..probchange.pipeline import run_probchange
     from . import emit_result, make_progress
 
+    manifest = load_manifest(manifest)
+    open_outputs(out_dir or manifest.output, inputs=manifest.input_paths(),
+                 products=(f"{prefix or 'probchange'}_*",), prefix=prefix)
     kw: dict = {}
     for name, val in (("prior_change", prior_change), ("n_bins", n_bins), ("sigma", sigma),
                       ("sigma_prime", sigma_prime), ("threshold", threshold), ("pairs", pairs),

@@ -31,9 +31,15 @@ def stereo(ctx: click.Context, manifest: str, epochs: tuple[str, ...], out_dir: 
     For each pair, writes a Cloud-Optimized GeoTIFF on the AOI grid with bands z (ellipsoidal m), score
     (MDL bits/pixel, lower = better), g (px of disparity per m), valid, ncc, ssd and flags.
     """
+    from ..io.manifest import load_manifest
+    from ..io.outputs import open_outputs
     from ..stereo import StereoParams
     from ..stereo.pipeline import run_stereo
     from . import emit_result, make_progress
+
+    manifest = load_manifest(manifest)
+    open_outputs(out_dir or manifest.output, inputs=manifest.input_paths(),
+                 products=tuple(f"stereo/{e}/*" for e in epochs) or ("stereo/*",))
 
     kw = {}
     if window is not None:

@@ -64,9 +64,12 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
     from ..volume import VolumeModel, VolumeParams, load_model, save_model, update_model
     from ..volume.io import geometry_from_manifest, read_view
 
+    from ..io.outputs import open_outputs
+
     if passes < 1:
         raise ConfigError("--passes must be at least 1")
     man = load_manifest(manifest_path) if manifest_path else None
+    open_outputs(None, files=[model_dir], inputs=[*(man.input_paths() if man else []), *images])
     specs = []
     if images:
         specs = [(Path(p), None, Path(p).stem) for p in images]
@@ -147,10 +150,12 @@ def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_
     import numpy as np
 
     from ..io.atomic import write_text_atomic
+    from ..io.outputs import open_outputs
     from ..io.raster import write_cog
     from ..volume import DetectParams, detect_change, expected_height_map, load_model, orthorectify
     from ..volume.io import read_view
 
+    open_outputs(out_dir, inputs=[model_dir, image, camera_path], products=("*_change_prob*", "*_change.json"))
     model = load_model(model_dir)
     v = read_view(image, camera_path, sun=tuple(sun) if sun else None, normalize=normalize)
     out = Path(out_dir)
@@ -233,8 +238,11 @@ def render(ctx, model_dir, images, height_map, posting_m, out_dir):
     from ..volume import expected_height_map, expected_image, load_model
     from ..volume.io import read_view
 
+    from ..io.outputs import open_outputs
+
     if not images and not height_map:
         raise ConfigError("nothing to render: give --image and/or --height-map")
+    open_outputs(out_dir, inputs=[model_dir, *images], products=("*_expected.tif", "expected_height_map.tif"))
     model = load_model(model_dir)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
