@@ -40,6 +40,7 @@ SUBCOMMANDS: dict[str, str] = {
     "change": "geocd.cli.change:change",
     "stereo": "geocd.cli.stereo:stereo",
     "probchange": "geocd.cli.probchange:probchange",
+    "ortho": "geocd.cli.ortho:ortho",
 }
 
 

@@ -221,7 +221,7 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
               nodata: float | int | None = None, dtype: str | None = None, tags: Mapping[str, Any] | None = None,
               band_tags: Sequence[Mapping[str, Any]] | None = None, overwrite: bool = True,
               compress: str = "deflate", colormap: Mapping[int, tuple] | None = None,
-              overview_resampling: str = "average") -> Path:
+              overview_resampling: str = "average", mask: np.ndarray | None = None) -> Path:
     """Write a Cloud-Optimized GeoTIFF atomically.
 
     Parameters
@@ -233,6 +233,9 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
         NaN in float data is nodata by default.
     tags : mapping, optional
         Dataset metadata (e.g. units, method, provenance JSON).
+    mask : bool ndarray (rows, cols), optional
+        Written as the GDAL internal mask band (False = nodata, transparent in QGIS):
+        for integer images whose every value is legitimate data.
     """
     import rasterio
     from rasterio.io import MemoryFile
@@ -266,6 +269,10 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
                     dst.update_tags(**{k: str(v) for k, v in tags.items()})
                 if colormap is not None:
                     dst.write_colormap(1, colormap)
+                if mask is not None:
+                    if mask.shape != grid.shape:
+                        raise OutputError(f"mask shape {mask.shape} does not match the grid {grid.shape}")
+                    dst.write_mask(np.where(mask, 255, 0).astype(np.uint8))
                 ov = [f for f in (2, 4, 8, 16, 32) if min(grid.shape) // f >= 64]
                 if ov:
                     from rasterio.enums import Resampling
