@@ -383,8 +383,12 @@ class SelfConsistencyModel:
             raise InputFileNotFoundError(f"self-consistency model {p} does not exist; create one with `geocd consistency`")
         try:
             d = json.loads(p.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{p} is not valid JSON ({exc}); re-create it with `geocd consistency`") from exc
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{p} is not a self-consistency model (not valid JSON text: {exc}); give the JSON "
+                              "written by `geocd consistency` or a run") from exc
+        if not isinstance(d, dict):
+            raise ConfigError(f"{p} is not a self-consistency model (a JSON {type(d).__name__}); give the JSON "
+                              "written by `geocd consistency` or a run")
         return cls.from_dict(d)
 
     def curves_table(self):

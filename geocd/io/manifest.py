@@ -475,7 +475,11 @@ def load_manifest(path: os.PathLike | str) -> Manifest:
             if (p / name).is_file():
                 return load_manifest(p / name)
         return discover_manifest(p)
-    text = p.read_text(encoding="utf-8", errors="replace")
+    raw = p.read_bytes()
+    if b"\x00" in raw[:4096]:
+        raise ManifestError(f"{p} is not a manifest: it is a binary file (an image?); give a scene manifest "
+                            "(scene.yaml) or a folder of images")
+    text = raw.decode("utf-8", errors="replace")
     try:
         if p.suffix.lower() == ".json":
             data = json.loads(text)
@@ -484,7 +488,8 @@ def load_manifest(path: os.PathLike | str) -> Manifest:
 
             data = yaml.safe_load(text)
     except Exception as exc:
-        raise ManifestError(f"{p} is not valid YAML/JSON ({exc}); fix the syntax") from exc
+        first = " ".join(str(exc).split())[:200]
+        raise ManifestError(f"manifest {p} is not valid YAML/JSON ({first}); fix the syntax") from exc
     return parse_manifest(data, p.parent.resolve(), p.resolve())
 
 

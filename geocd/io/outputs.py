@@ -655,9 +655,13 @@ def _mkdir(folder: Path) -> None:
         raise OutputError(f"cannot create the output folder {folder}: a file is in the way; choose another folder "
                           "(--out)") from exc
     except OSError as exc:
-        from ..faults import translate
+        from ..faults import disk_full_error
 
-        raise translate(exc, target=folder) from exc
+        err = disk_full_error(exc, folder)
+        if err is not None:
+            raise err from exc
+        raise OutputError(f"cannot create the output folder {folder} ({exc.strerror or exc}); choose a folder on a "
+                          "writable disk that you may write to (--out)") from exc
     if not os.access(folder, os.W_OK | os.X_OK):
         raise OutputError(f"the output folder {folder} is not writable; choose a folder you can write to (--out)")
 
