@@ -70,20 +70,22 @@ class Engine:
             return "sync (this process)"
         return f"{self.kind}: {self.n_workers} worker(s) at {self.client.scheduler.address}"
 
-    def map_unordered(self, fn: Callable[[Any], Any], items: Iterable[Any], *, max_in_flight: int | None = None,
-                      key_prefix: str = "geocd-tile") -> Iterator[tuple[Any, Any]]:
-        """Yield ``(item, fn(item))`` as tasks finish (in order for ``sync``).
+    def map_unordered(self, fn: Callable[..., Any], items: Iterable[Any], *, shared: Any = None,
+                      max_in_flight: int | None = None, key_prefix: str = "geocd-tile") -> Iterator[tuple[Any, Any]]:
+        """Yield ``(item, fn(item, shared))`` as tasks finish (in order for ``sync``).
 
+        ``shared`` (e.g. a whole-scene model) is sent to the workers once, not with every task.
         At most ``max_in_flight`` tasks (default 2 per worker) are submitted and not yet
         consumed. Closing the generator early (cancel, error) cancels what is in flight.
         """
         if self.client is None:
             for it in items:
-                yield it, fn(it)
+                yield it, fn(it, shared)
             return
         from distributed import as_completed
 
         limit = max(1, max_in_flight or 2 * self.n_workers)
+        shared_f = self.client.scatter(shared, broadcast=True, hash=False) if shared is not None else None
         todo = iter(items)
         futs: dict = {}
         ac = as_completed()
@@ -96,7 +98,7 @@ class Engine:
             except StopIteration:
                 return False
             k += 1
-            f = self.client.submit(fn, it, pure=False, key=f"{key_prefix}-{k}-{os.urandom(4).hex()}")
+            f = self.client.submit(fn, it, shared_f, pure=False, key=f"{key_prefix}-{k}-{os.urandom(4).hex()}")
             futs[f.key] = (f, it)
             ac.add(f)
             return True
@@ -126,6 +128,9 @@ class Engine:
                 with contextlib.suppress(Exception):
                     self.client.cancel([f for f, _ in futs.values()], force=True)
                 futs.clear()
+            if shared_f is not None:
+                with contextlib.suppress(Exception):
+                    shared_f.release()
 
     def close(self) -> None:
         for obj in (self.client, self.cluster):

@@ -88,7 +88,6 @@ class _Job:
     tile: Tile
     grid: AOIGrid
     inputs: Mapping[str, Any]
-    params: Any
 
 
 def _keep_by_centre(gdf, tile: Tile, grid: AOIGrid):
@@ -106,12 +105,12 @@ def _keep_by_centre(gdf, tile: Tile, grid: AOIGrid):
     return gdf[keep]
 
 
-def _run_tile(job: _Job) -> TileOutput:
+def _run_tile(job: _Job, params: Any = None) -> TileOutput:
     """Worker side: read the tile's windows, call the function, keep the core and the owned objects."""
     t = job.tile
     arrays = {k: src.read(job.grid, t.read) for k, src in job.inputs.items()}
     r0, c0, h, w = t.read
-    ctx = TileContext(t, job.grid, job.grid.subgrid(r0, c0, h, w), job.params)
+    ctx = TileContext(t, job.grid, job.grid.subgrid(r0, c0, h, w), params)
     out = job.func(arrays, ctx)
     if out is None:
         out = TileOutput()
@@ -203,7 +202,8 @@ def run_tiled(func: Callable[[dict, TileContext], Any], grid: AOIGrid | TileGrid
     inputs : name → source (:class:`~geocd.tiling.sources.RasterSource`,
         :class:`~geocd.tiling.sources.ArraySource`, a previous pass's ``TiledRun.source(name)``)
     overlap_cells : the context the method declares (cells on every side)
-    params : passed to ``func`` as ``ctx.params`` (whole-scene models, constants)
+    params : passed to ``func`` as ``ctx.params`` (whole-scene models, constants); sent to each
+        worker once
     out : output folder (the work folder is ``out/.geocd-work``); ``work`` overrides it
     stage, key : the pass's name and whatever else its results depend on; together with
         the function, params, inputs and tiling they make the resume key
@@ -236,9 +236,10 @@ def run_tiled(func: Callable[[dict, TileContext], Any], grid: AOIGrid | TileGrid
     done = n_res
     prog(done / n if n else 1.0, f"{stage}: {done}/{n} tiles" + (f" ({n_res} resumed)" if n_res else ""))
     if todo:
-        jobs = (_Job(func, t, g, dict(inputs), params) for t in todo)
+        jobs = (_Job(func, t, g, dict(inputs)) for t in todo)
         with open_engine(scheduler, n_workers=n_workers, memory_limit=memory_limit) as eng:
-            it = eng.map_unordered(_run_tile, jobs, max_in_flight=max_in_flight, key_prefix=f"geocd-{stage}")
+            it = eng.map_unordered(_run_tile, jobs, shared=params, max_in_flight=max_in_flight,
+                                   key_prefix=f"geocd-{stage}")
             with contextlib.closing(it):
                 for job, res in it:
                     store.save(job.tile, res.arrays, (res.small, res.vectors))
