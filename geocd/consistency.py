@@ -21,10 +21,11 @@ recomputed from a saved model; curves are made non-decreasing in score
 see (their along-epipolar part) shift each pair-DEM vertically by a constant:
 metres between the pairs of the real Pléiades triplet, i.e. most of a pixel of
 disparity. Before comparing, every reconstruction is therefore shifted by the
-median height difference to a reference reconstruction over their common,
-well-matched cells (``align="vertical"``, the default; the median ignores a
-minority of changed cells). The reference is the given DEM when an epoch is a
-DEM, else the first reconstruction. This also removes a real, uniform change of
+median height difference to a reference over their common, well-matched cells
+(``align="vertical"``, the default; the median ignores a minority of changed
+cells). The reference is the given DEM when an epoch is a DEM; else every pair of
+reconstructions is compared and the offsets are their least-squares fit (zero
+mean), so results do not depend on the order in which reconstructions are given. This also removes a real, uniform change of
 the whole AOI (e.g. subsidence); use ``align="none"`` where that matters.
 
 A DEM standing for an epoch (LiDAR, last year's product) is a "pair-DEM" with
@@ -103,8 +104,8 @@ class ConsistencyParams:
     min_bin_count : int
         Minimum match pairs per score bin; thinner bins are merged.
     align : {"vertical", "none"}
-        Remove each reconstruction's constant vertical offset to the group's first one
-        (see the module notes).
+        Remove each reconstruction's constant vertical offset, fitted to all pairwise offsets
+        within the group (see the module notes).
     """
 
     confidences: tuple[float, ...] = (90.0, 95.0, 99.0)
@@ -183,33 +184,69 @@ def vertical_offset(rec: PairDEMLike, ref: PairDEMLike, min_cells: int = 100) ->
     return float(np.median(dz))
 
 
-def align_reconstructions(recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None,
-                          mode: str = "vertical") -> tuple[list, dict[str, float]]:
-    """Shift reconstructions onto a common vertical reference.
+def vertical_offsets(recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None,
+                     mode: str = "vertical") -> dict[str, float]:
+    """Each reconstruction's constant vertical offset to a common reference (a whole-scene statistic).
 
     Parameters
     ----------
-    recs : reconstructions on one grid
-    reference : the reference (default: a :class:`DEMAsEpoch` among ``recs`` if any, else ``recs[0]``)
-    mode : "vertical" or "none"
+    recs : reconstructions on one grid (their order does not matter)
+    reference : optional reconstruction to align to; default: a :class:`DEMAsEpoch` among
+        ``recs`` if any (a DEM is the absolute reference), else all of them: each offset is the
+        least-squares fit of the pairwise offsets (:func:`vertical_offset` of every pair), i.e.
+        the mean of its offsets to the others, and the offsets sum to zero. The result depends
+        only on the set of reconstructions, not on their order.
+    mode : "vertical" or "none" (all offsets 0)
+
+    Returns
+    -------
+    {name: offset (m) to subtract from its heights}
+    """
+    if mode not in ALIGN_MODES:
+        raise ConfigError(f"align must be one of {ALIGN_MODES}, got {mode!r}")
+    recs = list(recs)
+    names = [r.name for r in recs]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"reconstructions must have distinct names to be aligned, got {names}")
+    if mode == "none" or len(recs) < 2:
+        return {r.name: 0.0 for r in recs}
+    if reference is None:
+        dems = sorted((r for r in recs if isinstance(r, DEMAsEpoch)), key=lambda r: r.name)
+        reference = dems[0] if dems else None
+    if reference is not None:
+        return {r.name: (0.0 if r is reference else vertical_offset(r, reference)) for r in recs}
+    # least squares on all pairwise offsets: o_r − o_q = d(r, q) ⇒ o_r = mean_q d(r, q) (zero mean);
+    # d is antisymmetric and the sums run in name order, so the result is exactly order-free
+    recs = sorted(recs, key=lambda r: r.name)
+    n = len(recs)
+    d = np.zeros((n, n))
+    for i, j in itertools.combinations(range(n), 2):
+        d[i, j] = vertical_offset(recs[i], recs[j])
+        d[j, i] = -d[i, j]
+    return {r.name: float(np.sum(d[i]) / n) for i, r in enumerate(recs)}
+
+
+def apply_offsets(recs: Sequence[PairDEMLike], offsets: dict[str, float]) -> list:
+    """The reconstructions seen through their vertical offsets (per-cell work; nothing copied but z)."""
+    out = []
+    for r in recs:
+        if r.name not in offsets:
+            raise ConfigError(f"no vertical offset for reconstruction {r.name!r}; known: {sorted(offsets)}")
+        off = float(offsets[r.name])
+        out.append(r if off == 0.0 else _Shifted(r, off))
+    return out
+
+
+def align_reconstructions(recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None,
+                          mode: str = "vertical") -> tuple[list, dict[str, float]]:
+    """Shift reconstructions onto a common vertical reference (see :func:`vertical_offsets`).
 
     Returns
     -------
     aligned : list of reconstructions (same order), offsets : {name: offset removed, m}
     """
-    if mode not in ALIGN_MODES:
-        raise ConfigError(f"align must be one of {ALIGN_MODES}, got {mode!r}")
-    recs = list(recs)
-    if mode == "none" or len(recs) < 2:
-        return recs, {r.name: 0.0 for r in recs}
-    if reference is None:
-        reference = next((r for r in recs if isinstance(r, DEMAsEpoch)), recs[0])
-    out, offsets = [], {}
-    for r in recs:
-        off = 0.0 if r is reference else vertical_offset(r, reference)
-        offsets[r.name] = off
-        out.append(r if off == 0.0 else _Shifted(r, off))
-    return out, offsets
+    offsets = vertical_offsets(recs, reference, mode)
+    return apply_offsets(recs, offsets), offsets
 
 
 def _quantile_from_hist(counts: np.ndarray, edges: np.ndarray, q: float) -> float:
@@ -346,8 +383,12 @@ class SelfConsistencyModel:
             raise InputFileNotFoundError(f"self-consistency model {p} does not exist; create one with `geocd consistency`")
         try:
             d = json.loads(p.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{p} is not valid JSON ({exc}); re-create it with `geocd consistency`") from exc
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{p} is not a self-consistency model (not valid JSON text: {exc}); give the JSON "
+                              "written by `geocd consistency` or a run") from exc
+        if not isinstance(d, dict):
+            raise ConfigError(f"{p} is not a self-consistency model (a JSON {type(d).__name__}); give the JSON "
+                              "written by `geocd consistency` or a run")
         return cls.from_dict(d)
 
     def curves_table(self):
@@ -410,7 +451,7 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
         warnings.warn(f"reconstructions with no valid cell left out of the self-consistency model: {', '.join(empty)}",
                       UserWarning, stacklevel=2)
     for g in groups:
-        g = [r for r in g if np.any(r.valid)]
+        g = sorted((r for r in g if np.any(r.valid)), key=lambda r: r.name)
         ag, off = align_reconstructions(g, mode=params.align)
         aligned_groups.append(ag)
         offsets.update(off)
@@ -472,7 +513,7 @@ class ChangeParams:
         as the ``changes`` polygons and the simulator's truth mask).
     align : {"vertical", "none"}
         Shift every reconstruction of both epochs onto one vertical reference (a DEM
-        epoch if given, else the first reconstruction of epoch A) before testing.
+        epoch if given, else the least-squares fit of all their pairwise offsets) before testing.
     """
 
     confidences: tuple[float, ...] = (90.0, 95.0, 99.0)
@@ -523,29 +564,49 @@ class ChangeResult:
         return self.n_comparisons > 0
 
     def changed_at(self, confidence: float) -> np.ndarray:
-        """Signed change mask (+1/−1/0) at ``confidence`` percent (must be a tested level)."""
+        """Signed change mask at ``confidence`` percent.
+
+        int8 (rows, cols): +1 raised, −1 lowered, 0 unchanged, :data:`CHANGE_NODATA` where no
+        comparison observed the cell (so building statistics can tell "unchanged" from "unseen").
+        """
         c = np.nan_to_num(self.confidence, nan=0.0)
-        return np.where(c >= confidence, np.sign(np.nan_to_num(self.dz_m)), 0).astype(np.int8)
+        out = np.where(c >= confidence, np.sign(np.nan_to_num(self.dz_m)), 0).astype(np.int8)
+        out[~self.observed] = CHANGE_NODATA
+        return out
 
 
 CHANGE_NODATA = -128
 
 
 def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], model: SelfConsistencyModel,
-                params: ChangeParams = ChangeParams(), progress: Progress | None = None) -> ChangeResult:
+                params: ChangeParams = ChangeParams(), progress: Progress | None = None,
+                offsets: dict[str, float] | None = None) -> ChangeResult:
     """Stage 2: test every cross-epoch comparison against the significance curves.
 
     For each pair (p from epoch A, q from epoch B) and each cell valid in both:
     changed at level s when |Δ̃| > curve_s(max score). Comparisons are combined
     per cell by ``params.combine`` with a consistent sign (the sign of the median
     Δz); the reported confidence is the highest level at which the combined test
-    says "changed".
+    says "changed". The result does not depend on the order of the reconstructions.
+
+    Parameters
+    ----------
+    epoch_a, epoch_b : reconstructions (pair-DEMs, :class:`DEMAsEpoch`) on one grid
+    model : the significance curves (a whole-scene or scene-class statistic)
+    offsets : {name: m}, optional
+        Vertical offsets to remove (:func:`vertical_offsets`, a whole-scene statistic). Give
+        them when the arrays are a tile of a larger scene, so every tile uses the same ones;
+        default: computed here from the arrays given (``params.align``).
     """
     prog = ensure_progress(progress)
     if not epoch_a or not epoch_b:
         raise ProcessingError("the change test needs at least one reconstruction (pair-DEM or DEM) per epoch")
+    epoch_a = sorted(epoch_a, key=lambda r: r.name)  # a deterministic order for the comparisons' names
+    epoch_b = sorted(epoch_b, key=lambda r: r.name)
     na = len(epoch_a)
-    aligned, offsets = align_reconstructions(list(epoch_a) + list(epoch_b), mode=params.align)
+    if offsets is None:
+        offsets = vertical_offsets(list(epoch_a) + list(epoch_b), mode=params.align)
+    aligned = apply_offsets(list(epoch_a) + list(epoch_b), offsets)
     epoch_a, epoch_b = aligned[:na], aligned[na:]
     shape = epoch_a[0].z_m.shape
     comps = [(p, q) for p in epoch_a for q in epoch_b]

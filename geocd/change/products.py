@@ -4,7 +4,8 @@ Layout of an output folder (``prefix`` defaults to the method name)::
 
     <prefix>_change.tif        COG, bands dz_m, dtilde, score, confidence (float32, NaN = unobserved)
     <prefix>_change.qml        QGIS style sidecar (confidence classes)
-    <prefix>_change_mask.tif   COG int8: +1 raised, −1 lowered, 0 unchanged, −128 nodata (not observable)
+    <prefix>_change_mask.tif   COG int8 at the reported confidence (``region_confidence``, 99 % by default):
+                               +1 raised, −1 lowered, 0 unchanged, −128 nodata (not observable)
     <prefix>_change_mask.qml   QGIS style sidecar (paletted)
     <prefix>_changes.gpkg      layers: changes (polygons), buildings (attributed footprints),
                                curves (significance curves table), layer_styles
@@ -49,13 +50,15 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
                                 {"dz_m": result.dz_m, "dtilde": result.dtilde, "score": result.score,
                                  "confidence": result.confidence}, grid, tags=tags)
     write_raster_style(paths["change"], qml_for("confidence"))
-    paths["change_mask"] = write_cog(out / f"{prefix}_change_mask.tif", result.change.astype(np.int8), grid,
-                                     nodata=CHANGE_NODATA, dtype="int8", tags=tags, overview_resampling="nearest")
+    # the mask is the map at the reported confidence (the level the regions, buildings and summary use)
+    mask = result.changed_at(region_confidence)
+    paths["change_mask"] = write_cog(out / f"{prefix}_change_mask.tif", mask, grid,
+                                     nodata=CHANGE_NODATA, dtype="int8",
+                                     tags={**tags, "mask_confidence_pct": f"{region_confidence:g}"},
+                                     overview_resampling="nearest")
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
 
-    sign = result.changed_at(region_confidence) if region_confidence in result.confidences else \
-        np.where(result.confidence > 0, result.change, 0)
-    sign = np.where(result.observed, sign, 0).astype(np.int8)
+    sign = np.where(mask == CHANGE_NODATA, 0, mask).astype(np.int8)
     regions = change_regions(sign, result.dz_m, grid, confidence=_region_conf(result), method=method,
                              epoch_a=epoch_a, epoch_b=epoch_b, min_cells=min_region_cells)
     layers: dict[str, Any] = {"changes": regions}

@@ -24,8 +24,15 @@ a new command gets them by being listed in :data:`SUBCOMMANDS`):
   ``session(ctx).note(...)`` / ``.say(...)`` / ``.data(...)``, and
   ``emit_result(ctx, {name: path})`` for the products.
 
-A :class:`~geocd.errors.GeoCDError` is printed as one line (``geocd: error: ...``)
-and exits non-zero without a traceback; ``--debug`` shows the traceback.
+One error path (:meth:`LazyGroup.invoke`): a :class:`~geocd.errors.GeoCDError` is
+printed as one line (``geocd: error: ...``) and exits with its ``exit_code`` (2)
+without a traceback; any other exception is first turned into the GeoCDError that
+stands for it (:func:`geocd.faults.translate`: out of memory, disk full, read-only
+file system, a corrupt file, ... or "internal error" for a bug); ``--debug`` shows
+the traceback. Ctrl-C, SIGTERM and SIGHUP clean up the same way (partial files
+removed, the output session recorded as interrupted) and exit 128 + signal
+(130, 143, 129). Output sessions opened by a command
+(:func:`geocd.io.outputs.open_outputs`) are closed here when it ends.
 """
 
 from __future__ import annotations
@@ -38,7 +45,6 @@ import warnings
 import click
 
 from .. import __version__
-from ..errors import GeoCDError
 
 SUBCOMMANDS: dict[str, str] = {
     "info": "geocd.cli.info:info",
@@ -52,6 +58,7 @@ SUBCOMMANDS: dict[str, str] = {
     "change": "geocd.cli.change:change",
     "stereo": "geocd.cli.stereo:stereo",
     "probchange": "geocd.cli.probchange:probchange",
+    "ortho": "geocd.cli.ortho:ortho",
 }
 
 
@@ -69,17 +76,41 @@ class LazyGroup(click.Group):
         return add_common_options(getattr(importlib.import_module(mod), attr))
 
     def invoke(self, ctx):
+        from ..faults import exit_code_for_interrupt, one_line, signal_name, signals_as_interrupts, translate
+        from ..io.outputs import close_sessions
+
         debug = ctx.params.get("debug", False)
         mode = (ctx.obj or {}).get("progress_mode") or ctx.params.get("progress")
+
+        def report(kind: str, message: str) -> None:
+            if mode == "json":
+                sys.stderr.write(json.dumps({"type": "error", "error": kind, "message": message}) + "\n")
+            click.echo(f"geocd: error: {message}", err=True)
+
         try:
-            return super().invoke(ctx)
-        except GeoCDError as exc:
+            with signals_as_interrupts():
+                rv = super().invoke(ctx)
+                close_sessions(ok=True)
+            return rv
+        except (click.exceptions.Exit, click.exceptions.Abort, click.exceptions.ClickException) as exc:
+            close_sessions(ok=isinstance(exc, click.exceptions.Exit) and exc.exit_code == 0, exc=exc)
+            raise
+        except KeyboardInterrupt as exc:
+            close_sessions(ok=False, exc=exc)
             if debug:
                 raise
-            if mode == "json":
-                sys.stderr.write(json.dumps({"type": "error", "error": type(exc).__name__, "message": str(exc)}) + "\n")
-            click.echo(f"geocd: error: {exc}", err=True)
-            ctx.exit(getattr(exc, "exit_code", 2))
+            what = "interrupted (Ctrl-C)" if type(exc) is KeyboardInterrupt else f"stopped by {signal_name(exc.signum)}"
+            report("CancelledError", f"{what}; partial files were removed and the products already written are "
+                                     "listed as interrupted in the output folder's geocd_products.json; run the "
+                                     "command again to complete them")
+            ctx.exit(exit_code_for_interrupt(exc))
+        except Exception as exc:  # noqa: BLE001 - the single error path: everything becomes a GeoCDError
+            close_sessions(ok=False, exc=exc)
+            if debug:
+                raise
+            err = translate(exc)
+            report(type(err).__name__, one_line(err))
+            ctx.exit(getattr(err, "exit_code", 2))
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -46,14 +46,16 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
     from ..io.manifest import load_manifest
 
     m = load_manifest(manifest)
-    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name)
-    sess = session(ctx)
-    sess.open_log(out)
+    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
     from ..consistency import ChangeParams, ConsistencyParams
-    from ..pipeline import RunConfig, run as run_pipeline
+    from ..io.outputs import open_outputs
+    from ..pipeline import PRODUCTS, RunConfig, run as run_pipeline
     from . import emit_result, make_progress
 
     cfg = RunConfig.load(config_path) if config_path else RunConfig()
+    open_outputs(out, inputs=[*m.input_paths(), model_path, config_path, footprints], products=PRODUCTS)
+    sess = session(ctx)
+    sess.open_log(out)
     changes = {}
     if confidences:
         c = _confidences(confidences)
@@ -107,13 +109,14 @@ def _read_pairs(paths):
 @click.pass_context
 def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, sensor, n_bins, plot_path):
     """Learn a self-consistency model (stage 1) from pair-DEMs of a static scene (GeoTIFFs from `geocd stereo`)."""
-    from .common import resolve_out_dir, session
-
-    sess = session(ctx)
-    sess.open_log(resolve_out_dir(Path(out_path).parent, "consistency"))
     from ..consistency import ConsistencyParams, learn_self_consistency
+    from ..io.outputs import open_outputs
     from . import emit_result, make_progress
+    from .common import session
 
+    open_outputs(None, files=[out_path, plot_path], inputs=pair_dems)
+    sess = session(ctx)
+    sess.open_log(Path(out_path).parent)
     pairs = _read_pairs(pair_dems)
     groups: dict[str, list] = {}
     for p in pairs:
@@ -164,11 +167,13 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     from ..errors import ConfigError
     from ..io.raster import read_dem
     from ..io.vector import read_footprints
+    from ..io.outputs import open_outputs
     from ..pipeline import _median_surface
     from . import emit_result, make_progress
-    from .common import resolve_out_dir, session
+    from .common import session
 
-    session(ctx).open_log(resolve_out_dir(out_dir, "change"))
+    open_outputs(out_dir, inputs=[*a_paths, *b_paths, dem_a, dem_b, model_path, footprints], products=("sc_*",))
+    session(ctx).open_log(out_dir)
     A, B = _read_pairs(a_paths), _read_pairs(b_paths)
     if not (A or B):
         raise ConfigError("give pair-DEMs of both epochs (-a ... -b ...), or one epoch's pair-DEMs and a DEM for the other")
@@ -183,7 +188,7 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     if not A or not B:
         raise ConfigError("each epoch needs at least one pair-DEM or a DEM (--dem-a/--dem-b)")
     model = SelfConsistencyModel.load(model_path)
-    params = ChangeParams(confidences=_confidences(confidences), combine=combine)
+    params = ChangeParams(confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})), combine=combine)
     progress = make_progress(ctx, "change")
     try:
         res = change_test(A, B, model, params, progress=progress)
@@ -193,9 +198,9 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     if footprints:
         fps = read_footprints(footprints, crs=grid.crs)
         id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
-        mask = res.changed_at(report_confidence) if report_confidence in res.confidences else res.change
-        buildings = classify_buildings(fps, mask, res.dz_m, grid, z_a=_median_surface(A), z_b=_median_surface(B),
-                                       confidence=res.confidence, id_field=id_field)
+        buildings = classify_buildings(fps, res.changed_at(report_confidence), res.dz_m, grid, z_a=_median_surface(A),
+                                       z_b=_median_surface(B), confidence=res.confidence, id_field=id_field,
+                                       confidence_level=report_confidence)
     paths = write_change_products(out_dir, res, grid, method="self-consistency", epoch_a=A[0].epoch if hasattr(A[0], "epoch") else "A",
                                   epoch_b=B[0].epoch if hasattr(B[0], "epoch") else "B", region_confidence=report_confidence,
                                   model=model, buildings=buildings, prefix="sc")

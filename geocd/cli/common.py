@@ -37,7 +37,7 @@ import time
 import traceback
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterable, Optional
+from typing import Any, Callable, Optional
 
 import click
 
@@ -140,6 +140,8 @@ def default_out_dir(name: str) -> Path:
 def resolve_out_dir(out_dir: Optional[os.PathLike | str], name: str, *, create: bool = True) -> Path:
     """``out_dir`` or :func:`default_out_dir`; checks that it can be created and written.
 
+    With ``create=False`` the folder is only checked (the command's output session creates it).
+
     Raises
     ------
     OutputError
@@ -147,17 +149,22 @@ def resolve_out_dir(out_dir: Optional[os.PathLike | str], name: str, *, create: 
     """
     explicit = out_dir is not None
     out = Path(out_dir) if explicit else default_out_dir(name)
+    hint = "give another --out" if explicit else \
+        f"the default output folder is under the current directory ({Path.cwd()}); give --out DIR"
     if out.exists() and not out.is_dir():
-        raise OutputError(f"output folder {out} is a file; give another --out")
+        raise OutputError(f"output folder {out} is a file; {hint}")
     if create:
         try:
             out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            hint = "give a writable --out" if explicit else \
-                f"the default output folder is under the current directory ({Path.cwd()}); give --out DIR"
             raise OutputError(f"cannot create the output folder {out} ({exc.strerror or exc}); {hint}") from None
-        if not os.access(out, os.W_OK | os.X_OK):
-            raise OutputError(f"output folder {out} is not writable; give another --out")
+    # the folder, or the nearest folder that exists above it, must be writable
+    probe = out
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        what = "is not writable" if probe == out else f"cannot be created ({probe} is not a writable folder)"
+        raise OutputError(f"output folder {out} {what}; {hint}")
     return out
 
 
@@ -210,6 +217,8 @@ class Session:
         self.summary: dict[str, Any] = {}
         self.outputs: dict[str, str] = {}
         self.log_path: Optional[Path] = None
+        self._log_new = False
+        self._log_offset = 0
         self._log_buffer: list[str] = []
         self._log = None
         self._bars: list = []
@@ -256,7 +265,9 @@ class Session:
         path = Path(folder) / name
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
+            self._log_new = not path.exists()
             fh = open(path, "a", encoding="utf-8", buffering=1)
+            self._log_offset = fh.tell()
         except OSError as exc:
             self._stderr(f"geocd: warning: cannot write the log file {path} ({exc.strerror or exc})")
             return None
@@ -428,7 +439,37 @@ class Session:
             self._log_line(f"ERROR {type(exc).__name__}: {exc}")
             self.log("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
         self._log_line(f"failed after {time.monotonic() - self.t0:.1f} s")
+        keep = self._run_wrote_products()
         self._close()
+        if not keep:
+            self._forget_log()
+
+    def _run_wrote_products(self) -> bool:
+        """Did this run write products into the log's folder? (A failed run that wrote nothing leaves the folder
+        as it was — no log either; its error is on stderr.) Unknown (no output session): yes."""
+        if self.log_path is None:
+            return True
+        try:
+            from ..io.outputs import active_sessions
+        except ImportError:  # pragma: no cover
+            return True
+        folder = self.log_path.parent.resolve()
+        mine = [s for s in active_sessions()
+                if (s.folder is not None and s.folder.resolve() == folder)
+                or any(Path(f).resolve().parent == folder for f in s.files)]
+        return not mine or any(s.written for s in mine)
+
+    def _forget_log(self) -> None:
+        path = self.log_path
+        try:
+            if self._log_new:
+                path.unlink()
+            else:
+                with open(path, "r+b") as fh:
+                    fh.truncate(self._log_offset)
+        except OSError:
+            pass
+        self.log_path = None
 
     def _close(self) -> None:
         self._restore_warning_hook()

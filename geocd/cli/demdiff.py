@@ -134,17 +134,19 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
         default_name = f"{ents[0][2]}__{ents[1][2]}"
     else:
         default_name = Path(dems[0]).stem if len(dems) == 1 else f"{ents[0][2]}__{ents[-1][2]}_series"
-    out = resolve_out_dir(out_dir, default_name)
+    out = resolve_out_dir(out_dir, default_name, create=False)
     out_dir = str(out)
-    sess = session(ctx)
-    sess.open_log(out)
     from ..demdiff import CoregParams, DEMDiffParams, dem_difference
     from ..demdiff.products import write_demdiff_products, write_json, write_timeseries_products
     from ..demdiff.timeseries import Epoch, dem_time_series, survey_footprint
-    from ..io.atomic import protect_inputs
+    from ..io.outputs import check_prefix, open_outputs
     from . import emit_result, make_progress
 
-    protect_inputs(*[e[0] for e in ents], *(p for p in (stable_mask, footprints, base) if p))
+    check_prefix(prefix)
+    open_outputs(out_dir, inputs=[*dems, *[e[0] for e in ents], stable_mask, footprints, base],
+                 products=(f"{prefix}_*", f"*__*/{prefix}_*"), prefix=prefix)
+    sess = session(ctx)
+    sess.open_log(out)
     params = DEMDiffParams(coreg=CoregParams(tilt=tilt, on_underconstrained=on_underconstrained),
                            coregister=not no_coreg, confidence=confidence, min_region_cells=min_region_cells,
                            resampling=resampling, fallback_threshold_m=fallback_threshold)

@@ -153,16 +153,18 @@ def plugin_zip(ctx: click.Context, out: str | None, url: str | None, no_environm
     "geocd" from the list; headless: `geocd plugin-install`. The plugin (Processing provider "geocd") runs this
     geocd installation as a child process; the zip records where it is unless --no-environment-hint is given.
     """
+    from ..io.outputs import open_outputs
     from . import emit_result
     from .common import session
 
     sess = session(ctx)
     sess.log_enabled = False  # the folder is what a web server publishes: no log file there
+    open_outputs(None, files=[out or "dist"])
     path = build_plugin_zip(out, environment_hint=not no_environment_hint)
     repo = write_repository(path, url)
-    sess.say(f"QGIS plugin {PLUGIN_NAME} {read_metadata(plugin_source_dir())['version']}: install from ZIP, "
-                     f"or add the repository {repo.resolve().as_uri() if not url else url.rstrip('/') + '/' + REPOSITORY_FILE}"
-                     " in QGIS (or run `geocd plugin-install`)")
+    where = repo.resolve().as_uri() if not url else url.rstrip("/") + "/" + REPOSITORY_FILE
+    sess.say(f"QGIS plugin {PLUGIN_NAME} {read_metadata(plugin_source_dir())['version']}: install from ZIP, or add the "
+             f"repository {where} in QGIS (or run `geocd plugin-install`)")
     emit_result(ctx, {"plugin_zip": path, "repository": repo})
 
 

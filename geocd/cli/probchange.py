@@ -54,15 +54,17 @@ def probchange(ctx: click.Context, manifest: str, variant: str, key: str | None,
 
     require_inputs(manifest, what="manifest")
     from ..io.manifest import load_manifest
+    from ..io.outputs import open_outputs
 
     m = load_manifest(manifest)
-    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name)
-    sess = session(ctx)
-    sess.open_log(out)
+    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
     from ..probchange import ProbChangeParams
     from ..probchange.pipeline import run_probchange
     from . import emit_result, make_progress
 
+    open_outputs(out, inputs=m.input_paths(), products=(f"{prefix or 'probchange'}_*",), prefix=prefix)
+    sess = session(ctx)
+    sess.open_log(out)
     kw: dict = {}
     for name, val in (("prior_change", prior_change), ("n_bins", n_bins), ("sigma", sigma),
                       ("sigma_prime", sigma_prime), ("threshold", threshold), ("pairs", pairs),

@@ -69,12 +69,15 @@ def stereo(ctx: click.Context, inputs: tuple[str, ...], epochs: tuple[str, ...],
 
     require_inputs(*inputs)
     m = scene_from_inputs(inputs)
-    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name)
-    sess = session(ctx)
-    sess.open_log(out)
+    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
+    from ..io.outputs import open_outputs
     from ..stereo import StereoParams
     from ..stereo.pipeline import run_stereo
     from . import emit_result, make_progress
+
+    open_outputs(out, inputs=m.input_paths(), products=tuple(f"stereo/{e}/*" for e in epochs) or ("stereo/*",))
+    sess = session(ctx)
+    sess.open_log(out)
 
     kw = {}
     if window is not None:

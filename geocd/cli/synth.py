@@ -44,8 +44,10 @@ def synth(ctx: click.Context, out_dir: Path, seed: int, size_m: float, gsd_m: fl
     platform; see truth/scene_truth.json for the recorded parameters and checks).
     """
     from ..errors import ConfigError
+    from ..io.outputs import open_outputs
     from ..synth.generate import SynthParams, generate
 
+    open_outputs(out_dir, inputs=[params_file], files=[pictures])
     base: dict = {}
     if params_file is not None:
         try:

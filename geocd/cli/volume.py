@@ -66,9 +66,12 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
     from ..volume import VolumeModel, VolumeParams, load_model, save_model, update_model
     from ..volume.io import geometry_from_manifest, read_view
 
+    from ..io.outputs import open_outputs
+
     if passes < 1:
         raise ConfigError("--passes must be at least 1")
     man = load_manifest(manifest_path) if manifest_path else None
+    open_outputs(None, files=[model_dir], inputs=[*(man.input_paths() if man else []), *images])
     specs = []
     if images:
         specs = [(Path(p), None, Path(p).stem) for p in images]
@@ -99,7 +102,8 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
             _say(ctx, f"DEM prior: {info['ground_cells']:,} ground cells, {info['air_cells']:,} air cells")
     from .common import session
 
-    session(ctx).open_log(model_dir)
+    # beside the model folder, not in it: every save replaces the folder as a whole
+    session(ctx).open_log(Path(model_dir).resolve().parent)
     s = tuple(sun) if sun else None
     views = [read_view(p, c, name=n, sun=s, normalize=normalize) for p, c, n in specs]
     rng = np.random.default_rng(seed)
@@ -152,13 +156,15 @@ def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_
     import numpy as np
 
     from ..io.atomic import write_text_atomic
+    from ..io.outputs import open_outputs
     from ..io.raster import write_cog
     from ..volume import DetectParams, detect_change, expected_height_map, load_model, orthorectify
     from ..volume.io import read_view
 
-    from .common import resolve_out_dir, session
+    from .common import session
 
-    out = resolve_out_dir(out_dir, "volume_detect")
+    out = Path(out_dir)
+    open_outputs(out_dir, inputs=[model_dir, image, camera_path], products=("*_change_prob*", "*_change.json"))
     session(ctx).open_log(out)
     model = load_model(model_dir)
     v = read_view(image, camera_path, sun=tuple(sun) if sun else None, normalize=normalize)
@@ -243,11 +249,13 @@ def render(ctx, model_dir, images, height_map, posting_m, out_dir):
     from ..volume import expected_height_map, expected_image, load_model
     from ..volume.io import read_view
 
-    from .common import resolve_out_dir, session
+    from ..io.outputs import open_outputs
+    from .common import session
 
     if not images and not height_map:
         raise ConfigError("nothing to render: give --image and/or --height-map")
-    out = resolve_out_dir(out_dir, "volume_render")
+    out = Path(out_dir)
+    open_outputs(out_dir, inputs=[model_dir, *images], products=("*_expected.tif", "expected_height_map.tif"))
     session(ctx).open_log(out)
     model = load_model(model_dir)
     outputs = {}

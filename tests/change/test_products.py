@@ -20,8 +20,8 @@ def result():
     ta = np.zeros(SHAPE, np.float32)
     tb = ta.copy()
     tb[20:50, 20:50] += 9
-    A = [make_rec(ta, rng, f"A{i}") for i in range(3)]
-    B = [make_rec(tb, rng, f"B{i}") for i in range(3)]
+    A = [make_rec(ta, rng, f"A{i}", outlier_frac=0.05) for i in range(3)]
+    B = [make_rec(tb, rng, f"B{i}", outlier_frac=0.05) for i in range(3)]
     for r in A + B:
         r.grid = grid
     model = learn_self_consistency([A, B])
@@ -46,6 +46,10 @@ def test_products_are_readable_and_styled(tmp_path, result):
     with rasterio.open(paths["change_mask"]) as ds:
         m = ds.read(1)
         assert ds.nodata == CHANGE_NODATA and set(np.unique(m)) <= {-128, -1, 0, 1}
+        assert ds.tags()["mask_confidence_pct"] == "95"
+    # the mask is the map at the reported confidence, not at the lowest tested level
+    assert (res.changed_at(90) != res.changed_at(95)).any()
+    assert np.array_equal(m, res.changed_at(95))
     assert (tmp_path / "sc_change_mask.qml").exists() and (tmp_path / "sc_change.qml").exists()
     layers = dict(pyogrio.list_layers(paths["changes"]))
     assert {"changes", "buildings", "curves", "layer_styles"} <= set(layers)

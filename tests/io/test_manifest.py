@@ -51,7 +51,7 @@ def test_valid_manifest_round_trip(scene):
     ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}, {"name": "A", "images": ["img/a2.tif"]}]}, "duplicate epoch"),
     ({"epochs": [{"name": "A", "date": "yesterday", "images": ["img/a1.tif"]}]}, "ISO 8601"),
     ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "aoi": {"bounds": [1, 1, 0, 0]}}, "is empty"),
-    ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "colour": 1}, "unknown keys"),
+    ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "colour": 1}, "colour: unknown key"),
     ({"epochs": [{"name": "A"}]}, "neither images nor a DEM"),
     ({"geocd_manifest": 7, "epochs": [{"name": "A", "images": ["img/a1.tif"]}]}, "version"),
 ])
