@@ -665,7 +665,11 @@ def _mkdir(folder: Path) -> None:
         raise OutputError(f"cannot create the output folder {folder} ({exc.strerror or exc}); choose a folder on a "
                           "writable disk that you may write to (--out)") from exc
     if not os.access(folder, os.W_OK | os.X_OK):
-        raise OutputError(f"the output folder {folder} is not writable; choose a folder you can write to (--out)")
+        ro = False
+        with contextlib.suppress(OSError, AttributeError):
+            ro = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+        why = "is on a read-only file system" if ro else "is not writable"
+        raise OutputError(f"the output folder {folder} {why}; choose a folder you can write to (--out)")
 
 
 def _check_parent_free(path: Path) -> None:
