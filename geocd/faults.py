@@ -189,7 +189,8 @@ def _translate(exc: BaseException, target) -> GeoCDError:
             "text input (manifest, model/config JSON, camera, list file) is the right file")
     if isinstance(exc, UnicodeError):
         return UnsupportedFormatError(f"text encoding problem ({msg}); save text inputs as UTF-8")
-    if isinstance(exc, OSError):
+    kind = _library_error_kind(exc)
+    if isinstance(exc, OSError) and (exc.errno is not None or kind is None):
         name = exc.filename if getattr(exc, "filename", None) else target
         at = f" {name}" if name else ""
         if isinstance(exc, FileExistsError):
@@ -211,7 +212,6 @@ def _translate(exc: BaseException, target) -> GeoCDError:
             return OutputError(f"input/output error on{at or ' a file'} (a failing disk or network share); "
                                "check the disk and retry")
         return OutputError(f"system error{at}: {exc.strerror or msg}; check the path and the disk")
-    kind = _library_error_kind(exc)
     if kind is not None:
         return UnsupportedFormatError(
             f"{kind} could not read or write a file ({msg}); the file is truncated, corrupt or in an unsupported "
