@@ -543,18 +543,20 @@ def _remove_empty_parents(d: Path, stop: Path) -> None:
 
 
 def _command_and_argv(command: str | None) -> tuple[str, tuple[str, ...]]:
+    """The command ("geocd demdiff") and its command line, from the running click command when there is one."""
     argv = tuple(sys.argv)
-    if command:
-        return command, argv
+    name = command
     try:
         import click
 
         ctx = click.get_current_context(silent=True)
         if ctx is not None:
-            return ctx.command_path, argv
+            argv = tuple(ctx.meta.get("geocd.argv") or argv)
+            if name is None:
+                name = " ".join(["geocd", *ctx.command_path.split()[1:]])
     except ImportError:  # pragma: no cover
         pass
-    return (Path(argv[0]).name if argv else "python"), argv
+    return name or (Path(argv[0]).name if argv else "python"), argv
 
 
 def open_outputs(out: os.PathLike | str | None = None, *, inputs: Iterable[os.PathLike | str | None] = (),
@@ -663,7 +665,11 @@ def _mkdir(folder: Path) -> None:
         raise OutputError(f"cannot create the output folder {folder} ({exc.strerror or exc}); choose a folder on a "
                           "writable disk that you may write to (--out)") from exc
     if not os.access(folder, os.W_OK | os.X_OK):
-        raise OutputError(f"the output folder {folder} is not writable; choose a folder you can write to (--out)")
+        ro = False
+        with contextlib.suppress(OSError, AttributeError):
+            ro = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+        why = "is on a read-only file system" if ro else "is not writable"
+        raise OutputError(f"the output folder {folder} {why}; choose a folder you can write to (--out)")
 
 
 def _check_parent_free(path: Path) -> None:
