@@ -33,6 +33,7 @@ SUBCOMMANDS: dict[str, str] = {
     "change": "geocd.cli.change:change",
     "stereo": "geocd.cli.stereo:stereo",
     "probchange": "geocd.cli.probchange:probchange",
+    "landcover": "geocd.cli.landcover:landcover",
 }
 
 
