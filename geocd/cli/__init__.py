@@ -59,6 +59,7 @@ SUBCOMMANDS: dict[str, str] = {
     "stereo": "geocd.cli.stereo:stereo",
     "probchange": "geocd.cli.probchange:probchange",
     "ortho": "geocd.cli.ortho:ortho",
+    "landcover": "geocd.cli.landcover:landcover",
 }
 
 
