@@ -447,6 +447,23 @@ def write_image(path: os.PathLike | str, data: np.ndarray, *, rpc=None, crs: Any
     return Path(path)
 
 
+def read_on_grid(path: os.PathLike | str, grid: AOIGrid, resampling: str = "nearest", band: int = 1) -> np.ndarray:
+    """Any single band (a mask, classes, a product) resampled onto ``grid``: float32, NaN outside / nodata.
+
+    Unlike :func:`read_dem`, values are not checked to be heights.
+    """
+    from rasterio.errors import RasterioError
+
+    with _open(path) as ds:
+        if ds.crs is None:
+            raise CRSError(f"{path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...) before using it")
+        _check_read_memory(path, grid.shape, grid)
+        try:
+            return reproject_band(ds, band, grid, resampling)
+        except RasterioError as exc:
+            raise _read_failure(path, exc) from exc
+
+
 def read_band(path: os.PathLike | str, band: int = 1) -> tuple[np.ndarray, AOIGrid]:
     """Read one band of a georeferenced product as float32 (nodata → NaN) with its grid."""
     from rasterio.errors import RasterioError
