@@ -85,12 +85,12 @@ def test_sample_aoi_end_to_end(tmp_path, sample_aoi):
 
     from geocd.change.buildings import score_buildings
     from geocd.change.metrics import binary_scores
-    from geocd.io.raster import read_dem
+    from geocd.io.raster import read_on_grid
     from geocd.io.vector import read_footprints
 
     res = run(sample_aoi, out_dir=tmp_path / "out")
     grid = res["grid"]
-    truth = read_dem(sample_aoi / "truth" / "change_mask.tif", grid=grid, resampling="nearest").height_m > 0.5
+    truth = read_on_grid(sample_aoi / "truth" / "change_mask.tif", grid) > 0.5
     r = res["result"]
     s = binary_scores(r.changed_at(99) != 0, truth, r.observed)
     assert s["false_alarm_rate"] < 0.015, s

@@ -213,7 +213,7 @@ def read_dem(path: os.PathLike | str, grid: AOIGrid | None = None, resampling: s
         vd = vertical_datum or vertical_datum_of(ds.crs)
         if grid is not None:
             _check_dem_covers(ds, path, grid)
-        _check_read_memory(path, grid.shape if grid is not None else (ds.height, ds.width))
+        _check_read_memory(path, grid.shape if grid is not None else (ds.height, ds.width), grid)
         try:
             if grid is None:
                 arr = ds.read(band, masked=True).astype(np.float32)
@@ -264,13 +264,18 @@ def _check_dem_like(ds, path, band: int) -> int:
     return band
 
 
-def _check_read_memory(path, shape: tuple[int, int], bytes_per_cell: int = 13) -> None:
+def _check_read_memory(path, shape: tuple[int, int], grid: AOIGrid | None = None, bytes_per_cell: int = 13) -> None:
     """Refuse to read a raster that cannot fit (float32 heights, a mask, a working copy per cell)."""
     from .outputs import check_resources
 
     rows, cols = int(shape[0]), int(shape[1])
-    check_resources(f"reading {path} ({cols} x {rows} cells)", memory_bytes=rows * cols * bytes_per_cell,
-                    fix="crop it to the area of interest first (gdal_translate -projwin ...) or resample it coarser")
+    if grid is None:
+        what = f"reading {path} ({cols} x {rows} cells)"
+        fix = "crop it to the area of interest first (gdal_translate -projwin ...) or resample it coarser"
+    else:
+        what = f"the AOI grid ({cols} x {rows} cells at {grid.posting_m:g} m, reading {Path(path).name} onto it)"
+        fix = "use a coarser posting or a smaller AOI"
+    check_resources(what, memory_bytes=rows * cols * bytes_per_cell, fix=fix)
 
 
 def _check_heights(h: np.ndarray, path) -> None:
@@ -447,6 +452,23 @@ def write_image(path: os.PathLike | str, data: np.ndarray, *, rpc=None, crs: Any
                 if tags:
                     dst.update_tags(**{k: str(v) for k, v in tags.items()})
     return Path(path)
+
+
+def read_on_grid(path: os.PathLike | str, grid: AOIGrid, resampling: str = "nearest", band: int = 1) -> np.ndarray:
+    """Any single band (a mask, classes, a product) resampled onto ``grid``: float32, NaN outside / nodata.
+
+    Unlike :func:`read_dem`, values are not checked to be heights.
+    """
+    from rasterio.errors import RasterioError
+
+    with _open(path) as ds:
+        if ds.crs is None:
+            raise CRSError(f"{path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...) before using it")
+        _check_read_memory(path, grid.shape, grid)
+        try:
+            return reproject_band(ds, band, grid, resampling)
+        except RasterioError as exc:
+            raise _read_failure(path, exc) from exc
 
 
 def read_band(path: os.PathLike | str, band: int = 1) -> tuple[np.ndarray, AOIGrid]:

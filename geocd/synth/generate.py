@@ -314,7 +314,7 @@ def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: boo
 
     prog = ensure_progress(progress)
     out = Path(out_dir)
-    if out.exists() and any(out.iterdir()) and not overwrite:
+    if out.exists() and any(p.name != ".geocd.lock" for p in out.iterdir()) and not overwrite:
         raise OutputError(f"{out} is not empty; choose a new folder or pass overwrite=True (--overwrite)")
     out.mkdir(parents=True, exist_ok=True)
     (out / "images").mkdir(exist_ok=True)
