@@ -314,7 +314,9 @@ def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: boo
 
     prog = ensure_progress(progress)
     out = Path(out_dir)
-    if out.exists() and any(out.iterdir()) and not overwrite:
+    # geocd's own bookkeeping of the output session (lock, product manifest) does not make the folder a scene
+    bookkeeping = {".geocd.lock", "geocd_products.json"}
+    if out.exists() and any(p.name not in bookkeeping for p in out.iterdir()) and not overwrite:
         raise OutputError(f"{out} is not empty; choose a new folder or pass overwrite=True (--overwrite)")
     out.mkdir(parents=True, exist_ok=True)
     (out / "images").mkdir(exist_ok=True)
