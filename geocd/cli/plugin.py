@@ -59,6 +59,15 @@ def _geocd_executable() -> str | None:
     return None
 
 
+def zip_path(out: str | Path | None, version: str) -> Path:
+    """Where ``geocd plugin-zip --out OUT`` writes the zip (OUT: a .zip file, or a folder; default dist/)."""
+    out_path = Path(out) if out else Path("dist") / f"{PLUGIN_NAME}-{version}.zip"
+    if out_path.suffix.lower() != ".zip":
+        is_dir = out_path.is_dir() or str(out).endswith(("/", os.sep)) or not out_path.suffix
+        out_path = out_path / f"{PLUGIN_NAME}-{version}.zip" if is_dir else out_path.with_suffix(".zip")
+    return out_path
+
+
 def build_plugin_zip(out: str | Path | None = None, *, environment_hint: bool = True) -> Path:
     """Write the plugin zip (one top folder ``geocd_qgis/``) atomically; return its path.
 
@@ -80,10 +89,7 @@ def build_plugin_zip(out: str | Path | None = None, *, environment_hint: bool = 
     if version != __version__:
         raise ConfigError(f"plugin version {version} (metadata.txt) differs from geocd {__version__}; "
                           "bump both together")
-    out_path = Path(out) if out else Path("dist") / f"{PLUGIN_NAME}-{version}.zip"
-    if out_path.suffix.lower() != ".zip":
-        is_dir = out_path.is_dir() or str(out).endswith(("/", os.sep)) or not out_path.suffix
-        out_path = out_path / f"{PLUGIN_NAME}-{version}.zip" if is_dir else out_path.with_suffix(".zip")
+    out_path = zip_path(out, version)
     files = sorted(p for p in src.rglob("*")
                    if p.is_file() and not (set(p.relative_to(src).parts) & _SKIP_DIRS)
                    and p.suffix not in _SKIP_SUFFIXES and p.name != "environment.json")
@@ -159,7 +165,8 @@ def plugin_zip(ctx: click.Context, out: str | None, url: str | None, no_environm
 
     sess = session(ctx)
     sess.log_enabled = False  # the folder is what a web server publishes: no log file there
-    open_outputs(None, files=[out or "dist"])
+    zp = zip_path(out, read_metadata(plugin_source_dir()).get("version", ""))
+    open_outputs(None, files=[zp, zp.parent / REPOSITORY_FILE])
     path = build_plugin_zip(out, environment_hint=not no_environment_hint)
     repo = write_repository(path, url)
     where = repo.resolve().as_uri() if not url else url.rstrip("/") + "/" + REPOSITORY_FILE
@@ -216,6 +223,10 @@ def plugin_install(ctx: click.Context, repository: str | None, profile: str | No
     sess.log_enabled = False
     built = None
     if repository is None:
+        from ..io.outputs import open_outputs
+
+        zp = zip_path(None, read_metadata(plugin_source_dir()).get("version", ""))
+        open_outputs(None, files=[zp, zp.parent / REPOSITORY_FILE])
         built = build_plugin_zip(None)
         write_repository(built)
     url = _repository_url(repository, built)

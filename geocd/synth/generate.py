@@ -37,6 +37,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..errors import ConfigError
+from ..io.outputs import LOCK_NAME, MANIFEST_NAME
 from ..params import ParamsMixin
 from ..progress import ensure_progress, sub_progress
 from .scene import CHANGE_TYPES, Town, TownParams, build_town
@@ -314,7 +315,9 @@ def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: boo
 
     prog = ensure_progress(progress)
     out = Path(out_dir)
-    if out.exists() and any(p.name != ".geocd.lock" for p in out.iterdir()) and not overwrite:
+    # geocd's own bookkeeping of the output session (lock, product manifest) does not make the folder a scene
+    bookkeeping = {LOCK_NAME, MANIFEST_NAME}
+    if out.exists() and any(p.name not in bookkeeping for p in out.iterdir()) and not overwrite:
         raise OutputError(f"{out} is not empty; choose a new folder or pass overwrite=True (--overwrite)")
     out.mkdir(parents=True, exist_ok=True)
     (out / "images").mkdir(exist_ok=True)
