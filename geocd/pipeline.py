@@ -215,7 +215,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
     paths = write_change_products(out, res, grid, method="self-consistency", epoch_a=ea.name, epoch_b=eb.name,
                                   region_confidence=config.region_confidence, model=model, buildings=buildings,
                                   provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
-                                  prefix="sc")
+                                  prefix="sc", backdrop_m=_median_surface(recs_b))
     paths["model"] = model_path
     paths.update({f"stereo:{k}": v for k, v in st["outputs"].items()})
     cfg_path = write_text_atomic(out / "run_config.json", json.dumps(config.to_dict(), indent=2, default=list))

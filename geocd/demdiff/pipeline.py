@@ -281,8 +281,8 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
     raw_sign = np.where(obs, raw_sign, 0).astype(np.int8)
     cell = float(post[0] * post[1])
     vfn = unc.volume_sigma_fn(cell) if unc is not None else None
-    # change_regions takes the per-cell confidence as a fraction
-    regions = change_regions(raw_sign, dh, g, confidence=conf / 100.0 if sig_model is not None else None,
+    # per-cell confidence in percent, as change_regions takes it
+    regions = change_regions(raw_sign, dh, g, confidence=conf if sig_model is not None else None,
                              volume_sigma_fn=vfn, method=method, epoch_a=epoch_a, epoch_b=epoch_b,
                              min_cells=p.min_region_cells, cell_area_m2=cell)
     sign = _sign_in_regions(raw_sign, p.min_region_cells)
