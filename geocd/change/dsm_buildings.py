@@ -254,7 +254,8 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
         raise ValueError(f"report confidence {report_confidence} is not a tested level {levels}")
     cm = np.where(observed, result.changed_at(report_confidence), CHANGE_NODATA).astype(np.int16)
     bp = BuildingParams(min_observed=params.min_observed, min_changed=params.min_changed)
-    base = classify_buildings(gdf, cm, result.dz_m, grid, z_a=z_a, z_b=z_b, dem_m=dtm, params=bp, id_field=id_field)
+    base = classify_buildings(gdf, cm, result.dz_m, grid, z_a=z_a, z_b=z_b, dem_m=dtm, params=bp, id_field=id_field,
+                              confidence_level=report_confidence, detect_new=False)
     labels = rasterize([(g, i + 1) for i, g in enumerate(gdf.geometry)], out_shape=grid.shape,
                        transform=grid.transform, fill=0, dtype="int32")
     n = len(gdf)
@@ -291,19 +292,25 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
             # scale to the whole footprint like the volume
             vsig = float(math.sqrt(float(np.sum(s_block ** 2))) * cell * n_in / max(dz.size, 1))
         cls = str(b["class"])
-        fl, fr = float(b["frac_lowered"] or 0.0), float(b["frac_raised"] or 0.0)
+        rule = str(b.get("rule", ""))
+        fl = float(np.nan_to_num(b["frac_lowered"]))
+        fr = float(np.nan_to_num(b["frac_raised"]))
         if cls in ("lowered", "demolished"):
             ratio = h_after / h_before if (np.isfinite(h_before) and h_before > 0) else np.nan
             if (np.isfinite(ratio) and ratio <= params.collapse_ratio) or (np.isfinite(h_after) and h_after < 2.5):
                 cls = "collapsed"
+                rule += f"; {h_after:.1f} m above ground after vs {h_before:.1f} m before (≤ {params.collapse_ratio:g}×)"
             elif fl < params.most:
                 cls = "partly collapsed"
+                rule += f"; lowered on {100 * fl:.0f}% of it (< {100 * params.most:g}%)"
             else:
                 cls = "lowered"
+                rule += f"; lowered on {100 * fl:.0f}% of it, {h_after:.1f} m of {h_before:.1f} m left"
         elif cls == "raised" and np.isfinite(h_before) and h_before < 2.5:
             cls = "new"
+            rule += f"; {h_before:.1f} m above ground before"
         c_pct = float(conf[i]) if cls in CHANGED else 0.0
-        rec = {"building_id": b["building_id"], "class": cls, "confidence_pct": c_pct,
+        rec = {"building_id": b["building_id"], "class": cls, "confidence_pct": c_pct, "rule": rule,
                "frac_observed": b["frac_observed"], "frac_changed": b["frac_changed"], "frac_lowered": fl,
                "frac_raised": fr, "height_before_m": round(h_before, 2), "height_after_m": round(h_after, 2),
                "mean_dz_m": round(mean_dz, 2) if np.isfinite(mean_dz) else np.nan,
@@ -316,6 +323,8 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     import pandas as pd
 
     out = gpd.GeoDataFrame(pd.DataFrame(out_rows), geometry=gdf.geometry.values, crs=gdf.crs)
+    if "source" in gdf.columns:
+        out.insert(1, "source", gdf["source"].values)
     for c in gdf.columns:
         if c not in out.columns and c != gdf.geometry.name:
             out[f"src_{c}"] = gdf[c].values

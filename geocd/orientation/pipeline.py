@@ -41,8 +41,8 @@ def orientation_params(manifest, override: OrientationParams | None = None) -> O
     """The manifest's ``orientation`` settings (``override`` wins when given)."""
     if override is not None:
         return override
-    raw = getattr(manifest, "orientation", None)
-    if raw is None:
+    raw = (getattr(manifest, "extras", None) or {}).get("orientation")
+    if raw is None or raw == "auto":
         return OrientationParams()
     if isinstance(raw, bool):
         return OrientationParams(enabled=raw)

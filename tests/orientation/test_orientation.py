@@ -150,3 +150,11 @@ def test_exact_cameras_and_refusal_through_the_manifest(tmp_path, sample_aoi):
         m2, rep = orient_manifest(m, out_dir=tmp_path / "b")
     assert m2 is m and rep["applied"] is False and rep["status"] == "insufficient" and "fewer than 100000" in rep["reason"]
     assert (tmp_path / "b" / "orientation" / "orientation.json").is_file()
+
+
+def test_schema_lists_every_parameter():
+    import dataclasses
+
+    from geocd.io.manifest import ORIENTATION_KEYS
+
+    assert set(ORIENTATION_KEYS) == {f.name for f in dataclasses.fields(OrientationParams)}
