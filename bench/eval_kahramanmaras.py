@@ -28,24 +28,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def stable_false_alarms(conf: np.ndarray, observed: np.ndarray, damage, grid, buffer_m: float = 0.0,
-                        levels=(90.0, 95.0, 99.0)) -> dict:
-    from rasterio.features import rasterize
-
-    from geocd.change.dsm_buildings import CHANGED
-
-    changed = damage[damage["class"].isin(CHANGED)]
-    geoms = [g.buffer(buffer_m) if buffer_m else g for g in changed.geometry]
-    inside = (rasterize([(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform, fill=0,
-                        dtype="uint8").astype(bool) if geoms else np.zeros(grid.shape, bool))
-    stable = observed & ~inside
-    out = {f"{c:g}": round(float((np.nan_to_num(conf[stable]) >= c).mean()), 5) for c in levels}
-    out.update(stable_cells=int(stable.sum()), buffer_m=buffer_m)
-    return out
-
-
 def evaluate(run: Path, model_path: Path, significance: str) -> tuple[dict, object]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
+    from geocd.change.dsm_buildings import stable_false_alarms
     from geocd.pipeline import _building_damage
     from geocd.stereo import read_pair_dem
 
@@ -63,7 +48,7 @@ def evaluate(run: Path, model_path: Path, significance: str) -> tuple[dict, obje
                                    for c in res.confidences},
            "observed_fraction": round(float(obs.mean()), 4),
            "stable_false_alarms": stable_false_alarms(res.confidence, obs, damage, grid),
-           "stable_false_alarms_3m": stable_false_alarms(res.confidence, obs, damage, grid, 3.0),
+           "stable_false_alarms_3m": stable_false_alarms(res.confidence, obs, damage, grid, buffer_m=3.0),
            "buildings": int(len(damage)), "classes": cls.value_counts().to_dict(),
            "collapsed": damage[cls == "collapsed"][["building_id", "confidence_pct", "height_before_m",
                                                       "height_after_m", "volume_lost_m3", "volume_sigma_m3",
