@@ -111,3 +111,7 @@ class CancelledError(GeoCDError):
     """The user cancelled a long operation (via the progress callback)."""
 
     exit_code = 130
+
+
+class SchedulerError(ProcessingError):
+    """A tiled run cannot use the scheduler it was given (unreachable, mismatched workers)."""

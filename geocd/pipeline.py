@@ -161,7 +161,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
 
     prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
-    out = Path(out_dir) if out_dir is not None else Path(m.output)
+    out = Path(out_dir) if out_dir is not None else m.output_dir()
     out.mkdir(parents=True, exist_ok=True)
     ea, eb = pick_epochs(m, config.epoch_a, config.epoch_b)
     model = SelfConsistencyModel.load(config.model_path) if config.model_path else None
@@ -197,21 +197,25 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
                                        progress=sub_progress(prog, 0.76, 0.82))
     model_path = model.save(out / "self_consistency_model.json")
     prog(0.83, "cross-epoch change test")
-    res = change_test(recs_a, recs_b, model, config.change, progress=sub_progress(prog, 0.83, 0.9))
+    change_params = config.change
+    if config.region_confidence not in change_params.confidences:  # the reported level is always tested
+        change_params = dataclasses.replace(change_params,
+                                            confidences=tuple(sorted({*change_params.confidences, config.region_confidence})))
+    res = change_test(recs_a, recs_b, model, change_params, progress=sub_progress(prog, 0.83, 0.9))
     buildings = None
     fp_path = footprints or (m.footprints.path if m.footprints is not None else None)
     if fp_path is not None:
         fps = read_footprints(fp_path, crs=grid.crs, layer=m.footprints.layer if (m.footprints and not footprints) else None)
         id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
-        buildings = classify_buildings(fps, res.changed_at(config.region_confidence) if config.region_confidence in res.confidences
-                                       else res.change, res.dz_m, grid, z_a=_median_surface(recs_a),
-                                       z_b=_median_surface(recs_b), confidence=res.confidence, params=config.buildings,
-                                       id_field=id_field)
+        buildings = classify_buildings(fps, res.changed_at(config.region_confidence), res.dz_m, grid,
+                                       z_a=_median_surface(recs_a), z_b=_median_surface(recs_b),
+                                       confidence=res.confidence, params=config.buildings, id_field=id_field,
+                                       confidence_level=config.region_confidence)
     prog(0.9, "writing products")
     paths = write_change_products(out, res, grid, method="self-consistency", epoch_a=ea.name, epoch_b=eb.name,
                                   region_confidence=config.region_confidence, model=model, buildings=buildings,
                                   provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
-                                  prefix="sc")
+                                  prefix="sc", backdrop_m=_median_surface(recs_b))
     paths["model"] = model_path
     paths.update({f"stereo:{k}": v for k, v in st["outputs"].items()})
     cfg_path = write_text_atomic(out / "run_config.json", json.dumps(config.to_dict(), indent=2, default=list))

@@ -9,7 +9,7 @@ A manifest is a YAML (or JSON) file; relative paths are relative to its folder::
       crs: EPSG:32735
       bounds: [left, bottom, right, top]   # in aoi.crs
       posting_m: 0.5
-    output: out                      # default: <manifest folder>/out
+    output: out                      # relative to the manifest's folder; default: ./geocd_out/<name>
     dem:                             # optional prior DEM (height search range)
       path: truth/dem_bare.tif
       vertical_datum: ellipsoid      # ellipsoid | egm96 | egm2008 (default: from the file's CRS)
@@ -94,6 +94,11 @@ class Manifest:
     @property
     def root(self) -> Path:
         return self.path.parent if self.path is not None else Path.cwd()
+
+    def output_dir(self) -> Path:
+        """Where results go when no output folder is given: the manifest's ``output:`` if it names one, else
+        ``./geocd_out/<name>`` in the current directory (never inside the input folder by default)."""
+        return self.output if self.output is not None else default_output_dir(self.name)
 
     def epoch(self, name: str) -> Epoch:
         for e in self.epochs:
@@ -440,11 +445,11 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
                     from None
         aoi = AOISpec(None if crs is None else str(crs), bounds, float(posting) if posting is not None else None, vec)
     output = data.get("output")
-    out = (root / output) if output else root / "out"
+    out = (root / output) if output else None
     fp = data.get("footprints")
     return Manifest(
         path=path, name=str(data.get("name") if data.get("name") is not None else root.name), epochs=tuple(epochs),
-        aoi=aoi, output=out if out.is_absolute() else out.resolve(), dem=_dem_spec(root, data.get("dem"), "dem"),
+        aoi=aoi, output=None if out is None else (out if out.is_absolute() else out.resolve()), dem=_dem_spec(root, data.get("dem"), "dem"),
         footprints=_dem_spec(root, fp, "footprints"),
         scene_class=str(data.get("scene_class") or ""), truth=dict(data.get("truth") or {}),
         extras={k: v for k, v in data.items() if k not in _MODELLED_TOP},
@@ -459,6 +464,12 @@ def _check_epoch_order(epochs: Sequence[Epoch]) -> None:
             raise ManifestError(
                 f"manifest epochs: {nxt.name!r} ({nxt.date}) is listed after {prev.name!r} ({prev.date}) but dated "
                 "before it; list the epochs in date order (earliest first), or fix the dates")
+
+
+def default_output_dir(name: str) -> Path:
+    """``./geocd_out/<name>``: the default output folder of a scene or command (in the current directory)."""
+    safe = "".join(c if (c.isalnum() or c in "-_.") else "_" for c in str(name)).strip("._") or "scene"
+    return Path.cwd() / "geocd_out" / safe
 
 
 def load_manifest(path: os.PathLike | str) -> Manifest:
@@ -530,7 +541,7 @@ def discover_manifest(folder: os.PathLike | str) -> Manifest:
             f"{root} holds no manifest (scene.yaml) and no images ({', '.join(IMAGE_SUFFIXES)}); "
             "write a scene.yaml (see geocd.io.manifest) or point at a folder of images"
         )
-    return Manifest(path=None, name=root.name, epochs=tuple(epochs), output=root / "out")
+    return Manifest(path=None, name=root.name, epochs=tuple(epochs))
 
 
 def manifest_to_dict(m: Manifest) -> dict:

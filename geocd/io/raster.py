@@ -346,22 +346,47 @@ def reproject_array(array: np.ndarray, src_grid: AOIGrid, dst_grid: AOIGrid, res
     return out
 
 
+def band_unit(name: str) -> str:
+    """The unit a band name says by geocd's naming convention ("" when it says none)."""
+    n = name.lower()
+    for suffix, unit in (("_m3", "m3"), ("_m2", "m2"), ("_m", "m"), ("_px", "px"), ("_deg", "degree"),
+                         ("_pct", "%"), ("_s", "s")):
+        if n.endswith(suffix):
+            return unit
+    if "confidence" in n:
+        return "%"
+    if n in ("probability", "change_probability", "coverage", "vis_inf", "ncc", "valid"):
+        return "1"
+    return ""
+
+
 def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarray], grid: AOIGrid, *,
               nodata: float | int | None = None, dtype: str | None = None, tags: Mapping[str, Any] | None = None,
               band_tags: Sequence[Mapping[str, Any]] | None = None, overwrite: bool = True,
               compress: str = "deflate", colormap: Mapping[int, tuple] | None = None,
-              overview_resampling: str = "average") -> Path:
+              overview_resampling: str = "average", mask: np.ndarray | None = None,
+              units: Mapping[str, str] | Sequence[str] | None = None) -> Path:
     """Write a Cloud-Optimized GeoTIFF atomically.
+
+    Every band gets a description (what QGIS shows as its name) and, where known, a unit
+    (GDAL's band unit type, what ``gdalinfo`` prints as "Unit Type").
 
     Parameters
     ----------
     bands : ndarray (rows, cols) or (bands, rows, cols), or mapping name → 2-D array
-        Mapping keys become band descriptions (what QGIS shows as band names).
+        Mapping keys become band descriptions; unnamed bands are described by the file's
+        stem (and their number when there are several).
     grid : AOIGrid
     nodata : number, optional
         NaN in float data is nodata by default.
     tags : mapping, optional
-        Dataset metadata (e.g. units, method, provenance JSON).
+        Dataset metadata (e.g. method, provenance JSON).
+    mask : bool ndarray (rows, cols), optional
+        Written as the GDAL internal mask band (False = nodata, transparent in QGIS):
+        for integer images whose every value is legitimate data.
+    units : mapping name → unit, or one unit per band, optional
+        Band units; default: from the band names' suffixes (:func:`band_unit`: ``_m`` → m,
+        ``confidence`` → %, ...).
     """
     import rasterio
     from rasterio.io import MemoryFile
@@ -374,7 +399,17 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
         arr = np.asarray(bands)
         if arr.ndim == 2:
             arr = arr[None]
-        names = [None] * arr.shape[0]
+        stem = Path(path).stem
+        names = [stem] if arr.shape[0] == 1 else [f"{stem}_{i}" for i in range(1, arr.shape[0] + 1)]
+    if isinstance(units, Mapping):
+        unit_list = [units.get(n, band_unit(n)) for n in names]
+    elif units is not None:
+        unit_list = [str(u) for u in units]
+    else:
+        unit_list = [band_unit(n) for n in names]
+    for i, bt in enumerate(band_tags or []):  # a "units" band tag (stereo products) is the unit too
+        if i < len(unit_list) and not unit_list[i] and bt and bt.get("units"):
+            unit_list[i] = str(bt["units"])
     if arr.shape[1:] != grid.shape:
         raise OutputError(f"array shape {arr.shape[1:]} does not match the grid {grid.shape}")
     dtype = dtype or str(arr.dtype)
@@ -387,14 +422,19 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
             with mem.open(**profile) as dst:
                 dst.write(arr.astype(dtype))
                 for i, name in enumerate(names, start=1):
-                    if name:
-                        dst.set_band_description(i, str(name))
+                    dst.set_band_description(i, str(name))
+                    if i - 1 < len(unit_list) and unit_list[i - 1]:
+                        dst.set_band_unit(i, unit_list[i - 1])
                     if band_tags and i - 1 < len(band_tags) and band_tags[i - 1]:
                         dst.update_tags(i, **{k: str(v) for k, v in band_tags[i - 1].items()})
                 if tags:
                     dst.update_tags(**{k: str(v) for k, v in tags.items()})
                 if colormap is not None:
                     dst.write_colormap(1, colormap)
+                if mask is not None:
+                    if mask.shape != grid.shape:
+                        raise OutputError(f"mask shape {mask.shape} does not match the grid {grid.shape}")
+                    dst.write_mask(np.where(mask, 255, 0).astype(np.uint8))
                 ov = [f for f in (2, 4, 8, 16, 32) if min(grid.shape) // f >= 64]
                 if ov:
                     from rasterio.enums import Resampling

@@ -317,7 +317,7 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
     for e in selected:
         if len(e.images) < 2:
             raise ConfigError(f"epoch {e.name!r} has {len(e.images)} image(s); stereo needs at least two")
-    out = Path(out_dir) if out_dir is not None else (m.output or m.root / "out")
+    out = Path(out_dir) if out_dir is not None else m.output_dir()
     images = {e.name: load_epoch_images(m, e) for e in selected}
     protect_inputs(*[im.path for ims in images.values() for im in ims])
     dem_median = None
