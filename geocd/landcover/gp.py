@@ -1,0 +1,379 @@
+"""Gaussian-process integration of sparse detailed observations over a whole grid (arrays in, arrays out).
+
+Sakurada's thesis (ch. 6.2.3) regresses the per-cell probability seen in the
+detailed views, ``y``, on cell inputs ``x = (x, y, DEM height, coarse-image
+probability, building occupancy)`` with the ARD squared-exponential kernel
+
+    k(x_p, x_q) = σ_f² exp(−½ Σ_d (x_pd − x_qd)² / l_d²) + σ_n² δ_pq,
+
+one length scale ``l_d`` per input (the thesis's diagonal ``W``). An exact GP
+costs O(n³) time and O(n²) memory (10⁴ cells: 0.8 GB for K alone), so:
+
+1. **Hyperparameters** (``l_d``, ``σ_f``, ``σ_n``) are fitted by exact GP
+   regression (scikit-learn ``GaussianProcessRegressor``, marginal likelihood)
+   on a random subsample of the observed cells.
+2. **Prediction** uses *all* observed cells through ``m`` inducing points
+   ``Z`` (k-means centres in the kernel's scaled input space) — the DTC/SoR
+   approximation in the numerically stable form of Titsias (2009) / GPflow's
+   SGPR: with ``L = chol(K_mm)``, ``A = L⁻¹K_mn/σ_n``, ``B = I + AAᵀ``,
+   ``L_B = chol(B)``, ``c = L_B⁻¹ L⁻¹ K_mn y / σ_n²``,
+
+       mean_* = (L_B⁻¹ L⁻¹ K_m*)ᵀ c
+       var_*  = σ_f² − |L⁻¹ K_m*|² + |L_B⁻¹ L⁻¹ K_m*|²      (latent f; + σ_n² for a new observation)
+
+   ``AAᵀ`` and ``K_mn y`` are accumulated over batches of cells, and prediction
+   runs in batches too, so memory is O(m² + m·batch) whatever the number of
+   cells (10⁶ cells: see ``bench/bench_gp.py``). With ``Z`` = the training
+   inputs the approximation is the exact GP (tested).
+
+Inputs are standardised (zero mean, unit variance over the observed cells) and
+the target is centred and scaled; the results are returned in the target's units.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import cho_solve, cholesky, solve_triangular
+
+from ..errors import ConfigError, EmptyDataError, ProcessingError
+from ..params import ParamsMixin
+from ..progress import ensure_progress
+
+#: jitter added to K_mm's diagonal, relative to σ_f²
+JITTER = 1e-6
+
+
+@dataclass(frozen=True)
+class GPParams(ParamsMixin):
+    """How the GP is fitted and evaluated.
+
+    Attributes
+    ----------
+    n_fit : int
+        Observed cells (random subsample) for the exact-GP hyperparameter fit.
+    n_inducing : int
+        Inducing points of the sparse prediction (capped by the number of observed cells).
+    batch : int
+        Cells per batch in the accumulation and the prediction (memory ~ 8·n_inducing·batch bytes × 3).
+    restarts : int
+        Extra random restarts of the marginal-likelihood optimiser.
+    max_train : int or None
+        At most this many observed cells enter the sparse fit (random subsample; None = all).
+    seed : int
+    """
+
+    _kind = "GP"
+
+    n_fit: int = 1000
+    n_inducing: int = 400
+    batch: int = 20000
+    restarts: int = 0
+    max_train: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.n_fit < 10:
+            raise ConfigError(f"n_fit must be at least 10 cells, got {self.n_fit}")
+        if self.n_inducing < 1:
+            raise ConfigError(f"n_inducing must be positive, got {self.n_inducing}")
+        if self.batch < 1:
+            raise ConfigError(f"batch must be positive, got {self.batch}")
+        if self.restarts < 0:
+            raise ConfigError(f"restarts must be ≥ 0, got {self.restarts}")
+
+
+@dataclass
+class GPHyper:
+    """ARD squared-exponential hyperparameters in standardised units, and the standardisation.
+
+    ``length_scales`` are in units of each input's standard deviation; :meth:`length_scales_units`
+    gives them in the inputs' own units. ``signal_var`` and ``noise_var`` are in the target's units².
+    """
+
+    length_scales: np.ndarray
+    signal_var: float
+    noise_var: float
+    x_mean: np.ndarray
+    x_std: np.ndarray
+    y_mean: float
+    names: list = field(default_factory=list)
+    log_marginal_likelihood: float = float("nan")
+
+    def length_scales_units(self) -> np.ndarray:
+        return self.length_scales * self.x_std
+
+    def scale(self, X: np.ndarray) -> np.ndarray:
+        """Inputs → standardised, length-scale-divided coordinates (the kernel's metric)."""
+        return (np.asarray(X, np.float64) - self.x_mean) / (self.x_std * self.length_scales)
+
+    def to_dict(self) -> dict:
+        return {"inputs": list(self.names),
+                "length_scales": {n: float(v) for n, v in zip(self.names, self.length_scales_units())},
+                "length_scales_std_units": {n: float(v) for n, v in zip(self.names, self.length_scales)},
+                "signal_sd": float(np.sqrt(self.signal_var)), "noise_sd": float(np.sqrt(self.noise_var)),
+                "mean": float(self.y_mean), "log_marginal_likelihood": float(self.log_marginal_likelihood)}
+
+
+def _check_xy(X: np.ndarray, y: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    X = np.asarray(X, np.float64)
+    if X.ndim != 2:
+        raise ConfigError(f"GP inputs must be (n, d), got shape {X.shape}")
+    if not np.all(np.isfinite(X)):
+        raise ConfigError("GP inputs contain NaN or infinite values; drop those cells first")
+    if y is not None:
+        y = np.asarray(y, np.float64).ravel()
+        if y.shape[0] != X.shape[0]:
+            raise ConfigError(f"{X.shape[0]} input rows but {y.shape[0]} targets")
+        if not np.all(np.isfinite(y)):
+            raise ConfigError("GP targets contain NaN; use observed cells only")
+    return X, y
+
+
+def fit_hyperparameters(X: np.ndarray, y: np.ndarray, params: GPParams = GPParams(),
+                        names: list | None = None) -> GPHyper:
+    """Exact-GP marginal-likelihood fit of the ARD kernel on a random subsample of (X, y).
+
+    Parameters
+    ----------
+    X : (n, d) inputs of the observed cells; y : (n,) targets
+    """
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+
+    X, y = _check_xy(X, y)
+    n, d = X.shape
+    if n < max(10, d + 2):
+        raise EmptyDataError(f"only {n} observed cells for a GP with {d} inputs; the detailed views must observe "
+                             "more of the area (or use a finer grid)")
+    x_mean = X.mean(axis=0)
+    x_std = X.std(axis=0)
+    const = x_std <= 1e-12
+    x_std = np.where(const, 1.0, x_std)
+    y_mean = float(y.mean())
+    y_sd = float(y.std()) or 1.0
+    rng = np.random.default_rng(params.seed)
+    idx = rng.choice(n, min(n, params.n_fit), replace=False)
+    Xs = (X[idx] - x_mean) / x_std
+    ys = (y[idx] - y_mean) / y_sd
+    kernel = (ConstantKernel(1.0, (1e-3, 1e2)) * RBF(length_scale=np.ones(d), length_scale_bounds=(1e-2, 1e3))
+              + WhiteKernel(0.1, (1e-4, 1e1)))
+    gpr = GaussianProcessRegressor(kernel=kernel, normalize_y=False, n_restarts_optimizer=params.restarts,
+                                   random_state=params.seed, copy_X_train=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        gpr.fit(Xs, ys)
+    k = gpr.kernel_
+    ls = np.atleast_1d(np.asarray(k.k1.k2.length_scale, np.float64))
+    if ls.size == 1:
+        ls = np.full(d, float(ls[0]))
+    ls = np.where(const, 1e3, ls)  # a constant input carries no information
+    return GPHyper(length_scales=ls, signal_var=float(k.k1.k1.constant_value) * y_sd ** 2,
+                   noise_var=float(k.k2.noise_level) * y_sd ** 2, x_mean=x_mean, x_std=x_std, y_mean=y_mean,
+                   names=list(names) if names is not None else [f"x{i}" for i in range(d)],
+                   log_marginal_likelihood=float(gpr.log_marginal_likelihood_value_))
+
+
+def _sqexp(A: np.ndarray, B: np.ndarray, signal_var: float) -> np.ndarray:
+    """σ_f² exp(−½|a − b|²) for already-scaled rows of A (p, d) and B (q, d) → (p, q)."""
+    d2 = (A * A).sum(1)[:, None] + (B * B).sum(1)[None, :] - 2.0 * (A @ B.T)
+    np.maximum(d2, 0.0, out=d2)
+    return signal_var * np.exp(-0.5 * d2)
+
+
+def choose_inducing(X: np.ndarray, hyper: GPHyper, m: int, seed: int = 0, max_kmeans: int = 100_000) -> np.ndarray:
+    """``m`` inducing inputs: k-means centres of the cells in the kernel's scaled space (returned unscaled)."""
+    from sklearn.cluster import MiniBatchKMeans
+
+    X = np.asarray(X, np.float64)
+    n = X.shape[0]
+    if m >= n:
+        return X.copy()
+    rng = np.random.default_rng(seed)
+    sub = X[rng.choice(n, min(n, max_kmeans), replace=False)]
+    S = hyper.scale(sub)
+    km = MiniBatchKMeans(n_clusters=m, random_state=seed, n_init=3, batch_size=max(1024, 4 * m))
+    km.fit(S)
+    C = km.cluster_centers_
+    return C * (hyper.x_std * hyper.length_scales) + hyper.x_mean
+
+
+class SparseGP:
+    """DTC/SoR sparse GP with fixed hyperparameters (see the module docstring).
+
+    Parameters
+    ----------
+    hyper : GPHyper
+    Z : (m, d) inducing inputs (in the inputs' units)
+    """
+
+    def __init__(self, hyper: GPHyper, Z: np.ndarray):
+        self.hyper = hyper
+        self.Zs = hyper.scale(Z)
+        m = self.Zs.shape[0]
+        Kmm = _sqexp(self.Zs, self.Zs, hyper.signal_var)
+        Kmm[np.diag_indices(m)] += JITTER * hyper.signal_var
+        try:
+            self.L = cholesky(Kmm, lower=True)
+        except np.linalg.LinAlgError as exc:  # pragma: no cover - jitter makes this rare
+            raise ProcessingError("the inducing-point covariance is singular; use fewer inducing points") from exc
+        self.LB = None
+        self.c = None
+        self.n_train = 0
+
+    def fit(self, X: np.ndarray, y: np.ndarray, batch: int = 20000, progress=None) -> "SparseGP":
+        """Accumulate K_mn K_nm and K_mn y over batches of the training cells."""
+        X, y = _check_xy(X, y)
+        prog = ensure_progress(progress)
+        h = self.hyper
+        m = self.Zs.shape[0]
+        P = np.zeros((m, m))
+        r = np.zeros(m)
+        n = X.shape[0]
+        yc = y - h.y_mean
+        for s in range(0, n, batch):
+            Kmb = _sqexp(self.Zs, h.scale(X[s:s + batch]), h.signal_var)
+            P += Kmb @ Kmb.T
+            r += Kmb @ yc[s:s + batch]
+            prog(min(1.0, (s + batch) / n), f"sparse GP: {min(n, s + batch)}/{n} training cells")
+        Li_P = solve_triangular(self.L, P, lower=True)
+        AAT = solve_triangular(self.L, Li_P.T, lower=True) / h.noise_var
+        B = AAT + np.eye(m)
+        self.LB = cholesky(0.5 * (B + B.T), lower=True)
+        self.c = solve_triangular(self.LB, solve_triangular(self.L, r, lower=True), lower=True) / h.noise_var
+        self.n_train = n
+        return self
+
+    def predict(self, X: np.ndarray, batch: int = 20000, progress=None) -> tuple[np.ndarray, np.ndarray]:
+        """Predictive mean and latent standard deviation at X (n, d), in batches.
+
+        Returns
+        -------
+        mean, sd_f : float64 (n,); the sd of a new noisy observation is ``sqrt(sd_f² + noise_var)``.
+        """
+        if self.c is None:
+            raise ProcessingError("SparseGP.predict before fit")
+        X, _ = _check_xy(X)
+        prog = ensure_progress(progress)
+        h = self.hyper
+        n = X.shape[0]
+        mean = np.empty(n)
+        var = np.empty(n)
+        for s in range(0, n, batch):
+            Kms = _sqexp(self.Zs, h.scale(X[s:s + batch]), h.signal_var)
+            t1 = solve_triangular(self.L, Kms, lower=True)
+            t2 = solve_triangular(self.LB, t1, lower=True)
+            mean[s:s + batch] = t2.T @ self.c + h.y_mean
+            var[s:s + batch] = h.signal_var - (t1 * t1).sum(0) + (t2 * t2).sum(0)
+            prog(min(1.0, (s + batch) / n), f"sparse GP: {min(n, s + batch)}/{n} cells predicted")
+        return mean, np.sqrt(np.maximum(var, 0.0))
+
+
+def exact_gp(X: np.ndarray, y: np.ndarray, Xs: np.ndarray, hyper: GPHyper,
+             batch: int = 5000) -> tuple[np.ndarray, np.ndarray]:
+    """Exact GP prediction with fixed hyperparameters (numpy/scipy Cholesky; O(n²) memory, O(n³) time).
+
+    The reference the sparse approximation is checked and benchmarked against.
+    Returns mean and latent sd at ``Xs``.
+    """
+    X, y = _check_xy(X, y)
+    Xs, _ = _check_xy(Xs)
+    S = hyper.scale(X)
+    K = _sqexp(S, S, hyper.signal_var)
+    K[np.diag_indices(K.shape[0])] += hyper.noise_var
+    L = cholesky(K, lower=True, overwrite_a=True)
+    del K
+    alpha = cho_solve((L, True), y - hyper.y_mean)
+    mean = np.empty(Xs.shape[0])
+    var = np.empty(Xs.shape[0])
+    for s in range(0, Xs.shape[0], batch):
+        Ks = _sqexp(S, hyper.scale(Xs[s:s + batch]), hyper.signal_var)
+        mean[s:s + batch] = Ks.T @ alpha + hyper.y_mean
+        v = solve_triangular(L, Ks, lower=True)
+        var[s:s + batch] = hyper.signal_var - (v * v).sum(0)
+    return mean, np.sqrt(np.maximum(var, 0.0))
+
+
+@dataclass
+class GPResult:
+    """A GP integration on a grid.
+
+    Attributes
+    ----------
+    mean : float32 (rows, cols), predictive mean (target units; NaN where an input is missing)
+    sd : float32 (rows, cols), predictive sd of the latent value
+    sd_obs : float32 (rows, cols), predictive sd of a new observation (latent ⊕ noise)
+    hyper : GPHyper
+    report : dict (sizes, timings)
+    """
+
+    mean: np.ndarray
+    sd: np.ndarray
+    sd_obs: np.ndarray
+    hyper: GPHyper
+    report: dict
+
+
+def integrate(target: np.ndarray, inputs: dict, params: GPParams = GPParams(), progress=None) -> GPResult:
+    """GP regression of a sparse per-cell target on per-cell inputs, predicted at every cell.
+
+    Parameters
+    ----------
+    target : float (rows, cols), the detailed views' probability; NaN = unobserved
+    inputs : mapping name → float (rows, cols) (e.g. ``x``, ``y``, ``dem``, ``coarse``, ``buildings``);
+        cells where any input is NaN get no prediction
+    params : GPParams
+
+    Returns
+    -------
+    GPResult
+    """
+    import time
+
+    prog = ensure_progress(progress)
+    if not inputs:
+        raise ConfigError("the GP needs at least one input (e.g. the cells' x, y)")
+    t = np.asarray(target, np.float64)
+    names = list(inputs)
+    stack = [np.asarray(inputs[k], np.float64) for k in names]
+    for k, a in zip(names, stack):
+        if a.shape != t.shape:
+            raise ConfigError(f"GP input {k!r} has shape {a.shape}, the target {t.shape}")
+    have = np.all([np.isfinite(a) for a in stack], axis=0)
+    obs = have & np.isfinite(t)
+    n_obs = int(obs.sum())
+    if n_obs == 0:
+        raise EmptyDataError("no cell is both observed by the detailed views and covered by every input")
+    X_all = np.stack([a[have] for a in stack], axis=1)
+    X_obs = np.stack([a[obs] for a in stack], axis=1)
+    y_obs = t[obs]
+    rep: dict = {"cells": int(t.size), "cells_with_inputs": int(have.sum()), "observed_cells": n_obs}
+    t0 = time.perf_counter()
+    prog(0.02, f"exact-GP hyperparameters on {min(n_obs, params.n_fit)} of {n_obs} observed cells")
+    hyper = fit_hyperparameters(X_obs, y_obs, params, names)
+    rep["hyper_fit_s"] = round(time.perf_counter() - t0, 2)
+    rng = np.random.default_rng(params.seed + 1)
+    if params.max_train is not None and n_obs > params.max_train:
+        sel = rng.choice(n_obs, params.max_train, replace=False)
+        X_tr, y_tr = X_obs[sel], y_obs[sel]
+    else:
+        X_tr, y_tr = X_obs, y_obs
+    t0 = time.perf_counter()
+    Z = choose_inducing(X_tr, hyper, params.n_inducing, params.seed)
+    gp = SparseGP(hyper, Z).fit(X_tr, y_tr, params.batch, progress=lambda f, m="": prog(0.3 + 0.3 * (f or 0), m))
+    rep["sparse_fit_s"] = round(time.perf_counter() - t0, 2)
+    rep["inducing_points"] = int(Z.shape[0])
+    rep["training_cells"] = int(X_tr.shape[0])
+    t0 = time.perf_counter()
+    mu, sd = gp.predict(X_all, params.batch, progress=lambda f, m="": prog(0.6 + 0.4 * (f or 0), m))
+    rep["predict_s"] = round(time.perf_counter() - t0, 2)
+    mean = np.full(t.shape, np.nan, np.float32)
+    sdf = np.full(t.shape, np.nan, np.float32)
+    mean[have] = mu
+    sdf[have] = sd
+    sdo = np.sqrt(sdf.astype(np.float64) ** 2 + hyper.noise_var).astype(np.float32)
+    rep["hyper"] = hyper.to_dict()
+    return GPResult(mean=mean, sd=sdf, sd_obs=sdo, hyper=hyper, report=rep)
