@@ -141,6 +141,9 @@ def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_p
 @click.option("--inputs", default=None,
               help="GP inputs, comma-separated from xy, dem, coarse, buildings (default: all available).")
 @click.option("--class-name", default="condition", show_default=True, help="Name of the condition (band names).")
+@click.option("--kernel", type=click.Choice(["additive", "product"]), default="additive", show_default=True,
+              help="additive: ARD kernel over x, y plus one over the other inputs (appearance carries at any "
+                   "distance); product: one ARD kernel over every input (the thesis's).")
 @click.option("--n-fit", type=int, default=1000, show_default=True,
               help="Observed cells for the exact-GP hyperparameter fit.")
 @click.option("--inducing", "n_inducing", type=int, default=400, show_default=True,
@@ -158,7 +161,7 @@ def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_p
 @click.option("--prefix", default="landcover", show_default=True, help="File name prefix.")
 @_scene_options
 @click.pass_context
-def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, n_fit, n_inducing, batch, seed, truth_path,
+def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, kernel, n_fit, n_inducing, batch, seed, truth_path,
                   truth_values, exclude_path, out_dir, prefix, manifest_path, dem, dem_datum, footprints,
                   height_field, dsm, bounds, posting_m):
     """GP integration over every cell: predictive mean and σ (Cloud-Optimized GeoTIFFs)."""
@@ -169,7 +172,7 @@ def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, n_fit, n_
     scene = _scene(manifest_path, dem, dem_datum, footprints, height_field, dsm, bounds, posting_m, required=True)
     use = tuple(s.strip() for s in inputs.split(",") if s.strip()) if inputs else None
     tv = [float(s) for s in truth_values.split(",") if s.strip()] if truth_values else None
-    params = GPParams(n_fit=n_fit, n_inducing=n_inducing, batch=batch, seed=seed)
+    params = GPParams(n_fit=n_fit, n_inducing=n_inducing, batch=batch, seed=seed, kernel=kernel)
     progress = _progress(ctx, "landcover integrate")
     try:
         res = integrate_files(detailed_path, scene, out_dir, coarse_path=coarse_path, use=use, params=params,
