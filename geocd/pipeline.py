@@ -29,6 +29,10 @@ from .errors import ConfigError, ProcessingError
 from .progress import Progress, ensure_progress, sub_progress
 
 
+#: what ``geocd run`` writes into its output folder (globs, relative to it): see geocd.io.outputs.open_outputs
+PRODUCTS = ("sc_*", "stereo/*", "self_consistency_model.json", "run_config.json", "run_summary.json")
+
+
 def _stereo_params_cls():
     from .stereo import StereoParams
 
@@ -119,6 +123,9 @@ def pick_epochs(manifest, epoch_a: str | None = None, epoch_b: str | None = None
     b = manifest.epoch(epoch_b) if epoch_b else eps[-1]
     if a.name == b.name:
         raise ConfigError(f"epoch_a and epoch_b are both {a.name!r}; pick two different epochs")
+    if a.date is not None and b.date is not None and a.date > b.date:
+        raise ConfigError(f"epoch_a {a.name!r} ({a.date}) is dated after epoch_b {b.name!r} ({b.date}): the change "
+                          "would be computed backwards; swap --epoch-a and --epoch-b, or fix the dates")
     return a, b
 
 
@@ -154,7 +161,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
 
     prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
-    out = Path(out_dir) if out_dir is not None else Path(m.output)
+    out = Path(out_dir) if out_dir is not None else m.output_dir()
     out.mkdir(parents=True, exist_ok=True)
     ea, eb = pick_epochs(m, config.epoch_a, config.epoch_b)
     model = SelfConsistencyModel.load(config.model_path) if config.model_path else None
@@ -190,21 +197,25 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
                                        progress=sub_progress(prog, 0.76, 0.82))
     model_path = model.save(out / "self_consistency_model.json")
     prog(0.83, "cross-epoch change test")
-    res = change_test(recs_a, recs_b, model, config.change, progress=sub_progress(prog, 0.83, 0.9))
+    change_params = config.change
+    if config.region_confidence not in change_params.confidences:  # the reported level is always tested
+        change_params = dataclasses.replace(change_params,
+                                            confidences=tuple(sorted({*change_params.confidences, config.region_confidence})))
+    res = change_test(recs_a, recs_b, model, change_params, progress=sub_progress(prog, 0.83, 0.9))
     buildings = None
     fp_path = footprints or (m.footprints.path if m.footprints is not None else None)
     if fp_path is not None:
         fps = read_footprints(fp_path, crs=grid.crs, layer=m.footprints.layer if (m.footprints and not footprints) else None)
         id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
-        buildings = classify_buildings(fps, res.changed_at(config.region_confidence) if config.region_confidence in res.confidences
-                                       else res.change, res.dz_m, grid, z_a=_median_surface(recs_a),
-                                       z_b=_median_surface(recs_b), confidence=res.confidence, params=config.buildings,
-                                       id_field=id_field)
+        buildings = classify_buildings(fps, res.changed_at(config.region_confidence), res.dz_m, grid,
+                                       z_a=_median_surface(recs_a), z_b=_median_surface(recs_b),
+                                       confidence=res.confidence, params=config.buildings, id_field=id_field,
+                                       confidence_level=config.region_confidence)
     prog(0.9, "writing products")
     paths = write_change_products(out, res, grid, method="self-consistency", epoch_a=ea.name, epoch_b=eb.name,
                                   region_confidence=config.region_confidence, model=model, buildings=buildings,
                                   provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
-                                  prefix="sc")
+                                  prefix="sc", backdrop_m=_median_surface(recs_b))
     paths["model"] = model_path
     paths.update({f"stereo:{k}": v for k, v in st["outputs"].items()})
     cfg_path = write_text_atomic(out / "run_config.json", json.dumps(config.to_dict(), indent=2, default=list))

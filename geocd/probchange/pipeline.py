@@ -216,7 +216,7 @@ def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = 
         summary["key_window"] = {"col0": key_res.col0, "row0": key_res.row0, "shape": list(key_res.probability.shape),
                                  "lattice_px": key_res.lattice_px}
     if write:
-        out = Path(out_dir) if out_dir is not None else Path(m.output or m.root / "out")
+        out = Path(out_dir) if out_dir is not None else m.output_dir()
         out.mkdir(parents=True, exist_ok=True)
         prefix = prefix or "probchange"
         prov = {"manifest": str(m.path or m.root), "variant": variant}

@@ -233,6 +233,38 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
         ),
         load_unlisted=True, tags=("stereo", "dem", "rpc", "pair")),
     AlgSpec(
+        name="ortho", display="True orthoimages (scene manifest)", group=GROUP_DEM[0], group_id=GROUP_DEM[1],
+        command=("ortho",),
+        short_help="Orthorectifies every image of the chosen epochs of a scene manifest (RPC and frame cameras "
+                   "alike) onto the AOI grid with a surface model: a true ortho, where a cell hidden from the "
+                   "camera (behind a building) is nodata instead of the building's pixels. The DSM of each epoch "
+                   "is geocd stereo's unless one is given. Writes per image a Cloud-Optimized GeoTIFF in the "
+                   "image's own bands and data type (GDAL mask = not observed), a status raster (seen / occluded / "
+                   "outside / no height) and QGIS styles; every ortho is loaded when the run ends.",
+        params=(
+            _MANIFEST,
+            Param("EPOCHS", "string", "Epochs (comma-separated; empty = all)", cli="--epoch", optional=True,
+                  multiple=True),
+            Param("IMAGES", "string", "Images (comma-separated names; empty = all)", cli="--image", optional=True,
+                  multiple=True),
+            Param("DSM", "raster", "Surface model for every epoch (default: geocd stereo per epoch)", cli="--dsm",
+                  optional=True),
+            Param("DSM_SOURCE", "enum", "Where each epoch's DSM comes from", cli="--dsm-source", default=0,
+                  advanced=True, options=(("the given DSM, else geocd stereo, else the manifest's DEM", "auto"),
+                                          ("geocd stereo", "stereo"), ("the given DSM or the manifest's DEM", "dem"))),
+            _out_folder("Orthos go to OUTPUT/ortho/EPOCH/NAME.tif."),
+            _POSTING,
+            Param("RESAMPLING", "enum", "Resampling", cli="--resampling", default=0, advanced=True,
+                  options=(("bilinear", "bilinear"), ("nearest (class labels)", "nearest"))),
+            Param("NO_OCCLUSION", "bool", "Classic ortho (do not mask hidden cells)", cli="--no-occlusion",
+                  default=False, advanced=True),
+            Param("OCCLUSION_TOL", "number", "Occlusion tolerance", cli="--occlusion-tol", unit="m", optional=True,
+                  min=0.0, advanced=True, help="Default: max(0.5 m, 3 × the DSM's local noise)."),
+            Param("VIEW_BANDS", "bool", "Also write the view geometry (zenith, azimuth, incidence)",
+                  cli="--view-bands", default=False, advanced=True),
+        ),
+        load_unlisted=True, tags=("ortho", "orthorectification", "true ortho", "rpc", "frame", "occlusion")),
+    AlgSpec(
         name="consistency", display="Self-consistency model from pair-DEMs", group=GROUP_CHANGE[0],
         group_id=GROUP_CHANGE[1], command=("consistency",),
         short_help="Learns a scene-class self-consistency model (stage 1) from pair-DEMs of a static scene, e.g. the "
@@ -414,8 +446,14 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   file_filter="Rasters and vectors (*.tif *.tiff *.gpkg *.shp *.geojson);;All files (*)"),
             Param("MASK_IS", "enum", "The mask marks", cli="--mask-is", default=0,
                   options=(("stable terrain", "stable"), ("unstable areas (e.g. glacier outlines)", "unstable"))),
-            Param("CONFIDENCE", "number", "Confidence level for 'changed' (0–1)", cli="--confidence", default=0.95,
-                  min=0.5, max=0.99999),
+            Param("CONFIDENCE", "number", "Confidence level for 'changed'", cli="--confidence", unit="%",
+                  default=95.0, min=50.0, max=99.999, help="A percentage: 95 means 95 %."),
+            Param("BASE", "file", "Base DEM both DEMs were merged onto (optional)", cli="--base", optional=True,
+                  file_filter="DEMs (*.tif *.tiff *.e00 *.vrt *.asc);;All files (*)",
+                  help="When each DEM is a survey pasted on a common base DEM (e.g. the Mount St Helens archive), "
+                       "give the base: only cells where both DEMs differ from it (both epochs surveyed) are "
+                       "compared. Without it the pasted base is identical in both DEMs, the stable terrain is "
+                       "degenerate (NMAD 0) and geocd warns that σ is not credible."),
             Param("DATUM_A", "enum", "Vertical datum of DEM A (when its file does not say)", cli="--datum-a",
                   options=_DATUMS, default=0, optional=True, advanced=True),
             Param("DATUM_B", "enum", "Vertical datum of DEM B", cli="--datum-b", options=_DATUMS, default=0,
@@ -463,8 +501,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   advanced=True),
             Param("STABLE_MASK", "file", "Stable-terrain mask (raster or polygons; default: automatic)",
                   cli="--stable-mask", optional=True, advanced=True),
-            Param("CONFIDENCE", "number", "Confidence level (0–1)", cli="--confidence", default=0.95, min=0.5,
-                  max=0.99999),
+            Param("CONFIDENCE", "number", "Confidence level", cli="--confidence", unit="%", default=95.0, min=50.0,
+                  max=99.999, help="A percentage: 95 means 95 %."),
             Param("PAIR_PRODUCTS", "bool", "Also write every interval's rasters and layers", cli="--pair-products",
                   default=False),
             Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",

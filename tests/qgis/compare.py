@@ -91,6 +91,8 @@ def compare_trees(a: Path, b: Path, ignore: tuple = ()) -> list[str]:
             load = (lambda p: json.loads(p.read_text())) if ext == ".json" else (lambda p: yaml.safe_load(p.read_text()))
             if _strip(load(pa), str(a), str(b)) != _strip(load(pb), str(a), str(b)):
                 diffs.append(f"{rel}: contents differ")
+        elif ext == ".log":
+            continue  # geocd_<command>.log: both runs keep one; clock times and paths differ
         elif ext in (".png", ".qml", ".txt", ".csv"):
             if ext != ".png" and pa.read_bytes() != pb.read_bytes():
                 diffs.append(f"{rel}: bytes differ")
