@@ -198,7 +198,7 @@ def main() -> None:
         for d in range(args.draws if n < n_views else 1):
             chosen = np.sort(np.random.default_rng(100 + d).choice(n_views, n, replace=False))
             det = detailed_map(chosen)
-            res = integrate(det, inputs_for(ABLATION["GP: detailed + coarse + xy + DEM + buildings"]), gp_params)
+            res = integrate(det, inputs_for(ABLATION["GP: detailed + coarse + xy + DEM + buildings"][0]), gp_params)
             obs = np.isfinite(det) & ev
             rows.append({"views": [int(c) for c in chosen], "observed_fraction": round(float(np.isfinite(det).mean()), 4),
                          "f1_gp_all": f1r(y1[ev], res.mean[ev])["f1_at_recall"],
