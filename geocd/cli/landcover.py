@@ -89,10 +89,12 @@ def landcover() -> None:
 def train_cmd(ctx, labels_path, layer, class_field, positive, images, method, compare, height_above_ground, out_path,
               seed, manifest_path, dem, dem_datum, footprints, height_field, dsm, bounds, posting_m):
     """Train a pixel classifier from labelled polygons drawn on the images or on the map."""
+    from ..io.outputs import open_outputs
     from ..landcover.features import FeatureSpec
     from ..landcover.pipeline import train_from_files
     from . import emit_result
 
+    open_outputs(None, files=[out_path], inputs=[labels_path, *images, manifest_path, dem, footprints, dsm])
     scene = _scene(manifest_path, dem, dem_datum, footprints, height_field, dsm, bounds, posting_m, required=False)
     progress = _progress(ctx, "landcover train")
     try:
@@ -119,9 +121,12 @@ def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_p
                 height_field, dsm, bounds, posting_m):
     """Probability maps of images (image geometry) and, with a DEM or manifest, on the ground grid: each image
     projected through its camera and the surface (occluded cells stay empty), the views combined by weight."""
+    from ..io.outputs import open_outputs
     from ..landcover.pipeline import predict_files
     from . import emit_result
 
+    open_outputs(out_dir, inputs=[model_path, *images, manifest_path, dem, footprints, dsm], products=(f"{prefix}_*",),
+                 prefix=prefix)
     scene = _scene(manifest_path, dem, dem_datum, footprints, height_field, dsm, bounds, posting_m, required=False)
     progress = _progress(ctx, "landcover predict")
     try:
@@ -162,10 +167,13 @@ def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, n_fit, n_
                   truth_values, exclude_path, out_dir, prefix, manifest_path, dem, dem_datum, footprints,
                   height_field, dsm, bounds, posting_m):
     """GP integration over every cell: predictive mean and σ (Cloud-Optimized GeoTIFFs)."""
+    from ..io.outputs import open_outputs
     from ..landcover.gp import GPParams
     from ..landcover.pipeline import integrate_files
     from . import emit_result
 
+    open_outputs(out_dir, inputs=[detailed_path, coarse_path, truth_path, exclude_path, manifest_path, dem, footprints,
+                                  dsm], products=(f"{prefix}_*",), prefix=prefix)
     scene = _scene(manifest_path, dem, dem_datum, footprints, height_field, dsm, bounds, posting_m, required=True)
     use = tuple(s.strip() for s in inputs.split(",") if s.strip()) if inputs else None
     tv = [float(s) for s in truth_values.split(",") if s.strip()] if truth_values else None

@@ -19,7 +19,7 @@ What a session does
 * **Paths.** ``out`` must be a folder (an existing *file* there is refused), creatable and writable
   (read-only file system / permission denied → :class:`~geocd.errors.OutputError` naming the fix).
   File outputs outside the folder (``--plot x.png``, a model file, a model folder) are declared with
-  ``files=``. ``prefix`` must be a plain file-name prefix (no ``/``, ``..``): products cannot escape
+  ``files=`` (a declared file covers its side files of the same stem: ``x.json`` and ``x.qml`` beside ``x.tif``). ``prefix`` must be a plain file-name prefix (no ``/``, ``..``): products cannot escape
   the folder. While a session is open, every write through :mod:`geocd.io.atomic` must land inside
   the folder or on a declared file, and never on an input.
 * **Inputs.** ``inputs`` (files or folders; ``None`` entries ignored) are protected: an input that is
@@ -395,9 +395,13 @@ class OutputSession:
         return ([self.folder] if self.folder is not None else []) + list(self.files)
 
     def covers(self, path: Path) -> bool:
+        """Whether this session may write ``path``: inside its folder, a declared output (a folder output's
+        contents), or a side file of a declared file (same folder, same stem: ``model.json`` beside
+        ``model.joblib``, ``x.qml`` beside ``x.tif``)."""
         if self.folder is not None and _within(path, self.folder):
             return True
-        return any(_within(path, f) for f in self.files)
+        return any(_within(path, f) or (path.parent == f.parent and path.name.startswith((f"{f.stem}.", f"{f.stem}_")))
+                   for f in self.files)
 
     def _rel(self, path: Path) -> str:
         if self.folder is not None and _within(path, self.folder):
