@@ -64,6 +64,7 @@ import re
 import shutil
 import socket
 import sys
+import threading
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -340,6 +341,7 @@ def verify_products(folder: os.PathLike | str, run: str | None = None) -> dict[s
 # sessions
 # =====================================================================================================
 _ACTIVE: list["OutputSession"] = []
+_RECORD_LOCK = threading.RLock()
 
 
 def _on_before_write(target: Path) -> None:
@@ -416,13 +418,16 @@ class OutputSession:
             return
         p = _resolve(path)
         targets = [p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else []
+        found = {}
         for q in targets:
             try:
-                self.written[self._rel(q)] = {"bytes": q.stat().st_size, "sha256": sha256_file(q)}
+                found[self._rel(q)] = {"bytes": q.stat().st_size, "sha256": sha256_file(q)}
             except OSError:
                 continue
-        if self.folder is not None and self.status == "open":
-            self._save("running")
+        with _RECORD_LOCK:  # writers in threads (a threaded scheduler) record one at a time
+            self.written.update(found)
+            if self.folder is not None and self.status == "open":
+                self._save("running")
 
     # -- manifest -------------------------------------------------------------------------------------
     def _entry(self, status: str) -> dict:
