@@ -54,15 +54,15 @@ from ..errors import ConfigError, EmptyDataError, ProcessingError
 from ..geodesy import AOIGrid, ELLIPSOID, normalize_datum_name, vertical_datum_of
 from ..params import ParamsMixin
 from ..progress import Progress, ensure_progress, sub_progress
-from ..tiling import (RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work, run_tiled,
-                      work_root)
+from ..tiling import RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work, run_tiled
 from ._kernels import shift_margin, shift_points, shift_window, terrain_attributes
 from .coreg import CoregPlan, CoregResult, StableCells, coregister_cells
 from .pipeline import CHANGE_NODATA, DEMDiffParams
+from .products import write_demdiff_products
 from .significance import SignificanceModel
-from .stable import (REJECTED, StableInfo, StableParams, buffered, nmad, select_stable, stable_overlap,
+from .stable import (StableInfo, StableParams, buffered, nmad, select_stable, stable_overlap,
                      stable_state_mask)
-from .uncertainty import (ErrorModel, Uncertainty, VariogramModel, VariogramPlan, _k_field, fit_error_model,
+from .uncertainty import (ErrorModel, Uncertainty, VariogramModel, VariogramPlan, fit_error_model,
                           fit_variogram, variogram_from_plan, variogram_plan)
 
 
@@ -443,16 +443,16 @@ def _t_zgrids(arrays, ctx):
 
 
 def _t_grids(arrays, ctx):
-    """Whole-grid arrays for the exact path (small grids): everything the untiled pipeline holds."""
-    S, plan, sd, em, raw_plan = ctx.params
+    """Whole-grid arrays for small grids: what :func:`finish_difference` takes."""
+    S, plan, sd = ctx.params
     w = _Win(arrays, ctx, S)
     dh = w.dh(plan)
     st = w.stable(sd) & np.isfinite(dh)
-    sigma = _sigma_window(w, em, dh) if em is not None else np.full(dh.shape, np.nan, np.float32)
     bc = w.b_moved(plan).astype(np.float32) if plan is not None else w.b32_raw
-    return TileOutput(arrays={"dh64": dh, "stable": st, "sigma_u": sigma, "a32": w.a32, "b32": w.b32_raw,
-                              "valid": w.valid,
-                              "bc32": bc, "slope": w.slope})
+    out = {"dh64": dh, "stable": st, "a32": w.a32, "b32": w.b32_raw, "valid": w.valid, "bc32": bc, "slope": w.slope}
+    if w.q is not None:
+        out["q"] = w.q
+    return TileOutput(arrays=out, small={"fp_n": _count_core(w.footprint, ctx) if w.footprint is not None else 0})
 
 
 def _t_products(arrays, ctx):
@@ -472,7 +472,8 @@ def _t_products(arrays, ctx):
 
     if sig is not None:
         z, conf = significance_map(dh, sigma, sig)
-        raw = change_sign(dh, conf, level, center)
+        conf = (100.0 * conf).astype(np.float32)
+        raw = change_sign(dh, conf / 100.0, level / 100.0, center)
     else:
         z = np.full(dh.shape, np.nan, np.float32)
         conf = np.full(dh.shape, np.nan, np.float32)
@@ -485,7 +486,7 @@ def _t_products(arrays, ctx):
     from .pipeline import _sign_in_regions
 
     sign = np.where(obs, _sign_in_regions(raw, p.min_region_cells), CHANGE_NODATA).astype(np.int8)
-    conf_pct = np.where(np.isfinite(conf), 100.0 * conf, np.nan).astype(np.float32)
+    conf_pct = np.where(np.isfinite(conf), conf, np.nan).astype(np.float32)
     dh32 = dh.astype(np.float32)
     core = ctx.core
     dhc = dh32[core].astype(np.float64)
@@ -498,6 +499,9 @@ def _t_products(arrays, ctx):
         "n_raised": int((sc == 1).sum()), "n_lowered": int((sc == -1).sum()),
         "sum_changed": float(np.nansum(dhc[ch])), "sum_raised": float(np.nansum(dhc[sc == 1])),
         "sum_lowered": float(np.nansum(dhc[sc == -1])), "sum_obs": float(np.nansum(dhc[obc])),
+        # degenerate stable terrain: identical raw heights, the largest |A| (float32 rounding floor)
+        "n_identical": int(np.count_nonzero(stc & (w.a32 == w.b32_raw)[core])),
+        "hmax_stable": float(np.max(np.abs(w.A[core][stc]))) if stc.any() else 0.0,
     }
     idx, rr, cc = _core_cells(st, ctx, S)
     small["stable_dh"] = dh32[rr, cc]
@@ -516,7 +520,6 @@ def _t_products(arrays, ctx):
         w_ch = np.where(chw, sgw, 0.0)
         w_st = np.where(st & (sgw > 0), sgw, 0.0)
         k_st = _short_conv(w_st, split, S.posting)[core]
-        sg = sgw[core]
         small["blocks"] = _block_sums(ctx, split.block, {"obs": w_obs[core], "changed": w_ch[core]})
         small["q_obs"] = float(np.sum(w_obs[core] ** 2))
         small["q_changed"] = float(np.sum(w_ch[core] ** 2))
@@ -700,6 +703,7 @@ class TiledDEMDiffResult:
     significance: SignificanceModel | None = None
     exact: bool = True
     grid: AOIGrid | None = None
+    warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     passes: int = 0
     tiles_resumed: int = 0
@@ -940,7 +944,7 @@ def _setup(path_a, path_b, *, datum_a, datum_b, params: DEMDiffParams, stable_ma
 def _base_source(base, grid: AOIGrid, datum_a: str | None):
     """The base DEM on the grid: a window source for GDAL rasters, an in-memory array for .e00 grids."""
     from ..errors import VerticalDatumError
-    from ..io.raster import DEM, read_dem
+    from ..io.raster import DEM
     from ..tiling import ArraySource
     from .align import _resample
 
@@ -1005,14 +1009,28 @@ def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDi
     prog(0.01, f"{g.height}×{g.width} cells in tiles of {tiling.tile_size}")
     with open_engine(tiling.scheduler, n_workers=tiling.n_workers, memory_limit=tiling.memory_limit) as eng:
         R = _Runner(S, out, tiling, eng, prog)
-        res = _run(R, S, p, epoch_a, epoch_b, method, notes, timings)
+        st = _coregister_and_select(R, S, p, notes, timings, (epoch_a, epoch_b), method)
         tt = time.perf_counter()
-        res.outputs = _write(R, S, res, out, prefix=prefix, plots=plots, provenance=provenance, epoch_a=epoch_a,
-                             epoch_b=epoch_b, footprints=S.footprints)
+        if g.width * g.height <= tiling.exact_grid_cells:
+            dr = _finish_exact(R, S, st, notes)
+            dr.summary["wall_s"] = time.perf_counter() - t0
+            timings["model_s"] = time.perf_counter() - tt
+            tt = time.perf_counter()
+            outputs = write_demdiff_products(out, dr, footprints=S.footprints, prefix=prefix, plots=plots,
+                                             provenance=provenance)
+            u = dr.uncertainty
+            res = TiledDEMDiffResult(outputs, dr.summary, dr.coreg, dr.stable_info, dr.status, dr.notes,
+                                     u.error_model if u else None, u.variogram if u else None, dr.significance,
+                                     S.fraction >= 1.0, g, warnings=dr.warnings)
+        else:
+            model = _model_large(R, S, st, notes)
+            timings["model_s"] = time.perf_counter() - tt
+            tt = time.perf_counter()
+            res = _write_large(R, S, st, model, out, notes, prefix=prefix, plots=plots, provenance=provenance)
         timings["write_s"] = time.perf_counter() - tt
     res.passes = R.passes
     res.tiles_resumed = R.resumed
-    res.summary["wall_s"] = time.perf_counter() - t0
+    res.summary.setdefault("wall_s", time.perf_counter() - t0)
     res.timings = timings
     if not tiling.keep_work:
         remove_work(out)
@@ -1020,12 +1038,25 @@ def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDi
     return res
 
 
-def _run(R: _Runner, S: _Setup, p: DEMDiffParams, epoch_a: str, epoch_b: str, method: str, notes: list[str],
-         timings: dict) -> TiledDEMDiffResult:
+@dataclass
+class _State:
+    """Where the passes stand after co-registration and the final stable terrain."""
+
+    creg: CoregResult
+    plan: CoregPlan | None
+    sd: _StableDef
+    ccs: int
+    info_auto: StableInfo | None
+    epochs: tuple[str, str]
+    method: str
+
+
+def _coregister_and_select(R: _Runner, S: _Setup, p: DEMDiffParams, notes: list[str], timings: dict, epochs,
+                           method) -> _State:
+    """:func:`dem_difference`'s co-registration and final stable terrain, pass by pass."""
     tt = time.perf_counter()
     loose = replace(p.stable, nmad_factor=p.stable.nmad_factor * p.coreg_stable_factor)
     ccl = stable_overlap(loose)
-    # --- co-registration ----------------------------------------------------------------------
     if not p.coregister:
         cells = R.table(_StableDef("valid", exclude=False), None, 0, "table")
         if cells.n_total == 0:
@@ -1047,102 +1078,63 @@ def _run(R: _Runner, S: _Setup, p: DEMDiffParams, epoch_a: str, epoch_b: str, me
         c1, plan1 = coregister_cells(_TiledCoregData(R, cells, "coreg-1"), S.posting, p.coreg)
         trusted1 = c1.status == "ok"
         st_plan = plan1 if trusted1 else None
-        state0, _info0 = select_stable(_TiledStable(R, st_plan, loose, "stable-1"), loose)
-        sd0 = _StableDef("auto", st_plan, state0, loose)
+        state0, _ = select_stable(_TiledStable(R, st_plan, loose, "stable-1"), loose)
         del cells
-        cells = R.table(sd0, st_plan, ccl, "table-2")
+        cells = R.table(_StableDef("auto", st_plan, state0, loose), st_plan, ccl, "table-2")
         init = c1.fitted_shift_m[:2] if trusted1 else (0.0, 0.0)
         creg, plan = coregister_cells(_TiledCoregData(R, cells, "coreg-2"), S.posting, p.coreg, initial_shift_m=init)
     del cells
     if creg.status != "ok":
         notes.append(creg.summary())
     timings["coreg_s"] = time.perf_counter() - tt
-    # --- final stable terrain -----------------------------------------------------------------
     tt = time.perf_counter()
+    info_auto = None
     if S.user_mask is not None:
         sd = _StableDef("user", plan)
     else:
         state, info_auto = select_stable(_TiledStable(R, plan, p.stable, "stable"), p.stable)
         sd = _StableDef("auto", plan, state, p.stable)
-    ccs = stable_overlap(p.stable) if sd.kind == "auto" else 0
-    et = R.run(_t_errtable, "stable-cells", (S, plan, sd), R.overlap(plan, ccs))
-    parts = [s for _, s in et.smalls()]
-    n_st = int(sum(s["n"] for s in parts))
-    idx = np.concatenate([s["idx"] for s in parts])
-    order = np.argsort(idx, kind="stable")
-    dh_t = np.concatenate([s["dh"] for s in parts])[order]
-    slope_t = np.concatenate([s["slope"] for s in parts])[order].astype(np.float64)
-    q_t = (np.concatenate([s["q"] for s in parts])[order].astype(np.float64)
-           if p.error.predictor != "none" else None)
-    blocks = np.unique(np.concatenate([s["blocks"] for s in parts])) if parts else np.zeros(0)
-    bbs = [s["bbox"] for s in parts if s["bbox"] is not None]
-    fp_note = ((f"footprints excluded ({int(sum(s['fp_n'] for s in parts))} cells + "
-                f"{p.stable.footprint_buffer_cells}-cell buffer)",) if S.footprints is not None else ())
-    if sd.kind == "user":
+    timings["stable_s"] = time.perf_counter() - tt
+    return _State(creg, plan, sd, stable_overlap(p.stable) if sd.kind == "auto" else 0, info_auto, epochs, method)
+
+
+def _stable_info(S: _Setup, st: _State, n_st: int, dh_st: np.ndarray, fp_cells: int) -> StableInfo:
+    """The StableInfo :func:`stable_terrain` reports (user mask: from the stable cells' dh)."""
+    p = S.params
+    fp_note = ((f"footprints excluded ({fp_cells} cells + {p.stable.footprint_buffer_cells}-cell buffer)",)
+               if S.footprints is not None else ())
+    if st.sd.kind == "user":
         if n_st == 0:
             raise EmptyDataError(
                 "the stable-terrain mask selects no cell with valid heights in both DEMs (all NaN); check that the "
                 "mask covers the DEMs' common area, or omit it to select stable terrain automatically")
-        info = StableInfo(f"user mask ({S.mask_is})", n_st, 0, float(np.median(dh_t)), nmad(dh_t), 0, fp_note)
-    else:
-        info = StableInfo(info_auto.source, info_auto.n_cells, info_auto.iterations, info_auto.median_m,
-                          info_auto.nmad_m, info_auto.excluded_change_cells, fp_note + info_auto.notes)
-    notes.extend(info.notes)
-    timings["stable_s"] = time.perf_counter() - tt
-    # --- error model, variogram, significance --------------------------------------------------
-    tt = time.perf_counter()
-    status = "ok"
-    em = vg = sig = None
-    center = 0.0
-    exact = S.fraction >= 1.0
-    unc_parts: dict[str, Any] = {}
-    if info.n_cells < p.min_stable_cells:
-        status = "no_stable_terrain"
-        notes.append(f"no usable stable terrain ({info.n_cells} cells, at least {p.min_stable_cells} needed): "
-                     "no co-registration shift was invented, and σ and confidence are unknown; give a stable-terrain "
-                     "mask (--stable-mask) to test significance")
-    else:
-        nblk = int(blocks.size)
-        if info.n_cells < p.reliable_stable_cells or nblk < p.reliable_stable_blocks:
-            status = "uncertainty_indicative"
-            notes.append(f"σ learned from only {info.n_cells} stable cells in {nblk} blocks of {p.coreg.block_px} px "
-                         f"(reliable from {p.reliable_stable_cells} cells in {p.reliable_stable_blocks} blocks): "
-                         "the error model and variogram are indicative only")
-        em = fit_error_model(dh_t, np.ones(dh_t.size, bool), slope_t, q_t, p.error)
-        sig_t = em.sigma(slope_t, q_t if em.predictor != "none" else None)
-        fill = float(math.sqrt(em.coef[0]) * em.scale)
-        sig_t = np.where(np.isfinite(sig_t), sig_t, np.where(np.isfinite(dh_t), fill, np.nan)).astype(np.float32)
-        m = np.isfinite(dh_t) & np.isfinite(sig_t) & (sig_t > 0)
-        med = float(np.median(dh_t[m]))
-        absz = np.sort(np.abs((dh_t[m] - med) / sig_t[m].astype(np.float64)))
-        if absz.size < 20:
-            raise EmptyDataError(f"only {absz.size} stable cells: too few to test significance")
-        sig = SignificanceModel(absz, med)
-        center = med
-        del dh_t, slope_t, q_t, absz, sig_t
-        # variogram on the plan's grids
-        bb = (min(b[0] for b in bbs), min(b[1] for b in bbs), max(b[2] for b in bbs), max(b[3] for b in bbs))
-        vplan = variogram_plan((bb[0], bb[1], bb[2] - bb[0] + 1, bb[3] - bb[1] + 1), S.posting, p.error)
-        lags, gam, cnt, zbb = _variogram_tiles(R, S, plan, sd, em, med, vplan, ccs)
-        if zbb != vplan.bbox:
-            vplan = variogram_plan(zbb, S.posting, p.error)
-            lags, gam, cnt, zbb = _variogram_tiles(R, S, plan, sd, em, med, vplan, ccs)
-        r0, c0, hh, ww = zbb
-        ext = math.hypot(hh * S.posting[1], ww * S.posting[0])
-        vg = fit_variogram(lags, gam, cnt, p.error.n_components, max_range_m=ext)
-        unc_parts = {"em": em, "vg": vg}
-    timings["error_model_s"] = time.perf_counter() - tt
-    res = TiledDEMDiffResult({}, {}, creg, info, status, notes, em, vg, sig, exact, S.grid)
-    res._plan = plan
-    res._sd = sd
-    res._ccs = ccs
-    res._method = method
-    res._unc_parts = unc_parts
-    res._epochs = (epoch_a, epoch_b)
-    if sig is not None and p.confidence > sig.max_level():
-        notes.append(f"{sig.n} stable cells support confidences up to {sig.max_level():.4f} only; "
-                     f"nothing can be significant at {p.confidence}")
-    return res
+        return StableInfo(f"user mask ({S.mask_is})", n_st, 0, float(np.median(dh_st)), nmad(dh_st), 0, fp_note)
+    i = st.info_auto
+    return StableInfo(i.source, i.n_cells, i.iterations, i.median_m, i.nmad_m, i.excluded_change_cells,
+                      fp_note + i.notes)
+
+
+def _finish_exact(R: _Runner, S: _Setup, st: _State, notes: list[str]):
+    """Small grids: gather the whole grids and finish with the untiled pipeline's own code."""
+    from .pipeline import finish_difference
+
+    p = S.params
+    r = R.run(_t_grids, "grids", (S, st.plan, st.sd), R.overlap(st.plan, st.ccs))
+    dh = r.read("dh64")
+    stable = r.read("stable").astype(bool)
+    valid = r.read("valid").astype(bool)
+    A = r.read("a32").astype(np.float64)
+    Braw = r.read("b32").astype(np.float64)
+    Bc = r.read("bc32").astype(np.float64)
+    slope = r.read("slope")
+    q = r.read("q") if p.error.predictor != "none" else None
+    fp_cells = int(sum(s_["fp_n"] for _, s_ in r.smalls()))
+    obs = valid & np.isfinite(dh)
+    info = _stable_info(S, st, int(stable.sum()), dh[stable], fp_cells)
+    dh_raw = np.where(valid, Braw - A, np.nan)
+    ea, eb = st.epochs
+    return finish_difference(S.grid, S.posting, A, Braw, Bc, dh, dh_raw, obs, stable, info, st.creg, slope, q, notes,
+                             p, epoch_a=ea, epoch_b=eb, method=st.method)
 
 
 def _variogram_tiles(R: _Runner, S: _Setup, plan, sd, em, med, vplan: VariogramPlan, ccs: int):
@@ -1175,86 +1167,77 @@ def _variogram_tiles(R: _Runner, S: _Setup, plan, sd, em, med, vplan: VariogramP
 # ------------------------------------------------------------------------------------------
 # products
 # ------------------------------------------------------------------------------------------
-def _write(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, prefix, plots, provenance, epoch_a,
-           epoch_b, footprints) -> dict[str, Path]:
-    if S.grid.width * S.grid.height <= R.tiling.exact_grid_cells:
-        return _write_exact(R, S, res, out, prefix=prefix, plots=plots, provenance=provenance, footprints=footprints)
-    return _write_large(R, S, res, out, prefix=prefix, plots=plots, provenance=provenance, footprints=footprints)
+@dataclass
+class _Model:
+    """The whole-scene models of a large grid (from tile reductions)."""
+
+    info: StableInfo
+    status: str
+    em: ErrorModel | None = None
+    vg: VariogramModel | None = None
+    sig: SignificanceModel | None = None
+    warnings: list[str] = field(default_factory=list)
+    degenerate: dict = field(default_factory=dict)
 
 
-def _write_exact(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, prefix, plots, provenance,
-                 footprints) -> dict[str, Path]:
-    """Small grids: gather the whole grids and finish with the untiled pipeline's own code."""
-    from .pipeline import DEMDiffResult, _sign_in_regions, _summary
-    from .products import write_demdiff_products
-    from .significance import change_sign, significance_map
-    from .uncertainty import _window_variance  # noqa: F401  (used through Uncertainty)
-
+def _model_large(R: _Runner, S: _Setup, st: _State, notes: list[str]) -> _Model:
+    """Error model, significance and variogram of a large grid: :func:`finish_difference`'s steps on
+    the stable cells gathered from the tiles (a fixed subsample beyond ``sample_cells``)."""
     p = S.params
-    plan, sd = res._plan, res._sd
-    r = R.run(_t_grids, "grids", (S, plan, sd, res.error_model, None), R.overlap(plan, res._ccs))
-    dh = r.read("dh64")
-    st = r.read("stable").astype(bool)
-    A = r.read("a32").astype(np.float64)
-    Braw = r.read("b32").astype(np.float64)
-    Bc = r.read("bc32").astype(np.float64)
-    g = S.grid
-    valid = r.read("valid").astype(bool)
-    obs = valid & np.isfinite(dh)
-    unc = None
-    sigma = np.full(g.shape, np.nan, np.float32)
-    z = np.full(g.shape, np.nan, np.float32)
-    conf = np.full(g.shape, np.nan, np.float32)
-    sig_model = res.significance
-    if res.error_model is not None:
-        su = r.read("sigma_u")
-        zz = np.full(g.shape, np.nan)
-        m = st & np.isfinite(dh) & np.isfinite(su) & (su > 0)
-        zz[m] = np.clip((dh[m] - sig_model.center_m) / su[m].astype(np.float64), -p.error.clip_z, p.error.clip_z)
-        w = np.where(np.isfinite(zz), su, 0.0).astype(np.float64)
-        k = _k_field(w, res.variogram, S.posting)
-        var_sum = float(max(np.sum(w * k), 0.0))
-        nst = int(np.isfinite(zz).sum())
-        bias = math.sqrt(var_sum) / nst if nst else float("nan")
-        neff = float(np.sum(w) ** 2 * res.variogram.total_sill / var_sum) if var_sum > 0 else float("nan")
-        unc = Uncertainty(res.error_model, res.variogram, su, (float(S.posting[0]), float(S.posting[1])), bias, neff,
-                          nst, k)
-        sigma = np.where(obs, unc.sigma_m, np.nan).astype(np.float32)
-        unc = unc.with_offset(sig_model.center_m)
-        z, conf = significance_map(dh, sigma, sig_model)
-    from ..change.regions import change_regions
-
-    if sig_model is not None:
-        raw_sign = change_sign(dh, conf, p.confidence, sig_model.center_m)
-    elif p.fallback_threshold_m is not None:
-        raw_sign = np.where(np.abs(np.nan_to_num(dh)) > p.fallback_threshold_m, np.sign(np.nan_to_num(dh)),
-                            0).astype(np.int8)
-        res.notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m "
-                         "(no significance test)")
-    else:
-        raw_sign = np.zeros(g.shape, np.int8)
-    raw_sign = np.where(obs, raw_sign, 0).astype(np.int8)
-    cell = float(S.posting[0] * S.posting[1])
-    vfn = unc.volume_sigma_fn(cell) if unc is not None else None
-    ea, eb = res._epochs
-    regions = change_regions(raw_sign, dh, g, confidence=conf if sig_model is not None else None,
-                             volume_sigma_fn=vfn, method=res._method, epoch_a=ea, epoch_b=eb,
-                             min_cells=p.min_region_cells, cell_area_m2=cell)
-    sign = _sign_in_regions(raw_sign, p.min_region_cells)
-    sign = np.where(obs, sign, CHANGE_NODATA).astype(np.int8)
-    dr = DEMDiffResult(g, S.posting, A.astype(np.float32), Bc.astype(np.float32), dh.astype(np.float32),
-                       np.where(valid, Braw - A, np.nan).astype(np.float32), obs, st, res.stable_info, res.coreg, unc,
-                       sig_model, sigma, z, conf, sign, regions, ea, eb, p.confidence, res.status, res.notes)
-    dr.summary = _summary(dr, Braw, p)
-    dr.summary["wall_s"] = time.perf_counter() - R.t0
-    res.summary = dr.summary
-    res._uncertainty = unc
-    return write_demdiff_products(out, dr, footprints=footprints, prefix=prefix, plots=plots,
-                                  provenance=provenance)
+    plan, sd = st.plan, st.sd
+    et = R.run(_t_errtable, "stable-cells", (S, plan, sd), R.overlap(plan, st.ccs))
+    parts = [s_ for _, s_ in et.smalls()]
+    n_st = int(sum(s_["n"] for s_ in parts))
+    idx = np.concatenate([s_["idx"] for s_ in parts])
+    order = np.argsort(idx, kind="stable")
+    dh_t = np.concatenate([s_["dh"] for s_ in parts])[order]
+    slope_t = np.concatenate([s_["slope"] for s_ in parts])[order].astype(np.float64)
+    q_t = (np.concatenate([s_["q"] for s_ in parts])[order].astype(np.float64)
+           if p.error.predictor != "none" else None)
+    blocks = np.unique(np.concatenate([s_["blocks"] for s_ in parts])) if parts else np.zeros(0)
+    bbs = [s_["bbox"] for s_ in parts if s_["bbox"] is not None]
+    info = _stable_info(S, st, n_st, dh_t, int(sum(s_["fp_n"] for s_ in parts)))
+    notes.extend(info.notes)
+    m = _Model(info, "ok")
+    if info.n_cells < p.min_stable_cells:
+        m.status = "no_stable_terrain"
+        notes.append(f"no usable stable terrain ({info.n_cells} cells, at least {p.min_stable_cells} needed): "
+                     "no co-registration shift was invented, and σ and confidence are unknown; give a stable-terrain "
+                     "mask (--stable-mask) to test significance")
+        return m
+    nblk = int(blocks.size)
+    if info.n_cells < p.reliable_stable_cells or nblk < p.reliable_stable_blocks:
+        m.status = "uncertainty_indicative"
+        notes.append(f"σ learned from only {info.n_cells} stable cells in {nblk} blocks of {p.coreg.block_px} px "
+                     f"(reliable from {p.reliable_stable_cells} cells in {p.reliable_stable_blocks} blocks): "
+                     "the error model and variogram are indicative only")
+    em = fit_error_model(dh_t, np.ones(dh_t.size, bool), slope_t, q_t, p.error)
+    sig_t = em.sigma(slope_t, q_t if em.predictor != "none" else None)
+    fill = float(math.sqrt(em.coef[0]) * em.scale)
+    sig_t = np.where(np.isfinite(sig_t), sig_t, np.where(np.isfinite(dh_t), fill, np.nan)).astype(np.float32)
+    ok = np.isfinite(dh_t) & np.isfinite(sig_t) & (sig_t > 0)
+    if ok.sum() < 20:
+        raise EmptyDataError(f"only {int(ok.sum())} stable cells: too few to test significance")
+    med = float(np.median(dh_t[ok]))
+    sig = SignificanceModel(np.sort(np.abs((dh_t[ok] - med) / sig_t[ok].astype(np.float64))), med)
+    del dh_t, slope_t, q_t, sig_t
+    bb = (min(b[0] for b in bbs), min(b[1] for b in bbs), max(b[2] for b in bbs), max(b[3] for b in bbs))
+    vplan = variogram_plan((bb[0], bb[1], bb[2] - bb[0] + 1, bb[3] - bb[1] + 1), S.posting, p.error)
+    lags, gam, cnt, zbb = _variogram_tiles(R, S, plan, sd, em, med, vplan, st.ccs)
+    if zbb != vplan.bbox:
+        vplan = variogram_plan(zbb, S.posting, p.error)
+        lags, gam, cnt, zbb = _variogram_tiles(R, S, plan, sd, em, med, vplan, st.ccs)
+    ext = math.hypot(zbb[2] * S.posting[1], zbb[3] * S.posting[0])
+    m.em, m.sig = em, sig
+    m.vg = fit_variogram(lags, gam, cnt, p.error.n_components, max_range_m=ext)
+    if p.confidence > 100.0 * sig.max_level():
+        notes.append(f"{sig.n} stable cells support confidences up to {100 * sig.max_level():.2f}% "
+                     f"only; nothing can be significant at {p.confidence:g}%")
+    return m
 
 
-def _write_large(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, prefix, plots, provenance,
-                 footprints) -> dict[str, Path]:
+def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, notes: list[str], *, prefix, plots,
+                 provenance) -> TiledDEMDiffResult:
     """Large grids: products tile by tile, correlated sums on a coarse grid, regions merged across seams."""
     import json as _json
 
@@ -1269,9 +1252,11 @@ def _write_large(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, p
     H, W = g.shape
     post = S.posting
     cell = float(post[0] * post[1])
-    plan, sd = res._plan, res._sd
-    em, vg, sig = res.error_model, res.variogram, res.significance
-    ea, eb = res._epochs
+    plan, sd = st.plan, st.sd
+    em, vg, sig = model.em, model.vg, model.sig
+    ea, eb = st.epochs
+    footprints = S.footprints
+    status = model.status
     block = max(1, int(math.ceil(math.sqrt(H * W / R.tiling.coarse_cells))))
     cshape = (-(-H // block), -(-W // block))
     unc = split = None
@@ -1279,7 +1264,7 @@ def _write_large(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, p
     if em is not None:
         split = CovSplit.of(vg, post, block, max_radius=min(256, R.tiling.tile_size // 4))
         rb = R.run(_t_blocks, "stable-blocks", (S, plan, sd, em, split),
-                   R.overlap(plan, res._ccs + split.radius))
+                   R.overlap(plan, st.ccs + split.radius))
         parts = [s_ for _, s_ in rb.smalls()]
         Wc = _coarse([s_["blocks"] for s_ in parts], "w", cshape)
         nst = int(sum(s_["n"] for s_ in parts))
@@ -1299,15 +1284,15 @@ def _write_large(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, p
     def long_sum(Sx: np.ndarray) -> float:
         return float(np.sum(Sx * _coarse_conv(Sx, Cb))) if Cb is not None else 0.0
 
-    c = res.coreg
+    c = st.creg
     fe, fn, fz = c.fitted_shift_m
     fitted_plan = (CoregPlan((fe / post[0], -fn / post[1]), fz, None, p.coreg.resampling)
                    if (fe or fn) and c.applied in ("vertical", "none") else None)
-    ov = R.overlap(plan, max(res._ccs, p.min_region_cells - 1) + (split.radius if split is not None else 0))
+    ov = R.overlap(plan, max(st.ccs, p.min_region_cells - 1) + (split.radius if split is not None else 0))
     if fitted_plan is not None:
         ov = max(ov, R.overlap(fitted_plan, 0))
-    tags = {"method": "demdiff", "epoch_a": ea, "epoch_b": eb, "units": "m", "confidence_level": f"{p.confidence:g}",
-            "coreg": c.summary()}
+    tags = {"method": "demdiff", "epoch_a": ea, "epoch_b": eb, "units": "m",
+            "confidence_level_pct": f"{p.confidence:g}", "coreg": c.summary()}
     if provenance:
         tags["provenance"] = _json.dumps(_clean(provenance), default=_jsonable)
     products = {
@@ -1323,14 +1308,25 @@ def _write_large(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, p
                products=products)
     sm = [s_ for _, s_ in rp.smalls()]
     tot = {k: sum(s_[k] for s_ in sm) for k in ("n_obs", "n_stable", "n_changed", "n_raised", "n_lowered",
-                                                 "sum_changed", "sum_raised", "sum_lowered", "sum_obs")}
+                                                 "sum_changed", "sum_raised", "sum_lowered", "sum_obs",
+                                                 "n_identical")}
     stable_dh = np.concatenate([s_["stable_dh"] for s_ in sm]).astype(np.float64)
     abs_dh = np.concatenate([s_["abs_dh"] for s_ in sm])
-    if res.status == "ok" or res.status == "uncertainty_indicative":
-        pass
+    # degenerate stable terrain (identical heights, NMAD at the float32 floor): from the tiles' counts
+    warns: list[str] = []
+    degenerate: dict = {}
+    if model.info.n_cells >= p.min_stable_cells:
+        from .pipeline import degenerate_message
+
+        hmax = max((s_["hmax_stable"] for s_ in sm), default=0.0)
+        degenerate, warn = degenerate_message(int(tot["n_stable"]), int(tot["n_identical"]),
+                                              nmad(stable_dh) if stable_dh.size else float("nan"), hmax, p)
+        if warn:
+            status = "degenerate_stable_terrain"
+            warns.append(warn)
     if sig is None and p.fallback_threshold_m is not None:
-        res.notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m "
-                         "(no significance test)")
+        notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m "
+                     "(no significance test)")
     # --- regions -----------------------------------------------------------------------------------
     merged = merge_regions([s_["regions"] for s_ in sm], R.tg, p.min_region_cells)
     store = rp.store
@@ -1365,11 +1361,11 @@ def _write_large(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, p
             n = int(merged.n[k])
         return math.sqrt(var_terms(V, n, cross)) * cell
 
-    layer = regions_layer(merged, g, cell_area_m2=cell, method=res._method, epoch_a=ea, epoch_b=eb,
+    layer = regions_layer(merged, g, cell_area_m2=cell, method=st.method, epoch_a=ea, epoch_b=eb,
                           volume_sigma=region_sigma if unc is not None else None)
     # --- summary -----------------------------------------------------------------------------------
     s = {
-        "epoch_a": ea, "epoch_b": eb, "status": res.status, "coreg_status": c.status,
+        "epoch_a": ea, "epoch_b": eb, "status": status, "coreg_status": c.status,
         "coreg_applied": c.applied, "shift_applied_m": list(c.shift_m),
         "shift_fitted_m": list(c.fitted_shift_m), "shift_sigma_m": list(c.shift_sigma_m),
         "coreg_n_fit": c.n_fit, "n_observed": int(tot["n_obs"]), "observed_area_m2": float(tot["n_obs"] * cell),
@@ -1415,18 +1411,18 @@ def _write_large(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, p
         s["volume_changed_if_fitted_shift_applied_m3"] = vf
         sv = s["volume_changed_sigma_m3"]
         s["fitted_shift_volume_effect_sigma"] = (vf - s["volume_changed_m3"]) / sv if sv and math.isfinite(sv) else nan
+    s.update(degenerate)
     s["wall_s"] = time.perf_counter() - R.t0
     s["tiled"] = {"exact": False, "sample_fraction": S.fraction, "coarse_block_cells": block,
                   "tile_size": R.tiling.tile_size, "short_range_cells": split.radius if split is not None else 0}
-    res.summary = s
     # --- writing -----------------------------------------------------------------------------------
     paths: dict[str, Path] = dict(rp.products)
     vmax = nice_limit(float(np.nanpercentile(abs_dh, 98)) if abs_dh.size else 1.0)
     write_raster_style(paths["dh"], dh_qml(vmax))
     write_raster_style(paths["significance"], significance_qml())
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
-    dr = DEMDiffResult(g, post, None, None, None, None, None, None, res.stable_info, c, unc, sig, None, None, None,
-                       None, layer, ea, eb, p.confidence, res.status, res.notes)
+    dr = DEMDiffResult(g, post, None, None, None, None, None, None, model.info, c, unc, sig, None, None, None,
+                       None, layer, ea, eb, p.confidence, status, notes, warnings=warns)
     dr.summary = s
     layers: dict[str, Any] = {"changes": layer}
     styles = {"changes": qml_for("changes")}
@@ -1438,12 +1434,13 @@ def _write_large(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, p
     layers.update(tables(dr))
     paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", layers, styles=styles)
     if plots:
-        paths["dh_png"] = _plot_large(S, paths, out / f"{prefix}_dh.png", s, c, vmax, ea, eb, p.confidence)
+        paths["dh_png"] = _plot_large(S, paths, out / f"{prefix}_dh.png", s, c, vmax, ea, eb, p.confidence,
+                                      status)
     rep = dr.to_dict()
     if provenance:
         rep["provenance"] = provenance
     paths["report"] = write_json(out / f"{prefix}_report.json", rep)
-    return paths
+    return TiledDEMDiffResult(paths, s, c, model.info, status, notes, em, vg, sig, False, g, warnings=warns)
 
 
 def _region_coarse(merged, k: int, store, tg: TileGrid, block: int, cshape) -> np.ndarray:
@@ -1506,7 +1503,7 @@ def _buildings_windows(footprints, store, tg: TileGrid, g: AOIGrid):
     return res
 
 
-def _plot_large(S: _Setup, paths, png: Path, s, c, vmax, ea, eb, level) -> Path:
+def _plot_large(S: _Setup, paths, png: Path, s, c, vmax, ea, eb, level, status) -> Path:
     """The dh map from the COGs' overviews (at most ~2000 cells a side)."""
     import rasterio
     from affine import Affine
@@ -1532,10 +1529,12 @@ def _plot_large(S: _Setup, paths, png: Path, s, c, vmax, ea, eb, level) -> Path:
     except Exception:  # noqa: BLE001 - a backdrop is optional
         back = None
     note = f"stable NMAD {s['stable_nmad_m']:.2f} m; coreg {c.status} ({c.applied})"
+    if status == "degenerate_stable_terrain":
+        note += "\nWARNING: degenerate stable terrain (DEMs identical there): σ is not credible"
     if math.isfinite(s.get("volume_changed_sigma_m3", float("nan"))):
         note += (f"\nchanged {s['changed_area_m2'] / 1e6:.3f} km², "
                  f"{s['volume_changed_m3'] / 1e6:+.3f} ± {s['volume_changed_sigma_m3'] / 1e6:.3f} Mm³ (1σ)")
     post = (S.posting[0] * g.width / w, S.posting[1] * g.height / h)
     return plot_dh_map(dh, small, png, sign=sign, backdrop_m=back, backdrop_posting_xy_m=post,
-                       title=f"{ea} → {eb}: Δh after co-registration, changed at {level:.0%} (1:{f} overview)",
+                       title=f"{ea} → {eb}: Δh after co-registration, changed at {level:g}% (1:{f} overview)",
                        vmax=vmax, note=note)
