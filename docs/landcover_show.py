@@ -35,10 +35,10 @@ def block_mean(a: np.ndarray, k: int) -> np.ndarray:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--work", default="/tmp/landcover_show", help="cache of the per-image stages")
-    ap.add_argument("--draws", type=int, default=3, help="random view subsets per count")
+    ap.add_argument("--draws", type=int, default=2, help="random view subsets per count")
     ap.add_argument("--headline-views", type=int, default=8)
-    ap.add_argument("--counts", default="1,2,4,8,16,45")
-    ap.add_argument("--n-fit", type=int, default=500)
+    ap.add_argument("--counts", default="1,4,16,45")
+    ap.add_argument("--n-fit", type=int, default=300)
     args = ap.parse_args()
     import warnings
 

@@ -325,25 +325,27 @@ class SparseGP:
         self.n_train = 0
 
     def fit(self, X: np.ndarray, y: np.ndarray, batch: int = 20000, progress=None) -> "SparseGP":
-        """Accumulate K_mn K_nm and K_mn y over batches of the training cells."""
+        """Accumulate ``AAᵀ = Σ_batches (L⁻¹K_mb)(L⁻¹K_mb)ᵀ / σ_n²`` and ``L⁻¹K_mn y`` over the training cells.
+
+        Whitening each batch before the product keeps ``AAᵀ`` a Gram matrix (positive semi-definite in floating
+        point too), however ill-conditioned ``K_mm`` is.
+        """
         X, y = _check_xy(X, y)
         prog = ensure_progress(progress)
         h = self.hyper
         m = self.Zs.shape[0]
-        P = np.zeros((m, m))
+        AAT = np.zeros((m, m))
         r = np.zeros(m)
         n = X.shape[0]
         yc = y - h.y_mean
         for s in range(0, n, batch):
-            Kmb = h.kernel(self.Zs, h.scale(X[s:s + batch]))
-            P += Kmb @ Kmb.T
-            r += Kmb @ yc[s:s + batch]
+            T = solve_triangular(self.L, h.kernel(self.Zs, h.scale(X[s:s + batch])), lower=True)
+            AAT += T @ T.T
+            r += T @ yc[s:s + batch]
             prog(min(1.0, (s + batch) / n), f"sparse GP: {min(n, s + batch)}/{n} training cells")
-        Li_P = solve_triangular(self.L, P, lower=True)
-        AAT = solve_triangular(self.L, Li_P.T, lower=True) / h.noise_var
-        B = AAT + np.eye(m)
+        B = AAT / h.noise_var + np.eye(m)
         self.LB = cholesky(0.5 * (B + B.T), lower=True)
-        self.c = solve_triangular(self.LB, solve_triangular(self.L, r, lower=True), lower=True) / h.noise_var
+        self.c = solve_triangular(self.LB, r, lower=True) / h.noise_var
         self.n_train = n
         return self
 
@@ -417,19 +419,23 @@ class GPResult:
     report: dict
 
 
-def integrate(target: np.ndarray, inputs: dict, params: GPParams = GPParams(), progress=None) -> GPResult:
-    """GP regression of a sparse per-cell target on per-cell inputs, predicted at every cell.
+def _stack(inputs: dict, shape: tuple | None = None) -> tuple[list, np.ndarray, np.ndarray]:
+    names = list(inputs)
+    stack = [np.asarray(inputs[k], np.float64) for k in names]
+    shape = shape if shape is not None else stack[0].shape
+    for k, a in zip(names, stack):
+        if a.shape != shape:
+            raise ConfigError(f"GP input {k!r} has shape {a.shape}, expected {shape}")
+    have = np.all([np.isfinite(a) for a in stack], axis=0)
+    return names, stack, have
 
-    Parameters
-    ----------
-    target : float (rows, cols), the detailed views' probability; NaN = unobserved
-    inputs : mapping name → float (rows, cols) (e.g. ``x``, ``y``, ``dem``, ``coarse``, ``buildings``);
-        cells where any input is NaN get no prediction
-    params : GPParams
 
-    Returns
-    -------
-    GPResult
+def fit_integrator(target: np.ndarray, inputs: dict, params: GPParams = GPParams(),
+                   progress=None) -> tuple[SparseGP, dict]:
+    """Fit the GP on the observed cells of one grid (or window): hyperparameters, inducing points, DTC terms.
+
+    Returns the fitted :class:`SparseGP` (its ``hyper.names`` are the input names, in order) and a report.
+    Predict any window of the same inputs with :func:`predict_window` (tiling: fit once, predict per tile).
     """
     import time
 
@@ -437,17 +443,11 @@ def integrate(target: np.ndarray, inputs: dict, params: GPParams = GPParams(), p
     if not inputs:
         raise ConfigError("the GP needs at least one input (e.g. the cells' x, y)")
     t = np.asarray(target, np.float64)
-    names = list(inputs)
-    stack = [np.asarray(inputs[k], np.float64) for k in names]
-    for k, a in zip(names, stack):
-        if a.shape != t.shape:
-            raise ConfigError(f"GP input {k!r} has shape {a.shape}, the target {t.shape}")
-    have = np.all([np.isfinite(a) for a in stack], axis=0)
+    names, stack, have = _stack(inputs, t.shape)
     obs = have & np.isfinite(t)
     n_obs = int(obs.sum())
     if n_obs == 0:
         raise EmptyDataError("no cell is both observed by the detailed views and covered by every input")
-    X_all = np.stack([a[have] for a in stack], axis=1)
     X_obs = np.stack([a[obs] for a in stack], axis=1)
     y_obs = t[obs]
     rep: dict = {"cells": int(t.size), "cells_with_inputs": int(have.sum()), "observed_cells": n_obs}
@@ -467,13 +467,47 @@ def integrate(target: np.ndarray, inputs: dict, params: GPParams = GPParams(), p
     rep["sparse_fit_s"] = round(time.perf_counter() - t0, 2)
     rep["inducing_points"] = int(Z.shape[0])
     rep["training_cells"] = int(X_tr.shape[0])
-    t0 = time.perf_counter()
-    mu, sd = gp.predict(X_all, params.batch, progress=lambda f, m="": prog(0.6 + 0.4 * (f or 0), m))
-    rep["predict_s"] = round(time.perf_counter() - t0, 2)
-    mean = np.full(t.shape, np.nan, np.float32)
-    sdf = np.full(t.shape, np.nan, np.float32)
-    mean[have] = mu
-    sdf[have] = sd
-    sdo = np.sqrt(sdf.astype(np.float64) ** 2 + hyper.noise_var).astype(np.float32)
     rep["hyper"] = hyper.to_dict()
-    return GPResult(mean=mean, sd=sdf, sd_obs=sdo, hyper=hyper, report=rep)
+    return gp, rep
+
+
+def predict_window(gp: SparseGP, inputs: dict, batch: int = 20000,
+                   progress=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Predictive mean, latent sd and observation sd (float32 (rows, cols), NaN where an input is missing)
+    of a fitted GP on any window of the inputs (same names as the fit)."""
+    names, stack, have = _stack(inputs)
+    if names != list(gp.hyper.names):
+        raise ConfigError(f"inputs {names} differ from the fitted GP's {gp.hyper.names}")
+    shape = stack[0].shape
+    mean = np.full(shape, np.nan, np.float32)
+    sdf = np.full(shape, np.nan, np.float32)
+    if have.any():
+        mu, sd = gp.predict(np.stack([a[have] for a in stack], axis=1), batch, progress=progress)
+        mean[have] = mu
+        sdf[have] = sd
+    sdo = np.sqrt(sdf.astype(np.float64) ** 2 + gp.hyper.noise_var).astype(np.float32)
+    return mean, sdf, sdo
+
+
+def integrate(target: np.ndarray, inputs: dict, params: GPParams = GPParams(), progress=None) -> GPResult:
+    """GP regression of a sparse per-cell target on per-cell inputs, predicted at every cell.
+
+    Parameters
+    ----------
+    target : float (rows, cols), the detailed views' probability; NaN = unobserved
+    inputs : mapping name → float (rows, cols) (e.g. ``x``, ``y``, ``dem``, ``coarse``, ``buildings``);
+        cells where any input is NaN get no prediction
+    params : GPParams
+
+    Returns
+    -------
+    GPResult
+    """
+    import time
+
+    prog = ensure_progress(progress)
+    gp, rep = fit_integrator(target, inputs, params, progress=lambda f, m="": prog(0.6 * (f or 0), m))
+    t0 = time.perf_counter()
+    mean, sdf, sdo = predict_window(gp, inputs, params.batch, progress=lambda f, m="": prog(0.6 + 0.4 * (f or 0), m))
+    rep["predict_s"] = round(time.perf_counter() - t0, 2)
+    return GPResult(mean=mean, sd=sdf, sd_obs=sdo, hyper=gp.hyper, report=rep)

@@ -160,3 +160,21 @@ def test_additive_kernel_carries_appearance_far_away():
         h = fit_hyperparameters(X, y, GPParams(n_fit=200, kernel=kernel), names=["x", "y", "coarse"])
         m, _ = exact_gp(X, y, far, h)
         assert (m[0] - m[1] > 0.5) == expect_split, (kernel, m)
+
+
+def test_fit_once_predict_per_window_equals_whole_grid():
+    from geocd.landcover.gp import fit_integrator, predict_window
+
+    n = 30
+    yy, xx = np.mgrid[0:n, 0:n].astype(float)
+    c = np.sin(xx / 4.0) * np.cos(yy / 5.0)
+    det = np.where(yy < 12, c + 0.5, np.nan)
+    inputs = {"x": xx, "y": yy, "coarse": c}
+    gp, _ = fit_integrator(det, inputs, GPParams(n_fit=150, n_inducing=60))
+    m, s, so = predict_window(gp, inputs)
+    win = {k: v[10:25, 5:20] for k, v in inputs.items()}
+    mw, sw, _ = predict_window(gp, win, batch=17)
+    np.testing.assert_allclose(mw, m[10:25, 5:20], atol=1e-6)
+    np.testing.assert_allclose(sw, s[10:25, 5:20], atol=1e-6)
+    with pytest.raises(ConfigError, match="differ"):
+        predict_window(gp, {"y": yy, "x": xx, "coarse": c})
