@@ -59,6 +59,9 @@ class RunConfig:
         Epochs to compare (default: first and last).
     pairs : str
         "same-kind" (default: satellite–satellite and aerial–aerial pairs) or "all".
+    derive_buildings : bool
+        Without footprints, derive building objects from epoch A's DSM (and new ones from epoch B's) and
+        classify their damage (:mod:`geocd.change.dsm_buildings`); with footprints, the damage layer uses them.
     """
 
     stereo: Any = field(default_factory=lambda: _stereo_params_cls()())
@@ -71,6 +74,7 @@ class RunConfig:
     epoch_a: str | None = None
     epoch_b: str | None = None
     pairs: str = "same-kind"
+    derive_buildings: bool = True
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -144,6 +148,70 @@ def _median_surface(recs: Sequence[Any]) -> np.ndarray:
         return np.nanmedian(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs]), axis=0).astype(np.float32)
 
 
+def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confidence: float, name_a: str,
+                     name_b: str):
+    """Damage layer: footprints when given, else building objects of epoch A's DSM plus B-only objects."""
+    import pandas as pd
+
+    from .change.dsm_buildings import buildings_from_dsm, classify_damage, fill_gaps, ground_model
+
+    z_a, z_b = _median_surface(recs_a), _median_surface(recs_b)
+    if not (np.isfinite(z_a).any() and np.isfinite(z_b).any()) or report_confidence not in res.confidences:
+        return None
+    if footprints is not None:
+        dtm, _ = ground_model(z_a, grid.posting_m)
+        bld = footprints.to_crs(grid.crs)
+        bld = bld.assign(source="footprints")
+    else:
+        bld, dtm, _ = buildings_from_dsm(z_a, grid)
+        bld = bld.assign(source=f"{name_a} DSM")
+        post, _, _ = buildings_from_dsm(z_b, grid)
+        if len(post) and len(bld):
+            from shapely.strtree import STRtree
+
+            tree = STRtree(list(bld.geometry))
+            keep = []
+            for g in post.geometry:
+                hits = tree.query(g)
+                inter = sum(g.intersection(bld.geometry.iloc[int(h)]).area for h in hits)
+                keep.append(inter < 0.3 * g.area)
+            post = post[np.asarray(keep, bool)].assign(source=f"{name_b} DSM (not in {name_a})")
+            post["building_id"] = np.arange(len(bld) + 1, len(bld) + 1 + len(post))
+            bld = pd.concat([bld, post], ignore_index=True)
+    if not len(bld):
+        return None
+    dtm = fill_gaps(dtm)
+    return classify_damage(bld, res, grid, z_a=z_a, z_b=z_b, dtm=dtm, model=model,
+                           report_confidence=report_confidence, id_field="building_id" if "building_id" in bld else None)
+
+
+def _check_epochs_overlap(m) -> None:
+    """Epochs whose images cover different places cannot be compared: a clear error before any stereo."""
+    from .geodesy import as_crs, utm_crs_for
+    from .orientation.pipeline import check_epoch_overlap
+    from .stereo.pipeline import load_epoch_images
+
+    by_epoch = {e.name: load_epoch_images(m, e) for e in m.epochs if e.images}
+    if len(by_epoch) < 2:
+        return
+    cam = next(iter(by_epoch.values()))[0].camera
+    hr = cam.height_range() or (0.0, 0.0)
+    h = 0.5 * (hr[0] + hr[1])
+    crs = as_crs(m.aoi.crs) if m.aoi is not None and m.aoi.crs else None
+    if crs is None:
+        c = cam.footprint(h).centroid
+        crs = utm_crs_for(c.x, c.y)
+    check_epoch_overlap(by_epoch, crs, h, m.aoi.bounds if m.aoi is not None and m.aoi.crs else None)
+
+
+def orientation_summary(report: dict) -> dict:
+    """The part of an orientation report a run summary carries (applied or not, why, residuals)."""
+    keys = ("applied", "reason", "model", "tracks", "observations", "before", "after", "held_out")
+    out = {k: report[k] for k in keys if k in report}
+    out["corrections_px"] = dict(zip(report.get("images", []), report.get("corrections", [])))
+    return out
+
+
 def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig = RunConfig(),
         progress: Progress | None = None, footprints: os.PathLike | str | None = None) -> dict[str, Any]:
     """Run the whole self-consistency change detection on a manifest.
@@ -171,9 +239,17 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
                 f"epoch {e.name!r} has {len(e.images)} image(s) and no DEM: a stereo pair needs two images. Add an "
                 "image, or give a DEM standing for this epoch (epochs[].dem)")
     stereo_epochs = [e.name for e in m.epochs if len(e.images) >= 2]
-    prog(0.0, "stereo")
+    from .orientation import orient_manifest
+
+    prog(0.0, "relative orientation")
+    m, orientation = orient_manifest(m, out_dir=out, stereo_params=config.stereo,
+                                     progress=sub_progress(prog, 0.0, 0.1, "orientation: "))
+    if orientation is None:
+        _check_epochs_overlap(m)
+    prog(0.1, "stereo")
     st = run_stereo(m, epochs=stereo_epochs, out_dir=out, params=config.stereo, posting_m=config.posting_m,
-                    keep_arrays=True, pairs=config.pairs, progress=sub_progress(prog, 0.0, 0.75, "stereo: "))
+                    keep_arrays=True, pairs=config.pairs, orient=False,
+                    progress=sub_progress(prog, 0.1, 0.75, "stereo: "))
     grid = st["grid"]
     by_epoch: dict[str, list] = {}
     for key, pdem in st["pairs"].items():
@@ -211,9 +287,21 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
                                        z_a=_median_surface(recs_a), z_b=_median_surface(recs_b),
                                        confidence=res.confidence, params=config.buildings, id_field=id_field,
                                        confidence_level=config.region_confidence)
+    damage = None
+    extra, extra_styles = {}, {}
+    if config.derive_buildings or fp_path is not None:
+        prog(0.88, "building damage")
+        damage = _building_damage(fps if fp_path is not None else None, res, grid, recs_a, recs_b, model,
+                                  config.region_confidence, ea.name, eb.name)
+        if damage is not None:
+            from .change.dsm_buildings import damage_qml
+
+            extra["building_damage"] = damage
+            extra_styles["building_damage"] = damage_qml()
     prog(0.9, "writing products")
     paths = write_change_products(out, res, grid, method="self-consistency", epoch_a=ea.name, epoch_b=eb.name,
                                   region_confidence=config.region_confidence, model=model, buildings=buildings,
+                                  extra_layers=extra or None, extra_styles=extra_styles or None,
                                   provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
                                   prefix="sc", backdrop_m=_median_surface(recs_b))
     paths["model"] = model_path
@@ -233,6 +321,13 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
     }
     if buildings is not None:
         summary["buildings"] = buildings["class"].value_counts().to_dict()
+    if orientation is not None:
+        summary["orientation"] = orientation_summary(orientation)
+    if damage is not None:
+        summary["building_damage"] = {
+            "source": "footprints" if fp_path is not None else f"{ea.name} DSM (+ new objects of {eb.name})",
+            "classes": damage["class"].value_counts().to_dict(),
+            "volume_lost_m3": round(float(np.nansum(damage["volume_lost_m3"])), 1)}
     write_text_atomic(out / "run_summary.json", json.dumps(summary, indent=2, default=str))
     paths["config"] = cfg_path
     paths["summary"] = out / "run_summary.json"

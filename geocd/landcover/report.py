@@ -16,9 +16,13 @@ import numpy as np
 from ..errors import EmptyDataError
 from .gp import GPParams, GPResult, integrate
 
-#: the thesis's ablation: input sets of the GP (names of :data:`geocd.landcover.pipeline.INPUTS`)
-ABLATION = {"GP: detailed + xy": ("xy",), "GP: detailed + coarse + xy": ("xy", "coarse"),
-            "GP: detailed + coarse + xy + DEM + buildings": ("xy", "coarse", "dem", "buildings")}
+#: the thesis's ablation: input sets of the GP (names of :data:`geocd.landcover.pipeline.INPUTS`), and the
+#: kernel (None: the one in the GP parameters)
+ABLATION = {"GP: detailed + xy": (("xy",), None),
+            "GP: detailed + coarse + xy": (("xy", "coarse"), None),
+            "GP, thesis product kernel: detailed + coarse + xy + DEM + buildings":
+                (("xy", "coarse", "dem", "buildings"), "product"),
+            "GP: detailed + coarse + xy + DEM + buildings": (("xy", "coarse", "dem", "buildings"), None)}
 
 
 def f1_at_recall(truth: np.ndarray, score: np.ndarray, recall: float = 0.5) -> dict:
@@ -63,6 +67,7 @@ def ablation(detailed: np.ndarray, coarse: np.ndarray | None, inputs_for, truth:
     detailed : float (rows, cols), the detailed views' probability (NaN = unobserved)
     coarse : float (rows, cols) or None, the coarse full-cover probability
     inputs_for : callable(tuple of input names) → dict of GP input arrays
+    configs : mapping name → (input names, kernel or None); default :data:`ABLATION`
     truth : bool (rows, cols), the condition; ``truth_value`` float (rows, cols), optional, the
         continuous truth for the σ calibration (default: ``truth`` as 0/1)
     exclude : bool (rows, cols), optional, cells never scored (e.g. training labels)
@@ -81,10 +86,11 @@ def ablation(detailed: np.ndarray, coarse: np.ndarray | None, inputs_for, truth:
         scores["coarse alone (all cells)"] = f1_at_recall(t[ev], coarse[ev])
     scores["detailed alone (observed cells)"] = f1_at_recall(t[ev & obs], detailed[ev & obs])
     configs = configs if configs is not None else {k: v for k, v in ABLATION.items()
-                                                    if coarse is not None or "coarse" not in v}
+                                                    if coarse is not None or "coarse" not in v[0]}
     results: dict = {}
-    for name, use in configs.items():
-        res = integrate(detailed, inputs_for(use), params)
+    for name, (use, kernel) in configs.items():
+        p = params if kernel is None else params.replace(kernel=kernel)
+        res = integrate(detailed, inputs_for(use), p)
         results[name] = res
         scores[f"{name} (all cells)"] = f1_at_recall(t[ev], res.mean[ev])
         if (ev & ~obs).any():

@@ -661,6 +661,9 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
             Param("INPUTS", "string", "GP inputs (comma-separated from xy, dem, coarse, buildings; default: all "
                   "available)", cli="--inputs", optional=True, advanced=True),
             Param("CLASS_NAME", "string", "Name of the condition", cli="--class-name", default="condition"),
+            Param("KERNEL", "enum", "Kernel", cli="--kernel", default=0, advanced=True,
+                  options=(("additive: position + appearance (carries appearance at any distance)", "additive"),
+                           ("product: one ARD kernel over every input (thesis)", "product"))),
             Param("N_FIT", "int", "Cells for the exact-GP hyperparameter fit", cli="--n-fit", default=1000, min=10,
                   advanced=True),
             Param("INDUCING", "int", "Inducing points", cli="--inducing", default=400, min=1, advanced=True),

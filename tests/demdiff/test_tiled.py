@@ -26,6 +26,7 @@ def assert_same_products(d1: Path, d2: Path, prefix: str = "demdiff") -> None:
     for name in RASTERS:
         with rasterio.open(d1 / f"{prefix}_{name}.tif") as a, rasterio.open(d2 / f"{prefix}_{name}.tif") as b:
             np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
+            assert a.units == b.units
             assert a.tags() == b.tags() and a.descriptions == b.descriptions and a.nodata is b.nodata or \
                 (np.isnan(a.nodata) and np.isnan(b.nodata)) or a.nodata == b.nodata
             assert a.profile["blockxsize"] == b.profile["blockxsize"] and a.overviews(1) == b.overviews(1)
