@@ -182,9 +182,13 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
             if cars[ep].get("bulldozer"):
                 out[f"bulldozer_{ep}"] = {k: cars[ep]["bulldozer"][k] for k in ("wall_s", "cpu_s", "peak_rss_mb")}
     # picanteo's 3-D rule on CARS's products
-    if all(cars[ep].get("dhm") for ep in EPOCHS):
-        dhm_pre = _to_grid(cars["pre_event"]["dhm"], grid)
-        dhm_post = _to_grid(cars["post_event"]["dhm"], grid)
+    def dhm(ep):   # Bulldozer's DHM, or DSM − Bulldozer's DTM when it wrote none
+        if cars[ep].get("dhm"):
+            return _to_grid(cars[ep]["dhm"], grid)
+        return cars_dsm[ep] - _to_grid(cars[ep]["dtm"], grid)
+
+    if all(cars[ep].get("dhm") or cars[ep].get("dtm") for ep in EPOCHS) and len(cars_dsm) == 2:
+        dhm_pre, dhm_post = dhm("pre_event"), dhm("post_event")
         diff = dhm_post - dhm_pre
         flag = np.nan_to_num(diff, nan=0.0) <= -4.0
         amb_ok = np.ones(grid.shape, bool)

@@ -157,7 +157,7 @@ def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confid
 
     z_a, z_b = _median_surface(recs_a), _median_surface(recs_b)
     if not (np.isfinite(z_a).any() and np.isfinite(z_b).any()) or report_confidence not in res.confidences:
-        return None
+        return None, None
     if footprints is not None:
         dtm, _ = ground_model(z_a, grid.posting_m)
         bld = footprints.to_crs(grid.crs)
@@ -179,10 +179,11 @@ def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confid
             post["building_id"] = np.arange(len(bld) + 1, len(bld) + 1 + len(post))
             bld = pd.concat([bld, post], ignore_index=True)
     if not len(bld):
-        return None
+        return None, None
     dtm = fill_gaps(dtm)
-    return classify_damage(bld, res, grid, z_a=z_a, z_b=z_b, dtm=dtm, model=model,
-                           report_confidence=report_confidence, id_field="building_id" if "building_id" in bld else None)
+    dmg = classify_damage(bld, res, grid, z_a=z_a, z_b=z_b, dtm=dtm, model=model,
+                          report_confidence=report_confidence, id_field="building_id" if "building_id" in bld else None)
+    return dmg, dtm
 
 
 def _check_epochs_overlap(m) -> None:
@@ -314,12 +315,18 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
                                        z_a=_median_surface(recs_a), z_b=_median_surface(recs_b),
                                        confidence=res.confidence, params=config.buildings, id_field=id_field,
                                        confidence_level=config.region_confidence)
-    damage = None
+    damage = ground_path = None
     extra, extra_styles = {}, {}
     if config.derive_buildings or fp_path is not None:
         prog(0.7, "building damage")
-        damage = _building_damage(fps if fp_path is not None else None, res, grid, recs_a, recs_b, model,
-                                  config.region_confidence, ea.name, eb.name)
+        damage, ground = _building_damage(fps if fp_path is not None else None, res, grid, recs_a, recs_b, model,
+                                          config.region_confidence, ea.name, eb.name)
+        if ground is not None:
+            from .io.raster import write_cog
+
+            ground_path = write_cog(out / "sc_ground_model.tif", {"ground_m": ground.astype(np.float32)}, grid,
+                                    tags={"method": f"progressive morphological filter of the {ea.name} DSM",
+                                          "vertical_datum": "ellipsoid"})
         if damage is not None:
             from .change.dsm_buildings import damage_qml
 
@@ -332,6 +339,8 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
                                   provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
                                   prefix="sc", backdrop_m=_median_surface(recs_b))
     paths["model"] = model_path
+    if ground_path is not None:
+        paths["ground_model"] = ground_path
     paths.update({f"stereo:{k}": v for k, v in (stereo_outputs or {}).items()})
     cfg_path = write_text_atomic(out / "run_config.json", json.dumps(config.to_dict(), indent=2, default=list))
     observed = res.observed

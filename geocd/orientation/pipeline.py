@@ -182,7 +182,33 @@ def orient_manifest(manifest, *, out_dir: os.PathLike | str, params: Orientation
         warnings.warn(f"cross-image orientation not applied: {report['reason']}; the cameras are used as given",
                       OrientationWarning, stacklevel=2)
         return manifest, report
-    return corrected_manifest(manifest, report), report
+    m2 = corrected_manifest(manifest, report)
+    _write_oriented_manifest(out / "scene.oriented.yaml", m2)
+    return m2, report
+
+
+def _write_oriented_manifest(path: Path, m) -> None:
+    """The manifest with corrected cameras (absolute paths; orientation off), for any later geocd command."""
+    import yaml
+
+    from ..io.atomic import write_text_atomic
+    from ..io.manifest import manifest_to_dict
+
+    d = manifest_to_dict(m)
+    ab = (lambda p: None if p is None else str(Path(p).resolve()))
+    for e_d, e in zip(d["epochs"], m.epochs):
+        e_d["images"] = [{"path": ab(i.path), "name": i.name, **({"camera": ab(i.camera)} if i.camera else {})}
+                         for i in e.images]
+        if e.dem is not None:
+            e_d["dem"] = {"path": ab(e.dem.path), **({"vertical_datum": e.dem.vertical_datum} if e.dem.vertical_datum else {})}
+    for k, spec in (("dem", m.dem), ("footprints", m.footprints)):
+        if spec is not None:
+            d[k] = {"path": ab(spec.path), **({"vertical_datum": spec.vertical_datum}
+                                                if getattr(spec, "vertical_datum", None) else {})}
+    d.pop("output", None)
+    d["orientation"] = False
+    d["description"] = f"{m.name} with the cameras corrected by geocd's relative orientation (orientation.json)"
+    write_text_atomic(path, yaml.safe_dump(d, sort_keys=False, allow_unicode=True))
 
 
 def check_epoch_overlap(by_epoch: dict, crs, h_m: float, aoi_bounds=None) -> None:
