@@ -727,6 +727,8 @@ class ChangeResult:
         scores, in metres; median over comparisons)
     min_region_cells : int, the minimum mapping unit used (cells)
     significance : "region" or "cell"
+    p_value : float64, the cell's combined p-value (what the region test clusters; tiled runs merge
+        regions across tiles from it)
     """
 
     dz_m: np.ndarray
@@ -743,6 +745,7 @@ class ChangeResult:
     dz_sigma_m: np.ndarray | None = None
     min_region_cells: int = 1
     significance: str = "cell"
+    p_value: np.ndarray | None = None
 
     @property
     def observed(self) -> np.ndarray:
@@ -901,7 +904,7 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
                         grid=getattr(epoch_a[0], "grid", None), confidences=tuple(levels),
                         comparisons=[f"{p.name} vs {q.name}" for p, q in comps], vertical_offsets_m=offsets,
                         cell_confidence=cell_conf, dz_sigma_m=sig_med.astype(np.float32), min_region_cells=mmu,
-                        significance=significance)
+                        significance=significance, p_value=p_cell)
 
 
 def _score_of(p: PairDEMLike, q: PairDEMLike) -> np.ndarray:

@@ -1518,7 +1518,7 @@ def _plot_large(S: _Setup, paths, png: Path, s, c, vmax, ea, eb, level, status) 
         dh = ds.read(1, out_shape=(h, w), resampling=Resampling.average, masked=True).filled(np.nan)
     with rasterio.open(paths["change_mask"]) as ds:
         sign = ds.read(1, out_shape=(h, w), resampling=Resampling.nearest)
-    small = AOIGrid(g.crs, g.transform * Affine.scale(g.width / w, g.height / h), w, h)
+    small = AOIGrid(g.crs, g.transform @ Affine.scale(g.width / w, g.height / h), w, h)
     try:
         from rasterio.windows import from_bounds
 
