@@ -178,6 +178,8 @@ def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_p
 @click.option("--inducing", "n_inducing", type=int, default=400, show_default=True,
               help="Inducing points of the sparse prediction.")
 @click.option("--batch", type=int, default=20000, show_default=True, help="Cells per prediction batch (memory).")
+@click.option("--calibrate-folds", type=int, default=5, show_default=True,
+              help="Spatial blocks of observed cells held out in turn to scale σ (band sigma_calibrated); 0 = off.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--truth", "truth_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
               help="Truth raster: adds the ablation report (PR curves, F1 at recall 0.5, σ calibration).")
@@ -190,7 +192,8 @@ def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_p
 @click.option("--prefix", default="landcover", show_default=True, help="File name prefix.")
 @_scene_options
 @click.pass_context
-def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, kernel, n_fit, n_inducing, batch, seed, truth_path,
+def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, kernel, n_fit, n_inducing, batch,
+                  calibrate_folds, seed, truth_path,
                   truth_values, exclude_path, out_dir, prefix, manifest_path, dem, dem_datum, footprints,
                   height_field, dsm, bounds, posting_m):
     """GP integration over every cell: predictive mean and σ (Cloud-Optimized GeoTIFFs)."""
@@ -210,7 +213,8 @@ def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, kernel, n
     sess.open_log(out)
     use = tuple(s.strip() for s in inputs.split(",") if s.strip()) if inputs else None
     tv = [float(s) for s in truth_values.split(",") if s.strip()] if truth_values else None
-    params = GPParams(n_fit=n_fit, n_inducing=n_inducing, batch=batch, seed=seed, kernel=kernel)
+    params = GPParams(n_fit=n_fit, n_inducing=n_inducing, batch=batch, seed=seed, kernel=kernel,
+                      calibrate_folds=calibrate_folds)
     progress = _progress(ctx, "landcover integrate")
     try:
         res = integrate_files(detailed_path, scene, out, coarse_path=coarse_path, use=use, params=params,

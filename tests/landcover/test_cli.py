@@ -70,7 +70,7 @@ def test_predict_and_integrate(trained):
         m = ds.read(1)
         assert ds.overviews(1) is not None
     with rasterio.open(out2 / "landcover_sigma.tif") as ds:
-        assert ds.descriptions == ("sigma", "sigma_obs", "mean_unclipped", "detailed")
+        assert ds.descriptions == ("sigma", "sigma_obs", "sigma_calibrated", "mean_unclipped", "detailed")
         sd = ds.read(1)
     assert np.isfinite(m).all() and (m >= 0).all() and (m <= 1).all()
     # σ grows away from the observed cells

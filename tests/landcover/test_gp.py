@@ -178,3 +178,21 @@ def test_fit_once_predict_per_window_equals_whole_grid():
     np.testing.assert_allclose(sw, s[10:25, 5:20], atol=1e-6)
     with pytest.raises(ConfigError, match="differ"):
         predict_window(gp, {"y": yy, "x": xx, "coarse": c})
+
+
+def test_heldout_calibration_scales_sigma():
+    """Misspecified noise: the held-out scale brings the ±1σ coverage of new observations near 68 %."""
+    rng = np.random.default_rng(3)
+    n = 40
+    yy, xx = np.mgrid[0:n, 0:n].astype(float)
+    c = np.sin(xx / 5.0) + np.cos(yy / 7.0)
+    target = c + 0.3 * rng.standard_t(3, c.shape)  # heavy-tailed noise
+    det = np.where(rng.random(c.shape) < 0.6, target, np.nan)
+    res = integrate(det, {"x": xx, "y": yy, "coarse": c}, GPParams(n_fit=200, n_inducing=80, calibrate_folds=4))
+    cal = res.report["calibration"]
+    assert cal["folds"] == 4 and cal["held_out_cells"] == int(np.isfinite(det).sum())
+    new = ~np.isfinite(det)
+    err = np.abs(target[new] - res.mean[new])
+    assert abs(np.mean(err <= res.sd_cal[new]) - 0.683) < 0.08
+    with pytest.raises(ConfigError):
+        GPParams(calibrate_folds=1)
