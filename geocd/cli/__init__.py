@@ -33,6 +33,7 @@ SUBCOMMANDS: dict[str, str] = {
     "change": "geocd.cli.change:change",
     "stereo": "geocd.cli.stereo:stereo",
     "probchange": "geocd.cli.probchange:probchange",
+    "import-cameras": "geocd.cli.import_cameras:import_cameras",
 }
 
 
