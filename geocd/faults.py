@@ -132,17 +132,29 @@ def free_bytes(path: os.PathLike | str) -> int | None:
     return None
 
 
+def _file_size_limited() -> bool:
+    """Whether a file-size limit (``ulimit -f``) is set for this process."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+        return soft != resource.RLIM_INFINITY
+    except (ImportError, ValueError, OSError):  # pragma: no cover - not on POSIX
+        return False
+
+
 def disk_full_error(exc: BaseException, target: os.PathLike | str | None = None) -> DiskFullError | None:
     """A :class:`DiskFullError` when ``exc`` (or its cause) says the disk or a size limit is full, else None."""
     code = next((e.errno for e in _chain(exc) if isinstance(e, OSError) and e.errno in DISK_ERRNOS), None)
     text = " ".join(str(e) for e in _chain(exc)).lower()
     free = free_bytes(target) if target is not None else None
     where = f" writing {target}" if target is not None else ""
-    if code == getattr(errno, "EFBIG", -1) or (code is None and "file too large" in text):
+    phrase = any(s in text for s in _WRITE_FAILURE_PHRASES)
+    limited = phrase and code is None and _file_size_limited() and (free is None or free >= 64 * 2**20)
+    if code == getattr(errno, "EFBIG", -1) or (code is None and "file too large" in text) or limited:
         return DiskFullError(
             f"file size limit reached{where} (a shell `ulimit -f`, a quota, or a FAT32 disk's 4 GB limit); raise "
             "the limit or write to another folder (--out)")
-    phrase = any(s in text for s in _WRITE_FAILURE_PHRASES)
     if code is not None or (phrase and (free is None or free < 64 * 2**20)) or "no space left" in text:
         room = f" ({_fmt_mb(free)} free there)" if free is not None else ""
         return DiskFullError(f"no space left on device{where}{room}; free some space or choose an output folder "
@@ -177,7 +189,8 @@ def _translate(exc: BaseException, target) -> GeoCDError:
             "text input (manifest, model/config JSON, camera, list file) is the right file")
     if isinstance(exc, UnicodeError):
         return UnsupportedFormatError(f"text encoding problem ({msg}); save text inputs as UTF-8")
-    if isinstance(exc, OSError):
+    kind = _library_error_kind(exc)
+    if isinstance(exc, OSError) and (exc.errno is not None or kind is None):
         name = exc.filename if getattr(exc, "filename", None) else target
         at = f" {name}" if name else ""
         if isinstance(exc, FileExistsError):
@@ -199,7 +212,6 @@ def _translate(exc: BaseException, target) -> GeoCDError:
             return OutputError(f"input/output error on{at or ' a file'} (a failing disk or network share); "
                                "check the disk and retry")
         return OutputError(f"system error{at}: {exc.strerror or msg}; check the path and the disk")
-    kind = _library_error_kind(exc)
     if kind is not None:
         return UnsupportedFormatError(
             f"{kind} could not read or write a file ({msg}); the file is truncated, corrupt or in an unsupported "

@@ -37,6 +37,7 @@ removed, the output session recorded as interrupted) and exit 128 + signal
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import sys
@@ -59,10 +60,15 @@ SUBCOMMANDS: dict[str, str] = {
     "stereo": "geocd.cli.stereo:stereo",
     "probchange": "geocd.cli.probchange:probchange",
     "ortho": "geocd.cli.ortho:ortho",
+    "landcover": "geocd.cli.landcover:landcover",
 }
 
 
 class LazyGroup(click.Group):
+    def parse_args(self, ctx, args):
+        ctx.meta["geocd.argv"] = ["geocd", *args]  # the command line, recorded with the products it writes
+        return super().parse_args(ctx, args)
+
     def list_commands(self, ctx):
         return sorted(SUBCOMMANDS)
 
@@ -77,7 +83,7 @@ class LazyGroup(click.Group):
 
     def invoke(self, ctx):
         from ..faults import exit_code_for_interrupt, one_line, signal_name, signals_as_interrupts, translate
-        from ..io.outputs import close_sessions
+        from ..io.outputs import OutputFolderWarning, close_sessions
 
         debug = ctx.params.get("debug", False)
         mode = (ctx.obj or {}).get("progress_mode") or ctx.params.get("progress")
@@ -87,30 +93,55 @@ class LazyGroup(click.Group):
                 sys.stderr.write(json.dumps({"type": "error", "error": kind, "message": message}) + "\n")
             click.echo(f"geocd: error: {message}", err=True)
 
-        try:
-            with signals_as_interrupts():
-                rv = super().invoke(ctx)
-                close_sessions(ok=True)
-            return rv
-        except (click.exceptions.Exit, click.exceptions.Abort, click.exceptions.ClickException) as exc:
-            close_sessions(ok=isinstance(exc, click.exceptions.Exit) and exc.exit_code == 0, exc=exc)
-            raise
-        except KeyboardInterrupt as exc:
-            close_sessions(ok=False, exc=exc)
-            if debug:
+        prev_hook = sys.unraisablehook
+        with warnings.catch_warnings(), _restore_unraisablehook(prev_hook):
+            warnings.simplefilter("always", OutputFolderWarning)
+            shown = warnings.showwarning
+
+            def show(message, category, filename, lineno, file=None, line=None):
+                if issubclass(category, OutputFolderWarning) and mode != "json":
+                    click.echo(f"geocd: note: {message}", err=True)
+                else:
+                    shown(message, category, filename, lineno, file, line)
+
+            warnings.showwarning = show
+            if not debug:
+                # an exception inside a library callback (rasterio's GDAL log handler failing to decode a corrupt
+                # file's message) is printed by Python as a traceback although nothing failed: keep stderr clean
+                sys.unraisablehook = lambda u: None
+            try:
+                with signals_as_interrupts():
+                    rv = super().invoke(ctx)
+                    close_sessions(ok=True)
+                return rv
+            except (click.exceptions.Exit, click.exceptions.Abort, click.exceptions.ClickException) as exc:
+                close_sessions(ok=isinstance(exc, click.exceptions.Exit) and exc.exit_code == 0, exc=exc)
                 raise
-            what = "interrupted (Ctrl-C)" if type(exc) is KeyboardInterrupt else f"stopped by {signal_name(exc.signum)}"
-            report("CancelledError", f"{what}; partial files were removed and the products already written are "
-                                     "listed as interrupted in the output folder's geocd_products.json; run the "
-                                     "command again to complete them")
-            ctx.exit(exit_code_for_interrupt(exc))
-        except Exception as exc:  # noqa: BLE001 - the single error path: everything becomes a GeoCDError
-            close_sessions(ok=False, exc=exc)
-            if debug:
-                raise
-            err = translate(exc)
-            report(type(err).__name__, one_line(err))
-            ctx.exit(getattr(err, "exit_code", 2))
+            except KeyboardInterrupt as exc:
+                close_sessions(ok=False, exc=exc)
+                if debug:
+                    raise
+                what = ("interrupted (Ctrl-C)" if type(exc) is KeyboardInterrupt
+                        else f"stopped by {signal_name(exc.signum)}")
+                report("CancelledError", f"{what}; partial files were removed and the products already written are "
+                                         "listed as interrupted in the output folder's geocd_products.json; run the "
+                                         "command again to complete them")
+                ctx.exit(exit_code_for_interrupt(exc))
+            except Exception as exc:  # noqa: BLE001 - the single error path: everything becomes a GeoCDError
+                close_sessions(ok=False, exc=exc)
+                if debug:
+                    raise
+                err = translate(exc)
+                report(type(err).__name__, one_line(err))
+                ctx.exit(getattr(err, "exit_code", 2))
+
+
+@contextlib.contextmanager
+def _restore_unraisablehook(hook):
+    try:
+        yield
+    finally:
+        sys.unraisablehook = hook
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -108,13 +108,45 @@ def protected_inputs_under(folder: os.PathLike | str) -> list[Path]:
     return [p for p in _PROTECTED if p == rf or rf in p.parents]
 
 
-def _write_error(exc: BaseException, target: Path) -> GeoCDError | None:
-    """The GeoCDError for a failed write of ``target`` (disk full, read-only, ...), or None."""
+def _largest_size(tmp: Path | None) -> int:
+    """Size of the largest of a temporary and its side files (journals, overviews)."""
+    if tmp is None:
+        return 0
+    best = 0
+    with contextlib.suppress(OSError):
+        for p in [tmp, *tmp.parent.glob(glob_escape(tmp.name) + "[.-]*")]:
+            with contextlib.suppress(OSError):
+                best = max(best, p.stat().st_size if p.is_file() else 0)
+    return best
+
+
+def _write_error(exc: BaseException, target: Path, tmp: Path | None = None) -> GeoCDError | None:
+    """The GeoCDError for a failed write of ``target`` (disk full, size limit, read-only, ...), or None.
+
+    Libraries do not always say why a write failed (OGR: "Failed to commit transaction"): a temporary that
+    reached the ``ulimit -f`` size, or a disk with (almost) no free space, is taken as the reason.
+    """
     if isinstance(exc, GeoCDError) or not isinstance(exc, Exception):
         return None
-    from ..faults import disk_full_error, translate
+    from ..errors import DiskFullError
+    from ..faults import disk_full_error, free_bytes, translate
 
     err = disk_full_error(exc, target)
+    if err is None and tmp is not None:
+        try:
+            import resource
+
+            soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+        except (ImportError, ValueError, OSError):  # pragma: no cover
+            soft = None
+        size = _largest_size(tmp)
+        free = free_bytes(target.parent)
+        if soft not in (None, getattr(resource, "RLIM_INFINITY", None)) and size >= soft - 65536:
+            err = DiskFullError(f"file size limit reached writing {target} ({soft / 1e6:,.2f} MB, a shell `ulimit -f` "
+                                "or a quota); raise the limit or write to another folder (--out)")
+        elif free is not None and free < 1 << 20:
+            err = DiskFullError(f"no space left on device writing {target} ({free / 1e3:,.0f} kB free there); free "
+                                "some space or choose an output folder on another disk (--out)")
     if err is None and isinstance(exc, OSError):
         err = translate(exc, target=target)
     if err is not None:
@@ -168,8 +200,8 @@ def atomic_path(path: os.PathLike | str, overwrite: bool = True) -> Iterator[Pat
             raise OutputError(f"refusing to overwrite the input file {target}; choose another output folder")
         os.replace(tmp_path, target)
     except BaseException as exc:
+        err = _write_error(exc, target, tmp_path)
         _remove_temporary(tmp_path, target.parent)
-        err = _write_error(exc, target)
         if err is not None:
             raise err from exc
         raise

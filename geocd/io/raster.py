@@ -60,7 +60,7 @@ RESAMPLING = ("nearest", "bilinear", "cubic", "average", "min", "max", "med")
 
 def _open(path: os.PathLike | str):
     import rasterio
-    from rasterio.errors import RasterioIOError
+    from rasterio.errors import RasterioError, RasterioIOError
 
     p = Path(path)
     if not p.exists() and "://" not in str(path) and not str(path).startswith("/vsi"):
@@ -76,6 +76,10 @@ def _open(path: os.PathLike | str):
             return rasterio.open(p)
     except RasterioIOError as exc:
         raise UnsupportedFormatError(f"cannot read {p} as a raster ({exc}); give a GeoTIFF or another GDAL format") from exc
+    except (RasterioError, UnicodeError, ValueError, OverflowError) as exc:
+        # a corrupt header: rasterio fails decoding a CRS citation, a tag, a metadata string
+        raise UnsupportedFormatError(f"cannot read {p} as a raster: its header is corrupt ({type(exc).__name__}: "
+                                     f"{' '.join(str(exc).split())[:120]}); copy or export the file again") from exc
 
 
 @dataclass
@@ -213,7 +217,7 @@ def read_dem(path: os.PathLike | str, grid: AOIGrid | None = None, resampling: s
         vd = vertical_datum or vertical_datum_of(ds.crs)
         if grid is not None:
             _check_dem_covers(ds, path, grid)
-        _check_read_memory(path, grid.shape if grid is not None else (ds.height, ds.width))
+        _check_read_memory(path, grid.shape if grid is not None else (ds.height, ds.width), grid)
         try:
             if grid is None:
                 arr = ds.read(band, masked=True).astype(np.float32)
@@ -264,13 +268,18 @@ def _check_dem_like(ds, path, band: int) -> int:
     return band
 
 
-def _check_read_memory(path, shape: tuple[int, int], bytes_per_cell: int = 13) -> None:
+def _check_read_memory(path, shape: tuple[int, int], grid: AOIGrid | None = None, bytes_per_cell: int = 13) -> None:
     """Refuse to read a raster that cannot fit (float32 heights, a mask, a working copy per cell)."""
     from .outputs import check_resources
 
     rows, cols = int(shape[0]), int(shape[1])
-    check_resources(f"reading {path} ({cols} x {rows} cells)", memory_bytes=rows * cols * bytes_per_cell,
-                    fix="crop it to the area of interest first (gdal_translate -projwin ...) or resample it coarser")
+    if grid is None:
+        what = f"reading {path} ({cols} x {rows} cells)"
+        fix = "crop it to the area of interest first (gdal_translate -projwin ...) or resample it coarser"
+    else:
+        what = f"the AOI grid ({cols} x {rows} cells at {grid.posting_m:g} m, reading {Path(path).name} onto it)"
+        fix = "use a coarser posting or a smaller AOI"
+    check_resources(what, memory_bytes=rows * cols * bytes_per_cell, fix=fix)
 
 
 def _check_heights(h: np.ndarray, path) -> None:
@@ -337,25 +346,47 @@ def reproject_array(array: np.ndarray, src_grid: AOIGrid, dst_grid: AOIGrid, res
     return out
 
 
+def band_unit(name: str) -> str:
+    """The unit a band name says by geocd's naming convention ("" when it says none)."""
+    n = name.lower()
+    for suffix, unit in (("_m3", "m3"), ("_m2", "m2"), ("_m", "m"), ("_px", "px"), ("_deg", "degree"),
+                         ("_pct", "%"), ("_s", "s")):
+        if n.endswith(suffix):
+            return unit
+    if "confidence" in n:
+        return "%"
+    if n in ("probability", "change_probability", "coverage", "vis_inf", "ncc", "valid"):
+        return "1"
+    return ""
+
+
 def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarray], grid: AOIGrid, *,
               nodata: float | int | None = None, dtype: str | None = None, tags: Mapping[str, Any] | None = None,
               band_tags: Sequence[Mapping[str, Any]] | None = None, overwrite: bool = True,
               compress: str = "deflate", colormap: Mapping[int, tuple] | None = None,
-              overview_resampling: str = "average", mask: np.ndarray | None = None) -> Path:
+              overview_resampling: str = "average", mask: np.ndarray | None = None,
+              units: Mapping[str, str] | Sequence[str] | None = None) -> Path:
     """Write a Cloud-Optimized GeoTIFF atomically.
+
+    Every band gets a description (what QGIS shows as its name) and, where known, a unit
+    (GDAL's band unit type, what ``gdalinfo`` prints as "Unit Type").
 
     Parameters
     ----------
     bands : ndarray (rows, cols) or (bands, rows, cols), or mapping name → 2-D array
-        Mapping keys become band descriptions (what QGIS shows as band names).
+        Mapping keys become band descriptions; unnamed bands are described by the file's
+        stem (and their number when there are several).
     grid : AOIGrid
     nodata : number, optional
         NaN in float data is nodata by default.
     tags : mapping, optional
-        Dataset metadata (e.g. units, method, provenance JSON).
+        Dataset metadata (e.g. method, provenance JSON).
     mask : bool ndarray (rows, cols), optional
         Written as the GDAL internal mask band (False = nodata, transparent in QGIS):
         for integer images whose every value is legitimate data.
+    units : mapping name → unit, or one unit per band, optional
+        Band units; default: from the band names' suffixes (:func:`band_unit`: ``_m`` → m,
+        ``confidence`` → %, ...).
     """
     import rasterio
     from rasterio.io import MemoryFile
@@ -368,7 +399,17 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
         arr = np.asarray(bands)
         if arr.ndim == 2:
             arr = arr[None]
-        names = [None] * arr.shape[0]
+        stem = Path(path).stem
+        names = [stem] if arr.shape[0] == 1 else [f"{stem}_{i}" for i in range(1, arr.shape[0] + 1)]
+    if isinstance(units, Mapping):
+        unit_list = [units.get(n, band_unit(n)) for n in names]
+    elif units is not None:
+        unit_list = [str(u) for u in units]
+    else:
+        unit_list = [band_unit(n) for n in names]
+    for i, bt in enumerate(band_tags or []):  # a "units" band tag (stereo products) is the unit too
+        if i < len(unit_list) and not unit_list[i] and bt and bt.get("units"):
+            unit_list[i] = str(bt["units"])
     if arr.shape[1:] != grid.shape:
         raise OutputError(f"array shape {arr.shape[1:]} does not match the grid {grid.shape}")
     dtype = dtype or str(arr.dtype)
@@ -381,8 +422,9 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
             with mem.open(**profile) as dst:
                 dst.write(arr.astype(dtype))
                 for i, name in enumerate(names, start=1):
-                    if name:
-                        dst.set_band_description(i, str(name))
+                    dst.set_band_description(i, str(name))
+                    if i - 1 < len(unit_list) and unit_list[i - 1]:
+                        dst.set_band_unit(i, unit_list[i - 1])
                     if band_tags and i - 1 < len(band_tags) and band_tags[i - 1]:
                         dst.update_tags(i, **{k: str(v) for k, v in band_tags[i - 1].items()})
                 if tags:
@@ -447,6 +489,23 @@ def write_image(path: os.PathLike | str, data: np.ndarray, *, rpc=None, crs: Any
                 if tags:
                     dst.update_tags(**{k: str(v) for k, v in tags.items()})
     return Path(path)
+
+
+def read_on_grid(path: os.PathLike | str, grid: AOIGrid, resampling: str = "nearest", band: int = 1) -> np.ndarray:
+    """Any single band (a mask, classes, a product) resampled onto ``grid``: float32, NaN outside / nodata.
+
+    Unlike :func:`read_dem`, values are not checked to be heights.
+    """
+    from rasterio.errors import RasterioError
+
+    with _open(path) as ds:
+        if ds.crs is None:
+            raise CRSError(f"{path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...) before using it")
+        _check_read_memory(path, grid.shape, grid)
+        try:
+            return reproject_band(ds, band, grid, resampling)
+        except RasterioError as exc:
+            raise _read_failure(path, exc) from exc
 
 
 def read_band(path: os.PathLike | str, band: int = 1) -> tuple[np.ndarray, AOIGrid]:

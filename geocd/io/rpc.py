@@ -218,11 +218,11 @@ PLAUSIBLE_RANGES = (
     ("samp_off", -1e7, 1e7, "a pixel offset"),
 )
 PLAUSIBLE_SCALES = (
-    ("lat_scale", 90.0, "degrees of latitude"),
-    ("lon_scale", 180.0, "degrees of longitude"),
-    ("height_scale", 1e5, "metres"),
-    ("line_scale", 1e7, "pixels"),
-    ("samp_scale", 1e7, "pixels"),
+    ("lat_scale", 1e-8, 90.0, "degrees of latitude"),
+    ("lon_scale", 1e-8, 180.0, "degrees of longitude"),
+    ("height_scale", 1e-3, 1e5, "metres"),
+    ("line_scale", 1e-3, 1e7, "pixels"),
+    ("samp_scale", 1e-3, 1e7, "pixels"),
 )
 #: RPC00B coefficients act on offsets normalised to [-1, 1]; real models stay below ~250 (measured on the
 #: 29 vendor RPCs of ../shared/data: SkySat 225, Pléiades 46, others ~1): 1e6 leaves four orders of margin
@@ -233,8 +233,9 @@ def check_rpc_plausible(model: RPCModel, path: os.PathLike | str | None = None) 
     """Refuse an RPC whose offsets/scales are outside physical ranges or whose coefficients are absurd.
 
     Latitude offset within ±90°, longitude within -180..360°, ground height offset within
-    -12..30 km, scales non-zero and below a hemisphere / 100 km / 10⁷ px, every coefficient finite
-    and below :data:`MAX_ABS_COEFFICIENT` in magnitude.
+    -12..30 km, scales between a millimetre / a thousandth of a pixel and a hemisphere / 100 km /
+    10⁷ px, every coefficient finite and below :data:`MAX_ABS_COEFFICIENT` in magnitude, and the
+    model's centre projecting to a finite pixel.
 
     Raises
     ------
@@ -246,10 +247,10 @@ def check_rpc_plausible(model: RPCModel, path: os.PathLike | str | None = None) 
         v = float(getattr(model, name))
         if not (lo <= v <= hi):
             bad.append(f"{_VENDOR_KEY[name]}={v:g} is not {what} (expected {lo:g}..{hi:g})")
-    for name, hi, unit in PLAUSIBLE_SCALES:
+    for name, lo, hi, unit in PLAUSIBLE_SCALES:
         v = abs(float(getattr(model, name)))
-        if not (0.0 < v <= hi):
-            bad.append(f"{_VENDOR_KEY[name]}={getattr(model, name):g} is outside 0..{hi:g} {unit}")
+        if not (lo <= v <= hi):
+            bad.append(f"{_VENDOR_KEY[name]}={getattr(model, name):g} is outside {lo:g}..{hi:g} {unit}")
     for name in _COEF_NAMES:
         c = np.asarray(getattr(model, name), float)
         big = np.abs(c) > MAX_ABS_COEFFICIENT
@@ -257,6 +258,11 @@ def check_rpc_plausible(model: RPCModel, path: os.PathLike | str | None = None) 
             k = int(np.argmax(np.abs(c)))
             bad.append(f"{_VENDOR_KEY[name]}_{k + 1}={c[k]:g} is not a plausible coefficient "
                        f"(|c| > {MAX_ABS_COEFFICIENT:g})")
+    if not bad:
+        with np.errstate(all="ignore"):
+            c, r = model.project(model.lon_off, model.lat_off, model.height_off)
+        if not (np.isfinite(c) and np.isfinite(r) and abs(float(c)) < 1e9 and abs(float(r)) < 1e9):
+            bad.append(f"the model's own centre projects to a non-finite pixel ({float(c):g}, {float(r):g})")
     if bad:
         raise RPCParseError(f"{where}implausible RPC: {'; '.join(bad[:4])}"
                             f"{f'; and {len(bad) - 4} more' if len(bad) > 4 else ''}. The file is corrupt or not this "

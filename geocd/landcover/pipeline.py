@@ -454,9 +454,77 @@ def write_integration(out: Path, prefix: str, scene: Scene, res, detailed: np.nd
     outputs["probability"] = write_cog(out / f"{prefix}_probability.tif", {f"p_{class_name}": p}, scene.grid,
                                        tags={**tags, "content": f"GP predictive mean of p({class_name}), clipped to "
                                                                 "[0, 1]"})
-    outputs["sigma"] = write_cog(out / f"{prefix}_sigma.tif", {"sigma": res.sd, "sigma_obs": res.sd_obs,
-                                                               "mean_unclipped": res.mean,
-                                                               "detailed": detailed.astype(np.float32)},
-                                 scene.grid, tags={**tags, "content": "GP predictive sd of the latent probability "
-                                                                      "(sigma) and of a new observation (sigma_obs)"})
+    bands = {"sigma": res.sd, "sigma_obs": res.sd_obs}
+    if res.sd_cal is not None:
+        bands["sigma_calibrated"] = res.sd_cal
+    bands.update({"mean_unclipped": res.mean, "detailed": detailed.astype(np.float32)})
+    outputs["sigma"] = write_cog(out / f"{prefix}_sigma.tif", bands, scene.grid,
+                                 tags={**tags, "content": "GP predictive sd of the latent probability (sigma), of a "
+                                                          "new observation (sigma_obs) and the latter scaled by "
+                                                          "spatial-block cross-validation (sigma_calibrated)"})
     return outputs
+
+
+def integrate_files(detailed_path: os.PathLike | str, scene: Scene, out_dir: os.PathLike | str, *,
+                    coarse_path: os.PathLike | str | None = None, use: Sequence[str] | None = None,
+                    params=None, class_name: str = "condition", truth_path: os.PathLike | str | None = None,
+                    truth_values: Sequence[float] | None = None, exclude_path: os.PathLike | str | None = None,
+                    prefix: str = "landcover", progress=None) -> dict:
+    """GP integration of a projected detailed probability (+ a coarse one) over the scene grid; COG products.
+
+    With ``truth_path`` (a raster whose cells equal to one of ``truth_values`` — default: nonzero — hold the
+    condition) the thesis's ablation is run and written as a report (JSON + PR figure); ``exclude_path`` (the
+    training label layer) keeps labelled cells out of the scores.
+    """
+    from ..io.atomic import protect_inputs, write_text_atomic
+    from .gp import GPParams, integrate
+    from .report import ablation, pr_figure
+
+    prog = ensure_progress(progress)
+    params = params or GPParams()
+    paths = [p for p in (detailed_path, coarse_path, truth_path, exclude_path) if p is not None]
+    protect_inputs(*paths)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    det = read_on_grid(detailed_path, scene.grid)
+    coarse = read_on_grid(coarse_path, scene.grid) if coarse_path is not None else None
+    if use is None:
+        use = tuple(u for u in INPUTS if (u != "coarse" or coarse is not None)
+                    and (u != "buildings" or scene.occupancy.any()))
+    t0 = time.perf_counter()
+    res = integrate(det, gp_inputs(scene, coarse, use), params, progress=sub_progress(prog, 0.0, 0.6))
+    outputs = write_integration(out, prefix, scene, res, det, class_name)
+    summary: dict = {"class": class_name, "inputs": list(use), "params": params.to_dict(),
+                     "seconds": round(time.perf_counter() - t0, 2), **res.report}
+    if truth_path is not None:
+        prog(0.65, "ablation against the truth map")
+        tr = read_on_grid(truth_path, scene.grid)
+        if truth_values:
+            truth = np.isin(np.rint(tr), np.asarray(truth_values, float))
+        else:
+            truth = np.nan_to_num(tr) > 0.5
+        exclude = None
+        if exclude_path is not None:
+            lab = read_labels(exclude_path)
+            if lab.crs is not None:
+                cls, _ = rasterize_labels(lab.to_crs(scene.grid.crs), scene.grid.shape, scene.grid.transform,
+                                          class_list(lab))
+                exclude = cls >= 0
+        scores, results = ablation(det, coarse, lambda u: gp_inputs(scene, coarse, u), truth, exclude=exclude,
+                                   params=params)
+        ev = np.ones(truth.shape, bool) if exclude is None else ~exclude
+        curves = {}
+        if coarse is not None:
+            curves["coarse alone"] = (truth[ev], coarse[ev])
+        obs = np.isfinite(det) & ev
+        curves["detailed alone (observed)"] = (truth[obs], det[obs])
+        for n, r in results.items():
+            curves[n] = (truth[ev], r.mean[ev])
+        outputs["ablation_png"] = out / f"{prefix}_ablation.png"
+        pr_figure(outputs["ablation_png"], curves, scores, f"{class_name}: ablation")
+        outputs["ablation"] = write_text_atomic(out / f"{prefix}_ablation.json", json.dumps(scores, indent=2))
+        summary["ablation"] = {k: v.get("f1_at_recall") for k, v in scores.items()
+                               if isinstance(v, dict) and "f1_at_recall" in v}
+    outputs["summary"] = write_text_atomic(out / f"{prefix}_integrate.json", json.dumps(summary, indent=2))
+    prog(1.0, "done")
+    return {"outputs": outputs, "summary": summary, "result": res}

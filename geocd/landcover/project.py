@@ -62,7 +62,7 @@ def building_surface(dem_m: np.ndarray, grid: AOIGrid, footprints=None,
     from affine import Affine
 
     fine = rasterize([(g, 1) for g in fp.geometry], out_shape=(grid.height * k, grid.width * k),
-                     transform=t * Affine.scale(1.0 / k), fill=0, dtype="uint8")
+                     transform=t @ Affine.scale(1.0 / k), fill=0, dtype="uint8")
     occ = fine.reshape(grid.height, k, grid.width, k).mean(axis=(1, 3)).astype(np.float32)
     if height_field is None:
         height_field = next((h for h in HEIGHT_FIELDS if h in fp.columns), None)

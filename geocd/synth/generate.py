@@ -37,6 +37,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..errors import ConfigError
+from ..io.outputs import LOCK_NAME, MANIFEST_NAME
 from ..params import ParamsMixin
 from ..progress import ensure_progress, sub_progress
 from .scene import CHANGE_TYPES, Town, TownParams, build_town
@@ -315,7 +316,7 @@ def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: boo
     prog = ensure_progress(progress)
     out = Path(out_dir)
     # geocd's own bookkeeping of the output session (lock, product manifest) does not make the folder a scene
-    bookkeeping = {".geocd.lock", "geocd_products.json"}
+    bookkeeping = {LOCK_NAME, MANIFEST_NAME}
     if out.exists() and any(p.name not in bookkeeping for p in out.iterdir()) and not overwrite:
         raise OutputError(f"{out} is not empty; choose a new folder or pass overwrite=True (--overwrite)")
     out.mkdir(parents=True, exist_ok=True)
@@ -523,6 +524,8 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
         "dem": {"path": "truth/dem_prior.tif", "vertical_datum": "ellipsoid"},
         # the buildings of the earlier date only (what a user has at best): new ones must come from detection
         "footprints": "truth/footprints_A.gpkg",
+        # the simulated cameras are exact: no cross-epoch bias to estimate
+        "orientation": False,
         "epochs": [
             {"name": "A", "date": p.date_a[:10], "sensor": sens_a, "images": imgs("A")},
             {"name": "B", "date": p.date_b[:10], "sensor": sens_b, "images": imgs("B")},

@@ -37,6 +37,8 @@ WORK_DIR = ".geocd-work"
 
 
 def _canon(o: Any) -> Any:
+    if hasattr(o, "cache_key") and callable(o.cache_key):
+        return _canon(o.cache_key())
     if isinstance(o, Mapping):
         return {str(k): _canon(v) for k, v in sorted(o.items(), key=lambda kv: str(kv[0]))}
     if isinstance(o, (list, tuple)):
