@@ -352,6 +352,25 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     return out
 
 
+def stable_false_alarms(confidence: np.ndarray, observed: np.ndarray, damage, grid, *, buffer_m: float = 0.0,
+                        levels=(90.0, 95.0, 99.0)) -> dict:
+    """Flagged share of the observed cells outside every changed building (grown by ``buffer_m``).
+
+    ``confidence``: per-cell confidence (percent) of a change test; ``damage``: its building layer.
+    Returns {level (str): share, "stable_cells": n, "buffer_m": b}.
+    """
+    from rasterio.features import rasterize
+
+    changed = damage[damage["class"].isin(CHANGED)]
+    geoms = [g.buffer(buffer_m) if buffer_m else g for g in changed.geometry]
+    inside = (rasterize([(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform, fill=0,
+                        dtype="uint8").astype(bool) if geoms else np.zeros(grid.shape, bool))
+    stable = observed & ~inside
+    out: dict = {f"{c:g}": round(float((np.nan_to_num(confidence[stable]) >= c).mean()), 5) for c in levels}
+    out.update(stable_cells=int(stable.sum()), buffer_m=buffer_m)
+    return out
+
+
 def damage_qml() -> str:
     """QGIS style of the damage layer (categorized on ``class``, labelled with the confidence)."""
     return categorized_polygon_qml("class", DAMAGE_CLASSES)
