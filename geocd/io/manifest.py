@@ -272,6 +272,32 @@ class _Either(_Spec):
         return kinds[0].check(v, where, errs)
 
 
+class _OnOffOr(_Spec):
+    """true / false / auto, or a mapping (``orientation: {model: shift}``)."""
+
+    def __init__(self, mapping: "_Map") -> None:
+        self.mapping = mapping
+        self.what = f"true, false, auto or {mapping.what}"
+
+    def check(self, v, where, errs):
+        if isinstance(v, bool) or v == "auto":
+            return v
+        if isinstance(v, dict):
+            n = len(errs)
+            out = self.mapping.check(v, where, errs)
+            if len(errs) == n:   # the keys are right: check the values where they are defined
+                from ..errors import ConfigError
+                from ..orientation.params import OrientationParams
+
+                try:
+                    OrientationParams.from_dict(out)
+                except (ConfigError, TypeError, ValueError) as exc:
+                    errs.append(f"{where}: {exc}")
+            return out
+        errs.append(f"{where}: expected {self.what}, got {_short(v)}")
+        return v
+
+
 def _short(v: Any, n: int = 40) -> str:
     s = repr(v)
     return (s if len(s) <= n else s[: n - 3] + "...") + (f" ({type(v).__name__})" if not isinstance(v, str) else "")
@@ -288,6 +314,9 @@ def _did_you_mean(word: str, options) -> str:
 
 
 VERTICAL_DATUMS = ("ellipsoid", "egm96", "egm2008")
+ORIENTATION_KEYS = ("enabled", "model", "gauge", "prior_shift_px", "prior_linear_px", "max_offset_m", "height_span_m",
+                    "patch_px", "block_px", "min_ncc", "min_points", "min_spread", "min_correction_px", "reject_k",
+                    "max_ortho_px")
 _DEM_MAP = _Map({"path": _Path(), "vertical_datum": _Str(what="a vertical datum name"), "layer": _Scalar()},
                 required=("path",), what="a mapping with 'path'")
 _VECTOR_MAP = _Map({"path": _Path(), "layer": _Scalar()}, required=("path",), what="a mapping with 'path'")
@@ -317,6 +346,8 @@ SCHEMA = _Map({
         "dem": _Either(_Path(), _DEM_MAP),
     }, what="a mapping with name, date, images")),
     "truth": _Map(free=True),
+    # cross-image relative orientation (geocd.orientation.OrientationParams fields)
+    "orientation": _OnOffOr(_Map({k: _Scalar() for k in ORIENTATION_KEYS}, what="a mapping of orientation settings")),
 }, what="a mapping")
 
 

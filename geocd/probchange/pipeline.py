@@ -138,6 +138,10 @@ def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = 
     t_start = time.perf_counter()
     prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
+    from ..orientation import orient_manifest
+
+    m, _ = orient_manifest(m, out_dir=Path(out_dir) if out_dir is not None else Path(m.output or m.root / "out"),
+                           grid=grid)
     ea, eb = pick_epochs(m, epoch_a, epoch_b)
     ims = {ea.name: _select(load_epoch_images(m, ea), images_a, ea.name),
            eb.name: _select(load_epoch_images(m, eb), images_b, eb.name)}

@@ -47,6 +47,11 @@ def load_epoch_images(manifest, epoch) -> list[EpochImage]:
     return out
 
 
+def _sensor_kind(camera: Camera) -> str:
+    """The kind of sensor geometry (a corrected camera reports the camera underneath)."""
+    return getattr(camera, "sensor_kind", camera.kind)
+
+
 def pair_path(out_dir: os.PathLike | str, epoch: str, a: str, b: str) -> Path:
     """Where the pair-DEM of images ``a`` and ``b`` of ``epoch`` goes."""
     return Path(out_dir) / "stereo" / epoch / f"{a}__{b}.tif"
@@ -280,7 +285,7 @@ def default_aoi_grid(manifest, images_by_epoch: dict[str, list[EpochImage]], *, 
 def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.PathLike | str | None = None,
                params: StereoParams = StereoParams(), grid: AOIGrid | None = None, posting_m: float | None = None,
                overwrite: bool = True, progress: Progress | None = None,
-               keep_arrays: bool = False, pairs: str = "all") -> dict[str, Any]:
+               keep_arrays: bool = False, pairs: str = "all", orient: bool = True) -> dict[str, Any]:
     """Match every pair of images of the selected epochs and write their pair-DEMs.
 
     Parameters
@@ -293,6 +298,8 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
     pairs : "all" (every pair of an epoch) or "same-kind" (only pairs of images whose cameras are of
         the same kind, e.g. satellite–satellite and aerial–aerial: mixed pairs differ in GSD and
         spectral band and match poorly)
+    orient : apply the manifest's cross-image orientation first (:func:`geocd.orientation.orient_manifest`;
+        by default on when the manifest has two epochs); False when the caller already did
 
     Returns
     -------
@@ -318,6 +325,11 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
         if len(e.images) < 2:
             raise ConfigError(f"epoch {e.name!r} has {len(e.images)} image(s); stereo needs at least two")
     out = Path(out_dir) if out_dir is not None else m.output_dir()
+    if orient:
+        from ..orientation import orient_manifest
+
+        m, _ = orient_manifest(m, out_dir=out, grid=grid, stereo_params=params)
+        selected = [m.epoch(e.name) for e in selected]
     images = {e.name: load_epoch_images(m, e) for e in selected}
     protect_inputs(*[im.path for ims in images.values() for im in ims])
     dem_median = None
@@ -329,7 +341,7 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
     if pairs not in ("all", "same-kind"):
         raise ConfigError(f"pairs must be 'all' or 'same-kind', got {pairs!r}")
     pairs = [(e, a, b) for e in selected for a, b in itertools.combinations(images[e.name], 2)
-             if pairs == "all" or a.camera.kind == b.camera.kind]
+             if pairs == "all" or _sensor_kind(a.camera) == _sensor_kind(b.camera)]
     if not pairs:
         raise ConfigError("no image pair left to match (with pairs='same-kind', each epoch needs two images whose "
                           "cameras are of the same kind); use pairs='all'")

@@ -524,6 +524,8 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
         "dem": {"path": "truth/dem_prior.tif", "vertical_datum": "ellipsoid"},
         # the buildings of the earlier date only (what a user has at best): new ones must come from detection
         "footprints": "truth/footprints_A.gpkg",
+        # the simulated cameras are exact: no cross-epoch bias to estimate
+        "orientation": False,
         "epochs": [
             {"name": "A", "date": p.date_a[:10], "sensor": sens_a, "images": imgs("A")},
             {"name": "B", "date": p.date_b[:10], "sensor": sens_b, "images": imgs("B")},
