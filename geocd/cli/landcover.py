@@ -178,8 +178,9 @@ def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_p
 @click.option("--inducing", "n_inducing", type=int, default=400, show_default=True,
               help="Inducing points of the sparse prediction.")
 @click.option("--batch", type=int, default=20000, show_default=True, help="Cells per prediction batch (memory).")
-@click.option("--calibrate-folds", type=int, default=5, show_default=True,
-              help="Spatial blocks of observed cells held out in turn to scale σ (band sigma_calibrated); 0 = off.")
+@click.option("--calibrate-folds", type=int, default=0, show_default=True,
+              help="Spatial blocks of observed cells held out in turn to scale σ to the detailed views' own "
+                   "held-out error (band sigma_calibrated); 0 = off. See docs/landcover.md before relying on it.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--truth", "truth_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
               help="Truth raster: adds the ablation report (PR curves, F1 at recall 0.5, σ calibration).")

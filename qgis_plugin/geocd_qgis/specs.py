@@ -677,7 +677,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
             Param("BATCH", "int", "Cells per prediction batch (memory)", cli="--batch", default=20000, min=1,
                   advanced=True),
             Param("CALIBRATE_FOLDS", "int", "Spatial blocks held out to calibrate σ (0 = off)",
-                  cli="--calibrate-folds", default=5, min=0, advanced=True),
+                  cli="--calibrate-folds", default=0, min=0, advanced=True),
             Param("SEED", "int", "Random seed", cli="--seed", default=0, advanced=True),
             Param("TRUTH", "raster", "Truth raster (adds the ablation report)", cli="--truth", optional=True,
                   advanced=True),

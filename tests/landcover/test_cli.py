@@ -62,6 +62,7 @@ def test_predict_and_integrate(trained):
     out2 = d / "gp"
     r = _run(["landcover", "integrate", "--detailed", str(d / "det.tif"), "--coarse", str(d / "coarse.tif"),
               "--dem", str(paths["dem"]), "--n-fit", "200", "--inducing", "150", "--class-name", "vegetation",
+              "--calibrate-folds", "3",
               "--truth", str(paths["truth"]), "--truth-values", "1", "--exclude-labels", str(paths["labels"]),
               "--out", str(out2)])
     assert r.exit_code == 0, r.output
