@@ -7,7 +7,8 @@ Each case runs in its own child process so its peak memory (ru_maxrss) is its ow
 n cells with the five inputs of ``geocd landcover integrate`` (x, y, DEM height, coarse probability, building
 occupancy) is observed on a random third of the cells; the GP is trained on the observed cells and predicts
 every cell. The ARD hyperparameters are fitted once (exact GP on 500 observed cells, timed separately) and
-shared by both methods, so the two differ only in how they solve. The exact GP runs only where its n_obs²
+shared by both methods, so the two differ only in how they solve (the default additive kernel: an ARD
+squared exponential over x, y plus one over the other inputs). The exact GP runs only where its n_obs²
 kernel matrix fits the memory budget (--exact-max-gb): beyond it, it is reported as skipped with the memory
 it would need. No numba kernel is involved (BLAS/LAPACK through numpy/scipy): there is no compile time.
 """
@@ -50,7 +51,8 @@ def child(args) -> dict:
     X, y, obs = field(args.n)
     h = json.loads(Path(args.hyper).read_text())
     hyper = GPHyper(length_scales=np.array(h["ls"]), signal_var=h["s2"], noise_var=h["n2"], x_mean=np.array(h["xm"]),
-                    x_std=np.array(h["xs"]), y_mean=h["ym"], names=h["names"])
+                    x_std=np.array(h["xs"]), y_mean=h["ym"], names=h["names"], groups=h["groups"],
+                    signal_vars=h["svs"])
     Xo, yo = X[obs], y[obs]
     out: dict = {"method": args.case, "cells": int(args.n), "observed": int(obs.sum())}
     t0 = time.perf_counter()
@@ -102,7 +104,7 @@ def main() -> None:
     hp = tmp / "hyper.json"
     hp.write_text(json.dumps({"ls": hyper.length_scales.tolist(), "s2": hyper.signal_var, "n2": hyper.noise_var,
                               "xm": hyper.x_mean.tolist(), "xs": hyper.x_std.tolist(), "ym": hyper.y_mean,
-                              "names": hyper.names}))
+                              "names": hyper.names, "groups": hyper.groups, "svs": hyper.signal_vars}))
     rows = []
     base = [sys.executable, __file__, "--hyper", str(hp), "--inducing", str(args.inducing), "--batch", str(args.batch)]
     for n in sizes:

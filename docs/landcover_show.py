@@ -35,10 +35,13 @@ def block_mean(a: np.ndarray, k: int) -> np.ndarray:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--work", default="/tmp/landcover_show", help="cache of the per-image stages")
-    ap.add_argument("--draws", type=int, default=3, help="random view subsets per count")
+    ap.add_argument("--draws", type=int, default=2, help="random view subsets per count")
     ap.add_argument("--headline-views", type=int, default=8)
-    ap.add_argument("--counts", default="1,2,4,8,16,45")
-    ap.add_argument("--n-fit", type=int, default=500)
+    ap.add_argument("--counts", default="1,4,16,45")
+    ap.add_argument("--n-fit", type=int, default=300)
+    ap.add_argument("--only", choices=["calibration"], default=None,
+                    help="calibration: only the σ calibration with held-out spatial blocks "
+                         "(docs/landcover_calibration.json)")
     args = ap.parse_args()
     import warnings
 
@@ -171,6 +174,18 @@ def main() -> None:
     headline = np.sort(rng.choice(n_views, args.headline_views, replace=False))
     t0 = time.perf_counter()
     det = detailed_map(headline)
+    if args.only == "calibration":
+        from geocd.landcover.report import sigma_calibration
+
+        res = integrate(det, inputs_for(ABLATION["GP: detailed + coarse + xy + DEM + buildings"][0]),
+                        gp_params.replace(calibrate_folds=5))
+        unobs = ~labelled1 & ~np.isfinite(det)
+        out = {"truth_on_unobserved_cells": sigma_calibration(truth1, res, unobs),
+               "heldout_blocks": res.report["calibration"], "seconds": round(time.perf_counter() - t0, 1),
+               "headline_views": [int(v) for v in headline], "n_fit": args.n_fit}
+        (DOCS / "landcover_calibration.json").write_text(json.dumps(out, indent=1))
+        print(json.dumps(out, indent=1))
+        return
     scores, results = ablation(det, coarse1, inputs_for, y1, truth_value=truth1, exclude=labelled1,
                                params=gp_params)
     for r in results.values():
@@ -187,8 +202,8 @@ def main() -> None:
     np.savez_compressed(work / "maps.npz", truth=truth1, coarse=coarse1, detailed=det, mean=full.mean, sd=full.sd)
     timings["ablation_s"] = round(time.perf_counter() - t0, 1)
     pr_figure(DOCS / "landcover_pr.png", curves, scores,
-              f"vegetation on sample_aoi: {args.headline_views} of 45 aerial windows "
-              f"({scores['observed_fraction']:.0%} of the AOI observed), 1 m cells, labels excluded")
+              f"vegetation, sample_aoi: {args.headline_views} of 45 aerial windows "
+              f"({scores['observed_fraction']:.0%} observed),\n1 m cells, label cells excluded")
 
     # --- F1 vs number of detailed views -------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -198,12 +213,14 @@ def main() -> None:
         for d in range(args.draws if n < n_views else 1):
             chosen = np.sort(np.random.default_rng(100 + d).choice(n_views, n, replace=False))
             det = detailed_map(chosen)
-            res = integrate(det, inputs_for(ABLATION["GP: detailed + coarse + xy + DEM + buildings"]), gp_params)
+            res = integrate(det, inputs_for(ABLATION["GP: detailed + coarse + xy + DEM + buildings"][0]), gp_params)
             obs = np.isfinite(det) & ev
+            a_all, a_un, a_det = f1r(y1[ev], res.mean[ev]), f1r(y1[ev & ~obs], res.mean[ev & ~obs]), f1r(y1[obs], det[obs])
             rows.append({"views": [int(c) for c in chosen], "observed_fraction": round(float(np.isfinite(det).mean()), 4),
-                         "f1_gp_all": f1r(y1[ev], res.mean[ev])["f1_at_recall"],
-                         "f1_gp_unobserved": f1r(y1[ev & ~obs], res.mean[ev & ~obs]).get("f1_at_recall"),
-                         "f1_detailed_observed": f1r(y1[obs], det[obs])["f1_at_recall"]})
+                         "f1_gp_all": a_all["f1_at_recall"], "f1_gp_unobserved": a_un.get("f1_at_recall"),
+                         "f1_detailed_observed": a_det["f1_at_recall"],
+                         "ap_gp_all": a_all["average_precision"], "ap_gp_unobserved": a_un.get("average_precision"),
+                         "ap_detailed_observed": a_det["average_precision"]})
             print(n, rows[-1], flush=True)
         by_n[n] = rows
     report["f1_vs_views"] = by_n
@@ -220,23 +237,25 @@ def figures(by_n, work: Path, headline: int) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, axs = plt.subplots(1, 2, figsize=(12, 4))
     ns = sorted(by_n, key=int)
-    for key, lab in (("f1_gp_all", "GP, all cells"), ("f1_gp_unobserved", "GP, unobserved cells"),
-                     ("f1_detailed_observed", "detailed alone, observed cells")):
-        mean = [np.mean([r[key] for r in by_n[n]]) for n in ns]
-        lo = [np.min([r[key] for r in by_n[n]]) for n in ns]
-        hi = [np.max([r[key] for r in by_n[n]]) for n in ns]
-        ax.errorbar([int(n) for n in ns], mean, yerr=[np.subtract(mean, lo), np.subtract(hi, mean)], marker="o",
-                    capsize=3, label=lab)
+    for ax, metric, ylabel in ((axs[0], "f1", "F1 at recall 0.5"), (axs[1], "ap", "average precision")):
+        for key, lab in ((f"{metric}_gp_all", "GP, all cells"), (f"{metric}_gp_unobserved", "GP, unobserved cells"),
+                         (f"{metric}_detailed_observed", "detailed alone, observed cells")):
+            if key not in by_n[ns[0]][0]:
+                continue
+            vals = [[r[key] for r in by_n[n] if r.get(key) is not None] for n in ns]
+            mean = [np.mean(v) for v in vals]
+            lo = [np.min(v) for v in vals]
+            hi = [np.max(v) for v in vals]
+            ax.errorbar([int(n) for n in ns], mean, yerr=[np.subtract(mean, lo), np.subtract(hi, mean)], marker="o",
+                        capsize=3, label=lab)
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("number of detailed views (aerial windows)")
+        ax.set_ylabel(ylabel)
+        ax.legend(loc="lower right", fontsize=8)
     cov = [np.mean([r["observed_fraction"] for r in by_n[n]]) for n in ns]
-    ax2 = ax.twinx()
-    ax2.plot([int(n) for n in ns], cov, "k:", label="observed fraction")
-    ax2.set_ylabel("observed fraction of the AOI")
-    ax.set_xscale("log", base=2)
-    ax.set_xlabel("number of detailed views (aerial windows)")
-    ax.set_ylabel("F1 at recall 0.5")
-    ax.legend(loc="lower right", fontsize=8)
+    axs[0].set_title("observed fraction: " + ", ".join(f"{int(n)}: {c:.0%}" for n, c in zip(ns, cov)), fontsize=8)
     fig.tight_layout()
     fig.savefig(DOCS / "landcover_views.png", dpi=80)
     plt.close(fig)

@@ -221,11 +221,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
     -------
     dict: outputs ({name: path}), summary (dict written to run_summary.json).
     """
-    from .change.buildings import classify_buildings
-    from .change.products import write_change_products
-    from .io.atomic import write_text_atomic
     from .io.manifest import Manifest, load_manifest
-    from .io.vector import read_footprints
     from .stereo.pipeline import run_stereo
 
     prog = ensure_progress(progress)
@@ -251,10 +247,41 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
     st = run_stereo(m, epochs=stereo_epochs, out_dir=out, params=config.stereo, posting_m=config.posting_m,
                     keep_arrays=True, pairs=config.pairs, orient=False,
                     progress=sub_progress(prog, 0.1, 0.75, "stereo: "))
-    grid = st["grid"]
     by_epoch: dict[str, list] = {}
     for key, pdem in st["pairs"].items():
         by_epoch.setdefault(pdem.epoch or key.split("/")[0], []).append(pdem)
+    return run_change(m, by_epoch, st["grid"], out_dir=out, config=config, model=model,
+                      progress=sub_progress(prog, 0.75, 1.0), footprints=footprints,
+                      stereo_outputs=st["outputs"], orientation=orientation)
+
+
+def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLike | str,
+               config: RunConfig = RunConfig(), model: SelfConsistencyModel | None = None,
+               progress: Progress | None = None, footprints: os.PathLike | str | None = None,
+               stereo_outputs: dict | None = None, orientation: dict | None = None) -> dict[str, Any]:
+    """Everything of :func:`run` after the stereo: baseline, change test, buildings, products.
+
+    Parameters
+    ----------
+    manifest : Manifest
+    by_epoch : {epoch name: [pair-DEMs]} on ``grid`` (e.g. read back with :func:`geocd.stereo.read_pair_dem`)
+    grid : AOIGrid
+    model : a scene-class model (default: ``config.model_path``, else learned here)
+    stereo_outputs : {name: path} of the pair-DEMs, listed in the outputs and summary
+    orientation : the cross-epoch relative orientation report (summarised in run_summary.json), if one was made
+    """
+    from .change.buildings import classify_buildings
+    from .change.products import write_change_products
+    from .io.atomic import write_text_atomic
+    from .io.vector import read_footprints
+
+    prog = ensure_progress(progress)
+    m = manifest
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ea, eb = pick_epochs(m, config.epoch_a, config.epoch_b)
+    if model is None and config.model_path:
+        model = SelfConsistencyModel.load(config.model_path)
     recs_a = by_epoch.get(ea.name, []) or ([_dem_epoch(ea.dem, grid, ea.name)] if ea.dem else [])
     recs_b = by_epoch.get(eb.name, []) or ([_dem_epoch(eb.dem, grid, eb.name)] if eb.dem else [])
     if model is None:
@@ -264,21 +291,21 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
                 "no epoch has two or more image pairs, so the self-consistency distribution cannot be learned here; "
                 "pass a scene-class model learned on another scene of the same class (--model MODEL.json, made with "
                 "`geocd consistency`)")
-        prog(0.76, "learning the self-consistency distribution")
+        prog(0.05, "learning the self-consistency distribution")
         prov = {"scene": m.name, "scene_class": m.scene_class,
                 "epochs": {e: [p.name for p in g] for e, g in by_epoch.items() if len(g) >= 2},
                 "dates": {e.name: e.date.isoformat() if e.date else None for e in m.epochs},
                 "sensors": {e.name: e.sensor for e in m.epochs}, "gsd_m": grid.posting_m,
                 "score": config.stereo.score}
         model = learn_self_consistency(groups, config.consistency, provenance=prov,
-                                       progress=sub_progress(prog, 0.76, 0.82))
+                                       progress=sub_progress(prog, 0.05, 0.3))
     model_path = model.save(out / "self_consistency_model.json")
-    prog(0.83, "cross-epoch change test")
+    prog(0.3, "cross-epoch change test")
     change_params = config.change
     if config.region_confidence not in change_params.confidences:  # the reported level is always tested
         change_params = dataclasses.replace(change_params,
                                             confidences=tuple(sorted({*change_params.confidences, config.region_confidence})))
-    res = change_test(recs_a, recs_b, model, change_params, progress=sub_progress(prog, 0.83, 0.9))
+    res = change_test(recs_a, recs_b, model, change_params, progress=sub_progress(prog, 0.3, 0.7))
     buildings = None
     fp_path = footprints or (m.footprints.path if m.footprints is not None else None)
     if fp_path is not None:
@@ -291,7 +318,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
     damage = ground_path = None
     extra, extra_styles = {}, {}
     if config.derive_buildings or fp_path is not None:
-        prog(0.88, "building damage")
+        prog(0.7, "building damage")
         damage, ground = _building_damage(fps if fp_path is not None else None, res, grid, recs_a, recs_b, model,
                                           config.region_confidence, ea.name, eb.name)
         if ground is not None:
@@ -305,7 +332,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
 
             extra["building_damage"] = damage
             extra_styles["building_damage"] = damage_qml()
-    prog(0.9, "writing products")
+    prog(0.8, "writing products")
     paths = write_change_products(out, res, grid, method="self-consistency", epoch_a=ea.name, epoch_b=eb.name,
                                   region_confidence=config.region_confidence, model=model, buildings=buildings,
                                   extra_layers=extra or None, extra_styles=extra_styles or None,
@@ -314,7 +341,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
     paths["model"] = model_path
     if ground_path is not None:
         paths["ground_model"] = ground_path
-    paths.update({f"stereo:{k}": v for k, v in st["outputs"].items()})
+    paths.update({f"stereo:{k}": v for k, v in (stereo_outputs or {}).items()})
     cfg_path = write_text_atomic(out / "run_config.json", json.dumps(config.to_dict(), indent=2, default=list))
     observed = res.observed
     summary = {

@@ -37,6 +37,7 @@ removed, the output session recorded as interrupted) and exit 128 + signal
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import sys
@@ -60,6 +61,7 @@ SUBCOMMANDS: dict[str, str] = {
     "probchange": "geocd.cli.probchange:probchange",
     "ortho": "geocd.cli.ortho:ortho",
     "landcover": "geocd.cli.landcover:landcover",
+    "import-cameras": "geocd.cli.import_cameras:import_cameras",
 }
 
 
@@ -92,7 +94,8 @@ class LazyGroup(click.Group):
                 sys.stderr.write(json.dumps({"type": "error", "error": kind, "message": message}) + "\n")
             click.echo(f"geocd: error: {message}", err=True)
 
-        with warnings.catch_warnings():
+        prev_hook = sys.unraisablehook
+        with warnings.catch_warnings(), _restore_unraisablehook(prev_hook):
             warnings.simplefilter("always", OutputFolderWarning)
             shown = warnings.showwarning
 
@@ -103,6 +106,10 @@ class LazyGroup(click.Group):
                     shown(message, category, filename, lineno, file, line)
 
             warnings.showwarning = show
+            if not debug:
+                # an exception inside a library callback (rasterio's GDAL log handler failing to decode a corrupt
+                # file's message) is printed by Python as a traceback although nothing failed: keep stderr clean
+                sys.unraisablehook = lambda u: None
             try:
                 with signals_as_interrupts():
                     rv = super().invoke(ctx)
@@ -128,6 +135,14 @@ class LazyGroup(click.Group):
                 err = translate(exc)
                 report(type(err).__name__, one_line(err))
                 ctx.exit(getattr(err, "exit_code", 2))
+
+
+@contextlib.contextmanager
+def _restore_unraisablehook(hook):
+    try:
+        yield
+    finally:
+        sys.unraisablehook = hook
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -14,6 +14,78 @@ order or with --dates), or ONE list file (.txt/.csv: one `path[,date[,name]]` pe
 (.yaml/.json, epochs with a `dem:`)."""
 
 
+#: two DEMs on a grid of more cells than this are processed tile by tile unless --untiled
+TILED_ABOVE_CELLS = 16_000_000
+
+
+def _use_tiles(ents, tiled: bool | None, tiling_opts: dict, base) -> bool:
+    """Whether a DEM comparison runs tile by tile (``--tiled``, a tiling option, or a large grid)."""
+    from ..errors import ConfigError
+
+    asked = tiled is True or (tiled is None and bool(tiling_opts))
+    if tiled is False:
+        if tiling_opts:
+            raise ConfigError(f"--untiled with tiling options ({', '.join(sorted(tiling_opts))}); drop one of them")
+        return False
+    if len(ents) != 2:
+        if asked:
+            raise ConfigError("tiled processing compares two DEMs; a time series runs untiled (drop --tiled and the "
+                              "tiling options)")
+        return False
+    if any(Path(p).suffix.lower() == ".e00" for p, *_ in ents):
+        if asked:
+            raise ConfigError("tiled processing reads GDAL rasters; convert the .e00 DEM to GeoTIFF first "
+                              "(the base DEM may stay an .e00)")
+        return False
+    if asked:
+        return True
+    from ..io.raster import _open
+
+    with _open(ents[0][0]) as ds:
+        return ds.width * ds.height > TILED_ABOVE_CELLS
+
+
+def _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable_mask, mask_is, footprints, datum_a,
+                   datum_b, base, no_plots) -> None:
+    """Two DEMs tile by tile (geocd.demdiff.tiled): the same products as the untiled run."""
+    from ..demdiff.tiled import TilingParams, dem_difference_tiled
+    from . import emit_result, make_progress
+
+    tiling = TilingParams(**tiling_opts)
+    progress = make_progress(ctx, "demdiff")
+    try:
+        (pa, _, na, va), (pb, _, nb, vb) = ents
+        sess.note(f"tiled run: tiles of {tiling.tile_size} cells, scheduler {tiling.scheduler}; a killed run "
+                  "restarted with the same command resumes")
+        res = dem_difference_tiled(pa, pb, out_dir, params=params, tiling=tiling, stable_mask=stable_mask,
+                                   mask_is=mask_is, footprints=footprints, epoch_a=na, epoch_b=nb,
+                                   datum_a=va or datum_a, datum_b=vb or datum_b, base=base, prefix=prefix,
+                                   plots=not no_plots, progress=progress,
+                                   provenance={"dem_a": pa, "dem_b": pb, "stable_mask": stable_mask, "base": base})
+    finally:
+        if hasattr(progress, "close"):
+            progress.close()
+    s = res.summary
+    for n in res.notes:
+        if n != res.coreg.summary():
+            sess.note(n)
+    for w in res.warnings:
+        sess.warn(w)
+    sess.say(res.coreg.summary())
+    credible = "" if res.status != "degenerate_stable_terrain" else " — NOT CREDIBLE: degenerate stable " \
+        "terrain, see the warning"
+    sess.say(f"stable NMAD {s['stable_nmad_m']:.2f} m on {s['n_stable']} cells; changed at "
+             f"{params.confidence:g}%: {s['changed_area_m2'] / 1e6:.4f} km², volume "
+             f"{s['volume_changed_m3'] / 1e6:+.4f} ± {s['volume_changed_sigma_m3'] / 1e6:.4f} Mm³ (1σ)" + credible)
+    sess.say(f"tiled: {res.passes} passes, {res.tiles_resumed} tile results resumed, "
+             f"{'exact (every cell in every statistic)' if res.exact else 'whole-scene statistics on a fixed subsample'}")
+    sess.data(status=res.status, tiled=True, passes=res.passes, tiles_resumed=res.tiles_resumed,
+              **{k: s[k] for k in ("stable_nmad_m", "n_stable", "changed_area_m2", "volume_changed_m3",
+                                   "volume_changed_sigma_m3", "shift_applied_m", "stable_identical_fraction",
+                                   "wall_s") if k in s})
+    emit_result(ctx, res.outputs)
+
+
 def _read_dem(path: str, datum: str | None):
     from ..io.raster import read_dem
 
@@ -121,10 +193,21 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
 @click.option("--names", default=None, help="Comma-separated epoch names of the DEMs given as arguments.")
 @click.option("--pair-products", is_flag=True, help="For a series, also write every interval's rasters and layers.")
 @click.option("--no-plots", is_flag=True, help="Do not draw PNG plots.")
+@click.option("--tiled/--untiled", default=None,
+              help="Process two DEMs tile by tile (bounded memory, resumable after a kill, on Dask). Default: tiled "
+                   f"when the grid has more than {TILED_ABOVE_CELLS // 1_000_000} million cells or a tiling option "
+                   "below is given.")
+@click.option("--scheduler", default=None, metavar="SCHEDULER",
+              help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the machine, the "
+                   "default) | ADDRESS of a running dask.distributed scheduler (tcp://host:8786).")
+@click.option("--tile-size", type=click.IntRange(64, None), default=None, help="Tiled runs: cells per tile side [1024].")
+@click.option("--workers", type=click.IntRange(1, None), default=None,
+              help="Tiled runs: local worker processes [one per core].")
+@click.option("--memory-limit", default=None, help="Tiled runs: memory limit per local worker, e.g. 2GB.")
 @click.pass_context
 def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, footprints, confidence, datum_a, datum_b,
             resampling, no_coreg, tilt, on_underconstrained, min_region_cells, fallback_threshold, base, dates, names,
-            pair_products, no_plots) -> None:
+            pair_products, no_plots, tiled, scheduler, tile_size, workers, memory_limit) -> None:
     from .common import require_inputs, resolve_out_dir, session
 
     require_inputs(*dems, stable_mask, footprints, base)
@@ -150,6 +233,12 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
     params = DEMDiffParams(coreg=CoregParams(tilt=tilt, on_underconstrained=on_underconstrained),
                            coregister=not no_coreg, confidence=confidence, min_region_cells=min_region_cells,
                            resampling=resampling, fallback_threshold_m=fallback_threshold)
+    tiling_opts = {k: v for k, v in (("scheduler", scheduler), ("tile_size", tile_size), ("n_workers", workers),
+                                     ("memory_limit", memory_limit)) if v is not None}
+    if _use_tiles(ents, tiled, tiling_opts, base):
+        _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable_mask, mask_is, footprints,
+                       datum_a, datum_b, base, no_plots)
+        return
     fp = None
     loaded = []
     for k, (path, date, name, vd) in enumerate(ents):

@@ -93,6 +93,15 @@ def train_cmd(ctx, labels_path, layer, class_field, positive, images, method, co
     from ..landcover.pipeline import train_from_files
     from . import emit_result
 
+    from pathlib import Path
+
+    from ..io.outputs import open_outputs
+    from .common import require_inputs, session
+
+    require_inputs(labels_path, *images, what="input")
+    open_outputs(None, inputs=[labels_path, *images, manifest_path, dem, footprints, dsm],
+                 files=[out_path, str(Path(out_path).with_suffix(".json"))])
+    sess = session(ctx)
     scene = _scene(manifest_path, dem, dem_datum, footprints, height_field, dsm, bounds, posting_m, required=False)
     progress = _progress(ctx, "landcover train")
     try:
@@ -101,6 +110,11 @@ def train_cmd(ctx, labels_path, layer, class_field, positive, images, method, co
                                scene=scene, compare=compare, seed=seed, progress=progress)
     finally:
         _close(progress)
+    m = res["model"]
+    sess.say(f"landcover train ({m.method}): classes {m.classes}, "
+             + ", ".join(f"{k} {v}" for k, v in m.report["samples_per_class"].items()) + " labelled pixels")
+    sess.data(classes=m.classes, samples_per_class=m.report["samples_per_class"],
+              comparison=m.report.get("comparison"))
     emit_result(ctx, res["outputs"])
 
 
@@ -110,8 +124,8 @@ def train_cmd(ctx, labels_path, layer, class_field, positive, images, method, co
 @click.option("--image", "images", multiple=True, required=True,
               type=click.Path(exists=True, dir_okay=False, path_type=str), help="Image(s) to classify.")
 @click.option("--class", "class_name", default=None, help="Class to project (default: the positive class).")
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
-              help="Output folder.")
+@click.option("--out", "out_dir", default=None, type=click.Path(file_okay=False, path_type=str),
+              help="Output folder (default: ./geocd_out/landcover).")
 @click.option("--prefix", default="landcover", show_default=True, help="File name prefix.")
 @_scene_options
 @click.pass_context
@@ -122,13 +136,28 @@ def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_p
     from ..landcover.pipeline import predict_files
     from . import emit_result
 
+    from ..io.outputs import open_outputs
+    from .common import require_inputs, resolve_out_dir, session
+
+    require_inputs(model_path, *images, what="input")
+    out = resolve_out_dir(out_dir, "landcover", create=False)
+    open_outputs(out, inputs=[model_path, *images, manifest_path, dem, footprints, dsm], products=(f"{prefix}_*",),
+                 prefix=prefix)
+    sess = session(ctx)
+    sess.open_log(out)
     scene = _scene(manifest_path, dem, dem_datum, footprints, height_field, dsm, bounds, posting_m, required=False)
     progress = _progress(ctx, "landcover predict")
     try:
-        res = predict_files(model_path, list(images), out_dir, scene=scene, class_name=class_name, prefix=prefix,
+        res = predict_files(model_path, list(images), out, scene=scene, class_name=class_name, prefix=prefix,
                             progress=progress)
     finally:
         _close(progress)
+    s = res["summary"]
+    line = f"landcover predict: {len(images)} image(s), class {s['class']!r}"
+    if "observed_fraction" in s:
+        line += f"; {100 * s['observed_fraction']:.1f}% of the grid observed"
+    sess.say(line)
+    sess.data(**s)
     emit_result(ctx, res["outputs"])
 
 
@@ -141,11 +170,17 @@ def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_p
 @click.option("--inputs", default=None,
               help="GP inputs, comma-separated from xy, dem, coarse, buildings (default: all available).")
 @click.option("--class-name", default="condition", show_default=True, help="Name of the condition (band names).")
+@click.option("--kernel", type=click.Choice(["additive", "product"]), default="additive", show_default=True,
+              help="additive: ARD kernel over x, y plus one over the other inputs (appearance carries at any "
+                   "distance); product: one ARD kernel over every input (the thesis's).")
 @click.option("--n-fit", type=int, default=1000, show_default=True,
               help="Observed cells for the exact-GP hyperparameter fit.")
 @click.option("--inducing", "n_inducing", type=int, default=400, show_default=True,
               help="Inducing points of the sparse prediction.")
 @click.option("--batch", type=int, default=20000, show_default=True, help="Cells per prediction batch (memory).")
+@click.option("--calibrate-folds", type=int, default=0, show_default=True,
+              help="Spatial blocks of observed cells held out in turn to scale σ to the detailed views' own "
+                   "held-out error (band sigma_calibrated); 0 = off. See docs/landcover.md before relying on it.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--truth", "truth_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
               help="Truth raster: adds the ablation report (PR curves, F1 at recall 0.5, σ calibration).")
@@ -153,12 +188,13 @@ def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_p
               help="Comma-separated truth codes that mean the condition (default: nonzero).")
 @click.option("--exclude-labels", "exclude_path", type=click.Path(exists=True, path_type=str), default=None,
               help="Training label layer: its cells are left out of the ablation scores.")
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
-              help="Output folder.")
+@click.option("--out", "out_dir", default=None, type=click.Path(file_okay=False, path_type=str),
+              help="Output folder (default: ./geocd_out/landcover).")
 @click.option("--prefix", default="landcover", show_default=True, help="File name prefix.")
 @_scene_options
 @click.pass_context
-def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, n_fit, n_inducing, batch, seed, truth_path,
+def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, kernel, n_fit, n_inducing, batch,
+                  calibrate_folds, seed, truth_path,
                   truth_values, exclude_path, out_dir, prefix, manifest_path, dem, dem_datum, footprints,
                   height_field, dsm, bounds, posting_m):
     """GP integration over every cell: predictive mean and σ (Cloud-Optimized GeoTIFFs)."""
@@ -166,15 +202,32 @@ def integrate_cmd(ctx, detailed_path, coarse_path, inputs, class_name, n_fit, n_
     from ..landcover.pipeline import integrate_files
     from . import emit_result
 
+    from ..io.outputs import open_outputs
+    from .common import require_inputs, resolve_out_dir, session
+
+    require_inputs(detailed_path, coarse_path, truth_path, exclude_path, what="input")
+    out = resolve_out_dir(out_dir, "landcover", create=False)
     scene = _scene(manifest_path, dem, dem_datum, footprints, height_field, dsm, bounds, posting_m, required=True)
+    open_outputs(out, inputs=[detailed_path, coarse_path, truth_path, exclude_path, manifest_path, dem, footprints,
+                              dsm], products=(f"{prefix}_*",), prefix=prefix)
+    sess = session(ctx)
+    sess.open_log(out)
     use = tuple(s.strip() for s in inputs.split(",") if s.strip()) if inputs else None
     tv = [float(s) for s in truth_values.split(",") if s.strip()] if truth_values else None
-    params = GPParams(n_fit=n_fit, n_inducing=n_inducing, batch=batch, seed=seed)
+    params = GPParams(n_fit=n_fit, n_inducing=n_inducing, batch=batch, seed=seed, kernel=kernel,
+                      calibrate_folds=calibrate_folds)
     progress = _progress(ctx, "landcover integrate")
     try:
-        res = integrate_files(detailed_path, scene, out_dir, coarse_path=coarse_path, use=use, params=params,
+        res = integrate_files(detailed_path, scene, out, coarse_path=coarse_path, use=use, params=params,
                               class_name=class_name, truth_path=truth_path, truth_values=tv,
                               exclude_path=exclude_path, prefix=prefix, progress=progress)
     finally:
         _close(progress)
+    s = res["summary"]
+    sess.say(f"landcover integrate: {s['observed_cells']} of {s['cells']} cells observed; GP inputs {s['inputs']}, "
+             f"{s['inducing_points']} inducing points, {s['seconds']:.1f} s")
+    if "ablation" in s:
+        for k, v in s["ablation"].items():
+            sess.say(f"  F1 at recall 0.5, {k}: {v}")
+    sess.data(**{k: v for k, v in s.items() if k != "hyper"})
     emit_result(ctx, res["outputs"])

@@ -86,7 +86,14 @@ def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images,
     progress = make_progress(ctx, "ortho")
     try:
         if _is_manifest(src):
+            from ..io.manifest import load_manifest
+            from ..io.outputs import open_outputs
             from ..ortho.pipeline import run_ortho
+
+            src = load_manifest(src)
+            dsm_files = [v for v in (dsm_spec.values() if isinstance(dsm_spec, dict) else [dsm_spec]) if v]
+            open_outputs(out or src.output_dir(), inputs=[*src.input_paths(), *dsm_files],
+                         products=("ortho/*", "stereo/*"))
 
             res = run_ortho(src, epochs=list(epochs) or None, images=list(images) or None, out_dir=out, dsm=dsm_spec,
                             dsm_source=dsm_source, posting_m=posting_m, params=params, view_bands=view_bands,
@@ -115,6 +122,11 @@ def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images,
             filled, hole = fill_dsm_holes(h)
             cam = load_camera(src, camera_path)
             dst = Path(out) if out else default_out_dir(src.stem) / f"{src.stem}_ortho.tif"
+            from ..io.outputs import open_outputs
+
+            open_outputs(None, files=[dst.parent / f"{dst.stem}{s}" for s in (".tif", ".qml", "_status.tif",
+                                                                               "_status.qml", "_view.tif")],
+                         inputs=[src, camera_path, dsm_spec])
             dst.parent.mkdir(parents=True, exist_ok=True)
             progress(0.1, f"ortho {src.name}")
             paths, r = ortho_image(src, cam, grid, filled, dst, params=params, dsm_filled=hole,

@@ -226,6 +226,22 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
     prog(0.45, "stable terrain")
     st, info = stable_terrain(dh, obs, g, user_mask=stable_mask, mask_is=mask_is, footprints=footprints,
                               slope_rad=slope, params=p.stable)
+    res = finish_difference(g, post, A, B, Bc, dh, dh_raw, obs, st, info, creg, slope, q, notes, p, epoch_a=epoch_a,
+                            epoch_b=epoch_b, method=method, progress=prog)
+    res.summary["wall_s"] = time.perf_counter() - t0
+    prog(1.0, "done")
+    return res
+
+
+def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: np.ndarray, Bc: np.ndarray,
+                      dh: np.ndarray, dh_raw: np.ndarray, obs: np.ndarray, st: np.ndarray, info: StableInfo,
+                      creg: CoregResult, slope: np.ndarray, q: np.ndarray | None, notes: list[str],
+                      p: DEMDiffParams, *, epoch_a: str = "A", epoch_b: str = "B", method: str = "demdiff",
+                      progress: Progress | None = None) -> DEMDiffResult:
+    """The steps of :func:`dem_difference` after the final stable terrain (whole grids; float64 A, B
+    as read, Bc co-registered, dh = Bc − A on ``obs``): error model, significance, change map,
+    regions and the summary (without ``wall_s``)."""
+    prog = ensure_progress(progress)
     notes.extend(info.notes)
     status = "ok"
     unc = None
@@ -293,9 +309,8 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
                         epoch_a, epoch_b, p.confidence, status, notes, warnings=warns)
     res.summary = _summary(res, B, p)
     res.summary.update(degenerate)
-    res.summary["wall_s"] = time.perf_counter() - t0
-    prog(1.0, "done")
     return res
+
 
 
 def degenerate_stable_terrain(height_a_m: np.ndarray, height_b_m: np.ndarray, dh_m: np.ndarray,
@@ -319,12 +334,22 @@ def degenerate_stable_terrain(height_a_m: np.ndarray, height_b_m: np.ndarray, dh
     if n == 0:
         return {}, None
     ident = int(np.count_nonzero(st & (height_a_m == height_b_m)))
-    frac = ident / n
     v = dh_m[st]
     v = v[np.isfinite(v)]
     nm = nmad(v) if v.size else float("nan")
     hmax = float(np.nanmax(np.abs(height_a_m[st]))) if np.isfinite(height_a_m[st]).any() else 0.0
-    floor = float(params.nmad_floor_ulps * np.spacing(np.float32(max(hmax, 1.0))))
+    return degenerate_message(n, ident, nm, hmax, params)
+
+
+def degenerate_message(n: int, identical: int, nmad_m: float, hmax_m: float,
+                       params: DEMDiffParams = DEMDiffParams()) -> tuple[dict[str, float], str | None]:
+    """:func:`degenerate_stable_terrain` from its counts: ``n`` stable cells, ``identical`` of them with the
+    same height in both DEMs, their dh NMAD and the largest |height| (for the float32 rounding floor)."""
+    if n == 0:
+        return {}, None
+    frac = identical / n
+    nm = nmad_m
+    floor = float(params.nmad_floor_ulps * np.spacing(np.float32(max(hmax_m, 1.0))))
     figures = {"stable_identical_fraction": round(frac, 5), "stable_nmad_floor_m": floor}
     if frac < params.max_identical_fraction and not (nm <= floor):
         return figures, None

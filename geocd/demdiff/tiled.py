@@ -54,15 +54,15 @@ from ..errors import ConfigError, EmptyDataError, ProcessingError
 from ..geodesy import AOIGrid, ELLIPSOID, normalize_datum_name, vertical_datum_of
 from ..params import ParamsMixin
 from ..progress import Progress, ensure_progress, sub_progress
-from ..tiling import (RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work, run_tiled,
-                      work_root)
+from ..tiling import RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work, run_tiled
 from ._kernels import shift_margin, shift_points, shift_window, terrain_attributes
 from .coreg import CoregPlan, CoregResult, StableCells, coregister_cells
 from .pipeline import CHANGE_NODATA, DEMDiffParams
+from .products import write_demdiff_products
 from .significance import SignificanceModel
-from .stable import (REJECTED, StableInfo, StableParams, buffered, nmad, select_stable, stable_overlap,
+from .stable import (StableInfo, StableParams, buffered, nmad, select_stable, stable_overlap,
                      stable_state_mask)
-from .uncertainty import (ErrorModel, Uncertainty, VariogramModel, VariogramPlan, _k_field, fit_error_model,
+from .uncertainty import (ErrorModel, Uncertainty, VariogramModel, VariogramPlan, fit_error_model,
                           fit_variogram, variogram_from_plan, variogram_plan)
 
 
@@ -443,21 +443,21 @@ def _t_zgrids(arrays, ctx):
 
 
 def _t_grids(arrays, ctx):
-    """Whole-grid arrays for the exact path (small grids): everything the untiled pipeline holds."""
-    S, plan, sd, em, raw_plan = ctx.params
+    """Whole-grid arrays for small grids: what :func:`finish_difference` takes."""
+    S, plan, sd = ctx.params
     w = _Win(arrays, ctx, S)
     dh = w.dh(plan)
     st = w.stable(sd) & np.isfinite(dh)
-    sigma = _sigma_window(w, em, dh) if em is not None else np.full(dh.shape, np.nan, np.float32)
     bc = w.b_moved(plan).astype(np.float32) if plan is not None else w.b32_raw
-    return TileOutput(arrays={"dh64": dh, "stable": st, "sigma_u": sigma, "a32": w.a32, "b32": w.b32_raw,
-                              "valid": w.valid,
-                              "bc32": bc, "slope": w.slope})
+    out = {"dh64": dh, "stable": st, "a32": w.a32, "b32": w.b32_raw, "valid": w.valid, "bc32": bc, "slope": w.slope}
+    if w.q is not None:
+        out["q"] = w.q
+    return TileOutput(arrays=out, small={"fp_n": _count_core(w.footprint, ctx) if w.footprint is not None else 0})
 
 
 def _t_products(arrays, ctx):
     """Per-cell products and the tile's partial sums (large grids)."""
-    S, plan, sd, em, sig, level, center, block, fitted_plan = ctx.params
+    S, plan, sd, em, sig, level, center, split, fitted_plan = ctx.params
     p = S.params
     w = _Win(arrays, ctx, S)
     dh = w.dh(plan)
@@ -472,7 +472,8 @@ def _t_products(arrays, ctx):
 
     if sig is not None:
         z, conf = significance_map(dh, sigma, sig)
-        raw = change_sign(dh, conf, level, center)
+        conf = (100.0 * conf).astype(np.float32)
+        raw = change_sign(dh, conf / 100.0, level / 100.0, center)
     else:
         z = np.full(dh.shape, np.nan, np.float32)
         conf = np.full(dh.shape, np.nan, np.float32)
@@ -485,7 +486,7 @@ def _t_products(arrays, ctx):
     from .pipeline import _sign_in_regions
 
     sign = np.where(obs, _sign_in_regions(raw, p.min_region_cells), CHANGE_NODATA).astype(np.int8)
-    conf_pct = np.where(np.isfinite(conf), 100.0 * conf, np.nan).astype(np.float32)
+    conf_pct = np.where(np.isfinite(conf), conf, np.nan).astype(np.float32)
     dh32 = dh.astype(np.float32)
     core = ctx.core
     dhc = dh32[core].astype(np.float64)
@@ -498,53 +499,131 @@ def _t_products(arrays, ctx):
         "n_raised": int((sc == 1).sum()), "n_lowered": int((sc == -1).sum()),
         "sum_changed": float(np.nansum(dhc[ch])), "sum_raised": float(np.nansum(dhc[sc == 1])),
         "sum_lowered": float(np.nansum(dhc[sc == -1])), "sum_obs": float(np.nansum(dhc[obc])),
+        # degenerate stable terrain: identical raw heights, the largest |A| (float32 rounding floor)
+        "n_identical": int(np.count_nonzero(stc & (w.a32 == w.b32_raw)[core])),
+        "hmax_stable": float(np.max(np.abs(w.A[core][stc]))) if stc.any() else 0.0,
     }
     idx, rr, cc = _core_cells(st, ctx, S)
     small["stable_dh"] = dh32[rr, cc]
-    fin = np.isfinite(dh32)
-    idx, rr, cc = _core_cells(fin, ctx, S)
+    idx, rr, cc = _core_cells(np.isfinite(dh32), ctx, S)
     small["abs_dh"] = np.abs(dh32[rr, cc])
     if fitted_plan is not None and ch.any():
-        bf = fitted_plan.apply(w.B, S.posting, ctx.origin, S.shape).astype(np.float64)
+        bf = fitted_plan.apply(w.b32_raw.astype(np.float64), S.posting, ctx.origin, S.shape).astype(np.float64)
         d = np.where(obs, bf - w.A, np.nan)[core]
         small["sum_changed_fitted"] = float(np.nansum(d[ch]))
     # block sums of σ for correlated sums on the coarse grid
-    if block is not None and em is not None:
-        sg = np.where(np.isfinite(sigma), sigma, 0.0)[core].astype(np.float64)
-        small["blocks"] = _block_sums(ctx, block, {"obs": np.where(obc, sg, 0.0), "changed": np.where(ch, sg, 0.0)})
+    if split is not None and em is not None:
+        # correlated sums: block sums (long range), Σ σ² (nugget), exact short-range sums on the window
+        sgw = np.where(np.isfinite(sigma), sigma, 0.0).astype(np.float64)
+        chw = (sign == 1) | (sign == -1)
+        w_obs = np.where(obs, sgw, 0.0)
+        w_ch = np.where(chw, sgw, 0.0)
+        w_st = np.where(st & (sgw > 0), sgw, 0.0)
+        k_st = _short_conv(w_st, split, S.posting)[core]
+        small["blocks"] = _block_sums(ctx, split.block, {"obs": w_obs[core], "changed": w_ch[core]})
+        small["q_obs"] = float(np.sum(w_obs[core] ** 2))
+        small["q_changed"] = float(np.sum(w_ch[core] ** 2))
+        small["q_obs_st"] = float(np.sum(w_obs[core] * w_st[core]))
+        small["q_changed_st"] = float(np.sum(w_ch[core] * w_st[core]))
+        small["v_short_obs"] = float(np.sum(w_obs[core] * _short_conv(w_obs, split, S.posting)[core]))
+        small["v_short_changed"] = float(np.sum(w_ch[core] * _short_conv(w_ch, split, S.posting)[core]))
+        small["x_short_obs"] = float(np.sum(w_obs[core] * k_st))
+        small["x_short_changed"] = float(np.sum(w_ch[core] * k_st))
     # changed regions of this tile, to be merged across seams
     from ..tiling.regions import tile_regions
 
-    small["regions"] = tile_regions(sign[core], dh[core], ctx.tile, S.grid, sigma=sigma[core],
-                                    confidence=conf[core])
-    return TileOutput(arrays={"dh_m": dh32, "confidence_pct": conf_pct, "sigma_m": sigma, "z": z.astype(np.float32),
-                              "sign": sign}, small=small)
+    tr = tile_regions(sc, dh[core], ctx.tile, S.grid, sigma=sigma[core], confidence=conf[core])
+    labels = tr.labels
+    tr.labels = None
+    small["regions"] = tr
+    out = {"dh_m": dh32, "confidence_pct": conf_pct, "sigma_m": sigma, "z": z.astype(np.float32), "sign": sign,
+           "labels": labels}
+    if S.footprints is not None:
+        out.update(a32=w.a32, bc32=w.b_moved(plan).astype(np.float32) if plan is not None else w.b32_raw,
+                   conf=conf.astype(np.float32))
+    return TileOutput(arrays=out, small=small)
+
+
+@dataclass(frozen=True)
+class CovSplit:
+    """The error covariance split for correlated sums on tiles.
+
+    ``nugget`` pairs a cell with itself (exact from Σ σ²); ``short`` (the spherical
+    components whose range fits in ``radius`` cells) is summed exactly on tiles with that
+    overlap; ``long`` (the others) on the coarse grid of ``block``-cell blocks, where the
+    block is small against its ranges.
+    """
+
+    nugget: float
+    short: VariogramModel | None
+    long: VariogramModel | None
+    radius: int
+    block: int
+
+    @classmethod
+    def of(cls, model: VariogramModel, posting_xy_m: tuple[float, float], block: int, max_radius: int) -> "CovSplit":
+        pm = min(posting_xy_m)
+        sr = [(r, s) for r, s in zip(model.ranges_m, model.sills) if r / pm <= max_radius]
+        lr = [(r, s) for r, s in zip(model.ranges_m, model.sills) if r / pm > max_radius]
+        short = VariogramModel(0.0, tuple(r for r, _ in sr), tuple(s for _, s in sr)) if sr else None
+        long = VariogramModel(0.0, tuple(r for r, _ in lr), tuple(s for _, s in lr)) if lr else None
+        radius = int(math.ceil(max(r for r, _ in sr) / pm)) if sr else 0
+        return cls(float(model.nugget), short, long, radius, int(block))
+
+    def short_kernel(self, posting_xy_m: tuple[float, float]) -> np.ndarray:
+        from .uncertainty import _lag_distance
+
+        R = self.radius
+        d = _lag_distance((2 * R + 1, 2 * R + 1), posting_xy_m)
+        # the continuous part: C(0) = Σ sills (the nugget is counted apart)
+        return self.short.total_sill - self.short.semivariance(d) if self.short is not None else np.zeros((1, 1))
+
+
+def _short_conv(a: np.ndarray, split: CovSplit, posting_xy_m) -> np.ndarray:
+    """Σ_j a_j C_short(|x − x_j|) on a window (exact where the window holds the radius around x)."""
+    if split.short is None:
+        return np.zeros(a.shape)
+    from scipy.signal import fftconvolve
+
+    return fftconvolve(a, split.short_kernel(posting_xy_m), mode="same")
 
 
 def _t_blocks(arrays, ctx):
-    """Block sums of the stable σ (coarse grid for the K field and the stable-mean σ)."""
-    S, plan, sd, em, block = ctx.params
+    """The stable σ: block sums (coarse grid), Σ σ², its short-range sums and K field (exact on tiles)."""
+    S, plan, sd, em, split = ctx.params
     w = _Win(arrays, ctx, S)
     dh = w.dh(plan)
     st = w.stable(sd) & np.isfinite(dh)
     sigma = _sigma_window(w, em, dh)
     m = st & np.isfinite(sigma) & (sigma > 0)
-    ws = np.where(m, sigma, 0.0)[ctx.core].astype(np.float64)
-    return TileOutput(small={"blocks": _block_sums(ctx, block, {"w": ws}), "n": _count_core(m, ctx)})
+    wS = np.where(m, sigma, 0.0).astype(np.float64)
+    kS = _short_conv(wS, split, S.posting)
+    core = ctx.core
+    ws = wS[core]
+    # the local K field: short-range part + the nugget on the stable cells themselves
+    k_local = (kS + split.nugget * wS)[core].astype(np.float32)
+    return TileOutput(arrays={"k_local": k_local},
+                      small={"blocks": _block_sums(ctx, split.block, {"w": ws}), "n": _count_core(m, ctx),
+                             "q": float(np.sum(ws * ws)), "v_short": float(np.sum(ws * kS[core]))})
 
 
 def _block_sums(ctx, block: int, fields: dict[str, np.ndarray]) -> dict:
-    """Sums of each field over the ``block``-cell blocks of the whole grid that the core touches."""
+    """Sums of each field (on the core) over the ``block``-cell blocks of the whole grid that the core touches."""
     r0, c0, h, w = ctx.tile.core
-    br = (np.arange(r0, r0 + h) // block)
-    bc = (np.arange(c0, c0 + w) // block)
-    ur, ir = np.unique(br, return_inverse=True)
-    uc, ic = np.unique(bc, return_inverse=True)
-    out = {"rows": ur, "cols": uc}
+    br = np.arange(r0, r0 + h) // block
+    bc = np.arange(c0, c0 + w) // block
+    rs = np.r_[0, np.nonzero(np.diff(br))[0] + 1]
+    cs = np.r_[0, np.nonzero(np.diff(bc))[0] + 1]
+    out = {"rows": br[rs], "cols": bc[cs]}
     for k, a in fields.items():
-        s = np.zeros((ur.size, uc.size))
-        np.add.at(s, (ir[:, None], ic[None, :]), a)
-        out[k] = s
+        out[k] = np.add.reduceat(np.add.reduceat(a, rs, axis=0), cs, axis=1)
+    return out
+
+
+def _coarse(parts: list[dict], key: str, shape: tuple[int, int]) -> np.ndarray:
+    out = np.zeros(shape)
+    for b in parts:
+        out[np.ix_(b["rows"], b["cols"])] += b[key]
     return out
 
 
@@ -553,18 +632,24 @@ def _block_sums(ctx, block: int, fields: dict[str, np.ndarray]) -> dict:
 # ------------------------------------------------------------------------------------------
 def block_covariance(model: VariogramModel, block: int, posting_xy_m: tuple[float, float], shape: tuple[int, int],
                      near: int = 3) -> np.ndarray:
-    """Average covariance between the cells of two ``block``² blocks, for every block lag.
+    """Average covariance between the cells of two ``block``² blocks, for every block lag, without the nugget.
 
-    Returns the (2H−1, 2W−1) kernel over block lags (H, W = ``shape`` in blocks), centred.
-    Lags within ``near`` blocks average C over the cell pairs (a triangle-weighted sum
-    over the within-block offsets: exact for uniform σ in a block); farther lags use C
-    at the blocks' centre distance (C is smooth there).
+    Returns the (2H−1, 2W−1) kernel over block lags (H, W = ``shape`` in blocks), centred,
+    of the model's continuous part (its spherical components). Lags within ``near`` blocks
+    average it over the cell pairs (a triangle-weighted sum over the within-block offsets:
+    exact for uniform σ in a block); farther lags use its value at the blocks' centre
+    distance (smooth there). The nugget pairs a cell only with itself: it is added as
+    ``nugget × Σ σ²`` (:func:`coarse_sum_variance`), so partly filled blocks keep it exact.
     """
     from .uncertainty import _lag_distance
 
     H, W = shape
+
+    def cont(d):
+        return model.covariance(d) - np.where(np.asarray(d) == 0, model.nugget, 0.0)
+
     pxb, pyb = posting_xy_m[0] * block, posting_xy_m[1] * block
-    cov = model.covariance(_lag_distance((2 * H - 1, 2 * W - 1), (pxb, pyb)))
+    cov = cont(_lag_distance((2 * H - 1, 2 * W - 1), (pxb, pyb)))
     d = np.arange(-(block - 1), block)
     t = (block - np.abs(d)) / float(block * block)
     tw = t[:, None] * t[None, :]
@@ -574,8 +659,14 @@ def block_covariance(model: VariogramModel, block: int, posting_xy_m: tuple[floa
                 continue
             dy = (i * block + d)[:, None] * posting_xy_m[1]
             dx = (j * block + d)[None, :] * posting_xy_m[0]
-            cov[H - 1 + i, W - 1 + j] = float(np.sum(tw * model.covariance(np.hypot(dy, dx))))
+            cov[H - 1 + i, W - 1 + j] = float(np.sum(tw * cont(np.hypot(dy, dx))))
     return cov
+
+
+def coarse_sum_variance(S: np.ndarray, Q: float, model: VariogramModel, kernel: np.ndarray) -> float:
+    """Var(Σ dh) over a cell set from its block sums of σ (``S``) and its Σ σ² (``Q``):
+    ``nugget·Q + Σ_IJ S_I S_J C̄(I − J)`` with C̄ = :func:`block_covariance`."""
+    return float(max(model.nugget * Q + np.sum(S * _coarse_conv(S, kernel)), 0.0))
 
 
 def _coarse_conv(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -612,6 +703,7 @@ class TiledDEMDiffResult:
     significance: SignificanceModel | None = None
     exact: bool = True
     grid: AOIGrid | None = None
+    warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     passes: int = 0
     tiles_resumed: int = 0
@@ -852,7 +944,7 @@ def _setup(path_a, path_b, *, datum_a, datum_b, params: DEMDiffParams, stable_ma
 def _base_source(base, grid: AOIGrid, datum_a: str | None):
     """The base DEM on the grid: a window source for GDAL rasters, an in-memory array for .e00 grids."""
     from ..errors import VerticalDatumError
-    from ..io.raster import DEM, read_dem
+    from ..io.raster import DEM
     from ..tiling import ArraySource
     from .align import _resample
 
@@ -917,14 +1009,28 @@ def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDi
     prog(0.01, f"{g.height}×{g.width} cells in tiles of {tiling.tile_size}")
     with open_engine(tiling.scheduler, n_workers=tiling.n_workers, memory_limit=tiling.memory_limit) as eng:
         R = _Runner(S, out, tiling, eng, prog)
-        res = _run(R, S, p, epoch_a, epoch_b, method, notes, timings)
+        st = _coregister_and_select(R, S, p, notes, timings, (epoch_a, epoch_b), method)
         tt = time.perf_counter()
-        res.outputs = _write(R, S, res, out, prefix=prefix, plots=plots, provenance=provenance, epoch_a=epoch_a,
-                             epoch_b=epoch_b, footprints=S.footprints)
+        if g.width * g.height <= tiling.exact_grid_cells:
+            dr = _finish_exact(R, S, st, notes)
+            dr.summary["wall_s"] = time.perf_counter() - t0
+            timings["model_s"] = time.perf_counter() - tt
+            tt = time.perf_counter()
+            outputs = write_demdiff_products(out, dr, footprints=S.footprints, prefix=prefix, plots=plots,
+                                             provenance=provenance)
+            u = dr.uncertainty
+            res = TiledDEMDiffResult(outputs, dr.summary, dr.coreg, dr.stable_info, dr.status, dr.notes,
+                                     u.error_model if u else None, u.variogram if u else None, dr.significance,
+                                     S.fraction >= 1.0, g, warnings=dr.warnings)
+        else:
+            model = _model_large(R, S, st, notes)
+            timings["model_s"] = time.perf_counter() - tt
+            tt = time.perf_counter()
+            res = _write_large(R, S, st, model, out, notes, prefix=prefix, plots=plots, provenance=provenance)
         timings["write_s"] = time.perf_counter() - tt
     res.passes = R.passes
     res.tiles_resumed = R.resumed
-    res.summary["wall_s"] = time.perf_counter() - t0
+    res.summary.setdefault("wall_s", time.perf_counter() - t0)
     res.timings = timings
     if not tiling.keep_work:
         remove_work(out)
@@ -932,12 +1038,25 @@ def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDi
     return res
 
 
-def _run(R: _Runner, S: _Setup, p: DEMDiffParams, epoch_a: str, epoch_b: str, method: str, notes: list[str],
-         timings: dict) -> TiledDEMDiffResult:
+@dataclass
+class _State:
+    """Where the passes stand after co-registration and the final stable terrain."""
+
+    creg: CoregResult
+    plan: CoregPlan | None
+    sd: _StableDef
+    ccs: int
+    info_auto: StableInfo | None
+    epochs: tuple[str, str]
+    method: str
+
+
+def _coregister_and_select(R: _Runner, S: _Setup, p: DEMDiffParams, notes: list[str], timings: dict, epochs,
+                           method) -> _State:
+    """:func:`dem_difference`'s co-registration and final stable terrain, pass by pass."""
     tt = time.perf_counter()
     loose = replace(p.stable, nmad_factor=p.stable.nmad_factor * p.coreg_stable_factor)
     ccl = stable_overlap(loose)
-    # --- co-registration ----------------------------------------------------------------------
     if not p.coregister:
         cells = R.table(_StableDef("valid", exclude=False), None, 0, "table")
         if cells.n_total == 0:
@@ -959,102 +1078,63 @@ def _run(R: _Runner, S: _Setup, p: DEMDiffParams, epoch_a: str, epoch_b: str, me
         c1, plan1 = coregister_cells(_TiledCoregData(R, cells, "coreg-1"), S.posting, p.coreg)
         trusted1 = c1.status == "ok"
         st_plan = plan1 if trusted1 else None
-        state0, _info0 = select_stable(_TiledStable(R, st_plan, loose, "stable-1"), loose)
-        sd0 = _StableDef("auto", st_plan, state0, loose)
+        state0, _ = select_stable(_TiledStable(R, st_plan, loose, "stable-1"), loose)
         del cells
-        cells = R.table(sd0, st_plan, ccl, "table-2")
+        cells = R.table(_StableDef("auto", st_plan, state0, loose), st_plan, ccl, "table-2")
         init = c1.fitted_shift_m[:2] if trusted1 else (0.0, 0.0)
         creg, plan = coregister_cells(_TiledCoregData(R, cells, "coreg-2"), S.posting, p.coreg, initial_shift_m=init)
     del cells
     if creg.status != "ok":
         notes.append(creg.summary())
     timings["coreg_s"] = time.perf_counter() - tt
-    # --- final stable terrain -----------------------------------------------------------------
     tt = time.perf_counter()
+    info_auto = None
     if S.user_mask is not None:
         sd = _StableDef("user", plan)
     else:
         state, info_auto = select_stable(_TiledStable(R, plan, p.stable, "stable"), p.stable)
         sd = _StableDef("auto", plan, state, p.stable)
-    ccs = stable_overlap(p.stable) if sd.kind == "auto" else 0
-    et = R.run(_t_errtable, "stable-cells", (S, plan, sd), R.overlap(plan, ccs))
-    parts = [s for _, s in et.smalls()]
-    n_st = int(sum(s["n"] for s in parts))
-    idx = np.concatenate([s["idx"] for s in parts])
-    order = np.argsort(idx, kind="stable")
-    dh_t = np.concatenate([s["dh"] for s in parts])[order]
-    slope_t = np.concatenate([s["slope"] for s in parts])[order].astype(np.float64)
-    q_t = (np.concatenate([s["q"] for s in parts])[order].astype(np.float64)
-           if p.error.predictor != "none" else None)
-    blocks = np.unique(np.concatenate([s["blocks"] for s in parts])) if parts else np.zeros(0)
-    bbs = [s["bbox"] for s in parts if s["bbox"] is not None]
-    fp_note = ((f"footprints excluded ({int(sum(s['fp_n'] for s in parts))} cells + "
-                f"{p.stable.footprint_buffer_cells}-cell buffer)",) if S.footprints is not None else ())
-    if sd.kind == "user":
+    timings["stable_s"] = time.perf_counter() - tt
+    return _State(creg, plan, sd, stable_overlap(p.stable) if sd.kind == "auto" else 0, info_auto, epochs, method)
+
+
+def _stable_info(S: _Setup, st: _State, n_st: int, dh_st: np.ndarray, fp_cells: int) -> StableInfo:
+    """The StableInfo :func:`stable_terrain` reports (user mask: from the stable cells' dh)."""
+    p = S.params
+    fp_note = ((f"footprints excluded ({fp_cells} cells + {p.stable.footprint_buffer_cells}-cell buffer)",)
+               if S.footprints is not None else ())
+    if st.sd.kind == "user":
         if n_st == 0:
             raise EmptyDataError(
                 "the stable-terrain mask selects no cell with valid heights in both DEMs (all NaN); check that the "
                 "mask covers the DEMs' common area, or omit it to select stable terrain automatically")
-        info = StableInfo(f"user mask ({S.mask_is})", n_st, 0, float(np.median(dh_t)), nmad(dh_t), 0, fp_note)
-    else:
-        info = StableInfo(info_auto.source, info_auto.n_cells, info_auto.iterations, info_auto.median_m,
-                          info_auto.nmad_m, info_auto.excluded_change_cells, fp_note + info_auto.notes)
-    notes.extend(info.notes)
-    timings["stable_s"] = time.perf_counter() - tt
-    # --- error model, variogram, significance --------------------------------------------------
-    tt = time.perf_counter()
-    status = "ok"
-    em = vg = sig = None
-    center = 0.0
-    exact = S.fraction >= 1.0
-    unc_parts: dict[str, Any] = {}
-    if info.n_cells < p.min_stable_cells:
-        status = "no_stable_terrain"
-        notes.append(f"no usable stable terrain ({info.n_cells} cells, at least {p.min_stable_cells} needed): "
-                     "no co-registration shift was invented, and σ and confidence are unknown; give a stable-terrain "
-                     "mask (--stable-mask) to test significance")
-    else:
-        nblk = int(blocks.size)
-        if info.n_cells < p.reliable_stable_cells or nblk < p.reliable_stable_blocks:
-            status = "uncertainty_indicative"
-            notes.append(f"σ learned from only {info.n_cells} stable cells in {nblk} blocks of {p.coreg.block_px} px "
-                         f"(reliable from {p.reliable_stable_cells} cells in {p.reliable_stable_blocks} blocks): "
-                         "the error model and variogram are indicative only")
-        em = fit_error_model(dh_t, np.ones(dh_t.size, bool), slope_t, q_t, p.error)
-        sig_t = em.sigma(slope_t, q_t if em.predictor != "none" else None)
-        fill = float(math.sqrt(em.coef[0]) * em.scale)
-        sig_t = np.where(np.isfinite(sig_t), sig_t, np.where(np.isfinite(dh_t), fill, np.nan)).astype(np.float32)
-        m = np.isfinite(dh_t) & np.isfinite(sig_t) & (sig_t > 0)
-        med = float(np.median(dh_t[m]))
-        absz = np.sort(np.abs((dh_t[m] - med) / sig_t[m].astype(np.float64)))
-        if absz.size < 20:
-            raise EmptyDataError(f"only {absz.size} stable cells: too few to test significance")
-        sig = SignificanceModel(absz, med)
-        center = med
-        del dh_t, slope_t, q_t, absz, sig_t
-        # variogram on the plan's grids
-        bb = (min(b[0] for b in bbs), min(b[1] for b in bbs), max(b[2] for b in bbs), max(b[3] for b in bbs))
-        vplan = variogram_plan((bb[0], bb[1], bb[2] - bb[0] + 1, bb[3] - bb[1] + 1), S.posting, p.error)
-        lags, gam, cnt, zbb = _variogram_tiles(R, S, plan, sd, em, med, vplan, ccs)
-        if zbb != vplan.bbox:
-            vplan = variogram_plan(zbb, S.posting, p.error)
-            lags, gam, cnt, zbb = _variogram_tiles(R, S, plan, sd, em, med, vplan, ccs)
-        r0, c0, hh, ww = zbb
-        ext = math.hypot(hh * S.posting[1], ww * S.posting[0])
-        vg = fit_variogram(lags, gam, cnt, p.error.n_components, max_range_m=ext)
-        unc_parts = {"em": em, "vg": vg}
-    timings["error_model_s"] = time.perf_counter() - tt
-    res = TiledDEMDiffResult({}, {}, creg, info, status, notes, em, vg, sig, exact, S.grid)
-    res._plan = plan
-    res._sd = sd
-    res._ccs = ccs
-    res._method = method
-    res._unc_parts = unc_parts
-    res._epochs = (epoch_a, epoch_b)
-    if sig is not None and p.confidence > sig.max_level():
-        notes.append(f"{sig.n} stable cells support confidences up to {sig.max_level():.4f} only; "
-                     f"nothing can be significant at {p.confidence}")
-    return res
+        return StableInfo(f"user mask ({S.mask_is})", n_st, 0, float(np.median(dh_st)), nmad(dh_st), 0, fp_note)
+    i = st.info_auto
+    return StableInfo(i.source, i.n_cells, i.iterations, i.median_m, i.nmad_m, i.excluded_change_cells,
+                      fp_note + i.notes)
+
+
+def _finish_exact(R: _Runner, S: _Setup, st: _State, notes: list[str]):
+    """Small grids: gather the whole grids and finish with the untiled pipeline's own code."""
+    from .pipeline import finish_difference
+
+    p = S.params
+    r = R.run(_t_grids, "grids", (S, st.plan, st.sd), R.overlap(st.plan, st.ccs))
+    dh = r.read("dh64")
+    stable = r.read("stable").astype(bool)
+    valid = r.read("valid").astype(bool)
+    A = r.read("a32").astype(np.float64)
+    Braw = r.read("b32").astype(np.float64)
+    Bc = r.read("bc32").astype(np.float64)
+    slope = r.read("slope")
+    q = r.read("q") if p.error.predictor != "none" else None
+    fp_cells = int(sum(s_["fp_n"] for _, s_ in r.smalls()))
+    obs = valid & np.isfinite(dh)
+    info = _stable_info(S, st, int(stable.sum()), dh[stable], fp_cells)
+    dh_raw = np.where(valid, Braw - A, np.nan)
+    ea, eb = st.epochs
+    return finish_difference(S.grid, S.posting, A, Braw, Bc, dh, dh_raw, obs, stable, info, st.creg, slope, q, notes,
+                             p, epoch_a=ea, epoch_b=eb, method=st.method)
 
 
 def _variogram_tiles(R: _Runner, S: _Setup, plan, sd, em, med, vplan: VariogramPlan, ccs: int):
@@ -1087,85 +1167,374 @@ def _variogram_tiles(R: _Runner, S: _Setup, plan, sd, em, med, vplan: VariogramP
 # ------------------------------------------------------------------------------------------
 # products
 # ------------------------------------------------------------------------------------------
-def _write(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, prefix, plots, provenance, epoch_a,
-           epoch_b, footprints) -> dict[str, Path]:
-    if S.grid.width * S.grid.height <= R.tiling.exact_grid_cells:
-        return _write_exact(R, S, res, out, prefix=prefix, plots=plots, provenance=provenance, footprints=footprints)
-    return _write_large(R, S, res, out, prefix=prefix, plots=plots, provenance=provenance, footprints=footprints)
+@dataclass
+class _Model:
+    """The whole-scene models of a large grid (from tile reductions)."""
+
+    info: StableInfo
+    status: str
+    em: ErrorModel | None = None
+    vg: VariogramModel | None = None
+    sig: SignificanceModel | None = None
+    warnings: list[str] = field(default_factory=list)
+    degenerate: dict = field(default_factory=dict)
 
 
-def _write_exact(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, prefix, plots, provenance,
-                 footprints) -> dict[str, Path]:
-    """Small grids: gather the whole grids and finish with the untiled pipeline's own code."""
-    from .pipeline import DEMDiffResult, _sign_in_regions, _summary
-    from .products import write_demdiff_products
-    from .significance import change_sign, significance_map
-    from .uncertainty import _window_variance  # noqa: F401  (used through Uncertainty)
+def _model_large(R: _Runner, S: _Setup, st: _State, notes: list[str]) -> _Model:
+    """Error model, significance and variogram of a large grid: :func:`finish_difference`'s steps on
+    the stable cells gathered from the tiles (a fixed subsample beyond ``sample_cells``)."""
+    p = S.params
+    plan, sd = st.plan, st.sd
+    et = R.run(_t_errtable, "stable-cells", (S, plan, sd), R.overlap(plan, st.ccs))
+    parts = [s_ for _, s_ in et.smalls()]
+    n_st = int(sum(s_["n"] for s_ in parts))
+    idx = np.concatenate([s_["idx"] for s_ in parts])
+    order = np.argsort(idx, kind="stable")
+    dh_t = np.concatenate([s_["dh"] for s_ in parts])[order]
+    slope_t = np.concatenate([s_["slope"] for s_ in parts])[order].astype(np.float64)
+    q_t = (np.concatenate([s_["q"] for s_ in parts])[order].astype(np.float64)
+           if p.error.predictor != "none" else None)
+    blocks = np.unique(np.concatenate([s_["blocks"] for s_ in parts])) if parts else np.zeros(0)
+    bbs = [s_["bbox"] for s_ in parts if s_["bbox"] is not None]
+    info = _stable_info(S, st, n_st, dh_t, int(sum(s_["fp_n"] for s_ in parts)))
+    notes.extend(info.notes)
+    m = _Model(info, "ok")
+    if info.n_cells < p.min_stable_cells:
+        m.status = "no_stable_terrain"
+        notes.append(f"no usable stable terrain ({info.n_cells} cells, at least {p.min_stable_cells} needed): "
+                     "no co-registration shift was invented, and σ and confidence are unknown; give a stable-terrain "
+                     "mask (--stable-mask) to test significance")
+        return m
+    nblk = int(blocks.size)
+    if info.n_cells < p.reliable_stable_cells or nblk < p.reliable_stable_blocks:
+        m.status = "uncertainty_indicative"
+        notes.append(f"σ learned from only {info.n_cells} stable cells in {nblk} blocks of {p.coreg.block_px} px "
+                     f"(reliable from {p.reliable_stable_cells} cells in {p.reliable_stable_blocks} blocks): "
+                     "the error model and variogram are indicative only")
+    em = fit_error_model(dh_t, np.ones(dh_t.size, bool), slope_t, q_t, p.error)
+    sig_t = em.sigma(slope_t, q_t if em.predictor != "none" else None)
+    fill = float(math.sqrt(em.coef[0]) * em.scale)
+    sig_t = np.where(np.isfinite(sig_t), sig_t, np.where(np.isfinite(dh_t), fill, np.nan)).astype(np.float32)
+    ok = np.isfinite(dh_t) & np.isfinite(sig_t) & (sig_t > 0)
+    if ok.sum() < 20:
+        raise EmptyDataError(f"only {int(ok.sum())} stable cells: too few to test significance")
+    med = float(np.median(dh_t[ok]))
+    sig = SignificanceModel(np.sort(np.abs((dh_t[ok] - med) / sig_t[ok].astype(np.float64))), med)
+    del dh_t, slope_t, q_t, sig_t
+    bb = (min(b[0] for b in bbs), min(b[1] for b in bbs), max(b[2] for b in bbs), max(b[3] for b in bbs))
+    vplan = variogram_plan((bb[0], bb[1], bb[2] - bb[0] + 1, bb[3] - bb[1] + 1), S.posting, p.error)
+    lags, gam, cnt, zbb = _variogram_tiles(R, S, plan, sd, em, med, vplan, st.ccs)
+    if zbb != vplan.bbox:
+        vplan = variogram_plan(zbb, S.posting, p.error)
+        lags, gam, cnt, zbb = _variogram_tiles(R, S, plan, sd, em, med, vplan, st.ccs)
+    ext = math.hypot(zbb[2] * S.posting[1], zbb[3] * S.posting[0])
+    m.em, m.sig = em, sig
+    m.vg = fit_variogram(lags, gam, cnt, p.error.n_components, max_range_m=ext)
+    if p.confidence > 100.0 * sig.max_level():
+        notes.append(f"{sig.n} stable cells support confidences up to {100 * sig.max_level():.2f}% "
+                     f"only; nothing can be significant at {p.confidence:g}%")
+    return m
+
+
+def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, notes: list[str], *, prefix, plots,
+                 provenance) -> TiledDEMDiffResult:
+    """Large grids: products tile by tile, correlated sums on a coarse grid, regions merged across seams."""
+    import json as _json
+
+    from ..change.styles import write_raster_style
+    from ..io.vector import qml_for, write_gpkg
+    from ..tiling.regions import merge_regions, regions_layer
+    from .pipeline import DEMDiffResult
+    from .products import _clean, _jsonable, dh_qml, nice_limit, significance_qml, tables, write_json
 
     p = S.params
-    plan, sd = res._plan, res._sd
-    r = R.run(_t_grids, "grids", (S, plan, sd, res.error_model, None), R.overlap(plan, res._ccs))
-    dh = r.read("dh64")
-    st = r.read("stable").astype(bool)
-    A = r.read("a32").astype(np.float64)
-    Braw = r.read("b32").astype(np.float64)
-    Bc = r.read("bc32").astype(np.float64)
     g = S.grid
-    valid = r.read("valid").astype(bool)
-    obs = valid & np.isfinite(dh)
-    unc = None
-    sigma = np.full(g.shape, np.nan, np.float32)
-    z = np.full(g.shape, np.nan, np.float32)
-    conf = np.full(g.shape, np.nan, np.float32)
-    sig_model = res.significance
-    if res.error_model is not None:
-        su = r.read("sigma_u")
-        zz = np.full(g.shape, np.nan)
-        m = st & np.isfinite(dh) & np.isfinite(su) & (su > 0)
-        zz[m] = np.clip((dh[m] - sig_model.center_m) / su[m].astype(np.float64), -p.error.clip_z, p.error.clip_z)
-        w = np.where(np.isfinite(zz), su, 0.0).astype(np.float64)
-        k = _k_field(w, res.variogram, S.posting)
-        var_sum = float(max(np.sum(w * k), 0.0))
-        nst = int(np.isfinite(zz).sum())
+    H, W = g.shape
+    post = S.posting
+    cell = float(post[0] * post[1])
+    plan, sd = st.plan, st.sd
+    em, vg, sig = model.em, model.vg, model.sig
+    ea, eb = st.epochs
+    footprints = S.footprints
+    status = model.status
+    block = max(1, int(math.ceil(math.sqrt(H * W / R.tiling.coarse_cells))))
+    cshape = (-(-H // block), -(-W // block))
+    unc = split = None
+    KC = Cb = Cfull = None
+    if em is not None:
+        split = CovSplit.of(vg, post, block, max_radius=min(256, R.tiling.tile_size // 4))
+        rb = R.run(_t_blocks, "stable-blocks", (S, plan, sd, em, split),
+                   R.overlap(plan, st.ccs + split.radius))
+        parts = [s_ for _, s_ in rb.smalls()]
+        Wc = _coarse([s_["blocks"] for s_ in parts], "w", cshape)
+        nst = int(sum(s_["n"] for s_ in parts))
+        Qst = float(sum(s_["q"] for s_ in parts))
+        vsh = float(sum(s_["v_short"] for s_ in parts))
+        Cb = block_covariance(split.long, block, post, cshape) if split.long is not None else None
+        Cfull = block_covariance(replace(vg, nugget=0.0), block, post, cshape)
+        # K(x) = Σ_{j∈S} σ_j C(d): nugget + short range exact per tile (k_local), long range per block (KC)
+        KC = _coarse_conv(Wc, Cb) if Cb is not None else np.zeros(cshape)
+        var_sum = float(max(split.nugget * Qst + vsh + np.sum(Wc * KC), 0.0))
         bias = math.sqrt(var_sum) / nst if nst else float("nan")
-        neff = float(np.sum(w) ** 2 * res.variogram.total_sill / var_sum) if var_sum > 0 else float("nan")
-        unc = Uncertainty(res.error_model, res.variogram, su, (float(S.posting[0]), float(S.posting[1])), bias, neff,
-                          nst, k)
-        sigma = np.where(obs, unc.sigma_m, np.nan).astype(np.float32)
-        unc = unc.with_offset(sig_model.center_m)
-        z, conf = significance_map(dh, sigma, sig_model)
-    from ..change.regions import change_regions
+        neff = float(np.sum(Wc) ** 2 * vg.total_sill / var_sum) if var_sum > 0 else float("nan")
+        unc = Uncertainty(em, vg, None, (float(post[0]), float(post[1])), bias, neff, nst, None)
+        unc = unc.with_offset(sig.center_m)
+        kstore = rb.store
 
-    if sig_model is not None:
-        raw_sign = change_sign(dh, conf, p.confidence, sig_model.center_m)
-    elif p.fallback_threshold_m is not None:
-        raw_sign = np.where(np.abs(np.nan_to_num(dh)) > p.fallback_threshold_m, np.sign(np.nan_to_num(dh)),
-                            0).astype(np.int8)
-        res.notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m "
-                         "(no significance test)")
-    else:
-        raw_sign = np.zeros(g.shape, np.int8)
-    raw_sign = np.where(obs, raw_sign, 0).astype(np.int8)
-    cell = float(S.posting[0] * S.posting[1])
-    vfn = unc.volume_sigma_fn(cell) if unc is not None else None
-    ea, eb = res._epochs
-    regions = change_regions(raw_sign, dh, g, confidence=conf if sig_model is not None else None,
-                             volume_sigma_fn=vfn, method=res._method, epoch_a=ea, epoch_b=eb,
-                             min_cells=p.min_region_cells, cell_area_m2=cell)
-    sign = _sign_in_regions(raw_sign, p.min_region_cells)
-    sign = np.where(obs, sign, CHANGE_NODATA).astype(np.int8)
-    dr = DEMDiffResult(g, S.posting, A.astype(np.float32), Bc.astype(np.float32), dh.astype(np.float32),
-                       np.where(valid, Braw - A, np.nan).astype(np.float32), obs, st, res.stable_info, res.coreg, unc,
-                       sig_model, sigma, z, conf, sign, regions, ea, eb, p.confidence, res.status, res.notes)
-    dr.summary = _summary(dr, Braw, p)
-    dr.summary["wall_s"] = time.perf_counter() - R.t0
-    res.summary = dr.summary
-    res._uncertainty = unc
-    return write_demdiff_products(out, dr, footprints=footprints, prefix=prefix, plots=plots,
-                                  provenance=provenance)
+    def long_sum(Sx: np.ndarray) -> float:
+        return float(np.sum(Sx * _coarse_conv(Sx, Cb))) if Cb is not None else 0.0
+
+    c = st.creg
+    fe, fn, fz = c.fitted_shift_m
+    fitted_plan = (CoregPlan((fe / post[0], -fn / post[1]), fz, None, p.coreg.resampling)
+                   if (fe or fn) and c.applied in ("vertical", "none") else None)
+    ov = R.overlap(plan, max(st.ccs, p.min_region_cells - 1) + (split.radius if split is not None else 0))
+    if fitted_plan is not None:
+        ov = max(ov, R.overlap(fitted_plan, 0))
+    tags = {"method": "demdiff", "epoch_a": ea, "epoch_b": eb, "units": "m",
+            "confidence_level_pct": f"{p.confidence:g}", "coreg": c.summary()}
+    if provenance:
+        tags["provenance"] = _json.dumps(_clean(provenance), default=_jsonable)
+    products = {
+        "dh": RasterProduct(str(out / f"{prefix}_dh.tif"), ("dh_m",), tags=tags),
+        "significance": RasterProduct(str(out / f"{prefix}_significance.tif"), ("confidence_pct", "sigma_m", "z"),
+                                      tags=tags),
+        "change_mask": RasterProduct(str(out / f"{prefix}_change_mask.tif"), ("sign",), dtype="int8",
+                                     nodata=CHANGE_NODATA, tags=tags, overview_resampling="nearest",
+                                     descriptions=(None,)),
+    }
+    center = sig.center_m if sig is not None else 0.0
+    rp = R.run(_t_products, "products", (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan), ov,
+               products=products)
+    sm = [s_ for _, s_ in rp.smalls()]
+    tot = {k: sum(s_[k] for s_ in sm) for k in ("n_obs", "n_stable", "n_changed", "n_raised", "n_lowered",
+                                                 "sum_changed", "sum_raised", "sum_lowered", "sum_obs",
+                                                 "n_identical")}
+    stable_dh = np.concatenate([s_["stable_dh"] for s_ in sm]).astype(np.float64)
+    abs_dh = np.concatenate([s_["abs_dh"] for s_ in sm])
+    # degenerate stable terrain (identical heights, NMAD at the float32 floor): from the tiles' counts
+    warns: list[str] = []
+    degenerate: dict = {}
+    if model.info.n_cells >= p.min_stable_cells:
+        from .pipeline import degenerate_message
+
+        hmax = max((s_["hmax_stable"] for s_ in sm), default=0.0)
+        degenerate, warn = degenerate_message(int(tot["n_stable"]), int(tot["n_identical"]),
+                                              nmad(stable_dh) if stable_dh.size else float("nan"), hmax, p)
+        if warn:
+            status = "degenerate_stable_terrain"
+            warns.append(warn)
+    if sig is None and p.fallback_threshold_m is not None:
+        notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m "
+                     "(no significance test)")
+    # --- regions -----------------------------------------------------------------------------------
+    merged = merge_regions([s_["regions"] for s_ in sm], R.tg, p.min_region_cells)
+    store = rp.store
+
+    def var_terms(V: float, n: int, cross: float, include_bias: bool = True) -> float:
+        var = V
+        if include_bias and unc.n_stable:
+            var += (n * unc.bias_sigma_m) ** 2
+            var -= 2.0 * n / unc.n_stable * cross
+            var = max(var, 0.0) + (n * unc.offset_m) ** 2
+        return max(var, 0.0)
+
+    def region_sigma(k: int) -> float:
+        from ..tiling.regions import region_mask_window
+        from .uncertainty import _window_variance
+
+        r0, c0, r1, c1 = (int(v) for v in merged.bbox[k])
+        if (r1 - r0) * (c1 - c0) <= R.tiling.exact_grid_cells:
+            m, sl = region_mask_window(merged, k, lambda t: store.tile_array(t, "labels"), R.tg)
+            sg = store.read("sigma_m", (r0, c0, r1 - r0, c1 - c0)).astype(np.float64)
+            m &= np.isfinite(sg)
+            wv = np.where(m, sg, 0.0)
+            V = _window_variance(wv, vg, post)
+            kw = (kstore.read("k_local", (r0, c0, r1 - r0, c1 - c0)).astype(np.float64)
+                  + KC[np.arange(r0, r1) // block][:, np.arange(c0, c1) // block])
+            cross = float(np.sum(wv * kw))
+            n = int(np.count_nonzero(wv))
+        else:
+            Sr, Qr = _region_coarse(merged, k, store, R.tg, block, cshape)
+            V = coarse_sum_variance(Sr, Qr, vg, Cfull)
+            cross = float(np.sum(Sr * KC))
+            n = int(merged.n[k])
+        return math.sqrt(var_terms(V, n, cross)) * cell
+
+    layer = regions_layer(merged, g, cell_area_m2=cell, method=st.method, epoch_a=ea, epoch_b=eb,
+                          volume_sigma=region_sigma if unc is not None else None)
+    # --- summary -----------------------------------------------------------------------------------
+    s = {
+        "epoch_a": ea, "epoch_b": eb, "status": status, "coreg_status": c.status,
+        "coreg_applied": c.applied, "shift_applied_m": list(c.shift_m),
+        "shift_fitted_m": list(c.fitted_shift_m), "shift_sigma_m": list(c.shift_sigma_m),
+        "coreg_n_fit": c.n_fit, "n_observed": int(tot["n_obs"]), "observed_area_m2": float(tot["n_obs"] * cell),
+        "n_stable": int(tot["n_stable"]),
+        "stable_median_m": float(np.median(stable_dh)) if stable_dh.size else float("nan"),
+        "stable_nmad_m": nmad(stable_dh) if stable_dh.size else float("nan"),
+        "stable_nmad_before_coreg_m": c.nmad_before_m,
+        "changed_cells": int(tot["n_changed"]), "changed_area_m2": float(tot["n_changed"] * cell),
+        "raised_area_m2": float(tot["n_raised"] * cell), "lowered_area_m2": float(tot["n_lowered"] * cell),
+        "volume_changed_m3": float(tot["sum_changed"] * cell),
+        "volume_raised_m3": float(tot["sum_raised"] * cell),
+        "volume_lowered_m3": float(tot["sum_lowered"] * cell),
+        "volume_net_observed_m3": float(tot["sum_obs"] * cell),
+    }
+    nan = float("nan")
+    s.update(volume_changed_sigma_m3=nan, volume_changed_sigma_random_m3=nan, volume_net_observed_sigma_m3=nan,
+             n_eff_changed=nan, variogram_ranges_m=[], variogram_sills=[], variogram_nugget=nan, bias_sigma_m=nan)
+    if unc is not None:
+        s["variogram_ranges_m"] = list(vg.ranges_m)
+        s["variogram_sills"] = list(vg.sills)
+        s["variogram_nugget"] = vg.nugget
+        s["bias_sigma_m"] = unc.bias_sigma_m
+        s["n_eff_stable"] = unc.n_eff_stable
+        s["error_model_coef"] = list(em.coef)
+        s["error_model_scale"] = em.scale
+        blk = [s_["blocks"] for s_ in sm if "blocks" in s_]
+        q = {k: float(sum(s_.get(k, 0.0) for s_ in sm)) for k in ("q_obs", "q_changed", "q_obs_st", "q_changed_st")}
+        q.update({k: float(sum(s_.get(k, 0.0) for s_ in sm)) for k in ("v_short_obs", "v_short_changed",
+                                                                        "x_short_obs", "x_short_changed")})
+        So = _coarse(blk, "obs", cshape)
+        Sc = _coarse(blk, "changed", cshape)
+        Vo = max(split.nugget * q["q_obs"] + q["v_short_obs"] + long_sum(So), 0.0)
+        cross_o = float(np.sum(So * KC)) + split.nugget * q["q_obs_st"] + q["x_short_obs"]
+        s["volume_net_observed_sigma_m3"] = math.sqrt(var_terms(Vo, int(tot["n_obs"]), cross_o)) * cell
+        if tot["n_changed"]:
+            Vc = max(split.nugget * q["q_changed"] + q["v_short_changed"] + long_sum(Sc), 0.0)
+            cross_c = float(np.sum(Sc * KC)) + split.nugget * q["q_changed_st"] + q["x_short_changed"]
+            s["volume_changed_sigma_m3"] = math.sqrt(var_terms(Vc, int(tot["n_changed"]), cross_c)) * cell
+            s["volume_changed_sigma_random_m3"] = math.sqrt(Vc) * cell
+            s["n_eff_changed"] = float(np.sum(Sc) ** 2 * vg.total_sill / Vc) if Vc > 0 else nan
+    if fitted_plan is not None and tot["n_changed"]:
+        vf = float(sum(s_.get("sum_changed_fitted", 0.0) for s_ in sm) * cell)
+        s["volume_changed_if_fitted_shift_applied_m3"] = vf
+        sv = s["volume_changed_sigma_m3"]
+        s["fitted_shift_volume_effect_sigma"] = (vf - s["volume_changed_m3"]) / sv if sv and math.isfinite(sv) else nan
+    s.update(degenerate)
+    s["wall_s"] = time.perf_counter() - R.t0
+    s["tiled"] = {"exact": False, "sample_fraction": S.fraction, "coarse_block_cells": block,
+                  "tile_size": R.tiling.tile_size, "short_range_cells": split.radius if split is not None else 0}
+    # --- writing -----------------------------------------------------------------------------------
+    paths: dict[str, Path] = dict(rp.products)
+    vmax = nice_limit(float(np.nanpercentile(abs_dh, 98)) if abs_dh.size else 1.0)
+    write_raster_style(paths["dh"], dh_qml(vmax))
+    write_raster_style(paths["significance"], significance_qml())
+    write_raster_style(paths["change_mask"], qml_for("change_mask"))
+    dr = DEMDiffResult(g, post, None, None, None, None, None, None, model.info, c, unc, sig, None, None, None,
+                       None, layer, ea, eb, p.confidence, status, notes, warnings=warns)
+    dr.summary = s
+    layers: dict[str, Any] = {"changes": layer}
+    styles = {"changes": qml_for("changes")}
+    if footprints is not None:
+        from ..change.styles import buildings_qml
+
+        layers["buildings"] = _buildings_windows(footprints, store, R.tg, g)
+        styles["buildings"] = buildings_qml()
+    layers.update(tables(dr))
+    paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", layers, styles=styles)
+    if plots:
+        paths["dh_png"] = _plot_large(S, paths, out / f"{prefix}_dh.png", s, c, vmax, ea, eb, p.confidence,
+                                      status)
+    rep = dr.to_dict()
+    if provenance:
+        rep["provenance"] = provenance
+    paths["report"] = write_json(out / f"{prefix}_report.json", rep)
+    return TiledDEMDiffResult(paths, s, c, model.info, status, notes, em, vg, sig, False, g, warnings=warns)
 
 
-def _write_large(R: _Runner, S: _Setup, res: TiledDEMDiffResult, out: Path, *, prefix, plots, provenance,
-                 footprints) -> dict[str, Path]:
-    """Large grids: products tile by tile, correlated sums on a coarse grid, regions merged across seams."""
-    raise NotImplementedError
+def _region_coarse(merged, k: int, store, tg: TileGrid, block: int, cshape) -> np.ndarray:
+    """Block sums of σ and Σ σ² over region ``k`` (regions too large for a window FFT)."""
+    out = np.zeros(cshape)
+    q = 0.0
+    by_tile: dict = {}
+    for ti, s, lab in merged.members[k]:
+        by_tile.setdefault(ti, []).append(s * lab)
+    for ti, labs in by_tile.items():
+        t = tg.tile(*ti)
+        r0, c0, h, w = t.core
+        m = np.isin(store.tile_array(t, "labels"), labs)
+        sg = np.asarray(store.tile_array(t, "sigma_m"), np.float64)
+        a = np.where(m & np.isfinite(sg), sg, 0.0)
+        br = np.arange(r0, r0 + h) // block
+        bc = np.arange(c0, c0 + w) // block
+        rs = np.r_[0, np.nonzero(np.diff(br))[0] + 1]
+        cs = np.r_[0, np.nonzero(np.diff(bc))[0] + 1]
+        out[np.ix_(br[rs], bc[cs])] += np.add.reduceat(np.add.reduceat(a, rs, axis=0), cs, axis=1)
+        q += float(np.sum(a * a))
+    return out, q
+
+
+def _buildings_windows(footprints, store, tg: TileGrid, g: AOIGrid):
+    """:func:`geocd.change.buildings.classify_buildings` footprint by footprint on windows of the tile arrays."""
+    import pandas as pd
+    import geopandas as gpd
+
+    from ..change.buildings import BuildingParams, classify_buildings
+
+    gdf = footprints.to_crs(g.crs).reset_index(drop=True)
+    ring = int(round(BuildingParams().ring_m / g.posting_m)) + 2
+    inv = ~g.transform
+    rows = []
+    sidx = gdf.sindex
+    for i, geom in enumerate(gdf.geometry):
+        l, b, r, t = geom.bounds
+        c0, r0 = inv @ (l, t)
+        c1, r1 = inv @ (r, b)
+        R0, C0 = max(0, int(math.floor(r0)) - ring), max(0, int(math.floor(c0)) - ring)
+        R1, C1 = min(g.height, int(math.ceil(r1)) + ring), min(g.width, int(math.ceil(c1)) + ring)
+        if R1 <= R0 or C1 <= C0:
+            R0, C0, R1, C1 = 0, 0, 1, 1
+        win = (R0, C0, R1 - R0, C1 - C0)
+        sub = g.subgrid(*win)
+        # every footprint touching the window, in the layer's order (rasterization paints in order)
+        wb = sub.bounds
+        near = np.sort(sidx.query(__import__("shapely").geometry.box(*wb)))
+        if i not in near:
+            near = np.sort(np.append(near, i))
+        fp = gdf.iloc[near]
+        out = classify_buildings(fp, store.read("sign", win), store.read("dh_m", win), sub,
+                                 z_a=store.read("a32", win), z_b=store.read("bc32", win),
+                                 confidence=store.read("conf", win))
+        rec = out.iloc[int(np.nonzero(near == i)[0][0])].copy()
+        rec["building_id"] = i + 1
+        rows.append(rec)
+    res = gpd.GeoDataFrame(pd.DataFrame(rows).reset_index(drop=True), geometry="geometry", crs=gdf.crs)
+    return res
+
+
+def _plot_large(S: _Setup, paths, png: Path, s, c, vmax, ea, eb, level, status) -> Path:
+    """The dh map from the COGs' overviews (at most ~2000 cells a side)."""
+    import rasterio
+    from affine import Affine
+    from rasterio.enums import Resampling
+
+    from ..change.plots import plot_dh_map
+
+    g = S.grid
+    f = max(1, int(math.ceil(max(g.shape) / 2000)))
+    h, w = -(-g.height // f), -(-g.width // f)
+    with rasterio.open(paths["dh"]) as ds:
+        dh = ds.read(1, out_shape=(h, w), resampling=Resampling.average, masked=True).filled(np.nan)
+    with rasterio.open(paths["change_mask"]) as ds:
+        sign = ds.read(1, out_shape=(h, w), resampling=Resampling.nearest)
+    small = AOIGrid(g.crs, g.transform @ Affine.scale(g.width / w, g.height / h), w, h)
+    try:
+        from rasterio.windows import from_bounds
+
+        with rasterio.open(S.a.path) as ds:
+            win = from_bounds(*g.bounds, transform=ds.transform)
+            back = ds.read(1, window=win, out_shape=(h, w), resampling=Resampling.average, masked=True,
+                           boundless=True).filled(np.nan).astype(np.float32)
+    except Exception:  # noqa: BLE001 - a backdrop is optional
+        back = None
+    note = f"stable NMAD {s['stable_nmad_m']:.2f} m; coreg {c.status} ({c.applied})"
+    if status == "degenerate_stable_terrain":
+        note += "\nWARNING: degenerate stable terrain (DEMs identical there): σ is not credible"
+    if math.isfinite(s.get("volume_changed_sigma_m3", float("nan"))):
+        note += (f"\nchanged {s['changed_area_m2'] / 1e6:.3f} km², "
+                 f"{s['volume_changed_m3'] / 1e6:+.3f} ± {s['volume_changed_sigma_m3'] / 1e6:.3f} Mm³ (1σ)")
+    post = (S.posting[0] * g.width / w, S.posting[1] * g.height / h)
+    return plot_dh_map(dh, small, png, sign=sign, backdrop_m=back, backdrop_posting_xy_m=post,
+                       title=f"{ea} → {eb}: Δh after co-registration, changed at {level:g}% (1:{f} overview)",
+                       vmax=vmax, note=note)

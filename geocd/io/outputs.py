@@ -19,7 +19,7 @@ What a session does
 * **Paths.** ``out`` must be a folder (an existing *file* there is refused), creatable and writable
   (read-only file system / permission denied → :class:`~geocd.errors.OutputError` naming the fix).
   File outputs outside the folder (``--plot x.png``, a model file, a model folder) are declared with
-  ``files=``. ``prefix`` must be a plain file-name prefix (no ``/``, ``..``): products cannot escape
+  ``files=`` (a declared file covers its side files of the same stem: ``x.json`` and ``x.qml`` beside ``x.tif``). ``prefix`` must be a plain file-name prefix (no ``/``, ``..``): products cannot escape
   the folder. While a session is open, every write through :mod:`geocd.io.atomic` must land inside
   the folder or on a declared file, and never on an input.
 * **Inputs.** ``inputs`` (files or folders; ``None`` entries ignored) are protected: an input that is
@@ -64,6 +64,7 @@ import re
 import shutil
 import socket
 import sys
+import threading
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -340,6 +341,7 @@ def verify_products(folder: os.PathLike | str, run: str | None = None) -> dict[s
 # sessions
 # =====================================================================================================
 _ACTIVE: list["OutputSession"] = []
+_RECORD_LOCK = threading.RLock()
 
 
 def _on_before_write(target: Path) -> None:
@@ -395,9 +397,13 @@ class OutputSession:
         return ([self.folder] if self.folder is not None else []) + list(self.files)
 
     def covers(self, path: Path) -> bool:
+        """Whether this session may write ``path``: inside its folder, a declared output (a folder output's
+        contents), or a side file of a declared file (same folder, same stem: ``model.json`` beside
+        ``model.joblib``, ``x.qml`` beside ``x.tif``)."""
         if self.folder is not None and _within(path, self.folder):
             return True
-        return any(_within(path, f) for f in self.files)
+        return any(_within(path, f) or (path.parent == f.parent and path.name.startswith((f"{f.stem}.", f"{f.stem}_")))
+                   for f in self.files)
 
     def _rel(self, path: Path) -> str:
         if self.folder is not None and _within(path, self.folder):
@@ -412,13 +418,16 @@ class OutputSession:
             return
         p = _resolve(path)
         targets = [p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else []
+        found = {}
         for q in targets:
             try:
-                self.written[self._rel(q)] = {"bytes": q.stat().st_size, "sha256": sha256_file(q)}
+                found[self._rel(q)] = {"bytes": q.stat().st_size, "sha256": sha256_file(q)}
             except OSError:
                 continue
-        if self.folder is not None and self.status == "open":
-            self._save("running")
+        with _RECORD_LOCK:  # writers in threads (a threaded scheduler) record one at a time
+            self.written.update(found)
+            if self.folder is not None and self.status == "open":
+                self._save("running")
 
     # -- manifest -------------------------------------------------------------------------------------
     def _entry(self, status: str) -> dict:

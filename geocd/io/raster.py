@@ -60,7 +60,7 @@ RESAMPLING = ("nearest", "bilinear", "cubic", "average", "min", "max", "med")
 
 def _open(path: os.PathLike | str):
     import rasterio
-    from rasterio.errors import RasterioIOError
+    from rasterio.errors import RasterioError, RasterioIOError
 
     p = Path(path)
     if not p.exists() and "://" not in str(path) and not str(path).startswith("/vsi"):
@@ -76,6 +76,10 @@ def _open(path: os.PathLike | str):
             return rasterio.open(p)
     except RasterioIOError as exc:
         raise UnsupportedFormatError(f"cannot read {p} as a raster ({exc}); give a GeoTIFF or another GDAL format") from exc
+    except (RasterioError, UnicodeError, ValueError, OverflowError) as exc:
+        # a corrupt header: rasterio fails decoding a CRS citation, a tag, a metadata string
+        raise UnsupportedFormatError(f"cannot read {p} as a raster: its header is corrupt ({type(exc).__name__}: "
+                                     f"{' '.join(str(exc).split())[:120]}); copy or export the file again") from exc
 
 
 @dataclass

@@ -454,11 +454,14 @@ def write_integration(out: Path, prefix: str, scene: Scene, res, detailed: np.nd
     outputs["probability"] = write_cog(out / f"{prefix}_probability.tif", {f"p_{class_name}": p}, scene.grid,
                                        tags={**tags, "content": f"GP predictive mean of p({class_name}), clipped to "
                                                                 "[0, 1]"})
-    outputs["sigma"] = write_cog(out / f"{prefix}_sigma.tif", {"sigma": res.sd, "sigma_obs": res.sd_obs,
-                                                               "mean_unclipped": res.mean,
-                                                               "detailed": detailed.astype(np.float32)},
-                                 scene.grid, tags={**tags, "content": "GP predictive sd of the latent probability "
-                                                                      "(sigma) and of a new observation (sigma_obs)"})
+    bands = {"sigma": res.sd, "sigma_obs": res.sd_obs}
+    if res.sd_cal is not None:
+        bands["sigma_calibrated"] = res.sd_cal
+    bands.update({"mean_unclipped": res.mean, "detailed": detailed.astype(np.float32)})
+    outputs["sigma"] = write_cog(out / f"{prefix}_sigma.tif", bands, scene.grid,
+                                 tags={**tags, "content": "GP predictive sd of the latent probability (sigma), of a "
+                                                          "new observation (sigma_obs) and the latter scaled by "
+                                                          "spatial-block cross-validation (sigma_calibrated)"})
     return outputs
 
 

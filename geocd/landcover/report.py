@@ -16,9 +16,13 @@ import numpy as np
 from ..errors import EmptyDataError
 from .gp import GPParams, GPResult, integrate
 
-#: the thesis's ablation: input sets of the GP (names of :data:`geocd.landcover.pipeline.INPUTS`)
-ABLATION = {"GP: detailed + xy": ("xy",), "GP: detailed + coarse + xy": ("xy", "coarse"),
-            "GP: detailed + coarse + xy + DEM + buildings": ("xy", "coarse", "dem", "buildings")}
+#: the thesis's ablation: input sets of the GP (names of :data:`geocd.landcover.pipeline.INPUTS`), and the
+#: kernel (None: the one in the GP parameters)
+ABLATION = {"GP: detailed + xy": (("xy",), None),
+            "GP: detailed + coarse + xy": (("xy", "coarse"), None),
+            "GP, thesis product kernel: detailed + coarse + xy + DEM + buildings":
+                (("xy", "coarse", "dem", "buildings"), "product"),
+            "GP: detailed + coarse + xy + DEM + buildings": (("xy", "coarse", "dem", "buildings"), None)}
 
 
 def f1_at_recall(truth: np.ndarray, score: np.ndarray, recall: float = 0.5) -> dict:
@@ -46,7 +50,10 @@ def sigma_calibration(truth: np.ndarray, res: GPResult, cells: np.ndarray) -> di
         return {"cells": 0}
     err = np.abs(truth[ok] - res.mean[ok])
     out: dict = {"cells": int(ok.sum()), "rmse": round(float(np.sqrt(np.mean(err ** 2))), 4)}
-    for name, sd in (("sigma", res.sd[ok]), ("sigma_obs", res.sd_obs[ok])):
+    sds = [("sigma", res.sd[ok]), ("sigma_obs", res.sd_obs[ok])]
+    if res.sd_cal is not None:
+        sds.append(("sigma_calibrated", res.sd_cal[ok]))
+    for name, sd in sds:
         out[name] = {"inside_1sigma": round(float(np.mean(err <= sd)), 4),
                      "inside_2sigma": round(float(np.mean(err <= 2 * sd)), 4),
                      "median": round(float(np.median(sd)), 4)}
@@ -63,6 +70,7 @@ def ablation(detailed: np.ndarray, coarse: np.ndarray | None, inputs_for, truth:
     detailed : float (rows, cols), the detailed views' probability (NaN = unobserved)
     coarse : float (rows, cols) or None, the coarse full-cover probability
     inputs_for : callable(tuple of input names) → dict of GP input arrays
+    configs : mapping name → (input names, kernel or None); default :data:`ABLATION`
     truth : bool (rows, cols), the condition; ``truth_value`` float (rows, cols), optional, the
         continuous truth for the σ calibration (default: ``truth`` as 0/1)
     exclude : bool (rows, cols), optional, cells never scored (e.g. training labels)
@@ -79,12 +87,15 @@ def ablation(detailed: np.ndarray, coarse: np.ndarray | None, inputs_for, truth:
     scores: dict = {"observed_fraction": round(float(obs.mean()), 4)}
     if coarse is not None:
         scores["coarse alone (all cells)"] = f1_at_recall(t[ev], coarse[ev])
+        if (ev & ~obs).any():
+            scores["coarse alone (unobserved cells)"] = f1_at_recall(t[ev & ~obs], coarse[ev & ~obs])
     scores["detailed alone (observed cells)"] = f1_at_recall(t[ev & obs], detailed[ev & obs])
     configs = configs if configs is not None else {k: v for k, v in ABLATION.items()
-                                                    if coarse is not None or "coarse" not in v}
+                                                    if coarse is not None or "coarse" not in v[0]}
     results: dict = {}
-    for name, use in configs.items():
-        res = integrate(detailed, inputs_for(use), params)
+    for name, (use, kernel) in configs.items():
+        p = params if kernel is None else params.replace(kernel=kernel)
+        res = integrate(detailed, inputs_for(use), p)
         results[name] = res
         scores[f"{name} (all cells)"] = f1_at_recall(t[ev], res.mean[ev])
         if (ev & ~obs).any():
@@ -104,7 +115,7 @@ def pr_figure(path, curves: dict, scores: dict, title: str = "") -> None:
     import matplotlib.pyplot as plt
     from sklearn.metrics import precision_recall_curve
 
-    fig, ax = plt.subplots(1, 2, figsize=(12, 4.8))
+    fig, ax = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1, 1.3]})
     for name, (y, s) in curves.items():
         ok = np.isfinite(s)
         if ok.sum() and y[ok].any() and not y[ok].all():
@@ -113,18 +124,18 @@ def pr_figure(path, curves: dict, scores: dict, title: str = "") -> None:
     ax[0].axvline(0.5, color="k", lw=0.5, ls=":")
     ax[0].set_xlabel("recall")
     ax[0].set_ylabel("precision")
-    ax[0].set_title(title, fontsize=9)
+    ax[0].set_title(title, fontsize=8, wrap=True)
     ax[0].legend(fontsize=7, loc="lower left")
     names = [n for n, v in scores.items() if isinstance(v, dict) and "f1_at_recall" in v]
-    vals = [scores[n]["f1_at_recall"] for n in names]
-    ax[1].barh(range(len(names)), vals, color="tab:green")
-    for i, v in enumerate(vals):
-        ax[1].text(v, i, f" {v:.3f}", va="center", fontsize=7)
+    ap = [scores[n]["average_precision"] for n in names]
+    ax[1].barh(range(len(names)), ap, color="tab:green")
+    for i, n in enumerate(names):
+        ax[1].text(ap[i], i, f" AP {ap[i]:.3f} · F1@R.5 {scores[n]['f1_at_recall']:.3f}", va="center", fontsize=7)
     ax[1].set_yticks(range(len(names)))
-    ax[1].set_yticklabels(names, fontsize=7)
+    ax[1].set_yticklabels([n.replace(" (", "\n(") for n in names], fontsize=6)
     ax[1].invert_yaxis()
-    ax[1].set_xlabel("F1 at recall 0.5")
-    ax[1].set_xlim(max(0.0, min(vals) - 0.1) if vals else 0, 1.0)
+    ax[1].set_xlabel("average precision (label: AP and F1 at recall 0.5)")
+    ax[1].set_xlim(max(0.0, min(ap) - 0.05) if ap else 0, 1.08)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)

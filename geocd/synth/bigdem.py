@@ -50,9 +50,9 @@ class DEMPairParams:
     shift_m: tuple[float, float, float] = (1.3, -0.7, 0.5)
     changes_per_km2: float = 6.0
     voids_per_km2: float = 0.3
-    err_scale_m: float = 12.0
-    err_corr_m: float = 0.35
-    err_white_m: float = 0.2
+    err_scale_m: float = 30.0
+    err_corr_m: float = 0.2
+    err_white_m: float = 0.1
     base_m: float = 800.0
     crs: str = "EPSG:32631"
     x0: float = 400000.0

@@ -33,7 +33,9 @@ class RasterProduct:
     path : the COG to write
     bands : names of the tile arrays, one per band (each array 2-D on the tile core)
     dtype, nodata : as :func:`geocd.io.raster.write_cog` (NaN nodata for floats by default)
-    descriptions : band descriptions (default: the array names)
+    descriptions : band descriptions (default: the array names; None entries: the file's stem, as
+        :func:`geocd.io.raster.write_cog` names unnamed bands)
+    units : one unit per band (default: from the descriptions, :func:`geocd.io.raster.band_unit`)
     tags, band_tags, colormap : as :func:`geocd.io.raster.write_cog`
     """
 
@@ -42,6 +44,7 @@ class RasterProduct:
     dtype: str = "float32"
     nodata: float | int | None = None
     descriptions: tuple[str | None, ...] | None = None
+    units: tuple[str, ...] | None = None
     tags: Mapping[str, Any] = field(default_factory=dict)
     band_tags: Sequence[Mapping[str, Any]] | None = None
     colormap: Mapping[int, tuple] | None = None
@@ -70,8 +73,18 @@ def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None
         nodata = float("nan")
     profile = g.rasterio_profile(dtype=dtype, count=len(product.bands), nodata=nodata)
     profile.update(tiled=True, blockxsize=256, blockysize=256, BIGTIFF="IF_SAFER")
-    names = product.descriptions or product.bands
+    from ..io.raster import band_unit
+
     target = Path(product.path)
+    names = list(product.descriptions or product.bands)
+    if any(n is None for n in names):
+        stem = target.stem
+        names = [n if n is not None else (stem if len(names) == 1 else f"{stem}_{i}")
+                 for i, n in enumerate(names, start=1)]
+    units = list(product.units) if product.units is not None else [band_unit(n) for n in names]
+    for i, bt in enumerate(product.band_tags or []):  # a "units" band tag is the unit too (as write_cog)
+        if i < len(units) and not units[i] and bt and bt.get("units"):
+            units[i] = str(bt["units"])
     tmp_tif = store.path / f"{target.stem}.assemble.part.tif"
     with contextlib.suppress(OSError):
         tmp_tif.unlink()
@@ -84,8 +97,9 @@ def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None
                         a = store.tile_array(t, name)
                         dst.write(np.asarray(a).astype(dtype, copy=False), b, window=Window(c0, r0, w, h))
                 for i, nm in enumerate(names, start=1):
-                    if nm:
-                        dst.set_band_description(i, str(nm))
+                    dst.set_band_description(i, str(nm))
+                    if units[i - 1]:
+                        dst.set_band_unit(i, units[i - 1])
                     bt = product.band_tags
                     if bt and i - 1 < len(bt) and bt[i - 1]:
                         dst.update_tags(i, **{k: str(v) for k, v in bt[i - 1].items()})

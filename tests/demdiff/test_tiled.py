@@ -26,6 +26,7 @@ def assert_same_products(d1: Path, d2: Path, prefix: str = "demdiff") -> None:
     for name in RASTERS:
         with rasterio.open(d1 / f"{prefix}_{name}.tif") as a, rasterio.open(d2 / f"{prefix}_{name}.tif") as b:
             np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
+            assert a.units == b.units
             assert a.tags() == b.tags() and a.descriptions == b.descriptions and a.nodata is b.nodata or \
                 (np.isnan(a.nodata) and np.isnan(b.nodata)) or a.nodata == b.nodata
             assert a.profile["blockxsize"] == b.profile["blockxsize"] and a.overviews(1) == b.overviews(1)
@@ -113,3 +114,33 @@ def test_tiled_msh_with_base_equals_untiled(tmp_path):
     write_demdiff_products(tmp_path / "untiled", res)
     dem_difference_tiled(pa, pb, tmp_path / "tiled", base=pbase, tiling=TilingParams(tile_size=100, scheduler="sync"))
     assert_same_products(tmp_path / "untiled", tmp_path / "tiled")
+
+
+def test_large_path_equals_untiled(shifted_pair, tmp_path):
+    """Products tile by tile, regions merged across seams, correlated sums on tiles + a coarse grid: the
+    same rasters, the same regions and the same figures to 1e-9 (floating-point summation order)."""
+    d = shifted_pair
+    res = dem_difference(read_dem(d / "a.tif"), read_dem(d / "b.tif"))
+    write_demdiff_products(tmp_path / "untiled", res)
+    t = dem_difference_tiled(d / "a.tif", d / "b.tif", tmp_path / "tiled",
+                             tiling=TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=5000,
+                                                 coarse_cells=2000))
+    assert not t.exact
+    for name in RASTERS:
+        with rasterio.open(tmp_path / "untiled" / f"demdiff_{name}.tif") as a, \
+                rasterio.open(tmp_path / "tiled" / f"demdiff_{name}.tif") as b:
+            np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
+            assert a.descriptions == b.descriptions and a.units == b.units
+    u = res.summary
+    s = t.summary
+    for k, v in u.items():
+        if k == "wall_s" or not isinstance(v, (int, float)):
+            continue
+        assert s[k] == pytest.approx(v, rel=1e-9, abs=1e-12, nan_ok=True), k
+    a = gpd.read_file(tmp_path / "untiled" / "demdiff_changes.gpkg", layer="changes")
+    b = gpd.read_file(tmp_path / "tiled" / "demdiff_changes.gpkg", layer="changes")
+    assert len(a) == len(b) > 3
+    np.testing.assert_array_equal(a["n_cells"], b["n_cells"])
+    for c in ("volume_m3", "volume_sigma_m3", "confidence", "mean_dz_m"):
+        np.testing.assert_allclose(b[c], a[c], rtol=1e-9, err_msg=c)
+    assert all(ga.symmetric_difference(gb).area < 1e-6 for ga, gb in zip(a.geometry, b.geometry))

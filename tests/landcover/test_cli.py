@@ -62,6 +62,7 @@ def test_predict_and_integrate(trained):
     out2 = d / "gp"
     r = _run(["landcover", "integrate", "--detailed", str(d / "det.tif"), "--coarse", str(d / "coarse.tif"),
               "--dem", str(paths["dem"]), "--n-fit", "200", "--inducing", "150", "--class-name", "vegetation",
+              "--calibrate-folds", "3",
               "--truth", str(paths["truth"]), "--truth-values", "1", "--exclude-labels", str(paths["labels"]),
               "--out", str(out2)])
     assert r.exit_code == 0, r.output
@@ -70,7 +71,7 @@ def test_predict_and_integrate(trained):
         m = ds.read(1)
         assert ds.overviews(1) is not None
     with rasterio.open(out2 / "landcover_sigma.tif") as ds:
-        assert ds.descriptions == ("sigma", "sigma_obs", "mean_unclipped", "detailed")
+        assert ds.descriptions == ("sigma", "sigma_obs", "sigma_calibrated", "mean_unclipped", "detailed")
         sd = ds.read(1)
     assert np.isfinite(m).all() and (m >= 0).all() and (m <= 1).all()
     # σ grows away from the observed cells

@@ -104,3 +104,95 @@ def test_integrate_bad_inputs():
         integrate(np.zeros((5, 5)), {"x": np.zeros((4, 5))})
     with pytest.raises(ConfigError):
         GPParams(n_inducing=0)
+
+
+def test_marginal_likelihood_fit_matches_scikit_learn():
+    """Our L-BFGS-B fit of the product kernel reaches scikit-learn's optimum (same objective)."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+
+    X, y = _data(120, seed=3)
+    h = fit_hyperparameters(X, y, GPParams(n_fit=120, kernel="product"))
+    Xs, ys = (X - h.x_mean) / h.x_std, (y - h.y_mean) / y.std()
+    k = ConstantKernel(0.5) * RBF(np.ones(3), (1e-2, 1e3)) + WhiteKernel(0.1, (1e-5, 1e1))
+    g = GaussianProcessRegressor(k, n_restarts_optimizer=2, random_state=0).fit(Xs, ys)
+    ours = h.log_marginal_likelihood
+    assert ours >= g.log_marginal_likelihood_value_ - 0.05
+    np.testing.assert_allclose(g.log_marginal_likelihood(np.log(np.r_[h.signal_var / y.var(), h.length_scales,
+                                                                      h.noise_var / y.var()])), ours, atol=1e-6)
+
+
+def test_nll_gradient_is_exact():
+    from scipy.optimize import check_grad
+
+    from geocd.landcover.gp import _nll
+
+    X, y = _data(40, seed=4)
+    y = (y - y.mean()) / y.std()
+    th = np.log(np.array([0.7, 1.3, 2.0, 0.3, 0.4, 0.05]))
+    err = check_grad(lambda t: _nll(t, X, y, [[0, 1], [2]])[0], lambda t: _nll(t, X, y, [[0, 1], [2]])[1], th)
+    assert err < 1e-4 * max(1.0, np.abs(_nll(th, X, y, [[0, 1], [2]])[1]).max())
+
+
+def _additive_hyper():
+    return GPHyper(length_scales=np.array([0.5, 0.5, 0.3]), signal_var=0.09, noise_var=0.002, x_mean=np.zeros(3),
+                   x_std=np.ones(3), y_mean=0.5, names=["x", "y", "coarse"], groups=[[0, 1], [2]],
+                   signal_vars=[0.03, 0.06])
+
+
+def test_additive_sparse_with_all_points_is_exact():
+    X, y = _data(250, seed=5)
+    Xs = np.random.default_rng(6).uniform(-2.5, 2.5, (100, 3))
+    h = _additive_hyper()
+    m1, s1 = exact_gp(X, y, Xs, h)
+    m2, s2 = SparseGP(h, X).fit(X, y, batch=50).predict(Xs, batch=30)
+    np.testing.assert_allclose(m2, m1, atol=1e-3)
+    np.testing.assert_allclose(s2, s1, atol=2e-3)
+
+
+def test_additive_kernel_carries_appearance_far_away():
+    """Far from every observation the product kernel forgets the coarse input; the additive one does not."""
+    rng = np.random.default_rng(7)
+    X = rng.uniform(0, 1, (200, 3))
+    y = (X[:, 2] > 0.5) + 0.3 * np.sin(12.0 * X[:, 0])  # appearance + a local spatial pattern
+    far = np.array([[20.0, 20.0, 0.9], [20.0, 20.0, 0.1]])
+    for kernel, expect_split in (("additive", True), ("product", False)):
+        h = fit_hyperparameters(X, y, GPParams(n_fit=200, kernel=kernel), names=["x", "y", "coarse"])
+        m, _ = exact_gp(X, y, far, h)
+        assert (m[0] - m[1] > 0.5) == expect_split, (kernel, m)
+
+
+def test_fit_once_predict_per_window_equals_whole_grid():
+    from geocd.landcover.gp import fit_integrator, predict_window
+
+    n = 30
+    yy, xx = np.mgrid[0:n, 0:n].astype(float)
+    c = np.sin(xx / 4.0) * np.cos(yy / 5.0)
+    det = np.where(yy < 12, c + 0.5, np.nan)
+    inputs = {"x": xx, "y": yy, "coarse": c}
+    gp, _ = fit_integrator(det, inputs, GPParams(n_fit=150, n_inducing=60))
+    m, s, so = predict_window(gp, inputs)
+    win = {k: v[10:25, 5:20] for k, v in inputs.items()}
+    mw, sw, _ = predict_window(gp, win, batch=17)
+    np.testing.assert_allclose(mw, m[10:25, 5:20], atol=1e-6)
+    np.testing.assert_allclose(sw, s[10:25, 5:20], atol=1e-6)
+    with pytest.raises(ConfigError, match="differ"):
+        predict_window(gp, {"y": yy, "x": xx, "coarse": c})
+
+
+def test_heldout_calibration_scales_sigma():
+    """Misspecified noise: the held-out scale brings the ±1σ coverage of new observations near 68 %."""
+    rng = np.random.default_rng(3)
+    n = 40
+    yy, xx = np.mgrid[0:n, 0:n].astype(float)
+    c = np.sin(xx / 5.0) + np.cos(yy / 7.0)
+    target = c + 0.3 * rng.standard_t(3, c.shape)  # heavy-tailed noise
+    det = np.where(rng.random(c.shape) < 0.6, target, np.nan)
+    res = integrate(det, {"x": xx, "y": yy, "coarse": c}, GPParams(n_fit=200, n_inducing=80, calibrate_folds=4))
+    cal = res.report["calibration"]
+    assert cal["folds"] == 4 and cal["held_out_cells"] == int(np.isfinite(det).sum())
+    new = ~np.isfinite(det)
+    err = np.abs(target[new] - res.mean[new])
+    assert abs(np.mean(err <= res.sd_cal[new]) - 0.683) < 0.08
+    with pytest.raises(ConfigError):
+        GPParams(calibrate_folds=1)

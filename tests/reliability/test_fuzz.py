@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 
 from .fuzz_targets import (byte_mutations, check_dem_bytes, check_manifest_text, check_manifest_tree, check_rpc_tags,
                            dump_yaml, rpc_tag_edits, rpc_tags_of, tree_ops)
@@ -70,6 +70,8 @@ def test_fuzz_manifest_text(scene, mutation, tmp_path_factory):
 
 @settings(max_examples=100, **_FAST)
 @given(mutation=byte_mutations)
+@example(mutation=("flip", 0.5208078563543089, b"\xd5\xa0", 26, 26, True))  # found by bench/fuzz_inputs.py: a
+# corrupt GeoKey citation made rasterio.open raise UnicodeDecodeError
 def test_fuzz_dem_geotiff(dem_bytes, mutation, tmp_path_factory):
     check_dem_bytes(dem_bytes, mutation, tmp_path_factory.mktemp("dm"))
 

@@ -35,7 +35,9 @@ def _demdiff(a, b, out, *extra):
 
 
 def _products(out: Path) -> set[str]:
-    return {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()} - {MANIFEST_NAME}
+    """Files in ``out`` but the product manifest and the command's log file (not products)."""
+    return {p.relative_to(out).as_posix() for p in out.rglob("*")
+            if p.is_file() and not (p.name.startswith("geocd_") and p.suffix == ".log")} - {MANIFEST_NAME}
 
 
 def _start_paused(tmp: Path, args: list[str], nth: int = 1, tag: str = "p"):
@@ -147,7 +149,7 @@ def test_concurrent_runs_never_mix(dems, tmp_path):
     try:
         assert part.exists() and part.parent == out
         r = subprocess.run([sys.executable, "-m", "geocd", "--progress", "none", "demdiff", a, b, "--out", str(out),
-                            "--no-plots", "--confidence", "0.99"], capture_output=True, text=True, timeout=300)
+                            "--no-plots", "--confidence", "99"], capture_output=True, text=True, timeout=300)
         assert r.returncode == 2, r.stderr
         assert "is in use by" in error_lines(r.stderr)[0] and "Traceback" not in r.stderr
     finally:
@@ -157,7 +159,7 @@ def test_concurrent_runs_never_mix(dems, tmp_path):
     doc = read_products_manifest(out)
     assert [r["status"] for r in doc["runs"]] == ["complete"]
     rep = json.loads((out / "demdiff_report.json").read_text())
-    assert float(rep["confidence_level"]) == 0.95  # the first run's settings, not a mix
+    assert float(rep["confidence_level_pct"]) == 95.0  # the first run's settings, not a mix
     assert set(doc["runs"][0]["files"]) == _products(out) and all(verify_products(out).values())
     assert not part_files(tmp_path)
 
@@ -168,7 +170,7 @@ def test_two_runs_started_together(dems, tmp_path):
     a, b = map(str, dems)
     procs = [subprocess.Popen([sys.executable, "-m", "geocd", "--progress", "none", "demdiff", a, b, "--out", str(out),
                                "--no-plots", "--confidence", c], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True) for c in ("0.95", "0.99")]
+                              text=True) for c in ("95", "99")]
     results = [(p.wait(timeout=300), p.communicate()[1]) for p in procs]
     assert all(rc in (0, 2) for rc, _ in results) and any(rc == 0 for rc, _ in results), results
     for rc, err in results:
@@ -178,7 +180,7 @@ def test_two_runs_started_together(dems, tmp_path):
     doc = read_products_manifest(out)
     assert [r["status"] for r in doc["runs"]] == ["complete"]
     rep = json.loads((out / "demdiff_report.json").read_text())
-    assert f"{float(rep['confidence_level']):g}" in doc["runs"][0]["argv"]
+    assert f"{float(rep['confidence_level_pct']):g}" in doc["runs"][0]["argv"]
     assert all(verify_products(out).values()) and set(doc["runs"][0]["files"]) == _products(out)
 
 
