@@ -34,6 +34,7 @@ SUBCOMMANDS: dict[str, str] = {
     "stereo": "geocd.cli.stereo:stereo",
     "probchange": "geocd.cli.probchange:probchange",
     "ortho": "geocd.cli.ortho:ortho",
+    "mpp": "geocd.cli.mpp:mpp",
 }
 
 
