@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import ConfigError, EmptyDataError, NoOverlapError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
-from .detect import Detection, detect
+from .detect import detect
 from .params import MPPParams
 from .products import write_mpp_products
 
@@ -47,8 +47,6 @@ def choose_view(images: Sequence[Any], grid: AOIGrid, height_m: float, min_cover
 
 def _change_prior(path: os.PathLike | str, grid: AOIGrid) -> np.ndarray:
     """3-D change evidence in [0, 1] from a geocd change raster (band ``confidence``, %) or any 0–1 / 0–100 raster."""
-    import rasterio
-
     from ..io.raster import _open, reproject_band
 
     with _open(path) as ds:
