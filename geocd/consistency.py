@@ -21,10 +21,11 @@ recomputed from a saved model; curves are made non-decreasing in score
 see (their along-epipolar part) shift each pair-DEM vertically by a constant:
 metres between the pairs of the real Pléiades triplet, i.e. most of a pixel of
 disparity. Before comparing, every reconstruction is therefore shifted by the
-median height difference to a reference reconstruction over their common,
-well-matched cells (``align="vertical"``, the default; the median ignores a
-minority of changed cells). The reference is the given DEM when an epoch is a
-DEM, else the first reconstruction. This also removes a real, uniform change of
+median height difference to a reference over their common, well-matched cells
+(``align="vertical"``, the default; the median ignores a minority of changed
+cells). The reference is the given DEM when an epoch is a DEM; else every pair of
+reconstructions is compared and the offsets are their least-squares fit (zero
+mean), so results do not depend on the order in which reconstructions are given. This also removes a real, uniform change of
 the whole AOI (e.g. subsidence); use ``align="none"`` where that matters.
 
 A DEM standing for an epoch (LiDAR, last year's product) is a "pair-DEM" with
@@ -103,18 +104,49 @@ class ConsistencyParams:
     min_bin_count : int
         Minimum match pairs per score bin; thinner bins are merged.
     align : {"vertical", "none"}
-        Remove each reconstruction's constant vertical offset to the group's first one
-        (see the module notes).
+        Remove each reconstruction's constant vertical offset, fitted to all pairwise offsets
+        within the group (see the module notes).
+    cluster_confidence : float
+        Cells changed at this per-cell level (percent) form the candidate regions whose combined
+        evidence the region test weighs (docs/self_consistency.md: 95 % chosen among 90/95/99 on
+        three towns, checked on a fourth).
+    min_region_cells : int, optional
+        Minimum mapping unit in grid cells. None: derived from the reconstructions — the
+        ground footprint of one matching window (window² cells at the grid posting), the area
+        over which one height measurement averages; 1 when no reconstruction says its window.
     """
 
     confidences: tuple[float, ...] = (90.0, 95.0, 99.0)
     n_score_bins: int = 24
     min_bin_count: int = 200
     align: str = "vertical"
+    cluster_confidence: float = 95.0
+    min_region_cells: int | None = None
 
     def __post_init__(self) -> None:
         if self.align not in ALIGN_MODES:
             raise ConfigError(f"align must be one of {ALIGN_MODES}, got {self.align!r}")
+        if not 0 < self.cluster_confidence < 100:
+            raise ConfigError(f"cluster_confidence is a percentage in (0, 100), got {self.cluster_confidence}")
+        if self.min_region_cells is not None and self.min_region_cells < 1:
+            raise ConfigError(f"min_region_cells must be ≥ 1 (or None: derived), got {self.min_region_cells}")
+
+
+def window_cells(recs: Iterable[PairDEMLike]) -> int:
+    """Grid cells covered by the largest matching window among the reconstructions (1 if none says).
+
+    A pair-DEM's height at a cell is measured from a window of ``window`` × ``window`` pixels;
+    geocd's grid posting is the images' ground sampling distance by default, so one measurement
+    averages over about window² cells — the smallest area a change can be told apart from
+    a matching error (the minimum mapping unit).
+    """
+    w = 1
+    for r in recs:
+        meta = getattr(r, "meta", None) or {}
+        win = (meta.get("params") or {}).get("window") if isinstance(meta, dict) else None
+        if win:
+            w = max(w, int(win))
+    return w * w
 
 
 def match_pairs(p: PairDEMLike, q: PairDEMLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -183,33 +215,69 @@ def vertical_offset(rec: PairDEMLike, ref: PairDEMLike, min_cells: int = 100) ->
     return float(np.median(dz))
 
 
-def align_reconstructions(recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None,
-                          mode: str = "vertical") -> tuple[list, dict[str, float]]:
-    """Shift reconstructions onto a common vertical reference.
+def vertical_offsets(recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None,
+                     mode: str = "vertical") -> dict[str, float]:
+    """Each reconstruction's constant vertical offset to a common reference (a whole-scene statistic).
 
     Parameters
     ----------
-    recs : reconstructions on one grid
-    reference : the reference (default: a :class:`DEMAsEpoch` among ``recs`` if any, else ``recs[0]``)
-    mode : "vertical" or "none"
+    recs : reconstructions on one grid (their order does not matter)
+    reference : optional reconstruction to align to; default: a :class:`DEMAsEpoch` among
+        ``recs`` if any (a DEM is the absolute reference), else all of them: each offset is the
+        least-squares fit of the pairwise offsets (:func:`vertical_offset` of every pair), i.e.
+        the mean of its offsets to the others, and the offsets sum to zero. The result depends
+        only on the set of reconstructions, not on their order.
+    mode : "vertical" or "none" (all offsets 0)
+
+    Returns
+    -------
+    {name: offset (m) to subtract from its heights}
+    """
+    if mode not in ALIGN_MODES:
+        raise ConfigError(f"align must be one of {ALIGN_MODES}, got {mode!r}")
+    recs = list(recs)
+    names = [r.name for r in recs]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"reconstructions must have distinct names to be aligned, got {names}")
+    if mode == "none" or len(recs) < 2:
+        return {r.name: 0.0 for r in recs}
+    if reference is None:
+        dems = sorted((r for r in recs if isinstance(r, DEMAsEpoch)), key=lambda r: r.name)
+        reference = dems[0] if dems else None
+    if reference is not None:
+        return {r.name: (0.0 if r is reference else vertical_offset(r, reference)) for r in recs}
+    # least squares on all pairwise offsets: o_r − o_q = d(r, q) ⇒ o_r = mean_q d(r, q) (zero mean);
+    # d is antisymmetric and the sums run in name order, so the result is exactly order-free
+    recs = sorted(recs, key=lambda r: r.name)
+    n = len(recs)
+    d = np.zeros((n, n))
+    for i, j in itertools.combinations(range(n), 2):
+        d[i, j] = vertical_offset(recs[i], recs[j])
+        d[j, i] = -d[i, j]
+    return {r.name: float(np.sum(d[i]) / n) for i, r in enumerate(recs)}
+
+
+def apply_offsets(recs: Sequence[PairDEMLike], offsets: dict[str, float]) -> list:
+    """The reconstructions seen through their vertical offsets (per-cell work; nothing copied but z)."""
+    out = []
+    for r in recs:
+        if r.name not in offsets:
+            raise ConfigError(f"no vertical offset for reconstruction {r.name!r}; known: {sorted(offsets)}")
+        off = float(offsets[r.name])
+        out.append(r if off == 0.0 else _Shifted(r, off))
+    return out
+
+
+def align_reconstructions(recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None,
+                          mode: str = "vertical") -> tuple[list, dict[str, float]]:
+    """Shift reconstructions onto a common vertical reference (see :func:`vertical_offsets`).
 
     Returns
     -------
     aligned : list of reconstructions (same order), offsets : {name: offset removed, m}
     """
-    if mode not in ALIGN_MODES:
-        raise ConfigError(f"align must be one of {ALIGN_MODES}, got {mode!r}")
-    recs = list(recs)
-    if mode == "none" or len(recs) < 2:
-        return recs, {r.name: 0.0 for r in recs}
-    if reference is None:
-        reference = next((r for r in recs if isinstance(r, DEMAsEpoch)), recs[0])
-    out, offsets = [], {}
-    for r in recs:
-        off = 0.0 if r is reference else vertical_offset(r, reference)
-        offsets[r.name] = off
-        out.append(r if off == 0.0 else _Shifted(r, off))
-    return out, offsets
+    offsets = vertical_offsets(recs, reference, mode)
+    return apply_offsets(recs, offsets), offsets
 
 
 def _quantile_from_hist(counts: np.ndarray, edges: np.ndarray, q: float) -> float:
@@ -257,6 +325,11 @@ class SelfConsistencyModel:
         The per-bin quantiles before smoothing (for plots and audit).
     provenance : dict
         sensor, gsd_m, scene_class, dates, images, created, geocd version, ...
+    region_null : dict
+        The region test's null, learned on the same static comparisons: ``cluster_confidence``
+        (percent), ``min_region_cells``, ``comparisons`` and, per comparison, ``masses``: the
+        evidence of each of its candidate regions (at least ``min_region_cells``). Empty for
+        models saved before the region test existed (then only the per-cell test is available).
     """
 
     score_edges: np.ndarray
@@ -264,6 +337,70 @@ class SelfConsistencyModel:
     curves: dict[str, list[float]] = field(default_factory=dict)
     raw_curves: dict[str, list[float]] = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
+    region_null: dict = field(default_factory=dict)
+
+    def survival(self) -> np.ndarray:
+        """(B, D+1) P(|Δ̃| > edge_k | score bin b), made non-decreasing in score (isotonic per edge)."""
+        cached = self.__dict__.get("_survival")
+        if cached is not None:
+            return cached
+        h = self.hist.astype(np.float64)
+        n = np.maximum(h.sum(axis=1, keepdims=True), 1.0)
+        surv = np.concatenate([np.ones((h.shape[0], 1)), 1.0 - np.cumsum(h, axis=1) / n], axis=1)
+        w = self.bin_counts.astype(float)
+        if h.shape[0] > 1:
+            surv = np.stack([_isotonic(surv[:, k], w) for k in range(surv.shape[1])], axis=1)
+        surv = np.clip(surv, 0.0, 1.0)
+        self.__dict__["_survival"] = surv
+        return surv
+
+    def pvalue(self, dtilde: np.ndarray, score: np.ndarray) -> np.ndarray:
+        """P(|Δ̃| ≥ observed | score) in a static scene: the per-comparison p-value of each cell.
+
+        From the learned histogram (linear between |Δ̃| edges, the score's bin), never below
+        1/(n_bin + 1) — nothing is rarer than the rarest thing seen. NaN where an input is NaN.
+        """
+        surv = self.survival()
+        a = np.abs(np.asarray(dtilde, np.float64))
+        sc = np.asarray(score, np.float64)
+        ok = np.isfinite(a) & np.isfinite(sc)
+        b = np.clip(np.searchsorted(self.score_edges, np.where(ok, sc, 0.0), side="right") - 1, 0, surv.shape[0] - 1)
+        a0 = np.where(ok, np.minimum(a, DTILDE_EDGES[-1]), 0.0)
+        k = np.clip(np.searchsorted(DTILDE_EDGES, a0, side="right") - 1, 0, len(DTILDE_EDGES) - 2)
+        e0, e1 = DTILDE_EDGES[k], DTILDE_EDGES[k + 1]
+        f = np.clip((a0 - e0) / (e1 - e0), 0.0, 1.0)
+        p = surv[b, k] * (1.0 - f) + surv[b, k + 1] * f
+        floor = 1.0 / (self.bin_counts.astype(np.float64) + 1.0)
+        return np.where(ok, np.maximum(p, floor[b]), np.nan)
+
+    def sigma_dtilde(self, score: np.ndarray) -> np.ndarray:
+        """1σ-equivalent disagreement |Δ̃| (pixels) at each score: the 68.27 % curve."""
+        return self.threshold(score, 68.27)
+
+    @property
+    def has_region_test(self) -> bool:
+        return "masses" in self.region_null
+
+    def region_confidence(self, mass: np.ndarray) -> np.ndarray:
+        """Confidence (percent) of regions with this evidence.
+
+        For each static comparison, the share of its candidate regions that carry less evidence;
+        the confidence is the median of these shares over the comparisons — what a typical
+        comparison of the static scene says, as the majority vote combines the comparisons of a
+        cell (a comparison without any region counts as 100 %). A region stronger than the
+        strongest region of most static comparisons gets 100 %.
+        """
+        if not self.has_region_test:
+            raise ConfigError("this self-consistency model has no region null distribution (saved by an older geocd); "
+                              "re-learn it with `geocd consistency`, or use the per-cell test (significance='cell')")
+        m = np.atleast_1d(np.asarray(mass, float))
+        shares = []
+        for ms in self.region_null["masses"]:
+            ms = np.asarray(ms, float)
+            shares.append(np.searchsorted(ms, m, side="left") / ms.size if ms.size else np.ones(m.shape))
+        if not shares:
+            return np.full(m.shape, 100.0)
+        return 100.0 * np.median(np.stack(shares), axis=0)
 
     @property
     def bin_counts(self) -> np.ndarray:
@@ -319,6 +456,7 @@ class SelfConsistencyModel:
             "curves": self.curves,
             "raw_curves": self.raw_curves,
             "provenance": self.provenance,
+            "region_null": self.region_null,
         }
 
     @classmethod
@@ -330,7 +468,8 @@ class SelfConsistencyModel:
             raise ConfigError("the model was saved with different |Δ̃| bins; re-learn it with this geocd version")
         return cls(np.asarray(d["score_edges"], float), np.asarray(d["hist"], np.int64),
                    {k: list(v) for k, v in d.get("curves", {}).items()},
-                   {k: list(v) for k, v in d.get("raw_curves", {}).items()}, dict(d.get("provenance", {})))
+                   {k: list(v) for k, v in d.get("raw_curves", {}).items()}, dict(d.get("provenance", {})),
+                   dict(d.get("region_null", {})))
 
     def save(self, path: os.PathLike | str) -> Path:
         from .io.atomic import write_text_atomic
@@ -346,8 +485,12 @@ class SelfConsistencyModel:
             raise InputFileNotFoundError(f"self-consistency model {p} does not exist; create one with `geocd consistency`")
         try:
             d = json.loads(p.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{p} is not valid JSON ({exc}); re-create it with `geocd consistency`") from exc
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{p} is not a self-consistency model (not valid JSON text: {exc}); give the JSON "
+                              "written by `geocd consistency` or a run") from exc
+        if not isinstance(d, dict):
+            raise ConfigError(f"{p} is not a self-consistency model (a JSON {type(d).__name__}); give the JSON "
+                              "written by `geocd consistency` or a run")
         return cls.from_dict(d)
 
     def curves_table(self):
@@ -410,7 +553,7 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
         warnings.warn(f"reconstructions with no valid cell left out of the self-consistency model: {', '.join(empty)}",
                       UserWarning, stacklevel=2)
     for g in groups:
-        g = [r for r in g if np.any(r.valid)]
+        g = sorted((r for r in g if np.any(r.valid)), key=lambda r: r.name)
         ag, off = align_reconstructions(g, mode=params.align)
         aligned_groups.append(ag)
         offsets.update(off)
@@ -448,7 +591,70 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
     model = SelfConsistencyModel(edges, hist.astype(np.int64), provenance=prov)
     for c in params.confidences:
         model.add_confidence(c)
+    # the region test's null: candidate regions of the same static comparisons and their evidence
+    mmu = params.min_region_cells or window_cells(r for g in aligned_groups for r in g)
+    alpha0 = 1.0 - params.cluster_confidence / 100.0
+    masses = []
+    for p, q in comps:
+        dt, sc, _, both = match_pairs(p, q)
+        pv = np.where(both, model.pvalue(dt, sc), 1.0)
+        _, mass, _ = candidate_regions(pv, np.sign(np.nan_to_num(dt)).astype(np.int8), alpha0, mmu)
+        masses.append(sorted(float(f"{v:.5g}") for v in mass))
+    model.region_null = {"cluster_confidence": float(params.cluster_confidence), "min_region_cells": int(mmu),
+                         "comparisons": [f"{p.name} vs {q.name}" for p, q in comps], "masses": masses,
+                         "n_regions": int(sum(len(v) for v in masses))}
     return model
+
+
+def candidate_regions(pvalue: np.ndarray, sign: np.ndarray, alpha0: float,
+                      min_cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate change regions and their combined evidence.
+
+    8-connected groups of same-sign cells with p < ``alpha0``, of at least ``min_cells``
+    cells. A region's evidence is its cluster mass Σ log(α0/p_i) (each cell's evidence
+    beyond the cluster-forming level, summed; large when many cells agree or a few are
+    extreme). Same function for the static comparisons (the null) and the cross-epoch test.
+
+    Parameters
+    ----------
+    pvalue : float (rows, cols); 1 or NaN where nothing was observed
+    sign : int8 (rows, cols), the sign of the difference
+    alpha0 : cluster-forming p-value
+    min_cells : minimum mapping unit (cells)
+
+    Returns
+    -------
+    labels : int32 (rows, cols), 0 outside kept regions, 1..n (raised regions first)
+    mass : float (n,), the evidence of region i + 1
+    region_sign : int8 (n,)
+    """
+    from scipy import ndimage
+
+    p = np.asarray(pvalue, np.float64)
+    cand = np.isfinite(p) & (p < alpha0)
+    ev = np.where(cand, np.log(alpha0 / np.maximum(np.where(cand, p, 1.0), 1e-300)), 0.0)
+    labels = np.zeros(p.shape, np.int32)
+    masses, signs = [], []
+    n_total = 0
+    for sgn in (1, -1):
+        lab, n = ndimage.label(cand & (np.asarray(sign) == sgn), structure=np.ones((3, 3), bool))
+        if n == 0:
+            continue
+        size = np.bincount(lab.ravel(), minlength=n + 1)
+        mass = np.bincount(lab.ravel(), weights=ev.ravel(), minlength=n + 1)
+        keep = np.nonzero(size >= min_cells)[0]
+        keep = keep[keep > 0]
+        if keep.size == 0:
+            continue
+        remap = np.zeros(n + 1, np.int32)
+        remap[keep] = np.arange(n_total + 1, n_total + keep.size + 1, dtype=np.int32)
+        labels = np.where(remap[lab] > 0, remap[lab], labels)
+        masses.append(mass[keep])
+        signs.append(np.full(keep.size, sgn, np.int8))
+        n_total += keep.size
+    if not masses:
+        return labels, np.zeros(0), np.zeros(0, np.int8)
+    return labels, np.concatenate(masses), np.concatenate(signs)
 
 
 # ----------------------------------------------------------------------------------------
@@ -461,32 +667,42 @@ class ChangeParams:
     Attributes
     ----------
     confidences : tuple of float
-        Levels (percent) tested; the products report the highest level at which a cell is changed.
+        Levels (percent) reported in summaries (``changed_at``); the confidence itself is continuous.
     combine : {"majority", "all", "any"}
         How several cross-epoch comparisons of a cell are combined: a cell is
         changed at level s when more than half ("majority"), all, or any of its
-        observed comparisons exceed the curve at s, with a consistent sign.
-    min_region_cells : int
-        Changed cells in 8-connected groups (per sign) smaller than this are not
-        reported at that level (default 4 cells = 1 m² at 0.5 m, the same minimum
-        as the ``changes`` polygons and the simulator's truth mask).
+        observed comparisons exceed their significance level s, with a consistent sign
+        (the sign of the median Δz). Its per-cell p-value is the matching order statistic
+        of the comparisons' p-values.
+    significance : {"region", "cell"}
+        "region" (default): cells changed at the model's cluster-forming level form candidate
+        regions; a region's confidence is how much of the static scene's candidate regions carry
+        less combined evidence (:meth:`SelfConsistencyModel.region_confidence`), and every cell
+        of the region gets it. "cell": the SRI per-cell test — each cell's own highest level, then regions
+        smaller than the minimum mapping unit dropped.
+    min_region_cells : int, optional
+        Minimum mapping unit (cells). None: the model's (region test) or the footprint of one
+        matching window of the reconstructions (:func:`window_cells`).
     align : {"vertical", "none"}
         Shift every reconstruction of both epochs onto one vertical reference (a DEM
-        epoch if given, else the first reconstruction of epoch A) before testing.
+        epoch if given, else the least-squares fit of all their pairwise offsets) before testing.
     """
 
     confidences: tuple[float, ...] = (90.0, 95.0, 99.0)
     combine: str = "majority"
-    min_region_cells: int = 4
+    significance: str = "region"
+    min_region_cells: int | None = None
     align: str = "vertical"
 
     def __post_init__(self) -> None:
         if self.align not in ALIGN_MODES:
             raise ConfigError(f"align must be one of {ALIGN_MODES}, got {self.align!r}")
-        if self.min_region_cells < 1:
-            raise ConfigError(f"min_region_cells must be ≥ 1, got {self.min_region_cells}")
+        if self.min_region_cells is not None and self.min_region_cells < 1:
+            raise ConfigError(f"min_region_cells must be ≥ 1 (or None: derived), got {self.min_region_cells}")
         if self.combine not in ("majority", "all", "any"):
             raise ConfigError(f"combine must be majority, all or any, got {self.combine!r}")
+        if self.significance not in ("region", "cell"):
+            raise ConfigError(f"significance must be 'region' or 'cell', got {self.significance!r}")
         for c in self.confidences:
             if not 0 < c < 100:
                 raise ConfigError(f"confidence levels are percentages in (0, 100), got {c}")
@@ -501,10 +717,18 @@ class ChangeResult:
     dz_m : float32, median z_B − z_A over comparisons (NaN where unobserved)
     dtilde : float32, median Δ̃ (pixels of disparity)
     score : float32, max score over comparisons
-    confidence : float32, highest confidence level (percent) at which the cell is changed, 0 if unchanged,
-        NaN if unobserved
-    change : int8, +1 raised, −1 lowered, 0 unchanged, :data:`CHANGE_NODATA` unobserved
+    confidence : float32, confidence (percent) that the cell changed: its region's (region test) or
+        its own highest level (cell test); 0 if in no region / unchanged, NaN if unobserved
+    change : int8, changed at the lowest of ``confidences``: +1 raised, −1 lowered, 0 unchanged,
+        :data:`CHANGE_NODATA` unobserved
     n_comparisons : int16, number of cross-epoch comparisons observed at the cell
+    cell_confidence : float32, 100 × (1 − the cell's combined p-value): the per-cell evidence alone
+    dz_sigma_m : float32, 1σ of dz from the error model (the 68.27 % disagreement at the cell's
+        scores, in metres; median over comparisons)
+    min_region_cells : int, the minimum mapping unit used (cells)
+    significance : "region" or "cell"
+    p_value : float64, the cell's combined p-value (what the region test clusters; tiled runs merge
+        regions across tiles from it)
     """
 
     dz_m: np.ndarray
@@ -517,81 +741,175 @@ class ChangeResult:
     confidences: tuple[float, ...] = ()
     comparisons: list[str] = field(default_factory=list)
     vertical_offsets_m: dict[str, float] = field(default_factory=dict)
+    cell_confidence: np.ndarray | None = None
+    dz_sigma_m: np.ndarray | None = None
+    min_region_cells: int = 1
+    significance: str = "cell"
+    p_value: np.ndarray | None = None
 
     @property
     def observed(self) -> np.ndarray:
         return self.n_comparisons > 0
 
     def changed_at(self, confidence: float) -> np.ndarray:
-        """Signed change mask (+1/−1/0) at ``confidence`` percent (must be a tested level)."""
+        """Signed change mask at ``confidence`` percent.
+
+        int8 (rows, cols): +1 raised, −1 lowered, 0 unchanged, :data:`CHANGE_NODATA` where no
+        comparison observed the cell (so building statistics can tell "unchanged" from "unseen").
+        """
         c = np.nan_to_num(self.confidence, nan=0.0)
-        return np.where(c >= confidence, np.sign(np.nan_to_num(self.dz_m)), 0).astype(np.int8)
+        out = np.where(c >= confidence, np.sign(np.nan_to_num(self.dz_m)), 0).astype(np.int8)
+        out[~self.observed] = CHANGE_NODATA
+        return out
 
 
 CHANGE_NODATA = -128
 
 
-def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], model: SelfConsistencyModel,
-                params: ChangeParams = ChangeParams(), progress: Progress | None = None) -> ChangeResult:
-    """Stage 2: test every cross-epoch comparison against the significance curves.
+def combine_pvalues(pvalues: np.ndarray, signs: np.ndarray, sign: np.ndarray, combine: str = "majority") -> np.ndarray:
+    """Per-cell p-value of several comparisons voting with a consistent sign (per-cell work).
 
-    For each pair (p from epoch A, q from epoch B) and each cell valid in both:
-    changed at level s when |Δ̃| > curve_s(max score). Comparisons are combined
-    per cell by ``params.combine`` with a consistent sign (the sign of the median
-    Δz); the reported confidence is the highest level at which the combined test
-    says "changed".
+    Parameters
+    ----------
+    pvalues : float (n, rows, cols), NaN where comparison k does not observe the cell
+    signs : int8 (n, rows, cols), the sign of each comparison's difference
+    sign : int8 (rows, cols), the sign tested (the median difference's)
+    combine : "majority" (the (⌊m/2⌋+1)-th smallest of the m observed p-values, comparisons of
+        the other sign counting as 1), "all" (the largest) or "any" (the smallest)
+
+    Returns
+    -------
+    float (rows, cols): the cell is changed at level s exactly when p < 1 − s/100 under the rule;
+    1 where nothing was observed or the sign is 0.
+    """
+    P = np.asarray(pvalues, np.float64)
+    obs = np.isfinite(P)
+    nobs = obs.sum(axis=0)
+    pa = np.where(obs, np.where(np.asarray(signs) == np.asarray(sign)[None], P, 1.0), np.inf)
+    pa.sort(axis=0)
+    if combine == "majority":
+        k = nobs // 2
+    elif combine == "all":
+        k = nobs - 1
+    else:
+        k = np.zeros_like(nobs)
+    out = np.take_along_axis(pa, np.clip(k, 0, P.shape[0] - 1)[None], axis=0)[0]
+    return np.where((nobs > 0) & (np.asarray(sign) != 0) & np.isfinite(out), out, 1.0)
+
+
+def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], model: SelfConsistencyModel,
+                params: ChangeParams = ChangeParams(), progress: Progress | None = None,
+                offsets: dict[str, float] | None = None) -> ChangeResult:
+    """Stage 2: test every cross-epoch comparison against the static scene's disagreement.
+
+    For each pair (p from epoch A, q from epoch B) and each cell valid in both, the
+    comparison's p-value is how rarely two reconstructions of a static scene disagree by
+    |Δ̃| or more at that score (:meth:`SelfConsistencyModel.pvalue`). Comparisons are
+    combined per cell by ``params.combine`` with a consistent sign (the sign of the median
+    Δz). With ``significance="region"`` the cells beyond the model's cluster-forming level
+    form regions whose combined evidence is ranked against the static scene's regions;
+    with ``"cell"`` each cell stands alone (highest level of ``params.confidences`` whose
+    curve it exceeds). Regions smaller than the minimum mapping unit are never reported.
+    The result does not depend on the order of the reconstructions.
+
+    Parameters
+    ----------
+    epoch_a, epoch_b : reconstructions (pair-DEMs, :class:`DEMAsEpoch`) on one grid
+    model : the significance curves and region null (a whole-scene or scene-class statistic)
+    offsets : {name: m}, optional
+        Vertical offsets to remove (:func:`vertical_offsets`, a whole-scene statistic). Give
+        them when the arrays are a tile of a larger scene, so every tile uses the same ones;
+        default: computed here from the arrays given (``params.align``). The region step
+        (:func:`candidate_regions`) needs whole regions: tile with an overlap wider than the
+        largest region, or run it on the mosaic of ``cell_confidence``.
     """
     prog = ensure_progress(progress)
     if not epoch_a or not epoch_b:
         raise ProcessingError("the change test needs at least one reconstruction (pair-DEM or DEM) per epoch")
+    significance = params.significance
+    if significance == "region" and not model.has_region_test:
+        warnings.warn("the self-consistency model has no region null (saved by an older geocd): using the per-cell "
+                      "test; re-learn the model for the region test", UserWarning, stacklevel=2)
+        significance = "cell"
+    epoch_a = sorted(epoch_a, key=lambda r: r.name)  # a deterministic order for the comparisons' names
+    epoch_b = sorted(epoch_b, key=lambda r: r.name)
     na = len(epoch_a)
-    aligned, offsets = align_reconstructions(list(epoch_a) + list(epoch_b), mode=params.align)
+    if offsets is None:
+        offsets = vertical_offsets(list(epoch_a) + list(epoch_b), mode=params.align)
+    aligned = apply_offsets(list(epoch_a) + list(epoch_b), offsets)
     epoch_a, epoch_b = aligned[:na], aligned[na:]
+    if params.min_region_cells is not None:
+        mmu = int(params.min_region_cells)
+    elif significance == "region":
+        mmu = int(model.region_null.get("min_region_cells", 1))
+    else:
+        mmu = window_cells(aligned)
     shape = epoch_a[0].z_m.shape
     comps = [(p, q) for p in epoch_a for q in epoch_b]
     levels = sorted(params.confidences)
     n = len(comps)
     dz_stack = np.full((n, *shape), np.nan, np.float32)
     dt_stack = np.full((n, *shape), np.nan, np.float32)
+    pv_stack = np.full((n, *shape), np.nan, np.float32)
+    sig_stack = np.full((n, *shape), np.nan, np.float32)
     score = np.full(shape, np.nan, np.float32)
-    exceed = np.zeros((len(levels), n, *shape), dtype=np.int8)  # +1/-1 exceed with sign, 0 not
     for k, (p, q) in enumerate(comps):
         dt, sc, dz, both = match_pairs(p, q)
         dz_stack[k] = dz
         dt_stack[k] = dt
         score = np.fmax(score, sc)
-        for li, lev in enumerate(levels):
-            thr = model.threshold(sc, lev)
-            ex = both & (np.abs(dt) > thr)
-            exceed[li, k] = np.where(ex, np.sign(dz), 0).astype(np.int8)
+        pv_stack[k] = np.where(both, model.pvalue(dt, sc), np.nan)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            metres_per_unit = np.sqrt(1.0 / np.asarray(p.g_px_per_m, np.float64) ** 2
+                                      + 1.0 / np.asarray(q.g_px_per_m, np.float64) ** 2)
+        sig_stack[k] = np.where(both, model.sigma_dtilde(sc) * metres_per_unit, np.nan)
         prog((k + 1) / n, f"comparison {p.name} vs {q.name}")
     nobs = np.sum(np.isfinite(dt_stack), axis=0).astype(np.int16)
     observed = nobs > 0
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            dz_med = np.nanmedian(dz_stack, axis=0)
-            dt_med = np.nanmedian(dt_stack, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        dz_med = np.nanmedian(dz_stack, axis=0)
+        dt_med = np.nanmedian(dt_stack, axis=0)
+        sig_med = np.nanmedian(sig_stack, axis=0)
     sign = np.sign(np.nan_to_num(dz_med)).astype(np.int8)
+    signs = np.sign(np.nan_to_num(dz_stack)).astype(np.int8)
+    p_cell = combine_pvalues(pv_stack, signs, sign, params.combine)
+    cell_conf = np.where(observed, 100.0 * (1.0 - p_cell), np.nan).astype(np.float32)
     conf = np.where(observed, 0.0, np.nan).astype(np.float32)
-    for li, lev in enumerate(levels):
-        agree = np.sum(exceed[li] == sign[None], axis=0) * (sign != 0)
-        if params.combine == "majority":
-            hit = agree * 2 > nobs
-        elif params.combine == "all":
-            hit = (agree == nobs) & observed
-        else:
-            hit = agree > 0
-        hit &= observed
-        if params.min_region_cells > 1:
-            hit = _drop_small(hit, sign, params.min_region_cells)
-        conf = np.where(hit, np.float32(lev), conf)
-    change = np.where(observed, np.where(conf > 0, sign, 0), CHANGE_NODATA).astype(np.int8)
+    if significance == "region":
+        alpha0 = 1.0 - float(model.region_null["cluster_confidence"]) / 100.0
+        labels, mass, _ = candidate_regions(np.where(observed, p_cell, 1.0), sign, alpha0, mmu)
+        if mass.size:
+            rconf = np.concatenate([[0.0], model.region_confidence(mass)]).astype(np.float32)
+            conf = np.where(observed, rconf[labels], np.nan).astype(np.float32)
+    else:
+        for lev in levels:
+            hit = np.zeros(shape, bool)
+            votes = np.zeros(shape, np.int16)
+            for k, (p, q) in enumerate(comps):
+                thr = model.threshold(_score_of(p, q), lev)
+                votes += (np.isfinite(dt_stack[k]) & (np.abs(dt_stack[k]) > thr) & (signs[k] == sign)).astype(np.int16)
+            if params.combine == "majority":
+                hit = votes * 2 > nobs
+            elif params.combine == "all":
+                hit = (votes == nobs) & observed
+            else:
+                hit = votes > 0
+            hit &= observed & (sign != 0)
+            if mmu > 1:
+                hit = _drop_small(hit, sign, mmu)
+            conf = np.where(hit, np.float32(lev), conf)
+    change = np.where(observed, np.where(np.nan_to_num(conf) >= levels[0], sign, 0), CHANGE_NODATA).astype(np.int8)
     return ChangeResult(dz_med.astype(np.float32), dt_med.astype(np.float32), score, conf, change, nobs,
                         grid=getattr(epoch_a[0], "grid", None), confidences=tuple(levels),
-                        comparisons=[f"{p.name} vs {q.name}" for p, q in comps], vertical_offsets_m=offsets)
+                        comparisons=[f"{p.name} vs {q.name}" for p, q in comps], vertical_offsets_m=offsets,
+                        cell_confidence=cell_conf, dz_sigma_m=sig_med.astype(np.float32), min_region_cells=mmu,
+                        significance=significance, p_value=p_cell)
+
+
+def _score_of(p: PairDEMLike, q: PairDEMLike) -> np.ndarray:
+    """max(s_p, s_q), the finite side when one has no score (a DEM epoch)."""
+    return np.fmax(np.asarray(p.score, np.float64), np.asarray(q.score, np.float64))
 
 
 def _drop_small(hit: np.ndarray, sign: np.ndarray, min_cells: int) -> np.ndarray:

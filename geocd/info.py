@@ -122,7 +122,7 @@ def manifest_summary(path: Path) -> dict[str, Any]:
 
     m = load_manifest(path)
     d: dict[str, Any] = {"type": "manifest", "path": str(m.path or path), "name": m.name,
-                         "scene_class": m.scene_class, "output": str(m.output), "epochs": []}
+                         "scene_class": m.scene_class, "output": str(m.output_dir()), "epochs": []}
     if m.aoi is not None:
         d["aoi"] = {"crs": m.aoi.crs, "bounds": m.aoi.bounds, "posting_m": m.aoi.posting_m}
     if m.dem is not None:

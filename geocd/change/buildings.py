@@ -51,22 +51,30 @@ def _ring_median(z: np.ndarray, inside: np.ndarray, other: np.ndarray, ring_cell
 def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, grid, *, z_a: np.ndarray | None = None,
                        z_b: np.ndarray | None = None, dem_m: np.ndarray | None = None,
                        confidence: np.ndarray | None = None, params: BuildingParams = BuildingParams(),
-                       id_field: str | None = None):
-    """Attribute footprints with their change.
+                       id_field: str | None = None, confidence_level: float | None = None,
+                       detect_new: bool = True):
+    """Attribute footprints with their change, and add new buildings found in the change map.
 
     Parameters
     ----------
     footprints : GeoDataFrame (any CRS; reprojected to the grid's)
-    change_mask : int8 (rows, cols), +1/−1/0, negative nodata (e.g. −128) where unobserved
+    change_mask : int8 (rows, cols), +1/−1/0, any other value (e.g. the −128 nodata) where unobserved
     dz_m : float (rows, cols), z_B − z_A
     z_a, z_b : float (rows, cols), optional, the epochs' surfaces (for new/demolished)
     dem_m : float (rows, cols), optional bare-earth DEM (replaces the ring test)
     confidence : float (rows, cols), optional per-cell confidence (percent)
+    confidence_level : float, optional
+        The confidence (percent) ``change_mask`` was made at; named in the ``rule`` attribute.
+    detect_new : bool
+        With both surfaces given, append the new buildings of :func:`detect_new_buildings`
+        (raised regions outside every footprint): footprints of the earlier date cannot hold them.
 
     Returns
     -------
-    GeoDataFrame with columns building_id, frac_observed, frac_changed, frac_raised, frac_lowered,
-    mean_dz_m, volume_m3, class, confidence, geometry.
+    GeoDataFrame with columns building_id, n_cells, frac_observed (observed share of the whole footprint),
+    frac_inside (share of the footprint on the grid), frac_changed, frac_raised, frac_lowered (of the observed
+    cells), mean_dz_m, volume_m3, confidence (percent), rule (the rule that set the class, in words), class,
+    geometry.
     """
     from rasterio.features import rasterize
 
@@ -77,21 +85,26 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
     any_fp = labels > 0
     ring_cells = int(round(params.ring_m / grid.posting_m))
     cell_area = grid.cell_area_m2
+    pct = f"{confidence_level:g}% " if confidence_level is not None else ""
     rows = []
     for i in range(len(gdf)):
         inside = labels == (i + 1)
         n = int(inside.sum())
+        area = max(float(gdf.geometry.iloc[i].area), 1e-9)
         rec = {"building_id": ids[i], "n_cells": n}
         if n == 0:
-            rec.update(frac_observed=0.0, frac_changed=np.nan, frac_raised=np.nan, frac_lowered=np.nan,
-                       mean_dz_m=np.nan, volume_m3=np.nan, confidence=np.nan, **{"class": "unobserved"})
+            rec.update(frac_observed=0.0, frac_inside=0.0, frac_changed=np.nan, frac_raised=np.nan,
+                       frac_lowered=np.nan, mean_dz_m=np.nan, volume_m3=np.nan, confidence=np.nan,
+                       rule=f"unobserved: no grid cell inside the footprint (min_inside {params.min_inside:g})",
+                       **{"class": "unobserved"})
             rows.append(rec)
             continue
-        inside_frac = n * cell_area / max(float(gdf.geometry.iloc[i].area), 1e-9)
+        inside_frac = min(1.0, n * cell_area / area)
         cm = change_mask[inside]
-        obs = cm >= -1
+        obs = (cm >= -1) & (cm <= 1)
         nobs = int(obs.sum())
-        fobs = nobs / n
+        # observed share of the whole footprint (cells off the grid count as unobserved)
+        fobs = min(1.0, nobs * cell_area / area)
         raised = float(np.sum(cm == 1)) / max(nobs, 1)
         lowered = float(np.sum(cm == -1)) / max(nobs, 1)
         dzin = dz_m[inside]
@@ -103,15 +116,21 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
             cin = cin[np.isfinite(cin) & (cin > 0)]
             conf = float(np.median(cin)) if cin.size else 0.0
         cls = "unchanged"
-        if fobs < params.min_observed or inside_frac < params.min_inside:
+        rule = (f"unchanged: {100 * max(raised, lowered):.0f}% of observed cells changed at {pct}"
+                f"(< min_changed {100 * params.min_changed:g}%)")
+        if inside_frac < params.min_inside:
             cls = "unobserved"
+            rule = f"unobserved: {100 * inside_frac:.0f}% of the footprint on the grid (< min_inside {100 * params.min_inside:g}%)"
+        elif nobs < params.min_observed * n:
+            cls = "unobserved"
+            rule = (f"unobserved: {100 * nobs / n:.0f}% of its cells observed in both epochs "
+                    f"(< min_observed {100 * params.min_observed:g}%)")
         elif max(raised, lowered) >= params.min_changed:
             if raised >= lowered:
-                cls = "raised"
-                z = z_a
+                cls, frac, z = "raised", raised, z_a
             else:
-                cls = "lowered"
-                z = z_b
+                cls, frac, z = "lowered", lowered, z_b
+            rule = f"{cls}: {100 * frac:.0f}% of observed cells {cls} at {pct}(≥ min_changed {100 * params.min_changed:g}%)"
             if z is not None:
                 zin = z[inside]
                 zin = zin[np.isfinite(zin)]
@@ -120,21 +139,115 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
                     ground = float(np.nanmedian(ground)) if np.isfinite(ground).any() else np.nan
                 else:
                     ground = _ring_median(z, inside, any_fp, ring_cells)
-                if zin.size and np.isfinite(ground) and float(np.median(zin)) - ground < params.ground_tol_m:
-                    cls = "new" if cls == "raised" else "demolished"
-        rec.update(frac_observed=round(fobs, 4), frac_changed=round(raised + lowered, 4), frac_raised=round(raised, 4),
-                   frac_lowered=round(lowered, 4), mean_dz_m=mean_dz,
-                   volume_m3=float(np.nansum(dz_m[inside] * (change_mask[inside] != 0)) * cell_area) if nobs else np.nan,
-                   confidence=conf, **{"class": cls})
+                if zin.size and np.isfinite(ground):
+                    above = float(np.median(zin)) - ground
+                    if above < params.ground_tol_m:
+                        epoch = "A" if cls == "raised" else "B"
+                        cls = "new" if cls == "raised" else "demolished"
+                        rule += (f"; at ground level in {epoch} (median {above:.1f} m above its surroundings "
+                                 f"< ground_tol {params.ground_tol_m:g} m)")
+        rec.update(frac_observed=round(fobs, 4), frac_inside=round(inside_frac, 4), frac_changed=round(raised + lowered, 4),
+                   frac_raised=round(raised, 4), frac_lowered=round(lowered, 4), mean_dz_m=mean_dz,
+                   volume_m3=float(np.nansum(dz_m[inside] * ((cm == 1) | (cm == -1))) * cell_area) if nobs else np.nan,
+                   confidence=conf, rule=rule, **{"class": cls})
         rows.append(rec)
     import geopandas as gpd
     import pandas as pd
 
     out = gpd.GeoDataFrame(pd.DataFrame(rows), geometry=gdf.geometry.values, crs=gdf.crs)
+    out.insert(1, "source", "footprint")
     keep = [c for c in gdf.columns if c not in out.columns and c != gdf.geometry.name]
     for c in keep:
         out[f"src_{c}"] = gdf[c].values
+    if detect_new and z_a is not None and z_b is not None and len(gdf):
+        min_area = params.min_changed * float(np.median(gdf.geometry.area))
+        new = detect_new_buildings(change_mask, dz_m, grid, z_a=z_a, z_b=z_b, footprint_mask=any_fp,
+                                   min_area_m2=min_area, confidence=confidence, params=params,
+                                   confidence_level=confidence_level)
+        if len(new):
+            new = new.to_crs(out.crs)
+            out = gpd.GeoDataFrame(pd.concat([out, new], ignore_index=True), geometry="geometry", crs=out.crs)
     return out
+
+
+def detect_new_buildings(change_mask: np.ndarray, dz_m: np.ndarray, grid, *, z_a: np.ndarray, z_b: np.ndarray,
+                         footprint_mask: np.ndarray, min_area_m2: float, confidence: np.ndarray | None = None,
+                         params: BuildingParams = BuildingParams(), confidence_level: float | None = None):
+    """New buildings that no footprint knows: raised regions outside every footprint.
+
+    A user has the footprints of the earlier date at best, so buildings built since must come from
+    the change map. A candidate is an 8-connected region of raised cells (``change_mask == 1``)
+    outside every footprint that
+
+    * covers at least ``min_area_m2`` (:func:`classify_buildings` passes ``min_changed`` × the
+      median area of the given footprints: the raised part a typical building must show to be
+      called changed);
+    * stood at ground level in epoch A (median height inside the region minus the median of a
+      ``ring_m`` ring around it, outside footprints: < ``ground_tol_m``) and rose by at least
+      ``ground_tol_m`` (median Δz inside).
+
+    Returns
+    -------
+    GeoDataFrame (the grid's CRS) with the columns of :func:`classify_buildings`, ``class`` "new",
+    ``source`` "detected", negative ``building_id`` (−1, −2, … by decreasing area) and the region's
+    polygon as geometry; empty when there is none.
+    """
+    import geopandas as gpd
+    import pandas as pd
+    from rasterio.features import shapes
+    from scipy import ndimage
+    from shapely.geometry import shape
+    from shapely.ops import unary_union
+
+    fp = np.asarray(footprint_mask, bool)
+    lab, n_lab = ndimage.label((np.asarray(change_mask) == 1) & ~fp, structure=np.ones((3, 3), bool))
+    cell_area = grid.cell_area_m2
+    sizes = np.bincount(lab.ravel(), minlength=n_lab + 1)
+    sizes[0] = 0
+    ring_cells = int(round(params.ring_m / grid.posting_m))
+    pct = f"{confidence_level:g}% " if confidence_level is not None else ""
+    dz = np.asarray(dz_m, np.float64)
+    rows, kept = [], []
+    for rid in np.argsort(-sizes, kind="stable"):
+        if sizes[rid] * cell_area < min_area_m2 or rid == 0:
+            break
+        inside = lab == rid
+        za_in = z_a[inside]
+        za_in = za_in[np.isfinite(za_in)]
+        ground = _ring_median(z_a, inside, fp, ring_cells)
+        above_a = float(np.median(za_in)) - ground if za_in.size and np.isfinite(ground) else np.nan
+        d = dz[inside]
+        d = d[np.isfinite(d)]
+        raised_by = float(np.median(d)) if d.size else np.nan
+        if not (above_a < params.ground_tol_m <= raised_by):
+            continue
+        conf = np.nan
+        if confidence is not None:
+            cin = confidence[inside]
+            cin = cin[np.isfinite(cin) & (cin > 0)]
+            conf = float(np.median(cin)) if cin.size else np.nan
+        n = int(sizes[rid])
+        rows.append({"n_cells": n, "frac_observed": 1.0, "frac_inside": 1.0, "frac_changed": 1.0, "frac_raised": 1.0,
+                     "frac_lowered": 0.0, "mean_dz_m": float(d.mean()) if d.size else np.nan,
+                     "volume_m3": float(d.sum() * cell_area), "confidence": conf,
+                     "rule": (f"new (detected): raised region of {n * cell_area:.0f} m² at {pct}outside every footprint "
+                              f"(≥ {min_area_m2:.1f} m² = min_changed {100 * params.min_changed:g}% of the median "
+                              f"footprint); {above_a:.1f} m above its surroundings in A (< ground_tol {params.ground_tol_m:g} m), "
+                              f"raised by {raised_by:.1f} m (median, ≥ ground_tol)"),
+                     "class": "new"})
+        kept.append(int(rid))
+    if not rows:
+        return gpd.GeoDataFrame(pd.DataFrame(columns=["building_id", "source"]), geometry=gpd.GeoSeries([], crs=grid.crs),
+                                crs=grid.crs)
+    keep_lab = np.where(np.isin(lab, kept), lab, 0).astype(np.int32)
+    parts: dict[int, list] = {}
+    for geom, val in shapes(keep_lab, mask=keep_lab > 0, connectivity=8, transform=grid.transform):
+        parts.setdefault(int(val), []).append(shape(geom))
+    geoms = [unary_union(parts[r]) for r in kept]
+    df = pd.DataFrame(rows)
+    df.insert(0, "building_id", -np.arange(1, len(df) + 1))
+    df.insert(1, "source", "detected")
+    return gpd.GeoDataFrame(df, geometry=geoms, crs=grid.crs)
 
 
 def building_scores(pred_class, truth_class) -> dict:
@@ -154,3 +267,56 @@ def building_scores(pred_class, truth_class) -> dict:
     exact = np.asarray(pred_class)[truth] == np.asarray(truth_class)[truth]
     return {"tp": tp, "fp": fp, "fn": fn, "precision": p, "recall": r, "f1": f1,
             "class_accuracy_on_changed": float(exact.mean()) if exact.size else float("nan")}
+
+
+def score_buildings(pred, truth, *, aoi=None, id_field: str = "building_id", status_field: str = "status",
+                    min_inside: float = 0.5) -> dict:
+    """Building-level scores of a ``buildings`` layer against the truth, new buildings included.
+
+    Parameters
+    ----------
+    pred : GeoDataFrame from :func:`classify_buildings` (``source`` "footprint" rows carry the given
+        footprints' ids; "detected" rows are new buildings found in the change map)
+    truth : GeoDataFrame of every building of either date with its ``status`` (new, demolished, raised,
+        lowered, unchanged) and the ids of the footprints given
+    aoi : optional polygon (truth's CRS); truth buildings absent from the given footprints count only
+        when at least ``min_inside`` of them lies inside it
+
+    Returns
+    -------
+    dict of :func:`building_scores` over the footprint rows plus the truth buildings that no given
+    footprint holds: a detected row is a true positive when it overlaps such a building not yet
+    matched (largest overlap first), else a false positive; an unmatched one is a false negative.
+    Also ``n_detected`` and ``n_truth_unknown`` (truth buildings missing from the footprints).
+    """
+    truth = truth.to_crs(pred.crs) if truth.crs is not None and pred.crs is not None else truth
+    status = dict(zip(truth[id_field], truth[status_field]))
+    src = pred["source"] if "source" in pred else np.full(len(pred), "footprint")
+    fp_rows = pred[np.asarray(src) == "footprint"]
+    det = pred[np.asarray(src) == "detected"]
+    pred_cls = list(fp_rows["class"])
+    truth_cls = [status.get(i, "unchanged") for i in fp_rows[id_field]]
+    known = set(fp_rows[id_field])
+    unknown = truth[~truth[id_field].isin(known)]
+    if aoi is not None and len(unknown):
+        frac = unknown.geometry.intersection(aoi).area / unknown.geometry.area.clip(lower=1e-9)
+        unknown = unknown[frac.to_numpy() >= min_inside]
+    matched: set = set()
+    for _, d in det.iterrows():
+        ov = unknown.geometry.intersection(d.geometry).area
+        order = np.argsort(-ov.to_numpy(), kind="stable")
+        hit = next((k for k in order if ov.iloc[k] > 0 and k not in matched), None)
+        if hit is None:
+            pred_cls.append(d["class"])
+            truth_cls.append("unchanged")
+        else:
+            matched.add(hit)
+            pred_cls.append(d["class"])
+            truth_cls.append(unknown.iloc[hit][status_field])
+    for k in range(len(unknown)):
+        if k not in matched:
+            pred_cls.append("unobserved")
+            truth_cls.append(unknown.iloc[k][status_field])
+    out = building_scores(pred_cls, truth_cls)
+    out.update(n_detected=int(len(det)), n_truth_unknown=int(len(unknown)))
+    return out

@@ -42,41 +42,64 @@ def hillshade(height_m: np.ndarray, posting_xy_m: tuple[float, float] = (1.0, 1.
 def plot_dh_map(dz_m: np.ndarray, grid, path: os.PathLike | str, *, sign: np.ndarray | None = None,
                 backdrop_m: np.ndarray | None = None, title: str = "", vmax: float | None = None,
                 stable: np.ndarray | None = None, label: str = "Δh (m), B − A", cmap: str = "RdBu_r",
-                note: str = "", backdrop_posting_xy_m: tuple[float, float] | None = None) -> Path:
+                note: str = "", backdrop_posting_xy_m: tuple[float, float] | None = None,
+                changed_only: bool = False) -> Path:
     """Map of a height change (diverging colours centred on 0) with changed regions outlined.
 
     Parameters
     ----------
     dz_m : float (rows, cols)
-    sign : optional int8 (+1 raised / −1 lowered; other values ignored) → red / blue outlines
+    sign : optional int8 (+1 raised / −1 lowered; other values ignored) → outlines in black
+        (raised: solid, lowered: dashed) on a thin white halo, visible on any colour
     backdrop_m : optional DEM drawn as a grey hillshade under the change (its metric cell size
         ``backdrop_posting_xy_m``, default the grid's posting)
     stable : optional bool mask drawn as a light hatch-free tint (stable terrain)
-    vmax : colour limit (default: 98th percentile of |dz|)
+    vmax : colour limit (default: 98th percentile of |dz| over the coloured cells)
+    changed_only : colour dz only where ``sign`` is ±1 (the rest: the grey backdrop, or light grey
+        where observed), so the reported change, not the reconstruction noise at every height edge,
+        carries the colour
     """
+    from matplotlib import patheffects
+    from matplotlib.lines import Line2D
+
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.8, 6.4))
     l, b, r, t = grid.bounds
     ext = (l, r, b, t)
-    fin = np.isfinite(dz_m)
+    shown = np.asarray(dz_m, float)
+    if changed_only and sign is not None:
+        sg = np.asarray(sign)
+        shown = np.where((sg == 1) | (sg == -1), shown, np.nan)
+    fin = np.isfinite(shown)
     if vmax is None:
-        vmax = float(np.nanpercentile(np.abs(dz_m[fin]), 98)) if fin.any() else 1.0
+        vmax = float(np.nanpercentile(np.abs(shown[fin]), 98)) if fin.any() else 1.0
     vmax = max(float(vmax), 1e-3)
     if backdrop_m is not None:
         hs = hillshade(backdrop_m, backdrop_posting_xy_m or grid.posting)
-        ax.imshow(hs, cmap="Greys_r", vmin=0, vmax=1, extent=ext, interpolation="nearest")
-    im = ax.imshow(np.ma.masked_invalid(dz_m), cmap=cmap, vmin=-vmax, vmax=vmax, extent=ext,
-                   interpolation="nearest", alpha=0.85 if backdrop_m is not None else 1.0)
-    fig.colorbar(im, ax=ax, shrink=0.8, label=label, extend="both")
+        ax.imshow(hs, cmap="Greys_r", vmin=0, vmax=1, extent=ext, interpolation="nearest",
+                  alpha=0.6 if changed_only else 1.0)
+    elif changed_only:
+        ax.imshow(np.where(np.isfinite(dz_m), 0.85, np.nan), cmap="Greys_r", vmin=0, vmax=1, extent=ext,
+                  interpolation="nearest")
+    im = ax.imshow(np.ma.masked_invalid(shown), cmap=cmap, vmin=-vmax, vmax=vmax, extent=ext,
+                   interpolation="nearest", alpha=0.85 if (backdrop_m is not None and not changed_only) else 1.0)
+    fig.colorbar(im, ax=ax, shrink=0.8, label=label + (" (changed cells)" if changed_only else ""), extend="both")
     if stable is not None and np.any(stable):
         ax.contour(np.asarray(stable, float), levels=[0.5], colors="0.35", linewidths=0.4, linestyles=":",
                    extent=(l, r, b, t), origin="upper")
     if sign is not None:
-        for s, colour in ((1, "darkred"), (-1, "navy")):
+        halo = [patheffects.withStroke(linewidth=2.2, foreground="white")]
+        handles = []
+        for s, style, name in ((1, "solid", "raised"), (-1, "dashed", "lowered")):
             m = np.asarray(sign) == s
             if m.any():
-                ax.contour(m.astype(float), levels=[0.5], colors=colour, linewidths=0.7, extent=(l, r, b, t),
-                           origin="upper")
+                cs = ax.contour(m.astype(float), levels=[0.5], colors="black", linewidths=0.9, linestyles=style,
+                                extent=(l, r, b, t), origin="upper")
+                for coll in getattr(cs, "collections", [cs]):
+                    coll.set_path_effects(halo)
+                handles.append(Line2D([], [], color="black", lw=0.9, ls=style, label=f"{name} region"))
+        if handles:
+            ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.8)
     ax.set_title(title, fontsize=9)
     if note:
         ax.text(0.01, 0.01, note, transform=ax.transAxes, fontsize=7, va="bottom", ha="left",

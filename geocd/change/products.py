@@ -4,7 +4,8 @@ Layout of an output folder (``prefix`` defaults to the method name)::
 
     <prefix>_change.tif        COG, bands dz_m, dtilde, score, confidence (float32, NaN = unobserved)
     <prefix>_change.qml        QGIS style sidecar (confidence classes)
-    <prefix>_change_mask.tif   COG int8: +1 raised, −1 lowered, 0 unchanged, −128 nodata (not observable)
+    <prefix>_change_mask.tif   COG int8 at the reported confidence (``region_confidence``, 99 % by default):
+                               +1 raised, −1 lowered, 0 unchanged, −128 nodata (not observable)
     <prefix>_change_mask.qml   QGIS style sidecar (paletted)
     <prefix>_changes.gpkg      layers: changes (polygons), buildings (attributed footprints),
                                curves (significance curves table), layer_styles
@@ -29,10 +30,19 @@ from .styles import buildings_qml, write_raster_style
 def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid, *, method: str = "self-consistency",
                           epoch_a: str = "A", epoch_b: str = "B", region_confidence: float = 99.0,
                           model: SelfConsistencyModel | None = None, buildings=None, extra_layers: dict | None = None,
-                          provenance: dict | None = None, prefix: str | None = None, min_region_cells: int = 4,
-                          plots: bool = True) -> dict[str, Path]:
-    """Write every product of one change test; returns {product name: path}."""
-    from .regions import change_regions
+                          extra_styles: dict | None = None,
+                          provenance: dict | None = None, prefix: str | None = None,
+                          min_region_cells: int | None = None, plots: bool = True,
+                          backdrop_m: np.ndarray | None = None) -> dict[str, Path]:
+    """Write every product of one change test; returns {product name: path}.
+
+    ``min_region_cells`` (default: the result's minimum mapping unit) is the smallest polygon of
+    the ``changes`` layer; its ``confidence`` is the test's (percent), ``volume_sigma_m3`` comes
+    from the error model (:func:`geocd.change.regions.correlated_volume_sigma`).
+    ``backdrop_m`` (a surface on the grid, e.g. the later epoch's) is drawn as a hillshade under
+    the quick-look, which colours the changed cells only.
+    """
+    from .regions import change_regions, correlated_volume_sigma
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -45,19 +55,33 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
 
         tags["provenance"] = json.dumps(provenance, default=str)
     paths: dict[str, Path] = {}
-    paths["change"] = write_cog(out / f"{prefix}_change.tif",
-                                {"dz_m": result.dz_m, "dtilde": result.dtilde, "score": result.score,
-                                 "confidence": result.confidence}, grid, tags=tags)
+    bands = {"dz_m": result.dz_m, "dtilde": result.dtilde, "score": result.score, "confidence": result.confidence}
+    if result.cell_confidence is not None:
+        bands["cell_confidence"] = result.cell_confidence
+    if result.dz_sigma_m is not None:
+        bands["dz_sigma_m"] = result.dz_sigma_m
+    tags.update(significance=result.significance, min_region_cells=str(result.min_region_cells))
+    paths["change"] = write_cog(out / f"{prefix}_change.tif", bands, grid, tags=tags, units=_BAND_UNITS,
+                                band_tags=[{"long_name": _BAND_DESCRIPTIONS[k]} for k in bands])
     write_raster_style(paths["change"], qml_for("confidence"))
-    paths["change_mask"] = write_cog(out / f"{prefix}_change_mask.tif", result.change.astype(np.int8), grid,
-                                     nodata=CHANGE_NODATA, dtype="int8", tags=tags, overview_resampling="nearest")
+    # the mask is the map at the reported confidence (the level the regions, buildings and summary use)
+    mask = result.changed_at(region_confidence)
+    paths["change_mask"] = write_cog(out / f"{prefix}_change_mask.tif", {"change": mask}, grid,
+                                     nodata=CHANGE_NODATA, dtype="int8",
+                                     tags={**tags, "mask_confidence_pct": f"{region_confidence:g}"},
+                                     units={"change": "class"},
+                                     band_tags=[{"long_name": f"change at {region_confidence:g} %: +1 raised, -1 lowered, "
+                                                 "0 unchanged, -128 not observed"}],
+                                     overview_resampling="nearest")
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
 
-    sign = result.changed_at(region_confidence) if region_confidence in result.confidences else \
-        np.where(result.confidence > 0, result.change, 0)
-    sign = np.where(result.observed, sign, 0).astype(np.int8)
-    regions = change_regions(sign, result.dz_m, grid, confidence=_region_conf(result), method=method,
-                             epoch_a=epoch_a, epoch_b=epoch_b, min_cells=min_region_cells)
+    sign = np.where(mask == CHANGE_NODATA, 0, mask).astype(np.int8)
+    mmu = int(min_region_cells if min_region_cells is not None else result.min_region_cells)
+    vfn = None
+    if result.dz_sigma_m is not None:  # σ of the volume from the error model, correlated over one window
+        vfn = correlated_volume_sigma(result.dz_sigma_m, max(result.min_region_cells, 1), grid.cell_area_m2)
+    regions = change_regions(sign, result.dz_m, grid, confidence=result.confidence, volume_sigma_fn=vfn,
+                             volume_confidence=False, method=method, epoch_a=epoch_a, epoch_b=epoch_b, min_cells=mmu)
     layers: dict[str, Any] = {"changes": regions}
     styles = {"changes": qml_for("changes")}
     if buildings is not None:
@@ -67,6 +91,7 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
         layers["curves"] = model.curves_table()
     if extra_layers:
         layers.update(extra_layers)
+        styles.update(extra_styles or {})
     paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", layers, styles=styles)
     if plots:
         from .plots import plot_dh_map, plot_scatter_curves
@@ -74,11 +99,18 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
         if model is not None:
             paths["scatter"] = plot_scatter_curves(model, out / f"{prefix}_scatter.png")
         paths["quicklook"] = plot_dh_map(result.dz_m, grid, out / f"{prefix}_quicklook.png", sign=sign,
-                                         title=f"{method}: {epoch_a} → {epoch_b}, changed at {region_confidence:g}%")
+                                         backdrop_m=backdrop_m, changed_only=True,
+                                         title=f"{method}: {epoch_a} → {epoch_b}, changed at {region_confidence:g} %")
     return paths
 
 
-def _region_conf(result: ChangeResult) -> np.ndarray:
-    """Per-cell confidence as a fraction (0–1) for the regions layer."""
-    c = np.asarray(result.confidence, float) / 100.0
-    return np.where(np.isfinite(c), c, np.nan)
+_BAND_UNITS = {"dz_m": "m", "dtilde": "px", "score": "bit/px", "confidence": "%", "cell_confidence": "%",
+               "dz_sigma_m": "m"}
+_BAND_DESCRIPTIONS = {
+    "dz_m": "height change B - A, median over comparisons (m)",
+    "dtilde": "normalized difference, pixels of disparity",
+    "score": "worst MDL match score of the comparisons (bits/pixel, lower = better)",
+    "confidence": "percent that the cell changed (its region's test); 0 = no change found, NaN = not observed",
+    "cell_confidence": "percent from the cell's own evidence alone, 100 (1 - p)",
+    "dz_sigma_m": "1 sigma of dz from the self-consistency error model (m)",
+}

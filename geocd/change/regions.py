@@ -16,7 +16,7 @@ mean_dz_m          mean dz over the region's cells with a finite dz
 max_dz_m           the signed dz with the largest |dz|
 volume_m3          Σ dz × cell area (cells with a finite dz)
 volume_sigma_m3    1σ of volume_m3; NaN when unknown
-confidence         0–1, the level at which the region is significant; NaN when unknown
+confidence         percent (99 = 99 %), the level at which the region is significant; NaN when unknown
 geometry           Polygon / MultiPolygon in the grid's CRS
 =================  =========================================================================
 
@@ -31,9 +31,10 @@ instead, which avoids full-grid scans for many small regions) (e.g. the variogra
 :meth:`geocd.demdiff.uncertainty.Uncertainty.volume_sigma_fn`) gives the honest σ of
 the region's volume. Without it, a per-cell ``dz_sigma_m`` gives a *conservative*
 σ that assumes errors fully correlated inside the region (cell area × Σ σ_i).
-Confidence: with a volume σ, the two-sided Gaussian level ``2Φ(|V|/σ) − 1``; else
-a per-cell confidence array's median over the region; else a scalar ``confidence``
-as given (the level the map was thresholded at); else NaN.
+Confidence (percent): with a volume σ and ``volume_confidence``, the two-sided Gaussian
+level ``100 (2Φ(|V|/σ) − 1)``; else a per-cell confidence array's median over the region
+(a method whose test is region-level gives every cell of a region the region's confidence);
+else a scalar ``confidence`` as given (the level the map was thresholded at); else NaN.
 """
 
 from __future__ import annotations
@@ -78,13 +79,14 @@ def _cell_area_m2(grid) -> float:
 def _gauss_level(v: float, s: float) -> float:
     if not (math.isfinite(v) and math.isfinite(s)) or s <= 0:
         return float("nan")
-    return float(math.erf(abs(v) / s / math.sqrt(2.0)))
+    return 100.0 * float(math.erf(abs(v) / s / math.sqrt(2.0)))
 
 
 def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: float | np.ndarray | None = None,
                    dz_sigma_m: float | np.ndarray | None = None,
                    volume_sigma_fn: Callable[[np.ndarray], float] | None = None, method: str = "", epoch_a: str = "",
-                   epoch_b: str = "", min_cells: int = 4, cell_area_m2: float | None = None):
+                   epoch_b: str = "", min_cells: int = 4, cell_area_m2: float | None = None,
+                   volume_confidence: bool = True):
     """Connected changed regions as polygons with area, volume ± σ and confidence.
 
     Parameters
@@ -92,12 +94,16 @@ def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: floa
     sign : int8 (rows, cols); +1 raised, −1 lowered, anything else not changed
     dz_m : float (rows, cols), B − A (NaN allowed)
     grid : AOIGrid of the arrays
-    confidence : optional scalar (0–1) or per-cell float array (0–1, NaN unknown)
+    confidence : optional scalar or per-cell float array, percent (NaN unknown)
     dz_sigma_m : optional scalar or per-cell 1σ of dz (m), used when ``volume_sigma_fn`` is None
     volume_sigma_fn : optional callable(bool mask) → 1σ of the region's volume (m³)
     min_cells : regions smaller than this are dropped
     cell_area_m2 : optional cell area; default the grid's (the local metric area for
         geographic grids)
+    volume_confidence : bool
+        With a volume σ, the region's confidence is the Gaussian level of |V|/σ_V (a
+        volume test); False keeps the given ``confidence`` (the method's own test) and
+        reports σ_V only.
 
     Returns
     -------
@@ -166,7 +172,7 @@ def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: floa
             elif sig_arr is not None:
                 sg = sig_arr[sl][m]
                 vs = float(np.nansum(sg) * cell) if np.isfinite(sg).any() else float("nan")
-            if math.isfinite(vs):
+            if math.isfinite(vs) and volume_confidence:
                 cf = _gauss_level(vol, vs)
             elif conf_arr is not None:
                 cc = conf_arr[sl][m]
@@ -188,3 +194,39 @@ def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: floa
     df["sign"] = df["sign"].astype("int64")
     df["n_cells"] = df["n_cells"].astype("int64")
     return gpd.GeoDataFrame(df, geometry=geoms, crs=grid.crs)
+
+
+def correlated_volume_sigma(dz_sigma_m: np.ndarray, correlation_cells: float, cell_area_m2: float):
+    """A ``volume_sigma_fn`` for :func:`change_regions` from a per-cell σ and a correlation area.
+
+    Errors are taken as fully correlated within blocks of ``correlation_cells`` cells and
+    independent between blocks (the footprint of one height measurement, e.g. a matching
+    window): σ_V = a · σ_rms · √(n · min(n, n_c)) for a region of n cells of area a whose
+    per-cell σ have root mean square σ_rms — fully correlated below one block, √n-averaging
+    beyond.
+
+    Parameters
+    ----------
+    dz_sigma_m : float (rows, cols), 1σ of dz per cell (NaN unknown: left out)
+    correlation_cells : cells per independent error sample (≥ 1)
+    cell_area_m2 : area of one cell
+
+    Returns
+    -------
+    callable(mask) → σ_V (m³), with ``windowed(mask_window, slices)``
+    """
+    sig = np.asarray(dz_sigma_m, np.float64)
+    nc = max(float(correlation_cells), 1.0)
+
+    def _sigma(s: np.ndarray) -> float:
+        s = s[np.isfinite(s)]
+        if s.size == 0:
+            return float("nan")
+        n = s.size
+        return float(cell_area_m2 * math.sqrt(float(np.mean(s * s)) * n * min(n, nc)))
+
+    def fn(mask: np.ndarray) -> float:
+        return _sigma(sig[np.asarray(mask, bool)])
+
+    fn.windowed = lambda mask_window, slices: _sigma(sig[slices][np.asarray(mask_window, bool)])  # type: ignore[attr-defined]
+    return fn

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from .common import check_confidence
+
 
 def _confidences(values) -> tuple[float, ...]:
     return tuple(sorted(set(float(v) for v in values))) if values else (90.0, 95.0, 99.0)
@@ -14,14 +16,15 @@ def _confidences(values) -> tuple[float, ...]:
 @click.command("run")
 @click.argument("manifest", type=click.Path(path_type=str), default="sample_aoi")
 @click.option("--out", "out_dir", type=click.Path(path_type=str), default=None,
-              help="Output folder (default: the manifest's 'output', e.g. sample_aoi/out).")
+              help="Output folder (default: the manifest's 'output:' if it names one, else ./geocd_out/<scene name>).")
 @click.option("--model", "model_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
               help="Scene-class self-consistency model (JSON) to use instead of learning one here.")
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
               help="Run configuration (YAML/JSON, same tree as the run_config.json written by a run).")
-@click.option("--confidence", "confidences", type=float, multiple=True,
+@click.option("--confidence", "confidences", type=float, multiple=True, callback=check_confidence,
               help="Confidence levels in percent (repeatable; default 90 95 99).")
-@click.option("--report-confidence", type=float, default=None, help="Level for regions and buildings (default 99).")
+@click.option("--report-confidence", type=float, default=None, callback=check_confidence,
+              help="Level in percent for the change mask, regions and buildings (default 99).")
 @click.option("--footprints", type=click.Path(exists=True, path_type=str), default=None,
               help="Building footprints to attribute (default: the manifest's).")
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting, metres.")
@@ -37,11 +40,22 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
     Writes pair-DEMs (OUT/stereo), the scene-class model, change rasters (COG + QGIS styles), the changes/buildings/
     curves GeoPackage, plots, run_config.json and run_summary.json.
     """
+    from .common import require_inputs, resolve_out_dir, session
+
+    require_inputs(manifest, what="manifest")
+    from ..io.manifest import load_manifest
+
+    m = load_manifest(manifest)
+    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
     from ..consistency import ChangeParams, ConsistencyParams
-    from ..pipeline import RunConfig, run as run_pipeline
+    from ..io.outputs import open_outputs
+    from ..pipeline import PRODUCTS, RunConfig, run as run_pipeline
     from . import emit_result, make_progress
 
     cfg = RunConfig.load(config_path) if config_path else RunConfig()
+    open_outputs(out, inputs=[*m.input_paths(), model_path, config_path, footprints], products=PRODUCTS)
+    sess = session(ctx)
+    sess.open_log(out)
     changes = {}
     if confidences:
         c = _confidences(confidences)
@@ -56,17 +70,20 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
     cfg = dataclasses.replace(cfg, **changes)
     progress = make_progress(ctx, "run")
     try:
-        res = run_pipeline(manifest, out_dir=out_dir, config=cfg, progress=progress, footprints=footprints)
+        res = run_pipeline(m, out_dir=out, config=cfg, progress=progress, footprints=footprints)
     finally:
-        if hasattr(progress, "close"):
-            progress.close()
+        progress.close()
     s = res["summary"]
-    if (ctx.find_root().obj or {}).get("progress_mode") != "json":
-        click.echo(f"compared {s['epoch_a']} → {s['epoch_b']} on a {s['grid']['width']}x{s['grid']['height']} grid; "
-                   f"observed {100 * s['observed_fraction']:.1f}% of cells; changed: "
-                   + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items()), err=True)
-        if "buildings" in s:
-            click.echo(f"buildings: {s['buildings']}", err=True)
+    sess.say(f"compared {s['epoch_a']} → {s['epoch_b']} on a {s['grid']['width']}x{s['grid']['height']} grid; "
+             f"observed {100 * s['observed_fraction']:.1f}% of cells; changed: "
+             + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items()))
+    if "buildings" in s:
+        sess.say("buildings: " + ", ".join(f"{n} {k}" for k, n in s["buildings"].items()))
+    sess.data(**{k: s[k] for k in ("epoch_a", "epoch_b", "observed_fraction", "changed_fraction", "buildings")
+                 if k in s})
+    n_pairs = sum(1 for k in res["outputs"] if k.startswith("stereo:"))
+    if n_pairs:
+        sess.say(f"{n_pairs} pair-DEMs in {out / 'stereo'}")
     emit_result(ctx, {k: v for k, v in res["outputs"].items() if not k.startswith("stereo:")})
 
 
@@ -82,7 +99,8 @@ def _read_pairs(paths):
               help="Scene-class model to write (JSON).")
 @click.option("--group-by", type=click.Choice(["epoch", "none"]), default="epoch", show_default=True,
               help="Compare pair-DEMs within each epoch (from their tags), or all together (one static scene).")
-@click.option("--confidence", "confidences", type=float, multiple=True, help="Levels in percent (default 90 95 99).")
+@click.option("--confidence", "confidences", type=float, multiple=True, callback=check_confidence,
+              help="Levels in percent (default 90 95 99).")
 @click.option("--scene-class", default="", help="Scene class recorded in the model (e.g. urban, suburban, rural).")
 @click.option("--sensor", default="", help="Sensor recorded in the model.")
 @click.option("--bins", "n_bins", type=int, default=24, show_default=True, help="Number of score bins.")
@@ -92,8 +110,13 @@ def _read_pairs(paths):
 def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, sensor, n_bins, plot_path):
     """Learn a self-consistency model (stage 1) from pair-DEMs of a static scene (GeoTIFFs from `geocd stereo`)."""
     from ..consistency import ConsistencyParams, learn_self_consistency
+    from ..io.outputs import open_outputs
     from . import emit_result, make_progress
+    from .common import session
 
+    open_outputs(None, files=[out_path, plot_path], inputs=pair_dems)
+    sess = session(ctx)
+    sess.open_log(Path(out_path).parent)
     pairs = _read_pairs(pair_dems)
     groups: dict[str, list] = {}
     for p in pairs:
@@ -102,14 +125,16 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
     prov = {"scene_class": scene_class, "sensor": sensor, "pair_dems": [str(Path(p).resolve()) for p in pair_dems],
             "gsd_m": pairs[0].grid.posting_m, "score": pairs[0].meta.get("score_kind", "")}
     progress = make_progress(ctx, "consistency")
-    model = learn_self_consistency(list(groups.values()), params, provenance=prov, progress=progress)
+    try:
+        model = learn_self_consistency(list(groups.values()), params, provenance=prov, progress=progress)
+    finally:
+        progress.close()
     outputs = {"model": model.save(out_path)}
     if plot_path:
         from ..change.plots import plot_scatter_curves
 
         outputs["scatter"] = plot_scatter_curves(model, plot_path)
-    if (ctx.find_root().obj or {}).get("progress_mode") != "json":
-        click.echo(model.curves_table().to_string(index=False, float_format=lambda v: f"{v:.3f}"), err=True)
+    sess.say(model.curves_table().to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     emit_result(ctx, outputs)
 
 
@@ -127,8 +152,10 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
               help="Self-consistency model (from `geocd consistency` or a run).")
 @click.option("--footprints", type=click.Path(exists=True, path_type=str), default=None, help="Footprints to attribute.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str), help="Output folder.")
-@click.option("--confidence", "confidences", type=float, multiple=True, help="Levels in percent (default 90 95 99).")
-@click.option("--report-confidence", type=float, default=99.0, show_default=True)
+@click.option("--confidence", "confidences", type=float, multiple=True, callback=check_confidence,
+              help="Levels in percent (default 90 95 99).")
+@click.option("--report-confidence", type=float, default=99.0, show_default=True, callback=check_confidence,
+              help="Level in percent for the change mask, regions and buildings.")
 @click.option("--combine", type=click.Choice(["majority", "all", "any"]), default="majority", show_default=True)
 @click.pass_context
 def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, footprints, out_dir, confidences,
@@ -140,9 +167,13 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     from ..errors import ConfigError
     from ..io.raster import read_dem
     from ..io.vector import read_footprints
+    from ..io.outputs import open_outputs
     from ..pipeline import _median_surface
     from . import emit_result, make_progress
+    from .common import session
 
+    open_outputs(out_dir, inputs=[*a_paths, *b_paths, dem_a, dem_b, model_path, footprints], products=("sc_*",))
+    session(ctx).open_log(out_dir)
     A, B = _read_pairs(a_paths), _read_pairs(b_paths)
     if not (A or B):
         raise ConfigError("give pair-DEMs of both epochs (-a ... -b ...), or one epoch's pair-DEMs and a DEM for the other")
@@ -157,16 +188,19 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     if not A or not B:
         raise ConfigError("each epoch needs at least one pair-DEM or a DEM (--dem-a/--dem-b)")
     model = SelfConsistencyModel.load(model_path)
-    params = ChangeParams(confidences=_confidences(confidences), combine=combine)
+    params = ChangeParams(confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})), combine=combine)
     progress = make_progress(ctx, "change")
-    res = change_test(A, B, model, params, progress=progress)
+    try:
+        res = change_test(A, B, model, params, progress=progress)
+    finally:
+        progress.close()
     buildings = None
     if footprints:
         fps = read_footprints(footprints, crs=grid.crs)
         id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
-        mask = res.changed_at(report_confidence) if report_confidence in res.confidences else res.change
-        buildings = classify_buildings(fps, mask, res.dz_m, grid, z_a=_median_surface(A), z_b=_median_surface(B),
-                                       confidence=res.confidence, id_field=id_field)
+        buildings = classify_buildings(fps, res.changed_at(report_confidence), res.dz_m, grid, z_a=_median_surface(A),
+                                       z_b=_median_surface(B), confidence=res.confidence, id_field=id_field,
+                                       confidence_level=report_confidence)
     paths = write_change_products(out_dir, res, grid, method="self-consistency", epoch_a=A[0].epoch if hasattr(A[0], "epoch") else "A",
                                   epoch_b=B[0].epoch if hasattr(B[0], "epoch") else "B", region_confidence=report_confidence,
                                   model=model, buildings=buildings, prefix="sc")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+import numpy as np
 
 
 @click.command("mpp")
@@ -53,13 +54,9 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
     from ..errors import ConfigError
     from ..mpp.params import MPPParams
     from . import emit_result, make_progress
+    from .common import require_inputs, resolve_out_dir, session
 
-    kw = {"seed": seed}
-    for k, v in (("side_min_m", side_min_m), ("side_max_m", side_max_m), ("max_iter", max_iter),
-                 ("gamma_3d", gamma_3d)):
-        if v is not None:
-            kw[k] = v
-    params = MPPParams(**kw)
+    sess = session(ctx)
     if (image_a is None) != (image_b is None):
         raise ConfigError("give both --image-a and --image-b, or a manifest")
     if manifest is None and image_a is None:
@@ -68,26 +65,42 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
         raise ConfigError("give either a manifest or --image-a/--image-b, not both")
     if height == "on" and image_a is not None and dsm_a is None:
         raise ConfigError("--height on needs --dsm-a and --dsm-b with --image-a/--image-b")
+    require_inputs(manifest, image_a, image_b, dsm_a, dsm_b, ground, change_prior)
+    kw = {"seed": seed}
+    for k, v in (("side_min_m", side_min_m), ("side_max_m", side_max_m), ("max_iter", max_iter),
+                 ("gamma_3d", gamma_3d)):
+        if v is not None:
+            kw[k] = v
+    params = MPPParams(**kw)
+    from ..io.outputs import open_outputs
+
     progress = make_progress(ctx, "mpp")
     try:
         if manifest is not None:
+            from ..io.manifest import load_manifest
             from ..mpp.pipeline import run_mpp_manifest
+            from ..pipeline import pick_epochs
 
+            m = load_manifest(manifest)
+            out_dir = Path(out) if out else m.output_dir()
+            open_outputs(out_dir, inputs=[*m.input_paths(), dsm_a, dsm_b, change_prior],
+                         products=("mpp/*", "ortho/*", "stereo/*"))
+            sess.open_log(out_dir)
             dsm = None
             if dsm_a or dsm_b:
-                from ..io.manifest import load_manifest
-                from ..pipeline import pick_epochs
-
-                ea, eb = pick_epochs(load_manifest(manifest), epoch_a, epoch_b)
+                ea, eb = pick_epochs(m, epoch_a, epoch_b)
                 dsm = {k: v for k, v in ((ea.name, dsm_a), (eb.name, dsm_b)) if v}
-            res = run_mpp_manifest(manifest, out_dir=out, epoch_a=epoch_a, epoch_b=epoch_b, view_a=view_a,
-                                   view_b=view_b, dsm=dsm, method=method, params=params,
-                                   height=height if height != "on" else "on", change_prior=change_prior,
-                                   posting_m=posting_m, overwrite=not no_overwrite, progress=progress)
+            res = run_mpp_manifest(m, out_dir=out_dir, epoch_a=epoch_a, epoch_b=epoch_b, view_a=view_a,
+                                   view_b=view_b, dsm=dsm, method=method, params=params, height=height,
+                                   change_prior=change_prior, posting_m=posting_m, overwrite=not no_overwrite,
+                                   progress=progress)
         else:
             from ..mpp.pipeline import run_mpp_images
 
-            res = run_mpp_images(image_a, image_b, out_dir=out or str(Path(image_a).parent / "mpp"),
+            out_dir = resolve_out_dir(out, Path(image_a).stem + "_mpp")
+            open_outputs(out_dir, inputs=[image_a, image_b, dsm_a, dsm_b, ground, change_prior], products=("mpp_*",))
+            sess.open_log(out_dir)
+            res = run_mpp_images(image_a, image_b, out_dir=out_dir,
                                  dsm_a=dsm_a if height != "off" else None, dsm_b=dsm_b if height != "off" else None,
                                  ground=ground, method=method, params=params, change_prior=change_prior,
                                  posting_m=posting_m, overwrite=not no_overwrite, progress=progress)
@@ -96,11 +109,11 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
             progress.close()
     det = res["detection"]
     for n in det.notes:
-        click.echo(f"note: {n}", err=True)
-    counts = {}
-    for x in det.result.xi:
-        counts[int(x)] = counts.get(int(x), 0) + 1
-    click.echo(f"{len(det.result)} rectangles: {counts.get(0, 0)} unchanged, {counts.get(1, 0)} demolished, "
-               f"{counts.get(2, 0)} new ({det.result.iterations} iterations, "
-               f"{'converged' if det.result.converged else 'not converged'})", err=True)
+        sess.note(n)
+    r = det.result
+    counts = {XI: int(np.count_nonzero(r.xi == k)) for k, XI in ((0, "unchanged"), (1, "demolished"), (2, "new"))}
+    sess.say(f"{len(r)} rectangles: {counts['unchanged']} unchanged, {counts['demolished']} demolished, "
+             f"{counts['new']} new ({r.iterations} iterations, {'converged' if r.converged else 'not converged'})")
+    sess.data(rectangles=len(r), by_change=counts, iterations=r.iterations, converged=r.converged,
+              method=det.method, height=res["params"].height)
     emit_result(ctx, {k: v for k, v in res["outputs"].items() if not k.startswith("ortho:")})

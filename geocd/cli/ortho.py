@@ -43,8 +43,9 @@ def _dsm_arg(values: tuple[str, ...]):
 @click.option("--camera", "camera_path", type=click.Path(path_type=str), default=None,
               help="Single image: camera file (default: RPC tags, RPC sidecar or frame sidecar of the image).")
 @click.option("--out", "out", type=click.Path(path_type=str), default=None,
-              help="Single image: output GeoTIFF (default IMAGE_ortho.tif beside the DSM). Manifest: output folder "
-                   "(default the manifest's output); orthos go to OUT/ortho/EPOCH/NAME.tif.")
+              help="Single image: output GeoTIFF (default ./geocd_out/IMAGE/IMAGE_ortho.tif). Manifest: output folder "
+                   "(default the manifest's 'output:', else ./geocd_out/<scene name>); orthos go to "
+                   "OUT/ortho/EPOCH/NAME.tif.")
 @click.option("--posting", "posting_m", type=float, default=None,
               help="Grid posting in metres (manifest: default the manifest's aoi, else the images' GSD; single image: "
                    "default the DSM's grid).")
@@ -73,7 +74,9 @@ def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images,
     from ..errors import ConfigError, InputFileNotFoundError
     from ..ortho import OrthoParams
     from . import emit_result, make_progress
+    from .common import default_out_dir, session
 
+    sess = session(ctx)
     params = OrthoParams(resampling=resampling, occlusion=occlusion, occlusion_tol_m=occlusion_tol_m,
                          antialias=antialias)
     src = Path(source)
@@ -83,15 +86,22 @@ def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images,
     progress = make_progress(ctx, "ortho")
     try:
         if _is_manifest(src):
+            from ..io.manifest import load_manifest
+            from ..io.outputs import open_outputs
             from ..ortho.pipeline import run_ortho
+
+            src = load_manifest(src)
+            dsm_files = [v for v in (dsm_spec.values() if isinstance(dsm_spec, dict) else [dsm_spec]) if v]
+            open_outputs(out or src.output_dir(), inputs=[*src.input_paths(), *dsm_files],
+                         products=("ortho/*", "stereo/*"))
 
             res = run_ortho(src, epochs=list(epochs) or None, images=list(images) or None, out_dir=out, dsm=dsm_spec,
                             dsm_source=dsm_source, posting_m=posting_m, params=params, view_bands=view_bands,
                             overwrite=not no_overwrite, progress=progress)
             outputs = {k: v for k, v in res["outputs"].items()}
             for k, f in res["fractions"].items():
-                click.echo(f"{k}: seen {f['seen'] + f['seen_filled_height']:.1%}, occluded {f['occluded']:.1%}, "
-                           f"outside {f['outside_image']:.1%}", err=True)
+                sess.say(f"{k}: seen {f['seen'] + f['seen_filled_height']:.1%}, occluded {f['occluded']:.1%}, "
+                         f"outside {f['outside_image']:.1%}")
         else:
             if not isinstance(dsm_spec, str):
                 raise ConfigError("orthorectifying one image needs one DSM: --dsm PATH")
@@ -111,7 +121,13 @@ def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images,
             h = d.to_ellipsoidal().height_m
             filled, hole = fill_dsm_holes(h)
             cam = load_camera(src, camera_path)
-            dst = Path(out) if out else Path(dsm_spec).parent / f"{src.stem}_ortho.tif"
+            dst = Path(out) if out else default_out_dir(src.stem) / f"{src.stem}_ortho.tif"
+            from ..io.outputs import open_outputs
+
+            open_outputs(None, files=[dst.parent / f"{dst.stem}{s}" for s in (".tif", ".qml", "_status.tif",
+                                                                               "_status.qml", "_view.tif")],
+                         inputs=[src, camera_path, dsm_spec])
+            dst.parent.mkdir(parents=True, exist_ok=True)
             progress(0.1, f"ortho {src.name}")
             paths, r = ortho_image(src, cam, grid, filled, dst, params=params, dsm_filled=hole,
                                    view_bands=view_bands, overwrite=not no_overwrite,
@@ -119,8 +135,8 @@ def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images,
             progress(1.0, "ortho done")
             outputs = paths
             f = r.fractions()
-            click.echo(f"seen {f['seen'] + f['seen_filled_height']:.1%}, occluded {f['occluded']:.1%}, "
-                       f"outside {f['outside_image']:.1%}; DSM holes filled: {float(np.mean(hole)):.1%}", err=True)
+            sess.say(f"seen {f['seen'] + f['seen_filled_height']:.1%}, occluded {f['occluded']:.1%}, "
+                     f"outside {f['outside_image']:.1%}; DSM holes filled: {float(np.mean(hole)):.1%}")
     finally:
         if hasattr(progress, "close"):
             progress.close()

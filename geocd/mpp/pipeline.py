@@ -75,7 +75,7 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
     prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     ea, eb = pick_epochs(m, epoch_a, epoch_b)
-    out = Path(out_dir) if out_dir is not None else (m.output or m.root / "out")
+    out = Path(out_dir) if out_dir is not None else m.output_dir()
     ims = {e.name: load_epoch_images(m, e) for e in (ea, eb)}
     dem_median = None
     if m.dem is not None:

@@ -236,7 +236,7 @@ def run_ortho(manifest, *, epochs: Sequence[str] | None = None, images: Sequence
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     prog = ensure_progress(progress)
     sel = [m.epoch(e) for e in epochs] if epochs else list(m.epochs)
-    out = Path(out_dir) if out_dir is not None else (m.output or m.root / "out")
+    out = Path(out_dir) if out_dir is not None else m.output_dir()
     ims = {e.name: [im for im in load_epoch_images(m, e) if not images or im.name in images] for e in sel}
     if images:
         missing = set(images) - {im.name for v in ims.values() for im in v}

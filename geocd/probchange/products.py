@@ -94,7 +94,7 @@ def write_probchange_products(out_dir: os.PathLike | str, result: ProbChangeResu
                                      dtype="int8", tags=tags, overview_resampling="nearest")
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
     sign = np.where(mask == CHANGE_NODATA, 0, mask).astype(np.int8)
-    conf = np.where(result.observed, result.probability, np.nan)
+    conf = np.where(result.observed, 100.0 * result.probability, np.nan)  # percent, the changes layer's unit
     regions = change_regions(sign, result.dz_m, grid, confidence=conf, method=method, epoch_a=epoch_a,
                              epoch_b=epoch_b, min_cells=result.params.min_region_cells)
     paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", {"changes": regions},

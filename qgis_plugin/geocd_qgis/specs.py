@@ -145,6 +145,24 @@ GROUP_DEM = ("DEMs and stereo", "dems")
 GROUP_CHANGE = ("3-D change", "change")
 GROUP_VOLUME = ("Volumetric model", "volume")
 GROUP_DATA = ("Data", "data")
+GROUP_LANDCOVER = ("Land cover", "landcover")
+
+#: where the land-cover algorithms place the ground grid and what rays meet (geocd landcover --manifest/--dem/...)
+_LANDCOVER_SCENE = (
+    Param("MANIFEST", "file", "Scene manifest (AOI grid, DEM, footprints)", cli="--manifest", optional=True,
+          file_filter="Scene manifests (*.yaml *.yml *.json);;All files (*)"),
+    Param("DEM", "raster", "Terrain DEM (its grid is the default AOI grid)", cli="--dem", optional=True),
+    Param("DEM_DATUM", "enum", "Vertical datum of the DEM (when its file does not say)", cli="--dem-datum",
+          options=_DATUMS, default=0, optional=True, advanced=True),
+    Param("FOOTPRINTS", "vector", "Building footprints (occupancy; extruded by height to stop rays)",
+          cli="--footprints", optional=True, geometry="polygon"),
+    Param("HEIGHT_FIELD", "string", "Footprint attribute with the building height above ground (m)",
+          cli="--height-field", optional=True, advanced=True, help="Default: height_m, height, ..."),
+    Param("DSM", "raster", "DSM (e.g. from geocd stereo): the surface rays meet", cli="--dsm", optional=True,
+          advanced=True),
+    Param("POSTING", "number", "Grid posting", cli="--posting", unit="m", optional=True, min=0.0,
+          help="Default: the manifest's AOI posting, else the DEM's."),
+)
 
 
 ALGORITHMS: tuple[AlgSpec, ...] = (
@@ -487,8 +505,14 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   file_filter="Rasters and vectors (*.tif *.tiff *.gpkg *.shp *.geojson);;All files (*)"),
             Param("MASK_IS", "enum", "The mask marks", cli="--mask-is", default=0,
                   options=(("stable terrain", "stable"), ("unstable areas (e.g. glacier outlines)", "unstable"))),
-            Param("CONFIDENCE", "number", "Confidence level for 'changed' (0–1)", cli="--confidence", default=0.95,
-                  min=0.5, max=0.99999),
+            Param("CONFIDENCE", "number", "Confidence level for 'changed'", cli="--confidence", unit="%",
+                  default=95.0, min=50.0, max=99.999, help="A percentage: 95 means 95 %."),
+            Param("BASE", "file", "Base DEM both DEMs were merged onto (optional)", cli="--base", optional=True,
+                  file_filter="DEMs (*.tif *.tiff *.e00 *.vrt *.asc);;All files (*)",
+                  help="When each DEM is a survey pasted on a common base DEM (e.g. the Mount St Helens archive), "
+                       "give the base: only cells where both DEMs differ from it (both epochs surveyed) are "
+                       "compared. Without it the pasted base is identical in both DEMs, the stable terrain is "
+                       "degenerate (NMAD 0) and geocd warns that σ is not credible."),
             Param("DATUM_A", "enum", "Vertical datum of DEM A (when its file does not say)", cli="--datum-a",
                   options=_DATUMS, default=0, optional=True, advanced=True),
             Param("DATUM_B", "enum", "Vertical datum of DEM B", cli="--datum-b", options=_DATUMS, default=0,
@@ -510,6 +534,13 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
             Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",
                   advanced=True),
             Param("NO_PLOTS", "bool", "Do not draw PNG plots", cli="--no-plots", default=False, advanced=True),
+            Param("TILED", "bool", "Process tile by tile (whole scenes: bounded memory, resumable, on Dask)",
+                  cli="--tiled", default=False, advanced=True,
+                  help="Automatic above 16 million cells. The products are the same as an untiled run's."),
+            Param("SCHEDULER", "string", "Tiled runs: scheduler (sync, threads, processes, or a Dask address)",
+                  cli="--scheduler", optional=True, advanced=True,
+                  help="Default: a local Dask cluster with one worker per core; tcp://host:8786 for a running "
+                       "dask.distributed scheduler."),
         ),
         outputs=(
             Output("dh", "DH", "raster", "Height change dh = B − A (m)"),
@@ -536,8 +567,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   advanced=True),
             Param("STABLE_MASK", "file", "Stable-terrain mask (raster or polygons; default: automatic)",
                   cli="--stable-mask", optional=True, advanced=True),
-            Param("CONFIDENCE", "number", "Confidence level (0–1)", cli="--confidence", default=0.95, min=0.5,
-                  max=0.99999),
+            Param("CONFIDENCE", "number", "Confidence level", cli="--confidence", unit="%", default=95.0, min=50.0,
+                  max=99.999, help="A percentage: 95 means 95 %."),
             Param("PAIR_PRODUCTS", "bool", "Also write every interval's rasters and layers", cli="--pair-products",
                   default=False),
             Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",
@@ -633,6 +664,95 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
         outputs=(Output("height_map", "HEIGHT_MAP", "raster", "Expected height map (ellipsoidal, m)",
                         style="auto:height"),),
         load_unlisted=True, tags=("volumetric", "render", "dem")),
+    AlgSpec(
+        name="landcovertrain", display="Land cover: train a pixel classifier", group=GROUP_LANDCOVER[0],
+        group_id=GROUP_LANDCOVER[1], command=("landcover", "train"),
+        short_help="Trains a pixel classifier (random forest; logistic regression or SVM for comparison) on local "
+                   "features — Lab colour, 5×5 grey mean and variance, scikit-image texture, optionally the height "
+                   "above ground — from polygons you drew with a class attribute (e.g. 'vegetation' and "
+                   "'other'): on the map (they reach raw images through their cameras and the DEM) or on an "
+                   "image in pixel coordinates. Writes a reusable model (.joblib) and a JSON report.",
+        params=(
+            Param("LABELS", "vector", "Label polygons (class attribute)", cli="--labels", geometry="polygon"),
+            Param("CLASS_FIELD", "string", "Class attribute (default: class, label, landcover, ...)",
+                  cli="--class-field", optional=True),
+            Param("POSITIVE", "string", "The condition's class (e.g. vegetation)", cli="--positive", optional=True),
+            Param("IMAGES", "rasters", "Images to learn from (one sensor per model)", cli="--image"),
+            Param("METHOD", "enum", "Classifier", cli="--method", default=0,
+                  options=(("random forest", "rf"), ("logistic regression", "logreg"), ("SVM (RBF)", "svm"))),
+            Param("COMPARE", "bool", "Also cross-validate all three methods (holding out whole polygons)",
+                  cli="--compare", default=False, advanced=True),
+            Param("HEIGHT_ABOVE_GROUND", "bool", "Height above ground as a feature (needs a DSM or footprints)",
+                  cli="--height-above-ground", default=False, advanced=True),
+            *_LANDCOVER_SCENE,
+            Param("SEED", "int", "Random seed", cli="--seed", default=0, advanced=True),
+            Param("MODEL_FILE", "file_destination", "Model file", cli="--out", file_filter="Models (*.joblib)"),
+        ),
+        outputs=(Output("model", "MODEL", "file", "Model (.joblib)", load=False),
+                 Output("report", "REPORT", "file", "Training report (JSON)", load=False)),
+        tags=("land cover", "classification", "random forest", "vegetation", "debris")),
+    AlgSpec(
+        name="landcoverpredict", display="Land cover: probability maps (images and ground)",
+        group=GROUP_LANDCOVER[0], group_id=GROUP_LANDCOVER[1], command=("landcover", "predict"),
+        short_help="Applies a land-cover model to images: a probability map per image (image geometry) and, with a "
+                   "DEM or manifest, the condition's probability on the ground grid — each image projected through "
+                   "its camera and the surface (footprints extruded or a DSM): cells hidden behind buildings stay "
+                   "empty, several views are combined by weight.",
+        params=(
+            Param("MODEL", "file", "Model (from 'train a pixel classifier')", cli="--model",
+                  file_filter="Models (*.joblib);;All files (*)"),
+            Param("IMAGES", "rasters", "Images to classify", cli="--image"),
+            Param("CLASS", "string", "Class to project (default: the positive class)", cli="--class", optional=True),
+            *_LANDCOVER_SCENE,
+            _out_folder(),
+        ),
+        outputs=(Output("ground", "GROUND", "raster", "Probability on the ground (weighted over views)",
+                        style="auto:probability"),
+                 Output("summary", "SUMMARY", "file", "Summary (JSON)", load=False)),
+        load_unlisted=True, tags=("land cover", "classification", "orthorectification", "probability")),
+    AlgSpec(
+        name="landcoverintegrate", display="Land cover: city-scale GP integration", group=GROUP_LANDCOVER[0],
+        group_id=GROUP_LANDCOVER[1], command=("landcover", "integrate"),
+        short_help="Gaussian-process regression (Sakurada) of the detailed views' probability over every cell, "
+                   "with the cells' position, DEM height, a coarse full-cover probability and building occupancy "
+                   "as inputs (ARD kernel: one length scale per input; hyperparameters by exact GP on a subsample, "
+                   "prediction with inducing points, so a million cells run in bounded memory). Writes the "
+                   "predictive mean and σ; with a truth raster also the ablation report (PR curves, F1 at recall "
+                   "0.5, σ calibration).",
+        params=(
+            Param("DETAILED", "raster", "Detailed views' probability on the ground (NaN = unobserved)",
+                  cli="--detailed"),
+            Param("COARSE", "raster", "Coarse full-cover probability (e.g. the satellite image's)", cli="--coarse",
+                  optional=True),
+            Param("INPUTS", "string", "GP inputs (comma-separated from xy, dem, coarse, buildings; default: all "
+                  "available)", cli="--inputs", optional=True, advanced=True),
+            Param("CLASS_NAME", "string", "Name of the condition", cli="--class-name", default="condition"),
+            Param("KERNEL", "enum", "Kernel", cli="--kernel", default=0, advanced=True,
+                  options=(("additive: position + appearance (carries appearance at any distance)", "additive"),
+                           ("product: one ARD kernel over every input (thesis)", "product"))),
+            Param("N_FIT", "int", "Cells for the exact-GP hyperparameter fit", cli="--n-fit", default=1000, min=10,
+                  advanced=True),
+            Param("INDUCING", "int", "Inducing points", cli="--inducing", default=400, min=1, advanced=True),
+            Param("BATCH", "int", "Cells per prediction batch (memory)", cli="--batch", default=20000, min=1,
+                  advanced=True),
+            Param("CALIBRATE_FOLDS", "int", "Spatial blocks held out to calibrate σ (0 = off)",
+                  cli="--calibrate-folds", default=0, min=0, advanced=True),
+            Param("SEED", "int", "Random seed", cli="--seed", default=0, advanced=True),
+            Param("TRUTH", "raster", "Truth raster (adds the ablation report)", cli="--truth", optional=True,
+                  advanced=True),
+            Param("TRUTH_VALUES", "string", "Truth codes meaning the condition (comma-separated; default nonzero)",
+                  cli="--truth-values", optional=True, advanced=True),
+            Param("EXCLUDE_LABELS", "vector", "Training labels (left out of the ablation scores)",
+                  cli="--exclude-labels", optional=True, geometry="polygon", advanced=True),
+            *_LANDCOVER_SCENE,
+            _out_folder(),
+        ),
+        outputs=(Output("probability", "PROBABILITY", "raster", "GP mean probability", style="auto:probability"),
+                 Output("sigma", "SIGMA", "raster", "GP σ, σ of a new observation, unclipped mean, detailed input"),
+                 Output("ablation", "ABLATION", "file", "Ablation report (JSON)", load=False),
+                 Output("ablation_png", "ABLATION_PNG", "file", "PR curves and F1 at recall 0.5 (PNG)", load=False),
+                 Output("summary", "SUMMARY", "file", "Summary (JSON)", load=False)),
+        tags=("land cover", "gaussian process", "regression", "vegetation", "debris", "uncertainty")),
     AlgSpec(
         name="synth", display="Synthetic test scene", group=GROUP_DATA[0], group_id=GROUP_DATA[1],
         command=("synth",),

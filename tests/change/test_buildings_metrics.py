@@ -73,3 +73,80 @@ def test_qml_is_well_formed_xml():
         r = root.find("renderer-v2")
         assert r.get("type") == "categorizedSymbol"
         assert len(r.find("categories")) == len(r.find("symbols"))
+
+
+def test_unobserved_building_from_a_change_result_says_why(grid):
+    """A footprint on cells no comparison saw is `unobserved` (not `unchanged`), with the rule in words."""
+    import geopandas as gpd
+
+    from geocd.consistency import change_test, learn_self_consistency
+    from tests.test_consistency import Rec
+
+    rng = np.random.default_rng(5)
+    shape = grid.shape
+    l, b, r, t = grid.bounds
+
+    def rec(name, hide=None):
+        z = rng.normal(scale=0.2, size=shape).astype(np.float32)
+        valid = np.ones(shape, bool)
+        if hide is not None:
+            valid[hide] = False
+        return Rec(np.where(valid, z, np.nan).astype(np.float32), rng.uniform(0, 1, shape).astype(np.float32),
+                   np.ones(shape, np.float32), valid, grid, name)
+
+    hide = (slice(10, 50), slice(10, 50))  # rows 10..49, cols 10..49: x l+5..l+25, y t-25..t-5
+    A = [rec(f"A{i}") for i in range(3)]
+    B = [rec(f"B{i}", hide) for i in range(3)]
+    res = change_test(A, B, learn_self_consistency([A]))
+    fps = gpd.GeoDataFrame({"building_id": [1, 2, 3]}, geometry=[
+        box(l + 8, t - 22, l + 22, t - 8),     # entirely in the hole
+        box(l + 20, t - 22, l + 34, t - 8),    # 5/14 of it in the hole: observed on 64%
+        box(l + 40, b + 5, l + 50, b + 15)],   # fully observed
+        crs=grid.crs)
+    out = classify_buildings(fps, res.changed_at(99), res.dz_m, grid, id_field="building_id", confidence_level=99)
+    assert list(out["class"]) == ["unobserved", "unchanged", "unchanged"]
+    assert out.loc[0, "frac_observed"] == 0.0 and "min_observed" in out.loc[0, "rule"]
+    assert out.loc[1, "frac_observed"] == pytest.approx(9 / 14, abs=0.05)
+    assert out.loc[2, "frac_observed"] == pytest.approx(1.0) and out.loc[2, "rule"].startswith("unchanged")
+    # 60 % outside the grid: unobserved by the AOI rule, and frac_observed counts the part off the grid
+    half = gpd.GeoDataFrame({"building_id": [9]}, geometry=[box(r - 4, b + 5, r + 6, b + 15)], crs=grid.crs)
+    o = classify_buildings(half, res.changed_at(99), res.dz_m, grid, id_field="building_id")
+    assert o.loc[0, "class"] == "unobserved" and "min_inside" in o.loc[0, "rule"]
+    assert o.loc[0, "frac_observed"] == pytest.approx(0.4, abs=0.05)
+
+
+def test_new_buildings_come_from_detection_not_from_footprints(grid):
+    """Epoch-A footprints only: a building raised on bare ground outside them is found as a `new` candidate;
+    a small raised blob (below min_changed × the median footprint) and a car-high one are not."""
+    import geopandas as gpd
+
+    from geocd.change.buildings import score_buildings
+    from geocd.io.vector import polygons_to_mask
+
+    l, b, r, t = grid.bounds
+    known = gpd.GeoDataFrame({"building_id": [1, 2]}, geometry=[box(l + 2, b + 2, l + 12, b + 12),
+                                                                  box(l + 20, b + 2, l + 30, b + 12)], crs=grid.crs)
+    za = np.zeros(grid.shape, np.float32)
+    za[polygons_to_mask(known, grid).astype(bool)] = 6.0
+    zb = za.copy()
+    new_fp = box(l + 35, b + 35, l + 47, b + 45)                 # 120 m², built between the dates
+    blob = box(l + 5, t - 8, l + 7, t - 6)                      # 4 m² < 0.15 × median footprint (15 m²)
+    car = box(l + 30, t - 12, l + 35, t - 7)                    # 25 m² but raised by 1.2 m only
+    for g, h in ((new_fp, 9.0), (blob, 5.0), (car, 1.2)):
+        zb[polygons_to_mask(gpd.GeoDataFrame(geometry=[g], crs=grid.crs), grid).astype(bool)] = h
+    dz = zb - za
+    mask = np.where(np.abs(dz) > 1.0, np.sign(dz), 0).astype(np.int8)
+    out = classify_buildings(known, mask, dz, grid, z_a=za, z_b=zb, id_field="building_id", confidence_level=99)
+    det = out[out["source"] == "detected"]
+    assert len(det) == 1 and det.iloc[0]["class"] == "new" and det.iloc[0]["building_id"] == -1
+    assert det.iloc[0].geometry.area == pytest.approx(120, rel=0.05) and "outside every footprint" in det.iloc[0]["rule"]
+    assert list(out.loc[out["source"] == "footprint", "class"]) == ["unchanged", "unchanged"]
+    truth = gpd.GeoDataFrame({"building_id": [1, 2, 3], "status": ["unchanged", "unchanged", "new"]},
+                             geometry=[*known.geometry, new_fp], crs=grid.crs)
+    s = score_buildings(out, truth, aoi=box(*grid.bounds))
+    assert (s["tp"], s["fp"], s["fn"], s["f1"]) == (1, 0, 0, 1.0)
+    # not detected → the new building is a false negative, not silently absent from the score
+    s0 = score_buildings(out[out["source"] == "footprint"], truth, aoi=box(*grid.bounds))
+    assert (s0["tp"], s0["fn"]) == (0, 1)
+    none = classify_buildings(known, mask, dz, grid, z_a=za, z_b=zb, id_field="building_id", detect_new=False)
+    assert (none["source"] == "footprint").all()

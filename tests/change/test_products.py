@@ -20,8 +20,8 @@ def result():
     ta = np.zeros(SHAPE, np.float32)
     tb = ta.copy()
     tb[20:50, 20:50] += 9
-    A = [make_rec(ta, rng, f"A{i}") for i in range(3)]
-    B = [make_rec(tb, rng, f"B{i}") for i in range(3)]
+    A = [make_rec(ta, rng, f"A{i}", outlier_frac=0.05) for i in range(3)]
+    B = [make_rec(tb, rng, f"B{i}", outlier_frac=0.05) for i in range(3)]
     for r in A + B:
         r.grid = grid
     model = learn_self_consistency([A, B])
@@ -41,11 +41,18 @@ def test_products_are_readable_and_styled(tmp_path, result):
     bld = classify_buildings(fps, res.changed_at(95), res.dz_m, grid, z_a=np.zeros(SHAPE, np.float32), id_field="building_id")
     paths = write_change_products(tmp_path, res, grid, model=model, buildings=bld, region_confidence=95, prefix="sc")
     with rasterio.open(paths["change"]) as ds:
-        assert ds.descriptions == ("dz_m", "dtilde", "score", "confidence")
+        assert ds.descriptions == ("dz_m", "dtilde", "score", "confidence", "cell_confidence", "dz_sigma_m")
+        assert ds.units == ("m", "px", "bit/px", "%", "%", "m")
+        assert all(ds.tags(i).get("long_name") for i in range(1, ds.count + 1))
         assert ds.tags()["method"] == "self-consistency"
     with rasterio.open(paths["change_mask"]) as ds:
         m = ds.read(1)
         assert ds.nodata == CHANGE_NODATA and set(np.unique(m)) <= {-128, -1, 0, 1}
+        assert ds.tags()["mask_confidence_pct"] == "95"
+        assert ds.descriptions == ("change",) and ds.units == ("class",) and "raised" in ds.tags(1)["long_name"]
+    # the mask is the map at the reported confidence, not at the lowest tested level
+    assert (res.changed_at(90) != res.changed_at(95)).any()
+    assert np.array_equal(m, res.changed_at(95))
     assert (tmp_path / "sc_change_mask.qml").exists() and (tmp_path / "sc_change.qml").exists()
     layers = dict(pyogrio.list_layers(paths["changes"]))
     assert {"changes", "buildings", "curves", "layer_styles"} <= set(layers)
@@ -53,6 +60,10 @@ def test_products_are_readable_and_styled(tmp_path, result):
     assert len(ch) >= 1 and (ch["sign"] == 1).any()
     big = ch.loc[ch["area_m2"].idxmax()]
     assert big["area_m2"] == pytest.approx(15 * 15, rel=0.25) and big["mean_dz_m"] == pytest.approx(9, abs=1.5)
+    # percent, the region test's; σ of the volume from the error model (finite in every row)
+    assert (ch["confidence"] >= 95).all() and (ch["confidence"] <= 100).all()
+    assert np.isfinite(ch["volume_sigma_m3"]).all() and (ch["volume_sigma_m3"] > 0).all()
+    assert big["volume_sigma_m3"] < 0.2 * abs(big["volume_m3"])
     b = gpd.read_file(paths["changes"], layer="buildings")
     assert list(b["class"]) == ["new", "unchanged"]
     styles = sqlite3.connect(paths["changes"]).execute("select f_table_name from layer_styles").fetchall()

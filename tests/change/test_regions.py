@@ -58,15 +58,15 @@ def test_confidence_and_sigma_sources(grid):
     sign = np.zeros(grid.shape, np.int8)
     sign[2:6, 2:6] = 1
     dz = np.where(sign == 1, 1.0, 0.0)
-    r1 = change_regions(sign, dz, grid, confidence=0.95)
-    assert r1.iloc[0].confidence == 0.95
-    conf = np.where(sign == 1, 0.97, np.nan)
+    r1 = change_regions(sign, dz, grid, confidence=95.0)
+    assert r1.iloc[0].confidence == 95.0
+    conf = np.where(sign == 1, 97.0, np.nan)
     r2 = change_regions(sign, dz, grid, confidence=conf)
-    assert r2.iloc[0].confidence == pytest.approx(0.97)
+    assert r2.iloc[0].confidence == pytest.approx(97.0)
     # per-cell σ without correlation info → fully correlated (conservative) volume σ
     r3 = change_regions(sign, dz, grid, dz_sigma_m=0.5)
     assert r3.iloc[0].volume_sigma_m3 == pytest.approx(16 * 0.5 * 4.0)
-    assert r3.iloc[0].confidence == pytest.approx(math.erf(64 / 32 / math.sqrt(2)))
+    assert r3.iloc[0].confidence == pytest.approx(100 * math.erf(64 / 32 / math.sqrt(2)))  # percent
     seen = []
 
     def fn(mask):
@@ -75,7 +75,10 @@ def test_confidence_and_sigma_sources(grid):
 
     r4 = change_regions(sign, dz, grid, volume_sigma_fn=fn)
     assert seen == [16] and r4.iloc[0].volume_sigma_m3 == 10.0
-    assert r4.iloc[0].confidence == pytest.approx(math.erf(6.4 / math.sqrt(2)))
+    assert r4.iloc[0].confidence == pytest.approx(100 * math.erf(6.4 / math.sqrt(2)))
+    # the method's own (region-level) confidence kept, σ_V still reported
+    r5 = change_regions(sign, dz, grid, confidence=conf, volume_sigma_fn=fn, volume_confidence=False)
+    assert r5.iloc[0].confidence == pytest.approx(97.0) and r5.iloc[0].volume_sigma_m3 == 10.0
 
 
 def test_geographic_grid_cell_area():
