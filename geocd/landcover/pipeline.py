@@ -498,11 +498,14 @@ def integrate_files(detailed_path: os.PathLike | str, scene: Scene, out_dir: os.
                      "seconds": round(time.perf_counter() - t0, 2), **res.report}
     if truth_path is not None:
         prog(0.65, "ablation against the truth map")
-        tr = read_on_grid(truth_path, scene.grid)
-        if truth_values:
-            truth = np.isin(np.rint(tr), np.asarray(truth_values, float))
-        else:
-            truth = np.nan_to_num(tr) > 0.5
+        # the condition is decided on the truth's own grid, then averaged: a class raster is never resampled
+        from ..io.raster import read_band, reproject_array
+
+        tr0, tgrid = read_band(truth_path)
+        hit = np.isin(np.rint(tr0), np.asarray(truth_values, float)) if truth_values else np.nan_to_num(tr0) > 0.5
+        frac = reproject_array(np.where(np.isfinite(tr0), hit, np.nan).astype(np.float32), tgrid, scene.grid,
+                               "average" if tgrid.posting_m < 0.75 * scene.grid.posting_m else "nearest")
+        truth = np.nan_to_num(frac) >= 0.5
         exclude = None
         if exclude_path is not None:
             lab = read_labels(exclude_path)
@@ -510,8 +513,10 @@ def integrate_files(detailed_path: os.PathLike | str, scene: Scene, out_dir: os.
                 cls, _ = rasterize_labels(lab.to_crs(scene.grid.crs), scene.grid.shape, scene.grid.transform,
                                           class_list(lab))
                 exclude = cls >= 0
-        scores, results = ablation(det, coarse, lambda u: gp_inputs(scene, coarse, u), truth, exclude=exclude,
-                                   params=params)
+        no_truth = ~np.isfinite(frac)
+        exclude = no_truth if exclude is None else (exclude | no_truth)
+        scores, results = ablation(det, coarse, lambda u: gp_inputs(scene, coarse, u), truth, truth_value=frac,
+                                   exclude=exclude, params=params)
         ev = np.ones(truth.shape, bool) if exclude is None else ~exclude
         curves = {}
         if coarse is not None:
