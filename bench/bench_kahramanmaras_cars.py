@@ -127,6 +127,8 @@ def stage_cars(work: Path) -> dict:
             r["dtm"] = str(dtm) if dtm.exists() else None
         res[ep] = r
         print(ep, json.dumps(r), flush=True)
+        with open(work / "cars_stdout.log", "a") as f:
+            f.write(f"{ep} {json.dumps(r)}\n")
     (work / "cars_stage.json").write_text(json.dumps(res, indent=1))
     return res
 
@@ -166,7 +168,17 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
     from geocd.geodesy import AOIGrid
     from geocd.stereo import read_pair_dem
 
-    cars = json.loads((work / "cars_stage.json").read_text())
+    if (work / "cars_stage.json").is_file():
+        cars = json.loads((work / "cars_stage.json").read_text())
+    else:   # the cars stage still running: the epochs it finished (its stdout lines "epoch {json}")
+        cars = {}
+        log = work / "cars_stdout.log"
+        for line in (log.read_text().splitlines() if log.is_file() else []):
+            ep, _, js = line.partition(" ")
+            if ep in EPOCHS and js.startswith("{"):
+                cars[ep] = json.loads(js)
+        for ep in EPOCHS:
+            cars.setdefault(ep, {})
     summary = json.loads((run_dir / "run_summary.json").read_text())
     out: dict = {"geocd_run": {k: summary.get(k) for k in ("orientation", "building_damage", "changed_fraction")}}
     geocd_dsm, cars_dsm = {}, {}

@@ -61,7 +61,7 @@ class Watch:
 
 
 def cmd(dem_dir: Path, out: Path, a) -> list[str]:
-    c = [GEOCD, "--progress", "json", "--json", "demdiff", str(dem_dir / "dem_a.tif"), str(dem_dir / "dem_b.tif"),
+    c = [GEOCD, "--progress", "json", "demdiff", str(dem_dir / "dem_a.tif"), str(dem_dir / "dem_b.tif"), "--json",
          "--out", str(out), "--tiled", "--tile-size", str(a.tile_size), "--no-plots"]
     if a.scheduler:
         c += ["--scheduler", a.scheduler]

@@ -25,23 +25,15 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def stable_false_alarms(run: Path, damage, grid, levels=(90.0, 95.0, 99.0), buffer_m: float = 0.0) -> dict:
-    """Flagged share of observed cells outside every changed building (optionally grown by ``buffer_m``)."""
+def stable_false_alarms(run: Path, damage, grid, buffer_m: float = 0.0) -> dict:
+    """Flagged share of observed cells outside every changed building (see geocd.change.dsm_buildings)."""
     import rasterio
-    from rasterio.features import rasterize
 
-    from geocd.change.dsm_buildings import CHANGED
+    from geocd.change.dsm_buildings import stable_false_alarms as sfa
 
     with rasterio.open(run / "sc_change.tif") as ds:
         conf = ds.read(4)
-    observed = np.isfinite(conf)
-    changed = damage[damage["class"].isin(CHANGED)]
-    geoms = [g.buffer(buffer_m) if buffer_m else g for g in changed.geometry]
-    inside = rasterize([(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform, fill=0,
-                       dtype="uint8").astype(bool) if geoms else np.zeros(grid.shape, bool)
-    stable = observed & ~inside
-    return {f"{c:g}": round(float((np.nan_to_num(conf[stable]) >= c).mean()), 5) for c in levels} | \
-        {"stable_cells": int(stable.sum()), "buffer_m": buffer_m}
+    return sfa(conf, np.isfinite(conf), damage, grid, buffer_m=buffer_m)
 
 
 def orthos(run: Path, manifest, grid, ground=None, sub: str = "orthos"):
@@ -111,7 +103,7 @@ def quicklook(pre: np.ndarray, post: np.ndarray, damage, grid, path: Path) -> No
     for a in ax:
         a.set_xlabel("m")
     fig.tight_layout()
-    fig.savefig(path, dpi=70)
+    fig.savefig(path, dpi=48)
     plt.close(fig)
 
 

@@ -167,12 +167,12 @@ def run_scene(name: str, path: Path, work: Path, key: str | None, do_key: bool) 
     out["seconds"]["self-consistency (learn + test)"] = round(time.perf_counter() - t, 1)
     sc_best = None
     for conf in res_sc.confidences:
-        s = scores(res_sc.changed_at(conf) != 0, truth)
+        s = scores(np.isin(res_sc.changed_at(conf), (1, -1)), truth)
         s["observed_fraction"] = round(float(res_sc.observed.mean()), 4)
         out["methods"][f"self-consistency test at {conf:g} %"] = s
         if sc_best is None or s["f1"] > sc_best[1]:
             sc_best = (conf, s["f1"])
-    keep["sc"] = res_sc.changed_at(99.0) != 0
+    keep["sc"] = np.isin(res_sc.changed_at(99.0), (1, -1))
     print(name, "mvs", out["methods"]["stereo DEM differencing (MVS then subtract, best threshold)"]["f1"],
           "sc99", out["methods"]["self-consistency test at 99 %"]["f1"], flush=True)
     return out, keep

@@ -116,9 +116,9 @@ def sample_pairs(request):
 
 
 def _truth(m, grid, key):
-    from geocd.io.raster import read_dem
+    from geocd.io.raster import read_on_grid
 
-    return read_dem(m.truth_path(key), grid=grid, resampling="nearest").height_m
+    return read_on_grid(m.truth_path(key), grid)
 
 
 def _scores(res, m, grid, level):

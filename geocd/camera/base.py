@@ -107,6 +107,16 @@ class Camera(ABC):
         """Ellipsoidal height range the model is valid for (None when unbounded)."""
         return None
 
+    def in_image(self, col: ArrayLike, row: ArrayLike) -> np.ndarray:
+        """Whether image points lie in the camera's valid image domain: finite (a point the
+        model cannot project is NaN) and, when the size is known, inside ``[0, width] × [0, height]``."""
+        col, row = _as_f64(col, row)
+        ok = np.isfinite(col) & np.isfinite(row)
+        if self.width is not None and self.height is not None:
+            with np.errstate(invalid="ignore"):
+                ok &= (col >= 0) & (row >= 0) & (col <= self.width) & (row <= self.height)
+        return ok
+
     def image_corners(self) -> np.ndarray:
         """(4, 2) corner coordinates (col, row) of the image, clockwise from upper-left."""
         if self.width is None or self.height is None:

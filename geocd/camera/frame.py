@@ -284,7 +284,7 @@ class FrameCamera(Camera):
         d = self.distortion
         params = np.concatenate([
             [fx, fy, pp[0], pp[1], d["k1"], d["k2"], d["k3"], d["p1"], d["p2"]],
-            self.position, rot.T.reshape(-1),
+            self.position, rot.T.reshape(-1), [K.max_radius2(d["k1"], d["k2"], d["k3"])],
         ]).astype(np.float64)
         s(self, "_params", np.ascontiguousarray(params))
 
@@ -358,6 +358,16 @@ class FrameCamera(Camera):
     @property
     def has_distortion(self) -> bool:
         return any(v != 0.0 for v in self.distortion.values())
+
+    @property
+    def max_field_angle_deg(self) -> float:
+        """Largest angle off the optical axis inside the distortion model's valid domain (degrees; 90 when unbounded).
+
+        Beyond it the radial polynomial folds back (see :mod:`geocd.camera._frame_kernels`):
+        such points project to NaN instead of landing, wrongly, inside the image.
+        """
+        r2 = float(self._params[21])
+        return math.degrees(math.atan(math.sqrt(r2))) if math.isfinite(r2) else 90.0
 
     def position_lonlat_h(self) -> tuple[float, float, float]:
         """Projection centre as WGS84 lon, lat (degrees) and ellipsoidal height (m)."""

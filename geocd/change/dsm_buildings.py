@@ -294,13 +294,17 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     ha = np.asarray(z_a, float) - dtm
     hb = np.asarray(z_b, float) - dtm
     out_rows = []
+    slices = ndi.find_objects(labels, max_label=n)
+    empty = (slice(0, 0), slice(0, 0))
     for i in range(n):
-        inside = labels == (i + 1)
+        sl = slices[i] or empty
+        inside = labels[sl] == (i + 1)
         b = base.iloc[i]
-        obs = inside & observed
-        h_before = float(np.nanmedian(ha[inside])) if np.isfinite(ha[inside]).any() else np.nan
-        h_after = float(np.nanmedian(hb[inside])) if np.isfinite(hb[inside]).any() else np.nan
-        dz = result.dz_m[obs]
+        obs = inside & observed[sl]
+        hai, hbi = ha[sl][inside], hb[sl][inside]
+        h_before = float(np.nanmedian(hai)) if np.isfinite(hai).any() else np.nan
+        h_after = float(np.nanmedian(hbi)) if np.isfinite(hbi).any() else np.nan
+        dz = result.dz_m[sl][obs]
         n_in = int(inside.sum())
         # volume: observed cells' Δz, the unobserved cells of the footprint at the observed mean
         mean_dz = float(np.mean(dz)) if dz.size else np.nan
@@ -309,7 +313,7 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
         if sig is not None and dz.size:
             rr, cc = np.nonzero(obs)
             blocks = (rr // corr) * (grid.shape[1] // corr + 1) + cc // corr
-            s_block = np.bincount(blocks, weights=sig[obs].astype(float))
+            s_block = np.bincount(blocks, weights=sig[sl][obs].astype(float))
             # scale to the whole footprint like the volume
             vsig = float(math.sqrt(float(np.sum(s_block ** 2))) * cell * n_in / max(dz.size, 1))
         cls = str(b["class"])
@@ -349,6 +353,25 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     for c in gdf.columns:
         if c not in out.columns and c != gdf.geometry.name:
             out[f"src_{c}"] = gdf[c].values
+    return out
+
+
+def stable_false_alarms(confidence: np.ndarray, observed: np.ndarray, damage, grid, *, buffer_m: float = 0.0,
+                        levels=(90.0, 95.0, 99.0)) -> dict:
+    """Flagged share of the observed cells outside every changed building (grown by ``buffer_m``).
+
+    ``confidence``: per-cell confidence (percent) of a change test; ``damage``: its building layer.
+    Returns {level (str): share, "stable_cells": n, "buffer_m": b}.
+    """
+    from rasterio.features import rasterize
+
+    changed = damage[damage["class"].isin(CHANGED)]
+    geoms = [g.buffer(buffer_m) if buffer_m else g for g in changed.geometry]
+    inside = (rasterize([(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform, fill=0,
+                        dtype="uint8").astype(bool) if geoms else np.zeros(grid.shape, bool))
+    stable = observed & ~inside
+    out: dict = {f"{c:g}": round(float((np.nan_to_num(confidence[stable]) >= c).mean()), 5) for c in levels}
+    out.update(stable_cells=int(stable.sum()), buffer_m=buffer_m)
     return out
 
 

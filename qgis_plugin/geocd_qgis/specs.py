@@ -475,6 +475,13 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
             Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",
                   advanced=True),
             Param("NO_PLOTS", "bool", "Do not draw PNG plots", cli="--no-plots", default=False, advanced=True),
+            Param("TILED", "bool", "Process tile by tile (whole scenes: bounded memory, resumable, on Dask)",
+                  cli="--tiled", default=False, advanced=True,
+                  help="Automatic above 16 million cells. The products are the same as an untiled run's."),
+            Param("SCHEDULER", "string", "Tiled runs: scheduler (sync, threads, processes, or a Dask address)",
+                  cli="--scheduler", optional=True, advanced=True,
+                  help="Default: a local Dask cluster with one worker per core; tcp://host:8786 for a running "
+                       "dask.distributed scheduler."),
         ),
         outputs=(
             Output("dh", "DH", "raster", "Height change dh = B − A (m)"),

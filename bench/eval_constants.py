@@ -1,0 +1,96 @@
+"""Sensitivity of the change test's constants on several towns (docs/towns.md, "Constants").
+
+For each scene (``NAME=SCENE:RUN_DIR`` as in ``bench/eval_towns.py``), with everything else at ``geocd run``'s
+defaults:
+
+* the region test's cluster-forming level (90 / 95 / 99 %): cells F1 and buildings F1 at 99 %;
+* the minimum mapping unit of the per-cell test: 4 cells (the former constant) against one matching window;
+* the building rule ``min_changed``: the largest changed fraction among truly unchanged footprints and the
+  smallest among truly changed ones (any ``min_changed`` between them gives the same classes).
+
+Usage::
+
+    .venv/bin/python bench/eval_constants.py --scene sample_aoi=sample_aoi:/tmp/run0 ... --json docs/towns_constants.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
+
+
+def run_scene(scene: Path, run_dir: Path | None) -> dict:
+    from shapely.geometry import box
+
+    from eval_towns import _pairs, _round
+    from geocd.change.buildings import classify_buildings, score_buildings
+    from geocd.change.metrics import binary_scores
+    from geocd.consistency import ChangeParams, change_test, learn_self_consistency
+    from geocd.io.raster import read_dem
+    from geocd.io.vector import read_footprints
+    from geocd.pipeline import RunConfig, _median_surface
+
+    m, by = _pairs(scene, run_dir)
+    A, B = by["A"], by["B"]
+    grid = A[0].grid
+    truth = read_dem(m.truth_path("change_mask"), grid=grid, resampling="nearest").height_m > 0.5
+    fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
+    fall = read_footprints(m.truth_path("footprints_all"), crs=grid.crs)
+    status = dict(zip(fall["building_id"], fall["status"]))
+    za, zb = _median_surface(A), _median_surface(B)
+    cfg = RunConfig()
+
+    def figures(res, level=99.0):
+        mk = res.changed_at(level)
+        cells = _round(binary_scores((mk == 1) | (mk == -1), truth, res.observed))
+        b = classify_buildings(fa, mk, res.dz_m, grid, z_a=za, z_b=zb, params=cfg.buildings, id_field="building_id")
+        sb = _round(score_buildings(b, fall, aoi=box(*grid.bounds)))
+        fp = b[(b["source"] == "footprint") & (b["class"] != "unobserved")]
+        changed = np.array([status.get(i) not in (None, "unchanged") for i in fp["building_id"]])
+        fr = fp["frac_changed"].to_numpy(float)
+        margins = {"max_frac_unchanged": round(float(fr[~changed].max()), 4) if (~changed).any() else None,
+                   "min_frac_changed": round(float(fr[changed].min()), 4) if changed.any() else None}
+        return {"cells_f1": cells["f1"], "cells_false_alarms": cells["false_alarm_rate"], "buildings_f1": sb["f1"],
+                "buildings": [sb["tp"], sb["fp"], sb["fn"]], **margins}
+
+    out: dict = {"cluster_confidence": {}, "per_cell_mapping_unit": {}}
+    for cc in (90.0, 95.0, 99.0):
+        model = learn_self_consistency([A, B], dataclasses.replace(cfg.consistency, cluster_confidence=cc))
+        out["cluster_confidence"][f"{cc:g}"] = figures(change_test(A, B, model, cfg.change))
+        if cc == cfg.consistency.cluster_confidence:
+            base = model
+    for mmu in (4, None):
+        res = change_test(A, B, base, ChangeParams(significance="cell", min_region_cells=mmu))
+        out["per_cell_mapping_unit"][str(res.min_region_cells)] = figures(res)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", action="append", required=True, help="NAME=SCENE[:RUN_DIR]")
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    warnings.simplefilter("ignore", RuntimeWarning)
+    res = {}
+    for spec in args.scene:
+        name, rest = spec.split("=", 1)
+        scene, _, run = rest.partition(":")
+        scene_p = (REPO / scene) if not Path(scene).is_absolute() else Path(scene)
+        res[name] = run_scene(scene_p, Path(run) if run else None)
+        print(name, json.dumps(res[name]), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"command": " ".join(sys.argv), "scenes": res}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,204 @@
+"""The figures of docs/towns.md: every change method on sample_aoi and generated towns, nothing changed between them.
+
+For each scene (a ``geocd synth`` folder with truth):
+
+* self-consistency (``geocd run``'s defaults): cells precision / recall / F1 / false alarms at 90, 95 and 99 %
+  against ``truth/change_mask.tif`` (region test, the default, and the SRI per-cell test), buildings F1 at the
+  reported 99 % with the **epoch-A footprints only** (new buildings must be detected; truth: every building's
+  status, :func:`geocd.change.buildings.score_buildings`);
+* probchange (robust model, object space, satellite views; ``ProbChangeParams.robust()``): pixel F1;
+* the octree volume model against its two 2-D baselines, per-pixel AUC pooled over the epoch-B satellite images,
+  read from the ``volume_results.json`` that ``python -m geocd.volume.evaluate SCENE --out DIR`` writes.
+
+Usage::
+
+    .venv/bin/python bench/eval_towns.py \\
+        --scene sample_aoi=sample_aoi:/tmp/run0 --scene town_seed1=/tmp/town_s1:/tmp/run_s1 ... \\
+        [--volume sample_aoi=/tmp/vol_s0/volume_results.json ...] [--no-probchange] \\
+        --json docs/towns.json --markdown docs/towns_table.md
+
+``NAME=SCENE[:RUN_DIR]``: ``RUN_DIR`` reuses the pair-DEMs of a finished ``geocd run SCENE --out RUN_DIR``
+(``RUN_DIR/stereo``); without it the stereo is run here (into a temporary folder).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+LEVELS = (90.0, 95.0, 99.0)
+
+
+def _pairs(scene: Path, run_dir: Path | None):
+    from geocd.io.manifest import load_manifest
+    from geocd.pipeline import RunConfig
+    from geocd.stereo import read_pair_dem
+    from geocd.stereo.pipeline import run_stereo
+
+    m = load_manifest(scene)
+    if run_dir is None or not (run_dir / "stereo").is_dir():
+        run_dir = run_dir or Path(tempfile.mkdtemp(prefix="geocd_towns_"))
+        cfg = RunConfig()
+        run_stereo(m, epochs=[e.name for e in m.epochs], out_dir=run_dir, params=cfg.stereo, pairs=cfg.pairs)
+    by: dict[str, list] = {}
+    for f in sorted((run_dir / "stereo").rglob("*.tif")):
+        p = read_pair_dem(f)
+        by.setdefault(p.epoch, []).append(p)
+    return m, by
+
+
+def _round(d: dict) -> dict:
+    return {k: (round(float(v), 4) if isinstance(v, (float, np.floating)) else v) for k, v in d.items()}
+
+
+def self_consistency(scene: Path, run_dir: Path | None) -> dict:
+    from shapely.geometry import box
+
+    from geocd.change.buildings import classify_buildings, score_buildings
+    from geocd.change.metrics import binary_scores
+    from geocd.consistency import ChangeParams, change_test, learn_self_consistency
+    from geocd.io.raster import read_dem
+    from geocd.io.vector import read_footprints
+    from geocd.pipeline import RunConfig, _median_surface
+
+    m, by = _pairs(scene, run_dir)
+    A, B = by["A"], by["B"]
+    grid = A[0].grid
+    truth = read_dem(m.truth_path("change_mask"), grid=grid, resampling="nearest").height_m > 0.5
+    cfg = RunConfig()
+    t = time.perf_counter()
+    model = learn_self_consistency([A, B], cfg.consistency)
+    out: dict = {"pairs": {k: [p.name for p in v] for k, v in by.items()},
+                 "mapping_unit_cells": model.region_null.get("min_region_cells")}
+    fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
+    fall = read_footprints(m.truth_path("footprints_all"), crs=grid.crs)
+    za, zb = _median_surface(A), _median_surface(B)
+    for mode in ("region", "cell"):
+        res = change_test(A, B, model, dataclasses.replace(cfg.change, significance=mode))
+        cells = {}
+        for lev in LEVELS:
+            mk = res.changed_at(lev)
+            cells[f"{lev:g}"] = _round(binary_scores((mk == 1) | (mk == -1), truth, res.observed))
+        mk = res.changed_at(cfg.region_confidence)
+        b = classify_buildings(fa, mk, res.dz_m, grid, z_a=za, z_b=zb, confidence=res.confidence,
+                               params=cfg.buildings, id_field="building_id", confidence_level=cfg.region_confidence)
+        out[mode] = {"cells": cells, "buildings": _round(score_buildings(b, fall, aoi=box(*grid.bounds))),
+                     "min_region_cells": res.min_region_cells}
+    out["seconds"] = round(time.perf_counter() - t, 1)
+    return out
+
+
+def probchange(scene: Path) -> dict:
+    from geocd.change.metrics import binary_scores
+    from geocd.io.raster import read_band
+    from geocd.io.manifest import load_manifest
+    from geocd.probchange import ProbChangeParams, run_probchange
+
+    m = load_manifest(scene)
+    sats = set(m.truth.get("satellite_images") or [])
+    eps = tuple(dataclasses.replace(e, images=tuple(i for i in e.images if not sats or i.name in sats))
+                for e in m.epochs)
+    m = dataclasses.replace(m, epochs=eps)
+    truth, _ = read_band(scene / "truth" / "change_mask.tif")
+    t = time.perf_counter()
+    r = run_probchange(m, variant="objectspace", params=ProbChangeParams.robust(), write=False)["result"]
+    s = _round(binary_scores(r.changed(), truth > 0))
+    s["seconds"] = round(time.perf_counter() - t, 1)
+    return s
+
+
+def volume(path: Path) -> dict:
+    res = json.loads(path.read_text())
+    pooled = res["change_pooled"]
+    return {k: {"auc": round(v["auc"], 4), "auc_agg9": round(v.get("auc_agg9", float("nan")), 4)}
+            for k, v in pooled.items()}
+
+
+def markdown(results: dict, tuned: dict) -> str:
+    names = list(results)
+    lines = ["| figure | " + " | ".join(f"{n}{' *' if tuned.get(n) else ''}" for n in names) + " |",
+             "|---|" + "---|" * len(names)]
+
+    def row(label, fn):
+        vals = []
+        for n in names:
+            try:
+                vals.append(fn(results[n]))
+            except (KeyError, TypeError):
+                vals.append("–")
+        lines.append(f"| {label} | " + " | ".join(vals) + " |")
+
+    row("buildings F1 at 99 %, epoch-A footprints (tp/fp/fn)",
+        lambda r: "{f1:.3f} ({tp}/{fp}/{fn})".format(**r["sc"]["region"]["buildings"]))
+    row("same, SRI per-cell test",
+        lambda r: "{f1:.3f} ({tp}/{fp}/{fn})".format(**r["sc"]["cell"]["buildings"]))
+    for lev in ("90", "95", "99"):
+        row(f"cells {lev} %: P / R / F1 / false alarms",
+            lambda r, lev=lev: "{precision:.3f} / {recall:.3f} / **{f1:.3f}** / {fa:.2f} %".format(
+                fa=100 * r["sc"]["region"]["cells"][lev]["false_alarm_rate"], **r["sc"]["region"]["cells"][lev]))
+    for lev in ("90", "95", "99"):
+        row(f"cells {lev} %, SRI per-cell test",
+            lambda r, lev=lev: "{precision:.3f} / {recall:.3f} / {f1:.3f} / {fa:.2f} %".format(
+                fa=100 * r["sc"]["cell"]["cells"][lev]["false_alarm_rate"], **r["sc"]["cell"]["cells"][lev]))
+    row("probchange F1 (robust, object space; P / R)",
+        lambda r: "{f1:.3f} ({precision:.2f} / {recall:.2f})".format(**r["probchange"]))
+    for key, label in (("3-D octree (relit)", "octree per-pixel AUC (eq. 27, relit)"),
+                       ("3-D octree 3×3 (relit)", "octree 3×3 per-pixel AUC"),
+                       ("2-D Carlotto joint histogram", "Carlotto per-pixel AUC"),
+                       ("2-D DEM warp + difference", "DEM warp + difference per-pixel AUC")):
+        row(label, lambda r, key=key: f"{r['volume'][key]['auc']:.3f}")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", action="append", required=True, help="NAME=SCENE[:RUN_DIR]")
+    ap.add_argument("--volume", action="append", default=[], help="NAME=volume_results.json")
+    ap.add_argument("--tuned", action="append", default=[], help="NAME of a scene used to choose parameters")
+    ap.add_argument("--no-probchange", action="store_true")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--markdown", default=None)
+    args = ap.parse_args()
+    warnings.simplefilter("ignore", RuntimeWarning)
+    prev = json.loads(Path(args.json).read_text()) if args.json and Path(args.json).is_file() else {}
+    results: dict = prev.get("scenes", {})
+    vols = dict(v.split("=", 1) for v in args.volume)
+    for spec in args.scene:
+        name, rest = spec.split("=", 1)
+        scene, _, run = rest.partition(":")
+        scene_p = (REPO / scene) if not Path(scene).is_absolute() else Path(scene)
+        r = results.setdefault(name, {})
+        r["scene"] = scene
+        print(f"== {name}", flush=True)
+        r["sc"] = self_consistency(scene_p, Path(run) if run else None)
+        print(json.dumps({k: r["sc"][k]["cells"]["99"] for k in ("region", "cell")}), flush=True)
+        if not args.no_probchange:
+            r["probchange"] = probchange(scene_p)
+            print("probchange", r["probchange"], flush=True)
+        if name in vols:
+            r["volume"] = volume(Path(vols[name]))
+    for name, p in vols.items():
+        if name in results:
+            results[name]["volume"] = volume(Path(p))
+    tuned = {n: (n in args.tuned) for n in results}
+    doc = {"command": " ".join(sys.argv), "scenes": results, "tuned_on": [n for n, t in tuned.items() if t]}
+    if args.json:
+        Path(args.json).write_text(json.dumps(doc, indent=1, default=float))
+    md = markdown(results, tuned)
+    print(md)
+    if args.markdown:
+        Path(args.markdown).write_text(md)
+
+
+if __name__ == "__main__":
+    main()
