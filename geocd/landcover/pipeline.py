@@ -65,12 +65,15 @@ def load_scene(*, manifest=None, dem: str | None = None, dem_datum: str | None =
     from ..io.vector import read_footprints
 
     m = None
+    footprints_layer = None
     if manifest is not None:
         m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
         if dem is None and m.dem is not None:
             dem, dem_datum = str(m.dem.path), dem_datum or m.dem.vertical_datum
         if footprints is None and m.footprints is not None:
-            footprints = str(m.footprints)
+            fp_spec = m.footprints  # a path, or a spec with .path and .layer
+            footprints = str(getattr(fp_spec, "path", fp_spec))
+            footprints_layer = getattr(fp_spec, "layer", None)
         if m.aoi is not None:
             crs = crs or m.aoi.crs
             bounds = bounds or m.aoi.bounds
@@ -88,7 +91,7 @@ def load_scene(*, manifest=None, dem: str | None = None, dem_datum: str | None =
         posting_m = posting_m or g0.posting_m
     grid = AOIGrid.from_bounds(*bounds, posting_m, as_crs(crs))
     d = read_dem(dem, grid=grid, vertical_datum=dem_datum).to_ellipsoidal().height_m.astype(np.float64)
-    fp = read_footprints(footprints, crs=grid.crs) if footprints else None
+    fp = read_footprints(footprints, crs=grid.crs, layer=footprints_layer) if footprints else None
     surface, occ = building_surface(d, grid, fp, height_field)
     has_dsm = False
     if dsm is not None:
