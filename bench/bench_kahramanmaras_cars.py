@@ -8,7 +8,7 @@ describes); nothing of theirs is imported here. Two stages:
            wall time and the peak memory of the whole process tree (RSS summed, sampled every 0.2 s).
 ``compare`` puts CARS's DSMs on geocd's AOI grid and compares them with geocd's pair-DEMs (median |dz|
            after the median offset, NMAD, completeness), applies picanteo's rule (DHM_post − DHM_pre ≤ −4 m,
-           CARS ambiguity confidence ≥ 0.5 in both epochs, regions ≥ 12 m²; no NDVI filter: these are
+           CARS confidence from ambiguity (1 − ambiguity) ≥ 0.5 in both epochs, regions ≥ 12 m²; no NDVI filter: these are
            panchromatic images) and scores both change maps on the same building objects.
 
 Usage::
@@ -127,6 +127,8 @@ def stage_cars(work: Path) -> dict:
             r["dtm"] = str(dtm) if dtm.exists() else None
         res[ep] = r
         print(ep, json.dumps(r), flush=True)
+        with open(work / "cars_stdout.log", "a") as f:
+            f.write(f"{ep} {json.dumps(r)}\n")
     (work / "cars_stage.json").write_text(json.dumps(res, indent=1))
     return res
 
@@ -166,7 +168,17 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
     from geocd.geodesy import AOIGrid
     from geocd.stereo import read_pair_dem
 
-    cars = json.loads((work / "cars_stage.json").read_text())
+    if (work / "cars_stage.json").is_file():
+        cars = json.loads((work / "cars_stage.json").read_text())
+    else:   # the cars stage still running: the epochs it finished (its stdout lines "epoch {json}")
+        cars = {}
+        log = work / "cars_stdout.log"
+        for line in (log.read_text().splitlines() if log.is_file() else []):
+            ep, _, js = line.partition(" ")
+            if ep in EPOCHS and js.startswith("{"):
+                cars[ep] = json.loads(js)
+        for ep in EPOCHS:
+            cars.setdefault(ep, {})
     summary = json.loads((run_dir / "run_summary.json").read_text())
     out: dict = {"geocd_run": {k: summary.get(k) for k in ("orientation", "building_damage", "changed_fraction")}}
     geocd_dsm, cars_dsm = {}, {}
@@ -194,8 +206,10 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
         amb_ok = np.ones(grid.shape, bool)
         for ep in EPOCHS:
             if cars[ep].get("ambiguity"):
+                # CARS 1.3 writes the ambiguity (median 0.28 here); picanteo's filter reads CARS's
+                # "confidence_from_ambiguity", its complement 1 − ambiguity, and keeps confidence ≥ 0.5
                 amb = _to_grid(cars[ep]["ambiguity"], grid, "nearest")
-                amb_ok &= np.nan_to_num(amb, nan=0.0) >= 0.5
+                amb_ok &= (1.0 - np.nan_to_num(amb, nan=1.0)) >= 0.5
         flag &= amb_ok
         lab, n = ndi.label(flag)
         sizes = np.bincount(lab.ravel()) * grid.cell_area_m2

@@ -89,6 +89,34 @@ def probchange_figures(pc_dir: Path, damage_gpkg: Path, layer: str = "building_d
             "geocd_unchanged_with_15pct_flagged": int(np.sum((frac >= 0.15) & (dmg["class"] == "unchanged").to_numpy()))}
 
 
+def volume_figures(prob_ortho: Path, damage_gpkg: Path, layer: str = "building_damage") -> dict:
+    """Octree-model change probability (orthorectified) against geocd's building classes on the same cells."""
+    import geopandas as gpd
+    import rasterio
+    from rasterio.features import rasterize
+
+    from geocd.change.metrics import roc_curve
+
+    with rasterio.open(prob_ortho) as ds:
+        p = ds.read(1).astype(float)
+        tr, shape = ds.transform, (ds.height, ds.width)
+    dmg = gpd.read_file(damage_gpkg, layer=layer).to_crs(ds.crs)
+    cls_code = {"collapsed": 1, "partly collapsed": 2, "unchanged": 3}
+    lab = rasterize([(g, cls_code[c]) for g, c in zip(dmg.geometry, dmg["class"]) if c in cls_code],
+                    out_shape=shape, transform=tr, fill=0, dtype="uint8")
+    ok = np.isfinite(p)
+    out = {"known_fraction": round(float(ok.mean()), 4), "mean_p_known": round(float(np.mean(p[ok])), 3)}
+    for name, code in cls_code.items():
+        sel = ok & (lab == code)
+        out[f"mean_p_{name}"] = round(float(np.mean(p[sel])), 3) if sel.any() else None
+        out[f"cells_{name}"] = int(sel.sum())
+    pos, neg = ok & (lab == 1), ok & (lab == 3)
+    if pos.any() and neg.any():
+        y = np.concatenate([np.ones(pos.sum()), np.zeros(neg.sum())])
+        out["auc_collapsed_vs_unchanged_cells"] = round(roc_curve(np.concatenate([p[pos], p[neg]]), y)[3], 3)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", default="/tmp/kahra")
@@ -96,8 +124,12 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None)
     ap.add_argument("--modes", default="region,cell")
     ap.add_argument("--probchange", default=None, help="output folder of geocd probchange on the same AOI")
+    ap.add_argument("--volume", default=None, help="orthorectified change probability of geocd volume detect")
     args = ap.parse_args(argv)
     results = {}
+    if args.volume:
+        results["volume"] = volume_figures(Path(args.volume), Path(args.run) / "sc_changes.gpkg")
+        print(json.dumps(results["volume"], indent=1))
     if args.probchange:
         results["probchange"] = probchange_figures(Path(args.probchange), Path(args.run) / "sc_changes.gpkg")
         print(json.dumps(results["probchange"], indent=1))

@@ -103,7 +103,7 @@ def quicklook(pre: np.ndarray, post: np.ndarray, damage, grid, path: Path) -> No
     for a in ax:
         a.set_xlabel("m")
     fig.tight_layout()
-    fig.savefig(path, dpi=70)
+    fig.savefig(path, dpi=48)
     plt.close(fig)
 
 

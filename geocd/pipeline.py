@@ -237,6 +237,9 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
                 "image, or give a DEM standing for this epoch (epochs[].dem)")
     stereo_epochs = [e.name for e in m.epochs if len(e.images) >= 2]
     from .orientation import orient_manifest
+    from .stereo.pipeline import early_resource_check
+
+    early_resource_check(m, None, config.posting_m, out)  # a job too large for the machine stops before any step
 
     prog(0.0, "relative orientation")
     m, orientation = orient_manifest(m, out_dir=out, stereo_params=config.stereo,

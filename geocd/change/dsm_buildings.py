@@ -294,13 +294,17 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     ha = np.asarray(z_a, float) - dtm
     hb = np.asarray(z_b, float) - dtm
     out_rows = []
+    slices = ndi.find_objects(labels, max_label=n)
+    empty = (slice(0, 0), slice(0, 0))
     for i in range(n):
-        inside = labels == (i + 1)
+        sl = slices[i] or empty
+        inside = labels[sl] == (i + 1)
         b = base.iloc[i]
-        obs = inside & observed
-        h_before = float(np.nanmedian(ha[inside])) if np.isfinite(ha[inside]).any() else np.nan
-        h_after = float(np.nanmedian(hb[inside])) if np.isfinite(hb[inside]).any() else np.nan
-        dz = result.dz_m[obs]
+        obs = inside & observed[sl]
+        hai, hbi = ha[sl][inside], hb[sl][inside]
+        h_before = float(np.nanmedian(hai)) if np.isfinite(hai).any() else np.nan
+        h_after = float(np.nanmedian(hbi)) if np.isfinite(hbi).any() else np.nan
+        dz = result.dz_m[sl][obs]
         n_in = int(inside.sum())
         # volume: observed cells' Δz, the unobserved cells of the footprint at the observed mean
         mean_dz = float(np.mean(dz)) if dz.size else np.nan
@@ -309,7 +313,7 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
         if sig is not None and dz.size:
             rr, cc = np.nonzero(obs)
             blocks = (rr // corr) * (grid.shape[1] // corr + 1) + cc // corr
-            s_block = np.bincount(blocks, weights=sig[obs].astype(float))
+            s_block = np.bincount(blocks, weights=sig[sl][obs].astype(float))
             # scale to the whole footprint like the volume
             vsig = float(math.sqrt(float(np.sum(s_block ** 2))) * cell * n_in / max(dz.size, 1))
         cls = str(b["class"])

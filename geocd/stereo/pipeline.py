@@ -156,6 +156,17 @@ def check_stereo_resources(grid: AOIGrid, n_pairs: int, out: os.PathLike | str |
                     fix=f"use a coarser posting{fit}, a smaller AOI (aoi.bounds), or fewer images")
 
 
+def early_resource_check(m, grid: AOIGrid | None, posting_m: float | None, out) -> None:
+    """Before any step (orientation included): a grid given or fixed by the manifest's AOI that cannot hold even
+    one pair-DEM is refused at once (the exact check, with the pair count, follows once the pairs are known)."""
+    if grid is None and m.aoi is not None and m.aoi.bounds is not None and m.aoi.crs:
+        p = posting_m or m.aoi.posting_m
+        if p:
+            grid = AOIGrid.from_bounds(*m.aoi.bounds, float(p), as_crs(m.aoi.crs))
+    if grid is not None:
+        check_stereo_resources(grid, 1, out)
+
+
 def _check_aoi_sees_images(bounds, crs, images: Sequence[EpochImage], dem_median: float | None) -> None:
     """An AOI that no image sees is the AOI's fault: say how far it is from the images (before any DEM is read)."""
     from shapely.geometry import box
@@ -325,6 +336,7 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
         if len(e.images) < 2:
             raise ConfigError(f"epoch {e.name!r} has {len(e.images)} image(s); stereo needs at least two")
     out = Path(out_dir) if out_dir is not None else m.output_dir()
+    early_resource_check(m, grid, posting_m, out)
     if orient:
         from ..orientation import orient_manifest
 

@@ -64,12 +64,15 @@ def test_vegetation_on_sample_aoi(sample_aoi):
     from pathlib import Path
 
     r = run(Path(sample_aoi))
-    # measured 2026-11 (see the module docstring); tolerances well below a real regression
-    assert r["A_air2"]["observed"] > 0.5
-    assert r["A_air2"]["average_precision"] > 0.98
-    assert r["A_sat2"]["average_precision"] > 0.96
-    assert r["gp_all"]["average_precision"] > r["gp_xy"]["average_precision"] + 0.05
-    assert r["gp_all"]["average_precision"] > 0.93
+    # measured: A_air2 observes 60 % of the cells, AP 0.997; A_sat2 AP 0.987; on the unobserved 60 %:
+    # GP xy 0.738, GP all inputs 0.928 (the coarse map alone 0.986 there: with one contiguous detailed block the
+    # DEM extrapolates badly, see docs/landcover.md)
+    assert 0.55 < r["A_air2"]["observed"] < 0.65
+    assert r["A_air2"]["average_precision"] > 0.99
+    assert r["A_sat2"]["average_precision"] > 0.975
+    assert r["gp_xy"]["average_precision"] < 0.80
+    assert r["gp_all"]["average_precision"] > 0.90
+    assert r["gp_all"]["average_precision"] > r["gp_xy"]["average_precision"] + 0.15
 
 
 if __name__ == "__main__":
