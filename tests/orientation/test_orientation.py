@@ -139,13 +139,14 @@ def test_exact_cameras_and_refusal_through_the_manifest(tmp_path, sample_aoi):
     import dataclasses
     import warnings
 
-    m = dataclasses.replace(load_manifest(sample_aoi / "scene.yaml"), orientation={"enabled": True})
+    m0 = load_manifest(sample_aoi / "scene.yaml")
+    m = dataclasses.replace(m0, extras={**m0.extras, "orientation": {"enabled": True}})
     with warnings.catch_warnings():
         warnings.simplefilter("error", OrientationWarning)
         m2, rep = orient_manifest(m, out_dir=tmp_path / "a")
     assert m2 is m and rep["status"] == "not needed" and rep["largest_correction_px"] < 0.2
     assert rep["after"]["cross_epoch"]["median_px"] < 0.25
-    m = dataclasses.replace(m, orientation={"enabled": True, "min_points": 100000})
+    m = dataclasses.replace(m0, extras={**m0.extras, "orientation": {"enabled": True, "min_points": 100000}})
     with pytest.warns(OrientationWarning, match="not applied"):
         m2, rep = orient_manifest(m, out_dir=tmp_path / "b")
     assert m2 is m and rep["applied"] is False and rep["status"] == "insufficient" and "fewer than 100000" in rep["reason"]
