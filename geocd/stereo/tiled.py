@@ -13,10 +13,11 @@ what a cell's result depends on beyond its own column:
   height and their ground sampling).
 
 Each tile keeps its core; the writer assembles the pair-DEM COG (the bands and tags of
-:func:`~geocd.stereo.products.write_pair_dem`). What differs from an untiled match, by design:
-the pointing correction and the noise level are estimated on each tile's window (a whole-scene
-pair can drift along its length, so this follows it), and the coarse levels' cell blocks start at
-the tile's corner. docs/tiling.md measures the difference on sample_aoi.
+:func:`~geocd.stereo.products.write_pair_dem`). The pair's relative pointing correction and image
+noise level are whole-scene choices: they are estimated once per pair on a central window (at most
+one tile) and given to every tile. What differs from an untiled match: the image normalisation
+blocks and the coarse levels' cell blocks start at the tile's corner, and a pair whose pointing
+drifts along a long scene gets one correction. docs/tiling.md measures the difference on sample_aoi.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ class _PairJob:
     b: Any
     params: StereoParams
     dem_datum: str | None
+    pointing_px: tuple[float, float] = (0.0, 0.0)   # the pair's relative pointing correction (image b)
 
     def cache_key(self) -> dict:
         import os
@@ -55,7 +57,7 @@ class _PairJob:
 
         return {"epoch": self.epoch, "a": [self.a.name, ident(self.a.path), repr(self.a.camera)],
                 "b": [self.b.name, ident(self.b.path), repr(self.b.camera)], "params": self.params.to_dict(),
-                "datum": self.dem_datum}
+                "datum": self.dem_datum, "pointing": list(self.pointing_px)}
 
 
 def stereo_margin_cells(grid: AOIGrid, cams: Sequence, lo_m: float, hi_m: float, params: StereoParams) -> int:
@@ -86,14 +88,26 @@ def stereo_margin_cells(grid: AOIGrid, cams: Sequence, lo_m: float, hi_m: float,
 
 def _t_pair(arrays, ctx):
     """Match one pair on a tile's window; keep the core."""
+    J: _PairJob = ctx.params
+    pd = _match_window(J, ctx.read_grid, arrays.get("dem"))
+    f32 = np.float32
+    arr = {"z": pd.z_m.astype(f32), "score": pd.score.astype(f32), "g": pd.g_px_per_m.astype(f32),
+           "valid": np.asarray(pd.valid, f32), "ncc": pd.ncc.astype(f32), "ssd": pd.ssd.astype(f32),
+           "flags": np.asarray(pd.flags, f32)}
+    core = ctx.core
+    return TileOutput(arrays=arr, small={"meta": pd.meta, "valid": int(np.count_nonzero(pd.valid[core])),
+                                         "cells": int(pd.valid[core].size)})
+
+
+def _match_window(J: "_PairJob", sub: AOIGrid, dem_window: np.ndarray | None):
+    """match_pair on a window of the AOI grid, with the pair's pointing correction given (not re-estimated)."""
     from ..io.raster import DEM
     from .match import height_bounds, match_pair
     from .pipeline import read_chip
 
-    J: _PairJob = ctx.params
     p = J.params
-    sub = ctx.read_grid
     dem = None
+    arrays = {} if dem_window is None else {"dem": dem_window}
     if "dem" in arrays:
         dem = DEM(arrays["dem"], sub, J.dem_datum).to_ellipsoidal().height_m.astype(np.float32)
         if not np.isfinite(dem).any():
@@ -103,15 +117,32 @@ def _t_pair(arrays, ctx):
     lo_m, hi_m = float(np.min(lo)), float(np.max(hi))
     chips = [read_chip(im.path, im.camera, sub, lo_m, hi_m, name=im.name, margin_px=16 + 2 * p.window,
                        block_px=p.norm_block_px) for im in (J.a, J.b)]
-    pd = match_pair(chips[0], chips[1], cams[0], cams[1], sub, dem=dem, params=p, epoch=J.epoch,
-                    name=f"{J.a.name}__{J.b.name}")
-    f32 = np.float32
-    arr = {"z": pd.z_m.astype(f32), "score": pd.score.astype(f32), "g": pd.g_px_per_m.astype(f32),
-           "valid": np.asarray(pd.valid, f32), "ncc": pd.ncc.astype(f32), "ssd": pd.ssd.astype(f32),
-           "flags": np.asarray(pd.flags, f32)}
-    core = ctx.core
-    return TileOutput(arrays=arr, small={"meta": pd.meta, "valid": int(np.count_nonzero(pd.valid[core])),
-                                         "cells": int(pd.valid[core].size)})
+    if J.pointing_px != (0.0, 0.0):
+        chips[1] = chips[1].shifted(*J.pointing_px)
+    return match_pair(chips[0], chips[1], cams[0], cams[1], sub, dem=dem, params=p, epoch=J.epoch,
+                      name=f"{J.a.name}__{J.b.name}")
+
+
+def _pair_job(epoch: str, a, b, params: StereoParams, datum, grid: AOIGrid, tiling, dem_src) -> _PairJob:
+    """The pair's whole-scene choices, made once on a central window (at most a tile) and given to every
+    tile: the relative pointing correction and the image noise level. Tiles estimate neither (a small
+    window's pointing estimate is noisy: on sample_aoi 256-cell tiles applied 0.34 px where the whole
+    scene's estimate is below the 0.25 px floor)."""
+    import dataclasses
+
+    side = min(tiling.tile_size, grid.height, grid.width)
+    r0 = (grid.height - min(side, grid.height)) // 2
+    c0 = (grid.width - min(side, grid.width)) // 2
+    h, w = min(side, grid.height), min(side, grid.width)
+    sub = grid.subgrid(r0, c0, h, w)
+    dem_w = dem_src.read(grid, (r0, c0, h, w)) if dem_src is not None else None
+    probe = _match_window(_PairJob(epoch, a, b, params, datum), sub, dem_w)
+    pt = probe.meta.get("pointing") or {}
+    shift = tuple(float(v) for v in pt.get("total_shift_px", (0.0, 0.0))) if pt.get("applied") else (0.0, 0.0)
+    # the tiles match with that shift and that noise level, and estimate no pointing of their own
+    p = dataclasses.replace(params, noise_sigma=params.noise_sigma or float(probe.meta["noise_sigma"]),
+                            min_pointing_px=1e9)
+    return _PairJob(epoch, a, b, p, datum, shift)
 
 
 def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, params: StereoParams = StereoParams(),
@@ -170,16 +201,17 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
                 lo_m, hi_m = float(np.min(lo)), float(np.max(hi))
             ov = min(stereo_margin_cells(grid, [a.camera, b.camera], lo_m, hi_m, params), tiling.tile_size // 2)
             margins[key] = ov
-            job = _PairJob(e.name, a, b, params, datum)
+            job = _pair_job(e.name, a, b, params, datum, grid, tiling, inputs.get("dem"))
             tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), ov)
             r = run_tiled(_t_pair, tg, inputs, params=job, out=out, stage=f"stereo-{e.name}-{a.name}__{b.name}",
                           scheduler=eng, progress=sub_progress(prog, i / len(todo), (i + 1) / len(todo),
                                                                 f"pair {i + 1}/{len(todo)} "))
             smalls = [s for _, s in r.smalls()]
             meta = dict(smalls[0]["meta"]) if smalls else {}
-            meta["tiled"] = {"tile_size": tiling.tile_size, "margin_cells": ov, "tiles": len(smalls),
-                             "pointing_per_tile": [s["meta"].get("pointing", {}).get("total_shift_px")
-                                                   for s in smalls]}
+            meta["pointing"] = {"applied": job.pointing_px != (0.0, 0.0), "total_shift_px": list(job.pointing_px),
+                                "estimated_on": "central window"}
+            meta["noise_sigma"] = job.params.noise_sigma
+            meta["tiled"] = {"tile_size": tiling.tile_size, "margin_cells": ov, "tiles": len(smalls)}
             complete[key] = sum(s["valid"] for s in smalls) / max(sum(s["cells"] for s in smalls), 1)
             tags = {"geocd_product": "stereo_pair", "pair": f"{a.name}__{b.name}",
                     "cameras": json.dumps([a.name, b.name]), "epoch": e.name, "score_definition": SCORE_DEFINITION,
