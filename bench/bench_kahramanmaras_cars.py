@@ -8,7 +8,7 @@ describes); nothing of theirs is imported here. Two stages:
            wall time and the peak memory of the whole process tree (RSS summed, sampled every 0.2 s).
 ``compare`` puts CARS's DSMs on geocd's AOI grid and compares them with geocd's pair-DEMs (median |dz|
            after the median offset, NMAD, completeness), applies picanteo's rule (DHM_post − DHM_pre ≤ −4 m,
-           CARS ambiguity confidence ≥ 0.5 in both epochs, regions ≥ 12 m²; no NDVI filter: these are
+           CARS confidence from ambiguity (1 − ambiguity) ≥ 0.5 in both epochs, regions ≥ 12 m²; no NDVI filter: these are
            panchromatic images) and scores both change maps on the same building objects.
 
 Usage::
@@ -206,8 +206,10 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
         amb_ok = np.ones(grid.shape, bool)
         for ep in EPOCHS:
             if cars[ep].get("ambiguity"):
+                # CARS 1.3 writes the ambiguity (median 0.28 here); picanteo's filter reads CARS's
+                # "confidence_from_ambiguity", its complement 1 − ambiguity, and keeps confidence ≥ 0.5
                 amb = _to_grid(cars[ep]["ambiguity"], grid, "nearest")
-                amb_ok &= np.nan_to_num(amb, nan=0.0) >= 0.5
+                amb_ok &= (1.0 - np.nan_to_num(amb, nan=1.0)) >= 0.5
         flag &= amb_ok
         lab, n = ndi.label(flag)
         sizes = np.bincount(lab.ravel()) * grid.cell_area_m2

@@ -40,7 +40,7 @@ def add_legend(map_png: str, out_png: str, title: str) -> None:
     fig.legend(handles=[Patch(facecolor=c, edgecolor="#323232", label=l) for c, l in DAMAGE_CLASSES.values()],
                loc="center right", title="building_damage (class)", fontsize=9, frameon=False)
     fig.suptitle(title, x=0.02, ha="left", fontsize=12, fontweight="bold")
-    fig.savefig(out_png, dpi=100)
+    fig.savefig(out_png, dpi=70)
 
 
 def main(argv=None) -> int:
