@@ -6,7 +6,9 @@ defaults:
 * the region test's cluster-forming level (90 / 95 / 99 %): cells F1 and buildings F1 at 99 %;
 * the minimum mapping unit of the per-cell test: 4 cells (the former constant) against one matching window;
 * the building rule ``min_changed``: the largest changed fraction among truly unchanged footprints and the
-  smallest among truly changed ones (any ``min_changed`` between them gives the same classes).
+  smallest among truly changed ones (any ``min_changed`` between them gives the same classes);
+* with ``--probchange P1,P2``: probchange's ``no_depth_prior`` π∅ at these values (robust model, object space,
+  satellite views): pixel F1.
 
 Usage::
 
@@ -75,10 +77,20 @@ def run_scene(scene: Path, run_dir: Path | None) -> dict:
     return out
 
 
+def probchange_prior(scene: Path, values: list[float]) -> dict:
+    from eval_towns import probchange
+
+    from geocd.probchange import ProbChangeParams
+
+    return {f"{v:g}": probchange(scene, ProbChangeParams.robust(no_depth_prior=v)) for v in values}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", action="append", required=True, help="NAME=SCENE[:RUN_DIR]")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--probchange", default=None, help="comma-separated no_depth_prior values to test")
+    ap.add_argument("--no-sc", action="store_true", help="skip the self-consistency constants")
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
     res = {}
@@ -86,10 +98,17 @@ def main() -> None:
         name, rest = spec.split("=", 1)
         scene, _, run = rest.partition(":")
         scene_p = (REPO / scene) if not Path(scene).is_absolute() else Path(scene)
-        res[name] = run_scene(scene_p, Path(run) if run else None)
+        res[name] = {} if args.no_sc else run_scene(scene_p, Path(run) if run else None)
+        if args.probchange:
+            res[name]["probchange_no_depth_prior"] = probchange_prior(scene_p, [float(v) for v in
+                                                                                args.probchange.split(",")])
         print(name, json.dumps(res[name]), flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps({"command": " ".join(sys.argv), "scenes": res}, indent=1))
+        prev = json.loads(Path(args.json).read_text()) if Path(args.json).is_file() else {"scenes": {}}
+        for k, v in res.items():
+            prev["scenes"].setdefault(k, {}).update(v)
+        prev.setdefault("commands", []).append(" ".join(sys.argv))
+        Path(args.json).write_text(json.dumps(prev, indent=1))
 
 
 if __name__ == "__main__":

@@ -98,7 +98,7 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
     return out
 
 
-def probchange(scene: Path) -> dict:
+def probchange(scene: Path, params=None) -> dict:
     from geocd.change.metrics import binary_scores
     from geocd.io.raster import read_band
     from geocd.io.manifest import load_manifest
@@ -111,7 +111,7 @@ def probchange(scene: Path) -> dict:
     m = dataclasses.replace(m, epochs=eps)
     truth, _ = read_band(scene / "truth" / "change_mask.tif")
     t = time.perf_counter()
-    r = run_probchange(m, variant="objectspace", params=ProbChangeParams.robust(), write=False)["result"]
+    r = run_probchange(m, variant="objectspace", params=params or ProbChangeParams.robust(), write=False)["result"]
     s = _round(binary_scores(r.changed(), truth > 0))
     s["seconds"] = round(time.perf_counter() - t, 1)
     return s

@@ -82,6 +82,10 @@ class ConfigError(GeoCDError, ValueError):
     """Parameters are inconsistent or out of range."""
 
 
+class WeightsMismatchError(ConfigError):
+    """A network weights file does not fit the backbone it was named for (the message names the parameter)."""
+
+
 # --- processing ------------------------------------------------------------------------
 class ProcessingError(GeoCDError, RuntimeError):
     """A method could not produce a result from valid-looking inputs."""

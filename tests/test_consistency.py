@@ -193,3 +193,64 @@ def test_offsets_are_separable_from_the_per_cell_test(scene):
     t = change_test(tile(A), tile(B), model, ChangeParams(min_region_cells=1), offsets=off)
     w1 = change_test(A, B, model, ChangeParams(min_region_cells=1), offsets=off)
     assert np.array_equal(t.confidence, w1.confidence[sl], equal_nan=True)
+
+
+def test_pvalues_are_calibrated_on_static_data(scene):
+    A, B, _ = scene
+    model = learn_self_consistency([A[:2]], ConsistencyParams(n_score_bins=10, min_bin_count=500))
+    dt, sc, _, both = match_pairs(A[0], A[2])  # a comparison the model did not see
+    p = model.pvalue(dt[both], sc[both])
+    for a in (0.01, 0.05, 0.2):
+        assert np.mean(p < a) == pytest.approx(a, rel=0.35), a
+    # larger disagreement at the same score is rarer
+    s = np.full(5, float(np.median(sc[both])))
+    assert np.all(np.diff(model.pvalue(np.array([0.1, 0.5, 1.0, 2.0, 5.0]), s)) <= 0)
+    assert np.isnan(model.pvalue(np.array([np.nan]), np.array([0.0]))[0])
+
+
+def test_combine_pvalues_majority_all_any():
+    from geocd.consistency import combine_pvalues
+
+    P = np.array([0.001, 0.02, 0.5, np.nan]).reshape(4, 1, 1)
+    S = np.array([1, 1, -1, 1], np.int8).reshape(4, 1, 1)
+    sign = np.ones((1, 1), np.int8)
+    # three observed: 0.001 and 0.02 agree, 0.5 has the other sign (counts as 1)
+    assert combine_pvalues(P, S, sign, "majority")[0, 0] == pytest.approx(0.02)
+    assert combine_pvalues(P, S, sign, "all")[0, 0] == pytest.approx(1.0)
+    assert combine_pvalues(P, S, sign, "any")[0, 0] == pytest.approx(0.001)
+    assert combine_pvalues(P, S, np.zeros((1, 1), np.int8))[0, 0] == 1.0
+
+
+def test_candidate_regions_and_their_evidence():
+    from geocd.consistency import candidate_regions
+
+    p = np.ones((8, 8))
+    p[1:3, 1:3] = 0.001      # 4 strong cells
+    p[5:7, 5:8] = 0.04       # 6 weak cells
+    p[0, 7] = 1e-6           # a single extreme cell
+    sign = np.ones((8, 8), np.int8)
+    lab, mass, sg = candidate_regions(p, sign, 0.05, 4)
+    assert lab.max() == 2 and sorted(np.bincount(lab.ravel())[1:]) == [4, 6]
+    assert sorted(mass) == pytest.approx(sorted([4 * np.log(50), 6 * np.log(0.05 / 0.04)]))
+    assert (sg == 1).all() and lab[0, 7] == 0  # below the mapping unit
+
+
+def test_region_test_and_mapping_unit(scene):
+    A, B, dz_true = scene
+    model = learn_self_consistency([A, B], ConsistencyParams(min_region_cells=16))
+    assert model.region_null["min_region_cells"] == 16 and model.has_region_test
+    res = change_test(A, B, model)
+    assert res.significance == "region" and res.min_region_cells == 16
+    static = (dz_true == 0) & res.observed
+    inner = np.zeros(SHAPE, bool)
+    inner[22:48, 22:48] = True
+    assert np.mean(res.changed_at(99)[inner & res.observed] == 1) > 0.9
+    assert np.mean(res.changed_at(99)[static] != 0) < 0.005
+    assert np.all(np.isfinite(res.cell_confidence[res.observed])) and np.all(np.isnan(res.cell_confidence[~res.observed]))
+    # σ of dz from the error model: the synthetic errors are 0.1-1 px at g = 1 px/m, two reconstructions
+    assert 0.1 < float(np.nanmedian(res.dz_sigma_m)) < 1.2
+    # a 3 x 3 change (9 cells) is below the mapping unit: never reported
+    B2 = [Rec(r.z_m + np.where(np.pad(np.ones((3, 3)), ((100, 17), (100, 17))) > 0, 9.0, 0.0).astype(np.float32),
+              r.score, r.g_px_per_m, r.valid, None, r.name) for r in B]
+    res2 = change_test(A, B2, model)
+    assert np.all(res2.changed_at(90)[100:103, 100:103] <= 0)

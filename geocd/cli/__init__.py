@@ -60,6 +60,7 @@ SUBCOMMANDS: dict[str, str] = {
     "stereo": "geocd.cli.stereo:stereo",
     "probchange": "geocd.cli.probchange:probchange",
     "ortho": "geocd.cli.ortho:ortho",
+    "mpp": "geocd.cli.mpp:mpp",
     "landcover": "geocd.cli.landcover:landcover",
     "import-cameras": "geocd.cli.import_cameras:import_cameras",
 }

@@ -157,9 +157,15 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
 @click.option("--report-confidence", type=float, default=99.0, show_default=True, callback=check_confidence,
               help="Level in percent for the change mask, regions and buildings.")
 @click.option("--combine", type=click.Choice(["majority", "all", "any"]), default="majority", show_default=True)
+@click.option("--tiled", is_flag=True, help="Test tile by tile (whole scenes: bounded memory, resumable, on Dask); "
+              "the products are the same.")
+@click.option("--scheduler", default=None, help="Tiled runs: sync | threads | processes | auto | a Dask scheduler "
+              "address (implies --tiled).")
+@click.option("--tile-size", type=click.IntRange(64, None), default=None, help="Tiled runs: cells per tile side "
+              "[1024] (implies --tiled).")
 @click.pass_context
 def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, footprints, out_dir, confidences,
-           report_confidence, combine):
+           report_confidence, combine, tiled, scheduler, tile_size):
     """Stage 2: test cross-epoch pair-DEMs (or a DEM standing for an epoch) against a self-consistency model."""
     from ..change.buildings import classify_buildings
     from ..change.products import write_change_products
@@ -174,6 +180,27 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
 
     open_outputs(out_dir, inputs=[*a_paths, *b_paths, dem_a, dem_b, model_path, footprints], products=("sc_*",))
     session(ctx).open_log(out_dir)
+    if tiled or scheduler or tile_size:
+        from ..change.tiled import change_test_tiled, open_reconstruction
+        from ..demdiff.tiled import TilingParams
+
+        A = list(a_paths) + ([open_reconstruction(dem_a, kind="dem", name="dem_a",
+                                                  vertical_datum=dem_vertical_datum)[0]] if dem_a else [])
+        B = list(b_paths) + ([open_reconstruction(dem_b, kind="dem", name="dem_b",
+                                                  vertical_datum=dem_vertical_datum)[0]] if dem_b else [])
+        params = ChangeParams(confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})),
+                              combine=combine)
+        tiling = TilingParams(**{k: v for k, v in (("scheduler", scheduler), ("tile_size", tile_size)) if v})
+        progress = make_progress(ctx, "change")
+        try:
+            res = change_test_tiled(A, B, SelfConsistencyModel.load(model_path), out_dir, params=params,
+                                    tiling=tiling, footprints=footprints, region_confidence=report_confidence,
+                                    progress=progress)
+        finally:
+            progress.close()
+        session(ctx).say(f"tiled change test: {res.passes} passes, {res.tiles_resumed} tile results resumed")
+        emit_result(ctx, res.outputs)
+        return
     A, B = _read_pairs(a_paths), _read_pairs(b_paths)
     if not (A or B):
         raise ConfigError("give pair-DEMs of both epochs (-a ... -b ...), or one epoch's pair-DEMs and a DEM for the other")

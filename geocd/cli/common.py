@@ -338,7 +338,10 @@ class Session:
         def _show(message, category, filename, lineno, file=None, line=None):
             name = category.__name__
             text = str(message)
-            self.warn(text if name == "UserWarning" else f"{name}: {text}")
+            if name == "OutputFolderWarning":  # what the output session did (removed litter, retired a run)
+                self.note(text)
+            else:
+                self.warn(text if name == "UserWarning" else f"{name}: {text}")
 
         warnings.showwarning = _show
 

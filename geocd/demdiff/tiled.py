@@ -455,9 +455,58 @@ def _t_grids(arrays, ctx):
     return TileOutput(arrays=out, small={"fp_n": _count_core(w.footprint, ctx) if w.footprint is not None else 0})
 
 
+@dataclass(frozen=True)
+class _RegionSigma:
+    """Volume σ of a cell set (:meth:`Uncertainty._variance` with the K field as k_local + a coarse part)."""
+
+    vg: VariogramModel
+    posting: tuple[float, float]
+    bias_sigma_m: float
+    n_stable: int
+    offset_m: float
+    KC: np.ndarray
+    block: int
+    cell: float
+
+    def var(self, V: float, n: int, cross: float, include_bias: bool = True) -> float:
+        var = V
+        if include_bias and self.n_stable:
+            var += (n * self.bias_sigma_m) ** 2
+            var -= 2.0 * n / self.n_stable * cross
+            var = max(var, 0.0) + (n * self.offset_m) ** 2
+        return max(var, 0.0)
+
+    def window(self, wv: np.ndarray, k_local: np.ndarray, r0: int, c0: int) -> float:
+        """σ of Σ dh × cell over the cells where ``wv`` (σ, 0 outside) is set, on a window at (r0, c0)."""
+        from .uncertainty import _window_variance
+
+        h, w = wv.shape
+        kw = k_local.astype(np.float64) + self.KC[np.arange(r0, r0 + h) // self.block][:, np.arange(c0, c0 + w)
+                                                                                      // self.block]
+        V = _window_variance(wv, self.vg, self.posting)
+        return math.sqrt(self.var(V, int(np.count_nonzero(wv)), float(np.sum(wv * kw)))) * self.cell
+
+
+def _tile_region_sigmas(tr, sigma, k_local, ctx, rs: "_RegionSigma") -> None:
+    """σ of every region wholly inside the tile's core (not touching its edges: it cannot continue in a
+    neighbour), stored as ``vsig`` per label (NaN for the others, done after the merge)."""
+    cr0, cc0, h, w = ctx.tile.core
+    R0, C0 = ctx.origin
+    for s_, st_ in tr.stats.items():
+        vs = np.full(st_["n"].size, np.nan)
+        for j, (r0, c0, r1, c1) in enumerate(st_["bbox"]):
+            if r0 <= cr0 or c0 <= cc0 or r1 >= cr0 + h or c1 >= cc0 + w:
+                continue
+            m = tr.labels[r0 - cr0:r1 - cr0, c0 - cc0:c1 - cc0] == s_ * (j + 1)
+            sg = sigma[r0 - R0:r1 - R0, c0 - C0:c1 - C0].astype(np.float64)
+            m &= np.isfinite(sg)
+            vs[j] = rs.window(np.where(m, sg, 0.0), k_local[r0 - R0:r1 - R0, c0 - C0:c1 - C0], int(r0), int(c0))
+        st_["vsig"] = vs
+
+
 def _t_products(arrays, ctx):
     """Per-cell products and the tile's partial sums (large grids)."""
-    S, plan, sd, em, sig, level, center, split, fitted_plan = ctx.params
+    S, plan, sd, em, sig, level, center, split, fitted_plan, rsig = ctx.params
     p = S.params
     w = _Win(arrays, ctx, S)
     dh = w.dh(plan)
@@ -533,6 +582,8 @@ def _t_products(arrays, ctx):
     from ..tiling.regions import tile_regions
 
     tr = tile_regions(sc, dh[core], ctx.tile, S.grid, sigma=sigma[core], confidence=conf[core])
+    if rsig is not None and "k_local" in arrays:
+        _tile_region_sigmas(tr, sigma, arrays["k_local"], ctx, rsig)
     labels = tr.labels
     tr.labels = None
     small["regions"] = tr
@@ -737,11 +788,12 @@ class _Runner:
             m = max(m, S.params.stable.footprint_buffer_cells + 1)
         return m + cc
 
-    def run(self, func, stage: str, params, overlap: int, products=None):
+    def run(self, func, stage: str, params, overlap: int, products=None, inputs=None):
         self.passes += 1
         f0 = min(self.passes - 1, self.est_passes - 1) / self.est_passes
         f1 = min(self.passes, self.est_passes) / self.est_passes
-        r = run_tiled(func, self.tg.with_overlap(overlap), self.sources, params=params, out=self.out,
+        r = run_tiled(func, self.tg.with_overlap(overlap), {**self.sources, **(inputs or {})}, params=params,
+                      out=self.out,
                       stage=f"demdiff-{self.passes:02d}-{stage}", key=self.S.ident, products=products,
                       scheduler=self.eng, progress=sub_progress(self.prog, 0.02 + 0.9 * f0, 0.02 + 0.9 * f1,
                                                                 f"{stage}: "))
@@ -1304,8 +1356,10 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
                                      descriptions=(None,)),
     }
     center = sig.center_m if sig is not None else 0.0
-    rp = R.run(_t_products, "products", (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan), ov,
-               products=products)
+    rsig = (_RegionSigma(vg, (float(post[0]), float(post[1])), unc.bias_sigma_m, unc.n_stable, unc.offset_m, KC,
+                         block, cell) if unc is not None else None)
+    rp = R.run(_t_products, "products", (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan, rsig), ov,
+               products=products, inputs={"k_local": kstore.source("k_local")} if unc is not None else None)
     sm = [s_ for _, s_ in rp.smalls()]
     tot = {k: sum(s_[k] for s_ in sm) for k in ("n_obs", "n_stable", "n_changed", "n_raised", "n_lowered",
                                                  "sum_changed", "sum_raised", "sum_lowered", "sum_obs",
@@ -1332,28 +1386,20 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
     store = rp.store
 
     def var_terms(V: float, n: int, cross: float, include_bias: bool = True) -> float:
-        var = V
-        if include_bias and unc.n_stable:
-            var += (n * unc.bias_sigma_m) ** 2
-            var -= 2.0 * n / unc.n_stable * cross
-            var = max(var, 0.0) + (n * unc.offset_m) ** 2
-        return max(var, 0.0)
+        return rsig.var(V, n, cross, include_bias)
 
     def region_sigma(k: int) -> float:
         from ..tiling.regions import region_mask_window
-        from .uncertainty import _window_variance
 
+        vs = merged.extra.get("vsig")
+        if vs is not None and len(merged.members[k]) == 1 and np.isfinite(vs[k]):
+            return float(vs[k])          # wholly inside one tile: computed there
         r0, c0, r1, c1 = (int(v) for v in merged.bbox[k])
         if (r1 - r0) * (c1 - c0) <= R.tiling.exact_grid_cells:
             m, sl = region_mask_window(merged, k, lambda t: store.tile_array(t, "labels"), R.tg)
             sg = store.read("sigma_m", (r0, c0, r1 - r0, c1 - c0)).astype(np.float64)
             m &= np.isfinite(sg)
-            wv = np.where(m, sg, 0.0)
-            V = _window_variance(wv, vg, post)
-            kw = (kstore.read("k_local", (r0, c0, r1 - r0, c1 - c0)).astype(np.float64)
-                  + KC[np.arange(r0, r1) // block][:, np.arange(c0, c1) // block])
-            cross = float(np.sum(wv * kw))
-            n = int(np.count_nonzero(wv))
+            return rsig.window(np.where(m, sg, 0.0), kstore.read("k_local", (r0, c0, r1 - r0, c1 - c0)), r0, c0)
         else:
             Sr, Qr = _region_coarse(merged, k, store, R.tg, block, cshape)
             V = coarse_sum_variance(Sr, Qr, vg, Cfull)

@@ -410,6 +410,9 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
     for i, bt in enumerate(band_tags or []):  # a "units" band tag (stereo products) is the unit too
         if i < len(unit_list) and not unit_list[i] and bt and bt.get("units"):
             unit_list[i] = str(bt["units"])
+    if (len(unit_list) == 1 and not unit_list[0] and tags and tags.get("units")
+            and np.issubdtype(np.dtype(dtype or arr.dtype), np.floating)):  # one float band: the dataset's unit
+        unit_list[0] = {"metre": "m", "meter": "m", "metres": "m"}.get(str(tags["units"]), str(tags["units"]))
     if arr.shape[1:] != grid.shape:
         raise OutputError(f"array shape {arr.shape[1:]} does not match the grid {grid.shape}")
     dtype = dtype or str(arr.dtype)

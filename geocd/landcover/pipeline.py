@@ -65,12 +65,15 @@ def load_scene(*, manifest=None, dem: str | None = None, dem_datum: str | None =
     from ..io.vector import read_footprints
 
     m = None
+    footprints_layer = None
     if manifest is not None:
         m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
         if dem is None and m.dem is not None:
             dem, dem_datum = str(m.dem.path), dem_datum or m.dem.vertical_datum
         if footprints is None and m.footprints is not None:
-            footprints = str(m.footprints)
+            fp_spec = m.footprints  # a path, or a spec with .path and .layer
+            footprints = str(getattr(fp_spec, "path", fp_spec))
+            footprints_layer = getattr(fp_spec, "layer", None)
         if m.aoi is not None:
             crs = crs or m.aoi.crs
             bounds = bounds or m.aoi.bounds
@@ -88,7 +91,7 @@ def load_scene(*, manifest=None, dem: str | None = None, dem_datum: str | None =
         posting_m = posting_m or g0.posting_m
     grid = AOIGrid.from_bounds(*bounds, posting_m, as_crs(crs))
     d = read_dem(dem, grid=grid, vertical_datum=dem_datum).to_ellipsoidal().height_m.astype(np.float64)
-    fp = read_footprints(footprints, crs=grid.crs) if footprints else None
+    fp = read_footprints(footprints, crs=grid.crs, layer=footprints_layer) if footprints else None
     surface, occ = building_surface(d, grid, fp, height_field)
     has_dsm = False
     if dsm is not None:
@@ -498,11 +501,14 @@ def integrate_files(detailed_path: os.PathLike | str, scene: Scene, out_dir: os.
                      "seconds": round(time.perf_counter() - t0, 2), **res.report}
     if truth_path is not None:
         prog(0.65, "ablation against the truth map")
-        tr = read_on_grid(truth_path, scene.grid)
-        if truth_values:
-            truth = np.isin(np.rint(tr), np.asarray(truth_values, float))
-        else:
-            truth = np.nan_to_num(tr) > 0.5
+        # the condition is decided on the truth's own grid, then averaged: a class raster is never resampled
+        from ..io.raster import read_band, reproject_array
+
+        tr0, tgrid = read_band(truth_path)
+        hit = np.isin(np.rint(tr0), np.asarray(truth_values, float)) if truth_values else np.nan_to_num(tr0) > 0.5
+        frac = reproject_array(np.where(np.isfinite(tr0), hit, np.nan).astype(np.float32), tgrid, scene.grid,
+                               "average" if tgrid.posting_m < 0.75 * scene.grid.posting_m else "nearest")
+        truth = np.nan_to_num(frac) >= 0.5
         exclude = None
         if exclude_path is not None:
             lab = read_labels(exclude_path)
@@ -510,8 +516,10 @@ def integrate_files(detailed_path: os.PathLike | str, scene: Scene, out_dir: os.
                 cls, _ = rasterize_labels(lab.to_crs(scene.grid.crs), scene.grid.shape, scene.grid.transform,
                                           class_list(lab))
                 exclude = cls >= 0
-        scores, results = ablation(det, coarse, lambda u: gp_inputs(scene, coarse, u), truth, exclude=exclude,
-                                   params=params)
+        no_truth = ~np.isfinite(frac)
+        exclude = no_truth if exclude is None else (exclude | no_truth)
+        scores, results = ablation(det, coarse, lambda u: gp_inputs(scene, coarse, u), truth, truth_value=frac,
+                                   exclude=exclude, params=params)
         ev = np.ones(truth.shape, bool) if exclude is None else ~exclude
         curves = {}
         if coarse is not None:

@@ -40,7 +40,8 @@ from dataclasses import dataclass
 from typing import Any, Optional
 
 #: titles of GeoPackage layers in the layer tree
-LAYER_TITLES = {"changes": "Changed regions", "buildings": "Buildings by change class", "curves": "Significance curves"}
+LAYER_TITLES = {"changes": "Changed regions", "buildings": "Buildings by change class", "curves": "Significance curves",
+                "rectangles": "Building rectangles (marked point process)"}
 
 #: the output folder parameter (``--out``) of every algorithm that writes a folder of products
 OUTPUT_FOLDER = "OUTPUT"
@@ -264,6 +265,64 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   cli="--view-bands", default=False, advanced=True),
         ),
         load_unlisted=True, tags=("ortho", "orthorectification", "true ortho", "rpc", "frame", "occlusion")),
+    AlgSpec(
+        name="mpp", display="Buildings and their changes, marked point process (scene manifest)",
+        group=GROUP_CHANGE[0], group_id=GROUP_CHANGE[1], command=("mpp",),
+        short_help="Finds the buildings of two dates and which are new, demolished or unchanged, with no footprint "
+                   "database: rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), on "
+                   "true orthos of one view per epoch (geocd ortho) with geocd's height term from the stereo DSMs. "
+                   "Loads the buildings and rectangles layers (change class, confidence in %) and a class raster, "
+                   "styled. Same seed, same result.",
+        params=(
+            _MANIFEST,
+            _out_folder("Layers go to OUTPUT/mpp/; orthos and DSMs to OUTPUT/ortho/."),
+            Param("METHOD", "enum", "Model", cli="--method", default=0,
+                  options=(("joint detection (ED, the paper's)", "ED"), ("each date alone, then compared (SD)", "SD"),
+                           ("edge-only verification (EV)", "EV"))),
+            Param("HEIGHT", "enum", "Height term from the DSMs", cli="--height", default=0,
+                  options=(("when DSMs are available", "auto"), ("on", "on"), ("off (the paper's model)", "off"))),
+            Param("EPOCH_A", "string", "Earlier epoch (default: the first)", cli="--epoch-a", optional=True,
+                  advanced=True),
+            Param("EPOCH_B", "string", "Later epoch (default: the last)", cli="--epoch-b", optional=True,
+                  advanced=True),
+            Param("VIEW_A", "string", "Image of epoch A (default: the most vertical view)", cli="--view-a",
+                  optional=True, advanced=True),
+            Param("VIEW_B", "string", "Image of epoch B (default: the most vertical view)", cli="--view-b",
+                  optional=True, advanced=True),
+            Param("CHANGE_PRIOR", "raster", "3-D change evidence (e.g. sc_change.tif of a full run)",
+                  cli="--change-prior", optional=True, advanced=True),
+            Param("SEED", "int", "Random seed", cli="--seed", default=0, min=0, advanced=True),
+            _POSTING,
+        ),
+        outputs=(Output("buildings", "BUILDINGS", "vector", "Buildings and rectangles", layers=("buildings", "rectangles")),
+                 Output("classes", "CLASSES", "raster", "Building classes (unchanged / demolished / new)"),
+                 Output("quicklook", "QUICKLOOK", "file", "Quick-look (PNG)", load=False),
+                 Output("summary", "SUMMARY", "file", "Run summary (JSON)", load=False)),
+        tags=("buildings", "change detection", "marked point process", "object", "2d", "ortho")),
+    AlgSpec(
+        name="mppimages", display="Buildings and their changes, marked point process (two images)",
+        group=GROUP_CHANGE[0], group_id=GROUP_CHANGE[1], command=("mpp",),
+        short_help="The marked point process on two georeferenced images of different dates (e.g. orthos): the "
+                   "later one is resampled onto the earlier one's grid when they differ. With a DSM of each date "
+                   "the height term is used. Grey images: the colour and shadow terms are dropped (the log says so).",
+        params=(
+            Param("IMAGE_A", "raster", "Earlier image", cli="--image-a"),
+            Param("IMAGE_B", "raster", "Later image", cli="--image-b"),
+            Param("DSM_A", "raster", "Surface model, earlier date", cli="--dsm-a", optional=True),
+            Param("DSM_B", "raster", "Surface model, later date", cli="--dsm-b", optional=True),
+            Param("GROUND", "raster", "Terrain DEM (default: estimated from the DSMs)", cli="--ground", optional=True,
+                  advanced=True),
+            _out_folder(),
+            Param("METHOD", "enum", "Model", cli="--method", default=0,
+                  options=(("joint detection (ED, the paper's)", "ED"), ("each date alone, then compared (SD)", "SD"),
+                           ("edge-only verification (EV)", "EV"))),
+            Param("SEED", "int", "Random seed", cli="--seed", default=0, min=0, advanced=True),
+        ),
+        outputs=(Output("buildings", "BUILDINGS", "vector", "Buildings and rectangles", layers=("buildings", "rectangles")),
+                 Output("classes", "CLASSES", "raster", "Building classes (unchanged / demolished / new)"),
+                 Output("quicklook", "QUICKLOOK", "file", "Quick-look (PNG)", load=False),
+                 Output("summary", "SUMMARY", "file", "Run summary (JSON)", load=False)),
+        tags=("buildings", "change detection", "marked point process", "layers")),
     AlgSpec(
         name="consistency", display="Self-consistency model from pair-DEMs", group=GROUP_CHANGE[0],
         group_id=GROUP_CHANGE[1], command=("consistency",),

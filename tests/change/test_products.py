@@ -70,3 +70,22 @@ def test_products_are_readable_and_styled(tmp_path, result):
     assert {s[0] for s in styles} == {"changes", "buildings"}
     assert paths["scatter"].stat().st_size > 10_000 and paths["quicklook"].stat().st_size > 10_000
     assert not list(tmp_path.glob(".*part*"))
+
+
+def test_every_cog_band_has_a_name_and_a_unit_where_one_is_known(tmp_path):
+    from geocd.io.raster import write_cog
+
+    grid = AOIGrid.from_bounds(500000, 4000000, 500050, 4000050, 0.5, "EPSG:32631")
+    z = np.zeros(grid.shape, np.float32)
+    p1 = write_cog(tmp_path / "a.tif", {"dz_m": z, "confidence": z, "volume_m3": z, "score": z}, grid)
+    p2 = write_cog(tmp_path / "dsm_A.tif", z, grid, tags={"units": "metre"})
+    p3 = write_cog(tmp_path / "mask.tif", z.astype(np.int8), grid, dtype="int8", tags={"units": "m"})
+    p4 = write_cog(tmp_path / "b.tif", {"z": z}, grid, units={"z": "m (ellipsoidal)"})
+    with rasterio.open(p1) as ds:
+        assert ds.descriptions == ("dz_m", "confidence", "volume_m3", "score") and ds.units == ("m", "%", "m3", None)
+    with rasterio.open(p2) as ds:
+        assert ds.descriptions == ("dsm_A",) and ds.units == ("m",)
+    with rasterio.open(p3) as ds:  # an integer mask does not take the dataset's metre
+        assert ds.descriptions == ("mask",) and ds.units == (None,)
+    with rasterio.open(p4) as ds:
+        assert ds.units == ("m (ellipsoidal)",)
