@@ -3,6 +3,7 @@ a dask.distributed scheduler with two workers on loopback.
 
     nice -n 10 .venv/bin/python bench/bench_tiled_demdiff.py run DIR_WITH_dem_a_dem_b OUT [--tile-size 1024]
         [--scheduler auto] [--workers 2] [--memory-limit 1.5GB] [--json result.json]
+    nice -n 10 .venv/bin/python bench/bench_tiled_demdiff.py untiled DIR OUT            # the in-memory baseline
     nice -n 10 .venv/bin/python bench/bench_tiled_demdiff.py kill DIR OUT --at 0.5     # SIGKILL at 50 %, rerun
     nice -n 10 .venv/bin/python bench/bench_tiled_demdiff.py cluster DIR OUT           # dask scheduler + 2 workers
     .venv/bin/python bench/bench_tiled_demdiff.py same OUT1 OUT2                        # identical products?
@@ -28,7 +29,6 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _memwatch import tree_rss  # noqa: E402
@@ -60,9 +60,12 @@ class Watch:
         self._t.join()
 
 
-def cmd(dem_dir: Path, out: Path, a) -> list[str]:
+def cmd(dem_dir: Path, out: Path, a, tiled: bool = True) -> list[str]:
     c = [GEOCD, "--progress", "json", "demdiff", str(dem_dir / "dem_a.tif"), str(dem_dir / "dem_b.tif"), "--json",
-         "--out", str(out), "--tiled", "--tile-size", str(a.tile_size), "--no-plots"]
+         "--out", str(out), "--no-plots"]
+    if not tiled:
+        return c + ["--untiled"]
+    c += ["--tiled", "--tile-size", str(a.tile_size)]
     if a.scheduler:
         c += ["--scheduler", a.scheduler]
     if a.workers:
@@ -147,7 +150,7 @@ def free_port() -> int:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=["run", "kill", "cluster", "same"])
+    ap.add_argument("mode", choices=["run", "untiled", "kill", "cluster", "same"])
     ap.add_argument("dem_dir")
     ap.add_argument("out")
     ap.add_argument("--tile-size", type=int, default=1024)
@@ -164,6 +167,13 @@ def main() -> None:
     elif a.mode == "run":
         n = grid_cells(dem_dir)
         r = run_once(cmd(dem_dir, out, a))
+        rep = {"cells": n, **r, "cells_per_s": round(n / r["wall_s"])}
+        if r["returncode"] == 0:
+            rep["digest"] = digest(out)
+    elif a.mode == "untiled":
+        # the in-memory pipeline on the same pair: the baseline of the ratios
+        n = grid_cells(dem_dir)
+        r = run_once(cmd(dem_dir, out, a, tiled=False))
         rep = {"cells": n, **r, "cells_per_s": round(n / r["wall_s"])}
         if r["returncode"] == 0:
             rep["digest"] = digest(out)

@@ -73,11 +73,18 @@ class RasterSource:
             src_grid = AOIGrid.from_raster(ds)
             off = _aligned_offset(src_grid, grid)
             if off is not None:
+                from rasterio.enums import MaskFlags
+
                 win = Window(c0 + off[1], r0 + off[0], w, h)
                 inside = (off[0] + r0 >= 0 and off[1] + c0 >= 0 and off[0] + r0 + h <= ds.height
                           and off[1] + c0 + w <= ds.width)
-                a = ds.read(self.band, window=win, masked=True, boundless=not inside)
-                out = np.ma.filled(a.astype(np.float32), np.nan)
+                flags = set(ds.mask_flag_enums[self.band - 1])
+                if inside and flags <= {MaskFlags.nodata, MaskFlags.all_valid}:
+                    # the mask is the nodata value (handled below) or nothing: a plain read, half the work
+                    out = ds.read(self.band, window=win).astype(np.float32)
+                else:
+                    a = ds.read(self.band, window=win, masked=True, boundless=not inside)
+                    out = np.ma.filled(a.astype(np.float32), np.nan)
             else:
                 out = self._warped(ds, grid, window)
         if nodata is not None and np.isfinite(nodata):
