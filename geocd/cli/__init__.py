@@ -61,6 +61,7 @@ SUBCOMMANDS: dict[str, str] = {
     "probchange": "geocd.cli.probchange:probchange",
     "ortho": "geocd.cli.ortho:ortho",
     "landcover": "geocd.cli.landcover:landcover",
+    "screen": "geocd.cli.screen:screen",
     "import-cameras": "geocd.cli.import_cameras:import_cameras",
 }
 
