@@ -62,6 +62,7 @@ SUBCOMMANDS: dict[str, str] = {
     "ortho": "geocd.cli.ortho:ortho",
     "mpp": "geocd.cli.mpp:mpp",
     "landcover": "geocd.cli.landcover:landcover",
+    "screen": "geocd.cli.screen:screen",
     "import-cameras": "geocd.cli.import_cameras:import_cameras",
 }
 

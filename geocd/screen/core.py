@@ -162,37 +162,47 @@ def _otsu(v: np.ndarray) -> float:
     return float(threshold_otsu(v))
 
 
-def vegetation_mask(image: np.ndarray, valid: np.ndarray, band_names: Sequence[str] | None = None) -> np.ndarray | None:
-    """Vegetation from NDVI (a band named nir/NIR with red) or the excess-green index of RGB; None for grey.
-
-    The threshold is the image's own Otsu split of the index, but never below NDVI 0.2 / ExG
-    0.05 (an image without vegetation must not split its bare ground in two).
-    """
+def vegetation_index(image: np.ndarray, band_names: Sequence[str] | None = None) -> np.ndarray | None:
+    """NDVI when the image has a band named ``nir`` (and red: the band named ``red``, else the first),
+    else the excess-green index (2g − r − b)/(r + g + b) of RGB; None for a grey image."""
     names = [str(n).lower() for n in (band_names or [])]
     a = np.asarray(image, np.float32)
-    if "nir" in names and ("red" in names or a.shape[0] >= 3):
+    if "nir" in names and a.shape[0] >= 2:
         nir = a[names.index("nir")]
         red = a[names.index("red")] if "red" in names else a[0]
-        idx = (nir - red) / np.maximum(nir + red, 1e-6)
-        floor = 0.2
-    elif a.shape[0] >= 3:
+        return (nir - red) / np.maximum(nir + red, 1e-6)
+    if a.shape[0] >= 3:
         r, g, b = a[0], a[1], a[2]
-        s = np.maximum(r + g + b, 1e-6)
-        idx = (2 * g - r - b) / s
-        floor = 0.05
-    else:
+        return (2 * g - r - b) / np.maximum(r + g + b, 1e-6)
+    return None
+
+
+def vegetation_mask(image: np.ndarray, valid: np.ndarray, band_names: Sequence[str] | None = None,
+                    threshold: float | None = None) -> np.ndarray | None:
+    """Vegetation from NDVI or the excess-green index (:func:`vegetation_index`); None for grey.
+
+    The threshold (default) is the image's own Otsu split of the index, but never below NDVI 0.2 /
+    ExG 0.05 (an image without vegetation must not split its bare ground in two).
+    """
+    idx = vegetation_index(image, band_names)
+    if idx is None:
         return None
-    t = max(_otsu(idx[valid]), floor)
-    return (idx > t) & valid
+    if threshold is None:
+        names = [str(n).lower() for n in (band_names or [])]
+        threshold = max(_otsu(idx[valid]), 0.2 if "nir" in names else 0.05)
+    return (idx > threshold) & valid
 
 
-def shadow_mask(image: np.ndarray, valid: np.ndarray, ratio: float = 0.5, min_px: int = 8) -> np.ndarray:
-    """Cast shadows: luminance below ``ratio`` × the image's median luminance, small specks removed."""
+def shadow_mask(image: np.ndarray, valid: np.ndarray, ratio: float = 0.5, min_px: int = 8,
+                median: float | None = None) -> np.ndarray:
+    """Cast shadows: luminance below ``ratio`` × the image's median luminance (``median``: the whole
+    image's, when this is a window of it), small specks removed."""
     from scipy import ndimage
 
     L = grey(image)
-    med = float(np.median(L[valid])) if valid.any() else 0.5
-    m = (L < ratio * med) & valid
+    if median is None:
+        median = float(np.median(L[valid])) if valid.any() else 0.5
+    m = (L < ratio * median) & valid
     m = ndimage.binary_opening(m, structure=np.ones((2, 2), bool))
     lab, n = ndimage.label(m)
     if n:
@@ -288,7 +298,8 @@ def cell_distance(fa: np.ndarray, fb: np.ndarray) -> np.ndarray:
 def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, params: ScreenParams = ScreenParams(),
                 valid_a: np.ndarray | None = None, valid_b: np.ndarray | None = None,
                 band_names_a: Sequence[str] | None = None, band_names_b: Sequence[str] | None = None,
-                feature: GridFeature | None = None, normalised: bool = False) -> ScreenResult:
+                feature: GridFeature | None = None, normalised: bool = False, levels_a: dict | None = None,
+                levels_b: dict | None = None) -> ScreenResult:
     """Screen two images of one grid (the same shape), eqs. 4.1–4.4.
 
     Parameters
@@ -300,6 +311,8 @@ def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, param
     band_names_a, band_names_b : band names (a ``nir`` band enables NDVI)
     feature : a built extractor (default ``params.feature.build()``; pass one to reuse a CNN)
     normalised : the images are already stretched to 0–1 (skip :func:`normalise_image`)
+    levels_a, levels_b : whole-image levels when the arrays are windows of larger images:
+        ``veg_threshold`` (index), ``shadow_median`` (luminance); default: measured on the arrays
 
     Returns
     -------
@@ -349,16 +362,16 @@ def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, param
         d = d_pix.copy()
     excl = np.zeros((H, W), np.uint8)
     if params.vegetation != "off":
-        ga = vegetation_mask(na, va, band_names_a)
-        gb = vegetation_mask(nb, vb, band_names_b)
+        ga = vegetation_mask(na, va, band_names_a, (levels_a or {}).get("veg_threshold"))
+        gb = vegetation_mask(nb, vb, band_names_b, (levels_b or {}).get("veg_threshold"))
         if ga is None or gb is None:
             notes.append("vegetation not excluded: it needs colour (RGB) or a nir band in both images")
         else:
             m = (ga & gb) if params.vegetation == "both" else (ga | gb)
             excl |= (m * EXCL_VEGETATION).astype(np.uint8)
     if params.shadow != "off":
-        sa_ = shadow_mask(na, va)
-        sb_ = shadow_mask(nb, vb)
+        sa_ = shadow_mask(na, va, median=(levels_a or {}).get("shadow_median"))
+        sb_ = shadow_mask(nb, vb, median=(levels_b or {}).get("shadow_median"))
         m = (sa_ & sb_) if params.shadow == "both" else (sa_ | sb_)
         excl |= (m * EXCL_SHADOW).astype(np.uint8)
     d = np.where((excl > 0) & np.isfinite(d), 0.0, d).astype(np.float32)

@@ -165,6 +165,31 @@ _LANDCOVER_SCENE = (
 )
 
 
+#: the 2-D screen's options (geocd screen), shared by its two algorithms
+_SCREEN_PARAMS = (
+    Param("FEATURE", "enum", "Grid feature", cli="--feature", default=0,
+          options=(("grey local patch", "patch"), ("dense DAISY (multi-scale)", "daisy"),
+                   ("seeded random-filter bank", "randbank"), ("CNN pooling layer (weights file)", "cnn"))),
+    Param("CELL", "int", "Grid cell", cli="--cell", unit="px", default=16, min=2, max=512,
+          help="Patch, DAISY and random bank; a CNN layer's stride sets its own."),
+    Param("BACKBONE", "string", "CNN backbone (vgg19, resnet18, ...)", cli="--backbone", optional=True,
+          advanced=True),
+    Param("WEIGHTS", "file", "CNN weights (.npz or .pt state_dict)", cli="--weights", optional=True,
+          advanced=True, file_filter="Weights (*.npz *.pt *.pth);;All files (*)"),
+    Param("LAYER", "string", "CNN layer (pool1..pool5, layer1..layer4)", cli="--layer", optional=True,
+          advanced=True),
+    Param("SUPERPIXELS", "enum", "Superpixels", cli="--superpixels", default=0, advanced=True,
+          options=(("Felzenszwalb (thesis)", "felzenszwalb"), ("SLIC", "slic"), ("none", "none"))),
+    Param("VEGETATION", "enum", "Set aside vegetation", cli="--vegetation", default=0, advanced=True,
+          options=(("seen in both dates", "both"), ("seen in either date", "either"), ("off", "off"))),
+    Param("SHADOW", "enum", "Set aside cast shadows", cli="--shadow", default=0, advanced=True,
+          options=(("seen in both dates", "both"), ("seen in either date", "either"), ("off", "off"))),
+    Param("CONFIDENCE", "number", "Confidence (percentile of the no-change pair)", cli="--confidence",
+          unit="%", default=99.0, min=50.0, max=99.99),
+    Param("THRESHOLD", "number", "Fixed dissimilarity threshold (instead of the confidence)",
+          cli="--threshold", optional=True, min=0.0, max=2.0, advanced=True),
+)
+
 ALGORITHMS: tuple[AlgSpec, ...] = (
     AlgSpec(
         name="info", display="Describe a geocd input", group=GROUP_INSPECT[0], group_id=GROUP_INSPECT[1],
@@ -323,6 +348,51 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                  Output("quicklook", "QUICKLOOK", "file", "Quick-look (PNG)", load=False),
                  Output("summary", "SUMMARY", "file", "Run summary (JSON)", load=False)),
         tags=("buildings", "change detection", "marked point process", "layers")),
+    AlgSpec(
+        name="screen", display="2-D change screen (scene manifest)", group=GROUP_CHANGE[0],
+        group_id=GROUP_CHANGE[1], command=("screen",),
+        short_help="Fast first pass over a whole area (Sakurada's grid features with superpixels): the closest "
+                   "views of the two epochs are projected on the AOI grid and compared cell by cell; vegetation and "
+                   "shadows seen in both dates are set aside; the threshold and the confidence come from a "
+                   "no-change pair of views of one epoch. Loads the dissimilarity, the change mask and the changed "
+                   "regions, styled.",
+        params=(
+            _MANIFEST,
+            _out_folder(),
+            *_SCREEN_PARAMS,
+            Param("EPOCH_A", "string", "First epoch (default: the earliest)", cli="--epoch-a", optional=True,
+                  advanced=True),
+            Param("EPOCH_B", "string", "Second epoch (default: the latest)", cli="--epoch-b", optional=True,
+                  advanced=True),
+        ),
+        outputs=(
+            Output("dissimilarity", "DISSIMILARITY", "raster", "Dissimilarity (2-D screen)"),
+            Output("change_mask", "CHANGE_MASK", "raster", "Change mask (2-D screen)"),
+            Output("changes", "CHANGES", "vector", "Changed regions (2-D screen)", layers=("changes",)),
+            Output("summary", "SUMMARY", "file", "Summary (JSON)", load=False),
+        ),
+        skip_prefixes=("view:",), tags=("change detection", "screening", "2d", "superpixels", "cnn")),
+    AlgSpec(
+        name="screenrasters", display="2-D change screen (two orthoimages)", group=GROUP_CHANGE[0],
+        group_id=GROUP_CHANGE[1], command=("screen",),
+        short_help="The 2-D change screen of two georeferenced images (orthoimages; the second is resampled onto "
+                   "the first's grid; different band counts are compared in grey). The threshold comes from a "
+                   "no-change pair of images, a labelled pair, or a fixed value.",
+        params=(
+            Param("A", "raster", "Image of the earlier date"),
+            Param("B", "raster", "Image of the later date"),
+            _out_folder(),
+            *_SCREEN_PARAMS,
+            Param("NOCHANGE", "rasters", "No-change pair (two images of one date, same area)", cli="--nochange",
+                  optional=True),
+        ),
+        outputs=(
+            Output("dissimilarity", "DISSIMILARITY", "raster", "Dissimilarity (2-D screen)"),
+            Output("change_mask", "CHANGE_MASK", "raster", "Change mask (2-D screen)"),
+            Output("changes", "CHANGES", "vector", "Changed regions (2-D screen)", layers=("changes",)),
+            Output("summary", "SUMMARY", "file", "Summary (JSON)", load=False),
+        ),
+        tags=("change detection", "screening", "2d", "orthoimage")),
     AlgSpec(
         name="consistency", display="Self-consistency model from pair-DEMs", group=GROUP_CHANGE[0],
         group_id=GROUP_CHANGE[1], command=("consistency",),
