@@ -51,6 +51,8 @@ class LazyGroup(click.Group):
     def invoke(self, ctx):
         debug = ctx.params.get("debug", False)
         mode = ctx.params.get("progress", "bar")
+        from .._jit import install_compile_notice
+        install_compile_notice(json_lines=mode == "json")
         try:
             return super().invoke(ctx)
         except GeoCDError as exc:
