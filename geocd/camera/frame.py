@@ -419,9 +419,16 @@ class FrameCamera(Camera):
         K.frame_undistort(col.ravel(), row.ravel(), self._params, float(tol), int(max_iter), xn, yn)
         return xn.reshape(col.shape), yn.reshape(col.shape)
 
-    def rays_world(self, col: Any, row: Any) -> np.ndarray:
-        """Unit-free world directions ``(3, ...)`` of the rays through pixels (OpenCV z = 1 scaling)."""
-        xn, yn = self.undistort(col, row)
+    def rays_world(self, col: Any, row: Any, *, reference: bool = False) -> np.ndarray:
+        """Unit-free world directions ``(3, ...)`` of the rays through pixels (OpenCV z = 1 scaling).
+
+        ``reference``: undistort with the numpy reference (no kernel compile; a few points).
+        """
+        if reference:
+            col, row = _as_f64(col, row)
+            xn, yn = K.undistort_ref(col, row, self._params, n_iter=200)
+        else:
+            xn, yn = self.undistort(col, row)
         return np.tensordot(self._rot, np.stack([xn, yn, np.ones_like(xn)]), axes=1)
 
     def localize_world(self, col: Any, row: Any, z: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -453,7 +460,15 @@ class FrameCamera(Camera):
         z = h - self.undulation(lon, lat)
         return self.dproj_dz_world(x, y, z)
 
-    def localize(self, col, row, h, *, tol_m: float = 1e-5, max_iter: int = 10):
+    def localize_reference(self, col, row, h):
+        return self.localize(col, row, h, reference=True)
+
+    def dproj_dh_reference(self, lon, lat, h):
+        lon, lat, h = _as_f64(lon, lat, h)
+        x, y = from_lonlat(lon, lat, self.crs)
+        return K.dproj_dz_ref(x, y, h - self.undulation(lon, lat), self._params)
+
+    def localize(self, col, row, h, *, tol_m: float = 1e-5, max_iter: int = 10, reference: bool = False):
         """Pixels + ellipsoidal height → (lon, lat): the undistorted ray meets the height surface.
 
         The surface ``h`` (ellipsoidal) is ``z = h - N(lon, lat)`` in the camera
@@ -463,7 +478,7 @@ class FrameCamera(Camera):
         Rays that do not reach the surface (pointing upwards) give NaN.
         """
         col, row, h = _as_f64(col, row, h)
-        d = self.rays_world(col, row)
+        d = self.rays_world(col, row, reference=reference)
         if self.vertical_datum == ELLIPSOID:
             x, y = self._intersect(d, h)
             return to_lonlat(x, y, self.crs)

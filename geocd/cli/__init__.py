@@ -90,6 +90,9 @@ class LazyGroup(click.Group):
 
         debug = ctx.params.get("debug", False)
         mode = (ctx.obj or {}).get("progress_mode") or ctx.params.get("progress")
+        from .._jit import install_compile_notice
+
+        install_compile_notice(json_lines=mode == "json")
 
         def report(kind: str, message: str) -> None:
             if mode == "json":

@@ -531,12 +531,12 @@ def refine_search(planes: dict[str, np.ndarray], lo_f: np.ndarray, hi_f: np.ndar
                   step_coarse: float, step_fine: float, params: StereoParams) -> HeightSearch:
     """Narrow the fine level's search around a coarse level's heights (5×5 min/max ± margin)."""
     z = planes["z_raw"]
+    m = params.refine_margin_steps * step_coarse
     usable = np.isfinite(z) & (planes["best_c"] < 0.8)
     if not usable.any():
         return HeightSearch(lo_f, hi_f, step_fine)
     zf = _fill_nearest(np.where(usable, z, np.nan))
     zf = ndimage.median_filter(zf, size=3, mode="nearest")
-    m = params.refine_margin_steps * step_coarse
     w = 5
     lo_c = ndimage.minimum_filter(zf, size=w, mode="nearest") - m
     hi_c = ndimage.maximum_filter(zf, size=w, mode="nearest") + m
