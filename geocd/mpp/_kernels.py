@@ -616,7 +616,8 @@ def snap_rects_ref(rects, mag, ori, thresh, smin, smax) -> np.ndarray:
 @njit(cache=True)
 def snap_rects_height(rects, ndsm, min_h, smin, smax):
     """Like :func:`snap_rects` on a height map: from a raised centre (``ndsm > min_h``), each side moves to
-    where the surface first drops to ``min_h`` or below (or has no height) along its axis. Rectangles born on
+    where the surface first drops to half the centre's height (at least ``min_h``; the half-height crossing
+    locates a wall that stereo blurs over a few cells) or has no height, along its axis. Rectangles born on
     low ground are left as they are. Returns the number changed."""
     H, W = ndsm.shape
     changed = 0
@@ -626,6 +627,7 @@ def snap_rects_height(rects, ndsm, min_h, smin, smax):
         j0 = int(round(cx))
         if i0 < 0 or j0 < 0 or i0 >= H or j0 >= W or not ndsm[i0, j0] > min_h:
             continue
+        level = max(min_h, 0.5 * ndsm[i0, j0])
         c = math.cos(th)
         s = math.sin(th)
         hit = False
@@ -642,7 +644,7 @@ def snap_rects_height(rects, ndsm, min_h, smin, smax):
                     i = int(round(cy + sg * t * dr))
                     if i < 0 or j < 0 or i >= H or j >= W:
                         break
-                    if not ndsm[i, j] > min_h:
+                    if not ndsm[i, j] > level:
                         ends[k] = sg * (t - 0.5)
                         found += 1
                         break
@@ -671,6 +673,7 @@ def snap_rects_height_ref(rects, ndsm, min_h, smin, smax) -> np.ndarray:
         i0, j0 = int(np.round(cy)), int(np.round(cx))
         if not (0 <= i0 < H and 0 <= j0 < W) or not ndsm[i0, j0] > min_h:
             continue
+        level = max(min_h, 0.5 * ndsm[i0, j0])
         c, s = np.cos(th), np.sin(th)
         for ax in range(2):
             d = np.array([c, -s]) if ax == 0 else np.array([s, c])
@@ -683,7 +686,7 @@ def snap_rects_height_ref(rects, ndsm, min_h, smin, smax) -> np.ndarray:
                 stop = np.argmin(inside) if not inside.all() else t.size
                 i, j, t = i[:stop], j[:stop], t[:stop]
                 with np.errstate(invalid="ignore"):
-                    low = ~(ndsm[i, j] > min_h)
+                    low = ~(ndsm[i, j] > level)
                 if low.any():
                     ends.append(sg * (t[np.argmax(low)] - 0.5))
             if len(ends) == 2 and smin <= ends[0] - ends[1] <= smax:
@@ -691,4 +694,87 @@ def snap_rects_height_ref(rects, ndsm, min_h, smin, smax) -> np.ndarray:
                 cx, cy = cx + mid * d[0], cy + mid * d[1]
                 out[r, 2 + ax] = ends[0] - ends[1]
         out[r, 0], out[r, 1] = cx, cy
+    return out
+
+
+@njit(cache=True)
+def refine_sides(rects, mag, ori, reach, n_along):
+    """Move each side of each rectangle (in place), within ±``reach`` cells of where it is, to the offset
+    where the mean gradient across the side (``mag · |cos(ori − normal)|`` at ``n_along`` points along its
+    middle 80 %, nearest cell) is strongest: a height map's blurred walls put the sides within a few cells,
+    the image's edges put them on the walls. Half-cell steps; sizes stay ≥ 2 cells."""
+    H, W = mag.shape
+    nsteps = int(2 * reach / 0.5) + 1
+    for r in range(rects.shape[0]):
+        cx, cy, eL, el, th = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3], rects[r, 4]
+        c = math.cos(th)
+        s = math.sin(th)
+        # side k: 0 = +u end, 1 = −u end (normal along the e_L axis), 2 = +v, 3 = −v (normal along e_l)
+        pos = np.array([0.5 * eL, -0.5 * eL, 0.5 * el, -0.5 * el])
+        for k in range(4):
+            if k < 2:
+                nc, nr, tc, tr, half_len, ang = c, -s, s, c, 0.5 * el, th
+            else:
+                nc, nr, tc, tr, half_len, ang = s, c, c, -s, 0.5 * eL, th + 0.5 * math.pi
+            best = -1.0
+            best_d = 0.0
+            for q in range(nsteps):
+                d = -reach + 0.5 * q
+                p = pos[k] + d
+                acc = 0.0
+                cnt = 0
+                for a in range(n_along):
+                    f = -0.8 + 1.6 * a / max(n_along - 1, 1)
+                    x = cx + p * nc + f * half_len * tc
+                    y = cy + p * nr + f * half_len * tr
+                    j = int(round(x))
+                    i = int(round(y))
+                    if 0 <= i < H and 0 <= j < W:
+                        acc += mag[i, j] * abs(math.cos(ori[i, j] - ang))
+                        cnt += 1
+                if cnt > 0 and acc / cnt > best + 1e-12:
+                    best = acc / cnt
+                    best_d = d
+            pos[k] += best_d
+        if pos[0] - pos[1] >= 2.0 and pos[2] - pos[3] >= 2.0:
+            mu = 0.5 * (pos[0] + pos[1])
+            mv = 0.5 * (pos[2] + pos[3])
+            rects[r, 0] = cx + mu * c + mv * s
+            rects[r, 1] = cy - mu * s + mv * c
+            rects[r, 2] = pos[0] - pos[1]
+            rects[r, 3] = pos[2] - pos[3]
+
+
+def refine_sides_ref(rects, mag, ori, reach, n_along) -> np.ndarray:
+    """numpy reference of :func:`refine_sides` (returns a refined copy)."""
+    out = rects.copy()
+    H, W = mag.shape
+    offs = -reach + 0.5 * np.arange(int(2 * reach / 0.5) + 1)
+    f = -0.8 + 1.6 * np.arange(n_along) / max(n_along - 1, 1)
+    for r in range(out.shape[0]):
+        cx, cy, eL, el, th = out[r]
+        c, s = np.cos(th), np.sin(th)
+        pos = np.array([0.5 * eL, -0.5 * eL, 0.5 * el, -0.5 * el])
+        for k in range(4):
+            if k < 2:
+                n_, t_, half_len, ang = (c, -s), (s, c), 0.5 * el, th
+            else:
+                n_, t_, half_len, ang = (s, c), (c, -s), 0.5 * eL, th + np.pi / 2
+            scores = []
+            for d in offs:
+                p = pos[k] + d
+                j = np.round(cx + p * n_[0] + f * half_len * t_[0]).astype(int)
+                i = np.round(cy + p * n_[1] + f * half_len * t_[1]).astype(int)
+                ok = (i >= 0) & (i < H) & (j >= 0) & (j < W)
+                scores.append(np.mean(mag[i[ok], j[ok]] * np.abs(np.cos(ori[i[ok], j[ok]] - ang))) if ok.any() else -np.inf)
+            scores = np.array(scores)
+            best, best_d = -1.0, 0.0
+            for d, sc in zip(offs, scores):
+                if np.isfinite(sc) and sc > best + 1e-12:
+                    best, best_d = sc, d
+            pos[k] += best_d
+        if pos[0] - pos[1] >= 2.0 and pos[2] - pos[3] >= 2.0:
+            mu, mv = 0.5 * (pos[0] + pos[1]), 0.5 * (pos[2] + pos[3])
+            out[r, 0], out[r, 1] = cx + mu * c + mv * s, cy - mu * s + mv * c
+            out[r, 2], out[r, 3] = pos[0] - pos[1], pos[2] - pos[3]
     return out

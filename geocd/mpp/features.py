@@ -243,8 +243,14 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             ndsm = (d - gr).astype(np.float32)
-        raised = ndimage.uniform_filter(np.nan_to_num(ndsm, nan=0.0) > params.min_height_m,
-                                        size=max(3, win // 2) | 1, mode="constant").astype(np.float32)
+        # a median over half the smallest building side removes stereo pits and spikes smaller than any
+        # building (holes stay holes)
+        k = max(3, int(round(0.5 * params.side_min_m / posting_m)) | 1)
+        has = np.isfinite(ndsm)
+        med = ndimage.median_filter(np.where(has, ndsm, 0.0), size=k, mode="nearest")
+        ndsm = np.where(has, med, np.nan).astype(np.float32)
+        raised = ndimage.uniform_filter((np.nan_to_num(ndsm, nan=0.0) > params.min_height_m).astype(np.float32),
+                                        size=max(3, win // 2) | 1, mode="constant")
         if raised[ok].mean() > 0:
             births.append(raised / float(raised[ok].mean()))
     birth = np.max(np.stack(births), axis=0)

@@ -341,8 +341,12 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
                     fk = f[k]
                     sub = np.ascontiguousarray(new_rects[sel])
                     if fk.ndsm is not None:
+                        # extents from the height map, then each side onto the image's strongest edge within
+                        # the width of a stereo DSM's blurred walls (the outer ring, 2 m)
                         K.snap_rects_height(sub, fk.ndsm, float(params.min_height_m), float(model.smin),
                                             float(model.smax))
+                        K.refine_sides(sub, fk.grad_mag, fk.grad_ori, float(model.ring_w), 9)
+                        sub[:, 2:4] = np.clip(sub[:, 2:4], model.smin, model.smax)
                     else:
                         K.snap_rects(sub, fk.grad_mag, fk.grad_ori, float(fk.edge_level), float(model.smin),
                                      float(model.smax))

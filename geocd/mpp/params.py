@@ -67,7 +67,8 @@ class MPPParams(ParamsMixin):
         step — local refinement inside multiple birth and death
     snap_births : beyond the paper: this share of the births has its sides moved onto the nearest strong edges
         (top decile of the gradient magnitude) seen from its centre along its axes — or, with the height
-        term, onto where the height above ground drops below ``min_height_m``; 0 = the paper's uniform sides
+        term, onto the half-height crossings of the height map around a raised centre, each side then moved
+        onto the strongest image edge within ``ring_m``; 0 = the paper's uniform sides
     beta0, beta_factor, delta0, delta_factor : annealing schedules
     max_iter, min_iter : iteration cap and floor
     seed : random seed (same seed, same inputs → same objects)
@@ -76,7 +77,7 @@ class MPPParams(ParamsMixin):
 
     _kind = "mpp"
 
-    side_min_m: float = 4.0
+    side_min_m: float = 6.0
     side_max_m: float = 30.0
     window_m: float | None = None
     orient_bins: int = 36

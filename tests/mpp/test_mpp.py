@@ -126,3 +126,7 @@ def test_snap_kernels_match_references():
     n = K.snap_rects_height(b, f.ndsm, 2.5, 8.0, 60.0)
     np.testing.assert_allclose(b, K.snap_rects_height_ref(rects, f.ndsm, 2.5, 8.0, 60.0))
     assert n > 5
+    c = b.copy()
+    K.refine_sides(c, f.grad_mag, f.grad_ori, 4.0, 9)
+    np.testing.assert_allclose(c, K.refine_sides_ref(b, f.grad_mag, f.grad_ori, 4.0, 9), atol=1e-9)
+    assert np.abs(c - b).max() > 0.4
