@@ -120,15 +120,19 @@ class _StopAfter:
             raise CancelledError("stop")
 
 
-def test_cancel_then_resume_redoes_only_unfinished_tiles(tmp_path):
+@pytest.mark.parametrize("scheduler", ["sync", "threads"])
+def test_cancel_then_resume_redoes_only_unfinished_tiles(tmp_path, scheduler):
     g = _grid()
     a = _field(g)
-    kw = dict(overlap_cells=RADIUS, tile_size=(48, 40), out=tmp_path, stage="focal", scheduler="sync")
+    kw = dict(overlap_cells=RADIUS, tile_size=(48, 40), out=tmp_path, stage="focal")
+    prod = {"f": RasterProduct(str(tmp_path / "f.tif"), ("f",))}
     with pytest.raises(CancelledError):
-        run_tiled(focal_tile, g, {"x": ArraySource(a)}, progress=_StopAfter(6), **kw)
-    run = run_tiled(focal_tile, g, {"x": ArraySource(a)}, **kw)
-    # the tile finished when the cancel came is kept (6 of 20)
-    assert run.n_resumed == 6 and run.n_tiles == 20
+        run_tiled(focal_tile, g, {"x": ArraySource(a)}, progress=_StopAfter(6), scheduler=scheduler, products=prod,
+                  **kw)
+    assert not (tmp_path / "f.tif").exists()
+    run = run_tiled(focal_tile, g, {"x": ArraySource(a)}, scheduler="sync", products=prod, **kw)
+    # the tiles finished when the cancel came are kept (6 of 20 in order; threads: those that had finished)
+    assert (run.n_resumed == 6 if scheduler == "sync" else 6 <= run.n_resumed < 20) and run.n_tiles == 20
     np.testing.assert_array_equal(run.read("f"), focal(a))
     # a changed command (other input) does not reuse the tiles
     run2 = run_tiled(focal_tile, g, {"x": ArraySource(a + 1)}, **kw)
