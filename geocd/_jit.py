@@ -9,6 +9,8 @@ so only a command's first run on a machine pays for it. The CLI calls
 from __future__ import annotations
 
 import atexit
+import importlib.abc
+import importlib.util
 import json
 import sys
 import time
@@ -21,27 +23,66 @@ def compile_seconds() -> float:
     return float(_state["seconds"])
 
 
+class _AfterNumbaImport(importlib.abc.MetaPathFinder):
+    """Runs a callback once numba has been imported, so a command that never needs numba never imports it."""
+
+    def __init__(self, callback):
+        self.callback = callback
+
+    def find_spec(self, name, path, target=None):
+        if name != "numba":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None:
+            return spec
+        loader, callback = spec.loader, self.callback
+        exec_module = loader.exec_module
+
+        def exec_then_install(module):
+            exec_module(module)
+            callback()
+
+        loader.exec_module = exec_then_install
+        return spec
+
+
 def install_compile_notice(stream=None, *, json_lines: bool = False) -> None:
     """Print one line when the first numba compilation of this process starts, and a summary at exit.
 
+    Imports nothing: when numba is not imported yet, the notice is installed right after its import.
     ``json_lines``: as ``{"type": "info", "message": ...}`` lines (the QGIS plugin's protocol).
     """
+    if _state["installed"] or _state.get("pending"):
+        return
+    if "numba" not in sys.modules:
+        _state["pending"] = True
+        sys.meta_path.insert(0, _AfterNumbaImport(lambda: _install(stream, json_lines)))
+        return
+    _install(stream, json_lines)
+
+
+def _install(stream, json_lines: bool) -> None:
     if _state["installed"]:
         return
     from numba.core import event
-
-    stream = stream if stream is not None else sys.stderr
 
     class _Out:
         @staticmethod
         def write(msg: str) -> None:
             if json_lines:
                 msg = json.dumps({"type": "info", "message": msg.strip().removeprefix("geocd: ")}) + "\n"
-            stream.write(msg)
+            try:
+                (stream if stream is not None else sys.stderr).write(msg)
+            except (ValueError, OSError):  # the stream was closed before the exit summary
+                pass
 
         @staticmethod
         def flush() -> None:
-            stream.flush()
+            try:
+                (stream if stream is not None else sys.stderr).flush()
+            except (ValueError, OSError):
+                pass
 
     out = _Out()
 

@@ -103,6 +103,10 @@ class Camera(ABC):
         """Inverse of :meth:`to_dict`."""
 
     # --- pure-numpy paths for a few points (summaries): no kernel compile ----------------
+    def project_reference(self, lon: ArrayLike, lat: ArrayLike, h: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`project` by a plain numpy path, for a few points (see :meth:`localize_reference`)."""
+        return self.project(lon, lat, h)
+
     def localize_reference(self, col: ArrayLike, row: ArrayLike, h: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`localize` by a plain numpy path, for a few points where compiling the numba
         kernels would cost more than the work (``geocd info``'s footprint); default: :meth:`localize`."""

@@ -296,6 +296,12 @@ class RPCModel(Camera):
         out = (lon.reshape(shape), lat.reshape(shape))
         return (*out, its.reshape(shape)) if return_iterations else out
 
+    def project_reference(self, lon, lat, h):
+        """:meth:`project` in numpy (:func:`_kernels.project_ref`; no compile), few points."""
+        shape, (lon, lat, h) = _flat_f64(lon, lat, h)
+        col, row = K.project_ref(lon, lat, h, self._coefs, self._norm_px)
+        return col.reshape(shape), row.reshape(shape)
+
     def localize_reference(self, col, row, h):
         """:meth:`localize` by plain Newton in numpy (:func:`_kernels.localize_ref`; no compile), few points."""
         shape, (col, row, h) = _flat_f64(col, row, h)

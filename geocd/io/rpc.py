@@ -260,7 +260,7 @@ def check_rpc_plausible(model: RPCModel, path: os.PathLike | str | None = None) 
                        f"(|c| > {MAX_ABS_COEFFICIENT:g})")
     if not bad:
         with np.errstate(all="ignore"):
-            c, r = model.project(model.lon_off, model.lat_off, model.height_off)
+            c, r = model.project_reference(model.lon_off, model.lat_off, model.height_off)  # no compile
         if not (np.isfinite(c) and np.isfinite(r) and abs(float(c)) < 1e9 and abs(float(r)) < 1e9):
             bad.append(f"the model's own centre projects to a non-finite pixel ({float(c):g}, {float(r):g})")
     if bad:
