@@ -132,11 +132,16 @@ def _truth_scores(out: Path, scene: Path) -> dict | None:
 
 
 def bench_tiered(scene: str, model: str | None, work: Path) -> dict:
-    sc = Path(scene)
     extra = ["--model", model] if model else []
     full, tier = work / "full", work / "tiered"
     r_full = _run(["run", scene, "--out", str(full), *extra])
     r_tier = _run(["run", scene, "--out", str(tier), "--screen", *extra])
+    return compare(scene, model, full, tier, r_full, r_tier)
+
+
+def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict, r_tier: dict) -> dict:
+    """Speed-up and detections lost between a full and a tiered run's output folders."""
+    sc = Path(scene)
     a, b = _regions(full), _regions(tier)
     lost = a[~a.geometry.intersects(b.unary_union)] if len(b) else a
     s = json.loads((tier / "run_summary.json").read_text())["screen"]
@@ -155,7 +160,11 @@ def bench_tiered(scene: str, model: str | None, work: Path) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["features", "tiered"])
+    ap.add_argument("what", choices=["features", "tiered", "compare"])
+    ap.add_argument("--full-dir", type=Path, help="compare: the full run's output folder")
+    ap.add_argument("--tiered-dir", type=Path, help="compare: the tiered run's output folder")
+    ap.add_argument("--full-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
+    ap.add_argument("--tiered-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
     ap.add_argument("scene", nargs="?", default="sample_aoi")
     ap.add_argument("--model", default=None)
     ap.add_argument("--work", type=Path, default=Path("/tmp/geocd_bench_screen"))
@@ -164,6 +173,11 @@ def main(argv=None) -> int:
     doc = json.loads(a.out.read_text()) if a.out.exists() else {}
     if a.what == "features":
         doc["features"] = bench_features()
+    elif a.what == "compare":  # two runs made by hand (e.g. in parallel on a loaded machine) with their timings
+        key = Path(a.scene).stem if Path(a.scene).suffix else Path(a.scene).name
+        doc.setdefault("tiered", {})[key] = compare(
+            a.scene, a.model, a.full_dir, a.tiered_dir, {"wall_s": a.full_time[0], "cpu_s": a.full_time[1]},
+            {"wall_s": a.tiered_time[0], "cpu_s": a.tiered_time[1]})
     else:
         w = a.work / Path(a.scene).stem
         doc.setdefault("tiered", {})[Path(a.scene).stem if Path(a.scene).suffix else Path(a.scene).name] = \

@@ -265,6 +265,60 @@ def eval_sample(specs, sps, shifts, views: Path, log) -> list[dict]:
 NULLS: dict = {}
 
 
+def render(doc: dict) -> str:
+    """The tables of docs/screen.md from the JSON."""
+    rows = doc["rows"]
+    feats = list(dict.fromkeys(r["feature"] for r in rows))
+
+    def get(st, f, sp="felzenszwalb", sh=0):
+        return next((r for r in rows if r["set"] == st and r["feature"] == f and r["superpixels"] == sp
+                     and r["shift_px"] == sh), None)
+
+    out = ["**LEVIR-CD, 4 changed pairs (train_386 = the no-change control), Felzenszwalb, no shift** — pooled "
+           "pixel F1",
+           "",
+           "| feature | no-change rule (t per pair) | bare 99 % quantile | labelled, leave one out | oracle (t) | "
+           "control false alarms |", "|---|---|---|---|---|---|"]
+    for f in feats:
+        r = get("levir", f)
+        if r:
+            ts = r.get("t_nochange_split", [])
+            out.append(f"| {f} | {r['f1_nochange']:.3f} ({min(ts):.2f}–{max(ts):.2f}) | {r['f1_nochange_quantile']:.3f} "
+                       f"| {r['f1_labelled_loo']:.3f} | {r['f1_oracle']:.3f} ({r['t_oracle']:.2f}) | "
+                       f"{100 * r['control_false_alarm']:.1f} % |")
+    out += ["", "**sample_aoi, A_sat1 → B_sat1 on the terrain DEM, threshold from B_sat1/B_sat2, Felzenszwalb, no "
+                "shift** — pixel F1 against 2-D/3-D object change (3-D change ∪ repainted roofs) and 3-D change alone",
+            "", "| feature | F1 (P / R) | t | F1 3-D | bare quantile F1 | oracle F1 (t) | oracle F1 3-D | changed |",
+            "|---|---|---|---|---|---|---|---|"]
+    for f in feats:
+        r = get("sample_aoi", f)
+        if r:
+            out.append(f"| {f} | {r['f1_nochange']:.3f} ({r['precision_nochange']:.2f} / {r['recall_nochange']:.2f}) | "
+                       f"{r['t_nochange']:.2f} | {r['f1_nochange_3d']:.3f} | {r['f1_nochange_quantile']:.3f} | "
+                       f"{r['f1_oracle']:.3f} ({r['t_oracle']:.2f}) | {r['f1_oracle_3d']:.3f} | "
+                       f"{100 * r['changed_fraction']:.1f} % |")
+    out += ["", "**Superpixels** (no shift): LEVIR labelled leave-one-out F1 / sample_aoi no-change-rule F1",
+            "", "| feature | Felzenszwalb | SLIC | none |", "|---|---|---|---|"]
+    for f in feats:
+        cells = []
+        for sp in SUPERPIXELS:
+            a, b = get("levir", f, sp), get("sample_aoi", f, sp)
+            cells.append(f"{a['f1_labelled_loo']:.3f} / {b['f1_nochange']:.3f}" if a and b else
+                         (f"{a['f1_labelled_loo']:.3f} / –" if a else "–"))
+        out.append(f"| {f} | " + " | ".join(cells) + " |")
+    out += ["", "**Misregistration** (B shifted by 0 / 2 / 4 px at 30°, Felzenszwalb): LEVIR labelled "
+                "leave-one-out F1; sample_aoi no-change-rule F1 (the threshold and the null pair unshifted)",
+            "", "| feature | LEVIR 0 | 2 | 4 | sample_aoi 0 | 2 | 4 |", "|---|---|---|---|---|---|---|"]
+    for f in feats:
+        cells = []
+        for st, key in (("levir", "f1_labelled_loo"), ("sample_aoi", "f1_nochange")):
+            for sh in SHIFTS:
+                r = get(st, f, "felzenszwalb", sh)
+                cells.append(f"{r[key]:.3f}" if r else "–")
+        out.append(f"| {f} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=Path, default=Path("/tmp/screen_views"))
@@ -272,7 +326,11 @@ def main(argv=None) -> int:
     ap.add_argument("--sets", default="levir,sample_aoi")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--features", default=None, help="comma-separated labels to run (default all)")
+    ap.add_argument("--markdown", action="store_true", help="print the tables of --out and stop")
     a = ap.parse_args(argv)
+    if a.markdown:
+        print(render(json.loads(a.out.read_text())))
+        return 0
     specs = feature_specs(a.quick, a.views / "weights")
     if a.features:
         keep = a.features.split(",")
