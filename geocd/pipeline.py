@@ -30,7 +30,7 @@ from .progress import Progress, ensure_progress, sub_progress
 
 
 #: what ``geocd run`` writes into its output folder (globs, relative to it): see geocd.io.outputs.open_outputs
-PRODUCTS = ("sc_*", "stereo/*", "self_consistency_model.json", "run_config.json", "run_summary.json")
+PRODUCTS = ("sc_*", "stereo/*", "screen/*", "self_consistency_model.json", "run_config.json", "run_summary.json")
 
 
 def _stereo_params_cls():
@@ -62,6 +62,10 @@ class RunConfig:
     derive_buildings : bool
         Without footprints, derive building objects from epoch A's DSM (and new ones from epoch B's) and
         classify their damage (:mod:`geocd.change.dsm_buildings`); with footprints, the damage layer uses them.
+    screen : ScreenParams, optional
+        Run the 2-D screen first and the stereo only on the tiles it flags (:mod:`geocd.screen.tiered`).
+    screen_tile_cells : int
+        Side of the screen's tiles (cells).
     """
 
     stereo: Any = field(default_factory=lambda: _stereo_params_cls()())
@@ -75,12 +79,15 @@ class RunConfig:
     epoch_b: str | None = None
     pairs: str = "same-kind"
     derive_buildings: bool = True
+    screen: Any = None
+    screen_tile_cells: int = 128
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         d["stereo"] = self.stereo.to_dict()
         for k in ("consistency", "change", "buildings"):
             d[k] = dataclasses.asdict(getattr(self, k))
+        d["screen"] = self.screen.to_dict() if self.screen is not None else None
         return d
 
     @classmethod
@@ -92,6 +99,10 @@ class RunConfig:
         kw = dict(d)
         if "stereo" in kw:
             kw["stereo"] = _stereo_params_cls().from_dict(kw["stereo"])
+        if kw.get("screen") is not None:
+            from .screen import ScreenParams
+
+            kw["screen"] = ScreenParams.from_dict(dict(kw["screen"]))
         for k, c in (("consistency", ConsistencyParams), ("change", ChangeParams), ("buildings", BuildingParams)):
             if k in kw:
                 sub = dict(kw[k])
@@ -247,15 +258,31 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
     if orientation is None:
         _check_epochs_overlap(m)
     prog(0.1, "stereo")
-    st = run_stereo(m, epochs=stereo_epochs, out_dir=out, params=config.stereo, posting_m=config.posting_m,
-                    keep_arrays=True, pairs=config.pairs, orient=False,
-                    progress=sub_progress(prog, 0.1, 0.75, "stereo: "))
+    if config.screen is not None:  # tiered: the 2-D screen, then stereo on the flagged tiles only
+        from .screen.tiered import run_stereo_screened
+
+        st = run_stereo_screened(m, out=out, stereo_params=config.stereo, screen_params=config.screen,
+                                 epochs=stereo_epochs, pairs=config.pairs, posting_m=config.posting_m,
+                                 epoch_a=ea.name, epoch_b=eb.name, tile_cells=config.screen_tile_cells,
+                                 progress=sub_progress(prog, 0.1, 0.75, "screen + stereo: "))
+    else:
+        st = run_stereo(m, epochs=stereo_epochs, out_dir=out, params=config.stereo, posting_m=config.posting_m,
+                        keep_arrays=True, pairs=config.pairs, orient=False,
+                        progress=sub_progress(prog, 0.1, 0.75, "stereo: "))
     by_epoch: dict[str, list] = {}
     for key, pdem in st["pairs"].items():
         by_epoch.setdefault(pdem.epoch or key.split("/")[0], []).append(pdem)
-    return run_change(m, by_epoch, st["grid"], out_dir=out, config=config, model=model,
-                      progress=sub_progress(prog, 0.75, 1.0), footprints=footprints,
-                      stereo_outputs=st["outputs"], orientation=orientation)
+    res = run_change(m, by_epoch, st["grid"], out_dir=out, config=config, model=model,
+                     progress=sub_progress(prog, 0.75, 1.0), footprints=footprints,
+                     stereo_outputs=st["outputs"], orientation=orientation)
+    if "screen" in st:
+        from .io.atomic import write_text_atomic
+
+        res["summary"]["screen"] = st["screen"]
+        res["outputs"].update(st["screen_outputs"])
+        res["summary"]["outputs"].update({k: str(v) for k, v in st["screen_outputs"].items()})
+        write_text_atomic(out / "run_summary.json", json.dumps(res["summary"], indent=2, default=str))
+    return res
 
 
 def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLike | str,

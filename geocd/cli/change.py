@@ -32,9 +32,16 @@ def _confidences(values) -> tuple[float, ...]:
 @click.option("--epoch-b", default=None, help="Later epoch (default: the last).")
 @click.option("--pairs", type=click.Choice(["same-kind", "all"]), default=None,
               help="Image pairs to match: same camera kind only (default) or all.")
+@click.option("--screen", "screen", is_flag=True,
+              help="Tiered run: the fast 2-D screen first (geocd screen), stereo and the change test only on the "
+                   "tiles it flags (OUT/screen holds its layers).")
+@click.option("--screen-feature", type=click.Choice(["patch", "daisy", "randbank"]), default="patch",
+              show_default=True, help="Grid feature of the screen (--screen).")
+@click.option("--screen-tile", "screen_tile", type=int, default=128, show_default=True,
+              help="Side of the screen's tiles, cells (--screen).")
 @click.pass_context
 def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_confidence, footprints, posting_m,
-        epoch_a, epoch_b, pairs):
+        epoch_a, epoch_b, pairs, screen, screen_feature, screen_tile):
     """Full run on MANIFEST (default: sample_aoi): stereo → self-consistency baseline → change test → layers.
 
     Writes pair-DEMs (OUT/stereo), the scene-class model, change rasters (COG + QGIS styles), the changes/buildings/
@@ -65,6 +72,11 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
                  ("epoch_a", epoch_a), ("epoch_b", epoch_b), ("pairs", pairs)):
         if v is not None:
             changes[k] = v
+    if screen:
+        from ..screen import FeatureSpec, ScreenParams
+
+        changes["screen"] = ScreenParams(feature=FeatureSpec(kind=screen_feature))
+        changes["screen_tile_cells"] = int(screen_tile)
     import dataclasses
 
     cfg = dataclasses.replace(cfg, **changes)
@@ -79,6 +91,11 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
              + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items()))
     if "buildings" in s:
         sess.say("buildings: " + ", ".join(f"{n} {k}" for k, n in s["buildings"].items()))
+    if "screen" in s:
+        sc = s["screen"]
+        sess.say(f"screen ({sc['feature']}): {sc['flagged_tiles']} of {sc['tiles']} tiles flagged, stereo on "
+                 f"{100 * sc['stereo_cell_fraction']:.1f}% of the grid; screen {sc['screen_seconds']:.1f} s, "
+                 f"stereo {sc['stereo_seconds']:.1f} s")
     sess.data(**{k: s[k] for k in ("epoch_a", "epoch_b", "observed_fraction", "changed_fraction", "buildings")
                  if k in s})
     n_pairs = sum(1 for k in res["outputs"] if k.startswith("stereo:"))

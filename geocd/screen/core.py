@@ -97,6 +97,9 @@ class ScreenResult:
     excluded : uint8 bits (1 vegetation in both / either, 2 shadow)
     valid : bool, both images valid
     cell_px : int
+    unrelated_d : median distance between the descriptors of two different, random cells (of either
+        date): what "entirely different" measures with this feature on this scene. A cell changed over
+        half its area sits near or above half of it (the floor of the no-change threshold rule).
     notes : list of str
     """
 
@@ -106,7 +109,24 @@ class ScreenResult:
     excluded: np.ndarray
     valid: np.ndarray
     cell_px: int
+    unrelated_d: float = float("nan")
     notes: list[str] = field(default_factory=list)
+
+
+def unrelated_distance(xa: np.ndarray, xb: np.ndarray, valid_cells: np.ndarray | None = None, n: int = 4000,
+                       seed: int = 0) -> float:
+    """Median |x_i − x_j| over random pairs of different cells drawn from both dates' descriptors."""
+    f = np.concatenate([xa.reshape(-1, xa.shape[-1]), xb.reshape(-1, xb.shape[-1])])
+    if valid_cells is not None:
+        v = np.concatenate([valid_cells.ravel(), valid_cells.ravel()])
+        f = f[v]
+    if len(f) < 4:
+        return float("nan")
+    rng = np.random.default_rng(seed)
+    i = rng.integers(0, len(f), n)
+    j = rng.integers(0, len(f), n)
+    keep = i != j
+    return float(np.median(np.linalg.norm(f[i[keep]] - f[j[keep]], axis=1)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -347,7 +367,9 @@ def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, param
     xb = feat.extract(fb_img)
     valid = va & vb
     d_cells = cell_distance(xa, xb)
-    d_cells = np.where(cell_valid(valid, cell, params.min_valid), d_cells, np.nan).astype(np.float32)
+    cv = cell_valid(valid, cell, params.min_valid)
+    d_cells = np.where(cv, d_cells, np.nan).astype(np.float32)
+    unrelated = unrelated_distance(xa, xb, cv)
     d_pix = spread_to_pixels(d_cells, (H, W), cell, params.spread)
     d_pix = np.where(valid, d_pix, np.nan).astype(np.float32)
     if params.superpixels != "none":
@@ -375,7 +397,7 @@ def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, param
         m = (sa_ & sb_) if params.shadow == "both" else (sa_ | sb_)
         excl |= (m * EXCL_SHADOW).astype(np.uint8)
     d = np.where((excl > 0) & np.isfinite(d), 0.0, d).astype(np.float32)
-    return ScreenResult(d, d_pix, d_cells, excl, valid, cell, notes)
+    return ScreenResult(d, d_pix, d_cells, excl, valid, cell, unrelated, notes)
 
 
 def shift_image(image: np.ndarray, shift_px: float, angle_deg: float = 30.0) -> np.ndarray:

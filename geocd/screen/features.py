@@ -103,7 +103,8 @@ class RandomBankFeature:
     """A seeded bank of random zero-mean filters on an image pyramid, rectified and pooled per cell.
 
     ``n_filters`` filters of ``size`` × ``size`` (Gaussian entries, zero mean, unit norm, drawn
-    from ``seed``) are correlated with the grey image at ``scales`` pyramid levels (×1, ×½, ×¼ …);
+    from ``seed``) are correlated with the grey image at ``scales`` pyramid levels (×1, ×½, ×¼ …;
+    2 × 2 block means, so a window whose origin is a whole cell sees the same levels);
     each response gives two rectified channels (positive and negative parts), averaged over
     the cell. Dimension 2 × n_filters × scales.
     """
@@ -127,7 +128,7 @@ class RandomBankFeature:
         return f
 
     def extract(self, image: np.ndarray) -> np.ndarray:
-        from scipy.ndimage import correlate, zoom
+        from scipy.ndimage import correlate
 
         g = grey(image)
         h, w = g.shape[0] // self.cell_px, g.shape[1] // self.cell_px
@@ -148,8 +149,8 @@ class RandomBankFeature:
             if pooled.shape[:2] != (h, w):  # odd sizes at coarse levels: pad by the edge
                 pooled = np.pad(pooled, ((0, h - pooled.shape[0]), (0, w - pooled.shape[1]), (0, 0)), mode="edge")
             parts.append(pooled)
-            if s + 1 < self.scales:
-                level = zoom(level, 0.5, order=1, prefilter=False) if min(level.shape) >= 4 else level
+            if s + 1 < self.scales and min(level.shape) >= 4:  # 2 × 2 block means: the same cells in any window
+                level = cell_mean(level, 2)
         return l2_normalise(np.concatenate(parts, axis=-1))
 
 
@@ -174,7 +175,8 @@ class DaisyFeature:
 
     @property
     def context_px(self) -> int:
-        return max(self.radii()) + 1
+        # the outer ring's Gaussian (σ = radius/2, truncated at 4σ by scipy) reaches 3 radii from the centre
+        return 3 * max(self.radii()) + 2
 
     def extract(self, image: np.ndarray) -> np.ndarray:
         from skimage.feature import daisy

@@ -177,8 +177,11 @@ def screen_tile(arrays: dict, ctx) -> dict:
     res = screen_pair(na, nb, gsd_m=P["gsd_m"], params=P["params"], valid_a=va, valid_b=vb,
                       band_names_a=P["names_a"], band_names_b=P["names_b"], feature=_feature(P["params"].feature),
                       normalised=True, levels_a=P["levels_a"], levels_b=P["levels_b"])
-    return {"dissimilarity": res.dissimilarity, "grid_dissimilarity": res.grid_dissimilarity,
-            "excluded": res.excluded.astype(np.float32), "valid": res.valid.astype(np.float32)}
+    from ..tiling import TileOutput
+
+    return TileOutput(arrays={"dissimilarity": res.dissimilarity, "grid_dissimilarity": res.grid_dissimilarity,
+                              "excluded": res.excluded.astype(np.float32), "valid": res.valid.astype(np.float32)},
+                      small={"unrelated_d": res.unrelated_d, "cells": int(res.cell_dissimilarity.size)})
 
 
 @dataclass
@@ -194,6 +197,7 @@ class ScreenRun:
     overlap_px: int
     n_tiles: int
     wall_s: float
+    unrelated_d: float = float("nan")
     notes: list[str] = field(default_factory=list)
 
 
@@ -237,13 +241,15 @@ def screen_rasters(path_a: os.PathLike | str, path_b: os.PathLike | str, *, para
                     scheduler=scheduler, progress=progress)
     wall = time.perf_counter() - t0
     arr = {k: run.read(k) for k in ("dissimilarity", "grid_dissimilarity", "excluded", "valid")}
+    un = [sm["unrelated_d"] for _, sm in run.smalls() if sm and np.isfinite(sm["unrelated_d"])]
+    unrelated = float(np.median(un)) if un else float("nan")
     if out is not None:
         import shutil
 
         shutil.rmtree(run.store.root if hasattr(run.store, "root") else Path(out) / ".geocd-work" / stage,
                       ignore_errors=True)
     return ScreenRun(g, arr["dissimilarity"], arr["grid_dissimilarity"], arr["excluded"].astype(np.uint8),
-                     arr["valid"] > 0.5, c, ctxp, run.n_tiles, wall, notes)
+                     arr["valid"] > 0.5, c, ctxp, run.n_tiles, wall, unrelated, notes)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -330,7 +336,8 @@ def write_screen_products(out_dir: os.PathLike | str, sr: ScreenRun, threshold: 
             "changed_fraction": round(float(changed[ok].mean()) if ok.any() else 0.0, 5),
             "excluded_fraction": {"vegetation": round(float(((sr.excluded & 1) > 0)[ok].mean()) if ok.any() else 0, 4),
                                   "shadow": round(float(((sr.excluded & 2) > 0)[ok].mean()) if ok.any() else 0, 4)},
-            "regions": int(len(regions)), "seconds": round(sr.wall_s, 2),
+            "unrelated_d": round(float(sr.unrelated_d), 4), "regions": int(len(regions)),
+            "seconds": round(sr.wall_s, 2),
             "seconds_per_km2": round(sr.wall_s / max(g.cell_area_m2 * g.width * g.height / 1e6, 1e-12), 2),
             "notes": list(sr.notes)}
     summ.update(summary or {})
@@ -339,9 +346,12 @@ def write_screen_products(out_dir: os.PathLike | str, sr: ScreenRun, threshold: 
 
 
 def resolve_threshold(d_test: np.ndarray, *, threshold: float | None = None, null: NullDistribution | None = None,
-                      false_alarm_pct: float = 1.0, labelled: Sequence[tuple[np.ndarray, np.ndarray]] = ()
-                      ) -> tuple[float, str]:
-    """The threshold and its rule: fixed, else from labelled pairs, else from the no-change pair."""
+                      false_alarm_pct: float = 1.0, labelled: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+                      unrelated_d: float = float("nan")) -> tuple[float, str]:
+    """The threshold and its rule: fixed, else from labelled pairs, else from the no-change pair (its
+    quantile, then Otsu's split of the screened values above it: :func:`geocd.screen.threshold.split_above`)."""
+    from .threshold import split_above
+
     from .threshold import threshold_best_f1
 
     if threshold is not None:
@@ -350,7 +360,12 @@ def resolve_threshold(d_test: np.ndarray, *, threshold: float | None = None, nul
         t, f = threshold_best_f1([x[0] for x in labelled], [x[1] for x in labelled])
         return t, f"best F1 ({f:.3f}) on {len(labelled)} labelled pair(s)"
     if null is not None:
-        return null.threshold(false_alarm_pct), f"no-change pair {null.source}: {100 - false_alarm_pct:g} % quantile"
+        t = null.threshold(false_alarm_pct)
+        rule = f"no-change pair {null.source}: {100 - false_alarm_pct:g} % quantile"
+        t2 = split_above(d_test, t)
+        if t2 > t:
+            rule += f" ({t:.3f}), then Otsu's split of the values above it"
+        return float(t2), rule
     raise ConfigError("the screen needs a threshold rule: a no-change pair (--nochange A2 B2, or a manifest with two "
                       "views in one epoch), a labelled pair (--labelled A B TRUTH) or --threshold VALUE")
 
@@ -387,7 +402,7 @@ def run_screen_files(path_a, path_b, *, out: os.PathLike | str, params: ScreenPa
         truth = read_on_grid(labelled[2], lr.grid, "nearest")
         lab = [(np.where(lr.valid, lr.dissimilarity, np.nan), np.nan_to_num(truth) > 0)]
     t, rule = resolve_threshold(sr.dissimilarity, threshold=threshold, null=null, false_alarm_pct=false_alarm_pct,
-                                labelled=lab)
+                                labelled=lab, unrelated_d=sr.unrelated_d)
     prog(0.85, "writing products")
     method = f"screen {params.feature.label}"
     paths = write_screen_products(out, sr, t, rule=rule, null=null, method=method, epoch_a=epoch_a,
@@ -535,7 +550,8 @@ def run_screen_manifest(manifest, *, out: os.PathLike | str | None = None, param
                             tile_size=tile_size, scheduler=scheduler, out=o, stage="screen-nochange",
                             progress=sub_progress(prog, 0.65, 0.9, "no-change pair: "))
         null = NullDistribution.from_values(nr.dissimilarity, f"{e_nc}: {nc[0].name}/{nc[1].name}")
-    t, rule = resolve_threshold(sr.dissimilarity, threshold=threshold, null=null, false_alarm_pct=false_alarm_pct)
+    t, rule = resolve_threshold(sr.dissimilarity, threshold=threshold, null=null, false_alarm_pct=false_alarm_pct,
+                                unrelated_d=sr.unrelated_d)
     prog(0.9, "writing products")
     paths = write_screen_products(o, sr, t, rule=rule, null=null, method=f"screen {params.feature.label}",
                                   epoch_a=ea.name, epoch_b=eb.name, overwrite=overwrite,

@@ -2,8 +2,11 @@
 
 * **No-change pair** (:func:`threshold_from_nochange`): the dissimilarities of a pair known
   to hold no change (two views of one date, or a control pair) are the null distribution;
-  the threshold is its ``100 − false_alarm_pct`` percentile. The screen's confidence that a
-  cell changed is the percentile of its value in that distribution (:class:`NullDistribution`).
+  the threshold is its ``100 − false_alarm_pct`` percentile, then Otsu's split of the
+  screened pair's values above it (:func:`split_above`): the null bounds what noise does,
+  the split separates cells that changed from cells a change merely touches (the coarse
+  grid's halo). The screen's confidence that a cell changed is the percentile of its
+  value in the null (:class:`NullDistribution`).
 * **Labelled pairs** (:func:`threshold_best_f1`): the threshold of the best pooled F1 on
   pairs with truth masks (other pairs than the one screened).
 * **Fixed**: a number the user gives.
@@ -58,9 +61,29 @@ class NullDistribution:
                 "quantiles": {k: round(float(v), 4) for k, v in zip(("50", "90", "95", "99", "99.9"), q)}}
 
 
-def threshold_from_nochange(d_nochange: np.ndarray, false_alarm_pct: float = 1.0, source: str = "") -> float:
-    """The ``100 − false_alarm_pct`` percentile of a no-change pair's dissimilarities."""
-    return NullDistribution.from_values(d_nochange, source).threshold(false_alarm_pct)
+def threshold_from_nochange(d_nochange: np.ndarray, false_alarm_pct: float = 1.0, source: str = "",
+                            d_test: np.ndarray | None = None) -> float:
+    """The ``100 − false_alarm_pct`` percentile of a no-change pair's dissimilarities; with ``d_test``,
+    raised to Otsu's split of the screened pair's values above it (:func:`split_above`)."""
+    t = NullDistribution.from_values(d_nochange, source).threshold(false_alarm_pct)
+    return split_above(d_test, t) if d_test is not None else t
+
+
+def split_above(d_test: np.ndarray, t_null: float, min_n: int = 50) -> float:
+    """Otsu's split of the screened values above the null threshold (never below it).
+
+    The null threshold bounds what noise does; the values above it mix cells that changed over
+    most of their area with cells a change merely touches (the coarse grid's halo, spread to the
+    pixels and to whole superpixels). Otsu's two-class split of those values keeps the first
+    group: data-derived, no constant tuned on a truth.
+    """
+    from skimage.filters import threshold_otsu
+
+    v = np.asarray(d_test, np.float64).ravel()
+    v = v[np.isfinite(v) & (v > t_null)]
+    if v.size < min_n or np.ptp(v) <= 0:
+        return float(t_null)
+    return float(max(t_null, threshold_otsu(v)))
 
 
 def f1_scores(changed: np.ndarray, truth: np.ndarray, valid: np.ndarray | None = None) -> dict[str, float]:

@@ -466,6 +466,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   unit="%", optional=True, min=50.0, max=99.999, advanced=True, help="Default 99 %."),
             Param("CONFIG", "file", "Run configuration (YAML/JSON)", cli="--config", optional=True, advanced=True,
                   file_filter="Run configurations (*.json *.yaml *.yml)"),
+            Param("SCREEN", "bool", "Tiered: the 2-D screen first, stereo only on the tiles it flags",
+                  cli="--screen", default=False, advanced=True),
         ),
         outputs=(*_CHANGE_OUTPUTS,
                  Output("model", "MODEL_OUT", "file", "Self-consistency model (JSON)", load=False),
