@@ -16,19 +16,29 @@
    0.5 m) from the RPCs' own height range (coarse-to-fine, pointing correction): best-of-``--repeat`` wall
    time, CPU time, cell-height evaluations and evaluations per second.
 
-3. The same pair on the whole overlap of the two images (the CLI's default AOI, what CARS
-   covers), then CARS (CNES) on the pair when ``--cars PATH/TO/cars`` is given (installed in
-   its own venv, never in geocd's; flat initial elevation at the site's height, 0.5 m, no
-   geoid, 2 workers as in peers.md): wall times in the same session and the ratio.
-   Without it, peers.md's measured figure is printed, labelled as such.
+3. Time against area (in process, warm): the pair on ¼, ½ and all of the whole overlap of the
+   two images (centred sub-grids of the CLI's default AOI): wall, CPU and cell-height
+   evaluations per cell — the work per cell should not grow with the AOI.
 
-numba is warmed up (compiled or loaded from cache) before any timing. The machine is
-shared: the load average is printed with the figures, and each kernel figure is the best
-of ``--repeat`` runs, the contenders taking turns.
+4. Whole process against whole process (``--whole``): ``geocd info`` on an image, ``geocd stereo``
+   on a manifest of the pair (default AOI: the whole overlap) and ``geocd run sample_aoi``, each
+   **cold** (an empty numba cache: ``NUMBA_CACHE_DIR`` pointed at a new folder, so every kernel
+   the command uses is compiled) and then **warm** (same folder), as a user runs them; wall and
+   CPU of the process tree. With ``--cars PATH/TO/cars`` (CARS in its own venv, never in geocd's;
+   flat initial elevation at the site's height, 0.5 m, no geoid, 2 workers as in peers.md), CARS's
+   whole process on the same pair in the same run, and both final products — geocd's pair-DEM
+   and CARS's ``dsm/dsm.tif`` (not an intermediate under ``intermediate_data/``) — against s2p's
+   DSM on s2p's grid: NMAD after the median offset, fraction within 1 m, completeness on s2p's
+   valid cells.
+
+Sections 1–3 warm numba before timing; section 4 measures the cold start on purpose. The
+machine is shared: the load average is printed with the figures (compare CPU seconds and
+ratios within a run), and in-process figures are the best of ``--repeat`` runs.
 
 Usage::
 
-    .venv/bin/python bench/bench_stereo.py [--crop 160] [--planes 48] [--repeat 3] [--cars /tmp/cars-venv/bin/cars]
+    .venv/bin/python bench/bench_stereo.py [--crop 160] [--planes 48] [--repeat 3] [--whole]
+        [--cars /work/peers/cars-venv/bin/cars] [--json docs/stereo_bench.json]
 """
 
 from __future__ import annotations
@@ -36,6 +46,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -200,63 +211,149 @@ def pair_bench(grid, ref, cams, chips, repeat: int = 1) -> dict:
             "median_abs_dz_vs_s2p_m": float(np.median(np.abs(d)))}
 
 
-def full_overlap_bench(cams, chips_unused=None, repeat: int = 1) -> dict:
-    """geocd on the whole overlap of the two images (the CLI's default AOI), as CARS covers it."""
+def _overlap_images():
     from geocd.io.manifest import parse_manifest
-    from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images, read_chip
-    from geocd.stereo import match_pair
+    from geocd.stereo.pipeline import load_epoch_images
 
     m = parse_manifest({"epochs": [{"name": "pair", "images": [str(DATA / "input_pair" / "img_01.tif"),
                                                                str(DATA / "input_pair" / "img_02.tif")]}]},
                        DATA / "input_pair")
-    ims = load_epoch_images(m, m.epochs[0])
+    return m, load_epoch_images(m, m.epochs[0])
+
+
+def area_bench(repeat: int = 1, fractions=(0.25, 0.5, 1.0)) -> dict:
+    """The pair on centred sub-grids of the whole overlap (the CLI's default AOI): work per cell vs area."""
+    from geocd.stereo import match_pair
+    from geocd.stereo.pipeline import default_aoi_grid, read_chip
+
+    m, ims = _overlap_images()
     t = time.perf_counter()
-    grid = default_aoi_grid(m, {"pair": ims})
+    full = default_aoi_grid(m, {"pair": ims})
     t_aoi = time.perf_counter() - t
-    lo, hi = 2200.0, 2450.0
-    chips = [read_chip(im.path, im.camera, grid, lo, hi, name=im.name, margin_px=40) for im in ims]
-    pd, wall, cpu = best_of(lambda: match_pair(chips[0], chips[1], ims[0].camera, ims[1].camera, grid), repeat)
-    return {"grid": f"{grid.width}x{grid.height} at {grid.posting_m} m", "cells": grid.width * grid.height, "repeat": repeat,
-            "valid_cells": int(pd.valid.sum()), "aoi_s": t_aoi, "wall_s": wall, "cpu_s": cpu,
-            "evaluations": pd.meta["evaluations"]}
+    H, W = full.shape
+    out = {"aoi_s": t_aoi, "full_grid": f"{W}x{H} at {full.posting_m} m", "areas": []}
+    for frac in fractions:
+        h, w = int(round(H * np.sqrt(frac))), int(round(W * np.sqrt(frac)))
+        g = full.subgrid((H - h) // 2, (W - w) // 2, h, w)
+        chips = [read_chip(im.path, im.camera, g, 2200.0, 2450.0, name=im.name, margin_px=40) for im in ims]
+        pd, wall, cpu = best_of(lambda: match_pair(chips[0], chips[1], ims[0].camera, ims[1].camera, g), repeat)
+        cells = g.width * g.height
+        out["areas"].append({"fraction": frac, "grid": f"{g.width}x{g.height}", "cells": cells, "wall_s": wall,
+                             "cpu_s": cpu, "evaluations": pd.meta["evaluations"],
+                             "evaluations_per_cell": pd.meta["evaluations"] / cells,
+                             "wall_us_per_cell": 1e6 * wall / cells, "cpu_us_per_cell": 1e6 * cpu / cells,
+                             "valid": float(pd.valid.mean()), "levels": pd.meta["levels"],
+                             "coarse_interval_m": pd.meta.get("coarse_interval_m")})
+    return out
 
 
-def cars_bench(cars: str, grid, ref) -> dict:
-    """Run CARS on the pair (flat initial elevation at the site's height, as peers.md describes)."""
+def run_process(cmd: list[str], env: dict | None = None, cwd: Path | None = None) -> dict:
+    """Wall and CPU seconds (user + system, the whole process tree) of one command."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=cwd)
+    wall = time.perf_counter() - t
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    out = {"wall_s": wall, "cpu_s": cpu, "returncode": p.returncode}
+    if p.returncode != 0:
+        out["error_tail"] = (p.stdout + p.stderr)[-1500:]
+    notice = [ln for ln in p.stderr.splitlines() if "compil" in ln]
+    if notice:
+        out["compile_notice"] = notice
+    return out
+
+
+def cold_warm(cmd: list[str], cache: Path, cwd: Path | None = None, prepare=None) -> dict:
+    """The command with an empty numba cache (cold), then again with the cache it filled (warm)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    res = {}
+    for label in ("cold", "warm"):
+        if prepare is not None:
+            prepare()
+        res[label] = run_process(cmd, env=env, cwd=cwd)
+    res["cold_over_warm_wall"] = res["cold"]["wall_s"] / res["warm"]["wall_s"]
+    res["cold_over_warm_cpu"] = res["cold"]["cpu_s"] / max(res["warm"]["cpu_s"], 1e-9)
+    return res
+
+
+def compare_to_s2p(z: np.ndarray, z_grid, ref: np.ndarray, ref_grid) -> dict:
+    """A DSM (NaN = no height) against s2p's DSM on s2p's grid (nearest neighbour: no filling)."""
+    from geocd.io.raster import reproject_array
+
+    zz = reproject_array(np.asarray(z, np.float32), z_grid, ref_grid, "nearest").astype(np.float64)
+    have = np.isfinite(ref)
+    both = have & np.isfinite(zz)
+    d = (zz - ref)[both]
+    off = float(np.median(d))
+    e = d - off
+    return {"offset_m": off, "nmad_m": float(1.4826 * np.median(np.abs(e - np.median(e)))),
+            "median_abs_m": float(np.median(np.abs(e))), "within_1m": float(np.mean(np.abs(e) < 1.0)),
+            "completeness_on_s2p": float(both.sum() / have.sum()), "cells_compared": int(both.sum())}
+
+
+def cars_config(work: Path, h: float) -> Path:
     import rasterio
     from rasterio.transform import from_origin
 
-    work = Path(tempfile.mkdtemp(prefix="geocd_cars_"))
+    dem = work / "flat_dem.tif"
+    with rasterio.open(dem, "w", driver="GTiff", width=40, height=40, count=1, dtype="float32", crs="EPSG:4326",
+                       transform=from_origin(55.6, -21.2, 0.005, 0.005)) as ds:
+        ds.write(np.full((1, 40, 40), h, np.float32))
+    cfg = {"input": {"sensors": {n: {"image": str(DATA / "input_pair" / f"img_0{i}.tif"),
+                                     "geomodel": str(DATA / "input_pair" / f"img_0{i}.tif")}
+                                 for i, n in ((1, "left"), (2, "right"))},
+                     "pairing": [["left", "right"]], "initial_elevation": {"dem": str(dem)}},
+           "output": {"directory": str(work / "out"), "resolution": 0.5, "epsg": 32740, "geoid": False},
+           "orchestrator": {"mode": "multiprocessing", "nb_workers": 2}}
+    (work / "config.json").write_text(json.dumps(cfg, indent=1))
+    return work / "config.json"
+
+
+def whole_process_bench(ref: np.ndarray, ref_grid, cars: str | None, skip_run: bool = False) -> dict:
+    """geocd's CLI (cold and warm) and CARS, each a whole process, and their final DSMs vs s2p's."""
+    import rasterio
+
+    from geocd.geodesy import AOIGrid
+    from geocd.stereo import read_pair_dem
+
+    geocd_exe = str(Path(sys.executable).with_name("geocd"))
+    work = Path(tempfile.mkdtemp(prefix="geocd_bench_"))
+    res: dict = {}
     try:
-        h = float(np.nanmedian(ref))
-        dem = work / "flat_dem.tif"
-        with rasterio.open(dem, "w", driver="GTiff", width=40, height=40, count=1, dtype="float32", crs="EPSG:4326",
-                           transform=from_origin(55.6, -21.2, 0.005, 0.005)) as ds:
-            ds.write(np.full((1, 40, 40), h, np.float32))
-        cfg = {"input": {"sensors": {n: {"image": str(DATA / "input_pair" / f"img_0{i}.tif"),
-                                         "geomodel": str(DATA / "input_pair" / f"img_0{i}.tif")}
-                                     for i, n in ((1, "left"), (2, "right"))},
-                         "pairing": [["left", "right"]], "initial_elevation": {"dem": str(dem)}},
-               "output": {"directory": str(work / "out"), "resolution": 0.5, "epsg": 32740, "geoid": False},
-               "orchestrator": {"mode": "multiprocessing", "nb_workers": 2}}
-        (work / "config.json").write_text(json.dumps(cfg, indent=1))
-        t = time.perf_counter()
-        p = subprocess.run([cars, str(work / "config.json")], capture_output=True, text=True, cwd=work)
-        wall = time.perf_counter() - t
-        out = {"wall_s": wall, "returncode": p.returncode, "config": cfg}
-        dsms = list((work / "out").rglob("dsm*.tif"))
-        if p.returncode != 0 or not dsms:
-            out["error_tail"] = (p.stdout + p.stderr)[-2000:]
-        else:
-            out["dsm"] = str(dsms[0])
-            with rasterio.open(dsms[0]) as ds:
-                a = ds.read(1, masked=True)
-                out["dsm_grid"] = f"{ds.width}x{ds.height} at {ds.res[0]:g} m"
-                out["dsm_cells"] = int(ds.width * ds.height)
-                out["dsm_valid_cells"] = int((~np.ma.getmaskarray(a) & np.isfinite(a.filled(np.nan))).sum())
-        return out
+        res["info"] = cold_warm([geocd_exe, "info", str(DATA / "input_pair" / "img_01.tif")], work / "cache_info")
+        man = work / "pair.yaml"
+        man.write_text(json.dumps({"geocd_manifest": 1, "name": "reunion_pair", "epochs": [
+            {"name": "pair", "images": [str(DATA / "input_pair" / "img_01.tif"), str(DATA / "input_pair" / "img_02.tif")]}]}))
+        out = work / "st"
+        res["stereo"] = cold_warm([geocd_exe, "--progress", "none", "stereo", str(man), "--out", str(out)],
+                                  work / "cache_stereo")
+        pd = read_pair_dem(out / "stereo" / "pair" / "img_01__img_02.tif")
+        res["stereo"]["grid"] = f"{pd.grid.width}x{pd.grid.height} at {pd.grid.posting_m} m"
+        res["stereo"]["vs_s2p"] = compare_to_s2p(np.where(pd.valid, pd.z_m, np.nan), pd.grid, ref, ref_grid)
+        if not skip_run:
+            res["run_sample_aoi"] = cold_warm([geocd_exe, "--progress", "none", "run", str(REPO / "sample_aoi"),
+                                               "--out", str(work / "run")], work / "cache_run",
+                                              prepare=lambda: shutil.rmtree(work / "run", ignore_errors=True))
+        if cars:
+            cw = work / "cars"
+            cw.mkdir()
+            cfg = cars_config(cw, float(np.nanmedian(ref)))
+            c = run_process([cars, str(cfg)], cwd=cw)
+            final = cw / "out" / "dsm" / "dsm.tif"
+            c["dsm"] = "out/dsm/dsm.tif"
+            if c["returncode"] == 0 and final.is_file():
+                with rasterio.open(final) as ds:
+                    g = AOIGrid.from_raster(ds)
+                    a = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+                c["dsm_grid"] = f"{g.width}x{g.height} at {g.posting_m:g} m"
+                c["vs_s2p"] = compare_to_s2p(a, g, ref, ref_grid)
+            else:
+                c["error_tail"] = c.get("error_tail", "") or f"no {final}"
+            res["cars"] = c
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    return res
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -264,7 +361,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--crop", type=int, default=160)
     ap.add_argument("--planes", type=int, default=48)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--cars", default=None, help="path of a `cars` executable (its own venv)")
+    ap.add_argument("--cars", default=None, help="path of a `cars` executable (its own venv); needs --whole")
+    ap.add_argument("--whole", action="store_true", help="also the whole-process cold/warm comparisons")
+    ap.add_argument("--skip-run", action="store_true", help="with --whole: leave out geocd run sample_aoi")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = ap.parse_args(argv)
     if not DATA.is_dir():
@@ -285,28 +384,46 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  agreement: {k['agreement']}")
     p = pair_bench(grid, ref, cams, chips, args.repeat)
     res["pair"] = p
-    print(f"pair (s2p img_01/img_02, {p['grid']}, RPC height range, {p['levels']} levels): wall {p['wall_s']:.1f} s "
+    print(f"pair (s2p img_01/img_02, {p['grid']}, RPC height range, {p['levels']} levels; in process, warm): wall {p['wall_s']:.1f} s "
           f"(best of {args.repeat}), "
           f"cpu {p['cpu_s']:.1f} s, {p['evaluations'] / 1e6:.1f} M evaluations, "
           f"{p['evals_per_s_wall'] / 1e6:.2f} M evals/s; completeness {p['completeness']:.1%}, "
           f"median |dz| vs s2p {p['median_abs_dz_vs_s2p_m']:.2f} m")
-    fo = full_overlap_bench(cams, repeat=args.repeat)
-    res["pair_full_overlap"] = fo
-    print(f"pair on the whole overlap (CLI default AOI {fo['grid']}): wall {fo['wall_s']:.1f} s (+{fo['aoi_s']:.1f} s to "
-          f"place the AOI), cpu {fo['cpu_s']:.1f} s, {fo['evaluations'] / 1e6:.1f} M evaluations, "
-          f"{fo['valid_cells'] / fo['cells']:.1%} valid")
-    if args.cars:
-        c = cars_bench(args.cars, grid, ref)
-        res["cars"] = c
-        if c["returncode"] == 0 and "dsm" in c:
-            print(f"CARS (same run): wall {c['wall_s']:.1f} s, DSM {c['dsm_grid']} ({c['dsm_valid_cells'] / 1e3:.0f} k valid "
-                  f"cells) → geocd is x{c['wall_s'] / fo['wall_s']:.1f} faster on the whole overlap "
-                  f"(x{c['wall_s'] / p['wall_s']:.1f} on s2p's grid)")
-        else:
-            print(f"CARS failed (rc {c['returncode']}): {c.get('error_tail', '')[-600:]}")
-    else:
-        print("CARS not run here; peers.md measured CARS 1.3.0 on this pair at 2 min 50 s wall (2 cores) "
-              f"→ ratio x{170.0 / fo['wall_s']:.1f} on the whole overlap (different runs: indicative only)")
+    ab = area_bench(repeat=args.repeat)
+    res["area"] = ab
+    print(f"time vs area (whole overlap {ab['full_grid']}, centred sub-grids, in process, warm, best of {args.repeat}):")
+    for r in ab["areas"]:
+        print(f"  {r['fraction']:>5.2f} of it: {r['grid']:>9s} cells  wall {r['wall_s']:6.1f} s  cpu {r['cpu_s']:6.1f} s  "
+              f"{r['evaluations'] / 1e6:7.1f} M evals = {r['evaluations_per_cell']:5.0f} per cell, "
+              f"{r['cpu_us_per_cell']:5.1f} µs CPU per cell, {r['valid']:.1%} valid")
+    if args.whole:
+        w = whole_process_bench(ref, grid, args.cars, skip_run=args.skip_run)
+        res["whole_process"] = w
+        for key, label in (("info", "geocd info img_01.tif"), ("stereo", "geocd stereo (Réunion pair, whole overlap)"),
+                           ("run_sample_aoi", "geocd run sample_aoi")):
+            if key not in w:
+                continue
+            c, h = w[key]["cold"], w[key]["warm"]
+            print(f"{label}: cold {c['wall_s']:.1f} s wall / {c['cpu_s']:.1f} s CPU, warm {h['wall_s']:.1f} s wall / "
+                  f"{h['cpu_s']:.1f} s CPU (cold/warm x{w[key]['cold_over_warm_wall']:.2f} wall, "
+                  f"x{w[key]['cold_over_warm_cpu']:.2f} CPU)" + ("" if c["returncode"] == 0 and h["returncode"] == 0
+                                                               else f"  FAILED: {c.get('error_tail', h.get('error_tail'))}"))
+        v = w["stereo"]["vs_s2p"]
+        print(f"  geocd pair-DEM vs s2p on s2p's grid: NMAD {v['nmad_m']:.3f} m, within 1 m {v['within_1m']:.1%}, "
+              f"completeness {v['completeness_on_s2p']:.1%}")
+        if "cars" in w:
+            c = w["cars"]
+            if "vs_s2p" in c:
+                v = c["vs_s2p"]
+                st = w["stereo"]
+                print(f"CARS (whole process, same run): wall {c['wall_s']:.1f} s, CPU {c['cpu_s']:.1f} s; final "
+                      f"{c['dsm']} ({c['dsm_grid']}) vs s2p: NMAD {v['nmad_m']:.3f} m, within 1 m {v['within_1m']:.1%}, "
+                      f"completeness {v['completeness_on_s2p']:.1%}")
+                for lab in ("cold", "warm"):
+                    print(f"  CARS / geocd stereo {lab}: x{c['wall_s'] / st[lab]['wall_s']:.1f} wall, "
+                          f"x{c['cpu_s'] / st[lab]['cpu_s']:.1f} CPU")
+            else:
+                print(f"CARS failed (rc {c['returncode']}): {c.get('error_tail', '')[-600:]}")
     res["loadavg_end"] = os.getloadavg()
     print(f"load average start {res['loadavg_start']}, end {res['loadavg_end']} (2 cores shared)")
     if args.json:

@@ -42,9 +42,9 @@ def load_pairs(run_dir: Path):
 
 
 def truth_on(grid, path, resampling="nearest"):
-    from geocd.io.raster import read_dem
+    from geocd.io.raster import read_on_grid
 
-    return read_dem(path, grid=grid, resampling=resampling).height_m
+    return read_on_grid(path, grid, resampling=resampling)
 
 
 def cell_table(A, B, model, truth_change, levels=(90.0, 95.0, 99.0), significance="region"):

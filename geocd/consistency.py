@@ -485,8 +485,12 @@ class SelfConsistencyModel:
             raise InputFileNotFoundError(f"self-consistency model {p} does not exist; create one with `geocd consistency`")
         try:
             d = json.loads(p.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{p} is not valid JSON ({exc}); re-create it with `geocd consistency`") from exc
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{p} is not a self-consistency model (not valid JSON text: {exc}); give the JSON "
+                              "written by `geocd consistency` or a run") from exc
+        if not isinstance(d, dict):
+            raise ConfigError(f"{p} is not a self-consistency model (a JSON {type(d).__name__}); give the JSON "
+                              "written by `geocd consistency` or a run")
         return cls.from_dict(d)
 
     def curves_table(self):
@@ -723,6 +727,8 @@ class ChangeResult:
         scores, in metres; median over comparisons)
     min_region_cells : int, the minimum mapping unit used (cells)
     significance : "region" or "cell"
+    p_value : float64, the cell's combined p-value (what the region test clusters; tiled runs merge
+        regions across tiles from it)
     """
 
     dz_m: np.ndarray
@@ -739,6 +745,7 @@ class ChangeResult:
     dz_sigma_m: np.ndarray | None = None
     min_region_cells: int = 1
     significance: str = "cell"
+    p_value: np.ndarray | None = None
 
     @property
     def observed(self) -> np.ndarray:
@@ -897,7 +904,7 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
                         grid=getattr(epoch_a[0], "grid", None), confidences=tuple(levels),
                         comparisons=[f"{p.name} vs {q.name}" for p, q in comps], vertical_offsets_m=offsets,
                         cell_confidence=cell_conf, dz_sigma_m=sig_med.astype(np.float32), min_region_cells=mmu,
-                        significance=significance)
+                        significance=significance, p_value=p_cell)
 
 
 def _score_of(p: PairDEMLike, q: PairDEMLike) -> np.ndarray:

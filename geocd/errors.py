@@ -82,6 +82,10 @@ class ConfigError(GeoCDError, ValueError):
     """Parameters are inconsistent or out of range."""
 
 
+class WeightsMismatchError(ConfigError):
+    """A network weights file does not fit the backbone it was named for (the message names the parameter)."""
+
+
 # --- processing ------------------------------------------------------------------------
 class ProcessingError(GeoCDError, RuntimeError):
     """A method could not produce a result from valid-looking inputs."""
@@ -91,7 +95,27 @@ class OutputError(GeoCDError, OSError):
     """An output cannot be written (exists and must not be overwritten, no space, ...)."""
 
 
+class OutputLockedError(OutputError):
+    """Another geocd run is writing into the same output folder."""
+
+
+class DiskFullError(OutputError):
+    """No space left (or a file-size limit reached) where outputs go."""
+
+
+class ResourceError(GeoCDError, MemoryError):
+    """A job needs more memory (or disk) than the machine has; the message says how much and what to change."""
+
+
+class InternalError(GeoCDError, RuntimeError):
+    """An unexpected failure inside geocd (a bug): the message asks for a report with ``--debug``."""
+
+
 class CancelledError(GeoCDError):
     """The user cancelled a long operation (via the progress callback)."""
 
     exit_code = 130
+
+
+class SchedulerError(ProcessingError):
+    """A tiled run cannot use the scheduler it was given (unreachable, mismatched workers)."""

@@ -30,19 +30,19 @@ def camera_summary(cam, ground_h_m: float | None = None) -> dict[str, Any]:
     if getattr(cam, "source", ""):
         d["source"] = cam.source
     try:
-        fp = cam.footprint(h0)
+        fp = cam.footprint(h0, reference=True)   # numpy paths: a summary needs no compile
         d["footprint_lonlat_wkt"] = fp.wkt
         c = fp.centroid
         d["centre_lonlat"] = [round(c.x, 7), round(c.y, 7)]
         # GSD: ground distance between neighbouring pixels at the image centre
         cc = cam.image_corners().mean(axis=0)
-        lon, lat = cam.localize([cc[0], cc[0] + 1, cc[0]], [cc[1], cc[1], cc[1] + 1], [h0] * 3)
+        lon, lat = cam.localize_reference([cc[0], cc[0] + 1, cc[0]], [cc[1], cc[1], cc[1] + 1], [h0] * 3)
         f = LocalFrame(float(lon[0]), float(lat[0]), h0)
         e, n, _ = f.to_enu(lon, lat, [h0] * 3)
         d["gsd_m"] = [round(float(np.hypot(e[1] - e[0], n[1] - n[0])), 4),
                       round(float(np.hypot(e[2] - e[0], n[2] - n[0])), 4)]
         # incidence: image motion per metre of height at the centre (px/m) ~ tan(off-nadir)/gsd
-        dc, dr = cam.dproj_dh(lon[:1], lat[:1], [h0])
+        dc, dr = cam.dproj_dh_reference(lon[:1], lat[:1], [h0])
         d["dproj_dh_px_per_m"] = [round(float(dc[0]), 5), round(float(dr[0]), 5)]
         gsd = 0.5 * sum(d["gsd_m"])
         d["off_nadir_deg"] = round(float(np.degrees(np.arctan(np.hypot(dc[0], dr[0]) * gsd))), 2)
@@ -122,7 +122,7 @@ def manifest_summary(path: Path) -> dict[str, Any]:
 
     m = load_manifest(path)
     d: dict[str, Any] = {"type": "manifest", "path": str(m.path or path), "name": m.name,
-                         "scene_class": m.scene_class, "output": str(m.output), "epochs": []}
+                         "scene_class": m.scene_class, "output": str(m.output_dir()), "epochs": []}
     if m.aoi is not None:
         d["aoi"] = {"crs": m.aoi.crs, "bounds": m.aoi.bounds, "posting_m": m.aoi.posting_m}
     if m.dem is not None:

@@ -29,6 +29,10 @@ from .errors import ConfigError, ProcessingError
 from .progress import Progress, ensure_progress, sub_progress
 
 
+#: what ``geocd run`` writes into its output folder (globs, relative to it): see geocd.io.outputs.open_outputs
+PRODUCTS = ("sc_*", "stereo/*", "screen/*", "self_consistency_model.json", "run_config.json", "run_summary.json")
+
+
 def _stereo_params_cls():
     from .stereo import StereoParams
 
@@ -55,6 +59,13 @@ class RunConfig:
         Epochs to compare (default: first and last).
     pairs : str
         "same-kind" (default: satellite–satellite and aerial–aerial pairs) or "all".
+    derive_buildings : bool
+        Without footprints, derive building objects from epoch A's DSM (and new ones from epoch B's) and
+        classify their damage (:mod:`geocd.change.dsm_buildings`); with footprints, the damage layer uses them.
+    screen : ScreenParams, optional
+        Run the 2-D screen first and the stereo only on the tiles it flags (:mod:`geocd.screen.tiered`).
+    screen_tile_cells : int
+        Side of the screen's tiles (cells).
     """
 
     stereo: Any = field(default_factory=lambda: _stereo_params_cls()())
@@ -67,12 +78,16 @@ class RunConfig:
     epoch_a: str | None = None
     epoch_b: str | None = None
     pairs: str = "same-kind"
+    derive_buildings: bool = True
+    screen: Any = None
+    screen_tile_cells: int = 128
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         d["stereo"] = self.stereo.to_dict()
         for k in ("consistency", "change", "buildings"):
             d[k] = dataclasses.asdict(getattr(self, k))
+        d["screen"] = self.screen.to_dict() if self.screen is not None else None
         return d
 
     @classmethod
@@ -84,6 +99,10 @@ class RunConfig:
         kw = dict(d)
         if "stereo" in kw:
             kw["stereo"] = _stereo_params_cls().from_dict(kw["stereo"])
+        if kw.get("screen") is not None:
+            from .screen import ScreenParams
+
+            kw["screen"] = ScreenParams.from_dict(dict(kw["screen"]))
         for k, c in (("consistency", ConsistencyParams), ("change", ChangeParams), ("buildings", BuildingParams)):
             if k in kw:
                 sub = dict(kw[k])
@@ -119,6 +138,9 @@ def pick_epochs(manifest, epoch_a: str | None = None, epoch_b: str | None = None
     b = manifest.epoch(epoch_b) if epoch_b else eps[-1]
     if a.name == b.name:
         raise ConfigError(f"epoch_a and epoch_b are both {a.name!r}; pick two different epochs")
+    if a.date is not None and b.date is not None and a.date > b.date:
+        raise ConfigError(f"epoch_a {a.name!r} ({a.date}) is dated after epoch_b {b.name!r} ({b.date}): the change "
+                          "would be computed backwards; swap --epoch-a and --epoch-b, or fix the dates")
     return a, b
 
 
@@ -137,6 +159,71 @@ def _median_surface(recs: Sequence[Any]) -> np.ndarray:
         return np.nanmedian(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs]), axis=0).astype(np.float32)
 
 
+def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confidence: float, name_a: str,
+                     name_b: str):
+    """Damage layer: footprints when given, else building objects of epoch A's DSM plus B-only objects."""
+    import pandas as pd
+
+    from .change.dsm_buildings import buildings_from_dsm, classify_damage, fill_gaps, ground_model
+
+    z_a, z_b = _median_surface(recs_a), _median_surface(recs_b)
+    if not (np.isfinite(z_a).any() and np.isfinite(z_b).any()) or report_confidence not in res.confidences:
+        return None, None
+    if footprints is not None:
+        dtm, _ = ground_model(z_a, grid.posting_m)
+        bld = footprints.to_crs(grid.crs)
+        bld = bld.assign(source="footprints")
+    else:
+        bld, dtm, _ = buildings_from_dsm(z_a, grid)
+        bld = bld.assign(source=f"{name_a} DSM")
+        post, _, _ = buildings_from_dsm(z_b, grid)
+        if len(post) and len(bld):
+            from shapely.strtree import STRtree
+
+            tree = STRtree(list(bld.geometry))
+            keep = []
+            for g in post.geometry:
+                hits = tree.query(g)
+                inter = sum(g.intersection(bld.geometry.iloc[int(h)]).area for h in hits)
+                keep.append(inter < 0.3 * g.area)
+            post = post[np.asarray(keep, bool)].assign(source=f"{name_b} DSM (not in {name_a})")
+            post["building_id"] = np.arange(len(bld) + 1, len(bld) + 1 + len(post))
+            bld = pd.concat([bld, post], ignore_index=True)
+    if not len(bld):
+        return None, None
+    dtm = fill_gaps(dtm)
+    dmg = classify_damage(bld, res, grid, z_a=z_a, z_b=z_b, dtm=dtm, model=model,
+                          report_confidence=report_confidence, id_field="building_id" if "building_id" in bld else None)
+    return dmg, dtm
+
+
+def _check_epochs_overlap(m) -> None:
+    """Epochs whose images cover different places cannot be compared: a clear error before any stereo."""
+    from .geodesy import as_crs, utm_crs_for
+    from .orientation.pipeline import check_epoch_overlap
+    from .stereo.pipeline import load_epoch_images
+
+    by_epoch = {e.name: load_epoch_images(m, e) for e in m.epochs if e.images}
+    if len(by_epoch) < 2:
+        return
+    cam = next(iter(by_epoch.values()))[0].camera
+    hr = cam.height_range() or (0.0, 0.0)
+    h = 0.5 * (hr[0] + hr[1])
+    crs = as_crs(m.aoi.crs) if m.aoi is not None and m.aoi.crs else None
+    if crs is None:
+        c = cam.footprint(h).centroid
+        crs = utm_crs_for(c.x, c.y)
+    check_epoch_overlap(by_epoch, crs, h, m.aoi.bounds if m.aoi is not None and m.aoi.crs else None)
+
+
+def orientation_summary(report: dict) -> dict:
+    """The part of an orientation report a run summary carries (applied or not, why, residuals)."""
+    keys = ("applied", "reason", "model", "tracks", "observations", "before", "after", "held_out")
+    out = {k: report[k] for k in keys if k in report}
+    out["corrections_px"] = dict(zip(report.get("images", []), report.get("corrections", [])))
+    return out
+
+
 def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig = RunConfig(),
         progress: Progress | None = None, footprints: os.PathLike | str | None = None) -> dict[str, Any]:
     """Run the whole self-consistency change detection on a manifest.
@@ -150,7 +237,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
 
     prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
-    out = Path(out_dir) if out_dir is not None else Path(m.output)
+    out = Path(out_dir) if out_dir is not None else m.output_dir()
     out.mkdir(parents=True, exist_ok=True)
     ea, eb = pick_epochs(m, config.epoch_a, config.epoch_b)
     model = SelfConsistencyModel.load(config.model_path) if config.model_path else None
@@ -160,21 +247,48 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
                 f"epoch {e.name!r} has {len(e.images)} image(s) and no DEM: a stereo pair needs two images. Add an "
                 "image, or give a DEM standing for this epoch (epochs[].dem)")
     stereo_epochs = [e.name for e in m.epochs if len(e.images) >= 2]
-    prog(0.0, "stereo")
-    st = run_stereo(m, epochs=stereo_epochs, out_dir=out, params=config.stereo, posting_m=config.posting_m,
-                    keep_arrays=True, pairs=config.pairs, progress=sub_progress(prog, 0.0, 0.75, "stereo: "))
+    from .orientation import orient_manifest
+    from .stereo.pipeline import early_resource_check
+
+    early_resource_check(m, None, config.posting_m, out)  # a job too large for the machine stops before any step
+
+    prog(0.0, "relative orientation")
+    m, orientation = orient_manifest(m, out_dir=out, stereo_params=config.stereo,
+                                     progress=sub_progress(prog, 0.0, 0.1, "orientation: "))
+    if orientation is None:
+        _check_epochs_overlap(m)
+    prog(0.1, "stereo")
+    if config.screen is not None:  # tiered: the 2-D screen, then stereo on the flagged tiles only
+        from .screen.tiered import run_stereo_screened
+
+        st = run_stereo_screened(m, out=out, stereo_params=config.stereo, screen_params=config.screen,
+                                 epochs=stereo_epochs, pairs=config.pairs, posting_m=config.posting_m,
+                                 epoch_a=ea.name, epoch_b=eb.name, tile_cells=config.screen_tile_cells,
+                                 progress=sub_progress(prog, 0.1, 0.75, "screen + stereo: "))
+    else:
+        st = run_stereo(m, epochs=stereo_epochs, out_dir=out, params=config.stereo, posting_m=config.posting_m,
+                        keep_arrays=True, pairs=config.pairs, orient=False,
+                        progress=sub_progress(prog, 0.1, 0.75, "stereo: "))
     by_epoch: dict[str, list] = {}
     for key, pdem in st["pairs"].items():
         by_epoch.setdefault(pdem.epoch or key.split("/")[0], []).append(pdem)
-    return run_change(m, by_epoch, st["grid"], out_dir=out, config=config, model=model,
-                      progress=sub_progress(prog, 0.75, 1.0), footprints=footprints,
-                      stereo_outputs=st["outputs"])
+    res = run_change(m, by_epoch, st["grid"], out_dir=out, config=config, model=model,
+                     progress=sub_progress(prog, 0.75, 1.0), footprints=footprints,
+                     stereo_outputs=st["outputs"], orientation=orientation)
+    if "screen" in st:
+        from .io.atomic import write_text_atomic
+
+        res["summary"]["screen"] = st["screen"]
+        res["outputs"].update(st["screen_outputs"])
+        res["summary"]["outputs"].update({k: str(v) for k, v in st["screen_outputs"].items()})
+        write_text_atomic(out / "run_summary.json", json.dumps(res["summary"], indent=2, default=str))
+    return res
 
 
 def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLike | str,
                config: RunConfig = RunConfig(), model: SelfConsistencyModel | None = None,
                progress: Progress | None = None, footprints: os.PathLike | str | None = None,
-               stereo_outputs: dict | None = None) -> dict[str, Any]:
+               stereo_outputs: dict | None = None, orientation: dict | None = None) -> dict[str, Any]:
     """Everything of :func:`run` after the stereo: baseline, change test, buildings, products.
 
     Parameters
@@ -184,6 +298,7 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
     grid : AOIGrid
     model : a scene-class model (default: ``config.model_path``, else learned here)
     stereo_outputs : {name: path} of the pair-DEMs, listed in the outputs and summary
+    orientation : the cross-epoch relative orientation report (summarised in run_summary.json), if one was made
     """
     from .change.buildings import classify_buildings
     from .change.products import write_change_products
@@ -230,12 +345,32 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
                                        z_a=_median_surface(recs_a), z_b=_median_surface(recs_b),
                                        confidence=res.confidence, params=config.buildings, id_field=id_field,
                                        confidence_level=config.region_confidence)
-    prog(0.7, "writing products")
+    damage = ground_path = None
+    extra, extra_styles = {}, {}
+    if config.derive_buildings or fp_path is not None:
+        prog(0.7, "building damage")
+        damage, ground = _building_damage(fps if fp_path is not None else None, res, grid, recs_a, recs_b, model,
+                                          config.region_confidence, ea.name, eb.name)
+        if ground is not None:
+            from .io.raster import write_cog
+
+            ground_path = write_cog(out / "sc_ground_model.tif", {"ground_m": ground.astype(np.float32)}, grid,
+                                    tags={"method": f"progressive morphological filter of the {ea.name} DSM",
+                                          "vertical_datum": "ellipsoid"})
+        if damage is not None:
+            from .change.dsm_buildings import damage_qml
+
+            extra["building_damage"] = damage
+            extra_styles["building_damage"] = damage_qml()
+    prog(0.8, "writing products")
     paths = write_change_products(out, res, grid, method="self-consistency", epoch_a=ea.name, epoch_b=eb.name,
                                   region_confidence=config.region_confidence, model=model, buildings=buildings,
+                                  extra_layers=extra or None, extra_styles=extra_styles or None,
                                   provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
                                   prefix="sc", backdrop_m=_median_surface(recs_b))
     paths["model"] = model_path
+    if ground_path is not None:
+        paths["ground_model"] = ground_path
     paths.update({f"stereo:{k}": v for k, v in (stereo_outputs or {}).items()})
     cfg_path = write_text_atomic(out / "run_config.json", json.dumps(config.to_dict(), indent=2, default=list))
     observed = res.observed
@@ -252,6 +387,13 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
     }
     if buildings is not None:
         summary["buildings"] = buildings["class"].value_counts().to_dict()
+    if orientation is not None:
+        summary["orientation"] = orientation_summary(orientation)
+    if damage is not None:
+        summary["building_damage"] = {
+            "source": "footprints" if fp_path is not None else f"{ea.name} DSM (+ new objects of {eb.name})",
+            "classes": damage["class"].value_counts().to_dict(),
+            "volume_lost_m3": round(float(np.nansum(damage["volume_lost_m3"])), 1)}
     write_text_atomic(out / "run_summary.json", json.dumps(summary, indent=2, default=str))
     paths["config"] = cfg_path
     paths["summary"] = out / "run_summary.json"

@@ -10,3 +10,4 @@ it never asks which kind it holds.
 from .base import Camera, GroundProjector, camera_from_dict, register_camera  # noqa: F401
 from .rpc import RPCModel  # noqa: F401
 from .frame import FrameCamera  # noqa: F401
+from .corrected import CorrectedCamera  # noqa: F401

@@ -3,7 +3,7 @@
 All kernels work in the camera's *world frame*: the projected CRS easting and
 northing ``(x, y)`` in metres and the height ``z`` in the camera's vertical datum,
 treated as a Cartesian frame (see :mod:`geocd.camera.frame`). The camera is
-packed as ``params[21]``:
+packed as ``params[22]``:
 
 ==========  ============================================================
 index       meaning
@@ -15,6 +15,8 @@ index       meaning
 9, 10, 11   Tx, Ty, Tz: projection centre in the world frame (m)
 12 .. 20    M: world → camera rotation, row-major 3x3 (camera axes: x right,
             y down, z forward along the optical axis — OpenCV)
+21          r²_max: the distortion model's valid domain, undistorted radius²
+            (normalised); inf when the radial polynomial never folds back
 ==========  ============================================================
 
 Projection: ``Xc = M (X - T)``; ``x = Xc0/Xc2``, ``y = Xc1/Xc2``; Brown–Conrady
@@ -26,6 +28,14 @@ distortion as OpenCV::
     col = fx xd + cx,  row = fy yd + cy
 
 Points with ``Xc2 <= 0`` (behind the camera, or in its plane) give NaN.
+
+**Valid domain.** The radial polynomial ``r_d = r (1 + k1 r² + k2 r⁴ + k3 r⁶)`` grows with
+``r`` only up to the first root of ``dr_d/dr = 1 + 3 k1 r² + 5 k2 r⁴ + 7 k3 r⁶``
+(:func:`max_radius2`; with k1 = −0.26 alone, r = 1.13, 48.5° off the axis). Beyond it the
+model *folds back*: ground points far outside the field of view land inside the image,
+and an image point has two undistorted solutions. Points with ``r² ≥ r²_max``, or where
+the distortion's Jacobian is not positive (tangential terms), are outside the model's
+domain: they project to NaN and pixels that only such points explain undistort to NaN.
 """
 
 from __future__ import annotations
@@ -33,7 +43,18 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-N_PARAMS = 21
+N_PARAMS = 22
+
+
+def max_radius2(k1: float, k2: float, k3: float) -> float:
+    """Undistorted radius² where the radial distortion stops growing (its first fold), inf if never.
+
+    The smallest positive root of ``1 + 3 k1 u + 5 k2 u² + 7 k3 u³`` with ``u = r²``.
+    """
+    roots = np.roots([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]) if (k1 or k2 or k3) else np.array([])
+    u = [float(r.real) for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 * max(1.0, abs(r)) and r.real > 0]
+    return min(u) if u else float("inf")
+
 
 
 @njit(cache=True, inline="always")
@@ -59,6 +80,15 @@ def _distort_jac(x, y, k1, k2, k3, p1, p2):
 
 
 @njit(cache=True, inline="always")
+def _in_domain(x, y, k1, k2, k3, p1, p2, r2max):
+    """Whether normalised undistorted (x, y) lies where the distortion model is one-to-one."""
+    if not x * x + y * y < r2max:
+        return False
+    a, b, c, d = _distort_jac(x, y, k1, k2, k3, p1, p2)
+    return a * d - b * c > 0.0
+
+
+@njit(cache=True, inline="always")
 def _to_camera(x, y, z, tx, ty, tz, m):
     """World point → camera frame: M · (X − T), with M the row-major 3×3 rotation ``m``."""
     dx = x - tx
@@ -75,9 +105,10 @@ def frame_project(x, y, z, params, out_col, out_row):
     k1, k2, k3, p1, p2 = params[4], params[5], params[6], params[7], params[8]
     tx, ty, tz = params[9], params[10], params[11]
     m = params[12:21]
+    r2max = params[21]
     for i in prange(x.shape[0]):
         xc, yc, zc = _to_camera(x[i], y[i], z[i], tx, ty, tz, m)
-        if not zc > 0.0:
+        if not zc > 0.0 or not _in_domain(xc / zc, yc / zc, k1, k2, k3, p1, p2, r2max):
             out_col[i] = np.nan
             out_row[i] = np.nan
             continue
@@ -93,9 +124,10 @@ def frame_dproj_dz(x, y, z, params, out_dcol, out_drow):
     k1, k2, k3, p1, p2 = params[4], params[5], params[6], params[7], params[8]
     tx, ty, tz = params[9], params[10], params[11]
     m = params[12:21]
+    r2max = params[21]
     for i in prange(x.shape[0]):
         xc, yc, zc = _to_camera(x[i], y[i], z[i], tx, ty, tz, m)
-        if not zc > 0.0:
+        if not zc > 0.0 or not _in_domain(xc / zc, yc / zc, k1, k2, k3, p1, p2, r2max):
             out_dcol[i] = np.nan
             out_drow[i] = np.nan
             continue
@@ -115,10 +147,12 @@ def frame_undistort(col, row, params, tol, max_iter, out_x, out_y):
 
     Newton iteration on the distortion model starting from the distorted point;
     converged when the residual in normalised coordinates is below ``tol``.
-    Samples that do not converge in ``max_iter`` iterations get NaN.
+    Samples that do not converge in ``max_iter`` iterations, or converge outside the
+    model's valid domain (a folded-back solution), get NaN.
     """
     fx, fy, cx, cy = params[0], params[1], params[2], params[3]
     k1, k2, k3, p1, p2 = params[4], params[5], params[6], params[7], params[8]
+    r2max = params[21]
     no_dist = k1 == 0.0 and k2 == 0.0 and k3 == 0.0 and p1 == 0.0 and p2 == 0.0
     for i in prange(col.shape[0]):
         xd = (col[i] - cx) / fx
@@ -143,7 +177,7 @@ def frame_undistort(col, row, params, tol, max_iter, out_x, out_y):
                 break
             x -= (d * rx - b * ry) / det
             y -= (-c * rx + a * ry) / det
-        if ok:
+        if ok and _in_domain(x, y, k1, k2, k3, p1, p2, r2max):
             out_x[i] = x
             out_y[i] = y
         else:
@@ -157,6 +191,18 @@ def frame_undistort(col, row, params, tol, max_iter, out_x, out_y):
 def _unpack_ref(params):
     p = np.asarray(params, float)
     return p[0], p[1], p[2], p[3], p[4:9], p[9:12], p[12:21].reshape(3, 3)
+
+
+def in_domain_ref(x, y, params):
+    """numpy reference of the valid-domain test (radius below the fold, positive Jacobian)."""
+    k1, k2, k3, p1, p2 = np.asarray(params, float)[4:9]
+    r2 = x**2 + y**2
+    q = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    dq = k1 + 2 * k2 * r2 + 3 * k3 * r2**2
+    a = q + 2 * x * x * dq + 2 * p1 * y + 6 * p2 * x
+    b = 2 * x * y * dq + 2 * p1 * x + 2 * p2 * y
+    d = q + 2 * y * y * dq + 6 * p1 * y + 2 * p2 * x
+    return (r2 < np.asarray(params, float)[21]) & (a * d - b * b > 0)
 
 
 def distort_ref(x, y, dist):
@@ -174,8 +220,9 @@ def project_ref(x, y, z, params):
     xc, yc, zc = np.tensordot(m, X, axes=1)
     with np.errstate(all="ignore"):
         xd, yd = distort_ref(xc / zc, yc / zc, dist)
-    col = np.where(zc > 0, fx * xd + cx, np.nan)
-    row = np.where(zc > 0, fy * yd + cy, np.nan)
+        ok = (zc > 0) & in_domain_ref(xc / zc, yc / zc, params)
+    col = np.where(ok, fx * xd + cx, np.nan)
+    row = np.where(ok, fy * yd + cy, np.nan)
     return col, row
 
 
@@ -199,4 +246,7 @@ def undistort_ref(col, row, params, n_iter: int = 50):
         q = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
         x, y = ((xd - (2 * p1 * x * y + p2 * (r2 + 2 * x**2))) / q,
                 (yd - (p1 * (r2 + 2 * y**2) + 2 * p2 * x * y)) / q)
-    return x, y
+    # a pixel no point of the domain reaches has no fixed point: the iteration then wanders
+    xr, yr = distort_ref(x, y, dist)
+    ok = in_domain_ref(x, y, params) & (np.hypot(xr - xd, yr - yd) < 1e-9)
+    return np.where(ok, x, np.nan), np.where(ok, y, np.nan)

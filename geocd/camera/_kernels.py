@@ -134,7 +134,9 @@ INIT_SIZE = 92
 CUBIC_START_LIMIT = 1.25
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
+# the robust path's helpers are called, not inlined at numba's IR level: each inlined copy is compiled
+# anew (a cold start paid minutes for them), and the path runs for the rare samples the fast pass misses
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _start(init, st, lt, H):
     """Newton start (L, P): cubic inverse fits inside their boxes, affine inverse elsewhere."""
     if abs(st) <= CUBIC_START_LIMIT and abs(lt) <= CUBIC_START_LIMIT:
@@ -150,7 +152,7 @@ def _start(init, st, lt, H):
     return init[0] * u + init[1] * v, init[2] * u + init[3] * v
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _newton(coefs, L, P, H, st, lt, ss, ls, tol2, max_iter):
     """Damped Newton from (L, P); returns (L, P, iterations, converged)."""
     rs, rl, a, b, c, d = _residual_and_jacobian(coefs, L, P, H, st, lt, ss, ls)

@@ -52,9 +52,9 @@ def camera_from_dict(d: dict) -> "Camera":
 
 def _as_f64(*arrays: ArrayLike) -> tuple[np.ndarray, ...]:
     arrs = np.broadcast_arrays(*[np.asarray(a, dtype=np.float64) for a in arrays])
-    # asarray(order="C") copies only non-contiguous (broadcast) inputs and keeps 0-d inputs 0-d
-    # (np.ascontiguousarray would make them (1,))
-    return tuple(np.asarray(a, dtype=np.float64, order="C") for a in arrs)
+    # C-contiguous and writable (copies only broadcast or read-only inputs: numba compiles a separate
+    # kernel specialization for read-only arrays); 0-d inputs stay 0-d (np.ascontiguousarray makes them (1,))
+    return tuple(np.require(a, np.float64, ["C", "W"]) for a in arrs)
 
 
 class Camera(ABC):
@@ -102,10 +102,34 @@ class Camera(ABC):
     def from_dict(cls, d: dict) -> "Camera":
         """Inverse of :meth:`to_dict`."""
 
+    # --- pure-numpy paths for a few points (summaries): no kernel compile ----------------
+    def project_reference(self, lon: ArrayLike, lat: ArrayLike, h: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`project` by a plain numpy path, for a few points (see :meth:`localize_reference`)."""
+        return self.project(lon, lat, h)
+
+    def localize_reference(self, col: ArrayLike, row: ArrayLike, h: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`localize` by a plain numpy path, for a few points where compiling the numba
+        kernels would cost more than the work (``geocd info``'s footprint); default: :meth:`localize`."""
+        return self.localize(col, row, h)
+
+    def dproj_dh_reference(self, lon: ArrayLike, lat: ArrayLike, h: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`dproj_dh` by a plain numpy path (see :meth:`localize_reference`)."""
+        return self.dproj_dh(lon, lat, h)
+
     # --- derived helpers (shared by all kinds) ---------------------------------------
     def height_range(self) -> tuple[float, float] | None:
         """Ellipsoidal height range the model is valid for (None when unbounded)."""
         return None
+
+    def in_image(self, col: ArrayLike, row: ArrayLike) -> np.ndarray:
+        """Whether image points lie in the camera's valid image domain: finite (a point the
+        model cannot project is NaN) and, when the size is known, inside ``[0, width] × [0, height]``."""
+        col, row = _as_f64(col, row)
+        ok = np.isfinite(col) & np.isfinite(row)
+        if self.width is not None and self.height is not None:
+            with np.errstate(invalid="ignore"):
+                ok &= (col >= 0) & (row >= 0) & (col <= self.width) & (row <= self.height)
+        return ok
 
     def image_corners(self) -> np.ndarray:
         """(4, 2) corner coordinates (col, row) of the image, clockwise from upper-left."""
@@ -117,8 +141,11 @@ class Camera(ABC):
         w, h = float(self.width), float(self.height)
         return np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
 
-    def footprint(self, h: float, densify: int = 8):
-        """Ground footprint (shapely Polygon in lon/lat) of the image at height ``h``."""
+    def footprint(self, h: float, densify: int = 8, *, reference: bool = False):
+        """Ground footprint (shapely Polygon in lon/lat) of the image at height ``h``.
+
+        ``reference``: localize by the numpy path (:meth:`localize_reference`; no kernel compile).
+        """
         from shapely.geometry import Polygon
 
         c = self.image_corners()
@@ -128,7 +155,8 @@ class Camera(ABC):
             for t in np.linspace(0.0, 1.0, densify, endpoint=False):
                 pts.append(a + t * (b - a))
         pts = np.array(pts)
-        lon, lat = self.localize(pts[:, 0], pts[:, 1], np.full(len(pts), h))
+        loc = self.localize_reference if reference else self.localize
+        lon, lat = loc(pts[:, 0], pts[:, 1], np.full(len(pts), h))
         if not np.all(np.isfinite(lon)):
             raise CameraError(f"image corners of this {self.kind} camera do not reach height {h} m")
         return Polygon(np.column_stack([lon, lat]))

@@ -284,7 +284,7 @@ class FrameCamera(Camera):
         d = self.distortion
         params = np.concatenate([
             [fx, fy, pp[0], pp[1], d["k1"], d["k2"], d["k3"], d["p1"], d["p2"]],
-            self.position, rot.T.reshape(-1),
+            self.position, rot.T.reshape(-1), [K.max_radius2(d["k1"], d["k2"], d["k3"])],
         ]).astype(np.float64)
         s(self, "_params", np.ascontiguousarray(params))
 
@@ -359,6 +359,16 @@ class FrameCamera(Camera):
     def has_distortion(self) -> bool:
         return any(v != 0.0 for v in self.distortion.values())
 
+    @property
+    def max_field_angle_deg(self) -> float:
+        """Largest angle off the optical axis inside the distortion model's valid domain (degrees; 90 when unbounded).
+
+        Beyond it the radial polynomial folds back (see :mod:`geocd.camera._frame_kernels`):
+        such points project to NaN instead of landing, wrongly, inside the image.
+        """
+        r2 = float(self._params[21])
+        return math.degrees(math.atan(math.sqrt(r2))) if math.isfinite(r2) else 90.0
+
     def position_lonlat_h(self) -> tuple[float, float, float]:
         """Projection centre as WGS84 lon, lat (degrees) and ellipsoidal height (m)."""
         x, y, z = self.position
@@ -409,9 +419,16 @@ class FrameCamera(Camera):
         K.frame_undistort(col.ravel(), row.ravel(), self._params, float(tol), int(max_iter), xn, yn)
         return xn.reshape(col.shape), yn.reshape(col.shape)
 
-    def rays_world(self, col: Any, row: Any) -> np.ndarray:
-        """Unit-free world directions ``(3, ...)`` of the rays through pixels (OpenCV z = 1 scaling)."""
-        xn, yn = self.undistort(col, row)
+    def rays_world(self, col: Any, row: Any, *, reference: bool = False) -> np.ndarray:
+        """Unit-free world directions ``(3, ...)`` of the rays through pixels (OpenCV z = 1 scaling).
+
+        ``reference``: undistort with the numpy reference (no kernel compile; a few points).
+        """
+        if reference:
+            col, row = _as_f64(col, row)
+            xn, yn = K.undistort_ref(col, row, self._params, n_iter=200)
+        else:
+            xn, yn = self.undistort(col, row)
         return np.tensordot(self._rot, np.stack([xn, yn, np.ones_like(xn)]), axes=1)
 
     def localize_world(self, col: Any, row: Any, z: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -443,7 +460,15 @@ class FrameCamera(Camera):
         z = h - self.undulation(lon, lat)
         return self.dproj_dz_world(x, y, z)
 
-    def localize(self, col, row, h, *, tol_m: float = 1e-5, max_iter: int = 10):
+    def localize_reference(self, col, row, h):
+        return self.localize(col, row, h, reference=True)
+
+    def dproj_dh_reference(self, lon, lat, h):
+        lon, lat, h = _as_f64(lon, lat, h)
+        x, y = from_lonlat(lon, lat, self.crs)
+        return K.dproj_dz_ref(x, y, h - self.undulation(lon, lat), self._params)
+
+    def localize(self, col, row, h, *, tol_m: float = 1e-5, max_iter: int = 10, reference: bool = False):
         """Pixels + ellipsoidal height → (lon, lat): the undistorted ray meets the height surface.
 
         The surface ``h`` (ellipsoidal) is ``z = h - N(lon, lat)`` in the camera
@@ -453,7 +478,7 @@ class FrameCamera(Camera):
         Rays that do not reach the surface (pointing upwards) give NaN.
         """
         col, row, h = _as_f64(col, row, h)
-        d = self.rays_world(col, row)
+        d = self.rays_world(col, row, reference=reference)
         if self.vertical_datum == ELLIPSOID:
             x, y = self._intersect(d, h)
             return to_lonlat(x, y, self.crs)

@@ -40,10 +40,14 @@ _NORM_FIELDS = ("line_off", "samp_off", "lat_off", "lon_off", "height_off",
 
 
 def _flat_f64(*arrays) -> tuple[tuple[int, ...], tuple[np.ndarray, ...]]:
-    """Broadcast shape and contiguous 1-D float64 views (copies only when needed)."""
+    """Broadcast shape and contiguous, writable 1-D float64 views (copies only when needed).
+
+    Writable too: numba compiles a separate specialization of a kernel for read-only
+    arrays (broadcasts are read-only), and each costs a full compile on a cold cache.
+    """
     arrs = [np.asarray(a, dtype=np.float64) for a in arrays]
     shape = np.broadcast_shapes(*(a.shape for a in arrs))
-    return shape, tuple(np.ascontiguousarray(np.broadcast_to(a, shape)).reshape(-1) for a in arrs)
+    return shape, tuple(np.require(np.broadcast_to(a, shape), np.float64, ["C", "W"]).reshape(-1) for a in arrs)
 
 
 def rpc00a_to_rpc00b(coefs20: np.ndarray) -> np.ndarray:
@@ -291,6 +295,23 @@ class RPCModel(Camera):
                 )
         out = (lon.reshape(shape), lat.reshape(shape))
         return (*out, its.reshape(shape)) if return_iterations else out
+
+    def project_reference(self, lon, lat, h):
+        """:meth:`project` in numpy (:func:`_kernels.project_ref`; no compile), few points."""
+        shape, (lon, lat, h) = _flat_f64(lon, lat, h)
+        col, row = K.project_ref(lon, lat, h, self._coefs, self._norm_px)
+        return col.reshape(shape), row.reshape(shape)
+
+    def localize_reference(self, col, row, h):
+        """:meth:`localize` by plain Newton in numpy (:func:`_kernels.localize_ref`; no compile), few points."""
+        shape, (col, row, h) = _flat_f64(col, row, h)
+        lon, lat = K.localize_ref(col, row, h, self._coefs, self._norm_px)
+        return lon.reshape(shape), lat.reshape(shape)
+
+    def dproj_dh_reference(self, lon, lat, h):
+        shape, (lon, lat, h) = _flat_f64(lon, lat, h)
+        ds, dl = K.dproj_dh_ref(lon, lat, h, self._coefs, self._norm)
+        return ds.reshape(shape), dl.reshape(shape)
 
     def height_range(self) -> tuple[float, float]:
         return (self.height_off - abs(self.height_scale), self.height_off + abs(self.height_scale))

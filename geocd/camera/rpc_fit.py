@@ -9,11 +9,24 @@ coordinate) by linearised least squares::
 
     Num(x) - c * (Den(x) - 1) = c          (c = normalised sample or line)
 
-iterated with weights ``1 / Den_prev(x)**2`` so that the minimised quantity
+iterated with weights ``1 / Den_prev(x)`` so that the minimised quantity
 approaches the true image residual ``c - Num/Den`` (the classical
-"terrain-independent" RPC fitting of Tao & Hu, 2001), with a small ridge
-(Tikhonov) term that keeps the normal equations well conditioned when the
-camera is nearly affine in some direction.
+"terrain-independent" RPC fitting of Tao & Hu, 2001).
+
+The unregularised problem is ill-posed: over a small footprint a pushbroom
+camera is nearly affine, the 39 columns of the design matrix are nearly
+dependent (condition number ~1e12 on sample_aoi's views, ~1e24 in the normal
+equations) and very different coefficient sets give the same projections to
+1e-9 px, so which one a solver returns depends on rounding (BLAS, CPU). The fit
+is therefore made well-posed with a fixed conditioning: Tikhonov
+regularisation with weight ``ridge * ||A||_2`` (``A`` the design matrix of
+normalised coordinates), solved as the augmented least-squares problem
+``[A; ridge*||A||_2*I] x = [c; 0]`` by SVD, with a fixed number of
+reweighting passes. The condition number of that system is at most
+``1 / ridge`` (1e7 by default), so the coefficients are a continuous function
+of the camera: rounding-level changes of the input move them by ~1e-9 and the
+projections by ~1e-11 px, while the bias the ridge adds stays below 1e-7 px on
+the fit grid of a satellite view (both measured in ``tests/camera/test_rpc_fit.py``).
 
 The fit is reported on a *check grid* shifted by half a grid step in all three
 dimensions (points the fit never saw): :class:`RPCFitReport` gives its RMS and
@@ -48,8 +61,8 @@ class RPCFitReport:
     check_rms_px, check_max_px : residual on the half-step-shifted check grid
     check_max_col_px, check_max_row_px : per-axis maxima on the check grid
     n_fit, n_check : number of grid points used
-    iterations : reweighting iterations done
-    ridge : relative ridge weight used
+    iterations : least-squares solves per coordinate (fixed)
+    ridge : Tikhonov weight relative to the design matrix's largest singular value
     lon_range, lat_range : degrees; h_range : metres (ellipsoidal), the fitted box
     """
 
@@ -103,13 +116,16 @@ def _single_thread_blas():
     return threadpool_limits(limits=1, user_api="blas")
 
 
-def _solve_coordinate(T: np.ndarray, c: np.ndarray, ridge: float, max_iter: int,
-                      tol: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """Fit normalised coordinate c ≈ (num·T)/(den·T), den[0] = 1.
+def _solve_coordinate(T: np.ndarray, c: np.ndarray, ridge: float,
+                      n_iter: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Fit normalised coordinate c ≈ (num·T)/(den·T), den[0] = 1, Tikhonov-regularised.
 
     Parameters
     ----------
     T : (20, N) monomials; c : (N,) normalised targets.
+    ridge : regularisation relative to the design matrix's largest singular value
+        (the regularised system's condition number is at most ``1 / ridge``).
+    n_iter : solves (the first unweighted, then reweighted by ``1 / |Den|``).
 
     Returns
     -------
@@ -119,39 +135,32 @@ def _solve_coordinate(T: np.ndarray, c: np.ndarray, ridge: float, max_iter: int,
     A = np.empty((n, 39))
     A[:, :20] = T.T
     A[:, 20:] = -c[:, None] * T[1:].T
+    lam = ridge * float(np.linalg.norm(A, 2))
+    reg = np.zeros((39, 39))
+    reg[np.diag_indices_from(reg)] = lam
     w = np.ones(n)
     num = np.zeros(20)
     den = np.zeros(20)
     den[0] = 1.0
-    prev = np.inf
-    it = 0
-    for it in range(1, max_iter + 1):
-        Aw = A * w[:, None]
-        bw = c * w
-        N = Aw.T @ Aw
-        lam = ridge * np.trace(N) / N.shape[0]
-        N[np.diag_indices_from(N)] += lam
+    for _ in range(n_iter):
+        Aug = np.vstack([A * w[:, None], reg])
+        bug = np.concatenate([c * w, np.zeros(39)])
         try:
-            x = np.linalg.solve(N, Aw.T @ bw)
-        except np.linalg.LinAlgError as exc:  # pragma: no cover - ridge prevents this
-            raise ProcessingError("RPC fit: singular normal equations; widen the ground grid") from exc
+            x = np.linalg.lstsq(Aug, bug, rcond=None)[0]
+        except np.linalg.LinAlgError as exc:  # pragma: no cover - the ridge keeps the system full rank
+            raise ProcessingError("RPC fit: the least-squares solve failed; widen the ground grid") from exc
         num = x[:20]
         den = np.concatenate([[1.0], x[20:]])
         D = den @ T
         if np.any(D == 0) or not np.all(np.isfinite(D)):
             raise ProcessingError("RPC fit: the fitted denominator vanishes inside the fit box; reduce the box")
-        r = c - (num @ T) / D
-        rmax = float(np.max(np.abs(r)))
         w = 1.0 / np.abs(D)
-        if abs(prev - rmax) <= tol * max(rmax, 1e-300) or rmax < 1e-14:
-            break
-        prev = rmax
-    return num, den, it
+    return num, den, n_iter
 
 
 def fit_rpc(camera: Camera, h_range: tuple[float, float], *, lon_range: tuple[float, float] | None = None,
-            lat_range: tuple[float, float] | None = None, n_xy: int = 21, n_h: int = 9, ridge: float = 1e-14,
-            max_iter: int = 30, width: int | None = None, height: int | None = None, source: str = "",
+            lat_range: tuple[float, float] | None = None, n_xy: int = 21, n_h: int = 9, ridge: float = 1e-7,
+            n_iter: int = 3, width: int | None = None, height: int | None = None, source: str = "",
             progress: Callable | None = None) -> tuple[RPCModel, RPCFitReport]:
     """Fit an RPC00B to ``camera`` over a terrain-independent 3-D grid.
 
@@ -169,10 +178,13 @@ def fit_rpc(camera: Camera, h_range: tuple[float, float], *, lon_range: tuple[fl
         Grid nodes per horizontal axis and height layers (≥ 4 each; the cubic
         terms need at least 4 layers).
     ridge : float
-        Ridge weight relative to the mean diagonal of the normal equations.
-    max_iter : int
-        Maximum reweighting iterations (stops earlier when the maximum residual
-        stalls).
+        Tikhonov weight relative to the largest singular value of the design
+        matrix: the fit's condition number is at most ``1 / ridge``. The default
+        1e-7 keeps the coefficients reproducible across machines to ~1e-9 and adds
+        less than 1e-7 px of bias on satellite views (see the module docstring).
+    n_iter : int
+        Least-squares solves (the first unweighted, the others reweighted by
+        ``1 / |Den|``); a fixed count, so the result does not hinge on a stopping test.
     width, height : int, optional
         Image size stored in the model (default: the camera's).
     source : str
@@ -191,6 +203,8 @@ def fit_rpc(camera: Camera, h_range: tuple[float, float], *, lon_range: tuple[fl
     CameraError
         When the camera cannot project some grid points (NaN).
     """
+    if not 0 < ridge < 1 or n_iter < 1:
+        raise ConfigError(f"RPC fit needs 0 < ridge < 1 and n_iter >= 1, got ridge={ridge}, n_iter={n_iter}")
     if n_xy < 4 or n_h < 4:
         raise ConfigError(f"RPC fit needs at least 4 nodes per axis (cubic terms), got n_xy={n_xy}, n_h={n_h}")
     h0, h1 = float(h_range[0]), float(h_range[1])
@@ -234,8 +248,8 @@ def fit_rpc(camera: Camera, h_range: tuple[float, float], *, lon_range: tuple[fl
     T = K.terms_ref(L, P, H)
     # tiny dense products: a multi-threaded BLAS only loses time here (by 100x on a busy machine)
     with _single_thread_blas():
-        ln, ld, it_l = _solve_coordinate(T, (line - norm[0]) / norm[5], ridge, max_iter, 1e-3)
-        sn, sd, it_s = _solve_coordinate(T, (samp - norm[1]) / norm[6], ridge, max_iter, 1e-3)
+        ln, ld, it_l = _solve_coordinate(T, (line - norm[0]) / norm[5], ridge, n_iter)
+        sn, sd, it_s = _solve_coordinate(T, (samp - norm[1]) / norm[6], ridge, n_iter)
     if progress is not None:
         progress(0.8, "RPC fit: solved")
     w = width if width is not None else camera.width

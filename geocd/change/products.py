@@ -30,6 +30,7 @@ from .styles import buildings_qml, write_raster_style
 def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid, *, method: str = "self-consistency",
                           epoch_a: str = "A", epoch_b: str = "B", region_confidence: float = 99.0,
                           model: SelfConsistencyModel | None = None, buildings=None, extra_layers: dict | None = None,
+                          extra_styles: dict | None = None,
                           provenance: dict | None = None, prefix: str | None = None,
                           min_region_cells: int | None = None, plots: bool = True,
                           backdrop_m: np.ndarray | None = None) -> dict[str, Path]:
@@ -90,6 +91,7 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
         layers["curves"] = model.curves_table()
     if extra_layers:
         layers.update(extra_layers)
+        styles.update(extra_styles or {})
     paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", layers, styles=styles)
     if plots:
         from .plots import plot_dh_map, plot_scatter_curves

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from .common import check_confidence
+
 
 def _confidences(values) -> tuple[float, ...]:
     return tuple(sorted(set(float(v) for v in values))) if values else (90.0, 95.0, 99.0)
@@ -14,14 +16,15 @@ def _confidences(values) -> tuple[float, ...]:
 @click.command("run")
 @click.argument("manifest", type=click.Path(path_type=str), default="sample_aoi")
 @click.option("--out", "out_dir", type=click.Path(path_type=str), default=None,
-              help="Output folder (default: the manifest's 'output', e.g. sample_aoi/out).")
+              help="Output folder (default: the manifest's 'output:' if it names one, else ./geocd_out/<scene name>).")
 @click.option("--model", "model_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
               help="Scene-class self-consistency model (JSON) to use instead of learning one here.")
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
               help="Run configuration (YAML/JSON, same tree as the run_config.json written by a run).")
-@click.option("--confidence", "confidences", type=float, multiple=True,
+@click.option("--confidence", "confidences", type=float, multiple=True, callback=check_confidence,
               help="Confidence levels in percent (repeatable; default 90 95 99).")
-@click.option("--report-confidence", type=float, default=None, help="Level for regions and buildings (default 99).")
+@click.option("--report-confidence", type=float, default=None, callback=check_confidence,
+              help="Level in percent for the change mask, regions and buildings (default 99).")
 @click.option("--footprints", type=click.Path(exists=True, path_type=str), default=None,
               help="Building footprints to attribute (default: the manifest's).")
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting, metres.")
@@ -29,19 +32,37 @@ def _confidences(values) -> tuple[float, ...]:
 @click.option("--epoch-b", default=None, help="Later epoch (default: the last).")
 @click.option("--pairs", type=click.Choice(["same-kind", "all"]), default=None,
               help="Image pairs to match: same camera kind only (default) or all.")
+@click.option("--screen", "screen", is_flag=True,
+              help="Tiered run: the fast 2-D screen first (geocd screen), stereo and the change test only on the "
+                   "tiles it flags (OUT/screen holds its layers).")
+@click.option("--screen-feature", type=click.Choice(["patch", "daisy", "randbank"]), default="patch",
+              show_default=True, help="Grid feature of the screen (--screen).")
+@click.option("--screen-tile", "screen_tile", type=int, default=128, show_default=True,
+              help="Side of the screen's tiles, cells (--screen).")
 @click.pass_context
 def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_confidence, footprints, posting_m,
-        epoch_a, epoch_b, pairs):
+        epoch_a, epoch_b, pairs, screen, screen_feature, screen_tile):
     """Full run on MANIFEST (default: sample_aoi): stereo → self-consistency baseline → change test → layers.
 
     Writes pair-DEMs (OUT/stereo), the scene-class model, change rasters (COG + QGIS styles), the changes/buildings/
     curves GeoPackage, plots, run_config.json and run_summary.json.
     """
+    from .common import require_inputs, resolve_out_dir, session
+
+    require_inputs(manifest, what="manifest")
+    from ..io.manifest import load_manifest
+
+    m = load_manifest(manifest)
+    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
     from ..consistency import ChangeParams, ConsistencyParams
-    from ..pipeline import RunConfig, run as run_pipeline
+    from ..io.outputs import open_outputs
+    from ..pipeline import PRODUCTS, RunConfig, run as run_pipeline
     from . import emit_result, make_progress
 
     cfg = RunConfig.load(config_path) if config_path else RunConfig()
+    open_outputs(out, inputs=[*m.input_paths(), model_path, config_path, footprints], products=PRODUCTS)
+    sess = session(ctx)
+    sess.open_log(out)
     changes = {}
     if confidences:
         c = _confidences(confidences)
@@ -51,22 +72,35 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
                  ("epoch_a", epoch_a), ("epoch_b", epoch_b), ("pairs", pairs)):
         if v is not None:
             changes[k] = v
+    if screen:
+        from ..screen import FeatureSpec, ScreenParams
+
+        changes["screen"] = ScreenParams(feature=FeatureSpec(kind=screen_feature))
+        changes["screen_tile_cells"] = int(screen_tile)
     import dataclasses
 
     cfg = dataclasses.replace(cfg, **changes)
     progress = make_progress(ctx, "run")
     try:
-        res = run_pipeline(manifest, out_dir=out_dir, config=cfg, progress=progress, footprints=footprints)
+        res = run_pipeline(m, out_dir=out, config=cfg, progress=progress, footprints=footprints)
     finally:
-        if hasattr(progress, "close"):
-            progress.close()
+        progress.close()
     s = res["summary"]
-    if (ctx.find_root().obj or {}).get("progress_mode") != "json":
-        click.echo(f"compared {s['epoch_a']} → {s['epoch_b']} on a {s['grid']['width']}x{s['grid']['height']} grid; "
-                   f"observed {100 * s['observed_fraction']:.1f}% of cells; changed: "
-                   + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items()), err=True)
-        if "buildings" in s:
-            click.echo(f"buildings: {s['buildings']}", err=True)
+    sess.say(f"compared {s['epoch_a']} → {s['epoch_b']} on a {s['grid']['width']}x{s['grid']['height']} grid; "
+             f"observed {100 * s['observed_fraction']:.1f}% of cells; changed: "
+             + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items()))
+    if "buildings" in s:
+        sess.say("buildings: " + ", ".join(f"{n} {k}" for k, n in s["buildings"].items()))
+    if "screen" in s:
+        sc = s["screen"]
+        sess.say(f"screen ({sc['feature']}): {sc['flagged_tiles']} of {sc['tiles']} tiles flagged, stereo on "
+                 f"{100 * sc['stereo_cell_fraction']:.1f}% of the grid; screen {sc['screen_seconds']:.1f} s, "
+                 f"stereo {sc['stereo_seconds']:.1f} s")
+    sess.data(**{k: s[k] for k in ("epoch_a", "epoch_b", "observed_fraction", "changed_fraction", "buildings")
+                 if k in s})
+    n_pairs = sum(1 for k in res["outputs"] if k.startswith("stereo:"))
+    if n_pairs:
+        sess.say(f"{n_pairs} pair-DEMs in {out / 'stereo'}")
     emit_result(ctx, {k: v for k, v in res["outputs"].items() if not k.startswith("stereo:")})
 
 
@@ -82,7 +116,8 @@ def _read_pairs(paths):
               help="Scene-class model to write (JSON).")
 @click.option("--group-by", type=click.Choice(["epoch", "none"]), default="epoch", show_default=True,
               help="Compare pair-DEMs within each epoch (from their tags), or all together (one static scene).")
-@click.option("--confidence", "confidences", type=float, multiple=True, help="Levels in percent (default 90 95 99).")
+@click.option("--confidence", "confidences", type=float, multiple=True, callback=check_confidence,
+              help="Levels in percent (default 90 95 99).")
 @click.option("--scene-class", default="", help="Scene class recorded in the model (e.g. urban, suburban, rural).")
 @click.option("--sensor", default="", help="Sensor recorded in the model.")
 @click.option("--bins", "n_bins", type=int, default=24, show_default=True, help="Number of score bins.")
@@ -92,8 +127,13 @@ def _read_pairs(paths):
 def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, sensor, n_bins, plot_path):
     """Learn a self-consistency model (stage 1) from pair-DEMs of a static scene (GeoTIFFs from `geocd stereo`)."""
     from ..consistency import ConsistencyParams, learn_self_consistency
+    from ..io.outputs import open_outputs
     from . import emit_result, make_progress
+    from .common import session
 
+    open_outputs(None, files=[out_path, plot_path], inputs=pair_dems)
+    sess = session(ctx)
+    sess.open_log(Path(out_path).parent)
     pairs = _read_pairs(pair_dems)
     groups: dict[str, list] = {}
     for p in pairs:
@@ -102,14 +142,16 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
     prov = {"scene_class": scene_class, "sensor": sensor, "pair_dems": [str(Path(p).resolve()) for p in pair_dems],
             "gsd_m": pairs[0].grid.posting_m, "score": pairs[0].meta.get("score_kind", "")}
     progress = make_progress(ctx, "consistency")
-    model = learn_self_consistency(list(groups.values()), params, provenance=prov, progress=progress)
+    try:
+        model = learn_self_consistency(list(groups.values()), params, provenance=prov, progress=progress)
+    finally:
+        progress.close()
     outputs = {"model": model.save(out_path)}
     if plot_path:
         from ..change.plots import plot_scatter_curves
 
         outputs["scatter"] = plot_scatter_curves(model, plot_path)
-    if (ctx.find_root().obj or {}).get("progress_mode") != "json":
-        click.echo(model.curves_table().to_string(index=False, float_format=lambda v: f"{v:.3f}"), err=True)
+    sess.say(model.curves_table().to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     emit_result(ctx, outputs)
 
 
@@ -127,12 +169,20 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
               help="Self-consistency model (from `geocd consistency` or a run).")
 @click.option("--footprints", type=click.Path(exists=True, path_type=str), default=None, help="Footprints to attribute.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str), help="Output folder.")
-@click.option("--confidence", "confidences", type=float, multiple=True, help="Levels in percent (default 90 95 99).")
-@click.option("--report-confidence", type=float, default=99.0, show_default=True)
+@click.option("--confidence", "confidences", type=float, multiple=True, callback=check_confidence,
+              help="Levels in percent (default 90 95 99).")
+@click.option("--report-confidence", type=float, default=99.0, show_default=True, callback=check_confidence,
+              help="Level in percent for the change mask, regions and buildings.")
 @click.option("--combine", type=click.Choice(["majority", "all", "any"]), default="majority", show_default=True)
+@click.option("--tiled", is_flag=True, help="Test tile by tile (whole scenes: bounded memory, resumable, on Dask); "
+              "the products are the same.")
+@click.option("--scheduler", default=None, help="Tiled runs: sync | threads | processes | auto | a Dask scheduler "
+              "address (implies --tiled).")
+@click.option("--tile-size", type=click.IntRange(64, None), default=None, help="Tiled runs: cells per tile side "
+              "[1024] (implies --tiled).")
 @click.pass_context
 def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, footprints, out_dir, confidences,
-           report_confidence, combine):
+           report_confidence, combine, tiled, scheduler, tile_size):
     """Stage 2: test cross-epoch pair-DEMs (or a DEM standing for an epoch) against a self-consistency model."""
     from ..change.buildings import classify_buildings
     from ..change.products import write_change_products
@@ -140,9 +190,34 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     from ..errors import ConfigError
     from ..io.raster import read_dem
     from ..io.vector import read_footprints
+    from ..io.outputs import open_outputs
     from ..pipeline import _median_surface
     from . import emit_result, make_progress
+    from .common import session
 
+    open_outputs(out_dir, inputs=[*a_paths, *b_paths, dem_a, dem_b, model_path, footprints], products=("sc_*",))
+    session(ctx).open_log(out_dir)
+    if tiled or scheduler or tile_size:
+        from ..change.tiled import change_test_tiled, open_reconstruction
+        from ..demdiff.tiled import TilingParams
+
+        A = list(a_paths) + ([open_reconstruction(dem_a, kind="dem", name="dem_a",
+                                                  vertical_datum=dem_vertical_datum)[0]] if dem_a else [])
+        B = list(b_paths) + ([open_reconstruction(dem_b, kind="dem", name="dem_b",
+                                                  vertical_datum=dem_vertical_datum)[0]] if dem_b else [])
+        params = ChangeParams(confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})),
+                              combine=combine)
+        tiling = TilingParams(**{k: v for k, v in (("scheduler", scheduler), ("tile_size", tile_size)) if v})
+        progress = make_progress(ctx, "change")
+        try:
+            res = change_test_tiled(A, B, SelfConsistencyModel.load(model_path), out_dir, params=params,
+                                    tiling=tiling, footprints=footprints, region_confidence=report_confidence,
+                                    progress=progress)
+        finally:
+            progress.close()
+        session(ctx).say(f"tiled change test: {res.passes} passes, {res.tiles_resumed} tile results resumed")
+        emit_result(ctx, res.outputs)
+        return
     A, B = _read_pairs(a_paths), _read_pairs(b_paths)
     if not (A or B):
         raise ConfigError("give pair-DEMs of both epochs (-a ... -b ...), or one epoch's pair-DEMs and a DEM for the other")
@@ -159,7 +234,10 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     model = SelfConsistencyModel.load(model_path)
     params = ChangeParams(confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})), combine=combine)
     progress = make_progress(ctx, "change")
-    res = change_test(A, B, model, params, progress=progress)
+    try:
+        res = change_test(A, B, model, params, progress=progress)
+    finally:
+        progress.close()
     buildings = None
     if footprints:
         fps = read_footprints(footprints, crs=grid.crs)

@@ -7,9 +7,83 @@ from pathlib import Path
 
 import click
 
+from .common import check_confidence
+
 DEM_LIST_HELP = """DEMS: two DEM files (A = reference/earlier, B = later), three or more (a time series, in date
 order or with --dates), or ONE list file (.txt/.csv: one `path[,date[,name]]` per line, # comments) or geocd manifest
 (.yaml/.json, epochs with a `dem:`)."""
+
+
+#: two DEMs on a grid of more cells than this are processed tile by tile unless --untiled
+TILED_ABOVE_CELLS = 16_000_000
+
+
+def _use_tiles(ents, tiled: bool | None, tiling_opts: dict, base) -> bool:
+    """Whether a DEM comparison runs tile by tile (``--tiled``, a tiling option, or a large grid)."""
+    from ..errors import ConfigError
+
+    asked = tiled is True or (tiled is None and bool(tiling_opts))
+    if tiled is False:
+        if tiling_opts:
+            raise ConfigError(f"--untiled with tiling options ({', '.join(sorted(tiling_opts))}); drop one of them")
+        return False
+    if len(ents) != 2:
+        if asked:
+            raise ConfigError("tiled processing compares two DEMs; a time series runs untiled (drop --tiled and the "
+                              "tiling options)")
+        return False
+    if any(Path(p).suffix.lower() == ".e00" for p, *_ in ents):
+        if asked:
+            raise ConfigError("tiled processing reads GDAL rasters; convert the .e00 DEM to GeoTIFF first "
+                              "(the base DEM may stay an .e00)")
+        return False
+    if asked:
+        return True
+    from ..io.raster import _open
+
+    with _open(ents[0][0]) as ds:
+        return ds.width * ds.height > TILED_ABOVE_CELLS
+
+
+def _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable_mask, mask_is, footprints, datum_a,
+                   datum_b, base, no_plots) -> None:
+    """Two DEMs tile by tile (geocd.demdiff.tiled): the same products as the untiled run."""
+    from ..demdiff.tiled import TilingParams, dem_difference_tiled
+    from . import emit_result, make_progress
+
+    tiling = TilingParams(**tiling_opts)
+    progress = make_progress(ctx, "demdiff")
+    try:
+        (pa, _, na, va), (pb, _, nb, vb) = ents
+        sess.note(f"tiled run: tiles of {tiling.tile_size} cells, scheduler {tiling.scheduler}; a killed run "
+                  "restarted with the same command resumes")
+        res = dem_difference_tiled(pa, pb, out_dir, params=params, tiling=tiling, stable_mask=stable_mask,
+                                   mask_is=mask_is, footprints=footprints, epoch_a=na, epoch_b=nb,
+                                   datum_a=va or datum_a, datum_b=vb or datum_b, base=base, prefix=prefix,
+                                   plots=not no_plots, progress=progress,
+                                   provenance={"dem_a": pa, "dem_b": pb, "stable_mask": stable_mask, "base": base})
+    finally:
+        if hasattr(progress, "close"):
+            progress.close()
+    s = res.summary
+    for n in res.notes:
+        if n != res.coreg.summary():
+            sess.note(n)
+    for w in res.warnings:
+        sess.warn(w)
+    sess.say(res.coreg.summary())
+    credible = "" if res.status != "degenerate_stable_terrain" else " — NOT CREDIBLE: degenerate stable " \
+        "terrain, see the warning"
+    sess.say(f"stable NMAD {s['stable_nmad_m']:.2f} m on {s['n_stable']} cells; changed at "
+             f"{params.confidence:g}%: {s['changed_area_m2'] / 1e6:.4f} km², volume "
+             f"{s['volume_changed_m3'] / 1e6:+.4f} ± {s['volume_changed_sigma_m3'] / 1e6:.4f} Mm³ (1σ)" + credible)
+    sess.say(f"tiled: {res.passes} passes, {res.tiles_resumed} tile results resumed, "
+             f"{'exact (every cell in every statistic)' if res.exact else 'whole-scene statistics on a fixed subsample'}")
+    sess.data(status=res.status, tiled=True, passes=res.passes, tiles_resumed=res.tiles_resumed,
+              **{k: s[k] for k in ("stable_nmad_m", "n_stable", "changed_area_m2", "volume_changed_m3",
+                                   "volume_changed_sigma_m3", "shift_applied_m", "stable_identical_fraction",
+                                   "wall_s") if k in s})
+    emit_result(ctx, res.outputs)
 
 
 def _read_dem(path: str, datum: str | None):
@@ -88,8 +162,8 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
 @click.command("demdiff", help="Height change between DEMs, with co-registration and honest uncertainty.\n\n"
                + DEM_LIST_HELP)
 @click.argument("dems", nargs=-1, required=True, type=click.Path(path_type=str))
-@click.option("--out", "out_dir", type=click.Path(path_type=str), default="out_demdiff", show_default=True,
-              help="Output folder.")
+@click.option("--out", "out_dir", type=click.Path(path_type=str), default=None,
+              help="Output folder (default: ./geocd_out/<A>__<B>, or ./geocd_out/<list name> for a series).")
 @click.option("--prefix", default="demdiff", show_default=True, help="Prefix of the output file names.")
 @click.option("--stable-mask", type=click.Path(path_type=str), default=None,
               help="Stable terrain: a raster (non-zero = inside) or polygons (inside). Default: automatic.")
@@ -97,8 +171,8 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
               help="Whether --stable-mask marks stable terrain or unstable areas (e.g. glacier outlines).")
 @click.option("--footprints", type=click.Path(path_type=str), default=None,
               help="Building footprints: excluded from stable terrain and attributed (layer `buildings`).")
-@click.option("--confidence", type=float, default=0.95, show_default=True,
-              help="Confidence level (0–1) at which cells are called changed.")
+@click.option("--confidence", type=float, default=95.0, show_default=True, callback=check_confidence,
+              help="Confidence level in percent at which cells are called changed.")
 @click.option("--datum-a", default=None, help="Vertical datum of DEM A when its file does not say (ellipsoid, egm96, egm2008).")
 @click.option("--datum-b", default=None, help="Vertical datum of DEM B (and of every series DEM after the first).")
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "cubic", "average"]), default="bilinear",
@@ -112,27 +186,59 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
 @click.option("--fallback-threshold", type=float, default=None,
               help="|dh| (m) that marks change when no stable terrain exists (no significance then).")
 @click.option("--base", type=click.Path(path_type=str), default=None,
-              help="Base DEM the series DEMs were merged onto (e.g. an .e00): each epoch's survey is where it "
-                   "differs from the base; comparisons use only the shared survey area; adds base → epoch volumes.")
+              help="Base DEM the DEMs were merged onto (e.g. an .e00): each epoch's survey is where it differs from "
+                   "the base; comparisons use only the shared survey area (two DEMs or a series); a series also gets "
+                   "base → epoch volumes.")
 @click.option("--dates", default=None, help="Comma-separated dates (YYYY-MM-DD) of the DEMs given as arguments.")
 @click.option("--names", default=None, help="Comma-separated epoch names of the DEMs given as arguments.")
 @click.option("--pair-products", is_flag=True, help="For a series, also write every interval's rasters and layers.")
 @click.option("--no-plots", is_flag=True, help="Do not draw PNG plots.")
+@click.option("--tiled/--untiled", default=None,
+              help="Process two DEMs tile by tile (bounded memory, resumable after a kill, on Dask). Default: tiled "
+                   f"when the grid has more than {TILED_ABOVE_CELLS // 1_000_000} million cells or a tiling option "
+                   "below is given.")
+@click.option("--scheduler", default=None, metavar="SCHEDULER",
+              help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the machine, the "
+                   "default) | ADDRESS of a running dask.distributed scheduler (tcp://host:8786).")
+@click.option("--tile-size", type=click.IntRange(64, None), default=None, help="Tiled runs: cells per tile side [1024].")
+@click.option("--workers", type=click.IntRange(1, None), default=None,
+              help="Tiled runs: local worker processes [one per core].")
+@click.option("--memory-limit", default=None, help="Tiled runs: memory limit per local worker, e.g. 2GB.")
 @click.pass_context
 def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, footprints, confidence, datum_a, datum_b,
             resampling, no_coreg, tilt, on_underconstrained, min_region_cells, fallback_threshold, base, dates, names,
-            pair_products, no_plots) -> None:
+            pair_products, no_plots, tiled, scheduler, tile_size, workers, memory_limit) -> None:
+    from .common import require_inputs, resolve_out_dir, session
+
+    require_inputs(*dems, stable_mask, footprints, base)
+    ents = _entries(tuple(dems), dates, names)
+    require_inputs(*[e[0] for e in ents])
+    if len(ents) == 2:
+        default_name = f"{ents[0][2]}__{ents[1][2]}"
+    else:
+        default_name = Path(dems[0]).stem if len(dems) == 1 else f"{ents[0][2]}__{ents[-1][2]}_series"
+    out = resolve_out_dir(out_dir, default_name, create=False)
+    out_dir = str(out)
     from ..demdiff import CoregParams, DEMDiffParams, dem_difference
     from ..demdiff.products import write_demdiff_products, write_json, write_timeseries_products
     from ..demdiff.timeseries import Epoch, dem_time_series, survey_footprint
-    from ..io.atomic import protect_inputs
+    from ..io.outputs import check_prefix, open_outputs
     from . import emit_result, make_progress
 
-    ents = _entries(tuple(dems), dates, names)
-    protect_inputs(*[e[0] for e in ents], *(p for p in (stable_mask, footprints, base) if p))
+    check_prefix(prefix)
+    open_outputs(out_dir, inputs=[*dems, *[e[0] for e in ents], stable_mask, footprints, base],
+                 products=(f"{prefix}_*", f"*__*/{prefix}_*"), prefix=prefix)
+    sess = session(ctx)
+    sess.open_log(out)
     params = DEMDiffParams(coreg=CoregParams(tilt=tilt, on_underconstrained=on_underconstrained),
                            coregister=not no_coreg, confidence=confidence, min_region_cells=min_region_cells,
                            resampling=resampling, fallback_threshold_m=fallback_threshold)
+    tiling_opts = {k: v for k, v in (("scheduler", scheduler), ("tile_size", tile_size), ("n_workers", workers),
+                                     ("memory_limit", memory_limit)) if v is not None}
+    if _use_tiles(ents, tiled, tiling_opts, base):
+        _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable_mask, mask_is, footprints,
+                       datum_a, datum_b, base, no_plots)
+        return
     fp = None
     loaded = []
     for k, (path, date, name, vd) in enumerate(ents):
@@ -162,12 +268,22 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
                                              provenance={"dem_a": ents[0][0], "dem_b": ents[1][0],
                                                          "stable_mask": stable_mask, "base": base})
             s = res.summary
+            progress.close()
             for n in res.notes:
-                click.echo(f"geocd: note: {n}", err=True)
-            click.echo(f"{res.coreg.summary()}", err=True)
-            click.echo(f"stable NMAD {s['stable_nmad_m']:.2f} m on {s['n_stable']} cells; changed "
-                       f"{s['changed_area_m2'] / 1e6:.4f} km², volume {s['volume_changed_m3'] / 1e6:+.4f} ± "
-                       f"{s['volume_changed_sigma_m3'] / 1e6:.4f} Mm³ (1σ)", err=True)
+                if n != res.coreg.summary():  # the co-registration line is part of the summary below
+                    sess.note(n)
+            for w in res.warnings:
+                sess.warn(w)
+            sess.say(res.coreg.summary())
+            credible = "" if res.status != "degenerate_stable_terrain" else " — NOT CREDIBLE: degenerate stable " \
+                "terrain, see the warning"
+            sess.say(f"stable NMAD {s['stable_nmad_m']:.2f} m on {s['n_stable']} cells; changed at "
+                     f"{res.level:g}%: {s['changed_area_m2'] / 1e6:.4f} km², volume "
+                     f"{s['volume_changed_m3'] / 1e6:+.4f} ± {s['volume_changed_sigma_m3'] / 1e6:.4f} Mm³ (1σ)"
+                     + credible)
+            sess.data(status=res.status, **{k: s[k] for k in (
+                "stable_nmad_m", "n_stable", "changed_area_m2", "volume_changed_m3", "volume_changed_sigma_m3",
+                "shift_applied_m", "stable_identical_fraction") if k in s})
         else:
             ts = dem_time_series(loaded, base=base_ep, params=params, stable_mask=stable_mask, mask_is=mask_is,
                                  keep_arrays=pair_products, progress=progress)
@@ -177,11 +293,20 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
                     sub = Path(out_dir) / f"{r.epoch_a}__{r.epoch_b}"
                     pp = write_demdiff_products(sub, r, prefix=prefix, plots=not no_plots)
                     outputs.update({f"{r.epoch_a}__{r.epoch_b}_{k}": v for k, v in pp.items()})
+            progress.close()
             for n in ts.notes:
-                click.echo(f"geocd: note: {n}", err=True)
+                (sess.warn if "degenerate stable terrain" in n else sess.note)(n)
+            iv = [r for r in ts.table if r.get("kind") == "interval" and "cumulative_net_m3" in r]
+            if iv:
+                last = iv[-1]
+                sess.say(f"{len(loaded)} DEMs, {len(ts.intervals)} intervals compared; cumulative net volume "
+                         f"{iv[0]['epoch_a']} → {last['epoch_b']}: "
+                         f"{last['cumulative_net_m3'] / 1e6:+.3f} ± {last.get('cumulative_net_sigma_m3', float('nan')) / 1e6:.3f}"
+                         " Mm³ (1σ)")
+                sess.data(cumulative_net_m3=last["cumulative_net_m3"],
+                          cumulative_net_sigma_m3=last.get("cumulative_net_sigma_m3"))
             outputs["notes"] = write_json(Path(out_dir) / f"{prefix}_notes.json", ts.notes) if ts.notes else None
             outputs = {k: v for k, v in outputs.items() if v is not None}
     finally:
-        if hasattr(progress, "close"):
-            progress.close()
+        progress.close()
     emit_result(ctx, outputs)

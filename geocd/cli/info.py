@@ -74,14 +74,19 @@ def format_info(d: dict) -> str:
 
 @click.command("info")
 @click.argument("path", type=click.Path(path_type=str))
-@click.option("--json", "as_json", is_flag=True, help="Print a JSON document instead of text.")
-def info(path: str, as_json: bool) -> None:
+@click.pass_context
+def info(ctx: click.Context, path: str) -> None:
     """Print what geocd sees in PATH: camera kind, footprint on the ground, CRS, dtype, RPC height range.
 
     PATH may be an image (GeoTIFF/NITF with RPC tags or a camera sidecar), a camera file (any vendor RPC format or a
     geocd camera JSON/YAML), a DEM, a vector file, a scene manifest (scene.yaml) or a folder.
     """
+    from .common import require_inputs, session
+
+    require_inputs(path)
     from ..info import describe
 
+    sess = session(ctx)
     d = describe(path)
-    click.echo(json.dumps(d, indent=2, default=str) if as_json else format_info(d))
+    click.echo(json.dumps(d, indent=2, default=str) if sess.as_json else format_info(d))
+    sess.stdout_done = True

@@ -16,7 +16,7 @@ import click
 @click.option("--images-a", default=None, help="Comma-separated image names of epoch A to use (default: all).")
 @click.option("--images-b", default=None, help="Comma-separated image names of epoch B to use (default: all).")
 @click.option("--out", "out_dir", type=click.Path(path_type=str), default=None,
-              help="Output folder (default: the manifest's output).")
+              help="Output folder (default: the manifest's 'output:' if it names one, else ./geocd_out/<scene name>).")
 @click.option("--model", type=click.Choice(["robust", "thesis"]), default="robust", show_default=True,
               help="thesis: eqs. 5.2-5.11 as published; robust: + 'no consistent depth' hypothesis, visibility test, "
                    "all pairs (see docs/probchange.md).")
@@ -25,7 +25,9 @@ import click
 @click.option("--sigma", type=float, default=None,
               help="σ of the depth epoch (0-255 scale; default: estimated, §5.3.5).")
 @click.option("--sigma-prime", type=float, default=None, help="σ' of the other epoch (default: estimated).")
-@click.option("--threshold", type=float, default=None, help="Binary change where p > threshold (default 0.5).")
+@click.option("--threshold", type=float, default=None,
+              help="Binary change where the change probability p > threshold (a probability 0–1, not a confidence; "
+                   "default 0.5).")
 @click.option("--pairs", type=click.Choice(["star", "consecutive", "all"]), default=None,
               help="Pairs within an epoch (default: star for thesis, all for robust).")
 @click.option("--symmetric/--no-symmetric", default=None, help="Also swap the epochs and combine (default: no).")
@@ -48,10 +50,21 @@ def probchange(ctx: click.Context, manifest: str, variant: str, key: str | None,
     key frame's geometry), the binary change at p > 0.5 and its polygons (GeoPackage layer 'changes',
     method 'probchange').
     """
+    from .common import require_inputs, resolve_out_dir, session
+
+    require_inputs(manifest, what="manifest")
+    from ..io.manifest import load_manifest
+    from ..io.outputs import open_outputs
+
+    m = load_manifest(manifest)
+    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
     from ..probchange import ProbChangeParams
     from ..probchange.pipeline import run_probchange
     from . import emit_result, make_progress
 
+    open_outputs(out, inputs=m.input_paths(), products=(f"{prefix or 'probchange'}_*",), prefix=prefix)
+    sess = session(ctx)
+    sess.open_log(out)
     kw: dict = {}
     for name, val in (("prior_change", prior_change), ("n_bins", n_bins), ("sigma", sigma),
                       ("sigma_prime", sigma_prime), ("threshold", threshold), ("pairs", pairs),
@@ -64,10 +77,13 @@ def probchange(ctx: click.Context, manifest: str, variant: str, key: str | None,
     split = lambda s: [x.strip() for x in s.split(",") if x.strip()] if s else None  # noqa: E731
     progress = make_progress(ctx, "probchange")
     try:
-        res = run_probchange(manifest, variant=variant, key=key, epoch_a=epoch_a, epoch_b=epoch_b,
-                             images_a=split(images_a), images_b=split(images_b), out_dir=out_dir, params=params,
+        res = run_probchange(m, variant=variant, key=key, epoch_a=epoch_a, epoch_b=epoch_b,
+                             images_a=split(images_a), images_b=split(images_b), out_dir=out, params=params,
                              posting_m=posting_m, prefix=prefix, progress=progress)
     finally:
-        if hasattr(progress, "close"):
-            progress.close()
+        progress.close()
+    s = res["summary"]
+    sess.say(f"probchange ({variant}) {s['epoch_a']} → {s['epoch_b']}: observed {100 * s['observed_fraction']:.1f}% of "
+             f"cells; changed (p > {params.threshold:g}): {100 * s['changed_fraction']:.2f}%")
+    sess.data(**{k: s[k] for k in ("epoch_a", "epoch_b", "observed_fraction", "changed_fraction") if k in s})
     emit_result(ctx, res["outputs"])

@@ -1,15 +1,54 @@
-"""``geocd stereo MANIFEST``: pair-DEMs (z, score, g, valid, ...) for every image pair of an epoch."""
+"""``geocd stereo MANIFEST`` or ``geocd stereo A.tif B.tif``: pair-DEMs (z, score, g, valid, ...) for every
+image pair of an epoch."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
+INPUT_HELP = ("INPUTS: a scene manifest (scene.yaml) or a folder of images, or two or more images of one date "
+              "(GeoTIFF/NITF with RPC tags or an RPC/frame camera sidecar): `geocd stereo a.tif b.tif --out dsm/`.")
 
-@click.command("stereo")
-@click.argument("manifest", type=click.Path(path_type=str))
+
+def _is_image(path: str) -> bool:
+    from ..io.manifest import IMAGE_SUFFIXES
+
+    return Path(path).suffix.lower() in IMAGE_SUFFIXES
+
+
+def scene_from_inputs(inputs: tuple[str, ...]):
+    """A manifest from the positional inputs: one manifest/folder, or 2+ images (one epoch named ``pair``)."""
+    from ..errors import ConfigError
+    from ..io.manifest import Epoch, ImageSpec, Manifest, load_manifest
+
+    if len(inputs) == 1:
+        p = inputs[0]
+        if Path(p).is_file() and _is_image(p):
+            raise ConfigError(f"{p} is one image; stereo needs two or more: `geocd stereo {p} OTHER.tif --out DIR`, "
+                              "or a scene manifest (scene.yaml) or a folder of images")
+        return load_manifest(p)
+    not_images = [p for p in inputs if Path(p).is_dir() or not _is_image(p)]
+    if not_images:
+        raise ConfigError(f"give one scene manifest or folder, or two or more images; {not_images[0]} is not an image "
+                          "(.tif, .ntf, .jp2, ...)")
+    names = [Path(p).stem for p in inputs]
+    if len(set(names)) != len(names):
+        names = [f"{i + 1}_{n}" for i, n in enumerate(names)]
+    ims = tuple(ImageSpec(Path(p).resolve(), None, n) for p, n in zip(inputs, names))
+    return Manifest(path=None, name="__".join(names[:2]) + ("__etc" if len(names) > 2 else ""),
+                    epochs=(Epoch("pair", None, ims),))
+
+
+@click.command("stereo", help="Match every image pair of each epoch in object space (RPC and frame cameras alike)."
+               "\n\n" + INPUT_HELP + "\n\nFor each pair, writes a Cloud-Optimized GeoTIFF on the AOI grid with bands z "
+               "(ellipsoidal m), score (MDL bits/pixel, lower = better), g (px of disparity per m), valid, ncc, ssd "
+               "and flags, to OUT/stereo/EPOCH/A__B.tif (the epoch of images given directly is `pair`).")
+@click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=str))
 @click.option("--epoch", "epochs", multiple=True, help="Epoch to process (repeatable; default: every epoch with 2+ images).")
 @click.option("--out", "out_dir", type=click.Path(path_type=str), default=None,
-              help="Output folder (default: the manifest's output). Pair-DEMs go to OUT/stereo/EPOCH/A__B.tif.")
+              help="Output folder (default: the manifest's 'output:' if it names one, else ./geocd_out/<name>). "
+                   "Pair-DEMs go to OUT/stereo/EPOCH/A__B.tif.")
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting in metres (default: manifest aoi, else the images' GSD).")
 @click.option("--window", type=int, default=None, help="Matching window side in cells (odd, default 7).")
 @click.option("--height-range", nargs=2, type=float, default=None, metavar="MIN MAX",
@@ -23,17 +62,22 @@ import click
 @click.option("--tile-size", type=int, default=None, help="Tile side in cells (memory bound; default 256).")
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing pair-DEMs.")
 @click.pass_context
-def stereo(ctx: click.Context, manifest: str, epochs: tuple[str, ...], out_dir: str | None, posting_m: float | None,
-           window: int | None, height_range, dem_margin: float | None, score: str | None,
+def stereo(ctx: click.Context, inputs: tuple[str, ...], epochs: tuple[str, ...], out_dir: str | None,
+           posting_m: float | None, window: int | None, height_range, dem_margin: float | None, score: str | None,
            score_subwindow: int | None, tile_size: int | None, no_overwrite: bool) -> None:
-    """Match every image pair of each epoch of MANIFEST in object space (RPC and frame cameras alike).
+    from .common import require_inputs, resolve_out_dir, session
 
-    For each pair, writes a Cloud-Optimized GeoTIFF on the AOI grid with bands z (ellipsoidal m), score
-    (MDL bits/pixel, lower = better), g (px of disparity per m), valid, ncc, ssd and flags.
-    """
+    require_inputs(*inputs)
+    m = scene_from_inputs(inputs)
+    out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
+    from ..io.outputs import open_outputs
     from ..stereo import StereoParams
     from ..stereo.pipeline import run_stereo
     from . import emit_result, make_progress
+
+    open_outputs(out, inputs=m.input_paths(), products=tuple(f"stereo/{e}/*" for e in epochs) or ("stereo/*",))
+    sess = session(ctx)
+    sess.open_log(out)
 
     kw = {}
     if window is not None:
@@ -51,9 +95,11 @@ def stereo(ctx: click.Context, manifest: str, epochs: tuple[str, ...], out_dir: 
     params = StereoParams(**kw)
     progress = make_progress(ctx, "stereo")
     try:
-        res = run_stereo(manifest, epochs=list(epochs) or None, out_dir=out_dir, params=params, posting_m=posting_m,
+        res = run_stereo(m, epochs=list(epochs) or None, out_dir=out, params=params, posting_m=posting_m,
                          overwrite=not no_overwrite, progress=progress)
     finally:
-        if hasattr(progress, "close"):
-            progress.close()
+        progress.close()
+    g = res["grid"]
+    sess.say(f"{len(res['outputs'])} pair-DEM(s) on a {g.width}x{g.height} grid at {g.posting_m:g} m ({g.crs})")
+    sess.data(grid=g.to_dict(), pairs=sorted(res["outputs"]))
     emit_result(ctx, res["outputs"])

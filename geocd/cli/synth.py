@@ -44,8 +44,10 @@ def synth(ctx: click.Context, out_dir: Path, seed: int, size_m: float, gsd_m: fl
     platform; see truth/scene_truth.json for the recorded parameters and checks).
     """
     from ..errors import ConfigError
+    from ..io.outputs import open_outputs
     from ..synth.generate import SynthParams, generate
 
+    open_outputs(out_dir, inputs=[params_file], files=[pictures])
     base: dict = {}
     if params_file is not None:
         try:
@@ -77,8 +79,16 @@ def synth(ctx: click.Context, out_dir: Path, seed: int, size_m: float, gsd_m: fl
     try:
         res = generate(params, out_dir, overwrite=overwrite, progress=prog)
     finally:
-        if hasattr(prog, "close"):
-            prog.close()
+        prog.close()
+    from .common import session
+
+    sess = session(ctx)
+    sess.open_log(out_dir)  # after generating: the generator wants an empty folder
+    rep = res.report
+    n_views = len(rep.get("views", []))
+    sess.say(f"scene {params.name!r} (seed {params.seed}): {n_views} views, "
+             f"{100 * rep.get('change_mask_fraction', 0.0):.2f}% of the AOI changed in 3-D")
+    sess.data(seed=params.seed, views=n_views, change_mask_fraction=rep.get("change_mask_fraction"))
     outputs = {"manifest": res.manifest, "report": out_dir / "truth" / "scene_truth.json"}
     if pictures is not None:
         from ..synth.pictures import write_pictures

@@ -19,8 +19,10 @@ def _close(p):
 
 
 def _say(ctx, msg: str) -> None:
-    if (ctx.find_root().obj or {}).get("progress_mode") != "json":
-        click.echo(msg, err=True)
+    """A note on stderr (and in the log) while the command runs."""
+    from .common import session
+
+    session(ctx).note(msg)
 
 
 @click.group("volume")
@@ -64,9 +66,12 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
     from ..volume import VolumeModel, VolumeParams, load_model, save_model, update_model
     from ..volume.io import geometry_from_manifest, read_view
 
+    from ..io.outputs import open_outputs
+
     if passes < 1:
         raise ConfigError("--passes must be at least 1")
     man = load_manifest(manifest_path) if manifest_path else None
+    open_outputs(None, files=[model_dir], inputs=[*(man.input_paths() if man else []), *images])
     specs = []
     if images:
         specs = [(Path(p), None, Path(p).stem) for p in images]
@@ -95,6 +100,10 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
             dem = read_dem(man.dem.path, grid=grid, vertical_datum=man.dem.vertical_datum).to_ellipsoidal()
             info = seed_from_dem(model, dem.height_m, grid)
             _say(ctx, f"DEM prior: {info['ground_cells']:,} ground cells, {info['air_cells']:,} air cells")
+    from .common import session
+
+    # beside the model folder, not in it: every save replaces the folder as a whole
+    session(ctx).open_log(Path(model_dir).resolve().parent)
     s = tuple(sun) if sun else None
     views = [read_view(p, c, name=n, sun=s, normalize=normalize) for p, c, n in specs]
     rng = np.random.default_rng(seed)
@@ -117,7 +126,7 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
     finally:
         _close(prog)
     rep = model.size_report()
-    _say(ctx, f"{rep['leaves']:,} leaves ({rep['bytes'] / 2**20:.1f} MiB); a fixed grid at {rep['finest_cell_m']} m "
+    session(ctx).say(f"{rep['leaves']:,} leaves ({rep['bytes'] / 2**20:.1f} MiB); a fixed grid at {rep['finest_cell_m']} m "
               f"would take {rep['fixed_grid_ratio']:.1f}x more")
     from . import emit_result
 
@@ -148,14 +157,18 @@ def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_
     import numpy as np
 
     from ..io.atomic import write_text_atomic
+    from ..io.outputs import open_outputs
     from ..io.raster import write_cog
     from ..volume import DetectParams, detect_change, expected_height_map, load_model, orthorectify
     from ..volume.io import read_view
 
+    from .common import session
+
+    out = Path(out_dir)
+    open_outputs(out_dir, inputs=[model_dir, image, camera_path], products=("*_change_prob*", "*_change.json"))
+    session(ctx).open_log(out)
     model = load_model(model_dir)
     v = read_view(image, camera_path, sun=tuple(sun) if sun else None, normalize=normalize)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     prog = _progress(ctx, "volume detect")
     try:
         res = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
@@ -182,6 +195,9 @@ def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_
     p_meta = out / f"{v.name}_change.json"
     write_text_atomic(p_meta, json.dumps(meta, indent=1))
     outputs["summary"] = p_meta
+    mcp = meta["mean_change_probability"]
+    session(ctx).say(f"{v.name}: mean change probability {mcp:.3f}" if mcp is not None else
+                     f"{v.name}: no pixel of the image sees the model")
     from . import emit_result
 
     emit_result(ctx, outputs)
@@ -234,11 +250,15 @@ def render(ctx, model_dir, images, height_map, posting_m, out_dir):
     from ..volume import expected_height_map, expected_image, load_model
     from ..volume.io import read_view
 
+    from ..io.outputs import open_outputs
+    from .common import session
+
     if not images and not height_map:
         raise ConfigError("nothing to render: give --image and/or --height-map")
-    model = load_model(model_dir)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    open_outputs(out_dir, inputs=[model_dir, *images], products=("*_expected.tif", "expected_height_map.tif"))
+    session(ctx).open_log(out)
+    model = load_model(model_dir)
     outputs = {}
     prog = _progress(ctx, "volume render")
     try:

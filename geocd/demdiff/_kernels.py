@@ -4,7 +4,9 @@
   (Zevenbergen & Thorne 1987) and roughness (max − min of the 3×3 window) of a
   north-up DEM; NaN where the 3×3 window is incomplete.
 * :func:`shift_grid` — translate a DEM by a sub-pixel offset (bilinear or Keys
-  cubic convolution, NaN-aware: a cell is NaN when its support touches NaN).
+  cubic convolution, NaN-aware: a cell is NaN when its support touches NaN);
+  :func:`shift_window` does the same on a window of a larger grid (tiles) with the
+  whole grid's arithmetic, so a tile's cells equal the whole grid's.
 * :func:`variogram_bins` — empirical semivariance of scattered samples, all
   pairs, binned by distance.
 
@@ -213,6 +215,170 @@ def shift_grid(height_m: np.ndarray, shift_col_px: float, shift_row_px: float, m
     out = np.empty_like(h)
     _shift_kernel(h, float(shift_col_px), float(shift_row_px), method == "cubic", out)
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _shift_window_kernel(h, r0, c0, nr, nc, dcol, drow, cubic, out):  # pragma: no cover - numba
+    # _shift_kernel on a window of a grid of nr × nc cells whose first cell is (r0, c0): the same
+    # arithmetic on whole-grid indices, so every cell gets the value it gets on the whole grid.
+    # Returns False when a tap falls outside the window but inside the grid (window too small).
+    wr, wc = h.shape
+    lo = -1 if cubic else 0
+    hi = 3 if cubic else 2
+    wy = np.zeros(4)
+    wx = np.zeros(4)
+    enough = True
+    for r in range(wr):
+        y = (r0 + r) - drow
+        rb = int(math.floor(y))
+        fy = y - rb
+        for k in range(lo, hi):
+            wy[k - lo] = _keys(k - fy) if cubic else (1.0 - fy if k == 0 else fy)
+        for c in range(wc):
+            x = (c0 + c) - dcol
+            cb = int(math.floor(x))
+            fx = x - cb
+            for k in range(lo, hi):
+                wx[k - lo] = _keys(k - fx) if cubic else (1.0 - fx if k == 0 else fx)
+            acc = 0.0
+            ok = True
+            inside = True
+            for i in range(lo, hi):
+                a = wy[i - lo]
+                if a == 0.0:
+                    continue
+                rr = rb + i
+                if rr < 0 or rr >= nr:
+                    ok = False
+                    break
+                for j in range(lo, hi):
+                    b = wx[j - lo]
+                    if b == 0.0:
+                        continue
+                    cc = cb + j
+                    if cc < 0 or cc >= nc:
+                        ok = False
+                        break
+                    if rr - r0 < 0 or rr - r0 >= wr or cc - c0 < 0 or cc - c0 >= wc:
+                        inside = False
+                        continue
+                    acc += a * b * h[rr - r0, cc - c0]
+                if not ok:
+                    break
+            if ok and not inside:
+                out[r, c] = np.nan
+                enough = False
+            else:
+                out[r, c] = acc if ok else np.nan
+    return enough
+
+
+def shift_window(height_m: np.ndarray, origin: tuple[int, int], full_shape: tuple[int, int], shift_col_px: float,
+                 shift_row_px: float, method: str = "bilinear") -> np.ndarray:
+    """:func:`shift_grid` on a window of a larger grid, with the whole grid's arithmetic and borders.
+
+    ``height_m`` is the window of a grid of ``full_shape`` whose first cell is ``origin`` (row, col).
+    A cell whose interpolation support lies inside the window gets exactly the value
+    :func:`shift_grid` gives it on the whole grid; a cell whose support leaves the window
+    (but not the grid) is NaN: a tile needs :func:`shift_margin` cells of overlap.
+    """
+    if method not in ("bilinear", "cubic"):
+        raise ValueError(f"method must be 'bilinear' or 'cubic', got {method!r}")
+    h = np.ascontiguousarray(height_m, dtype=np.float64)
+    out = np.empty_like(h)
+    _shift_window_kernel(h, int(origin[0]), int(origin[1]), int(full_shape[0]), int(full_shape[1]),
+                         float(shift_col_px), float(shift_row_px), method == "cubic", out)
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _shift_points_kernel(patches, pr0, pc0, rows, cols, nr, nc, dcol, drow, cubic, out):  # pragma: no cover
+    # _shift_kernel's value at whole-grid cells (rows[k], cols[k]), the grid known only on a patch
+    # around each cell (patches[k] starts at (pr0[k], pc0[k])). Returns False when a tap inside the
+    # grid falls outside its patch (that cell is NaN: gather larger patches).
+    P, Q = patches.shape[1], patches.shape[2]
+    lo = -1 if cubic else 0
+    hi = 3 if cubic else 2
+    wy = np.zeros(4)
+    wx = np.zeros(4)
+    enough = True
+    for k in range(rows.shape[0]):
+        y = rows[k] - drow
+        rb = int(math.floor(y))
+        fy = y - rb
+        for q in range(lo, hi):
+            wy[q - lo] = _keys(q - fy) if cubic else (1.0 - fy if q == 0 else fy)
+        x = cols[k] - dcol
+        cb = int(math.floor(x))
+        fx = x - cb
+        for q in range(lo, hi):
+            wx[q - lo] = _keys(q - fx) if cubic else (1.0 - fx if q == 0 else fx)
+        acc = 0.0
+        ok = True
+        inside = True
+        for i in range(lo, hi):
+            a = wy[i - lo]
+            if a == 0.0:
+                continue
+            rr = rb + i
+            if rr < 0 or rr >= nr:
+                ok = False
+                break
+            for j in range(lo, hi):
+                b = wx[j - lo]
+                if b == 0.0:
+                    continue
+                cc = cb + j
+                if cc < 0 or cc >= nc:
+                    ok = False
+                    break
+                pi = rr - pr0[k]
+                pj = cc - pc0[k]
+                if pi < 0 or pi >= P or pj < 0 or pj >= Q:
+                    inside = False
+                    continue
+                acc += a * b * patches[k, pi, pj]
+            if not ok:
+                break
+        if ok and not inside:
+            out[k] = np.nan
+            enough = False
+        else:
+            out[k] = acc if ok else np.nan
+    return enough
+
+
+def shift_points(patches: np.ndarray, patch_rows: np.ndarray, patch_cols: np.ndarray, rows: np.ndarray,
+                 cols: np.ndarray, full_shape: tuple[int, int], shift_col_px: float, shift_row_px: float,
+                 method: str = "bilinear") -> tuple[np.ndarray, bool]:
+    """:func:`shift_grid` at chosen cells of a grid known only on a patch around each cell.
+
+    Parameters
+    ----------
+    patches : float (n, P, Q), the grid's values on a window around each cell
+    patch_rows, patch_cols : int (n,), whole-grid index of each patch's first cell
+    rows, cols : int (n,), the cells
+    full_shape : (rows, cols) of the whole grid (its borders make cells NaN as in :func:`shift_grid`)
+
+    Returns
+    -------
+    values : float64 (n,), what ``shift_grid(grid, ...)[rows, cols]`` holds
+    complete : False when some cell's support left its patch (those cells are NaN)
+    """
+    if method not in ("bilinear", "cubic"):
+        raise ValueError(f"method must be 'bilinear' or 'cubic', got {method!r}")
+    pa = np.ascontiguousarray(patches, dtype=np.float64)
+    out = np.empty(pa.shape[0], np.float64)
+    ok = _shift_points_kernel(pa, np.ascontiguousarray(patch_rows, np.int64), np.ascontiguousarray(patch_cols, np.int64),
+                              np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(cols, np.int64),
+                              int(full_shape[0]), int(full_shape[1]), float(shift_col_px), float(shift_row_px),
+                              method == "cubic", out)
+    return out, bool(ok)
+
+
+def shift_margin(shift_col_px: float, shift_row_px: float, method: str = "bilinear") -> int:
+    """Cells of context a window needs for :func:`shift_window` to equal :func:`shift_grid` on its core."""
+    return int(math.ceil(max(abs(shift_col_px), abs(shift_row_px)))) + (3 if method == "cubic" else 2)
 
 
 def _weights_ref(f: np.ndarray, cubic: bool) -> list[tuple[int, np.ndarray]]:

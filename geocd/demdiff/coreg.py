@@ -54,7 +54,7 @@ import numpy as np
 
 from ..errors import ConfigError, ProcessingError
 from ..progress import Progress, ensure_progress
-from ._kernels import shift_grid, terrain_attributes
+from ._kernels import shift_grid, shift_window, terrain_attributes
 from .stable import nmad
 
 UNDERCONSTRAINED_ACTIONS = ("vertical_only", "apply", "none", "raise")
@@ -180,11 +180,23 @@ def apply_shift(height_m: np.ndarray, shift_m: tuple[float, float, float], posti
     return out.astype(np.float32)
 
 
-def _plane(shape, posting_xy_m, tilt) -> np.ndarray:
+def _plane(shape, posting_xy_m, tilt, origin: tuple[int, int] = (0, 0), window_shape=None) -> np.ndarray:
+    """``tilt[0]·x + tilt[1]·y`` with (x, y) metres from the centre of a grid of ``shape``, on the
+    window of ``window_shape`` cells starting at ``origin`` (the whole grid by default)."""
     nr, nc = shape
-    x = (np.arange(nc) - (nc - 1) / 2.0) * posting_xy_m[0]
-    y = -(np.arange(nr) - (nr - 1) / 2.0) * posting_xy_m[1]
+    r0, c0 = origin
+    wr, wc = window_shape or shape
+    x = (np.arange(c0, c0 + wc) - (nc - 1) / 2.0) * posting_xy_m[0]
+    y = -(np.arange(r0, r0 + wr) - (nr - 1) / 2.0) * posting_xy_m[1]
     return tilt[0] * x[None, :] + tilt[1] * y[:, None]
+
+
+def plane_at_cells(rows: np.ndarray, cols: np.ndarray, shape, posting_xy_m, tilt) -> np.ndarray:
+    """:func:`_plane` at the cells (rows, cols) of a grid of ``shape`` (the same values)."""
+    nr, nc = shape
+    x = (cols - (nc - 1) / 2.0) * posting_xy_m[0]
+    y = -(rows - (nr - 1) / 2.0) * posting_xy_m[1]
+    return tilt[0] * x + tilt[1] * y
 
 
 def _fit_bins(y: np.ndarray, aspect: np.ndarray, nbins: int, min_cells: int) -> tuple[np.ndarray, int] | None:
@@ -247,6 +259,91 @@ def _jackknife(dh: np.ndarray, tan_a: np.ndarray, aspect: np.ndarray, rows: np.n
     return beta, np.sqrt(var), K
 
 
+@dataclass(frozen=True)
+class StableCells:
+    """Values of the stable cells with heights in both DEMs, in row-major order (a cell table).
+
+    What :func:`coregister_cells` needs from the grids: gathered from whole arrays by
+    :func:`nuth_kaab`, or tile by tile by the tiled pipeline. When ``n_total`` exceeds the
+    number of rows the table is a deterministic subsample of the stable cells.
+
+    Attributes
+    ----------
+    rows, cols : int64 (n,), whole-grid indices
+    a_m, b_m : float64 (n,), heights of A and B
+    slope_rad, aspect_rad : float64 (n,), of A (NaN where the 3×3 window is incomplete)
+    shape : (rows, cols) of the whole grid
+    n_total : number of stable cells in the whole grid
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    a_m: np.ndarray
+    b_m: np.ndarray
+    slope_rad: np.ndarray
+    aspect_rad: np.ndarray
+    shape: tuple[int, int]
+    n_total: int
+
+
+@dataclass(frozen=True)
+class CoregPlan:
+    """What co-registration applies to B: ``out = B(shifted) + tz − plane`` (float32).
+
+    ``shift_px`` = (columns, rows) of :func:`~geocd.demdiff._kernels.shift_grid` (None: B as
+    it is); ``plane`` = (a, b) of ``a·x + b·y`` subtracted (x, y from the whole grid's centre).
+    """
+
+    shift_px: tuple[float, float] | None
+    tz_m: float
+    plane: tuple[float, float] | None
+    resampling: str = "bilinear"
+
+    def apply(self, tba_m: np.ndarray, posting_xy_m: tuple[float, float], origin: tuple[int, int] = (0, 0),
+              full_shape: tuple[int, int] | None = None) -> np.ndarray:
+        """B co-registered (float32) on a window of the grid starting at ``origin`` (whole grid by default).
+
+        A window's cells get exactly the values they get on the whole grid as long as the
+        window holds the interpolation support of its cells (see :func:`shift_window`).
+        """
+        B = np.asarray(tba_m, np.float64)
+        shape = full_shape or B.shape
+        if self.shift_px is not None:
+            if origin == (0, 0) and tuple(shape) == B.shape:
+                B = shift_grid(B, self.shift_px[0], self.shift_px[1], self.resampling)
+            else:
+                B = shift_window(B, origin, shape, self.shift_px[0], self.shift_px[1], self.resampling)
+        out = B + self.tz_m
+        if self.plane is not None:
+            out = out - _plane(shape, posting_xy_m, self.plane, origin, B.shape)
+        return out.astype(np.float32)
+
+
+class GridCoregData:
+    """:func:`coregister_cells`' access to two whole grids (what :func:`nuth_kaab` uses)."""
+
+    def __init__(self, A: np.ndarray, B: np.ndarray, stable: np.ndarray, posting_xy_m: tuple[float, float],
+                 resampling: str = "bilinear"):
+        self.A = A
+        self.B = B
+        self.resampling = resampling
+        rows, cols = np.nonzero(stable)
+        terr = terrain_attributes(A, posting_xy_m)
+        self.cells = StableCells(rows, cols, A[rows, cols], B[rows, cols],
+                                 terr["slope_rad"][rows, cols].astype(np.float64),
+                                 terr["aspect_rad"][rows, cols].astype(np.float64), A.shape, int(rows.size))
+
+    def sample_b(self, idx: np.ndarray, dcol: float, drow: float) -> np.ndarray:
+        """B shifted by (dcol, drow) px at the table's cells ``idx``."""
+        Bs = shift_grid(self.B, dcol, drow, self.resampling)
+        return Bs[self.cells.rows[idx], self.cells.cols[idx]]
+
+    def shifted_b(self, dcol: float, drow: float) -> np.ndarray:
+        """B shifted by (dcol, drow) px at every cell of the table."""
+        Bs = shift_grid(self.B, dcol, drow, self.resampling)
+        return Bs[self.cells.rows, self.cells.cols]
+
+
 def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_xy_m: tuple[float, float],
               params: CoregParams = CoregParams(), progress: Progress | None = None,
               initial_shift_m: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, CoregResult]:
@@ -264,43 +361,69 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     aligned : float32 (rows, cols), B after the applied shift (B itself when nothing was applied)
     result : CoregResult
     """
-    prog = ensure_progress(progress)
-    p = params
     A = np.asarray(ref_m, np.float64)
     B = np.asarray(tba_m, np.float64)
     if A.shape != B.shape or np.shape(stable) != A.shape:
         raise ConfigError(f"reference {A.shape}, DEM {B.shape} and stable mask {np.shape(stable)} must share one grid")
-    px, py = float(posting_xy_m[0]), float(posting_xy_m[1])
     st = np.asarray(stable, bool) & np.isfinite(A) & np.isfinite(B)
-    n_stable = int(st.sum())
-    dh0 = B - A
-    med0 = float(np.median(dh0[st])) if n_stable else float("nan")
-    nm0 = nmad(dh0[st]) if n_stable else float("nan")
+    data = GridCoregData(A, B, st, posting_xy_m, params.resampling)
+    res, plan = coregister_cells(data, posting_xy_m, params, progress, initial_shift_m)
+    return plan.apply(B, posting_xy_m), res
+
+
+def coregister_cells(data, posting_xy_m: tuple[float, float], params: CoregParams = CoregParams(),
+                     progress: Progress | None = None,
+                     initial_shift_m: tuple[float, float] = (0.0, 0.0)) -> tuple[CoregResult, CoregPlan]:
+    """Nuth & Kääb on a table of stable cells (see the module docstring).
+
+    Parameters
+    ----------
+    data : an object with ``cells`` (:class:`StableCells`), ``sample_b(idx, dcol, drow)`` (B shifted
+        by (dcol, drow) px at the table's cells ``idx``) and ``shifted_b(dcol, drow)`` (at every
+        cell): :class:`GridCoregData` for whole grids, or a tiled reader
+
+    Returns
+    -------
+    result : CoregResult
+    plan : CoregPlan, what to apply to B
+    """
+    prog = ensure_progress(progress)
+    p = params
+    c = data.cells
+    shape = tuple(c.shape)
+    px, py = float(posting_xy_m[0]), float(posting_xy_m[1])
+    n_stable = int(c.n_total)
+    n_tab = int(c.rows.size)
+    dh0 = c.b_m - c.a_m
+    med0 = float(np.median(dh0)) if n_tab else float("nan")
+    nm0 = nmad(dh0) if n_tab else float("nan")
     base = dict(n_stable=n_stable, median_before_m=med0, nmad_before_m=nm0, posting_xy_m=(px, py))
     zero = (0.0, 0.0, 0.0)
     inf3 = (math.inf, math.inf, math.inf)
+    nothing = CoregPlan(None, 0.0, None, p.resampling)
     if not (p.horizontal or p.vertical or p.tilt):
-        return B.astype(np.float32), CoregResult(zero, zero, inf3, "disabled", "none", **base,
-                                                 median_after_m=med0, nmad_after_m=nm0)
+        return CoregResult(zero, zero, inf3, "disabled", "none", **base, median_after_m=med0,
+                           nmad_after_m=nm0), nothing
     if n_stable < max(p.min_vertical_cells, 3):
         reason = (f"no stable terrain ({n_stable} stable cells with heights in both DEMs, "
                   f"at least {max(p.min_vertical_cells, 3)} needed)")
         if p.on_underconstrained == "raise":
             raise ProcessingError(reason + "; give a stable-terrain mask (--stable-mask) or disable co-registration")
-        return B.astype(np.float32), CoregResult(zero, zero, inf3, "no_stable_terrain", "none", (reason,), **base,
-                                                 median_after_m=med0, nmad_after_m=nm0)
+        return CoregResult(zero, zero, inf3, "no_stable_terrain", "none", (reason,), **base, median_after_m=med0,
+                           nmad_after_m=nm0), nothing
 
-    terr = terrain_attributes(A, (px, py))
-    slope = terr["slope_rad"].astype(np.float64)
-    aspect = terr["aspect_rad"].astype(np.float64)
-    fit_mask = st & np.isfinite(slope) & (slope >= math.radians(p.min_slope_deg)) & (slope <= math.radians(p.max_slope_deg))
-    rows, cols = np.nonzero(fit_mask)
-    if p.max_fit_cells and rows.size > p.max_fit_cells:
+    slope = c.slope_rad
+    aspect = c.aspect_rad
+    fidx = np.nonzero(np.isfinite(slope) & (slope >= math.radians(p.min_slope_deg))
+                      & (slope <= math.radians(p.max_slope_deg)))[0]
+    if p.max_fit_cells and fidx.size > p.max_fit_cells:
         # a fixed random subsample (as xDEM's): the fit and its jackknife stay fast on large DEMs
-        pick = np.sort(np.random.default_rng(0).choice(rows.size, p.max_fit_cells, replace=False))
-        rows, cols = rows[pick], cols[pick]
-    tan_a = np.tan(slope[rows, cols])
-    asp = aspect[rows, cols]
+        pick = np.sort(np.random.default_rng(0).choice(fidx.size, p.max_fit_cells, replace=False))
+        fidx = fidx[pick]
+    rows, cols = c.rows[fidx], c.cols[fidx]
+    tan_a = np.tan(slope[fidx])
+    asp = aspect[fidx]
+    a_fit = c.a_m[fidx]
     reasons: list[str] = []
     te, tn = float(initial_shift_m[0]), float(initial_shift_m[1])
     history: list[tuple[float, float]] = []
@@ -308,18 +431,18 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     it = 0
     n_fit = int(rows.size)
     if p.horizontal and n_fit >= 20:
-        Bs = B
+        bs = c.b_m[fidx]
         for it in range(1, p.max_iterations + 1):
             if te != 0.0 or tn != 0.0:
-                Bs = shift_grid(B, te / px, -tn / py, p.resampling)
-            d = Bs[rows, cols] - A[rows, cols]
+                bs = data.sample_b(fidx, te / px, -tn / py)
+            d = bs - a_fit
             ok = np.isfinite(d)
             if ok.sum() < 20:
                 reasons.append("the shifted DEM left the stable cells (shift diverged)")
                 break
             dd = d[ok]
             if p.tilt:
-                dd = dd - _plane_at(dd, rows[ok], cols[ok], A.shape, (px, py))
+                dd = dd - _plane_at(dd, rows[ok], cols[ok], shape, (px, py))
             m = np.median(dd)
             s = nmad(dd)
             keep = np.abs(dd - m) <= max(p.outlier_nmad * s, 1e-6) if s > 0 else np.ones(dd.size, bool)
@@ -338,7 +461,7 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
             if math.hypot(de / px, dn / py) < p.tolerance_px:
                 converged = True
                 break
-            if math.hypot(te / px, tn / py) > 0.25 * min(A.shape):
+            if math.hypot(te / px, tn / py) > 0.25 * min(shape):
                 reasons.append("the horizontal shift diverged beyond a quarter of the grid")
                 break
         if not converged and not reasons:
@@ -350,8 +473,8 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     # Gauss–Newton polish on the linearized model (the estimator whose jackknife σ is reported)
     if p.horizontal and converged and n_fit >= 20:
         for _ in range(p.refine_steps):
-            Bs = shift_grid(B, te / px, -tn / py, p.resampling) if (te or tn) else B
-            d = Bs[rows, cols] - A[rows, cols]
+            bs = data.sample_b(fidx, te / px, -tn / py) if (te or tn) else c.b_m[fidx]
+            d = bs - a_fit
             ok = np.isfinite(d)
             if ok.sum() < 20:
                 break
@@ -366,9 +489,9 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
             if math.hypot(beta[0] / px, beta[1] / py) < 0.1 * p.tolerance_px:
                 break
     # vertical offset after the horizontal fit
-    Bh = shift_grid(B, te / px, -tn / py, p.resampling) if (te or tn) else B
-    dh1 = Bh - A
-    st1 = st & np.isfinite(dh1)
+    bh = data.shifted_b(te / px, -tn / py) if (te or tn) else c.b_m
+    dh1 = bh - c.a_m
+    st1 = np.isfinite(dh1)
     tz = -float(np.median(dh1[st1])) if st1.sum() else 0.0
 
     # jackknife and coverage diagnostics on the final residuals
@@ -377,10 +500,10 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     nblk = 0
     disagree = (math.nan, math.nan)
     if n_fit:
-        d = dh1[rows, cols] + tz
+        d = dh1[fidx] + tz
         ok = np.isfinite(d)
         if p.tilt and ok.sum() >= 10:
-            d = np.where(ok, d - _plane_at(np.where(ok, d, 0.0), rows, cols, A.shape, (px, py), ok), np.nan)
+            d = np.where(ok, d - _plane_at(np.where(ok, d, 0.0), rows, cols, shape, (px, py), ok), np.nan)
         keep = ok.copy()
         if ok.any():
             s, m = nmad(d[ok]), float(np.median(d[ok]))
@@ -403,8 +526,7 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
                 sn = math.hypot(sn, 0.5 * beta[1])
             sig[:2] = (se, sn)
     # vertical σ: jackknife over all stable cells (flat ones included)
-    rs, cs = np.nonzero(st1)
-    sz = _block_sigma_of_median(dh1[rs, cs], rs, cs, p.block_px, p.min_blocks)
+    sz = _block_sigma_of_median(dh1[st1], c.rows[st1], c.cols[st1], p.block_px, p.min_blocks)
     sig = np.array([sig[0], sig[1], sz])
 
     if p.horizontal:
@@ -430,9 +552,9 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
         if both.sum() >= 10:
             d1, d0 = dh1[both], dh0[both]
             if p.tilt:  # compare after removing each one's plane
-                rb, cb_ = np.nonzero(both)
-                d1 = d1 - _plane_at(d1, rb, cb_, A.shape, (px, py))
-                d0 = d0 - _plane_at(d0, rb, cb_, A.shape, (px, py))
+                rb, cb_ = c.rows[both], c.cols[both]
+                d1 = d1 - _plane_at(d1, rb, cb_, shape, (px, py))
+                d0 = d0 - _plane_at(d0, rb, cb_, shape, (px, py))
             nm_shift, nm_raw = nmad(d1), nmad(d0)
             if nm_shift > nm_raw * (1.0 - p.min_improvement):
                 status = "not_improving"
@@ -446,23 +568,23 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
                               + "; give a better stable-terrain mask or pass on_underconstrained='vertical_only'")
     apply_h = p.horizontal and (trusted or action == "apply")
     apply_v = p.vertical and (trusted or action in ("apply", "vertical_only")) and st1.sum() >= p.min_vertical_cells
-    if apply_h:
-        Bout = Bh
-    else:
-        Bout = B
+    bout = bh if apply_h else c.b_m
     tz_applied = 0.0
     if apply_v:
-        tz_applied = -float(np.median((Bout - A)[st & np.isfinite(Bout)])) if apply_h else -med0
-    out = Bout + tz_applied
+        tz_applied = -float(np.median((bout - c.a_m)[np.isfinite(bout)])) if apply_h else -med0
+    out = bout + tz_applied
     tilt = None
-    if p.tilt and (trusted or action == "apply") and st.sum() >= max(p.min_vertical_cells, 10):
-        tilt = _fit_plane(out - A, st, (px, py))
-        out = out - _plane(A.shape, (px, py), tilt)
-        tilt = (-tilt[0], -tilt[1])
+    plane = None
+    if p.tilt and (trusted or action == "apply") and n_stable >= max(p.min_vertical_cells, 10):
+        dd = out - c.a_m
+        fin = np.isfinite(dd)
+        plane = _fit_plane_cells(c.rows[fin], c.cols[fin], dd[fin], shape, (px, py))
+        out = out - plane_at_cells(c.rows, c.cols, shape, (px, py), plane)
+        tilt = (-plane[0], -plane[1])
     applied = "horizontal+vertical" if (apply_h and apply_v) else ("horizontal" if apply_h else
                                                                     ("vertical" if apply_v else "none"))
-    dh_after = out - A
-    sa = st & np.isfinite(dh_after)
+    dh_after = out - c.a_m
+    sa = np.isfinite(dh_after)
     prog(1.0, "co-registration done")
     res = CoregResult(
         shift_m=(te if apply_h else 0.0, tn if apply_h else 0.0, tz_applied), fitted_shift_m=fitted,
@@ -470,7 +592,8 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
         iterations=it, converged=converged, n_fit=n_fit, octants=octs, n_blocks=nblk, model_disagreement_m=disagree,
         median_after_m=float(np.median(dh_after[sa])) if sa.any() else float("nan"),
         nmad_after_m=nmad(dh_after[sa]) if sa.any() else float("nan"), history_m=tuple(history), **base)
-    return out.astype(np.float32), res
+    shift = (te / px, -tn / py) if (apply_h and (te or tn)) else None
+    return res, CoregPlan(shift, tz_applied, plane, p.resampling)
 
 
 def _nk_jackknife(y: np.ndarray, aspect: np.ndarray, rows: np.ndarray, cols: np.ndarray, nbins: int,
@@ -550,11 +673,15 @@ def _plane_at(d: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape, posting_
 
 def _fit_plane(dh: np.ndarray, stable: np.ndarray, posting_xy_m) -> tuple[float, float]:
     """Robust (iteratively reweighted, Tukey-like cut at 3 NMAD) plane slope of dh on stable cells."""
-    nr, nc = dh.shape
     r, c = np.nonzero(stable & np.isfinite(dh))
+    return _fit_plane_cells(r, c, dh[r, c], dh.shape, posting_xy_m)
+
+
+def _fit_plane_cells(r: np.ndarray, c: np.ndarray, z: np.ndarray, shape, posting_xy_m) -> tuple[float, float]:
+    """:func:`_fit_plane` on the values ``z`` of the cells (r, c) (row-major order) of a grid of ``shape``."""
+    nr, nc = shape
     x = (c - (nc - 1) / 2.0) * posting_xy_m[0]
     y = -(r - (nr - 1) / 2.0) * posting_xy_m[1]
-    z = dh[r, c]
     keep = np.ones(z.size, bool)
     coef = np.zeros(3)
     for _ in range(5):

@@ -13,13 +13,20 @@ Steps of :func:`dem_difference` (arrays in, arrays out; files only in the CLI):
 3. The final stable terrain is selected on the co-registered dh (or taken from the
    user mask), and the error model (σ per cell, variogram, stable-mean σ) is learned
    on it.
-4. Each cell's confidence is the stable-terrain ECDF of its |z|; cells at
-   ``confidence`` or above are changed; 8-connected regions of at least
+4. Each cell's confidence (percent) is the stable-terrain ECDF of its |z|; cells at
+   ``confidence`` percent or above are changed; 8-connected regions of at least
    ``min_region_cells`` cells become the ``changes`` layer with volume ± σ.
 
 Without stable terrain the result says so (``status``), no shift is invented, σ and
 confidence are NaN, and only a fixed ``fallback_threshold_m`` (if given) makes
 regions.
+
+Degenerate stable terrain: when most stable cells hold the *same* height in both DEMs
+(they share data: both pasted on a common base DEM, one filled from the other), or the
+stable NMAD is within a few float32 rounding steps of zero, the error model measures
+nothing. σ and the confidence are still computed but the result's ``status`` is
+``"degenerate_stable_terrain"`` and ``warnings`` says what to do (``--base``,
+``--stable-mask``) instead of reporting ``NMAD 0.00 m`` as a fact.
 """
 
 from __future__ import annotations
@@ -54,17 +61,26 @@ class DEMDiffParams:
     error: ErrorParams = ErrorParams()
     coregister: bool = True
     coreg_stable_factor: float = 1.0
-    confidence: float = 0.95
+    confidence: float = 95.0
     min_region_cells: int = 4
     resampling: str = "bilinear"
     fallback_threshold_m: float | None = None
     min_stable_cells: int = 50
     reliable_stable_cells: int = 300
     reliable_stable_blocks: int = 6
+    #: stable terrain is degenerate when at least this share of its cells is identical in both DEMs ...
+    max_identical_fraction: float = 0.5
+    #: ... or its NMAD is at most this many float32 rounding steps of the heights (storage precision)
+    nmad_floor_ulps: float = 10.0
 
     def __post_init__(self) -> None:
-        if not 0 < self.confidence < 1:
-            raise ConfigError(f"confidence is a level in (0, 1) (e.g. 0.95), got {self.confidence}")
+        if 0 < self.confidence < 1:
+            raise ConfigError(f"confidence is a percentage: did you mean {100 * self.confidence:g}? "
+                              f"(got {self.confidence:g}; 95 means 95 %)")
+        if not 50 <= self.confidence < 100:
+            raise ConfigError(f"confidence {self.confidence:g} is outside [50, 100): give a percentage such as 95")
+        if not 0 < self.max_identical_fraction <= 1:
+            raise ConfigError("max_identical_fraction must be in (0, 1]")
         if self.min_region_cells < 1:
             raise ConfigError("min_region_cells must be ≥ 1")
 
@@ -79,11 +95,14 @@ class DEMDiffResult:
     dh_raw_m : float32, B − A before co-registration
     sigma_m : float32, per-cell 1σ of dh (NaN when unknown)
     z : float32, standardized residual (dh − stable median)/σ
-    confidence : float32, 0–1 (NaN unobserved or unknown)
+    confidence : float32, percent 0–100 (NaN unobserved or unknown)
     sign : int8, +1/−1/0 in kept regions, CHANGE_NODATA (−128) where not observed
     stable : bool, final stable terrain
-    status : "ok", "uncertainty_indicative" (σ from too few / too clustered stable cells) or
-        "no_stable_terrain" (σ and confidence unknown)
+    status : "ok", "uncertainty_indicative" (σ from too few / too clustered stable cells),
+        "degenerate_stable_terrain" (stable cells identical in both DEMs or NMAD ≈ 0: σ is not an error
+        estimate) or "no_stable_terrain" (σ and confidence unknown)
+    level : the confidence (percent) at which cells are called changed
+    warnings : what makes the figures not credible, and what to do
     summary : dict of the headline figures (see :func:`summary_table`)
     """
 
@@ -106,18 +125,20 @@ class DEMDiffResult:
     regions: Any
     epoch_a: str = "A"
     epoch_b: str = "B"
-    level: float = 0.95
+    level: float = 95.0
     status: str = "ok"
     notes: list[str] = field(default_factory=list)
     summary: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def changed(self) -> np.ndarray:
         return (self.sign == 1) | (self.sign == -1)
 
     def to_dict(self) -> dict[str, Any]:
-        d = {"epoch_a": self.epoch_a, "epoch_b": self.epoch_b, "status": self.status, "confidence_level": self.level,
+        d = {"epoch_a": self.epoch_a, "epoch_b": self.epoch_b, "status": self.status, "confidence_level_pct": self.level,
              "grid": self.grid.to_dict(), "posting_xy_m": list(self.posting_xy_m), "notes": list(self.notes),
+             "warnings": list(self.warnings),
              "summary": self.summary, "stable": self.stable_info.to_dict(), "coreg": self.coreg.to_dict()}
         if self.uncertainty is not None:
             d["uncertainty"] = self.uncertainty.to_dict()
@@ -205,6 +226,22 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
     prog(0.45, "stable terrain")
     st, info = stable_terrain(dh, obs, g, user_mask=stable_mask, mask_is=mask_is, footprints=footprints,
                               slope_rad=slope, params=p.stable)
+    res = finish_difference(g, post, A, B, Bc, dh, dh_raw, obs, st, info, creg, slope, q, notes, p, epoch_a=epoch_a,
+                            epoch_b=epoch_b, method=method, progress=prog)
+    res.summary["wall_s"] = time.perf_counter() - t0
+    prog(1.0, "done")
+    return res
+
+
+def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: np.ndarray, Bc: np.ndarray,
+                      dh: np.ndarray, dh_raw: np.ndarray, obs: np.ndarray, st: np.ndarray, info: StableInfo,
+                      creg: CoregResult, slope: np.ndarray, q: np.ndarray | None, notes: list[str],
+                      p: DEMDiffParams, *, epoch_a: str = "A", epoch_b: str = "B", method: str = "demdiff",
+                      progress: Progress | None = None) -> DEMDiffResult:
+    """The steps of :func:`dem_difference` after the final stable terrain (whole grids; float64 A, B
+    as read, Bc co-registered, dh = Bc − A on ``obs``): error model, significance, change map,
+    regions and the summary (without ``wall_s``)."""
+    prog = ensure_progress(progress)
     notes.extend(info.notes)
     status = "ok"
     unc = None
@@ -234,16 +271,24 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
         unc = unc.with_offset(sig_model.center_m)
         center = sig_model.center_m
         z, conf = significance_map(dh, sigma, sig_model)
-        if p.confidence > sig_model.max_level():
-            notes.append(f"{sig_model.n} stable cells support confidences up to {sig_model.max_level():.4f} only; "
-                         f"nothing can be significant at {p.confidence}")
+        conf = (100.0 * conf).astype(np.float32)
+        if p.confidence > 100.0 * sig_model.max_level():
+            notes.append(f"{sig_model.n} stable cells support confidences up to {100 * sig_model.max_level():.2f}% "
+                         f"only; nothing can be significant at {p.confidence:g}%")
+    warns: list[str] = []
+    degenerate = {}
+    if info.n_cells >= p.min_stable_cells:
+        degenerate, warn = degenerate_stable_terrain(A, B, dh, st, p)
+        if warn:
+            status = "degenerate_stable_terrain"
+            warns.append(warn)
 
     # --- change map and regions ------------------------------------------------------------------
     prog(0.8, "changed regions")
     from ..change.regions import change_regions
 
     if sig_model is not None:
-        raw_sign = change_sign(dh, conf, p.confidence, center)
+        raw_sign = change_sign(dh, conf / 100.0, p.confidence / 100.0, center)
     elif p.fallback_threshold_m is not None:
         raw_sign = np.where(np.abs(np.nan_to_num(dh)) > p.fallback_threshold_m, np.sign(np.nan_to_num(dh)), 0).astype(np.int8)
         notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m (no significance test)")
@@ -252,7 +297,8 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
     raw_sign = np.where(obs, raw_sign, 0).astype(np.int8)
     cell = float(post[0] * post[1])
     vfn = unc.volume_sigma_fn(cell) if unc is not None else None
-    regions = change_regions(raw_sign, dh, g, confidence=100.0 * conf if sig_model is not None else None,
+    # per-cell confidence in percent, as change_regions takes it
+    regions = change_regions(raw_sign, dh, g, confidence=conf if sig_model is not None else None,
                              volume_sigma_fn=vfn, method=method, epoch_a=epoch_a, epoch_b=epoch_b,
                              min_cells=p.min_region_cells, cell_area_m2=cell)
     sign = _sign_in_regions(raw_sign, p.min_region_cells)
@@ -260,11 +306,61 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
 
     res = DEMDiffResult(g, post, A.astype(np.float32), Bc.astype(np.float32), dh.astype(np.float32),
                         dh_raw.astype(np.float32), obs, st, info, creg, unc, sig_model, sigma, z, conf, sign, regions,
-                        epoch_a, epoch_b, p.confidence, status, notes)
+                        epoch_a, epoch_b, p.confidence, status, notes, warnings=warns)
     res.summary = _summary(res, B, p)
-    res.summary["wall_s"] = time.perf_counter() - t0
-    prog(1.0, "done")
+    res.summary.update(degenerate)
     return res
+
+
+
+def degenerate_stable_terrain(height_a_m: np.ndarray, height_b_m: np.ndarray, dh_m: np.ndarray,
+                              stable: np.ndarray, params: DEMDiffParams = DEMDiffParams()
+                              ) -> tuple[dict[str, float], str | None]:
+    """Is the stable terrain degenerate (identical heights, NMAD ≈ 0)? → (figures, warning or None).
+
+    Parameters
+    ----------
+    height_a_m, height_b_m : (rows, cols) the two DEMs on one grid, before co-registration (m)
+    dh_m : (rows, cols) the co-registered difference (m)
+    stable : (rows, cols) bool, the stable terrain
+
+    Two independently made DEMs never agree to the last bit on most of their stable cells, and their
+    difference has an NMAD far above the float32 rounding of the heights (``nmad_floor_ulps`` steps of
+    ``np.spacing(float32(max |h|))``, ≈ 2 mm at 2,000 m). When either happens the DEMs share data (a common
+    base DEM, a fill, a copy) or are noise-free synthetics, and σ measures nothing.
+    """
+    st = np.asarray(stable, bool)
+    n = int(st.sum())
+    if n == 0:
+        return {}, None
+    ident = int(np.count_nonzero(st & (height_a_m == height_b_m)))
+    v = dh_m[st]
+    v = v[np.isfinite(v)]
+    nm = nmad(v) if v.size else float("nan")
+    hmax = float(np.nanmax(np.abs(height_a_m[st]))) if np.isfinite(height_a_m[st]).any() else 0.0
+    return degenerate_message(n, ident, nm, hmax, params)
+
+
+def degenerate_message(n: int, identical: int, nmad_m: float, hmax_m: float,
+                       params: DEMDiffParams = DEMDiffParams()) -> tuple[dict[str, float], str | None]:
+    """:func:`degenerate_stable_terrain` from its counts: ``n`` stable cells, ``identical`` of them with the
+    same height in both DEMs, their dh NMAD and the largest |height| (for the float32 rounding floor)."""
+    if n == 0:
+        return {}, None
+    frac = identical / n
+    nm = nmad_m
+    floor = float(params.nmad_floor_ulps * np.spacing(np.float32(max(hmax_m, 1.0))))
+    figures = {"stable_identical_fraction": round(frac, 5), "stable_nmad_floor_m": floor}
+    if frac < params.max_identical_fraction and not (nm <= floor):
+        return figures, None
+    what = (f"{100 * frac:.1f}% of the {n} stable cells have exactly the same height in both DEMs"
+            if frac >= params.max_identical_fraction else f"the stable terrain's NMAD is {nm:.2g} m")
+    msg = (f"degenerate stable terrain: {what} (NMAD {nm:.2g} m): the DEMs share data there (e.g. both were merged "
+           "onto a common base DEM, or one was filled from the other) or are noise-free, so σ, the confidence and "
+           "the volume ± σ are not an error estimate. If the DEMs were merged onto a base DEM, give it (--base "
+           "BASE; QGIS: 'Base DEM') to compare only where both epochs were surveyed; otherwise give stable terrain "
+           "where the DEMs are independent (--stable-mask).")
+    return figures, msg
 
 
 def _sign_in_regions(sign: np.ndarray, min_cells: int) -> np.ndarray:

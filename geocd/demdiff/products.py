@@ -13,8 +13,9 @@ Layout of an output folder (``prefix`` defaults to ``demdiff``)::
     <prefix>_dh.png             dh map with regions outlined
     <prefix>_report.json        every figure, the co-registration and the error model
 
-The confidence raster is in percent so that it matches the other methods' rasters;
-the ``changes`` layer's ``confidence`` column is 0–1 (the shared schema).
+Confidence is a percentage in the raster, the report (``confidence_level_pct``) and the
+buildings layer, as in every geocd product; the ``changes`` layer follows the shared schema
+of :mod:`geocd.change.regions`.
 """
 
 from __future__ import annotations
@@ -124,7 +125,7 @@ def write_demdiff_products(out_dir: os.PathLike | str, result: DEMDiffResult, *,
     out.mkdir(parents=True, exist_ok=True)
     g = result.grid
     tags = {"method": "demdiff", "epoch_a": result.epoch_a, "epoch_b": result.epoch_b, "units": "m",
-            "confidence_level": f"{result.level:g}", "coreg": result.coreg.summary()}
+            "confidence_level_pct": f"{result.level:g}", "coreg": result.coreg.summary()}
     if provenance:
         tags["provenance"] = json.dumps(_clean(provenance), default=_jsonable)
     paths: dict[str, Path] = {}
@@ -135,7 +136,7 @@ def write_demdiff_products(out_dir: os.PathLike | str, result: DEMDiffResult, *,
     from ..change.styles import write_raster_style
 
     write_raster_style(paths["dh"], dh_qml(vmax))
-    conf_pct = np.where(np.isfinite(result.confidence), 100.0 * result.confidence, np.nan).astype(np.float32)
+    conf_pct = np.where(np.isfinite(result.confidence), result.confidence, np.nan).astype(np.float32)
     paths["significance"] = write_cog(out / f"{prefix}_significance.tif",
                                       {"confidence_pct": conf_pct, "sigma_m": result.sigma_m.astype(np.float32),
                                        "z": result.z.astype(np.float32)}, g, tags=tags, overwrite=overwrite)
@@ -164,13 +165,15 @@ def write_demdiff_products(out_dir: os.PathLike | str, result: DEMDiffResult, *,
 
         s = result.summary
         note = f"stable NMAD {s['stable_nmad_m']:.2f} m; coreg {result.coreg.status} ({result.coreg.applied})"
+        if result.status == "degenerate_stable_terrain":
+            note += "\nWARNING: degenerate stable terrain (DEMs identical there): σ is not credible"
         if math.isfinite(s.get("volume_changed_sigma_m3", float("nan"))):
             note += (f"\nchanged {s['changed_area_m2'] / 1e6:.3f} km², "
                      f"{s['volume_changed_m3'] / 1e6:+.3f} ± {s['volume_changed_sigma_m3'] / 1e6:.3f} Mm³ (1σ)")
         paths["dh_png"] = plot_dh_map(result.dh_m, g, out / f"{prefix}_dh.png", sign=result.sign,
                                       backdrop_m=result.height_a_m, backdrop_posting_xy_m=result.posting_xy_m,
                                       title=f"{result.epoch_a} → {result.epoch_b}: Δh after co-registration, "
-                                            f"changed at {result.level:.0%}", vmax=vmax, note=note)
+                                            f"changed at {result.level:g}%", vmax=vmax, note=note)
     rep = result.to_dict()
     if provenance:
         rep["provenance"] = provenance

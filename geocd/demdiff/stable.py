@@ -142,38 +142,115 @@ def auto_stable_mask(dh_m: np.ndarray, valid: np.ndarray | None = None, slope_ra
         base &= np.isfinite(s) & (s <= np.radians(params.max_slope_deg))
     if exclude is not None:
         base &= ~np.asarray(exclude, bool)
-    mask = base.copy()
+    data = _GridStable(dh, ok, base, params)
+    state, info = select_stable(data, params)
+    if state == REJECTED:
+        return np.zeros_like(base), info
+    return data.mask, info
+
+
+#: the state of a rejected selection (no stable population)
+REJECTED = "rejected"
+
+
+class _GridStable:
+    """:func:`select_stable`'s access to whole grids."""
+
+    def __init__(self, dh: np.ndarray, ok: np.ndarray, base: np.ndarray, params: StableParams):
+        self.dh, self.ok, self.base, self.params = dh, ok, base, params
+        self.mask = base.copy()
+        self.n_base = int(base.sum())
+
+    def initial(self) -> tuple[np.ndarray, int]:
+        return self.dh[self.mask], int(self.mask.sum())
+
+    def step(self, state: tuple[float, float, float | None]) -> tuple[np.ndarray, int, int, int]:
+        med, thr, grow = state
+        p = self.params
+        change = coherent_change(self.dh, self.ok, med, thr, p.min_region_cells, p.dilate_cells, grow)
+        new = self.base & ~change
+        excluded = int((self.base & change).sum())
+        toggled = int(np.count_nonzero(new != self.mask))
+        self.mask = new
+        return self.dh[new], int(new.sum()), excluded, toggled
+
+
+def stable_state_mask(dh_m: np.ndarray, ok: np.ndarray, base: np.ndarray, state: Any,
+                      params: StableParams = StableParams()) -> np.ndarray:
+    """The stable mask that :func:`select_stable`'s ``state`` stands for, on any window.
+
+    ``None`` = every base cell; :data:`REJECTED` = none; ``(median, threshold, grow threshold)``
+    = base cells outside the coherent change around that median. On a tile whose read
+    window has :func:`stable_overlap` cells of context, its core equals the whole grid's.
+    """
+    if state is None:
+        return np.asarray(base, bool).copy()
+    if state == REJECTED:
+        return np.zeros(np.shape(base), bool)
+    med, thr, grow = state
+    change = coherent_change(np.asarray(dh_m, np.float64), ok, med, thr, params.min_region_cells,
+                             params.dilate_cells, grow)
+    return np.asarray(base, bool) & ~change
+
+
+def stable_overlap(params: StableParams = StableParams()) -> int:
+    """Cells of context a tile needs for :func:`stable_state_mask` to equal the whole grid's on its core.
+
+    A cell is in a coherent group of at least k cells exactly when its group restricted to
+    the (2k − 1)² window around it has k cells; the dilation adds its own radius. The
+    hysteresis growth (``grow_factor``) is not local and cannot be tiled.
+    """
+    if params.grow_factor is not None:
+        raise ConfigError("the automatic stable terrain with grow_factor (hysteresis) cannot be computed tile by "
+                          "tile; leave grow_factor unset for tiled runs")
+    return int(params.min_region_cells - 1 + params.dilate_cells)
+
+
+def select_stable(data, params: StableParams = StableParams()) -> tuple[Any, StableInfo]:
+    """The iteration of the automatic stable terrain on any data access (see module docstring).
+
+    Parameters
+    ----------
+    data : an object with ``n_base`` (candidate cells), ``initial() → (dh values over the
+        candidates, their number)`` and ``step(state) → (dh values over the new mask, its
+        number of cells, excluded change cells, cells toggled since the previous mask)``,
+        where ``state = (median, threshold, grow threshold or None)`` defines the new mask
+        (:func:`stable_state_mask`). The values may be a subsample; counts are exact.
+
+    Returns
+    -------
+    state : None (all candidates), ``(median, threshold, grow)`` or :data:`REJECTED`
+    info : StableInfo
+    """
+    vals, n_cur = data.initial()
+    state: Any = None
     notes: list[str] = []
     med = nm = float("nan")
     excluded = 0
     it = 0
     for it in range(1, params.max_iterations + 1):
-        if mask.sum() < 3:
+        if n_cur < 3:
             break
-        med = float(np.median(dh[mask]))
-        nm = nmad(dh[mask])
+        med = float(np.median(vals))
+        nm = nmad(vals)
         thr = max(params.nmad_factor * nm, params.min_threshold_m)
         if not np.isfinite(thr) or thr <= 0:
             break
-        change = coherent_change(dh, ok, med, thr, params.min_region_cells, params.dilate_cells,
-                                 params.grow_factor * nm if params.grow_factor else None)
-        new = base & ~change
-        excluded = int((base & change).sum())
-        toggled = int(np.count_nonzero(new != mask))
-        mask = new
-        if toggled <= 0.001 * max(int(base.sum()), 1):
+        state = (med, thr, params.grow_factor * nm if params.grow_factor else None)
+        vals, n_cur, excluded, toggled = data.step(state)
+        if toggled <= 0.001 * max(int(data.n_base), 1):
             break
     else:
         notes.append(f"automatic stable terrain did not settle in {params.max_iterations} iterations")
-    if mask.sum() >= 3:
-        med = float(np.median(dh[mask]))
-        nm = nmad(dh[mask])
+    if n_cur >= 3:
+        med = float(np.median(vals))
+        nm = nmad(vals)
     if params.max_nmad_m is not None and np.isfinite(nm) and nm > params.max_nmad_m:
         notes.append(f"no stable terrain found: the least-changed population of cells still has an NMAD of {nm:.1f} m "
                      f"(> {params.max_nmad_m:g} m, the most DEM errors can plausibly reach on unchanged terrain), "
                      "so most of the common area changed; give a stable-terrain mask")
-        return np.zeros_like(mask), StableInfo("automatic (rejected)", 0, it, med, nm, excluded, tuple(notes))
-    return mask, StableInfo("automatic", int(mask.sum()), it, med, nm, excluded, tuple(notes))
+        return REJECTED, StableInfo("automatic (rejected)", 0, it, med, nm, excluded, tuple(notes))
+    return state, StableInfo("automatic", int(n_cur), it, med, nm, excluded, tuple(notes))
 
 
 def mask_from_user(mask: Any, grid, *, mask_is: str = "stable") -> np.ndarray:

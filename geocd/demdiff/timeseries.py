@@ -168,6 +168,7 @@ def dem_time_series(epochs: Sequence[Epoch], *, base: Epoch | None = None, merge
             notes.append(f"{a.name} → {b.name}: {exc}")
             continue
         table.append(_row(kind, a, b, r))
+        notes.extend(f"{a.name} → {b.name}: {w}" for w in r.warnings)
         if not keep_arrays:
             r = _light(r)
         (intervals if kind == "interval" else vs_base).append(r)

@@ -338,6 +338,65 @@ def standardized_residuals(dh_m: np.ndarray, sigma_m: np.ndarray, stable: np.nda
     return np.clip(z, -clip_z, clip_z)
 
 
+@dataclass(frozen=True)
+class VariogramPlan:
+    """Which grids :func:`empirical_variogram` computes on (so that a tiled run gathers only those).
+
+    Attributes
+    ----------
+    edges : distance bin edges (m)
+    bbox : (row0, col0, rows, cols) of the finite cells' bounding box in the whole grid
+    step : 1 = the whole box; > 1 = long lags on the box decimated by ``step`` and short lags
+        on ``window`` (row0, col0, rows, cols, in the whole grid)
+    """
+
+    edges: np.ndarray
+    bbox: tuple[int, int, int, int]
+    step: int
+    window: tuple[int, int, int, int] | None
+
+
+def variogram_plan(bbox: tuple[int, int, int, int], posting_xy_m: tuple[float, float],
+                   params: ErrorParams = ErrorParams()) -> VariogramPlan:
+    """The :class:`VariogramPlan` for finite cells in ``bbox`` (row0, col0, rows, cols)."""
+    r0, c0, hh, ww = bbox
+    pm = 0.5 * (posting_xy_m[0] + posting_xy_m[1])
+    diag = math.hypot(hh * posting_xy_m[1], ww * posting_xy_m[0])
+    max_lag = params.max_lag_m or 0.5 * diag
+    edges = default_lag_edges(pm, max_lag, params.variogram_bins)
+    step = 1
+    while (hh // step) * (ww // step) * 4 > params.max_fft_cells:
+        step += 1
+    win = None
+    if step > 1:
+        side = int(math.sqrt(params.max_fft_cells / 4))
+        wr0 = max(0, hh // 2 - side // 2)
+        wc0 = max(0, ww // 2 - side // 2)
+        win = (r0 + wr0, c0 + wc0, min(side, hh - wr0), min(side, ww - wc0))
+    return VariogramPlan(edges, (r0, c0, hh, ww), step, win)
+
+
+def variogram_from_plan(plan: VariogramPlan, posting_xy_m: tuple[float, float], box: np.ndarray | None = None,
+                        sub: np.ndarray | None = None, window: np.ndarray | None = None
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The binned variogram from the plan's grids: ``box`` (step 1), or ``sub`` (the box
+    decimated by ``step``) and ``window``. Returns (lag centres m, gamma, pair counts)."""
+    edges = plan.edges
+    if plan.step == 1:
+        g, n = variogram_fft(box, np.isfinite(box), posting_xy_m, edges)
+    else:
+        step = plan.step
+        pm = 0.5 * (posting_xy_m[0] + posting_xy_m[1])
+        # fine lags on a central window, long lags on a decimated grid
+        g_long, n_long = variogram_fft(sub, np.isfinite(sub), (posting_xy_m[0] * step, posting_xy_m[1] * step), edges)
+        g_short, n_short = variogram_fft(window, np.isfinite(window), posting_xy_m, edges)
+        short = edges[1:] <= step * pm * 4
+        g = np.where(short & (n_short > 0), g_short, g_long)
+        n = np.where(short & (n_short > 0), n_short, n_long)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    return centres, g, n
+
+
 def empirical_variogram(z: np.ndarray, posting_xy_m: tuple[float, float], params: ErrorParams = ErrorParams()
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Binned empirical variogram of the finite cells of ``z`` (FFT over their bounding box).
@@ -350,32 +409,15 @@ def empirical_variogram(z: np.ndarray, posting_xy_m: tuple[float, float], params
     r, c = np.nonzero(m)
     if r.size < 10:
         raise EmptyDataError("fewer than 10 stable cells: cannot estimate a variogram")
-    hh = r.max() - r.min() + 1
-    ww = c.max() - c.min() + 1
-    pm = 0.5 * (posting_xy_m[0] + posting_xy_m[1])
-    diag = math.hypot(hh * posting_xy_m[1], ww * posting_xy_m[0])
-    max_lag = params.max_lag_m or 0.5 * diag
-    edges = default_lag_edges(pm, max_lag, params.variogram_bins)
-    zz = z[r.min():r.max() + 1, c.min():c.max() + 1]
-    step = 1
-    while (hh // step) * (ww // step) * 4 > params.max_fft_cells:
-        step += 1
-    if step == 1:
-        g, n = variogram_fft(zz, np.isfinite(zz), posting_xy_m, edges)
-    else:
-        # fine lags on a central window, long lags on a decimated grid
-        sub = zz[::step, ::step]
-        g_long, n_long = variogram_fft(sub, np.isfinite(sub), (posting_xy_m[0] * step, posting_xy_m[1] * step), edges)
-        side = int(math.sqrt(params.max_fft_cells / 4))
-        r0 = max(0, hh // 2 - side // 2)
-        c0 = max(0, ww // 2 - side // 2)
-        win = zz[r0:r0 + side, c0:c0 + side]
-        g_short, n_short = variogram_fft(win, np.isfinite(win), posting_xy_m, edges)
-        short = edges[1:] <= step * pm * 4
-        g = np.where(short & (n_short > 0), g_short, g_long)
-        n = np.where(short & (n_short > 0), n_short, n_long)
-    centres = 0.5 * (edges[:-1] + edges[1:])
-    return centres, g, n
+    plan = variogram_plan((int(r.min()), int(c.min()), int(r.max() - r.min() + 1), int(c.max() - c.min() + 1)),
+                          posting_xy_m, params)
+    r0, c0, hh, ww = plan.bbox
+    zz = z[r0:r0 + hh, c0:c0 + ww]
+    if plan.step == 1:
+        return variogram_from_plan(plan, posting_xy_m, box=zz)
+    wr0, wc0, wh, wwd = plan.window
+    return variogram_from_plan(plan, posting_xy_m, sub=zz[::plan.step, ::plan.step],
+                               window=z[wr0:wr0 + wh, wc0:wc0 + wwd])
 
 
 # ------------------------------------------------------------------------------------------

@@ -205,6 +205,9 @@ def read_e00_dem(path: os.PathLike | str, crs=None, vertical_datum: str | None =
     crs : optional CRS overriding the file's ``PRJ`` block.
     vertical_datum : optional vertical datum name (e00 files do not record one).
     """
+    from .raster import check_vertical_datum
+
+    vertical_datum = check_vertical_datum(vertical_datum, f"DEM {path}")
     g = read_e00_grid(path)
     c = as_crs(crs) if crs is not None else crs_from_prj(g.projection)
     nrows, ncols = g.values.shape

@@ -167,7 +167,7 @@ def write_frame_sidecar(path: os.PathLike | str, camera: FrameCamera, *, fmt: st
 _X_NAMES = ("x", "easting")
 _Y_NAMES = ("y", "northing")
 _Z_NAMES = ("z", "altitude", "height")
-_DEFAULT_COLUMNS = ("filename", "x", "y", "z", "omega", "phi", "kappa")
+_DEFAULT_COLUMNS = ("filename", "x", "y", "z", "omega", "phi", "kappa", "camera")
 
 
 def orthority_interior_to_kw(params: Mapping[str, Any], *, where: str = "interior parameters") -> dict:
@@ -246,15 +246,40 @@ def _read_prj(path: Path) -> str | None:
     return None
 
 
+def _csv_dialect(lines: list[str]) -> tuple[str, str]:
+    """Delimiter and quote character of an orthority CSV (as orthority accepts them).
+
+    The delimiter is one of ``, ; : tab space`` and the quote ``"`` or ``'`` (camera names
+    with spaces come quoted); both are what splits every line into the same number of
+    fields — the most fields wins, so a comma inside a quoted name does not make a
+    space-separated file comma-separated.
+    """
+    sample = lines[: min(len(lines), 20)]
+    best = None
+    for quote in ('"', "'"):
+        n_quotes = sum(line.count(quote) for line in sample)
+        for order, delim in enumerate((",", ";", "\t", ":", " ")):
+            rows = csv.reader(io.StringIO("\n".join(sample)), delimiter=delim, skipinitialspace=True, quotechar=quote)
+            counts = {len([c for c in r if c.strip() != ""]) for r in rows}
+            if len(counts) != 1 or min(counts) < 7:
+                continue
+            key = (min(counts) in (7, 8), n_quotes, -order)
+            if best is None or key > best[0]:
+                best = (key, delim, quote)
+    if best is None:        # let the row check below name the problem
+        first = lines[0]
+        return ("," if "," in first else ("\t" if "\t" in first else " ")), '"'
+    return best[1], best[2]
+
+
 def _read_ext_csv(p: Path) -> list[dict]:
     text = p.read_text(encoding="utf-8-sig", errors="replace")
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:
         raise FrameCameraError(f"{p} holds no camera rows; it needs filename x y z omega phi kappa per line")
-    first = lines[0]
-    delim = "," if "," in first else ("\t" if "\t" in first else " ")
-    reader = csv.reader(io.StringIO("\n".join(lines)), delimiter=delim, skipinitialspace=True, quotechar='"')
-    rows = [[c.strip().strip("'\"") for c in r if c.strip() != ""] for r in reader]
+    delim, quote = _csv_dialect(lines)
+    reader = csv.reader(io.StringIO("\n".join(lines)), delimiter=delim, skipinitialspace=True, quotechar=quote)
+    rows = [[c.strip() for c in r if c.strip() != ""] for r in reader]
     header = [c.lower() for c in rows[0]]
 
     def is_number(s: str) -> bool:

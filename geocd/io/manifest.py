@@ -9,7 +9,7 @@ A manifest is a YAML (or JSON) file; relative paths are relative to its folder::
       crs: EPSG:32735
       bounds: [left, bottom, right, top]   # in aoi.crs
       posting_m: 0.5
-    output: out                      # default: <manifest folder>/out
+    output: out                      # relative to the manifest's folder; default: ./geocd_out/<name>
     dem:                             # optional prior DEM (height search range)
       path: truth/dem_bare.tif
       vertical_datum: ellipsoid      # ellipsoid | egm96 | egm2008 (default: from the file's CRS)
@@ -35,10 +35,11 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from ..errors import InputFileNotFoundError, ManifestError
 
@@ -66,6 +67,7 @@ class Epoch:
     images: tuple[ImageSpec, ...]
     sensor: str = ""
     dem: DEMSpec | None = None
+    extras: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -87,10 +89,16 @@ class Manifest:
     footprints: DEMSpec | None = None
     scene_class: str = ""
     truth: dict = field(default_factory=dict)
+    extras: dict = field(default_factory=dict)
 
     @property
     def root(self) -> Path:
         return self.path.parent if self.path is not None else Path.cwd()
+
+    def output_dir(self) -> Path:
+        """Where results go when no output folder is given: the manifest's ``output:`` if it names one, else
+        ``./geocd_out/<name>`` in the current directory (never inside the input folder by default)."""
+        return self.output if self.output is not None else default_output_dir(self.name)
 
     def epoch(self, name: str) -> Epoch:
         for e in self.epochs:
@@ -102,9 +110,266 @@ class Manifest:
         v = self.truth.get(key)
         return None if v is None else (self.root / v)
 
+    def input_paths(self) -> list[Path]:
+        """Every file the manifest names (and the manifest itself): inputs no output may replace."""
+        out: list[Path] = [self.path] if self.path is not None else []
+        for d in (self.dem, self.footprints):
+            if d is not None:
+                out.append(d.path)
+        if self.aoi is not None and self.aoi.vector is not None:
+            out.append(self.aoi.vector)
+        for e in self.epochs:
+            for im in e.images:
+                out += [im.path] + ([im.camera] if im.camera is not None else [])
+            if e.dem is not None:
+                out.append(e.dem.path)
+        for v in self.truth.values():
+            if isinstance(v, (str, os.PathLike)):
+                out.append(self.root / v)
+        return out
+
 
 def _err(where: str, what: str) -> ManifestError:
     return ManifestError(f"manifest {where}: {what}")
+
+
+# =====================================================================================================
+# the schema: ONE place that says which keys exist, at every depth, and what their values are.
+# To add a key, add one line here; a key the parser below does not model is kept, validated, in
+# ``Manifest.extras`` (top level) or ``Epoch.extras`` (an epoch).
+# =====================================================================================================
+class _Spec:
+    """A value's expected form. ``check`` returns the (possibly converted) value or appends errors."""
+
+    what = "a value"
+
+    def check(self, v: Any, where: str, errs: list[str]) -> Any:  # pragma: no cover - overridden
+        return v
+
+
+class _Scalar(_Spec):
+    what = "a text or a number"
+
+    def check(self, v, where, errs):
+        if isinstance(v, (dict, list, tuple)):
+            errs.append(f"{where}: expected {self.what}, got a {type(v).__name__}")
+        return v
+
+
+class _Str(_Scalar):
+    def __init__(self, choices: Sequence[str] | None = None, what: str = "a text") -> None:
+        self.choices = tuple(choices) if choices else None
+        self.what = what
+
+    def check(self, v, where, errs):
+        v = super().check(v, where, errs)
+        if self.choices is not None and isinstance(v, str):
+            norm = v.strip().lower().replace("-", "").replace(" ", "")
+            if norm not in {c.lower().replace("-", "") for c in self.choices}:
+                errs.append(f"{where}: {v!r} is not one of {', '.join(self.choices)}{_did_you_mean(v, self.choices)}")
+        return v
+
+
+class _Path(_Spec):
+    what = "a file path"
+
+    def check(self, v, where, errs):
+        if not isinstance(v, (str, os.PathLike)) or not str(v).strip():
+            errs.append(f"{where}: expected {self.what}, got {v!r}")
+        return v
+
+
+class _Num(_Spec):
+    def __init__(self, positive: bool = False, unit: str = "", integer: bool = False) -> None:
+        self.positive, self.unit, self.integer = positive, unit, integer
+        self.what = ("an integer" if integer else "a number") + (f" ({unit})" if unit else "")
+
+    def check(self, v, where, errs):
+        x = v
+        if isinstance(v, str):
+            try:
+                x = float(v.strip())
+            except ValueError:
+                x = None
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            errs.append(f"{where}: expected {self.what}, got {_short(v)}")
+            return None
+        x = float(x)
+        if not math.isfinite(x):
+            errs.append(f"{where}: expected a finite number, got {v!r}")
+            return None
+        if self.integer and x != int(x):
+            errs.append(f"{where}: expected an integer, got {v!r}")
+            return None
+        if self.positive and not x > 0:
+            errs.append(f"{where}: must be positive, got {v!r}")
+            return None
+        return int(x) if self.integer else x
+
+
+class _Date(_Spec):
+    what = "a date (YYYY-MM-DD)"
+
+    def check(self, v, where, errs):
+        if isinstance(v, (dict, list, tuple, bool)):
+            errs.append(f"{where}: expected {self.what}, got {_short(v)}")
+        return v
+
+
+class _List(_Spec):
+    def __init__(self, item: _Spec, length: int | None = None, what: str = "") -> None:
+        self.item, self.length = item, length
+        self.what = what or (f"a list of {length} values" if length else "a list")
+
+    def check(self, v, where, errs):
+        if not isinstance(v, (list, tuple)):
+            errs.append(f"{where}: expected {self.what}, got {_short(v)}")
+            return v
+        if self.length is not None and len(v) != self.length:
+            errs.append(f"{where}: expected {self.what}, got {len(v)}")
+            return v
+        return [self.item.check(x, f"{where}[{i}]", errs) for i, x in enumerate(v)]
+
+
+class _Map(_Spec):
+    def __init__(self, fields: dict[str, _Spec] | None = None, required: Sequence[str] = (), free: bool = False,
+                 what: str = "a mapping") -> None:
+        self.fields, self.required, self.free, self.what = dict(fields or {}), tuple(required), free, what
+
+    def check(self, v, where, errs):
+        if not isinstance(v, dict):
+            errs.append(f"{where}: expected {self.what}, got {_short(v)}")
+            return v
+        if self.free:
+            return v
+        out = {}
+        for k, x in v.items():
+            w = f"{where}.{k}" if where else str(k)
+            spec = self.fields.get(k)
+            if spec is None:
+                errs.append(f"{w}: unknown key{_did_you_mean(str(k), self.fields)} (allowed here: "
+                            f"{', '.join(self.fields)})")
+                continue
+            out[k] = None if x is None else spec.check(x, w, errs)
+        for k in self.required:
+            if v.get(k) is None:
+                errs.append(f"{where + '.' if where else ''}{k}: missing (required)")
+        return out
+
+
+class _Either(_Spec):
+    """A path given directly, or a mapping with more detail (``dem: file.tif`` or ``dem: {path: ...}``)."""
+
+    def __init__(self, *options: _Spec) -> None:
+        self.options = options
+        self.what = " or ".join(o.what for o in options)
+
+    def check(self, v, where, errs):
+        kinds = [o for o in self.options if isinstance(o, _Map) == isinstance(v, dict)]
+        if not kinds:
+            errs.append(f"{where}: expected {self.what}, got {_short(v)}")
+            return v
+        return kinds[0].check(v, where, errs)
+
+
+class _OnOffOr(_Spec):
+    """true / false / auto, or a mapping (``orientation: {model: shift}``)."""
+
+    def __init__(self, mapping: "_Map") -> None:
+        self.mapping = mapping
+        self.what = f"true, false, auto or {mapping.what}"
+
+    def check(self, v, where, errs):
+        if isinstance(v, bool) or v == "auto":
+            return v
+        if isinstance(v, dict):
+            n = len(errs)
+            out = self.mapping.check(v, where, errs)
+            if len(errs) == n:   # the keys are right: check the values where they are defined
+                from ..errors import ConfigError
+                from ..orientation.params import OrientationParams
+
+                try:
+                    OrientationParams.from_dict(out)
+                except (ConfigError, TypeError, ValueError) as exc:
+                    errs.append(f"{where}: {exc}")
+            return out
+        errs.append(f"{where}: expected {self.what}, got {_short(v)}")
+        return v
+
+
+def _short(v: Any, n: int = 40) -> str:
+    s = repr(v)
+    return (s if len(s) <= n else s[: n - 3] + "...") + (f" ({type(v).__name__})" if not isinstance(v, str) else "")
+
+
+def _did_you_mean(word: str, options) -> str:
+    import difflib
+
+    m = difflib.get_close_matches(word, list(options), n=1, cutoff=0.6)
+    if not m:
+        low = {o.lower(): o for o in options}
+        m = [low[word.lower()]] if word.lower() in low else []
+    return f"; did you mean {m[0]!r}?" if m else ""
+
+
+VERTICAL_DATUMS = ("ellipsoid", "egm96", "egm2008")
+ORIENTATION_KEYS = ("enabled", "model", "gauge", "prior_shift_px", "prior_linear_px", "max_offset_m", "height_span_m",
+                    "patch_px", "block_px", "min_ncc", "min_points", "min_spread", "min_correction_px", "reject_k",
+                    "max_ortho_px")
+_DEM_MAP = _Map({"path": _Path(), "vertical_datum": _Str(what="a vertical datum name"), "layer": _Scalar()},
+                required=("path",), what="a mapping with 'path'")
+_VECTOR_MAP = _Map({"path": _Path(), "layer": _Scalar()}, required=("path",), what="a mapping with 'path'")
+_IMAGE = _Either(_Path(), _Map({"path": _Path(), "camera": _Path(), "name": _Scalar()}, required=("path",),
+                               what="a mapping with 'path'"))
+
+#: every key a manifest may hold (see the module docstring for their meaning)
+SCHEMA = _Map({
+    "geocd_manifest": _Num(integer=True),
+    "name": _Scalar(),
+    "description": _Scalar(),
+    "scene_class": _Scalar(),
+    "aoi": _Map({
+        "crs": _Scalar(),
+        "bounds": _List(_Num(), length=4, what="[left, bottom, right, top] (4 numbers)"),
+        "posting_m": _Num(positive=True, unit="metres"),
+        "vector": _Path(),
+    }),
+    "output": _Path(),
+    "dem": _Either(_Path(), _DEM_MAP),
+    "footprints": _Either(_Path(), _VECTOR_MAP),
+    "epochs": _List(_Map({
+        "name": _Scalar(),
+        "date": _Date(),
+        "sensor": _Scalar(),
+        "images": _List(_IMAGE),
+        "dem": _Either(_Path(), _DEM_MAP),
+    }, what="a mapping with name, date, images")),
+    "truth": _Map(free=True),
+    # cross-image relative orientation (geocd.orientation.OrientationParams fields)
+    "orientation": _OnOffOr(_Map({k: _Scalar() for k in ORIENTATION_KEYS}, what="a mapping of orientation settings")),
+}, what="a mapping")
+
+
+def validate_manifest_data(data: Any, path: Path | None = None) -> dict:
+    """Check a parsed manifest against :data:`SCHEMA`; every problem is reported at once.
+
+    Unknown keys at any depth are errors with a "did you mean" suggestion; numbers must be numbers.
+
+    Raises
+    ------
+    ManifestError
+    """
+    errs: list[str] = []
+    if not isinstance(data, dict):
+        raise ManifestError(f"manifest {path or ''} must be a mapping at the top level, got {type(data).__name__}")
+    out = SCHEMA.check(data, "", errs)
+    if errs:
+        head = f"manifest {path}" if path is not None else "manifest"
+        n = len(errs)
+        shown = "; ".join(errs[:6]) + (f"; and {n - 6} more" if n > 6 else "")
+        raise ManifestError(f"{head}: {shown}" if n == 1 else f"{head} has {n} problems: {shown}")
+    return out
 
 
 def _path(root: Path, value: Any, where: str, must_exist: bool = True) -> Path:
@@ -130,30 +395,36 @@ def _date(value: Any, where: str) -> _dt.date | None:
         raise _err(where, f"date {value!r} is not ISO 8601 (YYYY-MM-DD)") from exc
 
 
+def _datum(value: Any, where: str) -> str | None:
+    if value is None:
+        return None
+    from ..geodesy import normalize_datum_name
+
+    n = normalize_datum_name(str(value))
+    if n not in VERTICAL_DATUMS:
+        raise _err(where, f"unknown vertical datum {value!r}; use one of {', '.join(VERTICAL_DATUMS)}"
+                          f"{_did_you_mean(str(value).lower(), VERTICAL_DATUMS)}")
+    return str(value)
+
+
 def _dem_spec(root: Path, value: Any, where: str) -> DEMSpec | None:
     if value is None:
         return None
     if isinstance(value, (str, os.PathLike)):
         return DEMSpec(_path(root, value, where))
-    if isinstance(value, dict):
-        if "path" not in value:
-            raise _err(where, "needs a 'path'")
-        unknown = set(value) - {"path", "vertical_datum", "layer"}
-        if unknown:
-            raise _err(where, f"unknown keys {sorted(unknown)}; allowed: path, vertical_datum, layer")
-        return DEMSpec(_path(root, value["path"], f"{where}.path"), value.get("vertical_datum"), value.get("layer"))
-    raise _err(where, f"expected a path or a mapping with 'path', got {type(value).__name__}")
+    return DEMSpec(_path(root, value["path"], f"{where}.path"), _datum(value.get("vertical_datum"),
+                                                                       f"{where}.vertical_datum"),
+                   None if value.get("layer") is None else str(value["layer"]))
+
+
+_MODELLED_TOP = {"geocd_manifest", "name", "description", "scene_class", "aoi", "output", "dem", "footprints",
+                 "epochs", "truth"}
+_MODELLED_EPOCH = {"name", "date", "sensor", "images", "dem"}
 
 
 def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
     """Validate a manifest mapping (already parsed from YAML/JSON)."""
-    if not isinstance(data, dict):
-        raise ManifestError(f"manifest {path or ''} must be a mapping at the top level, got {type(data).__name__}")
-    known = {"geocd_manifest", "name", "description", "scene_class", "aoi", "output", "dem", "footprints",
-             "epochs", "truth"}
-    unknown = set(data) - known
-    if unknown:
-        raise ManifestError(f"manifest has unknown keys {sorted(unknown)}; allowed: {sorted(known)}")
+    data = validate_manifest_data(data, path)
     version = data.get("geocd_manifest", 1)
     if version != 1:
         raise ManifestError(f"manifest version {version!r} is not supported by this geocd (expects 1); upgrade geocd")
@@ -164,54 +435,72 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
     names = set()
     for i, e in enumerate(epochs_raw):
         where = f"epochs[{i}]"
-        if not isinstance(e, dict):
-            raise _err(where, "must be a mapping with name, date, images")
-        name = str(e.get("name", f"epoch{i + 1}"))
+        name = str(e.get("name") if e.get("name") is not None else f"epoch{i + 1}")
         if name in names:
             raise _err(where, f"duplicate epoch name {name!r}")
         names.add(name)
-        imgs_raw = e.get("images", [])
-        if not isinstance(imgs_raw, list):
-            raise _err(f"{where}.images", "must be a list")
         imgs = []
-        for j, im in enumerate(imgs_raw):
+        for j, im in enumerate(e.get("images") or []):
             w = f"{where}.images[{j}]"
             if isinstance(im, (str, os.PathLike)):
                 im = {"path": im}
-            if not isinstance(im, dict) or "path" not in im:
-                raise _err(w, "needs a 'path'")
             p = _path(root, im["path"], f"{w}.path")
             cam = _path(root, im["camera"], f"{w}.camera") if im.get("camera") else None
-            imgs.append(ImageSpec(p, cam, str(im.get("name", p.stem))))
+            imgs.append(ImageSpec(p, cam, str(im.get("name") if im.get("name") is not None else p.stem)))
         dem = _dem_spec(root, e.get("dem"), f"{where}.dem")
         if not imgs and dem is None:
             raise _err(where, "has neither images nor a DEM; give at least one")
-        epochs.append(Epoch(name, _date(e.get("date"), f"{where}.date"), tuple(imgs), str(e.get("sensor", "")), dem))
+        extras = {k: v for k, v in e.items() if k not in _MODELLED_EPOCH}
+        epochs.append(Epoch(name, _date(e.get("date"), f"{where}.date"), tuple(imgs),
+                            str(e.get("sensor") if e.get("sensor") is not None else ""), dem, extras))
+    _check_epoch_order(epochs)
     aoi = None
     if data.get("aoi") is not None:
         a = data["aoi"]
-        if not isinstance(a, dict):
-            raise _err("aoi", "must be a mapping (crs, bounds, posting_m) or (vector)")
         bounds = a.get("bounds")
         if bounds is not None:
-            if not (isinstance(bounds, (list, tuple)) and len(bounds) == 4):
-                raise _err("aoi.bounds", "must be [left, bottom, right, top]")
             bounds = tuple(float(b) for b in bounds)
             if not (bounds[2] > bounds[0] and bounds[3] > bounds[1]):
                 raise _err("aoi.bounds", f"{bounds} is empty: right must exceed left and top bottom")
         posting = a.get("posting_m")
-        if posting is not None and not (float(posting) > 0):
-            raise _err("aoi.posting_m", f"must be positive, got {posting}")
         vec = _path(root, a["vector"], "aoi.vector") if a.get("vector") else None
-        aoi = AOISpec(a.get("crs"), bounds, float(posting) if posting is not None else None, vec)
+        crs = a.get("crs")
+        if crs is not None:
+            from ..errors import CRSError
+            from ..geodesy import as_crs
+
+            try:
+                as_crs(crs)
+            except (CRSError, ValueError, TypeError) as exc:
+                raise _err("aoi.crs", f"{crs!r} is not a coordinate reference system ({exc}); use e.g. EPSG:32631")\
+                    from None
+        aoi = AOISpec(None if crs is None else str(crs), bounds, float(posting) if posting is not None else None, vec)
     output = data.get("output")
-    out = (root / output) if output else root / "out"
+    out = (root / output) if output else None
+    fp = data.get("footprints")
     return Manifest(
-        path=path, name=str(data.get("name", root.name)), epochs=tuple(epochs), aoi=aoi,
-        output=out if out.is_absolute() else out.resolve(), dem=_dem_spec(root, data.get("dem"), "dem"),
-        footprints=_dem_spec(root, data.get("footprints"), "footprints"),
-        scene_class=str(data.get("scene_class", "")), truth=dict(data.get("truth") or {}),
+        path=path, name=str(data.get("name") if data.get("name") is not None else root.name), epochs=tuple(epochs),
+        aoi=aoi, output=None if out is None else (out if out.is_absolute() else out.resolve()), dem=_dem_spec(root, data.get("dem"), "dem"),
+        footprints=_dem_spec(root, fp, "footprints"),
+        scene_class=str(data.get("scene_class") or ""), truth=dict(data.get("truth") or {}),
+        extras={k: v for k, v in data.items() if k not in _MODELLED_TOP},
     )
+
+
+def _check_epoch_order(epochs: Sequence[Epoch]) -> None:
+    """Epochs listed against their dates are refused: which one is "before" would be a guess."""
+    dated = [e for e in epochs if e.date is not None]
+    for prev, nxt in zip(dated, dated[1:]):
+        if nxt.date < prev.date:
+            raise ManifestError(
+                f"manifest epochs: {nxt.name!r} ({nxt.date}) is listed after {prev.name!r} ({prev.date}) but dated "
+                "before it; list the epochs in date order (earliest first), or fix the dates")
+
+
+def default_output_dir(name: str) -> Path:
+    """``./geocd_out/<name>``: the default output folder of a scene or command (in the current directory)."""
+    safe = "".join(c if (c.isalnum() or c in "-_.") else "_" for c in str(name)).strip("._") or "scene"
+    return Path.cwd() / "geocd_out" / safe
 
 
 def load_manifest(path: os.PathLike | str) -> Manifest:
@@ -228,7 +517,11 @@ def load_manifest(path: os.PathLike | str) -> Manifest:
             if (p / name).is_file():
                 return load_manifest(p / name)
         return discover_manifest(p)
-    text = p.read_text(encoding="utf-8", errors="replace")
+    raw = p.read_bytes()
+    if b"\x00" in raw[:4096]:
+        raise ManifestError(f"{p} is not a manifest: it is a binary file (an image?); give a scene manifest "
+                            "(scene.yaml) or a folder of images")
+    text = raw.decode("utf-8", errors="replace")
     try:
         if p.suffix.lower() == ".json":
             data = json.loads(text)
@@ -237,7 +530,8 @@ def load_manifest(path: os.PathLike | str) -> Manifest:
 
             data = yaml.safe_load(text)
     except Exception as exc:
-        raise ManifestError(f"{p} is not valid YAML/JSON ({exc}); fix the syntax") from exc
+        first = " ".join(str(exc).split())[:200]
+        raise ManifestError(f"manifest {p} is not valid YAML/JSON ({first}); fix the syntax") from exc
     return parse_manifest(data, p.parent.resolve(), p.resolve())
 
 
@@ -258,7 +552,9 @@ def discover_manifest(folder: os.PathLike | str) -> Manifest:
         return out
 
     epochs = []
-    for sub in sorted(d for d in root.iterdir() if d.is_dir() and not d.name.startswith(".")):
+    # a folder of geocd products (an earlier run's output) is not an epoch of images
+    for sub in sorted(d for d in root.iterdir() if d.is_dir() and not d.name.startswith(".")
+                      and not (d / "geocd_products.json").exists()):
         imgs = images_in(sub)
         if imgs:
             date = None
@@ -276,7 +572,7 @@ def discover_manifest(folder: os.PathLike | str) -> Manifest:
             f"{root} holds no manifest (scene.yaml) and no images ({', '.join(IMAGE_SUFFIXES)}); "
             "write a scene.yaml (see geocd.io.manifest) or point at a folder of images"
         )
-    return Manifest(path=None, name=root.name, epochs=tuple(epochs), output=root / "out")
+    return Manifest(path=None, name=root.name, epochs=tuple(epochs))
 
 
 def manifest_to_dict(m: Manifest) -> dict:

@@ -15,16 +15,52 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ..errors import CRSError, EmptyDataError, InputFileNotFoundError, OutputError, UnsupportedFormatError
-from ..geodesy import AOIGrid, as_crs, normalize_datum_name, vertical_datum_of
+from ..errors import (CRSError, EmptyDataError, InputFileNotFoundError, OutputError, UnsupportedFormatError,
+                      VerticalDatumError)
+from ..geodesy import EGM96, EGM2008, ELLIPSOID, AOIGrid, as_crs, normalize_datum_name, vertical_datum_of
 from .atomic import atomic_path
+
+#: vertical datums a user may name (``--datum``, manifest ``vertical_datum``)
+VERTICAL_DATUMS = (ELLIPSOID, EGM96, EGM2008)
+#: plausible terrain heights, metres (deepest ocean floor .. above Everest); a DEM with more than 1 % of its
+#: cells outside is refused as not being heights in metres
+HEIGHT_RANGE_M = (-11_500.0, 9_500.0)
+_HEIGHT_BAND_NAMES = ("z", "z_m", "height", "height_m", "elevation", "dem", "dsm", "dtm", "h", "alt", "altitude")
+
+
+def check_vertical_datum(name: str | None, where: str = "vertical datum") -> str | None:
+    """A vertical datum name geocd knows (ellipsoid, egm96, egm2008 and their aliases), normalised; None passes.
+
+    Raises
+    ------
+    VerticalDatumError
+    """
+    if name is None or str(name).strip() == "":
+        return None
+    n = normalize_datum_name(name)
+    if n not in VERTICAL_DATUMS:
+        import difflib
+
+        close = difflib.get_close_matches(str(name).lower(), ["ellipsoid", "ellipsoidal", "wgs84", "egm96", "egm2008"],
+                                          n=1, cutoff=0.5)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise VerticalDatumError(f"{where}: unknown vertical datum {name!r}; use ellipsoid (WGS84 ellipsoidal "
+                                 f"heights), egm96 or egm2008{hint}")
+    return n
+
+
+def _read_failure(path, exc: Exception) -> UnsupportedFormatError:
+    """A rasterio/GDAL failure while reading pixels: the file is truncated or corrupt."""
+    msg = " ".join(str(exc).split())[:200]
+    return UnsupportedFormatError(f"cannot read the pixels of {path} ({msg}); the file is truncated or corrupt: "
+                                  "copy or export it again")
 
 RESAMPLING = ("nearest", "bilinear", "cubic", "average", "min", "max", "med")
 
 
 def _open(path: os.PathLike | str):
     import rasterio
-    from rasterio.errors import RasterioIOError
+    from rasterio.errors import RasterioError, RasterioIOError
 
     p = Path(path)
     if not p.exists() and "://" not in str(path) and not str(path).startswith("/vsi"):
@@ -40,6 +76,10 @@ def _open(path: os.PathLike | str):
             return rasterio.open(p)
     except RasterioIOError as exc:
         raise UnsupportedFormatError(f"cannot read {p} as a raster ({exc}); give a GeoTIFF or another GDAL format") from exc
+    except (RasterioError, UnicodeError, ValueError, OverflowError) as exc:
+        # a corrupt header: rasterio fails decoding a CRS citation, a tag, a metadata string
+        raise UnsupportedFormatError(f"cannot read {p} as a raster: its header is corrupt ({type(exc).__name__}: "
+                                     f"{' '.join(str(exc).split())[:120]}); copy or export the file again") from exc
 
 
 @dataclass
@@ -98,10 +138,15 @@ def effective_bit_depth(data: np.ndarray, tags: Mapping[str, str] | None = None)
 
 def read_image(path: os.PathLike | str, window: Any = None, bands: Sequence[int] | None = None) -> Image:
     """Read an image (all bands by default) with its valid mask and bit depth."""
+    from rasterio.errors import RasterioError
+
     with _open(path) as ds:
         idx = list(bands) if bands is not None else list(range(1, ds.count + 1))
-        data = ds.read(idx, window=window)
-        masks = ds.read_masks(idx, window=window)
+        try:
+            data = ds.read(idx, window=window)
+            masks = ds.read_masks(idx, window=window)
+        except RasterioError as exc:
+            raise _read_failure(path, exc) from exc
         valid = np.all(masks > 0, axis=0)
         tags = ds.tags(1) | ds.tags(1, "IMAGE_STRUCTURE") if ds.count else {}
         bit_depth = effective_bit_depth(data[:, valid] if valid.any() else data, tags)
@@ -161,18 +206,28 @@ def read_dem(path: os.PathLike | str, grid: AOIGrid | None = None, resampling: s
         SRTM .hgt tiles carry no vertical CRS but are EGM96 by specification:
         declare it.
     """
+    from rasterio.errors import RasterioError
+
+    vertical_datum = check_vertical_datum(vertical_datum, f"DEM {path}")
     with _open(path) as ds:
         if ds.crs is None:
             raise CRSError(f"DEM {path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...) before using it")
+        band = _check_dem_like(ds, path, band)
         nodata = ds.nodata
-        vd = normalize_datum_name(vertical_datum) or vertical_datum_of(ds.crs)
-        if grid is None:
-            arr = ds.read(band, masked=True).astype(np.float32)
-            h = arr.filled(np.nan)
-            g = AOIGrid(as_crs(ds.crs), ds.transform, ds.width, ds.height)
-        else:
-            h = reproject_band(ds, band, grid, resampling)
-            g = grid
+        vd = vertical_datum or vertical_datum_of(ds.crs)
+        if grid is not None:
+            _check_dem_covers(ds, path, grid)
+        _check_read_memory(path, grid.shape if grid is not None else (ds.height, ds.width), grid)
+        try:
+            if grid is None:
+                arr = ds.read(band, masked=True).astype(np.float32)
+                h = arr.filled(np.nan)
+                g = AOIGrid(as_crs(ds.crs), ds.transform, ds.width, ds.height)
+            else:
+                h = reproject_band(ds, band, grid, resampling)
+                g = grid
+        except RasterioError as exc:
+            raise _read_failure(path, exc) from exc
     if nodata is not None and np.isfinite(nodata):
         h[h == np.float32(nodata)] = np.nan
     # common nodata sentinels that some DEMs do not declare
@@ -182,7 +237,81 @@ def read_dem(path: os.PathLike | str, grid: AOIGrid | None = None, resampling: s
         raise EmptyDataError(
             f"DEM {path} has no valid heights {where}(all nodata); check its nodata value and that it covers the AOI"
         )
+    _check_heights(h, path)
     return DEM(h, g, vd, str(path))
+
+
+def _check_dem_like(ds, path, band: int) -> int:
+    """Refuse rasters that are not DEMs: images (8-bit, RGB/palette, several bands), complex values."""
+    from rasterio.enums import ColorInterp
+
+    dtypes = set(ds.dtypes)
+    interp = list(ds.colorinterp or [])
+    looks = f"{ds.count} band(s) of {ds.dtypes[0]}"
+    if not 1 <= band <= ds.count:
+        raise UnsupportedFormatError(f"DEM {path} has {ds.count} band(s); band {band} does not exist")
+    rgb = {ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.palette, ColorInterp.alpha}
+    if dtypes & {"uint8", "int8", "bool"} or (interp and interp[band - 1] in rgb):
+        raise UnsupportedFormatError(
+            f"{path} is not a DEM: it holds {looks}"
+            f"{' (' + '/'.join(c.name for c in interp[:4]) + ')' if interp else ''}, an image rather than heights. "
+            "Give a single-band elevation raster (float or 16/32-bit integer heights in metres)")
+    if any(d.startswith("complex") for d in dtypes):
+        raise UnsupportedFormatError(f"{path} holds complex values ({looks}); a DEM holds real heights in metres")
+    if ds.count > 1:
+        names = [str(d or "").strip().lower() for d in ds.descriptions]
+        if names[band - 1] not in _HEIGHT_BAND_NAMES:
+            raise UnsupportedFormatError(
+                f"DEM {path} has {ds.count} bands and band {band} is not named as heights "
+                f"({names[band - 1] or 'no description'}); a DEM has one band of heights: extract it first "
+                "(gdal_translate -b N in.tif dem.tif)")
+    return band
+
+
+def _check_read_memory(path, shape: tuple[int, int], grid: AOIGrid | None = None, bytes_per_cell: int = 13) -> None:
+    """Refuse to read a raster that cannot fit (float32 heights, a mask, a working copy per cell)."""
+    from .outputs import check_resources
+
+    rows, cols = int(shape[0]), int(shape[1])
+    if grid is None:
+        what = f"reading {path} ({cols} x {rows} cells)"
+        fix = "crop it to the area of interest first (gdal_translate -projwin ...) or resample it coarser"
+    else:
+        what = f"the AOI grid ({cols} x {rows} cells at {grid.posting_m:g} m, reading {Path(path).name} onto it)"
+        fix = "use a coarser posting or a smaller AOI"
+    check_resources(what, memory_bytes=rows * cols * bytes_per_cell, fix=fix)
+
+
+def _check_heights(h: np.ndarray, path) -> None:
+    v = h[np.isfinite(h)]
+    lo, hi = HEIGHT_RANGE_M
+    out = float(np.mean((v < lo) | (v > hi))) if v.size else 0.0
+    if out > 0.01:
+        raise UnsupportedFormatError(
+            f"DEM {path}: {100 * out:.0f}% of its values lie outside {lo:g}..{hi:g} m (range {np.min(v):g} .. "
+            f"{np.max(v):g}); these are not terrain heights in metres (feet? centimetres? an undeclared nodata "
+            "value?): convert the DEM to metres or set its nodata value")
+
+
+def _check_dem_covers(ds, path, grid: AOIGrid) -> None:
+    """A DEM that does not reach the AOI at all: say so, with the distance (not 'all nodata')."""
+    from rasterio.warp import transform_bounds
+
+    from ..errors import NoOverlapError
+
+    try:
+        l, b, r, t = transform_bounds(ds.crs, grid.crs.to_wkt(), *ds.bounds, densify_pts=21)
+    except Exception:  # noqa: BLE001 - a CRS pair rasterio cannot transform: let the read decide
+        return
+    gl, gb, gr, gt = grid.bounds
+    dx = max(gl - r, l - gr, 0.0)
+    dy = max(gb - t, b - gt, 0.0)
+    if dx > 0 or dy > 0:
+        d = float(np.hypot(dx, dy))
+        raise NoOverlapError(
+            f"DEM {path} does not cover the AOI: it ends {d / 1000:.1f} km from it (DEM bounds "
+            f"{tuple(round(x, 1) for x in (l, b, r, t))}, AOI {tuple(round(x, 1) for x in grid.bounds)} in the AOI's "
+            "CRS); give a DEM of this area, or check the AOI (aoi.bounds / aoi.crs)")
 
 
 def reproject_band(ds, band: int, grid: AOIGrid, resampling: str = "bilinear") -> np.ndarray:
@@ -235,7 +364,8 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
               nodata: float | int | None = None, dtype: str | None = None, tags: Mapping[str, Any] | None = None,
               band_tags: Sequence[Mapping[str, Any]] | None = None, overwrite: bool = True,
               compress: str = "deflate", colormap: Mapping[int, tuple] | None = None,
-              overview_resampling: str = "average", units: Mapping[str, str] | Sequence[str] | None = None) -> Path:
+              overview_resampling: str = "average", mask: np.ndarray | None = None,
+              units: Mapping[str, str] | Sequence[str] | None = None) -> Path:
     """Write a Cloud-Optimized GeoTIFF atomically.
 
     Every band gets a description (what QGIS shows as its name) and, where known, a unit
@@ -251,6 +381,9 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
         NaN in float data is nodata by default.
     tags : mapping, optional
         Dataset metadata (e.g. method, provenance JSON).
+    mask : bool ndarray (rows, cols), optional
+        Written as the GDAL internal mask band (False = nodata, transparent in QGIS):
+        for integer images whose every value is legitimate data.
     units : mapping name → unit, or one unit per band, optional
         Band units; default: from the band names' suffixes (:func:`band_unit`: ``_m`` → m,
         ``confidence`` → %, ...).
@@ -301,6 +434,10 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
                     dst.update_tags(**{k: str(v) for k, v in tags.items()})
                 if colormap is not None:
                     dst.write_colormap(1, colormap)
+                if mask is not None:
+                    if mask.shape != grid.shape:
+                        raise OutputError(f"mask shape {mask.shape} does not match the grid {grid.shape}")
+                    dst.write_mask(np.where(mask, 255, 0).astype(np.uint8))
                 ov = [f for f in (2, 4, 8, 16, 32) if min(grid.shape) // f >= 64]
                 if ov:
                     from rasterio.enums import Resampling
@@ -357,10 +494,32 @@ def write_image(path: os.PathLike | str, data: np.ndarray, *, rpc=None, crs: Any
     return Path(path)
 
 
+def read_on_grid(path: os.PathLike | str, grid: AOIGrid, resampling: str = "nearest", band: int = 1) -> np.ndarray:
+    """Any single band (a mask, classes, a product) resampled onto ``grid``: float32, NaN outside / nodata.
+
+    Unlike :func:`read_dem`, values are not checked to be heights.
+    """
+    from rasterio.errors import RasterioError
+
+    with _open(path) as ds:
+        if ds.crs is None:
+            raise CRSError(f"{path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...) before using it")
+        _check_read_memory(path, grid.shape, grid)
+        try:
+            return reproject_band(ds, band, grid, resampling)
+        except RasterioError as exc:
+            raise _read_failure(path, exc) from exc
+
+
 def read_band(path: os.PathLike | str, band: int = 1) -> tuple[np.ndarray, AOIGrid]:
     """Read one band of a georeferenced product as float32 (nodata → NaN) with its grid."""
+    from rasterio.errors import RasterioError
+
     with _open(path) as ds:
         if ds.crs is None:
             raise CRSError(f"{path} has no CRS")
-        a = ds.read(band, masked=True).astype(np.float32).filled(np.nan)
+        try:
+            a = ds.read(band, masked=True).astype(np.float32).filled(np.nan)
+        except RasterioError as exc:
+            raise _read_failure(path, exc) from exc
         return a, AOIGrid(as_crs(ds.crs), ds.transform, ds.width, ds.height)

@@ -41,7 +41,8 @@ from ..camera.rpc import RPCModel, rpc00a_to_rpc00b
 from ..errors import (GeoCDError, InputFileNotFoundError, RPCNotFoundError, RPCParseError,
                       UnsupportedFormatError)
 
-__all__ = ["read_rpc", "find_rpc_sidecar", "load_rpc_for_image", "detect_rpc_format", "SIDECAR_PATTERNS"]
+__all__ = ["read_rpc", "find_rpc_sidecar", "load_rpc_for_image", "detect_rpc_format", "SIDECAR_PATTERNS",
+           "check_rpc_plausible"]
 
 #: sidecar names tried next to an image, in this order ({stem} = image name without extension)
 SIDECAR_PATTERNS = (
@@ -200,10 +201,125 @@ class _Fields:
 
 def _model(path: Path, kw: dict[str, Any]) -> RPCModel:
     try:
-        return RPCModel(**kw)
+        model = RPCModel(**kw)
     except RPCParseError as exc:
         msg = str(exc)
         raise RPCParseError(msg if str(path) in msg else f"{path}: {msg}") from None
+    check_rpc_plausible(model, path)
+    return model
+
+
+#: physical ranges of an RPC's offsets and scales (degrees, metres, pixels): (field, low, high, what)
+PLAUSIBLE_RANGES = (
+    ("lat_off", -90.0, 90.0, "a latitude (degrees)"),
+    ("lon_off", -180.0, 360.0, "a longitude (degrees, -180..180 or 0..360)"),
+    ("height_off", -12_000.0, 30_000.0, "a ground height (m)"),
+    ("line_off", -1e7, 1e7, "a pixel offset"),
+    ("samp_off", -1e7, 1e7, "a pixel offset"),
+)
+PLAUSIBLE_SCALES = (
+    ("lat_scale", 1e-8, 90.0, "degrees of latitude"),
+    ("lon_scale", 1e-8, 180.0, "degrees of longitude"),
+    ("height_scale", 1e-3, 1e5, "metres"),
+    ("line_scale", 1e-3, 1e7, "pixels"),
+    ("samp_scale", 1e-3, 1e7, "pixels"),
+)
+#: RPC00B coefficients act on offsets normalised to [-1, 1]; real models stay below ~250 (measured on the
+#: 29 vendor RPCs of ../shared/data: SkySat 225, Pléiades 46, others ~1): 1e6 leaves four orders of margin
+MAX_ABS_COEFFICIENT = 1e6
+
+
+def check_rpc_plausible(model: RPCModel, path: os.PathLike | str | None = None) -> RPCModel:
+    """Refuse an RPC whose offsets/scales are outside physical ranges or whose coefficients are absurd.
+
+    Latitude offset within ±90°, longitude within -180..360°, ground height offset within
+    -12..30 km, scales between a millimetre / a thousandth of a pixel and a hemisphere / 100 km /
+    10⁷ px, every coefficient finite and below :data:`MAX_ABS_COEFFICIENT` in magnitude, and the
+    model's centre projecting to a finite pixel.
+
+    Raises
+    ------
+    RPCParseError
+    """
+    where = f"{path}: " if path is not None else ""
+    bad = []
+    for name, lo, hi, what in PLAUSIBLE_RANGES:
+        v = float(getattr(model, name))
+        if not (lo <= v <= hi):
+            bad.append(f"{_VENDOR_KEY[name]}={v:g} is not {what} (expected {lo:g}..{hi:g})")
+    for name, lo, hi, unit in PLAUSIBLE_SCALES:
+        v = abs(float(getattr(model, name)))
+        if not (lo <= v <= hi):
+            bad.append(f"{_VENDOR_KEY[name]}={getattr(model, name):g} is outside {lo:g}..{hi:g} {unit}")
+    for name in _COEF_NAMES:
+        c = np.asarray(getattr(model, name), float)
+        big = np.abs(c) > MAX_ABS_COEFFICIENT
+        if big.any():
+            k = int(np.argmax(np.abs(c)))
+            bad.append(f"{_VENDOR_KEY[name]}_{k + 1}={c[k]:g} is not a plausible coefficient "
+                       f"(|c| > {MAX_ABS_COEFFICIENT:g})")
+    if not bad:
+        with np.errstate(all="ignore"):
+            c, r = model.project_reference(model.lon_off, model.lat_off, model.height_off)  # no compile
+        if not (np.isfinite(c) and np.isfinite(r) and abs(float(c)) < 1e9 and abs(float(r)) < 1e9):
+            bad.append(f"the model's own centre projects to a non-finite pixel ({float(c):g}, {float(r):g})")
+    if bad:
+        raise RPCParseError(f"{where}implausible RPC: {'; '.join(bad[:4])}"
+                            f"{f'; and {len(bad) - 4} more' if len(bad) > 4 else ''}. The file is corrupt or not this "
+                            "image's camera; re-export it from the original product")
+    return model
+
+
+#: NITF RPC00A/RPC00B TRE layout (STDI-0002): field widths after SUCCESS, ERR_BIAS, ERR_RAND
+_TRE_FIELDS = (("LINE_OFF", 6), ("SAMP_OFF", 5), ("LAT_OFF", 8), ("LONG_OFF", 9), ("HEIGHT_OFF", 5),
+               ("LINE_SCALE", 6), ("SAMP_SCALE", 5), ("LAT_SCALE", 8), ("LONG_SCALE", 9), ("HEIGHT_SCALE", 5))
+
+
+def _check_nitf_tre(path: Path, tres: Mapping[str, Any]) -> None:
+    """GDAL parses the RPC TRE's fixed-width fields with atof (letters → 0): check them as text."""
+    for key in ("RPC00B", "RPC00A"):
+        raw = tres.get(key)
+        if not isinstance(raw, str) or len(raw) < 1041:
+            continue
+        pos, bad = 15, []
+        for name, width in _TRE_FIELDS:
+            txt = raw[pos:pos + width]
+            pos += width
+            try:
+                float(txt)
+            except ValueError:
+                bad.append(f"{name}={txt!r}")
+        for k in range(80):
+            txt = raw[pos:pos + 12]
+            pos += 12
+            try:
+                float(txt)
+            except ValueError:
+                poly = ("LINE_NUM_COEFF", "LINE_DEN_COEFF", "SAMP_NUM_COEFF", "SAMP_DEN_COEFF")[k // 20]
+                bad.append(f"{poly}_{k % 20 + 1}={txt!r}")
+        if bad:
+            raise RPCParseError(f"{path}: the {key} TRE holds non-numeric fields ({', '.join(bad[:4])}"
+                                f"{f' and {len(bad) - 4} more' if len(bad) > 4 else ''}); GDAL would read them as 0. "
+                                "The file is corrupt: re-export it from the original product")
+
+
+def _check_raw_rpc_strings(path: Path, raw: Mapping[str, Any]) -> None:
+    """GDAL reads a non-numeric RPC value as 0: refuse those (an .aux.xml or sidecar edited by hand)."""
+    bad = []
+    for key, val in raw.items():
+        canon = _ALIASES.get(_normkey(key))
+        if canon is None or val is None:
+            continue
+        try:
+            vals = _to_floats(val) if canon in _COEF_NAMES else [_to_float(val)]
+        except (TypeError, ValueError, OverflowError):
+            bad.append(f"{key}={_short(val)} is not a number")
+            continue
+        if canon in _COEF_NAMES and len(vals) != 20:
+            bad.append(f"{key} has {len(vals)} values instead of 20")
+    if bad:
+        raise RPCParseError(f"{path}: the RPC metadata holds non-numeric values ({'; '.join(bad[:4])}); GDAL would "
+                            "read them as 0. Re-export the RPC from the original product")
 
 
 def _short(v: Any, n: int = 40) -> str:
@@ -374,6 +490,17 @@ def _read_gdal(path: Path, image_path: Path | None, *, own_metadata_only: bool =
                 f"{path} ({ds.driver}) has no RPC metadata (no RPC tags / RPC00B TRE); give its RPC sidecar "
                 "file instead (_rpc.txt, .RPB, RPC_*.XML, .geom, ...) or put it next to the image"
             )
+        try:
+            raw = ds.tags(ns="RPC") or {}
+        except (RasterioError, *_PARSE_FAILURES):
+            raw = {}
+        _check_raw_rpc_strings(path, raw)
+        if ds.driver == "NITF":
+            try:
+                tres = ds.tags(ns="TRE") or {}
+            except (RasterioError, *_PARSE_FAILURES):
+                tres = {}
+            _check_nitf_tre(path, tres)
         sidecars = [] if own_metadata_only else [f for f in (ds.files or [])[1:] if not f.lower().endswith(".aux.xml")]
         if ds.driver == "NITF":
             label = "NITF RPC00B TRE"

@@ -138,6 +138,10 @@ def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = 
     t_start = time.perf_counter()
     prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
+    from ..orientation import orient_manifest
+
+    m, _ = orient_manifest(m, out_dir=Path(out_dir) if out_dir is not None else Path(m.output or m.root / "out"),
+                           grid=grid)
     ea, eb = pick_epochs(m, epoch_a, epoch_b)
     ims = {ea.name: _select(load_epoch_images(m, ea), images_a, ea.name),
            eb.name: _select(load_epoch_images(m, eb), images_b, eb.name)}
@@ -216,7 +220,7 @@ def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = 
         summary["key_window"] = {"col0": key_res.col0, "row0": key_res.row0, "shape": list(key_res.probability.shape),
                                  "lattice_px": key_res.lattice_px}
     if write:
-        out = Path(out_dir) if out_dir is not None else Path(m.output or m.root / "out")
+        out = Path(out_dir) if out_dir is not None else m.output_dir()
         out.mkdir(parents=True, exist_ok=True)
         prefix = prefix or "probchange"
         prov = {"manifest": str(m.path or m.root), "variant": variant}

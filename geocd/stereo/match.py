@@ -147,15 +147,18 @@ def pair_geometry(grid: AOIGrid, cameras: Sequence[Camera], chips: Sequence[Imag
     mid_s = 0.5 * (lo_s + hi_s)
     seen = np.zeros(rows.shape, bool)
     jmax = 0.0
-    J = []
     projs = [cam.ground_projector(x, y, grid.crs) for cam in cameras]
+    # sensitivities only where a cell lands on valid pixels of that image: outside it a camera model
+    # may be meaningless (a frame camera's distortion folds back there, at thousands of px/m)
     for h in (lo_s, mid_s, hi_s):
         ok = np.ones(rows.shape, bool)
         for pr, chip in zip(projs, chips):
             c, r = pr.project(h)
-            ok &= chip_valid_at(chip, c, r)
-            dc, dr = pr.dproj_dh(h)
-            jmax = max(jmax, float(np.nanmax(np.hypot(dc, dr))))
+            inside = chip_valid_at(chip, c, r)
+            ok &= inside
+            if inside.any():
+                dc, dr = pr.dproj_dh(h)
+                jmax = max(jmax, float(np.nanmax(np.where(inside, np.hypot(dc, dr), np.nan))))
         seen |= ok
     if not seen.any():
         names = " and ".join(repr(c.name or f"image {i + 1}") for i, c in enumerate(chips))
@@ -164,11 +167,13 @@ def pair_geometry(grid: AOIGrid, cameras: Sequence[Camera], chips: Sequence[Imag
             f"[{float(np.min(lo)):.0f}, {float(np.max(hi)):.0f}] m; pick a pair that sees the same ground, or check "
             "the AOI and the height range (a wrong vertical datum shifts footprints)"
         )
+    J = []
     for pr in projs:
         dc, dr = pr.dproj_dh(mid_s)
         J.append(np.stack([dc, dr]))
-    g = np.hypot(*(J[0] - J[1]))
-    rho = [float(np.nanmedian(image_sampling_px_per_m(cam, grid, rows, cols, mid_s))) for cam in cameras]
+    g = np.where(seen, np.hypot(*(J[0] - J[1])), np.nan)
+    rho = [float(np.nanmedian(image_sampling_px_per_m(cam, grid, rows[seen], cols[seen], mid_s[seen])))
+           for cam in cameras]
     return {"jmax": jmax, "g": g, "rho": rho, "base_height": g / np.mean(rho), "overlap": float(seen.mean()),
             "seen": seen}
 
@@ -228,6 +233,8 @@ def sweep_ncc(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camer
     delta = np.clip(np.nan_to_num(delta), -0.5, 0.5)
     has = k >= 0
     out["z_raw"] = np.where(has, search.height(k + delta), np.nan)
+    kmax = search.kmax()
+    out["nsearched"] = np.where(kmax >= 0, kmax - search.kmin() + 1, 0).astype(np.float64)
     return out, sweep.n_evaluations()
 
 
@@ -246,45 +253,104 @@ def coherent_neighbours(z: np.ndarray, tol_m: float, radius: int = 2) -> np.ndar
     return n
 
 
+def confident_coherent(planes: dict[str, np.ndarray], bin_m: float, min_ncc: float = 0.7) -> np.ndarray:
+    """Matches that correlate well (NCC ≥ ``min_ncc``) and agree with ≥ 3 neighbours within 0.3 bin (a surface)."""
+    z = planes["z_raw"]
+    with np.errstate(invalid="ignore"):
+        good = np.isfinite(z) & (planes["best_c"] <= 1.0 - min_ncc)
+    # right matches also agree with their neighbours (a surface); wrong ones scatter
+    good &= coherent_neighbours(np.where(good, z, np.nan), tol_m=0.3 * bin_m, radius=2) >= 3
+    return good
+
+
+def surface_slope(z: np.ndarray, good: np.ndarray, posting_m: float, q: float = 99.0) -> float:
+    """The ``q``-th percentile of |Δz| / posting between 4-neighbours that are both ``good`` (m per m)."""
+    d = []
+    for a, b, ok in ((z[:, 1:], z[:, :-1], good[:, 1:] & good[:, :-1]), (z[1:], z[:-1], good[1:] & good[:-1])):
+        d.append(np.abs(a - b)[ok])
+    d = np.concatenate(d)
+    return float(np.percentile(d, q)) / posting_m if d.size else 0.0
+
+
+def interval_margin_m(planes: dict[str, np.ndarray], good: np.ndarray, posting_m: float, step_m: float,
+                      radius: int) -> float:
+    """How far the surface may lie beyond the heights a coarse level matched (m).
+
+    A coarse match is the height of a fronto-parallel window ``2·radius + 1`` coarse
+    cells wide: on a slope ``s`` the surface inside the window spans ``±(radius + 1)·posting·s``
+    around it (a peak's apex lies that far above the window's height), and the parabola
+    resolves one height step. ``s`` is the steepest (99th percentile) slope between
+    neighbouring confident matches of that level — the data's own, not a constant.
+    """
+    s = surface_slope(planes["z_raw"], good, posting_m)
+    return float(step_m + (radius + 1) * posting_m * s)
+
+
+def poisson_threshold(lam: float, alpha: float = 1e-3) -> int:
+    """Smallest count n with P(Poisson(lam) ≥ n) < alpha."""
+    from scipy.stats import poisson
+
+    return int(poisson.isf(alpha, max(lam, 1e-12))) + 1
+
+
+def _occupied_bins(z: np.ndarray, good: np.ndarray, glo: float, bin_m: float, nb: int, alpha: float,
+                   lam: float | None = None, strong_n: int | None = None) -> tuple[float, int, int, np.ndarray]:
+    """Background rate, first and last occupied bin grown from the fullest one, and the bin edges.
+
+    Bins with at least ``strong_n`` matches are kept wherever they are (a flat roof high above
+    the ground leaves empty bins between)."""
+    h, e = np.histogram(z[good], bins=nb, range=(glo, glo + nb * bin_m))
+    if lam is None:
+        lam = max(float(np.mean(np.sort(h)[: (nb + 1) // 2])), 1.0 / nb)
+    occ = h >= poisson_threshold(lam, alpha)
+    m = int(np.argmax(h))
+    i0 = i1 = m
+    while i0 - 1 >= 0 and occ[i0 - 1]:
+        i0 -= 1
+    while i1 + 1 < nb and occ[i1 + 1]:
+        i1 += 1
+    if strong_n is not None:
+        strong = np.flatnonzero(h >= strong_n)
+        if strong.size:
+            i0, i1 = min(i0, int(strong[0])), max(i1, int(strong[-1]))
+    return lam, i0, i1, e
+
+
 def robust_height_interval(planes: dict[str, np.ndarray], lo: np.ndarray, hi: np.ndarray, bin_m: float,
-                           min_ncc: float = 0.7, frac: float = 0.1) -> tuple[float, float] | None:
+                           min_ncc: float = 0.7, margin_m: float | None = None, alpha: float = 1e-3,
+                           window: int | None = None, info: dict | None = None) -> tuple[float, float] | None:
     """Height interval of the scene from a coarse level's confident matches, or None.
 
     Right matches pile up at the scene's heights, wrong ones scatter. Histogram
-    the heights of matches with NCC ≥ ``min_ncc``; start from the fullest bin and
-    grow while neighbouring bins hold at least ``frac`` of it (one weaker bin may
-    be bridged); keep one bin of margin each side. None when there are too few
-    matches or when the interval would not narrow the range at least twofold.
+    the heights of the confident, coherent matches (:func:`confident_coherent`) in bins of
+    ``bin_m``. The wrong matches that survive those filters scatter over the whole range:
+    their count per bin is Poisson with a rate estimated from the emptier half of the
+    bins (at least one wrong match over the whole range). A bin is *occupied* when its
+    count is significant against that background (P < ``alpha``) — however few cells
+    the surface has there (a pyramid's apex). Start from the fullest bin and grow over
+    occupied bins (a false match echoed by its neighbours' overlapping windows can make a
+    significant bin of its own, so an empty bin is not bridged). With ``window`` (the matching window, in
+    cells), a bin holding more than ``(2·window − 1)²`` matches is kept even across empty
+    bins: more cells than every window sharing a pixel with one false match — more than one
+    wrong match can echo — so a surface (a high flat roof). Add ``margin_m`` (default:
+    one bin; see :func:`interval_margin_m`) each side. None when there are too few matches
+    or when the interval would not narrow the range at least twofold. ``info``, when
+    given, receives ``background_per_bin`` (the Poisson rate above).
     """
     z = planes["z_raw"]
-    good = np.isfinite(z) & (planes["best_c"] <= 1.0 - min_ncc)
-    # right matches also agree with their neighbours (a surface); wrong ones scatter
-    good &= coherent_neighbours(np.where(good, z, np.nan), tol_m=0.3 * bin_m, radius=2) >= 3
+    good = confident_coherent(planes, bin_m, min_ncc)
     if good.sum() < 50:
         return None
     glo, ghi = float(np.nanmin(lo)), float(np.nanmax(hi))
     nb = int(np.ceil((ghi - glo) / bin_m))
     if nb < 8:
         return None
-    h, e = np.histogram(z[good], bins=nb, range=(glo, glo + nb * bin_m))
-    m = int(np.argmax(h))
-    thr = frac * h[m]
-    i0 = i1 = m
-    while True:
-        if i0 - 1 >= 0 and h[i0 - 1] >= thr:
-            i0 -= 1
-        elif i0 - 2 >= 0 and h[i0 - 2] >= thr:
-            i0 -= 2
-        else:
-            break
-    while True:
-        if i1 + 1 < nb and h[i1 + 1] >= thr:
-            i1 += 1
-        elif i1 + 2 < nb and h[i1 + 2] >= thr:
-            i1 += 2
-        else:
-            break
-    a, b = e[max(i0 - 1, 0)], e[min(i1 + 2, nb)]
+    strong_n = None if window is None else (2 * int(window) - 1) ** 2 + 1
+    lam, i0, i1, e = _occupied_bins(z, good, glo, bin_m, nb, alpha, strong_n=strong_n)
+    if info is not None:
+        info["background_per_bin"] = lam
+    margin = bin_m if margin_m is None else float(margin_m)
+    a, b = max(e[i0] - margin, glo), min(e[i1 + 1] + margin, ghi)
     if (b - a) > 0.5 * (ghi - glo):
         return None
     return float(a), float(b)
@@ -371,17 +437,75 @@ def _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
         shift = off * normal
         info["coarse_pointing_px"] = [float(shift[0]), float(shift[1])]
         info["coarse_pointing_scores"] = {f"{o:+.1f}": round(q, 4) for o, q in zip(offsets, scores)}
-    iv = robust_height_interval(planes, lo_l, hi_l, 10.0 * step_l)
+    bin_m = 10.0 * step_l
+    margin = interval_margin_m(planes, confident_coherent(planes, bin_m), g_l.posting_m, step_l, params.radius)
+    stats: dict[str, float] = {}
+    iv = robust_height_interval(planes, lo_l, hi_l, bin_m, margin_m=margin, window=params.window, info=stats)
+    strong_n = (2 * params.window - 1) ** 2 + 1
+    beyond = np.zeros(g_l.shape, bool)
     if iv is not None:
-        info["coarse_interval_m"] = [float(iv[0]), float(iv[1])]
-        lo = np.maximum(lo, iv[0])
-        hi = np.minimum(hi, iv[1])
-        bad = ~(hi > lo)
-        lo, hi = np.where(bad, iv[0], lo), np.where(bad, iv[1], hi)
-        planes, ev = run(g_l, HeightSearch(_block_reduce(lo, f, np.min), _block_reduce(hi, f, np.max), step_l),
-                         float(off), f"{prefix}narrowed ")
+        glo, ghi = float(np.nanmin(lo)), float(np.nanmax(hi))
+        nb = int(np.ceil((ghi - glo) / bin_m))
+        a, b = iv
+
+        def narrowed(a_, b_):
+            lo_n, hi_n = np.maximum(lo, a_), np.minimum(hi, b_)
+            bad = ~(hi_n > lo_n)
+            return np.where(bad, a_, lo_n), np.where(bad, b_, hi_n)
+
+        lo_n, hi_n = narrowed(a, b)
+        planes, ev = run(g_l, HeightSearch(_block_reduce(lo_n, f, np.min), _block_reduce(hi_n, f, np.max), step_l,
+                                           search.origin_m), float(off), f"{prefix}narrowed ")
         evaluations += ev
-    return planes, lo, hi, evaluations, info
+        # re-search beyond each bound that cut the range: a surface there (a peak whose coarse matches were
+        # too few to show in the histogram) matches better beyond the bound than inside it
+        extended = []
+        for side in (1, -1):
+            while True:
+                bound, limit = (b, ghi) if side > 0 else (a, glo)
+                if (limit - bound) * side <= step_l:
+                    break
+                width = max(b - a, margin)
+                band = (bound, min(bound + width, limit)) if side > 0 else (max(bound - width, limit), bound)
+                lo_b = np.maximum(lo_l, band[0])
+                hi_b = np.minimum(hi_l, band[1])
+                ok_b = hi_b > lo_b
+                pb, ev = run(g_l, HeightSearch(np.where(ok_b, lo_b, np.nan), np.where(ok_b, hi_b, np.nan), step_l,
+                                               search.origin_m), float(off), f"{prefix}beyond {band[0]:.0f}..{band[1]:.0f} m ")
+                evaluations += ev
+                inside_c = np.where(np.isfinite(planes["best_c"]), planes["best_c"], np.inf)
+                with np.errstate(invalid="ignore"):
+                    better = np.isfinite(pb["best_c"]) & (pb["best_c"] < inside_c)
+                # the scene's interval with these cells' better heights: does the surface go on past the bound?
+                comb = {k: np.where(better, pb[k], planes[k]) for k in ("z_raw", "best_c")}
+                good_c = confident_coherent(comb, bin_m)
+                _, i0, i1, e = _occupied_bins(comb["z_raw"], good_c, glo, bin_m, nb, 1e-3, stats["background_per_bin"],
+                                              strong_n)
+                new = (min(float(e[i1 + 1]) + margin, ghi) if side > 0 else max(float(e[i0]) - margin, glo))
+                if (new - bound) * side > step_l:
+                    a, b = (a, new) if side > 0 else (new, b)
+                    extended.append([float(band[0]), float(band[1]), round(new, 2)])
+                    lo_n, hi_n = narrowed(a, b)
+                    planes, ev = run(g_l, HeightSearch(_block_reduce(lo_n, f, np.min), _block_reduce(hi_n, f, np.max),
+                                                       step_l, search.origin_m), float(off), f"{prefix}extended ")
+                    evaluations += ev
+                    continue
+                # confident surface patches beyond the bound that do not move it (too few, or apart from the
+                # scene's heights): those cells' heights inside it cannot be trusted
+                beyond |= better & good_c & ((comb["z_raw"] - bound) * side > 0)
+                break
+        lo, hi = lo_n, hi_n
+        info["coarse_interval_m"] = [float(a), float(b)]
+        info["coarse_interval_margin_m"] = float(margin)
+        if extended:
+            info["coarse_interval_extended"] = extended
+        info["beyond_interval_cells"] = int(beyond.sum())
+    return planes, lo, hi, evaluations, info, beyond
+
+
+def incomplete_search(planes: dict[str, np.ndarray]) -> np.ndarray:
+    """Cells with a match whose cost was undefined at some heights of their range (out of an image, nodata)."""
+    return (planes["best_k"] >= 0) & (planes["nfinite"] < planes["nsearched"])
 
 
 def _surface_from_planes(planes: dict[str, np.ndarray], factor: int, shape: tuple[int, int]) -> np.ndarray:
@@ -407,12 +531,12 @@ def refine_search(planes: dict[str, np.ndarray], lo_f: np.ndarray, hi_f: np.ndar
                   step_coarse: float, step_fine: float, params: StereoParams) -> HeightSearch:
     """Narrow the fine level's search around a coarse level's heights (5×5 min/max ± margin)."""
     z = planes["z_raw"]
+    m = params.refine_margin_steps * step_coarse
     usable = np.isfinite(z) & (planes["best_c"] < 0.8)
     if not usable.any():
         return HeightSearch(lo_f, hi_f, step_fine)
     zf = _fill_nearest(np.where(usable, z, np.nan))
     zf = ndimage.median_filter(zf, size=3, mode="nearest")
-    m = params.refine_margin_steps * step_coarse
     w = 5
     lo_c = ndimage.minimum_filter(zf, size=w, mode="nearest") - m
     hi_c = ndimage.maximum_filter(zf, size=w, mode="nearest") + m
@@ -523,7 +647,8 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
                             "jmax_px_per_m": geo["jmax"], "rho_px_per_m": geo["rho"], "overlap": geo["overlap"],
                             "params": params.to_dict()}
     # --- degenerate geometry: warn, and skip the sweep when hopeless everywhere
-    if geo["jmax"] < 1e-6 or np.all(geo["base_height"] < params.min_base_height):
+    bh_seen = geo["base_height"][np.isfinite(geo["base_height"])]
+    if geo["jmax"] < 1e-6 or np.all(bh_seen < params.min_base_height):
         warnings.warn(f"pair {name}: base/height ratio ≈ {bh_med:.3f} is below {params.min_base_height} everywhere "
                       "(the two views are nearly the same): its heights would be noise, so every cell is invalid; "
                       "use a pair with a wider base", StereoGeometryWarning, stacklevel=2)
@@ -548,10 +673,19 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
         # more false minima win — on sample_aoi's widest-base pair completeness fell from 93% to 81%.
         while level < 2 and min(grid.shape) / 2 ** (level + 1) >= 4 * params.window:
             level += 1
+    if k0 / 2 ** level > params.max_coarse_heights:
+        raise ConfigError(
+            f"pair {name}: the height range [{float(np.nanmin(lo)):.0f}, {float(np.nanmax(hi)):.0f}] m needs "
+            f"{k0:.0f} height planes of {step0:.3g} m (the images move up to {geo['jmax']:.3g} px per metre of "
+            f"height over the AOI) and the {grid.width} × {grid.height}-cell AOI allows only {level} coarser "
+            f"level(s), so {k0 / 2 ** level:.0f} planes per cell at the coarsest, more than the "
+            f"{params.max_coarse_heights} allowed; narrow the range (--height-range MIN MAX, ellipsoidal metres), "
+            "give a prior DEM ('dem:' in the manifest), or match a larger AOI")
     order = list(range(level, -1, -1))
     pointing: dict[str, Any] = {"applied": False}
     evaluations = 0
     planes = None
+    beyond_fine = None
     n_levels = len(order)
     for i, L in enumerate(order):
         f = 2 ** L
@@ -563,8 +697,9 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
         sub = sub_progress(prog, 0.9 * i / n_levels, 0.9 * (i + 1) / n_levels)
         prefix = f"{name}: level {L} ({g_l.posting_m:g} m) "
         if i == 0 and L > 0:
-            planes, lo, hi, ev, info = _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
-                                                      excl_steps, sub, prefix)
+            planes, lo, hi, ev, info, beyond = _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur,
+                                                              params, sig, excl_steps, sub, prefix)
+            beyond_fine = upsample_nearest(beyond, f, grid.shape)
             evaluations += ev
             meta.update(info)
             if params.pointing_correction:
@@ -590,7 +725,7 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
         evaluations += ev
     prog(0.92, f"{name}: scores and checks")
     # chips_l: the images as the finest level matched them (same boxes and shifts as chips)
-    out = _finalize(grid, cams, chips_l, planes, search, params, sig, geo, lo, hi, lonlat)
+    out = _finalize(grid, cams, chips_l, planes, search, params, sig, geo, lo, hi, lonlat, beyond_fine)
     out = {k: _crop(v, pad) for k, v in out.items()}
     grid = out_grid
     meta.update(step_m=step0, levels=n_levels, evaluations=evaluations, excl_steps=excl_steps, pointing=pointing,
@@ -697,7 +832,7 @@ def subwindow_mdl(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageCh
 
 
 def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: float, geo, lo, hi,
-              lonlat=None) -> dict[str, Any]:
+              lonlat=None, beyond=None) -> dict[str, Any]:
     k = planes["best_k"]
     has = k >= 0
     z_raw = planes["z_raw"]
@@ -717,8 +852,18 @@ def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: floa
         sec = planes["sec_c"]
         flags[has & np.isfinite(sec) & (planes["best_c"] > params.uniqueness_ratio * sec)] |= FLAGS["not_unique"]
         flags[has & ~(np.isfinite(planes["best_cm"]) & np.isfinite(planes["best_cp"]))] |= FLAGS["range_limit"]
+        if beyond is not None:   # the coarse level matched these cells better outside the narrowed range
+            flags[has & beyond] |= FLAGS["range_limit"]
+        # a cell that left an image (or met nodata) over part of its final range was not searched there
+        flags[incomplete_search(planes)] |= FLAGS["range_limit"]
         flags[has & ~(ncc >= params.min_ncc)] |= FLAGS["low_ncc"]
     z_eval = np.where(np.isfinite(z_raw), z_raw, 0.5 * (lo + hi))
+    # a cell whose own point falls outside an image (or its valid domain) has no height, even when most
+    # of its window does
+    lon_, lat_ = lonlat if lonlat is not None else grid.lonlat()
+    for cam, chip in zip(cams[:2], chips[:2]):
+        c, r = cam.ground_projector(lon_, lat_, None).project(z_eval)
+        flags[has & ~np.isfinite(chip.warp(c, r))] |= FLAGS["out_of_image"]
     g, jn = _g_field(grid, cams, z_eval, lonlat)
     rho = float(np.mean(geo["rho"]))
     flags[g / rho < params.min_base_height] |= FLAGS["weak_geometry"]

@@ -30,6 +30,11 @@ class StereoParams(ParamsMixin):
     max_heights : int
         When a cell would need more height steps than this at full resolution, the
         range is first narrowed coarse-to-fine (grids 2×, 4×, … coarser).
+    max_coarse_heights : int
+        Hard cap on the height planes per cell of the coarsest level; a pair that would need
+        more (a huge range for a small AOI) stops with a ConfigError naming the fix instead of
+        running for hours. 4096 = 32 × ``max_heights``: the coarsest level of a 1000 × 1000-cell
+        AOI then costs at most what 32 full-resolution levels do.
     refine_margin_steps : float
         Margin around the coarser level's heights, in that level's height steps.
     min_valid_fraction : float
@@ -84,6 +89,7 @@ class StereoParams(ParamsMixin):
     dem_margin_m: float = 30.0
     dem_window: int = 5
     max_heights: int = 128
+    max_coarse_heights: int = 4096
     refine_margin_steps: float = 3.0
     min_valid_fraction: float = 0.75
     noise_sigma: float | None = None
@@ -117,6 +123,9 @@ class StereoParams(ParamsMixin):
             raise ConfigError(f"dem_margin_m must be ≥ 0, got {self.dem_margin_m}")
         if self.max_heights < 8:
             raise ConfigError(f"max_heights must be ≥ 8, got {self.max_heights}")
+        if self.max_coarse_heights < self.max_heights:
+            raise ConfigError(f"max_coarse_heights must be ≥ max_heights ({self.max_heights}), "
+                              f"got {self.max_coarse_heights}")
         if not (0.0 < self.min_valid_fraction <= 1.0):
             raise ConfigError(f"min_valid_fraction must be in (0, 1], got {self.min_valid_fraction}")
         if self.score not in SCORES:

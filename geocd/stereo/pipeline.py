@@ -47,6 +47,11 @@ def load_epoch_images(manifest, epoch) -> list[EpochImage]:
     return out
 
 
+def _sensor_kind(camera: Camera) -> str:
+    """The kind of sensor geometry (a corrected camera reports the camera underneath)."""
+    return getattr(camera, "sensor_kind", camera.kind)
+
+
 def pair_path(out_dir: os.PathLike | str, epoch: str, a: str, b: str) -> Path:
     """Where the pair-DEM of images ``a`` and ``b`` of ``epoch`` goes."""
     return Path(out_dir) / "stereo" / epoch / f"{a}__{b}.tif"
@@ -125,6 +130,66 @@ def _footprint_xy(camera: Camera, h: float, crs) -> Any:
     return Polygon(np.column_stack([x, y]))
 
 
+#: bytes per AOI-grid cell: a pair-DEM held in memory (z, score, g, ncc, ssd, raw z, window score: float32;
+#: valid, flags: 1 byte), the transient of writing one (stacked bands, the COG's in-memory copy and overviews),
+#: and one pair-DEM file uncompressed (7 float32 bands + 1/3 overviews)
+PAIR_MEMORY_PER_CELL = 30
+WORK_MEMORY_PER_CELL = 150
+PAIR_FILE_PER_CELL = 37
+
+
+def check_stereo_resources(grid: AOIGrid, n_pairs: int, out: os.PathLike | str | None, *,
+                           keep_arrays: bool = False) -> None:
+    """Refuse stereo on a grid that cannot fit in memory or on disk, before any matching (see
+    :func:`geocd.io.outputs.check_resources`)."""
+    from ..io.outputs import available_memory_bytes, check_resources
+
+    cells = int(grid.width) * int(grid.height)
+    mem = cells * (PAIR_MEMORY_PER_CELL * (n_pairs if keep_arrays else 1) + WORK_MEMORY_PER_CELL)
+    avail = available_memory_bytes()
+    fit = ""
+    if avail and mem > avail:
+        fit = f" (about --posting {grid.posting_m * math.sqrt(mem / avail) * 1.1:.2g} would fit)"
+    check_resources(f"stereo on a {grid.width} x {grid.height} grid at {grid.posting_m:g} m ({n_pairs} pair(s))",
+                    memory_bytes=mem, disk_bytes=cells * PAIR_FILE_PER_CELL * n_pairs,
+                    largest_file_bytes=cells * PAIR_FILE_PER_CELL, out=out,
+                    fix=f"use a coarser posting{fit}, a smaller AOI (aoi.bounds), or fewer images")
+
+
+def early_resource_check(m, grid: AOIGrid | None, posting_m: float | None, out) -> None:
+    """Before any step (orientation included): a grid given or fixed by the manifest's AOI that cannot hold even
+    one pair-DEM is refused at once (the exact check, with the pair count, follows once the pairs are known)."""
+    if grid is None and m.aoi is not None and m.aoi.bounds is not None and m.aoi.crs:
+        p = posting_m or m.aoi.posting_m
+        if p:
+            grid = AOIGrid.from_bounds(*m.aoi.bounds, float(p), as_crs(m.aoi.crs))
+    if grid is not None:
+        check_stereo_resources(grid, 1, out)
+
+
+def _check_aoi_sees_images(bounds, crs, images: Sequence[EpochImage], dem_median: float | None) -> None:
+    """An AOI that no image sees is the AOI's fault: say how far it is from the images (before any DEM is read)."""
+    from shapely.geometry import box
+    from shapely.ops import unary_union
+
+    fps = []
+    for im in images:
+        r = im.camera.height_range() or (0.0, 0.0)
+        h = dem_median if dem_median is not None and np.isfinite(dem_median) else 0.5 * (r[0] + r[1])
+        try:
+            fps.append(_footprint_xy(im.camera, h, crs))
+        except Exception:  # noqa: BLE001 - a camera without a footprint: nothing to check against
+            return
+    seen = unary_union(fps)
+    aoi = box(*bounds)
+    if not seen.is_empty and not aoi.intersects(seen):
+        d = aoi.distance(seen)
+        raise NoOverlapError(
+            f"the AOI {tuple(round(float(v), 1) for v in bounds)} (aoi.bounds in {crs.to_string()}) is "
+            f"{d / 1000:.1f} km from what the images see {tuple(round(float(v), 1) for v in seen.bounds)}; fix the "
+            "manifest's aoi.bounds / aoi.crs (or leave the AOI out to use the images' overlap)")
+
+
 def _ground_height_hint(images: Sequence[EpochImage], crs, dem_median: float | None,
                         params: StereoParams) -> float:
     """A typical ground height of the scene: the prior DEM's median, else a coarse match of the first pair."""
@@ -192,6 +257,8 @@ def default_aoi_grid(manifest, images_by_epoch: dict[str, list[EpochImage]], *, 
         fp = all_images[0].camera.footprint(0.5 * (r0[0] + r0[1]) if dem_median is None else dem_median)
         c = fp.centroid
         crs = crs or utm_crs_for(c.x, c.y)
+    if bounds is not None:
+        _check_aoi_sees_images(bounds, crs, all_images, dem_median)
     h = _ground_height_hint(all_images, crs, dem_median, params)
     if bounds is None:
         fps = {im.name: _footprint_xy(im.camera, h, crs) for im in all_images}
@@ -229,7 +296,7 @@ def default_aoi_grid(manifest, images_by_epoch: dict[str, list[EpochImage]], *, 
 def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.PathLike | str | None = None,
                params: StereoParams = StereoParams(), grid: AOIGrid | None = None, posting_m: float | None = None,
                overwrite: bool = True, progress: Progress | None = None,
-               keep_arrays: bool = False, pairs: str = "all") -> dict[str, Any]:
+               keep_arrays: bool = False, pairs: str = "all", orient: bool = True) -> dict[str, Any]:
     """Match every pair of images of the selected epochs and write their pair-DEMs.
 
     Parameters
@@ -242,6 +309,8 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
     pairs : "all" (every pair of an epoch) or "same-kind" (only pairs of images whose cameras are of
         the same kind, e.g. satellite–satellite and aerial–aerial: mixed pairs differ in GSD and
         spectral band and match poorly)
+    orient : apply the manifest's cross-image orientation first (:func:`geocd.orientation.orient_manifest`;
+        by default on when the manifest has two epochs); False when the caller already did
 
     Returns
     -------
@@ -266,7 +335,13 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
     for e in selected:
         if len(e.images) < 2:
             raise ConfigError(f"epoch {e.name!r} has {len(e.images)} image(s); stereo needs at least two")
-    out = Path(out_dir) if out_dir is not None else (m.output or m.root / "out")
+    out = Path(out_dir) if out_dir is not None else m.output_dir()
+    early_resource_check(m, grid, posting_m, out)
+    if orient:
+        from ..orientation import orient_manifest
+
+        m, _ = orient_manifest(m, out_dir=out, grid=grid, stereo_params=params)
+        selected = [m.epoch(e.name) for e in selected]
     images = {e.name: load_epoch_images(m, e) for e in selected}
     protect_inputs(*[im.path for ims in images.values() for im in ims])
     dem_median = None
@@ -275,16 +350,17 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
         dem_median = float(np.nanmedian(d0.height_m))
     if grid is None:
         grid = default_aoi_grid(m, images, posting_m=posting_m, dem_median=dem_median, params=params)
-    dem = None
-    if m.dem is not None:
-        dem = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
     if pairs not in ("all", "same-kind"):
         raise ConfigError(f"pairs must be 'all' or 'same-kind', got {pairs!r}")
     pairs = [(e, a, b) for e in selected for a, b in itertools.combinations(images[e.name], 2)
-             if pairs == "all" or a.camera.kind == b.camera.kind]
+             if pairs == "all" or _sensor_kind(a.camera) == _sensor_kind(b.camera)]
     if not pairs:
         raise ConfigError("no image pair left to match (with pairs='same-kind', each epoch needs two images whose "
                           "cameras are of the same kind); use pairs='all'")
+    check_stereo_resources(grid, len(pairs), out, keep_arrays=keep_arrays)
+    dem = None
+    if m.dem is not None:
+        dem = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
     outputs: dict[str, Path] = {}
     kept: dict[str, PairDEM] = {}
     chips: dict[tuple[str, str], ImageChip] = {}

@@ -242,6 +242,52 @@ def iter_tiles(shape: tuple[int, int], tile_size: int, margin: int) -> list[Tile
     return out
 
 
+def _tile(index: int, count: int, shape: tuple[int, int], r0: int, r1: int, c0: int, c1: int, margin: int) -> Tile:
+    H, W = shape
+    R0, C0 = max(r0 - margin, 0), max(c0 - margin, 0)
+    R1, C1 = min(r1 + margin, H), min(c1 + margin, W)
+    return Tile(index, count, (slice(r0, r1), slice(c0, c1)), (slice(R0, R1), slice(C0, C1)),
+                (slice(r0 - R0, r1 - R0), slice(c0 - C0, c1 - C0)))
+
+
+def adaptive_tiles(shape: tuple[int, int], tile_size: int, margin: int, kmin: np.ndarray, kmax: np.ndarray,
+                   min_size: int = 16) -> list[Tile]:
+    """Tiles of at most ``tile_size`` cells, split further where that cuts the planes swept.
+
+    A tile sweeps every plane any of its cells needs (window sums need the neighbours at
+    the same plane), so one cell with a wide range — a coarse match that failed, a steep
+    slope — makes the whole tile sweep it: the work then grows with the AOI's relief, not
+    with what each cell needs. A tile is cut in four (down to ``min_size`` cells) when its
+    quarters' swept cells × planes, margins included, are under ¾ of its own.
+    """
+    H, W = shape
+    ok = kmax >= 0
+
+    def cost(r0: int, r1: int, c0: int, c1: int) -> float:
+        m = ok[r0:r1, c0:c1]
+        if not m.any():
+            return 0.0
+        planes = int(kmax[r0:r1, c0:c1][m].max()) - int(kmin[r0:r1, c0:c1][m].min()) + 1
+        return float((min(r1 + margin, H) - max(r0 - margin, 0)) * (min(c1 + margin, W) - max(c0 - margin, 0)) * planes)
+
+    boxes = []
+
+    def visit(r0: int, r1: int, c0: int, c1: int) -> None:
+        if r1 - r0 >= 2 * min_size and c1 - c0 >= 2 * min_size:
+            rm, cm = (r0 + r1) // 2, (c0 + c1) // 2
+            kids = [(r0, rm, c0, cm), (r0, rm, cm, c1), (rm, r1, c0, cm), (rm, r1, cm, c1)]
+            if sum(cost(*k) for k in kids) < 0.75 * cost(r0, r1, c0, c1):
+                for k in kids:
+                    visit(*k)
+                return
+        boxes.append((r0, r1, c0, c1))
+
+    for r0 in range(0, H, tile_size):
+        for c0 in range(0, W, tile_size):
+            visit(r0, min(r0 + tile_size, H), c0, min(c0 + tile_size, W))
+    return [_tile(i, len(boxes), shape, *b, margin) for i, b in enumerate(boxes)]
+
+
 @dataclass
 class SweepSlice:
     """One height index of one tile: every image warped onto the tile's outer cells.
@@ -278,11 +324,14 @@ class PlaneSweep:
         (checked per tile at both ends of its range; 0 = project every plane).
     lonlat : (lon, lat) arrays of the grid's cell centres, optional
         Computed once here when not given (one CRS transform for the whole sweep).
+    adaptive : bool
+        Split tiles where their cells' height ranges differ (:func:`adaptive_tiles`), so the
+        planes swept follow each cell's own range (default); False: a regular grid of tiles.
     """
 
     def __init__(self, grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camera], search: HeightSearch,
                  *, tile_size: int = 256, margin: int = 0, interp_tol_px: float = 0.01,
-                 lonlat: tuple[np.ndarray, np.ndarray] | None = None):
+                 lonlat: tuple[np.ndarray, np.ndarray] | None = None, adaptive: bool = True):
         if len(chips) != len(cameras) or not chips:
             raise ValueError("PlaneSweep needs one camera per image chip, and at least one")
         if search.shape != grid.shape:
@@ -296,7 +345,8 @@ class PlaneSweep:
         self.interp_tol_px = float(interp_tol_px)
         self._kmin = search.kmin()
         self._kmax = search.kmax()
-        self._tiles = iter_tiles(grid.shape, self.tile_size, self.margin)
+        self._tiles = (adaptive_tiles(grid.shape, self.tile_size, self.margin, self._kmin, self._kmax) if adaptive
+                       else iter_tiles(grid.shape, self.tile_size, self.margin))
         if lonlat is None:
             lonlat = grid.lonlat()
         if lonlat[0].shape != grid.shape:

@@ -864,3 +864,65 @@ def shade_ref(S: SceneArrays, orig: np.ndarray, dirs: np.ndarray, t_max: np.ndar
         e = direct + light[1] * (0.6 + 0.4 * m[2])
         out[i] = (r * e, g * e, b * e, nir * e)
     return out
+
+
+# ------------------------------------------------------------------------------------------
+# large DEM pairs (geocd.synth.bigdem): procedural terrain, DEM errors and changes per window
+# ------------------------------------------------------------------------------------------
+@njit(cache=True, nogil=True)
+def dem_window(x0, y0, post, row0, col0, nr, nc, de, dn, dz, seed, scales, amps, err_scale, err_corr,
+               err_white, objects, out):  # pragma: no cover - numba
+    """Heights of one window of a procedural DEM (see :func:`geocd.synth.bigdem.dem_window_ref`).
+
+    Cell (r, c) of the window is cell (row0 + r, col0 + c) of the whole grid whose corner
+    is (x0, y0) with square cells of ``post`` m. The surface is the terrain at
+    (x − de, y − dn) plus ``dz``, plus the ``objects`` (rows: kind, cx, cy, a, b, h; kind 0
+    a box of half-sizes a × b raised by h, 1 a paraboloid of radius a and height h, 2 a
+    void: NaN), plus DEM errors: correlated value noise (``err_corr`` m at ``err_scale`` m)
+    and white noise (``err_white`` m) hashed from the cell's whole-grid index, so every
+    window of the grid gets the same values whatever the tiling.
+    """
+    for r in range(nr):
+        gr = row0 + r
+        y = y0 - (gr + 0.5) * post
+        for c in range(nc):
+            gc = col0 + c
+            x = x0 + (gc + 0.5) * post
+            xs = x - de
+            ys = y - dn
+            z = dz
+            for k in range(scales.shape[0]):
+                z += amps[k] * (2.0 * vnoise(xs / scales[k], ys / scales[k], 0.5, seed + k) - 1.0)
+            if err_corr > 0.0:
+                z += err_corr * (2.0 * vnoise(x / err_scale, y / err_scale, 0.5, seed + 1000) - 1.0)
+            if err_white > 0.0:
+                u1 = _hash3(gr, gc, 1, seed + 2000)
+                u2 = _hash3(gr, gc, 2, seed + 2000)
+                z += err_white * np.sqrt(-2.0 * np.log(1.0 - u1)) * np.cos(2.0 * np.pi * u2)
+            out[r, c] = z
+    for k in range(objects.shape[0]):
+        kind = int(objects[k, 0])
+        cx = objects[k, 1]
+        cy = objects[k, 2]
+        a = objects[k, 3]
+        b = objects[k, 4]
+        h = objects[k, 5]
+        ext = a if kind != 0 else max(a, b)
+        c_lo = max(int(np.floor((cx - ext - x0) / post - 0.5)) - col0, 0)
+        c_hi = min(int(np.ceil((cx + ext - x0) / post - 0.5)) - col0, nc - 1)
+        r_lo = max(int(np.floor((y0 - cy - ext) / post - 0.5)) - row0, 0)
+        r_hi = min(int(np.ceil((y0 - cy + ext) / post - 0.5)) - row0, nr - 1)
+        for r in range(r_lo, r_hi + 1):
+            y = y0 - (row0 + r + 0.5) * post
+            for c in range(c_lo, c_hi + 1):
+                x = x0 + (col0 + c + 0.5) * post
+                if kind == 0:
+                    if abs(x - cx) <= a and abs(y - cy) <= b:
+                        out[r, c] += h
+                else:
+                    q = ((x - cx) ** 2 + (y - cy) ** 2) / (a * a)
+                    if q < 1.0:
+                        if kind == 1:
+                            out[r, c] += h * (1.0 - q)
+                        else:
+                            out[r, c] = np.nan

@@ -11,6 +11,8 @@
     truth/dsm_diff.tif              DSM_B − DSM_A
     truth/change_mask.tif           1 where |ΔDSM| > threshold (uint8); change_class.tif: 1 building 2 car 3 tree
     truth/non3d_mask.tif            1 repainted roof, 2 vegetation season (appearance change, no 3-D change)
+    truth/cover_A.tif, cover_B.tif  surface cover seen from above: 1 grass 2 tree 3 building 4 car 5 asphalt
+                                    6 pavement 7 soil 8 marking (vegetation = grass or tree)
     truth/footprints_A.gpkg, footprints_B.gpkg, footprints_all.gpkg   (status, building_id stable)
     truth/objects.gpkg              trees and cars per epoch
     truth/image_masks/<image>.tif   per-image 3-D change masks (image geometry): band 1 mask, band 2 % of samples
@@ -35,6 +37,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..errors import ConfigError
+from ..io.outputs import LOCK_NAME, MANIFEST_NAME
 from ..params import ParamsMixin
 from ..progress import ensure_progress, sub_progress
 from .scene import CHANGE_TYPES, Town, TownParams, build_town
@@ -308,11 +311,13 @@ def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: boo
     from ..io.vector import write_gpkg
     from .render import RenderParams, pack_scene, render_view, to_sensor_counts
     from .truth import (bare_dem, change_products, corner_check, dsm, footprints_all, footprints_frame,
-                        image_change_mask, non3d_mask, objects_frame, truth_grid)
+                        image_change_mask, non3d_mask, objects_frame, truth_grid, write_cover_truth)
 
     prog = ensure_progress(progress)
     out = Path(out_dir)
-    if out.exists() and any(out.iterdir()) and not overwrite:
+    # geocd's own bookkeeping of the output session (lock, product manifest) does not make the folder a scene
+    bookkeeping = {LOCK_NAME, MANIFEST_NAME}
+    if out.exists() and any(p.name not in bookkeeping for p in out.iterdir()) and not overwrite:
         raise OutputError(f"{out} is not empty; choose a new folder or pass overwrite=True (--overwrite)")
     out.mkdir(parents=True, exist_ok=True)
     (out / "images").mkdir(exist_ok=True)
@@ -361,6 +366,7 @@ def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: boo
                         tags={"content": "+1 raised, -1 lowered, 0 no 3-D change"})
     _write_truth_raster(tdir / "non3d_mask.tif", n3d, grid, dtype="uint8",
                         tags={"content": "appearance change without 3-D change: 1 repainted roof, 2 vegetation season"})
+    write_cover_truth(tdir, town, scenes, grid)
     write_gpkg(tdir / "footprints_A.gpkg", {"footprints": footprints_frame(town, "A")})
     write_gpkg(tdir / "footprints_B.gpkg", {"footprints": footprints_frame(town, "B")})
     write_gpkg(tdir / "footprints_all.gpkg", {"footprints": footprints_all(town)})
@@ -518,6 +524,8 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
         "dem": {"path": "truth/dem_prior.tif", "vertical_datum": "ellipsoid"},
         # the buildings of the earlier date only (what a user has at best): new ones must come from detection
         "footprints": "truth/footprints_A.gpkg",
+        # the simulated cameras are exact: no cross-epoch bias to estimate
+        "orientation": False,
         "epochs": [
             {"name": "A", "date": p.date_a[:10], "sensor": sens_a, "images": imgs("A")},
             {"name": "B", "date": p.date_b[:10], "sensor": sens_b, "images": imgs("B")},

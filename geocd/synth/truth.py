@@ -14,6 +14,8 @@
   occlusions are handled (a new building hides the ground behind it).
 * :func:`non3d_mask`: cells whose appearance changes without a 3-D change
   (repainted roofs, vegetation season), which methods must not report.
+* :func:`surface_cover`: what covers each cell seen from straight above (grass, tree, building, car,
+  asphalt, pavement, soil, marking) — the exact truth of land-cover conditions such as vegetation.
 * :func:`footprints_frame`: per-epoch footprints with their status.
 * :func:`corner_check`: truth building corners projected through a camera
   (e.g. the written RPC) versus where the renderer drew them.
@@ -27,7 +29,8 @@ from ..camera.base import Camera
 from ..geodesy import AOIGrid
 from . import _kernels as K
 from .render import camera_rays, scene_z_band, surface_height
-from .scene import C_BUILDING, C_CAR, C_TREE, M_GRASS, Town, building_status
+from .scene import (C_BUILDING, C_CAR, C_TREE, M_ASPHALT, M_GRASS, M_MARKING, M_PAVEMENT, M_SOIL, Town,
+                    building_status)
 
 #: change-mask threshold on |ΔDSM| (metres) and minimum region area (m²), unless given
 CHANGE_THRESHOLD_M = 1.0
@@ -36,6 +39,9 @@ MIN_CHANGE_AREA_M2 = 1.0
 #: codes of :func:`change_products`'s class raster and :func:`non3d_mask`
 CLASS_CODES = {"none": 0, "building": 1, "car": 2, "tree": 3}
 NON3D_CODES = {"none": 0, "repainted_roof": 1, "vegetation_season": 2}
+#: codes of :func:`surface_cover`; vegetation is grass or tree
+COVER_CODES = {"grass": 1, "tree": 2, "building": 3, "car": 4, "asphalt": 5, "pavement": 6, "soil": 7, "marking": 8}
+VEGETATION_CODES = (1, 2)
 
 
 def truth_grid(town: Town, posting_m: float = 0.5) -> AOIGrid:
@@ -60,6 +66,43 @@ def dsm(town: Town, scene: K.SceneArrays, grid: AOIGrid) -> tuple[np.ndarray, np
     for k, v in code.items():
         cls[hit & (c == k)] = v
     return z, cls
+
+
+def surface_cover(town: Town, scene: K.SceneArrays, grid: AOIGrid) -> np.ndarray:
+    """What covers each cell centre seen from straight above (uint8, :data:`COVER_CODES`).
+
+    The object the vertical ray meets first (building, car, tree crown), else the ground material.
+    Vegetation is ``np.isin(cover, VEGETATION_CODES)`` (grass or tree).
+    """
+    x, y = _grid_xy(town, grid)
+    _, ob = surface_height(scene, x, y, return_object=True)
+    mat = np.empty(x.size, np.int64)
+    K.ground_material_many(scene, np.ascontiguousarray(x.ravel()), np.ascontiguousarray(y.ravel()), mat)
+    mat = mat.reshape(x.shape)
+    out = np.zeros(x.shape, np.uint8)
+    ground = {M_GRASS: "grass", M_ASPHALT: "asphalt", M_PAVEMENT: "pavement", M_SOIL: "soil", M_MARKING: "marking"}
+    for m, name in ground.items():
+        out[(ob < 0) & (mat == m)] = COVER_CODES[name]
+    c = scene.cls[np.maximum(ob, 0)]
+    for k, name in ((C_BUILDING, "building"), (C_CAR, "car"), (C_TREE, "tree")):
+        out[(ob >= 0) & (c == k)] = COVER_CODES[name]
+    return out
+
+
+def write_cover_truth(truth_dir, town: Town, scenes: dict, grid: AOIGrid) -> list:
+    """Write ``cover_A.tif`` and ``cover_B.tif`` (:func:`surface_cover` of each epoch) into ``truth_dir``."""
+    from pathlib import Path
+
+    from ..io.raster import write_cog
+
+    legend = ", ".join(f"{v} {k}" for k, v in COVER_CODES.items())
+    out = []
+    for ep, sc in scenes.items():
+        p = Path(truth_dir) / f"cover_{ep}.tif"
+        write_cog(p, surface_cover(town, sc, grid), grid, dtype="uint8", nodata=0,
+                  tags={"content": f"surface cover seen from above, epoch {ep}: {legend}; vegetation = grass or tree"})
+        out.append(p)
+    return out
 
 
 def bare_dem(town: Town, grid: AOIGrid) -> np.ndarray:

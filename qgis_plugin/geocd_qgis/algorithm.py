@@ -319,6 +319,16 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
 
     # --- run -----------------------------------------------------------------------------------------------------
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
+        """Run geocd; every failure reaches QGIS as a one-line QgsProcessingException, never a traceback."""
+        try:
+            return self._process(parameters, context, feedback)
+        except QgsProcessingException:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the plugin's single error path
+            feedback.pushDebugInfo(f"{type(exc).__name__}: {exc}")
+            raise QgsProcessingException(tr(runner.describe_exception(exc))) from None
+
+    def _process(self, parameters, context, feedback):
         argv, msg = locate.check_geocd(configured_executable())
         if argv is None:
             raise QgsProcessingException(msg)

@@ -50,15 +50,52 @@ class RunResult:
         return self.returncode == 0 and not self.cancelled
 
     def failure_message(self) -> str:
-        """The best one-paragraph explanation of a failed run."""
+        """The best one-paragraph explanation of a failed run (never a Python traceback)."""
         if self.cancelled:
             return "geocd was cancelled; its partial outputs were removed"
         if self.error:
             return self.error
         tail = [l for l in self.stderr_tail if l.strip()]
+        if any(l.startswith("Traceback (most recent call last)") for l in tail):
+            last = summarize_traceback(tail)
+            return (f"geocd stopped unexpectedly ({last}). This is a bug or a broken installation: run the same "
+                    "command with --debug in a terminal (the log above has it) and report the output")
+        if self.returncode is not None and self.returncode < 0:
+            return (f"geocd was killed by signal {-self.returncode} (out of memory, or stopped by the system); "
+                    "try a coarser posting or a smaller extent")
         if tail:
             return f"geocd exited with status {self.returncode}:\n" + "\n".join(tail[-15:])
         return f"geocd exited with status {self.returncode} without a message"
+
+
+def summarize_traceback(lines: list) -> str:
+    """The exception line that ends a Python traceback ("ValueError: ..."), else the last line."""
+    body = [l for l in lines if l.strip()]
+    for l in reversed(body):
+        s = l.strip()
+        if not l.startswith((" ", "\t")) and not s.startswith(("Traceback", "During handling", "The above exception")):
+            return s[:300]
+    return body[-1].strip()[:300] if body else "no message"
+
+
+def describe_exception(exc: BaseException) -> str:
+    """One line for an exception raised in the plugin itself (shown instead of a traceback)."""
+    import errno as _errno
+
+    if isinstance(exc, OSError):
+        name = getattr(exc, "filename", None) or ""
+        if exc.errno in (_errno.ENOSPC, getattr(_errno, "EDQUOT", -1)):
+            return f"no space left on device writing {name}; free some space or choose another output folder"
+        if exc.errno == getattr(_errno, "EROFS", -1):
+            return f"read-only file system: {name}; choose an output folder on a writable disk"
+        if exc.errno in (_errno.EACCES, _errno.EPERM):
+            return f"permission denied: {name}; choose a folder you can write to"
+        return f"cannot access {name or 'a file'}: {exc.strerror or exc}; check the path"
+    if isinstance(exc, MemoryError):
+        return "out of memory; use a coarser posting or a smaller extent"
+    msg = " ".join(str(exc).split())[:300]
+    return (f"the geocd plugin failed ({type(exc).__name__}: {msg}); this is a bug: please report it with the "
+            "log of this run")
 
 
 def _reader(stream, tag: str, q: "queue.Queue") -> None:

@@ -40,7 +40,8 @@ from dataclasses import dataclass
 from typing import Any, Optional
 
 #: titles of GeoPackage layers in the layer tree
-LAYER_TITLES = {"changes": "Changed regions", "buildings": "Buildings by change class", "curves": "Significance curves"}
+LAYER_TITLES = {"changes": "Changed regions", "buildings": "Buildings by change class", "curves": "Significance curves",
+                "rectangles": "Building rectangles (marked point process)"}
 
 #: the output folder parameter (``--out``) of every algorithm that writes a folder of products
 OUTPUT_FOLDER = "OUTPUT"
@@ -144,7 +145,50 @@ GROUP_DEM = ("DEMs and stereo", "dems")
 GROUP_CHANGE = ("3-D change", "change")
 GROUP_VOLUME = ("Volumetric model", "volume")
 GROUP_DATA = ("Data", "data")
+GROUP_LANDCOVER = ("Land cover", "landcover")
 
+#: where the land-cover algorithms place the ground grid and what rays meet (geocd landcover --manifest/--dem/...)
+_LANDCOVER_SCENE = (
+    Param("MANIFEST", "file", "Scene manifest (AOI grid, DEM, footprints)", cli="--manifest", optional=True,
+          file_filter="Scene manifests (*.yaml *.yml *.json);;All files (*)"),
+    Param("DEM", "raster", "Terrain DEM (its grid is the default AOI grid)", cli="--dem", optional=True),
+    Param("DEM_DATUM", "enum", "Vertical datum of the DEM (when its file does not say)", cli="--dem-datum",
+          options=_DATUMS, default=0, optional=True, advanced=True),
+    Param("FOOTPRINTS", "vector", "Building footprints (occupancy; extruded by height to stop rays)",
+          cli="--footprints", optional=True, geometry="polygon"),
+    Param("HEIGHT_FIELD", "string", "Footprint attribute with the building height above ground (m)",
+          cli="--height-field", optional=True, advanced=True, help="Default: height_m, height, ..."),
+    Param("DSM", "raster", "DSM (e.g. from geocd stereo): the surface rays meet", cli="--dsm", optional=True,
+          advanced=True),
+    Param("POSTING", "number", "Grid posting", cli="--posting", unit="m", optional=True, min=0.0,
+          help="Default: the manifest's AOI posting, else the DEM's."),
+)
+
+
+#: the 2-D screen's options (geocd screen), shared by its two algorithms
+_SCREEN_PARAMS = (
+    Param("FEATURE", "enum", "Grid feature", cli="--feature", default=0,
+          options=(("grey local patch", "patch"), ("dense DAISY (multi-scale)", "daisy"),
+                   ("seeded random-filter bank", "randbank"), ("CNN pooling layer (weights file)", "cnn"))),
+    Param("CELL", "int", "Grid cell", cli="--cell", unit="px", default=16, min=2, max=512,
+          help="Patch, DAISY and random bank; a CNN layer's stride sets its own."),
+    Param("BACKBONE", "string", "CNN backbone (vgg19, resnet18, ...)", cli="--backbone", optional=True,
+          advanced=True),
+    Param("WEIGHTS", "file", "CNN weights (.npz or .pt state_dict)", cli="--weights", optional=True,
+          advanced=True, file_filter="Weights (*.npz *.pt *.pth);;All files (*)"),
+    Param("LAYER", "string", "CNN layer (pool1..pool5, layer1..layer4)", cli="--layer", optional=True,
+          advanced=True),
+    Param("SUPERPIXELS", "enum", "Superpixels", cli="--superpixels", default=0, advanced=True,
+          options=(("Felzenszwalb (thesis)", "felzenszwalb"), ("SLIC", "slic"), ("none", "none"))),
+    Param("VEGETATION", "enum", "Set aside vegetation", cli="--vegetation", default=0, advanced=True,
+          options=(("seen in both dates", "both"), ("seen in either date", "either"), ("off", "off"))),
+    Param("SHADOW", "enum", "Set aside cast shadows", cli="--shadow", default=0, advanced=True,
+          options=(("seen in both dates", "both"), ("seen in either date", "either"), ("off", "off"))),
+    Param("CONFIDENCE", "number", "Confidence (percentile of the no-change pair)", cli="--confidence",
+          unit="%", default=99.0, min=50.0, max=99.99),
+    Param("THRESHOLD", "number", "Fixed dissimilarity threshold (instead of the confidence)",
+          cli="--threshold", optional=True, min=0.0, max=2.0, advanced=True),
+)
 
 ALGORITHMS: tuple[AlgSpec, ...] = (
     AlgSpec(
@@ -214,6 +258,141 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   optional=True, advanced=True),
         ),
         load_unlisted=True, tags=("stereo", "dem", "rpc", "pair")),
+    AlgSpec(
+        name="ortho", display="True orthoimages (scene manifest)", group=GROUP_DEM[0], group_id=GROUP_DEM[1],
+        command=("ortho",),
+        short_help="Orthorectifies every image of the chosen epochs of a scene manifest (RPC and frame cameras "
+                   "alike) onto the AOI grid with a surface model: a true ortho, where a cell hidden from the "
+                   "camera (behind a building) is nodata instead of the building's pixels. The DSM of each epoch "
+                   "is geocd stereo's unless one is given. Writes per image a Cloud-Optimized GeoTIFF in the "
+                   "image's own bands and data type (GDAL mask = not observed), a status raster (seen / occluded / "
+                   "outside / no height) and QGIS styles; every ortho is loaded when the run ends.",
+        params=(
+            _MANIFEST,
+            Param("EPOCHS", "string", "Epochs (comma-separated; empty = all)", cli="--epoch", optional=True,
+                  multiple=True),
+            Param("IMAGES", "string", "Images (comma-separated names; empty = all)", cli="--image", optional=True,
+                  multiple=True),
+            Param("DSM", "raster", "Surface model for every epoch (default: geocd stereo per epoch)", cli="--dsm",
+                  optional=True),
+            Param("DSM_SOURCE", "enum", "Where each epoch's DSM comes from", cli="--dsm-source", default=0,
+                  advanced=True, options=(("the given DSM, else geocd stereo, else the manifest's DEM", "auto"),
+                                          ("geocd stereo", "stereo"), ("the given DSM or the manifest's DEM", "dem"))),
+            _out_folder("Orthos go to OUTPUT/ortho/EPOCH/NAME.tif."),
+            _POSTING,
+            Param("RESAMPLING", "enum", "Resampling", cli="--resampling", default=0, advanced=True,
+                  options=(("bilinear", "bilinear"), ("nearest (class labels)", "nearest"))),
+            Param("NO_OCCLUSION", "bool", "Classic ortho (do not mask hidden cells)", cli="--no-occlusion",
+                  default=False, advanced=True),
+            Param("OCCLUSION_TOL", "number", "Occlusion tolerance", cli="--occlusion-tol", unit="m", optional=True,
+                  min=0.0, advanced=True, help="Default: max(0.5 m, 3 × the DSM's local noise)."),
+            Param("VIEW_BANDS", "bool", "Also write the view geometry (zenith, azimuth, incidence)",
+                  cli="--view-bands", default=False, advanced=True),
+        ),
+        load_unlisted=True, tags=("ortho", "orthorectification", "true ortho", "rpc", "frame", "occlusion")),
+    AlgSpec(
+        name="mpp", display="Buildings and their changes, marked point process (scene manifest)",
+        group=GROUP_CHANGE[0], group_id=GROUP_CHANGE[1], command=("mpp",),
+        short_help="Finds the buildings of two dates and which are new, demolished or unchanged, with no footprint "
+                   "database: rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), on "
+                   "true orthos of one view per epoch (geocd ortho) with geocd's height term from the stereo DSMs. "
+                   "Loads the buildings and rectangles layers (change class, confidence in %) and a class raster, "
+                   "styled. Same seed, same result.",
+        params=(
+            _MANIFEST,
+            _out_folder("Layers go to OUTPUT/mpp/; orthos and DSMs to OUTPUT/ortho/."),
+            Param("METHOD", "enum", "Model", cli="--method", default=0,
+                  options=(("joint detection (ED, the paper's)", "ED"), ("each date alone, then compared (SD)", "SD"),
+                           ("edge-only verification (EV)", "EV"))),
+            Param("HEIGHT", "enum", "Height term from the DSMs", cli="--height", default=0,
+                  options=(("when DSMs are available", "auto"), ("on", "on"), ("off (the paper's model)", "off"))),
+            Param("EPOCH_A", "string", "Earlier epoch (default: the first)", cli="--epoch-a", optional=True,
+                  advanced=True),
+            Param("EPOCH_B", "string", "Later epoch (default: the last)", cli="--epoch-b", optional=True,
+                  advanced=True),
+            Param("VIEW_A", "string", "Image of epoch A (default: the most vertical view)", cli="--view-a",
+                  optional=True, advanced=True),
+            Param("VIEW_B", "string", "Image of epoch B (default: the most vertical view)", cli="--view-b",
+                  optional=True, advanced=True),
+            Param("CHANGE_PRIOR", "raster", "3-D change evidence (e.g. sc_change.tif of a full run)",
+                  cli="--change-prior", optional=True, advanced=True),
+            Param("SEED", "int", "Random seed", cli="--seed", default=0, min=0, advanced=True),
+            _POSTING,
+        ),
+        outputs=(Output("buildings", "BUILDINGS", "vector", "Buildings and rectangles", layers=("buildings", "rectangles")),
+                 Output("classes", "CLASSES", "raster", "Building classes (unchanged / demolished / new)"),
+                 Output("quicklook", "QUICKLOOK", "file", "Quick-look (PNG)", load=False),
+                 Output("summary", "SUMMARY", "file", "Run summary (JSON)", load=False)),
+        tags=("buildings", "change detection", "marked point process", "object", "2d", "ortho")),
+    AlgSpec(
+        name="mppimages", display="Buildings and their changes, marked point process (two images)",
+        group=GROUP_CHANGE[0], group_id=GROUP_CHANGE[1], command=("mpp",),
+        short_help="The marked point process on two georeferenced images of different dates (e.g. orthos): the "
+                   "later one is resampled onto the earlier one's grid when they differ. With a DSM of each date "
+                   "the height term is used. Grey images: the colour and shadow terms are dropped (the log says so).",
+        params=(
+            Param("IMAGE_A", "raster", "Earlier image", cli="--image-a"),
+            Param("IMAGE_B", "raster", "Later image", cli="--image-b"),
+            Param("DSM_A", "raster", "Surface model, earlier date", cli="--dsm-a", optional=True),
+            Param("DSM_B", "raster", "Surface model, later date", cli="--dsm-b", optional=True),
+            Param("GROUND", "raster", "Terrain DEM (default: estimated from the DSMs)", cli="--ground", optional=True,
+                  advanced=True),
+            _out_folder(),
+            Param("METHOD", "enum", "Model", cli="--method", default=0,
+                  options=(("joint detection (ED, the paper's)", "ED"), ("each date alone, then compared (SD)", "SD"),
+                           ("edge-only verification (EV)", "EV"))),
+            Param("SEED", "int", "Random seed", cli="--seed", default=0, min=0, advanced=True),
+        ),
+        outputs=(Output("buildings", "BUILDINGS", "vector", "Buildings and rectangles", layers=("buildings", "rectangles")),
+                 Output("classes", "CLASSES", "raster", "Building classes (unchanged / demolished / new)"),
+                 Output("quicklook", "QUICKLOOK", "file", "Quick-look (PNG)", load=False),
+                 Output("summary", "SUMMARY", "file", "Run summary (JSON)", load=False)),
+        tags=("buildings", "change detection", "marked point process", "layers")),
+    AlgSpec(
+        name="screen", display="2-D change screen (scene manifest)", group=GROUP_CHANGE[0],
+        group_id=GROUP_CHANGE[1], command=("screen",),
+        short_help="Fast first pass over a whole area (Sakurada's grid features with superpixels): the closest "
+                   "views of the two epochs are projected on the AOI grid and compared cell by cell; vegetation and "
+                   "shadows seen in both dates are set aside; the threshold and the confidence come from a "
+                   "no-change pair of views of one epoch. Loads the dissimilarity, the change mask and the changed "
+                   "regions, styled.",
+        params=(
+            _MANIFEST,
+            _out_folder(),
+            *_SCREEN_PARAMS,
+            Param("EPOCH_A", "string", "First epoch (default: the earliest)", cli="--epoch-a", optional=True,
+                  advanced=True),
+            Param("EPOCH_B", "string", "Second epoch (default: the latest)", cli="--epoch-b", optional=True,
+                  advanced=True),
+        ),
+        outputs=(
+            Output("dissimilarity", "DISSIMILARITY", "raster", "Dissimilarity (2-D screen)"),
+            Output("change_mask", "CHANGE_MASK", "raster", "Change mask (2-D screen)"),
+            Output("changes", "CHANGES", "vector", "Changed regions (2-D screen)", layers=("changes",)),
+            Output("summary", "SUMMARY", "file", "Summary (JSON)", load=False),
+        ),
+        skip_prefixes=("view:",), tags=("change detection", "screening", "2d", "superpixels", "cnn")),
+    AlgSpec(
+        name="screenrasters", display="2-D change screen (two orthoimages)", group=GROUP_CHANGE[0],
+        group_id=GROUP_CHANGE[1], command=("screen",),
+        short_help="The 2-D change screen of two georeferenced images (orthoimages; the second is resampled onto "
+                   "the first's grid; different band counts are compared in grey). The threshold comes from a "
+                   "no-change pair of images, a labelled pair, or a fixed value.",
+        params=(
+            Param("A", "raster", "Image of the earlier date"),
+            Param("B", "raster", "Image of the later date"),
+            _out_folder(),
+            *_SCREEN_PARAMS,
+            Param("NOCHANGE", "rasters", "No-change pair (two images of one date, same area)", cli="--nochange",
+                  optional=True),
+        ),
+        outputs=(
+            Output("dissimilarity", "DISSIMILARITY", "raster", "Dissimilarity (2-D screen)"),
+            Output("change_mask", "CHANGE_MASK", "raster", "Change mask (2-D screen)"),
+            Output("changes", "CHANGES", "vector", "Changed regions (2-D screen)", layers=("changes",)),
+            Output("summary", "SUMMARY", "file", "Summary (JSON)", load=False),
+        ),
+        tags=("change detection", "screening", "2d", "orthoimage")),
     AlgSpec(
         name="consistency", display="Self-consistency model from pair-DEMs", group=GROUP_CHANGE[0],
         group_id=GROUP_CHANGE[1], command=("consistency",),
@@ -287,6 +466,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   unit="%", optional=True, min=50.0, max=99.999, advanced=True, help="Default 99 %."),
             Param("CONFIG", "file", "Run configuration (YAML/JSON)", cli="--config", optional=True, advanced=True,
                   file_filter="Run configurations (*.json *.yaml *.yml)"),
+            Param("SCREEN", "bool", "Tiered: the 2-D screen first, stereo only on the tiles it flags",
+                  cli="--screen", default=False, advanced=True),
         ),
         outputs=(*_CHANGE_OUTPUTS,
                  Output("model", "MODEL_OUT", "file", "Self-consistency model (JSON)", load=False),
@@ -396,8 +577,14 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   file_filter="Rasters and vectors (*.tif *.tiff *.gpkg *.shp *.geojson);;All files (*)"),
             Param("MASK_IS", "enum", "The mask marks", cli="--mask-is", default=0,
                   options=(("stable terrain", "stable"), ("unstable areas (e.g. glacier outlines)", "unstable"))),
-            Param("CONFIDENCE", "number", "Confidence level for 'changed' (0–1)", cli="--confidence", default=0.95,
-                  min=0.5, max=0.99999),
+            Param("CONFIDENCE", "number", "Confidence level for 'changed'", cli="--confidence", unit="%",
+                  default=95.0, min=50.0, max=99.999, help="A percentage: 95 means 95 %."),
+            Param("BASE", "file", "Base DEM both DEMs were merged onto (optional)", cli="--base", optional=True,
+                  file_filter="DEMs (*.tif *.tiff *.e00 *.vrt *.asc);;All files (*)",
+                  help="When each DEM is a survey pasted on a common base DEM (e.g. the Mount St Helens archive), "
+                       "give the base: only cells where both DEMs differ from it (both epochs surveyed) are "
+                       "compared. Without it the pasted base is identical in both DEMs, the stable terrain is "
+                       "degenerate (NMAD 0) and geocd warns that σ is not credible."),
             Param("DATUM_A", "enum", "Vertical datum of DEM A (when its file does not say)", cli="--datum-a",
                   options=_DATUMS, default=0, optional=True, advanced=True),
             Param("DATUM_B", "enum", "Vertical datum of DEM B", cli="--datum-b", options=_DATUMS, default=0,
@@ -419,6 +606,13 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
             Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",
                   advanced=True),
             Param("NO_PLOTS", "bool", "Do not draw PNG plots", cli="--no-plots", default=False, advanced=True),
+            Param("TILED", "bool", "Process tile by tile (whole scenes: bounded memory, resumable, on Dask)",
+                  cli="--tiled", default=False, advanced=True,
+                  help="Automatic above 16 million cells. The products are the same as an untiled run's."),
+            Param("SCHEDULER", "string", "Tiled runs: scheduler (sync, threads, processes, or a Dask address)",
+                  cli="--scheduler", optional=True, advanced=True,
+                  help="Default: a local Dask cluster with one worker per core; tcp://host:8786 for a running "
+                       "dask.distributed scheduler."),
         ),
         outputs=(
             Output("dh", "DH", "raster", "Height change dh = B − A (m)"),
@@ -445,8 +639,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   advanced=True),
             Param("STABLE_MASK", "file", "Stable-terrain mask (raster or polygons; default: automatic)",
                   cli="--stable-mask", optional=True, advanced=True),
-            Param("CONFIDENCE", "number", "Confidence level (0–1)", cli="--confidence", default=0.95, min=0.5,
-                  max=0.99999),
+            Param("CONFIDENCE", "number", "Confidence level", cli="--confidence", unit="%", default=95.0, min=50.0,
+                  max=99.999, help="A percentage: 95 means 95 %."),
             Param("PAIR_PRODUCTS", "bool", "Also write every interval's rasters and layers", cli="--pair-products",
                   default=False),
             Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",
@@ -542,6 +736,95 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
         outputs=(Output("height_map", "HEIGHT_MAP", "raster", "Expected height map (ellipsoidal, m)",
                         style="auto:height"),),
         load_unlisted=True, tags=("volumetric", "render", "dem")),
+    AlgSpec(
+        name="landcovertrain", display="Land cover: train a pixel classifier", group=GROUP_LANDCOVER[0],
+        group_id=GROUP_LANDCOVER[1], command=("landcover", "train"),
+        short_help="Trains a pixel classifier (random forest; logistic regression or SVM for comparison) on local "
+                   "features — Lab colour, 5×5 grey mean and variance, scikit-image texture, optionally the height "
+                   "above ground — from polygons you drew with a class attribute (e.g. 'vegetation' and "
+                   "'other'): on the map (they reach raw images through their cameras and the DEM) or on an "
+                   "image in pixel coordinates. Writes a reusable model (.joblib) and a JSON report.",
+        params=(
+            Param("LABELS", "vector", "Label polygons (class attribute)", cli="--labels", geometry="polygon"),
+            Param("CLASS_FIELD", "string", "Class attribute (default: class, label, landcover, ...)",
+                  cli="--class-field", optional=True),
+            Param("POSITIVE", "string", "The condition's class (e.g. vegetation)", cli="--positive", optional=True),
+            Param("IMAGES", "rasters", "Images to learn from (one sensor per model)", cli="--image"),
+            Param("METHOD", "enum", "Classifier", cli="--method", default=0,
+                  options=(("random forest", "rf"), ("logistic regression", "logreg"), ("SVM (RBF)", "svm"))),
+            Param("COMPARE", "bool", "Also cross-validate all three methods (holding out whole polygons)",
+                  cli="--compare", default=False, advanced=True),
+            Param("HEIGHT_ABOVE_GROUND", "bool", "Height above ground as a feature (needs a DSM or footprints)",
+                  cli="--height-above-ground", default=False, advanced=True),
+            *_LANDCOVER_SCENE,
+            Param("SEED", "int", "Random seed", cli="--seed", default=0, advanced=True),
+            Param("MODEL_FILE", "file_destination", "Model file", cli="--out", file_filter="Models (*.joblib)"),
+        ),
+        outputs=(Output("model", "MODEL", "file", "Model (.joblib)", load=False),
+                 Output("report", "REPORT", "file", "Training report (JSON)", load=False)),
+        tags=("land cover", "classification", "random forest", "vegetation", "debris")),
+    AlgSpec(
+        name="landcoverpredict", display="Land cover: probability maps (images and ground)",
+        group=GROUP_LANDCOVER[0], group_id=GROUP_LANDCOVER[1], command=("landcover", "predict"),
+        short_help="Applies a land-cover model to images: a probability map per image (image geometry) and, with a "
+                   "DEM or manifest, the condition's probability on the ground grid — each image projected through "
+                   "its camera and the surface (footprints extruded or a DSM): cells hidden behind buildings stay "
+                   "empty, several views are combined by weight.",
+        params=(
+            Param("MODEL", "file", "Model (from 'train a pixel classifier')", cli="--model",
+                  file_filter="Models (*.joblib);;All files (*)"),
+            Param("IMAGES", "rasters", "Images to classify", cli="--image"),
+            Param("CLASS", "string", "Class to project (default: the positive class)", cli="--class", optional=True),
+            *_LANDCOVER_SCENE,
+            _out_folder(),
+        ),
+        outputs=(Output("ground", "GROUND", "raster", "Probability on the ground (weighted over views)",
+                        style="auto:probability"),
+                 Output("summary", "SUMMARY", "file", "Summary (JSON)", load=False)),
+        load_unlisted=True, tags=("land cover", "classification", "orthorectification", "probability")),
+    AlgSpec(
+        name="landcoverintegrate", display="Land cover: city-scale GP integration", group=GROUP_LANDCOVER[0],
+        group_id=GROUP_LANDCOVER[1], command=("landcover", "integrate"),
+        short_help="Gaussian-process regression (Sakurada) of the detailed views' probability over every cell, "
+                   "with the cells' position, DEM height, a coarse full-cover probability and building occupancy "
+                   "as inputs (ARD kernel: one length scale per input; hyperparameters by exact GP on a subsample, "
+                   "prediction with inducing points, so a million cells run in bounded memory). Writes the "
+                   "predictive mean and σ; with a truth raster also the ablation report (PR curves, F1 at recall "
+                   "0.5, σ calibration).",
+        params=(
+            Param("DETAILED", "raster", "Detailed views' probability on the ground (NaN = unobserved)",
+                  cli="--detailed"),
+            Param("COARSE", "raster", "Coarse full-cover probability (e.g. the satellite image's)", cli="--coarse",
+                  optional=True),
+            Param("INPUTS", "string", "GP inputs (comma-separated from xy, dem, coarse, buildings; default: all "
+                  "available)", cli="--inputs", optional=True, advanced=True),
+            Param("CLASS_NAME", "string", "Name of the condition", cli="--class-name", default="condition"),
+            Param("KERNEL", "enum", "Kernel", cli="--kernel", default=0, advanced=True,
+                  options=(("additive: position + appearance (carries appearance at any distance)", "additive"),
+                           ("product: one ARD kernel over every input (thesis)", "product"))),
+            Param("N_FIT", "int", "Cells for the exact-GP hyperparameter fit", cli="--n-fit", default=1000, min=10,
+                  advanced=True),
+            Param("INDUCING", "int", "Inducing points", cli="--inducing", default=400, min=1, advanced=True),
+            Param("BATCH", "int", "Cells per prediction batch (memory)", cli="--batch", default=20000, min=1,
+                  advanced=True),
+            Param("CALIBRATE_FOLDS", "int", "Spatial blocks held out to calibrate σ (0 = off)",
+                  cli="--calibrate-folds", default=0, min=0, advanced=True),
+            Param("SEED", "int", "Random seed", cli="--seed", default=0, advanced=True),
+            Param("TRUTH", "raster", "Truth raster (adds the ablation report)", cli="--truth", optional=True,
+                  advanced=True),
+            Param("TRUTH_VALUES", "string", "Truth codes meaning the condition (comma-separated; default nonzero)",
+                  cli="--truth-values", optional=True, advanced=True),
+            Param("EXCLUDE_LABELS", "vector", "Training labels (left out of the ablation scores)",
+                  cli="--exclude-labels", optional=True, geometry="polygon", advanced=True),
+            *_LANDCOVER_SCENE,
+            _out_folder(),
+        ),
+        outputs=(Output("probability", "PROBABILITY", "raster", "GP mean probability", style="auto:probability"),
+                 Output("sigma", "SIGMA", "raster", "GP σ, σ of a new observation, unclipped mean, detailed input"),
+                 Output("ablation", "ABLATION", "file", "Ablation report (JSON)", load=False),
+                 Output("ablation_png", "ABLATION_PNG", "file", "PR curves and F1 at recall 0.5 (PNG)", load=False),
+                 Output("summary", "SUMMARY", "file", "Summary (JSON)", load=False)),
+        tags=("land cover", "gaussian process", "regression", "vegetation", "debris", "uncertainty")),
     AlgSpec(
         name="synth", display="Synthetic test scene", group=GROUP_DATA[0], group_id=GROUP_DATA[1],
         command=("synth",),

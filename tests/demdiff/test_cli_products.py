@@ -32,7 +32,7 @@ def test_cli_pair_products(tmp_path):
     fp.to_file(tmp_path / "fp.gpkg")
     out = tmp_path / "out"
     res = CliRunner().invoke(main, ["--progress", "none", "demdiff", str(pa), str(pb), "--out", str(out),
-                                    "--footprints", str(tmp_path / "fp.gpkg"), "--confidence", "0.99"])
+                                    "--footprints", str(tmp_path / "fp.gpkg"), "--confidence", "99"])
     assert res.exit_code == 0, res.output
     for name in ("dh.tif", "dh.qml", "significance.tif", "significance.qml", "change_mask.tif", "changes.gpkg",
                  "dh.png", "report.json"):

@@ -90,3 +90,37 @@ def test_fft_variogram_equals_all_pairs():
     g_pair, n_pair = variogram_bins((c + 0.5) * 10.0, -(r + 0.5) * 10.0, z[m], edges)
     np.testing.assert_array_equal(n_fft, n_pair)
     np.testing.assert_allclose(g_fft, g_pair, rtol=1e-8)
+
+
+@pytest.mark.parametrize("method", ["bilinear", "cubic"])
+def test_shift_window_and_points_equal_shift_grid(method):
+    from geocd.demdiff._kernels import shift_margin, shift_points, shift_window
+
+    rng = np.random.default_rng(5)
+    h = rng.normal(size=(90, 80)) * 10 + 100
+    h[30:34, 40:45] = np.nan
+    for dc, dr in [(1.37, -2.61), (-3.2, 0.45), (0.0, 7.9)]:
+        ref = shift_grid(h, dc, dr, method)
+        m = shift_margin(dc, dr, method)
+        # a tile with its margin: the core is bit-identical to the whole grid's
+        r0, c0, r1, c1 = 20, 10, 70, 60
+        R0, C0, R1, C1 = max(0, r0 - m), max(0, c0 - m), min(90, r1 + m), min(80, c1 + m)
+        win = shift_window(h[R0:R1, C0:C1], (R0, C0), h.shape, dc, dr, method)
+        np.testing.assert_array_equal(win[r0 - R0:r1 - R0, c0 - C0:c1 - C0], ref[r0:r1, c0:c1])
+        # a window at the grid's corner sees the grid's border
+        np.testing.assert_array_equal(shift_window(h[:40, :40], (0, 0), h.shape, dc, dr, method)[:40 - m, :40 - m],
+                                      ref[:40 - m, :40 - m])
+        # points from patches
+        rows = rng.integers(0, 90, 300)
+        cols = rng.integers(0, 80, 300)
+        R = m + 1
+        pr, pc = rows - R, cols - R
+        pad = np.pad(h, R + 1, constant_values=np.nan)
+        patches = np.stack([pad[r + 1:r + 1 + 2 * R + 1, c + 1:c + 1 + 2 * R + 1] for r, c in zip(pr + R, pc + R)])
+        v, ok = shift_points(patches, pr, pc, rows, cols, h.shape, dc, dr, method)
+        assert ok
+        np.testing.assert_array_equal(v, ref[rows, cols])
+        # patches too small are reported
+        _, ok2 = shift_points(patches[:, R - 1:R + 1, R - 1:R + 1], rows - 1, cols - 1, rows, cols, h.shape, dc, dr,
+                              method)
+        assert not ok2

@@ -34,7 +34,7 @@ def test_known_shift_and_volume_recovered():
 
 def test_null_pair_has_few_false_changes():
     a, b, _ = pair((3.0, 3.0, 0.0), noise_m=0.5, seed=7)
-    r = dem_difference(a, b, params=DEMDiffParams(confidence=0.99, min_region_cells=4))
+    r = dem_difference(a, b, params=DEMDiffParams(confidence=99.0, min_region_cells=4))
     # white noise: at 99% ~1% of cells pass, 4-cell 8-connected clusters of them are rare
     assert r.changed.mean() < 0.005
     assert r.summary["stable_nmad_m"] == pytest.approx(0.5 * np.sqrt(2), rel=0.3)

@@ -1,4 +1,5 @@
 import datetime as dt
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,7 +37,7 @@ def test_valid_manifest_round_trip(scene):
     assert m.epochs[0].date == dt.date(2020, 1, 2)
     assert m.epochs[0].images[1].camera == scene / "cam.json"
     assert m.aoi.posting_m == 0.5 and m.aoi.bounds == (0, 0, 10, 10)
-    assert m.output == (scene / "out").resolve()
+    assert m.output is None and m.output_dir() == Path.cwd() / "geocd_out" / "t"
     # loading the folder finds scene.yaml; serialising and re-parsing gives the same manifest
     assert load_manifest(scene).epochs == m.epochs
     d = manifest_to_dict(m)
@@ -50,7 +51,7 @@ def test_valid_manifest_round_trip(scene):
     ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}, {"name": "A", "images": ["img/a2.tif"]}]}, "duplicate epoch"),
     ({"epochs": [{"name": "A", "date": "yesterday", "images": ["img/a1.tif"]}]}, "ISO 8601"),
     ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "aoi": {"bounds": [1, 1, 0, 0]}}, "is empty"),
-    ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "colour": 1}, "unknown keys"),
+    ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "colour": 1}, "colour: unknown key"),
     ({"epochs": [{"name": "A"}]}, "neither images nor a DEM"),
     ({"geocd_manifest": 7, "epochs": [{"name": "A", "images": ["img/a1.tif"]}]}, "version"),
 ])

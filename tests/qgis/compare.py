@@ -81,7 +81,16 @@ def compare_trees(a: Path, b: Path, ignore: tuple = ()) -> list[str]:
     for rel in sorted(fa & fb):
         pa, pb = a / rel, b / rel
         ext = pa.suffix.lower()
-        if ext in RASTER_EXT:
+        if pa.name == "geocd_products.json":
+            # the output folder's run record: same products; run ids, times, argv and hashes (GeoPackages carry a
+            # write time) differ by nature
+            def products(p):
+                runs = json.loads(p.read_text()).get("runs", [])
+                return sorted(runs[-1].get("files", {})) if runs else []
+
+            if products(pa) != products(pb):
+                diffs.append(f"{rel}: product lists differ: {products(pa)} vs {products(pb)}")
+        elif ext in RASTER_EXT:
             diffs += compare_raster(pa, pb)
         elif ext in VECTOR_EXT:
             diffs += compare_vector(pa, pb)
@@ -91,6 +100,8 @@ def compare_trees(a: Path, b: Path, ignore: tuple = ()) -> list[str]:
             load = (lambda p: json.loads(p.read_text())) if ext == ".json" else (lambda p: yaml.safe_load(p.read_text()))
             if _strip(load(pa), str(a), str(b)) != _strip(load(pb), str(a), str(b)):
                 diffs.append(f"{rel}: contents differ")
+        elif ext == ".log":
+            continue  # geocd_<command>.log: both runs keep one; clock times and paths differ
         elif ext in (".png", ".qml", ".txt", ".csv"):
             if ext != ".png" and pa.read_bytes() != pb.read_bytes():
                 diffs.append(f"{rel}: bytes differ")

@@ -23,11 +23,11 @@ M_PER_DEG_LON = 111_320.0 * np.cos(np.radians(LAT0))
 
 def affine_rpc(gsd_m: float, parallax_px_per_m: tuple[float, float], width: int, height: int,
                centre_px: tuple[float, float] | None = None, lon0: float = LON0, lat0: float = LAT0,
-               h0: float = H0) -> RPCModel:
+               h0: float = H0, height_scale_m: float = 500.0) -> RPCModel:
     """An RPC that is exactly ``col = cx + Δlon/dlon + pc·(h−h0)``, ``row = cy − Δlat/dlat + pr·(h−h0)``."""
     cx, cy = centre_px if centre_px is not None else (width / 2.0, height / 2.0)
     s_lon = s_lat = 0.01
-    s_h = 500.0
+    s_h = float(height_scale_m)
     dlon_px = gsd_m / M_PER_DEG_LON
     dlat_px = gsd_m / M_PER_DEG_LAT
     z = np.zeros(20)
@@ -83,11 +83,20 @@ def dsm_local(x, y):
 
 
 class Texture:
-    def __init__(self, seed: int = 0, extent_m: float = 120.0, step_m: float = 0.25):
+    """Smooth random albedo over ±extent_m; ``octaves`` = ((σ in steps, weight of the unit-std component), ...)
+    adds coarser structure (real scenes have texture at every scale)."""
+
+    def __init__(self, seed: int = 0, extent_m: float = 120.0, step_m: float = 0.25, octaves=()):
         rng = np.random.default_rng(seed)
         n = int(2 * extent_m / step_m)
         a = ndimage.gaussian_filter(rng.normal(size=(n, n)), 2.0)
         a += 0.5 * ndimage.gaussian_filter(rng.normal(size=(n, n)), 6.0)
+        for sigma, weight in octaves:
+            f = max(1, int(sigma // 4))           # coarse structure: filter a coarser grid, then interpolate
+            m = -(-n // f) + 1
+            o = ndimage.gaussian_filter(rng.normal(size=(m, m)), sigma / f)
+            o = ndimage.zoom(o, f, order=1)[:n, :n]
+            a += weight * a.std() * o / o.std()
         self.a = (a - a.mean()) / a.std()
         self.step = step_m
         self.extent = extent_m
@@ -175,3 +184,166 @@ def render_at(cam, cols, rows, h_lo=H0 - 6.0, h_hi=H0 + 16.0, dh=0.04):
         found[idx] = True
         hit_h[idx] = h
     return None, hit_h.reshape(shape)
+
+
+# ---------------------------------------------------------------------------------------------
+# any surface, any camera: a tall structure on a plateau
+# ---------------------------------------------------------------------------------------------
+def render_surface(cam, tex: Texture, dsm_fn, h_lo: float, h_hi: float, dh: float = 2.0, n_bisect: int = 12,
+                   cols=None, rows=None):
+    """Ray-march the lines of sight of pixel centres (or of given points) down through ``dsm_fn``.
+
+    ``dsm_fn(x, y)`` gives heights (m) at local metres east/north of (LON0, LAT0). Steps of
+    ``dh`` from ``h_hi``, then ``n_bisect`` bisections of the first step that goes below the
+    surface (precision dh / 2**n_bisect). Works for any camera of the protocol (closed form
+    for :func:`affine_rpc` cameras). Returns (intensity, hit height) with NaN where no hit.
+    """
+    if cols is None:
+        cols, rows = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    shape = np.shape(cols)
+    cols = np.asarray(cols, float).ravel()
+    rows = np.asarray(rows, float).ravel()
+
+    def ground(c, r, h):
+        if id(cam) in _AFFINE:
+            lon, lat = localize_affine(cam, c, r, h)
+        else:
+            lon, lat = cam.localize(c, r, np.full(c.shape, h) if np.ndim(h) == 0 else h)
+        return _local_xy(lon, lat)
+
+    def below(c, r, h):
+        x, y = ground(c, r, h)
+        with np.errstate(invalid="ignore"):
+            return np.asarray(h) <= dsm_fn(x, y)
+
+    found = np.zeros(cols.shape, bool)
+    top = np.full(cols.shape, np.nan)
+    for h in np.arange(h_hi, h_lo - dh, -dh):
+        todo = np.flatnonzero(~found)
+        if not todo.size:
+            break
+        b = below(cols[todo], rows[todo], h)
+        idx = todo[b]
+        found[idx] = True
+        top[idx] = h + dh
+    idx = np.flatnonzero(found)
+    hi = top[idx]
+    lo = hi - dh
+    for _ in range(n_bisect):
+        mid = 0.5 * (lo + hi)
+        b = below(cols[idx], rows[idx], mid)
+        lo = np.where(b, mid, lo)
+        hi = np.where(b, hi, mid)
+    hit = np.full(cols.shape, np.nan)
+    hit[idx] = 0.5 * (lo + hi)
+    inten = np.full(cols.shape, np.nan)
+    x, y = ground(cols[idx], rows[idx], hit[idx])
+    # texture pinned to the surface (x, y and height), so steep faces are textured too
+    inten[idx] = tex(x + 0.31 * (hit[idx] - H0), y - 0.27 * (hit[idx] - H0)) + 0.005 * (hit[idx] - H0)
+    return inten.reshape(shape), hit.reshape(shape)
+
+
+def pyramid_dsm(height_m: float = 150.0, half_base_m: float = 75.0, centre=(0.0, 0.0), plateau_m: float = H0,
+                steps: int = 0, tower=None):
+    """A square pyramid on a gently rolling plateau (and, optionally, a tower ``(x, y, half_side, height)``).
+
+    ``steps > 0`` makes it a stepped pyramid (ziggurat) of that many flat terraces above the
+    plateau, each ``height_m / steps`` high; the top terrace is ``half_base_m / (steps + 1)``
+    from the centre to its edge.
+    """
+    def f(x, y):
+        x = np.asarray(x, float)
+        y = np.asarray(y, float)
+        z = plateau_m + 0.02 * x - 0.01 * y + 1.5 * np.sin(x / 13.0) * np.cos(y / 17.0)
+        d = np.maximum(np.abs(x - centre[0]), np.abs(y - centre[1]))
+        if steps > 0:
+            k = np.clip(np.floor((steps + 1) * (1.0 - d / half_base_m)), 0, steps)
+            z = np.maximum(z, plateau_m + height_m * k / steps)
+        else:
+            z = np.maximum(z, plateau_m + height_m * (1.0 - d / half_base_m))
+        if tower is not None:
+            tx, ty, ts, th = tower
+            z = np.where((np.abs(x - tx) <= ts) & (np.abs(y - ty) <= ts), plateau_m + th, z)
+        return z
+    return f
+
+
+def make_surface_scene(dsm_fn, *, seed: int = 0, size_m: float = 300.0, posting_m: float = 1.0, gsd_m: float = 1.0,
+                       parallax_a=(0.33, 0.06), parallax_b=(-0.31, 0.03), noise: float = 0.02,
+                       h_range=(H0 - 10.0, H0 + 170.0), height_scale_m: float = 500.0) -> Scene:
+    """Two affine RPC views of an arbitrary surface ``dsm_fn`` (heights in m over local metres)."""
+    from geocd.geodesy import from_lonlat
+
+    crs = utm_crs_for(LON0, LAT0)
+    xc, yc = from_lonlat(LON0, LAT0, crs)
+    grid = AOIGrid.from_bounds(float(xc) - size_m / 2, float(yc) - size_m / 2, float(xc) + size_m / 2,
+                               float(yc) + size_m / 2, posting_m, crs)
+    lon, lat = grid.lonlat()
+    truth = dsm_fn(*_local_xy(lon, lat))
+    relief_px = max(abs(v) for p in (parallax_a, parallax_b) for v in p) * (h_range[1] - H0)
+    npx = int(size_m / gsd_m + 2 * relief_px) + 40
+    tex = Texture(seed, extent_m=size_m / 2 + 2 * (h_range[1] - H0) + 20.0, step_m=0.5 * gsd_m,
+                  octaves=((16.0, 0.6), (48.0, 0.5)))
+    rng = np.random.default_rng(seed + 1)
+    cams, imgs = [], []
+    for par in (parallax_a, parallax_b):
+        cam = affine_rpc(gsd_m, par, npx, npx, height_scale_m=height_scale_m)
+        inten, _ = render_surface(cam, tex, dsm_fn, *h_range)
+        inten = inten + noise * rng.normal(size=inten.shape)
+        imgs.append(np.clip(600 + 150 * np.nan_to_num(inten), 0, 2047).astype(np.uint16))
+        cams.append(cam)
+    vis = np.ones(grid.shape, bool)
+    for cam in cams:
+        c, r = cam.project(lon, lat, truth)
+        _, hit = render_surface(cam, tex, dsm_fn, *h_range, cols=c, rows=r)
+        vis &= np.abs(hit - truth) < 0.3
+    return Scene(grid, truth, imgs, cams, ["img_a", "img_b"], vis)
+
+
+def frame_camera(position_xy, altitude_m: float, *, width: int = 480, height: int = 360, focal_px: float = 300.0,
+                 k1: float = -0.26, k2: float = 0.0, opk_deg=(0.0, 0.0, 0.0)):
+    """A nadir drone frame camera (Brown distortion) ``altitude_m`` above H0 at local metres ``position_xy``."""
+    from geocd.camera import FrameCamera
+    from geocd.geodesy import from_lonlat
+
+    crs = utm_crs_for(LON0, LAT0)
+    x0, y0 = from_lonlat(LON0, LAT0, crs)
+    return FrameCamera(width=width, height=height, focal_px=focal_px, crs=crs, vertical_datum="ellipsoid",
+                       position=(float(x0) + position_xy[0], float(y0) + position_xy[1], H0 + altitude_m),
+                       opk_deg=opk_deg, distortion={"k1": k1, "k2": k2})
+
+
+def make_frame_scene(dsm_fn=None, *, seed: int = 3, k1: float = -0.26, altitude_m: float = 60.0,
+                     base_m: float = 24.0, aoi_m: float = 200.0, posting_m: float = 0.5, noise: float = 0.02,
+                     h_range=(H0 - 10.0, H0 + 20.0)) -> Scene:
+    """Two nadir drone frames with strong barrel distortion over ``dsm_fn`` (default: the two-building scene).
+
+    The AOI grid (``aoi_m`` square) is far larger than the frames' footprints, so most of its cells
+    lie where the distortion polynomial folds back (beyond ~48° off the axis for k1 = −0.26).
+    """
+    from geocd.geodesy import from_lonlat
+
+    f = dsm_fn or (lambda x, y: dsm_local(x, y))
+    crs = utm_crs_for(LON0, LAT0)
+    xc, yc = from_lonlat(LON0, LAT0, crs)
+    grid = AOIGrid.from_bounds(float(xc) - aoi_m / 2, float(yc) - aoi_m / 2, float(xc) + aoi_m / 2,
+                               float(yc) + aoi_m / 2, posting_m, crs)
+    cams = [frame_camera((-base_m / 2, 0.0), altitude_m, k1=k1), frame_camera((base_m / 2, 0.0), altitude_m, k1=k1)]
+    tex = Texture(seed, extent_m=110.0, step_m=0.25)
+    rng = np.random.default_rng(seed + 1)
+    imgs = []
+    for cam in cams:
+        inten, _ = render_surface(cam, tex, f, *h_range, dh=0.5)
+        inten = inten + noise * rng.normal(size=inten.shape)
+        imgs.append(np.clip(120 + 40 * np.nan_to_num(inten), 0, 255).astype(np.uint8))
+    lon, lat = grid.lonlat()
+    truth = f(*_local_xy(lon, lat))
+    vis = np.ones(grid.shape, bool)
+    for cam in cams:
+        c, r = cam.project(lon, lat, truth)
+        inside = cam.in_image(c, r)
+        hit = np.full(grid.shape, np.nan)
+        if inside.any():
+            _, hit[inside] = render_surface(cam, tex, f, *h_range, dh=0.5, cols=c[inside], rows=r[inside])
+        vis &= np.abs(hit - truth) < 0.3
+    return Scene(grid, truth, imgs, cams, ["drone_a", "drone_b"], vis)

@@ -1,0 +1,131 @@
+"""Marked point process speed: seconds per megapixel of image pair on one core, and the energy kernel
+against its numpy reference.
+
+1. The energy kernel ``rect_features`` (all object features of a rectangle on one image) against
+   ``rect_features_ref`` (numpy) on the same rectangles of a LEVIR-CD image: µs per rectangle, ratio.
+2. Whole runs (``geocd.mpp.detect``, joint model) on each LEVIR-CD pair (256 × 256 cells = 0.066 Mpx per
+   image, 0.131 Mpx per pair) and, with ``--town DIR ORTHO_DIR``, on a generated town's orthos (600 × 600):
+   wall and CPU seconds, seconds per megapixel of image pair, annealing iterations, births, µs per birth.
+
+numba runs on one thread (``NUMBA_NUM_THREADS=1`` is set before numba loads); kernels are compiled or
+loaded from the cache before timing (the first call's time is printed as "cold"). The machine is shared:
+the load average is printed with the figures.
+
+Usage::
+
+    .venv/bin/python bench/bench_mpp.py [--repeat 3] [--town sample_aoi /tmp/ortho_run]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data" / "levircd_building_change_samples"
+sys.path.insert(0, str(REPO))
+
+
+def _png(path):
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(path) as ds:
+            return ds.read()
+
+
+def kernel_bench(repeat: int) -> dict:
+    from geocd.mpp import _kernels as K
+    from geocd.mpp.features import image_features
+    from geocd.mpp.model import EnergyModel, random_rectangles
+    from geocd.mpp.params import MPPParams
+
+    a = _png(sorted((DATA / "A").glob("*.png"))[0])
+    p = MPPParams()
+    f = image_features(a, 0.5, p)
+    m = EnergyModel([f], 0.5, p)
+    rects = random_rectangles(f, 400, m.smin, m.smax, 5.0, np.random.default_rng(0))
+    e8 = f.colour_mask if f.colour_mask is not None else np.zeros((0, 0), np.uint8)
+    s8 = f.shadow_mask if f.shadow_mask is not None else np.zeros((0, 0), np.uint8)
+    sd = f.shadow_dir or (0.0, 0.0)
+    args = (f.grey, f.valid, f.grad_mag, f.grad_ori, e8, s8, float(sd[0]), float(sd[1]), np.zeros((0, 0), np.float32),
+            2.5, float(m.edge_w), float(m.ring_w), float(m.shadow_w), 3.0 * f.noise_sigma, 2.0)
+    out = np.empty((len(rects), K.N_FEATURES))
+    t0 = time.perf_counter()
+    K.rect_features(rects[:2], *args, -np.inf, out[:2])
+    cold = time.perf_counter() - t0
+    tk, tr = [], []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        K.rect_features(rects, *args, -np.inf, out)
+        tk.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ref = K.rect_features_ref(rects[:40], *args)
+        tr.append((time.perf_counter() - t0) * len(rects) / 40)
+    agree = bool(np.allclose(out[:40], ref, rtol=1e-6, atol=1e-9, equal_nan=True))
+    return {"rectangles": len(rects), "kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
+            "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1), "ratio": round(min(tr) / min(tk), 1),
+            "cold_first_call_s": round(cold, 2), "agree": agree}
+
+
+def run_bench(image_a, image_b, posting, repeat, **kw) -> dict:
+    from geocd.mpp.detect import detect
+    from geocd.mpp.params import MPPParams
+
+    p = MPPParams(**kw.pop("params", {}))
+    best = None
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        det = detect(image_a, image_b, posting, p, **kw)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        if best is None or wall < best[0]:
+            best = (wall, cpu, det)
+    wall, cpu, det = best
+    mpx = 2 * image_a.shape[-1] * image_a.shape[-2] / 1e6
+    r = det.result
+    return {"cells": list(image_a.shape[-2:]), "wall_s": round(wall, 2), "cpu_s": round(cpu, 2),
+            "s_per_mpx_pair": round(wall / mpx, 1), "cpu_s_per_mpx_pair": round(cpu / mpx, 1),
+            "iterations": r.iterations, "converged": r.converged, "births": r.births,
+            "us_per_birth": round(wall / max(r.births, 1) * 1e6, 1), "rectangles": len(r)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--town", nargs=2, default=None, metavar=("TOWN", "ORTHO_DIR"))
+    a = ap.parse_args()
+    res = {"load_average": os.getloadavg(), "numba_threads": os.environ.get("NUMBA_NUM_THREADS")}
+    res["kernel"] = kernel_bench(a.repeat)
+    print("energy kernel:", res["kernel"], flush=True)
+    runs = {}
+    for f in sorted((DATA / "A").glob("*.png")):
+        runs[f.stem] = run_bench(_png(f), _png(DATA / "B" / f.name), 0.5, max(1, a.repeat - 2))
+        print(f.stem, runs[f.stem], flush=True)
+    res["levir"] = runs
+    if a.town:
+        sys.path.insert(0, str(REPO / "docs"))
+        from mpp_show import _town_inputs  # noqa: E402
+
+        inp = _town_inputs(Path(a.town[0]), Path(a.town[1]))
+        for label, kw in (("joint", {}), ("joint + height", {"params": {"height": "and"}, "dsm_a": inp["dsm_a"],
+                                                              "dsm_b": inp["dsm_b"], "ground_m": inp["ground"]})):
+            res[f"town {label}"] = run_bench(inp["image_a"], inp["image_b"], inp["grid"].posting_m, 1,
+                                             valid_a=inp["valid_a"], valid_b=inp["valid_b"], **kw)
+            print("town", label, res[f"town {label}"], flush=True)
+    res["load_average_end"] = os.getloadavg()
+    print(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()

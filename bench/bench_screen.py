@@ -1,0 +1,191 @@
+"""Speed of the 2-D screen, and what the tiered run (``geocd run --screen``) saves and loses.
+
+1. ``features``: seconds per km² at 0.5 m for each grid feature (one core: BLAS/torch limited to one
+   thread), on a 1024 × 1024 pair cut from the Kahramanmaraş Pléiades views (pre/post, grey) when
+   ../shared is there, else a synthetic textured pair; the whole screen (features of both images,
+   d_g, Felzenszwalb superpixels of both, exclusions), cold (first call) and warm (second call).
+   The ratio column compares with the patch feature measured in the same run.
+2. ``tiered SCENE``: ``geocd run SCENE [--model M]`` and ``geocd run SCENE --screen`` in child processes;
+   wall and CPU seconds of each, the speed-up, the fraction of the grid the stereo ran on, and the 3-D
+   detections lost: regions of the full run's ``changes`` layer (99 %) that no region of the tiered run
+   overlaps, and (when the scene has truth) building-level and cell-level figures of both.
+
+Usage::
+
+    nice -n 10 .venv/bin/python bench/bench_screen.py features --out docs/screen_bench.json
+    nice -n 10 .venv/bin/python bench/bench_screen.py tiered sample_aoi --out docs/screen_bench.json
+    nice -n 10 .venv/bin/python bench/bench_screen.py tiered examples/kahramanmaras/scene.yaml \\
+        --model examples/kahramanmaras/marseille_urban_model.json --out docs/screen_bench.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ.setdefault(v, "1")
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+
+KAHRA = ROOT.parent / "shared" / "data" / "cnes_picanteo_kahramanmaras"
+
+
+def _pair(size: int = 1024):
+    """A real grey pair (pre/post Kahramanmaraş crops, not co-registered: the screen's speed only) or synthetic."""
+    if (KAHRA / "pre_event_img1.tif").exists():
+        from geocd.io.raster import read_image
+        from rasterio.windows import Window
+
+        a = read_image(KAHRA / "pre_event_img1.tif", window=Window(0, 0, size, size)).data.astype(np.float32)
+        b = read_image(KAHRA / "post_event_img1.tif", window=Window(0, 0, size, size)).data.astype(np.float32)
+        return a, b, "Kahramanmaraş pre_event_img1 / post_event_img1, first 1024 × 1024 px"
+    from tests.screen.scenes import pair
+
+    a, b, _ = pair(size=size)
+    return a, b, "synthetic textured pair"
+
+
+def bench_features() -> dict:
+    from geocd.screen import FeatureSpec, ScreenParams, screen_pair
+    from geocd.screen.cnn import random_state_dict, torch_available
+
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+    a, b, what = _pair()
+    km2 = a.shape[-1] * a.shape[-2] * 0.25 / 1e6
+    wdir = Path("/tmp/geocd_bench_screen")
+    wdir.mkdir(exist_ok=True)
+    specs = [("patch 16px", FeatureSpec("patch", 16)), ("randbank 16px", FeatureSpec("randbank", 16)),
+             ("daisy 16px", FeatureSpec("daisy", 16)), ("daisy 32px", FeatureSpec("daisy", 32))]
+    for bb, ly in (("vgg19", "pool4"), ("vgg19", "pool5"), ("resnet18", "layer3")):
+        w = wdir / f"{bb}.npz"
+        if not w.exists():
+            np.savez(w, **random_state_dict(bb, 0))
+        for eng in (["numpy", "torch"] if torch_available() else ["numpy"]):
+            specs.append((f"{bb} {ly} ({eng})", FeatureSpec("cnn", backbone=bb, weights=str(w), layer=ly, engine=eng)))
+    rows = []
+    for label, spec in specs:
+        feat = spec.build()
+        times = []
+        for _ in range(2):
+            t0 = time.perf_counter()
+            screen_pair(a, b, gsd_m=0.5, params=ScreenParams(feature=spec), feature=feat)
+            times.append(time.perf_counter() - t0)
+        rows.append({"feature": label, "cold_s": round(times[0], 2), "warm_s": round(times[1], 2),
+                     "s_per_km2_warm": round(times[1] / km2, 1)})
+        print(json.dumps(rows[-1]), flush=True)
+    base = rows[0]["s_per_km2_warm"]
+    for r in rows:
+        r["ratio_to_patch"] = round(r["s_per_km2_warm"] / base, 2)
+    return {"pair": what, "km2": round(km2, 4), "threads": 1, "rows": rows}
+
+
+def _run(args: list[str]) -> dict:
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    p = subprocess.run([str(ROOT / ".venv" / "bin" / "geocd"), "--progress", "none", *args], capture_output=True,
+                       text=True)
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if p.returncode:
+        raise SystemExit(f"geocd {' '.join(args)} failed:\n{p.stderr[-3000:]}")
+    return {"wall_s": round(wall, 1), "cpu_s": round((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), 1),
+            "stdout": p.stdout[-2000:]}
+
+
+def _regions(out: Path):
+    import geopandas as gpd
+
+    f = out / "sc_changes.gpkg"
+    return gpd.read_file(f, layer="changes")
+
+
+def _truth_scores(out: Path, scene: Path) -> dict | None:
+    t = scene / "truth" / "change_mask.tif"
+    if not t.exists():
+        return None
+    import rasterio
+
+    from geocd.geodesy import AOIGrid
+    from geocd.io.raster import read_on_grid
+    from geocd.screen.threshold import f1_scores
+
+    with rasterio.open(out / "sc_change_mask.tif") as ds:
+        m = ds.read(1)
+        g = AOIGrid.from_raster(ds)
+    truth = np.nan_to_num(read_on_grid(t, g)) > 0
+    s = json.loads((out / "run_summary.json").read_text())
+    return {"cells_99": f1_scores((m != 0) & (m != -128), truth), "buildings": s.get("buildings")}
+
+
+def bench_tiered(scene: str, model: str | None, work: Path) -> dict:
+    extra = ["--model", model] if model else []
+    full, tier = work / "full", work / "tiered"
+    r_full = _run(["run", scene, "--out", str(full), *extra])
+    r_tier = _run(["run", scene, "--out", str(tier), "--screen", *extra])
+    return compare(scene, model, full, tier, r_full, r_tier)
+
+
+def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict, r_tier: dict) -> dict:
+    """Speed-up and detections lost between a full and a tiered run's output folders."""
+    sc = Path(scene)
+    a, b = _regions(full), _regions(tier)
+    lost = a[~a.geometry.intersects(b.unary_union)] if len(b) else a
+    s = json.loads((tier / "run_summary.json").read_text())["screen"]
+    res = {"scene": scene, "model": model, "full": {k: v for k, v in r_full.items() if k != "stdout"},
+           "tiered": {k: v for k, v in r_tier.items() if k != "stdout"}, "screen": s,
+           "speedup_wall": round(r_full["wall_s"] / r_tier["wall_s"], 2),
+           "speedup_cpu": round(r_full["cpu_s"] / r_tier["cpu_s"], 2),
+           "regions_full": int(len(a)), "regions_tiered": int(len(b)), "regions_lost": int(len(lost)),
+           "area_lost_m2": round(float(lost.area.sum()), 1), "area_full_m2": round(float(a.area.sum()), 1)}
+    root = sc if sc.is_dir() else sc.parent
+    tf, tt = _truth_scores(full, root), _truth_scores(tier, root)
+    if tf is not None:
+        res["truth_full"], res["truth_tiered"] = tf, tt
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=["features", "tiered", "compare"])
+    ap.add_argument("--full-dir", type=Path, help="compare: the full run's output folder")
+    ap.add_argument("--tiered-dir", type=Path, help="compare: the tiered run's output folder")
+    ap.add_argument("--full-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
+    ap.add_argument("--tiered-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
+    ap.add_argument("scene", nargs="?", default="sample_aoi")
+    ap.add_argument("--model", default=None)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/geocd_bench_screen"))
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "screen_bench.json")
+    a = ap.parse_args(argv)
+    doc = json.loads(a.out.read_text()) if a.out.exists() else {}
+    if a.what == "features":
+        doc["features"] = bench_features()
+    elif a.what == "compare":  # two runs made by hand (e.g. in parallel on a loaded machine) with their timings
+        key = Path(a.scene).stem if Path(a.scene).suffix else Path(a.scene).name
+        doc.setdefault("tiered", {})[key] = compare(
+            a.scene, a.model, a.full_dir, a.tiered_dir, {"wall_s": a.full_time[0], "cpu_s": a.full_time[1]},
+            {"wall_s": a.tiered_time[0], "cpu_s": a.tiered_time[1]})
+    else:
+        w = a.work / Path(a.scene).stem
+        doc.setdefault("tiered", {})[Path(a.scene).stem if Path(a.scene).suffix else Path(a.scene).name] = \
+            bench_tiered(a.scene, a.model, w)
+    a.out.write_text(json.dumps(doc, indent=1, default=str))
+    print(json.dumps(doc, indent=1, default=str)[-3000:])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,173 @@
+"""Figures and tables of docs/mpp.md: the paper's Table 2 measured by geocd.
+
+Usage (from the repository root)::
+
+    # a generated town (sample_aoi, or `geocd synth --seed N --out DIR`): orthos + stereo DSMs once, then
+    # every variant on them
+    .venv/bin/geocd --progress none ortho sample_aoi --out /tmp/ortho_run
+    .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif]
+    .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
+
+Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read in place from ../shared/data.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+DOCS = REPO / "docs"
+sys.path.insert(0, str(REPO))
+
+from geocd.mpp.detect import detect  # noqa: E402
+from geocd.mpp.evaluate import rect_masks, sample_truth, table2, table2_change_only  # noqa: E402
+from geocd.mpp.params import MPPParams  # noqa: E402
+from geocd.mpp.products import quicklook  # noqa: E402
+
+#: the variants of Table 2 (name → method, params changes, needs heights, needs the 3-D prior)
+VARIANTS = {
+    "ED (joint, paper)": ("ED", {}, False, False),
+    "SD (sequential)": ("SD", {}, False, False),
+    "EV (edge-only verification)": ("EV", {}, False, False),
+    "ED + height (geocd)": ("ED", {"height": "and"}, True, False),
+    "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0}, True, True),
+}
+
+
+def _town_inputs(town: Path, ortho_dir: Path):
+    """Orthos of the most vertical full-coverage view per epoch (as geocd mpp picks them), DSMs, ground."""
+    import geopandas as gpd
+    import rasterio
+
+    from geocd.io.manifest import load_manifest
+    from geocd.io.raster import read_band, read_dem
+    from geocd.mpp.pipeline import choose_view
+    from geocd.stereo.pipeline import load_epoch_images
+
+    m = load_manifest(town / "scene.yaml")
+    dsm_a, grid = read_band(ortho_dir / "ortho" / "A" / "dsm_A.tif", 1)
+    dsm_b, _ = read_band(ortho_dir / "ortho" / "B" / "dsm_B.tif", 1)
+    ground = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
+    h0 = float(np.nanmedian(ground))
+    out = {"grid": grid, "dsm_a": dsm_a, "dsm_b": dsm_b, "ground": ground}
+    for e, key in (("A", "a"), ("B", "b")):
+        view = choose_view(load_epoch_images(m, m.epoch(e)), grid, h0)
+        with rasterio.open(ortho_dir / "ortho" / e / f"{view.name}.tif") as ds:
+            out[f"image_{key}"] = ds.read()
+            out[f"valid_{key}"] = ds.read_masks(1) > 0
+        out[f"view_{key}"] = view.name
+    objs, t1, t2 = sample_truth(gpd.read_file(town / "truth" / "footprints_all.gpkg"), grid)
+    out.update(objs=objs, t1=t1, t2=t2)
+    return out
+
+
+def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,)) -> dict:
+    inp = _town_inputs(name, ortho_dir)
+    prior = None
+    if sc is not None:
+        from geocd.mpp.pipeline import _change_prior
+
+        prior = _change_prior(sc, inp["grid"])
+    rows = {}
+    best = None
+    for label, (method, changes, needs_h, needs_prior) in VARIANTS.items():
+        if needs_prior and prior is None:
+            continue
+        for seed in (seeds if needs_h else seeds[:1]):
+            p = MPPParams(seed=seed, **changes)
+            t0 = time.perf_counter()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                det = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, p, method=method,
+                             valid_a=inp["valid_a"], valid_b=inp["valid_b"],
+                             dsm_a=inp["dsm_a"] if needs_h else None, dsm_b=inp["dsm_b"] if needs_h else None,
+                             ground_m=inp["ground"] if needs_h else None, change_prior=prior if needs_prior else None)
+            dt = time.perf_counter() - t0
+            masks = rect_masks(det.result.rects, det.result.xi, inp["grid"].shape)
+            t = table2(masks, inp["objs"], inp["t1"], inp["t2"])
+            t.update(seed=seed, seconds=round(dt, 1), iterations=det.result.iterations,
+                     converged=det.result.converged, rectangles=len(det.result), births=det.result.births)
+            rows.setdefault(label, []).append(t)
+            print(label, t, flush=True)
+            if label.startswith("ED + height") and best is None:
+                best = det
+    out = {"scene": str(name), "views": [inp["view_a"], inp["view_b"]], "rows": rows}
+    if best is not None:
+        again = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, MPPParams(seed=seeds[0], height="and"),
+                       valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"],
+                       ground_m=inp["ground"])
+        out["deterministic"] = bool(np.array_equal(again.result.rects, best.result.rects)
+                                    and np.array_equal(again.result.xi, best.result.xi))
+        tag = Path(name).name
+        quicklook(DOCS / f"mpp_{tag}.png", inp["image_a"], inp["image_b"], best,
+                  titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
+                  valid_a=inp["valid_a"], valid_b=inp["valid_b"])
+    (DOCS / f"mpp_{Path(name).name}.json").write_text(json.dumps(out, indent=2, default=str))
+    return out
+
+
+def levir() -> dict:
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+
+    root = DATA / "levircd_building_change_samples"
+    rows = {}
+    first = None
+    for f in sorted((root / "A").glob("*.png")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(f) as ds:
+                a = ds.read()
+            with rasterio.open(root / "B" / f.name) as ds:
+                b = ds.read()
+            with rasterio.open(root / "label" / f.name) as ds:
+                lab = ds.read(1) > 0
+        for label, (method, changes, needs_h, needs_prior) in VARIANTS.items():
+            if needs_h or needs_prior:
+                continue
+            t0 = time.perf_counter()
+            det = detect(a, b, 0.5, MPPParams(**changes), method=method)
+            masks = rect_masks(det.result.rects, det.result.xi, lab.shape)
+            t = table2_change_only(masks, lab)
+            t.update(pair=f.stem, seconds=round(time.perf_counter() - t0, 1), rectangles=len(det.result),
+                     notes=det.notes)
+            rows.setdefault(label, []).append(t)
+            print(label, t, flush=True)
+            if first is None and method == "ED" and lab.any():
+                first = (a, b, det, f.stem)
+    out = {"pairs": sorted(f.stem for f in (root / "A").glob("*.png")), "rows": rows}
+    for label, rs in rows.items():
+        tp = sum(r["change_f"] for r in rs) / len(rs)
+        out.setdefault("mean_change_f", {})[label] = round(tp, 4)
+    if first is not None:
+        quicklook(DOCS / "mpp_levir.png", first[0], first[1], first[2], titles=(f"{first[3]} A", f"{first[3]} B"))
+    (DOCS / "mpp_levir.json").write_text(json.dumps(out, indent=2, default=str))
+    return out
+
+
+if __name__ == "__main__":
+    what = sys.argv[1]
+    if what == "town":
+        sc = None
+        args = sys.argv[2:]
+        if "--sc" in args:
+            k = args.index("--sc")
+            sc = Path(args[k + 1])
+            args = args[:k] + args[k + 2:]
+        seeds = (0,)
+        if "--seeds" in args:
+            k = args.index("--seeds")
+            seeds = tuple(int(x) for x in args[k + 1].split(","))
+            args = args[:k] + args[k + 2:]
+        town(Path(args[0]), Path(args[1]), sc, seeds)
+    elif what == "levir":
+        levir()
+    else:
+        raise SystemExit(__doc__)

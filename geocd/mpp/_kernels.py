@@ -1,0 +1,780 @@
+"""numba kernels of the marked point process, each with a pure-numpy reference.
+
+Rectangles are rows of a float64 array ``(n, 5)``: centre column, centre row (array-index coordinates:
+cell centres at integers), side lengths ``e_L`` and ``e_l`` (cells) and θ (radians, map sense: the
+``e_L`` side points along (cos θ, sin θ) in (east, north), i.e. (cos θ, −sin θ) in (col, row)).
+
+For a cell at offset (dx, dy) = (j − c_x, i − c_y) from the centre, ``u = dx cos θ − dy sin θ`` runs
+along the ``e_L`` side and ``v = dx sin θ + dy cos θ`` along the ``e_l`` side; the cell is inside when
+``|u| ≤ e_L/2`` and ``|v| ≤ e_l/2``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+#: columns of the raw object features (per rectangle and image)
+F_GRADIENT, F_KURTOSIS, F_COMPLETE, F_COLOUR_IN, F_COLOUR_OUT, F_SHADOW_IN, F_SHADOW_OUT, F_RAISED_IN, \
+    F_RAISED_OUT, F_VALID, F_AREA, F_GRADIENT_SIDES = range(12)
+N_FEATURES = 12
+
+
+@njit(cache=True, inline="always")
+def _uv(i, j, cx, cy, c, s):
+    dx = j - cx
+    dy = i - cy
+    return dx * c - dy * s, dx * s + dy * c
+
+
+@njit(cache=True, inline="always")
+def _row_span(i, cx, cy, c, s, au, av, j0, j1):
+    """Columns of row ``i`` (within [j0, j1]) that can satisfy |u| ≤ au and |v| ≤ av."""
+    dy = i - cy
+    lo = float(j0)
+    hi = float(j1)
+    # u = dx c − dy s ∈ [−au, au];  v = dx s + dy c ∈ [−av, av]
+    for coef, off, lim in ((c, -dy * s, au), (s, dy * c, av)):
+        if abs(coef) > 1e-12:
+            a = (-lim - off) / coef
+            b = (lim - off) / coef
+            if a > b:
+                a, b = b, a
+            lo = max(lo, cx + a)
+            hi = min(hi, cx + b)
+        elif abs(off) > lim:
+            return 1, 0
+    return int(math.ceil(lo - 1e-9)), int(math.floor(hi + 1e-9))
+
+
+@njit(cache=True)
+def _kurt(n, s1, s2, s3, s4):
+    if n < 5:
+        return np.nan
+    m = s1 / n
+    v = s2 / n - m * m
+    if v <= 1e-12:
+        return np.nan
+    m4 = s4 / n - 4 * m * s3 / n + 6 * m * m * s2 / n - 3 * m ** 4
+    return m4 / (v * v)
+
+
+@njit(cache=True)
+def _pooled_var(mom, k):
+    n = mom[k, 0] + mom[k + 1, 0]
+    if n <= 0:
+        return np.inf
+    acc = 0.0
+    for h in (k, k + 1):
+        if mom[h, 0] > 0:
+            acc += mom[h, 2] - mom[h, 1] * mom[h, 1] / mom[h, 0]
+    return acc / n
+
+
+@njit(cache=True)
+def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, min_h, edge_w, ring_w,
+                  shadow_w, flood_tol, flood_spread, grad_gate, out):
+    """Raw object features of every rectangle on one image (see ``F_*``).
+
+    Parameters
+    ----------
+    rects : float64 (n, 5)
+    grey, mag, ori : float32 (H, W); valid : bool (H, W)
+    colour, shadow : uint8 (H, W) or (0, 0) when absent; ndsm : float32 (H, W) or (0, 0)
+    sdx, sdy : shadow direction (cells), ignored without ``shadow``
+    min_h, edge_w, ring_w, shadow_w, flood_tol : float (m, cells, cells, cells, grey levels)
+    flood_spread : a roof half floods cells within max(flood_tol, flood_spread × its own std)
+    grad_gate : below this edge feature (``F_GRADIENT`` or ``F_GRADIENT_SIDES``, whichever is larger) the
+        homogeneity features are not computed (NaN): a caller whose every homogeneity prototype also needs
+        the gradient passes its d_Λ (the object is repulsive anyway), else −inf
+    (the height ring lies between ``edge_w`` and ``edge_w + ring_w`` outside: clear of a stereo DSM's blurred walls)
+    out : float64 (n, N_FEATURES), written (NaN = feature unavailable)
+    """
+    H, W = grey.shape
+    has_c = colour.shape[0] == H
+    has_s = shadow.shape[0] == H
+    has_h = ndsm.shape[0] == H
+    nsh = int(math.ceil(shadow_w))
+    for r in range(rects.shape[0]):
+        cx, cy, eL, el, th = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3], rects[r, 4]
+        c = math.cos(th)
+        s = math.sin(th)
+        hL = 0.5 * eL
+        hl = 0.5 * el
+        pad = max(ring_w, shadow_w, edge_w) + 1.0
+        rad = math.sqrt(hL * hL + hl * hl) + pad
+        i0 = max(int(math.floor(cy - rad)), 0)
+        i1 = min(int(math.ceil(cy + rad)), H - 1)
+        j0 = max(int(math.floor(cx - rad)), 0)
+        j1 = min(int(math.ceil(cx + rad)), W - 1)
+        g_sum = 0.0
+        g_n = 0
+        gs = np.zeros(4)
+        gn = np.zeros(4)
+        n_in = 0
+        n_in_valid = 0
+        col_in = 0.0
+        sh_in = 0.0
+        ra_in = 0.0
+        ra_in_n = 0
+        ring_n = 0
+        col_out = 0.0
+        ra_out = 0.0
+        ra_out_n = 0
+        shr_n = 0
+        shr = 0.0
+        # halves about either axis (v-split: about the e_L axis; u-split: about the e_l axis): grey moments
+        mom = np.zeros((4, 5))
+        x0 = grey[min(max(int(round(cy)), 0), H - 1), min(max(int(round(cx)), 0), W - 1)]
+        for i in range(i0, i1 + 1):
+            ja, jb = _row_span(i, cx, cy, c, s, hL + pad, hl + pad, j0, j1)
+            for j in range(ja, jb + 1):
+                u, v = _uv(i, j, cx, cy, c, s)
+                du = abs(u) - hL
+                dv = abs(v) - hl
+                inside = du <= 0.0 and dv <= 0.0
+                if inside:
+                    dist = min(-du, -dv)
+                    vside = -dv < -du
+                else:
+                    dist = math.sqrt(max(du, 0.0) ** 2 + max(dv, 0.0) ** 2)
+                    vside = dv > du
+                if inside:
+                    n_in += 1
+                if not valid[i, j]:
+                    continue
+                if dist <= edge_w:
+                    d = ori[i, j] - th
+                    w = abs(math.sin(d)) if vside else abs(math.cos(d))
+                    g_sum += mag[i, j] * w
+                    g_n += 1
+                    side = (2 if vside else 0) + (1 if (v if vside else u) < 0.0 else 0)
+                    gs[side] += mag[i, j] * w
+                    gn[side] += 1.0
+                if inside:
+                    n_in_valid += 1
+                    if has_c:
+                        col_in += colour[i, j]
+                    if has_s:
+                        sh_in += 1.0 - shadow[i, j]
+                    if has_h and ndsm[i, j] == ndsm[i, j]:
+                        ra_in_n += 1
+                        if ndsm[i, j] > min_h:
+                            ra_in += 1.0
+                    if dist >= 1.0:
+                        x = grey[i, j] - x0
+                        hv = 1 if v < 0.0 else 0
+                        hu = 3 if u < 0.0 else 2
+                        for h in (hv, hu):
+                            mom[h, 0] += 1.0
+                            mom[h, 1] += x
+                            mom[h, 2] += x * x
+                            mom[h, 3] += x * x * x
+                            mom[h, 4] += x * x * x * x
+                else:
+                    if dist <= ring_w:
+                        ring_n += 1
+                        if has_c:
+                            col_out += 1.0 - colour[i, j]
+                    if has_h and edge_w < dist <= edge_w + ring_w and ndsm[i, j] == ndsm[i, j]:
+                        ra_out_n += 1
+                        if ndsm[i, j] <= min_h:
+                            ra_out += 1.0
+                    if has_s:
+                        hit = False
+                        for t in range(1, nsh + 1):
+                            tt = min(float(t), shadow_w)
+                            u2, v2 = _uv(i - tt * sdy, j - tt * sdx, cx, cy, c, s)
+                            if abs(u2) <= hL and abs(v2) <= hl:
+                                hit = True
+                                break
+                        if hit:
+                            shr_n += 1
+                            shr += shadow[i, j]
+        out[r, F_GRADIENT] = g_sum / g_n if g_n > 0 else 0.0
+        gmin = np.inf
+        for q in range(4):
+            gmin = min(gmin, gs[q] / gn[q] if gn[q] > 0 else 0.0)
+        out[r, F_GRADIENT_SIDES] = gmin
+        if max(out[r, F_GRADIENT], gmin) < grad_gate:
+            out[r, F_KURTOSIS] = np.nan
+            out[r, F_COMPLETE] = np.nan
+        else:
+            _homogeneity(grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spread, mom, x0, i0, i1, j0,
+                         j1, out[r])
+        nv = max(n_in_valid, 1)
+        out[r, F_COLOUR_IN] = col_in / nv if has_c else np.nan
+        out[r, F_COLOUR_OUT] = (col_out / ring_n if ring_n > 0 else 0.0) if has_c else np.nan
+        out[r, F_SHADOW_IN] = sh_in / nv if has_s else np.nan
+        out[r, F_SHADOW_OUT] = (shr / shr_n if shr_n > 0 else 0.0) if has_s else np.nan
+        out[r, F_RAISED_IN] = (ra_in / ra_in_n if ra_in_n > 0 else 0.0) if has_h else np.nan
+        out[r, F_RAISED_OUT] = (ra_out / ra_out_n if ra_out_n > 0 else 0.0) if has_h else np.nan
+        out[r, F_VALID] = n_in_valid / n_in if n_in > 0 else 0.0
+        out[r, F_AREA] = n_in
+
+
+@njit(cache=True)
+def _homogeneity(grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spread, mom, x0, i0, i1, j0, j1, out):
+    """Kurtosis of the roof halves about the symmetry axis and flood-fill completeness → out[F_KURTOSIS, F_COMPLETE]."""
+    # the symmetry axis: the split whose halves are the more homogeneous (least pooled variance)
+    split_v = _pooled_var(mom, 0) <= _pooled_var(mom, 2)
+    if not split_v:
+        mom[0] = mom[2]
+        mom[1] = mom[3]
+    k0 = _kurt(mom[0, 0], mom[0, 1], mom[0, 2], mom[0, 3], mom[0, 4])
+    k1 = _kurt(mom[1, 0], mom[1, 1], mom[1, 2], mom[1, 3], mom[1, 4])
+    out[F_KURTOSIS] = min(k0, k1) if (k0 == k0 and k1 == k1) else np.nan
+    out[F_COMPLETE] = _completeness(grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spread, mom, x0,
+                                    split_v, i0, i1, j0, j1)
+
+
+@njit(cache=True)
+def _completeness(grey, valid, cx, cy, c, s, hL, hl, ring_w, tol, spread, mom, x0, split_v, i0, i1, j0, j1):
+    """1 − leak of the flood fill from the roof halves into the end (NH) and side (NV) neighbourhoods.
+
+    A half fills the 4-connected cells within ``max(tol, spread × the half's own standard deviation)`` of its
+    mean grey level: a textured surface (grass, asphalt) floods wide and leaks; a roof stops at its edges."""
+    h = i1 - i0 + 1
+    w = j1 - j0 + 1
+    filled = np.zeros((h, w), np.uint8)
+    seen = np.zeros((h, w), np.uint8)
+    stack_i = np.empty(h * w, np.int64)
+    stack_j = np.empty(h * w, np.int64)
+    for half in range(2):
+        if mom[half, 0] < 3:
+            continue
+        ref = mom[half, 1] / mom[half, 0] + x0
+        var = mom[half, 2] / mom[half, 0] - (mom[half, 1] / mom[half, 0]) ** 2
+        tol_h = max(tol, spread * math.sqrt(max(var, 0.0)))
+        seen[:, :] = 0
+        top = 0
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                u, v = _uv(i, j, cx, cy, c, s)
+                if abs(u) <= hL - 1.0 and abs(v) <= hl - 1.0 and valid[i, j]:
+                    hh = (1 if v < 0.0 else 0) if split_v else (1 if u < 0.0 else 0)
+                    if hh == half and abs(grey[i, j] - ref) <= tol_h and seen[i - i0, j - j0] == 0:
+                        seen[i - i0, j - j0] = 1
+                        stack_i[top] = i
+                        stack_j[top] = j
+                        top += 1
+        while top > 0:
+            top -= 1
+            i = stack_i[top]
+            j = stack_j[top]
+            for k in range(4):
+                ii = i + (1 if k == 0 else (-1 if k == 1 else 0))
+                jj = j + (1 if k == 2 else (-1 if k == 3 else 0))
+                if ii < i0 or ii > i1 or jj < j0 or jj > j1:
+                    continue
+                if seen[ii - i0, jj - j0] or not valid[ii, jj]:
+                    continue
+                u, v = _uv(ii, jj, cx, cy, c, s)
+                if abs(u) > hL + ring_w or abs(v) > hl + ring_w:
+                    continue
+                if abs(grey[ii, jj] - ref) <= tol_h:
+                    seen[ii - i0, jj - j0] = 1
+                    stack_i[top] = ii
+                    stack_j[top] = jj
+                    top += 1
+        for i in range(h):
+            for j in range(w):
+                if seen[i, j]:
+                    filled[i, j] = 1
+    nh = 0
+    fh = 0
+    nv = 0
+    fv = 0
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            u, v = _uv(i, j, cx, cy, c, s)
+            au = abs(u)
+            av = abs(v)
+            if hL < au <= hL + ring_w and av <= hl:
+                nh += 1
+                fh += filled[i - i0, j - j0]
+            elif hl < av <= hl + ring_w and au <= hL:
+                nv += 1
+                fv += filled[i - i0, j - j0]
+    leak = 0.0
+    if nh > 0:
+        leak = max(leak, fh / nh)
+    if nv > 0:
+        leak = max(leak, fv / nv)
+    return 1.0 - leak
+
+
+@njit(cache=True)
+def rect_means(rects, field, out):
+    """Mean of ``field`` (float32 (H, W), NaN skipped) over each rectangle's cells; NaN when none."""
+    H, W = field.shape
+    for r in range(rects.shape[0]):
+        cx, cy, eL, el, th = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3], rects[r, 4]
+        c = math.cos(th)
+        s = math.sin(th)
+        hL = 0.5 * eL
+        hl = 0.5 * el
+        rad = math.sqrt(hL * hL + hl * hl) + 1.0
+        acc = 0.0
+        n = 0
+        for i in range(max(int(math.floor(cy - rad)), 0), min(int(math.ceil(cy + rad)), H - 1) + 1):
+            for j in range(max(int(math.floor(cx - rad)), 0), min(int(math.ceil(cx + rad)), W - 1) + 1):
+                u, v = _uv(i, j, cx, cy, c, s)
+                if abs(u) <= hL and abs(v) <= hl:
+                    x = field[i, j]
+                    if x == x:
+                        acc += x
+                        n += 1
+        out[r] = acc / n if n > 0 else np.nan
+
+
+@njit(cache=True)
+def pair_overlaps(rects, pi, pj, areas, H, W, out):
+    """I(u, v) = #(R_u ∩ R_v) / #(R_u ∪ R_v) in cells of the (H, W) grid, for the pairs (pi[k], pj[k]);
+    ``areas`` are the rectangles' cell counts on the grid (``F_AREA``)."""
+    for k in range(pi.shape[0]):
+        a = pi[k]
+        b = pj[k]
+        ca, sa = math.cos(rects[a, 4]), math.sin(rects[a, 4])
+        cb, sb = math.cos(rects[b, 4]), math.sin(rects[b, 4])
+        ra = math.sqrt(rects[a, 2] ** 2 + rects[a, 3] ** 2) * 0.5 + 1.0
+        rb = math.sqrt(rects[b, 2] ** 2 + rects[b, 3] ** 2) * 0.5 + 1.0
+        i0 = max(int(math.floor(max(rects[a, 1] - ra, rects[b, 1] - rb))), 0)
+        i1 = min(int(math.ceil(min(rects[a, 1] + ra, rects[b, 1] + rb))), H - 1)
+        j0 = max(int(math.floor(max(rects[a, 0] - ra, rects[b, 0] - rb))), 0)
+        j1 = min(int(math.ceil(min(rects[a, 0] + ra, rects[b, 0] + rb))), W - 1)
+        inter = 0
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                u, v = _uv(i, j, rects[a, 0], rects[a, 1], ca, sa)
+                if abs(u) <= 0.5 * rects[a, 2] and abs(v) <= 0.5 * rects[a, 3]:
+                    u, v = _uv(i, j, rects[b, 0], rects[b, 1], cb, sb)
+                    if abs(u) <= 0.5 * rects[b, 2] and abs(v) <= 0.5 * rects[b, 3]:
+                        inter += 1
+        uni = areas[a] + areas[b] - inter
+        out[k] = inter / uni if uni > 0 else 0.0
+
+
+@njit(cache=True)
+def death_pass(order, indptr, nbr, w, energy, alive, beta, delta, gamma, rand):
+    """One death step of multiple birth and death: visit ``order``; for each live object u,
+    ΔΦ = Φ(ω \\ {u}) − Φ(ω) = −A_D(u) − γ Σ_{v ~ u, alive} I(u, v); remove it with probability
+    δa / (1 + δa), a = exp(−β ΔΦ), using ``rand[u]``. ``alive`` is updated in place."""
+    for k in range(order.shape[0]):
+        u = order[k]
+        if not alive[u]:
+            continue
+        inter = 0.0
+        for p in range(indptr[u], indptr[u + 1]):
+            if alive[nbr[p]]:
+                inter += w[p]
+        dphi = -energy[u] - gamma * inter
+        x = beta * dphi - math.log(delta)          # δa = exp(−x)
+        if x > 700.0:
+            d = 0.0
+        elif x < -700.0:
+            d = 1.0
+        else:
+            d = 1.0 / (1.0 + math.exp(x))
+        if rand[u] < d:
+            alive[u] = False
+
+
+# ---------------------------------------------------------------------------------------------
+# numpy references
+# ---------------------------------------------------------------------------------------------
+def _rect_grid(rect, shape, pad):
+    cx, cy, eL, el, th = rect
+    H, W = shape
+    rad = np.hypot(eL / 2, el / 2) + pad
+    i0, i1 = max(int(np.floor(cy - rad)), 0), min(int(np.ceil(cy + rad)), H - 1)
+    j0, j1 = max(int(np.floor(cx - rad)), 0), min(int(np.ceil(cx + rad)), W - 1)
+    ii, jj = np.mgrid[i0:i1 + 1, j0:j1 + 1].astype(np.float64)
+    c, s = np.cos(th), np.sin(th)
+    dx, dy = jj - cx, ii - cy
+    return (slice(i0, i1 + 1), slice(j0, j1 + 1)), dx * c - dy * s, dx * s + dy * c, (i0, i1, j0, j1)
+
+
+def _kurt_ref(x):
+    if x.size < 5:
+        return np.nan
+    m = x.mean()
+    v = np.mean((x - m) ** 2)
+    if v <= 1e-12:
+        return np.nan
+    return float(np.mean((x - m) ** 4) / v ** 2)
+
+
+def rect_features_ref(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, min_h, edge_w, ring_w,
+                      shadow_w, flood_tol, flood_spread, grad_gate=-np.inf) -> np.ndarray:
+    """numpy reference of :func:`rect_features`."""
+    from scipy import ndimage
+
+    H, W = grey.shape
+    has_c, has_s, has_h = colour.shape[0] == H, shadow.shape[0] == H, ndsm.shape[0] == H
+    out = np.full((rects.shape[0], N_FEATURES), np.nan)
+    for r, rect in enumerate(rects):
+        eL, el, th = rect[2], rect[3], rect[4]
+        hL, hl = eL / 2, el / 2
+        sl, u, v, (i0, i1, j0, j1) = _rect_grid(rect, (H, W), max(ring_w, shadow_w, edge_w) + 1.0)
+        du, dv = np.abs(u) - hL, np.abs(v) - hl
+        inside = (du <= 0) & (dv <= 0)
+        dist = np.where(inside, np.minimum(-du, -dv), np.hypot(np.maximum(du, 0), np.maximum(dv, 0)))
+        vside = np.where(inside, -dv < -du, dv > du)
+        ok = valid[sl]
+        edge = ok & (dist <= edge_w)
+        d = ori[sl] - th
+        wgt = np.where(vside, np.abs(np.sin(d)), np.abs(np.cos(d)))
+        out[r, F_GRADIENT] = float(np.sum((mag[sl] * wgt)[edge]) / edge.sum()) if edge.any() else 0.0
+        side = np.where(vside, 2 + (v < 0), (u < 0).astype(int))
+        sm = [float(np.sum((mag[sl] * wgt)[edge & (side == q)]) / (edge & (side == q)).sum())
+              if (edge & (side == q)).any() else 0.0 for q in range(4)]
+        out[r, F_GRADIENT_SIDES] = min(sm)
+        inn = inside & ok
+        nv = max(int(inn.sum()), 1)
+        ring = ~inside & ok & (dist <= ring_w)
+        core = inn & (dist >= 1.0)
+        g = grey[sl].astype(np.float64)
+
+        def pooled(h):
+            n = core.sum()
+            return sum(((g[core & (h == x)] - g[core & (h == x)].mean()) ** 2).sum()
+                       for x in (False, True) if (core & (h == x)).any()) / n if n else np.inf
+
+        half = (v < 0) if pooled(v < 0) <= pooled(u < 0) else (u < 0)
+        ks = [_kurt_ref(g[core & (half == h)]) for h in (False, True)]
+        out[r, F_KURTOSIS] = min(ks) if np.all(np.isfinite(ks)) else np.nan
+        # flood fill: 4-connected components of in-tolerance cells inside the dilated box, seeded from the halves
+        box = (np.abs(u) <= hL + ring_w) & (np.abs(v) <= hl + ring_w) & ok
+        seedzone = (np.abs(u) <= hL - 1) & (np.abs(v) <= hl - 1) & ok
+        filled = np.zeros(u.shape, bool)
+        for h in (False, True):
+            sel = core & (half == h)
+            if sel.sum() < 3:
+                continue
+            ref = g[sel].mean()
+            tol = max(flood_tol, flood_spread * g[sel].std())
+            cand = box & (np.abs(g - ref) <= tol)
+            seeds = seedzone & (half == h) & (np.abs(g - ref) <= tol)
+            lab, _ = ndimage.label(cand)
+            ids = np.unique(lab[seeds])
+            filled |= np.isin(lab, ids[ids > 0])
+        au, av = np.abs(u), np.abs(v)
+        nh_m = (au > hL) & (au <= hL + ring_w) & (av <= hl)
+        nv_m = (av > hl) & (av <= hl + ring_w) & (au <= hL) & ~nh_m
+        leak = 0.0
+        if nh_m.any():
+            leak = max(leak, filled[nh_m].sum() / nh_m.sum())
+        if nv_m.any():
+            leak = max(leak, filled[nv_m].sum() / nv_m.sum())
+        out[r, F_COMPLETE] = 1.0 - leak
+        if max(out[r, F_GRADIENT], out[r, F_GRADIENT_SIDES]) < grad_gate:
+            out[r, F_KURTOSIS] = out[r, F_COMPLETE] = np.nan
+        if has_c:
+            cc = colour[sl].astype(np.float64)
+            out[r, F_COLOUR_IN] = cc[inn].sum() / nv
+            out[r, F_COLOUR_OUT] = (1 - cc[ring]).mean() if ring.any() else 0.0
+        if has_s:
+            sh = shadow[sl].astype(np.float64)
+            out[r, F_SHADOW_IN] = (1 - sh[inn]).sum() / nv
+            ii, jj = np.mgrid[i0:i1 + 1, j0:j1 + 1].astype(np.float64)
+            hit = np.zeros(u.shape, bool)
+            c, s = np.cos(th), np.sin(th)
+            for t in range(1, int(np.ceil(shadow_w)) + 1):
+                tt = min(float(t), shadow_w)
+                dx, dy = jj - tt * sdx - rect[0], ii - tt * sdy - rect[1]
+                hit |= (np.abs(dx * c - dy * s) <= hL) & (np.abs(dx * s + dy * c) <= hl)
+            shr = ~inside & ok & hit
+            out[r, F_SHADOW_OUT] = sh[shr].mean() if shr.any() else 0.0
+        if has_h:
+            nd = ndsm[sl]
+            fin = inn & np.isfinite(nd)
+            fout = ~inside & ok & (dist > edge_w) & (dist <= edge_w + ring_w) & np.isfinite(nd)
+            out[r, F_RAISED_IN] = (nd[fin] > min_h).mean() if fin.any() else 0.0
+            out[r, F_RAISED_OUT] = (nd[fout] <= min_h).mean() if fout.any() else 0.0
+        out[r, F_VALID] = inn.sum() / inside.sum() if inside.any() else 0.0
+        out[r, F_AREA] = inside.sum()
+    return out
+
+
+def rect_mask_ref(rect, shape) -> np.ndarray:
+    """bool (H, W): the cells of one rectangle."""
+    H, W = shape
+    ii, jj = np.mgrid[0:H, 0:W].astype(np.float64)
+    c, s = np.cos(rect[4]), np.sin(rect[4])
+    dx, dy = jj - rect[0], ii - rect[1]
+    return (np.abs(dx * c - dy * s) <= rect[2] / 2) & (np.abs(dx * s + dy * c) <= rect[3] / 2)
+
+
+def pair_overlaps_ref(rects, pi, pj, shape) -> np.ndarray:
+    """numpy reference of :func:`pair_overlaps` on a grid of ``shape``."""
+    out = np.zeros(len(pi))
+    for k, (a, b) in enumerate(zip(pi, pj)):
+        ma, mb = rect_mask_ref(rects[a], shape), rect_mask_ref(rects[b], shape)
+        uni = (ma | mb).sum()
+        out[k] = (ma & mb).sum() / uni if uni else 0.0
+    return out
+
+
+def death_pass_ref(order, indptr, nbr, w, energy, alive, beta, delta, gamma, rand) -> np.ndarray:
+    """numpy reference of :func:`death_pass` → the updated ``alive`` (a copy)."""
+    alive = alive.copy()
+    for u in order:
+        if not alive[u]:
+            continue
+        nb = nbr[indptr[u]:indptr[u + 1]]
+        dphi = -energy[u] - gamma * float(np.sum(w[indptr[u]:indptr[u + 1]][alive[nb]]))
+        x = beta * dphi - np.log(delta)
+        d = 0.0 if x > 700 else (1.0 if x < -700 else 1.0 / (1.0 + np.exp(x)))
+        if rand[u] < d:
+            alive[u] = False
+    return alive
+
+
+@njit(cache=True)
+def snap_rects(rects, mag, ori, thresh, smin, smax):
+    """Move each rectangle's four sides onto the nearest strong edges seen from its centre (in place).
+
+    From the centre, march along ±(e_L axis) and ±(e_l axis) one cell at a time up to ``smax`` cells; the
+    first cell whose gradient component along the march direction reaches ``thresh`` is an edge. A side
+    with an edge on both ways is re-centred between them and sized to their distance (clipped to
+    [smin, smax]); an axis without both edges keeps its size. Returns the number of rectangles changed.
+    """
+    H, W = mag.shape
+    changed = 0
+    for r in range(rects.shape[0]):
+        cx, cy, th = rects[r, 0], rects[r, 1], rects[r, 4]
+        c = math.cos(th)
+        s = math.sin(th)
+        hit = False
+        # axis 0: e_L along (c, −s) in (col, row); axis 1: e_l along (s, c)
+        for ax in range(2):
+            dc = c if ax == 0 else s
+            dr = -s if ax == 0 else c
+            ang = th if ax == 0 else th + 0.5 * math.pi       # map-sense direction of the march
+            ends = np.zeros(2)
+            found = 0
+            for k in range(2):
+                sg = 1.0 if k == 0 else -1.0
+                t = 1.0
+                while t <= smax:
+                    j = int(round(cx + sg * t * dc))
+                    i = int(round(cy + sg * t * dr))
+                    if i < 0 or j < 0 or i >= H or j >= W:
+                        break
+                    if mag[i, j] * abs(math.cos(ori[i, j] - ang)) >= thresh:
+                        ends[k] = sg * t
+                        found += 1
+                        break
+                    t += 1.0
+            if found == 2:
+                size = ends[0] - ends[1]
+                if smin <= size <= smax:
+                    mid = 0.5 * (ends[0] + ends[1])
+                    cx += mid * dc
+                    cy += mid * dr
+                    rects[r, 2 + ax] = size
+                    hit = True
+        if hit:
+            rects[r, 0] = cx
+            rects[r, 1] = cy
+            changed += 1
+    return changed
+
+
+def snap_rects_ref(rects, mag, ori, thresh, smin, smax) -> np.ndarray:
+    """numpy reference of :func:`snap_rects` (returns a snapped copy)."""
+    out = rects.copy()
+    H, W = mag.shape
+    for r in range(out.shape[0]):
+        cx, cy, th = out[r, 0], out[r, 1], out[r, 4]
+        c, s = np.cos(th), np.sin(th)
+        for ax in range(2):
+            d = np.array([c, -s]) if ax == 0 else np.array([s, c])
+            ang = th if ax == 0 else th + np.pi / 2
+            ends = []
+            for sg in (1.0, -1.0):
+                t = np.arange(1.0, np.floor(smax) + 1.0)
+                j = np.round(cx + sg * t * d[0]).astype(int)
+                i = np.round(cy + sg * t * d[1]).astype(int)
+                inside = (i >= 0) & (j >= 0) & (i < H) & (j < W)
+                stop = np.argmin(inside) if not inside.all() else t.size
+                i, j, t = i[:stop], j[:stop], t[:stop]
+                e = mag[i, j] * np.abs(np.cos(ori[i, j] - ang)) >= thresh
+                if e.any():
+                    ends.append(sg * t[np.argmax(e)])
+            if len(ends) == 2 and smin <= ends[0] - ends[1] <= smax:
+                mid = 0.5 * (ends[0] + ends[1])
+                cx, cy = cx + mid * d[0], cy + mid * d[1]
+                out[r, 2 + ax] = ends[0] - ends[1]
+        out[r, 0], out[r, 1] = cx, cy
+    return out
+
+
+@njit(cache=True)
+def snap_rects_height(rects, ndsm, min_h, smin, smax):
+    """Like :func:`snap_rects` on a height map: from a raised centre (``ndsm > min_h``), each side moves to
+    where the surface first drops to half the centre's height (at least ``min_h``; the half-height crossing
+    locates a wall that stereo blurs over a few cells) or has no height, along its axis. Rectangles born on
+    low ground are left as they are. Returns the number changed."""
+    H, W = ndsm.shape
+    changed = 0
+    for r in range(rects.shape[0]):
+        cx, cy, th = rects[r, 0], rects[r, 1], rects[r, 4]
+        i0 = int(round(cy))
+        j0 = int(round(cx))
+        if i0 < 0 or j0 < 0 or i0 >= H or j0 >= W or not ndsm[i0, j0] > min_h:
+            continue
+        level = max(min_h, 0.5 * ndsm[i0, j0])
+        c = math.cos(th)
+        s = math.sin(th)
+        hit = False
+        for ax in range(2):
+            dc = c if ax == 0 else s
+            dr = -s if ax == 0 else c
+            ends = np.zeros(2)
+            found = 0
+            for k in range(2):
+                sg = 1.0 if k == 0 else -1.0
+                t = 1.0
+                while t <= smax:
+                    j = int(round(cx + sg * t * dc))
+                    i = int(round(cy + sg * t * dr))
+                    if i < 0 or j < 0 or i >= H or j >= W:
+                        break
+                    if not ndsm[i, j] > level:
+                        ends[k] = sg * (t - 0.5)
+                        found += 1
+                        break
+                    t += 1.0
+            if found == 2:
+                size = ends[0] - ends[1]
+                if smin <= size <= smax:
+                    mid = 0.5 * (ends[0] + ends[1])
+                    cx += mid * dc
+                    cy += mid * dr
+                    rects[r, 2 + ax] = size
+                    hit = True
+        if hit:
+            rects[r, 0] = cx
+            rects[r, 1] = cy
+            changed += 1
+    return changed
+
+
+def snap_rects_height_ref(rects, ndsm, min_h, smin, smax) -> np.ndarray:
+    """numpy reference of :func:`snap_rects_height` (returns a snapped copy)."""
+    out = rects.copy()
+    H, W = ndsm.shape
+    for r in range(out.shape[0]):
+        cx, cy, th = out[r, 0], out[r, 1], out[r, 4]
+        i0, j0 = int(np.round(cy)), int(np.round(cx))
+        if not (0 <= i0 < H and 0 <= j0 < W) or not ndsm[i0, j0] > min_h:
+            continue
+        level = max(min_h, 0.5 * ndsm[i0, j0])
+        c, s = np.cos(th), np.sin(th)
+        for ax in range(2):
+            d = np.array([c, -s]) if ax == 0 else np.array([s, c])
+            ends = []
+            for sg in (1.0, -1.0):
+                t = np.arange(1.0, np.floor(smax) + 1.0)
+                j = np.round(cx + sg * t * d[0]).astype(int)
+                i = np.round(cy + sg * t * d[1]).astype(int)
+                inside = (i >= 0) & (j >= 0) & (i < H) & (j < W)
+                stop = np.argmin(inside) if not inside.all() else t.size
+                i, j, t = i[:stop], j[:stop], t[:stop]
+                with np.errstate(invalid="ignore"):
+                    low = ~(ndsm[i, j] > level)
+                if low.any():
+                    ends.append(sg * (t[np.argmax(low)] - 0.5))
+            if len(ends) == 2 and smin <= ends[0] - ends[1] <= smax:
+                mid = 0.5 * (ends[0] + ends[1])
+                cx, cy = cx + mid * d[0], cy + mid * d[1]
+                out[r, 2 + ax] = ends[0] - ends[1]
+        out[r, 0], out[r, 1] = cx, cy
+    return out
+
+
+@njit(cache=True)
+def refine_sides(rects, mag, ori, reach, n_along):
+    """Move each side of each rectangle (in place), within ±``reach`` cells of where it is, to the offset
+    where the mean gradient across the side (``mag · |cos(ori − normal)|`` at ``n_along`` points along its
+    middle 80 %, nearest cell) is strongest: a height map's blurred walls put the sides within a few cells,
+    the image's edges put them on the walls. Half-cell steps; sizes stay ≥ 2 cells."""
+    H, W = mag.shape
+    nsteps = int(2 * reach / 0.5) + 1
+    for r in range(rects.shape[0]):
+        cx, cy, eL, el, th = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3], rects[r, 4]
+        c = math.cos(th)
+        s = math.sin(th)
+        # side k: 0 = +u end, 1 = −u end (normal along the e_L axis), 2 = +v, 3 = −v (normal along e_l)
+        pos = np.array([0.5 * eL, -0.5 * eL, 0.5 * el, -0.5 * el])
+        for k in range(4):
+            if k < 2:
+                nc, nr, tc, tr, half_len, ang = c, -s, s, c, 0.5 * el, th
+            else:
+                nc, nr, tc, tr, half_len, ang = s, c, c, -s, 0.5 * eL, th + 0.5 * math.pi
+            best = -1.0
+            best_d = 0.0
+            for q in range(nsteps):
+                d = -reach + 0.5 * q
+                p = pos[k] + d
+                acc = 0.0
+                cnt = 0
+                for a in range(n_along):
+                    f = -0.8 + 1.6 * a / max(n_along - 1, 1)
+                    x = cx + p * nc + f * half_len * tc
+                    y = cy + p * nr + f * half_len * tr
+                    j = int(round(x))
+                    i = int(round(y))
+                    if 0 <= i < H and 0 <= j < W:
+                        acc += mag[i, j] * abs(math.cos(ori[i, j] - ang))
+                        cnt += 1
+                if cnt > 0 and acc / cnt > best + 1e-12:
+                    best = acc / cnt
+                    best_d = d
+            pos[k] += best_d
+        if pos[0] - pos[1] >= 2.0 and pos[2] - pos[3] >= 2.0:
+            mu = 0.5 * (pos[0] + pos[1])
+            mv = 0.5 * (pos[2] + pos[3])
+            rects[r, 0] = cx + mu * c + mv * s
+            rects[r, 1] = cy - mu * s + mv * c
+            rects[r, 2] = pos[0] - pos[1]
+            rects[r, 3] = pos[2] - pos[3]
+
+
+def refine_sides_ref(rects, mag, ori, reach, n_along) -> np.ndarray:
+    """numpy reference of :func:`refine_sides` (returns a refined copy)."""
+    out = rects.copy()
+    H, W = mag.shape
+    offs = -reach + 0.5 * np.arange(int(2 * reach / 0.5) + 1)
+    f = -0.8 + 1.6 * np.arange(n_along) / max(n_along - 1, 1)
+    for r in range(out.shape[0]):
+        cx, cy, eL, el, th = out[r]
+        c, s = np.cos(th), np.sin(th)
+        pos = np.array([0.5 * eL, -0.5 * eL, 0.5 * el, -0.5 * el])
+        for k in range(4):
+            if k < 2:
+                n_, t_, half_len, ang = (c, -s), (s, c), 0.5 * el, th
+            else:
+                n_, t_, half_len, ang = (s, c), (c, -s), 0.5 * eL, th + np.pi / 2
+            scores = []
+            for d in offs:
+                p = pos[k] + d
+                j = np.round(cx + p * n_[0] + f * half_len * t_[0]).astype(int)
+                i = np.round(cy + p * n_[1] + f * half_len * t_[1]).astype(int)
+                ok = (i >= 0) & (i < H) & (j >= 0) & (j < W)
+                scores.append(np.mean(mag[i[ok], j[ok]] * np.abs(np.cos(ori[i[ok], j[ok]] - ang))) if ok.any() else -np.inf)
+            scores = np.array(scores)
+            best, best_d = -1.0, 0.0
+            for d, sc in zip(offs, scores):
+                if np.isfinite(sc) and sc > best + 1e-12:
+                    best, best_d = sc, d
+            pos[k] += best_d
+        if pos[0] - pos[1] >= 2.0 and pos[2] - pos[3] >= 2.0:
+            mu, mv = 0.5 * (pos[0] + pos[1]), 0.5 * (pos[2] + pos[3])
+            out[r, 0], out[r, 1] = cx + mu * c + mv * s, cy - mu * s + mv * c
+            out[r, 2], out[r, 3] = pos[0] - pos[1], pos[2] - pos[3]
+    return out

@@ -1,0 +1,303 @@
+"""Low-level features of one image (paper §3.1–3.2): gradients, orientation statistics, birth maps,
+roof colour and shadow masks, heights; and the texture similarity of two dates.
+
+Angles: a gradient's orientation ϑ and a rectangle's θ are measured in the map sense (counter-clockwise
+from the grid's +column axis, with +row pointing south), folded into [−90°, 90°).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from ..errors import ConfigError, EmptyDataError
+from ..stereo.photometry import estimate_noise_sigma
+from .params import MPPParams
+
+
+@dataclass
+class ImageFeatures:
+    """Everything the energy and the birth process read from one image (arrays (rows, cols) on the grid).
+
+    Attributes
+    ----------
+    grey : float32, grey level (mean of the bands), invalid cells filled with the median
+    valid : bool
+    grad_mag : float32, |∇grey| per cell
+    grad_ori : float32, gradient orientation (radians, [−π/2, π/2))
+    density : float32 (bins, rows, cols), magnitude-weighted orientation density λ_s (sums to 1 over bins)
+    alpha, mode_deg : float32, bimodal fit α_s and dominant orientation m_s (degrees, [−90, 0))
+    birth : float32, relative birth intensity (mean 1 over the valid cells)
+    colour_mask, shadow_mask : uint8 or None (grey images have neither)
+    shadow_dir : (dcol, drow) unit vector from a building towards its shadow, or None
+    ndsm : float32 height above ground (m) or None
+    noise_sigma : float, grey-level noise σ
+    edge_level : float, the top-decile gradient magnitude (what a strong edge is, for snapping births)
+    notes : list of str
+    """
+
+    grey: np.ndarray
+    valid: np.ndarray
+    grad_mag: np.ndarray
+    grad_ori: np.ndarray
+    density: np.ndarray
+    alpha: np.ndarray
+    mode_deg: np.ndarray
+    birth: np.ndarray
+    colour_mask: np.ndarray | None = None
+    shadow_mask: np.ndarray | None = None
+    shadow_dir: tuple[float, float] | None = None
+    ndsm: np.ndarray | None = None
+    noise_sigma: float = 1.0
+    edge_level: float = 0.0
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def is_colour(self) -> bool:
+        return self.colour_mask is not None
+
+
+def _bands(image: np.ndarray) -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3:
+        raise ConfigError(f"an image must be (rows, cols) or (bands, rows, cols), got shape {a.shape}")
+    return a.astype(np.float32)
+
+
+def orientation_density(grad_mag: np.ndarray, grad_ori: np.ndarray, valid: np.ndarray, window_cells: int,
+                        bins: int, kernel_deg: float) -> np.ndarray:
+    """λ_s(ϑ): magnitude-weighted density of gradient orientations over the l×l window around each cell.
+
+    Uniform kernel of half-width ``kernel_deg`` in orientation (circular over 180°), uniform window in
+    space. Cells whose window holds no gradient get the uniform density.
+    """
+    step = 180.0 / bins
+    k = np.floor((np.degrees(grad_ori) + 90.0) / step).astype(np.int64) % bins
+    w = np.where(valid, grad_mag, 0.0).astype(np.float32)
+    half = int(round(kernel_deg / step))
+    dens = np.zeros((bins,) + grad_mag.shape, np.float32)
+    for b in range(bins):
+        m = np.where(k == b, w, 0.0)
+        if not m.any():
+            continue
+        for o in range(-half, half + 1):
+            dens[(b + o) % bins] += m
+    for b in range(bins):
+        dens[b] = ndimage.uniform_filter(dens[b], size=window_cells, mode="constant")
+    tot = dens.sum(axis=0)
+    ok = tot > 1e-12 * max(float(tot.max()), 1e-30)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dens = np.where(ok[None], dens / np.where(ok, tot, 1.0)[None], 1.0 / bins).astype(np.float32)
+    return dens
+
+
+def bimodal_fit(density: np.ndarray, spread_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """α_s = max over m ∈ [−90°, 0) of ∫ λ_s η₂(·, m, d_λ), and the maximising m_s (degrees).
+
+    η₂ is the mixture of two Gaussians (spread d_λ) at m and m + 90°, periodic over 180°.
+    """
+    bins = density.shape[0]
+    step = 180.0 / bins
+    d = (np.arange(bins) * step + 90.0) % 180.0 - 90.0                # signed offsets, periodic
+    g = np.exp(-0.5 * (d / spread_deg) ** 2)
+    g /= g.sum() * step                                              # density per degree
+    # circular correlation along the orientation axis: c[m] = Σ_j λ_j g(j − m)
+    F = np.fft.rfft(density, axis=0) * np.conj(np.fft.rfft(g))[:, None, None]
+    c = np.fft.irfft(F, n=bins, axis=0) * step
+    half = bins // 2
+    a2 = 0.5 * (c[:half] + c[half:2 * half])                          # modes at m and m + 90°
+    idx = np.argmax(a2, axis=0)
+    alpha = np.take_along_axis(a2, idx[None], axis=0)[0].astype(np.float32)
+    centres = np.arange(half) * step - 90.0 + 0.5 * step
+    return alpha, centres[idx].astype(np.float32)
+
+
+def colour_masks(bands: np.ndarray, valid: np.ndarray, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Roof-colour mask µ_c (red/terracotta hue, HSV) and shadow mask µ_sh (dark and bluish), paper §3.1.
+
+    Red hue within ±25° of red with saturation ≥ 0.25 and value ≥ 0.15 (of the image's 99th percentile);
+    shadow: darker than half the median grey (shadows get only the diffuse sky light, a fraction of the
+    direct sun) and blue ≥ red (sky light is blue).
+    """
+    r, g, b = (bands[k] for k in range(3))
+    top = float(np.percentile(np.stack([r, g, b])[:, valid], 99)) or 1.0
+    R, G, B = r / top, g / top, b / top
+    mx = np.maximum(np.maximum(R, G), B)
+    mn = np.minimum(np.minimum(R, G), B)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sat = np.where(mx > 0, (mx - mn) / mx, 0.0)
+        hue = np.degrees(np.arctan2(math.sqrt(3) * (G - B), 2 * R - G - B))     # 0 = red
+    mu_c = (np.abs(hue) <= 25.0) & (sat >= 0.25) & (mx >= 0.15) & valid
+    med = float(np.median(grey[valid]))
+    mu_sh = (grey < 0.5 * med) & (b >= r) & valid
+    return mu_c.astype(np.uint8), mu_sh.astype(np.uint8)
+
+
+def shadow_direction(shadow: np.ndarray, alpha: np.ndarray, reach_cells: float, n_dirs: int = 36) -> tuple[float, float] | None:
+    """Direction (dcol, drow) from buildings to their shadows: the one along which shadow cells have the most
+    building-like texture (α) on their sun side, i.e. at ``p − reach · dir``. None when too few shadow cells."""
+    ii, jj = np.nonzero(shadow)
+    if ii.size < 50:
+        return None
+    if ii.size > 20000:
+        sel = np.random.default_rng(0).choice(ii.size, 20000, replace=False)
+        ii, jj = ii[sel], jj[sel]
+    H, W = alpha.shape
+    best, best_dir = -np.inf, None
+    for k in range(n_dirs):
+        a = 2 * math.pi * k / n_dirs
+        dc, dr = math.cos(a), -math.sin(a)
+        js = np.clip(np.round(jj - reach_cells * dc).astype(int), 0, W - 1)
+        is_ = np.clip(np.round(ii - reach_cells * dr).astype(int), 0, H - 1)
+        jo = np.clip(np.round(jj + reach_cells * dc).astype(int), 0, W - 1)
+        io = np.clip(np.round(ii + reach_cells * dr).astype(int), 0, H - 1)
+        s = float(np.mean(alpha[is_, js]) - np.mean(alpha[io, jo]))
+        if s > best:
+            best, best_dir = s, (dc, dr)
+    return best_dir
+
+
+def ground_from_dsm(dsm_m: np.ndarray, width_cells: int) -> np.ndarray:
+    """Terrain under a DSM: grey opening wider than any building (then smoothed) — no building survives it."""
+    d = np.asarray(dsm_m, np.float64)
+    ok = np.isfinite(d)
+    fill = np.where(ok, d, np.nanmedian(d) if ok.any() else 0.0)
+    w = int(width_cells) | 1
+    g = ndimage.grey_opening(fill, size=(w, w), mode="nearest")
+    return ndimage.uniform_filter(g, size=w, mode="nearest")
+
+
+def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPParams(), *,
+                   valid: np.ndarray | None = None, dsm_m: np.ndarray | None = None,
+                   ground_m: np.ndarray | None = None, use_colour: bool = True) -> ImageFeatures:
+    """Features of one orthoimage on the AOI grid.
+
+    Parameters
+    ----------
+    image : (rows, cols) or (bands, rows, cols), any numeric dtype; 3+ bands are read as R, G, B
+    posting_m : grid posting (m)
+    valid : bool (rows, cols), optional (NaN is invalid too)
+    dsm_m, ground_m : optional surface and terrain heights (m) on the grid for the height term; without
+        ``ground_m`` the terrain is a grey opening of the DSM wider than the largest building
+    use_colour : False drops the colour and shadow terms even for a colour image
+    """
+    bands = _bands(image)
+    ok = np.all(np.isfinite(bands), axis=0)
+    if valid is not None:
+        ok &= np.asarray(valid, bool)
+    if not ok.any():
+        raise EmptyDataError("the image has no valid cell on the grid; check the orthoimage and its mask")
+    notes: list[str] = []
+    grey = bands.mean(axis=0)
+    med = float(np.median(grey[ok]))
+    grey = np.where(ok, grey, med).astype(np.float32)
+    sigma = estimate_noise_sigma(np.where(ok, grey, np.nan))
+    if not np.isfinite(sigma) or sigma <= 0:
+        sigma = float(1.4826 * np.median(np.abs(grey[ok] - med))) * 0.01 or 1e-6
+    sm = ndimage.gaussian_filter(grey.astype(np.float64), 1.0)
+    gx = ndimage.sobel(sm, axis=1) / 8.0                    # per cell, towards +col (east)
+    gy = -ndimage.sobel(sm, axis=0) / 8.0                   # towards north
+    mag = np.hypot(gx, gy).astype(np.float32)
+    mag[~ndimage.binary_erosion(ok, iterations=2, border_value=1)] = 0.0   # no edges at nodata borders
+    ori = np.arctan2(gy, gx)
+    ori = ((ori + np.pi / 2) % np.pi - np.pi / 2).astype(np.float32)
+    win = max(3, int(round(params.window / posting_m)) | 1)
+    dens = orientation_density(mag, ori, ok, win, params.orient_bins, params.orient_kernel_deg)
+    has_grad = ndimage.uniform_filter(mag, size=win, mode="constant") > 1e-9
+    alpha, mode = bimodal_fit(dens, params.mode_spread_deg)
+    alpha = np.where(has_grad & ok, alpha, 0.0).astype(np.float32)
+    births = [alpha / max(float(alpha[ok].mean()), 1e-30)]
+    colour = shadow = sdir = None
+    if bands.shape[0] >= 3 and use_colour:
+        colour, shadow = colour_masks(bands, ok, grey)
+        gam = ndimage.uniform_filter(colour.astype(np.float32), size=win, mode="constant")
+        if gam.mean() > 0:
+            births.append(gam / float(gam[ok].mean()))
+        sdir = shadow_direction(shadow, alpha, 0.5 * win)
+        if sdir is not None:
+            near = _beside_shadow(shadow.astype(bool), sdir, 0.5 * win)
+            frac = float(near[ok].mean())
+            if frac > 0:
+                births.append(np.where(near, 1.0 / frac, 0.1).astype(np.float32))
+            notes.append(f"shadows fall towards azimuth {math.degrees(math.atan2(sdir[0], -sdir[1])) % 360:.0f}° "
+                         "(estimated from the image)")
+        else:
+            notes.append("too few shadow cells: shadow term dropped")
+            shadow = None
+    else:
+        notes.append("grey image: colour and shadow terms dropped" if bands.shape[0] < 3 else
+                     "colour and shadow terms switched off")
+    ndsm = None
+    if dsm_m is not None:
+        d = np.asarray(dsm_m, np.float64)
+        if d.shape != grey.shape:
+            raise ConfigError(f"DSM shape {d.shape} does not match the image {grey.shape}; put both on the grid")
+        gr = np.asarray(ground_m, np.float64) if ground_m is not None else \
+            ground_from_dsm(d, 2 * int(math.ceil(params.side_max_m / posting_m)) + 1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ndsm = (d - gr).astype(np.float32)
+        # a median over half the smallest building side removes stereo pits and spikes smaller than any
+        # building (holes stay holes)
+        k = max(3, int(round(0.5 * params.side_min_m / posting_m)) | 1)
+        has = np.isfinite(ndsm)
+        med = ndimage.median_filter(np.where(has, ndsm, 0.0), size=k, mode="nearest")
+        ndsm = np.where(has, med, np.nan).astype(np.float32)
+        raised = ndimage.uniform_filter((np.nan_to_num(ndsm, nan=0.0) > params.min_height_m).astype(np.float32),
+                                        size=max(3, win // 2) | 1, mode="constant")
+        if raised[ok].mean() > 0:
+            births.append(raised / float(raised[ok].mean()))
+    birth = np.max(np.stack(births), axis=0)
+    birth = np.where(ok, birth, 0.0)
+    mb = float(birth[ok].mean())
+    birth = (birth / mb if mb > 0 else birth).astype(np.float32)
+    return ImageFeatures(grey=grey, valid=ok, grad_mag=mag, grad_ori=ori, density=dens, alpha=alpha,
+                         mode_deg=mode, birth=birth, colour_mask=colour, shadow_mask=shadow, shadow_dir=sdir,
+                         ndsm=ndsm, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
+                         notes=notes)
+
+
+def _beside_shadow(shadow: np.ndarray, sdir: tuple[float, float], reach: float) -> np.ndarray:
+    """Cells within ``reach`` of a shadow cell on its sun side (where the casting buildings stand)."""
+    out = np.zeros_like(shadow)
+    n = max(1, int(math.ceil(reach)))
+    for t in range(1, n + 1):
+        out |= ndimage.shift(shadow.astype(np.uint8), (-t * sdir[1], -t * sdir[0]), order=0, mode="constant") > 0
+    return out & ~shadow
+
+
+def otsu_threshold(x: np.ndarray, bins: int = 256) -> float:
+    """Otsu's threshold: the value that best splits ``x`` into two classes (largest between-class variance)."""
+    x = np.asarray(x, np.float64)
+    x = x[np.isfinite(x)]
+    if x.size == 0 or x.max() <= x.min():
+        return float(x.max()) if x.size else 0.0
+    h, e = np.histogram(x, bins)
+    c = 0.5 * (e[1:] + e[:-1])
+    w = np.cumsum(h).astype(np.float64)
+    mu = np.cumsum(h * c)
+    tot = w[-1]
+    m1 = mu / np.maximum(w, 1)
+    m2 = (mu[-1] - mu) / np.maximum(tot - w, 1)
+    return float(e[1:][np.argmax(w * (tot - w) * (m1 - m2) ** 2)])
+
+
+def texture_change(f1: ImageFeatures, f2: ImageFeatures) -> tuple[np.ndarray, np.ndarray, float]:
+    """Bhattacharyya distance b(s) = −log Σ sqrt(λ¹ λ²) of the two dates' orientation densities, the binary
+    similarity B (1 = unchanged texture: b ≤ b0; 0.5 where a date has no data) and b0.
+
+    b0 is Otsu's threshold of b over the cells both images see: the split of the scene into the two most
+    distinct classes of texture difference, assuming no change fraction (floor 1e-3: identical textures)."""
+    bc = np.sum(np.sqrt(np.maximum(f1.density, 0) * np.maximum(f2.density, 0)), axis=0)
+    b = -np.log(np.clip(bc, 1e-12, 1.0)).astype(np.float32)
+    both = f1.valid & f2.valid
+    b0 = max(otsu_threshold(b[both]), 1e-3) if both.any() else 1e-3
+    B = (b <= b0).astype(np.float32)
+    B[~both] = 0.5                                   # no evidence either way
+    return b, B, b0

@@ -1,0 +1,146 @@
+"""Parameters of the multitemporal marked point process (building extraction + change).
+
+Where each default comes from (none was chosen on a scene's truth):
+
+* **Sizes** (metres, converted with the grid posting): rectangle sides 4–30 m — a garage to the wing of
+  a large building (bigger buildings are unions of rectangles, as in the paper); the orientation window
+  ``l`` "just covers an average building" (paper §3.1): the mean of the side bounds.
+* **Data thresholds** are measured on the images, not set: the gradient term's ``d_Λ`` is a quantile of
+  the edge feature over random rectangles of the same image (a building outlines better than most random
+  rectangles do), its scale ``D_Λ`` the spread of the upper tail; the texture-change threshold ``b0`` is
+  the median + 3 NMAD of the Bhattacharyya distance over the pair (most of a scene is unchanged); the
+  flood-fill tolerance is 3 σ of the image noise.
+* **Fractions** (colour, shadow, height fills, flood-fill completeness) are attractive above one half
+  (a majority), and the kurtosis threshold 2.5 separates one mode (Gaussian: 3) from a half-roof that
+  spills over a contrasted border (two modes: ≤ 2.5 for modes ≥ 1 σ apart).
+* **Model weights**: ``gamma_overlap`` makes a duplicate of the best possible object (A_D = −2,
+  IoU = 1) repulsive; ``gamma_change`` weighs the texture-change term like one image term.
+* **Annealing**: the paper's geometric schedules (β up, δ down) with its convergence test and a cap.
+
+``docs/mpp.md`` says on which scenes the few free choices were checked (other generated towns, LEVIR-CD
+pairs) and which figures were measured on scenes used for choosing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..errors import ConfigError
+from ..params import ParamsMixin
+
+#: object-level features an image term can use
+FEATURES = ("gradient", "homogeneity", "colour", "shadow", "height")
+
+
+@dataclass(frozen=True)
+class MPPParams(ParamsMixin):
+    """How to detect buildings and their changes (see the module docstring for the defaults).
+
+    Attributes
+    ----------
+    side_min_m, side_max_m : rectangle side bounds (m)
+    window_m : orientation-statistics window l (m); None = mean of the side bounds
+    orient_bins : orientation bins over 180°
+    orient_kernel_deg : uniform kernel half-width of the orientation density (h)
+    mode_spread_deg : spread d_λ of the bimodal Gaussian mixture
+    sigma_theta_deg : σ_θ of a newborn's orientation around the dominant one
+    edge_width_m : half-width of the dilated edge band of a rectangle
+    ring_m : width of the outer ring T_u (colour, height, flood-fill neighbourhoods)
+    shadow_ring_m : width of the shadow ring on the anti-sun side
+    edge_mode : "mean" (the paper: Λ = mean over the whole edge band) or "sides" (the weakest of the four
+        sides' means: a building is outlined on every side, a road segment on two)
+    gradient_quantile : d_Λ = this quantile of Λ over random rectangles
+    kurtosis_threshold : d_κ
+    flood_spread : flood-fill tolerance of a roof half = max(3 σ_noise, flood_spread × the half's std)
+    min_height_m : a building is raised at least this much above the ground (height term)
+    prototypes : "auto" or features joined by "+" (AND: max of energies) and "|" (OR: min), e.g.
+        "gradient+shadow|colour"; "auto" = gradient+homogeneity for grey images, gradient+shadow|colour for
+        colour images (the paper's Budapest model)
+    height : "off" (the paper) or "and" (beyond the paper, needs DSMs: the height term is required and any
+        image cue confirms it — each image prototype, the gradient alone or the homogeneity alone, AND height)
+    gamma_overlap : γ of the overlap interaction
+    gamma_change : γ_ξ of the texture-change term
+    gamma_3d : weight of the 3-D change prior on ξ (0 = off)
+    births_per_area : expected births per typical building area per step at δ = 1
+    perturb_births : beyond the paper: each step, every live object also gives birth (probability δ) to a
+        slightly perturbed copy of itself (±1 cell, ±2 cells of side, ±3°) that competes with it in the death
+        step — local refinement inside multiple birth and death
+    snap_births : beyond the paper: this share of the births has its sides moved onto the nearest strong edges
+        (top decile of the gradient magnitude) seen from its centre along its axes — or, with the height
+        term, onto the half-height crossings of the height map around a raised centre, each side then moved
+        onto the strongest image edge within ``ring_m``; 0 = the paper's uniform sides
+    beta0, beta_factor, delta0, delta_factor : annealing schedules
+    max_iter, min_iter : iteration cap and floor
+    seed : random seed (same seed, same inputs → same objects)
+    joint : True = joint model (ED); False = each image alone (SD building blocks)
+    """
+
+    _kind = "mpp"
+
+    side_min_m: float = 6.0
+    side_max_m: float = 30.0
+    window_m: float | None = None
+    orient_bins: int = 36
+    orient_kernel_deg: float = 10.0
+    mode_spread_deg: float = 10.0
+    sigma_theta_deg: float = 5.0
+    edge_width_m: float = 1.0
+    ring_m: float = 2.0
+    shadow_ring_m: float = 3.0
+    edge_mode: str = "mean"
+    gradient_quantile: float = 0.9
+    kurtosis_threshold: float = 2.5
+    flood_spread: float = 2.0
+    min_height_m: float = 2.5
+    prototypes: str = "auto"
+    height: str = "off"
+    gamma_overlap: float = 2.5
+    gamma_change: float = 1.0
+    gamma_3d: float = 0.0
+    births_per_area: float = 10.0
+    perturb_births: bool = True
+    snap_births: float = 0.5
+    beta0: float = 10.0
+    beta_factor: float = 1.08
+    delta0: float = 1.0
+    delta_factor: float = 0.98
+    max_iter: int = 250
+    min_iter: int = 80
+    seed: int = 0
+    joint: bool = True
+
+    def __post_init__(self) -> None:
+        if not (0 < self.side_min_m < self.side_max_m):
+            raise ConfigError(f"need 0 < side_min_m < side_max_m, got {self.side_min_m}, {self.side_max_m}")
+        if self.edge_mode not in ("mean", "sides"):
+            raise ConfigError(f"edge_mode must be mean or sides, got {self.edge_mode!r}")
+        if self.height not in ("off", "and"):
+            raise ConfigError(f"height must be off or and, got {self.height!r}")
+        if not (0.5 <= self.gradient_quantile < 1):
+            raise ConfigError(f"gradient_quantile must be in [0.5, 1), got {self.gradient_quantile}")
+        if not (0 < self.delta_factor <= 1 and self.beta_factor >= 1):
+            raise ConfigError("annealing needs delta_factor in (0, 1] and beta_factor ≥ 1")
+        if not 0 <= self.snap_births <= 1:
+            raise ConfigError(f"snap_births must be in [0, 1], got {self.snap_births}")
+        if self.max_iter < 1 or self.min_iter < 0:
+            raise ConfigError("max_iter must be ≥ 1 and min_iter ≥ 0")
+        if self.prototypes != "auto":
+            parse_prototypes(self.prototypes)
+
+    @property
+    def window(self) -> float:
+        return self.window_m if self.window_m is not None else 0.5 * (self.side_min_m + self.side_max_m)
+
+
+def parse_prototypes(text: str) -> list[list[str]]:
+    """"gradient+shadow|colour" → [["gradient", "shadow"], ["colour"]]."""
+    protos = []
+    for part in text.split("|"):
+        feats = [f.strip() for f in part.split("+") if f.strip()]
+        if not feats:
+            raise ConfigError(f"empty prototype in {text!r}")
+        bad = [f for f in feats if f not in FEATURES]
+        if bad:
+            raise ConfigError(f"unknown features {bad} in prototypes {text!r}; known: {FEATURES}")
+        protos.append(feats)
+    return protos

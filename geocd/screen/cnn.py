@@ -1,0 +1,603 @@
+"""CNN pooling-layer grid features from weights the user names on disk (never downloaded).
+
+Two backbone families, with the parameter names of PyTorch's torchvision models so that
+a ``state_dict`` exported from them (or any network built the same way) loads as is:
+
+* **VGG** (``vgg11``, ``vgg13``, ``vgg16``, ``vgg19``, their ``_bn`` variants, or ``vgg``:
+  the layer list read from the file): ``features.<i>.weight`` 3×3 convolutions, padding 1,
+  ReLU, 2×2 max-pooling. Layers ``pool1`` … ``pool5`` (strides 2 … 32), as Sakurada's
+  thesis (ch. 4) uses them.
+* **ResNet** (``resnet18``, ``resnet34``, ``resnet50``, ``resnet101``, or ``resnet``: blocks
+  read from the file): 7×7/2 stem, 3×3/2 max-pool, stages ``layer1`` … ``layer4`` of basic
+  or bottleneck blocks (batch norm folded into the convolutions). Layers ``pool`` (the
+  stem's max-pool, stride 4) and ``layer1`` … ``layer4`` (strides 4, 8, 16, 32).
+
+Weights files: ``.npz`` (one array per ``state_dict`` key: ``np.savez(path, **{k:
+v.numpy() for k, v in model.state_dict().items()})``) — read with numpy alone — or a
+PyTorch ``.pt``/``.pth`` state dict (needs the optional extra ``geocd[cnn]``). A file that
+does not fit the backbone raises :class:`~geocd.errors.WeightsMismatchError` naming the
+first parameter that differs, both shapes, and the backbone the file looks like.
+
+Two forward passes compute the same features: a numpy one (im2col + BLAS, in row
+chunks of bounded memory; always available) and a PyTorch one (``torch`` installed).
+Both take the image as ``(bands, rows, cols)`` float in 0–1; one band is repeated to the
+network's three, more than three keep the first three (RGB), then the ImageNet mean and
+standard deviation are applied (``normalize``) as torchvision's weights expect.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..errors import ConfigError, InputFileNotFoundError, WeightsMismatchError
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+VGG_CFGS: dict[str, list] = {
+    "vgg11": [64, "M", 128, "M", 256, 256, "M", 512, 512, "M", 512, 512, "M"],
+    "vgg13": [64, 64, "M", 128, 128, "M", 256, 256, "M", 512, 512, "M", 512, 512, "M"],
+    "vgg16": [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"],
+    "vgg19": [64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M", 512, 512, 512, 512, "M", 512, 512, 512, 512, "M"],
+}
+RESNET_CFGS: dict[str, tuple[str, list[int]]] = {
+    "resnet18": ("basic", [2, 2, 2, 2]),
+    "resnet34": ("basic", [3, 4, 6, 3]),
+    "resnet50": ("bottleneck", [3, 4, 6, 3]),
+    "resnet101": ("bottleneck", [3, 4, 23, 3]),
+}
+BACKBONES = ("vgg", *VGG_CFGS, *(k + "_bn" for k in VGG_CFGS), "resnet", *RESNET_CFGS)
+BN_EPS = 1e-5
+
+
+# ---------------------------------------------------------------------------------------------
+# weights files
+# ---------------------------------------------------------------------------------------------
+def load_weights(path: str | Path) -> dict[str, np.ndarray]:
+    """A ``state_dict`` as {name: float32 array} from an ``.npz`` or a PyTorch ``.pt``/``.pth`` file."""
+    p = Path(path)
+    if not p.exists():
+        raise InputFileNotFoundError(f"weights file {p} does not exist (geocd never downloads weights: export a "
+                                     "state_dict to .npz or .pt and name it)")
+    if p.suffix.lower() == ".npz":
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                sd = {k: np.asarray(z[k]) for k in z.files}
+        except Exception as exc:  # noqa: BLE001 - any unreadable archive is the same user error
+            raise WeightsMismatchError(f"cannot read the weights archive {p}: {exc}") from exc
+    elif p.suffix.lower() in (".pt", ".pth", ".bin"):
+        try:
+            import torch
+        except ImportError as exc:
+            raise ConfigError(f"{p} is a PyTorch file: install the optional extra (pip install 'geocd[cnn]') or "
+                              "export the state_dict to .npz (np.savez(path, **{k: v.numpy() for k, v in "
+                              "sd.items()}))") from exc
+        try:
+            obj = torch.load(p, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001
+            raise WeightsMismatchError(f"cannot read the PyTorch weights {p}: {exc}") from exc
+        for k in ("state_dict", "model", "model_state_dict"):
+            if isinstance(obj, Mapping) and k in obj and isinstance(obj[k], Mapping):
+                obj = obj[k]
+        if not isinstance(obj, Mapping):
+            raise WeightsMismatchError(f"{p} holds a {type(obj).__name__}, not a state_dict; save "
+                                       "model.state_dict() instead of the model")
+        sd = {k: v.detach().cpu().numpy() for k, v in obj.items() if hasattr(v, "detach")}
+    else:
+        raise ConfigError(f"weights file {p}: use .npz (numpy) or .pt/.pth (PyTorch state_dict)")
+    sd = {re.sub(r"^(module\.|model\.|backbone\.)", "", k): v for k, v in sd.items()}
+    return {k: v.astype(np.float32) if v.dtype.kind == "f" else v for k, v in sd.items()}
+
+
+# ---------------------------------------------------------------------------------------------
+# architectures
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class Conv:
+    w: np.ndarray            # (out, in, kh, kw) float32, batch norm folded in
+    b: np.ndarray            # (out,)
+    stride: int = 1
+    pad: int = 0
+
+
+@dataclass
+class Block:
+    convs: list[Conv]
+    down: Conv | None = None
+
+
+@dataclass
+class Network:
+    """A backbone with its weights: VGG (``layers``: Conv or "M") or ResNet (``stem``, ``stages``)."""
+
+    family: str
+    name: str
+    layers: list = field(default_factory=list)
+    stem: Conv | None = None
+    stages: list[list[Block]] = field(default_factory=list)
+    in_channels: int = 3
+
+    @property
+    def layer_names(self) -> list[str]:
+        if self.family == "vgg":
+            return [f"pool{k + 1}" for k in range(sum(1 for x in self.layers if isinstance(x, str)))]
+        return ["pool", *[f"layer{k + 1}" for k in range(len(self.stages))]]
+
+    def stride(self, layer: str) -> int:
+        """Pixels per feature cell at ``layer``."""
+        self._check_layer(layer)
+        if self.family == "vgg":
+            return 2 ** int(layer[4:])
+        return 4 if layer == "pool" else 4 * 2 ** (int(layer[5:]) - 1)
+
+    def receptive_field(self, layer: str) -> int:
+        """Receptive field (pixels) of one cell of ``layer``."""
+        self._check_layer(layer)
+        rf, jump = 1, 1
+
+        def step(k: int, s: int) -> None:
+            nonlocal rf, jump
+            rf += (k - 1) * jump
+            jump *= s
+
+        if self.family == "vgg":
+            k = int(layer[4:])
+            pools = 0
+            for x in self.layers:
+                if isinstance(x, str):
+                    step(2, 2)
+                    pools += 1
+                    if pools == k:
+                        break
+                else:
+                    step(x.w.shape[2], x.stride)
+            return rf
+        step(self.stem.w.shape[2], self.stem.stride)
+        step(3, 2)
+        if layer == "pool":
+            return rf
+        for s in self.stages[: int(layer[5:])]:
+            for blk in s:
+                for c in blk.convs:
+                    step(c.w.shape[2], c.stride)
+        return rf
+
+    def _check_layer(self, layer: str) -> None:
+        if layer not in self.layer_names:
+            raise ConfigError(f"layer {layer!r} is not a layer of the {self.name} backbone; its layers are "
+                              f"{self.layer_names}")
+
+
+def _need(sd: Mapping[str, np.ndarray], key: str, shape: tuple | None, backbone: str, guess: str) -> np.ndarray:
+    if key not in sd:
+        near = sorted(k for k in sd if k.split(".")[0] == key.split(".")[0])[:4]
+        raise WeightsMismatchError(
+            f"the weights file does not fit the {backbone} backbone: parameter {key!r} is missing"
+            + (f" (the file has e.g. {near})" if near else f" (the file's parameters start with "
+                                                            f"{sorted({k.split('.')[0] for k in sd})[:6]})")
+            + f"; the file looks like {guess}")
+    a = sd[key]
+    if shape is not None and tuple(a.shape) != tuple(shape):
+        raise WeightsMismatchError(
+            f"the weights file does not fit the {backbone} backbone: {key!r} has shape {tuple(a.shape)} in the "
+            f"file but {backbone} expects {tuple(shape)}; the file looks like {guess}")
+    return a
+
+
+def describe_weights(sd: Mapping[str, np.ndarray]) -> str:
+    """What backbone a state_dict looks like (for error messages)."""
+    if any(k.startswith("features.") for k in sd):
+        convs = sorted(int(k.split(".")[1]) for k in sd if re.fullmatch(r"features\.\d+\.weight", k)
+                       and sd[k].ndim == 4)
+        bn = any(k.endswith("running_mean") for k in sd)
+        for name, cfg in VGG_CFGS.items():
+            if sum(1 for x in cfg if x != "M") == len(convs):
+                return f"{name}{'_bn' if bn else ''} ({len(convs)} convolutions)"
+        return f"a VGG-style network with {len(convs)} convolutions" + (" and batch norm" if bn else "")
+    if "conv1.weight" in sd and any(k.startswith("layer1.") for k in sd):
+        blocks = [len({k.split(".")[1] for k in sd if k.startswith(f"layer{i}.")}) for i in range(1, 5)]
+        blocks = [b for b in blocks if b]
+        kind = "bottleneck" if any(k.endswith("conv3.weight") for k in sd) else "basic"
+        for name, (kd, cfg) in RESNET_CFGS.items():
+            if kd == kind and cfg == blocks:
+                return name
+        return f"a ResNet-style network ({kind} blocks {blocks})"
+    return "no known backbone (neither torchvision VGG 'features.*' nor ResNet 'conv1/layer1.*' names)"
+
+
+def _fold_bn(w: np.ndarray, b: np.ndarray | None, sd, prefix: str, backbone: str, guess: str):
+    g = _need(sd, f"{prefix}.weight", (w.shape[0],), backbone, guess)
+    beta = _need(sd, f"{prefix}.bias", (w.shape[0],), backbone, guess)
+    mu = _need(sd, f"{prefix}.running_mean", (w.shape[0],), backbone, guess)
+    var = _need(sd, f"{prefix}.running_var", (w.shape[0],), backbone, guess)
+    s = g / np.sqrt(var + BN_EPS)
+    b0 = b if b is not None else np.zeros(w.shape[0], np.float32)
+    return (w * s[:, None, None, None]).astype(np.float32), ((b0 - mu) * s + beta).astype(np.float32)
+
+
+def _vgg_from_state(sd, backbone: str) -> Network:
+    guess = describe_weights(sd)
+    bn = backbone.endswith("_bn")
+    base = backbone[:-3] if bn else backbone
+    if base == "vgg":  # read the layer list from the file
+        idx = sorted(int(k.split(".")[1]) for k in sd if re.fullmatch(r"features\.\d+\.weight", k)
+                     and sd[k].ndim == 4)
+        if not idx:
+            raise WeightsMismatchError(f"the weights file does not fit a VGG backbone: no 'features.<i>.weight' "
+                                       f"convolutions; the file looks like {guess}")
+        bn = any(k.startswith("features.") and k.endswith("running_mean") for k in sd)
+        per = 3 if bn else 2  # conv, [bn], relu
+        cfg: list = []
+        for j, i in enumerate(idx):
+            cfg.append(int(sd[f"features.{i}.weight"].shape[0]))
+            nxt = idx[j + 1] if j + 1 < len(idx) else None
+            if nxt is None or nxt - i > per:
+                cfg.append("M")
+    elif base in VGG_CFGS:
+        cfg = VGG_CFGS[base]
+    else:
+        raise ConfigError(f"unknown backbone {backbone!r}; known: {', '.join(BACKBONES)}")
+    layers: list = []
+    i, cin = 0, 3
+    for x in cfg:
+        if x == "M":
+            layers.append("M")
+            i += 1
+            continue
+        w = _need(sd, f"features.{i}.weight", (x, cin, 3, 3), backbone, guess)
+        b = _need(sd, f"features.{i}.bias", (x,), backbone, guess)
+        if bn:
+            w, b = _fold_bn(w, b, sd, f"features.{i + 1}", backbone, guess)
+        layers.append(Conv(w.astype(np.float32), b.astype(np.float32), 1, 1))
+        i += 3 if bn else 2
+        cin = x
+    return Network("vgg", backbone, layers=layers)
+
+
+def _resnet_from_state(sd, backbone: str) -> Network:
+    guess = describe_weights(sd)
+    if backbone == "resnet":
+        kind = "bottleneck" if any(k.endswith("conv3.weight") for k in sd) else "basic"
+        blocks = [len({k.split(".")[1] for k in sd if k.startswith(f"layer{i}.")}) for i in range(1, 5)]
+        blocks = [b for b in blocks if b]
+        if not blocks:
+            raise WeightsMismatchError(f"the weights file does not fit a ResNet backbone: no 'layer1.*' "
+                                       f"parameters; the file looks like {guess}")
+    elif backbone in RESNET_CFGS:
+        kind, blocks = RESNET_CFGS[backbone]
+    else:
+        raise ConfigError(f"unknown backbone {backbone!r}; known: {', '.join(BACKBONES)}")
+    w1 = _need(sd, "conv1.weight", None, backbone, guess)
+    if w1.ndim != 4 or w1.shape[1] != 3:
+        raise WeightsMismatchError(f"the weights file does not fit the {backbone} backbone: 'conv1.weight' has "
+                                   f"shape {tuple(w1.shape)}, expected (C, 3, k, k); the file looks like {guess}")
+    w, b = _fold_bn(w1, None, sd, "bn1", backbone, guess)
+    stem = Conv(w, b, 2, w1.shape[2] // 2)
+    width = w1.shape[0]
+    cin = width
+    stages = []
+    expansion = 4 if kind == "bottleneck" else 1
+    for si, nb in enumerate(blocks):
+        planes = None
+        stage = []
+        for bi in range(nb):
+            p = f"layer{si + 1}.{bi}"
+            stride = 2 if (si > 0 and bi == 0) else 1
+            c1 = _need(sd, f"{p}.conv1.weight", None, backbone, guess)
+            if planes is None:
+                planes = c1.shape[0]
+                if planes != width * 2 ** si:
+                    # widths need not be torchvision's; only the chain of shapes must be consistent
+                    pass
+            convs = []
+            if kind == "basic":
+                shapes = [(planes, cin, 3, 3), (planes, planes, 3, 3)]
+                strides, pads = [stride, 1], [1, 1]
+                names = ["conv1", "conv2"]
+                cout = planes
+            else:
+                shapes = [(planes, cin, 1, 1), (planes, planes, 3, 3), (planes * expansion, planes, 1, 1)]
+                strides, pads = [1, stride, 1], [0, 1, 0]
+                names = ["conv1", "conv2", "conv3"]
+                cout = planes * expansion
+            for n, shp, s, pd in zip(names, shapes, strides, pads):
+                cw = _need(sd, f"{p}.{n}.weight", shp, backbone, guess)
+                fw, fb = _fold_bn(cw, None, sd, f"{p}.bn{n[-1]}", backbone, guess)
+                convs.append(Conv(fw, fb, s, pd))
+            down = None
+            if f"{p}.downsample.0.weight" in sd or stride != 1 or cin != cout:
+                dw = _need(sd, f"{p}.downsample.0.weight", (cout, cin, 1, 1), backbone, guess)
+                fw, fb = _fold_bn(dw, None, sd, f"{p}.downsample.1", backbone, guess)
+                down = Conv(fw, fb, stride, 0)
+            stage.append(Block(convs, down))
+            cin = cout
+        stages.append(stage)
+    extra = [k for k in sd if k.startswith(f"layer{len(blocks) + 1}.")]
+    if extra:
+        raise WeightsMismatchError(f"the weights file does not fit the {backbone} backbone: it has a stage "
+                                   f"layer{len(blocks) + 1} ({extra[0]!r}); the file looks like {guess}")
+    return Network("resnet", backbone, stem=stem, stages=stages)
+
+
+def build_network(backbone: str, weights: str | Path | Mapping[str, np.ndarray]) -> Network:
+    """The backbone ``backbone`` with the weights of a file (or a state_dict mapping).
+
+    Raises
+    ------
+    WeightsMismatchError
+        The file's parameters do not fit the backbone (the message names the parameter, both
+        shapes and what the file looks like).
+    """
+    sd = dict(weights) if isinstance(weights, Mapping) else load_weights(weights)
+    sd = {k: np.asarray(v) for k, v in sd.items()}
+    bb = backbone.lower()
+    if bb.startswith("vgg"):
+        net = _vgg_from_state(sd, bb)
+    elif bb.startswith("resnet"):
+        net = _resnet_from_state(sd, bb)
+    else:
+        raise ConfigError(f"unknown backbone {backbone!r}; known: {', '.join(BACKBONES)}")
+    if bb in VGG_CFGS or bb in RESNET_CFGS or bb.endswith("_bn"):
+        # a named backbone must use the whole file's feature part: extra convolutions mean another depth
+        used = _used_keys(net, sd)
+        if bb.startswith("vgg"):
+            extra = [k for k in sd if k.startswith("features.") and k not in used]
+            if extra:
+                raise WeightsMismatchError(
+                    f"the weights file does not fit the {backbone} backbone: it has more layers ({extra[0]!r} is "
+                    f"not part of {backbone}); the file looks like {describe_weights(sd)}")
+    return net
+
+
+def _used_keys(net: Network, sd) -> set[str]:
+    used = set()
+    if net.family == "vgg":
+        i = 0
+        bn = net.name.endswith("_bn")
+        for x in net.layers:
+            if isinstance(x, str):
+                i += 1
+                continue
+            used |= {f"features.{i}.weight", f"features.{i}.bias"}
+            if bn:
+                used |= {f"features.{i + 1}.{s}" for s in ("weight", "bias", "running_mean", "running_var",
+                                                          "num_batches_tracked")}
+            i += 3 if bn else 2
+    return used
+
+
+# ---------------------------------------------------------------------------------------------
+# forward passes
+# ---------------------------------------------------------------------------------------------
+def prepare_input(image: np.ndarray, normalize: bool = True) -> np.ndarray:
+    """(bands, rows, cols) float 0–1 → (3, rows, cols) float32 network input."""
+    x = np.asarray(image, np.float32)
+    if x.ndim == 2:
+        x = x[None]
+    if x.shape[0] == 1:
+        x = np.repeat(x, 3, axis=0)
+    elif x.shape[0] == 2:
+        x = np.concatenate([x, x[:1]], axis=0)
+    x = x[:3]
+    if normalize:
+        x = (x - np.asarray(IMAGENET_MEAN, np.float32)[:, None, None]) / np.asarray(IMAGENET_STD, np.float32)[:, None, None]
+    return np.ascontiguousarray(x, np.float32)
+
+
+def conv2d_np(x: np.ndarray, c: Conv, max_bytes: int = 64 << 20) -> np.ndarray:
+    """2-D convolution (cross-correlation, as PyTorch) of (C, H, W) with zero padding; im2col in row chunks."""
+    cin, H, W = x.shape
+    cout, cin_w, kh, kw = c.w.shape
+    if cin != cin_w:
+        raise WeightsMismatchError(f"a convolution expects {cin_w} input channels, the previous layer gives {cin}")
+    p, s = c.pad, c.stride
+    xp = np.pad(x, ((0, 0), (p, p), (p, p))) if p else x
+    Ho = (H + 2 * p - kh) // s + 1
+    Wo = (W + 2 * p - kw) // s + 1
+    out = np.empty((cout, Ho, Wo), np.float32)
+    wm = c.w.reshape(cout, -1)
+    per_row = cin * kh * kw * Wo * 4
+    rows = max(1, int(max_bytes // max(per_row, 1)))
+    for r0 in range(0, Ho, rows):
+        r1 = min(Ho, r0 + rows)
+        sl = xp[:, r0 * s: (r1 - 1) * s + kh, :]
+        win = np.lib.stride_tricks.sliding_window_view(sl, (kh, kw), axis=(1, 2))[:, ::s, ::s]
+        win = win[:, : r1 - r0, :Wo]  # (C, h, Wo, kh, kw)
+        cols = np.ascontiguousarray(win.transpose(0, 3, 4, 1, 2)).reshape(cin * kh * kw, -1)
+        out[:, r0:r1, :] = (wm @ cols).reshape(cout, r1 - r0, Wo)
+    out += c.b[:, None, None]
+    return out
+
+
+def maxpool_np(x: np.ndarray, k: int, s: int, pad: int = 0) -> np.ndarray:
+    """Max-pooling (PyTorch's floor mode; padding with −inf)."""
+    if pad:
+        x = np.pad(x, ((0, 0), (pad, pad), (pad, pad)), constant_values=-np.inf)
+    C, H, W = x.shape
+    Ho, Wo = (H - k) // s + 1, (W - k) // s + 1
+    win = np.lib.stride_tricks.sliding_window_view(x, (k, k), axis=(1, 2))[:, ::s, ::s][:, :Ho, :Wo]
+    return win.max(axis=(3, 4)).astype(np.float32)
+
+
+def forward_np(net: Network, x: np.ndarray, layers: list[str]) -> dict[str, np.ndarray]:
+    """Feature maps (C, h, w) at ``layers`` for a prepared input (3, H, W); numpy only."""
+    want = set(layers)
+    for ly in layers:
+        net._check_layer(ly)
+    out: dict[str, np.ndarray] = {}
+    if net.family == "vgg":
+        k = 0
+        for L in net.layers:
+            if isinstance(L, str):
+                x = maxpool_np(x, 2, 2)
+                k += 1
+                if f"pool{k}" in want:
+                    out[f"pool{k}"] = x
+                if len(out) == len(want):
+                    break
+            else:
+                x = np.maximum(conv2d_np(x, L), 0.0)
+        return out
+    x = np.maximum(conv2d_np(x, net.stem), 0.0)
+    x = maxpool_np(x, 3, 2, 1)
+    if "pool" in want:
+        out["pool"] = x
+    for si, stage in enumerate(net.stages):
+        if len(out) == len(want):
+            break
+        for blk in stage:
+            idn = conv2d_np(x, blk.down) if blk.down is not None else x
+            y = x
+            for j, c in enumerate(blk.convs):
+                y = conv2d_np(y, c)
+                if j < len(blk.convs) - 1:
+                    y = np.maximum(y, 0.0)
+            x = np.maximum(y + idn, 0.0)
+        if f"layer{si + 1}" in want:
+            out[f"layer{si + 1}"] = x
+    return out
+
+
+def torch_available() -> bool:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def forward_torch(net: Network, x: np.ndarray, layers: list[str]) -> dict[str, np.ndarray]:
+    """The same features with PyTorch (CPU): same folded weights, same layers."""
+    import torch
+    import torch.nn.functional as F
+
+    want = set(layers)
+    for ly in layers:
+        net._check_layer(ly)
+
+    def conv(t, c: Conv):
+        return F.conv2d(t, torch.from_numpy(c.w), torch.from_numpy(c.b), stride=c.stride, padding=c.pad)
+
+    out: dict[str, np.ndarray] = {}
+    with torch.inference_mode():
+        t = torch.from_numpy(np.ascontiguousarray(x))[None]
+        if net.family == "vgg":
+            k = 0
+            for L in net.layers:
+                if isinstance(L, str):
+                    t = F.max_pool2d(t, 2, 2)
+                    k += 1
+                    if f"pool{k}" in want:
+                        out[f"pool{k}"] = t[0].numpy().copy()
+                    if len(out) == len(want):
+                        break
+                else:
+                    t = F.relu(conv(t, L))
+            return out
+        t = F.relu(conv(t, net.stem))
+        t = F.max_pool2d(t, 3, 2, 1)
+        if "pool" in want:
+            out["pool"] = t[0].numpy().copy()
+        for si, stage in enumerate(net.stages):
+            if len(out) == len(want):
+                break
+            for blk in stage:
+                idn = conv(t, blk.down) if blk.down is not None else t
+                y = t
+                for j, c in enumerate(blk.convs):
+                    y = conv(y, c)
+                    if j < len(blk.convs) - 1:
+                        y = F.relu(y)
+                t = F.relu(y + idn)
+            if f"layer{si + 1}" in want:
+                out[f"layer{si + 1}"] = t[0].numpy().copy()
+    return out
+
+
+def forward(net: Network, image: np.ndarray, layers: list[str], *, engine: str = "auto",
+            normalize: bool = True) -> dict[str, np.ndarray]:
+    """Feature maps at ``layers`` of an image (bands, rows, cols) in 0–1.
+
+    engine : "numpy", "torch" or "auto" (torch when installed, else numpy)
+    """
+    x = prepare_input(image, normalize)
+    if engine not in ("auto", "numpy", "torch"):
+        raise ConfigError(f"engine must be auto, numpy or torch, got {engine!r}")
+    if engine == "torch" or (engine == "auto" and torch_available()):
+        if not torch_available():
+            raise ConfigError("engine 'torch' needs PyTorch: pip install 'geocd[cnn]' (or use engine numpy)")
+        return forward_torch(net, x, layers)
+    return forward_np(net, x, layers)
+
+
+def random_state_dict(backbone: str, seed: int = 0, widths: list | None = None) -> dict[str, np.ndarray]:
+    """He-initialised weights with torchvision's names for ``backbone`` (tests, the random-init rows).
+
+    widths : VGG only, a layer list like :data:`VGG_CFGS` (numbers and "M") for a small network
+    """
+    rng = np.random.default_rng(seed)
+    sd: dict[str, np.ndarray] = {}
+
+    def he(o, i, k):
+        return (rng.standard_normal((o, i, k, k)) * math.sqrt(2.0 / (i * k * k))).astype(np.float32)
+
+    def bn(prefix, n):
+        sd[f"{prefix}.weight"] = (1 + 0.1 * rng.standard_normal(n)).astype(np.float32)
+        sd[f"{prefix}.bias"] = (0.1 * rng.standard_normal(n)).astype(np.float32)
+        sd[f"{prefix}.running_mean"] = (0.1 * rng.standard_normal(n)).astype(np.float32)
+        sd[f"{prefix}.running_var"] = (1 + 0.1 * rng.random(n)).astype(np.float32)
+
+    bb = backbone.lower()
+    if bb.startswith("vgg"):
+        isbn = bb.endswith("_bn")
+        cfg = widths or VGG_CFGS[bb[:-3] if isbn else bb]
+        i, cin = 0, 3
+        for x in cfg:
+            if x == "M":
+                i += 1
+                continue
+            sd[f"features.{i}.weight"] = he(x, cin, 3)
+            sd[f"features.{i}.bias"] = (0.01 * rng.standard_normal(x)).astype(np.float32)
+            if isbn:
+                bn(f"features.{i + 1}", x)
+            i += 3 if isbn else 2
+            cin = x
+        return sd
+    if bb not in RESNET_CFGS and not widths:
+        raise ConfigError(f"random_state_dict knows {', '.join([*VGG_CFGS, *RESNET_CFGS])}")
+    kind, blocks = RESNET_CFGS.get(bb, ("basic", [1, 1]))
+    base = int(widths[0]) if widths else 64
+    if widths and len(widths) > 1:
+        blocks = [int(b) for b in widths[1:]]
+    sd["conv1.weight"] = he(base, 3, 7)
+    bn("bn1", base)
+    cin = base
+    exp = 4 if kind == "bottleneck" else 1
+    for si, nb in enumerate(blocks):
+        planes = base * 2 ** si
+        for bi in range(nb):
+            p = f"layer{si + 1}.{bi}"
+            stride = 2 if (si > 0 and bi == 0) else 1
+            if kind == "basic":
+                sd[f"{p}.conv1.weight"] = he(planes, cin, 3)
+                sd[f"{p}.conv2.weight"] = he(planes, planes, 3)
+                n = 2
+            else:
+                sd[f"{p}.conv1.weight"] = he(planes, cin, 1)
+                sd[f"{p}.conv2.weight"] = he(planes, planes, 3)
+                sd[f"{p}.conv3.weight"] = he(planes * exp, planes, 1)
+                n = 3
+            for j in range(1, n + 1):
+                bn(f"{p}.bn{j}", sd[f"{p}.conv{j}.weight"].shape[0])
+            cout = planes * exp
+            if stride != 1 or cin != cout:
+                sd[f"{p}.downsample.0.weight"] = he(cout, cin, 1)
+                bn(f"{p}.downsample.1", cout)
+            cin = cout
+    return sd

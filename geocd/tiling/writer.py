@@ -1,0 +1,120 @@
+"""The single writer: tile results → one tiled GeoTIFF → a Cloud-Optimized GeoTIFF, atomically.
+
+Follows :func:`geocd.io.raster.write_cog`'s conventions (256-pixel blocks, DEFLATE,
+average overviews at 2, 4, … 32 while the overview keeps ≥ 64 cells, band
+descriptions and tags, NaN nodata for floats), so a tiled product and an untiled
+one hold the same pixels. The tiled GeoTIFF is assembled in the work folder, block
+by block (bounded memory); the COG is written to a hidden temporary file next to
+the target and renamed onto it only when complete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..geodesy import AOIGrid
+from ..io.atomic import atomic_path
+from .grid import TileGrid
+from .sources import GDAL_CACHE_MB
+from .store import TileStore
+
+
+@dataclass(frozen=True)
+class RasterProduct:
+    """A raster product assembled from tile arrays.
+
+    Parameters
+    ----------
+    path : the COG to write
+    bands : names of the tile arrays, one per band (each array 2-D on the tile core)
+    dtype, nodata : as :func:`geocd.io.raster.write_cog` (NaN nodata for floats by default)
+    descriptions : band descriptions (default: the array names; None entries: the file's stem, as
+        :func:`geocd.io.raster.write_cog` names unnamed bands)
+    units : one unit per band (default: from the descriptions, :func:`geocd.io.raster.band_unit`)
+    tags, band_tags, colormap : as :func:`geocd.io.raster.write_cog`
+    """
+
+    path: str
+    bands: tuple[str, ...]
+    dtype: str = "float32"
+    nodata: float | int | None = None
+    descriptions: tuple[str | None, ...] | None = None
+    units: tuple[str, ...] | None = None
+    tags: Mapping[str, Any] = field(default_factory=dict)
+    band_tags: Sequence[Mapping[str, Any]] | None = None
+    colormap: Mapping[int, tuple] | None = None
+    compress: str = "deflate"
+    overview_resampling: str = "average"
+
+
+def overview_factors(shape: tuple[int, int]) -> list[int]:
+    """The overview levels :func:`geocd.io.raster.write_cog` builds for a grid of ``shape``."""
+    return [f for f in (2, 4, 8, 16, 32) if min(shape) // f >= 64]
+
+
+def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None = None,
+                  tile_grid: TileGrid | None = None) -> Path:
+    """Assemble ``product`` from the tiles of ``store`` and write it as a COG (atomic)."""
+    import rasterio
+    from rasterio.enums import Resampling
+    from rasterio.shutil import copy as rio_copy
+    from rasterio.windows import Window
+
+    tg = tile_grid or store.tile_grid
+    g = grid or tg.grid
+    dtype = product.dtype
+    nodata = product.nodata
+    if nodata is None and np.issubdtype(np.dtype(dtype), np.floating):
+        nodata = float("nan")
+    profile = g.rasterio_profile(dtype=dtype, count=len(product.bands), nodata=nodata)
+    profile.update(tiled=True, blockxsize=256, blockysize=256, BIGTIFF="IF_SAFER")
+    from ..io.raster import band_unit
+
+    target = Path(product.path)
+    names = list(product.descriptions or product.bands)
+    if any(n is None for n in names):
+        stem = target.stem
+        names = [n if n is not None else (stem if len(names) == 1 else f"{stem}_{i}")
+                 for i, n in enumerate(names, start=1)]
+    units = list(product.units) if product.units is not None else [band_unit(n) for n in names]
+    for i, bt in enumerate(product.band_tags or []):  # a "units" band tag is the unit too (as write_cog)
+        if i < len(units) and not units[i] and bt and bt.get("units"):
+            units[i] = str(bt["units"])
+    tmp_tif = store.path / f"{target.stem}.assemble.part.tif"
+    with contextlib.suppress(OSError):
+        tmp_tif.unlink()
+    try:
+        with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
+            with rasterio.open(tmp_tif, "w", **profile) as dst:
+                for t in tg:
+                    r0, c0, h, w = t.core
+                    for b, name in enumerate(product.bands, start=1):
+                        a = store.tile_array(t, name)
+                        dst.write(np.asarray(a).astype(dtype, copy=False), b, window=Window(c0, r0, w, h))
+                for i, nm in enumerate(names, start=1):
+                    dst.set_band_description(i, str(nm))
+                    if units[i - 1]:
+                        dst.set_band_unit(i, units[i - 1])
+                    bt = product.band_tags
+                    if bt and i - 1 < len(bt) and bt[i - 1]:
+                        dst.update_tags(i, **{k: str(v) for k, v in bt[i - 1].items()})
+                if product.tags:
+                    dst.update_tags(**{k: str(v) for k, v in product.tags.items()})
+                if product.colormap is not None:
+                    dst.write_colormap(1, product.colormap)
+                ov = overview_factors(g.shape)
+                if ov:
+                    dst.build_overviews(ov, getattr(Resampling, product.overview_resampling))
+            ovr = product.overview_resampling
+            with atomic_path(target) as tmp:
+                rio_copy(str(tmp_tif), str(tmp), driver="COG", compress=product.compress.upper(),
+                         overview_resampling=ovr.upper() if ovr != "average" else "AVERAGE", BIGTIFF="IF_SAFER")
+    finally:
+        with contextlib.suppress(OSError):
+            tmp_tif.unlink()
+    return target

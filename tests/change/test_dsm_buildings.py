@@ -1,0 +1,91 @@
+"""Buildings from a DSM (ground filter, objects, outlines) and their damage classes."""
+
+import numpy as np
+import pytest
+
+from geocd.change.dsm_buildings import DSMBuildingParams, buildings_from_dsm, classify_damage, ground_model
+from geocd.consistency import ChangeResult
+from geocd.geodesy import AOIGrid
+
+GRID = AOIGrid.from_bounds(500000.0, 4000000.0, 500150.0, 4000150.0, 0.5, "EPSG:32637")
+
+
+def _scene(rng):
+    H, W = GRID.shape
+    r, c = np.mgrid[0:H, 0:W]
+    ground = 700.0 + 0.02 * c * 0.5 + 0.01 * r * 0.5           # sloping terrain (2 % and 1 %)
+    z = ground + rng.normal(0, 0.15, (H, W))
+    boxes = {1: (20, 60, 20, 80, 15.0), 2: (20, 60, 84, 130, 24.0),   # two touching blocks of different height
+             3: (120, 170, 30, 70, 12.0), 4: (200, 260, 150, 200, 18.0), 5: (150, 200, 220, 280, 9.0)}
+    for _, (r0, r1, c0, c1, h) in boxes.items():
+        z[r0:r1, c0:c1] = ground[r0:r1, c0:c1] + h + rng.normal(0, 0.1, (r1 - r0, c1 - c0))
+    # a tree: rough blob
+    tr = (r - 80) ** 2 + (c - 250) ** 2 < 12 ** 2
+    z[tr] = ground[tr] + 6 + rng.normal(0, 1.8, tr.sum())
+    z[rng.random(z.shape) < 0.1] = np.nan                       # stereo gaps
+    return z, ground, boxes
+
+
+def test_ground_and_objects():
+    rng = np.random.default_rng(1)
+    z, ground, boxes = _scene(rng)
+    bld, dtm, labels = buildings_from_dsm(z, GRID)
+    off = np.ones(z.shape, bool)
+    for (r0, r1, c0, c1, _) in boxes.values():
+        off[max(r0 - 6, 0):r1 + 6, max(c0 - 6, 0):c1 + 6] = False
+    assert np.median(np.abs(dtm - ground)[off]) < 0.3
+    assert np.abs(dtm - ground).max() < 2.0                       # under buildings too
+    assert len(bld) == 5, bld                                      # touching blocks split, tree dropped
+    areas = sorted(bld.geometry.area)
+    want = sorted((r1 - r0) * (c1 - c0) * 0.25 for (r0, r1, c0, c1, _) in boxes.values())
+    assert np.allclose(areas, want, rtol=0.15)
+    assert (bld.rectangularity > 0.9).all()
+
+
+def _result(z_a, z_b, changed_lower, changed_upper):
+    dz = (z_b - z_a).astype(np.float32)
+    conf = np.zeros(z_a.shape, np.float32)
+    conf[changed_lower | changed_upper] = 99.0
+    ch = np.sign(np.nan_to_num(dz)).astype(np.int8) * (conf > 0)
+    obs = np.isfinite(dz)
+    conf[~obs] = np.nan
+    return ChangeResult(dz, dz / 2.0, np.zeros_like(dz), conf, ch.astype(np.int8), obs.astype(np.int16), GRID,
+                        (90.0, 95.0, 99.0))
+
+
+def test_damage_classes():
+    rng = np.random.default_rng(2)
+    z_a, ground, boxes = _scene(rng)
+    z_b = z_a.copy()
+    r0, r1, c0, c1, _ = boxes[1]
+    z_b[r0:r1, c0:c1] = ground[r0:r1, c0:c1] + 1.0                  # collapsed (rubble 1 m)
+    r0, r1, c0, c1, _ = boxes[2]
+    z_b[r0:r1, c0:c0 + 15] = ground[r0:r1, c0:c0 + 15] + 3.0          # part of the block gone
+    r0, r1, c0, c1, _ = boxes[3]
+    z_b[r0:r1, c0:c1] -= 3.0                                          # top storey gone everywhere
+    z_b[60:100, 170:210] = ground[60:100, 170:210] + 10.0            # a new building on open ground
+    low = np.nan_to_num(z_b - z_a) < -2
+    up = np.nan_to_num(z_b - z_a) > 2
+    res = _result(z_a, z_b, low, up)
+    bld, dtm, _ = buildings_from_dsm(z_a, GRID)
+    post, _, _ = buildings_from_dsm(z_b, GRID)
+    import pandas as pd
+
+    new = post[[g.intersection(bld.union_all()).area < 0.3 * g.area for g in post.geometry]]
+    allb = pd.concat([bld, new], ignore_index=True)
+    out = classify_damage(allb, res, GRID, z_a=z_a, z_b=z_b, dtm=dtm)
+    cls = {}
+    for _, row in out.iterrows():
+        c = row.geometry.centroid
+        cls[(round((4000150 - c.y) / 0.5), round((c.x - 500000) / 0.5))] = row
+    def at(r, c):
+        return min(cls.items(), key=lambda kv: (kv[0][0] - r) ** 2 + (kv[0][1] - c) ** 2)[1]
+    assert at(40, 50)["class"] == "collapsed"
+    assert at(40, 107)["class"] == "partly collapsed"
+    assert at(145, 50)["class"] == "lowered"
+    assert at(80, 190)["class"] == "new"
+    assert at(230, 175)["class"] == "unchanged" and at(230, 175)["confidence_pct"] == 0
+    b1 = at(40, 50)
+    assert b1["confidence_pct"] == 99.0
+    assert b1["height_before_m"] == pytest.approx(15.0, abs=0.7) and b1["height_after_m"] == pytest.approx(1.0, abs=0.7)
+    assert b1["volume_lost_m3"] == pytest.approx(14.0 * 40 * 60 * 0.25, rel=0.1)

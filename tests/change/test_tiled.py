@@ -1,0 +1,88 @@
+"""The self-consistency change test tile by tile == change_test + write_change_products."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio
+import geopandas as gpd
+from affine import Affine
+
+from geocd.change.products import write_change_products
+from geocd.change.tiled import change_test_tiled
+from geocd.consistency import ChangeParams, ConsistencyParams, change_test, learn_self_consistency
+from geocd.demdiff.tiled import TilingParams
+from geocd.geodesy import AOIGrid
+from geocd.stereo.products import PairDEM, read_pair_dem, write_pair_dem
+
+SHAPE = (150, 140)
+GRID = AOIGrid("EPSG:32631", Affine(0.5, 0, 370000.0, 0, -0.5, 4824000.0), SHAPE[1], SHAPE[0])
+
+
+def _pair(truth, rng, name, epoch, offset=0.0):
+    score = rng.uniform(-2.0, 1.0, SHAPE).astype(np.float32)
+    sigma_px = 0.1 + 0.3 * (score + 2.0)
+    from scipy.ndimage import gaussian_filter
+
+    # errors correlated over a few cells (as matching windows make them): the static comparisons then
+    # hold candidate regions, the region test's null
+    f = gaussian_filter(rng.normal(size=SHAPE), 1.5)
+    err = f / f.std() * sigma_px
+    bad = rng.random(SHAPE) < 0.01
+    err[bad] += rng.normal(scale=10, size=bad.sum())
+    g = np.full(SHAPE, 1.3, np.float32)
+    z = truth + err / g + offset
+    valid = rng.random(SHAPE) > 0.05
+    return PairDEM(np.where(valid, z, np.nan).astype(np.float32), score, g, valid, GRID, name=name, epoch=epoch,
+                   meta={"params": {"window": 2}})
+
+
+@pytest.fixture(scope="module")
+def recs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sc")
+    rng = np.random.default_rng(7)
+    ta = np.zeros(SHAPE, np.float32)
+    tb = ta.copy()
+    tb[20:55, 30:70] += 9.0      # a new building across a tile seam
+    tb[90:130, 60:100] -= 6.0    # a lowered one
+    tb[5:8, 5:120] += 4.0        # a long thin change through many tiles
+    A = [_pair(ta, rng, f"A{i}", "A", offset=0.3 * i) for i in range(3)]
+    B = [_pair(tb, rng, f"B{i}", "B", offset=-0.2 * i) for i in range(2)]
+    model = learn_self_consistency([A, B], ConsistencyParams(n_score_bins=8, min_bin_count=300))
+    pa = [write_pair_dem(d / f"{p.name}.tif", p) for p in A]
+    pb = [write_pair_dem(d / f"{p.name}.tif", p) for p in B]
+    return d, pa, pb, model
+
+
+@pytest.mark.parametrize("significance", ["region", pytest.param("cell", marks=pytest.mark.slow)])
+def test_change_test_tiled_equals_untiled(recs, tmp_path, significance):
+    d, pa, pb, model = recs
+    params = ChangeParams(significance=significance, confidences=(90.0, 95.0, 99.0))
+    A = [read_pair_dem(p) for p in pa]
+    B = [read_pair_dem(p) for p in pb]
+    res = change_test(A, B, model, params)
+    assert res.significance == significance and (res.change == 1).sum() > 500
+    write_change_products(tmp_path / "untiled", res, GRID, epoch_a="A", epoch_b="B", model=model, prefix="sc",
+                          plots=False)
+    t = change_test_tiled(pa, pb, model, tmp_path / "tiled", params=params, epoch_names=("A", "B"), plots=False,
+                          tiling=TilingParams(tile_size=64, scheduler="sync"))
+    assert t.exact and t.vertical_offsets_m == res.vertical_offsets_m
+    for name in ("sc_change", "sc_change_mask"):
+        with rasterio.open(tmp_path / "untiled" / f"{name}.tif") as a, rasterio.open(tmp_path / "tiled" / f"{name}.tif") as b:
+            np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
+            assert a.descriptions == b.descriptions and a.units == b.units and a.tags() == b.tags()
+    a = gpd.read_file(tmp_path / "untiled" / "sc_changes.gpkg", layer="changes")
+    b = gpd.read_file(tmp_path / "tiled" / "sc_changes.gpkg", layer="changes")
+    assert a.equals(b)
+    # the large-grid path: rasters and regions written tile by tile, regions merged across seams
+    t2 = change_test_tiled(pa, pb, model, tmp_path / "large", params=params, epoch_names=("A", "B"), plots=False,
+                           tiling=TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=1000))
+    for name in ("sc_change", "sc_change_mask"):
+        with rasterio.open(tmp_path / "untiled" / f"{name}.tif") as x, rasterio.open(tmp_path / "large" / f"{name}.tif") as y:
+            np.testing.assert_array_equal(x.read(), y.read(), err_msg=name)
+            assert x.descriptions == y.descriptions and x.units == y.units
+    c = gpd.read_file(tmp_path / "large" / "sc_changes.gpkg", layer="changes")
+    assert len(c) == len(a)
+    np.testing.assert_array_equal(c["n_cells"], a["n_cells"])
+    for col in ("volume_m3", "volume_sigma_m3", "confidence", "mean_dz_m"):
+        np.testing.assert_allclose(c[col], a[col], rtol=1e-9, err_msg=col)

@@ -1,0 +1,83 @@
+"""geocd mpp on two georeferenced images: layers, styles, confidence in %, resampling and notes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyogrio
+import rasterio
+from affine import Affine
+from click.testing import CliRunner
+
+from geocd.cli import main
+from geocd.geodesy import AOIGrid
+from geocd.io.raster import write_cog
+
+from .scene import POSTING, make_pair
+
+
+def _write(tmp_path, s):
+    grid = AOIGrid("EPSG:32631", Affine(POSTING, 0, 374000.0, 0, -POSTING, 4824000.0), 200, 200)
+    pa = write_cog(tmp_path / "a.tif", s["image_a"].astype(np.uint16), grid)
+    # date B on a coarser, shifted grid: must be resampled onto A's
+    gb = AOIGrid("EPSG:32631", Affine(0.6, 0, 373995.0, 0, -0.6, 4824004.0), 180, 180)
+    from geocd.io.raster import reproject_array
+
+    b = reproject_array(s["image_b"][0], grid, gb)
+    pb = write_cog(tmp_path / "b.tif", np.nan_to_num(b, nan=0).astype(np.float32), gb)
+    da = write_cog(tmp_path / "dsm_a.tif", s["dsm_a"], grid)
+    db = write_cog(tmp_path / "dsm_b.tif", s["dsm_b"], grid)
+    return pa, pb, da, db
+
+
+def test_cli_two_images(tmp_path):
+    s = make_pair(0)
+    pa, pb, da, db = _write(tmp_path, s)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pb),
+                                  "--dsm-a", str(da), "--dsm-b", str(db), "--out", str(out), "--max-iter", "60",
+                                  "--seed", "2"])
+    assert r.exit_code == 0, r.output
+    assert "resampled" in r.output and "grey image" in r.output
+    layers = [x[0] for x in pyogrio.list_layers(out / "mpp_buildings.gpkg")]
+    assert {"buildings", "rectangles", "layer_styles"} <= set(layers)
+    rects = pyogrio.read_dataframe(out / "mpp_buildings.gpkg", layer="rectangles")
+    bld = pyogrio.read_dataframe(out / "mpp_buildings.gpkg", layer="buildings")
+    assert len(rects) >= 4 and len(bld) >= 3
+    assert rects["confidence"].between(0, 100).all() and rects["confidence"].max() > 50
+    assert set(rects["change"]) <= {"unchanged", "new", "demolished"}
+    assert set(bld["change"]) <= {"unchanged", "new", "demolished", "modified"}
+    assert rects["building_id"].isin(bld["building_id"]).all()
+    with rasterio.open(out / "mpp_buildings.tif") as ds:
+        cls = ds.read(1)
+        assert set(np.unique(cls)) <= {0, 1, 2, 3} and (cls > 0).mean() > 0.03
+    summary = json.loads((out / "mpp_summary.json").read_text())
+    assert summary["method"] == "ED" and summary["thresholds"][0]["prototypes"].count("height") >= 1
+    assert (out / "mpp_quicklook.png").stat().st_size > 10000
+    styles = pyogrio.read_dataframe(out / "mpp_buildings.gpkg", layer="layer_styles")
+    assert "categorizedSymbol" in styles["styleQML"].iloc[0]
+    # the same seed gives the same rectangles
+    out2 = tmp_path / "out2"
+    r2 = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pb),
+                                   "--dsm-a", str(da), "--dsm-b", str(db), "--out", str(out2), "--max-iter", "60",
+                                   "--seed", "2"])
+    assert r2.exit_code == 0, r2.output
+    rects2 = pyogrio.read_dataframe(out2 / "mpp_buildings.gpkg", layer="rectangles")
+    np.testing.assert_allclose(rects2[["length_m", "width_m", "orientation_deg"]].to_numpy(),
+                               rects[["length_m", "width_m", "orientation_deg"]].to_numpy())
+
+
+def test_cli_bad_inputs(tmp_path):
+    s = make_pair(0)
+    pa, pb, da, db = _write(tmp_path, s)
+    r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa)])
+    assert r.exit_code != 0 and "--image-b" in r.output
+    r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pb),
+                                  "--dsm-a", str(da), "--out", str(tmp_path / "o")])
+    assert r.exit_code != 0 and "both dates" in r.output
+    far = AOIGrid("EPSG:32631", Affine(POSTING, 0, 300000.0, 0, -POSTING, 4000000.0), 50, 50)
+    pf = write_cog(tmp_path / "far.tif", np.ones((50, 50), np.float32), far)
+    r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pf),
+                                  "--out", str(tmp_path / "o")])
+    assert r.exit_code != 0 and "overlap" in r.output
