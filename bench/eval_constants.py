@@ -38,14 +38,14 @@ def run_scene(scene: Path, run_dir: Path | None) -> dict:
     from geocd.change.buildings import classify_buildings, score_buildings
     from geocd.change.metrics import binary_scores
     from geocd.consistency import ChangeParams, change_test, learn_self_consistency
-    from geocd.io.raster import read_dem
+    from geocd.io.raster import read_on_grid
     from geocd.io.vector import read_footprints
     from geocd.pipeline import RunConfig, _median_surface
 
     m, by = _pairs(scene, run_dir)
     A, B = by["A"], by["B"]
     grid = A[0].grid
-    truth = read_dem(m.truth_path("change_mask"), grid=grid, resampling="nearest").height_m > 0.5
+    truth = read_on_grid(m.truth_path("change_mask"), grid) > 0.5
     fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
     fall = read_footprints(m.truth_path("footprints_all"), crs=grid.crs)
     status = dict(zip(fall["building_id"], fall["status"]))

@@ -281,7 +281,7 @@ def _grid_comparison(man, grid, dem, train_views, views_b, cfg, subarea_m, work,
 
 def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdout: str = "A_sat3",
                  cfg: TrainConfig | None = None, log=print) -> dict:
-    """Pooled per-pixel AUCs of the octree (plain and 3×3) and both 2-D baselines on a sub-area.
+    """Pooled per-pixel AUCs of the octree (plain eq. 27 and the default detection) and both 2-D baselines on a sub-area.
 
     The octree is trained on ``bounds`` (AOI CRS) only, so this is a fast, reduced version of
     :func:`evaluate` for tests; every method is scored on the same pixels (known to the model,
@@ -303,7 +303,7 @@ def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdo
     for v in views_b:
         truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
         d1 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=1))
-        d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=3))
+        d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name)   # the default (3×3)
         ref = ref_pool[nearest_view(v.camera, v.intensity.shape, ref_pool, geom)]
         warped = warp_reference(v.camera, v.intensity.shape, ref.intensity, ref.camera, dem, grid)
         scores = {"3-D octree (relit)": d1.probability, "3-D octree 3×3 (relit)": d3.probability,
