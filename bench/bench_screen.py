@@ -120,6 +120,23 @@ def _regions(out: Path):
     return gpd.read_file(f, layer="changes")
 
 
+def _damaged_buildings(full: Path, tier: Path) -> dict | None:
+    """Buildings of the full run's ``building_damage`` layer in a changed class (not unchanged/unobserved) that
+    no changed building of the tiered run overlaps (the building outlines come from each run's own DSM)."""
+    import geopandas as gpd
+    import pyogrio
+
+    if "building_damage" not in [str(n) for n, _ in pyogrio.list_layers(full / "sc_changes.gpkg")]:
+        return None
+    quiet = ("unchanged", "unobserved")
+    a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
+    b = gpd.read_file(tier / "sc_changes.gpkg", layer="building_damage")
+    a, b = a[~a["class"].isin(quiet)], b[~b["class"].isin(quiet)]
+    lost = a[~a.geometry.intersects(b.unary_union)] if len(b) else a
+    return {"changed_full": int(len(a)), "changed_tiered": int(len(b)), "full_changed_not_found": int(len(lost)),
+            "lost_by_class": lost["class"].value_counts().to_dict()}
+
+
 def _truth_scores(out: Path, scene: Path) -> dict | None:
     t = scene / "truth" / "change_mask.tif"
     if not t.exists():
@@ -158,6 +175,9 @@ def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict,
            "speedup_cpu": round(r_full["cpu_s"] / r_tier["cpu_s"], 2),
            "regions_full": int(len(a)), "regions_tiered": int(len(b)), "regions_lost": int(len(lost)),
            "area_lost_m2": round(float(lost.area.sum()), 1), "area_full_m2": round(float(a.area.sum()), 1)}
+    bd = _damaged_buildings(full, tier)
+    if bd is not None:
+        res["buildings"] = bd
     root = sc if sc.is_dir() else sc.parent
     tf, tt = _truth_scores(full, root), _truth_scores(tier, root)
     if tf is not None:

@@ -156,3 +156,21 @@ def test_files_of_other_bands_grids_and_places(files, tmp_path):
         ds.write(np.ones((1, 64, 64), np.uint16))
     with pytest.raises(CRSError, match="no CRS"):
         screen_rasters(p["a"], tmp_path / "nocrs.tif")
+
+
+def test_views_without_a_dem_sit_on_the_matched_ground_height(sample_aoi):
+    """Without a DEM the views go on a plane at the ground height of a coarse match of two views of one epoch
+    (a plane at the cameras' mid height can be hundreds of metres off and misplace every view by its parallax)."""
+    from geocd.io.manifest import load_manifest
+    from geocd.io.raster import read_dem
+    from geocd.screen.pipeline import flat_ground_height
+    from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images
+
+    m = load_manifest(sample_aoi)
+    vb = load_epoch_images(m, m.epoch("B"))
+    va = load_epoch_images(m, m.epoch("A"))
+    dem = read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
+    grid = default_aoi_grid(m, {"A": va, "B": vb}, dem_median=float(np.nanmedian(dem)))
+    names = [("A", va[0]), ("B", vb[0]), ("B", vb[1])]
+    h = flat_ground_height(names, grid)
+    assert h == pytest.approx(float(np.nanmedian(dem)), abs=3.0)
