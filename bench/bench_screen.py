@@ -220,6 +220,11 @@ def tile_sizes(full: Path, tier: Path, sizes=(32, 64, 128, 256), min_region_m2: 
     return rows
 
 
+def _key(scene: str) -> str:
+    p = Path(scene)
+    return p.parent.name if p.suffix else p.name
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["features", "tiered", "compare", "tiles"])
@@ -239,16 +244,14 @@ def main(argv=None) -> int:
         res = bench_features(a.size, a.features.split(",") if a.features else None)
         doc.setdefault("features", {})[f"{a.size}px" + (f" {a.features}" if a.features else "")] = res
     elif a.what == "compare":  # two runs made by hand (e.g. in parallel on a loaded machine) with their timings
-        key = Path(a.scene).stem if Path(a.scene).suffix else Path(a.scene).name
-        doc.setdefault("tiered", {})[key] = compare(
+        doc.setdefault("tiered", {})[_key(a.scene)] = compare(
             a.scene, a.model, a.full_dir, a.tiered_dir, {"wall_s": a.full_time[0], "cpu_s": a.full_time[1]},
             {"wall_s": a.tiered_time[0], "cpu_s": a.tiered_time[1]})
     elif a.what == "tiles":  # other --screen-tile sizes with the screen of a tiered run (no stereo re-run)
-        key = Path(a.scene).stem if Path(a.scene).suffix else Path(a.scene).name
-        doc.setdefault("tiles", {})[key] = tile_sizes(a.full_dir, a.tiered_dir)
+        doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:
         w = a.work / Path(a.scene).stem
-        doc.setdefault("tiered", {})[Path(a.scene).stem if Path(a.scene).suffix else Path(a.scene).name] = \
+        doc.setdefault("tiered", {})[_key(a.scene)] = \
             bench_tiered(a.scene, a.model, w)
     a.out.write_text(json.dumps(doc, indent=1, default=str))
     print(json.dumps(doc, indent=1, default=str)[-3000:])
