@@ -127,6 +127,7 @@ def test_cli_screen_and_bad_weights(files, tmp_path):
     assert r.exit_code == 2 and "percent" in r.output
 
 
+@pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
 def test_files_of_other_bands_grids_and_places(files, tmp_path):
     """Bad inputs on files: a grey B against an RGB A on another grid is resampled and compared in grey; a B
     that does not overlap A's grid, or a file without a CRS, is refused with an error naming the problem."""
