@@ -46,8 +46,8 @@ def test_levir_patch_feature_table_row(levir):
         tp, fp, fn = tp + s["tp"], fp + s["fp"], fn + s["fn"]
     loo = 2 * tp / (2 * tp + fp + fn)
     oracle = threshold_best_f1([ds[f] for f in scored], [truth[f] for f in scored])[1]
-    assert loo == pytest.approx(0.334, abs=0.015)
-    assert oracle == pytest.approx(0.340, abs=0.015)
+    assert loo == pytest.approx(0.334, abs=0.005)
+    assert oracle == pytest.approx(0.340, abs=0.005)
     # the control pair as the no-change pair: years apart, its 99 % quantile is above most changed cells
     null = NullDistribution.from_values(ds[ctrl[0]])
     t = null.threshold(1.0)
