@@ -51,7 +51,8 @@ SHIFTS = (0, 2, 4)
 SUPERPIXELS = ("felzenszwalb", "slic", "none")
 
 
-def feature_specs(quick: bool, weights_dir: Path, weights: dict[str, str] | None = None) -> list[tuple[str, FeatureSpec]]:
+def feature_specs(quick: bool, weights_dir: Path,
+                  weights: dict[str, str] | None = None) -> list[tuple[str, FeatureSpec]]:
     """(label, spec) of every row of the table; CNN rows use random-init (He) weights the script makes, or the
     weights file named for that backbone in ``weights`` ({"vgg19": "vgg19.npz"}: e.g. trained ImageNet weights)."""
     specs = []
