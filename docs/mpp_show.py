@@ -5,8 +5,10 @@ Usage (from the repository root)::
     # a generated town (sample_aoi, or `geocd synth --seed N --out DIR`): orthos + stereo DSMs once, then
     # every variant on them
     .venv/bin/geocd --progress none ortho sample_aoi --out /tmp/ortho_run
-    .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif]
+    .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
+        [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
+    .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
 
 Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read in place from ../shared/data.
 """
@@ -39,6 +41,8 @@ VARIANTS = {
     "ED + height (geocd)": ("ED", {"height": "and"}, True, False),
     "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0}, True, True),
 }
+#: short names for ``--only``
+SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP"), VARIANTS))
 
 
 def _town_inputs(town: Path, ortho_dir: Path):
@@ -68,7 +72,7 @@ def _town_inputs(town: Path, ortho_dir: Path):
     return out
 
 
-def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,)) -> dict:
+def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=None) -> dict:
     inp = _town_inputs(name, ortho_dir)
     prior = None
     if sc is not None:
@@ -78,7 +82,7 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,)) -> dic
     rows = {}
     best = None
     for label, (method, changes, needs_h, needs_prior) in VARIANTS.items():
-        if needs_prior and prior is None:
+        if (needs_prior and prior is None) or (only is not None and label not in only):
             continue
         for seed in (seeds if needs_h else seeds[:1]):
             p = MPPParams(seed=seed, **changes)
@@ -113,7 +117,9 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,)) -> dic
     return out
 
 
-def levir() -> dict:
+def levir(prototypes: str = "auto") -> dict:
+    """The five LEVIR-CD pairs; ``prototypes`` as in MPPParams ("auto": the colour model, gradient + shadow |
+    colour, for RGB images); another choice writes ``docs/mpp_levir_<prototypes>.json``."""
     import rasterio
     from rasterio.errors import NotGeoreferencedWarning
 
@@ -133,7 +139,7 @@ def levir() -> dict:
             if needs_h or needs_prior:
                 continue
             t0 = time.perf_counter()
-            det = detect(a, b, 0.5, MPPParams(**changes), method=method)
+            det = detect(a, b, 0.5, MPPParams(prototypes=prototypes, **changes), method=method)
             masks = rect_masks(det.result.rects, det.result.xi, lab.shape)
             t = table2_change_only(masks, lab)
             t.update(pair=f.stem, seconds=round(time.perf_counter() - t0, 1), rectangles=len(det.result),
@@ -146,9 +152,11 @@ def levir() -> dict:
     for label, rs in rows.items():
         tp = sum(r["change_f"] for r in rs) / len(rs)
         out.setdefault("mean_change_f", {})[label] = round(tp, 4)
+    tag = "" if prototypes == "auto" else "_" + prototypes.replace("+", "_").replace("|", "_or_")
+    out["prototypes"] = prototypes
     if first is not None:
-        quicklook(DOCS / "mpp_levir.png", first[0], first[1], first[2], titles=(f"{first[3]} A", f"{first[3]} B"))
-    (DOCS / "mpp_levir.json").write_text(json.dumps(out, indent=2, default=str))
+        quicklook(DOCS / f"mpp_levir{tag}.png", first[0], first[1], first[2], titles=(f"{first[3]} A", f"{first[3]} B"))
+    (DOCS / f"mpp_levir{tag}.json").write_text(json.dumps(out, indent=2, default=str))
     return out
 
 
@@ -166,8 +174,13 @@ if __name__ == "__main__":
             k = args.index("--seeds")
             seeds = tuple(int(x) for x in args[k + 1].split(","))
             args = args[:k] + args[k + 2:]
-        town(Path(args[0]), Path(args[1]), sc, seeds)
+        only = None
+        if "--only" in args:
+            k = args.index("--only")
+            only = [SHORT[x] for x in args[k + 1].split(",")]
+            args = args[:k] + args[k + 2:]
+        town(Path(args[0]), Path(args[1]), sc, seeds, only)
     elif what == "levir":
-        levir()
+        levir(sys.argv[3] if len(sys.argv) > 3 and sys.argv[2] == "--prototypes" else "auto")
     else:
         raise SystemExit(__doc__)

@@ -2,7 +2,7 @@
 
 Where each default comes from (none was chosen on a scene's truth):
 
-* **Sizes** (metres, converted with the grid posting): rectangle sides 4–30 m — a garage to the wing of
+* **Sizes** (metres, converted with the grid posting): rectangle sides 6–30 m — a large garage to the wing of
   a large building (bigger buildings are unions of rectangles, as in the paper); the orientation window
   ``l`` "just covers an average building" (paper §3.1): the mean of the side bounds.
 * **Data thresholds** are measured on the images, not set: the gradient term's ``d_Λ`` is a quantile of
