@@ -113,8 +113,52 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
         quicklook(DOCS / f"mpp_{tag}.png", inp["image_a"], inp["image_b"], best,
                   titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
                   valid_a=inp["valid_a"], valid_b=inp["valid_b"])
-    (DOCS / f"mpp_{Path(name).name}.json").write_text(json.dumps(out, indent=2, default=str))
+    path = DOCS / f"mpp_{Path(name).name}.json"
+    if only is not None and path.exists():   # a partial run updates the rows it measured
+        old = json.loads(path.read_text())
+        old["rows"].update(rows)
+        out = {**old, **{k: v for k, v in out.items() if k != "rows"}, "rows": old["rows"]}
+    path.write_text(json.dumps(out, indent=2, default=str))
     return out
+
+
+def _town_table(d: dict) -> str:
+    lines = ["| variant | missed objects (HO) | false objects (FO) | missed changes (HV) | false changes (FV) "
+             "| pixel F (DP) [P / R] | changed-building F | seconds | iterations |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for label, rs in d["rows"].items():
+        r = rs[0]
+        seeds = ""
+        if len(rs) > 1:
+            dps = [x["DP"] for x in rs]
+            seeds = f" (seeds {','.join(str(x['seed']) for x in rs)}: {min(dps):.3f}–{max(dps):.3f})"
+        lines.append(f"| {label} | {r['HO']} / {r['objects']} | {r['FO']} / {r['detected_objects']} | {r['HV']} / "
+                     f"{r['changes']} | {r['FV']} / {r['detected_changes']} | **{r['DP']:.3f}**{seeds} "
+                     f"[{r['DP_precision']:.2f} / {r['DP_recall']:.2f}] | {r['change_f']:.3f} | {r['seconds']} | "
+                     f"{r['iterations']} |")
+    return "\n".join(lines)
+
+
+def _levir_table(d: dict) -> str:
+    lines = ["| variant | changes in the labels | missed changes (HV) | false changes (FV) / detected | "
+             "changed-building F (mean of 5) | pooled P / R | rectangles per pair |", "|---|---|---|---|---|---|---|"]
+    for label, rs in d["rows"].items():
+        n = sum(r["changes"] for r in rs)
+        p = [r["change_precision"] for r in rs]
+        rc = [r["change_recall"] for r in rs]
+        lines.append(f"| {label} | {n} | {sum(r['HV'] for r in rs)} | {sum(r['FV'] for r in rs)} / "
+                     f"{sum(r['detected_changes'] for r in rs)} | {np.mean([r['change_f'] for r in rs]):.3f} | "
+                     f"{np.mean(p):.2f} / {np.mean(rc):.2f} | {np.mean([r['rectangles'] for r in rs]):.0f} |")
+    return "\n".join(lines)
+
+
+def tables() -> None:
+    """Print the markdown tables of docs/mpp.md from the JSON files."""
+    for f in sorted(DOCS.glob("mpp_*.json")):
+        d = json.loads(f.read_text())
+        print(f"### {f.name}\n")
+        print(_levir_table(d) if "levir" in f.name else _town_table(d))
+        print()
 
 
 def levir(prototypes: str = "auto") -> dict:
@@ -180,6 +224,8 @@ if __name__ == "__main__":
             only = [SHORT[x] for x in args[k + 1].split(",")]
             args = args[:k] + args[k + 2:]
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
+    elif what == "tables":
+        tables()
     elif what == "levir":
         levir(sys.argv[3] if len(sys.argv) > 3 and sys.argv[2] == "--prototypes" else "auto")
     else:

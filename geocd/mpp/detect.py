@@ -106,8 +106,11 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
                         ground_m=ground_m if use_h else None)
     for tag, f in (("image A", fa), ("image B", fb)):
         notes += [f"{tag}: {n}" for n in f.notes]
-    if not fa.birth.any() or not fb.birth.any():
-        notes.append("an image has no gradient at all (flat): nothing can be born there")
+    flat = [tag for tag, f in (("image A", fa), ("image B", fb)) if not f.birth.any()]
+    if flat:
+        notes.append(f"{' and '.join(flat)}: no gradient at all (flat): no building can be seen there"
+                     + ("" if len(flat) == 2 else "; every building of the other date will read as a change "
+                        "(check for cloud, nodata or a wrong band)"))
     b0 = float("nan")
     if method == "SD":
         ma = EnergyModel([fa], posting_m, params)
