@@ -104,19 +104,24 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
                 best = det
     out = {"scene": str(name), "views": [inp["view_a"], inp["view_b"]], "rows": rows}
     if best is not None:
+        tag = Path(name).name
+        quicklook(DOCS / f"mpp_{tag}.png", inp["image_a"], inp["image_b"], best,
+                  titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
+                  valid_a=inp["valid_a"], valid_b=inp["valid_b"])
+        print("quick-look written", flush=True)
         again = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, MPPParams(seed=seeds[0], height="and"),
                        valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"],
                        ground_m=inp["ground"])
         out["deterministic"] = bool(np.array_equal(again.result.rects, best.result.rects)
                                     and np.array_equal(again.result.xi, best.result.xi))
-        tag = Path(name).name
-        quicklook(DOCS / f"mpp_{tag}.png", inp["image_a"], inp["image_b"], best,
-                  titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
-                  valid_a=inp["valid_a"], valid_b=inp["valid_b"])
+        print("same seed, same objects:", out["deterministic"], flush=True)
     path = DOCS / f"mpp_{Path(name).name}.json"
     if only is not None and path.exists():   # a partial run updates the rows it measured
         old = json.loads(path.read_text())
-        old["rows"].update(rows)
+        for label, rs in rows.items():   # same seed: replaced; other seeds kept
+            seeds_new = {r["seed"] for r in rs}
+            kept = [r for r in old["rows"].get(label, []) if r.get("seed") not in seeds_new]
+            old["rows"][label] = sorted(kept + rs, key=lambda r: r["seed"])
         out = {**old, **{k: v for k, v in out.items() if k != "rows"}, "rows": old["rows"]}
     path.write_text(json.dumps(out, indent=2, default=str))
     return out
