@@ -9,6 +9,8 @@ Usage (from the repository root)::
         [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
+    .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
+    .venv/bin/python docs/mpp_show.py tables              # the markdown tables of docs/mpp.md
 
 Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read in place from ../shared/data.
 """
@@ -157,6 +159,44 @@ def _levir_table(d: dict) -> str:
     return "\n".join(lines)
 
 
+def levir_diagnose(pairs=("test_7_0256_0512", "val_27_0000_0256")) -> None:
+    """Why ED keeps almost nothing on LEVIR-CD: each feature's energy on date B for rectangles fitted to the
+    label's components (new buildings; moments of each component), with the "auto" prototypes."""
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+    from skimage.measure import label as cc_label
+    from skimage.measure import regionprops
+
+    from geocd.mpp.features import image_features
+    from geocd.mpp.model import EnergyModel
+
+    root = DATA / "levircd_building_change_samples"
+    for name in pairs:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(root / "B" / f"{name}.png") as ds:
+                b = ds.read()
+            with rasterio.open(root / "label" / f"{name}.png") as ds:
+                lab = ds.read(1) > 0
+        p = MPPParams()
+        f = image_features(b, 0.5, p)
+        m = EnergyModel([f], 0.5, p)
+        rects = []
+        for r in regionprops(cc_label(lab)):
+            if r.area < 40:
+                continue
+            cy, cx = r.centroid
+            th = (np.pi / 2 - r.orientation + np.pi / 2) % np.pi - np.pi / 2
+            rects.append([cx, cy, r.axis_major_length, r.axis_minor_length, th])
+        raw = m.raw(np.array(rects))["img0"]
+        e = m.feature_energy(0, raw)
+        print(f"{name}: prototypes {m.terms[0].prototypes}, colour mask {f.colour_mask.mean():.4f} of the cells, "
+              f"shadow mask {f.shadow_mask.mean() if f.shadow_mask is not None else 0:.4f}, notes {f.notes}")
+        print("  phi      ", np.round(m.phi(0, raw), 2))
+        for k in ("gradient", "homogeneity", "colour", "shadow"):
+            print(f"  {k:<10}", np.round(e[k], 2))
+
+
 def tables() -> None:
     """Print the markdown tables of docs/mpp.md from the JSON files."""
     for f in sorted(DOCS.glob("mpp_*.json")):
@@ -229,6 +269,8 @@ if __name__ == "__main__":
             only = [SHORT[x] for x in args[k + 1].split(",")]
             args = args[:k] + args[k + 2:]
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
+    elif what == "levir-diagnose":
+        levir_diagnose()
     elif what == "tables":
         tables()
     elif what == "levir":
