@@ -103,20 +103,24 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
             rows.setdefault(label, []).append(t)
             print(label, t, flush=True)
             if label.startswith("ED + height") and best is None:
-                best = det
+                best, best_label, best_kw = det, label, (p, prior if needs_prior else None)
     out = {"scene": str(name), "views": [inp["view_a"], inp["view_b"]], "rows": rows}
     if best is not None:
         tag = Path(name).name
+        if best_label != "ED + height (geocd)":
+            tag += "_prior"
         quicklook(DOCS / f"mpp_{tag}.png", inp["image_a"], inp["image_b"], best,
                   titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
                   valid_a=inp["valid_a"], valid_b=inp["valid_b"])
         print("quick-look written", flush=True)
-        again = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, MPPParams(seed=seeds[0], height="and"),
-                       valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"],
-                       ground_m=inp["ground"])
+        p0 = best_kw[0].replace(seed=seeds[0])
+        again = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, p0, valid_a=inp["valid_a"],
+                       valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"],
+                       change_prior=best_kw[1])
         out["deterministic"] = bool(np.array_equal(again.result.rects, best.result.rects)
                                     and np.array_equal(again.result.xi, best.result.xi))
-        print("same seed, same objects:", out["deterministic"], flush=True)
+        out["deterministic_variant"] = best_label
+        print("same seed, same objects:", out["deterministic"], f"({best_label})", flush=True)
     path = DOCS / f"mpp_{Path(name).name}.json"
     if only is not None and path.exists():   # a partial run updates the rows it measured
         old = json.loads(path.read_text())
