@@ -171,12 +171,14 @@ def test_sample_aoi_region_test_figures(sample_pairs, sample_run):
     assert res.significance == "region" and res.min_region_cells == 49  # one 7 x 7 matching window
     truth = _truth(m, grid, "change_mask") > 0.5
     s = binary_scores(_changed(res.changed_at(99)), truth, res.observed)
-    assert s["precision"] == pytest.approx(0.793, abs=0.03), s
-    assert s["recall"] == pytest.approx(0.660, abs=0.03), s
-    assert s["f1"] == pytest.approx(0.721, abs=0.02), s
-    assert s["false_alarm_rate"] == pytest.approx(0.0018, abs=0.0006), s
+    assert s["precision"] == pytest.approx(0.791, abs=0.03), s
+    assert s["recall"] == pytest.approx(0.634, abs=0.03), s
+    assert s["f1"] == pytest.approx(0.704, abs=0.02), s
+    assert s["false_alarm_rate"] == pytest.approx(0.0017, abs=0.0006), s
     b = _building_scores(sample_run, m, grid)
-    assert (b["tp"], b["fp"], b["fn"]) == (8, 0, 0), b  # 5 changed of the epoch-A footprints + 3 new detected
+    # 4 of the 5 changed epoch-A footprints + the 3 new ones detected; demolished building 22 is missed (its
+    # changed cells do not form a region significant at 99 %; the per-cell test below finds it)
+    assert (b["tp"], b["fp"], b["fn"]) == (7, 0, 1), b
     bl = sample_run["buildings"]
     assert (bl["source"] == "detected").sum() == 3 and (bl.loc[bl["source"] == "detected", "class"] == "new").all()
     fr = bl.loc[bl["class"].isin(["raised", "lowered", "demolished"]), "frac_changed"]
@@ -195,11 +197,11 @@ def test_sample_aoi_products_say_the_reported_level(sample_run):
     with rasterio.open(out["change_mask"]) as ds:
         assert np.array_equal(ds.read(1), res.changed_at(99))
     ch = gpd.read_file(out["changes"], layer="changes")
-    assert 8 <= len(ch) <= 14 and (ch["area_m2"] >= 49 * 0.25).all()  # no polygon below the mapping unit
+    assert 6 <= len(ch) <= 9 and (ch["area_m2"] >= 49 * 0.25).all()  # no polygon below the mapping unit
     assert np.isfinite(ch["volume_sigma_m3"]).all() and (ch["volume_sigma_m3"] > 0).all()
     assert (ch["confidence"] >= 99).all() and (ch["confidence"] <= 100).all()  # percent
     s = sample_run["summary"]
-    assert s["buildings"] == {"unchanged": 22, "unobserved": 9, "new": 3, "raised": 2, "demolished": 2, "lowered": 1}
+    assert s["buildings"] == {"unchanged": 23, "unobserved": 9, "new": 3, "raised": 2, "demolished": 1, "lowered": 1}
 
 
 def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run_cell):
@@ -209,19 +211,20 @@ def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run_cell):
     m, by, grid = sample_pairs
     res = sample_run_cell["result"]
     truth = _truth(m, grid, "change_mask") > 0.5
-    want = {90: (0.497, 0.0165), 95: (0.702, 0.0047), 99: (0.599, 0.0004)}
+    want = {90: (0.474, 0.0185), 95: (0.681, 0.0057), 99: (0.656, 0.0007)}
     for lev, (f1, fa) in want.items():
         s = binary_scores(_changed(res.changed_at(lev)), truth, res.observed)
         assert s["f1"] == pytest.approx(f1, abs=0.02), (lev, s)
         assert s["false_alarm_rate"] == pytest.approx(fa, abs=0.25 * fa + 0.0002), (lev, s)
     b = _building_scores(sample_run_cell, m, grid)
-    assert (b["tp"], b["fp"], b["fn"]) == (7, 0, 1), b  # from the 90 % map: 8 tp but 19 fp
+    assert (b["tp"], b["fp"], b["fn"]) == (8, 0, 0), b
     import rasterio
 
     with rasterio.open(sample_run_cell["outputs"]["change_mask"]) as ds:  # the 99 % map, not the 90 % one
         mask = ds.read(1)
     assert np.array_equal(mask, res.changed_at(99)) and _changed(res.changed_at(90)).sum() > 2 * _changed(mask).sum()
     bl = sample_run_cell["buildings"].set_index("building_id")
-    # two changed buildings are flagged on 33 % and 45 % of their cells: min_changed 0.5 would lose them
-    assert bl.loc[11, "frac_changed"] == pytest.approx(0.327, abs=0.05) and bl.loc[11, "class"] == "raised"
-    assert bl.loc[31, "frac_changed"] == pytest.approx(0.451, abs=0.05) and bl.loc[31, "class"] == "demolished"
+    # changed buildings flagged on 34 % and 37 % of their cells: min_changed 0.5 would lose them
+    assert bl.loc[11, "frac_changed"] == pytest.approx(0.344, abs=0.05) and bl.loc[11, "class"] == "raised"
+    assert bl.loc[22, "frac_changed"] == pytest.approx(0.367, abs=0.05) and bl.loc[22, "class"] == "demolished"
+    assert bl.loc[31, "frac_changed"] == pytest.approx(0.512, abs=0.05) and bl.loc[31, "class"] == "demolished"
