@@ -3,7 +3,8 @@
 1. ``features``: seconds per km² at 0.5 m for each grid feature (one core: BLAS/torch limited to one
    thread), on a 1024 × 1024 pair cut from the Kahramanmaraş Pléiades views (pre/post, grey) when
    ../shared is there, else a synthetic textured pair; the whole screen (features of both images,
-   d_g, Felzenszwalb superpixels of both, exclusions), cold (first call) and warm (second call).
+   d_g, Felzenszwalb superpixels of both, exclusions), cold (first call) and warm (second call),
+   wall and CPU seconds (one thread: CPU seconds are what a free core takes on a loaded machine).
    The ratio column compares with the patch feature measured in the same run.
 2. ``tiered SCENE``: ``geocd run SCENE [--model M]`` and ``geocd run SCENE --screen`` in child processes;
    wall and CPU seconds of each, the speed-up, the fraction of the grid the stereo ran on, and the 3-D
@@ -47,14 +48,14 @@ def _pair(size: int = 1024):
 
         a = read_image(KAHRA / "pre_event_img1.tif", window=Window(0, 0, size, size)).data.astype(np.float32)
         b = read_image(KAHRA / "post_event_img1.tif", window=Window(0, 0, size, size)).data.astype(np.float32)
-        return a, b, "Kahramanmaraş pre_event_img1 / post_event_img1, first 1024 × 1024 px"
+        return a, b, f"Kahramanmaraş pre_event_img1 / post_event_img1, first {size} × {size} px"
     from tests.screen.scenes import pair
 
     a, b, _ = pair(size=size)
     return a, b, "synthetic textured pair"
 
 
-def bench_features() -> dict:
+def bench_features(size: int = 1024, only: list[str] | None = None) -> dict:
     from geocd.screen import FeatureSpec, ScreenParams, screen_pair
     from geocd.screen.cnn import random_state_dict, torch_available
 
@@ -64,7 +65,7 @@ def bench_features() -> dict:
         torch.set_num_threads(1)
     except ImportError:
         pass
-    a, b, what = _pair()
+    a, b, what = _pair(size)
     km2 = a.shape[-1] * a.shape[-2] * 0.25 / 1e6
     wdir = Path("/tmp/geocd_bench_screen")
     wdir.mkdir(exist_ok=True)
@@ -76,21 +77,27 @@ def bench_features() -> dict:
             np.savez(w, **random_state_dict(bb, 0))
         for eng in (["numpy", "torch"] if torch_available() else ["numpy"]):
             specs.append((f"{bb} {ly} ({eng})", FeatureSpec("cnn", backbone=bb, weights=str(w), layer=ly, engine=eng)))
+    if only:
+        specs = [s for s in specs if any(s[0].startswith(k) for k in only)]
     rows = []
     for label, spec in specs:
         feat = spec.build()
-        times = []
+        times, cpu = [], []
         for _ in range(2):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             screen_pair(a, b, gsd_m=0.5, params=ScreenParams(feature=spec), feature=feat)
             times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        # CPU seconds of this one-threaded process are what one free core would take (wall depends on the load)
         rows.append({"feature": label, "cold_s": round(times[0], 2), "warm_s": round(times[1], 2),
-                     "s_per_km2_warm": round(times[1] / km2, 1)})
+                     "cold_cpu_s": round(cpu[0], 2), "warm_cpu_s": round(cpu[1], 2),
+                     "s_per_km2_warm": round(times[1] / km2, 1), "cpu_s_per_km2_warm": round(cpu[1] / km2, 1)})
         print(json.dumps(rows[-1]), flush=True)
-    base = rows[0]["s_per_km2_warm"]
-    for r in rows:
-        r["ratio_to_patch"] = round(r["s_per_km2_warm"] / base, 2)
-    return {"pair": what, "km2": round(km2, 4), "threads": 1, "rows": rows}
+    if rows[0]["feature"].startswith("patch"):
+        base = rows[0]["cpu_s_per_km2_warm"]
+        for r in rows:
+            r["cpu_ratio_to_patch"] = round(r["cpu_s_per_km2_warm"] / base, 2)
+    return {"pair": what, "km2": round(km2, 4), "threads": 1, "load_average": os.getloadavg(), "rows": rows}
 
 
 def _run(args: list[str]) -> dict:
@@ -111,6 +118,23 @@ def _regions(out: Path):
 
     f = out / "sc_changes.gpkg"
     return gpd.read_file(f, layer="changes")
+
+
+def _damaged_buildings(full: Path, tier: Path) -> dict | None:
+    """Buildings of the full run's ``building_damage`` layer in a changed class (not unchanged/unobserved) that
+    no changed building of the tiered run overlaps (the building outlines come from each run's own DSM)."""
+    import geopandas as gpd
+    import pyogrio
+
+    if "building_damage" not in [str(n) for n, _ in pyogrio.list_layers(full / "sc_changes.gpkg")]:
+        return None
+    quiet = ("unchanged", "unobserved")
+    a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
+    b = gpd.read_file(tier / "sc_changes.gpkg", layer="building_damage")
+    a, b = a[~a["class"].isin(quiet)], b[~b["class"].isin(quiet)]
+    lost = a[~a.geometry.intersects(b.unary_union)] if len(b) else a
+    return {"changed_full": int(len(a)), "changed_tiered": int(len(b)), "full_changed_not_found": int(len(lost)),
+            "lost_by_class": lost["class"].value_counts().to_dict()}
 
 
 def _truth_scores(out: Path, scene: Path) -> dict | None:
@@ -151,6 +175,9 @@ def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict,
            "speedup_cpu": round(r_full["cpu_s"] / r_tier["cpu_s"], 2),
            "regions_full": int(len(a)), "regions_tiered": int(len(b)), "regions_lost": int(len(lost)),
            "area_lost_m2": round(float(lost.area.sum()), 1), "area_full_m2": round(float(a.area.sum()), 1)}
+    bd = _damaged_buildings(full, tier)
+    if bd is not None:
+        res["buildings"] = bd
     root = sc if sc.is_dir() else sc.parent
     tf, tt = _truth_scores(full, root), _truth_scores(tier, root)
     if tf is not None:
@@ -158,29 +185,73 @@ def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict,
     return res
 
 
+def tile_sizes(full: Path, tier: Path, sizes=(32, 64, 128, 256), min_region_m2: float = 4.0) -> list[dict]:
+    """What other ``--screen-tile`` sizes would have done with the same screen: the fraction of the grid the
+    stereo windows cover, and the full run's changed cells (99 %) outside every window (lost to the 3-D test)."""
+    import rasterio
+    from scipy import ndimage
+
+    from geocd.screen.tiered import flag_tiles
+
+    with rasterio.open(tier / "screen" / "screen_change_mask.tif") as ds:
+        ch = ds.read(1) == 1
+    with rasterio.open(full / "sc_change_mask.tif") as ds:
+        m = ds.read(1)
+        cell_m2 = abs(ds.transform.a * ds.transform.e)
+    det = (m != 0) & (m != -128)
+    lab, n = ndimage.label(ch, structure=np.ones((3, 3), bool))
+    if n:
+        keep = np.bincount(lab.ravel()) >= max(1, int(np.ceil(min_region_m2 / cell_m2)))
+        keep[0] = False
+        ch = keep[lab]
+    margin = json.loads((tier / "run_summary.json").read_text())["screen"]["margin_cells"]
+    dl, nd = ndimage.label(det, structure=np.ones((3, 3), bool))
+    rows = []
+    for t in sizes:
+        fl = flag_tiles(ch, t, margin)
+        win = np.zeros(ch.shape, bool)
+        for r0, c0, h, w in fl.windows:
+            win[r0:r0 + h, c0:c0 + w] = True
+        hit = np.unique(dl[win & det])
+        rows.append({"tile_cells": t, "flagged_tile_fraction": round(fl.tile_fraction, 3),
+                     "stereo_cell_fraction": round(float(win.mean()), 3),
+                     "full_changed_cells_outside": int((det & ~win).sum()), "full_changed_cells": int(det.sum()),
+                     "full_regions_missed": int(nd - np.count_nonzero(hit)), "full_regions": int(nd)})
+    return rows
+
+
+def _key(scene: str) -> str:
+    p = Path(scene)
+    return p.parent.name if p.suffix else p.name
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["features", "tiered", "compare"])
+    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles"])
     ap.add_argument("--full-dir", type=Path, help="compare: the full run's output folder")
     ap.add_argument("--tiered-dir", type=Path, help="compare: the tiered run's output folder")
     ap.add_argument("--full-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
     ap.add_argument("--tiered-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
     ap.add_argument("scene", nargs="?", default="sample_aoi")
     ap.add_argument("--model", default=None)
+    ap.add_argument("--size", type=int, default=1024, help="features: side of the benchmark pair (px)")
+    ap.add_argument("--features", default=None, help="features: comma-separated label prefixes (default all)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/geocd_bench_screen"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "screen_bench.json")
     a = ap.parse_args(argv)
     doc = json.loads(a.out.read_text()) if a.out.exists() else {}
     if a.what == "features":
-        doc["features"] = bench_features()
+        res = bench_features(a.size, a.features.split(",") if a.features else None)
+        doc.setdefault("features", {})[f"{a.size}px" + (f" {a.features}" if a.features else "")] = res
     elif a.what == "compare":  # two runs made by hand (e.g. in parallel on a loaded machine) with their timings
-        key = Path(a.scene).stem if Path(a.scene).suffix else Path(a.scene).name
-        doc.setdefault("tiered", {})[key] = compare(
+        doc.setdefault("tiered", {})[_key(a.scene)] = compare(
             a.scene, a.model, a.full_dir, a.tiered_dir, {"wall_s": a.full_time[0], "cpu_s": a.full_time[1]},
             {"wall_s": a.tiered_time[0], "cpu_s": a.tiered_time[1]})
+    elif a.what == "tiles":  # other --screen-tile sizes with the screen of a tiered run (no stereo re-run)
+        doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:
         w = a.work / Path(a.scene).stem
-        doc.setdefault("tiered", {})[Path(a.scene).stem if Path(a.scene).suffix else Path(a.scene).name] = \
+        doc.setdefault("tiered", {})[_key(a.scene)] = \
             bench_tiered(a.scene, a.model, w)
     a.out.write_text(json.dumps(doc, indent=1, default=str))
     print(json.dumps(doc, indent=1, default=str)[-3000:])

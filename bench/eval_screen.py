@@ -51,8 +51,10 @@ SHIFTS = (0, 2, 4)
 SUPERPIXELS = ("felzenszwalb", "slic", "none")
 
 
-def feature_specs(quick: bool, weights_dir: Path) -> list[tuple[str, FeatureSpec]]:
-    """(label, spec) of every row of the table; CNN rows use random-init (He) weights the script makes."""
+def feature_specs(quick: bool, weights_dir: Path,
+                  weights: dict[str, str] | None = None) -> list[tuple[str, FeatureSpec]]:
+    """(label, spec) of every row of the table; CNN rows use random-init (He) weights the script makes, or the
+    weights file named for that backbone in ``weights`` ({"vgg19": "vgg19.npz"}: e.g. trained ImageNet weights)."""
     specs = []
     cells = (16,) if quick else (16, 32)
     for kind in ("patch", "daisy", "randbank"):
@@ -63,11 +65,14 @@ def feature_specs(quick: bool, weights_dir: Path) -> list[tuple[str, FeatureSpec
                        ("resnet18", ("layer2", "layer3") if not quick else ())):
         if not layers:
             continue
-        w = weights_dir / f"{bb}_random_init_seed0.npz"
-        if not w.exists():
-            np.savez(w, **random_state_dict(bb, seed=0))
+        if weights and bb in weights:
+            w, tag = Path(weights[bb]), Path(weights[bb]).name
+        else:
+            w, tag = weights_dir / f"{bb}_random_init_seed0.npz", "random init"
+            if not w.exists():
+                np.savez(w, **random_state_dict(bb, seed=0))
         for ly in layers:
-            specs.append((f"{bb} {ly} (random init)", FeatureSpec(kind="cnn", backbone=bb, weights=str(w), layer=ly)))
+            specs.append((f"{bb} {ly} ({tag})", FeatureSpec(kind="cnn", backbone=bb, weights=str(w), layer=ly)))
     return specs
 
 
@@ -327,11 +332,13 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--features", default=None, help="comma-separated labels to run (default all)")
     ap.add_argument("--markdown", action="store_true", help="print the tables of --out and stop")
+    ap.add_argument("--weights", action="append", default=[], metavar="BACKBONE=FILE",
+                    help="weights for the vgg19 / resnet18 rows (e.g. trained ones) instead of random init")
     a = ap.parse_args(argv)
     if a.markdown:
         print(render(json.loads(a.out.read_text())))
         return 0
-    specs = feature_specs(a.quick, a.views / "weights")
+    specs = feature_specs(a.quick, a.views / "weights", dict(w.split("=", 1) for w in a.weights))
     if a.features:
         keep = a.features.split(",")
         specs = [s for s in specs if any(s[0].startswith(k) for k in keep)]

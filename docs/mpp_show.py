@@ -5,8 +5,12 @@ Usage (from the repository root)::
     # a generated town (sample_aoi, or `geocd synth --seed N --out DIR`): orthos + stereo DSMs once, then
     # every variant on them
     .venv/bin/geocd --progress none ortho sample_aoi --out /tmp/ortho_run
-    .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif]
+    .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
+        [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
+    .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
+    .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
+    .venv/bin/python docs/mpp_show.py tables              # the markdown tables of docs/mpp.md
 
 Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read in place from ../shared/data.
 """
@@ -39,6 +43,8 @@ VARIANTS = {
     "ED + height (geocd)": ("ED", {"height": "and"}, True, False),
     "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0}, True, True),
 }
+#: short names for ``--only``
+SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP"), VARIANTS))
 
 
 def _town_inputs(town: Path, ortho_dir: Path):
@@ -68,7 +74,7 @@ def _town_inputs(town: Path, ortho_dir: Path):
     return out
 
 
-def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,)) -> dict:
+def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=None) -> dict:
     inp = _town_inputs(name, ortho_dir)
     prior = None
     if sc is not None:
@@ -78,42 +84,135 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,)) -> dic
     rows = {}
     best = None
     for label, (method, changes, needs_h, needs_prior) in VARIANTS.items():
-        if needs_prior and prior is None:
+        if (needs_prior and prior is None) or (only is not None and label not in only):
             continue
         for seed in (seeds if needs_h else seeds[:1]):
             p = MPPParams(seed=seed, **changes)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 det = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, p, method=method,
                              valid_a=inp["valid_a"], valid_b=inp["valid_b"],
                              dsm_a=inp["dsm_a"] if needs_h else None, dsm_b=inp["dsm_b"] if needs_h else None,
                              ground_m=inp["ground"] if needs_h else None, change_prior=prior if needs_prior else None)
-            dt = time.perf_counter() - t0
+            dt, dc = time.perf_counter() - t0, time.process_time() - c0
             masks = rect_masks(det.result.rects, det.result.xi, inp["grid"].shape)
             t = table2(masks, inp["objs"], inp["t1"], inp["t2"])
-            t.update(seed=seed, seconds=round(dt, 1), iterations=det.result.iterations,
+            t.update(seed=seed, seconds=round(dt, 1), cpu_seconds=round(dc, 1), iterations=det.result.iterations,
                      converged=det.result.converged, rectangles=len(det.result), births=det.result.births)
             rows.setdefault(label, []).append(t)
             print(label, t, flush=True)
             if label.startswith("ED + height") and best is None:
-                best = det
+                best, best_label, best_kw = det, label, (p, prior if needs_prior else None)
     out = {"scene": str(name), "views": [inp["view_a"], inp["view_b"]], "rows": rows}
     if best is not None:
-        again = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, MPPParams(seed=seeds[0], height="and"),
-                       valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"],
-                       ground_m=inp["ground"])
-        out["deterministic"] = bool(np.array_equal(again.result.rects, best.result.rects)
-                                    and np.array_equal(again.result.xi, best.result.xi))
         tag = Path(name).name
+        if best_label != "ED + height (geocd)":
+            tag += "_prior"
         quicklook(DOCS / f"mpp_{tag}.png", inp["image_a"], inp["image_b"], best,
                   titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
                   valid_a=inp["valid_a"], valid_b=inp["valid_b"])
-    (DOCS / f"mpp_{Path(name).name}.json").write_text(json.dumps(out, indent=2, default=str))
+        print("quick-look written", flush=True)
+        p0 = best_kw[0].replace(seed=seeds[0])
+        again = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, p0, valid_a=inp["valid_a"],
+                       valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"],
+                       change_prior=best_kw[1])
+        out["deterministic"] = bool(np.array_equal(again.result.rects, best.result.rects)
+                                    and np.array_equal(again.result.xi, best.result.xi))
+        out["deterministic_variant"] = best_label
+        print("same seed, same objects:", out["deterministic"], f"({best_label})", flush=True)
+    path = DOCS / f"mpp_{Path(name).name}.json"
+    if only is not None and path.exists():   # a partial run updates the rows it measured
+        old = json.loads(path.read_text())
+        for label, rs in rows.items():   # same seed: replaced; other seeds kept
+            seeds_new = {r["seed"] for r in rs}
+            kept = [r for r in old["rows"].get(label, []) if r.get("seed") not in seeds_new]
+            old["rows"][label] = sorted(kept + rs, key=lambda r: r["seed"])
+        out = {**old, **{k: v for k, v in out.items() if k != "rows"}, "rows": old["rows"]}
+    path.write_text(json.dumps(out, indent=2, default=str))
     return out
 
 
-def levir() -> dict:
+def _town_table(d: dict) -> str:
+    lines = ["| variant | missed objects (HO) | false objects (FO) | missed changes (HV) | false changes (FV) "
+             "| pixel F (DP) [P / R] | changed-building F | seconds | iterations |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for label, rs in d["rows"].items():
+        r = rs[0]
+        seeds = ""
+        if len(rs) > 1:
+            dps = [x["DP"] for x in rs]
+            seeds = f" (seeds {','.join(str(x['seed']) for x in rs)}: {min(dps):.3f}–{max(dps):.3f})"
+        lines.append(f"| {label} | {r['HO']} / {r['objects']} | {r['FO']} / {r['detected_objects']} | {r['HV']} / "
+                     f"{r['changes']} | {r['FV']} / {r['detected_changes']} | **{r['DP']:.3f}**{seeds} "
+                     f"[{r['DP_precision']:.2f} / {r['DP_recall']:.2f}] | {r['change_f']:.3f} | {r['seconds']} | "
+                     f"{r['iterations']} |")
+    return "\n".join(lines)
+
+
+def _levir_table(d: dict) -> str:
+    lines = ["| variant | changes in the labels | missed changes (HV) | false changes (FV) / detected | "
+             "changed-building F (mean of 5) | mean P / R | rectangles per pair |", "|---|---|---|---|---|---|---|"]
+    for label, rs in d["rows"].items():
+        n = sum(r["changes"] for r in rs)
+        p = [r["change_precision"] for r in rs]
+        rc = [r["change_recall"] for r in rs]
+        lines.append(f"| {label} | {n} | {sum(r['HV'] for r in rs)} | {sum(r['FV'] for r in rs)} / "
+                     f"{sum(r['detected_changes'] for r in rs)} | {np.mean([r['change_f'] for r in rs]):.3f} | "
+                     f"{np.mean(p):.2f} / {np.mean(rc):.2f} | {np.mean([r['rectangles'] for r in rs]):.0f} |")
+    return "\n".join(lines)
+
+
+def levir_diagnose(pairs=("test_7_0256_0512", "val_27_0000_0256")) -> None:
+    """Why ED keeps almost nothing on LEVIR-CD: each feature's energy on date B for rectangles fitted to the
+    label's components (new buildings; moments of each component), with the "auto" prototypes."""
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+    from skimage.measure import label as cc_label
+    from skimage.measure import regionprops
+
+    from geocd.mpp.features import image_features
+    from geocd.mpp.model import EnergyModel
+
+    root = DATA / "levircd_building_change_samples"
+    for name in pairs:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(root / "B" / f"{name}.png") as ds:
+                b = ds.read()
+            with rasterio.open(root / "label" / f"{name}.png") as ds:
+                lab = ds.read(1) > 0
+        p = MPPParams()
+        f = image_features(b, 0.5, p)
+        m = EnergyModel([f], 0.5, p)
+        rects = []
+        for r in regionprops(cc_label(lab)):
+            if r.area < 40:
+                continue
+            cy, cx = r.centroid
+            th = (np.pi / 2 - r.orientation + np.pi / 2) % np.pi - np.pi / 2
+            rects.append([cx, cy, r.axis_major_length, r.axis_minor_length, th])
+        raw = m.raw(np.array(rects))["img0"]
+        e = m.feature_energy(0, raw)
+        print(f"{name}: prototypes {m.terms[0].prototypes}, colour mask {f.colour_mask.mean():.4f} of the cells, "
+              f"shadow mask {f.shadow_mask.mean() if f.shadow_mask is not None else 0:.4f}, notes {f.notes}")
+        print("  phi      ", np.round(m.phi(0, raw), 2))
+        for k in ("gradient", "homogeneity", "colour", "shadow"):
+            print(f"  {k:<10}", np.round(e[k], 2))
+
+
+def tables() -> None:
+    """Print the markdown tables of docs/mpp.md from the JSON files."""
+    for f in sorted(DOCS.glob("mpp_*.json")):
+        d = json.loads(f.read_text())
+        print(f"### {f.name}\n")
+        print(_levir_table(d) if "levir" in f.name else _town_table(d))
+        print()
+
+
+def levir(prototypes: str = "auto") -> dict:
+    """The five LEVIR-CD pairs; ``prototypes`` as in MPPParams ("auto": the colour model, gradient + shadow |
+    colour, for RGB images); another choice writes ``docs/mpp_levir_<prototypes>.json``."""
     import rasterio
     from rasterio.errors import NotGeoreferencedWarning
 
@@ -133,7 +232,7 @@ def levir() -> dict:
             if needs_h or needs_prior:
                 continue
             t0 = time.perf_counter()
-            det = detect(a, b, 0.5, MPPParams(**changes), method=method)
+            det = detect(a, b, 0.5, MPPParams(prototypes=prototypes, **changes), method=method)
             masks = rect_masks(det.result.rects, det.result.xi, lab.shape)
             t = table2_change_only(masks, lab)
             t.update(pair=f.stem, seconds=round(time.perf_counter() - t0, 1), rectangles=len(det.result),
@@ -146,9 +245,11 @@ def levir() -> dict:
     for label, rs in rows.items():
         tp = sum(r["change_f"] for r in rs) / len(rs)
         out.setdefault("mean_change_f", {})[label] = round(tp, 4)
+    tag = "" if prototypes == "auto" else "_" + prototypes.replace("+", "_").replace("|", "_or_")
+    out["prototypes"] = prototypes
     if first is not None:
-        quicklook(DOCS / "mpp_levir.png", first[0], first[1], first[2], titles=(f"{first[3]} A", f"{first[3]} B"))
-    (DOCS / "mpp_levir.json").write_text(json.dumps(out, indent=2, default=str))
+        quicklook(DOCS / f"mpp_levir{tag}.png", first[0], first[1], first[2], titles=(f"{first[3]} A", f"{first[3]} B"))
+    (DOCS / f"mpp_levir{tag}.json").write_text(json.dumps(out, indent=2, default=str))
     return out
 
 
@@ -166,8 +267,17 @@ if __name__ == "__main__":
             k = args.index("--seeds")
             seeds = tuple(int(x) for x in args[k + 1].split(","))
             args = args[:k] + args[k + 2:]
-        town(Path(args[0]), Path(args[1]), sc, seeds)
+        only = None
+        if "--only" in args:
+            k = args.index("--only")
+            only = [SHORT[x] for x in args[k + 1].split(",")]
+            args = args[:k] + args[k + 2:]
+        town(Path(args[0]), Path(args[1]), sc, seeds, only)
+    elif what == "levir-diagnose":
+        levir_diagnose()
+    elif what == "tables":
+        tables()
     elif what == "levir":
-        levir()
+        levir(sys.argv[3] if len(sys.argv) > 3 and sys.argv[2] == "--prototypes" else "auto")
     else:
         raise SystemExit(__doc__)

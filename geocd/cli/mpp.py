@@ -31,7 +31,7 @@ import numpy as np
               help="3-D change evidence as a prior on the change label: a geocd change raster (band 'confidence', "
                    "e.g. OUT/sc_change.tif from geocd run) or any 0–1 map.")
 @click.option("--gamma-3d", type=float, default=None, help="Weight of the 3-D change prior (default 1 when given).")
-@click.option("--side-min", "side_min_m", type=float, default=None, help="Smallest rectangle side, m (default 4).")
+@click.option("--side-min", "side_min_m", type=float, default=None, help="Smallest rectangle side, m (default 6).")
 @click.option("--side-max", "side_max_m", type=float, default=None, help="Largest rectangle side, m (default 30).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed: same seed, same objects.")
 @click.option("--max-iter", type=int, default=None, help="Iteration cap of multiple birth and death (default 250).")

@@ -106,8 +106,11 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
                         ground_m=ground_m if use_h else None)
     for tag, f in (("image A", fa), ("image B", fb)):
         notes += [f"{tag}: {n}" for n in f.notes]
-    if not fa.birth.any() or not fb.birth.any():
-        notes.append("an image has no gradient at all (flat): nothing can be born there")
+    flat = [tag for tag, f in (("image A", fa), ("image B", fb)) if not f.birth.any()]
+    if flat:
+        notes.append(f"{' and '.join(flat)}: no gradient at all (flat): no building can be seen there"
+                     + ("" if len(flat) == 2 else "; every building of the other date will read as a change "
+                        "(check for cloud, nodata or a wrong band)"))
     b0 = float("nan")
     if method == "SD":
         ma = EnergyModel([fa], posting_m, params)
@@ -123,11 +126,30 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
                             change_prior=change_prior if params.gamma_3d > 0 else None)
         res = optimize(model, params, progress=sub_progress(prog, 0.1, 1.0))
         thr = [_thr(t) for t in model.terms]
+    if len(res) == 0 and not flat:
+        notes.append(_why_empty(params, (fa, fb)))
     if not res.converged:
         notes.append(f"multiple birth and death stopped at the iteration cap ({params.max_iter}) before the "
                      "convergence test passed")
     prog(1.0, f"{len(res)} rectangles")
     return Detection(res, method, (fa, fb), b0, thr, notes)
+
+
+def _why_empty(params: MPPParams, feats) -> str:
+    """A note for a run that found nothing on images that do have edges (an implausible answer)."""
+    raised = []
+    for f in feats:
+        if f.ndsm is not None:
+            ok = np.isfinite(f.ndsm) & f.valid
+            if ok.any():
+                raised.append(float(np.mean(f.ndsm[ok] > params.min_height_m)))
+    if raised and max(raised) > 0.5:
+        return (f"no building found: {max(raised):.0%} of the cells stand more than {params.min_height_m:g} m above "
+                "the ground estimated from the DSM, so no rectangle is a raised block with lower surroundings "
+                "(dense blocks larger than the largest rectangle, or a ground model that is too low: give the "
+                "terrain DEM, or try without the height term)")
+    return (f"no building found: no rectangle of {params.side_min_m:g}–{params.side_max_m:g} m fits the image "
+            "cues; check the side bounds against the buildings' size")
 
 
 def _thr(term) -> dict[str, Any]:

@@ -2,14 +2,14 @@
 
 Where each default comes from (none was chosen on a scene's truth):
 
-* **Sizes** (metres, converted with the grid posting): rectangle sides 4–30 m — a garage to the wing of
+* **Sizes** (metres, converted with the grid posting): rectangle sides 6–30 m — a large garage to the wing of
   a large building (bigger buildings are unions of rectangles, as in the paper); the orientation window
   ``l`` "just covers an average building" (paper §3.1): the mean of the side bounds.
 * **Data thresholds** are measured on the images, not set: the gradient term's ``d_Λ`` is a quantile of
   the edge feature over random rectangles of the same image (a building outlines better than most random
   rectangles do), its scale ``D_Λ`` the spread of the upper tail; the texture-change threshold ``b0`` is
-  the median + 3 NMAD of the Bhattacharyya distance over the pair (most of a scene is unchanged); the
-  flood-fill tolerance is 3 σ of the image noise.
+  Otsu's split of the Bhattacharyya distance over the cells both images see; the flood-fill tolerance is
+  3 σ of the image noise.
 * **Fractions** (colour, shadow, height fills, flood-fill completeness) are attractive above one half
   (a majority), and the kurtosis threshold 2.5 separates one mode (Gaussian: 3) from a half-roof that
   spills over a contrasted border (two modes: ≤ 2.5 for modes ≥ 1 σ apart).

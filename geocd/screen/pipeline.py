@@ -466,6 +466,23 @@ def pick_pairs(views_a: Sequence[Any], views_b: Sequence[Any], grid: AOIGrid, h:
     return cross, nc
 
 
+def flat_ground_height(names: Sequence[tuple[str, Any]], grid: AOIGrid) -> float:
+    """The scene's ground height (m, ellipsoidal) for views without a DEM: the median of a coarse stereo match of
+    two views of one epoch (else of the first two views), as the stereo pipeline places its AOI; the middle of
+    the cameras' height range when nothing matches. A plane at the cameras' mid height can be hundreds of metres
+    off (an RPC's height range spans its whole scene): every view is then displaced by its parallax and even a
+    no-change pair looks unrelated."""
+    from ..stereo.params import StereoParams
+    from ..stereo.pipeline import _ground_height_hint
+
+    by_epoch: dict[str, list] = {}
+    for e, v in names:
+        by_epoch.setdefault(e, []).append(v)
+    two = [vs for vs in by_epoch.values() if len(vs) >= 2]
+    views = two[0] if two else [v for _, v in names]
+    return float(_ground_height_hint(views, grid.crs, None, StereoParams()))
+
+
 def views_on_grid(manifest, names: Sequence[tuple[str, Any]], grid: AOIGrid, out: Path, *, dsm: Mapping | None = None,
                   overwrite: bool = True, progress: Progress | None = None) -> dict[str, Path]:
     """Project the named views onto the grid: a true ortho on a given DSM, else a classic one on the terrain DEM."""
@@ -477,6 +494,7 @@ def views_on_grid(manifest, names: Sequence[tuple[str, Any]], grid: AOIGrid, out
     m = manifest
     heights: dict[str, np.ndarray] = {}
     paths = {}
+    flat: list[float] = []  # the scene's ground height when an epoch has neither DSM nor DEM (computed once)
     for k, (epoch, v) in enumerate(names):
         prog(k / max(len(names), 1), f"view {epoch}/{v.name} on the grid")
         if epoch not in heights:
@@ -488,10 +506,11 @@ def views_on_grid(manifest, names: Sequence[tuple[str, Any]], grid: AOIGrid, out
                 spec = ep.dem or m.dem
                 h = read_dem(spec.path, grid=grid, vertical_datum=spec.vertical_datum).to_ellipsoidal().height_m
             else:
-                hr = v.camera.height_range() or (0.0, 0.0)
-                h = np.full(grid.shape, 0.5 * (hr[0] + hr[1]), np.float32)
+                if not flat:
+                    flat.append(flat_ground_height(names, grid))
+                h = np.full(grid.shape, flat[0], np.float32)
                 warnings.warn(f"epoch {epoch}: no DEM or DSM; the views are projected on a flat plane at "
-                              f"{h.flat[0]:.0f} m (the camera's mid height)", stacklevel=2)
+                              f"{flat[0]:.0f} m (the ground height of a coarse match of two views)", stacklevel=2)
             heights[epoch] = fill_dsm_holes(h)[0]
         true = bool(dsm and dsm.get(epoch))
         params = OrthoParams(occlusion=true)

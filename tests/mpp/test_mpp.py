@@ -52,9 +52,10 @@ def _truth_objects(scene):
 def test_joint_model_finds_buildings_and_changes(scene, joint):
     m = rect_masks(joint.result.rects, joint.result.xi, scene["truth_a"].shape)
     t = table2(m, _truth_objects(scene), scene["truth_a"], scene["truth_b"])
-    assert t["DP"] > 0.75, t
-    assert t["HO"] <= 1 and t["FO"] <= 2, t
-    assert t["HV"] <= 1, t
+    # measured 0.933 (HO = FO = HV = FV = 0): a regression of a few points fails
+    assert t["DP"] > 0.89, t
+    assert t["HO"] == 0 and t["FO"] == 0, t
+    assert t["HV"] == 0 and t["FV"] <= 1, t
     assert "image A: grey image: colour and shadow terms dropped" in joint.notes
     assert np.all((joint.result.confidence > 0) & (joint.result.confidence <= 100))
 
@@ -62,7 +63,8 @@ def test_joint_model_finds_buildings_and_changes(scene, joint):
 def test_height_term_helps(scene, joint, height):
     ma = rect_masks(height.result.rects, height.result.xi, scene["truth_a"].shape)
     t = table2(ma, _truth_objects(scene), scene["truth_a"], scene["truth_b"])
-    assert t["DP"] > 0.85 and t["HV"] == 0 and t["FV"] <= 1, t
+    # measured 0.922 (precision 1.00): the height term removes every false building cell
+    assert t["DP"] > 0.88 and t["DP_precision"] > 0.97 and t["HO"] == 0 and t["HV"] == 0 and t["FV"] <= 1, t
 
 
 def test_same_seed_same_objects(scene, joint):
@@ -73,7 +75,7 @@ def test_same_seed_same_objects(scene, joint):
 
 def test_sd_and_edge_only_run(scene):
     """The baselines work, worse than the joint model (edge-only verification keeps shadow and road outlines)."""
-    for method, floor in (("SD", 0.4), ("EV", 0.15)):
+    for method, floor in (("SD", 0.88), ("EV", 0.15)):   # measured 0.929 and 0.221
         d = detect(scene["image_a"], scene["image_b"], POSTING, MPPParams(seed=1, max_iter=60, min_iter=20),
                    method=method)
         m = rect_masks(d.result.rects, d.result.xi, scene["truth_a"].shape)
@@ -84,7 +86,7 @@ def test_flat_image_no_objects_and_bad_inputs(scene):
     flat = np.full((1, 120, 120), 77.0, np.float32)
     d = detect(flat, flat, POSTING, MPPParams(max_iter=10, min_iter=5))
     assert len(d.result) == 0
-    assert any("flat" in n for n in d.notes)
+    assert any("image A and image B: no gradient at all (flat)" in n for n in d.notes)
     with pytest.raises(GridError):
         detect(scene["image_a"], scene["image_b"][:, :150], POSTING)
     with pytest.raises(ConfigError):
@@ -92,6 +94,23 @@ def test_flat_image_no_objects_and_bad_inputs(scene):
     with pytest.raises(ConfigError):
         MPPParams(prototypes="gradient+sunshine")
     assert context_m() > 25.0
+
+
+def test_one_flat_date_runs_and_says_so(scene):
+    """A blank later image (cloud, nodata filled with a constant): no crash, nothing born on it, a note."""
+    flat = np.full_like(scene["image_b"], 77.0)
+    d = detect(scene["image_a"], flat, POSTING, MPPParams(max_iter=30, min_iter=10))
+    assert not np.any(d.result.xi == 2) and not np.any(d.result.xi == 0)
+    assert any(n.startswith("image B: no gradient at all (flat)") and "read as a change" in n for n in d.notes)
+
+
+def test_nothing_found_says_why(scene):
+    """Every cell raised (a ground model 10 m too low): no isolated raised block, no building, and a note
+    that says so instead of a silent empty layer."""
+    d = detect(scene["image_a"], scene["image_b"], POSTING, MPPParams(height="and", max_iter=20, min_iter=5),
+               dsm_a=scene["dsm_a"], dsm_b=scene["dsm_b"], ground_m=scene["ground"] - 10.0)
+    assert len(d.result) == 0
+    assert any(n.startswith("no building found: 100% of the cells stand more than 2.5 m") for n in d.notes), d.notes
 
 
 def test_colour_image_uses_colour_and_shadow_terms():

@@ -125,3 +125,53 @@ def test_cli_screen_and_bad_weights(files, tmp_path):
     r = CliRunner().invoke(main, ["--progress", "none", "screen", str(p["a"]), str(p["b"]), "--confidence", "0.99",
                                   "--threshold", "1"])
     assert r.exit_code == 2 and "percent" in r.output
+
+
+@pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
+def test_files_of_other_bands_grids_and_places(files, tmp_path):
+    """Bad inputs on files: a grey B against an RGB A on another grid is resampled and compared in grey; a B
+    that does not overlap A's grid, or a file without a CRS, is refused with an error naming the problem."""
+    from geocd.errors import CRSError, NoOverlapError
+
+    d, p, truth = files
+    import rasterio
+
+    with rasterio.open(p["b"]) as ds:
+        rgb = ds.read().astype(np.float32)
+        gb = AOIGrid.from_raster(ds)
+    grey_b = write_cog(tmp_path / "b_grey.tif", rgb.mean(axis=0).astype(np.uint16), gb)
+    r = screen_rasters(p["a"], grey_b, params=ScreenParams(feature=FeatureSpec("patch", 16)))
+    assert r.dissimilarity.shape == GRID.shape
+    assert any("bands" in n and "grey" in n for n in r.notes), r.notes
+    assert any("resampled" in n for n in r.notes), r.notes
+    ok = np.isfinite(r.dissimilarity)
+    assert ok.mean() > 0.9
+    # grey vs RGB still finds the new roof: its cells are well above the median
+    assert np.nanmedian(r.dissimilarity[truth]) > 2 * np.nanmedian(r.dissimilarity[~truth])
+    far = AOIGrid.from_bounds(600000.0, 4000000.0, 600000.0 + 0.5 * 64, 4000000.0 + 0.5 * 64, 0.5, "EPSG:32631")
+    elsewhere = write_cog(tmp_path / "far.tif", np.ones((64, 64), np.uint16), far)
+    with pytest.raises(NoOverlapError, match="no valid pixels on the grid"):
+        screen_rasters(p["a"], elsewhere)
+    with rasterio.open(tmp_path / "nocrs.tif", "w", driver="GTiff", width=64, height=64, count=1,
+                       dtype="uint16") as ds:
+        ds.write(np.ones((1, 64, 64), np.uint16))
+    with pytest.raises(CRSError, match="no CRS"):
+        screen_rasters(p["a"], tmp_path / "nocrs.tif")
+
+
+def test_views_without_a_dem_sit_on_the_matched_ground_height(sample_aoi):
+    """Without a DEM the views go on a plane at the ground height of a coarse match of two views of one epoch
+    (a plane at the cameras' mid height can be hundreds of metres off and misplace every view by its parallax)."""
+    from geocd.io.manifest import load_manifest
+    from geocd.io.raster import read_dem
+    from geocd.screen.pipeline import flat_ground_height
+    from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images
+
+    m = load_manifest(sample_aoi)
+    vb = load_epoch_images(m, m.epoch("B"))
+    va = load_epoch_images(m, m.epoch("A"))
+    dem = read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
+    grid = default_aoi_grid(m, {"A": va, "B": vb}, dem_median=float(np.nanmedian(dem)))
+    names = [("A", va[0]), ("B", vb[0]), ("B", vb[1])]
+    h = flat_ground_height(names, grid)
+    assert h == pytest.approx(float(np.nanmedian(dem)), abs=3.0)
