@@ -37,6 +37,10 @@ def test_msh_26_27():
     assert 2.0 < s["stable_nmad_m"] < 3.5
     assert 0.15e6 < s["changed_area_m2"] < 0.6e6
     assert s["volume_changed_m3"] > 0 and 0.05e6 < s["volume_changed_sigma_m3"] < 0.6e6
+    # the headline of docs/demdiff.md: +1.889 ± 0.249 Mm³ (a tenth of its own σ as the tolerance)
+    assert s["volume_changed_m3"] == pytest.approx(1.889e6, abs=0.025e6)
+    assert s["volume_changed_sigma_m3"] == pytest.approx(0.249e6, abs=0.01e6)
+    assert s["stable_nmad_m"] == pytest.approx(2.415, abs=0.05)
     # dome growth: the largest raised region has tens of metres of change
     up = r.regions[r.regions.sign == 1]
     assert up.max_dz_m.max() > 20
