@@ -22,6 +22,7 @@ DEM is used instead when provided.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -168,6 +169,35 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
             new = new.to_crs(out.crs)
             out = gpd.GeoDataFrame(pd.concat([out, new], ignore_index=True), geometry="geometry", crs=out.crs)
     return out
+
+
+def footprint_windows(footprints, grid):
+    """Each footprint's window on a large grid, for classifying buildings window by window.
+
+    Yields ``(i, window, subgrid, near)``: the footprint's index, its bounding box grown by the
+    classification ring (``BuildingParams.ring_m``) + 2 cells as ``(row0, col0, rows, cols)``, that
+    window's grid, and the sorted indices of every footprint touching the window (``i`` included; in the
+    layer's order, as rasterization paints in order). ``footprints`` must be in ``grid``'s CRS.
+    """
+    from shapely.geometry import box
+
+    ring = int(round(BuildingParams().ring_m / grid.posting_m)) + 2
+    inv = ~grid.transform
+    sidx = footprints.sindex
+    for i, geom in enumerate(footprints.geometry):
+        l, b, r, t = geom.bounds
+        c0, r0 = inv @ (l, t)
+        c1, r1 = inv @ (r, b)
+        R0, C0 = max(0, int(math.floor(r0)) - ring), max(0, int(math.floor(c0)) - ring)
+        R1, C1 = min(grid.height, int(math.ceil(r1)) + ring), min(grid.width, int(math.ceil(c1)) + ring)
+        if R1 <= R0 or C1 <= C0:
+            R0, C0, R1, C1 = 0, 0, 1, 1
+        win = (R0, C0, R1 - R0, C1 - C0)
+        sub = grid.subgrid(*win)
+        near = np.sort(sidx.query(box(*sub.bounds)))
+        if i not in near:
+            near = np.sort(np.append(near, i))
+        yield i, win, sub, near
 
 
 def detect_new_buildings(change_mask: np.ndarray, dz_m: np.ndarray, grid, *, z_a: np.ndarray, z_b: np.ndarray,

@@ -48,6 +48,33 @@ def _symbol(i: int, fill: str, outline: str = "#323232", fill_alpha: int = 200, 
 """
 
 
+def discrete_pseudocolor_qml(items, *, band: int = 1, maximum: float = 1.0) -> str:
+    """A QGIS discrete pseudocolour raster style.
+
+    ``items``: (upper value or ``"inf"``, ``#rrggbb`` colour, alpha 0–255, label), in increasing order.
+    """
+    rows = "\n".join(f'          <item value="{v}" color="{c}" alpha="{a}" label="{lab}"/>' for v, c, a, lab in items)
+    return f"""<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>
+<qgis version="3.22.16-Białowieża" styleCategories="AllStyleCategories">
+  <pipe>
+    <rasterrenderer type="singlebandpseudocolor" band="{band}" opacity="1" alphaBand="-1" nodataColor="">
+      <rasterTransparency/>
+      <rastershader>
+        <colorrampshader colorRampType="DISCRETE" classificationMode="1" minimumValue="0" maximumValue="{maximum:g}"
+                         clip="0" labelPrecision="2">
+{rows}
+        </colorrampshader>
+      </rastershader>
+    </rasterrenderer>
+    <brightnesscontrast brightness="0" contrast="0" gamma="1"/>
+    <huesaturation saturation="0" colorizeOn="0" grayscaleMode="0" invertColors="0"/>
+    <rasterresampler maxOversampling="2"/>
+  </pipe>
+  <blendMode>0</blendMode>
+</qgis>
+"""
+
+
 def categorized_polygon_qml(attribute: str, categories: dict, label_field: str | None = None) -> str:
     """QML for a polygon layer categorized on ``attribute``.
 

@@ -510,30 +510,14 @@ def _buildings(fp, store, conf_store, mask_store, tg: TileGrid, level: float):
     """:func:`classify_buildings` footprint by footprint on windows of the stored arrays."""
     import geopandas as gpd
     import pandas as pd
-    from shapely.geometry import box
 
-    from .buildings import BuildingParams, classify_buildings
+    from .buildings import classify_buildings, footprint_windows
 
     g = tg.grid
     gdf = fp.to_crs(g.crs).reset_index(drop=True)
     id_field = next((c for c in ("building_id", "id", "fid") if c in gdf.columns), None)
-    ring = int(round(BuildingParams().ring_m / g.posting_m)) + 2
-    inv = ~g.transform
-    sidx = gdf.sindex
     rows = []
-    for i, geom in enumerate(gdf.geometry):
-        l, b, r, t = geom.bounds
-        c0, r0 = inv @ (l, t)
-        c1, r1 = inv @ (r, b)
-        R0, C0 = max(0, int(math.floor(r0)) - ring), max(0, int(math.floor(c0)) - ring)
-        R1, C1 = min(g.height, int(math.ceil(r1)) + ring), min(g.width, int(math.ceil(c1)) + ring)
-        if R1 <= R0 or C1 <= C0:
-            R0, C0, R1, C1 = 0, 0, 1, 1
-        win = (R0, C0, R1 - R0, C1 - C0)
-        sub = g.subgrid(*win)
-        near = np.sort(sidx.query(box(*sub.bounds)))
-        if i not in near:
-            near = np.sort(np.append(near, i))
+    for i, win, sub, near in footprint_windows(gdf, g):
         o = classify_buildings(gdf.iloc[near], mask_store.read("mask", win), store.read("dz_m", win), sub,
                                z_a=store.read("z_a", win), z_b=store.read("z_b", win),
                                confidence=conf_store.read("confidence", win), id_field=id_field,

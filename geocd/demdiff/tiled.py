@@ -1516,28 +1516,11 @@ def _buildings_windows(footprints, store, tg: TileGrid, g: AOIGrid):
     import pandas as pd
     import geopandas as gpd
 
-    from ..change.buildings import BuildingParams, classify_buildings
+    from ..change.buildings import classify_buildings, footprint_windows
 
     gdf = footprints.to_crs(g.crs).reset_index(drop=True)
-    ring = int(round(BuildingParams().ring_m / g.posting_m)) + 2
-    inv = ~g.transform
     rows = []
-    sidx = gdf.sindex
-    for i, geom in enumerate(gdf.geometry):
-        l, b, r, t = geom.bounds
-        c0, r0 = inv @ (l, t)
-        c1, r1 = inv @ (r, b)
-        R0, C0 = max(0, int(math.floor(r0)) - ring), max(0, int(math.floor(c0)) - ring)
-        R1, C1 = min(g.height, int(math.ceil(r1)) + ring), min(g.width, int(math.ceil(c1)) + ring)
-        if R1 <= R0 or C1 <= C0:
-            R0, C0, R1, C1 = 0, 0, 1, 1
-        win = (R0, C0, R1 - R0, C1 - C0)
-        sub = g.subgrid(*win)
-        # every footprint touching the window, in the layer's order (rasterization paints in order)
-        wb = sub.bounds
-        near = np.sort(sidx.query(__import__("shapely").geometry.box(*wb)))
-        if i not in near:
-            near = np.sort(np.append(near, i))
+    for i, win, sub, near in footprint_windows(gdf, g):
         fp = gdf.iloc[near]
         out = classify_buildings(fp, store.read("sign", win), store.read("dh_m", win), sub,
                                  z_a=store.read("a32", win), z_b=store.read("bc32", win),

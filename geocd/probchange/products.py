@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from ..change.styles import discrete_pseudocolor_qml
 from ..io.raster import write_cog
 from ..io.vector import qml_for, write_gpkg
 from .keyframe import KeyFrameResult
@@ -37,26 +38,9 @@ def probability_qml(band: int = 1) -> str:
     items = [(0.5, "#ffffff", 0, "p ≤ 0.5 (no change)"), (0.75, "#fed976", 255, "0.5–0.75"),
              (0.9, "#fd8d3c", 255, "0.75–0.9"), (0.99, "#e31a1c", 255, "0.9–0.99"),
              ("inf", "#800026", 255, "> 0.99")]
-    rows = "\n".join(f'          <item value="{v}" color="{c}" alpha="{a}" label="{lab}"/>' for v, c, a, lab in items)
-    return f"""<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>
-<qgis version="3.22.16-Białowieża" styleCategories="AllStyleCategories">
-  <pipe>
-    <rasterrenderer type="singlebandpseudocolor" band="{band}" opacity="1" alphaBand="-1" nodataColor="">
-      <rasterTransparency/>
-      <rastershader>
-        <colorrampshader colorRampType="DISCRETE" classificationMode="1" minimumValue="0" maximumValue="1"
-                         clip="0" labelPrecision="2">
-{rows}
-        </colorrampshader>
-      </rastershader>
-    </rasterrenderer>
-    <brightnesscontrast brightness="0" contrast="0" gamma="1"/>
-    <huesaturation saturation="0" colorizeOn="0" grayscaleMode="0" invertColors="0"/>
-    <rasterresampler maxOversampling="2"/>
-  </pipe>
-  <blendMode>0</blendMode>
-</qgis>
-"""
+    return discrete_pseudocolor_qml(items, band=band, maximum=1.0)
+
+
 
 
 def _tags(result: ProbChangeResult, method: str, epoch_a: str, epoch_b: str, provenance: dict | None) -> dict:

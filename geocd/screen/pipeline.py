@@ -41,6 +41,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from ..change.styles import discrete_pseudocolor_qml
 from ..errors import ConfigError, GridError, NoOverlapError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
@@ -260,26 +261,9 @@ def dissimilarity_qml(threshold: float) -> str:
     t = float(threshold)
     items = [(t, "#ffffff", 0, f"d ≤ {t:.3g} (no change)"), (t + 0.1, "#fed976", 255, f"{t:.3g}–{t + 0.1:.3g}"),
              (t + 0.25, "#fd8d3c", 255, f"{t + 0.1:.3g}–{t + 0.25:.3g}"), ("inf", "#bd0026", 255, f"> {t + 0.25:.3g}")]
-    rows = "\n".join(f'          <item value="{v}" color="{c}" alpha="{a}" label="{lab}"/>' for v, c, a, lab in items)
-    return f"""<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>
-<qgis version="3.22.16-Białowieża" styleCategories="AllStyleCategories">
-  <pipe>
-    <rasterrenderer type="singlebandpseudocolor" band="1" opacity="1" alphaBand="-1" nodataColor="">
-      <rasterTransparency/>
-      <rastershader>
-        <colorrampshader colorRampType="DISCRETE" classificationMode="1" minimumValue="0" maximumValue="2"
-                         clip="0" labelPrecision="2">
-{rows}
-        </colorrampshader>
-      </rastershader>
-    </rasterrenderer>
-    <brightnesscontrast brightness="0" contrast="0" gamma="1"/>
-    <huesaturation saturation="0" colorizeOn="0" grayscaleMode="0" invertColors="0"/>
-    <rasterresampler maxOversampling="2"/>
-  </pipe>
-  <blendMode>0</blendMode>
-</qgis>
-"""
+    return discrete_pseudocolor_qml(items, maximum=2.0)
+
+
 
 
 def write_screen_products(out_dir: os.PathLike | str, sr: ScreenRun, threshold: float, *, rule: str,
