@@ -6,6 +6,8 @@ import math
 from dataclasses import dataclass
 from typing import Iterator
 
+import numpy as np
+
 from ..errors import ConfigError
 from ..geodesy import AOIGrid
 
@@ -80,11 +82,18 @@ class TileGrid:
     method sees exactly the grid's own border there (never padding): a per-cell method
     whose context fits in the overlap gives on every core cell what it gives on the
     whole grid.
+
+    ``selected`` (optional) restricts a pass to some tiles — bool (tile rows, tile cols), or
+    an iterable of (i, j): iterating the grid (``for t in tg``, ``len(tg)``) yields only those;
+    :meth:`all_tiles` yields every tile. The writer fills the cores of the other tiles with
+    each product's ``fill`` value (e.g. "not examined"), and reading a stored array there
+    gives that fill, so a pass over a subset still makes whole-grid products.
     """
 
     grid: AOIGrid
     tile_size: tuple[int, int] = (1024, 1024)
     overlap: int = 0
+    selected: frozenset | None = None
 
     def __post_init__(self) -> None:
         ts = self.tile_size
@@ -95,6 +104,20 @@ class TileGrid:
             raise ConfigError(f"tile size must be positive, got {self.tile_size}")
         if self.overlap < 0:
             raise ConfigError(f"overlap must be ≥ 0, got {self.overlap}")
+        sel = self.selected
+        if sel is not None and not isinstance(sel, frozenset):
+            a = np.asarray(sel) if not isinstance(sel, (set, list, tuple)) else None
+            if a is not None and a.dtype == bool:
+                if a.shape != self.shape:
+                    raise ConfigError(f"the tile selection has shape {a.shape}; the tiling has {self.shape} tiles")
+                sel = frozenset((int(i), int(j)) for i, j in zip(*np.nonzero(a)))
+            else:
+                sel = frozenset((int(i), int(j)) for i, j in sel)
+            object.__setattr__(self, "selected", sel)
+        if self.selected is not None:
+            bad = [ij for ij in self.selected if not (0 <= ij[0] < self.shape[0] and 0 <= ij[1] < self.shape[1])]
+            if bad:
+                raise ConfigError(f"selected tiles {sorted(bad)[:5]} are outside the {self.shape} tiles of the grid")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -103,8 +126,30 @@ class TileGrid:
         return (-(-self.grid.height // th), -(-self.grid.width // tw))
 
     def __len__(self) -> int:
+        if self.selected is not None:
+            return len(self.selected)
         a, b = self.shape
         return a * b
+
+    def is_selected(self, tile: Tile) -> bool:
+        """Whether a pass over this tiling processes ``tile`` (every tile when nothing is selected)."""
+        return self.selected is None or tuple(tile.index) in self.selected
+
+    def selection_mask(self) -> np.ndarray:
+        """bool (tile rows, tile cols): the tiles a pass processes."""
+        m = np.ones(self.shape, bool)
+        if self.selected is not None:
+            m[:] = False
+            for i, j in self.selected:
+                m[i, j] = True
+        return m
+
+    def all_tiles(self) -> Iterator[Tile]:
+        """Every tile of the grid, selected or not, row by row."""
+        a, b = self.shape
+        for i in range(a):
+            for j in range(b):
+                yield self.tile(i, j)
 
     def tile(self, i: int, j: int) -> Tile:
         th, tw = self.tile_size
@@ -117,13 +162,12 @@ class TileGrid:
         return Tile((i, j), (r0, c0, h, w), (R0, C0, R1 - R0, C1 - C0))
 
     def __iter__(self) -> Iterator[Tile]:
-        a, b = self.shape
-        for i in range(a):
-            for j in range(b):
-                yield self.tile(i, j)
+        for t in self.all_tiles():
+            if self.selected is None or t.index in self.selected:
+                yield t
 
     def tiles_in(self, window: tuple[int, int, int, int]) -> Iterator[Tile]:
-        """Tiles whose core intersects ``window`` (row0, col0, height, width)."""
+        """Tiles whose core intersects ``window`` (row0, col0, height, width), selected or not."""
         th, tw = self.tile_size
         r0, c0, h, w = window
         if h <= 0 or w <= 0:
@@ -133,7 +177,11 @@ class TileGrid:
                 yield self.tile(i, j)
 
     def with_overlap(self, overlap: int) -> "TileGrid":
-        return TileGrid(self.grid, self.tile_size, int(overlap))
+        return TileGrid(self.grid, self.tile_size, int(overlap), self.selected)
+
+    def with_selection(self, selected) -> "TileGrid":
+        """The same tiling restricted to ``selected`` (bool (tile rows, tile cols) or (i, j) pairs; None: all)."""
+        return TileGrid(self.grid, self.tile_size, self.overlap, selected)
 
     def read_grid(self, tile: Tile) -> AOIGrid:
         """The AOI grid of a tile's read window."""

@@ -197,7 +197,8 @@ def run_tiled(func: Callable[[dict, TileContext], Any], grid: AOIGrid | TileGrid
     ----------
     func : ``func(arrays, ctx) → TileOutput | dict of arrays``; ``arrays`` maps each input's
         name to its float32 array on the tile's read window; module-level (picklable)
-    grid : the processing grid (or a TileGrid)
+    grid : the processing grid (or a TileGrid; one with a ``selected`` subset runs only those tiles,
+        and the products hold each product's ``fill`` value on the others)
     inputs : name → source (:class:`~geocd.tiling.sources.RasterSource`,
         :class:`~geocd.tiling.sources.ArraySource`, a previous pass's ``TiledRun.source(name)``)
     overlap_cells : the context the method declares (cells on every side)
@@ -225,7 +226,9 @@ def run_tiled(func: Callable[[dict, TileContext], Any], grid: AOIGrid | TileGrid
         raise ConfigError("run_tiled needs a function")
     ident = {k: (src.identity() if hasattr(src, "identity") else repr(src)) for k, src in inputs.items()}
     fname = f"{getattr(func, '__module__', '')}.{getattr(func, '__qualname__', repr(func))}"
-    full_key = make_key(stage, fname, params, ident, g.to_dict(), list(tg.tile_size), tg.overlap, key)
+    sel = sorted(tg.selected) if tg.selected is not None else None
+    full_key = make_key(stage, fname, params, ident, g.to_dict(), list(tg.tile_size), tg.overlap, key,
+                        *([sel] if sel is not None else []))
     root = Path(work) if work is not None else work_root(out)
     store = TileStore(root, stage, full_key, tg)
     tiles = list(tg)

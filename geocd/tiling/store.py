@@ -142,19 +142,31 @@ class TileStore:
             raise ProcessingError(f"tile {tile.name} has no array {name!r} in {self.path}")
         return np.load(p, mmap_mode="r" if mmap else None)
 
-    def read(self, name: str, window: tuple[int, int, int, int]) -> np.ndarray:
-        """Array ``name`` on ``window`` (row0, col0, h, w) of the grid, assembled from the tiles' cores."""
+    def read(self, name: str, window: tuple[int, int, int, int], fill: float = np.nan) -> np.ndarray:
+        """Array ``name`` on ``window`` (row0, col0, h, w) of the grid, assembled from the tiles' cores.
+
+        Cells of tiles the pass did not process (a :class:`TileGrid` with a selection) hold ``fill``
+        (NaN by default; 0 for integer arrays when ``fill`` is NaN)."""
         r0, c0, h, w = window
         out = None
-        for t in self.tile_grid.tiles_in(window):
+        tg = self.tile_grid
+        skipped = [t for t in tg.tiles_in(window) if not tg.is_selected(t)]
+        for t in tg.tiles_in(window):
+            if not tg.is_selected(t):
+                continue
             a = self.tile_array(t, name)
             tr0, tc0, th, tw = t.core
             rr0, cc0 = max(r0, tr0), max(c0, tc0)
             rr1, cc1 = min(r0 + h, tr0 + th), min(c0 + w, tc0 + tw)
             if out is None:
                 out = np.empty(a.shape[:-2] + (h, w), a.dtype)
+                if skipped:
+                    ok = np.issubdtype(a.dtype, np.floating) or np.isfinite(fill)
+                    out[...] = fill if ok else 0
             out[..., rr0 - r0:rr1 - r0, cc0 - c0:cc1 - c0] = a[..., rr0 - tr0:rr1 - tr0, cc0 - tc0:cc1 - tc0]
         if out is None:
+            if skipped:  # only unprocessed tiles under the window
+                return np.full((h, w), fill, np.float32)
             raise ProcessingError(f"window {window} is outside the grid {self.tile_grid.grid.shape}")
         return out
 

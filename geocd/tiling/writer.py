@@ -37,6 +37,8 @@ class RasterProduct:
         :func:`geocd.io.raster.write_cog` names unnamed bands)
     units : one unit per band (default: from the descriptions, :func:`geocd.io.raster.band_unit`)
     tags, band_tags, colormap : as :func:`geocd.io.raster.write_cog`
+    fill : band name → the value written on the cores of tiles the pass did not process (a
+        :class:`~geocd.tiling.grid.TileGrid` with a selection); default the nodata value (0 without one)
     """
 
     path: str
@@ -50,6 +52,7 @@ class RasterProduct:
     colormap: Mapping[int, tuple] | None = None
     compress: str = "deflate"
     overview_resampling: str = "average"
+    fill: Mapping[str, float] | None = None
 
 
 def overview_factors(shape: tuple[int, int]) -> list[int]:
@@ -91,11 +94,15 @@ def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None
     try:
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
             with rasterio.open(tmp_tif, "w", **profile) as dst:
-                for t in tg:
+                for t in tg.all_tiles():
                     r0, c0, h, w = t.core
                     for b, name in enumerate(product.bands, start=1):
-                        a = store.tile_array(t, name)
-                        dst.write(np.asarray(a).astype(dtype, copy=False), b, window=Window(c0, r0, w, h))
+                        if tg.is_selected(t):
+                            a = np.asarray(store.tile_array(t, name)).astype(dtype, copy=False)
+                        else:  # a tile the pass did not process: the product's fill value
+                            fv = (product.fill or {}).get(name, nodata if nodata is not None else 0)
+                            a = np.full((h, w), fv, dtype)
+                        dst.write(a, b, window=Window(c0, r0, w, h))
                 for i, nm in enumerate(names, start=1):
                     dst.set_band_description(i, str(nm))
                     if units[i - 1]:

@@ -179,3 +179,37 @@ def test_processes_scheduler_same_result(tmp_path):
     run = run_tiled(focal_tile, g, {"x": ArraySource(a)}, overlap_cells=RADIUS, tile_size=(64, 64),
                     out=tmp_path, stage="focal", scheduler="processes", n_workers=2, memory_limit="1GB")
     np.testing.assert_array_equal(run.read("f"), focal(a))
+
+
+def test_a_selection_of_tiles_runs_only_those_and_fills_the_rest(tmp_path):
+    """A pass over some tiles (the tiered run's flagged tiles): only they run, their cores equal the whole
+    grid's result (declared overlap), the other cores hold the product's fill value, and reading the
+    store there gives the fill."""
+    g = _grid()
+    x = _field(g)
+    want = focal(x)
+    full = TileGrid(g, (64, 50), RADIUS)
+    sel = np.zeros(full.shape, bool)
+    sel[1, 1] = sel[3, 2] = True
+    tg = full.with_selection(sel)
+    assert len(tg) == 2 and len(list(tg.all_tiles())) == len(full)
+    seen = []
+    out = tmp_path / "sel"
+    run = run_tiled(focal_tile, tg, {"x": ArraySource(x)}, out=out, stage="focal-sel",
+                    products={"f": RasterProduct(str(out / "f.tif"), ("f",), fill={"f": -9.0}, nodata=-9999.0)},
+                    progress=lambda f, m: seen.append(m))
+    assert run.n_tiles == 2 and seen[-1].endswith("2/2 tiles")
+    assert len(list(run.smalls())) == 2
+    with rasterio.open(run.products["f"]) as ds:
+        got = ds.read(1)
+    examined = np.zeros(g.shape, bool)
+    for t in tg:
+        examined[t.core_slices] = True
+    assert examined.sum() == sum(t.n_cells for t in tg)
+    np.testing.assert_array_equal(got[examined], want[examined])
+    assert (got[~examined] == -9.0).all()
+    a = run.read("f")
+    assert np.isnan(a[~examined]).all()
+    np.testing.assert_array_equal(a[examined], want[examined])
+    with pytest.raises(ConfigError, match="tile selection has shape"):
+        TileGrid(g, (64, 50), 0, np.zeros((2, 2), bool))
