@@ -16,7 +16,7 @@ Usage::
     nice -n 10 .venv/bin/python bench/bench_screen.py features --out docs/screen_bench.json
     nice -n 10 .venv/bin/python bench/bench_screen.py tiered sample_aoi --out docs/screen_bench.json
     nice -n 10 .venv/bin/python bench/bench_screen.py tiered examples/kahramanmaras/scene.yaml \\
-        --model examples/kahramanmaras/marseille_urban_model.json --out docs/screen_bench.json
+        --model examples/kahramanmaras/marseille_urban_model.json --full-dir /tmp/kahra2 --out docs/screen_bench.json
 """
 
 from __future__ import annotations
@@ -101,6 +101,7 @@ def bench_features(size: int = 1024, only: list[str] | None = None) -> dict:
 
 
 def _run(args: list[str]) -> dict:
+    load0 = os.getloadavg()[0]
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.run([str(ROOT / ".venv" / "bin" / "geocd"), "--progress", "none", *args], capture_output=True,
@@ -110,7 +111,7 @@ def _run(args: list[str]) -> dict:
     if p.returncode:
         raise SystemExit(f"geocd {' '.join(args)} failed:\n{p.stderr[-3000:]}")
     return {"wall_s": round(wall, 1), "cpu_s": round((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), 1),
-            "stdout": p.stdout[-2000:]}
+            "load_average_1min": [round(load0, 2), round(os.getloadavg()[0], 2)], "stdout": p.stdout[-2000:]}
 
 
 def _regions(out: Path):
@@ -120,21 +121,115 @@ def _regions(out: Path):
     return gpd.read_file(f, layer="changes")
 
 
-def _damaged_buildings(full: Path, tier: Path) -> dict | None:
+def _damaged_buildings(full: Path, tier: Path, examined=None, grid=None) -> dict | None:
     """Buildings of the full run's ``building_damage`` layer in a changed class (not unchanged/unobserved) that
-    no changed building of the tiered run overlaps (the building outlines come from each run's own DSM)."""
+    no changed building of the tiered run overlaps (the building outlines come from each run's own DSM), split
+    into those wholly or partly outside the examined (flagged) tiles — the screen missed them — and those
+    inside — the 3-D stage on the tiles gave another answer."""
     import geopandas as gpd
     import pyogrio
 
     if "building_damage" not in [str(n) for n, _ in pyogrio.list_layers(full / "sc_changes.gpkg")]:
         return None
-    quiet = ("unchanged", "unobserved")
+    quiet = ("unchanged", "unobserved", "not examined")
     a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
     b = gpd.read_file(tier / "sc_changes.gpkg", layer="building_damage")
     a, b = a[~a["class"].isin(quiet)], b[~b["class"].isin(quiet)]
     lost = a[~a.geometry.intersects(b.unary_union)] if len(b) else a
-    return {"changed_full": int(len(a)), "changed_tiered": int(len(b)), "full_changed_not_found": int(len(lost)),
-            "lost_by_class": lost["class"].value_counts().to_dict()}
+    res = {"changed_full": int(len(a)), "changed_tiered": int(len(b)), "full_changed_not_found": int(len(lost)),
+           "lost_by_class": lost["class"].value_counts().to_dict()}
+    if examined is not None and len(lost):
+        from geocd.pipeline import mark_not_examined
+
+        fr = mark_not_examined(lost.assign(**{"class": "x"}), grid, examined)["frac_examined"].to_numpy()
+        res["lost_outside_flagged_tiles"] = int((fr < 0.5).sum())
+        res["lost_inside_flagged_tiles"] = int((fr >= 0.5).sum())
+    return res
+
+
+def _lost_vs_threshold_rule(full: Path, tier: Path, grid) -> dict | None:
+    """Do the changed buildings the tiered run lost come from the screen's threshold rule?
+
+    For each changed building of the full run that no changed tiered building overlaps: the screen's
+    largest dissimilarity over its footprint (``screen_dissimilarity.tif``, band 1), against the threshold
+    the products used (the no-change pair's 99 % quantile, then Otsu's split above it) and against the bare
+    99 % quantile of the no-change pair (the first step of the rule alone). A diagnostic: no threshold is
+    changed. ``above_null_below_split``: buildings the Otsu step cut; ``below_null``: buildings whose
+    image change the feature does not see above the no-change pair's own 99 % level."""
+    import geopandas as gpd
+    import pyogrio
+    import rasterio
+    from rasterio.features import rasterize
+    from scipy import ndimage as ndi
+
+    if "building_damage" not in [str(n) for n, _ in pyogrio.list_layers(full / "sc_changes.gpkg")]:
+        return None
+    quiet = ("unchanged", "unobserved", "not examined")
+    a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
+    b = gpd.read_file(tier / "sc_changes.gpkg", layer="building_damage")
+    a, b = a[~a["class"].isin(quiet)], b[~b["class"].isin(quiet)]
+    lost = a[~a.geometry.intersects(b.unary_union)] if len(b) else a
+    summ = json.loads((tier / "screen" / "screen_summary.json").read_text())
+    t = float(summ["threshold"])
+    q99 = float(summ["null"]["quantiles"]["99"])
+    with rasterio.open(tier / "screen" / "screen_dissimilarity.tif") as ds:
+        d = ds.read(1)
+    if not len(lost):
+        return {"threshold": t, "null_q99": q99, "lost": 0}
+    lab = rasterize([(g, i + 1) for i, g in enumerate(lost.to_crs(grid.crs).geometry)], out_shape=grid.shape,
+                    transform=grid.transform, fill=0, dtype="int32")
+    idx = np.arange(1, len(lost) + 1)
+    dmax = np.asarray(ndi.maximum(np.nan_to_num(d, nan=-1.0), lab, idx))
+    return {"threshold": round(t, 4), "null_q99": round(q99, 4), "lost": int(len(lost)),
+            "above_threshold": int((dmax > t).sum()), "above_null_below_split": int(((dmax > q99) & (dmax <= t)).sum()),
+            "below_null": int((dmax <= q99).sum()),
+            "max_d_quantiles": [round(float(v), 3) for v in np.quantile(dmax, [0.1, 0.5, 0.9])]}
+
+
+def _models(full: Path, tier: Path) -> dict | None:
+    """The whole-scene statistics of the two runs: the self-consistency model's 99 % curve (tiered − full, over
+    the score bins both populate, weighted by the full run's counts) and the change test's vertical offsets."""
+    from geocd.consistency import SelfConsistencyModel
+
+    fa, fb = full / "self_consistency_model.json", tier / "self_consistency_model.json"
+    if not (fa.exists() and fb.exists()):
+        return None
+    ma, mb = SelfConsistencyModel.load(fa), SelfConsistencyModel.load(fb)
+    res = {"match_pairs_full": int(ma.bin_counts.sum()), "match_pairs_tiered": int(mb.bin_counts.sum())}
+    sc = ma.score_centres
+    ta, tb = ma.threshold(sc, 99.0), mb.threshold(sc, 99.0)
+    ok = np.isfinite(ta) & np.isfinite(tb) & (ma.bin_counts > 0)
+    if ok.any():
+        w = ma.bin_counts[ok].astype(float)
+        rel = np.abs(tb[ok] - ta[ok]) / np.maximum(np.abs(ta[ok]), 1e-9)
+        res["curve99_weighted_rel_diff"] = round(float(np.sum(w * rel) / w.sum()), 4)
+        res["curve99_max_rel_diff"] = round(float(rel.max()), 4)
+    return res
+
+
+def _cells(full: Path, tier: Path) -> dict:
+    """Changed cells (99 % mask) of the full run that the tiered run does not call changed, split by where they are."""
+    import rasterio
+
+    with rasterio.open(full / "sc_change_mask.tif") as ds:
+        mf = ds.read(1)
+    with rasterio.open(tier / "sc_change_mask.tif") as ds:
+        mt = ds.read(1)
+    from geocd.consistency import NOT_EXAMINED
+
+    chf, cht = np.isin(mf, (-1, 1)), np.isin(mt, (-1, 1))
+    ex = mt != NOT_EXAMINED
+    both = chf & cht & ex
+    same_sign = both & (mf == mt)
+    return {"changed_full": int(chf.sum()), "changed_tiered": int(cht.sum()),
+            "full_changed_outside_flagged": int((chf & ~ex).sum()),
+            "full_changed_inside_not_found": int((chf & ex & ~cht).sum()),
+            "tiered_changed_not_in_full": int((cht & ~chf).sum()),
+            "jaccard_inside_flagged": round(float(both.sum() / max(((chf | cht) & ex).sum(), 1)), 4),
+            "same_sign_inside": round(float(same_sign.sum() / max(both.sum(), 1)), 4),
+            "examined_fraction": round(float(ex.mean()), 4),
+            "observed_full_inside": round(float((mf[ex] != -128).mean()), 4),
+            "observed_tiered_inside": round(float((mt[ex] != -128).mean()), 4)}
 
 
 def _truth_scores(out: Path, scene: Path) -> dict | None:
@@ -155,29 +250,48 @@ def _truth_scores(out: Path, scene: Path) -> dict | None:
     return {"cells_99": f1_scores((m != 0) & (m != -128), truth), "buildings": s.get("buildings")}
 
 
-def bench_tiered(scene: str, model: str | None, work: Path) -> dict:
+def bench_tiered(scene: str, model: str | None, work: Path, reference: Path | None = None) -> dict:
+    """Full then tiered run, back to back (same machine state), whole processes; ``reference``: another full
+    run's folder to compare the tiered run's detections with as well."""
     extra = ["--model", model] if model else []
     full, tier = work / "full", work / "tiered"
     r_full = _run(["run", scene, "--out", str(full), *extra])
     r_tier = _run(["run", scene, "--out", str(tier), "--screen", *extra])
-    return compare(scene, model, full, tier, r_full, r_tier)
+    res = compare(scene, model, full, tier, r_full, r_tier)
+    if reference is not None:
+        ref = compare(scene, model, reference, tier, {"wall_s": float("nan"), "cpu_s": float("nan")}, r_tier)
+        res["vs_reference"] = {k: ref[k] for k in ("full_dir", "regions_full", "regions_lost", "area_lost_m2",
+                                                   "area_full_m2", "cells", "buildings",
+                                                   "lost_buildings_vs_threshold_rule") if k in ref}
+    return res
 
 
 def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict, r_tier: dict) -> dict:
     """Speed-up and detections lost between a full and a tiered run's output folders."""
+    import rasterio
+
+    from geocd.consistency import NOT_EXAMINED
+    from geocd.geodesy import AOIGrid
+
     sc = Path(scene)
     a, b = _regions(full), _regions(tier)
     lost = a[~a.geometry.intersects(b.unary_union)] if len(b) else a
     s = json.loads((tier / "run_summary.json").read_text())["screen"]
-    res = {"scene": scene, "model": model, "full": {k: v for k, v in r_full.items() if k != "stdout"},
+    with rasterio.open(tier / "sc_change_mask.tif") as ds:
+        examined = ds.read(1) != NOT_EXAMINED
+        grid = AOIGrid.from_raster(ds)
+    res = {"scene": scene, "model": model, "full_dir": str(full), "tiered_dir": str(tier),
+           "full": {k: v for k, v in r_full.items() if k != "stdout"},
            "tiered": {k: v for k, v in r_tier.items() if k != "stdout"}, "screen": s,
            "speedup_wall": round(r_full["wall_s"] / r_tier["wall_s"], 2),
            "speedup_cpu": round(r_full["cpu_s"] / r_tier["cpu_s"], 2),
            "regions_full": int(len(a)), "regions_tiered": int(len(b)), "regions_lost": int(len(lost)),
-           "area_lost_m2": round(float(lost.area.sum()), 1), "area_full_m2": round(float(a.area.sum()), 1)}
-    bd = _damaged_buildings(full, tier)
+           "area_lost_m2": round(float(lost.area.sum()), 1), "area_full_m2": round(float(a.area.sum()), 1),
+           "cells": _cells(full, tier), "models": _models(full, tier)}
+    bd = _damaged_buildings(full, tier, examined, grid)
     if bd is not None:
         res["buildings"] = bd
+        res["lost_buildings_vs_threshold_rule"] = _lost_vs_threshold_rule(full, tier, grid)
     root = sc if sc.is_dir() else sc.parent
     tf, tt = _truth_scores(full, root), _truth_scores(tier, root)
     if tf is not None:
@@ -185,9 +299,10 @@ def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict,
     return res
 
 
-def tile_sizes(full: Path, tier: Path, sizes=(32, 64, 128, 256), min_region_m2: float = 4.0) -> list[dict]:
-    """What other ``--screen-tile`` sizes would have done with the same screen: the fraction of the grid the
-    stereo windows cover, and the full run's changed cells (99 %) outside every window (lost to the 3-D test)."""
+def tile_sizes(full: Path, tier: Path, sizes=(64, 128, 256), min_region_m2: float = 4.0) -> list[dict]:
+    """What other ``--screen-tile`` sizes would have done with the same screen: the fraction of tiles flagged
+    (= of the grid the stereo runs on), and the full run's changed cells (99 %) outside every flagged tile
+    (lost to the 3-D test)."""
     import rasterio
     from scipy import ndimage
 
@@ -198,25 +313,22 @@ def tile_sizes(full: Path, tier: Path, sizes=(32, 64, 128, 256), min_region_m2: 
     with rasterio.open(full / "sc_change_mask.tif") as ds:
         m = ds.read(1)
         cell_m2 = abs(ds.transform.a * ds.transform.e)
-    det = (m != 0) & (m != -128)
+    det = (m == 1) | (m == -1)
     lab, n = ndimage.label(ch, structure=np.ones((3, 3), bool))
     if n:
         keep = np.bincount(lab.ravel()) >= max(1, int(np.ceil(min_region_m2 / cell_m2)))
         keep[0] = False
         ch = keep[lab]
-    margin = json.loads((tier / "run_summary.json").read_text())["screen"]["margin_cells"]
     dl, nd = ndimage.label(det, structure=np.ones((3, 3), bool))
     rows = []
     for t in sizes:
-        fl = flag_tiles(ch, t, margin)
-        win = np.zeros(ch.shape, bool)
-        for r0, c0, h, w in fl.windows:
-            win[r0:r0 + h, c0:c0 + w] = True
+        fl = flag_tiles(ch, t)
+        win = fl.examined(ch.shape)
         hit = np.unique(dl[win & det])
         rows.append({"tile_cells": t, "flagged_tile_fraction": round(fl.tile_fraction, 3),
                      "stereo_cell_fraction": round(float(win.mean()), 3),
                      "full_changed_cells_outside": int((det & ~win).sum()), "full_changed_cells": int(det.sum()),
-                     "full_regions_missed": int(nd - np.count_nonzero(hit)), "full_regions": int(nd)})
+                     "full_regions_missed": int(nd - np.count_nonzero(hit[hit > 0])), "full_regions": int(nd)})
     return rows
 
 
@@ -228,7 +340,8 @@ def _key(scene: str) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["features", "tiered", "compare", "tiles"])
-    ap.add_argument("--full-dir", type=Path, help="compare: the full run's output folder")
+    ap.add_argument("--full-dir", type=Path, help="compare: the full run's output folder; tiered: a reference "
+                    "full run to compare the detections with as well")
     ap.add_argument("--tiered-dir", type=Path, help="compare: the tiered run's output folder")
     ap.add_argument("--full-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
     ap.add_argument("--tiered-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
@@ -250,9 +363,8 @@ def main(argv=None) -> int:
     elif a.what == "tiles":  # other --screen-tile sizes with the screen of a tiered run (no stereo re-run)
         doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:
-        w = a.work / Path(a.scene).stem
-        doc.setdefault("tiered", {})[_key(a.scene)] = \
-            bench_tiered(a.scene, a.model, w)
+        w = a.work / _key(a.scene)
+        doc.setdefault("tiered", {})[_key(a.scene)] = bench_tiered(a.scene, a.model, w, a.full_dir)
     a.out.write_text(json.dumps(doc, indent=1, default=str))
     print(json.dumps(doc, indent=1, default=str)[-3000:])
     return 0

@@ -764,6 +764,8 @@ class ChangeResult:
 
 
 CHANGE_NODATA = -128
+#: change-mask code of a cell the 3-D test did not examine (a tiered run: the screen did not flag its tile)
+NOT_EXAMINED = -127
 
 
 def combine_pvalues(pvalues: np.ndarray, signs: np.ndarray, sign: np.ndarray, combine: str = "majority") -> np.ndarray:

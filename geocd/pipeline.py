@@ -197,6 +197,35 @@ def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confid
     return dmg, dtm
 
 
+def mark_not_examined(buildings, grid, examined: np.ndarray | None):
+    """Buildings classed ``unobserved`` with cells the 3-D stage did not examine → class ``not examined``.
+
+    Adds ``frac_examined`` (share of the footprint's grid cells in examined tiles). A building the
+    tiered run never looked at is reported as not examined, not as unobserved or unchanged.
+    """
+    if buildings is None or examined is None or not len(buildings):
+        return buildings
+    from rasterio.features import rasterize
+    from scipy import ndimage as ndi
+
+    g = buildings.to_crs(grid.crs).geometry
+    n = len(g)
+    labels = rasterize([(geom, i + 1) for i, geom in enumerate(g)], out_shape=grid.shape, transform=grid.transform,
+                       fill=0, dtype="int32")
+    idx = np.arange(1, n + 1)
+    cells = np.asarray(ndi.sum(np.ones(grid.shape), labels, idx))
+    frac = np.asarray(ndi.sum(examined, labels, idx)) / np.maximum(cells, 1)
+    out = buildings.copy()
+    out["frac_examined"] = np.round(frac, 4)
+    hit = (out["class"].to_numpy() == "unobserved") & (frac < 1.0)
+    if hit.any():
+        out.loc[hit, "class"] = "not examined"
+        if "rule" in out:
+            out.loc[hit, "rule"] = [f"not examined: {100 * (1 - f):.0f}% of its cells in tiles the screen did not flag"
+                                    for f in frac[hit]]
+    return out
+
+
 def _check_epochs_overlap(m) -> None:
     """Epochs whose images cover different places cannot be compared: a clear error before any stereo."""
     from .geodesy import as_crs, utm_crs_for
@@ -274,7 +303,7 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
         by_epoch.setdefault(pdem.epoch or key.split("/")[0], []).append(pdem)
     res = run_change(m, by_epoch, st["grid"], out_dir=out, config=config, model=model,
                      progress=sub_progress(prog, 0.75, 1.0), footprints=footprints,
-                     stereo_outputs=st["outputs"], orientation=orientation)
+                     stereo_outputs=st["outputs"], orientation=orientation, examined=st.get("examined"))
     if "screen" in st:
         from .io.atomic import write_text_atomic
 
@@ -288,7 +317,8 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
 def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLike | str,
                config: RunConfig = RunConfig(), model: SelfConsistencyModel | None = None,
                progress: Progress | None = None, footprints: os.PathLike | str | None = None,
-               stereo_outputs: dict | None = None, orientation: dict | None = None) -> dict[str, Any]:
+               stereo_outputs: dict | None = None, orientation: dict | None = None,
+               examined: np.ndarray | None = None) -> dict[str, Any]:
     """Everything of :func:`run` after the stereo: baseline, change test, buildings, products.
 
     Parameters
@@ -299,6 +329,9 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
     model : a scene-class model (default: ``config.model_path``, else learned here)
     stereo_outputs : {name: path} of the pair-DEMs, listed in the outputs and summary
     orientation : the cross-epoch relative orientation report (summarised in run_summary.json), if one was made
+    examined : bool (rows, cols), optional: the cells the 3-D stage examined (a tiered run's flagged tiles);
+        the others get the change-mask code ``NOT_EXAMINED`` and buildings unobserved there the class
+        ``not examined``
     """
     from .change.buildings import classify_buildings
     from .change.products import write_change_products
@@ -345,12 +378,14 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
                                        z_a=_median_surface(recs_a), z_b=_median_surface(recs_b),
                                        confidence=res.confidence, params=config.buildings, id_field=id_field,
                                        confidence_level=config.region_confidence)
+        buildings = mark_not_examined(buildings, grid, examined)
     damage = ground_path = None
     extra, extra_styles = {}, {}
     if config.derive_buildings or fp_path is not None:
         prog(0.7, "building damage")
         damage, ground = _building_damage(fps if fp_path is not None else None, res, grid, recs_a, recs_b, model,
                                           config.region_confidence, ea.name, eb.name)
+        damage = mark_not_examined(damage, grid, examined)
         if ground is not None:
             from .io.raster import write_cog
 
@@ -367,7 +402,7 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
                                   region_confidence=config.region_confidence, model=model, buildings=buildings,
                                   extra_layers=extra or None, extra_styles=extra_styles or None,
                                   provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
-                                  prefix="sc", backdrop_m=_median_surface(recs_b))
+                                  prefix="sc", backdrop_m=_median_surface(recs_b), examined=examined)
     paths["model"] = model_path
     if ground_path is not None:
         paths["ground_model"] = ground_path
@@ -380,6 +415,7 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
         "grid": grid.to_dict(), "pairs": {e: [p.name for p in g] for e, g in by_epoch.items()},
         "completeness": {p.name: round(p.completeness, 4) for g in by_epoch.values() for p in g},
         "observed_fraction": round(float(observed.mean()), 4),
+        **({"examined_fraction": round(float(np.mean(examined)), 4)} if examined is not None else {}),
         "changed_fraction": {f"{c:g}": round(float((res.changed_at(c) != 0)[observed].mean()), 5) for c in res.confidences},
         "model": {"bins": len(model.score_centres), "match_pairs": int(model.bin_counts.sum()),
                   "learned_here": config.model_path is None},

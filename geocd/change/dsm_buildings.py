@@ -57,6 +57,7 @@ DAMAGE_CLASSES = {
     "new": ("#2c7bb6", "new"),
     "unchanged": ("#bdbdbd", "unchanged"),
     "unobserved": ("#ffffff", "unobserved"),
+    "not examined": ("#737373", "not examined (screened out)"),
 }
 CHANGED = ("collapsed", "partly collapsed", "lowered", "raised", "new")
 

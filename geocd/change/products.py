@@ -5,7 +5,8 @@ Layout of an output folder (``prefix`` defaults to the method name)::
     <prefix>_change.tif        COG, bands dz_m, dtilde, score, confidence (float32, NaN = unobserved)
     <prefix>_change.qml        QGIS style sidecar (confidence classes)
     <prefix>_change_mask.tif   COG int8 at the reported confidence (``region_confidence``, 99 % by default):
-                               +1 raised, −1 lowered, 0 unchanged, −128 nodata (not observable)
+                               +1 raised, −1 lowered, 0 unchanged, −128 nodata (not observable),
+                               −127 not examined (a tiered run's screen did not flag the tile)
     <prefix>_change_mask.qml   QGIS style sidecar (paletted)
     <prefix>_changes.gpkg      layers: changes (polygons), buildings (attributed footprints),
                                curves (significance curves table), layer_styles
@@ -21,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..consistency import CHANGE_NODATA, ChangeResult, SelfConsistencyModel
+from ..consistency import CHANGE_NODATA, NOT_EXAMINED, ChangeResult, SelfConsistencyModel
 from ..io.raster import write_cog
 from ..io.vector import qml_for, write_gpkg
 from .styles import buildings_qml, write_raster_style
@@ -33,8 +34,12 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
                           extra_styles: dict | None = None,
                           provenance: dict | None = None, prefix: str | None = None,
                           min_region_cells: int | None = None, plots: bool = True,
-                          backdrop_m: np.ndarray | None = None) -> dict[str, Path]:
+                          backdrop_m: np.ndarray | None = None,
+                          examined: np.ndarray | None = None) -> dict[str, Path]:
     """Write every product of one change test; returns {product name: path}.
+
+    ``examined`` (bool (rows, cols), a tiered run's flagged tiles): the change mask gives the other
+    cells :data:`geocd.consistency.NOT_EXAMINED` (−127, "not examined"), never 0 ("unchanged").
 
     ``min_region_cells`` (default: the result's minimum mapping unit) is the smallest polygon of
     the ``changes`` layer; its ``confidence`` is the test's (percent), ``volume_sigma_m3`` comes
@@ -66,16 +71,21 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
     write_raster_style(paths["change"], qml_for("confidence"))
     # the mask is the map at the reported confidence (the level the regions, buildings and summary use)
     mask = result.changed_at(region_confidence)
+    if examined is not None:
+        mask = np.where(examined, mask, NOT_EXAMINED).astype(np.int8)
+        tags["examined_fraction"] = f"{float(np.mean(examined)):.4f}"
     paths["change_mask"] = write_cog(out / f"{prefix}_change_mask.tif", {"change": mask}, grid,
                                      nodata=CHANGE_NODATA, dtype="int8",
                                      tags={**tags, "mask_confidence_pct": f"{region_confidence:g}"},
                                      units={"change": "class"},
                                      band_tags=[{"long_name": f"change at {region_confidence:g} %: +1 raised, -1 lowered, "
-                                                 "0 unchanged, -128 not observed"}],
+                                                 "0 unchanged, -128 not observed"
+                                                 + (", -127 not examined (screened out)" if examined is not None
+                                                    else "")}],
                                      overview_resampling="nearest")
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
 
-    sign = np.where(mask == CHANGE_NODATA, 0, mask).astype(np.int8)
+    sign = np.where((mask == 1) | (mask == -1), mask, 0).astype(np.int8)
     mmu = int(min_region_cells if min_region_cells is not None else result.min_region_cells)
     vfn = None
     if result.dz_sigma_m is not None:  # σ of the volume from the error model, correlated over one window

@@ -19,6 +19,7 @@ BUILDING_CLASSES = {
     "lowered": ("#abd9e9", "lowered"),
     "unchanged": ("#bdbdbd", "unchanged"),
     "unobserved": ("#ffffff", "unobserved"),
+    "not examined": ("#737373", "not examined (screened out)"),
 }
 
 

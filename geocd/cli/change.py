@@ -38,7 +38,8 @@ def _confidences(values) -> tuple[float, ...]:
 @click.option("--screen-feature", type=click.Choice(["patch", "daisy", "randbank"]), default="patch",
               show_default=True, help="Grid feature of the screen (--screen).")
 @click.option("--screen-tile", "screen_tile", type=int, default=128, show_default=True,
-              help="Side of the screen's tiles, cells (--screen).")
+              help="Side of the screen's tiles, cells, ≥ 64 (--screen); cells of unflagged tiles are coded "
+                   "-127 'not examined' in the change mask.")
 @click.pass_context
 def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_confidence, footprints, posting_m,
         epoch_a, epoch_b, pairs, screen, screen_feature, screen_tile):

@@ -38,6 +38,7 @@ FLAGS = {
     "range_limit": 16,      # best height at the edge of the search range (or next to an invalid one)
     "low_ncc": 32,          # NCC below min_ncc
     "weak_geometry": 64,    # base/height ratio too small: height unreliable
+    "not_examined": 128,    # not matched: a tiered run (geocd run --screen) whose screen did not flag the tile
 }
 
 BANDS = ("z", "score", "g", "valid", "ncc", "ssd", "flags")

@@ -147,11 +147,16 @@ def _pair_job(epoch: str, a, b, params: StereoParams, datum, grid: AOIGrid, tili
 
 def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, params: StereoParams = StereoParams(),
                      grid: AOIGrid | None = None, posting_m: float | None = None, pairs: str = "all", tiling=None,
-                     progress: Progress | None = None) -> dict[str, Any]:
+                     tiles: np.ndarray | None = None, progress: Progress | None = None) -> dict[str, Any]:
     """:func:`geocd.stereo.pipeline.run_stereo` tile by tile (see module docstring).
 
+    ``tiles`` (bool (tile rows, tile cols) of the ``tiling.tile_size`` tiling, optional) matches only
+    those tiles (the tiered run's flagged tiles), each with the same declared margin and the pair's
+    whole-scene pointing correction and noise level; the cells of the other tiles are written as not
+    matched (z NaN, valid 0, flags ``not_examined``).
+
     Returns dict with ``outputs`` ({"<epoch>/<a>__<b>": path}), ``grid``, ``margins`` (cells per pair)
-    and ``completeness`` per pair.
+    and ``completeness`` per pair (over the matched tiles).
     """
     from ..demdiff.tiled import TilingParams
     from ..io.manifest import Manifest, load_manifest
@@ -202,7 +207,7 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
             ov = min(stereo_margin_cells(grid, [a.camera, b.camera], lo_m, hi_m, params), tiling.tile_size // 2)
             margins[key] = ov
             job = _pair_job(e.name, a, b, params, datum, grid, tiling, inputs.get("dem"))
-            tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), ov)
+            tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), ov, tiles)
             r = run_tiled(_t_pair, tg, inputs, params=job, out=out, stage=f"stereo-{e.name}-{a.name}__{b.name}",
                           scheduler=eng, progress=sub_progress(prog, i / len(todo), (i + 1) / len(todo),
                                                                 f"pair {i + 1}/{len(todo)} "))
@@ -211,14 +216,16 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
             meta["pointing"] = {"applied": job.pointing_px != (0.0, 0.0), "total_shift_px": list(job.pointing_px),
                                 "estimated_on": "central window"}
             meta["noise_sigma"] = job.params.noise_sigma
-            meta["tiled"] = {"tile_size": tiling.tile_size, "margin_cells": ov, "tiles": len(smalls)}
+            meta["tiled"] = {"tile_size": tiling.tile_size, "margin_cells": ov, "tiles": len(smalls),
+                             "tiles_in_grid": len(list(tg.all_tiles()))}
             complete[key] = sum(s["valid"] for s in smalls) / max(sum(s["cells"] for s in smalls), 1)
             tags = {"geocd_product": "stereo_pair", "pair": f"{a.name}__{b.name}",
                     "cameras": json.dumps([a.name, b.name]), "epoch": e.name, "score_definition": SCORE_DEFINITION,
                     "vertical_datum": "ellipsoid", "meta": json.dumps(meta, default=_json_default),
                     "images": json.dumps([str(a.path), str(b.path)]), "manifest": str(m.path or "")}
             prod = RasterProduct(str(pair_path(out, e.name, a.name, b.name)), tuple(BANDS), tags=tags,
-                                 band_tags=[{"units": units[bn]} for bn in BANDS])
+                                 band_tags=[{"units": units[bn]} for bn in BANDS],
+                                 fill={"valid": 0.0, "flags": float(FLAGS["not_examined"])})
             outputs[key] = write_product(r.store, prod, grid, tg)
     if not tiling.keep_work:
         remove_work(out)

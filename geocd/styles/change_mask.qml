@@ -15,6 +15,7 @@
         <stdDevFactor>2</stdDevFactor>
       </minMaxOrigin>
       <colorPalette>
+        <paletteEntry value="-127" color="#737373" alpha="110" label="not examined (screened out)"/>
         <paletteEntry value="-1" color="#2166ac" alpha="255" label="lowered"/>
         <paletteEntry value="0" color="#d9d9d9" alpha="0" label="unchanged"/>
         <paletteEntry value="1" color="#d7191c" alpha="255" label="raised"/>
