@@ -152,8 +152,9 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
 
     ``tiles`` (bool (tile rows, tile cols) of the ``tiling.tile_size`` tiling, optional) matches only
     those tiles (the tiered run's flagged tiles), each with the same declared margin and the pair's
-    whole-scene pointing correction and noise level; the cells of the other tiles are written as not
-    matched (z NaN, valid 0, flags ``not_examined``).
+    whole-scene pointing correction and noise level; neighbouring selected tiles of a tile row are
+    matched as one window (their shared edges need no margin); the cells of the other tiles are
+    written as not matched (z NaN, valid 0, flags ``not_examined``).
 
     Returns dict with ``outputs`` ({"<epoch>/<a>__<b>": path}), ``grid``, ``margins`` (cells per pair)
     and ``completeness`` per pair (over the matched tiles).
@@ -207,7 +208,8 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
             ov = min(stereo_margin_cells(grid, [a.camera, b.camera], lo_m, hi_m, params), tiling.tile_size // 2)
             margins[key] = ov
             job = _pair_job(e.name, a, b, params, datum, grid, tiling, inputs.get("dem"))
-            tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), ov, tiles)
+            # a selection: runs of neighbouring selected tiles along a tile row are matched as one window
+            tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), ov, tiles, merge_runs=tiles is not None)
             r = run_tiled(_t_pair, tg, inputs, params=job, out=out, stage=f"stereo-{e.name}-{a.name}__{b.name}",
                           scheduler=eng, progress=sub_progress(prog, i / len(todo), (i + 1) / len(todo),
                                                                 f"pair {i + 1}/{len(todo)} "))
@@ -216,8 +218,8 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
             meta["pointing"] = {"applied": job.pointing_px != (0.0, 0.0), "total_shift_px": list(job.pointing_px),
                                 "estimated_on": "central window"}
             meta["noise_sigma"] = job.params.noise_sigma
-            meta["tiled"] = {"tile_size": tiling.tile_size, "margin_cells": ov, "tiles": len(smalls),
-                             "tiles_in_grid": len(list(tg.all_tiles()))}
+            meta["tiled"] = {"tile_size": tiling.tile_size, "margin_cells": ov, "units": len(smalls),
+                             "tiles": int(tg.selection_mask().sum()), "tiles_in_grid": len(list(tg.all_tiles()))}
             complete[key] = sum(s["valid"] for s in smalls) / max(sum(s["cells"] for s in smalls), 1)
             tags = {"geocd_product": "stereo_pair", "pair": f"{a.name}__{b.name}",
                     "cameras": json.dumps([a.name, b.name]), "epoch": e.name, "score_definition": SCORE_DEFINITION,

@@ -88,12 +88,19 @@ class TileGrid:
     :meth:`all_tiles` yields every tile. The writer fills the cores of the other tiles with
     each product's ``fill`` value (e.g. "not examined"), and reading a stored array there
     gives that fill, so a pass over a subset still makes whole-grid products.
+
+    ``merge_runs`` (with a selection): consecutive selected tiles of a tile row are processed as one
+    unit (a :class:`Tile` whose core spans the run, named by its first tile), so their shared edges
+    need no overlap of their own — a method with a wide context reads ``(n·t + 2o) × (t + 2o)``
+    cells for a run of n tiles instead of n times ``(t + 2o)²``. Only selected tiles' cores are ever
+    inside a unit's core.
     """
 
     grid: AOIGrid
     tile_size: tuple[int, int] = (1024, 1024)
     overlap: int = 0
     selected: frozenset | None = None
+    merge_runs: bool = False
 
     def __post_init__(self) -> None:
         ts = self.tile_size
@@ -127,7 +134,7 @@ class TileGrid:
 
     def __len__(self) -> int:
         if self.selected is not None:
-            return len(self.selected)
+            return len(self.units()) if self.merge_runs else len(self.selected)
         a, b = self.shape
         return a * b
 
@@ -161,10 +168,40 @@ class TileGrid:
         R1, C1 = min(H, r0 + h + o), min(W, c0 + w + o)
         return Tile((i, j), (r0, c0, h, w), (R0, C0, R1 - R0, C1 - C0))
 
+    def units(self) -> list[Tile]:
+        """The units a pass processes: the selected tiles, or their runs along tile rows (``merge_runs``)."""
+        if self.selected is None or not self.merge_runs:
+            return [t for t in self.all_tiles() if self.selected is None or t.index in self.selected]
+        th, tw = self.tile_size
+        H, W = self.grid.shape
+        o = self.overlap
+        out = []
+        for i in range(self.shape[0]):
+            j = 0
+            while j < self.shape[1]:
+                if (i, j) not in self.selected:
+                    j += 1
+                    continue
+                j0 = j
+                while j < self.shape[1] and (i, j) in self.selected:
+                    j += 1
+                r0, c0 = i * th, j0 * tw
+                h, w = min(th, H - r0), min(j * tw, W) - c0
+                R0, C0 = max(0, r0 - o), max(0, c0 - o)
+                R1, C1 = min(H, r0 + h + o), min(W, c0 + w + o)
+                out.append(Tile((i, j0), (r0, c0, h, w), (R0, C0, R1 - R0, C1 - C0)))
+        return out
+
     def __iter__(self) -> Iterator[Tile]:
-        for t in self.all_tiles():
-            if self.selected is None or t.index in self.selected:
-                yield t
+        yield from self.units()
+
+    def units_in(self, window: tuple[int, int, int, int]) -> list[Tile]:
+        """Processed units whose core intersects ``window`` (row0, col0, height, width)."""
+        r0, c0, h, w = window
+        if self.selected is None or not self.merge_runs:
+            return [t for t in self.tiles_in(window) if self.is_selected(t)]
+        return [t for t in self.units() if t.core[0] < r0 + h and r0 < t.core[0] + t.core[2]
+                and t.core[1] < c0 + w and c0 < t.core[1] + t.core[3]]
 
     def tiles_in(self, window: tuple[int, int, int, int]) -> Iterator[Tile]:
         """Tiles whose core intersects ``window`` (row0, col0, height, width), selected or not."""
@@ -177,11 +214,11 @@ class TileGrid:
                 yield self.tile(i, j)
 
     def with_overlap(self, overlap: int) -> "TileGrid":
-        return TileGrid(self.grid, self.tile_size, int(overlap), self.selected)
+        return TileGrid(self.grid, self.tile_size, int(overlap), self.selected, self.merge_runs)
 
-    def with_selection(self, selected) -> "TileGrid":
+    def with_selection(self, selected, merge_runs: bool = False) -> "TileGrid":
         """The same tiling restricted to ``selected`` (bool (tile rows, tile cols) or (i, j) pairs; None: all)."""
-        return TileGrid(self.grid, self.tile_size, self.overlap, selected)
+        return TileGrid(self.grid, self.tile_size, self.overlap, selected, merge_runs)
 
     def read_grid(self, tile: Tile) -> AOIGrid:
         """The AOI grid of a tile's read window."""

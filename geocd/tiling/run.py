@@ -228,7 +228,7 @@ def run_tiled(func: Callable[[dict, TileContext], Any], grid: AOIGrid | TileGrid
     fname = f"{getattr(func, '__module__', '')}.{getattr(func, '__qualname__', repr(func))}"
     sel = sorted(tg.selected) if tg.selected is not None else None
     full_key = make_key(stage, fname, params, ident, g.to_dict(), list(tg.tile_size), tg.overlap, key,
-                        *([sel] if sel is not None else []))
+                        *([sel, tg.merge_runs] if sel is not None else []))
     root = Path(work) if work is not None else work_root(out)
     store = TileStore(root, stage, full_key, tg)
     tiles = list(tg)

@@ -151,9 +151,7 @@ class TileStore:
         out = None
         tg = self.tile_grid
         skipped = [t for t in tg.tiles_in(window) if not tg.is_selected(t)]
-        for t in tg.tiles_in(window):
-            if not tg.is_selected(t):
-                continue
+        for t in tg.units_in(window):
             a = self.tile_array(t, name)
             tr0, tc0, th, tw = t.core
             rr0, cc0 = max(r0, tr0), max(c0, tc0)

@@ -94,14 +94,17 @@ def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None
     try:
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
             with rasterio.open(tmp_tif, "w", **profile) as dst:
-                for t in tg.all_tiles():
+                for t in tg.all_tiles():  # tiles the pass did not process: the product's fill value
+                    if tg.is_selected(t):
+                        continue
                     r0, c0, h, w = t.core
                     for b, name in enumerate(product.bands, start=1):
-                        if tg.is_selected(t):
-                            a = np.asarray(store.tile_array(t, name)).astype(dtype, copy=False)
-                        else:  # a tile the pass did not process: the product's fill value
-                            fv = (product.fill or {}).get(name, nodata if nodata is not None else 0)
-                            a = np.full((h, w), fv, dtype)
+                        fv = (product.fill or {}).get(name, nodata if nodata is not None else 0)
+                        dst.write(np.full((h, w), fv, dtype), b, window=Window(c0, r0, w, h))
+                for t in tg:  # processed tiles (or runs of tiles)
+                    r0, c0, h, w = t.core
+                    for b, name in enumerate(product.bands, start=1):
+                        a = np.asarray(store.tile_array(t, name)).astype(dtype, copy=False)
                         dst.write(a, b, window=Window(c0, r0, w, h))
                 for i, nm in enumerate(names, start=1):
                     dst.set_band_description(i, str(nm))

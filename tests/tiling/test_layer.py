@@ -181,31 +181,36 @@ def test_processes_scheduler_same_result(tmp_path):
     np.testing.assert_array_equal(run.read("f"), focal(a))
 
 
-def test_a_selection_of_tiles_runs_only_those_and_fills_the_rest(tmp_path):
-    """A pass over some tiles (the tiered run's flagged tiles): only they run, their cores equal the whole
-    grid's result (declared overlap), the other cores hold the product's fill value, and reading the
-    store there gives the fill."""
+@pytest.mark.parametrize("merge_runs", [False, True])
+def test_a_selection_of_tiles_runs_only_those_and_fills_the_rest(tmp_path, merge_runs):
+    """A pass over some tiles (the tiered run's flagged tiles): only they run (runs of neighbours along a
+    tile row as one unit with ``merge_runs``), their cores equal the whole grid's result (declared
+    overlap), the other cores hold the product's fill value, and reading the store there gives NaN."""
     g = _grid()
     x = _field(g)
     want = focal(x)
     full = TileGrid(g, (64, 50), RADIUS)
     sel = np.zeros(full.shape, bool)
-    sel[1, 1] = sel[3, 2] = True
-    tg = full.with_selection(sel)
-    assert len(tg) == 2 and len(list(tg.all_tiles())) == len(full)
+    sel[1, 1] = sel[1, 2] = sel[3, 2] = True
+    tg = full.with_selection(sel, merge_runs=merge_runs)
+    n_units = 2 if merge_runs else 3
+    assert len(tg) == n_units and len(list(tg.all_tiles())) == len(full)
+    if merge_runs:
+        assert [t.core for t in tg] == [(64, 50, 64, 100), (192, 100, 11, 50)]
+        assert [t.read for t in tg] == [(61, 47, 70, 106), (189, 97, 14, 56)]
     seen = []
     out = tmp_path / "sel"
     run = run_tiled(focal_tile, tg, {"x": ArraySource(x)}, out=out, stage="focal-sel",
                     products={"f": RasterProduct(str(out / "f.tif"), ("f",), fill={"f": -9.0}, nodata=-9999.0)},
                     progress=lambda f, m: seen.append(m))
-    assert run.n_tiles == 2 and seen[-1].endswith("2/2 tiles")
-    assert len(list(run.smalls())) == 2
+    assert run.n_tiles == n_units and seen[-1].endswith(f"{n_units}/{n_units} tiles")
+    assert len(list(run.smalls())) == n_units
     with rasterio.open(run.products["f"]) as ds:
         got = ds.read(1)
     examined = np.zeros(g.shape, bool)
     for t in tg:
         examined[t.core_slices] = True
-    assert examined.sum() == sum(t.n_cells for t in tg)
+    assert examined.sum() == sum(t.n_cells for t in tg) == 64 * 50 * 2 + 11 * 50
     np.testing.assert_array_equal(got[examined], want[examined])
     assert (got[~examined] == -9.0).all()
     a = run.read("f")
