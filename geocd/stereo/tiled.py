@@ -87,10 +87,21 @@ def stereo_margin_cells(grid: AOIGrid, cams: Sequence, lo_m: float, hi_m: float,
 
 
 def _t_pair(arrays, ctx):
-    """Match one pair on a tile's window; keep the core."""
+    """Match one pair on a tile's window; keep the core. A window one image does not see: every cell
+    invalid, flagged ``out_of_image`` (as the untiled match flags the cells outside an image)."""
+    from ..errors import NoOverlapError
+    from .products import FLAGS
+
     J: _PairJob = ctx.params
-    pd = _match_window(J, ctx.read_grid, arrays.get("dem"))
     f32 = np.float32
+    try:
+        pd = _match_window(J, ctx.read_grid, arrays.get("dem"))
+    except NoOverlapError:
+        shape = ctx.read_grid.shape
+        nan = np.full(shape, np.nan, f32)
+        arr = {"z": nan, "score": nan, "g": nan, "valid": np.zeros(shape, f32), "ncc": nan, "ssd": nan,
+               "flags": np.full(shape, FLAGS["out_of_image"], f32)}
+        return TileOutput(arrays=arr, small={"meta": None, "valid": 0, "cells": int(nan[ctx.core].size)})
     arr = {"z": pd.z_m.astype(f32), "score": pd.score.astype(f32), "g": pd.g_px_per_m.astype(f32),
            "valid": np.asarray(pd.valid, f32), "ncc": pd.ncc.astype(f32), "ssd": pd.ssd.astype(f32),
            "flags": np.asarray(pd.flags, f32)}
@@ -136,7 +147,12 @@ def _pair_job(epoch: str, a, b, params: StereoParams, datum, grid: AOIGrid, tili
     h, w = min(side, grid.height), min(side, grid.width)
     sub = grid.subgrid(r0, c0, h, w)
     dem_w = dem_src.read(grid, (r0, c0, h, w)) if dem_src is not None else None
-    probe = _match_window(_PairJob(epoch, a, b, params, datum), sub, dem_w)
+    from ..errors import NoOverlapError
+
+    try:
+        probe = _match_window(_PairJob(epoch, a, b, params, datum), sub, dem_w)
+    except NoOverlapError:  # an image that does not see the centre: no pointing correction, noise per tile
+        return _PairJob(epoch, a, b, dataclasses.replace(params, min_pointing_px=1e9), datum, (0.0, 0.0))
     pt = probe.meta.get("pointing") or {}
     shift = tuple(float(v) for v in pt.get("total_shift_px", (0.0, 0.0))) if pt.get("applied") else (0.0, 0.0)
     # the tiles match with that shift and that noise level, and estimate no pointing of their own
@@ -214,7 +230,8 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
                           scheduler=eng, progress=sub_progress(prog, i / len(todo), (i + 1) / len(todo),
                                                                 f"pair {i + 1}/{len(todo)} "))
             smalls = [s for _, s in r.smalls()]
-            meta = dict(smalls[0]["meta"]) if smalls else {}
+            metas = [s["meta"] for s in smalls if s["meta"] is not None]
+            meta = dict(metas[0]) if metas else {}
             meta["pointing"] = {"applied": job.pointing_px != (0.0, 0.0), "total_shift_px": list(job.pointing_px),
                                 "estimated_on": "central window"}
             meta["noise_sigma"] = job.params.noise_sigma
