@@ -247,14 +247,24 @@ def _truth_scores(out: Path, scene: Path) -> dict | None:
         g = AOIGrid.from_raster(ds)
     truth = np.nan_to_num(read_on_grid(t, g)) > 0
     s = json.loads((out / "run_summary.json").read_text())
-    return {"cells_99": f1_scores((m != 0) & (m != -128), truth), "buildings": s.get("buildings")}
+    det = (m == 1) | (m == -1)  # raised/lowered (0 unchanged, -128 not observed, -127 not examined)
+    res = {"cells_99": f1_scores(det, truth), "buildings": s.get("buildings")}
+    if (m == -127).any():
+        ex = m != -127
+        res["cells_99_in_flagged_tiles"] = f1_scores(det[ex], truth[ex])
+        res["truth_cells_outside_flagged_tiles"] = int((truth & ~ex).sum())
+    return res
 
 
 def bench_tiered(scene: str, model: str | None, work: Path, reference: Path | None = None) -> dict:
     """Full then tiered run, back to back (same machine state), whole processes; ``reference``: another full
     run's folder to compare the tiered run's detections with as well."""
+    import shutil
+
     extra = ["--model", model] if model else []
     full, tier = work / "full", work / "tiered"
+    for d in (full, tier):  # no resumed tiles, no earlier products: every run starts from nothing
+        shutil.rmtree(d, ignore_errors=True)
     r_full = _run(["run", scene, "--out", str(full), *extra])
     r_tier = _run(["run", scene, "--out", str(tier), "--screen", *extra])
     res = compare(scene, model, full, tier, r_full, r_tier)
