@@ -186,24 +186,52 @@ def _lost_vs_threshold_rule(full: Path, tier: Path, grid) -> dict | None:
             "max_d_quantiles": [round(float(v), 3) for v in np.quantile(dmax, [0.1, 0.5, 0.9])]}
 
 
+def _curve_diff(a, b) -> tuple[float, float]:
+    """|99 % curve of b − of a| / of a over the score bins a populates: (weighted by a's counts, max)."""
+    sc = a.score_centres
+    ta, tb = a.threshold(sc, 99.0), b.threshold(sc, 99.0)
+    ok = np.isfinite(ta) & np.isfinite(tb) & (a.bin_counts > 0)
+    if not ok.any():
+        return float("nan"), float("nan")
+    w = a.bin_counts[ok].astype(float)
+    rel = np.abs(tb[ok] - ta[ok]) / np.maximum(np.abs(ta[ok]), 1e-9)
+    return round(float(np.sum(w * rel) / w.sum()), 4), round(float(rel.max()), 4)
+
+
 def _models(full: Path, tier: Path) -> dict | None:
-    """The whole-scene statistics of the two runs: the self-consistency model's 99 % curve (tiered − full, over
-    the score bins both populate, weighted by the full run's counts) and the change test's vertical offsets."""
-    from geocd.consistency import SelfConsistencyModel
+    """The learned self-consistency model of the two runs (the whole-scene statistic a tiered run learns on
+    its flagged tiles only). Splits the difference of the 99 % curves into the **subset** effect (the full
+    run's pair-DEMs cut to the flagged tiles' cells, model learned again) and the **tiled stereo** effect
+    (that model vs the tiered run's). Curves compared as ``_curve_diff`` (weighted mean and max relative)."""
+    import rasterio
+
+    from geocd.consistency import ConsistencyParams, SelfConsistencyModel, learn_self_consistency
+    from geocd.stereo import read_pair_dem
 
     fa, fb = full / "self_consistency_model.json", tier / "self_consistency_model.json"
     if not (fa.exists() and fb.exists()):
         return None
     ma, mb = SelfConsistencyModel.load(fa), SelfConsistencyModel.load(fb)
-    res = {"match_pairs_full": int(ma.bin_counts.sum()), "match_pairs_tiered": int(mb.bin_counts.sum())}
-    sc = ma.score_centres
-    ta, tb = ma.threshold(sc, 99.0), mb.threshold(sc, 99.0)
-    ok = np.isfinite(ta) & np.isfinite(tb) & (ma.bin_counts > 0)
-    if ok.any():
-        w = ma.bin_counts[ok].astype(float)
-        rel = np.abs(tb[ok] - ta[ok]) / np.maximum(np.abs(ta[ok]), 1e-9)
-        res["curve99_weighted_rel_diff"] = round(float(np.sum(w * rel) / w.sum()), 4)
-        res["curve99_max_rel_diff"] = round(float(rel.max()), 4)
+    res = {"match_pairs_full": int(ma.bin_counts.sum()), "match_pairs_tiered": int(mb.bin_counts.sum()),
+           "curve99_full_vs_tiered": _curve_diff(ma, mb)}
+    learned = json.loads((tier / "run_summary.json").read_text())["model"]["learned_here"]
+    if not learned:
+        res["note"] = "a given scene-class model (--model): the same in both runs"
+        return res
+    with rasterio.open(tier / "sc_change_mask.tif") as ds:
+        ex = ds.read(1) != -127
+    by: dict = {}
+    for f in sorted((full / "stereo").rglob("*.tif")):
+        p = read_pair_dem(f)
+        p.valid = p.valid & ex
+        p.z_m = np.where(ex, p.z_m, np.nan).astype(np.float32)
+        by.setdefault(p.epoch, []).append(p)
+    cfg = json.loads((full / "run_config.json").read_text())["consistency"]
+    cfg = {k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items()}
+    mr = learn_self_consistency([g for g in by.values() if len(g) >= 2], ConsistencyParams(**cfg))
+    res["match_pairs_full_cut_to_flagged"] = int(mr.bin_counts.sum())
+    res["curve99_subset_effect"] = _curve_diff(ma, mr)
+    res["curve99_tiled_stereo_effect"] = _curve_diff(mr, mb)
     return res
 
 
