@@ -113,3 +113,40 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
     if b is not None and len(b):
         outside = b["frac_examined"] == 0
         assert not b.loc[outside, "class"].isin(["unchanged", "raised", "lowered", "new", "demolished"]).any()
+
+
+def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, request):
+    """The change products of a tiered run on the full run's pair-DEMs: inside the flagged tiles the mask is
+    the full run's, bit for bit; every other cell is −127 "not examined" (never 0); unobserved buildings
+    reaching into unflagged tiles are "not examined"; the summary says how much was examined."""
+    import rasterio
+
+    from geocd.consistency import NOT_EXAMINED
+    from geocd.pipeline import RunConfig, run_change
+    from geocd.screen.tiered import Flagged
+    from tests.sample_aoi_cache import sample_aoi_pairs
+
+    m, full, grid = sample_aoi_pairs(request.config.cache.mkdir("geocd_sample_aoi_stereo"))
+    sel = np.zeros((5, 5), bool)
+    sel[1:3, 1:4] = True
+    ex = Flagged(128, sel).examined(grid.shape)
+    cfg = RunConfig(derive_buildings=False)
+    rf = run_change(m, full, grid, out_dir=tmp_path / "full", config=cfg)
+    rt = run_change(m, full, grid, out_dir=tmp_path / "tier", config=cfg, examined=ex)
+    with rasterio.open(rt["outputs"]["change_mask"]) as ds:
+        mt = ds.read(1)
+        assert "-127 not examined" in ds.tags(1).get("long_name", "")
+    with rasterio.open(rf["outputs"]["change_mask"]) as ds:
+        mf = ds.read(1)
+    np.testing.assert_array_equal(mt[ex], mf[ex])
+    assert (mt[~ex] == NOT_EXAMINED).all()
+    assert not (mf == NOT_EXAMINED).any()
+    assert rt["summary"]["examined_fraction"] == pytest.approx(6 * 128 * 128 / 360000, abs=1e-4)
+    assert "examined_fraction" not in rf["summary"]
+    b, bf = rt["buildings"], rf["buildings"]
+    assert "frac_examined" in b and "frac_examined" not in bf
+    ne = (b["class"] == "not examined").to_numpy()
+    assert ne.any()
+    assert (bf["class"].to_numpy()[ne] == "unobserved").all() and (b["frac_examined"].to_numpy()[ne] < 1).all()
+    keep = ~ne
+    np.testing.assert_array_equal(b["class"].to_numpy()[keep], bf["class"].to_numpy()[keep])
