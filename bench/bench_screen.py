@@ -17,6 +17,7 @@ Usage::
     nice -n 10 .venv/bin/python bench/bench_screen.py tiered sample_aoi --out docs/screen_bench.json
     nice -n 10 .venv/bin/python bench/bench_screen.py tiered examples/kahramanmaras/scene.yaml \\
         --model examples/kahramanmaras/marseille_urban_model.json --full-dir /tmp/kahra2 --out docs/screen_bench.json
+    nice -n 10 .venv/bin/python bench/bench_screen.py stereo-overhead sample_aoi --epoch B --tiered-dir T
 """
 
 from __future__ import annotations
@@ -370,6 +371,56 @@ def tile_sizes(full: Path, tier: Path, sizes=(64, 128, 256), min_region_m2: floa
     return rows
 
 
+def stereo_overhead(scene: str, tier: Path, epoch: str, work: Path) -> dict:
+    """Where the tiered stereo's time goes: one epoch's pairs matched untiled (``run_stereo``, as the full run),
+    tiled on the tiered run's flagged tiles, and tiled on every tile (same tile size and declared margins),
+    in this process (CPU seconds of all threads), plus the pairs' central-window probes."""
+    import shutil
+
+    from geocd.demdiff.tiled import TilingParams
+    from geocd.io.manifest import load_manifest
+    from geocd.pipeline import RunConfig
+    from geocd.stereo import read_pair_dem
+    from geocd.stereo.pipeline import load_epoch_images, run_stereo
+    from geocd.stereo.tiled import _pair_job, run_stereo_tiled
+
+    m = load_manifest(scene)
+    cfg = RunConfig()
+    summ = json.loads((tier / "run_summary.json").read_text())
+    grid = read_pair_dem(next(v for k, v in summ["outputs"].items() if k.startswith("stereo:"))).grid
+    t = summ["screen"]["tile_cells"]
+    sel = np.zeros((-(-grid.height // t), -(-grid.width // t)), bool)
+    for i, j in summ["screen"]["flagged"]:
+        sel[i, j] = True
+    shutil.rmtree(work, ignore_errors=True)
+    res = {"scene": scene, "epoch": epoch, "tile_cells": t, "flagged_tiles": int(sel.sum()), "tiles": int(sel.size)}
+
+    def timed(name, fn):
+        c0, w0 = time.process_time(), time.perf_counter()
+        fn()
+        res[f"{name}_cpu_s"] = round(time.process_time() - c0, 1)
+        res[f"{name}_wall_s"] = round(time.perf_counter() - w0, 1)
+
+    timed("untiled", lambda: run_stereo(m, epochs=[epoch], out_dir=work / "u", params=cfg.stereo, grid=grid,
+                                        pairs=cfg.pairs, orient=False))
+    ims = load_epoch_images(m, m.epoch(epoch))
+    datum = m.dem.vertical_datum if m.dem is not None else None
+
+    def probes():
+        import itertools
+
+        for a, b in itertools.combinations(ims, 2):
+            if cfg.pairs == "all" or a.camera.kind == b.camera.kind:
+                _pair_job(epoch, a, b, cfg.stereo, datum, grid, TilingParams(tile_size=t), None)
+    timed("probes", probes)
+    for name, s in (("tiled_flagged", sel), ("tiled_all", np.ones_like(sel))):
+        timed(name, lambda s=s, name=name: run_stereo_tiled(
+            m, out_dir=work / name, epochs=[epoch], params=cfg.stereo, grid=grid, pairs=cfg.pairs,
+            tiling=TilingParams(tile_size=t, scheduler="sync"), tiles=s))
+    res["load_average_1min"] = round(os.getloadavg()[0], 2)
+    return res
+
+
 def _key(scene: str) -> str:
     p = Path(scene)
     return p.parent.name if p.suffix else p.name
@@ -377,7 +428,8 @@ def _key(scene: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles"])
+    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles", "stereo-overhead"])
+    ap.add_argument("--epoch", default="B", help="stereo-overhead: the epoch whose pairs are matched")
     ap.add_argument("--full-dir", type=Path, help="compare: the full run's output folder; tiered: a reference "
                     "full run to compare the detections with as well")
     ap.add_argument("--tiered-dir", type=Path, help="compare: the tiered run's output folder")
@@ -398,6 +450,9 @@ def main(argv=None) -> int:
         doc.setdefault("tiered", {})[_key(a.scene)] = compare(
             a.scene, a.model, a.full_dir, a.tiered_dir, {"wall_s": a.full_time[0], "cpu_s": a.full_time[1]},
             {"wall_s": a.tiered_time[0], "cpu_s": a.tiered_time[1]})
+    elif a.what == "stereo-overhead":  # untiled vs tiled stereo of one epoch, on the tiered run's flags
+        doc.setdefault("stereo_overhead", {})[_key(a.scene)] = stereo_overhead(a.scene, a.tiered_dir, a.epoch,
+                                                                                a.work / "overhead")
     elif a.what == "tiles":  # other --screen-tile sizes with the screen of a tiered run (no stereo re-run)
         doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:
