@@ -25,14 +25,15 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from ..consistency import (CHANGE_NODATA, ChangeParams, ChangeResult, DEMAsEpoch, SelfConsistencyModel, change_test,
-                           vertical_offsets)
+                           model_learned_on, vertical_offsets)
 from ..errors import ConfigError, GridError, UnsupportedFormatError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
@@ -278,6 +279,12 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
     names = [r.name for r in recs_a + recs_b]
     if len(set(names)) != len(names):
         raise ConfigError(f"reconstructions must have distinct names, got {names}")
+    if params.calibration != "none":
+        # the transfer calibration is a whole-scene fit that the tiled test does not gather yet
+        if params.calibration == "pair" or not model_learned_on(model, recs_a + recs_b):
+            warnings.warn("the tiled change test uses the self-consistency model as learned (no transfer "
+                          "calibration to these data); run untiled for calibration='pair'", UserWarning, stacklevel=2)
+        params = replace(params, calibration="none")
     significance = params.significance
     if significance == "region" and not model.has_region_test:
         significance = "cell"
