@@ -168,6 +168,25 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
     return out, damage, res
 
 
+def rerun(run: Path, out: Path, model_path: Path, calibration: str = "auto") -> dict:
+    """Everything of ``geocd run`` after the stereo, on RUN's pair-DEMs and oriented manifest, written to OUT."""
+    import dataclasses
+
+    from geocd.consistency import ChangeParams
+    from geocd.io.manifest import load_manifest
+    from geocd.pipeline import RunConfig, run_change
+
+    if out.resolve() == run.resolve():
+        raise SystemExit("--rerun must name another folder than --run (the run is read, never written)")
+    recs = _recs(run)
+    m = load_manifest(run / "orientation" / "scene.oriented.yaml")
+    cfg = dataclasses.replace(RunConfig(model_path=str(model_path)), change=ChangeParams(calibration=calibration))
+    res = run_change(m, recs, recs["pre_event"][0].grid, out_dir=out, config=cfg,
+                     stereo_outputs={f"{ep}/{p.name}": run / "stereo" / ep / f"{p.name}.tif"
+                                     for ep, ps in recs.items() for p in ps})
+    return res["summary"]
+
+
 def picanteo_figures(flag_path: Path, res, damage, grid) -> dict:
     """picanteo's rule map (bench_kahramanmaras_cars.py compare) on the same stable-ground definition."""
     from geocd.change.dsm_buildings import stable_false_alarms
@@ -249,8 +268,13 @@ def main(argv=None) -> int:
     ap.add_argument("--volume", default=None, help="orthorectified change probability of geocd volume detect")
     ap.add_argument("--picanteo-flag", default=None,
                     help="picanteo's change map on the same grid (picanteo_flag.npy of bench_kahramanmaras_cars.py)")
+    ap.add_argument("--rerun", default=None,
+                    help="write every layer of geocd run (after the stereo) for RUN's pair-DEMs into this folder")
     args = ap.parse_args(argv)
     results = {}
+    if args.rerun:
+        s = rerun(Path(args.run), Path(args.rerun), Path(args.model))
+        print(json.dumps({k: s[k] for k in ("changed_fraction", "model", "building_damage") if k in s}, indent=1))
     if args.volume:
         results["volume"] = volume_figures(Path(args.volume), Path(args.run) / "sc_changes.gpkg")
         print(json.dumps(results["volume"], indent=1))

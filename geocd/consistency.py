@@ -338,6 +338,10 @@ class PairCalibration:
         (score × slope) bins with enough cells.
     trimmed_fraction : float
         Share of the observed cells left out of the second fit (p < 0.01 under the first).
+    ref_scale, ref_edge_sigma_m : float
+        The same law fitted to the model's own static comparisons when it was learned
+        (:attr:`SelfConsistencyModel.reference_law`; 1 and 0 for models saved without it). The
+        inflation is relative to it, so a model applied to data like its own is left as it is.
     """
 
     scale: float
@@ -345,17 +349,21 @@ class PairCalibration:
     n_cells: int = 0
     n_bins: int = 0
     trimmed_fraction: float = 0.0
+    ref_scale: float = 1.0
+    ref_edge_sigma_m: float = 0.0
 
     def to_dict(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
     def inflation(self, model: "SelfConsistencyModel", score: np.ndarray, slope: np.ndarray,
                   metres_per_unit: np.ndarray) -> np.ndarray:
-        """m_tot / m50 per cell: how much wider the static disagreement is here than the model says."""
+        """m_tot / m_ref per cell: how much wider the static disagreement is here than where the model was learned."""
         m50 = model.threshold(score, 50.0)
+        g = np.asarray(slope, np.float64) / metres_per_unit
         with np.errstate(divide="ignore", invalid="ignore"):
-            mtot = np.sqrt((self.scale * m50) ** 2 + (np.asarray(slope) * self.edge_sigma_m / metres_per_unit) ** 2)
-            return np.where((m50 > 0) & np.isfinite(mtot), mtot / m50, self.scale)
+            mtot = np.sqrt((self.scale * m50) ** 2 + (g * self.edge_sigma_m) ** 2)
+            mref = np.sqrt((self.ref_scale * m50) ** 2 + (g * self.ref_edge_sigma_m) ** 2)
+            return np.where((mref > 0) & np.isfinite(mtot), mtot / mref, self.scale / self.ref_scale)
 
     def effective_dtilde(self, model: "SelfConsistencyModel", dtilde: np.ndarray, score: np.ndarray,
                          slope: np.ndarray, metres_per_unit: np.ndarray) -> np.ndarray:
@@ -365,7 +373,8 @@ class PairCalibration:
 
 def fit_pair_calibration(model: "SelfConsistencyModel", dtilde: np.ndarray, score: np.ndarray, slope: np.ndarray,
                          metres_per_unit: np.ndarray, min_bin_cells: int = 200,
-                         max_cells: int = 2_000_000, fit_edge: bool = True) -> PairCalibration:
+                         max_cells: int = 2_000_000, fit_edge: bool = True,
+                         reference: bool = True) -> PairCalibration:
     """Fit :class:`PairCalibration` to cross-epoch comparisons, tolerant of a changed minority.
 
     In bins of (the model's score bins × local slope) the median |Δ̃| of the data is compared with
@@ -381,6 +390,8 @@ def fit_pair_calibration(model: "SelfConsistencyModel", dtilde: np.ndarray, scor
     min_bin_cells : bins with fewer cells are ignored
     max_cells : a deterministic subsample beyond this many cells (every k-th)
     fit_edge : False: the scale alone (``edge_sigma_m`` = 0), e.g. when no slope is known
+    reference : relative to the model's :attr:`~SelfConsistencyModel.reference_law` (False: to the
+        bare model, scale 1 and no slope term — how the reference law itself is fitted)
 
     Raises
     ------
@@ -418,23 +429,28 @@ def fit_pair_calibration(model: "SelfConsistencyModel", dtilde: np.ndarray, scor
         R = np.asarray(rows, np.float64)
         R = R[(R[:, 0] > 0) & (R[:, 1] > 0)]
         w = np.sqrt(R[:, 4] / R[:, 4].mean())
+        # the slope term is identifiable only when the bins span more than one slope bin
+        edge = fit_edge and np.unique(np.searchsorted(_SLOPE_EDGES, R[:, 2], side="right")).size > 1
 
         def resid(x):
-            e = x[1] if fit_edge else 0.0
+            e = x[1] if edge else 0.0
             pred = np.sqrt((x[0] * R[:, 1]) ** 2 + (R[:, 2] * e / R[:, 3]) ** 2)
             return (np.log(pred) - np.log(R[:, 0])) * w
 
         sol = least_squares(resid, [1.0, 0.1], bounds=([1e-3, 0.0], [1e3, 1e2]), loss="soft_l1", f_scale=0.1)
-        return np.array([sol.x[0], sol.x[1] if fit_edge else 0.0]), len(R)
+        return np.array([sol.x[0], sol.x[1] if edge else 0.0]), len(R)
 
+    law = model.reference_law if reference else {}
+    ref = {"ref_scale": float(law.get("scale", 1.0)),
+           "ref_edge_sigma_m": float(law.get("edge_sigma_m", 0.0)) if fit_edge else 0.0}
     keep = np.ones(a.size, bool)
     x, nb = fit(keep)
-    cal = PairCalibration(float(x[0]), float(x[1]))
+    cal = PairCalibration(float(x[0]), float(x[1]), **ref)
     p = model.pvalue(cal.effective_dtilde(model, a, sc, g, mpu), sc)
     keep = p >= 0.01
     x, nb = fit(keep)
     return PairCalibration(float(x[0]), float(x[1]), n_cells=int(keep.sum()), n_bins=int(nb),
-                           trimmed_fraction=float(1.0 - keep.mean()))
+                           trimmed_fraction=float(1.0 - keep.mean()), **ref)
 
 
 def model_learned_on(model: "SelfConsistencyModel", recs: Sequence[PairDEMLike]) -> bool:
@@ -494,6 +510,10 @@ class SelfConsistencyModel:
         (percent), ``min_region_cells``, ``comparisons`` and, per comparison, ``masses``: the
         evidence of each of its candidate regions (at least ``min_region_cells``). Empty for
         models saved before the region test existed (then only the per-cell test is available).
+    reference_law : dict
+        The transfer calibration's law (:class:`PairCalibration`) fitted to the model's own static
+        comparisons: ``scale``, ``edge_sigma_m``, ``n_cells``. A transferred model is calibrated
+        relative to it. Empty for models saved without it (then relative to scale 1, no slope term).
     """
 
     score_edges: np.ndarray
@@ -502,6 +522,7 @@ class SelfConsistencyModel:
     raw_curves: dict[str, list[float]] = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
     region_null: dict = field(default_factory=dict)
+    reference_law: dict = field(default_factory=dict)
 
     def survival(self) -> np.ndarray:
         """(B, D+1) P(|Δ̃| > edge_k | score bin b), made non-decreasing in score (isotonic per edge)."""
@@ -621,6 +642,7 @@ class SelfConsistencyModel:
             "raw_curves": self.raw_curves,
             "provenance": self.provenance,
             "region_null": self.region_null,
+            "reference_law": self.reference_law,
         }
 
     @classmethod
@@ -633,7 +655,7 @@ class SelfConsistencyModel:
         return cls(np.asarray(d["score_edges"], float), np.asarray(d["hist"], np.int64),
                    {k: list(v) for k, v in d.get("curves", {}).items()},
                    {k: list(v) for k, v in d.get("raw_curves", {}).items()}, dict(d.get("provenance", {})),
-                   dict(d.get("region_null", {})))
+                   dict(d.get("region_null", {})), dict(d.get("reference_law", {})))
 
     def save(self, path: os.PathLike | str) -> Path:
         from .io.atomic import write_text_atomic
@@ -767,7 +789,34 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
     model.region_null = {"cluster_confidence": float(params.cluster_confidence), "min_region_cells": int(mmu),
                          "comparisons": [f"{p.name} vs {q.name}" for p, q in comps], "masses": masses,
                          "n_regions": int(sum(len(v) for v in masses))}
+    model.reference_law = reference_law(model, comps)
     return model
+
+
+def _comparison_arrays(p: PairDEMLike, q: PairDEMLike, posting_m: float | None):
+    """Δ̃, score, Δz, both, metres per unit of Δ̃ and the slope of the surface common to both (min of the two)."""
+    dt, sc, dz, both = match_pairs(p, q)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mpu = np.sqrt(1.0 / np.asarray(p.g_px_per_m, np.float64) ** 2 + 1.0 / np.asarray(q.g_px_per_m, np.float64) ** 2)
+    mpu = np.broadcast_to(mpu, dt.shape)
+    if posting_m:
+        slope = np.fmin(local_slope(p.z_m, posting_m), local_slope(q.z_m, posting_m))
+    else:
+        slope = np.zeros(dt.shape)
+    return dt, sc, dz, both, mpu, slope
+
+
+def reference_law(model: "SelfConsistencyModel", comps: Sequence[tuple[PairDEMLike, PairDEMLike]]) -> dict:
+    """The calibration law fitted to the model's own static comparisons ({} when it cannot be fitted)."""
+    posting = getattr(getattr(comps[0][0], "grid", None), "posting_m", None) if comps else None
+    arrays = [_comparison_arrays(p, q, posting) for p, q in comps]
+    try:
+        cal = fit_pair_calibration(model, *(np.concatenate([a[k][a[3]] for a in arrays]) for k in (0, 1, 5, 4)),
+                                   fit_edge=bool(posting), reference=False)
+    except ProcessingError:
+        return {}
+    return {"scale": round(cal.scale, 5), "edge_sigma_m": round(cal.edge_sigma_m, 5), "n_cells": cal.n_cells,
+            "slope": "min of the two surfaces' local |grad z|" if posting else "none (no grid posting)"}
 
 
 def candidate_regions(pvalue: np.ndarray, sign: np.ndarray, alpha0: float,
@@ -1030,24 +1079,13 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
     mode = params.calibration
     if mode == "auto":
         mode = "none" if model_learned_on(model, aligned) else "pair"
+    # without a grid posting there is no slope: the calibration fits the scale alone
     posting = getattr(getattr(epoch_a[0], "grid", None), "posting_m", None)
-    slopes: dict[str, np.ndarray] = {}
-    if calibration is not None or mode == "pair":
-        # without a grid posting there is no slope: the calibration fits the scale alone
-        slopes = {r.name: (local_slope(r.z_m, posting) if posting else np.zeros(shape)) for r in aligned}
-    per_comp = []
-    for p, q in comps:
-        dt, sc, dz, both = match_pairs(p, q)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            metres_per_unit = np.sqrt(1.0 / np.asarray(p.g_px_per_m, np.float64) ** 2
-                                      + 1.0 / np.asarray(q.g_px_per_m, np.float64) ** 2)
-        slope = np.fmax(slopes[p.name], slopes[q.name]) if slopes else None
-        per_comp.append((dt, sc, dz, both, metres_per_unit, slope))
+    need_slope = calibration is not None or mode == "pair"
+    per_comp = [_comparison_arrays(p, q, posting if need_slope else None) for p, q in comps]
     if calibration is None and mode == "pair":
-        calibration = fit_pair_calibration(
-            model, np.concatenate([c[0][c[3]] for c in per_comp]), np.concatenate([c[1][c[3]] for c in per_comp]),
-            np.concatenate([c[5][c[3]] for c in per_comp]),
-            np.concatenate([np.broadcast_to(c[4], shape)[c[3]] for c in per_comp]), fit_edge=bool(posting))
+        calibration = fit_pair_calibration(model, *(np.concatenate([c[k][c[3]] for c in per_comp]) for k in (0, 1, 5, 4)),
+                                           fit_edge=bool(posting))
     dz_stack = np.full((n, *shape), np.nan, np.float32)
     dt_stack = np.full((n, *shape), np.nan, np.float32)
     dte_stack = np.full((n, *shape), np.nan, np.float32)

@@ -110,3 +110,25 @@ def test_auto_leaves_a_model_learned_on_the_same_reconstructions_alone():
     assert change_test(A, B, own, ChangeParams(calibration="pair")).calibration is not None
     with pytest.raises(ConfigError, match="calibration"):
         ChangeParams(calibration="scene")
+
+
+def test_a_model_applied_to_data_like_its_own_is_left_alone(model):
+    """Relative to the law fitted to the model's own static comparisons: inflation ≈ 1, same map."""
+    assert model.reference_law and model.reference_law["scale"] == pytest.approx(1.0, abs=0.15)
+    rng = np.random.default_rng(21)
+    truth_a = np.zeros(SHAPE, np.float32)
+    truth_b = truth_a.copy()
+    truth_b[30:70, 30:70] += 6.0
+    A, B = [make_rec(truth_a, rng, "A0")], [make_rec(truth_b, rng, "B0")]
+    r0 = change_test(A, B, model, ChangeParams(calibration="none"))
+    r1 = change_test(A, B, model, ChangeParams(calibration="pair"))
+    assert r1.calibration.scale / r1.calibration.ref_scale == pytest.approx(1.0, abs=0.1)
+    agree = (r0.changed_at(99.0) == r1.changed_at(99.0)).mean()
+    assert agree > 0.99
+
+
+def test_reference_law_round_trips(model, tmp_path):
+    from geocd.consistency import SelfConsistencyModel
+
+    back = SelfConsistencyModel.load(model.save(tmp_path / "m.json"))
+    assert back.reference_law == model.reference_law
