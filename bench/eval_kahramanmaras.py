@@ -52,7 +52,7 @@ def _nmad(x: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
 
 
-def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0) -> dict:
+def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos: Path | None = None) -> dict:
     """Where the flagged cells outside every changed building are (shares of them; rate = flagged share there).
 
     Categories (cells outside changed buildings, observed): inside a building object that is not changed;
@@ -90,6 +90,16 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0) -> dic
             "not building, above ground in both": ~allb & up_a & up_b,
             "tree-like (not building, above ground, rough)": ~allb & (up_a | up_b)
             & ((ra > bp.roughness_factor * floor) | (rb > bp.roughness_factor * floor))}
+    if orthos is not None and (orthos / "pre_event_img1.tif").is_file():
+        import rasterio
+
+        dark = np.zeros(grid.shape, bool)
+        for name in ("pre_event_img1", "post_event_img1"):
+            with rasterio.open(orthos / f"{name}.tif") as ds:
+                img = ds.read(1).astype(float)
+            if img.shape == grid.shape:
+                dark |= img < np.nanpercentile(img[stable], 15)
+        cats["dark (darkest 15 % of either epoch's ortho: shadows)"] = dark
     n_s, n_f = int(stable.sum()), int(flag.sum())
     out = {"stable_cells": n_s, "flagged": n_f,
            "raised_share_of_flagged": round(float((res.dz_m[flag] > 0).mean()), 3) if n_f else None}
@@ -159,7 +169,7 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
            "stable_false_alarms_3m": stable_false_alarms(res.confidence, obs, damage, grid, buffer_m=3.0),
            "lowered_only_stable_false_alarms_99": stable_false_alarms(
                np.where(res.dz_m < 0, res.confidence, 0.0), obs, damage, grid, levels=(99.0,))["99"],
-           "where_false_alarms_99": where_false_alarms(res, damage, grid, recs, dtm),
+           "where_false_alarms_99": where_false_alarms(res, damage, grid, recs, dtm, orthos=run / "orthos_ground"),
            "buildings": int(len(damage)), "classes": cls.value_counts().to_dict(),
            "collapsed": damage[cls == "collapsed"][["building_id", "confidence_pct", "height_before_m",
                                                       "height_after_m", "volume_lost_m3", "volume_sigma_m3",
@@ -191,8 +201,25 @@ def picanteo_figures(flag_path: Path, res, damage, grid) -> dict:
     """picanteo's rule map (bench_kahramanmaras_cars.py compare) on the same stable-ground definition."""
     from geocd.change.dsm_buildings import stable_false_alarms
 
+    from scipy import ndimage as ndi
+    from rasterio.features import rasterize
+
     flag = np.load(flag_path)
-    return stable_false_alarms(np.where(flag, 99.0, 0.0), res.observed, damage, grid, levels=(99.0,))
+    out = {"stable_false_alarms_99": stable_false_alarms(np.where(flag, 99.0, 0.0), res.observed, damage, grid,
+                                                         levels=(99.0,))["99"]}
+    lab = rasterize([(g, i + 1) for i, g in enumerate(damage.geometry)], out_shape=grid.shape,
+                    transform=grid.transform, fill=0, dtype="int32")
+    idx = np.arange(1, len(damage) + 1)
+    frac = np.asarray(ndi.sum(flag & res.observed, lab, idx)) / np.maximum(np.asarray(ndi.sum(res.observed, lab, idx)), 1)
+    pic = frac >= 0.15
+    cls = damage["class"].to_numpy()
+    low = np.isin(cls, ["collapsed", "partly collapsed", "lowered"])
+    out["buildings"] = {"picanteo_changed": int(pic.sum()), "geocd_lowered_classes": int(low.sum()),
+                        "both": int((pic & low).sum()), "geocd_only": int((low & ~pic).sum()),
+                        "picanteo_only": int((pic & ~low).sum()),
+                        "geocd_collapsed_also_picanteo": int((pic & (cls == "collapsed")).sum()),
+                        "picanteo_in_geocd_unchanged": int((pic & (cls == "unchanged")).sum())}
+    return out
 
 
 def probchange_figures(pc_dir: Path, damage_gpkg: Path, layer: str = "building_damage") -> dict:
@@ -292,8 +319,7 @@ def main(argv=None) -> int:
                 r["transfer"] = transfer_figures(res, dmg, recs["pre_event"][0].grid, recs,
                                                  SelfConsistencyModel.load(args.model))
             if args.picanteo_flag:
-                r["picanteo_stable_false_alarms_99"] = picanteo_figures(Path(args.picanteo_flag), res, dmg,
-                                                                        recs["pre_event"][0].grid)["99"]
+                r["picanteo"] = picanteo_figures(Path(args.picanteo_flag), res, dmg, recs["pre_event"][0].grid)
             results[key] = r
             print(key, json.dumps({k: v for k, v in r.items() if k != "collapsed"}, indent=1))
             out = Path(args.out or args.run)
