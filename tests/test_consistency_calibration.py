@@ -132,3 +132,13 @@ def test_reference_law_round_trips(model, tmp_path):
 
     back = SelfConsistencyModel.load(model.save(tmp_path / "m.json"))
     assert back.reference_law == model.reference_law
+
+
+def test_cli_offers_the_calibration():
+    from click.testing import CliRunner
+
+    from geocd.cli import main
+
+    for cmd in ("run", "change"):
+        res = CliRunner().invoke(main, [cmd, "--help"])
+        assert res.exit_code == 0 and "--calibration" in res.output and "auto|pair|none" in res.output.replace(" ", "")
