@@ -142,3 +142,28 @@ def test_cli_offers_the_calibration():
     for cmd in ("run", "change"):
         res = CliRunner().invoke(main, [cmd, "--help"])
         assert res.exit_code == 0 and "--calibration" in res.output and "auto|pair|none" in res.output.replace(" ", "")
+
+
+def test_inflation_is_relative_to_the_models_own_law(model):
+    """The inflation is m_tot / m_ref: data following the model's own law (its reference law) are read as they are,
+    and a fit takes the reference law from the model."""
+    import copy
+
+    m = copy.deepcopy(model)
+    m.reference_law = {"scale": 0.8, "edge_sigma_m": 0.5}
+    sc = np.linspace(-2.0, 1.0, 50)
+    mpu = np.full(50, 1.5)
+    same = PairCalibration(0.8, 0.5, ref_scale=0.8, ref_edge_sigma_m=0.5)
+    for g in (0.0, 1.0, 10.0):
+        assert np.allclose(same.inflation(m, sc, np.full(50, g), mpu), 1.0)
+    wider = PairCalibration(1.6, 0.5, ref_scale=0.8, ref_edge_sigma_m=0.5)
+    assert np.allclose(wider.inflation(m, sc, np.zeros(50), mpu), 2.0)          # flat: the scale ratio
+    steep = wider.inflation(m, sc, np.full(50, 1e4), mpu)
+    assert np.all(steep < 1.01) and np.all(steep >= 1.0)                         # steep: the edge term (same)
+    rng = np.random.default_rng(9)
+    n = 50_000
+    dt = rng.normal(size=n) * m.threshold(rng.uniform(-2, 1, n), 50.0)
+    cal = fit_pair_calibration(m, dt, rng.uniform(-2, 1, n), rng.exponential(1.0, n), np.full(n, 1.5))
+    assert (cal.ref_scale, cal.ref_edge_sigma_m) == (0.8, 0.5)
+    assert fit_pair_calibration(m, dt, rng.uniform(-2, 1, n), rng.exponential(1.0, n), np.full(n, 1.5),
+                                reference=False).ref_scale == 1.0
