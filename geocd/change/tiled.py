@@ -403,7 +403,7 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
             conf_store = r2.store
         prog(0.86, "products")
         res_meta = dict(grid=grid, confidences=tuple(levels), comparisons=comparisons, vertical_offsets_m=offsets,
-                        min_region_cells=mmu, significance=significance)
+                        min_region_cells=mmu, significance=significance, calibration=calibration)
         if H * W <= tiling.exact_grid_cells:
             outputs = _write_exact(store, conf_store, tg, res_meta, out, model=model, fp=fp, method=method, ea=ea,
                                    eb=eb, region_confidence=region_confidence, prefix=prefix, plots=plots)
@@ -494,6 +494,8 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
             "confidences": ",".join(f"{c:g}" for c in meta["confidences"]),
             "comparisons": "; ".join(meta["comparisons"]), "significance": meta["significance"],
             "min_region_cells": str(meta["min_region_cells"])}
+    if meta.get("calibration") is not None:
+        tags["model_calibration"] = json.dumps(meta["calibration"].to_dict())
     names = ("dz_m", "dtilde", "score", "confidence", "cell_confidence", "dz_sigma_m")
     srcs = {n: (conf_store if n == "confidence" else store).source(n) for n in names}
     srcs["nobs"] = store.source("nobs")

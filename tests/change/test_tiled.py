@@ -107,3 +107,4 @@ def test_tiled_calibration_of_a_transferred_model_equals_untiled(recs, tmp_path)
     for name in ("sc_change", "sc_change_mask"):
         with rasterio.open(tmp_path / "untiled" / f"{name}.tif") as a, rasterio.open(tmp_path / "tiled" / f"{name}.tif") as b:
             np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
+            assert a.tags() == b.tags() and "model_calibration" in a.tags()
