@@ -35,6 +35,9 @@ class ImageFeatures:
     colour_mask, shadow_mask : uint8 or None (grey images have neither)
     shadow_dir : (dcol, drow) unit vector from a building towards its shadow, or None
     ndsm : float32 height above ground (m) or None
+    planar : float32, 1 where the DSM is locally planar (a roof facet, the ground), 0 where it is rough (a tree
+        crown), NaN without DSM data; None without a DSM (see :func:`planar_cells`)
+    planar_tol_m : the plane-fit residual above which a cell is rough (measured on the ground cells)
     noise_sigma : float, grey-level noise σ
     edge_level : float, the top-decile gradient magnitude (what a strong edge is, for snapping births)
     notes : list of str
@@ -52,6 +55,8 @@ class ImageFeatures:
     shadow_mask: np.ndarray | None = None
     shadow_dir: tuple[float, float] | None = None
     ndsm: np.ndarray | None = None
+    planar: np.ndarray | None = None
+    planar_tol_m: float = float("nan")
     noise_sigma: float = 1.0
     edge_level: float = 0.0
     notes: list[str] = field(default_factory=list)
@@ -173,6 +178,56 @@ def ground_from_dsm(dsm_m: np.ndarray, width_cells: int) -> np.ndarray:
     return ndimage.uniform_filter(g, size=w, mode="nearest")
 
 
+def plane_residual(dsm_m: np.ndarray, posting_m: float = 1.0) -> np.ndarray:
+    """RMS distance (m) of each cell's 3 × 3 DSM neighbourhood to its least-squares plane, measured along the
+    plane's normal (the vertical residual × cos of the slope): a surface's noise does not grow with its tilt.
+
+    3 × 3 is the smallest window that fits a plane: a roof facet or the ground leaves only the DSM's noise, a
+    tree crown (a dome with leaves and gaps, rough at the cell scale) or a wall leaves much more. NaN where the
+    window holds a cell without height.
+    """
+    d = np.asarray(dsm_m, np.float64)
+    ok = np.isfinite(d)
+    z = np.where(ok, d, 0.0)
+    full = ndimage.uniform_filter(ok.astype(np.float64), 3, mode="nearest") > 1.0 - 1e-9
+    m1 = ndimage.uniform_filter(z, 3, mode="nearest")
+    m2 = ndimage.uniform_filter(z * z, 3, mode="nearest")
+    kx = np.array([[-1.0, 0.0, 1.0]] * 3) / 6.0            # LS slope per cell along columns (Σx² = 6)
+    sx = ndimage.correlate(z, kx, mode="nearest")
+    sy = ndimage.correlate(z, kx.T, mode="nearest")
+    # residual variance of the plane fit: var(z) − slope² var(x) − slope² var(y), var(x) = var(y) = 2/3
+    var = m2 - m1 * m1 - (sx * sx + sy * sy) * (2.0 / 3.0)
+    res = np.sqrt(np.maximum(var, 0.0) * 9.0 / 6.0)          # unbiased: 9 cells, 3 plane parameters
+    res /= np.sqrt(1.0 + (sx * sx + sy * sy) / (posting_m * posting_m))
+    return np.where(full, res, np.nan).astype(np.float32)
+
+
+def planar_cells(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_height_m: float,
+                 posting_m: float = 1.0) -> tuple[np.ndarray, float]:
+    """Which cells of a DSM lie on a locally planar patch, with the tolerance measured on the DSM itself.
+
+    The tolerance is the noise of one 3 × 3 plane fit on the ground cells (less than ``min_height_m`` above
+    the terrain: mostly planar streets, yards and lawns): the median of their residuals + 3 robust σ
+    (1.4826 × MAD; walls, cars and bushes are the minority a robust estimate ignores). A cell is planar when
+    at least one of the nine 3 × 3 fits that contain it is within that tolerance: a cell on a roof ridge or
+    a facet's border lies on a planar patch of its facet, a cell of a tree crown (a dome of leaves and gaps)
+    on none. Returns (float32 map: 1 planar, 0 rough, NaN unknown; tolerance in m).
+    """
+    res = plane_residual(dsm_m, posting_m)
+    has = np.isfinite(res) & valid & np.isfinite(ndsm)
+    gnd = has & (ndsm < min_height_m)
+    if gnd.sum() < 100:                       # almost no ground: every observed cell (the median is robust)
+        gnd = has
+    if not gnd.any():
+        return np.full(res.shape, np.nan, np.float32), float("nan")
+    r = res[gnd]
+    med = float(np.median(r))
+    tol = med + 3.0 * 1.4826 * float(np.median(np.abs(r - med)))
+    best = ndimage.grey_erosion(np.where(np.isfinite(res), res, np.inf), size=3, mode="nearest")
+    planar = np.where(np.isfinite(best), (best <= tol).astype(np.float32), np.nan).astype(np.float32)
+    return planar, tol
+
+
 def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPParams(), *,
                    valid: np.ndarray | None = None, dsm_m: np.ndarray | None = None,
                    ground_m: np.ndarray | None = None, use_colour: bool = True) -> ImageFeatures:
@@ -233,7 +288,8 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     else:
         notes.append("grey image: colour and shadow terms dropped" if bands.shape[0] < 3 else
                      "colour and shadow terms switched off")
-    ndsm = None
+    ndsm = planar = None
+    planar_tol = float("nan")
     if dsm_m is not None:
         d = np.asarray(dsm_m, np.float64)
         if d.shape != grey.shape:
@@ -249,6 +305,10 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         has = np.isfinite(ndsm)
         med = ndimage.median_filter(np.where(has, ndsm, 0.0), size=k, mode="nearest")
         ndsm = np.where(has, med, np.nan).astype(np.float32)
+        planar, planar_tol = planar_cells(d, ndsm, ok, params.min_height_m, posting_m)
+        if np.isfinite(planar_tol):
+            notes.append(f"DSM planarity: a cell is rough above a plane-fit residual of {planar_tol:.2f} m "
+                         "(the noise of one 3 × 3 plane fit on the ground cells)")
         raised = ndimage.uniform_filter((np.nan_to_num(ndsm, nan=0.0) > params.min_height_m).astype(np.float32),
                                         size=max(3, win // 2) | 1, mode="constant")
         if raised[ok].mean() > 0:
@@ -259,7 +319,7 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     birth = (birth / mb if mb > 0 else birth).astype(np.float32)
     return ImageFeatures(grey=grey, valid=ok, grad_mag=mag, grad_ori=ori, density=dens, alpha=alpha,
                          mode_deg=mode, birth=birth, colour_mask=colour, shadow_mask=shadow, shadow_dir=sdir,
-                         ndsm=ndsm, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
+                         ndsm=ndsm, planar=planar, planar_tol_m=planar_tol, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
                          notes=notes)
 
 

@@ -29,7 +29,7 @@ from ..errors import ConfigError
 from ..params import ParamsMixin
 
 #: object-level features an image term can use
-FEATURES = ("gradient", "homogeneity", "colour", "shadow", "height")
+FEATURES = ("gradient", "homogeneity", "colour", "shadow", "height", "planarity")
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,11 @@ class MPPParams(ParamsMixin):
         colour images (the paper's Budapest model)
     height : "off" (the paper) or "and" (beyond the paper, needs DSMs: the height term is required and any
         image cue confirms it — each image prototype, the gradient alone or the homogeneity alone, AND height)
+    planarity : beyond the paper, with the height term: a roof is planar, a tree crown is rough at the cell
+        scale (the tolerance, the noise of a 3 × 3 plane fit, is measured on the DSM's ground cells).
+        "core": over half the cells of the rectangle's core (clear of the walls) must be planar; "roof": rough
+        cells do not count as raised in the height term (a building is a raised planar block); "both"
+        (default); "off": the height term alone
     gamma_overlap : γ of the overlap interaction
     gamma_change : γ_ξ of the texture-change term
     gamma_3d : weight of the 3-D change prior on ξ (0 = off)
@@ -94,6 +99,7 @@ class MPPParams(ParamsMixin):
     min_height_m: float = 2.5
     prototypes: str = "auto"
     height: str = "off"
+    planarity: str = "both"
     gamma_overlap: float = 2.5
     gamma_change: float = 1.0
     gamma_3d: float = 0.0
@@ -122,6 +128,8 @@ class MPPParams(ParamsMixin):
             raise ConfigError("annealing needs delta_factor in (0, 1] and beta_factor ≥ 1")
         if not 0 <= self.snap_births <= 1:
             raise ConfigError(f"snap_births must be in [0, 1], got {self.snap_births}")
+        if self.planarity not in ("off", "core", "roof", "both"):
+            raise ConfigError(f"planarity must be off, core, roof or both, got {self.planarity!r}")
         if self.max_iter < 1 or self.min_iter < 0:
             raise ConfigError("max_iter must be ≥ 1 and min_iter ≥ 0")
         if self.prototypes != "auto":
