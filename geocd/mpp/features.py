@@ -271,6 +271,18 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     colour = shadow = sdir = None
     if bands.shape[0] >= 3 and use_colour:
         colour, shadow = colour_masks(bands, ok, grey)
+        # the colour cue is informative only where the roof-colour mask can hold a building: a connected patch
+        # at least as large as the smallest rectangle; otherwise the image is read with the grey-image model
+        # (the paper chose its prototypes per data set: no colour, no shadow term for its grey-roofed sets)
+        lab, nlab = ndimage.label(colour)
+        largest = int(np.bincount(lab.ravel())[1:].max()) if nlab else 0
+        smallest = int(math.ceil((params.side_min_m / posting_m) ** 2))
+        if largest < smallest:
+            notes.append(f"the roof-colour mask covers {colour[ok].mean():.1%} of the cells in patches of at most "
+                         f"{largest} cells, none the size of a building ({smallest} cells): colour and shadow "
+                         "terms dropped, grey-image model")
+            colour = shadow = None
+    if colour is not None:
         gam = ndimage.uniform_filter(colour.astype(np.float32), size=win, mode="constant")
         if gam.mean() > 0:
             births.append(gam / float(gam[ok].mean()))
@@ -285,7 +297,7 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         else:
             notes.append("too few shadow cells: shadow term dropped")
             shadow = None
-    else:
+    elif bands.shape[0] < 3 or not use_colour:
         notes.append("grey image: colour and shadow terms dropped" if bands.shape[0] < 3 else
                      "colour and shadow terms switched off")
     ndsm = planar = None
