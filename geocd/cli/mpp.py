@@ -32,7 +32,8 @@ import numpy as np
                    "e.g. OUT/sc_change.tif from geocd run) or any 0–1 map.")
 @click.option("--gamma-3d", type=float, default=None, help="Weight of the 3-D change prior (default 1 when given).")
 @click.option("--side-min", "side_min_m", type=float, default=None, help="Smallest rectangle side, m (default 6).")
-@click.option("--side-max", "side_max_m", type=float, default=None, help="Largest rectangle side, m (default 30).")
+@click.option("--side-max", "side_max_m", type=float, default=None, help="Largest rectangle side, m (default: 30, raised to the 0.9 quantile of the raised segments' "
+              "long sides when DSMs are used).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed: same seed, same objects.")
 @click.option("--max-iter", type=int, default=None, help="Iteration cap of multiple birth and death (default 250).")
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting in metres.")
@@ -71,6 +72,8 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
                  ("gamma_3d", gamma_3d)):
         if v is not None:
             kw[k] = v
+    if side_max_m is not None:
+        kw["side_max_from_dsm"] = False
     params = MPPParams(**kw)
     from ..io.outputs import open_outputs
 

@@ -228,6 +228,48 @@ def planar_cells(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_hei
     return planar, tol
 
 
+def segment_sides_m(ndsm: np.ndarray, posting_m: float, min_height_m: float, side_min_m: float) -> np.ndarray:
+    """Sides (m) of the raised segments of an nDSM: (n, 2) long and short side of each segment's equivalent
+    rectangle (same second moments: side = √12 σ along each principal axis).
+
+    Raised cells (``ndsm > min_height_m``) are opened with a square of ``side_min_m`` / 2 (thin bridges of
+    stereo fill between blocks break, segments narrower than half the smallest building vanish), then
+    labelled; segments smaller than the smallest building (``side_min_m``²) are skipped.
+    """
+    raised = np.nan_to_num(ndsm, nan=0.0) > min_height_m
+    k = max(1, int(round(0.5 * side_min_m / posting_m)))
+    raised = ndimage.binary_opening(raised, structure=np.ones((k, k), bool))
+    lab, n = ndimage.label(raised)
+    if n == 0:
+        return np.zeros((0, 2))
+    ii, jj = np.nonzero(lab)
+    ll = lab[ii, jj] - 1
+    cnt = np.bincount(ll, minlength=n).astype(np.float64)
+    mi = np.bincount(ll, ii, n) / cnt
+    mj = np.bincount(ll, jj, n) / cnt
+    di, dj = ii - mi[ll], jj - mj[ll]
+    cii = np.bincount(ll, di * di, n) / cnt
+    cjj = np.bincount(ll, dj * dj, n) / cnt
+    cij = np.bincount(ll, di * dj, n) / cnt
+    tr, det = cii + cjj, cii * cjj - cij * cij
+    disc = np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+    l1, l2 = 0.5 * tr + disc, np.maximum(0.5 * tr - disc, 0.0)
+    sides = np.sqrt(12.0) * np.column_stack([np.sqrt(l1), np.sqrt(l2)]) * posting_m
+    keep = cnt * posting_m ** 2 >= side_min_m ** 2
+    return sides[keep]
+
+
+def side_max_from_dsm(ndsm: np.ndarray, posting_m: float, params: MPPParams = MPPParams(),
+                      quantile: float = 0.9) -> float:
+    """The largest rectangle side the scene needs: the ``quantile`` of its raised segments' long sides
+    (:func:`segment_sides_m`), never below ``params.side_max_m``. Larger buildings are still unions of
+    rectangles, as in the paper; NaN when the nDSM has no raised segment."""
+    sides = segment_sides_m(ndsm, posting_m, params.min_height_m, params.side_min_m)
+    if sides.shape[0] == 0:
+        return float("nan")
+    return max(params.side_max_m, float(np.quantile(sides[:, 0], quantile)))
+
+
 def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPParams(), *,
                    valid: np.ndarray | None = None, dsm_m: np.ndarray | None = None,
                    ground_m: np.ndarray | None = None, use_colour: bool = True) -> ImageFeatures:

@@ -39,6 +39,8 @@ class MPPParams(ParamsMixin):
     Attributes
     ----------
     side_min_m, side_max_m : rectangle side bounds (m)
+    side_max_from_dsm : with DSMs, raise ``side_max_m`` to the 0.9 quantile of the long sides of the scene's
+        raised segments (dense city blocks larger than 30 m; see ``features.side_max_from_dsm``)
     window_m : orientation-statistics window l (m); None = mean of the side bounds
     orient_bins : orientation bins over 180°
     orient_kernel_deg : uniform kernel half-width of the orientation density (h)
@@ -84,6 +86,7 @@ class MPPParams(ParamsMixin):
 
     side_min_m: float = 6.0
     side_max_m: float = 30.0
+    side_max_from_dsm: bool = True
     window_m: float | None = None
     orient_bins: int = 36
     orient_kernel_deg: float = 10.0

@@ -205,3 +205,21 @@ def test_colour_without_building_sized_patches_uses_the_grey_model():
     img[:, s["truth_a"]] = np.array([190.0, 60.0, 40.0])[:, None]
     f = image_features(img, POSTING, MPPParams())
     assert f.colour_mask is not None and f.colour_mask[s["truth_a"]].mean() > 0.9
+
+
+def test_side_max_from_the_dsm_segments():
+    """Blocks of 50 m × 16 m raise the largest rectangle side to their length; small houses keep 30 m."""
+    from geocd.mpp.features import segment_sides_m, side_max_from_dsm
+
+    nd = np.zeros((400, 400), np.float32)
+    for k in range(6):                                  # 6 blocks, 100 × 32 cells at 0.5 m, 18 m high
+        nd[20 + 60 * k: 52 + 60 * k, 40:140] = 18.0
+    for k in range(4):                                  # 4 houses 10 m × 10 m
+        nd[30 + 90 * k: 50 + 90 * k, 300:320] = 6.0
+    sides = segment_sides_m(nd, 0.5, 2.5, 6.0)
+    assert sides.shape == (10, 2)
+    np.testing.assert_allclose(np.sort(sides[:, 0])[-6:], 50.0, atol=0.5)
+    assert side_max_from_dsm(nd, 0.5, MPPParams()) == pytest.approx(50.0, abs=0.5)
+    nd[:, :200] = 0.0
+    assert side_max_from_dsm(nd, 0.5, MPPParams()) == 30.0
+    assert np.isnan(side_max_from_dsm(np.zeros((50, 50)), 0.5, MPPParams()))
