@@ -13,6 +13,9 @@ Where each default comes from (none was chosen on a scene's truth):
 * **Fractions** (colour, shadow, height fills, flood-fill completeness) are attractive above one half
   (a majority), and the kurtosis threshold 2.5 separates one mode (Gaussian: 3) from a half-roof that
   spills over a contrasted border (two modes: ≤ 2.5 for modes ≥ 1 σ apart).
+* **Roof planarity** (with the height term): the tolerance is the noise of a 3 × 3 plane fit measured on
+  each DSM's ground cells (median + 3 robust σ), as the flood-fill tolerance is 3 σ of the image noise;
+  the largest rectangle side is raised to the 0.9 quantile of the DSM's raised segments' long sides.
 * **Model weights**: ``gamma_overlap`` makes a duplicate of the best possible object (A_D = −2,
   IoU = 1) repulsive; ``gamma_change`` weighs the texture-change term like one image term.
 * **Annealing**: the paper's geometric schedules (β up, δ down) with its convergence test and a cap.
