@@ -341,6 +341,9 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
             Param("METHOD", "enum", "Model", cli="--method", default=0,
                   options=(("joint detection (ED, the paper's)", "ED"), ("each date alone, then compared (SD)", "SD"),
                            ("edge-only verification (EV)", "EV"))),
+            Param("PROTOTYPES", "string", "Object prototypes (default: chosen from the data; e.g. "
+                  "gradient|homogeneity|planarity lets a raised planar DSM block stand without an image cue)",
+                  cli="--prototypes", optional=True, advanced=True),
             Param("SEED", "int", "Random seed", cli="--seed", default=0, min=0, advanced=True),
         ),
         outputs=(Output("buildings", "BUILDINGS", "vector", "Buildings and rectangles", layers=("buildings", "rectangles")),
