@@ -162,10 +162,12 @@ def markdown(results: dict, tuned: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scene", action="append", required=True, help="NAME=SCENE[:RUN_DIR]")
+    ap.add_argument("--scene", action="append", default=[], help="NAME=SCENE[:RUN_DIR]")
     ap.add_argument("--volume", action="append", default=[], help="NAME=volume_results.json")
     ap.add_argument("--tuned", action="append", default=[], help="NAME of a scene used to choose parameters")
     ap.add_argument("--no-probchange", action="store_true")
+    ap.add_argument("--volume-only", action="store_true",
+                    help="only replace the octree figures (from --volume) in the --json of an earlier run")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     args = ap.parse_args()
@@ -173,7 +175,11 @@ def main() -> None:
     prev = json.loads(Path(args.json).read_text()) if args.json and Path(args.json).is_file() else {}
     results: dict = prev.get("scenes", {})
     vols = dict(v.split("=", 1) for v in args.volume)
-    for spec in args.scene:
+    if args.volume_only:
+        prev_cmd = prev.get("command")
+        if prev_cmd:
+            prev.setdefault("earlier_commands", []).append(prev_cmd)
+    for spec in ([] if args.volume_only else args.scene):
         name, rest = spec.split("=", 1)
         scene, _, run = rest.partition(":")
         scene_p = (REPO / scene) if not Path(scene).is_absolute() else Path(scene)
@@ -191,7 +197,8 @@ def main() -> None:
         if name in results:
             results[name]["volume"] = volume(Path(p))
     tuned = {n: (n in args.tuned) for n in results}
-    doc = {"command": " ".join(sys.argv), "scenes": results, "tuned_on": [n for n, t in tuned.items() if t]}
+    doc = {**{k: v for k, v in prev.items() if k not in ("command", "scenes", "tuned_on")},
+           "command": " ".join(sys.argv), "scenes": results, "tuned_on": [n for n, t in tuned.items() if t]}
     if args.json:
         Path(args.json).write_text(json.dumps(doc, indent=1, default=float))
     md = markdown(results, tuned)

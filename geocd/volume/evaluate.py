@@ -54,7 +54,8 @@ class TrainConfig:
     above_m: float = 30.0
     dem_prior: bool = True
     ground_band_m: float = 0.5
-    ground_p: float = 0.3
+    ground_band_top_m: float = 0.0
+    ground_p_max: float = 0.9
     seed: int = 0
 
 
@@ -64,7 +65,9 @@ def train(views: list, geom, grid: AOIGrid, dem_m: np.ndarray | None, cfg: Train
     params = VolumeParams(refine=not fixed_grid)
     model = VolumeModel.create(geom, params, init_depth=geom.max_depth if fixed_grid else cfg.init_depth)
     if cfg.dem_prior and dem_m is not None:
-        seed_from_dem(model, dem_m, grid, DEMPrior(ground_band_m=cfg.ground_band_m, ground_p=cfg.ground_p))
+        seed_from_dem(model, dem_m, grid, DEMPrior(ground_band_m=cfg.ground_band_m,
+                                                      ground_band_top_m=cfg.ground_band_top_m,
+                                                      ground_p_max=cfg.ground_p_max))
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
     segs = 0
@@ -429,10 +432,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-grid", action="store_true")
     ap.add_argument("--no-dem-prior", action="store_true")
     ap.add_argument("--ground-band", type=float, default=0.5, help="DEM prior: ground band half-height (m)")
-    ap.add_argument("--ground-p", type=float, default=0.3, help="DEM prior: occlusion probability per finest cell")
+    ap.add_argument("--ground-band-top", type=float, default=0.0,
+                    help="DEM prior: top of the ground band above the DEM (m)")
+    ap.add_argument("--ground-p-max", type=float, default=0.9,
+                    help="DEM prior: cap of a ground-band cell's occlusion probability")
     a = ap.parse_args(argv)
     cfg = TrainConfig(passes=a.passes, finest_cell_m=a.finest, dem_prior=not a.no_dem_prior,
-                      ground_band_m=a.ground_band, ground_p=a.ground_p)
+                      ground_band_m=a.ground_band, ground_band_top_m=a.ground_band_top,
+                      ground_p_max=a.ground_p_max)
     t0 = time.perf_counter()
     res = evaluate(a.scene, a.out, a.work, holdout=a.holdout, cfg=cfg, subarea_m=a.subarea, do_grid=not a.no_grid,
                    log=lambda m: print(m, flush=True))
