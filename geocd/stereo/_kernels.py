@@ -703,6 +703,36 @@ def zbuffer_occluded_ref(col, row, z, cost, tol_m, c0, r0, W, H) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # the median of the valid heights around each valid cell
 # ---------------------------------------------------------------------------------------------
+@njit(cache=True, inline="always")
+def _select(buf, n, k):
+    """The k-th smallest of ``buf[:n]`` (0-based), partially reordering it (Wirth's selection); afterwards
+    ``buf[:k]`` holds values ≤ it."""
+    lo = 0
+    hi = n - 1
+    while lo < hi:
+        x = buf[k]
+        i = lo
+        j = hi
+        while True:
+            while buf[i] < x:
+                i += 1
+            while x < buf[j]:
+                j -= 1
+            if i <= j:
+                t = buf[i]
+                buf[i] = buf[j]
+                buf[j] = t
+                i += 1
+                j -= 1
+            if i > j:
+                break
+        if j < k:
+            lo = i
+        if k < i:
+            hi = j
+    return buf[k]
+
+
 @njit(cache=True, parallel=True)
 def valid_median(z, r, out):
     """Median of the finite values of ``z`` in the ``(2r+1)²`` window around each cell with a finite ``z``.
@@ -723,15 +753,17 @@ def valid_median(z, r, out):
                 for jj in range(max(j - r, 0), min(j + r + 1, W)):
                     v = z[ii, jj]
                     if np.isfinite(v):
-                        # insertion into the sorted prefix
-                        k = n
-                        while k > 0 and buf[k - 1] > v:
-                            buf[k] = buf[k - 1]
-                            k -= 1
-                        buf[k] = v
+                        buf[n] = v
                         n += 1
             h = n // 2
-            out[i, j] = buf[h] if n % 2 == 1 else 0.5 * (buf[h - 1] + buf[h])
+            m = _select(buf, n, h)
+            if n % 2 == 0:      # the largest of the lower half
+                lo = buf[0]
+                for q in range(1, h):
+                    if buf[q] > lo:
+                        lo = buf[q]
+                m = 0.5 * (lo + m)
+            out[i, j] = m
 
 
 def valid_median_ref(z: np.ndarray, r: int) -> np.ndarray:
