@@ -111,3 +111,24 @@ def test_change_commands_warn_about_smoothed_pair_dems(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _read_pairs([paths["own"]])
+
+
+def test_ground_height_hint_uses_matches_flagged_only_for_an_incomplete_search():
+    """Over the cameras' whole height range most cells leave an image at some heights (range_limit); the hint
+    still reads their heights, but not those at the range's ends nor cells failing another test."""
+    from geocd.geodesy import AOIGrid, as_crs
+    from geocd.stereo import PairDEM
+    from geocd.stereo.pipeline import _hint_from_match
+
+    grid = AOIGrid.from_bounds(500000.0, 4000000.0, 500020.0, 4000020.0, 1.0, as_crs("EPSG:32631"))
+    z_raw = np.full(grid.shape, 2300.0, np.float32)
+    flags = np.full(grid.shape, FLAGS["range_limit"], np.uint8)
+    z_raw[:2] = 2609.0                                       # at the range's top: no minimum
+    z_raw[2:4] = 50.0
+    flags[2:4] |= FLAGS["not_unique"]                        # fails another test
+    nan = np.full(grid.shape, np.nan, np.float32)
+    pd = PairDEM(z_m=nan, score=nan, g_px_per_m=nan + 1, valid=np.zeros(grid.shape, bool), grid=grid, flags=flags,
+                 z_raw_m=z_raw, meta={"step_m": 2.0, "levels": 3})
+    assert _hint_from_match(pd, -20.0, 2610.0, 1295.0) == pytest.approx(2300.0)
+    pd.flags[:] |= FLAGS["low_ncc"]
+    assert _hint_from_match(pd, -20.0, 2610.0, 1295.0) == 1295.0
