@@ -2,17 +2,19 @@
 
 Reads ``RUN/stereo/<epoch>/*.tif`` of ``geocd run examples/kahramanmaras/scene.yaml --model M --out RUN``,
 re-runs the cross-epoch test with the scene-class model (both significance modes: region, the default, and
-the SRI per-cell test), derives the buildings from the pre-event DSM and reports, for each mode,
+the SRI per-cell test; with the model calibrated to the pair, what ``geocd run`` does with a transferred
+model, and as learned in Marseille), derives the buildings from the pre-event DSM and reports, for each,
 
 * the flagged share of observed cells at 90/95/99 %;
 * stable-ground false alarms: flagged share of observed cells outside every changed building (and outside a
-  3 m band around them — the edges of changed buildings are changed too);
+  3 m band around them — the edges of changed buildings are changed too), and where they are;
+* the transfer diagnostics: the model's predicted disagreement against this pair's on stable ground;
 * the building classes, and the collapsed buildings with their confidence.
 
 Usage::
 
     .venv/bin/python bench/eval_kahramanmaras.py --run /tmp/kahra --model examples/kahramanmaras/marseille_urban_model.json \
-        [--json docs/kahramanmaras_eval.json]
+        [--json docs/kahramanmaras_eval.json] [--out DIR] [--picanteo-flag /tmp/kahra_cars/picanteo_flag.npy]
 """
 
 from __future__ import annotations
@@ -28,33 +30,196 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def evaluate(run: Path, model_path: Path, significance: str) -> tuple[dict, object]:
+def _recs(run: Path) -> dict:
+    from geocd.stereo import read_pair_dem
+
+    return {ep: [read_pair_dem(p) for p in sorted((run / "stereo" / ep).glob("*.tif"))]
+            for ep in ("pre_event", "post_event")}
+
+
+def _mask(geoms, grid) -> np.ndarray:
+    from rasterio.features import rasterize
+
+    geoms = list(geoms)
+    if not geoms:
+        return np.zeros(grid.shape, bool)
+    return rasterize([(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform, fill=0,
+                     dtype="uint8").astype(bool)
+
+
+def _nmad(x: np.ndarray) -> float:
+    x = x[np.isfinite(x)]
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
+
+
+def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos: Path | None = None) -> dict:
+    """Where the flagged cells outside every changed building are (shares of them; rate = flagged share there).
+
+    Categories (cells outside changed buildings, observed): inside a building object that is not changed;
+    within 2 m of any building outline (edges); not in a building and low in both epochs (< 3 m above the
+    ground model: ground); not in a building, above ground in one epoch only (objects removed / added:
+    trees felled or in leaf, debris, cleared plots); above ground in both; "tree-like": above ground in
+    either epoch with the local roughness the building extraction calls a tree (> 2.5 × the ground's);
+    dark (the darkest 15 % of either epoch's ortho when given: shadows).
+    """
+    from scipy import ndimage as ndi
+
+    from geocd.change.dsm_buildings import CHANGED, DSMBuildingParams, roughness
+
+    bp = DSMBuildingParams()
+    obs = res.observed
+    inside = _mask(damage[damage["class"].isin(CHANGED)].geometry, grid)
+    allb = _mask(damage.geometry, grid)
+    stable = obs & ~inside
+    flag = stable & (np.nan_to_num(res.confidence) >= level)
+    za = np.nanmedian(np.stack([r.z_m for r in recs["pre_event"]]), axis=0)
+    zb = np.nanmedian(np.stack([r.z_m for r in recs["post_event"]]), axis=0)
+    ha, hb = za - dtm, zb - dtm
+    post = grid.posting_m
+    ra = roughness(np.where(np.isfinite(za), za, dtm), post)
+    rb = roughness(np.where(np.isfinite(zb), zb, dtm), post)
+    floor = float(np.median(ra[np.isfinite(ha) & (ha < bp.min_height_m)]))
+    edge = allb ^ ndi.binary_erosion(allb)
+    d_edge = ndi.distance_transform_edt(~edge) * post
+    up_a, up_b = ha >= bp.min_height_m, hb >= bp.min_height_m
+    cats = {"in unchanged building objects": allb,
+            "within 2 m of a building outline": d_edge <= 2.0,
+            "ground (not building, low in both)": ~allb & ~up_a & ~up_b,
+            "not building, above ground before only": ~allb & up_a & ~up_b,
+            "not building, above ground after only": ~allb & ~up_a & up_b,
+            "not building, above ground in both": ~allb & up_a & up_b,
+            "tree-like (not building, above ground, rough)": ~allb & (up_a | up_b)
+            & ((ra > bp.roughness_factor * floor) | (rb > bp.roughness_factor * floor))}
+    if orthos is not None and (orthos / "pre_event_img1.tif").is_file():
+        import rasterio
+
+        dark = np.zeros(grid.shape, bool)
+        for name in ("pre_event_img1", "post_event_img1"):
+            with rasterio.open(orthos / f"{name}.tif") as ds:
+                img = ds.read(1).astype(float)
+            if img.shape == grid.shape:
+                dark |= img < np.nanpercentile(img[stable], 15)
+        cats["dark (darkest 15 % of either epoch's ortho: shadows)"] = dark
+    n_s, n_f = int(stable.sum()), int(flag.sum())
+    out = {"stable_cells": n_s, "flagged": n_f,
+           "raised_share_of_flagged": round(float((res.dz_m[flag] > 0).mean()), 3) if n_f else None}
+    for k, m in cats.items():
+        out[k] = {"share_of_stable": round(float((m & stable).sum() / max(n_s, 1)), 3),
+                  "share_of_flagged": round(float((m & flag).sum() / max(n_f, 1)), 3),
+                  "rate": round(float((m & flag).sum() / max((m & stable).sum(), 1)), 4)}
+    return out
+
+
+def transfer_figures(res, damage, grid, recs, model) -> dict:
+    """How the transferred model's predicted disagreement compares with this pair's on stable ground."""
+    from geocd.change.dsm_buildings import CHANGED
+    from geocd.consistency import align_reconstructions, local_slope, match_pairs
+
+    stable = res.observed & ~_mask(damage[damage["class"].isin(CHANGED)].geometry, grid)
+    al, _ = align_reconstructions(recs["pre_event"] + recs["post_event"])
+    p, q = al[0], al[len(recs["pre_event"])]
+    dt, sc, dz, both = match_pairs(p, q)
+    s = stable & both
+    m50 = model.threshold(sc, 50.0)
+    slope = np.fmax(local_slope(p.z_m, grid.posting_m), local_slope(q.z_m, grid.posting_m))
+    sb = np.clip(np.searchsorted(model.score_edges, sc, side="right") - 1, 0, len(model.score_edges) - 2)
+    per_bin = []
+    for b in range(len(model.score_edges) - 1):
+        sel = s & (sb == b)
+        if sel.sum() >= 200:
+            per_bin.append((int(sel.sum()), float(np.median(np.abs(dt[sel]))), float(np.median(m50[sel]))))
+    ratios = np.array([a / m for _, a, m in per_bin])
+    slope_rows = {}
+    for lo, hi in ((0, 0.2), (0.2, 0.5), (0.5, 1), (1, 2), (2, 5), (5, np.inf)):
+        sel = s & (slope >= lo) & (slope < hi)
+        slope_rows[f"{lo:g}-{hi:g}"] = {"cells": int(sel.sum()), "nmad_dz_m": round(_nmad(dz[sel]), 3),
+                                       "model_sigma_m": round(float(np.nanmedian(res.dz_sigma_m[sel])), 3)}
+    return {"stable_cells": int(s.sum()),
+            "nmad_dz_stable_m": round(_nmad(dz[s]), 3),
+            "model_sigma_m_median": round(float(np.nanmedian(res.dz_sigma_m[s])), 3),
+            "median_abs_dtilde_pair_over_model_by_score_bin": {"min": round(float(ratios.min()), 2),
+                                                               "median": round(float(np.median(ratios)), 2),
+                                                               "max": round(float(ratios.max()), 2)},
+            "stable_share_beyond_model_99": round(float((np.abs(dt[s]) > model.threshold(sc[s], 99.0)).mean()), 4),
+            "abs_dz_above_m": {f"{e}": round(float((np.abs(dz[s]) > e).mean()), 4) for e in (2, 5, 10, 20)},
+            "by_slope": slope_rows}
+
+
+def evaluate(run: Path, model_path: Path, significance: str, calibration: str = "auto",
+             recs: dict | None = None) -> tuple[dict, object, object]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import stable_false_alarms
     from geocd.pipeline import _building_damage
-    from geocd.stereo import read_pair_dem
 
-    recs = {ep: [read_pair_dem(p) for p in sorted((run / "stereo" / ep).glob("*.tif"))]
-            for ep in ("pre_event", "post_event")}
+    recs = recs or _recs(run)
     model = SelfConsistencyModel.load(model_path)
-    res = change_test(recs["pre_event"], recs["post_event"], model, ChangeParams(significance=significance))
+    res = change_test(recs["pre_event"], recs["post_event"], model,
+                      ChangeParams(significance=significance, calibration=calibration))
     grid = recs["pre_event"][0].grid
-    damage, _ = _building_damage(None, res, grid, recs["pre_event"], recs["post_event"], model, 99.0,
-                                 "pre_event", "post_event")
+    damage, dtm = _building_damage(None, res, grid, recs["pre_event"], recs["post_event"], model, 99.0,
+                                   "pre_event", "post_event")
     obs = res.observed
     cls = damage["class"]
-    out = {"significance": significance,
+    out = {"significance": significance, "calibration": calibration,
+           "calibration_fit": res.calibration.to_dict() if res.calibration is not None else None,
            "flagged_of_observed": {f"{c:g}": round(float((res.changed_at(c) != 0)[obs].mean()), 5)
                                    for c in res.confidences},
            "observed_fraction": round(float(obs.mean()), 4),
            "stable_false_alarms": stable_false_alarms(res.confidence, obs, damage, grid),
            "stable_false_alarms_3m": stable_false_alarms(res.confidence, obs, damage, grid, buffer_m=3.0),
+           "lowered_only_stable_false_alarms_99": stable_false_alarms(
+               np.where(res.dz_m < 0, res.confidence, 0.0), obs, damage, grid, levels=(99.0,))["99"],
+           "where_false_alarms_99": where_false_alarms(res, damage, grid, recs, dtm, orthos=run / "orthos_ground"),
            "buildings": int(len(damage)), "classes": cls.value_counts().to_dict(),
            "collapsed": damage[cls == "collapsed"][["building_id", "confidence_pct", "height_before_m",
                                                       "height_after_m", "volume_lost_m3", "volume_sigma_m3",
                                                       "area_m2"]].to_dict(orient="records"),
            "volume_lost_collapsed_m3": round(float(damage[cls == "collapsed"]["volume_lost_m3"].sum()), 1)}
-    return out, damage
+    return out, damage, res
+
+
+def rerun(run: Path, out: Path, model_path: Path, calibration: str = "auto") -> dict:
+    """Everything of ``geocd run`` after the stereo, on RUN's pair-DEMs and oriented manifest, written to OUT."""
+    import dataclasses
+
+    from geocd.consistency import ChangeParams
+    from geocd.io.manifest import load_manifest
+    from geocd.pipeline import RunConfig, run_change
+
+    if out.resolve() == run.resolve():
+        raise SystemExit("--rerun must name another folder than --run (the run is read, never written)")
+    recs = _recs(run)
+    m = load_manifest(run / "orientation" / "scene.oriented.yaml")
+    cfg = dataclasses.replace(RunConfig(model_path=str(model_path)), change=ChangeParams(calibration=calibration))
+    res = run_change(m, recs, recs["pre_event"][0].grid, out_dir=out, config=cfg,
+                     stereo_outputs={f"{ep}/{p.name}": run / "stereo" / ep / f"{p.name}.tif"
+                                     for ep, ps in recs.items() for p in ps})
+    return res["summary"]
+
+
+def picanteo_figures(flag_path: Path, res, damage, grid) -> dict:
+    """picanteo's rule map (bench_kahramanmaras_cars.py compare) on the same stable-ground definition."""
+    from geocd.change.dsm_buildings import stable_false_alarms
+
+    from scipy import ndimage as ndi
+    from rasterio.features import rasterize
+
+    flag = np.load(flag_path)
+    out = {"stable_false_alarms_99": stable_false_alarms(np.where(flag, 99.0, 0.0), res.observed, damage, grid,
+                                                         levels=(99.0,))["99"]}
+    lab = rasterize([(g, i + 1) for i, g in enumerate(damage.geometry)], out_shape=grid.shape,
+                    transform=grid.transform, fill=0, dtype="int32")
+    idx = np.arange(1, len(damage) + 1)
+    frac = np.asarray(ndi.sum(flag & res.observed, lab, idx)) / np.maximum(np.asarray(ndi.sum(res.observed, lab, idx)), 1)
+    pic = frac >= 0.15
+    cls = damage["class"].to_numpy()
+    low = np.isin(cls, ["collapsed", "partly collapsed", "lowered"])
+    out["buildings"] = {"picanteo_changed": int(pic.sum()), "geocd_lowered_classes": int(low.sum()),
+                        "both": int((pic & low).sum()), "geocd_only": int((low & ~pic).sum()),
+                        "picanteo_only": int((pic & ~low).sum()),
+                        "geocd_collapsed_also_picanteo": int((pic & (cls == "collapsed")).sum()),
+                        "picanteo_in_geocd_unchanged": int((pic & (cls == "unchanged")).sum())}
+    return out
 
 
 def probchange_figures(pc_dir: Path, damage_gpkg: Path, layer: str = "building_damage") -> dict:
@@ -122,22 +287,44 @@ def main(argv=None) -> int:
     ap.add_argument("--run", default="/tmp/kahra")
     ap.add_argument("--model", default=str(REPO / "examples" / "kahramanmaras" / "marseille_urban_model.json"))
     ap.add_argument("--json", default=None)
+    ap.add_argument("--out", default=None, help="folder for the evaluated damage layers (default: the run folder)")
     ap.add_argument("--modes", default="region,cell")
+    ap.add_argument("--calibrations", default="auto,none",
+                    help="transfer calibrations to evaluate (auto = what geocd run does with a transferred model: pair)")
     ap.add_argument("--probchange", default=None, help="output folder of geocd probchange on the same AOI")
     ap.add_argument("--volume", default=None, help="orthorectified change probability of geocd volume detect")
+    ap.add_argument("--picanteo-flag", default=None,
+                    help="picanteo's change map on the same grid (picanteo_flag.npy of bench_kahramanmaras_cars.py)")
+    ap.add_argument("--rerun", default=None,
+                    help="write every layer of geocd run (after the stereo) for RUN's pair-DEMs into this folder")
     args = ap.parse_args(argv)
     results = {}
+    if args.rerun:
+        s = rerun(Path(args.run), Path(args.rerun), Path(args.model))
+        print(json.dumps({k: s[k] for k in ("changed_fraction", "model", "building_damage") if k in s}, indent=1))
     if args.volume:
         results["volume"] = volume_figures(Path(args.volume), Path(args.run) / "sc_changes.gpkg")
         print(json.dumps(results["volume"], indent=1))
     if args.probchange:
         results["probchange"] = probchange_figures(Path(args.probchange), Path(args.run) / "sc_changes.gpkg")
         print(json.dumps(results["probchange"], indent=1))
-    for mode in [m for m in args.modes.split(",") if m]:
-        r, dmg = evaluate(Path(args.run), Path(args.model), mode)
-        results[mode] = r
-        print(json.dumps({k: v for k, v in r.items() if k != "collapsed"}, indent=1))
-        dmg.to_file(Path(args.run) / f"eval_building_damage_{mode}.gpkg", driver="GPKG")
+    recs = _recs(Path(args.run))
+    for cal in [c for c in args.calibrations.split(",") if c]:
+        for mode in [m for m in args.modes.split(",") if m]:
+            r, dmg, res = evaluate(Path(args.run), Path(args.model), mode, cal, recs=recs)
+            key = mode if cal == "auto" else f"{mode}_{cal}"
+            if mode == "region" and cal == "none":
+                from geocd.consistency import SelfConsistencyModel
+
+                r["transfer"] = transfer_figures(res, dmg, recs["pre_event"][0].grid, recs,
+                                                 SelfConsistencyModel.load(args.model))
+            if args.picanteo_flag:
+                r["picanteo"] = picanteo_figures(Path(args.picanteo_flag), res, dmg, recs["pre_event"][0].grid)
+            results[key] = r
+            print(key, json.dumps({k: v for k, v in r.items() if k != "collapsed"}, indent=1))
+            out = Path(args.out or args.run)
+            out.mkdir(parents=True, exist_ok=True)
+            dmg.to_file(out / f"eval_building_damage_{key}.gpkg", driver="GPKG")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1, default=str))
     return 0

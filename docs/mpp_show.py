@@ -11,6 +11,9 @@ Usage (from the repository root)::
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
     .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
     .venv/bin/python docs/mpp_show.py tables              # the markdown tables of docs/mpp.md
+    # Kahramanmaraş: after `geocd mpp --image-a … --out OUT` (docs/mpp.md), the figures against geocd's own
+    # building damage layer (no truth exists)
+    .venv/bin/python docs/mpp_show.py kahra OUT /tmp/kahra2
 
 Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read in place from ../shared/data.
 """
@@ -253,6 +256,87 @@ def levir(prototypes: str = "auto") -> dict:
     return out
 
 
+#: blocks standing before and gone after, by eye (docs/kahramanmaras.md; grid cells, column, row)
+KAHRA_GONE_BY_EYE = [(60, 520), (490, 560), (470, 710), (760, 730), (720, 950), (30, 830)]
+
+
+def kahra(mpp_dir: Path, run_dir: Path) -> dict:
+    """Kahramanmaraş: what ``geocd mpp`` found, and how it relates to geocd's own building damage layer
+    (``sc_changes.gpkg``, layer ``building_damage``) — no truth exists for this city."""
+    import geopandas as gpd
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import rasterio
+    from rasterio.features import rasterize
+
+    with rasterio.open(mpp_dir / "mpp_buildings.tif") as ds:
+        lab = ds.read(1)
+        transform, shape = ds.transform, ds.shape
+    summary = json.loads((mpp_dir / "mpp_summary.json").read_text())
+    rects = gpd.read_file(mpp_dir / "mpp_buildings.gpkg", layer="rectangles")
+    blds = gpd.read_file(mpp_dir / "mpp_buildings.gpkg", layer="buildings")
+    dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+    date1 = np.isin(lab, (1, 2))
+    demol = lab == 2
+    out = {"rectangles": int(len(rects)), "rectangles_by_change": rects["change"].value_counts().to_dict(),
+           "buildings": int(len(blds)), "buildings_by_change": blds["change"].value_counts().to_dict(),
+           "rectangle_length_m": [round(float(rects["length_m"].min()), 1), round(float(rects["length_m"].median()), 1),
+                                  round(float(rects["length_m"].max()), 1)] if len(rects) else None,
+           "notes": summary.get("notes", [])}
+    rows = {}
+    for cls, g in dmg.groupby("class"):
+        found = demolished = 0
+        for geom in g.geometry:
+            m = rasterize([geom], out_shape=shape, transform=transform) > 0
+            if not m.any():
+                continue
+            found += date1[m].mean() >= 0.5
+            demolished += demol[m].mean() >= 0.5
+        rows[cls] = {"geocd_buildings": int(len(g)), "mpp_found_on_date1": int(found),
+                     "mpp_demolished": int(demolished)}
+    out["vs_geocd_building_damage"] = rows
+    eye = []
+    for c, r in KAHRA_GONE_BY_EYE:
+        win = lab[max(r - 10, 0):r + 11, max(c - 10, 0):c + 11]
+        eye.append({"col_row": [c, r], "mpp_label_near": sorted(int(x) for x in np.unique(win) if x > 0)})
+    out["gone_by_eye"] = eye
+    print(json.dumps(out, indent=1, default=str))
+    # quick-look: pre | post with the rectangles by ξ and geocd's collapsed buildings
+    imgs = []
+    for e in ("pre_event_img1", "post_event_img1"):
+        with rasterio.open(run_dir / "orthos" / f"{e}.tif") as ds:
+            a = ds.read(1).astype(float)
+            a[ds.read_masks(1) == 0] = np.nan
+            imgs.append(a)
+    fig, axes = plt.subplots(1, 2, figsize=(16, 8))
+    colours = {"unchanged": "lime", "demolished": "deepskyblue", "new": "red"}
+    from rasterio.transform import rowcol
+
+    def draw(ax, geoms, colour, lw, ls="-"):
+        for geom in geoms:
+            for poly in getattr(geom, "geoms", [geom]):
+                x, y = poly.exterior.xy
+                r, c = rowcol(transform, x, y, op=lambda v: v)
+                ax.plot(np.asarray(c) - 0.5, np.asarray(r) - 0.5, color=colour, lw=lw, ls=ls)
+
+    for ax, img, title, dates in zip(axes, imgs, ("pre-event", "post-event"), (("unchanged", "demolished"),
+                                                                                 ("unchanged", "new"))):
+        lo, hi = np.nanpercentile(img, (1, 99))
+        ax.imshow(img, cmap="gray", vmin=lo, vmax=hi, interpolation="nearest")
+        draw(ax, dmg.geometry[dmg["class"] == "collapsed"], "yellow", 1.6, "--")
+        for ch in dates:
+            draw(ax, rects.geometry[rects["change"] == ch], colours[ch], 0.8)
+        ax.set_title(f"{title}: rectangles (green unchanged, blue demolished, red new); "
+                     "yellow dashed: geocd run's collapsed", fontsize=8)
+        ax.axis("off")
+    plt.tight_layout()
+    plt.savefig(DOCS / "mpp_kahramanmaras.png", dpi=70)
+    (DOCS / "mpp_kahramanmaras.json").write_text(json.dumps(out, indent=2, default=str))
+    return out
+
+
 if __name__ == "__main__":
     what = sys.argv[1]
     if what == "town":
@@ -275,6 +359,8 @@ if __name__ == "__main__":
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
     elif what == "levir-diagnose":
         levir_diagnose()
+    elif what == "kahra":
+        kahra(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "tables":
         tables()
     elif what == "levir":

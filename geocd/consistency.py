@@ -280,6 +280,186 @@ def align_reconstructions(recs: Sequence[PairDEMLike], reference: PairDEMLike | 
     return apply_offsets(recs, offsets), offsets
 
 
+# ----------------------------------------------------------------------------------------
+# Transfer calibration: a scene-class model made to fit the data it is applied to
+# ----------------------------------------------------------------------------------------
+CALIBRATION_MODES = ("auto", "pair", "none")
+
+#: bins of the local slope (dimensionless, |∇z|) in which the calibration compares medians
+_SLOPE_EDGES = np.array([0.0, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 8.0, np.inf])
+
+
+def local_slope(z_m: np.ndarray, posting_m: float) -> np.ndarray:
+    """|∇z| (m per m) from the one-sided differences that exist (NaN-tolerant); 0 where no neighbour is valid.
+
+    Per axis the slope is the mean of the backward and forward differences available at the cell,
+    so a cell beside a gap (an occlusion, often at a building edge) still gets its slope.
+    """
+    z = np.asarray(z_m, np.float64)
+    comps = []
+    for ax in (0, 1):
+        d = np.diff(z, axis=ax) / float(posting_m)
+        pad = [(0, 0), (0, 0)]
+        pad[ax] = (1, 0)
+        back = np.pad(d, pad, constant_values=np.nan)
+        pad[ax] = (0, 1)
+        fwd = np.pad(d, pad, constant_values=np.nan)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            comps.append(np.nanmean(np.stack([back, fwd]), axis=0))
+    return np.nan_to_num(np.hypot(*comps), nan=0.0)
+
+
+@dataclass(frozen=True)
+class PairCalibration:
+    """How much more (or less) the tested reconstructions disagree than the scene-class model says.
+
+    A model learned on one scene (e.g. the Marseille Pléiades triplet) is applied to another pair of
+    epochs; the two can differ in how well they match (other images, B/H, sun, season). The
+    calibration keeps the model's *shape* — its |Δ̃| distribution per score bin — and fits its
+    *scale* to the data under test, plus the misregistration term of steep cells:
+
+    ``m_tot(score, slope) = sqrt((scale · m50(score))² + (slope · edge_sigma_m / mpu)²)``
+
+    where ``m50`` is the model's median |Δ̃| at the score, ``slope`` the larger local |∇z| of the two
+    reconstructions, ``mpu`` the metres per unit of Δ̃ and ``edge_sigma_m`` the horizontal
+    disagreement of the two surfaces (metres; a surface shifted by δ differs by |∇z|·δ). The
+    test then reads the model at ``Δ̃ · m50 / m_tot``.
+
+    Attributes
+    ----------
+    scale : float
+        The data's median disagreement over the model's at the same score (1: the model fits).
+    edge_sigma_m : float
+        Median-equivalent horizontal disagreement of the two epochs' surfaces (m).
+    n_cells : int
+        Observed cells the fit used (after trimming the cells the first fit calls changed).
+    n_bins : int
+        (score × slope) bins with enough cells.
+    trimmed_fraction : float
+        Share of the observed cells left out of the second fit (p < 0.01 under the first).
+    ref_scale, ref_edge_sigma_m : float
+        The same law fitted to the model's own static comparisons when it was learned
+        (:attr:`SelfConsistencyModel.reference_law`; 1 and 0 for models saved without it). The
+        inflation is relative to it, so a model applied to data like its own is left as it is.
+    """
+
+    scale: float
+    edge_sigma_m: float
+    n_cells: int = 0
+    n_bins: int = 0
+    trimmed_fraction: float = 0.0
+    ref_scale: float = 1.0
+    ref_edge_sigma_m: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
+
+    def inflation(self, model: "SelfConsistencyModel", score: np.ndarray, slope: np.ndarray,
+                  metres_per_unit: np.ndarray) -> np.ndarray:
+        """m_tot / m_ref per cell: how much wider the static disagreement is here than where the model was learned."""
+        m50 = model.threshold(score, 50.0)
+        g = np.asarray(slope, np.float64) / metres_per_unit
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mtot = np.sqrt((self.scale * m50) ** 2 + (g * self.edge_sigma_m) ** 2)
+            mref = np.sqrt((self.ref_scale * m50) ** 2 + (g * self.ref_edge_sigma_m) ** 2)
+            return np.where((mref > 0) & np.isfinite(mtot), mtot / mref, self.scale / self.ref_scale)
+
+    def effective_dtilde(self, model: "SelfConsistencyModel", dtilde: np.ndarray, score: np.ndarray,
+                         slope: np.ndarray, metres_per_unit: np.ndarray) -> np.ndarray:
+        """Δ̃ rescaled onto the model's own scale: Δ̃ · m50 / m_tot (see the class notes)."""
+        return np.asarray(dtilde, np.float64) / self.inflation(model, score, slope, metres_per_unit)
+
+
+def fit_pair_calibration(model: "SelfConsistencyModel", dtilde: np.ndarray, score: np.ndarray, slope: np.ndarray,
+                         metres_per_unit: np.ndarray, min_bin_cells: int = 200,
+                         max_cells: int = 2_000_000, fit_edge: bool = True,
+                         reference: bool = True) -> PairCalibration:
+    """Fit :class:`PairCalibration` to cross-epoch comparisons, tolerant of a changed minority.
+
+    In bins of (the model's score bins × local slope) the median |Δ̃| of the data is compared with
+    the calibrated model's median; ``scale`` and ``edge_sigma_m`` minimise the (soft-L1, count-weighted)
+    log ratio. Medians ignore a changed minority, and the fit is repeated once without the cells the
+    first fit calls changed at 99 % (p < 0.01): what is left is the static majority. A changed
+    majority would be read as disagreement (a conservative bias: fewer cells flagged).
+
+    Parameters
+    ----------
+    model : the scene-class model
+    dtilde, score, slope, metres_per_unit : 1-D float arrays of the observed cells (all comparisons pooled)
+    min_bin_cells : bins with fewer cells are ignored
+    max_cells : a deterministic subsample beyond this many cells (every k-th)
+    fit_edge : False: the scale alone (``edge_sigma_m`` = 0), e.g. when no slope is known
+    reference : relative to the model's :attr:`~SelfConsistencyModel.reference_law` (False: to the
+        bare model, scale 1 and no slope term — how the reference law itself is fitted)
+
+    Raises
+    ------
+    ProcessingError
+        When fewer than two bins hold enough cells (too little data to calibrate).
+    """
+    from scipy.optimize import least_squares
+
+    a = np.abs(np.asarray(dtilde, np.float64))
+    sc = np.asarray(score, np.float64)
+    g = np.asarray(slope, np.float64)
+    mpu = np.asarray(metres_per_unit, np.float64)
+    ok = np.isfinite(a) & np.isfinite(sc) & np.isfinite(g) & np.isfinite(mpu) & (mpu > 0)
+    a, sc, g, mpu = a[ok], sc[ok], g[ok], mpu[ok]
+    if a.size > max_cells:
+        step = int(np.ceil(a.size / max_cells))
+        a, sc, g, mpu = a[::step], sc[::step], g[::step], mpu[::step]
+    m50 = model.threshold(sc, 50.0)
+    sb = np.clip(np.searchsorted(model.score_edges, sc, side="right") - 1, 0, len(model.score_edges) - 2)
+    gb = np.searchsorted(_SLOPE_EDGES, g, side="right") - 1
+    key = sb * len(_SLOPE_EDGES) + gb
+
+    def fit(keep: np.ndarray) -> tuple[np.ndarray, int]:
+        k = key[keep]
+        rows = []
+        for u in np.unique(k):
+            sel = k == u
+            if sel.sum() < min_bin_cells:
+                continue
+            rows.append((np.median(a[keep][sel]), np.median(m50[keep][sel]), np.median(g[keep][sel]),
+                         np.median(mpu[keep][sel]), sel.sum()))
+        if len(rows) < 2:
+            raise ProcessingError(f"too few observed cells to calibrate the model to these data ({int(keep.sum())} "
+                                  "cells); use calibration='none' or a larger AOI")
+        R = np.asarray(rows, np.float64)
+        R = R[(R[:, 0] > 0) & (R[:, 1] > 0)]
+        w = np.sqrt(R[:, 4] / R[:, 4].mean())
+        # the slope term is identifiable only when the bins span more than one slope bin
+        edge = fit_edge and np.unique(np.searchsorted(_SLOPE_EDGES, R[:, 2], side="right")).size > 1
+
+        def resid(x):
+            e = x[1] if edge else 0.0
+            pred = np.sqrt((x[0] * R[:, 1]) ** 2 + (R[:, 2] * e / R[:, 3]) ** 2)
+            return (np.log(pred) - np.log(R[:, 0])) * w
+
+        sol = least_squares(resid, [1.0, 0.1], bounds=([1e-3, 0.0], [1e3, 1e2]), loss="soft_l1", f_scale=0.1)
+        return np.array([sol.x[0], sol.x[1] if edge else 0.0]), len(R)
+
+    law = model.reference_law if reference else {}
+    ref = {"ref_scale": float(law.get("scale", 1.0)),
+           "ref_edge_sigma_m": float(law.get("edge_sigma_m", 0.0)) if fit_edge else 0.0}
+    keep = np.ones(a.size, bool)
+    x, nb = fit(keep)
+    cal = PairCalibration(float(x[0]), float(x[1]), **ref)
+    p = model.pvalue(cal.effective_dtilde(model, a, sc, g, mpu), sc)
+    keep = p >= 0.01
+    x, nb = fit(keep)
+    return PairCalibration(float(x[0]), float(x[1]), n_cells=int(keep.sum()), n_bins=int(nb),
+                           trimmed_fraction=float(1.0 - keep.mean()), **ref)
+
+
+def model_learned_on(model: "SelfConsistencyModel", recs: Sequence[PairDEMLike]) -> bool:
+    """Whether the model's static comparisons involve any of these reconstructions (learned on these data)."""
+    names = {r.name for r in recs}
+    comps = model.provenance.get("comparisons") or []
+    return any(part.strip() in names for c in comps for part in str(c).split(" vs "))
+
+
 def _quantile_from_hist(counts: np.ndarray, edges: np.ndarray, q: float) -> float:
     """q-quantile (0..1) of a histogram, linear inside the bin."""
     total = counts.sum()
@@ -330,6 +510,10 @@ class SelfConsistencyModel:
         (percent), ``min_region_cells``, ``comparisons`` and, per comparison, ``masses``: the
         evidence of each of its candidate regions (at least ``min_region_cells``). Empty for
         models saved before the region test existed (then only the per-cell test is available).
+    reference_law : dict
+        The transfer calibration's law (:class:`PairCalibration`) fitted to the model's own static
+        comparisons: ``scale``, ``edge_sigma_m``, ``n_cells``. A transferred model is calibrated
+        relative to it. Empty for models saved without it (then relative to scale 1, no slope term).
     """
 
     score_edges: np.ndarray
@@ -338,6 +522,7 @@ class SelfConsistencyModel:
     raw_curves: dict[str, list[float]] = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
     region_null: dict = field(default_factory=dict)
+    reference_law: dict = field(default_factory=dict)
 
     def survival(self) -> np.ndarray:
         """(B, D+1) P(|Δ̃| > edge_k | score bin b), made non-decreasing in score (isotonic per edge)."""
@@ -457,6 +642,7 @@ class SelfConsistencyModel:
             "raw_curves": self.raw_curves,
             "provenance": self.provenance,
             "region_null": self.region_null,
+            "reference_law": self.reference_law,
         }
 
     @classmethod
@@ -469,7 +655,7 @@ class SelfConsistencyModel:
         return cls(np.asarray(d["score_edges"], float), np.asarray(d["hist"], np.int64),
                    {k: list(v) for k, v in d.get("curves", {}).items()},
                    {k: list(v) for k, v in d.get("raw_curves", {}).items()}, dict(d.get("provenance", {})),
-                   dict(d.get("region_null", {})))
+                   dict(d.get("region_null", {})), dict(d.get("reference_law", {})))
 
     def save(self, path: os.PathLike | str) -> Path:
         from .io.atomic import write_text_atomic
@@ -603,7 +789,34 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
     model.region_null = {"cluster_confidence": float(params.cluster_confidence), "min_region_cells": int(mmu),
                          "comparisons": [f"{p.name} vs {q.name}" for p, q in comps], "masses": masses,
                          "n_regions": int(sum(len(v) for v in masses))}
+    model.reference_law = reference_law(model, comps)
     return model
+
+
+def _comparison_arrays(p: PairDEMLike, q: PairDEMLike, posting_m: float | None):
+    """Δ̃, score, Δz, both, metres per unit of Δ̃ and the slope of the surface common to both (min of the two)."""
+    dt, sc, dz, both = match_pairs(p, q)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mpu = np.sqrt(1.0 / np.asarray(p.g_px_per_m, np.float64) ** 2 + 1.0 / np.asarray(q.g_px_per_m, np.float64) ** 2)
+    mpu = np.broadcast_to(mpu, dt.shape)
+    if posting_m:
+        slope = np.fmin(local_slope(p.z_m, posting_m), local_slope(q.z_m, posting_m))
+    else:
+        slope = np.zeros(dt.shape)
+    return dt, sc, dz, both, mpu, slope
+
+
+def reference_law(model: "SelfConsistencyModel", comps: Sequence[tuple[PairDEMLike, PairDEMLike]]) -> dict:
+    """The calibration law fitted to the model's own static comparisons ({} when it cannot be fitted)."""
+    posting = getattr(getattr(comps[0][0], "grid", None), "posting_m", None) if comps else None
+    arrays = [_comparison_arrays(p, q, posting) for p, q in comps]
+    try:
+        cal = fit_pair_calibration(model, *(np.concatenate([a[k][a[3]] for a in arrays]) for k in (0, 1, 5, 4)),
+                                   fit_edge=bool(posting), reference=False)
+    except ProcessingError:
+        return {}
+    return {"scale": round(cal.scale, 5), "edge_sigma_m": round(cal.edge_sigma_m, 5), "n_cells": cal.n_cells,
+            "slope": "min of the two surfaces' local |grad z|" if posting else "none (no grid posting)"}
 
 
 def candidate_regions(pvalue: np.ndarray, sign: np.ndarray, alpha0: float,
@@ -686,6 +899,12 @@ class ChangeParams:
     align : {"vertical", "none"}
         Shift every reconstruction of both epochs onto one vertical reference (a DEM
         epoch if given, else the least-squares fit of all their pairwise offsets) before testing.
+    calibration : {"auto", "pair", "none"}
+        "pair": fit the model's scale and a slope × misregistration term to the cross-epoch
+        comparisons themselves (:func:`fit_pair_calibration`, robust to a changed minority) — for
+        a model learned on another scene. "none": use the model as learned. "auto" (default):
+        "pair" when the model was learned on other reconstructions than those tested
+        (:func:`model_learned_on`), else "none".
     """
 
     confidences: tuple[float, ...] = (90.0, 95.0, 99.0)
@@ -693,6 +912,7 @@ class ChangeParams:
     significance: str = "region"
     min_region_cells: int | None = None
     align: str = "vertical"
+    calibration: str = "auto"
 
     def __post_init__(self) -> None:
         if self.align not in ALIGN_MODES:
@@ -701,6 +921,8 @@ class ChangeParams:
             raise ConfigError(f"min_region_cells must be ≥ 1 (or None: derived), got {self.min_region_cells}")
         if self.combine not in ("majority", "all", "any"):
             raise ConfigError(f"combine must be majority, all or any, got {self.combine!r}")
+        if self.calibration not in CALIBRATION_MODES:
+            raise ConfigError(f"calibration must be one of {CALIBRATION_MODES}, got {self.calibration!r}")
         if self.significance not in ("region", "cell"):
             raise ConfigError(f"significance must be 'region' or 'cell', got {self.significance!r}")
         for c in self.confidences:
@@ -729,6 +951,7 @@ class ChangeResult:
     significance : "region" or "cell"
     p_value : float64, the cell's combined p-value (what the region test clusters; tiled runs merge
         regions across tiles from it)
+    calibration : PairCalibration or None, the transfer calibration applied (None: the model as learned)
     """
 
     dz_m: np.ndarray
@@ -746,6 +969,7 @@ class ChangeResult:
     min_region_cells: int = 1
     significance: str = "cell"
     p_value: np.ndarray | None = None
+    calibration: PairCalibration | None = None
 
     @property
     def observed(self) -> np.ndarray:
@@ -799,7 +1023,8 @@ def combine_pvalues(pvalues: np.ndarray, signs: np.ndarray, sign: np.ndarray, co
 
 def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], model: SelfConsistencyModel,
                 params: ChangeParams = ChangeParams(), progress: Progress | None = None,
-                offsets: dict[str, float] | None = None) -> ChangeResult:
+                offsets: dict[str, float] | None = None,
+                calibration: PairCalibration | None = None) -> ChangeResult:
     """Stage 2: test every cross-epoch comparison against the static scene's disagreement.
 
     For each pair (p from epoch A, q from epoch B) and each cell valid in both, the
@@ -822,6 +1047,9 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
         default: computed here from the arrays given (``params.align``). The region step
         (:func:`candidate_regions`) needs whole regions: tile with an overlap wider than the
         largest region, or run it on the mosaic of ``cell_confidence``.
+    calibration : PairCalibration, optional
+        A transfer calibration to apply (a whole-scene statistic, like ``offsets``); default:
+        fitted here when ``params.calibration`` asks for it.
     """
     prog = ensure_progress(progress)
     if not epoch_a or not epoch_b:
@@ -848,21 +1076,35 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
     comps = [(p, q) for p in epoch_a for q in epoch_b]
     levels = sorted(params.confidences)
     n = len(comps)
+    mode = params.calibration
+    if mode == "auto":
+        mode = "none" if model_learned_on(model, aligned) else "pair"
+    # without a grid posting there is no slope: the calibration fits the scale alone
+    posting = getattr(getattr(epoch_a[0], "grid", None), "posting_m", None)
+    need_slope = calibration is not None or mode == "pair"
+    per_comp = [_comparison_arrays(p, q, posting if need_slope else None) for p, q in comps]
+    if calibration is None and mode == "pair":
+        calibration = fit_pair_calibration(model, *(np.concatenate([c[k][c[3]] for c in per_comp]) for k in (0, 1, 5, 4)),
+                                           fit_edge=bool(posting))
     dz_stack = np.full((n, *shape), np.nan, np.float32)
     dt_stack = np.full((n, *shape), np.nan, np.float32)
+    dte_stack = np.full((n, *shape), np.nan, np.float32)
     pv_stack = np.full((n, *shape), np.nan, np.float32)
     sig_stack = np.full((n, *shape), np.nan, np.float32)
     score = np.full(shape, np.nan, np.float32)
-    for k, (p, q) in enumerate(comps):
-        dt, sc, dz, both = match_pairs(p, q)
+    for k, ((p, q), (dt, sc, dz, both, metres_per_unit, slope)) in enumerate(zip(comps, per_comp)):
         dz_stack[k] = dz
         dt_stack[k] = dt
         score = np.fmax(score, sc)
-        pv_stack[k] = np.where(both, model.pvalue(dt, sc), np.nan)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            metres_per_unit = np.sqrt(1.0 / np.asarray(p.g_px_per_m, np.float64) ** 2
-                                      + 1.0 / np.asarray(q.g_px_per_m, np.float64) ** 2)
-        sig_stack[k] = np.where(both, model.sigma_dtilde(sc) * metres_per_unit, np.nan)
+        sig = model.sigma_dtilde(sc)
+        dte = dt
+        if calibration is not None:
+            infl = calibration.inflation(model, sc, slope, metres_per_unit)
+            dte = dt / infl
+            sig = sig * infl
+        dte_stack[k] = dte
+        pv_stack[k] = np.where(both, model.pvalue(dte, sc), np.nan)
+        sig_stack[k] = np.where(both, sig * metres_per_unit, np.nan)
         prog((k + 1) / n, f"comparison {p.name} vs {q.name}")
     nobs = np.sum(np.isfinite(dt_stack), axis=0).astype(np.int16)
     observed = nobs > 0
@@ -888,7 +1130,7 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
             votes = np.zeros(shape, np.int16)
             for k, (p, q) in enumerate(comps):
                 thr = model.threshold(_score_of(p, q), lev)
-                votes += (np.isfinite(dt_stack[k]) & (np.abs(dt_stack[k]) > thr) & (signs[k] == sign)).astype(np.int16)
+                votes += (np.isfinite(dte_stack[k]) & (np.abs(dte_stack[k]) > thr) & (signs[k] == sign)).astype(np.int16)
             if params.combine == "majority":
                 hit = votes * 2 > nobs
             elif params.combine == "all":
@@ -904,7 +1146,7 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
                         grid=getattr(epoch_a[0], "grid", None), confidences=tuple(levels),
                         comparisons=[f"{p.name} vs {q.name}" for p, q in comps], vertical_offsets_m=offsets,
                         cell_confidence=cell_conf, dz_sigma_m=sig_med.astype(np.float32), min_region_cells=mmu,
-                        significance=significance, p_value=p_cell)
+                        significance=significance, p_value=p_cell, calibration=calibration)
 
 
 def _score_of(p: PairDEMLike, q: PairDEMLike) -> np.ndarray:

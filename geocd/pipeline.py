@@ -394,7 +394,8 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
         "observed_fraction": round(float(observed.mean()), 4),
         "changed_fraction": {f"{c:g}": round(float((res.changed_at(c) != 0)[observed].mean()), 5) for c in res.confidences},
         "model": {"bins": len(model.score_centres), "match_pairs": int(model.bin_counts.sum()),
-                  "learned_here": config.model_path is None},
+                  "learned_here": config.model_path is None,
+                  "calibration": res.calibration.to_dict() if res.calibration is not None else "none"},
         "outputs": {k: str(v) for k, v in paths.items()},
     }
     if buildings is not None:

@@ -61,6 +61,10 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
     if result.dz_sigma_m is not None:
         bands["dz_sigma_m"] = result.dz_sigma_m
     tags.update(significance=result.significance, min_region_cells=str(result.min_region_cells))
+    if getattr(result, "calibration", None) is not None:   # the transfer calibration of the model, when applied
+        import json
+
+        tags["model_calibration"] = json.dumps(result.calibration.to_dict())
     paths["change"] = write_cog(out / f"{prefix}_change.tif", bands, grid, tags=tags, units=_BAND_UNITS,
                                 band_tags=[{"long_name": _BAND_DESCRIPTIONS[k]} for k in bands])
     write_raster_style(paths["change"], qml_for("confidence"))

@@ -25,13 +25,14 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from ..consistency import (CHANGE_NODATA, ChangeParams, ChangeResult, DEMAsEpoch, SelfConsistencyModel, change_test,
+                           PairCalibration, _comparison_arrays, apply_offsets, fit_pair_calibration, model_learned_on,
                            vertical_offsets)
 from ..errors import ConfigError, GridError, UnsupportedFormatError
 from ..geodesy import AOIGrid
@@ -127,11 +128,13 @@ class _Job:
     fraction: float
     significance: str
     footprints: bool
+    calibration: PairCalibration | None = None
 
     def cache_key(self) -> dict:
         return {"a": [r.identity() for r in self.a], "b": [r.identity() for r in self.b],
                 "model": self.model.to_dict(), "params": self.params, "offsets": self.offsets,
-                "fraction": self.fraction, "fp": self.footprints}
+                "fraction": self.fraction, "fp": self.footprints,
+                "calibration": self.calibration.to_dict() if self.calibration is not None else None}
 
 
 class _Cells:
@@ -165,6 +168,33 @@ def _t_offsets(arrays, ctx):
                              **{f"{r.name}|v": np.asarray(r.valid)[rr, cc] for r in recs}})
 
 
+def _t_calibration(arrays, ctx):
+    """Per cross-epoch comparison: Δ̃, score, slope and metres per Δ̃ unit of the observed core cells (sampled)."""
+    J = ctx.params
+    na = len(J.a)
+    al = apply_offsets([r.read(J.grid, ctx.tile.read) for r in (*J.a, *J.b)], J.offsets)
+    ea = sorted(al[:na], key=lambda r: r.name)
+    eb = sorted(al[na:], key=lambda r: r.name)
+    core = ctx.core
+    R0, C0 = ctx.origin
+    small: dict[str, Any] = {}
+    for k, (p, q) in enumerate((p, q) for p in ea for q in eb):
+        dt, sc, _, both, mpu, slope = _comparison_arrays(p, q, J.grid.posting_m)
+        rr, cc = np.nonzero(both[core])
+        if J.fraction < 1.0:
+            from ..demdiff.tiled import keep_cells
+
+            T0, U0 = ctx.tile.core[:2]
+            keep = keep_cells(rr + T0, cc + U0, J.grid.width, J.fraction)
+            rr, cc = rr[keep], cc[keep]
+        rr = rr + core[0].start
+        cc = cc + core[1].start
+        small[f"{k}|idx"] = (rr + R0).astype(np.int64) * J.grid.width + (cc + C0)
+        for name, v in (("dt", dt), ("sc", sc), ("slope", slope), ("mpu", mpu)):
+            small[f"{k}|{name}"] = np.asarray(v)[rr, cc]
+    return TileOutput(small=small)
+
+
 def _t_change(arrays, ctx):
     """The change test on a tile with the whole-scene offsets and model."""
     from ..pipeline import _median_surface
@@ -173,7 +203,7 @@ def _t_change(arrays, ctx):
     J = ctx.params
     a = [r.read(J.grid, ctx.tile.read) for r in J.a]
     b = [r.read(J.grid, ctx.tile.read) for r in J.b]
-    res = change_test(a, b, J.model, J.params, offsets=J.offsets)
+    res = change_test(a, b, J.model, J.params, offsets=J.offsets, calibration=J.calibration)
     out = {"dz_m": res.dz_m, "dtilde": res.dtilde, "score": res.score, "confidence": res.confidence,
            "change": res.change, "nobs": res.n_comparisons, "cell_confidence": res.cell_confidence,
            "dz_sigma_m": res.dz_sigma_m}
@@ -278,6 +308,10 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
     names = [r.name for r in recs_a + recs_b]
     if len(set(names)) != len(names):
         raise ConfigError(f"reconstructions must have distinct names, got {names}")
+    # the transfer calibration is a whole-scene fit: gathered over every tile below, then given to each tile
+    calibrate = params.calibration == "pair" or (params.calibration == "auto"
+                                                 and not model_learned_on(model, recs_a + recs_b))
+    params = replace(params, calibration="none")
     significance = params.significance
     if significance == "region" and not model.has_region_test:
         significance = "cell"
@@ -320,6 +354,20 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
                                         np.concatenate([s[f"{rec.name}|v"] for s in parts])[order]))
             offsets = vertical_offsets(cells, mode=params.align)
         job = _Job(grid, tuple(recs_a), tuple(recs_b), model, params, offsets, frac, significance, fp is not None)
+        calibration = None
+        if calibrate:
+            # 1b. the transfer calibration, fitted to every comparison's cells (one cell of overlap: the slope)
+            r = run(_t_calibration, "calibration", job, 1, f=(0.2, 0.3))
+            parts = [s for _, s in r.smalls()]
+            n_comp = len(recs_a) * len(recs_b)
+            cols = {k: [] for k in ("dt", "sc", "slope", "mpu")}
+            for c in range(n_comp):
+                order = np.argsort(np.concatenate([s[f"{c}|idx"] for s in parts]), kind="stable")
+                for k in cols:
+                    cols[k].append(np.concatenate([s[f"{c}|{k}"] for s in parts])[order])
+            calibration = fit_pair_calibration(model, *(np.concatenate(cols[k]) for k in ("dt", "sc", "slope", "mpu")),
+                                               fit_edge=True)
+            job = replace(job, calibration=calibration)
         # 2. the test on every tile
         mmu0 = int(params.min_region_cells) if params.min_region_cells is not None else 1
         probe = [rec.read(grid, (0, 0, 1, 1)) for rec in recs_a + recs_b]
@@ -328,6 +376,8 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
         mmu = mmu0 if params.min_region_cells is not None else (
             int(model.region_null.get("min_region_cells", 1)) if significance == "region" else window_cells(probe))
         ov = max(mmu - 1, 0) if significance == "cell" else 0
+        if calibration is not None:
+            ov = max(ov, 1)  # the slope of a tile's border cells needs their neighbours
         rc = run(_t_change, "test", job, ov, f=(0.2, 0.75))
         sm = [s for _, s in rc.smalls()]
         store = rc.store
@@ -353,7 +403,7 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
             conf_store = r2.store
         prog(0.86, "products")
         res_meta = dict(grid=grid, confidences=tuple(levels), comparisons=comparisons, vertical_offsets_m=offsets,
-                        min_region_cells=mmu, significance=significance)
+                        min_region_cells=mmu, significance=significance, calibration=calibration)
         if H * W <= tiling.exact_grid_cells:
             outputs = _write_exact(store, conf_store, tg, res_meta, out, model=model, fp=fp, method=method, ea=ea,
                                    eb=eb, region_confidence=region_confidence, prefix=prefix, plots=plots)
@@ -367,7 +417,8 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
     prog(1.0, "done")
     res = TiledChangeResult(outputs, grid, comparisons, offsets, mmu, significance, exact, passes=passes,
                             tiles_resumed=resumed)
-    res.summary = {"wall_s": time.perf_counter() - t0, "sample_fraction": frac}
+    res.summary = {"wall_s": time.perf_counter() - t0, "sample_fraction": frac,
+                   "calibration": calibration.to_dict() if calibration is not None else "none"}
     return res
 
 
@@ -443,6 +494,8 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
             "confidences": ",".join(f"{c:g}" for c in meta["confidences"]),
             "comparisons": "; ".join(meta["comparisons"]), "significance": meta["significance"],
             "min_region_cells": str(meta["min_region_cells"])}
+    if meta.get("calibration") is not None:
+        tags["model_calibration"] = json.dumps(meta["calibration"].to_dict())
     names = ("dz_m", "dtilde", "score", "confidence", "cell_confidence", "dz_sigma_m")
     srcs = {n: (conf_store if n == "confidence" else store).source(n) for n in names}
     srcs["nobs"] = store.source("nobs")

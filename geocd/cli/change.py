@@ -39,9 +39,13 @@ def _confidences(values) -> tuple[float, ...]:
               show_default=True, help="Grid feature of the screen (--screen).")
 @click.option("--screen-tile", "screen_tile", type=int, default=128, show_default=True,
               help="Side of the screen's tiles, cells (--screen).")
+@click.option("--calibration", type=click.Choice(["auto", "pair", "none"]), default=None,
+              help="Fit a transferred model's scale and a slope × misregistration term to the tested comparisons "
+                   "(pair), use the model as learned (none), or pair only when the model was learned elsewhere "
+                   "(auto, the default).")
 @click.pass_context
 def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_confidence, footprints, posting_m,
-        epoch_a, epoch_b, pairs, screen, screen_feature, screen_tile):
+        epoch_a, epoch_b, pairs, screen, screen_feature, screen_tile, calibration):
     """Full run on MANIFEST (default: sample_aoi): stereo → self-consistency baseline → change test → layers.
 
     Writes pair-DEMs (OUT/stereo), the scene-class model, change rasters (COG + QGIS styles), the changes/buildings/
@@ -68,6 +72,8 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
         c = _confidences(confidences)
         changes["consistency"] = ConsistencyParams(**{**cfg.consistency.__dict__, "confidences": c})
         changes["change"] = ChangeParams(**{**cfg.change.__dict__, "confidences": c})
+    if calibration is not None:
+        changes["change"] = ChangeParams(**{**changes.get("change", cfg.change).__dict__, "calibration": calibration})
     for k, v in (("model_path", model_path), ("region_confidence", report_confidence), ("posting_m", posting_m),
                  ("epoch_a", epoch_a), ("epoch_b", epoch_b), ("pairs", pairs)):
         if v is not None:
@@ -189,9 +195,13 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
               "address (implies --tiled).")
 @click.option("--tile-size", type=click.IntRange(64, None), default=None, help="Tiled runs: cells per tile side "
               "[1024] (implies --tiled).")
+@click.option("--calibration", type=click.Choice(["auto", "pair", "none"]), default="auto", show_default=True,
+              help="Fit a transferred model's scale and a slope × misregistration term to the tested comparisons "
+                   "(pair), use the model as learned (none), or pair only when the model was learned elsewhere "
+                   "(auto, the default).")
 @click.pass_context
 def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, footprints, out_dir, confidences,
-           report_confidence, combine, tiled, scheduler, tile_size):
+           report_confidence, combine, tiled, scheduler, tile_size, calibration):
     """Stage 2: test cross-epoch pair-DEMs (or a DEM standing for an epoch) against a self-consistency model."""
     from ..change.buildings import classify_buildings
     from ..change.products import write_change_products
@@ -215,7 +225,7 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
         B = list(b_paths) + ([open_reconstruction(dem_b, kind="dem", name="dem_b",
                                                   vertical_datum=dem_vertical_datum)[0]] if dem_b else [])
         params = ChangeParams(confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})),
-                              combine=combine)
+                              combine=combine, calibration=calibration)
         tiling = TilingParams(**{k: v for k, v in (("scheduler", scheduler), ("tile_size", tile_size)) if v})
         progress = make_progress(ctx, "change")
         try:
@@ -241,7 +251,8 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     if not A or not B:
         raise ConfigError("each epoch needs at least one pair-DEM or a DEM (--dem-a/--dem-b)")
     model = SelfConsistencyModel.load(model_path)
-    params = ChangeParams(confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})), combine=combine)
+    params = ChangeParams(confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})), combine=combine,
+                          calibration=calibration)
     progress = make_progress(ctx, "change")
     try:
         res = change_test(A, B, model, params, progress=progress)

@@ -32,7 +32,13 @@ import numpy as np
                    "e.g. OUT/sc_change.tif from geocd run) or any 0–1 map.")
 @click.option("--gamma-3d", type=float, default=None, help="Weight of the 3-D change prior (default 1 when given).")
 @click.option("--side-min", "side_min_m", type=float, default=None, help="Smallest rectangle side, m (default 6).")
-@click.option("--side-max", "side_max_m", type=float, default=None, help="Largest rectangle side, m (default 30).")
+@click.option("--side-max", "side_max_m", type=float, default=None, help="Largest rectangle side, m (default: 30, raised to the 0.9 quantile of the raised segments' "
+              "long sides when DSMs are used).")
+@click.option("--prototypes", default=None,
+              help="Object prototypes: 'auto' (default: chosen from the data) or features joined by '+' (AND) and "
+                   "'|' (OR) from gradient, homogeneity, colour, shadow, height, planarity; with the height term "
+                   "every prototype also needs height (and planarity), e.g. 'gradient|homogeneity|planarity' lets "
+                   "a raised planar block of the DSM stand without an image cue.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed: same seed, same objects.")
 @click.option("--max-iter", type=int, default=None, help="Iteration cap of multiple birth and death (default 250).")
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting in metres.")
@@ -41,7 +47,7 @@ import numpy as np
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
 @click.pass_context
 def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, epoch_a, epoch_b, view_a, view_b,
-        method, height, change_prior, gamma_3d, side_min_m, side_max_m, seed, max_iter, posting_m, out,
+        method, height, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, out,
         no_overwrite) -> None:
     """Find buildings on two images of different dates and which are new, demolished or unchanged: a marked
     point process of rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), with
@@ -68,9 +74,11 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
     require_inputs(manifest, image_a, image_b, dsm_a, dsm_b, ground, change_prior)
     kw = {"seed": seed}
     for k, v in (("side_min_m", side_min_m), ("side_max_m", side_max_m), ("max_iter", max_iter),
-                 ("gamma_3d", gamma_3d)):
+                 ("gamma_3d", gamma_3d), ("prototypes", prototypes)):
         if v is not None:
             kw[k] = v
+    if side_max_m is not None:
+        kw["side_max_from_dsm"] = False
     params = MPPParams(**kw)
     from ..io.outputs import open_outputs
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import ConfigError, GridError
 from ..progress import Progress, ensure_progress, sub_progress
-from .features import ImageFeatures, image_features, texture_change
+from .features import ImageFeatures, ground_from_dsm, image_features, side_max_from_dsm, texture_change
 from .model import BOTH, ONLY_1, ONLY_2, EnergyModel, MPPResult, optimize, sd_combine
 from .params import MPPParams
 
@@ -100,6 +100,19 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
     if params.gamma_3d > 0 and change_prior is None:
         raise ConfigError("gamma_3d > 0 needs a 3-D change map (change_prior)")
     prog(0.0, "features")
+    if use_h and params.side_max_from_dsm:
+        found = []
+        for d in (dsm_a, dsm_b):
+            d = np.asarray(d, np.float64)
+            g = ground_m if ground_m is not None else ground_from_dsm(
+                d, 2 * int(math.ceil(params.side_max_m / posting_m)) + 1)
+            with np.errstate(invalid="ignore"):
+                found.append(side_max_from_dsm(d - g, posting_m, params))
+        smax = max([x for x in found if np.isfinite(x)], default=params.side_max_m)
+        if smax > params.side_max_m:
+            notes.append(f"largest rectangle side {smax:.1f} m: 0.9 quantile of the raised segments' long sides "
+                         f"(instead of {params.side_max_m:g} m)")
+            params = params.replace(side_max_m=round(smax, 1))
     fa = image_features(image_a, posting_m, params, valid=valid_a, dsm_m=dsm_a if use_h else None,
                         ground_m=ground_m if use_h else None)
     fb = image_features(image_b, posting_m, params, valid=valid_b, dsm_m=dsm_b if use_h else None,

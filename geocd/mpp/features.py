@@ -35,6 +35,9 @@ class ImageFeatures:
     colour_mask, shadow_mask : uint8 or None (grey images have neither)
     shadow_dir : (dcol, drow) unit vector from a building towards its shadow, or None
     ndsm : float32 height above ground (m) or None
+    planar : float32, 1 where the DSM is locally planar (a roof facet, the ground), 0 where it is rough (a tree
+        crown), NaN without DSM data; None without a DSM (see :func:`planar_cells`)
+    planar_tol_m : the plane-fit residual above which a cell is rough (measured on the ground cells)
     noise_sigma : float, grey-level noise σ
     edge_level : float, the top-decile gradient magnitude (what a strong edge is, for snapping births)
     notes : list of str
@@ -52,6 +55,8 @@ class ImageFeatures:
     shadow_mask: np.ndarray | None = None
     shadow_dir: tuple[float, float] | None = None
     ndsm: np.ndarray | None = None
+    planar: np.ndarray | None = None
+    planar_tol_m: float = float("nan")
     noise_sigma: float = 1.0
     edge_level: float = 0.0
     notes: list[str] = field(default_factory=list)
@@ -173,6 +178,98 @@ def ground_from_dsm(dsm_m: np.ndarray, width_cells: int) -> np.ndarray:
     return ndimage.uniform_filter(g, size=w, mode="nearest")
 
 
+def plane_residual(dsm_m: np.ndarray, posting_m: float = 1.0) -> np.ndarray:
+    """RMS distance (m) of each cell's 3 × 3 DSM neighbourhood to its least-squares plane, measured along the
+    plane's normal (the vertical residual × cos of the slope): a surface's noise does not grow with its tilt.
+
+    3 × 3 is the smallest window that fits a plane: a roof facet or the ground leaves only the DSM's noise, a
+    tree crown (a dome with leaves and gaps, rough at the cell scale) or a wall leaves much more. NaN where the
+    window holds a cell without height.
+    """
+    d = np.asarray(dsm_m, np.float64)
+    ok = np.isfinite(d)
+    z = np.where(ok, d, 0.0)
+    full = ndimage.uniform_filter(ok.astype(np.float64), 3, mode="nearest") > 1.0 - 1e-9
+    m1 = ndimage.uniform_filter(z, 3, mode="nearest")
+    m2 = ndimage.uniform_filter(z * z, 3, mode="nearest")
+    kx = np.array([[-1.0, 0.0, 1.0]] * 3) / 6.0            # LS slope per cell along columns (Σx² = 6)
+    sx = ndimage.correlate(z, kx, mode="nearest")
+    sy = ndimage.correlate(z, kx.T, mode="nearest")
+    # residual variance of the plane fit: var(z) − slope² var(x) − slope² var(y), var(x) = var(y) = 2/3
+    var = m2 - m1 * m1 - (sx * sx + sy * sy) * (2.0 / 3.0)
+    res = np.sqrt(np.maximum(var, 0.0) * 9.0 / 6.0)          # unbiased: 9 cells, 3 plane parameters
+    res /= np.sqrt(1.0 + (sx * sx + sy * sy) / (posting_m * posting_m))
+    return np.where(full, res, np.nan).astype(np.float32)
+
+
+def planar_cells(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_height_m: float,
+                 posting_m: float = 1.0) -> tuple[np.ndarray, float]:
+    """Which cells of a DSM lie on a locally planar patch, with the tolerance measured on the DSM itself.
+
+    The tolerance is the noise of one 3 × 3 plane fit on the ground cells (less than ``min_height_m`` above
+    the terrain: mostly planar streets, yards and lawns): the median of their residuals + 3 robust σ
+    (1.4826 × MAD; walls, cars and bushes are the minority a robust estimate ignores). A cell is planar when
+    at least one of the nine 3 × 3 fits that contain it is within that tolerance: a cell on a roof ridge or
+    a facet's border lies on a planar patch of its facet, a cell of a tree crown (a dome of leaves and gaps)
+    on none. Returns (float32 map: 1 planar, 0 rough, NaN unknown; tolerance in m).
+    """
+    res = plane_residual(dsm_m, posting_m)
+    has = np.isfinite(res) & valid & np.isfinite(ndsm)
+    gnd = has & (ndsm < min_height_m)
+    if gnd.sum() < 100:                       # almost no ground: every observed cell (the median is robust)
+        gnd = has
+    if not gnd.any():
+        return np.full(res.shape, np.nan, np.float32), float("nan")
+    r = res[gnd]
+    med = float(np.median(r))
+    tol = med + 3.0 * 1.4826 * float(np.median(np.abs(r - med)))
+    best = ndimage.grey_erosion(np.where(np.isfinite(res), res, np.inf), size=3, mode="nearest")
+    planar = np.where(np.isfinite(best), (best <= tol).astype(np.float32), np.nan).astype(np.float32)
+    return planar, tol
+
+
+def segment_sides_m(ndsm: np.ndarray, posting_m: float, min_height_m: float, side_min_m: float) -> np.ndarray:
+    """Sides (m) of the raised segments of an nDSM: (n, 2) long and short side of each segment's equivalent
+    rectangle (same second moments: side = √12 σ along each principal axis).
+
+    Raised cells (``ndsm > min_height_m``) are opened with a square of ``side_min_m`` / 2 (thin bridges of
+    stereo fill between blocks break, segments narrower than half the smallest building vanish), then
+    labelled; segments smaller than the smallest building (``side_min_m``²) are skipped.
+    """
+    raised = np.nan_to_num(ndsm, nan=0.0) > min_height_m
+    k = max(1, int(round(0.5 * side_min_m / posting_m)))
+    raised = ndimage.binary_opening(raised, structure=np.ones((k, k), bool))
+    lab, n = ndimage.label(raised)
+    if n == 0:
+        return np.zeros((0, 2))
+    ii, jj = np.nonzero(lab)
+    ll = lab[ii, jj] - 1
+    cnt = np.bincount(ll, minlength=n).astype(np.float64)
+    mi = np.bincount(ll, ii, n) / cnt
+    mj = np.bincount(ll, jj, n) / cnt
+    di, dj = ii - mi[ll], jj - mj[ll]
+    cii = np.bincount(ll, di * di, n) / cnt
+    cjj = np.bincount(ll, dj * dj, n) / cnt
+    cij = np.bincount(ll, di * dj, n) / cnt
+    tr, det = cii + cjj, cii * cjj - cij * cij
+    disc = np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+    l1, l2 = 0.5 * tr + disc, np.maximum(0.5 * tr - disc, 0.0)
+    sides = np.sqrt(12.0) * np.column_stack([np.sqrt(l1), np.sqrt(l2)]) * posting_m
+    keep = cnt * posting_m ** 2 >= side_min_m ** 2
+    return sides[keep]
+
+
+def side_max_from_dsm(ndsm: np.ndarray, posting_m: float, params: MPPParams = MPPParams(),
+                      quantile: float = 0.9) -> float:
+    """The largest rectangle side the scene needs: the ``quantile`` of its raised segments' long sides
+    (:func:`segment_sides_m`), never below ``params.side_max_m``. Larger buildings are still unions of
+    rectangles, as in the paper; NaN when the nDSM has no raised segment."""
+    sides = segment_sides_m(ndsm, posting_m, params.min_height_m, params.side_min_m)
+    if sides.shape[0] == 0:
+        return float("nan")
+    return max(params.side_max_m, float(np.quantile(sides[:, 0], quantile)))
+
+
 def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPParams(), *,
                    valid: np.ndarray | None = None, dsm_m: np.ndarray | None = None,
                    ground_m: np.ndarray | None = None, use_colour: bool = True) -> ImageFeatures:
@@ -216,6 +313,18 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     colour = shadow = sdir = None
     if bands.shape[0] >= 3 and use_colour:
         colour, shadow = colour_masks(bands, ok, grey)
+        # the colour cue is informative only where the roof-colour mask can hold a building: a connected patch
+        # at least as large as the smallest rectangle; otherwise the image is read with the grey-image model
+        # (the paper chose its prototypes per data set: no colour, no shadow term for its grey-roofed sets)
+        lab, nlab = ndimage.label(colour)
+        largest = int(np.bincount(lab.ravel())[1:].max()) if nlab else 0
+        smallest = int(math.ceil((params.side_min_m / posting_m) ** 2))
+        if largest < smallest:
+            notes.append(f"the roof-colour mask covers {colour[ok].mean():.1%} of the cells in patches of at most "
+                         f"{largest} cells, none the size of a building ({smallest} cells): colour and shadow "
+                         "terms dropped, grey-image model")
+            colour = shadow = None
+    if colour is not None:
         gam = ndimage.uniform_filter(colour.astype(np.float32), size=win, mode="constant")
         if gam.mean() > 0:
             births.append(gam / float(gam[ok].mean()))
@@ -230,10 +339,11 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         else:
             notes.append("too few shadow cells: shadow term dropped")
             shadow = None
-    else:
+    elif bands.shape[0] < 3 or not use_colour:
         notes.append("grey image: colour and shadow terms dropped" if bands.shape[0] < 3 else
                      "colour and shadow terms switched off")
-    ndsm = None
+    ndsm = planar = None
+    planar_tol = float("nan")
     if dsm_m is not None:
         d = np.asarray(dsm_m, np.float64)
         if d.shape != grey.shape:
@@ -249,6 +359,10 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         has = np.isfinite(ndsm)
         med = ndimage.median_filter(np.where(has, ndsm, 0.0), size=k, mode="nearest")
         ndsm = np.where(has, med, np.nan).astype(np.float32)
+        planar, planar_tol = planar_cells(d, ndsm, ok, params.min_height_m, posting_m)
+        if np.isfinite(planar_tol):
+            notes.append(f"DSM planarity: a cell is rough above a plane-fit residual of {planar_tol:.2f} m "
+                         "(the noise of one 3 × 3 plane fit on the ground cells)")
         raised = ndimage.uniform_filter((np.nan_to_num(ndsm, nan=0.0) > params.min_height_m).astype(np.float32),
                                         size=max(3, win // 2) | 1, mode="constant")
         if raised[ok].mean() > 0:
@@ -259,7 +373,7 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     birth = (birth / mb if mb > 0 else birth).astype(np.float32)
     return ImageFeatures(grey=grey, valid=ok, grad_mag=mag, grad_ori=ori, density=dens, alpha=alpha,
                          mode_deg=mode, birth=birth, colour_mask=colour, shadow_mask=shadow, shadow_dir=sdir,
-                         ndsm=ndsm, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
+                         ndsm=ndsm, planar=planar, planar_tol_m=planar_tol, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
                          notes=notes)
 
 

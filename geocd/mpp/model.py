@@ -28,6 +28,9 @@ from .features import ImageFeatures
 from .params import MPPParams, parse_prototypes
 
 BOTH, ONLY_1, ONLY_2 = 0, 1, 2
+#: column of the raw features appended after the kernel's: share of planar DSM cells in the rectangle's core
+F_PLANAR = K.N_FEATURES
+N_RAW = K.N_FEATURES + 1
 XI_NAMES = {BOTH: "unchanged", ONLY_1: "demolished", ONLY_2: "new"}
 
 
@@ -71,11 +74,15 @@ def auto_prototypes(f: ImageFeatures, params: MPPParams) -> list[list[str]]:
         have.add("shadow")
     if f.ndsm is not None:
         have.add("height")
+    if f.planar is not None and params.planarity in ("core", "both"):
+        have.add("planarity")
     if params.height == "and" and "height" in have:
         # the height term is required, and any one image cue confirms it: every image prototype, the
         # gradient alone or the roof homogeneity alone, each AND height (a raised block that also looks like
-        # a building: trees are raised but neither outlined by straight edges nor homogeneous)
-        protos = [p + ["height"] for p in protos] + [["gradient", "height"], ["homogeneity", "height"]]
+        # a building: trees are raised but neither outlined by straight edges nor homogeneous); the raised
+        # block must also be planar (roof facets), which a tree crown is not
+        hp = ["height", "planarity"] if "planarity" in have else ["height"]
+        protos = [p + hp for p in protos] + [["gradient"] + hp, ["homogeneity"] + hp]
     out = []
     for p in protos:
         q = [x for x in p if x in have]
@@ -126,6 +133,7 @@ class EnergyModel:
         self.gradient_column = K.F_GRADIENT if params.edge_mode == "mean" else K.F_GRADIENT_SIDES
         self.similarity = None if similarity is None else np.asarray(similarity, np.float32)
         self.change_prior = None if change_prior is None else np.asarray(change_prior, np.float32)
+        self._hcache: dict[int, np.ndarray] = {}
         rng = np.random.default_rng(params.seed + 7919)
         self.terms: list[ImageTerm] = []
         for k, f in enumerate(features):
@@ -143,6 +151,18 @@ class EnergyModel:
             self.gates.append(t.d_gradient if gated else -np.inf)
 
     # --- raw features ------------------------------------------------------------------------
+    def _height_map(self, f: ImageFeatures) -> np.ndarray:
+        """The nDSM the height term reads: with ``planarity == "roof"``, rough cells (tree crowns) count as
+        not raised, so a building is a raised *planar* block."""
+        if f.ndsm is None:
+            return np.zeros((0, 0), np.float32)
+        if self.params.planarity not in ("roof", "both") or f.planar is None:
+            return f.ndsm
+        key = id(f)
+        if key not in self._hcache:
+            self._hcache[key] = np.where(f.planar == 0, np.float32(0.0), f.ndsm).astype(np.float32)
+        return self._hcache[key]
+
     def _raw_one(self, f: ImageFeatures, rects: np.ndarray, gate: float) -> np.ndarray:
         empty_u8 = np.zeros((0, 0), np.uint8)
         out = np.empty((rects.shape[0], K.N_FEATURES))
@@ -150,9 +170,18 @@ class EnergyModel:
         K.rect_features(np.ascontiguousarray(rects, np.float64), f.grey, f.valid, f.grad_mag, f.grad_ori,
                         f.colour_mask if f.colour_mask is not None else empty_u8,
                         f.shadow_mask if f.shadow_mask is not None else empty_u8, float(sdx), float(sdy),
-                        f.ndsm if f.ndsm is not None else np.zeros((0, 0), np.float32),
+                        self._height_map(f),
                         float(self.params.min_height_m), float(self.edge_w), float(self.ring_w),
-                        float(self.shadow_w), float(3.0 * f.noise_sigma), float(self.params.flood_spread), float(gate), out)
+                        float(self.shadow_w), float(3.0 * f.noise_sigma), float(self.params.flood_spread), float(gate),
+                        out)
+        out = np.column_stack([out, np.full(rects.shape[0], np.nan)])
+        if f.planar is not None and rects.shape[0]:
+            # the core of the rectangle, clear of the walls' edge band (where a DSM's walls are never planar)
+            core = np.array(rects, np.float64, copy=True)
+            core[:, 2:4] = np.maximum(core[:, 2:4] - 2.0 * self.edge_w, 1.0)
+            m = np.empty(rects.shape[0])
+            K.rect_means(core, f.planar, m)
+            out[:, F_PLANAR] = m
         return out
 
     def raw(self, rects: np.ndarray) -> dict[str, np.ndarray]:
@@ -181,6 +210,7 @@ class EnergyModel:
             "colour": np.maximum(Q(raw[:, K.F_COLOUR_IN], 0.5, 0.25), Q(raw[:, K.F_COLOUR_OUT], 0.5, 0.25)),
             "shadow": np.maximum(Q(raw[:, K.F_SHADOW_IN], 0.5, 0.25), Q(raw[:, K.F_SHADOW_OUT], 0.5, 0.25)),
             "height": np.maximum(Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25)),
+            "planarity": Q(raw[:, F_PLANAR], 0.5, 0.25),
         }
         return e
 

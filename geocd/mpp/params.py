@@ -13,6 +13,9 @@ Where each default comes from (none was chosen on a scene's truth):
 * **Fractions** (colour, shadow, height fills, flood-fill completeness) are attractive above one half
   (a majority), and the kurtosis threshold 2.5 separates one mode (Gaussian: 3) from a half-roof that
   spills over a contrasted border (two modes: ≤ 2.5 for modes ≥ 1 σ apart).
+* **Roof planarity** (with the height term): the tolerance is the noise of a 3 × 3 plane fit measured on
+  each DSM's ground cells (median + 3 robust σ), as the flood-fill tolerance is 3 σ of the image noise;
+  the largest rectangle side is raised to the 0.9 quantile of the DSM's raised segments' long sides.
 * **Model weights**: ``gamma_overlap`` makes a duplicate of the best possible object (A_D = −2,
   IoU = 1) repulsive; ``gamma_change`` weighs the texture-change term like one image term.
 * **Annealing**: the paper's geometric schedules (β up, δ down) with its convergence test and a cap.
@@ -29,7 +32,7 @@ from ..errors import ConfigError
 from ..params import ParamsMixin
 
 #: object-level features an image term can use
-FEATURES = ("gradient", "homogeneity", "colour", "shadow", "height")
+FEATURES = ("gradient", "homogeneity", "colour", "shadow", "height", "planarity")
 
 
 @dataclass(frozen=True)
@@ -39,6 +42,8 @@ class MPPParams(ParamsMixin):
     Attributes
     ----------
     side_min_m, side_max_m : rectangle side bounds (m)
+    side_max_from_dsm : with DSMs, raise ``side_max_m`` to the 0.9 quantile of the long sides of the scene's
+        raised segments (dense city blocks larger than 30 m; see ``features.side_max_from_dsm``)
     window_m : orientation-statistics window l (m); None = mean of the side bounds
     orient_bins : orientation bins over 180°
     orient_kernel_deg : uniform kernel half-width of the orientation density (h)
@@ -58,6 +63,11 @@ class MPPParams(ParamsMixin):
         colour images (the paper's Budapest model)
     height : "off" (the paper) or "and" (beyond the paper, needs DSMs: the height term is required and any
         image cue confirms it — each image prototype, the gradient alone or the homogeneity alone, AND height)
+    planarity : beyond the paper, with the height term: a roof is planar, a tree crown is rough at the cell
+        scale (the tolerance, the noise of a 3 × 3 plane fit, is measured on the DSM's ground cells).
+        "core": over half the cells of the rectangle's core (clear of the walls) must be planar; "roof": rough
+        cells do not count as raised in the height term (a building is a raised planar block); "both"
+        (default); "off": the height term alone
     gamma_overlap : γ of the overlap interaction
     gamma_change : γ_ξ of the texture-change term
     gamma_3d : weight of the 3-D change prior on ξ (0 = off)
@@ -79,6 +89,7 @@ class MPPParams(ParamsMixin):
 
     side_min_m: float = 6.0
     side_max_m: float = 30.0
+    side_max_from_dsm: bool = True
     window_m: float | None = None
     orient_bins: int = 36
     orient_kernel_deg: float = 10.0
@@ -94,6 +105,7 @@ class MPPParams(ParamsMixin):
     min_height_m: float = 2.5
     prototypes: str = "auto"
     height: str = "off"
+    planarity: str = "both"
     gamma_overlap: float = 2.5
     gamma_change: float = 1.0
     gamma_3d: float = 0.0
@@ -122,6 +134,8 @@ class MPPParams(ParamsMixin):
             raise ConfigError("annealing needs delta_factor in (0, 1] and beta_factor ≥ 1")
         if not 0 <= self.snap_births <= 1:
             raise ConfigError(f"snap_births must be in [0, 1], got {self.snap_births}")
+        if self.planarity not in ("off", "core", "roof", "both"):
+            raise ConfigError(f"planarity must be off, core, roof or both, got {self.planarity!r}")
         if self.max_iter < 1 or self.min_iter < 0:
             raise ConfigError("max_iter must be ≥ 1 and min_iter ≥ 0")
         if self.prototypes != "auto":

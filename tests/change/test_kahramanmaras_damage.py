@@ -37,22 +37,48 @@ def test_layers_and_orientation(kahra_run):
 
 
 def test_headline_figures(kahra_run):
-    """Measured: 194 objects, 18 collapsed, 15 partly collapsed; 13.8 % of observed cells flagged at 99 % (90 %:
-    14.9 %), 9.7 % of the cells outside changed buildings (90 %: 10.8 %) — the transfer shortfall of the
-    Marseille model, reported."""
+    """Measured (docs/kahramanmaras.md, the Marseille model calibrated to the pair — what `geocd run` does with a
+    transferred model): 194 objects, 14 collapsed; 6.9 % of observed cells flagged at 99 % (90 %: 7.4 %),
+    4.6 % of the cells outside changed buildings (90 %: 5.1 %; the goal of 1 % is not met); the calibration
+    fit: the pair disagrees 2.0 / 0.81 = 2.5 times more than the Marseille triplet on flat ground and its
+    surfaces 0.90 m (Marseille 0.39 m) horizontally."""
     out, res = kahra_run
     from geocd.change.dsm_buildings import stable_false_alarms
 
     dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
     cls = dmg["class"].value_counts()
     assert 150 <= len(dmg) <= 240
-    assert 12 <= cls.get("collapsed", 0) <= 24
+    assert 10 <= cls.get("collapsed", 0) <= 18
     collapsed = dmg[dmg["class"] == "collapsed"]
     assert (collapsed["height_after_m"] < collapsed["height_before_m"]).all()
     assert (collapsed["confidence_pct"] == 99.0).all()
     r = res["result"]
+    cal = r.calibration
+    assert cal is not None and res["summary"]["model"]["calibration"]["scale"] == pytest.approx(cal.scale, abs=1e-3)
+    assert cal.scale / cal.ref_scale == pytest.approx(2.46, abs=0.35)
+    assert cal.edge_sigma_m == pytest.approx(0.90, abs=0.2) and cal.ref_edge_sigma_m == pytest.approx(0.393, abs=0.01)
     flagged = float((r.changed_at(99.0) != 0)[r.observed].mean())
-    assert 0.130 < flagged < 0.1455        # 90 % map: 0.149
+    assert 0.060 < flagged < 0.078         # 90 % map: 0.074
     fa = stable_false_alarms(r.confidence, r.observed, dmg, res["grid"])
-    assert 0.090 < fa["99"] < 0.104        # 90 %: 0.108
+    assert 0.040 < fa["99"] < 0.053        # 90 %: 0.051
     assert fa["90"] > fa["99"]
+
+
+def test_the_model_as_learned_flags_twice_as_much_stable_ground(kahra_run):
+    """The transfer shortfall itself: the Marseille model without the calibration (9.7 % outside changed buildings
+    at 99 % on the pair-DEMs of the docs' run) — the calibrated test must stay well below it."""
+    out, res = kahra_run
+    from geocd.change.dsm_buildings import stable_false_alarms
+    from geocd.consistency import ChangeParams, change_test
+    from geocd.pipeline import _building_damage
+
+    pairs = res["pairs"]
+    r0 = change_test(pairs["pre_event"], pairs["post_event"], res["model"], ChangeParams(calibration="none"))
+    assert r0.calibration is None
+    dmg0, _ = _building_damage(None, r0, res["grid"], pairs["pre_event"], pairs["post_event"], res["model"], 99.0,
+                               "pre_event", "post_event")
+    fa0 = stable_false_alarms(r0.confidence, r0.observed, dmg0, res["grid"])["99"]
+    dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
+    fa = stable_false_alarms(res["result"].confidence, res["result"].observed, dmg, res["grid"])["99"]
+    assert 0.085 < fa0 < 0.11
+    assert fa < 0.6 * fa0

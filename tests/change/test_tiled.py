@@ -86,3 +86,25 @@ def test_change_test_tiled_equals_untiled(recs, tmp_path, significance):
     np.testing.assert_array_equal(c["n_cells"], a["n_cells"])
     for col in ("volume_m3", "volume_sigma_m3", "confidence", "mean_dz_m"):
         np.testing.assert_allclose(c[col], a[col], rtol=1e-9, err_msg=col)
+
+
+def test_tiled_calibration_of_a_transferred_model_equals_untiled(recs, tmp_path):
+    """The transfer calibration is a whole-scene fit: the tiled test gathers every tile's cells for it (slopes with
+    one cell of overlap) and gets the untiled products exactly."""
+    import copy
+
+    d, pa, pb, model = recs
+    foreign = copy.deepcopy(model)
+    foreign.provenance["comparisons"] = ["other_a vs other_b"]   # learned elsewhere: auto calibrates
+    params = ChangeParams(confidences=(90.0, 95.0, 99.0))
+    res = change_test([read_pair_dem(p) for p in pa], [read_pair_dem(p) for p in pb], foreign, params)
+    assert res.calibration is not None
+    write_change_products(tmp_path / "untiled", res, GRID, epoch_a="A", epoch_b="B", model=foreign, prefix="sc",
+                          plots=False)
+    t = change_test_tiled(pa, pb, foreign, tmp_path / "tiled", params=params, epoch_names=("A", "B"), plots=False,
+                          tiling=TilingParams(tile_size=64, scheduler="sync"))
+    assert t.exact and t.summary["calibration"] == res.calibration.to_dict()
+    for name in ("sc_change", "sc_change_mask"):
+        with rasterio.open(tmp_path / "untiled" / f"{name}.tif") as a, rasterio.open(tmp_path / "tiled" / f"{name}.tif") as b:
+            np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
+            assert a.tags() == b.tags() and "model_calibration" in a.tags()

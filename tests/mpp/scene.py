@@ -16,8 +16,15 @@ def _rect_mask(shape, cx, cy, L, l, th):
     return (np.abs(u) <= L / 2) & (np.abs(v) <= l / 2), v
 
 
-def make_pair(seed: int = 0, size: int = 200, colour: bool = False):
+#: clumps of tree crowns (cx, cy in cells, crown radius in cells), on both dates, clear of the buildings
+TREES = [(20, 100, 6), (30, 108, 6), (24, 118, 6), (110, 140, 7), (121, 148, 6), (185, 70, 6), (182, 83, 6)]
+
+
+def make_pair(seed: int = 0, size: int = 200, colour: bool = False, trees: bool = False):
     """Two images (date A, date B), their DSMs and truth masks.
+
+    ``trees``: clumps of tree crowns (:data:`TREES`) — raised domes, rough at the cell scale in the DSM (leaves
+    and gaps: ±1 m), dark and mottled in the image, each casting a shadow.
 
     Date A has buildings 0–4, date B buildings 1–5 (building 0 demolished, building 5 new). Returns a
     dict with image_a, image_b ((bands,) rows, cols float32), dsm_a, dsm_b, ground, truth_a, truth_b
@@ -42,7 +49,25 @@ def make_pair(seed: int = 0, size: int = 200, colour: bool = False):
             sh = ndimage.shift(m.astype(float), sun, order=0) > 0.5
             shadow |= sh & ~m
             truth |= m
+        crowns = np.zeros(shape, bool)
+        if trees:
+            ii, jj = np.mgrid[0:size, 0:size].astype(float)
+            trng = np.random.default_rng(100 + seed)          # the same trees on both dates
+            for cx, cy, r in TREES:
+                d2 = ((jj - cx) ** 2 + (ii - cy) ** 2) / r ** 2
+                m = d2 <= 1.0
+                crowns |= m
+                shadow |= (ndimage.shift(m.astype(float), sun, order=0) > 0.5) & ~m
+            tree_h = np.zeros(shape)
+            for cx, cy, r in TREES:
+                d2 = ((jj - cx) ** 2 + (ii - cy) ** 2) / r ** 2
+                tree_h = np.maximum(tree_h, np.where(d2 <= 1.0, 6.0 * np.sqrt(np.clip(1 - d2, 0, 1)) + 2.0, 0.0))
+            tree_h += np.where(crowns, trng.normal(0.0, 1.0, shape), 0.0)
+            leaf = 80 + 30 * trng.random(shape)
         img[shadow] = 45
+        if trees:
+            img[crowns] = leaf[crowns]
+            dsm = np.maximum(dsm, ground + tree_h)
         for k in ids:
             cx, cy, L, l, th = blds[k]
             m, v = _rect_mask(shape, cx, cy, L, l, th)

@@ -115,9 +115,11 @@ def test_nothing_found_says_why(scene):
 
 def test_colour_image_uses_colour_and_shadow_terms():
     s = make_pair(1, colour=True)
-    f = image_features(s["image_a"], POSTING, MPPParams())
+    img = s["image_a"].copy()
+    img[:, s["truth_a"]] = np.array([190.0, 60.0, 40.0])[:, None]          # red roofs
+    f = image_features(img, POSTING, MPPParams())
     assert f.colour_mask is not None
-    fa = image_features(s["image_a"], POSTING, MPPParams(), use_colour=False)
+    fa = image_features(img, POSTING, MPPParams(), use_colour=False)
     assert fa.colour_mask is None and any("switched off" in n for n in fa.notes)
 
 
@@ -149,3 +151,76 @@ def test_snap_kernels_match_references():
     K.refine_sides(c, f.grad_mag, f.grad_ori, 4.0, 9)
     np.testing.assert_allclose(c, K.refine_sides_ref(b, f.grad_mag, f.grad_ori, 4.0, 9), atol=1e-9)
     assert np.abs(c - b).max() > 0.4
+
+
+def test_planarity_keeps_tree_crowns_out():
+    """Tree crowns are raised but rough at the cell scale: with the planarity cue (default) they make no
+    building (measured: 10 false cells, precision 0.996); with the height term alone they do (704 false
+    cells, precision 0.77)."""
+    s = make_pair(0, trees=True)
+    truth = s["truth_a"] | s["truth_b"]
+
+    def run(planarity):
+        p = MPPParams(seed=3, height="and") if planarity is None else MPPParams(seed=3, height="and", planarity=planarity)
+        d = detect(s["image_a"], s["image_b"], POSTING, p,
+                   method="ED", dsm_a=s["dsm_a"], dsm_b=s["dsm_b"], ground_m=s["ground"])
+        m = rect_masks(d.result.rects, d.result.xi, truth.shape)
+        u = m["date1"] | m["date2"]
+        return int((u & ~truth).sum()), (u & truth).sum() / max(u.sum(), 1), (u & truth).sum() / truth.sum(), d
+
+    false_on, p_on, r_on, d = run(None)                 # the default: planarity "both"
+    assert false_on < 60 and p_on > 0.98 and r_on > 0.75, (false_on, p_on, r_on)
+    assert any("DSM planarity" in n for n in d.notes)
+    false_off, p_off, _, _ = run("off")
+    assert false_off > 400 and p_off < 0.85, (false_off, p_off)
+
+
+def test_plane_residual_is_the_normal_distance_to_the_fitted_plane():
+    from geocd.mpp.features import plane_residual, planar_cells
+
+    rng = np.random.default_rng(0)
+    z = rng.normal(0.0, 1.0, (7, 7))
+    yy, xx = np.mgrid[-1:2, -1:2]
+    a = np.column_stack([np.ones(9), xx.ravel(), yy.ravel()])
+    coef, rss, *_ = np.linalg.lstsq(a, z[1:4, 1:4].ravel(), rcond=None)
+    slope2 = (coef[1] ** 2 + coef[2] ** 2) / 0.5 ** 2
+    assert plane_residual(z, 0.5)[2, 2] == pytest.approx(np.sqrt(rss[0] / 6 / (1 + slope2)), rel=1e-5)
+    # a tilted plane is planar at any tilt; a rough dome is not
+    ii, jj = np.mgrid[0:60, 0:60].astype(float)
+    plane = 0.8 * jj + 0.3 * ii + rng.normal(0, 0.05, (60, 60))
+    assert np.nanmax(plane_residual(plane, 1.0)[1:-1, 1:-1]) < 0.2
+    dsm = np.where((jj > 30), 5.0 + rng.normal(0, 1.0, (60, 60)), rng.normal(0, 0.05, (60, 60)))
+    planar, tol = planar_cells(dsm, dsm, np.ones_like(dsm, bool), 2.5)
+    assert 0.05 < tol < 0.2
+    assert np.nanmean(planar[:, :28]) > 0.95 and np.nanmean(planar[:, 33:]) < 0.2
+
+
+def test_colour_without_building_sized_patches_uses_the_grey_model():
+    """LEVIR-CD's roofs are grey or brown: the red-roof mask holds no building-sized patch, so the image is
+    read with the grey-image model; painted red roofs keep the colour and shadow terms."""
+    s = make_pair(1, colour=True)
+    f = image_features(s["image_a"], POSTING, MPPParams())
+    assert f.colour_mask is None and f.shadow_mask is None
+    assert any("none the size of a building" in n for n in f.notes), f.notes
+    img = s["image_a"].copy()
+    img[:, s["truth_a"]] = np.array([190.0, 60.0, 40.0])[:, None]
+    f = image_features(img, POSTING, MPPParams())
+    assert f.colour_mask is not None and f.colour_mask[s["truth_a"]].mean() > 0.9
+
+
+def test_side_max_from_the_dsm_segments():
+    """Blocks of 50 m × 16 m raise the largest rectangle side to their length; small houses keep 30 m."""
+    from geocd.mpp.features import segment_sides_m, side_max_from_dsm
+
+    nd = np.zeros((400, 400), np.float32)
+    for k in range(6):                                  # 6 blocks, 100 × 32 cells at 0.5 m, 18 m high
+        nd[20 + 60 * k: 52 + 60 * k, 40:140] = 18.0
+    for k in range(4):                                  # 4 houses 10 m × 10 m
+        nd[30 + 90 * k: 50 + 90 * k, 300:320] = 6.0
+    sides = segment_sides_m(nd, 0.5, 2.5, 6.0)
+    assert sides.shape == (10, 2)
+    np.testing.assert_allclose(np.sort(sides[:, 0])[-6:], 50.0, atol=0.5)
+    assert side_max_from_dsm(nd, 0.5, MPPParams()) == pytest.approx(50.0, abs=0.5)
+    nd[:, :200] = 0.0
+    assert side_max_from_dsm(nd, 0.5, MPPParams()) == 30.0
+    assert np.isnan(side_max_from_dsm(np.zeros((50, 50)), 0.5, MPPParams()))

@@ -36,19 +36,21 @@ def _row(pair, method, prototypes):
 
 @pytest.mark.realdata
 def test_levir_edge_only_row(test_7):
-    """EV on test_7: 12 label changes, HV 7, FV 4 of 6, changed-building F 0.382 (seed 0)."""
+    """EV on test_7: 12 label changes, HV 8, 4 detected, changed-building F 0.351 (seed 0; grey-model births,
+    the colour mask holding no building-sized patch)."""
     t, _ = _row(test_7, "EV", "auto")
-    assert t["changes"] == 12 and t["HV"] == 7 and t["FV"] <= 5, t
-    assert t["change_f"] == pytest.approx(0.382, abs=0.03), t
+    assert t["changes"] == 12 and t["HV"] == 8 and t["detected_changes"] <= 6, t
+    assert t["change_f"] == pytest.approx(0.351, abs=0.03), t
 
 
 @pytest.mark.realdata
 def test_levir_joint_model_rows(test_7):
-    """ED on test_7: the grey-image prototypes find 2 of 12 changes (F 0.219); the default colour model
-    (gradient + shadow | colour) keeps almost nothing on LEVIR's grey roofs (docs/mpp.md, known shortfall)."""
-    t, _ = _row(test_7, "ED", "gradient+homogeneity")
-    assert t["HV"] == 10 and t["FV"] <= 2, t
-    assert t["change_f"] == pytest.approx(0.219, abs=0.03), t
+    """ED on test_7: LEVIR's grey and brown roofs give the red-roof mask no building-sized patch, so "auto"
+    reads the pair with the grey-image model (gradient + homogeneity): 4 of 12 changes found, none false,
+    changed-building F 0.491 (docs/mpp.md; the colour model found nothing here)."""
     t, d = _row(test_7, "ED", "auto")
-    assert d.thresholds[1]["prototypes"] == "gradient + shadow | colour"
-    assert len(d.result) <= 3 and t["change_f"] < 0.05, t
+    assert d.thresholds[0]["prototypes"] == "gradient + homogeneity", d.thresholds
+    assert d.thresholds[1]["prototypes"] == "gradient + homogeneity", d.thresholds
+    assert any("none the size of a building" in n for n in d.notes), d.notes
+    assert t["HV"] == 8 and t["FV"] <= 1, t
+    assert t["change_f"] == pytest.approx(0.491, abs=0.03), t
