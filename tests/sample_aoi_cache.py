@@ -15,8 +15,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 #: what the pair-DEMs depend on
-_INPUTS = ("geocd/stereo", "geocd/camera", "geocd/io", "geocd/geodesy.py", "sample_aoi/scene.yaml", "sample_aoi/images",
-           "sample_aoi/truth/dem_prior.tif")
+_INPUTS = ("geocd/stereo", "geocd/camera", "geocd/io", "geocd/geodesy.py", "geocd/pipeline.py",  # RunConfig's stereo
+           "sample_aoi/scene.yaml", "sample_aoi/images", "sample_aoi/truth/dem_prior.tif")
 
 
 def cache_key() -> str:

@@ -112,9 +112,18 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
 
 
 def _read_pairs(paths):
+    import warnings
+
     from ..stereo import read_pair_dem
 
-    return [read_pair_dem(p) for p in paths]
+    pairs = [read_pair_dem(p) for p in paths]
+    smoothed = [p.name for p in pairs if (p.meta.get("params") or {}).get("surface_median", 1) != 1]
+    if smoothed:
+        warnings.warn(f"pair-DEM(s) {', '.join(smoothed)} were matched with a surface median: the self-consistency "
+                      "test models each cell's own match, and a median correlates neighbouring errors (more false "
+                      "changes); for change detection make them with `geocd stereo --surface-median 1` (as geocd "
+                      "run does)", UserWarning, stacklevel=2)
+    return pairs
 
 
 @click.command("consistency")

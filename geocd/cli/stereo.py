@@ -59,12 +59,19 @@ def scene_from_inputs(inputs: tuple[str, ...]):
 @click.option("--score-subwindow", type=int, default=None,
               help="MDL score = the worst of the sub-windows of this side (cells, odd) tiling the matching window "
                    "(default 3; a value ≥ --window scores the whole window).")
+@click.option("--surface-median", type=int, default=None,
+              help="Median of the valid heights over this many cells (odd) after the tests; default: the matching "
+                   "window; 1 = off.")
+@click.option("--no-fill", is_flag=True,
+              help="Leave holes narrower than the matching window empty (default: z holds interpolated heights "
+                   "there, flagged 'filled' and not valid).")
 @click.option("--tile-size", type=int, default=None, help="Tile side in cells (memory bound; default 256).")
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing pair-DEMs.")
 @click.pass_context
 def stereo(ctx: click.Context, inputs: tuple[str, ...], epochs: tuple[str, ...], out_dir: str | None,
            posting_m: float | None, window: int | None, height_range, dem_margin: float | None, score: str | None,
-           score_subwindow: int | None, tile_size: int | None, no_overwrite: bool) -> None:
+           score_subwindow: int | None, surface_median: int | None, no_fill: bool, tile_size: int | None,
+           no_overwrite: bool) -> None:
     from .common import require_inputs, resolve_out_dir, session
 
     require_inputs(*inputs)
@@ -90,6 +97,10 @@ def stereo(ctx: click.Context, inputs: tuple[str, ...], epochs: tuple[str, ...],
         kw["score"] = score
     if score_subwindow is not None:
         kw["score_subwindow"] = score_subwindow
+    if surface_median is not None:
+        kw["surface_median"] = surface_median
+    if no_fill:
+        kw["fill_holes"] = False
     if tile_size is not None:
         kw["tile_size"] = tile_size
     params = StereoParams(**kw)

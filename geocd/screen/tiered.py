@@ -10,7 +10,7 @@
    plus the stereo's declared margin (matching window at the coarsest level + occlusion reach,
    capped at half a tile), with the pair's whole-scene pointing correction and noise level
    (estimated once on the central window, flagged or not). The shared writer assembles each
-   pair-DEM; the cores of unflagged tiles are written as not matched (flag ``not_examined``).
+   pair-DEM; the cores of unflagged tiles are written as not matched (``flags`` 255, ``FLAGS_NOT_EXAMINED``).
 4. The self-consistency change test and the products follow (:func:`geocd.pipeline.run_change`)
    with the examined mask: cells of unflagged tiles get the change-mask code
    :data:`geocd.consistency.NOT_EXAMINED` (−127, "not examined"), never 0 ("unchanged"), and

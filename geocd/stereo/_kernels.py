@@ -17,8 +17,11 @@ Conventions
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from numba import njit, prange
+from numpy.lib.stride_tricks import sliding_window_view
 
 # ---------------------------------------------------------------------------------------------
 # bilinear warp
@@ -695,3 +698,79 @@ def zbuffer_occluded_ref(col, row, z, cost, tol_m, c0, r0, W, H) -> np.ndarray:
     out = np.zeros(col.shape, bool)
     out[idx] = np.abs(z[idx] - owner_z[pix]) > tol_m[idx]
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the median of the valid heights around each valid cell
+# ---------------------------------------------------------------------------------------------
+@njit(cache=True, inline="always")
+def _select(buf, n, k):
+    """The k-th smallest of ``buf[:n]`` (0-based), partially reordering it (Wirth's selection); afterwards
+    ``buf[:k]`` holds values ≤ it."""
+    lo = 0
+    hi = n - 1
+    while lo < hi:
+        x = buf[k]
+        i = lo
+        j = hi
+        while True:
+            while buf[i] < x:
+                i += 1
+            while x < buf[j]:
+                j -= 1
+            if i <= j:
+                t = buf[i]
+                buf[i] = buf[j]
+                buf[j] = t
+                i += 1
+                j -= 1
+            if i > j:
+                break
+        if j < k:
+            lo = i
+        if k < i:
+            hi = j
+    return buf[k]
+
+
+@njit(cache=True, parallel=True)
+def valid_median(z, r, out):
+    """Median of the finite values of ``z`` in the ``(2r+1)²`` window around each cell with a finite ``z``.
+
+    The window is clipped at the array border; an even count takes the mean of the two middle values
+    (as ``np.nanmedian``). ``out`` (float64, like ``z``) is NaN where ``z`` is not finite.
+    """
+    H, W = z.shape
+    w = 2 * r + 1
+    for i in prange(H):
+        buf = np.empty(w * w)
+        for j in range(W):
+            if not np.isfinite(z[i, j]):
+                out[i, j] = np.nan
+                continue
+            n = 0
+            for ii in range(max(i - r, 0), min(i + r + 1, H)):
+                for jj in range(max(j - r, 0), min(j + r + 1, W)):
+                    v = z[ii, jj]
+                    if np.isfinite(v):
+                        buf[n] = v
+                        n += 1
+            h = n // 2
+            m = _select(buf, n, h)
+            if n % 2 == 0:      # the largest of the lower half
+                lo = buf[0]
+                for q in range(1, h):
+                    if buf[q] > lo:
+                        lo = buf[q]
+                m = 0.5 * (lo + m)
+            out[i, j] = m
+
+
+def valid_median_ref(z: np.ndarray, r: int) -> np.ndarray:
+    """numpy reference of :func:`valid_median`."""
+    w = 2 * r + 1
+    p = np.pad(np.asarray(z, np.float64), r, constant_values=np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)     # all-NaN windows
+        med = np.nanmedian(sliding_window_view(p, (w, w)).reshape(*z.shape, -1), axis=-1)
+    return np.where(np.isfinite(z), med, np.nan)

@@ -35,6 +35,7 @@ from .params import StereoParams
 from .pointing import relative_pointing
 from .products import FLAGS, PairDEM
 from .scores import mdl_from_stats, ncc_from_stats, ssd_from_stats
+from .surface import fill_narrow_holes, surface_median
 from .sweep import (HeightSearch, ImageChip, PlaneSweep, chip_valid_at, coarse_grid, image_sampling_px_per_m,
                     sample_cells, sweep_progress, upsample_nearest)
 
@@ -872,7 +873,13 @@ def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: floa
         tol = [np.maximum(params.occlusion_tol_px / np.maximum(j, 1e-9), 2.0 * search.step_m) for j in jn]
         flags[occlusion_mask(grid, cams, chips, cand, planes["best_c"], tol, lonlat)] |= FLAGS["occluded"]
     valid = flags == 0
+    z_out = np.where(valid, z_raw, np.nan)
+    if params.median_size > 1 and valid.any():
+        z_out = surface_median(z_out, params.median_size)
+    if params.fill_holes and valid.any():
+        z_out, filled = fill_narrow_holes(z_out, valid, params.radius)
+        flags[filled] |= FLAGS["filled"]
     f32 = np.float32
-    return {"z_m": np.where(valid, z_raw, np.nan).astype(f32), "score": score.astype(f32),
+    return {"z_m": z_out.astype(f32), "score": score.astype(f32),
             "g_px_per_m": g.astype(f32), "valid": valid, "ncc": ncc.astype(f32), "ssd": ssd.astype(f32),
             "flags": flags, "z_raw_m": z_raw.astype(f32), "mdl_window": mdl_window.astype(f32)}

@@ -65,6 +65,17 @@ class StereoParams(ParamsMixin):
         height (:func:`geocd.stereo.subwindow_mdl`): a window that only part of the
         surface explains (one straddling a height step) does not pass for a good
         match. ``≥ window`` scores the matching window as a whole.
+    surface_median : int, optional
+        Odd window side (cells) of a median over the *valid* heights, applied after the
+        validity tests (validity, scores and flags unchanged). None (default) = the matching
+        window: a height already stands for its whole window, so a median over that window
+        removes no detail the match resolved, only the scatter of neighbouring matches
+        (measured against exact truth on sample_aoi and against s2p on Réunion and
+        Marseille, docs/stereo.md). 1 = off.
+    fill_holes : bool
+        Interpolate heights into holes narrower than the matching window (no cell more than
+        a window radius from a valid cell; not touching the grid's border): ``z`` holds them,
+        ``valid`` stays False and the flag ``filled`` is set (products.FLAGS).
     norm_block_px : int
         Region size of the local photometric normalization (image pixels).
     tile_size : int
@@ -102,6 +113,8 @@ class StereoParams(ParamsMixin):
     min_base_height: float = 0.05
     score: str = "mdl"
     score_subwindow: int = 3
+    surface_median: int | None = None
+    fill_holes: bool = True
     norm_block_px: int = 256
     tile_size: int = 256
     pointing_correction: bool = True
@@ -136,6 +149,9 @@ class StereoParams(ParamsMixin):
             raise ConfigError(f"min_pointing_patches must be ≥ 1, got {self.min_pointing_patches}")
         if self.score_subwindow < 3 or self.score_subwindow % 2 == 0:
             raise ConfigError(f"score_subwindow must be an odd number ≥ 3 of cells, got {self.score_subwindow}")
+        if self.surface_median is not None and (self.surface_median < 1 or self.surface_median % 2 == 0):
+            raise ConfigError(f"surface_median must be an odd number ≥ 1 of cells (1 = off; None = the window), "
+                              f"got {self.surface_median}")
         if self.tile_size < 32:
             raise ConfigError(f"tile_size must be ≥ 32 cells, got {self.tile_size}")
         if self.noise_sigma is not None and not self.noise_sigma > 0:
@@ -146,3 +162,8 @@ class StereoParams(ParamsMixin):
     @property
     def radius(self) -> int:
         return self.window // 2
+
+    @property
+    def median_size(self) -> int:
+        """The surface median's window side (cells; 1 = none)."""
+        return self.window if self.surface_median is None else int(self.surface_median)

@@ -23,7 +23,7 @@ from ..geodesy import AOIGrid, as_crs, from_lonlat, utm_crs_for
 from ..progress import Progress, ensure_progress, sub_progress
 from .match import height_bounds, match_pair
 from .params import StereoParams
-from .products import PairDEM, write_pair_dem
+from .products import FLAGS, PairDEM, write_pair_dem
 from .sweep import ImageChip, image_sampling_px_per_m, prepare_chip
 
 
@@ -221,10 +221,26 @@ def _ground_height_hint(images: Sequence[EpochImage], crs, dem_median: float | N
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             pd = match_pair(ca, cb, a.camera, b.camera, grid, params=p)
-        z = pd.z_m[pd.valid]
-        return float(np.median(z)) if z.size >= 10 else mid
+        return _hint_from_match(pd, lo, hi, mid)
     except Exception:  # a hint only: fall back on the middle of the range
         return mid
+
+
+def _hint_from_match(pd: PairDEM, lo: float, hi: float, fallback: float) -> float:
+    """The median matched height of a coarse match over the cameras' whole height range.
+
+    Such a range (an RPC's −20…2610 m) necessarily takes most cells out of an image at some of its heights,
+    so the matcher flags them ``range_limit`` (their search was incomplete); for a hint that is no reason to
+    drop a match that is otherwise sound. Heights within two steps of the range's ends stay out (a minimum
+    at the edge is no minimum).
+    """
+    if pd.flags is None or pd.z_raw_m is None:
+        z = pd.z_m[pd.valid]
+    else:
+        edge = 2.0 * float(pd.meta.get("step_m", 0.0) or 0.0) * 2 ** max(int(pd.meta.get("levels", 1)) - 1, 0)
+        z = pd.z_raw_m[((pd.flags & ~np.uint8(FLAGS["range_limit"])) == 0) & np.isfinite(pd.z_raw_m)]
+        z = z[(z > lo + edge) & (z < hi - edge)]
+    return float(np.median(z)) if z.size >= 10 else fallback
 
 
 def default_aoi_grid(manifest, images_by_epoch: dict[str, list[EpochImage]], *, posting_m: float | None = None,

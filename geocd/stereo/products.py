@@ -3,7 +3,8 @@
 One pair-DEM per image pair, on the AOI grid. Bands (float32, NaN = nodata):
 
 ====== =========================================================================
-z      ellipsoidal height, metres (WGS84), NaN where the match is not valid
+z      ellipsoidal height, metres (WGS84); NaN where the match is not valid, except in holes
+       narrower than the matching window, which hold interpolated heights (flag ``filled``)
 score  the pair's match score (lower = better; MDL bits/pixel by default)
 g      disparity per metre of height ‖∂u_a/∂z − ∂u_b/∂z‖, pixels/metre
 valid  1 = valid match, 0 = rejected or unobserved
@@ -38,8 +39,13 @@ FLAGS = {
     "range_limit": 16,      # best height at the edge of the search range (or next to an invalid one)
     "low_ncc": 32,          # NCC below min_ncc
     "weak_geometry": 64,    # base/height ratio too small: height unreliable
-    "not_examined": 128,    # not matched: a tiered run (geocd run --screen) whose screen did not flag the tile
+    "filled": 128,          # invalid (other bits say why), but z holds a height interpolated from the valid
+                            # heights around: a hole narrower than the matching window (StereoParams.fill_holes)
 }
+
+#: ``flags`` value (not a bit: every bit set) of a cell a tiered run did not match (geocd run --screen: its
+#: screen did not flag the tile)
+FLAGS_NOT_EXAMINED = 255
 
 BANDS = ("z", "score", "g", "valid", "ncc", "ssd", "flags")
 
@@ -56,7 +62,9 @@ class PairDEM:
     Attributes
     ----------
     z_m : float32 (rows, cols)
-        Ellipsoidal heights (m), NaN where not valid.
+        Ellipsoidal heights (m), NaN where not valid — except cells flagged ``filled``
+        (invalid, in a hole narrower than the matching window), which hold heights interpolated
+        from the valid ones around; ``valid`` is False there.
     score : float32 (rows, cols)
         Match score, lower = better (``meta["score_kind"]``: mdl, ncc or ssd).
     g_px_per_m : float32 (rows, cols)

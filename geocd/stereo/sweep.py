@@ -399,7 +399,9 @@ class PlaneSweep:
                     ca, ra = pr.project(ha)
                     cm, rm = pr.project(hm)
                     cb, rb = pr.project(hb)
-                    err = max(float(np.nanmax(np.abs(0.5 * (ca + cb) - cm))), float(np.nanmax(np.abs(0.5 * (ra + rb) - rm))))
+                    dev = np.abs(np.concatenate([np.ravel(0.5 * (ca + cb) - cm), np.ravel(0.5 * (ra + rb) - rm)]))
+                    dev = dev[np.isfinite(dev)]
+                    err = float(dev.max()) if dev.size else 0.0    # nowhere in an image: nothing to interpolate
                     if not err < self.interp_tol_px:
                         ok = False
                         break

@@ -170,7 +170,7 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
     those tiles (the tiered run's flagged tiles), each with the same declared margin and the pair's
     whole-scene pointing correction and noise level; neighbouring selected tiles of a tile row are
     matched as one window (their shared edges need no margin); the cells of the other tiles are
-    written as not matched (z NaN, valid 0, flags ``not_examined``).
+    written as not matched (z NaN, valid 0, flags :data:`~geocd.stereo.products.FLAGS_NOT_EXAMINED` = 255).
 
     Returns dict with ``outputs`` ({"<epoch>/<a>__<b>": path}), ``grid``, ``margins`` (cells per pair)
     and ``completeness`` per pair (over the matched tiles).
@@ -180,7 +180,7 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
     from ..io.raster import read_dem
     from .match import height_bounds
     from .pipeline import default_aoi_grid, load_epoch_images, pair_path
-    from .products import BANDS, SCORE_DEFINITION, FLAGS
+    from .products import BANDS, FLAGS, FLAGS_NOT_EXAMINED, SCORE_DEFINITION
 
     tiling = tiling or TilingParams()
     prog = ensure_progress(progress)
@@ -244,7 +244,7 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
                     "images": json.dumps([str(a.path), str(b.path)]), "manifest": str(m.path or "")}
             prod = RasterProduct(str(pair_path(out, e.name, a.name, b.name)), tuple(BANDS), tags=tags,
                                  band_tags=[{"units": units[bn]} for bn in BANDS],
-                                 fill={"valid": 0.0, "flags": float(FLAGS["not_examined"])})
+                                 fill={"valid": 0.0, "flags": float(FLAGS_NOT_EXAMINED)})
             outputs[key] = write_product(r.store, prod, grid, tg)
     if not tiling.keep_work:
         remove_work(out)

@@ -230,6 +230,12 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   optional=True, min=3, max=63, advanced=True,
                   help="The MDL score of a match is the worst of these sub-windows of its matching window. "
                        "Default 3; a value ≥ the window scores the whole window."),
+            Param("SURFACE_MEDIAN", "int", "Median of the valid heights (odd side; 1 = off)", cli="--surface-median",
+                  unit="cells", optional=True, min=1, max=63, advanced=True,
+                  help="Default: the matching window."),
+            Param("NO_FILL", "bool", "Leave holes narrower than the matching window empty", cli="--no-fill",
+                  default=False, advanced=True,
+                  help="By default z holds interpolated heights there, flagged 'filled' and not valid."),
             Param("TILE_SIZE", "int", "Tile side (memory bound)", cli="--tile-size", unit="cells", optional=True,
                   min=32, advanced=True, help="Default 256."),
         ),

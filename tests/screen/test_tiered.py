@@ -55,7 +55,7 @@ def _flag_most_changed_tiles(m, grid, tile, k):
 @pytest.mark.slow
 def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path, request):
     """sample_aoi, two flagged 128-cell tiles of 25: stereo matches only those tiles (tile count, the
-    not_examined flag and no height elsewhere), their heights equal the full run's within the tiled
+    flags value 255 and no height elsewhere), their heights equal the full run's within the tiled
     stereo's tolerance, and the change mask codes every other cell −127 "not examined" while the
     flagged tiles' change map agrees with the full run's there."""
     import rasterio
@@ -64,7 +64,8 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
     from geocd.demdiff.tiled import TilingParams
     from geocd.pipeline import RunConfig, run_change
     from geocd.screen.tiered import Flagged
-    from geocd.stereo import FLAGS, read_pair_dem
+    from geocd.stereo import read_pair_dem
+    from geocd.stereo.products import FLAGS_NOT_EXAMINED
     from geocd.stereo.tiled import run_stereo_tiled
     from tests.sample_aoi_cache import sample_aoi_pairs
 
@@ -81,9 +82,9 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
     by_name = {p.name: p for p in full["B"]}
     for name, t in tiered.items():
         assert t.meta["tiled"]["tiles"] == 2 and t.meta["tiled"]["tiles_in_grid"] == 25
-        # nothing outside the flagged tiles: no height, not valid, flagged not_examined
+        # nothing outside the flagged tiles: no height, not valid, flags 255 (not examined)
         assert not t.valid[~ex].any() and np.isnan(t.z_m[~ex]).all()
-        assert (t.flags[~ex] == FLAGS["not_examined"]).all() and not (t.flags[ex] & FLAGS["not_examined"]).any()
+        assert (t.flags[~ex] == FLAGS_NOT_EXAMINED).all() and not (t.flags[ex] == FLAGS_NOT_EXAMINED).any()
         f = by_name[name]
         both = t.valid & f.valid & ex
         # the tiled stereo's tolerance (docs/tiling.md: 94-98 % of cells within 0.1 m of the untiled match)
