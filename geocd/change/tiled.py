@@ -144,25 +144,32 @@ class _Cells:
         self.name, self.z_m, self.score, self.valid = name, z_m, score, valid
 
 
+def _sampled_core_cells(mask: np.ndarray, ctx) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(tile rows, tile cols, global linear index) of the mask's core cells, subsampled with the
+    scene-wide deterministic hash when the whole-scene statistics use a fraction of the cells."""
+    J = ctx.params
+    core = ctx.core
+    rr, cc = np.nonzero(mask[core])
+    if J.fraction < 1.0:
+        from ..demdiff.tiled import keep_cells
+
+        T0, U0 = ctx.tile.core[:2]
+        keep = keep_cells(rr + T0, cc + U0, J.grid.width, J.fraction)
+        rr, cc = rr[keep], cc[keep]
+    rr = rr + core[0].start
+    cc = cc + core[1].start
+    R0, C0 = ctx.origin
+    return rr, cc, (rr + R0).astype(np.int64) * J.grid.width + (cc + C0)
+
+
 def _t_offsets(arrays, ctx):
     """z, score, valid of every reconstruction on the cells any of them observes (sampled)."""
     J = ctx.params
     recs = [r.read(J.grid, ctx.tile.read) for r in (*J.a, *J.b)]
-    core = ctx.core
     anyv = np.zeros(recs[0].z_m.shape, bool)
     for r in recs:
         anyv |= np.asarray(r.valid, bool) & np.isfinite(r.z_m)
-    rr, cc = np.nonzero(anyv[core])
-    if J.fraction < 1.0:
-        from ..demdiff.tiled import keep_cells
-
-        R0, C0 = ctx.tile.core[:2]
-        k = keep_cells(rr + R0, cc + C0, J.grid.width, J.fraction)
-        rr, cc = rr[k], cc[k]
-    rr = rr + core[0].start
-    cc = cc + core[1].start
-    R0, C0 = ctx.origin
-    idx = (rr + R0).astype(np.int64) * J.grid.width + (cc + C0)
+    rr, cc, idx = _sampled_core_cells(anyv, ctx)
     return TileOutput(small={"idx": idx, **{f"{r.name}|z": np.asarray(r.z_m)[rr, cc] for r in recs},
                              **{f"{r.name}|s": np.asarray(r.score)[rr, cc] for r in recs},
                              **{f"{r.name}|v": np.asarray(r.valid)[rr, cc] for r in recs}})
@@ -175,21 +182,10 @@ def _t_calibration(arrays, ctx):
     al = apply_offsets([r.read(J.grid, ctx.tile.read) for r in (*J.a, *J.b)], J.offsets)
     ea = sorted(al[:na], key=lambda r: r.name)
     eb = sorted(al[na:], key=lambda r: r.name)
-    core = ctx.core
-    R0, C0 = ctx.origin
     small: dict[str, Any] = {}
     for k, (p, q) in enumerate((p, q) for p in ea for q in eb):
         dt, sc, _, both, mpu, slope = _comparison_arrays(p, q, J.grid.posting_m)
-        rr, cc = np.nonzero(both[core])
-        if J.fraction < 1.0:
-            from ..demdiff.tiled import keep_cells
-
-            T0, U0 = ctx.tile.core[:2]
-            keep = keep_cells(rr + T0, cc + U0, J.grid.width, J.fraction)
-            rr, cc = rr[keep], cc[keep]
-        rr = rr + core[0].start
-        cc = cc + core[1].start
-        small[f"{k}|idx"] = (rr + R0).astype(np.int64) * J.grid.width + (cc + C0)
+        rr, cc, small[f"{k}|idx"] = _sampled_core_cells(both, ctx)
         for name, v in (("dt", dt), ("sc", sc), ("slope", slope), ("mpu", mpu)):
             small[f"{k}|{name}"] = np.asarray(v)[rr, cc]
     return TileOutput(small=small)
