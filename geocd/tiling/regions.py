@@ -272,24 +272,29 @@ def regions_layer(merged: MergedRegions, grid: AOIGrid, *, cell_area_m2: float, 
 
     if len(merged) == 0:
         return empty_regions(grid.crs)
-    recs = []
-    for k in range(len(merged)):
-        vol = float(merged.sum[k] * cell_area_m2)
-        nfin = int(merged.nfin[k])
-        mean = float(merged.sum[k] / nfin) if nfin else float("nan")
-        vs = float(volume_sigma(k)) if volume_sigma is not None else float("nan")
-        if math.isfinite(vs):
-            cf = _gauss_level(vol, vs)
-        else:
-            cf = float(confidence(k)) if confidence is not None else float("nan")
-        recs.append({"method": method, "epoch_a": epoch_a, "epoch_b": epoch_b, "sign": int(merged.sign[k]),
-                     "n_cells": int(merged.n[k]), "area_m2": float(merged.n[k] * cell_area_m2), "mean_dz_m": mean,
-                     "max_dz_m": float(merged.extreme[k]), "volume_m3": vol, "volume_sigma_m3": vs,
-                     "confidence": cf})
-    df = pd.DataFrame(recs)
-    df.insert(0, "region_id", np.arange(1, len(df) + 1, dtype=np.int64))
-    df["sign"] = df["sign"].astype("int64")
-    df["n_cells"] = df["n_cells"].astype("int64")
+    # column arrays, not a record per region: a whole scene has millions of regions
+    n = len(merged)
+    total = np.asarray(merged.sum, np.float64)
+    nfin = np.asarray(merged.nfin, np.int64)
+    vol = total * cell_area_m2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(nfin > 0, total / np.where(nfin > 0, nfin, 1), np.nan)
+    vs = np.full(n, np.nan)
+    cf = np.full(n, np.nan)
+    for k in range(n):
+        v = float(volume_sigma(k)) if volume_sigma is not None else float("nan")
+        vs[k] = v
+        if math.isfinite(v):
+            cf[k] = _gauss_level(float(vol[k]), v)
+        elif confidence is not None:
+            cf[k] = float(confidence(k))
+    df = pd.DataFrame({
+        "region_id": np.arange(1, n + 1, dtype=np.int64), "method": method, "epoch_a": epoch_a,
+        "epoch_b": epoch_b, "sign": np.asarray(merged.sign).astype("int64"),
+        "n_cells": np.asarray(merged.n).astype("int64"),
+        "area_m2": np.asarray(merged.n, np.float64) * cell_area_m2, "mean_dz_m": mean,
+        "max_dz_m": np.asarray(merged.extreme, np.float64), "volume_m3": vol, "volume_sigma_m3": vs,
+        "confidence": cf})
     return gpd.GeoDataFrame(df, geometry=list(merged.geometry), crs=grid.crs)
 
 
