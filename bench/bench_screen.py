@@ -122,11 +122,9 @@ def _regions(out: Path):
     return gpd.read_file(f, layer="changes")
 
 
-def _damaged_buildings(full: Path, tier: Path, examined=None, grid=None) -> dict | None:
-    """Buildings of the full run's ``building_damage`` layer in a changed class (not unchanged/unobserved) that
-    no changed building of the tiered run overlaps (the building outlines come from each run's own DSM), split
-    into those wholly or partly outside the examined (flagged) tiles — the screen missed them — and those
-    inside — the 3-D stage on the tiles gave another answer."""
+def _changed_and_lost(full: Path, tier: Path):
+    """(full run's changed buildings, tiered run's changed buildings, full's changed buildings no tiered
+    changed building overlaps), or None when the runs have no ``building_damage`` layer."""
     import geopandas as gpd
     import pyogrio
 
@@ -136,7 +134,18 @@ def _damaged_buildings(full: Path, tier: Path, examined=None, grid=None) -> dict
     a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
     b = gpd.read_file(tier / "sc_changes.gpkg", layer="building_damage")
     a, b = a[~a["class"].isin(quiet)], b[~b["class"].isin(quiet)]
-    lost = a[~a.geometry.intersects(b.unary_union)] if len(b) else a
+    return a, b, (a[~a.geometry.intersects(b.unary_union)] if len(b) else a)
+
+
+def _damaged_buildings(full: Path, tier: Path, examined=None, grid=None) -> dict | None:
+    """Buildings of the full run's ``building_damage`` layer in a changed class (not unchanged/unobserved) that
+    no changed building of the tiered run overlaps (the building outlines come from each run's own DSM), split
+    into those wholly or partly outside the examined (flagged) tiles — the screen missed them — and those
+    inside — the 3-D stage on the tiles gave another answer."""
+    got = _changed_and_lost(full, tier)
+    if got is None:
+        return None
+    a, b, lost = got
     res = {"changed_full": int(len(a)), "changed_tiered": int(len(b)), "full_changed_not_found": int(len(lost)),
            "lost_by_class": lost["class"].value_counts().to_dict()}
     if examined is not None and len(lost):
@@ -157,19 +166,14 @@ def _lost_vs_threshold_rule(full: Path, tier: Path, grid) -> dict | None:
     99 % quantile of the no-change pair (the first step of the rule alone). A diagnostic: no threshold is
     changed. ``above_null_below_split``: buildings the Otsu step cut; ``below_null``: buildings whose
     image change the feature does not see above the no-change pair's own 99 % level."""
-    import geopandas as gpd
-    import pyogrio
     import rasterio
     from rasterio.features import rasterize
     from scipy import ndimage as ndi
 
-    if "building_damage" not in [str(n) for n, _ in pyogrio.list_layers(full / "sc_changes.gpkg")]:
+    got = _changed_and_lost(full, tier)
+    if got is None:
         return None
-    quiet = ("unchanged", "unobserved", "not examined")
-    a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
-    b = gpd.read_file(tier / "sc_changes.gpkg", layer="building_damage")
-    a, b = a[~a["class"].isin(quiet)], b[~b["class"].isin(quiet)]
-    lost = a[~a.geometry.intersects(b.unary_union)] if len(b) else a
+    a, b, lost = got
     summ = json.loads((tier / "screen" / "screen_summary.json").read_text())
     t = float(summ["threshold"])
     q99 = float(summ["null"]["quantiles"]["99"])
