@@ -926,3 +926,146 @@ def dem_window(x0, y0, post, row0, col0, nr, nc, de, dn, dz, seed, scales, amps,
                             out[r, c] += h * (1.0 - q)
                         else:
                             out[r, c] = np.nan
+
+
+# ------------------------------------------------------------------------------------------
+# large stereo scenes (geocd.synth.bigstereo): rays marched through a DSM window, textures
+# ------------------------------------------------------------------------------------------
+@njit(cache=True, inline="always")
+def _bilin(dsm, gx0, gy0, gs, x, y):
+    """Bilinear height of ``dsm`` (row 0 at the top; cell (0, 0) centred at (gx0, gy0)) at (x, y), edge-clamped."""
+    nr, nc = dsm.shape
+    fc = (x - gx0) / gs
+    fr = (gy0 - y) / gs
+    fc = min(max(fc, 0.0), nc - 1.000001)
+    fr = min(max(fr, 0.0), nr - 1.000001)
+    c = int(fc)
+    r = int(fr)
+    tc = fc - c
+    tr = fr - r
+    a = dsm[r, c] + tc * (dsm[r, c + 1] - dsm[r, c])
+    b = dsm[r + 1, c] + tc * (dsm[r + 1, c + 1] - dsm[r + 1, c])
+    return a + tr * (b - a)
+
+
+@njit(cache=True, nogil=True)
+def march_dsm(ax, ay, bx, by, h_top, h_bot, z_start, z_end, step_m, dsm, gx0, gy0, gs,
+              out_x, out_y, out_z, out_slope):  # pragma: no cover - numba
+    """First crossing of each ray with a DSM window (see :func:`march_dsm_ref`).
+
+    Ray k passes through (ax[k], ay[k]) at height ``h_top`` and (bx[k], by[k]) at ``h_bot``
+    (map coordinates, straight chord). It is marched downwards from ``z_start`` to ``z_end``
+    in steps that move it ``step_m`` horizontally (at most 2 m vertically); between the last
+    step above the bilinear surface and the first below it the crossing is interpolated
+    linearly. ``out_slope`` is the surface gradient's magnitude at the hit (walls: ≫ 1).
+    A ray that does not cross gets NaN.
+    """
+    n = ax.shape[0]
+    inv = 1.0 / (h_top - h_bot)
+    for k in range(n):
+        ux = (bx[k] - ax[k]) * inv   # map shift per metre of descent
+        uy = (by[k] - ay[k]) * inv
+        t = np.sqrt(ux * ux + uy * uy)
+        dz = 2.0
+        if t * dz > step_m:
+            dz = step_m / t
+        z = z_start
+        x = ax[k] + (h_top - z) * ux
+        y = ay[k] + (h_top - z) * uy
+        f = z - _bilin(dsm, gx0, gy0, gs, x, y)
+        hit = False
+        while z > z_end:
+            zn = z - dz
+            xn = ax[k] + (h_top - zn) * ux
+            yn = ay[k] + (h_top - zn) * uy
+            fn = zn - _bilin(dsm, gx0, gy0, gs, xn, yn)
+            if fn <= 0.0:
+                w = f / (f - fn) if f != fn else 0.0
+                z = z - w * dz
+                hit = True
+                break
+            z, f = zn, fn
+        if hit:
+            x = ax[k] + (h_top - z) * ux
+            y = ay[k] + (h_top - z) * uy
+            out_x[k] = x
+            out_y[k] = y
+            out_z[k] = z
+            e = 0.25 * gs
+            gx = (_bilin(dsm, gx0, gy0, gs, x + e, y) - _bilin(dsm, gx0, gy0, gs, x - e, y)) / (2 * e)
+            gy = (_bilin(dsm, gx0, gy0, gs, x, y + e) - _bilin(dsm, gx0, gy0, gs, x, y - e)) / (2 * e)
+            out_slope[k] = np.sqrt(gx * gx + gy * gy)
+        else:
+            out_x[k] = np.nan
+            out_y[k] = np.nan
+            out_z[k] = np.nan
+            out_slope[k] = np.nan
+
+
+def march_dsm_ref(ax, ay, bx, by, h_top, h_bot, z_start, z_end, step_m, dsm, gx0, gy0, gs):
+    """Pure-numpy reference of :func:`march_dsm`: the same steps, all rays at once. Returns x, y, z, slope."""
+    from scipy.ndimage import map_coordinates
+
+    def surf(x, y):
+        fc = np.clip((x - gx0) / gs, 0.0, dsm.shape[1] - 1.000001)
+        fr = np.clip((gy0 - y) / gs, 0.0, dsm.shape[0] - 1.000001)
+        return map_coordinates(dsm, [fr, fc], order=1, mode="nearest")
+
+    ux = (bx - ax) / (h_top - h_bot)
+    uy = (by - ay) / (h_top - h_bot)
+    t = np.hypot(ux, uy)
+    dz = np.where(t * 2.0 > step_m, step_m / np.maximum(t, 1e-300), 2.0)
+    z = np.full(ax.shape, float(z_start))
+    f = z - surf(ax + (h_top - z) * ux, ay + (h_top - z) * uy)
+    zh = np.full(ax.shape, np.nan)
+    live = np.ones(ax.shape, bool)
+    while live.any():
+        live &= z > z_end
+        zn = z - dz
+        fn = zn - surf(ax + (h_top - zn) * ux, ay + (h_top - zn) * uy)
+        now = live & (fn <= 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = np.where(f != fn, f / (f - fn), 0.0)
+        zh[now] = (z - w * dz)[now]
+        live &= ~now
+        z = np.where(live, zn, z)
+        f = np.where(live, fn, f)
+    x = ax + (h_top - zh) * ux
+    y = ay + (h_top - zh) * uy
+    e = 0.25 * gs
+    gx = (surf(x + e, y) - surf(x - e, y)) / (2 * e)
+    gy = (surf(x, y + e) - surf(x, y - e)) / (2 * e)
+    return x, y, zh, np.hypot(gx, gy)
+
+
+@njit(cache=True, nogil=True)
+def big_albedo(x, y, z, bid, slope, seed, out):  # pragma: no cover - numba
+    """Albedo of hit points (see :func:`big_albedo_ref`): ground, roofs (per-building tone) and walls."""
+    for k in range(x.shape[0]):
+        if not np.isfinite(z[k]):
+            out[k] = 0.0
+            continue
+        b = bid[k]
+        if b <= 0:
+            a = 0.12 + 0.30 * fbm(x[k] / 6.0, y[k] / 6.0, 0.5, seed, 4) + 0.10 * vnoise(x[k] / 0.9, y[k] / 0.9, 0.5, seed + 11)
+        else:
+            tone = 0.15 + 0.55 * _hash3(b, 7, 3, seed)
+            if slope[k] > 3.0:  # wall: darker, banded by height
+                a = 0.5 * tone * (0.7 + 0.3 * vnoise((x[k] + y[k]) / 1.5, z[k] / 1.0, 0.5, seed + 21))
+            else:
+                a = tone * (0.75 + 0.5 * fbm(x[k] / 2.5, y[k] / 2.5, 0.5, seed + 31, 3))
+        out[k] = a
+
+
+def big_albedo_ref(x, y, z, bid, slope, seed):
+    """Pure-numpy reference of :func:`big_albedo`."""
+    def fbm_(xs, ys, s, octaves):
+        return fbm_ref(xs, ys, np.full(xs.shape, 0.5), s, octaves)
+
+    half = np.full(x.shape, 0.5)
+    ground = 0.12 + 0.30 * fbm_(x / 6.0, y / 6.0, seed, 4) + 0.10 * vnoise_ref(x / 0.9, y / 0.9, half, seed + 11)
+    tone = 0.15 + 0.55 * _hash3_ref(bid, np.full(x.shape, 7), np.full(x.shape, 3), seed)
+    wall = 0.5 * tone * (0.7 + 0.3 * vnoise_ref((x + y) / 1.5, z / 1.0, half, seed + 21))
+    roof = tone * (0.75 + 0.5 * fbm_(x / 2.5, y / 2.5, seed + 31, 3))
+    out = np.where(bid <= 0, ground, np.where(slope > 3.0, wall, roof))
+    return np.where(np.isfinite(z), out, 0.0)
