@@ -948,6 +948,9 @@ def _bilin(dsm, gx0, gy0, gs, x, y):
     return a + tr * (b - a)
 
 
+REFINE_STEPS = 6
+
+
 @njit(cache=True, nogil=True)
 def march_dsm(ax, ay, bx, by, h_top, h_bot, z_start, z_end, step_m, dsm, gx0, gy0, gs,
               out_x, out_y, out_z, out_slope):  # pragma: no cover - numba
@@ -956,8 +959,8 @@ def march_dsm(ax, ay, bx, by, h_top, h_bot, z_start, z_end, step_m, dsm, gx0, gy
     Ray k passes through (ax[k], ay[k]) at height ``h_top`` and (bx[k], by[k]) at ``h_bot``
     (map coordinates, straight chord). It is marched downwards from ``z_start`` to ``z_end``
     in steps that move it ``step_m`` horizontally (at most 2 m vertically); between the last
-    step above the bilinear surface and the first below it the crossing is interpolated
-    linearly. ``out_slope`` is the surface gradient's magnitude at the hit (walls: ≫ 1).
+    step above the bilinear surface and the first below it the crossing is refined by
+    ``REFINE_STEPS`` regula-falsi steps. ``out_slope`` is the surface gradient's magnitude at the hit (walls: ≫ 1).
     A ray that does not cross gets NaN.
     """
     n = ax.shape[0]
@@ -980,8 +983,17 @@ def march_dsm(ax, ay, bx, by, h_top, h_bot, z_start, z_end, step_m, dsm, gx0, gy
             yn = ay[k] + (h_top - zn) * uy
             fn = zn - _bilin(dsm, gx0, gy0, gs, xn, yn)
             if fn <= 0.0:
-                w = f / (f - fn) if f != fn else 0.0
-                z = z - w * dz
+                # regula falsi between the last step above and the first below (the bilinear surface
+                # has kinks at cell edges: one linear interpolation can be off on steep faces)
+                zh, fh, zl, fl = z, f, zn, fn
+                z = zn
+                for _ in range(REFINE_STEPS):
+                    z = zh - fh * (zh - zl) / (fh - fl) if fh != fl else zl
+                    fm = z - _bilin(dsm, gx0, gy0, gs, ax[k] + (h_top - z) * ux, ay[k] + (h_top - z) * uy)
+                    if fm > 0.0:
+                        zh, fh = z, fm
+                    else:
+                        zl, fl = z, fm
                 hit = True
                 break
             z, f = zn, fn
@@ -1024,9 +1036,17 @@ def march_dsm_ref(ax, ay, bx, by, h_top, h_bot, z_start, z_end, step_m, dsm, gx0
         zn = z - dz
         fn = zn - surf(ax + (h_top - zn) * ux, ay + (h_top - zn) * uy)
         now = live & (fn <= 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w = np.where(f != fn, f / (f - fn), 0.0)
-        zh[now] = (z - w * dz)[now]
+        zhi, fhi, zlo, flo = z[now], f[now], zn[now], fn[now]
+        zz = zlo.copy()
+        axn, ayn, uxn, uyn = ax[now], ay[now], ux[now], uy[now]
+        for _ in range(REFINE_STEPS):
+            with np.errstate(invalid="ignore", divide="ignore"):
+                zz = np.where(fhi != flo, zhi - fhi * (zhi - zlo) / (fhi - flo), zlo)
+            fm = zz - surf(axn + (h_top - zz) * uxn, ayn + (h_top - zz) * uyn)
+            up = fm > 0.0
+            zhi, fhi = np.where(up, zz, zhi), np.where(up, fm, fhi)
+            zlo, flo = np.where(up, zlo, zz), np.where(up, flo, fm)
+        zh[now] = zz
         live &= ~now
         z = np.where(live, zn, z)
         f = np.where(live, fn, f)
