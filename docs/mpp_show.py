@@ -8,6 +8,7 @@ Usage (from the repository root)::
     .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
         [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior,
         # EHN: ED + height without the step term, EHR: the step term in the height ring
+    .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off   # where recall is lost
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
     .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
@@ -22,6 +23,7 @@ Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read 
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 import warnings
@@ -119,6 +121,10 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
                   titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
                   valid_a=inp["valid_a"], valid_b=inp["valid_b"])
         print("quick-look written", flush=True)
+    if best is not None and os.environ.get("MPP_SHOW_NO_RECHECK"):
+        out["deterministic"] = "not re-checked in this run"
+        print("same-seed re-run skipped (MPP_SHOW_NO_RECHECK)", flush=True)
+    elif best is not None:
         p0 = best_kw[0].replace(seed=seeds[0])
         again = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, p0, valid_a=inp["valid_a"],
                        valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"],
@@ -136,6 +142,56 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
             old["rows"][label] = sorted(kept + rs, key=lambda r: r["seed"])
         out = {**old, **{k: v for k, v in out.items() if k != "rows"}, "rows": old["rows"]}
     path.write_text(json.dumps(out, indent=2, default=str))
+    return out
+
+
+def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and") -> dict:
+    """Where ED + height misses truth pixels on a town: near the outline (≤ 1 m), on buildings longer than
+    the largest side, on L-shaped ones (area / minimum rotated rectangle < 0.9), whole buildings missed on a
+    date; and how many false pixels lie within 2 m of a truth building."""
+    import geopandas as gpd
+    from scipy import ndimage
+    from shapely.geometry import box
+
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    p = MPPParams(seed=seed, height="and", step=step)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        det = detect(inp["image_a"], inp["image_b"], grid.posting_m, p, method="ED", valid_a=inp["valid_a"],
+                     valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+    masks = rect_masks(det.result.rects, det.result.xi, grid.shape)
+    g = gpd.read_file(name / "truth" / "footprints_all.gpkg")
+    gb = box(*grid.bounds)
+    g = g[[geom.intersection(gb).area >= 0.5 * geom.area for geom in g.geometry]]   # as sample_truth
+    mrr = g.geometry.minimum_rotated_rectangle()
+    solidity = (g.geometry.area / mrr.area).to_numpy()
+    longest = np.array([max(np.hypot(*np.diff(np.asarray(r.exterior.coords)[:3], axis=0).T)) for r in mrr])
+    n1m = max(1, int(round(1.0 / grid.posting_m)))
+    out = {"missed": 0, "near_outline_1m": 0, "on_longer_than_side_max": 0, "on_l_shapes": 0, "l_shape_pixels": 0,
+           "whole_buildings_missed_on_a_date": 0, "pixels_of_whole_misses": 0}
+    for o, sol, ln in zip(inp["objs"], solidity, longest):
+        inner = ndimage.binary_erosion(o["mask"], iterations=n1m)
+        for d in o["dates"]:
+            miss = o["mask"] & ~masks["date1" if d == 1 else "date2"]
+            n = int(miss.sum())
+            out["missed"] += n
+            out["near_outline_1m"] += int((miss & ~inner).sum())
+            out["on_longer_than_side_max"] += n if ln > p.side_max_m else 0
+            if sol < 0.9:
+                out["on_l_shapes"] += n
+                out["l_shape_pixels"] += int(o["mask"].sum())
+            if n == o["mask"].sum():
+                out["whole_buildings_missed_on_a_date"] += 1
+                out["pixels_of_whole_misses"] += n
+    near = false = 0
+    for dm, tm in ((masks["date1"], inp["t1"]), (masks["date2"], inp["t2"])):
+        false += int((dm & ~tm).sum())
+        near += int((dm & ~tm & ndimage.binary_dilation(tm, iterations=2 * n1m)).sum())
+    out.update(false=false, false_within_2m=near, truth_pixels=int(inp["t1"].sum() + inp["t2"].sum()),
+               l_shaped_buildings=int((solidity < 0.9).sum()), buildings=len(inp["objs"]),
+               longest_building_m=round(float(longest.max()), 1))
+    print(json.dumps(out), flush=True)
     return out
 
 
@@ -360,6 +416,9 @@ if __name__ == "__main__":
             only = [SHORT[x] for x in args[k + 1].split(",")]
             args = args[:k] + args[k + 2:]
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
+    elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP]
+        recall(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0,
+               sys.argv[5] if len(sys.argv) > 5 else "and")
     elif what == "levir-diagnose":
         levir_diagnose()
     elif what == "kahra":
