@@ -16,6 +16,7 @@ Usage (from the repository root)::
     # Kahramanmaraş: after `geocd mpp --image-a … --out OUT` (docs/mpp.md), the figures against geocd's own
     # building damage layer (no truth exists)
     .venv/bin/python docs/mpp_show.py kahra OUT /tmp/kahra2
+    .venv/bin/python docs/mpp_show.py kahra-outlines /tmp/kahra2 [and|ring|off]   # energies of the collapsed outlines
 
 Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read in place from ../shared/data.
 """
@@ -396,6 +397,61 @@ def kahra(mpp_dir: Path, run_dir: Path) -> dict:
     return out
 
 
+def kahra_outlines(run_dir: Path, step: str = "and") -> list[dict]:
+    """Kahramanmaraş: the pre-event features and energies of a rectangle fitted to each of geocd's collapsed
+    buildings (minimum rotated rectangle of its outline), with the parameters of the documented run (DSM-only
+    prototype added, largest side from this DSM): why each one is, or is not, an attractive object."""
+    import geopandas as gpd
+    import rasterio
+
+    from geocd.io.raster import read_band
+    from geocd.mpp import _kernels as K
+    from geocd.mpp.features import image_features, side_max_from_dsm
+    from geocd.mpp.model import F_PLANAR, F_STEP, EnergyModel
+
+    with rasterio.open(run_dir / "orthos" / "pre_event_img1.tif") as ds:
+        a = ds.read().astype(np.float32)
+        va = ds.read_masks(1) > 0
+        inv = ~ds.transform
+        posting = abs(ds.transform.a)
+    dsm, _ = read_band(run_dir / "stereo" / "pre_event" / "pre_event_img1__pre_event_img2.tif", 1)
+    gr, _ = read_band(run_dir / "sc_ground_model.tif", 1)
+    p = MPPParams(height="and", prototypes="gradient|homogeneity|planarity", step=step)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        smax = side_max_from_dsm(image_features(a, posting, p, valid=va, dsm_m=dsm, ground_m=gr).ndsm, posting, p)
+        p = p.replace(side_max_m=float(smax))
+        f = image_features(a, posting, p, valid=va, dsm_m=dsm, ground_m=gr)
+        m = EnergyModel([f], posting, p)
+    dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+    rects = []
+    for geom in dmg.geometry[dmg["class"] == "collapsed"]:
+        xy = np.asarray(geom.minimum_rotated_rectangle.exterior.coords)[:4]
+        e1, e2 = xy[1] - xy[0], xy[2] - xy[1]
+        v = e1 if np.hypot(*e1) >= np.hypot(*e2) else e2
+        c, r = inv * tuple(xy.mean(axis=0))
+        rects.append([c - 0.5, r - 0.5, max(np.hypot(*e1), np.hypot(*e2)) / posting,
+                      min(np.hypot(*e1), np.hypot(*e2)) / posting, np.arctan2(v[1], v[0])])
+    rects = np.array(rects)
+    raw = m.raw(rects)["img0"]
+    e = m.feature_energy(0, raw)
+    ph = m.phi(0, raw)
+    rows = [{"long_m": round(float(rects[k, 2] * posting), 1), "raised_in": round(float(raw[k, K.F_RAISED_IN]), 2),
+             "ground_ring": round(float(raw[k, K.F_RAISED_OUT]), 2), "planar_core": round(float(raw[k, F_PLANAR]), 2),
+             "step": round(float(raw[k, F_STEP]), 2), "phi": round(float(ph[k]), 2),
+             "energies": {x: round(float(e[x][k]), 2) for x in ("height", "planarity", "step", "gradient", "homogeneity")}}
+            for k in range(len(rects))]
+    summary = {"side_max_m": round(float(smax), 1), "step_min_m": round(f.step_min_m, 2), "outlines": len(rows),
+               "attractive": int((ph < 0).sum()), "longer_than_side_max": int((rects[:, 2] * posting > smax).sum()),
+               "step_below_half": int((raw[:, F_STEP] < 0.5).sum()),
+               "raised_below_half": int((raw[:, K.F_RAISED_IN] < 0.5).sum()),
+               "ground_ring_below_half": int((raw[:, K.F_RAISED_OUT] < 0.5).sum())}
+    print(json.dumps(summary), flush=True)
+    for r in rows:
+        print(r, flush=True)
+    return rows
+
+
 if __name__ == "__main__":
     what = sys.argv[1]
     if what == "town":
@@ -421,6 +477,8 @@ if __name__ == "__main__":
                sys.argv[5] if len(sys.argv) > 5 else "and")
     elif what == "levir-diagnose":
         levir_diagnose()
+    elif what == "kahra-outlines":     # kahra-outlines RUN_DIR [STEP]
+        kahra_outlines(Path(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else "and")
     elif what == "kahra":
         kahra(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "tables":
