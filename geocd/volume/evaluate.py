@@ -56,7 +56,7 @@ class TrainConfig:
     ground_band_m: float = 0.5
     ground_band_top_m: float = 0.0
     ground_p_max: float = 0.9
-    footprints: bool = True
+    footprints: bool = False
     seed: int = 0
 
 
@@ -454,8 +454,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--subarea", type=float, default=150.0, help="side of the octree/grid comparison area (m)")
     ap.add_argument("--no-grid", action="store_true")
     ap.add_argument("--no-dem-prior", action="store_true")
-    ap.add_argument("--no-footprints", action="store_true",
-                    help="DEM prior: ignore the manifest's footprints (no roof heights from them)")
+    ap.add_argument("--footprints", action="store_true",
+                    help="DEM prior: roof heights swept from the manifest's footprints (see docs/volume.md)")
     ap.add_argument("--ground-band", type=float, default=0.5, help="DEM prior: ground band half-height (m)")
     ap.add_argument("--ground-band-top", type=float, default=0.0,
                     help="DEM prior: top of the ground band above the DEM (m)")
@@ -464,7 +464,7 @@ def main(argv: list[str] | None = None) -> None:
     a = ap.parse_args(argv)
     cfg = TrainConfig(passes=a.passes, finest_cell_m=a.finest, dem_prior=not a.no_dem_prior,
                       ground_band_m=a.ground_band, ground_band_top_m=a.ground_band_top,
-                      ground_p_max=a.ground_p_max, footprints=not a.no_footprints)
+                      ground_p_max=a.ground_p_max, footprints=a.footprints)
     t0 = time.perf_counter()
     res = evaluate(a.scene, a.out, a.work, holdout=a.holdout, cfg=cfg, subarea_m=a.subarea, do_grid=not a.no_grid,
                    log=lambda m: print(m, flush=True))
