@@ -181,7 +181,7 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
                                                       "area_m2"]].to_dict(orient="records"),
            "volume_lost_collapsed_m3": round(float(damage[cls == "collapsed"]["volume_lost_m3"].sum()), 1)}
     if cars is not None:
-        out["independent_reference_cars"] = independent_reference(res, damage, grid, *cars)
+        out["independent_reference_cars"] = independent_reference(res, damage, grid, *cars, recs=recs)
     return out, damage, res
 
 
@@ -211,7 +211,8 @@ def cars_dsms(work: Path, grid) -> tuple[np.ndarray, np.ndarray]:
     return tuple(_to_grid(str(work / ep / "out" / "dsm" / "dsm.tif"), grid) for ep in ("pre_event", "post_event"))
 
 
-def independent_reference(res, damage, grid, cars_a: np.ndarray, cars_b: np.ndarray, level: float = 99.0) -> dict:
+def independent_reference(res, damage, grid, cars_a: np.ndarray, cars_b: np.ndarray, level: float = 99.0,
+                          recs: dict | None = None) -> dict:
     """geocd's false alarms on the cells CARS's own two DSMs call stable, and CARS's view of geocd's false alarms.
 
     Stable by the witness: observed by geocd, outside geocd's changed buildings (as the headline figure) and
@@ -234,6 +235,18 @@ def independent_reference(res, damage, grid, cars_a: np.ndarray, cars_b: np.ndar
            if (flag & both).any() else None,
            "flagged_stable_cars_differs_gt_3nmad": round(float((np.abs(dc[flag & both]) > 3 * nm).mean()), 4)
            if (flag & both).any() else None}
+    # do geocd's own DSMs agree with CARS's at those cells (both epochs within 3 m)? then the change is in the
+    # images, not in one matcher's failure
+    za = np.nanmedian(np.stack([r.z_m for r in recs["pre_event"]]), axis=0) if recs else None
+    if za is not None:
+        zb = np.nanmedian(np.stack([r.z_m for r in recs["post_event"]]), axis=0)
+        ea = za - cars_a
+        eb = zb - cars_b
+        ea -= np.nanmedian(ea)
+        eb -= np.nanmedian(eb)
+        sel = flag & both & np.isfinite(ea) & np.isfinite(eb)
+        out["flagged_stable_geocd_dsms_match_cars_within_3m"] = round(float(((np.abs(ea[sel]) <= 3)
+                                                                             & (np.abs(eb[sel]) <= 3)).mean()), 4)
     for name, t in (("3nmad", 3 * nm), ("1m", 1.0), ("2m", 2.0), ("3m", 3.0), ("5m", 5.0)):
         s = stable & both & (np.abs(dc) <= t)
         out[f"false_alarms_cars_stable_{name}"] = {
