@@ -686,7 +686,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   optional=True),
             Param("EXCLUDE", "string", "Image names to leave out (comma-separated)", cli="--exclude", optional=True,
                   multiple=True, advanced=True),
-            Param("PASSES", "int", "Passes over the images", cli="--passes", default=3, min=1),
+            Param("PASSES", "int", "Passes over the images", cli="--passes", default=5, min=1),
             Param("FINEST_CELL", "number", "Finest octree cell edge (new models)", cli="--finest-cell", unit="m",
                   default=0.5, min=0.01),
             Param("MAX_DEPTH", "int", "Octree levels below a block (new models)", cli="--max-depth", default=3,
