@@ -1295,7 +1295,7 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
 
     from ..change.styles import write_raster_style
     from ..io.vector import qml_for, write_gpkg
-    from ..tiling.regions import merge_regions, regions_layer
+    from ..tiling.regions import merge_regions, regions_layer_batches
     from .pipeline import DEMDiffResult
     from .products import _clean, _jsonable, dh_qml, nice_limit, significance_qml, tables, write_json
 
@@ -1382,7 +1382,11 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m "
                      "(no significance test)")
     # --- regions -----------------------------------------------------------------------------------
+    # no more tiles: a LocalCluster's workers give their memory back before the client merges the regions
+    R.eng.release_local()
     merged = merge_regions([s_["regions"] for s_ in sm], R.tg, p.min_region_cells)
+    for s_ in sm:
+        s_.pop("regions", None)
     store = rp.store
 
     def var_terms(V: float, n: int, cross: float, include_bias: bool = True) -> float:
@@ -1392,7 +1396,7 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         from ..tiling.regions import region_mask_window
 
         vs = merged.extra.get("vsig")
-        if vs is not None and len(merged.members[k]) == 1 and np.isfinite(vs[k]):
+        if vs is not None and merged.members.counts[k] == 1 and np.isfinite(vs[k]):
             return float(vs[k])          # wholly inside one tile: computed there
         r0, c0, r1, c1 = (int(v) for v in merged.bbox[k])
         if (r1 - r0) * (c1 - c0) <= R.tiling.exact_grid_cells:
@@ -1407,8 +1411,9 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
             n = int(merged.n[k])
         return math.sqrt(var_terms(V, n, cross)) * cell
 
-    layer = regions_layer(merged, g, cell_area_m2=cell, method=st.method, epoch_a=ea, epoch_b=eb,
-                          volume_sigma=region_sigma if unc is not None else None)
+    # written batch by batch: the polygons of millions of regions are never all held at once
+    layer = regions_layer_batches(merged, g, cell_area_m2=cell, method=st.method, epoch_a=ea, epoch_b=eb,
+                                  volume_sigma=region_sigma if unc is not None else None)
     # --- summary -----------------------------------------------------------------------------------
     s = {
         "epoch_a": ea, "epoch_b": eb, "status": status, "coreg_status": c.status,
@@ -1468,7 +1473,7 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
     write_raster_style(paths["significance"], significance_qml())
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
     dr = DEMDiffResult(g, post, None, None, None, None, None, None, model.info, c, unc, sig, None, None, None,
-                       None, layer, ea, eb, p.confidence, status, notes, warnings=warns)
+                       None, None, ea, eb, p.confidence, status, notes, warnings=warns)
     dr.summary = s
     layers: dict[str, Any] = {"changes": layer}
     styles = {"changes": qml_for("changes")}
