@@ -40,8 +40,11 @@ class TileRegions:
 
 
 def tile_regions(sign: np.ndarray, dz_m: np.ndarray, tile: Tile, grid: AOIGrid, *, sigma: np.ndarray | None = None,
-                 confidence: np.ndarray | None = None, polygons: bool = True) -> TileRegions:
-    """Label the +1 and −1 regions of a tile's core (``sign`` and ``dz_m`` on the core) and summarise them."""
+                 confidence: np.ndarray | None = None, polygons: bool = True,
+                 sums: dict[str, np.ndarray] | None = None) -> TileRegions:
+    """Label the +1 and −1 regions of a tile's core (``sign`` and ``dz_m`` on the core) and summarise them.
+
+    ``sums``: further per-cell values (on the core) summed per region (added up across seams)."""
     from scipy import ndimage
 
     r0, c0, h, w = tile.core
@@ -81,6 +84,8 @@ def tile_regions(sign: np.ndarray, dz_m: np.ndarray, tile: Tile, grid: AOIGrid, 
         if confidence is not None:
             cf = np.asarray(confidence, np.float64)
             st["conf_sum"] = np.bincount(li, weights=np.nan_to_num(cf).ravel(), minlength=k)[1:]
+        for key, v in (sums or {}).items():
+            st[key] = np.bincount(li, weights=np.asarray(v, np.float64).ravel(), minlength=k)[1:]
         out.stats[s] = st
         out.edges[s] = {"top": lab[0].copy(), "bottom": lab[-1].copy(), "left": lab[:, 0].copy(),
                         "right": lab[:, -1].copy()}
@@ -131,6 +136,15 @@ class _Members:
 
     def __len__(self) -> int:
         return int(self._groups.size)
+
+    def pieces(self, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(tile index (n, 2), sign, local label) of every piece of regions ``ks``."""
+        g = self._groups[np.asarray(ks, np.int64)]
+        a, b = self._starts[g], self._starts[g + 1]
+        cnt = b - a
+        idx = np.repeat(a - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt) + np.arange(int(cnt.sum()))
+        u = self._perm[idx]
+        return self._t[u], self._s[u], self._l[u]
 
     def __getitem__(self, k: int) -> list:
         return [((int(self._t[u, 0]), int(self._t[u, 1])), int(self._s[u]), int(self._l[u])) for u in self.units(k)]
