@@ -183,7 +183,7 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
               default="vertical_only", show_default=True,
               help="What to do when the co-registration fit is under-constrained.")
 @click.option("--min-region-cells", type=int, default=4, show_default=True, help="Smallest changed region kept.")
-@click.option("--region-test", type=click.Choice(["off", "noise"]), default="off", show_default=True,
+@click.option("--region-test", type=click.Choice(["noise", "off"]), default="noise", show_default=True,
               help="noise: keep a changed region only when its combined evidence beats the regions that noise alone "
                    "forms (simulated from the fitted error model and variogram) at --confidence; off: every region.")
 @click.option("--fallback-threshold", type=float, default=None,

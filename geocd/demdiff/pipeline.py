@@ -66,8 +66,9 @@ class DEMDiffParams:
     min_region_cells: int = 4
     #: region test: "noise" keeps a region only when its combined evidence (cluster mass) exceeds what
     #: ``confidence`` % of the regions formed by noise alone reach (the error model's σ and variogram:
-    #: :func:`geocd.demdiff.significance.noise_region_null`); "off": every region of ≥ min_region_cells
-    region_test: str = "off"
+    #: :func:`geocd.demdiff.significance.noise_region_null`); "off": every region of ≥ min_region_cells.
+    #: Without stable terrain (no σ, no variogram) there is no test and every region is kept.
+    region_test: str = "noise"
     resampling: str = "bilinear"
     fallback_threshold_m: float | None = None
     min_stable_cells: int = 50

@@ -619,7 +619,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   default=4, min=1, advanced=True),
             Param("REGION_TEST", "enum", "Region test (minimum mapping unit from the noise model)",
                   cli="--region-test", default=0, advanced=True,
-                  options=(("off: every region", "off"), ("noise: drop regions noise alone forms", "noise"))),
+                  options=(("noise: drop regions noise alone forms", "noise"), ("off: every region", "off"))),
             Param("FALLBACK_THRESHOLD", "number", "|dh| marking change when there is no stable terrain",
                   cli="--fallback-threshold", unit="m", optional=True, min=0.0, advanced=True),
             Param("PREFIX", "string", "Prefix of the output file names", cli="--prefix", default="demdiff",
