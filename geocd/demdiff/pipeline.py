@@ -305,7 +305,7 @@ def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: n
     raw_sign = np.where(obs, raw_sign, 0).astype(np.int8)
     region_info = None
     if p.region_test == "noise" and sig_model is not None and unc is not None:
-        null = region_null_of(unc.variogram, post, p.confidence)
+        null = region_null_of(unc.variogram, post, p.confidence, p.min_region_cells)
         raw_sign, region_info = noise_region_filter(raw_sign, conf, p.confidence, null, p.min_region_cells)
     cell = float(post[0] * post[1])
     vfn = unc.volume_sigma_fn(cell) if unc is not None else None
@@ -326,9 +326,9 @@ def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: n
     return res
 
 
-def region_null_of(vg, posting_xy_m, level_pct: float) -> np.ndarray:
-    """The noise regions' masses for the region test (every cluster the cell test makes in noise)."""
-    return noise_region_null(vg, (float(posting_xy_m[0]), float(posting_xy_m[1])), level_pct, 1)
+def region_null_of(vg, posting_xy_m, level_pct: float, min_cells: int) -> np.ndarray:
+    """The noise regions' masses for the region test (the regions of ≥ ``min_cells`` the cell test makes in noise)."""
+    return noise_region_null(vg, (float(posting_xy_m[0]), float(posting_xy_m[1])), level_pct, min_cells)
 
 
 

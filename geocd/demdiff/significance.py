@@ -143,7 +143,8 @@ def noise_region_null(vg, posting_xy_m: tuple[float, float], level_pct: float, m
     vg : :class:`geocd.demdiff.uncertainty.VariogramModel` of the standardized residuals
     posting_xy_m : cell size (x, y) in metres
     level_pct : the map's confidence (percent); cells with p = 1 − confidence < 1 − level form regions
-    min_cells : regions smaller than this are not regions (the map's ``min_region_cells``)
+    min_cells : regions smaller than this are not regions (the map's ``min_region_cells``: the null is
+        the regions the map would report)
     size : side of each simulated field (cells); fields are simulated until ``min_regions`` null
         regions or ``max_fields`` fields (fixed seed: the same model gives the same null)
     """
@@ -194,6 +195,8 @@ def noise_region_filter(sign: np.ndarray, confidence_pct: np.ndarray, level_pct:
         big = size >= max(int(min_cells), 1)
         big[0] = False
         drop = big & (region_noise_confidence(mass, null_masses) < float(level_pct))
+        if not resolvable(null_masses, level_pct):
+            drop[:] = False
         tested += int(big.sum())
         dropped += int(drop.sum())
         dropped_cells += int(size[drop].sum())
@@ -201,6 +204,12 @@ def noise_region_filter(sign: np.ndarray, confidence_pct: np.ndarray, level_pct:
     return out, {"regions_tested": tested, "regions_dropped": dropped, "cells_dropped": dropped_cells,
                  "null_regions": int(np.asarray(null_masses).size),
                  "mass_needed": noise_mass_needed(null_masses, level_pct)}
+
+
+def resolvable(null_masses: np.ndarray, level_pct: float) -> bool:
+    """Enough noise regions to tell the ``level_pct`` share of them (else noise seldom forms regions of
+    the mapping unit's size, and every region is kept)."""
+    return np.asarray(null_masses).size * (1.0 - float(level_pct) / 100.0) >= 1.0
 
 
 def region_noise_confidence(mass: np.ndarray, null_masses: np.ndarray) -> np.ndarray:
@@ -211,7 +220,7 @@ def region_noise_confidence(mass: np.ndarray, null_masses: np.ndarray) -> np.nda
 def noise_mass_needed(null_masses: np.ndarray, level_pct: float) -> float:
     """The smallest cluster mass a region needs to be kept at ``level_pct``."""
     ms = np.asarray(null_masses, float)
-    if ms.size == 0:
-        return 0.0
+    if not resolvable(ms, level_pct):
+        return float("nan")
     k = int(np.ceil(float(level_pct) / 100.0 * ms.size))
     return float(ms[k - 1]) if k <= ms.size else float("inf")

@@ -1402,13 +1402,14 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         # region test: a first pass finds the regions and their cluster mass, the products pass drops
         # the regions noise alone would make (same rule as finish_difference's noise_region_filter)
         from .pipeline import region_null_of
-        from .significance import noise_mass_needed, region_noise_confidence
+        from .significance import noise_mass_needed, region_noise_confidence, resolvable
 
         r1 = R.run(_t_products, "regions", (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan, None,
                                             {"alpha": 1.0 - p.confidence / 100.0}), ov, inputs=kin or None)
         m1 = merge_regions([s_["regions"] for _, s_ in r1.smalls()], R.tg, p.min_region_cells)
-        null = region_null_of(vg, post, p.confidence)
-        drop = region_noise_confidence(m1.extra["mass"], null) < p.confidence if len(m1) else np.zeros(0, bool)
+        null = region_null_of(vg, post, p.confidence, p.min_region_cells)
+        drop = (region_noise_confidence(m1.extra["mass"], null) < p.confidence if len(m1) and resolvable(null, p.confidence)
+                else np.zeros(len(m1), bool))
         ks = np.nonzero(drop)[0]
         table: dict = {}
         if ks.size:
