@@ -554,8 +554,9 @@ def _t_products(arrays, ctx):
 
         ev = cluster_evidence(1.0 - conf[core].astype(np.float64) / 100.0, rtest["alpha"])
         tr = tile_regions(sc, dh[core], ctx.tile, S.grid, polygons=False, sums={"mass": ev})
-        small = {"regions": tr}
-        return TileOutput(arrays={"labels": tr.labels}, small=small)
+        labels = tr.labels
+        tr.labels = None  # a tile array, not a small result
+        return TileOutput(arrays={"labels": labels}, small={"regions": tr})
     small: dict[str, Any] = {
         "n_obs": int(obc.sum()), "n_stable": int(stc.sum()), "n_changed": int(ch.sum()),
         "n_raised": int((sc == 1).sum()), "n_lowered": int((sc == -1).sum()),
