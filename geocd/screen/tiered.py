@@ -66,6 +66,68 @@ def flag_tiles(changed: np.ndarray, tile_cells: int, min_cells: int = 1) -> Flag
     return Flagged(tile_cells, counts >= max(int(min_cells), 1))
 
 
+def calibration_cells(dissimilarity: np.ndarray, level: float, changed: np.ndarray, examined: np.ndarray,
+                      buffer_cells: int) -> np.ndarray:
+    """bool (rows, cols): the examined cells the screen calls unchanged — where a tiered run fits its transfer calibration.
+
+    The flagged tiles were flagged *because* they hold change, so their cells are enriched in it; a
+    calibration fitted on all of them reads that change as disagreement (a larger scale, fewer
+    detections). Kept: examined cells whose screen dissimilarity is at most ``level`` (the median of
+    the no-change pair's values: cells at least as alike as a typical unchanged cell, which leaves out
+    the many changes too weak for the screen's 99 % threshold), away from screen-changed cells by
+    ``buffer_cells`` (one screen cell: its coarse grid's halo). Cells the screen could not compare
+    (NaN) are left out.
+    """
+    from scipy import ndimage
+
+    d = np.asarray(dissimilarity, np.float64)
+    near = np.asarray(changed, bool)
+    if buffer_cells > 0 and near.any():
+        near = ndimage.binary_dilation(near, structure=np.ones((3, 3), bool), iterations=int(buffer_cells))
+    with np.errstate(invalid="ignore"):
+        alike = np.isfinite(d) & (d <= float(level))
+    return np.asarray(examined, bool) & alike & ~near
+
+
+def fit_calibration_on(epoch_a, epoch_b, model, params, cells: np.ndarray):
+    """The change test's transfer calibration fitted on ``cells`` only, and the vertical offsets it was fitted with.
+
+    Same law and fit as :func:`geocd.change_test` does on every observed cell
+    (:func:`geocd.consistency.fit_pair_calibration`), restricted to a selection (a tiered run's
+    screen-unchanged examined cells, :func:`calibration_cells`). Returns ``(calibration or None,
+    offsets)``: None when ``params.calibration`` does not ask for one (a model learned on these data
+    with ``auto``, or ``none``) or when the selection holds too few cells (the change test then
+    fits on all its cells, as without a screen). Pass both to the change test.
+    """
+    from ..consistency import (_comparison_arrays, apply_offsets, fit_pair_calibration, model_learned_on,
+                               vertical_offsets)
+    from ..errors import ProcessingError
+
+    recs = list(epoch_a) + list(epoch_b)
+    offsets = vertical_offsets(recs, mode=params.align)
+    aligned = apply_offsets(recs, offsets)
+    mode = params.calibration
+    if mode == "auto":
+        mode = "none" if model_learned_on(model, aligned) else "pair"
+    if mode != "pair":
+        return None, offsets
+    na = len(epoch_a)
+    posting = getattr(getattr(aligned[0], "grid", None), "posting_m", None)
+    sel = np.asarray(cells, bool)
+    parts = [[], [], [], []]
+    for p in aligned[:na]:
+        for q in aligned[na:]:
+            dt, sc, _, both, mpu, slope = _comparison_arrays(p, q, posting)
+            keep = both & sel
+            for lst, arr in zip(parts, (dt, sc, slope, mpu)):
+                lst.append(np.asarray(arr)[keep])
+    try:
+        cal = fit_pair_calibration(model, *(np.concatenate(x) for x in parts), fit_edge=bool(posting))
+    except ProcessingError:
+        return None, offsets
+    return cal, offsets
+
+
 def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, epochs: list[str], pairs: str,
                         posting_m: float | None = None, epoch_a: str | None = None, epoch_b: str | None = None,
                         tile_cells: int = 128, min_region_m2: float = 4.0, scheduler: str = "sync",
@@ -73,7 +135,8 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
     """The screen, then geocd stereo on the flagged tiles only.
 
     Returns run_stereo's dict (``outputs``, ``grid``, ``pairs`` as PairDEMs on the whole grid) + ``examined``
-    (bool (rows, cols), the flagged tiles' cells) and ``screen`` (flags, fractions, seconds).
+    (bool (rows, cols), the flagged tiles' cells), ``calibration_cells`` (bool (rows, cols), the examined
+    cells the screen calls unchanged: :func:`calibration_cells`) and ``screen`` (flags, fractions, seconds).
     """
     from scipy import ndimage
 
@@ -106,6 +169,10 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
         changed = keep[lab]
     fl = flag_tiles(changed, tile_cells)
     examined = fl.examined(grid.shape)
+    # where the transfer calibration is fitted: examined cells the screen calls unchanged
+    null = sc.get("null")
+    level = float(np.median(null.values)) if null is not None else float(sc["threshold"])
+    cal_cells = calibration_cells(sr.dissimilarity, level, changed, examined, screen_params.feature.cell_px)
     t1 = time.perf_counter()
     tiling = TilingParams(tile_size=tile_cells, scheduler=scheduler)
     st = run_stereo_tiled(m, out_dir=out, epochs=epochs, params=stereo_params, grid=grid, pairs=pairs, tiling=tiling,
@@ -118,7 +185,11 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
             "flagged_tile_fraction": round(fl.tile_fraction, 4),
             "flagged": [[int(i), int(j)] for i, j in zip(*np.nonzero(fl.tiles))],
             "stereo_cell_fraction": round(float(examined.mean()), 4),
+            "calibration_cells": {"fraction": round(float(cal_cells.mean()), 4), "dissimilarity_at_most": round(level, 4),
+                                  "level": "no-change pair's median" if null is not None else "threshold",
+                                  "buffer_cells": int(screen_params.feature.cell_px)},
             "screen_seconds": round(t_screen, 2), "stereo_seconds": round(t_3d, 2)}
     prog(1.0, "screened stereo done")
     return {"outputs": st["outputs"], "grid": grid, "pairs": kept, "screen": info, "examined": examined,
+            "calibration_cells": cal_cells,
             "screen_outputs": {f"screen:{k}": v for k, v in sc["outputs"].items() if not k.startswith("view:")}}

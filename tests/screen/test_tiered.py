@@ -151,3 +151,70 @@ def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, 
     assert (bf["class"].to_numpy()[ne] == "unobserved").all() and (b["frac_examined"].to_numpy()[ne] < 1).all()
     keep = ~ne
     np.testing.assert_array_equal(b["class"].to_numpy()[keep], bf["class"].to_numpy()[keep])
+
+
+def test_calibration_is_fitted_on_screen_unchanged_cells_not_on_the_flagged_change():
+    """A scene-class model applied to data twice as noisy (true scale 2). The examined half of the grid holds
+    many weak changes (40 % of its cells, 1.5–4 × the static spread: too weak to be trimmed by the fit). Fitted
+    on every examined cell (what the change test does alone) the scale is biased high; fitted on the cells the
+    screen calls unchanged (dissimilarity ≤ the no-change median, away from screen-changed cells) it is the
+    static scene's."""
+    from dataclasses import dataclass
+    from types import SimpleNamespace
+
+    from geocd.consistency import ChangeParams, ConsistencyParams, change_test, learn_self_consistency
+    from geocd.screen.tiered import calibration_cells, fit_calibration_on
+
+    shape = (200, 200)
+    grid = SimpleNamespace(posting_m=1.0)
+
+    @dataclass
+    class Rec:
+        z_m: np.ndarray
+        score: np.ndarray
+        g_px_per_m: np.ndarray
+        valid: np.ndarray
+        grid: object
+        name: str
+
+    def rec(truth, rng, name, noise):
+        score = rng.uniform(-2.0, 1.0, shape).astype(np.float32)
+        err = rng.normal(size=shape) * (0.1 + 0.3 * (score + 2.0)) * noise
+        return Rec((truth + err).astype(np.float32), score, np.ones(shape, np.float32), np.ones(shape, bool),
+                   grid, name)
+
+    rng = np.random.default_rng(4)
+    flat = np.zeros(shape, np.float32)
+    model = learn_self_consistency([[rec(flat, rng, f"M{i}", 1.0) for i in range(3)]],
+                                   ConsistencyParams(n_score_bins=10, min_bin_count=500))
+    examined = np.zeros(shape, bool)
+    examined[:, :100] = True
+    # weak changes: 8 × 8 blocks over 40 % of the examined half
+    blocks = rng.random((25, 13)) < 0.4
+    weak = np.repeat(np.repeat(blocks, 8, 0), 8, 1)[:, :100]
+    truth_b = flat.copy()
+    truth_b[:, :100][weak] += rng.choice([-1.0, 1.0], weak.sum()) * rng.uniform(1.5, 4.0, weak.sum())
+    A = [rec(flat, rng, "A0", 2.0)]
+    B = [rec(truth_b, rng, "B0", 2.0)]
+    # the screen: changed blocks look dissimilar (some above its threshold, the rest between the null's
+    # median and the threshold), static cells look alike
+    d = rng.uniform(0.3, 0.9, shape)
+    ch_cells = np.zeros(shape, bool)
+    ch_cells[:, :100] = weak
+    d[ch_cells] = rng.uniform(1.1, 1.6, ch_cells.sum())
+    screen_changed = ch_cells & (d > 1.4)
+    cells = calibration_cells(d, 1.0, screen_changed, examined, 2)
+    assert cells.sum() > 5000 and not (cells & ~examined).any() and not (cells & ch_cells).any()
+    params = ChangeParams()
+    new, offsets = fit_calibration_on(A, B, model, params, cells)
+    # the change test alone, seeing only the examined cells (the old behaviour): fitted on all of them
+    def only(r, keep):
+        return Rec(np.where(keep, r.z_m, np.nan).astype(np.float32), r.score, r.g_px_per_m, r.valid & keep, grid, r.name)
+    old = change_test([only(A[0], examined)], [only(B[0], examined)], model, params).calibration
+    whole_static = fit_calibration_on(A, B, model, params, ~ch_cells)[0]
+    assert whole_static.scale == pytest.approx(2.0, rel=0.1)
+    assert new.scale == pytest.approx(whole_static.scale, rel=0.05)
+    assert old.scale > 1.15 * whole_static.scale
+    # the change test takes the calibration and the offsets it was fitted with
+    res = change_test(A, B, model, params, offsets=offsets, calibration=new)
+    assert res.calibration is new
