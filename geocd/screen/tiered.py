@@ -26,6 +26,7 @@ change test's vertical offsets are medians over the examined cells.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import time
 from pathlib import Path
 from typing import Any
@@ -64,6 +65,59 @@ def flag_tiles(changed: np.ndarray, tile_cells: int, min_cells: int = 1) -> Flag
     pad[:H, :W] = changed
     counts = pad.reshape(nr, tile_cells, nc, tile_cells).sum(axis=(1, 3))
     return Flagged(tile_cells, counts >= max(int(min_cells), 1))
+
+
+@dataclasses.dataclass(frozen=True)
+class StereoPlan:
+    """How a tiered run's 3-D stage covers the flagged tiles (:func:`plan_stereo`)."""
+
+    tile_cells: int                         # side of the stereo's tiles (a multiple of the screen's)
+    tiles: np.ndarray                       # bool (tile rows, tile cols) of those tiles: the ones matched
+    whole_grid: bool                        # True: one untiled match of the whole grid (as the full run)
+    read_cells: int                         # cells the windows would read (margins included)
+    grid_cells: int
+
+    def examined(self, shape: tuple[int, int]) -> np.ndarray:
+        if self.whole_grid:
+            return np.ones(shape, bool)
+        return Flagged(self.tile_cells, self.tiles).examined(shape)
+
+    def to_dict(self) -> dict:
+        return {"stereo_tile_cells": int(self.tile_cells), "stereo_tiles": int(self.tiles.sum()),
+                "stereo_tiles_in_grid": int(self.tiles.size), "whole_grid": bool(self.whole_grid),
+                "window_read_fraction": round(self.read_cells / max(self.grid_cells, 1), 4)}
+
+
+def plan_stereo(flagged: Flagged, shape: tuple[int, int], min_window_cells: int, margin_cells: int) -> StereoPlan:
+    """Windows for the 3-D stage of a tiered run, sized from the scene and the flagged tiles.
+
+    A stereo window narrower than ``min_window_cells`` loses coarse levels of the coarse-to-fine search
+    and searches more heights per cell (:func:`geocd.stereo.tiled.stereo_window_needs`), so the
+    stereo tiles are the screen's tiles grouped into squares of at least that side; a stereo tile is
+    matched when it holds a flagged screen tile, and neighbouring ones of a tile row as one window
+    with one margin. When those windows would read at least the whole grid (margins included), the
+    whole grid is matched once, untiled, exactly as the full run does: on a scene that small,
+    windows cost more than they save.
+    """
+    H, W = shape
+    t0 = int(flagged.tile_cells)
+    T = t0 * max(1, -(-int(min_window_cells) // t0))
+    tiles = flag_tiles(flagged.examined(shape), T).tiles
+    o = min(int(margin_cells), T // 2)
+    read = 0
+    for i in range(tiles.shape[0]):
+        j = 0
+        while j < tiles.shape[1]:
+            if not tiles[i, j]:
+                j += 1
+                continue
+            j0 = j
+            while j < tiles.shape[1] and tiles[i, j]:
+                j += 1
+            r0, r1 = max(0, i * T - o), min(H, (i + 1) * T + o)
+            c0, c1 = max(0, j0 * T - o), min(W, j * T + o)
+            read += (r1 - r0) * (c1 - c0)
+    return StereoPlan(T, tiles, bool(tiles.any()) and read >= H * W, int(read), int(H * W))
 
 
 def calibration_cells(dissimilarity: np.ndarray, level: float, changed: np.ndarray, examined: np.ndarray,
@@ -131,8 +185,13 @@ def fit_calibration_on(epoch_a, epoch_b, model, params, cells: np.ndarray):
 def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, epochs: list[str], pairs: str,
                         posting_m: float | None = None, epoch_a: str | None = None, epoch_b: str | None = None,
                         tile_cells: int = 128, min_region_m2: float = 4.0, scheduler: str = "sync",
-                        progress: Progress | None = None) -> dict[str, Any]:
+                        stereo_plan: str = "auto", progress: Progress | None = None) -> dict[str, Any]:
     """The screen, then geocd stereo on the flagged tiles only.
+
+    ``stereo_plan``: "auto" (:func:`plan_stereo`: windows of the stereo's own size around the flagged
+    tiles, or the whole grid untiled when those would read all of it) or "tiles" (each run of flagged
+    screen tiles matched as its own window, with its margin — slower on small scenes, kept to measure
+    against).
 
     Returns run_stereo's dict (``outputs``, ``grid``, ``pairs`` as PairDEMs on the whole grid) + ``examined``
     (bool (rows, cols), the flagged tiles' cells), ``calibration_cells`` (bool (rows, cols), the examined
@@ -144,7 +203,8 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
     from ..io.raster import read_dem
     from ..stereo import read_pair_dem
     from ..stereo.pipeline import default_aoi_grid, load_epoch_images
-    from ..stereo.tiled import run_stereo_tiled
+    from ..stereo.pipeline import run_stereo
+    from ..stereo.tiled import run_stereo_tiled, stereo_window_needs
     from .pipeline import run_screen_manifest
 
     prog = ensure_progress(progress)
@@ -168,22 +228,37 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
         keep[0] = False
         changed = keep[lab]
     fl = flag_tiles(changed, tile_cells)
-    examined = fl.examined(grid.shape)
     # where the transfer calibration is fitted: examined cells the screen calls unchanged
     null = sc.get("null")
     level = float(np.median(null.values)) if null is not None else float(sc["threshold"])
-    cal_cells = calibration_cells(sr.dissimilarity, level, changed, examined, screen_params.feature.cell_px)
     t1 = time.perf_counter()
-    tiling = TilingParams(tile_size=tile_cells, scheduler=scheduler)
-    st = run_stereo_tiled(m, out_dir=out, epochs=epochs, params=stereo_params, grid=grid, pairs=pairs, tiling=tiling,
-                          tiles=fl.tiles, progress=sub_progress(prog, 0.2, 1.0, "stereo on flagged tiles: "))
+    if stereo_plan == "auto":
+        needs = [stereo_window_needs(m, grid, a, b, stereo_params) for e in epochs
+                 for a, b in itertools.combinations(images[e], 2) if pairs == "all" or a.camera.kind == b.camera.kind]
+        plan = plan_stereo(fl, grid.shape, max(n[1] for n in needs), max(n[0] for n in needs))
+    else:   # the screen's own tiles, each matched with its margin
+        plan = StereoPlan(tile_cells, fl.tiles, False, 0, int(np.prod(grid.shape)))
+    if plan.whole_grid:
+        st = run_stereo(m, epochs=epochs, out_dir=out, params=stereo_params, grid=grid, keep_arrays=True,
+                        pairs=pairs, orient=False, progress=sub_progress(prog, 0.2, 1.0, "stereo (whole grid): "))
+        st.setdefault("margins", {})
+    else:
+        tiling = TilingParams(tile_size=plan.tile_cells, scheduler=scheduler)
+        st = run_stereo_tiled(m, out_dir=out, epochs=epochs, params=stereo_params, grid=grid, pairs=pairs,
+                              tiling=tiling, tiles=plan.tiles,
+                              progress=sub_progress(prog, 0.2, 1.0, "stereo on flagged tiles: "))
     t_3d = time.perf_counter() - t1
-    kept = {key: read_pair_dem(p) for key, p in st["outputs"].items()}
+    # the 3-D stage examined what it matched (the whole grid, or the stereo tiles holding flagged tiles)
+    examined = plan.examined(grid.shape)
+    cal_cells = calibration_cells(sr.dissimilarity, level, changed, examined, screen_params.feature.cell_px)
+    kept = st.get("pairs") or {key: read_pair_dem(p) for key, p in st["outputs"].items()}
     info = {"threshold": round(float(sc["threshold"]), 4), "rule": sc["rule"], "feature": screen_params.feature.label,
             "pair": list(sc["pair"]), "tile_cells": tile_cells, "stereo_margin_cells": st["margins"],
             "flagged_tiles": int(fl.tiles.sum()), "tiles": int(fl.tiles.size),
             "flagged_tile_fraction": round(fl.tile_fraction, 4),
             "flagged": [[int(i), int(j)] for i, j in zip(*np.nonzero(fl.tiles))],
+            "screen_flagged_cell_fraction": round(fl.cell_fraction(grid.shape), 4),
+            "stereo_plan": plan.to_dict(),
             "stereo_cell_fraction": round(float(examined.mean()), 4),
             "calibration_cells": {"fraction": round(float(cal_cells.mean()), 4), "dissimilarity_at_most": round(level, 4),
                                   "level": "no-change pair's median" if null is not None else "threshold",

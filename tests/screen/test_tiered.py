@@ -218,3 +218,31 @@ def test_calibration_is_fitted_on_screen_unchanged_cells_not_on_the_flagged_chan
     # the change test takes the calibration and the offsets it was fitted with
     res = change_test(A, B, model, params, offsets=offsets, calibration=new)
     assert res.calibration is new
+
+
+def test_stereo_plan_sizes_windows_from_the_scene_and_falls_back_to_the_whole_grid():
+    """Windows keep every coarse level (side ≥ the pair's need, in whole screen tiles); when they would read the
+    whole grid anyway (a small scene, scattered flags) the whole grid is matched once, untiled."""
+    from geocd.screen.tiered import Flagged, plan_stereo
+
+    # Kahramanmaraş's grid and flags (25 of 72 128-cell tiles, spread over the scene), 448-cell need, 64 margin
+    flags = np.zeros((8, 9), bool)
+    for i, j in [(0, 1), (0, 2), (0, 4), (0, 5), (1, 3), (1, 4), (3, 2), (4, 0), (4, 1), (4, 2), (4, 3), (4, 4),
+                 (4, 5), (5, 1), (5, 2), (5, 3), (5, 6), (5, 7), (6, 3), (6, 4), (7, 1), (7, 3), (7, 4), (7, 5), (7, 6)]:
+        flags[i, j] = True
+    p = plan_stereo(Flagged(128, flags), (1004, 1048), 448, 64)
+    assert p.tile_cells == 512 and p.whole_grid and p.examined((1004, 1048)).all()
+    # a city of 8 000² cells with two flagged screen tiles far apart: two 512-cell windows, margin once each
+    big = np.zeros((63, 63), bool)
+    big[5, 5] = big[40, 50] = True        # stereo tiles (1, 1) and (10, 12), inside the grid
+    p = plan_stereo(Flagged(128, big), (8000, 8000), 448, 64)
+    assert not p.whole_grid and p.tile_cells == 512 and p.tiles.sum() == 2
+    assert p.read_cells == 2 * (512 + 128) ** 2
+    ex = p.examined((8000, 8000))
+    assert ex.sum() == 2 * 512 ** 2 and ex[5 * 128, 5 * 128] and ex[40 * 128, 50 * 128]
+    # neighbouring stereo tiles of a row share one window (one margin)
+    big[5, 9] = True                      # stereo tile (1, 2), beside (1, 1)
+    p = plan_stereo(Flagged(128, big), (8000, 8000), 448, 64)
+    assert p.tiles.sum() == 3 and p.read_cells == (2 * 512 + 128) * (512 + 128) + (512 + 128) ** 2
+    # a need below the screen's tile: the screen's tiles as they are
+    assert plan_stereo(Flagged(128, big), (8000, 8000), 100, 64).tile_cells == 128
