@@ -101,18 +101,65 @@ def bench_features(size: int = 1024, only: list[str] | None = None) -> dict:
     return {"pair": what, "km2": round(km2, 4), "threads": 1, "load_average": os.getloadavg(), "rows": rows}
 
 
-def _run(args: list[str]) -> dict:
+def _run(args: list[str], cold: bool = False) -> dict:
+    """One geocd command as a child process; ``cold``: with an empty numba cache of its own (every kernel it
+    uses compiles, as on a first run; the worktree's cache is left alone)."""
+    import tempfile
+
+    env = dict(os.environ)
+    tmp = tempfile.TemporaryDirectory(prefix="geocd_numba_cold_") if cold else None
+    if tmp is not None:
+        env["NUMBA_CACHE_DIR"] = tmp.name
     load0 = os.getloadavg()[0]
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.run([str(ROOT / ".venv" / "bin" / "geocd"), "--progress", "none", *args], capture_output=True,
-                       text=True)
+                       text=True, env=env)
+    if tmp is not None:
+        tmp.cleanup()
     wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if p.returncode:
         raise SystemExit(f"geocd {' '.join(args)} failed:\n{p.stderr[-3000:]}")
     return {"wall_s": round(wall, 1), "cpu_s": round((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), 1),
             "load_average_1min": [round(load0, 2), round(os.getloadavg()[0], 2)], "stdout": p.stdout[-2000:]}
+
+
+def _parts(out: Path) -> dict:
+    """Wall seconds of a run's parts, from its log's progress lines (1 s resolution): orientation, the 3-D
+    stage (screen + stereo in a tiered run), the change test (model, comparisons, buildings) and the products."""
+    import re
+
+    marks: dict[str, float] = {}
+    log = out / "geocd_run.log"
+    if not log.exists():
+        return {}
+    day = 0.0
+    last = None
+    for line in log.read_text().splitlines():
+        mm = re.match(r"(\d\d):(\d\d):(\d\d) PROGRESS run +(\d+)% (.*)", line)
+        if not mm:
+            continue
+        t = int(mm[1]) * 3600 + int(mm[2]) * 60 + int(mm[3]) + day
+        if last is not None and t < last:   # past midnight
+            day += 86400.0
+            t += 86400.0
+        last = t
+        pct, msg = int(mm[4]), mm[5]
+        marks.setdefault("start", t)
+        if pct >= 10:
+            marks.setdefault("stereo", t)
+        if msg.startswith(("learning", "cross-epoch change test")):
+            marks.setdefault("change", t)
+        if msg.startswith("writing products"):
+            marks.setdefault("products", t)
+        if msg.startswith("done"):
+            marks.setdefault("done", t)
+    keys = ["start", "stereo", "change", "products", "done"]
+    if not all(k in marks for k in keys):
+        return {}
+    names = ["orientation_s", "stereo_s", "change_test_s", "products_s"]
+    return {n: round(marks[b] - marks[a], 1) for n, a, b in zip(names, keys[:-1], keys[1:])}
 
 
 def _regions(out: Path):
@@ -289,7 +336,7 @@ def _truth_scores(out: Path, scene: Path) -> dict | None:
     return res
 
 
-def bench_tiered(scene: str, model: str | None, work: Path, reference: Path | None = None) -> dict:
+def bench_tiered(scene: str, model: str | None, work: Path, reference: Path | None = None, cold: bool = False) -> dict:
     """Full then tiered run, back to back (same machine state), whole processes; ``reference``: another full
     run's folder to compare the tiered run's detections with as well."""
     import shutil
@@ -298,8 +345,8 @@ def bench_tiered(scene: str, model: str | None, work: Path, reference: Path | No
     full, tier = work / "full", work / "tiered"
     for d in (full, tier):  # no resumed tiles, no earlier products: every run starts from nothing
         shutil.rmtree(d, ignore_errors=True)
-    r_full = _run(["run", scene, "--out", str(full), *extra])
-    r_tier = _run(["run", scene, "--out", str(tier), "--screen", *extra])
+    r_full = _run(["run", scene, "--out", str(full), *extra], cold)
+    r_tier = _run(["run", scene, "--out", str(tier), "--screen", *extra], cold)
     res = compare(scene, model, full, tier, r_full, r_tier)
     if reference is not None:
         ref = compare(scene, model, reference, tier, {"wall_s": float("nan"), "cpu_s": float("nan")}, r_tier)
@@ -328,6 +375,7 @@ def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict,
            "tiered": {k: v for k, v in r_tier.items() if k != "stdout"}, "screen": s,
            "speedup_wall": round(r_full["wall_s"] / r_tier["wall_s"], 2),
            "speedup_cpu": round(r_full["cpu_s"] / r_tier["cpu_s"], 2),
+           "parts_wall_s": {"full": _parts(full), "tiered": _parts(tier)},
            "regions_full": int(len(a)), "regions_tiered": int(len(b)), "regions_lost": int(len(lost)),
            "area_lost_m2": round(float(lost.area.sum()), 1), "area_full_m2": round(float(a.area.sum()), 1),
            "cells": _cells(full, tier), "models": _models(full, tier)}
@@ -441,6 +489,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tiered-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
     ap.add_argument("scene", nargs="?", default="sample_aoi")
     ap.add_argument("--model", default=None)
+    ap.add_argument("--cold", action="store_true", help="tiered: each run with an empty numba cache of its own")
     ap.add_argument("--size", type=int, default=1024, help="features: side of the benchmark pair (px)")
     ap.add_argument("--features", default=None, help="features: comma-separated label prefixes (default all)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/geocd_bench_screen"))
@@ -461,7 +510,8 @@ def main(argv=None) -> int:
         doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:
         w = a.work / _key(a.scene)
-        doc.setdefault("tiered", {})[_key(a.scene)] = bench_tiered(a.scene, a.model, w, a.full_dir)
+        doc.setdefault("tiered", {})[_key(a.scene) + (" cold" if a.cold else "")] = bench_tiered(
+            a.scene, a.model, w, a.full_dir, a.cold)
     a.out.write_text(json.dumps(doc, indent=1, default=str))
     print(json.dumps(doc, indent=1, default=str)[-3000:])
     return 0
