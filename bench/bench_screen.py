@@ -238,6 +238,54 @@ def _lost_vs_threshold_rule(full: Path, tier: Path, grid) -> dict | None:
             "max_d_quantiles": [round(float(v), 3) for v in np.quantile(dmax, [0.1, 0.5, 0.9])]}
 
 
+def screen_losses(full: Path, screens: list[Path], tile_cells: int = 128, min_region_m2: float = 4.0) -> dict:
+    """What each screen alone would lose: the full run's changed buildings (``building_damage``, changed
+    classes) lying mostly (≥ 50 % of their cells) outside the tiles the screen flags, and how many of those
+    the screen sees below its own no-change 99 % quantile. For comparing screens (e.g. the views on the
+    terrain or on a DSM), independent of how the 3-D stage then covers the tiles."""
+    import geopandas as gpd
+    import rasterio
+    from rasterio.features import rasterize
+    from scipy import ndimage as ndi
+
+    from geocd.geodesy import AOIGrid
+    from geocd.pipeline import mark_not_examined
+    from geocd.screen.tiered import flag_tiles
+
+    a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
+    a = a[~a["class"].isin(("unchanged", "unobserved", "not examined"))]
+    out = {"full_dir": str(full), "changed_full": int(len(a)), "tile_cells": tile_cells, "screens": {}}
+    for sd in screens:
+        summ = json.loads((sd / "screen_summary.json").read_text())
+        with rasterio.open(sd / "screen_change_mask.tif") as ds:
+            ch = ds.read(1) == 1
+            grid = AOIGrid.from_raster(ds)
+        with rasterio.open(sd / "screen_dissimilarity.tif") as ds:
+            d = ds.read(1)
+        lab, n = ndi.label(ch, structure=np.ones((3, 3), bool))
+        if n:
+            keep = np.bincount(lab.ravel()) >= max(1, int(np.ceil(min_region_m2 / grid.cell_area_m2)))
+            keep[0] = False
+            ch = keep[lab]
+        fl = flag_tiles(ch, tile_cells)
+        ex = fl.examined(grid.shape)
+        fr = mark_not_examined(a.assign(**{"class": "x"}), grid, ex)["frac_examined"].to_numpy()
+        outside = a[fr < 0.5]
+        q99 = float(summ["null"]["quantiles"]["99"]) if summ.get("null") else float("nan")
+        below = 0
+        if len(outside):
+            lb = rasterize([(g, i + 1) for i, g in enumerate(outside.to_crs(grid.crs).geometry)], out_shape=grid.shape,
+                           transform=grid.transform, fill=0, dtype="int32")
+            dmax = np.asarray(ndi.maximum(np.nan_to_num(d, nan=-1.0), lb, np.arange(1, len(outside) + 1)))
+            below = int((dmax <= q99).sum())
+        out["screens"][str(sd)] = {"threshold": round(float(summ["threshold"]), 4), "null": summ.get("null"),
+                                   "flagged_tile_fraction": round(fl.tile_fraction, 4),
+                                   "flagged_cell_fraction": round(fl.cell_fraction(grid.shape), 4),
+                                   "lost_outside_flagged_tiles": int(len(outside)), "of_which_below_null_q99": below,
+                                   "surface": summ.get("surface")}
+    return out
+
+
 def _curve_diff(a, b) -> tuple[float, float]:
     """|99 % curve of b − of a| / of a over the score bins a populates: (weighted by a's counts, max)."""
     sc = a.score_centres
@@ -480,7 +528,9 @@ def _key(scene: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles", "stereo-overhead"])
+    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles", "stereo-overhead", "screen-losses"])
+    ap.add_argument("--screen-dir", type=Path, action="append", default=[],
+                    help="screen-losses: a screen's output folder (repeat)")
     ap.add_argument("--epoch", default="B", help="stereo-overhead: the epoch whose pairs are matched")
     ap.add_argument("--full-dir", type=Path, help="compare: the full run's output folder; tiered: a reference "
                     "full run to compare the detections with as well")
@@ -506,6 +556,8 @@ def main(argv=None) -> int:
     elif a.what == "stereo-overhead":  # untiled vs tiled stereo of one epoch, on the tiered run's flags
         doc.setdefault("stereo_overhead", {})[_key(a.scene)] = stereo_overhead(a.scene, a.tiered_dir, a.epoch,
                                                                                 a.work / "overhead")
+    elif a.what == "screen-losses":  # what screens alone would lose (no stereo): --full-dir and --screen-dir ...
+        doc.setdefault("screen_losses", {})[_key(a.scene)] = screen_losses(a.full_dir, a.screen_dir)
     elif a.what == "tiles":  # other --screen-tile sizes with the screen of a tiered run (no stereo re-run)
         doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:
