@@ -194,8 +194,9 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
     against).
 
     Returns run_stereo's dict (``outputs``, ``grid``, ``pairs`` as PairDEMs on the whole grid) + ``examined``
-    (bool (rows, cols), the flagged tiles' cells), ``calibration_cells`` (bool (rows, cols), the examined
-    cells the screen calls unchanged: :func:`calibration_cells`) and ``screen`` (flags, fractions, seconds).
+    (bool (rows, cols), the cells the 3-D stage matched), ``calibration_cells`` (bool (rows, cols), the examined
+    cells the screen calls unchanged, :func:`calibration_cells`; None when the whole grid was matched) and
+    ``screen`` (flags, fractions, plan, seconds).
     """
     from scipy import ndimage
 
@@ -250,7 +251,10 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
     t_3d = time.perf_counter() - t1
     # the 3-D stage examined what it matched (the whole grid, or the stereo tiles holding flagged tiles)
     examined = plan.examined(grid.shape)
-    cal_cells = calibration_cells(sr.dissimilarity, level, changed, examined, screen_params.feature.cell_px)
+    # the calibration's bias comes from examining change-rich tiles only; the whole grid examined is no selection,
+    # and the change test then fits on every cell as the full run does
+    cal_cells = (None if plan.whole_grid
+                 else calibration_cells(sr.dissimilarity, level, changed, examined, screen_params.feature.cell_px))
     kept = st.get("pairs") or {key: read_pair_dem(p) for key, p in st["outputs"].items()}
     info = {"threshold": round(float(sc["threshold"]), 4), "rule": sc["rule"], "feature": screen_params.feature.label,
             "pair": list(sc["pair"]), "tile_cells": tile_cells, "stereo_margin_cells": st["margins"],
@@ -260,9 +264,10 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
             "screen_flagged_cell_fraction": round(fl.cell_fraction(grid.shape), 4),
             "stereo_plan": plan.to_dict(),
             "stereo_cell_fraction": round(float(examined.mean()), 4),
-            "calibration_cells": {"fraction": round(float(cal_cells.mean()), 4), "dissimilarity_at_most": round(level, 4),
-                                  "level": "no-change pair's median" if null is not None else "threshold",
-                                  "buffer_cells": int(screen_params.feature.cell_px)},
+            "calibration_cells": ("all (the whole grid was examined)" if cal_cells is None else
+                                  {"fraction": round(float(cal_cells.mean()), 4), "dissimilarity_at_most": round(level, 4),
+                                   "level": "no-change pair's median" if null is not None else "threshold",
+                                   "buffer_cells": int(screen_params.feature.cell_px)}),
             "screen_seconds": round(t_screen, 2), "stereo_seconds": round(t_3d, 2)}
     prog(1.0, "screened stereo done")
     return {"outputs": st["outputs"], "grid": grid, "pairs": kept, "screen": info, "examined": examined,
