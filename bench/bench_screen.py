@@ -286,6 +286,54 @@ def screen_losses(full: Path, screens: list[Path], tile_cells: int = 128, min_re
     return out
 
 
+def calibration_fits(full: Path, tier: Path, model: str) -> dict:
+    """The transfer calibration (scale, edge σ) fitted on several selections of one full run's pair-DEMs: every
+    cell (the full run's fit), the screen's flagged tiles (the tiered run's old fit), the flagged tiles' cells
+    the screen calls unchanged (the new rule), the same over the whole grid, and two diagnostics that use the
+    full run's own 99 % change mask (the static scene of the grid and of the flagged tiles)."""
+    import rasterio
+    from scipy import ndimage
+
+    from geocd.consistency import ChangeParams, SelfConsistencyModel
+    from geocd.screen.tiered import Flagged, calibration_cells, fit_calibration_on
+    from geocd.stereo import read_pair_dem
+
+    mdl = SelfConsistencyModel.load(model)
+    summ = json.loads((full / "run_summary.json").read_text())
+    ea, eb = summ["epoch_a"], summ["epoch_b"]
+    A = [read_pair_dem(p) for p in sorted((full / "stereo" / ea).glob("*.tif"))]
+    B = [read_pair_dem(p) for p in sorted((full / "stereo" / eb).glob("*.tif"))]
+    shape = A[0].z_m.shape
+    scr = json.loads((tier / "run_summary.json").read_text())["screen"]
+    t = scr["tile_cells"]
+    sel = np.zeros((-(-shape[0] // t), -(-shape[1] // t)), bool)
+    for i, j in scr["flagged"]:
+        sel[i, j] = True
+    flagged = Flagged(t, sel).examined(shape)
+    with rasterio.open(tier / "screen" / "screen_change_mask.tif") as ds:
+        ch = ds.read(1) == 1
+    with rasterio.open(tier / "screen" / "screen_dissimilarity.tif") as ds:
+        d = ds.read(1)
+    ssum = json.loads((tier / "screen" / "screen_summary.json").read_text())
+    q50 = float(ssum["null"]["quantiles"]["50"])
+    cell = int(ssum["cell_px"])
+    with rasterio.open(full / "sc_change_mask.tif") as ds:
+        fm = ds.read(1)
+    static = ~ndimage.binary_dilation((fm == 1) | (fm == -1), iterations=8)
+    every = np.ones(shape, bool)
+    rows = {"all cells (the full run's fit)": every,
+            "flagged tiles, every cell (the old tiered fit)": flagged,
+            "flagged tiles, screen-unchanged (the new rule)": calibration_cells(d, q50, ch, flagged, cell),
+            "whole grid, screen-unchanged": calibration_cells(d, q50, ch, every, cell),
+            "diagnostic: whole grid without the full run's 99 % changes (8-cell buffer)": static,
+            "diagnostic: flagged tiles without the full run's 99 % changes (8-cell buffer)": flagged & static}
+    out = {"full_dir": str(full), "tiered_dir": str(tier), "model": model, "fits": {}}
+    for name, cells in rows.items():
+        cal, _ = fit_calibration_on(A, B, mdl, ChangeParams(), cells)
+        out["fits"][name] = {"selected_cells": int(cells.sum()), **(cal.to_dict() if cal is not None else {})}
+    return out
+
+
 def _curve_diff(a, b) -> tuple[float, float]:
     """|99 % curve of b − of a| / of a over the score bins a populates: (weighted by a's counts, max)."""
     sc = a.score_centres
@@ -528,7 +576,8 @@ def _key(scene: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles", "stereo-overhead", "screen-losses"])
+    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles", "stereo-overhead", "screen-losses",
+                                        "calibration"])
     ap.add_argument("--screen-dir", type=Path, action="append", default=[],
                     help="screen-losses: a screen's output folder (repeat)")
     ap.add_argument("--epoch", default="B", help="stereo-overhead: the epoch whose pairs are matched")
@@ -558,6 +607,8 @@ def main(argv=None) -> int:
                                                                                 a.work / "overhead")
     elif a.what == "screen-losses":  # what screens alone would lose (no stereo): --full-dir and --screen-dir ...
         doc.setdefault("screen_losses", {})[_key(a.scene)] = screen_losses(a.full_dir, a.screen_dir)
+    elif a.what == "calibration":  # the transfer calibration fitted on several selections of a full run's cells
+        doc.setdefault("calibration", {})[_key(a.scene)] = calibration_fits(a.full_dir, a.tiered_dir, a.model)
     elif a.what == "tiles":  # other --screen-tile sizes with the screen of a tiered run (no stereo re-run)
         doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:

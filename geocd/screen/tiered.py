@@ -5,14 +5,16 @@
    within-epoch no-change pair.
 2. The grid is cut into square tiles (``tile_cells``); a tile is flagged when it holds changed
    screen cells of a region of at least ``min_region_m2``.
-3. Stereo runs through the tiling layer on the **flagged tiles only**
-   (:func:`geocd.stereo.tiled.run_stereo_tiled` with a tile selection): each tile matches its core
-   plus the stereo's declared margin (matching window at the coarsest level + occlusion reach,
-   capped at half a tile), with the pair's whole-scene pointing correction and noise level
-   (estimated once on the central window, flagged or not). The shared writer assembles each
-   pair-DEM; the cores of unflagged tiles are written as not matched (``flags`` 255, ``FLAGS_NOT_EXAMINED``).
+3. Stereo runs on windows around the flagged tiles (:func:`plan_stereo`): the stereo's tiles are the
+   screen's tiles grouped into squares wide enough to keep every coarse level of the coarse-to-fine
+   search (:func:`geocd.stereo.tiled.stereo_window_needs`; a narrower window searches more heights per
+   cell), a stereo tile is matched when it holds a flagged tile, neighbours of a tile row as one
+   window with one margin (:func:`geocd.stereo.tiled.run_stereo_tiled` with a tile selection; the
+   pair's whole-scene pointing correction and noise level come from the central window). When those
+   windows would read the whole grid anyway, the whole grid is matched once, untiled, as the full run
+   does. The cores of unmatched tiles are written as not matched (``flags`` 255, ``FLAGS_NOT_EXAMINED``).
 4. The self-consistency change test and the products follow (:func:`geocd.pipeline.run_change`)
-   with the examined mask: cells of unflagged tiles get the change-mask code
+   with the examined mask (the matched cells): cells of unmatched tiles get the change-mask code
    :data:`geocd.consistency.NOT_EXAMINED` (−127, "not examined"), never 0 ("unchanged"), and
    buildings with unobserved cells there the class ``not examined``.
 
@@ -20,7 +22,10 @@ Whole-scene statistics: the relative orientation runs on the whole scene before 
 pair's pointing correction and noise level come from the central window; a scene-class model
 (``--model``) is whole-scene by construction; a model learned here uses the within-epoch
 comparisons of the flagged tiles (a sample of the scene; its bins report their counts), and the
-change test's vertical offsets are medians over the examined cells.
+change test's vertical offsets are medians over the examined cells. A transfer calibration (a
+scene-class model) is fitted on the examined cells the screen calls unchanged
+(:func:`calibration_cells`), since the examined tiles were chosen for their change; on every cell when
+the whole grid was matched.
 """
 
 from __future__ import annotations
