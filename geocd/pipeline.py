@@ -226,7 +226,8 @@ def mark_not_examined(buildings, grid, examined: np.ndarray | None):
                        fill=0, dtype="int32")
     idx = np.arange(1, n + 1)
     cells = np.asarray(ndi.sum(np.ones(grid.shape), labels, idx))
-    frac = np.asarray(ndi.sum(examined, labels, idx)) / np.maximum(cells, 1)
+    # a footprint with no cell on the grid was not for the 3-D stage to examine: it stays as it is
+    frac = np.where(cells > 0, np.asarray(ndi.sum(examined, labels, idx)) / np.maximum(cells, 1), 1.0)
     out = buildings.copy()
     out["frac_examined"] = np.round(frac, 4)
     hit = (out["class"].to_numpy() == "unobserved") & (frac < 1.0)

@@ -151,6 +151,10 @@ def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, 
     assert (bf["class"].to_numpy()[ne] == "unobserved").all() and (b["frac_examined"].to_numpy()[ne] < 1).all()
     keep = ~ne
     np.testing.assert_array_equal(b["class"].to_numpy()[keep], bf["class"].to_numpy()[keep])
+    # the whole grid examined (a tiered run that matched everything): the full run's classes, also for
+    # footprints with no cell on the grid (they stay unobserved)
+    ra = run_change(m, full, grid, out_dir=tmp_path / "all", config=cfg, examined=np.ones(grid.shape, bool))
+    np.testing.assert_array_equal(ra["buildings"]["class"].to_numpy(), bf["class"].to_numpy())
 
 
 def test_calibration_is_fitted_on_screen_unchanged_cells_not_on_the_flagged_change():
