@@ -9,7 +9,12 @@ model, and as learned in Marseille), derives the buildings from the pre-event DS
 * stable-ground false alarms: flagged share of observed cells outside every changed building (and outside a
   3 m band around them — the edges of changed buildings are changed too), and where they are;
 * the transfer diagnostics: the model's predicted disagreement against this pair's on stable ground;
-* the building classes, and the collapsed buildings with their confidence.
+* the building classes, and the collapsed buildings with their confidence;
+* with ``--cars-work`` (``bench_kahramanmaras_cars.py cars --work DIR``): the same false alarms on the cells an
+  independent reconstruction calls stable — CARS's two DSMs (another matcher, its own pipeline) agree there
+  within a tolerance —, and how many of geocd's "stable" false alarms CARS sees changed too. "Outside every
+  changed building" counts as stable whatever else changed (trees felled or in leaf, new buildings the layer
+  misses, objects moved); CARS's difference is a witness that does not depend on geocd's building layer.
 
 Usage::
 
@@ -146,7 +151,7 @@ def transfer_figures(res, damage, grid, recs, model) -> dict:
 
 
 def evaluate(run: Path, model_path: Path, significance: str, calibration: str = "auto",
-             recs: dict | None = None) -> tuple[dict, object, object]:
+             recs: dict | None = None, cars: tuple | None = None) -> tuple[dict, object, object]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import stable_false_alarms
     from geocd.pipeline import _building_damage
@@ -175,6 +180,8 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
                                                       "height_after_m", "volume_lost_m3", "volume_sigma_m3",
                                                       "area_m2"]].to_dict(orient="records"),
            "volume_lost_collapsed_m3": round(float(damage[cls == "collapsed"]["volume_lost_m3"].sum()), 1)}
+    if cars is not None:
+        out["independent_reference_cars"] = independent_reference(res, damage, grid, *cars, recs=recs)
     return out, damage, res
 
 
@@ -195,6 +202,58 @@ def rerun(run: Path, out: Path, model_path: Path, calibration: str = "auto") -> 
                      stereo_outputs={f"{ep}/{p.name}": run / "stereo" / ep / f"{p.name}.tif"
                                      for ep, ps in recs.items() for p in ps})
     return res["summary"]
+
+
+def cars_dsms(work: Path, grid) -> tuple[np.ndarray, np.ndarray]:
+    """CARS's pre- and post-event DSMs (``WORK/<epoch>/out/dsm/dsm.tif``) resampled onto geocd's grid."""
+    from bench_kahramanmaras_cars import _to_grid
+
+    return tuple(_to_grid(str(work / ep / "out" / "dsm" / "dsm.tif"), grid) for ep in ("pre_event", "post_event"))
+
+
+def independent_reference(res, damage, grid, cars_a: np.ndarray, cars_b: np.ndarray, level: float = 99.0,
+                          recs: dict | None = None) -> dict:
+    """geocd's false alarms on the cells CARS's own two DSMs call stable, and CARS's view of geocd's false alarms.
+
+    Stable by the witness: observed by geocd, outside geocd's changed buildings (as the headline figure) and
+    |Δz_CARS − median| ≤ T, with T = 3 × NMAD of Δz_CARS over those cells (the witness's own noise; 1, 2, 3
+    and 5 m also reported). The reference shares the images with geocd, so a failure both matchers make alike
+    hides in it; what it does not share is geocd's matcher, its test or its building layer.
+    """
+    from geocd.change.dsm_buildings import CHANGED
+
+    inside = _mask(damage[damage["class"].isin(CHANGED)].geometry, grid)
+    stable = res.observed & ~inside
+    flag = stable & (np.nan_to_num(res.confidence) >= level)
+    both = np.isfinite(cars_a) & np.isfinite(cars_b)
+    dc = cars_b - cars_a
+    dc = dc - np.nanmedian(dc[stable & both])
+    nm = _nmad(dc[stable & both])
+    out = {"cars_dz_nmad_stable_m": round(nm, 3), "stable_cells_with_cars_both": round(float((stable & both).sum()
+                                                                                          / max(stable.sum(), 1)), 4),
+           "flagged_stable_cars_differs_gt_3m": round(float((np.abs(dc[flag & both]) > 3).mean()), 4)
+           if (flag & both).any() else None,
+           "flagged_stable_cars_differs_gt_3nmad": round(float((np.abs(dc[flag & both]) > 3 * nm).mean()), 4)
+           if (flag & both).any() else None}
+    # do geocd's own DSMs agree with CARS's at those cells (both epochs within 3 m)? then the change is in the
+    # images, not in one matcher's failure
+    za = np.nanmedian(np.stack([r.z_m for r in recs["pre_event"]]), axis=0) if recs else None
+    if za is not None:
+        zb = np.nanmedian(np.stack([r.z_m for r in recs["post_event"]]), axis=0)
+        ea = za - cars_a
+        eb = zb - cars_b
+        ea -= np.nanmedian(ea)
+        eb -= np.nanmedian(eb)
+        sel = flag & both & np.isfinite(ea) & np.isfinite(eb)
+        out["flagged_stable_geocd_dsms_match_cars_within_3m"] = round(float(((np.abs(ea[sel]) <= 3)
+                                                                             & (np.abs(eb[sel]) <= 3)).mean()), 4)
+    for name, t in (("3nmad", 3 * nm), ("1m", 1.0), ("2m", 2.0), ("3m", 3.0), ("5m", 5.0)):
+        s = stable & both & (np.abs(dc) <= t)
+        out[f"false_alarms_cars_stable_{name}"] = {
+            "tolerance_m": round(float(t), 3), "share_of_stable": round(float(s.sum() / max(stable.sum(), 1)), 4),
+            "rate": round(float((s & flag).sum() / max(s.sum(), 1)), 5),
+            "lowered_only_rate": round(float((s & flag & (res.dz_m < 0)).sum() / max(s.sum(), 1)), 5)}
+    return out
 
 
 def picanteo_figures(flag_path: Path, res, damage, grid) -> dict:
@@ -295,6 +354,8 @@ def main(argv=None) -> int:
     ap.add_argument("--volume", default=None, help="orthorectified change probability of geocd volume detect")
     ap.add_argument("--picanteo-flag", default=None,
                     help="picanteo's change map on the same grid (picanteo_flag.npy of bench_kahramanmaras_cars.py)")
+    ap.add_argument("--cars-work", default=None,
+                    help="work folder of bench_kahramanmaras_cars.py cars (its DSMs: the independent stability witness)")
     ap.add_argument("--rerun", default=None,
                     help="write every layer of geocd run (after the stereo) for RUN's pair-DEMs into this folder")
     args = ap.parse_args(argv)
@@ -309,9 +370,10 @@ def main(argv=None) -> int:
         results["probchange"] = probchange_figures(Path(args.probchange), Path(args.run) / "sc_changes.gpkg")
         print(json.dumps(results["probchange"], indent=1))
     recs = _recs(Path(args.run))
+    cars = cars_dsms(Path(args.cars_work), recs["pre_event"][0].grid) if args.cars_work else None
     for cal in [c for c in args.calibrations.split(",") if c]:
         for mode in [m for m in args.modes.split(",") if m]:
-            r, dmg, res = evaluate(Path(args.run), Path(args.model), mode, cal, recs=recs)
+            r, dmg, res = evaluate(Path(args.run), Path(args.model), mode, cal, recs=recs, cars=cars)
             key = mode if cal == "auto" else f"{mode}_{cal}"
             if mode == "region" and cal == "none":
                 from geocd.consistency import SelfConsistencyModel

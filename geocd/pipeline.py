@@ -173,10 +173,11 @@ def _median_surface(recs: Sequence[Any]) -> np.ndarray:
 
 def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confidence: float, name_a: str,
                      name_b: str):
-    """Damage layer: footprints when given, else building objects of epoch A's DSM plus B-only objects."""
+    """Damage layer: footprints when given, else building objects of epoch A's DSM plus the parts of epoch B's
+    objects that stand where A's surface was ground (new buildings, :func:`~geocd.change.dsm_buildings.new_objects`)."""
     import pandas as pd
 
-    from .change.dsm_buildings import buildings_from_dsm, classify_damage, fill_gaps, ground_model
+    from .change.dsm_buildings import buildings_from_dsm, classify_damage, fill_gaps, ground_model, new_objects
 
     z_a, z_b = _median_surface(recs_a), _median_surface(recs_b)
     if not (np.isfinite(z_a).any() and np.isfinite(z_b).any()) or report_confidence not in res.confidences:
@@ -186,19 +187,12 @@ def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confid
         bld = footprints.to_crs(grid.crs)
         bld = bld.assign(source="footprints")
     else:
-        bld, dtm, _ = buildings_from_dsm(z_a, grid)
+        bld, dtm, lab_a = buildings_from_dsm(z_a, grid)
         bld = bld.assign(source=f"{name_a} DSM")
-        post, _, _ = buildings_from_dsm(z_b, grid)
-        if len(post) and len(bld):
-            from shapely.strtree import STRtree
-
-            tree = STRtree(list(bld.geometry))
-            keep = []
-            for g in post.geometry:
-                hits = tree.query(g)
-                inter = sum(g.intersection(bld.geometry.iloc[int(h)]).area for h in hits)
-                keep.append(inter < 0.3 * g.area)
-            post = post[np.asarray(keep, bool)].assign(source=f"{name_b} DSM (not in {name_a})")
+        # new buildings: the parts of B's objects standing where A's surface was ground
+        post = new_objects(z_a, z_b, dtm, buildings_from_dsm(z_b, grid)[2], grid, labels_a=lab_a)
+        if len(post):
+            post = post.assign(source=f"{name_b} DSM (ground in {name_a})")
             post["building_id"] = np.arange(len(bld) + 1, len(bld) + 1 + len(post))
             bld = pd.concat([bld, post], ignore_index=True)
     if not len(bld):

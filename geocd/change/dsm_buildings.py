@@ -232,6 +232,50 @@ def buildings_from_dsm(dsm: np.ndarray, grid, params: DSMBuildingParams = DSMBui
     return outlines(labels, grid, params), dtm, labels
 
 
+def new_objects(z_a: np.ndarray, z_b: np.ndarray, dtm: np.ndarray, labels_b: np.ndarray, grid,
+                params: DSMBuildingParams = DSMBuildingParams(), labels_a: np.ndarray | None = None):
+    """Parts of epoch B's building objects that stand where epoch A's surface was at ground level.
+
+    A building built between the dates is an object of the later DSM on cells that stand at least
+    ``min_height_m`` above the ground model in B and less than that in A (and lie outside epoch A's objects,
+    ``labels_a``); both heights over the same ground model (B's objects come from B's own). Judged per cell,
+    not per object: an object of B that joins a new building to standing ones (a block the watershed
+    does not split) still yields the new part. The parts are opened like the objects themselves
+    (one metre), and those smaller than ``min_area_m2`` dropped — the extraction's own constants, nothing
+    new. Cells without a height count by the nearest height of their epoch (as :func:`building_objects`).
+
+    Parameters
+    ----------
+    z_a, z_b : float (rows, cols), the two epochs' surfaces (m; NaN where unobserved)
+    dtm : float (rows, cols), the ground model (m)
+    labels_b : int (rows, cols), epoch B's building objects (:func:`building_objects`)
+    labels_a : int (rows, cols), optional, epoch A's building objects
+
+    Returns
+    -------
+    GeoDataFrame of outlines (:func:`outlines`), one per new part.
+    """
+    posting = grid.posting_m
+    ha = fill_gaps(z_a) - dtm
+    hb = fill_gaps(z_b) - dtm
+    part = (np.asarray(labels_b) > 0) & (ha < params.min_height_m) & (hb >= params.min_height_m)
+    if labels_a is not None:
+        part &= np.asarray(labels_a) == 0
+    part = ndi.binary_opening(part, structure=np.ones((3, 3), bool), iterations=max(1, int(round(1.0 / posting))))
+    lab, n = ndi.label(part)
+    if n:
+        sizes = np.bincount(lab.ravel(), minlength=n + 1)
+        small = sizes * posting * posting < params.min_area_m2
+        small[0] = True
+        lab[small[lab]] = 0
+        u = np.unique(lab)
+        u = u[u > 0]
+        lut = np.zeros(n + 1, np.int32)
+        lut[u] = np.arange(1, u.size + 1)
+        lab = lut[lab]
+    return outlines(lab.astype(np.int32), grid, params)
+
+
 def _sigma_dz(result, model) -> np.ndarray:
     """Per-cell 1-σ of Δz (m) from the model's 68.3 % curve and the cell's |Δz/Δ̃|."""
     q = 68.27

@@ -109,9 +109,10 @@ def _stretch(band: np.ndarray, observed: np.ndarray) -> tuple[float, float]:
 def ortho_qml(values: np.ndarray, observed: np.ndarray) -> str:
     """Grey (1 band) or RGB (first three bands) style, stretched on the 2–98 % of the observed values."""
     def ce(tag: str, band: int, lo: float, hi: float) -> str:
-        return (f"      <{tag}>\n        <ContrastEnhancement>\n          <minValue>{lo:g}</minValue>\n"
-                f"          <maxValue>{hi:g}</maxValue>\n          <algorithm>StretchToMinimumMaximum</algorithm>\n"
-                f"        </ContrastEnhancement>\n      </{tag}>\n")
+        # QGIS reads minValue/maxValue/algorithm as direct children of the band's element (what it writes itself);
+        # nested one level deeper they are ignored and a 16-bit image opens black (0–65535, no stretch)
+        return (f"      <{tag}>\n        <minValue>{lo:g}</minValue>\n        <maxValue>{hi:g}</maxValue>\n"
+                f"        <algorithm>StretchToMinimumMaximum</algorithm>\n      </{tag}>\n")
 
     if values.shape[0] >= 3:
         st = [_stretch(values[k], observed) for k in range(3)]

@@ -84,11 +84,13 @@ def fill_narrow_holes(z_m: np.ndarray, valid: np.ndarray, radius: int) -> tuple[
     target = narrow_holes(valid, radius)
     if not target.any():
         return z, target
-    src = np.where(valid, z, 0.0).astype(np.float32)
+    # Cells the search does not reach keep their source value: a sentinel no interpolation of heights can give
+    # tells them apart in one pass (only cells under ``mask`` feed the interpolation).
+    sentinel = np.float32(np.finfo(np.float32).min)
+    src = np.where(valid, z, sentinel).astype(np.float32)
     f = fillnodata(src, mask=valid.astype(np.uint8), max_search_distance=float(2 * radius + 1),
                    smoothing_iterations=0)
-    got = fillnodata(np.ones(valid.shape, np.float32) * valid, mask=valid.astype(np.uint8),
-                     max_search_distance=float(2 * radius + 1), smoothing_iterations=0) > 0.5
+    got = f != sentinel
     filled = target & got
     z[filled] = f[filled]
     return z, filled

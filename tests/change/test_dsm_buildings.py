@@ -89,3 +89,34 @@ def test_damage_classes():
     assert b1["confidence_pct"] == 99.0
     assert b1["height_before_m"] == pytest.approx(15.0, abs=0.7) and b1["height_after_m"] == pytest.approx(1.0, abs=0.7)
     assert b1["volume_lost_m3"] == pytest.approx(14.0 * 40 * 60 * 0.25, rel=0.1)
+
+
+def test_a_new_building_joined_to_a_standing_one_is_found():
+    """A block built against a standing one of the same height: B's DSM has one object covering both (the
+    watershed cannot split them), mostly over A's building, so judging whole objects of B (an object is new when
+    < 30 % of it overlaps A's outlines) loses it; the parts of B's objects on A's ground find it."""
+    from types import SimpleNamespace
+
+    from geocd.change.dsm_buildings import new_objects
+    from geocd.pipeline import _building_damage
+
+    rng = np.random.default_rng(3)
+    z_a, ground, boxes = _scene(rng)
+    z_b = z_a.copy()
+    r0, r1, c0, c1, h = boxes[4]
+    z_b[r0:r1, c1:c1 + 40] = ground[r0:r1, c1:c1 + 40] + h + rng.normal(0, 0.1, (r1 - r0, 40))
+    bld, dtm, lab_a = buildings_from_dsm(z_a, GRID)
+    post, _, lab_b = buildings_from_dsm(z_b, GRID)
+    merged = [g for g in post.geometry if g.area > 1.3 * (r1 - r0) * (c1 - c0) * 0.25]
+    assert merged and merged[0].intersection(bld.union_all()).area > 0.3 * merged[0].area   # the old rule drops it
+    new = new_objects(z_a, z_b, dtm, lab_b, GRID, labels_a=lab_a)
+    assert len(new) == 1
+    assert new.geometry.iloc[0].area == pytest.approx((r1 - r0) * 40 * 0.25, rel=0.15)
+    up = np.nan_to_num(z_b - z_a) > 2
+    res = _result(z_a, z_b, np.zeros_like(up), up)
+    rec = lambda z: SimpleNamespace(z_m=z, valid=np.isfinite(z))
+    dmg, _ = _building_damage(None, res, GRID, [rec(z_a)], [rec(z_b)], None, 99.0, "A", "B")
+    hit = dmg[dmg["class"] == "new"]
+    assert len(hit) == 1 and hit["source"].iloc[0] == "B DSM (ground in A)"
+    assert hit["height_after_m"].iloc[0] == pytest.approx(h, abs=1.0)
+    assert (dmg[dmg["source"] == "A DSM"]["class"] == "unchanged").all()

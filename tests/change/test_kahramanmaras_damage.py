@@ -38,17 +38,21 @@ def test_layers_and_orientation(kahra_run):
 
 def test_headline_figures(kahra_run):
     """Measured (docs/kahramanmaras.md, the Marseille model calibrated to the pair — what `geocd run` does with a
-    transferred model): 194 objects, 14 collapsed; 6.9 % of observed cells flagged at 99 % (90 %: 7.4 %),
-    4.6 % of the cells outside changed buildings (90 %: 5.1 %; the goal of 1 % is not met); the calibration
-    fit: the pair disagrees 2.0 / 0.81 = 2.5 times more than the Marseille triplet on flat ground and its
-    surfaces 0.90 m (Marseille 0.39 m) horizontally."""
+    transferred model): 142 pre-event objects + 25 new parts of post-event objects on pre-event ground (15 of
+    them `new`), 11 collapsed; 6.9 % of observed cells flagged at 99 % (90 %: 7.4 %), 3.9 % of the cells outside
+    changed buildings (90 %: 4.3 %; the goal of 1 % is not met by that definition — 95 % of those cells differ by
+    > 3 m in CARS's DSMs too); the calibration fit: the pair disagrees 2.0 / 0.81 = 2.5 times more than the
+    Marseille triplet on flat ground and its surfaces 0.90 m (Marseille 0.39 m) horizontally."""
     out, res = kahra_run
     from geocd.change.dsm_buildings import stable_false_alarms
 
     dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
     cls = dmg["class"].value_counts()
-    assert 150 <= len(dmg) <= 240
-    assert 10 <= cls.get("collapsed", 0) <= 18
+    assert 150 <= len(dmg) <= 200
+    assert 9 <= cls.get("collapsed", 0) <= 14
+    # new buildings on pre-event ground (whole post-event objects judged by overlap found 1)
+    assert 10 <= cls.get("new", 0) <= 20
+    assert (dmg[dmg["class"] == "new"]["height_before_m"] < 2.5).all()
     collapsed = dmg[dmg["class"] == "collapsed"]
     assert (collapsed["height_after_m"] < collapsed["height_before_m"]).all()
     assert (collapsed["confidence_pct"] == 99.0).all()
@@ -60,7 +64,7 @@ def test_headline_figures(kahra_run):
     flagged = float((r.changed_at(99.0) != 0)[r.observed].mean())
     assert 0.060 < flagged < 0.078         # 90 % map: 0.074
     fa = stable_false_alarms(r.confidence, r.observed, dmg, res["grid"])
-    assert 0.040 < fa["99"] < 0.053        # 90 %: 0.051
+    assert 0.033 < fa["99"] < 0.045        # 90 %: 0.043
     assert fa["90"] > fa["99"]
 
 
