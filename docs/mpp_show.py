@@ -7,7 +7,7 @@ Usage (from the repository root)::
     .venv/bin/geocd --progress none ortho sample_aoi --out /tmp/ortho_run
     .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
         [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior,
-        # EHN: ED + height without the step term, EHR: the step term in the height ring
+        # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring
     .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off   # where recall is lost
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
@@ -49,11 +49,11 @@ VARIANTS = {
     "EV (edge-only verification)": ("EV", {}, False, False),
     "ED + height (geocd)": ("ED", {"height": "and"}, True, False),
     "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0}, True, True),
-    "ED + height, no step term": ("ED", {"height": "and", "step": "off"}, True, False),
+    "ED + height + step term": ("ED", {"height": "and", "step": "and"}, True, False),
     "ED + height, step in the ring": ("ED", {"height": "and", "step": "ring"}, True, False),
 }
 #: short names for ``--only``
-SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHN", "EHR"), VARIANTS))
+SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR"), VARIANTS))
 
 
 def _town_inputs(town: Path, ortho_dir: Path):

@@ -27,7 +27,7 @@ import numpy as np
               help="ED joint model (the paper's), SD each date alone then compared, EV edge-only verification.")
 @click.option("--height", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
               help="Height term from the DSMs (auto: when DSMs are available).")
-@click.option("--step", type=click.Choice(["and", "ring", "off"]), default="and", show_default=True,
+@click.option("--step", type=click.Choice(["and", "ring", "off"]), default="off", show_default=True,
               help="Height-step term (with the height term): 'and' a building's outline must step down "
                    "steeply along most of its length; 'ring' the step may stand in for ground around it (dense "
                    "blocks); 'off' none.")

@@ -313,7 +313,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
             Param("HEIGHT", "enum", "Height term from the DSMs", cli="--height", default=0,
                   options=(("when DSMs are available", "auto"), ("on", "on"), ("off (the paper's model)", "off"))),
             Param("STEP", "enum", "Height-step term (a building's outline steps down steeply)", cli="--step",
-                  default=0, options=(("on: required", "and"), ("in the height ring (dense blocks)", "ring"),
+                  default=2, options=(("on: required", "and"), ("in the height ring (dense blocks)", "ring"),
                                       ("off", "off")), advanced=True),
             Param("EPOCH_A", "string", "Earlier epoch (default: the first)", cli="--epoch-a", optional=True,
                   advanced=True),
