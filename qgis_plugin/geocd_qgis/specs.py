@@ -481,7 +481,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   unit="%", optional=True, min=50.0, max=99.999, advanced=True, help="Default 99 %."),
             Param("CONFIG", "file", "Run configuration (YAML/JSON)", cli="--config", optional=True, advanced=True,
                   file_filter="Run configurations (*.json *.yaml *.yml)"),
-            Param("SCREEN", "bool", "Tiered: the 2-D screen first, stereo only on the tiles it flags",
+            Param("SCREEN", "bool", "Tiered: the 2-D screen first, 3-D work only around the tiles it flags (whole grid when no cheaper)",
                   cli="--screen", default=False, advanced=True),
             Param("CALIBRATION", "enum", "Calibrate a scene-class model to this scene's pair-DEMs", cli="--calibration",
                   default=0, optional=True, advanced=True, cli_default=False,
