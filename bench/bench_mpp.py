@@ -2,10 +2,12 @@
 against its numpy reference.
 
 1. The energy kernel ``rect_features`` (all object features of a rectangle on one image) against
-   ``rect_features_ref`` (numpy) on the same rectangles of a LEVIR-CD image: µs per rectangle, ratio.
+   ``rect_features_ref`` (numpy) on the same rectangles of a LEVIR-CD image: µs per rectangle, ratio; the
+   same for the height-step kernel ``rect_steps`` on a synthetic height map of that size.
 2. Whole runs (``geocd.mpp.detect``, joint model) on each LEVIR-CD pair (256 × 256 cells = 0.066 Mpx per
    image, 0.131 Mpx per pair) and, with ``--town DIR ORTHO_DIR``, on a generated town's orthos (600 × 600):
-   wall and CPU seconds, seconds per megapixel of image pair, annealing iterations, births, µs per birth.
+   wall and CPU seconds, seconds per megapixel of image pair, annealing iterations, births, µs per birth;
+   on the town, the joint model alone, with the height term, and with the height term less the step term.
 
 numba runs on one thread (``NUMBA_NUM_THREADS=1`` is set before numba loads). **Cold** is measured in a
 child process with an empty numba cache (``NUMBA_CACHE_DIR`` a fresh temporary folder): the first
@@ -16,7 +18,7 @@ wall times.
 
 Usage::
 
-    .venv/bin/python bench/bench_mpp.py [--repeat 3] [--no-cold] [--town sample_aoi /tmp/ortho_run]
+    .venv/bin/python bench/bench_mpp.py [--repeat 3] [--no-cold] [--pairs 5] [--town sample_aoi /tmp/ortho_run]
 """
 
 from __future__ import annotations
@@ -77,9 +79,32 @@ def kernel_bench(repeat: int) -> dict:
         ref = K.rect_features_ref(rects[:40], *args)
         tr.append((time.perf_counter() - t0) * len(rects) / 40)
     agree = bool(np.allclose(out[:40], ref, rtol=1e-6, atol=1e-9, equal_nan=True))
-    return {"rectangles": len(rects), "kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
-            "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1), "ratio": round(min(tr) / min(tk), 1),
-            "first_call_s": round(cold, 2), "agree": agree}
+    res = {"rectangles": len(rects), "kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
+           "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1), "ratio": round(min(tr) / min(tk), 1),
+           "first_call_s": round(cold, 2), "agree": agree}
+    # the height-step kernel on a height map of the same size: noise and raised blocks 8–30 m across
+    rng = np.random.default_rng(1)
+    h = rng.normal(0.0, 0.2, f.grey.shape).astype(np.float32)
+    for _ in range(40):
+        i, j, a_, b_ = rng.integers(0, 256, 2).tolist() + rng.integers(16, 60, 2).tolist()
+        h[i:i + a_, j:j + b_] += rng.uniform(3, 15)
+    sargs = (h, 0.85, 0.5, float(m.edge_w), float(m.ring_w), float(m.ring_w))
+    st = np.empty(len(rects))
+    t0 = time.perf_counter()
+    K.rect_steps(rects[:2], *sargs, st[:2])
+    cold = time.perf_counter() - t0
+    tk, tr = [], []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        K.rect_steps(rects, *sargs, st)
+        tk.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ref = K.rect_steps_ref(rects[:40], *sargs)
+        tr.append((time.perf_counter() - t0) * len(rects) / 40)
+    res["step_kernel"] = {"kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
+                          "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1), "ratio": round(min(tr) / min(tk), 1),
+                          "first_call_s": round(cold, 2), "agree": bool(np.allclose(st[:40], ref, atol=1e-12))}
+    return res
 
 
 def cold_child() -> dict:
@@ -138,6 +163,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--town", nargs=2, default=None, metavar=("TOWN", "ORTHO_DIR"))
     ap.add_argument("--no-cold", action="store_true", help="skip the cold (empty numba cache) run")
+    ap.add_argument("--pairs", type=int, default=5, help="how many LEVIR-CD pairs to run (of 5)")
     ap.add_argument("--cold-child", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.cold_child:
@@ -150,7 +176,7 @@ def main() -> None:
     res["kernel"] = kernel_bench(a.repeat)
     print("energy kernel:", res["kernel"], flush=True)
     runs = {}
-    for f in sorted((DATA / "A").glob("*.png")):
+    for f in sorted((DATA / "A").glob("*.png"))[:a.pairs]:
         runs[f.stem] = run_bench(_png(f), _png(DATA / "B" / f.name), 0.5, max(1, a.repeat - 2))
         print(f.stem, runs[f.stem], flush=True)
     res["levir"] = runs
@@ -159,8 +185,9 @@ def main() -> None:
         from mpp_show import _town_inputs  # noqa: E402
 
         inp = _town_inputs(Path(a.town[0]), Path(a.town[1]))
-        for label, kw in (("joint", {}), ("joint + height", {"params": {"height": "and"}, "dsm_a": inp["dsm_a"],
-                                                              "dsm_b": inp["dsm_b"], "ground_m": inp["ground"]})):
+        dsms = {"dsm_a": inp["dsm_a"], "dsm_b": inp["dsm_b"], "ground_m": inp["ground"]}
+        for label, kw in (("joint", {}), ("joint + height", {"params": {"height": "and"}, **dsms}),
+                          ("joint + height, no step term", {"params": {"height": "and", "step": "off"}, **dsms})):
             res[f"town {label}"] = run_bench(inp["image_a"], inp["image_b"], inp["grid"].posting_m, 1,
                                              valid_a=inp["valid_a"], valid_b=inp["valid_b"], **kw)
             print("town", label, res[f"town {label}"], flush=True)

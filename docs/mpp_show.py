@@ -6,7 +6,9 @@ Usage (from the repository root)::
     # every variant on them
     .venv/bin/geocd --progress none ortho sample_aoi --out /tmp/ortho_run
     .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
-        [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior
+        [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior,
+        # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring
+    .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off   # where recall is lost
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
     .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
@@ -14,6 +16,7 @@ Usage (from the repository root)::
     # Kahramanmaraş: after `geocd mpp --image-a … --out OUT` (docs/mpp.md), the figures against geocd's own
     # building damage layer (no truth exists)
     .venv/bin/python docs/mpp_show.py kahra OUT /tmp/kahra2
+    .venv/bin/python docs/mpp_show.py kahra-outlines /tmp/kahra2 [and|ring|off]   # energies of the collapsed outlines
 
 Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read in place from ../shared/data.
 """
@@ -21,6 +24,7 @@ Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read 
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 import warnings
@@ -45,9 +49,11 @@ VARIANTS = {
     "EV (edge-only verification)": ("EV", {}, False, False),
     "ED + height (geocd)": ("ED", {"height": "and"}, True, False),
     "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0}, True, True),
+    "ED + height + step term": ("ED", {"height": "and", "step": "and"}, True, False),
+    "ED + height, step in the ring": ("ED", {"height": "and", "step": "ring"}, True, False),
 }
 #: short names for ``--only``
-SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP"), VARIANTS))
+SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR"), VARIANTS))
 
 
 def _town_inputs(town: Path, ortho_dir: Path):
@@ -116,6 +122,10 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
                   titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
                   valid_a=inp["valid_a"], valid_b=inp["valid_b"])
         print("quick-look written", flush=True)
+    if best is not None and os.environ.get("MPP_SHOW_NO_RECHECK"):
+        out["deterministic"] = "not re-checked in this run"
+        print("same-seed re-run skipped (MPP_SHOW_NO_RECHECK)", flush=True)
+    elif best is not None:
         p0 = best_kw[0].replace(seed=seeds[0])
         again = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, p0, valid_a=inp["valid_a"],
                        valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"],
@@ -133,6 +143,56 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
             old["rows"][label] = sorted(kept + rs, key=lambda r: r["seed"])
         out = {**old, **{k: v for k, v in out.items() if k != "rows"}, "rows": old["rows"]}
     path.write_text(json.dumps(out, indent=2, default=str))
+    return out
+
+
+def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and") -> dict:
+    """Where ED + height misses truth pixels on a town: near the outline (≤ 1 m), on buildings longer than
+    the largest side, on L-shaped ones (area / minimum rotated rectangle < 0.9), whole buildings missed on a
+    date; and how many false pixels lie within 2 m of a truth building."""
+    import geopandas as gpd
+    from scipy import ndimage
+    from shapely.geometry import box
+
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    p = MPPParams(seed=seed, height="and", step=step)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        det = detect(inp["image_a"], inp["image_b"], grid.posting_m, p, method="ED", valid_a=inp["valid_a"],
+                     valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+    masks = rect_masks(det.result.rects, det.result.xi, grid.shape)
+    g = gpd.read_file(name / "truth" / "footprints_all.gpkg")
+    gb = box(*grid.bounds)
+    g = g[[geom.intersection(gb).area >= 0.5 * geom.area for geom in g.geometry]]   # as sample_truth
+    mrr = g.geometry.minimum_rotated_rectangle()
+    solidity = (g.geometry.area / mrr.area).to_numpy()
+    longest = np.array([max(np.hypot(*np.diff(np.asarray(r.exterior.coords)[:3], axis=0).T)) for r in mrr])
+    n1m = max(1, int(round(1.0 / grid.posting_m)))
+    out = {"missed": 0, "near_outline_1m": 0, "on_longer_than_side_max": 0, "on_l_shapes": 0, "l_shape_pixels": 0,
+           "whole_buildings_missed_on_a_date": 0, "pixels_of_whole_misses": 0}
+    for o, sol, ln in zip(inp["objs"], solidity, longest):
+        inner = ndimage.binary_erosion(o["mask"], iterations=n1m)
+        for d in o["dates"]:
+            miss = o["mask"] & ~masks["date1" if d == 1 else "date2"]
+            n = int(miss.sum())
+            out["missed"] += n
+            out["near_outline_1m"] += int((miss & ~inner).sum())
+            out["on_longer_than_side_max"] += n if ln > p.side_max_m else 0
+            if sol < 0.9:
+                out["on_l_shapes"] += n
+                out["l_shape_pixels"] += int(o["mask"].sum())
+            if n == o["mask"].sum():
+                out["whole_buildings_missed_on_a_date"] += 1
+                out["pixels_of_whole_misses"] += n
+    near = false = 0
+    for dm, tm in ((masks["date1"], inp["t1"]), (masks["date2"], inp["t2"])):
+        false += int((dm & ~tm).sum())
+        near += int((dm & ~tm & ndimage.binary_dilation(tm, iterations=2 * n1m)).sum())
+    out.update(false=false, false_within_2m=near, truth_pixels=int(inp["t1"].sum() + inp["t2"].sum()),
+               l_shaped_buildings=int((solidity < 0.9).sum()), buildings=len(inp["objs"]),
+               longest_building_m=round(float(longest.max()), 1))
+    print(json.dumps(out), flush=True)
     return out
 
 
@@ -337,6 +397,61 @@ def kahra(mpp_dir: Path, run_dir: Path) -> dict:
     return out
 
 
+def kahra_outlines(run_dir: Path, step: str = "and") -> list[dict]:
+    """Kahramanmaraş: the pre-event features and energies of a rectangle fitted to each of geocd's collapsed
+    buildings (minimum rotated rectangle of its outline), with the parameters of the documented run (DSM-only
+    prototype added, largest side from this DSM): why each one is, or is not, an attractive object."""
+    import geopandas as gpd
+    import rasterio
+
+    from geocd.io.raster import read_band
+    from geocd.mpp import _kernels as K
+    from geocd.mpp.features import image_features, side_max_from_dsm
+    from geocd.mpp.model import F_PLANAR, F_STEP, EnergyModel
+
+    with rasterio.open(run_dir / "orthos" / "pre_event_img1.tif") as ds:
+        a = ds.read().astype(np.float32)
+        va = ds.read_masks(1) > 0
+        inv = ~ds.transform
+        posting = abs(ds.transform.a)
+    dsm, _ = read_band(run_dir / "stereo" / "pre_event" / "pre_event_img1__pre_event_img2.tif", 1)
+    gr, _ = read_band(run_dir / "sc_ground_model.tif", 1)
+    p = MPPParams(height="and", prototypes="gradient|homogeneity|planarity", step=step)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        smax = side_max_from_dsm(image_features(a, posting, p, valid=va, dsm_m=dsm, ground_m=gr).ndsm, posting, p)
+        p = p.replace(side_max_m=float(smax))
+        f = image_features(a, posting, p, valid=va, dsm_m=dsm, ground_m=gr)
+        m = EnergyModel([f], posting, p)
+    dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+    rects = []
+    for geom in dmg.geometry[dmg["class"] == "collapsed"]:
+        xy = np.asarray(geom.minimum_rotated_rectangle.exterior.coords)[:4]
+        e1, e2 = xy[1] - xy[0], xy[2] - xy[1]
+        v = e1 if np.hypot(*e1) >= np.hypot(*e2) else e2
+        c, r = inv * tuple(xy.mean(axis=0))
+        rects.append([c - 0.5, r - 0.5, max(np.hypot(*e1), np.hypot(*e2)) / posting,
+                      min(np.hypot(*e1), np.hypot(*e2)) / posting, np.arctan2(v[1], v[0])])
+    rects = np.array(rects)
+    raw = m.raw(rects)["img0"]
+    e = m.feature_energy(0, raw)
+    ph = m.phi(0, raw)
+    rows = [{"long_m": round(float(rects[k, 2] * posting), 1), "raised_in": round(float(raw[k, K.F_RAISED_IN]), 2),
+             "ground_ring": round(float(raw[k, K.F_RAISED_OUT]), 2), "planar_core": round(float(raw[k, F_PLANAR]), 2),
+             "step": round(float(raw[k, F_STEP]), 2), "phi": round(float(ph[k]), 2),
+             "energies": {x: round(float(e[x][k]), 2) for x in ("height", "planarity", "step", "gradient", "homogeneity")}}
+            for k in range(len(rects))]
+    summary = {"side_max_m": round(float(smax), 1), "step_min_m": round(f.step_min_m, 2), "outlines": len(rows),
+               "attractive": int((ph < 0).sum()), "longer_than_side_max": int((rects[:, 2] * posting > smax).sum()),
+               "step_below_half": int((raw[:, F_STEP] < 0.5).sum()),
+               "raised_below_half": int((raw[:, K.F_RAISED_IN] < 0.5).sum()),
+               "ground_ring_below_half": int((raw[:, K.F_RAISED_OUT] < 0.5).sum())}
+    print(json.dumps(summary), flush=True)
+    for r in rows:
+        print(r, flush=True)
+    return rows
+
+
 if __name__ == "__main__":
     what = sys.argv[1]
     if what == "town":
@@ -357,8 +472,13 @@ if __name__ == "__main__":
             only = [SHORT[x] for x in args[k + 1].split(",")]
             args = args[:k] + args[k + 2:]
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
+    elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP]
+        recall(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0,
+               sys.argv[5] if len(sys.argv) > 5 else "and")
     elif what == "levir-diagnose":
         levir_diagnose()
+    elif what == "kahra-outlines":     # kahra-outlines RUN_DIR [STEP]
+        kahra_outlines(Path(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else "and")
     elif what == "kahra":
         kahra(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "tables":

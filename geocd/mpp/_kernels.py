@@ -331,6 +331,95 @@ def rect_means(rects, field, out):
 
 
 @njit(cache=True)
+def rect_steps(rects, height, step_min, step_frac, edge_w, ring_w, seg_len, out):
+    """Share of a rectangle's outline along which the surface steps down steeply from inside to outside.
+
+    Each side is cut into segments of about ``seg_len`` cells. A segment compares the mean height of the band
+    ``edge_w < d ≤ edge_w + ring_w`` inside the side with the same band outside it (the corners' outside
+    cells belong to no side; a band between them is left clear of the walls, which a stereo DSM blurs). The
+    segment steps when inside − outside ≥ max(``step_min``, ``step_frac`` × inside): a drop larger than the
+    noise, and a steep one — across the wall band the surface loses at least that share of its height above
+    the ground (a wall; a slope loses little over the few metres between the bands). It is observed when
+    each band has ≥ 2 cells with a height. ``out[r]`` = stepping segments / max(observed segments, half of
+    all segments): an outline seen on under half of its length cannot pass.
+
+    Parameters
+    ----------
+    rects : float64 (n, 5)
+    height : float32 (H, W) height above the ground (m), NaN = no height
+    step_min : smallest step (m); step_frac : smallest step as a share of the inside height
+    edge_w, ring_w, seg_len : cells
+    out : float64 (n,), written (0 for a rectangle without segments)
+    """
+    H, W = height.shape
+    for r in range(rects.shape[0]):
+        cx, cy, eL, el, th = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3], rects[r, 4]
+        c = math.cos(th)
+        s = math.sin(th)
+        hL = 0.5 * eL
+        hl = 0.5 * el
+        nL = max(1, int(eL / seg_len))
+        nl = max(1, int(el / seg_len))
+        nmax = max(nL, nl)
+        acc = np.zeros((4, nmax, 4))     # side, segment, (sum in, n in, sum out, n out)
+        pad = edge_w + ring_w + 1.0
+        rad = math.sqrt(hL * hL + hl * hl) + pad
+        i0 = max(int(math.floor(cy - rad)), 0)
+        i1 = min(int(math.ceil(cy + rad)), H - 1)
+        j0 = max(int(math.floor(cx - rad)), 0)
+        j1 = min(int(math.ceil(cx + rad)), W - 1)
+        for i in range(i0, i1 + 1):
+            ja, jb = _row_span(i, cx, cy, c, s, hL + pad, hl + pad, j0, j1)
+            for j in range(ja, jb + 1):
+                x = height[i, j]
+                if x != x:
+                    continue
+                u, v = _uv(i, j, cx, cy, c, s)
+                du = abs(u) - hL
+                dv = abs(v) - hl
+                if du <= 0.0 and dv <= 0.0:
+                    inside = True
+                    dist = min(-du, -dv)
+                    vside = -dv < -du
+                elif du <= 0.0:
+                    inside = False
+                    dist = dv
+                    vside = True
+                elif dv <= 0.0:
+                    inside = False
+                    dist = du
+                    vside = False
+                else:
+                    continue
+                if dist <= edge_w or dist > edge_w + ring_w:
+                    continue
+                if vside:
+                    q = 2 + (1 if v < 0.0 else 0)
+                    along = min(max(u + hL, 0.0), eL)
+                    k = min(int(along / eL * nL), nL - 1)
+                else:
+                    q = 1 if u < 0.0 else 0
+                    along = min(max(v + hl, 0.0), el)
+                    k = min(int(along / el * nl), nl - 1)
+                b = 0 if inside else 2
+                acc[q, k, b] += x
+                acc[q, k, b + 1] += 1.0
+        total = 0
+        seen = 0
+        step = 0
+        for q in range(4):
+            nq = nL if q >= 2 else nl
+            for k in range(nq):
+                total += 1
+                if acc[q, k, 1] >= 2.0 and acc[q, k, 3] >= 2.0:
+                    seen += 1
+                    hin = acc[q, k, 0] / acc[q, k, 1]
+                    if hin - acc[q, k, 2] / acc[q, k, 3] >= max(step_min, step_frac * hin):
+                        step += 1
+        out[r] = step / max(float(seen), 0.5 * total) if total > 0 else 0.0
+
+
+@njit(cache=True)
 def pair_overlaps(rects, pi, pj, areas, H, W, out):
     """I(u, v) = #(R_u ∩ R_v) / #(R_u ∪ R_v) in cells of the (H, W) grid, for the pairs (pi[k], pj[k]);
     ``areas`` are the rectangles' cell counts on the grid (``F_AREA``)."""
@@ -506,6 +595,41 @@ def rect_mask_ref(rect, shape) -> np.ndarray:
     c, s = np.cos(rect[4]), np.sin(rect[4])
     dx, dy = jj - rect[0], ii - rect[1]
     return (np.abs(dx * c - dy * s) <= rect[2] / 2) & (np.abs(dx * s + dy * c) <= rect[3] / 2)
+
+
+def rect_steps_ref(rects, height, step_min, step_frac, edge_w, ring_w, seg_len) -> np.ndarray:
+    """numpy reference of :func:`rect_steps`."""
+    out = np.zeros(rects.shape[0])
+    for r, rect in enumerate(rects):
+        eL, el = rect[2], rect[3]
+        hL, hl = eL / 2, el / 2
+        nL, nl = max(1, int(eL / seg_len)), max(1, int(el / seg_len))
+        sl, u, v, _ = _rect_grid(rect, height.shape, edge_w + ring_w + 1.0)
+        h = height[sl].astype(np.float64)
+        du, dv = np.abs(u) - hL, np.abs(v) - hl
+        inside = (du <= 0) & (dv <= 0)
+        dist = np.select([inside, du <= 0, dv <= 0], [np.minimum(-du, -dv), dv, du], np.nan)
+        vside = np.where(inside, -dv < -du, du <= 0)
+        use = np.isfinite(h) & np.isfinite(dist) & (dist > edge_w) & (dist <= edge_w + ring_w)
+        q = np.where(vside, 2 + (v < 0), (u < 0).astype(int))
+        with np.errstate(invalid="ignore"):
+            kL = np.minimum((np.clip(u + hL, 0, eL) / eL * nL).astype(int), nL - 1)
+            kl = np.minimum((np.clip(v + hl, 0, el) / el * nl).astype(int), nl - 1)
+        k = np.where(vside, kL, kl)
+        acc = np.zeros((4, max(nL, nl), 4))
+        b = np.where(inside, 0, 2)
+        np.add.at(acc, (q[use], k[use], b[use]), h[use])
+        np.add.at(acc, (q[use], k[use], b[use] + 1), 1.0)
+        total = seen = step = 0
+        for side in range(4):
+            for seg in range(nL if side >= 2 else nl):
+                total += 1
+                a = acc[side, seg]
+                if a[1] >= 2 and a[3] >= 2:
+                    seen += 1
+                    step += a[0] / a[1] - a[2] / a[3] >= max(step_min, step_frac * (a[0] / a[1]))
+        out[r] = step / max(seen, 0.5 * total)
+    return out
 
 
 def pair_overlaps_ref(rects, pi, pj, shape) -> np.ndarray:

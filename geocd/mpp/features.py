@@ -38,6 +38,8 @@ class ImageFeatures:
     planar : float32, 1 where the DSM is locally planar (a roof facet, the ground), 0 where it is rough (a tree
         crown), NaN without DSM data; None without a DSM (see :func:`planar_cells`)
     planar_tol_m : the plane-fit residual above which a cell is rough (measured on the ground cells)
+    step_min_m : the smallest significant height step at a rectangle's side, 3 √2 σ_z (σ_z: the DSM's
+        noise on the ground cells, see :func:`dsm_noise_m`)
     noise_sigma : float, grey-level noise σ
     edge_level : float, the top-decile gradient magnitude (what a strong edge is, for snapping births)
     notes : list of str
@@ -57,6 +59,7 @@ class ImageFeatures:
     ndsm: np.ndarray | None = None
     planar: np.ndarray | None = None
     planar_tol_m: float = float("nan")
+    step_min_m: float = float("nan")
     noise_sigma: float = 1.0
     edge_level: float = 0.0
     notes: list[str] = field(default_factory=list)
@@ -228,6 +231,19 @@ def planar_cells(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_hei
     return planar, tol
 
 
+def dsm_noise_m(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_height_m: float,
+                posting_m: float = 1.0) -> float:
+    """The DSM's height noise σ_z (m) per cell: the median RMS residual of the 3 × 3 plane fits on the ground
+    cells (as in :func:`planar_cells`; a planar patch leaves only the noise, and the median ignores the
+    walls, cars and bushes among the ground cells). NaN without ground."""
+    res = plane_residual(dsm_m, posting_m)
+    has = np.isfinite(res) & valid & np.isfinite(ndsm)
+    gnd = has & (ndsm < min_height_m)
+    if gnd.sum() < 100:
+        gnd = has
+    return float(np.median(res[gnd])) if gnd.any() else float("nan")
+
+
 def segment_sides_m(ndsm: np.ndarray, posting_m: float, min_height_m: float, side_min_m: float) -> np.ndarray:
     """Sides (m) of the raised segments of an nDSM: (n, 2) long and short side of each segment's equivalent
     rectangle (same second moments: side = √12 σ along each principal axis).
@@ -343,7 +359,7 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         notes.append("grey image: colour and shadow terms dropped" if bands.shape[0] < 3 else
                      "colour and shadow terms switched off")
     ndsm = planar = None
-    planar_tol = float("nan")
+    planar_tol = step_min = float("nan")
     if dsm_m is not None:
         d = np.asarray(dsm_m, np.float64)
         if d.shape != grey.shape:
@@ -363,6 +379,13 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         if np.isfinite(planar_tol):
             notes.append(f"DSM planarity: a cell is rough above a plane-fit residual of {planar_tol:.2f} m "
                          "(the noise of one 3 × 3 plane fit on the ground cells)")
+        sigma_z = dsm_noise_m(d, ndsm, ok, params.min_height_m, posting_m)
+        if np.isfinite(sigma_z):
+            # a step between the mean heights just inside and just outside a side, each as noisy as one cell
+            # (stereo DSM errors are correlated over a few cells), is significant at 3 σ of a difference
+            step_min = 3.0 * math.sqrt(2.0) * sigma_z
+            notes.append(f"DSM steps: an outline steps down where inside − outside ≥ {step_min:.2f} m "
+                         f"(3 √2 σ_z, σ_z = {sigma_z:.3f} m on the ground cells)")
         raised = ndimage.uniform_filter((np.nan_to_num(ndsm, nan=0.0) > params.min_height_m).astype(np.float32),
                                         size=max(3, win // 2) | 1, mode="constant")
         if raised[ok].mean() > 0:
@@ -373,7 +396,7 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     birth = (birth / mb if mb > 0 else birth).astype(np.float32)
     return ImageFeatures(grey=grey, valid=ok, grad_mag=mag, grad_ori=ori, density=dens, alpha=alpha,
                          mode_deg=mode, birth=birth, colour_mask=colour, shadow_mask=shadow, shadow_dir=sdir,
-                         ndsm=ndsm, planar=planar, planar_tol_m=planar_tol, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
+                         ndsm=ndsm, planar=planar, planar_tol_m=planar_tol, step_min_m=step_min, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
                          notes=notes)
 
 

@@ -30,7 +30,9 @@ from .params import MPPParams, parse_prototypes
 BOTH, ONLY_1, ONLY_2 = 0, 1, 2
 #: column of the raw features appended after the kernel's: share of planar DSM cells in the rectangle's core
 F_PLANAR = K.N_FEATURES
-N_RAW = K.N_FEATURES + 1
+#: … and the share of the outline along which the DSM steps down from inside to outside
+F_STEP = K.N_FEATURES + 1
+N_RAW = K.N_FEATURES + 2
 XI_NAMES = {BOTH: "unchanged", ONLY_1: "demolished", ONLY_2: "new"}
 
 
@@ -76,12 +78,16 @@ def auto_prototypes(f: ImageFeatures, params: MPPParams) -> list[list[str]]:
         have.add("height")
     if f.planar is not None and params.planarity in ("core", "both"):
         have.add("planarity")
+    if f.ndsm is not None and params.step == "and" and math.isfinite(f.step_min_m):
+        have.add("step")
     if params.height == "and" and "height" in have:
         # the height term is required, and any one image cue confirms it: every image prototype, the
         # gradient alone or the roof homogeneity alone, each AND height (a raised block that also looks like
         # a building: trees are raised but neither outlined by straight edges nor homogeneous); the raised
         # block must also be planar (roof facets), which a tree crown is not
         hp = ["height", "planarity"] if "planarity" in have else ["height"]
+        if "step" in have:     # … with steep edges: the surface steps down along most of the outline
+            hp = hp + ["step"]
         protos = [p + hp for p in protos] + [["gradient"] + hp, ["homogeneity"] + hp]
     out = []
     for p in protos:
@@ -174,7 +180,12 @@ class EnergyModel:
                         float(self.params.min_height_m), float(self.edge_w), float(self.ring_w),
                         float(self.shadow_w), float(3.0 * f.noise_sigma), float(self.params.flood_spread), float(gate),
                         out)
-        out = np.column_stack([out, np.full(rects.shape[0], np.nan)])
+        out = np.column_stack([out, np.full((rects.shape[0], 2), np.nan)])
+        if f.ndsm is not None and self.params.step != "off" and math.isfinite(f.step_min_m) and rects.shape[0]:
+            st = np.empty(rects.shape[0])
+            K.rect_steps(np.ascontiguousarray(rects, np.float64), f.ndsm, float(f.step_min_m), 0.5, float(self.edge_w),
+                         float(self.ring_w), float(self.ring_w), st)
+            out[:, F_STEP] = st
         if f.planar is not None and rects.shape[0]:
             # the core of the rectangle, clear of the walls' edge band (where a DSM's walls are never planar)
             core = np.array(rects, np.float64, copy=True)
@@ -211,7 +222,12 @@ class EnergyModel:
             "shadow": np.maximum(Q(raw[:, K.F_SHADOW_IN], 0.5, 0.25), Q(raw[:, K.F_SHADOW_OUT], 0.5, 0.25)),
             "height": np.maximum(Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25)),
             "planarity": Q(raw[:, F_PLANAR], 0.5, 0.25),
+            "step": Q(raw[:, F_STEP], 0.5, 0.25),
         }
+        if p.step == "ring" and np.isfinite(raw[:, F_STEP]).any():
+            # raised inside, and outside either ground or a step down (a block among raised neighbours)
+            e["height"] = np.maximum(Q(raw[:, K.F_RAISED_IN], 0.5, 0.25),
+                                     np.minimum(Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25), e["step"]))
         return e
 
     def phi(self, k: int, raw: np.ndarray) -> np.ndarray:

@@ -32,7 +32,7 @@ from ..errors import ConfigError
 from ..params import ParamsMixin
 
 #: object-level features an image term can use
-FEATURES = ("gradient", "homogeneity", "colour", "shadow", "height", "planarity")
+FEATURES = ("gradient", "homogeneity", "colour", "shadow", "height", "planarity", "step")
 
 
 @dataclass(frozen=True)
@@ -68,6 +68,15 @@ class MPPParams(ParamsMixin):
         "core": over half the cells of the rectangle's core (clear of the walls) must be planar; "roof": rough
         cells do not count as raised in the height term (a building is a raised planar block); "both"
         (default); "off": the height term alone
+    step : beyond the paper, with the height term: a building is a raised block with steep edges. Each side
+        is cut into segments of ``ring_m``; a segment steps when the mean height of the band just inside
+        (``edge_width_m`` to ``edge_width_m + ring_m`` from the side) exceeds that of the band just outside
+        by 3 √2 σ_z (σ_z: the DSM's noise, measured on its ground cells), and over half the segments must
+        step. The step is relative to the neighbours, not to the ground: a block beside a taller or lower
+        one steps too. "and": one more feature of every height prototype; "ring": it replaces
+        "the ring outside is ground" in the height term, as an alternative (ground ring OR step), for dense
+        blocks whose neighbours are raised; "off" (default: no gain on generated towns, a loss of buildings
+        on real stereo DSMs, docs/mpp.md): no step term
     gamma_overlap : γ of the overlap interaction
     gamma_change : γ_ξ of the texture-change term
     gamma_3d : weight of the 3-D change prior on ξ (0 = off)
@@ -106,6 +115,7 @@ class MPPParams(ParamsMixin):
     prototypes: str = "auto"
     height: str = "off"
     planarity: str = "both"
+    step: str = "off"
     gamma_overlap: float = 2.5
     gamma_change: float = 1.0
     gamma_3d: float = 0.0
@@ -136,6 +146,8 @@ class MPPParams(ParamsMixin):
             raise ConfigError(f"snap_births must be in [0, 1], got {self.snap_births}")
         if self.planarity not in ("off", "core", "roof", "both"):
             raise ConfigError(f"planarity must be off, core, roof or both, got {self.planarity!r}")
+        if self.step not in ("off", "and", "ring"):
+            raise ConfigError(f"step must be off, and or ring, got {self.step!r}")
         if self.max_iter < 1 or self.min_iter < 0:
             raise ConfigError("max_iter must be ≥ 1 and min_iter ≥ 0")
         if self.prototypes != "auto":

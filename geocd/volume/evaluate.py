@@ -41,7 +41,7 @@ from .baseline import (carlotto_score, difference_score, edge_zone, first_surfac
                        warp_reference)
 from .detect import aggregate_log_odds
 from .io import geometry_from_manifest, read_view
-from .prior import DEMPrior, seed_from_dem
+from .prior import DEMPrior, roof_surface, seed_from_dem
 from .scene import geometry_for_aoi
 
 
@@ -56,18 +56,27 @@ class TrainConfig:
     ground_band_m: float = 0.5
     ground_band_top_m: float = 0.0
     ground_p_max: float = 0.9
+    footprints: bool = False
     seed: int = 0
 
 
 def train(views: list, geom, grid: AOIGrid, dem_m: np.ndarray | None, cfg: TrainConfig, *, fixed_grid: bool = False,
-          log=print) -> tuple[VolumeModel, dict]:
+          footprints: np.ndarray | None = None, log=print) -> tuple[VolumeModel, dict]:
     """Train a model on ``views`` (several passes in random order); returns it with timing figures."""
     params = VolumeParams(refine=not fixed_grid)
     model = VolumeModel.create(geom, params, init_depth=geom.max_depth if fixed_grid else cfg.init_depth)
+    info: dict = {}
     if cfg.dem_prior and dem_m is not None:
-        seed_from_dem(model, dem_m, grid, DEMPrior(ground_band_m=cfg.ground_band_m,
-                                                      ground_band_top_m=cfg.ground_band_top_m,
-                                                      ground_p_max=cfg.ground_p_max))
+        prior = DEMPrior(ground_band_m=cfg.ground_band_m, ground_band_top_m=cfg.ground_band_top_m,
+                         ground_p_max=cfg.ground_p_max)
+        roof = None
+        if cfg.footprints and footprints is not None and footprints.any():
+            t0 = time.perf_counter()
+            roof, ri = roof_surface(views, footprints, dem_m, grid, prior, step_m=geom.finest_cell_m)
+            info = {"footprints": ri["footprints"], "roofs": ri["roofs"], "roof_sweep_s": time.perf_counter() - t0}
+            log(f"  roofs from footprints: {ri['roofs']} of {ri['footprints']} footprints, "
+                f"{info['roof_sweep_s']:.0f} s")
+        seed_from_dem(model, dem_m, grid, prior, roof_m=roof)
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
     segs = 0
@@ -82,7 +91,7 @@ def train(views: list, geom, grid: AOIGrid, dem_m: np.ndarray | None, cfg: Train
         log(f"  pass {p + 1}/{cfg.passes}: {r['leaves']:,} leaves, {r['bytes'] / 2**20:.1f} MiB, "
             f"{time.perf_counter() - t0:.0f} s")
     secs = time.perf_counter() - t0
-    return model, {"train_s": secs, "updates": n_upd, "segments": int(segs), "segments_per_s": segs / secs}
+    return model, {"train_s": secs, "updates": n_upd, "segments": int(segs), "segments_per_s": segs / secs, **info}
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
@@ -125,7 +134,8 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
                            "train_views": [v.name for v in train_views], "geometry": geom.to_dict()}
     log(f"octree model: {geom.n_blocks} blocks of {geom.block_size_m} m, finest {geom.finest_cell_m} m; "
         f"training on {[v.name for v in train_views]}")
-    model, tr = train(train_views, geom, grid, dem, cfg, log=log)
+    fp = footprint_mask(man, grid)
+    model, tr = train(train_views, geom, grid, dem, cfg, footprints=fp, log=log)
     res["octree_training"] = tr
     res["octree_size"] = model.size_report()
     save_model(model, work / "volume_octree")
@@ -248,6 +258,7 @@ def _to_prob(score: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def _grid_comparison(man, grid, dem, train_views, views_b, cfg, subarea_m, work, log) -> dict:
+    fp = footprint_mask(man, grid)
     l, b, r, t = grid.bounds
     cx, cy = 0.5 * (l + r), 0.5 * (b + t)
     half = 0.5 * subarea_m
@@ -263,7 +274,7 @@ def _grid_comparison(man, grid, dem, train_views, views_b, cfg, subarea_m, work,
     for kind in ("octree", "fixed grid"):
         log(f"sub-area {subarea_m:.0f} m, {kind}:")
         m, tr = train(train_views, geom, sub, dem_sub(dem, grid, sub), cfg, fixed_grid=(kind == "fixed grid"),
-                      log=log)
+                      footprints=None if fp is None else dem_sub(fp, grid, sub), log=log)
         models[kind] = m
         out[kind] = {"bytes": m.nbytes(), "nodes": m.n_nodes, "leaves": m.n_leaves, **tr}
     out["storage_ratio"] = out["fixed grid"]["bytes"] / out["octree"]["bytes"]
@@ -300,7 +311,9 @@ def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdo
                             finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth, frame=geom_full.frame)
     views_a = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("A").images]
     views_b = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("B").images if "sat" in s.name]
-    model, _ = train([v for v in views_a if v.name != holdout], geom, sub, dem_sub(dem, grid, sub), cfg, log=log)
+    fp = footprint_mask(man, grid)
+    model, _ = train([v for v in views_a if v.name != holdout], geom, sub, dem_sub(dem, grid, sub), cfg,
+                     footprints=None if fp is None else dem_sub(fp, grid, sub), log=log)
     ref_pool = [v for v in views_a if "sat" in v.name and v.name != holdout]
     pooled: dict[str, list] = {}
     for v in views_b:
@@ -322,6 +335,16 @@ def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdo
     out["n_pixels"] = int(t.size)
     out["changed_fraction"] = float(t.mean())
     return out
+
+
+def footprint_mask(man, grid: AOIGrid) -> np.ndarray | None:
+    """The manifest's footprints (the training date's) rasterized on ``grid``; None without any."""
+    if man.footprints is None:
+        return None
+    from ..io.vector import polygons_to_mask, read_footprints
+
+    return polygons_to_mask(read_footprints(man.footprints.path, crs=grid.crs, layer=man.footprints.layer),
+                            grid).astype(bool)
 
 
 def dem_sub(dem: np.ndarray, grid: AOIGrid, sub: AOIGrid) -> np.ndarray:
@@ -431,6 +454,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--subarea", type=float, default=150.0, help="side of the octree/grid comparison area (m)")
     ap.add_argument("--no-grid", action="store_true")
     ap.add_argument("--no-dem-prior", action="store_true")
+    ap.add_argument("--footprints", action="store_true",
+                    help="DEM prior: roof heights swept from the manifest's footprints (see docs/volume.md)")
     ap.add_argument("--ground-band", type=float, default=0.5, help="DEM prior: ground band half-height (m)")
     ap.add_argument("--ground-band-top", type=float, default=0.0,
                     help="DEM prior: top of the ground band above the DEM (m)")
@@ -439,7 +464,7 @@ def main(argv: list[str] | None = None) -> None:
     a = ap.parse_args(argv)
     cfg = TrainConfig(passes=a.passes, finest_cell_m=a.finest, dem_prior=not a.no_dem_prior,
                       ground_band_m=a.ground_band, ground_band_top_m=a.ground_band_top,
-                      ground_p_max=a.ground_p_max)
+                      ground_p_max=a.ground_p_max, footprints=a.footprints)
     t0 = time.perf_counter()
     res = evaluate(a.scene, a.out, a.work, holdout=a.holdout, cfg=cfg, subarea_m=a.subarea, do_grid=not a.no_grid,
                    log=lambda m: print(m, flush=True))

@@ -90,12 +90,18 @@ def _leaf_heights(model: VolumeModel, dem_m: np.ndarray, grid: AOIGrid):
     return leaves, c[:, 2], sizes[leaves], z_dem
 
 
-def seed_from_dem(model: VolumeModel, dem_m: np.ndarray, grid: AOIGrid, prior: DEMPrior | None = None) -> dict:
+def seed_from_dem(model: VolumeModel, dem_m: np.ndarray, grid: AOIGrid, prior: DEMPrior | None = None, *,
+                  roof_m: np.ndarray | None = None) -> dict:
     """Refine the ground band and set the initial α from the DEM (in place; call on a fresh model).
 
     Parameters
     ----------
     dem_m : float (rows, cols) ellipsoidal heights on ``grid`` (NaN = unknown: cells there keep ``p_init``)
+    roof_m : float (rows, cols) on ``grid``, optional
+        Ellipsoidal roof heights of known buildings (NaN elsewhere; see
+        :func:`footprint_roof_heights`). Where finite, the first surface seen from
+        above is the roof, not the bare ground: the band ends at the roof and the
+        cells below it (the building's interior, the hidden ground) keep ``p_init``.
 
     Returns
     -------
@@ -104,6 +110,9 @@ def seed_from_dem(model: VolumeModel, dem_m: np.ndarray, grid: AOIGrid, prior: D
     from .refine import split_leaves
 
     prior = prior or DEMPrior()
+    if roof_m is not None:
+        roof = np.asarray(roof_m, dtype=np.float64)
+        dem_m = np.where(np.isfinite(roof), roof, dem_m)
     g = model.geometry
     f = g.finest_cell_m
     split_total = 0
@@ -124,3 +133,113 @@ def seed_from_dem(model: VolumeModel, dem_m: np.ndarray, grid: AOIGrid, prior: D
     model.alpha[leaves[ground]] = (-np.log1p(-p_band[ground]) / size[ground]).astype(model.alpha.dtype)
     model.alpha[leaves[air]] = -math.log1p(-prior.air_p) / f
     return {"ground_cells": int(ground.sum()), "air_cells": int(air.sum()), "leaves_split": int(split_total)}
+
+
+
+def footprint_roof_heights(views: list, labels: np.ndarray, dem_m: np.ndarray, grid: AOIGrid, *,
+                           max_height_m: float = 25.0, step_m: float = 0.5, min_cells: int = 8) -> dict:
+    """Roof height of each footprint from the training views, by a plane sweep of the whole footprint.
+
+    Over a uniform roof the per-cell update cannot tell the roof from the ground below it
+    (every cell on a pixel's ray explains the roof's colour equally well); only the roof's
+    outline constrains its height. Here the outline is the footprint's: the footprint's cells,
+    lifted to ``DEM + h``, are projected into every view, and ``h`` is chosen where the views
+    agree best: the mean, over pairs of views, of the correlation (zero-mean, unit-variance
+    over the footprint) of their intensities at those cells. At a wrong height each view
+    shifts the outline by a different parallax and brings in ground, walls or shadow on a
+    different side; at the true height all see the same roof. ``h = 0`` is a candidate: a
+    footprint whose building is not there keeps the ground.
+
+    Parameters
+    ----------
+    views : objects with ``intensity`` (rows, cols) and ``camera`` (the training views)
+    labels : int (rows, cols) on ``grid``, 0 outside footprints, k > 0 inside footprint k
+    dem_m : float (rows, cols) ellipsoidal ground heights on ``grid``
+    max_height_m, step_m : the heights tried above the DEM, ``0, step, ..., max_height_m``
+
+    Returns
+    -------
+    dict: ``height_m`` (n_labels + 1,) the chosen height above the DEM per label (NaN: fewer than
+    two views see the whole footprint, or fewer than ``min_cells`` cells; index 0 unused), ``score`` (n_labels + 1,) the correlation there,
+    ``curve`` (n_heights, n_labels + 1) and ``heights_m``.
+    """
+    from scipy.ndimage import map_coordinates
+
+    from ..geodesy import to_lonlat
+
+    lab = np.asarray(labels)
+    rr, cc = np.nonzero((lab > 0) & np.isfinite(dem_m))
+    k = lab[rr, cc].astype(np.int64)
+    n_lab = int(lab.max()) + 1
+    x, y = grid.xy()
+    lon, lat = to_lonlat(x[rr, cc], y[rr, cc], grid.crs)
+    heights = np.arange(0.0, max_height_m + 0.5 * step_m, step_m)
+    curve = np.full((heights.size, n_lab), np.nan)
+    nv = len(views)
+    if nv < 2 or k.size == 0:
+        return {"height_m": np.full(n_lab, np.nan), "score": np.full(n_lab, np.nan), "curve": curve,
+                "heights_m": heights}
+    imgs = [(np.where(np.isfinite(v.intensity), v.intensity, 0.0), np.isfinite(v.intensity).astype(float))
+            for v in views]
+    total = np.bincount(k, minlength=n_lab).astype(float)
+
+    def sample(h: float) -> np.ndarray:
+        zs = np.full((nv, k.size), np.nan)
+        for iv, v in enumerate(views):
+            col, row = v.camera.project(lon, lat, dem_m[rr, cc] + h)
+            val = map_coordinates(imgs[iv][0], [row - 0.5, col - 0.5], order=1, mode="constant", cval=0.0)
+            ok = map_coordinates(imgs[iv][1], [row - 0.5, col - 0.5], order=1, mode="constant", cval=0.0) > 0.99
+            zs[iv] = np.where(ok & np.isfinite(col), val, np.nan)
+        return zs
+
+    # a view takes part for a footprint when it sees the whole footprint at the lowest and highest height
+    use = np.ones((nv, n_lab), dtype=bool)
+    for h in (heights[0], heights[-1]):
+        seen = np.isfinite(sample(h))
+        for iv in range(nv):
+            use[iv] &= np.bincount(k, seen[iv], minlength=n_lab) >= total
+    n_views = use.sum(axis=0).astype(float)
+    for ih, h in enumerate(heights):
+        z = sample(h)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            for iv in range(nv):   # standardise each view over each footprint; views not taking part give 0
+                ok = np.isfinite(z[iv])
+                n = np.bincount(k[ok], minlength=n_lab).astype(float)
+                m1 = np.bincount(k[ok], z[iv][ok], minlength=n_lab) / n
+                m2 = np.bincount(k[ok], z[iv][ok] ** 2, minlength=n_lab) / n
+                sd = np.sqrt(np.maximum(m2 - m1 ** 2, 0.0))
+                zi = (z[iv] - m1[k]) / np.maximum(sd[k], 1e-6)
+                z[iv] = np.where(ok & use[iv][k], zi, 0.0)
+            s = z.sum(axis=0)
+            q = (z ** 2).sum(axis=0)
+            pair = (np.bincount(k, s ** 2, minlength=n_lab) - np.bincount(k, q, minlength=n_lab)) / (
+                n_views * (n_views - 1) * total)
+        pair[(total < min_cells) | (n_views < 2)] = np.nan
+        curve[ih] = pair
+    best = np.full(n_lab, np.nan)
+    score = np.full(n_lab, np.nan)
+    has = np.any(np.isfinite(curve), axis=0)
+    idx = np.nanargmax(np.where(np.isfinite(curve[:, has]), curve[:, has], -np.inf), axis=0)
+    best[has] = heights[idx]
+    score[has] = curve[idx, np.nonzero(has)[0]]
+    best[0] = score[0] = np.nan
+    return {"height_m": best, "score": score, "curve": curve, "heights_m": heights}
+
+
+def roof_surface(views: list, footprints_mask: np.ndarray, dem_m: np.ndarray, grid: AOIGrid,
+                 prior: DEMPrior | None = None, *, step_m: float = 0.5) -> tuple[np.ndarray, dict]:
+    """Ellipsoidal roof heights on ``grid`` for :func:`seed_from_dem` (NaN outside footprints or where no
+    roof was found), from a footprint mask and the training views (:func:`footprint_roof_heights`; each
+    connected part of the mask is one footprint; ``step_m``: the model's finest cell)."""
+    from scipy.ndimage import label
+
+    prior = prior or DEMPrior()
+    lab, n = label(np.asarray(footprints_mask, dtype=bool))
+    r = footprint_roof_heights(views, lab, dem_m, grid, max_height_m=prior.max_object_m,
+                               step_m=step_m)
+    h = r["height_m"]
+    h = np.where(h > 0, h, np.nan)            # h = 0: the views agree best on the ground
+    roof = np.where(lab > 0, dem_m + h[lab], np.nan)
+    return roof, {"footprints": int(n), "roofs": int(np.isfinite(h[1:]).sum()), "height_m": h[1:],
+                  "score": r["score"][1:]}
+

@@ -79,3 +79,30 @@ def make_pair(seed: int = 0, size: int = 200, colour: bool = False, trees: bool 
         out[f"dsm_{date}"] = (dsm + rng.normal(0, 0.2, shape)).astype(np.float32)
         out[f"truth_{date}"] = truth
     return out
+
+
+def make_mound(seed: int = 0, size: int = 160):
+    """One date (used as both): a building with walls (7 m) and a mound — a bare-earth patch as homogeneous
+    as a roof, raised 5 m on a flat top whose sides slope 0.3 (17°) to the ground, planar everywhere.
+
+    Returns image (1, size, size) float32, dsm float32, ground, and the masks of the building and of the mound
+    where it stands over 2.5 m (bool).
+    """
+    rng = np.random.default_rng(seed)
+    shape = (size, size)
+    ground = 100.0 + np.zeros(shape)
+    tex = ndimage.gaussian_filter(rng.normal(0, 1, shape), 1.5)
+    img = 110 + 25 * tex / tex.std()
+    dsm = ground.copy()
+    b, v = _rect_mask(shape, 45, 45, 28, 20, 0.2)
+    dsm[b] += 7.0
+    img[b & (v >= 0)] = 200
+    img[b & (v < 0)] = 165
+    ii, jj = np.mgrid[0:size, 0:size].astype(float)
+    d = np.maximum(np.maximum(np.abs(jj - 108) - 12, np.abs(ii - 108) - 9), 0.0)   # cells from a 24 × 18 top
+    mound = np.clip(5.0 - 0.3 * POSTING * d, 0.0, None)
+    dsm += mound
+    img[mound > 2.0] = 185
+    img = img + rng.normal(0, 3, shape)
+    dsm = dsm + rng.normal(0, 0.2, shape)
+    return img[None].astype(np.float32), dsm.astype(np.float32), ground, b, mound > 2.5

@@ -78,3 +78,28 @@ def test_overlaps_and_death_pass_match_references():
         K.death_pass(order_u, indptr, b.astype(np.int64), w, energy, alive, beta, delta, 2.5, rand)
         assert np.array_equal(alive, ref_alive)
         assert 0 < alive.sum() < n - 1
+
+
+def test_rect_steps_match_reference():
+    rng = np.random.default_rng(2)
+    H, W = 70, 80
+    h = rng.normal(0.0, 0.2, (H, W)).astype(np.float32)
+    h[20:40, 25:55] += 6.0                                  # a block with walls
+    ii, jj = np.mgrid[0:H, 0:W]
+    h += np.clip(4.0 - 0.2 * np.hypot(jj - 15, ii - 55), 0.0, None).astype(np.float32)   # a cone: slopes
+    h[5:10, 5:10] = np.nan
+    n = 80
+    rects = np.column_stack([rng.uniform(0, 80, n), rng.uniform(0, 70, n), rng.uniform(4, 40, n),
+                             rng.uniform(4, 40, n), rng.uniform(-1.5, 1.5, n)])
+    fitted = [[39.5, 29.5, 30, 20, 0.0], [39.5, 29.5, 20, 30, np.pi / 2], [39.5, 29.5, 22, 12, 0.0],
+              [39.5, 29.5, 50, 40, 0.0], [15, 55, 12, 12, 0.0]]
+    rects = np.vstack([fitted, rects])
+    out = np.empty(len(rects))
+    K.rect_steps(rects, h, 0.8, 0.5, 2.0, 4.0, 4.0, out)
+    ref = K.rect_steps_ref(rects, h, 0.8, 0.5, 2.0, 4.0, 4.0)
+    np.testing.assert_allclose(out, ref, atol=1e-12)
+    # the block's outline steps all round (either way its sides are named); a rectangle inside the block
+    # has roof on both sides of its outline, one around it ground; the slope's rectangle is not steep
+    assert out[0] == out[1] == 1.0
+    assert out[2] < 0.5 and out[3] < 0.5 and out[4] < 0.5
+    assert 5 < (out > 0).sum() < len(rects) - 5

@@ -133,7 +133,7 @@ def test_build_args_defaults_and_repeats():
                     "--model", "/m.json", "--out", "/o", "--confidence", "95", "--confidence", "99.5"]
     with pytest.raises(ValueError, match="numbers"):
         specs.build_args(alg, {"CONFIDENCES": "ninety"})
-    upd = specs.build_args(specs.spec("volumeupdate"), {"MODEL": "/m", "IMAGES": ["/a.tif"], "PASSES": 3,
+    upd = specs.build_args(specs.spec("volumeupdate"), {"MODEL": "/m", "IMAGES": ["/a.tif"], "PASSES": 5,
                                                         "SUN": "135, 40.5", "NORMALIZE": 1})
     assert upd == ["volume", "update", "--image", "/a.tif", "--normalize", "percentile", "--sun", "135", "40.5",
                    "--", "/m"]

@@ -100,3 +100,29 @@ def test_cli_errors_are_one_line(scene, tmp_path):
     res = r.invoke(main, ["--progress", "none", "volume", "detect", str(scene / "images"),
                           str(scene / "images" / "B_test.tif"), "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "no volume model" in res.output
+
+
+def test_update_with_roofs_from_footprints(scene, tmp_path):
+    """``--footprints``: the manifest's footprints give the boxes' roof heights (the log says how many)."""
+    import geopandas as gpd
+    from shapely.geometry import box
+
+    from geocd.geodesy import from_lonlat
+
+    polys = []
+    for e0, e1, n0, n1, _h, _c in T.BOXES_A:
+        lon, lat, _ = T.FRAME.from_enu(np.array([e0, e1]), np.array([n0, n1]), np.zeros(2))
+        x, y = from_lonlat(lon, lat, T.CRS)
+        polys.append(box(float(x[0]), float(y[0]), float(x[1]), float(y[1])))
+    root = tmp_path / "scene_fp"
+    import shutil
+
+    shutil.copytree(scene, root)
+    gpd.GeoDataFrame(geometry=polys, crs=T.CRS).to_file(root / "footprints.gpkg", driver="GPKG")
+    man = yaml.safe_load((root / "scene.yaml").read_text())
+    man["footprints"] = "footprints.gpkg"
+    (root / "scene.yaml").write_text(yaml.safe_dump(man), encoding="utf-8")
+    res = CliRunner().invoke(main, ["volume", "update", str(tmp_path / "m"), "--manifest", str(root / "scene.yaml"),
+                                    "--passes", "1", "--above", "10", "--footprints"])
+    assert res.exit_code == 0, res.output
+    assert "roof heights from the footprints: 3 of 3 footprints" in res.output, res.output

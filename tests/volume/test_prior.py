@@ -107,3 +107,71 @@ def test_height_map_is_exact_for_a_known_density_layer(offset_m):
     expect = z_top - 0.5 - 0.5 * np.log(0.6 * air / 0.5) / np.log(10.0) + geom.frame.h0
     dz = (h - expect)[_centre(hg)]
     assert np.all(np.isfinite(dz)) and np.max(np.abs(dz)) < 0.005, (np.nanmin(dz), np.nanmax(dz))
+
+
+# uniform roofs: only the outline tells the roof's height (boxes of 6, 4 and 8 m; see toyscene)
+def _box_labels(grid):
+    x, y = grid.xy()
+    lon, lat = to_lonlat(x, y, grid.crs)
+    e, n, _ = T.FRAME.to_enu(lon, lat, np.full(lon.shape, T.H0))
+    lab = np.zeros(grid.shape, dtype=int)
+    for k, (e0, e1, n0, n1, _h, _c) in enumerate(T.BOXES_A):
+        lab[(e >= e0 + 0.25) & (e < e1 - 0.25) & (n >= n0 + 0.25) & (n < n1 - 0.25)] = k + 1
+    return lab
+
+
+def _uniform_roof_views(size=48):
+    cams = [T.look_at_camera(z, a, size=size) for z, a in T.TRAIN_VIEWS]
+    return [T.SimpleNamespace(camera=c, intensity=T.render(c, (size, size), seed=i, stripes=0.0))
+            for i, c in enumerate(cams)]
+
+
+def test_the_footprint_sweep_finds_the_height_of_uniform_roofs():
+    """Each box's footprint, swept over 0-10 m in 9 views of 0.8 m pixels, peaks at its roof (6, 4, 8 m)
+    within two 0.5 m steps (measured 5.5, 4.0, 9.0: a uniform roof's outline fixes its height to about a
+    pixel of parallax, 0.8 m / tan 20-30 deg), clearly above the correlation on the ground (h = 0)."""
+    from geocd.volume.prior import footprint_roof_heights
+
+    grid = T.aoi_grid(0.5)
+    r = footprint_roof_heights(_uniform_roof_views(), _box_labels(grid), np.full(grid.shape, T.H0), grid,
+                               max_height_m=10.0, step_m=0.5)
+    truth = np.array([b[4] for b in T.BOXES_A])
+    assert np.all(np.abs(r["height_m"][1:] - truth) <= 1.0), r["height_m"]
+    assert np.all(r["score"][1:] > r["curve"][0, 1:] + 0.2), (r["score"], r["curve"][0])
+    # a footprint where nothing stands (a flat textured patch of ground) stays on the ground
+    lab = np.zeros(grid.shape, dtype=int)
+    x, y = grid.xy()
+    lon, lat = to_lonlat(x, y, grid.crs)
+    e, n, _ = T.FRAME.to_enu(lon, lat, np.full(lon.shape, T.H0))
+    lab[(e > -3) & (e < 2) & (n > -1) & (n < 1.5)] = 1
+    r0 = footprint_roof_heights(_uniform_roof_views(), lab, np.full(grid.shape, T.H0), grid, max_height_m=10.0)
+    assert r0["height_m"][1] == 0.0, r0["height_m"]
+
+
+def _train_uniform_roofs(with_roofs: bool):
+    from geocd.volume.prior import roof_surface
+
+    geom = _flat_geometry(0.0)
+    grid = T.aoi_grid(0.5)
+    views = _uniform_roof_views()
+    dem = np.full(grid.shape, T.H0)
+    roof = roof_surface(views, _box_labels(grid) > 0, dem, grid, step_m=0.5)[0] if with_roofs else None
+    m = VolumeModel.create(geom, VolumeParams(), init_depth=1)
+    seed_from_dem(m, dem, grid, roof_m=roof)
+    for _ in range(2):
+        for i, v in enumerate(views):
+            update_model(m, v.intensity, v.camera, name=f"v{i}")
+    h, hg = expected_height_map(m, grid)
+    lab = _box_labels(hg)
+    return [np.nanmedian(h[lab == k + 1] - T.H0) - b[4] for k, b in enumerate(T.BOXES_A)]
+
+
+def test_uniform_roofs_come_out_at_their_height_with_footprints():
+    """Three boxes with uniform roofs, 9 views of 0.8 m pixels, 2 passes: with the roof heights swept from the
+    footprints the height map's median over each roof is within 1 m of the roof (measured +0.25, +0.81,
+    +0.67 m). With the bare-ground prior alone (the earlier behaviour) the ground explains a uniform roof as well
+    as the roof does: the 6 m box comes out on the ground (measured −6.06, +0.96, +0.42 m)."""
+    dz = _train_uniform_roofs(True)
+    assert np.all(np.abs(dz) < 1.0), dz
+    dz0 = _train_uniform_roofs(False)
+    assert min(dz0) < -2.0, dz0

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from types import SimpleNamespace
 
 from geocd.camera.frame import FrameCamera, rotation_to_opk
 from geocd.geodesy import AOIGrid, LocalFrame, from_lonlat
@@ -30,8 +31,8 @@ BOXES_B = BOXES_A + [NEW_BOX]
 _TEX = np.random.default_rng(1234).uniform(0.0, 1.0, (64, 64))
 
 
-def dsm(e: np.ndarray, n: np.ndarray, boxes=BOXES_A) -> tuple[np.ndarray, np.ndarray]:
-    """Surface height (ENU up, m) and roof/ground intensity at ENU points."""
+def dsm(e: np.ndarray, n: np.ndarray, boxes=BOXES_A, stripes: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Surface height (ENU up, m) and roof/ground intensity at ENU points (roofs striped by ``stripes``; 0: uniform)."""
     z = np.zeros(np.shape(e))
     # ground texture: random 1.25 m tiles (non-periodic over the scene) + a smooth ramp
     i = np.floor(np.asarray(e) / 1.25).astype(int) % _TEX.shape[0]
@@ -40,15 +41,15 @@ def dsm(e: np.ndarray, n: np.ndarray, boxes=BOXES_A) -> tuple[np.ndarray, np.nda
     for e0, e1, n0, n1, h, c in boxes:
         m = (e >= e0) & (e < e1) & (n >= n0) & (n < n1)
         z = np.where(m & (h > z), h, z)
-        stripes = c - 0.1 * ((np.floor(e / 1.5)) % 2)
-        col = np.where(m & (z == h), stripes, col)
+        roof = c - stripes * ((np.floor(e / 1.5)) % 2)
+        col = np.where(m & (z == h), roof, col)
     return z, col
 
 
 WALL = 0.12
 
 
-def render(camera, shape, boxes=BOXES_A, noise=0.01, seed=0) -> np.ndarray:
+def render(camera, shape, boxes=BOXES_A, noise=0.01, seed=0, stripes: float = 0.1) -> np.ndarray:
     """Ray-march the height field: intensity image (rows, cols) in [0, 1]."""
     rows, cols = shape
     geom = volume_geometry()
@@ -62,7 +63,7 @@ def render(camera, shape, boxes=BOXES_A, noise=0.01, seed=0) -> np.ndarray:
     alive = np.ones(o.shape[0], bool)
     for _ in range(int(40.0 / step)):
         p = o + t[:, None] * d
-        z, col = dsm(p[:, 0], p[:, 1], boxes)
+        z, col = dsm(p[:, 0], p[:, 1], boxes, stripes)
         hit = alive & (p[:, 2] <= z)
         if hit.any():
             wall = hit & (prev_z is not None) & (z > (prev_z if prev_z is not None else z) + 1e-9)
