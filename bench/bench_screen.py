@@ -101,18 +101,65 @@ def bench_features(size: int = 1024, only: list[str] | None = None) -> dict:
     return {"pair": what, "km2": round(km2, 4), "threads": 1, "load_average": os.getloadavg(), "rows": rows}
 
 
-def _run(args: list[str]) -> dict:
+def _run(args: list[str], cold: bool = False) -> dict:
+    """One geocd command as a child process; ``cold``: with an empty numba cache of its own (every kernel it
+    uses compiles, as on a first run; the worktree's cache is left alone)."""
+    import tempfile
+
+    env = dict(os.environ)
+    tmp = tempfile.TemporaryDirectory(prefix="geocd_numba_cold_") if cold else None
+    if tmp is not None:
+        env["NUMBA_CACHE_DIR"] = tmp.name
     load0 = os.getloadavg()[0]
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.run([str(ROOT / ".venv" / "bin" / "geocd"), "--progress", "none", *args], capture_output=True,
-                       text=True)
+                       text=True, env=env)
+    if tmp is not None:
+        tmp.cleanup()
     wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if p.returncode:
         raise SystemExit(f"geocd {' '.join(args)} failed:\n{p.stderr[-3000:]}")
     return {"wall_s": round(wall, 1), "cpu_s": round((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), 1),
             "load_average_1min": [round(load0, 2), round(os.getloadavg()[0], 2)], "stdout": p.stdout[-2000:]}
+
+
+def _parts(out: Path) -> dict:
+    """Wall seconds of a run's parts, from its log's progress lines (1 s resolution): orientation, the 3-D
+    stage (screen + stereo in a tiered run), the change test (model, comparisons, buildings) and the products."""
+    import re
+
+    marks: dict[str, float] = {}
+    log = out / "geocd_run.log"
+    if not log.exists():
+        return {}
+    day = 0.0
+    last = None
+    for line in log.read_text().splitlines():
+        mm = re.match(r"(\d\d):(\d\d):(\d\d) PROGRESS run +(\d+)% (.*)", line)
+        if not mm:
+            continue
+        t = int(mm[1]) * 3600 + int(mm[2]) * 60 + int(mm[3]) + day
+        if last is not None and t < last:   # past midnight
+            day += 86400.0
+            t += 86400.0
+        last = t
+        pct, msg = int(mm[4]), mm[5]
+        marks.setdefault("start", t)
+        if pct >= 10:
+            marks.setdefault("stereo", t)
+        if msg.startswith(("learning", "cross-epoch change test")):
+            marks.setdefault("change", t)
+        if msg.startswith("writing products"):
+            marks.setdefault("products", t)
+        if msg.startswith("done"):
+            marks.setdefault("done", t)
+    keys = ["start", "stereo", "change", "products", "done"]
+    if not all(k in marks for k in keys):
+        return {}
+    names = ["orientation_s", "stereo_s", "change_test_s", "products_s"]
+    return {n: round(marks[b] - marks[a], 1) for n, a, b in zip(names, keys[:-1], keys[1:])}
 
 
 def _regions(out: Path):
@@ -189,6 +236,102 @@ def _lost_vs_threshold_rule(full: Path, tier: Path, grid) -> dict | None:
             "above_threshold": int((dmax > t).sum()), "above_null_below_split": int(((dmax > q99) & (dmax <= t)).sum()),
             "below_null": int((dmax <= q99).sum()),
             "max_d_quantiles": [round(float(v), 3) for v in np.quantile(dmax, [0.1, 0.5, 0.9])]}
+
+
+def screen_losses(full: Path, screens: list[Path], tile_cells: int = 128, min_region_m2: float = 4.0) -> dict:
+    """What each screen alone would lose: the full run's changed buildings (``building_damage``, changed
+    classes) lying mostly (≥ 50 % of their cells) outside the tiles the screen flags, and how many of those
+    the screen sees below its own no-change 99 % quantile. For comparing screens (e.g. the views on the
+    terrain or on a DSM), independent of how the 3-D stage then covers the tiles."""
+    import geopandas as gpd
+    import rasterio
+    from rasterio.features import rasterize
+    from scipy import ndimage as ndi
+
+    from geocd.geodesy import AOIGrid
+    from geocd.pipeline import mark_not_examined
+    from geocd.screen.tiered import flag_tiles
+
+    a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
+    a = a[~a["class"].isin(("unchanged", "unobserved", "not examined"))]
+    out = {"full_dir": str(full), "changed_full": int(len(a)), "tile_cells": tile_cells, "screens": {}}
+    for sd in screens:
+        summ = json.loads((sd / "screen_summary.json").read_text())
+        with rasterio.open(sd / "screen_change_mask.tif") as ds:
+            ch = ds.read(1) == 1
+            grid = AOIGrid.from_raster(ds)
+        with rasterio.open(sd / "screen_dissimilarity.tif") as ds:
+            d = ds.read(1)
+        lab, n = ndi.label(ch, structure=np.ones((3, 3), bool))
+        if n:
+            keep = np.bincount(lab.ravel()) >= max(1, int(np.ceil(min_region_m2 / grid.cell_area_m2)))
+            keep[0] = False
+            ch = keep[lab]
+        fl = flag_tiles(ch, tile_cells)
+        ex = fl.examined(grid.shape)
+        fr = mark_not_examined(a.assign(**{"class": "x"}), grid, ex)["frac_examined"].to_numpy()
+        outside = a[fr < 0.5]
+        q99 = float(summ["null"]["quantiles"]["99"]) if summ.get("null") else float("nan")
+        below = 0
+        if len(outside):
+            lb = rasterize([(g, i + 1) for i, g in enumerate(outside.to_crs(grid.crs).geometry)], out_shape=grid.shape,
+                           transform=grid.transform, fill=0, dtype="int32")
+            dmax = np.asarray(ndi.maximum(np.nan_to_num(d, nan=-1.0), lb, np.arange(1, len(outside) + 1)))
+            below = int((dmax <= q99).sum())
+        out["screens"][str(sd)] = {"threshold": round(float(summ["threshold"]), 4), "null": summ.get("null"),
+                                   "flagged_tile_fraction": round(fl.tile_fraction, 4),
+                                   "flagged_cell_fraction": round(fl.cell_fraction(grid.shape), 4),
+                                   "lost_outside_flagged_tiles": int(len(outside)), "of_which_below_null_q99": below,
+                                   "surface": summ.get("surface")}
+    return out
+
+
+def calibration_fits(full: Path, tier: Path, model: str) -> dict:
+    """The transfer calibration (scale, edge σ) fitted on several selections of one full run's pair-DEMs: every
+    cell (the full run's fit), the screen's flagged tiles (the tiered run's old fit), the flagged tiles' cells
+    the screen calls unchanged (the new rule), the same over the whole grid, and two diagnostics that use the
+    full run's own 99 % change mask (the static scene of the grid and of the flagged tiles)."""
+    import rasterio
+    from scipy import ndimage
+
+    from geocd.consistency import ChangeParams, SelfConsistencyModel
+    from geocd.screen.tiered import Flagged, calibration_cells, fit_calibration_on
+    from geocd.stereo import read_pair_dem
+
+    mdl = SelfConsistencyModel.load(model)
+    summ = json.loads((full / "run_summary.json").read_text())
+    ea, eb = summ["epoch_a"], summ["epoch_b"]
+    A = [read_pair_dem(p) for p in sorted((full / "stereo" / ea).glob("*.tif"))]
+    B = [read_pair_dem(p) for p in sorted((full / "stereo" / eb).glob("*.tif"))]
+    shape = A[0].z_m.shape
+    scr = json.loads((tier / "run_summary.json").read_text())["screen"]
+    t = scr["tile_cells"]
+    sel = np.zeros((-(-shape[0] // t), -(-shape[1] // t)), bool)
+    for i, j in scr["flagged"]:
+        sel[i, j] = True
+    flagged = Flagged(t, sel).examined(shape)
+    with rasterio.open(tier / "screen" / "screen_change_mask.tif") as ds:
+        ch = ds.read(1) == 1
+    with rasterio.open(tier / "screen" / "screen_dissimilarity.tif") as ds:
+        d = ds.read(1)
+    ssum = json.loads((tier / "screen" / "screen_summary.json").read_text())
+    q50 = float(ssum["null"]["quantiles"]["50"])
+    cell = int(ssum["cell_px"])
+    with rasterio.open(full / "sc_change_mask.tif") as ds:
+        fm = ds.read(1)
+    static = ~ndimage.binary_dilation((fm == 1) | (fm == -1), iterations=8)
+    every = np.ones(shape, bool)
+    rows = {"all cells (the full run's fit)": every,
+            "flagged tiles, every cell (the old tiered fit)": flagged,
+            "flagged tiles, screen-unchanged (the new rule)": calibration_cells(d, q50, ch, flagged, cell),
+            "whole grid, screen-unchanged": calibration_cells(d, q50, ch, every, cell),
+            "diagnostic: whole grid without the full run's 99 % changes (8-cell buffer)": static,
+            "diagnostic: flagged tiles without the full run's 99 % changes (8-cell buffer)": flagged & static}
+    out = {"full_dir": str(full), "tiered_dir": str(tier), "model": model, "fits": {}}
+    for name, cells in rows.items():
+        cal, _ = fit_calibration_on(A, B, mdl, ChangeParams(), cells)
+        out["fits"][name] = {"selected_cells": int(cells.sum()), **(cal.to_dict() if cal is not None else {})}
+    return out
 
 
 def _curve_diff(a, b) -> tuple[float, float]:
@@ -289,7 +432,7 @@ def _truth_scores(out: Path, scene: Path) -> dict | None:
     return res
 
 
-def bench_tiered(scene: str, model: str | None, work: Path, reference: Path | None = None) -> dict:
+def bench_tiered(scene: str, model: str | None, work: Path, reference: Path | None = None, cold: bool = False) -> dict:
     """Full then tiered run, back to back (same machine state), whole processes; ``reference``: another full
     run's folder to compare the tiered run's detections with as well."""
     import shutil
@@ -298,8 +441,8 @@ def bench_tiered(scene: str, model: str | None, work: Path, reference: Path | No
     full, tier = work / "full", work / "tiered"
     for d in (full, tier):  # no resumed tiles, no earlier products: every run starts from nothing
         shutil.rmtree(d, ignore_errors=True)
-    r_full = _run(["run", scene, "--out", str(full), *extra])
-    r_tier = _run(["run", scene, "--out", str(tier), "--screen", *extra])
+    r_full = _run(["run", scene, "--out", str(full), *extra], cold)
+    r_tier = _run(["run", scene, "--out", str(tier), "--screen", *extra], cold)
     res = compare(scene, model, full, tier, r_full, r_tier)
     if reference is not None:
         ref = compare(scene, model, reference, tier, {"wall_s": float("nan"), "cpu_s": float("nan")}, r_tier)
@@ -328,6 +471,7 @@ def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict,
            "tiered": {k: v for k, v in r_tier.items() if k != "stdout"}, "screen": s,
            "speedup_wall": round(r_full["wall_s"] / r_tier["wall_s"], 2),
            "speedup_cpu": round(r_full["cpu_s"] / r_tier["cpu_s"], 2),
+           "parts_wall_s": {"full": _parts(full), "tiered": _parts(tier)},
            "regions_full": int(len(a)), "regions_tiered": int(len(b)), "regions_lost": int(len(lost)),
            "area_lost_m2": round(float(lost.area.sum()), 1), "area_full_m2": round(float(a.area.sum()), 1),
            "cells": _cells(full, tier), "models": _models(full, tier)}
@@ -432,7 +576,10 @@ def _key(scene: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles", "stereo-overhead"])
+    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles", "stereo-overhead", "screen-losses",
+                                        "calibration"])
+    ap.add_argument("--screen-dir", type=Path, action="append", default=[],
+                    help="screen-losses: a screen's output folder (repeat)")
     ap.add_argument("--epoch", default="B", help="stereo-overhead: the epoch whose pairs are matched")
     ap.add_argument("--full-dir", type=Path, help="compare: the full run's output folder; tiered: a reference "
                     "full run to compare the detections with as well")
@@ -441,6 +588,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tiered-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
     ap.add_argument("scene", nargs="?", default="sample_aoi")
     ap.add_argument("--model", default=None)
+    ap.add_argument("--cold", action="store_true", help="tiered: each run with an empty numba cache of its own")
     ap.add_argument("--size", type=int, default=1024, help="features: side of the benchmark pair (px)")
     ap.add_argument("--features", default=None, help="features: comma-separated label prefixes (default all)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/geocd_bench_screen"))
@@ -457,11 +605,16 @@ def main(argv=None) -> int:
     elif a.what == "stereo-overhead":  # untiled vs tiled stereo of one epoch, on the tiered run's flags
         doc.setdefault("stereo_overhead", {})[_key(a.scene)] = stereo_overhead(a.scene, a.tiered_dir, a.epoch,
                                                                                 a.work / "overhead")
+    elif a.what == "screen-losses":  # what screens alone would lose (no stereo): --full-dir and --screen-dir ...
+        doc.setdefault("screen_losses", {})[_key(a.scene)] = screen_losses(a.full_dir, a.screen_dir)
+    elif a.what == "calibration":  # the transfer calibration fitted on several selections of a full run's cells
+        doc.setdefault("calibration", {})[_key(a.scene)] = calibration_fits(a.full_dir, a.tiered_dir, a.model)
     elif a.what == "tiles":  # other --screen-tile sizes with the screen of a tiered run (no stereo re-run)
         doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:
         w = a.work / _key(a.scene)
-        doc.setdefault("tiered", {})[_key(a.scene)] = bench_tiered(a.scene, a.model, w, a.full_dir)
+        doc.setdefault("tiered", {})[_key(a.scene) + (" cold" if a.cold else "")] = bench_tiered(
+            a.scene, a.model, w, a.full_dir, a.cold)
     a.out.write_text(json.dumps(doc, indent=1, default=str))
     print(json.dumps(doc, indent=1, default=str)[-3000:])
     return 0

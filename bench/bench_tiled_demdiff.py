@@ -63,6 +63,8 @@ class Watch:
 def cmd(dem_dir: Path, out: Path, a, tiled: bool = True) -> list[str]:
     c = [GEOCD, "--progress", "json", "demdiff", str(dem_dir / "dem_a.tif"), str(dem_dir / "dem_b.tif"), "--json",
          "--out", str(out), "--no-plots"]
+    if getattr(a, "region_test", None):
+        c += ["--region-test", a.region_test]
     if not tiled:
         return c + ["--untiled"]
     c += ["--tiled", "--tile-size", str(a.tile_size)]
@@ -158,6 +160,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--memory-limit", default=None)
     ap.add_argument("--at", type=float, default=0.5)
+    ap.add_argument("--region-test", default=None, choices=["noise", "off"],
+                    help="demdiff's region test (default: the CLI's, noise; off: the products of earlier runs)")
     ap.add_argument("--json", default=None, help="also write the result here")
     a = ap.parse_args()
     dem_dir, out = Path(a.dem_dir), Path(a.out)

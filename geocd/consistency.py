@@ -578,14 +578,7 @@ class SelfConsistencyModel:
         if not self.has_region_test:
             raise ConfigError("this self-consistency model has no region null distribution (saved by an older geocd); "
                               "re-learn it with `geocd consistency`, or use the per-cell test (significance='cell')")
-        m = np.atleast_1d(np.asarray(mass, float))
-        shares = []
-        for ms in self.region_null["masses"]:
-            ms = np.asarray(ms, float)
-            shares.append(np.searchsorted(ms, m, side="left") / ms.size if ms.size else np.ones(m.shape))
-        if not shares:
-            return np.full(m.shape, 100.0)
-        return 100.0 * np.median(np.stack(shares), axis=0)
+        return null_region_confidence(self.region_null["masses"], mass)
 
     @property
     def bin_counts(self) -> np.ndarray:
@@ -819,6 +812,31 @@ def reference_law(model: "SelfConsistencyModel", comps: Sequence[tuple[PairDEMLi
             "slope": "min of the two surfaces' local |grad z|" if posting else "none (no grid posting)"}
 
 
+def null_region_confidence(null_masses: Sequence[Sequence[float]], mass: np.ndarray) -> np.ndarray:
+    """Confidence (percent) of regions with evidence ``mass`` against null regions' evidence.
+
+    ``null_masses``: one sorted list of evidence per null sample (a static comparison, a
+    simulated noise field set). Per sample, the share of its null regions with less evidence;
+    the confidence is the median share over the samples (a sample without any region counts as
+    100 %).
+    """
+    m = np.atleast_1d(np.asarray(mass, float))
+    shares = []
+    for ms in null_masses:
+        ms = np.asarray(ms, float)
+        shares.append(np.searchsorted(ms, m, side="left") / ms.size if ms.size else np.ones(m.shape))
+    if not shares:
+        return np.full(m.shape, 100.0)
+    return 100.0 * np.median(np.stack(shares), axis=0)
+
+
+def cluster_evidence(pvalue: np.ndarray, alpha0: float) -> np.ndarray:
+    """Each cell's evidence beyond the cluster-forming level: log(α0/p) where p < α0, else 0."""
+    p = np.asarray(pvalue, np.float64)
+    cand = np.isfinite(p) & (p < alpha0)
+    return np.where(cand, np.log(alpha0 / np.maximum(np.where(cand, p, 1.0), 1e-300)), 0.0)
+
+
 def candidate_regions(pvalue: np.ndarray, sign: np.ndarray, alpha0: float,
                       min_cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Candidate change regions and their combined evidence.
@@ -845,7 +863,7 @@ def candidate_regions(pvalue: np.ndarray, sign: np.ndarray, alpha0: float,
 
     p = np.asarray(pvalue, np.float64)
     cand = np.isfinite(p) & (p < alpha0)
-    ev = np.where(cand, np.log(alpha0 / np.maximum(np.where(cand, p, 1.0), 1e-300)), 0.0)
+    ev = cluster_evidence(p, alpha0)
     labels = np.zeros(p.shape, np.int32)
     masses, signs = [], []
     n_total = 0

@@ -220,7 +220,8 @@ def mark_not_examined(buildings, grid, examined: np.ndarray | None):
                        fill=0, dtype="int32")
     idx = np.arange(1, n + 1)
     cells = np.asarray(ndi.sum(np.ones(grid.shape), labels, idx))
-    frac = np.asarray(ndi.sum(examined, labels, idx)) / np.maximum(cells, 1)
+    # a footprint with no cell on the grid was not for the 3-D stage to examine: it stays as it is
+    frac = np.where(cells > 0, np.asarray(ndi.sum(examined, labels, idx)) / np.maximum(cells, 1), 1.0)
     out = buildings.copy()
     out["frac_examined"] = np.round(frac, 4)
     hit = (out["class"].to_numpy() == "unobserved") & (frac < 1.0)
@@ -309,7 +310,8 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
         by_epoch.setdefault(pdem.epoch or key.split("/")[0], []).append(pdem)
     res = run_change(m, by_epoch, st["grid"], out_dir=out, config=config, model=model,
                      progress=sub_progress(prog, 0.75, 1.0), footprints=footprints,
-                     stereo_outputs=st["outputs"], orientation=orientation, examined=st.get("examined"))
+                     stereo_outputs=st["outputs"], orientation=orientation, examined=st.get("examined"),
+                     calibration_cells=st.get("calibration_cells"))
     if "screen" in st:
         from .io.atomic import write_text_atomic
 
@@ -324,7 +326,7 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
                config: RunConfig = RunConfig(), model: SelfConsistencyModel | None = None,
                progress: Progress | None = None, footprints: os.PathLike | str | None = None,
                stereo_outputs: dict | None = None, orientation: dict | None = None,
-               examined: np.ndarray | None = None) -> dict[str, Any]:
+               examined: np.ndarray | None = None, calibration_cells: np.ndarray | None = None) -> dict[str, Any]:
     """Everything of :func:`run` after the stereo: baseline, change test, buildings, products.
 
     Parameters
@@ -338,6 +340,9 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
     examined : bool (rows, cols), optional: the cells the 3-D stage examined (a tiered run's flagged tiles);
         the others get the change-mask code ``NOT_EXAMINED`` and buildings unobserved there the class
         ``not examined``
+    calibration_cells : bool (rows, cols), optional: fit the transfer calibration (when the model asks for
+        one) on these cells only — a tiered run's examined cells that the screen calls unchanged, since
+        its examined tiles were chosen for their change (:func:`geocd.screen.tiered.fit_calibration_on`)
     """
     from .change.buildings import classify_buildings
     from .change.products import write_change_products
@@ -374,7 +379,13 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
     if config.region_confidence not in change_params.confidences:  # the reported level is always tested
         change_params = dataclasses.replace(change_params,
                                             confidences=tuple(sorted({*change_params.confidences, config.region_confidence})))
-    res = change_test(recs_a, recs_b, model, change_params, progress=sub_progress(prog, 0.3, 0.7))
+    cal = offsets = None
+    if calibration_cells is not None:
+        from .screen.tiered import fit_calibration_on
+
+        cal, offsets = fit_calibration_on(recs_a, recs_b, model, change_params, calibration_cells)
+    res = change_test(recs_a, recs_b, model, change_params, progress=sub_progress(prog, 0.3, 0.7),
+                      offsets=offsets if cal is not None else None, calibration=cal)
     buildings = None
     fp_path = footprints or (m.footprints.path if m.footprints is not None else None)
     if fp_path is not None:
@@ -425,7 +436,8 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
         "changed_fraction": {f"{c:g}": round(float((res.changed_at(c) != 0)[observed].mean()), 5) for c in res.confidences},
         "model": {"bins": len(model.score_centres), "match_pairs": int(model.bin_counts.sum()),
                   "learned_here": config.model_path is None,
-                  "calibration": res.calibration.to_dict() if res.calibration is not None else "none"},
+                  "calibration": res.calibration.to_dict() if res.calibration is not None else "none",
+                  **({"calibration_fitted_on": "examined cells the screen calls unchanged"} if cal is not None else {})},
         "outputs": {k: str(v) for k, v in paths.items()},
     }
     if buildings is not None:

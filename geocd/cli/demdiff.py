@@ -183,6 +183,9 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
               default="vertical_only", show_default=True,
               help="What to do when the co-registration fit is under-constrained.")
 @click.option("--min-region-cells", type=int, default=4, show_default=True, help="Smallest changed region kept.")
+@click.option("--region-test", type=click.Choice(["noise", "off"]), default="noise", show_default=True,
+              help="noise: keep a changed region only when its combined evidence beats the regions that noise alone "
+                   "forms (simulated from the fitted error model and variogram) at --confidence; off: every region.")
 @click.option("--fallback-threshold", type=float, default=None,
               help="|dh| (m) that marks change when no stable terrain exists (no significance then).")
 @click.option("--base", type=click.Path(path_type=str), default=None,
@@ -206,8 +209,8 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
 @click.option("--memory-limit", default=None, help="Tiled runs: memory limit per local worker, e.g. 2GB.")
 @click.pass_context
 def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, footprints, confidence, datum_a, datum_b,
-            resampling, no_coreg, tilt, on_underconstrained, min_region_cells, fallback_threshold, base, dates, names,
-            pair_products, no_plots, tiled, scheduler, tile_size, workers, memory_limit) -> None:
+            resampling, no_coreg, tilt, on_underconstrained, min_region_cells, region_test, fallback_threshold, base,
+            dates, names, pair_products, no_plots, tiled, scheduler, tile_size, workers, memory_limit) -> None:
     from .common import require_inputs, resolve_out_dir, session
 
     require_inputs(*dems, stable_mask, footprints, base)
@@ -232,6 +235,7 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
     sess.open_log(out)
     params = DEMDiffParams(coreg=CoregParams(tilt=tilt, on_underconstrained=on_underconstrained),
                            coregister=not no_coreg, confidence=confidence, min_region_cells=min_region_cells,
+                           region_test=region_test,
                            resampling=resampling, fallback_threshold_m=fallback_threshold)
     tiling_opts = {k: v for k, v in (("scheduler", scheduler), ("tile_size", tile_size), ("n_workers", workers),
                                      ("memory_limit", memory_limit)) if v is not None}

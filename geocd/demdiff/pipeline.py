@@ -45,7 +45,8 @@ from ..progress import Progress, ensure_progress, sub_progress
 from ._kernels import terrain_attributes
 from .align import AlignedPair, align_dems
 from .coreg import CoregParams, CoregResult, apply_shift, nuth_kaab
-from .significance import SignificanceModel, change_sign, fit_significance, significance_map
+from .significance import (SignificanceModel, change_sign, fit_significance, noise_region_filter, noise_region_null,
+                           significance_map)
 from .stable import StableInfo, StableParams, nmad, stable_terrain
 from .uncertainty import ErrorParams, Uncertainty, estimate_uncertainty
 
@@ -63,6 +64,11 @@ class DEMDiffParams:
     coreg_stable_factor: float = 1.0
     confidence: float = 95.0
     min_region_cells: int = 4
+    #: region test: "noise" keeps a region only when its combined evidence (cluster mass) exceeds what
+    #: ``confidence`` % of the regions formed by noise alone reach (the error model's σ and variogram:
+    #: :func:`geocd.demdiff.significance.noise_region_null`); "off": every region of ≥ min_region_cells.
+    #: Without stable terrain (no σ, no variogram) there is no test and every region is kept.
+    region_test: str = "noise"
     resampling: str = "bilinear"
     fallback_threshold_m: float | None = None
     min_stable_cells: int = 50
@@ -83,6 +89,8 @@ class DEMDiffParams:
             raise ConfigError("max_identical_fraction must be in (0, 1]")
         if self.min_region_cells < 1:
             raise ConfigError("min_region_cells must be ≥ 1")
+        if self.region_test not in ("noise", "off"):
+            raise ConfigError(f"region_test must be 'noise' or 'off', got {self.region_test!r}")
 
 
 @dataclass
@@ -295,6 +303,10 @@ def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: n
     else:
         raw_sign = np.zeros(g.shape, np.int8)
     raw_sign = np.where(obs, raw_sign, 0).astype(np.int8)
+    region_info = None
+    if p.region_test == "noise" and sig_model is not None and unc is not None:
+        null = region_null_of(unc.variogram, post, p.confidence, p.min_region_cells)
+        raw_sign, region_info = noise_region_filter(raw_sign, conf, p.confidence, null, p.min_region_cells)
     cell = float(post[0] * post[1])
     vfn = unc.volume_sigma_fn(cell) if unc is not None else None
     # per-cell confidence in percent, as change_regions takes it
@@ -309,7 +321,14 @@ def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: n
                         epoch_a, epoch_b, p.confidence, status, notes, warnings=warns)
     res.summary = _summary(res, B, p)
     res.summary.update(degenerate)
+    if region_info is not None:
+        res.summary["region_test"] = region_info
     return res
+
+
+def region_null_of(vg, posting_xy_m, level_pct: float, min_cells: int) -> np.ndarray:
+    """The noise regions' masses for the region test (the regions of ≥ ``min_cells`` the cell test makes in noise)."""
+    return noise_region_null(vg, (float(posting_xy_m[0]), float(posting_xy_m[1])), level_pct, min_cells)
 
 
 

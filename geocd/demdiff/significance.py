@@ -13,6 +13,18 @@ those thresholds against slope for plots and reports.
 No Gaussian assumption is made for the cells; the region-level test in
 :mod:`geocd.change.regions` uses the variogram-based volume σ instead (sums of many
 correlated cells are close to Gaussian).
+
+**Minimum mapping unit from the noise** (:func:`noise_region_null`, :func:`noise_region_filter`).
+A region of changed cells is itself a statistic: correlated noise makes clusters of cells
+that each pass the cell test. A region's combined evidence is its cluster mass Σ log(α/p_i)
+(p_i = 1 − the cell's confidence, α = 1 − the map's level; the self-consistency change
+test's region evidence, :func:`geocd.consistency.candidate_regions`). Its null is the masses
+of the regions that noise alone forms under the same cell test: fields of standardized
+residuals simulated with the fitted variogram's correlation (a Gaussian copula: under no
+change each cell's confidence is uniform, and neighbours are dependent as the stable terrain's
+z are). A region is kept when its mass exceeds the share ``level`` of the noise regions'
+masses (:func:`geocd.consistency.null_region_confidence`) — nothing in it is a constant chosen
+on a scene; the unit grows with the correlation range and with the level.
 """
 
 from __future__ import annotations
@@ -22,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from ..consistency import candidate_regions, cluster_evidence, null_region_confidence
 from ..errors import EmptyDataError
 
 
@@ -107,3 +120,107 @@ def change_sign(dh_m: np.ndarray, confidence: np.ndarray, level: float, center_m
     if observed is not None and nodata is not None:
         s = np.where(observed, s, np.int8(nodata)).astype(np.int8)
     return s
+
+
+def _torus_field(vg, posting_xy_m: tuple[float, float], size: int, rng: np.random.Generator) -> np.ndarray:
+    """One ``size``² field of unit variance with the variogram's correlation (FFT on a 2·size torus)."""
+    m = 2 * size
+    i = np.minimum(np.arange(m), m - np.arange(m))
+    d = np.hypot(i[None, :] * float(posting_xy_m[0]), i[:, None] * float(posting_xy_m[1]))
+    lam = np.fft.rfft2(vg.correlation(d)).real
+    lam = np.maximum(lam, 0.0)  # circulant embedding: ranges beyond the torus clip a little
+    w = np.fft.rfft2(rng.standard_normal((m, m)))
+    f = np.fft.irfft2(np.sqrt(lam) * w, s=(m, m))[:size, :size]
+    return f / np.sqrt(np.mean(lam))
+
+
+def noise_region_null(vg, posting_xy_m: tuple[float, float], level_pct: float, min_cells: int = 1, *,
+                      size: int = 512, min_regions: int = 2000, max_fields: int = 48, seed: int = 0) -> np.ndarray:
+    """Sorted cluster masses of the regions noise alone forms at ``level_pct`` (see module docstring).
+
+    Parameters
+    ----------
+    vg : :class:`geocd.demdiff.uncertainty.VariogramModel` of the standardized residuals
+    posting_xy_m : cell size (x, y) in metres
+    level_pct : the map's confidence (percent); cells with p = 1 − confidence < 1 − level form regions
+    min_cells : regions smaller than this are not regions (the map's ``min_region_cells``: the null is
+        the regions the map would report)
+    size : side of each simulated field (cells); fields are simulated until ``min_regions`` null
+        regions or ``max_fields`` fields (fixed seed: the same model gives the same null)
+    """
+    from scipy.special import erfc
+
+    alpha = 1.0 - float(level_pct) / 100.0
+    rng = np.random.default_rng(seed)
+    masses: list[np.ndarray] = []
+    n = 0
+    for _ in range(int(max_fields)):
+        g = _torus_field(vg, posting_xy_m, int(size), rng)
+        pv = erfc(np.abs(g) / np.sqrt(2.0))
+        _, mass, _ = candidate_regions(pv, np.sign(g).astype(np.int8), alpha, int(min_cells))
+        masses.append(mass)
+        n += mass.size
+        if n >= min_regions:
+            break
+    return np.sort(np.concatenate(masses)) if masses else np.zeros(0)
+
+
+def noise_region_filter(sign: np.ndarray, confidence_pct: np.ndarray, level_pct: float, null_masses: np.ndarray,
+                        min_cells: int = 1) -> tuple[np.ndarray, dict[str, Any]]:
+    """Drop the regions of ``sign`` whose combined evidence noise alone reaches (see module docstring).
+
+    Parameters
+    ----------
+    sign : int8 (rows, cols) +1/−1/0, the cell test's changed cells (0 where not observed)
+    confidence_pct : float (rows, cols), each cell's confidence (percent)
+    null_masses : sorted masses from :func:`noise_region_null`
+
+    Returns
+    -------
+    sign : the same with the cells of non-significant regions set to 0
+    info : regions tested / dropped, cells dropped, the mass a region needs
+    """
+    from scipy import ndimage
+
+    alpha = 1.0 - float(level_pct) / 100.0
+    ev = cluster_evidence(1.0 - np.asarray(confidence_pct, np.float64) / 100.0, alpha)
+    out = np.asarray(sign, np.int8).copy()
+    tested = dropped = dropped_cells = 0
+    for s in (1, -1):
+        lab, n = ndimage.label(out == s, structure=np.ones((3, 3), bool))
+        if n == 0:
+            continue
+        size = np.bincount(lab.ravel(), minlength=n + 1)
+        mass = np.bincount(lab.ravel(), weights=ev.ravel(), minlength=n + 1)
+        big = size >= max(int(min_cells), 1)
+        big[0] = False
+        drop = big & (region_noise_confidence(mass, null_masses) < float(level_pct))
+        if not resolvable(null_masses, level_pct):
+            drop[:] = False
+        tested += int(big.sum())
+        dropped += int(drop.sum())
+        dropped_cells += int(size[drop].sum())
+        out[drop[lab]] = 0
+    return out, {"regions_tested": tested, "regions_dropped": dropped, "cells_dropped": dropped_cells,
+                 "null_regions": int(np.asarray(null_masses).size),
+                 "mass_needed": noise_mass_needed(null_masses, level_pct)}
+
+
+def resolvable(null_masses: np.ndarray, level_pct: float) -> bool:
+    """Enough noise regions to tell the ``level_pct`` share of them (else noise seldom forms regions of
+    the mapping unit's size, and every region is kept)."""
+    return np.asarray(null_masses).size * (1.0 - float(level_pct) / 100.0) >= 1.0
+
+
+def region_noise_confidence(mass: np.ndarray, null_masses: np.ndarray) -> np.ndarray:
+    """Confidence (percent) of regions with cluster mass ``mass`` against the noise regions."""
+    return null_region_confidence([null_masses], mass)
+
+
+def noise_mass_needed(null_masses: np.ndarray, level_pct: float) -> float:
+    """The smallest cluster mass a region needs to be kept at ``level_pct``."""
+    ms = np.asarray(null_masses, float)
+    if not resolvable(ms, level_pct):
+        return float("nan")
+    k = int(np.ceil(float(level_pct) / 100.0 * ms.size))
+    return float(ms[k - 1]) if k <= ms.size else float("inf")

@@ -506,7 +506,7 @@ def _tile_region_sigmas(tr, sigma, k_local, ctx, rs: "_RegionSigma") -> None:
 
 def _t_products(arrays, ctx):
     """Per-cell products and the tile's partial sums (large grids)."""
-    S, plan, sd, em, sig, level, center, split, fitted_plan, rsig = ctx.params
+    S, plan, sd, em, sig, level, center, split, fitted_plan, rsig, rtest = ctx.params
     p = S.params
     w = _Win(arrays, ctx, S)
     dh = w.dh(plan)
@@ -535,6 +535,9 @@ def _t_products(arrays, ctx):
     from .pipeline import _sign_in_regions
 
     sign = np.where(obs, _sign_in_regions(raw, p.min_region_cells), CHANGE_NODATA).astype(np.int8)
+    if rtest is not None and "drop" in rtest:
+        # the region test's verdict from the first products pass: its regions' cells, tile by tile
+        sign = np.where(_dropped_cells(arrays["labels_first"], ctx.origin, *rtest["drop"]), 0, sign).astype(np.int8)
     conf_pct = np.where(np.isfinite(conf), conf, np.nan).astype(np.float32)
     dh32 = dh.astype(np.float32)
     core = ctx.core
@@ -543,6 +546,17 @@ def _t_products(arrays, ctx):
     obc = obs[core]
     stc = st[core]
     ch = (sc == 1) | (sc == -1)
+    from ..tiling.regions import tile_regions
+
+    if rtest is not None and "alpha" in rtest:
+        # first pass of the region test: each region's cluster mass, no polygons
+        from ..consistency import cluster_evidence
+
+        ev = cluster_evidence(1.0 - conf[core].astype(np.float64) / 100.0, rtest["alpha"])
+        tr = tile_regions(sc, dh[core], ctx.tile, S.grid, polygons=False, sums={"mass": ev})
+        labels = tr.labels
+        tr.labels = None  # a tile array, not a small result
+        return TileOutput(arrays={"labels": labels}, small={"regions": tr})
     small: dict[str, Any] = {
         "n_obs": int(obc.sum()), "n_stable": int(stc.sum()), "n_changed": int(ch.sum()),
         "n_raised": int((sc == 1).sum()), "n_lowered": int((sc == -1).sum()),
@@ -593,6 +607,30 @@ def _t_products(arrays, ctx):
         out.update(a32=w.a32, bc32=w.b_moved(plan).astype(np.float32) if plan is not None else w.b32_raw,
                    conf=conf.astype(np.float32))
     return TileOutput(arrays=out, small=small)
+
+
+def _dropped_cells(labels: np.ndarray, origin: tuple[int, int], tile_shape: tuple[int, int], table: dict) -> np.ndarray:
+    """Cells of dropped regions on a window of tile-local labels (+k raised, −k lowered).
+
+    ``table[(i, j)] = (drop_raised, drop_lowered)``: bool per local label (index 0 unused)."""
+    lab = np.asarray(labels)
+    out = np.zeros(lab.shape, bool)
+    R0, C0 = origin
+    h, w = lab.shape
+    th, tw = tile_shape
+    for i in range(R0 // th, (R0 + h - 1) // th + 1):
+        r0, r1 = max(i * th, R0) - R0, min((i + 1) * th, R0 + h) - R0
+        for j in range(C0 // tw, (C0 + w - 1) // tw + 1):
+            t = table.get((i, j))
+            if t is None:
+                continue
+            c0, c1 = max(j * tw, C0) - C0, min((j + 1) * tw, C0 + w) - C0
+            sub = lab[r0:r1, c0:c1].astype(np.int64)
+            # labels beyond a table's end are kept: index a trailing False there
+            dp, dn = (np.append(x, False) for x in t)
+            out[r0:r1, c0:c1] = np.where(sub > 0, dp[np.clip(sub, 0, dp.size - 1)],
+                                         np.where(sub < 0, dn[np.clip(-sub, 0, dn.size - 1)], False))
+    return out
 
 
 @dataclass(frozen=True)
@@ -1295,7 +1333,7 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
 
     from ..change.styles import write_raster_style
     from ..io.vector import qml_for, write_gpkg
-    from ..tiling.regions import merge_regions, regions_layer
+    from ..tiling.regions import merge_regions, regions_layer_batches
     from .pipeline import DEMDiffResult
     from .products import _clean, _jsonable, dh_qml, nice_limit, significance_qml, tables, write_json
 
@@ -1358,8 +1396,41 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
     center = sig.center_m if sig is not None else 0.0
     rsig = (_RegionSigma(vg, (float(post[0]), float(post[1])), unc.bias_sigma_m, unc.n_stable, unc.offset_m, KC,
                          block, cell) if unc is not None else None)
-    rp = R.run(_t_products, "products", (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan, rsig), ov,
-               products=products, inputs={"k_local": kstore.source("k_local")} if unc is not None else None)
+    kin = {"k_local": kstore.source("k_local")} if unc is not None else {}
+    rtest = None
+    region_info = None
+    if p.region_test == "noise" and sig is not None and unc is not None:
+        # region test: a first pass finds the regions and their cluster mass, the products pass drops
+        # the regions noise alone would make (same rule as finish_difference's noise_region_filter)
+        from .pipeline import region_null_of
+        from .significance import noise_mass_needed, region_noise_confidence, resolvable
+
+        r1 = R.run(_t_products, "regions", (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan, None,
+                                            {"alpha": 1.0 - p.confidence / 100.0}), ov, inputs=kin or None)
+        m1 = merge_regions([s_["regions"] for _, s_ in r1.smalls()], R.tg, p.min_region_cells)
+        null = region_null_of(vg, post, p.confidence, p.min_region_cells)
+        drop = (region_noise_confidence(m1.extra["mass"], null) < p.confidence if len(m1) and resolvable(null, p.confidence)
+                else np.zeros(len(m1), bool))
+        ks = np.nonzero(drop)[0]
+        table: dict = {}
+        if ks.size:
+            tiles, signs, labs = m1.members.pieces(ks)
+            for (i, j), sg_, lb in zip(tiles.tolist(), signs.tolist(), labs.tolist()):
+                table.setdefault((i, j), ([], []))[0 if sg_ > 0 else 1].append(lb)
+            for key, (lp, ln) in table.items():
+                dp = np.zeros(max(lp, default=0) + 1, bool)
+                dn = np.zeros(max(ln, default=0) + 1, bool)
+                dp[lp] = True
+                dn[ln] = True
+                table[key] = (dp, dn)
+        region_info = {"regions_tested": int(len(m1)), "regions_dropped": int(ks.size),
+                       "cells_dropped": int(np.sum(m1.n[ks])), "null_regions": int(null.size),
+                       "mass_needed": noise_mass_needed(null, p.confidence)}
+        del m1
+        rtest = {"drop": (tuple(R.tg.tile_size), table)}
+        kin["labels_first"] = r1.store.source("labels")
+    rp = R.run(_t_products, "products", (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan, rsig, rtest),
+               ov, products=products, inputs=kin or None)
     sm = [s_ for _, s_ in rp.smalls()]
     tot = {k: sum(s_[k] for s_ in sm) for k in ("n_obs", "n_stable", "n_changed", "n_raised", "n_lowered",
                                                  "sum_changed", "sum_raised", "sum_lowered", "sum_obs",
@@ -1382,7 +1453,11 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m "
                      "(no significance test)")
     # --- regions -----------------------------------------------------------------------------------
+    # no more tiles: a LocalCluster's workers give their memory back before the client merges the regions
+    R.eng.release_local()
     merged = merge_regions([s_["regions"] for s_ in sm], R.tg, p.min_region_cells)
+    for s_ in sm:
+        s_.pop("regions", None)
     store = rp.store
 
     def var_terms(V: float, n: int, cross: float, include_bias: bool = True) -> float:
@@ -1392,7 +1467,7 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         from ..tiling.regions import region_mask_window
 
         vs = merged.extra.get("vsig")
-        if vs is not None and len(merged.members[k]) == 1 and np.isfinite(vs[k]):
+        if vs is not None and merged.members.counts[k] == 1 and np.isfinite(vs[k]):
             return float(vs[k])          # wholly inside one tile: computed there
         r0, c0, r1, c1 = (int(v) for v in merged.bbox[k])
         if (r1 - r0) * (c1 - c0) <= R.tiling.exact_grid_cells:
@@ -1407,8 +1482,9 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
             n = int(merged.n[k])
         return math.sqrt(var_terms(V, n, cross)) * cell
 
-    layer = regions_layer(merged, g, cell_area_m2=cell, method=st.method, epoch_a=ea, epoch_b=eb,
-                          volume_sigma=region_sigma if unc is not None else None)
+    # written batch by batch: the polygons of millions of regions are never all held at once
+    layer = regions_layer_batches(merged, g, cell_area_m2=cell, method=st.method, epoch_a=ea, epoch_b=eb,
+                                  volume_sigma=region_sigma if unc is not None else None)
     # --- summary -----------------------------------------------------------------------------------
     s = {
         "epoch_a": ea, "epoch_b": eb, "status": status, "coreg_status": c.status,
@@ -1458,6 +1534,8 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         sv = s["volume_changed_sigma_m3"]
         s["fitted_shift_volume_effect_sigma"] = (vf - s["volume_changed_m3"]) / sv if sv and math.isfinite(sv) else nan
     s.update(degenerate)
+    if region_info is not None:
+        s["region_test"] = region_info
     s["wall_s"] = time.perf_counter() - R.t0
     s["tiled"] = {"exact": False, "sample_fraction": S.fraction, "coarse_block_cells": block,
                   "tile_size": R.tiling.tile_size, "short_range_cells": split.radius if split is not None else 0}
@@ -1468,7 +1546,7 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
     write_raster_style(paths["significance"], significance_qml())
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
     dr = DEMDiffResult(g, post, None, None, None, None, None, None, model.info, c, unc, sig, None, None, None,
-                       None, layer, ea, eb, p.confidence, status, notes, warnings=warns)
+                       None, None, ea, eb, p.confidence, status, notes, warnings=warns)
     dr.summary = s
     layers: dict[str, Any] = {"changes": layer}
     styles = {"changes": qml_for("changes")}

@@ -83,7 +83,9 @@ def write_gpkg(path: os.PathLike | str, layers: Mapping[str, Any], *, styles: Ma
 
     Parameters
     ----------
-    layers : mapping layer name → GeoDataFrame (features) or DataFrame (attribute table)
+    layers : mapping layer name → GeoDataFrame (features), DataFrame (attribute table), or an
+        iterable of GeoDataFrame batches with a ``geometry_type`` attribute (e.g.
+        :class:`geocd.tiling.regions.RegionBatches`), appended batch by batch
     styles : mapping layer name → QML text, stored in ``layer_styles`` (QGIS loads it as the
         layer's default style).
 
@@ -93,12 +95,24 @@ def write_gpkg(path: os.PathLike | str, layers: Mapping[str, Any], *, styles: Ma
     import geopandas as gpd
     import pyogrio
 
+    import pandas as pd
+
     with atomic_path(path, overwrite=overwrite) as tmp:
         geom_cols: dict[str, str] = {}
         for name, df in layers.items():
             if isinstance(df, gpd.GeoDataFrame):
                 geom_cols[name] = "geom"
                 pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", **_GPKG_OPTS)
+            elif not isinstance(df, pd.DataFrame):
+                # GeoDataFrame batches of one layer (``geometry_type`` known beforehand): appended one by one
+                geom_cols[name] = "geom"
+                gt = df.geometry_type
+                opts = {"geometry_type": gt, "promote_to_multi": gt.startswith("Multi")}
+                for i, part in enumerate(df):
+                    if i == 0:
+                        pyogrio.write_dataframe(part, tmp, layer=name, driver="GPKG", **opts, **_GPKG_OPTS)
+                    else:
+                        pyogrio.write_dataframe(part, tmp, layer=name, driver="GPKG", append=True, **opts)
             else:
                 pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", **_GPKG_OPTS)
         if styles:

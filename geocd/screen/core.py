@@ -21,7 +21,9 @@ Arrays in, arrays out; the threshold is applied by the caller (:mod:`geocd.scree
 
 from __future__ import annotations
 
+import hashlib
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -315,6 +317,28 @@ def cell_distance(fa: np.ndarray, fb: np.ndarray) -> np.ndarray:
     return np.linalg.norm(fa - fb, axis=-1).astype(np.float32)
 
 
+#: the last few feature and superpixel arrays computed, by content: a view screened against two others (the
+#: cross-date pair and the no-change pair share one) is described and segmented once per window
+_MEMO: OrderedDict = OrderedDict()
+_MEMO_SIZE = 8
+
+
+def _memo(kind: str, image: np.ndarray, extra, fn):
+    """fn() for this image content and these settings, reused when the same window was seen recently (read-only)."""
+    a = np.ascontiguousarray(image)
+    key = (kind, a.shape, a.dtype.str, hashlib.blake2b(a.view(np.uint8).ravel(), digest_size=16).hexdigest(), extra)
+    if key in _MEMO:
+        _MEMO.move_to_end(key)
+        return _MEMO[key]
+    out = fn()
+    if isinstance(out, np.ndarray):
+        out.flags.writeable = False
+    _MEMO[key] = out
+    while len(_MEMO) > _MEMO_SIZE:
+        _MEMO.popitem(last=False)
+    return out
+
+
 def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, params: ScreenParams = ScreenParams(),
                 valid_a: np.ndarray | None = None, valid_b: np.ndarray | None = None,
                 band_names_a: Sequence[str] | None = None, band_names_b: Sequence[str] | None = None,
@@ -363,8 +387,13 @@ def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, param
     H, W = a.shape[-2:]
     if H < cell or W < cell:
         raise GridError(f"the images ({H} × {W} px) are smaller than one grid cell ({cell} px)")
-    xa = feat.extract(fa_img)
-    xb = feat.extract(fb_img)
+    if feature is None and params.feature.kind != "cnn":   # weight-free features: a spec describes a window one way
+        spec = repr(params.feature)
+        xa = _memo("feature", fa_img, spec, lambda: feat.extract(fa_img))
+        xb = _memo("feature", fb_img, spec, lambda: feat.extract(fb_img))
+    else:
+        xa = feat.extract(fa_img)
+        xb = feat.extract(fb_img)
     valid = va & vb
     d_cells = cell_distance(xa, xb)
     cv = cell_valid(valid, cell, params.min_valid)
@@ -373,8 +402,9 @@ def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, param
     d_pix = spread_to_pixels(d_cells, (H, W), cell, params.spread)
     d_pix = np.where(valid, d_pix, np.nan).astype(np.float32)
     if params.superpixels != "none":
-        la = superpixels(na, params.superpixels, gsd_m, params.segment_m, params.fz_scale, params.fz_sigma)
-        lb = superpixels(nb, params.superpixels, gsd_m, params.segment_m, params.fz_scale, params.fz_sigma)
+        sp = (params.superpixels, float(gsd_m), params.segment_m, params.fz_scale, params.fz_sigma)
+        la = _memo("superpixels", na, sp, lambda: superpixels(na, *sp))
+        lb = _memo("superpixels", nb, sp, lambda: superpixels(nb, *sp))
         sa = segment_mean(d_pix, la)
         sb = segment_mean(d_pix, lb)
         with np.errstate(invalid="ignore"):

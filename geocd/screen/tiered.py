@@ -5,14 +5,16 @@
    within-epoch no-change pair.
 2. The grid is cut into square tiles (``tile_cells``); a tile is flagged when it holds changed
    screen cells of a region of at least ``min_region_m2``.
-3. Stereo runs through the tiling layer on the **flagged tiles only**
-   (:func:`geocd.stereo.tiled.run_stereo_tiled` with a tile selection): each tile matches its core
-   plus the stereo's declared margin (matching window at the coarsest level + occlusion reach,
-   capped at half a tile), with the pair's whole-scene pointing correction and noise level
-   (estimated once on the central window, flagged or not). The shared writer assembles each
-   pair-DEM; the cores of unflagged tiles are written as not matched (``flags`` 255, ``FLAGS_NOT_EXAMINED``).
+3. Stereo runs on windows around the flagged tiles (:func:`plan_stereo`): the stereo's tiles are the
+   screen's tiles grouped into squares wide enough to keep every coarse level of the coarse-to-fine
+   search (:func:`geocd.stereo.tiled.stereo_window_needs`; a narrower window searches more heights per
+   cell), a stereo tile is matched when it holds a flagged tile, neighbours of a tile row as one
+   window with one margin (:func:`geocd.stereo.tiled.run_stereo_tiled` with a tile selection; the
+   pair's whole-scene pointing correction and noise level come from the central window). When those
+   windows would read the whole grid anyway, the whole grid is matched once, untiled, as the full run
+   does. The cores of unmatched tiles are written as not matched (``flags`` 255, ``FLAGS_NOT_EXAMINED``).
 4. The self-consistency change test and the products follow (:func:`geocd.pipeline.run_change`)
-   with the examined mask: cells of unflagged tiles get the change-mask code
+   with the examined mask (the matched cells): cells of unmatched tiles get the change-mask code
    :data:`geocd.consistency.NOT_EXAMINED` (−127, "not examined"), never 0 ("unchanged"), and
    buildings with unobserved cells there the class ``not examined``.
 
@@ -20,12 +22,16 @@ Whole-scene statistics: the relative orientation runs on the whole scene before 
 pair's pointing correction and noise level come from the central window; a scene-class model
 (``--model``) is whole-scene by construction; a model learned here uses the within-epoch
 comparisons of the flagged tiles (a sample of the scene; its bins report their counts), and the
-change test's vertical offsets are medians over the examined cells.
+change test's vertical offsets are medians over the examined cells. A transfer calibration (a
+scene-class model) is fitted on the examined cells the screen calls unchanged
+(:func:`calibration_cells`), since the examined tiles were chosen for their change; on every cell when
+the whole grid was matched.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import time
 from pathlib import Path
 from typing import Any
@@ -66,14 +72,136 @@ def flag_tiles(changed: np.ndarray, tile_cells: int, min_cells: int = 1) -> Flag
     return Flagged(tile_cells, counts >= max(int(min_cells), 1))
 
 
+@dataclasses.dataclass(frozen=True)
+class StereoPlan:
+    """How a tiered run's 3-D stage covers the flagged tiles (:func:`plan_stereo`)."""
+
+    tile_cells: int                         # side of the stereo's tiles (a multiple of the screen's)
+    tiles: np.ndarray                       # bool (tile rows, tile cols) of those tiles: the ones matched
+    whole_grid: bool                        # True: one untiled match of the whole grid (as the full run)
+    read_cells: int                         # cells the windows would read (margins included)
+    grid_cells: int
+
+    def examined(self, shape: tuple[int, int]) -> np.ndarray:
+        if self.whole_grid:
+            return np.ones(shape, bool)
+        return Flagged(self.tile_cells, self.tiles).examined(shape)
+
+    def to_dict(self) -> dict:
+        return {"stereo_tile_cells": int(self.tile_cells), "stereo_tiles": int(self.tiles.sum()),
+                "stereo_tiles_in_grid": int(self.tiles.size), "whole_grid": bool(self.whole_grid),
+                "window_read_fraction": round(self.read_cells / max(self.grid_cells, 1), 4)}
+
+
+def plan_stereo(flagged: Flagged, shape: tuple[int, int], min_window_cells: int, margin_cells: int) -> StereoPlan:
+    """Windows for the 3-D stage of a tiered run, sized from the scene and the flagged tiles.
+
+    A stereo window narrower than ``min_window_cells`` loses coarse levels of the coarse-to-fine search
+    and searches more heights per cell (:func:`geocd.stereo.tiled.stereo_window_needs`), so the
+    stereo tiles are the screen's tiles grouped into squares of at least that side; a stereo tile is
+    matched when it holds a flagged screen tile, and neighbouring ones of a tile row as one window
+    with one margin. When those windows would read at least the whole grid (margins included), the
+    whole grid is matched once, untiled, exactly as the full run does: on a scene that small,
+    windows cost more than they save.
+    """
+    H, W = shape
+    t0 = int(flagged.tile_cells)
+    T = t0 * max(1, -(-int(min_window_cells) // t0))
+    tiles = flag_tiles(flagged.examined(shape), T).tiles
+    o = min(int(margin_cells), T // 2)
+    read = 0
+    for i in range(tiles.shape[0]):
+        j = 0
+        while j < tiles.shape[1]:
+            if not tiles[i, j]:
+                j += 1
+                continue
+            j0 = j
+            while j < tiles.shape[1] and tiles[i, j]:
+                j += 1
+            r0, r1 = max(0, i * T - o), min(H, (i + 1) * T + o)
+            c0, c1 = max(0, j0 * T - o), min(W, j * T + o)
+            read += (r1 - r0) * (c1 - c0)
+    return StereoPlan(T, tiles, bool(tiles.any()) and read >= H * W, int(read), int(H * W))
+
+
+def calibration_cells(dissimilarity: np.ndarray, level: float, changed: np.ndarray, examined: np.ndarray,
+                      buffer_cells: int) -> np.ndarray:
+    """bool (rows, cols): the examined cells the screen calls unchanged — where a tiered run fits its transfer calibration.
+
+    The flagged tiles were flagged *because* they hold change, so their cells are enriched in it; a
+    calibration fitted on all of them reads that change as disagreement (a larger scale, fewer
+    detections). Kept: examined cells whose screen dissimilarity is at most ``level`` (the median of
+    the no-change pair's values: cells at least as alike as a typical unchanged cell, which leaves out
+    the many changes too weak for the screen's 99 % threshold), away from screen-changed cells by
+    ``buffer_cells`` (one screen cell: its coarse grid's halo). Cells the screen could not compare
+    (NaN) are left out.
+    """
+    from scipy import ndimage
+
+    d = np.asarray(dissimilarity, np.float64)
+    near = np.asarray(changed, bool)
+    if buffer_cells > 0 and near.any():
+        near = ndimage.binary_dilation(near, structure=np.ones((3, 3), bool), iterations=int(buffer_cells))
+    with np.errstate(invalid="ignore"):
+        alike = np.isfinite(d) & (d <= float(level))
+    return np.asarray(examined, bool) & alike & ~near
+
+
+def fit_calibration_on(epoch_a, epoch_b, model, params, cells: np.ndarray):
+    """The change test's transfer calibration fitted on ``cells`` only, and the vertical offsets it was fitted with.
+
+    Same law and fit as :func:`geocd.change_test` does on every observed cell
+    (:func:`geocd.consistency.fit_pair_calibration`), restricted to a selection (a tiered run's
+    screen-unchanged examined cells, :func:`calibration_cells`). Returns ``(calibration or None,
+    offsets)``: None when ``params.calibration`` does not ask for one (a model learned on these data
+    with ``auto``, or ``none``) or when the selection holds too few cells (the change test then
+    fits on all its cells, as without a screen). Pass both to the change test.
+    """
+    from ..consistency import (_comparison_arrays, apply_offsets, fit_pair_calibration, model_learned_on,
+                               vertical_offsets)
+    from ..errors import ProcessingError
+
+    recs = list(epoch_a) + list(epoch_b)
+    offsets = vertical_offsets(recs, mode=params.align)
+    aligned = apply_offsets(recs, offsets)
+    mode = params.calibration
+    if mode == "auto":
+        mode = "none" if model_learned_on(model, aligned) else "pair"
+    if mode != "pair":
+        return None, offsets
+    na = len(epoch_a)
+    posting = getattr(getattr(aligned[0], "grid", None), "posting_m", None)
+    sel = np.asarray(cells, bool)
+    parts = [[], [], [], []]
+    for p in aligned[:na]:
+        for q in aligned[na:]:
+            dt, sc, _, both, mpu, slope = _comparison_arrays(p, q, posting)
+            keep = both & sel
+            for lst, arr in zip(parts, (dt, sc, slope, mpu)):
+                lst.append(np.asarray(arr)[keep])
+    try:
+        cal = fit_pair_calibration(model, *(np.concatenate(x) for x in parts), fit_edge=bool(posting))
+    except ProcessingError:
+        return None, offsets
+    return cal, offsets
+
+
 def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, epochs: list[str], pairs: str,
                         posting_m: float | None = None, epoch_a: str | None = None, epoch_b: str | None = None,
                         tile_cells: int = 128, min_region_m2: float = 4.0, scheduler: str = "sync",
-                        progress: Progress | None = None) -> dict[str, Any]:
+                        stereo_plan: str = "auto", progress: Progress | None = None) -> dict[str, Any]:
     """The screen, then geocd stereo on the flagged tiles only.
 
+    ``stereo_plan``: "auto" (:func:`plan_stereo`: windows of the stereo's own size around the flagged
+    tiles, or the whole grid untiled when those would read all of it) or "tiles" (each run of flagged
+    screen tiles matched as its own window, with its margin — slower on small scenes, kept to measure
+    against).
+
     Returns run_stereo's dict (``outputs``, ``grid``, ``pairs`` as PairDEMs on the whole grid) + ``examined``
-    (bool (rows, cols), the flagged tiles' cells) and ``screen`` (flags, fractions, seconds).
+    (bool (rows, cols), the cells the 3-D stage matched), ``calibration_cells`` (bool (rows, cols), the examined
+    cells the screen calls unchanged, :func:`calibration_cells`; None when the whole grid was matched) and
+    ``screen`` (flags, fractions, plan, seconds).
     """
     from scipy import ndimage
 
@@ -81,7 +209,8 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
     from ..io.raster import read_dem
     from ..stereo import read_pair_dem
     from ..stereo.pipeline import default_aoi_grid, load_epoch_images
-    from ..stereo.tiled import run_stereo_tiled
+    from ..stereo.pipeline import run_stereo
+    from ..stereo.tiled import run_stereo_tiled, stereo_window_needs
     from .pipeline import run_screen_manifest
 
     prog = ensure_progress(progress)
@@ -105,20 +234,47 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
         keep[0] = False
         changed = keep[lab]
     fl = flag_tiles(changed, tile_cells)
-    examined = fl.examined(grid.shape)
+    # where the transfer calibration is fitted: examined cells the screen calls unchanged
+    null = sc.get("null")
+    level = float(np.median(null.values)) if null is not None else float(sc["threshold"])
     t1 = time.perf_counter()
-    tiling = TilingParams(tile_size=tile_cells, scheduler=scheduler)
-    st = run_stereo_tiled(m, out_dir=out, epochs=epochs, params=stereo_params, grid=grid, pairs=pairs, tiling=tiling,
-                          tiles=fl.tiles, progress=sub_progress(prog, 0.2, 1.0, "stereo on flagged tiles: "))
+    if stereo_plan == "auto":
+        needs = [stereo_window_needs(m, grid, a, b, stereo_params) for e in epochs
+                 for a, b in itertools.combinations(images[e], 2) if pairs == "all" or a.camera.kind == b.camera.kind]
+        plan = plan_stereo(fl, grid.shape, max(n[1] for n in needs), max(n[0] for n in needs))
+    else:   # the screen's own tiles, each matched with its margin
+        plan = StereoPlan(tile_cells, fl.tiles, False, 0, int(np.prod(grid.shape)))
+    if plan.whole_grid:
+        st = run_stereo(m, epochs=epochs, out_dir=out, params=stereo_params, grid=grid, keep_arrays=True,
+                        pairs=pairs, orient=False, progress=sub_progress(prog, 0.2, 1.0, "stereo (whole grid): "))
+        st.setdefault("margins", {})
+    else:
+        tiling = TilingParams(tile_size=plan.tile_cells, scheduler=scheduler)
+        st = run_stereo_tiled(m, out_dir=out, epochs=epochs, params=stereo_params, grid=grid, pairs=pairs,
+                              tiling=tiling, tiles=plan.tiles,
+                              progress=sub_progress(prog, 0.2, 1.0, "stereo on flagged tiles: "))
     t_3d = time.perf_counter() - t1
-    kept = {key: read_pair_dem(p) for key, p in st["outputs"].items()}
+    # the 3-D stage examined what it matched (the whole grid, or the stereo tiles holding flagged tiles)
+    examined = plan.examined(grid.shape)
+    # the calibration's bias comes from examining change-rich tiles only; the whole grid examined is no selection,
+    # and the change test then fits on every cell as the full run does
+    cal_cells = (None if plan.whole_grid
+                 else calibration_cells(sr.dissimilarity, level, changed, examined, screen_params.feature.cell_px))
+    kept = st.get("pairs") or {key: read_pair_dem(p) for key, p in st["outputs"].items()}
     info = {"threshold": round(float(sc["threshold"]), 4), "rule": sc["rule"], "feature": screen_params.feature.label,
             "pair": list(sc["pair"]), "tile_cells": tile_cells, "stereo_margin_cells": st["margins"],
             "flagged_tiles": int(fl.tiles.sum()), "tiles": int(fl.tiles.size),
             "flagged_tile_fraction": round(fl.tile_fraction, 4),
             "flagged": [[int(i), int(j)] for i, j in zip(*np.nonzero(fl.tiles))],
+            "screen_flagged_cell_fraction": round(fl.cell_fraction(grid.shape), 4),
+            "stereo_plan": plan.to_dict(),
             "stereo_cell_fraction": round(float(examined.mean()), 4),
+            "calibration_cells": ("all (the whole grid was examined)" if cal_cells is None else
+                                  {"fraction": round(float(cal_cells.mean()), 4), "dissimilarity_at_most": round(level, 4),
+                                   "level": "no-change pair's median" if null is not None else "threshold",
+                                   "buffer_cells": int(screen_params.feature.cell_px)}),
             "screen_seconds": round(t_screen, 2), "stereo_seconds": round(t_3d, 2)}
     prog(1.0, "screened stereo done")
     return {"outputs": st["outputs"], "grid": grid, "pairs": kept, "screen": info, "examined": examined,
+            "calibration_cells": cal_cells,
             "screen_outputs": {f"screen:{k}": v for k, v in sc["outputs"].items() if not k.startswith("view:")}}

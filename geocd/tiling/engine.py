@@ -64,6 +64,18 @@ class Engine:
         self.n_workers = n_workers
         self.client = client
         self.cluster = cluster
+        #: the cluster was started by :func:`open_engine` for this run (it may be stopped early)
+        self.owned = False
+
+    def release_local(self) -> bool:
+        """Stop a LocalCluster that :func:`open_engine` started, when no more tiles will run (the
+        workers' memory goes back before the client's last whole-scene step); True when stopped.
+        An engine given by the caller, or a remote cluster, is left alone."""
+        if not self.owned or self.cluster is None:
+            return False
+        self.close()
+        self.kind = "closed"
+        return True
 
     def describe(self) -> str:
         if self.client is None:
@@ -192,6 +204,7 @@ def open_engine(scheduler: "str | Engine | None" = "auto", *, n_workers: int | N
                 kind = "processes"
             client = Client(cluster)
             eng = Engine(kind, nw, client, cluster)
+            eng.owned = True
     except BaseException:
         for obj in (client, cluster):
             if obj is not None:

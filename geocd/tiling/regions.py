@@ -13,7 +13,7 @@ by the first cell in row-major order).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -40,8 +40,11 @@ class TileRegions:
 
 
 def tile_regions(sign: np.ndarray, dz_m: np.ndarray, tile: Tile, grid: AOIGrid, *, sigma: np.ndarray | None = None,
-                 confidence: np.ndarray | None = None, polygons: bool = True) -> TileRegions:
-    """Label the +1 and −1 regions of a tile's core (``sign`` and ``dz_m`` on the core) and summarise them."""
+                 confidence: np.ndarray | None = None, polygons: bool = True,
+                 sums: dict[str, np.ndarray] | None = None) -> TileRegions:
+    """Label the +1 and −1 regions of a tile's core (``sign`` and ``dz_m`` on the core) and summarise them.
+
+    ``sums``: further per-cell values (on the core) summed per region (added up across seams)."""
     from scipy import ndimage
 
     r0, c0, h, w = tile.core
@@ -81,6 +84,8 @@ def tile_regions(sign: np.ndarray, dz_m: np.ndarray, tile: Tile, grid: AOIGrid, 
         if confidence is not None:
             cf = np.asarray(confidence, np.float64)
             st["conf_sum"] = np.bincount(li, weights=np.nan_to_num(cf).ravel(), minlength=k)[1:]
+        for key, v in (sums or {}).items():
+            st[key] = np.bincount(li, weights=np.asarray(v, np.float64).ravel(), minlength=k)[1:]
         out.stats[s] = st
         out.edges[s] = {"top": lab[0].copy(), "bottom": lab[-1].copy(), "left": lab[:, 0].copy(),
                         "right": lab[:, -1].copy()}
@@ -115,6 +120,100 @@ class _UF:
                 self.p[ra] = rb
 
 
+class _Members:
+    """Per region, its (tile index, sign, local label) pieces — built on demand, not held as Python lists."""
+
+    def __init__(self, tiles: np.ndarray, signs: np.ndarray, labels: np.ndarray, perm: np.ndarray,
+                 starts: np.ndarray, groups: np.ndarray):
+        self._t, self._s, self._l = tiles, signs, labels
+        self._perm, self._starts, self._groups = perm, starts, groups
+        #: number of pieces per region
+        self.counts = (starts[groups + 1] - starts[groups]).astype(np.int64) if groups.size else np.zeros(0, np.int64)
+
+    def units(self, k: int) -> np.ndarray:
+        g = int(self._groups[k])
+        return self._perm[self._starts[g]:self._starts[g + 1]]
+
+    def __len__(self) -> int:
+        return int(self._groups.size)
+
+    def pieces(self, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(tile index (n, 2), sign, local label) of every piece of regions ``ks``."""
+        g = self._groups[np.asarray(ks, np.int64)]
+        a, b = self._starts[g], self._starts[g + 1]
+        cnt = b - a
+        idx = np.repeat(a - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt) + np.arange(int(cnt.sum()))
+        u = self._perm[idx]
+        return self._t[u], self._s[u], self._l[u]
+
+    def __getitem__(self, k: int) -> list:
+        return [((int(self._t[u, 0]), int(self._t[u, 1])), int(self._s[u]), int(self._l[u])) for u in self.units(k)]
+
+    def __iter__(self):
+        return (self[k] for k in range(len(self)))
+
+
+class _Geometries:
+    """Per region, the union of its pieces' polygons, built on demand (a slice builds a batch, vectorized)."""
+
+    def __init__(self, members: _Members | None, polys: list | None):
+        self._m = members
+        self._p = polys
+
+    def __len__(self) -> int:
+        return len(self._m) if self._m is not None else 0
+
+    def _one(self, k: int):
+        from shapely import wkb
+        from shapely.ops import unary_union
+
+        if self._p is None:
+            return None
+        pieces = [wkb.loads(b) for u in self._m.units(k) for b in self._p[u]]
+        geom = unary_union(pieces) if len(pieces) > 1 else pieces[0]
+        if not geom.is_valid:
+            geom = geom.buffer(0)
+        return geom
+
+    def batch(self, a: int, b: int) -> np.ndarray:
+        """Regions a … b − 1 as an object array of shapely geometries (same as one by one)."""
+        import shapely
+
+        b = min(b, len(self))
+        out = np.empty(max(b - a, 0), dtype=object)
+        if self._p is None or b <= a:
+            return out
+        single = []
+        blobs = []
+        for k in range(a, b):
+            us = self._m.units(k)
+            if us.size == 1 and len(self._p[us[0]]) == 1:
+                single.append(k - a)
+                blobs.append(self._p[us[0]][0])
+            else:
+                out[k - a] = self._one(k)
+        if single:
+            g = shapely.from_wkb(np.array(blobs, dtype=object))
+            bad = ~shapely.is_valid(g)
+            if bad.any():
+                g[bad] = shapely.buffer(g[bad], 0)
+            out[np.asarray(single, np.int64)] = g
+        return out
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            a, b, step = k.indices(len(self))
+            if step != 1:
+                return [self._one(i) for i in range(a, b, step)]
+            return list(self.batch(a, b))
+        return self._one(int(k))
+
+    def __iter__(self):
+        step = 50_000
+        for a in range(0, len(self), step):
+            yield from self.batch(a, a + step)
+
+
 @dataclass
 class MergedRegions:
     """Regions of the whole grid after the merge (one entry per region, in the layer's order).
@@ -123,8 +222,9 @@ class MergedRegions:
     ----------
     sign, n, sum, nfin, extreme, first : per region
     bbox : (row0, col0, row1, col1) per region (exclusive ends)
-    geometry : shapely geometries (None when polygons were not asked)
-    members : per region, the (tile index, sign, local label) pieces
+    geometry : per region, shapely geometries built on demand (None when polygons were not asked);
+        ``geometry.batch(a, b)`` builds a range at once
+    members : per region, the (tile index, sign, local label) pieces (``members.counts``: how many)
     """
 
     sign: np.ndarray
@@ -134,8 +234,8 @@ class MergedRegions:
     extreme: np.ndarray
     first: np.ndarray
     bbox: np.ndarray
-    geometry: list
-    members: list
+    geometry: Any
+    members: Any
     extra: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -143,10 +243,11 @@ class MergedRegions:
 
 
 def merge_regions(parts: Sequence[TileRegions], tile_grid: TileGrid, min_cells: int = 1) -> MergedRegions:
-    """Join the tiles' regions across seams (8-connectivity) and order them as the ``changes`` layer."""
-    from shapely import wkb
-    from shapely.ops import unary_union
+    """Join the tiles' regions across seams (8-connectivity) and order them as the ``changes`` layer.
 
+    Memory: per region a few numbers; the polygons stay the tiles' WKB pieces until
+    ``geometry`` builds them (a whole scene has millions of regions).
+    """
     by_tile = {p.tile_index: p for p in parts}
     offset: dict[tuple[tuple[int, int], int], int] = {}
     total = 0
@@ -170,7 +271,6 @@ def merge_regions(parts: Sequence[TileRegions], tile_grid: TileGrid, min_cells: 
                 for u, v in set(zip(x[both].tolist(), y[both].tolist())):
                     uf.union(oa + u - 1, ob + v - 1)
 
-    nr, nc = tile_grid.shape
     for (i, j), p in by_tile.items():
         for s in p.edges:
             oa = offset[((i, j), s)]
@@ -187,26 +287,36 @@ def merge_regions(parts: Sequence[TileRegions], tile_grid: TileGrid, min_cells: 
             q = by_tile.get((i + 1, j - 1))
             if q is not None and s in q.edges and e["bottom"][0] > 0 and q.edges[s]["top"][-1] > 0:
                 uf.union(oa + e["bottom"][0] - 1, offset[((i + 1, j - 1), s)] + q.edges[s]["top"][-1] - 1)
-    # aggregate by root
-    roots = np.array([uf.find(k) for k in range(total)], np.int64) if total else np.zeros(0, np.int64)
-    sign_of = np.zeros(total, np.int8)
-    cat: dict[str, list] = {k: [] for k in ("n", "sum", "nfin", "max", "min", "first", "bbox")}
-    extra_keys: set[str] = set()
-    members_flat = []
-    for p in parts:
-        for s, st in p.stats.items():
-            o = offset[(p.tile_index, s)]
-            sign_of[o:o + st["n"].size] = s
-            for k in cat:
-                cat[k].append(st[k])
-            extra_keys |= {k for k in st if k not in cat}
-            members_flat.extend((p.tile_index, s, lab) for lab in range(1, st["n"].size + 1))
     if total == 0:
         e = np.zeros(0)
         return MergedRegions(np.zeros(0, np.int8), np.zeros(0, np.int64), e, np.zeros(0, np.int64), e,
                              np.zeros(0, np.int64), np.zeros((0, 4), np.int64), [], [])
+    # roots of every piece (vectorized path halving until fixed)
+    roots = uf.p.copy()
+    while True:
+        nxt = roots[roots]
+        if np.array_equal(nxt, roots):
+            break
+        roots = nxt
+    # per piece: tile, sign, local label (compact arrays)
+    u_tile = np.zeros((total, 2), np.int32)
+    u_sign = np.zeros(total, np.int8)
+    u_lab = np.zeros(total, np.int32)
+    cat: dict[str, list] = {k: [] for k in ("n", "sum", "nfin", "max", "min", "first", "bbox")}
+    extra_keys: set[str] = set()
+    for p in parts:
+        for s, st in p.stats.items():
+            o = offset[(p.tile_index, s)]
+            k_ = st["n"].size
+            u_tile[o:o + k_] = p.tile_index
+            u_sign[o:o + k_] = s
+            u_lab[o:o + k_] = np.arange(1, k_ + 1)
+            for k in cat:
+                cat[k].append(st[k])
+            extra_keys |= {k for k in st if k not in cat}
     a = {k: np.concatenate(v) for k, v in cat.items()}
     ur, inv = np.unique(roots, return_inverse=True)
+    inv = inv.ravel()
     m = ur.size
     n = np.bincount(inv, weights=a["n"], minlength=m).astype(np.int64)
     sm = np.bincount(inv, weights=a["sum"], minlength=m)
@@ -223,7 +333,8 @@ def merge_regions(parts: Sequence[TileRegions], tile_grid: TileGrid, min_cells: 
     np.minimum.at(bb[:, 1], inv, a["bbox"][:, 1])
     np.maximum.at(bb[:, 2], inv, a["bbox"][:, 2])
     np.maximum.at(bb[:, 3], inv, a["bbox"][:, 3])
-    sgn = sign_of[ur]
+    del a
+    sgn = u_sign[ur]
     extra = {}
     for k in extra_keys:
         vals = np.concatenate([st[k] for p in parts for s, st in p.stats.items()])
@@ -234,44 +345,26 @@ def merge_regions(parts: Sequence[TileRegions], tile_grid: TileGrid, min_cells: 
     # order: raised, then lowered; by decreasing size; ties by the first cell (scipy's label order)
     order = np.lexsort((first, -n, -sgn))
     order = order[keep[order]]
-    groups: list[list[int]] = [[] for _ in range(m)]
-    for kk, g in enumerate(inv):
-        groups[g].append(kk)
-    geoms = []
-    members = []
+    # pieces grouped by region, in piece order within a region
+    perm = np.argsort(inv, kind="stable")
+    starts = np.searchsorted(inv[perm], np.arange(m + 1))
+    members = _Members(u_tile, u_sign, u_lab, perm, starts, order)
     have_polys = all(s in p.polygons for p in parts for s in p.stats)
-    poly_flat = [pp for p in parts for s in p.stats for pp in (p.polygons.get(s) or [[]] * p.stats[s]["n"].size)]
-    for g in order:
-        members.append([members_flat[k] for k in groups[g]])
-        if have_polys:
-            pieces = [wkb.loads(b) for k in groups[g] for b in poly_flat[k]]
-            geom = unary_union(pieces) if len(pieces) > 1 else pieces[0]
-            if not geom.is_valid:
-                geom = geom.buffer(0)
-            geoms.append(geom)
-        else:
-            geoms.append(None)
+    polys = ([pp for p in parts for s in p.stats for pp in p.polygons[s]] if have_polys else None)
     return MergedRegions(sgn[order].astype(np.int8), n[order], sm[order], nf[order], ext[order], first[order],
-                         bb[order], geoms, members, {k: v[order] for k, v in extra.items()})
+                         bb[order], _Geometries(members, polys), members, {k: v[order] for k, v in extra.items()})
 
 
-def regions_layer(merged: MergedRegions, grid: AOIGrid, *, cell_area_m2: float, method: str = "", epoch_a: str = "",
-                  epoch_b: str = "", volume_sigma: Callable[[int], float] | None = None,
-                  confidence: Callable[[int], float] | None = None):
-    """The ``changes`` layer (:data:`geocd.change.regions.COLUMNS`) of merged regions.
-
-    ``volume_sigma(k)`` gives region k's volume σ (m³); without it the confidence is
-    ``confidence(k)`` (e.g. the median per-cell confidence) or NaN.
-    """
+def regions_columns(merged: MergedRegions, *, cell_area_m2: float, method: str = "", epoch_a: str = "",
+                    epoch_b: str = "", volume_sigma: Callable[[int], float] | None = None,
+                    confidence: Callable[[int], float] | None = None):
+    """The attribute columns of the ``changes`` layer (a DataFrame, no geometry)."""
     import math
 
-    import geopandas as gpd
     import pandas as pd
 
-    from ..change.regions import _gauss_level, empty_regions
+    from ..change.regions import _gauss_level
 
-    if len(merged) == 0:
-        return empty_regions(grid.crs)
     # column arrays, not a record per region: a whole scene has millions of regions
     n = len(merged)
     total = np.asarray(merged.sum, np.float64)
@@ -288,14 +381,90 @@ def regions_layer(merged: MergedRegions, grid: AOIGrid, *, cell_area_m2: float, 
             cf[k] = _gauss_level(float(vol[k]), v)
         elif confidence is not None:
             cf[k] = float(confidence(k))
-    df = pd.DataFrame({
+    return pd.DataFrame({
         "region_id": np.arange(1, n + 1, dtype=np.int64), "method": method, "epoch_a": epoch_a,
         "epoch_b": epoch_b, "sign": np.asarray(merged.sign).astype("int64"),
         "n_cells": np.asarray(merged.n).astype("int64"),
         "area_m2": np.asarray(merged.n, np.float64) * cell_area_m2, "mean_dz_m": mean,
         "max_dz_m": np.asarray(merged.extreme, np.float64), "volume_m3": vol, "volume_sigma_m3": vs,
         "confidence": cf})
+
+
+def regions_layer(merged: MergedRegions, grid: AOIGrid, *, cell_area_m2: float, method: str = "", epoch_a: str = "",
+                  epoch_b: str = "", volume_sigma: Callable[[int], float] | None = None,
+                  confidence: Callable[[int], float] | None = None):
+    """The ``changes`` layer (:data:`geocd.change.regions.COLUMNS`) of merged regions.
+
+    ``volume_sigma(k)`` gives region k's volume σ (m³); without it the confidence is
+    ``confidence(k)`` (e.g. the median per-cell confidence) or NaN. For millions of regions
+    :func:`regions_layer_batches` writes the same layer without holding every polygon.
+    """
+    import geopandas as gpd
+
+    from ..change.regions import empty_regions
+
+    if len(merged) == 0:
+        return empty_regions(grid.crs)
+    df = regions_columns(merged, cell_area_m2=cell_area_m2, method=method, epoch_a=epoch_a, epoch_b=epoch_b,
+                         volume_sigma=volume_sigma, confidence=confidence)
     return gpd.GeoDataFrame(df, geometry=list(merged.geometry), crs=grid.crs)
+
+
+class RegionBatches:
+    """The ``changes`` layer of merged regions as GeoDataFrame batches (for :func:`geocd.io.vector.write_gpkg`).
+
+    Written batch by batch, it is the layer :func:`regions_layer` gives (same rows, order,
+    geometries and layer geometry type): ``geometry_type`` comes from a first pass that builds
+    each batch's polygons and keeps only their types.
+    """
+
+    def __init__(self, merged: MergedRegions, grid: AOIGrid, columns, batch: int = 50_000):
+        self.merged = merged
+        self.grid = grid
+        self.columns = columns
+        self.batch = int(batch)
+        self._gtype: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.merged)
+
+    @property
+    def geometry_type(self) -> str:
+        """The layer type pyogrio infers for the whole layer (mixed Polygon/MultiPolygon → MultiPolygon)."""
+        import shapely
+
+        if self._gtype is None:
+            types: set[str] = set()
+            for a in range(0, len(self), self.batch):
+                g = self.merged.geometry.batch(a, a + self.batch)
+                types |= set(shapely.get_type_id(g).tolist())
+            names = {3: "Polygon", 6: "MultiPolygon"}
+            found = {names.get(t, "Unknown") for t in types}
+            self._gtype = found.pop() if len(found) == 1 else ("MultiPolygon" if found <= set(names.values())
+                                                                else "Unknown")
+        return self._gtype
+
+    def __iter__(self):
+        import geopandas as gpd
+
+        for a in range(0, len(self), self.batch):
+            b = min(a + self.batch, len(self))
+            geom = self.merged.geometry.batch(a, b)
+            yield gpd.GeoDataFrame(self.columns.iloc[a:b].reset_index(drop=True), geometry=list(geom),
+                                   crs=self.grid.crs)
+
+
+def regions_layer_batches(merged: MergedRegions, grid: AOIGrid, *, cell_area_m2: float, method: str = "",
+                          epoch_a: str = "", epoch_b: str = "", volume_sigma: Callable[[int], float] | None = None,
+                          confidence: Callable[[int], float] | None = None, batch: int = 50_000):
+    """:func:`regions_layer` as a :class:`RegionBatches` (an empty layer stays a GeoDataFrame)."""
+    from ..change.regions import empty_regions
+
+    if len(merged) == 0:
+        return empty_regions(grid.crs)
+    df = regions_columns(merged, cell_area_m2=cell_area_m2, method=method, epoch_a=epoch_a, epoch_b=epoch_b,
+                         volume_sigma=volume_sigma, confidence=confidence)
+    return RegionBatches(merged, grid, df, batch)
 
 
 def region_mask_window(merged: MergedRegions, k: int, label_reader: Callable[[Tile], np.ndarray],

@@ -144,3 +144,33 @@ def test_large_path_equals_untiled(shifted_pair, tmp_path):
     for c in ("volume_m3", "volume_sigma_m3", "confidence", "mean_dz_m"):
         np.testing.assert_allclose(b[c], a[c], rtol=1e-9, err_msg=c)
     assert all(ga.symmetric_difference(gb).area < 1e-6 for ga, gb in zip(a.geometry, b.geometry))
+
+
+@pytest.mark.parametrize("exact", [True, False])
+def test_region_test_tiled_equals_untiled(shifted_pair, tmp_path, exact):
+    """The noise region test tiled: exact path bit-identical; large path (a first pass for the regions' mass,
+    the products pass dropping them across seams) gives the same rasters, regions and figures."""
+    d = shifted_pair
+    params = DEMDiffParams(region_test="noise")
+    res = dem_difference(read_dem(d / "a.tif"), read_dem(d / "b.tif"), params=params)
+    assert res.summary["region_test"]["regions_dropped"] > 0
+    write_demdiff_products(tmp_path / "untiled", res)
+    tiling = (TilingParams(tile_size=64, scheduler="sync") if exact else
+              TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=5000, coarse_cells=2000))
+    t = dem_difference_tiled(d / "a.tif", d / "b.tif", tmp_path / "tiled", params=params, tiling=tiling)
+    assert t.exact is exact
+    if exact:
+        assert_same_products(tmp_path / "untiled", tmp_path / "tiled")
+        return
+    for name in RASTERS:
+        with rasterio.open(tmp_path / "untiled" / f"demdiff_{name}.tif") as a, \
+                rasterio.open(tmp_path / "tiled" / f"demdiff_{name}.tif") as b:
+            np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
+    assert t.summary["region_test"] == res.summary["region_test"]
+    for k in ("changed_cells", "volume_changed_m3", "volume_changed_sigma_m3"):
+        assert t.summary[k] == pytest.approx(res.summary[k], rel=1e-9), k
+    a = gpd.read_file(tmp_path / "untiled" / "demdiff_changes.gpkg", layer="changes")
+    b = gpd.read_file(tmp_path / "tiled" / "demdiff_changes.gpkg", layer="changes")
+    assert len(a) == len(b) == len(res.regions)
+    np.testing.assert_array_equal(a["n_cells"], b["n_cells"])
+    np.testing.assert_allclose(b["volume_sigma_m3"], a["volume_sigma_m3"], rtol=1e-9)

@@ -142,3 +142,28 @@ def test_null_distribution_threshold_and_confidence():
         n.threshold(0.0)
     t, f = threshold_best_f1([np.array([0.1, 0.2, 0.8, 0.9])], [np.array([0, 0, 1, 1], bool)])
     assert 0.2 <= t < 0.8 and f == 1.0
+
+
+def test_a_view_shared_by_two_pairs_is_described_and_segmented_once():
+    """The cross-date and the no-change pair share a view: its features and superpixels are reused, by content,
+    and the results are those of a fresh computation."""
+    from unittest import mock
+
+    import geocd.screen.core as core
+
+    a, b, _ = pair()
+    na, _ = nochange()
+    p = ScreenParams(feature=FeatureSpec("patch", 16))
+    core._MEMO.clear()
+    with mock.patch.object(core, "superpixels", wraps=core.superpixels) as sp:
+        r1 = screen_pair(a, b, gsd_m=0.5, params=p)
+        r2 = screen_pair(na, b, gsd_m=0.5, params=p)     # b again: segmented once
+        assert sp.call_count == 3
+    core._MEMO.clear()
+    fresh = screen_pair(na, b, gsd_m=0.5, params=p)
+    np.testing.assert_array_equal(r2.dissimilarity, fresh.dissimilarity)
+    np.testing.assert_array_equal(r1.cell_dissimilarity, screen_pair(a, b, gsd_m=0.5, params=p).cell_dissimilarity)
+    # another setting is another entry
+    with mock.patch.object(core, "superpixels", wraps=core.superpixels) as sp:
+        screen_pair(na, b, gsd_m=0.5, params=ScreenParams(feature=FeatureSpec("patch", 16), fz_scale=50.0))
+        assert sp.call_count == 2

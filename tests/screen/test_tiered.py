@@ -151,3 +151,102 @@ def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, 
     assert (bf["class"].to_numpy()[ne] == "unobserved").all() and (b["frac_examined"].to_numpy()[ne] < 1).all()
     keep = ~ne
     np.testing.assert_array_equal(b["class"].to_numpy()[keep], bf["class"].to_numpy()[keep])
+    # the whole grid examined (a tiered run that matched everything): the full run's classes, also for
+    # footprints with no cell on the grid (they stay unobserved)
+    ra = run_change(m, full, grid, out_dir=tmp_path / "all", config=cfg, examined=np.ones(grid.shape, bool))
+    np.testing.assert_array_equal(ra["buildings"]["class"].to_numpy(), bf["class"].to_numpy())
+
+
+def test_calibration_is_fitted_on_screen_unchanged_cells_not_on_the_flagged_change():
+    """A scene-class model applied to data twice as noisy (true scale 2). The examined half of the grid holds
+    many weak changes (40 % of its cells, 1.5–4 × the static spread: too weak to be trimmed by the fit). Fitted
+    on every examined cell (what the change test does alone) the scale is biased high; fitted on the cells the
+    screen calls unchanged (dissimilarity ≤ the no-change median, away from screen-changed cells) it is the
+    static scene's."""
+    from dataclasses import dataclass
+    from types import SimpleNamespace
+
+    from geocd.consistency import ChangeParams, ConsistencyParams, change_test, learn_self_consistency
+    from geocd.screen.tiered import calibration_cells, fit_calibration_on
+
+    shape = (200, 200)
+    grid = SimpleNamespace(posting_m=1.0)
+
+    @dataclass
+    class Rec:
+        z_m: np.ndarray
+        score: np.ndarray
+        g_px_per_m: np.ndarray
+        valid: np.ndarray
+        grid: object
+        name: str
+
+    def rec(truth, rng, name, noise):
+        score = rng.uniform(-2.0, 1.0, shape).astype(np.float32)
+        err = rng.normal(size=shape) * (0.1 + 0.3 * (score + 2.0)) * noise
+        return Rec((truth + err).astype(np.float32), score, np.ones(shape, np.float32), np.ones(shape, bool),
+                   grid, name)
+
+    rng = np.random.default_rng(4)
+    flat = np.zeros(shape, np.float32)
+    model = learn_self_consistency([[rec(flat, rng, f"M{i}", 1.0) for i in range(3)]],
+                                   ConsistencyParams(n_score_bins=10, min_bin_count=500))
+    examined = np.zeros(shape, bool)
+    examined[:, :100] = True
+    # weak changes: 8 × 8 blocks over 40 % of the examined half
+    blocks = rng.random((25, 13)) < 0.4
+    weak = np.repeat(np.repeat(blocks, 8, 0), 8, 1)[:, :100]
+    truth_b = flat.copy()
+    truth_b[:, :100][weak] += rng.choice([-1.0, 1.0], weak.sum()) * rng.uniform(1.5, 4.0, weak.sum())
+    A = [rec(flat, rng, "A0", 2.0)]
+    B = [rec(truth_b, rng, "B0", 2.0)]
+    # the screen: changed blocks look dissimilar (some above its threshold, the rest between the null's
+    # median and the threshold), static cells look alike
+    d = rng.uniform(0.3, 0.9, shape)
+    ch_cells = np.zeros(shape, bool)
+    ch_cells[:, :100] = weak
+    d[ch_cells] = rng.uniform(1.1, 1.6, ch_cells.sum())
+    screen_changed = ch_cells & (d > 1.4)
+    cells = calibration_cells(d, 1.0, screen_changed, examined, 2)
+    assert cells.sum() > 5000 and not (cells & ~examined).any() and not (cells & ch_cells).any()
+    params = ChangeParams()
+    new, offsets = fit_calibration_on(A, B, model, params, cells)
+    # the change test alone, seeing only the examined cells (the old behaviour): fitted on all of them
+    def only(r, keep):
+        return Rec(np.where(keep, r.z_m, np.nan).astype(np.float32), r.score, r.g_px_per_m, r.valid & keep, grid, r.name)
+    old = change_test([only(A[0], examined)], [only(B[0], examined)], model, params).calibration
+    whole_static = fit_calibration_on(A, B, model, params, ~ch_cells)[0]
+    assert whole_static.scale == pytest.approx(2.0, rel=0.1)
+    assert new.scale == pytest.approx(whole_static.scale, rel=0.05)
+    assert old.scale > 1.15 * whole_static.scale
+    # the change test takes the calibration and the offsets it was fitted with
+    res = change_test(A, B, model, params, offsets=offsets, calibration=new)
+    assert res.calibration is new
+
+
+def test_stereo_plan_sizes_windows_from_the_scene_and_falls_back_to_the_whole_grid():
+    """Windows keep every coarse level (side ≥ the pair's need, in whole screen tiles); when they would read the
+    whole grid anyway (a small scene, scattered flags) the whole grid is matched once, untiled."""
+    from geocd.screen.tiered import Flagged, plan_stereo
+
+    # Kahramanmaraş's grid and flags (25 of 72 128-cell tiles, spread over the scene), 448-cell need, 64 margin
+    flags = np.zeros((8, 9), bool)
+    for i, j in [(0, 1), (0, 2), (0, 4), (0, 5), (1, 3), (1, 4), (3, 2), (4, 0), (4, 1), (4, 2), (4, 3), (4, 4),
+                 (4, 5), (5, 1), (5, 2), (5, 3), (5, 6), (5, 7), (6, 3), (6, 4), (7, 1), (7, 3), (7, 4), (7, 5), (7, 6)]:
+        flags[i, j] = True
+    p = plan_stereo(Flagged(128, flags), (1004, 1048), 448, 64)
+    assert p.tile_cells == 512 and p.whole_grid and p.examined((1004, 1048)).all()
+    # a city of 8 000² cells with two flagged screen tiles far apart: two 512-cell windows, margin once each
+    big = np.zeros((63, 63), bool)
+    big[5, 5] = big[40, 50] = True        # stereo tiles (1, 1) and (10, 12), inside the grid
+    p = plan_stereo(Flagged(128, big), (8000, 8000), 448, 64)
+    assert not p.whole_grid and p.tile_cells == 512 and p.tiles.sum() == 2
+    assert p.read_cells == 2 * (512 + 128) ** 2
+    ex = p.examined((8000, 8000))
+    assert ex.sum() == 2 * 512 ** 2 and ex[5 * 128, 5 * 128] and ex[40 * 128, 50 * 128]
+    # neighbouring stereo tiles of a row share one window (one margin)
+    big[5, 9] = True                      # stereo tile (1, 2), beside (1, 1)
+    p = plan_stereo(Flagged(128, big), (8000, 8000), 448, 64)
+    assert p.tiles.sum() == 3 and p.read_cells == (2 * 512 + 128) * (512 + 128) + (512 + 128) ** 2
+    # a need below the screen's tile: the screen's tiles as they are
+    assert plan_stereo(Flagged(128, big), (8000, 8000), 100, 64).tile_cells == 128

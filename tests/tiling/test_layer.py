@@ -218,3 +218,20 @@ def test_a_selection_of_tiles_runs_only_those_and_fills_the_rest(tmp_path, merge
     np.testing.assert_array_equal(a[examined], want[examined])
     with pytest.raises(ConfigError, match="tile selection has shape"):
         TileGrid(g, (64, 50), 0, np.zeros((2, 2), bool))
+
+
+def test_release_local_stops_only_a_cluster_the_run_started():
+    """The client's last whole-scene step runs without the workers of a LocalCluster it started; an engine
+    given by the caller is left alone; tiles after the release run in this process."""
+    from geocd.tiling.engine import Engine, open_engine
+
+    with open_engine("sync") as eng:
+        assert not eng.release_local()
+    given = Engine("threads", 1)
+    with open_engine(given) as eng:
+        assert eng is given and not eng.release_local()
+    with open_engine("threads", n_workers=1) as eng:
+        assert eng.owned and eng.cluster is not None
+        assert eng.release_local()
+        assert eng.client is None and eng.cluster is None
+        assert sorted(r for _, r in eng.map_unordered(lambda x, shared: x * 2, [1, 2, 3])) == [2, 4, 6]

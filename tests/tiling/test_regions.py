@@ -56,3 +56,36 @@ def test_merged_regions_equal_whole_grid_regions():
     lab, _ = ndimage.label(sign == merged.sign[k], structure=np.ones((3, 3), bool))
     r, c = divmod(int(merged.first[k]), g.width)
     np.testing.assert_array_equal(m, (lab == lab[r, c])[sl])
+
+
+def test_regions_written_in_batches_equal_the_whole_layer(tmp_path):
+    """The changes layer appended batch by batch == the layer written at once (rows, order, geometries, type)."""
+    import pyogrio
+
+    from geocd.io.vector import write_gpkg
+    from geocd.tiling.regions import regions_layer_batches
+
+    g, sign, dz = _scene(seed=3)
+    tg = TileGrid(g, (64, 64), 0)
+    parts = []
+    for t in tg:
+        tr = tile_regions(sign[t.core_slices], dz[t.core_slices], t, g)
+        tr.labels = None
+        parts.append(tr)
+    merged = merge_regions(parts, tg, min_cells=1)
+    kw = dict(cell_area_m2=4.0, method="m", epoch_a="A", epoch_b="B")
+    whole = regions_layer(merged, g, **kw)
+    assert len(whole) > 50 and set(whole.geom_type) == {"Polygon", "MultiPolygon"}
+    batches = regions_layer_batches(merged, g, batch=7, **kw)
+    assert batches.geometry_type == "MultiPolygon"
+    a = write_gpkg(tmp_path / "a.gpkg", {"changes": whole})
+    b = write_gpkg(tmp_path / "b.gpkg", {"changes": batches})
+    assert pyogrio.read_info(a, layer="changes")["geometry_type"] == pyogrio.read_info(b, layer="changes")[
+        "geometry_type"] == "MultiPolygon"
+    ra = pyogrio.read_dataframe(a, layer="changes")
+    rb = pyogrio.read_dataframe(b, layer="changes")
+    assert ra.drop(columns="geometry").equals(rb.drop(columns="geometry"))
+    assert list(ra.geometry.to_wkb()) == list(rb.geometry.to_wkb())
+    # one region at a time == a batch; members as (tile, sign, label)
+    assert all(merged.geometry[k].equals_exact(whole.geometry.iloc[k], 0) for k in range(len(merged)))
+    assert all(len(merged.members[k]) == merged.members.counts[k] for k in range(len(merged)))
