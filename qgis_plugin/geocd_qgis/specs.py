@@ -701,6 +701,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   unit="m", default=30.0, min=0.0, advanced=True),
             Param("FIXED_GRID", "bool", "Fixed grid at the finest level (no refinement)", cli="--fixed-grid",
                   default=False, advanced=True),
+            Param("FOOTPRINTS", "bool", "Roof heights from the manifest's footprints in the prior (new models)",
+                  cli="--footprints", default=False, advanced=True),
             Param("SUPERSAMPLE", "int", "Rays per pixel side", cli="--supersample", default=1, min=1, max=8,
                   advanced=True),
             Param("NORMALIZE", "enum", "Radiometric normalisation", cli="--normalize", default=0, advanced=True,

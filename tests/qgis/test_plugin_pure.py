@@ -134,9 +134,9 @@ def test_build_args_defaults_and_repeats():
     with pytest.raises(ValueError, match="numbers"):
         specs.build_args(alg, {"CONFIDENCES": "ninety"})
     upd = specs.build_args(specs.spec("volumeupdate"), {"MODEL": "/m", "IMAGES": ["/a.tif"], "PASSES": 5,
-                                                        "SUN": "135, 40.5", "NORMALIZE": 1})
-    assert upd == ["volume", "update", "--image", "/a.tif", "--normalize", "percentile", "--sun", "135", "40.5",
-                   "--", "/m"]
+                                                        "SUN": "135, 40.5", "NORMALIZE": 1, "FOOTPRINTS": True})
+    assert upd == ["volume", "update", "--image", "/a.tif", "--footprints", "--normalize", "percentile", "--sun",
+                   "135", "40.5", "--", "/m"]
     with pytest.raises(ValueError, match="two numbers"):
         specs.build_args(specs.spec("volumedetect"), {"MODEL": "/m", "IMAGE": "/i.tif", "SUN": "135"})
     syn = specs.build_args(specs.spec("synth"), {"OUTPUT": "/s", "SEED": 3, "TINY": True, "SIZE_M": 300.0})
