@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import shutil
 import signal
 import threading
@@ -155,6 +156,11 @@ def disk_full_error(exc: BaseException, target: os.PathLike | str | None = None)
         return DiskFullError(
             f"file size limit reached{where} (a shell `ulimit -f`, a quota, or a FAT32 disk's 4 GB limit); raise "
             "the limit or write to another folder (--out)")
+    gdal = re.search(r"free disk space available is (\d+) bytes, whereas (\d+) are at least necessary", text)
+    if gdal:  # GDAL's own check before writing a GeoTIFF: the file would not fit
+        return DiskFullError(f"not enough free disk space{where}: about {_fmt_mb(int(gdal[2]))} needed, "
+                             f"{_fmt_mb(int(gdal[1]))} free; free some space or choose an output folder on another "
+                             "disk (--out)")
     if code is not None or (phrase and (free is None or free < 64 * 2**20)) or "no space left" in text:
         room = f" ({_fmt_mb(free)} free there)" if free is not None else ""
         return DiskFullError(f"no space left on device{where}{room}; free some space or choose an output folder "

@@ -27,6 +27,14 @@ def _rasterio_error():
     return RasterioIOError("TIFFReadEncodedTile() failed")
 
 
+def _rasterio_free_space_error():
+    from rasterio.errors import RasterioIOError
+
+    return RasterioIOError("demdiff_significance.assemble.part.tif: Free disk space available is 4683780096 bytes, "
+                           "whereas 4908122112 are at least necessary. You can disable this check by defining the "
+                           "CHECK_DISK_FREE_SPACE configuration option to FALSE.")
+
+
 def _pyogrio_error():
     from pyogrio.errors import DataSourceError
 
@@ -45,6 +53,7 @@ def _pyogrio_error():
      "does not exist"),
     (lambda: b"\xff\xfe\x00".decode("utf-8"), E.UnsupportedFormatError, "binary or not UTF-8"),
     (_rasterio_error, E.UnsupportedFormatError, "GDAL (rasterio)"),
+    (_rasterio_free_space_error, E.DiskFullError, "about 4,908 MB needed, 4,684 MB free"),
     (_pyogrio_error, E.UnsupportedFormatError, "OGR (pyogrio)"),
     (lambda: ValueError("operands could not be broadcast"), E.InternalError, "this is a bug in geocd"),
     (lambda: KeyError("x"), E.InternalError, "rerun with --debug"),
