@@ -1,7 +1,5 @@
 """Self-consistency test on synthetic reconstructions with a known error model."""
 
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 
@@ -9,15 +7,7 @@ from geocd.consistency import (CHANGE_NODATA, ChangeParams, ConsistencyParams, D
                                change_test, learn_self_consistency, match_pairs, naive_threshold)
 from geocd.errors import ConfigError, GridError, ProcessingError
 
-
-@dataclass
-class Rec:
-    z_m: np.ndarray
-    score: np.ndarray
-    g_px_per_m: np.ndarray
-    valid: np.ndarray
-    grid: object = None
-    name: str = "rec"
+from .fakes import Rec
 
 
 SHAPE = (120, 120)

@@ -1,6 +1,5 @@
 """Transfer calibration of a scene-class self-consistency model to the tested comparisons."""
 
-from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
@@ -10,15 +9,7 @@ from geocd.consistency import (ChangeParams, ConsistencyParams, PairCalibration,
                                learn_self_consistency, local_slope, model_learned_on)
 from geocd.errors import ConfigError
 
-
-@dataclass
-class Rec:
-    z_m: np.ndarray
-    score: np.ndarray
-    g_px_per_m: np.ndarray
-    valid: np.ndarray
-    grid: object = None
-    name: str = "rec"
+from .fakes import Rec
 
 
 SHAPE = (160, 160)

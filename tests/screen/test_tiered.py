@@ -163,23 +163,15 @@ def test_calibration_is_fitted_on_screen_unchanged_cells_not_on_the_flagged_chan
     on every examined cell (what the change test does alone) the scale is biased high; fitted on the cells the
     screen calls unchanged (dissimilarity ≤ the no-change median, away from screen-changed cells) it is the
     static scene's."""
-    from dataclasses import dataclass
     from types import SimpleNamespace
 
     from geocd.consistency import ChangeParams, ConsistencyParams, change_test, learn_self_consistency
     from geocd.screen.tiered import calibration_cells, fit_calibration_on
 
+    from ..fakes import Rec
+
     shape = (200, 200)
     grid = SimpleNamespace(posting_m=1.0)
-
-    @dataclass
-    class Rec:
-        z_m: np.ndarray
-        score: np.ndarray
-        g_px_per_m: np.ndarray
-        valid: np.ndarray
-        grid: object
-        name: str
 
     def rec(truth, rng, name, noise):
         score = rng.uniform(-2.0, 1.0, shape).astype(np.float32)
