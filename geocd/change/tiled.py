@@ -37,7 +37,8 @@ from ..consistency import (CHANGE_NODATA, ChangeParams, ChangeResult, DEMAsEpoch
 from ..errors import ConfigError, GridError, UnsupportedFormatError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
-from ..tiling import RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work, run_tiled
+from ..tiling import (RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work, run_tiled,
+                      write_product)
 
 
 @dataclass(frozen=True)
@@ -511,9 +512,9 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
     rm = run(_t_mask, "mask", (region_confidence, mmu),
              0, inputs={k: srcs[k] for k in ("confidence", "nobs", "dz_m", "dz_sigma_m")},
              products={"change_mask": products["change_mask"]}, f=(0.86, 0.9))
-    rb = run(_copy_bands, "rasters", names, 0, inputs={n: srcs[n] for n in names},
-             products={"change": products["change"]}, f=(0.9, 0.95))
-    paths = {**rb.products, **rm.products}
+    # the change raster straight from the test's (and the region pass's) tiles: no copy of six bands
+    paths = {"change": write_product(store, products["change"], g, store.tile_grid,
+                                     band_stores={"confidence": conf_store}), **rm.products}
     write_raster_style(paths["change"], qml_for("confidence"))
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
     merged = merge_regions([s for _, s in rm.smalls()], tg, mmu)
@@ -549,10 +550,6 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
 
         paths["scatter"] = plot_scatter_curves(model, out / f"{prefix}_scatter.png")
     return paths
-
-
-def _copy_bands(arrays, ctx):
-    return {n: arrays[n] for n in ctx.params}
 
 
 def _buildings(fp, store, conf_store, mask_store, tg: TileGrid, level: float):

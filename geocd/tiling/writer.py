@@ -61,8 +61,12 @@ def overview_factors(shape: tuple[int, int]) -> list[int]:
 
 
 def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None = None,
-                  tile_grid: TileGrid | None = None) -> Path:
-    """Assemble ``product`` from the tiles of ``store`` and write it as a COG (atomic)."""
+                  tile_grid: TileGrid | None = None, band_stores: Mapping[str, TileStore] | None = None) -> Path:
+    """Assemble ``product`` from the tiles of ``store`` and write it as a COG (atomic).
+
+    ``band_stores`` (band name → store) takes a band from another pass's store, read on each tile's
+    core: a product can gather the arrays of several passes without a pass that copies them.
+    """
     import rasterio
     from rasterio.enums import Resampling
     from rasterio.shutil import copy as rio_copy
@@ -104,7 +108,9 @@ def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None
                 for t in tg:  # processed tiles (or runs of tiles)
                     r0, c0, h, w = t.core
                     for b, name in enumerate(product.bands, start=1):
-                        a = np.asarray(store.tile_array(t, name)).astype(dtype, copy=False)
+                        other = (band_stores or {}).get(name)
+                        a = store.tile_array(t, name) if other is None else other.read(name, t.core)
+                        a = np.asarray(a).astype(dtype, copy=False)
                         dst.write(a, b, window=Window(c0, r0, w, h))
                 for i, nm in enumerate(names, start=1):
                     dst.set_band_description(i, str(nm))
