@@ -5,6 +5,8 @@
     # the run: tiled stereo of both epochs (one pair each) + tiled change test + products
     nice -n 10 .venv/bin/python bench/bench_big_stereo_change.py run /work/big/st2500 OUT --model OUT_MODEL/model.json
     .venv/bin/python bench/bench_big_stereo_change.py table run.*.json        # the figures side by side
+    .venv/bin/python bench/bench_big_stereo_change.py same RUN_A RUN_B        # products bit for bit
+    bash bench/stereo_change_cluster_kill.sh SCENE MODEL OUT                   # LocalCluster / address / SIGKILL
 
 ``run`` is the path ``geocd stereo --tile-size`` + ``geocd change --tiled`` take
 (:func:`geocd.stereo.tiled.run_stereo_tiled`, then :func:`geocd.change.tiled.change_test_tiled` on the
@@ -187,6 +189,49 @@ def cmd_table(a) -> None:
               f"×{r1['wall_s'] / r0['wall_s']:.2f} wall")
 
 
+def cmd_same(a) -> None:
+    """Compare two run folders' products: every GeoTIFF's arrays bit for bit (NaN = NaN), every
+    GeoPackage layer's attributes and geometries (WKB), except the styles' update timestamps."""
+    import pyogrio
+    import rasterio
+
+    ref, other = Path(a.a), Path(a.b)
+    rows, ok = [], True
+    for f in sorted(ref.rglob("*.tif")):
+        if ".geocd-work" in f.parts:
+            continue
+        g = other / f.relative_to(ref)
+        if not g.exists():
+            rows.append({"file": str(f.relative_to(ref)), "same": False, "why": "missing"})
+            ok = False
+            continue
+        with rasterio.open(f) as x, rasterio.open(g) as y:
+            A, B = x.read(), y.read()
+        same = A.shape == B.shape and np.array_equal(A, B, equal_nan=bool(np.issubdtype(A.dtype, np.floating)))
+        rows.append({"file": str(f.relative_to(ref)), "shape": list(A.shape), "same": bool(same)})
+        ok &= same
+    for f in sorted(ref.rglob("*.gpkg")):
+        if ".geocd-work" in f.parts:
+            continue
+        g = other / f.relative_to(ref)
+        for lyr, _ in pyogrio.list_layers(f):
+            x = pyogrio.read_dataframe(f, layer=lyr)
+            y = pyogrio.read_dataframe(g, layer=lyr)
+            if lyr == "layer_styles":
+                x, y = (d.drop(columns=[c for c in ("update_time",) if c in d.columns]) for d in (x, y))
+            if "geometry" in x.columns:
+                same = (x.drop(columns="geometry").equals(y.drop(columns="geometry"))
+                        and list(x.geometry.to_wkb()) == list(y.geometry.to_wkb()))
+            else:
+                same = x.equals(y)
+            rows.append({"file": f"{f.relative_to(ref)}:{lyr}", "rows": len(x), "same": bool(same)})
+            ok &= same
+    rep = {"same": bool(ok), "a": str(ref), "b": str(other), "products": rows}
+    print(json.dumps(rep, indent=1))
+    if a.json:
+        Path(a.json).write_text(json.dumps(rep, indent=1))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -202,10 +247,14 @@ def main() -> None:
     for p in (m, r):
         p.add_argument("--tile-size", type=int, default=1024)
         p.add_argument("--scheduler", default="auto")
+    c = sub.add_parser("same")
+    c.add_argument("a")
+    c.add_argument("b")
+    c.add_argument("--json", default=None)
     t = sub.add_parser("table")
     t.add_argument("files", nargs="+")
     a = ap.parse_args()
-    {"model": cmd_model, "run": cmd_run, "table": cmd_table}[a.cmd](a)
+    {"model": cmd_model, "run": cmd_run, "same": cmd_same, "table": cmd_table}[a.cmd](a)
 
 
 if __name__ == "__main__":
