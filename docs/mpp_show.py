@@ -196,6 +196,117 @@ def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and") -> dic
     return out
 
 
+def edges(name: Path, ortho_dir: Path) -> dict:
+    """Where a town's walls are in the stereo DSM and in the ortho, against the truth outlines.
+
+    For every cell within 4 m of a truth building's outline (that building existing on the date): its signed
+    distance d to the outline (m, + inside, from the polygon, not the raster), the outward normal's compass
+    direction, the nDSM (DSM − terrain) divided by the building's height (median nDSM > 2 m inside), and the
+    ortho's gradient across the outline. Profiles over d (0.25 m bins) give the DSM's half-height crossing
+    (0 = on the truth wall; < 0 = the DSM's wall lies outside the footprint: fattened), its 10–90 % rise
+    width (the wall blur) and the ortho's gradient peak, per date and per side (N, E, S, W)."""
+    import geopandas as gpd
+    import shapely
+    from shapely.geometry import box
+
+    from geocd.mpp.features import image_features
+
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    post = grid.posting_m
+    H, W = grid.shape
+    tr = grid.transform
+    g = gpd.read_file(name / "truth" / "footprints_all.gpkg")
+    gb = box(*grid.bounds)
+    g = g[[geom.intersection(gb).area >= 0.5 * geom.area for geom in g.geometry]]
+    jj, ii = np.meshgrid(np.arange(W), np.arange(H))
+    xs = tr.c + (jj + 0.5) * tr.a + (ii + 0.5) * tr.b
+    ys = tr.f + (jj + 0.5) * tr.d + (ii + 0.5) * tr.e
+    bins = np.arange(-4.0, 4.0001, 0.25)
+    mids = 0.5 * (bins[1:] + bins[:-1])
+    out = {}
+
+    def crossing(prof, level):
+        ok = np.isfinite(prof)
+        m, p = mids[ok], prof[ok]
+        for k in range(len(p) - 1):     # outside (d < 0) to inside: first rise through the level
+            if p[k] < level <= p[k + 1]:
+                return float(m[k] + (level - p[k]) / (p[k + 1] - p[k]) * (m[k + 1] - m[k]))
+        return float("nan")
+
+    for date, dsm_key, img_key, valid_key in ((1, "dsm_a", "image_a", "valid_a"), (2, "dsm_b", "image_b", "valid_b")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            f = image_features(inp[img_key], post, MPPParams(height="and"), valid=inp[valid_key],
+                               dsm_m=inp[dsm_key], ground_m=inp["ground"])
+            raw = (np.asarray(inp[dsm_key], np.float64) - inp["ground"])
+        rows = {"d": [], "side": [], "h_raw": [], "h_med": [], "grad": [], "bld": []}
+        for b, (geom, status) in enumerate(zip(g.geometry, g["status"])):
+            if (date == 1 and status == "new") or (date == 2 and status == "demolished"):
+                continue
+            x0, y0, x1, y1 = geom.bounds
+            sel = (xs >= x0 - 4) & (xs <= x1 + 4) & (ys >= y0 - 4) & (ys <= y1 + 4)
+            pts = shapely.points(xs[sel], ys[sel])
+            dist = shapely.distance(pts, geom.boundary)
+            inside = shapely.contains(geom, pts)
+            d = np.where(inside, dist, -dist)
+            near = np.abs(d) <= 4.0
+            if not near.any():
+                continue
+            si, sj = ii[sel][near], jj[sel][near]
+            # the outward normal: from the nearest boundary point to the cell, flipped inside
+            nearest = shapely.shortest_line(pts[near], geom.boundary)
+            c = shapely.get_coordinates(nearest).reshape(-1, 2, 2)
+            v = c[:, 0] - c[:, 1]
+            v = np.where(inside[near][:, None], -v, v)
+            az = np.degrees(np.arctan2(v[:, 0], v[:, 1])) % 360     # clockwise from north
+            side = np.array(["N", "E", "S", "W"])[(((az + 45) % 360) // 90).astype(int)]
+            core = sel.copy()
+            core[sel] = d > 2.0
+            hb = np.nanmedian(raw[core]) if core.any() else np.nan
+            if not np.isfinite(hb) or hb < 2.0:
+                continue
+            # gradient component across the outline
+            ang_n = np.arctan2(v[:, 1], v[:, 0])        # map angle of the normal (east, north)
+            gx = f.grad_mag[si, sj] * np.abs(np.cos(f.grad_ori[si, sj] - ang_n))
+            rows["d"].append(d[near]); rows["side"].append(side); rows["bld"].append(np.full(near.sum(), b))
+            rows["h_raw"].append(raw[si, sj] / hb); rows["h_med"].append(f.ndsm[si, sj] / hb)
+            rows["grad"].append(gx)
+        R = {k: np.concatenate(v) for k, v in rows.items()}
+        res = {}
+        for s in ("all", "N", "E", "S", "W"):
+            m = np.ones(R["d"].size, bool) if s == "all" else R["side"] == s
+            k = np.digitize(R["d"][m], bins) - 1
+            ok = (k >= 0) & (k < mids.size)
+            prof = {}
+            for key in ("h_raw", "h_med", "grad"):
+                val = R[key][m][ok]
+                good = np.isfinite(val)
+                prof[key] = np.array([np.mean(val[good & (k[ok] == q)]) if np.any(good & (k[ok] == q)) else np.nan
+                                      for q in range(mids.size)])
+            gp = prof["grad"]
+            q = int(np.nanargmax(gp))
+            peak = mids[q]
+            if 0 < q < mids.size - 1 and np.all(np.isfinite(gp[q - 1:q + 2])):
+                den = gp[q - 1] - 2 * gp[q] + gp[q + 1]
+                if den < 0:
+                    peak += 0.25 * 0.5 * (gp[q - 1] - gp[q + 1]) / den
+            res[s] = {"cells": int(m.sum()),
+                      "dsm_half_height_m": round(crossing(prof["h_raw"], 0.5), 2),
+                      "dsm_median_filtered_half_height_m": round(crossing(prof["h_med"], 0.5), 2),
+                      "dsm_rise_10_90_m": round(crossing(prof["h_raw"], 0.9) - crossing(prof["h_raw"], 0.1), 2),
+                      "ortho_gradient_peak_m": round(float(peak), 2)}
+            if s == "all":
+                res[s]["profile"] = {"d_m": mids.round(3).tolist(), "h_raw": np.round(prof["h_raw"], 3).tolist(),
+                                     "h_med": np.round(prof["h_med"], 3).tolist(),
+                                     "grad": np.round(prof["grad"], 3).tolist()}
+        out[f"date{date}"] = res
+        print(f"date {date}:", json.dumps({s: {k: v for k, v in r.items() if k != "profile"} for s, r in res.items()}),
+              flush=True)
+    (DOCS / f"mpp_edges_{Path(name).name}.json").write_text(json.dumps(out, indent=1))
+    return out
+
+
 def _town_table(d: dict) -> str:
     lines = ["| variant | missed objects (HO) | false objects (FO) | missed changes (HV) | false changes (FV) "
              "| pixel F (DP) [P / R] | changed-building F | seconds | iterations |",
@@ -475,6 +586,8 @@ if __name__ == "__main__":
     elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP]
         recall(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0,
                sys.argv[5] if len(sys.argv) > 5 else "and")
+    elif what == "edges":      # edges TOWN ORTHO_DIR: the DSM's and the ortho's walls against the truth
+        edges(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "levir-diagnose":
         levir_diagnose()
     elif what == "kahra-outlines":     # kahra-outlines RUN_DIR [STEP]
