@@ -7,8 +7,10 @@ Usage (from the repository root)::
     .venv/bin/geocd --progress none ortho sample_aoi --out /tmp/ortho_run
     .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
         [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior,
-        # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring
-    .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off   # where recall is lost
+        # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring,
+        # EHF / EHI: ED + height with the sub-cell edge fit (--edge-fit joint / image)
+    .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
+    .venv/bin/python docs/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
     .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
@@ -51,9 +53,11 @@ VARIANTS = {
     "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0}, True, True),
     "ED + height + step term": ("ED", {"height": "and", "step": "and"}, True, False),
     "ED + height, step in the ring": ("ED", {"height": "and", "step": "ring"}, True, False),
+    "ED + height + edge fit (joint)": ("ED", {"height": "and", "edge_fit": "joint"}, True, False),
+    "ED + height + edge fit (image)": ("ED", {"height": "and", "edge_fit": "image"}, True, False),
 }
 #: short names for ``--only``
-SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR"), VARIANTS))
+SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR", "EHF", "EHI"), VARIANTS))
 
 
 def _town_inputs(town: Path, ortho_dir: Path):
@@ -109,6 +113,7 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
             t = table2(masks, inp["objs"], inp["t1"], inp["t2"])
             t.update(seed=seed, seconds=round(dt, 1), cpu_seconds=round(dc, 1), iterations=det.result.iterations,
                      converged=det.result.converged, rectangles=len(det.result), births=det.result.births)
+            t.update({"edge_fit": n for n in det.notes if n.startswith("edge fit")})
             rows.setdefault(label, []).append(t)
             print(label, t, flush=True)
             if label.startswith("ED + height") and best is None:
@@ -116,7 +121,9 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
     out = {"scene": str(name), "views": [inp["view_a"], inp["view_b"]], "rows": rows}
     if best is not None:
         tag = Path(name).name
-        if best_label != "ED + height (geocd)":
+        if "edge fit" in best_label:
+            tag += "_edgefit"
+        elif best_label != "ED + height (geocd)":
             tag += "_prior"
         quicklook(DOCS / f"mpp_{tag}.png", inp["image_a"], inp["image_b"], best,
                   titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
@@ -146,7 +153,7 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
     return out
 
 
-def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and") -> dict:
+def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and", edge_fit: str = "off") -> dict:
     """Where ED + height misses truth pixels on a town: near the outline (≤ 1 m), on buildings longer than
     the largest side, on L-shaped ones (area / minimum rotated rectangle < 0.9), whole buildings missed on a
     date; and how many false pixels lie within 2 m of a truth building."""
@@ -156,7 +163,7 @@ def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and") -> dic
 
     inp = _town_inputs(name, ortho_dir)
     grid = inp["grid"]
-    p = MPPParams(seed=seed, height="and", step=step)
+    p = MPPParams(seed=seed, height="and", step=step, edge_fit=edge_fit)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         det = detect(inp["image_a"], inp["image_b"], grid.posting_m, p, method="ED", valid_a=inp["valid_a"],
@@ -583,9 +590,9 @@ if __name__ == "__main__":
             only = [SHORT[x] for x in args[k + 1].split(",")]
             args = args[:k] + args[k + 2:]
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
-    elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP]
+    elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP] [EDGE_FIT]
         recall(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0,
-               sys.argv[5] if len(sys.argv) > 5 else "and")
+               sys.argv[5] if len(sys.argv) > 5 else "and", sys.argv[6] if len(sys.argv) > 6 else "off")
     elif what == "edges":      # edges TOWN ORTHO_DIR: the DSM's and the ortho's walls against the truth
         edges(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "levir-diagnose":

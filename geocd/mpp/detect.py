@@ -138,6 +138,7 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
         model = EnergyModel([fa, fb], posting_m, params, similarity=B,
                             change_prior=change_prior if params.gamma_3d > 0 else None)
         res = optimize(model, params, progress=sub_progress(prog, 0.1, 1.0))
+        notes += res.notes
         thr = [_thr(t) for t in model.terms]
     if len(res) == 0 and not flat:
         notes.append(_why_empty(params, (fa, fb)))
