@@ -311,7 +311,34 @@ def edges(name: Path, ortho_dir: Path) -> dict:
         print(f"date {date}:", json.dumps({s: {k: v for k, v in r.items() if k != "profile"} for s, r in res.items()}),
               flush=True)
     (DOCS / f"mpp_edges_{Path(name).name}.json").write_text(json.dumps(out, indent=1))
+    _edges_plot(out, Path(name).name)
     return out
+
+
+def _edges_plot(out: dict, tag: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=False)
+    for ax, (date, res) in zip(axes, out.items()):
+        pr = res["all"]["profile"]
+        d = np.array(pr["d_m"])
+        ax.plot(d, pr["h_raw"], "C0-", label="stereo DSM, nDSM / roof height")
+        ax.axhline(0.5, color="C0", lw=0.6, ls=":")
+        g = np.array(pr["grad"], float)
+        ax.plot(d, g / np.nanmax(g), "C3-", label="ortho gradient across the outline (scaled)")
+        ax.axvline(0.0, color="k", lw=0.8)
+        ax.axvline(res["all"]["dsm_half_height_m"], color="C0", lw=0.8, ls="--")
+        ax.axvline(res["all"]["ortho_gradient_peak_m"], color="C3", lw=0.8, ls="--")
+        ax.set_xlabel("signed distance to the truth outline (m, + inside)")
+        ax.set_title(f"{tag}, {date}: DSM half height at {res['all']['dsm_half_height_m']:+.2f} m, "
+                     f"ortho edge at {res['all']['ortho_gradient_peak_m']:+.2f} m", fontsize=8)
+    axes[0].legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(DOCS / f"mpp_edges_{tag}.png", dpi=110)
+    plt.close(fig)
 
 
 def _town_table(d: dict) -> str:
