@@ -485,12 +485,17 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
     # --- sub-cell edge fit of the kept objects ---------------------------------------------------
     fitted = 0
     fit_counts = (0, 0)
-    if params.edge_fit != "off":
+    fit_notes = []
+    with_dsm = all(t.features.ndsm is not None for t in model.terms)
+    if params.edge_fit == "image" or (params.edge_fit == "joint" and with_dsm):   # "joint" needs the DSMs
         live = np.flatnonzero(alive[:n])
         if live.size:
             got = fit_edges(model, rects[live], xi[live], energy[live], params)
             fitted = int(got["accepted"].sum())
             fit_counts = (int(got["moved"].sum()), int(got["energy_not_worse"].sum()))
+            fit_notes.append(f"edge fit ({params.edge_fit}): {fit_counts[0]} objects refitted after the "
+                             f"annealing, {fitted} kept (edge evidence not weaker, still attractive); A_D not "
+                             f"raised for {fit_counts[1]}")
             if fitted:
                 sel = live[got["accepted"]]
                 rects[sel] = got["rects"][got["accepted"]]
@@ -537,9 +542,7 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
     return MPPResult(rects=rects[keep].copy(), xi=xi[keep].copy(), energy=energy[keep].copy(), phi=phis[keep].copy(),
                      confidence=conf, xi_confidence=xi_conf, iterations=it, converged=converged,
                      births=total_births, energy_total=float(energy[keep].sum() + params.gamma_overlap * inter_tot),
-                     history=history, notes=[f"edge fit ({params.edge_fit}): {fit_counts[0]} objects refitted after the "
-                                             f"annealing, {fitted} kept (edge evidence not weaker, still "
-                                             f"attractive); A_D not raised for {fit_counts[1]}"] if params.edge_fit != "off" else [])
+                     history=history, notes=fit_notes)
 
 
 def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.ndarray,

@@ -92,7 +92,8 @@ class MPPParams(ParamsMixin):
         normal in ¼-cell steps within ±``ring_m`` (the width of a stereo DSM's blurred walls) to where the
         image gradient across it is strongest, sampled bilinearly. "joint": only where the DSM agrees there
         is a wall there (``edge_width_m`` inside the side above half the rectangle's height, ``edge_width_m +
-        ring_m`` outside below it, on over half the side); "image": the image edge alone; "off" (default).
+        ring_m`` outside below it, on over half the side; nothing is fitted without DSMs, so the paper's
+        model is unchanged); "image": the image edge alone; "off" (default).
         A refit that makes the rectangle's data energy worse is not kept (docs/mpp.md: the stereo DSM's
         walls lie up to 1.3 m outside the true ones, the ortho's edges within 0.2 m)
     beta0, beta_factor, delta0, delta_factor : annealing schedules
