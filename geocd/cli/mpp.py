@@ -31,7 +31,7 @@ import numpy as np
               help="Height-step term (with the height term): 'and' a building's outline must step down "
                    "steeply along most of its length; 'ring' the step may stand in for ground around it (dense "
                    "blocks); 'off' none.")
-@click.option("--edge-fit", "edge_fit", type=click.Choice(["joint", "image", "off"]), default="off",
+@click.option("--edge-fit", "edge_fit", type=click.Choice(["joint", "image", "off"]), default="joint",
               show_default=True,
               help="After the annealing, move each side of each building rectangle (¼-cell steps, within the "
                    "ring width) onto the image's strongest edge across it: 'joint' only where the DSM has a wall "

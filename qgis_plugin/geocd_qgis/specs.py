@@ -316,7 +316,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   default=2, options=(("on: required", "and"), ("in the height ring (dense blocks)", "ring"),
                                       ("off", "off")), advanced=True),
             Param("EDGE_FIT", "enum", "Fit the rectangles' sides onto the walls after the annealing",
-                  cli="--edge-fit", default=2, options=(("image edges where the DSM has a wall", "joint"),
+                  cli="--edge-fit", default=0, options=(("image edges where the DSM has a wall", "joint"),
                                                         ("image edges alone", "image"), ("off", "off")),
                   advanced=True),
             Param("EPOCH_A", "string", "Earlier epoch (default: the first)", cli="--epoch-a", optional=True,
