@@ -378,3 +378,5 @@ def test_default_run_puts_the_sides_on_the_walls_of_a_fattened_dsm():
     assert np.abs(sides - [22.0, 32.0]).max() <= 0.5, sides
     assert np.abs(np.sort(d_off.result.rects[0, 2:4]) - [22.0, 32.0]).max() >= 2.0
     assert f_fit > 0.92 and f_fit > f_off + 0.04, (f_fit, f_off)
+    again, _ = run()                                      # the fit is deterministic: same seed, same objects
+    np.testing.assert_array_equal(again.result.rects, d.result.rects)
