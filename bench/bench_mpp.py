@@ -3,7 +3,8 @@ against its numpy reference.
 
 1. The energy kernel ``rect_features`` (all object features of a rectangle on one image) against
    ``rect_features_ref`` (numpy) on the same rectangles of a LEVIR-CD image: µs per rectangle, ratio; the
-   same for the height-step kernel ``rect_steps`` on a synthetic height map of that size.
+   same for the height-step kernel ``rect_steps`` on a synthetic height map of that size, and for the
+   sub-cell edge fit ``fit_sides`` (that image and height map).
 2. Whole runs (``geocd.mpp.detect``, joint model) on each LEVIR-CD pair (256 × 256 cells = 0.066 Mpx per
    image, 0.131 Mpx per pair) and, with ``--town DIR ORTHO_DIR``, on a generated town's orthos (600 × 600):
    wall and CPU seconds, seconds per megapixel of image pair, annealing iterations, births, µs per birth;
@@ -104,6 +105,25 @@ def kernel_bench(repeat: int) -> dict:
     res["step_kernel"] = {"kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
                           "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1), "ratio": round(min(tr) / min(tk), 1),
                           "first_call_s": round(cold, 2), "agree": bool(np.allclose(st[:40], ref, atol=1e-12))}
+    # the sub-cell edge fit on the same image and height map (one date, DSM gate on)
+    fargs = (np.ones((len(rects), 1), bool), f.grad_mag[None], f.grad_ori[None], h[None], True, 2.5,
+             float(m.ring_w), 0.25, float(m.edge_w), float(m.edge_w + m.ring_w), float(m.smin), float(m.smax))
+    t0 = time.perf_counter()
+    K.fit_sides(rects[:2].copy(), *fargs)
+    cold = time.perf_counter() - t0
+    tk, tr = [], []
+    for _ in range(repeat):
+        fit = rects.copy()
+        t0 = time.perf_counter()
+        K.fit_sides(fit, *fargs)
+        tk.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ref = K.fit_sides_ref(rects[:40], fargs[0][:40], *fargs[1:])
+        tr.append((time.perf_counter() - t0) * len(rects) / 40)
+    res["edge_fit_kernel"] = {"kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
+                              "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1),
+                              "ratio": round(min(tr) / min(tk), 1), "first_call_s": round(cold, 2),
+                              "agree": bool(np.allclose(fit[:40], ref, atol=1e-9))}
     return res
 
 

@@ -7,8 +7,10 @@ Usage (from the repository root)::
     .venv/bin/geocd --progress none ortho sample_aoi --out /tmp/ortho_run
     .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
         [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior,
-        # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring
-    .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off   # where recall is lost
+        # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring,
+        # EHF / EHI: ED + height with the sub-cell edge fit (--edge-fit joint / image)
+    .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
+    .venv/bin/python docs/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
     .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
@@ -42,18 +44,21 @@ from geocd.mpp.evaluate import rect_masks, sample_truth, table2, table2_change_o
 from geocd.mpp.params import MPPParams  # noqa: E402
 from geocd.mpp.products import quicklook  # noqa: E402
 
-#: the variants of Table 2 (name → method, params changes, needs heights, needs the 3-D prior)
+#: the variants of Table 2 (name → method, params changes, needs heights, needs the 3-D prior); the rows measured
+#: before the edge fit existed keep edge_fit="off", so a re-run measures what their rows say
 VARIANTS = {
     "ED (joint, paper)": ("ED", {}, False, False),
     "SD (sequential)": ("SD", {}, False, False),
     "EV (edge-only verification)": ("EV", {}, False, False),
-    "ED + height (geocd)": ("ED", {"height": "and"}, True, False),
-    "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0}, True, True),
-    "ED + height + step term": ("ED", {"height": "and", "step": "and"}, True, False),
-    "ED + height, step in the ring": ("ED", {"height": "and", "step": "ring"}, True, False),
+    "ED + height (geocd)": ("ED", {"height": "and", "edge_fit": "off"}, True, False),   # before the edge fit
+    "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0, "edge_fit": "off"}, True, True),
+    "ED + height + step term": ("ED", {"height": "and", "step": "and", "edge_fit": "off"}, True, False),
+    "ED + height, step in the ring": ("ED", {"height": "and", "step": "ring", "edge_fit": "off"}, True, False),
+    "ED + height + edge fit (joint)": ("ED", {"height": "and", "edge_fit": "joint"}, True, False),   # default
+    "ED + height + edge fit (image)": ("ED", {"height": "and", "edge_fit": "image"}, True, False),
 }
 #: short names for ``--only``
-SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR"), VARIANTS))
+SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR", "EHF", "EHI"), VARIANTS))
 
 
 def _town_inputs(town: Path, ortho_dir: Path):
@@ -109,6 +114,7 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
             t = table2(masks, inp["objs"], inp["t1"], inp["t2"])
             t.update(seed=seed, seconds=round(dt, 1), cpu_seconds=round(dc, 1), iterations=det.result.iterations,
                      converged=det.result.converged, rectangles=len(det.result), births=det.result.births)
+            t.update({"edge_fit": n for n in det.notes if n.startswith("edge fit")})
             rows.setdefault(label, []).append(t)
             print(label, t, flush=True)
             if label.startswith("ED + height") and best is None:
@@ -116,7 +122,9 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
     out = {"scene": str(name), "views": [inp["view_a"], inp["view_b"]], "rows": rows}
     if best is not None:
         tag = Path(name).name
-        if best_label != "ED + height (geocd)":
+        if "edge fit" in best_label:
+            tag += "_edgefit"
+        elif best_label != "ED + height (geocd)":
             tag += "_prior"
         quicklook(DOCS / f"mpp_{tag}.png", inp["image_a"], inp["image_b"], best,
                   titles=(f"{inp['view_a']} (epoch A)", f"{inp['view_b']} (epoch B)"),
@@ -146,7 +154,7 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
     return out
 
 
-def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and") -> dict:
+def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and", edge_fit: str = "off") -> dict:
     """Where ED + height misses truth pixels on a town: near the outline (≤ 1 m), on buildings longer than
     the largest side, on L-shaped ones (area / minimum rotated rectangle < 0.9), whole buildings missed on a
     date; and how many false pixels lie within 2 m of a truth building."""
@@ -156,7 +164,7 @@ def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and") -> dic
 
     inp = _town_inputs(name, ortho_dir)
     grid = inp["grid"]
-    p = MPPParams(seed=seed, height="and", step=step)
+    p = MPPParams(seed=seed, height="and", step=step, edge_fit=edge_fit)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         det = detect(inp["image_a"], inp["image_b"], grid.posting_m, p, method="ED", valid_a=inp["valid_a"],
@@ -194,6 +202,215 @@ def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and") -> dic
                longest_building_m=round(float(longest.max()), 1))
     print(json.dumps(out), flush=True)
     return out
+
+
+def edges(name: Path, ortho_dir: Path) -> dict:
+    """Where a town's walls are in the stereo DSM and in the ortho, against the truth outlines.
+
+    For every cell within 4 m of a truth building's outline (that building existing on the date): its signed
+    distance d to the outline (m, + inside, from the polygon, not the raster), the outward normal's compass
+    direction, the nDSM (DSM − terrain) divided by the building's height (median nDSM > 2 m inside), and the
+    ortho's gradient across the outline. Profiles over d (0.25 m bins) give the DSM's half-height crossing
+    (0 = on the truth wall; < 0 = the DSM's wall lies outside the footprint: fattened), its 10–90 % rise
+    width (the wall blur) and the ortho's gradient peak, per date and per side (N, E, S, W)."""
+    import geopandas as gpd
+    import shapely
+    from shapely.geometry import box
+
+    from geocd.mpp.features import image_features
+
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    post = grid.posting_m
+    H, W = grid.shape
+    tr = grid.transform
+    g = gpd.read_file(name / "truth" / "footprints_all.gpkg")
+    gb = box(*grid.bounds)
+    g = g[[geom.intersection(gb).area >= 0.5 * geom.area for geom in g.geometry]]
+    jj, ii = np.meshgrid(np.arange(W), np.arange(H))
+    xs = tr.c + (jj + 0.5) * tr.a + (ii + 0.5) * tr.b
+    ys = tr.f + (jj + 0.5) * tr.d + (ii + 0.5) * tr.e
+    bins = np.arange(-4.0, 4.0001, 0.25)
+    mids = 0.5 * (bins[1:] + bins[:-1])
+    out = {}
+
+    def crossing(prof, level):
+        ok = np.isfinite(prof)
+        m, p = mids[ok], prof[ok]
+        for k in range(len(p) - 1):     # outside (d < 0) to inside: first rise through the level
+            if p[k] < level <= p[k + 1]:
+                return float(m[k] + (level - p[k]) / (p[k + 1] - p[k]) * (m[k + 1] - m[k]))
+        return float("nan")
+
+    for date, dsm_key, img_key, valid_key in ((1, "dsm_a", "image_a", "valid_a"), (2, "dsm_b", "image_b", "valid_b")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            f = image_features(inp[img_key], post, MPPParams(height="and"), valid=inp[valid_key],
+                               dsm_m=inp[dsm_key], ground_m=inp["ground"])
+            raw = (np.asarray(inp[dsm_key], np.float64) - inp["ground"])
+        rows = {"d": [], "side": [], "h_raw": [], "h_med": [], "grad": [], "bld": []}
+        for b, (geom, status) in enumerate(zip(g.geometry, g["status"])):
+            if (date == 1 and status == "new") or (date == 2 and status == "demolished"):
+                continue
+            x0, y0, x1, y1 = geom.bounds
+            sel = (xs >= x0 - 4) & (xs <= x1 + 4) & (ys >= y0 - 4) & (ys <= y1 + 4)
+            pts = shapely.points(xs[sel], ys[sel])
+            dist = shapely.distance(pts, geom.boundary)
+            inside = shapely.contains(geom, pts)
+            d = np.where(inside, dist, -dist)
+            near = np.abs(d) <= 4.0
+            if not near.any():
+                continue
+            si, sj = ii[sel][near], jj[sel][near]
+            # the outward normal: from the nearest boundary point to the cell, flipped inside
+            nearest = shapely.shortest_line(pts[near], geom.boundary)
+            c = shapely.get_coordinates(nearest).reshape(-1, 2, 2)
+            v = c[:, 0] - c[:, 1]
+            v = np.where(inside[near][:, None], -v, v)
+            az = np.degrees(np.arctan2(v[:, 0], v[:, 1])) % 360     # clockwise from north
+            side = np.array(["N", "E", "S", "W"])[(((az + 45) % 360) // 90).astype(int)]
+            core = sel.copy()
+            core[sel] = d > 2.0
+            hb = np.nanmedian(raw[core]) if core.any() else np.nan
+            if not np.isfinite(hb) or hb < 2.0:
+                continue
+            # gradient component across the outline
+            ang_n = np.arctan2(v[:, 1], v[:, 0])        # map angle of the normal (east, north)
+            gx = f.grad_mag[si, sj] * np.abs(np.cos(f.grad_ori[si, sj] - ang_n))
+            rows["d"].append(d[near]); rows["side"].append(side); rows["bld"].append(np.full(near.sum(), b))
+            rows["h_raw"].append(raw[si, sj] / hb); rows["h_med"].append(f.ndsm[si, sj] / hb)
+            rows["grad"].append(gx)
+        R = {k: np.concatenate(v) for k, v in rows.items()}
+        res = {}
+        for s in ("all", "N", "E", "S", "W"):
+            m = np.ones(R["d"].size, bool) if s == "all" else R["side"] == s
+            k = np.digitize(R["d"][m], bins) - 1
+            ok = (k >= 0) & (k < mids.size)
+            prof = {}
+            for key in ("h_raw", "h_med", "grad"):
+                val = R[key][m][ok]
+                good = np.isfinite(val)
+                prof[key] = np.array([np.mean(val[good & (k[ok] == q)]) if np.any(good & (k[ok] == q)) else np.nan
+                                      for q in range(mids.size)])
+            gp = prof["grad"]
+            q = int(np.nanargmax(gp))
+            peak = mids[q]
+            if 0 < q < mids.size - 1 and np.all(np.isfinite(gp[q - 1:q + 2])):
+                den = gp[q - 1] - 2 * gp[q] + gp[q + 1]
+                if den < 0:
+                    peak += 0.25 * 0.5 * (gp[q - 1] - gp[q + 1]) / den
+            res[s] = {"cells": int(m.sum()),
+                      "dsm_half_height_m": round(crossing(prof["h_raw"], 0.5), 2),
+                      "dsm_median_filtered_half_height_m": round(crossing(prof["h_med"], 0.5), 2),
+                      "dsm_rise_10_90_m": round(crossing(prof["h_raw"], 0.9) - crossing(prof["h_raw"], 0.1), 2),
+                      "ortho_gradient_peak_m": round(float(peak), 2)}
+            if s == "all":
+                res[s]["profile"] = {"d_m": mids.round(3).tolist(), "h_raw": np.round(prof["h_raw"], 3).tolist(),
+                                     "h_med": np.round(prof["h_med"], 3).tolist(),
+                                     "grad": np.round(prof["grad"], 3).tolist()}
+        out[f"date{date}"] = res
+        print(f"date {date}:", json.dumps({s: {k: v for k, v in r.items() if k != "profile"} for s, r in res.items()}),
+              flush=True)
+    (DOCS / f"mpp_edges_{Path(name).name}.json").write_text(json.dumps(out, indent=1))
+    _edges_plot(out, Path(name).name)
+    return out
+
+
+def _edges_plot(out: dict, tag: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=False)
+    for ax, (date, res) in zip(axes, out.items()):
+        pr = res["all"]["profile"]
+        d = np.array(pr["d_m"])
+        ax.plot(d, pr["h_raw"], "C0-", label="stereo DSM, nDSM / roof height")
+        ax.axhline(0.5, color="C0", lw=0.6, ls=":")
+        g = np.array(pr["grad"], float)
+        ax.plot(d, g / np.nanmax(g), "C3-", label="ortho gradient across the outline (scaled)")
+        ax.axvline(0.0, color="k", lw=0.8)
+        ax.axvline(res["all"]["dsm_half_height_m"], color="C0", lw=0.8, ls="--")
+        ax.axvline(res["all"]["ortho_gradient_peak_m"], color="C3", lw=0.8, ls="--")
+        ax.set_xlabel("signed distance to the truth outline (m, + inside)")
+        ax.set_title(f"{tag}, {date}: DSM half height at {res['all']['dsm_half_height_m']:+.2f} m, "
+                     f"ortho edge at {res['all']['ortho_gradient_peak_m']:+.2f} m", fontsize=8)
+    axes[0].legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(DOCS / f"mpp_edges_{tag}.png", dpi=110)
+    plt.close(fig)
+
+
+def edgefit_diagnose(name: Path, ortho_dir: Path, seed: int = 0) -> dict:
+    """Why half the edge refits are refused, and whether the refused ones would have helped: one default run
+    (edge fit "joint") recording every refit proposed; DP with no refit, the kept ones (the run), all the
+    proposed ones; per refused refit the reason, and whether it would have raised its rectangle's pixel F
+    against the truth of its dates within 4 m of it."""
+    from geocd.mpp import model as M
+
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    seen = {}
+    orig = M.fit_edges
+
+    def spy(model, rects, xi, energy, params):
+        got = orig(model, rects, xi, energy, params)
+        feats = range(len(model.terms))
+        raw, raw0 = model.raw(got["rects"]), model.raw(rects)
+        worse = np.zeros(rects.shape[0], bool)
+        for k in feats:
+            use = (xi != (M.ONLY_2 if k == 0 else M.ONLY_1))
+            worse |= use & (model.feature_energy(k, raw[f"img{k}"])["gradient"] >
+                            model.feature_energy(k, raw0[f"img{k}"])["gradient"] + 1e-12)
+        seen.update(before=rects.copy(), xi=xi.copy(), got=got, gradient_worse=worse)
+        return got
+
+    M.fit_edges = spy
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            det = detect(inp["image_a"], inp["image_b"], grid.posting_m, MPPParams(seed=seed, height="and"),
+                         method="ED", valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"],
+                         dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+    finally:
+        M.fit_edges = orig
+    got, before, xi = seen["got"], seen["before"], seen["xi"]
+    final = det.result.rects
+    # the objects that survived the clean-up, matched to the refit rows by their (fitted or not) rectangle
+    rows = [int(np.flatnonzero(np.all(np.isclose(np.where(got["accepted"][:, None], got["rects"], before), r), axis=1))[0])
+            for r in final]
+
+    def dp(rect_rows):
+        m = rect_masks(rect_rows, xi[rows], grid.shape)
+        return table2(m, inp["objs"], inp["t1"], inp["t2"])
+
+    out = {"proposed": int(got["moved"].sum()), "kept": int(got["accepted"].sum()),
+           "refused_gradient_worse": int((got["moved"] & ~got["accepted"] & seen["gradient_worse"]).sum()),
+           "refused_not_attractive_only": int((got["moved"] & ~got["accepted"] & ~seen["gradient_worse"]).sum())}
+    for tag, rr in (("no_refit", before[rows]), ("kept_refits", final), ("all_refits", got["rects"][rows])):
+        t = dp(rr)
+        out[tag] = {k: t[k] for k in ("DP", "DP_precision", "DP_recall", "HO", "FO")}
+    # per refused refit: would it have raised the rectangle's own pixel F against the truth of its dates?
+    better = worse = 0
+    for r in np.flatnonzero(got["moved"] & ~got["accepted"]):
+        if r not in rows:
+            continue
+        truth = (inp["t1"] if xi[r] != 2 else np.zeros_like(inp["t1"])) | (inp["t2"] if xi[r] != 1 else np.zeros_like(inp["t2"]))
+        masks = [rect_masks(rect[None], np.array([0], np.int8), grid.shape)["any"] for rect in (before[r], got["rects"][r])]
+        local = truth & _near(masks[0] | masks[1])          # the truth within 4 m of either rectangle
+        fs = [2 * (m & local).sum() / max(m.sum() + local.sum(), 1) for m in masks]
+        better += fs[1] > fs[0]
+        worse += fs[1] < fs[0]
+    out.update(refused_would_raise_own_f=int(better), refused_would_lower_own_f=int(worse))
+    print(json.dumps(out), flush=True)
+    return out
+
+
+def _near(m):
+    from scipy import ndimage
+
+    return ndimage.binary_dilation(m, iterations=8)
 
 
 def _town_table(d: dict) -> str:
@@ -472,9 +689,13 @@ if __name__ == "__main__":
             only = [SHORT[x] for x in args[k + 1].split(",")]
             args = args[:k] + args[k + 2:]
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
-    elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP]
+    elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP] [EDGE_FIT]
         recall(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0,
-               sys.argv[5] if len(sys.argv) > 5 else "and")
+               sys.argv[5] if len(sys.argv) > 5 else "and", sys.argv[6] if len(sys.argv) > 6 else "off")
+    elif what == "edges":      # edges TOWN ORTHO_DIR: the DSM's and the ortho's walls against the truth
+        edges(Path(sys.argv[2]), Path(sys.argv[3]))
+    elif what == "edgefit-diagnose":     # edgefit-diagnose TOWN ORTHO_DIR [SEED]: the refused edge refits
+        edgefit_diagnose(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0)
     elif what == "levir-diagnose":
         levir_diagnose()
     elif what == "kahra-outlines":     # kahra-outlines RUN_DIR [STEP]

@@ -902,3 +902,228 @@ def refine_sides_ref(rects, mag, ori, reach, n_along) -> np.ndarray:
             out[r, 0], out[r, 1] = cx + mu * c + mv * s, cy - mu * s + mv * c
             out[r, 2], out[r, 3] = pos[0] - pos[1], pos[2] - pos[3]
     return out
+
+
+@njit(cache=True, inline="always")
+def _bilinear(a, y, x):
+    """Bilinear value of ``a`` at (row y, col x) (cell centres at integers); NaN off the grid."""
+    H, W = a.shape
+    if not (0.0 <= y <= H - 1 and 0.0 <= x <= W - 1):
+        return np.nan
+    i = min(int(math.floor(y)), H - 2) if H > 1 else 0
+    j = min(int(math.floor(x)), W - 2) if W > 1 else 0
+    fy = y - i
+    fx = x - j
+    i1 = min(i + 1, H - 1)
+    j1 = min(j + 1, W - 1)
+    return ((1 - fy) * ((1 - fx) * a[i, j] + fx * a[i, j1]) + fy * ((1 - fx) * a[i1, j] + fx * a[i1, j1]))
+
+
+@njit(cache=True, inline="always")
+def _bilinear_across(mag, ori, y, x, ang):
+    """Bilinear gradient component across a side of map direction ``ang`` (|∇| |cos(ϑ − ang)|); NaN off the grid."""
+    H, W = mag.shape
+    if not (0.0 <= y <= H - 1 and 0.0 <= x <= W - 1):
+        return np.nan
+    i = min(int(math.floor(y)), H - 2) if H > 1 else 0
+    j = min(int(math.floor(x)), W - 2) if W > 1 else 0
+    fy = y - i
+    fx = x - j
+    i1 = min(i + 1, H - 1)
+    j1 = min(j + 1, W - 1)
+    g00 = mag[i, j] * abs(math.cos(ori[i, j] - ang))
+    g01 = mag[i, j1] * abs(math.cos(ori[i, j1] - ang))
+    g10 = mag[i1, j] * abs(math.cos(ori[i1, j] - ang))
+    g11 = mag[i1, j1] * abs(math.cos(ori[i1, j1] - ang))
+    return (1 - fy) * ((1 - fx) * g00 + fx * g01) + fy * ((1 - fx) * g10 + fx * g11)
+
+
+@njit(cache=True)
+def fit_sides(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, gate_in, gate_out, smin, smax):
+    """Move each side of each rectangle along its normal, in ``step``-cell steps within ±``reach`` cells, to
+    where the images' gradient across the side is strongest *where the DSM agrees there is a wall* (in place).
+
+    A side is sampled at one point per cell along its middle 80 %, bilinearly (sub-cell positions). At an
+    offset, a sample counts its gradient across the side (summed over the images the rectangle exists on,
+    ``use``) when, on that date's height map, the surface ``gate_in`` cells inside the candidate side is above
+    the half-height level and ``gate_out`` cells outside it is below (level: half the nDSM at the centre, at
+    least ``min_h``, as the height births use); other samples count zero. An offset is eligible when at least
+    half its samples pass; the best eligible offset wins (ties: the smaller move). Without DSMs
+    (``has_dsm`` False) every sample counts: the image edge alone. A rectangle whose fitted sides would give
+    a side outside [smin, smax] is left as it was; so is one with no usable date (a date's DSM low at its
+    centre). Returns the number of rectangles moved.
+
+    Parameters
+    ----------
+    rects : float64 (n, 5), changed in place
+    use : bool (n, m) — which of the m images each rectangle exists on
+    mags, oris : float32 (m, H, W) — gradient magnitude and orientation per image
+    ndsms : float32 (m, H, W) — height above ground per date (ignored when ``has_dsm`` is False)
+    """
+    m, H, W = mags.shape
+    nstep = int(round(reach / step))
+    moved = 0
+    for r in range(rects.shape[0]):
+        cx, cy, eL, el, th = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3], rects[r, 4]
+        c = math.cos(th)
+        s = math.sin(th)
+        level = np.full(m, np.nan)
+        ok = np.zeros(m, np.bool_)
+        n_ok = 0
+        for k in range(m):
+            if not use[r, k]:
+                continue
+            if has_dsm:
+                i0 = int(round(cy))
+                j0 = int(round(cx))
+                if not (0 <= i0 < H and 0 <= j0 < W) or not ndsms[k, i0, j0] > min_h:
+                    continue
+                level[k] = max(min_h, 0.5 * ndsms[k, i0, j0])
+            ok[k] = True
+            n_ok += 1
+        if n_ok == 0:
+            continue
+        pos = np.array([0.5 * eL, -0.5 * eL, 0.5 * el, -0.5 * el])
+        new = pos.copy()
+        for side in range(4):
+            sg = 1.0 if side % 2 == 0 else -1.0      # outward along the normal
+            if side < 2:
+                nc, nr, tc, tr, half_len, ang = c, -s, s, c, 0.5 * el, th
+            else:
+                nc, nr, tc, tr, half_len, ang = s, c, c, -s, 0.5 * eL, th + 0.5 * math.pi
+            n_along = max(3, int(1.6 * half_len) + 1)
+            best = -1.0
+            best_d = 0.0
+            for q in range(2 * nstep + 1):
+                d = step * ((q + 1) // 2) * (1.0 if q % 2 == 1 else -1.0)
+                p = pos[side] + sg * d            # d > 0 moves the side outwards
+                acc = 0.0
+                tot = 0
+                passed = 0
+                for a in range(n_along):
+                    f = -0.8 + 1.6 * a / (n_along - 1)
+                    x = cx + p * nc + f * half_len * tc
+                    y = cy + p * nr + f * half_len * tr
+                    for k in range(m):
+                        if not ok[k]:
+                            continue
+                        g = _bilinear_across(mags[k], oris[k], y, x, ang)
+                        if not g == g:
+                            continue
+                        tot += 1
+                        if has_dsm:
+                            h_in = _bilinear(ndsms[k], y - sg * gate_in * nr, x - sg * gate_in * nc)
+                            h_out = _bilinear(ndsms[k], y + sg * gate_out * nr, x + sg * gate_out * nc)
+                            if not (h_in > level[k] and h_out < level[k]):
+                                continue
+                        acc += g
+                        passed += 1
+                if tot == 0 or 2 * passed < tot:
+                    continue
+                score = acc / tot
+                if score > best + 1e-12:
+                    best = score
+                    best_d = d
+            new[side] = pos[side] + sg * best_d
+        a_size = new[0] - new[1]
+        b_size = new[2] - new[3]
+        if not (smin <= a_size <= smax and smin <= b_size <= smax):
+            continue
+        if new[0] == pos[0] and new[1] == pos[1] and new[2] == pos[2] and new[3] == pos[3]:
+            continue
+        mu = 0.5 * (new[0] + new[1])
+        mv = 0.5 * (new[2] + new[3])
+        rects[r, 0] = cx + mu * c + mv * s
+        rects[r, 1] = cy - mu * s + mv * c
+        rects[r, 2] = a_size
+        rects[r, 3] = b_size
+        moved += 1
+    return moved
+
+
+def _bilinear_ref(a, y, x):
+    H, W = a.shape
+    y, x = np.asarray(y, float), np.asarray(x, float)
+    inside = (y >= 0) & (y <= H - 1) & (x >= 0) & (x <= W - 1)
+    yc, xc = np.clip(y, 0, H - 1), np.clip(x, 0, W - 1)
+    i = np.minimum(np.floor(yc).astype(int), max(H - 2, 0))
+    j = np.minimum(np.floor(xc).astype(int), max(W - 2, 0))
+    fy, fx = yc - i, xc - j
+    i1, j1 = np.minimum(i + 1, H - 1), np.minimum(j + 1, W - 1)
+    v = (1 - fy) * ((1 - fx) * a[i, j] + fx * a[i, j1]) + fy * ((1 - fx) * a[i1, j] + fx * a[i1, j1])
+    return np.where(inside, v, np.nan)
+
+
+def fit_sides_ref(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, gate_in, gate_out, smin,
+                  smax) -> np.ndarray:
+    """numpy reference of :func:`fit_sides` (returns a fitted copy)."""
+    out = rects.copy()
+    m, H, W = mags.shape
+    nstep = int(round(reach / step))
+    q = np.arange(2 * nstep + 1)
+    offs = step * ((q + 1) // 2) * np.where(q % 2 == 1, 1.0, -1.0)
+    for r in range(out.shape[0]):
+        cx, cy, eL, el, th = out[r]
+        c, s = np.cos(th), np.sin(th)
+        ks, levels = [], []
+        for k in range(m):
+            if not use[r, k]:
+                continue
+            if has_dsm:
+                i0, j0 = int(np.round(cy)), int(np.round(cx))
+                if not (0 <= i0 < H and 0 <= j0 < W) or not ndsms[k, i0, j0] > min_h:
+                    continue
+                levels.append(max(min_h, 0.5 * float(ndsms[k, i0, j0])))
+            else:
+                levels.append(np.nan)
+            ks.append(k)
+        if not ks:
+            continue
+        pos = np.array([0.5 * eL, -0.5 * eL, 0.5 * el, -0.5 * el])
+        new = pos.copy()
+        for side in range(4):
+            sg = 1.0 if side % 2 == 0 else -1.0
+            if side < 2:
+                n_, t_, half_len, ang = (c, -s), (s, c), 0.5 * el, th
+            else:
+                n_, t_, half_len, ang = (s, c), (c, -s), 0.5 * eL, th + np.pi / 2
+            n_along = max(3, int(1.6 * half_len) + 1)
+            f = -0.8 + 1.6 * np.arange(n_along) / (n_along - 1)
+            best, best_d = -1.0, 0.0
+            for d in offs:
+                p = pos[side] + sg * d
+                x = cx + p * n_[0] + f * half_len * t_[0]
+                y = cy + p * n_[1] + f * half_len * t_[1]
+                acc, tot, passed = 0.0, 0, 0
+                for k, lev in zip(ks, levels):
+                    # the across-side component at the four neighbours, then bilinear (as the kernel)
+                    yy, xx = np.asarray(y), np.asarray(x)
+                    inside = (yy >= 0) & (yy <= H - 1) & (xx >= 0) & (xx <= W - 1)
+                    yc, xc = np.clip(yy, 0, H - 1), np.clip(xx, 0, W - 1)
+                    i = np.minimum(np.floor(yc).astype(int), max(H - 2, 0))
+                    j = np.minimum(np.floor(xc).astype(int), max(W - 2, 0))
+                    fy, fx = yc - i, xc - j
+                    i1, j1 = np.minimum(i + 1, H - 1), np.minimum(j + 1, W - 1)
+                    gc = [mags[k][a, b] * np.abs(np.cos(oris[k][a, b] - ang)) for a, b in ((i, j), (i, j1), (i1, j), (i1, j1))]
+                    g = (1 - fy) * ((1 - fx) * gc[0] + fx * gc[1]) + fy * ((1 - fx) * gc[2] + fx * gc[3])
+                    g = np.where(inside, g, np.nan)
+                    have = np.isfinite(g)
+                    tot += int(have.sum())
+                    if has_dsm:
+                        h_in = _bilinear_ref(ndsms[k], y - sg * gate_in * n_[1], x - sg * gate_in * n_[0])
+                        h_out = _bilinear_ref(ndsms[k], y + sg * gate_out * n_[1], x + sg * gate_out * n_[0])
+                        with np.errstate(invalid="ignore"):
+                            have &= (h_in > lev) & (h_out < lev)
+                    acc += float(g[have].sum())
+                    passed += int(have.sum())
+                if tot == 0 or 2 * passed < tot:
+                    continue
+                if acc / tot > best + 1e-12:
+                    best, best_d = acc / tot, d
+            new[side] = pos[side] + sg * best_d
+        a_size, b_size = new[0] - new[1], new[2] - new[3]
+        if not (smin <= a_size <= smax and smin <= b_size <= smax) or np.array_equal(new, pos):
+            continue
+        mu, mv = 0.5 * (new[0] + new[1]), 0.5 * (new[2] + new[3])
+        out[r] = cx + mu * c + mv * s, cy - mu * s + mv * c, a_size, b_size, th
+    return out

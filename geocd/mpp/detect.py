@@ -131,6 +131,7 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
         ra = optimize(ma, params, progress=sub_progress(prog, 0.1, 0.55, "date A: "))
         rb = optimize(mb, params.replace(seed=params.seed + 1), progress=sub_progress(prog, 0.55, 1.0, "date B: "))
         rects, xi = sd_combine(ra, rb, fa.grey.shape)
+        notes += [f"date A: {n}" for n in ra.notes] + [f"date B: {n}" for n in rb.notes]
         res = _sd_result(ra, rb, rects, xi)
         thr = [_thr(t) for t in (ma.terms[0], mb.terms[0])]
     else:
@@ -138,6 +139,7 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
         model = EnergyModel([fa, fb], posting_m, params, similarity=B,
                             change_prior=change_prior if params.gamma_3d > 0 else None)
         res = optimize(model, params, progress=sub_progress(prog, 0.1, 1.0))
+        notes += res.notes
         thr = [_thr(t) for t in model.terms]
     if len(res) == 0 and not flat:
         notes.append(_why_empty(params, (fa, fb)))

@@ -482,6 +482,31 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
             ok = (remap[pi_all] >= 0) & (remap[pj_all] >= 0)
             pi_all, pj_all, w_all = remap[pi_all[ok]], remap[pj_all[ok]], w_all[ok]
             n = m
+    # --- sub-cell edge fit of the kept objects ---------------------------------------------------
+    fitted = 0
+    fit_counts = (0, 0)
+    fit_notes = []
+    with_dsm = all(t.features.ndsm is not None for t in model.terms)
+    if params.edge_fit == "image" or (params.edge_fit == "joint" and with_dsm):   # "joint" needs the DSMs
+        live = np.flatnonzero(alive[:n])
+        if live.size:
+            got = fit_edges(model, rects[live], xi[live], energy[live], params)
+            fitted = int(got["accepted"].sum())
+            fit_counts = (int(got["moved"].sum()), int(got["energy_not_worse"].sum()))
+            fit_notes.append(f"edge fit ({params.edge_fit}): {fit_counts[0]} objects refitted after the "
+                             f"annealing, {fitted} kept (edge evidence not weaker, still attractive); A_D not "
+                             f"raised for {fit_counts[1]}")
+            if fitted:
+                sel = live[got["accepted"]]
+                rects[sel] = got["rects"][got["accepted"]]
+                energy[sel] = got["energy"][got["accepted"]]
+                phis[sel] = got["phi"][got["accepted"]]
+                areas[sel] = got["area"][got["accepted"]]
+                pi, pj = _pairs(rects[:n], xi[:n], live, np.zeros(0, np.int64), reach)
+                w = np.empty(pi.size)
+                if pi.size:
+                    K.pair_overlaps(rects[:n], pi, pj, areas[:n], H, W, w)
+                pi_all, pj_all, w_all = pi[w > 0], pj[w > 0], w[w > 0]
     # --- clean-up: remove objects whose removal lowers Φ (argmin) -------------------------------
     keep = np.flatnonzero(alive[:n])
     indptr, nbr, ww = _csr(n, pi_all, pj_all, w_all)
@@ -517,7 +542,57 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
     return MPPResult(rects=rects[keep].copy(), xi=xi[keep].copy(), energy=energy[keep].copy(), phi=phis[keep].copy(),
                      confidence=conf, xi_confidence=xi_conf, iterations=it, converged=converged,
                      births=total_births, energy_total=float(energy[keep].sum() + params.gamma_overlap * inter_tot),
-                     history=history)
+                     history=history, notes=fit_notes)
+
+
+def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.ndarray,
+              params: MPPParams) -> dict[str, np.ndarray]:
+    """Sub-cell placement of rectangles' sides on the walls (see ``MPPParams.edge_fit`` and
+    :func:`_kernels.fit_sides`). A refit is accepted when the gradient energy (the image's evidence of edges
+    along the outline) does not rise on any date the object exists on and the object stays attractive
+    (A_D < 0); ``energy`` is only used for the ``energy_not_worse`` count (A_D not raised), which docs/mpp.md
+    reports.
+
+    Parameters
+    ----------
+    rects : float64 (n, 5); xi : int8 (n,); energy : float64 (n,) — their current A_D
+
+    Returns
+    -------
+    dict with ``rects`` (the refitted rectangles), ``energy``, ``phi``, ``area`` (of the refits) and
+    ``accepted``, ``moved`` and ``energy_not_worse`` (bool (n,))
+    """
+    feats = [t.features for t in model.terms]
+    two = len(feats) == 2
+    use = np.ones((rects.shape[0], len(feats)), bool)
+    if two:
+        use[:, 0] = xi != ONLY_2
+        use[:, 1] = xi != ONLY_1
+    has_dsm = params.edge_fit == "joint" and all(f.ndsm is not None for f in feats)
+    mags = np.stack([f.grad_mag for f in feats]).astype(np.float32)
+    oris = np.stack([f.grad_ori for f in feats]).astype(np.float32)
+    ndsms = (np.stack([f.ndsm for f in feats]).astype(np.float32) if has_dsm
+             else np.zeros((len(feats), 1, 1), np.float32))
+    new = np.ascontiguousarray(rects, np.float64).copy()
+    K.fit_sides(new, use, mags, oris, ndsms, has_dsm, float(params.min_height_m), float(model.ring_w), 0.25,
+                float(model.edge_w), float(model.edge_w + model.ring_w), float(model.smin), float(model.smax))
+    raw = model.raw(new)
+    raw0 = model.raw(rects)
+    e_new = model.data_energy(raw, xi)
+    phi = np.column_stack([model.phi(k, raw[f"img{k}"]) for k in range(len(model.terms))])
+    moved = np.any(new != rects, axis=1)
+    # the image's edge evidence must not weaken on any date the object exists on, and the object must stay
+    # attractive (A_D < 0). A_D itself is not compared: its height ring ("the ring outside is ground") is
+    # cleaner around a rectangle grown onto the stereo DSM's fattened walls, so it rewards the offset this
+    # step corrects (docs/mpp.md, "Where the walls are")
+    edge_ok = np.ones(rects.shape[0], bool)
+    for k in range(len(model.terms)):
+        g_new = model.feature_energy(k, raw[f"img{k}"])["gradient"]
+        g_old = model.feature_energy(k, raw0[f"img{k}"])["gradient"]
+        edge_ok &= ~use[:, k] | (g_new <= g_old + 1e-12)
+    accepted = moved & edge_ok & (e_new < 0.0)
+    return {"rects": new, "energy": e_new, "phi": phi, "area": raw["img0"][:, K.F_AREA], "accepted": accepted,
+            "moved": moved, "energy_not_worse": moved & (e_new <= energy + 1e-12)}
 
 
 def sd_combine(r1: MPPResult, r2: MPPResult, shape: tuple[int, int], min_cover: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
