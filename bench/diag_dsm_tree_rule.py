@@ -185,10 +185,9 @@ def town(root: Path, out_dir: Path) -> dict:
 
 
 def detection(z, posting, fp, roof, tree) -> dict:
-    """Building detection against the truth footprints, per tree rule: a footprint is found when its largest
-    share in one kept object... simply: when ≥ half of its cells lie in kept objects (recall, and by roof);
-    a kept object is a building when over half of it lies in footprints (precision), a tree when over half
-    lies in tree crowns."""
+    """Building detection against the truth footprints, per tree rule: a footprint is found when ≥ half of its
+    cells lie in kept objects (recall, by roof); a kept object is a building when over half of it lies in
+    footprints (precision), a tree when over half of it lies in tree crowns."""
     import dataclasses
 
     from rasterio.features import rasterize
