@@ -172,25 +172,27 @@ def _median_surface(recs: Sequence[Any]) -> np.ndarray:
 
 
 def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confidence: float, name_a: str,
-                     name_b: str):
+                     name_b: str, params=None):
     """Damage layer: footprints when given, else building objects of epoch A's DSM plus the parts of epoch B's
     objects that stand where A's surface was ground (new buildings, :func:`~geocd.change.dsm_buildings.new_objects`)."""
     import pandas as pd
 
-    from .change.dsm_buildings import buildings_from_dsm, classify_damage, fill_gaps, ground_model, new_objects
+    from .change.dsm_buildings import (DSMBuildingParams, buildings_from_dsm, classify_damage, fill_gaps, ground_model,
+                                       new_objects)
 
+    params = params or DSMBuildingParams()
     z_a, z_b = _median_surface(recs_a), _median_surface(recs_b)
     if not (np.isfinite(z_a).any() and np.isfinite(z_b).any()) or report_confidence not in res.confidences:
         return None, None
     if footprints is not None:
-        dtm, _ = ground_model(z_a, grid.posting_m)
+        dtm, _ = ground_model(z_a, grid.posting_m, params)
         bld = footprints.to_crs(grid.crs)
         bld = bld.assign(source="footprints")
     else:
-        bld, dtm, lab_a = buildings_from_dsm(z_a, grid)
+        bld, dtm, lab_a = buildings_from_dsm(z_a, grid, params)
         bld = bld.assign(source=f"{name_a} DSM")
         # new buildings: the parts of B's objects standing where A's surface was ground
-        post = new_objects(z_a, z_b, dtm, buildings_from_dsm(z_b, grid)[2], grid, labels_a=lab_a)
+        post = new_objects(z_a, z_b, dtm, buildings_from_dsm(z_b, grid, params)[2], grid, params, labels_a=lab_a)
         if len(post):
             post = post.assign(source=f"{name_b} DSM (ground in {name_a})")
             post["building_id"] = np.arange(len(bld) + 1, len(bld) + 1 + len(post))
@@ -198,7 +200,7 @@ def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confid
     if not len(bld):
         return None, None
     dtm = fill_gaps(dtm)
-    dmg = classify_damage(bld, res, grid, z_a=z_a, z_b=z_b, dtm=dtm, model=model,
+    dmg = classify_damage(bld, res, grid, z_a=z_a, z_b=z_b, dtm=dtm, model=model, params=params,
                           report_confidence=report_confidence, id_field="building_id" if "building_id" in bld else None)
     return dmg, dtm
 

@@ -13,6 +13,11 @@ For a city without a cadastre (disaster response), the pre-event DSM itself says
    median roughness of its ground cells). On the Kahramanmaraş pre-event DSM: ground 0.21 m, roofs of
    apartment blocks 0.21–0.35 m, the boulevard's tree row 0.53–0.90 m (factor 2.5 was set looking at this
    scene; objects mixing roofs and trees overlap both ranges). Only cells with a stereo height count.
+   Measured (docs/kahramanmaras.md, "The tree rule"): on that scene the rule also drops some 20–30 buildings
+   per epoch, most with pitched roofs, and on generated towns (DSMs with 2–6 cm smooth ground) every
+   building. ``tree_rule="planarity"`` uses the roof-planarity cue of :mod:`geocd.mpp` instead; it keeps most of
+   the towns' buildings, but on Kahramanmaraş it drops no object at all (that DSM smooths crowns into planar
+   domes: felled trees become collapsed buildings), so it is not the default.
 3. **Objects** (:func:`building_objects`): touching blocks are split by a watershed of the distance
    transform (markers: its regional maxima above ``split_h_m``); objects smaller than ``min_area_m2`` dropped.
 4. **Outlines**: each object's raster outline, simplified (Douglas–Peucker at one posting) and replaced by
@@ -46,6 +51,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..errors import ConfigError
+from ..mpp.features import planar_cells
 from .buildings import BuildingParams, classify_buildings
 from .styles import categorized_polygon_qml
 
@@ -60,11 +67,25 @@ DAMAGE_CLASSES = {
     "not examined": ("#737373", "not examined (screened out)"),
 }
 CHANGED = ("collapsed", "partly collapsed", "lowered", "raised", "new")
+#: how :func:`building_objects` tells a tree from a building (see :class:`DSMBuildingParams`)
+TREE_RULES = ("roughness", "planarity", "off")
 
 
 @dataclass(frozen=True)
 class DSMBuildingParams:
-    """Building extraction from a DSM and damage classification (lengths in metres, areas in m²)."""
+    """Building extraction from a DSM and damage classification (lengths in metres, areas in m²).
+
+    ``tree_rule`` — which raised objects are trees, not buildings:
+
+    * ``"roughness"`` (default): the object's median local roughness (:func:`roughness`) exceeds
+      ``roughness_factor`` × the median roughness of the ground cells;
+    * ``"planarity"``: under half of its cells (with a height) lie on a planar 3 × 3 patch —
+      :func:`geocd.mpp.features.planar_cells`: best of the nine plane fits containing the cell, residual along
+      the normal, tolerance from the DSM's own low cells (median + 3 robust σ of their residuals); the ½ is
+      the marked-point-process detector's rule for a roof's core. A pitched roof is planar per facet, a
+      tree crown is not — on DSMs sharp enough to show it (see docs/kahramanmaras.md: not on that scene's);
+    * ``"off"``: every raised object ≥ ``min_area_m2`` is kept.
+    """
 
     max_building_m: float = 60.0
     slope: float = 0.15
@@ -73,6 +94,11 @@ class DSMBuildingParams:
     ground_block_m: float = 10.0
     min_height_m: float = 3.0
     roughness_factor: float = 2.5
+    tree_rule: str = "roughness"
+
+    def __post_init__(self):
+        if self.tree_rule not in TREE_RULES:
+            raise ConfigError(f"tree_rule {self.tree_rule!r} is not one of {TREE_RULES}: choose one of them")
     min_area_m2: float = 40.0
     split_h_m: float = 1.0
     rect_min: float = 0.8
@@ -166,12 +192,6 @@ def building_objects(dsm: np.ndarray, dtm: np.ndarray, posting_m: float,
     mask = ndsm >= params.min_height_m
     mask = ndi.binary_opening(mask, structure=np.ones((3, 3), bool), iterations=max(1, int(round(1.0 / posting_m))))
     mask = ndi.binary_fill_holes(mask)
-    rough = roughness(dsm, posting_m)
-    if ground is None:
-        ground = np.isfinite(dsm) & (np.abs(fill_gaps(dsm) - dtm) < params.dh0_m + 0.5)
-    g = ground & np.isfinite(dsm)
-    floor = float(np.median(rough[g])) if g.any() else float(np.median(rough))
-    max_rough = params.roughness_factor * floor
     dist = ndi.distance_transform_edt(mask) * posting_m
     markers, _ = ndi.label(h_maxima(dist, params.split_h_m))
     labels = watershed(-dist, markers, mask=mask)
@@ -179,13 +199,10 @@ def building_objects(dsm: np.ndarray, dtm: np.ndarray, posting_m: float,
     if n == 0:
         return labels.astype(np.int32)
     idx = np.arange(1, n + 1)
-    has_z = np.isfinite(dsm)
-    med_rough = np.array([np.median(v) if v.size else np.inf for v in
-                          (rough[(labels == i) & has_z] for i in idx)]) if n < 5000 else \
-        np.asarray(ndi.median(rough, labels, index=idx))
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
     drop = np.zeros(n + 1, bool)
-    drop[1:] = (med_rough > max_rough) | (sizes[1:] * posting_m * posting_m < params.min_area_m2)
+    drop[1:] = sizes[1:] * posting_m * posting_m < params.min_area_m2
+    drop[1:] |= tree_objects(dsm, dtm, labels, posting_m, params, ground=ground)
     labels[drop[labels]] = 0
     # renumber 1..n
     u = np.unique(labels)
@@ -193,6 +210,34 @@ def building_objects(dsm: np.ndarray, dtm: np.ndarray, posting_m: float,
     lut = np.zeros(labels.max() + 1, dtype=np.int32)
     lut[u] = np.arange(1, u.size + 1)
     return lut[labels]
+
+
+def tree_objects(dsm: np.ndarray, dtm: np.ndarray, labels: np.ndarray, posting_m: float,
+                 params: DSMBuildingParams = DSMBuildingParams(), ground: np.ndarray | None = None) -> np.ndarray:
+    """bool (n,): which of the objects ``labels`` (1 … n) ``params.tree_rule`` calls a tree (see
+    :class:`DSMBuildingParams`). Only cells with a stereo height count; an object without any is a tree."""
+    n = int(labels.max())
+    idx = np.arange(1, n + 1)
+    has_z = np.isfinite(dsm)
+    if n == 0 or params.tree_rule == "off":
+        return np.zeros(n, bool)
+    if params.tree_rule == "planarity":
+        planar, _ = planar_cells(dsm, fill_gaps(dsm) - dtm, has_z, params.min_height_m, posting_m)
+        known = np.isfinite(planar)
+        n_known = np.asarray(ndi.sum(known, labels, idx))
+        n_planar = np.asarray(ndi.sum(np.where(known, planar, 0.0), labels, idx))
+        return ~(n_planar >= 0.5 * np.maximum(n_known, 1)) | (n_known == 0)
+    rough = roughness(dsm, posting_m)
+    if ground is None:
+        ground = has_z & (np.abs(fill_gaps(dsm) - dtm) < params.dh0_m + 0.5)
+    g = ground & has_z
+    floor = float(np.median(rough[g])) if g.any() else float(np.median(rough))
+    lab_z = np.where(has_z, labels, 0)
+    med_rough = np.array([np.median(v) if v.size else np.inf for v in
+                          (rough[lab_z == i] for i in idx)]) if n < 5000 else \
+        np.asarray(ndi.median(rough, lab_z, index=idx))
+    med_rough = np.where(np.bincount(lab_z.ravel(), minlength=n + 1)[1:] > 0, med_rough, np.inf)
+    return med_rough > params.roughness_factor * floor
 
 
 def outlines(labels: np.ndarray, grid, params: DSMBuildingParams = DSMBuildingParams()):

@@ -120,3 +120,44 @@ def test_a_new_building_joined_to_a_standing_one_is_found():
     assert len(hit) == 1 and hit["source"].iloc[0] == "B DSM (ground in A)"
     assert hit["height_after_m"].iloc[0] == pytest.approx(h, abs=1.0)
     assert (dmg[dmg["source"] == "A DSM"]["class"] == "unchanged").all()
+
+
+GRID_SMALL = AOIGrid.from_bounds(500000.0, 4000000.0, 500060.0, 4000060.0, 0.5, "EPSG:32637")
+
+
+def _gabled_house_and_crown(seed):
+    """Flat ground (σ 5 cm), a gabled house (8 × 14 m, eaves 6 m, 35° roof, σ 5 cm) and a tree crown (a dome
+    of radius 4.5 m on a 3 m trunk, leaves and gaps: σ 0.5 m per cell)."""
+    rng = np.random.default_rng(seed)
+    H, W = GRID_SMALL.shape
+    r, c = np.mgrid[0:H, 0:W] * 0.5
+    z = 500.0 + rng.normal(0, 0.05, (H, W))
+    house = (r >= 10) & (r < 18) & (c >= 8) & (c < 22)
+    z[house] = (506.0 + np.tan(np.radians(35)) * (4.0 - np.abs(r[house] - 14.0))
+                + rng.normal(0, 0.05, house.sum()))
+    d2 = (r - 40) ** 2 + (c - 40) ** 2
+    crown = d2 < 4.5 ** 2
+    z[crown] = 503.0 + np.sqrt(4.5 ** 2 - d2[crown]) + rng.normal(0, 0.5, crown.sum())
+    return z, house, crown
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_planarity_rule_keeps_a_gabled_house_and_drops_a_tree(seed):
+    """The planarity tree rule: a pitched roof is planar per facet (best of the nine 3 × 3 fits), a crown is
+    not. The roughness rule drops the house too: its walls and ridge make it rough against smooth ground."""
+    z, house, crown = _gabled_house_and_crown(seed)
+    bld, _, lab = buildings_from_dsm(z, GRID_SMALL, DSMBuildingParams(tree_rule="planarity"))
+    assert len(bld) == 1
+    assert (lab[house] > 0).mean() > 0.9
+    assert not (lab[crown] > 0).any()
+    _, _, lab_old = buildings_from_dsm(z, GRID_SMALL, DSMBuildingParams(tree_rule="roughness"))
+    assert not (lab_old[house] > 0).any()
+    _, _, lab_off = buildings_from_dsm(z, GRID_SMALL, DSMBuildingParams(tree_rule="off"))
+    assert (lab_off[crown] > 0).mean() > 0.5                      # the crown is an object until a rule drops it
+
+
+def test_unknown_tree_rule_is_a_config_error():
+    from geocd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="tree_rule"):
+        DSMBuildingParams(tree_rule="ndvi")
