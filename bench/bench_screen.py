@@ -408,6 +408,47 @@ def _cells(full: Path, tier: Path) -> dict:
             "observed_tiered_inside": round(float((mt[ex] != -128).mean()), 4)}
 
 
+def _truth_buildings(out: Path, scene: Path, hit_share: float = 0.3) -> dict:
+    """A generated scene's truth buildings (``truth/buildings.gpkg``, status demolished / new / unchanged) found
+    by a run's 99 % change mask: a building is found when ≥ ``hit_share`` of its observed footprint cells
+    are raised or lowered (the rule of ``bench_big_stereo_change.py evaluate``). Cells not examined (−127,
+    screened out) count as observed and unchanged — a changed building there is a loss of the tiered run —
+    and the changed buildings mostly (≥ 50 %) outside the examined cells are counted apart."""
+    import geopandas as gpd
+    import rasterio
+    from rasterio.features import rasterize
+
+    from geocd.consistency import CHANGE_NODATA, NOT_EXAMINED
+
+    with rasterio.open(out / "sc_change_mask.tif") as ds:
+        m = ds.read(1)
+        tr, shape = ds.transform, ds.shape
+    b = gpd.read_file(scene / "truth" / "buildings.gpkg")
+    lab = rasterize(((g, i + 1) for i, g in enumerate(b.geometry)), out_shape=shape, transform=tr, fill=0,
+                    dtype="int32")
+    n = len(b) + 1
+    obs, det, ex = m != CHANGE_NODATA, (m == 1) | (m == -1), m != NOT_EXAMINED
+    n_all = np.bincount(lab.ravel(), minlength=n)[1:]
+    n_obs = np.bincount(lab[obs].ravel(), minlength=n)[1:]
+    n_det = np.bincount(lab[det].ravel(), minlength=n)[1:]
+    n_ex = np.bincount(lab[ex].ravel(), minlength=n)[1:]
+    share = np.where(n_obs > 0, n_det / np.maximum(n_obs, 1), np.nan)
+    found = np.nan_to_num(share) >= hit_share
+    outside = n_ex < 0.5 * np.maximum(n_all, 1)
+    st = b["status"].to_numpy()
+    res: dict = {"hit_share": hit_share}
+    for s in ("demolished", "new", "unchanged"):
+        k = st == s
+        res[s] = {"buildings": int(k.sum()), "observed": int((k & np.isfinite(share)).sum()),
+                  "flagged": int((k & found).sum()), "mostly_not_examined": int((k & outside).sum())}
+    chg = st != "unchanged"
+    res["changed_found"] = int((chg & found).sum())
+    res["changed_observed"] = int((chg & np.isfinite(share)).sum())
+    res["changed_mostly_not_examined"] = int((chg & outside).sum())
+    res["found_ids"] = sorted(int(v) for v in b["building_id"].to_numpy()[chg & found])
+    return res
+
+
 def _truth_scores(out: Path, scene: Path) -> dict | None:
     t = scene / "truth" / "change_mask.tif"
     if not t.exists():
@@ -425,6 +466,8 @@ def _truth_scores(out: Path, scene: Path) -> dict | None:
     s = json.loads((out / "run_summary.json").read_text())
     det = (m == 1) | (m == -1)  # raised/lowered (0 unchanged, -128 not observed, -127 not examined)
     res = {"cells_99": f1_scores(det, truth), "buildings": s.get("buildings")}
+    if (scene / "truth" / "buildings.gpkg").exists():
+        res["truth_buildings"] = _truth_buildings(out, scene)
     if (m == -127).any():
         ex = m != -127
         res["cells_99_in_flagged_tiles"] = f1_scores(det[ex], truth[ex])
@@ -483,6 +526,11 @@ def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict,
     tf, tt = _truth_scores(full, root), _truth_scores(tier, root)
     if tf is not None:
         res["truth_full"], res["truth_tiered"] = tf, tt
+        if "truth_buildings" in tf:
+            a_ids, b_ids = set(tf["truth_buildings"]["found_ids"]), set(tt["truth_buildings"]["found_ids"])
+            res["truth_buildings_found"] = {"full": len(a_ids), "tiered": len(b_ids), "both": len(a_ids & b_ids),
+                                            "lost_by_tiered": len(a_ids - b_ids),
+                                            "gained_by_tiered": len(b_ids - a_ids)}
     return res
 
 

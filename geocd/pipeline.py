@@ -24,7 +24,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from .change.buildings import BuildingParams
-from .consistency import ChangeParams, ConsistencyParams, DEMAsEpoch, SelfConsistencyModel, change_test, learn_self_consistency
+from .consistency import (ChangeParams, ConsistencyParams, DEMAsEpoch, SelfConsistencyModel, change_test,
+                          learn_self_consistency, nanmedian_stack)
 from .errors import ConfigError, ProcessingError
 from .progress import Progress, ensure_progress, sub_progress
 
@@ -164,11 +165,7 @@ def _dem_epoch(spec, grid, name: str) -> DEMAsEpoch:
 
 
 def _median_surface(recs: Sequence[Any]) -> np.ndarray:
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmedian(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs]), axis=0).astype(np.float32)
+    return nanmedian_stack(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs])).astype(np.float32)
 
 
 def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confidence: float, name_a: str,

@@ -244,3 +244,26 @@ def test_region_test_and_mapping_unit(scene):
               r.score, r.g_px_per_m, r.valid, None, r.name) for r in B]
     res2 = change_test(A, B2, model)
     assert np.all(res2.changed_at(90)[100:103, 100:103] <= 0)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_nanmedian_stack_equals_numpy(dtype):
+    """Same values and dtype as ``np.nanmedian(stack, axis=0)`` — cells with 0 to n values, all-NaN grids, no NaN."""
+    import warnings
+
+    from geocd.consistency import nanmedian_stack
+
+    rng = np.random.default_rng(4)
+    for n in (1, 2, 3, 4):
+        a = rng.normal(size=(n, 40, 50)).astype(dtype)
+        a[rng.uniform(size=a.shape) < 0.5] = np.nan
+        a[:, :10] = np.nan                                   # a block no layer observes
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            want = np.nanmedian(a, axis=0)
+        got = nanmedian_stack(a)
+        assert got.dtype == want.dtype and np.isnan(got[:10]).all()
+        np.testing.assert_array_equal(got, want)
+        full = np.nan_to_num(a)
+        np.testing.assert_array_equal(nanmedian_stack(full), np.median(full, axis=0))
+        assert np.isnan(nanmedian_stack(np.full_like(a, np.nan))).all()

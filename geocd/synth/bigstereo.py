@@ -61,6 +61,12 @@ class StereoSceneParams:
     """Parameters of :func:`make_stereo_scene` (sizes in cells, lengths in metres, angles in degrees).
 
     ``views_a`` / ``views_b``: (along, across) off-nadir angles of each epoch's views.
+    ``event_radius_m``: ``None`` (default) — buildings are demolished and built anywhere in the AOI;
+    a radius — only buildings whose centre lies within this distance of the event centre change (a
+    local event: an earthquake's or a storm's footprint, a redevelopment zone), at the same
+    ``demolished_fraction`` / ``new_fraction`` there; every building outside stands in both epochs
+    unchanged and no new one is built. ``event_centre_m``: the event centre as (east, north)
+    metres from the AOI centre. The buildings themselves (places, sizes, heights) are the same.
     """
 
     cells: int = 2500
@@ -77,10 +83,17 @@ class StereoSceneParams:
     views_b: tuple[tuple[float, float], ...] = ((-7.0, -3.0), (11.0, -3.0))
     altitude_m: float = 620e3
     heading_deg: float = 192.0
+    event_radius_m: float | None = None
+    event_centre_m: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         if self.cells < 64 or self.posting_m <= 0:
             raise ConfigError(f"cells ≥ 64 and a positive posting are required, got {self.cells}, {self.posting_m}")
+        if self.event_radius_m is not None and not (math.isfinite(self.event_radius_m) and self.event_radius_m > 0):
+            raise ConfigError(f"event_radius_m must be a positive number of metres or None, got {self.event_radius_m}")
+        if len(self.event_centre_m) != 2 or not all(math.isfinite(float(v)) for v in self.event_centre_m):
+            raise ConfigError(f"event_centre_m must be (east, north) metres from the AOI centre, got "
+                              f"{self.event_centre_m}")
         if len(self.views_a) < 2 or len(self.views_b) < 2:
             raise ConfigError("each epoch needs two views or more (a stereo pair)")
 
@@ -100,15 +113,24 @@ class StereoSceneParams:
 # ------------------------------------------------------------------------------------------
 # the world
 # ------------------------------------------------------------------------------------------
+def event_centre_xy(p: StereoSceneParams) -> tuple[float, float]:
+    """The event region's centre in the AOI grid's map coordinates (m): the AOI centre + ``event_centre_m``."""
+    g = p.grid()
+    half = 0.5 * p.cells * p.posting_m
+    return (g.transform.c + half + float(p.event_centre_m[0]), g.transform.f - half + float(p.event_centre_m[1]))
+
+
 def make_buildings(p: StereoSceneParams) -> np.ndarray:
     """Every building of either epoch: rows (id, cx, cy, half_x, half_y, height, in_A, in_B), metres.
 
     One slot of the 32 m lattice holds at most one building; its size and place are drawn from the
-    slot's own random stream, so a building does not depend on the AOI size.
+    slot's own random stream, so a building does not depend on the AOI size. With an event region
+    (``event_radius_m``), a building changes only when its centre lies in the region.
     """
     g = p.grid()
     x0, y0 = g.transform.c, g.transform.f
     side = p.cells * p.posting_m
+    ex, ey = event_centre_xy(p)
     n = int(math.floor(side / SLOT_M))
     rows = []
     bid = 0
@@ -123,7 +145,9 @@ def make_buildings(p: StereoSceneParams) -> np.ndarray:
             cx = x0 + (i + 0.5) * SLOT_M + jx
             cy = y0 - (j + 0.5) * SLOT_M + jy
             built = u[0] < p.built_fraction
-            if built:
+            if p.event_radius_m is not None and math.hypot(cx - ex, cy - ey) > p.event_radius_m:
+                in_a = in_b = built                          # outside the event: nothing changes
+            elif built:
                 in_a, in_b = True, not (u[1] < p.demolished_fraction)
             else:
                 in_a, in_b = False, bool(u[2] < p.new_fraction / max(1.0 - p.built_fraction, 1e-9) * p.built_fraction)
@@ -131,6 +155,14 @@ def make_buildings(p: StereoSceneParams) -> np.ndarray:
                 bid += 1
                 rows.append((bid, cx, cy, hx, hy, h, float(in_a), float(in_b)))
     return np.asarray(rows, np.float64).reshape(-1, 8)
+
+
+def _disc_fraction(g: AOIGrid, cx: float, cy: float, r: float) -> float:
+    """Fraction of the AOI's area inside the disc (centre ``cx, cy``, radius ``r``, map metres), on a 512² lattice."""
+    xa, ya, xb, yb = g.bounds
+    u = (np.arange(512) + 0.5) / 512
+    X, Y = np.meshgrid(xa + u * (xb - xa), ya + u * (yb - ya))
+    return float(((X - cx) ** 2 + (Y - cy) ** 2 <= r * r).mean())
 
 
 def _objects(buildings: np.ndarray, epoch: str, value: str = "height") -> np.ndarray:
@@ -437,6 +469,10 @@ def make_stereo_scene(out_dir: os.PathLike | str, params: StereoSceneParams = St
     rep["rpc_height_range_m"] = list(rpc_h)
 
     # --- manifest -------------------------------------------------------------------------------------
+    if p.event_radius_m is not None:
+        ex, ey = event_centre_xy(p)
+        rep["event"] = {"centre_xy": [ex, ey], "radius_m": float(p.event_radius_m),
+                        "area_fraction_of_aoi": round(_disc_fraction(g, ex, ey, float(p.event_radius_m)), 4)}
     b = g.bounds
     man = {"geocd_manifest": 1, "name": f"bigstereo_{p.cells}_s{p.seed}",
            "description": f"geocd.synth.bigstereo scene: {p.cells}² cells of {p.posting_m} m, two epochs, known "

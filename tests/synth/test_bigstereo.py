@@ -7,6 +7,7 @@ import pytest
 import rasterio
 from scipy.ndimage import map_coordinates
 
+from geocd.errors import ConfigError
 from geocd.synth import _kernels as K
 from geocd.synth.bigstereo import (StereoSceneParams, _objects, height_band, make_buildings, make_stereo_scene,
                                    surface_window)
@@ -154,3 +155,38 @@ def test_ground_points_project_where_their_texture_is(tiny_scene):
     v1 = _sample(out / "images" / "B_sat1.tif", (np.array([lon]), np.array([lat]), np.array([zb])))
     v2 = _sample(out / "images" / "B_sat2.tif", (np.array([lon]), np.array([lat]), np.array([zb])))
     assert abs(v1[0] - v2[0]) < 0.25 * max(v1[0], v2[0])
+
+
+def test_local_event_changes_only_buildings_inside_the_region():
+    """``event_radius_m``: the same buildings, but only those whose centre lies in the disc change; the
+    truth dh (B − A) is 0 everywhere farther from the centre than the radius plus a building's half-diagonal."""
+    from geocd.synth.bigstereo import event_centre_xy
+
+    kw = {"cells": 512, "seed": 7, "demolished_fraction": 0.5, "new_fraction": 0.5}
+    everywhere = make_buildings(StereoSceneParams(**kw))
+    p = StereoSceneParams(**kw, event_radius_m=45.0, event_centre_m=(20.0, -15.0))
+    local = make_buildings(p)
+    ex, ey = event_centre_xy(p)
+    g = p.grid()
+    assert ex == pytest.approx(g.transform.c + 128.0 + 20.0) and ey == pytest.approx(g.transform.f - 128.0 - 15.0)
+    d = np.hypot(local[:, 1] - ex, local[:, 2] - ey)
+    changed = local[:, 6] != local[:, 7]
+    assert changed.sum() >= 4 and not changed[d > 45.0].any()
+    assert (local[changed & (local[:, 6] > 0.5)]).size and (local[changed & (local[:, 7] > 0.5)]).size  # both kinds
+    # same buildings (place, size, height) as the scene with change everywhere, minus the new ones outside
+    key = lambda b: {tuple(np.round(r[1:6], 9)) for r in b}  # noqa: E731
+    assert key(local) <= key(everywhere)
+    assert key(everywhere[everywhere[:, 6] > 0.5]) == key(local[local[:, 6] > 0.5])
+    # inside the disc the fractions apply as in the everywhere scene: the same slots change
+    ein = np.hypot(everywhere[:, 1] - ex, everywhere[:, 2] - ey) <= 45.0
+    assert key(everywhere[ein & (everywhere[:, 6] != everywhere[:, 7])]) == key(local[changed])
+    x0, y0 = g.transform.c, g.transform.f
+    win = (0, 0, g.height, g.width)
+    dh = (surface_window(p, _objects(local, "B"), x0, y0, p.posting_m, win)
+          - surface_window(p, _objects(local, "A"), x0, y0, p.posting_m, win))
+    X, Y = g.xy(*np.meshgrid(np.arange(g.height), np.arange(g.width), indexing="ij"))
+    far = np.hypot(np.asarray(X) - ex, np.asarray(Y) - ey) > 45.0 + 12.0 * np.sqrt(2) + 1.0
+    assert far.mean() > 0.5 and np.all(dh[far] == 0.0)
+    assert (np.abs(dh) > 1.0).sum() > 1000                     # the event itself is there
+    with pytest.raises(ConfigError):
+        StereoSceneParams(event_radius_m=-1.0)
