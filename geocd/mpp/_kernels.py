@@ -905,32 +905,31 @@ def refine_sides_ref(rects, mag, ori, reach, n_along) -> np.ndarray:
 
 
 @njit(cache=True, inline="always")
-def _bilinear(a, y, x):
-    """Bilinear value of ``a`` at (row y, col x) (cell centres at integers); NaN off the grid."""
-    H, W = a.shape
+def _stencil(H, W, y, x):
+    """The bilinear stencil at (row y, col x) of an H × W grid (cell centres at integers):
+    (i, j, i1, j1, fy, fx), with i = -1 off the grid."""
     if not (0.0 <= y <= H - 1 and 0.0 <= x <= W - 1):
-        return np.nan
+        return -1, -1, -1, -1, 0.0, 0.0
     i = min(int(math.floor(y)), H - 2) if H > 1 else 0
     j = min(int(math.floor(x)), W - 2) if W > 1 else 0
-    fy = y - i
-    fx = x - j
-    i1 = min(i + 1, H - 1)
-    j1 = min(j + 1, W - 1)
+    return i, j, min(i + 1, H - 1), min(j + 1, W - 1), y - i, x - j
+
+
+@njit(cache=True, inline="always")
+def _bilinear(a, y, x):
+    """Bilinear value of ``a`` at (row y, col x) (cell centres at integers); NaN off the grid."""
+    i, j, i1, j1, fy, fx = _stencil(a.shape[0], a.shape[1], y, x)
+    if i < 0:
+        return np.nan
     return ((1 - fy) * ((1 - fx) * a[i, j] + fx * a[i, j1]) + fy * ((1 - fx) * a[i1, j] + fx * a[i1, j1]))
 
 
 @njit(cache=True, inline="always")
 def _bilinear_across(mag, ori, y, x, ang):
     """Bilinear gradient component across a side of map direction ``ang`` (|∇| |cos(ϑ − ang)|); NaN off the grid."""
-    H, W = mag.shape
-    if not (0.0 <= y <= H - 1 and 0.0 <= x <= W - 1):
+    i, j, i1, j1, fy, fx = _stencil(mag.shape[0], mag.shape[1], y, x)
+    if i < 0:
         return np.nan
-    i = min(int(math.floor(y)), H - 2) if H > 1 else 0
-    j = min(int(math.floor(x)), W - 2) if W > 1 else 0
-    fy = y - i
-    fx = x - j
-    i1 = min(i + 1, H - 1)
-    j1 = min(j + 1, W - 1)
     g00 = mag[i, j] * abs(math.cos(ori[i, j] - ang))
     g01 = mag[i, j1] * abs(math.cos(ori[i, j1] - ang))
     g10 = mag[i1, j] * abs(math.cos(ori[i1, j] - ang))
