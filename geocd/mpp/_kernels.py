@@ -1040,15 +1040,18 @@ def fit_sides(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, gate_i
     return moved
 
 
-def _bilinear_ref(a, y, x):
-    H, W = a.shape
+def _stencil_ref(H, W, y, x):
+    """Vectorised :func:`_stencil`: (inside, i, j, i1, j1, fy, fx), indices clipped onto the grid."""
     y, x = np.asarray(y, float), np.asarray(x, float)
     inside = (y >= 0) & (y <= H - 1) & (x >= 0) & (x <= W - 1)
     yc, xc = np.clip(y, 0, H - 1), np.clip(x, 0, W - 1)
     i = np.minimum(np.floor(yc).astype(int), max(H - 2, 0))
     j = np.minimum(np.floor(xc).astype(int), max(W - 2, 0))
-    fy, fx = yc - i, xc - j
-    i1, j1 = np.minimum(i + 1, H - 1), np.minimum(j + 1, W - 1)
+    return inside, i, j, np.minimum(i + 1, H - 1), np.minimum(j + 1, W - 1), yc - i, xc - j
+
+
+def _bilinear_ref(a, y, x):
+    inside, i, j, i1, j1, fy, fx = _stencil_ref(a.shape[0], a.shape[1], y, x)
     v = (1 - fy) * ((1 - fx) * a[i, j] + fx * a[i, j1]) + fy * ((1 - fx) * a[i1, j] + fx * a[i1, j1])
     return np.where(inside, v, np.nan)
 
@@ -1096,13 +1099,7 @@ def fit_sides_ref(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, ga
                 acc, tot, passed = 0.0, 0, 0
                 for k, lev in zip(ks, levels):
                     # the across-side component at the four neighbours, then bilinear (as the kernel)
-                    yy, xx = np.asarray(y), np.asarray(x)
-                    inside = (yy >= 0) & (yy <= H - 1) & (xx >= 0) & (xx <= W - 1)
-                    yc, xc = np.clip(yy, 0, H - 1), np.clip(xx, 0, W - 1)
-                    i = np.minimum(np.floor(yc).astype(int), max(H - 2, 0))
-                    j = np.minimum(np.floor(xc).astype(int), max(W - 2, 0))
-                    fy, fx = yc - i, xc - j
-                    i1, j1 = np.minimum(i + 1, H - 1), np.minimum(j + 1, W - 1)
+                    inside, i, j, i1, j1, fy, fx = _stencil_ref(H, W, y, x)
                     gc = [mags[k][a, b] * np.abs(np.cos(oris[k][a, b] - ang)) for a, b in ((i, j), (i, j1), (i1, j), (i1, j1))]
                     g = (1 - fy) * ((1 - fx) * gc[0] + fx * gc[1]) + fy * ((1 - fx) * gc[2] + fx * gc[3])
                     g = np.where(inside, g, np.nan)
