@@ -95,10 +95,6 @@ class DSMBuildingParams:
     min_height_m: float = 3.0
     roughness_factor: float = 2.5
     tree_rule: str = "roughness"
-
-    def __post_init__(self):
-        if self.tree_rule not in TREE_RULES:
-            raise ConfigError(f"tree_rule {self.tree_rule!r} is not one of {TREE_RULES}: choose one of them")
     min_area_m2: float = 40.0
     split_h_m: float = 1.0
     rect_min: float = 0.8
@@ -107,6 +103,10 @@ class DSMBuildingParams:
     min_changed: float = 0.15
     min_observed: float = 0.3
     correlation_m: float = 3.5
+
+    def __post_init__(self):
+        if self.tree_rule not in TREE_RULES:
+            raise ConfigError(f"tree_rule {self.tree_rule!r} is not one of {TREE_RULES}: choose one of them")
 
 
 def fill_gaps(z: np.ndarray) -> np.ndarray:
