@@ -95,8 +95,9 @@ class MPPParams(ParamsMixin):
         ring_m`` outside below it, on over half the side; nothing is fitted without DSMs, so the paper's
         model is unchanged; default: +0.016 to +0.026 DP on the three towns it was not developed on);
         "image": the image edge alone; "off": none.
-        A refit that makes the rectangle's data energy worse is not kept (docs/mpp.md: the stereo DSM's
-        walls lie up to 1.3 m outside the true ones, the ortho's edges within 0.2 m)
+        A refit is kept when its gradient energy does not rise on any date the object exists on and it
+        stays attractive (A_D < 0); A_D itself is not compared, because its height ring rewards the stereo
+        DSM's walls, which lie up to 1.3 m outside the true ones (the ortho's edges: within 0.2 m; docs/mpp.md)
     beta0, beta_factor, delta0, delta_factor : annealing schedules
     max_iter, min_iter : iteration cap and floor
     seed : random seed (same seed, same inputs → same objects)
