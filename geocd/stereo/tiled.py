@@ -13,7 +13,10 @@ what a cell's result depends on beyond its own column:
   height and their ground sampling).
 
 Each tile keeps its core; the writer assembles the pair-DEM COG (the bands and tags of
-:func:`~geocd.stereo.products.write_pair_dem`). The pair's relative pointing correction and image
+:func:`~geocd.stereo.products.write_pair_dem`). Once a pair's DEM is written its tiles are deleted (unless
+``keep_work``) and the pair is journalled in the work folder; a resumed run finds the DEM carrying the
+pair's key (:data:`RESUME_TAG`) and does not match that pair again, so the scratch disk holds one pair's
+tiles at a time. The pair's relative pointing correction and image
 noise level are whole-scene choices: they are estimated once per pair on a central window (at most
 one tile) and given to every tile. What differs from an untiled match: the image normalisation
 blocks and the coarse levels' cell blocks start at the tile's corner, and a pair whose pointing
@@ -34,7 +37,8 @@ import numpy as np
 from ..errors import ConfigError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
-from ..tiling import RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work, run_tiled
+from ..tiling import (WORK_DIR, RasterProduct, RasterSource, TileGrid, TileOutput, make_key, open_engine,
+                      remove_work, run_tiled)
 from ..tiling.writer import write_product
 from .params import StereoParams
 
@@ -256,6 +260,15 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
             lo_m, hi_m = _pair_height_range(m, grid, a, b, params)
             ov = min(stereo_margin_cells(grid, [a.camera, b.camera], lo_m, hi_m, params), tiling.tile_size // 2)
             margins[key] = ov
+            target = pair_path(out, e.name, a.name, b.name)
+            pair_key = make_key("stereo-pair", _PairJob(e.name, a, b, params, datum), grid.to_dict(),
+                                tiling.tile_size, ov, None if tiles is None else np.asarray(tiles, bool),
+                                {k: s.identity() for k, s in inputs.items()})
+            done = _finished_pair(out, target, pair_key)
+            if done is not None:  # a resumed run: this pair's DEM was written and its tiles removed
+                outputs[key], complete[key] = target, done
+                prog((i + 1) / len(todo), f"pair {i + 1}/{len(todo)} resumed: {target.name} is written")
+                continue
             job = _pair_job(e.name, a, b, params, datum, grid, tiling, inputs.get("dem"))
             # a selection: runs of neighbouring selected tiles along a tile row are matched as one window
             tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), ov, tiles, merge_runs=tiles is not None)
@@ -274,15 +287,52 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
             tags = {"geocd_product": "stereo_pair", "pair": f"{a.name}__{b.name}",
                     "cameras": json.dumps([a.name, b.name]), "epoch": e.name, "score_definition": SCORE_DEFINITION,
                     "vertical_datum": "ellipsoid", "meta": json.dumps(meta, default=_json_default),
-                    "images": json.dumps([str(a.path), str(b.path)]), "manifest": str(m.path or "")}
-            prod = RasterProduct(str(pair_path(out, e.name, a.name, b.name)), tuple(BANDS), tags=tags,
-                                 band_tags=[{"units": units[bn]} for bn in BANDS],
+                    "images": json.dumps([str(a.path), str(b.path)]), "manifest": str(m.path or ""),
+                    RESUME_TAG: json.dumps({"key": pair_key, "completeness": complete[key]})}
+            prod = RasterProduct(str(target), tuple(BANDS), tags=tags, band_tags=[{"units": units[bn]} for bn in BANDS],
                                  fill={"valid": 0.0, "flags": float(FLAGS_NOT_EXAMINED)})
             outputs[key] = write_product(r.store, prod, grid, tg)
+            if not tiling.keep_work:
+                # the pair's DEM holds everything later stages read: its tiles go now, not at the stage's end
+                # (at 20 000² cells one pair's tiles are ~11 GB); the journal says the pair is finished
+                _journal_pair(out, pair_key)
+                r.store.remove()
     if not tiling.keep_work:
         remove_work(out)
     prog(1.0, "stereo done")
     return {"outputs": outputs, "grid": grid, "margins": margins, "completeness": complete}
+
+
+RESUME_TAG = "geocd_resume"
+"""The pair-DEM's tag naming the pair's resume key (and its completeness): a resumed run that finds the DEM
+with this key, and the key journalled in the work folder, does not match the pair again."""
+
+
+def _pairs_journal(out: Path) -> Path:
+    return Path(out) / WORK_DIR / "stereo-pairs"
+
+
+def _journal_pair(out: Path, pair_key: str) -> None:
+    d = _pairs_journal(out)
+    d.mkdir(parents=True, exist_ok=True)
+    tmp = d / f"{pair_key[:32]}.part"
+    tmp.write_text(pair_key)
+    tmp.replace(d / f"{pair_key[:32]}.done")
+
+
+def _finished_pair(out: Path, target: Path, pair_key: str) -> float | None:
+    """The completeness of a pair this run already wrote (journalled in the work folder, and the DEM carries
+    the same key), else None. A finished run has no work folder: running its command again matches anew."""
+    import rasterio
+
+    if not (_pairs_journal(out) / f"{pair_key[:32]}.done").exists() or not target.exists():
+        return None
+    try:
+        with rasterio.open(target) as ds:
+            tag = json.loads(ds.tags().get(RESUME_TAG, "{}"))
+    except (rasterio.errors.RasterioError, ValueError):
+        return None
+    return float(tag["completeness"]) if tag.get("key") == pair_key else None
 
 
 def _json_default(o: Any):

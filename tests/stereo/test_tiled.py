@@ -64,3 +64,53 @@ def test_stereo_margin_grows_with_height_range_and_window(sample_aoi):
     m2 = stereo_margin_cells(g, cams, 190.0, 290.0, StereoParams())
     m3 = stereo_margin_cells(g, cams, 190.0, 230.0, StereoParams(window=11))
     assert m2 > m1 and m3 > m1 and m1 > StereoParams().radius
+
+
+def test_a_finished_pairs_tiles_go_at_once_and_a_resumed_run_reuses_its_dem(tmp_path):
+    """Two pairs (one per epoch) of a tiny generated scene: the run is cancelled half way through the second
+    pair. The first pair's DEM is written and its tiles are gone already (not kept until the stage ends);
+    the same call again matches only the second pair's remaining tiles, and gives the uninterrupted run's
+    products."""
+    from geocd.errors import CancelledError
+    from geocd.synth.bigstereo import StereoSceneParams, make_stereo_scene
+    from geocd.tiling import WORK_DIR
+
+    scene = tmp_path / "scene"
+    make_stereo_scene(scene, StereoSceneParams(cells=128, seed=2), block=160, workers=1)
+    man = scene / "scene.yaml"
+    tiling = TilingParams(tile_size=64, scheduler="sync")
+    ref = run_stereo_tiled(man, out_dir=tmp_path / "ref", tiling=tiling)
+    assert sorted(ref["outputs"]) == ["A/A_sat1__A_sat2", "B/B_sat1__B_sat2"]
+    assert not (tmp_path / "ref" / WORK_DIR).exists()
+
+    out = tmp_path / "run"
+    seen = []
+
+    def cancel_in_pair_2(fraction, message=""):
+        seen.append(message)
+        if message.startswith("pair 2/2 stereo-B") and message.endswith(" 2/4 tiles"):
+            work = out / WORK_DIR
+            # pair 1's DEM is written, its tile store is gone; pair 2's tiles are journalled
+            assert (out / "stereo" / "A" / "A_sat1__A_sat2.tif").exists()
+            assert not list(work.glob("stereo-A-*")) and len(list(work.glob("stereo-B-*/*.done.pkl"))) == 2
+            raise CancelledError("stop")
+
+    with pytest.raises(CancelledError):
+        run_stereo_tiled(man, out_dir=out, tiling=tiling, progress=cancel_in_pair_2)
+    assert not (out / "stereo" / "B" / "B_sat1__B_sat2.tif").exists()
+    seen.clear()
+    res = run_stereo_tiled(man, out_dir=out, tiling=tiling, progress=lambda f, m="": seen.append(m))
+    assert any(m.startswith("pair 1/2 resumed") for m in seen)
+    assert not any(m.startswith("pair 1/2 stereo-A") for m in seen)   # pair 1 not matched again
+    assert any("(2 resumed)" in m for m in seen if m.startswith("pair 2/2"))
+    assert res["completeness"] == pytest.approx(ref["completeness"], abs=0)
+    for k in ref["outputs"]:
+        a, b = read_pair_dem(ref["outputs"][k]), read_pair_dem(res["outputs"][k])
+        np.testing.assert_array_equal(a.z_m, b.z_m)
+        np.testing.assert_array_equal(a.valid, b.valid)
+        np.testing.assert_array_equal(a.score, b.score)
+    assert not (out / WORK_DIR).exists()
+    # a finished run leaves no journal: the same command again matches anew (nothing silently reused)
+    seen.clear()
+    run_stereo_tiled(man, out_dir=out, tiling=tiling, progress=lambda f, m="": seen.append(m))
+    assert not any("resumed" in m for m in seen)
