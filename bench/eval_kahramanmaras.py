@@ -151,7 +151,7 @@ def transfer_figures(res, damage, grid, recs, model) -> dict:
 
 
 def evaluate(run: Path, model_path: Path, significance: str, calibration: str = "auto",
-             recs: dict | None = None, cars: tuple | None = None, tree_rule: str = "roughness") -> tuple[dict, object, object]:
+             recs: dict | None = None, cars: tuple | None = None, tree_rule: str | None = None) -> tuple[dict, object, object]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import DSMBuildingParams, stable_false_alarms
     from geocd.pipeline import _building_damage
@@ -162,10 +162,11 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
                       ChangeParams(significance=significance, calibration=calibration))
     grid = recs["pre_event"][0].grid
     damage, dtm = _building_damage(None, res, grid, recs["pre_event"], recs["post_event"], model, 99.0,
-                                   "pre_event", "post_event", DSMBuildingParams(tree_rule=tree_rule))
+                                   "pre_event", "post_event",
+                                   DSMBuildingParams(tree_rule=tree_rule) if tree_rule else DSMBuildingParams())
     obs = res.observed
     cls = damage["class"]
-    out = {"significance": significance, "calibration": calibration, "tree_rule": tree_rule,
+    out = {"significance": significance, "calibration": calibration, "tree_rule": tree_rule or DSMBuildingParams().tree_rule,
            "calibration_fit": res.calibration.to_dict() if res.calibration is not None else None,
            "flagged_of_observed": {f"{c:g}": round(float((res.changed_at(c) != 0)[obs].mean()), 5)
                                    for c in res.confidences},
@@ -356,7 +357,7 @@ def main(argv=None) -> int:
                     help="picanteo's change map on the same grid (picanteo_flag.npy of bench_kahramanmaras_cars.py)")
     ap.add_argument("--cars-work", default=None,
                     help="work folder of bench_kahramanmaras_cars.py cars (its DSMs: the independent stability witness)")
-    ap.add_argument("--tree-rule", default="roughness",
+    ap.add_argument("--tree-rule", default=DSMBuildingParams().tree_rule,
                     help="how the building extraction tells trees from buildings (DSMBuildingParams.tree_rule)")
     ap.add_argument("--rerun", default=None,
                     help="write every layer of geocd run (after the stereo) for RUN's pair-DEMs into this folder")
