@@ -151,7 +151,8 @@ def transfer_figures(res, damage, grid, recs, model) -> dict:
 
 
 def evaluate(run: Path, model_path: Path, significance: str, calibration: str = "auto",
-             recs: dict | None = None, cars: tuple | None = None, tree_rule: str | None = None) -> tuple[dict, object, object]:
+             recs: dict | None = None, cars: tuple | None = None,
+             tree_rule: str | None = None) -> tuple[dict, object, object]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import DSMBuildingParams, stable_false_alarms
     from geocd.pipeline import _building_damage
@@ -166,7 +167,8 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
                                    DSMBuildingParams(tree_rule=tree_rule) if tree_rule else DSMBuildingParams())
     obs = res.observed
     cls = damage["class"]
-    out = {"significance": significance, "calibration": calibration, "tree_rule": tree_rule or DSMBuildingParams().tree_rule,
+    out = {"significance": significance, "calibration": calibration,
+           "tree_rule": tree_rule or DSMBuildingParams().tree_rule,
            "calibration_fit": res.calibration.to_dict() if res.calibration is not None else None,
            "flagged_of_observed": {f"{c:g}": round(float((res.changed_at(c) != 0)[obs].mean()), 5)
                                    for c in res.confidences},

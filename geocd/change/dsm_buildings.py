@@ -13,11 +13,11 @@ For a city without a cadastre (disaster response), the pre-event DSM itself says
    its cells' best-of-nine 3 × 3 plane residual exceeds 7.5 cm (or the 75th percentile of that residual on
    the DSM's ground, if higher). A roof facet — flat or pitched — leaves the matcher's smoothed noise there,
    a crown its relief. Measured (docs/kahramanmaras.md, "The tree rule"): on the generated towns it finds
-   62–77 % of the buildings (no tree rule: 68–83 %; the former ``"roughness"`` rule, relative to the ground's
-   roughness, 0–6 %: the synthetic ground is 2–6 cm smooth), and on Kahramanmaraş it drops 9 of the 32 pre-event and 1 of the 21
-   post-event by-eye buildings the roughness rule dropped, and 41 of 60 / 25 of 32 by-eye trees (roughness:
-   all of them). ``"roughness"`` and ``"planarity"`` (the roof-planarity cue of :mod:`geocd.mpp`) remain as
-   options. Only cells with a stereo height count.
+   62–77 % of the buildings (no tree rule: 68–83 %; the former ``"roughness"`` rule, relative to the
+   ground's roughness, 0–6 %: the synthetic ground is 2–6 cm smooth), and on Kahramanmaraş it drops 9 of
+   the 32 pre-event and 1 of the 21 post-event by-eye buildings the roughness rule dropped, and 41 of 60 /
+   25 of 32 by-eye trees (roughness: all of them). ``"roughness"`` and ``"planarity"`` (the roof-planarity
+   cue of :mod:`geocd.mpp`) remain as options. Only cells with a stereo height count.
 3. **Objects** (:func:`building_objects`): touching blocks are split by a watershed of the distance
    transform (markers: its regional maxima above ``split_h_m``); objects smaller than ``min_area_m2`` dropped.
 4. **Outlines**: each object's raster outline, simplified (Douglas–Peucker at one posting) and replaced by
@@ -82,10 +82,12 @@ class DSMBuildingParams:
       the threshold :func:`tree_threshold_m` — ``tree_residual_m`` (0.075 m), raised to the 75th percentile of
       the same residual on the DSM's ground cells when that is higher (a DSM noisier than the ones the
       threshold was measured on: an object as planar as most of the ground is not called a tree). A roof
-      facet, flat or pitched, leaves the matcher's smoothed noise; a crown leaves its relief. The 0.075 m was
-      the equal-error point (buildings dropped = trees kept) of the per-object medians on the development set
-      (sample_aoi and towns 1–2, both epochs, truth; the Kahramanmaraş pre-event DSM, labels by eye), all
-      DSMs of geocd's matcher at 0.5 m (docs/kahramanmaras.md, "The tree rule");
+      facet, flat or pitched, leaves the matcher's smoothed noise; a crown leaves its relief. The 0.075 m is a
+      measured constant, not derived from a noise model: the equal-error point (buildings dropped = trees
+      kept) of the per-object medians on the development set lies at 0.0725–0.075 m (sample_aoi and towns
+      1–2, both epochs, truth; the Kahramanmaraş pre-event DSM, labels by eye), all DSMs of geocd's matcher
+      at 0.5 m; held out: town 3 and the post-event DSM (docs/kahramanmaras.md, "The plane-residual tree
+      rule"). Other matchers or postings: measure it again (``bench/diag_dsm_tree_rule.py``);
     * ``"roughness"``: the object's median local roughness (:func:`roughness`) exceeds
       ``roughness_factor`` × the median roughness of the ground cells (the former default; on DSMs whose
       ground is much smoother than their roofs — generated towns — it drops every building);
