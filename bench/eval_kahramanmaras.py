@@ -345,6 +345,8 @@ def volume_figures(prob_ortho: Path, damage_gpkg: Path, layer: str = "building_d
 
 
 def main(argv=None) -> int:
+    from geocd.change.dsm_buildings import DSMBuildingParams
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", default="/tmp/kahra")
     ap.add_argument("--model", default=str(REPO / "examples" / "kahramanmaras" / "marseille_urban_model.json"))
