@@ -64,7 +64,7 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
     within 2 m of any building outline (edges); not in a building and low in both epochs (< 3 m above the
     ground model: ground); not in a building, above ground in one epoch only (objects removed / added:
     trees felled or in leaf, debris, cleared plots); above ground in both; "tree-like": above ground in
-    either epoch with the local roughness the building extraction calls a tree (> 2.5 × the ground's);
+    either epoch with the local roughness the former roughness tree rule calls a tree (> 2.5 × the ground's);
     dark (the darkest 15 % of either epoch's ortho when given: shadows).
     """
     from scipy import ndimage as ndi
