@@ -64,7 +64,7 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
     within 2 m of any building outline (edges); not in a building and low in both epochs (< 3 m above the
     ground model: ground); not in a building, above ground in one epoch only (objects removed / added:
     trees felled or in leaf, debris, cleared plots); above ground in both; "tree-like": above ground in
-    either epoch with the local roughness the building extraction calls a tree (> 2.5 × the ground's);
+    either epoch with the local roughness the former roughness tree rule calls a tree (> 2.5 × the ground's);
     dark (the darkest 15 % of either epoch's ortho when given: shadows).
     """
     from scipy import ndimage as ndi
@@ -151,7 +151,8 @@ def transfer_figures(res, damage, grid, recs, model) -> dict:
 
 
 def evaluate(run: Path, model_path: Path, significance: str, calibration: str = "auto",
-             recs: dict | None = None, cars: tuple | None = None, tree_rule: str = "roughness") -> tuple[dict, object, object]:
+             recs: dict | None = None, cars: tuple | None = None,
+             tree_rule: str | None = None) -> tuple[dict, object, object]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import DSMBuildingParams, stable_false_alarms
     from geocd.pipeline import _building_damage
@@ -162,10 +163,12 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
                       ChangeParams(significance=significance, calibration=calibration))
     grid = recs["pre_event"][0].grid
     damage, dtm = _building_damage(None, res, grid, recs["pre_event"], recs["post_event"], model, 99.0,
-                                   "pre_event", "post_event", DSMBuildingParams(tree_rule=tree_rule))
+                                   "pre_event", "post_event",
+                                   DSMBuildingParams(tree_rule=tree_rule) if tree_rule else DSMBuildingParams())
     obs = res.observed
     cls = damage["class"]
-    out = {"significance": significance, "calibration": calibration, "tree_rule": tree_rule,
+    out = {"significance": significance, "calibration": calibration,
+           "tree_rule": tree_rule or DSMBuildingParams().tree_rule,
            "calibration_fit": res.calibration.to_dict() if res.calibration is not None else None,
            "flagged_of_observed": {f"{c:g}": round(float((res.changed_at(c) != 0)[obs].mean()), 5)
                                    for c in res.confidences},
@@ -342,6 +345,8 @@ def volume_figures(prob_ortho: Path, damage_gpkg: Path, layer: str = "building_d
 
 
 def main(argv=None) -> int:
+    from geocd.change.dsm_buildings import DSMBuildingParams
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", default="/tmp/kahra")
     ap.add_argument("--model", default=str(REPO / "examples" / "kahramanmaras" / "marseille_urban_model.json"))
@@ -356,7 +361,7 @@ def main(argv=None) -> int:
                     help="picanteo's change map on the same grid (picanteo_flag.npy of bench_kahramanmaras_cars.py)")
     ap.add_argument("--cars-work", default=None,
                     help="work folder of bench_kahramanmaras_cars.py cars (its DSMs: the independent stability witness)")
-    ap.add_argument("--tree-rule", default="roughness",
+    ap.add_argument("--tree-rule", default=DSMBuildingParams().tree_rule,
                     help="how the building extraction tells trees from buildings (DSMBuildingParams.tree_rule)")
     ap.add_argument("--rerun", default=None,
                     help="write every layer of geocd run (after the stereo) for RUN's pair-DEMs into this folder")

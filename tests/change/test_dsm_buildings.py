@@ -161,3 +161,60 @@ def test_unknown_tree_rule_is_a_config_error():
 
     with pytest.raises(ConfigError, match="tree_rule"):
         DSMBuildingParams(tree_rule="ndvi")
+
+
+def _town_like(seed):
+    """Smooth ground (σ 2 cm, like the generated towns' DSMs), a gabled house and a flat-roofed block whose roofs
+    are noisier than the ground (σ 6 cm), and a tree crown (a dome of radius 4.5 m with leaves and gaps, σ 0.3 m)."""
+    rng = np.random.default_rng(seed)
+    H, W = GRID_SMALL.shape
+    r, c = np.mgrid[0:H, 0:W] * 0.5
+    z = 500.0 + rng.normal(0, 0.02, (H, W))
+    house = (r >= 10) & (r < 18) & (c >= 8) & (c < 22)
+    z[house] = (506.0 + np.tan(np.radians(35)) * (4.0 - np.abs(r[house] - 14.0))
+                + rng.normal(0, 0.06, house.sum()))
+    block = (r >= 36) & (r < 50) & (c >= 6) & (c < 20)
+    z[block] = 509.0 + rng.normal(0, 0.06, block.sum())
+    d2 = (r - 40) ** 2 + (c - 42) ** 2
+    crown = d2 < 4.5 ** 2
+    z[crown] = 503.0 + np.sqrt(4.5 ** 2 - d2[crown]) + rng.normal(0, 0.3, crown.sum())
+    return z, house, block, crown
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_plane_rule_keeps_roofs_noisier_than_smooth_ground(seed):
+    """The default tree rule: an object is a tree when its median best-of-nine plane residual exceeds 7.5 cm
+    (or the ground's 75th percentile of it, if higher) — an absolute threshold, so roofs noisier than a very
+    smooth ground stay. The former default (roughness > 2.5 × the ground's) drops both buildings here."""
+    from geocd.change.dsm_buildings import best_plane_residual, tree_threshold_m
+
+    z, house, block, crown = _town_like(seed)
+    bld, dtm, lab = buildings_from_dsm(z, GRID_SMALL)
+    assert DSMBuildingParams().tree_rule == "plane"
+    assert len(bld) == 2
+    assert (lab[house] > 0).mean() > 0.9 and (lab[block] > 0).mean() > 0.9
+    assert not (lab[crown] > 0).any()
+    best = best_plane_residual(z, 0.5)
+    ground = (z - dtm) < 1.0
+    assert tree_threshold_m(best, ground) == DSMBuildingParams().tree_residual_m     # smooth ground: the floor
+    assert 0.01 < np.nanmedian(best[ground]) < 0.03
+    _, _, lab_old = buildings_from_dsm(z, GRID_SMALL, DSMBuildingParams(tree_rule="roughness"))
+    assert not (lab_old[house] > 0).any() and not (lab_old[block] > 0).any()
+
+
+def test_plane_rule_threshold_follows_a_noisy_ground():
+    """On a DSM noisier than the ones the 7.5 cm was measured on, the threshold rises to the ground's 75th
+    percentile of the residual: roofs as planar as the ground stay (test_ground_and_objects' scene: ground
+    σ 15 cm, roofs σ 10 cm), the rough blob goes."""
+    from geocd.change.dsm_buildings import best_plane_residual, tree_threshold_m
+
+    z, ground_true, boxes = _scene(np.random.default_rng(1))
+    dtm, ground = ground_model(z, 0.5)
+    best = best_plane_residual(z, 0.5)
+    thr = tree_threshold_m(best, ground & (z - dtm < 3.0))
+    assert thr > 1.3 * DSMBuildingParams().tree_residual_m
+    assert thr == pytest.approx(np.percentile(best[ground & (z - dtm < 3.0) & np.isfinite(best)], 75))
+    bld, _, _ = buildings_from_dsm(z, GRID)
+    assert len(bld) == 5
+    with pytest.raises(Exception, match="tree_residual_m"):
+        DSMBuildingParams(tree_residual_m=0.0)

@@ -38,20 +38,23 @@ def test_layers_and_orientation(kahra_run):
 
 def test_headline_figures(kahra_run):
     """Measured (docs/kahramanmaras.md, the Marseille model calibrated to the pair — what `geocd run` does with a
-    transferred model): 142 pre-event objects + 25 new parts of post-event objects on pre-event ground (15 of
-    them `new`), 11 collapsed; 6.9 % of observed cells flagged at 99 % (90 %: 7.4 %), 3.9 % of the cells outside
-    changed buildings (90 %: 4.3 %; the goal of 1 % is not met by that definition — 95 % of those cells differ by
-    > 3 m in CARS's DSMs too); the calibration fit: the pair disagrees 2.0 / 0.81 = 2.5 times more than the
-    Marseille triplet on flat ground and its surfaces 0.90 m (Marseille 0.39 m) horizontally."""
+    transferred model; the plane-residual tree rule). This fresh run, with its own stereo: 220 objects
+    (pre-event objects + new parts of post-event objects on pre-event ground; 20 of them `new`), 14 collapsed,
+    3.2 % of the cells outside changed buildings flagged at 99 % — the roughness tree rule on the same pair-DEMs:
+    178 objects, 11 collapsed, 4.0 % (the docs' tables come from the older pair-DEMs of /tmp/kahra2: 220 objects,
+    22 new, 14 collapsed, 2.6 %; the goal of 1 % is not met by that definition — 93 % of those cells differ by
+    > 3 m in CARS's DSMs too); 6.9 % of observed cells flagged at 99 % (90 %: 7.4 %); the calibration fit: the
+    pair disagrees 2.0 / 0.81 = 2.5 times more than the Marseille triplet on flat ground and its surfaces
+    0.90 m (Marseille 0.39 m) horizontally."""
     out, res = kahra_run
     from geocd.change.dsm_buildings import stable_false_alarms
 
     dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
     cls = dmg["class"].value_counts()
-    assert 150 <= len(dmg) <= 200
-    assert 9 <= cls.get("collapsed", 0) <= 14
+    assert 200 <= len(dmg) <= 240
+    assert 12 <= cls.get("collapsed", 0) <= 17
     # new buildings on pre-event ground (whole post-event objects judged by overlap found 1)
-    assert 10 <= cls.get("new", 0) <= 20
+    assert 17 <= cls.get("new", 0) <= 27
     assert (dmg[dmg["class"] == "new"]["height_before_m"] < 2.5).all()
     collapsed = dmg[dmg["class"] == "collapsed"]
     assert (collapsed["height_after_m"] < collapsed["height_before_m"]).all()
@@ -64,13 +67,14 @@ def test_headline_figures(kahra_run):
     flagged = float((r.changed_at(99.0) != 0)[r.observed].mean())
     assert 0.060 < flagged < 0.078         # 90 % map: 0.074
     fa = stable_false_alarms(r.confidence, r.observed, dmg, res["grid"])
-    assert 0.033 < fa["99"] < 0.045        # 90 %: 0.043
+    assert 0.027 < fa["99"] < 0.037        # 0.032 (roughness tree rule: 0.040)
     assert fa["90"] > fa["99"]
 
 
 def test_the_model_as_learned_flags_twice_as_much_stable_ground(kahra_run):
-    """The transfer shortfall itself: the Marseille model without the calibration (9.7 % outside changed buildings
-    at 99 % on the pair-DEMs of the docs' run) — the calibrated test must stay well below it."""
+    """The transfer shortfall itself: the Marseille model without the calibration (6.8 % outside changed buildings
+    at 99 % on the pair-DEMs of the docs' run, plane-residual tree rule; 8.9 % with the roughness rule) — the
+    calibrated test must stay well below it."""
     out, res = kahra_run
     from geocd.change.dsm_buildings import stable_false_alarms
     from geocd.consistency import ChangeParams, change_test
@@ -84,5 +88,5 @@ def test_the_model_as_learned_flags_twice_as_much_stable_ground(kahra_run):
     fa0 = stable_false_alarms(r0.confidence, r0.observed, dmg0, res["grid"])["99"]
     dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
     fa = stable_false_alarms(res["result"].confidence, res["result"].observed, dmg, res["grid"])["99"]
-    assert 0.085 < fa0 < 0.11
+    assert 0.058 < fa0 < 0.080
     assert fa < 0.6 * fa0
