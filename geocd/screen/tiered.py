@@ -3,8 +3,12 @@
 1. The screen runs on the manifest's views projected on the terrain DEM (no stereo needed):
    :func:`geocd.screen.pipeline.run_screen_manifest` on the run's AOI grid, threshold from a
    within-epoch no-change pair.
-2. The grid is cut into square tiles (``tile_cells``); a tile is flagged when it holds changed
-   screen cells of a region of at least ``min_region_m2``.
+2. The grid is cut into square tiles (``tile_cells``). A screen cell counts as changed above
+   :func:`flag_threshold`: the lower of the no-change pair's and the screened pair's own 99 %
+   quantiles (the no-change pair's views can be farther apart than the screened pair's, and its
+   quantile then sits above much of the change). A tile is flagged when its changed area (regions of
+   at least ``min_region_m2``) exceeds what that 1 % rate gives by chance, and so is every tile a
+   flagged tile's changed region reaches into (:func:`flag_tiles_by_chance`).
 3. Stereo runs on windows around the flagged tiles (:func:`plan_stereo`): the stereo's tiles are the
    screen's tiles grouped into squares wide enough to keep every coarse level of the coarse-to-fine
    search (:func:`geocd.stereo.tiled.stereo_window_needs`; a narrower window searches more heights per
