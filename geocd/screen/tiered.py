@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import ConfigError, EmptyDataError
 from ..progress import Progress, ensure_progress, sub_progress
 
 
@@ -101,7 +102,8 @@ def flag_threshold(d_screened: np.ndarray, null, false_alarm_pct: float = 1.0) -
     t_own = float(np.quantile(v, q)) if v.size >= 100 else float("inf")
     t_null = float(null.threshold(false_alarm_pct)) if null is not None else float("inf")
     if not np.isfinite(min(t_own, t_null)):
-        raise ValueError("flag_threshold needs a no-change pair or at least 100 valid screened values")
+        raise EmptyDataError("the tiered run's flag threshold needs a no-change pair or at least 100 valid screened "
+                             "values: give a second view in one epoch, or check that the views overlap the AOI")
     t = min(t_own, t_null)
     which = "the screened pair's own" if t_own <= t_null else f"the no-change pair's ({null.source})"
     rule = (f"min of the no-change pair's and the screened pair's own {100 * q:g} % quantiles "
@@ -333,7 +335,7 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
     elif flag_rule == "any":
         t_flag, flag_rule_text, flag_info = float(sc["threshold"]), "the screen's change mask (" + sc["rule"] + ")", {}
     else:
-        raise ValueError(f"flag_rule must be 'chance' or 'any', got {flag_rule!r}")
+        raise ConfigError(f"flag_rule must be 'chance' or 'any', got {flag_rule!r}")
     changed = sr.valid & np.isfinite(sr.dissimilarity) & (sr.dissimilarity > t_flag)
     lab, n = ndimage.label(changed, structure=np.ones((3, 3), bool))
     if n:

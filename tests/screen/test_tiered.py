@@ -320,3 +320,8 @@ def test_flag_rule_holds_recall_when_the_no_change_pair_is_wider_than_the_screen
     fl0, _ = flag_tiles_by_chance(c0, valid, 128, 16, 0.01)
     assert fl0.tiles.sum() <= 1
     assert flag_tiles(c0, 128).tiles.sum() > 10      # the old "any region" tile rule would flag most tiles
+    # no no-change pair and too few screened values: a clear error, not a threshold of nothing
+    from geocd.errors import EmptyDataError
+
+    with pytest.raises(EmptyDataError, match="no-change pair"):
+        flag_threshold(np.full((5, 5), np.nan), None, 1.0)
