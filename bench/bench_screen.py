@@ -567,6 +567,81 @@ def tile_sizes(full: Path, tier: Path, sizes=(64, 128, 256), min_region_m2: floa
     return rows
 
 
+def flag_rules(tier: Path, scene: Path, tile_cells: int = 128, min_region_m2: float = 4.0) -> dict:
+    """Tile-flag rules on a tiered run's stored screen (no stereo): flagged tile fraction and the truth changed
+    buildings lying ≥ 50 % in flagged tiles (``truth/buildings.gpkg`` of a generated scene), for thresholds
+    (the old rule: the no-change pair's 99 % then Otsu's split; the no-change 99 %; the screened pair's own
+    99 %, with and without Otsu's split) × tile rules (any region of ``min_region_m2``; the chance count with
+    and without the reach). The screen's dissimilarity does not depend on the rule, so one run serves all."""
+    import geopandas as gpd
+    import rasterio
+    from rasterio.features import rasterize
+    from scipy import ndimage
+
+    from geocd.screen.threshold import split_above
+    from geocd.screen.tiered import Flagged, flag_tiles, flag_tiles_by_chance
+
+    summ = json.loads((tier / "screen" / "screen_summary.json").read_text())
+    q_null = float(summ["null"]["quantiles"]["99"])
+    cell = int(summ["cell_px"])
+    with rasterio.open(tier / "screen" / "screen_dissimilarity.tif") as ds:
+        d = ds.read(1)
+        tr = ds.transform
+        area = abs(tr.a * tr.e)
+    ok = np.isfinite(d)
+    q_own = float(np.quantile(d[ok], 0.99))
+    b = gpd.read_file(scene / "truth" / "buildings.gpkg")
+    lab = rasterize(((g, i + 1) for i, g in enumerate(b.geometry)), out_shape=d.shape, transform=tr, fill=0,
+                    dtype="int32")
+    n_all = np.bincount(lab.ravel(), minlength=len(b) + 1)[1:]
+    chg = (b["status"] != "unchanged").to_numpy()
+
+    def regions(t):
+        c = ok & (d > t)
+        lb, n = ndimage.label(c, structure=np.ones((3, 3), bool))
+        if n:
+            keep = np.bincount(lb.ravel()) >= max(1, int(np.ceil(min_region_m2 / area)))
+            keep[0] = False
+            c = keep[lb]
+        return c
+
+    def score(fl):
+        ex = fl.examined(d.shape)
+        n_ex = np.bincount(lab[ex].ravel(), minlength=len(b) + 1)[1:]
+        inside = n_ex >= 0.5 * np.maximum(n_all, 1)
+        return {"tile_fraction": round(fl.tile_fraction, 4), "changed_buildings_in_flagged": int((chg & inside).sum()),
+                "unchanged_buildings_in_flagged": int((~chg & inside).sum())}
+
+    rows = {}
+    for name, t in (("no-change 99 % + Otsu (old)", split_above(d, q_null)), ("no-change 99 %", q_null),
+                    ("own 99 %", q_own), ("own 99 % + Otsu", split_above(d, q_own))):
+        c = regions(t)
+        rows[f"{name}, any region"] = {"threshold": round(float(t), 4), **score(flag_tiles(c, tile_cells))}
+        for reach in (True, False):
+            fl = (flag_tiles_by_chance(c, ok, tile_cells, cell, 0.01)[0] if reach
+                  else Flagged(tile_cells, _chance_only(c, ok, tile_cells, cell)))
+            rows[f"{name}, chance count" + ("" if reach else ", no reach")] = {"threshold": round(float(t), 4),
+                                                                               **score(fl)}
+    return {"changed_buildings": int(chg.sum()), "null_q99": round(q_null, 4), "own_q99": round(q_own, 4),
+            "rows": rows}
+
+
+def _chance_only(changed, valid, tile_cells, unit, rate=0.01):
+    """The chance count's tiles without the reach (for the comparison in :func:`flag_rules`)."""
+    from geocd.screen.tiered import chance_cells
+
+    H, W = changed.shape
+    nr, nc = -(-H // tile_cells), -(-W // tile_cells)
+
+    def per_tile(m):
+        pad = np.zeros((nr * tile_cells, nc * tile_cells))
+        pad[:H, :W] = m
+        return pad.reshape(nr, tile_cells, nc, tile_cells).sum(axis=(1, 3))
+
+    n = per_tile(valid) / unit ** 2
+    return per_tile(changed) / unit ** 2 > chance_cells(n, rate, rate)
+
+
 def stereo_overhead(scene: str, tier: Path, epoch: str, work: Path) -> dict:
     """Where the tiered stereo's time goes: one epoch's pairs matched untiled (``run_stereo``, as the full run),
     tiled on the tiered run's flagged tiles, and tiled on every tile (same tile size and declared margins),
@@ -625,7 +700,7 @@ def _key(scene: str) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["features", "tiered", "compare", "tiles", "stereo-overhead", "screen-losses",
-                                        "calibration"])
+                                        "calibration", "flag-rules"])
     ap.add_argument("--screen-dir", type=Path, action="append", default=[],
                     help="screen-losses: a screen's output folder (repeat)")
     ap.add_argument("--epoch", default="B", help="stereo-overhead: the epoch whose pairs are matched")
@@ -657,6 +732,9 @@ def main(argv=None) -> int:
         doc.setdefault("screen_losses", {})[_key(a.scene)] = screen_losses(a.full_dir, a.screen_dir)
     elif a.what == "calibration":  # the transfer calibration fitted on several selections of a full run's cells
         doc.setdefault("calibration", {})[_key(a.scene)] = calibration_fits(a.full_dir, a.tiered_dir, a.model)
+    elif a.what == "flag-rules":  # tile-flag rules on a tiered run's stored screen, scored on the truth buildings
+        doc.setdefault("flag_rules", {})[_key(a.scene)] = flag_rules(a.tiered_dir, Path(a.scene).parent
+                                                                     if Path(a.scene).is_file() else Path(a.scene))
     elif a.what == "tiles":  # other --screen-tile sizes with the screen of a tiered run (no stereo re-run)
         doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:

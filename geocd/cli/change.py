@@ -35,7 +35,9 @@ def _confidences(values) -> tuple[float, ...]:
 @click.option("--screen", "screen", is_flag=True,
               help="Tiered run: the fast 2-D screen first (geocd screen), stereo and the change test only on "
                    "windows around the tiles it flags, or on the whole grid when those windows would read all of "
-                   "it (OUT/screen holds its layers; run_summary.json: screen.stereo_plan).")
+                   "it. A tile is flagged when its area above the lower of the no-change pair's and the compared "
+                   "pair's own 99 % dissimilarity quantiles exceeds chance, or when a flagged change reaches into "
+                   "it (OUT/screen holds its layers; run_summary.json: screen.flag_rule, screen.stereo_plan).")
 @click.option("--screen-feature", type=click.Choice(["patch", "daisy", "randbank"]), default="patch",
               show_default=True, help="Grid feature of the screen (--screen).")
 @click.option("--screen-tile", "screen_tile", type=int, default=128, show_default=True,

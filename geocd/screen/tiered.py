@@ -3,8 +3,12 @@
 1. The screen runs on the manifest's views projected on the terrain DEM (no stereo needed):
    :func:`geocd.screen.pipeline.run_screen_manifest` on the run's AOI grid, threshold from a
    within-epoch no-change pair.
-2. The grid is cut into square tiles (``tile_cells``); a tile is flagged when it holds changed
-   screen cells of a region of at least ``min_region_m2``.
+2. The grid is cut into square tiles (``tile_cells``). A screen cell counts as changed above
+   :func:`flag_threshold`: the lower of the no-change pair's and the screened pair's own 99 %
+   quantiles (the no-change pair's views can be farther apart than the screened pair's, and its
+   quantile then sits above much of the change). A tile is flagged when its changed area (regions of
+   at least ``min_region_m2``) exceeds what that 1 % rate gives by chance, and so is every tile a
+   flagged tile's changed region reaches into (:func:`flag_tiles_by_chance`).
 3. Stereo runs on windows around the flagged tiles (:func:`plan_stereo`): the stereo's tiles are the
    screen's tiles grouped into squares wide enough to keep every coarse level of the coarse-to-fine
    search (:func:`geocd.stereo.tiled.stereo_window_needs`; a narrower window searches more heights per
@@ -38,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import ConfigError, EmptyDataError
 from ..progress import Progress, ensure_progress, sub_progress
 
 
@@ -70,6 +75,97 @@ def flag_tiles(changed: np.ndarray, tile_cells: int, min_cells: int = 1) -> Flag
     pad[:H, :W] = changed
     counts = pad.reshape(nr, tile_cells, nc, tile_cells).sum(axis=(1, 3))
     return Flagged(tile_cells, counts >= max(int(min_cells), 1))
+
+
+def flag_threshold(d_screened: np.ndarray, null, false_alarm_pct: float = 1.0) -> tuple[float, str, dict]:
+    """The dissimilarity above which the tiered run counts a screen cell as changed, and its rule.
+
+    Two bounds on the unchanged cells' ``100 − false_alarm_pct`` percentile, the lower one kept:
+
+    * the **no-change pair's** percentile (``null``): the estimate when that pair's views are as far
+      apart as the screened pair's, an upper bound when they are farther apart (buildings lean more
+      differently in its two views, so its unchanged cells are more dissimilar);
+    * the **screened pair's own** percentile: with a fraction π of the cells changed, the unchanged
+      cells above it are at most ``false_alarm_pct / (1 − π)`` percent of them, whatever the change
+      looks like — a bound that needs no other pair, and that rises above the noise (fewer flags)
+      only when the change covers more than ``false_alarm_pct`` of the grid, where the no-change
+      pair's bound takes over.
+
+    Either way the unchanged cells above the threshold are at most about ``2 · false_alarm_pct``
+    percent. No Otsu split follows (as it does for the screen's own change mask): the values it cuts
+    are the coarse grid's halo around a change, which lies in the change's tile or a neighbour and
+    flags nothing a tile needs. Returns ``(threshold, rule, details)``.
+    """
+    v = np.asarray(d_screened, np.float64)
+    v = v[np.isfinite(v)]
+    q = 1.0 - float(false_alarm_pct) / 100.0
+    t_own = float(np.quantile(v, q)) if v.size >= 100 else float("inf")
+    t_null = float(null.threshold(false_alarm_pct)) if null is not None else float("inf")
+    if not np.isfinite(min(t_own, t_null)):
+        raise EmptyDataError("the tiered run's flag threshold needs a no-change pair or at least 100 valid screened "
+                             "values: give a second view in one epoch, or check that the views overlap the AOI")
+    t = min(t_own, t_null)
+    which = "the screened pair's own" if t_own <= t_null else f"the no-change pair's ({null.source})"
+    rule = (f"min of the no-change pair's and the screened pair's own {100 * q:g} % quantiles "
+            f"({t_null:.3f}, {t_own:.3f}): {which}; unchanged cells above it ≤ about {2 * false_alarm_pct:g} %")
+    return t, rule, {"null_quantile": round(t_null, 4), "own_quantile": round(t_own, 4),
+                     "false_alarm_pct": float(false_alarm_pct)}
+
+
+def chance_cells(n_units: np.ndarray, rate: float, tile_false_alarm: float) -> np.ndarray:
+    """The count of flagged units a tile of ``n_units`` independent units exceeds by chance with probability at
+    most ``tile_false_alarm`` when each unit is flagged with probability ``rate`` (binomial upper quantile)."""
+    from scipy.stats import binom
+
+    n = np.maximum(np.round(np.asarray(n_units, np.float64)), 0).astype(np.int64)
+    return np.where(n > 0, binom.isf(tile_false_alarm, np.maximum(n, 1), rate), 0.0)
+
+
+def flag_tiles_by_chance(changed: np.ndarray, valid: np.ndarray, tile_cells: int, unit_cells: int, rate: float,
+                         tile_false_alarm: float | None = None) -> tuple[Flagged, dict]:
+    """Tiles whose changed area exceeds what chance gives, plus the tiles a flagged tile's changes reach into.
+
+    ``changed`` marks the screen's cells above :func:`flag_threshold` (regions already filtered by
+    size). Unchanged cells land above it with probability ``rate`` (its false-alarm level), in units of
+    a screen cell (``unit_cells`` on a side: the feature's cell, across which d_g is one value), so a
+    tile of n valid units holds a Binomial(n, rate) count of them when nothing changed; a tile is
+    flagged when its changed area, in units, exceeds that count's upper ``tile_false_alarm`` quantile
+    (default: ``rate``, the same level). A changed object straddling a tile edge is cut by it: every
+    tile that a connected changed region of a flagged tile reaches into is flagged too.
+    Returns the flags and how they were set.
+    """
+    from scipy import ndimage
+
+    tfa = float(rate if tile_false_alarm is None else tile_false_alarm)
+    H, W = changed.shape
+    T = int(tile_cells)
+    nr, nc = -(-H // T), -(-W // T)
+
+    def per_tile(m):
+        pad = np.zeros((nr * T, nc * T), np.float64)
+        pad[:H, :W] = m
+        return pad.reshape(nr, T, nc, T).sum(axis=(1, 3))
+
+    u = float(unit_cells) ** 2
+    n_units = per_tile(np.asarray(valid, bool)) / u
+    k = chance_cells(n_units, rate, tfa)
+    area = per_tile(np.asarray(changed, bool)) / u
+    tiles = area > k
+    by_chance = int(tiles.sum())
+    lab, n = ndimage.label(changed, structure=np.ones((3, 3), bool))
+    if n and tiles.any():
+        core = Flagged(T, tiles).examined((H, W))
+        reach = np.zeros(n + 1, bool)
+        reach[np.unique(lab[core & (lab > 0)])] = True
+        reach[0] = False
+        tiles = tiles | (per_tile(reach[lab]) > 0)
+    info = {"rule": f"a tile is flagged when its changed area exceeds the upper {100 * tfa:g} % quantile of a "
+                    f"Binomial(n, {rate:g}) count of {unit_cells}-cell units (n = its valid units), or when a "
+                    "changed region of a flagged tile reaches into it",
+            "units_per_full_tile": round(float(T * T / u), 1),
+            "chance_units_full_tile": float(chance_cells(np.array([T * T / u]), rate, tfa)[0]),
+            "tiles_by_chance_rule": by_chance, "tiles_added_by_reach": int(tiles.sum()) - by_chance}
+    return Flagged(T, tiles), info
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,8 +286,15 @@ def fit_calibration_on(epoch_a, epoch_b, model, params, cells: np.ndarray):
 def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, epochs: list[str], pairs: str,
                         posting_m: float | None = None, epoch_a: str | None = None, epoch_b: str | None = None,
                         tile_cells: int = 128, min_region_m2: float = 4.0, scheduler: str = "sync",
-                        stereo_plan: str = "auto", progress: Progress | None = None) -> dict[str, Any]:
+                        stereo_plan: str = "auto", flag_rule: str = "chance", false_alarm_pct: float = 1.0,
+                        progress: Progress | None = None) -> dict[str, Any]:
     """The screen, then geocd stereo on the flagged tiles only.
+
+    ``flag_rule``: "chance" (a cell counts above :func:`flag_threshold`, the lower of the no-change pair's
+    and the screened pair's own ``100 − false_alarm_pct`` percentiles; a tile is flagged when its
+    changed area exceeds chance, :func:`flag_tiles_by_chance`) or "any" (the screen's change mask,
+    whose threshold is the no-change pair's percentile then Otsu's split above it, and any changed
+    region of ``min_region_m2`` flags its tile: the rule before, kept to measure against).
 
     ``stereo_plan``: "auto" (:func:`plan_stereo`: windows of the stereo's own size around the flagged
     tiles, or the whole grid untiled when those would read all of it) or "tiles" (each run of flagged
@@ -226,16 +329,27 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
                              epoch_b=epoch_b, progress=sub_progress(prog, 0.0, 0.2, "screen: "))
     t_screen = time.perf_counter() - t0
     sr = sc["run"]
-    changed = sr.valid & np.isfinite(sr.dissimilarity) & (sr.dissimilarity > sc["threshold"])
+    null = sc.get("null")
+    if flag_rule == "chance":
+        t_flag, flag_rule_text, flag_info = flag_threshold(sr.dissimilarity, null, false_alarm_pct)
+    elif flag_rule == "any":
+        t_flag, flag_rule_text, flag_info = float(sc["threshold"]), "the screen's change mask (" + sc["rule"] + ")", {}
+    else:
+        raise ConfigError(f"flag_rule must be 'chance' or 'any', got {flag_rule!r}")
+    changed = sr.valid & np.isfinite(sr.dissimilarity) & (sr.dissimilarity > t_flag)
     lab, n = ndimage.label(changed, structure=np.ones((3, 3), bool))
     if n:
         sizes = np.bincount(lab.ravel())
         keep = sizes >= max(1, int(np.ceil(min_region_m2 / grid.cell_area_m2)))
         keep[0] = False
         changed = keep[lab]
-    fl = flag_tiles(changed, tile_cells)
+    if flag_rule == "chance":
+        fl, tile_info = flag_tiles_by_chance(changed, sr.valid, tile_cells, screen_params.feature.cell_px,
+                                             false_alarm_pct / 100.0)
+    else:
+        fl = flag_tiles(changed, tile_cells)
+        tile_info = {"rule": f"a tile is flagged when it holds a changed region of at least {min_region_m2:g} m²"}
     # where the transfer calibration is fitted: examined cells the screen calls unchanged
-    null = sc.get("null")
     level = float(np.median(null.values)) if null is not None else float(sc["threshold"])
     t1 = time.perf_counter()
     if stereo_plan == "auto":
@@ -262,6 +376,8 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
                  else calibration_cells(sr.dissimilarity, level, changed, examined, screen_params.feature.cell_px))
     kept = st.get("pairs") or {key: read_pair_dem(p) for key, p in st["outputs"].items()}
     info = {"threshold": round(float(sc["threshold"]), 4), "rule": sc["rule"], "feature": screen_params.feature.label,
+            "flag_threshold": round(float(t_flag), 4), "flag_rule": flag_rule_text, **flag_info,
+            "tile_rule": tile_info,
             "pair": list(sc["pair"]), "tile_cells": tile_cells, "stereo_margin_cells": st["margins"],
             "flagged_tiles": int(fl.tiles.sum()), "tiles": int(fl.tiles.size),
             "flagged_tile_fraction": round(fl.tile_fraction, 4),

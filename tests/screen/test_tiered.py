@@ -242,3 +242,86 @@ def test_stereo_plan_sizes_windows_from_the_scene_and_falls_back_to_the_whole_gr
     assert p.tiles.sum() == 3 and p.read_cells == (2 * 512 + 128) * (512 + 128) + (512 + 128) ** 2
     # a need below the screen's tile: the screen's tiles as they are
     assert plan_stereo(Flagged(128, big), (8000, 8000), 100, 64).tile_cells == 128
+
+
+def _local_event_screen(seed: int = 3, with_change: bool = True):
+    """A screened pair and a no-change pair on 768² cells (6 × 6 tiles of 128, 16-cell screen units), built unit by
+    unit. Stable units: 0.30 + Exp(0.08) (the cross-date pair: views 5° apart, buildings lean alike); the no-change
+    pair: 0.35 + Exp(0.25) (its views 18° apart: buildings lean differently, a wider distribution). A local event in
+    tiles (2..3, 2..3): two changed houses of 1 × 2 units per tile, d ∈ [0.95, 1.3] — above the stable values,
+    below the no-change pair's 99 % (≈ 1.5) — plus one house across the edge of tiles (3, 3) and (3, 4), 1.5
+    units in the first, 0.5 in the second."""
+    rng = np.random.default_rng(seed)
+    n = 48
+    units = 0.30 + rng.exponential(0.08, (n, n))
+    null_units = 0.35 + rng.exponential(0.25, (n, n))
+    houses = []
+    if with_change:
+        for ti in (2, 3):
+            for tj in (2, 3):
+                houses += [(8 * ti + 1, 8 * tj + 1), (8 * ti + 4, 8 * tj + 5)]
+        for i, j in houses:
+            units[i:i + 1, j:j + 2] = rng.uniform(0.95, 1.3, 2)
+    d = np.kron(units, np.ones((16, 16))).astype(np.float32)
+    if with_change:   # the straddling house: cells 3·128 + 40 … + 56 rows, cols 3·128 + 104 … 4·128 + 8
+        r0, c0 = 3 * 128 + 40, 3 * 128 + 104
+        d[r0:r0 + 16, c0:c0 + 32] = 1.2
+    null = np.kron(null_units, np.ones((16, 16))).astype(np.float32)
+    return d, null
+
+
+def test_flag_rule_holds_recall_when_the_no_change_pair_is_wider_than_the_screened_pair():
+    """The no-change pair's views are farther apart than the screened pair's, so its 99 % quantile (≈ 1.5) sits
+    above every changed house (0.95–1.3). The old rule (that quantile, then Otsu's split above it, any region
+    flags its tile) flags none of the event's tiles; the tiered run's rule (the lower of that quantile and the
+    screened pair's own 99 % one; a tile flagged when its changed area exceeds a Binomial(64, 0.01) count's 99 %
+    quantile, 3 units; plus tiles a flagged tile's changed region reaches into) flags exactly the five tiles the
+    event touches. Without change, the rule flags at most one tile of 36 by chance."""
+    from scipy import ndimage
+
+    from geocd.screen.threshold import NullDistribution, threshold_from_nochange
+    from geocd.screen.tiered import chance_cells, flag_threshold, flag_tiles_by_chance
+
+    d, null_d = _local_event_screen()
+    valid = np.ones(d.shape, bool)
+    null = NullDistribution.from_values(null_d, "A: A1/A2")
+    event = np.zeros((6, 6), bool)
+    event[2:4, 2:4] = True
+    reached = event.copy()
+    reached[3, 4] = True
+
+    def regions(t):
+        c = d > t
+        lab, n = ndimage.label(c, structure=np.ones((3, 3), bool))
+        keep = np.bincount(lab.ravel()) >= 16
+        keep[0] = False
+        return keep[lab]
+
+    # the old rule: the no-change pair's 99 % quantile, then Otsu's split above it; any region flags its tile
+    t_old = threshold_from_nochange(null_d, 1.0, d_test=d)
+    assert t_old > 1.4
+    assert not (flag_tiles(regions(t_old), 128).tiles & event).any()
+    # the new rule: the screened pair's own quantile is the lower bound here, and the rule says so
+    t, rule, info = flag_threshold(d, null, 1.0)
+    assert t == pytest.approx(np.quantile(d, 0.99)) and t < 0.95 < null.threshold(1.0)
+    assert "own" in rule and info["own_quantile"] < info["null_quantile"]
+    assert chance_cells(np.array([64.0]), 0.01, 0.01)[0] == 3
+    fl, tinfo = flag_tiles_by_chance(regions(t), valid, 128, 16, 0.01)
+    np.testing.assert_array_equal(fl.tiles, reached)
+    assert tinfo["tiles_by_chance_rule"] == 4 and tinfo["tiles_added_by_reach"] == 1
+    # with the no-change pair's threshold instead of the lower bound, the event is lost (the old threshold fails)
+    fl_null, _ = flag_tiles_by_chance(regions(null.threshold(1.0)), valid, 128, 16, 0.01)
+    assert not (fl_null.tiles & event).any()
+    # nothing changed: the own quantile flags 1 % of the cells by construction, scattered; chance keeps them out
+    d0, _ = _local_event_screen(with_change=False)
+    t0, _, _ = flag_threshold(d0, null, 1.0)
+    c0 = d0 > t0
+    assert 0.005 < c0.mean() <= 0.011
+    fl0, _ = flag_tiles_by_chance(c0, valid, 128, 16, 0.01)
+    assert fl0.tiles.sum() <= 1
+    assert flag_tiles(c0, 128).tiles.sum() > 10      # the old "any region" tile rule would flag most tiles
+    # no no-change pair and too few screened values: a clear error, not a threshold of nothing
+    from geocd.errors import EmptyDataError
+
+    with pytest.raises(EmptyDataError, match="no-change pair"):
+        flag_threshold(np.full((5, 5), np.nan), None, 1.0)
