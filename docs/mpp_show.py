@@ -9,6 +9,7 @@ Usage (from the repository root)::
         [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior,
         # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring,
         # EHF / EHI: ED + height with the sub-cell edge fit (--edge-fit joint / image)
+        # EHWF / EHW: the height ring past the DSM's measured wall blur, with / without the edge fit
     .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
     .venv/bin/python docs/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
@@ -54,11 +55,16 @@ VARIANTS = {
     "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0, "edge_fit": "off"}, True, True),
     "ED + height + step term": ("ED", {"height": "and", "step": "and", "edge_fit": "off"}, True, False),
     "ED + height, step in the ring": ("ED", {"height": "and", "step": "ring", "edge_fit": "off"}, True, False),
-    "ED + height + edge fit (joint)": ("ED", {"height": "and", "edge_fit": "joint"}, True, False),   # default
-    "ED + height + edge fit (image)": ("ED", {"height": "and", "edge_fit": "image"}, True, False),
+    "ED + height + edge fit (joint)": ("ED", {"height": "and", "edge_fit": "joint", "wall_blur": "off"}, True, False),
+    "ED + height + edge fit (image)": ("ED", {"height": "and", "edge_fit": "image", "wall_blur": "off"}, True, False),
+    # the height ring past the DSM's blurred walls, measured on each image (wall_blur="measured")
+    "ED + height + wall band + edge fit (joint)": ("ED", {"height": "and", "edge_fit": "joint", "wall_blur": "measured"},
+                                                  True, False),
+    "ED + height + wall band, no edge fit": ("ED", {"height": "and", "edge_fit": "off", "wall_blur": "measured"},
+                                             True, False),
 }
 #: short names for ``--only``
-SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR", "EHF", "EHI"), VARIANTS))
+SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR", "EHF", "EHI", "EHWF", "EHW"), VARIANTS))
 
 
 def _town_inputs(town: Path, ortho_dir: Path):
@@ -122,7 +128,9 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
     out = {"scene": str(name), "views": [inp["view_a"], inp["view_b"]], "rows": rows}
     if best is not None:
         tag = Path(name).name
-        if "edge fit" in best_label:
+        if "wall band" in best_label:
+            tag += "_wallband"
+        elif "edge fit" in best_label:
             tag += "_edgefit"
         elif best_label != "ED + height (geocd)":
             tag += "_prior"
