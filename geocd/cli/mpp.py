@@ -36,10 +36,10 @@ import numpy as np
               help="After the annealing, move each side of each building rectangle (¼-cell steps, within the "
                    "ring width) onto the image's strongest edge across it: 'joint' only where the DSM has a wall "
                    "there, 'image' the image edge alone, 'off' none.")
-@click.option("--wall-blur", "wall_blur", type=click.Choice(["off", "measured"]), default=None,
+@click.option("--wall-blur", "wall_blur", type=click.Choice(["off", "measured"]), default="off", show_default=True,
               help="How the height term reads the DSM's blurred walls: 'measured' the blur is measured on each "
                    "image (the DSM's profile across the image's edges) and the height ring and the raised fraction "
-                   "skip it; 'off' (default) the plain term.")
+                   "read it; 'off' the plain term.")
 @click.option("--change-prior", type=click.Path(path_type=str), default=None,
               help="3-D change evidence as a prior on the change label: a geocd change raster (band 'confidence', "
                    "e.g. OUT/sc_change.tif from geocd run) or any 0–1 map.")
