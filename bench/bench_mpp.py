@@ -69,12 +69,12 @@ def kernel_bench(repeat: int) -> dict:
             2.5, float(m.edge_w), float(m.ring_w), float(m.shadow_w), 3.0 * f.noise_sigma, 2.0)
     out = np.empty((len(rects), K.N_FEATURES))
     t0 = time.perf_counter()
-    K.rect_features(rects[:2], *args, -np.inf, out[:2])
+    K.rect_features(rects[:2], *args, -np.inf, float(m.edge_w), 0.0, out[:2])
     cold = time.perf_counter() - t0
     tk, tr = [], []
     for _ in range(repeat):
         t0 = time.perf_counter()
-        K.rect_features(rects, *args, -np.inf, out)
+        K.rect_features(rects, *args, -np.inf, float(m.edge_w), 0.0, out)
         tk.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
         ref = K.rect_features_ref(rects[:40], *args)

@@ -9,8 +9,10 @@ Usage (from the repository root)::
         [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior,
         # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring,
         # EHF / EHI: ED + height with the sub-cell edge fit (--edge-fit joint / image)
+        # EHWF: the same with the height term reading the DSM's measured wall blur (--wall-blur measured)
     .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
     .venv/bin/python docs/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
+    .venv/bin/python docs/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
     .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
@@ -54,11 +56,14 @@ VARIANTS = {
     "ED + height + 3-D prior (geocd)": ("ED", {"height": "and", "gamma_3d": 1.0, "edge_fit": "off"}, True, True),
     "ED + height + step term": ("ED", {"height": "and", "step": "and", "edge_fit": "off"}, True, False),
     "ED + height, step in the ring": ("ED", {"height": "and", "step": "ring", "edge_fit": "off"}, True, False),
-    "ED + height + edge fit (joint)": ("ED", {"height": "and", "edge_fit": "joint"}, True, False),   # default
-    "ED + height + edge fit (image)": ("ED", {"height": "and", "edge_fit": "image"}, True, False),
+    "ED + height + edge fit (joint)": ("ED", {"height": "and", "edge_fit": "joint", "wall_blur": "off"}, True, False),
+    "ED + height + edge fit (image)": ("ED", {"height": "and", "edge_fit": "image", "wall_blur": "off"}, True, False),
+    # the height ring past the DSM's blurred walls, measured on each image (wall_blur="measured")
+    "ED + height + wall band + edge fit (joint)": ("ED", {"height": "and", "edge_fit": "joint", "wall_blur": "measured"},
+                                                  True, False),
 }
 #: short names for ``--only``
-SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR", "EHF", "EHI"), VARIANTS))
+SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR", "EHF", "EHI", "EHWF"), VARIANTS))
 
 
 def _town_inputs(town: Path, ortho_dir: Path):
@@ -122,7 +127,9 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
     out = {"scene": str(name), "views": [inp["view_a"], inp["view_b"]], "rows": rows}
     if best is not None:
         tag = Path(name).name
-        if "edge fit" in best_label:
+        if "wall band" in best_label:
+            tag += "_wallband"
+        elif "edge fit" in best_label:
             tag += "_edgefit"
         elif best_label != "ED + height (geocd)":
             tag += "_prior"
@@ -313,6 +320,25 @@ def edges(name: Path, ortho_dir: Path) -> dict:
               flush=True)
     (DOCS / f"mpp_edges_{Path(name).name}.json").write_text(json.dumps(out, indent=1))
     _edges_plot(out, Path(name).name)
+    return out
+
+
+def walls(name: Path, ortho_dir: Path) -> dict:
+    """The DSM's wall blur as geocd measures it on each date without truth (``features.wall_blur_m``)."""
+    from geocd.mpp.features import image_features, wall_blur_m
+
+    inp = _town_inputs(name, ortho_dir)
+    p = MPPParams(height="and")
+    out = {}
+    for k in "ab":
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            f = image_features(inp[f"image_{k}"], inp["grid"].posting_m, p, valid=inp[f"valid_{k}"],
+                               dsm_m=inp[f"dsm_{k}"], ground_m=inp["ground"])
+        r = wall_blur_m(f.ndsm, f.grad_mag, f.grad_ori, f.valid, f.edge_level, inp["grid"].posting_m,
+                        p.min_height_m, p.side_min_m)
+        out[k.upper()] = {key: (round(v, 2) if isinstance(v, float) else v) for key, v in r.items()}
+        print(k.upper(), out[k.upper()], flush=True)
     return out
 
 
@@ -689,6 +715,8 @@ if __name__ == "__main__":
             only = [SHORT[x] for x in args[k + 1].split(",")]
             args = args[:k] + args[k + 2:]
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
+    elif what == "walls":      # walls TOWN ORTHO_DIR: the DSM's wall blur measured without truth
+        walls(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP] [EDGE_FIT]
         recall(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0,
                sys.argv[5] if len(sys.argv) > 5 else "and", sys.argv[6] if len(sys.argv) > 6 else "off")

@@ -75,7 +75,7 @@ def _pooled_var(mom, k):
 
 @njit(cache=True)
 def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, min_h, edge_w, ring_w,
-                  shadow_w, flood_tol, flood_spread, grad_gate, out):
+                  shadow_w, flood_tol, flood_spread, grad_gate, ring_in, core_in, out):
     """Raw object features of every rectangle on one image (see ``F_*``).
 
     Parameters
@@ -89,7 +89,14 @@ def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, 
     grad_gate : below this edge feature (``F_GRADIENT`` or ``F_GRADIENT_SIDES``, whichever is larger) the
         homogeneity features are not computed (NaN): a caller whose every homogeneity prototype also needs
         the gradient passes its d_Λ (the object is repulsive anyway), else −inf
-    (the height ring lies between ``edge_w`` and ``edge_w + ring_w`` outside: clear of a stereo DSM's blurred walls)
+    ring_in : the outer limit (cells) of the DSM's blurred-wall band. The height ring ("the ring outside is
+        ground") lies between ``edge_w`` and ``edge_w + ring_w`` outside the rectangle; a ring cell counts as
+        ground when its height is at most ``min_h`` or, within ``ring_in`` of the rectangle, at most half the
+        rectangle's height (the nDSM at its centre, as the height births' level): a true wall's blurred lower
+        half, not a roof that goes on. ``ring_in`` ≤ ``edge_w``: the plain ground test everywhere
+    core_in : the raised fraction inside is counted over the cells at least ``core_in`` (cells) inside the
+        sides (a blurred wall's upper part, low or rough, is not roof; all inside cells when none is that
+        deep); 0: every inside cell
     out : float64 (n, N_FEATURES), written (NaN = feature unavailable)
     """
     H, W = grey.shape
@@ -119,6 +126,8 @@ def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, 
         sh_in = 0.0
         ra_in = 0.0
         ra_in_n = 0
+        ra_core = 0.0
+        ra_core_n = 0
         ring_n = 0
         col_out = 0.0
         ra_out = 0.0
@@ -128,6 +137,11 @@ def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, 
         # halves about either axis (v-split: about the e_L axis; u-split: about the e_l axis): grey moments
         mom = np.zeros((4, 5))
         x0 = grey[min(max(int(round(cy)), 0), H - 1), min(max(int(round(cx)), 0), W - 1)]
+        half_h = min_h
+        if has_h:
+            hc = ndsm[min(max(int(round(cy)), 0), H - 1), min(max(int(round(cx)), 0), W - 1)]
+            if hc == hc:
+                half_h = max(min_h, 0.5 * hc)
         for i in range(i0, i1 + 1):
             ja, jb = _row_span(i, cx, cy, c, s, hL + pad, hl + pad, j0, j1)
             for j in range(ja, jb + 1):
@@ -163,6 +177,10 @@ def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, 
                         ra_in_n += 1
                         if ndsm[i, j] > min_h:
                             ra_in += 1.0
+                        if dist >= core_in:
+                            ra_core_n += 1
+                            if ndsm[i, j] > min_h:
+                                ra_core += 1.0
                     if dist >= 1.0:
                         x = grey[i, j] - x0
                         hv = 1 if v < 0.0 else 0
@@ -180,7 +198,7 @@ def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, 
                             col_out += 1.0 - colour[i, j]
                     if has_h and edge_w < dist <= edge_w + ring_w and ndsm[i, j] == ndsm[i, j]:
                         ra_out_n += 1
-                        if ndsm[i, j] <= min_h:
+                        if ndsm[i, j] <= (half_h if dist <= ring_in else min_h):
                             ra_out += 1.0
                     if has_s:
                         hit = False
@@ -209,6 +227,8 @@ def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, 
         out[r, F_COLOUR_OUT] = (col_out / ring_n if ring_n > 0 else 0.0) if has_c else np.nan
         out[r, F_SHADOW_IN] = sh_in / nv if has_s else np.nan
         out[r, F_SHADOW_OUT] = (shr / shr_n if shr_n > 0 else 0.0) if has_s else np.nan
+        if ra_core_n > 0:
+            ra_in, ra_in_n = ra_core, ra_core_n
         out[r, F_RAISED_IN] = (ra_in / ra_in_n if ra_in_n > 0 else 0.0) if has_h else np.nan
         out[r, F_RAISED_OUT] = (ra_out / ra_out_n if ra_out_n > 0 else 0.0) if has_h else np.nan
         out[r, F_VALID] = n_in_valid / n_in if n_in > 0 else 0.0
@@ -497,8 +517,8 @@ def _kurt_ref(x):
 
 
 def rect_features_ref(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, min_h, edge_w, ring_w,
-                      shadow_w, flood_tol, flood_spread, grad_gate=-np.inf) -> np.ndarray:
-    """numpy reference of :func:`rect_features`."""
+                      shadow_w, flood_tol, flood_spread, grad_gate=-np.inf, ring_in=None, core_in=0.0) -> np.ndarray:
+    """numpy reference of :func:`rect_features` (``ring_in`` None: ``edge_w``)."""
     from scipy import ndimage
 
     H, W = grey.shape
@@ -507,6 +527,7 @@ def rect_features_ref(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, nd
     for r, rect in enumerate(rects):
         eL, el, th = rect[2], rect[3], rect[4]
         hL, hl = eL / 2, el / 2
+        r_in = edge_w if ring_in is None else ring_in
         sl, u, v, (i0, i1, j0, j1) = _rect_grid(rect, (H, W), max(ring_w, shadow_w, edge_w) + 1.0)
         du, dv = np.abs(u) - hL, np.abs(v) - hl
         inside = (du <= 0) & (dv <= 0)
@@ -581,8 +602,13 @@ def rect_features_ref(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, nd
             nd = ndsm[sl]
             fin = inn & np.isfinite(nd)
             fout = ~inside & ok & (dist > edge_w) & (dist <= edge_w + ring_w) & np.isfinite(nd)
+            hc = ndsm[min(max(int(round(rect[1])), 0), H - 1), min(max(int(round(rect[0])), 0), W - 1)]
+            half_h = max(min_h, 0.5 * hc) if np.isfinite(hc) else min_h
+            ground = nd <= np.where(dist <= r_in, half_h, min_h)
+            if (fin & (dist >= core_in)).any():
+                fin = fin & (dist >= core_in)
             out[r, F_RAISED_IN] = (nd[fin] > min_h).mean() if fin.any() else 0.0
-            out[r, F_RAISED_OUT] = (nd[fout] <= min_h).mean() if fout.any() else 0.0
+            out[r, F_RAISED_OUT] = ground[fout].mean() if fout.any() else 0.0
         out[r, F_VALID] = inn.sum() / inside.sum() if inside.any() else 0.0
         out[r, F_AREA] = inside.sum()
     return out

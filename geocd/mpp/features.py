@@ -40,6 +40,10 @@ class ImageFeatures:
     planar_tol_m : the plane-fit residual above which a cell is rough (measured on the ground cells)
     step_min_m : the smallest significant height step at a rectangle's side, 3 √2 σ_z (σ_z: the DSM's
         noise on the ground cells, see :func:`dsm_noise_m`)
+    wall_out_m : how far outside the image's edges the DSM's walls fall to 10 % of their height (m; NaN
+        when not measurable; see :func:`wall_blur_m`)
+    wall_ground_m : the same, where they fall below ``min_height_m`` (the height ring's ground test)
+    wall_in_m : how far inside the image's edges they reach 90 % of their height (m)
     noise_sigma : float, grey-level noise σ
     edge_level : float, the top-decile gradient magnitude (what a strong edge is, for snapping births)
     notes : list of str
@@ -60,6 +64,9 @@ class ImageFeatures:
     planar: np.ndarray | None = None
     planar_tol_m: float = float("nan")
     step_min_m: float = float("nan")
+    wall_out_m: float = float("nan")
+    wall_ground_m: float = float("nan")
+    wall_in_m: float = float("nan")
     noise_sigma: float = 1.0
     edge_level: float = 0.0
     notes: list[str] = field(default_factory=list)
@@ -244,6 +251,104 @@ def dsm_noise_m(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_heig
     return float(np.median(res[gnd])) if gnd.any() else float("nan")
 
 
+def wall_blur_m(ndsm: np.ndarray, grad_mag: np.ndarray, grad_ori: np.ndarray, valid: np.ndarray,
+                edge_level: float, posting_m: float, min_height_m: float, side_min_m: float,
+                level: float = 0.1, max_cells: int = 20000) -> dict:
+    """How far a DSM's walls spill outside the image's edges, measured on the scene itself (no truth).
+
+    The image's strong edges (gradient ≥ ``edge_level``, the top decile, and a local maximum across the edge)
+    are where the walls are in an orthoimage (a wall is a sharp edge there, a stereo DSM's wall a ramp). Where
+    the DSM has a wall across such an edge — it rises by more than ``min_height_m`` from ground (below
+    ``min_height_m``) within ``side_min_m`` on the low side to its top within ``side_min_m`` / 2 on the high
+    side (half the smallest building: still on its roof) — the nDSM is sampled along the edge's normal
+    (bilinear, ¼-cell steps) and scaled to 0 (low) … 1 (high). The median of these profiles falls to
+    ``level`` (10 %) at ``out_m`` outside the image edge: the blurred, fattened wall's outer foot. Its rise
+    from ``level`` to 1 − ``level`` is ``rise_m``, its half-height crossing ``half_m`` (< 0: outside), and
+    ``ground_m`` is where it falls to the ground test of the height ring (nDSM ≤ ``min_height_m``, as a
+    fraction of each wall's height, median over the walls); ``in_m`` is how far inside the image edge it
+    reaches 1 − ``level`` (90 %): the blurred wall's upper foot.
+
+    Returns a dict: ``out_m`` (m, ≥ 0; NaN when fewer than 50 wall cells are found), ``rise_m``, ``half_m``,
+    ``walls`` (the number of edge cells used).
+    """
+    res = {"out_m": float("nan"), "ground_m": float("nan"), "in_m": float("nan"), "rise_m": float("nan"),
+           "half_m": float("nan"), "walls": 0}
+    nd = np.asarray(ndsm, np.float64)
+    H, W = nd.shape
+    has = np.isfinite(nd)
+    if not has.any():
+        return res
+    ndf = np.where(has, nd, 0.0)
+    dc = np.cos(grad_ori).astype(np.float64)            # the gradient's direction in (col, row): (cos, −sin)
+    dr = -np.sin(grad_ori).astype(np.float64)
+    cand = valid & (grad_mag >= edge_level) & (grad_mag > 0)
+    ii, jj = np.nonzero(cand)
+    if ii.size == 0:
+        return res
+    # a local maximum across the edge (nearest cells one step either way along the gradient)
+    a = np.clip(np.round(ii + dr[ii, jj]).astype(int), 0, H - 1), np.clip(np.round(jj + dc[ii, jj]).astype(int), 0, W - 1)
+    b = np.clip(np.round(ii - dr[ii, jj]).astype(int), 0, H - 1), np.clip(np.round(jj - dc[ii, jj]).astype(int), 0, W - 1)
+    g = grad_mag[ii, jj]
+    keep = (g >= grad_mag[a]) & (g >= grad_mag[b])
+    ii, jj = ii[keep], jj[keep]
+    if ii.size > max_cells:
+        sel = np.random.default_rng(0).choice(ii.size, max_cells, replace=False)
+        ii, jj = ii[np.sort(sel)], jj[np.sort(sel)]
+    step = 0.25
+    reach_out = side_min_m / posting_m
+    t = np.arange(-reach_out, 0.5 * reach_out + 1e-9, step)          # cells; + towards the high side
+    ci = ii[:, None] + dr[ii, jj][:, None] * t[None]
+    cj = jj[:, None] + dc[ii, jj][:, None] * t[None]
+    prof = ndimage.map_coordinates(ndf, [ci.ravel(), cj.ravel()], order=1, mode="nearest").reshape(ci.shape)
+    seen = ndimage.map_coordinates(has.astype(np.float64), [ci.ravel(), cj.ravel()], order=1,
+                                   mode="nearest").reshape(ci.shape) > 0.999
+    prof = np.where(seen, prof, np.nan)
+    # orient every profile so that + points to the high side: flip those whose far + end is the lower
+    lo_end = np.nanmean(prof[:, t <= -0.5 * reach_out], axis=1)
+    hi_end = np.nanmean(prof[:, t >= 0.25 * reach_out], axis=1)
+    flip = hi_end < lo_end
+    if flip.any():
+        # sample the other way for those: the same offsets along the reversed normal
+        ci2 = ii[flip][:, None] - dr[ii[flip], jj[flip]][:, None] * t[None]
+        cj2 = jj[flip][:, None] - dc[ii[flip], jj[flip]][:, None] * t[None]
+        p2 = ndimage.map_coordinates(ndf, [ci2.ravel(), cj2.ravel()], order=1, mode="nearest").reshape(ci2.shape)
+        s2 = ndimage.map_coordinates(has.astype(np.float64), [ci2.ravel(), cj2.ravel()], order=1,
+                                     mode="nearest").reshape(ci2.shape) > 0.999
+        prof[flip] = np.where(s2, p2, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        low = np.nanmin(prof[:, t <= 0], axis=1)
+        high = np.nanmax(prof[:, t >= 0], axis=1)
+        wall = (np.all(np.isfinite(prof), axis=1) & (low < min_height_m) & (high - low > min_height_m))
+        if wall.sum() < 50:
+            res["walls"] = int(wall.sum())
+            return res
+        norm = (prof[wall] - low[wall, None]) / (high[wall] - low[wall])[:, None]
+        med = np.median(norm, axis=0)
+
+    def crossing(lv):            # from the edge (t = 0) outwards: the first fall below the level
+        k0 = int(np.argmin(np.abs(t)))
+        if med[k0] < lv:         # already below at the edge: the wall lies inside the image edge
+            for k in range(k0, t.size - 1):
+                if med[k] < lv <= med[k + 1]:
+                    return float(t[k] + (lv - med[k]) / (med[k + 1] - med[k]) * step)
+            return float("nan")
+        for k in range(k0, 0, -1):
+            if med[k - 1] < lv <= med[k]:
+                return float(t[k - 1] + (lv - med[k - 1]) / (med[k] - med[k - 1]) * step)
+        return float("nan")
+
+    c_lo, c_half, c_hi = crossing(level), crossing(0.5), crossing(1.0 - level)
+    # the level of the ground test (nDSM ≤ min_height_m) on the median wall's scale
+    lv_g = float(np.median((min_height_m - low[wall]) / (high[wall] - low[wall])))
+    c_g = crossing(lv_g) if 0.0 < lv_g < 1.0 else float("nan")
+    res.update(out_m=max(0.0, -c_lo * posting_m) if np.isfinite(c_lo) else float("nan"),
+               ground_m=max(0.0, -c_g * posting_m) if np.isfinite(c_g) else float("nan"),
+               in_m=max(0.0, c_hi * posting_m) if np.isfinite(c_hi) else float("nan"),
+               rise_m=(c_hi - c_lo) * posting_m, half_m=c_half * posting_m, walls=int(wall.sum()))
+    return res
+
+
 def segment_sides_m(ndsm: np.ndarray, posting_m: float, min_height_m: float, side_min_m: float) -> np.ndarray:
     """Sides (m) of the raised segments of an nDSM: (n, 2) long and short side of each segment's equivalent
     rectangle (same second moments: side = √12 σ along each principal axis).
@@ -359,7 +464,7 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         notes.append("grey image: colour and shadow terms dropped" if bands.shape[0] < 3 else
                      "colour and shadow terms switched off")
     ndsm = planar = None
-    planar_tol = step_min = float("nan")
+    planar_tol = step_min = wall_out = wall_ground = wall_in = float("nan")
     if dsm_m is not None:
         d = np.asarray(dsm_m, np.float64)
         if d.shape != grey.shape:
@@ -386,6 +491,15 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
             step_min = 3.0 * math.sqrt(2.0) * sigma_z
             notes.append(f"DSM steps: an outline steps down where inside − outside ≥ {step_min:.2f} m "
                          f"(3 √2 σ_z, σ_z = {sigma_z:.3f} m on the ground cells)")
+        blur = wall_blur_m(ndsm, mag, ori, ok, float(np.percentile(mag[ok], 90)), posting_m, params.min_height_m,
+                           params.side_min_m)
+        wall_out, wall_ground, wall_in = blur["out_m"], blur["ground_m"], blur["in_m"]
+        if np.isfinite(wall_out):
+            notes.append(f"DSM walls: they rise from 10 % of their height {wall_out:.2f} m outside the image's edges "
+                         f"to 90 % {wall_in:.2f} m inside, "
+                         f"below {params.min_height_m:g} m {wall_ground:.2f} m outside (half height "
+                         f"{-blur['half_m']:+.2f} m outside, 10–90 % rise {blur['rise_m']:.2f} m; median over "
+                         f"{blur['walls']} wall cells)")
         raised = ndimage.uniform_filter((np.nan_to_num(ndsm, nan=0.0) > params.min_height_m).astype(np.float32),
                                         size=max(3, win // 2) | 1, mode="constant")
         if raised[ok].mean() > 0:
@@ -396,7 +510,8 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     birth = (birth / mb if mb > 0 else birth).astype(np.float32)
     return ImageFeatures(grey=grey, valid=ok, grad_mag=mag, grad_ori=ori, density=dens, alpha=alpha,
                          mode_deg=mode, birth=birth, colour_mask=colour, shadow_mask=shadow, shadow_dir=sdir,
-                         ndsm=ndsm, planar=planar, planar_tol_m=planar_tol, step_min_m=step_min, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
+                         ndsm=ndsm, planar=planar, planar_tol_m=planar_tol, step_min_m=step_min, wall_out_m=wall_out,
+                         wall_ground_m=wall_ground, wall_in_m=wall_in, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
                          notes=notes)
 
 

@@ -169,6 +169,23 @@ class EnergyModel:
             self._hcache[key] = np.where(f.planar == 0, np.float32(0.0), f.ndsm).astype(np.float32)
         return self._hcache[key]
 
+    def ring_in(self, f: ImageFeatures) -> float:
+        """The outer limit (cells) of the DSM's blurred-wall band around a rectangle: within it, a cell of the
+        height ring ("the ring outside is ground") only needs to be below half the rectangle's height. With
+        ``wall_blur="measured"``: where this image's DSM walls fall to 10 % of their height outside its edges
+        (:func:`~geocd.mpp.features.wall_blur_m`); otherwise the edge band (the plain ground test)."""
+        if self.params.wall_blur == "measured" and math.isfinite(f.wall_out_m):
+            return max(self.edge_w, f.wall_out_m / self.posting_m)
+        return self.edge_w
+
+    def core_in(self, f: ImageFeatures) -> float:
+        """How deep inside a rectangle's sides (cells) the raised fraction starts being counted: with
+        ``wall_blur="measured"``, past the DSM's blurred wall (where it reaches 90 % of its height inside this
+        image's edges: the ramp is low or rough, and rough cells do not count as raised); otherwise 0."""
+        if self.params.wall_blur == "measured" and math.isfinite(f.wall_in_m):
+            return f.wall_in_m / self.posting_m
+        return 0.0
+
     def _raw_one(self, f: ImageFeatures, rects: np.ndarray, gate: float) -> np.ndarray:
         empty_u8 = np.zeros((0, 0), np.uint8)
         out = np.empty((rects.shape[0], K.N_FEATURES))
@@ -179,7 +196,7 @@ class EnergyModel:
                         self._height_map(f),
                         float(self.params.min_height_m), float(self.edge_w), float(self.ring_w),
                         float(self.shadow_w), float(3.0 * f.noise_sigma), float(self.params.flood_spread), float(gate),
-                        out)
+                        float(self.ring_in(f)), float(self.core_in(f)), out)
         out = np.column_stack([out, np.full((rects.shape[0], 2), np.nan)])
         if f.ndsm is not None and self.params.step != "off" and math.isfinite(f.step_min_m) and rects.shape[0]:
             st = np.empty(rects.shape[0])

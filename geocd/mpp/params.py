@@ -98,6 +98,18 @@ class MPPParams(ParamsMixin):
         A refit is kept when its gradient energy does not rise on any date the object exists on and it
         stays attractive (A_D < 0); A_D itself is not compared, because its height ring rewards the stereo
         DSM's walls, which lie up to 1.3 m outside the true ones (the ortho's edges: within 0.2 m; docs/mpp.md)
+    wall_blur : beyond the paper, with the height term: how it reads a stereo DSM's blurred walls, whose
+        extent is measured on each image without truth (``features.wall_blur_m``: the median nDSM profile
+        across the image's strong edges where the DSM has a wall rises from 10 % of the wall's height
+        ``wall_out_m`` outside the edge to 90 % ``wall_in_m`` inside; 1.9 m and 1.3 m on sample_aoi's date A).
+        "off": the plain term (a ring cell, ``edge_width_m`` to ``edge_width_m + ring_m`` outside, is ground
+        below ``min_height_m``; every inside cell counts for the raised fraction). "measured": a ring cell
+        within ``wall_out_m`` of the rectangle is ground below half the rectangle's height (the half-height
+        level of the height births: a true wall's blurred lower half, not a roof going on), and the raised
+        fraction inside is counted past ``wall_in_m`` from the sides (the blurred wall's upper part is low or
+        rough, and rough cells do not count as raised). A stereo DSM's walls spill 0.3–1.3 m outside the true
+        ones, so the plain ring holds raised cells around a rectangle on the true walls and prefers one grown
+        onto the DSM's walls (docs/mpp.md, "Where the walls are")
     beta0, beta_factor, delta0, delta_factor : annealing schedules
     max_iter, min_iter : iteration cap and floor
     seed : random seed (same seed, same inputs → same objects)
@@ -133,6 +145,7 @@ class MPPParams(ParamsMixin):
     perturb_births: bool = True
     snap_births: float = 0.5
     edge_fit: str = "joint"
+    wall_blur: str = "off"
     beta0: float = 10.0
     beta_factor: float = 1.08
     delta0: float = 1.0
@@ -159,6 +172,8 @@ class MPPParams(ParamsMixin):
             raise ConfigError(f"planarity must be off, core, roof or both, got {self.planarity!r}")
         if self.step not in ("off", "and", "ring"):
             raise ConfigError(f"step must be off, and or ring, got {self.step!r}")
+        if self.wall_blur not in ("off", "measured"):
+            raise ConfigError(f"wall_blur must be off or measured, got {self.wall_blur!r}")
         if self.edge_fit not in ("off", "joint", "image"):
             raise ConfigError(f"edge_fit must be off, joint or image, got {self.edge_fit!r}")
         if self.max_iter < 1 or self.min_iter < 0:

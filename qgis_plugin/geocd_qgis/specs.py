@@ -319,6 +319,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   cli="--edge-fit", default=0, options=(("image edges where the DSM has a wall", "joint"),
                                                         ("image edges alone", "image"), ("off", "off")),
                   advanced=True),
+            Param("WALL_BLUR", "enum", "Height term: skip the DSM's blurred walls (measured on each image)",
+                  cli="--wall-blur", default=0, options=(("off", "off"), ("measured", "measured")), advanced=True),
             Param("EPOCH_A", "string", "Earlier epoch (default: the first)", cli="--epoch-a", optional=True,
                   advanced=True),
             Param("EPOCH_B", "string", "Later epoch (default: the last)", cli="--epoch-b", optional=True,

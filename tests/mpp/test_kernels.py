@@ -34,13 +34,13 @@ def _scene(seed=0, with_layers=True):
     return rects, grey, valid, mag, ori, colour, shadow, ndsm
 
 
-@pytest.mark.parametrize("with_layers", [True, False])
-def test_rect_features_match_reference(with_layers):
+@pytest.mark.parametrize("with_layers,ring_in,core_in", [(True, 1.0, 0.0), (False, 1.0, 0.0), (True, 4.5, 2.5)])
+def test_rect_features_match_reference(with_layers, ring_in, core_in):
     rects, grey, valid, mag, ori, colour, shadow, ndsm = _scene(with_layers=with_layers)
     args = (grey, valid, mag, ori, colour, shadow, 0.0, 1.0, ndsm, 2.5, 1.0, 3.0, 4.0, 9.0, 2.0, -np.inf)
     out = np.empty((rects.shape[0], K.N_FEATURES))
-    K.rect_features(rects, *args, out)
-    ref = K.rect_features_ref(rects, *args)
+    K.rect_features(rects, *args, ring_in, core_in, out)
+    ref = K.rect_features_ref(rects, *args, ring_in, core_in)
     np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-9)      # kurtosis: raw vs central moments
     # the aligned rectangle outlines the block; its shadow ring is shadow; it is raised with low surroundings
     if with_layers:

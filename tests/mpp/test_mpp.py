@@ -380,3 +380,53 @@ def test_default_run_puts_the_sides_on_the_walls_of_a_fattened_dsm():
     assert f_fit > 0.92 and f_fit > f_off + 0.04, (f_fit, f_off)
     again, _ = run()                                      # the fit is deterministic: same seed, same objects
     np.testing.assert_array_equal(again.result.rects, d.result.rects)
+
+
+def test_wall_blur_is_measured_on_the_scene():
+    """The DSM's walls' outer foot (10 % of their height) outside the image's edges, measured without truth: the
+    toy DSM is fattened by ``f`` cells and box-blurred over 5 cells (±1.25 m), so the foot lies
+    f × 0.5 m + 0.8 × 1.25 m outside the true walls, where the image's edges are."""
+    from geocd.mpp.features import wall_blur_m
+
+    p = MPPParams(height="and")
+    for fat in (0, 2, 4):
+        _, img, dsm, ground = _fattened_block(fat)
+        f = image_features(img, POSTING, p, dsm_m=dsm, ground_m=ground)
+        assert abs(f.wall_out_m - (0.5 * fat + 1.0)) <= 0.15, (fat, f.wall_out_m)
+        assert any(n.startswith("DSM walls") for n in f.notes), f.notes
+    flat = np.full(img.shape[1:], 50.0, np.float32)
+    f = image_features(img, POSTING, p, dsm_m=flat, ground_m=ground)
+    got = wall_blur_m(f.ndsm, f.grad_mag, f.grad_ori, f.valid, f.edge_level, POSTING, 2.5, 6.0)
+    assert np.isnan(got["out_m"]) and np.isnan(f.wall_out_m) and got["walls"] == 0
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_measured_wall_band_lets_the_annealing_find_the_true_walls(seed):
+    """With the height term reading the DSM's measured wall blur (``wall_blur="measured"``), the annealing alone
+    (no edge fit) puts the fattened-DSM building's rectangle on the true walls: the ring no longer counts the
+    blurred wall's lower half around the true outline as raised. With the plain ring (``"off"``) it lands on
+    the DSM's walls, 1.5–2.5 m too large (measured: 26.2 × 34.3 and 25.1 × 36.6 cells, truth 22 × 32)."""
+    from geocd.mpp.model import EnergyModel
+
+    bld, img, dsm, ground = _fattened_block(2)
+    truth = rect_masks(np.array([bld]), np.array([0], np.int8), img.shape[1:])["date1"]
+    got = {}
+    for wb in ("off", "measured"):
+        p = MPPParams(seed=seed, height="and", edge_fit="off", wall_blur=wb)
+        d = detect(img, img, POSTING, p, method="ED", dsm_a=dsm, dsm_b=dsm, ground_m=ground)
+        assert len(d.result) == 1
+        m = rect_masks(d.result.rects, d.result.xi, truth.shape)["date1"]
+        got[wb] = (np.sort(d.result.rects[0, 2:4]), _f(m, truth))
+    assert np.abs(got["measured"][0] - [22.0, 32.0]).max() <= 1.0, got
+    assert (got["off"][0] - [22.0, 32.0]).max() >= 2.0, got
+    assert got["measured"][1] > 0.97 and got["off"][1] < 0.9, got
+    # the energy no longer prefers the fattened outline: the rectangle on the true walls is at least as good
+    p = MPPParams(height="and", wall_blur="measured")
+    f = image_features(img, POSTING, p, dsm_m=dsm, ground_m=ground)
+    model = EnergyModel([f], POSTING, p)
+    true_fat_in = np.array([list(bld), [bld[0], bld[1], bld[2] + 4.0, bld[3] + 4.0, bld[4]],
+                            [bld[0], bld[1], bld[2] - 4.0, bld[3] - 4.0, bld[4]]])
+    e = model.data_energy(model.raw(true_fat_in), np.array([1, 1, 1], np.int8))
+    # measured: −0.865 (true walls), −0.863 (1 m out), −0.711 (1 m in: its ring still sees the roof);
+    # with wall_blur="off" −0.707, −0.860, −0.232
+    assert e[0] <= e[1] and e[2] > e[0] + 0.1, e
