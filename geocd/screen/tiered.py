@@ -67,14 +67,20 @@ class Flagged:
         return float(self.examined(shape).mean())
 
 
+def tile_sums(values: np.ndarray, tile_cells: int) -> np.ndarray:
+    """float (tile rows, tile cols): the sum of ``values`` (rows, cols) over each tile of ``tile_cells`` cells
+    (the tiling layer's row-major tiles; the last row and column of tiles may be partial)."""
+    H, W = values.shape
+    T = int(tile_cells)
+    nr, nc = -(-H // T), -(-W // T)
+    pad = np.zeros((nr * T, nc * T), np.float64)
+    pad[:H, :W] = values
+    return pad.reshape(nr, T, nc, T).sum(axis=(1, 3))
+
+
 def flag_tiles(changed: np.ndarray, tile_cells: int, min_cells: int = 1) -> Flagged:
     """Tiles (of ``tile_cells`` cells, the tiling layer's row-major tiles) holding ≥ ``min_cells`` changed cells."""
-    H, W = changed.shape
-    nr, nc = -(-H // tile_cells), -(-W // tile_cells)
-    pad = np.zeros((nr * tile_cells, nc * tile_cells), bool)
-    pad[:H, :W] = changed
-    counts = pad.reshape(nr, tile_cells, nc, tile_cells).sum(axis=(1, 3))
-    return Flagged(tile_cells, counts >= max(int(min_cells), 1))
+    return Flagged(tile_cells, tile_sums(np.asarray(changed, bool), tile_cells) >= max(int(min_cells), 1))
 
 
 def flag_threshold(d_screened: np.ndarray, null, false_alarm_pct: float = 1.0) -> tuple[float, str, dict]:
@@ -139,17 +145,10 @@ def flag_tiles_by_chance(changed: np.ndarray, valid: np.ndarray, tile_cells: int
     tfa = float(rate if tile_false_alarm is None else tile_false_alarm)
     H, W = changed.shape
     T = int(tile_cells)
-    nr, nc = -(-H // T), -(-W // T)
-
-    def per_tile(m):
-        pad = np.zeros((nr * T, nc * T), np.float64)
-        pad[:H, :W] = m
-        return pad.reshape(nr, T, nc, T).sum(axis=(1, 3))
-
     u = float(unit_cells) ** 2
-    n_units = per_tile(np.asarray(valid, bool)) / u
+    n_units = tile_sums(np.asarray(valid, bool), T) / u
     k = chance_cells(n_units, rate, tfa)
-    area = per_tile(np.asarray(changed, bool)) / u
+    area = tile_sums(np.asarray(changed, bool), T) / u
     tiles = area > k
     by_chance = int(tiles.sum())
     lab, n = ndimage.label(changed, structure=np.ones((3, 3), bool))
@@ -158,7 +157,7 @@ def flag_tiles_by_chance(changed: np.ndarray, valid: np.ndarray, tile_cells: int
         reach = np.zeros(n + 1, bool)
         reach[np.unique(lab[core & (lab > 0)])] = True
         reach[0] = False
-        tiles = tiles | (per_tile(reach[lab]) > 0)
+        tiles = tiles | (tile_sums(reach[lab], T) > 0)
     info = {"rule": f"a tile is flagged when its changed area exceeds the upper {100 * tfa:g} % quantile of a "
                     f"Binomial(n, {rate:g}) count of {unit_cells}-cell units (n = its valid units), or when a "
                     "changed region of a flagged tile reaches into it",
