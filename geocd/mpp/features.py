@@ -297,24 +297,23 @@ def wall_blur_m(ndsm: np.ndarray, grad_mag: np.ndarray, grad_ori: np.ndarray, va
     step = 0.25
     reach_out = side_min_m / posting_m
     t = np.arange(-reach_out, 0.5 * reach_out + 1e-9, step)          # cells; + towards the high side
-    ci = ii[:, None] + dr[ii, jj][:, None] * t[None]
-    cj = jj[:, None] + dc[ii, jj][:, None] * t[None]
-    prof = ndimage.map_coordinates(ndf, [ci.ravel(), cj.ravel()], order=1, mode="nearest").reshape(ci.shape)
-    seen = ndimage.map_coordinates(has.astype(np.float64), [ci.ravel(), cj.ravel()], order=1,
-                                   mode="nearest").reshape(ci.shape) > 0.999
-    prof = np.where(seen, prof, np.nan)
+    hasf = has.astype(np.float64)
+
+    def profiles(i, j, sign):     # the nDSM at offsets t along sign × the normal (NaN where a sample lacks a height)
+        ci = i[:, None] + sign * dr[i, j][:, None] * t[None]
+        cj = j[:, None] + sign * dc[i, j][:, None] * t[None]
+        at = [ci.ravel(), cj.ravel()]
+        pr = ndimage.map_coordinates(ndf, at, order=1, mode="nearest").reshape(ci.shape)
+        seen = ndimage.map_coordinates(hasf, at, order=1, mode="nearest").reshape(ci.shape) > 0.999
+        return np.where(seen, pr, np.nan)
+
+    prof = profiles(ii, jj, 1.0)
     # orient every profile so that + points to the high side: flip those whose far + end is the lower
     lo_end = np.nanmean(prof[:, t <= -0.5 * reach_out], axis=1)
     hi_end = np.nanmean(prof[:, t >= 0.25 * reach_out], axis=1)
     flip = hi_end < lo_end
-    if flip.any():
-        # sample the other way for those: the same offsets along the reversed normal
-        ci2 = ii[flip][:, None] - dr[ii[flip], jj[flip]][:, None] * t[None]
-        cj2 = jj[flip][:, None] - dc[ii[flip], jj[flip]][:, None] * t[None]
-        p2 = ndimage.map_coordinates(ndf, [ci2.ravel(), cj2.ravel()], order=1, mode="nearest").reshape(ci2.shape)
-        s2 = ndimage.map_coordinates(has.astype(np.float64), [ci2.ravel(), cj2.ravel()], order=1,
-                                     mode="nearest").reshape(ci2.shape) > 0.999
-        prof[flip] = np.where(s2, p2, np.nan)
+    if flip.any():  # sample the other way for those: the same offsets along the reversed normal
+        prof[flip] = profiles(ii[flip], jj[flip], -1.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         low = np.nanmin(prof[:, t <= 0], axis=1)
@@ -463,6 +462,7 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     elif bands.shape[0] < 3 or not use_colour:
         notes.append("grey image: colour and shadow terms dropped" if bands.shape[0] < 3 else
                      "colour and shadow terms switched off")
+    edge_level = float(np.percentile(mag[ok], 90))         # what a strong edge is (births' snapping, walls)
     ndsm = planar = None
     planar_tol = step_min = wall_out = wall_ground = wall_in = float("nan")
     if dsm_m is not None:
@@ -491,8 +491,7 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
             step_min = 3.0 * math.sqrt(2.0) * sigma_z
             notes.append(f"DSM steps: an outline steps down where inside − outside ≥ {step_min:.2f} m "
                          f"(3 √2 σ_z, σ_z = {sigma_z:.3f} m on the ground cells)")
-        blur = wall_blur_m(ndsm, mag, ori, ok, float(np.percentile(mag[ok], 90)), posting_m, params.min_height_m,
-                           params.side_min_m)
+        blur = wall_blur_m(ndsm, mag, ori, ok, edge_level, posting_m, params.min_height_m, params.side_min_m)
         wall_out, wall_ground, wall_in = blur["out_m"], blur["ground_m"], blur["in_m"]
         if np.isfinite(wall_out):
             notes.append(f"DSM walls: they rise from 10 % of their height {wall_out:.2f} m outside the image's edges "
@@ -511,7 +510,7 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     return ImageFeatures(grey=grey, valid=ok, grad_mag=mag, grad_ori=ori, density=dens, alpha=alpha,
                          mode_deg=mode, birth=birth, colour_mask=colour, shadow_mask=shadow, shadow_dir=sdir,
                          ndsm=ndsm, planar=planar, planar_tol_m=planar_tol, step_min_m=step_min, wall_out_m=wall_out,
-                         wall_ground_m=wall_ground, wall_in_m=wall_in, noise_sigma=float(sigma), edge_level=float(np.percentile(mag[ok], 90)),
+                         wall_ground_m=wall_ground, wall_in_m=wall_in, noise_sigma=float(sigma), edge_level=edge_level,
                          notes=notes)
 
 
