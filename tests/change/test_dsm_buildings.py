@@ -125,19 +125,30 @@ def test_a_new_building_joined_to_a_standing_one_is_found():
 GRID_SMALL = AOIGrid.from_bounds(500000.0, 4000000.0, 500060.0, 4000060.0, 0.5, "EPSG:32637")
 
 
-def _gabled_house_and_crown(seed):
-    """Flat ground (σ 5 cm), a gabled house (8 × 14 m, eaves 6 m, 35° roof, σ 5 cm) and a tree crown (a dome
-    of radius 4.5 m on a 3 m trunk, leaves and gaps: σ 0.5 m per cell)."""
+def _house_block_crown(seed, ground_sigma, roof_sigma, crown_sigma, crown_col_m, block: bool):
+    """Flat ground (σ ``ground_sigma``), a gabled house (8 × 14 m, eaves 6 m, 35° roof, σ ``roof_sigma``), optionally
+    a flat-roofed block (14 × 14 m, 9 m high, σ ``roof_sigma``), and a tree crown (a dome of radius 4.5 m on a 3 m
+    trunk, leaves and gaps: σ ``crown_sigma`` per cell). Returns z and the masks (block None without one)."""
     rng = np.random.default_rng(seed)
     H, W = GRID_SMALL.shape
     r, c = np.mgrid[0:H, 0:W] * 0.5
-    z = 500.0 + rng.normal(0, 0.05, (H, W))
+    z = 500.0 + rng.normal(0, ground_sigma, (H, W))
     house = (r >= 10) & (r < 18) & (c >= 8) & (c < 22)
     z[house] = (506.0 + np.tan(np.radians(35)) * (4.0 - np.abs(r[house] - 14.0))
-                + rng.normal(0, 0.05, house.sum()))
-    d2 = (r - 40) ** 2 + (c - 40) ** 2
+                + rng.normal(0, roof_sigma, house.sum()))
+    blk = None
+    if block:
+        blk = (r >= 36) & (r < 50) & (c >= 6) & (c < 20)
+        z[blk] = 509.0 + rng.normal(0, roof_sigma, blk.sum())
+    d2 = (r - 40) ** 2 + (c - crown_col_m) ** 2
     crown = d2 < 4.5 ** 2
-    z[crown] = 503.0 + np.sqrt(4.5 ** 2 - d2[crown]) + rng.normal(0, 0.5, crown.sum())
+    z[crown] = 503.0 + np.sqrt(4.5 ** 2 - d2[crown]) + rng.normal(0, crown_sigma, crown.sum())
+    return z, house, blk, crown
+
+
+def _gabled_house_and_crown(seed):
+    """Ground and roof σ 5 cm, a crown of σ 0.5 m: the scene the planarity rule was written on."""
+    z, house, _, crown = _house_block_crown(seed, 0.05, 0.05, 0.5, 40, block=False)
     return z, house, crown
 
 
@@ -165,20 +176,8 @@ def test_unknown_tree_rule_is_a_config_error():
 
 def _town_like(seed):
     """Smooth ground (σ 2 cm, like the generated towns' DSMs), a gabled house and a flat-roofed block whose roofs
-    are noisier than the ground (σ 6 cm), and a tree crown (a dome of radius 4.5 m with leaves and gaps, σ 0.3 m)."""
-    rng = np.random.default_rng(seed)
-    H, W = GRID_SMALL.shape
-    r, c = np.mgrid[0:H, 0:W] * 0.5
-    z = 500.0 + rng.normal(0, 0.02, (H, W))
-    house = (r >= 10) & (r < 18) & (c >= 8) & (c < 22)
-    z[house] = (506.0 + np.tan(np.radians(35)) * (4.0 - np.abs(r[house] - 14.0))
-                + rng.normal(0, 0.06, house.sum()))
-    block = (r >= 36) & (r < 50) & (c >= 6) & (c < 20)
-    z[block] = 509.0 + rng.normal(0, 0.06, block.sum())
-    d2 = (r - 40) ** 2 + (c - 42) ** 2
-    crown = d2 < 4.5 ** 2
-    z[crown] = 503.0 + np.sqrt(4.5 ** 2 - d2[crown]) + rng.normal(0, 0.3, crown.sum())
-    return z, house, block, crown
+    are noisier than the ground (σ 6 cm), and a tree crown (σ 0.3 m)."""
+    return _house_block_crown(seed, 0.02, 0.06, 0.3, 42, block=True)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
