@@ -37,8 +37,9 @@ from ..consistency import (CHANGE_NODATA, ChangeParams, ChangeResult, DEMAsEpoch
 from ..errors import ConfigError, GridError, UnsupportedFormatError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
-from ..tiling import (RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work, run_tiled,
-                      write_product)
+from ..tiling import (WORK_DIR, RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work,
+                      run_tiled, write_product)
+from ..tiling.writer import check_assembly_room
 
 
 @dataclass(frozen=True)
@@ -261,6 +262,10 @@ class TiledChangeResult:
     tiles_resumed: int = 0
 
 
+#: the bands of the change raster of a large grid, in file order
+CHANGE_BANDS = ("dz_m", "dtilde", "score", "confidence", "cell_confidence", "dz_sigma_m")
+
+
 def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsistencyModel, out_dir, *,
                       params: ChangeParams = ChangeParams(), tiling=None, footprints=None,
                       method: str = "self-consistency", epoch_names: tuple[str, str] | None = None,
@@ -322,6 +327,9 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
     ea = epoch_names[0] if epoch_names else (recs_a[0].epoch or "A")
     eb = epoch_names[1] if epoch_names else (recs_b[0].epoch or "B")
     tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), 0)
+    if H * W > tiling.exact_grid_cells:  # its largest product is assembled last: refuse now, not after the tiles
+        check_assembly_room(RasterProduct(str(out / f"{prefix}_change.tif"), CHANGE_BANDS), grid.shape,
+                            out / WORK_DIR, out / f"{prefix}_change.tif")
     passes = resumed = 0
     with open_engine(tiling.scheduler, n_workers=tiling.n_workers, memory_limit=tiling.memory_limit) as eng:
         def run(func, stage, params_, overlap, inputs=None, products=None, f=(0.0, 1.0)):
@@ -493,7 +501,7 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
             "min_region_cells": str(meta["min_region_cells"])}
     if meta.get("calibration") is not None:
         tags["model_calibration"] = json.dumps(meta["calibration"].to_dict())
-    names = ("dz_m", "dtilde", "score", "confidence", "cell_confidence", "dz_sigma_m")
+    names = CHANGE_BANDS
     srcs = {n: (conf_store if n == "confidence" else store).source(n) for n in names}
     srcs["nobs"] = store.source("nobs")
     mmu = int(meta["min_region_cells"])

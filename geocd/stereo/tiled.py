@@ -39,7 +39,7 @@ from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
 from ..tiling import (WORK_DIR, RasterProduct, RasterSource, TileGrid, TileOutput, make_key, open_engine,
                       remove_work, run_tiled)
-from ..tiling.writer import write_product
+from ..tiling.writer import check_assembly_room, write_product
 from .params import StereoParams
 
 
@@ -269,6 +269,8 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
                 outputs[key], complete[key] = target, done
                 prog((i + 1) / len(todo), f"pair {i + 1}/{len(todo)} resumed: {target.name} is written")
                 continue
+            # its DEM is assembled after its tiles: refuse now, not after an hour of matching
+            check_assembly_room(RasterProduct(str(target), tuple(BANDS)), grid.shape, out / WORK_DIR, target)
             job = _pair_job(e.name, a, b, params, datum, grid, tiling, inputs.get("dem"))
             # a selection: runs of neighbouring selected tiles along a tile row are matched as one window
             tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), ov, tiles, merge_runs=tiles is not None)

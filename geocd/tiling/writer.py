@@ -11,14 +11,19 @@ the target and renamed onto it only when complete.
 from __future__ import annotations
 
 import contextlib
+import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from ..errors import DiskFullError
+from ..faults import free_bytes
 from ..geodesy import AOIGrid
 from ..io.atomic import atomic_path
+from ..io.outputs import OutputFolderWarning
 from .grid import TileGrid
 from .sources import GDAL_CACHE_MB
 from .store import TileStore
@@ -60,6 +65,58 @@ def overview_factors(shape: tuple[int, int]) -> list[int]:
     return [f for f in (2, 4, 8, 16, 32) if min(shape) // f >= 64]
 
 
+def assembly_bytes(product: RasterProduct, shape: tuple[int, int]) -> int:
+    """Bytes of ``product`` on a grid of ``shape`` (rows, cols), uncompressed, its overviews included.
+
+    The assembly GeoTIFF in the work folder is this size; the COG is this size divided by its
+    compression ratio (DEFLATE: ~1.1–3 on float products, far more on masks).
+    """
+    cells = int(shape[0]) * int(shape[1])
+    ov = sum(1.0 / (f * f) for f in overview_factors(shape))
+    return int(cells * len(product.bands) * np.dtype(product.dtype).itemsize * (1.0 + ov))
+
+
+def _device(path: Path) -> int | None:
+    for q in (path, *path.parents):
+        try:
+            return os.stat(q).st_dev
+        except OSError:
+            continue
+    return None
+
+
+def check_assembly_room(product: RasterProduct, shape: tuple[int, int], work: Path, target: Path,
+                        compression: float = 4.0) -> None:
+    """Refuse to assemble ``product`` when the disk cannot hold it, before a byte is written.
+
+    The assembly needs its uncompressed GeoTIFF in ``work`` and then the COG beside ``target``
+    (both at once). Refused (:class:`~geocd.errors.DiskFullError`) when even a COG ``compression``
+    times smaller than the uncompressed raster would not fit; warned about
+    (:class:`~geocd.io.outputs.OutputFolderWarning`) when an incompressible one would not.
+    """
+    raw = assembly_bytes(product, shape)
+    work, target = Path(work), Path(target)
+    same = _device(work) is not None and _device(work) == _device(target.parent)
+    needs = ([(work, raw + raw / compression, raw + raw)] if same
+             else [(work, raw, raw), (target.parent, raw / compression, raw)])
+    gb = 1e9
+    for where, low, high in needs:
+        free = free_bytes(where)
+        if free is None:
+            continue
+        if free < low:
+            raise DiskFullError(
+                f"not enough free disk to assemble {target.name}: it needs about {low / gb:,.1f} GB on the disk of "
+                f"{where} (an uncompressed {len(product.bands)}-band {np.dtype(product.dtype).name} raster of "
+                f"{shape[1]} x {shape[0]} cells with overviews while its COG is written), {free / gb:,.1f} GB are "
+                f"free. The finished tiles are kept in {work.parent}: free some space and run the same command "
+                "again; it resumes and only assembles the products")
+        if free < high:
+            warnings.warn(f"assembling {target.name} may need up to {high / gb:,.1f} GB on the disk of {where} "
+                          f"(if it compresses poorly); {free / gb:,.1f} GB are free", OutputFolderWarning,
+                          stacklevel=3)
+
+
 def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None = None,
                   tile_grid: TileGrid | None = None, band_stores: Mapping[str, TileStore] | None = None) -> Path:
     """Assemble ``product`` from the tiles of ``store`` and write it as a COG (atomic).
@@ -92,6 +149,7 @@ def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None
     for i, bt in enumerate(product.band_tags or []):  # a "units" band tag is the unit too (as write_cog)
         if i < len(units) and not units[i] and bt and bt.get("units"):
             units[i] = str(bt["units"])
+    check_assembly_room(product, g.shape, store.path, target)
     tmp_tif = store.path / f"{target.stem}.assemble.part.tif"
     with contextlib.suppress(OSError):
         tmp_tif.unlink()

@@ -235,3 +235,28 @@ def test_release_local_stops_only_a_cluster_the_run_started():
         assert eng.release_local()
         assert eng.client is None and eng.cluster is None
         assert sorted(r for _, r in eng.map_unordered(lambda x, shared: x * 2, [1, 2, 3])) == [2, 4, 6]
+
+
+def test_a_product_that_cannot_fit_is_refused_before_writing_and_the_rerun_resumes(tmp_path, monkeypatch):
+    import geocd.tiling.writer as writer
+    from geocd.errors import DiskFullError
+    from geocd.io.outputs import OutputFolderWarning
+
+    g = _grid()
+    a = _field(g)
+    prod = {"f": RasterProduct(str(tmp_path / "f.tif"), ("f",))}
+    raw = writer.assembly_bytes(prod["f"], g.shape)
+    assert raw == 203 * 157 * 4 * (1 + 1 / 4)  # one float32 band and its 2× overview
+    kw = dict(overlap_cells=RADIUS, tile_size=64, out=tmp_path, stage="focal", products=prod, scheduler="sync")
+    # the assembly GeoTIFF and a 4× compressed COG would not fit: refused, nothing written beside the tiles
+    monkeypatch.setattr(writer, "free_bytes", lambda p: int(raw * 1.2))
+    with pytest.raises(DiskFullError, match=r"f\.tif.*free some space and run the same command again"):
+        run_tiled(focal_tile, g, {"x": ArraySource(a)}, **kw)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [WORK_DIR]
+    assert not list((tmp_path / WORK_DIR).rglob("*.part*"))
+    # room for a compressed COG but not for an incompressible one: written, with a warning
+    monkeypatch.setattr(writer, "free_bytes", lambda p: int(raw * 1.5))
+    with pytest.warns(OutputFolderWarning, match="may need up to"):
+        run = run_tiled(focal_tile, g, {"x": ArraySource(a)}, **kw)
+    assert run.n_resumed == run.n_tiles  # the rerun only assembled the product
+    np.testing.assert_array_equal(run.read("f"), focal(a))
