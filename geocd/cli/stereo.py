@@ -65,16 +65,34 @@ def scene_from_inputs(inputs: tuple[str, ...]):
 @click.option("--no-fill", is_flag=True,
               help="Leave holes narrower than the matching window empty (default: z holds interpolated heights "
                    "there, flagged 'filled' and not valid).")
-@click.option("--tile-size", type=int, default=None, help="Tile side in cells (memory bound; default 256).")
+@click.option("--tile-size", type=int, default=None,
+              help="Tile side in cells: with --tiled, the Dask tile [1024]; otherwise the in-memory plane sweep's "
+                   "tile (memory bound) [256].")
+@click.option("--tiled", is_flag=True,
+              help="Match tile by tile on Dask (whole scenes: bounded memory, resumable after a kill: run the same "
+                   "command again). Implied by --scheduler, --workers or --memory-limit.")
+@click.option("--scheduler", default=None, metavar="SCHEDULER",
+              help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the machine, the "
+                   "default) | ADDRESS of a running dask.distributed scheduler (tcp://host:8786).")
+@click.option("--workers", type=click.IntRange(1, None), default=None,
+              help="Tiled runs: local worker processes [one per core].")
+@click.option("--memory-limit", default=None, help="Tiled runs: memory limit per local worker, e.g. 2GB.")
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing pair-DEMs.")
 @click.pass_context
 def stereo(ctx: click.Context, inputs: tuple[str, ...], epochs: tuple[str, ...], out_dir: str | None,
            posting_m: float | None, window: int | None, height_range, dem_margin: float | None, score: str | None,
            score_subwindow: int | None, surface_median: int | None, no_fill: bool, tile_size: int | None,
+           tiled: bool, scheduler: str | None, workers: int | None, memory_limit: str | None,
            no_overwrite: bool) -> None:
     from .common import require_inputs, resolve_out_dir, session
 
     require_inputs(*inputs)
+    tiled = tiled or any(v is not None for v in (scheduler, workers, memory_limit))
+    if tiled and no_overwrite:
+        from ..errors import ConfigError
+
+        raise ConfigError("--no-overwrite is for untiled runs: a tiled run resumes into its output folder and replaces "
+                          "its pair-DEMs when done; choose a new --out to keep earlier ones")
     m = scene_from_inputs(inputs)
     out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
     from ..io.outputs import open_outputs
@@ -101,16 +119,38 @@ def stereo(ctx: click.Context, inputs: tuple[str, ...], epochs: tuple[str, ...],
         kw["surface_median"] = surface_median
     if no_fill:
         kw["fill_holes"] = False
-    if tile_size is not None:
+    if tile_size is not None and not tiled:
         kw["tile_size"] = tile_size
     params = StereoParams(**kw)
     progress = make_progress(ctx, "stereo")
     try:
-        res = run_stereo(m, epochs=list(epochs) or None, out_dir=out, params=params, posting_m=posting_m,
-                         overwrite=not no_overwrite, progress=progress)
+        if tiled:
+            res = _stereo_tiled(m, epochs, out, params, posting_m, progress,
+                                {k: v for k, v in (("scheduler", scheduler), ("tile_size", tile_size),
+                                                   ("n_workers", workers), ("memory_limit", memory_limit))
+                                 if v is not None})
+            sess.say(f"tiled stereo: margins {res['margins']} cells; completeness "
+                     + ", ".join(f"{k} {v:.3f}" for k, v in res["completeness"].items()))
+        else:
+            res = run_stereo(m, epochs=list(epochs) or None, out_dir=out, params=params, posting_m=posting_m,
+                             overwrite=not no_overwrite, progress=progress)
     finally:
         progress.close()
     g = res["grid"]
     sess.say(f"{len(res['outputs'])} pair-DEM(s) on a {g.width}x{g.height} grid at {g.posting_m:g} m ({g.crs})")
     sess.data(grid=g.to_dict(), pairs=sorted(res["outputs"]))
     emit_result(ctx, res["outputs"])
+
+
+def _stereo_tiled(m, epochs, out, params, posting_m, progress, tiling_opts: dict):
+    """The tiled door: the manifest's cross-image orientation as the untiled run applies it, then
+    :func:`geocd.stereo.tiled.run_stereo_tiled`."""
+    from ..demdiff.tiled import TilingParams
+    from ..io.atomic import protect_inputs
+    from ..orientation import orient_manifest
+    from ..stereo.tiled import run_stereo_tiled
+
+    m, _ = orient_manifest(m, out_dir=out, stereo_params=params)
+    protect_inputs(*[im.path for e in m.epochs for im in e.images])
+    return run_stereo_tiled(m, out_dir=out, epochs=list(epochs) or None, params=params, posting_m=posting_m,
+                            tiling=TilingParams(**tiling_opts), progress=progress)

@@ -153,7 +153,8 @@ def check_stereo_resources(grid: AOIGrid, n_pairs: int, out: os.PathLike | str |
     check_resources(f"stereo on a {grid.width} x {grid.height} grid at {grid.posting_m:g} m ({n_pairs} pair(s))",
                     memory_bytes=mem, disk_bytes=cells * PAIR_FILE_PER_CELL * n_pairs,
                     largest_file_bytes=cells * PAIR_FILE_PER_CELL, out=out,
-                    fix=f"use a coarser posting{fit}, a smaller AOI (aoi.bounds), or fewer images")
+                    fix=f"match tile by tile with bounded memory (`geocd stereo --tiled`), or use a coarser "
+                        f"posting{fit}, a smaller AOI (aoi.bounds), or fewer images")
 
 
 def early_resource_check(m, grid: AOIGrid | None, posting_m: float | None, out) -> None:

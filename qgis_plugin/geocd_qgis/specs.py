@@ -237,7 +237,15 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   default=False, advanced=True,
                   help="By default z holds interpolated heights there, flagged 'filled' and not valid."),
             Param("TILE_SIZE", "int", "Tile side (memory bound)", cli="--tile-size", unit="cells", optional=True,
-                  min=32, advanced=True, help="Default 256."),
+                  min=32, advanced=True,
+                  help="Default 256 (the in-memory plane sweep's tile); for a tiled run the Dask tile, default 1024."),
+            Param("TILED", "bool", "Match tile by tile (whole scenes: bounded memory, resumable, on Dask)",
+                  cli="--tiled", default=False, advanced=True,
+                  help="Run the same algorithm again after a cancel or a crash: finished tiles are reused."),
+            Param("SCHEDULER", "string", "Tiled runs: scheduler (sync, threads, processes, or a Dask address)",
+                  cli="--scheduler", optional=True, advanced=True,
+                  help="Default: a local Dask cluster with one worker per core; tcp://host:8786 for a running "
+                       "dask.distributed scheduler."),
         ),
         load_unlisted=True, tags=("stereo", "dem", "rpc", "matching", "photogrammetry")),
     AlgSpec(

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
+import rasterio
 import yaml
 
 from geocd.demdiff.tiled import TilingParams
@@ -114,3 +117,30 @@ def test_a_finished_pairs_tiles_go_at_once_and_a_resumed_run_reuses_its_dem(tmp_
     seen.clear()
     run_stereo_tiled(man, out_dir=out, tiling=tiling, progress=lambda f, m="": seen.append(m))
     assert not any("resumed" in m for m in seen)
+
+
+def test_geocd_stereo_tiled_is_the_tiled_run(tmp_path):
+    """`geocd stereo --tiled` is the door to :func:`run_stereo_tiled`: the same pair-DEMs, bit for bit; its
+    --tile-size is the Dask tile; --no-overwrite (an untiled option) is refused with the reason."""
+    from click.testing import CliRunner
+
+    from geocd.cli import main
+    from geocd.synth.bigstereo import StereoSceneParams, make_stereo_scene
+
+    scene = tmp_path / "scene"
+    make_stereo_scene(scene, StereoSceneParams(cells=128, seed=3), block=160, workers=1)
+    man = scene / "scene.yaml"
+    ref = run_stereo_tiled(man, out_dir=tmp_path / "ref", tiling=TilingParams(tile_size=64, scheduler="sync"))
+    out = tmp_path / "cli"
+    r = CliRunner().invoke(main, ["--progress", "none", "stereo", str(man), "--tiled", "--scheduler", "sync",
+                                  "--tile-size", "64", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "tiled stereo: margins" in r.output
+    for k, p in ref["outputs"].items():
+        a, b = read_pair_dem(p), read_pair_dem(out / "stereo" / f"{k}.tif")
+        np.testing.assert_array_equal(a.z_m, b.z_m)
+        np.testing.assert_array_equal(a.valid, b.valid)
+        with rasterio.open(out / "stereo" / f"{k}.tif") as ds:
+            assert json.loads(ds.tags()["meta"])["tiled"]["tile_size"] == 64
+    r = CliRunner().invoke(main, ["stereo", str(man), "--tiled", "--no-overwrite", "--out", str(tmp_path / "x")])
+    assert r.exit_code != 0 and "--no-overwrite is for untiled runs" in r.output
