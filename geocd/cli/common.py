@@ -53,6 +53,20 @@ MIN_CONFIDENCE_PCT = 50.0
 # options every command shares
 # ---------------------------------------------------------------------------------------------------------------
 
+def dask_options(cmd: Callable) -> Callable:
+    """``--scheduler``, ``--workers``, ``--memory-limit``: where a tiled run's tiles go (one wording for every command)."""
+    for opt in reversed((
+            click.option("--scheduler", default=None, metavar="SCHEDULER",
+                         help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the "
+                              "machine, the default) | ADDRESS of a running dask.distributed scheduler "
+                              "(tcp://host:8786)."),
+            click.option("--workers", type=click.IntRange(1, None), default=None,
+                         help="Tiled runs: local worker processes [one per core]."),
+            click.option("--memory-limit", default=None, help="Tiled runs: memory limit per local worker, e.g. 2GB."))):
+        cmd = opt(cmd)
+    return cmd
+
+
 def _progress_option() -> click.Option:
     return click.Option(["--progress", "_geocd_progress"], type=click.Choice(PROGRESS_MODES), default=None,
                         help="How to report progress on stderr: auto (a bar on a terminal, plain lines otherwise), "

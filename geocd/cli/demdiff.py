@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from .common import check_confidence
+from .common import check_confidence, dask_options
 
 DEM_LIST_HELP = """DEMS: two DEM files (A = reference/earlier, B = later), three or more (a time series, in date
 order or with --dates), or ONE list file (.txt/.csv: one `path[,date[,name]]` per line, # comments) or geocd manifest
@@ -200,13 +200,8 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
               help="Process two DEMs tile by tile (bounded memory, resumable after a kill, on Dask). Default: tiled "
                    f"when the grid has more than {TILED_ABOVE_CELLS // 1_000_000} million cells or a tiling option "
                    "below is given.")
-@click.option("--scheduler", default=None, metavar="SCHEDULER",
-              help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the machine, the "
-                   "default) | ADDRESS of a running dask.distributed scheduler (tcp://host:8786).")
 @click.option("--tile-size", type=click.IntRange(64, None), default=None, help="Tiled runs: cells per tile side [1024].")
-@click.option("--workers", type=click.IntRange(1, None), default=None,
-              help="Tiled runs: local worker processes [one per core].")
-@click.option("--memory-limit", default=None, help="Tiled runs: memory limit per local worker, e.g. 2GB.")
+@dask_options
 @click.pass_context
 def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, footprints, confidence, datum_a, datum_b,
             resampling, no_coreg, tilt, on_underconstrained, min_region_cells, region_test, fallback_threshold, base,

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from .common import dask_options
+
 INPUT_HELP = ("INPUTS: a scene manifest (scene.yaml) or a folder of images, or two or more images of one date "
               "(GeoTIFF/NITF with RPC tags or an RPC/frame camera sidecar): `geocd stereo a.tif b.tif --out dsm/`.")
 
@@ -71,12 +73,7 @@ def scene_from_inputs(inputs: tuple[str, ...]):
 @click.option("--tiled", is_flag=True,
               help="Match tile by tile on Dask (whole scenes: bounded memory, resumable after a kill: run the same "
                    "command again). Implied by --scheduler, --workers or --memory-limit.")
-@click.option("--scheduler", default=None, metavar="SCHEDULER",
-              help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the machine, the "
-                   "default) | ADDRESS of a running dask.distributed scheduler (tcp://host:8786).")
-@click.option("--workers", type=click.IntRange(1, None), default=None,
-              help="Tiled runs: local worker processes [one per core].")
-@click.option("--memory-limit", default=None, help="Tiled runs: memory limit per local worker, e.g. 2GB.")
+@dask_options
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing pair-DEMs.")
 @click.pass_context
 def stereo(ctx: click.Context, inputs: tuple[str, ...], epochs: tuple[str, ...], out_dir: str | None,

@@ -126,6 +126,10 @@ _MANIFEST = Param("MANIFEST", "file", "Scene manifest", extension="yaml",
                   help="scene.yaml listing the epochs, images and cameras (see geocd's README).")
 _CONFIDENCES = Param("CONFIDENCES", "numbers", "Confidence levels (comma-separated)", cli="--confidence", unit="%",
                      optional=True, advanced=True, help="Default 90, 95, 99.")
+_SCHEDULER = Param("SCHEDULER", "string", "Tiled runs: scheduler (sync, threads, processes, or a Dask address)",
+                   cli="--scheduler", optional=True, advanced=True,
+                   help="Default: a local Dask cluster with one worker per core; tcp://host:8786 for a running "
+                        "dask.distributed scheduler.")
 _POSTING = Param("POSTING", "number", "Grid posting", cli="--posting", unit="m", optional=True, min=0.0,
                  help="Default: the manifest's AOI posting, else the images' GSD.")
 _DATUMS = (("from the file's CRS", ""), ("ellipsoid", "ellipsoid"), ("EGM96 geoid", "egm96"),
@@ -242,10 +246,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
             Param("TILED", "bool", "Match tile by tile (whole scenes: bounded memory, resumable, on Dask)",
                   cli="--tiled", default=False, advanced=True,
                   help="Run the same algorithm again after a cancel or a crash: finished tiles are reused."),
-            Param("SCHEDULER", "string", "Tiled runs: scheduler (sync, threads, processes, or a Dask address)",
-                  cli="--scheduler", optional=True, advanced=True,
-                  help="Default: a local Dask cluster with one worker per core; tcp://host:8786 for a running "
-                       "dask.distributed scheduler."),
+            _SCHEDULER,
         ),
         load_unlisted=True, tags=("stereo", "dem", "rpc", "matching", "photogrammetry")),
     AlgSpec(
@@ -646,10 +647,7 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
             Param("TILED", "bool", "Process tile by tile (whole scenes: bounded memory, resumable, on Dask)",
                   cli="--tiled", default=False, advanced=True,
                   help="Automatic above 16 million cells. The products are the same as an untiled run's."),
-            Param("SCHEDULER", "string", "Tiled runs: scheduler (sync, threads, processes, or a Dask address)",
-                  cli="--scheduler", optional=True, advanced=True,
-                  help="Default: a local Dask cluster with one worker per core; tcp://host:8786 for a running "
-                       "dask.distributed scheduler."),
+            _SCHEDULER,
         ),
         outputs=(
             Output("dh", "DH", "raster", "Height change dh = B − A (m)"),
