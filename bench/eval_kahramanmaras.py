@@ -75,7 +75,7 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
     """
     from scipy import ndimage as ndi
 
-    from geocd.change.dsm_buildings import CHANGED, DSMBuildingParams, building_objects, ground_model, tree_objects
+    from geocd.change.dsm_buildings import CHANGED, DSMBuildingParams
 
     bp = DSMBuildingParams()
     obs = res.observed
@@ -87,12 +87,7 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
     zb = np.nanmedian(np.stack([r.z_m for r in recs["post_event"]]), axis=0)
     ha, hb = za - dtm, zb - dtm
     post = grid.posting_m
-    trees = np.zeros(grid.shape, bool)
-    for z in (za, zb):
-        dtm_e, ground_e = ground_model(z, post, bp)
-        lab = building_objects(z, dtm_e, post, dataclasses.replace(bp, tree_rule="off"), ground=ground_e)
-        is_tree = np.concatenate([[False], tree_objects(z, dtm_e, lab, post, bp, ground=ground_e)])
-        trees |= is_tree[lab]
+    trees = tree_object_mask((za, zb), post)
     edge = allb ^ ndi.binary_erosion(allb)
     d_edge = ndi.distance_transform_edt(~edge) * post
     up_a, up_b = ha >= bp.min_height_m, hb >= bp.min_height_m
@@ -133,6 +128,21 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
         if seen is not None:
             out[k]["cars_sees_gt_3nmad"] = round(float((m & flag & seen).sum() / max((m & flag).sum(), 1)), 3)
     return out
+
+
+def tree_object_mask(dsms, posting_m: float) -> np.ndarray:
+    """Cells of the objects the default tree rule drops as trees in any of ``dsms`` (each DSM's objects over
+    its own ground model, as ``geocd run`` extracts them; objects ≥ 3 m and ≥ 40 m²)."""
+    from geocd.change.dsm_buildings import DSMBuildingParams, building_objects, ground_model, tree_objects
+
+    bp = DSMBuildingParams()
+    trees = np.zeros(dsms[0].shape, bool)
+    for z in dsms:
+        dtm_e, ground_e = ground_model(z, posting_m, bp)
+        lab = building_objects(z, dtm_e, posting_m, dataclasses.replace(bp, tree_rule="off"), ground=ground_e)
+        is_tree = np.concatenate([[False], tree_objects(z, dtm_e, lab, posting_m, bp, ground=ground_e)])
+        trees |= is_tree[lab]
+    return trees
 
 
 def _cars_dz(res, stable: np.ndarray, cars_a: np.ndarray, cars_b: np.ndarray) -> tuple[np.ndarray, float]:

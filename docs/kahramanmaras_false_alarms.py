@@ -5,7 +5,8 @@ Reads the layers of a run (``RUN/sc_change.tif``, ``RUN/sc_changes.gpkg`` layer 
 draws, over the post-event ortho, the cells flagged at 99 % outside every changed building (the issue's
 "stable" cells): in colour where CARS's own two DSMs differ there by more than 3 × their NMAD too (a change
 both matchers see: raised blue, lowered red), in yellow where CARS's DSMs agree (a false alarm by that
-witness), and the changed buildings' outlines (magenta).
+witness), the changed buildings' outlines (magenta) and the outlines of the objects the default tree rule
+drops as trees in either epoch's DSM (green: felled, planted or standing trees, which count as "stable").
 
 Usage::
 
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +39,7 @@ def main(argv=None) -> int:
     from scipy import ndimage as ndi
 
     from bench_kahramanmaras_cars import _to_grid
+    from eval_kahramanmaras import _recs, tree_object_mask
     from geocd.change.dsm_buildings import CHANGED
     from geocd.geodesy import AOIGrid
 
@@ -69,6 +72,12 @@ def main(argv=None) -> int:
     ov[flag & seen & (dz > 0)] = [0.1, 0.45, 1.0, 0.85]
     ov[flag & seen & (dz <= 0)] = [1.0, 0.1, 0.1, 0.85]
     ov[flag & ~seen] = [1.0, 0.95, 0.0, 1.0]
+    recs = _recs(run)
+    with warnings.catch_warnings():   # cells no pair-DEM of the epoch observed: NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        dsms = tuple(np.nanmedian(np.stack([r.z_m for r in recs[ep]]), axis=0) for ep in ("pre_event", "post_event"))
+    trees = tree_object_mask(dsms, grid.posting_m)
+    ov[trees ^ ndi.binary_erosion(trees)] = [0.0, 0.85, 0.0, 1.0]
     ov[inside ^ ndi.binary_erosion(inside)] = [1.0, 0.0, 1.0, 1.0]
     fig, ax = plt.subplots(figsize=(9, 8.8))
     v = img[np.isfinite(img)]
@@ -77,8 +86,8 @@ def main(argv=None) -> int:
     n_f = int(flag.sum())
     share = float((flag & seen).sum() / max((flag & both).sum(), 1))
     ax.set_title(f"flagged at 99 % outside changed buildings: {100 * n_f / stable.sum():.1f} % of the stable cells;\n"
-                 f"CARS's DSMs differ > {3 * nmad:.1f} m at {100 * share:.0f} % of those it observes (blue raised, red lowered); "
-                 f"yellow: CARS sees no change", fontsize=9)
+                 f"CARS's DSMs differ > {3 * nmad:.1f} m at {100 * share:.0f} % of those it observes (blue raised, red lowered);\n"
+                 f"yellow: CARS sees no change; magenta: changed buildings; green: tree objects", fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
     fig.tight_layout()
