@@ -1,7 +1,7 @@
 """Where the Kahramanmaraş "stable-ground false alarms" are, and whether an independent reconstruction sees them.
 
 Reads the layers of a run (``RUN/sc_change.tif``, ``RUN/sc_changes.gpkg`` layer ``building_damage``,
-``RUN/orthos/post_event_img1.tif``) and CARS's two DSMs (``bench_kahramanmaras_cars.py cars --work WORK``) and
+``RUN/orthos/post_event_img1.tif``, the pair-DEMs ``RUN/stereo/<epoch>/*.tif``) and CARS's two DSMs (``bench_kahramanmaras_cars.py cars --work WORK``) and
 draws, over the post-event ortho, the cells flagged at 99 % outside every changed building (the issue's
 "stable" cells): in colour where CARS's own two DSMs differ there by more than 3 × their NMAD too (a change
 both matchers see: raised blue, lowered red), in yellow where CARS's DSMs agree (a false alarm by that
