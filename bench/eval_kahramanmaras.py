@@ -25,7 +25,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -132,16 +131,12 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
 
 def tree_object_mask(dsms, posting_m: float) -> np.ndarray:
     """Cells of the objects the default tree rule drops as trees in any of ``dsms`` (each DSM's objects over
-    its own ground model, as ``geocd run`` extracts them; objects ≥ 3 m and ≥ 40 m²)."""
-    from geocd.change.dsm_buildings import DSMBuildingParams, building_objects, ground_model, tree_objects
+    its own ground model, as ``geocd run`` extracts them: :func:`geocd.change.dsm_buildings.tree_cells`)."""
+    from geocd.change.dsm_buildings import tree_cells
 
-    bp = DSMBuildingParams()
     trees = np.zeros(dsms[0].shape, bool)
     for z in dsms:
-        dtm_e, ground_e = ground_model(z, posting_m, bp)
-        lab = building_objects(z, dtm_e, posting_m, dataclasses.replace(bp, tree_rule="off"), ground=ground_e)
-        is_tree = np.concatenate([[False], tree_objects(z, dtm_e, lab, posting_m, bp, ground=ground_e)])
-        trees |= is_tree[lab]
+        trees |= tree_cells(z, posting_m)
     return trees
 
 
