@@ -42,6 +42,14 @@ def _recs(run: Path) -> dict:
             for ep in ("pre_event", "post_event")}
 
 
+def _surface(recs) -> np.ndarray:
+    """An epoch's surface as ``geocd run``'s building extraction sees it: the median of its pair-DEMs' valid
+    heights (a pair-DEM may hold heights at cells it marks invalid)."""
+    from geocd.pipeline import _median_surface
+
+    return _median_surface(recs)
+
+
 def _mask(geoms, grid) -> np.ndarray:
     from rasterio.features import rasterize
 
@@ -82,8 +90,7 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
     allb = _mask(damage.geometry, grid)
     stable = obs & ~inside
     flag = stable & (np.nan_to_num(res.confidence) >= level)
-    za = np.nanmedian(np.stack([r.z_m for r in recs["pre_event"]]), axis=0)
-    zb = np.nanmedian(np.stack([r.z_m for r in recs["post_event"]]), axis=0)
+    za, zb = _surface(recs["pre_event"]), _surface(recs["post_event"])
     ha, hb = za - dtm, zb - dtm
     post = grid.posting_m
     trees = tree_object_mask((za, zb), post)
@@ -272,9 +279,9 @@ def independent_reference(res, damage, grid, cars_a: np.ndarray, cars_b: np.ndar
            if (flag & both).any() else None}
     # do geocd's own DSMs agree with CARS's at those cells (both epochs within 3 m)? then the change is in the
     # images, not in one matcher's failure
-    za = np.nanmedian(np.stack([r.z_m for r in recs["pre_event"]]), axis=0) if recs else None
+    za = _surface(recs["pre_event"]) if recs else None
     if za is not None:
-        zb = np.nanmedian(np.stack([r.z_m for r in recs["post_event"]]), axis=0)
+        zb = _surface(recs["post_event"])
         ea = za - cars_a
         eb = zb - cars_b
         ea -= np.nanmedian(ea)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +38,7 @@ def main(argv=None) -> int:
     from scipy import ndimage as ndi
 
     from bench_kahramanmaras_cars import _to_grid
-    from eval_kahramanmaras import _recs, tree_object_mask
+    from eval_kahramanmaras import _recs, _surface, tree_object_mask
     from geocd.change.dsm_buildings import CHANGED
     from geocd.geodesy import AOIGrid
 
@@ -73,10 +72,7 @@ def main(argv=None) -> int:
     ov[flag & seen & (dz <= 0)] = [1.0, 0.1, 0.1, 0.85]
     ov[flag & ~seen] = [1.0, 0.95, 0.0, 1.0]
     recs = _recs(run)
-    with warnings.catch_warnings():   # cells no pair-DEM of the epoch observed: NaN
-        warnings.simplefilter("ignore", RuntimeWarning)
-        dsms = tuple(np.nanmedian(np.stack([r.z_m for r in recs[ep]]), axis=0) for ep in ("pre_event", "post_event"))
-    trees = tree_object_mask(dsms, grid.posting_m)
+    trees = tree_object_mask(tuple(_surface(recs[ep]) for ep in ("pre_event", "post_event")), grid.posting_m)
     ov[trees ^ ndi.binary_erosion(trees)] = [0.0, 0.85, 0.0, 1.0]
     ov[inside ^ ndi.binary_erosion(inside)] = [1.0, 0.0, 1.0, 1.0]
     fig, ax = plt.subplots(figsize=(9, 8.8))
