@@ -87,7 +87,8 @@ class DSMBuildingParams:
       kept) of the per-object medians on the development set lies at 0.0725–0.075 m (sample_aoi and towns
       1–2, both epochs, truth; the Kahramanmaraş pre-event DSM, labels by eye), all DSMs of geocd's matcher
       at 0.5 m; held out: town 3 and the post-event DSM (docs/kahramanmaras.md, "The plane-residual tree
-      rule"). Other matchers or postings: measure it again (``bench/diag_dsm_tree_rule.py``);
+      rule") — for the 0.075 m only: the ground-percentile raise was added with those DSMs' figures in view.
+      Other matchers or postings: measure it again (``bench/diag_dsm_tree_rule.py``);
     * ``"roughness"``: the object's median local roughness (:func:`roughness`) exceeds
       ``roughness_factor`` × the median roughness of the ground cells (the former default; on DSMs whose
       ground is much smoother than their roofs — generated towns — it drops every building);
