@@ -42,6 +42,14 @@ def _recs(run: Path) -> dict:
             for ep in ("pre_event", "post_event")}
 
 
+def _surface(recs) -> np.ndarray:
+    """An epoch's surface as ``geocd run``'s building extraction sees it: the median of its pair-DEMs' valid
+    heights (a pair-DEM may hold heights at cells it marks invalid)."""
+    from geocd.pipeline import _median_surface
+
+    return _median_surface(recs)
+
+
 def _mask(geoms, grid) -> np.ndarray:
     from rasterio.features import rasterize
 
@@ -57,19 +65,24 @@ def _nmad(x: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
 
 
-def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos: Path | None = None) -> dict:
+def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos: Path | None = None,
+                       cars: tuple | None = None) -> dict:
     """Where the flagged cells outside every changed building are (shares of them; rate = flagged share there).
 
     Categories (cells outside changed buildings, observed): inside a building object that is not changed;
     within 2 m of any building outline (edges); not in a building and low in both epochs (< 3 m above the
     ground model: ground); not in a building, above ground in one epoch only (objects removed / added:
-    trees felled or in leaf, debris, cleared plots); above ground in both; "tree-like": above ground in
-    either epoch with the local roughness the former roughness tree rule calls a tree (> 2.5 × the ground's);
-    dark (the darkest 15 % of either epoch's ortho when given: shadows).
+    trees felled or in leaf, debris, cleared plots); above ground in both; "tree objects": not in a building,
+    in an object of either epoch's DSM that the building extraction drops as a tree (the default tree rule,
+    applied to the objects of each epoch's DSM over its own ground model, as ``geocd run`` extracts them);
+    other non-building objects above ground in either epoch; dark (the darkest 15 % of either epoch's ortho
+    when given: shadows). With ``cars`` (CARS's two DSMs on the grid): per category, the share of its flagged
+    cells where CARS's DSMs differ by more than 3 × NMAD as well (CARS-missing cells count as not seen), and
+    the flagged cells that are neither seen by CARS nor in a non-building object.
     """
     from scipy import ndimage as ndi
 
-    from geocd.change.dsm_buildings import CHANGED, DSMBuildingParams, roughness
+    from geocd.change.dsm_buildings import CHANGED, DSMBuildingParams
 
     bp = DSMBuildingParams()
     obs = res.observed
@@ -77,13 +90,10 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
     allb = _mask(damage.geometry, grid)
     stable = obs & ~inside
     flag = stable & (np.nan_to_num(res.confidence) >= level)
-    za = np.nanmedian(np.stack([r.z_m for r in recs["pre_event"]]), axis=0)
-    zb = np.nanmedian(np.stack([r.z_m for r in recs["post_event"]]), axis=0)
+    za, zb = _surface(recs["pre_event"]), _surface(recs["post_event"])
     ha, hb = za - dtm, zb - dtm
     post = grid.posting_m
-    ra = roughness(np.where(np.isfinite(za), za, dtm), post)
-    rb = roughness(np.where(np.isfinite(zb), zb, dtm), post)
-    floor = float(np.median(ra[np.isfinite(ha) & (ha < bp.min_height_m)]))
+    trees = tree_object_mask((za, zb), post)
     edge = allb ^ ndi.binary_erosion(allb)
     d_edge = ndi.distance_transform_edt(~edge) * post
     up_a, up_b = ha >= bp.min_height_m, hb >= bp.min_height_m
@@ -93,8 +103,9 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
             "not building, above ground before only": ~allb & up_a & ~up_b,
             "not building, above ground after only": ~allb & ~up_a & up_b,
             "not building, above ground in both": ~allb & up_a & up_b,
-            "tree-like (not building, above ground, rough)": ~allb & (up_a | up_b)
-            & ((ra > bp.roughness_factor * floor) | (rb > bp.roughness_factor * floor))}
+            f"tree objects (not building; the {bp.tree_rule} tree rule's trees, either epoch)": ~allb & trees,
+            "other non-building objects (above ground in either epoch, not tree objects)": ~allb & ~trees
+            & (up_a | up_b)}
     if orthos is not None and (orthos / "pre_event_img1.tif").is_file():
         import rasterio
 
@@ -106,13 +117,42 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
                 dark |= img < np.nanpercentile(img[stable], 15)
         cats["dark (darkest 15 % of either epoch's ortho: shadows)"] = dark
     n_s, n_f = int(stable.sum()), int(flag.sum())
-    out = {"stable_cells": n_s, "flagged": n_f,
+    out = {"stable_cells": n_s, "flagged": n_f, "tree_rule": bp.tree_rule,
            "raised_share_of_flagged": round(float((res.dz_m[flag] > 0).mean()), 3) if n_f else None}
+    seen = None
+    if cars is not None:
+        dc, nm = _cars_dz(res, stable, *cars)
+        seen = np.abs(np.nan_to_num(dc, nan=0.0)) > 3 * nm
+        nonbld = ~allb & (trees | up_a | up_b)
+        out["cars_sees_gt_3nmad_share_of_flagged"] = round(float((seen & flag).sum() / max(n_f, 1)), 3)
+        out["neither_cars_seen_nor_non_building_object_share_of_flagged"] = round(
+            float((flag & ~seen & ~nonbld).sum() / max(n_f, 1)), 3)
     for k, m in cats.items():
         out[k] = {"share_of_stable": round(float((m & stable).sum() / max(n_s, 1)), 3),
                   "share_of_flagged": round(float((m & flag).sum() / max(n_f, 1)), 3),
                   "rate": round(float((m & flag).sum() / max((m & stable).sum(), 1)), 4)}
+        if seen is not None:
+            out[k]["cars_sees_gt_3nmad"] = round(float((m & flag & seen).sum() / max((m & flag).sum(), 1)), 3)
     return out
+
+
+def tree_object_mask(dsms, posting_m: float) -> np.ndarray:
+    """Cells of the objects the default tree rule drops as trees in any of ``dsms`` (each DSM's objects over
+    its own ground model, as ``geocd run`` extracts them: :func:`geocd.change.dsm_buildings.tree_cells`)."""
+    from geocd.change.dsm_buildings import tree_cells
+
+    trees = np.zeros(dsms[0].shape, bool)
+    for z in dsms:
+        trees |= tree_cells(z, posting_m)
+    return trees
+
+
+def _cars_dz(res, stable: np.ndarray, cars_a: np.ndarray, cars_b: np.ndarray) -> tuple[np.ndarray, float]:
+    """CARS's post − pre heights less their median on the stable cells, and its NMAD there (m)."""
+    both = np.isfinite(cars_a) & np.isfinite(cars_b)
+    dc = cars_b - cars_a
+    dc = dc - np.nanmedian(dc[stable & both])
+    return dc, _nmad(dc[stable & both])
 
 
 def transfer_figures(res, damage, grid, recs, model) -> dict:
@@ -177,7 +217,8 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
            "stable_false_alarms_3m": stable_false_alarms(res.confidence, obs, damage, grid, buffer_m=3.0),
            "lowered_only_stable_false_alarms_99": stable_false_alarms(
                np.where(res.dz_m < 0, res.confidence, 0.0), obs, damage, grid, levels=(99.0,))["99"],
-           "where_false_alarms_99": where_false_alarms(res, damage, grid, recs, dtm, orthos=run / "orthos_ground"),
+           "where_false_alarms_99": where_false_alarms(res, damage, grid, recs, dtm, orthos=run / "orthos_ground",
+                                                        cars=cars),
            "buildings": int(len(damage)), "classes": cls.value_counts().to_dict(),
            "collapsed": damage[cls == "collapsed"][["building_id", "confidence_pct", "height_before_m",
                                                       "height_after_m", "volume_lost_m3", "volume_sigma_m3",
@@ -229,9 +270,7 @@ def independent_reference(res, damage, grid, cars_a: np.ndarray, cars_b: np.ndar
     stable = res.observed & ~inside
     flag = stable & (np.nan_to_num(res.confidence) >= level)
     both = np.isfinite(cars_a) & np.isfinite(cars_b)
-    dc = cars_b - cars_a
-    dc = dc - np.nanmedian(dc[stable & both])
-    nm = _nmad(dc[stable & both])
+    dc, nm = _cars_dz(res, stable, cars_a, cars_b)
     out = {"cars_dz_nmad_stable_m": round(nm, 3), "stable_cells_with_cars_both": round(float((stable & both).sum()
                                                                                           / max(stable.sum(), 1)), 4),
            "flagged_stable_cars_differs_gt_3m": round(float((np.abs(dc[flag & both]) > 3).mean()), 4)
@@ -240,9 +279,9 @@ def independent_reference(res, damage, grid, cars_a: np.ndarray, cars_b: np.ndar
            if (flag & both).any() else None}
     # do geocd's own DSMs agree with CARS's at those cells (both epochs within 3 m)? then the change is in the
     # images, not in one matcher's failure
-    za = np.nanmedian(np.stack([r.z_m for r in recs["pre_event"]]), axis=0) if recs else None
+    za = _surface(recs["pre_event"]) if recs else None
     if za is not None:
-        zb = np.nanmedian(np.stack([r.z_m for r in recs["post_event"]]), axis=0)
+        zb = _surface(recs["post_event"])
         ea = za - cars_a
         eb = zb - cars_b
         ea -= np.nanmedian(ea)

@@ -1,11 +1,12 @@
 """Where the Kahramanmaraş "stable-ground false alarms" are, and whether an independent reconstruction sees them.
 
 Reads the layers of a run (``RUN/sc_change.tif``, ``RUN/sc_changes.gpkg`` layer ``building_damage``,
-``RUN/orthos/post_event_img1.tif``) and CARS's two DSMs (``bench_kahramanmaras_cars.py cars --work WORK``) and
+``RUN/orthos/post_event_img1.tif``, the pair-DEMs ``RUN/stereo/<epoch>/*.tif``) and CARS's two DSMs (``bench_kahramanmaras_cars.py cars --work WORK``) and
 draws, over the post-event ortho, the cells flagged at 99 % outside every changed building (the issue's
 "stable" cells): in colour where CARS's own two DSMs differ there by more than 3 × their NMAD too (a change
 both matchers see: raised blue, lowered red), in yellow where CARS's DSMs agree (a false alarm by that
-witness), and the changed buildings' outlines (magenta).
+witness), the changed buildings' outlines (magenta) and the outlines of the objects the default tree rule
+drops as trees in either epoch's DSM (green: felled, planted or standing trees, which count as "stable").
 
 Usage::
 
@@ -37,6 +38,7 @@ def main(argv=None) -> int:
     from scipy import ndimage as ndi
 
     from bench_kahramanmaras_cars import _to_grid
+    from eval_kahramanmaras import _recs, _surface, tree_object_mask
     from geocd.change.dsm_buildings import CHANGED
     from geocd.geodesy import AOIGrid
 
@@ -69,6 +71,9 @@ def main(argv=None) -> int:
     ov[flag & seen & (dz > 0)] = [0.1, 0.45, 1.0, 0.85]
     ov[flag & seen & (dz <= 0)] = [1.0, 0.1, 0.1, 0.85]
     ov[flag & ~seen] = [1.0, 0.95, 0.0, 1.0]
+    recs = _recs(run)
+    trees = tree_object_mask(tuple(_surface(recs[ep]) for ep in ("pre_event", "post_event")), grid.posting_m)
+    ov[trees ^ ndi.binary_erosion(trees)] = [0.0, 0.85, 0.0, 1.0]
     ov[inside ^ ndi.binary_erosion(inside)] = [1.0, 0.0, 1.0, 1.0]
     fig, ax = plt.subplots(figsize=(9, 8.8))
     v = img[np.isfinite(img)]
@@ -77,8 +82,8 @@ def main(argv=None) -> int:
     n_f = int(flag.sum())
     share = float((flag & seen).sum() / max((flag & both).sum(), 1))
     ax.set_title(f"flagged at 99 % outside changed buildings: {100 * n_f / stable.sum():.1f} % of the stable cells;\n"
-                 f"CARS's DSMs differ > {3 * nmad:.1f} m at {100 * share:.0f} % of those it observes (blue raised, red lowered); "
-                 f"yellow: CARS sees no change", fontsize=9)
+                 f"CARS's DSMs differ > {3 * nmad:.1f} m at {100 * share:.0f} % of those it observes (blue raised, red lowered);\n"
+                 f"yellow: CARS sees no change; magenta: changed buildings; green: tree objects", fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
     fig.tight_layout()

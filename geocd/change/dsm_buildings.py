@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -87,7 +87,8 @@ class DSMBuildingParams:
       kept) of the per-object medians on the development set lies at 0.0725–0.075 m (sample_aoi and towns
       1–2, both epochs, truth; the Kahramanmaraş pre-event DSM, labels by eye), all DSMs of geocd's matcher
       at 0.5 m; held out: town 3 and the post-event DSM (docs/kahramanmaras.md, "The plane-residual tree
-      rule"). Other matchers or postings: measure it again (``bench/diag_dsm_tree_rule.py``);
+      rule") — for the 0.075 m only: the ground-percentile raise was added with those DSMs' figures in view.
+      Other matchers or postings: measure it again (``bench/diag_dsm_tree_rule.py``);
     * ``"roughness"``: the object's median local roughness (:func:`roughness`) exceeds
       ``roughness_factor`` × the median roughness of the ground cells (the former default; on DSMs whose
       ground is much smoother than their roofs — generated towns — it drops every building);
@@ -278,6 +279,28 @@ def tree_objects(dsm: np.ndarray, dtm: np.ndarray, labels: np.ndarray, posting_m
         np.asarray(ndi.median(rough, lab_z, index=idx))
     med_rough = np.where(np.bincount(lab_z.ravel(), minlength=n + 1)[1:] > 0, med_rough, np.inf)
     return med_rough > params.roughness_factor * floor
+
+
+def tree_cells(dsm: np.ndarray, posting_m: float, params: DSMBuildingParams = DSMBuildingParams()) -> np.ndarray:
+    """Cells of the objects of a DSM that ``params.tree_rule`` drops as trees.
+
+    The objects are those of :func:`buildings_from_dsm` before the tree rule (≥ ``min_height_m`` above the
+    DSM's own ground model, ≥ ``min_area_m2``); the ones the rule calls trees are returned as a mask — what a
+    damage layer built from this DSM leaves out as vegetation (felled, planted or standing trees).
+
+    Parameters
+    ----------
+    dsm : (rows, cols) float, heights in metres (NaN: no height)
+    posting_m : grid posting in metres
+
+    Returns
+    -------
+    bool (rows, cols); all False with ``tree_rule="off"``.
+    """
+    dtm, ground = ground_model(dsm, posting_m, params)
+    labels = building_objects(dsm, dtm, posting_m, replace(params, tree_rule="off"), ground=ground)
+    is_tree = np.concatenate([[False], tree_objects(dsm, dtm, labels, posting_m, params, ground=ground)])
+    return is_tree[labels]
 
 
 def outlines(labels: np.ndarray, grid, params: DSMBuildingParams = DSMBuildingParams()):

@@ -217,3 +217,17 @@ def test_plane_rule_threshold_follows_a_noisy_ground():
     assert len(bld) == 5
     with pytest.raises(Exception, match="tree_residual_m"):
         DSMBuildingParams(tree_residual_m=0.0)
+
+
+def test_tree_cells_are_the_objects_the_rule_drops():
+    """tree_cells: the cells of the objects the tree rule drops (what a damage layer leaves out as vegetation) —
+    the crown, not the house or the block; nothing with the rule off."""
+    from geocd.change.dsm_buildings import tree_cells
+
+    z, house, block, crown = _town_like(0)
+    trees = tree_cells(z, 0.5)
+    _, _, lab = buildings_from_dsm(z, GRID_SMALL)
+    assert trees[crown].mean() > 0.8
+    assert not trees[house].any() and not trees[block].any()
+    assert not (trees & (lab > 0)).any()
+    assert not tree_cells(z, 0.5, DSMBuildingParams(tree_rule="off")).any()
