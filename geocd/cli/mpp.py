@@ -40,10 +40,10 @@ import numpy as np
               help="How the height term reads the DSM's blurred walls: 'measured' the blur is measured on each "
                    "image (the DSM's profile across the image's edges) and the height ring and the raised fraction "
                    "read it; 'off' the plain term.")
-@click.option("--absence", type=click.Choice(["height", "off"]), default=None,
+@click.option("--absence", type=click.Choice(["height", "off"]), default="off", show_default=True,
               help="With the height term: 'height' a new or demolished label needs ground under the object in the "
                    "other date's DSM (over half of its cells at most min-height above the ground; a tree crown "
-                   "standing there contradicts it); 'off' the paper's change terms only. Default: off.")
+                   "standing there contradicts it); 'off' the paper's change terms only.")
 @click.option("--change-prior", type=click.Path(path_type=str), default=None,
               help="3-D change evidence as a prior on the change label: a geocd change raster (band 'confidence', "
                    "e.g. OUT/sc_change.tif from geocd run) or any 0–1 map.")
