@@ -374,6 +374,8 @@ def false_objects(name: Path, ortho_dir: Path, seeds=(0,), variant: dict | None 
                     cause = "on a changed building of the other kind"
                 elif any(s in ("raised", "lowered") for s in st):
                     cause = "on a raised/lowered building (3-D change, footprint unchanged)"
+                elif other_cov >= 0.5:
+                    cause = "a second rectangle, labelled changed, on a building found on both dates"
                 else:
                     cause = "unchanged building found on one date only"
                 f["cause"] = cause
