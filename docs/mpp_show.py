@@ -14,6 +14,7 @@ Usage (from the repository root)::
     .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
     .venv/bin/python docs/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
     .venv/bin/python docs/mpp_show.py false sample_aoi /tmp/ortho_run 0,1,2 [absence]   # what the false objects are
+    .venv/bin/python docs/mpp_show.py missed-changes sample_aoi /tmp/ortho_run 0   # each change, absence off / on
     .venv/bin/python docs/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
@@ -392,6 +393,34 @@ def false_objects(name: Path, ortho_dir: Path, seeds=(0,), variant: dict | None 
     path = DOCS / f"mpp_false_{Path(name).name}{tag}.json"
     path.write_text(json.dumps(out, indent=1, default=str))
     return out
+
+
+
+def missed_changes(name: Path, ortho_dir: Path, seed: int = 0) -> None:
+    """For each truth change, how much of it the change mask of its kind covers (Table 2's HV: under ½ is
+    missed) and the rectangles lying on it (ξ, A_D, their share on the footprint), without and with the
+    absence term: whether a change the term costs was penalised or only placed otherwise by the annealing."""
+    from geocd.mpp.evaluate import _cover
+
+    inp = _town_inputs(name, ortho_dir)
+    shape = inp["grid"].shape
+    for ab in ("off", "height"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            d = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m,
+                       MPPParams(seed=seed, height="and", absence=ab), valid_a=inp["valid_a"], valid_b=inp["valid_b"],
+                       dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+        res = d.result
+        masks = rect_masks(res.rects, res.xi, shape)
+        one = [rect_masks(r[None], np.zeros(1, np.int8), shape)["any"] for r in res.rects]
+        for o in inp["objs"]:
+            if not o["change"]:
+                continue
+            on = [(int(res.xi[k]), round(float(res.energy[k]), 2), round(float((m & o["mask"]).sum() / m.sum()), 2))
+                  for k, m in enumerate(one) if (m & o["mask"]).sum() > 0.2 * o["mask"].sum()]
+            print(name.name, f"absence={ab}", o["change"], int(o["mask"].sum()), "cells, covered",
+                  round(_cover(masks[o["change"]], o["mask"]), 2), "rectangles on it (ξ, A_D, share on it):", on,
+                  flush=True)
 
 
 def edges(name: Path, ortho_dir: Path) -> dict:
@@ -908,6 +937,8 @@ if __name__ == "__main__":
         false_objects(Path(sys.argv[2]), Path(sys.argv[3]),
                       tuple(int(x) for x in sys.argv[4].split(",")) if len(sys.argv) > 4 else (0,),
                       {"height": "and", "absence": "height"} if ab else None, "_absence" if ab else "")
+    elif what == "missed-changes":     # missed-changes TOWN ORTHO_DIR [SEED]: the changes, without and with absence
+        missed_changes(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0)
     elif what == "edges":      # edges TOWN ORTHO_DIR: the DSM's and the ortho's walls against the truth
         edges(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "edgefit-diagnose":     # edgefit-diagnose TOWN ORTHO_DIR [SEED]: the refused edge refits
