@@ -10,8 +10,11 @@ Usage (from the repository root)::
         # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring,
         # EHF / EHI: ED + height with the sub-cell edge fit (--edge-fit joint / image)
         # EHWF: the same with the height term reading the DSM's measured wall blur (--wall-blur measured)
+        # EHFA: ED + height + edge fit with the absence term (--absence height)
     .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
     .venv/bin/python docs/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
+    .venv/bin/python docs/mpp_show.py false sample_aoi /tmp/ortho_run 0,1,2 [absence]   # what the false objects are
+    .venv/bin/python docs/mpp_show.py missed-changes sample_aoi /tmp/ortho_run 0   # each change, absence off / on
     .venv/bin/python docs/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
     .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
@@ -61,9 +64,12 @@ VARIANTS = {
     # the height ring past the DSM's blurred walls, measured on each image (wall_blur="measured")
     "ED + height + wall band + edge fit (joint)": ("ED", {"height": "and", "edge_fit": "joint", "wall_blur": "measured"},
                                                   True, False),
+    # a change label needs ground under the object on the other date's DSM (absence="height")
+    "ED + height + edge fit + absence": ("ED", {"height": "and", "edge_fit": "joint", "wall_blur": "off",
+                                                "absence": "height"}, True, False),
 }
 #: short names for ``--only``
-SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR", "EHF", "EHI", "EHWF"), VARIANTS))
+SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR", "EHF", "EHI", "EHWF", "EHFA"), VARIANTS))
 
 
 def _town_inputs(town: Path, ortho_dir: Path):
@@ -209,6 +215,212 @@ def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and", edge_f
                longest_building_m=round(float(longest.max()), 1))
     print(json.dumps(out), flush=True)
     return out
+
+
+
+def _cast_shadow(dsm: np.ndarray, posting_m: float, azimuth_deg: float, elevation_deg: float,
+                 reach_m: float = 40.0) -> np.ndarray:
+    """Cells in the cast shadow of a (truth) DSM for a sun at azimuth (clockwise from north) and elevation:
+    march towards the sun in one-cell steps; shadowed where the surface rises above the ray (grid rows run
+    south, columns east)."""
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    dx, dy = np.sin(az), -np.cos(az)             # one cell towards the sun: columns east, rows south
+    H, W = dsm.shape
+    z = np.where(np.isfinite(dsm), dsm, -np.inf)
+    shade = np.zeros(dsm.shape, bool)
+    ii, jj = np.mgrid[0:H, 0:W]
+    for s in range(1, int(reach_m / posting_m) + 1):
+        i2 = np.rint(ii + s * dy).astype(int)
+        j2 = np.rint(jj + s * dx).astype(int)
+        ok = (i2 >= 0) & (i2 < H) & (j2 >= 0) & (j2 < W)
+        zz = np.full(dsm.shape, -np.inf)
+        zz[ok] = z[i2[ok], j2[ok]]
+        shade |= zz > z + s * posting_m * np.tan(el) + 0.3
+    return shade
+
+
+def false_objects(name: Path, ortho_dir: Path, seeds=(0,), variant: dict | None = None, tag: str = "") -> dict:
+    """Every false object (a connected component of the detected rectangles, both dates, with less than half
+    of its area on truth buildings: the FO of evaluate.table2) and every false change of the default ED +
+    height, with what lies under it in the truth (buildings, tree crowns, cars, the cast shadows of the truth
+    DSM under each date's sun, the true height above the bare terrain) and in the data (the stereo nDSM the
+    model reads, the planar share, the terrain the run was given against the bare terrain). Each gets one
+    cause, in this order: "tree crown" (≥ 30 % on crowns), "off a building" (≥ 20 % on a truth building:
+    a rectangle placed beside or astride one), "shadow" (≥ 30 % in cast shadow), "raised ground" (true
+    height < 1 m, stereo nDSM ≥ ``min_height_m``), "other"; first of all "building cut by the border": ≥ 50 %
+    on a building with under half of its footprint on the grid, which ``sample_truth`` leaves out."""
+    import geopandas as gpd
+    from rasterio.features import rasterize
+    from scipy import ndimage
+
+    from geocd.io.manifest import load_manifest
+    from geocd.io.raster import read_dem
+    from geocd.mpp.evaluate import _components, _cover
+
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    post = grid.posting_m
+    m = load_manifest(name / "scene.yaml")
+    truth = json.loads((name / "truth" / "scene_truth.json").read_text())
+    bare = read_dem(name / "truth" / "dem_bare.tif", grid=grid).height_m
+    prior_dem = inp["ground"]
+    tdsm = {1: read_dem(name / "truth" / "dsm_A.tif", grid=grid).height_m,
+            2: read_dem(name / "truth" / "dsm_B.tif", grid=grid).height_m}
+    sdsm = {1: inp["dsm_a"], 2: inp["dsm_b"]}
+    shade = {d: _cast_shadow(tdsm[d], post, truth["sun"][e]["azimuth_deg"], truth["sun"][e]["elevation_deg"])
+             for d, e in ((1, "A"), (2, "B"))}
+
+    def layer(lyr):
+        try:
+            g = gpd.read_file(name / "truth" / "objects.gpkg", layer=lyr)
+        except Exception:
+            return np.zeros(grid.shape, bool)
+        if not len(g):
+            return np.zeros(grid.shape, bool)
+        return rasterize([(geom, 1) for geom in g.geometry], out_shape=grid.shape, transform=grid.transform,
+                         fill=0, dtype="uint8") > 0
+
+    trees = {1: layer("trees_A"), 2: layer("trees_B")}
+    cars = {1: layer("cars_A"), 2: layer("cars_B")}
+    tb = {1: inp["t1"], 2: inp["t2"]}
+    truth_any = inp["t1"] | inp["t2"]
+    fp_all = gpd.read_file(name / "truth" / "footprints_all.gpkg")
+    every_fp = rasterize([(geom, 1) for geom in fp_all.geometry], out_shape=grid.shape, transform=grid.transform,
+                         fill=0, dtype="uint8") > 0     # with the buildings cut by the grid's border
+    dist_b = ndimage.distance_transform_edt(~truth_any) * post
+    p_var = dict(height="and") if variant is None else variant
+    out = {"scene": str(name), "variant": p_var, "runs": []}
+    for seed in seeds:
+        p = MPPParams(seed=seed, **p_var)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            det = detect(inp["image_a"], inp["image_b"], post, p, valid_a=inp["valid_a"], valid_b=inp["valid_b"],
+                         dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+        res = det.result
+        masks = rect_masks(res.rects, res.xi, grid.shape)
+        t2 = table2(masks, inp["objs"], inp["t1"], inp["t2"])
+        fa, fb = det.features
+        planar = {1: fa.planar, 2: fb.planar}
+        ndsm = {1: fa.ndsm, 2: fb.ndsm}
+        # each rectangle's own mask
+        rmask = []
+        for r in res.rects:
+            one = rect_masks(r[None], np.zeros(1, np.int8), grid.shape)["any"]
+            rmask.append(one)
+        found = [any(_cover(masks["date1" if d == 1 else "date2"], o["mask"]) >= 0.5 for d in o["dates"])
+                 for o in inp["objs"]]
+        fos = []
+        for comp in _components(masks["any"]):
+            if _cover(truth_any, comp) >= 0.5:
+                continue
+            ks = [k for k, rm in enumerate(rmask) if (rm & comp).any()]
+            dates = sorted({d for k in ks for d in ((1, 2) if res.xi[k] == 0 else (int(res.xi[k]),))})
+            on = lambda arr: round(float(np.mean([_cover(arr[d], comp) for d in dates])), 2)
+            true_h = float(np.nanmedian(np.concatenate([(tdsm[d] - bare)[comp] for d in dates])))
+            st_h = float(np.nanmedian(np.concatenate([ndsm[d][comp] for d in dates])))
+            pl = float(np.nanmean(np.concatenate([planar[d][comp] for d in dates])))
+            prior_err = float(np.nanmedian((prior_dem - bare)[comp]))
+            # buildings it touches: were they found (is the component an extra piece beside a found one)?
+            near = [j for j, o in enumerate(inp["objs"]) if (o["mask"] & ndimage.binary_dilation(comp, iterations=4)).any()]
+            f = {"cells": int(comp.sum()), "area_m2": round(float(comp.sum()) * post * post, 1), "rects": len(ks),
+                 "xi": [int(res.xi[k]) for k in ks], "energy": [round(float(res.energy[k]), 3) for k in ks],
+                 "phi": [[round(float(v), 3) for v in res.phi[k]] for k in ks],
+                 "centre_rc": [int(x) for x in np.argwhere(comp).mean(axis=0)],
+                 "on_building": on(tb), "on_tree": on(trees), "on_car": on(cars), "in_shadow": on(shade),
+                 "dist_building_m": round(float(dist_b[comp].min()), 1),
+                 "true_height_m": round(true_h, 2), "stereo_ndsm_m": round(st_h, 2), "planar": round(pl, 2),
+                 "terrain_error_m": round(prior_err, 2),
+                 "touches_buildings": len(near), "touched_found": sum(found[j] for j in near)}
+            f["on_border_building"] = round(_cover(every_fp & ~truth_any, comp), 2)
+            if f["on_border_building"] >= 0.5:
+                cause = "building cut by the border (not in the truth)"
+            elif f["on_tree"] >= 0.3:
+                cause = "tree crown"
+            elif f["on_building"] >= 0.2:
+                cause = "off a building"
+            elif f["in_shadow"] >= 0.3:
+                cause = "shadow"
+            elif f["true_height_m"] < 1.0 and f["stereo_ndsm_m"] >= p.min_height_m:
+                cause = "raised ground"
+            else:
+                cause = "other"
+            f["cause"] = cause
+            fos.append(f)
+        # false changes
+        fvs = []
+        changes = [o for o in inp["objs"] if o["change"]]
+        for kind, d_has, d_not in (("new", 2, 1), ("demolished", 1, 2)):
+            tm = np.zeros(grid.shape, bool)
+            for o in changes:
+                if o["change"] == kind:
+                    tm |= o["mask"]
+            for comp in _components(masks[kind]):
+                if _cover(tm, comp) >= 0.5:
+                    continue
+                under = [o for o in inp["objs"] if _cover(o["mask"], comp) > 0 and (o["mask"] & comp).sum() >= 0.25 * comp.sum()]
+                st = [o["status"] for o in under]
+                other_cov = _cover(masks["date1" if d_not == 1 else "date2"], comp)
+                f = {"kind": kind, "cells": int(comp.sum()), "on_building": round(_cover(truth_any, comp), 2),
+                     "under_status": st, "covered_on_other_date": round(other_cov, 2),
+                     "stereo_ndsm_this_date": round(float(np.nanmedian(ndsm[d_has][comp])), 2),
+                     "stereo_ndsm_other_date": round(float(np.nanmedian(ndsm[d_not][comp])), 2),
+                     "planar_this": round(float(np.nanmean(planar[d_has][comp])), 2),
+                     "planar_other": round(float(np.nanmean(planar[d_not][comp])), 2),
+                     "centre_rc": [int(x) for x in np.argwhere(comp).mean(axis=0)]}
+                if _cover(every_fp & ~truth_any, comp) >= 0.5:
+                    cause = "on a building cut by the border"
+                elif _cover(truth_any, comp) < 0.5:
+                    cause = "on a false object"
+                elif any(s in ("new", "demolished") for s in st):
+                    cause = "on a changed building of the other kind"
+                elif any(s in ("raised", "lowered") for s in st):
+                    cause = "on a raised/lowered building (3-D change, footprint unchanged)"
+                elif other_cov >= 0.5:
+                    cause = "a second rectangle, labelled changed, on a building found on both dates"
+                else:
+                    cause = "unchanged building found on one date only"
+                f["cause"] = cause
+                fvs.append(f)
+        from collections import Counter
+        run = {"seed": seed, "table2": t2, "false_objects": fos, "false_changes": fvs,
+               "fo_causes": dict(Counter(f["cause"] for f in fos)), "fv_causes": dict(Counter(f["cause"] for f in fvs))}
+        print(json.dumps({k: run[k] for k in ("seed", "fo_causes", "fv_causes")}), {k: t2[k] for k in ("FO", "detected_objects", "FV", "detected_changes", "DP", "DP_precision", "DP_recall")}, flush=True)
+        for f in fos:
+            print("  FO", json.dumps(f), flush=True)
+        for f in fvs:
+            print("  FV", json.dumps(f), flush=True)
+        out["runs"].append(run)
+    path = DOCS / f"mpp_false_{Path(name).name}{tag}.json"
+    path.write_text(json.dumps(out, indent=1, default=str))
+    return out
+
+
+
+def missed_changes(name: Path, ortho_dir: Path, seed: int = 0) -> None:
+    """For each truth change, how much of it the change mask of its kind covers (Table 2's HV: under ½ is
+    missed) and the rectangles lying on it (ξ, A_D, their share on the footprint), without and with the
+    absence term: whether a change the term costs was penalised or only placed otherwise by the annealing."""
+    from geocd.mpp.evaluate import _cover
+
+    inp = _town_inputs(name, ortho_dir)
+    shape = inp["grid"].shape
+    for ab in ("off", "height"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            d = detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m,
+                       MPPParams(seed=seed, height="and", absence=ab), valid_a=inp["valid_a"], valid_b=inp["valid_b"],
+                       dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+        res = d.result
+        masks = rect_masks(res.rects, res.xi, shape)
+        one = [rect_masks(r[None], np.zeros(1, np.int8), shape)["any"] for r in res.rects]
+        for o in inp["objs"]:
+            if not o["change"]:
+                continue
+            on = [(int(res.xi[k]), round(float(res.energy[k]), 2), round(float((m & o["mask"]).sum() / m.sum()), 2))
+                  for k, m in enumerate(one) if (m & o["mask"]).sum() > 0.2 * o["mask"].sum()]
+            print(name.name, f"absence={ab}", o["change"], int(o["mask"].sum()), "cells, covered",
+                  round(_cover(masks[o["change"]], o["mask"]), 2), "rectangles on it (ξ, A_D, share on it):", on,
+                  flush=True)
 
 
 def edges(name: Path, ortho_dir: Path) -> dict:
@@ -720,6 +932,13 @@ if __name__ == "__main__":
     elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP] [EDGE_FIT]
         recall(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0,
                sys.argv[5] if len(sys.argv) > 5 else "and", sys.argv[6] if len(sys.argv) > 6 else "off")
+    elif what == "false":      # false TOWN ORTHO_DIR [SEEDS] [absence]: what lies under each false object and change
+        ab = len(sys.argv) > 5 and sys.argv[5] == "absence"
+        false_objects(Path(sys.argv[2]), Path(sys.argv[3]),
+                      tuple(int(x) for x in sys.argv[4].split(",")) if len(sys.argv) > 4 else (0,),
+                      {"height": "and", "absence": "height"} if ab else None, "_absence" if ab else "")
+    elif what == "missed-changes":     # missed-changes TOWN ORTHO_DIR [SEED]: the changes, without and with absence
+        missed_changes(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]) if len(sys.argv) > 4 else 0)
     elif what == "edges":      # edges TOWN ORTHO_DIR: the DSM's and the ortho's walls against the truth
         edges(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "edgefit-diagnose":     # edgefit-diagnose TOWN ORTHO_DIR [SEED]: the refused edge refits

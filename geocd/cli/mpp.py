@@ -40,6 +40,10 @@ import numpy as np
               help="How the height term reads the DSM's blurred walls: 'measured' the blur is measured on each "
                    "image (the DSM's profile across the image's edges) and the height ring and the raised fraction "
                    "read it; 'off' the plain term.")
+@click.option("--absence", type=click.Choice(["height", "off"]), default="off", show_default=True,
+              help="With the height term: 'height' a new or demolished label needs ground under the object in the "
+                   "other date's DSM (over half of its cells at most min-height above the ground; a tree crown "
+                   "standing there contradicts it); 'off' the paper's change terms only.")
 @click.option("--change-prior", type=click.Path(path_type=str), default=None,
               help="3-D change evidence as a prior on the change label: a geocd change raster (band 'confidence', "
                    "e.g. OUT/sc_change.tif from geocd run) or any 0–1 map.")
@@ -60,7 +64,7 @@ import numpy as np
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
 @click.pass_context
 def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, epoch_a, epoch_b, view_a, view_b,
-        method, height, step, edge_fit, wall_blur, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, out,
+        method, height, step, edge_fit, wall_blur, absence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, out,
         no_overwrite) -> None:
     """Find buildings on two images of different dates and which are new, demolished or unchanged: a marked
     point process of rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), with
@@ -88,7 +92,7 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
     kw = {"seed": seed}
     for k, v in (("side_min_m", side_min_m), ("side_max_m", side_max_m), ("max_iter", max_iter),
                  ("gamma_3d", gamma_3d), ("prototypes", prototypes), ("step", step),
-                 ("edge_fit", edge_fit), ("wall_blur", wall_blur)):
+                 ("edge_fit", edge_fit), ("wall_blur", wall_blur), ("absence", absence)):
         if v is not None:
             kw[k] = v
     if side_max_m is not None:

@@ -32,7 +32,9 @@ BOTH, ONLY_1, ONLY_2 = 0, 1, 2
 F_PLANAR = K.N_FEATURES
 #: … and the share of the outline along which the DSM steps down from inside to outside
 F_STEP = K.N_FEATURES + 1
-N_RAW = K.N_FEATURES + 2
+#: … and the share of its cells standing more than min_height above the ground, rough cells included (absence)
+F_STANDING = K.N_FEATURES + 2
+N_RAW = K.N_FEATURES + 3
 XI_NAMES = {BOTH: "unchanged", ONLY_1: "demolished", ONLY_2: "new"}
 
 
@@ -139,7 +141,7 @@ class EnergyModel:
         self.gradient_column = K.F_GRADIENT if params.edge_mode == "mean" else K.F_GRADIENT_SIDES
         self.similarity = None if similarity is None else np.asarray(similarity, np.float32)
         self.change_prior = None if change_prior is None else np.asarray(change_prior, np.float32)
-        self._hcache: dict[int, np.ndarray] = {}
+        self._hcache: dict = {}
         rng = np.random.default_rng(params.seed + 7919)
         self.terms: list[ImageTerm] = []
         for k, f in enumerate(features):
@@ -197,7 +199,7 @@ class EnergyModel:
                         float(self.params.min_height_m), float(self.edge_w), float(self.ring_w),
                         float(self.shadow_w), float(3.0 * f.noise_sigma), float(self.params.flood_spread), float(gate),
                         float(self.ring_in(f)), float(self.core_in(f)), out)
-        out = np.column_stack([out, np.full((rects.shape[0], 2), np.nan)])
+        out = np.column_stack([out, np.full((rects.shape[0], N_RAW - K.N_FEATURES), np.nan)])
         if f.ndsm is not None and self.params.step != "off" and math.isfinite(f.step_min_m) and rects.shape[0]:
             st = np.empty(rects.shape[0])
             K.rect_steps(np.ascontiguousarray(rects, np.float64), f.ndsm, float(f.step_min_m), 0.5, float(self.edge_w),
@@ -210,6 +212,15 @@ class EnergyModel:
             m = np.empty(rects.shape[0])
             K.rect_means(core, f.planar, m)
             out[:, F_PLANAR] = m
+        if f.ndsm is not None and self.params.absence != "off" and rects.shape[0]:
+            key = ("standing", id(f))
+            if key not in self._hcache:
+                with np.errstate(invalid="ignore"):
+                    self._hcache[key] = np.where(np.isfinite(f.ndsm), f.ndsm > self.params.min_height_m,
+                                                 np.nan).astype(np.float32)
+            m = np.empty(rects.shape[0])
+            K.rect_means(np.ascontiguousarray(rects, np.float64), self._hcache[key], m)
+            out[:, F_STANDING] = m
         return out
 
     def raw(self, rects: np.ndarray) -> dict[str, np.ndarray]:
@@ -266,6 +277,12 @@ class EnergyModel:
             a = a + p.gamma_change * np.where(xi == BOTH, raw["change"], 1.0 - raw["change"])
         if "c3d" in raw and p.gamma_3d:
             a = a + p.gamma_3d * np.where(xi == BOTH, raw["c3d"], 1.0 - raw["c3d"])
+        if p.absence == "height":
+            # a change label says the object is absent on the other date: that date's DSM must show ground
+            # under at least half of it (NaN, no DSM data there: no evidence, no penalty)
+            for k, x in ((0, ONLY_2), (1, ONLY_1)):
+                r = raw[f"img{k}"][:, F_STANDING]
+                a = a + np.where((xi == x) & np.isfinite(r), np.maximum(0.0, 2.0 * r - 1.0), 0.0)
         return a
 
 

@@ -110,6 +110,14 @@ class MPPParams(ParamsMixin):
         rough, and rough cells do not count as raised). A stereo DSM's walls spill 0.3–1.3 m outside the true
         ones, so the plain ring holds raised cells around a rectangle on the true walls and prefers one grown
         onto the DSM's walls (docs/mpp.md, "Where the walls are")
+    absence : beyond the paper, with the height term: a change label (ξ = 1 demolished, ξ = 2 new) says the
+        object is absent on the other date, and that date's DSM must not contradict it. "height": with r the
+        share of the rectangle's cells standing more than ``min_height_m`` above the ground on the other date
+        (rough cells too: a tree crown stands there as much as a roof does), A_D rises by max(0, 2 r − 1),
+        the repulsive branch of Q(1 − r, ½, ¼) — the ground must make up at least half the object, as the
+        raised fraction must inside a building. Like the texture-change term it only penalises (never
+        attracts), so a change the other date's DSM supports is scored as before. "off": the paper's ξ
+        terms only
     beta0, beta_factor, delta0, delta_factor : annealing schedules
     max_iter, min_iter : iteration cap and floor
     seed : random seed (same seed, same inputs → same objects)
@@ -146,6 +154,7 @@ class MPPParams(ParamsMixin):
     snap_births: float = 0.5
     edge_fit: str = "joint"
     wall_blur: str = "off"
+    absence: str = "off"
     beta0: float = 10.0
     beta_factor: float = 1.08
     delta0: float = 1.0
@@ -174,6 +183,8 @@ class MPPParams(ParamsMixin):
             raise ConfigError(f"step must be off, and or ring, got {self.step!r}")
         if self.wall_blur not in ("off", "measured"):
             raise ConfigError(f"wall_blur must be off or measured, got {self.wall_blur!r}")
+        if self.absence not in ("off", "height"):
+            raise ConfigError(f"absence must be off or height, got {self.absence!r}")
         if self.edge_fit not in ("off", "joint", "image"):
             raise ConfigError(f"edge_fit must be off, joint or image, got {self.edge_fit!r}")
         if self.max_iter < 1 or self.min_iter < 0:

@@ -330,6 +330,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   advanced=True),
             Param("WALL_BLUR", "enum", "Height term: skip the DSM's blurred walls (measured on each image)",
                   cli="--wall-blur", default=0, options=(("off", "off"), ("measured", "measured")), advanced=True),
+            Param("ABSENCE", "enum", "A new or demolished building needs ground there in the other date's DSM",
+                  cli="--absence", default=0, options=(("off", "off"), ("on", "height")), advanced=True),
             Param("EPOCH_A", "string", "Earlier epoch (default: the first)", cli="--epoch-a", optional=True,
                   advanced=True),
             Param("EPOCH_B", "string", "Later epoch (default: the last)", cli="--epoch-b", optional=True,

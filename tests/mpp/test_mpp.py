@@ -430,3 +430,38 @@ def test_measured_wall_band_lets_the_annealing_find_the_true_walls(seed):
     # measured: −0.865 (true walls), −0.863 (1 m out), −0.711 (1 m in: its ring still sees the roof);
     # with wall_blur="off" −0.707, −0.860, −0.232
     assert e[0] <= e[1] and e[2] > e[0] + 0.1, e
+
+
+def test_absence_term_needs_ground_under_a_change_on_the_other_date():
+    """A change label says the object is absent on the other date: with ``absence="height"`` a rectangle
+    labelled new over a tree crown that stands in date A's DSM pays max(0, 2 r − 1) (r: its share of cells
+    more than min_height above the ground on date A); the true new and demolished buildings, on bare ground
+    on the other date, and every unchanged label pay nothing."""
+    from geocd.mpp.model import BOTH, ONLY_1, ONLY_2, EnergyModel
+
+    from .scene import TREES
+
+    s = make_pair(0, trees=True)
+    e = {}
+    for ab in ("off", "height"):
+        p = MPPParams(seed=3, height="and", absence=ab)
+        fa = image_features(s["image_a"], POSTING, p, dsm_m=s["dsm_a"], ground_m=s["ground"])
+        fb = image_features(s["image_b"], POSTING, p, dsm_m=s["dsm_b"], ground_m=s["ground"])
+        _, B, _ = texture_change(fa, fb)
+        model = EnergyModel([fa, fb], POSTING, p, similarity=B)
+        cx, cy, r = TREES[3]
+        rects = np.array([[cx, cy, 2.0 * r, 2.0 * r, 0.0],           # the crown, on both dates
+                          list(s["buildings"][5]),                      # new
+                          list(s["buildings"][0])], float)              # demolished
+        raw = model.raw(rects)
+        e[ab] = {x: model.data_energy(raw, np.full(3, x, np.int8)) for x in (BOTH, ONLY_1, ONLY_2)}
+    m = rect_masks(rects[:1], np.zeros(1, np.int8), s["ground"].shape)["any"]
+    standing_a = float((fa.ndsm[m] > 2.5).mean())             # the nDSM the height term reads (median-filtered)
+    assert standing_a > 0.6, standing_a
+    extra = e["height"][ONLY_2] - e["off"][ONLY_2]
+    np.testing.assert_allclose(extra[0], 2.0 * standing_a - 1.0, atol=0.01)
+    assert extra[1] == 0.0                                   # the new building: bare ground on date A
+    assert e["height"][ONLY_1][2] == e["off"][ONLY_1][2]     # the demolished one: bare ground on date B
+    np.testing.assert_array_equal(e["height"][BOTH], e["off"][BOTH])
+    with pytest.raises(ConfigError):
+        MPPParams(absence="yes")
