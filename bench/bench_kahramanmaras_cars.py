@@ -181,12 +181,9 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
             cars.setdefault(ep, {})
     summary = json.loads((run_dir / "run_summary.json").read_text())
     out: dict = {"geocd_run": {k: summary.get(k) for k in ("orientation", "building_damage", "changed_fraction")}}
-    if out["geocd_run"]["orientation"] is None and (run_dir / "orientation" / "orientation.json").is_file():
-        # a run re-tested from another run's pair-DEMs (eval_kahramanmaras.py --rerun): the linked run's orientation
-        from geocd.pipeline import orientation_summary
+    from geocd.pipeline import run_orientation
 
-        out["geocd_run"]["orientation"] = orientation_summary(
-            json.loads((run_dir / "orientation" / "orientation.json").read_text()))
+    out["geocd_run"]["orientation"] = run_orientation(run_dir, summary)
     geocd_dsm, cars_dsm = {}, {}
     grid = None
     for ep, (a, b) in EPOCHS.items():

@@ -125,13 +125,9 @@ def main(argv=None) -> int:
     ap_layer = run / "sc_changes.gpkg"
     damage = gpd.read_file(ap_layer, layer="building_damage")
     summary = json.loads((run / "run_summary.json").read_text())
-    orientation = summary.get("orientation")
-    if orientation is None and (run / "orientation" / "orientation.json").is_file():
-        # a run re-tested from another run's pair-DEMs (bench/eval_kahramanmaras.py --rerun) has no orientation
-        # of its own in its summary: that of the run whose orientation folder it links
-        from geocd.pipeline import orientation_summary
+    from geocd.pipeline import run_orientation
 
-        orientation = orientation_summary(json.loads((run / "orientation" / "orientation.json").read_text()))
+    orientation = run_orientation(run, summary)
     res = {"orientation": orientation, "building_damage": summary.get("building_damage"),
            "changed_fraction": summary.get("changed_fraction"),
            "stable_false_alarms": stable_false_alarms(run, damage, grid),

@@ -251,6 +251,15 @@ def _check_epochs_overlap(m) -> None:
     check_epoch_overlap(by_epoch, crs, h, m.aoi.bounds if m.aoi is not None and m.aoi.crs else None)
 
 
+def run_orientation(run_dir: os.PathLike | str, summary: dict) -> dict | None:
+    """A run folder's orientation summary: its run summary's, else (a run re-tested from another run's
+    pair-DEMs, whose summary has none) that of the ``orientation/orientation.json`` its folder holds."""
+    if summary.get("orientation") is not None:
+        return summary["orientation"]
+    rep = Path(run_dir) / "orientation" / "orientation.json"
+    return orientation_summary(json.loads(rep.read_text())) if rep.is_file() else None
+
+
 def orientation_summary(report: dict) -> dict:
     """The part of an orientation report a run summary carries (applied or not, why, residuals)."""
     keys = ("applied", "reason", "model", "tracks", "observations", "before", "after", "held_out")

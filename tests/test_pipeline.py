@@ -228,3 +228,15 @@ def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run_cell):
     assert bl.loc[11, "frac_changed"] == pytest.approx(0.344, abs=0.05) and bl.loc[11, "class"] == "raised"
     assert bl.loc[22, "frac_changed"] == pytest.approx(0.367, abs=0.05) and bl.loc[22, "class"] == "demolished"
     assert bl.loc[31, "frac_changed"] == pytest.approx(0.512, abs=0.05) and bl.loc[31, "class"] == "demolished"
+
+
+def test_run_orientation_reads_a_linked_runs_orientation_folder(tmp_path):
+    import json as _json
+
+    from geocd.pipeline import run_orientation
+
+    assert run_orientation(tmp_path, {"orientation": {"applied": False}}) == {"applied": False}
+    assert run_orientation(tmp_path, {}) is None
+    (tmp_path / "orientation").mkdir()
+    (tmp_path / "orientation" / "orientation.json").write_text(_json.dumps({"applied": True, "reason": "ok", "x": 1}))
+    assert run_orientation(tmp_path, {"orientation": None}) == {"applied": True, "reason": "ok", "corrections_px": {}}

@@ -96,7 +96,8 @@ def check_assembly_room(product: RasterProduct, shape: tuple[int, int], work: Pa
     """
     raw = assembly_bytes(product, shape)
     work, target = Path(work), Path(target)
-    same = _device(work) is not None and _device(work) == _device(target.parent)
+    dev = _device(work)
+    same = dev is not None and dev == _device(target.parent)
     needs = ([(work, raw + raw / compression, raw + raw)] if same
              else [(work, raw, raw), (target.parent, raw / compression, raw)])
     gb = 1e9
