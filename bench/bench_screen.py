@@ -72,7 +72,7 @@ def bench_features(size: int = 1024, only: list[str] | None = None) -> dict:
     wdir.mkdir(exist_ok=True)
     specs = [("patch 16px", FeatureSpec("patch", 16)), ("randbank 16px", FeatureSpec("randbank", 16)),
              ("daisy 16px", FeatureSpec("daisy", 16)), ("daisy 32px", FeatureSpec("daisy", 32))]
-    for bb, ly in (("vgg19", "pool4"), ("vgg19", "pool5"), ("resnet18", "layer3")):
+    for bb, ly in (("vgg19", "pool4"), ("vgg19", "pool5"), ("resnet18", "layer3"), ("efficientnet_lite0", "stage5")):
         w = wdir / f"{bb}.npz"
         if not w.exists():
             np.savez(w, **random_state_dict(bb, 0))

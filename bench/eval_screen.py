@@ -62,7 +62,8 @@ def feature_specs(quick: bool, weights_dir: Path,
             specs.append((f"{kind} {c}px", FeatureSpec(kind=kind, cell_px=c)))
     weights_dir.mkdir(parents=True, exist_ok=True)
     for bb, layers in (("vgg19", ("pool2", "pool3", "pool4", "pool5") if not quick else ("pool4",)),
-                       ("resnet18", ("layer2", "layer3") if not quick else ())):
+                       ("resnet18", ("layer2", "layer3") if not quick else ()),
+                       ("efficientnet_lite0", ("stage3", "stage5", "stage6", "head") if not quick else ())):
         if not layers:
             continue
         if weights and bb in weights:
@@ -333,7 +334,8 @@ def main(argv=None) -> int:
     ap.add_argument("--features", default=None, help="comma-separated labels to run (default all)")
     ap.add_argument("--markdown", action="store_true", help="print the tables of --out and stop")
     ap.add_argument("--weights", action="append", default=[], metavar="BACKBONE=FILE",
-                    help="weights for the vgg19 / resnet18 rows (e.g. trained ones) instead of random init")
+                    help="weights for the vgg19 / resnet18 / efficientnet_lite0 rows (e.g. trained ones) instead of "
+                         "random init")
     a = ap.parse_args(argv)
     if a.markdown:
         print(render(json.loads(a.out.read_text())))

@@ -24,11 +24,14 @@ def feature_options(f):
         click.option("--cell", "cell_px", type=int, default=16, show_default=True,
                      help="Grid cell in image pixels (patch, daisy, randbank; a CNN layer's stride sets its own)."),
         click.option("--backbone", default=None,
-                     help="cnn: vgg11/13/16/19 (or _bn), vgg (layers read from the file), resnet18/34/50/101, resnet."),
+                     help="cnn: vgg11/13/16/19 (or _bn), vgg (layers read from the file), resnet18/34/50/101, resnet, "
+                          "efficientnet_lite0..4."),
         click.option("--weights", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
-                     help="cnn: weights file (.npz of a state_dict, or .pt/.pth with geocd[cnn]); never downloaded."),
+                     help="cnn: weights file (.npz or a PyTorch .pt/.pth state_dict, read without PyTorch when it is "
+                          "not installed); never downloaded."),
         click.option("--layer", default=None, help="cnn: pool1..pool5 (VGG, default pool5), pool/layer1..layer4 "
-                                                   "(ResNet, default layer3)."),
+                                                   "(ResNet, default layer3), stage1..stage7/head (EfficientNet-Lite, "
+                                                   "default stage5)."),
         click.option("--superpixels", type=click.Choice(["felzenszwalb", "slic", "none"]), default="felzenszwalb",
                      show_default=True, help="Superpixel refinement (Felzenszwalb as in the thesis, SLIC, or none)."),
         click.option("--segment", "segment_m", type=float, default=3.0, show_default=True,

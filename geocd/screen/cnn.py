@@ -1,6 +1,6 @@
 """CNN pooling-layer grid features from weights the user names on disk (never downloaded).
 
-Two backbone families, with the parameter names of PyTorch's torchvision models so that
+Three backbone families, with the parameter names of the PyTorch models they come from so that
 a ``state_dict`` exported from them (or any network built the same way) loads as is:
 
 * **VGG** (``vgg11``, ``vgg13``, ``vgg16``, ``vgg19``, their ``_bn`` variants, or ``vgg``:
@@ -11,10 +11,18 @@ a ``state_dict`` exported from them (or any network built the same way) loads as
   read from the file): 7×7/2 stem, 3×3/2 max-pool, stages ``layer1`` … ``layer4`` of basic
   or bottleneck blocks (batch norm folded into the convolutions). Layers ``pool`` (the
   stem's max-pool, stride 4) and ``layer1`` … ``layer4`` (strides 4, 8, 16, 32).
+* **EfficientNet-Lite** (``efficientnet_lite0`` … ``efficientnet_lite4``; the names of the
+  ``efficientnet_lite_pytorch`` port of TensorFlow's models, ``_conv_stem``, ``_blocks.<i>``,
+  ``_conv_head``): a 3×3/2 stem, seven stages of inverted-residual blocks (1×1 expansion,
+  depthwise k×k, 1×1 projection, ReLU6, no squeeze-excitation) and a 1×1 head, with
+  TensorFlow's "same" padding and batch-norm ε = 10⁻³. Layers ``stage1`` … ``stage7`` (strides
+  2, 4, 8, 16, 16, 32, 32) and ``head`` (stride 32). Its input is scaled as TensorFlow's
+  preprocessing does, (255·x − 127) / 128, not with the ImageNet mean and standard deviation.
 
 Weights files: ``.npz`` (one array per ``state_dict`` key: ``np.savez(path, **{k:
 v.numpy() for k, v in model.state_dict().items()})``) — read with numpy alone — or a
-PyTorch ``.pt``/``.pth`` state dict (needs the optional extra ``geocd[cnn]``). A file that
+PyTorch ``.pt``/``.pth`` state dict (read by PyTorch when installed, ``geocd[cnn]``, else by
+:mod:`geocd.screen.torchfile`, which takes tensors only and runs no code). A file that
 does not fit the backbone raises :class:`~geocd.errors.WeightsMismatchError` naming the
 first parameter that differs, both shapes, and the backbone the file looks like.
 
@@ -36,6 +44,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..errors import ConfigError, InputFileNotFoundError, WeightsMismatchError
+from .torchfile import TorchFileError, read_torch_file
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -52,8 +61,20 @@ RESNET_CFGS: dict[str, tuple[str, list[int]]] = {
     "resnet50": ("bottleneck", [3, 4, 6, 3]),
     "resnet101": ("bottleneck", [3, 4, 23, 3]),
 }
-BACKBONES = ("vgg", *VGG_CFGS, *(k + "_bn" for k in VGG_CFGS), "resnet", *RESNET_CFGS)
+#: EfficientNet-Lite's stages at width and depth 1 (TensorFlow's efficientnet_lite_builder): repeats, kernel,
+#: stride, expansion, input and output channels
+EFFNET_LITE_STAGES = ((1, 3, 1, 1, 32, 16), (2, 3, 2, 6, 16, 24), (2, 5, 2, 6, 24, 40), (3, 3, 2, 6, 40, 80),
+                      (3, 5, 1, 6, 80, 112), (4, 5, 2, 6, 112, 192), (1, 3, 1, 6, 192, 320))
+#: (width, depth) coefficients of each EfficientNet-Lite
+EFFNET_LITE_CFGS = {"efficientnet_lite0": (1.0, 1.0), "efficientnet_lite1": (1.0, 1.1),
+                    "efficientnet_lite2": (1.1, 1.2), "efficientnet_lite3": (1.2, 1.4),
+                    "efficientnet_lite4": (1.4, 1.8)}
+BACKBONES = ("vgg", *VGG_CFGS, *(k + "_bn" for k in VGG_CFGS), "resnet", *RESNET_CFGS, *EFFNET_LITE_CFGS)
 BN_EPS = 1e-5
+BN_EPS_TF = 1e-3   # TensorFlow's models (EfficientNet-Lite)
+#: TensorFlow's EfficientNet input scaling, (255 x − 127) / 128, as a mean and standard deviation of x in 0–1
+TF_MEAN = (127 / 255,) * 3
+TF_STD = (128 / 255,) * 3
 
 
 # ---------------------------------------------------------------------------------------------
@@ -72,23 +93,28 @@ def load_weights(path: str | Path) -> dict[str, np.ndarray]:
         except Exception as exc:  # noqa: BLE001 - any unreadable archive is the same user error
             raise WeightsMismatchError(f"cannot read the weights archive {p}: {exc}") from exc
     elif p.suffix.lower() in (".pt", ".pth", ".bin"):
-        try:
+        if torch_available():
             import torch
-        except ImportError as exc:
-            raise ConfigError(f"{p} is a PyTorch file: install the optional extra (pip install 'geocd[cnn]') or "
-                              "export the state_dict to .npz (np.savez(path, **{k: v.numpy() for k, v in "
-                              "sd.items()}))") from exc
-        try:
-            obj = torch.load(p, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001
-            raise WeightsMismatchError(f"cannot read the PyTorch weights {p}: {exc}") from exc
+
+            try:
+                obj = torch.load(p, map_location="cpu", weights_only=True)
+            except Exception as exc:  # noqa: BLE001
+                raise WeightsMismatchError(f"cannot read the PyTorch weights {p}: {exc}") from exc
+        else:
+            try:
+                obj = read_torch_file(p)
+            except (TorchFileError, OSError) as exc:
+                raise WeightsMismatchError(f"cannot read the PyTorch weights {p} without PyTorch: {exc}; install "
+                                           "the optional extra (pip install 'geocd[cnn]') or export the state_dict "
+                                           "to .npz") from exc
         for k in ("state_dict", "model", "model_state_dict"):
             if isinstance(obj, Mapping) and k in obj and isinstance(obj[k], Mapping):
                 obj = obj[k]
         if not isinstance(obj, Mapping):
             raise WeightsMismatchError(f"{p} holds a {type(obj).__name__}, not a state_dict; save "
                                        "model.state_dict() instead of the model")
-        sd = {k: v.detach().cpu().numpy() for k, v in obj.items() if hasattr(v, "detach")}
+        sd = {k: (v.detach().cpu().numpy() if hasattr(v, "detach") else v) for k, v in obj.items()
+              if hasattr(v, "detach") or isinstance(v, np.ndarray)}
     else:
         raise ConfigError(f"weights file {p}: use .npz (numpy) or .pt/.pth (PyTorch state_dict)")
     sd = {re.sub(r"^(module\.|model\.|backbone\.)", "", k): v for k, v in sd.items()}
@@ -100,10 +126,12 @@ def load_weights(path: str | Path) -> dict[str, np.ndarray]:
 # ---------------------------------------------------------------------------------------------
 @dataclass
 class Conv:
-    w: np.ndarray            # (out, in, kh, kw) float32, batch norm folded in
+    w: np.ndarray            # (out, in, kh, kw) float32 — (channels, 1, kh, kw) if depthwise — batch norm folded in
     b: np.ndarray            # (out,)
     stride: int = 1
     pad: int = 0
+    same: bool = False       # TensorFlow's "same" padding (asymmetric at stride 2) instead of ``pad``
+    depthwise: bool = False  # one kh × kw filter per channel (groups = channels)
 
 
 @dataclass
@@ -113,20 +141,36 @@ class Block:
 
 
 @dataclass
+class MBConv:
+    """An inverted-residual block: [1×1 expansion], depthwise k×k, 1×1 projection (linear), skip if shapes match."""
+
+    expand: Conv | None
+    depthwise: Conv
+    project: Conv
+    skip: bool
+
+
+@dataclass
 class Network:
-    """A backbone with its weights: VGG (``layers``: Conv or "M") or ResNet (``stem``, ``stages``)."""
+    """A backbone with its weights: VGG (``layers``: Conv or "M"), ResNet (``stem``, ``stages`` of Block) or
+    EfficientNet-Lite (``stem``, ``stages`` of MBConv, ``head``)."""
 
     family: str
     name: str
     layers: list = field(default_factory=list)
     stem: Conv | None = None
-    stages: list[list[Block]] = field(default_factory=list)
+    stages: list[list[Any]] = field(default_factory=list)
+    head: Conv | None = None
     in_channels: int = 3
+    mean: tuple = IMAGENET_MEAN   # input scaling the weights expect (image in 0–1)
+    std: tuple = IMAGENET_STD
 
     @property
     def layer_names(self) -> list[str]:
         if self.family == "vgg":
             return [f"pool{k + 1}" for k in range(sum(1 for x in self.layers if isinstance(x, str)))]
+        if self.family == "efficientnet":
+            return [*[f"stage{k + 1}" for k in range(len(self.stages))], "head"]
         return ["pool", *[f"layer{k + 1}" for k in range(len(self.stages))]]
 
     def stride(self, layer: str) -> int:
@@ -134,6 +178,9 @@ class Network:
         self._check_layer(layer)
         if self.family == "vgg":
             return 2 ** int(layer[4:])
+        if self.family == "efficientnet":
+            n = len(self.stages) if layer == "head" else int(layer[5:])
+            return self.stem.stride * int(np.prod([s[0].depthwise.stride for s in self.stages[:n]]))
         return 4 if layer == "pool" else 4 * 2 ** (int(layer[5:]) - 1)
 
     def receptive_field(self, layer: str) -> int:
@@ -159,6 +206,12 @@ class Network:
                     step(x.w.shape[2], x.stride)
             return rf
         step(self.stem.w.shape[2], self.stem.stride)
+        if self.family == "efficientnet":
+            n = len(self.stages) if layer == "head" else int(layer[5:])
+            for s in self.stages[:n]:
+                for blk in s:
+                    step(blk.depthwise.w.shape[2], blk.depthwise.stride)
+            return rf
         step(3, 2)
         if layer == "pool":
             return rf
@@ -208,15 +261,23 @@ def describe_weights(sd: Mapping[str, np.ndarray]) -> str:
             if kd == kind and cfg == blocks:
                 return name
         return f"a ResNet-style network ({kind} blocks {blocks})"
-    return "no known backbone (neither torchvision VGG 'features.*' nor ResNet 'conv1/layer1.*' names)"
+    if "_conv_stem.weight" in sd:
+        n = len({k.split(".")[1] for k in sd if k.startswith("_blocks.")})
+        se = any("_se_reduce" in k for k in sd)
+        for name in EFFNET_LITE_CFGS:
+            if not se and sum(r for r, *_ in _lite_stages(name)) == n:
+                return f"{name} ({n} blocks)"
+        return f"an EfficientNet-style network ({n} blocks{', with squeeze-excitation' if se else ''})"
+    return ("no known backbone (neither torchvision VGG 'features.*', ResNet 'conv1/layer1.*' nor EfficientNet "
+            "'_conv_stem/_blocks.*' names)")
 
 
-def _fold_bn(w: np.ndarray, b: np.ndarray | None, sd, prefix: str, backbone: str, guess: str):
+def _fold_bn(w: np.ndarray, b: np.ndarray | None, sd, prefix: str, backbone: str, guess: str, eps: float = BN_EPS):
     g = _need(sd, f"{prefix}.weight", (w.shape[0],), backbone, guess)
     beta = _need(sd, f"{prefix}.bias", (w.shape[0],), backbone, guess)
     mu = _need(sd, f"{prefix}.running_mean", (w.shape[0],), backbone, guess)
     var = _need(sd, f"{prefix}.running_var", (w.shape[0],), backbone, guess)
-    s = g / np.sqrt(var + BN_EPS)
+    s = g / np.sqrt(var + eps)
     b0 = b if b is not None else np.zeros(w.shape[0], np.float32)
     return (w * s[:, None, None, None]).astype(np.float32), ((b0 - mu) * s + beta).astype(np.float32)
 
@@ -325,6 +386,62 @@ def _resnet_from_state(sd, backbone: str) -> Network:
     return Network("resnet", backbone, stem=stem, stages=stages)
 
 
+def _round_filters(filters: int, width: float) -> int:
+    """TensorFlow's channel rounding: width-scaled, to a multiple of 8, never below 90 % of the scaled value."""
+    if width == 1.0:
+        return filters
+    f = filters * width
+    new = max(8, int(f + 4) // 8 * 8)
+    return int(new + 8 if new < 0.9 * f else new)
+
+
+def _lite_stages(backbone: str) -> list[tuple[int, int, int, int, int, int]]:
+    """(repeats, kernel, stride, expansion, in, out) of each stage of an EfficientNet-Lite (stem and head fixed)."""
+    width, depth = EFFNET_LITE_CFGS[backbone]
+    out = []
+    for i, (r, k, s, e, cin, cout) in enumerate(EFFNET_LITE_STAGES):
+        last = i in (0, len(EFFNET_LITE_STAGES) - 1)
+        out.append((r if last else int(math.ceil(depth * r)), k, s, e,
+                    32 if i == 0 else _round_filters(cin, width), _round_filters(cout, width)))
+    return out
+
+
+def _effnet_from_state(sd, backbone: str) -> Network:
+    guess = describe_weights(sd)
+    if backbone not in EFFNET_LITE_CFGS:
+        raise ConfigError(f"unknown backbone {backbone!r}; known: {', '.join(BACKBONES)}")
+    if any("_se_reduce" in k for k in sd):
+        raise WeightsMismatchError(f"the weights file does not fit the {backbone} backbone: it has squeeze-excitation "
+                                   f"layers (an EfficientNet-B, not -Lite); the file looks like {guess}")
+
+    def conv_bn(prefix: str, bn: str, shape: tuple, stride: int = 1, depthwise: bool = False) -> Conv:
+        w = _need(sd, f"{prefix}.weight", shape, backbone, guess)
+        fw, fb = _fold_bn(w, None, sd, bn, backbone, guess, BN_EPS_TF)
+        return Conv(fw, fb, stride, 0, same=True, depthwise=depthwise)
+
+    stem = conv_bn("_conv_stem", "_bn0", (32, 3, 3, 3), 2)
+    stages: list[list[MBConv]] = []
+    i = 0
+    for r, k, s, e, cin, cout in _lite_stages(backbone):
+        blocks = []
+        for j in range(r):
+            c_in = cin if j == 0 else cout
+            mid = c_in * e
+            p = f"_blocks.{i}"
+            expand = conv_bn(f"{p}._expand_conv", f"{p}._bn0", (mid, c_in, 1, 1)) if e != 1 else None
+            dw = conv_bn(f"{p}._depthwise_conv", f"{p}._bn1", (mid, 1, k, k), s if j == 0 else 1, depthwise=True)
+            proj = conv_bn(f"{p}._project_conv", f"{p}._bn2", (cout, mid, 1, 1))
+            blocks.append(MBConv(expand, dw, proj, skip=(dw.stride == 1 and c_in == cout)))
+            i += 1
+        stages.append(blocks)
+    extra = sorted({int(key.split(".")[1]) for key in sd if key.startswith("_blocks.")} - set(range(i)))
+    if extra:
+        raise WeightsMismatchError(f"the weights file does not fit the {backbone} backbone: it has more blocks "
+                                   f"('_blocks.{extra[0]}' is not part of {backbone}); the file looks like {guess}")
+    head = conv_bn("_conv_head", "_bn1", (1280, stages[-1][-1].project.w.shape[0], 1, 1))
+    return Network("efficientnet", backbone, stem=stem, stages=stages, head=head, mean=TF_MEAN, std=TF_STD)
+
+
 def build_network(backbone: str, weights: str | Path | Mapping[str, np.ndarray]) -> Network:
     """The backbone ``backbone`` with the weights of a file (or a state_dict mapping).
 
@@ -341,6 +458,8 @@ def build_network(backbone: str, weights: str | Path | Mapping[str, np.ndarray])
         net = _vgg_from_state(sd, bb)
     elif bb.startswith("resnet"):
         net = _resnet_from_state(sd, bb)
+    elif bb.startswith("efficientnet"):
+        net = _effnet_from_state(sd, bb)
     else:
         raise ConfigError(f"unknown backbone {backbone!r}; known: {', '.join(BACKBONES)}")
     if bb in VGG_CFGS or bb in RESNET_CFGS or bb.endswith("_bn"):
@@ -375,8 +494,9 @@ def _used_keys(net: Network, sd) -> set[str]:
 # ---------------------------------------------------------------------------------------------
 # forward passes
 # ---------------------------------------------------------------------------------------------
-def prepare_input(image: np.ndarray, normalize: bool = True) -> np.ndarray:
-    """(bands, rows, cols) float 0–1 → (3, rows, cols) float32 network input."""
+def prepare_input(image: np.ndarray, normalize: bool = True, mean: tuple = IMAGENET_MEAN,
+                  std: tuple = IMAGENET_STD) -> np.ndarray:
+    """(bands, rows, cols) float 0–1 → (3, rows, cols) float32 network input (``mean``, ``std``: per band)."""
     x = np.asarray(image, np.float32)
     if x.ndim == 2:
         x = x[None]
@@ -386,14 +506,52 @@ def prepare_input(image: np.ndarray, normalize: bool = True) -> np.ndarray:
         x = np.concatenate([x, x[:1]], axis=0)
     x = x[:3]
     if normalize:
-        x = (x - np.asarray(IMAGENET_MEAN, np.float32)[:, None, None]) / np.asarray(IMAGENET_STD, np.float32)[:, None, None]
+        x = (x - np.asarray(mean, np.float32)[:, None, None]) / np.asarray(std, np.float32)[:, None, None]
     return np.ascontiguousarray(x, np.float32)
+
+
+def same_padding(n: int, k: int, s: int) -> tuple[int, int]:
+    """TensorFlow's "same" padding of one axis of length ``n``: (before, after); the extra cell goes after."""
+    total = max((int(math.ceil(n / s)) - 1) * s + k - n, 0)
+    return total // 2, total - total // 2
+
+
+def relu6(x: np.ndarray) -> np.ndarray:
+    return np.clip(x, 0.0, 6.0)
+
+
+def _depthwise_np(x: np.ndarray, c: Conv) -> np.ndarray:
+    """Depthwise convolution: channel i with its own kh × kw filter (zero padding ``c.pad``)."""
+    C, H, W = x.shape
+    if c.w.shape[0] != C:
+        raise WeightsMismatchError(f"a depthwise convolution expects {c.w.shape[0]} channels, the previous layer "
+                                   f"gives {C}")
+    _, _, kh, kw = c.w.shape
+    p, s = c.pad, c.stride
+    xp = np.pad(x, ((0, 0), (p, p), (p, p))) if p else x
+    Ho = (H + 2 * p - kh) // s + 1
+    Wo = (W + 2 * p - kw) // s + 1
+    out = np.zeros((C, Ho, Wo), np.float32)
+    for i in range(kh):
+        for j in range(kw):
+            out += xp[:, i: i + s * (Ho - 1) + 1: s, j: j + s * (Wo - 1) + 1: s] * c.w[:, 0, i, j][:, None, None]
+    out += c.b[:, None, None]
+    return out
 
 
 def conv2d_np(x: np.ndarray, c: Conv, max_bytes: int = 64 << 20) -> np.ndarray:
     """2-D convolution (cross-correlation, as PyTorch) of (C, H, W) with zero padding; im2col in row chunks."""
     cin, H, W = x.shape
     cout, cin_w, kh, kw = c.w.shape
+    if c.same:
+        (t, bt), (lf, rt) = same_padding(H, kh, c.stride), same_padding(W, kw, c.stride)
+        return conv2d_np(np.pad(x, ((0, 0), (t, bt), (lf, rt))),
+                         Conv(c.w, c.b, c.stride, 0, depthwise=c.depthwise), max_bytes)
+    if c.depthwise:
+        return _depthwise_np(x, c)
+    if kh == kw == 1 and c.stride == 1 and c.pad == 0 and cin == cin_w:   # pointwise: one matrix product
+        out = (c.w.reshape(cout, cin) @ x.reshape(cin, -1)).reshape(cout, H, W)
+        return out + c.b[:, None, None]
     if cin != cin_w:
         raise WeightsMismatchError(f"a convolution expects {cin_w} input channels, the previous layer gives {cin}")
     p, s = c.pad, c.stride
@@ -444,6 +602,19 @@ def forward_np(net: Network, x: np.ndarray, layers: list[str]) -> dict[str, np.n
             else:
                 x = np.maximum(conv2d_np(x, L), 0.0)
         return out
+    if net.family == "efficientnet":
+        x = relu6(conv2d_np(x, net.stem))
+        for si, stage in enumerate(net.stages):
+            for blk in stage:
+                y = relu6(conv2d_np(x, blk.expand)) if blk.expand is not None else x
+                y = conv2d_np(relu6(conv2d_np(y, blk.depthwise)), blk.project)
+                x = y + x if blk.skip else y
+            if f"stage{si + 1}" in want:
+                out[f"stage{si + 1}"] = x
+            if len(out) == len(want):
+                return out
+        out["head"] = relu6(conv2d_np(x, net.head))
+        return out
     x = np.maximum(conv2d_np(x, net.stem), 0.0)
     x = maxpool_np(x, 3, 2, 1)
     if "pool" in want:
@@ -482,7 +653,12 @@ def forward_torch(net: Network, x: np.ndarray, layers: list[str]) -> dict[str, n
         net._check_layer(ly)
 
     def conv(t, c: Conv):
-        return F.conv2d(t, torch.from_numpy(c.w), torch.from_numpy(c.b), stride=c.stride, padding=c.pad)
+        if c.same:
+            (tp, bt), (lf, rt) = same_padding(t.shape[-2], c.w.shape[2], c.stride), \
+                same_padding(t.shape[-1], c.w.shape[3], c.stride)
+            t = F.pad(t, [lf, rt, tp, bt])
+        return F.conv2d(t, torch.from_numpy(c.w), torch.from_numpy(c.b), stride=c.stride,
+                        padding=0 if c.same else c.pad, groups=c.w.shape[0] if c.depthwise else 1)
 
     out: dict[str, np.ndarray] = {}
     with torch.inference_mode():
@@ -499,6 +675,19 @@ def forward_torch(net: Network, x: np.ndarray, layers: list[str]) -> dict[str, n
                         break
                 else:
                     t = F.relu(conv(t, L))
+            return out
+        if net.family == "efficientnet":
+            t = F.relu6(conv(t, net.stem))
+            for si, stage in enumerate(net.stages):
+                for blk in stage:
+                    y = F.relu6(conv(t, blk.expand)) if blk.expand is not None else t
+                    y = conv(F.relu6(conv(y, blk.depthwise)), blk.project)
+                    t = y + t if blk.skip else y
+                if f"stage{si + 1}" in want:
+                    out[f"stage{si + 1}"] = t[0].numpy().copy()
+                if len(out) == len(want):
+                    return out
+            out["head"] = F.relu6(conv(t, net.head))[0].numpy().copy()
             return out
         t = F.relu(conv(t, net.stem))
         t = F.max_pool2d(t, 3, 2, 1)
@@ -526,7 +715,7 @@ def forward(net: Network, image: np.ndarray, layers: list[str], *, engine: str =
 
     engine : "numpy", "torch" or "auto" (torch when installed, else numpy)
     """
-    x = prepare_input(image, normalize)
+    x = prepare_input(image, normalize, net.mean, net.std)
     if engine not in ("auto", "numpy", "torch"):
         raise ConfigError(f"engine must be auto, numpy or torch, got {engine!r}")
     if engine == "torch" or (engine == "auto" and torch_available()):
@@ -554,6 +743,26 @@ def random_state_dict(backbone: str, seed: int = 0, widths: list | None = None) 
         sd[f"{prefix}.running_var"] = (1 + 0.1 * rng.random(n)).astype(np.float32)
 
     bb = backbone.lower()
+    if bb in EFFNET_LITE_CFGS:
+        sd["_conv_stem.weight"] = he(32, 3, 3)
+        bn("_bn0", 32)
+        i = 0
+        for r, k, _s, e, cin, cout in _lite_stages(bb):
+            for j in range(r):
+                c_in = cin if j == 0 else cout
+                mid = c_in * e
+                p = f"_blocks.{i}"
+                if e != 1:
+                    sd[f"{p}._expand_conv.weight"] = he(mid, c_in, 1)
+                    bn(f"{p}._bn0", mid)
+                sd[f"{p}._depthwise_conv.weight"] = he(mid, 1, k)
+                bn(f"{p}._bn1", mid)
+                sd[f"{p}._project_conv.weight"] = he(cout, mid, 1)
+                bn(f"{p}._bn2", cout)
+                i += 1
+        sd["_conv_head.weight"] = he(1280, cout, 1)
+        bn("_bn1", 1280)
+        return sd
     if bb.startswith("vgg"):
         isbn = bb.endswith("_bn")
         cfg = widths or VGG_CFGS[bb[:-3] if isbn else bb]
@@ -570,7 +779,7 @@ def random_state_dict(backbone: str, seed: int = 0, widths: list | None = None) 
             cin = x
         return sd
     if bb not in RESNET_CFGS and not widths:
-        raise ConfigError(f"random_state_dict knows {', '.join([*VGG_CFGS, *RESNET_CFGS])}")
+        raise ConfigError(f"random_state_dict knows {', '.join([*VGG_CFGS, *RESNET_CFGS, *EFFNET_LITE_CFGS])}")
     kind, blocks = RESNET_CFGS.get(bb, ("basic", [1, 1]))
     base = int(widths[0]) if widths else 64
     if widths and len(widths) > 1:

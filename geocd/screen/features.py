@@ -281,5 +281,8 @@ class FeatureSpec(ParamsMixin):
 
 
 def default_layer(backbone: str | None) -> str:
-    """pool5 for VGG (the thesis's best), layer3 (stride 16) for ResNet."""
-    return "layer3" if (backbone or "").lower().startswith("resnet") else "pool5"
+    """pool5 for VGG (the thesis's best), layer3 (stride 16) for ResNet, stage5 (stride 16) for EfficientNet-Lite."""
+    bb = (backbone or "").lower()
+    if bb.startswith("efficientnet"):
+        return "stage5"
+    return "layer3" if bb.startswith("resnet") else "pool5"

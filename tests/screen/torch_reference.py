@@ -1,6 +1,6 @@
 """torchvision-style VGG and ResNet built from ``torch.nn`` modules (test-only, independent of geocd's folding).
 
-Used to make ``data/cnn_reference.npz`` (``python -m tests.screen.torch_reference``) and, when torch is
+Used to make ``data/cnn_reference.npz`` (``python -m tests.screen.torch_reference [cnn] [effnet] [pth]``) and, when torch is
 installed, to check geocd's numpy and torch forward passes against ``nn.Module`` networks loaded with
 ``load_state_dict(strict=True)`` in eval mode.
 """
@@ -16,6 +16,11 @@ NETS = (("vgg_small", "vgg", [8, 8, "M", 16, "M", 16, "M"]),
         ("vgg_small_bn", "vgg", [8, "M", 16, "M", 16, "M"]),
         ("resnet_small", "resnet", [8, 1, 1, 1]))
 REF = Path(__file__).parent / "data" / "cnn_reference.npz"
+#: EfficientNet-Lite0 (random weights, seed 3) through the efficientnet_lite_pytorch port, every stage and the head
+EFFNET_REF = Path(__file__).parent / "data" / "effnet_reference.npz"
+#: a small state_dict saved by torch.save in its zip and its legacy format (read without torch)
+PTH_ZIP = Path(__file__).parent / "data" / "tiny_zip.pth"
+PTH_LEGACY = Path(__file__).parent / "data" / "tiny_legacy.pth"
 
 
 def vgg_module(cfg, bn: bool):
@@ -131,6 +136,62 @@ def make(path: Path = REF) -> None:
     np.savez_compressed(path, **out)
 
 
+def make_effnet(path: Path = EFFNET_REF) -> None:
+    """EfficientNet-Lite0 features from the ``efficientnet_lite_pytorch`` port (an independent torch.nn model of
+    TensorFlow's network; needs ``pip install efficientnet_lite_pytorch torch``), dynamic "same" padding, odd sizes."""
+    import torch
+    from efficientnet_lite_pytorch import EfficientNet
+
+    from geocd.screen.cnn import TF_MEAN, TF_STD, _lite_stages, prepare_input, random_state_dict
+
+    sd = random_state_dict("efficientnet_lite0", seed=3)
+    m = EfficientNet.from_name("efficientnet-lite0", image_size=None)   # None: padding from each input's size
+    full = m.state_dict()
+    m.load_state_dict({**{k: v for k, v in full.items() if k.startswith("_fc")},
+                       **{k: torch.from_numpy(v) for k, v in sd.items()}}, strict=True)
+    m.eval()
+    image = np.random.default_rng(7).random((3, 45, 53)).astype(np.float32)
+    x = torch.from_numpy(prepare_input(image, True, TF_MEAN, TF_STD))[None]
+    ends = np.cumsum([r for r, *_ in _lite_stages("efficientnet_lite0")])
+    out = {"image": image}
+    with torch.inference_mode():
+        t = m._swish(m._bn0(m._conv_stem(x)))
+        for i, blk in enumerate(m._blocks):
+            t = blk(t)
+            if i + 1 in ends:
+                out[f"stage{int(np.searchsorted(ends, i + 1)) + 1}"] = t[0].numpy()
+        out["head"] = m._swish(m._bn1(m._conv_head(t)))[0].numpy()
+    np.savez_compressed(path, **out)
+
+
+def make_pth() -> None:
+    """The same small state_dict in torch.save's zip and legacy formats (float32, int64 and a strided view)."""
+    import torch
+
+    sd = tiny_state_dict()
+    t = {k: torch.from_numpy(v) for k, v in sd.items()}
+    t["features.0.weight_t"] = torch.from_numpy(sd["features.0.weight"]).transpose(0, 1)   # a non-contiguous view
+    torch.save({"state_dict": t}, PTH_ZIP)
+    torch.save(t, PTH_LEGACY, _use_new_zipfile_serialization=False)
+
+
+def tiny_state_dict() -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(2)
+    return {"features.0.weight": rng.standard_normal((4, 3, 3, 3)).astype(np.float32),
+            "features.0.bias": rng.standard_normal(4).astype(np.float32),
+            "bn.num_batches_tracked": np.array(7, np.int64)}
+
+
 if __name__ == "__main__":
-    make()
-    print(f"wrote {REF} ({REF.stat().st_size} bytes)")
+    import sys
+
+    what = sys.argv[1:] or ["cnn"]
+    if "cnn" in what:
+        make()
+        print(f"wrote {REF} ({REF.stat().st_size} bytes)")
+    if "effnet" in what:
+        make_effnet()
+        print(f"wrote {EFFNET_REF} ({EFFNET_REF.stat().st_size} bytes)")
+    if "pth" in what:
+        make_pth()
+        print(f"wrote {PTH_ZIP}, {PTH_LEGACY}")
