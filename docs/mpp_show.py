@@ -2,9 +2,9 @@
 
 Usage (from the repository root)::
 
-    # a generated town (sample_aoi, or `geocd synth --seed N --out DIR`): orthos + stereo DSMs once, then
-    # every variant on them
-    .venv/bin/geocd --progress none ortho sample_aoi --out /tmp/ortho_run
+    # a generated town (sample_aoi, or `geocd synth --seed N --out DIR`): orthos + stereo DSMs once (geocd mpp
+    # makes them without the stereo's surface median, as docs/mpp.md's figures need), then every variant on them
+    .venv/bin/geocd --progress none mpp sample_aoi --out /tmp/ortho_run
     .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
         [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior,
         # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring,

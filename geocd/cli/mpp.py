@@ -59,13 +59,17 @@ import numpy as np
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed: same seed, same objects.")
 @click.option("--max-iter", type=int, default=None, help="Iteration cap of multiple birth and death (default 250).")
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting in metres.")
+@click.option("--surface-median", "surface_median", type=int, default=None,
+              help="Manifest: the surface median (odd cells) of the stereo that makes the DSMs. Default 1 (off: "
+                   "each cell's own match, as geocd run): the height cues measure the DSM's noise on the DSM "
+                   "itself. docs/mpp.md measures both.")
 @click.option("--out", "out", type=click.Path(path_type=str), default=None,
               help="Output folder (manifest default: its output; layers go to OUT/mpp/).")
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
 @click.pass_context
 def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, epoch_a, epoch_b, view_a, view_b,
-        method, height, step, edge_fit, wall_blur, absence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, out,
-        no_overwrite) -> None:
+        method, height, step, edge_fit, wall_blur, absence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, surface_median,
+        out, no_overwrite) -> None:
     """Find buildings on two images of different dates and which are new, demolished or unchanged: a marked
     point process of rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), with
     geocd's height term from the DSMs.
@@ -86,6 +90,9 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
         raise ConfigError("give a scene manifest, or two images with --image-a and --image-b")
     if manifest is not None and image_a is not None:
         raise ConfigError("give either a manifest or --image-a/--image-b, not both")
+    if surface_median is not None and manifest is None:
+        raise ConfigError("--surface-median applies to the stereo DSMs of a manifest; with --image-a/--image-b "
+                          "give --dsm-a/--dsm-b")
     if height == "on" and image_a is not None and dsm_a is None:
         raise ConfigError("--height on needs --dsm-a and --dsm-b with --image-a/--image-b")
     require_inputs(manifest, image_a, image_b, dsm_a, dsm_b, ground, change_prior)
@@ -116,10 +123,15 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
             if dsm_a or dsm_b:
                 ea, eb = pick_epochs(m, epoch_a, epoch_b)
                 dsm = {k: v for k, v in ((ea.name, dsm_a), (eb.name, dsm_b)) if v}
+            sp = None
+            if surface_median is not None:
+                from ..stereo.params import StereoParams
+
+                sp = StereoParams(surface_median=surface_median)
             res = run_mpp_manifest(m, out_dir=out_dir, epoch_a=epoch_a, epoch_b=epoch_b, view_a=view_a,
                                    view_b=view_b, dsm=dsm, method=method, params=params, height=height,
                                    change_prior=change_prior, posting_m=posting_m, overwrite=not no_overwrite,
-                                   progress=progress)
+                                   stereo_params=sp, progress=progress)
         else:
             from ..mpp.pipeline import run_mpp_images
 

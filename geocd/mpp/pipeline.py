@@ -61,14 +61,19 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
                      epoch_b: str | None = None, view_a: str | None = None, view_b: str | None = None,
                      dsm: dict | None = None, method: str = "ED", params: MPPParams = MPPParams(),
                      height: str = "auto", change_prior: os.PathLike | str | None = None,
-                     posting_m: float | None = None, overwrite: bool = True,
+                     posting_m: float | None = None, overwrite: bool = True, stereo_params=None,
                      progress: Progress | None = None) -> dict[str, Any]:
-    """Orthos of one view per epoch (geocd ortho, stereo DSMs) → marked point process → layers."""
+    """Orthos of one view per epoch (geocd ortho, stereo DSMs) → marked point process → layers.
+
+    ``stereo_params`` (a :class:`geocd.stereo.StereoParams`) make the DSMs when none is given. Default: geocd
+    stereo's with each cell's own match (no surface median, as ``geocd run``): the height cues measure the DSM's
+    noise on the DSM itself (plane-fit residuals of its ground cells), and a median over the matching window
+    smooths that noise away (docs/mpp.md, "The DSM's surface median")."""
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import read_band, read_dem
     from ..ortho import OrthoParams
     from ..ortho.pipeline import run_ortho
-    from ..pipeline import pick_epochs
+    from ..pipeline import _run_stereo_params, pick_epochs
     from ..stereo.params import StereoParams
     from ..stereo.pipeline import default_aoi_grid, load_epoch_images
 
@@ -99,6 +104,7 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
     use_h = height == "on" or (height == "auto" and (dsm or all(len(e.images) >= 2 for e in (ea, eb))))
     orth = run_ortho(m, epochs=[ea.name, eb.name], images=[chosen[ea.name].name, chosen[eb.name].name],
                      out_dir=out, dsm=dsm, grid=grid, params=OrthoParams(), overwrite=overwrite,
+                     stereo_params=stereo_params if stereo_params is not None else _run_stereo_params(),
                      progress=sub_progress(prog, 0.02, 0.5, "ortho: "))
     ra = orth["results"][f"{ea.name}/{chosen[ea.name].name}"]
     rb = orth["results"][f"{eb.name}/{chosen[eb.name].name}"]
