@@ -18,6 +18,8 @@ a ``state_dict`` exported from them (or any network built the same way) loads as
   TensorFlow's "same" padding and batch-norm ε = 10⁻³. Layers ``stage1`` … ``stage7`` (strides
   2, 4, 8, 16, 16, 32, 32) and ``head`` (stride 32). Its input is scaled as TensorFlow's
   preprocessing does, (255·x − 127) / 128, not with the ImageNet mean and standard deviation.
+  Lite0 is checked against the torch port and with trained weights; lite1–4 follow TensorFlow's
+  width and depth rules and have not met real weights.
 
 Weights files: ``.npz`` (one array per ``state_dict`` key: ``np.savez(path, **{k:
 v.numpy() for k, v in model.state_dict().items()})``) — read with numpy alone — or a
