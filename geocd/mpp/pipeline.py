@@ -8,6 +8,7 @@ Two images: the second is resampled onto the first one's grid when their grids d
 
 from __future__ import annotations
 
+import json
 import os
 import warnings
 from pathlib import Path
@@ -55,6 +56,42 @@ def _change_prior(path: os.PathLike | str, grid: AOIGrid) -> np.ndarray:
         a = reproject_band(ds, band, grid, "nearest")
     scale = 100.0 if np.nanmax(a) > 1.0 else 1.0
     return np.clip(np.where(np.isfinite(a), a / scale, 0.5), 0.0, 1.0).astype(np.float32)
+
+
+def dsm_smoothing(path: os.PathLike | str) -> int | None:
+    """The surface median (cells) a geocd DSM or pair-DEM was made with, from its tags; None when it does not say
+    (another program's DSM). A pair-DEM whose stereo used the default median (the matching window) returns its
+    window."""
+    from ..io.raster import _open
+
+    with _open(path) as ds:
+        tags = ds.tags()
+    if "surface_median_cells" in tags:
+        return int(tags["surface_median_cells"])
+    try:
+        prm = (json.loads(tags.get("meta", "{}") or "{}").get("params") or {})
+    except ValueError:
+        return None
+    if not prm:
+        return None
+    sm = prm.get("surface_median")
+    return int(prm.get("window", 0) or 0) if sm is None else int(sm)
+
+
+def _warn_smoothed(paths) -> list[str]:
+    """Notes (and warnings) for given DSMs made with a surface median: the height cues measure the DSM's noise."""
+    notes = []
+    for path in paths:
+        if path is None:
+            continue
+        k = dsm_smoothing(path)
+        if k is not None and k > 1:
+            msg = (f"DSM {Path(path).name} was made with a {k}-cell surface median: the height cues take their "
+                   "tolerances from the DSM's own noise, which the median smooths away (docs/mpp.md, 'The DSM's "
+                   "surface median'); make it with --surface-median 1 (geocd stereo, geocd ortho, geocd mpp)")
+            warnings.warn(msg, UserWarning, stacklevel=3)
+            notes.append(msg)
+    return notes
 
 
 def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoch_a: str | None = None,
@@ -129,6 +166,8 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
     det = detect(ra.values, rb.values, grid.posting_m, p, method=method, valid_a=ra.observed, valid_b=rb.observed,
                  dsm_a=dsm_a, dsm_b=dsm_b, ground_m=ground, change_prior=cp,
                  progress=sub_progress(prog, 0.5, 0.95, "mpp: "))
+    if dsm and use_h:
+        notes += _warn_smoothed(dsm.values() if isinstance(dsm, dict) else [dsm])
     det.notes = notes + det.notes
     paths = write_mpp_products(out / "mpp", det, grid, epoch_a=ea.name, epoch_b=eb.name,
                                images=(ra.values, rb.values, ra.observed, rb.observed),
@@ -213,6 +252,8 @@ def run_mpp_images(image_a: os.PathLike | str, image_b: os.PathLike | str, *, ou
         warnings.simplefilter("ignore", RuntimeWarning)
         det = detect(a, b, grid.posting_m, p, method=method, valid_a=va, valid_b=vb, dsm_a=da, dsm_b=db,
                      ground_m=gr, change_prior=cp, progress=progress)
+    if dsm_a is not None:
+        notes += _warn_smoothed([dsm_a, dsm_b])
     det.notes = notes + det.notes
     paths = write_mpp_products(out_dir, det, grid, epoch_a=epoch_names[0], epoch_b=epoch_names[1],
                                images=(a, b, va, vb),

@@ -258,6 +258,7 @@ def run_ortho(manifest, *, epochs: Sequence[str] | None = None, images: Sequence
     outputs: dict[str, Path] = {}
     results: dict[str, OrthoResult] = {}
     sources: dict[str, str] = {}
+    smoothing: dict[str, int] = {}   # the stereo's surface median (cells) behind each epoch's DSM
     n_total = sum(len(v) for v in ims.values())
     done = 0
     for e in sel:
@@ -276,6 +277,7 @@ def run_ortho(manifest, *, epochs: Sequence[str] | None = None, images: Sequence
                                                   f"{e.name} stereo: "))
             h = stereo_epoch_dsm(list(st["pairs"].values()))
             sources[e.name] = f"geocd stereo: median of {len(st['pairs'])} pair-DEMs"
+            smoothing[e.name] = sp.median_size
         else:
             spec = e.dem or m.dem
             if spec is None:
@@ -289,7 +291,9 @@ def run_ortho(manifest, *, epochs: Sequence[str] | None = None, images: Sequence
         filled_h, hole = fill_dsm_holes(h, prior)
         dsm_path = write_cog(out / "ortho" / e.name / f"dsm_{e.name}.tif",
                              {"height_m": filled_h.astype(np.float32), "filled": hole.astype(np.float32)}, grid,
-                             tags={"source": sources[e.name], "vertical_datum": "ellipsoid"}, overwrite=overwrite)
+                             tags={"source": sources[e.name], "vertical_datum": "ellipsoid",
+                                   **({"surface_median_cells": str(smoothing[e.name])} if e.name in smoothing else {})},
+                             overwrite=overwrite)
         outputs[f"{e.name}/dsm"] = dsm_path
         for im in ims[e.name]:
             f0 = done / max(n_total, 1)

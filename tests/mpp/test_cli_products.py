@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pyogrio
+import pytest
 import rasterio
 from affine import Affine
 from click.testing import CliRunner
@@ -81,3 +82,29 @@ def test_cli_bad_inputs(tmp_path):
     r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pf),
                                   "--out", str(tmp_path / "o")])
     assert r.exit_code != 0 and "overlap" in r.output
+
+
+def test_a_smoothed_dsm_is_named_in_a_warning(tmp_path):
+    """A DSM made with a surface median (geocd ortho's tag, or a pair-DEM's stereo parameters) is flagged: the
+    height cues take their tolerances from the DSM's own noise (docs/mpp.md, "The DSM's surface median")."""
+    from rasterio.transform import from_origin
+
+    from geocd.mpp.pipeline import _warn_smoothed, dsm_smoothing
+
+    def dsm(name, tags):
+        p = tmp_path / name
+        with rasterio.open(p, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32", crs="EPSG:32631",
+                           transform=from_origin(500000, 4800000, 0.5, 0.5)) as ds:
+            ds.write(np.zeros((1, 4, 4), np.float32))
+            ds.update_tags(**tags)
+        return p
+
+    ortho7 = dsm("ortho7.tif", {"surface_median_cells": "7"})
+    ortho1 = dsm("ortho1.tif", {"surface_median_cells": "1"})
+    pair_window = dsm("pair_w.tif", {"meta": json.dumps({"params": {"window": 7, "surface_median": None}})})
+    pair_off = dsm("pair_1.tif", {"meta": json.dumps({"params": {"window": 7, "surface_median": 1}})})
+    other = dsm("other.tif", {})
+    assert [dsm_smoothing(p) for p in (ortho7, ortho1, pair_window, pair_off, other)] == [7, 1, 7, 1, None]
+    with pytest.warns(UserWarning, match=r"ortho7\.tif was made with a 7-cell surface median.*--surface-median 1"):
+        notes = _warn_smoothed([ortho7, ortho1, other, None])
+    assert len(notes) == 1

@@ -11,7 +11,7 @@ import geopandas as gpd
 import pytest
 
 from geocd.mpp.evaluate import rect_masks, sample_truth, table2
-from geocd.mpp.pipeline import run_mpp_manifest
+from geocd.mpp.pipeline import dsm_smoothing, run_mpp_manifest
 from geocd.stereo.params import StereoParams
 
 
@@ -34,3 +34,5 @@ def test_sample_aoi_table2_through_geocd_mpp(sample_aoi, tmp_path, stereo, want)
     for k in ("HO", "FO", "HV", "FV"):
         assert abs(t[k] - want[k]) <= 2, (k, t)
     assert (tmp_path / "mpp" / "mpp" / "mpp_buildings.gpkg").is_file()
+    # the DSMs say which surface median made them (what geocd mpp --dsm-a/--dsm-b warns about)
+    assert dsm_smoothing(tmp_path / "mpp" / "ortho" / "A" / "dsm_A.tif") == (1 if stereo is None else 7)
