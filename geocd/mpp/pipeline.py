@@ -88,7 +88,8 @@ def _warn_smoothed(paths) -> list[str]:
         if k is not None and k > 1:
             msg = (f"DSM {Path(path).name} was made with a {k}-cell surface median: the height cues take their "
                    "tolerances from the DSM's own noise, which the median smooths away (docs/mpp.md, 'The DSM's "
-                   "surface median'); make it with --surface-median 1 (geocd stereo, geocd ortho, geocd mpp)")
+                   "surface median'); make it with geocd stereo --surface-median 1, or give geocd mpp the manifest and "
+                   "let it make the DSMs")
             warnings.warn(msg, UserWarning, stacklevel=3)
             notes.append(msg)
     return notes
