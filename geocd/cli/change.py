@@ -38,8 +38,14 @@ def _confidences(values) -> tuple[float, ...]:
                    "it. A tile is flagged when its area above the lower of the no-change pair's and the compared "
                    "pair's own 99 % dissimilarity quantiles exceeds chance, or when a flagged change reaches into "
                    "it (OUT/screen holds its layers; run_summary.json: screen.flag_rule, screen.stereo_plan).")
-@click.option("--screen-feature", type=click.Choice(["patch", "daisy", "randbank"]), default="patch",
-              show_default=True, help="Grid feature of the screen (--screen).")
+@click.option("--screen-feature", type=click.Choice(["patch", "daisy", "randbank", "cnn"]), default="patch",
+              show_default=True, help="Grid feature of the screen (--screen); cnn needs --screen-backbone and "
+                                      "--screen-weights.")
+@click.option("--screen-backbone", default=None,
+              help="--screen-feature cnn: the backbone (e.g. efficientnet_lite0; see geocd screen --backbone).")
+@click.option("--screen-weights", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
+              help="--screen-feature cnn: the weights file (never downloaded; see geocd screen --weights).")
+@click.option("--screen-layer", default=None, help="--screen-feature cnn: the layer (default: the backbone's).")
 @click.option("--screen-tile", "screen_tile", type=int, default=128, show_default=True,
               help="Side of the screen's tiles, cells, ≥ 64 (--screen); cells of unflagged tiles are coded "
                    "-127 'not examined' in the change mask.")
@@ -49,7 +55,8 @@ def _confidences(values) -> tuple[float, ...]:
                    "(auto, the default).")
 @click.pass_context
 def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_confidence, footprints, posting_m,
-        epoch_a, epoch_b, pairs, screen, screen_feature, screen_tile, calibration):
+        epoch_a, epoch_b, pairs, screen, screen_feature, screen_backbone, screen_weights, screen_layer, screen_tile,
+        calibration):
     """Full run on MANIFEST (default: sample_aoi): stereo → self-consistency baseline → change test → layers.
 
     Writes pair-DEMs (OUT/stereo), the scene-class model, change rasters (COG + QGIS styles), the changes/buildings/
@@ -85,7 +92,8 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
     if screen:
         from ..screen import FeatureSpec, ScreenParams
 
-        changes["screen"] = ScreenParams(feature=FeatureSpec(kind=screen_feature))
+        changes["screen"] = ScreenParams(feature=FeatureSpec(kind=screen_feature, backbone=screen_backbone,
+                                                             weights=screen_weights, layer=screen_layer))
         changes["screen_tile_cells"] = int(screen_tile)
     import dataclasses
 

@@ -343,7 +343,7 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
         keep[0] = False
         changed = keep[lab]
     if flag_rule == "chance":
-        fl, tile_info = flag_tiles_by_chance(changed, sr.valid, tile_cells, screen_params.feature.cell_px,
+        fl, tile_info = flag_tiles_by_chance(changed, sr.valid, tile_cells, sr.cell_px,
                                              false_alarm_pct / 100.0)
     else:
         fl = flag_tiles(changed, tile_cells)
@@ -372,7 +372,7 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
     # the calibration's bias comes from examining change-rich tiles only; the whole grid examined is no selection,
     # and the change test then fits on every cell as the full run does
     cal_cells = (None if plan.whole_grid
-                 else calibration_cells(sr.dissimilarity, level, changed, examined, screen_params.feature.cell_px))
+                 else calibration_cells(sr.dissimilarity, level, changed, examined, sr.cell_px))
     kept = st.get("pairs") or {key: read_pair_dem(p) for key, p in st["outputs"].items()}
     info = {"threshold": round(float(sc["threshold"]), 4), "rule": sc["rule"], "feature": screen_params.feature.label,
             "flag_threshold": round(float(t_flag), 4), "flag_rule": flag_rule_text, **flag_info,
@@ -387,7 +387,7 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
             "calibration_cells": ("all (the whole grid was examined)" if cal_cells is None else
                                   {"fraction": round(float(cal_cells.mean()), 4), "dissimilarity_at_most": round(level, 4),
                                    "level": "no-change pair's median" if null is not None else "threshold",
-                                   "buffer_cells": int(screen_params.feature.cell_px)}),
+                                   "buffer_cells": int(sr.cell_px)}),
             "screen_seconds": round(t_screen, 2), "stereo_seconds": round(t_3d, 2)}
     prog(1.0, "screened stereo done")
     return {"outputs": st["outputs"], "grid": grid, "pairs": kept, "screen": info, "examined": examined,

@@ -325,3 +325,17 @@ def test_flag_rule_holds_recall_when_the_no_change_pair_is_wider_than_the_screen
 
     with pytest.raises(EmptyDataError, match="no-change pair"):
         flag_threshold(np.full((5, 5), np.nan), None, 1.0)
+
+
+def test_geocd_run_screen_takes_a_cnn_feature(sample_aoi, tmp_path):
+    """`geocd run --screen --screen-feature cnn` builds the screen's CNN spec from --screen-backbone/-weights/-layer
+    (checked before any stereo: a missing weights file is refused with where trained ones come from)."""
+    from click.testing import CliRunner
+
+    from geocd.cli import main
+
+    r = CliRunner().invoke(main, ["--progress", "none", "run", str(sample_aoi), "--screen", "--screen-feature", "cnn",
+                                  "--screen-backbone", "efficientnet_lite0", "--out", str(tmp_path / "out")])
+    assert r.exit_code != 0
+    assert "weights file the user names" in r.output and "efficientnet_lite0" in r.output
+    assert not (tmp_path / "out" / "stereo").exists()
