@@ -126,9 +126,10 @@ def _read_pairs(paths):
     import warnings
 
     from ..stereo import read_pair_dem
+    from ..stereo.params import surface_median_cells
 
     pairs = [read_pair_dem(p) for p in paths]
-    smoothed = [p.name for p in pairs if (p.meta.get("params") or {}).get("surface_median", 1) != 1]
+    smoothed = [p.name for p in pairs if surface_median_cells(p.meta.get("params") or {}) != 1]
     if smoothed:
         warnings.warn(f"pair-DEM(s) {', '.join(smoothed)} were matched with a surface median: the self-consistency "
                       "test models each cell's own match, and a median correlates neighbouring errors (more false "

@@ -63,6 +63,7 @@ def dsm_smoothing(path: os.PathLike | str) -> int | None:
     (another program's DSM). A pair-DEM whose stereo used the default median (the matching window) returns its
     window."""
     from ..io.raster import _open
+    from ..stereo.params import surface_median_cells
 
     with _open(path) as ds:
         tags = ds.tags()
@@ -72,10 +73,7 @@ def dsm_smoothing(path: os.PathLike | str) -> int | None:
         prm = (json.loads(tags.get("meta", "{}") or "{}").get("params") or {})
     except ValueError:
         return None
-    if not prm:
-        return None
-    sm = prm.get("surface_median")
-    return int(prm.get("window", 0) or 0) if sm is None else int(sm)
+    return surface_median_cells(prm) if prm else None
 
 
 def _warn_smoothed(paths) -> list[str]:

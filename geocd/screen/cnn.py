@@ -102,6 +102,7 @@ def load_weights(path: str | Path) -> dict[str, np.ndarray]:
                 obj = torch.load(p, map_location="cpu", weights_only=True)
             except Exception as exc:  # noqa: BLE001
                 raise WeightsMismatchError(f"cannot read the PyTorch weights {p}: {exc}") from exc
+            obj = _tensors_to_numpy(obj)
         else:
             try:
                 obj = read_torch_file(p)
@@ -115,12 +116,20 @@ def load_weights(path: str | Path) -> dict[str, np.ndarray]:
         if not isinstance(obj, Mapping):
             raise WeightsMismatchError(f"{p} holds a {type(obj).__name__}, not a state_dict; save "
                                        "model.state_dict() instead of the model")
-        sd = {k: (v.detach().cpu().numpy() if hasattr(v, "detach") else v) for k, v in obj.items()
-              if hasattr(v, "detach") or isinstance(v, np.ndarray)}
+        sd = {k: v for k, v in obj.items() if isinstance(v, np.ndarray)}
     else:
         raise ConfigError(f"weights file {p}: use .npz (numpy) or .pt/.pth (PyTorch state_dict)")
     sd = {re.sub(r"^(module\.|model\.|backbone\.)", "", k): v for k, v in sd.items()}
     return {k: v.astype(np.float32) if v.dtype.kind == "f" else v for k, v in sd.items()}
+
+
+def _tensors_to_numpy(obj: Any) -> Any:
+    """torch.load's containers with every tensor as a numpy array (as geocd's own reader returns them)."""
+    if hasattr(obj, "detach"):
+        return obj.detach().cpu().numpy()
+    if isinstance(obj, Mapping):
+        return {k: _tensors_to_numpy(v) for k, v in obj.items()}
+    return obj
 
 
 # ---------------------------------------------------------------------------------------------
@@ -408,6 +417,17 @@ def _lite_stages(backbone: str) -> list[tuple[int, int, int, int, int, int]]:
     return out
 
 
+def _lite_blocks(backbone: str):
+    """Every inverted-residual block of an EfficientNet-Lite in order: (stage, index, kernel, stride, expansion,
+    input, expanded and output channels)."""
+    i = 0
+    for si, (r, k, s, e, cin, cout) in enumerate(_lite_stages(backbone)):
+        for j in range(r):
+            c_in = cin if j == 0 else cout
+            yield si, i, k, s if j == 0 else 1, e, c_in, c_in * e, cout
+            i += 1
+
+
 def _effnet_from_state(sd, backbone: str) -> Network:
     guess = describe_weights(sd)
     if backbone not in EFFNET_LITE_CFGS:
@@ -422,21 +442,16 @@ def _effnet_from_state(sd, backbone: str) -> Network:
         return Conv(fw, fb, stride, 0, same=True, depthwise=depthwise)
 
     stem = conv_bn("_conv_stem", "_bn0", (32, 3, 3, 3), 2)
-    stages: list[list[MBConv]] = []
-    i = 0
-    for r, k, s, e, cin, cout in _lite_stages(backbone):
-        blocks = []
-        for j in range(r):
-            c_in = cin if j == 0 else cout
-            mid = c_in * e
-            p = f"_blocks.{i}"
-            expand = conv_bn(f"{p}._expand_conv", f"{p}._bn0", (mid, c_in, 1, 1)) if e != 1 else None
-            dw = conv_bn(f"{p}._depthwise_conv", f"{p}._bn1", (mid, 1, k, k), s if j == 0 else 1, depthwise=True)
-            proj = conv_bn(f"{p}._project_conv", f"{p}._bn2", (cout, mid, 1, 1))
-            blocks.append(MBConv(expand, dw, proj, skip=(dw.stride == 1 and c_in == cout)))
-            i += 1
-        stages.append(blocks)
-    extra = sorted({int(key.split(".")[1]) for key in sd if key.startswith("_blocks.")} - set(range(i)))
+    stages: list[list[MBConv]] = [[] for _ in EFFNET_LITE_STAGES]
+    n = 0
+    for si, i, k, stride, e, c_in, mid, cout in _lite_blocks(backbone):
+        p = f"_blocks.{i}"
+        expand = conv_bn(f"{p}._expand_conv", f"{p}._bn0", (mid, c_in, 1, 1)) if e != 1 else None
+        dw = conv_bn(f"{p}._depthwise_conv", f"{p}._bn1", (mid, 1, k, k), stride, depthwise=True)
+        proj = conv_bn(f"{p}._project_conv", f"{p}._bn2", (cout, mid, 1, 1))
+        stages[si].append(MBConv(expand, dw, proj, skip=(stride == 1 and c_in == cout)))
+        n = i + 1
+    extra = sorted({int(key.split(".")[1]) for key in sd if key.startswith("_blocks.")} - set(range(n)))
     if extra:
         raise WeightsMismatchError(f"the weights file does not fit the {backbone} backbone: it has more blocks "
                                    f"('_blocks.{extra[0]}' is not part of {backbone}); the file looks like {guess}")
@@ -518,6 +533,11 @@ def same_padding(n: int, k: int, s: int) -> tuple[int, int]:
     return total // 2, total - total // 2
 
 
+def _same_pads(h: int, w: int, c: Conv) -> tuple[int, int, int, int]:
+    """(top, bottom, left, right) "same" padding of an (h, w) input for convolution ``c``."""
+    return (*same_padding(h, c.w.shape[2], c.stride), *same_padding(w, c.w.shape[3], c.stride))
+
+
 def relu6(x: np.ndarray) -> np.ndarray:
     return np.clip(x, 0.0, 6.0)
 
@@ -546,7 +566,7 @@ def conv2d_np(x: np.ndarray, c: Conv, max_bytes: int = 64 << 20) -> np.ndarray:
     cin, H, W = x.shape
     cout, cin_w, kh, kw = c.w.shape
     if c.same:
-        (t, bt), (lf, rt) = same_padding(H, kh, c.stride), same_padding(W, kw, c.stride)
+        t, bt, lf, rt = _same_pads(H, W, c)
         return conv2d_np(np.pad(x, ((0, 0), (t, bt), (lf, rt))),
                          Conv(c.w, c.b, c.stride, 0, depthwise=c.depthwise), max_bytes)
     if c.depthwise:
@@ -656,8 +676,7 @@ def forward_torch(net: Network, x: np.ndarray, layers: list[str]) -> dict[str, n
 
     def conv(t, c: Conv):
         if c.same:
-            (tp, bt), (lf, rt) = same_padding(t.shape[-2], c.w.shape[2], c.stride), \
-                same_padding(t.shape[-1], c.w.shape[3], c.stride)
+            tp, bt, lf, rt = _same_pads(t.shape[-2], t.shape[-1], c)
             t = F.pad(t, [lf, rt, tp, bt])
         return F.conv2d(t, torch.from_numpy(c.w), torch.from_numpy(c.b), stride=c.stride,
                         padding=0 if c.same else c.pad, groups=c.w.shape[0] if c.depthwise else 1)
@@ -748,20 +767,15 @@ def random_state_dict(backbone: str, seed: int = 0, widths: list | None = None) 
     if bb in EFFNET_LITE_CFGS:
         sd["_conv_stem.weight"] = he(32, 3, 3)
         bn("_bn0", 32)
-        i = 0
-        for r, k, _s, e, cin, cout in _lite_stages(bb):
-            for j in range(r):
-                c_in = cin if j == 0 else cout
-                mid = c_in * e
-                p = f"_blocks.{i}"
-                if e != 1:
-                    sd[f"{p}._expand_conv.weight"] = he(mid, c_in, 1)
-                    bn(f"{p}._bn0", mid)
-                sd[f"{p}._depthwise_conv.weight"] = he(mid, 1, k)
-                bn(f"{p}._bn1", mid)
-                sd[f"{p}._project_conv.weight"] = he(cout, mid, 1)
-                bn(f"{p}._bn2", cout)
-                i += 1
+        for _si, i, k, _stride, e, c_in, mid, cout in _lite_blocks(bb):
+            p = f"_blocks.{i}"
+            if e != 1:
+                sd[f"{p}._expand_conv.weight"] = he(mid, c_in, 1)
+                bn(f"{p}._bn0", mid)
+            sd[f"{p}._depthwise_conv.weight"] = he(mid, 1, k)
+            bn(f"{p}._bn1", mid)
+            sd[f"{p}._project_conv.weight"] = he(cout, mid, 1)
+            bn(f"{p}._bn2", cout)
         sd["_conv_head.weight"] = he(1280, cout, 1)
         bn("_bn1", 1280)
         return sd

@@ -49,7 +49,7 @@ class _LazyTensor:
             raise TorchFileError(f"storage {self.storage.key!r} is referenced but not in the file")
         item = d.itemsize
         if not self.size:
-            return d[self.offset].copy()
+            return np.array(d[self.offset])
         need = self.offset + 1 + sum((n - 1) * s for n, s in zip(self.size, self.stride) if n > 0)
         if need > d.size:
             raise TorchFileError(f"a tensor of shape {self.size} does not fit its storage ({d.size} elements)")

