@@ -104,7 +104,8 @@ def test_a_smoothed_dsm_is_named_in_a_warning(tmp_path):
     pair_window = dsm("pair_w.tif", {"meta": json.dumps({"params": {"window": 7, "surface_median": None}})})
     pair_off = dsm("pair_1.tif", {"meta": json.dumps({"params": {"window": 7, "surface_median": 1}})})
     other = dsm("other.tif", {})
-    assert [dsm_smoothing(p) for p in (ortho7, ortho1, pair_window, pair_off, other)] == [7, 1, 7, 1, None]
+    pair_old = dsm("pair_old.tif", {"meta": json.dumps({"params": {"window": 7}})})   # before the median existed
+    assert [dsm_smoothing(p) for p in (ortho7, ortho1, pair_window, pair_off, other, pair_old)] == [7, 1, 7, 1, None, 1]
     with pytest.warns(UserWarning, match=r"ortho7\.tif was made with a 7-cell surface median.*geocd stereo --surface-median 1"):
         notes = _warn_smoothed([ortho7, ortho1, other, None])
     assert len(notes) == 1
