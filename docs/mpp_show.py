@@ -20,6 +20,11 @@ Usage (from the repository root)::
     .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
     .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
     .venv/bin/python docs/mpp_show.py tables              # the markdown tables of docs/mpp.md
+    # geocd mpp's defaults on each scene, scored with the buildings the border cuts in the truth masks (now
+    # evaluate.sample_truth's default) and left out (the earlier scoring) → docs/mpp_scoring.json
+    .venv/bin/python docs/mpp_show.py scoring /tmp/mpp_scoring sample_aoi=sample_aoi town1=T1 …
+    .venv/bin/python docs/mpp_show.py scoring /tmp/mpp_scoring_abs sample_aoi=sample_aoi … \
+        --variant '{"absence": "height"}' --tag _absence     # → docs/mpp_scoring_absence.json
     # Kahramanmaraş: after `geocd mpp --image-a … --out OUT` (docs/mpp.md), the figures against geocd's own
     # building damage layer (no truth exists)
     .venv/bin/python docs/mpp_show.py kahra OUT /tmp/kahra2
@@ -185,7 +190,7 @@ def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and", edge_f
     masks = rect_masks(det.result.rects, det.result.xi, grid.shape)
     g = gpd.read_file(name / "truth" / "footprints_all.gpkg")
     gb = box(*grid.bounds)
-    g = g[[geom.intersection(gb).area >= 0.5 * geom.area for geom in g.geometry]]   # as sample_truth
+    g = g[[geom.intersection(gb).area >= 0.5 * geom.area for geom in g.geometry]]   # sample_truth's scored ones
     mrr = g.geometry.minimum_rotated_rectangle()
     solidity = (g.geometry.area / mrr.area).to_numpy()
     longest = np.array([max(np.hypot(*np.diff(np.asarray(r.exterior.coords)[:3], axis=0).T)) for r in mrr])
@@ -248,7 +253,8 @@ def false_objects(name: Path, ortho_dir: Path, seeds=(0,), variant: dict | None 
     cause, in this order: "tree crown" (≥ 30 % on crowns), "off a building" (≥ 20 % on a truth building:
     a rectangle placed beside or astride one), "shadow" (≥ 30 % in cast shadow), "raised ground" (true
     height < 1 m, stereo nDSM ≥ ``min_height_m``), "other"; first of all "building cut by the border": ≥ 50 %
-    on a building with under half of its footprint on the grid, which ``sample_truth`` leaves out."""
+    on a building with under half of its footprint on the grid, which ``sample_truth`` left out until
+    24 Nov 2026 (``cut_buildings="drop"``; with its default now no detection there is a false object)."""
     import geopandas as gpd
     from rasterio.features import rasterize
     from scipy import ndimage
@@ -907,6 +913,36 @@ def kahra_outlines(run_dir: Path, step: str = "and") -> list[dict]:
     return rows
 
 
+def scoring(work: Path, scenes: list[tuple[str, Path]], variant: dict | None = None, tag: str = "") -> dict:
+    """Table 2 of ``geocd mpp``'s defaults (``run_mpp_manifest``: its orthos and DSMs, seed 0), or of the
+    defaults with ``variant``'s MPPParams fields, on each scene, with the buildings the grid's border cuts in
+    the truth masks and without them (``cut_buildings``)."""
+    import geopandas as gpd
+
+    from geocd.mpp.pipeline import run_mpp_manifest
+
+    keys = ("objects", "changes", "HO", "FO", "HV", "FV", "DP", "DP_precision", "DP_recall", "change_f")
+    out = {"command": "docs/mpp_show.py scoring " + " ".join([str(work)] + [f"{n}={p}" for n, p in scenes])
+           + (f" --variant {json.dumps(variant)}" if variant else ""), "variant": variant or {}, "scenes": {}}
+    for name, scene in scenes:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            r = run_mpp_manifest(scene, out_dir=work / name, params=MPPParams(**(variant or {})))
+        det, grid = r["detection"], r["grid"]
+        masks = rect_masks(det.result.rects, det.result.xi, grid.shape)
+        fp = gpd.read_file(scene / "truth" / "footprints_all.gpkg")
+        row = {}
+        for cut in ("masks", "drop"):
+            objs, t1, t2 = sample_truth(fp, grid, cut_buildings=cut)
+            t = table2(masks, objs, t1, t2)
+            row[cut] = {k: t[k] for k in keys}
+            row[cut]["buildings_cut_by_the_border"] = sum(1 for o in objs if not o["scored"])
+        out["scenes"][name] = row
+        print(name, json.dumps(row), flush=True)
+    (DOCS / f"mpp_scoring{tag}.json").write_text(json.dumps(out, indent=1))
+    return out
+
+
 if __name__ == "__main__":
     what = sys.argv[1]
     if what == "town":
@@ -951,6 +987,18 @@ if __name__ == "__main__":
         kahra(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "tables":
         tables()
+    elif what == "scoring":    # scoring WORK NAME=SCENE ... [--variant JSON --tag TAG]
+        args = sys.argv[2:]
+        variant, tag = None, ""
+        if "--variant" in args:
+            k = args.index("--variant")
+            variant = json.loads(args[k + 1])
+            args = args[:k] + args[k + 2:]
+        if "--tag" in args:
+            k = args.index("--tag")
+            tag = args[k + 1]
+            args = args[:k] + args[k + 2:]
+        scoring(Path(args[0]), [(a.split("=", 1)[0], Path(a.split("=", 1)[1])) for a in args[1:]], variant, tag)
     elif what == "levir":
         levir(sys.argv[3] if len(sys.argv) > 3 and sys.argv[2] == "--prototypes" else "auto")
     else:

@@ -11,7 +11,10 @@ Definitions used here (the paper gives no overlap rule; these are stated so the 
   not covered is a missed change (HV); a detected change (connected component of the ξ = 1 or ξ = 2 mask)
   with less than half of its area on truth changes of its kind is a false change (FV);
 * DP is the F-measure of the date-1 and date-2 building masks against the truth masks, pixels of both
-  dates pooled; ``change_f`` the same for the changed-building masks.
+  dates pooled; ``change_f`` the same for the changed-building masks;
+* a building cut by the grid's border is scored by its pixels only: its cells on the grid are building
+  cells of the truth masks (and of the truth changes), but it is not an object that can be missed
+  (``scored`` False in :func:`sample_truth`'s objects), since too little of it may be on the grid.
 """
 
 from __future__ import annotations
@@ -75,18 +78,20 @@ def table2(masks: dict[str, np.ndarray], truth_objects: list[dict], truth_1: np.
     ----------
     masks : from :func:`rect_masks`
     truth_objects : one dict per truth building: ``mask`` (bool grid), ``dates`` (subset of {1, 2}),
-        ``change`` (None, "new" or "demolished")
+        ``change`` (None, "new" or "demolished"), optional ``scored`` (default True; False: a building cut
+        by the border, which counts in the masks but cannot be missed)
     truth_1, truth_2 : bool building masks of each date
     observed : bool, cells where the evaluation counts (default all)
     """
     obs = np.ones(truth_1.shape, bool) if observed is None else observed
-    ho = sum(1 for t in truth_objects
+    scored = [t for t in truth_objects if t.get("scored", True)]
+    ho = sum(1 for t in scored
              if not any(_cover(masks["date1" if d == 1 else "date2"], t["mask"]) >= 0.5 for d in t["dates"]))
     truth_any = truth_1 | truth_2
     det = _components(masks["any"] & obs)
     fo = sum(1 for m in det if _cover(truth_any, m) < 0.5)
     changes = [t for t in truth_objects if t["change"]]
-    hv = sum(1 for t in changes if _cover(masks[t["change"]], t["mask"]) < 0.5)
+    hv = sum(1 for t in changes if t.get("scored", True) and _cover(masks[t["change"]], t["mask"]) < 0.5)
     fv = 0
     n_det_changes = 0
     for kind in ("new", "demolished"):
@@ -108,7 +113,8 @@ def table2(masks: dict[str, np.ndarray], truth_objects: list[dict], truth_1: np.
     dch = (masks["new"] | masks["demolished"]) & obs
     cf = _f(int((dch & tch).sum()), int((dch & ~tch).sum()), int((~dch & tch & obs).sum()))
     dp = _f(tp, fp, fn)
-    return {"objects": len(truth_objects), "changes": len(changes), "detected_objects": len(det),
+    return {"objects": len(scored), "changes": sum(1 for t in changes if t.get("scored", True)),
+            "detected_objects": len(det),
             "detected_changes": n_det_changes, "HO": ho, "FO": fo, "HV": hv, "FV": int(fv), "DP": dp["f"],
             "DP_precision": dp["precision"], "DP_recall": dp["recall"], "change_f": cf["f"]}
 
@@ -128,24 +134,40 @@ def table2_change_only(masks: dict[str, np.ndarray], change_label: np.ndarray, m
             "change_recall": cf["recall"]}
 
 
-def sample_truth(footprints_all, grid, min_in_aoi: float = 0.5) -> tuple[list[dict], np.ndarray, np.ndarray]:
+def sample_truth(footprints_all, grid, min_in_aoi: float = 0.5, cut_buildings: str = "masks"
+                 ) -> tuple[list[dict], np.ndarray, np.ndarray]:
     """Truth objects and date masks from a geocd synth ``footprints_all`` layer (``status`` per building).
 
-    Buildings with less than ``min_in_aoi`` of their footprint on the grid are left out."""
+    Parameters
+    ----------
+    min_in_aoi : float
+        A building with less than this share of its footprint on the grid is *cut* by the border.
+    cut_buildings : {"masks", "drop"}
+        "masks" (default): a cut building's cells on the grid are building cells of the date masks, and it
+        is in the objects with ``scored`` False (its pixels count in DP, FO, FV and change_f; it is never a
+        missed object or change). "drop": it is left out of the masks and the objects, so a detection on
+        it is a false object and false pixels (the scoring of geocd's figures until 24 Nov 2026).
+    """
     from rasterio.features import rasterize
     from shapely.geometry import box
 
+    if cut_buildings not in ("masks", "drop"):
+        raise ValueError(f"cut_buildings must be 'masks' or 'drop', got {cut_buildings!r}")
     gb = box(*grid.bounds)
     t1 = np.zeros(grid.shape, bool)
     t2 = np.zeros(grid.shape, bool)
     objs = []
     for geom, status in zip(footprints_all.geometry, footprints_all["status"]):
-        if geom.intersection(gb).area < min_in_aoi * geom.area:
+        on_grid = geom.intersection(gb).area
+        whole = on_grid >= min_in_aoi * geom.area
+        if on_grid <= 0 or (not whole and cut_buildings == "drop"):
             continue
         m = rasterize([(geom, 1)], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8") > 0
+        if not m.any():
+            continue
         dates = (1,) if status == "demolished" else (2,) if status == "new" else (1, 2)
         change = status if status in ("new", "demolished") else None
-        objs.append({"mask": m, "dates": dates, "change": change, "status": status})
+        objs.append({"mask": m, "dates": dates, "change": change, "status": status, "scored": bool(whole)})
         if 1 in dates:
             t1 |= m
         if 2 in dates:

@@ -465,3 +465,38 @@ def test_absence_term_needs_ground_under_a_change_on_the_other_date():
     np.testing.assert_array_equal(e["height"][BOTH], e["off"][BOTH])
     with pytest.raises(ConfigError):
         MPPParams(absence="yes")
+
+
+def test_a_building_cut_by_the_border_is_scored_by_its_pixels_only():
+    """Table 2 on a 40 × 40 grid: building 1 is whole, building 2 lies two thirds off the grid (east), building 3
+    is a new one cut by the border. A detection on a cut building is on building cells (not a false object,
+    not false pixels); a cut building that is missed is neither a missed object nor a missed change."""
+    from types import SimpleNamespace
+
+    import geopandas as gpd
+    from rasterio.transform import from_origin
+    from shapely.geometry import box
+
+    from geocd.mpp.evaluate import sample_truth
+
+    grid = SimpleNamespace(bounds=(0.0, 0.0, 20.0, 20.0), shape=(40, 40), transform=from_origin(0.0, 20.0, 0.5, 0.5))  # noqa: E501
+    fa = gpd.GeoDataFrame({"status": ["unchanged", "unchanged", "new"]},
+                          geometry=[box(2, 2, 8, 8), box(16, 10, 28, 16), box(-10, 14, 4, 19)])
+    objs, t1, t2 = sample_truth(fa, grid)
+    assert [o["scored"] for o in objs] == [True, False, False]
+    assert t1.sum() == 12 * 12 + 8 * 12 and t2.sum() == t1.sum() + 8 * 10    # cut parts on the grid only
+    det = np.zeros((40, 40), bool)
+    det[24:36, 4:16] = True           # building 1 (rows from the top: y 2..8 → rows 24..36)
+    det[8:20, 32:40] = True           # the cut building 2 on the grid
+    empty = np.zeros_like(det)
+    masks = {"date1": det, "date2": det, "any": det, "new": empty, "demolished": empty}
+    t = table2(masks, objs, t1, t2)
+    assert (t["objects"], t["changes"], t["HO"], t["FO"], t["HV"], t["FV"]) == (1, 0, 0, 0, 0, 0), t
+    assert t["DP_precision"] == 1.0 and t["DP_recall"] == pytest.approx(2 * 240 / (240 + 320), abs=1e-4), t
+    # the scoring before: the cut building dropped from the truth, so its detection is false
+    objs_d, d1, d2 = sample_truth(fa, grid, cut_buildings="drop")
+    td = table2(masks, objs_d, d1, d2)
+    assert (td["objects"], td["HO"], td["FO"]) == (1, 0, 1) and td["DP_recall"] == 1.0, td
+    assert td["DP_precision"] == pytest.approx(144 / 240, abs=1e-4), td
+    with pytest.raises(ValueError, match="cut_buildings"):
+        sample_truth(fa, grid, cut_buildings="keep")

@@ -16,23 +16,36 @@ from geocd.stereo.params import StereoParams
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("stereo, want", [
-    (None, {"DP": 0.820, "HO": 3, "FO": 9, "HV": 2, "FV": 12}),            # geocd mpp's default: no surface median
-    ("window", {"DP": 0.686, "HO": 11, "FO": 3, "HV": 3, "FV": 4}),        # geocd stereo's product DSM
+@pytest.mark.parametrize("stereo, want, want_drop", [
+    # geocd mpp's default: no surface median
+    (None, {"DP": 0.835, "HO": 3, "FO": 6, "HV": 2, "FV": 12, "DP_precision_gain": 0.030}, {"DP": 0.820, "FO": 9}),
+    # geocd stereo's product DSM
+    ("window", {"DP": 0.681, "HO": 11, "FO": 2, "HV": 3, "FV": 4, "DP_precision_gain": 0.012}, {"DP": 0.686, "FO": 3}),
 ], ids=["default", "window-median"])
-def test_sample_aoi_table2_through_geocd_mpp(sample_aoi, tmp_path, stereo, want):
+def test_sample_aoi_table2_through_geocd_mpp(sample_aoi, tmp_path, stereo, want, want_drop):
+    """``want``: the scoring with the five buildings the border cuts in the truth masks (the default);
+    ``want_drop``: with them left out, the scoring of the earlier figures."""
     sp = None if stereo is None else StereoParams()   # StereoParams(): surface median over the matching window
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         r = run_mpp_manifest(sample_aoi, out_dir=tmp_path / "mpp", stereo_params=sp)
     det, grid = r["detection"], r["grid"]
     assert r["params"].height == "and" and r["params"].edge_fit == "joint" and r["params"].seed == 0
-    objs, t1, t2 = sample_truth(gpd.read_file(sample_aoi / "truth" / "footprints_all.gpkg"), grid)
-    t = table2(rect_masks(det.result.rects, det.result.xi, grid.shape), objs, t1, t2)
+    footprints = gpd.read_file(sample_aoi / "truth" / "footprints_all.gpkg")
+    masks = rect_masks(det.result.rects, det.result.xi, grid.shape)
+    objs, t1, t2 = sample_truth(footprints, grid)
+    t = table2(masks, objs, t1, t2)
     assert (t["objects"], t["changes"]) == (30, 5)
-    assert t["DP"] == pytest.approx(want["DP"], abs=0.015), t
+    assert sum(not o["scored"] for o in objs) == 5
+    assert t["DP"] == pytest.approx(want["DP"], abs=0.01), t
     for k in ("HO", "FO", "HV", "FV"):
         assert abs(t[k] - want[k]) <= 2, (k, t)
+    objs_d, d1, d2 = sample_truth(footprints, grid, cut_buildings="drop")
+    td = table2(masks, objs_d, d1, d2)
+    assert td["DP"] == pytest.approx(want_drop["DP"], abs=0.01), td
+    assert abs(td["FO"] - want_drop["FO"]) <= 2, td
+    # a pinned gap between the two scorings: a detection on a cut building is not false pixels
+    assert t["DP_precision"] - td["DP_precision"] == pytest.approx(want["DP_precision_gain"], abs=0.005), (t, td)
     assert (tmp_path / "mpp" / "mpp" / "mpp_buildings.gpkg").is_file()
     # the DSMs say which surface median made them (what geocd mpp --dsm-a/--dsm-b warns about)
     assert dsm_smoothing(tmp_path / "mpp" / "ortho" / "A" / "dsm_A.tif") == (1 if stereo is None else 7)
