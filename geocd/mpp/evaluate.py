@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from ..errors import ConfigError
 from . import _kernels as K
 from .model import BOTH, ONLY_1, ONLY_2
 
@@ -152,7 +153,7 @@ def sample_truth(footprints_all, grid, min_in_aoi: float = 0.5, cut_buildings: s
     from shapely.geometry import box
 
     if cut_buildings not in ("masks", "drop"):
-        raise ValueError(f"cut_buildings must be 'masks' or 'drop', got {cut_buildings!r}")
+        raise ConfigError(f"cut_buildings must be 'masks' or 'drop', got {cut_buildings!r}")
     gb = box(*grid.bounds)
     t1 = np.zeros(grid.shape, bool)
     t2 = np.zeros(grid.shape, bool)
@@ -163,7 +164,7 @@ def sample_truth(footprints_all, grid, min_in_aoi: float = 0.5, cut_buildings: s
         if on_grid <= 0 or (not whole and cut_buildings == "drop"):
             continue
         m = rasterize([(geom, 1)], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8") > 0
-        if not m.any():
+        if not whole and not m.any():     # a corner on the grid too small to hold a cell centre
             continue
         dates = (1,) if status == "demolished" else (2,) if status == "new" else (1, 2)
         change = status if status in ("new", "demolished") else None

@@ -498,5 +498,5 @@ def test_a_building_cut_by_the_border_is_scored_by_its_pixels_only():
     td = table2(masks, objs_d, d1, d2)
     assert (td["objects"], td["HO"], td["FO"]) == (1, 0, 1) and td["DP_recall"] == 1.0, td
     assert td["DP_precision"] == pytest.approx(144 / 240, abs=1e-4), td
-    with pytest.raises(ValueError, match="cut_buildings"):
+    with pytest.raises(ConfigError, match="cut_buildings"):
         sample_truth(fa, grid, cut_buildings="keep")
