@@ -166,8 +166,13 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
 @click.option("--normalize", type=click.Choice(["equalize", "percentile", "scale"]), default="equalize",
               show_default=True)
 @click.option("--sun", nargs=2, type=float, default=None, help="Sun azimuth and elevation of the image (degrees).")
+@click.option("--shadow-dsm", "shadow_dsm", type=click.Path(exists=True, dir_okay=False, path_type=str), default=None,
+              help="A DSM of the model's training epoch (e.g. geocd ortho's dsm_A.tif; any CRS and datum GDAL "
+                   "reads): when the image is relit, shadows under both suns are cast from it instead of the "
+                   "model's own density, whose building interiors are empty.")
 @click.pass_context
-def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_relight, posting_m, normalize, sun):
+def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_relight, posting_m, normalize, sun,
+           shadow_dsm):
     """Change probability of IMAGE against the model: image geometry and orthorectified GeoTIFFs."""
     import json
 
@@ -175,22 +180,27 @@ def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_
 
     from ..io.atomic import write_text_atomic
     from ..io.outputs import open_outputs
-    from ..io.raster import write_cog
+    from ..io.raster import read_dem, write_cog
     from ..volume import DetectParams, detect_change, expected_height_map, load_model, orthorectify
     from ..volume.io import read_view
 
     from .common import session
 
     out = Path(out_dir)
-    open_outputs(out_dir, inputs=[model_dir, image, camera_path], products=("*_change_prob*", "*_change.json"))
+    open_outputs(out_dir, inputs=[model_dir, image, camera_path, shadow_dsm],
+                 products=("*_change_prob*", "*_change.json"))
     session(ctx).open_log(out)
     model = load_model(model_dir)
     v = read_view(image, camera_path, sun=tuple(sun) if sun else None, normalize=normalize)
+    shadow = None
+    if shadow_dsm:
+        sgrid = model.geometry.aoi_grid(model.geometry.finest_cell_m)
+        shadow = (read_dem(shadow_dsm, grid=sgrid).to_ellipsoidal().height_m, sgrid)
     prog = _progress(ctx, "volume detect")
     try:
         res = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
                             params=DetectParams(prior=prior, neighborhood=neighborhood, relight=not no_relight),
-                            progress=lambda f, m="": prog(0.8 * (f or 0.0), m))
+                            shadow_dsm=shadow, progress=lambda f, m="": prog(0.8 * (f or 0.0), m))
         h, grid = expected_height_map(model, posting_m=posting_m, progress=lambda f, m="": prog(0.8 + 0.1 * (f or 0), m))
         ortho = orthorectify(res.probability, v.camera, h, grid)
         prog(0.95, "writing")
@@ -215,6 +225,10 @@ def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_
     mcp = meta["mean_change_probability"]
     session(ctx).say(f"{v.name}: mean change probability {mcp:.3f}" if mcp is not None else
                      f"{v.name}: no pixel of the image sees the model")
+    if res.relight is not None and shadow is None:
+        session(ctx).say(f"{v.name} was relit to a sun {res.sun_offset_deg:.0f}° from the model's; its shadows were "
+                         "predicted from the model's own density. --shadow-dsm with a DSM of the training epoch "
+                         "(e.g. geocd ortho's dsm_A.tif) casts them from the surface instead (docs/volume.md).")
     from . import emit_result
 
     emit_result(ctx, outputs)

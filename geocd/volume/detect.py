@@ -105,6 +105,7 @@ def change_probability(density: np.ndarray, prior: float = 0.5, fg_density: floa
 
 def detect_change(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun: tuple[float, float] | None = None,
                   params: DetectParams | None = None, name: str = "the image",
+                  shadow_dsm: tuple[np.ndarray, Any] | None = None,
                   progress: Optional[Progress] = None) -> ChangeResult:
     """Per-pixel change probability of a new image against the model.
 
@@ -113,6 +114,10 @@ def detect_change(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun
     intensity : float (rows, cols), gray in [0, 1], NaN invalid
     camera : the image's camera (any kind)
     sun : (azimuth, elevation) degrees of the image; picks the nearest trained illumination bin
+    shadow_dsm : (height_m (rows, cols) ellipsoidal metres, AOIGrid in the model's CRS), optional
+        A DSM of the model's training epoch (e.g. geocd stereo's): the relighting's lit/shadow
+        classes come from its cast shadows under both suns instead of the model's own density
+        (:mod:`geocd.volume.relight`). Used only when the image is relit.
 
     Raises
     ------
@@ -136,7 +141,7 @@ def detect_change(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun
         from .relight import relight_mapping
 
         mapping, info = relight_mapping(model, img, camera, b, (model.sun_bins[b][0], model.sun_bins[b][1]), sun,
-                                        progress=sub_progress(prog, 0.0, 0.4, "relight: "))
+                                        shadow_dsm=shadow_dsm, progress=sub_progress(prog, 0.0, 0.4, "relight: "))
         f0 = 0.4
     f1 = f0 + (1.0 - f0) * (0.5 if params.neighborhood > 1 else 1.0)
     rr = render_image(model, camera, (rows, cols), intensity=img, sun=sun, name=name, app_bin=b, mapping=mapping,

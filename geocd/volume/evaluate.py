@@ -116,7 +116,10 @@ def fa_at_tpr(score: np.ndarray, truth: np.ndarray, valid: np.ndarray, zone: np.
 
 
 def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3", cfg: TrainConfig | None = None,
-             subarea_m: float = 150.0, aggregate_px: int = 9, do_grid: bool = True, log=print) -> dict:
+             subarea_m: float = 150.0, aggregate_px: int = 9, do_grid: bool = True,
+             shadow_dsm_path: str | None = None, log=print) -> dict:
+    """The docs/volume.md evaluation of one scene with truth (module doc). ``shadow_dsm_path``: a DSM of
+    epoch A (e.g. ``geocd ortho``'s ``dsm_A.tif``) whose cast shadows the relit detections use."""
     cfg = cfg or TrainConfig()
     out = Path(out_dir)
     work = Path(work_dir)
@@ -131,7 +134,9 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
     train_views = [v for v in views_a if v.name != holdout]
     held = [v for v in views_a if v.name == holdout]
     res: dict[str, Any] = {"scene": str(scene), "config": cfg.__dict__, "holdout": holdout,
-                           "train_views": [v.name for v in train_views], "geometry": geom.to_dict()}
+                           "train_views": [v.name for v in train_views], "geometry": geom.to_dict(),
+                           "shadow_dsm": shadow_dsm_path}
+    shadow = _shadow_dsm(shadow_dsm_path, grid)
     log(f"octree model: {geom.n_blocks} blocks of {geom.block_size_m} m, finest {geom.finest_cell_m} m; "
         f"training on {[v.name for v in train_views]}")
     fp = footprint_mask(man, grid)
@@ -181,12 +186,12 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
         truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
         t0 = time.perf_counter()
         det = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
-                            params=DetectParams(neighborhood=1))
+                            params=DetectParams(neighborhood=1), shadow_dsm=shadow)
         t_det = time.perf_counter() - t0
         det_plain = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
                                   params=DetectParams(relight=False, neighborhood=1))
         det_nxn = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
-                                params=DetectParams(neighborhood=3))
+                                params=DetectParams(neighborhood=3), shadow_dsm=shadow)
         k = nearest_view(v.camera, v.intensity.shape, ref_pool, geom)
         ref = ref_pool[k]
         warped = warp_reference(v.camera, v.intensity.shape, ref.intensity, ref.camera, dem, grid)
@@ -294,7 +299,7 @@ def _grid_comparison(man, grid, dem, train_views, views_b, cfg, subarea_m, work,
 
 
 def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdout: str = "A_sat3",
-                 cfg: TrainConfig | None = None, log=print) -> dict:
+                 cfg: TrainConfig | None = None, shadow_dsm_path: str | None = None, log=print) -> dict:
     """Pooled per-pixel AUCs of the octree (plain eq. 27 and the default detection) and both 2-D baselines on a sub-area.
 
     The octree is trained on ``bounds`` (AOI CRS) only, so this is a fast, reduced version of
@@ -312,14 +317,16 @@ def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdo
     views_a = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("A").images]
     views_b = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("B").images if "sat" in s.name]
     fp = footprint_mask(man, grid)
+    shadow = _shadow_dsm(shadow_dsm_path, sub)
     model, _ = train([v for v in views_a if v.name != holdout], geom, sub, dem_sub(dem, grid, sub), cfg,
                      footprints=None if fp is None else dem_sub(fp, grid, sub), log=log)
     ref_pool = [v for v in views_a if "sat" in v.name and v.name != holdout]
     pooled: dict[str, list] = {}
     for v in views_b:
         truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
-        d1 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=1))
-        d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name)   # the default (3×3)
+        d1 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=1),
+                           shadow_dsm=shadow)
+        d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, shadow_dsm=shadow)   # 3×3: default
         ref = ref_pool[nearest_view(v.camera, v.intensity.shape, ref_pool, geom)]
         warped = warp_reference(v.camera, v.intensity.shape, ref.intensity, ref.camera, dem, grid)
         scores = {"3-D octree (relit)": d1.probability, "3-D octree 3×3 (relit)": d3.probability,
@@ -335,6 +342,13 @@ def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdo
     out["n_pixels"] = int(t.size)
     out["changed_fraction"] = float(t.mean())
     return out
+
+
+def _shadow_dsm(path: str | None, grid: AOIGrid) -> tuple[np.ndarray, AOIGrid] | None:
+    """A DSM file read onto ``grid`` as ellipsoidal heights, for :func:`detect_change`'s ``shadow_dsm``."""
+    if path is None:
+        return None
+    return read_dem(path, grid=grid).to_ellipsoidal().height_m, grid
 
 
 def footprint_mask(man, grid: AOIGrid) -> np.ndarray | None:
@@ -461,13 +475,15 @@ def main(argv: list[str] | None = None) -> None:
                     help="DEM prior: top of the ground band above the DEM (m)")
     ap.add_argument("--ground-p-max", type=float, default=0.9,
                     help="DEM prior: cap of a ground-band cell's occlusion probability")
+    ap.add_argument("--shadow-dsm", default=None,
+                    help="a DSM of epoch A (e.g. geocd ortho's dsm_A.tif): the relighting casts its shadows")
     a = ap.parse_args(argv)
     cfg = TrainConfig(passes=a.passes, finest_cell_m=a.finest, dem_prior=not a.no_dem_prior,
                       ground_band_m=a.ground_band, ground_band_top_m=a.ground_band_top,
                       ground_p_max=a.ground_p_max, footprints=a.footprints)
     t0 = time.perf_counter()
     res = evaluate(a.scene, a.out, a.work, holdout=a.holdout, cfg=cfg, subarea_m=a.subarea, do_grid=not a.no_grid,
-                   log=lambda m: print(m, flush=True))
+                   shadow_dsm_path=a.shadow_dsm, log=lambda m: print(m, flush=True))
     print(json.dumps({k: res[k] for k in ("heldout", "height_map", "change_pooled") if k in res}, indent=1,
                      default=_json))
     print(f"total {time.perf_counter() - t0:.0f} s")

@@ -12,7 +12,12 @@ occlusion density itself predicts where shadows fall under both suns.
    ray's visibility drops to 0.5).
 2. From that point (lifted by half a finest cell), the sun visibility
    ``s = exp(-∫ α)`` towards the trained bin's sun and towards the new sun
-   (:func:`_kernels.surface_sun`).
+   (:func:`_kernels.surface_sun`). With a DSM of the training epoch
+   (``shadow_dsm``), the point is lit or shadowed by the DSM's cast shadow
+   instead (:func:`dsm_shadow_height`): the model's buildings are hollow
+   (their interiors and most walls are never observed), so a sun ray from
+   the ground behind a building often passes through it unblocked; a
+   2.5-D surface is closed below.
 3. Pixels fall in four transition classes (lit/shadow under the old sun ×
    lit/shadow under the new one, threshold 0.5); per class a robust line
    ``c ≈ a + b E`` and its residual spread are fitted on the new image (bisquare
@@ -32,8 +37,11 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ..errors import ConfigError
+from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress
 from . import _kernels as K
+from .baseline import sample_grid
 from .rays import image_rays
 from .scene import MU, WEIGHT, VolumeModel
 from .update import TILE_PIXELS, RayScratch
@@ -159,10 +167,92 @@ def surface_sun_visibility(model: VolumeModel, camera: Any, depth_m: np.ndarray,
     return out
 
 
+def dsm_shadow_height(dsm_m: np.ndarray, posting_m: float, sun: tuple[float, float], *,
+                      step_cells: float = 0.5) -> np.ndarray:
+    """Height below which a point of each cell lies in the DSM's cast shadow (same datum as the DSM).
+
+    ``h(p) = max_k dsm(p + k·step·ŝ) − k·step·posting·tan(elevation)``: the highest line towards the sun
+    that the surface blocks, marched in half-cell steps (bilinear) up to the distance at which the DSM's
+    height range can still cast a shadow. Grid rows run south, columns east; NaN cells cast nothing.
+
+    Parameters
+    ----------
+    dsm_m : float (rows, cols), metres
+    posting_m : float, cell size (metres)
+    sun : (azimuth clockwise from north, elevation), degrees
+
+    Returns
+    -------
+    float64 (rows, cols); −inf where nothing reaches, +inf everywhere for a sun at or below the horizon
+    """
+    from scipy.ndimage import map_coordinates
+
+    z = np.asarray(dsm_m, dtype=np.float64)
+    az, el = np.radians(float(sun[0])), np.radians(float(sun[1]))
+    if el <= 0:
+        return np.full(z.shape, np.inf)
+    ok = np.isfinite(z)
+    if not ok.any():
+        return np.full(z.shape, -np.inf)
+    lo = float(z[ok].min())
+    v = np.where(ok, z, lo)
+    rise = float(z[ok].max()) - lo
+    step_m = step_cells * posting_m
+    n = int(np.ceil(rise / np.tan(el) / step_m)) if rise > 0 else 0
+    rows, cols = np.mgrid[0:z.shape[0], 0:z.shape[1]].astype(np.float64)
+    out = np.full(z.shape, -np.inf)
+    dr, dc = -np.cos(az) * step_cells, np.sin(az) * step_cells
+    for k in range(1, n + 1):
+        s = map_coordinates(v, [rows + k * dr, cols + k * dc], order=1, mode="constant", cval=lo)
+        np.maximum(out, s - k * step_m * np.tan(el), out=out)
+    return out
+
+
+def surface_dsm_sun_visibility(model: VolumeModel, camera: Any, depth_m: np.ndarray, shadow_height_m: np.ndarray,
+                               grid: AOIGrid) -> np.ndarray:
+    """1 (lit) or 0 (shadow) for each pixel's median visible surface point, lifted by half a finest cell,
+    against a :func:`dsm_shadow_height` map (ellipsoidal metres on ``grid``); 1 where there is no point."""
+    rows, cols = depth_m.shape
+    g = model.geometry
+    fr = g.frame
+    lift = 0.5 * g.finest_cell_m
+    out = np.ones((rows, cols))
+    tile_rows = max(1, TILE_PIXELS // cols)
+    for r0 in range(0, rows, tile_rows):
+        o, d, rr, cc = image_rays(camera, g, r0, min(rows, r0 + tile_rows), cols, 1)
+        t = depth_m[rr, cc].astype(np.float64)
+        ok = np.isfinite(t)
+        p = o + d * np.where(ok, t, 0.0)[:, None]
+        lon, lat, h = fr.from_enu(p[:, 0], p[:, 1], p[:, 2])
+        hz = sample_grid(np.where(np.isfinite(shadow_height_m), shadow_height_m, -1e9), grid, lon, lat)
+        shade = ok & np.isfinite(hz) & (h + lift < hz)
+        out[rr, cc] = np.where(shade, 0.0, 1.0)
+    return out
+
+
+def check_shadow_dsm(model: VolumeModel, shadow_dsm: tuple[np.ndarray, AOIGrid]) -> tuple[np.ndarray, AOIGrid]:
+    """A (height_m, grid) pair for the relighting: ellipsoidal heights on a grid in the model's CRS."""
+    try:
+        dsm, grid = shadow_dsm
+    except (TypeError, ValueError):
+        raise ConfigError("shadow_dsm must be a (height_m array, AOIGrid) pair") from None
+    model.geometry.check_crs(grid.crs, "the shadow DSM")
+    dsm = np.asarray(dsm, dtype=np.float64)
+    if dsm.shape != tuple(grid.shape):
+        raise ConfigError(f"the shadow DSM has shape {dsm.shape} but its grid is {tuple(grid.shape)}")
+    if not np.isfinite(dsm).any():
+        raise ConfigError("the shadow DSM has no valid height; give a DSM that covers the model's AOI")
+    return dsm, grid
+
+
 def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: int, sun_from: tuple[float, float],
                     sun_to: tuple[float, float], *, vis_known: float = 0.2,
+                    shadow_dsm: tuple[np.ndarray, AOIGrid] | None = None,
                     progress: Optional[Progress] = None) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], dict]:
     """Per-pixel mixture map ``(a, b, σ_extra)`` for an image under ``sun_to`` against bin ``b`` (see module doc).
+
+    ``shadow_dsm``: optional (height_m, grid) of the training epoch's surface (ellipsoidal metres, the
+    model's CRS); the lit/shadow classes then come from its cast shadows instead of the model's density.
 
     Returns
     -------
@@ -175,8 +265,14 @@ def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: i
     rows, cols = intensity.shape
     base = render_image(model, camera, (rows, cols), app_bin=b, name="relight pass")
     prog(0.4, "sun visibility")
-    s_from = surface_sun_visibility(model, camera, base.depth_m, sun_from)
-    s_to = surface_sun_visibility(model, camera, base.depth_m, sun_to)
+    if shadow_dsm is None:
+        s_from = surface_sun_visibility(model, camera, base.depth_m, sun_from)
+        s_to = surface_sun_visibility(model, camera, base.depth_m, sun_to)
+    else:
+        dsm, grid = check_shadow_dsm(model, shadow_dsm)
+        s_from, s_to = (surface_dsm_sun_visibility(model, camera, base.depth_m,
+                                                   dsm_shadow_height(dsm, grid.posting_m, sun), grid)
+                        for sun in (sun_from, sun_to))
     prog(0.8, "fit")
     klass = (s_from < 0.5).astype(int) * 2 + (s_to < 0.5).astype(int)
     ok = np.isfinite(intensity) & np.isfinite(base.expected) & (base.vis_inf <= vis_known)
@@ -185,6 +281,7 @@ def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: i
     mapping = (fit.a[klass], fit.b[klass], extra[klass])
     frac = {c: float(np.mean(klass[ok] == i)) for i, c in enumerate(CLASSES)}
     info = {"from_sun": [float(sun_from[0]), float(sun_from[1])], "to_sun": [float(sun_to[0]), float(sun_to[1])],
+            "shadows": "model density" if shadow_dsm is None else "DSM",
             "fit": fit.to_dict(), "class_fraction": frac}
     prog(1.0, "relit")
     return mapping, info

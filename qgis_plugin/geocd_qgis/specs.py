@@ -745,6 +745,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   max=0.999),
             Param("NO_RELIGHT", "bool", "Use the nearest sun bin's appearance as is (no relighting)",
                   cli="--no-relight", default=False, advanced=True),
+            Param("SHADOW_DSM", "raster", "DSM of the model's training epoch (e.g. geocd stereo's): a relit image's "
+                  "shadows are cast from it", cli="--shadow-dsm", optional=True),
             Param("POSTING", "number", "Posting of the orthorectified output (default: the finest cell)",
                   cli="--posting", unit="m", optional=True, min=0.0, advanced=True),
             Param("NORMALIZE", "enum", "Radiometric normalisation", cli="--normalize", default=0, advanced=True,

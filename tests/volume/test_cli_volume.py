@@ -63,6 +63,13 @@ def test_update_detect_render(scene, tmp_path):
         assert ds.crs.to_epsg() == 32632
     summary = json.loads((out / "B_test_change.json").read_text())
     assert summary["sun_bin"] == 0
+    # under another sun, with the shadows cast from a DSM of epoch A (the flat DEM here: nothing is shaded)
+    res = r.invoke(main, ["--progress", "none", "volume", "detect", str(model), str(scene / "images" / "B_test.tif"),
+                          "--out", str(tmp_path / "det_dsm"), "--sun", "160", "30", "--shadow-dsm",
+                          str(scene / "dem.tif")])
+    assert res.exit_code == 0, res.output
+    relit = json.loads((tmp_path / "det_dsm" / "B_test_change.json").read_text())["relight"]
+    assert relit["shadows"] == "DSM" and relit["class_fraction"]["lit>lit"] == 1.0, relit
     res = r.invoke(main, ["--progress", "none", "volume", "render", str(model), "--image",
                           str(scene / "images" / "A_0.tif"), "--height-map", "--out", str(tmp_path / "ren")])
     assert res.exit_code == 0, res.output

@@ -209,3 +209,53 @@ def test_sun_bins_and_relighting(toy):
     plain = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 45.0),
                           params=DetectParams(relight=False))
     assert plain.relight is None
+
+
+def test_dsm_shadow_height_of_a_block_under_a_southern_sun():
+    """A 10 m block on flat ground at 0.5 m posting, sun due south at 45°: the shadow reaches 10 m north of the
+    block's north wall and falls off by tan(45°) per metre; nothing is shaded south of it or beside it.
+    Checked against the exact geometry; a sun at the horizon shades everything."""
+    from geocd.volume.relight import dsm_shadow_height
+
+    z = np.zeros((80, 40))
+    z[50:60, 15:25] = 10.0                     # rows 50..59 (north wall at row 50), columns 15..24
+    h = dsm_shadow_height(z, 0.5, (180.0, 45.0))
+    north = np.arange(30, 50)                  # 10 m north of the wall: rows 30..49
+    expect = 10.0 - (50 - north - 0.0) * 0.5    # distance to the first block cell along the ray
+    np.testing.assert_allclose(h[north, 20], expect, atol=0.26)      # within half a step (bilinear at the wall)
+    assert np.all(h[north, 20] > 0) and np.all(h[:28, 20] <= 0.0)
+    assert np.all(h[62:, 20] <= 0.0) and np.all(h[30:50, :13] <= 0.0)
+    assert np.all(np.isinf(dsm_shadow_height(z, 0.5, (180.0, 0.0))))
+    nan = z.copy()
+    nan[50:60, 15:25] = np.nan                 # holes cast nothing
+    assert np.all(dsm_shadow_height(nan, 0.5, (180.0, 45.0))[north, 20] <= 0.0)
+
+
+def test_relighting_with_the_shadows_of_a_dsm(toy):
+    """The relighting's lit/shadow classes from a DSM's cast shadows (the scene's own surface here): detection
+    runs, says so, still finds the new building; a DSM that does not fit the model is refused."""
+    from geocd.errors import ConfigError
+
+    geom = T.volume_geometry()
+    m = VolumeModel.create(geom, VolumeParams(n_bins=2))
+    for _ in range(2):
+        for c, im in zip(toy.cameras, toy.images):
+            update_model(m, im, c, sun=(135.0, 60.0), supersample=2)
+    grid = T.aoi_grid()
+    dsm, _ = _truth_height(grid)
+    res = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0), shadow_dsm=(dsm, grid))
+    assert res.relight["shadows"] == "DSM"
+    frac = res.relight["class_fraction"]
+    assert frac["lit>shadow"] > 0.02 and frac["lit>lit"] > 0.5, frac     # the boxes shade the ground north
+    assert roc_curve(res.probability, toy.change_mask_b, ~res.unknown)[3] > 0.85
+    own = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0))
+    assert own.relight["shadows"] == "model density"
+    with pytest.raises(ConfigError, match="shape"):
+        detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0), shadow_dsm=(dsm[:-1], grid))
+    with pytest.raises(ConfigError, match="no valid height"):
+        detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0),
+                      shadow_dsm=(np.full(dsm.shape, np.nan), grid))
+    cx, cy = 500000.0, 4980000.0
+    other = AOIGrid.from_bounds(cx, cy, cx + 32, cy + 32, 0.5, "EPSG:32633")
+    with pytest.raises(CRSError):
+        detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0), shadow_dsm=(dsm, other))
