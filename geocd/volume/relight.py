@@ -173,7 +173,8 @@ def dsm_shadow_height(dsm_m: np.ndarray, posting_m: float, sun: tuple[float, flo
 
     ``h(p) = max_k dsm(p + k·step·ŝ) − k·step·posting·tan(elevation)``: the highest line towards the sun
     that the surface blocks, marched in half-cell steps (bilinear) up to the distance at which the DSM's
-    height range can still cast a shadow. Grid rows run south, columns east; NaN cells cast nothing.
+    height range can still cast a shadow (so the cost grows with that range: terrain relief included).
+    Grid rows run south, columns east; NaN cells and cells beyond the grid take the DSM's lowest height.
 
     Parameters
     ----------
@@ -183,7 +184,8 @@ def dsm_shadow_height(dsm_m: np.ndarray, posting_m: float, sun: tuple[float, flo
 
     Returns
     -------
-    float64 (rows, cols); −inf where nothing reaches, +inf everywhere for a sun at or below the horizon
+    float64 (rows, cols); +inf everywhere for a sun at or below the horizon, −inf for a DSM without a valid
+    height or without relief
     """
     from scipy.ndimage import map_coordinates
 
