@@ -147,19 +147,24 @@ def fit_classes(expected: np.ndarray, observed: np.ndarray, klass: np.ndarray, m
     return fit
 
 
+def _surface_rays(model: VolumeModel, camera: Any, depth_m: np.ndarray):
+    """Per tile of image rows: (rr, cc, o, d, t) of every pixel's ray and its median visible surface depth."""
+    rows, cols = depth_m.shape
+    tile_rows = max(1, TILE_PIXELS // cols)
+    for r0 in range(0, rows, tile_rows):
+        o, d, rr, cc = image_rays(camera, model.geometry, r0, min(rows, r0 + tile_rows), cols, 1)
+        yield rr, cc, o, d, depth_m[rr, cc].astype(np.float64)
+
+
 def surface_sun_visibility(model: VolumeModel, camera: Any, depth_m: np.ndarray, sun: tuple[float, float]
                            ) -> np.ndarray:
     """Sun visibility (rows, cols) of each pixel's median visible surface point (1 where there is none)."""
-    rows, cols = depth_m.shape
     g = model.geometry
     geo = g.geo_array()
     sc = RayScratch(geo)
-    out = np.ones((rows, cols))
+    out = np.ones(depth_m.shape)
     f = g.finest_cell_m
-    tile_rows = max(1, TILE_PIXELS // cols)
-    for r0 in range(0, rows, tile_rows):
-        o, d, rr, cc = image_rays(camera, g, r0, min(rows, r0 + tile_rows), cols, 1)
-        t = depth_m[rr, cc].astype(np.float64)
+    for rr, cc, o, d, t in _surface_rays(model, camera, depth_m):
         s = np.empty(rr.size)
         K.surface_sun(o, d, t, sun_vector_enu(sun), 0.5 * f, 1.0 * f, g.box_lo, g.box_hi, geo, model.block_root,
                       model.child, model.alpha, s, sc.seg_cell, sc.seg_len, sc.seg_t)
@@ -210,25 +215,22 @@ def dsm_shadow_height(dsm_m: np.ndarray, posting_m: float, sun: tuple[float, flo
     return out
 
 
-def surface_dsm_sun_visibility(model: VolumeModel, camera: Any, depth_m: np.ndarray, shadow_height_m: np.ndarray,
-                               grid: AOIGrid) -> np.ndarray:
+def surface_dsm_sun_visibility(model: VolumeModel, camera: Any, depth_m: np.ndarray,
+                               shadow_heights_m: list[np.ndarray], grid: AOIGrid) -> list[np.ndarray]:
     """1 (lit) or 0 (shadow) for each pixel's median visible surface point, lifted by half a finest cell,
-    against a :func:`dsm_shadow_height` map (ellipsoidal metres on ``grid``); 1 where there is no point."""
-    rows, cols = depth_m.shape
-    g = model.geometry
-    fr = g.frame
-    lift = 0.5 * g.finest_cell_m
-    out = np.ones((rows, cols))
-    tile_rows = max(1, TILE_PIXELS // cols)
-    for r0 in range(0, rows, tile_rows):
-        o, d, rr, cc = image_rays(camera, g, r0, min(rows, r0 + tile_rows), cols, 1)
-        t = depth_m[rr, cc].astype(np.float64)
+    against each :func:`dsm_shadow_height` map (ellipsoidal metres on ``grid``); 1 where there is no point.
+    The surface points are computed once for all the maps."""
+    fr = model.geometry.frame
+    lift = 0.5 * model.geometry.finest_cell_m
+    maps = [np.clip(h, -1e9, 1e9) for h in shadow_heights_m]   # ±inf (nothing reaches / sun below the horizon)
+    out = [np.ones(depth_m.shape) for _ in maps]
+    for rr, cc, o, d, t in _surface_rays(model, camera, depth_m):
         ok = np.isfinite(t)
         p = o + d * np.where(ok, t, 0.0)[:, None]
         lon, lat, h = fr.from_enu(p[:, 0], p[:, 1], p[:, 2])
-        hz = sample_grid(np.where(np.isfinite(shadow_height_m), shadow_height_m, -1e9), grid, lon, lat)
-        shade = ok & np.isfinite(hz) & (h + lift < hz)
-        out[rr, cc] = np.where(shade, 0.0, 1.0)
+        for hz_map, vis in zip(maps, out):
+            hz = sample_grid(hz_map, grid, lon, lat)
+            vis[rr, cc] = np.where(ok & np.isfinite(hz) & (h + lift < hz), 0.0, 1.0)
     return out
 
 
@@ -272,9 +274,9 @@ def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: i
         s_to = surface_sun_visibility(model, camera, base.depth_m, sun_to)
     else:
         dsm, grid = check_shadow_dsm(model, shadow_dsm)
-        s_from, s_to = (surface_dsm_sun_visibility(model, camera, base.depth_m,
-                                                   dsm_shadow_height(dsm, grid.posting_m, sun), grid)
-                        for sun in (sun_from, sun_to))
+        s_from, s_to = surface_dsm_sun_visibility(
+            model, camera, base.depth_m, [dsm_shadow_height(dsm, grid.posting_m, sun) for sun in (sun_from, sun_to)],
+            grid)
     prog(0.8, "fit")
     klass = (s_from < 0.5).astype(int) * 2 + (s_to < 0.5).astype(int)
     ok = np.isfinite(intensity) & np.isfinite(base.expected) & (base.vis_inf <= vis_known)
