@@ -192,7 +192,7 @@ def transfer_figures(res, damage, grid, recs, model) -> dict:
 
 def evaluate(run: Path, model_path: Path, significance: str, calibration: str = "auto",
              recs: dict | None = None, cars: tuple | None = None,
-             tree_rule: str | None = None) -> tuple[dict, object, object]:
+             tree_rule: str | None = None, changed_part: bool = True) -> tuple[dict, object, object]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import DSMBuildingParams, stable_false_alarms
     from geocd.pipeline import _building_damage
@@ -202,13 +202,13 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
     res = change_test(recs["pre_event"], recs["post_event"], model,
                       ChangeParams(significance=significance, calibration=calibration))
     grid = recs["pre_event"][0].grid
+    bp = DSMBuildingParams(tree_rule=tree_rule or DSMBuildingParams().tree_rule, changed_part=changed_part)
     damage, dtm = _building_damage(None, res, grid, recs["pre_event"], recs["post_event"], model, 99.0,
-                                   "pre_event", "post_event",
-                                   DSMBuildingParams(tree_rule=tree_rule) if tree_rule else DSMBuildingParams())
+                                   "pre_event", "post_event", bp)
     obs = res.observed
     cls = damage["class"]
     out = {"significance": significance, "calibration": calibration,
-           "tree_rule": tree_rule or DSMBuildingParams().tree_rule,
+           "tree_rule": bp.tree_rule, "changed_part": bp.changed_part,
            "calibration_fit": res.calibration.to_dict() if res.calibration is not None else None,
            "flagged_of_observed": {f"{c:g}": round(float((res.changed_at(c) != 0)[obs].mean()), 5)
                                    for c in res.confidences},
@@ -402,6 +402,9 @@ def main(argv=None) -> int:
                     help="work folder of bench_kahramanmaras_cars.py cars (its DSMs: the independent stability witness)")
     ap.add_argument("--tree-rule", default=DSMBuildingParams().tree_rule,
                     help="how the building extraction tells trees from buildings (DSMBuildingParams.tree_rule)")
+    ap.add_argument("--changed-part", choices=["on", "off"], default="on",
+                    help="a building holding a changed part of the map's mapping unit is changed "
+                         "(DSMBuildingParams.changed_part; off: the changed fraction alone)")
     ap.add_argument("--rerun", default=None,
                     help="write every layer of geocd run (after the stereo) for RUN's pair-DEMs into this folder")
     args = ap.parse_args(argv)
@@ -420,7 +423,7 @@ def main(argv=None) -> int:
     for cal in [c for c in args.calibrations.split(",") if c]:
         for mode in [m for m in args.modes.split(",") if m]:
             r, dmg, res = evaluate(Path(args.run), Path(args.model), mode, cal, recs=recs, cars=cars,
-                                   tree_rule=args.tree_rule)
+                                   tree_rule=args.tree_rule, changed_part=args.changed_part == "on")
             key = mode if cal == "auto" else f"{mode}_{cal}"
             if mode == "region" and cal == "none":
                 from geocd.consistency import SelfConsistencyModel

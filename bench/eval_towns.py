@@ -90,10 +90,16 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
             mk = res.changed_at(lev)
             cells[f"{lev:g}"] = _round(binary_scores((mk == 1) | (mk == -1), truth, res.observed))
         mk = res.changed_at(cfg.region_confidence)
-        b = classify_buildings(fa, mk, res.dz_m, grid, z_a=za, z_b=zb, confidence=res.confidence,
-                               params=cfg.buildings, id_field="building_id", confidence_level=cfg.region_confidence)
+        kw = dict(z_a=za, z_b=zb, confidence=res.confidence, id_field="building_id",
+                  confidence_level=cfg.region_confidence, min_part_cells=res.min_region_cells)
+        b = classify_buildings(fa, mk, res.dz_m, grid, params=cfg.buildings, **kw)
+        # the same without the changed-part rule: which classes the rule moves
+        b0 = classify_buildings(fa, mk, res.dz_m, grid, params=dataclasses.replace(cfg.buildings, changed_part=False),
+                                **kw)
+        moved = [int(i) for i, c, c0 in zip(b["building_id"], b["class"], b0["class"]) if c != c0]
         out[mode] = {"cells": cells, "buildings": _round(score_buildings(b, fall, aoi=box(*grid.bounds))),
-                     "min_region_cells": res.min_region_cells}
+                     "buildings_changed_part_off": _round(score_buildings(b0, fall, aoi=box(*grid.bounds))),
+                     "classes_moved_by_changed_part": moved, "min_region_cells": res.min_region_cells}
     out["seconds"] = round(time.perf_counter() - t, 1)
     return out
 

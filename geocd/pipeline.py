@@ -402,7 +402,8 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
         buildings = classify_buildings(fps, res.changed_at(config.region_confidence), res.dz_m, grid,
                                        z_a=_median_surface(recs_a), z_b=_median_surface(recs_b),
                                        confidence=res.confidence, params=config.buildings, id_field=id_field,
-                                       confidence_level=config.region_confidence)
+                                       confidence_level=config.region_confidence,
+                                       min_part_cells=res.min_region_cells)
         buildings = mark_not_examined(buildings, grid, examined)
     damage = ground_path = None
     extra, extra_styles = {}, {}

@@ -228,6 +228,11 @@ def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run_cell):
     assert bl.loc[11, "frac_changed"] == pytest.approx(0.344, abs=0.05) and bl.loc[11, "class"] == "raised"
     assert bl.loc[22, "frac_changed"] == pytest.approx(0.367, abs=0.05) and bl.loc[22, "class"] == "demolished"
     assert bl.loc[31, "frac_changed"] == pytest.approx(0.512, abs=0.05) and bl.loc[31, "class"] == "demolished"
+    # ... and the fraction rule classes them (each also holds a changed part ≥ the mapping unit, which alone
+    # would keep them changed); no unchanged building holds such a part
+    for bid in (11, 22, 31):
+        assert "≥ min_changed 15%" in bl.loc[bid, "rule"], bl.loc[bid, "rule"]
+    assert not bl["rule"].str.contains("part of").any()
 
 
 def test_run_orientation_reads_a_linked_runs_orientation_folder(tmp_path):

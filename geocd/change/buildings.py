@@ -15,6 +15,12 @@ the two epochs' surfaces:
 "Mostly" = the changed fraction of observed cells is at least ``min_changed``
 (default 0.15, chosen for the 99% change map: on sample_aoi unchanged buildings
 reach at most 0.03 at 99% but 0.27 at 90%, so classify from the 99% map).
+A building is changed too when it holds a **changed part**: an 8-connected group of
+same-sign changed cells inside it of at least the change map's minimum mapping unit
+(``min_part_cells``, passed by the caller from the change test: the smallest region the
+map can report, derived from the matching window). A region the ``changes`` layer reports
+inside a building then never leaves that building "unchanged"; the class follows the
+part's sign (``changed_part=False`` turns the rule off).
 The ground-level test uses a ring of cells ``ring_m`` wide around the
 footprint (minus other footprints), so no bare-earth DEM is needed; a given
 DEM is used instead when provided.
@@ -38,6 +44,38 @@ class BuildingParams:
     min_inside: float = 0.5
     ground_tol_m: float = 1.5
     ring_m: float = 4.0
+    changed_part: bool = True
+
+
+def largest_parts(change_mask: np.ndarray, labels: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each building's largest changed part: 8-connected same-sign changed cells inside it.
+
+    Parameters
+    ----------
+    change_mask : int (rows, cols), +1 raised / −1 lowered; any other value is not changed
+    labels : int (rows, cols), building ``k`` painted as ``k`` (1 … n), 0 elsewhere
+    n : number of buildings
+
+    Returns
+    -------
+    cells : int64 (n,), the size of the largest part (0: none)
+    sign : int8 (n,), its sign (+1 / −1; 0 when there is none; raised wins a tie)
+    """
+    from scipy import ndimage
+
+    cells = np.zeros(n, np.int64)
+    sign = np.zeros(n, np.int8)
+    cm = np.asarray(change_mask)
+    eight = np.ones((3, 3), bool)
+    for i, sl in enumerate(ndimage.find_objects(labels, max_label=n)):
+        if sl is None:
+            continue
+        inside = labels[sl] == (i + 1)
+        for s in (1, -1):
+            lab, k = ndimage.label(inside & (cm[sl] == s), structure=eight)
+            if k and (big := int(np.bincount(lab.ravel())[1:].max())) > cells[i]:
+                cells[i], sign[i] = big, s
+    return cells, sign
 
 
 def _ring_median(z: np.ndarray, inside: np.ndarray, other: np.ndarray, ring_cells: int) -> float:
@@ -53,7 +91,7 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
                        z_b: np.ndarray | None = None, dem_m: np.ndarray | None = None,
                        confidence: np.ndarray | None = None, params: BuildingParams = BuildingParams(),
                        id_field: str | None = None, confidence_level: float | None = None,
-                       detect_new: bool = True):
+                       detect_new: bool = True, min_part_cells: int | None = None):
     """Attribute footprints with their change, and add new buildings found in the change map.
 
     Parameters
@@ -69,6 +107,10 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
     detect_new : bool
         With both surfaces given, append the new buildings of :func:`detect_new_buildings`
         (raised regions outside every footprint): footprints of the earlier date cannot hold them.
+    min_part_cells : int, optional
+        The change map's minimum mapping unit (cells; a change test's ``min_region_cells``): a building
+        holding a changed part of at least this size is changed whatever its changed fraction
+        (``params.changed_part``). None: the fraction rule alone.
 
     Returns
     -------
@@ -84,6 +126,9 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
     labels = rasterize([(g, i + 1) for i, g in enumerate(gdf.geometry)], out_shape=grid.shape,
                        transform=grid.transform, fill=0, dtype="int32", all_touched=False)
     any_fp = labels > 0
+    use_part = params.changed_part and min_part_cells is not None
+    if use_part:
+        part_cells, part_sign = largest_parts(change_mask, labels, len(gdf))
     ring_cells = int(round(params.ring_m / grid.posting_m))
     cell_area = grid.cell_area_m2
     pct = f"{confidence_level:g}% " if confidence_level is not None else ""
@@ -126,12 +171,20 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
             cls = "unobserved"
             rule = (f"unobserved: {100 * nobs / n:.0f}% of its cells observed in both epochs "
                     f"(< min_observed {100 * params.min_observed:g}%)")
-        elif max(raised, lowered) >= params.min_changed:
-            if raised >= lowered:
-                cls, frac, z = "raised", raised, z_a
+        elif max(raised, lowered) >= params.min_changed or (use_part and part_cells[i] >= min_part_cells):
+            if max(raised, lowered) >= params.min_changed:
+                up = raised >= lowered
+                frac = raised if up else lowered
+                cls = "raised" if up else "lowered"
+                rule = f"{cls}: {100 * frac:.0f}% of observed cells {cls} at {pct}(≥ min_changed {100 * params.min_changed:g}%)"
             else:
-                cls, frac, z = "lowered", lowered, z_b
-            rule = f"{cls}: {100 * frac:.0f}% of observed cells {cls} at {pct}(≥ min_changed {100 * params.min_changed:g}%)"
+                up = part_sign[i] > 0
+                cls = "raised" if up else "lowered"
+                rule = (f"{cls}: a {cls} part of {part_cells[i]} cells ({part_cells[i] * cell_area:.0f} m²) at {pct}"
+                        f"(≥ the change map's mapping unit, {min_part_cells} cells); "
+                        f"{100 * max(raised, lowered):.0f}% of observed cells changed (< min_changed "
+                        f"{100 * params.min_changed:g}%)")
+            z = z_a if up else z_b
             if z is not None:
                 zin = z[inside]
                 zin = zin[np.isfinite(zin)]

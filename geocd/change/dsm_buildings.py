@@ -29,13 +29,16 @@ the per-cell result of a change test (the self-consistency test's ``ChangeResult
 * ``unobserved`` — too little of it observed in both epochs (as :mod:`geocd.change.buildings`);
 * ``collapsed`` — mostly lowered (≥ ``min_changed`` of its observed cells at the report level) and its
   height after is at most ``collapse_ratio`` of the height before (or below one storey);
-* ``partly collapsed`` — lowered cells cover ``min_changed`` … ``most`` of it and it is not collapsed;
+* ``partly collapsed`` — lowered cells cover less than ``most`` of it and it is not collapsed (a lowered
+  part of at least the change map's mapping unit is enough: the changed-part rule of
+  :mod:`geocd.change.buildings`, ``changed_part``);
 * ``lowered`` — lowered over most (≥ ``most``) of it, standing above ``collapse_ratio`` of its height;
 * ``new`` — mostly raised and at ground level before; ``raised`` — mostly raised otherwise;
 * ``unchanged`` — otherwise.
 
 Every building carries the confidence (percent, the team's convention) at which it changed — the highest
-tested level at which its changed fraction reaches ``min_changed`` (0: unchanged at every level) —, its
+tested level at which its changed fraction reaches ``min_changed`` or it holds a changed part (0: unchanged at
+every level) —, its
 heights above the ground before and after (medians), Δz and the volume change ± σ. σ comes from the
 self-consistency model: a cell's σ(Δz) is its 68.3 % curve value (pixels of disparity, at its score) times
 its pixel-to-metre factor |Δz/Δ̃|; cells within one matching window are treated as fully correlated,
@@ -53,7 +56,7 @@ from scipy import ndimage as ndi
 
 from ..errors import ConfigError
 from ..mpp.features import planar_cells, plane_residual
-from .buildings import BuildingParams, classify_buildings
+from .buildings import BuildingParams, classify_buildings, largest_parts
 from .styles import categorized_polygon_qml
 
 DAMAGE_CLASSES = {
@@ -117,6 +120,7 @@ class DSMBuildingParams:
     min_changed: float = 0.15
     min_observed: float = 0.3
     correlation_m: float = 3.5
+    changed_part: bool = True
 
     def __post_init__(self):
         if self.tree_rule not in TREE_RULES:
@@ -427,9 +431,11 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     if report_confidence not in levels:
         raise ValueError(f"report confidence {report_confidence} is not a tested level {levels}")
     cm = np.where(observed, result.changed_at(report_confidence), CHANGE_NODATA).astype(np.int16)
-    bp = BuildingParams(min_observed=params.min_observed, min_changed=params.min_changed)
+    bp = BuildingParams(min_observed=params.min_observed, min_changed=params.min_changed,
+                        changed_part=params.changed_part)
+    mmu = int(result.min_region_cells)
     base = classify_buildings(gdf, cm, result.dz_m, grid, z_a=z_a, z_b=z_b, dem_m=dtm, params=bp, id_field=id_field,
-                              confidence_level=report_confidence, detect_new=False)
+                              confidence_level=report_confidence, detect_new=False, min_part_cells=mmu)
     labels = rasterize([(g, i + 1) for i, g in enumerate(gdf.geometry)], out_shape=grid.shape,
                        transform=grid.transform, fill=0, dtype="int32")
     n = len(gdf)
@@ -438,9 +444,12 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     conf = np.zeros(n)
     n_obs = ndi.sum(observed, labels, idx)
     for c in levels:
-        ch = (result.changed_at(c) != 0) & observed
-        frac = np.asarray(ndi.sum(ch, labels, idx)) / np.maximum(n_obs, 1)
-        conf = np.where(frac >= params.min_changed, c, conf)
+        signed = np.where(observed, result.changed_at(c), 0)
+        frac = np.asarray(ndi.sum(signed != 0, labels, idx)) / np.maximum(n_obs, 1)
+        hit = frac >= params.min_changed
+        if params.changed_part:
+            hit |= largest_parts(signed, labels, n)[0] >= mmu
+        conf = np.where(hit, c, conf)
     sig = _sigma_dz(result, model) if model is not None else None
     cell = grid.cell_area_m2
     corr = max(1, int(round(params.correlation_m / grid.posting_m)))

@@ -150,3 +150,61 @@ def test_new_buildings_come_from_detection_not_from_footprints(grid):
     assert (s0["tp"], s0["fn"]) == (0, 1)
     none = classify_buildings(known, mask, dz, grid, z_a=za, z_b=zb, id_field="building_id", detect_new=False)
     assert (none["source"] == "footprint").all()
+
+
+def test_a_building_with_a_changed_part_is_changed(grid):
+    """A connected changed part of at least the map's mapping unit makes a building changed, whatever its
+    changed fraction; the same number of scattered cells, or a part below the unit, does not."""
+    import geopandas as gpd
+
+    l, b, r, t = grid.bounds
+    fps = gpd.GeoDataFrame(geometry=[box(l + 2, b + 2, l + 22, b + 22),      # a 4 × 4 m part lowered
+                                     box(l + 30, b + 2, l + 50, b + 22),     # 64 scattered lowered cells
+                                     box(l + 2, b + 30, l + 22, b + 50),     # a 3 × 3 m part raised
+                                     box(l + 30, b + 30, l + 50, b + 50)],   # nothing
+                           crs=grid.crs)
+    from geocd.io.vector import polygons_to_mask
+
+    z = np.where(polygons_to_mask(fps, grid).astype(bool), 9.0, 0.0).astype(np.float32)   # 9 m blocks
+    mask = np.zeros(grid.shape, np.int8)
+    # footprints in rows/cols (0.5 m cells, north up): building 0 spans rows 76–115, cols 4–43
+    mask[80:88, 10:18] = -1                                   # 64 cells = 16 m², 4 % of 1600
+    mask[80:112:4, 64:96:4] = -1                              # 8 × 8 = 64 isolated cells
+    mask[30:36, 10:16] = 1                                    # 36 cells
+    dz = mask.astype(np.float32) * 3.0
+    out = classify_buildings(fps, mask, dz, grid, z_a=z, z_b=z + dz, min_part_cells=49)
+    assert list(out["class"]) == ["lowered", "unchanged", "unchanged", "unchanged"]
+    assert "part of 64 cells" in out.loc[0, "rule"]
+    assert out.loc[0, "frac_changed"] == pytest.approx(0.04)
+    out = classify_buildings(fps, mask, dz, grid, z_a=z, z_b=z + dz, min_part_cells=36)
+    assert list(out["class"]) == ["lowered", "unchanged", "raised", "unchanged"]
+    # the fraction rule alone: no mapping unit given, or the rule turned off
+    from geocd.change.buildings import BuildingParams
+
+    for kw in ({}, {"min_part_cells": 36, "params": BuildingParams(changed_part=False)}):
+        out = classify_buildings(fps, mask, dz, grid, z_a=z, z_b=z + dz, **kw)
+        assert list(out["class"]) == ["unchanged"] * 4
+
+
+def test_largest_parts_matches_a_brute_force_count():
+    from scipy import ndimage
+
+    from geocd.change.buildings import largest_parts
+
+    rng = np.random.default_rng(4)
+    labels = np.zeros((60, 80), np.int32)
+    labels[5:30, 5:40] = 1
+    labels[5:30, 40:75] = 2                                  # touches building 1
+    labels[35:55, 10:30] = 3
+    cm = rng.choice(np.array([-1, 0, 1], np.int8), size=labels.shape, p=[0.25, 0.45, 0.3])
+    cm[0, 0] = -128
+    cells, sign = largest_parts(cm, labels, 4)
+    for k in (1, 2, 3):
+        best, bs = 0, 0
+        for s in (1, -1):
+            lab, n = ndimage.label((labels == k) & (cm == s), structure=np.ones((3, 3), bool))
+            m = max((int((lab == j).sum()) for j in range(1, n + 1)), default=0)
+            if m > best:
+                best, bs = m, s
+        assert (cells[k - 1], sign[k - 1]) == (best, bs)
+    assert (cells[3], sign[3]) == (0, 0)                      # building 4 is not on the grid

@@ -231,3 +231,32 @@ def test_tree_cells_are_the_objects_the_rule_drops():
     assert not trees[house].any() and not trees[block].any()
     assert not (trees & (lab > 0)).any()
     assert not tree_cells(z, 0.5, DSMBuildingParams(tree_rule="off")).any()
+
+
+def test_a_lowered_part_makes_a_building_partly_collapsed():
+    """The changed-part rule in the damage layer: a 4 × 4 m lowered corner (under min_changed of the block)
+    makes it partly collapsed at the level it was found, with the change map's mapping unit; off, it stays
+    unchanged, and a part below the unit never counts."""
+    import dataclasses
+
+    rng = np.random.default_rng(3)
+    z_a, ground, boxes = _scene(rng)
+    z_b = z_a.copy()
+    r0, r1, c0, c1, _ = boxes[3]                                     # 50 × 40 cells, 12 m
+    z_b[r0:r0 + 8, c0:c0 + 8] -= 6.0                                 # 64 cells: 3.2 % of the block
+    res = _result(z_a, z_b, np.nan_to_num(z_b - z_a) < -2, np.zeros(z_a.shape, bool))
+    bld, dtm, _ = buildings_from_dsm(z_a, GRID)
+
+    def block3(out):
+        d = [(row.geometry.centroid.y - (4000150 - 145 * 0.5)) ** 2 + (row.geometry.centroid.x - 500025) ** 2
+             for _, row in out.iterrows()]
+        return out.iloc[int(np.argmin(d))]
+
+    for mmu, params, want, conf in ((49, DSMBuildingParams(), "partly collapsed", 99.0),
+                                    (49, DSMBuildingParams(changed_part=False), "unchanged", 0.0),
+                                    (65, DSMBuildingParams(), "unchanged", 0.0)):
+        out = classify_damage(bld, dataclasses.replace(res, min_region_cells=mmu), GRID, z_a=z_a, z_b=z_b, dtm=dtm,
+                              params=params)
+        b = block3(out)
+        assert (b["class"], b["confidence_pct"]) == (want, conf), (mmu, params.changed_part, b["rule"])
+        assert b["frac_lowered"] < 0.05
