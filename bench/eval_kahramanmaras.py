@@ -192,7 +192,7 @@ def transfer_figures(res, damage, grid, recs, model) -> dict:
 
 def evaluate(run: Path, model_path: Path, significance: str, calibration: str = "auto",
              recs: dict | None = None, cars: tuple | None = None,
-             tree_rule: str | None = None, changed_part: bool = True) -> tuple[dict, object, object]:
+             tree_rule: str | None = None, changed_part: bool = False) -> tuple[dict, object, object]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import DSMBuildingParams, stable_false_alarms
     from geocd.pipeline import _building_damage
@@ -402,7 +402,7 @@ def main(argv=None) -> int:
                     help="work folder of bench_kahramanmaras_cars.py cars (its DSMs: the independent stability witness)")
     ap.add_argument("--tree-rule", default=DSMBuildingParams().tree_rule,
                     help="how the building extraction tells trees from buildings (DSMBuildingParams.tree_rule)")
-    ap.add_argument("--changed-part", choices=["on", "off"], default="on",
+    ap.add_argument("--changed-part", choices=["on", "off"], default="off",
                     help="a building holding a changed part of the map's mapping unit is changed "
                          "(DSMBuildingParams.changed_part; off: the changed fraction alone)")
     ap.add_argument("--rerun", default=None,

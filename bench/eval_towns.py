@@ -93,12 +93,12 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
         kw = dict(z_a=za, z_b=zb, confidence=res.confidence, id_field="building_id",
                   confidence_level=cfg.region_confidence, min_part_cells=res.min_region_cells)
         b = classify_buildings(fa, mk, res.dz_m, grid, params=cfg.buildings, **kw)
-        # the same without the changed-part rule: which classes the rule moves
-        b0 = classify_buildings(fa, mk, res.dz_m, grid, params=dataclasses.replace(cfg.buildings, changed_part=False),
+        # the same with the changed-part rule (an option): which classes it moves
+        b1 = classify_buildings(fa, mk, res.dz_m, grid, params=dataclasses.replace(cfg.buildings, changed_part=True),
                                 **kw)
-        moved = [int(i) for i, c, c0 in zip(b["building_id"], b["class"], b0["class"]) if c != c0]
+        moved = [int(i) for i, c, c1 in zip(b["building_id"], b["class"], b1["class"]) if c != c1]
         out[mode] = {"cells": cells, "buildings": _round(score_buildings(b, fall, aoi=box(*grid.bounds))),
-                     "buildings_changed_part_off": _round(score_buildings(b0, fall, aoi=box(*grid.bounds))),
+                     "buildings_changed_part_on": _round(score_buildings(b1, fall, aoi=box(*grid.bounds))),
                      "classes_moved_by_changed_part": moved, "min_region_cells": res.min_region_cells}
     out["seconds"] = round(time.perf_counter() - t, 1)
     return out

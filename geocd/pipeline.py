@@ -409,8 +409,11 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
     extra, extra_styles = {}, {}
     if config.derive_buildings or fp_path is not None:
         prog(0.7, "building damage")
+        from .change.dsm_buildings import DSMBuildingParams
+
         damage, ground = _building_damage(fps if fp_path is not None else None, res, grid, recs_a, recs_b, model,
-                                          config.region_confidence, ea.name, eb.name)
+                                          config.region_confidence, ea.name, eb.name,
+                                          DSMBuildingParams(changed_part=config.buildings.changed_part))
         damage = mark_not_examined(damage, grid, examined)
         if ground is not None:
             from .io.raster import write_cog

@@ -18,9 +18,11 @@ reach at most 0.03 at 99% but 0.27 at 90%, so classify from the 99% map).
 A building is changed too when it holds a **changed part**: an 8-connected group of
 same-sign changed cells inside it of at least the change map's minimum mapping unit
 (``min_part_cells``, passed by the caller from the change test: the smallest region the
-map can report, derived from the matching window). A region the ``changes`` layer reports
-inside a building then never leaves that building "unchanged"; the class follows the
-part's sign (``changed_part=False`` turns the rule off).
+map can report, derived from the matching window), so that a region the ``changes`` layer
+reports inside a building does not leave it "unchanged"; the class follows the part's sign.
+**Off by default** (``changed_part``): on the generated towns it moves no class, and on the
+real Kahramanmaraş pair, with building objects from a DSM, most of the parts it adds are
+felled trees and roadworks inside the objects' outlines (docs/kahramanmaras.md).
 The ground-level test uses a ring of cells ``ring_m`` wide around the
 footprint (minus other footprints), so no bare-earth DEM is needed; a given
 DEM is used instead when provided.
@@ -44,10 +46,11 @@ class BuildingParams:
     min_inside: float = 0.5
     ground_tol_m: float = 1.5
     ring_m: float = 4.0
-    changed_part: bool = True
+    changed_part: bool = False
 
 
-def largest_parts(change_mask: np.ndarray, labels: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+def largest_parts(change_mask: np.ndarray, labels: np.ndarray, n: int,
+                  keep=None) -> tuple[np.ndarray, np.ndarray]:
     """Each building's largest changed part: 8-connected same-sign changed cells inside it.
 
     Parameters
@@ -55,6 +58,8 @@ def largest_parts(change_mask: np.ndarray, labels: np.ndarray, n: int) -> tuple[
     change_mask : int (rows, cols), +1 raised / −1 lowered; any other value is not changed
     labels : int (rows, cols), building ``k`` painted as ``k`` (1 … n), 0 elsewhere
     n : number of buildings
+    keep : callable ``(sign, rows, cols) -> bool``, optional
+        Whether a part (its sign and the grid indices of its cells) may count, e.g. not a felled tree.
 
     Returns
     -------
@@ -73,8 +78,18 @@ def largest_parts(change_mask: np.ndarray, labels: np.ndarray, n: int) -> tuple[
         inside = labels[sl] == (i + 1)
         for s in (1, -1):
             lab, k = ndimage.label(inside & (cm[sl] == s), structure=eight)
-            if k and (big := int(np.bincount(lab.ravel())[1:].max())) > cells[i]:
-                cells[i], sign[i] = big, s
+            if not k:
+                continue
+            sizes = np.bincount(lab.ravel())[1:]
+            for j in np.argsort(-sizes, kind="stable"):
+                if sizes[j] <= cells[i]:
+                    break
+                if keep is not None:
+                    rr, cc = np.nonzero(lab == j + 1)
+                    if not keep(s, rr + sl[0].start, cc + sl[1].start):
+                        continue
+                cells[i], sign[i] = int(sizes[j]), s
+                break
     return cells, sign
 
 
@@ -91,7 +106,7 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
                        z_b: np.ndarray | None = None, dem_m: np.ndarray | None = None,
                        confidence: np.ndarray | None = None, params: BuildingParams = BuildingParams(),
                        id_field: str | None = None, confidence_level: float | None = None,
-                       detect_new: bool = True, min_part_cells: int | None = None):
+                       detect_new: bool = True, min_part_cells: int | None = None, part_keep=None):
     """Attribute footprints with their change, and add new buildings found in the change map.
 
     Parameters
@@ -111,6 +126,8 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
         The change map's minimum mapping unit (cells; a change test's ``min_region_cells``): a building
         holding a changed part of at least this size is changed whatever its changed fraction
         (``params.changed_part``). None: the fraction rule alone.
+    part_keep : callable, optional
+        Which parts may count (:func:`largest_parts`' ``keep``).
 
     Returns
     -------
@@ -128,7 +145,7 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
     any_fp = labels > 0
     use_part = params.changed_part and min_part_cells is not None
     if use_part:
-        part_cells, part_sign = largest_parts(change_mask, labels, len(gdf))
+        part_cells, part_sign = largest_parts(change_mask, labels, len(gdf), keep=part_keep)
     ring_cells = int(round(params.ring_m / grid.posting_m))
     cell_area = grid.cell_area_m2
     pct = f"{confidence_level:g}% " if confidence_level is not None else ""

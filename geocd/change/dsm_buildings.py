@@ -29,9 +29,10 @@ the per-cell result of a change test (the self-consistency test's ``ChangeResult
 * ``unobserved`` — too little of it observed in both epochs (as :mod:`geocd.change.buildings`);
 * ``collapsed`` — mostly lowered (≥ ``min_changed`` of its observed cells at the report level) and its
   height after is at most ``collapse_ratio`` of the height before (or below one storey);
-* ``partly collapsed`` — lowered cells cover less than ``most`` of it and it is not collapsed (a lowered
-  part of at least the change map's mapping unit is enough: the changed-part rule of
-  :mod:`geocd.change.buildings`, ``changed_part``);
+* ``partly collapsed`` — lowered cells cover ``min_changed`` … ``most`` of it and it is not collapsed (with
+  ``changed_part``, off by default, a lowered part of at least the change map's mapping unit is enough: the
+  changed-part rule of :mod:`geocd.change.buildings`; a part the plane tree rule calls vegetation on the DSM
+  before — after, for a raised part — does not count);
 * ``lowered`` — lowered over most (≥ ``most``) of it, standing above ``collapse_ratio`` of its height;
 * ``new`` — mostly raised and at ground level before; ``raised`` — mostly raised otherwise;
 * ``unchanged`` — otherwise.
@@ -120,7 +121,7 @@ class DSMBuildingParams:
     min_changed: float = 0.15
     min_observed: float = 0.3
     correlation_m: float = 3.5
-    changed_part: bool = True
+    changed_part: bool = False
 
     def __post_init__(self):
         if self.tree_rule not in TREE_RULES:
@@ -249,6 +250,20 @@ def building_objects(dsm: np.ndarray, dtm: np.ndarray, posting_m: float,
     return lut[labels]
 
 
+def plane_rule(dsm: np.ndarray, dtm: np.ndarray, posting_m: float, params: DSMBuildingParams = DSMBuildingParams(),
+               ground: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """The ``"plane"`` tree rule's cell figure and threshold on a DSM: (best-of-nine plane residual (rows, cols)
+    in m, :func:`tree_threshold_m` from the DSM's ground cells). An object (or a changed part) whose median
+    figure exceeds the threshold is a tree. ``ground``: ground cells (default: within ``dh0_m`` + 0.5 m of
+    ``dtm``)."""
+    has_z = np.isfinite(dsm)
+    zf = fill_gaps(dsm)
+    if ground is None:
+        ground = has_z & (np.abs(zf - dtm) < params.dh0_m + 0.5)
+    best = best_plane_residual(dsm, posting_m)
+    return best, tree_threshold_m(best, ground & has_z & (zf - dtm < params.min_height_m), params)
+
+
 def tree_objects(dsm: np.ndarray, dtm: np.ndarray, labels: np.ndarray, posting_m: float,
                  params: DSMBuildingParams = DSMBuildingParams(), ground: np.ndarray | None = None) -> np.ndarray:
     """bool (n,): which of the objects ``labels`` (1 … n) ``params.tree_rule`` calls a tree (see
@@ -267,8 +282,7 @@ def tree_objects(dsm: np.ndarray, dtm: np.ndarray, labels: np.ndarray, posting_m
     if ground is None:
         ground = has_z & (np.abs(fill_gaps(dsm) - dtm) < params.dh0_m + 0.5)
     if params.tree_rule == "plane":
-        best = best_plane_residual(dsm, posting_m)
-        thr = tree_threshold_m(best, ground & has_z & (fill_gaps(dsm) - dtm < params.min_height_m), params)
+        best, thr = plane_rule(dsm, dtm, posting_m, params, ground)
         known = np.isfinite(best)
         lab_b = np.where(known, labels, 0)
         med = np.asarray(ndi.median(np.where(known, best, 0.0), lab_b, idx), dtype=float)
@@ -402,6 +416,24 @@ def _sigma_dz(result, model) -> np.ndarray:
     return (thr * k).astype(np.float32)
 
 
+def _not_a_tree(z_a: np.ndarray, z_b: np.ndarray, dtm: np.ndarray, posting_m: float, params: DSMBuildingParams):
+    """The changed-part rule's test that a part is not vegetation: with the ``"plane"`` tree rule, a lowered
+    part whose pre-event surface (a raised part: post-event) the rule would call a tree — its cells' median
+    best-of-nine plane residual above the rule's threshold on that DSM — does not count (a felled or planted
+    tree inside a building object's outline is not building damage). Other tree rules: every part counts."""
+    if params.tree_rule != "plane":
+        return None
+    fig = {-1: plane_rule(z_a, dtm, posting_m, params), 1: plane_rule(z_b, dtm, posting_m, params)}
+
+    def keep(sign, rows, cols) -> bool:
+        best, thr = fig[sign]
+        v = best[rows, cols]
+        v = v[np.isfinite(v)]
+        return bool(v.size) and float(np.median(v)) <= thr
+
+    return keep
+
+
 def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray, dtm: np.ndarray,
                     model=None, report_confidence: float = 99.0, params: DSMBuildingParams = DSMBuildingParams(),
                     id_field: str | None = None):
@@ -434,8 +466,10 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     bp = BuildingParams(min_observed=params.min_observed, min_changed=params.min_changed,
                         changed_part=params.changed_part)
     mmu = int(result.min_region_cells)
+    keep = _not_a_tree(z_a, z_b, dtm, grid.posting_m, params) if params.changed_part else None
     base = classify_buildings(gdf, cm, result.dz_m, grid, z_a=z_a, z_b=z_b, dem_m=dtm, params=bp, id_field=id_field,
-                              confidence_level=report_confidence, detect_new=False, min_part_cells=mmu)
+                              confidence_level=report_confidence, detect_new=False, min_part_cells=mmu,
+                              part_keep=keep)
     labels = rasterize([(g, i + 1) for i, g in enumerate(gdf.geometry)], out_shape=grid.shape,
                        transform=grid.transform, fill=0, dtype="int32")
     n = len(gdf)
@@ -448,7 +482,7 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
         frac = np.asarray(ndi.sum(signed != 0, labels, idx)) / np.maximum(n_obs, 1)
         hit = frac >= params.min_changed
         if params.changed_part:
-            hit |= largest_parts(signed, labels, n)[0] >= mmu
+            hit |= largest_parts(signed, labels, n, keep=keep)[0] >= mmu
         conf = np.where(hit, c, conf)
     sig = _sigma_dz(result, model) if model is not None else None
     cell = grid.cell_area_m2

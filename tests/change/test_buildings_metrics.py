@@ -153,8 +153,9 @@ def test_new_buildings_come_from_detection_not_from_footprints(grid):
 
 
 def test_a_building_with_a_changed_part_is_changed(grid):
-    """A connected changed part of at least the map's mapping unit makes a building changed, whatever its
-    changed fraction; the same number of scattered cells, or a part below the unit, does not."""
+    """With ``changed_part`` (an option), a connected changed part of at least the map's mapping unit makes a
+    building changed, whatever its changed fraction; the same number of scattered cells, or a part below the
+    unit, does not."""
     import geopandas as gpd
 
     l, b, r, t = grid.bounds
@@ -172,16 +173,17 @@ def test_a_building_with_a_changed_part_is_changed(grid):
     mask[80:112:4, 64:96:4] = -1                              # 8 × 8 = 64 isolated cells
     mask[30:36, 10:16] = 1                                    # 36 cells
     dz = mask.astype(np.float32) * 3.0
-    out = classify_buildings(fps, mask, dz, grid, z_a=z, z_b=z + dz, min_part_cells=49)
+    from geocd.change.buildings import BuildingParams
+
+    on = BuildingParams(changed_part=True)
+    out = classify_buildings(fps, mask, dz, grid, z_a=z, z_b=z + dz, min_part_cells=49, params=on)
     assert list(out["class"]) == ["lowered", "unchanged", "unchanged", "unchanged"]
     assert "part of 64 cells" in out.loc[0, "rule"]
     assert out.loc[0, "frac_changed"] == pytest.approx(0.04)
-    out = classify_buildings(fps, mask, dz, grid, z_a=z, z_b=z + dz, min_part_cells=36)
+    out = classify_buildings(fps, mask, dz, grid, z_a=z, z_b=z + dz, min_part_cells=36, params=on)
     assert list(out["class"]) == ["lowered", "unchanged", "raised", "unchanged"]
-    # the fraction rule alone: no mapping unit given, or the rule turned off
-    from geocd.change.buildings import BuildingParams
-
-    for kw in ({}, {"min_part_cells": 36, "params": BuildingParams(changed_part=False)}):
+    # the fraction rule alone: the default (the rule is an option), or no mapping unit given
+    for kw in ({"min_part_cells": 36}, {"params": on}):
         out = classify_buildings(fps, mask, dz, grid, z_a=z, z_b=z + dz, **kw)
         assert list(out["class"]) == ["unchanged"] * 4
 

@@ -234,9 +234,9 @@ def test_tree_cells_are_the_objects_the_rule_drops():
 
 
 def test_a_lowered_part_makes_a_building_partly_collapsed():
-    """The changed-part rule in the damage layer: a 4 × 4 m lowered corner (under min_changed of the block)
-    makes it partly collapsed at the level it was found, with the change map's mapping unit; off, it stays
-    unchanged, and a part below the unit never counts."""
+    """The changed-part rule in the damage layer (an option): a 4 × 4 m lowered corner (under min_changed of
+    the block) makes it partly collapsed at the level it was found, with the change map's mapping unit; off (the
+    default), it stays unchanged; a part below the unit, or one the plane tree rule calls a tree, never counts."""
     import dataclasses
 
     rng = np.random.default_rng(3)
@@ -252,11 +252,19 @@ def test_a_lowered_part_makes_a_building_partly_collapsed():
              for _, row in out.iterrows()]
         return out.iloc[int(np.argmin(d))]
 
-    for mmu, params, want, conf in ((49, DSMBuildingParams(), "partly collapsed", 99.0),
-                                    (49, DSMBuildingParams(changed_part=False), "unchanged", 0.0),
-                                    (65, DSMBuildingParams(), "unchanged", 0.0)):
+    on = DSMBuildingParams(changed_part=True)
+    for mmu, params, want, conf in ((49, on, "partly collapsed", 99.0),
+                                    (49, DSMBuildingParams(), "unchanged", 0.0),       # the default: off
+                                    (65, on, "unchanged", 0.0)):
         out = classify_damage(bld, dataclasses.replace(res, min_region_cells=mmu), GRID, z_a=z_a, z_b=z_b, dtm=dtm,
                               params=params)
         b = block3(out)
         assert (b["class"], b["confidence_pct"]) == (want, conf), (mmu, params.changed_part, b["rule"])
         assert b["frac_lowered"] < 0.05
+    # a crown standing on the corner before (rough to the plane tree rule) and felled: not building damage
+    z_t = z_a.copy()
+    z_t[r0:r0 + 8, c0:c0 + 8] += rng.normal(0, 1.0, (8, 8))
+    res_t = _result(z_t, z_b, np.nan_to_num(z_b - z_t) < -2, np.zeros(z_a.shape, bool))
+    out = classify_damage(bld, dataclasses.replace(res_t, min_region_cells=49), GRID, z_a=z_t, z_b=z_b, dtm=dtm,
+                          params=on)
+    assert block3(out)["class"] == "unchanged"
