@@ -944,7 +944,7 @@ def scoring(work: Path, scenes: list[tuple[str, Path]], variant: dict | None = N
 
 
 if __name__ == "__main__":
-    what = sys.argv[1]
+    what = sys.argv[1] if len(sys.argv) > 1 else ""
     if what == "town":
         sc = None
         args = sys.argv[2:]

@@ -199,7 +199,7 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
                 cls = "raised" if up else "lowered"
                 rule = (f"{cls}: a {cls} part of {part_cells[i]} cells ({part_cells[i] * cell_area:.0f} m²) at {pct}"
                         f"(≥ the change map's mapping unit, {min_part_cells} cells); "
-                        f"{100 * max(raised, lowered):.0f}% of observed cells changed (< min_changed "
+                        f"{100 * max(raised, lowered):.1f}% of observed cells changed (< min_changed "
                         f"{100 * params.min_changed:g}%)")
             z = z_a if up else z_b
             if z is not None:
