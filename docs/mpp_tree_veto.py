@@ -43,35 +43,34 @@ for spec in args:
         f = next((work / "ortho" / d).glob("dsm_*.tif"))
         with rasterio.open(f) as ds:
             z = ds.read(1, masked=True).astype(float).filled(np.nan)
-            tr, crs, shape = ds.transform, ds.crs, z.shape
+            tr, crs, shape, bounds = ds.transform, ds.crs, z.shape, ds.bounds
         posting = abs(tr.a)
         dtm, ground = ground_model(z, posting, P)
         best, thr = plane_rule(z, dtm, posting, P, ground)
         figs[d] = (best, thr)
-    grid = AOIGrid.from_bounds(*rasterio.open(f).bounds, posting, crs)
+    grid = AOIGrid.from_bounds(*bounds, posting, crs)
     rect = rect.to_crs(crs)
+    cells = [rasterize([(g, 1)], out_shape=shape, transform=tr, fill=0, dtype="uint8").astype(bool)
+             for g in rect.geometry]                                  # each rectangle's cells, once
     med = {"A": [], "B": []}
-    for _, r in rect.iterrows():
-        m = rasterize([(r.geometry, 1)], out_shape=shape, transform=tr, fill=0, dtype="uint8").astype(bool)
+    for m in cells:
         for d in ("A", "B"):
-            v = figs[d][0][m]; v = v[np.isfinite(v)]
+            v = figs[d][0][m]
+            v = v[np.isfinite(v)]
             med[d].append(float(np.median(v)) if v.size else np.nan)
     rect["medA"], rect["medB"] = med["A"], med["B"]
-    treeA = rect["medA"] > figs["A"][1]; treeB = rect["medB"] > figs["B"][1]
+    treeA, treeB = rect["medA"] > figs["A"][1], rect["medB"] > figs["B"][1]
     pa, pb = rect["present_A"].astype(bool), rect["present_B"].astype(bool)
     fp = gpd.read_file(scene / "truth" / "footprints_all.gpkg")
     objs, t1, t2 = sample_truth(fp, grid, cut_buildings="masks")
     tany = t1 | t2
     # is each rect on a truth building (≥ half its cells)?
-    onb = []
-    for _, r in rect.iterrows():
-        m = rasterize([(r.geometry, 1)], out_shape=shape, transform=tr, fill=0, dtype="uint8").astype(bool)
-        onb.append(float((m & tany).sum() / max(m.sum(), 1)) >= 0.5)
+    onb = [float((m & tany).sum() / max(m.sum(), 1)) >= 0.5 for m in cells]
     rect["on_building"] = onb
     def masks(sel):
         out = {k: np.zeros(shape, bool) for k in ("date1", "date2", "new", "demolished", "any")}
-        for _, r in rect[sel].iterrows():
-            m = rasterize([(r.geometry, 1)], out_shape=shape, transform=tr, fill=0, dtype="uint8").astype(bool)
+        for k in np.nonzero(np.asarray(sel))[0]:
+            r, m = rect.iloc[k], cells[k]
             out["any"] |= m
             if r.present_A: out["date1"] |= m
             if r.present_B: out["date2"] |= m

@@ -18,8 +18,8 @@ import numpy as np
 from geocd.io.manifest import load_manifest
 from geocd.io.raster import read_dem, read_image
 from geocd.volume import DetectParams, detect_change
-from geocd.volume.io import geometry_from_manifest, read_view, load_model
-from geocd.volume.evaluate import TrainConfig, _roc, _shadow_dsm
+from geocd.volume.io import geometry_from_manifest, load_model, read_shadow_dsm, read_view
+from geocd.volume.evaluate import TrainConfig, _roc
 from geocd.volume.baseline import carlotto_score, edge_zone, first_surface_height, nearest_view, warp_reference
 scene, work, dsm = sys.argv[1], Path(sys.argv[2]), sys.argv[3]
 cfg = TrainConfig()
@@ -30,7 +30,7 @@ model = load_model(work / "volume_octree")
 views_a = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("A").images]
 views_b = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("B").images if "sat" in s.name]
 ref_pool = [v for v in views_a if "sat" in v.name and v.name != "A_sat3"]
-shadow = _shadow_dsm(dsm, grid)
+shadow = read_shadow_dsm(dsm, grid)
 dsm_b = read_dem(man.truth_path("dsm_B"), grid=grid).height_m
 P = {k: [] for k in ("oct", "carl", "truth", "dark", "zone", "darkA")}
 fits = {}

@@ -452,7 +452,7 @@ def _write_exact(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
         buildings = classify_buildings(fp, res.changed_at(region_confidence), res.dz_m, g,
                                        z_a=store.read("z_a", win), z_b=store.read("z_b", win),
                                        confidence=res.confidence, id_field=id_field,
-                                       confidence_level=region_confidence, min_part_cells=res.min_region_cells)
+                                       confidence_level=region_confidence)
     return write_change_products(out, res, g, method=method, epoch_a=ea, epoch_b=eb,
                                  region_confidence=region_confidence, model=model, buildings=buildings, prefix=prefix,
                                  plots=plots)
@@ -548,7 +548,7 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
     layers: dict[str, Any] = {"changes": layer}
     styles = {"changes": qml_for("changes")}
     if fp is not None:
-        layers["buildings"] = _buildings(fp, store, conf_store, rm.store, tg, region_confidence, mmu)
+        layers["buildings"] = _buildings(fp, store, conf_store, rm.store, tg, region_confidence)
         styles["buildings"] = buildings_qml()
     if model is not None:
         layers["curves"] = model.curves_table()
@@ -560,9 +560,8 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
     return paths
 
 
-def _buildings(fp, store, conf_store, mask_store, tg: TileGrid, level: float, mmu: int):
-    """:func:`classify_buildings` footprint by footprint on windows of the stored arrays (``mmu``: the
-    change map's minimum mapping unit, for the changed-part rule)."""
+def _buildings(fp, store, conf_store, mask_store, tg: TileGrid, level: float):
+    """:func:`classify_buildings` footprint by footprint on windows of the stored arrays."""
     import geopandas as gpd
     import pandas as pd
 
@@ -576,7 +575,7 @@ def _buildings(fp, store, conf_store, mask_store, tg: TileGrid, level: float, mm
         o = classify_buildings(gdf.iloc[near], mask_store.read("mask", win), store.read("dz_m", win), sub,
                                z_a=store.read("z_a", win), z_b=store.read("z_b", win),
                                confidence=conf_store.read("confidence", win), id_field=id_field,
-                               confidence_level=level, min_part_cells=mmu)
+                               confidence_level=level)
         rec = o.iloc[int(np.nonzero(near == i)[0][0])].copy()
         if id_field is None:
             rec["building_id"] = i + 1

@@ -277,7 +277,7 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
         id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
         buildings = classify_buildings(fps, res.changed_at(report_confidence), res.dz_m, grid, z_a=_median_surface(A),
                                        z_b=_median_surface(B), confidence=res.confidence, id_field=id_field,
-                                       confidence_level=report_confidence, min_part_cells=res.min_region_cells)
+                                       confidence_level=report_confidence)
     paths = write_change_products(out_dir, res, grid, method="self-consistency", epoch_a=A[0].epoch if hasattr(A[0], "epoch") else "A",
                                   epoch_b=B[0].epoch if hasattr(B[0], "epoch") else "B", region_confidence=report_confidence,
                                   model=model, buildings=buildings, prefix="sc")

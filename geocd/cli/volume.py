@@ -180,9 +180,9 @@ def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_
 
     from ..io.atomic import write_text_atomic
     from ..io.outputs import open_outputs
-    from ..io.raster import read_dem, write_cog
+    from ..io.raster import write_cog
     from ..volume import DetectParams, detect_change, expected_height_map, load_model, orthorectify
-    from ..volume.io import read_view
+    from ..volume.io import read_shadow_dsm, read_view
 
     from .common import session
 
@@ -194,8 +194,7 @@ def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_
     v = read_view(image, camera_path, sun=tuple(sun) if sun else None, normalize=normalize)
     shadow = None
     if shadow_dsm:
-        sgrid = model.geometry.aoi_grid(model.geometry.finest_cell_m)
-        shadow = (read_dem(shadow_dsm, grid=sgrid).to_ellipsoidal().height_m, sgrid)
+        shadow = read_shadow_dsm(shadow_dsm, model.geometry.aoi_grid(model.geometry.finest_cell_m))
     prog = _progress(ctx, "volume detect")
     try:
         res = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,

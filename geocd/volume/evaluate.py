@@ -40,7 +40,7 @@ from . import (DetectParams, VolumeModel, VolumeParams, detect_change, expected_
 from .baseline import (carlotto_score, difference_score, edge_zone, first_surface_height, nearest_view,
                        warp_reference)
 from .detect import aggregate_log_odds
-from .io import geometry_from_manifest, read_view
+from .io import geometry_from_manifest, read_shadow_dsm, read_view
 from .prior import DEMPrior, roof_surface, seed_from_dem
 from .scene import geometry_for_aoi
 
@@ -136,7 +136,7 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
     res: dict[str, Any] = {"scene": str(scene), "config": cfg.__dict__, "holdout": holdout,
                            "train_views": [v.name for v in train_views], "geometry": geom.to_dict(),
                            "shadow_dsm": shadow_dsm_path}
-    shadow = _shadow_dsm(shadow_dsm_path, grid)
+    shadow = read_shadow_dsm(shadow_dsm_path, grid) if shadow_dsm_path else None
     log(f"octree model: {geom.n_blocks} blocks of {geom.block_size_m} m, finest {geom.finest_cell_m} m; "
         f"training on {[v.name for v in train_views]}")
     fp = footprint_mask(man, grid)
@@ -317,7 +317,7 @@ def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdo
     views_a = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("A").images]
     views_b = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("B").images if "sat" in s.name]
     fp = footprint_mask(man, grid)
-    shadow = _shadow_dsm(shadow_dsm_path, sub)
+    shadow = read_shadow_dsm(shadow_dsm_path, sub) if shadow_dsm_path else None
     model, _ = train([v for v in views_a if v.name != holdout], geom, sub, dem_sub(dem, grid, sub), cfg,
                      footprints=None if fp is None else dem_sub(fp, grid, sub), log=log)
     ref_pool = [v for v in views_a if "sat" in v.name and v.name != holdout]
@@ -342,13 +342,6 @@ def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdo
     out["n_pixels"] = int(t.size)
     out["changed_fraction"] = float(t.mean())
     return out
-
-
-def _shadow_dsm(path: str | None, grid: AOIGrid) -> tuple[np.ndarray, AOIGrid] | None:
-    """A DSM file read onto ``grid`` as ellipsoidal heights, for :func:`detect_change`'s ``shadow_dsm``."""
-    if path is None:
-        return None
-    return read_dem(path, grid=grid).to_ellipsoidal().height_m, grid
 
 
 def footprint_mask(man, grid: AOIGrid) -> np.ndarray | None:

@@ -189,6 +189,14 @@ def read_view(image_path: os.PathLike | str, camera_path: os.PathLike | str | No
                 str(image_path))
 
 
+def read_shadow_dsm(path: os.PathLike | str, grid: Any) -> tuple[np.ndarray, Any]:
+    """A DSM file (any CRS and vertical datum GDAL reads) as ellipsoidal heights on ``grid`` (an AOIGrid in the
+    model's CRS): the ``shadow_dsm`` pair of :func:`geocd.volume.detect_change`."""
+    from ..io.raster import read_dem
+
+    return read_dem(path, grid=grid).to_ellipsoidal().height_m, grid
+
+
 def disk_bytes(path: os.PathLike | str) -> int:
     """Bytes of a saved model folder."""
     return sum(f.stat().st_size for f in Path(path).iterdir() if f.is_file())
