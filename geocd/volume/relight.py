@@ -33,7 +33,7 @@ occlusion density itself predicts where shadows fall under both suns.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -215,23 +215,38 @@ def dsm_shadow_height(dsm_m: np.ndarray, posting_m: float, sun: tuple[float, flo
     return out
 
 
+def surface_dsm_sample(model: VolumeModel, camera: Any, depth_m: np.ndarray, maps: list[np.ndarray],
+                       grid: AOIGrid) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each map on ``grid`` (the model's CRS) sampled at each pixel's median visible surface point.
+
+    Returns
+    -------
+    samples : one float64 array (rows, cols) per map, NaN where the pixel has no surface point or the map none
+    height_m : float64 (rows, cols), the surface point's ellipsoidal height (NaN where none)
+    """
+    fr = model.geometry.frame
+    out = [np.full(depth_m.shape, np.nan) for _ in maps]
+    height = np.full(depth_m.shape, np.nan)
+    for rr, cc, o, d, t in _surface_rays(model, camera, depth_m):
+        ok = np.isfinite(t)
+        p = o + d * np.where(ok, t, 0.0)[:, None]
+        lon, lat, h = fr.from_enu(p[:, 0], p[:, 1], p[:, 2])
+        height[rr, cc] = np.where(ok, h, np.nan)
+        for m, s in zip(maps, out):
+            s[rr, cc] = np.where(ok, sample_grid(m, grid, lon, lat), np.nan)
+    return out, height
+
+
 def surface_dsm_sun_visibility(model: VolumeModel, camera: Any, depth_m: np.ndarray,
                                shadow_heights_m: list[np.ndarray], grid: AOIGrid) -> list[np.ndarray]:
     """1 (lit) or 0 (shadow) for each pixel's median visible surface point, lifted by half a finest cell,
     against each :func:`dsm_shadow_height` map (ellipsoidal metres on ``grid``); 1 where there is no point.
     The surface points are computed once for all the maps."""
-    fr = model.geometry.frame
     lift = 0.5 * model.geometry.finest_cell_m
     maps = [np.clip(h, -1e9, 1e9) for h in shadow_heights_m]   # ±inf (nothing reaches / sun below the horizon)
-    out = [np.ones(depth_m.shape) for _ in maps]
-    for rr, cc, o, d, t in _surface_rays(model, camera, depth_m):
-        ok = np.isfinite(t)
-        p = o + d * np.where(ok, t, 0.0)[:, None]
-        lon, lat, h = fr.from_enu(p[:, 0], p[:, 1], p[:, 2])
-        for hz_map, vis in zip(maps, out):
-            hz = sample_grid(hz_map, grid, lon, lat)
-            vis[rr, cc] = np.where(ok & np.isfinite(hz) & (h + lift < hz), 0.0, 1.0)
-    return out
+    hz, h = surface_dsm_sample(model, camera, depth_m, maps, grid)
+    with np.errstate(invalid="ignore"):
+        return [np.where(np.isfinite(h) & np.isfinite(z) & (h + lift < z), 0.0, 1.0) for z in hz]
 
 
 def check_shadow_dsm(model: VolumeModel, shadow_dsm: tuple[np.ndarray, AOIGrid]) -> tuple[np.ndarray, AOIGrid]:
@@ -252,11 +267,16 @@ def check_shadow_dsm(model: VolumeModel, shadow_dsm: tuple[np.ndarray, AOIGrid])
 def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: int, sun_from: tuple[float, float],
                     sun_to: tuple[float, float], *, vis_known: float = 0.2,
                     shadow_dsm: tuple[np.ndarray, AOIGrid] | None = None,
+                    lit_scale: Callable[[np.ndarray], np.ndarray] | None = None,
                     progress: Optional[Progress] = None) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], dict]:
     """Per-pixel mixture map ``(a, b, σ_extra)`` for an image under ``sun_to`` against bin ``b`` (see module doc).
 
     ``shadow_dsm``: optional (height_m, grid) of the training epoch's surface (ellipsoidal metres, the
     model's CRS); the lit/shadow classes then come from its cast shadows instead of the model's density.
+    ``lit_scale``: optional shading model, given the relight pass's median visible depth (rows, cols, m) it
+    returns a multiplier (rows, cols) of the expected intensity of the lit → lit pixels, applied in the fit and
+    the mapping (``b`` becomes ``b × scale``; NaN counts as 1). None of those measured is used by default
+    (docs/volume.md, "Slope shading in the relighting").
 
     Returns
     -------
@@ -279,10 +299,17 @@ def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: i
             grid)
     prog(0.8, "fit")
     klass = (s_from < 0.5).astype(int) * 2 + (s_to < 0.5).astype(int)
+    scale = np.ones((rows, cols))
+    if lit_scale is not None:
+        r = np.asarray(lit_scale(base.depth_m), dtype=np.float64)
+        scale = np.where((klass == 0) & np.isfinite(r), r, 1.0)
     ok = np.isfinite(intensity) & np.isfinite(base.expected) & (base.vis_inf <= vis_known)
     fit = fit_classes(base.expected[ok].astype(np.float64), intensity[ok], klass[ok])
+    if lit_scale is not None:   # the lit → lit line on the scaled expectation; a class borrowing it keeps the plain one
+        lit = fit_classes((base.expected * scale)[ok].astype(np.float64), intensity[ok], klass[ok])
+        fit.a[0], fit.b[0], fit.sigma[0] = lit.a[0], lit.b[0], lit.sigma[0]
     extra = np.sqrt(np.maximum(fit.sigma ** 2 - fit.sigma[0] ** 2, 0.0))
-    mapping = (fit.a[klass], fit.b[klass], extra[klass])
+    mapping = (fit.a[klass], fit.b[klass] * scale, extra[klass])
     frac = {c: float(np.mean(klass[ok] == i)) for i, c in enumerate(CLASSES)}
     info = {"from_sun": [float(sun_from[0]), float(sun_from[1])], "to_sun": [float(sun_to[0]), float(sun_to[1])],
             "shadows": "model density" if shadow_dsm is None else "DSM",

@@ -231,6 +231,38 @@ def test_dsm_shadow_height_of_a_block_under_a_southern_sun():
     assert np.all(dsm_shadow_height(nan, 0.5, (180.0, 45.0))[north, 20] <= 0.0)
 
 
+def test_a_shading_scale_enters_the_lit_class_fit_and_mapping(toy):
+    """``lit_scale`` multiplies the expected intensity of the lit → lit pixels only: a scale of 1 changes
+    nothing, a uniform scale of 2 halves that class's slope in the fit and leaves the mapped mixture as it was;
+    the DSM is sampled at the pixels' surface points."""
+    from geocd.volume.relight import relight_mapping, surface_dsm_sample
+
+    geom = T.volume_geometry()
+    m = VolumeModel.create(geom, VolumeParams(n_bins=2))
+    for c, im in zip(toy.cameras, toy.images):
+        update_model(m, im, c, sun=(135.0, 60.0), supersample=2)
+    grid = T.aoi_grid()
+    dsm, _ = _truth_height(grid)
+    args = (m, toy.test_image_b, toy.test_camera, 0, (135.0, 60.0), (160.0, 30.0))
+    (a0, b0, s0), info0 = relight_mapping(*args, shadow_dsm=(dsm, grid))
+    (a1, b1, s1), info1 = relight_mapping(*args, shadow_dsm=(dsm, grid), lit_scale=lambda d: np.ones(d.shape))
+    assert info1["fit"] == info0["fit"]
+    np.testing.assert_array_equal(b1, b0)
+    (a2, b2, s2), info2 = relight_mapping(*args, shadow_dsm=(dsm, grid), lit_scale=lambda d: np.full(d.shape, 2.0))
+    lit = info0["fit"]["lit>lit"]
+    assert info2["fit"]["lit>lit"]["b"] == pytest.approx(lit["b"] / 2, rel=1e-6)
+    assert info2["fit"]["lit>shadow"] == info0["fit"]["lit>shadow"]
+    np.testing.assert_allclose(b2, b0, rtol=1e-6)
+    np.testing.assert_allclose(a2, a0, atol=1e-9)
+    # the DSM sampled at the pixels' surface points: most pixels have one, and the samples are the DSM's values
+    from geocd.volume.render import render_image
+    depth = render_image(m, toy.test_camera, toy.test_image_b.shape, app_bin=0).depth_m
+    (z,), h = surface_dsm_sample(m, toy.test_camera, depth, [dsm], grid)
+    ok = np.isfinite(z) & np.isfinite(h)
+    assert ok.mean() > 0.5
+    assert np.nanmin(dsm) - 1e-6 <= z[ok].min() and z[ok].max() <= np.nanmax(dsm) + 1e-6
+
+
 def test_relighting_with_the_shadows_of_a_dsm(toy):
     """The relighting's lit/shadow classes from a DSM's cast shadows (the scene's own surface here): detection
     runs, says so, still finds the new building; a DSM that does not fit the model is refused."""
