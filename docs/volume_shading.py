@@ -19,7 +19,7 @@ relighting").
 
 Usage::
 
-    .venv/bin/python docs/volume_shading.py --normals window-ground [--sky 0] SCENE WORK DSM OUT.json
+    .venv/bin/python docs/volume_shading.py --normals window-ground [--sky 0] [--on-surface M] SCENE WORK DSM OUT.json
 """
 import argparse
 import runpy
@@ -36,6 +36,8 @@ from geocd.stereo.params import StereoParams
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("--normals", choices=("cell", "window", "window-ground"), required=True)
 ap.add_argument("--sky", type=float, default=0.0, help="sky irradiance / direct sun irradiance (0: bare cosines)")
+ap.add_argument("--on-surface", type=float, default=None, metavar="M",
+                help="scale only pixels whose surface point lies within M metres of the DSM's height there (not walls)")
 ap.add_argument("rest", nargs=4, metavar="SCENE WORK DSM OUT.json")
 args = ap.parse_args()
 
@@ -76,9 +78,16 @@ plain = R.relight_mapping
 def shaded(model, intensity, camera, b, sun_from, sun_to, **kw):
     dsm, grid = R.check_shadow_dsm(model, kw["shadow_dsm"])
     r = ratio_map(dsm, grid.posting_m, sun_from, sun_to)
-    kw["lit_scale"] = lambda depth: R.surface_dsm_sample(model, camera, depth, [r], grid)[0][0]
+
+    def scale(depth):
+        (rs, zs), h = R.surface_dsm_sample(model, camera, depth, [r, dsm], grid)
+        if args.on_surface is not None:
+            rs = np.where(np.abs(h - zs) <= args.on_surface, rs, np.nan)
+        return rs
+
+    kw["lit_scale"] = scale
     mapping, info = plain(model, intensity, camera, b, sun_from, sun_to, **kw)
-    info["shading"] = {"normals": args.normals, "sky": args.sky}
+    info["shading"] = {"normals": args.normals, "sky": args.sky, "on_surface_m": args.on_surface}
     return mapping, info
 
 
