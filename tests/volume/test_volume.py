@@ -233,8 +233,9 @@ def test_dsm_shadow_height_of_a_block_under_a_southern_sun():
 
 def test_a_shading_scale_enters_the_lit_class_fit_and_mapping(toy):
     """``lit_scale`` multiplies the expected intensity of the lit → lit pixels only: a scale of 1 changes
-    nothing, a uniform scale of 2 halves that class's slope in the fit and leaves the mapped mixture as it was;
-    the DSM is sampled at the pixels' surface points."""
+    nothing, a uniform scale of 2 halves that class's slope in the fit and leaves the mapped mixture as it was
+    (a class too small to fit, which borrows the lit → lit line, borrows the unscaled one); the DSM is sampled
+    at the pixels' surface points."""
     from geocd.volume.relight import relight_mapping, surface_dsm_sample
 
     geom = T.volume_geometry()
