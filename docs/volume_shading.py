@@ -19,7 +19,7 @@ relighting").
 
 Usage::
 
-    .venv/bin/python docs/volume_shading.py --normals window-ground [--sky 0] [--on-surface M] SCENE WORK DSM OUT.json
+    .venv/bin/python docs/volume_shading.py --normals window-ground [--sky 0] [--on-surface M] [--damp fit] SCENE WORK DSM OUT.json
 """
 import argparse
 import runpy
@@ -38,6 +38,9 @@ ap.add_argument("--normals", choices=("cell", "window", "window-ground"), requir
 ap.add_argument("--sky", type=float, default=0.0, help="sky irradiance / direct sun irradiance (0: bare cosines)")
 ap.add_argument("--on-surface", type=float, default=None, metavar="M",
                 help="scale only pixels whose surface point lies within M metres of the DSM's height there (not walls)")
+ap.add_argument("--damp", choices=("off", "fit"), default="off",
+                help="fit: raise the ratio to the power γ that the image itself gives (least squares of log(I/E) on "
+                     "log r over the pixels whose ratio departs from the median by > 10 %%)")
 ap.add_argument("rest", nargs=4, metavar="SCENE WORK DSM OUT.json")
 args = ap.parse_args()
 
@@ -85,9 +88,22 @@ def shaded(model, intensity, camera, b, sun_from, sun_to, **kw):
             rs = np.where(np.abs(h - zs) <= args.on_surface, rs, np.nan)
         return rs
 
-    kw["lit_scale"] = scale
+    gamma = 1.0
+    if args.damp == "fit":
+        from geocd.volume.render import render_image
+
+        base = render_image(model, camera, intensity.shape, app_bin=b, name="damping pass")
+        rs = scale(base.depth_m)
+        ok = np.isfinite(rs) & np.isfinite(intensity) & (base.expected > 0.05) & (intensity > 0.05)
+        lr, li = np.log(rs[ok]), np.log(intensity[ok] / base.expected[ok])
+        dev = np.abs(lr - np.median(lr)) > 0.1
+        if dev.sum() > 100:
+            x, y = lr[dev] - lr[dev].mean(), li[dev] - li[dev].mean()
+            gamma = float(np.clip((x * y).sum() / (x * x).sum(), 0.0, 1.0))
+    kw["lit_scale"] = (lambda depth: scale(depth) ** gamma) if gamma != 1.0 else scale
     mapping, info = plain(model, intensity, camera, b, sun_from, sun_to, **kw)
-    info["shading"] = {"normals": args.normals, "sky": args.sky, "on_surface_m": args.on_surface}
+    info["shading"] = {"normals": args.normals, "sky": args.sky, "on_surface_m": args.on_surface, "gamma": gamma}
+    print(f"shading gamma {gamma:.3f}", flush=True)
     return mapping, info
 
 
