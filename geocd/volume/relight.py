@@ -129,8 +129,12 @@ def robust_line(x: np.ndarray, y: np.ndarray, iters: int = 8) -> tuple[float, fl
     return float(coef[0]), float(coef[1]), float(1.4826 * np.median(np.abs(r)))
 
 
-def fit_classes(expected: np.ndarray, observed: np.ndarray, klass: np.ndarray, min_pixels: int = 200) -> RelightFit:
-    """Per-class robust lines ``observed ≈ a + b expected`` (classes 0..3, see :data:`CLASSES`)."""
+def fit_classes(expected: np.ndarray, observed: np.ndarray, klass: np.ndarray, min_pixels: int = 200,
+                lit_expected: np.ndarray | None = None) -> RelightFit:
+    """Per-class robust lines ``observed ≈ a + b expected`` (classes 0..3, see :data:`CLASSES`).
+
+    ``lit_expected``: optional expectation for the lit → lit class alone (a shading model's); a class too
+    small to fit borrows the plain lit → lit line, fitted on ``expected``."""
     fit = RelightFit()
     for i in range(4):
         sel = klass == i
@@ -144,6 +148,9 @@ def fit_classes(expected: np.ndarray, observed: np.ndarray, klass: np.ndarray, m
             j = 3 if i != 3 else 1
             src = j if fit.count[j] >= min_pixels else 0
             fit.a[i], fit.b[i], fit.sigma[i] = fit.a[src], fit.b[src], fit.sigma[src]
+    if lit_expected is not None and fit.count[0] >= min_pixels:
+        sel = klass == 0
+        fit.a[0], fit.b[0], fit.sigma[0] = robust_line(lit_expected[sel], observed[sel])
     return fit
 
 
@@ -304,10 +311,8 @@ def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: i
         r = np.asarray(lit_scale(base.depth_m), dtype=np.float64)
         scale = np.where((klass == 0) & np.isfinite(r), r, 1.0)
     ok = np.isfinite(intensity) & np.isfinite(base.expected) & (base.vis_inf <= vis_known)
-    fit = fit_classes(base.expected[ok].astype(np.float64), intensity[ok], klass[ok])
-    if lit_scale is not None:   # the lit → lit line on the scaled expectation; a class borrowing it keeps the plain one
-        lit = fit_classes((base.expected * scale)[ok].astype(np.float64), intensity[ok], klass[ok])
-        fit.a[0], fit.b[0], fit.sigma[0] = lit.a[0], lit.b[0], lit.sigma[0]
+    fit = fit_classes(base.expected[ok].astype(np.float64), intensity[ok], klass[ok],
+                      lit_expected=None if lit_scale is None else (base.expected * scale)[ok].astype(np.float64))
     extra = np.sqrt(np.maximum(fit.sigma ** 2 - fit.sigma[0] ** 2, 0.0))
     mapping = (fit.a[klass], fit.b[klass] * scale, extra[klass])
     frac = {c: float(np.mean(klass[ok] == i)) for i, c in enumerate(CLASSES)}
