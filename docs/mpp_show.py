@@ -13,6 +13,10 @@ Usage (from the repository root)::
         # EHFA: ED + height + edge fit with the absence term (--absence height)
     .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
     .venv/bin/python docs/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
+    .venv/bin/python docs/mpp_show.py ceiling sample_aoi /tmp/ortho_run 0 --json docs/mpp_ceiling.json   # outlines vs detection
+    .venv/bin/python docs/mpp_show.py chains sample_aoi /tmp/ortho_run 0,1,2,3,4 [--variant JSON] [--planar-tol-x 2] \
+        --json docs/mpp_chains.json   # DP and the energy reached per seed
+    .venv/bin/python docs/mpp_show.py roof-dsm sample_aoi /tmp/ortho_run --json docs/mpp_roof_dsm.json   # DSM on roofs
     .venv/bin/python docs/mpp_show.py false sample_aoi /tmp/ortho_run 0,1,2 [absence]   # what the false objects are
     .venv/bin/python docs/mpp_show.py missed-changes sample_aoi /tmp/ortho_run 0   # each change, absence off / on
     .venv/bin/python docs/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
@@ -601,7 +605,7 @@ def edgefit_diagnose(name: Path, ortho_dir: Path, seed: int = 0) -> dict:
     def spy(model, rects, xi, energy, params):
         got = orig(model, rects, xi, energy, params)
         feats = range(len(model.terms))
-        raw, raw0 = model.raw(got["rects"]), model.raw(rects)
+        raw, raw0 = model.raw(got["proposed"]), model.raw(rects)
         worse = np.zeros(rects.shape[0], bool)
         for k in feats:
             use = (xi != (M.ONLY_2 if k == 0 else M.ONLY_1))
@@ -632,7 +636,7 @@ def edgefit_diagnose(name: Path, ortho_dir: Path, seed: int = 0) -> dict:
     out = {"proposed": int(got["moved"].sum()), "kept": int(got["accepted"].sum()),
            "refused_gradient_worse": int((got["moved"] & ~got["accepted"] & seen["gradient_worse"]).sum()),
            "refused_not_attractive_only": int((got["moved"] & ~got["accepted"] & ~seen["gradient_worse"]).sum())}
-    for tag, rr in (("no_refit", before[rows]), ("kept_refits", final), ("all_refits", got["rects"][rows])):
+    for tag, rr in (("no_refit", before[rows]), ("kept_refits", final), ("all_refits", got["proposed"][rows])):
         t = dp(rr)
         out[tag] = {k: t[k] for k in ("DP", "DP_precision", "DP_recall", "HO", "FO")}
     # per refused refit: would it have raised the rectangle's own pixel F against the truth of its dates?
@@ -641,12 +645,222 @@ def edgefit_diagnose(name: Path, ortho_dir: Path, seed: int = 0) -> dict:
         if r not in rows:
             continue
         truth = (inp["t1"] if xi[r] != 2 else np.zeros_like(inp["t1"])) | (inp["t2"] if xi[r] != 1 else np.zeros_like(inp["t2"]))
-        masks = [rect_masks(rect[None], np.array([0], np.int8), grid.shape)["any"] for rect in (before[r], got["rects"][r])]
+        masks = [rect_masks(rect[None], np.array([0], np.int8), grid.shape)["any"] for rect in (before[r], got["proposed"][r])]
         local = truth & _near(masks[0] | masks[1])          # the truth within 4 m of either rectangle
         fs = [2 * (m & local).sum() / max(m.sum() + local.sum(), 1) for m in masks]
         better += fs[1] > fs[0]
         worse += fs[1] < fs[0]
     out.update(refused_would_raise_own_f=int(better), refused_would_lower_own_f=int(worse))
+    print(json.dumps(out), flush=True)
+    return out
+
+
+def _truth_rectangles(footprints, grid) -> np.ndarray:
+    """Each truth footprint's minimum rotated rectangle as a mark (c_x, c_y, e_L, e_l, θ) in the rectangles'
+    cell frame (cell (i, j) centred at (j, i)); NaN rows for footprints whose centre is off the grid."""
+    inv = ~grid.transform
+    H, W = grid.shape
+    out = np.full((len(footprints), 5), np.nan)
+    for j, geom in enumerate(footprints.geometry):
+        pts = np.array([inv * xy for xy in np.asarray(geom.minimum_rotated_rectangle.exterior.coords)[:4]]) - 0.5
+        e1, e2 = pts[1] - pts[0], pts[2] - pts[1]
+        c = pts.mean(axis=0)
+        if 0 <= c[0] < W and 0 <= c[1] < H:
+            # _kernels._rect_grid: u = dx cos θ − dy sin θ runs along e1 when θ = −angle(e1)
+            out[j] = [c[0], c[1], np.hypot(*e1), np.hypot(*e2), -np.arctan2(e1[1], e1[0])]
+    return out
+
+
+def ceiling(name: Path, ortho_dir: Path, seed: int = 0, variant: dict | None = None) -> dict:
+    """How far the default model is from the paper's 0.91, split into outline geometry, the DSM and detection:
+    DP of geocd mpp's default rectangles (seed ``seed``); the same with every rectangle that lies mostly on a
+    truth building replaced by that building's minimum rotated rectangle (perfect outlines for what was
+    found); for each such rectangle, whether the model's A_D (its own label) is lower for the found rectangle
+    or for the building's true one (which of the two the energy prefers); for every truth building missed on
+    a date, whether the model would accept its true rectangle alone (A_D < 0 with the label it should have:
+    the search missed it) or not; and DP of the same run with the truth DSMs of the town (``truth/dsm_A.tif``,
+    ``truth/dsm_B.tif``, ellipsoidal like geocd stereo's) in place of the stereo DSMs, the orthos unchanged.
+    Also the angle (modulo 90°) and side errors of the matched rectangles against their buildings' rectangles.
+    ``variant``: MPPParams fields changed from geocd mpp's defaults."""
+    import geopandas as gpd
+    import rasterio
+    from rasterio.features import rasterize
+    from shapely.geometry import box
+
+    import geocd.mpp.detect as D
+    from geocd.mpp.evaluate import _cover
+
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    params = MPPParams(**{"height": "and", **(variant or {}), "seed": seed})
+    cap = {}
+    orig = D.optimize
+
+    def spy(model, params, **kw):
+        cap["model"] = model
+        return orig(model, params, **kw)
+
+    D.optimize = spy
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            det = detect(inp["image_a"], inp["image_b"], grid.posting_m, params, method="ED",
+                         valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"],
+                         ground_m=inp["ground"])
+    finally:
+        D.optimize = orig
+    model = cap["model"]
+    rects, xi = det.result.rects, det.result.xi
+    fp = gpd.read_file(name / "truth" / "footprints_all.gpkg")
+    truth_rects = _truth_rectangles(fp, grid)
+    tmask = [rasterize([(geom, 1)], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8") > 0
+             for geom in fp.geometry]
+    keys = ("DP", "DP_precision", "DP_recall", "HO", "FO")
+
+    def score(rr):
+        t = table2(rect_masks(rr, xi, grid.shape), inp["objs"], inp["t1"], inp["t2"])
+        return {k: t[k] for k in keys}
+
+    perfect = rects.copy()
+    matched = prefers_found = 0
+    angle_err, side_err = [], []
+    for k, r in enumerate(rects):
+        m = rect_masks(r[None], np.zeros(1, np.int8), grid.shape)["any"]
+        ov = np.array([int((m & t).sum()) for t in tmask])
+        j = int(np.argmax(ov))
+        if ov[j] >= 0.5 * m.sum() and np.isfinite(truth_rects[j]).all():
+            perfect[k] = truth_rects[j]
+            matched += 1
+            a_d = model.data_energy(model.raw(np.stack([r, truth_rects[j]])), np.full(2, xi[k], np.int8))
+            prefers_found += bool(a_d[0] < a_d[1])
+            d = (r[4] - truth_rects[j][4] + np.pi / 4) % (np.pi / 2) - np.pi / 4
+            angle_err.append(abs(np.degrees(d)))
+            # the truth side parallel to e_L after the turn d (a multiple of 90° apart otherwise: swapped)
+            t_l, t_s = truth_rects[j][2:4]
+            same = abs(np.cos(r[4] - d - truth_rects[j][4])) > 0.5
+            side_err += [r[2] - (t_l if same else t_s), r[3] - (t_s if same else t_l)]
+    masks = rect_masks(rects, xi, grid.shape)
+    missed = []
+    gb = box(*grid.bounds)
+    for j, (geom, status) in enumerate(zip(fp.geometry, fp["status"])):
+        if not tmask[j].any() or geom.intersection(gb).area < 0.5 * geom.area or not np.isfinite(truth_rects[j]).all():
+            continue
+        dates = (1,) if status == "demolished" else (2,) if status == "new" else (1, 2)
+        lost = [d for d in dates if _cover(masks[f"date{d}"], tmask[j]) < 0.5]
+        if not lost:
+            continue
+        label = {"demolished": 1, "new": 2}.get(status, 0)
+        a_d = float(model.data_energy(model.raw(truth_rects[j][None]), np.array([label], np.int8))[0])
+        missed.append({"building": j, "status": status, "dates_missed": lost, "cells": int(tmask[j].sum()),
+                       "A_D_of_its_true_rectangle": round(a_d, 3), "model_accepts_it": a_d < 0})
+    truth_dsm = {}
+    for e in ("A", "B"):
+        with rasterio.open(name / "truth" / f"dsm_{e}.tif") as ds:
+            truth_dsm[e] = ds.read(1, out_shape=grid.shape).astype(np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        det_t = detect(inp["image_a"], inp["image_b"], grid.posting_m, params, method="ED",
+                       valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=truth_dsm["A"],
+                       dsm_b=truth_dsm["B"], ground_m=inp["ground"])
+    t_t = table2(rect_masks(det_t.result.rects, det_t.result.xi, grid.shape), inp["objs"], inp["t1"], inp["t2"])
+    out = {"scene": str(name), "seed": seed, "rectangles": len(rects), "matched_to_a_truth_building": matched,
+           "energy_prefers_the_found_rectangle": prefers_found,
+           "as_found": score(rects), "perfect_outlines_for_the_found": score(perfect),
+           "truth_dsms": {k: t_t[k] for k in keys}, "missed": missed,
+           "angle_error_deg": {"median": round(float(np.median(angle_err)), 2),
+                               "p90": round(float(np.percentile(angle_err, 90)), 2),
+                               "max": round(float(np.max(angle_err)), 2)} if angle_err else None,
+           "side_error_cells": {"median": round(float(np.median(side_err)), 2),
+                                "share_more_than_4_cells_short": round(float(np.mean(np.array(side_err) < -4)), 3)}
+           if side_err else None, "variant": variant or {},
+           "missed_the_model_accepts": sum(m["model_accepts_it"] for m in missed),
+           "command": f"docs/mpp_show.py ceiling {name} {ortho_dir} {seed}"
+                      + (f" --variant '{json.dumps(variant)}'" if variant else "")}
+    print(json.dumps(out), flush=True)
+    return out
+
+
+def chains(name: Path, ortho_dir: Path, seeds=(0, 1, 2, 3, 4), variant: dict | None = None,
+           planar_tol_x: float = 1.0) -> dict:
+    """geocd mpp's default model (or with ``variant``'s MPPParams fields) run with several seeds on a town's
+    inputs: DP and the total energy each chain reaches (does the lowest energy give the best DP?).
+    ``planar_tol_x``: a one-off check, the planarity tolerance measured on the ground cells multiplied by
+    this factor (a patch of ``features.planar_cells`` for this run only; not an option of the model)."""
+    from scipy import ndimage
+
+    import geocd.mpp.features as F
+
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    orig = F.planar_cells
+
+    def wider(dsm_m, ndsm, valid, min_height_m, posting_m=1.0):
+        _, tol = orig(dsm_m, ndsm, valid, min_height_m, posting_m)
+        res = F.plane_residual(dsm_m, posting_m)
+        best = ndimage.grey_erosion(np.where(np.isfinite(res), res, np.inf), size=3, mode="nearest")
+        return (np.where(np.isfinite(best), (best <= planar_tol_x * tol).astype(np.float32), np.nan)
+                .astype(np.float32), planar_tol_x * tol)
+
+    if planar_tol_x != 1.0:
+        F.planar_cells = wider
+    rows = []
+    try:
+        for seed in seeds:
+            c0 = time.process_time()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                det = detect(inp["image_a"], inp["image_b"], grid.posting_m,
+                             MPPParams(**{"height": "and", **(variant or {}), "seed": seed}), method="ED",
+                             valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"],
+                             ground_m=inp["ground"])
+            t = table2(rect_masks(det.result.rects, det.result.xi, grid.shape), inp["objs"], inp["t1"], inp["t2"])
+            rows.append({"seed": seed, **{k: t[k] for k in ("DP", "DP_precision", "DP_recall", "HO", "FO", "HV", "FV")},
+                         "energy_total": round(det.result.energy_total, 3), "iterations": det.result.iterations,
+                         "cpu_seconds": round(time.process_time() - c0, 1)})
+            print(json.dumps(rows[-1]), flush=True)
+    finally:
+        F.planar_cells = orig
+    best = min(rows, key=lambda r: r["energy_total"])
+    out = {"scene": str(name), "variant": variant or {}, "planar_tol_x": planar_tol_x, "chains": rows,
+           "mean_DP": round(float(np.mean([r["DP"] for r in rows])), 4), "lowest_energy_DP": best["DP"],
+           "command": f"docs/mpp_show.py chains {name} {ortho_dir} {','.join(map(str, seeds))}"
+                      + (f" --variant '{json.dumps(variant)}'" if variant else "")
+                      + (f" --planar-tol-x {planar_tol_x:g}" if planar_tol_x != 1.0 else "")}
+    return out
+
+
+def roof_dsm(name: Path, ortho_dir: Path) -> dict:
+    """geocd stereo's DSM (as geocd mpp makes it) against the town's truth DSM on the roofs, per date: the
+    cells more than 1.5 m (3 cells) inside a footprint of that date, split into the darker and brighter half
+    of each roof in the ortho (below / above the roof's median grey value: the shaded and the sunlit facet of
+    a gabled roof), and the ground more than 3 m from any footprint. Median error, median |error| and the
+    share of cells more than 1 m too low (m)."""
+    import geopandas as gpd
+    import rasterio
+    from rasterio.features import rasterize
+    from scipy import ndimage
+
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    out = {"scene": str(name), "command": f"docs/mpp_show.py roof-dsm {name} {ortho_dir}"}
+    for e, key in (("A", "a"), ("B", "b")):
+        with rasterio.open(name / "truth" / f"dsm_{e}.tif") as ds:
+            tdsm = ds.read(1, out_shape=grid.shape).astype(np.float64)
+        fp = gpd.read_file(name / "truth" / f"footprints_{e}.gpkg")
+        m = rasterize([(g, 1) for g in fp.geometry], out_shape=grid.shape, transform=grid.transform, fill=0,
+                      dtype="uint8") > 0
+        core = ndimage.binary_erosion(m, iterations=3)
+        img = inp[f"image_{key}"][0].astype(np.float64)
+        err = inp[f"dsm_{key}"] - tdsm
+        ok = core & np.isfinite(err)
+        lab, n = ndimage.label(core)
+        med = np.zeros(n + 1)
+        med[1:] = ndimage.median(img, lab, index=np.arange(1, n + 1))
+        parts = {"shaded_half": ok & (img < med[lab]), "sunlit_half": ok & (img >= med[lab]),
+                 "ground": np.isfinite(err) & ~ndimage.binary_dilation(m, iterations=6)}
+        out[e] = {k: {"cells": int(c.sum()), "median_m": round(float(np.median(err[c])), 3),
+                      "median_abs_m": round(float(np.median(np.abs(err[c]))), 3),
+                      "share_more_than_1m_low": round(float(np.mean(err[c] < -1.0)), 3)} for k, c in parts.items()}
     print(json.dumps(out), flush=True)
     return out
 
@@ -963,6 +1177,49 @@ if __name__ == "__main__":
             only = [SHORT[x] for x in args[k + 1].split(",")]
             args = args[:k] + args[k + 2:]
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
+    elif what == "roof-dsm":   # roof-dsm TOWN ORTHO_DIR [--json OUT]: the stereo DSM on shaded and sunlit roofs
+        res = roof_dsm(Path(sys.argv[2]), Path(sys.argv[3]))
+        if len(sys.argv) > 5 and sys.argv[4] == "--json":
+            js = Path(sys.argv[5])
+            old = json.loads(js.read_text()) if js.exists() else {}
+            old[Path(sys.argv[2]).name] = res
+            js.write_text(json.dumps(old, indent=1))
+    elif what == "chains":     # chains TOWN ORTHO_DIR SEEDS [--variant JSON] [--planar-tol-x X] [--json OUT]
+        args = sys.argv[2:]
+        opts = {}
+        for flag in ("--variant", "--planar-tol-x", "--json"):
+            if flag in args:
+                k = args.index(flag)
+                opts[flag] = args[k + 1]
+                args = args[:k] + args[k + 2:]
+        res = chains(Path(args[0]), Path(args[1]), tuple(int(x) for x in args[2].split(",")),
+                     json.loads(opts["--variant"]) if "--variant" in opts else None,
+                     float(opts.get("--planar-tol-x", 1.0)))
+        print(json.dumps({k: v for k, v in res.items() if k != "chains"}), flush=True)
+        if "--json" in opts:
+            js = Path(opts["--json"])
+            old = json.loads(js.read_text()) if js.exists() else {}
+            key = Path(args[0]).name + "".join(f"_{k}{v}" for k, v in res["variant"].items()) \
+                + (f"_tol{res['planar_tol_x']:g}" if res["planar_tol_x"] != 1.0 else "")
+            old[key] = res
+            js.write_text(json.dumps(old, indent=1))
+    elif what == "ceiling":    # ceiling TOWN ORTHO_DIR [SEED] [--variant JSON] [--json OUT]: outlines vs detection
+        args = sys.argv[2:]
+        js = None
+        if "--json" in args:
+            k = args.index("--json")
+            js = Path(args[k + 1])
+            args = args[:k] + args[k + 2:]
+        var = None
+        if "--variant" in args:
+            k = args.index("--variant")
+            var = json.loads(args[k + 1])
+            args = args[:k] + args[k + 2:]
+        res = ceiling(Path(args[0]), Path(args[1]), int(args[2]) if len(args) > 2 else 0, var)
+        if js is not None:
+            old = json.loads(js.read_text()) if js.exists() else {}
+            old[f"{Path(args[0]).name}_seed{res['seed']}" + "".join(f"_{k}{v}" for k, v in (var or {}).items())] = res
+            js.write_text(json.dumps(old, indent=1))
     elif what == "walls":      # walls TOWN ORTHO_DIR: the DSM's wall blur measured without truth
         walls(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP] [EDGE_FIT]

@@ -36,6 +36,9 @@ import numpy as np
               help="After the annealing, move each side of each building rectangle (¼-cell steps, within the "
                    "ring width) onto the image's strongest edge across it: 'joint' only where the DSM has a wall "
                    "there, 'image' the image edge alone, 'off' none.")
+@click.option("--edge-fit-turn", "edge_fit_turn", type=click.Choice(["on", "off"]), default="on", show_default=True,
+              help="With the edge fit: after the sides, turn each rectangle about its centre to the angle of its "
+                   "strongest image edges (kept by the same rule as a side refit); 'off' the sides only.")
 @click.option("--wall-blur", "wall_blur", type=click.Choice(["off", "measured"]), default="off", show_default=True,
               help="How the height term reads the DSM's blurred walls: 'measured' the blur is measured on each "
                    "image (the DSM's profile across the image's edges) and the height ring and the raised fraction "
@@ -68,7 +71,7 @@ import numpy as np
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
 @click.pass_context
 def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, epoch_a, epoch_b, view_a, view_b,
-        method, height, step, edge_fit, wall_blur, absence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, surface_median,
+        method, height, step, edge_fit, edge_fit_turn, wall_blur, absence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, surface_median,
         out, no_overwrite) -> None:
     """Find buildings on two images of different dates and which are new, demolished or unchanged: a marked
     point process of rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), with
@@ -104,6 +107,7 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
             kw[k] = v
     if side_max_m is not None:
         kw["side_max_from_dsm"] = False
+    kw["edge_fit_rotate"] = edge_fit_turn == "on"
     params = MPPParams(**kw)
     from ..io.outputs import open_outputs
 
