@@ -17,6 +17,7 @@ Usage (from the repository root)::
     .venv/bin/python docs/mpp_show.py chains sample_aoi /tmp/ortho_run 0,1,2,3,4 [--variant JSON] [--planar-tol-x 2] \
         --json docs/mpp_chains.json   # DP and the energy reached per seed
     .venv/bin/python docs/mpp_show.py roof-dsm sample_aoi /tmp/ortho_run --json docs/mpp_roof_dsm.json   # DSM on roofs
+    .venv/bin/python docs/mpp_show.py turn-compare MPP_TURNED MPP_NOT /tmp/kahra2 --json docs/mpp_turn_kahramanmaras.json KEY
     .venv/bin/python docs/mpp_show.py false sample_aoi /tmp/ortho_run 0,1,2 [absence]   # what the false objects are
     .venv/bin/python docs/mpp_show.py missed-changes sample_aoi /tmp/ortho_run 0   # each change, absence off / on
     .venv/bin/python docs/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
@@ -865,6 +866,40 @@ def roof_dsm(name: Path, ortho_dir: Path) -> dict:
     return out
 
 
+def turn_compare(turned: Path, still: Path, run_dir: Path) -> dict:
+    """Two ``geocd mpp`` outputs of the same inputs, with and without the turn of the rectangles (no truth:
+    Kahramanmaraş): how far each rectangle turned (angle of its minimum rotated rectangle, modulo 90°, against
+    the rectangle with the nearest centre in the other output) and how many objects of geocd's damage layer
+    (``run_dir/sc_changes.gpkg``, layer ``building_damage``) each output covers by at least half."""
+    import geopandas as gpd
+    from shapely import union_all
+
+    def angle(g):
+        p = np.asarray(g.minimum_rotated_rectangle.exterior.coords)
+        return np.degrees(np.arctan2(p[1, 1] - p[0, 1], p[1, 0] - p[0, 0])) % 90.0
+
+    a = gpd.read_file(turned / "mpp_buildings.gpkg", layer="rectangles")
+    b = gpd.read_file(still / "mpp_buildings.gpkg", layer="rectangles")
+    cb = np.array([[g.centroid.x, g.centroid.y] for g in b.geometry])
+    turn = []
+    for g in a.geometry:
+        j = int(np.argmin(np.hypot(cb[:, 0] - g.centroid.x, cb[:, 1] - g.centroid.y)))
+        turn.append(abs((angle(g) - angle(b.geometry.iloc[j]) + 45.0) % 90.0 - 45.0))
+    turn = np.array(turn)
+    dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+    cover = {}
+    for tag, r in (("turned", a), ("not_turned", b)):
+        u = union_all(r.geometry.values)
+        cover[tag] = int(sum(g.intersection(u).area >= 0.5 * g.area for g in dmg.geometry))
+    out = {"rectangles": {"turned": len(a), "not_turned": len(b)},
+           "turn_deg": {"median": round(float(np.median(turn)), 2), "p90": round(float(np.percentile(turn, 90)), 2),
+                        "max": round(float(turn.max()), 2), "more_than_5": int((turn > 5).sum())},
+           "damage_objects_covered_by_half": cover, "damage_objects": len(dmg),
+           "command": f"docs/mpp_show.py turn-compare {turned} {still} {run_dir}"}
+    print(json.dumps(out), flush=True)
+    return out
+
+
 def _near(m):
     from scipy import ndimage
 
@@ -1177,6 +1212,13 @@ if __name__ == "__main__":
             only = [SHORT[x] for x in args[k + 1].split(",")]
             args = args[:k] + args[k + 2:]
         town(Path(args[0]), Path(args[1]), sc, seeds, only)
+    elif what == "turn-compare":   # turn-compare MPP_OUT_TURNED MPP_OUT_NOT RUN_DIR [--json OUT KEY]
+        res = turn_compare(Path(sys.argv[2]), Path(sys.argv[3]), Path(sys.argv[4]))
+        if len(sys.argv) > 7 and sys.argv[5] == "--json":
+            js = Path(sys.argv[6])
+            old = json.loads(js.read_text()) if js.exists() else {}
+            old[sys.argv[7]] = res
+            js.write_text(json.dumps(old, indent=1))
     elif what == "roof-dsm":   # roof-dsm TOWN ORTHO_DIR [--json OUT]: the stereo DSM on shaded and sunlit roofs
         res = roof_dsm(Path(sys.argv[2]), Path(sys.argv[3]))
         if len(sys.argv) > 5 and sys.argv[4] == "--json":

@@ -37,8 +37,9 @@ import numpy as np
                    "ring width) onto the image's strongest edge across it: 'joint' only where the DSM has a wall "
                    "there, 'image' the image edge alone, 'off' none.")
 @click.option("--edge-fit-turn", "edge_fit_turn", type=click.Choice(["on", "off"]), default="on", show_default=True,
-              help="With the edge fit: after the sides, turn each rectangle about its centre to the angle of its "
-                   "strongest image edges (kept by the same rule as a side refit); 'off' the sides only.")
+              help="With the edge fit: after the sides, turn each rectangle about its centre (within 15°, 3 σ of "
+                   "the births' angle noise) to the angle of its strongest image edges, kept when those edges do not "
+                   "weaken and its energy does not rise; 'off' the sides only.")
 @click.option("--wall-blur", "wall_blur", type=click.Choice(["off", "measured"]), default="off", show_default=True,
               help="How the height term reads the DSM's blurred walls: 'measured' the blur is measured on each "
                    "image (the DSM's profile across the image's edges) and the height ring and the raised fraction "

@@ -99,10 +99,12 @@ class MPPParams(ParamsMixin):
         stays attractive (A_D < 0); A_D itself is not compared, because its height ring rewards the stereo
         DSM's walls, which lie up to 1.3 m outside the true ones (the ortho's edges: within 0.2 m; docs/mpp.md)
     edge_fit_rotate : beyond the paper, with ``edge_fit``: after the sides, each kept rectangle is turned
-        about its centre to the angle (within ±45°, in steps that move the end of the largest side by ¼ cell)
-        where its gradient energy over the dates it exists on is lowest, and the turn is kept by the same
-        rule as a side refit. The annealing's angles come from a 10° orientation histogram and 5° birth noise
-        and were off by a median 2–5°, up to 17°, on four generated towns (docs/mpp.md)
+        about its centre to the angle (within 3 ``sigma_theta_deg`` of its own, the births' angle noise, in
+        steps that move the end of the largest side by ¼ cell) where its gradient energy over the dates it
+        exists on is lowest. The turn is kept by the side refit's rule and when A_D does not rise (the DSM's
+        blurred walls, which bias A_D towards larger rectangles, favour no angle). The annealing's angles
+        were off by a median 2–5°, up to 17°, on four generated towns; without the A_D rule and the 3 σ
+        bound, large rectangles on Kahramanmaraş's blocks turned by up to 45° onto other edges (docs/mpp.md)
     wall_blur : beyond the paper, with the height term: how it reads a stereo DSM's blurred walls, whose
         extent is measured on each image without truth (``features.wall_blur_m``: the median nDSM profile
         across the image's strong edges where the DSM has a wall rises from 10 % of the wall's height
