@@ -40,10 +40,13 @@ def _products(out: Path) -> set[str]:
             if p.is_file() and not (p.name.startswith("geocd_") and p.suffix == ".log")} - {MANIFEST_NAME}
 
 
-def _start_paused(tmp: Path, args: list[str], nth: int = 1, tag: str = "p"):
+def _start_paused(tmp: Path, args: list[str], nth: int = 1, tag: str = "p", hangup=signal.SIG_DFL):
+    """``hangup``: the SIGHUP disposition the run starts with: the default, as from a terminal, whatever the
+    test session inherited (under nohup it inherits SIG_IGN, which geocd keeps on purpose)."""
     flag, go = tmp / f"{tag}.paused", tmp / f"{tag}.go"
     proc = subprocess.Popen([sys.executable, str(DRIVER), str(flag), str(go), str(nth), "--progress", "none", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, hangup))
     t0 = time.monotonic()
     while not flag.exists():
         if proc.poll() is not None:
@@ -207,6 +210,22 @@ def test_signal_mid_write_cleans_up(dems, tmp_path, sig, code, word):
     assert [r["status"] for r in doc["runs"]] == ["interrupted"]
     assert len(doc["runs"][0]["files"]) == 1 and all(verify_products(out).values())
     assert sha256_tree(dems) == before
+
+
+def test_a_run_started_with_nohup_ignores_a_hangup(dems, tmp_path):
+    """A run started with SIGHUP ignored (nohup) keeps ignoring it and completes."""
+    out = tmp_path / "O"
+    a, b = map(str, dems)
+    proc, part, go = _start_paused(tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots"], nth=2,
+                                   hangup=signal.SIG_IGN)
+    proc.send_signal(signal.SIGHUP)
+    time.sleep(0.5)
+    assert proc.poll() is None, proc.communicate()[1]
+    go.touch()
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    assert [r["status"] for r in read_products_manifest(out)["runs"]] == ["complete"]
+    assert all(verify_products(out).values()) and not part_files(tmp_path)
 
 
 def test_sigkill_litter_is_removed_by_the_next_run(dems, tmp_path):
