@@ -627,22 +627,26 @@ def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.
             ok &= ~use[:, k] | (g_new <= g_old + 1e-12)
         return ok
 
+    def pick(sel, raw_a, raw_b):       # rows of raw_a where sel, of raw_b elsewhere (features are per rectangle)
+        return {k: np.where(sel.reshape((-1,) + (1,) * (v.ndim - 1)), v, raw_b[k]) for k, v in raw_a.items()}
+
     proposed = base.copy()
     K.fit_sides(proposed, use, mags, oris, ndsms, has_dsm, float(params.min_height_m), float(model.ring_w), 0.25,
                 float(model.edge_w), float(model.edge_w + model.ring_w), float(model.smin), float(model.smax))
-    sides = keep(proposed, model.raw(proposed), raw0)
+    raw_p = model.raw(proposed)
+    sides = keep(proposed, raw_p, raw0)
     base = np.where(sides[:, None], proposed, base)
+    raw = pick(sides, raw_p, raw0)
     turned = np.zeros(base.shape[0], bool)
     rot = base
     if params.edge_fit_rotate:
-        raw_b = model.raw(base)
         rot = fit_rotation(model, base, use, math.radians(3.0 * params.sigma_theta_deg))
         raw_r = model.raw(rot)
         # a turn at a fixed size and centre is also judged by A_D: the blurred walls that bias A_D towards
         # larger rectangles (the side fit's reason not to compare it) favour no angle
-        turned = keep(rot, raw_r, raw_b) & (model.data_energy(raw_r, xi) <= model.data_energy(raw_b, xi) + 1e-12)
+        turned = keep(rot, raw_r, raw) & (model.data_energy(raw_r, xi) <= model.data_energy(raw, xi) + 1e-12)
+        raw = pick(turned, raw_r, raw)
     new = np.where(turned[:, None], rot, base)
-    raw = model.raw(new)
     e_new = model.data_energy(raw, xi)
     phi = np.column_stack([model.phi(k, raw[f"img{k}"]) for k in range(len(model.terms))])
     moved = np.any(proposed != rects, axis=1) | np.any(rot != rects, axis=1)
