@@ -40,6 +40,10 @@ import numpy as np
               help="With the edge fit: after the sides, turn each rectangle about its centre (within 15°, 3 σ of "
                    "the births' angle noise) to the angle of its strongest image edges, kept when those edges do not "
                    "weaken and its energy does not rise; 'off' the sides only.")
+@click.option("--edge-fit-grow", "edge_fit_grow", type=click.Choice(["on", "off"]), default="on", show_default=True,
+              help="With the joint edge fit and DSMs: push each rectangle's sides out over the raised block it "
+                   "stands on (while most of the strip beyond a side stands above half its height on every date "
+                   "it exists on), then onto the walls; kept when the object stays attractive. 'off': no growth.")
 @click.option("--wall-blur", "wall_blur", type=click.Choice(["off", "measured"]), default="off", show_default=True,
               help="How the height term reads the DSM's blurred walls: 'measured' the blur is measured on each "
                    "image (the DSM's profile across the image's edges) and the height ring and the raised fraction "
@@ -72,7 +76,7 @@ import numpy as np
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
 @click.pass_context
 def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, epoch_a, epoch_b, view_a, view_b,
-        method, height, step, edge_fit, edge_fit_turn, wall_blur, absence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, surface_median,
+        method, height, step, edge_fit, edge_fit_turn, edge_fit_grow, wall_blur, absence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, surface_median,
         out, no_overwrite) -> None:
     """Find buildings on two images of different dates and which are new, demolished or unchanged: a marked
     point process of rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), with
@@ -109,6 +113,7 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
     if side_max_m is not None:
         kw["side_max_from_dsm"] = False
     kw["edge_fit_rotate"] = edge_fit_turn == "on"
+    kw["edge_fit_grow"] = edge_fit_grow == "on"
     params = MPPParams(**kw)
     from ..io.outputs import open_outputs
 

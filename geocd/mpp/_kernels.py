@@ -1149,3 +1149,179 @@ def fit_sides_ref(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, ga
         mu, mv = 0.5 * (new[0] + new[1]), 0.5 * (new[2] + new[3])
         out[r] = cx + mu * c + mv * s, cy - mu * s + mv * c, a_size, b_size, th
     return out
+
+
+@njit(cache=True)
+def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
+    """Push each side of each rectangle outward over the raised surface it stands on (in place).
+
+    The level of a rectangle on a date is half the median height of its cells above the ground (at least
+    ``min_h``). A side moves out one cell at a time while the strip of cells just beyond it (sampled at one
+    point per cell along its middle 80 %, nearest cell) stands above that level in at least ``frac`` of its
+    samples on every date the rectangle exists on (``use``), and while the strip is neither mostly off the
+    grid nor mostly inside another rectangle; no side grows past ``smax``. A roof half whose other facet the
+    stereo DSM reads low or rough in places still stands above half the roof's height, so its rectangle
+    reaches the building's far wall (a few cells past it, where the blurred wall falls to half height: the
+    side fit then puts the side on the image's edge). ``grew[r]`` is set True where a side moved.
+    Returns the number of rectangles grown.
+
+    Parameters
+    ----------
+    rects : float64 (n, 5), changed in place
+    use : bool (n, m) — which of the m dates each rectangle exists on
+    ndsms : float32 (m, H, W) — height above ground per date (m), NaN = no height
+    min_h, smax, frac : float (m, cells, share)
+    grew : bool (n,), written
+    """
+    m, H, W = ndsms.shape
+    n = rects.shape[0]
+    orig = rects.copy()
+    n_grown = 0
+    for r in range(n):
+        grew[r] = False
+        cx, cy, eL, el, th = orig[r, 0], orig[r, 1], orig[r, 2], orig[r, 3], orig[r, 4]
+        c = math.cos(th)
+        s = math.sin(th)
+        levels = np.full(m, np.inf)
+        n_use = 0
+        rad = math.sqrt(0.25 * eL * eL + 0.25 * el * el) + 1.0
+        i0 = max(int(math.floor(cy - rad)), 0)
+        i1 = min(int(math.ceil(cy + rad)), H - 1)
+        j0 = max(int(math.floor(cx - rad)), 0)
+        j1 = min(int(math.ceil(cx + rad)), W - 1)
+        for k in range(m):
+            if not use[r, k]:
+                continue
+            n_use += 1
+            vals = np.empty(max((i1 - i0 + 1) * (j1 - j0 + 1), 1))
+            nv = 0
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    u, v = _uv(i, j, cx, cy, c, s)
+                    if abs(u) <= 0.5 * eL and abs(v) <= 0.5 * el:
+                        x = ndsms[k, i, j]
+                        if x == x:
+                            vals[nv] = x
+                            nv += 1
+            if nv > 0:
+                levels[k] = max(min_h, 0.5 * np.median(vals[:nv]))
+        if n_use == 0:
+            continue
+        sizes = np.array([eL, el])
+        ext = np.zeros((2, 2))
+        for ax in range(2):
+            dc = c if ax == 0 else s
+            dr = -s if ax == 0 else c
+            pc = s if ax == 0 else c
+            pr = c if ax == 0 else -s
+            other = sizes[1 - ax]
+            na = int(math.floor(0.8 * other)) + 1
+            for kk in range(2):
+                sg = 1.0 if kk == 0 else -1.0
+                t = 0.5
+                last = 0.0
+                while sizes[ax] + ext[ax, 0] + ext[ax, 1] + t + 0.5 <= smax:
+                    ns = 0
+                    owned = 0
+                    cnt = np.zeros(m)
+                    for q in range(na):
+                        a = -0.4 * other + q
+                        x = cx + sg * (0.5 * sizes[ax] + t) * dc + a * pc
+                        y = cy + sg * (0.5 * sizes[ax] + t) * dr + a * pr
+                        j = int(math.floor(x + 0.5))
+                        i = int(math.floor(y + 0.5))
+                        if i < 0 or j < 0 or i >= H or j >= W:
+                            continue
+                        ns += 1
+                        for o in range(n):
+                            if o == r:
+                                continue
+                            co = math.cos(orig[o, 4])
+                            so = math.sin(orig[o, 4])
+                            uo, vo = _uv(i, j, orig[o, 0], orig[o, 1], co, so)
+                            if abs(uo) <= 0.5 * orig[o, 2] and abs(vo) <= 0.5 * orig[o, 3]:
+                                owned += 1
+                                break
+                        for k in range(m):
+                            if use[r, k] and ndsms[k, i, j] > levels[k]:
+                                cnt[k] += 1.0
+                    if ns < 0.5 * na or owned > 0.5 * ns:
+                        break
+                    roof = True
+                    for k in range(m):
+                        if use[r, k] and cnt[k] < frac * ns:
+                            roof = False
+                    if not roof:
+                        break
+                    last = t + 0.5
+                    t += 1.0
+                ext[ax, kk] = last
+        moved = False
+        for ax in range(2):
+            if ext[ax, 0] + ext[ax, 1] > 0.0:
+                dc = c if ax == 0 else s
+                dr = -s if ax == 0 else c
+                rects[r, 2 + ax] = sizes[ax] + ext[ax, 0] + ext[ax, 1]
+                rects[r, 0] += dc * 0.5 * (ext[ax, 0] - ext[ax, 1])
+                rects[r, 1] += dr * 0.5 * (ext[ax, 0] - ext[ax, 1])
+                moved = True
+        if moved:
+            grew[r] = True
+            n_grown += 1
+    return n_grown
+
+
+def grow_sides_ref(rects, use, ndsms, min_h, smax, frac) -> tuple[np.ndarray, np.ndarray]:
+    """numpy reference of :func:`grow_sides` (returns the grown copy and ``grew``)."""
+    m, H, W = ndsms.shape
+    orig = np.array(rects, np.float64)
+    out = orig.copy()
+    grew = np.zeros(orig.shape[0], bool)
+
+    def inside(rect, j, i):
+        c, s = np.cos(rect[4]), np.sin(rect[4])
+        dx, dy = j - rect[0], i - rect[1]
+        return (np.abs(dx * c - dy * s) <= rect[2] / 2) & (np.abs(dx * s + dy * c) <= rect[3] / 2)
+
+    for r, (cx, cy, eL, el, th) in enumerate(orig):
+        ks = [k for k in range(m) if use[r, k]]
+        if not ks:
+            continue
+        mask = rect_mask_ref(orig[r], (H, W))
+        levels = {}
+        for k in ks:
+            v = ndsms[k][mask]
+            v = v[np.isfinite(v)]
+            levels[k] = max(min_h, 0.5 * float(np.median(v))) if v.size else np.inf
+        c, s = np.cos(th), np.sin(th)
+        sizes = [eL, el]
+        ext = np.zeros((2, 2))
+        for ax in range(2):
+            d = np.array([c, -s]) if ax == 0 else np.array([s, c])
+            p = np.array([s, c]) if ax == 0 else np.array([c, -s])
+            other = sizes[1 - ax]
+            a = -0.4 * other + np.arange(int(np.floor(0.8 * other)) + 1)
+            for kk, sg in enumerate((1.0, -1.0)):
+                t, last = 0.5, 0.0
+                while sizes[ax] + ext[ax].sum() + t + 0.5 <= smax:
+                    pts = np.array([cx, cy]) + sg * (sizes[ax] / 2 + t) * d + a[:, None] * p
+                    j = np.floor(pts[:, 0] + 0.5).astype(int)
+                    i = np.floor(pts[:, 1] + 0.5).astype(int)
+                    ok = (i >= 0) & (j >= 0) & (i < H) & (j < W)
+                    i, j = i[ok], j[ok]
+                    owned = np.zeros(i.size, bool)
+                    for o in range(orig.shape[0]):
+                        if o != r:
+                            owned |= inside(orig[o], j, i)
+                    if i.size < 0.5 * a.size or owned.sum() > 0.5 * i.size:
+                        break
+                    if not all((ndsms[k][i, j] > levels[k]).sum() >= frac * i.size for k in ks):
+                        break
+                    last = t + 0.5
+                    t += 1.0
+                ext[ax, kk] = last
+            if ext[ax].sum() > 0:
+                out[r, 2 + ax] = sizes[ax] + ext[ax].sum()
+                out[r, 0:2] += d * 0.5 * (ext[ax, 0] - ext[ax, 1])
+                grew[r] = True
+    return out, grew

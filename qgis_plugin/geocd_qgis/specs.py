@@ -330,6 +330,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   advanced=True),
             Param("EDGE_FIT_TURN", "enum", "Turn the rectangles onto their strongest edges after the side fit",
                   cli="--edge-fit-turn", default=0, options=(("on", "on"), ("off", "off")), advanced=True),
+            Param("EDGE_FIT_GROW", "enum", "Grow the rectangles over the raised block they stand on, then onto its walls",
+                  cli="--edge-fit-grow", default=0, options=(("on", "on"), ("off", "off")), advanced=True),
             Param("WALL_BLUR", "enum", "Height term: skip the DSM's blurred walls (measured on each image)",
                   cli="--wall-blur", default=0, options=(("off", "off"), ("measured", "measured")), advanced=True),
             Param("ABSENCE", "enum", "A new or demolished building needs ground there in the other date's DSM",

@@ -354,6 +354,55 @@ def test_fit_rotation_turns_a_rectangle_onto_the_walls():
     assert np.all(np.abs(err15[:2]) <= step) and np.abs(np.degrees(near[2, 4] - start[2, 4])) <= 15.0 + 1e-9, err15
 
 
+def test_edge_fit_grows_a_half_roof_onto_the_whole_block():
+    """A rectangle on one facet of the two-facet roof (its side on the ridge, a strong image edge 5.5 m from
+    the far wall, out of the side fit's ±2 m reach) grows over the raised block onto the far wall: sides and
+    centre within ¼ m of the building's. Without the growth it stays on the facet. A rectangle already on the
+    walls stays on them: it grows onto the DSM's fattened walls (1 m out), and the side fit brings it back."""
+    from geocd.mpp.model import EnergyModel, fit_edges
+
+    bld, img, dsm, ground = _fattened_block(2)
+    c, s = np.cos(bld[4]), np.sin(bld[4])
+    half = np.array([[bld[0] + 5.5 * s, bld[1] + 5.5 * c, bld[2], bld[3] / 2, bld[4]], list(bld)])   # v ≥ 0 facet
+    one = np.ones(2, np.int8)
+    got = {}
+    for grow in (True, False):
+        p = MPPParams(height="and", edge_fit_grow=grow)
+        model = EnergyModel([image_features(img, POSTING, p, dsm_m=dsm, ground_m=ground)], POSTING, p)
+        for k in range(2):         # one at a time: each would stop the other's growth
+            r = half[k:k + 1]
+            got[grow, k] = fit_edges(model, r, one[:1], model.data_energy(model.raw(r), one[:1]), p)
+    g = got[True, 0]
+    assert g["grown"][0] and g["accepted"][0]
+    assert np.abs(g["rects"][0, :4] - np.array(bld[:4])).max() <= 0.5, g["rects"][0]
+    assert not got[False, 0]["grown"][0] and abs(got[False, 0]["rects"][0, 3] - bld[3] / 2) <= 1.0
+    np.testing.assert_allclose(got[True, 1]["rects"][0, :4], bld[:4], atol=0.5)
+
+
+def test_grow_sides_kernel_matches_reference():
+    s = make_pair(0)
+    p = MPPParams()
+    fa = image_features(s["image_a"], POSTING, p, dsm_m=s["dsm_a"], ground_m=s["ground"])
+    fb = image_features(s["image_b"], POSTING, p, dsm_m=s["dsm_b"], ground_m=s["ground"])
+    rng = np.random.default_rng(2)
+    blds = np.array(s["buildings"], float)
+    k = rng.integers(0, len(blds), 60)
+    rects = blds[k] * [1, 1, 0.5, 0.6, 1] + np.column_stack([rng.normal(0, 2, 60), rng.normal(0, 2, 60),
+                                                             rng.normal(0, 1, 60), rng.normal(0, 1, 60),
+                                                             rng.normal(0, 0.05, 60)])
+    rects[:, 2:4] = np.maximum(rects[:, 2:4], 4.0)
+    use = rng.random((rects.shape[0], 2)) < 0.75
+    ndsms = np.stack([fa.ndsm, fb.ndsm])
+    for sel in (np.arange(60), np.arange(0, 60, 7)):       # crowded (neighbours stop the growth) and sparse
+        a = rects[sel].copy()
+        grew = np.zeros(sel.size, bool)
+        n = K.grow_sides(a, use[sel], ndsms, 2.5, 60.0, 0.5, grew)
+        b, grew_ref = K.grow_sides_ref(rects[sel], use[sel], ndsms, 2.5, 60.0, 0.5)
+        np.testing.assert_allclose(a, b, atol=1e-9)
+        np.testing.assert_array_equal(grew, grew_ref)
+        assert n == grew.sum() and n >= 3, n
+
+
 def test_fit_sides_kernel_matches_reference():
     s = make_pair(0)
     p = MPPParams()
