@@ -18,6 +18,8 @@ Usage (from the repository root)::
         --json docs/mpp_chains.json   # DP and the energy reached per seed
     .venv/bin/python docs/mpp_show.py roof-dsm sample_aoi /tmp/ortho_run --json docs/mpp_roof_dsm.json   # DSM on roofs
     .venv/bin/python docs/mpp_show.py turn-compare MPP_TURNED MPP_NOT /tmp/kahra2 --json docs/mpp_turn_kahramanmaras.json KEY
+    .venv/bin/python docs/mpp_show.py grow-compare MPP_GROWN MPP_NOT /tmp/kahra2 [--png docs/mpp_grow_kahramanmaras.png] \
+        --json docs/mpp_grow_kahramanmaras.json KEY     # the growth over the raised block, no truth
     .venv/bin/python docs/mpp_show.py false sample_aoi /tmp/ortho_run 0,1,2 [absence]   # what the false objects are
     .venv/bin/python docs/mpp_show.py missed-changes sample_aoi /tmp/ortho_run 0   # each change, absence off / on
     .venv/bin/python docs/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
@@ -872,7 +874,6 @@ def turn_compare(turned: Path, still: Path, run_dir: Path) -> dict:
     the rectangle with the nearest centre in the other output) and how many objects of geocd's damage layer
     (``run_dir/sc_changes.gpkg``, layer ``building_damage``) each output covers by at least half."""
     import geopandas as gpd
-    from shapely import union_all
 
     def angle(g):
         p = np.asarray(g.minimum_rotated_rectangle.exterior.coords)
@@ -887,15 +888,99 @@ def turn_compare(turned: Path, still: Path, run_dir: Path) -> dict:
         turn.append(abs((angle(g) - angle(b.geometry.iloc[j]) + 45.0) % 90.0 - 45.0))
     turn = np.array(turn)
     dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
-    cover = {}
-    for tag, r in (("turned", a), ("not_turned", b)):
-        u = union_all(r.geometry.values)
-        cover[tag] = int(sum(g.intersection(u).area >= 0.5 * g.area for g in dmg.geometry))
+    cover = {tag: _damage_cover(r, dmg)["covered"] for tag, r in (("turned", a), ("not_turned", b))}
     out = {"rectangles": {"turned": len(a), "not_turned": len(b)},
            "turn_deg": {"median": round(float(np.median(turn)), 2), "p90": round(float(np.percentile(turn, 90)), 2),
                         "max": round(float(turn.max()), 2), "more_than_5": int((turn > 5).sum())},
            "damage_objects_covered_by_half": cover, "damage_objects": len(dmg),
            "command": f"docs/mpp_show.py turn-compare {turned} {still} {run_dir}"}
+    print(json.dumps(out), flush=True)
+    return out
+
+
+def _damage_cover(rects, dmg) -> dict:
+    """How many objects of geocd's damage layer ``dmg`` the union of ``rects`` covers by at least half (per
+    class too), and the share of that union lying on damage-layer objects."""
+    from shapely import union_all
+
+    u = union_all(rects.geometry.values)
+    hit = [g.intersection(u).area >= 0.5 * g.area for g in dmg.geometry]
+    by = {}
+    for c, h in zip(dmg["class"], hit):
+        by.setdefault(c, [0, 0])
+        by[c][0] += int(h)
+        by[c][1] += 1
+    return {"covered": int(sum(hit)), "by_class_covered_of": by, "union_m2": round(u.area, 1),
+            "share_of_union_on_damage_objects": round(u.intersection(union_all(dmg.geometry.values)).area / u.area, 3)}
+
+
+def grow_compare(grown: Path, still: Path, run_dir: Path, png: Path | None = None) -> dict:
+    """Two ``geocd mpp`` outputs of the same inputs, with and without the growth of the rectangles over the
+    raised block (``--edge-fit-grow on|off``; no truth: Kahramanmaraş): the area of each rectangle against
+    the one with the nearest centre in the other output, the rectangles' overlaps, and the damage layer's
+    coverage (``run_dir/sc_changes.gpkg``, layer ``building_damage``). ``png``: the 12 largest growths, pre-event
+    ortho and DSM of ``run_dir`` with the outline before (cyan) and after (red)."""
+    import geopandas as gpd
+    import rasterio
+
+    a = gpd.read_file(grown / "mpp_buildings.gpkg", layer="rectangles")
+    b = gpd.read_file(still / "mpp_buildings.gpkg", layer="rectangles")
+    cb = np.array([[g.centroid.x, g.centroid.y] for g in b.geometry])
+    pairs = []
+    for g in a.geometry:
+        j = int(np.argmin(np.hypot(cb[:, 0] - g.centroid.x, cb[:, 1] - g.centroid.y)))
+        pairs.append((g.area / b.geometry.iloc[j].area, g, b.geometry.iloc[j]))
+    ratio = np.array([p[0] for p in pairs])
+
+    def overlap(r):
+        g = list(r.geometry)
+        return round(sum(g[i].intersection(g[j]).area for i in range(len(g)) for j in range(i + 1, len(g))), 1)
+
+    dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+    out = {"rectangles": {"grown": len(a), "not_grown": len(b)},
+           "area_ratio": {"median": round(float(np.median(ratio)), 3), "p90": round(float(np.percentile(ratio, 90)), 3),
+                          "max": round(float(ratio.max()), 3), "more_than_1.05": int((ratio > 1.05).sum()),
+                          "more_than_1.5": int((ratio > 1.5).sum()), "more_than_2": int((ratio > 2).sum())},
+           "overlap_m2": {"grown": overlap(a), "not_grown": overlap(b)},
+           "damage_layer": {"grown": _damage_cover(a, dmg), "not_grown": _damage_cover(b, dmg)},
+           "damage_objects": len(dmg), "command": f"docs/mpp_show.py grow-compare {grown} {still} {run_dir}"}
+    if png is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        big = sorted([p for p in pairs if p[0] > 1.05], key=lambda p: -p[0])[:12]
+        with rasterio.open(run_dir / "orthos" / "pre_event_img1.tif") as ds:
+            img, inv = ds.read(1).astype(float), ~ds.transform
+        with rasterio.open(run_dir / "stereo" / "pre_event" / "pre_event_img1__pre_event_img2.tif") as ds:
+            z = ds.read(1).astype(float)
+        lo, hi = np.nanpercentile(img, [2, 98])
+        cols = 4
+        rows = max(1, -(-len(big) // cols))
+        fig, axs = plt.subplots(rows, 2 * cols, figsize=(3 * 2 * cols, 3.1 * rows), squeeze=False)
+        for ax in axs.flat:
+            ax.axis("off")
+        for n, (r, g, h) in enumerate(big):
+            x0, y0, x1, y1 = g.union(h).buffer(12).bounds
+            c0, r0 = (max(int(v), 0) for v in inv * (x0, y1))
+            c1, r1 = (max(int(v), 0) for v in inv * (x1, y0))
+            zz = z[r0:r1, c0:c1]
+            for m, (arr, kw) in enumerate(((img, {"cmap": "gray", "vmin": lo, "vmax": hi}),
+                                           (z, {"cmap": "viridis", "vmin": np.nanpercentile(zz, 5),
+                                                "vmax": np.nanpercentile(zz, 99)}))):
+                ax = axs.flat[2 * n + m]
+                ax.imshow(arr[r0:r1, c0:c1], extent=(c0, c1, r1, r0), **kw)
+                for geom, colour in ((h, "cyan"), (g, "red")):
+                    cc = [inv * xy for xy in zip(*geom.exterior.xy)]
+                    ax.plot([p[0] for p in cc], [p[1] for p in cc], color=colour, lw=1.2)
+                ax.set_title(f"area × {r:.2f}: pre-event ortho" if m == 0 else "pre-event DSM", fontsize=9)
+        fig.suptitle(f"{grown.name}: the rectangles grown most over the raised block (red) against no growth "
+                     "(cyan)", fontsize=11)
+        plt.tight_layout()
+        plt.savefig(png, dpi=72)
+        plt.close(fig)
+        out["png"] = str(png)
     print(json.dumps(out), flush=True)
     return out
 
@@ -1218,6 +1303,19 @@ if __name__ == "__main__":
             js = Path(sys.argv[6])
             old = json.loads(js.read_text()) if js.exists() else {}
             old[sys.argv[7]] = res
+            js.write_text(json.dumps(old, indent=1))
+    elif what == "grow-compare":   # grow-compare MPP_OUT_GROWN MPP_OUT_NOT RUN_DIR [--png PNG] [--json OUT KEY]
+        args = sys.argv[2:]
+        png = None
+        if "--png" in args:
+            k = args.index("--png")
+            png = Path(args[k + 1])
+            args = args[:k] + args[k + 2:]
+        res = grow_compare(Path(args[0]), Path(args[1]), Path(args[2]), png)
+        if len(args) > 5 and args[3] == "--json":
+            js = Path(args[4])
+            old = json.loads(js.read_text()) if js.exists() else {}
+            old[args[5]] = res
             js.write_text(json.dumps(old, indent=1))
     elif what == "roof-dsm":   # roof-dsm TOWN ORTHO_DIR [--json OUT]: the stereo DSM on shaded and sunlit roofs
         res = roof_dsm(Path(sys.argv[2]), Path(sys.argv[3]))
