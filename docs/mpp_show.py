@@ -879,14 +879,8 @@ def turn_compare(turned: Path, still: Path, run_dir: Path) -> dict:
         p = np.asarray(g.minimum_rotated_rectangle.exterior.coords)
         return np.degrees(np.arctan2(p[1, 1] - p[0, 1], p[1, 0] - p[0, 0])) % 90.0
 
-    a = gpd.read_file(turned / "mpp_buildings.gpkg", layer="rectangles")
-    b = gpd.read_file(still / "mpp_buildings.gpkg", layer="rectangles")
-    cb = np.array([[g.centroid.x, g.centroid.y] for g in b.geometry])
-    turn = []
-    for g in a.geometry:
-        j = int(np.argmin(np.hypot(cb[:, 0] - g.centroid.x, cb[:, 1] - g.centroid.y)))
-        turn.append(abs((angle(g) - angle(b.geometry.iloc[j]) + 45.0) % 90.0 - 45.0))
-    turn = np.array(turn)
+    a, b, near = _nearest_rectangles(turned, still)
+    turn = np.array([abs((angle(g) - angle(h) + 45.0) % 90.0 - 45.0) for g, h in near])
     dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
     cover = {tag: _damage_cover(r, dmg)["covered"] for tag, r in (("turned", a), ("not_turned", b))}
     out = {"rectangles": {"turned": len(a), "not_turned": len(b)},
@@ -896,6 +890,19 @@ def turn_compare(turned: Path, still: Path, run_dir: Path) -> dict:
            "command": f"docs/mpp_show.py turn-compare {turned} {still} {run_dir}"}
     print(json.dumps(out), flush=True)
     return out
+
+
+def _nearest_rectangles(out_a: Path, out_b: Path):
+    """The rectangles layers of two ``geocd mpp`` outputs, and each rectangle of the first with the one of the
+    second whose centre is nearest."""
+    import geopandas as gpd
+
+    a = gpd.read_file(out_a / "mpp_buildings.gpkg", layer="rectangles")
+    b = gpd.read_file(out_b / "mpp_buildings.gpkg", layer="rectangles")
+    cb = np.array([[g.centroid.x, g.centroid.y] for g in b.geometry])
+    near = [(g, b.geometry.iloc[int(np.argmin(np.hypot(cb[:, 0] - g.centroid.x, cb[:, 1] - g.centroid.y)))])
+            for g in a.geometry]
+    return a, b, near
 
 
 def _damage_cover(rects, dmg) -> dict:
@@ -923,13 +930,8 @@ def grow_compare(grown: Path, still: Path, run_dir: Path, png: Path | None = Non
     import geopandas as gpd
     import rasterio
 
-    a = gpd.read_file(grown / "mpp_buildings.gpkg", layer="rectangles")
-    b = gpd.read_file(still / "mpp_buildings.gpkg", layer="rectangles")
-    cb = np.array([[g.centroid.x, g.centroid.y] for g in b.geometry])
-    pairs = []
-    for g in a.geometry:
-        j = int(np.argmin(np.hypot(cb[:, 0] - g.centroid.x, cb[:, 1] - g.centroid.y)))
-        pairs.append((g.area / b.geometry.iloc[j].area, g, b.geometry.iloc[j]))
+    a, b, near = _nearest_rectangles(grown, still)
+    pairs = [(g.area / h.area, g, h) for g, h in near]
     ratio = np.array([p[0] for p in pairs])
 
     def overlap(r):
@@ -1277,6 +1279,23 @@ def scoring(work: Path, scenes: list[tuple[str, Path]], variant: dict | None = N
     return out
 
 
+def _pop(args: list, flag: str):
+    """The value after ``flag`` in ``args`` (removing both), or None."""
+    if flag not in args:
+        return None
+    k = args.index(flag)
+    value = args[k + 1]
+    del args[k:k + 2]
+    return value
+
+
+def _store(js: Path, key: str, res: dict) -> None:
+    """Put ``res`` under ``key`` in the JSON file ``js`` (its other keys kept)."""
+    old = json.loads(js.read_text()) if js.exists() else {}
+    old[key] = res
+    js.write_text(json.dumps(old, indent=1))
+
+
 if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else ""
     if what == "town":
@@ -1300,30 +1319,17 @@ if __name__ == "__main__":
     elif what == "turn-compare":   # turn-compare MPP_OUT_TURNED MPP_OUT_NOT RUN_DIR [--json OUT KEY]
         res = turn_compare(Path(sys.argv[2]), Path(sys.argv[3]), Path(sys.argv[4]))
         if len(sys.argv) > 7 and sys.argv[5] == "--json":
-            js = Path(sys.argv[6])
-            old = json.loads(js.read_text()) if js.exists() else {}
-            old[sys.argv[7]] = res
-            js.write_text(json.dumps(old, indent=1))
+            _store(Path(sys.argv[6]), sys.argv[7], res)
     elif what == "grow-compare":   # grow-compare MPP_OUT_GROWN MPP_OUT_NOT RUN_DIR [--png PNG] [--json OUT KEY]
         args = sys.argv[2:]
-        png = None
-        if "--png" in args:
-            k = args.index("--png")
-            png = Path(args[k + 1])
-            args = args[:k] + args[k + 2:]
-        res = grow_compare(Path(args[0]), Path(args[1]), Path(args[2]), png)
+        png = _pop(args, "--png")
+        res = grow_compare(Path(args[0]), Path(args[1]), Path(args[2]), Path(png) if png else None)
         if len(args) > 5 and args[3] == "--json":
-            js = Path(args[4])
-            old = json.loads(js.read_text()) if js.exists() else {}
-            old[args[5]] = res
-            js.write_text(json.dumps(old, indent=1))
+            _store(Path(args[4]), args[5], res)
     elif what == "roof-dsm":   # roof-dsm TOWN ORTHO_DIR [--json OUT]: the stereo DSM on shaded and sunlit roofs
         res = roof_dsm(Path(sys.argv[2]), Path(sys.argv[3]))
         if len(sys.argv) > 5 and sys.argv[4] == "--json":
-            js = Path(sys.argv[5])
-            old = json.loads(js.read_text()) if js.exists() else {}
-            old[Path(sys.argv[2]).name] = res
-            js.write_text(json.dumps(old, indent=1))
+            _store(Path(sys.argv[5]), Path(sys.argv[2]).name, res)
     elif what == "chains":     # chains TOWN ORTHO_DIR SEEDS [--variant JSON] [--planar-tol-x X] [--json OUT]
         args = sys.argv[2:]
         opts = {}
@@ -1337,29 +1343,17 @@ if __name__ == "__main__":
                      float(opts.get("--planar-tol-x", 1.0)))
         print(json.dumps({k: v for k, v in res.items() if k != "chains"}), flush=True)
         if "--json" in opts:
-            js = Path(opts["--json"])
-            old = json.loads(js.read_text()) if js.exists() else {}
-            key = Path(args[0]).name + "".join(f"_{k}{v}" for k, v in res["variant"].items()) \
-                + (f"_tol{res['planar_tol_x']:g}" if res["planar_tol_x"] != 1.0 else "")
-            old[key] = res
-            js.write_text(json.dumps(old, indent=1))
+            _store(Path(opts["--json"]), Path(args[0]).name + "".join(f"_{k}{v}" for k, v in res["variant"].items())
+                   + (f"_tol{res['planar_tol_x']:g}" if res["planar_tol_x"] != 1.0 else ""), res)
     elif what == "ceiling":    # ceiling TOWN ORTHO_DIR [SEED] [--variant JSON] [--json OUT]: outlines vs detection
         args = sys.argv[2:]
-        js = None
-        if "--json" in args:
-            k = args.index("--json")
-            js = Path(args[k + 1])
-            args = args[:k] + args[k + 2:]
-        var = None
-        if "--variant" in args:
-            k = args.index("--variant")
-            var = json.loads(args[k + 1])
-            args = args[:k] + args[k + 2:]
+        js = _pop(args, "--json")
+        var = _pop(args, "--variant")
+        var = json.loads(var) if var else None
         res = ceiling(Path(args[0]), Path(args[1]), int(args[2]) if len(args) > 2 else 0, var)
         if js is not None:
-            old = json.loads(js.read_text()) if js.exists() else {}
-            old[f"{Path(args[0]).name}_seed{res['seed']}" + "".join(f"_{k}{v}" for k, v in (var or {}).items())] = res
-            js.write_text(json.dumps(old, indent=1))
+            _store(Path(js), f"{Path(args[0]).name}_seed{res['seed']}"
+                   + "".join(f"_{k}{v}" for k, v in (var or {}).items()), res)
     elif what == "walls":      # walls TOWN ORTHO_DIR: the DSM's wall blur measured without truth
         walls(Path(sys.argv[2]), Path(sys.argv[3]))
     elif what == "recall":     # recall TOWN ORTHO_DIR [SEED] [STEP] [EDGE_FIT]

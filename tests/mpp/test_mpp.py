@@ -379,11 +379,17 @@ def test_edge_fit_grows_a_half_roof_onto_the_whole_block():
     np.testing.assert_allclose(got[True, 1]["rects"][0, :4], bld[:4], atol=0.5)
 
 
-def test_grow_sides_kernel_matches_reference():
+def _pair_features():
+    """The toy pair's features of both dates (default parameters) and its buildings."""
     s = make_pair(0)
     p = MPPParams()
     fa = image_features(s["image_a"], POSTING, p, dsm_m=s["dsm_a"], ground_m=s["ground"])
     fb = image_features(s["image_b"], POSTING, p, dsm_m=s["dsm_b"], ground_m=s["ground"])
+    return s, fa, fb
+
+
+def test_grow_sides_kernel_matches_reference():
+    s, fa, fb = _pair_features()
     rng = np.random.default_rng(2)
     blds = np.array(s["buildings"], float)
     k = rng.integers(0, len(blds), 60)
@@ -404,10 +410,7 @@ def test_grow_sides_kernel_matches_reference():
 
 
 def test_fit_sides_kernel_matches_reference():
-    s = make_pair(0)
-    p = MPPParams()
-    fa = image_features(s["image_a"], POSTING, p, dsm_m=s["dsm_a"], ground_m=s["ground"])
-    fb = image_features(s["image_b"], POSTING, p, dsm_m=s["dsm_b"], ground_m=s["ground"])
+    s, fa, fb = _pair_features()
     rng = np.random.default_rng(1)
     blds = np.array(s["buildings"], float)
     k = rng.integers(0, len(blds), 120)
