@@ -1152,7 +1152,7 @@ def fit_sides_ref(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, ga
 
 
 @njit(cache=True)
-def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
+def grow_sides(rects, use, ndsms, min_h, smax, frac, valley, grew):
     """Push each side of each rectangle outward over the raised surface it stands on (in place).
 
     The level of a rectangle on a date is half the median height of its cells above the ground (at least
@@ -1162,8 +1162,12 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
     grid nor mostly inside another rectangle; no side grows past ``smax``. A roof half whose other facet the
     stereo DSM reads low or rough in places still stands above half the roof's height, so its rectangle
     reaches the building's far wall (a few cells past it, where the blurred wall falls to half height: the
-    side fit then puts the side on the image's edge). ``grew[r]`` is set True where a side moved.
-    Returns the number of rectangles grown.
+    side fit then puts the side on the image's edge). The growth also stops in a valley: when on a date the
+    strip's median height rises by more than ``valley[k]`` above the lowest strip crossed so far, and that
+    lowest strip lies more than ``valley[k]`` below the rectangle's median height, the side stays at the
+    lowest strip. One roof seen from inside (a facet falling to its eave, a flat or a shed roof) never
+    falls and rises again; two buildings whose gap a blurred DSM fills above half height do (NaN: no valley
+    test on that date). ``grew[r]`` is set True where a side moved. Returns the number of rectangles grown.
 
     Parameters
     ----------
@@ -1171,6 +1175,7 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
     use : bool (n, m) — which of the m dates each rectangle exists on
     ndsms : float32 (m, H, W) — height above ground per date (m), NaN = no height
     min_h, smax, frac : float (m, cells, share)
+    valley : float64 (m,) — the smallest significant rise per date (m)
     grew : bool (n,), written
     """
     m, H, W = ndsms.shape
@@ -1183,6 +1188,7 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
         c = math.cos(th)
         s = math.sin(th)
         levels = np.full(m, np.inf)
+        medians = np.full(m, np.nan)
         n_use = 0
         rad = math.sqrt(0.25 * eL * eL + 0.25 * el * el) + 1.0
         i0 = max(int(math.floor(cy - rad)), 0)
@@ -1204,7 +1210,8 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
                             vals[nv] = x
                             nv += 1
             if nv > 0:
-                levels[k] = max(min_h, 0.5 * np.median(vals[:nv]))
+                medians[k] = np.median(vals[:nv])
+                levels[k] = max(min_h, 0.5 * medians[k])
         if n_use == 0:
             continue
         sizes = np.array([eL, el])
@@ -1220,10 +1227,14 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
                 sg = 1.0 if kk == 0 else -1.0
                 t = 0.5
                 last = 0.0
+                low = np.full(m, np.inf)        # the lowest strip median so far, per date
+                low_t = np.zeros(m)
+                strip = np.empty((m, na))
                 while sizes[ax] + ext[ax, 0] + ext[ax, 1] + t + 0.5 <= smax:
                     ns = 0
                     owned = 0
                     cnt = np.zeros(m)
+                    nh = np.zeros(m, np.int64)
                     for q in range(na):
                         a = -0.4 * other + q
                         x = cx + sg * (0.5 * sizes[ax] + t) * dc + a * pc
@@ -1243,8 +1254,13 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
                                 owned += 1
                                 break
                         for k in range(m):
-                            if use[r, k] and ndsms[k, i, j] > levels[k]:
-                                cnt[k] += 1.0
+                            if use[r, k]:
+                                x = ndsms[k, i, j]
+                                if x > levels[k]:
+                                    cnt[k] += 1.0
+                                if x == x:
+                                    strip[k, nh[k]] = x
+                                    nh[k] += 1
                     if ns < 0.5 * na or owned > 0.5 * ns:
                         break
                     roof = True
@@ -1252,6 +1268,20 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
                         if use[r, k] and cnt[k] < frac * ns:
                             roof = False
                     if not roof:
+                        break
+                    valley_at = -1.0
+                    for k in range(m):
+                        if not use[r, k] or nh[k] == 0:
+                            continue
+                        h = np.median(strip[k, :nh[k]])
+                        if (valley[k] == valley[k] and h > low[k] + valley[k]
+                                and low[k] < medians[k] - valley[k]):
+                            valley_at = max(valley_at, low_t[k])
+                        if h < low[k]:
+                            low[k] = h
+                            low_t[k] = t
+                    if valley_at >= 0.0:
+                        last = valley_at + 0.5
                         break
                     last = t + 0.5
                     t += 1.0
@@ -1271,7 +1301,7 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, grew):
     return n_grown
 
 
-def grow_sides_ref(rects, use, ndsms, min_h, smax, frac) -> tuple[np.ndarray, np.ndarray]:
+def grow_sides_ref(rects, use, ndsms, min_h, smax, frac, valley) -> tuple[np.ndarray, np.ndarray]:
     """numpy reference of :func:`grow_sides` (returns the grown copy and ``grew``)."""
     m, H, W = ndsms.shape
     orig = np.array(rects, np.float64)
@@ -1288,11 +1318,12 @@ def grow_sides_ref(rects, use, ndsms, min_h, smax, frac) -> tuple[np.ndarray, np
         if not ks:
             continue
         mask = rect_mask_ref(orig[r], (H, W))
-        levels = {}
+        levels, medians = {}, {}
         for k in ks:
             v = ndsms[k][mask]
             v = v[np.isfinite(v)]
-            levels[k] = max(min_h, 0.5 * float(np.median(v))) if v.size else np.inf
+            medians[k] = float(np.median(v)) if v.size else np.nan
+            levels[k] = max(min_h, 0.5 * medians[k]) if v.size else np.inf
         c, s = np.cos(th), np.sin(th)
         sizes = [eL, el]
         ext = np.zeros((2, 2))
@@ -1303,6 +1334,7 @@ def grow_sides_ref(rects, use, ndsms, min_h, smax, frac) -> tuple[np.ndarray, np
             a = -0.4 * other + np.arange(int(np.floor(0.8 * other)) + 1)
             for kk, sg in enumerate((1.0, -1.0)):
                 t, last = 0.5, 0.0
+                low = {k: (np.inf, 0.0) for k in ks}
                 while sizes[ax] + ext[ax].sum() + t + 0.5 <= smax:
                     pts = np.array([cx, cy]) + sg * (sizes[ax] / 2 + t) * d + a[:, None] * p
                     j = np.floor(pts[:, 0] + 0.5).astype(int)
@@ -1316,6 +1348,21 @@ def grow_sides_ref(rects, use, ndsms, min_h, smax, frac) -> tuple[np.ndarray, np
                     if i.size < 0.5 * a.size or owned.sum() > 0.5 * i.size:
                         break
                     if not all((ndsms[k][i, j] > levels[k]).sum() >= frac * i.size for k in ks):
+                        break
+                    bottoms = []
+                    for k in ks:
+                        v = ndsms[k][i, j]
+                        v = v[np.isfinite(v)]
+                        if not v.size:
+                            continue
+                        h = float(np.median(v))
+                        lo, lo_t = low[k]
+                        if np.isfinite(valley[k]) and h > lo + valley[k] and lo < medians[k] - valley[k]:
+                            bottoms.append(lo_t)
+                        if h < lo:
+                            low[k] = (h, t)
+                    if bottoms:
+                        last = max(bottoms) + 0.5
                         break
                     last = t + 0.5
                     t += 1.0

@@ -648,7 +648,8 @@ def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.
         # object stays attractive (the fractions of A_D cannot reward covering more of the roof)
         big = base.copy()
         grew = np.zeros(base.shape[0], bool)
-        K.grow_sides(big, use, ndsms, float(params.min_height_m), float(model.smax), 0.5, grew)
+        valley = np.array([f.step_min_m for f in feats], np.float64)      # 3 √2 σ_z: a significant step
+        K.grow_sides(big, use, ndsms, float(params.min_height_m), float(model.smax), 0.5, valley, grew)
         if grew.any():
             K.fit_sides(big, use, mags, oris, ndsms, has_dsm, float(params.min_height_m), float(model.ring_w),
                         0.25, float(model.edge_w), float(model.edge_w + model.ring_w), float(model.smin),

@@ -108,8 +108,10 @@ class MPPParams(ParamsMixin):
     edge_fit_grow : beyond the paper, with ``edge_fit="joint"`` and DSMs: after the side fit, each kept
         rectangle's sides are pushed outward over the raised surface it stands on — cell by cell, while the
         majority of the strip just beyond a side (its middle 80 %) stands above half the rectangle's median
-        height on every date the object exists on, not into another rectangle, up to the largest side — and
-        the side fit then puts the grown sides on the image's walls. The grown rectangle is kept when it
+        height on every date the object exists on, not into another rectangle, up to the largest side, and
+        not out of a valley (the strip's median rising by more than 3 √2 σ_z, the step term's threshold,
+        above the lowest strip crossed, itself that far below the rectangle's median: a second building
+        across a gap the DSM blurs over) — and the side fit then puts the grown sides on the image's walls. The grown rectangle is kept when it
         stays attractive (A_D < 0). The data energy is made of fractions (raised, planar, edge strength per
         cell of outline), which a rectangle on one facet of a gabled roof satisfies as well as or better than
         the whole roof, whose shaded facet the stereo DSM reads lower and rougher: on four generated towns the

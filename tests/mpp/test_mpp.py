@@ -379,6 +379,44 @@ def test_edge_fit_grows_a_half_roof_onto_the_whole_block():
     np.testing.assert_allclose(got[True, 1]["rects"][0, :4], bld[:4], atol=0.5)
 
 
+def test_growth_stops_in_the_valley_between_two_buildings():
+    """Two 8 m blocks 1 m apart (2 cells), blurred as a stereo DSM blurs them (5-cell box): the gap never
+    falls to half height, so without the valley test a rectangle on one block grows across onto the other;
+    with it (a rise of more than 3 √2 σ_z after a fall below the rectangle's height) it stops in the gap. A
+    block with one sloping facet (a gabled roof seen from its ridge, falling to the eave) grows to its wall
+    either way."""
+    from scipy import ndimage
+
+    from .scene import _rect_mask
+
+    shape = (100, 120)
+    one, _ = _rect_mask(shape, 40.0, 50.0, 30.0, 24.0, 0.0)        # e_L along columns, cells 25.5–54.5
+    two, _ = _rect_mask(shape, 72.0, 50.0, 30.0, 24.0, 0.0)        # 2 cells of gap
+    rng = np.random.default_rng(3)
+    ndsm = ndimage.uniform_filter(np.where(one | two, 8.0, 0.0), 5) + rng.normal(0, 0.1, shape)
+    start = np.array([[40.0, 50.0, 30.0, 24.0, 0.0]])
+    use = np.ones((1, 1), bool)
+    got = {}
+    for name, valley in (("valley", 3 * np.sqrt(2) * 0.1), ("none", np.nan)):
+        r = start.copy()
+        grew = np.zeros(1, bool)
+        K.grow_sides(r, use, ndsm[None].astype(np.float32), 2.5, 200.0, 0.5, np.array([valley]), grew)
+        ref, _ = K.grow_sides_ref(start, use, ndsm[None].astype(np.float32), 2.5, 200.0, 0.5, np.array([valley]))
+        np.testing.assert_allclose(r, ref, atol=1e-9)
+        got[name] = r[0]
+    right = lambda r: r[0] + r[2] / 2         # noqa: E731  the side towards the second block
+    assert right(got["none"]) > 80.0, got      # across the gap, onto the second block
+    assert 54.0 <= right(got["valley"]) <= 58.0, got      # in the gap (cells 55–56)
+    # one building (the second block alone) whose right half falls from its ridge at 8 m to an eave at 5 m:
+    # a rectangle on its flat left half grows over the falling facet to the far wall (no rise, no valley)
+    x = np.arange(shape[1], dtype=float)[None, :]
+    roof = np.where(two, np.where(x < 72, 8.0, 8.0 - 3.0 * (x - 72) / 15.0), 0.0)
+    ndsm2 = (ndimage.uniform_filter(roof, 5) + rng.normal(0, 0.1, shape)).astype(np.float32)
+    r = np.array([[64.0, 50.0, 15.0, 24.0, 0.0]])          # columns 56.5–71.5
+    K.grow_sides(r, use, ndsm2[None], 2.5, 200.0, 0.5, np.array([3 * np.sqrt(2) * 0.1]), np.zeros(1, bool))
+    assert right(r[0]) >= 86.5, r
+
+
 def _pair_features():
     """The toy pair's features of both dates (default parameters) and its buildings."""
     s = make_pair(0)
@@ -400,13 +438,14 @@ def test_grow_sides_kernel_matches_reference():
     use = rng.random((rects.shape[0], 2)) < 0.75
     ndsms = np.stack([fa.ndsm, fb.ndsm])
     for sel in (np.arange(60), np.arange(0, 60, 7)):       # crowded (neighbours stop the growth) and sparse
-        a = rects[sel].copy()
-        grew = np.zeros(sel.size, bool)
-        n = K.grow_sides(a, use[sel], ndsms, 2.5, 60.0, 0.5, grew)
-        b, grew_ref = K.grow_sides_ref(rects[sel], use[sel], ndsms, 2.5, 60.0, 0.5)
-        np.testing.assert_allclose(a, b, atol=1e-9)
-        np.testing.assert_array_equal(grew, grew_ref)
-        assert n == grew.sum() and n >= 3, n
+        for valley in ((0.3, np.nan), (np.nan, np.nan)):
+            a = rects[sel].copy()
+            grew = np.zeros(sel.size, bool)
+            n = K.grow_sides(a, use[sel], ndsms, 2.5, 60.0, 0.5, np.array(valley), grew)
+            b, grew_ref = K.grow_sides_ref(rects[sel], use[sel], ndsms, 2.5, 60.0, 0.5, np.array(valley))
+            np.testing.assert_allclose(a, b, atol=1e-9)
+            np.testing.assert_array_equal(grew, grew_ref)
+            assert n == grew.sum() and n >= 3, n
 
 
 def test_fit_sides_kernel_matches_reference():
