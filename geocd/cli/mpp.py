@@ -43,7 +43,8 @@ import numpy as np
 @click.option("--edge-fit-grow", "edge_fit_grow", type=click.Choice(["on", "off"]), default="on", show_default=True,
               help="With the joint edge fit and DSMs: push each rectangle's sides out over the raised block it "
                    "stands on (while most of the strip beyond a side stands above half its height on every date "
-                   "it exists on), then onto the walls; kept when the object stays attractive. 'off': no growth.")
+                   "it exists on, not into another rectangle nor across the valley between two buildings), then "
+                   "onto the walls; kept when the object stays attractive. 'off': no growth.")
 @click.option("--wall-blur", "wall_blur", type=click.Choice(["off", "measured"]), default="off", show_default=True,
               help="How the height term reads the DSM's blurred walls: 'measured' the blur is measured on each "
                    "image (the DSM's profile across the image's edges) and the height ring and the raised fraction "

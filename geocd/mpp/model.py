@@ -603,8 +603,8 @@ def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.
     -------
     dict with ``rects`` (what was kept: turned and/or refitted where ``accepted``, else as given), ``proposed``
     (the side refits proposed, kept or not), ``energy``, ``phi``, ``area`` (of ``rects``) and ``accepted``,
-    ``grown`` (the growth was kept), ``turned`` (the turn was kept), ``moved`` (a turn or a refit was proposed) and ``energy_not_worse``
-    (bool (n,))
+    ``grown`` (the growth was kept), ``turned`` (the turn was kept), ``moved`` (a turn, a refit or a growth
+    was proposed) and ``energy_not_worse`` (bool (n,))
     """
     feats = [t.features for t in model.terms]
     two = len(feats) == 2

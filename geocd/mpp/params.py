@@ -111,12 +111,13 @@ class MPPParams(ParamsMixin):
         height on every date the object exists on, not into another rectangle, up to the largest side, and
         not out of a valley (the strip's median rising by more than 3 √2 σ_z, the step term's threshold,
         above the lowest strip crossed, itself that far below the rectangle's median: a second building
-        across a gap the DSM blurs over) — and the side fit then puts the grown sides on the image's walls. The grown rectangle is kept when it
-        stays attractive (A_D < 0). The data energy is made of fractions (raised, planar, edge strength per
-        cell of outline), which a rectangle on one facet of a gabled roof satisfies as well as or better than
-        the whole roof, whose shaded facet the stereo DSM reads lower and rougher: on four generated towns the
-        energy preferred the found, too small rectangle for 20–25 of 25–30 buildings (docs/mpp.md). The
-        growth reads the DSM's raised block instead. A_D is not compared, as for the side fit
+        across a gap the DSM blurs over) — and the side fit then puts the grown sides on the image's walls.
+        The grown rectangle is kept when it stays attractive (A_D < 0). The data energy is made of
+        fractions (raised, planar, edge strength per cell of outline), which a rectangle on one facet of a
+        gabled roof satisfies as well as or better than the whole roof, whose shaded facet the stereo DSM
+        reads lower and rougher: on four generated towns the energy preferred the found, too small rectangle
+        for 20–25 of 25–30 buildings (docs/mpp.md). The growth reads the DSM's raised block instead. A_D is
+        not compared, as for the side fit
     wall_blur : beyond the paper, with the height term: how it reads a stereo DSM's blurred walls, whose
         extent is measured on each image without truth (``features.wall_blur_m``: the median nDSM profile
         across the image's strong edges where the DSM has a wall rises from 10 % of the wall's height
