@@ -1117,9 +1117,10 @@ def levir(prototypes: str = "auto") -> dict:
 KAHRA_GONE_BY_EYE = [(60, 520), (490, 560), (470, 710), (760, 730), (720, 950), (30, 830)]
 
 
-def kahra(mpp_dir: Path, run_dir: Path) -> dict:
+def kahra(mpp_dir: Path, run_dir: Path, name: str = "mpp_kahramanmaras") -> dict:
     """Kahramanmaraş: what ``geocd mpp`` found, and how it relates to geocd's own building damage layer
-    (``sc_changes.gpkg``, layer ``building_damage``) — no truth exists for this city."""
+    (``sc_changes.gpkg``, layer ``building_damage``) — no truth exists for this city. Writes
+    ``docs/<name>.png`` and ``docs/<name>.json``."""
     import geopandas as gpd
     import matplotlib
 
@@ -1189,8 +1190,8 @@ def kahra(mpp_dir: Path, run_dir: Path) -> dict:
                      "yellow dashed: geocd run's collapsed", fontsize=8)
         ax.axis("off")
     plt.tight_layout()
-    plt.savefig(DOCS / "mpp_kahramanmaras.png", dpi=70)
-    (DOCS / "mpp_kahramanmaras.json").write_text(json.dumps(out, indent=2, default=str))
+    plt.savefig(DOCS / f"{name}.png", dpi=70)
+    (DOCS / f"{name}.json").write_text(json.dumps(out, indent=2, default=str))
     return out
 
 
@@ -1374,8 +1375,8 @@ if __name__ == "__main__":
         levir_diagnose()
     elif what == "kahra-outlines":     # kahra-outlines RUN_DIR [STEP]
         kahra_outlines(Path(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else "and")
-    elif what == "kahra":
-        kahra(Path(sys.argv[2]), Path(sys.argv[3]))
+    elif what == "kahra":      # kahra MPP_OUT RUN_DIR [NAME]: docs/NAME.png and .json (default mpp_kahramanmaras)
+        kahra(Path(sys.argv[2]), Path(sys.argv[3]), *sys.argv[4:5])
     elif what == "tables":
         tables()
     elif what == "scoring":    # scoring WORK NAME=SCENE ... [--variant JSON --tag TAG]
