@@ -650,14 +650,18 @@ def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.
         grew = np.zeros(base.shape[0], bool)
         valley = np.array([f.step_min_m for f in feats], np.float64)      # 3 √2 σ_z: a significant step
         K.grow_sides(big, use, ndsms, float(params.min_height_m), float(model.smax), 0.5, valley, grew)
-        if grew.any():
-            K.fit_sides(big, use, mags, oris, ndsms, has_dsm, float(params.min_height_m), float(model.ring_w),
-                        0.25, float(model.edge_w), float(model.edge_w + model.ring_w), float(model.smin),
-                        float(model.smax))
-            raw_g = model.raw(big)
-            grown = grew & (model.data_energy(raw_g, xi) < 0.0)
-            base = np.where(grown[:, None], big, base)
-            raw = pick(grown, raw_g, raw)
+        g = np.flatnonzero(grew)
+        if g.size:          # only the grown rectangles are refitted and scored again
+            sub = np.ascontiguousarray(big[g])
+            K.fit_sides(sub, np.ascontiguousarray(use[g]), mags, oris, ndsms, has_dsm, float(params.min_height_m),
+                        float(model.ring_w), 0.25, float(model.edge_w), float(model.edge_w + model.ring_w),
+                        float(model.smin), float(model.smax))
+            raw_g = model.raw(sub)
+            keep_g = model.data_energy(raw_g, xi[g]) < 0.0
+            grown[g[keep_g]] = True
+            base[g[keep_g]] = sub[keep_g]
+            for key, v in raw.items():
+                v[g[keep_g]] = raw_g[key][keep_g]
     turned = np.zeros(base.shape[0], bool)
     rot = base
     if params.edge_fit_rotate:
