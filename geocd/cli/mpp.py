@@ -53,6 +53,11 @@ import numpy as np
               help="With the height term: 'height' a new or demolished label needs ground under the object in the "
                    "other date's DSM (over half of its cells at most min-height above the ground; a tree crown "
                    "standing there contradicts it); 'off' the paper's change terms only.")
+@click.option("--change-evidence", "change_evidence", type=click.Choice(["height", "texture", "both"]), default="height",
+              show_default=True,
+              help="With the height term: what says a building changed. 'height' the DSMs (a cell stands above "
+                   "min-height on one date only); 'texture' the paper's gradient-orientation similarity of the "
+                   "two images; 'both' their mean. Without DSMs the texture.")
 @click.option("--change-prior", type=click.Path(path_type=str), default=None,
               help="3-D change evidence as a prior on the change label: a geocd change raster (band 'confidence', "
                    "e.g. OUT/sc_change.tif from geocd run) or any 0–1 map.")
@@ -77,7 +82,7 @@ import numpy as np
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
 @click.pass_context
 def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, epoch_a, epoch_b, view_a, view_b,
-        method, height, step, edge_fit, edge_fit_turn, edge_fit_grow, wall_blur, absence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, surface_median,
+        method, height, step, edge_fit, edge_fit_turn, edge_fit_grow, wall_blur, absence, change_evidence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, surface_median,
         out, no_overwrite) -> None:
     """Find buildings on two images of different dates and which are new, demolished or unchanged: a marked
     point process of rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), with
@@ -108,7 +113,8 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
     kw = {"seed": seed}
     for k, v in (("side_min_m", side_min_m), ("side_max_m", side_max_m), ("max_iter", max_iter),
                  ("gamma_3d", gamma_3d), ("prototypes", prototypes), ("step", step),
-                 ("edge_fit", edge_fit), ("wall_blur", wall_blur), ("absence", absence)):
+                 ("edge_fit", edge_fit), ("wall_blur", wall_blur), ("absence", absence),
+                 ("change_evidence", change_evidence)):
         if v is not None:
             kw[k] = v
     if side_max_m is not None:

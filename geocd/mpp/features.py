@@ -552,3 +552,23 @@ def texture_change(f1: ImageFeatures, f2: ImageFeatures) -> tuple[np.ndarray, np
     B = (b <= b0).astype(np.float32)
     B[~both] = 0.5                                   # no evidence either way
     return b, B, b0
+
+
+def height_similarity(f1: ImageFeatures, f2: ImageFeatures, min_height_m: float,
+                      texture: np.ndarray) -> np.ndarray:
+    """The ξ term's similarity B read from the two DSMs instead of the texture (beyond the paper).
+
+    A cell is unchanged (B = 1) when it stands more than ``min_height_m`` above the ground on both dates or
+    on neither, changed (B = 0) when it stands on one date only: a building that appeared or went. Tree
+    crowns stand on both dates, and a roof seen under another sun or from another view keeps its height,
+    where the orientation densities of the paper's texture term differ. Where either DSM has no data, B is
+    the texture's (``texture``, float32 (rows, cols), from :func:`texture_change`).
+
+    Returns float32 (rows, cols) in {0, 1} (and the texture's 0.5 where neither image has data).
+    """
+    if f1.ndsm is None or f2.ndsm is None:
+        raise ConfigError("the height evidence for ξ needs a DSM of each date")
+    ok = np.isfinite(f1.ndsm) & np.isfinite(f2.ndsm)
+    with np.errstate(invalid="ignore"):
+        same = (f1.ndsm > min_height_m) == (f2.ndsm > min_height_m)
+    return np.where(ok, same.astype(np.float32), np.asarray(texture, np.float32)).astype(np.float32)

@@ -78,7 +78,16 @@ class MPPParams(ParamsMixin):
         blocks whose neighbours are raised; "off" (default: no gain on generated towns, a loss of buildings
         on real stereo DSMs, docs/mpp.md): no step term
     gamma_overlap : γ of the overlap interaction
-    gamma_change : γ_ξ of the texture-change term
+    gamma_change : γ_ξ of the change term (the texture's, or the DSMs' with ``change_evidence``)
+    change_evidence : beyond the paper, with the height term: what the ξ term reads as changed or
+        unchanged under a rectangle. "texture": the paper's Bhattacharyya similarity of the two dates'
+        gradient-orientation densities (Otsu's threshold); "height": the two DSMs, a cell changed when it
+        stands more than ``min_height_m`` above the ground on one date only (a building that appeared or
+        went; a tree crown stands on both dates; cells without DSM data keep the texture's verdict); "both":
+        the mean of the two. Without DSMs the texture is used. The texture misreads both ways on geocd's
+        data: unchanged roofs under another sun and view read as changed (tree crowns labelled new,
+        unchanged buildings found on one date only), and a collapsed block whose cleared plot keeps the
+        street grid's orientations reads as unchanged (docs/mpp.md)
     gamma_3d : weight of the 3-D change prior on ξ (0 = off)
     births_per_area : expected births per typical building area per step at δ = 1
     perturb_births : beyond the paper: each step, every live object also gives birth (probability δ) to a
@@ -169,6 +178,7 @@ class MPPParams(ParamsMixin):
     gamma_overlap: float = 2.5
     gamma_change: float = 1.0
     gamma_3d: float = 0.0
+    change_evidence: str = "height"
     births_per_area: float = 10.0
     perturb_births: bool = True
     snap_births: float = 0.5
@@ -207,6 +217,8 @@ class MPPParams(ParamsMixin):
             raise ConfigError(f"wall_blur must be off or measured, got {self.wall_blur!r}")
         if self.absence not in ("off", "height"):
             raise ConfigError(f"absence must be off or height, got {self.absence!r}")
+        if self.change_evidence not in ("texture", "height", "both"):
+            raise ConfigError(f"change_evidence must be texture, height or both, got {self.change_evidence!r}")
         if self.edge_fit not in ("off", "joint", "image"):
             raise ConfigError(f"edge_fit must be off, joint or image, got {self.edge_fit!r}")
         if self.max_iter < 1 or self.min_iter < 0:
