@@ -14,6 +14,8 @@ Usage (from the repository root)::
     .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
     .venv/bin/python docs/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
     .venv/bin/python docs/mpp_show.py ceiling sample_aoi /tmp/ortho_run 0 --json docs/mpp_ceiling.json   # outlines vs detection
+    .venv/bin/python docs/mpp_show.py evidence sample_aoi=sample_aoi=/tmp/ortho_run [town1=T1=O1 …] \
+        --json docs/mpp_change_evidence.json   # the change label's evidence: texture / DSMs / both
     .venv/bin/python docs/mpp_show.py chains sample_aoi /tmp/ortho_run 0,1,2,3,4 [--variant JSON] [--planar-tol-x 2] \
         --json docs/mpp_chains.json   # DP and the energy reached per seed
     .venv/bin/python docs/mpp_show.py roof-dsm sample_aoi /tmp/ortho_run --json docs/mpp_roof_dsm.json   # DSM on roofs
@@ -1280,6 +1282,49 @@ def scoring(work: Path, scenes: list[tuple[str, Path]], variant: dict | None = N
     return out
 
 
+def evidence(scenes: list[tuple[str, Path, Path]], variants=("texture", "height", "both"), seeds=(0, 1, 2, 3, 4),
+             js: Path | None = None) -> dict:
+    """The change label's evidence (``MPPParams.change_evidence``) on generated towns: for each scene, the
+    share of each truth footprint that the texture's and the DSMs' similarity maps call changed (mean of
+    1 − B over the footprint, by the building's status; the maps of geocd mpp's own inputs), and the default
+    model run with each variant and seed (as ``chains``). ``scenes``: (name, town folder, ortho folder)."""
+    from geocd.mpp.features import height_similarity, image_features, texture_change
+
+    out = {}
+    for name, town_dir, ortho_dir in scenes:
+        inp = _town_inputs(town_dir, ortho_dir)
+        grid = inp["grid"]
+        p = MPPParams(height="and")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            fa = image_features(inp["image_a"], grid.posting_m, p, valid=inp["valid_a"], dsm_m=inp["dsm_a"],
+                                ground_m=inp["ground"])
+            fb = image_features(inp["image_b"], grid.posting_m, p, valid=inp["valid_b"], dsm_m=inp["dsm_b"],
+                                ground_m=inp["ground"])
+        _, b_tex, b0 = texture_change(fa, fb)
+        b_h = height_similarity(fa, fb, p.min_height_m, b_tex)
+        by_status: dict = {}
+        for o in inp["objs"]:
+            if o["scored"] and o["mask"].sum() >= 50:
+                by_status.setdefault(o["status"], []).append(
+                    (float(1 - b_tex[o["mask"]].mean()), float(1 - b_h[o["mask"]].mean())))
+        maps = {st: {"buildings": len(v), "texture_changed_mean": round(float(np.mean([x[0] for x in v])), 3),
+                     "height_changed_mean": round(float(np.mean([x[1] for x in v])), 3),
+                     "texture_over_half": round(float(np.mean([x[0] > 0.5 for x in v])), 3),
+                     "height_over_half": round(float(np.mean([x[1] > 0.5 for x in v])), 3)}
+                for st, v in sorted(by_status.items())}
+        runs = {}
+        for v in variants:
+            res = chains(town_dir, ortho_dir, seeds, {"change_evidence": v})
+            runs[v] = {"mean_DP": res["mean_DP"], "chains": res["chains"]}
+            print(json.dumps({"scene": name, "variant": v, "mean_DP": res["mean_DP"]}), flush=True)
+        out[name] = {"town": str(town_dir), "orthos": str(ortho_dir), "footprint_evidence": maps,
+                     "texture_b0": round(float(b0), 4), "runs": runs}
+        if js is not None:
+            _store(js, name, out[name])
+    return out
+
+
 def _pop(args: list, flag: str):
     """The value after ``flag`` in ``args`` (removing both), or None."""
     if flag not in args:
@@ -1346,6 +1391,14 @@ if __name__ == "__main__":
         if "--json" in opts:
             _store(Path(opts["--json"]), Path(args[0]).name + "".join(f"_{k}{v}" for k, v in res["variant"].items())
                    + (f"_tol{res['planar_tol_x']:g}" if res["planar_tol_x"] != 1.0 else ""), res)
+    elif what == "evidence":   # evidence NAME=TOWN=ORTHO_DIR ... [--variants a,b] [--seeds 0,1] [--json OUT]
+        args = sys.argv[2:]
+        js = _pop(args, "--json")
+        vs = _pop(args, "--variants")
+        sd = _pop(args, "--seeds")
+        evidence([(a.split("=")[0], Path(a.split("=")[1]), Path(a.split("=")[2])) for a in args],
+                 tuple(vs.split(",")) if vs else ("texture", "height", "both"),
+                 tuple(int(x) for x in sd.split(",")) if sd else (0, 1, 2, 3, 4), Path(js) if js else None)
     elif what == "ceiling":    # ceiling TOWN ORTHO_DIR [SEED] [--variant JSON] [--json OUT]: outlines vs detection
         args = sys.argv[2:]
         js = _pop(args, "--json")

@@ -624,8 +624,9 @@ def test_a_demolished_block_the_texture_calls_unchanged_is_found_by_the_dsms():
     dsm_b[gone] = s["ground"][gone]
     got = {}
     for ev in ("texture", "height"):
-        d = detect(s["image_a"], s["image_a"], POSTING, MPPParams(seed=3, height="and", change_evidence=ev),
-                   method="ED", dsm_a=s["dsm_a"], dsm_b=dsm_b, ground_m=s["ground"])
+        p = MPPParams(seed=3, height="and") if ev == "height" else MPPParams(seed=3, height="and", change_evidence=ev)
+        d = detect(s["image_a"], s["image_a"], POSTING, p, method="ED", dsm_a=s["dsm_a"], dsm_b=dsm_b,
+                   ground_m=s["ground"])
         m = rect_masks(d.result.rects, d.result.xi, gone.shape)
         got[ev] = (float(m["demolished"][gone].mean()), int((m["demolished"] & ~gone).sum()), d.notes)
     assert got["texture"][0] < 0.1, got["texture"][:2]
