@@ -137,17 +137,16 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
         thr = [_thr(t) for t in (ma.terms[0], mb.terms[0])]
     else:
         _, B, b0 = texture_change(fa, fb)
-        if params.change_evidence != "texture":
-            if fa.ndsm is not None and fb.ndsm is not None:
-                Bh = height_similarity(fa, fb, params.min_height_m, B)
-                B = Bh if params.change_evidence == "height" else (0.5 * (B + Bh)).astype(np.float32)
-                notes.append("change evidence (ξ): " + ("the DSMs" if params.change_evidence == "height" else
-                                                         "the mean of the DSMs' and the texture's")
-                             + f": a cell changed when it stands over {params.min_height_m:g} m above the ground "
-                             "on one date only" + (" (or the orientation texture differs)"
-                                                   if params.change_evidence == "both" else ""))
-            else:
-                notes.append("change evidence (ξ): the texture alone (no DSMs)")
+        ev = params.change_evidence
+        if ev != "texture" and (fa.ndsm is None or fb.ndsm is None):
+            notes.append("change evidence (ξ): the texture alone (no DSMs)")
+        elif ev != "texture":
+            Bh = height_similarity(fa, fb, params.min_height_m, B)
+            B = Bh if ev == "height" else (0.5 * (B + Bh)).astype(np.float32)
+            standing = f"a cell changed when it stands over {params.min_height_m:g} m above the ground on one date only"
+            notes.append(f"change evidence (ξ): the DSMs: {standing}" if ev == "height" else
+                         f"change evidence (ξ): the mean of the DSMs' and the texture's: {standing} "
+                         "(or the orientation texture differs)")
         model = EnergyModel([fa, fb], posting_m, params, similarity=B,
                             change_prior=change_prior if params.gamma_3d > 0 else None)
         res = optimize(model, params, progress=sub_progress(prog, 0.1, 1.0))
