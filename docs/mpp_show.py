@@ -16,6 +16,8 @@ Usage (from the repository root)::
     .venv/bin/python docs/mpp_show.py ceiling sample_aoi /tmp/ortho_run 0 --json docs/mpp_ceiling.json   # outlines vs detection
     .venv/bin/python docs/mpp_show.py evidence sample_aoi=sample_aoi=/tmp/ortho_run [town1=T1=O1 …] \
         --json docs/mpp_change_evidence.json   # the change label's evidence: texture / DSMs / both
+    .venv/bin/python docs/mpp_show.py holes sample_aoi=sample_aoi=/tmp/ortho_run [town1=T1=O1 …] \
+        --json docs/mpp_holes.json --png docs/mpp_holes.png   # the DSMs' holes: terrain on roofs, given back
     .venv/bin/python docs/mpp_show.py chains sample_aoi /tmp/ortho_run 0,1,2,3,4 [--variant JSON] [--planar-tol-x 2] \
         --json docs/mpp_chains.json   # DP and the energy reached per seed
     .venv/bin/python docs/mpp_show.py roof-dsm sample_aoi /tmp/ortho_run --json docs/mpp_roof_dsm.json   # DSM on roofs
@@ -86,13 +88,16 @@ VARIANTS = {
 SHORT = dict(zip(("ED", "SD", "EV", "EH", "EHP", "EHS", "EHR", "EHF", "EHI", "EHWF", "EHFA"), VARIANTS))
 
 
-def _town_inputs(town: Path, ortho_dir: Path):
-    """Orthos of the most vertical full-coverage view per epoch (as geocd mpp picks them), DSMs, ground."""
+def _town_inputs(town: Path, ortho_dir: Path, fill_holes: bool = True):
+    """Orthos of the most vertical full-coverage view per epoch (as geocd mpp picks them), DSMs, ground.
+    ``fill_holes=False``: the DSMs as geocd ortho wrote them (its terrain in every hole, roofs included), as
+    geocd mpp read them before 28 Nov."""
     import geopandas as gpd
     import rasterio
 
     from geocd.io.manifest import load_manifest
     from geocd.io.raster import read_band, read_dem
+    from geocd.mpp.features import fill_roof_holes
     from geocd.mpp.pipeline import choose_view
     from geocd.stereo.pipeline import load_epoch_images
 
@@ -100,6 +105,13 @@ def _town_inputs(town: Path, ortho_dir: Path):
     dsm_a, grid = read_band(ortho_dir / "ortho" / "A" / "dsm_A.tif", 1)
     dsm_b, _ = read_band(ortho_dir / "ortho" / "B" / "dsm_B.tif", 1)
     ground = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
+    # as geocd mpp does (detect's filled_a / filled_b): the terrain geocd ortho put into the stereo's holes is
+    # taken back where a hole lies inside a raised surface (a roof the stereo could not match)
+    if fill_holes:
+        dsm_a = fill_roof_holes(dsm_a, ground, MPPParams().min_height_m,
+                                read_band(ortho_dir / "ortho" / "A" / "dsm_A.tif", 2)[0] > 0.5)[0]
+        dsm_b = fill_roof_holes(dsm_b, ground, MPPParams().min_height_m,
+                                read_band(ortho_dir / "ortho" / "B" / "dsm_B.tif", 2)[0] > 0.5)[0]
     h0 = float(np.nanmedian(ground))
     out = {"grid": grid, "dsm_a": dsm_a, "dsm_b": dsm_b, "ground": ground}
     for e, key in (("A", "a"), ("B", "b")):
@@ -1325,6 +1337,71 @@ def evidence(scenes: list[tuple[str, Path, Path]], variants=("texture", "height"
     return out
 
 
+def holes(scenes: list[tuple[str, Path, Path]], js: Path | None = None, png: Path | None = None) -> dict:
+    """The holes of the DSMs geocd mpp reads, against each town's truth footprints: the cells geocd ortho
+    filled with the terrain, the cells ``features.fill_roof_holes`` gives back to a roof (enclosed holes) or
+    makes unknown (mixed holes), and the share of each on a truth building of that date (``scenes``: (name,
+    town folder, ortho folder)). ``png``: the first scene's buildings 15 and 20 (sample_aoi), the DSM as
+    geocd ortho wrote it and as the model now reads it, with the truth footprints."""
+    import geopandas as gpd
+    import rasterio
+    from rasterio.features import rasterize
+
+    from geocd.mpp.features import fill_roof_holes
+
+    out = {}
+    crops = []
+    for name, town_dir, ortho_dir in scenes:
+        inp = _town_inputs(town_dir, ortho_dir, fill_holes=False)
+        grid = inp["grid"]
+        fp = gpd.read_file(town_dir / "truth" / "footprints_all.gpkg")
+        rows = {}
+        for e, k in (("A", "a"), ("B", "b")):
+            with rasterio.open(ortho_dir / "ortho" / e / f"dsm_{e}.tif") as ds:
+                filled = ds.read(2) > 0.5
+            alive = fp[fp["status"] != ("new" if e == "A" else "demolished")]
+            roofs = rasterize([(g, 1) for g in alive.geometry], out_shape=grid.shape, transform=grid.transform,
+                              fill=0, dtype="uint8") > 0
+            d, roof, unknown = fill_roof_holes(inp[f"dsm_{k}"], inp["ground"], MPPParams().min_height_m, filled)
+
+            def share(m):
+                return {"cells": int(m.sum()), "on_truth_buildings": round(float(roofs[m].mean()), 3) if m.any()
+                        else None}
+            rows[e] = {"filled_by_geocd_ortho": share(filled), "given_back_to_a_roof": share(roof),
+                       "made_unknown": share(unknown), "left_as_terrain": share(filled & ~roof & ~unknown),
+                       "truth_building_cells_filled_with_terrain": round(float(filled[roofs].mean()), 4)}
+            if png is not None and not crops:
+                crops.append((inp[f"dsm_{k}"] - inp["ground"], d - inp["ground"], fp, grid))
+        out[name] = {"town": str(town_dir), "orthos": str(ortho_dir), "dates": rows}
+        print(json.dumps({name: rows}), flush=True)
+        if js is not None:
+            _store(js, name, out[name])
+    if png is not None and crops:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        before, after, fp, grid = crops[0]
+        inv = ~grid.transform
+        fig, axes = plt.subplots(2, 2, figsize=(8, 8))
+        for col, b in enumerate((15, 20)):
+            c = np.array(fp.geometry.iloc[b].centroid.coords[0])
+            j, i = (int(v) for v in inv * c)
+            sl = (slice(max(i - 40, 0), i + 40), slice(max(j - 40, 0), j + 40))
+            for row, (arr, title) in enumerate(((before, "as geocd ortho wrote it"), (after, "as geocd mpp reads it"))):
+                ax = axes[row, col]
+                ax.imshow(arr[sl], vmin=0, vmax=14, cmap="viridis", interpolation="nearest")
+                for g in fp.geometry:
+                    xy = np.array([inv * p for p in np.asarray(g.exterior.coords)]) - [sl[1].start, sl[0].start]
+                    ax.plot(xy[:, 0] - 0.5, xy[:, 1] - 0.5, "w-", lw=1)
+                ax.set_xlim(-0.5, 79.5)
+                ax.set_ylim(79.5, -0.5)
+                ax.set_title(f"building {b}, date A nDSM (0–14 m), {title}", fontsize=8)
+                ax.axis("off")
+        plt.tight_layout()
+        plt.savefig(png, dpi=80)
+    return out
+
+
 def _pop(args: list, flag: str):
     """The value after ``flag`` in ``args`` (removing both), or None."""
     if flag not in args:
@@ -1399,6 +1476,12 @@ if __name__ == "__main__":
         evidence([(a.split("=")[0], Path(a.split("=")[1]), Path(a.split("=")[2])) for a in args],
                  tuple(vs.split(",")) if vs else ("texture", "height", "both"),
                  tuple(int(x) for x in sd.split(",")) if sd else (0, 1, 2, 3, 4), Path(js) if js else None)
+    elif what == "holes":      # holes NAME=TOWN=ORTHO_DIR ... [--json OUT] [--png OUT]: the DSMs' holes vs truth
+        args = sys.argv[2:]
+        js = _pop(args, "--json")
+        png = _pop(args, "--png")
+        holes([(a.split("=")[0], Path(a.split("=")[1]), Path(a.split("=")[2])) for a in args],
+              Path(js) if js else None, Path(png) if png else None)
     elif what == "ceiling":    # ceiling TOWN ORTHO_DIR [SEED] [--variant JSON] [--json OUT]: outlines vs detection
         args = sys.argv[2:]
         js = _pop(args, "--json")

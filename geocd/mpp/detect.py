@@ -24,8 +24,8 @@ import numpy as np
 
 from ..errors import ConfigError, GridError
 from ..progress import Progress, ensure_progress, sub_progress
-from .features import (ImageFeatures, ground_from_dsm, height_similarity, image_features, side_max_from_dsm,
-                       texture_change)
+from .features import (ImageFeatures, fill_roof_holes, ground_from_dsm, height_similarity, image_features,
+                       side_max_from_dsm, texture_change)
 from .model import BOTH, ONLY_1, ONLY_2, EnergyModel, MPPResult, optimize, sd_combine
 from .params import MPPParams
 
@@ -72,6 +72,7 @@ def _check(a: np.ndarray, b: np.ndarray) -> None:
 def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: MPPParams = MPPParams(), *,
            method: str = "ED", valid_a: np.ndarray | None = None, valid_b: np.ndarray | None = None,
            dsm_a: np.ndarray | None = None, dsm_b: np.ndarray | None = None, ground_m: np.ndarray | None = None,
+           filled_a: np.ndarray | None = None, filled_b: np.ndarray | None = None,
            change_prior: np.ndarray | None = None, progress: Progress | None = None) -> Detection:
     """Buildings of two dates and their changes from two images on one grid.
 
@@ -82,7 +83,11 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
     method : "ED", "SD" or "EV" (see the module docstring)
     valid_a, valid_b : bool (rows, cols), observed cells (e.g. an orthoimage's mask)
     dsm_a, dsm_b, ground_m : heights (m) for ``params.height == "and"``; without ``ground_m`` the terrain is
-        estimated from each DSM
+        estimated from each DSM. A hole of a DSM (NaN, or a cell of ``filled_a`` / ``filled_b``) enclosed by
+        cells standing above ``min_height_m`` takes their height, one half on such cells becomes NaN
+        (:func:`features.fill_roof_holes`)
+    filled_a, filled_b : bool (rows, cols), optional: cells whose height the DSM's producer interpolated (geocd
+        ortho's ``filled`` band, the terrain put into the stereo's holes)
     change_prior : 3-D change evidence in [0, 1] (e.g. the self-consistency confidence / 100), used with
         ``params.gamma_3d > 0``
     """
@@ -101,12 +106,31 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
     if params.gamma_3d > 0 and change_prior is None:
         raise ConfigError("gamma_3d > 0 needs a 3-D change map (change_prior)")
     prog(0.0, "features")
-    if use_h and params.side_max_from_dsm:
-        found = []
-        for d in (dsm_a, dsm_b):
+    if use_h:
+        shape = np.shape(image_a)[-2:]
+        for what, arr in (("DSM A", dsm_a), ("DSM B", dsm_b), ("ground", ground_m), ("filled A", filled_a),
+                          ("filled B", filled_b)):
+            if arr is not None and np.shape(arr) != shape:
+                raise ConfigError(f"{what} shape {np.shape(arr)} does not match the images {shape}; "
+                                  "put both on the grid")
+        grounds, dsms, filled = [], [], []
+        for d, fl in ((dsm_a, filled_a), (dsm_b, filled_b)):
             d = np.asarray(d, np.float64)
             g = ground_m if ground_m is not None else ground_from_dsm(
                 d, 2 * int(math.ceil(params.side_max_m / posting_m)) + 1)
+            d, roof, unknown = fill_roof_holes(d, g, params.min_height_m, fl)
+            grounds.append(g)
+            dsms.append(d)
+            filled.append((int(roof.sum()), int(unknown.sum())))
+        dsm_a, dsm_b = dsms
+        if any(sum(x) for x in filled):
+            notes.append("DSM holes (no height, or the terrain its producer put there) inside raised surfaces, "
+                         "roofs the stereo could not match, take the surface's height: "
+                         f"{filled[0][0]} cells on date A, {filled[1][0]} on date B; holes half on a raised "
+                         f"surface, half beside it, are unknown: {filled[0][1]} and {filled[1][1]} cells")
+    if use_h and params.side_max_from_dsm:
+        found = []
+        for d, g in zip((dsm_a, dsm_b), grounds):
             with np.errstate(invalid="ignore"):
                 found.append(side_max_from_dsm(d - g, posting_m, params))
         smax = max([x for x in found if np.isfinite(x)], default=params.side_max_m)

@@ -188,6 +188,83 @@ def ground_from_dsm(dsm_m: np.ndarray, width_cells: int) -> np.ndarray:
     return ndimage.uniform_filter(g, size=w, mode="nearest")
 
 
+def fill_roof_holes(dsm_m: np.ndarray, ground_m: np.ndarray, min_height_m: float,
+                    filled: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Holes of a DSM inside a raised surface take the surface's height; holes half on it become unknown.
+
+    A stereo DSM has no height where matching failed, and that happens on plain roofs as well as on the ground
+    beside a building that one view could not see. A DSM's producer may have filled its holes (geocd ortho
+    fills them with the terrain, which is right beside a building). A roof cell the matcher missed then reads
+    as a pit down to the ground, and the height term takes it for ground inside the building: rectangles stop
+    at the pit.
+
+    A hole is a connected set (8-neighbours) of NaN cells and the producer's ``filled`` cells. Its rim is the
+    cells with a height that touch it. As geocd ortho reads a hole's surroundings, the rim's lower quartile
+    says where it stands: above the ground by more than ``min_height_m`` (the height term's own "raised") or
+    not.
+
+    * Enclosed: the rim's lower quartile is raised, no rim cell is low, and the hole does not touch the grid's
+      border. The hole is a roof the stereo could not match. Each of its cells takes the height of the nearest
+      cell with a height, which lies on that raised rim. A courtyard the matcher missed entirely is filled
+      too; a rectangle would cover it anyway.
+    * Mixed: the lower quartile is raised but some rim cells are low. The hole may be part roof, or a narrow
+      gap between two buildings. Its cells become NaN, unknown: the height term does not count them either way.
+    * Other holes are unchanged: NaN stays NaN, and the producer's fill (the terrain beside a building) stays.
+
+    Parameters
+    ----------
+    dsm_m, ground_m : float (rows, cols), surface and terrain heights (m)
+    min_height_m : what stands above the ground (m)
+    filled : bool (rows, cols), optional: cells whose height the DSM's producer interpolated (geocd ortho's
+        ``filled`` band)
+
+    Returns
+    -------
+    dsm : float64 (rows, cols), the DSM with its enclosed holes filled and its mixed ones NaN
+    roof, unknown : bool (rows, cols), the cells filled and the cells (with a height before) set to NaN here
+    """
+    d = np.asarray(dsm_m, np.float64).copy()
+    hole = ~np.isfinite(d)
+    if filled is not None:
+        hole |= np.asarray(filled, bool)
+    none = np.zeros(d.shape, bool)
+    if not hole.any() or hole.all():
+        return d, none, none.copy()
+    with np.errstate(invalid="ignore"):
+        nd = d - np.asarray(ground_m, np.float64)
+    eight = np.ones((3, 3), bool)
+    lab, n = ndimage.label(hole, structure=eight)
+    # each hole's rim: the lower quartile of its nDSM (a rim cell touching two holes counts for one)
+    rim_of = ndimage.grey_dilation(lab, footprint=eight) * ~hole
+    r = (rim_of > 0) & np.isfinite(nd)
+    labs, vals = rim_of[r], nd[r]
+    order = np.lexsort((vals, labs))
+    labs, vals = labs[order], vals[order]
+    counts = np.bincount(labs, minlength=n + 1)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    raised_q = np.zeros(n + 1, bool)
+    has = np.flatnonzero(counts > 0)
+    pos = starts[has] + 0.25 * (counts[has] - 1)          # np.percentile's linear interpolation
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, starts[has] + counts[has] - 1)
+    raised_q[has] = vals[lo] + (pos - lo) * (vals[hi] - vals[lo]) > min_height_m
+    low = ~hole & ~(nd > min_height_m)                     # ground, or no terrain height to tell
+    edge = np.zeros(d.shape, bool)
+    edge[[0, -1], :] = True
+    edge[:, [0, -1]] = True
+    touches = np.zeros(n + 1, bool)
+    touches[lab[hole & (ndimage.binary_dilation(low, eight) | edge)]] = True
+    raised_q[0] = False
+    roof = hole & (raised_q & ~touches)[lab]
+    unknown = hole & (raised_q & touches)[lab] & np.isfinite(d)       # NaN cells are unknown already
+    if roof.any():
+        # the nearest cell with a height to a cell of an enclosed hole lies on that hole's raised rim
+        idx = ndimage.distance_transform_edt(hole, return_distances=False, return_indices=True)
+        d[roof] = d[idx[0][roof], idx[1][roof]]
+    d[unknown] = np.nan
+    return d, roof, unknown
+
+
 def plane_residual(dsm_m: np.ndarray, posting_m: float = 1.0) -> np.ndarray:
     """RMS distance (m) of each cell's 3 × 3 DSM neighbourhood to its least-squares plane, measured along the
     plane's normal (the vertical residual × cos of the slope): a surface's noise does not grow with its tilt.

@@ -76,6 +76,18 @@ def dsm_smoothing(path: os.PathLike | str) -> int | None:
     return surface_median_cells(prm) if prm else None
 
 
+def _filled_band(path: os.PathLike | str, grid: AOIGrid) -> np.ndarray | None:
+    """The cells of a DSM whose height its producer interpolated (a band described "filled", as geocd ortho
+    writes), on ``grid``; None when the file has no such band."""
+    from ..io.raster import _open, reproject_band
+
+    with _open(path) as ds:
+        names = [str(d or "").strip().lower() for d in ds.descriptions]
+        if "filled" not in names:
+            return None
+        return reproject_band(ds, names.index("filled") + 1, grid, "nearest") > 0.5
+
+
 def _warn_smoothed(paths) -> list[str]:
     """Notes (and warnings) for given DSMs made with a surface median: the height cues measure the DSM's noise."""
     notes = []
@@ -146,10 +158,13 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
     rb = orth["results"][f"{eb.name}/{chosen[eb.name].name}"]
     notes = [f"views: {chosen[ea.name].name} (epoch {ea.name}), {chosen[eb.name].name} (epoch {eb.name})",
              f"DSMs: {orth['dsm_source']}"]
-    dsm_a = dsm_b = ground = None
+    dsm_a = dsm_b = ground = filled_a = filled_b = None
     if use_h:
         dsm_a, _ = read_band(orth["outputs"][f"{ea.name}/dsm"], 1)
         dsm_b, _ = read_band(orth["outputs"][f"{eb.name}/dsm"], 1)
+        # the terrain geocd ortho put into the stereo's holes: a roof hole is no pit down to the ground
+        filled_a = read_band(orth["outputs"][f"{ea.name}/dsm"], 2)[0] > 0.5
+        filled_b = read_band(orth["outputs"][f"{eb.name}/dsm"], 2)[0] > 0.5
         if m.dem is not None:
             ground = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
             notes.append(f"ground: the manifest's DEM {m.dem.path}")
@@ -163,7 +178,7 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
             p = p.replace(gamma_3d=1.0)
         notes.append(f"3-D change prior: {change_prior}")
     det = detect(ra.values, rb.values, grid.posting_m, p, method=method, valid_a=ra.observed, valid_b=rb.observed,
-                 dsm_a=dsm_a, dsm_b=dsm_b, ground_m=ground, change_prior=cp,
+                 dsm_a=dsm_a, dsm_b=dsm_b, ground_m=ground, filled_a=filled_a, filled_b=filled_b, change_prior=cp,
                  progress=sub_progress(prog, 0.5, 0.95, "mpp: "))
     if dsm and use_h:
         notes += _warn_smoothed(dsm.values() if isinstance(dsm, dict) else [dsm])
@@ -235,10 +250,11 @@ def run_mpp_images(image_a: os.PathLike | str, image_b: os.PathLike | str, *, ou
     a, va, b, vb, grid, notes = read_pair(image_a, image_b, posting_m)
     if (dsm_a is None) != (dsm_b is None):
         raise ConfigError("give a DSM for both dates (--dsm-a and --dsm-b) or for neither")
-    da = db = gr = None
+    da = db = gr = fa = fb = None
     if dsm_a is not None:
         da = read_dem(dsm_a, grid=grid).to_ellipsoidal().height_m
         db = read_dem(dsm_b, grid=grid).to_ellipsoidal().height_m
+        fa, fb = _filled_band(dsm_a, grid), _filled_band(dsm_b, grid)
         if ground is not None:
             gr = read_dem(ground, grid=grid).to_ellipsoidal().height_m
     p = params.replace(height="and" if da is not None else "off")
@@ -250,7 +266,7 @@ def run_mpp_images(image_a: os.PathLike | str, image_b: os.PathLike | str, *, ou
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         det = detect(a, b, grid.posting_m, p, method=method, valid_a=va, valid_b=vb, dsm_a=da, dsm_b=db,
-                     ground_m=gr, change_prior=cp, progress=progress)
+                     ground_m=gr, filled_a=fa, filled_b=fb, change_prior=cp, progress=progress)
     if dsm_a is not None:
         notes += _warn_smoothed([dsm_a, dsm_b])
     det.notes = notes + det.notes

@@ -109,3 +109,32 @@ def test_a_smoothed_dsm_is_named_in_a_warning(tmp_path):
     with pytest.warns(UserWarning, match=r"ortho7\.tif was made with a 7-cell surface median.*geocd stereo --surface-median 1"):
         notes = _warn_smoothed([ortho7, ortho1, other, None])
     assert len(notes) == 1
+
+
+def test_the_filled_band_of_a_given_dsm_is_read(tmp_path):
+    """A DSM written by geocd ortho carries a ``filled`` band (the terrain put into the stereo's holes): geocd
+    mpp --dsm-a reads it onto the grid, and a DSM without one gives None. End to end, the CLI notes the roof
+    hole it gave back."""
+    from geocd.mpp.pipeline import _filled_band
+
+    s = make_pair(0)
+    pa, pb, da, db = _write(tmp_path, s)
+    grid = AOIGrid("EPSG:32631", Affine(POSTING, 0, 374000.0, 0, -POSTING, 4824000.0), 200, 200)
+    cx, cy = s["buildings"][3][:2]
+    filled = np.zeros((200, 200), bool)
+    filled[cy - 5:cy + 5, cx - 4:cx + 6] = True
+    paths = []
+    for k in ("a", "b"):
+        h = s[f"dsm_{k}"].copy()
+        h[filled] = s["ground"][filled]
+        paths.append(write_cog(tmp_path / f"ortho_dsm_{k}.tif", {"height_m": h.astype(np.float32),
+                                                              "filled": filled.astype(np.float32)}, grid))
+    assert np.array_equal(_filled_band(paths[0], grid), filled)
+    assert _filled_band(da, grid) is None
+    out = tmp_path / "o"
+    r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pb),
+                                  "--dsm-a", str(paths[0]), "--dsm-b", str(paths[1]), "--out", str(out),
+                                  "--max-iter", "60"])
+    assert r.exit_code == 0, r.output
+    notes = json.loads((out / "mpp_summary.json").read_text())["notes"]
+    assert any("inside raised surfaces" in n and f"{filled.sum()} cells on date A" in n for n in notes), notes

@@ -668,3 +668,73 @@ def test_a_building_cut_by_the_border_is_scored_by_its_pixels_only():
     assert td["DP_precision"] == pytest.approx(144 / 240, abs=1e-4), td
     with pytest.raises(ConfigError, match="cut_buildings"):
         sample_truth(fa, grid, cut_buildings="keep")
+
+
+def test_fill_roof_holes_takes_back_the_terrain_put_into_a_roof():
+    """A hole inside a raised block (the terrain a producer put there, or NaN) takes the roof's height; a hole
+    mostly inside it that reaches the ground, or the grid's border, becomes unknown (NaN); a hole across the
+    wall and a hole on the ground are left as they are."""
+    from geocd.mpp.features import fill_roof_holes
+
+    ground = np.full((60, 60), 100.0)
+    dsm = ground.copy()
+    dsm[10:40, 10:50] = 107.0
+    dsm[10:40, 10:25] += 0.01 * np.arange(15)          # a gentle slope: each hole cell takes its nearest rim
+    filled = np.zeros(dsm.shape, bool)
+    filled[15:20, 15:22] = True                         # terrain in a roof hole (geocd ortho's fill)
+    dsm[filled] = 100.0
+    dsm[33:35, 15:18] = np.nan                          # a NaN hole in the roof
+    mixed = np.zeros(dsm.shape, bool)
+    mixed[15:35, 35:49] = True                          # a large roof hole ...
+    mixed[25, 49:51] = True                             # ... that reaches the ground east of the wall
+    filled |= mixed
+    dsm[mixed] = 100.0
+    filled[8:12, 20:30] = True                          # a hole across the north wall: half of it is ground
+    dsm[8:12, 20:30] = 100.0
+    dsm[45:48, 5:9] = np.nan                            # a hole on the ground
+    dsm[0:4, 52:57] = 107.0                             # a roof at the border with a hole reaching the border
+    dsm[0:2, 53:55] = np.nan
+    out, roof, unknown = fill_roof_holes(dsm, ground, 2.5, filled)
+    want = np.zeros(dsm.shape, bool)
+    want[15:20, 15:22] = want[33:35, 15:18] = True
+    assert (roof == want).all() and (unknown == mixed).all()
+    assert np.all(np.abs(out[15:20, 15:22] - 107.0) < 0.2) and np.all(np.abs(out[33:35, 15:18] - 107.0) < 0.2)
+    assert out[17, 15] == dsm[17, 14] and out[17, 21] == dsm[17, 22]      # the nearest rim cell's height
+    assert np.isnan(out[mixed]).all()
+    assert np.all(out[8:12, 20:30] == 100.0)            # the producer's fill is kept across the wall
+    assert np.isnan(out[45:48, 5:9]).all() and np.isnan(out[0:2, 53:55]).all()
+    unchanged = ~want & ~mixed & np.isfinite(dsm)
+    assert np.array_equal(out[unchanged], dsm[unchanged])
+    # nothing to fill: the same heights; and the input is not written into
+    same, none, none2 = fill_roof_holes(ground, ground, 2.5)
+    assert not none.any() and not none2.any() and np.array_equal(same, ground)
+    assert dsm[17, 17] == 100.0
+
+
+def test_a_roof_the_stereo_could_not_match_is_not_a_pit():
+    """Building 3's roof has a 10 × 10-cell hole on each date (5 m, the size of sample_aoi's) that the DSM's
+    producer filled with the terrain, as geocd ortho does with the stereo's holes. Read as heights, the pit
+    keeps the rectangles to a part of the roof (78 % of it); with the producer's ``filled`` masks the hole takes
+    the roof's height and the building is found whole on both dates (98 %)."""
+    s = make_pair(0)
+    cx, cy = s["buildings"][3][:2]
+    filled = np.zeros(s["ground"].shape, bool)
+    filled[cy - 5:cy + 5, cx - 4:cx + 6] = True
+    dsm_a, dsm_b = s["dsm_a"].copy(), s["dsm_b"].copy()
+    dsm_a[filled] = s["ground"][filled]
+    dsm_b[filled] = s["ground"][filled]
+    b3 = s["truth_a"] & s["truth_b"]
+    b3[:, :cx - 30] = False
+    b3[cy + 25:] = False
+    b3[:cy - 25] = False
+    got = {}
+    for with_mask in (False, True):
+        kw = {"filled_a": filled, "filled_b": filled} if with_mask else {}
+        d = detect(s["image_a"], s["image_b"], POSTING, MPPParams(seed=1, height="and"), method="ED",
+                   dsm_a=dsm_a, dsm_b=dsm_b, ground_m=s["ground"], **kw)
+        m = rect_masks(d.result.rects, d.result.xi, b3.shape)
+        got[with_mask] = (float(m["date1"][b3].mean()), float(m["date2"][b3].mean()), d.notes)
+    assert max(got[False][:2]) < 0.85, got[False][:2]
+    assert min(got[True][:2]) > 0.95, got[True][:2]
+    assert any("inside raised surfaces" in n and f"{filled.sum()} cells on date A" in n
+               for n in got[True][2]), got[True][2]
