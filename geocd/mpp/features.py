@@ -207,8 +207,9 @@ def fill_roof_holes(dsm_m: np.ndarray, ground_m: np.ndarray, min_height_m: float
       border. The hole is a roof the stereo could not match. Each of its cells takes the height of the nearest
       cell with a height, which lies on that raised rim. A courtyard the matcher missed entirely is filled
       too; a rectangle would cover it anyway.
-    * Mixed: the lower quartile is raised but some rim cells are low. The hole may be part roof, or a narrow
-      gap between two buildings. Its cells become NaN, unknown: the height term does not count them either way.
+    * Mixed: the lower quartile is raised but some rim cells are low, or the hole reaches the grid's border.
+      The hole may be part roof, or a narrow gap between two buildings. Its cells become NaN, unknown: the
+      height term does not count them either way.
     * Other holes are unchanged: NaN stays NaN, and the producer's fill (the terrain beside a building) stays.
 
     Parameters

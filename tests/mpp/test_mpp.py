@@ -738,3 +738,6 @@ def test_a_roof_the_stereo_could_not_match_is_not_a_pit():
     assert min(got[True][:2]) > 0.95, got[True][:2]
     assert any("inside raised surfaces" in n and f"{filled.sum()} cells on date A" in n
                for n in got[True][2]), got[True][2]
+    with pytest.raises(ConfigError, match="filled A shape"):
+        detect(s["image_a"], s["image_b"], POSTING, MPPParams(seed=1, height="and"), dsm_a=dsm_a, dsm_b=dsm_b,
+               ground_m=s["ground"], filled_a=filled[:-1])
