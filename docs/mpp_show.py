@@ -98,7 +98,7 @@ def _town_inputs(town: Path, ortho_dir: Path, fill_holes: bool = True):
     from geocd.io.manifest import load_manifest
     from geocd.io.raster import read_band, read_dem
     from geocd.mpp.features import fill_roof_holes
-    from geocd.mpp.pipeline import choose_view
+    from geocd.mpp.pipeline import _filled_band, choose_view
     from geocd.stereo.pipeline import load_epoch_images
 
     m = load_manifest(town / "scene.yaml")
@@ -109,9 +109,9 @@ def _town_inputs(town: Path, ortho_dir: Path, fill_holes: bool = True):
     # taken back where a hole lies inside a raised surface (a roof the stereo could not match)
     if fill_holes:
         dsm_a = fill_roof_holes(dsm_a, ground, MPPParams().min_height_m,
-                                read_band(ortho_dir / "ortho" / "A" / "dsm_A.tif", 2)[0] > 0.5)[0]
+                                _filled_band(ortho_dir / "ortho" / "A" / "dsm_A.tif", grid))[0]
         dsm_b = fill_roof_holes(dsm_b, ground, MPPParams().min_height_m,
-                                read_band(ortho_dir / "ortho" / "B" / "dsm_B.tif", 2)[0] > 0.5)[0]
+                                _filled_band(ortho_dir / "ortho" / "B" / "dsm_B.tif", grid))[0]
     h0 = float(np.nanmedian(ground))
     out = {"grid": grid, "dsm_a": dsm_a, "dsm_b": dsm_b, "ground": ground}
     for e, key in (("A", "a"), ("B", "b")):
@@ -1344,10 +1344,10 @@ def holes(scenes: list[tuple[str, Path, Path]], js: Path | None = None, png: Pat
     town folder, ortho folder)). ``png``: the first scene's buildings 15 and 20 (sample_aoi), the DSM as
     geocd ortho wrote it and as the model now reads it, with the truth footprints."""
     import geopandas as gpd
-    import rasterio
     from rasterio.features import rasterize
 
     from geocd.mpp.features import fill_roof_holes
+    from geocd.mpp.pipeline import _filled_band
 
     out = {}
     crops = []
@@ -1357,8 +1357,7 @@ def holes(scenes: list[tuple[str, Path, Path]], js: Path | None = None, png: Pat
         fp = gpd.read_file(town_dir / "truth" / "footprints_all.gpkg")
         rows = {}
         for e, k in (("A", "a"), ("B", "b")):
-            with rasterio.open(ortho_dir / "ortho" / e / f"dsm_{e}.tif") as ds:
-                filled = ds.read(2) > 0.5
+            filled = _filled_band(ortho_dir / "ortho" / e / f"dsm_{e}.tif", grid)
             alive = fp[fp["status"] != ("new" if e == "A" else "demolished")]
             roofs = rasterize([(g, 1) for g in alive.geometry], out_shape=grid.shape, transform=grid.transform,
                               fill=0, dtype="uint8") > 0

@@ -255,7 +255,6 @@ def fill_roof_holes(dsm_m: np.ndarray, ground_m: np.ndarray, min_height_m: float
     edge[:, [0, -1]] = True
     touches = np.zeros(n + 1, bool)
     touches[lab[hole & (ndimage.binary_dilation(low, eight) | edge)]] = True
-    raised_q[0] = False
     roof = hole & (raised_q & ~touches)[lab]
     unknown = hole & (raised_q & touches)[lab] & np.isfinite(d)       # NaN cells are unknown already
     if roof.any():

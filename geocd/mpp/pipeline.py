@@ -163,8 +163,8 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
         dsm_a, _ = read_band(orth["outputs"][f"{ea.name}/dsm"], 1)
         dsm_b, _ = read_band(orth["outputs"][f"{eb.name}/dsm"], 1)
         # the terrain geocd ortho put into the stereo's holes: a roof hole is no pit down to the ground
-        filled_a = read_band(orth["outputs"][f"{ea.name}/dsm"], 2)[0] > 0.5
-        filled_b = read_band(orth["outputs"][f"{eb.name}/dsm"], 2)[0] > 0.5
+        filled_a = _filled_band(orth["outputs"][f"{ea.name}/dsm"], grid)
+        filled_b = _filled_band(orth["outputs"][f"{eb.name}/dsm"], grid)
         if m.dem is not None:
             ground = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
             notes.append(f"ground: the manifest's DEM {m.dem.path}")
