@@ -24,6 +24,8 @@ Usage (from the repository root)::
     .venv/bin/python docs/mpp_show.py turn-compare MPP_TURNED MPP_NOT /tmp/kahra2 --json docs/mpp_turn_kahramanmaras.json KEY
     .venv/bin/python docs/mpp_show.py grow-compare MPP_GROWN MPP_NOT /tmp/kahra2 [--png docs/mpp_grow_kahramanmaras.png] \
         --json docs/mpp_grow_kahramanmaras.json KEY     # the growth over the raised block, no truth
+    .venv/bin/python docs/mpp_show.py notches MPP_OUT /tmp/kahra2 [--png docs/mpp_notches_kahramanmaras.png] \
+        --json docs/mpp_notches.json kahramanmaras     # the corner notches (L-shaped outlines), no truth
     .venv/bin/python docs/mpp_show.py false sample_aoi /tmp/ortho_run 0,1,2 [absence]   # what the false objects are
     .venv/bin/python docs/mpp_show.py missed-changes sample_aoi /tmp/ortho_run 0   # each change, absence off / on
     .venv/bin/python docs/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
@@ -1001,6 +1003,80 @@ def grow_compare(grown: Path, still: Path, run_dir: Path, png: Path | None = Non
     return out
 
 
+def notches(mpp_dir: Path, run_dir: Path, png: Path | None = None, n_show: int = 8) -> dict:
+    """The corner notches one ``geocd mpp`` output cut (``MPPParams.edge_fit_carve``; no truth: Kahramanmaraş):
+    how many objects, and the notch's share of the object's rectangle (the union's minimum rotated rectangle).
+    ``png``: the ``n_show`` largest notches and ``n_show`` drawn at random (seed 0) among the others, each as
+    pre-event ortho, post-event ortho and pre-event DSM of ``run_dir``, the object's rectangle in cyan and its
+    L in red."""
+    import geopandas as gpd
+    import rasterio
+
+    rects = gpd.read_file(mpp_dir / "mpp_buildings.gpkg", layer="rectangles")
+    groups = {k: g for k, g in rects.groupby("object_id") if len(g) > 1}
+    rows = []
+    for k, g in groups.items():
+        ell = g.geometry.buffer(1e-6).union_all()      # the two arms share a side (to rounding)
+        box = ell.minimum_rotated_rectangle
+        rows.append((box.area - ell.area, k, box, ell, str(g["change"].iloc[0])))
+    rows.sort(key=lambda r: -r[0])
+    share = np.array([r[0] / r[2].area for r in rows]) if rows else np.zeros(0)
+    area = np.array([r[0] for r in rows])
+    out = {"objects": int(rects["object_id"].nunique()), "cut": len(rows),
+           "cut_by_change": pd_counts([r[4] for r in rows]),
+           "notch_share": ({"median": round(float(np.median(share)), 3), "p90": round(float(np.percentile(share, 90)), 3),
+                            "max": round(float(share.max()), 3)} if rows else None),
+           "notch_m2": ({"median": round(float(np.median(area)), 1), "p90": round(float(np.percentile(area, 90)), 1),
+                         "max": round(float(area.max()), 1)} if rows else None),
+           "command": f"docs/mpp_show.py notches {mpp_dir} {run_dir}"}
+    if png is not None and rows:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        rng = np.random.default_rng(0)
+        rest = rows[n_show:]
+        pick = rows[:n_show] + [rest[i] for i in sorted(rng.choice(len(rest), min(n_show, len(rest)), replace=False))]
+        layers = []
+        for f in ("orthos/pre_event_img1.tif", "orthos/post_event_img1.tif",
+                  "stereo/pre_event/pre_event_img1__pre_event_img2.tif"):
+            with rasterio.open(run_dir / f) as ds:
+                layers.append((ds.read(1).astype(float), ~ds.transform))
+        cols = 4
+        nrow = -(-len(pick) // cols)
+        fig, axs = plt.subplots(nrow, 3 * cols, figsize=(2.4 * 3 * cols, 2.5 * nrow), squeeze=False)
+        for ax in axs.flat:
+            ax.axis("off")
+        for n, (a, k, box, ell, ch) in enumerate(pick):
+            for m, (arr, inv) in enumerate(layers):
+                x0, y0, x1, y1 = box.buffer(8).bounds
+                c0, r0 = (max(int(v), 0) for v in inv * (x0, y1))
+                c1, r1 = (max(int(v), 0) for v in inv * (x1, y0))
+                sub = arr[r0:r1, c0:c1]
+                lo, hi = np.nanpercentile(sub, [2, 98]) if np.isfinite(sub).any() else (0, 1)
+                ax = axs.flat[3 * n + m]
+                ax.imshow(sub, extent=(c0, c1, r1, r0), cmap="gray" if m < 2 else "viridis", vmin=lo, vmax=hi)
+                for geom, colour, lw in ((box, "cyan", 1.0), (ell, "red", 1.2)):
+                    cc = [inv * xy for xy in zip(*geom.exterior.xy)]
+                    ax.plot([p[0] for p in cc], [p[1] for p in cc], color=colour, lw=lw)
+                ax.set_title((f"#{k} {ch} {a:.0f} m²" if m == 0 else ("post" if m == 1 else "pre DSM")), fontsize=8)
+        fig.suptitle(f"{mpp_dir}: the {min(n_show, len(rows))} largest corner notches, then {len(pick) - min(n_show, len(rows))} "
+                     "drawn at random (cyan: the object's rectangle, red: its L)", fontsize=10)
+        plt.tight_layout()
+        plt.savefig(png, dpi=56)
+        plt.close(fig)
+        out["png"] = str(png)
+    print(json.dumps(out), flush=True)
+    return out
+
+
+def pd_counts(values) -> dict:
+    """Counts of each value (a dict, for JSON)."""
+    u, c = np.unique(np.asarray(values, dtype=str), return_counts=True)
+    return {str(a): int(b) for a, b in zip(u, c)}
+
+
 def _near(m):
     from scipy import ndimage
 
@@ -1448,6 +1524,12 @@ if __name__ == "__main__":
         res = grow_compare(Path(args[0]), Path(args[1]), Path(args[2]), Path(png) if png else None)
         if len(args) > 5 and args[3] == "--json":
             _store(Path(args[4]), args[5], res)
+    elif what == "notches":    # notches MPP_OUT RUN_DIR [--png PNG] [--json OUT KEY]: the L cuts, no truth
+        args = sys.argv[2:]
+        png = _pop(args, "--png")
+        res = notches(Path(args[0]), Path(args[1]), Path(png) if png else None)
+        if len(args) > 4 and args[2] == "--json":
+            _store(Path(args[3]), args[4], res)
     elif what == "roof-dsm":   # roof-dsm TOWN ORTHO_DIR [--json OUT]: the stereo DSM on shaded and sunlit roofs
         res = roof_dsm(Path(sys.argv[2]), Path(sys.argv[3]))
         if len(sys.argv) > 5 and sys.argv[4] == "--json":

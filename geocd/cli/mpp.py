@@ -45,6 +45,10 @@ import numpy as np
                    "stands on (while most of the strip beyond a side stands above half its height on every date "
                    "it exists on, not into another rectangle nor across the valley between two buildings), then "
                    "onto the walls; kept when the object stays attractive. 'off': no growth.")
+@click.option("--edge-fit-carve", "edge_fit_carve", type=click.Choice(["on", "off"]), default="on", show_default=True,
+              help="With the joint edge fit and DSMs: cut a corner notch from a rectangle, making an L of two "
+                   "rectangles, when the notch is not raised and its two inner sides are image edges on every "
+                   "date the building exists on. 'off': rectangles only.")
 @click.option("--wall-blur", "wall_blur", type=click.Choice(["off", "measured"]), default="off", show_default=True,
               help="How the height term reads the DSM's blurred walls: 'measured' the blur is measured on each "
                    "image (the DSM's profile across the image's edges) and the height ring and the raised fraction "
@@ -82,7 +86,7 @@ import numpy as np
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
 @click.pass_context
 def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, epoch_a, epoch_b, view_a, view_b,
-        method, height, step, edge_fit, edge_fit_turn, edge_fit_grow, wall_blur, absence, change_evidence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, surface_median,
+        method, height, step, edge_fit, edge_fit_turn, edge_fit_grow, edge_fit_carve, wall_blur, absence, change_evidence, change_prior, gamma_3d, side_min_m, side_max_m, prototypes, seed, max_iter, posting_m, surface_median,
         out, no_overwrite) -> None:
     """Find buildings on two images of different dates and which are new, demolished or unchanged: a marked
     point process of rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), with
@@ -121,6 +125,7 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
         kw["side_max_from_dsm"] = False
     kw["edge_fit_rotate"] = edge_fit_turn == "on"
     kw["edge_fit_grow"] = edge_fit_grow == "on"
+    kw["edge_fit_carve"] = edge_fit_carve == "on"
     params = MPPParams(**kw)
     from ..io.outputs import open_outputs
 

@@ -500,6 +500,7 @@ def _rect_grid(rect, shape, pad):
     rad = np.hypot(eL / 2, el / 2) + pad
     i0, i1 = max(int(np.floor(cy - rad)), 0), min(int(np.ceil(cy + rad)), H - 1)
     j0, j1 = max(int(np.floor(cx - rad)), 0), min(int(np.ceil(cx + rad)), W - 1)
+    i1, j1 = max(i1, i0 - 1), max(j1, j0 - 1)        # a rectangle wholly off the grid: no cells
     ii, jj = np.mgrid[i0:i1 + 1, j0:j1 + 1].astype(np.float64)
     c, s = np.cos(th), np.sin(th)
     dx, dy = jj - cx, ii - cy
@@ -1372,3 +1373,227 @@ def grow_sides_ref(rects, use, ndsms, min_h, smax, frac, valley) -> tuple[np.nda
                 out[r, 0:2] += d * 0.5 * (ext[ax, 0] - ext[ax, 1])
                 grew[r] = True
     return out, grew
+
+
+@njit(cache=True, inline="always")
+def _box(S, q0, q1, p0, p1):
+    """Sum of the cells [q0, q1) × [p0, p1) of the array whose integral image is ``S``."""
+    return S[q1, p1] - S[q0, p1] - S[q1, p0] + S[q0, p0]
+
+
+@njit(cache=True)
+def _integral(a):
+    nv, nu = a.shape
+    S = np.zeros((nv + 1, nu + 1))
+    for q in range(nv):
+        for p in range(nu):
+            S[q + 1, p + 1] = a[q, p] + S[q, p + 1] + S[q + 1, p] - S[q, p]
+    return S
+
+
+@njit(cache=True)
+def carve_corners(rects, use, mags, oris, hmaps, valids, min_h, edge_w, smin, d_grad, out):
+    """The best corner notch of each rectangle: a corner rectangle to cut away, whose cells are not raised
+    and whose two inner sides are edges, on every date the rectangle exists on (``out`` written).
+
+    The rectangle is sampled on its own lattice, one point per cell (``round(e_L) × round(e_l)`` points,
+    nearest cell). A notch keeps ``k_u`` lattice columns and ``k_v`` rows at one corner, with
+    ``k ≥ 2 edge_w`` cells on each axis (the inner sides' edge bands lie inside the rectangle) and at least
+    ``smin`` cells left on each axis (the two arms of the L stay building-sized). On a date, a notch passes
+    when under half of its cells with a height stand above ``min_h`` on the height map (the height term's
+    "raised", 0.5 its Q midpoint) and the mean gradient across its two inner sides, over their edge bands
+    (``edge_w`` lattice steps on each side of the cut, along the notch), exceeds that image's ``d_grad`` (the
+    gradient term's Q midpoint: what the model calls an outline's edge). Of the notches that pass on every
+    date of ``use``, the one whose cuts lie on the strongest edges wins: the largest Σ over dates of the mean
+    gradient across the two lattice lines on either side of each cut, / ``d_grad``. Lattice points off the
+    grid count nowhere: a rectangle the grid's border cuts is judged on what the grid shows of it, and one
+    arm of its L may lie wholly off the grid.
+
+    Parameters
+    ----------
+    rects : float64 (n, 5); use : bool (n, m)
+    mags, oris : float32 (m, H, W) — gradient magnitude and orientation per image
+    hmaps : float32 (m, H, W) — the height term's map per date (m above ground; NaN: no height)
+    valids : bool (m, H, W) — valid image cells
+    min_h, edge_w, smin : float (m, cells, cells); d_grad : float64 (m,)
+    out : float64 (n, 5), written: corner signs s_u, s_v (±1; 0, 0 when no notch passes), the notch's
+        sides a_u, a_v (cells) and its score
+    """
+    m, H, W = mags.shape
+    ew = max(1, int(round(edge_w)))
+    for r in range(rects.shape[0]):
+        out[r, 0] = 0.0
+        out[r, 1] = 0.0
+        out[r, 2] = 0.0
+        out[r, 3] = 0.0
+        out[r, 4] = -1.0
+        cx, cy, eL, el, th = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3], rects[r, 4]
+        nu = max(1, int(round(eL)))
+        nv = max(1, int(round(el)))
+        du = eL / nu
+        dv = el / nv
+        ku0 = max(2 * ew, int(math.ceil(2.0 * edge_w / du - 1e-9)))
+        kv0 = max(2 * ew, int(math.ceil(2.0 * edge_w / dv - 1e-9)))
+        ku1 = min(int(math.floor((eL - smin) / du + 1e-9)), nu - 2)
+        kv1 = min(int(math.floor((el - smin) / dv + 1e-9)), nv - 2)
+        if ku1 < ku0 or kv1 < kv0:
+            continue
+        c = math.cos(th)
+        s = math.sin(th)
+        ks = np.empty(m, np.int64)
+        nk = 0
+        for k in range(m):
+            if use[r, k]:
+                ks[nk] = k
+                nk += 1
+        if nk == 0:
+            continue
+        SR = np.zeros((nk, nv + 1, nu + 1))
+        SF = np.zeros((nk, nv + 1, nu + 1))
+        SGU = np.zeros((nk, nv + 1, nu + 1))
+        SGV = np.zeros((nk, nv + 1, nu + 1))
+        SV = np.zeros((nk, nv + 1, nu + 1))
+        for a in range(nk):
+            k = ks[a]
+            R = np.zeros((nv, nu))
+            F = np.zeros((nv, nu))
+            GU = np.zeros((nv, nu))
+            GV = np.zeros((nv, nu))
+            V = np.zeros((nv, nu))
+            for q in range(nv):
+                vv = -0.5 * el + (q + 0.5) * dv
+                for p in range(nu):
+                    uu = -0.5 * eL + (p + 0.5) * du
+                    j = int(math.floor(cx + c * uu + s * vv + 0.5))
+                    i = int(math.floor(cy - s * uu + c * vv + 0.5))
+                    if i < 0 or j < 0 or i >= H or j >= W:
+                        continue
+                    h = hmaps[k, i, j]
+                    if h == h:
+                        F[q, p] = 1.0
+                        if h > min_h:
+                            R[q, p] = 1.0
+                    if valids[k, i, j]:
+                        V[q, p] = 1.0
+                        d = oris[k, i, j] - th
+                        GU[q, p] = mags[k, i, j] * abs(math.cos(d))
+                        GV[q, p] = mags[k, i, j] * abs(math.sin(d))
+            SR[a] = _integral(R)
+            SF[a] = _integral(F)
+            SGU[a] = _integral(GU)
+            SGV[a] = _integral(GV)
+            SV[a] = _integral(V)
+        best = -1.0
+        for corner in range(4):
+            su = 1 if corner % 2 == 0 else -1
+            sv = 1 if corner < 2 else -1
+            for ku in range(ku0, ku1 + 1):
+                # notch columns, and the columns of the band across its side normal to u
+                p0 = nu - ku if su > 0 else 0
+                p1 = nu if su > 0 else ku
+                cut_u = nu - ku if su > 0 else ku
+                bu0 = max(cut_u - ew, 0)
+                bu1 = min(cut_u + ew, nu)
+                for kv in range(kv0, kv1 + 1):
+                    q0 = nv - kv if sv > 0 else 0
+                    q1 = nv if sv > 0 else kv
+                    cut_v = nv - kv if sv > 0 else kv
+                    bv0 = max(cut_v - ew, 0)
+                    bv1 = min(cut_v + ew, nv)
+                    score = 0.0
+                    ok = True
+                    for a in range(nk):
+                        f = _box(SF[a], q0, q1, p0, p1)
+                        if f <= 0 or _box(SR[a], q0, q1, p0, p1) >= 0.5 * f:
+                            ok = False
+                            break
+                        n1 = _box(SV[a], q0, q1, bu0, bu1)
+                        n2 = _box(SV[a], bv0, bv1, p0, p1)
+                        if n1 + n2 <= 0:
+                            ok = False
+                            break
+                        g = (_box(SGU[a], q0, q1, bu0, bu1) + _box(SGV[a], bv0, bv1, p0, p1)) / (n1 + n2)
+                        if not g > d_grad[ks[a]]:
+                            ok = False
+                            break
+                        # the score reads the two lattice lines on either side of each cut: a band of
+                        # 2 edge_w holds an edge at several cut positions, these lines only at the edge
+                        m1 = _box(SV[a], q0, q1, cut_u - 1, cut_u + 1)
+                        m2 = _box(SV[a], cut_v - 1, cut_v + 1, p0, p1)
+                        score += ((_box(SGU[a], q0, q1, cut_u - 1, cut_u + 1)
+                                   + _box(SGV[a], cut_v - 1, cut_v + 1, p0, p1)) / max(m1 + m2, 1.0)) / d_grad[ks[a]]
+                    if ok and score > best:
+                        best = score
+                        out[r, 0] = su
+                        out[r, 1] = sv
+                        out[r, 2] = ku * du
+                        out[r, 3] = kv * dv
+                        out[r, 4] = score
+    return out
+
+
+def carve_corners_ref(rects, use, mags, oris, hmaps, valids, min_h, edge_w, smin, d_grad) -> np.ndarray:
+    """numpy reference of :func:`carve_corners` (returns ``out``): masks on the lattice, no integral images."""
+    m, H, W = mags.shape
+    ew = max(1, int(round(edge_w)))
+    out = np.zeros((rects.shape[0], 5))
+    out[:, 4] = -1.0
+    for r, (cx, cy, eL, el, th) in enumerate(rects):
+        nu, nv = max(1, int(round(eL))), max(1, int(round(el)))
+        du, dv = eL / nu, el / nv
+        ku0 = max(2 * ew, int(np.ceil(2.0 * edge_w / du - 1e-9)))
+        kv0 = max(2 * ew, int(np.ceil(2.0 * edge_w / dv - 1e-9)))
+        ku1 = min(int(np.floor((eL - smin) / du + 1e-9)), nu - 2)
+        kv1 = min(int(np.floor((el - smin) / dv + 1e-9)), nv - 2)
+        ks = [k for k in range(m) if use[r, k]]
+        if ku1 < ku0 or kv1 < kv0 or not ks:
+            continue
+        uu = -0.5 * eL + (np.arange(nu) + 0.5) * du
+        vv = -0.5 * el + (np.arange(nv) + 0.5) * dv
+        U, Vv = np.meshgrid(uu, vv)
+        c, s = np.cos(th), np.sin(th)
+        j = np.floor(cx + c * U + s * Vv + 0.5).astype(int)
+        i = np.floor(cy - s * U + c * Vv + 0.5).astype(int)
+        on = (i >= 0) & (j >= 0) & (i < H) & (j < W)
+        ic, jc = np.clip(i, 0, H - 1), np.clip(j, 0, W - 1)
+        lat = {}
+        for k in ks:
+            h = np.where(on, hmaps[k][ic, jc], np.nan)
+            val = on & valids[k][ic, jc]
+            d = oris[k][ic, jc] - th
+            lat[k] = (np.isfinite(h), np.isfinite(h) & (h > min_h), val,
+                      np.where(val, mags[k][ic, jc] * np.abs(np.cos(d)), 0.0),
+                      np.where(val, mags[k][ic, jc] * np.abs(np.sin(d)), 0.0))
+        P, Q_ = np.meshgrid(np.arange(nu), np.arange(nv))
+        best = -1.0
+        for corner in range(4):
+            su, sv = (1 if corner % 2 == 0 else -1), (1 if corner < 2 else -1)
+            for ku in range(ku0, ku1 + 1):
+                cols = (P >= nu - ku) if su > 0 else (P < ku)
+                cut_u = nu - ku if su > 0 else ku
+                band_u = (P >= cut_u - ew) & (P < cut_u + ew)
+                for kv in range(kv0, kv1 + 1):
+                    rows = (Q_ >= nv - kv) if sv > 0 else (Q_ < kv)
+                    cut_v = nv - kv if sv > 0 else kv
+                    band_v = (Q_ >= cut_v - ew) & (Q_ < cut_v + ew)
+                    notch, e1, e2 = cols & rows, rows & band_u, cols & band_v
+                    l1 = rows & (P >= cut_u - 1) & (P < cut_u + 1)
+                    l2 = cols & (Q_ >= cut_v - 1) & (Q_ < cut_v + 1)
+                    score, ok = 0.0, True
+                    for k in ks:
+                        fin, rai, val, gu, gv = lat[k]
+                        f = fin[notch].sum()
+                        n = val[e1].sum() + val[e2].sum()
+                        if f == 0 or rai[notch].sum() >= 0.5 * f or n == 0:
+                            ok = False
+                            break
+                        g = (gu[e1].sum() + gv[e2].sum()) / n
+                        if not g > d_grad[k]:
+                            ok = False
+                            break
+                        gl = (gu[l1].sum() + gv[l2].sum()) / max(val[l1].sum() + val[l2].sum(), 1)
+                        score += gl / d_grad[k]
+                    if ok and score > best:
+                        best = score
+                        out[r] = (su, sv, ku * du, kv * dv, score)
+    return out

@@ -302,6 +302,9 @@ class MPPResult:
     confidence : float64 (n,) — % : the Gibbs probability of the object given the others (β = 1)
     xi_confidence : float64 (n,) — % : probability of its ξ label among the three (same model)
     iterations, converged, births, energy_total, history
+    object_id : int64 (n,) or None — the annealed object each rectangle belongs to: the two rectangles of an
+        L cut from one object (``MPPParams.edge_fit_carve``) share it and carry its energies and confidences
+        (``energy_total`` counts the object once); None: every rectangle is its own object
     """
 
     rects: np.ndarray
@@ -316,6 +319,7 @@ class MPPResult:
     energy_total: float = 0.0
     history: list = field(default_factory=list)
     notes: list = field(default_factory=list)
+    object_id: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.rects.shape[0])
@@ -576,10 +580,80 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
     if pi_all.size:
         both = alive[pi_all] & alive[pj_all]
         inter_tot = float(w_all[both].sum())
-    return MPPResult(rects=rects[keep].copy(), xi=xi[keep].copy(), energy=energy[keep].copy(), phi=phis[keep].copy(),
-                     confidence=conf, xi_confidence=xi_conf, iterations=it, converged=converged,
-                     births=total_births, energy_total=float(energy[keep].sum() + params.gamma_overlap * inter_tot),
-                     history=history, notes=fit_notes)
+    energy_total = float(energy[keep].sum() + params.gamma_overlap * inter_tot)
+    # --- L-shaped outlines: a corner notch cut from a kept object -------------------------------------
+    out_rects, obj = rects[keep].copy(), np.arange(keep.size)
+    object_id = None
+    if params.edge_fit_carve and params.edge_fit == "joint" and with_dsm and keep.size:
+        out_rects, obj = carve_notches(model, out_rects, xi[keep])
+        n_cut = int(out_rects.shape[0] - keep.size)
+        object_id = obj
+        fit_notes.append(f"corner notch: {n_cut} of {keep.size} objects cut into an L (two rectangles; notch "
+                         "not raised and edged on every date the object exists on)")
+    return MPPResult(rects=out_rects, xi=xi[keep][obj].copy(), energy=energy[keep][obj].copy(),
+                     phi=phis[keep][obj].copy(), confidence=conf[obj], xi_confidence=xi_conf[obj], iterations=it,
+                     converged=converged, births=total_births, energy_total=energy_total, history=history,
+                     notes=fit_notes, object_id=object_id)
+
+
+def l_pieces(rect: np.ndarray, su: float, sv: float, a: float, b: float) -> np.ndarray:
+    """The two rectangles of the L left when the corner notch of sides ``a`` (along e_L) × ``b`` (along e_l)
+    at corner (``su``, ``sv``) (±1: the signs of u and v there) is cut from ``rect``.
+
+    Of the two ways to cut an L into rectangles, the one whose narrower piece is wider: the full-length arm
+    along the notch's shorter side.
+
+    Returns
+    -------
+    float64 (2, 5): the full arm first, then the short one (they share one side; their union is the L)
+    """
+    cx, cy, eL, el, th = (float(x) for x in rect)
+    c, s = math.cos(th), math.sin(th)
+    if b >= a:      # arms: the whole e_L side × (e_l − b), and (e_L − a) × b
+        pieces = [(0.0, -sv * 0.5 * b, eL, el - b), (-su * 0.5 * a, sv * 0.5 * (el - b), eL - a, b)]
+    else:           # arms: (e_L − a) × the whole e_l side, and a × (e_l − b)
+        pieces = [(-su * 0.5 * a, 0.0, eL - a, el), (su * 0.5 * (eL - a), -sv * 0.5 * b, a, el - b)]
+    # (u, v) → (dx, dy): the inverse rotation of the kernels' u = dx c − dy s, v = dx s + dy c
+    return np.array([(cx + c * u + s * v, cy - s * u + c * v, L, l, th) for u, v, L, l in pieces])
+
+
+def carve_notches(model: EnergyModel, rects: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cut the best corner notch (:func:`_kernels.carve_corners`) from each rectangle that has one.
+
+    Parameters
+    ----------
+    rects : float64 (n, 5); xi : int8 (n,)
+
+    Returns
+    -------
+    rects : float64 (n', 5) — an uncut rectangle as it was, a cut one as the two rectangles of its L
+        (:func:`l_pieces`), in the order of the input
+    object_id : int64 (n',) — the input row each output rectangle comes from
+    """
+    feats = [t.features for t in model.terms]
+    use = np.ones((rects.shape[0], len(feats)), bool)
+    if len(feats) == 2:
+        use[:, 0] = xi != ONLY_2
+        use[:, 1] = xi != ONLY_1
+    out = np.empty((rects.shape[0], 5))
+    K.carve_corners(np.ascontiguousarray(rects, np.float64), use,
+                    np.stack([f.grad_mag for f in feats]).astype(np.float32),
+                    np.stack([f.grad_ori for f in feats]).astype(np.float32),
+                    np.stack([model._height_map(f) for f in feats]).astype(np.float32),
+                    np.stack([f.valid for f in feats]).astype(np.bool_),
+                    float(model.params.min_height_m), float(model.edge_w), float(model.smin),
+                    np.array([t.d_gradient for t in model.terms], np.float64), out)
+    rows, ids = [], []
+    for r in range(rects.shape[0]):
+        if out[r, 0] != 0.0:
+            rows.append(l_pieces(rects[r], out[r, 0], out[r, 1], out[r, 2], out[r, 3]))
+            ids += [r, r]
+        else:
+            rows.append(rects[r][None, :])
+            ids.append(r)
+    if not rows:
+        return rects.copy(), np.zeros(0, np.int64)
+    return np.concatenate(rows), np.array(ids, np.int64)
 
 
 def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.ndarray,

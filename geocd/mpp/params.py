@@ -127,6 +127,15 @@ class MPPParams(ParamsMixin):
         reads lower and rougher: on four generated towns the energy preferred the found, too small rectangle
         for 20–25 of 25–30 buildings (docs/mpp.md). The growth reads the DSM's raised block instead. A_D is
         not compared, as for the side fit
+    edge_fit_carve : beyond the paper, with ``edge_fit="joint"`` and DSMs: after the clean-up, a corner
+        notch is cut from a kept rectangle when its cells are not raised (under half of them above
+        ``min_height_m`` on the height term's map, its Q midpoint) and its two inner sides are edges (their
+        mean gradient across them above the gradient term's d, the Q midpoint) on every date the object exists
+        on; the notch keeps at least ``side_min_m`` of the rectangle on each axis, and each of its sides is at
+        least two edge bands (2 ``edge_width_m``). The rectangle is then written as the two rectangles of an L,
+        with the object's energies and confidences (``MPPResult.object_id``). A rectangle's fractions let one
+        rectangle cover an L-shaped building whose inner corner the stereo DSM fills with its blurred walls;
+        the notch reads the image's edges there (docs/mpp.md, "L-shaped buildings")
     wall_blur : beyond the paper, with the height term: how it reads a stereo DSM's blurred walls, whose
         extent is measured on each image without truth (``features.wall_blur_m``: the median nDSM profile
         across the image's strong edges where the DSM has a wall rises from 10 % of the wall's height
@@ -185,6 +194,7 @@ class MPPParams(ParamsMixin):
     edge_fit: str = "joint"
     edge_fit_rotate: bool = True
     edge_fit_grow: bool = True
+    edge_fit_carve: bool = True
     wall_blur: str = "off"
     absence: str = "off"
     beta0: float = 10.0

@@ -63,6 +63,8 @@ def rectangles_frame(detection, grid: AOIGrid, epoch_a: str = "A", epoch_b: str 
     xi = np.asarray(r.xi)
     df = gpd.GeoDataFrame({
         "rect_id": np.arange(len(r), dtype=np.int32),
+        # the annealed object: the two rectangles of an L cut from one object share it
+        "object_id": (np.arange(len(r)) if r.object_id is None else np.asarray(r.object_id)).astype(np.int32),
         "change": [XI_NAMES[int(x)] for x in xi],
         "xi": ["*" if x == BOTH else str(int(x)) for x in xi],
         f"present_{epoch_a}": xi != ONLY_2,

@@ -332,6 +332,8 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                   cli="--edge-fit-turn", default=0, options=(("on", "on"), ("off", "off")), advanced=True),
             Param("EDGE_FIT_GROW", "enum", "Grow the rectangles over the raised block they stand on, then onto its walls",
                   cli="--edge-fit-grow", default=0, options=(("on", "on"), ("off", "off")), advanced=True),
+            Param("EDGE_FIT_CARVE", "enum", "Cut a corner notch (an L of two rectangles) where the image and DSM show one",
+                  cli="--edge-fit-carve", default=0, options=(("on", "on"), ("off", "off")), advanced=True),
             Param("WALL_BLUR", "enum", "Height term: skip the DSM's blurred walls (measured on each image)",
                   cli="--wall-blur", default=0, options=(("off", "off"), ("measured", "measured")), advanced=True),
             Param("ABSENCE", "enum", "A new or demolished building needs ground there in the other date's DSM",

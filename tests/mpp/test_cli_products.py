@@ -138,3 +138,27 @@ def test_the_filled_band_of_a_given_dsm_is_read(tmp_path):
     assert r.exit_code == 0, r.output
     notes = json.loads((out / "mpp_summary.json").read_text())["notes"]
     assert any("inside raised surfaces" in n and f"{filled.sum()} cells on date A" in n for n in notes), notes
+
+
+def test_the_two_rectangles_of_an_l_are_one_building():
+    """The rectangle layer says which annealed object each rectangle comes from (``object_id``); the building
+    layer unions the two rectangles of an L cut from one object into one L-shaped polygon of the L's area."""
+    from geocd.mpp.detect import Detection
+    from geocd.mpp.model import MPPResult, l_pieces
+    from geocd.mpp.products import buildings_frame, rectangles_frame
+
+    grid = AOIGrid("EPSG:32631", Affine(0.5, 0, 500000.0, 0, -0.5, 4800000.0), 200, 200)
+    box = np.array([60.0, 58.0, 40.0, 30.0, 0.3])
+    ell = l_pieces(box, 1.0, 1.0, 16.0, 12.0)
+    rects = np.vstack([ell, [[150.0, 150.0, 20.0, 20.0, 0.0]]])
+    n = len(rects)
+    res = MPPResult(rects=rects, xi=np.zeros(n, np.int8), energy=np.full(n, -0.5), phi=np.full((n, 2), -0.5),
+                    confidence=np.full(n, 60.0), xi_confidence=np.full(n, 90.0), object_id=np.array([0, 0, 1]))
+    df = rectangles_frame(Detection(res, "ED", ()), grid)
+    assert df["object_id"].tolist() == [0, 0, 1]
+    bld = buildings_frame(df)
+    assert len(bld) == 2
+    big = bld.loc[bld["n_rectangles"] == 2].iloc[0]
+    # 40 × 30 cells less the 16 × 12 notch, at 0.25 m² a cell
+    assert big["area_m2"] == pytest.approx((40 * 30 - 16 * 12) * 0.25, abs=0.2)
+    assert big.geometry.geom_type == "Polygon" and len(big.geometry.exterior.coords) - 1 >= 6
