@@ -26,6 +26,8 @@ Usage (from the repository root)::
         --json docs/mpp_grow_kahramanmaras.json KEY     # the growth over the raised block, no truth
     .venv/bin/python docs/mpp_show.py notches MPP_OUT /tmp/kahra2 [--png docs/mpp_notches_kahramanmaras.png] \
         --json docs/mpp_notches.json kahramanmaras     # the corner notches (L-shaped outlines), no truth
+    .venv/bin/python docs/mpp_show.py notches-town TOWN ORTHO_DIR 0,1,2,3,4 [--png PNG] \
+        --json docs/mpp_notches.json KEY               # the notches on a generated town, against its truth
     .venv/bin/python docs/mpp_show.py false sample_aoi /tmp/ortho_run 0,1,2 [absence]   # what the false objects are
     .venv/bin/python docs/mpp_show.py missed-changes sample_aoi /tmp/ortho_run 0   # each change, absence off / on
     .venv/bin/python docs/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
@@ -1071,6 +1073,97 @@ def notches(mpp_dir: Path, run_dir: Path, png: Path | None = None, n_show: int =
     return out
 
 
+def _whole_rect(rects: np.ndarray) -> np.ndarray:
+    """The rectangle an L's pieces were cut from (they share θ): their bounding box in the rectangle's frame."""
+    th = float(rects[0, 4])
+    c, s = np.cos(th), np.sin(th)
+    us, vs = [], []
+    for x, y, eL, el, _ in rects:
+        for du in (-eL / 2, eL / 2):
+            for dv in (-el / 2, el / 2):
+                px, py = x + c * du + s * dv, y - s * du + c * dv
+                us.append(px * c - py * s)
+                vs.append(px * s + py * c)
+    uc, vc = (min(us) + max(us)) / 2, (min(vs) + max(vs)) / 2
+    return np.array([[uc * c + vc * s, -uc * s + vc * c, max(us) - min(us), max(vs) - min(vs), th]])
+
+
+def town_notches(name: Path, ortho_dir: Path, seeds=(0,), png: Path | None = None) -> dict:
+    """The corner notches geocd mpp's default cuts on a generated town, against its truth: per cut object and
+    date, the notch's cells on a true building of that date, raised in the DSM (> ``min_height_m``), planar,
+    raised *and* planar (what the rule reads as raised), and above half the rectangle's median height.
+    ``png``: the cut objects of the first seed (ortho and nDSM of each date; green the truth of that date,
+    red the L)."""
+    inp = _town_inputs(name, ortho_dir)
+    grid = inp["grid"]
+    runs = []
+    for seed in seeds:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            det = detect(inp["image_a"], inp["image_b"], grid.posting_m, MPPParams(height="and", seed=seed),
+                         method="ED", valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"],
+                         dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+        r = det.result
+        oid = r.object_id if r.object_id is not None else np.arange(len(r))
+        rows = []
+        for k in np.unique(oid):
+            idx = np.flatnonzero(oid == k)
+            if len(idx) < 2:
+                continue
+            ell = rect_masks(r.rects[idx], r.xi[idx], grid.shape)["any"]
+            whole = rect_masks(_whole_rect(r.rects[idx]), r.xi[idx[:1]], grid.shape)["any"]
+            notch = whole & ~ell
+            row = {"object": int(k), "change": ["unchanged", "demolished", "new"][int(r.xi[idx[0]])],
+                   "notch_cells": int(notch.sum()), "dates": {}}
+            for d, (f, t) in enumerate(zip(det.features, (inp["t1"], inp["t2"]))):
+                if (d == 0 and r.xi[idx[0]] == 2) or (d == 1 and r.xi[idx[0]] == 1):
+                    continue      # the object does not exist on this date: the rule does not read it
+                nd, pl = f.ndsm[notch], f.planar[notch]
+                med = float(np.nanmedian(f.ndsm[whole]))
+                h = MPPParams().min_height_m
+                row["dates"][str(d + 1)] = {
+                    "on_truth": round(float(t[notch].mean()), 2), "raised": round(float(np.mean(nd > h)), 2),
+                    "planar": round(float(np.nanmean(pl)), 2),
+                    "raised_and_planar": round(float(np.mean((nd > h) & (pl == 1))), 2),
+                    "above_half_median": round(float(np.mean(nd > 0.5 * med)), 2), "median_m": round(med, 1)}
+            rows.append(row)
+        runs.append({"seed": seed, "objects": int(np.unique(oid).size), "cut": rows})
+        print(json.dumps(runs[-1]), flush=True)
+        if png is not None and seed == seeds[0] and rows:
+            import matplotlib
+
+            matplotlib.use("Agg")
+            import matplotlib.pyplot as plt
+            from skimage import measure
+
+            fig, axs = plt.subplots(len(rows), 4, figsize=(10, 2.6 * len(rows)), squeeze=False)
+            for n, row in enumerate(rows):
+                idx = np.flatnonzero(oid == row["object"])
+                ell = rect_masks(r.rects[idx], r.xi[idx], grid.shape)["any"]
+                ii, jj = np.nonzero(ell)
+                sl = (slice(max(ii.min() - 15, 0), ii.max() + 16), slice(max(jj.min() - 15, 0), jj.max() + 16))
+                panels = [(inp["image_a"][0], "ortho A", inp["t1"]), (inp["dsm_a"] - inp["ground"], "nDSM A", inp["t1"]),
+                          (inp["image_b"][0], "ortho B", inp["t2"]), (inp["dsm_b"] - inp["ground"], "nDSM B", inp["t2"])]
+                for m, (arr, title, t) in enumerate(panels):
+                    ax = axs[n, m]
+                    ax.imshow(arr[sl], cmap="gray" if m % 2 == 0 else "viridis",
+                              **({} if m % 2 == 0 else {"vmin": 0, "vmax": 12}))
+                    for ct in measure.find_contours(t[sl].astype(float), 0.5):
+                        ax.plot(ct[:, 1], ct[:, 0], "lime", lw=1)
+                    for ct in measure.find_contours(ell[sl].astype(float), 0.5):
+                        ax.plot(ct[:, 1], ct[:, 0], "r", lw=1.2)
+                    ax.set_title(f"#{row['object']} {row['change']}: {title}", fontsize=8)
+                    ax.axis("off")
+            fig.suptitle(f"{name} seed {seeds[0]}: the corner notches (green truth of the date, red the L; "
+                         "nDSM 0-12 m)", fontsize=9)
+            fig.tight_layout()
+            fig.savefig(png, dpi=64)
+            plt.close(fig)
+    out = {"scene": str(name), "runs": runs, "png": str(png) if png else None,
+           "command": f"docs/mpp_show.py notches-town {name} {ortho_dir} {','.join(map(str, seeds))}"}
+    return out
+
+
 def pd_counts(values) -> dict:
     """Counts of each value (a dict, for JSON)."""
     u, c = np.unique(np.asarray(values, dtype=str), return_counts=True)
@@ -1530,6 +1623,13 @@ if __name__ == "__main__":
         res = notches(Path(args[0]), Path(args[1]), Path(png) if png else None)
         if len(args) > 4 and args[2] == "--json":
             _store(Path(args[3]), args[4], res)
+    elif what == "notches-town":   # notches-town TOWN ORTHO_DIR SEEDS [--png PNG] [--json OUT KEY]: vs truth
+        args = sys.argv[2:]
+        png = _pop(args, "--png")
+        res = town_notches(Path(args[0]), Path(args[1]), tuple(int(x) for x in args[2].split(",")),
+                           Path(png) if png else None)
+        if len(args) > 5 and args[3] == "--json":
+            _store(Path(args[4]), args[5], res)
     elif what == "roof-dsm":   # roof-dsm TOWN ORTHO_DIR [--json OUT]: the stereo DSM on shaded and sunlit roofs
         res = roof_dsm(Path(sys.argv[2]), Path(sys.argv[3]))
         if len(sys.argv) > 5 and sys.argv[4] == "--json":
