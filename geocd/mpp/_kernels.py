@@ -1391,6 +1391,17 @@ def _integral(a):
     return S
 
 
+@njit(cache=True, inline="always")
+def _notch_span(n, k, sign, ew):
+    """On one lattice axis of ``n`` points, a notch of ``k`` points at the ``sign`` end: its range [a, b), the
+    cut (the boundary between the notch and the rest: points cut − 1 and cut lie on either side of it), and
+    the edge band [cut − ew, cut + ew) clipped to the axis."""
+    a = n - k if sign > 0 else 0
+    b = n if sign > 0 else k
+    cut = n - k if sign > 0 else k
+    return a, b, cut, max(cut - ew, 0), min(cut + ew, n)
+
+
 @njit(cache=True)
 def carve_corners(rects, use, mags, oris, hmaps, valids, min_h, edge_w, smin, d_grad, out):
     """The best corner notch of each rectangle: a corner rectangle to cut away, whose cells are not raised
@@ -1489,17 +1500,9 @@ def carve_corners(rects, use, mags, oris, hmaps, valids, min_h, edge_w, smin, d_
             sv = 1 if corner < 2 else -1
             for ku in range(ku0, ku1 + 1):
                 # notch columns, and the columns of the band across its side normal to u
-                p0 = nu - ku if su > 0 else 0
-                p1 = nu if su > 0 else ku
-                cut_u = nu - ku if su > 0 else ku
-                bu0 = max(cut_u - ew, 0)
-                bu1 = min(cut_u + ew, nu)
+                p0, p1, cut_u, bu0, bu1 = _notch_span(nu, ku, su, ew)
                 for kv in range(kv0, kv1 + 1):
-                    q0 = nv - kv if sv > 0 else 0
-                    q1 = nv if sv > 0 else kv
-                    cut_v = nv - kv if sv > 0 else kv
-                    bv0 = max(cut_v - ew, 0)
-                    bv1 = min(cut_v + ew, nv)
+                    q0, q1, cut_v, bv0, bv1 = _notch_span(nv, kv, sv, ew)
                     score = 0.0
                     ok = True
                     for a in range(nk):
