@@ -203,6 +203,9 @@ def _model(path: Path, kw: dict[str, Any]) -> RPCModel:
     try:
         model = RPCModel(**kw)
     except RPCParseError as exc:
+        bad = _start_failure_cause(kw)
+        if bad:
+            raise _implausible(f"{path}: ", bad) from None
         msg = str(exc)
         raise RPCParseError(msg if str(path) in msg else f"{path}: {msg}") from None
     check_rpc_plausible(model, path)
@@ -242,32 +245,57 @@ def check_rpc_plausible(model: RPCModel, path: os.PathLike | str | None = None) 
     RPCParseError
     """
     where = f"{path}: " if path is not None else ""
-    bad = []
-    for name, lo, hi, what in PLAUSIBLE_RANGES:
-        v = float(getattr(model, name))
-        if not (lo <= v <= hi):
-            bad.append(f"{_VENDOR_KEY[name]}={v:g} is not {what} (expected {lo:g}..{hi:g})")
-    for name, lo, hi, unit in PLAUSIBLE_SCALES:
-        v = abs(float(getattr(model, name)))
-        if not (lo <= v <= hi):
-            bad.append(f"{_VENDOR_KEY[name]}={getattr(model, name):g} is outside {lo:g}..{hi:g} {unit}")
-    for name in _COEF_NAMES:
-        c = np.asarray(getattr(model, name), float)
-        big = np.abs(c) > MAX_ABS_COEFFICIENT
-        if big.any():
-            k = int(np.argmax(np.abs(c)))
-            bad.append(f"{_VENDOR_KEY[name]}_{k + 1}={c[k]:g} is not a plausible coefficient "
-                       f"(|c| > {MAX_ABS_COEFFICIENT:g})")
+    bad = _field_problems(lambda name: getattr(model, name))
     if not bad:
         with np.errstate(all="ignore"):
             c, r = model.project_reference(model.lon_off, model.lat_off, model.height_off)  # no compile
         if not (np.isfinite(c) and np.isfinite(r) and abs(float(c)) < 1e9 and abs(float(r)) < 1e9):
             bad.append(f"the model's own centre projects to a non-finite pixel ({float(c):g}, {float(r):g})")
     if bad:
-        raise RPCParseError(f"{where}implausible RPC: {'; '.join(bad[:4])}"
-                            f"{f'; and {len(bad) - 4} more' if len(bad) > 4 else ''}. The file is corrupt or not this "
-                            "image's camera; re-export it from the original product")
+        raise _implausible(where, bad)
     return model
+
+
+def _field_problems(get: Callable[[str], Any]) -> list[str]:
+    """What is implausible in an RPC's offsets, scales and coefficients (``get(field name)`` reads a field):
+    one sentence each, empty when nothing is."""
+    bad = []
+    for name, lo, hi, what in PLAUSIBLE_RANGES:
+        v = float(get(name))
+        if not (lo <= v <= hi):
+            bad.append(f"{_VENDOR_KEY[name]}={v:g} is not {what} (expected {lo:g}..{hi:g})")
+    for name, lo, hi, unit in PLAUSIBLE_SCALES:
+        v = float(get(name))
+        if not (lo <= abs(v) <= hi):
+            bad.append(f"{_VENDOR_KEY[name]}={v:g} is outside {lo:g}..{hi:g} {unit}")
+    for name in _COEF_NAMES:
+        c = np.asarray(get(name), float).reshape(-1)
+        if (np.abs(c) > MAX_ABS_COEFFICIENT).any():
+            k = int(np.argmax(np.abs(c)))
+            bad.append(f"{_VENDOR_KEY[name]}_{k + 1}={c[k]:g} is not a plausible coefficient "
+                       f"(|c| > {MAX_ABS_COEFFICIENT:g})")
+    return bad
+
+
+def _start_failure_cause(kw: dict[str, Any]) -> list[str]:
+    """Why a model whose fields are all finite numbers (they passed the model's own checks) failed its
+    numerical start: an implausible field (a coefficient of 1e300) makes the affine part singular or not by
+    the last bits of the BLAS, so the field, the cause, is named. Empty when a field is missing, not a
+    number, not finite or a zero scale: the model's own message names that field."""
+    norm = [n for n, *_ in (*PLAUSIBLE_RANGES, *PLAUSIBLE_SCALES)]
+    try:
+        values = [np.asarray(kw[n], float) for n in (*_COEF_NAMES, *norm)]
+        if not all(np.all(np.isfinite(v)) for v in values) or any(float(kw[n]) == 0 for n, *_ in PLAUSIBLE_SCALES):
+            return []
+        return _field_problems(kw.__getitem__)
+    except (KeyError, TypeError, ValueError, OverflowError):
+        return []
+
+
+def _implausible(where: str, bad: list[str]) -> RPCParseError:
+    return RPCParseError(f"{where}implausible RPC: {'; '.join(bad[:4])}"
+                         f"{f'; and {len(bad) - 4} more' if len(bad) > 4 else ''}. The file is corrupt or not this "
+                         "image's camera; re-export it from the original product")
 
 
 #: NITF RPC00A/RPC00B TRE layout (STDI-0002): field widths after SUCCESS, ERR_BIAS, ERR_RAND

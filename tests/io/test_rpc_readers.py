@@ -420,6 +420,22 @@ def test_bad_values_are_named(written, tmp_path):
     _expect_parse_error(p, "lon_off")
 
 
+def test_an_implausible_coefficient_is_named_even_when_the_model_cannot_be_built(written, tmp_path, monkeypatch):
+    """A coefficient of 1e300 may or may not make the model's affine start singular, by the last bits of the
+    BLAS; either way the error names the coefficient, the cause."""
+    p = tmp_path / "big_rpc.txt"
+    p.write_text(written["ikonos_rpc.txt"].read_text().replace("SAMP_NUM_COEFF_2: ", "SAMP_NUM_COEFF_2: 1e300 #"))
+    _expect_parse_error(p, "SAMP_NUM_COEFF_2=1e+300 is not a plausible coefficient")
+
+    def singular(self):
+        raise RPCParseError("the RPC does not map ground to image one-to-one (singular affine part)")
+
+    monkeypatch.setattr(RPCModel, "_affine_start", singular)
+    _expect_parse_error(p, "SAMP_NUM_COEFF_2=1e+300 is not a plausible coefficient")
+    # a plausible model whose start fails keeps the constructor's own message
+    _expect_parse_error(written["ikonos_rpc.txt"], "singular affine part")
+
+
 @pytest.mark.parametrize("content,needle", [
     ("", "not an RPC file"),
     ("hello world\n", "not an RPC file"),

@@ -140,10 +140,17 @@ def test_committed_rpcs_refit_from_the_truth_cameras(sample):
 
 
 @pytest.mark.slow
-def test_regenerates_bit_for_bit(sample_aoi, sample, tmp_path):
-    """`geocd synth --out DIR --seed 0` reproduces the committed pixels and truth bit for bit, and RPCs that
-    project the same to 1e-6 px (their coefficients are compared to 1e-6, not bit for bit: they come from a
-    least-squares fit whose last bits follow the BLAS)."""
+def test_regenerates_to_the_last_unit(sample_aoi, sample, tmp_path):
+    """`geocd synth --out DIR --seed 0` reproduces the committed pixels and truth, and RPCs that project the
+    same to 1e-5 px (1.6e-6 px measured on an AVX-512 machine, under 1e-6 on the one that made them) with
+    coefficients equal to 1e-6 (they come from a least-squares fit whose last bits follow the BLAS).
+
+    Pixels and truth: bit for bit on the CPU that made them. On a CPU with other vector units a few pixels
+    round the other way: the renderer's float math (numba kernels compiled for the host, numpy's SIMD loops)
+    differs in the last bits (measured on an AVX-512 machine: 2 and 4 pixels of two images by 1 count, all
+    else equal; with numpy's AVX-512 loops switched off, 1 and 4). So, as sample_aoi/README.md says: images
+    within 1 count on at most 0.1 % of their pixels, the truth's float rasters within 1e-6 and its masks
+    exact."""
     from click.testing import CliRunner
 
     from geocd.cli import main
@@ -158,12 +165,20 @@ def test_regenerates_bit_for_bit(sample_aoi, sample, tmp_path):
     for f in sorted(Path(sample_aoi).rglob("*.tif")):
         g = out / f.relative_to(sample_aoi)
         with rasterio.open(f) as a, rasterio.open(g) as b:
-            np.testing.assert_array_equal(a.read(), b.read(), err_msg=str(f))
+            x, y = a.read(), b.read()
+            assert x.shape == y.shape and x.dtype == y.dtype, str(f)
+            if x.dtype.kind == "f":
+                np.testing.assert_allclose(x, y, rtol=0, atol=1e-6, equal_nan=True, err_msg=str(f))
+            elif "images" not in f.relative_to(sample_aoi).parts:     # truth masks and classes: exact
+                np.testing.assert_array_equal(x, y, err_msg=str(f))
+            else:
+                d = np.abs(x.astype(np.int64) - y.astype(np.int64))
+                assert d.max() <= 1 and np.count_nonzero(d) <= 1e-3 * d.size, (str(f), d.max(), np.count_nonzero(d))
             has_rpc = a.rpcs is not None
             assert has_rpc == (b.rpcs is not None), str(f)
         if has_rpc:
             d_px, d_coef = _rpc_agreement(f, g, fits[f.stem])
-            assert d_px < 1e-6 and d_coef < 1e-6, (str(f), d_px, d_coef)
+            assert d_px < 1e-5 and d_coef < 1e-6, (str(f), d_px, d_coef)
             n_rpc += 1
     assert n_rpc == 7
     assert (Path(sample_aoi) / "scene.yaml").read_text() == (out / "scene.yaml").read_text()
