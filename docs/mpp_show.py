@@ -66,6 +66,7 @@ sys.path.insert(0, str(REPO))
 
 from geocd.mpp.detect import detect  # noqa: E402
 from geocd.mpp.evaluate import rect_masks, sample_truth, table2, table2_change_only  # noqa: E402
+from geocd.mpp.model import XI_NAMES  # noqa: E402
 from geocd.mpp.params import MPPParams  # noqa: E402
 from geocd.mpp.products import quicklook  # noqa: E402
 
@@ -127,6 +128,14 @@ def _town_inputs(town: Path, ortho_dir: Path, fill_holes: bool = True):
     objs, t1, t2 = sample_truth(gpd.read_file(town / "truth" / "footprints_all.gpkg"), grid)
     out.update(objs=objs, t1=t1, t2=t2)
     return out
+
+
+def _detect_town(inp: dict, params: MPPParams):
+    """The joint model (ED) with ``params`` on a town's inputs (:func:`_town_inputs`): both orthos, both DSMs
+    and the ground, as geocd mpp runs it."""
+    return detect(inp["image_a"], inp["image_b"], inp["grid"].posting_m, params, method="ED",
+                  valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"],
+                  ground_m=inp["ground"])
 
 
 def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=None) -> dict:
@@ -210,8 +219,7 @@ def recall(name: Path, ortho_dir: Path, seed: int = 0, step: str = "and", edge_f
     p = MPPParams(seed=seed, height="and", step=step, edge_fit=edge_fit)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        det = detect(inp["image_a"], inp["image_b"], grid.posting_m, p, method="ED", valid_a=inp["valid_a"],
-                     valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+        det = _detect_town(inp, p)
     masks = rect_masks(det.result.rects, det.result.xi, grid.shape)
     g = gpd.read_file(name / "truth" / "footprints_all.gpkg")
     gb = box(*grid.bounds)
@@ -639,9 +647,7 @@ def edgefit_diagnose(name: Path, ortho_dir: Path, seed: int = 0) -> dict:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            det = detect(inp["image_a"], inp["image_b"], grid.posting_m, MPPParams(seed=seed, height="and"),
-                         method="ED", valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"],
-                         dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+            det = _detect_town(inp, MPPParams(seed=seed, height="and"))
     finally:
         M.fit_edges = orig
     got, before, xi = seen["got"], seen["before"], seen["xi"]
@@ -725,9 +731,7 @@ def ceiling(name: Path, ortho_dir: Path, seed: int = 0, variant: dict | None = N
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            det = detect(inp["image_a"], inp["image_b"], grid.posting_m, params, method="ED",
-                         valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"],
-                         ground_m=inp["ground"])
+            det = _detect_town(inp, params)
     finally:
         D.optimize = orig
     model = cap["model"]
@@ -830,10 +834,7 @@ def chains(name: Path, ortho_dir: Path, seeds=(0, 1, 2, 3, 4), variant: dict | N
             c0 = time.process_time()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                det = detect(inp["image_a"], inp["image_b"], grid.posting_m,
-                             MPPParams(**{"height": "and", **(variant or {}), "seed": seed}), method="ED",
-                             valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"], dsm_b=inp["dsm_b"],
-                             ground_m=inp["ground"])
+                det = _detect_town(inp, MPPParams(**{"height": "and", **(variant or {}), "seed": seed}))
             t = table2(rect_masks(det.result.rects, det.result.xi, grid.shape), inp["objs"], inp["t1"], inp["t2"])
             rows.append({"seed": seed, **{k: t[k] for k in ("DP", "DP_precision", "DP_recall", "HO", "FO", "HV", "FV")},
                          "energy_total": round(det.result.energy_total, 3), "iterations": det.result.iterations,
@@ -1100,9 +1101,7 @@ def town_notches(name: Path, ortho_dir: Path, seeds=(0,), png: Path | None = Non
     for seed in seeds:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            det = detect(inp["image_a"], inp["image_b"], grid.posting_m, MPPParams(height="and", seed=seed),
-                         method="ED", valid_a=inp["valid_a"], valid_b=inp["valid_b"], dsm_a=inp["dsm_a"],
-                         dsm_b=inp["dsm_b"], ground_m=inp["ground"])
+            det = _detect_town(inp, MPPParams(height="and", seed=seed))
         r = det.result
         oid = r.object_id if r.object_id is not None else np.arange(len(r))
         rows = []
@@ -1113,7 +1112,7 @@ def town_notches(name: Path, ortho_dir: Path, seeds=(0,), png: Path | None = Non
             ell = rect_masks(r.rects[idx], r.xi[idx], grid.shape)["any"]
             whole = rect_masks(_whole_rect(r.rects[idx]), r.xi[idx[:1]], grid.shape)["any"]
             notch = whole & ~ell
-            row = {"object": int(k), "change": ["unchanged", "demolished", "new"][int(r.xi[idx[0]])],
+            row = {"object": int(k), "change": XI_NAMES[int(r.xi[idx[0]])],
                    "notch_cells": int(notch.sum()), "dates": {}}
             for d, (f, t) in enumerate(zip(det.features, (inp["t1"], inp["t2"]))):
                 if (d == 0 and r.xi[idx[0]] == 2) or (d == 1 and r.xi[idx[0]] == 1):
