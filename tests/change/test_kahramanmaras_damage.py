@@ -155,3 +155,23 @@ def test_the_changed_part_option(kahra_run):
     assert 11 <= cls.get("partly collapsed", 0) <= 17       # 14
     assert 470_000 < fa["stable_cells"] < 540_000           # 505,564
     assert dmg["rule"].str.contains("part of").sum() >= 10
+
+
+def test_the_floor_under_the_goal(kahra_run):
+    """docs/kahramanmaras.md, "The floor under the 1 % goal": of the stable cells, 1.25 % are flagged in
+    non-building objects (0.95 % in tree objects) and 0.94 % in the changed parts, inside unchanged building
+    objects, that were judged trees or roadworks by eye. Even a perfect building layer would leave 2.2 % (1.9 %
+    counting only the trees and roadworks), so the goal of 1 % cannot be met under the issue's definition."""
+    import importlib.util
+
+    out, _ = kahra_run
+    spec = importlib.util.spec_from_file_location("kahramanmaras_floor", REPO / "docs" / "kahramanmaras_floor.py")
+    floor = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(floor)
+    f = floor.floor_figures(out)
+    assert f["stable_false_alarms_99"] == pytest.approx(0.0323, abs=0.004)
+    assert f["non_building_objects"] == pytest.approx(0.0125, abs=0.002)
+    assert f["tree_objects"] == pytest.approx(0.0095, abs=0.002)
+    assert f["by_eye_parts"]["trees or roadworks"] == pytest.approx(0.0094, abs=0.002)
+    assert f["floor_tree_objects_and_by_eye_trees"] > 0.015
+    assert f["floor"] > 0.018                                   # 0.0219: twice the goal
