@@ -20,7 +20,7 @@ Usage::
 
     .venv/bin/python docs/kahramanmaras_floor.py --run RUN [--json OUT.json]
 
-(``RUN``: a ``geocd run`` of ``examples/kahramanmaras/scene.yaml``; ~30 s.)
+(``RUN``: a ``geocd run`` of ``examples/kahramanmaras/scene.yaml``; ~15 s.)
 """
 import argparse
 import json

@@ -52,8 +52,9 @@ from ..io.atomic import write_text_atomic
 from ..io.manifest import load_manifest
 from ..io.raster import read_dem, read_image
 from ..synth import scene as synth_scene
-from ..synth.generate import SynthParams, _sun, make_satellite_cameras
+from ..synth.generate import SynthParams, make_satellite_cameras
 from ..synth.render import PAN_WEIGHTS, RenderParams, pack_scene, render_view, trace_view
+from ..synth.sensors import Sun
 from .baseline import carlotto_score, difference_score, edge_zone, first_surface_height, nearest_view, warp_reference
 from .detect import DetectParams, detect_change
 from .evaluate import TrainConfig, _roc, footprint_mask, train
@@ -168,9 +169,10 @@ def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, oct
     names_b = [s.name for s in man.epoch("B").images if "sat" in s.name and (views is None or s.name in views)]
     if not names_b:
         raise ConfigError(f"no epoch-B satellite view of {root} is among {views}")
-    sp = SynthParams.from_dict(json.loads(truth_file.read_text())["params"])
+    truth = json.loads(truth_file.read_text())
+    sp = SynthParams.from_dict(truth["params"])
     town = synth_scene.build_town(sp.town_params())
-    suns = _sun(sp, town)
+    suns = {ep: Sun(**truth["sun"][ep]) for ep in ("A", "B")}     # the suns the generator rendered with
     cams = make_satellite_cameras(sp, town)
     scene_a, scene_b = pack_scene(town, "A"), pack_scene(town, "B")
     cfg = TrainConfig()
@@ -199,7 +201,7 @@ def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, oct
         t0 = time.perf_counter()
         cam = cams[v.name]
         shape = v.intensity.shape
-        truth = read_image(root / man.truth["image_masks"][v.name]).data[0] > 0
+        changed = read_image(root / man.truth["image_masks"][v.name]).data[0] > 0
 
         def render(sun_epoch: str, **kw) -> np.ndarray:
             return render_view(town, "A", cam, suns[sun_epoch].direction_enu(), RenderParams(**kw),
@@ -230,15 +232,15 @@ def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, oct
                                 params=DetectParams(neighborhood=3), shadow_dsm=shadow)
             valid &= ~det.unknown
             scores[rows_out[-1]] = det.probability
-        entry = {"name": v.name, "pixels": int(valid.sum()), "changed_fraction": round(float(truth[valid].mean()), 4),
+        entry = {"name": v.name, "pixels": int(valid.sum()), "changed_fraction": round(float(changed[valid].mean()), 4),
                  "class_fraction": {CLASSES[k]: round(float((klass[valid] == k).mean()), 4) for k in range(4)},
                  "class_lines": {CLASSES[k]: line for k, line in l_cls.items()}, "line_A_sun": l_one[0],
                  "line_B_sun": l_ab[0], "auc": {}, "auc_edge_zone": {}, "auc_outside_edge_zone": {}}
         for name, sc in scores.items():
-            entry["auc"][name] = round(_roc(sc, truth, valid)["auc"], 4)
-            entry["auc_edge_zone"][name] = round(_roc(sc, truth, valid & zone)["auc"], 4)
-            entry["auc_outside_edge_zone"][name] = round(_roc(sc, truth, valid & ~zone)["auc"], 4)
-            pooled[name].append((sc[valid], truth[valid], zone[valid], klass[valid], ckind[valid]))
+            entry["auc"][name] = round(_roc(sc, changed, valid)["auc"], 4)
+            entry["auc_edge_zone"][name] = round(_roc(sc, changed, valid & zone)["auc"], 4)
+            entry["auc_outside_edge_zone"][name] = round(_roc(sc, changed, valid & ~zone)["auc"], 4)
+            pooled[name].append((sc[valid], changed[valid], zone[valid], klass[valid], ckind[valid]))
         entry["seconds"] = round(time.perf_counter() - t0, 1)
         per_view.append(entry)
         log(f"{v.name}: " + ", ".join(f"{k} {a:.3f}" for k, a in entry["auc"].items()))
