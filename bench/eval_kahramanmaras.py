@@ -82,21 +82,14 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
     """
     from scipy import ndimage as ndi
 
-    from geocd.change.dsm_buildings import CHANGED, DSMBuildingParams
+    from geocd.change.dsm_buildings import DSMBuildingParams
 
     bp = DSMBuildingParams()
-    obs = res.observed
-    inside = _mask(damage[damage["class"].isin(CHANGED)].geometry, grid)
-    allb = _mask(damage.geometry, grid)
-    stable = obs & ~inside
-    flag = stable & (np.nan_to_num(res.confidence) >= level)
-    za, zb = _surface(recs["pre_event"]), _surface(recs["post_event"])
-    ha, hb = za - dtm, zb - dtm
+    m = false_alarm_masks(res, damage, grid, recs, dtm, level)
+    stable, flag, allb, trees, up_a, up_b = (m[k] for k in ("stable", "flag", "in_building", "trees", "up_a", "up_b"))
     post = grid.posting_m
-    trees = tree_object_mask((za, zb), post)
     edge = allb ^ ndi.binary_erosion(allb)
     d_edge = ndi.distance_transform_edt(~edge) * post
-    up_a, up_b = ha >= bp.min_height_m, hb >= bp.min_height_m
     cats = {"in unchanged building objects": allb,
             "within 2 m of a building outline": d_edge <= 2.0,
             "ground (not building, low in both)": ~allb & ~up_a & ~up_b,
@@ -134,6 +127,20 @@ def where_false_alarms(res, damage, grid, recs, dtm, level: float = 99.0, orthos
         if seen is not None:
             out[k]["cars_sees_gt_3nmad"] = round(float((m & flag & seen).sum() / max((m & flag).sum(), 1)), 3)
     return out
+
+
+def false_alarm_masks(res, damage, grid, recs, dtm, level: float = 99.0) -> dict:
+    """The masks (rows, cols) behind :func:`where_false_alarms`: ``stable`` (observed, outside every changed
+    building), ``flag`` (stable and flagged at ``level``), ``in_building`` (inside any building of the layer),
+    ``trees`` (:func:`tree_object_mask` of both epochs), ``up_a`` / ``up_b`` (≥ ``min_height_m`` above ``dtm``)."""
+    from geocd.change.dsm_buildings import CHANGED, DSMBuildingParams
+
+    bp = DSMBuildingParams()
+    stable = res.observed & ~_mask(damage[damage["class"].isin(CHANGED)].geometry, grid)
+    za, zb = _surface(recs["pre_event"]), _surface(recs["post_event"])
+    return {"stable": stable, "flag": stable & (np.nan_to_num(res.confidence) >= level),
+            "in_building": _mask(damage.geometry, grid), "trees": tree_object_mask((za, zb), grid.posting_m),
+            "up_a": za - dtm >= bp.min_height_m, "up_b": zb - dtm >= bp.min_height_m}
 
 
 def tree_object_mask(dsms, posting_m: float) -> np.ndarray:
@@ -192,7 +199,7 @@ def transfer_figures(res, damage, grid, recs, model) -> dict:
 
 def evaluate(run: Path, model_path: Path, significance: str, calibration: str = "auto",
              recs: dict | None = None, cars: tuple | None = None,
-             tree_rule: str | None = None, changed_part: bool = False) -> tuple[dict, object, object]:
+             tree_rule: str | None = None, changed_part: bool = False) -> tuple[dict, object, object, np.ndarray]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import DSMBuildingParams, stable_false_alarms
     from geocd.pipeline import _building_damage
@@ -226,7 +233,7 @@ def evaluate(run: Path, model_path: Path, significance: str, calibration: str = 
            "volume_lost_collapsed_m3": round(float(damage[cls == "collapsed"]["volume_lost_m3"].sum()), 1)}
     if cars is not None:
         out["independent_reference_cars"] = independent_reference(res, damage, grid, *cars, recs=recs)
-    return out, damage, res
+    return out, damage, res, dtm
 
 
 def rerun(run: Path, out: Path, model_path: Path, calibration: str = "auto") -> dict:
@@ -422,7 +429,7 @@ def main(argv=None) -> int:
     cars = cars_dsms(Path(args.cars_work), recs["pre_event"][0].grid) if args.cars_work else None
     for cal in [c for c in args.calibrations.split(",") if c]:
         for mode in [m for m in args.modes.split(",") if m]:
-            r, dmg, res = evaluate(Path(args.run), Path(args.model), mode, cal, recs=recs, cars=cars,
+            r, dmg, res, _ = evaluate(Path(args.run), Path(args.model), mode, cal, recs=recs, cars=cars,
                                    tree_rule=args.tree_rule, changed_part=args.changed_part == "on")
             key = mode if cal == "auto" else f"{mode}_{cal}"
             if mode == "region" and cal == "none":

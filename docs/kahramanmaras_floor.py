@@ -34,7 +34,7 @@ from scipy import ndimage as ndi
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 import eval_kahramanmaras as E  # noqa: E402
 
-from geocd.change.dsm_buildings import CHANGED, DSMBuildingParams, ground_model  # noqa: E402
+from geocd.change.dsm_buildings import CHANGED  # noqa: E402
 
 #: building_id of the damage layer's objects (the default layer of a run of the example manifest), by what
 #: their changed part is on the orthos (docs/kahramanmaras.md, "The changed-part rule")
@@ -57,19 +57,12 @@ def _part_cells(labels: np.ndarray, sign: np.ndarray, ids, mmu: int) -> int:
 
 def floor_figures(run: Path) -> dict:
     """The split of the stable cells flagged at 99 % (shares of the stable cells; module doc)."""
-    _, damage, res = E.evaluate(run, run / "self_consistency_model.json", "region")
     recs = E._recs(run)
+    _, damage, res, dtm = E.evaluate(run, run / "self_consistency_model.json", "region", recs=recs)
     grid = recs["pre_event"][0].grid
-    bp = DSMBuildingParams()
-    changed = E._mask(damage[damage["class"].isin(CHANGED)].geometry, grid)
-    in_building = E._mask(damage.geometry, grid)
-    stable = res.observed & ~changed
-    flag = stable & (np.nan_to_num(res.confidence) >= 99.0)
-    za, zb = E._surface(recs["pre_event"]), E._surface(recs["post_event"])
-    dtm, _ = ground_model(za, grid.posting_m, bp)
-    trees = E.tree_object_mask((za, zb), grid.posting_m)
-    raised = ((za - dtm) >= bp.min_height_m) | ((zb - dtm) >= bp.min_height_m)
-    non_building = ~in_building & (trees | raised)
+    m = E.false_alarm_masks(res, damage, grid, recs, dtm)
+    stable, flag, in_building, trees = m["stable"], m["flag"], m["in_building"], m["trees"]
+    non_building = ~in_building & (trees | m["up_a"] | m["up_b"])
     n_stable = int(stable.sum())
     sign = np.sign(np.nan_to_num(res.dz_m)).astype(int) * flag
     mmu = int(res.min_region_cells)
