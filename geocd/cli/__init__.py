@@ -84,11 +84,19 @@ class LazyGroup(click.Group):
 
         return add_common_options(getattr(importlib.import_module(mod), attr))
 
+    def make_context(self, info_name, args, parent=None, **extra):
+        try:
+            return super().make_context(info_name, args, parent=parent, **extra)
+        except click.exceptions.UsageError as exc:  # an option of geocd itself (before the command name)
+            _usage_error(exc)
+
     def invoke(self, ctx):
         from ..faults import exit_code_for_interrupt, one_line, signal_name, signals_as_interrupts, translate
         from ..io.outputs import OutputFolderWarning, close_sessions
 
-        debug = ctx.params.get("debug", False)
+        def debug() -> bool:  # --debug before the command, or after it (read when an error comes)
+            return bool(ctx.params.get("debug") or (ctx.obj or {}).get("debug"))
+
         mode = (ctx.obj or {}).get("progress_mode") or ctx.params.get("progress")
         from .._jit import install_compile_notice
 
@@ -111,7 +119,7 @@ class LazyGroup(click.Group):
                     shown(message, category, filename, lineno, file, line)
 
             warnings.showwarning = show
-            if not debug:
+            if not debug():
                 # an exception inside a library callback (rasterio's GDAL log handler failing to decode a corrupt
                 # file's message) is printed by Python as a traceback although nothing failed: keep stderr clean
                 sys.unraisablehook = lambda u: None
@@ -120,12 +128,15 @@ class LazyGroup(click.Group):
                     rv = super().invoke(ctx)
                     close_sessions(ok=True)
                 return rv
+            except click.exceptions.UsageError as exc:
+                close_sessions(ok=False, exc=exc)
+                _usage_error(exc, json_lines=mode == "json")
             except (click.exceptions.Exit, click.exceptions.Abort, click.exceptions.ClickException) as exc:
                 close_sessions(ok=isinstance(exc, click.exceptions.Exit) and exc.exit_code == 0, exc=exc)
                 raise
             except KeyboardInterrupt as exc:
                 close_sessions(ok=False, exc=exc)
-                if debug:
+                if debug():
                     raise
                 what = ("interrupted (Ctrl-C)" if type(exc) is KeyboardInterrupt
                         else f"stopped by {signal_name(exc.signum)}")
@@ -135,11 +146,22 @@ class LazyGroup(click.Group):
                 ctx.exit(exit_code_for_interrupt(exc))
             except Exception as exc:  # noqa: BLE001 - the single error path: everything becomes a GeoCDError
                 close_sessions(ok=False, exc=exc)
-                if debug:
+                if debug():
                     raise
                 err = translate(exc)
                 report(type(err).__name__, one_line(err))
                 ctx.exit(getattr(err, "exit_code", 2))
+
+
+def _usage_error(exc: click.exceptions.UsageError, json_lines: bool = False) -> None:
+    """A wrong command line: one ``geocd: error:`` line naming the problem and where help is, exit 2."""
+    message = exc.format_message().rstrip(".")
+    where = " ".join(["geocd", *exc.ctx.command_path.split()[1:]]) if exc.ctx is not None else "geocd"
+    message = f"{message[:1].lower()}{message[1:]} (see '{where} --help')"
+    if json_lines:
+        sys.stderr.write(json.dumps({"type": "error", "error": "UsageError", "message": message}) + "\n")
+    click.echo(f"geocd: error: {message}", err=True)
+    raise click.exceptions.Exit(exc.exit_code)
 
 
 @contextlib.contextmanager

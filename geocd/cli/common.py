@@ -42,6 +42,7 @@ from typing import Any, Callable, Optional
 import click
 
 from ..errors import ConfigError, GeoCDError, InputFileNotFoundError, OutputError
+from .options import harden_options
 
 PROGRESS_MODES = ("auto", "bar", "lines", "json", "none")
 LOG_PREFIX = "geocd_"
@@ -78,8 +79,20 @@ def _json_option() -> click.Option:
                         help="Print the result (products, summary, notes) as one JSON document on stdout.")
 
 
+def _debug_option() -> click.Option:
+    def remember(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+        if value:
+            root = ctx.find_root()
+            root.ensure_object(dict)
+            root.obj["debug"] = True
+
+    return click.Option(["--debug", "_geocd_debug"], is_flag=True, default=False, expose_value=False,
+                        callback=remember, help="Show full tracebacks (also accepted before the command).")
+
+
 def add_common_options(cmd: click.Command) -> click.Command:
-    """Give ``cmd`` (and, for a group, each subcommand) ``--progress`` and ``--json``, and run it in a Session.
+    """Give ``cmd`` (and, for a group, each subcommand) ``--progress``, ``--json`` and ``--debug``, the shared
+    checks of numeric options (:func:`geocd.cli.options.harden_options`), and run it in a Session.
 
     Idempotent; the command group applies it to every command it loads, so a new command needs nothing
     beyond its line in ``SUBCOMMANDS``.
@@ -95,6 +108,9 @@ def add_common_options(cmd: click.Command) -> click.Command:
         cmd.params.append(_progress_option())
     if "_geocd_json" not in names:
         cmd.params.append(_json_option())
+    if "_geocd_debug" not in names:
+        cmd.params.append(_debug_option())
+    harden_options(cmd)
     cmd.callback = _in_session(cmd.callback)
     cmd._geocd_common = True  # type: ignore[attr-defined]
     return cmd

@@ -140,7 +140,9 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
                 raise ManifestError(f"{p} has {len(ents)} epoch(s) with a `dem:`; DEM differencing needs two or more")
             return ents
         if p.suffix.lower() in (".txt", ".csv", ".lst", ".list"):
-            return [(a, b, c, None) for a, b, c in _parse_list(p)]
+            ents = [(a, b, c, None) for a, b, c in _parse_list(p)]
+            _check_dates_in_order(ents, str(p))
+            return ents
         raise ConfigError(f"give two DEMs, or one list (.txt/.csv) or manifest (.yaml/.json); got only {p}")
     ents = [(d, None, Path(d).stem, None) for d in dems]
     if dates:
@@ -156,7 +158,18 @@ def _entries(dems: tuple[str, ...], dates: str | None, names: str | None):
         if len(ns) != len(ents):
             raise ConfigError(f"--names lists {len(ns)} names for {len(ents)} DEMs")
         ents = [(p, d, n, v) for (p, d, _, v), n in zip(ents, ns)]
+    _check_dates_in_order(ents, "--dates")
     return ents
+
+
+def _check_dates_in_order(ents, where: str) -> None:
+    """DEMs are compared oldest to newest: a later DEM dated before an earlier one would flip every sign."""
+    from ..errors import ConfigError
+
+    for (p0, d0, n0, _), (p1, d1, n1, _) in zip(ents, ents[1:]):
+        if d0 is not None and d1 is not None and d1 < d0:
+            raise ConfigError(f"{where}: {n1} ({d1}) is listed after {n0} ({d0}) but dated before it; list the "
+                              "DEMs from oldest to newest (change is measured from each DEM to the next)")
 
 
 @click.command("demdiff", help="Height change between DEMs, with co-registration and honest uncertainty.\n\n"
