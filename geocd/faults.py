@@ -6,7 +6,9 @@ raises the right :class:`GeoCDError` at the place the failure happens (a truncat
 :mod:`geocd.io.raster`, a full disk in :mod:`geocd.io.atomic`); :func:`translate` is the
 safety net for the rest, so that a user never sees a traceback:
 
-* ``MemoryError`` → :class:`~geocd.errors.ResourceError` (coarser posting, smaller AOI);
+* ``MemoryError``, and any library's failed allocation (GDAL's out of memory, an import that cannot map its
+  shared library under ``ulimit -v``) → :class:`~geocd.errors.ResourceError` naming the process's limit and
+  the free memory (coarser posting, smaller AOI);
 * ``OSError`` ENOSPC / EDQUOT / EFBIG → :class:`~geocd.errors.DiskFullError` (free space, other folder);
   EROFS / EACCES → :class:`~geocd.errors.OutputError`; ``FileExistsError`` → ``OutputError``;
   ``FileNotFoundError`` → :class:`~geocd.errors.InputFileNotFoundError`;
@@ -180,12 +182,50 @@ def translate(exc: BaseException, *, target: os.PathLike | str | None = None) ->
     return err
 
 
+#: what libraries say when an allocation fails: GDAL's CPLE_OutOfMemory, the loader's failed mmap of a shared
+#: library (an import under ``ulimit -v``), C++'s bad_alloc, numpy's "Unable to allocate"
+_MEMORY_PHRASES = ("out of memory", "cannot allocate memory", "failed to map segment", "std::bad_alloc",
+                   "unable to allocate", "outofmemory", "memory allocation failed", "not enough memory")
+
+
+def out_of_memory(exc: BaseException) -> bool:
+    """Whether ``exc`` (or its cause) is an allocation that failed, whatever library raised it."""
+    for e in _chain(exc):
+        if isinstance(e, MemoryError) or (isinstance(e, OSError) and e.errno == errno.ENOMEM):
+            return True
+        if "OutOfMemory" in type(e).__name__ or any(s in str(e).lower() for s in _MEMORY_PHRASES):
+            return True
+    return False
+
+
+def memory_limits() -> str:
+    """The memory this process may use, for a message: its ``ulimit -v`` (when set) and what the machine has free."""
+    parts = []
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft != resource.RLIM_INFINITY:
+            parts.append(f"a limit of {soft / 2**30:.1f} GiB on this process (ulimit -v)")
+    except (ImportError, ValueError, OSError):  # pragma: no cover - not on POSIX
+        pass
+    try:
+        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        parts.append(f"{avail / 2**30:.1f} GiB free on the machine")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover
+        pass
+    return "; ".join(parts)
+
+
 def _translate(exc: BaseException, target) -> GeoCDError:
     msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    if isinstance(exc, MemoryError):
+    if out_of_memory(exc):
+        limits = memory_limits()
+        said = f" ({msg[:200]})" if msg not in ("MemoryError", "") else ""
         return ResourceError(
-            f"out of memory{(' (' + msg + ')') if msg != 'MemoryError' else ''}; the job is too large for this "
-            "machine: use a coarser posting (--posting), a smaller AOI, fewer images, or a machine with more memory")
+            f"out of memory{said}{'; ' + limits if limits else ''}; the job is too large for the memory it may use: "
+            "use a coarser posting (--posting), a smaller AOI, fewer images, a tiled run (--tiled) or a machine "
+            "with more memory")
     disk = disk_full_error(exc, target)
     if disk is not None and not isinstance(exc, (FileNotFoundError, UnicodeError)):
         return disk
