@@ -640,15 +640,15 @@ class SelfConsistencyModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> "SelfConsistencyModel":
+        """The model of :meth:`to_dict`'s form, every field checked (a damaged model is a :class:`ConfigError`)."""
         if d.get("geocd_self_consistency_model") != 1:
             raise ConfigError("not a geocd self-consistency model (missing 'geocd_self_consistency_model': 1); "
                               "create one with `geocd consistency`")
-        if not np.allclose(np.asarray(d["dtilde_edges"]), DTILDE_EDGES):
+        f = _checked_model_fields(d)
+        if not np.allclose(f["dtilde_edges"], DTILDE_EDGES):
             raise ConfigError("the model was saved with different |Δ̃| bins; re-learn it with this geocd version")
-        return cls(np.asarray(d["score_edges"], float), np.asarray(d["hist"], np.int64),
-                   {k: list(v) for k, v in d.get("curves", {}).items()},
-                   {k: list(v) for k, v in d.get("raw_curves", {}).items()}, dict(d.get("provenance", {})),
-                   dict(d.get("region_null", {})), dict(d.get("reference_law", {})))
+        return cls(f["score_edges"], f["hist"], f["curves"], f["raw_curves"], f["provenance"], f["region_null"],
+                   f["reference_law"])
 
     def save(self, path: os.PathLike | str) -> Path:
         from .io.atomic import write_text_atomic
@@ -670,7 +670,10 @@ class SelfConsistencyModel:
         if not isinstance(d, dict):
             raise ConfigError(f"{p} is not a self-consistency model (a JSON {type(d).__name__}); give the JSON "
                               "written by `geocd consistency` or a run")
-        return cls.from_dict(d)
+        try:
+            return cls.from_dict(d)
+        except ConfigError as exc:
+            raise ConfigError(f"{p}: {exc}") from None
 
     def curves_table(self):
         """pandas DataFrame: one row per score bin (edges, centre, count, raw and smoothed curves)."""
@@ -810,6 +813,92 @@ def reference_law(model: "SelfConsistencyModel", comps: Sequence[tuple[PairDEMLi
         return {}
     return {"scale": round(cal.scale, 5), "edge_sigma_m": round(cal.edge_sigma_m, 5), "n_cells": cal.n_cells,
             "slope": "min of the two surfaces' local |grad z|" if posting else "none (no grid posting)"}
+
+
+def _damaged(what: str) -> ConfigError:
+    return ConfigError(f"damaged self-consistency model: {what}; re-learn it with `geocd consistency` (or a "
+                       "`geocd run` that writes one)")
+
+
+def _number_array(d: dict, key: str, ndim: int, *, allow_nan: bool = False) -> np.ndarray:
+    if key not in d:
+        raise _damaged(f"'{key}' is missing")
+    try:
+        a = np.asarray(d[key], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise _damaged(f"'{key}' holds something other than numbers") from None
+    if a.ndim != ndim:
+        raise _damaged(f"'{key}' has {a.ndim} dimension(s), expected {ndim}")
+    if np.isinf(a).any() or (not allow_nan and np.isnan(a).any()):
+        raise _damaged(f"'{key}' holds non-finite values")
+    return a
+
+
+def _checked_model_fields(d: dict) -> dict:
+    """The fields of a saved model as arrays and dicts, checked for shape, range and order."""
+    score_edges = _number_array(d, "score_edges", 1)
+    if score_edges.size < 2 or not np.all(np.diff(score_edges) > 0):
+        raise _damaged("'score_edges' must be two or more increasing numbers")
+    dtilde = _number_array(d, "dtilde_edges", 1)
+    hist = _number_array(d, "hist", 2)
+    if hist.shape != (score_edges.size - 1, dtilde.size - 1):
+        raise _damaged(f"'hist' has shape {hist.shape}, expected {(score_edges.size - 1, dtilde.size - 1)} "
+                       "(score bins × |Δ̃| bins)")
+    if (hist < 0).any() or (hist != np.round(hist)).any() or hist.max(initial=0) > 2**62:
+        raise _damaged("'hist' must hold counts (whole numbers ≥ 0)")
+    if hist.sum() == 0:
+        raise _damaged("'hist' is empty (no comparison was learned)")
+    out: dict[str, Any] = {"score_edges": score_edges, "dtilde_edges": dtilde, "hist": hist.astype(np.int64)}
+    for key in ("curves", "raw_curves"):
+        v = d.get(key, {})
+        if not isinstance(v, dict):
+            raise _damaged(f"'{key}' is not a mapping of confidence → thresholds")
+        curves = {}
+        for k, c in v.items():
+            try:
+                conf = float(k)
+            except (TypeError, ValueError):
+                raise _damaged(f"'{key}' has a key {str(k)[:20]!r} that is not a confidence in percent") from None
+            if not 0.0 < conf < 100.0:
+                raise _damaged(f"'{key}' has a confidence {conf:g} outside (0, 100) percent")
+            arr = _number_array({k: [np.nan if x is None else x for x in c] if isinstance(c, list) else c}, k, 1,
+                                allow_nan=True)
+            if arr.size != hist.shape[0] or (arr[np.isfinite(arr)] < 0).any():
+                raise _damaged(f"'{key}[{k}]' must hold one threshold ≥ 0 per score bin ({hist.shape[0]})")
+            curves[k] = list(c)
+        out[key] = curves
+    for key in ("provenance", "region_null", "reference_law"):
+        v = d.get(key, {})
+        if not isinstance(v, dict):
+            raise _damaged(f"'{key}' is not a mapping")
+        out[key] = dict(v)
+    rn = out["region_null"]
+    if rn:
+        masses = rn.get("masses")
+        if not isinstance(masses, list) or not all(isinstance(m, list) for m in masses):
+            raise _damaged("'region_null.masses' must be one list of region evidence per static comparison")
+        for m in masses:
+            a = _number_array({"masses": m}, "masses", 1)
+            if (a < 0).any() or (np.diff(a) < 0).any():
+                raise _damaged("'region_null.masses' must hold sorted evidence values ≥ 0")
+        for key, lo, hi in (("cluster_confidence", 0.0, 100.0), ("min_region_cells", 1.0, 1e9)):
+            try:
+                x = float(rn.get(key, lo if key == "min_region_cells" else 50.0))
+            except (TypeError, ValueError):
+                raise _damaged(f"'region_null.{key}' is not a number") from None
+            if not (np.isfinite(x) and lo <= x <= hi and (key != "cluster_confidence" or 0.0 < x < 100.0)):
+                raise _damaged(f"'region_null.{key}' is {x:g}, outside [{lo:g}, {hi:g}]")
+    law = out["reference_law"]
+    for key in ("scale", "edge_sigma_m"):
+        if key in law:
+            try:
+                x = float(law[key])
+            except (TypeError, ValueError):
+                raise _damaged(f"'reference_law.{key}' is not a number") from None
+            if not np.isfinite(x) or x < 0 or (key == "scale" and x == 0):
+                raise _damaged(f"'reference_law.{key}' is {x:g}: a {'scale > 0' if key == 'scale' else 'σ ≥ 0'} "
+                               "is expected")
+    return out
 
 
 def null_region_confidence(null_masses: Sequence[Sequence[float]], mass: np.ndarray) -> np.ndarray:

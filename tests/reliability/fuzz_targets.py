@@ -196,3 +196,58 @@ def dump_yaml(doc: dict) -> bytes:
     buf = io.StringIO()
     yaml.safe_dump(json.loads(json.dumps(doc)), buf, sort_keys=False)
     return buf.getvalue().encode()
+
+
+# ------------------------------------------------------------------------------------------------------------
+# self-consistency models (JSON), frame-camera sidecars, RPC text files: what a reader accepts must be usable
+# ------------------------------------------------------------------------------------------------------------
+def _use_model(path: Path) -> None:
+    from geocd.consistency import SelfConsistencyModel
+
+    m = SelfConsistencyModel.load(path)
+    pv = m.pvalue(np.array([0.0, 0.5, 3.0, 1e6]), np.array([-1.0, 0.0, 1.0, 5.0]))
+    assert np.all((pv >= 0) & (pv <= 1)), pv
+    for c in m.confidences:
+        m.threshold(np.array([0.0, 1.0]), c)
+    if m.has_region_test:
+        conf = m.region_confidence(np.array([0.0, 10.0]))
+        assert np.all((conf >= 0) & (conf <= 100)), conf
+
+
+def check_model_tree(doc: dict, ops, folder: Path) -> str:
+    p = Path(folder) / "model.json"
+    p.write_text(json.dumps(mutate_tree(doc, ops), allow_nan=True))
+    return _outcome(_use_model, p)
+
+
+def check_model_bytes(data: bytes, mutation, folder: Path) -> str:
+    p = Path(folder) / "model.json"
+    p.write_bytes(mutate_bytes(data, mutation))
+    return _outcome(_use_model, p)
+
+
+def _use_camera(read, path: Path) -> None:
+    cam = read(path)
+    lon, lat, h = getattr(cam, "lon_off", None), getattr(cam, "lat_off", None), getattr(cam, "height_off", None)
+    if lon is None:  # a frame camera: the ground point below its centre
+        x, y, z = cam.position
+        c, r = cam.project_world(x + 1.0, y + 1.0, z - 100.0)
+    else:
+        c, r = cam.project(lon, lat, h)
+    assert np.all(np.isfinite(c)) and np.all(np.isfinite(r)), (c, r)
+
+
+def check_frame_sidecar(doc: dict, ops, folder: Path) -> str:
+    from geocd.io.frame import read_frame_sidecar
+
+    p = Path(folder) / "img.json"
+    p.write_text(json.dumps(mutate_tree(doc, ops), allow_nan=True))
+    return _outcome(_use_camera, read_frame_sidecar, p)
+
+
+def check_rpc_file(name: str, data: bytes, mutation, folder: Path) -> str:
+    from geocd.io.rpc import read_rpc
+
+    p = Path(folder) / name
+    p.write_bytes(mutate_bytes(data, mutation))
+    return _outcome(_use_camera, lambda q: read_rpc(q, image_path=None), p)
