@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from .errors import GeoCDError, InputFileNotFoundError, NoCameraError, UnsupportedFormatError
+from .io.outputs import MANIFEST_NAME, check_product_set
 
 VECTOR_SUFFIXES = (".gpkg", ".geojson", ".json", ".shp", ".fgb", ".kml", ".gml")
 
@@ -156,6 +157,8 @@ def describe(path: os.PathLike | str) -> dict[str, Any]:
     if not p.exists():
         raise InputFileNotFoundError(f"{p} does not exist; check the path")
     suffix = p.suffix.lower()
+    if p.is_dir() and (p / MANIFEST_NAME).is_file():  # an output folder: are its product sets whole?
+        return {"type": "products", "path": str(p), **check_product_set(p)}
     if p.is_dir() or suffix in (".yaml", ".yml"):
         return manifest_summary(p)
     if suffix in VECTOR_SUFFIXES:

@@ -54,6 +54,13 @@ def format_info(d: dict) -> str:
         for l in d["layers"]:
             out.append(f"  layer {l['layer']}: {l['features']} {l['geometry'] or 'table'} features, CRS {l['crs']}, "
                        f"fields {l['fields']}")
+    elif t == "products":
+        word = "whole" if d["valid"] else "NOT whole"
+        out.append(f"{d['path']}: geocd output folder, products {word}")
+        for r in d["runs"]:
+            out.append(f"  run {r['id']}: {r['command']}, {r['status']}, {r['products']} product(s)"
+                       + (f", {len(r['changed_or_missing'])} changed or missing" if r["changed_or_missing"] else ""))
+        out += [f"  problem: {x}" for x in d["problems"]]
     elif t == "manifest":
         out.append(f"{d['path']}: scene {d['name']!r}" + (f" (class {d['scene_class']})" if d.get("scene_class") else ""))
         if d.get("aoi"):
@@ -80,6 +87,9 @@ def info(ctx: click.Context, path: str) -> None:
 
     PATH may be an image (GeoTIFF/NITF with RPC tags or a camera sidecar), a camera file (any vendor RPC format or a
     geocd camera JSON/YAML), a DEM, a vector file, a scene manifest (scene.yaml) or a folder.
+
+    For a geocd output folder: whether it holds whole product sets (every run complete, every product as
+    written); exit status 1 when it does not (a run stopped half-way, a product changed since).
     """
     from .common import require_inputs, session
 
@@ -90,3 +100,5 @@ def info(ctx: click.Context, path: str) -> None:
     d = describe(path)
     click.echo(json.dumps(d, indent=2, default=str) if sess.as_json else format_info(d))
     sess.stdout_done = True
+    if d["type"] == "products" and not d["valid"]:
+        ctx.exit(1)  # an output folder whose products are not whole sets: scripts must not publish it

@@ -49,7 +49,14 @@ machine has and raises :class:`~geocd.errors.ResourceError` / :class:`~geocd.err
 before the heavy step (:func:`grid_job_bytes` estimates a job on an AOI grid).
 
 For resuming work (tiling): :func:`verify_products` re-hashes the products listed in a folder's
-manifest; only files that still match are safe to reuse.
+manifest; only files that still match are safe to reuse. Whether a folder holds whole product sets (no run
+that stopped half-way, nothing changed since): :func:`check_product_set` (``geocd info FOLDER``).
+
+* **A run that stops puts back what it replaced.** Before a run replaces a file of its folder that an earlier
+  run wrote, the old file is kept (a hard link under ``OUT/.geocd-prev/<run id>/``). When the run completes the
+  kept files are dropped; when it fails or is interrupted they are put back, so the earlier run's set is whole
+  again (files under new names stay, listed as the stopped run's in the manifest, and a resumed tiled run
+  reuses them); after a SIGKILL the next session into the folder puts them back before it writes anything.
 """
 
 from __future__ import annotations
@@ -75,6 +82,8 @@ from . import atomic
 
 MANIFEST_NAME = "geocd_products.json"
 LOCK_NAME = ".geocd.lock"
+#: the files a running session replaced, kept (hard links) until it completes: ``<out>/.geocd-prev/<run id>/<rel>``
+PREV_DIR = ".geocd-prev"
 MANIFEST_VERSION = 1
 #: temporaries of geocd.io.atomic: ".<name>.<8 chars of tempfile's alphabet>.part[.<ext> or side-file tail]"
 PART_RE = re.compile(r"^\..+\.[a-z0-9_]{8}\.part(?:[.\-].*)?$")
@@ -337,6 +346,48 @@ def verify_products(folder: os.PathLike | str, run: str | None = None) -> dict[s
     return out
 
 
+def check_product_set(folder: os.PathLike | str) -> dict[str, Any]:
+    """Whether ``folder`` holds whole product sets, each as one run wrote it: ``{"valid": bool, "runs": [...],
+    "problems": [...]}``.
+
+    Valid only when every run the manifest lists completed, every product it lists is there as written, and no
+    run is still writing or left partial files or replaced files behind. A folder that mixes the products of a
+    complete run with those of a run that failed, was interrupted or killed is *not* valid, although each file
+    on its own may match its hash (:func:`verify_products` answers per file, for resuming).
+    """
+    root = Path(folder)
+    doc = read_products_manifest(root)
+    problems: list[str] = []
+    runs = []
+    if not (root / MANIFEST_NAME).is_file():
+        problems.append(f"{root} has no product manifest ({MANIFEST_NAME}): it was not written by geocd, or by a "
+                        "run that wrote nothing")
+    held = lock_is_held(root / LOCK_NAME)
+    for r in doc["runs"]:
+        files = r.get("files") or {}
+        ok = verify_products(root, r.get("id"))
+        bad = sorted(k for k, v in ok.items() if not v)
+        status = r.get("status")
+        if status == "running" and not held:
+            status = "killed"
+        cmd = " ".join(r.get("argv", [])[:4]) or r.get("command", "geocd")
+        runs.append({"id": r.get("id"), "command": r.get("command"), "status": status, "products": len(files),
+                     "changed_or_missing": bad})
+        if status != "complete":
+            problems.append(f"run `{cmd}` ({r.get('started')}) is {status} after writing {len(files)} product(s): "
+                            "they are not a whole set; run the command again to complete the folder")
+        if bad:
+            problems.append(f"{len(bad)} product(s) of run `{cmd}` changed or went missing since it wrote them: "
+                            + ", ".join(bad[:5]) + (" ..." if len(bad) > 5 else ""))
+    litter = [p for p in root.rglob("*") if PART_RE.match(p.name)] if root.is_dir() else []
+    if litter:
+        problems.append(f"{len(litter)} partial file(s) of an interrupted run are in the folder")
+    if (root / PREV_DIR).is_dir() and not held:
+        problems.append(f"files a stopped run replaced are kept in {PREV_DIR}: the next geocd run into this folder "
+                        "puts them back")
+    return {"valid": not problems, "runs": runs, "problems": problems}
+
+
 # =====================================================================================================
 # sessions
 # =====================================================================================================
@@ -348,10 +399,12 @@ def _on_before_write(target: Path) -> None:
     if not _ACTIVE:
         return
     t = _resolve(target)
-    if not any(s.covers(t) for s in _ACTIVE):
+    owner = next((s for s in reversed(_ACTIVE) if s.covers(t)), None)
+    if owner is None:
         roots = ", ".join(str(r) for s in _ACTIVE for r in s.roots())
         raise OutputError(f"refusing to write {target}: it is outside this run's output ({roots}); check --out, "
                           "--prefix and output file names")
+    owner.keep_previous(t)
 
 
 def _on_after_write(target: Path) -> None:
@@ -391,6 +444,7 @@ class OutputSession:
     _locks: list[FolderLock] = field(default_factory=list)
     _protected: list[Path] = field(default_factory=list)
     _started: str = ""
+    _kept: set[str] = field(default_factory=set)
 
     # -- geometry ---------------------------------------------------------------------------------------
     def roots(self) -> list[Path]:
@@ -428,6 +482,34 @@ class OutputSession:
             self.written.update(found)
             if self.folder is not None and self.status == "open":
                 self._save("running")
+
+    def keep_previous(self, path: Path) -> None:
+        """Before this run replaces a file of its folder that it did not write itself, keep the old file (a hard
+        link, else a copy, under ``.geocd-prev/<run id>/``): a run that fails puts it back (:meth:`close`), and
+        so does the next session after a kill (:func:`open_outputs`)."""
+        if self.parent is not None:
+            self.parent.keep_previous(path)
+            return
+        if self.folder is None or not _within(path, self.folder) or path.is_symlink() or not path.is_file():
+            return
+        rel = self._rel(path)
+        if rel == MANIFEST_NAME or rel.split("/", 1)[0] == PREV_DIR:
+            return
+        with _RECORD_LOCK:
+            if rel in self._kept or rel in self.written:
+                return
+            dst = self.folder / PREV_DIR / self.id / rel
+            try:
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    os.link(path, dst)
+                except OSError:  # a file system without hard links
+                    shutil.copy2(path, dst)
+            except OSError as exc:
+                from ..faults import translate
+
+                raise translate(exc, target=dst) from exc
+            self._kept.add(rel)
 
     # -- manifest -------------------------------------------------------------------------------------
     def _entry(self, status: str) -> dict:
@@ -508,10 +590,17 @@ class OutputSession:
                        + ", ".join(kept_changed[:6]) + (" ..." if len(kept_changed) > 6 else ""))
         doc["runs"] = keep
         self._save("complete", doc)
+        _drop_previous(self.folder, self.id)
 
     def _abort(self, exc: BaseException | None) -> None:
         assert self.folder is not None
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        restored = _restore_previous(self.folder, self.id)
+        for rel in restored:
+            self.written.pop(rel, None)
+        if restored:
+            self._note(f"put back {len(restored)} file(s) of an earlier run that this run had replaced before it "
+                       "stopped: " + ", ".join(restored[:6]) + (" ..." if len(restored) > 6 else ""))
         doc = read_products_manifest(self.folder)
         if not self.written:
             # nothing of this run is in the folder: leave it as it was
@@ -540,6 +629,30 @@ class OutputSession:
 
     def __exit__(self, et, ev, tb) -> None:
         self.close(ok=et is None, exc=ev)
+
+
+def _drop_previous(folder: Path, run_id: str) -> None:
+    """Forget the files run ``run_id`` replaced (it completed)."""
+    with contextlib.suppress(OSError):
+        shutil.rmtree(folder / PREV_DIR / run_id)
+    with contextlib.suppress(OSError):
+        (folder / PREV_DIR).rmdir()
+
+
+def _restore_previous(folder: Path, run_id: str) -> list[str]:
+    """Put back every file run ``run_id`` replaced (it did not complete); their relative paths."""
+    root = folder / PREV_DIR / run_id
+    if not root.is_dir():
+        return []
+    restored = []
+    for q in sorted(p for p in root.rglob("*") if p.is_file()):
+        rel = q.relative_to(root).as_posix()
+        with contextlib.suppress(OSError):
+            (folder / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(q, folder / rel)
+            restored.append(rel)
+    _drop_previous(folder, run_id)
+    return restored
 
 
 def _remove_empty_parents(d: Path, stop: Path) -> None:
@@ -645,6 +758,19 @@ def open_outputs(out: os.PathLike | str | None = None, *, inputs: Iterable[os.Pa
     if folder is not None:
         doc = read_products_manifest(folder)
         changed = False
+        # this session holds the lock: every journal of replaced files is a dead run's, put them back first
+        prev = folder / PREV_DIR
+        dead = sorted(p.name for p in prev.iterdir() if p.is_dir()) if prev.is_dir() else []
+        for run_id in dead:
+            restored = _restore_previous(folder, run_id)
+            for r in doc["runs"]:
+                if r.get("id") == run_id:
+                    for rel in restored:
+                        (r.get("files") or {}).pop(rel, None)
+                    changed = True
+            if restored:
+                sess._note(f"put back {len(restored)} file(s) of an earlier run that a killed run had replaced: "
+                           + ", ".join(restored[:6]) + (" ..." if len(restored) > 6 else ""))
         for r in doc["runs"]:
             if r.get("status") == "running":
                 r["status"] = "killed"
@@ -835,5 +961,6 @@ def check_resources(what: str, *, memory_bytes: int = 0, disk_bytes: int = 0, la
 
 
 __all__ = ["open_outputs", "OutputSession", "close_sessions", "check_prefix", "clean_litter", "verify_products",
+           "check_product_set",
            "read_products_manifest", "check_resources", "grid_job_bytes", "available_memory_bytes", "sha256_file",
            "MANIFEST_NAME", "LOCK_NAME", "OutputFolderWarning", "lock_is_held", "active_sessions"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -255,3 +256,62 @@ def test_a_half_swapped_model_folder_is_put_back(tmp_path):
     with open_outputs(None, files=[tmp_path / "model"], command="test"):
         pass
     assert (tmp_path / "model" / "model.json").is_file() and not old.exists()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# a run that stops puts back what it replaced; a mixed folder is never called whole
+# --------------------------------------------------------------------------------------------------------------
+def _files(out: Path) -> dict[str, str]:
+    """sha256 of the products (not the manifest, the log or the lock)."""
+    return {k: v for k, v in sha256_tree([out]).items()
+            if Path(k).name not in (MANIFEST_NAME, LOCK_NAME) and not Path(k).name.endswith(".log")}
+
+
+def test_an_interrupted_rerun_puts_the_earlier_set_back(dems, tmp_path):
+    from geocd.io.outputs import PREV_DIR, check_product_set
+
+    out = tmp_path / "O"
+    a, b = map(str, dems)
+    assert _demdiff(a, b, out, "--no-plots").exit_code == 0
+    first = _files(out)
+    proc, part, go = _start_paused(tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots", "--confidence",
+                                              "99"], nth=3)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert re.search(r"put back [2-9] file\(s\) of an earlier run", err), err
+    assert _files(out) == first, "the folder is not as the complete run left it"
+    assert not (out / PREV_DIR).exists() and not part_files(tmp_path)
+    st = check_product_set(out)
+    assert st["valid"], st["problems"]
+    assert [r["status"] for r in read_products_manifest(out)["runs"]] == ["complete"]
+
+
+def test_a_killed_rerun_is_never_called_whole_and_the_next_run_mends_it(dems, tmp_path):
+    from geocd.io.outputs import check_product_set
+
+    out = tmp_path / "O"
+    a, b = map(str, dems)
+    assert _demdiff(a, b, out, "--no-plots").exit_code == 0
+    first = _files(out)
+    proc, part, go = _start_paused(tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots", "--confidence",
+                                              "99"], nth=3)
+    proc.kill()
+    proc.wait()
+    # each file alone matches the run that wrote it, but the folder mixes two runs: not whole
+    assert all(verify_products(out).values())
+    st = check_product_set(out)
+    assert not st["valid"] and any("killed after writing" in p for p in st["problems"]), st
+    r = CliRunner().invoke(main, ["info", str(out)])
+    assert r.exit_code == 1 and "products NOT whole" in r.output, r.output
+    # the next session puts back what the killed run replaced before it writes anything
+    from geocd.io.outputs import open_outputs
+
+    with open_outputs(out, command="geocd demdiff", products=["nothing_*"]) as s:
+        assert _files(out) == {**first, **{k: v for k, v in _files(out).items() if k not in first}}
+        assert any(re.search(r"put back [2-9] file\(s\)", n) for n in s.notes), s.notes
+    assert _demdiff(a, b, out, "--no-plots").exit_code == 0
+    st = check_product_set(out)
+    assert st["valid"], st["problems"]
+    r = CliRunner().invoke(main, ["info", str(out)])
+    assert r.exit_code == 0 and "products whole" in r.output, r.output
