@@ -40,6 +40,7 @@ import numpy as np
 from ..camera.rpc import RPCModel, rpc00a_to_rpc00b
 from ..errors import (GeoCDError, InputFileNotFoundError, RPCNotFoundError, RPCParseError,
                       UnsupportedFormatError)
+from .safe_yaml import YAMLLimitError, load_json, load_yaml
 
 __all__ = ["read_rpc", "find_rpc_sidecar", "load_rpc_for_image", "detect_rpc_format", "SIDECAR_PATTERNS",
            "check_rpc_plausible"]
@@ -776,7 +777,9 @@ def _pick_entry(path: Path, entries: Mapping[str, Any], image_path: Path | None)
 
 def _read_json(path: Path, image_path: Path | None) -> RPCModel:
     try:
-        d = json.loads(_read_text(path))
+        d = load_json(_read_text(path))
+    except YAMLLimitError as exc:
+        raise RPCParseError(f"{path}: {_short(str(exc), 200)}") from None
     except json.JSONDecodeError as exc:
         raise RPCParseError(f"{path}: not valid JSON ({exc}); the file is truncated or garbled") from None
     return _read_structured(path, d, "JSON", image_path)
@@ -786,7 +789,9 @@ def _read_yaml(path: Path, image_path: Path | None) -> RPCModel:
     import yaml
 
     try:
-        d = yaml.safe_load(_read_text(path))
+        d = load_yaml(_read_text(path))
+    except YAMLLimitError as exc:
+        raise RPCParseError(f"{path}: {_short(str(exc), 200)}") from None
     except yaml.YAMLError as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise RPCParseError(f"{path}: not valid YAML ({first}); the file is truncated or garbled") from None

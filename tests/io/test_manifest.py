@@ -84,3 +84,33 @@ def test_discover_folder(tmp_path):
     empty.mkdir()
     with pytest.raises(ManifestError, match="no manifest"):
         discover_manifest(empty)
+
+
+def test_alias_bomb_manifest_is_refused_fast(scene):
+    from tests.io.test_safe_yaml import BOMB
+
+    p = scene / "bomb.yaml"
+    p.write_text(BOMB + "epochs:\n  - {name: A, images: [img/a1.tif], sensor: *i}\n")
+    t = __import__("time").perf_counter()
+    with pytest.raises(ManifestError, match="expand to more than") as ei:
+        load_manifest(p)
+    assert __import__("time").perf_counter() - t < 2.0
+    assert len(str(ei.value)) < 500
+
+
+def test_duplicate_key_in_manifest(scene):
+    p = scene / "dup.yaml"
+    p.write_text("name: t\nepochs:\n  - name: A\n    images: [img/a1.tif]\n    name: B\n")
+    with pytest.raises(ManifestError, match=r"duplicate key 'name' at line 5 \(first at line 3\)"):
+        load_manifest(p)
+    j = scene / "dup.json"
+    j.write_text('{"name": "t", "name": "u", "epochs": [{"name": "A", "images": ["img/a1.tif"]}]}')
+    with pytest.raises(ManifestError, match="duplicate key 'name'"):
+        load_manifest(j)
+
+
+def test_huge_value_is_not_expanded_into_the_message(scene):
+    p = write(scene, {"epochs": [{"name": "A", "images": [{"path": ["x" * 10_000] * 50}]}]})
+    with pytest.raises(ManifestError) as ei:
+        load_manifest(p)
+    assert "expected a file path" in str(ei.value) and len(str(ei.value)) < 600

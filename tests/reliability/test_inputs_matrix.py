@@ -1,0 +1,83 @@
+"""The bad-input matrix of manifests, camera files and output paths: every case stops cleanly.
+
+Same checks as test_fault_matrix.py: the exit code, one ``geocd: error:`` line naming the problem, no
+traceback, no ``.part`` file, nothing new in the output folder, every input byte-identical, and (here) the
+error comes fast: before any heavy work.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from geocd.cli import main
+
+from .scenes import error_lines, make_scene, part_files, sha256_tree, write_dem_pair, write_footprints, write_rgb
+
+
+@pytest.fixture(scope="module")
+def fx(tmp_path_factory):
+    root = tmp_path_factory.mktemp("inputs_in")
+    a, b = write_dem_pair(root / "dems")
+    return SimpleNamespace(root=root, a=a, b=b, rgb=write_rgb(root / "dems", a),
+                           fp=write_footprints(root / "dems" / "footprints.gpkg", a),
+                           scene=make_scene(root / "scene"))
+
+
+CASES: dict = {}
+
+
+def case(name):
+    def reg(fn):
+        CASES[name] = fn
+        return fn
+    return reg
+
+
+def _doc(fx) -> dict:
+    return yaml.safe_load(fx.scene.manifest.read_text())
+
+
+# --- 1. YAML ------------------------------------------------------------------------------------------------
+@case("manifest: a billion-laughs alias bomb")
+def _(fx, tmp):
+    from tests.io.test_safe_yaml import BOMB
+
+    m = fx.scene.root / "m_bomb.yaml"
+    m.write_text(BOMB + fx.scene.manifest.read_text().replace("name: faults", "name: *i", 1))
+    return dict(args=["run", m, "--out", tmp / "O"], out=tmp, first="expand to more than")
+
+
+@case("manifest: a duplicate key")
+def _(fx, tmp):
+    m = fx.scene.root / "m_dupkey.yaml"
+    m.write_text(fx.scene.manifest.read_text() + "name: again\n")
+    return dict(args=["run", m, "--out", tmp / "O"], out=tmp, first="duplicate key 'name'")
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_inputs_matrix(name, fx, tmp_path):
+    c = CASES[name](fx, tmp_path)
+    watched = [fx.root, *c.get("inputs", [])]
+    before = sha256_tree(watched)
+    out = c.get("out")
+    existing = {p for p in Path(out).rglob("*")} if out is not None and Path(out).exists() else set()
+    t = time.perf_counter()
+    r = CliRunner().invoke(main, ["--progress", "none", *map(str, c["args"])])
+    took = time.perf_counter() - t
+    assert r.exit_code == c.get("code", 2), f"exit {r.exit_code}:\n{r.output}"
+    errs = error_lines(r.stderr)
+    assert len(errs) == 1, r.stderr
+    assert c["first"] in errs[0], errs[0]
+    assert "Traceback" not in r.output
+    assert not part_files(tmp_path) and not part_files(fx.root)
+    assert sha256_tree(watched) == before, "an input changed"
+    if out is not None and Path(out).exists():
+        new = [p for p in Path(out).rglob("*") if p not in existing and p.is_file()]
+        assert not new, f"files written by a failed run: {new}"
+    assert took < c.get("max_s", 10.0), f"the error took {took:.1f} s: checked too late"
