@@ -472,6 +472,7 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
         epochs.append(Epoch(name, _date(e.get("date"), f"{where}.date"), tuple(imgs),
                             str(e.get("sensor") if e.get("sensor") is not None else ""), dem, extras))
     _check_epoch_order(epochs)
+    _check_unique_images(epochs)
     aoi = None
     if data.get("aoi") is not None:
         a = data["aoi"]
@@ -513,6 +514,37 @@ def _check_epoch_order(epochs: Sequence[Epoch]) -> None:
             raise ManifestError(
                 f"manifest epochs: {nxt.name!r} ({nxt.date}) is listed after {prev.name!r} ({prev.date}) but dated "
                 "before it; list the epochs in date order (earliest first), or fix the dates")
+
+
+def _check_unique_images(epochs: Sequence[Epoch]) -> None:
+    """Each image name once per epoch (products such as pair DEMs are named after the images: a second
+    image of the same name would overwrite the first's) and each image file once in the whole manifest
+    (the same file as two images, or in two epochs, compares an image with itself)."""
+    files: dict[Any, str] = {}
+    for i, e in enumerate(epochs):
+        names: dict[str, str] = {}
+        for j, im in enumerate(e.images):
+            where = f"epochs[{i}].images[{j}] ({im.path.name})"
+            if im.name in names:
+                raise ManifestError(
+                    f"manifest: {where} and {names[im.name]} of epoch {e.name!r} have the same image name "
+                    f"{_r(im.name)}; products are named after the images, so give each a distinct 'name:'")
+            names[im.name] = where
+            key = _file_key(im.path)
+            if key in files:
+                raise ManifestError(
+                    f"manifest: {where} and {files[key]} are the same file {im.path}; list each image once (an "
+                    "image compared with itself shows no change)")
+            files[key] = f"epochs[{i}].images[{j}]"
+
+
+def _file_key(p: Path) -> Any:
+    """What identifies a file: device and inode (hard links, symlinks, ``a/../b``), else the resolved path."""
+    try:
+        st = p.stat()
+        return (st.st_dev, st.st_ino)
+    except OSError:
+        return str(p.resolve())
 
 
 def default_output_dir(name: str) -> Path:
@@ -582,6 +614,8 @@ def discover_manifest(folder: os.PathLike | str) -> Manifest:
         imgs = images_in(root)
         if imgs:
             epochs.append(Epoch(root.name, None, tuple(imgs)))
+    if epochs:
+        _check_unique_images(epochs)
     if not epochs:
         raise ManifestError(
             f"{root} holds no manifest (scene.yaml) and no images ({', '.join(IMAGE_SUFFIXES)}); "

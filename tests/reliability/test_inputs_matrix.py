@@ -60,6 +60,25 @@ def _(fx, tmp):
     return dict(args=["run", m, "--out", tmp / "O"], out=tmp, first="duplicate key 'name'")
 
 
+# --- 2. the same image twice --------------------------------------------------------------------------------
+@case("manifest: two images of an epoch with one name")
+def _(fx, tmp):
+    doc = _doc(fx)
+    doc["epochs"][0]["images"][1]["name"] = doc["epochs"][0]["images"][0]["name"]
+    m = fx.scene.root / "m_dupname.yaml"
+    m.write_text(yaml.safe_dump(doc))
+    return dict(args=["run", m, "--out", tmp / "O"], out=tmp, first="have the same image name 'A_0'")
+
+
+@case("manifest: the same image file in both epochs")
+def _(fx, tmp):
+    doc = _doc(fx)
+    doc["epochs"][1]["images"][0]["path"] = doc["epochs"][0]["images"][0]["path"]
+    m = fx.scene.root / "m_dupfile.yaml"
+    m.write_text(yaml.safe_dump(doc))
+    return dict(args=["run", m, "--out", tmp / "O"], out=tmp, first="are the same file")
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_inputs_matrix(name, fx, tmp_path):
     c = CASES[name](fx, tmp_path)
