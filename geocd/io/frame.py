@@ -57,7 +57,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from ..camera.frame import FrameCamera
-from ..errors import FrameCameraError, InputFileNotFoundError, UnsupportedFormatError
+from ..errors import FrameCameraError, GeoCDError, InputFileNotFoundError, UnsupportedFormatError
 from .safe_yaml import YAMLLimitError, load_json, load_yaml
 
 #: sidecar suffixes, in search order
@@ -127,6 +127,11 @@ def read_frame_sidecar(path: os.PathLike | str) -> FrameCamera:
         cam = FrameCamera.from_dict(d)
     except FrameCameraError as exc:
         raise FrameCameraError(f"{p}: {exc}") from exc
+    except GeoCDError:
+        raise
+    except (TypeError, ValueError, ArithmeticError) as exc:   # a value no field check foresaw
+        raise FrameCameraError(f"{p}: invalid frame camera ({type(exc).__name__}: {str(exc)[:160]}); see "
+                               "geocd.io.frame for the schema") from None
     if not cam.source:
         cam = cam.replace(source=str(p))
     return cam

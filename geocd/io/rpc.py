@@ -228,6 +228,9 @@ PLAUSIBLE_SCALES = (
     ("line_scale", 1e-3, 1e7, "pixels"),
     ("samp_scale", 1e-3, 1e7, "pixels"),
 )
+#: scales a vendor may write negative (Planet's L1A/L1B RPCs have LAT_SCALE < 0, the sign folded into the
+#: coefficients); the pixel and height scales are half-extents and must be positive
+SIGNED_SCALES = ("lat_scale", "lon_scale")
 #: RPC00B coefficients act on offsets normalised to [-1, 1]; real models stay below ~250 (measured on the
 #: 29 vendor RPCs of ../shared/data: SkySat 225, Pléiades 46, others ~1): 1e6 leaves four orders of margin
 MAX_ABS_COEFFICIENT = 1e6
@@ -267,7 +270,9 @@ def _field_problems(get: Callable[[str], Any]) -> list[str]:
             bad.append(f"{_VENDOR_KEY[name]}={v:g} is not {what} (expected {lo:g}..{hi:g})")
     for name, lo, hi, unit in PLAUSIBLE_SCALES:
         v = float(get(name))
-        if not (lo <= abs(v) <= hi):
+        if name not in SIGNED_SCALES and v < 0:
+            bad.append(f"{_VENDOR_KEY[name]}={v:g} is negative; it must be {lo:g}..{hi:g} {unit}")
+        elif not (lo <= abs(v) <= hi):
             bad.append(f"{_VENDOR_KEY[name]}={v:g} is outside {lo:g}..{hi:g} {unit}")
     for name in _COEF_NAMES:
         c = np.asarray(get(name), float).reshape(-1)
@@ -931,11 +936,14 @@ def find_rpc_sidecar(image_path: os.PathLike | str) -> Path | None:
     except OSError:
         return None
     me = image.name.lower()
+    generic = {f"{image.stem}.xml".lower(), f"{image.stem}.json".lower()}
     for name in _sidecar_candidates(image):
         p = listing.get(name.lower())
         if p is None or p.name.lower() == me:
             continue
-        if p.suffix.lower() in (".xml", ".json", ".yaml", ".yml") and not _holds_rpc(p):
+        # a generic name (image.xml, image.json) may hold other metadata: it counts only when it reads as an
+        # RPC; a name that says RPC (image_rpc.txt, image.rpc.json, ...) is read, and a garbled one is an error
+        if name.lower() in generic and not _holds_rpc(p):
             continue
         return p
     tile = re.search(r"_R(\d+)C(\d+)$", image.stem, flags=re.I)

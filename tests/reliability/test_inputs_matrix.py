@@ -7,6 +7,7 @@ error comes fast: before any heavy work.
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -77,6 +78,70 @@ def _(fx, tmp):
     m = fx.scene.root / "m_dupfile.yaml"
     m.write_text(yaml.safe_dump(doc))
     return dict(args=["run", m, "--out", tmp / "O"], out=tmp, first="are the same file")
+
+
+# --- 3. camera files ----------------------------------------------------------------------------------------
+def _cam_json(fx, path: Path, **override) -> Path:
+    from geocd.io.cameras import load_camera
+
+    d = load_camera(fx.scene.root / "images" / "A_0.tif").to_dict()
+    d.update(override)
+    path.write_text(json.dumps(d))
+    return path
+
+
+def _with_camera(fx, name: str, camera: Path) -> Path:
+    doc = _doc(fx)
+    doc["epochs"][0]["images"][0]["camera"] = str(camera)
+    m = fx.scene.root / name
+    m.write_text(yaml.safe_dump(doc))
+    return m
+
+
+@case("ortho: --camera x.rpc.json with LAT_SCALE 1e308")
+def _(fx, tmp):
+    cam = _cam_json(fx, tmp / "x.rpc.json", lat_scale=1e308)
+    out = tmp / "O"
+    out.mkdir()
+    return dict(args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif",
+                      "--camera", cam, "--out", out / "x_ortho.tif"], inputs=[cam], out=out,
+                first="LAT_SCALE=1e+308 is outside")
+
+
+@case("manifest: camera: an RPC JSON with LAT_SCALE 1e308")
+def _(fx, tmp):
+    cam = _cam_json(fx, tmp / "x.rpc.json", lat_scale=1e308)
+    return dict(args=["run", _with_camera(fx, "m_cam308.yaml", cam), "--out", tmp / "O"], inputs=[cam], out=tmp,
+                first="LAT_SCALE=1e+308 is outside")
+
+
+@case("manifest: camera: an RPC text with a negative LINE_SCALE")
+def _(fx, tmp):
+    from .scenes import rpc_txt
+
+    cam = rpc_txt(tmp / "neg_rpc.txt", LINE_SCALE="-60.0")
+    return dict(args=["run", _with_camera(fx, "m_negscale.yaml", cam), "--out", tmp / "O"], inputs=[cam], out=tmp,
+                first="LINE_SCALE=-60 is negative")
+
+
+@case("manifest: camera: a frame sidecar of width 10**400")
+def _(fx, tmp):
+    cam = tmp / "huge.camera.json"
+    cam.write_text(json.dumps({"kind": "frame", "crs": fx.scene.crs, "width": 10**400, "height": 100,
+                               "focal_px": 1000.0, "position": [0.0, 0.0, 1000.0], "opk_deg": [0.0, 0.0, 0.0]}))
+    return dict(args=["run", _with_camera(fx, "m_frame400.yaml", cam), "--out", tmp / "O"], inputs=[cam], out=tmp,
+                first="'width'=1000")
+
+
+@case("ortho: a garbled .rpc.json sidecar next to the image")
+def _(fx, tmp):
+    import shutil
+
+    img = Path(shutil.copy(fx.rgb, tmp / "photo.tif"))
+    side = tmp / "photo.rpc.json"
+    side.write_text('{"kind": "rpc", "line_num": [1, 2')
+    return dict(args=["ortho", img, "--dsm", fx.a, "--out", tmp / "O" / "photo_ortho.tif"], inputs=[img, side],
+                out=tmp, first="photo.rpc.json: not valid JSON")
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
