@@ -144,6 +144,61 @@ def _(fx, tmp):
                 out=tmp, first="photo.rpc.json: not valid JSON")
 
 
+# --- 4. --out FILE names a user's own file ---------------------------------------------------------------------
+def _notes(tmp: Path, name: str = "notes.txt") -> Path:
+    f = tmp / name
+    f.write_text("my own notes, not geocd's\n")
+    return f
+
+
+@case("ortho: --out names a user's text file")
+def _(fx, tmp):
+    f = _notes(tmp, "notes.tif")
+    return dict(args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif",
+                      "--out", f], inputs=[f], out=tmp, first="exists and geocd did not write it")
+
+
+@case("ortho: --out names a GeoTIFF geocd ortho did not write")
+def _(fx, tmp):
+    import shutil
+
+    f = Path(shutil.copy(fx.a, tmp / "mine.tif"))
+    return dict(args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif",
+                      "--out", f], inputs=[f], out=tmp, first="it is not a geocd ortho GeoTIFF")
+
+
+@case("ortho: the status raster beside --out is a user's file")
+def _(fx, tmp):
+    f = _notes(tmp, "x_status.tif")
+    return dict(args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif",
+                      "--out", tmp / "x.tif"], inputs=[f], out=tmp, first="x_status.tif exists and geocd did not")
+
+
+@case("consistency: --out names a user's text file")
+def _(fx, tmp):
+    f = _notes(tmp, "model.json")
+    return dict(args=["consistency", fx.a, "--out", f], inputs=[f], out=tmp,
+                first="it is not a geocd self-consistency model")
+
+
+@case("plugin-zip: --out names a user's zip")
+def _(fx, tmp):
+    import zipfile
+
+    f = tmp / "photos.zip"
+    with zipfile.ZipFile(f, "w") as zf:
+        zf.writestr("holiday/a.jpg", b"jpeg")
+    return dict(args=["plugin-zip", "--out", f], inputs=[f], out=tmp, first="it is not a geocd_qgis plugin zip")
+
+
+@case("plugin-zip: a user's plugins.xml beside --out")
+def _(fx, tmp):
+    f = tmp / "plugins.xml"
+    f.write_text('<?xml version="1.0"?>\n<plugins><pyqgis_plugin plugin_id="other"/></plugins>\n')
+    return dict(args=["plugin-zip", "--out", tmp / "p.zip"], inputs=[f], out=tmp,
+                first="plugins.xml exists and geocd did not write it")
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_inputs_matrix(name, fx, tmp_path):
     c = CASES[name](fx, tmp_path)
