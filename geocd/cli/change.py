@@ -70,6 +70,12 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
 
     m = load_manifest(manifest)
     out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
+    from ..io.vector import check_footprints_file
+
+    if footprints is not None:
+        check_footprints_file(footprints)
+    elif m.footprints is not None:
+        check_footprints_file(m.footprints.path, m.footprints.layer)
     from ..consistency import ChangeParams, ConsistencyParams
     from ..io.outputs import open_outputs
     from ..pipeline import PRODUCTS, RunConfig, run as run_pipeline

@@ -199,6 +199,52 @@ def _(fx, tmp):
                 first="plugins.xml exists and geocd did not write it")
 
 
+# --- 5. inputs checked before any work or output -----------------------------------------------------------
+@case("run: --footprints is a raster")
+def _(fx, tmp):
+    out = tmp / "O"
+    out.mkdir()
+    return dict(args=["run", fx.scene.manifest, "--out", out, "--footprints", fx.rgb], out=out,
+                first="is a raster", max_s=5.0)
+
+
+@case("run: the manifest's footprints hold points")
+def _(fx, tmp):
+    import geopandas as gpd
+    from shapely.geometry import Point
+
+    pts = fx.scene.root / "points.gpkg"
+    if not pts.exists():
+        gpd.GeoDataFrame({"id": [1]}, geometry=[Point(0, 0)], crs=fx.scene.crs).to_file(pts)
+    m = fx.scene.write("m_points.yaml", footprints="points.gpkg")
+    return dict(args=["run", m, "--out", tmp / "O"], out=tmp, first="hold Point features", max_s=5.0)
+
+
+@case("mpp: --change-prior is garbage with a .tif name")
+def _(fx, tmp):
+    g = tmp / "garbage.tif"
+    g.write_bytes(bytes(range(256)) * 40)
+    out = tmp / "O"
+    out.mkdir()
+    return dict(args=["mpp", fx.scene.manifest, "--out", out, "--change-prior", g], inputs=[g], out=out,
+                first="garbage.tif", max_s=5.0)
+
+
+@case("mpp: --change-prior is a DEM (heights, not 0-100)")
+def _(fx, tmp):
+    out = tmp / "O"
+    out.mkdir()
+    return dict(args=["mpp", fx.scene.manifest, "--out", out, "--change-prior", fx.scene.root / "dem.tif"], out=out,
+                first="it must be a 0–1 or 0–100", max_s=5.0)
+
+
+@case("synth: --supersample 0")
+def _(fx, tmp):
+    out = tmp / "S"
+    return dict(args=["synth", "--tiny", "--out", out, "--supersample", "0"], out=tmp, first="supersample must be",
+                max_s=5.0)
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_inputs_matrix(name, fx, tmp_path):
     c = CASES[name](fx, tmp_path)
@@ -220,3 +266,5 @@ def test_inputs_matrix(name, fx, tmp_path):
         new = [p for p in Path(out).rglob("*") if p not in existing and p.is_file()]
         assert not new, f"files written by a failed run: {new}"
     assert took < c.get("max_s", 10.0), f"the error took {took:.1f} s: checked too late"
+    if name.startswith("synth"):
+        assert not (tmp_path / "S").exists(), "synth created its output folder before checking its options"
