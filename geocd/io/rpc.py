@@ -926,8 +926,9 @@ def find_rpc_sidecar(image_path: os.PathLike | str) -> Path | None:
     ``{stem}.XML`` (DigitalGlobe), ``{stem}.json`` (Sat-NeRF/DFC2019), ``RPC_{stem without IMG_
     and tile suffix}.XML`` (DIMAP), then the folder's only ``RPC_*.XML`` (not for tiles other
     than R1C1, whose pixel offsets differ), then an orthority ``*rpc*.yaml`` with an entry for the
-    image. Files with a generic extension (.xml, .json, .yaml) count only when their content is an
-    RPC.
+    image. Files with a generic name (``{stem}.xml``, ``{stem}.json``) count only when their content is
+    an RPC; a file whose name says RPC (``{stem}.rpc.json``, ``{stem}_rpc.txt``, ...) is returned even
+    when garbled, so that reading it raises :class:`~geocd.errors.RPCParseError` naming it.
     """
     image = Path(image_path)
     folder = image.parent if str(image.parent) else Path(".")
