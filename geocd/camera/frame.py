@@ -97,15 +97,26 @@ def rotation_to_opk(r_patb: np.ndarray) -> tuple[float, float, float]:
 # ------------------------------------------------------------------------------------------
 # validation helpers (messages name the field and the fix)
 # ------------------------------------------------------------------------------------------
+#: largest image side a frame camera may have (pixels): a 10⁶ px frame is far beyond any sensor
+MAX_SIZE_PX = 10**6
+#: largest magnitude of a frame camera's numbers (focal length, principal point, position, angles): positions
+#: are metres in a projected or geocentric CRS (|x| < 10⁸ m), angles degrees
+MAX_ABS_VALUE = 1e9
+
+
 def _floats(value: Any, name: str, n: int, hint: str) -> tuple[float, ...]:
     try:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as exc:
-        raise FrameCameraError(f"frame camera field '{name}'={value!r} is not {n} numbers; {hint}") from exc
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise FrameCameraError(f"frame camera field '{name}'={_short(value)} is not {n} finite numbers; {hint}") \
+            from exc
     if arr.size != n:
         raise FrameCameraError(f"frame camera field '{name}' has {arr.size} values, it needs {n}; {hint}")
     if not np.all(np.isfinite(arr)):
-        raise FrameCameraError(f"frame camera field '{name}' contains NaN/inf ({value!r}); {hint}")
+        raise FrameCameraError(f"frame camera field '{name}' contains NaN/inf ({_short(value)}); {hint}")
+    if np.any(np.abs(arr) > MAX_ABS_VALUE):
+        raise FrameCameraError(f"frame camera field '{name}'={_short(value)} is out of range (|value| > "
+                               f"{MAX_ABS_VALUE:g}); {hint}")
     return tuple(float(v) for v in arr)
 
 
@@ -113,7 +124,7 @@ def _pair(value: Any, name: str, hint: str) -> tuple[float, float]:
     """A scalar (→ both) or a pair of finite numbers."""
     try:
         n = np.asarray(value, dtype=np.float64).size
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         n = 2  # let _floats name the problem
     if n == 1:
         v = _floats(value, name, 1, hint)[0]
@@ -124,15 +135,20 @@ def _pair(value: Any, name: str, hint: str) -> tuple[float, float]:
 def _size(value: Any, name: str) -> int:
     try:
         v = int(value)
-        ok = float(value) == v and v > 0
-    except (TypeError, ValueError):
+        ok = not isinstance(value, bool) and float(value) == v and 0 < v <= MAX_SIZE_PX
+    except (TypeError, ValueError, OverflowError):
         ok = False
     if not ok:
         raise FrameCameraError(
-            f"frame camera field '{name}'={value!r} must be a positive whole number of pixels; "
+            f"frame camera field '{name}'={_short(value)} must be a whole number of pixels in 1..{MAX_SIZE_PX}; "
             "give the size of the image the camera belongs to"
         )
     return v
+
+
+def _short(value: Any, n: int = 60) -> str:
+    s = repr(value)
+    return s if len(s) <= n else s[: n - 3] + "..."
 
 
 def _distortion(value: Any) -> tuple[float, float, float, float, float]:

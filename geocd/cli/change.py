@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
@@ -69,6 +70,12 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
 
     m = load_manifest(manifest)
     out = resolve_out_dir(out_dir if out_dir is not None else m.output, m.name, create=False)
+    from ..io.vector import check_footprints_file
+
+    if footprints is not None:
+        check_footprints_file(footprints)
+    elif m.footprints is not None:
+        check_footprints_file(m.footprints.path, m.footprints.layer)
     from ..consistency import ChangeParams, ConsistencyParams
     from ..io.outputs import open_outputs
     from ..pipeline import PRODUCTS, RunConfig, run as run_pipeline
@@ -138,6 +145,15 @@ def _read_pairs(paths):
     return pairs
 
 
+def _is_consistency_model(p: Path) -> bool:
+    """Whether ``p`` is a self-consistency model geocd wrote (JSON with its format key)."""
+    with open(p, "rb") as fh:
+        if not fh.read(64).lstrip().startswith(b"{"):
+            return False
+    d = json.loads(p.read_text(encoding="utf-8"))
+    return isinstance(d, dict) and "geocd_self_consistency_model" in d
+
+
 @click.command("consistency")
 @click.argument("pair_dems", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=str))
 @click.option("--out", "out_path", required=True, type=click.Path(dir_okay=False, path_type=str),
@@ -151,15 +167,19 @@ def _read_pairs(paths):
 @click.option("--bins", "n_bins", type=int, default=24, show_default=True, help="Number of score bins.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="Also write the scatter + curves PNG.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace an existing --out file even when it is not a geocd self-consistency model.")
 @click.pass_context
-def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, sensor, n_bins, plot_path):
+def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, sensor, n_bins, plot_path, overwrite):
     """Learn a self-consistency model (stage 1) from pair-DEMs of a static scene (GeoTIFFs from `geocd stereo`)."""
     from ..consistency import ConsistencyParams, learn_self_consistency
-    from ..io.outputs import open_outputs
+    from ..io.outputs import open_outputs, refuse_foreign_files
     from . import emit_result, make_progress
     from .common import session
 
     open_outputs(None, files=[out_path, plot_path], inputs=pair_dems)
+    refuse_foreign_files([out_path], _is_consistency_model, what="a geocd self-consistency model (JSON)",
+                         force=overwrite)
     sess = session(ctx)
     sess.open_log(Path(out_path).parent)
     pairs = _read_pairs(pair_dems)

@@ -8,6 +8,40 @@ import click
 import numpy as np
 
 
+def check_change_prior(path: str | Path) -> None:
+    """Check a ``--change-prior`` raster up front (before any stereo or ortho): a georeferenced raster whose
+    ``confidence`` band (or first band) holds 0–1 or 0–100 values, read on a decimated sample.
+
+    Raises
+    ------
+    UnsupportedFormatError, CRSError, ConfigError, EmptyDataError
+    """
+    from ..errors import ConfigError, CRSError, EmptyDataError
+    from ..io.raster import _open, _read_failure
+
+    with _open(path) as ds:
+        if ds.crs is None:
+            raise CRSError(f"--change-prior {path} has no CRS: it must be a georeferenced map (e.g. OUT/sc_change.tif "
+                           "from geocd run) to be laid on the grid")
+        names = list(ds.descriptions)
+        band = names.index("confidence") + 1 if "confidence" in names else 1
+        if not np.issubdtype(np.dtype(ds.dtypes[band - 1]), np.number) or np.dtype(ds.dtypes[band - 1]).kind == "c":
+            raise ConfigError(f"--change-prior {path} band {band} is {ds.dtypes[band - 1]}, not a real number")
+        step = max(1, int(np.ceil(max(ds.width, ds.height) / 512)))
+        try:
+            a = ds.read(band, out_shape=(max(1, ds.height // step), max(1, ds.width // step)), masked=True)
+        except Exception as exc:  # noqa: BLE001 - GDAL's read failures have many types
+            raise _read_failure(path, exc) from None
+    v = np.asarray(a.astype(np.float64).filled(np.nan))
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        raise EmptyDataError(f"--change-prior {path} holds no valid value; give a 0–1 or 0–100 change map")
+    lo, hi = float(v.min()), float(v.max())
+    if lo < 0.0 or hi > 100.0:
+        raise ConfigError(f"--change-prior {path} holds values {lo:g}..{hi:g}; it must be a 0–1 or 0–100 (%) change "
+                          "map, e.g. OUT/sc_change.tif (band 'confidence') from geocd run")
+
+
 @click.command("mpp")
 @click.argument("manifest", required=False, type=click.Path(path_type=str))
 @click.option("--image-a", type=click.Path(path_type=str), default=None,
@@ -114,6 +148,8 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
     if height == "on" and image_a is not None and dsm_a is None:
         raise ConfigError("--height on needs --dsm-a and --dsm-b with --image-a/--image-b")
     require_inputs(manifest, image_a, image_b, dsm_a, dsm_b, ground, change_prior)
+    if change_prior is not None:
+        check_change_prior(change_prior)
     kw = {"seed": seed}
     for k, v in (("side_min_m", side_min_m), ("side_max_m", side_max_m), ("max_iter", max_iter),
                  ("gamma_3d", gamma_3d), ("prototypes", prototypes), ("step", step),

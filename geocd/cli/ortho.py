@@ -6,6 +6,13 @@ from pathlib import Path
 
 import click
 
+from ..io.outputs import geotiff_tag_startswith, is_qgis_style
+
+
+def _is_geocd_ortho(p: Path) -> bool:
+    """Whether ``p`` is a GeoTIFF geocd ortho wrote (its ``method`` tag)."""
+    return geotiff_tag_startswith(p, "method", "geocd ortho")
+
 
 def _is_manifest(p: Path) -> bool:
     return p.is_dir() or p.suffix.lower() in (".yaml", ".yml", ".json")
@@ -60,10 +67,13 @@ def _dsm_arg(values: tuple[str, ...]):
               help="Low-pass the image first when a grid cell spans 1.5 image pixels or more.")
 @click.option("--view-bands", is_flag=True, help="Also write NAME_view.tif: view zenith/azimuth, incidence, px per cell.")
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
+@click.option("--overwrite", is_flag=True,
+              help="Single image: replace an existing --out file even when geocd did not write it (by default only "
+                   "an earlier geocd ortho is replaced).")
 @click.pass_context
 def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images, camera_path, out, posting_m,
           resampling: str, occlusion: bool, occlusion_tol_m, antialias: bool, view_bands: bool,
-          no_overwrite: bool) -> None:
+          no_overwrite: bool, overwrite: bool) -> None:
     """Orthorectify SOURCE onto the AOI grid with a DSM: a true ortho, where a cell the camera cannot see is
     nodata (GDAL mask) instead of receiving the occluding roof's pixels.
 
@@ -82,6 +92,8 @@ def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images,
     src = Path(source)
     if not src.exists():
         raise InputFileNotFoundError(f"{src} does not exist; give a manifest, a scene folder or an image")
+    if overwrite and no_overwrite:
+        raise ConfigError("--overwrite and --no-overwrite contradict each other; give one")
     dsm_spec = _dsm_arg(tuple(dsm))
     progress = make_progress(ctx, "ortho")
     try:
@@ -105,6 +117,16 @@ def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images,
         else:
             if not isinstance(dsm_spec, str):
                 raise ConfigError("orthorectifying one image needs one DSM: --dsm PATH")
+            from ..io.outputs import open_outputs, refuse_foreign_files
+
+            dst = Path(out) if out else default_out_dir(src.stem) / f"{src.stem}_ortho.tif"
+            open_outputs(None, files=[dst.parent / f"{dst.stem}{s}" for s in (".tif", ".qml", "_status.tif",
+                                                                               "_status.qml", "_view.tif")],
+                         inputs=[src, camera_path, dsm_spec])
+            rasters = [dst, *(dst.parent / f"{dst.stem}{s}" for s in (".tif", "_status.tif", "_view.tif"))]
+            refuse_foreign_files(rasters, _is_geocd_ortho, what="a geocd ortho GeoTIFF", force=overwrite)
+            refuse_foreign_files([dst.parent / f"{dst.stem}{s}" for s in (".qml", "_status.qml")], is_qgis_style,
+                                 what="a QGIS style", force=overwrite)
             import numpy as np
 
             from ..geodesy import AOIGrid
@@ -121,12 +143,6 @@ def ortho(ctx: click.Context, source: str, dsm, dsm_source: str, epochs, images,
             h = d.to_ellipsoidal().height_m
             filled, hole = fill_dsm_holes(h)
             cam = load_camera(src, camera_path)
-            dst = Path(out) if out else default_out_dir(src.stem) / f"{src.stem}_ortho.tif"
-            from ..io.outputs import open_outputs
-
-            open_outputs(None, files=[dst.parent / f"{dst.stem}{s}" for s in (".tif", ".qml", "_status.tif",
-                                                                               "_status.qml", "_view.tif")],
-                         inputs=[src, camera_path, dsm_spec])
             dst.parent.mkdir(parents=True, exist_ok=True)
             progress(0.1, f"ortho {src.name}")
             paths, r = ortho_image(src, cam, grid, filled, dst, params=params, dsm_filled=hole,

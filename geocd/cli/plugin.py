@@ -142,6 +142,20 @@ def write_repository(zip_path: Path, url: str | None = None) -> Path:
     return write_text_atomic(zip_path.parent / REPOSITORY_FILE, repository_xml(zip_path, meta, download))
 
 
+def _is_plugin_zip(p: Path) -> bool:
+    """Whether ``p`` is a plugin zip geocd wrote: a zip whose every entry lies in the plugin's top folder."""
+    with zipfile.ZipFile(p) as zf:
+        names = zf.namelist()
+    return bool(names) and all(n.startswith(f"{PLUGIN_NAME}/") for n in names)
+
+
+def _is_plugin_repository(p: Path) -> bool:
+    """Whether ``p`` is a plugins.xml geocd wrote (a QGIS plugin repository offering this plugin)."""
+    with open(p, "rb") as fh:
+        head = fh.read(65536)
+    return b"<plugins" in head and f'plugin_id="{PLUGIN_NAME}"'.encode() in head
+
+
 @click.command("plugin-zip")
 @click.option("--out", "out", type=click.Path(path_type=str), default=None,
               help="Zip file or folder to write (default: dist/geocd_qgis-VERSION.zip).")
@@ -150,8 +164,11 @@ def write_repository(zip_path: Path, url: str | None = None) -> Path:
                    "plugins.xml (default: the zip's file:// URL, for a repository on this machine or a shared disk).")
 @click.option("--no-environment-hint", is_flag=True,
               help="Do not record this environment's geocd in the zip (for zips shared with other machines).")
+@click.option("--overwrite", is_flag=True,
+              help="Replace an existing zip or plugins.xml even when geocd did not write it.")
 @click.pass_context
-def plugin_zip(ctx: click.Context, out: str | None, url: str | None, no_environment_hint: bool) -> None:
+def plugin_zip(ctx: click.Context, out: str | None, url: str | None, no_environment_hint: bool,
+               overwrite: bool) -> None:
     """Build the QGIS plugin zip and a plugin repository file (plugins.xml) beside it.
 
     Install from ZIP: Plugins ▸ Manage and Install Plugins ▸ Install from ZIP. Install from repository: add
@@ -159,7 +176,7 @@ def plugin_zip(ctx: click.Context, out: str | None, url: str | None, no_environm
     "geocd" from the list; headless: `geocd plugin-install`. The plugin (Processing provider "geocd") runs this
     geocd installation as a child process; the zip records where it is unless --no-environment-hint is given.
     """
-    from ..io.outputs import open_outputs
+    from ..io.outputs import open_outputs, refuse_foreign_files
     from . import emit_result
     from .common import session
 
@@ -167,6 +184,9 @@ def plugin_zip(ctx: click.Context, out: str | None, url: str | None, no_environm
     sess.log_enabled = False  # the folder is what a web server publishes: no log file there
     zp = zip_path(out, read_metadata(plugin_source_dir()).get("version", ""))
     open_outputs(None, files=[zp, zp.parent / REPOSITORY_FILE])
+    refuse_foreign_files([zp], _is_plugin_zip, what=f"a {PLUGIN_NAME} plugin zip", force=overwrite)
+    refuse_foreign_files([zp.parent / REPOSITORY_FILE], _is_plugin_repository,
+                         what=f"a plugin repository offering {PLUGIN_NAME}", force=overwrite)
     path = build_plugin_zip(out, environment_hint=not no_environment_hint)
     repo = write_repository(path, url)
     where = repo.resolve().as_uri() if not url else url.rstrip("/") + "/" + REPOSITORY_FILE

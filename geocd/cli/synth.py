@@ -47,7 +47,6 @@ def synth(ctx: click.Context, out_dir: Path, seed: int, size_m: float, gsd_m: fl
     from ..io.outputs import open_outputs
     from ..synth.generate import SynthParams, generate
 
-    open_outputs(out_dir, inputs=[params_file], files=[pictures])
     base: dict = {}
     if params_file is not None:
         try:
@@ -74,7 +73,8 @@ def synth(ctx: click.Context, out_dir: Path, seed: int, size_m: float, gsd_m: fl
                   "n_lowered", "n_cars_moved", "n_trees_changed", "n_repainted", "name"):
             if k not in given and not (k == "name" and name is not None):
                 kw[k] = tiny_defaults[k]
-    params = SynthParams.from_dict(kw)
+    params = SynthParams.from_dict(kw)   # every value checked before the output folder is touched
+    open_outputs(out_dir, inputs=[params_file], files=[pictures])
     prog = make_progress(ctx, "synth")
     try:
         res = generate(params, out_dir, overwrite=overwrite, progress=prog)

@@ -7,12 +7,12 @@ result is a :class:`geocd.camera.Camera` with the image size set.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 from ..camera import Camera, camera_from_dict
-from ..errors import InputFileNotFoundError, NoCameraError, RPCNotFoundError
+from ..errors import CameraError, GeoCDError, InputFileNotFoundError, NoCameraError, RPCNotFoundError, RPCParseError
+from .safe_yaml import YAMLLimitError, load_json, load_yaml
 
 
 def _image_size(image: Path) -> tuple[int | None, int | None]:
@@ -43,30 +43,61 @@ def _with_size(cam: Camera, width: int | None, height: int | None) -> Camera:
 
 
 def read_camera_file(path: os.PathLike | str, image_path: os.PathLike | str | None = None) -> Camera:
-    """Read a camera file: geocd JSON/YAML (any kind) or any vendor RPC format."""
+    """Read a camera file: geocd JSON/YAML (any kind) or any vendor RPC format.
+
+    Every camera read goes through the plausibility checks of its kind (:func:`check_camera_plausible`),
+    whatever the file's format.
+
+    Raises
+    ------
+    InputFileNotFoundError, RPCParseError, FrameCameraError, CameraError
+    """
     p = Path(path)
     if not p.exists():
         raise InputFileNotFoundError(f"camera file {p} does not exist; check the path in the manifest")
     if p.suffix.lower() in (".json", ".yaml", ".yml"):
         text = p.read_text(encoding="utf-8", errors="replace")
         try:
-            if p.suffix.lower() == ".json":
-                d = json.loads(text)
-            else:
-                import yaml
-
-                d = yaml.safe_load(text)
+            d = load_json(text) if p.suffix.lower() == ".json" else load_yaml(text)
+        except YAMLLimitError as exc:
+            raise RPCParseError(f"camera file {p}: {exc}") from None
         except Exception:
-            d = None
+            d = None   # not JSON/YAML: the RPC reader below names what is wrong
         if isinstance(d, dict) and d.get("kind") == "frame":
             from .frame import read_frame_sidecar
 
             return read_frame_sidecar(p)
         if isinstance(d, dict) and "kind" in d:
-            return camera_from_dict(d)
+            try:
+                cam = camera_from_dict(d)
+            except (TypeError, ValueError, KeyError, OverflowError) as exc:
+                if isinstance(exc, GeoCDError):
+                    raise type(exc)(f"camera file {p}: {exc}") from None
+                raise CameraError(f"camera file {p}: invalid camera description ({type(exc).__name__}: "
+                                  f"{str(exc)[:160]}); re-export it with geocd") from None
+            return check_camera_plausible(cam, p)
     from .rpc import read_rpc
 
     return read_rpc(p, image_path=image_path)
+
+
+def check_camera_plausible(cam: Camera, path: os.PathLike | str | None = None) -> Camera:
+    """The checks of a camera's kind, for a camera built from a description (``camera_from_dict``): an RPC's
+    offsets, scales and coefficients (:func:`geocd.io.rpc.check_rpc_plausible`), the base camera of a
+    corrected one. Frame cameras check themselves when they are built.
+
+    Raises
+    ------
+    RPCParseError
+    """
+    from ..camera import CorrectedCamera, RPCModel
+    from .rpc import check_rpc_plausible
+
+    if isinstance(cam, RPCModel):
+        check_rpc_plausible(cam, path)
+    elif isinstance(cam, CorrectedCamera):
+        check_camera_plausible(cam.base, path)
+    return cam
 
 
 def load_camera(image_path: os.PathLike | str, camera_path: os.PathLike | str | None = None) -> Camera:

@@ -57,7 +57,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from ..camera.frame import FrameCamera
-from ..errors import FrameCameraError, InputFileNotFoundError, UnsupportedFormatError
+from ..errors import FrameCameraError, GeoCDError, InputFileNotFoundError, UnsupportedFormatError
+from .safe_yaml import YAMLLimitError, load_json, load_yaml
 
 #: sidecar suffixes, in search order
 SIDECAR_SUFFIXES = (".camera.json", ".camera.yaml", ".camera.yml")
@@ -94,7 +95,9 @@ def _load_mapping(path: Path) -> Any:
     text = path.read_text(encoding="utf-8", errors="replace")
     if path.suffix.lower() == ".json":
         try:
-            return json.loads(text)
+            return load_json(text)
+        except YAMLLimitError as exc:
+            raise FrameCameraError(f"{path}: {exc}") from None
         except json.JSONDecodeError as exc:
             raise FrameCameraError(
                 f"{path} is not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg}); fix the syntax"
@@ -102,9 +105,12 @@ def _load_mapping(path: Path) -> Any:
     import yaml
 
     try:
-        return yaml.safe_load(text)
+        return load_yaml(text)
+    except YAMLLimitError as exc:
+        raise FrameCameraError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:
-        raise FrameCameraError(f"{path} is not valid YAML ({exc}); fix the syntax") from exc
+        first = " ".join(str(exc).split())[:200]
+        raise FrameCameraError(f"{path} is not valid YAML ({first}); fix the syntax") from None
 
 
 def read_frame_sidecar(path: os.PathLike | str) -> FrameCamera:
@@ -121,6 +127,11 @@ def read_frame_sidecar(path: os.PathLike | str) -> FrameCamera:
         cam = FrameCamera.from_dict(d)
     except FrameCameraError as exc:
         raise FrameCameraError(f"{p}: {exc}") from exc
+    except GeoCDError:
+        raise
+    except (TypeError, ValueError, ArithmeticError) as exc:   # a value no field check foresaw
+        raise FrameCameraError(f"{p}: invalid frame camera ({type(exc).__name__}: {str(exc)[:160]}); see "
+                               "geocd.io.frame for the schema") from None
     if not cam.source:
         cam = cam.replace(source=str(p))
     return cam

@@ -37,11 +37,13 @@ import datetime as _dt
 import json
 import math
 import os
+import reprlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 from ..errors import InputFileNotFoundError, ManifestError
+from .safe_yaml import YAMLLimitError, load_json, load_yaml
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".ntf", ".nitf", ".jp2", ".img", ".vrt")
 
@@ -166,7 +168,7 @@ class _Str(_Scalar):
         if self.choices is not None and isinstance(v, str):
             norm = v.strip().lower().replace("-", "").replace(" ", "")
             if norm not in {c.lower().replace("-", "") for c in self.choices}:
-                errs.append(f"{where}: {v!r} is not one of {', '.join(self.choices)}{_did_you_mean(v, self.choices)}")
+                errs.append(f"{where}: {_r(v)} is not one of {', '.join(self.choices)}{_did_you_mean(v, self.choices)}")
         return v
 
 
@@ -175,7 +177,7 @@ class _Path(_Spec):
 
     def check(self, v, where, errs):
         if not isinstance(v, (str, os.PathLike)) or not str(v).strip():
-            errs.append(f"{where}: expected {self.what}, got {v!r}")
+            errs.append(f"{where}: expected {self.what}, got {_r(v)}")
         return v
 
 
@@ -196,13 +198,13 @@ class _Num(_Spec):
             return None
         x = float(x)
         if not math.isfinite(x):
-            errs.append(f"{where}: expected a finite number, got {v!r}")
+            errs.append(f"{where}: expected a finite number, got {_r(v)}")
             return None
         if self.integer and x != int(x):
-            errs.append(f"{where}: expected an integer, got {v!r}")
+            errs.append(f"{where}: expected an integer, got {_r(v)}")
             return None
         if self.positive and not x > 0:
-            errs.append(f"{where}: must be positive, got {v!r}")
+            errs.append(f"{where}: must be positive, got {_r(v)}")
             return None
         return int(x) if self.integer else x
 
@@ -298,9 +300,25 @@ class _OnOffOr(_Spec):
         return v
 
 
+_REPR = reprlib.Repr()
+_REPR.maxstring = _REPR.maxother = 60
+_REPR.maxlist = _REPR.maxtuple = _REPR.maxdict = 4
+_REPR.maxlevel = 2
+
+
 def _short(v: Any, n: int = 40) -> str:
-    s = repr(v)
-    return (s if len(s) <= n else s[: n - 3] + "...") + (f" ({type(v).__name__})" if not isinstance(v, str) else "")
+    """A value for a message: never longer than ``n`` characters, never a walk of the whole value."""
+    s = _clip(_REPR.repr(v), n)
+    return s + (f" ({type(v).__name__})" if not isinstance(v, str) else "")
+
+
+def _r(v: Any) -> str:
+    """``repr(v)`` for a message, bounded (a value from a user's file can be arbitrarily large)."""
+    return _clip(_REPR.repr(v), 80)
+
+
+def _clip(s: str, n: int) -> str:
+    return s if len(s) <= n else s[: n - 3] + "..."
 
 
 def _did_you_mean(word: str, options) -> str:
@@ -374,7 +392,7 @@ def validate_manifest_data(data: Any, path: Path | None = None) -> dict:
 
 def _path(root: Path, value: Any, where: str, must_exist: bool = True) -> Path:
     if not isinstance(value, (str, os.PathLike)) or not str(value).strip():
-        raise _err(where, f"expected a file path, got {value!r}")
+        raise _err(where, f"expected a file path, got {_r(value)}")
     p = Path(value)
     p = p if p.is_absolute() else root / p
     if must_exist and not p.exists():
@@ -392,7 +410,7 @@ def _date(value: Any, where: str) -> _dt.date | None:
     try:
         return _dt.date.fromisoformat(str(value)[:10])
     except ValueError as exc:
-        raise _err(where, f"date {value!r} is not ISO 8601 (YYYY-MM-DD)") from exc
+        raise _err(where, f"date {_r(value)} is not ISO 8601 (YYYY-MM-DD)") from exc
 
 
 def _datum(value: Any, where: str) -> str | None:
@@ -402,7 +420,7 @@ def _datum(value: Any, where: str) -> str | None:
 
     n = normalize_datum_name(str(value))
     if n not in VERTICAL_DATUMS:
-        raise _err(where, f"unknown vertical datum {value!r}; use one of {', '.join(VERTICAL_DATUMS)}"
+        raise _err(where, f"unknown vertical datum {_r(value)}; use one of {', '.join(VERTICAL_DATUMS)}"
                           f"{_did_you_mean(str(value).lower(), VERTICAL_DATUMS)}")
     return str(value)
 
@@ -427,7 +445,7 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
     data = validate_manifest_data(data, path)
     version = data.get("geocd_manifest", 1)
     if version != 1:
-        raise ManifestError(f"manifest version {version!r} is not supported by this geocd (expects 1); upgrade geocd")
+        raise ManifestError(f"manifest version {_r(version)} is not supported by this geocd (expects 1); upgrade geocd")
     epochs_raw = data.get("epochs")
     if not isinstance(epochs_raw, list) or not epochs_raw:
         raise ManifestError("manifest needs 'epochs': a non-empty list of {name, date, images}")
@@ -437,7 +455,7 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
         where = f"epochs[{i}]"
         name = str(e.get("name") if e.get("name") is not None else f"epoch{i + 1}")
         if name in names:
-            raise _err(where, f"duplicate epoch name {name!r}")
+            raise _err(where, f"duplicate epoch name {_r(name)}")
         names.add(name)
         imgs = []
         for j, im in enumerate(e.get("images") or []):
@@ -454,6 +472,7 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
         epochs.append(Epoch(name, _date(e.get("date"), f"{where}.date"), tuple(imgs),
                             str(e.get("sensor") if e.get("sensor") is not None else ""), dem, extras))
     _check_epoch_order(epochs)
+    _check_unique_images(epochs)
     aoi = None
     if data.get("aoi") is not None:
         a = data["aoi"]
@@ -472,7 +491,7 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
             try:
                 as_crs(crs)
             except (CRSError, ValueError, TypeError) as exc:
-                raise _err("aoi.crs", f"{crs!r} is not a coordinate reference system ({exc}); use e.g. EPSG:32631")\
+                raise _err("aoi.crs", f"{_r(crs)} is not a coordinate reference system ({exc}); use e.g. EPSG:32631")\
                     from None
         aoi = AOISpec(None if crs is None else str(crs), bounds, float(posting) if posting is not None else None, vec)
     output = data.get("output")
@@ -495,6 +514,37 @@ def _check_epoch_order(epochs: Sequence[Epoch]) -> None:
             raise ManifestError(
                 f"manifest epochs: {nxt.name!r} ({nxt.date}) is listed after {prev.name!r} ({prev.date}) but dated "
                 "before it; list the epochs in date order (earliest first), or fix the dates")
+
+
+def _check_unique_images(epochs: Sequence[Epoch]) -> None:
+    """Each image name once per epoch (products such as pair DEMs are named after the images: a second
+    image of the same name would overwrite the first's) and each image file once in the whole manifest
+    (the same file as two images, or in two epochs, compares an image with itself)."""
+    files: dict[Any, str] = {}
+    for i, e in enumerate(epochs):
+        names: dict[str, str] = {}
+        for j, im in enumerate(e.images):
+            where = f"epochs[{i}].images[{j}] ({im.path.name})"
+            if im.name in names:
+                raise ManifestError(
+                    f"manifest: {where} and {names[im.name]} of epoch {e.name!r} have the same image name "
+                    f"{_r(im.name)}; products are named after the images, so give each a distinct 'name:'")
+            names[im.name] = where
+            key = _file_key(im.path)
+            if key in files:
+                raise ManifestError(
+                    f"manifest: {where} and {files[key]} are the same file {im.path}; list each image once (an "
+                    "image compared with itself shows no change)")
+            files[key] = f"epochs[{i}].images[{j}]"
+
+
+def _file_key(p: Path) -> Any:
+    """What identifies a file: device and inode (hard links, symlinks, ``a/../b``), else the resolved path."""
+    try:
+        st = p.stat()
+        return (st.st_dev, st.st_ino)
+    except OSError:
+        return str(p.resolve())
 
 
 def default_output_dir(name: str) -> Path:
@@ -523,15 +573,12 @@ def load_manifest(path: os.PathLike | str) -> Manifest:
                             "(scene.yaml) or a folder of images")
     text = raw.decode("utf-8", errors="replace")
     try:
-        if p.suffix.lower() == ".json":
-            data = json.loads(text)
-        else:
-            import yaml
-
-            data = yaml.safe_load(text)
+        data = load_json(text) if p.suffix.lower() == ".json" else load_yaml(text)
+    except YAMLLimitError as exc:
+        raise ManifestError(f"manifest {p}: {_clip(str(exc), 300)}") from None
     except Exception as exc:
-        first = " ".join(str(exc).split())[:200]
-        raise ManifestError(f"manifest {p} is not valid YAML/JSON ({first}); fix the syntax") from exc
+        first = _clip(" ".join(str(exc).split()), 200)
+        raise ManifestError(f"manifest {p} is not valid YAML/JSON ({first}); fix the syntax") from None
     return parse_manifest(data, p.parent.resolve(), p.resolve())
 
 
@@ -567,6 +614,8 @@ def discover_manifest(folder: os.PathLike | str) -> Manifest:
         imgs = images_in(root)
         if imgs:
             epochs.append(Epoch(root.name, None, tuple(imgs)))
+    if epochs:
+        _check_unique_images(epochs)
     if not epochs:
         raise ManifestError(
             f"{root} holds no manifest (scene.yaml) and no images ({', '.join(IMAGE_SUFFIXES)}); "

@@ -75,7 +75,7 @@ import threading
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 from ..errors import ConfigError, DiskFullError, GeoCDError, OutputError, OutputLockedError, ResourceError
 from . import atomic
@@ -964,3 +964,57 @@ __all__ = ["open_outputs", "OutputSession", "close_sessions", "check_prefix", "c
            "check_product_set",
            "read_products_manifest", "check_resources", "grid_job_bytes", "available_memory_bytes", "sha256_file",
            "MANIFEST_NAME", "LOCK_NAME", "OutputFolderWarning", "lock_is_held", "active_sessions"]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# output FILES named by the user (--out x.tif, --out model.json): never replace a file geocd did not write
+# ---------------------------------------------------------------------------------------------------------------
+def refuse_foreign_files(files: Iterable[os.PathLike | str | None], recognise: Callable[[Path], bool], *, what: str,
+                         force: bool = False, option: str = "--out") -> None:
+    """Refuse to replace an existing output file that geocd did not write (a user's own file at that name).
+
+    Call before any heavy work. A file counts as geocd's when ``recognise(path)`` is true (it carries the
+    marks of this command's product: tags, a format key); a recogniser that fails means "not ours". Folders
+    and missing paths are left to :func:`open_outputs`.
+
+    Parameters
+    ----------
+    files : the output files (``None`` entries are ignored).
+    recognise : whether an existing file is this command's product.
+    what : what this command writes there, for the message ("a geocd ortho GeoTIFF").
+    force : the user asked to replace any file (``--overwrite``).
+    option : the option that named the path, for the message.
+
+    Raises
+    ------
+    OutputError
+    """
+    if force:
+        return
+    for f in files:
+        if f is None:
+            continue
+        p = Path(f)
+        if not p.is_file():
+            continue
+        try:
+            ours = bool(recognise(p))
+        except Exception:  # noqa: BLE001 - unreadable as our product: then it is not ours
+            ours = False
+        if not ours:
+            raise OutputError(f"{p} exists and geocd did not write it (it is not {what}); refusing to replace it. "
+                              f"Choose another {option}, move the file away, or pass --overwrite to replace it")
+
+
+def geotiff_tag_startswith(path: Path, tag: str, prefix: str) -> bool:
+    """Whether a GeoTIFF's dataset tag ``tag`` starts with ``prefix`` (a recogniser for :func:`refuse_foreign_files`)."""
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        return str(ds.tags().get(tag, "")).startswith(prefix)
+
+
+def is_qgis_style(path: Path) -> bool:
+    """Whether a file is a QGIS style (``.qml``): geocd rewrites the styles beside its rasters."""
+    with open(path, "rb") as fh:
+        return b"<qgis" in fh.read(4096)

@@ -40,6 +40,7 @@ import numpy as np
 from ..camera.rpc import RPCModel, rpc00a_to_rpc00b
 from ..errors import (GeoCDError, InputFileNotFoundError, RPCNotFoundError, RPCParseError,
                       UnsupportedFormatError)
+from .safe_yaml import YAMLLimitError, load_json, load_yaml
 
 __all__ = ["read_rpc", "find_rpc_sidecar", "load_rpc_for_image", "detect_rpc_format", "SIDECAR_PATTERNS",
            "check_rpc_plausible"]
@@ -227,6 +228,9 @@ PLAUSIBLE_SCALES = (
     ("line_scale", 1e-3, 1e7, "pixels"),
     ("samp_scale", 1e-3, 1e7, "pixels"),
 )
+#: scales a vendor may write negative (Planet's L1A/L1B RPCs have LAT_SCALE < 0, the sign folded into the
+#: coefficients); the pixel and height scales are half-extents and must be positive
+SIGNED_SCALES = ("lat_scale", "lon_scale")
 #: RPC00B coefficients act on offsets normalised to [-1, 1]; real models stay below ~250 (measured on the
 #: 29 vendor RPCs of ../shared/data: SkySat 225, Pléiades 46, others ~1): 1e6 leaves four orders of margin
 MAX_ABS_COEFFICIENT = 1e6
@@ -266,7 +270,9 @@ def _field_problems(get: Callable[[str], Any]) -> list[str]:
             bad.append(f"{_VENDOR_KEY[name]}={v:g} is not {what} (expected {lo:g}..{hi:g})")
     for name, lo, hi, unit in PLAUSIBLE_SCALES:
         v = float(get(name))
-        if not (lo <= abs(v) <= hi):
+        if name not in SIGNED_SCALES and v < 0:
+            bad.append(f"{_VENDOR_KEY[name]}={v:g} is negative; it must be {lo:g}..{hi:g} {unit}")
+        elif not (lo <= abs(v) <= hi):
             bad.append(f"{_VENDOR_KEY[name]}={v:g} is outside {lo:g}..{hi:g} {unit}")
     for name in _COEF_NAMES:
         c = np.asarray(get(name), float).reshape(-1)
@@ -776,7 +782,9 @@ def _pick_entry(path: Path, entries: Mapping[str, Any], image_path: Path | None)
 
 def _read_json(path: Path, image_path: Path | None) -> RPCModel:
     try:
-        d = json.loads(_read_text(path))
+        d = load_json(_read_text(path))
+    except YAMLLimitError as exc:
+        raise RPCParseError(f"{path}: {_short(str(exc), 200)}") from None
     except json.JSONDecodeError as exc:
         raise RPCParseError(f"{path}: not valid JSON ({exc}); the file is truncated or garbled") from None
     return _read_structured(path, d, "JSON", image_path)
@@ -786,7 +794,9 @@ def _read_yaml(path: Path, image_path: Path | None) -> RPCModel:
     import yaml
 
     try:
-        d = yaml.safe_load(_read_text(path))
+        d = load_yaml(_read_text(path))
+    except YAMLLimitError as exc:
+        raise RPCParseError(f"{path}: {_short(str(exc), 200)}") from None
     except yaml.YAMLError as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise RPCParseError(f"{path}: not valid YAML ({first}); the file is truncated or garbled") from None
@@ -916,8 +926,9 @@ def find_rpc_sidecar(image_path: os.PathLike | str) -> Path | None:
     ``{stem}.XML`` (DigitalGlobe), ``{stem}.json`` (Sat-NeRF/DFC2019), ``RPC_{stem without IMG_
     and tile suffix}.XML`` (DIMAP), then the folder's only ``RPC_*.XML`` (not for tiles other
     than R1C1, whose pixel offsets differ), then an orthority ``*rpc*.yaml`` with an entry for the
-    image. Files with a generic extension (.xml, .json, .yaml) count only when their content is an
-    RPC.
+    image. Files with a generic name (``{stem}.xml``, ``{stem}.json``) count only when their content is
+    an RPC; a file whose name says RPC (``{stem}.rpc.json``, ``{stem}_rpc.txt``, ...) is returned even
+    when garbled, so that reading it raises :class:`~geocd.errors.RPCParseError` naming it.
     """
     image = Path(image_path)
     folder = image.parent if str(image.parent) else Path(".")
@@ -926,11 +937,14 @@ def find_rpc_sidecar(image_path: os.PathLike | str) -> Path | None:
     except OSError:
         return None
     me = image.name.lower()
+    generic = {f"{image.stem}.xml".lower(), f"{image.stem}.json".lower()}
     for name in _sidecar_candidates(image):
         p = listing.get(name.lower())
         if p is None or p.name.lower() == me:
             continue
-        if p.suffix.lower() in (".xml", ".json", ".yaml", ".yml") and not _holds_rpc(p):
+        # a generic name (image.xml, image.json) may hold other metadata: it counts only when it reads as an
+        # RPC; a name that says RPC (image_rpc.txt, image.rpc.json, ...) is read, and a garbled one is an error
+        if name.lower() in generic and not _holds_rpc(p):
             continue
         return p
     tile = re.search(r"_R(\d+)C(\d+)$", image.stem, flags=re.I)

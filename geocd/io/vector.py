@@ -58,6 +58,48 @@ def read_footprints(path: os.PathLike | str, crs: Any = None, layer: str | int |
     return gdf.reset_index(drop=True)
 
 
+def check_footprints_file(path: os.PathLike | str, layer: str | int | None = None) -> None:
+    """Check a footprint file up front, from its metadata only (no feature is read): a vector layer of polygons
+    with a CRS and at least one feature. For commands to call before any heavy work; :func:`read_footprints`
+    reads it later.
+
+    Raises
+    ------
+    InputFileNotFoundError, UnsupportedFormatError, CRSError, EmptyDataError
+    """
+    import pyogrio
+
+    p = Path(path)
+    if not p.exists():
+        raise InputFileNotFoundError(f"footprint file {p} does not exist; check the path")
+    try:
+        info = pyogrio.read_info(p, layer=layer)
+    except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError) as exc:
+        what = "a raster" if _is_raster(p) else "not a vector layer"
+        raise UnsupportedFormatError(
+            f"footprints {p} is {what} ({' '.join(str(exc).split())[:160]}); footprints are building polygons: "
+            "give a GeoPackage, GeoJSON or shapefile") from None
+    gtype = str(info.get("geometry_type") or "")
+    if not gtype:
+        raise EmptyDataError(f"footprints {p} hold a table without geometries; give a layer of building polygons")
+    if not any(k in gtype for k in ("Polygon", "Unknown", "Geometry")):
+        raise EmptyDataError(f"footprints {p} hold {gtype} features; footprints must be polygons (building outlines)")
+    if info.get("crs") is None:
+        raise CRSError(f"footprints {p} have no CRS; set one (e.g. ogr2ogr -a_srs EPSG:...) before using them")
+    if info.get("features") == 0:
+        raise EmptyDataError(f"footprints {p} hold no features; give a layer of building polygons")
+
+
+def _is_raster(p: Path) -> bool:
+    import rasterio
+
+    try:
+        with rasterio.open(p):
+            return True
+    except Exception:  # noqa: BLE001 - anything rasterio cannot open is not a raster
+        return False
+
+
 #: GeoPackage 1.2: QGIS 3.22 (GDAL 3.6) warns that the 1.4 written by newer GDALs "may only be partially supported"
 _GPKG_OPTS = {"dataset_options": {"VERSION": "1.2"}}
 

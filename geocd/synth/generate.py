@@ -28,6 +28,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+import numbers
 import os
 import time
 from dataclasses import dataclass, field
@@ -121,6 +122,9 @@ class SynthParams(ParamsMixin):
             except ValueError as exc:
                 raise ConfigError(f"date {d!r} is not ISO 8601 (YYYY-MM-DDTHH:MM:SS, UTC)") from exc
         TownParams(size_m=self.size_m, changes=tuple(self.changes))  # validates size and change names
+        k = self.supersample   # checked here, before anything is rendered (RenderParams checks it late)
+        if isinstance(k, bool) or not isinstance(k, numbers.Integral) or not 1 <= k <= 8:
+            raise ConfigError(f"supersample must be a whole number within 1..8 (k × k rays per pixel), got {k!r}")
 
     @property
     def margin(self) -> float:

@@ -84,3 +84,74 @@ def test_discover_folder(tmp_path):
     empty.mkdir()
     with pytest.raises(ManifestError, match="no manifest"):
         discover_manifest(empty)
+
+
+def test_alias_bomb_manifest_is_refused_fast(scene):
+    from tests.io.test_safe_yaml import BOMB
+
+    p = scene / "bomb.yaml"
+    p.write_text(BOMB + "epochs:\n  - {name: A, images: [img/a1.tif], sensor: *i}\n")
+    t = __import__("time").perf_counter()
+    with pytest.raises(ManifestError, match="expand to more than") as ei:
+        load_manifest(p)
+    assert __import__("time").perf_counter() - t < 2.0
+    assert len(str(ei.value)) < 500
+
+
+def test_duplicate_key_in_manifest(scene):
+    p = scene / "dup.yaml"
+    p.write_text("name: t\nepochs:\n  - name: A\n    images: [img/a1.tif]\n    name: B\n")
+    with pytest.raises(ManifestError, match=r"duplicate key 'name' at line 5 \(first at line 3\)"):
+        load_manifest(p)
+    j = scene / "dup.json"
+    j.write_text('{"name": "t", "name": "u", "epochs": [{"name": "A", "images": ["img/a1.tif"]}]}')
+    with pytest.raises(ManifestError, match="duplicate key 'name'"):
+        load_manifest(j)
+
+
+def test_huge_value_is_not_expanded_into_the_message(scene):
+    p = write(scene, {"epochs": [{"name": "A", "images": [{"path": ["x" * 10_000] * 50}]}]})
+    with pytest.raises(ManifestError) as ei:
+        load_manifest(p)
+    assert "expected a file path" in str(ei.value) and len(str(ei.value)) < 600
+
+
+def test_duplicate_image_name_in_an_epoch(scene):
+    p = write(scene, {"epochs": [{"name": "A", "images": [{"path": "img/a1.tif", "name": "x"},
+                                                          {"path": "img/a2.tif", "name": "x"}]}]})
+    with pytest.raises(ManifestError, match=r"epochs\[0\].images\[1\] \(a2.tif\) and epochs\[0\].images\[0\] "
+                                            r"\(a1.tif\) of epoch 'A' have the same image name 'x'"):
+        load_manifest(p)
+    # the same stem in two folders of one epoch: the default names collide too
+    (scene / "img2").mkdir()
+    (scene / "img2" / "a1.tif").write_bytes(b"")
+    with pytest.raises(ManifestError, match="same image name 'a1'"):
+        load_manifest(write(scene, {"epochs": [{"name": "A", "images": ["img/a1.tif", "img2/a1.tif"]}]}))
+
+
+def test_same_image_name_in_two_epochs_is_fine(scene):
+    (scene / "img2").mkdir()
+    (scene / "img2" / "a1.tif").write_bytes(b"x")
+    m = load_manifest(write(scene, {"epochs": [{"name": "A", "images": ["img/a1.tif"]},
+                                               {"name": "B", "images": ["img2/a1.tif"]}]}))
+    assert [e.images[0].name for e in m.epochs] == ["a1", "a1"]
+
+
+@pytest.mark.parametrize("second", ["img/a1.tif", "img/../img/a1.tif", "link.tif", "hard.tif"])
+def test_same_file_listed_twice(scene, second):
+    import os
+
+    (scene / "link.tif").symlink_to(scene / "img" / "a1.tif")
+    os.link(scene / "img" / "a1.tif", scene / "hard.tif")
+    p = write(scene, {"epochs": [{"name": "A", "images": ["img/a1.tif"]},
+                                 {"name": "B", "images": [{"path": second, "name": "other"}]}]})
+    with pytest.raises(ManifestError, match=r"epochs\[1\].images\[0\] \(.*\) and epochs\[0\].images\[0\] are the "
+                                            "same file"):
+        load_manifest(p)
+
+
+def test_discovered_folder_with_same_stem_twice(tmp_path):
+    (tmp_path / "a.tif").write_bytes(b"1")
+    (tmp_path / "a.tiff").write_bytes(b"2")
+    with pytest.raises(ManifestError, match="same image name 'a'"):
+        discover_manifest(tmp_path)
