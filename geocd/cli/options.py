@@ -72,7 +72,7 @@ RULES: dict[str, tuple[Rule, ...]] = {
     "timeout_s": (Rule("a time in seconds", low=0.0, low_open=True, example="300"),),
     "seed": (Rule("a random seed", low=0, high=2**32 - 1, example="0"),),
     "n_bins": (Rule("a number of bins", low=2, high=100_000, example="24"),),
-    "supersample": (Rule("a supersampling factor (k×k rays per pixel)", low=1, high=16, example="2"),),
+    "supersample": (Rule("a supersampling factor (k×k rays per pixel)", low=1, high=8, example="2"),),
     "screen_tile": (Rule("a tile side in cells", low=64, example="128"),),
     "tile_size": (Rule("a tile side in cells", low=64, example="1024"),),
     "cell_px": (Rule("a grid cell side in pixels", low=2, example="16"),),

@@ -241,7 +241,7 @@ def _(fx, tmp):
 @case("synth: --supersample 0")
 def _(fx, tmp):
     out = tmp / "S"
-    return dict(args=["synth", "--tiny", "--out", out, "--supersample", "0"], out=tmp, first="supersample must be",
+    return dict(args=["synth", "--tiny", "--out", out, "--supersample", "0"], out=tmp, first="0 is not a supersampling factor",
                 max_s=5.0)
 
 
