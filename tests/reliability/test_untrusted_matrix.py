@@ -68,6 +68,18 @@ def _(fx, tmp):
                 inputs=[w], out=out, first="system where a torch.save file holds plain data")
 
 
+# --- landcover: joblib models ---------------------------------------------------------------------------------
+@case("landcover predict: --model joblib written elsewhere that runs code")
+def _(fx, tmp):
+    import joblib
+
+    model = tmp / "given.joblib"
+    joblib.dump({"geocd_landcover_model": 1, "estimator": _RunsCode(tmp / "pwned")}, model)
+    out = tmp / "O"
+    return dict(args=["landcover", "predict", "--model", model, "--image", fx.a, "--out", out], inputs=[model],
+                out=out, first="was not written by 'geocd landcover train' for this user")
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_untrusted_matrix(name, fx, tmp_path):
     c = CASES[name](fx, tmp_path)
