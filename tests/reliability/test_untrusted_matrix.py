@@ -25,7 +25,34 @@ from .scenes import error_lines, part_files, sha256_tree, write_dem_pair
 def fx(tmp_path_factory):
     root = tmp_path_factory.mktemp("untrusted_in")
     a, b = write_dem_pair(root / "dems")
-    return SimpleNamespace(root=root, a=a, b=b)
+    return SimpleNamespace(root=root, a=a, b=b, volume=_tiny_volume_model(root / "volume"))
+
+
+def _tiny_volume_model(path: Path) -> Path:
+    from geocd.volume import VolumeModel, save_model
+    from tests.volume import toyscene
+
+    return save_model(VolumeModel.create(toyscene.volume_geometry(finest_cell_m=1.0, max_depth=2), init_depth=1),
+                      path)
+
+
+def _damaged_volume(fx, tmp: Path, how: str) -> Path:
+    """A copy of the tiny volume model with one kind of damage (model.json kept consistent)."""
+    import shutil
+
+    import numpy as np
+
+    p = Path(shutil.copytree(fx.volume, tmp / "model"))
+    child = np.load(p / "child.npy")
+    if how == "child pointers 1e8":
+        np.save(p / "child.npy", np.where(child >= 0, 100_000_000, child).astype(np.int32))
+    elif how == "one child pointer past the end":
+        child[np.flatnonzero(child >= 0)[0]] = child.size - 2
+        np.save(p / "child.npy", child)
+    elif how == "truncated app.npy":
+        raw = (p / "app.npy").read_bytes()
+        (p / "app.npy").write_bytes(raw[: len(raw) // 2])
+    return p
 
 
 CASES: dict = {}
@@ -80,6 +107,22 @@ def _(fx, tmp):
                 out=out, first="was not written by 'geocd landcover train' for this user")
 
 
+# --- volume: damaged octree models --------------------------------------------------------------------------
+for _how, _file in (("child pointers 1e8", "child.npy"), ("one child pointer past the end", "child.npy"),
+                    ("truncated app.npy", "app.npy")):
+    def _render(fx, tmp, _how=_how, _file=_file):
+        model, out = _damaged_volume(fx, tmp, _how), tmp / "O"
+        return dict(args=["volume", "render", model, "--height-map", "--out", out], inputs=[model], out=out,
+                    first=_file)
+
+    def _detect(fx, tmp, _how=_how, _file=_file):
+        model, out = _damaged_volume(fx, tmp, _how), tmp / "O"
+        return dict(args=["volume", "detect", model, fx.a, "--out", out], inputs=[model], out=out, first=_file)
+
+    CASES[f"volume render: a model with {_how}"] = _render
+    CASES[f"volume detect: a model with {_how}"] = _detect
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_untrusted_matrix(name, fx, tmp_path):
     c = CASES[name](fx, tmp_path)
@@ -99,3 +142,6 @@ def test_untrusted_matrix(name, fx, tmp_path):
     if out is not None and Path(out).exists():
         new = [p for p in Path(out).rglob("*") if p not in existing and p.is_file()]
         assert not new, f"files written by a failed run: {new}"
+    for p in c.get("inputs", []):   # no lock or temporary file left beside an input folder
+        if Path(p).is_dir():
+            assert sorted(q.name for q in Path(p).iterdir()) == sorted(q.name for q in fx.volume.iterdir())
