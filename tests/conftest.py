@@ -51,3 +51,17 @@ def _trusted_models_list(tmp_path_factory):
         os.environ.pop(TRUST_ENV, None)
     else:
         os.environ[TRUST_ENV] = old
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _work_key_file(tmp_path_factory):
+    """Tiled runs of the tests sign their journal with a key of the test run, not the user's cache."""
+    from geocd.tiling.store import WORK_KEY_ENV
+
+    old = os.environ.get(WORK_KEY_ENV)
+    os.environ[WORK_KEY_ENV] = str(tmp_path_factory.mktemp("workkey") / "work_key")
+    yield
+    if old is None:
+        os.environ.pop(WORK_KEY_ENV, None)
+    else:
+        os.environ[WORK_KEY_ENV] = old
