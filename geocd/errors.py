@@ -27,6 +27,10 @@ class UnsupportedFormatError(GeoCDError, ValueError):
     """A file exists but geocd cannot read that format."""
 
 
+class UntrustedFileError(GeoCDError, PermissionError):
+    """A file that could run code when loaded (a pickle) was not written by geocd here, nor trusted explicitly."""
+
+
 # --- cameras ------------------------------------------------------------------
 class CameraError(GeoCDError, ValueError):
     """Base for camera-model problems."""

@@ -121,6 +121,10 @@ def train_cmd(ctx, labels_path, layer, class_field, positive, images, method, co
 @landcover.command("predict")
 @click.option("--model", "model_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=str),
               help="Model from 'geocd landcover train'.")
+@click.option("--trust-model", is_flag=True,
+              help="Load a model file that 'geocd landcover train' did not write for this user (someone else's): "
+                   "a model is a pickle, and loading it runs any code its author put in it. Only for files from "
+                   "people you trust.")
 @click.option("--image", "images", multiple=True, required=True,
               type=click.Path(exists=True, dir_okay=False, path_type=str), help="Image(s) to classify.")
 @click.option("--class", "class_name", default=None, help="Class to project (default: the positive class).")
@@ -129,27 +133,29 @@ def train_cmd(ctx, labels_path, layer, class_field, positive, images, method, co
 @click.option("--prefix", default="landcover", show_default=True, help="File name prefix.")
 @_scene_options
 @click.pass_context
-def predict_cmd(ctx, model_path, images, class_name, out_dir, prefix, manifest_path, dem, dem_datum, footprints,
-                height_field, dsm, bounds, posting_m):
+def predict_cmd(ctx, model_path, trust_model, images, class_name, out_dir, prefix, manifest_path, dem, dem_datum,
+                footprints, height_field, dsm, bounds, posting_m):
     """Probability maps of images (image geometry) and, with a DEM or manifest, on the ground grid: each image
     projected through its camera and the surface (occluded cells stay empty), the views combined by weight."""
     from ..landcover.pipeline import predict_files
+    from ..landcover.trust import check_model_file
     from . import emit_result
 
     from ..io.outputs import open_outputs
     from .common import require_inputs, resolve_out_dir, session
 
     require_inputs(model_path, *images, what="input")
+    sess = session(ctx)
+    check_model_file(model_path, trust=trust_model)   # before any output: an untrusted pickle is refused
     out = resolve_out_dir(out_dir, "landcover", create=False)
     open_outputs(out, inputs=[model_path, *images, manifest_path, dem, footprints, dsm], products=(f"{prefix}_*",),
                  prefix=prefix)
-    sess = session(ctx)
     sess.open_log(out)
     scene = _scene(manifest_path, dem, dem_datum, footprints, height_field, dsm, bounds, posting_m, required=False)
     progress = _progress(ctx, "landcover predict")
     try:
         res = predict_files(model_path, list(images), out, scene=scene, class_name=class_name, prefix=prefix,
-                            progress=progress)
+                            progress=progress, trust=trust_model)
     finally:
         _close(progress)
     s = res["summary"]

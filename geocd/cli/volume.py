@@ -187,10 +187,10 @@ def detect(ctx, model_dir, image, camera_path, out_dir, neighborhood, prior, no_
     from .common import session
 
     out = Path(out_dir)
+    model = load_model(model_dir)   # checked (a damaged model is refused) before the output folder is touched
     open_outputs(out_dir, inputs=[model_dir, image, camera_path, shadow_dsm],
                  products=("*_change_prob*", "*_change.json"))
     session(ctx).open_log(out)
-    model = load_model(model_dir)
     v = read_view(image, camera_path, sun=tuple(sun) if sun else None, normalize=normalize)
     shadow = None
     if shadow_dsm:
@@ -286,9 +286,9 @@ def render(ctx, model_dir, images, height_map, posting_m, out_dir):
     if not images and not height_map:
         raise ConfigError("nothing to render: give --image and/or --height-map")
     out = Path(out_dir)
+    model = load_model(model_dir)   # checked (a damaged model is refused) before the output folder is touched
     open_outputs(out_dir, inputs=[model_dir, *images], products=("*_expected.tif", "expected_height_map.tif"))
     session(ctx).open_log(out)
-    model = load_model(model_dir)
     outputs = {}
     prog = _progress(ctx, "volume render")
     try:

@@ -4,7 +4,10 @@ Arrays in, arrays out: :func:`train` takes a (n, n_features) sample matrix and
 class labels; :func:`predict_proba` turns an image's feature stack into one
 probability map per class. :func:`save_model` / :func:`load_model` keep a model
 reusable (joblib), with the feature specification and a format version checked
-on load, so a model is never applied to features it was not trained on.
+on load, so a model is never applied to features it was not trained on. A joblib
+file is a pickle: :func:`load_model` unpickles only models on this user's trust
+list (:mod:`geocd.landcover.trust`; every saved model is added) unless told to
+trust the file.
 
 Training samples are labelled pixels of polygons a user drew; neighbouring
 pixels of one polygon are strongly correlated, so method comparisons
@@ -14,6 +17,7 @@ never random pixels.
 
 from __future__ import annotations
 
+import io
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -26,6 +30,7 @@ from .. import __version__
 from ..errors import ConfigError, EmptyDataError, InputFileNotFoundError, UnsupportedFormatError
 from ..io.atomic import atomic_path
 from .features import FeatureSpec
+from .trust import check_trusted, record_trusted, sha256_of
 
 #: file format version of a saved model (bump when the stored fields change meaning)
 MODEL_FORMAT = 1
@@ -246,7 +251,7 @@ def predict_proba(model: LandcoverModel, features: np.ndarray, valid: np.ndarray
 # persistence
 # ---------------------------------------------------------------------------------------------
 def save_model(model: LandcoverModel, path: os.PathLike | str, overwrite: bool = True) -> Path:
-    """Write the model with joblib (atomically)."""
+    """Write the model with joblib (atomically) and add it to this user's trusted-model list."""
     import joblib
 
     payload = {"geocd_landcover_model": MODEL_FORMAT, "geocd_version": __version__, "method": model.method,
@@ -255,21 +260,33 @@ def save_model(model: LandcoverModel, path: os.PathLike | str, overwrite: bool =
                "estimator": model.estimator}
     with atomic_path(path, overwrite=overwrite) as tmp:
         joblib.dump(payload, tmp, compress=3)
+    record_trusted(path)
     return Path(path)
 
 
-def load_model(path: os.PathLike | str) -> LandcoverModel:
+def load_model(path: os.PathLike | str, *, trust: bool = False) -> LandcoverModel:
     """Read a model written by :func:`save_model`, checking its format and feature specification.
 
-    joblib files are pickles: load only models you made or trust.
+    Parameters
+    ----------
+    path : the model file (joblib)
+    trust : unpickle the file even when it is not on this user's trusted-model list (it was not written
+        by :func:`save_model` here), with a warning: a pickle can run any code when loaded
+
+    Raises
+    ------
+    UntrustedFileError
+        The file is not on the trust list and ``trust`` is False (nothing of it was unpickled).
     """
     import joblib
 
     p = Path(path)
     if not p.exists():
         raise InputFileNotFoundError(f"model {p} does not exist; train one with 'geocd landcover train'")
+    data = p.read_bytes()   # hashed and unpickled from the same bytes: the file cannot change in between
+    check_trusted(p, sha256_of(data), trust)
     try:
-        d = joblib.load(p)
+        d = joblib.load(io.BytesIO(data))
     except Exception as exc:  # noqa: BLE001 - any unpickling failure is a format problem
         raise UnsupportedFormatError(f"{p} is not a geocd land-cover model ({type(exc).__name__}: {exc})") from exc
     if not isinstance(d, dict) or "geocd_landcover_model" not in d:
@@ -278,12 +295,21 @@ def load_model(path: os.PathLike | str) -> LandcoverModel:
         raise UnsupportedFormatError(
             f"{p} is a land-cover model of format {d['geocd_landcover_model']} (written by geocd "
             f"{d.get('geocd_version')}); this geocd reads format {MODEL_FORMAT}: retrain it")
-    spec = FeatureSpec.from_dict(d["spec"])
-    names = spec.names(int(d["n_bands"]))
-    if names != list(d["feature_names"]):
+    try:
+        spec = FeatureSpec.from_dict(d["spec"])
+        names = spec.names(int(d["n_bands"]))
+        method, classes = str(d["method"]), [str(c) for c in d["classes"]]
+        stored_names = list(d["feature_names"])
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise UnsupportedFormatError(f"{p} is a damaged geocd land-cover model ({type(exc).__name__}: {exc}); "
+                                     "retrain it with 'geocd landcover train'") from exc
+    est = d.get("estimator")
+    if not (hasattr(est, "predict_proba") and hasattr(est, "classes_")):
+        raise UnsupportedFormatError(f"{p} holds no fitted classifier; retrain it with 'geocd landcover train'")
+    if names != stored_names:
         raise UnsupportedFormatError(
-            f"{p}: the model's feature list {d['feature_names']} differs from what this geocd computes for its "
+            f"{p}: the model's feature list {stored_names} differs from what this geocd computes for its "
             f"feature specification ({names}); retrain the model with this version")
-    return LandcoverModel(estimator=d["estimator"], method=d["method"], classes=list(d["classes"]), spec=spec,
+    return LandcoverModel(estimator=est, method=method, classes=classes, spec=spec,
                           n_bands=int(d["n_bands"]), feature_names=names, gsd_m=d.get("gsd_m"),
                           report=d.get("report", {}))

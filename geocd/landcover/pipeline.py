@@ -367,13 +367,17 @@ def write_probability_image(path: os.PathLike | str, prob: np.ndarray, model: La
 
 def predict_files(model_path: os.PathLike | str, image_paths: Sequence[str], out_dir: os.PathLike | str, *,
                   cameras: Sequence[str | None] | None = None, scene: Scene | None = None,
-                  class_name: str | None = None, prefix: str = "landcover", progress=None) -> dict:
-    """Probability maps of images (image geometry), and — with a scene — on the grid, combined."""
+                  class_name: str | None = None, prefix: str = "landcover", progress=None,
+                  trust: bool = False) -> dict:
+    """Probability maps of images (image geometry), and — with a scene — on the grid, combined.
+
+    ``trust``: load a model file that is not on this user's trusted-model list (see :func:`load_model`).
+    """
     from ..io.atomic import protect_inputs, write_text_atomic
     from ..io.raster import write_cog
 
     prog = ensure_progress(progress)
-    model = load_model(model_path)
+    model = load_model(model_path, trust=trust)
     ci = model.class_index(class_name)
     protect_inputs(model_path, *image_paths)
     out = Path(out_dir)

@@ -8,8 +8,14 @@ Layout (hidden, inside the output folder)::
         r0000_c0001.done.pkl          the tile's small results (reductions, vectors): the journal entry
 
 Only the client process writes here (one writer). A tile is finished when its
-``.done.pkl`` exists; it is renamed into place after the tile's arrays, so a run
-killed at any moment leaves finished tiles complete and unfinished ones invisible.
+``.done.pkl`` exists and is authentic; it is renamed into place after the tile's arrays,
+so a run killed at any moment leaves finished tiles complete and unfinished ones invisible.
+
+The journal entries are pickles, and unpickling runs whatever code a pickle names, so each
+entry carries an HMAC-SHA256 of its bytes under a random key of this user
+(``$GEOCD_WORK_KEY`` names the key file, else ``$XDG_CACHE_HOME/geocd/work_key``). An entry
+geocd did not write here (planted in the folder, copied from another machine, damaged) is
+never unpickled: its tile is computed again.
 A pass with another key (a changed command: other parameters or inputs) never
 reuses these files: opening it removes the stale folder of the same stage.
 """
@@ -18,10 +24,12 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import hmac
 import json
 import math
 import os
 import pickle
+import secrets
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +42,61 @@ from ..geodesy import AOIGrid
 from .grid import Tile, TileGrid
 
 WORK_DIR = ".geocd-work"
+#: environment variable naming the file of the key that authenticates journal entries
+WORK_KEY_ENV = "GEOCD_WORK_KEY"
+_MAC_MAGIC = b"GEOCD-HMAC-SHA256\n"
+_MAC_BYTES = 32
+_KEYS: dict[str, bytes] = {}
+
+
+def _work_key() -> bytes:
+    """This user's key for journal entries (created on first use, mode 0600).
+
+    Where the key file cannot be read or written, a key of this process is used: entries of
+    another run are then not trusted, and their tiles are computed again.
+    """
+    env = os.environ.get(WORK_KEY_ENV)
+    path = Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "geocd" / "work_key"
+    key = _KEYS.get(str(path))
+    if key is not None:
+        return key
+    try:
+        key = path.read_bytes()
+        if len(key) < _MAC_BYTES:
+            raise OSError("too short")
+    except OSError:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with os.fdopen(fd, "wb") as f:
+                f.write(secrets.token_bytes(_MAC_BYTES))
+        except FileExistsError:
+            pass   # another process made it (or a short one is there: read below)
+        except OSError:
+            pass
+        try:
+            key = path.read_bytes()
+        except OSError:
+            key = b""
+        if len(key) < _MAC_BYTES:
+            key = secrets.token_bytes(_MAC_BYTES)   # this process only
+    _KEYS[str(path)] = key
+    return key
+
+
+def _sign(payload: bytes) -> bytes:
+    return _MAC_MAGIC + hmac.new(_work_key(), payload, hashlib.sha256).digest() + payload
+
+
+def _verified_payload(raw: bytes) -> bytes | None:
+    """The pickle of a journal entry if its HMAC is this user's, else None (never unpickled)."""
+    head = len(_MAC_MAGIC)
+    if len(raw) < head + _MAC_BYTES or not raw.startswith(_MAC_MAGIC):
+        return None
+    mac, payload = raw[head:head + _MAC_BYTES], raw[head + _MAC_BYTES:]
+    if not hmac.compare_digest(mac, hmac.new(_work_key(), payload, hashlib.sha256).digest()):
+        return None
+    return payload
 
 
 def _canon(o: Any) -> Any:
@@ -113,7 +176,17 @@ class TileStore:
         return self.path / f"{tile.name}.done.pkl"
 
     def done(self, tile: Tile) -> bool:
-        return self._done_path(tile).exists()
+        """Whether the tile is finished: its journal entry exists and is authentic (else it is removed)."""
+        p = self._done_path(tile)
+        try:
+            raw = p.read_bytes()
+        except OSError:
+            return False
+        if _verified_payload(raw) is None:
+            with contextlib.suppress(OSError):
+                p.unlink()   # not written by geocd for this user: the tile is computed again
+            return False
+        return True
 
     def n_done(self) -> int:
         return sum(1 for _ in self.path.glob("*.done.pkl"))
@@ -128,12 +201,17 @@ class TileStore:
         final = self._done_path(tile)
         tmp = self.path / f"{tile.name}.done.part.pkl"
         with open(tmp, "wb") as f:
-            pickle.dump(small, f, protocol=pickle.HIGHEST_PROTOCOL)
+            f.write(_sign(pickle.dumps(small, protocol=pickle.HIGHEST_PROTOCOL)))
         _replace_atomic(tmp, final)
 
     def small(self, tile: Tile) -> Any:
-        with open(self._done_path(tile), "rb") as f:
-            return pickle.load(f)
+        """The tile's small results; unpickled only when the entry's HMAC shows geocd wrote it for this user."""
+        p = self._done_path(tile)
+        payload = _verified_payload(p.read_bytes())
+        if payload is None:
+            raise ProcessingError(f"the journal entry {p} was not written by geocd for this user (or is damaged) "
+                                  "and is not read; delete the work folder and run the command again")
+        return pickle.loads(payload)
 
     # --- arrays ---------------------------------------------------------------------------
     def tile_array(self, tile: Tile, name: str, mmap: bool = True) -> np.ndarray:

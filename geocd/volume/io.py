@@ -67,15 +67,22 @@ def _json_default(o):
 
 
 def load_model(path: os.PathLike | str, mmap: bool = False) -> VolumeModel:
-    """Read a model written by :func:`save_model`.
+    """Read a model written by :func:`save_model`, checking it before any kernel walks it.
+
+    Besides the metadata, the arrays are checked against each other (shapes, dtypes), the octree
+    is checked to be a tree the traversal kernels can walk (every child pointer ``-1`` or the first
+    of 8 nodes after its parent, no node with two parents, levels one deeper per step and at most
+    ``max_depth``, block roots in range) and the values are checked to be finite: a damaged model
+    is an error here, never an out-of-bounds read or an endless loop in a kernel.
 
     Raises
     ------
     InputFileNotFoundError
         No model at ``path``.
     UnsupportedFormatError
-        The folder is not a geocd volume model, or is from a newer version, or
-        its arrays do not match its metadata.
+        The folder is not a geocd volume model, or is from a newer version, or is damaged (a file
+        missing, truncated or garbled, arrays inconsistent, an invalid tree, non-finite values);
+        the message names the file.
     """
     p = Path(path)
     meta_path = p / "model.json"
@@ -84,33 +91,158 @@ def load_model(path: os.PathLike | str, mmap: bool = False) -> VolumeModel:
                                      "'geocd volume update --create'")
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    except ValueError as exc:
+    except (ValueError, UnicodeDecodeError) as exc:
         raise UnsupportedFormatError(f"{meta_path} is not valid JSON ({exc}); the model is damaged") from exc
-    if meta.get("format") != FORMAT:
-        raise UnsupportedFormatError(f"{p} is not a geocd volume model (format {meta.get('format')!r})")
-    if int(meta.get("version", 0)) > VERSION:
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        fmt = meta.get("format") if isinstance(meta, dict) else None
+        raise UnsupportedFormatError(f"{p} is not a geocd volume model (format {fmt!r})")
+    try:
+        version = int(meta.get("version", 0))
+        geom = VolumeGeometry.from_dict(meta["geometry"])
+        params = VolumeParams.from_dict(meta["params"])
+        wanted = {k: meta["arrays"][k] for k in ARRAYS}
+        sun_bins = [list(b) for b in meta.get("sun_bins", [])]
+        history = list(meta.get("history", []))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise UnsupportedFormatError(f"{meta_path} is damaged ({type(exc).__name__}: {exc}); rebuild the model "
+                                     "with 'geocd volume update --create'") from exc
+    if version > VERSION:
         raise UnsupportedFormatError(f"{p} was written by a newer geocd (version {meta['version']}); upgrade geocd")
+    _check_geometry(meta_path, geom)
     arrays = {}
     for k in ARRAYS:
         f = p / f"{k}.npy"
         if not f.is_file():
             raise UnsupportedFormatError(f"{p} lacks {k}.npy; the model is incomplete")
-        a = np.load(f, mmap_mode="r" if mmap else None, allow_pickle=False)
-        want = meta["arrays"][k]
-        if list(a.shape) != list(want["shape"]) or str(a.dtype) != want["dtype"]:
+        a = _load_npy(f, mmap)
+        want = wanted[k]
+        if not isinstance(want, dict) or list(a.shape) != list(want.get("shape", [])) \
+                or str(a.dtype) != want.get("dtype"):
             raise UnsupportedFormatError(f"{f} has shape {a.shape} {a.dtype}, model.json says {want}; the model is "
                                          "damaged")
         arrays[k] = a if mmap else np.ascontiguousarray(a)
-    geom = VolumeGeometry.from_dict(meta["geometry"])
-    params = VolumeParams.from_dict(meta["params"])
-    n = arrays["child"].shape[0]
-    if not all(arrays[k].shape[0] == n for k in ("level", "alpha", "app")):
-        raise UnsupportedFormatError(f"{p}: per-cell arrays disagree in length; the model is damaged")
-    if tuple(arrays["block_root"].shape) != tuple(geom.n_blocks):
-        raise UnsupportedFormatError(f"{p}: block_root shape {arrays['block_root'].shape} does not match "
-                                     f"n_blocks {geom.n_blocks}; the model is damaged")
+    _check_arrays(p, geom, params, arrays, sun_bins, history)
     return VolumeModel(geom, params, arrays["block_root"], arrays["child"], arrays["level"], arrays["alpha"],
-                       arrays["app"], [list(b) for b in meta.get("sun_bins", [])], list(meta.get("history", [])))
+                       arrays["app"], sun_bins, history)
+
+
+#: the dtype and number of dimensions of each array (the kernels' types)
+_ARRAY_TYPES = {"block_root": (np.int32, 3), "child": (np.int32, 1), "level": (np.uint8, 1),
+                "alpha": (np.float32, 1), "app": (np.float32, 4)}
+#: nodes checked per step (bounds the memory of the checks on a large model)
+_CHUNK = 1 << 20
+
+
+def _damaged(path: Path, what: str) -> UnsupportedFormatError:
+    return UnsupportedFormatError(f"the volume model {path} is damaged: {what}; rebuild it with "
+                                  "'geocd volume update --create' (or restore a copy)")
+
+
+def _load_npy(f: Path, mmap: bool) -> np.ndarray:
+    """One ``.npy`` file, its header checked against the file size first (a truncated file is an error)."""
+    fmt = np.lib.format
+    try:
+        with open(f, "rb") as fh:
+            major, _minor = fmt.read_magic(fh)
+            read_header = fmt.read_array_header_1_0 if major == 1 else fmt.read_array_header_2_0
+            shape, _fortran, dtype = read_header(fh)
+            data_b = os.fstat(fh.fileno()).st_size - fh.tell()
+        if dtype.hasobject:
+            raise ValueError("it holds Python objects")
+        need_b = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        if need_b != data_b:
+            raise ValueError(f"its header promises {need_b} bytes of {dtype} {tuple(shape)} but it holds {data_b}")
+        return np.load(f, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (ValueError, OSError, EOFError, TypeError) as exc:
+        raise UnsupportedFormatError(f"{f} is truncated or not a valid .npy file ({exc}); the volume model is "
+                                     "damaged: rebuild it with 'geocd volume update --create' (or restore a "
+                                     "copy)") from exc
+
+
+def _check_geometry(meta_path: Path, geom: VolumeGeometry) -> None:
+    vals = [*geom.origin_enu, geom.block_size_m, *geom.aoi_bounds, geom.frame.lon0, geom.frame.lat0, geom.frame.h0]
+    if not np.all(np.isfinite(vals)):
+        raise _damaged(meta_path, f"the geometry holds non-finite values ({geom.to_dict()})")
+    l, b, r, t = geom.aoi_bounds
+    if not (l < r and b < t):
+        raise _damaged(meta_path, f"the AOI bounds {geom.aoi_bounds} are empty or inverted")
+    if not (-180.0 <= geom.frame.lon0 <= 180.0 and -90.0 <= geom.frame.lat0 <= 90.0):
+        raise _damaged(meta_path, f"the ENU origin (lon {geom.frame.lon0}, lat {geom.frame.lat0}) is off the Earth")
+
+
+def _check_arrays(p: Path, geom: VolumeGeometry, params: VolumeParams, arrays: dict, sun_bins: list,
+                  history: list) -> None:
+    """The arrays form a tree the kernels can walk, with finite values (see :func:`load_model`)."""
+    from .scene import N_FIELDS, N_MODES, NOBS, SIGMA, WEIGHT
+
+    for k, (dtype, ndim) in _ARRAY_TYPES.items():
+        a = arrays[k]
+        if a.dtype != np.dtype(dtype) or a.ndim != ndim:
+            raise _damaged(p / f"{k}.npy", f"it is {a.ndim}-D {a.dtype}, the model needs {ndim}-D {np.dtype(dtype)}")
+    child, level, alpha, app, root = (arrays[k] for k in ("child", "level", "alpha", "app", "block_root"))
+    n = child.shape[0]
+    if n == 0 or not all(arrays[k].shape[0] == n for k in ("level", "alpha", "app")):
+        raise _damaged(p, "the per-cell arrays (child, level, alpha, app) disagree in length")
+    if tuple(root.shape) != tuple(geom.n_blocks):
+        raise _damaged(p / "block_root.npy", f"its shape {root.shape} is not n_blocks {geom.n_blocks}")
+    if tuple(app.shape[1:]) != (params.n_bins, N_MODES, N_FIELDS):
+        raise _damaged(p / "app.npy", f"its shape {app.shape} is not (cells, {params.n_bins} illumination bins, "
+                                      f"{N_MODES}, {N_FIELDS})")
+    if len(sun_bins) > params.n_bins or any(len(b) != 3 or not all(isinstance(v, (int, float))
+                                                                    and not isinstance(v, bool) for v in b)
+                                            for b in sun_bins):
+        raise _damaged(p / "model.json", f"sun_bins {sun_bins} are not up to {params.n_bins} (azimuth, elevation, "
+                                         "count) triples")
+    if not all(isinstance(h, dict) for h in history):
+        raise _damaged(p / "model.json", "its history is not a list of records")
+    # block roots: distinct nodes of level 0
+    roots = np.asarray(root, dtype=np.int64).ravel()
+    if roots.min() < 0 or roots.max() >= n:
+        raise _damaged(p / "block_root.npy", f"a block root is outside the {n} nodes ({roots.min()} … {roots.max()})")
+    if np.unique(roots).size != roots.size:
+        raise _damaged(p / "block_root.npy", "two blocks share a root node")
+    if np.any(level[roots] != 0):
+        raise _damaged(p / "level.npy", "a block root is not at level 0")
+    if int(level.max()) > geom.max_depth:
+        raise _damaged(p / "level.npy", f"a node is at level {int(level.max())}, deeper than max_depth "
+                                        f"{geom.max_depth}")
+    # child pointers: -1, or the first of 8 nodes after the parent (the format builds children after their parent,
+    # so this rules out cycles); the 8 are one level deeper, and no node has two parents
+    starts = []
+    for s in range(0, n, _CHUNK):
+        c = child[s:s + _CHUNK].astype(np.int64)
+        node = np.arange(s, s + c.size, dtype=np.int64)
+        inner = c >= 0
+        bad = (c < -1) | (inner & ((c <= node) | (c + 8 > n)))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise _damaged(p / "child.npy", f"node {s + i} points to child {int(c[i])}, which is neither -1 nor the "
+                                            f"first of 8 nodes after it among the {n}")
+        lv = level[s:s + c.size][inner]
+        if np.any(lv >= geom.max_depth):
+            raise _damaged(p / "child.npy", f"a node at level max_depth {geom.max_depth} has children")
+        ci = c[inner]
+        for k in range(8):
+            if np.any(level[ci + k] != lv + 1):
+                raise _damaged(p / "level.npy", "a node's children are not one level below it")
+        starts.append(ci)
+    starts = np.sort(np.concatenate(starts))
+    if starts.size:
+        if np.any(np.diff(starts) < 8):
+            raise _damaged(p / "child.npy", "two nodes share children")
+        j = np.searchsorted(starts, roots, side="right") - 1
+        if np.any((j >= 0) & (roots < starts[np.maximum(j, 0)] + 8)):
+            raise _damaged(p / "block_root.npy", "a block root is also a child node")
+    # values: finite; densities, spreads, weights and counts not negative
+    for s in range(0, n, _CHUNK):
+        a = alpha[s:s + _CHUNK]
+        if not np.all(np.isfinite(a)) or np.any(a < 0):
+            raise _damaged(p / "alpha.npy", "it holds non-finite or negative occlusion densities")
+        ap = app[s:s + _CHUNK]
+        if not np.all(np.isfinite(ap)):
+            raise _damaged(p / "app.npy", "it holds non-finite appearance values")
+        if np.any(ap[..., [SIGMA, WEIGHT, NOBS]] < 0):
+            raise _damaged(p / "app.npy", "it holds negative appearance spreads, weights or counts")
 
 
 @dataclass

@@ -824,6 +824,9 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
         params=(
             Param("MODEL", "file", "Model (from 'train a pixel classifier')", cli="--model",
                   file_filter="Models (*.joblib);;All files (*)"),
+            Param("TRUST_MODEL", "bool", "Trust a model file trained elsewhere (loading a model runs any code its "
+                  "author put in it: only for files from people you trust)", cli="--trust-model", default=False,
+                  advanced=True),
             Param("IMAGES", "rasters", "Images to classify", cli="--image"),
             Param("CLASS", "string", "Class to project (default: the positive class)", cli="--class", optional=True),
             *_LANDCOVER_SCENE,

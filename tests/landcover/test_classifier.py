@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -84,16 +86,78 @@ def test_model_roundtrip_and_spec_check(tmp_path):
                                   predict_proba(m2, F, np.ones(y.shape, bool)))
     d = joblib.load(path)
     d["feature_names"] = d["feature_names"][:-1]
-    joblib.dump(d, tmp_path / "bad.joblib")
-    with pytest.raises(UnsupportedFormatError, match="feature list"):
-        load_model(tmp_path / "bad.joblib")
+    joblib.dump(d, tmp_path / "bad.joblib")   # files geocd did not write: loaded only when trusted
+    with pytest.raises(UnsupportedFormatError, match="feature list"), pytest.warns(UserWarning, match="trust"):
+        load_model(tmp_path / "bad.joblib", trust=True)
     d["geocd_landcover_model"] = 99
     joblib.dump(d, tmp_path / "old.joblib")
-    with pytest.raises(UnsupportedFormatError, match="format 99"):
-        load_model(tmp_path / "old.joblib")
+    with pytest.raises(UnsupportedFormatError, match="format 99"), pytest.warns(UserWarning, match="trust"):
+        load_model(tmp_path / "old.joblib", trust=True)
     (tmp_path / "junk.joblib").write_bytes(b"not a model")
-    with pytest.raises(UnsupportedFormatError):
-        load_model(tmp_path / "junk.joblib")
+    with pytest.raises(UnsupportedFormatError), pytest.warns(UserWarning, match="trust"):
+        load_model(tmp_path / "junk.joblib", trust=True)
+
+
+class _RunsCode:
+    """Unpickling this creates a marker file (what a hostile model file would do)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_a_model_geocd_did_not_write_is_not_unpickled(tmp_path, monkeypatch):
+    import joblib
+
+    from geocd.errors import GeoCDError, UntrustedFileError
+    from geocd.landcover import trust
+
+    monkeypatch.setenv(trust.TRUST_ENV, str(tmp_path / "list" / "trusted"))
+    F, y = _samples(32)
+    m = train(F.reshape(F.shape[0], -1).T, y.ravel(), ["other", "vegetation"], FeatureSpec(), 3)
+    path = save_model(m, tmp_path / "m.joblib")
+    assert trust.sha256_of(path.read_bytes()) in trust.trusted_digests()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")   # a model geocd wrote loads without a word
+        assert load_model(path).classes == m.classes
+    marker = tmp_path / "pwned"
+    evil = tmp_path / "evil.joblib"
+    joblib.dump({"geocd_landcover_model": 1, "estimator": _RunsCode(marker)}, evil)
+    with pytest.raises(UntrustedFileError, match=r"not written by 'geocd landcover train'.*--trust-model") as ei:
+        load_model(evil)
+    assert isinstance(ei.value, GeoCDError) and isinstance(ei.value, PermissionError)
+    assert not marker.exists()
+    # a trusted model changed afterwards is no longer trusted
+    path.write_bytes(path.read_bytes() + b"\0")
+    with pytest.raises(UntrustedFileError):
+        load_model(path)
+    # the explicit override loads it, naming the risk
+    with pytest.warns(UserWarning, match="runs whatever code"):
+        with pytest.raises(UnsupportedFormatError):
+            load_model(evil, trust=True)
+    assert marker.exists()
+
+
+def test_the_trust_list_lives_in_the_cache_and_a_broken_one_trusts_nothing(tmp_path, monkeypatch):
+    from geocd.landcover import trust
+
+    monkeypatch.delenv(trust.TRUST_ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    assert trust.trust_list_path() == tmp_path / "cache" / "geocd" / "trusted_models"
+    assert trust.trusted_digests() == set()
+    (tmp_path / "cache" / "geocd").mkdir(parents=True)
+    trust.trust_list_path().write_text("garbage\n" + "A" * 64 + " /x\n\0\0\n")
+    assert trust.trusted_digests() == {"a" * 64}
+    # a list that cannot be written: the model is still saved, with a warning that predict will ask
+    monkeypatch.setenv(trust.TRUST_ENV, str(tmp_path / "no_dir_file"))
+    (tmp_path / "no_dir_file").mkdir()
+    F, y = _samples(32)
+    m = train(F.reshape(F.shape[0], -1).T, y.ravel(), ["other", "vegetation"], FeatureSpec(), 3)
+    with pytest.warns(UserWarning, match="--trust-model"):
+        path = save_model(m, tmp_path / "m.joblib")
+    assert path.exists()
 
 
 def test_bad_training_sets():

@@ -108,3 +108,26 @@ def test_bad_inputs_are_clear_errors(trained, tmp_path):
     assert not (tmp_path / "m.joblib").exists()
     r = _run(["landcover", "integrate", "--detailed", str(paths["image"]), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "--dem" in r.output
+
+
+def test_a_model_from_elsewhere_needs_trust_model(trained, tmp_path, monkeypatch):
+    import shutil
+
+    from geocd.landcover import trust
+
+    d, paths, model = trained
+    # on another account (an empty trust list) the same file is someone else's model
+    monkeypatch.setenv(trust.TRUST_ENV, str(tmp_path / "other_user_list"))
+    given = shutil.copy(model, tmp_path / "given.joblib")
+    out = tmp_path / "pred"
+    args = ["landcover", "predict", "--model", str(given), "--image", str(paths["image"]), "--out", str(out)]
+    r = _run(args)
+    assert r.exit_code == 2, r.output
+    errs = [ln for ln in r.stderr.splitlines() if ln.startswith("geocd: error:")]
+    assert len(errs) == 1 and "not written by 'geocd landcover train'" in errs[0] and "--trust-model" in errs[0]
+    assert not out.exists()
+    r = _run([*args, "--trust-model"])
+    assert r.exit_code == 0, r.output
+    warns = [ln for ln in r.stderr.splitlines() if ln.startswith("geocd: warning:")]
+    assert len(warns) == 1 and "runs whatever code its author put in it" in warns[0], r.stderr
+    assert (out / "landcover_ortho_proba.tif").exists()
