@@ -46,7 +46,7 @@ def _use_tiles(ents, tiled: bool | None, tiling_opts: dict, base) -> bool:
 
 
 def _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable_mask, mask_is, footprints, datum_a,
-                   datum_b, base, no_plots) -> None:
+                   datum_b, base, no_plots, nodata) -> None:
     """Two DEMs tile by tile (geocd.demdiff.tiled): the same products as the untiled run."""
     from ..demdiff.tiled import TilingParams, dem_difference_tiled
     from . import emit_result, make_progress
@@ -60,7 +60,7 @@ def _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable
         res = dem_difference_tiled(pa, pb, out_dir, params=params, tiling=tiling, stable_mask=stable_mask,
                                    mask_is=mask_is, footprints=footprints, epoch_a=na, epoch_b=nb,
                                    datum_a=va or datum_a, datum_b=vb or datum_b, base=base, prefix=prefix,
-                                   plots=not no_plots, progress=progress,
+                                   plots=not no_plots, progress=progress, nodata=nodata,
                                    provenance={"dem_a": pa, "dem_b": pb, "stable_mask": stable_mask, "base": base})
     finally:
         if hasattr(progress, "close"):
@@ -86,14 +86,14 @@ def _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable
     emit_result(ctx, res.outputs)
 
 
-def _read_dem(path: str, datum: str | None):
+def _read_dem(path: str, datum: str | None, nodata: float | None = None):
     from ..io.raster import read_dem
 
     if Path(path).suffix.lower() == ".e00":
         from ..io.e00 import read_e00_dem
 
         return read_e00_dem(path, vertical_datum=datum)
-    return read_dem(path, vertical_datum=datum)
+    return read_dem(path, vertical_datum=datum, nodata=nodata)
 
 
 def _parse_list(path: Path) -> list[tuple[str, _dt.date | None, str]]:
@@ -214,11 +214,14 @@ def _check_dates_in_order(ents, where: str) -> None:
                    f"when the grid has more than {TILED_ABOVE_CELLS // 1_000_000} million cells or a tiling option "
                    "below is given.")
 @click.option("--tile-size", type=click.IntRange(64, None), default=None, help="Tiled runs: cells per tile side [1024].")
+@click.option("--nodata", type=float, default=None, metavar="VALUE",
+              help="The DEMs' nodata value where the files do not declare it (e.g. -9999). A DEM holding an "
+                   "undeclared nodata value is refused without it.")
 @dask_options
 @click.pass_context
 def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, footprints, confidence, datum_a, datum_b,
             resampling, no_coreg, tilt, on_underconstrained, min_region_cells, region_test, fallback_threshold, base,
-            dates, names, pair_products, no_plots, tiled, scheduler, tile_size, workers, memory_limit) -> None:
+            dates, names, pair_products, no_plots, tiled, tile_size, nodata, scheduler, workers, memory_limit) -> None:
     from .common import require_inputs, resolve_out_dir, session
 
     require_inputs(*dems, stable_mask, footprints, base)
@@ -249,13 +252,13 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
                                      ("memory_limit", memory_limit)) if v is not None}
     if _use_tiles(ents, tiled, tiling_opts, base):
         _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable_mask, mask_is, footprints,
-                       datum_a, datum_b, base, no_plots)
+                       datum_a, datum_b, base, no_plots, nodata)
         return
     fp = None
     loaded = []
     for k, (path, date, name, vd) in enumerate(ents):
-        loaded.append(Epoch(name, date, _read_dem(path, vd or (datum_a if k == 0 else datum_b))))
-    base_ep = Epoch(Path(base).stem, None, _read_dem(base, datum_a)) if base else None
+        loaded.append(Epoch(name, date, _read_dem(path, vd or (datum_a if k == 0 else datum_b), nodata)))
+    base_ep = Epoch(Path(base).stem, None, _read_dem(base, datum_a, nodata)) if base else None
     if footprints:
         from ..io.vector import read_footprints
 

@@ -957,12 +957,15 @@ def _gdf_key(gdf) -> str | None:
 
 
 def _setup(path_a, path_b, *, datum_a, datum_b, params: DEMDiffParams, stable_mask, mask_is, footprints,
-           tiling: TilingParams, base=None) -> tuple[_Setup, list[str]]:
+           tiling: TilingParams, base=None, nodata: float | None = None) -> tuple[_Setup, list[str]]:
     from ..errors import VerticalDatumError
-    from ..io.raster import _open
+    from ..io.raster import _open, check_dem_file
     from .align import crop_to_overlap, metric_posting
 
     notes: list[str] = []
+    # the checks read_dem makes in memory, made here before any tile is read (the same errors)
+    for p_ in (path_a, path_b):
+        check_dem_file(p_, nodata=nodata)
     with _open(path_a) as da, _open(path_b) as db:
         from ..errors import CRSError
 
@@ -990,8 +993,8 @@ def _setup(path_a, path_b, *, datum_a, datum_b, params: DEMDiffParams, stable_ma
         notes.append(f"B resampled onto the reference grid ({params.resampling})")
     if params.stable.grow_factor is not None:
         stable_overlap(params.stable)  # raises: not tileable
-    src_a = RasterSource(str(path_a), dem=True, resampling=params.resampling)
-    src_b = RasterSource(str(path_b), dem=True, resampling=params.resampling)
+    src_a = RasterSource(str(path_a), dem=True, resampling=params.resampling, nodata=nodata)
+    src_b = RasterSource(str(path_b), dem=True, resampling=params.resampling, nodata=nodata)
     fp = None
     if footprints is not None:
         from ..io.vector import read_footprints
@@ -1065,7 +1068,7 @@ def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDi
                          footprints: Any = None, epoch_a: str = "A", epoch_b: str = "B", datum_a: str | None = None,
                          datum_b: str | None = None, base: Any = None, method: str = "demdiff",
                          prefix: str = "demdiff", plots: bool = True, provenance: dict | None = None,
-                         progress: Progress | None = None) -> TiledDEMDiffResult:
+                         progress: Progress | None = None, nodata: float | None = None) -> TiledDEMDiffResult:
     """DEM differencing of two DEM files on tiles, products written to ``out_dir`` (see module docstring).
 
     Parameters
@@ -1079,6 +1082,7 @@ def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDi
     footprints : optional building polygons (file or GeoDataFrame)
     base : optional base DEM (file, .e00 or DEM) the DEMs were merged onto: only cells where both
         differ from it (their surveys) are compared, on A's whole grid (``geocd demdiff --base``)
+    nodata : the DEMs' nodata value where the files do not declare it (``geocd demdiff --nodata``)
 
     Raises
     ------
@@ -1093,7 +1097,7 @@ def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDi
 
     protect_inputs(dem_a, dem_b)
     S, notes = _setup(dem_a, dem_b, datum_a=datum_a, datum_b=datum_b, params=p, stable_mask=stable_mask,
-                      mask_is=mask_is, footprints=footprints, tiling=tiling, base=base)
+                      mask_is=mask_is, footprints=footprints, tiling=tiling, base=base, nodata=nodata)
     g = S.grid
     timings: dict[str, float] = {}
     prog(0.01, f"{g.height}×{g.width} cells in tiles of {tiling.tile_size}")

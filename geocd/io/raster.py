@@ -26,6 +26,24 @@ VERTICAL_DATUMS = (ELLIPSOID, EGM96, EGM2008)
 #: cells outside is refused as not being heights in metres
 HEIGHT_RANGE_M = (-11_500.0, 9_500.0)
 _HEIGHT_BAND_NAMES = ("z", "z_m", "height", "height_m", "elevation", "dem", "dsm", "dtm", "h", "alt", "altitude")
+#: values DEM producers write for "no data" without always declaring it (ESRI, SRTM, USGS, GDAL's float extremes)
+KNOWN_SENTINELS = (-9999.0, -99999.0, -32768.0, -32767.0, 32767.0, 65535.0, -1e10, -1e20, 1e20, -1e30, 1e30,
+                   float(np.finfo(np.float32).min), float(np.finfo(np.float32).max))
+#: an undeclared nodata value stands this far (m) beyond every other value of the DEM: real terrain, sampled densely,
+#: leaves no empty kilometre in its height histogram beside its lowest or highest value (checked on every DEM in
+#: ../shared/data, tests/io/test_dem_checks.py)
+SENTINEL_GAP_M = 1000.0
+#: an extreme value not among :data:`KNOWN_SENTINELS` counts as a sentinel only when this share of the cells holds it
+SENTINEL_MIN_SHARE = 1e-4
+#: out-of-range heights (beyond :data:`HEIGHT_RANGE_M`, or ±inf) up to this share are blanked with a warning; more:
+#: the raster is refused as not heights in metres
+OUT_OF_RANGE_MAX_SHARE = 0.01
+#: cells read to check a DEM's values (a larger DEM is checked on a decimated read: nearest, exact values kept)
+CHECK_CELLS = 4_000_000
+
+
+class DEMValueWarning(UserWarning):
+    """A DEM held a few values that are not heights (out of range, infinite); they were treated as nodata."""
 
 
 def check_vertical_datum(name: str | None, where: str = "vertical datum") -> str | None:
@@ -190,8 +208,131 @@ class DEM:
         return DEM(h.astype(np.float32), self.grid, ELLIPSOID, self.path)
 
 
+def undeclared_nodata(values: np.ndarray) -> list[tuple[float, int, float]]:
+    """Values of a DEM that are nodata markers, not heights: ``[(value, cells, gap_m), ...]``.
+
+    A sentinel is the lowest or highest value of the DEM, standing more than :data:`SENTINEL_GAP_M` from every
+    other value, and either a value producers use for nodata (:data:`KNOWN_SENTINELS`) or held by at least
+    :data:`SENTINEL_MIN_SHARE` of the cells. Peeled from both ends, so −9999 and −3.4e38 are both found.
+
+    Parameters
+    ----------
+    values : ndarray
+        The DEM's values (any shape; NaN and ±inf are ignored), declared nodata already removed.
+    """
+    v = np.asarray(values, np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if v.size < 2:
+        return []
+    u, counts = np.unique(v, return_counts=True)
+    known = {float(np.float32(k)) for k in KNOWN_SENTINELS}
+    found = []
+    lo, hi = 0, u.size - 1
+    while hi > lo:
+        progressed = False
+        for end in ("low", "high"):
+            if hi <= lo:
+                break
+            i, j = (lo, lo + 1) if end == "low" else (hi, hi - 1)
+            c, gap = float(u[i]), abs(float(u[j] - u[i]))
+            if gap > SENTINEL_GAP_M and (float(np.float32(c)) in known or counts[i] >= max(2, SENTINEL_MIN_SHARE * v.size)):
+                found.append((c, int(counts[i]), gap))
+                lo, hi = (lo + 1, hi) if end == "low" else (lo, hi - 1)
+                progressed = True
+        if not progressed:
+            break
+    return found
+
+
+def _fmt_value(v: float, dtype: str = "float64") -> str:
+    """A raster value as the user types it back: float32 values at float32 precision (1e+30, not 1.00000002e+30)."""
+    if dtype == "float32":
+        s = str(np.float32(v))
+        return s[:-2] if s.endswith(".0") else s
+    return f"{v:.9g}"
+
+
+def _check_dem_values(ds, path, band: int, nodata: float | None) -> None:
+    """Refuse a DEM whose values are not heights in metres, before anything is computed from it.
+
+    On the file's own values (before any resampling mixes a sentinel into its neighbours): undeclared nodata
+    sentinels (:func:`undeclared_nodata`) are refused with the ``--nodata`` fix; more than
+    :data:`OUT_OF_RANGE_MAX_SHARE` of values beyond :data:`HEIGHT_RANGE_M` (or infinite) are refused as not metres;
+    fewer are reported (:class:`DEMValueWarning`) and read as nodata.
+    """
+    import warnings
+
+    from rasterio.errors import RasterioError
+
+    n = ds.width * ds.height
+    step = max(1.0, float(np.sqrt(n / CHECK_CELLS)))
+    shape = (max(1, int(ds.height / step)), max(1, int(ds.width / step)))
+    try:
+        a = ds.read(band, masked=nodata is None, out_shape=shape if step > 1 else None)
+    except RasterioError as exc:
+        raise _read_failure(path, exc) from exc
+    h = (np.ma.filled(a.astype(np.float64), np.nan) if np.ma.isMaskedArray(a) else a.astype(np.float64))
+    if nodata is not None:  # compared as the file stores it (a float32 file holds float32(-3.4028235e38))
+        h[h == (float(np.float32(nodata)) if ds.dtypes[band - 1] == "float32" else float(nodata))] = np.nan
+    sample = "" if step == 1 else f" (checked on a 1-in-{step:.0f} sample)"
+    sentinels = undeclared_nodata(h)
+    if sentinels:
+        finite = np.isfinite(h).sum()
+        dt = ds.dtypes[band - 1]
+        said = "; ".join(f"{_fmt_value(c, dt)} in {100 * k / max(finite, 1):.2g} % of its cells ({gap:,.0f} m beyond "
+                         "every other value)" for c, k, gap in sentinels)
+        v0 = _fmt_value(sentinels[0][0], dt)
+        declared = f" (its declared nodata is {_fmt_value(ds.nodata, dt)})" if ds.nodata is not None else ""
+        raise UnsupportedFormatError(
+            f"DEM {path} holds undeclared nodata values, not heights{declared}: {said}{sample}. Declare the "
+            f"value: --nodata {v0} (nodata= in Python), or set it in the file (gdal_edit.py -a_nodata {v0} {path})")
+    valid = ~np.isnan(h)
+    lo, hi = HEIGHT_RANGE_M
+    with np.errstate(invalid="ignore"):
+        bad = valid & ((h < lo) | (h > hi))
+    share = float(bad.sum()) / max(int(valid.sum()), 1)
+    if share > OUT_OF_RANGE_MAX_SHARE:
+        v = h[valid & np.isfinite(h)]
+        rng = f" (range {np.min(v):g} .. {np.max(v):g})" if v.size else ""
+        raise UnsupportedFormatError(
+            f"DEM {path}: {100 * share:.0f}% of its values lie outside {lo:g}..{hi:g} m or are infinite{rng}"
+            f"{sample}; these are not terrain heights in metres (feet? centimetres? an undeclared nodata value?): "
+            "convert the DEM to metres or declare its nodata value (--nodata)")
+    if bad.any():
+        warnings.warn(f"DEM {path}: {int(bad.sum())} value(s) ({100 * share:.2g} % of its cells{sample}) lie outside "
+                      f"{lo:g}..{hi:g} m or are infinite; they are read as nodata", DEMValueWarning, stacklevel=3)
+
+
+def check_dem_file(path: os.PathLike | str, band: int = 1, nodata: float | None = None) -> int:
+    """Every check :func:`read_dem` makes on a DEM file, without reading it whole: a CRS, one band of real
+    heights (not an image, not complex), values that are heights in metres with no undeclared nodata. For paths
+    that read the DEM tile by tile; returns the band.
+
+    Raises
+    ------
+    CRSError, UnsupportedFormatError, InputFileNotFoundError
+    """
+    with _open(path) as ds:
+        if ds.crs is None:
+            raise CRSError(f"DEM {path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...) before using it")
+        band = _check_dem_like(ds, path, band)
+        _check_dem_values(ds, path, band, nodata)
+    return band
+
+
+def blank_non_heights(h: np.ndarray, nodata: float | None = None) -> np.ndarray:
+    """``h`` (float32, in place) with the declared ``nodata`` and values that are not heights (beyond
+    :data:`HEIGHT_RANGE_M`, ±inf; checked and reported by :func:`check_dem_file`) set to NaN."""
+    if nodata is not None and np.isfinite(nodata):
+        h[h == np.float32(nodata)] = np.nan
+    lo, hi = HEIGHT_RANGE_M
+    with np.errstate(invalid="ignore"):
+        h[~np.isfinite(h) | (h < lo) | (h > hi)] = np.nan
+    return h
+
+
 def read_dem(path: os.PathLike | str, grid: AOIGrid | None = None, resampling: str = "bilinear",
-             vertical_datum: str | None = None, band: int = 1) -> DEM:
+             vertical_datum: str | None = None, band: int = 1, nodata: float | None = None) -> DEM:
     """Read a DEM: float32 heights, nodata → NaN, optionally resampled onto ``grid``.
 
     Parameters
@@ -205,39 +346,47 @@ def read_dem(path: os.PathLike | str, grid: AOIGrid | None = None, resampling: s
         Overrides the datum read from the file's CRS ("ellipsoid", "egm96", ...).
         SRTM .hgt tiles carry no vertical CRS but are EGM96 by specification:
         declare it.
+    nodata : float, optional
+        The DEM's nodata value when the file does not declare it (or declares another): ``--nodata``. A DEM
+        holding an undeclared nodata value (−9999, −32768, −3.4e38, ...) is refused without it.
+
+    Raises
+    ------
+    UnsupportedFormatError
+        Not a DEM (an image, complex values), undeclared nodata values, or more than 1 % of values that are not
+        heights in metres (a few are read as nodata, with a :class:`DEMValueWarning`).
     """
     from rasterio.errors import RasterioError
 
     vertical_datum = check_vertical_datum(vertical_datum, f"DEM {path}")
+    if nodata is not None and not np.isfinite(nodata) and not np.isnan(nodata):
+        raise UnsupportedFormatError(f"nodata {nodata} for DEM {path}: give a finite value (or nan)")
     with _open(path) as ds:
         if ds.crs is None:
             raise CRSError(f"DEM {path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...) before using it")
         band = _check_dem_like(ds, path, band)
-        nodata = ds.nodata
         vd = vertical_datum or vertical_datum_of(ds.crs)
         if grid is not None:
             _check_dem_covers(ds, path, grid)
         _check_read_memory(path, grid.shape if grid is not None else (ds.height, ds.width), grid)
+        _check_dem_values(ds, path, band, nodata)
+        nodata = ds.nodata if nodata is None else nodata
         try:
             if grid is None:
                 arr = ds.read(band, masked=True).astype(np.float32)
                 h = arr.filled(np.nan)
                 g = AOIGrid(as_crs(ds.crs), ds.transform, ds.width, ds.height)
             else:
-                h = reproject_band(ds, band, grid, resampling)
+                h = reproject_band(ds, band, grid, resampling, nodata=nodata, heights=True)
                 g = grid
         except RasterioError as exc:
             raise _read_failure(path, exc) from exc
-    if nodata is not None and np.isfinite(nodata):
-        h[h == np.float32(nodata)] = np.nan
-    # common nodata sentinels that some DEMs do not declare
-    h[(h < -1e4) | (h > 1e5)] = np.nan
+    blank_non_heights(h, nodata)
     if not np.isfinite(h).any():
         where = "on the requested grid" if grid is not None else ""
         raise EmptyDataError(
             f"DEM {path} has no valid heights {where}(all nodata); check its nodata value and that it covers the AOI"
         )
-    _check_heights(h, path)
     return DEM(h, g, vd, str(path))
 
 
@@ -282,17 +431,6 @@ def _check_read_memory(path, shape: tuple[int, int], grid: AOIGrid | None = None
     check_resources(what, memory_bytes=rows * cols * bytes_per_cell, fix=fix)
 
 
-def _check_heights(h: np.ndarray, path) -> None:
-    v = h[np.isfinite(h)]
-    lo, hi = HEIGHT_RANGE_M
-    out = float(np.mean((v < lo) | (v > hi))) if v.size else 0.0
-    if out > 0.01:
-        raise UnsupportedFormatError(
-            f"DEM {path}: {100 * out:.0f}% of its values lie outside {lo:g}..{hi:g} m (range {np.min(v):g} .. "
-            f"{np.max(v):g}); these are not terrain heights in metres (feet? centimetres? an undeclared nodata "
-            "value?): convert the DEM to metres or set its nodata value")
-
-
 def _check_dem_covers(ds, path, grid: AOIGrid) -> None:
     """A DEM that does not reach the AOI at all: say so, with the distance (not 'all nodata')."""
     from rasterio.warp import transform_bounds
@@ -314,8 +452,11 @@ def _check_dem_covers(ds, path, grid: AOIGrid) -> None:
             "CRS); give a DEM of this area, or check the AOI (aoi.bounds / aoi.crs)")
 
 
-def reproject_band(ds, band: int, grid: AOIGrid, resampling: str = "bilinear") -> np.ndarray:
-    """Reproject one band of an open dataset onto ``grid`` (float32, NaN outside/nodata)."""
+def reproject_band(ds, band: int, grid: AOIGrid, resampling: str = "bilinear",
+                   nodata: float | None = None, heights: bool = False) -> np.ndarray:
+    """Reproject one band of an open dataset onto ``grid`` (float32, NaN outside/nodata; ``nodata`` overrides
+    the file's nodata value; ``heights``: values that are not heights are nodata too, before they are resampled
+    into their neighbours)."""
     from rasterio.crs import CRS as RioCRS
     from rasterio.enums import Resampling
     from rasterio.warp import reproject
@@ -324,8 +465,11 @@ def reproject_band(ds, band: int, grid: AOIGrid, resampling: str = "bilinear") -
         raise ValueError(f"resampling must be one of {RESAMPLING}, got {resampling!r}")
     out = np.full(grid.shape, np.nan, dtype=np.float32)
     src = ds.read(band).astype(np.float32)
-    if ds.nodata is not None and np.isfinite(ds.nodata):
-        src[src == np.float32(ds.nodata)] = np.nan
+    nodata = ds.nodata if nodata is None else nodata
+    if heights:
+        blank_non_heights(src, nodata)
+    elif nodata is not None and np.isfinite(nodata):
+        src[src == np.float32(nodata)] = np.nan
     reproject(src, out, src_transform=ds.transform, src_crs=ds.crs, src_nodata=np.nan,
               dst_transform=grid.transform, dst_crs=RioCRS.from_wkt(grid.crs.to_wkt()), dst_nodata=np.nan,
               resampling=getattr(Resampling, resampling))

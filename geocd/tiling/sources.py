@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import CRSError, ConfigError
 from ..geodesy import AOIGrid
+from ..io.raster import blank_non_heights
 
 #: GDAL block cache per process while a tile reads or writes (MB): bounded memory
 GDAL_CACHE_MB = 128
@@ -49,14 +50,17 @@ class RasterSource:
     resampling : how the file is resampled when it is not on the processing grid
         (GDAL warped VRT); on the grid (same CRS and posting, whole-cell offset) windows
         are read as they are
-    dem : apply :func:`geocd.io.raster.read_dem`'s rules (nodata and the sentinels
-        < −1e4 or > 1e5 m → NaN); otherwise nodata → NaN only
+    dem : apply :func:`geocd.io.raster.read_dem`'s rules (nodata, and values that are not heights → NaN:
+        :func:`~geocd.io.raster.blank_non_heights`; the file is checked up front by
+        :func:`~geocd.io.raster.check_dem_file`); otherwise nodata → NaN only
+    nodata : the file's nodata value when it does not declare it (``--nodata``); None: the file's own
     """
 
     path: str
     band: int = 1
     resampling: str = "bilinear"
     dem: bool = False
+    nodata: float | None = None
 
     def read(self, grid: AOIGrid, window: tuple[int, int, int, int]) -> np.ndarray:
         """float32 (h, w) values of ``window`` (row0, col0, h, w) of ``grid``; NaN = nodata/outside."""
@@ -69,7 +73,7 @@ class RasterSource:
         with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB), _open(self.path) as ds:
             if ds.crs is None:
                 raise CRSError(f"{self.path} has no CRS; assign one (gdal_edit.py -a_srs EPSG:...) before tiling it")
-            nodata = ds.nodata
+            nodata = ds.nodata if self.nodata is None else self.nodata
             src_grid = AOIGrid.from_raster(ds)
             off = _aligned_offset(src_grid, grid)
             if off is not None:
@@ -86,15 +90,14 @@ class RasterSource:
                     a = ds.read(self.band, window=win, masked=True, boundless=not inside)
                     out = np.ma.filled(a.astype(np.float32), np.nan)
             else:
-                out = self._warped(ds, grid, window)
+                out = self._warped(ds, grid, window, nodata)
+        if self.dem:
+            return blank_non_heights(out, nodata)
         if nodata is not None and np.isfinite(nodata):
             out[out == np.float32(nodata)] = np.nan
-        if self.dem:
-            with np.errstate(invalid="ignore"):
-                out[(out < -1e4) | (out > 1e5)] = np.nan
         return out
 
-    def _warped(self, ds, grid: AOIGrid, window) -> np.ndarray:
+    def _warped(self, ds, grid: AOIGrid, window, nodata: float | None) -> np.ndarray:
         from rasterio.crs import CRS as RioCRS
         from rasterio.enums import Resampling
         from rasterio.vrt import WarpedVRT
@@ -109,14 +112,14 @@ class RasterSource:
             warnings.simplefilter("ignore")
             with WarpedVRT(ds, crs=RioCRS.from_wkt(grid.crs.to_wkt()), transform=grid.transform, width=grid.width,
                            height=grid.height, resampling=getattr(Resampling, self.resampling),
-                           src_nodata=ds.nodata, nodata=np.nan, dtype="float32") as vrt:
+                           src_nodata=nodata, nodata=np.nan, dtype="float32") as vrt:
                 return vrt.read(self.band, window=Window(c0, r0, w, h)).astype(np.float32)
 
     def identity(self) -> dict[str, Any]:
         """What makes this input this input (for the resume key): path, size, mtime, band."""
         st = os.stat(self.path)
         return {"path": os.path.abspath(self.path), "size": st.st_size, "mtime_ns": st.st_mtime_ns,
-                "band": self.band, "resampling": self.resampling, "dem": self.dem}
+                "band": self.band, "resampling": self.resampling, "dem": self.dem, "nodata": self.nodata}
 
 
 @dataclass(frozen=True)
