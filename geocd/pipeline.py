@@ -136,8 +136,12 @@ class RunConfig:
         try:
             d = yaml.safe_load(p.read_text(encoding="utf-8"))
         except Exception as exc:
-            raise ConfigError(f"cannot read the run configuration {p}: {exc}") from exc
-        return cls.from_dict(d or {})
+            raise ConfigError(f"cannot read the run configuration {p}: {' '.join(str(exc).split())[:200]}; give "
+                              "the run_config.json a run wrote") from exc
+        if not isinstance(d, dict) or not d:
+            raise ConfigError(f"the run configuration {p} is {'empty' if not d else 'not a mapping of parameters'}; "
+                              "give the run_config.json a run wrote (or leave --config out for the defaults)")
+        return cls.from_dict(d)
 
 
 def pick_epochs(manifest, epoch_a: str | None = None, epoch_b: str | None = None):

@@ -82,7 +82,16 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
     from . import emit_result, make_progress
 
     cfg = RunConfig.load(config_path) if config_path else RunConfig()
-    open_outputs(out, inputs=[*m.input_paths(), model_path, config_path, footprints], products=PRODUCTS)
+    screen_feature_spec = None
+    if screen:
+        from ..screen import FeatureSpec
+
+        screen_feature_spec = FeatureSpec(kind=screen_feature, backbone=screen_backbone, weights=screen_weights,
+                                          layer=screen_layer)
+        if screen_feature == "cnn":
+            screen_feature_spec.build()  # the weights read and matched to the backbone before any work
+    open_outputs(out, inputs=[*m.input_paths(), model_path, config_path, footprints, screen_weights],
+                 products=PRODUCTS)
     sess = session(ctx)
     sess.open_log(out)
     changes = {}
@@ -96,11 +105,10 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
                  ("epoch_a", epoch_a), ("epoch_b", epoch_b), ("pairs", pairs)):
         if v is not None:
             changes[k] = v
-    if screen:
-        from ..screen import FeatureSpec, ScreenParams
+    if screen_feature_spec is not None:
+        from ..screen import ScreenParams
 
-        changes["screen"] = ScreenParams(feature=FeatureSpec(kind=screen_feature, backbone=screen_backbone,
-                                                             weights=screen_weights, layer=screen_layer))
+        changes["screen"] = ScreenParams(feature=screen_feature_spec)
         changes["screen_tile_cells"] = int(screen_tile)
     import dataclasses
 

@@ -42,6 +42,7 @@ from typing import Any, Callable, Optional
 import click
 
 from ..errors import ConfigError, GeoCDError, InputFileNotFoundError, OutputError
+from ..io.atomic import refuse_special_file
 from .options import harden_options
 
 PROGRESS_MODES = ("auto", "bar", "lines", "json", "none")
@@ -122,6 +123,7 @@ def _in_session(callback: Callable) -> Callable:
         ctx = click.get_current_context()
         sess = Session.start(ctx, kwargs.pop("_geocd_progress", None), kwargs.pop("_geocd_json", False))
         try:
+            refuse_special_paths(ctx.command, kwargs)
             rv = callback(*args, **kwargs)
         except BaseException as exc:  # noqa: BLE001 - logged, then handled by the command group
             sess.fail(exc)
@@ -130,6 +132,25 @@ def _in_session(callback: Callable) -> Callable:
         return rv
 
     return run
+
+
+def refuse_special_paths(cmd: click.Command, values: dict) -> None:
+    """Refuse a named pipe, socket or device given to any path parameter of ``cmd`` before the command runs.
+
+    Reading a FIFO blocks until something writes into it: the command would hang instead of failing.
+
+    Raises
+    ------
+    UnsupportedFormatError
+    """
+    for prm in cmd.params:
+        if not isinstance(prm.type, click.Path) or values.get(prm.name) is None:
+            continue
+        v = values[prm.name]
+        what = max(prm.opts, key=len) if isinstance(prm, click.Option) else "input"
+        for item in (v if isinstance(v, (tuple, list)) else (v,)):
+            if item is not None:
+                refuse_special_file(item, what)
 
 
 def session(ctx: click.Context | None = None) -> "Session":
@@ -149,7 +170,8 @@ def session(ctx: click.Context | None = None) -> "Session":
 # ---------------------------------------------------------------------------------------------------------------
 
 def require_inputs(*paths: Optional[os.PathLike | str], what: str = "input") -> None:
-    """Raise :class:`InputFileNotFoundError` for the first path that does not exist (None entries are skipped).
+    """Raise :class:`InputFileNotFoundError` for the first path that does not exist (None entries are skipped),
+    :class:`~geocd.errors.UnsupportedFormatError` for a named pipe, socket or device (reading it would hang).
 
     Cheap (no heavy imports): call it first thing in a command.
     """
@@ -158,6 +180,7 @@ def require_inputs(*paths: Optional[os.PathLike | str], what: str = "input") -> 
             continue
         if not Path(p).exists():
             raise InputFileNotFoundError(f"{p} does not exist; check the {what} path (relative to {Path.cwd()})")
+        refuse_special_file(p, what)
 
 
 def default_out_dir(name: str) -> Path:

@@ -148,6 +148,14 @@ def mpp(ctx: click.Context, manifest, image_a, image_b, dsm_a, dsm_b, ground, ep
     if height == "on" and image_a is not None and dsm_a is None:
         raise ConfigError("--height on needs --dsm-a and --dsm-b with --image-a/--image-b")
     require_inputs(manifest, image_a, image_b, dsm_a, dsm_b, ground, change_prior)
+    if ground is not None and manifest is not None:
+        raise ConfigError("--ground is the terrain for --image-a/--image-b; with a manifest the ground is the "
+                          "manifest's dem: (or estimated from each DSM): leave --ground out or put it in the manifest")
+    from ..io.raster import check_dem_file
+
+    for dem in (dsm_a, dsm_b, ground):  # every DEM check before any ortho or stereo is written
+        if dem is not None:
+            check_dem_file(dem)
     if change_prior is not None:
         check_change_prior(change_prior)
     kw = {"seed": seed}

@@ -51,8 +51,11 @@ def synth(ctx: click.Context, out_dir: Path, seed: int, size_m: float, gsd_m: fl
     if params_file is not None:
         try:
             base = json.loads(params_file.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{params_file} is not valid JSON ({exc})") from exc
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{params_file} is not valid JSON text ({exc}); give a JSON of SynthParams fields") \
+                from exc
+        if not isinstance(base, dict):
+            raise ConfigError(f"{params_file} holds a JSON {type(base).__name__}, not SynthParams fields")
         if "params" in base and isinstance(base["params"], dict):
             base = base["params"]
     given = {k: v for k, v in ctx.params.items()

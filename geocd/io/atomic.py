@@ -19,11 +19,12 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import stat
 import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
 
-from ..errors import GeoCDError, OutputError
+from ..errors import GeoCDError, OutputError, UnsupportedFormatError
 
 #: input files registered by the current run (resolved path → registrations); outputs must not replace them
 _PROTECTED: dict[Path, int] = {}
@@ -274,3 +275,26 @@ def write_text_atomic(path: os.PathLike | str, text: str) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+def refuse_special_file(path: os.PathLike | str, what: str = "input") -> None:
+    """Refuse a named pipe (FIFO), socket or device given where a file is expected, before anything opens it.
+
+    Opening a FIFO blocks until another process writes into it (the command would hang); a device never ends.
+    Paths that do not exist, directories and URLs/GDAL virtual paths pass (other checks speak for them).
+
+    Raises
+    ------
+    UnsupportedFormatError
+    """
+    if path is None or "://" in str(path) or str(path).startswith("/vsi"):
+        return
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return
+    kind = ("a named pipe (FIFO)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
+            else "a character device" if stat.S_ISCHR(mode) else "a block device" if stat.S_ISBLK(mode) else None)
+    if kind is not None:
+        raise UnsupportedFormatError(f"{what} {path} is {kind}, not a regular file; geocd reads files only: save the "
+                                     "data to a file and give that path")

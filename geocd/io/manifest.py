@@ -42,7 +42,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from ..errors import InputFileNotFoundError, ManifestError
+from ..errors import InputFileNotFoundError, ManifestError, UnsupportedFormatError
+from .atomic import refuse_special_file
 from .safe_yaml import YAMLLimitError, load_json, load_yaml
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".ntf", ".nitf", ".jp2", ".img", ".vrt")
@@ -397,6 +398,10 @@ def _path(root: Path, value: Any, where: str, must_exist: bool = True) -> Path:
     p = p if p.is_absolute() else root / p
     if must_exist and not p.exists():
         raise _err(where, f"file {p} does not exist; fix the path (relative paths are relative to the manifest's folder)")
+    try:
+        refuse_special_file(p, "file")
+    except UnsupportedFormatError as exc:
+        raise _err(where, str(exc)) from None
     return p
 
 
@@ -562,6 +567,7 @@ def load_manifest(path: os.PathLike | str) -> Manifest:
     p = Path(path)
     if not p.exists():
         raise InputFileNotFoundError(f"{p} does not exist; give a manifest file (scene.yaml) or a folder of images")
+    refuse_special_file(p, "manifest")
     if p.is_dir():
         for name in ("scene.yaml", "scene.yml", "manifest.yaml", "manifest.yml", "scene.json", "manifest.json"):
             if (p / name).is_file():

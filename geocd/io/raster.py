@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import (CRSError, EmptyDataError, InputFileNotFoundError, OutputError, UnsupportedFormatError,
                       VerticalDatumError)
 from ..geodesy import EGM96, EGM2008, ELLIPSOID, AOIGrid, as_crs, normalize_datum_name, vertical_datum_of
-from .atomic import atomic_path
+from .atomic import atomic_path, refuse_special_file
 
 #: vertical datums a user may name (``--datum``, manifest ``vertical_datum``)
 VERTICAL_DATUMS = (ELLIPSOID, EGM96, EGM2008)
@@ -40,6 +40,16 @@ SENTINEL_MIN_SHARE = 1e-4
 OUT_OF_RANGE_MAX_SHARE = 0.01
 #: cells read to check a DEM's values (a larger DEM is checked on a decimated read: nearest, exact values kept)
 CHECK_CELLS = 4_000_000
+
+
+#: band units (GDAL's unit type) of heights that are not metres → the factor to metres
+_NON_METRE_UNITS = {"ft": 0.3048, "feet": 0.3048, "foot": 0.3048, "international foot": 0.3048,
+                    "us-ft": 0.3048006096, "ftus": 0.3048006096, "us survey foot": 0.3048006096,
+                    "us_survey_foot": 0.3048006096, "cm": 0.01, "centimetre": 0.01, "centimeter": 0.01,
+                    "centimetres": 0.01, "centimeters": 0.01, "mm": 0.001, "millimetre": 0.001, "millimeter": 0.001,
+                    "dm": 0.1, "decimetre": 0.1, "decimeter": 0.1}
+_UNIT_NAMES = {0.3048: "feet", 0.3048006096: "US survey feet", 0.01: "centimetres", 0.001: "millimetres",
+               0.1: "decimetres"}
 
 
 class DEMValueWarning(UserWarning):
@@ -83,6 +93,7 @@ def _open(path: os.PathLike | str):
     p = Path(path)
     if not p.exists() and "://" not in str(path) and not str(path).startswith("/vsi"):
         raise InputFileNotFoundError(f"raster {p} does not exist; check the path")
+    refuse_special_file(path, "raster")
     try:
         import warnings
 
@@ -264,6 +275,12 @@ def _check_dem_values(ds, path, band: int, nodata: float | None) -> None:
 
     from rasterio.errors import RasterioError
 
+    unit = str((ds.units or [None] * ds.count)[band - 1] or "").strip().lower()
+    factor = _NON_METRE_UNITS.get(unit)
+    if factor is not None:
+        raise UnsupportedFormatError(
+            f"DEM {path}: its band unit is {unit!r} ({_UNIT_NAMES.get(factor, unit)}); geocd needs heights in metres: "
+            f"convert it (gdal_calc.py -A {path} --calc 'A*{factor:g}' --outfile dem_m.tif) and give that file")
     n = ds.width * ds.height
     step = max(1.0, float(np.sqrt(n / CHECK_CELLS)))
     shape = (max(1, int(ds.height / step)), max(1, int(ds.width / step)))

@@ -46,3 +46,19 @@ def test_synth_supersample_is_checked_with_the_parameters(k):
 
 def test_synth_supersample_in_range():
     assert SynthParams.tiny(supersample=3).supersample == 3
+
+
+def test_mpp_refuses_a_ground_it_would_not_use(tmp_path):
+    """--ground is read with --image-a/--image-b only: with a manifest it was ignored, silently."""
+    from click.testing import CliRunner
+
+    from geocd.cli import main
+    from tests.reliability.scenes import error_lines, make_scene, write_dem_pair
+
+    sc = make_scene(tmp_path / "scene")
+    a, _ = write_dem_pair(tmp_path / "d")
+    r = CliRunner().invoke(main, ["--progress", "none", "mpp", str(sc.manifest), "--ground", str(a), "--out",
+                                  str(tmp_path / "O")])
+    assert r.exit_code == 2, r.output
+    assert "--ground is the terrain for --image-a/--image-b" in error_lines(r.stderr)[0]
+    assert not (tmp_path / "O").exists()
