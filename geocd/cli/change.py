@@ -255,6 +255,12 @@ def change(ctx, a_paths, b_paths, dem_a, dem_b, dem_vertical_datum, model_path, 
     from . import emit_result, make_progress
     from .common import session
 
+    if tiled or scheduler or tile_size:
+        from ..io.raster import check_dem_file
+
+        for d in (dem_a, dem_b):  # read_dem's checks, which the window reads of the tiled test do not make
+            if d:
+                check_dem_file(d)
     open_outputs(out_dir, inputs=[*a_paths, *b_paths, dem_a, dem_b, model_path, footprints], products=("sc_*",))
     session(ctx).open_log(out_dir)
     if tiled or scheduler or tile_size:

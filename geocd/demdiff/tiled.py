@@ -40,6 +40,8 @@ the stable terrain's hysteresis growth (``StableParams.grow_factor``).
 
 from __future__ import annotations
 
+import os
+
 import hashlib
 import math
 import time
@@ -964,8 +966,9 @@ def _setup(path_a, path_b, *, datum_a, datum_b, params: DEMDiffParams, stable_ma
 
     notes: list[str] = []
     # the checks read_dem makes in memory, made here before any tile is read (the same errors)
-    for p_ in (path_a, path_b):
-        check_dem_file(p_, nodata=nodata)
+    for p_ in (path_a, path_b, base):
+        if isinstance(p_, (str, os.PathLike)) and Path(p_).suffix.lower() != ".e00":
+            check_dem_file(p_, nodata=nodata)
     with _open(path_a) as da, _open(path_b) as db:
         from ..errors import CRSError
 

@@ -38,7 +38,8 @@ SENTINEL_MIN_SHARE = 1e-4
 #: out-of-range heights (beyond :data:`HEIGHT_RANGE_M`, or ±inf) up to this share are blanked with a warning; more:
 #: the raster is refused as not heights in metres
 OUT_OF_RANGE_MAX_SHARE = 0.01
-#: cells read to check a DEM's values (a larger DEM is checked on a decimated read: nearest, exact values kept)
+#: cells read to check a DEM's values (a larger DEM is checked on evenly spaced strips of whole rows, at full
+#: resolution: never an overview, whose averages would hide an exact sentinel)
 CHECK_CELLS = 4_000_000
 
 
@@ -281,17 +282,26 @@ def _check_dem_values(ds, path, band: int, nodata: float | None) -> None:
         raise UnsupportedFormatError(
             f"DEM {path}: its band unit is {unit!r} ({_UNIT_NAMES.get(factor, unit)}); geocd needs heights in metres: "
             f"convert it (gdal_calc.py -A {path} --calc 'A*{factor:g}' --outfile dem_m.tif) and give that file")
-    n = ds.width * ds.height
-    step = max(1.0, float(np.sqrt(n / CHECK_CELLS)))
-    shape = (max(1, int(ds.height / step)), max(1, int(ds.width / step)))
+    # the file's own values at full resolution: a decimated read would take an overview, whose averages hide an
+    # exact sentinel. A large DEM is read as evenly spaced strips of whole rows (every column is seen).
+    rows_wanted = max(1, CHECK_CELLS // max(ds.width, 1))
+    strip = 8
+    step = max(1, int(np.ceil(ds.height / rows_wanted)))
+    if step == 1:
+        windows = [None]
+    else:
+        from rasterio.windows import Window
+
+        windows = [Window(0, r, ds.width, min(strip, ds.height - r)) for r in range(0, ds.height, step * strip)]
     try:
-        a = ds.read(band, masked=nodata is None, out_shape=shape if step > 1 else None)
+        parts = [ds.read(band, masked=nodata is None, window=w) for w in windows]
     except RasterioError as exc:
         raise _read_failure(path, exc) from exc
-    h = (np.ma.filled(a.astype(np.float64), np.nan) if np.ma.isMaskedArray(a) else a.astype(np.float64))
+    h = np.concatenate([(np.ma.filled(a.astype(np.float64), np.nan) if np.ma.isMaskedArray(a)
+                         else a.astype(np.float64)) for a in parts])
     if nodata is not None:  # compared as the file stores it (a float32 file holds float32(-3.4028235e38))
         h[h == (float(np.float32(nodata)) if ds.dtypes[band - 1] == "float32" else float(nodata))] = np.nan
-    sample = "" if step == 1 else f" (checked on a 1-in-{step:.0f} sample)"
+    sample = "" if step == 1 else f" (checked on strips of whole rows, 1 row in {step})"
     sentinels = undeclared_nodata(h)
     if sentinels:
         finite = np.isfinite(h).sum()
@@ -302,7 +312,8 @@ def _check_dem_values(ds, path, band: int, nodata: float | None) -> None:
         declared = f" (its declared nodata is {_fmt_value(ds.nodata, dt)})" if ds.nodata is not None else ""
         raise UnsupportedFormatError(
             f"DEM {path} holds undeclared nodata values, not heights{declared}: {said}{sample}. Declare the "
-            f"value: --nodata {v0} (nodata= in Python), or set it in the file (gdal_edit.py -a_nodata {v0} {path})")
+            f"value in the file (gdal_edit.py -a_nodata {v0} {path}), or with geocd demdiff: --nodata {v0} "
+            "(nodata= in Python)")
     valid = ~np.isnan(h)
     lo, hi = HEIGHT_RANGE_M
     with np.errstate(invalid="ignore"):

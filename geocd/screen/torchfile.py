@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import collections
 import io
+import lzma
 import pickle
 import struct
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -234,6 +236,7 @@ def read_torch_file(path: str | Path) -> Any:
     except (TorchFileError, OSError):
         raise
     except (pickle.UnpicklingError, zipfile.BadZipFile, EOFError, ValueError, TypeError, KeyError, IndexError,
-            AttributeError, struct.error, RecursionError, MemoryError, OverflowError) as exc:
+            AttributeError, struct.error, RecursionError, MemoryError, OverflowError, NotImplementedError,
+            zlib.error, lzma.LZMAError) as exc:
         # a garbled pickle, archive or storage: the same user error, never an internal one
         raise TorchFileError(f"{p} is not a readable torch.save file ({type(exc).__name__}: {exc})") from exc

@@ -194,3 +194,20 @@ def test_real_dems_pass_the_checks(rel):
         warnings.simplefilter("error", DEMValueWarning)
         check_dem_file(p)
         assert np.isfinite(read_dem(p).height_m).any()
+
+
+def test_sentinels_are_found_in_a_large_dem_with_averaged_overviews(tmp_path, monkeypatch):
+    """A decimated read takes the overview, whose averages hide -9999: the check reads whole rows at full
+    resolution, in strips when the DEM is large."""
+    import geocd.io.raster as R
+
+    h = _terrain(rows=600, cols=640)
+    h[:, ::15] = -9999.0
+    p = _write(tmp_path, h, "big.tif")  # a COG: write_cog adds averaged overviews
+    import rasterio
+
+    with rasterio.open(p) as ds:
+        assert ds.overviews(1), "the test needs a file with overviews"
+    monkeypatch.setattr(R, "CHECK_CELLS", 20_000)  # force the strip sampling
+    with pytest.raises(UnsupportedFormatError, match=r"-9999 in .* strips of whole rows"):
+        check_dem_file(p)

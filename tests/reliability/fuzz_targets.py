@@ -251,3 +251,12 @@ def check_rpc_file(name: str, data: bytes, mutation, folder: Path) -> str:
     p = Path(folder) / name
     p.write_bytes(mutate_bytes(data, mutation))
     return _outcome(_use_camera, lambda q: read_rpc(q, image_path=None), p)
+
+
+def check_torch_bytes(data: bytes, mutation, folder: Path) -> str:
+    """A PyTorch weights file (zip of a pickle and storages), mutated: read without PyTorch, never a code path."""
+    from geocd.screen.cnn import load_weights
+
+    p = Path(folder) / "w.pth"
+    p.write_bytes(mutate_bytes(data, mutation))
+    return _outcome(load_weights, p)

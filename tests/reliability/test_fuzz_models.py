@@ -1,8 +1,8 @@
 """Fuzzing the readers of model and camera files (short runs; bench/fuzz_inputs.py runs them for thousands).
 
 Self-consistency models (structural mutations of a real one: wrong types, deleted and renamed keys at any depth,
-and byte mutations of its JSON), frame-camera sidecars (structural mutations) and RPC files in four text formats
-(byte mutations): every reader returns a result or raises a GeoCDError, nothing else, and what it accepts is
+and byte mutations of its JSON), frame-camera sidecars (structural mutations), RPC files in four text formats and
+PyTorch weights files (byte mutations): every reader returns a result or raises a GeoCDError, nothing else, and what it accepts is
 usable — a model gives p-values in [0, 1], a camera projects a point of its scene to finite pixels.
 """
 
@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 
 from .fuzz_targets import (byte_mutations, check_frame_sidecar, check_model_bytes, check_model_tree,
-                           check_rpc_file, tree_ops)
+                           check_rpc_file, check_torch_bytes, tree_ops)
 
 REPO = Path(__file__).resolve().parents[2]
 _FAST = dict(deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
@@ -117,3 +117,20 @@ def test_a_model_accepted_by_the_reader_gives_p_values_in_range(model_doc, tmp_p
     m = SelfConsistencyModel.load(p)
     pv = m.pvalue(np.array([0.0, 0.5, 3.0, 1e6]), np.array([-1.0, 0.0, 1.0, 5.0]))
     assert np.all((pv >= 0) & (pv <= 1))
+
+
+@pytest.fixture(scope="module")
+def torch_bytes(tmp_path_factory):
+    from tests.screen.test_torchfile import _tensor_pickle, _zip
+
+    return _zip(tmp_path_factory.mktemp("fuzz_pth") / "w.pth", _tensor_pickle(0, (2, 2), (2, 1))).read_bytes()
+
+
+def test_the_unmutated_weights_file_reads(torch_bytes, tmp_path):
+    assert check_torch_bytes(torch_bytes, ("truncate", 1.0, b"x", 1, 0, False), tmp_path) == "ok"
+
+
+@settings(max_examples=150, **_FAST)
+@given(mutation=byte_mutations)
+def test_fuzz_torch_weights(torch_bytes, mutation, tmp_path_factory):
+    check_torch_bytes(torch_bytes, mutation, tmp_path_factory.getbasetemp())

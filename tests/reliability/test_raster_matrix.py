@@ -129,7 +129,7 @@ def _(fx, tmp):
     h[:, -3:] = -9999.0
     p = _like_b(fx, tmp / "a_9999.tif", h)
     return dict(args=["demdiff", p, fx.b, "--out", tmp / "O", "--tile-size", "64"], inputs=[p], out=tmp,
-                first="Declare the value: --nodata -9999")
+                first="geocd demdiff: --nodata -9999")
 
 
 @case("demdiff: --nodata inf")
