@@ -1,6 +1,7 @@
 """Long fuzzing runs of geocd's readers: every mutated input gives a result or a GeoCDError, nothing else.
 
-The same targets as tests/reliability/test_fuzz.py (CI runs a few hundred examples of each) and the RPC file
+The same targets as tests/reliability/test_fuzz.py and test_fuzz_models.py (CI runs a few hundred examples of
+each: manifests, DEM GeoTIFFs, RPC tags, self-consistency models, frame sidecars, PyTorch weights) and the RPC file
 mutations of tests/io/test_rpc_readers.py, here for thousands of examples each (hypothesis, generate phase only,
 no example database). Prints per target: examples run, outcomes (accepted / each GeoCDError class) and the
 exceptions outside GeoCDError (must be 0; the first few are shown).
@@ -59,7 +60,8 @@ def run_target(name: str, strategy, check, n: int) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--examples", type=int, default=10_000)
-    ap.add_argument("--targets", default="manifest_tree,manifest_text,dem_bytes,rpc_tags,rpc_files")
+    ap.add_argument("--targets", default="manifest_tree,manifest_text,dem_bytes,rpc_tags,rpc_files,model_tree,"
+                                         "model_bytes,frame_sidecar,torch_bytes")
     args = ap.parse_args()
     wanted = args.targets.split(",")
     tmp = Path(tempfile.mkdtemp(prefix="geocd_fuzz_"))
@@ -79,7 +81,23 @@ def main() -> int:
     img = write_image(tmp / "img.tif", np.ones((1, 16, 16), np.uint8))
     tags = F.rpc_tags_of(affine_rpc(0.5, (0.5, 0.05), 120, 120))
 
+    import json
+
+    from tests.camera.test_frame import make_cam
+    from tests.screen.test_torchfile import _tensor_pickle, _zip
+
+    from geocd.io.frame import write_frame_sidecar
+
+    model_doc = json.loads((REPO / "examples/kahramanmaras/marseille_urban_model.json").read_text())
+    (tmp / "mo").mkdir()
+    sidecar = json.loads(Path(write_frame_sidecar(tmp / "frame.json", make_cam())).read_text())
+    torch_bytes = _zip(tmp / "w.pth", _tensor_pickle(0, (2, 2), (2, 1))).read_bytes()
     targets = {
+        "model_tree": (F.tree_ops, lambda ops: F.check_model_tree(model_doc, ops, tmp / "mo")),
+        "model_bytes": (F.byte_mutations,
+                        lambda m: F.check_model_bytes(json.dumps(model_doc).encode(), m, tmp / "mo")),
+        "frame_sidecar": (F.tree_ops, lambda ops: F.check_frame_sidecar(sidecar, ops, tmp / "mo")),
+        "torch_bytes": (F.byte_mutations, lambda m: F.check_torch_bytes(torch_bytes, m, tmp / "mo")),
         "manifest_tree": (F.tree_ops, lambda ops: F.check_manifest_tree(doc, ops, scene.root)),
         "manifest_text": (F.byte_mutations, lambda m: F.check_manifest_text(F.dump_yaml(doc), m, mt)),
         "dem_bytes": (F.byte_mutations, lambda m: F.check_dem_bytes(dem_bytes, m, tmp / "dm")),

@@ -297,8 +297,9 @@ def _check_dem_values(ds, path, band: int, nodata: float | None) -> None:
         parts = [ds.read(band, masked=nodata is None, window=w) for w in windows]
     except RasterioError as exc:
         raise _read_failure(path, exc) from exc
-    h = np.concatenate([(np.ma.filled(a.astype(np.float64), np.nan) if np.ma.isMaskedArray(a)
-                         else a.astype(np.float64)) for a in parts])
+    with np.errstate(invalid="ignore"):  # a garbled file's masked values may not cast cleanly: they are masked
+        h = np.concatenate([(np.ma.filled(a.astype(np.float64), np.nan) if np.ma.isMaskedArray(a)
+                             else a.astype(np.float64)) for a in parts])
     if nodata is not None:  # compared as the file stores it (a float32 file holds float32(-3.4028235e38))
         h[h == (float(np.float32(nodata)) if ds.dtypes[band - 1] == "float32" else float(nodata))] = np.nan
     sample = "" if step == 1 else f" (checked on strips of whole rows, 1 row in {step})"
