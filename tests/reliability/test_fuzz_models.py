@@ -1,6 +1,7 @@
 """Fuzzing the readers of model and camera files (short runs; bench/fuzz_inputs.py runs them for thousands).
 
-Self-consistency models (structural mutations of a real one: wrong types, deleted and renamed keys at any depth,
+Volume (octree) models (edits of their arrays: pointers, levels, roots, densities), self-consistency models
+(structural mutations of a real one: wrong types, deleted and renamed keys at any depth,
 and byte mutations of its JSON), frame-camera sidecars (structural mutations), RPC files in four text formats and
 PyTorch weights files (byte mutations): every reader returns a result or raises a GeoCDError, nothing else, and what it accepts is
 usable — a model gives p-values in [0, 1], a camera projects a point of its scene to finite pixels.
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from .fuzz_targets import (byte_mutations, check_frame_sidecar, check_model_bytes, check_model_tree,
                            check_rpc_file, check_torch_bytes, tree_ops)
@@ -134,3 +136,52 @@ def test_the_unmutated_weights_file_reads(torch_bytes, tmp_path):
 @given(mutation=byte_mutations)
 def test_fuzz_torch_weights(torch_bytes, mutation, tmp_path_factory):
     check_torch_bytes(torch_bytes, mutation, tmp_path_factory.getbasetemp())
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# volume (octree) models: any edit of the arrays is refused on load, or the model is safe to trace rays through
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def volume_model(tmp_path_factory):
+    from geocd.volume import VolumeModel, save_model
+    from geocd.volume.refine import refine_model
+    from tests.volume import toyscene as T
+
+    m = VolumeModel.create(T.volume_geometry(finest_cell_m=1.0, max_depth=2), init_depth=1)
+    m.alpha[np.flatnonzero(m.child < 0)[:40]] = 50.0
+    refine_model(m)
+    return save_model(m, tmp_path_factory.mktemp("fuzz_vol") / "model")
+
+
+_ARRAY_EDITS = st.lists(st.tuples(st.sampled_from(["child", "level", "block_root", "alpha", "app"]),
+                                  st.integers(0, 10**6),
+                                  st.one_of(st.integers(-10**9, 10**9), st.sampled_from([-1, 0, 1, 7, 8, 10**8]),
+                                            st.floats(allow_nan=True, allow_infinity=True))),
+                        min_size=1, max_size=3)
+
+
+@settings(max_examples=60, **_FAST)
+@given(edits=_ARRAY_EDITS)
+def test_fuzz_volume_model_arrays(volume_model, edits, tmp_path_factory):
+    import shutil
+
+    from geocd.errors import GeoCDError
+    from geocd.volume import expected_height_map, load_model
+
+    d = Path(tmp_path_factory.mktemp("vm")) / "model"
+    shutil.copytree(volume_model, d)
+    for name, where, value in edits:
+        a = np.load(d / f"{name}.npy")
+        flat = a.reshape(-1).copy()
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):
+                flat[where % flat.size] = value
+        except (OverflowError, ValueError):  # a value the array's dtype cannot hold: not a file one can write
+            continue
+        np.save(d / f"{name}.npy", flat.reshape(a.shape))
+    try:
+        m = load_model(d)
+    except GeoCDError:
+        return
+    h, _ = expected_height_map(m)  # a model the loader accepts is safe to trace: no crash, no read out of bounds
+    assert h.shape
