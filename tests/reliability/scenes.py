@@ -171,3 +171,52 @@ def rpc_txt(path: Path, **override) -> Path:
 
 def env_without_pam() -> dict:
     return {**os.environ, "GDAL_PAM_ENABLED": "NO"}
+
+
+# ------------------------------------------------------------------------------------------------------------
+# the bad-input matrices: a registry of cases, and the checks every case shares
+# ------------------------------------------------------------------------------------------------------------
+class Cases(dict):
+    """``CASES = Cases()``; ``@CASES.case("name")`` registers ``fn(fx, tmp) -> dict`` with keys ``args`` (the
+    command line), ``first`` (text of the one error line), and optionally ``inputs`` (files that must stay
+    byte-identical), ``out`` (a folder that must get no new file), ``code`` (exit status, 2)."""
+
+    def case(self, name: str):
+        def reg(fn):
+            self[name] = fn
+            return fn
+        return reg
+
+
+def run_case(c: dict, root: Path, tmp_path: Path, around=None):
+    """Run one matrix case in-process and check what every case must hold: the exit status, one
+    ``geocd: error:`` line holding ``c["first"]``, no traceback, no ``.part`` file, every watched input unchanged
+    and nothing new in ``c["out"]``. ``around``: a context manager wrapped around the run (a watchdog).
+    Returns (click result, seconds)."""
+    import contextlib
+    import time
+
+    from click.testing import CliRunner
+
+    from geocd.cli import main
+
+    watched = [root, *c.get("inputs", [])]
+    before = sha256_tree(watched)
+    out = c.get("out")
+    existing = set(Path(out).rglob("*")) if out is not None and Path(out).exists() else set()
+    t = time.perf_counter()
+    with around if around is not None else contextlib.nullcontext():
+        r = CliRunner().invoke(main, ["--progress", "none", *map(str, c["args"])])
+    took = time.perf_counter() - t
+    assert r.exit_code == c.get("code", 2), f"exit {r.exit_code}:\n{r.output}"
+    errs = error_lines(r.stderr)
+    assert len(errs) == 1, r.stderr
+    assert c["first"] in errs[0], errs[0]
+    assert c.get("absent") is None or c["absent"] not in errs[0], errs[0]
+    assert "Traceback" not in r.output
+    assert not part_files(tmp_path) and not part_files(root)
+    assert sha256_tree(watched) == before, "an input changed"
+    if out is not None and Path(out).exists():
+        new = [p for p in Path(out).rglob("*") if p not in existing and p.is_file()]
+        assert not new, f"files written by a failed run: {new}"
+    return r, took

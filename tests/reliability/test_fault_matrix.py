@@ -15,13 +15,10 @@ from types import SimpleNamespace
 
 import pytest
 import yaml
-from click.testing import CliRunner
 
-from geocd.cli import main
 from tests.conftest import shared_data
 
-from .scenes import error_lines, make_scene, part_files, rpc_txt, sha256_tree, write_dem_pair, write_footprints, \
-    write_rgb
+from .scenes import Cases, make_scene, rpc_txt, run_case, write_dem_pair, write_footprints, write_rgb
 
 
 @pytest.fixture(scope="module")
@@ -33,14 +30,8 @@ def fx(tmp_path_factory):
                            scene=make_scene(root / "scene"))
 
 
-CASES: dict = {}
-
-
-def case(name):
-    def reg(fn):
-        CASES[name] = fn
-        return fn
-    return reg
+CASES = Cases()
+case = CASES.case
 
 
 def _aoi(fx, dx=0.0, size=None, posting=1.0):
@@ -326,23 +317,7 @@ def _(fx, tmp):
 
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_fault_matrix(name, fx, tmp_path):
-    c = CASES[name](fx, tmp_path)
-    watched = [fx.root, *c.get("inputs", [])]
-    before = sha256_tree(watched)
-    out = c.get("out")
-    existing = {p for p in Path(out).rglob("*")} if out is not None and Path(out).exists() else set()
-    r = CliRunner().invoke(main, ["--progress", "none", *map(str, c["args"])])
-    assert r.exit_code == c.get("code", 2), f"exit {r.exit_code}:\n{r.output}"
-    errs = error_lines(r.stderr)
-    assert len(errs) == 1, r.stderr
-    assert c["first"] in errs[0], errs[0]
-    assert c.get("absent") is None or c["absent"] not in errs[0], errs[0]
-    assert "Traceback" not in r.output
-    assert not part_files(tmp_path) and not part_files(fx.root)
-    assert sha256_tree(watched) == before, "an input changed"
-    if out is not None and Path(out).exists():
-        new = [p for p in Path(out).rglob("*") if p not in existing and p.is_file()]
-        assert not new, f"files written by a failed run: {new}"
+    run_case(CASES[name](fx, tmp_path), fx.root, tmp_path)
 
 
 def test_matrix_is_complete():

@@ -7,7 +7,6 @@ are paused inside a write by tests/reliability/pause_driver.py, then signalled o
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
 import subprocess

@@ -8,6 +8,7 @@ pipe if something did, and the test then fails instead of hanging).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import threading
@@ -21,7 +22,7 @@ from click.testing import CliRunner
 
 from geocd.cli import main
 
-from .scenes import error_lines, make_scene, part_files, sha256_tree, write_dem_pair, write_rgb
+from .scenes import Cases, error_lines, make_scene, run_case, write_dem_pair, write_rgb
 
 
 @pytest.fixture(scope="module")
@@ -100,14 +101,8 @@ def bad_two_bands(fx, tmp):
 BAD_DEMS = {f.__name__[4:]: f for f in (bad_sentinel, bad_int16_sentinel, bad_inf, bad_huge, bad_centimetres,
                                          bad_feet_unit, bad_rgb, bad_complex, bad_two_bands)}
 
-CASES: dict = {}
-
-
-def case(name):
-    def reg(fn):
-        CASES[name] = fn
-        return fn
-    return reg
+CASES = Cases()
+case = CASES.case
 
 
 def _register_bad_dem(key, maker):
@@ -221,30 +216,26 @@ def _unblock(fifos, fired):
         os.close(fd)
 
 
+@contextlib.contextmanager
+def _watchdog(fifos: list, fired: list):
+    """Give EOF, after 30 s, to whatever opened one of ``fifos`` for reading (the case fails instead of hanging)."""
+    dog = threading.Timer(30.0, _unblock, (fifos, fired))
+    dog.start()
+    try:
+        yield
+    finally:
+        dog.cancel()
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_raster_matrix(name, fx, tmp_path):
     c = CASES[name](fx, tmp_path)
-    watched = [fx.root, *c.get("inputs", [])]
-    before = sha256_tree(watched)
+    c.setdefault("out", tmp_path / "O")
     fired: list[str] = []
-    dog = threading.Timer(30.0, _unblock, (c.get("fifos", []), fired))
-    dog.start()
     try:
-        r = CliRunner().invoke(main, ["--progress", "none", *map(str, c["args"])])
+        run_case(c, fx.root, tmp_path, around=_watchdog(c.get("fifos", []), fired))
     finally:
-        dog.cancel()
-    assert not fired, f"a FIFO was opened for reading (the command would hang): {fired}"
-    assert r.exit_code == c.get("code", 2), f"exit {r.exit_code}:\n{r.output}"
-    errs = error_lines(r.stderr)
-    assert len(errs) == 1, r.stderr
-    assert c["first"] in errs[0], errs[0]
-    assert "Traceback" not in r.output
-    assert not part_files(tmp_path) and not part_files(fx.root)
-    assert sha256_tree(watched) == before, "an input changed"
-    out = c.get("out")
-    if out is not None:
-        made = [p for p in Path(tmp_path / "O").rglob("*") if p.is_file()] if (tmp_path / "O").exists() else []
-        assert not made, f"files written by a failed run: {made}"
+        assert not fired, f"a FIFO was opened for reading (the command would hang): {fired}"
 
 
 @pytest.mark.parametrize("key", sorted(BAD_DEMS))
