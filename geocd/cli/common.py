@@ -8,7 +8,7 @@ One :class:`Session` per command invocation (``session(ctx)``) decides where thi
   ``geocd run scene > products.txt`` keeps the product list.
 * **stderr** — progress, notes (``geocd: note: ...``), warnings (``geocd: warning: ...``) and errors.
   ``--progress auto`` (default) draws a bar on a terminal and writes plain progress lines when stderr is
-  a file or a pipe; ``bar``, ``lines``, ``json`` (the QGIS plugin's JSON-lines protocol, see
+  a file, a pipe or a terminal of unknown or zero size (``stty cols 0``, ``COLUMNS=0``); ``bar``, ``lines``, ``json`` (the QGIS plugin's JSON-lines protocol, see
   :mod:`geocd.progress`) and ``none`` force one. A bar is closed before anything else is printed.
 * **the log file** ``geocd_<command>.log`` in the command's output folder (appended, one header per run, as
   ASP and CARS keep theirs): the command line and parameters, progress, notes, warnings, the summary,
@@ -299,7 +299,9 @@ class Session:
         root.ensure_object(dict)
         mode = progress or root.obj.get("progress_mode") or "auto"
         if mode == "auto":
-            mode = "bar" if _isatty(sys.stderr) else "lines"
+            mode = "bar" if _isatty(sys.stderr) and _bar_fits(sys.stderr) else "lines"
+        elif mode == "bar" and _isatty(sys.stderr) and not _bar_fits(sys.stderr):
+            mode = "lines"  # tqdm draws nothing on a terminal of unknown or zero size
         sess = cls(ctx, mode, as_json)
         root.obj["session"] = sess
         root.obj["progress_mode"] = mode
@@ -560,6 +562,31 @@ def _isatty(stream) -> bool:
         return bool(stream.isatty())
     except (AttributeError, ValueError):
         return False
+
+
+#: smallest terminal a progress bar is drawn on (columns, lines); smaller or unknown gets plain lines
+MIN_BAR_SIZE = (20, 3)
+
+
+def _bar_fits(stream) -> bool:
+    """True when the terminal of ``stream`` reports a size a tqdm bar can be drawn in.
+
+    A terminal that reports 0 columns (``stty cols 0``, a pty of size 0x0) or whose size cannot be read, and
+    ``COLUMNS=0`` in the environment, get plain progress lines: tqdm would hide its bar there and the run would
+    print nothing.
+    """
+    env = os.environ.get("COLUMNS", "").strip()
+    if env:
+        try:
+            if int(env) < MIN_BAR_SIZE[0]:
+                return False
+        except ValueError:
+            pass
+    try:
+        size = os.get_terminal_size(stream.fileno())
+    except (AttributeError, ValueError, OSError):
+        return False
+    return size.columns >= MIN_BAR_SIZE[0] and size.lines >= MIN_BAR_SIZE[1]
 
 
 class SessionProgress:
