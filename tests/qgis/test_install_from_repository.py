@@ -48,7 +48,8 @@ def test_install_from_repository_then_run_three_algorithms(tmp_path):
     assert r.returncode == 0, r.stderr
     xml = repo / "plugins.xml"
     doc = xml.read_text(encoding="utf-8")
-    assert "<pyqgis_plugin" in doc and "geocd_qgis.0.1.0.zip" in doc and (repo / "geocd_qgis-0.1.0.zip").as_uri() in doc
+    assert "<pyqgis_plugin" in doc and "<file_name>geocd_qgis.0.1.0.zip</file_name>" in doc \
+        and (repo / "geocd_qgis.0.1.0.zip").as_uri() in doc
     # 2. headless install with QGIS's installer into a fresh profile (one command)
     profile = tmp_path / "profile"
     r = _cli("plugin-install", str(xml), "--profile", str(profile), "--json")
