@@ -114,5 +114,6 @@ def test_readme_and_docs_count_the_provider_algorithms():
     m = re.search(r"Processing toolbox with (\d+) algorithms", readme)
     assert m and int(m.group(1)) == n, f"README says {m.group(1) if m else '?'} algorithms, the provider has {n}"
     docs = (REPO / "docs" / "qgis.md").read_text(encoding="utf-8")
-    rows = set(re.findall(r"^\| `geocd:(\w+)` \|", docs, re.M))
-    assert rows == {a.name for a in specs.active()}, rows ^ {a.name for a in specs.active()}
+    rows = re.findall(r"^\| `geocd:(\w+)` \|", docs, re.M)
+    assert len(rows) == len(set(rows)), sorted(r for r in set(rows) if rows.count(r) > 1)  # each listed once
+    assert set(rows) == {a.name for a in specs.active()}, set(rows) ^ {a.name for a in specs.active()}
