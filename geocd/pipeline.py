@@ -17,6 +17,9 @@ import dataclasses
 import datetime as _dt
 import json
 import os
+import time
+import traceback
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -26,8 +29,9 @@ import numpy as np
 from .change.buildings import BuildingParams
 from .consistency import (ChangeParams, ConsistencyParams, DEMAsEpoch, SelfConsistencyModel, change_test,
                           learn_self_consistency, nanmedian_stack)
-from .errors import ConfigError, ProcessingError
+from .errors import ConfigError, GeoCDError, ProcessingError
 from .progress import Progress, ensure_progress, sub_progress
+from .runlog import LoggedProgress, RunLog, log_file_name, logger
 
 
 #: what ``geocd run`` writes into its output folder (globs, relative to it): see geocd.io.outputs.open_outputs
@@ -273,19 +277,84 @@ def orientation_summary(report: dict) -> dict:
 
 
 def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig = RunConfig(),
-        progress: Progress | None = None, footprints: os.PathLike | str | None = None) -> dict[str, Any]:
+        progress: Progress | None = None, footprints: os.PathLike | str | None = None,
+        log_file: bool = True) -> dict[str, Any]:
     """Run the whole self-consistency change detection on a manifest.
+
+    Progress goes to ``progress`` and to the standard :mod:`logging` module: INFO lines on the logger
+    ``"geocd"`` for each stage and each 5 % (``logging.basicConfig(level=logging.INFO)`` shows them).
+
+    Parameters
+    ----------
+    manifest : Manifest or path
+        The scene: a manifest, its file, or a folder holding one.
+    out_dir : path, optional
+        Output folder [the manifest's output folder].
+    config : RunConfig
+        Parameters of every step.
+    progress : callable, optional
+        ``progress(fraction, message)``; it may raise :class:`~geocd.errors.CancelledError` to stop the run.
+    footprints : path, optional
+        Building footprints (a vector file) for the per-building damage layer.
+    log_file : bool
+        Write the run's log, ``geocd_run.log``, into ``out_dir`` (the one ``geocd run`` writes: parameters,
+        progress, warnings, products, the error if it fails). The CLI writes its own and passes False.
 
     Returns
     -------
     dict: outputs ({name: path}), summary (dict written to run_summary.json).
     """
     from .io.manifest import Manifest, load_manifest
-    from .stereo.pipeline import run_stereo
 
-    prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     out = Path(out_dir) if out_dir is not None else m.output_dir()
+    runlog = None
+    if log_file:
+        runlog = RunLog("run", {"manifest": str(getattr(m, "path", None) or manifest), "out_dir": str(out),
+                                "footprints": footprints, "config": config.to_dict()})
+        try:
+            runlog.open(out)
+        except OSError as exc:
+            warnings.warn(f"cannot write the log file {out / log_file_name('run')} ({exc.strerror or exc})",
+                          UserWarning, stacklevel=2)
+            runlog = None
+    t0 = time.monotonic()
+    prog = LoggedProgress("run", progress, runlog)
+    old_show = warnings.showwarning
+
+    def _show(message, category, filename, lineno, file=None, line=None):
+        if runlog is not None:
+            runlog.line(f"WARNING {category.__name__}: {message}")
+        old_show(message, category, filename, lineno, file, line)
+
+    if runlog is not None:
+        warnings.showwarning = _show
+    try:
+        res = _run(m, out, config, prog, footprints)
+        logger.info("run done in %.1f s; products in %s", time.monotonic() - t0, out)
+        if runlog is not None:
+            for k, v in res["outputs"].items():
+                runlog.line(f"OUTPUT {k}: {v}")
+            runlog.line(f"done in {time.monotonic() - t0:.1f} s")
+    except BaseException as exc:
+        logger.info("run failed after %.1f s: %s: %s", time.monotonic() - t0, type(exc).__name__, exc)
+        if runlog is not None:
+            runlog.line(f"ERROR {type(exc).__name__}: {exc}")
+            if not isinstance(exc, (GeoCDError, KeyboardInterrupt)):
+                runlog.lines("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+            runlog.line(f"failed after {time.monotonic() - t0:.1f} s")
+        raise
+    finally:
+        if warnings.showwarning is _show:
+            warnings.showwarning = old_show
+        if runlog is not None:
+            runlog.close()
+    return res
+
+
+def _run(m, out: Path, config: RunConfig, prog: Progress, footprints) -> dict[str, Any]:
+    from .stereo.pipeline import run_stereo
+
     out.mkdir(parents=True, exist_ok=True)
     ea, eb = pick_epochs(m, config.epoch_a, config.epoch_b)
     model = SelfConsistencyModel.load(config.model_path) if config.model_path else None

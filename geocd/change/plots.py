@@ -160,9 +160,26 @@ def plot_volume_series(series: Sequence[dict[str, Any]], path: os.PathLike | str
     return _save(fig, path)
 
 
-def plot_scatter_curves(model, path: os.PathLike | str, title: str = "Self-consistency distribution") -> Path:
-    """The score × |Δ̃| 2-D histogram with the significance curves (as the SRI paper's figures)."""
+#: colours of the significance curves, by confidence (percent, as the model's curve keys write it)
+CURVE_COLOURS = {"68.27": "#2c7bb6", "90": "#1a9641", "95": "#fdae61", "99": "#d7191c"}
+#: colours for curves of other levels, taken in turn (none is in CURVE_COLOURS)
+SPARE_CURVE_COLOURS = ("#7b3294", "#e66101", "#01665e", "#c51b7d", "#8c510a", "#4d4d4d")
+
+
+def curve_colours(keys: Sequence[str]) -> dict[str, str]:
+    """A distinct colour for each significance curve (``"68.27"``, ``"90"``...), the usual levels fixed."""
+    out = {k: CURVE_COLOURS[k] for k in keys if k in CURVE_COLOURS}
+    spare = iter(c for c in SPARE_CURVE_COLOURS if c not in out.values())
+    for k in sorted(keys, key=float):
+        if k not in out:
+            out[k] = next(spare, None) or f"C{len(out) % 10}"
+    return out
+
+
+def scatter_curves_figure(model, title: str = "Self-consistency distribution"):
+    """The figure of :func:`plot_scatter_curves` (matplotlib Figure, one Axes then its colour bar)."""
     from matplotlib.colors import LogNorm
+    from matplotlib.lines import Line2D
 
     from ..consistency import DTILDE_EDGES
 
@@ -176,18 +193,29 @@ def plot_scatter_curves(model, path: os.PathLike | str, title: str = "Self-consi
     h = h / np.maximum(h.sum(axis=1, keepdims=True), 1)
     m = ax.pcolormesh(e, d, np.ma.masked_equal(h.T, 0), norm=LogNorm(vmin=1e-4, vmax=h.max()), cmap="Greys", shading="flat")
     fig.colorbar(m, ax=ax, label="fraction of match pairs in score bin")
-    colours = {"90": "#1a9641", "95": "#fdae61", "99": "#d7191c"}
+    colours = curve_colours(list(model.curves))
     x = model.score_centres
+    handles = []
     for k in sorted(model.curves, key=float):
-        c = colours.get(k, None)
-        ax.plot(x, model.curves[k], "-", color=c, lw=2, label=f"{k}% curve")
-        if k in model.raw_curves:
-            ax.plot(x, model.raw_curves[k], ".", color=c, ms=4)
+        c = colours[k]
+        ax.plot(x, model.curves[k], "-", color=c, lw=2, gid=f"curve {k}")
+        raw = k in model.raw_curves
+        if raw:
+            ax.plot(x, model.raw_curves[k], "o", color=c, ms=3.5, mec="white", mew=0.4, gid=f"bins {k}")
+        # the legend shows the curve as drawn: its smoothed line, its per-bin values as dots of its colour
+        handles.append(Line2D([], [], color=c, lw=2, marker="o" if raw else None, ms=3.5, mec="white", mew=0.4,
+                              label=f"{k}% curve"))
     ax.set_yscale("log")
     ax.set_ylim(1e-2, max(10.0, np.nanmax([np.nanmax(v) for v in model.curves.values()]) * 2))
     ax.set_xlabel("max MDL score of the two matches (bits/pixel, lower = better)")
     ax.set_ylabel("|Δ̃| (pixels of disparity)")
     n = int(model.bin_counts.sum())
     ax.set_title(f"{title} ({n:,} match pairs)")
-    ax.legend(loc="upper left")
-    return _save(fig, path)
+    ax.legend(handles=handles, loc="upper left")
+    return fig
+
+
+def plot_scatter_curves(model, path: os.PathLike | str, title: str = "Self-consistency distribution") -> Path:
+    """The score × |Δ̃| 2-D histogram with the significance curves (as the SRI paper's figures): one colour per
+    confidence level, its smoothed curve a line, its per-bin values dots of the same colour."""
+    return _save(scatter_curves_figure(model, title), path)

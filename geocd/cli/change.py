@@ -115,7 +115,7 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
     cfg = dataclasses.replace(cfg, **changes)
     progress = make_progress(ctx, "run")
     try:
-        res = run_pipeline(m, out_dir=out, config=cfg, progress=progress, footprints=footprints)
+        res = run_pipeline(m, out_dir=out, config=cfg, progress=progress, footprints=footprints, log_file=False)
     finally:
         progress.close()
     s = res["summary"]

@@ -8,7 +8,7 @@ One :class:`Session` per command invocation (``session(ctx)``) decides where thi
   ``geocd run scene > products.txt`` keeps the product list.
 * **stderr** — progress, notes (``geocd: note: ...``), warnings (``geocd: warning: ...``) and errors.
   ``--progress auto`` (default) draws a bar on a terminal and writes plain progress lines when stderr is
-  a file or a pipe; ``bar``, ``lines``, ``json`` (the QGIS plugin's JSON-lines protocol, see
+  a file, a pipe or a terminal of unknown or zero size (``stty cols 0``, ``COLUMNS=0``); ``bar``, ``lines``, ``json`` (the QGIS plugin's JSON-lines protocol, see
   :mod:`geocd.progress`) and ``none`` force one. A bar is closed before anything else is printed.
 * **the log file** ``geocd_<command>.log`` in the command's output folder (appended, one header per run, as
   ASP and CARS keep theirs): the command line and parameters, progress, notes, warnings, the summary,
@@ -28,7 +28,6 @@ callback that rejects the 0–1 convention with a hint.
 
 from __future__ import annotations
 
-import datetime as _dt
 import functools
 import json
 import os
@@ -43,10 +42,10 @@ import click
 
 from ..errors import ConfigError, GeoCDError, InputFileNotFoundError, OutputError
 from ..io.atomic import refuse_special_file
+from ..runlog import RunLog, log_file_name
 from .options import harden_options
 
 PROGRESS_MODES = ("auto", "bar", "lines", "json", "none")
-LOG_PREFIX = "geocd_"
 #: lowest confidence (percent) an option accepts: below it a "change" is as likely noise as not
 MIN_CONFIDENCE_PCT = 50.0
 
@@ -251,10 +250,6 @@ def check_confidence(ctx: click.Context, param: click.Parameter, value):
 # the session
 # ---------------------------------------------------------------------------------------------------------------
 
-def _now() -> str:
-    return _dt.datetime.now().strftime("%Y-%m-%d %H:%M:%S")
-
-
 class Session:
     """Streams, progress and log file of one command invocation (see the module docstring)."""
 
@@ -269,11 +264,8 @@ class Session:
         self.summary_lines: list[str] = []
         self.summary: dict[str, Any] = {}
         self.outputs: dict[str, str] = {}
-        self.log_path: Optional[Path] = None
-        self._log_new = False
-        self._log_offset = 0
-        self._log_buffer: list[str] = []
-        self._log = None
+        params = {k: v for k, v in ctx.params.items() if not k.startswith("_geocd_")}
+        self._runlog = RunLog(self.command, params)
         self._bars: list = []
         self._finished = False
         #: the command printed its own result on stdout (e.g. ``info``): finish() adds nothing there
@@ -281,17 +273,11 @@ class Session:
         #: write a log file (commands whose output folder is published, e.g. plugin-zip, turn it off)
         self.log_enabled = True
         self._old_showwarning = None
-        self._log_line(f"==== geocd {self._version()} {self.command} — {_now()}")
-        self._log_line(f"argv: {' '.join(sys.argv)}")
-        self._log_line(f"cwd: {Path.cwd()}")
-        params = {k: v for k, v in ctx.params.items() if not k.startswith("_geocd_")}
-        self._log_line(f"parameters: {json.dumps(params, default=str)}")
 
-    @staticmethod
-    def _version() -> str:
-        from .. import __version__
-
-        return __version__
+    @property
+    def log_path(self) -> Optional[Path]:
+        """The log file, once opened (None before, or when it could not be written)."""
+        return self._runlog.path
 
     @classmethod
     def start(cls, ctx: click.Context, progress: Optional[str], as_json: bool) -> "Session":
@@ -299,7 +285,9 @@ class Session:
         root.ensure_object(dict)
         mode = progress or root.obj.get("progress_mode") or "auto"
         if mode == "auto":
-            mode = "bar" if _isatty(sys.stderr) else "lines"
+            mode = "bar" if _isatty(sys.stderr) and _bar_fits(sys.stderr) else "lines"
+        elif mode == "bar" and _isatty(sys.stderr) and not _bar_fits(sys.stderr):
+            mode = "lines"  # tqdm draws nothing on a terminal of unknown or zero size
         sess = cls(ctx, mode, as_json)
         root.obj["session"] = sess
         root.obj["progress_mode"] = mode
@@ -312,40 +300,21 @@ class Session:
 
         Returns the log path, or None (with a warning on stderr) when the folder cannot be written.
         """
-        if self._log is not None or not self.log_enabled:
+        if self._runlog.is_open or not self.log_enabled:
             return self.log_path
-        name = LOG_PREFIX + self.command.replace(" ", "_").replace("-", "_") + ".log"
-        path = Path(folder) / name
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self._log_new = not path.exists()
-            fh = open(path, "a", encoding="utf-8", buffering=1)
-            self._log_offset = fh.tell()
+            return self._runlog.open(folder)
         except OSError as exc:
+            path = Path(folder) / log_file_name(self.command)
             self._stderr(f"geocd: warning: cannot write the log file {path} ({exc.strerror or exc})")
             return None
-        if fh.tell() > 0:
-            fh.write("\n")
-        fh.writelines(line + "\n" for line in self._log_buffer)
-        self._log_buffer = []
-        self._log = fh
-        self.log_path = path
-        return path
 
     def _log_line(self, text: str) -> None:
-        line = f"{_dt.datetime.now().strftime('%H:%M:%S')} {text}"
-        if self._log is not None:
-            try:
-                self._log.write(line + "\n")
-            except (OSError, ValueError):
-                pass
-        else:
-            self._log_buffer.append(line)
+        self._runlog.line(text)
 
     def log(self, text: str) -> None:
         """A line for the log file only."""
-        for part in str(text).splitlines() or [""]:
-            self._log_line(part)
+        self._runlog.lines(text)
 
     # ---- stderr ------------------------------------------------------------------------------------------------
     def _stderr(self, text: str) -> None:
@@ -431,7 +400,7 @@ class Session:
         self._bars = []
 
     def _ensure_log_for_outputs(self) -> None:
-        if self._log is not None or not self.outputs:
+        if self._runlog.is_open or not self.outputs:
             return
         folders = []
         for v in self.outputs.values():
@@ -516,25 +485,11 @@ class Session:
         return not mine or any(s.written for s in mine)
 
     def _forget_log(self) -> None:
-        path = self.log_path
-        try:
-            if self._log_new:
-                path.unlink()
-            else:
-                with open(path, "r+b") as fh:
-                    fh.truncate(self._log_offset)
-        except OSError:
-            pass
-        self.log_path = None
+        self._runlog.forget()
 
     def _close(self) -> None:
         self._restore_warning_hook()
-        if self._log is not None:
-            try:
-                self._log.close()
-            except OSError:
-                pass
-            self._log = None
+        self._runlog.close()
         root = self.ctx.find_root()
         if root.obj and root.obj.get("session") is self:
             root.obj["session"] = None
@@ -560,6 +515,31 @@ def _isatty(stream) -> bool:
         return bool(stream.isatty())
     except (AttributeError, ValueError):
         return False
+
+
+#: smallest terminal a progress bar is drawn on (columns, lines); smaller or unknown gets plain lines
+MIN_BAR_SIZE = (20, 3)
+
+
+def _bar_fits(stream) -> bool:
+    """True when the terminal of ``stream`` reports a size a tqdm bar can be drawn in.
+
+    A terminal that reports 0 columns (``stty cols 0``, a pty of size 0x0) or whose size cannot be read, and
+    ``COLUMNS=0`` in the environment, get plain progress lines: tqdm would hide its bar there and the run would
+    print nothing.
+    """
+    env = os.environ.get("COLUMNS", "").strip()
+    if env:
+        try:
+            if int(env) < MIN_BAR_SIZE[0]:
+                return False
+        except ValueError:
+            pass
+    try:
+        size = os.get_terminal_size(stream.fileno())
+    except (AttributeError, ValueError, OSError):
+        return False
+    return size.columns >= MIN_BAR_SIZE[0] and size.lines >= MIN_BAR_SIZE[1]
 
 
 class SessionProgress:

@@ -1,6 +1,6 @@
 """``geocd plugin-zip`` and ``geocd plugin-install``: the QGIS plugin as a zip, a plugin repository, a headless install.
 
-``geocd plugin-zip`` writes ``dist/geocd_qgis-VERSION.zip`` and, beside it, ``plugins.xml``: a QGIS plugin
+``geocd plugin-zip`` writes ``dist/geocd_qgis.VERSION.zip`` (QGIS's own naming) and, beside it, ``plugins.xml``: a QGIS plugin
 repository file, so Plugins ▸ Manage and Install Plugins ▸ Settings ▸ Add… (URL ``file:///…/dist/plugins.xml``,
 or ``http://host/…/plugins.xml`` when the folder is served) lists and installs geocd like any plugin.
 ``geocd plugin-install`` does that headless in one command, with QGIS's own installer code
@@ -59,12 +59,29 @@ def _geocd_executable() -> str | None:
     return None
 
 
+def zip_name(version: str) -> str:
+    """``geocd_qgis.VERSION.zip``: QGIS's naming of a plugin zip, the name plugins.xml gives it.
+
+    QGIS's installer takes the plugin's id from the ``file_name`` of plugins.xml, up to its first dot, and installs
+    the zip's top folder under that id: ``geocd_qgis-0.1.0.zip`` would make it ``geocd_qgis-0``.
+    """
+    return f"{PLUGIN_NAME}.{version}.zip"
+
+
+def repository_file_name(zip_path: Path, version: str) -> str:
+    """The ``file_name`` plugins.xml gives the zip: its own name when QGIS reads the plugin's id from it (the
+    default ``geocd_qgis.VERSION.zip``, or ``geocd_qgis.zip``), else :func:`zip_name` (``--out p.zip``: the
+    download URL still names p.zip)."""
+    name = Path(zip_path).name
+    return name if name.partition(".")[0] == PLUGIN_NAME else zip_name(version)
+
+
 def zip_path(out: str | Path | None, version: str) -> Path:
     """Where ``geocd plugin-zip --out OUT`` writes the zip (OUT: a .zip file, or a folder; default dist/)."""
-    out_path = Path(out) if out else Path("dist") / f"{PLUGIN_NAME}-{version}.zip"
+    out_path = Path(out) if out else Path("dist") / zip_name(version)
     if out_path.suffix.lower() != ".zip":
         is_dir = out_path.is_dir() or str(out).endswith(("/", os.sep)) or not out_path.suffix
-        out_path = out_path / f"{PLUGIN_NAME}-{version}.zip" if is_dir else out_path.with_suffix(".zip")
+        out_path = out_path / zip_name(version) if is_dir else out_path.with_suffix(".zip")
     return out_path
 
 
@@ -109,8 +126,8 @@ REPOSITORY_FILE = "plugins.xml"
 def repository_xml(zip_path: Path, meta: dict[str, str], download_url: str) -> str:
     """A QGIS plugin repository document (``<plugins><pyqgis_plugin …>``) offering the plugin in ``zip_path``.
 
-    ``file_name`` follows QGIS's convention ``<plugin folder>.<version>.zip``: QGIS takes the plugin's id
-    from the part before the first dot, and it must be the zip's top folder.
+    ``file_name`` is the zip's own name (:func:`repository_file_name`): QGIS takes the plugin's id from the part
+    before its first dot, and it must be the zip's top folder.
     """
     version = meta["version"]
     today = _dt.date.today().isoformat()
@@ -118,7 +135,7 @@ def repository_xml(zip_path: Path, meta: dict[str, str], download_url: str) -> s
         "description": meta.get("description", ""), "about": meta.get("about", ""), "version": version,
         "qgis_minimum_version": meta.get("qgisMinimumVersion", "3.22"),
         "qgis_maximum_version": meta.get("qgisMaximumVersion", "3.99"),
-        "homepage": meta.get("homepage", ""), "file_name": f"{PLUGIN_NAME}.{version}.zip",
+        "homepage": meta.get("homepage", ""), "file_name": repository_file_name(zip_path, version),
         "icon": "", "author_name": meta.get("author", ""), "download_url": download_url,
         "uploaded_by": meta.get("author", ""), "create_date": today, "update_date": today,
         "experimental": meta.get("experimental", "False"), "deprecated": meta.get("deprecated", "False"),
@@ -158,7 +175,7 @@ def _is_plugin_repository(p: Path) -> bool:
 
 @click.command("plugin-zip")
 @click.option("--out", "out", type=click.Path(path_type=str), default=None,
-              help="Zip file or folder to write (default: dist/geocd_qgis-VERSION.zip).")
+              help="Zip file or folder to write (default: dist/geocd_qgis.VERSION.zip).")
 @click.option("--url", default=None,
               help="URL the zip's folder will be served from (e.g. https://example.org/qgis/): the download URL in "
                    "plugins.xml (default: the zip's file:// URL, for a repository on this machine or a shared disk).")

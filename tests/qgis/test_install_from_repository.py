@@ -48,7 +48,8 @@ def test_install_from_repository_then_run_three_algorithms(tmp_path):
     assert r.returncode == 0, r.stderr
     xml = repo / "plugins.xml"
     doc = xml.read_text(encoding="utf-8")
-    assert "<pyqgis_plugin" in doc and "geocd_qgis.0.1.0.zip" in doc and (repo / "geocd_qgis-0.1.0.zip").as_uri() in doc
+    assert "<pyqgis_plugin" in doc and "<file_name>geocd_qgis.0.1.0.zip</file_name>" in doc \
+        and (repo / "geocd_qgis.0.1.0.zip").as_uri() in doc
     # 2. headless install with QGIS's installer into a fresh profile (one command)
     profile = tmp_path / "profile"
     r = _cli("plugin-install", str(xml), "--profile", str(profile), "--json")
@@ -113,5 +114,6 @@ def test_readme_and_docs_count_the_provider_algorithms():
     m = re.search(r"Processing toolbox with (\d+) algorithms", readme)
     assert m and int(m.group(1)) == n, f"README says {m.group(1) if m else '?'} algorithms, the provider has {n}"
     docs = (REPO / "docs" / "qgis.md").read_text(encoding="utf-8")
-    rows = set(re.findall(r"^\| `geocd:(\w+)` \|", docs, re.M))
-    assert rows == {a.name for a in specs.active()}, rows ^ {a.name for a in specs.active()}
+    rows = re.findall(r"^\| `geocd:(\w+)` \|", docs, re.M)
+    assert len(rows) == len(set(rows)), sorted(r for r in set(rows) if rows.count(r) > 1)  # each listed once
+    assert set(rows) == {a.name for a in specs.active()}, set(rows) ^ {a.name for a in specs.active()}

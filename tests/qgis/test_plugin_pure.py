@@ -256,3 +256,30 @@ def test_plugin_zip(tmp_path):
     r = CliRunner().invoke(main, ["plugin-zip", "--out", str(tmp_path / "b.zip"), "--no-environment-hint"])
     with zipfile.ZipFile(tmp_path / "b.zip") as zf:
         assert "geocd_qgis/environment.json" not in zf.namelist()
+
+
+def test_plugins_xml_names_the_zip_it_offers(tmp_path):
+    """plugins.xml's file_name is the zip's own name, and QGIS reads the plugin's id (geocd_qgis) from it."""
+    import xml.etree.ElementTree as ET
+
+    from click.testing import CliRunner
+
+    from geocd import __version__
+    from geocd.cli import main
+
+    repo = tmp_path / "dist"
+    r = CliRunner().invoke(main, ["plugin-zip", "--out", f"{repo}/", "--no-environment-hint"])
+    assert r.exit_code == 0, r.output
+    zips = sorted(p.name for p in repo.glob("*.zip"))
+    assert zips == [f"geocd_qgis.{__version__}.zip"]
+    plugin = ET.parse(repo / "plugins.xml").getroot().find("pyqgis_plugin")
+    file_name = plugin.findtext("file_name")
+    assert file_name == zips[0]
+    assert plugin.findtext("download_url").endswith("/" + zips[0])
+    assert file_name.partition(".")[0] == plugin.get("plugin_id") == "geocd_qgis"  # QGIS's installer reads the id so
+    # a zip the user named: download URL names it; file_name keeps an id QGIS installs under
+    r = CliRunner().invoke(main, ["plugin-zip", "--out", str(tmp_path / "p.zip"), "--no-environment-hint"])
+    assert r.exit_code == 0, r.output
+    plugin = ET.parse(tmp_path / "plugins.xml").getroot().find("pyqgis_plugin")
+    assert plugin.findtext("download_url").endswith("/p.zip")
+    assert plugin.findtext("file_name").partition(".")[0] == "geocd_qgis"
