@@ -229,9 +229,9 @@ def check_model_bytes(data: bytes, mutation, folder: Path) -> str:
 def _use_camera(read, path: Path) -> None:
     cam = read(path)
     lon, lat, h = getattr(cam, "lon_off", None), getattr(cam, "lat_off", None), getattr(cam, "height_off", None)
-    if lon is None:  # a frame camera: the ground point below its centre
-        x, y, z = cam.position
-        c, r = cam.project_world(x + 1.0, y + 1.0, z - 100.0)
+    if lon is None:  # a frame camera: a point 100 m ahead on its optical axis (wherever the camera looks)
+        x, y, z = np.asarray(cam.position, float) + cam.rotation @ np.array([0.0, 0.0, 100.0])
+        c, r = cam.project_world(x, y, z)
     else:
         c, r = cam.project(lon, lat, h)
     assert np.all(np.isfinite(c)) and np.all(np.isfinite(r)), (c, r)
