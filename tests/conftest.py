@@ -39,18 +39,23 @@ def sample_aoi() -> Path:
     return p
 
 
+def _session_env(name: str, value: str):
+    """Set the environment variable ``name`` for the test session, then put back what it was."""
+    old = os.environ.get(name)
+    os.environ[name] = value
+    yield
+    if old is None:
+        os.environ.pop(name, None)
+    else:
+        os.environ[name] = old
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _trusted_models_list(tmp_path_factory):
     """Land-cover models trained by the tests are trusted in a list of the test run, not the user's cache."""
     from geocd.landcover.trust import TRUST_ENV
 
-    old = os.environ.get(TRUST_ENV)
-    os.environ[TRUST_ENV] = str(tmp_path_factory.mktemp("trust") / "trusted_models")
-    yield
-    if old is None:
-        os.environ.pop(TRUST_ENV, None)
-    else:
-        os.environ[TRUST_ENV] = old
+    yield from _session_env(TRUST_ENV, str(tmp_path_factory.mktemp("trust") / "trusted_models"))
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -58,10 +63,4 @@ def _work_key_file(tmp_path_factory):
     """Tiled runs of the tests sign their journal with a key of the test run, not the user's cache."""
     from geocd.tiling.store import WORK_KEY_ENV
 
-    old = os.environ.get(WORK_KEY_ENV)
-    os.environ[WORK_KEY_ENV] = str(tmp_path_factory.mktemp("workkey") / "work_key")
-    yield
-    if old is None:
-        os.environ.pop(WORK_KEY_ENV, None)
-    else:
-        os.environ[WORK_KEY_ENV] = old
+    yield from _session_env(WORK_KEY_ENV, str(tmp_path_factory.mktemp("workkey") / "work_key"))
