@@ -353,30 +353,71 @@ def dproj_dh_ref(lon, lat, h, coefs, norm, eps_m: float = 1e-3):
     return (s1 - s0) / (2 * eps_m), (l1 - l0) / (2 * eps_m)
 
 
-def localize_ref(samp, line, h, coefs, norm, tol_px: float = 1e-9, max_iter: int = 50):
-    """Plain Newton on :func:`project_ref` with a central-difference Jacobian, from the box centre.
+def localize_ref(samp, line, h, coefs, norm, tol_px: float = 1e-9, max_iter: int = 50, init=None):
+    """Damped Newton on :func:`project_ref` with a central-difference Jacobian.
 
-    RPC pixel convention (like the kernels). Samples not converged after ``max_iter``
-    iterations are NaN. Slow and simple: the reference for :func:`rpc_localize` on tame RPCs.
+    The start is the affine inverse of ``init[0:8]`` (see :func:`rpc_localize`) when given, as the
+    kernels' fallback start is, else the centre of the validity box (which may lie far outside the
+    image of an RPC whose crop moved its sample offset). A step that does not reduce the image
+    residual is halved, up to 40 times. RPC pixel convention (like the kernels). Samples not
+    converged after ``max_iter`` iterations are NaN. Slow and simple: the numpy reference for
+    :func:`rpc_localize`, and the localizer of summaries that should not compile kernels.
     """
     samp, line, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (samp, line, h)))
-    lon = np.full(samp.shape, float(norm[3]))
-    lat = np.full(samp.shape, float(norm[2]))
+    if init is None:
+        lon = np.full(samp.shape, float(norm[3]))
+        lat = np.full(samp.shape, float(norm[2]))
+    else:
+        st = (samp - norm[1]) / norm[6]
+        lt = (line - norm[0]) / norm[5]
+        H = (h - norm[4]) / norm[9]
+        u = st - init[4] - init[6] * H
+        v = lt - init[5] - init[7] * H
+        lon = (init[0] * u + init[1] * v) * norm[8] + norm[3]
+        lat = (init[2] * u + init[3] * v) * norm[7] + norm[2]
     e_lon, e_lat = 1e-6 * abs(norm[8]), 1e-6 * abs(norm[7])
-    done = np.zeros(samp.shape, bool)
+
+    def residual(lo, la):
+        with np.errstate(all="ignore"):
+            s, l = project_ref(lo, la, h, coefs, norm)
+        return s - samp, l - line
+
+    rs, rl = residual(lon, lat)
+    r2 = rs * rs + rl * rl
+    done = r2 <= tol_px * tol_px
     for _ in range(max_iter):
-        s, l = project_ref(lon, lat, h, coefs, norm)
-        rs, rl = s - samp, l - line
-        done = np.hypot(rs, rl) <= tol_px
         if done.all():
             break
-        sp, lp = project_ref(lon + e_lon, lat, h, coefs, norm)
-        sm, lm = project_ref(lon - e_lon, lat, h, coefs, norm)
-        a, c = (sp - sm) / (2 * e_lon), (lp - lm) / (2 * e_lon)
-        sp, lp = project_ref(lon, lat + e_lat, h, coefs, norm)
-        sm, lm = project_ref(lon, lat - e_lat, h, coefs, norm)
-        b, d = (sp - sm) / (2 * e_lat), (lp - lm) / (2 * e_lat)
-        det = a * d - b * c
-        lon = np.where(done, lon, lon - (d * rs - b * rl) / det)
-        lat = np.where(done, lat, lat - (a * rl - c * rs) / det)
+        with np.errstate(all="ignore"):
+            sp, lp = project_ref(lon + e_lon, lat, h, coefs, norm)
+            sm, lm = project_ref(lon - e_lon, lat, h, coefs, norm)
+            a, c = (sp - sm) / (2 * e_lon), (lp - lm) / (2 * e_lon)
+            sp, lp = project_ref(lon, lat + e_lat, h, coefs, norm)
+            sm, lm = project_ref(lon, lat - e_lat, h, coefs, norm)
+            b, d = (sp - sm) / (2 * e_lat), (lp - lm) / (2 * e_lat)
+            det = a * d - b * c
+            dlon = (d * rs - b * rl) / det
+            dlat = (a * rl - c * rs) / det
+        step = np.ones(samp.shape)
+        todo = ~done & np.isfinite(dlon) & np.isfinite(dlat)
+        new_lon, new_lat, new_r2 = lon.copy(), lat.copy(), r2.copy()
+        for _ in range(40):                      # halve the step where it does not reduce the residual
+            if not todo.any():
+                break
+            tl = lon - step * dlon
+            ta = lat - step * dlat
+            trs, trl = residual(tl, ta)
+            t2 = trs * trs + trl * trl
+            better = todo & np.isfinite(t2) & (t2 < r2)
+            new_lon[better], new_lat[better], new_r2[better] = tl[better], ta[better], t2[better]
+            todo &= ~better
+            step[todo] *= 0.5
+        stuck = ~done & ~(new_r2 < r2)
+        # no descent possible: converged to machine precision (as the kernels accept it) or stuck
+        done |= stuck & (r2 <= tol_px * tol_px * 1e4)
+        if not (~done & ~stuck).any():
+            break
+        lon, lat, r2 = new_lon, new_lat, new_r2
+        rs, rl = residual(lon, lat)
+        done |= r2 <= tol_px * tol_px
     return np.where(done, lon, np.nan), np.where(done, lat, np.nan)

@@ -303,9 +303,10 @@ class RPCModel(Camera):
         return col.reshape(shape), row.reshape(shape)
 
     def localize_reference(self, col, row, h):
-        """:meth:`localize` by plain Newton in numpy (:func:`_kernels.localize_ref`; no compile), few points."""
+        """:meth:`localize` by damped Newton in numpy from the kernels' affine start
+        (:func:`_kernels.localize_ref`; no compile), few points."""
         shape, (col, row, h) = _flat_f64(col, row, h)
-        lon, lat = K.localize_ref(col, row, h, self._coefs, self._norm_px)
+        lon, lat = K.localize_ref(col, row, h, self._coefs, self._norm_px, init=self._init)
         return lon.reshape(shape), lat.reshape(shape)
 
     def dproj_dh_reference(self, lon, lat, h):

@@ -316,3 +316,44 @@ def test_real_s2p_rpc_matches_gdal_on_image_tags():
     my_lon, my_lat = m.localize(col, row, h)
     assert np.max(np.abs(np.asarray(g_lon)[ok] - my_lon[ok])) < 1e-8
     assert np.max(np.abs(np.asarray(g_lat)[ok] - my_lat[ok])) < 1e-8
+
+
+def _crop_far_from_centre(rpc):
+    """A 300² crop whose corner lies ~0.8 of the validity box's half-width from its centre, as a
+    vendor crop of a large scene (WorldView-3 tiles in NITF) has it."""
+    return rpc.cropped(rpc.samp_off + 0.8 * rpc.samp_scale - 300, rpc.line_off + 0.8 * rpc.line_scale - 300,
+                       300, 300)
+
+
+def test_reference_localizer_converges_on_a_crop_far_from_the_box_centre(rpc):
+    crop = _crop_far_from_centre(rpc)
+    col, row, h = image_grid(crop, n=7, nh=3)
+    lon, lat = crop.localize(col, row, h)
+    lon_ref, lat_ref = crop.localize_reference(col, row, h)
+    assert np.all(np.isfinite(lon_ref)) and np.all(np.isfinite(lat_ref))
+    np.testing.assert_allclose(lon_ref, lon, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(lat_ref, lat, rtol=0, atol=1e-10)
+    # geocd info's footprint (numpy paths, no compile) is the kernels' footprint
+    h0 = float(np.mean(crop.height_range()))
+    a, b = crop.footprint(h0, reference=True), crop.footprint(h0)
+    assert a.symmetric_difference(b).area < 1e-6 * b.area
+
+
+@pytest.mark.realdata
+def test_info_footprint_of_worldview3_crops_in_nitf():
+    """The two 500² WorldView-3 NITF crops (RPC00B TRE; ../shared/data/rpc_samples/shareloc): the numpy
+    localizer of `geocd info` reaches every corner and agrees with the kernels (was: "footprint: unavailable")."""
+    from geocd.info import camera_summary
+    from geocd.io.cameras import load_camera
+
+
+    for name in ("wv3_20.NTF", "wv3_30.NTF"):
+        cam = load_camera(shared_data("rpc_samples", "shareloc", name))
+        col, row, h = image_grid(cam, n=7, nh=3)
+        lon, lat = cam.localize(col, row, h)
+        lon_ref, lat_ref = cam.localize_reference(col, row, h)
+        np.testing.assert_allclose(lon_ref, lon, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(lat_ref, lat, rtol=0, atol=1e-10)
+        d = camera_summary(cam)
+        assert "footprint_error" not in d, d
+        assert 0.02 < d["footprint_area_km2"] < 0.04 and 0.3 < min(d["gsd_m"]) < 0.4
