@@ -415,14 +415,17 @@ def fit_pair_calibration(model: "SelfConsistencyModel", dtilde: np.ndarray, scor
     key = sb * len(_SLOPE_EDGES) + gb
 
     def fit(keep: np.ndarray) -> tuple[np.ndarray, int]:
-        k = key[keep]
+        # the cells grouped by bin once (sorted by key): each bin's medians from its own slice
+        order = np.argsort(key[keep], kind="stable")
+        k = key[keep][order]
+        cols = [v[keep][order] for v in (a, m50, g, mpu)]
+        starts = np.r_[0, np.flatnonzero(np.diff(k)) + 1]
+        ends = np.r_[starts[1:], k.size]
         rows = []
-        for u in np.unique(k):
-            sel = k == u
-            if sel.sum() < min_bin_cells:
+        for i0, i1 in zip(starts, ends):
+            if i1 - i0 < min_bin_cells:
                 continue
-            rows.append((np.median(a[keep][sel]), np.median(m50[keep][sel]), np.median(g[keep][sel]),
-                         np.median(mpu[keep][sel]), sel.sum()))
+            rows.append((*(np.median(c[i0:i1]) for c in cols), i1 - i0))
         if len(rows) < 2:
             raise ProcessingError(f"too few observed cells to calibrate the model to these data ({int(keep.sum())} "
                                   "cells); use calibration='none' or a larger AOI")

@@ -8,6 +8,7 @@ code, the images or the manifest change.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import shutil
@@ -40,15 +41,21 @@ def sample_aoi_pairs(cache_root: Path):
 
     m = load_manifest(REPO / "sample_aoi")
     key_dir = Path(cache_root) / cache_key()
-    if not (key_dir / "done").is_file():
-        tmp = Path(cache_root) / f".tmp-{os.getpid()}"
-        shutil.rmtree(tmp, ignore_errors=True)
-        cfg = RunConfig()
-        run_stereo(m, epochs=[e.name for e in m.epochs], out_dir=tmp, params=cfg.stereo, posting_m=cfg.posting_m,
-                   pairs=cfg.pairs)
-        (tmp / "done").write_text("ok")
-        shutil.rmtree(key_dir, ignore_errors=True)
-        os.replace(tmp, key_dir)
+    # one process computes, the others (pytest-xdist workers) wait for it and read its result
+    with open(Path(cache_root) / ".lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if not (key_dir / "done").is_file():
+                tmp = Path(cache_root) / f".tmp-{os.getpid()}"
+                shutil.rmtree(tmp, ignore_errors=True)
+                cfg = RunConfig()
+                run_stereo(m, epochs=[e.name for e in m.epochs], out_dir=tmp, params=cfg.stereo,
+                           posting_m=cfg.posting_m, pairs=cfg.pairs)
+                (tmp / "done").write_text("ok")
+                shutil.rmtree(key_dir, ignore_errors=True)
+                os.replace(tmp, key_dir)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
     by: dict[str, list] = {}
     for f in sorted((key_dir / "stereo").rglob("*.tif")):
         p = read_pair_dem(f)
