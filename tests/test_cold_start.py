@@ -13,6 +13,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_info_compiles_no_kernel(tmp_path):
     cache = tmp_path / "numba_cache"
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))

@@ -32,6 +32,7 @@ def model():
                                   ConsistencyParams(n_score_bins=10, min_bin_count=500))
 
 
+@pytest.mark.slow
 def test_fit_recovers_scale_and_edge_sigma_with_a_changed_minority(model):
     """Data drawn from the calibration's own law (scale 2, 0.4 m misregistration), 15 % changed cells."""
     rng = np.random.default_rng(7)

@@ -162,6 +162,7 @@ def _building_scores(run, m, grid):
                            aoi=box(*grid.bounds))
 
 
+@pytest.mark.slow
 def test_sample_aoi_region_test_figures(sample_pairs, sample_run):
     """Cells and buildings at the reported 99 %: docs/self_consistency.md's table (region test)."""
     from geocd.change.metrics import binary_scores
@@ -188,6 +189,7 @@ def test_sample_aoi_region_test_figures(sample_pairs, sample_run):
     assert len(unobs) == 9 and unobs["rule"].str.startswith("unobserved:").all()
 
 
+@pytest.mark.slow
 def test_sample_aoi_products_say_the_reported_level(sample_run):
     import geopandas as gpd
     import rasterio
@@ -204,6 +206,7 @@ def test_sample_aoi_products_say_the_reported_level(sample_run):
     assert s["buildings"] == {"unchanged": 23, "unobserved": 9, "new": 3, "raised": 2, "demolished": 1, "lowered": 1}
 
 
+@pytest.mark.slow
 def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run, sample_run_cell):
     """The SRI per-cell test (significance="cell"): 90/95/99 % differ widely; buildings from the 99 % map."""
     from geocd.change.metrics import binary_scores

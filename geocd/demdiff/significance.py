@@ -122,13 +122,24 @@ def change_sign(dh_m: np.ndarray, confidence: np.ndarray, level: float, center_m
     return s
 
 
-def _torus_field(vg, posting_xy_m: tuple[float, float], size: int, rng: np.random.Generator) -> np.ndarray:
-    """One ``size``² field of unit variance with the variogram's correlation (FFT on a 2·size torus)."""
+def _torus_spectrum(vg, posting_xy_m: tuple[float, float], size: int) -> np.ndarray:
+    """The circulant embedding's eigenvalues (rfft2 of the correlation on a 2·size torus), clipped at 0."""
     m = 2 * size
     i = np.minimum(np.arange(m), m - np.arange(m))
     d = np.hypot(i[None, :] * float(posting_xy_m[0]), i[:, None] * float(posting_xy_m[1]))
     lam = np.fft.rfft2(vg.correlation(d)).real
-    lam = np.maximum(lam, 0.0)  # circulant embedding: ranges beyond the torus clip a little
+    return np.maximum(lam, 0.0)  # circulant embedding: ranges beyond the torus clip a little
+
+
+def _torus_field(vg, posting_xy_m: tuple[float, float], size: int, rng: np.random.Generator,
+                 lam: np.ndarray | None = None) -> np.ndarray:
+    """One ``size``² field of unit variance with the variogram's correlation (FFT on a 2·size torus).
+
+    ``lam``: :func:`_torus_spectrum` of the same arguments, when the caller draws many fields.
+    """
+    m = 2 * size
+    if lam is None:
+        lam = _torus_spectrum(vg, posting_xy_m, size)
     w = np.fft.rfft2(rng.standard_normal((m, m)))
     f = np.fft.irfft2(np.sqrt(lam) * w, s=(m, m))[:size, :size]
     return f / np.sqrt(np.mean(lam))
@@ -147,22 +158,41 @@ def noise_region_null(vg, posting_xy_m: tuple[float, float], level_pct: float, m
         the regions the map would report)
     size : side of each simulated field (cells); fields are simulated until ``min_regions`` null
         regions or ``max_fields`` fields (fixed seed: the same model gives the same null)
+
+    The null depends on these arguments only; the last few are kept (a process that differences
+    several DEM pairs with the same error model simulates it once). The array returned is read-only.
     """
+    key = (float(vg.nugget), tuple(map(float, vg.ranges_m)), tuple(map(float, vg.sills)),
+           float(posting_xy_m[0]), float(posting_xy_m[1]), float(level_pct), int(min_cells), int(size),
+           int(min_regions), int(max_fields), int(seed))
+    hit = _NULL_CACHE.get(key)
+    if hit is not None:
+        return hit
     from scipy.special import erfc
 
     alpha = 1.0 - float(level_pct) / 100.0
     rng = np.random.default_rng(seed)
+    lam = _torus_spectrum(vg, posting_xy_m, int(size))
     masses: list[np.ndarray] = []
     n = 0
     for _ in range(int(max_fields)):
-        g = _torus_field(vg, posting_xy_m, int(size), rng)
+        g = _torus_field(vg, posting_xy_m, int(size), rng, lam)
         pv = erfc(np.abs(g) / np.sqrt(2.0))
         _, mass, _ = candidate_regions(pv, np.sign(g).astype(np.int8), alpha, int(min_cells))
         masses.append(mass)
         n += mass.size
         if n >= min_regions:
             break
-    return np.sort(np.concatenate(masses)) if masses else np.zeros(0)
+    out = np.sort(np.concatenate(masses)) if masses else np.zeros(0)
+    out.flags.writeable = False
+    if len(_NULL_CACHE) >= 8:
+        _NULL_CACHE.pop(next(iter(_NULL_CACHE)))
+    _NULL_CACHE[key] = out
+    return out
+
+
+#: the last few region nulls (see :func:`noise_region_null`)
+_NULL_CACHE: dict[tuple, np.ndarray] = {}
 
 
 def noise_region_filter(sign: np.ndarray, confidence_pct: np.ndarray, level_pct: float, null_masses: np.ndarray,

@@ -292,6 +292,7 @@ def test_dem_datum_is_handled(scene):
     assert 27.0 < float(next(iter(scene.cams.values())).undulation(lon, lat)) < 30.0
 
 
+@pytest.mark.slow
 def test_frames_agree_across_overlaps(scene):
     res = frame_pair_residuals(scene, step=4)  # every 4th DEM post (96 m); the report uses every 3rd
     pooled = np.concatenate(list(res.values()))
@@ -326,6 +327,7 @@ def test_qb2_rpc_against_gcps(scene):
     assert np.all(sd < 0.2)
 
 
+@pytest.mark.slow
 def test_qb2_and_frames_agree_on_the_ground(scene):
     bias_px = gcp_residuals(scene).mean(axis=0)
     expected = rpc_bias_ground_m(scene, bias_px)

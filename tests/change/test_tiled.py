@@ -91,6 +91,7 @@ def test_change_test_tiled_equals_untiled(recs, tmp_path, significance):
         np.testing.assert_allclose(c[col], a[col], rtol=1e-9, err_msg=col)
 
 
+@pytest.mark.slow
 def test_tiled_calibration_of_a_transferred_model_equals_untiled(recs, tmp_path):
     """The transfer calibration is a whole-scene fit: the tiled test gathers every tile's cells for it (slopes with
     one cell of overlap) and gets the untiled products exactly."""

@@ -115,6 +115,7 @@ def _geocd(*args, cwd: Path, env: dict | None = None) -> subprocess.CompletedPro
                           env={**os.environ, **(env or {})}, stdin=subprocess.DEVNULL)
 
 
+@pytest.mark.slow
 def test_streams_log_file_and_default_output_folder(tmp_path):
     """Redirected like `geocd demdiff a.tif b.tif > log.txt 2> err.txt`: the products and summary on stdout,
     plain progress lines on stderr, a log file in the default output folder ./geocd_out/a__b."""
@@ -148,6 +149,7 @@ def test_streams_log_file_and_default_output_folder(tmp_path):
     assert (out / "geocd_demdiff.log").read_text(encoding="utf-8").count("==== geocd") == 2
 
 
+@pytest.mark.slow
 def test_json_progress_after_the_command(tmp_path):
     pa, pb = _dems(tmp_path)
     r = _geocd("demdiff", str(pa), str(pb), "--out", "o", "--no-plots", "--progress", "json", cwd=tmp_path)
@@ -157,6 +159,7 @@ def test_json_progress_after_the_command(tmp_path):
     assert events[-1]["type"] == "result" and events[-1]["log"].endswith("geocd_demdiff.log")
 
 
+@pytest.mark.slow
 def test_degenerate_stable_terrain_warns(tmp_path):
     """Two DEMs identical off the change (as if pasted on a common base): NMAD 0 is flagged, not reported as fact."""
     from geocd.io.raster import write_cog

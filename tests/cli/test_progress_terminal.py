@@ -101,6 +101,7 @@ def _read_all(fd: int, proc: subprocess.Popen) -> str:
     return b"".join(chunks).decode("utf-8", "replace")
 
 
+@pytest.mark.slow
 def test_real_pty_of_size_zero_gets_progress_lines(tmp_path):
     """`geocd demdiff` with stderr on a pty whose size is 0x0 prints its progress as plain lines."""
     pa, pb = _dems(tmp_path)

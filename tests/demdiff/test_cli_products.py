@@ -19,6 +19,7 @@ def _write_pair(tmp_path, **kw):
     return a, b, info, pa, pb
 
 
+@pytest.mark.slow
 def test_cli_pair_products(tmp_path):
     a, b, info, pa, pb = _write_pair(tmp_path, shift_m=(5.0, 0.0, 1.0), bump_m=25.0)
     import geopandas as gpd
@@ -61,6 +62,7 @@ def test_cli_pair_products(tmp_path):
     assert "singlebandpseudocolor" in qml and 'classificationMin="-' in qml
 
 
+@pytest.mark.slow
 def test_cli_series_from_list(tmp_path):
     g = grid(80, 80)
     base, _, _ = pair(g=g, noise_m=0.0)

@@ -12,6 +12,7 @@ from geocd.io.raster import DEM
 from .synthetic import grid, pair
 
 
+@pytest.mark.slow
 def test_known_shift_and_volume_recovered():
     a, b, info = pair((7.0, -4.0, 1.5), noise_m=0.4, bump_m=30.0, bump_radius_px=14)
     r = dem_difference(a, b, epoch_a="A", epoch_b="B")
@@ -32,6 +33,7 @@ def test_known_shift_and_volume_recovered():
     assert r.changed[info["bump"]].mean() > 0.7
 
 
+@pytest.mark.slow
 def test_null_pair_has_few_false_changes():
     a, b, _ = pair((3.0, 3.0, 0.0), noise_m=0.5, seed=7)
     r = dem_difference(a, b, params=DEMDiffParams(confidence=99.0, min_region_cells=4))
@@ -117,6 +119,7 @@ def test_geographic_grid_uses_metric_posting():
     assert 60 < r.posting_xy_m[0] < 80 and 90 < r.posting_xy_m[1] < 95
 
 
+@pytest.mark.slow
 def test_time_series_over_common_survey_areas():
     g = grid(100, 100)
     base, _, _ = pair(g=g, noise_m=0.0)

@@ -38,6 +38,7 @@ print(json.dumps(out))
 '''
 
 
+@pytest.mark.slow
 def test_layers_open_styled_in_qgis(tmp_path):
     if not SYSTEM_PYTHON.is_file():
         pytest.skip("no system python with PyQGIS")

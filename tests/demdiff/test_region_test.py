@@ -82,6 +82,7 @@ def test_the_mapping_unit_grows_with_the_correlation_range():
     np.testing.assert_array_equal(noise_region_null(VG, (1.0, 1.0), 95.0, 1), noise_region_null(VG, (1.0, 1.0), 95.0, 1))
 
 
+@pytest.mark.slow
 def test_demdiff_region_test_keeps_the_real_change_and_drops_noise_regions():
     a, b, info = pair(shift_m=(4.0, -3.0, 1.5), bump_m=20.0, g=grid(170, 150), seed=2)
     off = dem_difference(a, b, params=DEMDiffParams(region_test="off"))

@@ -71,6 +71,7 @@ def test_tiled_equals_untiled_bitwise(shifted_pair, tmp_path, case):
     assert not (tmp_path / "tiled" / ".geocd-work").exists()
 
 
+@pytest.mark.slow
 def test_tiled_threads_and_user_mask(shifted_pair, tmp_path):
     from shapely.geometry import box
 
@@ -116,6 +117,7 @@ def test_tiled_msh_with_base_equals_untiled(tmp_path):
     assert_same_products(tmp_path / "untiled", tmp_path / "tiled")
 
 
+@pytest.mark.slow
 def test_large_path_equals_untiled(shifted_pair, tmp_path):
     """Products tile by tile, regions merged across seams, correlated sums on tiles + a coarse grid: the
     same rasters, the same regions and the same figures to 1e-9 (floating-point summation order)."""
@@ -147,6 +149,7 @@ def test_large_path_equals_untiled(shifted_pair, tmp_path):
 
 
 @pytest.mark.parametrize("exact", [True, False])
+@pytest.mark.slow
 def test_region_test_tiled_equals_untiled(shifted_pair, tmp_path, exact):
     """The noise region test tiled: exact path bit-identical; large path (a first pass for the regions' mass,
     the products pass dropping them across seams) gives the same rasters, regions and figures."""

@@ -129,6 +129,7 @@ def _demdiff(*args):
 
 
 @pytest.mark.parametrize("tiled", ["--untiled", "--tiled"])
+@pytest.mark.slow
 def test_demdiff_refuses_undeclared_nodata_and_runs_with_it_declared(dem_pair, tmp_path, tiled):
     import json
 

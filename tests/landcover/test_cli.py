@@ -37,6 +37,7 @@ def test_train_writes_model_and_report(trained):
     assert rep["polygons"] == 4
 
 
+@pytest.mark.slow
 def test_predict_and_integrate(trained):
     d, paths, model = trained
     out = d / "pred"

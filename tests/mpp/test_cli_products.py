@@ -32,6 +32,7 @@ def _write(tmp_path, s):
     return pa, pb, da, db
 
 
+@pytest.mark.slow
 def test_cli_two_images(tmp_path):
     s = make_pair(0)
     pa, pb, da, db = _write(tmp_path, s)
@@ -111,6 +112,7 @@ def test_a_smoothed_dsm_is_named_in_a_warning(tmp_path):
     assert len(notes) == 1
 
 
+@pytest.mark.slow
 def test_the_filled_band_of_a_given_dsm_is_read(tmp_path):
     """A DSM written by geocd ortho carries a ``filled`` band (the terrain put into the stereo's holes): geocd
     mpp --dsm-a reads it onto the grid, and a DSM without one gives None. End to end, the CLI notes the roof

@@ -49,6 +49,7 @@ def _truth_objects(scene):
     return objs
 
 
+@pytest.mark.slow
 def test_joint_model_finds_buildings_and_changes(scene, joint):
     m = rect_masks(joint.result.rects, joint.result.xi, scene["truth_a"].shape)
     t = table2(m, _truth_objects(scene), scene["truth_a"], scene["truth_b"])
@@ -60,6 +61,7 @@ def test_joint_model_finds_buildings_and_changes(scene, joint):
     assert np.all((joint.result.confidence > 0) & (joint.result.confidence <= 100))
 
 
+@pytest.mark.slow
 def test_height_term_helps(scene, joint, height):
     ma = rect_masks(height.result.rects, height.result.xi, scene["truth_a"].shape)
     t = table2(ma, _truth_objects(scene), scene["truth_a"], scene["truth_b"])
@@ -67,12 +69,14 @@ def test_height_term_helps(scene, joint, height):
     assert t["DP"] > 0.88 and t["DP_precision"] > 0.97 and t["HO"] == 0 and t["HV"] == 0 and t["FV"] <= 1, t
 
 
+@pytest.mark.slow
 def test_same_seed_same_objects(scene, joint):
     again = detect(scene["image_a"], scene["image_b"], POSTING, MPPParams(seed=3), method="ED")
     np.testing.assert_array_equal(again.result.rects, joint.result.rects)
     np.testing.assert_array_equal(again.result.xi, joint.result.xi)
 
 
+@pytest.mark.slow
 def test_sd_and_edge_only_run(scene):
     """The baselines work, worse than the joint model (edge-only verification keeps shadow and road outlines)."""
     for method, floor in (("SD", 0.88), ("EV", 0.15)):   # measured 0.929 and 0.221
@@ -104,6 +108,7 @@ def test_one_flat_date_runs_and_says_so(scene):
     assert any(n.startswith("image B: no gradient at all (flat)") and "read as a change" in n for n in d.notes)
 
 
+@pytest.mark.slow
 def test_nothing_found_says_why(scene):
     """Every cell raised (a ground model 10 m too low): no isolated raised block, no building, and a note
     that says so instead of a silent empty layer."""
@@ -153,6 +158,7 @@ def test_snap_kernels_match_references():
     assert np.abs(c - b).max() > 0.4
 
 
+@pytest.mark.slow
 def test_planarity_keeps_tree_crowns_out():
     """Tree crowns are raised but rough at the cell scale: with the planarity cue (default) and the paper's
     texture change term they make no building (measured: 10 false cells, precision 0.996); with the height
@@ -230,6 +236,7 @@ def test_side_max_from_the_dsm_segments():
     assert np.isnan(side_max_from_dsm(np.zeros((50, 50)), 0.5, MPPParams()))
 
 
+@pytest.mark.slow
 def test_step_term_keeps_a_sloped_mound_out():
     """A building is a raised block with steep edges. A mound with a flat top and 17° sides is raised,
     planar and as homogeneous as a roof: without the step term it is taken for a building, with it not."""
@@ -452,6 +459,7 @@ def test_grow_sides_kernel_matches_reference():
             assert n == grew.sum() and n >= 3, n
 
 
+@pytest.mark.slow
 def test_fit_sides_kernel_matches_reference():
     s, fa, fb = _pair_features()
     rng = np.random.default_rng(1)
@@ -474,6 +482,7 @@ def test_fit_sides_kernel_matches_reference():
         assert n == int(np.any(a != rects, axis=1).sum()) and n > 40, n
 
 
+@pytest.mark.slow
 def test_default_run_puts_the_sides_on_the_walls_of_a_fattened_dsm():
     """End to end with the defaults (height term, edge fit "joint"): the building of the fattened-DSM scene
     (walls 1 m outside the true ones in the DSM) gets sides within ¼ m of the true ones; without the edge
@@ -529,6 +538,7 @@ def test_wall_blur_is_measured_on_the_scene():
 
 
 @pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.slow
 def test_measured_wall_band_lets_the_annealing_find_the_true_walls(seed):
     """With the height term reading the DSM's measured wall blur (``wall_blur="measured"``), the annealing alone
     (no edge fit) puts the fattened-DSM building's rectangle on the true walls: the ring no longer counts the
@@ -560,6 +570,7 @@ def test_measured_wall_band_lets_the_annealing_find_the_true_walls(seed):
     assert e[0] <= e[1] and e[2] > e[0] + 0.1, e
 
 
+@pytest.mark.slow
 def test_absence_term_needs_ground_under_a_change_on_the_other_date():
     """A change label says the object is absent on the other date: with ``absence="height"`` a rectangle
     labelled new over a tree crown that stands in date A's DSM pays max(0, 2 r − 1) (r: its share of cells
@@ -613,6 +624,7 @@ def test_height_similarity_reads_standing_on_one_date_only():
         MPPParams(change_evidence="dsm")
 
 
+@pytest.mark.slow
 def test_a_demolished_block_the_texture_calls_unchanged_is_found_by_the_dsms():
     """Date B's image is date A's (the texture says nothing changed: a cleared plot that keeps the orientations
     around it, as on Kahramanmaraş), but building 0 is gone from date B's DSM. With the paper's texture
@@ -711,6 +723,7 @@ def test_fill_roof_holes_takes_back_the_terrain_put_into_a_roof():
     assert dsm[17, 17] == 100.0
 
 
+@pytest.mark.slow
 def test_a_roof_the_stereo_could_not_match_is_not_a_pit():
     """Building 3's roof has a 10 × 10-cell hole on each date (5 m, the size of sample_aoi's) that the DSM's
     producer filled with the terrain, as geocd ortho does with the stereo's holes. Read as heights, the pit
@@ -839,6 +852,7 @@ def test_a_rectangle_wholly_off_the_grid_has_no_cells():
     assert m["label"][5, 5] == 2 and (m["label"] >= 0).sum() == 121
 
 
+@pytest.mark.slow
 def test_the_model_outlines_an_l_shaped_building_as_an_l():
     """End to end (annealing, edge fit, clean-up) on the L-shaped toy with the default parameters: one object,
     written as the two rectangles of its L (one ``object_id``), covers the L to IoU ≥ 0.93 and ≤ 5 % of the

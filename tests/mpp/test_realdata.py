@@ -35,6 +35,7 @@ def _row(pair, method, prototypes):
 
 
 @pytest.mark.realdata
+@pytest.mark.slow
 def test_levir_edge_only_row(test_7):
     """EV on test_7: 12 label changes, HV 8, 4 detected, changed-building F 0.351 (seed 0; grey-model births,
     the colour mask holding no building-sized patch)."""
@@ -44,6 +45,7 @@ def test_levir_edge_only_row(test_7):
 
 
 @pytest.mark.realdata
+@pytest.mark.slow
 def test_levir_joint_model_rows(test_7):
     """ED on test_7: LEVIR's grey and brown roofs give the red-roof mask no building-sized patch, so "auto"
     reads the pair with the grey-image model (gradient + homogeneity): 4 of 12 changes found, none false,

@@ -170,6 +170,7 @@ def test_fill_dsm_holes_uses_the_low_side():
     assert np.all(filled2[hole] == 99.0)
 
 
+@pytest.mark.slow
 def test_cli_single_image_and_manifest(tmp_path, sample_aoi):
     from click.testing import CliRunner
 

@@ -41,6 +41,7 @@ def _grey(r):
     return r.values.astype(np.float64).mean(axis=0)
 
 
+@pytest.mark.slow
 def test_rpc_and_frame_orthos_register(orthos):
     """Views from opposite sides (RPC) and a frame camera land on the same cells (measured ≤ 0.02 cell)."""
     for a, b, min_corr in (("A_sat1", "A_sat4", 0.94), ("A_sat1", "A_air1", 0.92)):

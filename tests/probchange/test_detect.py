@@ -27,6 +27,7 @@ def rpc_views(rpc_scene):
 
 
 @pytest.mark.parametrize("robust", [False, True])
+@pytest.mark.slow
 def test_objectspace_finds_the_changes(rpc_scene, rpc_views, robust):
     va, vb = rpc_views
     kw = {"n_bins": 64, "height_range_m": RANGE}

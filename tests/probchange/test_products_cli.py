@@ -34,6 +34,7 @@ def manifest(tmp_path_factory):
     return root, sc
 
 
+@pytest.mark.slow
 def test_cli_objectspace_products(manifest, tmp_path):
     import pyogrio
     import rasterio
@@ -66,6 +67,7 @@ def test_cli_objectspace_products(manifest, tmp_path):
     assert summary["variant"] == "objectspace" and summary["noise_model"]["sigma"] > 0
 
 
+@pytest.mark.slow
 def test_cli_keyframe_products(manifest, tmp_path):
     import rasterio
 
@@ -94,6 +96,7 @@ def test_cli_keyframe_products(manifest, tmp_path):
     assert summary["depth_epoch"] == "B" and summary["key_frame"] == "B1"
 
 
+@pytest.mark.slow
 def test_cli_single_image_epoch_one_line_error(manifest, tmp_path):
     root, _ = manifest
     res = CliRunner().invoke(main, ["--progress", "none", "probchange", str(root / "scene.yaml"), "--images-b", "B2",

@@ -40,6 +40,7 @@ def _dems(folder: Path, n: int = 3) -> list[Path]:
     return paths
 
 
+@pytest.mark.slow
 def test_install_from_repository_then_run_three_algorithms(tmp_path):
     require_qgis()
     # 1. the repository: zip + plugins.xml

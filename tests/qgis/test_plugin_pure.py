@@ -186,6 +186,7 @@ def test_runner_streams_and_reports_errors(tmp_path):
     assert res.failure_message() == res.error
 
 
+@pytest.mark.slow
 def test_runner_cancel_kills_child_and_cleanup_leaves_nothing(tmp_path):
     out = tmp_path / "scene"
     before = runner.snapshot(str(out))

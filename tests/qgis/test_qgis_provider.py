@@ -35,6 +35,7 @@ def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([geocd_executable(), *args], capture_output=True, text=True, cwd=cwd, timeout=900, env=env)
 
 
+@pytest.mark.slow
 def test_provider_loads_and_lists_every_algorithm(qgis):
     r = qgis.process("plugins")
     assert "* geocd_qgis" in r.stdout, r.stdout  # enabled
@@ -47,6 +48,7 @@ def test_provider_loads_and_lists_every_algorithm(qgis):
 
 
 @pytest.mark.parametrize("alg", ["stereo", "change", "runlayers"])
+@pytest.mark.slow
 def test_help_prints_parameters(qgis, alg):
     r = qgis.process("help", f"geocd:{alg}")
     assert r.returncode == 0, r.stderr
@@ -58,6 +60,7 @@ def test_help_prints_parameters(qgis, alg):
     assert spec.short_help[:60] in r.stdout
 
 
+@pytest.mark.slow
 def test_run_in_qgis_matches_cli(qgis, tmp_path):
     """`qgis_process run geocd:synth` writes the same products as `geocd synth` with the same options."""
     cli_out, qgis_out = tmp_path / "cli", tmp_path / "qgis"
@@ -74,6 +77,7 @@ def test_run_in_qgis_matches_cli(qgis, tmp_path):
     assert not diffs, "\n".join(diffs)
 
 
+@pytest.mark.slow
 def test_zip_installs_into_a_profile_and_finds_geocd(tmp_path):
     """`geocd plugin-zip`, unzipped into a QGIS profile's plugins folder (what "Install from ZIP" does): the provider
     loads and finds geocd through the zip's environment.json (no PATH, no GEOCD_EXECUTABLE, not in a checkout)."""
@@ -104,6 +108,7 @@ def test_zip_installs_into_a_profile_and_finds_geocd(tmp_path):
     assert "scene 'sample_aoi'" in r.stdout
 
 
+@pytest.mark.slow
 def test_executable_from_processing_settings(tmp_path):
     """Processing ▸ Options ▸ Providers ▸ geocd ▸ "geocd executable" wins over $GEOCD_EXECUTABLE; a Python
     interpreter there runs `python -m geocd`."""
@@ -129,6 +134,7 @@ def tiny_scene(tmp_path_factory) -> Path:
     return out / "scene.yaml"
 
 
+@pytest.mark.slow
 def test_probchange_in_qgis_matches_cli_and_loads_styled_layers(qgis, tmp_path, tiny_scene):
     """`geocd:probchange` on a tiny synthetic scene: the CLI's change layers, loaded styled."""
     cli_out, qgis_out = tmp_path / "cli", tmp_path / "qgis"
@@ -145,6 +151,7 @@ def test_probchange_in_qgis_matches_cli_and_loads_styled_layers(qgis, tmp_path, 
     assert loaded["CHANGES"]["renderer"] == "categorizedSymbol"
 
 
+@pytest.mark.slow
 def test_error_carries_geocds_message(qgis, tmp_path):
     """A bad input: the QgsProcessingException says what geocd says on the command line."""
     bad = tmp_path / "scene.yaml"
@@ -161,6 +168,7 @@ def test_error_carries_geocds_message(qgis, tmp_path):
     assert r.returncode != 0 and cli_message in r.stdout + r.stderr
 
 
+@pytest.mark.slow
 def test_cancel_kills_child_and_leaves_no_partial_output(qgis, tmp_path):
     out = tmp_path / "cancelled"
     # 8x8 rays per pixel: a ~30 s job (plain tiny takes ~1 s and can finish before the cancel lands)
@@ -173,6 +181,7 @@ def test_cancel_kills_child_and_leaves_no_partial_output(qgis, tmp_path):
 
 
 @pytest.mark.realdata
+@pytest.mark.slow
 def test_demdiff_in_qgis_matches_cli_and_loads_styled_layers(qgis, tmp_path):
     """`geocd:demdiff` on two Mount St Helens DEMs: the CLI's products, loaded styled (not default grey)."""
     dems = shared_data("usgs_msh_dome_dems", "geotiff_utm10n")

@@ -54,6 +54,7 @@ def _check_failed_run(r: subprocess.CompletedProcess, out: Path, fragment: str, 
     assert doc["runs"][0]["files"] and all(verify_products(out).values())  # what was written is complete
 
 
+@pytest.mark.slow
 def test_file_size_limit_mid_write(dems, tmp_path):
     out = tmp_path / "O"
     before = sha256_tree(dems)
@@ -79,6 +80,7 @@ def _in_tmpfs(mnt: Path, size: str, script: str) -> subprocess.CompletedProcess:
     return _sh(f"unshare --user --map-root-user --mount bash -c {shlex.quote(inner)}")
 
 
+@pytest.mark.slow
 def test_disk_full_on_a_small_tmpfs(dems, tmp_path, namespaces):
     mnt = tmp_path / "mnt"
     mnt.mkdir()

@@ -210,6 +210,7 @@ def test_plugin_describes_its_own_failures(runner_mod):
 
 
 @pytest.mark.qgis
+@pytest.mark.slow
 def test_qgis_unwritable_output_folder_is_a_message(tmp_path):
     from tests.qgis.qgis_env import QGIS, require_qgis
     from tests.reliability.scenes import write_dem_pair

@@ -154,6 +154,7 @@ def _outcome(r, bad: Path) -> str:
 
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("slot", sorted(SLOTS))
+@pytest.mark.slow
 def test_every_command_refuses_a_bad_file(slot, kind, fx, tmp_path):
     template, name = SLOTS[slot]
     bad = _bad_file(kind, tmp_path, name)

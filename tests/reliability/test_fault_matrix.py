@@ -316,6 +316,7 @@ def _(fx, tmp):
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.slow
 def test_fault_matrix(name, fx, tmp_path):
     run_case(CASES[name](fx, tmp_path), fx.root, tmp_path)
 

@@ -88,12 +88,14 @@ def test_a_damaged_model_is_named(model_doc, tmp_path, edit, needle):
 
 @settings(max_examples=150, **_FAST)
 @given(ops=tree_ops)
+@pytest.mark.slow
 def test_fuzz_model_structure(model_doc, ops, tmp_path_factory):
     check_model_tree(model_doc, ops, tmp_path_factory.getbasetemp())
 
 
 @settings(max_examples=60, **_FAST)
 @given(mutation=byte_mutations)
+@pytest.mark.slow
 def test_fuzz_model_bytes(model_doc, mutation, tmp_path_factory):
     check_model_bytes(json.dumps(model_doc).encode(), mutation, tmp_path_factory.getbasetemp())
 

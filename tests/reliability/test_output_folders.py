@@ -62,6 +62,7 @@ def _start_paused(tmp: Path, args: list[str], nth: int = 1, tag: str = "p", hang
 # --------------------------------------------------------------------------------------------------------------
 # the product manifest and stale products
 # --------------------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_manifest_lists_every_product_with_its_hash(dems, tmp_path):
     out = tmp_path / "O"
     r = _demdiff(*dems, out, "--no-plots")
@@ -78,6 +79,7 @@ def test_manifest_lists_every_product_with_its_hash(dems, tmp_path):
     assert v["demdiff_report.json"] is False and sum(v.values()) == len(v) - 1
 
 
+@pytest.mark.slow
 def test_stale_products_of_an_older_run_are_replaced(dems, tmp_path):
     out = tmp_path / "O"
     assert _demdiff(*dems, out).exit_code == 0
@@ -91,6 +93,7 @@ def test_stale_products_of_an_older_run_are_replaced(dems, tmp_path):
     assert len(doc["runs"]) == 1 and set(doc["runs"][0]["files"]) == _products(out)
 
 
+@pytest.mark.slow
 def test_a_product_the_user_changed_is_kept(dems, tmp_path):
     out = tmp_path / "O"
     assert _demdiff(*dems, out).exit_code == 0
@@ -102,6 +105,7 @@ def test_a_product_the_user_changed_is_kept(dems, tmp_path):
     assert "changed since geocd wrote them" in r.stderr
 
 
+@pytest.mark.slow
 def test_products_of_another_kind_are_kept(dems, tmp_path):
     out = tmp_path / "O"
     assert _demdiff(*dems, out, "--no-plots").exit_code == 0
@@ -111,6 +115,7 @@ def test_products_of_another_kind_are_kept(dems, tmp_path):
     assert len(read_products_manifest(out)["runs"]) == 2
 
 
+@pytest.mark.slow
 def test_an_output_folder_is_not_read_as_an_epoch(dems, tmp_path):
     from geocd.errors import ManifestError
     from geocd.io.manifest import discover_manifest
@@ -123,6 +128,7 @@ def test_an_output_folder_is_not_read_as_an_epoch(dems, tmp_path):
 # --------------------------------------------------------------------------------------------------------------
 # one run at a time
 # --------------------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_a_locked_folder_is_refused_and_freed_when_the_holder_dies(dems, tmp_path):
     out = tmp_path / "O"
     holder = subprocess.Popen([sys.executable, "-c",
@@ -144,6 +150,7 @@ def test_a_locked_folder_is_refused_and_freed_when_the_holder_dies(dems, tmp_pat
     assert r.exit_code == 0, r.output
 
 
+@pytest.mark.slow
 def test_concurrent_runs_never_mix(dems, tmp_path):
     """A run paused mid-write holds the folder: a second run with other settings is refused; the first completes."""
     out = tmp_path / "O"
@@ -167,6 +174,7 @@ def test_concurrent_runs_never_mix(dems, tmp_path):
     assert not part_files(tmp_path)
 
 
+@pytest.mark.slow
 def test_two_runs_started_together(dems, tmp_path):
     """Unsynchronised: each run either completes or is refused; the folder holds one complete set."""
     out = tmp_path / "O"
@@ -193,6 +201,7 @@ def test_two_runs_started_together(dems, tmp_path):
 @pytest.mark.parametrize("sig, code, word", [(signal.SIGTERM, 143, "stopped by SIGTERM"),
                                              (signal.SIGINT, 130, "interrupted (Ctrl-C)"),
                                              (signal.SIGHUP, 129, "stopped by SIGHUP")])
+@pytest.mark.slow
 def test_signal_mid_write_cleans_up(dems, tmp_path, sig, code, word):
     out = tmp_path / "O"
     a, b = map(str, dems)
@@ -212,6 +221,7 @@ def test_signal_mid_write_cleans_up(dems, tmp_path, sig, code, word):
     assert sha256_tree(dems) == before
 
 
+@pytest.mark.slow
 def test_a_run_started_with_nohup_ignores_a_hangup(dems, tmp_path):
     """A run started with SIGHUP ignored (nohup) keeps ignoring it and completes."""
     out = tmp_path / "O"
@@ -228,6 +238,7 @@ def test_a_run_started_with_nohup_ignores_a_hangup(dems, tmp_path):
     assert all(verify_products(out).values()) and not part_files(tmp_path)
 
 
+@pytest.mark.slow
 def test_sigkill_litter_is_removed_by_the_next_run(dems, tmp_path):
     out = tmp_path / "O"
     a, b = map(str, dems)
@@ -266,6 +277,7 @@ def _files(out: Path) -> dict[str, str]:
             if Path(k).name not in (MANIFEST_NAME, LOCK_NAME) and not Path(k).name.endswith(".log")}
 
 
+@pytest.mark.slow
 def test_an_interrupted_rerun_puts_the_earlier_set_back(dems, tmp_path):
     from geocd.io.outputs import PREV_DIR, check_product_set
 
@@ -286,6 +298,7 @@ def test_an_interrupted_rerun_puts_the_earlier_set_back(dems, tmp_path):
     assert [r["status"] for r in read_products_manifest(out)["runs"]] == ["complete"]
 
 
+@pytest.mark.slow
 def test_a_killed_rerun_is_never_called_whole_and_the_next_run_mends_it(dems, tmp_path):
     from geocd.io.outputs import check_product_set
 

@@ -256,6 +256,7 @@ def _summary(out: Path) -> dict:
 
 
 @pytest.mark.parametrize("mode", ["--untiled", "--tiled"])
+@pytest.mark.slow
 def test_nodata_option_makes_the_sentinel_cells_nodata(fx, tmp_path, mode):
     """--nodata -9999 on an untagged file gives what the same file with its nodata tag set gives."""
     h = _b(fx)

@@ -40,6 +40,7 @@ def files(tmp_path_factory):
     return d, paths, truth
 
 
+@pytest.mark.slow
 def test_tiles_give_the_whole_grid_features_and_nearly_its_superpixels(files):
     d, p, truth = files
     params = ScreenParams(feature=FeatureSpec("randbank", 16))
@@ -67,6 +68,7 @@ def RandomBankFeatureContext():
     return RandomBankFeature(16).context_px
 
 
+@pytest.mark.slow
 def test_products_threshold_from_the_nochange_pair(files):
     d, p, truth = files
     out = d / "out"

@@ -84,6 +84,7 @@ def test_levir_trained_cnn_beats_the_classical_features(levir):
     assert 2 * tp / (2 * tp + fp + fn) == pytest.approx(0.411, abs=0.005)
 
 
+@pytest.mark.slow
 def test_sample_aoi_headline_row(sample_aoi, tmp_path):
     """docs/screen.md, sample_aoi table, 'patch 16px' (the default feature, Felzenszwalb, no shift), through the
     product path (views on the terrain DEM, tiles, the no-change pair B_sat1/B_sat2): the 99 % quantile 1.045,
@@ -104,6 +105,7 @@ def test_sample_aoi_headline_row(sample_aoi, tmp_path):
     assert s["precision"] == pytest.approx(0.127, abs=0.006) and s["recall"] == pytest.approx(0.444, abs=0.01)
 
 
+@pytest.mark.slow
 def test_sample_aoi_trained_cnn_row(sample_aoi, tmp_path):
     """docs/screen.md, sample_aoi table, 'efficientnet_lite0 stage5' with ImageNet weights, through the product
     path with the no-change rule: F1 0.294 (P 0.20, R 0.55), against 0.198 for the default patch feature."""

@@ -31,6 +31,7 @@ def test_features_are_unit_norm_per_cell_and_in_range(feat):
 
 
 @pytest.mark.parametrize("feat", CLASSICAL, ids=lambda f: f.name)
+@pytest.mark.slow
 def test_declared_context_makes_window_features_equal_whole_image_ones(feat):
     """What tiling relies on: cells at least context_px inside a window see what they see in the whole image."""
     c = feat.cell_px

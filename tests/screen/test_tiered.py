@@ -116,6 +116,7 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
         assert not b.loc[outside, "class"].isin(["unchanged", "raised", "lowered", "new", "demolished"]).any()
 
 
+@pytest.mark.slow
 def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, request):
     """The change products of a tiered run on the full run's pair-DEMs: inside the flagged tiles the mask is
     the full run's, bit for bit; every other cell is −127 "not examined" (never 0); unobserved buildings

@@ -34,6 +34,7 @@ def widest_pair(sample_aoi):
     return pd, truth
 
 
+@pytest.mark.slow
 def test_widest_base_pair_is_complete_and_accurate(widest_pair):
     pd, truth = widest_pair
     err = np.abs(pd.z_m - truth)[pd.valid]

@@ -69,6 +69,7 @@ def test_stereo_margin_grows_with_height_range_and_window(sample_aoi):
     assert m2 > m1 and m3 > m1 and m1 > StereoParams().radius
 
 
+@pytest.mark.slow
 def test_a_finished_pairs_tiles_go_at_once_and_a_resumed_run_reuses_its_dem(tmp_path):
     """Two pairs (one per epoch) of a tiny generated scene: the run is cancelled half way through the second
     pair. The first pair's DEM is written and its tiles are gone already (not kept until the stage ends);
@@ -119,6 +120,7 @@ def test_a_finished_pairs_tiles_go_at_once_and_a_resumed_run_reuses_its_dem(tmp_
     assert not any("resumed" in m for m in seen)
 
 
+@pytest.mark.slow
 def test_geocd_stereo_tiled_is_the_tiled_run(tmp_path):
     """`geocd stereo --tiled` is the door to :func:`run_stereo_tiled`: the same pair-DEMs, bit for bit; its
     --tile-size is the Dask tile; --no-overwrite (an untiled option) is refused with the reason."""

@@ -22,6 +22,7 @@ def _read(path):
         return ds.read(), ds.tags(), ds.tags(1, "IMAGE_STRUCTURE"), ds.profile
 
 
+@pytest.mark.slow
 def test_scene_folder_layout_and_manifest(tiny_scene_dir, tiny_params):
     root = tiny_scene_dir.out_dir
     m = load_manifest(root)
@@ -83,6 +84,7 @@ def test_truth_corners_through_written_rpcs(tiny_scene_dir, tiny_params):
     assert worst < 0.05  # Show: within 0.05 px (measured ~1e-6 px)
 
 
+@pytest.mark.slow
 def test_regeneration_is_deterministic(tiny_scene_dir, tiny_params, tmp_path):
     again = generate(tiny_params, tmp_path / "again")
     r1, r2 = tiny_scene_dir.out_dir, again.out_dir
@@ -118,6 +120,7 @@ def test_variants_same_sun_and_changes(tmp_path):
         SynthParams(date_a="yesterday")
 
 
+@pytest.mark.slow
 def test_cli_tiny(tmp_path):
     from click.testing import CliRunner
 

@@ -11,6 +11,7 @@ import textwrap
 import time
 
 import numpy as np
+import pytest
 import rasterio
 
 SCRIPT = textwrap.dedent('''
@@ -34,6 +35,7 @@ SCRIPT = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.slow
 def test_sigkill_then_resume(tmp_path):
     script = tmp_path / "job.py"
     script.write_text(SCRIPT)

@@ -48,6 +48,7 @@ def _truth_height(grid):
     return z + T.H0, (np.abs(e) < 12) & (np.abs(n) < 12)
 
 
+@pytest.mark.slow
 def test_model_learns_the_scene(toy, trained):
     h, grid = expected_height_map(trained)
     truth, centre = _truth_height(grid)
