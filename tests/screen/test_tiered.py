@@ -123,7 +123,7 @@ def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, 
     reaching into unflagged tiles are "not examined"; the summary says how much was examined."""
     import rasterio
 
-    from geocd.consistency import NOT_EXAMINED
+    from geocd.consistency import NOT_EXAMINED, SelfConsistencyModel
     from geocd.pipeline import RunConfig, run_change
     from geocd.screen.tiered import Flagged
     from tests.sample_aoi_cache import sample_aoi_pairs
@@ -134,7 +134,9 @@ def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, 
     ex = Flagged(128, sel).examined(grid.shape)
     cfg = RunConfig(derive_buildings=False)
     rf = run_change(m, full, grid, out_dir=tmp_path / "full", config=cfg)
-    rt = run_change(m, full, grid, out_dir=tmp_path / "tier", config=cfg, examined=ex)
+    # the model the full run learned on these pair-DEMs (learning it again gives the same model)
+    model = SelfConsistencyModel.load(rf["outputs"]["model"])
+    rt = run_change(m, full, grid, out_dir=tmp_path / "tier", config=cfg, examined=ex, model=model)
     with rasterio.open(rt["outputs"]["change_mask"]) as ds:
         mt = ds.read(1)
         assert "-127 not examined" in ds.tags(1).get("long_name", "")
@@ -154,7 +156,8 @@ def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, 
     np.testing.assert_array_equal(b["class"].to_numpy()[keep], bf["class"].to_numpy()[keep])
     # the whole grid examined (a tiered run that matched everything): the full run's classes, also for
     # footprints with no cell on the grid (they stay unobserved)
-    ra = run_change(m, full, grid, out_dir=tmp_path / "all", config=cfg, examined=np.ones(grid.shape, bool))
+    ra = run_change(m, full, grid, out_dir=tmp_path / "all", config=cfg, examined=np.ones(grid.shape, bool),
+                    model=model)
     np.testing.assert_array_equal(ra["buildings"]["class"].to_numpy(), bf["class"].to_numpy())
 
 
