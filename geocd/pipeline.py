@@ -364,6 +364,13 @@ def _run(m, out: Path, config: RunConfig, prog: Progress, footprints) -> dict[st
                 f"epoch {e.name!r} has {len(e.images)} image(s) and no DEM: a stereo pair needs two images. Add an "
                 "image, or give a DEM standing for this epoch (epochs[].dem)")
     stereo_epochs = [e.name for e in m.epochs if len(e.images) >= 2]
+    if model is None and not any(len(e.images) >= 3 for e in m.epochs):
+        # learning the model needs two pair-DEMs of one epoch: three views; say so before hours of stereo
+        raise ConfigError(
+            "no epoch has three or more images (two or more stereo pairs), so the self-consistency distribution "
+            "cannot be learned from this scene; pass a scene-class model learned on a scene of the same class "
+            "(--model MODEL.json, made with `geocd consistency`; examples/kahramanmaras/marseille_urban_model.json "
+            "is one for urban Pléiades scenes), or add a third image to an epoch")
     from .orientation import orient_manifest
     from .stereo.pipeline import early_resource_check
 

@@ -46,6 +46,15 @@ def test_epoch_with_one_image_is_a_clear_error(tmp_path):
     assert not (tmp_path / "out" / "sc_change.tif").exists()
 
 
+def test_two_views_per_epoch_without_a_model_is_refused_before_any_stereo(tmp_path):
+    """Two images per epoch give one pair-DEM each: nothing to learn the self-consistency model from. The run
+    says so first (it was said after the stereo of every pair), naming the way out (a scene-class model)."""
+    p = _manifest(tmp_path, 2, 2)       # empty image files: any step that read them would fail otherwise
+    with pytest.raises(ConfigError, match="no epoch has three or more images.*--model"):
+        run(p, out_dir=tmp_path / "out")
+    assert not (tmp_path / "out" / "stereo").exists()
+
+
 def test_pick_epochs(tmp_path):
     from geocd.io.manifest import load_manifest
 

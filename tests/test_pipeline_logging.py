@@ -90,3 +90,23 @@ def test_cli_run_writes_one_log(sample_aoi, tmp_path, monkeypatch):
     log = (out / "geocd_run.log").read_text(encoding="utf-8")
     assert log.count("==== geocd ") == 1, log
     assert "PROGRESS run" in log and "% stereo" in log
+
+
+def test_cli_run_prints_building_counts_per_class(sample_aoi, tmp_path, monkeypatch):
+    """The summary on stdout names the building counts per class of both layers (footprints and damage)."""
+    from geocd.cli import main
+
+    fake = _fake_run()
+
+    def with_buildings(m, out, config, prog, footprints):
+        res = fake(m, out, config, prog, footprints)
+        res["summary"]["buildings"] = {"unchanged": 41, "demolished": 3, "new": 2}
+        res["summary"]["building_damage"] = {"source": "footprints", "classes": {"unchanged": 40, "collapsed": 3},
+                                             "volume_lost_m3": 1234.5}
+        return res
+
+    monkeypatch.setattr(pipeline, "_run", with_buildings)
+    r = CliRunner().invoke(main, ["run", str(sample_aoi), "--out", str(tmp_path / "out"), "--progress", "none"])
+    assert r.exit_code == 0, r.output
+    assert "buildings: 41 unchanged, 3 demolished, 2 new" in r.stdout
+    assert "building damage (footprints): 40 unchanged, 3 collapsed" in r.stdout

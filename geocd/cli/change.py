@@ -124,13 +124,17 @@ def run(ctx, manifest, out_dir, model_path, config_path, confidences, report_con
              + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items()))
     if "buildings" in s:
         sess.say("buildings: " + ", ".join(f"{n} {k}" for k, n in s["buildings"].items()))
+    if "building_damage" in s:
+        bd = s["building_damage"]
+        sess.say(f"building damage ({bd['source']}): "
+                 + (", ".join(f"{n} {k}" for k, n in bd["classes"].items()) or "no building object"))
     if "screen" in s:
         sc = s["screen"]
         sess.say(f"screen ({sc['feature']}): {sc['flagged_tiles']} of {sc['tiles']} tiles flagged, stereo on "
                  f"{100 * sc['stereo_cell_fraction']:.1f}% of the grid; screen {sc['screen_seconds']:.1f} s, "
                  f"stereo {sc['stereo_seconds']:.1f} s")
-    sess.data(**{k: s[k] for k in ("epoch_a", "epoch_b", "observed_fraction", "changed_fraction", "buildings")
-                 if k in s})
+    sess.data(**{k: s[k] for k in ("epoch_a", "epoch_b", "observed_fraction", "changed_fraction", "buildings",
+                                    "building_damage") if k in s})
     n_pairs = sum(1 for k in res["outputs"] if k.startswith("stereo:"))
     if n_pairs:
         sess.say(f"{n_pairs} pair-DEMs in {out / 'stereo'}")
