@@ -115,7 +115,7 @@ def test_sample_aoi_end_to_end(tmp_path, sample_aoi):
 # ------------------------------------------------------------------------------------------------
 # Headline figures of sample_aoi (README, docs/self_consistency.md), pinned on cached pair-DEMs:
 # everything after the stereo runs here; a mutation such as "classify buildings from the 90 % map",
-# "min_changed 0.5" or "write the lowest level into the mask" fails these fast tests.
+# "min_changed 0.5" or "write the lowest level into the mask" fails these tests (slow: CI runs them).
 # ------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def sample_pairs(request):
@@ -150,7 +150,7 @@ def sample_run(sample_pairs, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def sample_run_cell(sample_pairs, tmp_path_factory):
+def sample_run_cell(sample_pairs, sample_run, tmp_path_factory):
     import dataclasses
 
     from geocd.pipeline import RunConfig, run_change
@@ -158,7 +158,8 @@ def sample_run_cell(sample_pairs, tmp_path_factory):
     m, by, grid = sample_pairs
     cfg = RunConfig()
     cfg = dataclasses.replace(cfg, change=dataclasses.replace(cfg.change, significance="cell"))
-    return run_change(m, by, grid, out_dir=tmp_path_factory.mktemp("sc_cell"), config=cfg)
+    # the model the region run learned on the same pair-DEMs with the same parameters (the same model)
+    return run_change(m, by, grid, out_dir=tmp_path_factory.mktemp("sc_cell"), config=cfg, model=sample_run["model"])
 
 
 def _building_scores(run, m, grid):
