@@ -67,6 +67,7 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
     from ..errors import ConfigError
     from ..io.manifest import load_manifest
     from ..volume import VolumeModel, VolumeParams, load_model, save_model, update_model
+    from ..volume.update import RAY_CACHE_MAX_RAYS
     from ..volume.io import geometry_from_manifest, read_view
 
     from ..io.outputs import open_outputs
@@ -127,6 +128,9 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
     prog = _progress(ctx, "volume update")
     n_total = passes * len(views)
     k = 0
+    # each view's rays kept from pass to pass when the views are small enough (else recomputed per pass)
+    small = sum(v.intensity.size for v in views) * supersample ** 2 <= RAY_CACHE_MAX_RAYS
+    rays = [{} if small else None for _ in views]
     try:
         for p in range(passes):
             for i in rng.permutation(len(views)):
@@ -137,7 +141,7 @@ def update(ctx, model_dir, manifest_path, epochs, images, exclude, passes, fines
                     prog(_b + (f or 0.0) / n_total, f"pass {p + 1}/{passes} {v.name}: {msg}")
 
                 update_model(model, v.intensity, v.camera, sun=v.sun, name=v.name, supersample=supersample,
-                             progress=sub)
+                             ray_cache=rays[i], progress=sub)
                 k += 1
             save_model(model, model_dir)
     finally:

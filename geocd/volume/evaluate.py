@@ -81,10 +81,11 @@ def train(views: list, geom, grid: AOIGrid, dem_m: np.ndarray | None, cfg: Train
     t0 = time.perf_counter()
     segs = 0
     n_upd = 0
+    rays: list[dict] = [{} for _ in views]         # each view's rays, computed on its first update
     for p in range(cfg.passes):
         for i in rng.permutation(len(views)):
             v = views[i]
-            st = update_model(model, v.intensity, v.camera, sun=v.sun, name=v.name)
+            st = update_model(model, v.intensity, v.camera, sun=v.sun, name=v.name, ray_cache=rays[i])
             segs += st.segments
             n_upd += 1
         r = model.size_report()

@@ -32,6 +32,8 @@ from .scene import VolumeModel
 P_BACKGROUND = 1.0
 #: rows of rays traced per step (memory: ~100 bytes per ray)
 TILE_PIXELS = 65536
+#: an update keeps an image's rays between its two passes up to this many rays (64 bytes each)
+RAY_CACHE_MAX_RAYS = 4_000_000
 
 
 @dataclass(frozen=True)
@@ -130,7 +132,7 @@ class RayScratch:
 
 def update_model(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun: tuple[float, float] | None = None,
                  name: str = "", stride: int = 1, supersample: int = 1, cell_mean: bool = True,
-                 refine: bool | None = None,
+                 refine: bool | None = None, ray_cache: dict | None = None,
                  progress: Optional[Progress] = None) -> UpdateStats:
     """Update ``model`` in place with one image.
 
@@ -158,6 +160,12 @@ def update_model(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun:
         :func:`geocd.volume._kernels.update_rays`.
     refine : bool, optional
         Run adaptive refinement afterwards (default: ``model.params.refine``).
+    ray_cache : dict, optional
+        Where this image's rays are kept between calls: a caller that updates the model with the same image
+        several times (training passes) passes the same dict each time and the rays are computed once
+        (about 64 bytes per ray; the rays depend on the camera and the model's frame, not on its cells).
+        Within one call the two ray passes share their rays whenever the image holds at most
+        :data:`RAY_CACHE_MAX_RAYS` rays.
     progress : callable, optional
         ``progress(fraction, message)``; may raise CancelledError (the model is
         then unchanged).
@@ -191,6 +199,14 @@ def update_model(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun:
         n_rays = 0
         n_segs = 0
         tiles = list(range(0, rows, tile_rows))
+        n_rays_image = len(range(0, rows, stride)) * len(range(0, cols, stride)) * ss * ss
+        if ray_cache is None and cell_mean and n_rays_image <= RAY_CACHE_MAX_RAYS:
+            ray_cache = {}                        # shared by this call's two passes
+        key = (id(camera), geom.frame.lon0, geom.frame.lat0, geom.frame.h0, tuple(geom.z_range_enu), rows, cols, stride, ss,
+               tile_rows)
+        if ray_cache is not None and ray_cache.get("key") != key:
+            ray_cache.clear()
+            ray_cache["key"] = key
         n_steps = 2 * len(tiles) if cell_mean else len(tiles)
         step = 0
         cell_obs = np.zeros(0)
@@ -203,7 +219,12 @@ def update_model(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun:
                 acc_obs[:] = 0.0
             for r0 in tiles:
                 r1 = min(rows, r0 + tile_rows)
-                o, d, rr, cc = image_rays(camera, geom, r0, r1, cols, stride, ss)
+                if ray_cache is not None and r0 in ray_cache:
+                    o, d, rr, cc = ray_cache[r0]
+                else:
+                    o, d, rr, cc = image_rays(camera, geom, r0, r1, cols, stride, ss)
+                    if ray_cache is not None:
+                        ray_cache[r0] = (o, d, rr, cc)
                 obs = img[rr, cc]
                 ok = np.isfinite(obs) & np.isfinite(o[:, 0])
                 obs = np.where(ok, obs, np.nan)
