@@ -255,7 +255,7 @@ def figures(out: Path) -> None:
     import datetime as dt
 
     from geocd.change.plots import plot_dh_map, plot_volume_series, _plt, _save
-    from geocd.demdiff import Epoch, align_dems, dem_difference, dem_time_series
+    from geocd.demdiff import Epoch, dem_difference, dem_time_series
     from geocd.demdiff.products import series_for_plot
     from geocd.io.e00 import read_e00_dem
     from geocd.io.raster import read_dem

@@ -162,10 +162,8 @@ def _dsm_stats(a: np.ndarray, ref: np.ndarray) -> dict:
 
 def stage_compare(work: Path, run_dir: Path) -> dict:
     import geopandas as gpd
-    import rasterio
     from scipy import ndimage as ndi
 
-    from geocd.geodesy import AOIGrid
     from geocd.stereo import read_pair_dem
 
     if (work / "cars_stage.json").is_file():

@@ -210,7 +210,6 @@ def eval_levir(specs, sps, shifts, log) -> list[dict]:
                     per_pair_nc[pairs[i]["name"]] = sc["f1"]
                     t_split.append(round(t_i, 3))
                 f_nc = 2 * tp / max(2 * tp + fp + fn, 1)
-                t_nc = t_q
                 # leave one labelled pair out
                 tp = fp = fn = 0
                 for i in scored:

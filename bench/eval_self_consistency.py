@@ -25,7 +25,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -129,7 +128,7 @@ def main() -> None:
     res, rows, masks = cell_table(A, B, model, truth)
     print_rows(f"{m.name}, all pairs (A: {len(A)} pair-DEMs, B: {len(B)}), cells observed in both epochs", rows)
     out["cells_all_pairs"] = {n: s for n, s in rows}
-    print(f"\nbuildings (epoch-A footprints; new buildings detected outside them; truth: every building's status)")
+    print("\nbuildings (epoch-A footprints; new buildings detected outside them; truth: every building's status)")
     print(f"{'method':28s} {'precision':>9s} {'recall':>7s} {'F1':>6s} {'class acc.':>10s}  tp fp fn")
     out["buildings"] = {}
     for name, mk in masks.items():

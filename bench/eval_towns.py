@@ -66,7 +66,7 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
 
     from geocd.change.buildings import classify_buildings, score_buildings
     from geocd.change.metrics import binary_scores
-    from geocd.consistency import ChangeParams, change_test, learn_self_consistency
+    from geocd.consistency import change_test, learn_self_consistency
     from geocd.io.raster import read_on_grid
     from geocd.io.vector import read_footprints
     from geocd.pipeline import RunConfig, _median_surface

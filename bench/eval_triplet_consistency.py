@@ -74,7 +74,7 @@ def main() -> None:
     print("\nself-consistency curves (|Δ̃| in pixels of disparity) per score bin")
     print(t[["score_lo", "score_hi", "n_pairs", "q90", "q95", "q99"]].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     comps = list(itertools.combinations(pairs, 2))
-    print(f"\nfraction of common cells flagged as change (|Δ̃| above the s% curve), same-date comparisons")
+    print("\nfraction of common cells flagged as change (|Δ̃| above the s% curve), same-date comparisons")
     print(f"{'comparison':34s} {'cells':>8s} " + " ".join(f"{'in ' + str(int(s)) + '%':>8s} {'LOO ' + str(int(s)) + '%':>8s}"
                                                     for s in levels))
     for k, (p, q) in enumerate(comps):

@@ -292,20 +292,17 @@ def false_objects(name: Path, ortho_dir: Path, seeds=(0,), variant: dict | None 
     from rasterio.features import rasterize
     from scipy import ndimage
 
-    from geocd.io.manifest import load_manifest
     from geocd.io.raster import read_dem
     from geocd.mpp.evaluate import _components, _cover
 
     inp = _town_inputs(name, ortho_dir)
     grid = inp["grid"]
     post = grid.posting_m
-    m = load_manifest(name / "scene.yaml")
     truth = json.loads((name / "truth" / "scene_truth.json").read_text())
     bare = read_dem(name / "truth" / "dem_bare.tif", grid=grid).height_m
     prior_dem = inp["ground"]
     tdsm = {1: read_dem(name / "truth" / "dsm_A.tif", grid=grid).height_m,
             2: read_dem(name / "truth" / "dsm_B.tif", grid=grid).height_m}
-    sdsm = {1: inp["dsm_a"], 2: inp["dsm_b"]}
     shade = {d: _cast_shadow(tdsm[d], post, truth["sun"][e]["azimuth_deg"], truth["sun"][e]["elevation_deg"])
              for d, e in ((1, "A"), (2, "B"))}
 

@@ -23,7 +23,7 @@ import os
 import sys
 import tempfile
 
-from qgis.core import QgsApplication, QgsHillshadeRenderer, QgsProject, QgsRasterLayer, QgsVectorLayer
+from qgis.core import QgsHillshadeRenderer, QgsProject, QgsRasterLayer, QgsVectorLayer
 from qgis.PyQt.QtCore import Qt, QTimer
 from qgis.PyQt.QtWidgets import QDockWidget, QTabWidget
 from qgis.utils import iface, loadPlugin, startPlugin, plugins

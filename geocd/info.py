@@ -60,7 +60,6 @@ def _area_km2(poly_lonlat) -> float:
 
 
 def raster_summary(path: Path) -> dict[str, Any]:
-    import rasterio
 
     from .geodesy import vertical_datum_of
     from .io.raster import effective_bit_depth

@@ -29,7 +29,7 @@ import numpy as np
 from .change.buildings import BuildingParams
 from .consistency import (ChangeParams, ConsistencyParams, DEMAsEpoch, SelfConsistencyModel, change_test,
                           learn_self_consistency, nanmedian_stack)
-from .errors import ConfigError, GeoCDError, ProcessingError
+from .errors import ConfigError, GeoCDError
 from .progress import Progress, ensure_progress, sub_progress
 from .runlog import LoggedProgress, RunLog, log_file_name, logger
 

@@ -249,8 +249,8 @@ def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run, sample_run_c
     from geocd.pipeline import _median_surface
 
     fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
-    for run in (sample_run, sample_run_cell):
-        r = run["result"]
+    for one_run in (sample_run, sample_run_cell):
+        r = one_run["result"]
         kw = dict(z_a=_median_surface(by["A"]), z_b=_median_surface(by["B"]), id_field="building_id",
                   min_part_cells=r.min_region_cells, detect_new=False)
         off = classify_buildings(fa, r.changed_at(99), r.dz_m, grid, **kw)

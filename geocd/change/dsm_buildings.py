@@ -236,7 +236,6 @@ def building_objects(dsm: np.ndarray, dtm: np.ndarray, posting_m: float,
     n = int(labels.max())
     if n == 0:
         return labels.astype(np.int32)
-    idx = np.arange(1, n + 1)
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
     drop = np.zeros(n + 1, bool)
     drop[1:] = sizes[1:] * posting_m * posting_m < params.min_area_m2

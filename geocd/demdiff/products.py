@@ -52,7 +52,10 @@ def dh_qml(vmax: float) -> str:
     """The shipped ``dh.qml`` style with its colour ramp spanning [−vmax, +vmax]."""
     q = qml_for("dh")
     v = float(vmax)
-    fmt = (lambda x: f"{x:.6g}")
+
+    def fmt(x):
+        return f"{x:.6g}"
+
     q = re.sub(r'classificationMin="[^"]*"', f'classificationMin="{fmt(-v)}"', q)
     q = re.sub(r'classificationMax="[^"]*"', f'classificationMax="{fmt(v)}"', q)
     q = re.sub(r'minimumValue="[^"]*"', f'minimumValue="{fmt(-v)}"', q)

@@ -34,7 +34,6 @@ A manifest is a YAML (or JSON) file; relative paths are relative to its folder::
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 import os
 import reprlib

@@ -561,7 +561,6 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
         Band units; default: from the band names' suffixes (:func:`band_unit`: ``_m`` → m,
         ``confidence`` → %, ...).
     """
-    import rasterio
     from rasterio.io import MemoryFile
     from rasterio.shutil import copy as rio_copy
 

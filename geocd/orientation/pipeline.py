@@ -195,7 +195,10 @@ def _write_oriented_manifest(path: Path, m) -> None:
     from ..io.manifest import manifest_to_dict
 
     d = manifest_to_dict(m)
-    ab = (lambda p: None if p is None else str(Path(p).resolve()))
+
+    def ab(p):
+        return None if p is None else str(Path(p).resolve())
+
     for e_d, e in zip(d["epochs"], m.epochs):
         e_d["images"] = [{"path": ab(i.path), "name": i.name, **({"camera": ab(i.camera)} if i.camera else {})}
                          for i in e.images]

@@ -287,7 +287,10 @@ def find_tie_points(views: Sequence[OrthoView], grid: AOIGrid, h0_m: float, para
         peaks.append(ncc[k][sel])
     r0, c0 = cands[matched, 0].astype(float), cands[matched, 1].astype(float)
     xy0 = np.column_stack([T.c + (c0 + 0.5) * T.a + (r0 + 0.5) * T.b, T.f + (c0 + 0.5) * T.d + (r0 + 0.5) * T.e])
-    cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape))
+
+    def cat(xs, shape):
+        return np.concatenate(xs) if xs else np.zeros(shape)
+
     return TiePoints(names=[v.name for v in views], epochs=[v.epoch for v in views],
                      image=cat(images, (0,)).astype(np.int64), track=cat(tracks, (0,)).astype(np.int64),
                      colrow=cat(colrow, (0, 2)), xy0=xy0.reshape(-1, 2), h0_m=float(h0_m), crs=grid.crs,

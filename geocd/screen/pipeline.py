@@ -45,7 +45,7 @@ from ..change.styles import discrete_pseudocolor_qml
 from ..errors import ConfigError, GridError, NoOverlapError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
-from .core import ScreenParams, screen_pair, shadow_mask, vegetation_mask
+from .core import ScreenParams, screen_pair
 from .threshold import NullDistribution, f1_scores
 
 CHANGE_NODATA = -128

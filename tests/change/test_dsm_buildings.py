@@ -114,7 +114,10 @@ def test_a_new_building_joined_to_a_standing_one_is_found():
     assert new.geometry.iloc[0].area == pytest.approx((r1 - r0) * 40 * 0.25, rel=0.15)
     up = np.nan_to_num(z_b - z_a) > 2
     res = _result(z_a, z_b, np.zeros_like(up), up)
-    rec = lambda z: SimpleNamespace(z_m=z, valid=np.isfinite(z))
+
+    def rec(z):
+        return SimpleNamespace(z_m=z, valid=np.isfinite(z))
+
     dmg, _ = _building_damage(None, res, GRID, [rec(z_a)], [rec(z_b)], None, 99.0, "A", "B")
     hit = dmg[dmg["class"] == "new"]
     assert len(hit) == 1 and hit["source"].iloc[0] == "B DSM (ground in A)"

@@ -1,7 +1,6 @@
 import numpy as np
 import pytest
 import rasterio
-from affine import Affine
 
 from geocd.errors import CRSError, EmptyDataError, InputFileNotFoundError, OutputError
 from geocd.geodesy import AOIGrid

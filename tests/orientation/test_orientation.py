@@ -1,6 +1,5 @@
 """Cross-epoch relative orientation: NCC kernel, recovery of known biases, refusal on poor tie points."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -16,7 +16,7 @@ from geocd.errors import GeoCDError, UnsupportedFormatError, WeightsMismatchErro
 from geocd.screen import cnn
 from geocd.screen.torchfile import TorchFileError, _PlainUnpickler, _Unpickler, read_torch_file
 
-from .torch_reference import PTH_LEGACY, PTH_ZIP
+from .torch_reference import PTH_LEGACY
 
 
 def _payloads(marker: Path) -> dict[str, object]:

@@ -14,7 +14,7 @@ import numpy as np
 from scipy import ndimage
 
 from geocd.camera import RPCModel
-from geocd.geodesy import AOIGrid, to_lonlat, utm_crs_for
+from geocd.geodesy import AOIGrid, utm_crs_for
 
 LON0, LAT0, H0 = 5.30, 44.10, 200.0
 M_PER_DEG_LAT = 111_132.0

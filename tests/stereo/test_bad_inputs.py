@@ -1,6 +1,5 @@
 """Bad inputs give clear errors or warnings, never silent garbage."""
 
-import warnings
 
 import numpy as np
 import pytest

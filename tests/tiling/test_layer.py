@@ -168,7 +168,9 @@ def test_vectors_kept_by_centre_once(tmp_path):
                     stage="blobs", scheduler="sync")
     merged = run.vectors()
     assert len(merged) == len(whole.vectors)
-    key = lambda gdf: sorted((round(b[0], 3), round(b[1], 3), round(b[2], 3), round(b[3], 3)) for b in gdf.geometry.bounds.to_numpy())
+
+    def key(gdf):
+        return sorted((round(b[0], 3), round(b[1], 3), round(b[2], 3), round(b[3], 3)) for b in gdf.geometry.bounds.to_numpy())
     assert key(merged) == key(whole.vectors)
 
 

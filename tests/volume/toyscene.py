@@ -12,7 +12,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from types import SimpleNamespace
 
 from geocd.camera.frame import FrameCamera, rotation_to_opk
 from geocd.geodesy import AOIGrid, LocalFrame, from_lonlat
