@@ -67,7 +67,11 @@ class _Load:
 
     def summary(self) -> dict:
         s = np.array(self.samples)
-        return {"min": round(float(s.min()), 2), "median": round(float(np.median(s)), 2), "max": round(float(s.max()), 2)}
+        return {
+            "min": round(float(s.min()), 2),
+            "median": round(float(np.median(s)), 2),
+            "max": round(float(s.max()), 2),
+        }
 
 
 def cmd_model(a) -> None:
@@ -78,15 +82,30 @@ def cmd_model(a) -> None:
 
     out = Path(a.out)
     t0 = time.perf_counter()
-    r = run_stereo_tiled(Path(a.scene) / "scene.yaml", epochs=["A"], out_dir=out,
-                         tiling=TilingParams(tile_size=a.tile_size, scheduler=a.scheduler))
+    r = run_stereo_tiled(
+        Path(a.scene) / "scene.yaml",
+        epochs=["A"],
+        out_dir=out,
+        tiling=TilingParams(tile_size=a.tile_size, scheduler=a.scheduler),
+    )
     pairs = [read_pair_dem(p) for p in r["outputs"].values()]
-    model = learn_self_consistency([pairs], ConsistencyParams(),
-                                   provenance={"scene": str(a.scene), "scene_class": "synthetic-blocks",
-                                               "gsd_m": pairs[0].grid.posting_m})
+    model = learn_self_consistency(
+        [pairs],
+        ConsistencyParams(),
+        provenance={"scene": str(a.scene), "scene_class": "synthetic-blocks", "gsd_m": pairs[0].grid.posting_m},
+    )
     path = model.save(out / "model.json")
-    print(json.dumps({"model": str(path), "pairs": list(r["outputs"]), "completeness": r["completeness"],
-                      "wall_s": round(time.perf_counter() - t0, 1)}, indent=1))
+    print(
+        json.dumps(
+            {
+                "model": str(path),
+                "pairs": list(r["outputs"]),
+                "completeness": r["completeness"],
+                "wall_s": round(time.perf_counter() - t0, 1),
+            },
+            indent=1,
+        )
+    )
 
 
 def evaluate(scene: Path, mask_path: Path, hit_share: float) -> dict:
@@ -106,8 +125,9 @@ def evaluate(scene: Path, mask_path: Path, hit_share: float) -> dict:
     b = gpd.read_file(scene / "truth" / "buildings.gpkg")
     obs = m != CHANGE_NODATA
     changed = obs & (m != 0)
-    lab = rasterize(((g, i + 1) for i, g in enumerate(b.geometry)), out_shape=shape, transform=tr, fill=0,
-                    dtype="int32")
+    lab = rasterize(
+        ((g, i + 1) for i, g in enumerate(b.geometry)), out_shape=shape, transform=tr, fill=0, dtype="int32"
+    )
     n = len(b) + 1
     n_obs = np.bincount(lab[obs].ravel(), minlength=n)
     n_chg = np.bincount(lab[changed].ravel(), minlength=n)
@@ -150,22 +170,42 @@ def cmd_run(a) -> None:
         t1, c1, p1 = time.perf_counter(), _cpu(), mem.peak
         A = [str(v) for k, v in st["outputs"].items() if k.startswith("A/")]
         B = [str(v) for k, v in st["outputs"].items() if k.startswith("B/")]
-        res = change_test_tiled(A, B, model, out, params=ChangeParams(confidences=(90.0, 95.0, 99.0)),
-                                tiling=tiling, region_confidence=99.0)
+        res = change_test_tiled(
+            A, B, model, out, params=ChangeParams(confidences=(90.0, 95.0, 99.0)), tiling=tiling, region_confidence=99.0
+        )
         t2, c2 = time.perf_counter(), _cpu()
     cells = st["grid"].width * st["grid"].height
-    stages["stereo"] = {"wall_s": round(t1 - t0, 1), "cpu_s": round(c1 - c0, 1), "peak_tree_rss_gb": round(p1 / 1e9, 3),
-                        "completeness": {k: round(v, 4) for k, v in st["completeness"].items()},
-                        "margins": st["margins"], "pair_cells_per_s": round(len(st["outputs"]) * cells / (t1 - t0))}
-    stages["change"] = {"wall_s": round(t2 - t1, 1), "cpu_s": round(c2 - c1, 1), "passes": res.passes,
-                        "exact": res.exact}
+    stages["stereo"] = {
+        "wall_s": round(t1 - t0, 1),
+        "cpu_s": round(c1 - c0, 1),
+        "peak_tree_rss_gb": round(p1 / 1e9, 3),
+        "completeness": {k: round(v, 4) for k, v in st["completeness"].items()},
+        "margins": st["margins"],
+        "pair_cells_per_s": round(len(st["outputs"]) * cells / (t1 - t0)),
+    }
+    stages["change"] = {
+        "wall_s": round(t2 - t1, 1),
+        "cpu_s": round(c2 - c1, 1),
+        "passes": res.passes,
+        "exact": res.exact,
+    }
     wall = t2 - t0
-    rep = {"scene": str(scene), "cells": cells, "grid": [st["grid"].width, st["grid"].height],
-           "tile_size": a.tile_size, "scheduler": a.scheduler, "pairs": list(st["outputs"]),
-           "wall_s": round(wall, 1), "cpu_s": round(c2 - c0, 1), "cells_per_s": round(cells / wall),
-           "s_per_mcell": round(wall / cells * 1e6, 2), "peak_tree_rss_gb": round(mem.peak / 1e9, 3),
-           "load_average": load.summary(), "stages": stages,
-           "outputs": {k: str(v) for k, v in res.outputs.items()}}
+    rep = {
+        "scene": str(scene),
+        "cells": cells,
+        "grid": [st["grid"].width, st["grid"].height],
+        "tile_size": a.tile_size,
+        "scheduler": a.scheduler,
+        "pairs": list(st["outputs"]),
+        "wall_s": round(wall, 1),
+        "cpu_s": round(c2 - c0, 1),
+        "cells_per_s": round(cells / wall),
+        "s_per_mcell": round(wall / cells * 1e6, 2),
+        "peak_tree_rss_gb": round(mem.peak / 1e9, 3),
+        "load_average": load.summary(),
+        "stages": stages,
+        "outputs": {k: str(v) for k, v in res.outputs.items()},
+    }
     rep["truth"] = evaluate(scene, Path(res.outputs["change_mask"]), a.hit_share)
     print(json.dumps(rep, indent=1))
     if a.json:
@@ -175,18 +215,24 @@ def cmd_run(a) -> None:
 def cmd_table(a) -> None:
     rows = [json.loads(Path(p).read_text()) for p in a.files]
     rows.sort(key=lambda r: r["cells"])
-    print("| cells | wall | CPU | cells/s | s per M cells | peak tree RSS | load (median) | changed buildings found "
-          "| unchanged flagged | false-alarm cells |")
+    print(
+        "| cells | wall | CPU | cells/s | s per M cells | peak tree RSS | load (median) | changed buildings found "
+        "| unchanged flagged | false-alarm cells |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         t = r["truth"]
-        print(f"| {r['grid'][0]}² | {r['wall_s']} s | {r['cpu_s']} s | {r['cells_per_s']:,} | {r['s_per_mcell']} | "
-              f"{r['peak_tree_rss_gb']} GB | {r['load_average']['median']} | {t['changed_recall']:.1%} of "
-              f"{t['demolished']['observed'] + t['new']['observed']} | {t['unchanged_flagged_share']:.2%} | "
-              f"{t['false_alarm_cell_share']:.4%} |")
+        print(
+            f"| {r['grid'][0]}² | {r['wall_s']} s | {r['cpu_s']} s | {r['cells_per_s']:,} | {r['s_per_mcell']} | "
+            f"{r['peak_tree_rss_gb']} GB | {r['load_average']['median']} | {t['changed_recall']:.1%} of "
+            f"{t['demolished']['observed'] + t['new']['observed']} | {t['unchanged_flagged_share']:.2%} | "
+            f"{t['false_alarm_cell_share']:.4%} |"
+        )
     for r0, r1 in zip(rows, rows[1:]):
-        print(f"{r0['grid'][0]}² → {r1['grid'][0]}²: ×{r1['cells'] / r0['cells']:.2f} cells, "
-              f"×{r1['wall_s'] / r0['wall_s']:.2f} wall")
+        print(
+            f"{r0['grid'][0]}² → {r1['grid'][0]}²: ×{r1['cells'] / r0['cells']:.2f} cells, "
+            f"×{r1['wall_s'] / r0['wall_s']:.2f} wall"
+        )
 
 
 def cmd_same(a) -> None:
@@ -220,8 +266,9 @@ def cmd_same(a) -> None:
             if lyr == "layer_styles":
                 x, y = (d.drop(columns=[c for c in ("update_time",) if c in d.columns]) for d in (x, y))
             if "geometry" in x.columns:
-                same = (x.drop(columns="geometry").equals(y.drop(columns="geometry"))
-                        and list(x.geometry.to_wkb()) == list(y.geometry.to_wkb()))
+                same = x.drop(columns="geometry").equals(y.drop(columns="geometry")) and list(
+                    x.geometry.to_wkb()
+                ) == list(y.geometry.to_wkb())
             else:
                 same = x.equals(y)
             rows.append({"file": f"{f.relative_to(ref)}:{lyr}", "rows": len(x), "same": bool(same)})

@@ -50,7 +50,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("GEOCD_SHARED_DATA", REPO.parent / "shared" / "data")) / "usgs_msh_dome_dems"
 
-XDEM_WORKER = r'''
+XDEM_WORKER = r"""
 import json, sys, time, warnings
 import numpy as np
 warnings.filterwarnings("ignore")
@@ -117,7 +117,7 @@ out.update(n_changed=n, changed_area_m2=n * cell, volume_m3=float(np.nansum(dha[
            wall_s={"coreg": t1 - t0, "heteroscedasticity": t2 - t1, "variogram": t3 - t2, "propagation": t4 - t3,
                    "total": t4 - t0})
 print(json.dumps(out))
-'''
+"""
 
 
 def load_case(a: int, b: int):
@@ -160,14 +160,30 @@ def run_geocd(da, db, obs, stable, changed, repeat: int):
         best = min(best, time.perf_counter() - t)
     s = r.summary
     out = {
-        "shift_m": s["shift_applied_m"], "fitted_shift_m": s["shift_fitted_m"], "shift_sigma_m": s["shift_sigma_m"],
-        "coreg": f"{r.coreg.status}/{r.coreg.applied}", "reasons": list(r.coreg.reasons), "n_fit": r.coreg.n_fit,
-        "stable_nmad_m": s["stable_nmad_m"], "n_changed": int(same.sum()), "changed_area_m2": float(same.sum() * cell),
-        "volume_m3": float(np.nansum(r.dh_m[same]) * cell), "volume_sigma_m3": vs, "volume_sigma_random_m3": vs_random,
-        "own_changed_area_m2": s["changed_area_m2"], "own_volume_m3": s["volume_changed_m3"],
-        "own_volume_sigma_m3": s["volume_changed_sigma_m3"], "wall_s": best, "notes": list(r.notes),
-        "variogram": {"nugget": r.uncertainty.variogram.nugget, "ranges_m": r.uncertainty.variogram.ranges_m,
-                      "sills": r.uncertainty.variogram.sills} if r.uncertainty else None,
+        "shift_m": s["shift_applied_m"],
+        "fitted_shift_m": s["shift_fitted_m"],
+        "shift_sigma_m": s["shift_sigma_m"],
+        "coreg": f"{r.coreg.status}/{r.coreg.applied}",
+        "reasons": list(r.coreg.reasons),
+        "n_fit": r.coreg.n_fit,
+        "stable_nmad_m": s["stable_nmad_m"],
+        "n_changed": int(same.sum()),
+        "changed_area_m2": float(same.sum() * cell),
+        "volume_m3": float(np.nansum(r.dh_m[same]) * cell),
+        "volume_sigma_m3": vs,
+        "volume_sigma_random_m3": vs_random,
+        "own_changed_area_m2": s["changed_area_m2"],
+        "own_volume_m3": s["volume_changed_m3"],
+        "own_volume_sigma_m3": s["volume_changed_sigma_m3"],
+        "wall_s": best,
+        "notes": list(r.notes),
+        "variogram": {
+            "nugget": r.uncertainty.variogram.nugget,
+            "ranges_m": r.uncertainty.variogram.ranges_m,
+            "sills": r.uncertainty.variogram.sills,
+        }
+        if r.uncertainty
+        else None,
     }
     # what applying the fitted shift (as xDEM does) does to the same volume
     if r.coreg.applied != "horizontal+vertical" and any(r.coreg.fitted_shift_m[:2]):
@@ -185,8 +201,14 @@ def run_xdem(python: str, da, db, obs, stable, changed) -> dict | None:
     with tempfile.TemporaryDirectory() as td:
         npz = Path(td) / "in.npz"
         meta = {"transform": list(da.grid.transform)[:6], "crs": da.grid.crs.to_wkt()}
-        np.savez(npz, a=np.where(obs, da.height_m, np.nan), b=np.where(obs, db.height_m, np.nan), stable=stable,
-                 changed=changed, meta=json.dumps(meta))
+        np.savez(
+            npz,
+            a=np.where(obs, da.height_m, np.nan),
+            b=np.where(obs, db.height_m, np.nan),
+            stable=stable,
+            changed=changed,
+            meta=json.dumps(meta),
+        )
         worker = Path(td) / "xdem_worker.py"
         worker.write_text(XDEM_WORKER)
         r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -212,13 +234,28 @@ def geocd_process(a: int, b: int) -> dict:
         for label in ("cold", "warm"):
             r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             t = time.perf_counter()
-            p = subprocess.run([exe, "--progress", "none", "demdiff", str(DATA / "geotiff_utm10n" / f"{a}.tif"),
-                                str(DATA / "geotiff_utm10n" / f"{b}.tif"), "--out", str(Path(td) / label)],
-                               capture_output=True, text=True, env=env)
+            p = subprocess.run(
+                [
+                    exe,
+                    "--progress",
+                    "none",
+                    "demdiff",
+                    str(DATA / "geotiff_utm10n" / f"{a}.tif"),
+                    str(DATA / "geotiff_utm10n" / f"{b}.tif"),
+                    "--out",
+                    str(Path(td) / label),
+                ],
+                capture_output=True,
+                text=True,
+                env=env,
+            )
             wall = time.perf_counter() - t
             r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-            res[label] = {"wall_s": wall, "cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
-                          "returncode": p.returncode}
+            res[label] = {
+                "wall_s": wall,
+                "cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
+                "returncode": p.returncode,
+            }
             if p.returncode:
                 res[label]["error_tail"] = (p.stdout + p.stderr)[-800:]
     return res
@@ -245,9 +282,11 @@ def warm_up() -> None:
 #: (https://pubs.usgs.gov/publication/pp17508): welt of 10×10⁶ m³ before lava appeared on 2004-10-11,
 #: "more than 73×10⁶ m³" by 2005-12-15 (vs 1986/2003 reference surfaces); Schilling et al. 2006, USGS SIM 2928:
 #: "about 80 million cubic meters of dacite lava" erupted between October 2004 and February 2006.
-PUBLISHED = [("2004-10-11", 10e6, "welt before lava appeared (PP 1750-8)"),
-             ("2005-12-15", 73e6, "> 73 Mm³ by 2005-12-15 (PP 1750-8)"),
-             ("2006-02-09", 80e6, "≈ 80 Mm³ lava Oct 2004–Feb 2006 (SIM 2928)")]
+PUBLISHED = [
+    ("2004-10-11", 10e6, "welt before lava appeared (PP 1750-8)"),
+    ("2005-12-15", 73e6, "> 73 Mm³ by 2005-12-15 (PP 1750-8)"),
+    ("2006-02-09", 80e6, "≈ 80 Mm³ lava Oct 2004–Feb 2006 (SIM 2928)"),
+]
 
 
 def figures(out: Path) -> None:
@@ -269,14 +308,25 @@ def figures(out: Path) -> None:
         s = r.summary
         note = f"stable NMAD {s['stable_nmad_m']:.2f} m; co-registration {r.coreg.status} ({r.coreg.applied})"
         if np.isfinite(s["volume_changed_sigma_m3"]):
-            note += (f"\nchanged {s['changed_area_m2'] / 1e6:.3f} km², {s['volume_changed_m3'] / 1e6:+.3f} ± "
-                     f"{s['volume_changed_sigma_m3'] / 1e6:.3f} Mm³ (1σ)")
+            note += (
+                f"\nchanged {s['changed_area_m2'] / 1e6:.3f} km², {s['volume_changed_m3'] / 1e6:+.3f} ± "
+                f"{s['volume_changed_sigma_m3'] / 1e6:.3f} Mm³ (1σ)"
+            )
         else:
-            note += f"\nno stable terrain: σ unknown; net {s['volume_net_observed_m3'] / 1e6:+.2f} Mm³ over the common area"
-        p = plot_dh_map(np.where(obs, r.dh_m, np.nan), r.grid, out / f"msh_{a}_{b}_dh.png", sign=r.sign,
-                        backdrop_m=da.height_m, backdrop_posting_xy_m=r.posting_xy_m,
-                        title=f"Mount St Helens {a} → {b}: Δh over the common survey area", note=note,
-                        vmax=20 if a == 26 else 200)
+            note += (
+                f"\nno stable terrain: σ unknown; net {s['volume_net_observed_m3'] / 1e6:+.2f} Mm³ over the common area"
+            )
+        p = plot_dh_map(
+            np.where(obs, r.dh_m, np.nan),
+            r.grid,
+            out / f"msh_{a}_{b}_dh.png",
+            sign=r.sign,
+            backdrop_m=da.height_m,
+            backdrop_posting_xy_m=r.posting_xy_m,
+            title=f"Mount St Helens {a} → {b}: Δh over the common survey area",
+            note=note,
+            vmax=20 if a == 26 else 200,
+        )
         print(f"{p}: {r.coreg.summary()} | {note.replace(chr(10), ' | ')} | {wall:.2f} s")
         if a == 26:
             plt = _plt()
@@ -284,21 +334,40 @@ def figures(out: Path) -> None:
             u = r.uncertainty
             tb = u.error_model.table
             xs = [0.5 * (t_["slope_lo_deg"] + t_["slope_hi_deg"]) for t_ in tb]
-            ax[0].scatter(xs, [t_["nmad_m"] for t_ in tb], s=[4 + t_["n"] / 40 for t_ in tb], c="k", label="stable-terrain bins (NMAD)")
+            ax[0].scatter(
+                xs,
+                [t_["nmad_m"] for t_ in tb],
+                s=[4 + t_["n"] / 40 for t_ in tb],
+                c="k",
+                label="stable-terrain bins (NMAD)",
+            )
             ss = np.linspace(0, 60, 61)
             for qv, ls in ((0.0, "-"), (float(np.nanmedian([t_["q_hi"] for t_ in tb])), "--")):
-                ax[0].plot(ss, u.error_model.sigma(np.radians(ss), np.full(ss.shape, qv)), ls,
-                           label=f"model σ(slope, curvature={qv:.1f})")
-            ax[0].set_xlabel("slope (°)"); ax[0].set_ylabel("σ of dh (m)"); ax[0].legend(fontsize=8)
+                ax[0].plot(
+                    ss,
+                    u.error_model.sigma(np.radians(ss), np.full(ss.shape, qv)),
+                    ls,
+                    label=f"model σ(slope, curvature={qv:.1f})",
+                )
+            ax[0].set_xlabel("slope (°)")
+            ax[0].set_ylabel("σ of dh (m)")
+            ax[0].legend(fontsize=8)
             ax[0].set_title("26 → 27: heteroscedasticity on stable terrain", fontsize=9)
             vg = u.variogram
-            lags = np.asarray(vg.lags_m); gam = np.asarray(vg.gamma)
+            lags = np.asarray(vg.lags_m)
+            gam = np.asarray(vg.gamma)
             ax[1].semilogx(lags, gam, "ko", ms=3, label="empirical (all stable pairs, FFT)")
             ll = np.geomspace(max(lags.min(), 1), lags.max(), 200)
-            ax[1].semilogx(ll, vg.semivariance(ll), "r-",
-                           label=f"nugget {vg.nugget:.2f} + sph {vg.ranges_m[0]:.0f} m ({vg.sills[0]:.2f})"
-                                 + (f" + sph {vg.ranges_m[1]:.0f} m ({vg.sills[1]:.2f})" if len(vg.ranges_m) > 1 else ""))
-            ax[1].set_xlabel("lag (m)"); ax[1].set_ylabel("semivariance of z"); ax[1].legend(fontsize=8)
+            ax[1].semilogx(
+                ll,
+                vg.semivariance(ll),
+                "r-",
+                label=f"nugget {vg.nugget:.2f} + sph {vg.ranges_m[0]:.0f} m ({vg.sills[0]:.2f})"
+                + (f" + sph {vg.ranges_m[1]:.0f} m ({vg.sills[1]:.2f})" if len(vg.ranges_m) > 1 else ""),
+            )
+            ax[1].set_xlabel("lag (m)")
+            ax[1].set_ylabel("semivariance of z")
+            ax[1].legend(fontsize=8)
             ax[1].set_title("26 → 27: variogram of standardized stable residuals", fontsize=9)
             print(_save(fig, out / "demdiff_error_model.png"))
     # demcompare control
@@ -308,15 +377,24 @@ def figures(out: Path) -> None:
     r = dem_difference(ref, sec, epoch_a="srtm_ref", epoch_b="blurred_and_shifted")
     wall = time.perf_counter() - t
     px = r.coreg.shift_px
-    print(f"demcompare: shift {px[0]:+.3f}, {px[1]:+.3f} px (E, N) ± {r.coreg.shift_sigma_m[0] / r.posting_xy_m[0]:.3f}, "
-          f"{r.coreg.shift_sigma_m[1] / r.posting_xy_m[1]:.3f} px; NMAD {r.coreg.nmad_before_m:.2f} → "
-          f"{r.summary['stable_nmad_m']:.2f} m; changed {r.summary['changed_area_m2'] / 1e6:.2f} km² "
-          f"({100 * r.changed.sum() / r.observed.sum():.2f} % of cells); {wall:.1f} s")
-    plot_dh_map(r.dh_m, r.grid, out / "demdiff_demcompare_dh.png", sign=r.sign, backdrop_m=r.height_a_m,
-                backdrop_posting_xy_m=r.posting_xy_m, vmax=20,
-                title=f"demcompare SRTM vs blurred copy shifted (3, 5) px: found ({px[0]:+.2f}, {-px[1]:+.2f}) px",
-                note=f"Δh after co-registration; stable NMAD {r.summary['stable_nmad_m']:.2f} m; outlines: "
-                     f"'changed' at 95 % = the blur on ridges and valleys")
+    print(
+        f"demcompare: shift {px[0]:+.3f}, {px[1]:+.3f} px (E, N) ± {r.coreg.shift_sigma_m[0] / r.posting_xy_m[0]:.3f}, "
+        f"{r.coreg.shift_sigma_m[1] / r.posting_xy_m[1]:.3f} px; NMAD {r.coreg.nmad_before_m:.2f} → "
+        f"{r.summary['stable_nmad_m']:.2f} m; changed {r.summary['changed_area_m2'] / 1e6:.2f} km² "
+        f"({100 * r.changed.sum() / r.observed.sum():.2f} % of cells); {wall:.1f} s"
+    )
+    plot_dh_map(
+        r.dh_m,
+        r.grid,
+        out / "demdiff_demcompare_dh.png",
+        sign=r.sign,
+        backdrop_m=r.height_a_m,
+        backdrop_posting_xy_m=r.posting_xy_m,
+        vmax=20,
+        title=f"demcompare SRTM vs blurred copy shifted (3, 5) px: found ({px[0]:+.2f}, {-px[1]:+.2f}) px",
+        note=f"Δh after co-registration; stable NMAD {r.summary['stable_nmad_m']:.2f} m; outlines: "
+        f"'changed' at 95 % = the blur on ridges and valleys",
+    )
     # the series
     meta = json.loads((DATA / "dem.json").read_text())
     dates = {int(m["filename"].split("_")[0]): dt.date.fromisoformat(m["date"].replace("_", "-")) for m in meta}
@@ -326,20 +404,34 @@ def figures(out: Path) -> None:
     ts = dem_time_series(eps, base=base)
     wall = time.perf_counter() - t
     series, bars = series_for_plot(ts)
-    ref_pts = [{"label": "published (Schilling et al. 2006, 2008; vs 1986/2003 surfaces)",
-                "dates": [dt.date.fromisoformat(d) for d, _, _ in PUBLISHED], "values": [v for _, v, _ in PUBLISHED]}]
-    print(plot_volume_series(series, out / "msh_timeseries.png", reference=ref_pts, bars=bars,
-                             title="Mount St Helens dome 2004–2007: volume change (1σ error bars)"))
+    ref_pts = [
+        {
+            "label": "published (Schilling et al. 2006, 2008; vs 1986/2003 surfaces)",
+            "dates": [dt.date.fromisoformat(d) for d, _, _ in PUBLISHED],
+            "values": [v for _, v, _ in PUBLISHED],
+        }
+    ]
+    print(
+        plot_volume_series(
+            series,
+            out / "msh_timeseries.png",
+            reference=ref_pts,
+            bars=bars,
+            title="Mount St Helens dome 2004–2007: volume change (1σ error bars)",
+        )
+    )
     print(f"series: {len(ts.table)} comparisons in {wall:.1f} s")
     print("| interval | dates | common area km² | coreg | stable NMAD m | net volume Mm³ | cumulative Mm³ |")
     print("|---|---|---|---|---|---|---|")
     for row in ts.table:
         if row["kind"] != "interval":
             continue
-        print(f"| {row['epoch_a']}→{row['epoch_b']} | {row['date_a']} → {row['date_b']} | "
-              f"{row['observed_area_m2'] / 1e6:.2f} | {row['coreg_applied']} | {row['stable_nmad_m']:.2f} | "
-              f"{row['volume_net_m3'] / 1e6:+.2f} ± {row['volume_net_sigma_m3'] / 1e6:.2f} | "
-              f"{row['cumulative_net_m3'] / 1e6:.1f} ± {row['cumulative_net_sigma_m3'] / 1e6:.1f} |")
+        print(
+            f"| {row['epoch_a']}→{row['epoch_b']} | {row['date_a']} → {row['date_b']} | "
+            f"{row['observed_area_m2'] / 1e6:.2f} | {row['coreg_applied']} | {row['stable_nmad_m']:.2f} | "
+            f"{row['volume_net_m3'] / 1e6:+.2f} ± {row['volume_net_sigma_m3'] / 1e6:.2f} | "
+            f"{row['cumulative_net_m3'] / 1e6:.1f} ± {row['cumulative_net_sigma_m3'] / 1e6:.1f} |"
+        )
     print("| base → epoch | date | survey area km² | stable cells | net volume vs 2000 Mm³ |")
     print("|---|---|---|---|---|")
     for row in ts.table:
@@ -347,16 +439,23 @@ def figures(out: Path) -> None:
             continue
         sg = row.get("volume_net_sigma_m3", float("nan"))
         sgs = f" ± {sg / 1e6:.1f}" if sg is not None and np.isfinite(sg) else " (σ unknown: no stable terrain)"
-        print(f"| 2000→{row['epoch_b']} | {row['date_b']} | {row['observed_area_m2'] / 1e6:.2f} | {row['n_stable']} | "
-              f"{row['volume_net_m3'] / 1e6:.1f}{sgs} |")
+        print(
+            f"| 2000→{row['epoch_b']} | {row['date_b']} | {row['observed_area_m2'] / 1e6:.2f} | {row['n_stable']} | "
+            f"{row['volume_net_m3'] / 1e6:.1f}{sgs} |"
+        )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--xdem-python", default="/work/peers/xdem-venv/bin/python")
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--figures", type=Path, default=None, metavar="DIR",
-                    help="instead of the benchmark, draw the figures of docs/demdiff.md into DIR and print its tables")
+    ap.add_argument(
+        "--figures",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="instead of the benchmark, draw the figures of docs/demdiff.md into DIR and print its tables",
+    )
     args = ap.parse_args()
     if not DATA.is_dir():
         sys.exit(f"data not found: {DATA}")
@@ -373,49 +472,90 @@ def main() -> None:
         stable, changed = masks_for(case, da, db, obs)
         g = run_geocd(da, db, obs, stable, changed, args.repeat)
         x = run_xdem(args.xdem_python, da, db, obs, stable, changed) if have_xdem else None
-        print(f"\n=== MSH {a} → {b}: common survey area {int(obs.sum())} cells, stable mask {int(stable.sum())} cells, "
-              f"changed mask {int(changed.sum())} cells ===")
+        print(
+            f"\n=== MSH {a} → {b}: common survey area {int(obs.sum())} cells, stable mask {int(stable.sum())} cells, "
+            f"changed mask {int(changed.sum())} cells ==="
+        )
         rows = [("", "geocd", "xDEM 0.2.3" if x else "xdem not available")]
         rows.append(("shift applied (E, N, Z)", fmt_shift(g["shift_m"]), fmt_shift(x["shift_m"]) if x else "-"))
         rows.append(("shift fitted ± 1σ", fmt_shift(g["fitted_shift_m"]) + " ± " + fmt_shift(g["shift_sigma_m"]), "-"))
-        rows.append(("co-registration", f"{g['coreg']} on {g['n_fit']} cells",
-                     f"applied on {x['n_fit']} cells" if x else "-"))
+        rows.append(
+            ("co-registration", f"{g['coreg']} on {g['n_fit']} cells", f"applied on {x['n_fit']} cells" if x else "-")
+        )
         rows.append(("stable NMAD", f"{g['stable_nmad_m']:.2f} m", f"{x['stable_nmad_m']:.2f} m" if x else "-"))
-        rows.append(("changed area (same cells)", f"{g['changed_area_m2'] / 1e6:.3f} km²",
-                     f"{x['changed_area_m2'] / 1e6:.3f} km²" if x else "-"))
-        rows.append(("volume ± 1σ (same cells)",
-                     f"{g['volume_m3'] / 1e6:+.3f} ± {g['volume_sigma_m3'] / 1e6:.3f} Mm³ "
-                     f"(random part {g['volume_sigma_random_m3'] / 1e6:.3f})",
-                     f"{x['volume_m3'] / 1e6:+.3f} ± {x['volume_sigma_m3'] / 1e6:.3f} Mm³" if x else "-"))
+        rows.append(
+            (
+                "changed area (same cells)",
+                f"{g['changed_area_m2'] / 1e6:.3f} km²",
+                f"{x['changed_area_m2'] / 1e6:.3f} km²" if x else "-",
+            )
+        )
+        rows.append(
+            (
+                "volume ± 1σ (same cells)",
+                f"{g['volume_m3'] / 1e6:+.3f} ± {g['volume_sigma_m3'] / 1e6:.3f} Mm³ "
+                f"(random part {g['volume_sigma_random_m3'] / 1e6:.3f})",
+                f"{x['volume_m3'] / 1e6:+.3f} ± {x['volume_sigma_m3'] / 1e6:.3f} Mm³" if x else "-",
+            )
+        )
         if "volume_if_fitted_shift_applied_m3" in g:
-            rows.append(("geocd volume if its fitted shift were applied",
-                         f"{g['volume_if_fitted_shift_applied_m3'] / 1e6:+.3f} Mm³", ""))
-        rows.append(("geocd own significant change (95 %)",
-                     f"{g['own_changed_area_m2'] / 1e6:.3f} km², {g['own_volume_m3'] / 1e6:+.3f} ± "
-                     f"{g['own_volume_sigma_m3'] / 1e6:.3f} Mm³", ""))
+            rows.append(
+                (
+                    "geocd volume if its fitted shift were applied",
+                    f"{g['volume_if_fitted_shift_applied_m3'] / 1e6:+.3f} Mm³",
+                    "",
+                )
+            )
+        rows.append(
+            (
+                "geocd own significant change (95 %)",
+                f"{g['own_changed_area_m2'] / 1e6:.3f} km², {g['own_volume_m3'] / 1e6:+.3f} ± "
+                f"{g['own_volume_sigma_m3'] / 1e6:.3f} Mm³",
+                "",
+            )
+        )
         if x:
             vg = x["variogram"]
-            rows.append(("variogram ranges", ", ".join(f"{v:.0f}" for v in g["variogram"]["ranges_m"]) + " m"
-                         if g["variogram"] else "-", ", ".join(f"{v:.0f}" for v in vg["range"]) + " m" if vg else "-"))
+            rows.append(
+                (
+                    "variogram ranges",
+                    ", ".join(f"{v:.0f}" for v in g["variogram"]["ranges_m"]) + " m" if g["variogram"] else "-",
+                    ", ".join(f"{v:.0f}" for v in vg["range"]) + " m" if vg else "-",
+                )
+            )
             dv = g["volume_m3"] - x["volume_m3"]
             sv = float(np.hypot(g["volume_sigma_m3"], x["volume_sigma_m3"]))
-            rows.append(("volume difference geocd − xDEM", f"{dv / 1e6:+.3f} Mm³ = {dv / sv:+.1f} σ (combined)",
-                         f"= {dv / x['volume_sigma_m3']:+.1f} xDEM σ"))
-            rows.append(("wall time (warm, imports excluded)", f"{g['wall_s']:.3f} s",
-                         f"{x['wall_s']['total']:.2f} s (coreg {x['wall_s']['coreg']:.2f}, hetero "
-                         f"{x['wall_s']['heteroscedasticity']:.2f}, variogram {x['wall_s']['variogram']:.2f}, "
-                         f"propagation {x['wall_s']['propagation']:.2f})"))
+            rows.append(
+                (
+                    "volume difference geocd − xDEM",
+                    f"{dv / 1e6:+.3f} Mm³ = {dv / sv:+.1f} σ (combined)",
+                    f"= {dv / x['volume_sigma_m3']:+.1f} xDEM σ",
+                )
+            )
+            rows.append(
+                (
+                    "wall time (warm, imports excluded)",
+                    f"{g['wall_s']:.3f} s",
+                    f"{x['wall_s']['total']:.2f} s (coreg {x['wall_s']['coreg']:.2f}, hetero "
+                    f"{x['wall_s']['heteroscedasticity']:.2f}, variogram {x['wall_s']['variogram']:.2f}, "
+                    f"propagation {x['wall_s']['propagation']:.2f})",
+                )
+            )
             ratio = x["wall_s"]["total"] / g["wall_s"]
             ratios.append(ratio)
             rows.append(("speed ratio xDEM / geocd (in process, warm, stable mask given)", f"{ratio:.1f}×", ""))
             gp = geocd_process(a, b)
             for lab in ("cold", "warm"):
                 c = gp[lab]
-                rows.append((f"whole process, geocd {lab} (`geocd demdiff A.tif B.tif`, own stable terrain)",
-                             f"{c['wall_s']:.2f} s wall, {c['cpu_s']:.2f} s CPU"
-                             + ("" if c["returncode"] == 0 else f" FAILED {c.get('error_tail', '')[-200:]}"),
-                             f"xDEM process {x['process_s']:.2f} s wall, {x['process_cpu_s']:.2f} s CPU → "
-                             f"×{x['process_s'] / c['wall_s']:.1f} wall, ×{x['process_cpu_s'] / max(c['cpu_s'], 1e-9):.1f} CPU"))
+                rows.append(
+                    (
+                        f"whole process, geocd {lab} (`geocd demdiff A.tif B.tif`, own stable terrain)",
+                        f"{c['wall_s']:.2f} s wall, {c['cpu_s']:.2f} s CPU"
+                        + ("" if c["returncode"] == 0 else f" FAILED {c.get('error_tail', '')[-200:]}"),
+                        f"xDEM process {x['process_s']:.2f} s wall, {x['process_cpu_s']:.2f} s CPU → "
+                        f"×{x['process_s'] / c['wall_s']:.1f} wall, ×{x['process_cpu_s'] / max(c['cpu_s'], 1e-9):.1f} CPU",
+                    )
+                )
         else:
             rows.append(("wall time (warm)", f"{g['wall_s']:.3f} s", "-"))
         w = max(len(r[0]) for r in rows)
@@ -430,11 +570,15 @@ def main() -> None:
             print("  xDEM steps that failed (fallbacks used): " + " | ".join(x["failed"]))
         if x and g["coreg"].split("/")[1] != "horizontal+vertical":
             sx = x["volume_sigma_m3"] if np.isfinite(x["volume_sigma_m3"]) else g["volume_sigma_m3"]
-            print(f"  xDEM applied its shift; its volume differs from geocd's (shift not applied) by "
-                  f"{(x['volume_m3'] - g['volume_m3']) / 1e6:+.3f} Mm³ = {(x['volume_m3'] - g['volume_m3']) / sx:+.1f} σ")
+            print(
+                f"  xDEM applied its shift; its volume differs from geocd's (shift not applied) by "
+                f"{(x['volume_m3'] - g['volume_m3']) / 1e6:+.3f} Mm³ = {(x['volume_m3'] - g['volume_m3']) / sx:+.1f} σ"
+            )
     if ratios:
-        print(f"\nspeed ratio (xDEM wall / geocd wall): {', '.join(f'{r:.1f}×' for r in ratios)}; goal ≥ 5×: "
-              f"{'met' if min(ratios) >= 5 else 'NOT met'}")
+        print(
+            f"\nspeed ratio (xDEM wall / geocd wall): {', '.join(f'{r:.1f}×' for r in ratios)}; goal ≥ 5×: "
+            f"{'met' if min(ratios) >= 5 else 'NOT met'}"
+        )
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -50,9 +50,17 @@ def child(args) -> dict:
 
     X, y, obs = field(args.n)
     h = json.loads(Path(args.hyper).read_text())
-    hyper = GPHyper(length_scales=np.array(h["ls"]), signal_var=h["s2"], noise_var=h["n2"], x_mean=np.array(h["xm"]),
-                    x_std=np.array(h["xs"]), y_mean=h["ym"], names=h["names"], groups=h["groups"],
-                    signal_vars=h["svs"])
+    hyper = GPHyper(
+        length_scales=np.array(h["ls"]),
+        signal_var=h["s2"],
+        noise_var=h["n2"],
+        x_mean=np.array(h["xm"]),
+        x_std=np.array(h["xs"]),
+        y_mean=h["ym"],
+        names=h["names"],
+        groups=h["groups"],
+        signal_vars=h["svs"],
+    )
     Xo, yo = X[obs], y[obs]
     out: dict = {"method": args.case, "cells": int(args.n), "observed": int(obs.sum())}
     t0 = time.perf_counter()
@@ -69,7 +77,7 @@ def child(args) -> dict:
         out["predict_s"] = round(time.perf_counter() - t1, 2)
         out["inducing"] = int(Z.shape[0])
     out["total_s"] = round(time.perf_counter() - t0, 2)
-    out["peak_rss_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2, 3)
+    out["peak_rss_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 3)
     if args.save:
         np.savez(args.save, mean=mean, sd=sd)
     return out
@@ -96,29 +104,47 @@ def main() -> None:
     sizes = [int(s) for s in args.sizes.split(",")]
     X, y, obs = field(min(sizes))
     t0 = time.perf_counter()
-    hyper = fit_hyperparameters(X[obs], y[obs], GPParams(n_fit=500),
-                                names=["x", "y", "dem", "coarse", "buildings"])
+    hyper = fit_hyperparameters(X[obs], y[obs], GPParams(n_fit=500), names=["x", "y", "dem", "coarse", "buildings"])
     hyper_s = time.perf_counter() - t0
     tmp = Path("/tmp") / f"bench_gp_{int(time.time())}"
     tmp.mkdir(exist_ok=True)
     hp = tmp / "hyper.json"
-    hp.write_text(json.dumps({"ls": hyper.length_scales.tolist(), "s2": hyper.signal_var, "n2": hyper.noise_var,
-                              "xm": hyper.x_mean.tolist(), "xs": hyper.x_std.tolist(), "ym": hyper.y_mean,
-                              "names": hyper.names, "groups": hyper.groups, "svs": hyper.signal_vars}))
+    hp.write_text(
+        json.dumps(
+            {
+                "ls": hyper.length_scales.tolist(),
+                "s2": hyper.signal_var,
+                "n2": hyper.noise_var,
+                "xm": hyper.x_mean.tolist(),
+                "xs": hyper.x_std.tolist(),
+                "ym": hyper.y_mean,
+                "names": hyper.names,
+                "groups": hyper.groups,
+                "svs": hyper.signal_vars,
+            }
+        )
+    )
     rows = []
     base = [sys.executable, __file__, "--hyper", str(hp), "--inducing", str(args.inducing), "--batch", str(args.batch)]
     for n in sizes:
         n_obs = int(field(n)[2].sum())
-        need_gb = 2 * 8 * n_obs ** 2 / 1024 ** 3
+        need_gb = 2 * 8 * n_obs**2 / 1024**3
         for case in ("exact", "sparse"):
             if case == "exact" and need_gb > args.exact_max_gb:
-                rows.append({"method": "exact", "cells": n, "observed": n_obs,
-                             "skipped": f"K and its Cholesky factor need {need_gb:.0f} GB > {args.exact_max_gb} GB"})
+                rows.append(
+                    {
+                        "method": "exact",
+                        "cells": n,
+                        "observed": n_obs,
+                        "skipped": f"K and its Cholesky factor need {need_gb:.0f} GB > {args.exact_max_gb} GB",
+                    }
+                )
                 print(rows[-1], flush=True)
                 continue
             save = tmp / f"{case}_{n}.npz"
-            r = subprocess.run(base + ["--case", case, "--n", str(n), "--save", str(save)], capture_output=True,
-                               text=True)
+            r = subprocess.run(
+                base + ["--case", case, "--n", str(n), "--save", str(save)], capture_output=True, text=True
+            )
             if r.returncode != 0:
                 rows.append({"method": case, "cells": n, "error": r.stderr.strip().splitlines()[-1:]})
             else:
@@ -127,15 +153,25 @@ def main() -> None:
         ex, sp = tmp / f"exact_{n}.npz", tmp / f"sparse_{n}.npz"
         if ex.exists() and sp.exists():
             a, b = np.load(ex), np.load(sp)
-            rows.append({"cells": n, "sparse_vs_exact": {
-                "rmse_mean": round(float(np.sqrt(np.mean((a["mean"] - b["mean"]) ** 2))), 5),
-                "max_abs_mean": round(float(np.max(np.abs(a["mean"] - b["mean"]))), 5),
-                "median_sd_exact": round(float(np.median(a["sd"])), 5),
-                "median_sd_sparse": round(float(np.median(b["sd"])), 5)}})
+            rows.append(
+                {
+                    "cells": n,
+                    "sparse_vs_exact": {
+                        "rmse_mean": round(float(np.sqrt(np.mean((a["mean"] - b["mean"]) ** 2))), 5),
+                        "max_abs_mean": round(float(np.max(np.abs(a["mean"] - b["mean"]))), 5),
+                        "median_sd_exact": round(float(np.median(a["sd"])), 5),
+                        "median_sd_sparse": round(float(np.median(b["sd"])), 5),
+                    },
+                }
+            )
             print(rows[-1], flush=True)
-    res = {"hyperparameter_fit": {"cells": 500, "seconds": round(hyper_s, 2), "hyper": hyper.to_dict()},
-           "inducing": args.inducing, "batch": args.batch, "rows": rows,
-           "machine": "2 cores shared with other sessions; times are wall clock"}
+    res = {
+        "hyperparameter_fit": {"cells": 500, "seconds": round(hyper_s, 2), "hyper": hyper.to_dict()},
+        "inducing": args.inducing,
+        "batch": args.batch,
+        "rows": rows,
+        "machine": "2 cores shared with other sessions; times are wall clock",
+    }
     Path(args.out).write_text(json.dumps(res, indent=1))
     print(f"wrote {args.out}")
 

@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = (REPO.parent / "shared" / "data" / "cnes_picanteo_kahramanmaras").resolve()
 CARS_VENV = Path(os.environ.get("CARS_VENV", "/work/peers/cars-venv"))
 EPOCHS = {"pre_event": ("pre_event_img1", "pre_event_img2"), "post_event": ("post_event_img1", "post_event_img2")}
-GEOID_HEIGHT_M = 680.0   # rough terrain height above the geoid (geocd's ellipsoidal ground ~705 m, N ≈ 25 m)
+GEOID_HEIGHT_M = 680.0  # rough terrain height above the geoid (geocd's ellipsoidal ground ~705 m, N ≈ 25 m)
 
 
 def _tree_rss(pid: int) -> int:
@@ -87,9 +87,13 @@ def run_measured(cmd: list[str], cwd: Path, log: Path) -> dict:
         rc = p.wait()
         th.join()
     r1 = os.times()
-    return {"cmd": " ".join(cmd), "returncode": rc, "wall_s": round(time.perf_counter() - t0, 1),
-            "cpu_s": round((r1.children_user - r0.children_user) + (r1.children_system - r0.children_system), 1),
-            "peak_rss_mb": round(peak[0] / 2 ** 20, 0)}
+    return {
+        "cmd": " ".join(cmd),
+        "returncode": rc,
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "cpu_s": round((r1.children_user - r0.children_user) + (r1.children_system - r0.children_system), 1),
+        "peak_rss_mb": round(peak[0] / 2**20, 0),
+    }
 
 
 def stage_cars(work: Path) -> dict:
@@ -98,19 +102,37 @@ def stage_cars(work: Path) -> dict:
 
     work.mkdir(parents=True, exist_ok=True)
     dem = work / "flat_dem.tif"
-    with rasterio.open(dem, "w", driver="GTiff", width=40, height=40, count=1, dtype="float32", crs="EPSG:4326",
-                       transform=from_origin(36.85, 37.64, 0.004, 0.004)) as ds:
+    with rasterio.open(
+        dem,
+        "w",
+        driver="GTiff",
+        width=40,
+        height=40,
+        count=1,
+        dtype="float32",
+        crs="EPSG:4326",
+        transform=from_origin(36.85, 37.64, 0.004, 0.004),
+    ) as ds:
         ds.write(np.full((1, 40, 40), GEOID_HEIGHT_M, np.float32))
     res = {}
     for ep, (a, b) in EPOCHS.items():
         d = work / ep
         d.mkdir(exist_ok=True)
-        cfg = {"input": {"sensors": {n: {"image": str(DATA / f"{n}.tif"), "geomodel": str(DATA / f"{n}.geom")}
-                                     for n in (a, b)},
-                         "pairing": [[a, b]], "initial_elevation": {"dem": str(dem)}},
-               "output": {"directory": str(d / "out"), "resolution": 0.5, "epsg": 32637, "geoid": False,
-                          "auxiliary": {"ambiguity": True}},
-               "orchestrator": {"mode": "multiprocessing", "nb_workers": 2}}
+        cfg = {
+            "input": {
+                "sensors": {n: {"image": str(DATA / f"{n}.tif"), "geomodel": str(DATA / f"{n}.geom")} for n in (a, b)},
+                "pairing": [[a, b]],
+                "initial_elevation": {"dem": str(dem)},
+            },
+            "output": {
+                "directory": str(d / "out"),
+                "resolution": 0.5,
+                "epsg": 32637,
+                "geoid": False,
+                "auxiliary": {"ambiguity": True},
+            },
+            "orchestrator": {"mode": "multiprocessing", "nb_workers": 2},
+        }
         (d / "config.json").write_text(json.dumps(cfg, indent=1))
         r = run_measured([str(CARS_VENV / "bin" / "cars"), str(d / "config.json")], d, d / "cars.log")
         dsm = d / "out" / "dsm" / "dsm.tif"
@@ -143,8 +165,17 @@ def _to_grid(path: str, grid, resampling="bilinear") -> np.ndarray:
         src = ds.read(1).astype(np.float32)
         if ds.nodata is not None:
             src[src == ds.nodata] = np.nan
-        reproject(src, out, src_transform=ds.transform, src_crs=ds.crs, dst_transform=grid.transform,
-                  dst_crs=grid.crs, src_nodata=np.nan, dst_nodata=np.nan, resampling=getattr(Resampling, resampling))
+        reproject(
+            src,
+            out,
+            src_transform=ds.transform,
+            src_crs=ds.crs,
+            dst_transform=grid.transform,
+            dst_crs=grid.crs,
+            src_nodata=np.nan,
+            dst_nodata=np.nan,
+            resampling=getattr(Resampling, resampling),
+        )
     return out
 
 
@@ -153,11 +184,14 @@ def _dsm_stats(a: np.ndarray, ref: np.ndarray) -> dict:
     d = (a - ref)[both]
     off = float(np.median(d))
     r = d - off
-    return {"offset_m": round(off, 2), "median_abs_dz_m": round(float(np.median(np.abs(r))), 3),
-            "nmad_m": round(float(1.4826 * np.median(np.abs(r - np.median(r)))), 3),
-            "within_1m": round(float(np.mean(np.abs(r) < 1.0)), 4),
-            "completeness_geocd": round(float(np.isfinite(a).mean()), 4),
-            "completeness_cars": round(float(np.isfinite(ref).mean()), 4)}
+    return {
+        "offset_m": round(off, 2),
+        "median_abs_dz_m": round(float(np.median(np.abs(r))), 3),
+        "nmad_m": round(float(1.4826 * np.median(np.abs(r - np.median(r)))), 3),
+        "within_1m": round(float(np.mean(np.abs(r) < 1.0)), 4),
+        "completeness_geocd": round(float(np.isfinite(a).mean()), 4),
+        "completeness_cars": round(float(np.isfinite(ref).mean()), 4),
+    }
 
 
 def stage_compare(work: Path, run_dir: Path) -> dict:
@@ -168,10 +202,10 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
 
     if (work / "cars_stage.json").is_file():
         cars = json.loads((work / "cars_stage.json").read_text())
-    else:   # the cars stage still running: the epochs it finished (its stdout lines "epoch {json}")
+    else:  # the cars stage still running: the epochs it finished (its stdout lines "epoch {json}")
         cars = {}
         log = work / "cars_stdout.log"
-        for line in (log.read_text().splitlines() if log.is_file() else []):
+        for line in log.read_text().splitlines() if log.is_file() else []:
             ep, _, js = line.partition(" ")
             if ep in EPOCHS and js.startswith("{"):
                 cars[ep] = json.loads(js)
@@ -194,8 +228,9 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
             out[f"cars_{ep}"] = {k: cars[ep][k] for k in ("wall_s", "cpu_s", "peak_rss_mb", "returncode")}
             if cars[ep].get("bulldozer"):
                 out[f"bulldozer_{ep}"] = {k: cars[ep]["bulldozer"][k] for k in ("wall_s", "cpu_s", "peak_rss_mb")}
+
     # picanteo's 3-D rule on CARS's products
-    def dhm(ep):   # Bulldozer's DHM, or DSM − Bulldozer's DTM when it wrote none
+    def dhm(ep):  # Bulldozer's DHM, or DSM − Bulldozer's DTM when it wrote none
         if cars[ep].get("dhm"):
             return _to_grid(cars[ep]["dhm"], grid)
         return cars_dsm[ep] - _to_grid(cars[ep]["dtm"], grid)
@@ -218,24 +253,34 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
         small[0] = False
         flag[small[lab]] = False
         observed = np.isfinite(diff)
-        out["picanteo_rule"] = {"flagged_fraction_of_observed": round(float(flag[observed].mean()), 4),
-                                "observed_fraction": round(float(observed.mean()), 4)}
+        out["picanteo_rule"] = {
+            "flagged_fraction_of_observed": round(float(flag[observed].mean()), 4),
+            "observed_fraction": round(float(observed.mean()), 4),
+        }
         # both change maps on the same building objects (geocd's damage layer geometry)
         dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
         from rasterio.features import rasterize
 
-        lab = rasterize([(g, i + 1) for i, g in enumerate(dmg.geometry)], out_shape=grid.shape,
-                        transform=grid.transform, fill=0, dtype="int32")
+        lab = rasterize(
+            [(g, i + 1) for i, g in enumerate(dmg.geometry)],
+            out_shape=grid.shape,
+            transform=grid.transform,
+            fill=0,
+            dtype="int32",
+        )
         idx = np.arange(1, len(dmg) + 1)
         frac_pic = np.asarray(ndi.sum(flag, lab, idx)) / np.maximum(np.asarray(ndi.sum(observed, lab, idx)), 1)
         pic_changed = frac_pic >= 0.15
         geocd_lowered = dmg["class"].isin(["collapsed", "partly collapsed", "lowered"]).to_numpy()
-        out["buildings"] = {"n": int(len(dmg)), "geocd_lowered_classes": int(geocd_lowered.sum()),
-                            "picanteo_rule_changed": int(pic_changed.sum()),
-                            "both": int((pic_changed & geocd_lowered).sum()),
-                            "geocd_only": int((geocd_lowered & ~pic_changed).sum()),
-                            "picanteo_only": int((pic_changed & ~geocd_lowered).sum()),
-                            "geocd_classes": dmg["class"].value_counts().to_dict()}
+        out["buildings"] = {
+            "n": int(len(dmg)),
+            "geocd_lowered_classes": int(geocd_lowered.sum()),
+            "picanteo_rule_changed": int(pic_changed.sum()),
+            "both": int((pic_changed & geocd_lowered).sum()),
+            "geocd_only": int((geocd_lowered & ~pic_changed).sum()),
+            "picanteo_only": int((pic_changed & ~geocd_lowered).sum()),
+            "geocd_classes": dmg["class"].value_counts().to_dict(),
+        }
         dmg = dmg.assign(picanteo_frac=frac_pic.round(3), picanteo_changed=pic_changed)
         out["per_building"] = dmg.drop(columns="geometry").to_dict(orient="records")
         np.save(work / "picanteo_flag.npy", flag)

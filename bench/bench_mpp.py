@@ -65,8 +65,23 @@ def kernel_bench(repeat: int) -> dict:
     e8 = f.colour_mask if f.colour_mask is not None else np.zeros((0, 0), np.uint8)
     s8 = f.shadow_mask if f.shadow_mask is not None else np.zeros((0, 0), np.uint8)
     sd = f.shadow_dir or (0.0, 0.0)
-    args = (f.grey, f.valid, f.grad_mag, f.grad_ori, e8, s8, float(sd[0]), float(sd[1]), np.zeros((0, 0), np.float32),
-            2.5, float(m.edge_w), float(m.ring_w), float(m.shadow_w), 3.0 * f.noise_sigma, 2.0)
+    args = (
+        f.grey,
+        f.valid,
+        f.grad_mag,
+        f.grad_ori,
+        e8,
+        s8,
+        float(sd[0]),
+        float(sd[1]),
+        np.zeros((0, 0), np.float32),
+        2.5,
+        float(m.edge_w),
+        float(m.ring_w),
+        float(m.shadow_w),
+        3.0 * f.noise_sigma,
+        2.0,
+    )
     out = np.empty((len(rects), K.N_FEATURES))
     t0 = time.perf_counter()
     K.rect_features(rects[:2], *args, -np.inf, float(m.edge_w), 0.0, out[:2])
@@ -80,15 +95,20 @@ def kernel_bench(repeat: int) -> dict:
         ref = K.rect_features_ref(rects[:40], *args)
         tr.append((time.perf_counter() - t0) * len(rects) / 40)
     agree = bool(np.allclose(out[:40], ref, rtol=1e-6, atol=1e-9, equal_nan=True))
-    res = {"rectangles": len(rects), "kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
-           "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1), "ratio": round(min(tr) / min(tk), 1),
-           "first_call_s": round(cold, 2), "agree": agree}
+    res = {
+        "rectangles": len(rects),
+        "kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
+        "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1),
+        "ratio": round(min(tr) / min(tk), 1),
+        "first_call_s": round(cold, 2),
+        "agree": agree,
+    }
     # the height-step kernel on a height map of the same size: noise and raised blocks 8–30 m across
     rng = np.random.default_rng(1)
     h = rng.normal(0.0, 0.2, f.grey.shape).astype(np.float32)
     for _ in range(40):
         i, j, a_, b_ = rng.integers(0, 256, 2).tolist() + rng.integers(16, 60, 2).tolist()
-        h[i:i + a_, j:j + b_] += rng.uniform(3, 15)
+        h[i : i + a_, j : j + b_] += rng.uniform(3, 15)
     sargs = (h, 0.85, 0.5, float(m.edge_w), float(m.ring_w), float(m.ring_w))
     st = np.empty(len(rects))
     t0 = time.perf_counter()
@@ -102,12 +122,28 @@ def kernel_bench(repeat: int) -> dict:
         t0 = time.perf_counter()
         ref = K.rect_steps_ref(rects[:40], *sargs)
         tr.append((time.perf_counter() - t0) * len(rects) / 40)
-    res["step_kernel"] = {"kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
-                          "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1), "ratio": round(min(tr) / min(tk), 1),
-                          "first_call_s": round(cold, 2), "agree": bool(np.allclose(st[:40], ref, atol=1e-12))}
+    res["step_kernel"] = {
+        "kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
+        "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1),
+        "ratio": round(min(tr) / min(tk), 1),
+        "first_call_s": round(cold, 2),
+        "agree": bool(np.allclose(st[:40], ref, atol=1e-12)),
+    }
     # the sub-cell edge fit on the same image and height map (one date, DSM gate on)
-    fargs = (np.ones((len(rects), 1), bool), f.grad_mag[None], f.grad_ori[None], h[None], True, 2.5,
-             float(m.ring_w), 0.25, float(m.edge_w), float(m.edge_w + m.ring_w), float(m.smin), float(m.smax))
+    fargs = (
+        np.ones((len(rects), 1), bool),
+        f.grad_mag[None],
+        f.grad_ori[None],
+        h[None],
+        True,
+        2.5,
+        float(m.ring_w),
+        0.25,
+        float(m.edge_w),
+        float(m.edge_w + m.ring_w),
+        float(m.smin),
+        float(m.smax),
+    )
     t0 = time.perf_counter()
     K.fit_sides(rects[:2].copy(), *fargs)
     cold = time.perf_counter() - t0
@@ -120,10 +156,13 @@ def kernel_bench(repeat: int) -> dict:
         t0 = time.perf_counter()
         ref = K.fit_sides_ref(rects[:40], fargs[0][:40], *fargs[1:])
         tr.append((time.perf_counter() - t0) * len(rects) / 40)
-    res["edge_fit_kernel"] = {"kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
-                              "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1),
-                              "ratio": round(min(tr) / min(tk), 1), "first_call_s": round(cold, 2),
-                              "agree": bool(np.allclose(fit[:40], ref, atol=1e-9))}
+    res["edge_fit_kernel"] = {
+        "kernel_us_per_rect": round(min(tk) / len(rects) * 1e6, 1),
+        "numpy_us_per_rect": round(min(tr) / len(rects) * 1e6, 1),
+        "ratio": round(min(tr) / min(tk), 1),
+        "first_call_s": round(cold, 2),
+        "agree": bool(np.allclose(fit[:40], ref, atol=1e-9)),
+    }
     return res
 
 
@@ -152,8 +191,9 @@ def cold_bench() -> dict:
 
     with tempfile.TemporaryDirectory(prefix="geocd_numba_cold_") as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache, NUMBA_NUM_THREADS="1")
-        r = subprocess.run([sys.executable, __file__, "--cold-child"], env=env, capture_output=True, text=True,
-                           check=True)
+        r = subprocess.run(
+            [sys.executable, __file__, "--cold-child"], env=env, capture_output=True, text=True, check=True
+        )
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
@@ -172,10 +212,18 @@ def run_bench(image_a, image_b, posting, repeat, **kw) -> dict:
     wall, cpu, det = best
     mpx = 2 * image_a.shape[-1] * image_a.shape[-2] / 1e6
     r = det.result
-    return {"cells": list(image_a.shape[-2:]), "wall_s": round(wall, 2), "cpu_s": round(cpu, 2),
-            "s_per_mpx_pair": round(wall / mpx, 1), "cpu_s_per_mpx_pair": round(cpu / mpx, 1),
-            "iterations": r.iterations, "converged": r.converged, "births": r.births,
-            "us_per_birth": round(wall / max(r.births, 1) * 1e6, 1), "rectangles": len(r)}
+    return {
+        "cells": list(image_a.shape[-2:]),
+        "wall_s": round(wall, 2),
+        "cpu_s": round(cpu, 2),
+        "s_per_mpx_pair": round(wall / mpx, 1),
+        "cpu_s_per_mpx_pair": round(cpu / mpx, 1),
+        "iterations": r.iterations,
+        "converged": r.converged,
+        "births": r.births,
+        "us_per_birth": round(wall / max(r.births, 1) * 1e6, 1),
+        "rectangles": len(r),
+    }
 
 
 def main() -> None:
@@ -196,7 +244,7 @@ def main() -> None:
     res["kernel"] = kernel_bench(a.repeat)
     print("energy kernel:", res["kernel"], flush=True)
     runs = {}
-    for f in sorted((DATA / "A").glob("*.png"))[:a.pairs]:
+    for f in sorted((DATA / "A").glob("*.png"))[: a.pairs]:
         runs[f.stem] = run_bench(_png(f), _png(DATA / "B" / f.name), 0.5, max(1, a.repeat - 2))
         print(f.stem, runs[f.stem], flush=True)
     res["levir"] = runs
@@ -206,10 +254,20 @@ def main() -> None:
 
         inp = _town_inputs(Path(a.town[0]), Path(a.town[1]))
         dsms = {"dsm_a": inp["dsm_a"], "dsm_b": inp["dsm_b"], "ground_m": inp["ground"]}
-        for label, kw in (("joint", {}), ("joint + height", {"params": {"height": "and"}, **dsms}),
-                          ("joint + height, no step term", {"params": {"height": "and", "step": "off"}, **dsms})):
-            res[f"town {label}"] = run_bench(inp["image_a"], inp["image_b"], inp["grid"].posting_m, 1,
-                                             valid_a=inp["valid_a"], valid_b=inp["valid_b"], **kw)
+        for label, kw in (
+            ("joint", {}),
+            ("joint + height", {"params": {"height": "and"}, **dsms}),
+            ("joint + height, no step term", {"params": {"height": "and", "step": "off"}, **dsms}),
+        ):
+            res[f"town {label}"] = run_bench(
+                inp["image_a"],
+                inp["image_b"],
+                inp["grid"].posting_m,
+                1,
+                valid_a=inp["valid_a"],
+                valid_b=inp["valid_b"],
+                **kw,
+            )
             print("town", label, res[f"town {label}"], flush=True)
     res["load_average_end"] = os.getloadavg()
     print(json.dumps(res, indent=2))

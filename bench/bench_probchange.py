@@ -36,8 +36,10 @@ def make_images(width: int, height: int, seed: int = 0):
 
     tex = Texture(seed, extent_m=400.0, step_m=0.25)
     rng = np.random.default_rng(seed)
-    par = {"A": [(0.0, 0.02), (0.55, 0.05), (-0.5, 0.03), (0.3, -0.45)],
-           "B": [(0.05, -0.1), (-0.45, 0.02), (0.5, 0.1), (-0.2, 0.4)]}
+    par = {
+        "A": [(0.0, 0.02), (0.55, 0.05), (-0.5, 0.03), (0.3, -0.45)],
+        "B": [(0.05, -0.1), (-0.45, 0.02), (0.5, 0.1), (-0.2, 0.4)],
+    }
     out = {}
     for e in ("A", "B"):
         out[e] = []
@@ -70,13 +72,19 @@ def main() -> None:
     views = {e: [make_view(img, cam, name=n) for img, cam, n in ims[e]] for e in ("A", "B")}
     # the key window: the central W x H pixels of A1
     key_full = views["A"][0]
-    key = key_full.__class__(key_full.name, tuple(c.__class__(np.ascontiguousarray(c.data[30:30 + H, 30:30 + W]), 30,
-                                                               30, c.name, c.noise_sigma) for c in key_full.chips),
-                             key_full.camera)
+    key = key_full.__class__(
+        key_full.name,
+        tuple(
+            c.__class__(np.ascontiguousarray(c.data[30 : 30 + H, 30 : 30 + W]), 30, 30, c.name, c.noise_sigma)
+            for c in key_full.chips
+        ),
+        key_full.camera,
+    )
     crs = utm_crs_for(LON0, LAT0)
     x0, y0 = from_lonlat(LON0, LAT0, crs)
-    grid = AOIGrid.from_bounds(float(x0) - W * 0.25, float(y0) - H * 0.25, float(x0) + W * 0.25,
-                               float(y0) + H * 0.25, 0.5, crs)
+    grid = AOIGrid.from_bounds(
+        float(x0) - W * 0.25, float(y0) - H * 0.25, float(x0) + W * 0.25, float(y0) + H * 0.25, 0.5, crs
+    )
     rng_m = (195.0, 235.0)
     p = ProbChangeParams(n_bins=a.bins, height_range_m=rng_m)
     pr = ProbChangeParams.robust(n_bins=a.bins, height_range_m=rng_m)
@@ -85,8 +93,9 @@ def main() -> None:
     # warm-up on small problems (numba compilation)
     small = grid.subgrid(0, 0, 64, 64)
     kc = key.chips[0]
-    key_small = key.__class__(key.name, (kc.__class__(np.ascontiguousarray(kc.data[:64, :64]), 30, 30, kc.name),),
-                              key.camera)
+    key_small = key.__class__(
+        key.name, (kc.__class__(np.ascontiguousarray(kc.data[:64, :64]), 30, 30, kc.name),), key.camera
+    )
     detect_keyframe(key_small, views["A"][1:], views["B"], params=p.replace(n_bins=16))
     detect_keyframe(key_small, views["A"][1:], views["B"], params=pr.replace(n_bins=16))
     detect_objectspace(views["A"], views["B"], small, params=p.replace(n_bins=16))
@@ -110,10 +119,13 @@ def main() -> None:
     print(f"machine: {os.cpu_count()} CPUs, numba threads {numba.get_num_threads()}, load average {load:.1f}")
     print(f"key frame {W}x{H}, n={a.bins}, 4 images per epoch (3 pairs each), best of {a.repeat}")
     print(f"{'what':48s} {'seconds':>8s} {'vs MVS':>8s}")
-    rows = [("probchange key frame, thesis model", t_key), ("probchange key frame, robust model", t_key_r),
-            (f"probchange object space, {grid.width}x{grid.height} grid", t_obj),
-            ("stereo match_pair, one pair (same grid)", t_pair),
-            ("MVS baseline: 3 pairs per epoch x 2 epochs", t_mvs)]
+    rows = [
+        ("probchange key frame, thesis model", t_key),
+        ("probchange key frame, robust model", t_key_r),
+        (f"probchange object space, {grid.width}x{grid.height} grid", t_obj),
+        ("stereo match_pair, one pair (same grid)", t_pair),
+        ("MVS baseline: 3 pairs per epoch x 2 epochs", t_mvs),
+    ]
     for name, t in rows:
         print(f"{name:48s} {t:8.2f} {t / t_mvs:8.2f}")
     print(f"hypothesis evaluations per second (key frame, thesis): {W * H * a.bins / t_key / 1e6:.1f} M")

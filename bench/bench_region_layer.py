@@ -75,9 +75,19 @@ def write(d: Path, out: Path, mode: str) -> None:
         kw = dict(cell_area_m2=1.0, method="demdiff", epoch_a="A", epoch_b="B", volume_sigma=lambda k: 1.0)
         layer = (regions_layer if mode == "whole" else regions_layer_batches)(merged, g, **kw)
         write_gpkg(out, {"changes": layer})
-    print(json.dumps({"mode": mode, "regions": len(merged), "base_rss_mb": base >> 20,
-                      "peak_above_base_mb": (m.peak - base) >> 20, "merge_s": round(t1 - t0, 2),
-                      "wall_s": round(time.perf_counter() - t0, 2), "gpkg_mb": out.stat().st_size >> 20}))
+    print(
+        json.dumps(
+            {
+                "mode": mode,
+                "regions": len(merged),
+                "base_rss_mb": base >> 20,
+                "peak_above_base_mb": (m.peak - base) >> 20,
+                "merge_s": round(t1 - t0, 2),
+                "wall_s": round(time.perf_counter() - t0, 2),
+                "gpkg_mb": out.stat().st_size >> 20,
+            }
+        )
+    )
 
 
 def same(a: Path, b: Path) -> None:
@@ -86,8 +96,11 @@ def same(a: Path, b: Path) -> None:
     ia, ib = pyogrio.read_info(a, layer="changes"), pyogrio.read_info(b, layer="changes")
     ra = pyogrio.read_dataframe(a, layer="changes")
     rb = pyogrio.read_dataframe(b, layer="changes")
-    ok = (ia["geometry_type"] == ib["geometry_type"] and ra.drop(columns="geometry").equals(rb.drop(columns="geometry"))
-          and list(ra.geometry.to_wkb()) == list(rb.geometry.to_wkb()))
+    ok = (
+        ia["geometry_type"] == ib["geometry_type"]
+        and ra.drop(columns="geometry").equals(rb.drop(columns="geometry"))
+        and list(ra.geometry.to_wkb()) == list(rb.geometry.to_wkb())
+    )
     print(json.dumps({"same": bool(ok), "rows": len(ra), "geometry_type": [ia["geometry_type"], ib["geometry_type"]]}))
 
 

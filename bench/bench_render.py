@@ -66,16 +66,20 @@ def main() -> None:
     sun = _sun(p, town)["A"].direction_enu()
     cams = {**make_satellite_cameras(p, town), **make_aerial_cameras(p, town)}
     rp = RenderParams(supersample=a.supersample)
-    print(f"geocd.synth render benchmark: numba {numba.__version__}, {numba.get_num_threads()} threads, "
-          f"{S.kind.shape[0]} objects, supersample {a.supersample}x{a.supersample}")
-    print(f"{'view':8s} {'size':>10s} {'render px/s':>12s} {'rays/s':>11s} {'trace rays/s':>13s} "
-          f"{'numpy rays/s':>13s} {'trace/numpy':>12s}")
+    print(
+        f"geocd.synth render benchmark: numba {numba.__version__}, {numba.get_num_threads()} threads, "
+        f"{S.kind.shape[0]} objects, supersample {a.supersample}x{a.supersample}"
+    )
+    print(
+        f"{'view':8s} {'size':>10s} {'render px/s':>12s} {'rays/s':>11s} {'trace rays/s':>13s} "
+        f"{'numpy rays/s':>13s} {'trace/numpy':>12s}"
+    )
     for name in (a.view, "A_air2"):
         cam = cams[name]
         render_view(town, "A", cam, sun, rp, scene=S, window=(0, 0, 8, 8))  # warm-up (compile / cache load)
         t_render, _ = best_time(lambda: render_view(town, "A", cam, sun, rp, scene=S), a.repeat)
         npx = cam.width * cam.height
-        nrays = npx * a.supersample ** 2
+        nrays = npx * a.supersample**2
         # geometry only, same primary rays
         k = a.supersample
         off = (np.arange(k) + 0.5) / k - 0.5
@@ -94,9 +98,11 @@ def main() -> None:
         agree = float(np.mean(obr == ob[sel]))
         r_trace = len(tm) / t_trace
         r_ref = len(sel) / t_ref
-        print(f"{name:8s} {cam.width:>4d}x{cam.height:<5d} {npx / t_render:12.0f} {nrays / t_render:11.0f} "
-              f"{r_trace:13.0f} {r_ref:13.0f} {r_trace / r_ref:11.0f}x   (render {t_render:.2f} s; "
-              f"first hits agree with numpy on {100 * agree:.1f}% of the baseline rays)")
+        print(
+            f"{name:8s} {cam.width:>4d}x{cam.height:<5d} {npx / t_render:12.0f} {nrays / t_render:11.0f} "
+            f"{r_trace:13.0f} {r_ref:13.0f} {r_trace / r_ref:11.0f}x   (render {t_render:.2f} s; "
+            f"first hits agree with numpy on {100 * agree:.1f}% of the baseline rays)"
+        )
 
 
 if __name__ == "__main__":

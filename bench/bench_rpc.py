@@ -69,8 +69,10 @@ def main(argv: list[str] | None = None) -> int:
     max_threads = numba.config.NUMBA_NUM_THREADS
     print(f"# geocd RPC benchmark: {n:.0e} points in the validity box of {args.image.name}")
     print(f"# {model!r}")
-    print(f"# rasterio {rasterio.__version__}, GDAL {rasterio.__gdal_version__}, numba {numba.__version__}, "
-          f"{os.cpu_count()} CPUs, numba threads available {max_threads}, best of {args.repeat}")
+    print(
+        f"# rasterio {rasterio.__version__}, GDAL {rasterio.__gdal_version__}, numba {numba.__version__}, "
+        f"{os.cpu_count()} CPUs, numba threads available {max_threads}, best of {args.repeat}"
+    )
 
     rows = []
 
@@ -101,8 +103,13 @@ def main(argv: list[str] | None = None) -> int:
     diff = float(np.max(np.hypot(np.asarray(g_col) - col, np.asarray(g_row) - row)))
     report("projection", "GDAL RPCTransformer.rowcol (1 thread)", best["gdal"], None)
     for threads in thread_counts:
-        report("projection", f"geocd RPCModel.project ({threads} thread{'s' * (threads > 1)})", best[threads],
-               best["gdal"], f"max |geocd - GDAL| = {diff:.1e} px")
+        report(
+            "projection",
+            f"geocd RPCModel.project ({threads} thread{'s' * (threads > 1)})",
+            best[threads],
+            best["gdal"],
+            f"max |geocd - GDAL| = {diff:.1e} px",
+        )
 
     # ---- localization --------------------------------------------------------------------
     def accuracy(x, y) -> str:
@@ -111,8 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         ok = np.isfinite(x) & np.isfinite(y)
         c2, r2 = model.project(x[ok], y[ok], h[ok])
         err = np.hypot(c2 - col[ok], r2 - row[ok])
-        return (f"error max {err.max():.1e} px, p99 {np.percentile(err, 99):.1e} px, "
-                f"converged {100.0 * ok.mean():.2f}%")
+        return f"error max {err.max():.1e} px, p99 {np.percentile(err, 99):.1e} px, converged {100.0 * ok.mean():.2f}%"
 
     gdal_opts = {"default (0.1 px)": {}, "RPC_PIXEL_ERROR_THRESHOLD=1e-6": {"RPC_PIXEL_ERROR_THRESHOLD": 1e-6}}
     best = {}
@@ -136,12 +142,18 @@ def main(argv: list[str] | None = None) -> int:
     ok = its >= 0
     hist = np.bincount(its[ok])
     for threads in thread_counts:
-        report("localization", f"geocd RPCModel.localize ({threads} thread{'s' * (threads > 1)})", best[threads],
-               best["RPC_PIXEL_ERROR_THRESHOLD=1e-6"],
-               accuracy(x, y) + f", iterations max {its[ok].max()} mean {its[ok].mean():.2f} "
-               f"(histogram {hist.tolist()}); vs GDAL default {best['default (0.1 px)'] / best[threads]:.1f}x")
-    print("# ratios: geocd rate / GDAL rate (localization: against GDAL at 1e-6 px; "
-          "the ratio against GDAL's default is at the end of the line)")
+        report(
+            "localization",
+            f"geocd RPCModel.localize ({threads} thread{'s' * (threads > 1)})",
+            best[threads],
+            best["RPC_PIXEL_ERROR_THRESHOLD=1e-6"],
+            accuracy(x, y) + f", iterations max {its[ok].max()} mean {its[ok].mean():.2f} "
+            f"(histogram {hist.tolist()}); vs GDAL default {best['default (0.1 px)'] / best[threads]:.1f}x",
+        )
+    print(
+        "# ratios: geocd rate / GDAL rate (localization: against GDAL at 1e-6 px; "
+        "the ratio against GDAL's default is at the end of the line)"
+    )
     return 0
 
 

@@ -70,13 +70,17 @@ def bench_features(size: int = 1024, only: list[str] | None = None) -> dict:
     km2 = a.shape[-1] * a.shape[-2] * 0.25 / 1e6
     wdir = Path("/tmp/geocd_bench_screen")
     wdir.mkdir(exist_ok=True)
-    specs = [("patch 16px", FeatureSpec("patch", 16)), ("randbank 16px", FeatureSpec("randbank", 16)),
-             ("daisy 16px", FeatureSpec("daisy", 16)), ("daisy 32px", FeatureSpec("daisy", 32))]
+    specs = [
+        ("patch 16px", FeatureSpec("patch", 16)),
+        ("randbank 16px", FeatureSpec("randbank", 16)),
+        ("daisy 16px", FeatureSpec("daisy", 16)),
+        ("daisy 32px", FeatureSpec("daisy", 32)),
+    ]
     for bb, ly in (("vgg19", "pool4"), ("vgg19", "pool5"), ("resnet18", "layer3"), ("efficientnet_lite0", "stage5")):
         w = wdir / f"{bb}.npz"
         if not w.exists():
             np.savez(w, **random_state_dict(bb, 0))
-        for eng in (["numpy", "torch"] if torch_available() else ["numpy"]):
+        for eng in ["numpy", "torch"] if torch_available() else ["numpy"]:
             specs.append((f"{bb} {ly} ({eng})", FeatureSpec("cnn", backbone=bb, weights=str(w), layer=ly, engine=eng)))
     if only:
         specs = [s for s in specs if any(s[0].startswith(k) for k in only)]
@@ -90,9 +94,17 @@ def bench_features(size: int = 1024, only: list[str] | None = None) -> dict:
             times.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
         # CPU seconds of this one-threaded process are what one free core would take (wall depends on the load)
-        rows.append({"feature": label, "cold_s": round(times[0], 2), "warm_s": round(times[1], 2),
-                     "cold_cpu_s": round(cpu[0], 2), "warm_cpu_s": round(cpu[1], 2),
-                     "s_per_km2_warm": round(times[1] / km2, 1), "cpu_s_per_km2_warm": round(cpu[1] / km2, 1)})
+        rows.append(
+            {
+                "feature": label,
+                "cold_s": round(times[0], 2),
+                "warm_s": round(times[1], 2),
+                "cold_cpu_s": round(cpu[0], 2),
+                "warm_cpu_s": round(cpu[1], 2),
+                "s_per_km2_warm": round(times[1] / km2, 1),
+                "cpu_s_per_km2_warm": round(cpu[1] / km2, 1),
+            }
+        )
         print(json.dumps(rows[-1]), flush=True)
     if rows[0]["feature"].startswith("patch"):
         base = rows[0]["cpu_s_per_km2_warm"]
@@ -113,16 +125,21 @@ def _run(args: list[str], cold: bool = False) -> dict:
     load0 = os.getloadavg()[0]
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    p = subprocess.run([str(ROOT / ".venv" / "bin" / "geocd"), "--progress", "none", *args], capture_output=True,
-                       text=True, env=env)
+    p = subprocess.run(
+        [str(ROOT / ".venv" / "bin" / "geocd"), "--progress", "none", *args], capture_output=True, text=True, env=env
+    )
     if tmp is not None:
         tmp.cleanup()
     wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if p.returncode:
         raise SystemExit(f"geocd {' '.join(args)} failed:\n{p.stderr[-3000:]}")
-    return {"wall_s": round(wall, 1), "cpu_s": round((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), 1),
-            "load_average_1min": [round(load0, 2), round(os.getloadavg()[0], 2)], "stdout": p.stdout[-2000:]}
+    return {
+        "wall_s": round(wall, 1),
+        "cpu_s": round((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), 1),
+        "load_average_1min": [round(load0, 2), round(os.getloadavg()[0], 2)],
+        "stdout": p.stdout[-2000:],
+    }
 
 
 def _parts(out: Path) -> dict:
@@ -141,7 +158,7 @@ def _parts(out: Path) -> dict:
         if not mm:
             continue
         t = int(mm[1]) * 3600 + int(mm[2]) * 60 + int(mm[3]) + day
-        if last is not None and t < last:   # past midnight
+        if last is not None and t < last:  # past midnight
             day += 86400.0
             t += 86400.0
         last = t
@@ -193,8 +210,12 @@ def _damaged_buildings(full: Path, tier: Path, examined=None, grid=None) -> dict
     if got is None:
         return None
     a, b, lost = got
-    res = {"changed_full": int(len(a)), "changed_tiered": int(len(b)), "full_changed_not_found": int(len(lost)),
-           "lost_by_class": lost["class"].value_counts().to_dict()}
+    res = {
+        "changed_full": int(len(a)),
+        "changed_tiered": int(len(b)),
+        "full_changed_not_found": int(len(lost)),
+        "lost_by_class": lost["class"].value_counts().to_dict(),
+    }
     if examined is not None and len(lost):
         from geocd.pipeline import mark_not_examined
 
@@ -228,14 +249,24 @@ def _lost_vs_threshold_rule(full: Path, tier: Path, grid) -> dict | None:
         d = ds.read(1)
     if not len(lost):
         return {"threshold": t, "null_q99": q99, "lost": 0}
-    lab = rasterize([(g, i + 1) for i, g in enumerate(lost.to_crs(grid.crs).geometry)], out_shape=grid.shape,
-                    transform=grid.transform, fill=0, dtype="int32")
+    lab = rasterize(
+        [(g, i + 1) for i, g in enumerate(lost.to_crs(grid.crs).geometry)],
+        out_shape=grid.shape,
+        transform=grid.transform,
+        fill=0,
+        dtype="int32",
+    )
     idx = np.arange(1, len(lost) + 1)
     dmax = np.asarray(ndi.maximum(np.nan_to_num(d, nan=-1.0), lab, idx))
-    return {"threshold": round(t, 4), "null_q99": round(q99, 4), "lost": int(len(lost)),
-            "above_threshold": int((dmax > t).sum()), "above_null_below_split": int(((dmax > q99) & (dmax <= t)).sum()),
-            "below_null": int((dmax <= q99).sum()),
-            "max_d_quantiles": [round(float(v), 3) for v in np.quantile(dmax, [0.1, 0.5, 0.9])]}
+    return {
+        "threshold": round(t, 4),
+        "null_q99": round(q99, 4),
+        "lost": int(len(lost)),
+        "above_threshold": int((dmax > t).sum()),
+        "above_null_below_split": int(((dmax > q99) & (dmax <= t)).sum()),
+        "below_null": int((dmax <= q99).sum()),
+        "max_d_quantiles": [round(float(v), 3) for v in np.quantile(dmax, [0.1, 0.5, 0.9])],
+    }
 
 
 def screen_losses(full: Path, screens: list[Path], tile_cells: int = 128, min_region_m2: float = 4.0) -> dict:
@@ -274,15 +305,24 @@ def screen_losses(full: Path, screens: list[Path], tile_cells: int = 128, min_re
         q99 = float(summ["null"]["quantiles"]["99"]) if summ.get("null") else float("nan")
         below = 0
         if len(outside):
-            lb = rasterize([(g, i + 1) for i, g in enumerate(outside.to_crs(grid.crs).geometry)], out_shape=grid.shape,
-                           transform=grid.transform, fill=0, dtype="int32")
+            lb = rasterize(
+                [(g, i + 1) for i, g in enumerate(outside.to_crs(grid.crs).geometry)],
+                out_shape=grid.shape,
+                transform=grid.transform,
+                fill=0,
+                dtype="int32",
+            )
             dmax = np.asarray(ndi.maximum(np.nan_to_num(d, nan=-1.0), lb, np.arange(1, len(outside) + 1)))
             below = int((dmax <= q99).sum())
-        out["screens"][str(sd)] = {"threshold": round(float(summ["threshold"]), 4), "null": summ.get("null"),
-                                   "flagged_tile_fraction": round(fl.tile_fraction, 4),
-                                   "flagged_cell_fraction": round(fl.cell_fraction(grid.shape), 4),
-                                   "lost_outside_flagged_tiles": int(len(outside)), "of_which_below_null_q99": below,
-                                   "surface": summ.get("surface")}
+        out["screens"][str(sd)] = {
+            "threshold": round(float(summ["threshold"]), 4),
+            "null": summ.get("null"),
+            "flagged_tile_fraction": round(fl.tile_fraction, 4),
+            "flagged_cell_fraction": round(fl.cell_fraction(grid.shape), 4),
+            "lost_outside_flagged_tiles": int(len(outside)),
+            "of_which_below_null_q99": below,
+            "surface": summ.get("surface"),
+        }
     return out
 
 
@@ -321,12 +361,14 @@ def calibration_fits(full: Path, tier: Path, model: str) -> dict:
         fm = ds.read(1)
     static = ~ndimage.binary_dilation((fm == 1) | (fm == -1), iterations=8)
     every = np.ones(shape, bool)
-    rows = {"all cells (the full run's fit)": every,
-            "flagged tiles, every cell (the old tiered fit)": flagged,
-            "flagged tiles, screen-unchanged (the new rule)": calibration_cells(d, q50, ch, flagged, cell),
-            "whole grid, screen-unchanged": calibration_cells(d, q50, ch, every, cell),
-            "diagnostic: whole grid without the full run's 99 % changes (8-cell buffer)": static,
-            "diagnostic: flagged tiles without the full run's 99 % changes (8-cell buffer)": flagged & static}
+    rows = {
+        "all cells (the full run's fit)": every,
+        "flagged tiles, every cell (the old tiered fit)": flagged,
+        "flagged tiles, screen-unchanged (the new rule)": calibration_cells(d, q50, ch, flagged, cell),
+        "whole grid, screen-unchanged": calibration_cells(d, q50, ch, every, cell),
+        "diagnostic: whole grid without the full run's 99 % changes (8-cell buffer)": static,
+        "diagnostic: flagged tiles without the full run's 99 % changes (8-cell buffer)": flagged & static,
+    }
     out = {"full_dir": str(full), "tiered_dir": str(tier), "model": model, "fits": {}}
     for name, cells in rows.items():
         cal, _ = fit_calibration_on(A, B, mdl, ChangeParams(), cells)
@@ -360,8 +402,11 @@ def _models(full: Path, tier: Path) -> dict | None:
     if not (fa.exists() and fb.exists()):
         return None
     ma, mb = SelfConsistencyModel.load(fa), SelfConsistencyModel.load(fb)
-    res = {"match_pairs_full": int(ma.bin_counts.sum()), "match_pairs_tiered": int(mb.bin_counts.sum()),
-           "curve99_full_vs_tiered": _curve_diff(ma, mb)}
+    res = {
+        "match_pairs_full": int(ma.bin_counts.sum()),
+        "match_pairs_tiered": int(mb.bin_counts.sum()),
+        "curve99_full_vs_tiered": _curve_diff(ma, mb),
+    }
     learned = json.loads((tier / "run_summary.json").read_text())["model"]["learned_here"]
     if not learned:
         res["note"] = "a given scene-class model (--model): the same in both runs"
@@ -397,15 +442,18 @@ def _cells(full: Path, tier: Path) -> dict:
     ex = mt != NOT_EXAMINED
     both = chf & cht & ex
     same_sign = both & (mf == mt)
-    return {"changed_full": int(chf.sum()), "changed_tiered": int(cht.sum()),
-            "full_changed_outside_flagged": int((chf & ~ex).sum()),
-            "full_changed_inside_not_found": int((chf & ex & ~cht).sum()),
-            "tiered_changed_not_in_full": int((cht & ~chf).sum()),
-            "jaccard_inside_flagged": round(float(both.sum() / max(((chf | cht) & ex).sum(), 1)), 4),
-            "same_sign_inside": round(float(same_sign.sum() / max(both.sum(), 1)), 4),
-            "examined_fraction": round(float(ex.mean()), 4),
-            "observed_full_inside": round(float((mf[ex] != -128).mean()), 4),
-            "observed_tiered_inside": round(float((mt[ex] != -128).mean()), 4)}
+    return {
+        "changed_full": int(chf.sum()),
+        "changed_tiered": int(cht.sum()),
+        "full_changed_outside_flagged": int((chf & ~ex).sum()),
+        "full_changed_inside_not_found": int((chf & ex & ~cht).sum()),
+        "tiered_changed_not_in_full": int((cht & ~chf).sum()),
+        "jaccard_inside_flagged": round(float(both.sum() / max(((chf | cht) & ex).sum(), 1)), 4),
+        "same_sign_inside": round(float(same_sign.sum() / max(both.sum(), 1)), 4),
+        "examined_fraction": round(float(ex.mean()), 4),
+        "observed_full_inside": round(float((mf[ex] != -128).mean()), 4),
+        "observed_tiered_inside": round(float((mt[ex] != -128).mean()), 4),
+    }
 
 
 def _truth_buildings(out: Path, scene: Path, hit_share: float = 0.3) -> dict:
@@ -424,8 +472,9 @@ def _truth_buildings(out: Path, scene: Path, hit_share: float = 0.3) -> dict:
         m = ds.read(1)
         tr, shape = ds.transform, ds.shape
     b = gpd.read_file(scene / "truth" / "buildings.gpkg")
-    lab = rasterize(((g, i + 1) for i, g in enumerate(b.geometry)), out_shape=shape, transform=tr, fill=0,
-                    dtype="int32")
+    lab = rasterize(
+        ((g, i + 1) for i, g in enumerate(b.geometry)), out_shape=shape, transform=tr, fill=0, dtype="int32"
+    )
     n = len(b) + 1
     obs, det, ex = m != CHANGE_NODATA, (m == 1) | (m == -1), m != NOT_EXAMINED
     n_all = np.bincount(lab.ravel(), minlength=n)[1:]
@@ -439,8 +488,12 @@ def _truth_buildings(out: Path, scene: Path, hit_share: float = 0.3) -> dict:
     res: dict = {"hit_share": hit_share}
     for s in ("demolished", "new", "unchanged"):
         k = st == s
-        res[s] = {"buildings": int(k.sum()), "observed": int((k & np.isfinite(share)).sum()),
-                  "flagged": int((k & found).sum()), "mostly_not_examined": int((k & outside).sum())}
+        res[s] = {
+            "buildings": int(k.sum()),
+            "observed": int((k & np.isfinite(share)).sum()),
+            "flagged": int((k & found).sum()),
+            "mostly_not_examined": int((k & outside).sum()),
+        }
     chg = st != "unchanged"
     res["changed_found"] = int((chg & found).sum())
     res["changed_observed"] = int((chg & np.isfinite(share)).sum())
@@ -489,9 +542,20 @@ def bench_tiered(scene: str, model: str | None, work: Path, reference: Path | No
     res = compare(scene, model, full, tier, r_full, r_tier)
     if reference is not None:
         ref = compare(scene, model, reference, tier, {"wall_s": float("nan"), "cpu_s": float("nan")}, r_tier)
-        res["vs_reference"] = {k: ref[k] for k in ("full_dir", "regions_full", "regions_lost", "area_lost_m2",
-                                                   "area_full_m2", "cells", "buildings",
-                                                   "lost_buildings_vs_threshold_rule") if k in ref}
+        res["vs_reference"] = {
+            k: ref[k]
+            for k in (
+                "full_dir",
+                "regions_full",
+                "regions_lost",
+                "area_lost_m2",
+                "area_full_m2",
+                "cells",
+                "buildings",
+                "lost_buildings_vs_threshold_rule",
+            )
+            if k in ref
+        }
     return res
 
 
@@ -509,15 +573,25 @@ def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict,
     with rasterio.open(tier / "sc_change_mask.tif") as ds:
         examined = ds.read(1) != NOT_EXAMINED
         grid = AOIGrid.from_raster(ds)
-    res = {"scene": scene, "model": model, "full_dir": str(full), "tiered_dir": str(tier),
-           "full": {k: v for k, v in r_full.items() if k != "stdout"},
-           "tiered": {k: v for k, v in r_tier.items() if k != "stdout"}, "screen": s,
-           "speedup_wall": round(r_full["wall_s"] / r_tier["wall_s"], 2),
-           "speedup_cpu": round(r_full["cpu_s"] / r_tier["cpu_s"], 2),
-           "parts_wall_s": {"full": _parts(full), "tiered": _parts(tier)},
-           "regions_full": int(len(a)), "regions_tiered": int(len(b)), "regions_lost": int(len(lost)),
-           "area_lost_m2": round(float(lost.area.sum()), 1), "area_full_m2": round(float(a.area.sum()), 1),
-           "cells": _cells(full, tier), "models": _models(full, tier)}
+    res = {
+        "scene": scene,
+        "model": model,
+        "full_dir": str(full),
+        "tiered_dir": str(tier),
+        "full": {k: v for k, v in r_full.items() if k != "stdout"},
+        "tiered": {k: v for k, v in r_tier.items() if k != "stdout"},
+        "screen": s,
+        "speedup_wall": round(r_full["wall_s"] / r_tier["wall_s"], 2),
+        "speedup_cpu": round(r_full["cpu_s"] / r_tier["cpu_s"], 2),
+        "parts_wall_s": {"full": _parts(full), "tiered": _parts(tier)},
+        "regions_full": int(len(a)),
+        "regions_tiered": int(len(b)),
+        "regions_lost": int(len(lost)),
+        "area_lost_m2": round(float(lost.area.sum()), 1),
+        "area_full_m2": round(float(a.area.sum()), 1),
+        "cells": _cells(full, tier),
+        "models": _models(full, tier),
+    }
     bd = _damaged_buildings(full, tier, examined, grid)
     if bd is not None:
         res["buildings"] = bd
@@ -528,9 +602,13 @@ def compare(scene: str, model: str | None, full: Path, tier: Path, r_full: dict,
         res["truth_full"], res["truth_tiered"] = tf, tt
         if "truth_buildings" in tf:
             a_ids, b_ids = set(tf["truth_buildings"]["found_ids"]), set(tt["truth_buildings"]["found_ids"])
-            res["truth_buildings_found"] = {"full": len(a_ids), "tiered": len(b_ids), "both": len(a_ids & b_ids),
-                                            "lost_by_tiered": len(a_ids - b_ids),
-                                            "gained_by_tiered": len(b_ids - a_ids)}
+            res["truth_buildings_found"] = {
+                "full": len(a_ids),
+                "tiered": len(b_ids),
+                "both": len(a_ids & b_ids),
+                "lost_by_tiered": len(a_ids - b_ids),
+                "gained_by_tiered": len(b_ids - a_ids),
+            }
     return res
 
 
@@ -560,10 +638,17 @@ def tile_sizes(full: Path, tier: Path, sizes=(64, 128, 256), min_region_m2: floa
         fl = flag_tiles(ch, t)
         win = fl.examined(ch.shape)
         hit = np.unique(dl[win & det])
-        rows.append({"tile_cells": t, "flagged_tile_fraction": round(fl.tile_fraction, 3),
-                     "stereo_cell_fraction": round(float(win.mean()), 3),
-                     "full_changed_cells_outside": int((det & ~win).sum()), "full_changed_cells": int(det.sum()),
-                     "full_regions_missed": int(nd - np.count_nonzero(hit[hit > 0])), "full_regions": int(nd)})
+        rows.append(
+            {
+                "tile_cells": t,
+                "flagged_tile_fraction": round(fl.tile_fraction, 3),
+                "stereo_cell_fraction": round(float(win.mean()), 3),
+                "full_changed_cells_outside": int((det & ~win).sum()),
+                "full_changed_cells": int(det.sum()),
+                "full_regions_missed": int(nd - np.count_nonzero(hit[hit > 0])),
+                "full_regions": int(nd),
+            }
+        )
     return rows
 
 
@@ -591,8 +676,9 @@ def flag_rules(tier: Path, scene: Path, tile_cells: int = 128, min_region_m2: fl
     ok = np.isfinite(d)
     q_own = float(np.quantile(d[ok], 0.99))
     b = gpd.read_file(scene / "truth" / "buildings.gpkg")
-    lab = rasterize(((g, i + 1) for i, g in enumerate(b.geometry)), out_shape=d.shape, transform=tr, fill=0,
-                    dtype="int32")
+    lab = rasterize(
+        ((g, i + 1) for i, g in enumerate(b.geometry)), out_shape=d.shape, transform=tr, fill=0, dtype="int32"
+    )
     n_all = np.bincount(lab.ravel(), minlength=len(b) + 1)[1:]
     chg = (b["status"] != "unchanged").to_numpy()
 
@@ -609,21 +695,32 @@ def flag_rules(tier: Path, scene: Path, tile_cells: int = 128, min_region_m2: fl
         ex = fl.examined(d.shape)
         n_ex = np.bincount(lab[ex].ravel(), minlength=len(b) + 1)[1:]
         inside = n_ex >= 0.5 * np.maximum(n_all, 1)
-        return {"tile_fraction": round(fl.tile_fraction, 4), "changed_buildings_in_flagged": int((chg & inside).sum()),
-                "unchanged_buildings_in_flagged": int((~chg & inside).sum())}
+        return {
+            "tile_fraction": round(fl.tile_fraction, 4),
+            "changed_buildings_in_flagged": int((chg & inside).sum()),
+            "unchanged_buildings_in_flagged": int((~chg & inside).sum()),
+        }
 
     rows = {}
-    for name, t in (("no-change 99 % + Otsu (old)", split_above(d, q_null)), ("no-change 99 %", q_null),
-                    ("own 99 %", q_own), ("own 99 % + Otsu", split_above(d, q_own))):
+    for name, t in (
+        ("no-change 99 % + Otsu (old)", split_above(d, q_null)),
+        ("no-change 99 %", q_null),
+        ("own 99 %", q_own),
+        ("own 99 % + Otsu", split_above(d, q_own)),
+    ):
         c = regions(t)
         rows[f"{name}, any region"] = {"threshold": round(float(t), 4), **score(flag_tiles(c, tile_cells))}
         for reach in (True, False):
-            fl = (flag_tiles_by_chance(c, ok, tile_cells, cell, 0.01)[0] if reach
-                  else Flagged(tile_cells, _chance_only(c, ok, tile_cells, cell)))
-            rows[f"{name}, chance count" + ("" if reach else ", no reach")] = {"threshold": round(float(t), 4),
-                                                                               **score(fl)}
-    return {"changed_buildings": int(chg.sum()), "null_q99": round(q_null, 4), "own_q99": round(q_own, 4),
-            "rows": rows}
+            fl = (
+                flag_tiles_by_chance(c, ok, tile_cells, cell, 0.01)[0]
+                if reach
+                else Flagged(tile_cells, _chance_only(c, ok, tile_cells, cell))
+            )
+            rows[f"{name}, chance count" + ("" if reach else ", no reach")] = {
+                "threshold": round(float(t), 4),
+                **score(fl),
+            }
+    return {"changed_buildings": int(chg.sum()), "null_q99": round(q_null, 4), "own_q99": round(q_own, 4), "rows": rows}
 
 
 def _chance_only(changed, valid, tile_cells, unit, rate=0.01):
@@ -638,8 +735,8 @@ def _chance_only(changed, valid, tile_cells, unit, rate=0.01):
         pad[:H, :W] = m
         return pad.reshape(nr, tile_cells, nc, tile_cells).sum(axis=(1, 3))
 
-    n = per_tile(valid) / unit ** 2
-    return per_tile(changed) / unit ** 2 > chance_cells(n, rate, rate)
+    n = per_tile(valid) / unit**2
+    return per_tile(changed) / unit**2 > chance_cells(n, rate, rate)
 
 
 def stereo_overhead(scene: str, tier: Path, epoch: str, work: Path) -> dict:
@@ -672,8 +769,12 @@ def stereo_overhead(scene: str, tier: Path, epoch: str, work: Path) -> dict:
         res[f"{name}_cpu_s"] = round(time.process_time() - c0, 1)
         res[f"{name}_wall_s"] = round(time.perf_counter() - w0, 1)
 
-    timed("untiled", lambda: run_stereo(m, epochs=[epoch], out_dir=work / "u", params=cfg.stereo, grid=grid,
-                                        pairs=cfg.pairs, orient=False))
+    timed(
+        "untiled",
+        lambda: run_stereo(
+            m, epochs=[epoch], out_dir=work / "u", params=cfg.stereo, grid=grid, pairs=cfg.pairs, orient=False
+        ),
+    )
     ims = load_epoch_images(m, m.epoch(epoch))
     datum = m.dem.vertical_datum if m.dem is not None else None
 
@@ -683,11 +784,22 @@ def stereo_overhead(scene: str, tier: Path, epoch: str, work: Path) -> dict:
         for a, b in itertools.combinations(ims, 2):
             if cfg.pairs == "all" or a.camera.kind == b.camera.kind:
                 _pair_job(epoch, a, b, cfg.stereo, datum, grid, TilingParams(tile_size=t), None)
+
     timed("probes", probes)
     for name, s in (("tiled_flagged", sel), ("tiled_all", np.ones_like(sel))):
-        timed(name, lambda s=s, name=name: run_stereo_tiled(
-            m, out_dir=work / name, epochs=[epoch], params=cfg.stereo, grid=grid, pairs=cfg.pairs,
-            tiling=TilingParams(tile_size=t, scheduler="sync"), tiles=s))
+        timed(
+            name,
+            lambda s=s, name=name: run_stereo_tiled(
+                m,
+                out_dir=work / name,
+                epochs=[epoch],
+                params=cfg.stereo,
+                grid=grid,
+                pairs=cfg.pairs,
+                tiling=TilingParams(tile_size=t, scheduler="sync"),
+                tiles=s,
+            ),
+        )
     res["load_average_1min"] = round(os.getloadavg()[0], 2)
     return res
 
@@ -699,13 +811,29 @@ def _key(scene: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["features", "tiered", "compare", "tiles", "stereo-overhead", "screen-losses",
-                                        "calibration", "flag-rules"])
-    ap.add_argument("--screen-dir", type=Path, action="append", default=[],
-                    help="screen-losses: a screen's output folder (repeat)")
+    ap.add_argument(
+        "what",
+        choices=[
+            "features",
+            "tiered",
+            "compare",
+            "tiles",
+            "stereo-overhead",
+            "screen-losses",
+            "calibration",
+            "flag-rules",
+        ],
+    )
+    ap.add_argument(
+        "--screen-dir", type=Path, action="append", default=[], help="screen-losses: a screen's output folder (repeat)"
+    )
     ap.add_argument("--epoch", default="B", help="stereo-overhead: the epoch whose pairs are matched")
-    ap.add_argument("--full-dir", type=Path, help="compare: the full run's output folder; tiered: a reference "
-                    "full run to compare the detections with as well")
+    ap.add_argument(
+        "--full-dir",
+        type=Path,
+        help="compare: the full run's output folder; tiered: a reference "
+        "full run to compare the detections with as well",
+    )
     ap.add_argument("--tiered-dir", type=Path, help="compare: the tiered run's output folder")
     ap.add_argument("--full-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
     ap.add_argument("--tiered-time", nargs=2, type=float, metavar=("WALL", "CPU"), help="compare: seconds")
@@ -723,24 +851,32 @@ def main(argv=None) -> int:
         doc.setdefault("features", {})[f"{a.size}px" + (f" {a.features}" if a.features else "")] = res
     elif a.what == "compare":  # two runs made by hand (e.g. in parallel on a loaded machine) with their timings
         doc.setdefault("tiered", {})[_key(a.scene)] = compare(
-            a.scene, a.model, a.full_dir, a.tiered_dir, {"wall_s": a.full_time[0], "cpu_s": a.full_time[1]},
-            {"wall_s": a.tiered_time[0], "cpu_s": a.tiered_time[1]})
+            a.scene,
+            a.model,
+            a.full_dir,
+            a.tiered_dir,
+            {"wall_s": a.full_time[0], "cpu_s": a.full_time[1]},
+            {"wall_s": a.tiered_time[0], "cpu_s": a.tiered_time[1]},
+        )
     elif a.what == "stereo-overhead":  # untiled vs tiled stereo of one epoch, on the tiered run's flags
-        doc.setdefault("stereo_overhead", {})[_key(a.scene)] = stereo_overhead(a.scene, a.tiered_dir, a.epoch,
-                                                                                a.work / "overhead")
+        doc.setdefault("stereo_overhead", {})[_key(a.scene)] = stereo_overhead(
+            a.scene, a.tiered_dir, a.epoch, a.work / "overhead"
+        )
     elif a.what == "screen-losses":  # what screens alone would lose (no stereo): --full-dir and --screen-dir ...
         doc.setdefault("screen_losses", {})[_key(a.scene)] = screen_losses(a.full_dir, a.screen_dir)
     elif a.what == "calibration":  # the transfer calibration fitted on several selections of a full run's cells
         doc.setdefault("calibration", {})[_key(a.scene)] = calibration_fits(a.full_dir, a.tiered_dir, a.model)
     elif a.what == "flag-rules":  # tile-flag rules on a tiered run's stored screen, scored on the truth buildings
-        doc.setdefault("flag_rules", {})[_key(a.scene)] = flag_rules(a.tiered_dir, Path(a.scene).parent
-                                                                     if Path(a.scene).is_file() else Path(a.scene))
+        doc.setdefault("flag_rules", {})[_key(a.scene)] = flag_rules(
+            a.tiered_dir, Path(a.scene).parent if Path(a.scene).is_file() else Path(a.scene)
+        )
     elif a.what == "tiles":  # other --screen-tile sizes with the screen of a tiered run (no stereo re-run)
         doc.setdefault("tiles", {})[_key(a.scene)] = tile_sizes(a.full_dir, a.tiered_dir)
     else:
         w = a.work / _key(a.scene)
         doc.setdefault("tiered", {})[_key(a.scene) + (" cold" if a.cold else "")] = bench_tiered(
-            a.scene, a.model, w, a.full_dir, a.cold)
+            a.scene, a.model, w, a.full_dir, a.cold
+        )
     a.out.write_text(json.dumps(doc, indent=1, default=str))
     print(json.dumps(doc, indent=1, default=str)[-3000:])
     return 0

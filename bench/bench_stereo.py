@@ -78,8 +78,9 @@ def load_pair():
         p = DATA / "input_pair" / f"{n}.tif"
         cam = load_camera(p)
         cams.append(cam)
-        chips.append(read_chip(p, cam, grid, float(np.nanmin(ref)) - 300, float(np.nanmax(ref)) + 300, name=n,
-                               margin_px=40))
+        chips.append(
+            read_chip(p, cam, grid, float(np.nanmin(ref)) - 300, float(np.nanmax(ref)) + 300, name=n, margin_px=40)
+        )
     return grid, ref, cams, chips
 
 
@@ -97,7 +98,7 @@ def numpy_box(stack_fn, K, r, eps, min_n):
         B = np.where(ok, b, 0.0).astype(np.float64)
         w = 2 * r + 1
         f = lambda x: ndimage.uniform_filter(x, w, mode="constant") * (w * w)  # noqa: E731
-        mom = (f(ok.astype(np.float64)), f(A), f(B), f(A * A), f(B * B), f(A * B))   # indexable like (6, h, w)
+        mom = (f(ok.astype(np.float64)), f(A), f(B), f(A * A), f(B * B), f(A * B))  # indexable like (6, h, w)
         c = ncc_cost_ref(mom, min_n, eps)[0]
         best = c if best is None else np.minimum(best, c)
     return best
@@ -132,7 +133,7 @@ def kernel_bench(grid, ref, cams, chips, crop: int, planes: int, repeat: int) ->
     H, W = grid.shape
     r0, c0 = (H - crop) // 2, (W - crop) // 2
     sub = grid.subgrid(r0, c0, crop, crop)
-    h0 = float(np.nanmedian(ref[r0:r0 + crop, c0:c0 + crop])) - planes * 0.8
+    h0 = float(np.nanmedian(ref[r0 : r0 + crop, c0 : c0 + crop])) - planes * 0.8
     search = HeightSearch.uniform(sub.shape, h0, h0 + (planes - 1) * 1.6, 1.6)
     sweep = PlaneSweep(sub, chips, cams, search, tile_size=max(crop, 32), margin=r)
     tile = sweep.tiles()[0]
@@ -160,14 +161,20 @@ def kernel_bench(grid, ref, cams, chips, crop: int, planes: int, repeat: int) ->
     fn = lambda k: (stacks[k][0], stacks[k][1])  # noqa: E731
     geocd_run()  # warm-up (numba)
     n_eval = tile.outer_shape[0] * tile.outer_shape[1] * planes
-    best = {"geocd sweep (warp + windows + update)": np.inf, "geocd windows + update only": np.inf,
-            "numpy box filters": np.inf, "numpy direct windows": np.inf}
+    best = {
+        "geocd sweep (warp + windows + update)": np.inf,
+        "geocd windows + update only": np.inf,
+        "numpy box filters": np.inf,
+        "numpy direct windows": np.inf,
+    }
     results = {}
     for _ in range(repeat):
-        for name, f in (("geocd sweep (warp + windows + update)", geocd_run),
-                        ("geocd windows + update only", geocd_kernel_only),
-                        ("numpy box filters", lambda: numpy_box(fn, planes, r, eps, min_n)),
-                        ("numpy direct windows", lambda: numpy_direct(fn, planes, r, eps, min_n))):
+        for name, f in (
+            ("geocd sweep (warp + windows + update)", geocd_run),
+            ("geocd windows + update only", geocd_kernel_only),
+            ("numpy box filters", lambda: numpy_box(fn, planes, r, eps, min_n)),
+            ("numpy direct windows", lambda: numpy_direct(fn, planes, r, eps, min_n)),
+        ):
             t = time.perf_counter()
             out = f()
             best[name] = min(best[name], time.perf_counter() - t)
@@ -178,11 +185,25 @@ def kernel_bench(grid, ref, cams, chips, crop: int, planes: int, repeat: int) ->
     nb = results["numpy box filters"]
     nd = results["numpy direct windows"]
     inner = (slice(r, -r), slice(r, -r))
-    agree = {"max |geocd − numpy box| (best 1−NCC)": float(np.nanmax(np.abs(bc[inner] - np.where(np.isfinite(nb), nb, np.nan)[inner]))),
-             "max |numpy box − direct|": float(np.nanmax(np.abs(np.where(np.isfinite(nb), nb, np.nan)[inner] - np.where(np.isfinite(nd), nd, np.nan)[inner])))}
-    return {"crop_cells": f"{tile.outer_shape[1]}x{tile.outer_shape[0]}", "planes": planes, "window": 2 * r + 1,
-            "evaluations": n_eval, "seconds": best,
-            "evals_per_s": {k: n_eval / v for k, v in best.items()}, "agreement": agree}
+    agree = {
+        "max |geocd − numpy box| (best 1−NCC)": float(
+            np.nanmax(np.abs(bc[inner] - np.where(np.isfinite(nb), nb, np.nan)[inner]))
+        ),
+        "max |numpy box − direct|": float(
+            np.nanmax(
+                np.abs(np.where(np.isfinite(nb), nb, np.nan)[inner] - np.where(np.isfinite(nd), nd, np.nan)[inner])
+            )
+        ),
+    }
+    return {
+        "crop_cells": f"{tile.outer_shape[1]}x{tile.outer_shape[0]}",
+        "planes": planes,
+        "window": 2 * r + 1,
+        "evaluations": n_eval,
+        "seconds": best,
+        "evals_per_s": {k: n_eval / v for k, v in best.items()},
+        "agreement": agree,
+    }
 
 
 def best_of(fn, repeat: int):
@@ -205,20 +226,35 @@ def pair_bench(grid, ref, cams, chips, repeat: int = 1) -> dict:
     both = pd.valid & np.isfinite(ref)
     d = (pd.z_m - ref)[both]
     d = d - np.median(d)
-    return {"grid": f"{grid.width}x{grid.height} at {grid.posting_m} m", "wall_s": wall, "cpu_s": cpu, "repeat": repeat,
-            "evaluations": pd.meta["evaluations"], "evals_per_s_wall": pd.meta["evaluations"] / wall,
-            "levels": pd.meta["levels"], "completeness": float(pd.valid[np.isfinite(ref)].mean()),
-            "median_abs_dz_vs_s2p_m": float(np.median(np.abs(d))),
-            "nmad_vs_s2p_m": float(1.4826 * np.median(np.abs(d - np.median(d))))}
+    return {
+        "grid": f"{grid.width}x{grid.height} at {grid.posting_m} m",
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "repeat": repeat,
+        "evaluations": pd.meta["evaluations"],
+        "evals_per_s_wall": pd.meta["evaluations"] / wall,
+        "levels": pd.meta["levels"],
+        "completeness": float(pd.valid[np.isfinite(ref)].mean()),
+        "median_abs_dz_vs_s2p_m": float(np.median(np.abs(d))),
+        "nmad_vs_s2p_m": float(1.4826 * np.median(np.abs(d - np.median(d)))),
+    }
 
 
 def _overlap_images():
     from geocd.io.manifest import parse_manifest
     from geocd.stereo.pipeline import load_epoch_images
 
-    m = parse_manifest({"epochs": [{"name": "pair", "images": [str(DATA / "input_pair" / "img_01.tif"),
-                                                               str(DATA / "input_pair" / "img_02.tif")]}]},
-                       DATA / "input_pair")
+    m = parse_manifest(
+        {
+            "epochs": [
+                {
+                    "name": "pair",
+                    "images": [str(DATA / "input_pair" / "img_01.tif"), str(DATA / "input_pair" / "img_02.tif")],
+                }
+            ]
+        },
+        DATA / "input_pair",
+    )
     return m, load_epoch_images(m, m.epochs[0])
 
 
@@ -239,12 +275,22 @@ def area_bench(repeat: int = 1, fractions=(0.25, 0.5, 1.0)) -> dict:
         chips = [read_chip(im.path, im.camera, g, 2200.0, 2450.0, name=im.name, margin_px=40) for im in ims]
         pd, wall, cpu = best_of(lambda: match_pair(chips[0], chips[1], ims[0].camera, ims[1].camera, g), repeat)
         cells = g.width * g.height
-        out["areas"].append({"fraction": frac, "grid": f"{g.width}x{g.height}", "cells": cells, "wall_s": wall,
-                             "cpu_s": cpu, "evaluations": pd.meta["evaluations"],
-                             "evaluations_per_cell": pd.meta["evaluations"] / cells,
-                             "wall_us_per_cell": 1e6 * wall / cells, "cpu_us_per_cell": 1e6 * cpu / cells,
-                             "valid": float(pd.valid.mean()), "levels": pd.meta["levels"],
-                             "coarse_interval_m": pd.meta.get("coarse_interval_m")})
+        out["areas"].append(
+            {
+                "fraction": frac,
+                "grid": f"{g.width}x{g.height}",
+                "cells": cells,
+                "wall_s": wall,
+                "cpu_s": cpu,
+                "evaluations": pd.meta["evaluations"],
+                "evaluations_per_cell": pd.meta["evaluations"] / cells,
+                "wall_us_per_cell": 1e6 * wall / cells,
+                "cpu_us_per_cell": 1e6 * cpu / cells,
+                "valid": float(pd.valid.mean()),
+                "levels": pd.meta["levels"],
+                "coarse_interval_m": pd.meta.get("coarse_interval_m"),
+            }
+        )
     return out
 
 
@@ -288,9 +334,14 @@ def compare_to_s2p(z: np.ndarray, z_grid, ref: np.ndarray, ref_grid) -> dict:
     d = (zz - ref)[both]
     off = float(np.median(d))
     e = d - off
-    return {"offset_m": off, "nmad_m": float(1.4826 * np.median(np.abs(e - np.median(e)))),
-            "median_abs_m": float(np.median(np.abs(e))), "within_1m": float(np.mean(np.abs(e) < 1.0)),
-            "completeness_on_s2p": float(both.sum() / have.sum()), "cells_compared": int(both.sum())}
+    return {
+        "offset_m": off,
+        "nmad_m": float(1.4826 * np.median(np.abs(e - np.median(e)))),
+        "median_abs_m": float(np.median(np.abs(e))),
+        "within_1m": float(np.mean(np.abs(e) < 1.0)),
+        "completeness_on_s2p": float(both.sum() / have.sum()),
+        "cells_compared": int(both.sum()),
+    }
 
 
 def cars_config(work: Path, h: float) -> Path:
@@ -298,15 +349,33 @@ def cars_config(work: Path, h: float) -> Path:
     from rasterio.transform import from_origin
 
     dem = work / "flat_dem.tif"
-    with rasterio.open(dem, "w", driver="GTiff", width=40, height=40, count=1, dtype="float32", crs="EPSG:4326",
-                       transform=from_origin(55.6, -21.2, 0.005, 0.005)) as ds:
+    with rasterio.open(
+        dem,
+        "w",
+        driver="GTiff",
+        width=40,
+        height=40,
+        count=1,
+        dtype="float32",
+        crs="EPSG:4326",
+        transform=from_origin(55.6, -21.2, 0.005, 0.005),
+    ) as ds:
         ds.write(np.full((1, 40, 40), h, np.float32))
-    cfg = {"input": {"sensors": {n: {"image": str(DATA / "input_pair" / f"img_0{i}.tif"),
-                                     "geomodel": str(DATA / "input_pair" / f"img_0{i}.tif")}
-                                 for i, n in ((1, "left"), (2, "right"))},
-                     "pairing": [["left", "right"]], "initial_elevation": {"dem": str(dem)}},
-           "output": {"directory": str(work / "out"), "resolution": 0.5, "epsg": 32740, "geoid": False},
-           "orchestrator": {"mode": "multiprocessing", "nb_workers": 2}}
+    cfg = {
+        "input": {
+            "sensors": {
+                n: {
+                    "image": str(DATA / "input_pair" / f"img_0{i}.tif"),
+                    "geomodel": str(DATA / "input_pair" / f"img_0{i}.tif"),
+                }
+                for i, n in ((1, "left"), (2, "right"))
+            },
+            "pairing": [["left", "right"]],
+            "initial_elevation": {"dem": str(dem)},
+        },
+        "output": {"directory": str(work / "out"), "resolution": 0.5, "epsg": 32740, "geoid": False},
+        "orchestrator": {"mode": "multiprocessing", "nb_workers": 2},
+    }
     (work / "config.json").write_text(json.dumps(cfg, indent=1))
     return work / "config.json"
 
@@ -324,11 +393,27 @@ def whole_process_bench(ref: np.ndarray, ref_grid, cars: str | None, skip_run: b
     try:
         res["info"] = cold_warm([geocd_exe, "info", str(DATA / "input_pair" / "img_01.tif")], work / "cache_info")
         man = work / "pair.yaml"
-        man.write_text(json.dumps({"geocd_manifest": 1, "name": "reunion_pair", "epochs": [
-            {"name": "pair", "images": [str(DATA / "input_pair" / "img_01.tif"), str(DATA / "input_pair" / "img_02.tif")]}]}))
+        man.write_text(
+            json.dumps(
+                {
+                    "geocd_manifest": 1,
+                    "name": "reunion_pair",
+                    "epochs": [
+                        {
+                            "name": "pair",
+                            "images": [
+                                str(DATA / "input_pair" / "img_01.tif"),
+                                str(DATA / "input_pair" / "img_02.tif"),
+                            ],
+                        }
+                    ],
+                }
+            )
+        )
         out = work / "st"
-        res["stereo"] = cold_warm([geocd_exe, "--progress", "none", "stereo", str(man), "--out", str(out)],
-                                  work / "cache_stereo")
+        res["stereo"] = cold_warm(
+            [geocd_exe, "--progress", "none", "stereo", str(man), "--out", str(out)], work / "cache_stereo"
+        )
         pd = read_pair_dem(out / "stereo" / "pair" / "img_01__img_02.tif")
         res["stereo"]["grid"] = f"{pd.grid.width}x{pd.grid.height} at {pd.grid.posting_m} m"
         res["stereo"]["vs_s2p"] = compare_to_s2p(np.where(pd.valid, pd.z_m, np.nan), pd.grid, ref, ref_grid)
@@ -337,9 +422,11 @@ def whole_process_bench(ref: np.ndarray, ref_grid, cars: str | None, skip_run: b
         res["stereo"]["vs_s2p_with_filled"] = compare_to_s2p(pd.z_m, pd.grid, ref, ref_grid)
         res["stereo"]["filled_cells"] = int(np.count_nonzero(pd.flags & FLAGS["filled"]))
         if not skip_run:
-            res["run_sample_aoi"] = cold_warm([geocd_exe, "--progress", "none", "run", str(REPO / "sample_aoi"),
-                                               "--out", str(work / "run")], work / "cache_run",
-                                              prepare=lambda: shutil.rmtree(work / "run", ignore_errors=True))
+            res["run_sample_aoi"] = cold_warm(
+                [geocd_exe, "--progress", "none", "run", str(REPO / "sample_aoi"), "--out", str(work / "run")],
+                work / "cache_run",
+                prepare=lambda: shutil.rmtree(work / "run", ignore_errors=True),
+            )
         if cars:
             cw = work / "cars"
             cw.mkdir()
@@ -376,60 +463,88 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     import numba
 
-    res: dict = {"numba_threads": numba.get_num_threads(), "cpu_count": os.cpu_count(),
-                 "loadavg_start": os.getloadavg()}
+    res: dict = {
+        "numba_threads": numba.get_num_threads(),
+        "cpu_count": os.cpu_count(),
+        "loadavg_start": os.getloadavg(),
+    }
     grid, ref, cams, chips = load_pair()
     k = kernel_bench(grid, ref, cams, chips, args.crop, args.planes, args.repeat)
     res["kernel"] = k
     print(f"kernel: {k['crop_cells']} cells x {k['planes']} planes, window {k['window']}")
     base = k["seconds"]["numpy box filters"]
     for name, s in k["seconds"].items():
-        print(f"  {name:40s} {s * 1e3:9.1f} ms  {k['evals_per_s'][name] / 1e6:8.2f} M evals/s  "
-              f"x{base / s:6.2f} vs numpy box filters")
+        print(
+            f"  {name:40s} {s * 1e3:9.1f} ms  {k['evals_per_s'][name] / 1e6:8.2f} M evals/s  "
+            f"x{base / s:6.2f} vs numpy box filters"
+        )
     print(f"  agreement: {k['agreement']}")
     p = pair_bench(grid, ref, cams, chips, args.repeat)
     res["pair"] = p
-    print(f"pair (s2p img_01/img_02, {p['grid']}, RPC height range, {p['levels']} levels; in process, warm): wall {p['wall_s']:.1f} s "
-          f"(best of {args.repeat}), "
-          f"cpu {p['cpu_s']:.1f} s, {p['evaluations'] / 1e6:.1f} M evaluations, "
-          f"{p['evals_per_s_wall'] / 1e6:.2f} M evals/s; completeness {p['completeness']:.1%}, "
-          f"median |dz| vs s2p {p['median_abs_dz_vs_s2p_m']:.2f} m, NMAD {p['nmad_vs_s2p_m']:.3f} m")
+    print(
+        f"pair (s2p img_01/img_02, {p['grid']}, RPC height range, {p['levels']} levels; in process, warm): wall {p['wall_s']:.1f} s "
+        f"(best of {args.repeat}), "
+        f"cpu {p['cpu_s']:.1f} s, {p['evaluations'] / 1e6:.1f} M evaluations, "
+        f"{p['evals_per_s_wall'] / 1e6:.2f} M evals/s; completeness {p['completeness']:.1%}, "
+        f"median |dz| vs s2p {p['median_abs_dz_vs_s2p_m']:.2f} m, NMAD {p['nmad_vs_s2p_m']:.3f} m"
+    )
     ab = area_bench(repeat=args.repeat)
     res["area"] = ab
-    print(f"time vs area (whole overlap {ab['full_grid']}, centred sub-grids, in process, warm, best of {args.repeat}):")
+    print(
+        f"time vs area (whole overlap {ab['full_grid']}, centred sub-grids, in process, warm, best of {args.repeat}):"
+    )
     for r in ab["areas"]:
-        print(f"  {r['fraction']:>5.2f} of it: {r['grid']:>9s} cells  wall {r['wall_s']:6.1f} s  cpu {r['cpu_s']:6.1f} s  "
-              f"{r['evaluations'] / 1e6:7.1f} M evals = {r['evaluations_per_cell']:5.0f} per cell, "
-              f"{r['cpu_us_per_cell']:5.1f} µs CPU per cell, {r['valid']:.1%} valid")
+        print(
+            f"  {r['fraction']:>5.2f} of it: {r['grid']:>9s} cells  wall {r['wall_s']:6.1f} s  cpu {r['cpu_s']:6.1f} s  "
+            f"{r['evaluations'] / 1e6:7.1f} M evals = {r['evaluations_per_cell']:5.0f} per cell, "
+            f"{r['cpu_us_per_cell']:5.1f} µs CPU per cell, {r['valid']:.1%} valid"
+        )
     if args.whole:
         w = whole_process_bench(ref, grid, args.cars, skip_run=args.skip_run)
         res["whole_process"] = w
-        for key, label in (("info", "geocd info img_01.tif"), ("stereo", "geocd stereo (Réunion pair, whole overlap)"),
-                           ("run_sample_aoi", "geocd run sample_aoi")):
+        for key, label in (
+            ("info", "geocd info img_01.tif"),
+            ("stereo", "geocd stereo (Réunion pair, whole overlap)"),
+            ("run_sample_aoi", "geocd run sample_aoi"),
+        ):
             if key not in w:
                 continue
             c, h = w[key]["cold"], w[key]["warm"]
-            print(f"{label}: cold {c['wall_s']:.1f} s wall / {c['cpu_s']:.1f} s CPU, warm {h['wall_s']:.1f} s wall / "
-                  f"{h['cpu_s']:.1f} s CPU (cold/warm x{w[key]['cold_over_warm_wall']:.2f} wall, "
-                  f"x{w[key]['cold_over_warm_cpu']:.2f} CPU)" + ("" if c["returncode"] == 0 and h["returncode"] == 0
-                                                               else f"  FAILED: {c.get('error_tail', h.get('error_tail'))}"))
+            print(
+                f"{label}: cold {c['wall_s']:.1f} s wall / {c['cpu_s']:.1f} s CPU, warm {h['wall_s']:.1f} s wall / "
+                f"{h['cpu_s']:.1f} s CPU (cold/warm x{w[key]['cold_over_warm_wall']:.2f} wall, "
+                f"x{w[key]['cold_over_warm_cpu']:.2f} CPU)"
+                + (
+                    ""
+                    if c["returncode"] == 0 and h["returncode"] == 0
+                    else f"  FAILED: {c.get('error_tail', h.get('error_tail'))}"
+                )
+            )
         v = w["stereo"]["vs_s2p"]
-        print(f"  geocd pair-DEM vs s2p on s2p's grid, valid cells: NMAD {v['nmad_m']:.3f} m, within 1 m "
-              f"{v['within_1m']:.1%}, completeness {v['completeness_on_s2p']:.1%}")
+        print(
+            f"  geocd pair-DEM vs s2p on s2p's grid, valid cells: NMAD {v['nmad_m']:.3f} m, within 1 m "
+            f"{v['within_1m']:.1%}, completeness {v['completeness_on_s2p']:.1%}"
+        )
         v = w["stereo"]["vs_s2p_with_filled"]
-        print(f"  ... valid + filled cells (z band as written; {w['stereo']['filled_cells']} filled): NMAD "
-              f"{v['nmad_m']:.3f} m, within 1 m {v['within_1m']:.1%}, completeness {v['completeness_on_s2p']:.1%}")
+        print(
+            f"  ... valid + filled cells (z band as written; {w['stereo']['filled_cells']} filled): NMAD "
+            f"{v['nmad_m']:.3f} m, within 1 m {v['within_1m']:.1%}, completeness {v['completeness_on_s2p']:.1%}"
+        )
         if "cars" in w:
             c = w["cars"]
             if "vs_s2p" in c:
                 v = c["vs_s2p"]
                 st = w["stereo"]
-                print(f"CARS (whole process, same run): wall {c['wall_s']:.1f} s, CPU {c['cpu_s']:.1f} s; final "
-                      f"{c['dsm']} ({c['dsm_grid']}) vs s2p: NMAD {v['nmad_m']:.3f} m, within 1 m {v['within_1m']:.1%}, "
-                      f"completeness {v['completeness_on_s2p']:.1%}")
+                print(
+                    f"CARS (whole process, same run): wall {c['wall_s']:.1f} s, CPU {c['cpu_s']:.1f} s; final "
+                    f"{c['dsm']} ({c['dsm_grid']}) vs s2p: NMAD {v['nmad_m']:.3f} m, within 1 m {v['within_1m']:.1%}, "
+                    f"completeness {v['completeness_on_s2p']:.1%}"
+                )
                 for lab in ("cold", "warm"):
-                    print(f"  CARS / geocd stereo {lab}: x{c['wall_s'] / st[lab]['wall_s']:.1f} wall, "
-                          f"x{c['cpu_s'] / st[lab]['cpu_s']:.1f} CPU")
+                    print(
+                        f"  CARS / geocd stereo {lab}: x{c['wall_s'] / st[lab]['wall_s']:.1f} wall, "
+                        f"x{c['cpu_s'] / st[lab]['cpu_s']:.1f} CPU"
+                    )
             else:
                 print(f"CARS failed (rc {c['returncode']}): {c.get('error_tail', '')[-600:]}")
     res["loadavg_end"] = os.getloadavg()

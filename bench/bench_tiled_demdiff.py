@@ -61,8 +61,18 @@ class Watch:
 
 
 def cmd(dem_dir: Path, out: Path, a, tiled: bool = True) -> list[str]:
-    c = [GEOCD, "--progress", "json", "demdiff", str(dem_dir / "dem_a.tif"), str(dem_dir / "dem_b.tif"), "--json",
-         "--out", str(out), "--no-plots"]
+    c = [
+        GEOCD,
+        "--progress",
+        "json",
+        "demdiff",
+        str(dem_dir / "dem_a.tif"),
+        str(dem_dir / "dem_b.tif"),
+        "--json",
+        "--out",
+        str(out),
+        "--no-plots",
+    ]
     if getattr(a, "region_test", None):
         c += ["--region-test", a.region_test]
     if not tiled:
@@ -97,8 +107,13 @@ def run_once(c: list[str], kill_at: float | None = None, extra_pids=()) -> dict:
                     break
         out, _ = p.communicate()
     wall = time.perf_counter() - t0
-    res = {"wall_s": round(wall, 1), "peak_tree_rss_gb": round(w.peak / 1e9, 3), "returncode": p.returncode,
-           "killed_at": last.get("fraction") if killed else None, "last_message": last.get("message")}
+    res = {
+        "wall_s": round(wall, 1),
+        "peak_tree_rss_gb": round(w.peak / 1e9, 3),
+        "returncode": p.returncode,
+        "killed_at": last.get("fraction") if killed else None,
+        "last_message": last.get("message"),
+    }
     if not killed:
         try:
             res["result"] = json.loads(out)
@@ -160,8 +175,12 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--memory-limit", default=None)
     ap.add_argument("--at", type=float, default=0.5)
-    ap.add_argument("--region-test", default=None, choices=["noise", "off"],
-                    help="demdiff's region test (default: the CLI's, noise; off: the products of earlier runs)")
+    ap.add_argument(
+        "--region-test",
+        default=None,
+        choices=["noise", "off"],
+        help="demdiff's region test (default: the CLI's, noise; off: the products of earlier runs)",
+    )
     ap.add_argument("--json", default=None, help="also write the result here")
     a = ap.parse_args()
     dem_dir, out = Path(a.dem_dir), Path(a.out)
@@ -189,9 +208,14 @@ def main() -> None:
         journal = sum(1 for _ in work.rglob("*.done.pkl")) if work.exists() else 0
         r2 = run_once(cmd(dem_dir, out, a))
         res = r2.get("result", {})
-        rep = {"cells": n, "killed": r1, "visible_partial_products_after_kill": partial,
-               "finished_tile_results_journalled": journal, "rerun": r2,
-               "tiles_resumed": (res.get("summary") or {}).get("tiles_resumed") if isinstance(res, dict) else None}
+        rep = {
+            "cells": n,
+            "killed": r1,
+            "visible_partial_products_after_kill": partial,
+            "finished_tile_results_journalled": journal,
+            "rerun": r2,
+            "tiles_resumed": (res.get("summary") or {}).get("tiles_resumed") if isinstance(res, dict) else None,
+        }
         if r2["returncode"] == 0:
             rep["digest"] = digest(out)
     else:  # cluster
@@ -199,14 +223,35 @@ def main() -> None:
         port = free_port()
         addr = f"tcp://127.0.0.1:{port}"
         dask = str(Path(sys.executable).with_name("dask"))
-        procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                                   "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+        procs = [
+            subprocess.Popen(
+                [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        ]
         time.sleep(3)
         for _ in range(2):
-            procs.append(subprocess.Popen([dask, "worker", addr, "--nworkers", "1", "--nthreads", "1",
-                                           "--memory-limit", a.memory_limit or "2GB", "--no-dashboard",
-                                           "--host", "127.0.0.1"],
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            procs.append(
+                subprocess.Popen(
+                    [
+                        dask,
+                        "worker",
+                        addr,
+                        "--nworkers",
+                        "1",
+                        "--nthreads",
+                        "1",
+                        "--memory-limit",
+                        a.memory_limit or "2GB",
+                        "--no-dashboard",
+                        "--host",
+                        "127.0.0.1",
+                    ],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
         time.sleep(5)
         try:
             a.scheduler = addr

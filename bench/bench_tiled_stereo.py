@@ -32,10 +32,20 @@ def pleiades_manifest(out: Path) -> Path:
         b = ds.bounds
         crs = ds.crs.to_string()
         post = ds.res[0]
-    m = {"geocd_manifest": 1, "name": "pleiades_reunion_pair",
-         "aoi": {"crs": crs, "bounds": [b.left, b.bottom, b.right, b.top], "posting_m": post},
-         "epochs": [{"name": "E", "images": [{"path": str(DATA / "s2p_pleiades" / "input_pair" / f"{n}.tif"),
-                                              "name": n} for n in ("img_01", "img_02")]}]}
+    m = {
+        "geocd_manifest": 1,
+        "name": "pleiades_reunion_pair",
+        "aoi": {"crs": crs, "bounds": [b.left, b.bottom, b.right, b.top], "posting_m": post},
+        "epochs": [
+            {
+                "name": "E",
+                "images": [
+                    {"path": str(DATA / "s2p_pleiades" / "input_pair" / f"{n}.tif"), "name": n}
+                    for n in ("img_01", "img_02")
+                ],
+            }
+        ],
+    }
     p = out / "pleiades.yaml"
     p.write_text(yaml.safe_dump(m))
     return p
@@ -52,14 +62,21 @@ def compare(u_path: Path, t_path: Path, ref_path: Path, offset: bool) -> dict:
         d = (p.z_m - ref)[p.valid & np.isfinite(ref)].astype(np.float64)
         if offset:
             d = d - np.median(d)
-        out[k] = {"completeness": round(float(p.valid.mean()), 4), "median_abs_m": round(float(np.median(np.abs(d))), 3),
-                  "over_1m": round(float(np.mean(np.abs(d) > 1.0)), 4)}
+        out[k] = {
+            "completeness": round(float(p.valid.mean()), 4),
+            "median_abs_m": round(float(np.median(np.abs(d))), 3),
+            "over_1m": round(float(np.mean(np.abs(d) > 1.0)), 4),
+        }
     both = a.valid & b.valid
     dz = np.abs(a.z_m - b.z_m)[both]
-    out["cells"] = {"within_0.1m": round(float(np.mean(dz < 0.1)), 4), "p99_m": round(float(np.percentile(dz, 99)), 3),
-                    "flags_agree": round(float(np.mean(a.flags == b.flags)), 4)}
-    out["margin_cells"] = json.loads(b.meta.get("tiled", "{}")) if isinstance(b.meta.get("tiled"), str) else \
-        (b.meta.get("tiled") or {})
+    out["cells"] = {
+        "within_0.1m": round(float(np.mean(dz < 0.1)), 4),
+        "p99_m": round(float(np.percentile(dz, 99)), 3),
+        "flags_agree": round(float(np.mean(a.flags == b.flags)), 4),
+    }
+    out["margin_cells"] = (
+        json.loads(b.meta.get("tiled", "{}")) if isinstance(b.meta.get("tiled"), str) else (b.meta.get("tiled") or {})
+    )
     return out
 
 
@@ -79,21 +96,43 @@ def main() -> None:
     rep = {"tile_size": a.tile_size}
     cases = []
     if "sample" in a.which:
-        cases.append(("sample_aoi", REPO / "sample_aoi" / "scene.yaml", ["B"], REPO / "sample_aoi" / "truth" / "dsm_B.tif",
-                      False))
+        cases.append(
+            (
+                "sample_aoi",
+                REPO / "sample_aoi" / "scene.yaml",
+                ["B"],
+                REPO / "sample_aoi" / "truth" / "dsm_B.tif",
+                False,
+            )
+        )
     if "pleiades" in a.which:
-        cases.append(("pleiades", pleiades_manifest(out), None,
-                      DATA / "s2p_pleiades" / "expected_output" / "pair" / "dsm.tif", True))
+        cases.append(
+            (
+                "pleiades",
+                pleiades_manifest(out),
+                None,
+                DATA / "s2p_pleiades" / "expected_output" / "pair" / "dsm.tif",
+                True,
+            )
+        )
     for name, man, epochs, ref, offset in cases:
         t = time.perf_counter()
         u = run_stereo(man, epochs=epochs, out_dir=out / name / "untiled")["outputs"]
         tu = time.perf_counter() - t
         t = time.perf_counter()
-        r = run_stereo_tiled(man, epochs=epochs, out_dir=out / name / "tiled",
-                             tiling=TilingParams(tile_size=a.tile_size, scheduler="sync"))
+        r = run_stereo_tiled(
+            man,
+            epochs=epochs,
+            out_dir=out / name / "tiled",
+            tiling=TilingParams(tile_size=a.tile_size, scheduler="sync"),
+        )
         tt = time.perf_counter() - t
-        rep[name] = {"wall_untiled_s": round(tu, 1), "wall_tiled_s": round(tt, 1), "margins": r["margins"],
-                     "pairs": {k: compare(u[k], r["outputs"][k], ref, offset) for k in u}}
+        rep[name] = {
+            "wall_untiled_s": round(tu, 1),
+            "wall_tiled_s": round(tt, 1),
+            "margins": r["margins"],
+            "pairs": {k: compare(u[k], r["outputs"][k], ref, offset) for k in u},
+        }
         print(json.dumps({name: rep[name]}, indent=1), flush=True)
     if a.json:
         Path(a.json).write_text(json.dumps(rep, indent=1))

@@ -50,7 +50,7 @@ def main() -> None:
     n = a.size
     r0, c0 = (rows - n) // 2, (cols - n) // 2
     cam = v.camera.cropped(c0, r0, n, n)
-    img = np.ascontiguousarray(v.intensity[r0:r0 + n, c0:c0 + n])
+    img = np.ascontiguousarray(v.intensity[r0 : r0 + n, c0 : c0 + n])
 
     if a.model:
         model = load_model(a.model)
@@ -70,8 +70,8 @@ def main() -> None:
     # --- warm-up (compilation never counts) ---------------------------------------------------
     m_small = model.copy()
     h = n // 2
-    update_model(m_small, img[h:h + 32, h:h + 32], cam.cropped(h, h, 32, 32), sun=v.sun)
-    detect_change(model, img[h:h + 32, h:h + 32], cam.cropped(h, h, 32, 32), sun=v.sun)
+    update_model(m_small, img[h : h + 32, h : h + 32], cam.cropped(h, h, 32, 32), sun=v.sun)
+    detect_change(model, img[h : h + 32, h : h + 32], cam.cropped(h, h, 32, 32), sun=v.sun)
     del m_small
 
     # --- kernel throughput on this view's rays --------------------------------------------------
@@ -86,24 +86,84 @@ def main() -> None:
     for _ in range(a.repeat):
         acc[:] = 0
         t = time.perf_counter()
-        segs = K.seglen_rays(o, d, obs, g.box_lo, g.box_hi, geo, model.block_root, model.child, acc[0], acc[2],
-                             sc.seg_cell, sc.seg_len, sc.seg_t)
+        segs = K.seglen_rays(
+            o,
+            d,
+            obs,
+            g.box_lo,
+            g.box_hi,
+            geo,
+            model.block_root,
+            model.child,
+            acc[0],
+            acc[2],
+            sc.seg_cell,
+            sc.seg_len,
+            sc.seg_t,
+        )
         best["trace+accumulate (pass 1)"] = min(best.get("trace+accumulate (pass 1)", 1e9), time.perf_counter() - t)
         cell_obs = np.where(acc[0] > 0, acc[2] / np.maximum(acc[0], 1e-30), np.nan)
         acc[:] = 0
         t = time.perf_counter()
-        K.update_rays(o, d, obs, cell_obs, g.box_lo, g.box_hi, geo, model.block_root, model.child, model.alpha,
-                      model.app, 0, 1.0, 1.0, acc[0], acc[1], acc[2], acc[3], sc.seg_cell, sc.seg_len, sc.seg_t, sc.a,
-                      sc.b, sc.c, sc.d)
-        best["update ray pass (eqs. 20-25)"] = min(best.get("update ray pass (eqs. 20-25)", 1e9),
-                                                   time.perf_counter() - t)
+        K.update_rays(
+            o,
+            d,
+            obs,
+            cell_obs,
+            g.box_lo,
+            g.box_hi,
+            geo,
+            model.block_root,
+            model.child,
+            model.alpha,
+            model.app,
+            0,
+            1.0,
+            1.0,
+            acc[0],
+            acc[1],
+            acc[2],
+            acc[3],
+            sc.seg_cell,
+            sc.seg_len,
+            sc.seg_t,
+            sc.a,
+            sc.b,
+            sc.c,
+            sc.d,
+        )
+        best["update ray pass (eqs. 20-25)"] = min(
+            best.get("update ray pass (eqs. 20-25)", 1e9), time.perf_counter() - t
+        )
         out = np.empty((4, o.shape[0]))
         t = time.perf_counter()
-        K.render_rays(o, d, obs, g.box_lo, g.box_hi, geo, model.block_root, model.child, model.alpha, model.app, 0,
-                      1.0, 0.5, 1.0, np.zeros(0), np.zeros(0), np.zeros(0), out[0], out[1], out[2], out[3],
-                      sc.seg_cell, sc.seg_len, sc.seg_t)
-        best["detect/render pass (eq. 27)"] = min(best.get("detect/render pass (eq. 27)", 1e9),
-                                                  time.perf_counter() - t)
+        K.render_rays(
+            o,
+            d,
+            obs,
+            g.box_lo,
+            g.box_hi,
+            geo,
+            model.block_root,
+            model.child,
+            model.alpha,
+            model.app,
+            0,
+            1.0,
+            0.5,
+            1.0,
+            np.zeros(0),
+            np.zeros(0),
+            np.zeros(0),
+            out[0],
+            out[1],
+            out[2],
+            out[3],
+            sc.seg_cell,
+            sc.seg_len,
+            sc.seg_t,
+        )
+        best["detect/render pass (eq. 27)"] = min(best.get("detect/render pass (eq. 27)", 1e9), time.perf_counter() - t)
     print(f"\nrays {o.shape[0]:,}, ray-cell segments per ray {segs / o.shape[0]:.1f} (total {segs:,})")
     print(f"{'kernel (1 core)':34s} {'s':>7s} {'M segments/s':>13s}")
     for k, s in best.items():
@@ -112,12 +172,29 @@ def main() -> None:
     # numpy reference on a subset of the same rays (the baseline measured in this run)
     sub = slice(0, 300)
     t = time.perf_counter()
-    K.update_rays_ref(o[sub], d[sub], obs[sub], cell_obs, g.box_lo, g.box_hi, geo, model.block_root, model.child,
-                      model.alpha, model.app, 0, 1.0, 1.0, nn)
+    K.update_rays_ref(
+        o[sub],
+        d[sub],
+        obs[sub],
+        cell_obs,
+        g.box_lo,
+        g.box_hi,
+        geo,
+        model.block_root,
+        model.child,
+        model.alpha,
+        model.app,
+        0,
+        1.0,
+        1.0,
+        nn,
+    )
     t_ref = (time.perf_counter() - t) / 300
     t_nb = best["update ray pass (eqs. 20-25)"] / o.shape[0]
-    print(f"\nupdate pass per ray: numba {t_nb * 1e6:.2f} µs, numpy reference {t_ref * 1e6:.0f} µs "
-          f"→ {t_ref / t_nb:.0f}× faster")
+    print(
+        f"\nupdate pass per ray: numba {t_nb * 1e6:.2f} µs, numpy reference {t_ref * 1e6:.0f} µs "
+        f"→ {t_ref / t_nb:.0f}× faster"
+    )
 
     # --- whole operations on the 600×600 view (ray generation, both passes, finalize, refinement) ---
     m2 = model.copy()
@@ -130,14 +207,20 @@ def main() -> None:
     t = time.perf_counter()
     res = detect_change(model, img, cam, sun=(v.sun[0] + 25.0, v.sun[1] - 15.0) if v.sun else None)
     t_rel = time.perf_counter() - t
-    print(f"\nwhole update of a {n}×{n} view: {t_upd:.2f} s → {60 / t_upd:.1f} images/minute "
-          f"({st.segments / t_upd / 1e6:.2f} M segments/s end to end)")
+    print(
+        f"\nwhole update of a {n}×{n} view: {t_upd:.2f} s → {60 / t_upd:.1f} images/minute "
+        f"({st.segments / t_upd / 1e6:.2f} M segments/s end to end)"
+    )
     print(f"whole change detection of a {n}×{n} view: {t_det:.2f} s → {60 / t_det:.1f} images/minute")
     if res.relight is not None:
-        print(f"whole change detection with relighting (sun 29° away from the trained bin): {t_rel:.2f} s → "
-              f"{60 / t_rel:.1f} images/minute")
-    print(f"(threads: NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS', 'default')}, "
-          f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'default')}; kernels are serial)")
+        print(
+            f"whole change detection with relighting (sun 29° away from the trained bin): {t_rel:.2f} s → "
+            f"{60 / t_rel:.1f} images/minute"
+        )
+    print(
+        f"(threads: NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS', 'default')}, "
+        f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'default')}; kernels are serial)"
+    )
 
 
 if __name__ == "__main__":

@@ -37,14 +37,23 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def object_table(z: np.ndarray, posting_m: float, dtm: np.ndarray | None = None, ground=None) -> tuple[list, np.ndarray]:
+def object_table(
+    z: np.ndarray, posting_m: float, dtm: np.ndarray | None = None, ground=None
+) -> tuple[list, np.ndarray]:
     """Objects of ``z`` with the tree rule off, and the figures of both rules per object."""
     import dataclasses
 
     from scipy import ndimage as ndi
 
-    from geocd.change.dsm_buildings import (DSMBuildingParams, best_plane_residual, building_objects, fill_gaps,
-                                            ground_model, roughness, tree_threshold_m)
+    from geocd.change.dsm_buildings import (
+        DSMBuildingParams,
+        best_plane_residual,
+        building_objects,
+        fill_gaps,
+        ground_model,
+        roughness,
+        tree_threshold_m,
+    )
     from geocd.mpp.features import plane_residual, planar_cells
 
     bp = DSMBuildingParams()
@@ -81,30 +90,165 @@ def object_table(z: np.ndarray, posting_m: float, dtm: np.ndarray | None = None,
         bc = bc[np.isfinite(bc)]
         b9 = best9[sl][m]
         b9 = b9[np.isfinite(b9)]
-        rows.append({"id": i, "area_m2": float(m.sum() * posting_m ** 2),
-                     "plane_med_m": round(float(np.median(b9)), 4) if b9.size else np.inf,
-                     "core_planar_frac": round(float(pc.mean()), 3) if pc.size else np.nan,
-                     "plane_ratio": round(float(np.median(bc)) / res_floor, 2) if bc.size else np.inf,
-                     "height_m": round(float(np.median(ndsm[sl][m])), 2),
-                     "rough_ratio": round(float(np.median(rough[sl][mz])) / floor, 2) if mz.any() else np.inf,
-                     "planar_frac": round(float(pl.mean()), 3) if pl.size else np.nan,
-                     "bbox": [sl[0].start, sl[0].stop, sl[1].start, sl[1].stop]})
-    return rows, lab, {"noise_floor_m": floor, "planar_tol_m": tol, "plane_floor_m": res_floor,
-                       "plane_thr_m": plane_thr}
+        rows.append(
+            {
+                "id": i,
+                "area_m2": float(m.sum() * posting_m**2),
+                "plane_med_m": round(float(np.median(b9)), 4) if b9.size else np.inf,
+                "core_planar_frac": round(float(pc.mean()), 3) if pc.size else np.nan,
+                "plane_ratio": round(float(np.median(bc)) / res_floor, 2) if bc.size else np.inf,
+                "height_m": round(float(np.median(ndsm[sl][m])), 2),
+                "rough_ratio": round(float(np.median(rough[sl][mz])) / floor, 2) if mz.any() else np.inf,
+                "planar_frac": round(float(pl.mean()), 3) if pl.size else np.nan,
+                "bbox": [sl[0].start, sl[0].stop, sl[1].start, sl[1].stop],
+            }
+        )
+    return (
+        rows,
+        lab,
+        {"noise_floor_m": floor, "planar_tol_m": tol, "plane_floor_m": res_floor, "plane_thr_m": plane_thr},
+    )
 
 
 #: by-eye labels of the Kahramanmaraş objects the roughness rule drops (ids of the rule-off objects of the run
 #: /tmp/kahra2; contact sheets of the orthos on the ground model; docs/kahramanmaras.md, "The tree rule")
-EYE = {"pre_event": {"building": [9, 14, 15, 21, 22, 23, 24, 26, 34, 36, 45, 52, 53, 54, 55, 76, 78, 83, 84, 96, 97,
-                                  98, 101, 105, 141, 177, 179, 185, 189, 216, 218, 235],
-                     "tree": [28, 61, 63, 86, 88, 89, 106, 108, 109, 110, 111, 112, 115, 116, 123, 125, 126, 128, 129,
-                              130, 133, 134, 135, 145, 146, 147, 149, 150, 151, 153, 154, 155, 156, 157, 158, 159, 160,
-                              161, 163, 164, 165, 166, 169, 170, 171, 172, 173, 174, 175, 176, 182, 191, 192, 193, 194,
-                              198, 220, 226, 233, 252]},
-       "post_event": {"building": [4, 8, 17, 21, 26, 30, 32, 37, 52, 56, 61, 63, 67, 107, 171, 179, 180, 185, 190, 201,
-                                   202],
-                      "tree": [14, 39, 42, 76, 77, 80, 86, 91, 95, 96, 97, 99, 116, 117, 119, 121, 130, 133, 135, 139,
-                               142, 149, 150, 151, 155, 157, 158, 162, 164, 178, 182, 184]}}
+EYE = {
+    "pre_event": {
+        "building": [
+            9,
+            14,
+            15,
+            21,
+            22,
+            23,
+            24,
+            26,
+            34,
+            36,
+            45,
+            52,
+            53,
+            54,
+            55,
+            76,
+            78,
+            83,
+            84,
+            96,
+            97,
+            98,
+            101,
+            105,
+            141,
+            177,
+            179,
+            185,
+            189,
+            216,
+            218,
+            235,
+        ],
+        "tree": [
+            28,
+            61,
+            63,
+            86,
+            88,
+            89,
+            106,
+            108,
+            109,
+            110,
+            111,
+            112,
+            115,
+            116,
+            123,
+            125,
+            126,
+            128,
+            129,
+            130,
+            133,
+            134,
+            135,
+            145,
+            146,
+            147,
+            149,
+            150,
+            151,
+            153,
+            154,
+            155,
+            156,
+            157,
+            158,
+            159,
+            160,
+            161,
+            163,
+            164,
+            165,
+            166,
+            169,
+            170,
+            171,
+            172,
+            173,
+            174,
+            175,
+            176,
+            182,
+            191,
+            192,
+            193,
+            194,
+            198,
+            220,
+            226,
+            233,
+            252,
+        ],
+    },
+    "post_event": {
+        "building": [4, 8, 17, 21, 26, 30, 32, 37, 52, 56, 61, 63, 67, 107, 171, 179, 180, 185, 190, 201, 202],
+        "tree": [
+            14,
+            39,
+            42,
+            76,
+            77,
+            80,
+            86,
+            91,
+            95,
+            96,
+            97,
+            99,
+            116,
+            117,
+            119,
+            121,
+            130,
+            133,
+            135,
+            139,
+            142,
+            149,
+            150,
+            151,
+            155,
+            157,
+            158,
+            162,
+            164,
+            178,
+            182,
+            184,
+        ],
+    },
+}
 
 
 def contact_sheet(rows, lab, ortho: np.ndarray, ndsm: np.ndarray, path: Path, title: str) -> None:
@@ -149,8 +293,10 @@ def kahra(run: Path, chips: Path | None) -> dict:
     from geocd.pipeline import _median_surface
     from geocd.stereo import read_pair_dem
 
-    recs = {ep: [read_pair_dem(p) for p in sorted((run / "stereo" / ep).glob("*.tif"))]
-            for ep in ("pre_event", "post_event")}
+    recs = {
+        ep: [read_pair_dem(p) for p in sorted((run / "stereo" / ep).glob("*.tif"))]
+        for ep in ("pre_event", "post_event")
+    }
     grid = recs["pre_event"][0].grid
     out = {}
     for ep in ("pre_event", "post_event"):
@@ -169,19 +315,36 @@ def kahra(run: Path, chips: Path | None) -> dict:
             d["n"] += 1
             d["dropped_roughness"] += int(r["rough_ratio"] > fac)
             d["dropped_plane"] += int(r["plane_med_m"] > thr)
-        out[ep] = {**info, "objects": len(rows), "dropped_by_roughness": len(dropped),
-                   "dropped_by_plane": sum(r["plane_med_m"] > thr for r in rows), "by_eye": by, "rows": rows}
+        out[ep] = {
+            **info,
+            "objects": len(rows),
+            "dropped_by_roughness": len(dropped),
+            "dropped_by_plane": sum(r["plane_med_m"] > thr for r in rows),
+            "by_eye": by,
+            "rows": rows,
+        }
         if chips is not None:
             chips.mkdir(parents=True, exist_ok=True)
             with rasterio.open(run / "orthos" / f"{ep}_img1.tif") as ds:
                 ortho = ds.read(1).astype(float)
             ortho[ortho == 0] = np.nan
-            contact_sheet(dropped, lab, ortho, fill_gaps(z) - dtm, chips / f"{ep}_dropped.png",
-                          f"{ep}: objects the roughness rule drops (r = roughness / floor > {fac}; "
-                          f"p = planar share)")
+            contact_sheet(
+                dropped,
+                lab,
+                ortho,
+                fill_gaps(z) - dtm,
+                chips / f"{ep}_dropped.png",
+                f"{ep}: objects the roughness rule drops (r = roughness / floor > {fac}; p = planar share)",
+            )
             kept = [r for r in rows if r["rough_ratio"] <= fac]
-            contact_sheet(kept, lab, ortho, fill_gaps(z) - dtm, chips / f"{ep}_kept.png",
-                          f"{ep}: objects the roughness rule keeps")
+            contact_sheet(
+                kept,
+                lab,
+                ortho,
+                fill_gaps(z) - dtm,
+                chips / f"{ep}_kept.png",
+                f"{ep}: objects the roughness rule keeps",
+            )
     return out
 
 
@@ -195,22 +358,41 @@ def town(root: Path, out_dir: Path) -> dict:
         with rasterio.open(out_dir / "ortho" / ep / f"dsm_{ep}.tif") as ds:
             z = ds.read(1).astype(np.float64)
             if ds.count > 1:
-                z[ds.read(2) > 0] = np.nan          # the gap-filled cells: no stereo height
+                z[ds.read(2) > 0] = np.nan  # the gap-filled cells: no stereo height
             shape, tr, posting = ds.shape, ds.transform, ds.transform.a
             _TR[0] = tr
         fp = gpd.read_file(root / "truth" / f"footprints_{ep}.gpkg")
         trees = gpd.read_file(root / "truth" / "objects.gpkg", layer=f"trees_{ep}")
-        roof = rasterize([(g, 1 if r == "flat" else 2) for g, r in zip(fp.geometry, fp["roof"])], out_shape=shape,
-                         transform=tr, fill=0, dtype="uint8")
-        tree = rasterize([(g, 1) for g in trees.geometry], out_shape=shape, transform=tr, fill=0,
-                         dtype="uint8").astype(bool) if len(trees) else np.zeros(shape, bool)
+        roof = rasterize(
+            [(g, 1 if r == "flat" else 2) for g, r in zip(fp.geometry, fp["roof"])],
+            out_shape=shape,
+            transform=tr,
+            fill=0,
+            dtype="uint8",
+        )
+        tree = (
+            rasterize([(g, 1) for g in trees.geometry], out_shape=shape, transform=tr, fill=0, dtype="uint8").astype(
+                bool
+            )
+            if len(trees)
+            else np.zeros(shape, bool)
+        )
         rows, lab, info = object_table(z, posting)
         for r in rows:
             m = lab == r["id"]
             n = m.sum()
             f_flat, f_gab, f_tree = (roof[m] == 1).sum() / n, (roof[m] == 2).sum() / n, tree[m].sum() / n
-            r["truth"] = ("flat roof" if f_flat > 0.5 else "gabled roof" if f_gab > 0.5 else
-                          "building (mixed)" if f_flat + f_gab > 0.5 else "tree" if f_tree > 0.5 else "other")
+            r["truth"] = (
+                "flat roof"
+                if f_flat > 0.5
+                else "gabled roof"
+                if f_gab > 0.5
+                else "building (mixed)"
+                if f_flat + f_gab > 0.5
+                else "tree"
+                if f_tree > 0.5
+                else "other"
+            )
             r.pop("bbox")
         res[ep] = {**info, "objects": len(rows), "rows": rows, "detection": detection(z, posting, fp, roof, tree)}
     return res
@@ -227,8 +409,9 @@ def detection(z, posting, fp, roof, tree) -> dict:
     from geocd.change.dsm_buildings import TREE_RULES, DSMBuildingParams, building_objects, ground_model
 
     dtm, ground = ground_model(z, posting)
-    fpl = rasterize([(g, i + 1) for i, g in enumerate(fp.geometry)], out_shape=z.shape,
-                    transform=_TR[0], fill=0, dtype="int32")
+    fpl = rasterize(
+        [(g, i + 1) for i, g in enumerate(fp.geometry)], out_shape=z.shape, transform=_TR[0], fill=0, dtype="int32"
+    )
     out = {}
     for rule in TREE_RULES:
         lab = building_objects(z, dtm, posting, dataclasses.replace(DSMBuildingParams(), tree_rule=rule), ground=ground)
@@ -243,9 +426,13 @@ def detection(z, posting, fp, roof, tree) -> dict:
             m = lab == j
             kinds["building" if (roof[m] > 0).mean() > 0.5 else "tree" if tree[m].mean() > 0.5 else "other"] += 1
         n = sum(kinds.values())
-        out[rule] = {"found_flat": found["flat"], "found_gabled": found["gabled"],
-                     "recall": round((found["flat"][0] + found["gabled"][0]) / max(1, len(fp)), 3),
-                     "objects": kinds, "precision": round(kinds["building"] / max(1, n), 3)}
+        out[rule] = {
+            "found_flat": found["flat"],
+            "found_gabled": found["gabled"],
+            "recall": round((found["flat"][0] + found["gabled"][0]) / max(1, len(fp)), 3),
+            "objects": kinds,
+            "precision": round(kinds["building"] / max(1, n), 3),
+        }
     return out
 
 
@@ -263,8 +450,11 @@ def summarise(rows, fac: float, thr: float, key="truth") -> dict:
         d["planar_frac"].append(r["planar_frac"])
     for d in out.values():
         p = np.asarray(d.pop("planar_frac"), float)
-        d["planar_frac_min_med_max"] = [round(float(np.nanmin(p)), 2), round(float(np.nanmedian(p)), 2),
-                                        round(float(np.nanmax(p)), 2)]
+        d["planar_frac_min_med_max"] = [
+            round(float(np.nanmin(p)), 2),
+            round(float(np.nanmedian(p)), 2),
+            round(float(np.nanmax(p)), 2),
+        ]
     return out
 
 

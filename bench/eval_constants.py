@@ -60,10 +60,17 @@ def run_scene(scene: Path, run_dir: Path | None) -> dict:
         fp = b[(b["source"] == "footprint") & (b["class"] != "unobserved")]
         changed = np.array([status.get(i) not in (None, "unchanged") for i in fp["building_id"]])
         fr = fp["frac_changed"].to_numpy(float)
-        margins = {"max_frac_unchanged": round(float(fr[~changed].max()), 4) if (~changed).any() else None,
-                   "min_frac_changed": round(float(fr[changed].min()), 4) if changed.any() else None}
-        return {"cells_f1": cells["f1"], "cells_false_alarms": cells["false_alarm_rate"], "buildings_f1": sb["f1"],
-                "buildings": [sb["tp"], sb["fp"], sb["fn"]], **margins}
+        margins = {
+            "max_frac_unchanged": round(float(fr[~changed].max()), 4) if (~changed).any() else None,
+            "min_frac_changed": round(float(fr[changed].min()), 4) if changed.any() else None,
+        }
+        return {
+            "cells_f1": cells["f1"],
+            "cells_false_alarms": cells["false_alarm_rate"],
+            "buildings_f1": sb["f1"],
+            "buildings": [sb["tp"], sb["fp"], sb["fn"]],
+            **margins,
+        }
 
     out: dict = {"cluster_confidence": {}, "per_cell_mapping_unit": {}}
     for cc in (90.0, 95.0, 99.0):
@@ -100,8 +107,9 @@ def main() -> None:
         scene_p = (REPO / scene) if not Path(scene).is_absolute() else Path(scene)
         res[name] = {} if args.no_sc else run_scene(scene_p, Path(run) if run else None)
         if args.probchange:
-            res[name]["probchange_no_depth_prior"] = probchange_prior(scene_p, [float(v) for v in
-                                                                                args.probchange.split(",")])
+            res[name]["probchange_no_depth_prior"] = probchange_prior(
+                scene_p, [float(v) for v in args.probchange.split(",")]
+            )
         print(name, json.dumps(res[name]), flush=True)
     if args.json:
         prev = json.loads(Path(args.json).read_text()) if Path(args.json).is_file() else {"scenes": {}}

@@ -41,8 +41,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from geocd.screen.cnn import random_state_dict  # noqa: E402
-from geocd.screen.core import (cell_distance, cell_valid, normalise_image, segment_mean, shadow_mask,  # noqa: E402
-                               shift_image, spread_to_pixels, superpixels, vegetation_mask)
+from geocd.screen.core import (
+    cell_distance,
+    cell_valid,
+    normalise_image,
+    segment_mean,
+    shadow_mask,  # noqa: E402
+    shift_image,
+    spread_to_pixels,
+    superpixels,
+    vegetation_mask,
+)
 from geocd.screen.features import FeatureSpec, grey  # noqa: E402
 from geocd.screen.threshold import NullDistribution, f1_curve, f1_scores, split_above, threshold_best_f1  # noqa: E402
 
@@ -51,8 +60,9 @@ SHIFTS = (0, 2, 4)
 SUPERPIXELS = ("felzenszwalb", "slic", "none")
 
 
-def feature_specs(quick: bool, weights_dir: Path,
-                  weights: dict[str, str] | None = None) -> list[tuple[str, FeatureSpec]]:
+def feature_specs(
+    quick: bool, weights_dir: Path, weights: dict[str, str] | None = None
+) -> list[tuple[str, FeatureSpec]]:
     """(label, spec) of every row of the table; CNN rows use random-init (He) weights the script makes, or the
     weights file named for that backbone in ``weights`` ({"vgg19": "vgg19.npz"}: e.g. trained ImageNet weights)."""
     specs = []
@@ -61,9 +71,11 @@ def feature_specs(quick: bool, weights_dir: Path,
         for c in cells:
             specs.append((f"{kind} {c}px", FeatureSpec(kind=kind, cell_px=c)))
     weights_dir.mkdir(parents=True, exist_ok=True)
-    for bb, layers in (("vgg19", ("pool2", "pool3", "pool4", "pool5") if not quick else ("pool4",)),
-                       ("resnet18", ("layer2", "layer3") if not quick else ()),
-                       ("efficientnet_lite0", ("stage3", "stage5", "stage6", "head") if not quick else ())):
+    for bb, layers in (
+        ("vgg19", ("pool2", "pool3", "pool4", "pool5") if not quick else ("pool4",)),
+        ("resnet18", ("layer2", "layer3") if not quick else ()),
+        ("efficientnet_lite0", ("stage3", "stage5", "stage6", "head") if not quick else ()),
+    ):
         if not layers:
             continue
         if weights and bb in weights:
@@ -117,8 +129,18 @@ def load_sample_aoi(views: Path) -> dict:
         grid = AOIGrid.from_raster(ds)
     t3 = np.nan_to_num(read_on_grid(ROOT / "sample_aoi/truth/change_mask.tif", grid)) > 0
     n3 = np.nan_to_num(read_on_grid(ROOT / "sample_aoi/truth/non3d_mask.tif", grid))
-    return {"name": "sample_aoi", "a": a, "b": b, "nc_a": c, "nc_b": d, "truth": t3 | (n3 == 1), "truth3d": t3,
-            "pair": [pa, pb], "nochange_pair": nc, "grid": grid}
+    return {
+        "name": "sample_aoi",
+        "a": a,
+        "b": b,
+        "nc_a": c,
+        "nc_b": d,
+        "truth": t3 | (n3 == 1),
+        "truth3d": t3,
+        "pair": [pa, pb],
+        "nochange_pair": nc,
+        "grid": grid,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -140,7 +162,10 @@ class PairCache:
 
     def labels(self, method: str):
         if method not in self._sp:
-            self._sp[method] = (superpixels(self.na, method, self.gsd, 3.0), superpixels(self.nb, method, self.gsd, 3.0))
+            self._sp[method] = (
+                superpixels(self.na, method, self.gsd, 3.0),
+                superpixels(self.nb, method, self.gsd, 3.0),
+            )
         return self._sp[method]
 
 
@@ -221,12 +246,24 @@ def eval_levir(specs, sps, shifts, log) -> list[dict]:
                 t_or, f_or = oracle([ds[i] for i in scored], [pairs[i]["truth"] for i in scored])
                 dctl = ds[ctrl[0]][np.isfinite(ds[ctrl[0]])]
                 ctrl_fa = float(np.mean(dctl > split_above(dctl, t_q)))
-                rows.append({"set": "levir", "feature": label, "cell_px": feat.cell_px, "superpixels": sp,
-                             "shift_px": sh, "f1_nochange": round(f_nc, 3), "t_nochange_split": t_split,
-                             "f1_nochange_quantile": round(f_q, 3), "t_nochange_quantile": round(t_q, 3),
-                             "f1_labelled_loo": round(f_loo, 3), "f1_oracle": round(f_or, 3),
-                             "t_oracle": round(t_or, 3), "per_pair_f1_nochange": per_pair_nc,
-                             "control_false_alarm": round(ctrl_fa, 4)})
+                rows.append(
+                    {
+                        "set": "levir",
+                        "feature": label,
+                        "cell_px": feat.cell_px,
+                        "superpixels": sp,
+                        "shift_px": sh,
+                        "f1_nochange": round(f_nc, 3),
+                        "t_nochange_split": t_split,
+                        "f1_nochange_quantile": round(f_q, 3),
+                        "t_nochange_quantile": round(t_q, 3),
+                        "f1_labelled_loo": round(f_loo, 3),
+                        "f1_oracle": round(f_or, 3),
+                        "t_oracle": round(t_or, 3),
+                        "per_pair_f1_nochange": per_pair_nc,
+                        "control_false_alarm": round(ctrl_fa, 4),
+                    }
+                )
                 log(rows[-1])
         print(f"  {label}: {time.perf_counter() - t0:.1f} s", flush=True)
     return rows
@@ -251,16 +288,29 @@ def eval_sample(specs, sps, shifts, views: Path, log) -> list[dict]:
                 t_q = null.threshold(1.0)
                 t_nc = split_above(d, t_q)
                 ok = np.isfinite(d)
-                r = {"set": "sample_aoi", "feature": label, "cell_px": feat.cell_px, "superpixels": sp, "shift_px": sh,
-                     "t_nochange_quantile": round(t_q, 3), "t_nochange": round(t_nc, 3),
-                     "changed_fraction": round(float(np.mean(d[ok] > t_nc)), 4)}
+                r = {
+                    "set": "sample_aoi",
+                    "feature": label,
+                    "cell_px": feat.cell_px,
+                    "superpixels": sp,
+                    "shift_px": sh,
+                    "t_nochange_quantile": round(t_q, 3),
+                    "t_nochange": round(t_nc, 3),
+                    "changed_fraction": round(float(np.mean(d[ok] > t_nc)), 4),
+                }
                 for key, tr in (("", s["truth"]), ("_3d", s["truth3d"])):
                     r[f"f1_nochange_quantile{key}"] = f1_scores(d > t_q, tr, ok)["f1"]
                     sc = f1_scores(d > t_nc, tr, ok)
                     t_or, f_or = oracle([d], [tr])
-                    r.update({f"f1_nochange{key}": sc["f1"], f"precision_nochange{key}": sc["precision"],
-                              f"recall_nochange{key}": sc["recall"], f"f1_oracle{key}": round(f_or, 3),
-                              f"t_oracle{key}": round(t_or, 3)})
+                    r.update(
+                        {
+                            f"f1_nochange{key}": sc["f1"],
+                            f"precision_nochange{key}": sc["precision"],
+                            f"recall_nochange{key}": sc["recall"],
+                            f"f1_oracle{key}": round(f_or, 3),
+                            f"t_oracle{key}": round(t_or, 3),
+                        }
+                    )
                 rows.append(r)
                 log(r)
         print(f"  {label}: {time.perf_counter() - t0:.1f} s", flush=True)
@@ -276,44 +326,73 @@ def render(doc: dict) -> str:
     feats = list(dict.fromkeys(r["feature"] for r in rows))
 
     def get(st, f, sp="felzenszwalb", sh=0):
-        return next((r for r in rows if r["set"] == st and r["feature"] == f and r["superpixels"] == sp
-                     and r["shift_px"] == sh), None)
+        return next(
+            (
+                r
+                for r in rows
+                if r["set"] == st and r["feature"] == f and r["superpixels"] == sp and r["shift_px"] == sh
+            ),
+            None,
+        )
 
-    out = ["**LEVIR-CD, 4 changed pairs (train_386 = the no-change control), Felzenszwalb, no shift** — pooled "
-           "pixel F1",
-           "",
-           "| feature | no-change rule (t per pair) | bare 99 % quantile | labelled, leave one out | oracle (t) | "
-           "control false alarms |", "|---|---|---|---|---|---|"]
+    out = [
+        "**LEVIR-CD, 4 changed pairs (train_386 = the no-change control), Felzenszwalb, no shift** — pooled pixel F1",
+        "",
+        "| feature | no-change rule (t per pair) | bare 99 % quantile | labelled, leave one out | oracle (t) | "
+        "control false alarms |",
+        "|---|---|---|---|---|---|",
+    ]
     for f in feats:
         r = get("levir", f)
         if r:
             ts = r.get("t_nochange_split", [])
-            out.append(f"| {f} | {r['f1_nochange']:.3f} ({min(ts):.2f}–{max(ts):.2f}) | {r['f1_nochange_quantile']:.3f} "
-                       f"| {r['f1_labelled_loo']:.3f} | {r['f1_oracle']:.3f} ({r['t_oracle']:.2f}) | "
-                       f"{100 * r['control_false_alarm']:.1f} % |")
-    out += ["", "**sample_aoi, A_sat1 → B_sat1 on the terrain DEM, threshold from B_sat1/B_sat2, Felzenszwalb, no "
-                "shift** — pixel F1 against 2-D/3-D object change (3-D change ∪ repainted roofs) and 3-D change alone",
-            "", "| feature | F1 (P / R) | t | F1 3-D | bare quantile F1 | oracle F1 (t) | oracle F1 3-D | changed |",
-            "|---|---|---|---|---|---|---|---|"]
+            out.append(
+                f"| {f} | {r['f1_nochange']:.3f} ({min(ts):.2f}–{max(ts):.2f}) | {r['f1_nochange_quantile']:.3f} "
+                f"| {r['f1_labelled_loo']:.3f} | {r['f1_oracle']:.3f} ({r['t_oracle']:.2f}) | "
+                f"{100 * r['control_false_alarm']:.1f} % |"
+            )
+    out += [
+        "",
+        "**sample_aoi, A_sat1 → B_sat1 on the terrain DEM, threshold from B_sat1/B_sat2, Felzenszwalb, no "
+        "shift** — pixel F1 against 2-D/3-D object change (3-D change ∪ repainted roofs) and 3-D change alone",
+        "",
+        "| feature | F1 (P / R) | t | F1 3-D | bare quantile F1 | oracle F1 (t) | oracle F1 3-D | changed |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for f in feats:
         r = get("sample_aoi", f)
         if r:
-            out.append(f"| {f} | {r['f1_nochange']:.3f} ({r['precision_nochange']:.2f} / {r['recall_nochange']:.2f}) | "
-                       f"{r['t_nochange']:.2f} | {r['f1_nochange_3d']:.3f} | {r['f1_nochange_quantile']:.3f} | "
-                       f"{r['f1_oracle']:.3f} ({r['t_oracle']:.2f}) | {r['f1_oracle_3d']:.3f} | "
-                       f"{100 * r['changed_fraction']:.1f} % |")
-    out += ["", "**Superpixels** (no shift): LEVIR labelled leave-one-out F1 / sample_aoi no-change-rule F1",
-            "", "| feature | Felzenszwalb | SLIC | none |", "|---|---|---|---|"]
+            out.append(
+                f"| {f} | {r['f1_nochange']:.3f} ({r['precision_nochange']:.2f} / {r['recall_nochange']:.2f}) | "
+                f"{r['t_nochange']:.2f} | {r['f1_nochange_3d']:.3f} | {r['f1_nochange_quantile']:.3f} | "
+                f"{r['f1_oracle']:.3f} ({r['t_oracle']:.2f}) | {r['f1_oracle_3d']:.3f} | "
+                f"{100 * r['changed_fraction']:.1f} % |"
+            )
+    out += [
+        "",
+        "**Superpixels** (no shift): LEVIR labelled leave-one-out F1 / sample_aoi no-change-rule F1",
+        "",
+        "| feature | Felzenszwalb | SLIC | none |",
+        "|---|---|---|---|",
+    ]
     for f in feats:
         cells = []
         for sp in SUPERPIXELS:
             a, b = get("levir", f, sp), get("sample_aoi", f, sp)
-            cells.append(f"{a['f1_labelled_loo']:.3f} / {b['f1_nochange']:.3f}" if a and b else
-                         (f"{a['f1_labelled_loo']:.3f} / –" if a else "–"))
+            cells.append(
+                f"{a['f1_labelled_loo']:.3f} / {b['f1_nochange']:.3f}"
+                if a and b
+                else (f"{a['f1_labelled_loo']:.3f} / –" if a else "–")
+            )
         out.append(f"| {f} | " + " | ".join(cells) + " |")
-    out += ["", "**Misregistration** (B shifted by 0 / 2 / 4 px at 30°, Felzenszwalb): LEVIR labelled "
-                "leave-one-out F1; sample_aoi no-change-rule F1 (the threshold and the null pair unshifted)",
-            "", "| feature | LEVIR 0 | 2 | 4 | sample_aoi 0 | 2 | 4 |", "|---|---|---|---|---|---|---|"]
+    out += [
+        "",
+        "**Misregistration** (B shifted by 0 / 2 / 4 px at 30°, Felzenszwalb): LEVIR labelled "
+        "leave-one-out F1; sample_aoi no-change-rule F1 (the threshold and the null pair unshifted)",
+        "",
+        "| feature | LEVIR 0 | 2 | 4 | sample_aoi 0 | 2 | 4 |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for f in feats:
         cells = []
         for st, key in (("levir", "f1_labelled_loo"), ("sample_aoi", "f1_nochange")):
@@ -332,9 +411,13 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--features", default=None, help="comma-separated labels to run (default all)")
     ap.add_argument("--markdown", action="store_true", help="print the tables of --out and stop")
-    ap.add_argument("--weights", action="append", default=[], metavar="BACKBONE=FILE",
-                    help="weights for the vgg19 / resnet18 / efficientnet_lite0 rows (e.g. trained ones) instead of "
-                         "random init")
+    ap.add_argument(
+        "--weights",
+        action="append",
+        default=[],
+        metavar="BACKBONE=FILE",
+        help="weights for the vgg19 / resnet18 / efficientnet_lite0 rows (e.g. trained ones) instead of random init",
+    )
     a = ap.parse_args(argv)
     if a.markdown:
         print(render(json.loads(a.out.read_text())))
@@ -366,8 +449,11 @@ def main(argv=None) -> int:
         rows += eval_sample(specs, sps, shifts, a.views, log)
     done = {(r["set"], r["feature"], r["superpixels"], r["shift_px"]) for r in rows}
     keep = [r for r in old.get("rows", []) if (r["set"], r["feature"], r["superpixels"], r["shift_px"]) not in done]
-    res = {"command": "bench/eval_screen.py " + " ".join(argv or sys.argv[1:]), "seconds": round(time.perf_counter() - t0, 1),
-           "rows": keep + rows}
+    res = {
+        "command": "bench/eval_screen.py " + " ".join(argv or sys.argv[1:]),
+        "seconds": round(time.perf_counter() - t0, 1),
+        "rows": keep + rows,
+    }
     a.out.write_text(json.dumps(res, indent=1))
     print(f"wrote {a.out} ({len(res['rows'])} rows) in {res['seconds']} s")
     return 0

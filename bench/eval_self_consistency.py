@@ -60,7 +60,9 @@ def cell_table(A, B, model, truth_change, levels=(90.0, 95.0, 99.0), significanc
     for lev in levels:
         masks["per-cell test %g%%" % lev] = cell.changed_at(lev)
     for thr in (3.0, 6.0):
-        masks[f"naive |Δ̃| > {thr:g} px"] = naive_threshold(A, B, thr, units="dtilde", min_region_cells=res.min_region_cells)
+        masks[f"naive |Δ̃| > {thr:g} px"] = naive_threshold(
+            A, B, thr, units="dtilde", min_region_cells=res.min_region_cells
+        )
     for thr in (1.0, 2.0, 3.0):
         masks[f"naive |Δz| > {thr:g} m"] = naive_threshold(A, B, thr, units="m", min_region_cells=res.min_region_cells)
     for name, m in masks.items():
@@ -72,8 +74,10 @@ def print_rows(title, rows):
     print(f"\n{title}")
     print(f"{'method':28s} {'precision':>9s} {'recall':>7s} {'F1':>6s} {'false alarms':>12s} {'cells':>8s}")
     for name, s in rows:
-        print(f"{name:28s} {s['precision']:9.3f} {s['recall']:7.3f} {s['f1']:6.3f} {100 * s['false_alarm_rate']:11.2f}% "
-              f"{s['n']:8d}")
+        print(
+            f"{name:28s} {s['precision']:9.3f} {s['recall']:7.3f} {s['f1']:6.3f} {100 * s['false_alarm_rate']:11.2f}% "
+            f"{s['n']:8d}"
+        )
 
 
 def building_eval(mask, res, grid, A, B, scene_manifest, level=None):
@@ -86,8 +90,17 @@ def building_eval(mask, res, grid, A, B, scene_manifest, level=None):
 
     fa = read_footprints(scene_manifest.truth_path("footprints_A"), crs=grid.crs)
     fall = read_footprints(scene_manifest.truth_path("footprints_all"), crs=grid.crs)
-    b = classify_buildings(fa, mask, res.dz_m, grid, z_a=_median_surface(A), z_b=_median_surface(B),
-                           confidence=res.confidence, id_field="building_id", confidence_level=level)
+    b = classify_buildings(
+        fa,
+        mask,
+        res.dz_m,
+        grid,
+        z_a=_median_surface(A),
+        z_b=_median_surface(B),
+        confidence=res.confidence,
+        id_field="building_id",
+        confidence_level=level,
+    )
     s = score_buildings(b, fall, aoi=box(*grid.bounds))
     status = dict(zip(fall["building_id"], fall["status"]))
     conf = {}
@@ -134,8 +147,10 @@ def main() -> None:
     for name, mk in masks.items():
         s, conf = building_eval(mk, res, grid, A, B, m)
         out["buildings"][name] = s
-        print(f"{name:28s} {s['precision']:9.3f} {s['recall']:7.3f} {s['f1']:6.3f} {s['class_accuracy_on_changed']:10.3f}"
-              f"  {s['tp']:2d} {s['fp']:2d} {s['fn']:2d}")
+        print(
+            f"{name:28s} {s['precision']:9.3f} {s['recall']:7.3f} {s['f1']:6.3f} {s['class_accuracy_on_changed']:10.3f}"
+            f"  {s['tp']:2d} {s['fp']:2d} {s['fn']:2d}"
+        )
         if name == "self-consistency 99%":
             out["buildings_confusion_99"] = conf
     print("self-consistency 99%, truth → predicted:", json.dumps(out["buildings_confusion_99"]))
@@ -152,13 +167,16 @@ def main() -> None:
             by2 = {}
             for p in st["pairs"].values():
                 by2.setdefault(p.epoch, []).append(p)
-        model2 = learn_self_consistency([g for g in by2.values() if len(g) >= 2],
-                                        provenance={"scene": str(args.other_scene)})
+        model2 = learn_self_consistency(
+            [g for g in by2.values() if len(g) >= 2], provenance={"scene": str(args.other_scene)}
+        )
         res1, rows1, masks1 = cell_table(A1, B1, model2, truth)
         print_rows(f"one pair per epoch ({A1[0].name} vs {B1[0].name}), model learned on {args.other_scene}", rows1)
         s1, conf1 = building_eval(masks1["self-consistency 99%"], res1, grid, A1, B1, m)
-        print(f"buildings at 99% (one pair per epoch, other-scene model): F1 {s1['f1']:.3f} "
-              f"precision {s1['precision']:.3f} recall {s1['recall']:.3f}")
+        print(
+            f"buildings at 99% (one pair per epoch, other-scene model): F1 {s1['f1']:.3f} "
+            f"precision {s1['precision']:.3f} recall {s1['recall']:.3f}"
+        )
         out["one_pair_other_model"] = {"cells": {n: s for n, s in rows1}, "buildings_99": s1}
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2, default=float))

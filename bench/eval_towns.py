@@ -78,8 +78,10 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
     cfg = RunConfig()
     t = time.perf_counter()
     model = learn_self_consistency([A, B], cfg.consistency)
-    out: dict = {"pairs": {k: [p.name for p in v] for k, v in by.items()},
-                 "mapping_unit_cells": model.region_null.get("min_region_cells")}
+    out: dict = {
+        "pairs": {k: [p.name for p in v] for k, v in by.items()},
+        "mapping_unit_cells": model.region_null.get("min_region_cells"),
+    }
     fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
     fall = read_footprints(m.truth_path("footprints_all"), crs=grid.crs)
     za, zb = _median_surface(A), _median_surface(B)
@@ -90,16 +92,27 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
             mk = res.changed_at(lev)
             cells[f"{lev:g}"] = _round(binary_scores((mk == 1) | (mk == -1), truth, res.observed))
         mk = res.changed_at(cfg.region_confidence)
-        kw = dict(z_a=za, z_b=zb, confidence=res.confidence, id_field="building_id",
-                  confidence_level=cfg.region_confidence, min_part_cells=res.min_region_cells)
+        kw = dict(
+            z_a=za,
+            z_b=zb,
+            confidence=res.confidence,
+            id_field="building_id",
+            confidence_level=cfg.region_confidence,
+            min_part_cells=res.min_region_cells,
+        )
         b = classify_buildings(fa, mk, res.dz_m, grid, params=cfg.buildings, **kw)
         # the same with the changed-part rule (an option): which classes it moves
-        b1 = classify_buildings(fa, mk, res.dz_m, grid, params=dataclasses.replace(cfg.buildings, changed_part=True),
-                                **kw)
+        b1 = classify_buildings(
+            fa, mk, res.dz_m, grid, params=dataclasses.replace(cfg.buildings, changed_part=True), **kw
+        )
         moved = [int(i) for i, c, c1 in zip(b["building_id"], b["class"], b1["class"]) if c != c1]
-        out[mode] = {"cells": cells, "buildings": _round(score_buildings(b, fall, aoi=box(*grid.bounds))),
-                     "buildings_changed_part_on": _round(score_buildings(b1, fall, aoi=box(*grid.bounds))),
-                     "classes_moved_by_changed_part": moved, "min_region_cells": res.min_region_cells}
+        out[mode] = {
+            "cells": cells,
+            "buildings": _round(score_buildings(b, fall, aoi=box(*grid.bounds))),
+            "buildings_changed_part_on": _round(score_buildings(b1, fall, aoi=box(*grid.bounds))),
+            "classes_moved_by_changed_part": moved,
+            "min_region_cells": res.min_region_cells,
+        }
     out["seconds"] = round(time.perf_counter() - t, 1)
     return out
 
@@ -112,8 +125,9 @@ def probchange(scene: Path, params=None) -> dict:
 
     m = load_manifest(scene)
     sats = set(m.truth.get("satellite_images") or [])
-    eps = tuple(dataclasses.replace(e, images=tuple(i for i in e.images if not sats or i.name in sats))
-                for e in m.epochs)
+    eps = tuple(
+        dataclasses.replace(e, images=tuple(i for i in e.images if not sats or i.name in sats)) for e in m.epochs
+    )
     m = dataclasses.replace(m, epochs=eps)
     truth, _ = read_band(scene / "truth" / "change_mask.tif")
     t = time.perf_counter()
@@ -126,14 +140,17 @@ def probchange(scene: Path, params=None) -> dict:
 def volume(path: Path) -> dict:
     res = json.loads(path.read_text())
     pooled = res["change_pooled"]
-    return {k: {"auc": round(v["auc"], 4), "auc_agg9": round(v.get("auc_agg9", float("nan")), 4)}
-            for k, v in pooled.items()}
+    return {
+        k: {"auc": round(v["auc"], 4), "auc_agg9": round(v.get("auc_agg9", float("nan")), 4)} for k, v in pooled.items()
+    }
 
 
 def markdown(results: dict, tuned: dict) -> str:
     names = list(results)
-    lines = ["| figure | " + " | ".join(f"{n}{' *' if tuned.get(n) else ''}" for n in names) + " |",
-             "|---|" + "---|" * len(names)]
+    lines = [
+        "| figure | " + " | ".join(f"{n}{' *' if tuned.get(n) else ''}" for n in names) + " |",
+        "|---|" + "---|" * len(names),
+    ]
 
     def row(label, fn):
         vals = []
@@ -144,24 +161,35 @@ def markdown(results: dict, tuned: dict) -> str:
                 vals.append("–")
         lines.append(f"| {label} | " + " | ".join(vals) + " |")
 
-    row("buildings F1 at 99 %, epoch-A footprints (tp/fp/fn)",
-        lambda r: "{f1:.3f} ({tp}/{fp}/{fn})".format(**r["sc"]["region"]["buildings"]))
-    row("same, SRI per-cell test",
-        lambda r: "{f1:.3f} ({tp}/{fp}/{fn})".format(**r["sc"]["cell"]["buildings"]))
+    row(
+        "buildings F1 at 99 %, epoch-A footprints (tp/fp/fn)",
+        lambda r: "{f1:.3f} ({tp}/{fp}/{fn})".format(**r["sc"]["region"]["buildings"]),
+    )
+    row("same, SRI per-cell test", lambda r: "{f1:.3f} ({tp}/{fp}/{fn})".format(**r["sc"]["cell"]["buildings"]))
     for lev in ("90", "95", "99"):
-        row(f"cells {lev} %: P / R / F1 / false alarms",
+        row(
+            f"cells {lev} %: P / R / F1 / false alarms",
             lambda r, lev=lev: "{precision:.3f} / {recall:.3f} / **{f1:.3f}** / {fa:.2f} %".format(
-                fa=100 * r["sc"]["region"]["cells"][lev]["false_alarm_rate"], **r["sc"]["region"]["cells"][lev]))
+                fa=100 * r["sc"]["region"]["cells"][lev]["false_alarm_rate"], **r["sc"]["region"]["cells"][lev]
+            ),
+        )
     for lev in ("90", "95", "99"):
-        row(f"cells {lev} %, SRI per-cell test",
+        row(
+            f"cells {lev} %, SRI per-cell test",
             lambda r, lev=lev: "{precision:.3f} / {recall:.3f} / {f1:.3f} / {fa:.2f} %".format(
-                fa=100 * r["sc"]["cell"]["cells"][lev]["false_alarm_rate"], **r["sc"]["cell"]["cells"][lev]))
-    row("probchange F1 (robust, object space; P / R)",
-        lambda r: "{f1:.3f} ({precision:.2f} / {recall:.2f})".format(**r["probchange"]))
-    for key, label in (("3-D octree (relit)", "octree per-pixel AUC (eq. 27, relit)"),
-                       ("3-D octree 3×3 (relit)", "octree 3×3 per-pixel AUC"),
-                       ("2-D Carlotto joint histogram", "Carlotto per-pixel AUC"),
-                       ("2-D DEM warp + difference", "DEM warp + difference per-pixel AUC")):
+                fa=100 * r["sc"]["cell"]["cells"][lev]["false_alarm_rate"], **r["sc"]["cell"]["cells"][lev]
+            ),
+        )
+    row(
+        "probchange F1 (robust, object space; P / R)",
+        lambda r: "{f1:.3f} ({precision:.2f} / {recall:.2f})".format(**r["probchange"]),
+    )
+    for key, label in (
+        ("3-D octree (relit)", "octree per-pixel AUC (eq. 27, relit)"),
+        ("3-D octree 3×3 (relit)", "octree 3×3 per-pixel AUC"),
+        ("2-D Carlotto joint histogram", "Carlotto per-pixel AUC"),
+        ("2-D DEM warp + difference", "DEM warp + difference per-pixel AUC"),
+    ):
         row(label, lambda r, key=key: f"{r['volume'][key]['auc']:.3f}")
     return "\n".join(lines) + "\n"
 
@@ -172,8 +200,11 @@ def main() -> None:
     ap.add_argument("--volume", action="append", default=[], help="NAME=volume_results.json")
     ap.add_argument("--tuned", action="append", default=[], help="NAME of a scene used to choose parameters")
     ap.add_argument("--no-probchange", action="store_true")
-    ap.add_argument("--volume-only", action="store_true",
-                    help="only replace the octree figures (from --volume) in the --json of an earlier run")
+    ap.add_argument(
+        "--volume-only",
+        action="store_true",
+        help="only replace the octree figures (from --volume) in the --json of an earlier run",
+    )
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     args = ap.parse_args()
@@ -185,7 +216,7 @@ def main() -> None:
         prev_cmd = prev.get("command")
         if prev_cmd:
             prev.setdefault("earlier_commands", []).append(prev_cmd)
-    for spec in ([] if args.volume_only else args.scene):
+    for spec in [] if args.volume_only else args.scene:
         name, rest = spec.split("=", 1)
         scene, _, run = rest.partition(":")
         scene_p = (REPO / scene) if not Path(scene).is_absolute() else Path(scene)
@@ -203,8 +234,12 @@ def main() -> None:
         if name in results:
             results[name]["volume"] = volume(Path(p))
     tuned = {n: (n in args.tuned) for n in results}
-    doc = {**{k: v for k, v in prev.items() if k not in ("command", "scenes", "tuned_on")},
-           "command": " ".join(sys.argv), "scenes": results, "tuned_on": [n for n, t in tuned.items() if t]}
+    doc = {
+        **{k: v for k, v in prev.items() if k not in ("command", "scenes", "tuned_on")},
+        "command": " ".join(sys.argv),
+        "scenes": results,
+        "tuned_on": [n for n, t in tuned.items() if t],
+    }
     if args.json:
         Path(args.json).write_text(json.dumps(doc, indent=1, default=float))
     md = markdown(results, tuned)

@@ -54,9 +54,13 @@ def main(argv=None) -> int:
         by = _load(Path(run))
         grid = by["A"][0].grid
         truth = read_on_grid(load_manifest(scene).truth_path("change_mask"), grid) > 0.5
-        sets = {"one satellite pair per epoch": ([p for p in by["A"] if p.name == "A_sat1__A_sat2"],
-                                                 [p for p in by["B"] if p.name == "B_sat1__B_sat2"]),
-                "all pairs": (by["A"], by["B"])}
+        sets = {
+            "one satellite pair per epoch": (
+                [p for p in by["A"] if p.name == "A_sat1__A_sat2"],
+                [p for p in by["B"] if p.name == "B_sat1__B_sat2"],
+            ),
+            "all pairs": (by["A"], by["B"]),
+        }
         for sname, (A, B) in sets.items():
             for cal in ("none", "pair"):
                 res = change_test(A, B, model, ChangeParams(calibration=cal))

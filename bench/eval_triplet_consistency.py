@@ -69,14 +69,22 @@ def main() -> None:
     print("vertical offsets removed (m):", ", ".join(f"{k} {v:+.2f}" for k, v in offsets.items()))
     levels = (90.0, 95.0, 99.0)
     params = ConsistencyParams(confidences=levels, align="none")  # already aligned
-    model = learn_self_consistency([pairs], params, provenance={"scene": "s2p Marseille triplet", "scene_class": "urban"})
+    model = learn_self_consistency(
+        [pairs], params, provenance={"scene": "s2p Marseille triplet", "scene_class": "urban"}
+    )
     t = model.curves_table()
     print("\nself-consistency curves (|Δ̃| in pixels of disparity) per score bin")
-    print(t[["score_lo", "score_hi", "n_pairs", "q90", "q95", "q99"]].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    print(
+        t[["score_lo", "score_hi", "n_pairs", "q90", "q95", "q99"]].to_string(
+            index=False, float_format=lambda v: f"{v:.3f}"
+        )
+    )
     comps = list(itertools.combinations(pairs, 2))
     print("\nfraction of common cells flagged as change (|Δ̃| above the s% curve), same-date comparisons")
-    print(f"{'comparison':34s} {'cells':>8s} " + " ".join(f"{'in ' + str(int(s)) + '%':>8s} {'LOO ' + str(int(s)) + '%':>8s}"
-                                                    for s in levels))
+    print(
+        f"{'comparison':34s} {'cells':>8s} "
+        + " ".join(f"{'in ' + str(int(s)) + '%':>8s} {'LOO ' + str(int(s)) + '%':>8s}" for s in levels)
+    )
     for k, (p, q) in enumerate(comps):
         dt, sc, _, both = match_pairs(p, q)
         others = [c for j, c in enumerate(comps) if j != k]

@@ -38,8 +38,9 @@ def run_target(name: str, strategy, check, n: int) -> dict:
     tally: collections.Counter = collections.Counter()
     bad: list[str] = []
 
-    @settings(max_examples=n, phases=[Phase.generate], database=None, deadline=None,
-              suppress_health_check=list(HealthCheck))
+    @settings(
+        max_examples=n, phases=[Phase.generate], database=None, deadline=None, suppress_health_check=list(HealthCheck)
+    )
     @given(x=strategy)
     def go(x):
         try:
@@ -53,15 +54,23 @@ def run_target(name: str, strategy, check, n: int) -> dict:
 
     t0 = time.perf_counter()
     go()
-    return {"name": name, "examples": sum(tally.values()), "tally": tally, "bad": bad,
-            "seconds": time.perf_counter() - t0}
+    return {
+        "name": name,
+        "examples": sum(tally.values()),
+        "tally": tally,
+        "bad": bad,
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--examples", type=int, default=10_000)
-    ap.add_argument("--targets", default="manifest_tree,manifest_text,dem_bytes,rpc_tags,rpc_files,model_tree,"
-                                         "model_bytes,frame_sidecar,torch_bytes")
+    ap.add_argument(
+        "--targets",
+        default="manifest_tree,manifest_text,dem_bytes,rpc_tags,rpc_files,model_tree,"
+        "model_bytes,frame_sidecar,torch_bytes",
+    )
     args = ap.parse_args()
     wanted = args.targets.split(",")
     tmp = Path(tempfile.mkdtemp(prefix="geocd_fuzz_"))
@@ -94,8 +103,7 @@ def main() -> int:
     torch_bytes = _zip(tmp / "w.pth", _tensor_pickle(0, (2, 2), (2, 1))).read_bytes()
     targets = {
         "model_tree": (F.tree_ops, lambda ops: F.check_model_tree(model_doc, ops, tmp / "mo")),
-        "model_bytes": (F.byte_mutations,
-                        lambda m: F.check_model_bytes(json.dumps(model_doc).encode(), m, tmp / "mo")),
+        "model_bytes": (F.byte_mutations, lambda m: F.check_model_bytes(json.dumps(model_doc).encode(), m, tmp / "mo")),
         "frame_sidecar": (F.tree_ops, lambda ops: F.check_frame_sidecar(sidecar, ops, tmp / "mo")),
         "torch_bytes": (F.byte_mutations, lambda m: F.check_torch_bytes(torch_bytes, m, tmp / "mo")),
         "manifest_tree": (F.tree_ops, lambda ops: F.check_manifest_tree(doc, ops, scene.root)),
@@ -118,8 +126,16 @@ def main() -> int:
             name, mutation = x
             src = written[name]
             p = md / src.name
-            p.write_bytes(R._mutate(src.read_bytes(), mutation[0], mutation[1], mutation[2], mutation[3],
-                                    np.random.default_rng(mutation[4])))
+            p.write_bytes(
+                R._mutate(
+                    src.read_bytes(),
+                    mutation[0],
+                    mutation[1],
+                    mutation[2],
+                    mutation[3],
+                    np.random.default_rng(mutation[4]),
+                )
+            )
             try:
                 m = read_rpc(p)
             except GeoCDError as exc:

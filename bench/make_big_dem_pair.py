@@ -34,9 +34,15 @@ def main() -> None:
         paths = make_dem_pair(a.out, p, tile_size=a.tile_size, scheduler=a.scheduler)
         wall = time.perf_counter() - t0
     cells = a.size * a.size
-    rep = {"size": a.size, "cells": cells, "wall_s": round(wall, 1), "cells_per_s": round(cells / wall),
-           "peak_tree_rss_gb": round(mem.peak / 1e9, 3), "scheduler": a.scheduler,
-           "outputs": {k: str(v) for k, v in paths.items()}}
+    rep = {
+        "size": a.size,
+        "cells": cells,
+        "wall_s": round(wall, 1),
+        "cells_per_s": round(cells / wall),
+        "peak_tree_rss_gb": round(mem.peak / 1e9, 3),
+        "scheduler": a.scheduler,
+        "outputs": {k: str(v) for k, v in paths.items()},
+    }
     print(json.dumps(rep, indent=1))
 
 

@@ -30,15 +30,29 @@ def main() -> None:
     ap.add_argument("--views-a", type=int, default=2, choices=(2, 3))
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--block", type=int, default=512)
-    ap.add_argument("--event-radius-m", type=float, default=None,
-                    help="buildings change only within this distance of the event centre (default: anywhere)")
-    ap.add_argument("--event-centre-m", type=float, nargs=2, default=(0.0, 0.0), metavar=("EAST", "NORTH"),
-                    help="the event centre, metres from the AOI centre (default 0 0)")
+    ap.add_argument(
+        "--event-radius-m",
+        type=float,
+        default=None,
+        help="buildings change only within this distance of the event centre (default: anywhere)",
+    )
+    ap.add_argument(
+        "--event-centre-m",
+        type=float,
+        nargs=2,
+        default=(0.0, 0.0),
+        metavar=("EAST", "NORTH"),
+        help="the event centre, metres from the AOI centre (default 0 0)",
+    )
     ap.add_argument("--demolished-fraction", type=float, default=StereoSceneParams.demolished_fraction)
     ap.add_argument("--new-fraction", type=float, default=StereoSceneParams.new_fraction)
     a = ap.parse_args()
-    kw = {"event_radius_m": a.event_radius_m, "event_centre_m": tuple(a.event_centre_m),
-          "demolished_fraction": a.demolished_fraction, "new_fraction": a.new_fraction}
+    kw = {
+        "event_radius_m": a.event_radius_m,
+        "event_centre_m": tuple(a.event_centre_m),
+        "demolished_fraction": a.demolished_fraction,
+        "new_fraction": a.new_fraction,
+    }
     if a.views_a == 3:
         kw["views_a"] = ((-12.0, 2.0), (0.0, 2.0), (12.0, 2.0))
     p = StereoSceneParams(cells=a.cells, seed=a.seed, **kw)
@@ -47,10 +61,19 @@ def main() -> None:
         r = make_stereo_scene(a.out, p, block=a.block, workers=a.workers)
         wall = time.perf_counter() - t0
     px = sum(v["width"] * v["height"] for v in r["report"]["views"])
-    rep = {"cells": a.cells, "wall_s": round(wall, 1), "cells_per_s": round(a.cells ** 2 / wall),
-           "image_pixels": px, "pixels_per_s": round(px / wall), "peak_tree_rss_gb": round(mem.peak / 1e9, 3),
-           "buildings": r["report"]["buildings"], "event": r["report"].get("event"), "views": r["report"]["views"], "timings": r["report"]["timings"],
-           "manifest": str(r["manifest"])}
+    rep = {
+        "cells": a.cells,
+        "wall_s": round(wall, 1),
+        "cells_per_s": round(a.cells**2 / wall),
+        "image_pixels": px,
+        "pixels_per_s": round(px / wall),
+        "peak_tree_rss_gb": round(mem.peak / 1e9, 3),
+        "buildings": r["report"]["buildings"],
+        "event": r["report"].get("event"),
+        "views": r["report"]["views"],
+        "timings": r["report"]["timings"],
+        "manifest": str(r["manifest"]),
+    }
     print(json.dumps(rep, indent=1))
 
 

@@ -33,7 +33,7 @@ def main(scene: str, run: str, png: str, side: int = 400) -> None:
     best, rc = -1, (0, 0)
     for r in range(0, h - side + 1, side // 2):
         for c in range(0, w - side + 1, side // 2):
-            s = np.count_nonzero(np.abs(dh[r:r + side, c:c + side]) > 1)
+            s = np.count_nonzero(np.abs(dh[r : r + side, c : c + side]) > 1)
             if s > best:
                 best, rc = s, (r, c)
     r, c = rc
@@ -47,9 +47,9 @@ def main(scene: str, run: str, png: str, side: int = 400) -> None:
             img = ds.read(1, window=Window(int(ic[0]) - side // 2, int(ir[0]) - side // 2, side, side), boundless=True)
         a.imshow(img, cmap="gray", vmin=np.percentile(img, 1), vmax=np.percentile(img, 99))
         a.set_title(f"{name}: image (sensor geometry) around the crop centre", fontsize=9)
-    ax[2].imshow(dh[r:r + side, c:c + side], cmap="RdBu", vmin=-15, vmax=15)
+    ax[2].imshow(dh[r : r + side, c : c + side], cmap="RdBu", vmin=-15, vmax=15)
     ax[2].set_title("truth dh = DSM B − DSM A (m)")
-    mm = m[r:r + side, c:c + side]
+    mm = m[r : r + side, c : c + side]
     mm[mm == -128] = np.nan
     ax[3].imshow(mm, cmap="RdBu", vmin=-1.5, vmax=1.5)
     ax[3].set_title("sc_change_mask at 99 % (white: unobserved)")

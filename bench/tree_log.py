@@ -53,15 +53,30 @@ def main() -> None:
                     cpu[q.pid] = ct.user + ct.system
                 except psutil.Error:
                     pass
-            rec = {"t": round(time.time() - t0, 1), "rss_gb": round(rss / 1e9, 3), "cpu_s": round(sum(cpu.values()), 1),
-                   "load": round(psutil.getloadavg()[0], 2), "msg": last["msg"]}
+            rec = {
+                "t": round(time.time() - t0, 1),
+                "rss_gb": round(rss / 1e9, 3),
+                "cpu_s": round(sum(cpu.values()), 1),
+                "load": round(psutil.getloadavg()[0], 2),
+                "msg": last["msg"],
+            }
             if rss > peak:
                 peak, rec["peak"] = rss, True
             out.write(json.dumps(rec) + "\n")
             out.flush()
             time.sleep(2)
-        out.write(json.dumps({"done": p.wait(), "peak_gb": round(peak / 1e9, 3), "wall_s": round(time.time() - t0, 1),
-                              "cpu_s": round(sum(cpu.values()), 1), "end": time.strftime("%Y-%m-%dT%H:%M:%S")}) + "\n")
+        out.write(
+            json.dumps(
+                {
+                    "done": p.wait(),
+                    "peak_gb": round(peak / 1e9, 3),
+                    "wall_s": round(time.time() - t0, 1),
+                    "cpu_s": round(sum(cpu.values()), 1),
+                    "end": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                }
+            )
+            + "\n"
+        )
 
 
 if __name__ == "__main__":

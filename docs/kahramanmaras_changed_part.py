@@ -52,19 +52,22 @@ def main(argv=None) -> int:
             x, y = g.exterior.xy
             for j, ep in enumerate(("pre_event", "post_event")):
                 with rasterio.open(run / "orthos_ground" / f"{ep}_img1.tif") as ds:
-                    im = ds.read(1, window=from_bounds(l, bt, r, t, ds.transform), boundless=True,
-                                 fill_value=0).astype(float)
+                    im = ds.read(1, window=from_bounds(l, bt, r, t, ds.transform), boundless=True, fill_value=0).astype(
+                        float
+                    )
                 lo, hi = np.percentile(im[im > 0], [2, 98]) if (im > 0).any() else (0.0, 1.0)
                 ax[k, j].imshow(im, cmap="gray", vmin=lo, vmax=hi, extent=(l, r, bt, t))
                 ax[k, j].plot(x, y, "y-", lw=0.8)
             w = from_bounds(l, bt, r, t, ch.transform)
             conf = ch.read(4, window=w, boundless=True, fill_value=np.nan)
             dz = ch.read(1, window=w, boundless=True, fill_value=np.nan)
-            ax[k, 2].imshow(np.where(conf >= 99, np.sign(dz), np.nan), cmap="bwr_r", vmin=-1, vmax=1,
-                            extent=(l, r, bt, t))
+            ax[k, 2].imshow(
+                np.where(conf >= 99, np.sign(dz), np.nan), cmap="bwr_r", vmin=-1, vmax=1, extent=(l, r, bt, t)
+            )
             ax[k, 2].plot(x, y, "k-", lw=0.8)
-            ax[k, 0].set_ylabel(f"#{b.building_id} {b['class']}\n{b.height_before_m:.0f}→{b.height_after_m:.0f} m",
-                                fontsize=7)
+            ax[k, 0].set_ylabel(
+                f"#{b.building_id} {b['class']}\n{b.height_before_m:.0f}→{b.height_after_m:.0f} m", fontsize=7
+            )
             for c in ax[k]:
                 c.set_xticks([])
                 c.set_yticks([])
@@ -73,7 +76,7 @@ def main(argv=None) -> int:
     ax[0, 2].set_title("99 %: blue raised / red lowered", fontsize=8)
     fig.tight_layout()
     fig.savefig(a.out, dpi=60)
-    Image.open(a.out).convert("RGB").quantize(64).save(a.out, optimize=True)   # a third of the size
+    Image.open(a.out).convert("RGB").quantize(64).save(a.out, optimize=True)  # a third of the size
     print(a.out)
     return 0
 

@@ -55,8 +55,13 @@ def main(argv=None) -> int:
         img = ds.read(1).astype(float)
     dmg = gpd.read_file(run / "sc_changes.gpkg", layer="building_damage").to_crs(grid.crs)
     ch = dmg[dmg["class"].isin(CHANGED)]
-    inside = (rasterize([(g, 1) for g in ch.geometry], out_shape=grid.shape, transform=grid.transform, fill=0,
-                        dtype="uint8").astype(bool) if len(ch) else np.zeros(grid.shape, bool))
+    inside = (
+        rasterize(
+            [(g, 1) for g in ch.geometry], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8"
+        ).astype(bool)
+        if len(ch)
+        else np.zeros(grid.shape, bool)
+    )
     observed = np.isfinite(conf)
     stable = observed & ~inside
     flag = stable & (np.nan_to_num(conf) >= 99.0)
@@ -81,16 +86,19 @@ def main(argv=None) -> int:
     ax.imshow(ov, interpolation="nearest")
     n_f = int(flag.sum())
     share = float((flag & seen).sum() / max((flag & both).sum(), 1))
-    ax.set_title(f"flagged at 99 % outside changed buildings: {100 * n_f / stable.sum():.1f} % of the stable cells;\n"
-                 f"CARS's DSMs differ > {3 * nmad:.1f} m at {100 * share:.0f} % of those it observes (blue raised, red lowered);\n"
-                 f"yellow: CARS sees no change; magenta: changed buildings; green: tree objects", fontsize=9)
+    ax.set_title(
+        f"flagged at 99 % outside changed buildings: {100 * n_f / stable.sum():.1f} % of the stable cells;\n"
+        f"CARS's DSMs differ > {3 * nmad:.1f} m at {100 * share:.0f} % of those it observes (blue raised, red lowered);\n"
+        f"yellow: CARS sees no change; magenta: changed buildings; green: tree objects",
+        fontsize=9,
+    )
     ax.set_xticks([])
     ax.set_yticks([])
     fig.tight_layout()
     fig.savefig(args.png, dpi=60)
     from PIL import Image
 
-    Image.open(args.png).convert("RGB").quantize(128).save(args.png, optimize=True)   # a small PNG for docs/
+    Image.open(args.png).convert("RGB").quantize(128).save(args.png, optimize=True)  # a small PNG for docs/
     print(f"{args.png}: {n_f} flagged stable cells, {share:.3f} seen by CARS, NMAD {nmad:.2f} m")
     return 0
 

@@ -22,6 +22,7 @@ Usage::
 
 (``RUN``: a ``geocd run`` of ``examples/kahramanmaras/scene.yaml``; ~15 s.)
 """
+
 import argparse
 import json
 import sys
@@ -38,9 +39,11 @@ from geocd.change.dsm_buildings import CHANGED  # noqa: E402
 
 #: building_id of the damage layer's objects (the default layer of a run of the example manifest), by what
 #: their changed part is on the orthos (docs/kahramanmaras.md, "The changed-part rule")
-BY_EYE = {"trees or roadworks": [64, 92, 110, 111, 117, 121, 123, 132, 133, 82, 89, 118, 119],
-          "building changes": [188, 19, 116],
-          "unclear": [4, 29, 38, 57, 128, 140]}
+BY_EYE = {
+    "trees or roadworks": [64, 92, 110, 111, 117, 121, 123, 132, 133, 82, 89, 118, 119],
+    "building changes": [188, 19, 116],
+    "unclear": [4, 29, 38, 57, 128, 140],
+}
 
 
 def _part_cells(labels: np.ndarray, sign: np.ndarray, ids, mmu: int) -> int:
@@ -66,28 +69,40 @@ def floor_figures(run: Path) -> dict:
     n_stable = int(stable.sum())
     sign = np.sign(np.nan_to_num(res.dz_m)).astype(int) * flag
     mmu = int(res.min_region_cells)
-    labels = rasterize([(g, int(i)) for g, i in zip(damage.geometry, damage["building_id"])], out_shape=grid.shape,
-                       transform=grid.transform, fill=0, dtype="int32")
+    labels = rasterize(
+        [(g, int(i)) for g, i in zip(damage.geometry, damage["building_id"])],
+        out_shape=grid.shape,
+        transform=grid.transform,
+        fill=0,
+        dtype="int32",
+    )
     ids = sum(BY_EYE.values(), [])
     missing = sorted(set(ids) - set(int(i) for i in damage["building_id"]))
     listed = damage[damage["building_id"].isin(ids)]
     moved = sorted(int(i) for i in listed[listed["class"].isin(CHANGED)]["building_id"])
     if missing or moved:
-        raise ValueError(f"building_id {missing or moved} {'not in' if missing else 'changed in'} this run's damage "
-                         "layer: the by-eye labels belong to the default layer of examples/kahramanmaras/scene.yaml")
+        raise ValueError(
+            f"building_id {missing or moved} {'not in' if missing else 'changed in'} this run's damage "
+            "layer: the by-eye labels belong to the default layer of examples/kahramanmaras/scene.yaml"
+        )
 
     def share(n: int) -> float:
         return round(n / max(n_stable, 1), 5)
 
-    out = {"run": str(run), "stable_cells": n_stable, "stable_false_alarms_99": share(int(flag.sum())),
-           "non_building_objects": share(int((flag & non_building).sum())),
-           "tree_objects": share(int((flag & ~in_building & trees).sum())),
-           "inside_unchanged_building_objects": share(int((flag & in_building).sum())),
-           "by_eye_parts": {k: share(_part_cells(labels, sign, v, mmu)) for k, v in BY_EYE.items()},
-           "min_region_cells": mmu}
+    out = {
+        "run": str(run),
+        "stable_cells": n_stable,
+        "stable_false_alarms_99": share(int(flag.sum())),
+        "non_building_objects": share(int((flag & non_building).sum())),
+        "tree_objects": share(int((flag & ~in_building & trees).sum())),
+        "inside_unchanged_building_objects": share(int((flag & in_building).sum())),
+        "by_eye_parts": {k: share(_part_cells(labels, sign, v, mmu)) for k, v in BY_EYE.items()},
+        "min_region_cells": mmu,
+    }
     out["floor"] = round(out["non_building_objects"] + out["by_eye_parts"]["trees or roadworks"], 5)
-    out["floor_tree_objects_and_by_eye_trees"] = round(out["tree_objects"]
-                                                       + out["by_eye_parts"]["trees or roadworks"], 5)
+    out["floor_tree_objects_and_by_eye_trees"] = round(
+        out["tree_objects"] + out["by_eye_parts"]["trees or roadworks"], 5
+    )
     return out
 
 

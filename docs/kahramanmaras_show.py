@@ -97,8 +97,16 @@ def quicklook(pre: np.ndarray, post: np.ndarray, damage, grid, path: Path) -> No
             else:
                 ax[2].fill(x, y, color=colour, alpha=0.75, lw=1.0, ec="k")
     counts = damage["class"].value_counts().to_dict()
-    ax[2].legend(handles=[Patch(color=DAMAGE_CLASSES[c][0], label=f"{c} ({counts.get(c, 0)})")
-                          for c in DAMAGE_CLASSES if c != "unobserved"], loc="lower left", fontsize=8, framealpha=0.85)
+    ax[2].legend(
+        handles=[
+            Patch(color=DAMAGE_CLASSES[c][0], label=f"{c} ({counts.get(c, 0)})")
+            for c in DAMAGE_CLASSES
+            if c != "unobserved"
+        ],
+        loc="lower left",
+        fontsize=8,
+        framealpha=0.85,
+    )
     ax[2].set_title("geocd: buildings from the pre-event DSM, damage at 99 %")
     for a in ax:
         a.set_xlabel("m")
@@ -128,18 +136,24 @@ def main(argv=None) -> int:
     from geocd.pipeline import run_orientation
 
     orientation = run_orientation(run, summary)
-    res = {"orientation": orientation, "building_damage": summary.get("building_damage"),
-           "changed_fraction": summary.get("changed_fraction"),
-           "stable_false_alarms": stable_false_alarms(run, damage, grid),
-           "stable_false_alarms_3m": stable_false_alarms(run, damage, grid, buffer_m=3.0)}
+    res = {
+        "orientation": orientation,
+        "building_damage": summary.get("building_damage"),
+        "changed_fraction": summary.get("changed_fraction"),
+        "stable_false_alarms": stable_false_alarms(run, damage, grid),
+        "stable_false_alarms_3m": stable_false_alarms(run, damage, grid, buffer_m=3.0),
+    }
     cls = damage["class"]
-    res["collapsed"] = {"collapsed": int((cls == "collapsed").sum()), "partly collapsed": int((cls == "partly collapsed").sum()),
-                        "by_confidence": damage[cls == "collapsed"]["confidence_pct"].value_counts().to_dict()}
+    res["collapsed"] = {
+        "collapsed": int((cls == "collapsed").sum()),
+        "partly collapsed": int((cls == "partly collapsed").sum()),
+        "by_confidence": damage[cls == "collapsed"]["confidence_pct"].value_counts().to_dict(),
+    }
     from geocd.change.dsm_buildings import ground_model
     from geocd.stereo import read_pair_dem
 
     m = load_manifest(args.manifest)
-    orthos(run, m, grid)     # true orthos (for later work on this case)
+    orthos(run, m, grid)  # true orthos (for later work on this case)
     pd = read_pair_dem(sorted((run / "stereo" / m.epochs[0].name).glob("*.tif"))[0])
     ground, _ = ground_model(np.where(pd.valid, pd.z_m, np.nan), grid.posting_m)
     o = orthos(run, m, grid, ground=ground.astype(np.float64), sub="orthos_ground")

@@ -38,8 +38,7 @@ def main() -> None:
     from geocd.landcover.features import FeatureSpec
     from geocd.landcover.gp import GPParams, integrate
     from geocd.landcover.labels import class_list, rasterize_labels, read_labels
-    from geocd.landcover.pipeline import (LoadedImage, Scene, gp_inputs, predict_image, project_probability,
-                                          training_set)
+    from geocd.landcover.pipeline import LoadedImage, Scene, gp_inputs, predict_image, project_probability, training_set
     from geocd.landcover.classifier import train
     from geocd.landcover.project import combine_views
     from geocd.landcover.report import f1_at_recall
@@ -48,8 +47,13 @@ def main() -> None:
     names = sorted(p.stem for p in (DATA / "ngi").glob("3324c_*_RGB.tif"))
     with rasterio.open(DATA / "ngi" / f"{names[0]}.tif") as ds:
         crs = ds.crs
-    cams = read_orthority_cameras(DATA / "io/ngi_int_param.yaml", DATA / "ngi/camera_pos_ori.txt", crs=crs,
-                                  vertical_datum="egm2008", allow_geoid_substitute=True)
+    cams = read_orthority_cameras(
+        DATA / "io/ngi_int_param.yaml",
+        DATA / "ngi/camera_pos_ori.txt",
+        crs=crs,
+        vertical_datum="egm2008",
+        allow_geoid_substitute=True,
+    )
     dem0 = read_dem(DATA / "ngi/dem.tif")
     x, y = from_lonlat(np.array([24.36, 24.43]), np.array([-33.735, -33.645]), dem0.grid.crs)
     grid = AOIGrid.from_bounds(min(x), min(y), max(x), max(y), POSTING_M, dem0.grid.crs)
@@ -86,31 +90,43 @@ def main() -> None:
     in_qb = np.isfinite(coarse)
     det_q = np.where(in_qb, det, np.nan)
     t0 = time.perf_counter()
-    res = integrate(det_q, gp_inputs(scene, np.where(in_qb, coarse, np.nan), ("xy", "dem", "coarse")),
-                    GPParams(n_fit=300, n_inducing=400))
+    res = integrate(
+        det_q,
+        gp_inputs(scene, np.where(in_qb, coarse, np.nan), ("xy", "dem", "coarse")),
+        GPParams(n_fit=300, n_inducing=400),
+    )
     res_xy = integrate(det_q, gp_inputs(scene, None, ("xy", "dem")), GPParams(n_fit=300, n_inducing=400))
     t_gp = time.perf_counter() - t0
     lab, _ = rasterize_labels(labels.to_crs(grid.crs), grid.shape, grid.transform, classes)
     # proxy truth: the held-out frames' classification where the detailed views do not see, inside QB2
     cells = in_qb & ~np.isfinite(det) & np.isfinite(ref) & (lab < 0)
     proxy = ref[cells] > 0.5
-    rep = {"grid": {"posting_m": POSTING_M, "shape": list(grid.shape), "crs": grid.crs.name},
-           "labels": {"polygons": int(len(labels)), "aerial_pixels": per_a, "qb2_pixels": per_q},
-           "training_samples": {"aerial": m_air.report["samples_per_class"], "qb2": m_qb.report["samples_per_class"]},
-           "observed_fraction_in_qb2": round(float(np.isfinite(det_q[in_qb]).mean()), 4),
-           "reference_cells": int(cells.sum()),
-           "reference_positive_rate": round(float(proxy.mean()), 4),
-           "vs_held_out_frames": {
-               "QB2 alone": f1_at_recall(proxy, coarse[cells]),
-               "GP: detailed + xy + DEM": f1_at_recall(proxy, res_xy.mean[cells]),
-               "GP: detailed + QB2 + xy + DEM": f1_at_recall(proxy, res.mean[cells])},
-           "agreement_at_0.5": {
-               "QB2 alone": round(float(np.mean((coarse[cells] > 0.5) == proxy)), 4),
-               "GP: detailed + xy + DEM": round(float(np.mean((res_xy.mean[cells] > 0.5) == proxy)), 4),
-               "GP: detailed + QB2 + xy + DEM": round(float(np.mean((res.mean[cells] > 0.5) == proxy)), 4)},
-           "hyper": res.hyper.to_dict(), "gp_report": {k: v for k, v in res.report.items() if k != "hyper"},
-           "timings_s": {"train": round(t_train, 1), "classify_and_project": round(t_proj, 1),
-                         "two_gp_integrations": round(t_gp, 1), "total": round(time.perf_counter() - t_all, 1)}}
+    rep = {
+        "grid": {"posting_m": POSTING_M, "shape": list(grid.shape), "crs": grid.crs.name},
+        "labels": {"polygons": int(len(labels)), "aerial_pixels": per_a, "qb2_pixels": per_q},
+        "training_samples": {"aerial": m_air.report["samples_per_class"], "qb2": m_qb.report["samples_per_class"]},
+        "observed_fraction_in_qb2": round(float(np.isfinite(det_q[in_qb]).mean()), 4),
+        "reference_cells": int(cells.sum()),
+        "reference_positive_rate": round(float(proxy.mean()), 4),
+        "vs_held_out_frames": {
+            "QB2 alone": f1_at_recall(proxy, coarse[cells]),
+            "GP: detailed + xy + DEM": f1_at_recall(proxy, res_xy.mean[cells]),
+            "GP: detailed + QB2 + xy + DEM": f1_at_recall(proxy, res.mean[cells]),
+        },
+        "agreement_at_0.5": {
+            "QB2 alone": round(float(np.mean((coarse[cells] > 0.5) == proxy)), 4),
+            "GP: detailed + xy + DEM": round(float(np.mean((res_xy.mean[cells] > 0.5) == proxy)), 4),
+            "GP: detailed + QB2 + xy + DEM": round(float(np.mean((res.mean[cells] > 0.5) == proxy)), 4),
+        },
+        "hyper": res.hyper.to_dict(),
+        "gp_report": {k: v for k, v in res.report.items() if k != "hyper"},
+        "timings_s": {
+            "train": round(t_train, 1),
+            "classify_and_project": round(t_proj, 1),
+            "two_gp_integrations": round(t_gp, 1),
+            "total": round(time.perf_counter() - t_all, 1),
+        },
+    }
     (ROOT / "docs" / "landcover_baviaans.json").write_text(json.dumps(rep, indent=1))
     print(json.dumps(rep["vs_held_out_frames"], indent=1), json.dumps(rep["agreement_at_0.5"]))
     figure(frames, scene, coarse, det, res, labels, in_qb)
@@ -137,11 +153,13 @@ def figure(frames, scene, coarse, det, res, labels, in_qb) -> None:
     l, b, r_, t = grid.bounds
     ext = (l, r_, b, t)
     fig, ax = plt.subplots(1, 5, figsize=(22, 7.5))
-    panels = ((rgb, "2015 aerial frames (all 4) + labels", None),
-              (coarse, "QB2 2003: classifier p(vegetation)", "Greens"),
-              (det, "detailed: 2 frames, p(vegetation)", "Greens"),
-              (np.where(in_qb, np.clip(res.mean, 0, 1), np.nan), "GP mean (detailed + QB2 + xy + DEM)", "Greens"),
-              (np.where(in_qb, res.sd, np.nan), "GP σ", "magma"))
+    panels = (
+        (rgb, "2015 aerial frames (all 4) + labels", None),
+        (coarse, "QB2 2003: classifier p(vegetation)", "Greens"),
+        (det, "detailed: 2 frames, p(vegetation)", "Greens"),
+        (np.where(in_qb, np.clip(res.mean, 0, 1), np.nan), "GP mean (detailed + QB2 + xy + DEM)", "Greens"),
+        (np.where(in_qb, res.sd, np.nan), "GP σ", "magma"),
+    )
     for a, (img, title, cmap) in zip(ax, panels):
         h = a.imshow(img, extent=ext, cmap=cmap, vmin=0, vmax=1 if cmap == "Greens" else None)
         a.set_title(title, fontsize=9)

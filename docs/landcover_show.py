@@ -39,9 +39,12 @@ def main() -> None:
     ap.add_argument("--headline-views", type=int, default=8)
     ap.add_argument("--counts", default="1,4,16,45")
     ap.add_argument("--n-fit", type=int, default=300)
-    ap.add_argument("--only", choices=["calibration"], default=None,
-                    help="calibration: only the σ calibration with held-out spatial blocks "
-                         "(docs/landcover_calibration.json)")
+    ap.add_argument(
+        "--only",
+        choices=["calibration"],
+        default=None,
+        help="calibration: only the σ calibration with held-out spatial blocks (docs/landcover_calibration.json)",
+    )
     args = ap.parse_args()
     import warnings
 
@@ -53,8 +56,7 @@ def main() -> None:
     from geocd.landcover.gp import GPParams, integrate
     from geocd.landcover.report import ABLATION, ablation, pr_figure
     from geocd.landcover.labels import class_list, rasterize_labels, read_labels
-    from geocd.landcover.pipeline import (Scene, gp_inputs, load_image, load_scene,
-                                          project_probability, training_set)
+    from geocd.landcover.pipeline import Scene, gp_inputs, load_image, load_scene, project_probability, training_set
     from geocd.landcover.project import combine_views
     from geocd.ortho import view_geometry
     from geocd.synth.truth import VEGETATION_CODES
@@ -76,9 +78,9 @@ def main() -> None:
     spec = FeatureSpec()
     air = [load_image(sa / "images" / f"A_air{k}.tif") for k in (1, 2, 3)]
     sat = [load_image(sa / "images" / f"A_sat{k}.tif") for k in (1, 2, 3, 4)]
-    report: dict = {"labels": {"polygons": int(len(labels)),
-                               "labelled_cells_0.5m": int((lab_cls >= 0).sum()),
-                               "classes": classes}}
+    report: dict = {
+        "labels": {"polygons": int(len(labels)), "labelled_cells_0.5m": int((lab_cls >= 0).sum()), "classes": classes}
+    }
 
     # --- classifiers: RF maps of every image; RF / LR / SVM compared on sampled pixels against the truth -----
     from geocd.landcover.pipeline import image_features
@@ -95,8 +97,11 @@ def main() -> None:
         t0 = time.perf_counter()
         Xa, ya, ga, _ = training_set(labels, air, classes, spec, scene)
         Xs, ys, gs, _ = training_set(labels, sat, classes, spec, scene)
-        models = {(s_, m_): train(X_, y_, classes, spec, nb, method=m_)
-                  for s_, X_, y_, nb in (("aerial", Xa, ya, 3), ("satellite", Xs, ys, 1)) for m_ in METHODS}
+        models = {
+            (s_, m_): train(X_, y_, classes, spec, nb, method=m_)
+            for s_, X_, y_, nb in (("aerial", Xa, ya, 3), ("satellite", Xs, ys, 1))
+            for m_ in METHODS
+        }
         air_p, sat_p = {}, {}
         samples = {("aerial", m_): ([], []) for m_ in METHODS} | {("satellite", m_): ([], []) for m_ in METHODS}
         rng = np.random.default_rng(0)
@@ -112,9 +117,13 @@ def main() -> None:
                 for m_ in METHODS:
                     est = models[(sensor, m_)]
                     samples[(sensor, m_)][0].append(veg.ravel()[pick])
-                    samples[(sensor, m_)][1].append(predict_proba(est, Xp.T[:, :, None], np.ones((len(pick), 1), bool))[1, :, 0])
-        cls_rep = {"note": "pixel classifiers scored on 4000 random observed, unlabelled cells per image (truth "
-                           "= the cell's cover; the pixel the cell is seen in)"}
+                    samples[(sensor, m_)][1].append(
+                        predict_proba(est, Xp.T[:, :, None], np.ones((len(pick), 1), bool))[1, :, 0]
+                    )
+        cls_rep = {
+            "note": "pixel classifiers scored on 4000 random observed, unlabelled cells per image (truth "
+            "= the cell's cover; the pixel the cell is seen in)"
+        }
         for (sensor, m_), (t_, s_) in samples.items():
             cls_rep.setdefault(sensor, {})[m_] = f1r(np.concatenate(t_) > 0.5, np.concatenate(s_))
         for sensor in ("aerial", "satellite"):
@@ -152,8 +161,12 @@ def main() -> None:
     truth1 = block_mean(veg, k)
     y1 = truth1 >= 0.5
     labelled1 = block_mean((lab_cls >= 0).astype(float), k) > 0
-    scene1 = Scene(grid=g1, dem_m=block_mean(scene.dem_m, k), surface_m=block_mean(scene.surface_m, k),
-                   occupancy=block_mean(scene.occupancy, k).astype(np.float32))
+    scene1 = Scene(
+        grid=g1,
+        dem_m=block_mean(scene.dem_m, k),
+        surface_m=block_mean(scene.surface_m, k),
+        occupancy=block_mean(scene.occupancy, k).astype(np.float32),
+    )
     n_views = 45
 
     def detailed_map(chosen: np.ndarray) -> np.ndarray:
@@ -177,33 +190,46 @@ def main() -> None:
     if args.only == "calibration":
         from geocd.landcover.report import sigma_calibration
 
-        res = integrate(det, inputs_for(ABLATION["GP: detailed + coarse + xy + DEM + buildings"][0]),
-                        gp_params.replace(calibrate_folds=5))
+        res = integrate(
+            det,
+            inputs_for(ABLATION["GP: detailed + coarse + xy + DEM + buildings"][0]),
+            gp_params.replace(calibrate_folds=5),
+        )
         unobs = ~labelled1 & ~np.isfinite(det)
-        out = {"truth_on_unobserved_cells": sigma_calibration(truth1, res, unobs),
-               "heldout_blocks": res.report["calibration"], "seconds": round(time.perf_counter() - t0, 1),
-               "headline_views": [int(v) for v in headline], "n_fit": args.n_fit}
+        out = {
+            "truth_on_unobserved_cells": sigma_calibration(truth1, res, unobs),
+            "heldout_blocks": res.report["calibration"],
+            "seconds": round(time.perf_counter() - t0, 1),
+            "headline_views": [int(v) for v in headline],
+            "n_fit": args.n_fit,
+        }
         (DOCS / "landcover_calibration.json").write_text(json.dumps(out, indent=1))
         print(json.dumps(out, indent=1))
         return
-    scores, results = ablation(det, coarse1, inputs_for, y1, truth_value=truth1, exclude=labelled1,
-                               params=gp_params)
+    scores, results = ablation(det, coarse1, inputs_for, y1, truth_value=truth1, exclude=labelled1, params=gp_params)
     for r in results.values():
-        scores.setdefault("gp_report", {})[r.hyper.names.__str__()] = {kk: v for kk, v in r.report.items()
-                                                                       if kk != "hyper"}
+        scores.setdefault("gp_report", {})[r.hyper.names.__str__()] = {
+            kk: v for kk, v in r.report.items() if kk != "hyper"
+        }
     report["ablation"] = scores
     report["headline_views"] = [int(v) for v in headline]
     ev = ~labelled1
-    curves = {"coarse alone": (y1[ev], coarse1[ev]),
-              "detailed alone (observed)": (y1[ev & np.isfinite(det)], det[ev & np.isfinite(det)])}
+    curves = {
+        "coarse alone": (y1[ev], coarse1[ev]),
+        "detailed alone (observed)": (y1[ev & np.isfinite(det)], det[ev & np.isfinite(det)]),
+    }
     for name, r in results.items():
         curves[name] = (y1[ev], r.mean[ev])
     full = results[list(results)[-1]]
     np.savez_compressed(work / "maps.npz", truth=truth1, coarse=coarse1, detailed=det, mean=full.mean, sd=full.sd)
     timings["ablation_s"] = round(time.perf_counter() - t0, 1)
-    pr_figure(DOCS / "landcover_pr.png", curves, scores,
-              f"vegetation, sample_aoi: {args.headline_views} of 45 aerial windows "
-              f"({scores['observed_fraction']:.0%} observed),\n1 m cells, label cells excluded")
+    pr_figure(
+        DOCS / "landcover_pr.png",
+        curves,
+        scores,
+        f"vegetation, sample_aoi: {args.headline_views} of 45 aerial windows "
+        f"({scores['observed_fraction']:.0%} observed),\n1 m cells, label cells excluded",
+    )
 
     # --- F1 vs number of detailed views -------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -215,12 +241,23 @@ def main() -> None:
             det = detailed_map(chosen)
             res = integrate(det, inputs_for(ABLATION["GP: detailed + coarse + xy + DEM + buildings"][0]), gp_params)
             obs = np.isfinite(det) & ev
-            a_all, a_un, a_det = f1r(y1[ev], res.mean[ev]), f1r(y1[ev & ~obs], res.mean[ev & ~obs]), f1r(y1[obs], det[obs])
-            rows.append({"views": [int(c) for c in chosen], "observed_fraction": round(float(np.isfinite(det).mean()), 4),
-                         "f1_gp_all": a_all["f1_at_recall"], "f1_gp_unobserved": a_un.get("f1_at_recall"),
-                         "f1_detailed_observed": a_det["f1_at_recall"],
-                         "ap_gp_all": a_all["average_precision"], "ap_gp_unobserved": a_un.get("average_precision"),
-                         "ap_detailed_observed": a_det["average_precision"]})
+            a_all, a_un, a_det = (
+                f1r(y1[ev], res.mean[ev]),
+                f1r(y1[ev & ~obs], res.mean[ev & ~obs]),
+                f1r(y1[obs], det[obs]),
+            )
+            rows.append(
+                {
+                    "views": [int(c) for c in chosen],
+                    "observed_fraction": round(float(np.isfinite(det).mean()), 4),
+                    "f1_gp_all": a_all["f1_at_recall"],
+                    "f1_gp_unobserved": a_un.get("f1_at_recall"),
+                    "f1_detailed_observed": a_det["f1_at_recall"],
+                    "ap_gp_all": a_all["average_precision"],
+                    "ap_gp_unobserved": a_un.get("average_precision"),
+                    "ap_detailed_observed": a_det["average_precision"],
+                }
+            )
             print(n, rows[-1], flush=True)
         by_n[n] = rows
     report["f1_vs_views"] = by_n
@@ -240,16 +277,25 @@ def figures(by_n, work: Path, headline: int) -> None:
     fig, axs = plt.subplots(1, 2, figsize=(12, 4))
     ns = sorted(by_n, key=int)
     for ax, metric, ylabel in ((axs[0], "f1", "F1 at recall 0.5"), (axs[1], "ap", "average precision")):
-        for key, lab in ((f"{metric}_gp_all", "GP, all cells"), (f"{metric}_gp_unobserved", "GP, unobserved cells"),
-                         (f"{metric}_detailed_observed", "detailed alone, observed cells")):
+        for key, lab in (
+            (f"{metric}_gp_all", "GP, all cells"),
+            (f"{metric}_gp_unobserved", "GP, unobserved cells"),
+            (f"{metric}_detailed_observed", "detailed alone, observed cells"),
+        ):
             if key not in by_n[ns[0]][0]:
                 continue
             vals = [[r[key] for r in by_n[n] if r.get(key) is not None] for n in ns]
             mean = [np.mean(v) for v in vals]
             lo = [np.min(v) for v in vals]
             hi = [np.max(v) for v in vals]
-            ax.errorbar([int(n) for n in ns], mean, yerr=[np.subtract(mean, lo), np.subtract(hi, mean)], marker="o",
-                        capsize=3, label=lab)
+            ax.errorbar(
+                [int(n) for n in ns],
+                mean,
+                yerr=[np.subtract(mean, lo), np.subtract(hi, mean)],
+                marker="o",
+                capsize=3,
+                label=lab,
+            )
         ax.set_xscale("log", base=2)
         ax.set_xlabel("number of detailed views (aerial windows)")
         ax.set_ylabel(ylabel)
@@ -262,11 +308,16 @@ def figures(by_n, work: Path, headline: int) -> None:
 
     z = np.load(work / "maps.npz")
     fig, ax = plt.subplots(1, 5, figsize=(20, 4.4))
-    for a, (key, title, cmap, vmax) in zip(ax, (("truth", "truth: vegetated fraction", "Greens", 1),
-                                                 ("coarse", "coarse: satellite classifier", "Greens", 1),
-                                                 ("detailed", f"detailed: {headline} aerial windows", "Greens", 1),
-                                                 ("mean", "GP mean (all inputs)", "Greens", 1),
-                                                 ("sd", "GP σ (latent)", "magma", None))):
+    for a, (key, title, cmap, vmax) in zip(
+        ax,
+        (
+            ("truth", "truth: vegetated fraction", "Greens", 1),
+            ("coarse", "coarse: satellite classifier", "Greens", 1),
+            ("detailed", f"detailed: {headline} aerial windows", "Greens", 1),
+            ("mean", "GP mean (all inputs)", "Greens", 1),
+            ("sd", "GP σ (latent)", "magma", None),
+        ),
+    ):
         im = a.imshow(z[key], cmap=cmap, vmin=0, vmax=vmax)
         a.set_title(title, fontsize=9)
         a.set_xticks([])

@@ -13,6 +13,7 @@ Usage::
 ``WORK``: the output folder of ``docs/mpp_show.py scoring`` for that scene (``mpp/mpp_buildings.gpkg`` and
 ``ortho/{A,B}/dsm_*.tif``).
 """
+
 import json
 import sys
 from pathlib import Path
@@ -33,7 +34,7 @@ out_json = None
 if "--json" in args:
     k = args.index("--json")
     out_json = args[k + 1]
-    args = args[:k] + args[k + 2:]
+    args = args[:k] + args[k + 2 :]
 for spec in args:
     name, scene, work = spec.split("=")
     scene, work = Path(scene), Path(work)
@@ -50,8 +51,9 @@ for spec in args:
         figs[d] = (best, thr)
     grid = AOIGrid.from_bounds(*bounds, posting, crs)
     rect = rect.to_crs(crs)
-    cells = [rasterize([(g, 1)], out_shape=shape, transform=tr, fill=0, dtype="uint8").astype(bool)
-             for g in rect.geometry]                                  # each rectangle's cells, once
+    cells = [
+        rasterize([(g, 1)], out_shape=shape, transform=tr, fill=0, dtype="uint8").astype(bool) for g in rect.geometry
+    ]  # each rectangle's cells, once
     med = {"A": [], "B": []}
     for m in cells:
         for d in ("A", "B"):
@@ -67,26 +69,36 @@ for spec in args:
     # is each rect on a truth building (≥ half its cells)?
     onb = [float((m & tany).sum() / max(m.sum(), 1)) >= 0.5 for m in cells]
     rect["on_building"] = onb
+
     def masks(sel):
         out = {k: np.zeros(shape, bool) for k in ("date1", "date2", "new", "demolished", "any")}
         for k in np.nonzero(np.asarray(sel))[0]:
             r, m = rect.iloc[k], cells[k]
             out["any"] |= m
-            if r.present_A: out["date1"] |= m
-            if r.present_B: out["date2"] |= m
-            if r.xi == "2": out["new"] |= m
-            if r.xi == "1": out["demolished"] |= m
+            if r.present_A:
+                out["date1"] |= m
+            if r.present_B:
+                out["date2"] |= m
+            if r.xi == "2":
+                out["new"] |= m
+            if r.xi == "1":
+                out["demolished"] |= m
         return out
-    rules = {"none": np.zeros(len(rect), bool),
-             "all present dates tree": ((~pa | treeA) & (~pb | treeB)).to_numpy(),
-             "any present date tree": ((pa & treeA) | (pb & treeB)).to_numpy()}
+
+    rules = {
+        "none": np.zeros(len(rect), bool),
+        "all present dates tree": ((~pa | treeA) & (~pb | treeB)).to_numpy(),
+        "any present date tree": ((pa & treeA) | (pb & treeB)).to_numpy(),
+    }
     row = {"thr": {d: round(figs[d][1], 4) for d in figs}}
     for k, veto in rules.items():
         t = table2(masks(~veto), objs, t1, t2)
         row[k] = {x: t[x] for x in ("HO", "FO", "HV", "FV", "DP", "DP_precision", "DP_recall")}
-        row[k]["vetoed_on_building"] = int((veto & rect["on_building"]).sum()); row[k]["vetoed_off_building"] = int((veto & ~rect["on_building"]).sum())
+        row[k]["vetoed_on_building"] = int((veto & rect["on_building"]).sum())
+        row[k]["vetoed_off_building"] = int((veto & ~rect["on_building"]).sum())
     res[name] = row
     print(name, json.dumps(row), flush=True)
 if out_json:
-    Path(out_json).write_text(json.dumps({"command": "docs/mpp_tree_veto.py " + " ".join(sys.argv[1:]),
-                                          "scenes": res}, indent=1))
+    Path(out_json).write_text(
+        json.dumps({"command": "docs/mpp_tree_veto.py " + " ".join(sys.argv[1:]), "scenes": res}, indent=1)
+    )

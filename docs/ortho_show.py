@@ -38,8 +38,12 @@ def shift_cells(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> float:
     def par(lo, z, hi):
         return 0.5 * (lo - hi) / (lo - 2 * z + hi)
 
-    return float(np.hypot(i + par(c[i - 1, j], c[i, j], c[i + 1, j]) - c.shape[0] // 2,
-                          j + par(c[i, j - 1], c[i, j], c[i, j + 1]) - c.shape[1] // 2))
+    return float(
+        np.hypot(
+            i + par(c[i - 1, j], c[i, j], c[i + 1, j]) - c.shape[0] // 2,
+            j + par(c[i, j - 1], c[i, j], c[i, j + 1]) - c.shape[1] // 2,
+        )
+    )
 
 
 def grey(values: np.ndarray) -> np.ndarray:
@@ -58,9 +62,15 @@ def main(run: Path) -> None:
         filled, _ = read_band(run / "ortho" / e / f"dsm_{e}.tif", 2)
         t, _ = read_band(AOI / "truth" / f"dsm_{e}.tif")
         err = (h - t)[filled == 0]
-        out["dsm"][e] = {"holes_filled": round(float(filled.mean()), 4), "median_abs_err_m": round(float(np.median(np.abs(err))), 3),
-                         "share_abs_err_gt_2m": round(float(np.mean(np.abs(err) > 2)), 4)}
-    views = {"A": ["A_sat1", "A_sat2", "A_sat3", "A_sat4", "A_air1", "A_air2", "A_air3"], "B": ["B_sat1", "B_sat2", "B_sat3"]}
+        out["dsm"][e] = {
+            "holes_filled": round(float(filled.mean()), 4),
+            "median_abs_err_m": round(float(np.median(np.abs(err))), 3),
+            "share_abs_err_gt_2m": round(float(np.mean(np.abs(err) > 2)), 4),
+        }
+    views = {
+        "A": ["A_sat1", "A_sat2", "A_sat3", "A_sat4", "A_air1", "A_air2", "A_air3"],
+        "B": ["B_sat1", "B_sat2", "B_sat3"],
+    }
     truth_orthos = {}
     for e, names in views.items():
         d = read_dem(AOI / "truth" / f"dsm_{e}.tif")
@@ -77,29 +87,44 @@ def main(run: Path) -> None:
             out["views"][n] = {
                 "occluded_truth_dsm": round(float(tr.occluded.mean()), 4),
                 "observed_stereo_dsm": round(float(st_obs.mean()), 4),
-                "corr_stereo_vs_truth_dsm_ortho": round(float(np.corrcoef(st_vals.mean(0)[both], grey(tr.values)[both])[0, 1]), 4),
+                "corr_stereo_vs_truth_dsm_ortho": round(
+                    float(np.corrcoef(st_vals.mean(0)[both], grey(tr.values)[both])[0, 1]), 4
+                ),
                 "view_zenith_deg": round(float(np.nanmedian(tr.geometry.view_zenith_deg)), 1),
             }
-    for a, b in (("A_sat1", "A_sat4"), ("A_sat1", "A_air1"), ("A_sat4", "A_air3"), ("A_air1", "A_air3"),
-                 ("B_sat1", "B_sat3")):
+    for a, b in (
+        ("A_sat1", "A_sat4"),
+        ("A_sat1", "A_air1"),
+        ("A_sat4", "A_air3"),
+        ("A_air1", "A_air3"),
+        ("B_sat1", "B_sat3"),
+    ):
         ra, rb = truth_orthos[a], truth_orthos[b]
         both = ra.observed & rb.observed
         rows, cols = np.flatnonzero(both.any(1)), np.flatnonzero(both.any(0))
         sl = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-        out["pairs"][f"{a}/{b}"] = {"corr": round(float(np.corrcoef(grey(ra.values)[both], grey(rb.values)[both])[0, 1]), 4),
-                                    "shift_cells": round(shift_cells(grey(ra.values)[sl], grey(rb.values)[sl], both[sl]), 3)}
+        out["pairs"][f"{a}/{b}"] = {
+            "corr": round(float(np.corrcoef(grey(ra.values)[both], grey(rb.values)[both])[0, 1]), 4),
+            "shift_cells": round(shift_cells(grey(ra.values)[sl], grey(rb.values)[sl], both[sl]), 3),
+        }
     # classic vs true ortho of A_sat4, judged by the opposite view A_sat1 on the cells A_sat4 cannot see
     d = read_dem(AOI / "truth" / "dsm_A.tif")
     p = AOI / "images" / "A_sat4.tif"
     img = read_image(p)
-    classic = orthorectify(img.data, load_camera(p), d.grid, d.height_m, valid=img.valid, params=OrthoParams(occlusion=False))
+    classic = orthorectify(
+        img.data, load_camera(p), d.grid, d.height_m, valid=img.valid, params=OrthoParams(occlusion=False)
+    )
     s1, s4 = truth_orthos["A_sat1"], truth_orthos["A_sat4"]
     occ = (s4.status == OCCLUDED) & s1.observed
     seen = s4.observed & s1.observed
     out["classic_vs_true"] = {
         "cells_hidden_from_A_sat4": int(occ.sum()),
-        "corr_with_A_sat1_on_hidden_cells_classic": round(float(np.corrcoef(grey(s1.values)[occ], grey(classic.values)[occ])[0, 1]), 3),
-        "corr_with_A_sat1_on_seen_cells": round(float(np.corrcoef(grey(s1.values)[seen], grey(s4.values)[seen])[0, 1]), 3),
+        "corr_with_A_sat1_on_hidden_cells_classic": round(
+            float(np.corrcoef(grey(s1.values)[occ], grey(classic.values)[occ])[0, 1]), 3
+        ),
+        "corr_with_A_sat1_on_seen_cells": round(
+            float(np.corrcoef(grey(s1.values)[seen], grey(s4.values)[seen])[0, 1]), 3
+        ),
     }
     (REPO / "docs" / "ortho_sample_aoi.json").write_text(json.dumps(out, indent=2))
     print(json.dumps(out, indent=2))
@@ -110,8 +135,11 @@ def main(run: Path) -> None:
     def show(ax, vals, obs, title):
         g = grey(vals)
         lo, hi = np.percentile(g[obs], [2, 98])
-        rgb = np.dstack([np.clip((g - lo) / (hi - lo), 0, 1)] * 3) if vals.shape[0] == 1 else \
-            np.clip(vals.transpose(1, 2, 0).astype(float) / 255.0, 0, 1)
+        rgb = (
+            np.dstack([np.clip((g - lo) / (hi - lo), 0, 1)] * 3)
+            if vals.shape[0] == 1
+            else np.clip(vals.transpose(1, 2, 0).astype(float) / 255.0, 0, 1)
+        )
         rgb = rgb.copy()
         rgb[~obs] = (0.85, 0.1, 0.1)
         ax.imshow(rgb[sl], interpolation="nearest")

@@ -41,8 +41,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-GENERATED = {"sun_other": ["--n-aerial", "0"], "sun_same": ["--n-aerial", "0", "--same-sun"],
-             "seed1": ["--n-aerial", "0", "--seed", "1"]}
+GENERATED = {
+    "sun_other": ["--n-aerial", "0"],
+    "sun_same": ["--n-aerial", "0", "--same-sun"],
+    "seed1": ["--n-aerial", "0", "--seed", "1"],
+}
 PRIORS = [round(0.1 * k, 1) for k in range(1, 10)]
 
 
@@ -52,8 +55,17 @@ def scene_dir(name: str, work: Path) -> Path:
     d = work / name
     if not (d / "scene.yaml").is_file():
         d.parent.mkdir(parents=True, exist_ok=True)
-        cmd = [str(REPO / ".venv" / "bin" / "geocd"), "--progress", "none", "synth", "--out", str(d), "--name", name,
-               *GENERATED[name]]
+        cmd = [
+            str(REPO / ".venv" / "bin" / "geocd"),
+            "--progress",
+            "none",
+            "synth",
+            "--out",
+            str(d),
+            "--name",
+            name,
+            *GENERATED[name],
+        ]
         print("generating:", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
     return d
@@ -65,8 +77,9 @@ def satellite_manifest(path: Path):
 
     m = load_manifest(path / "scene.yaml")
     sats = set(m.truth.get("satellite_images") or [])
-    eps = tuple(dataclasses.replace(e, images=tuple(i for i in e.images if not sats or i.name in sats))
-                for e in m.epochs)
+    eps = tuple(
+        dataclasses.replace(e, images=tuple(i for i in e.images if not sats or i.name in sats)) for e in m.epochs
+    )
     return dataclasses.replace(m, epochs=eps)
 
 
@@ -99,12 +112,20 @@ def run_scene(name: str, path: Path, work: Path, key: str | None, do_key: bool) 
     m = satellite_manifest(path)
     truth, tgrid = read_band(path / "truth" / "change_mask.tif")
     truth = truth > 0
-    out: dict = {"scene": name, "images": {e.name: [i.name for i in e.images] for e in m.epochs},
-                 "change_fraction": round(float(truth.mean()), 5), "methods": {}, "priors": {}, "seconds": {}}
+    out: dict = {
+        "scene": name,
+        "images": {e.name: [i.name for i in e.images] for e in m.epochs},
+        "change_fraction": round(float(truth.mean()), 5),
+        "methods": {},
+        "priors": {},
+        "seconds": {},
+    }
     keep: dict = {"truth": truth}
     # --- probchange, object space -----------------------------------------------------------------
-    for label, params in (("probchange (thesis model)", ProbChangeParams()),
-                          ("probchange (robust model)", ProbChangeParams.robust())):
+    for label, params in (
+        ("probchange (thesis model)", ProbChangeParams()),
+        ("probchange (robust model)", ProbChangeParams.robust()),
+    ):
         t = time.perf_counter()
         r = run_probchange(m, variant="objectspace", params=params, write=False)
         out["seconds"][label] = round(time.perf_counter() - t, 1)
@@ -120,8 +141,10 @@ def run_scene(name: str, path: Path, work: Path, key: str | None, do_key: bool) 
         print(name, label, s["f1"], out["seconds"][label], flush=True)
     # --- probchange, key frame -------------------------------------------------------------------------
     if do_key:
-        for label, params in (("probchange key frame (thesis model)", ProbChangeParams()),
-                              ("probchange key frame (robust model)", ProbChangeParams.robust())):
+        for label, params in (
+            ("probchange key frame (thesis model)", ProbChangeParams()),
+            ("probchange key frame (robust model)", ProbChangeParams.robust()),
+        ):
             t = time.perf_counter()
             r = run_probchange(m, variant="keyframe", key=key, params=params, write=False)
             out["seconds"][label] = round(time.perf_counter() - t, 1)
@@ -133,7 +156,7 @@ def run_scene(name: str, path: Path, work: Path, key: str | None, do_key: bool) 
                 im = ds.read(1)
             h, w = kr.probability.shape
             c0, r0 = int(round(kr.col0)), int(round(kr.row0))
-            s["key_geometry"] = scores(kr.changed(), im[r0:r0 + h, c0:c0 + w] > 0)
+            s["key_geometry"] = scores(kr.changed(), im[r0 : r0 + h, c0 : c0 + w] > 0)
             s["key_window"] = [c0, r0, w, h]
             out["methods"][label] = s
             out["priors"][label] = prior_table(res, truth)
@@ -173,8 +196,14 @@ def run_scene(name: str, path: Path, work: Path, key: str | None, do_key: bool) 
         if sc_best is None or s["f1"] > sc_best[1]:
             sc_best = (conf, s["f1"])
     keep["sc"] = np.isin(res_sc.changed_at(99.0), (1, -1))
-    print(name, "mvs", out["methods"]["stereo DEM differencing (MVS then subtract, best threshold)"]["f1"],
-          "sc99", out["methods"]["self-consistency test at 99 %"]["f1"], flush=True)
+    print(
+        name,
+        "mvs",
+        out["methods"]["stereo DEM differencing (MVS then subtract, best threshold)"]["f1"],
+        "sc99",
+        out["methods"]["self-consistency test at 99 %"]["f1"],
+        flush=True,
+    )
     return out, keep
 
 
@@ -216,8 +245,9 @@ def figures(keep: dict, path: Path, out_png: Path, sigma_png: Path, summary: dic
     ax[1, 0].set_title(f"probchange thesis model, p > 0.5: F1 {f1('probchange (thesis model)'):.2f}")
     k_mvs = "stereo DEM differencing (MVS then subtract, best threshold)"
     ax[1, 1].imshow(overlay(keep["mvs"]))
-    ax[1, 1].set_title(f"MVS then subtract, best threshold {summary['methods'][k_mvs]['threshold_m']:.2f} m: "
-                       f"F1 {f1(k_mvs):.2f}")
+    ax[1, 1].set_title(
+        f"MVS then subtract, best threshold {summary['methods'][k_mvs]['threshold_m']:.2f} m: F1 {f1(k_mvs):.2f}"
+    )
     ax[1, 2].imshow(overlay(keep["sc"]))
     ax[1, 2].set_title(f"self-consistency test at 99 %: F1 {f1('self-consistency test at 99 %'):.2f}")
     for a in ax.ravel():
@@ -230,8 +260,10 @@ def figures(keep: dict, path: Path, out_png: Path, sigma_png: Path, summary: dic
     # σ histograms (Fig. 5.10 analogue) and the prior sensitivity (Table 5.3 analogue)
     fig, ax = plt.subplots(1, 3, figsize=(18, 4.8))
     diag = the.diagnostics["sigma_samples"]
-    for a, key, sig, lab in ((ax[0], "a_min", the.noise.sigma, "epoch A (depth): σ"),
-                             (ax[1], "b_min", the.noise.sigma_prime, "epoch B: σ'")):
+    for a, key, sig, lab in (
+        (ax[0], "a_min", the.noise.sigma, "epoch A (depth): σ"),
+        (ax[1], "b_min", the.noise.sigma_prime, "epoch B: σ'"),
+    ):
         v = diag[key]
         v = v[np.isfinite(v)]
         hi = np.quantile(v, 0.995)
@@ -289,18 +321,26 @@ def main() -> None:
         res, keep = run_scene(name, path, a.work, a.key, do_key=(name == "sample_aoi"))
         all_res[name] = res
         if name == "sample_aoi":
-            figures(keep, path, REPO / "docs" / "probchange_sample_aoi.png", REPO / "docs" / "probchange_sigma.png",
-                    res)
-        a.json.write_text(json.dumps({"command": "docs/probchange_show.py " + " ".join(sys.argv[1:]),
-                                      "scenes": all_res}, indent=1, default=str))
+            figures(
+                keep, path, REPO / "docs" / "probchange_sample_aoi.png", REPO / "docs" / "probchange_sigma.png", res
+            )
+        a.json.write_text(
+            json.dumps(
+                {"command": "docs/probchange_show.py " + " ".join(sys.argv[1:]), "scenes": all_res},
+                indent=1,
+                default=str,
+            )
+        )
     print(markdown(all_res))
     if "sun_same" in all_res and "sun_other" in all_res:
         print("\nillumination (false-alarm rate, F1): B under A's sun vs under its own sun")
         for meth in all_res["sun_same"]["methods"]:
             s0, s1 = all_res["sun_same"]["methods"][meth], all_res["sun_other"]["methods"].get(meth)
             if s1:
-                print(f"  {meth}: same sun FA {s0['false_alarm_rate']:.4f} F1 {s0['f1']:.2f} | other sun FA "
-                      f"{s1['false_alarm_rate']:.4f} F1 {s1['f1']:.2f}")
+                print(
+                    f"  {meth}: same sun FA {s0['false_alarm_rate']:.4f} F1 {s0['f1']:.2f} | other sun FA "
+                    f"{s1['false_alarm_rate']:.4f} F1 {s1['f1']:.2f}"
+                )
 
 
 if __name__ == "__main__":

@@ -37,8 +37,13 @@ def add_legend(map_png: str, out_png: str, title: str) -> None:
     ax = fig.add_axes([0, 0, w / (w + 260), h / (h + 50)])
     ax.imshow(img)
     ax.axis("off")
-    fig.legend(handles=[Patch(facecolor=c, edgecolor="#323232", label=l) for c, l in DAMAGE_CLASSES.values()],
-               loc="center right", title="building_damage (class)", fontsize=9, frameon=False)
+    fig.legend(
+        handles=[Patch(facecolor=c, edgecolor="#323232", label=l) for c, l in DAMAGE_CLASSES.values()],
+        loc="center right",
+        title="building_damage (class)",
+        fontsize=9,
+        frameon=False,
+    )
     fig.suptitle(title, x=0.02, ha="left", fontsize=12, fontweight="bold")
     fig.savefig(out_png, dpi=70)
 
@@ -59,8 +64,15 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     os.environ.setdefault("GDAL_PAM_ENABLED", "NO")
-    from qgis.core import (QgsApplication, QgsMapRendererParallelJob, QgsMapSettings, QgsProject, QgsRasterLayer,
-                           QgsRectangle, QgsVectorLayer)
+    from qgis.core import (
+        QgsApplication,
+        QgsMapRendererParallelJob,
+        QgsMapSettings,
+        QgsProject,
+        QgsRasterLayer,
+        QgsRectangle,
+        QgsVectorLayer,
+    )
     from qgis.PyQt.QtCore import QSize
     from qgis.PyQt.QtGui import QColor
 

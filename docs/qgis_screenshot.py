@@ -45,14 +45,22 @@ REPO = Path(__file__).resolve().parents[1]
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--alg", required=True, help="algorithm id, e.g. geocd:demdiff")
-    ap.add_argument("--param", action="append", default=[],
-                    help="NAME=VALUE (repeatable; repeat a NAME for a list, e.g. several image layers)")
+    ap.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        help="NAME=VALUE (repeatable; repeat a NAME for a list, e.g. several image layers)",
+    )
     ap.add_argument("--out", required=True, help="PNG to write")
     ap.add_argument("--title", default="")
     ap.add_argument("--backdrop", help="a DEM drawn as a hillshade under the layers")
     ap.add_argument("--backdrop-title", default="Hillshade (DEM B)")
-    ap.add_argument("--extent", choices=["rasters", "all"], default="rasters",
-                    help="map extent: the rasters' (default) or every layer's")
+    ap.add_argument(
+        "--extent",
+        choices=["rasters", "all"],
+        default="rasters",
+        help="map extent: the rasters' (default) or every layer's",
+    )
     ap.add_argument("--hide", action="append", default=[], help="name of a loaded layer to leave out (repeatable)")
     ap.add_argument("--workdir", help="output folder of the run (default: temporary)")
     ap.add_argument("--size", default="1400x1000", help="map size in pixels, WxH")
@@ -67,10 +75,23 @@ def main(argv=None) -> int:
     os.environ.setdefault("QGIS_PLUGINPATH", str(REPO / "qgis_plugin"))
     # QGIS computes statistics of raster parameter layers; GDAL would store them beside the inputs (.aux.xml)
     os.environ.setdefault("GDAL_PAM_ENABLED", "NO")
-    from qgis.core import (QgsApplication, QgsHillshadeRenderer, QgsLayerTree, QgsLayerTreeModel,
-                           QgsLegendRenderer, QgsLegendSettings, QgsMapRendererParallelJob, QgsMapSettings,
-                           QgsProcessingContext, QgsProcessingFeedback, QgsProject, QgsRasterLayer, QgsRectangle,
-                           QgsRenderContext, QgsVectorLayer)
+    from qgis.core import (
+        QgsApplication,
+        QgsHillshadeRenderer,
+        QgsLayerTree,
+        QgsLayerTreeModel,
+        QgsLegendRenderer,
+        QgsLegendSettings,
+        QgsMapRendererParallelJob,
+        QgsMapSettings,
+        QgsProcessingContext,
+        QgsProcessingFeedback,
+        QgsProject,
+        QgsRasterLayer,
+        QgsRectangle,
+        QgsRenderContext,
+        QgsVectorLayer,
+    )
     from qgis.PyQt.QtCore import QSize, Qt, QRectF, QPointF
     from qgis.PyQt.QtGui import QColor, QFont, QImage, QPainter
 
@@ -115,6 +136,7 @@ def main(argv=None) -> int:
             details.postProcessor().postProcessLayer(layer, context, feedback)
         layers.append(layer)
         print(f"  loaded {details.name!r}: {layer.renderer().type() if layer.renderer() else '?'}")
+
     # vectors above rasters, masks above continuous rasters
     def order(l):
         if isinstance(l, QgsVectorLayer):
@@ -135,7 +157,7 @@ def main(argv=None) -> int:
 
     extent = QgsRectangle()
     rasters = [l for l in layers if isinstance(l, QgsRasterLayer) and l.name() != args.backdrop_title]
-    for l in (rasters if args.extent == "rasters" and rasters else layers):
+    for l in rasters if args.extent == "rasters" and rasters else layers:
         if extent.isEmpty():
             extent = QgsRectangle(l.extent())
         else:

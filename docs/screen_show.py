@@ -1,7 +1,7 @@
 """Quick-look of the 2-D screen on sample_aoi: the two views, the dissimilarity, the change mask against truth.
 
-    .venv/bin/geocd screen sample_aoi --out /tmp/scr
-    .venv/bin/python docs/screen_show.py /tmp/scr            # → docs/screen_sample_aoi.png
+.venv/bin/geocd screen sample_aoi --out /tmp/scr
+.venv/bin/python docs/screen_show.py /tmp/scr            # → docs/screen_sample_aoi.png
 """
 
 from __future__ import annotations
@@ -57,8 +57,9 @@ def main(out_dir: str) -> None:
     rgb[~m & truth] = (0.2, 0.4, 0.9)
     tp, fp, fn = (m & truth).sum(), (m & ~truth).sum(), (~m & truth).sum()
     ax[3].imshow(rgb)
-    ax[3].set_title(f"changed vs truth: F1 {2 * tp / (2 * tp + fp + fn):.3f}\ngreen hit, orange false, blue missed",
-                    fontsize=10)
+    ax[3].set_title(
+        f"changed vs truth: F1 {2 * tp / (2 * tp + fp + fn):.3f}\ngreen hit, orange false, blue missed", fontsize=10
+    )
     for a in ax:
         a.set_axis_off()
     fig.tight_layout()

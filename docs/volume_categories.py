@@ -10,6 +10,7 @@ Usage::
 
     .venv/bin/python docs/volume_categories.py SCENE WORK DSM OUT.json
 """
+
 import json
 import sys
 from pathlib import Path
@@ -21,6 +22,7 @@ from geocd.volume import DetectParams, detect_change
 from geocd.volume.io import geometry_from_manifest, load_model, read_shadow_dsm, read_view
 from geocd.volume.evaluate import TrainConfig, _roc
 from geocd.volume.baseline import carlotto_score, edge_zone, first_surface_height, nearest_view, warp_reference
+
 scene, work, dsm = sys.argv[1], Path(sys.argv[2]), sys.argv[3]
 cfg = TrainConfig()
 man = load_manifest(scene)
@@ -36,28 +38,50 @@ P = {k: [] for k in ("oct", "carl", "truth", "dark", "zone", "darkA")}
 fits = {}
 for v in views_b:
     truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
-    det = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=3), shadow_dsm=shadow)
+    det = detect_change(
+        model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=3), shadow_dsm=shadow
+    )
     ref = ref_pool[nearest_view(v.camera, v.intensity.shape, ref_pool, geom)]
     warped = warp_reference(v.camera, v.intensity.shape, ref.intensity, ref.camera, dem, grid)
     carl = carlotto_score(v.intensity, warped)
     zone = edge_zone(first_surface_height(v.camera, v.intensity.shape, dsm_b, grid, geom))
     valid = ~det.unknown & np.isfinite(carl)
     I = v.intensity
-    thr = np.nanpercentile(I[valid], 20); thrA = np.nanpercentile(warped[valid & np.isfinite(warped)], 20)
-    P["oct"].append(det.probability[valid]); P["carl"].append(carl[valid]); P["truth"].append(truth[valid])
-    P["dark"].append(I[valid] < thr); P["zone"].append(zone[valid]); P["darkA"].append(np.nan_to_num(warped[valid], nan=1e9) < thrA)
+    thr = np.nanpercentile(I[valid], 20)
+    thrA = np.nanpercentile(warped[valid & np.isfinite(warped)], 20)
+    P["oct"].append(det.probability[valid])
+    P["carl"].append(carl[valid])
+    P["truth"].append(truth[valid])
+    P["dark"].append(I[valid] < thr)
+    P["zone"].append(zone[valid])
+    P["darkA"].append(np.nan_to_num(warped[valid], nan=1e9) < thrA)
     fits[v.name] = det.relight.get("fit") if isinstance(det.relight, dict) else None
     print(v.name, json.dumps(fits[v.name]), flush=True)
 P = {k: np.concatenate(v) for k, v in P.items()}
 out = {}
-cats = {"all": np.ones(P["truth"].size, bool), "dark in B (20 %)": P["dark"], "not dark in B": ~P["dark"],
-        "dark in warped A": P["darkA"], "dark in B not A": P["dark"] & ~P["darkA"], "dark in A not B": P["darkA"] & ~P["dark"], "lit in both": ~P["darkA"] & ~P["dark"],
-        "edge zone": P["zone"], "not edge zone": ~P["zone"]}
+cats = {
+    "all": np.ones(P["truth"].size, bool),
+    "dark in B (20 %)": P["dark"],
+    "not dark in B": ~P["dark"],
+    "dark in warped A": P["darkA"],
+    "dark in B not A": P["dark"] & ~P["darkA"],
+    "dark in A not B": P["darkA"] & ~P["dark"],
+    "lit in both": ~P["darkA"] & ~P["dark"],
+    "edge zone": P["zone"],
+    "not edge zone": ~P["zone"],
+}
 for n, m in cats.items():
     t = P["truth"][m]
-    out[n] = {"share": round(float(m.mean()), 3), "changed": round(float(t.mean()), 3),
-              "octree": round(_roc(P["oct"][m], t, np.ones(t.size, bool))["auc"], 3),
-              "carlotto": round(_roc(P["carl"][m], t, np.ones(t.size, bool))["auc"], 3)}
+    out[n] = {
+        "share": round(float(m.mean()), 3),
+        "changed": round(float(t.mean()), 3),
+        "octree": round(_roc(P["oct"][m], t, np.ones(t.size, bool))["auc"], 3),
+        "carlotto": round(_roc(P["carl"][m], t, np.ones(t.size, bool))["auc"], 3),
+    }
     print(n, out[n], flush=True)
-Path(sys.argv[4]).write_text(json.dumps({"command": "docs/volume_categories.py " + " ".join(sys.argv[1:]),
-                                         "categories": out, "relight_fits": fits}, indent=1))
+Path(sys.argv[4]).write_text(
+    json.dumps(
+        {"command": "docs/volume_categories.py " + " ".join(sys.argv[1:]), "categories": out, "relight_fits": fits},
+        indent=1,
+    )
+)

@@ -21,6 +21,7 @@ Usage::
 
     .venv/bin/python docs/volume_shading.py --normals window-ground [--sky 0] [--on-surface M] [--damp fit] SCENE WORK DSM OUT.json
 """
+
 import argparse
 import runpy
 import sys
@@ -36,11 +37,20 @@ from geocd.stereo.params import StereoParams
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("--normals", choices=("cell", "window", "window-ground"), required=True)
 ap.add_argument("--sky", type=float, default=0.0, help="sky irradiance / direct sun irradiance (0: bare cosines)")
-ap.add_argument("--on-surface", type=float, default=None, metavar="M",
-                help="scale only pixels whose surface point lies within M metres of the DSM's height there (not walls)")
-ap.add_argument("--damp", choices=("off", "fit"), default="off",
-                help="fit: raise the ratio to the power γ that the image itself gives (least squares of log(I/E) on "
-                     "log r over the pixels whose ratio departs from the median by > 10 %%)")
+ap.add_argument(
+    "--on-surface",
+    type=float,
+    default=None,
+    metavar="M",
+    help="scale only pixels whose surface point lies within M metres of the DSM's height there (not walls)",
+)
+ap.add_argument(
+    "--damp",
+    choices=("off", "fit"),
+    default="off",
+    help="fit: raise the ratio to the power γ that the image itself gives (least squares of log(I/E) on "
+    "log r over the pixels whose ratio departs from the median by > 10 %%)",
+)
 ap.add_argument("rest", nargs=4, metavar="SCENE WORK DSM OUT.json")
 args = ap.parse_args()
 
@@ -66,7 +76,7 @@ def slopes(dsm: np.ndarray, posting_m: float, mode: str) -> tuple[np.ndarray, np
 
 def ratio_map(dsm, posting_m, sun_from, sun_to) -> np.ndarray:
     g_col, g_row = slopes(dsm, posting_m, args.normals)
-    n = np.stack([-g_col, g_row, np.ones_like(g_col)], -1)     # east, north, up (rows run south)
+    n = np.stack([-g_col, g_row, np.ones_like(g_col)], -1)  # east, north, up (rows run south)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     c_to, c_from = n @ R.sun_vector_enu(sun_to), n @ R.sun_vector_enu(sun_from)
     if args.sky > 0:

@@ -93,8 +93,10 @@ def _install(stream, json_lines: bool) -> None:
                 _state["kernels"] += 1
                 if not _state["announced"]:
                     _state["announced"] = True
-                    out.write("geocd: compiling numerical kernels (one-time on this machine: later runs reuse numba's "
-                              "cache; usually 1-2 min of CPU for a whole run) ...\n")
+                    out.write(
+                        "geocd: compiling numerical kernels (one-time on this machine: later runs reuse numba's "
+                        "cache; usually 1-2 min of CPU for a whole run) ...\n"
+                    )
                     out.flush()
             _state["depth"] += 1
 

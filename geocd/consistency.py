@@ -164,12 +164,16 @@ def match_pairs(p: PairDEMLike, q: PairDEMLike) -> tuple[np.ndarray, np.ndarray,
         Cells valid in both.
     """
     if p.z_m.shape != q.z_m.shape:
-        raise GridError(f"reconstructions {p.name!r} {p.z_m.shape} and {q.name!r} {q.z_m.shape} are on different grids; "
-                        "resample them onto one AOI grid first")
+        raise GridError(
+            f"reconstructions {p.name!r} {p.z_m.shape} and {q.name!r} {q.z_m.shape} are on different grids; "
+            "resample them onto one AOI grid first"
+        )
     if getattr(p, "grid", None) is not None and getattr(q, "grid", None) is not None:
         if hasattr(p.grid, "same_as") and not p.grid.same_as(q.grid):
-            raise GridError(f"reconstructions {p.name!r} and {q.name!r} are not on the same AOI grid; "
-                            "resample one onto the other (geocd.io.raster.reproject_array)")
+            raise GridError(
+                f"reconstructions {p.name!r} and {q.name!r} are not on the same AOI grid; "
+                "resample one onto the other (geocd.io.raster.reproject_array)"
+            )
     gp = np.asarray(p.g_px_per_m, np.float64)
     gq = np.asarray(q.g_px_per_m, np.float64)
     both = np.asarray(p.valid, bool) & np.asarray(q.valid, bool) & np.isfinite(p.z_m) & np.isfinite(q.z_m)
@@ -204,7 +208,7 @@ def vertical_offset(rec: PairDEMLike, ref: PairDEMLike, min_cells: int = 100) ->
 
     Returns 0 when the two share fewer than ``min_cells`` cells.
     """
-    both = (np.asarray(rec.valid, bool) & np.asarray(ref.valid, bool) & np.isfinite(rec.z_m) & np.isfinite(ref.z_m))
+    both = np.asarray(rec.valid, bool) & np.asarray(ref.valid, bool) & np.isfinite(rec.z_m) & np.isfinite(ref.z_m)
     if both.sum() < min_cells:
         return 0.0
     dz = (np.asarray(rec.z_m, np.float64) - np.asarray(ref.z_m, np.float64))[both]
@@ -215,8 +219,9 @@ def vertical_offset(rec: PairDEMLike, ref: PairDEMLike, min_cells: int = 100) ->
     return float(np.median(dz))
 
 
-def vertical_offsets(recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None,
-                     mode: str = "vertical") -> dict[str, float]:
+def vertical_offsets(
+    recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None, mode: str = "vertical"
+) -> dict[str, float]:
     """Each reconstruction's constant vertical offset to a common reference (a whole-scene statistic).
 
     Parameters
@@ -268,8 +273,9 @@ def apply_offsets(recs: Sequence[PairDEMLike], offsets: dict[str, float]) -> lis
     return out
 
 
-def align_reconstructions(recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None,
-                          mode: str = "vertical") -> tuple[list, dict[str, float]]:
+def align_reconstructions(
+    recs: Sequence[PairDEMLike], reference: PairDEMLike | None = None, mode: str = "vertical"
+) -> tuple[list, dict[str, float]]:
     """Shift reconstructions onto a common vertical reference (see :func:`vertical_offsets`).
 
     Returns
@@ -355,8 +361,9 @@ class PairCalibration:
     def to_dict(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
-    def inflation(self, model: "SelfConsistencyModel", score: np.ndarray, slope: np.ndarray,
-                  metres_per_unit: np.ndarray) -> np.ndarray:
+    def inflation(
+        self, model: "SelfConsistencyModel", score: np.ndarray, slope: np.ndarray, metres_per_unit: np.ndarray
+    ) -> np.ndarray:
         """m_tot / m_ref per cell: how much wider the static disagreement is here than where the model was learned."""
         m50 = model.threshold(score, 50.0)
         g = np.asarray(slope, np.float64) / metres_per_unit
@@ -365,16 +372,29 @@ class PairCalibration:
             mref = np.sqrt((self.ref_scale * m50) ** 2 + (g * self.ref_edge_sigma_m) ** 2)
             return np.where((mref > 0) & np.isfinite(mtot), mtot / mref, self.scale / self.ref_scale)
 
-    def effective_dtilde(self, model: "SelfConsistencyModel", dtilde: np.ndarray, score: np.ndarray,
-                         slope: np.ndarray, metres_per_unit: np.ndarray) -> np.ndarray:
+    def effective_dtilde(
+        self,
+        model: "SelfConsistencyModel",
+        dtilde: np.ndarray,
+        score: np.ndarray,
+        slope: np.ndarray,
+        metres_per_unit: np.ndarray,
+    ) -> np.ndarray:
         """Δ̃ rescaled onto the model's own scale: Δ̃ · m50 / m_tot (see the class notes)."""
         return np.asarray(dtilde, np.float64) / self.inflation(model, score, slope, metres_per_unit)
 
 
-def fit_pair_calibration(model: "SelfConsistencyModel", dtilde: np.ndarray, score: np.ndarray, slope: np.ndarray,
-                         metres_per_unit: np.ndarray, min_bin_cells: int = 200,
-                         max_cells: int = 2_000_000, fit_edge: bool = True,
-                         reference: bool = True) -> PairCalibration:
+def fit_pair_calibration(
+    model: "SelfConsistencyModel",
+    dtilde: np.ndarray,
+    score: np.ndarray,
+    slope: np.ndarray,
+    metres_per_unit: np.ndarray,
+    min_bin_cells: int = 200,
+    max_cells: int = 2_000_000,
+    fit_edge: bool = True,
+    reference: bool = True,
+) -> PairCalibration:
     """Fit :class:`PairCalibration` to cross-epoch comparisons, tolerant of a changed minority.
 
     In bins of (the model's score bins × local slope) the median |Δ̃| of the data is compared with
@@ -427,8 +447,10 @@ def fit_pair_calibration(model: "SelfConsistencyModel", dtilde: np.ndarray, scor
                 continue
             rows.append((*(np.median(c[i0:i1]) for c in cols), i1 - i0))
         if len(rows) < 2:
-            raise ProcessingError(f"too few observed cells to calibrate the model to these data ({int(keep.sum())} "
-                                  "cells); use calibration='none' or a larger AOI")
+            raise ProcessingError(
+                f"too few observed cells to calibrate the model to these data ({int(keep.sum())} "
+                "cells); use calibration='none' or a larger AOI"
+            )
         R = np.asarray(rows, np.float64)
         R = R[(R[:, 0] > 0) & (R[:, 1] > 0)]
         w = np.sqrt(R[:, 4] / R[:, 4].mean())
@@ -444,16 +466,24 @@ def fit_pair_calibration(model: "SelfConsistencyModel", dtilde: np.ndarray, scor
         return np.array([sol.x[0], sol.x[1] if edge else 0.0]), len(R)
 
     law = model.reference_law if reference else {}
-    ref = {"ref_scale": float(law.get("scale", 1.0)),
-           "ref_edge_sigma_m": float(law.get("edge_sigma_m", 0.0)) if fit_edge else 0.0}
+    ref = {
+        "ref_scale": float(law.get("scale", 1.0)),
+        "ref_edge_sigma_m": float(law.get("edge_sigma_m", 0.0)) if fit_edge else 0.0,
+    }
     keep = np.ones(a.size, bool)
     x, nb = fit(keep)
     cal = PairCalibration(float(x[0]), float(x[1]), **ref)
     p = model.pvalue(cal.effective_dtilde(model, a, sc, g, mpu), sc)
     keep = p >= 0.01
     x, nb = fit(keep)
-    return PairCalibration(float(x[0]), float(x[1]), n_cells=int(keep.sum()), n_bins=int(nb),
-                           trimmed_fraction=float(1.0 - keep.mean()), **ref)
+    return PairCalibration(
+        float(x[0]),
+        float(x[1]),
+        n_cells=int(keep.sum()),
+        n_bins=int(nb),
+        trimmed_fraction=float(1.0 - keep.mean()),
+        **ref,
+    )
 
 
 def model_learned_on(model: "SelfConsistencyModel", recs: Sequence[PairDEMLike]) -> bool:
@@ -579,8 +609,10 @@ class SelfConsistencyModel:
         strongest region of most static comparisons gets 100 %.
         """
         if not self.has_region_test:
-            raise ConfigError("this self-consistency model has no region null distribution (saved by an older geocd); "
-                              "re-learn it with `geocd consistency`, or use the per-cell test (significance='cell')")
+            raise ConfigError(
+                "this self-consistency model has no region null distribution (saved by an older geocd); "
+                "re-learn it with `geocd consistency`, or use the per-cell test (significance='cell')"
+            )
         return null_region_confidence(self.region_null["masses"], mass)
 
     @property
@@ -600,8 +632,9 @@ class SelfConsistencyModel:
         """(raw, smoothed) per-bin thresholds for ``confidence`` percent."""
         if not (0.0 < confidence < 100.0):
             raise ConfigError(f"confidence must be in (0, 100) percent, got {confidence}")
-        raw = np.array([_quantile_from_hist(self.hist[b], DTILDE_EDGES, confidence / 100.0)
-                        for b in range(self.hist.shape[0])])
+        raw = np.array(
+            [_quantile_from_hist(self.hist[b], DTILDE_EDGES, confidence / 100.0) for b in range(self.hist.shape[0])]
+        )
         return raw, _isotonic(raw, self.bin_counts.astype(float))
 
     def add_confidence(self, confidence: float) -> None:
@@ -645,13 +678,22 @@ class SelfConsistencyModel:
     def from_dict(cls, d: dict) -> "SelfConsistencyModel":
         """The model of :meth:`to_dict`'s form, every field checked (a damaged model is a :class:`ConfigError`)."""
         if d.get("geocd_self_consistency_model") != 1:
-            raise ConfigError("not a geocd self-consistency model (missing 'geocd_self_consistency_model': 1); "
-                              "create one with `geocd consistency`")
+            raise ConfigError(
+                "not a geocd self-consistency model (missing 'geocd_self_consistency_model': 1); "
+                "create one with `geocd consistency`"
+            )
         f = _checked_model_fields(d)
         if not np.allclose(f["dtilde_edges"], DTILDE_EDGES):
             raise ConfigError("the model was saved with different |Δ̃| bins; re-learn it with this geocd version")
-        return cls(f["score_edges"], f["hist"], f["curves"], f["raw_curves"], f["provenance"], f["region_null"],
-                   f["reference_law"])
+        return cls(
+            f["score_edges"],
+            f["hist"],
+            f["curves"],
+            f["raw_curves"],
+            f["provenance"],
+            f["region_null"],
+            f["reference_law"],
+        )
 
     def save(self, path: os.PathLike | str) -> Path:
         from .io.atomic import write_text_atomic
@@ -664,15 +706,21 @@ class SelfConsistencyModel:
 
         p = Path(path)
         if not p.exists():
-            raise InputFileNotFoundError(f"self-consistency model {p} does not exist; create one with `geocd consistency`")
+            raise InputFileNotFoundError(
+                f"self-consistency model {p} does not exist; create one with `geocd consistency`"
+            )
         try:
             d = json.loads(p.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{p} is not a self-consistency model (not valid JSON text: {exc}); give the JSON "
-                              "written by `geocd consistency` or a run") from exc
+            raise ConfigError(
+                f"{p} is not a self-consistency model (not valid JSON text: {exc}); give the JSON "
+                "written by `geocd consistency` or a run"
+            ) from exc
         if not isinstance(d, dict):
-            raise ConfigError(f"{p} is not a self-consistency model (a JSON {type(d).__name__}); give the JSON "
-                              "written by `geocd consistency` or a run")
+            raise ConfigError(
+                f"{p} is not a self-consistency model (a JSON {type(d).__name__}); give the JSON "
+                "written by `geocd consistency` or a run"
+            )
         try:
             return cls.from_dict(d)
         except ConfigError as exc:
@@ -682,8 +730,12 @@ class SelfConsistencyModel:
         """pandas DataFrame: one row per score bin (edges, centre, count, raw and smoothed curves)."""
         import pandas as pd
 
-        d: dict[str, Any] = {"score_lo": self.score_edges[:-1], "score_hi": self.score_edges[1:],
-                             "score_centre": self.score_centres, "n_pairs": self.bin_counts}
+        d: dict[str, Any] = {
+            "score_lo": self.score_edges[:-1],
+            "score_hi": self.score_edges[1:],
+            "score_centre": self.score_centres,
+            "n_pairs": self.bin_counts,
+        }
         for k in sorted(self.curves, key=float):
             d[f"q{k}_raw"] = self.raw_curves.get(k, [np.nan] * len(self.score_centres))
             d[f"q{k}"] = self.curves[k]
@@ -710,8 +762,12 @@ def comparisons_within(recs: Sequence[PairDEMLike]) -> list[tuple[PairDEMLike, P
     return list(itertools.combinations(recs, 2))
 
 
-def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: ConsistencyParams = ConsistencyParams(),
-                           provenance: dict | None = None, progress: Progress | None = None) -> SelfConsistencyModel:
+def learn_self_consistency(
+    groups: Sequence[Sequence[PairDEMLike]],
+    params: ConsistencyParams = ConsistencyParams(),
+    provenance: dict | None = None,
+    progress: Progress | None = None,
+) -> SelfConsistencyModel:
     """Stage 1: learn the self-consistency distribution from static-scene reconstructions.
 
     Parameters
@@ -735,8 +791,11 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
     aligned_groups = []
     empty = [r.name for g in groups for r in g if not np.any(r.valid)]
     if empty:
-        warnings.warn(f"reconstructions with no valid cell left out of the self-consistency model: {', '.join(empty)}",
-                      UserWarning, stacklevel=2)
+        warnings.warn(
+            f"reconstructions with no valid cell left out of the self-consistency model: {', '.join(empty)}",
+            UserWarning,
+            stacklevel=2,
+        )
     for g in groups:
         g = sorted((r for r in g if np.any(r.valid)), key=lambda r: r.name)
         ag, off = align_reconstructions(g, mode=params.align)
@@ -769,7 +828,9 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
     prov.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
     prov.setdefault("comparisons", [f"{p.name} vs {q.name}" for p, q in comps])
     prov.setdefault("n_match_pairs", int(adt.size))
-    prov.setdefault("alignment", {"mode": params.align, "vertical_offsets_m": {k: round(v, 4) for k, v in offsets.items()}})
+    prov.setdefault(
+        "alignment", {"mode": params.align, "vertical_offsets_m": {k: round(v, 4) for k, v in offsets.items()}}
+    )
     from . import __version__
 
     prov.setdefault("geocd_version", __version__)
@@ -785,9 +846,13 @@ def learn_self_consistency(groups: Sequence[Sequence[PairDEMLike]], params: Cons
         pv = np.where(both, model.pvalue(dt, sc), 1.0)
         _, mass, _ = candidate_regions(pv, np.sign(np.nan_to_num(dt)).astype(np.int8), alpha0, mmu)
         masses.append(sorted(float(f"{v:.5g}") for v in mass))
-    model.region_null = {"cluster_confidence": float(params.cluster_confidence), "min_region_cells": int(mmu),
-                         "comparisons": [f"{p.name} vs {q.name}" for p, q in comps], "masses": masses,
-                         "n_regions": int(sum(len(v) for v in masses))}
+    model.region_null = {
+        "cluster_confidence": float(params.cluster_confidence),
+        "min_region_cells": int(mmu),
+        "comparisons": [f"{p.name} vs {q.name}" for p, q in comps],
+        "masses": masses,
+        "n_regions": int(sum(len(v) for v in masses)),
+    }
     model.reference_law = reference_law(model, comps)
     return model
 
@@ -810,17 +875,27 @@ def reference_law(model: "SelfConsistencyModel", comps: Sequence[tuple[PairDEMLi
     posting = getattr(getattr(comps[0][0], "grid", None), "posting_m", None) if comps else None
     arrays = [_comparison_arrays(p, q, posting) for p, q in comps]
     try:
-        cal = fit_pair_calibration(model, *(np.concatenate([a[k][a[3]] for a in arrays]) for k in (0, 1, 5, 4)),
-                                   fit_edge=bool(posting), reference=False)
+        cal = fit_pair_calibration(
+            model,
+            *(np.concatenate([a[k][a[3]] for a in arrays]) for k in (0, 1, 5, 4)),
+            fit_edge=bool(posting),
+            reference=False,
+        )
     except ProcessingError:
         return {}
-    return {"scale": round(cal.scale, 5), "edge_sigma_m": round(cal.edge_sigma_m, 5), "n_cells": cal.n_cells,
-            "slope": "min of the two surfaces' local |grad z|" if posting else "none (no grid posting)"}
+    return {
+        "scale": round(cal.scale, 5),
+        "edge_sigma_m": round(cal.edge_sigma_m, 5),
+        "n_cells": cal.n_cells,
+        "slope": "min of the two surfaces' local |grad z|" if posting else "none (no grid posting)",
+    }
 
 
 def _damaged(what: str) -> ConfigError:
-    return ConfigError(f"damaged self-consistency model: {what}; re-learn it with `geocd consistency` (or a "
-                       "`geocd run` that writes one)")
+    return ConfigError(
+        f"damaged self-consistency model: {what}; re-learn it with `geocd consistency` (or a "
+        "`geocd run` that writes one)"
+    )
 
 
 def _number_array(d: dict, key: str, ndim: int, *, allow_nan: bool = False) -> np.ndarray:
@@ -845,8 +920,9 @@ def _checked_model_fields(d: dict) -> dict:
     dtilde = _number_array(d, "dtilde_edges", 1)
     hist = _number_array(d, "hist", 2)
     if hist.shape != (score_edges.size - 1, dtilde.size - 1):
-        raise _damaged(f"'hist' has shape {hist.shape}, expected {(score_edges.size - 1, dtilde.size - 1)} "
-                       "(score bins × |Δ̃| bins)")
+        raise _damaged(
+            f"'hist' has shape {hist.shape}, expected {(score_edges.size - 1, dtilde.size - 1)} (score bins × |Δ̃| bins)"
+        )
     if (hist < 0).any() or (hist != np.round(hist)).any() or hist.max(initial=0) > 2**62:
         raise _damaged("'hist' must hold counts (whole numbers ≥ 0)")
     if hist.sum() == 0:
@@ -864,8 +940,9 @@ def _checked_model_fields(d: dict) -> dict:
                 raise _damaged(f"'{key}' has a key {str(k)[:20]!r} that is not a confidence in percent") from None
             if not 0.0 < conf < 100.0:
                 raise _damaged(f"'{key}' has a confidence {conf:g} outside (0, 100) percent")
-            arr = _number_array({k: [np.nan if x is None else x for x in c] if isinstance(c, list) else c}, k, 1,
-                                allow_nan=True)
+            arr = _number_array(
+                {k: [np.nan if x is None else x for x in c] if isinstance(c, list) else c}, k, 1, allow_nan=True
+            )
             if arr.size != hist.shape[0] or (arr[np.isfinite(arr)] < 0).any():
                 raise _damaged(f"'{key}[{k}]' must hold one threshold ≥ 0 per score bin ({hist.shape[0]})")
             curves[k] = list(c)
@@ -899,8 +976,9 @@ def _checked_model_fields(d: dict) -> dict:
             except (TypeError, ValueError):
                 raise _damaged(f"'reference_law.{key}' is not a number") from None
             if not np.isfinite(x) or x < 0 or (key == "scale" and x == 0):
-                raise _damaged(f"'reference_law.{key}' is {x:g}: a {'scale > 0' if key == 'scale' else 'σ ≥ 0'} "
-                               "is expected")
+                raise _damaged(
+                    f"'reference_law.{key}' is {x:g}: a {'scale > 0' if key == 'scale' else 'σ ≥ 0'} is expected"
+                )
     return out
 
 
@@ -929,8 +1007,9 @@ def cluster_evidence(pvalue: np.ndarray, alpha0: float) -> np.ndarray:
     return np.where(cand, np.log(alpha0 / np.maximum(np.where(cand, p, 1.0), 1e-300)), 0.0)
 
 
-def candidate_regions(pvalue: np.ndarray, sign: np.ndarray, alpha0: float,
-                      min_cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def candidate_regions(
+    pvalue: np.ndarray, sign: np.ndarray, alpha0: float, min_cells: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Candidate change regions and their combined evidence.
 
     8-connected groups of same-sign cells with p < ``alpha0``, of at least ``min_cells``
@@ -1160,10 +1239,15 @@ def combine_pvalues(pvalues: np.ndarray, signs: np.ndarray, sign: np.ndarray, co
     return np.where((nobs > 0) & (np.asarray(sign) != 0) & np.isfinite(out), out, 1.0)
 
 
-def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], model: SelfConsistencyModel,
-                params: ChangeParams = ChangeParams(), progress: Progress | None = None,
-                offsets: dict[str, float] | None = None,
-                calibration: PairCalibration | None = None) -> ChangeResult:
+def change_test(
+    epoch_a: Sequence[PairDEMLike],
+    epoch_b: Sequence[PairDEMLike],
+    model: SelfConsistencyModel,
+    params: ChangeParams = ChangeParams(),
+    progress: Progress | None = None,
+    offsets: dict[str, float] | None = None,
+    calibration: PairCalibration | None = None,
+) -> ChangeResult:
     """Stage 2: test every cross-epoch comparison against the static scene's disagreement.
 
     For each pair (p from epoch A, q from epoch B) and each cell valid in both, the
@@ -1195,8 +1279,12 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
         raise ProcessingError("the change test needs at least one reconstruction (pair-DEM or DEM) per epoch")
     significance = params.significance
     if significance == "region" and not model.has_region_test:
-        warnings.warn("the self-consistency model has no region null (saved by an older geocd): using the per-cell "
-                      "test; re-learn the model for the region test", UserWarning, stacklevel=2)
+        warnings.warn(
+            "the self-consistency model has no region null (saved by an older geocd): using the per-cell "
+            "test; re-learn the model for the region test",
+            UserWarning,
+            stacklevel=2,
+        )
         significance = "cell"
     epoch_a = sorted(epoch_a, key=lambda r: r.name)  # a deterministic order for the comparisons' names
     epoch_b = sorted(epoch_b, key=lambda r: r.name)
@@ -1223,8 +1311,9 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
     need_slope = calibration is not None or mode == "pair"
     per_comp = [_comparison_arrays(p, q, posting if need_slope else None) for p, q in comps]
     if calibration is None and mode == "pair":
-        calibration = fit_pair_calibration(model, *(np.concatenate([c[k][c[3]] for c in per_comp]) for k in (0, 1, 5, 4)),
-                                           fit_edge=bool(posting))
+        calibration = fit_pair_calibration(
+            model, *(np.concatenate([c[k][c[3]] for c in per_comp]) for k in (0, 1, 5, 4)), fit_edge=bool(posting)
+        )
     dz_stack = np.full((n, *shape), np.nan, np.float32)
     dt_stack = np.full((n, *shape), np.nan, np.float32)
     dte_stack = np.full((n, *shape), np.nan, np.float32)
@@ -1267,7 +1356,9 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
             votes = np.zeros(shape, np.int16)
             for k, (p, q) in enumerate(comps):
                 thr = model.threshold(_score_of(p, q), lev)
-                votes += (np.isfinite(dte_stack[k]) & (np.abs(dte_stack[k]) > thr) & (signs[k] == sign)).astype(np.int16)
+                votes += (np.isfinite(dte_stack[k]) & (np.abs(dte_stack[k]) > thr) & (signs[k] == sign)).astype(
+                    np.int16
+                )
             if params.combine == "majority":
                 hit = votes * 2 > nobs
             elif params.combine == "all":
@@ -1279,11 +1370,24 @@ def change_test(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], 
                 hit = _drop_small(hit, sign, mmu)
             conf = np.where(hit, np.float32(lev), conf)
     change = np.where(observed, np.where(np.nan_to_num(conf) >= levels[0], sign, 0), CHANGE_NODATA).astype(np.int8)
-    return ChangeResult(dz_med.astype(np.float32), dt_med.astype(np.float32), score, conf, change, nobs,
-                        grid=getattr(epoch_a[0], "grid", None), confidences=tuple(levels),
-                        comparisons=[f"{p.name} vs {q.name}" for p, q in comps], vertical_offsets_m=offsets,
-                        cell_confidence=cell_conf, dz_sigma_m=sig_med.astype(np.float32), min_region_cells=mmu,
-                        significance=significance, p_value=p_cell, calibration=calibration)
+    return ChangeResult(
+        dz_med.astype(np.float32),
+        dt_med.astype(np.float32),
+        score,
+        conf,
+        change,
+        nobs,
+        grid=getattr(epoch_a[0], "grid", None),
+        confidences=tuple(levels),
+        comparisons=[f"{p.name} vs {q.name}" for p, q in comps],
+        vertical_offsets_m=offsets,
+        cell_confidence=cell_conf,
+        dz_sigma_m=sig_med.astype(np.float32),
+        min_region_cells=mmu,
+        significance=significance,
+        p_value=p_cell,
+        calibration=calibration,
+    )
 
 
 def _score_of(p: PairDEMLike, q: PairDEMLike) -> np.ndarray:
@@ -1307,9 +1411,15 @@ def _drop_small(hit: np.ndarray, sign: np.ndarray, min_cells: int) -> np.ndarray
     return out
 
 
-def naive_threshold(epoch_a: Sequence[PairDEMLike], epoch_b: Sequence[PairDEMLike], threshold: float,
-                    units: str = "dtilde", combine: str = "majority", min_region_cells: int = 4,
-                    align: str = "vertical") -> np.ndarray:
+def naive_threshold(
+    epoch_a: Sequence[PairDEMLike],
+    epoch_b: Sequence[PairDEMLike],
+    threshold: float,
+    units: str = "dtilde",
+    combine: str = "majority",
+    min_region_cells: int = 4,
+    align: str = "vertical",
+) -> np.ndarray:
     """The baseline the SRI paper compares against (its Fig. 1 c, d): |Δ̃| (or |Δz|) > threshold.
 
     Comparisons are combined and small groups dropped exactly as in :func:`change_test`,

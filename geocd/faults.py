@@ -37,15 +37,33 @@ import threading
 from pathlib import Path
 from typing import Iterator
 
-from .errors import (DiskFullError, GeoCDError, InputFileNotFoundError, InternalError, OutputError, ResourceError,
-                     UnsupportedFormatError)
+from .errors import (
+    DiskFullError,
+    GeoCDError,
+    InputFileNotFoundError,
+    InternalError,
+    OutputError,
+    ResourceError,
+    UnsupportedFormatError,
+)
 
 #: errno values meaning "the bytes do not fit where they are written"
 DISK_ERRNOS = frozenset(e for e in (getattr(errno, n, None) for n in ("ENOSPC", "EDQUOT", "EFBIG")) if e is not None)
 #: phrases GDAL/OGR/SQLite use for failed writes (their exceptions carry no errno)
-_WRITE_FAILURE_PHRASES = ("no space left", "write error", "file too large", "disk i/o error",
-                          "database or disk is full", "disk full", "short write", "failed to write",
-                          "could not write", "cannot write", "writeblock", "write failed")
+_WRITE_FAILURE_PHRASES = (
+    "no space left",
+    "write error",
+    "file too large",
+    "disk i/o error",
+    "database or disk is full",
+    "disk full",
+    "short write",
+    "failed to write",
+    "could not write",
+    "cannot write",
+    "writeblock",
+    "write failed",
+)
 
 
 class Terminated(KeyboardInterrupt):
@@ -81,8 +99,11 @@ def signals_as_interrupts() -> Iterator[None]:
 
     def handler(signum, frame):  # noqa: ARG001
         if fired:  # clean-up after the first signal is under way: stop now
-            os.write(2, f"geocd: {signal_name(signum)} again: stopping now; the next run into the output folder "
-                        f"removes what is left\n".encode())
+            os.write(
+                2,
+                f"geocd: {signal_name(signum)} again: stopping now; the next run into the output folder "
+                f"removes what is left\n".encode(),
+            )
             os._exit(128 + signum)
         fired.append(signum)
         if signum == signal.SIGINT:
@@ -157,16 +178,20 @@ def disk_full_error(exc: BaseException, target: os.PathLike | str | None = None)
     if code == getattr(errno, "EFBIG", -1) or (code is None and "file too large" in text) or limited:
         return DiskFullError(
             f"file size limit reached{where} (a shell `ulimit -f`, a quota, or a FAT32 disk's 4 GB limit); raise "
-            "the limit or write to another folder (--out)")
+            "the limit or write to another folder (--out)"
+        )
     gdal = re.search(r"free disk space available is (\d+) bytes, whereas (\d+) are at least necessary", text)
     if gdal:  # GDAL's own check before writing a GeoTIFF: the file would not fit
-        return DiskFullError(f"not enough free disk space{where}: about {_fmt_mb(int(gdal[2]))} needed, "
-                             f"{_fmt_mb(int(gdal[1]))} free; free some space or choose an output folder on another "
-                             "disk (--out)")
+        return DiskFullError(
+            f"not enough free disk space{where}: about {_fmt_mb(int(gdal[2]))} needed, "
+            f"{_fmt_mb(int(gdal[1]))} free; free some space or choose an output folder on another "
+            "disk (--out)"
+        )
     if code is not None or (phrase and (free is None or free < 64 * 2**20)) or "no space left" in text:
         room = f" ({_fmt_mb(free)} free there)" if free is not None else ""
-        return DiskFullError(f"no space left on device{where}{room}; free some space or choose an output folder "
-                             "on another disk (--out)")
+        return DiskFullError(
+            f"no space left on device{where}{room}; free some space or choose an output folder on another disk (--out)"
+        )
     return None
 
 
@@ -184,8 +209,16 @@ def translate(exc: BaseException, *, target: os.PathLike | str | None = None) ->
 
 #: what libraries say when an allocation fails: GDAL's CPLE_OutOfMemory, the loader's failed mmap of a shared
 #: library (an import under ``ulimit -v``), C++'s bad_alloc, numpy's "Unable to allocate"
-_MEMORY_PHRASES = ("out of memory", "cannot allocate memory", "failed to map segment", "std::bad_alloc",
-                   "unable to allocate", "outofmemory", "memory allocation failed", "not enough memory")
+_MEMORY_PHRASES = (
+    "out of memory",
+    "cannot allocate memory",
+    "failed to map segment",
+    "std::bad_alloc",
+    "unable to allocate",
+    "outofmemory",
+    "memory allocation failed",
+    "not enough memory",
+)
 
 
 def out_of_memory(exc: BaseException) -> bool:
@@ -225,14 +258,16 @@ def _translate(exc: BaseException, target) -> GeoCDError:
         return ResourceError(
             f"out of memory{said}{'; ' + limits if limits else ''}; the job is too large for the memory it may use: "
             "use a coarser posting (--posting), a smaller AOI, fewer images, a tiled run (--tiled) or a machine "
-            "with more memory")
+            "with more memory"
+        )
     disk = disk_full_error(exc, target)
     if disk is not None and not isinstance(exc, (FileNotFoundError, UnicodeError)):
         return disk
     if isinstance(exc, UnicodeDecodeError):
         return UnsupportedFormatError(
             f"a file read as text is binary or not UTF-8 ({exc.reason} at byte {exc.start}); check that each "
-            "text input (manifest, model/config JSON, camera, list file) is the right file")
+            "text input (manifest, model/config JSON, camera, list file) is the right file"
+        )
     if isinstance(exc, UnicodeError):
         return UnsupportedFormatError(f"text encoding problem ({msg}); save text inputs as UTF-8")
     kind = _library_error_kind(exc)
@@ -250,23 +285,29 @@ def _translate(exc: BaseException, target) -> GeoCDError:
         if exc.errno == getattr(errno, "EROFS", -1):
             return OutputError(f"read-only file system:{at}; choose an output folder on a writable disk (--out)")
         if exc.errno in (errno.EACCES, errno.EPERM):
-            return OutputError(f"permission denied:{at}; choose a folder you can write to (--out) or fix the "
-                               "file's permissions")
+            return OutputError(
+                f"permission denied:{at}; choose a folder you can write to (--out) or fix the file's permissions"
+            )
         if exc.errno == getattr(errno, "ENAMETOOLONG", -1):
             return OutputError(f"file name too long:{at}; use a shorter --out or --prefix")
         if exc.errno == getattr(errno, "EIO", -1):
-            return OutputError(f"input/output error on{at or ' a file'} (a failing disk or network share); "
-                               "check the disk and retry")
+            return OutputError(
+                f"input/output error on{at or ' a file'} (a failing disk or network share); check the disk and retry"
+            )
         return OutputError(f"system error{at}: {exc.strerror or msg}; check the path and the disk")
     if kind is not None:
         return UnsupportedFormatError(
             f"{kind} could not read or write a file ({msg}); the file is truncated, corrupt or in an unsupported "
-            "format: check it (e.g. `geocd info FILE`) or re-export it")
+            "format: check it (e.g. `geocd info FILE`) or re-export it"
+        )
     if isinstance(exc, RecursionError):
-        return InternalError("internal error (recursion too deep); this is a bug in geocd: rerun with --debug and "
-                             "report the traceback")
-    return InternalError(f"internal error ({type(exc).__name__}: {msg}); this is a bug in geocd: rerun with --debug "
-                         "and report the traceback")
+        return InternalError(
+            "internal error (recursion too deep); this is a bug in geocd: rerun with --debug and report the traceback"
+        )
+    return InternalError(
+        f"internal error ({type(exc).__name__}: {msg}); this is a bug in geocd: rerun with --debug "
+        "and report the traceback"
+    )
 
 
 def _library_error_kind(exc: BaseException) -> str | None:
@@ -292,5 +333,14 @@ def one_line(exc: BaseException) -> str:
     return s or type(exc).__name__
 
 
-__all__ = ["Terminated", "signals_as_interrupts", "translate", "disk_full_error", "free_bytes", "one_line",
-           "exit_code_for_interrupt", "DISK_ERRNOS", "signal_name"]
+__all__ = [
+    "Terminated",
+    "signals_as_interrupts",
+    "translate",
+    "disk_full_error",
+    "free_bytes",
+    "one_line",
+    "exit_code_for_interrupt",
+    "DISK_ERRNOS",
+    "signal_name",
+]

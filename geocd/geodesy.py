@@ -47,7 +47,9 @@ def as_crs(crs: Any) -> CRS:
             return CRS.from_wkt(crs.to_wkt())
         return CRS.from_user_input(crs)
     except Exception as exc:  # pyproj raises its own CRSError
-        raise CRSError(f"cannot interpret {crs!r} as a CRS ({exc}); give an EPSG code like 'EPSG:32631' or WKT") from exc
+        raise CRSError(
+            f"cannot interpret {crs!r} as a CRS ({exc}); give an EPSG code like 'EPSG:32631' or WKT"
+        ) from exc
 
 
 def horizontal_crs(crs: Any) -> CRS:
@@ -130,8 +132,7 @@ class AOIGrid:
 
     # --- constructors -----------------------------------------------------------------
     @classmethod
-    def from_bounds(cls, left: float, bottom: float, right: float, top: float, posting_m: float,
-                    crs: Any) -> "AOIGrid":
+    def from_bounds(cls, left: float, bottom: float, right: float, top: float, posting_m: float, crs: Any) -> "AOIGrid":
         """Grid covering the bounds with square cells of ``posting_m``, snapped to multiples of it."""
         if not (posting_m > 0):
             raise GridError(f"posting must be positive, got {posting_m}")
@@ -230,14 +231,23 @@ class AOIGrid:
         from rasterio.crs import CRS as RioCRS
 
         return {
-            "driver": "GTiff", "width": self.width, "height": self.height, "count": count,
-            "dtype": dtype, "crs": RioCRS.from_wkt(self.crs.to_wkt()), "transform": self.transform,
+            "driver": "GTiff",
+            "width": self.width,
+            "height": self.height,
+            "count": count,
+            "dtype": dtype,
+            "crs": RioCRS.from_wkt(self.crs.to_wkt()),
+            "transform": self.transform,
             "nodata": nodata,
         }
 
     def to_dict(self) -> dict:
-        return {"crs": self.crs.to_string() if self.crs.to_epsg() else self.crs.to_wkt(),
-                "transform": list(self.transform)[:6], "width": self.width, "height": self.height}
+        return {
+            "crs": self.crs.to_string() if self.crs.to_epsg() else self.crs.to_wkt(),
+            "transform": list(self.transform)[:6],
+            "width": self.width,
+            "height": self.height,
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> "AOIGrid":
@@ -392,8 +402,16 @@ def normalize_datum_name(name: str | None) -> str | None:
     if name is None:
         return None
     n = str(name).strip().lower().replace(" ", "").replace("-", "")
-    aliases = {"ellipsoid": ELLIPSOID, "ellipsoidal": ELLIPSOID, "wgs84": ELLIPSOID, "hae": ELLIPSOID,
-               "egm96": EGM96, "egm1996": EGM96, "egm2008": EGM2008, "egm08": EGM2008}
+    aliases = {
+        "ellipsoid": ELLIPSOID,
+        "ellipsoidal": ELLIPSOID,
+        "wgs84": ELLIPSOID,
+        "hae": ELLIPSOID,
+        "egm96": EGM96,
+        "egm1996": EGM96,
+        "egm2008": EGM2008,
+        "egm08": EGM2008,
+    }
     return aliases.get(n, n)
 
 
@@ -467,7 +485,7 @@ def _bilinear_global(arr: np.ndarray, t: Affine, lon: np.ndarray, lat: np.ndarra
     v01 = arr[r0, c1m]
     v10 = arr[r0 + 1, c0m]
     v11 = arr[r0 + 1, c1m]
-    return (v00 * (1 - fc) * (1 - fr) + v01 * fc * (1 - fr) + v10 * (1 - fc) * fr + v11 * fc * fr)
+    return v00 * (1 - fc) * (1 - fr) + v01 * fc * (1 - fr) + v10 * (1 - fc) * fr + v11 * fc * fr
 
 
 def geoid_undulation(lon: Any, lat: Any, model: str, *, allow_substitute: bool = False) -> np.ndarray:
@@ -493,8 +511,11 @@ def geoid_undulation(lon: Any, lat: Any, model: str, *, allow_substitute: bool =
     if path is None and allow_substitute and m == EGM2008:
         path = find_geoid_grid(EGM96)
         if path is not None:
-            warnings.warn("EGM2008 geoid grid not found; using EGM96 instead (differences are usually < 1 m, "
-                          "up to a few metres in high mountains)", stacklevel=2)
+            warnings.warn(
+                "EGM2008 geoid grid not found; using EGM96 instead (differences are usually < 1 m, "
+                "up to a few metres in high mountains)",
+                stacklevel=2,
+            )
     if path is None:
         names = " or ".join(GEOID_GRID_FILES[m])
         raise VerticalDatumError(
@@ -502,7 +523,11 @@ def geoid_undulation(lon: Any, lat: Any, model: str, *, allow_substitute: bool =
             f"{[str(d) for d in geoid_search_dirs()]}; install Debian's proj-data package "
             "(apt-get install proj-data, which ships egm96_15.gtx), put the grid in a folder named by "
             "GEOCD_GEOID_DIR, or convert the DEM to ellipsoidal heights"
-            + ("; for EGM2008 you may also allow the EGM96 substitute (--allow-geoid-substitute)" if m == EGM2008 else "")
+            + (
+                "; for EGM2008 you may also allow the EGM96 substitute (--allow-geoid-substitute)"
+                if m == EGM2008
+                else ""
+            )
         )
     arr, t = _load_geoid(str(path))
     lon, lat = np.broadcast_arrays(np.asarray(lon, float), np.asarray(lat, float))

@@ -31,7 +31,7 @@ def camera_summary(cam, ground_h_m: float | None = None) -> dict[str, Any]:
     if getattr(cam, "source", ""):
         d["source"] = cam.source
     try:
-        fp = cam.footprint(h0, reference=True)   # numpy paths: a summary needs no compile
+        fp = cam.footprint(h0, reference=True)  # numpy paths: a summary needs no compile
         d["footprint_lonlat_wkt"] = fp.wkt
         c = fp.centroid
         d["centre_lonlat"] = [round(c.x, 7), round(c.y, 7)]
@@ -40,8 +40,10 @@ def camera_summary(cam, ground_h_m: float | None = None) -> dict[str, Any]:
         lon, lat = cam.localize_reference([cc[0], cc[0] + 1, cc[0]], [cc[1], cc[1], cc[1] + 1], [h0] * 3)
         f = LocalFrame(float(lon[0]), float(lat[0]), h0)
         e, n, _ = f.to_enu(lon, lat, [h0] * 3)
-        d["gsd_m"] = [round(float(np.hypot(e[1] - e[0], n[1] - n[0])), 4),
-                      round(float(np.hypot(e[2] - e[0], n[2] - n[0])), 4)]
+        d["gsd_m"] = [
+            round(float(np.hypot(e[1] - e[0], n[1] - n[0])), 4),
+            round(float(np.hypot(e[2] - e[0], n[2] - n[0])), 4),
+        ]
         # incidence: image motion per metre of height at the centre (px/m) ~ tan(off-nadir)/gsd
         dc, dr = cam.dproj_dh_reference(lon[:1], lat[:1], [h0])
         d["dproj_dh_px_per_m"] = [round(float(dc[0]), 5), round(float(dr[0]), 5)]
@@ -68,9 +70,16 @@ def raster_summary(path: Path) -> dict[str, Any]:
 
     ds = _open(path)
     with ds:
-        d: dict[str, Any] = {"type": "raster", "path": str(path), "driver": ds.driver, "width": ds.width,
-                             "height": ds.height, "bands": ds.count, "dtype": ds.dtypes[0],
-                             "nodata": ds.nodata}
+        d: dict[str, Any] = {
+            "type": "raster",
+            "path": str(path),
+            "driver": ds.driver,
+            "width": ds.width,
+            "height": ds.height,
+            "bands": ds.count,
+            "dtype": ds.dtypes[0],
+            "nodata": ds.nodata,
+        }
         if ds.crs:
             from .geodesy import as_crs
 
@@ -111,8 +120,15 @@ def vector_summary(path: Path) -> dict[str, Any]:
     out = []
     for name, geom in layers:
         info = pyogrio.read_info(path, layer=name)
-        out.append({"layer": name, "geometry": geom, "features": int(info["features"]),
-                    "crs": info.get("crs"), "fields": list(info["fields"])})
+        out.append(
+            {
+                "layer": name,
+                "geometry": geom,
+                "features": int(info["features"]),
+                "crs": info.get("crs"),
+                "fields": list(info["fields"]),
+            }
+        )
     return {"type": "vector", "path": str(path), "layers": out}
 
 
@@ -121,8 +137,14 @@ def manifest_summary(path: Path) -> dict[str, Any]:
     from .io.manifest import load_manifest
 
     m = load_manifest(path)
-    d: dict[str, Any] = {"type": "manifest", "path": str(m.path or path), "name": m.name,
-                         "scene_class": m.scene_class, "output": str(m.output_dir()), "epochs": []}
+    d: dict[str, Any] = {
+        "type": "manifest",
+        "path": str(m.path or path),
+        "name": m.name,
+        "scene_class": m.scene_class,
+        "output": str(m.output_dir()),
+        "epochs": [],
+    }
     if m.aoi is not None:
         d["aoi"] = {"crs": m.aoi.crs, "bounds": m.aoi.bounds, "posting_m": m.aoi.posting_m}
     if m.dem is not None:
@@ -134,12 +156,18 @@ def manifest_summary(path: Path) -> dict[str, Any]:
         from .io.raster import read_dem
 
         try:
-            ground = float(np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m))
+            ground = float(
+                np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m)
+            )
         except GeoCDError:
             ground = None
     for e in m.epochs:
-        ed: dict[str, Any] = {"name": e.name, "date": e.date.isoformat() if e.date else None,
-                              "sensor": e.sensor, "images": []}
+        ed: dict[str, Any] = {
+            "name": e.name,
+            "date": e.date.isoformat() if e.date else None,
+            "sensor": e.sensor,
+            "images": [],
+        }
         for im in e.images:
             cam = load_camera(im.path, im.camera)
             s = camera_summary(cam, ground)

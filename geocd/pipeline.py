@@ -27,8 +27,15 @@ from typing import Any, Sequence
 import numpy as np
 
 from .change.buildings import BuildingParams
-from .consistency import (ChangeParams, ConsistencyParams, DEMAsEpoch, SelfConsistencyModel, change_test,
-                          learn_self_consistency, nanmedian_stack)
+from .consistency import (
+    ChangeParams,
+    ConsistencyParams,
+    DEMAsEpoch,
+    SelfConsistencyModel,
+    change_test,
+    learn_self_consistency,
+    nanmedian_stack,
+)
 from .errors import ConfigError, GeoCDError
 from .progress import Progress, ensure_progress, sub_progress
 from .runlog import LoggedProgress, RunLog, log_file_name, logger
@@ -140,11 +147,15 @@ class RunConfig:
         try:
             d = yaml.safe_load(p.read_text(encoding="utf-8"))
         except Exception as exc:
-            raise ConfigError(f"cannot read the run configuration {p}: {' '.join(str(exc).split())[:200]}; give "
-                              "the run_config.json a run wrote") from exc
+            raise ConfigError(
+                f"cannot read the run configuration {p}: {' '.join(str(exc).split())[:200]}; give "
+                "the run_config.json a run wrote"
+            ) from exc
         if not isinstance(d, dict) or not d:
-            raise ConfigError(f"the run configuration {p} is {'empty' if not d else 'not a mapping of parameters'}; "
-                              "give the run_config.json a run wrote (or leave --config out for the defaults)")
+            raise ConfigError(
+                f"the run configuration {p} is {'empty' if not d else 'not a mapping of parameters'}; "
+                "give the run_config.json a run wrote (or leave --config out for the defaults)"
+            )
         return cls.from_dict(d)
 
 
@@ -160,8 +171,10 @@ def pick_epochs(manifest, epoch_a: str | None = None, epoch_b: str | None = None
     if a.name == b.name:
         raise ConfigError(f"epoch_a and epoch_b are both {a.name!r}; pick two different epochs")
     if a.date is not None and b.date is not None and a.date > b.date:
-        raise ConfigError(f"epoch_a {a.name!r} ({a.date}) is dated after epoch_b {b.name!r} ({b.date}): the change "
-                          "would be computed backwards; swap --epoch-a and --epoch-b, or fix the dates")
+        raise ConfigError(
+            f"epoch_a {a.name!r} ({a.date}) is dated after epoch_b {b.name!r} ({b.date}): the change "
+            "would be computed backwards; swap --epoch-a and --epoch-b, or fix the dates"
+        )
     return a, b
 
 
@@ -176,14 +189,21 @@ def _median_surface(recs: Sequence[Any]) -> np.ndarray:
     return nanmedian_stack(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs])).astype(np.float32)
 
 
-def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confidence: float, name_a: str,
-                     name_b: str, params=None):
+def _building_damage(
+    footprints, res, grid, recs_a, recs_b, model, report_confidence: float, name_a: str, name_b: str, params=None
+):
     """Damage layer: footprints when given, else building objects of epoch A's DSM plus the parts of epoch B's
     objects that stand where A's surface was ground (new buildings, :func:`~geocd.change.dsm_buildings.new_objects`)."""
     import pandas as pd
 
-    from .change.dsm_buildings import (DSMBuildingParams, buildings_from_dsm, classify_damage, fill_gaps, ground_model,
-                                       new_objects)
+    from .change.dsm_buildings import (
+        DSMBuildingParams,
+        buildings_from_dsm,
+        classify_damage,
+        fill_gaps,
+        ground_model,
+        new_objects,
+    )
 
     params = params or DSMBuildingParams()
     z_a, z_b = _median_surface(recs_a), _median_surface(recs_b)
@@ -205,8 +225,18 @@ def _building_damage(footprints, res, grid, recs_a, recs_b, model, report_confid
     if not len(bld):
         return None, None
     dtm = fill_gaps(dtm)
-    dmg = classify_damage(bld, res, grid, z_a=z_a, z_b=z_b, dtm=dtm, model=model, params=params,
-                          report_confidence=report_confidence, id_field="building_id" if "building_id" in bld else None)
+    dmg = classify_damage(
+        bld,
+        res,
+        grid,
+        z_a=z_a,
+        z_b=z_b,
+        dtm=dtm,
+        model=model,
+        params=params,
+        report_confidence=report_confidence,
+        id_field="building_id" if "building_id" in bld else None,
+    )
     return dmg, dtm
 
 
@@ -223,8 +253,13 @@ def mark_not_examined(buildings, grid, examined: np.ndarray | None):
 
     g = buildings.to_crs(grid.crs).geometry
     n = len(g)
-    labels = rasterize([(geom, i + 1) for i, geom in enumerate(g)], out_shape=grid.shape, transform=grid.transform,
-                       fill=0, dtype="int32")
+    labels = rasterize(
+        [(geom, i + 1) for i, geom in enumerate(g)],
+        out_shape=grid.shape,
+        transform=grid.transform,
+        fill=0,
+        dtype="int32",
+    )
     idx = np.arange(1, n + 1)
     cells = np.asarray(ndi.sum(np.ones(grid.shape), labels, idx))
     # a footprint with no cell on the grid was not for the 3-D stage to examine: it stays as it is
@@ -235,8 +270,9 @@ def mark_not_examined(buildings, grid, examined: np.ndarray | None):
     if hit.any():
         out.loc[hit, "class"] = "not examined"
         if "rule" in out:
-            out.loc[hit, "rule"] = [f"not examined: {100 * (1 - f):.0f}% of its cells in tiles the screen did not flag"
-                                    for f in frac[hit]]
+            out.loc[hit, "rule"] = [
+                f"not examined: {100 * (1 - f):.0f}% of its cells in tiles the screen did not flag" for f in frac[hit]
+            ]
     return out
 
 
@@ -276,9 +312,15 @@ def orientation_summary(report: dict) -> dict:
     return out
 
 
-def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig = RunConfig(),
-        progress: Progress | None = None, footprints: os.PathLike | str | None = None,
-        log_file: bool = True) -> dict[str, Any]:
+def run(
+    manifest,
+    *,
+    out_dir: os.PathLike | str | None = None,
+    config: RunConfig = RunConfig(),
+    progress: Progress | None = None,
+    footprints: os.PathLike | str | None = None,
+    log_file: bool = True,
+) -> dict[str, Any]:
     """Run the whole self-consistency change detection on a manifest.
 
     Progress goes to ``progress`` and to the standard :mod:`logging` module: INFO lines on the logger
@@ -310,13 +352,23 @@ def run(manifest, *, out_dir: os.PathLike | str | None = None, config: RunConfig
     out = Path(out_dir) if out_dir is not None else m.output_dir()
     runlog = None
     if log_file:
-        runlog = RunLog("run", {"manifest": str(getattr(m, "path", None) or manifest), "out_dir": str(out),
-                                "footprints": footprints, "config": config.to_dict()})
+        runlog = RunLog(
+            "run",
+            {
+                "manifest": str(getattr(m, "path", None) or manifest),
+                "out_dir": str(out),
+                "footprints": footprints,
+                "config": config.to_dict(),
+            },
+        )
         try:
             runlog.open(out)
         except OSError as exc:
-            warnings.warn(f"cannot write the log file {out / log_file_name('run')} ({exc.strerror or exc})",
-                          UserWarning, stacklevel=2)
+            warnings.warn(
+                f"cannot write the log file {out / log_file_name('run')} ({exc.strerror or exc})",
+                UserWarning,
+                stacklevel=2,
+            )
             runlog = None
     t0 = time.monotonic()
     prog = LoggedProgress("run", progress, runlog)
@@ -362,44 +414,77 @@ def _run(m, out: Path, config: RunConfig, prog: Progress, footprints) -> dict[st
         if len(e.images) < 2 and e.dem is None:
             raise ConfigError(
                 f"epoch {e.name!r} has {len(e.images)} image(s) and no DEM: a stereo pair needs two images. Add an "
-                "image, or give a DEM standing for this epoch (epochs[].dem)")
+                "image, or give a DEM standing for this epoch (epochs[].dem)"
+            )
     stereo_epochs = [e.name for e in m.epochs if len(e.images) >= 2]
+    from .orientation import orient_manifest
+    from .stereo.pipeline import early_resource_check, load_epoch_images
+
+    for e in m.epochs:  # the images' cameras first: a damaged camera file is the first thing said
+        load_epoch_images(m, e)
     if model is None and not any(len(e.images) >= 3 for e in m.epochs):
         # learning the model needs two pair-DEMs of one epoch: three views; say so before hours of stereo
         raise ConfigError(
             "no epoch has three or more images (two or more stereo pairs), so the self-consistency distribution "
             "cannot be learned from this scene; pass a scene-class model learned on a scene of the same class "
             "(--model MODEL.json, made with `geocd consistency`; examples/kahramanmaras/marseille_urban_model.json "
-            "is one for urban Pléiades scenes), or add a third image to an epoch")
-    from .orientation import orient_manifest
-    from .stereo.pipeline import early_resource_check
+            "is one for urban Pléiades scenes), or add a third image to an epoch"
+        )
 
     early_resource_check(m, None, config.posting_m, out)  # a job too large for the machine stops before any step
 
     prog(0.0, "relative orientation")
-    m, orientation = orient_manifest(m, out_dir=out, stereo_params=config.stereo,
-                                     progress=sub_progress(prog, 0.0, 0.1, "orientation: "))
+    m, orientation = orient_manifest(
+        m, out_dir=out, stereo_params=config.stereo, progress=sub_progress(prog, 0.0, 0.1, "orientation: ")
+    )
     if orientation is None:
         _check_epochs_overlap(m)
     prog(0.1, "stereo")
     if config.screen is not None:  # tiered: the 2-D screen, then stereo on the flagged tiles only
         from .screen.tiered import run_stereo_screened
 
-        st = run_stereo_screened(m, out=out, stereo_params=config.stereo, screen_params=config.screen,
-                                 epochs=stereo_epochs, pairs=config.pairs, posting_m=config.posting_m,
-                                 epoch_a=ea.name, epoch_b=eb.name, tile_cells=config.screen_tile_cells,
-                                 progress=sub_progress(prog, 0.1, 0.75, "screen + stereo: "))
+        st = run_stereo_screened(
+            m,
+            out=out,
+            stereo_params=config.stereo,
+            screen_params=config.screen,
+            epochs=stereo_epochs,
+            pairs=config.pairs,
+            posting_m=config.posting_m,
+            epoch_a=ea.name,
+            epoch_b=eb.name,
+            tile_cells=config.screen_tile_cells,
+            progress=sub_progress(prog, 0.1, 0.75, "screen + stereo: "),
+        )
     else:
-        st = run_stereo(m, epochs=stereo_epochs, out_dir=out, params=config.stereo, posting_m=config.posting_m,
-                        keep_arrays=True, pairs=config.pairs, orient=False,
-                        progress=sub_progress(prog, 0.1, 0.75, "stereo: "))
+        st = run_stereo(
+            m,
+            epochs=stereo_epochs,
+            out_dir=out,
+            params=config.stereo,
+            posting_m=config.posting_m,
+            keep_arrays=True,
+            pairs=config.pairs,
+            orient=False,
+            progress=sub_progress(prog, 0.1, 0.75, "stereo: "),
+        )
     by_epoch: dict[str, list] = {}
     for key, pdem in st["pairs"].items():
         by_epoch.setdefault(pdem.epoch or key.split("/")[0], []).append(pdem)
-    res = run_change(m, by_epoch, st["grid"], out_dir=out, config=config, model=model,
-                     progress=sub_progress(prog, 0.75, 1.0), footprints=footprints,
-                     stereo_outputs=st["outputs"], orientation=orientation, examined=st.get("examined"),
-                     calibration_cells=st.get("calibration_cells"))
+    res = run_change(
+        m,
+        by_epoch,
+        st["grid"],
+        out_dir=out,
+        config=config,
+        model=model,
+        progress=sub_progress(prog, 0.75, 1.0),
+        footprints=footprints,
+        stereo_outputs=st["outputs"],
+        orientation=orientation,
+        examined=st.get("examined"),
+        calibration_cells=st.get("calibration_cells"),
+    )
     if "screen" in st:
         from .io.atomic import write_text_atomic
 
@@ -410,11 +495,21 @@ def _run(m, out: Path, config: RunConfig, prog: Progress, footprints) -> dict[st
     return res
 
 
-def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLike | str,
-               config: RunConfig = RunConfig(), model: SelfConsistencyModel | None = None,
-               progress: Progress | None = None, footprints: os.PathLike | str | None = None,
-               stereo_outputs: dict | None = None, orientation: dict | None = None,
-               examined: np.ndarray | None = None, calibration_cells: np.ndarray | None = None) -> dict[str, Any]:
+def run_change(
+    manifest,
+    by_epoch: dict[str, list],
+    grid,
+    *,
+    out_dir: os.PathLike | str,
+    config: RunConfig = RunConfig(),
+    model: SelfConsistencyModel | None = None,
+    progress: Progress | None = None,
+    footprints: os.PathLike | str | None = None,
+    stereo_outputs: dict | None = None,
+    orientation: dict | None = None,
+    examined: np.ndarray | None = None,
+    calibration_cells: np.ndarray | None = None,
+) -> dict[str, Any]:
     """Everything of :func:`run` after the stereo: baseline, change test, buildings, products.
 
     Parameters
@@ -452,38 +547,62 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
             raise ConfigError(
                 "no epoch has two or more image pairs, so the self-consistency distribution cannot be learned here; "
                 "pass a scene-class model learned on another scene of the same class (--model MODEL.json, made with "
-                "`geocd consistency`)")
+                "`geocd consistency`)"
+            )
         prog(0.05, "learning the self-consistency distribution")
-        prov = {"scene": m.name, "scene_class": m.scene_class,
-                "epochs": {e: [p.name for p in g] for e, g in by_epoch.items() if len(g) >= 2},
-                "dates": {e.name: e.date.isoformat() if e.date else None for e in m.epochs},
-                "sensors": {e.name: e.sensor for e in m.epochs}, "gsd_m": grid.posting_m,
-                "score": config.stereo.score}
-        model = learn_self_consistency(groups, config.consistency, provenance=prov,
-                                       progress=sub_progress(prog, 0.05, 0.3))
+        prov = {
+            "scene": m.name,
+            "scene_class": m.scene_class,
+            "epochs": {e: [p.name for p in g] for e, g in by_epoch.items() if len(g) >= 2},
+            "dates": {e.name: e.date.isoformat() if e.date else None for e in m.epochs},
+            "sensors": {e.name: e.sensor for e in m.epochs},
+            "gsd_m": grid.posting_m,
+            "score": config.stereo.score,
+        }
+        model = learn_self_consistency(
+            groups, config.consistency, provenance=prov, progress=sub_progress(prog, 0.05, 0.3)
+        )
     model_path = model.save(out / "self_consistency_model.json")
     prog(0.3, "cross-epoch change test")
     change_params = config.change
     if config.region_confidence not in change_params.confidences:  # the reported level is always tested
-        change_params = dataclasses.replace(change_params,
-                                            confidences=tuple(sorted({*change_params.confidences, config.region_confidence})))
+        change_params = dataclasses.replace(
+            change_params, confidences=tuple(sorted({*change_params.confidences, config.region_confidence}))
+        )
     cal = offsets = None
     if calibration_cells is not None:
         from .screen.tiered import fit_calibration_on
 
         cal, offsets = fit_calibration_on(recs_a, recs_b, model, change_params, calibration_cells)
-    res = change_test(recs_a, recs_b, model, change_params, progress=sub_progress(prog, 0.3, 0.7),
-                      offsets=offsets if cal is not None else None, calibration=cal)
+    res = change_test(
+        recs_a,
+        recs_b,
+        model,
+        change_params,
+        progress=sub_progress(prog, 0.3, 0.7),
+        offsets=offsets if cal is not None else None,
+        calibration=cal,
+    )
     buildings = None
     fp_path = footprints or (m.footprints.path if m.footprints is not None else None)
     if fp_path is not None:
-        fps = read_footprints(fp_path, crs=grid.crs, layer=m.footprints.layer if (m.footprints and not footprints) else None)
+        fps = read_footprints(
+            fp_path, crs=grid.crs, layer=m.footprints.layer if (m.footprints and not footprints) else None
+        )
         id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
-        buildings = classify_buildings(fps, res.changed_at(config.region_confidence), res.dz_m, grid,
-                                       z_a=_median_surface(recs_a), z_b=_median_surface(recs_b),
-                                       confidence=res.confidence, params=config.buildings, id_field=id_field,
-                                       confidence_level=config.region_confidence,
-                                       min_part_cells=res.min_region_cells)
+        buildings = classify_buildings(
+            fps,
+            res.changed_at(config.region_confidence),
+            res.dz_m,
+            grid,
+            z_a=_median_surface(recs_a),
+            z_b=_median_surface(recs_b),
+            confidence=res.confidence,
+            params=config.buildings,
+            id_field=id_field,
+            confidence_level=config.region_confidence,
+            min_part_cells=res.min_region_cells,
+        )
         buildings = mark_not_examined(buildings, grid, examined)
     damage = ground_path = None
     extra, extra_styles = {}, {}
@@ -491,27 +610,54 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
         prog(0.7, "building damage")
         from .change.dsm_buildings import DSMBuildingParams
 
-        damage, ground = _building_damage(fps if fp_path is not None else None, res, grid, recs_a, recs_b, model,
-                                          config.region_confidence, ea.name, eb.name,
-                                          DSMBuildingParams(changed_part=config.buildings.changed_part))
+        damage, ground = _building_damage(
+            fps if fp_path is not None else None,
+            res,
+            grid,
+            recs_a,
+            recs_b,
+            model,
+            config.region_confidence,
+            ea.name,
+            eb.name,
+            DSMBuildingParams(changed_part=config.buildings.changed_part),
+        )
         damage = mark_not_examined(damage, grid, examined)
         if ground is not None:
             from .io.raster import write_cog
 
-            ground_path = write_cog(out / "sc_ground_model.tif", {"ground_m": ground.astype(np.float32)}, grid,
-                                    tags={"method": f"progressive morphological filter of the {ea.name} DSM",
-                                          "vertical_datum": "ellipsoid"})
+            ground_path = write_cog(
+                out / "sc_ground_model.tif",
+                {"ground_m": ground.astype(np.float32)},
+                grid,
+                tags={
+                    "method": f"progressive morphological filter of the {ea.name} DSM",
+                    "vertical_datum": "ellipsoid",
+                },
+            )
         if damage is not None:
             from .change.dsm_buildings import damage_qml
 
             extra["building_damage"] = damage
             extra_styles["building_damage"] = damage_qml()
     prog(0.8, "writing products")
-    paths = write_change_products(out, res, grid, method="self-consistency", epoch_a=ea.name, epoch_b=eb.name,
-                                  region_confidence=config.region_confidence, model=model, buildings=buildings,
-                                  extra_layers=extra or None, extra_styles=extra_styles or None,
-                                  provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
-                                  prefix="sc", backdrop_m=_median_surface(recs_b), examined=examined)
+    paths = write_change_products(
+        out,
+        res,
+        grid,
+        method="self-consistency",
+        epoch_a=ea.name,
+        epoch_b=eb.name,
+        region_confidence=config.region_confidence,
+        model=model,
+        buildings=buildings,
+        extra_layers=extra or None,
+        extra_styles=extra_styles or None,
+        provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
+        prefix="sc",
+        backdrop_m=_median_surface(recs_b),
+        examined=examined,
+    )
     paths["model"] = model_path
     if ground_path is not None:
         paths["ground_model"] = ground_path
@@ -519,17 +665,26 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
     cfg_path = write_text_atomic(out / "run_config.json", json.dumps(config.to_dict(), indent=2, default=list))
     observed = res.observed
     summary = {
-        "geocd_run": 1, "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "manifest": str(m.path or m.root), "epoch_a": ea.name, "epoch_b": eb.name,
-        "grid": grid.to_dict(), "pairs": {e: [p.name for p in g] for e, g in by_epoch.items()},
+        "geocd_run": 1,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "manifest": str(m.path or m.root),
+        "epoch_a": ea.name,
+        "epoch_b": eb.name,
+        "grid": grid.to_dict(),
+        "pairs": {e: [p.name for p in g] for e, g in by_epoch.items()},
         "completeness": {p.name: round(p.completeness, 4) for g in by_epoch.values() for p in g},
         "observed_fraction": round(float(observed.mean()), 4),
         **({"examined_fraction": round(float(np.mean(examined)), 4)} if examined is not None else {}),
-        "changed_fraction": {f"{c:g}": round(float((res.changed_at(c) != 0)[observed].mean()), 5) for c in res.confidences},
-        "model": {"bins": len(model.score_centres), "match_pairs": int(model.bin_counts.sum()),
-                  "learned_here": config.model_path is None,
-                  "calibration": res.calibration.to_dict() if res.calibration is not None else "none",
-                  **({"calibration_fitted_on": "examined cells the screen calls unchanged"} if cal is not None else {})},
+        "changed_fraction": {
+            f"{c:g}": round(float((res.changed_at(c) != 0)[observed].mean()), 5) for c in res.confidences
+        },
+        "model": {
+            "bins": len(model.score_centres),
+            "match_pairs": int(model.bin_counts.sum()),
+            "learned_here": config.model_path is None,
+            "calibration": res.calibration.to_dict() if res.calibration is not None else "none",
+            **({"calibration_fitted_on": "examined cells the screen calls unchanged"} if cal is not None else {}),
+        },
         "outputs": {k: str(v) for k, v in paths.items()},
     }
     if buildings is not None:
@@ -540,11 +695,18 @@ def run_change(manifest, by_epoch: dict[str, list], grid, *, out_dir: os.PathLik
         summary["building_damage"] = {
             "source": "footprints" if fp_path is not None else f"{ea.name} DSM (+ new objects of {eb.name})",
             "classes": damage["class"].value_counts().to_dict(),
-            "volume_lost_m3": round(float(np.nansum(damage["volume_lost_m3"])), 1)}
+            "volume_lost_m3": round(float(np.nansum(damage["volume_lost_m3"])), 1),
+        }
     write_text_atomic(out / "run_summary.json", json.dumps(summary, indent=2, default=str))
     paths["config"] = cfg_path
     paths["summary"] = out / "run_summary.json"
     prog(1.0, "done")
-    return {"outputs": paths, "summary": summary, "result": res, "model": model, "grid": grid,
-            "pairs": by_epoch, "buildings": buildings}
-
+    return {
+        "outputs": paths,
+        "summary": summary,
+        "result": res,
+        "model": model,
+        "grid": grid,
+        "pairs": by_epoch,
+        "buildings": buildings,
+    }

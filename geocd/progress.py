@@ -77,8 +77,13 @@ class TqdmProgress:
     def __init__(self, desc: str = "", disable: bool = False):
         from tqdm import tqdm
 
-        self.bar = tqdm(total=1000, desc=desc, disable=disable, leave=False,
-                        bar_format="{desc}{percentage:3.0f}%|{bar}| {elapsed}<{remaining} {postfix}")
+        self.bar = tqdm(
+            total=1000,
+            desc=desc,
+            disable=disable,
+            leave=False,
+            bar_format="{desc}{percentage:3.0f}%|{bar}| {elapsed}<{remaining} {postfix}",
+        )
         self._n = 0
 
     def __call__(self, fraction: Optional[float], message: str = "") -> None:

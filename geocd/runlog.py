@@ -167,8 +167,11 @@ class LoggedProgress:
         now_t = time.monotonic()
         phase = message.split(":", 1)[0].strip()
         step = self._last_step if fraction is None else int(min(max(fraction, 0.0), 1.0) / self.STEP + 1e-9)
-        if (step > self._last_step or (phase and phase != self._last_phase)
-                or now_t - self._last_t >= self.MAX_SILENCE_S):
+        if (
+            step > self._last_step
+            or (phase and phase != self._last_phase)
+            or now_t - self._last_t >= self.MAX_SILENCE_S
+        ):
             self._last_step = max(step, self._last_step)
             self._last_phase = phase or self._last_phase
             self._last_t = now_t

@@ -26,7 +26,9 @@ def shared_data(*parts: str) -> Path:
     """Path under ../shared/data; skips the test when it is missing."""
     p = SHARED_DATA.joinpath(*parts)
     if not p.exists():
-        pytest.skip(f"real data not available: {p} is absent (set GEOCD_SHARED_DATA or place ../shared beside the repo)")
+        pytest.skip(
+            f"real data not available: {p} is absent (set GEOCD_SHARED_DATA or place ../shared beside the repo)"
+        )
     return p
 
 

@@ -16,8 +16,16 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 #: what the pair-DEMs depend on
-_INPUTS = ("geocd/stereo", "geocd/camera", "geocd/io", "geocd/geodesy.py", "geocd/pipeline.py",  # RunConfig's stereo
-           "sample_aoi/scene.yaml", "sample_aoi/images", "sample_aoi/truth/dem_prior.tif")
+_INPUTS = (
+    "geocd/stereo",
+    "geocd/camera",
+    "geocd/io",
+    "geocd/geodesy.py",
+    "geocd/pipeline.py",  # RunConfig's stereo
+    "sample_aoi/scene.yaml",
+    "sample_aoi/images",
+    "sample_aoi/truth/dem_prior.tif",
+)
 
 
 def cache_key() -> str:
@@ -49,8 +57,14 @@ def sample_aoi_pairs(cache_root: Path):
                 tmp = Path(cache_root) / f".tmp-{os.getpid()}"
                 shutil.rmtree(tmp, ignore_errors=True)
                 cfg = RunConfig()
-                run_stereo(m, epochs=[e.name for e in m.epochs], out_dir=tmp, params=cfg.stereo,
-                           posting_m=cfg.posting_m, pairs=cfg.pairs)
+                run_stereo(
+                    m,
+                    epochs=[e.name for e in m.epochs],
+                    out_dir=tmp,
+                    params=cfg.stereo,
+                    posting_m=cfg.posting_m,
+                    pairs=cfg.pairs,
+                )
                 (tmp / "done").write_text("ok")
                 shutil.rmtree(key_dir, ignore_errors=True)
                 os.replace(tmp, key_dir)

@@ -17,12 +17,17 @@ REPO = Path(__file__).resolve().parents[1]
 def test_info_compiles_no_kernel(tmp_path):
     cache = tmp_path / "numba_cache"
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-    for image in ("A_sat1.tif", "A_air1.tif"):          # an RPC and a frame camera
-        p = subprocess.run([sys.executable, "-m", "geocd", "info", str(REPO / "sample_aoi" / "images" / image)],
-                           capture_output=True, text=True, env=env, timeout=300)
+    for image in ("A_sat1.tif", "A_air1.tif"):  # an RPC and a frame camera
+        p = subprocess.run(
+            [sys.executable, "-m", "geocd", "info", str(REPO / "sample_aoi" / "images" / image)],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+        )
         assert p.returncode == 0, p.stderr
         assert "footprint:" in p.stdout and "compiling" not in p.stderr
-    assert not list(cache.rglob("*.nbi"))              # nothing was compiled (was: minutes of CPU)
+    assert not list(cache.rglob("*.nbi"))  # nothing was compiled (was: minutes of CPU)
 
 
 def test_info_footprint_equals_the_kernel_footprint():
@@ -45,7 +50,7 @@ def test_compile_notice_is_said_once():
 
     buf = io.StringIO()
     fresh = not _jit._state["installed"]
-    if fresh:                    # else an earlier CLI test of this session installed it (on its stderr)
+    if fresh:  # else an earlier CLI test of this session installed it (on its stderr)
         _jit.install_compile_notice(stream=buf)
     n0, s0 = _jit._state["kernels"], _jit.compile_seconds()
 

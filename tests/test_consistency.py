@@ -3,8 +3,17 @@
 import numpy as np
 import pytest
 
-from geocd.consistency import (CHANGE_NODATA, ChangeParams, ConsistencyParams, DEMAsEpoch, SelfConsistencyModel,
-                               change_test, learn_self_consistency, match_pairs, naive_threshold)
+from geocd.consistency import (
+    CHANGE_NODATA,
+    ChangeParams,
+    ConsistencyParams,
+    DEMAsEpoch,
+    SelfConsistencyModel,
+    change_test,
+    learn_self_consistency,
+    match_pairs,
+    naive_threshold,
+)
 from geocd.errors import ConfigError, GridError, ProcessingError
 
 from .fakes import Rec
@@ -155,10 +164,28 @@ def test_results_do_not_depend_on_the_order_of_the_reconstructions(scene):
     A, B, _ = scene
     rng = np.random.default_rng(11)
     # different biases and coverage per reconstruction, so the choice of a reference would matter
-    A = [Rec(r.z_m + np.float32(rng.normal(scale=0.5)), r.score, r.g_px_per_m, r.valid & (rng.random(SHAPE) > 0.2),
-             None, r.name) for r in A]
-    B = [Rec(r.z_m + np.float32(rng.normal(scale=0.5)), r.score, r.g_px_per_m, r.valid & (rng.random(SHAPE) > 0.2),
-             None, r.name) for r in B]
+    A = [
+        Rec(
+            r.z_m + np.float32(rng.normal(scale=0.5)),
+            r.score,
+            r.g_px_per_m,
+            r.valid & (rng.random(SHAPE) > 0.2),
+            None,
+            r.name,
+        )
+        for r in A
+    ]
+    B = [
+        Rec(
+            r.z_m + np.float32(rng.normal(scale=0.5)),
+            r.score,
+            r.g_px_per_m,
+            r.valid & (rng.random(SHAPE) > 0.2),
+            None,
+            r.name,
+        )
+        for r in B
+    ]
     model = learn_self_consistency([A, B])
     assert model.hist.tolist() == learn_self_consistency([A[::-1], B[::-1]]).hist.tolist()
     ref = change_test(A, B, model)
@@ -215,9 +242,9 @@ def test_candidate_regions_and_their_evidence():
     from geocd.consistency import candidate_regions
 
     p = np.ones((8, 8))
-    p[1:3, 1:3] = 0.001      # 4 strong cells
-    p[5:7, 5:8] = 0.04       # 6 weak cells
-    p[0, 7] = 1e-6           # a single extreme cell
+    p[1:3, 1:3] = 0.001  # 4 strong cells
+    p[5:7, 5:8] = 0.04  # 6 weak cells
+    p[0, 7] = 1e-6  # a single extreme cell
     sign = np.ones((8, 8), np.int8)
     lab, mass, sg = candidate_regions(p, sign, 0.05, 4)
     assert lab.max() == 2 and sorted(np.bincount(lab.ravel())[1:]) == [4, 6]
@@ -236,12 +263,23 @@ def test_region_test_and_mapping_unit(scene):
     inner[22:48, 22:48] = True
     assert np.mean(res.changed_at(99)[inner & res.observed] == 1) > 0.9
     assert np.mean(res.changed_at(99)[static] != 0) < 0.005
-    assert np.all(np.isfinite(res.cell_confidence[res.observed])) and np.all(np.isnan(res.cell_confidence[~res.observed]))
+    assert np.all(np.isfinite(res.cell_confidence[res.observed])) and np.all(
+        np.isnan(res.cell_confidence[~res.observed])
+    )
     # σ of dz from the error model: the synthetic errors are 0.1-1 px at g = 1 px/m, two reconstructions
     assert 0.1 < float(np.nanmedian(res.dz_sigma_m)) < 1.2
     # a 3 x 3 change (9 cells) is below the mapping unit: never reported
-    B2 = [Rec(r.z_m + np.where(np.pad(np.ones((3, 3)), ((100, 17), (100, 17))) > 0, 9.0, 0.0).astype(np.float32),
-              r.score, r.g_px_per_m, r.valid, None, r.name) for r in B]
+    B2 = [
+        Rec(
+            r.z_m + np.where(np.pad(np.ones((3, 3)), ((100, 17), (100, 17))) > 0, 9.0, 0.0).astype(np.float32),
+            r.score,
+            r.g_px_per_m,
+            r.valid,
+            None,
+            r.name,
+        )
+        for r in B
+    ]
     res2 = change_test(A, B2, model)
     assert np.all(res2.changed_at(90)[100:103, 100:103] <= 0)
 
@@ -257,7 +295,7 @@ def test_nanmedian_stack_equals_numpy(dtype):
     for n in (1, 2, 3, 4):
         a = rng.normal(size=(n, 40, 50)).astype(dtype)
         a[rng.uniform(size=a.shape) < 0.5] = np.nan
-        a[:, :10] = np.nan                                   # a block no layer observes
+        a[:, :10] = np.nan  # a block no layer observes
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             want = np.nanmedian(a, axis=0)

@@ -5,8 +5,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from geocd.consistency import (ChangeParams, ConsistencyParams, PairCalibration, change_test, fit_pair_calibration,
-                               learn_self_consistency, local_slope, model_learned_on)
+from geocd.consistency import (
+    ChangeParams,
+    ConsistencyParams,
+    PairCalibration,
+    change_test,
+    fit_pair_calibration,
+    learn_self_consistency,
+    local_slope,
+    model_learned_on,
+)
 from geocd.errors import ConfigError
 
 from .fakes import Rec
@@ -28,8 +36,9 @@ def make_rec(truth, rng, name, noise=1.0):
 def model():
     rng = np.random.default_rng(3)
     flat = np.zeros(SHAPE, np.float32)
-    return learn_self_consistency([[make_rec(flat, rng, f"M{i}") for i in range(3)]],
-                                  ConsistencyParams(n_score_bins=10, min_bin_count=500))
+    return learn_self_consistency(
+        [[make_rec(flat, rng, f"M{i}") for i in range(3)]], ConsistencyParams(n_score_bins=10, min_bin_count=500)
+    )
 
 
 @pytest.mark.slow
@@ -49,7 +58,7 @@ def test_fit_recovers_scale_and_edge_sigma_with_a_changed_minority(model):
     cal = fit_pair_calibration(model, dt, sc, slope, mpu)
     assert cal.scale == pytest.approx(2.0, rel=0.1)
     assert cal.edge_sigma_m == pytest.approx(0.4, rel=0.2)
-    assert 0.12 < cal.trimmed_fraction < 0.2       # the changed cells (and 1 % of the static ones) trimmed
+    assert 0.12 < cal.trimmed_fraction < 0.2  # the changed cells (and 1 % of the static ones) trimmed
     # without the changed minority the medians are the law's own: tighter
     cal0 = fit_pair_calibration(model, dt[~changed], sc[~changed], slope[~changed], mpu[~changed])
     assert cal0.scale == pytest.approx(2.0, rel=0.05) and cal0.edge_sigma_m == pytest.approx(0.4, rel=0.1)
@@ -58,10 +67,10 @@ def test_fit_recovers_scale_and_edge_sigma_with_a_changed_minority(model):
 
 
 def test_local_slope_of_a_ramp_and_beside_gaps():
-    z = np.tile(np.arange(10, dtype=float) * 0.5, (6, 1))     # 0.5 m per cell along x
+    z = np.tile(np.arange(10, dtype=float) * 0.5, (6, 1))  # 0.5 m per cell along x
     assert np.allclose(local_slope(z, 1.0), 0.5)
     assert np.allclose(local_slope(z, 0.5), 1.0)
-    z[:, 4] = np.nan                                         # a gap: neighbours keep their one-sided slope
+    z[:, 4] = np.nan  # a gap: neighbours keep their one-sided slope
     s = local_slope(z, 1.0)
     assert np.allclose(s[:, 3], 0.5) and np.allclose(s[:, 5], 0.5) and np.all(s[:, 4] == 0)
 
@@ -72,7 +81,7 @@ def test_transferred_model_is_calibrated_and_false_alarms_drop(model):
     rng = np.random.default_rng(11)
     truth_a = np.zeros(SHAPE, np.float32)
     truth_b = truth_a.copy()
-    truth_b[30:70, 30:70] -= 15.0                            # a collapsed block (6 % of the cells)
+    truth_b[30:70, 30:70] -= 15.0  # a collapsed block (6 % of the cells)
     A = [make_rec(truth_a, rng, "A0", noise=2.0)]
     B = [make_rec(truth_b, rng, "B0", noise=2.0)]
     static = truth_b == truth_a
@@ -149,13 +158,17 @@ def test_inflation_is_relative_to_the_models_own_law(model):
     for g in (0.0, 1.0, 10.0):
         assert np.allclose(same.inflation(m, sc, np.full(50, g), mpu), 1.0)
     wider = PairCalibration(1.6, 0.5, ref_scale=0.8, ref_edge_sigma_m=0.5)
-    assert np.allclose(wider.inflation(m, sc, np.zeros(50), mpu), 2.0)          # flat: the scale ratio
+    assert np.allclose(wider.inflation(m, sc, np.zeros(50), mpu), 2.0)  # flat: the scale ratio
     steep = wider.inflation(m, sc, np.full(50, 1e4), mpu)
-    assert np.all(steep < 1.01) and np.all(steep >= 1.0)                         # steep: the edge term (same)
+    assert np.all(steep < 1.01) and np.all(steep >= 1.0)  # steep: the edge term (same)
     rng = np.random.default_rng(9)
     n = 50_000
     dt = rng.normal(size=n) * m.threshold(rng.uniform(-2, 1, n), 50.0)
     cal = fit_pair_calibration(m, dt, rng.uniform(-2, 1, n), rng.exponential(1.0, n), np.full(n, 1.5))
     assert (cal.ref_scale, cal.ref_edge_sigma_m) == (0.8, 0.5)
-    assert fit_pair_calibration(m, dt, rng.uniform(-2, 1, n), rng.exponential(1.0, n), np.full(n, 1.5),
-                                reference=False).ref_scale == 1.0
+    assert (
+        fit_pair_calibration(
+            m, dt, rng.uniform(-2, 1, n), rng.exponential(1.0, n), np.full(n, 1.5), reference=False
+        ).ref_scale
+        == 1.0
+    )

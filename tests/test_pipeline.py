@@ -46,13 +46,19 @@ def test_epoch_with_one_image_is_a_clear_error(tmp_path):
     assert not (tmp_path / "out" / "sc_change.tif").exists()
 
 
-def test_two_views_per_epoch_without_a_model_is_refused_before_any_stereo(tmp_path):
+def test_two_views_per_epoch_without_a_model_is_refused_before_any_stereo(tmp_path, sample_aoi):
     """Two images per epoch give one pair-DEM each: nothing to learn the self-consistency model from. The run
-    says so first (it was said after the stereo of every pair), naming the way out (a scene-class model)."""
-    p = _manifest(tmp_path, 2, 2)       # empty image files: any step that read them would fail otherwise
+    says so before orientation and stereo (it was said after the stereo of every pair), naming the way out."""
+    img = sample_aoi / "images"
+    eps = [
+        {"name": e, "date": d, "images": [str(img / f"{e}_sat{i}.tif") for i in (1, 2)]}
+        for e, d in (("A", "2021-01-01"), ("B", "2022-01-01"))
+    ]
+    p = tmp_path / "scene.yaml"
+    p.write_text(yaml.safe_dump({"epochs": eps}))
     with pytest.raises(ConfigError, match="no epoch has three or more images.*--model"):
         run(p, out_dir=tmp_path / "out")
-    assert not (tmp_path / "out" / "stereo").exists()
+    assert not (tmp_path / "out" / "stereo").exists() and not (tmp_path / "out" / "orientation").exists()
 
 
 def test_pick_epochs(tmp_path):
@@ -106,7 +112,8 @@ def test_sample_aoi_end_to_end(tmp_path, sample_aoi):
     assert s["recall"] > 0.45, s
     b = res["buildings"]  # epoch-A footprints (the manifest's) + new buildings detected in the change map
     assert set(b.loc[b["source"] == "footprint", "building_id"]) == set(
-        read_footprints(sample_aoi / "truth" / "footprints_A.gpkg")["building_id"])
+        read_footprints(sample_aoi / "truth" / "footprints_A.gpkg")["building_id"]
+    )
     fps = read_footprints(sample_aoi / "truth" / "footprints_all.gpkg", crs=grid.crs)
     sb = score_buildings(b, fps, aoi=box(*grid.bounds))
     assert sb["f1"] >= 0.9, sb
@@ -133,8 +140,11 @@ def _truth(m, grid, key):
 def _scores(res, m, grid, level):
     from geocd.change.metrics import binary_scores
 
-    return binary_scores(res.changed_at(level) == res.changed_at(level).clip(-1, 1) * (res.changed_at(level) != 0),
-                         _truth(m, grid, "change_mask") > 0.5, res.observed)
+    return binary_scores(
+        res.changed_at(level) == res.changed_at(level).clip(-1, 1) * (res.changed_at(level) != 0),
+        _truth(m, grid, "change_mask") > 0.5,
+        res.observed,
+    )
 
 
 def _changed(mask):
@@ -168,8 +178,9 @@ def _building_scores(run, m, grid):
     from geocd.change.buildings import score_buildings
     from geocd.io.vector import read_footprints
 
-    return score_buildings(run["buildings"], read_footprints(m.truth_path("footprints_all"), crs=grid.crs),
-                           aoi=box(*grid.bounds))
+    return score_buildings(
+        run["buildings"], read_footprints(m.truth_path("footprints_all"), crs=grid.crs), aoi=box(*grid.bounds)
+    )
 
 
 @pytest.mark.slow
@@ -241,7 +252,7 @@ def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run, sample_run_c
     assert bl.loc[11, "frac_changed"] == pytest.approx(0.344, abs=0.05) and bl.loc[11, "class"] == "raised"
     assert bl.loc[22, "frac_changed"] == pytest.approx(0.367, abs=0.05) and bl.loc[22, "class"] == "demolished"
     assert bl.loc[31, "frac_changed"] == pytest.approx(0.512, abs=0.05) and bl.loc[31, "class"] == "demolished"
-    for bid in (11, 22, 31):                       # the fraction rule classes them
+    for bid in (11, 22, 31):  # the fraction rule classes them
         assert "≥ min_changed 15%" in bl.loc[bid, "rule"], bl.loc[bid, "rule"]
     # the changed-part rule (an option) moves no class here, in either test (docs/towns.md: nor on towns 1-3)
     from geocd.change.buildings import BuildingParams, classify_buildings
@@ -251,8 +262,13 @@ def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run, sample_run_c
     fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
     for one_run in (sample_run, sample_run_cell):
         r = one_run["result"]
-        kw = dict(z_a=_median_surface(by["A"]), z_b=_median_surface(by["B"]), id_field="building_id",
-                  min_part_cells=r.min_region_cells, detect_new=False)
+        kw = dict(
+            z_a=_median_surface(by["A"]),
+            z_b=_median_surface(by["B"]),
+            id_field="building_id",
+            min_part_cells=r.min_region_cells,
+            detect_new=False,
+        )
         off = classify_buildings(fa, r.changed_at(99), r.dz_m, grid, **kw)
         on = classify_buildings(fa, r.changed_at(99), r.dz_m, grid, params=BuildingParams(changed_part=True), **kw)
         assert list(on["class"]) == list(off["class"])

@@ -14,8 +14,13 @@ from click.testing import CliRunner
 import geocd.pipeline as pipeline
 from geocd.errors import ConfigError
 
-STAGES = ("relative orientation", "stereo", "learning the self-consistency distribution", "cross-epoch change test",
-          "writing products")
+STAGES = (
+    "relative orientation",
+    "stereo",
+    "learning the self-consistency distribution",
+    "cross-epoch change test",
+    "writing products",
+)
 
 
 def _fake_run(fail: bool = False):
@@ -33,9 +38,16 @@ def _fake_run(fail: bool = False):
         prog(0.95, "writing products")
         prog(1.0, "done")
         (out / "sc_change.tif").write_bytes(b"")
-        return {"outputs": {"change": out / "sc_change.tif"},
-                "summary": {"epoch_a": "a", "epoch_b": "b", "grid": {"width": 2, "height": 2},
-                            "observed_fraction": 1.0, "changed_fraction": {}}}
+        return {
+            "outputs": {"change": out / "sc_change.tif"},
+            "summary": {
+                "epoch_a": "a",
+                "epoch_b": "b",
+                "grid": {"width": 2, "height": 2},
+                "observed_fraction": 1.0,
+                "changed_fraction": {},
+            },
+        }
 
     return fake
 
@@ -101,8 +113,11 @@ def test_cli_run_prints_building_counts_per_class(sample_aoi, tmp_path, monkeypa
     def with_buildings(m, out, config, prog, footprints):
         res = fake(m, out, config, prog, footprints)
         res["summary"]["buildings"] = {"unchanged": 41, "demolished": 3, "new": 2}
-        res["summary"]["building_damage"] = {"source": "footprints", "classes": {"unchanged": 40, "collapsed": 3},
-                                             "volume_lost_m3": 1234.5}
+        res["summary"]["building_damage"] = {
+            "source": "footprints",
+            "classes": {"unchanged": 40, "collapsed": 3},
+            "volume_lost_m3": 1234.5,
+        }
         return res
 
     monkeypatch.setattr(pipeline, "_run", with_buildings)

@@ -23,8 +23,7 @@ def test_readme_and_stereo_doc_list_every_pair_dem_band():
     """The outputs table names every band write_pair_dem writes, in its order (and their number)."""
     from geocd.stereo.products import BANDS
 
-    rows = [line for line in README.read_text(encoding="utf-8").splitlines()
-            if line.startswith("| `stereo/<epoch>/")]
+    rows = [line for line in README.read_text(encoding="utf-8").splitlines() if line.startswith("| `stereo/<epoch>/")]
     assert len(rows) == 1, rows
     row = rows[0]
     pos = [row.find(f"`{b}`") for b in BANDS]
@@ -32,5 +31,5 @@ def test_readme_and_stereo_doc_list_every_pair_dem_band():
     assert pos == sorted(pos), dict(zip(BANDS, pos))
     assert f"{len(BANDS)} bands" in row
     stereo_doc = (REPO / "docs" / "stereo.md").read_text(encoding="utf-8")
-    out = stereo_doc[stereo_doc.index("Output per pair"):][:600]
+    out = stereo_doc[stereo_doc.index("Output per pair") :][:600]
     assert all(f"`{b}`" in out for b in BANDS), out

@@ -56,7 +56,6 @@ def max_radius2(k1: float, k2: float, k3: float) -> float:
     return min(u) if u else float("inf")
 
 
-
 @njit(cache=True, inline="always")
 def _distort(x, y, k1, k2, k3, p1, p2):
     r2 = x * x + y * y
@@ -94,8 +93,7 @@ def _to_camera(x, y, z, tx, ty, tz, m):
     dx = x - tx
     dy = y - ty
     dz = z - tz
-    return (m[0] * dx + m[1] * dy + m[2] * dz, m[3] * dx + m[4] * dy + m[5] * dz,
-            m[6] * dx + m[7] * dy + m[8] * dz)
+    return (m[0] * dx + m[1] * dy + m[2] * dz, m[3] * dx + m[4] * dy + m[5] * dz, m[6] * dx + m[7] * dy + m[8] * dz)
 
 
 @njit(cache=True, parallel=True)
@@ -209,8 +207,7 @@ def distort_ref(x, y, dist):
     k1, k2, k3, p1, p2 = dist
     r2 = x**2 + y**2
     q = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-    return (x * q + 2 * p1 * x * y + p2 * (r2 + 2 * x**2),
-            y * q + p1 * (r2 + 2 * y**2) + 2 * p2 * x * y)
+    return (x * q + 2 * p1 * x * y + p2 * (r2 + 2 * x**2), y * q + p1 * (r2 + 2 * y**2) + 2 * p2 * x * y)
 
 
 def project_ref(x, y, z, params):
@@ -244,8 +241,7 @@ def undistort_ref(col, row, params, n_iter: int = 50):
     for _ in range(n_iter):
         r2 = x**2 + y**2
         q = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-        x, y = ((xd - (2 * p1 * x * y + p2 * (r2 + 2 * x**2))) / q,
-                (yd - (p1 * (r2 + 2 * y**2) + 2 * p2 * x * y)) / q)
+        x, y = ((xd - (2 * p1 * x * y + p2 * (r2 + 2 * x**2))) / q, (yd - (p1 * (r2 + 2 * y**2) + 2 * p2 * x * y)) / q)
     # a pixel no point of the domain reaches has no fixed point: the iteration then wanders
     xr, yr = distort_ref(x, y, dist)
     ok = in_domain_ref(x, y, params) & (np.hypot(xr - xd, yr - yd) < 1e-9)

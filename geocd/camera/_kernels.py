@@ -13,8 +13,28 @@ import numpy as np
 from numba import njit, prange
 
 # RPC00B term order: 1, L, P, H, LP, LH, PH, L², P², H², PLH, L³, LP², LH², L²P, P³, PH², L²H, P²H, H³
-TERMS_RPC00B = ("1", "L", "P", "H", "LP", "LH", "PH", "LL", "PP", "HH",
-                "PLH", "LLL", "LPP", "LHH", "LLP", "PPP", "PHH", "LLH", "PPH", "HHH")
+TERMS_RPC00B = (
+    "1",
+    "L",
+    "P",
+    "H",
+    "LP",
+    "LH",
+    "PH",
+    "LL",
+    "PP",
+    "HH",
+    "PLH",
+    "LLL",
+    "LPP",
+    "LHH",
+    "LLP",
+    "PPP",
+    "PHH",
+    "LLH",
+    "PPH",
+    "HHH",
+)
 
 
 # Kernels use error_model="numpy" (a float division by zero gives inf/NaN instead of raising,
@@ -32,36 +52,103 @@ def _monomials(L, P, H):
     LL = L * L
     PP = P * P
     HH = H * H
-    return (L, P, H, LP, LH, PH, LL, PP, HH, LP * H, LL * L, L * PP, L * HH, LL * P, PP * P, P * HH,
-            LL * H, PP * H, HH * H)
+    return (
+        L,
+        P,
+        H,
+        LP,
+        LH,
+        PH,
+        LL,
+        PP,
+        HH,
+        LP * H,
+        LL * L,
+        L * PP,
+        L * HH,
+        LL * P,
+        PP * P,
+        P * HH,
+        LL * H,
+        PP * H,
+        HH * H,
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
 def _dot(c, t):
     """c · (1, t...) for the 20-term RPC00B polynomial with monomials ``t`` from :func:`_monomials`."""
-    return (c[0] + c[1] * t[0] + c[2] * t[1] + c[3] * t[2] + c[4] * t[3] + c[5] * t[4] + c[6] * t[5]
-            + c[7] * t[6] + c[8] * t[7] + c[9] * t[8] + c[10] * t[9] + c[11] * t[10] + c[12] * t[11]
-            + c[13] * t[12] + c[14] * t[13] + c[15] * t[14] + c[16] * t[15] + c[17] * t[16] + c[18] * t[17]
-            + c[19] * t[18])
+    return (
+        c[0]
+        + c[1] * t[0]
+        + c[2] * t[1]
+        + c[3] * t[2]
+        + c[4] * t[3]
+        + c[5] * t[4]
+        + c[6] * t[5]
+        + c[7] * t[6]
+        + c[8] * t[7]
+        + c[9] * t[8]
+        + c[10] * t[9]
+        + c[11] * t[10]
+        + c[12] * t[11]
+        + c[13] * t[12]
+        + c[14] * t[13]
+        + c[15] * t[14]
+        + c[16] * t[15]
+        + c[17] * t[16]
+        + c[18] * t[17]
+        + c[19] * t[18]
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
 def _dot_dL(c, L, P, H, t):
     # d/dL of (1, L, P, H, LP, LH, PH, LL, PP, HH, PLH, LLL, LPP, LHH, LLP, PPP, PHH, LLH, PPH, HHH)
-    return (c[1] + c[4] * P + c[5] * H + 2.0 * c[7] * L + c[10] * t[5] + 3.0 * c[11] * t[6]
-            + c[12] * t[7] + c[13] * t[8] + 2.0 * c[14] * t[3] + 2.0 * c[17] * t[4])
+    return (
+        c[1]
+        + c[4] * P
+        + c[5] * H
+        + 2.0 * c[7] * L
+        + c[10] * t[5]
+        + 3.0 * c[11] * t[6]
+        + c[12] * t[7]
+        + c[13] * t[8]
+        + 2.0 * c[14] * t[3]
+        + 2.0 * c[17] * t[4]
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
 def _dot_dP(c, L, P, H, t):
-    return (c[2] + c[4] * L + c[6] * H + 2.0 * c[8] * P + c[10] * t[4] + 2.0 * c[12] * t[3]
-            + c[14] * t[6] + 3.0 * c[15] * t[7] + c[16] * t[8] + 2.0 * c[18] * t[5])
+    return (
+        c[2]
+        + c[4] * L
+        + c[6] * H
+        + 2.0 * c[8] * P
+        + c[10] * t[4]
+        + 2.0 * c[12] * t[3]
+        + c[14] * t[6]
+        + 3.0 * c[15] * t[7]
+        + c[16] * t[8]
+        + 2.0 * c[18] * t[5]
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
 def _dot_dH(c, L, P, H, t):
-    return (c[3] + c[5] * L + c[6] * P + 2.0 * c[9] * H + c[10] * t[3] + 2.0 * c[13] * t[4]
-            + 2.0 * c[16] * t[5] + c[17] * t[6] + c[18] * t[7] + 3.0 * c[19] * t[8])
+    return (
+        c[3]
+        + c[5] * L
+        + c[6] * P
+        + 2.0 * c[9] * H
+        + c[10] * t[3]
+        + 2.0 * c[13] * t[4]
+        + 2.0 * c[16] * t[5]
+        + c[17] * t[6]
+        + c[18] * t[7]
+        + 3.0 * c[19] * t[8]
+    )
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract", "arcp"})
@@ -284,8 +371,9 @@ def _localize_robust(samp, line, h, coefs, norm, init, tol2, max_iter, out_lon, 
         if not ok:  # the cubic start may extrapolate badly far outside the image: affine start
             u = st - init[4] - init[6] * H
             v = lt - init[5] - init[7] * H
-            L, P, it, ok = _newton(coefs, init[0] * u + init[1] * v, init[2] * u + init[3] * v, H, st, lt,
-                                   ss, ls, tol2, max_iter)
+            L, P, it, ok = _newton(
+                coefs, init[0] * u + init[1] * v, init[2] * u + init[3] * v, H, st, lt, ss, ls, tol2, max_iter
+            )
             its += it
         if not ok:
             L, P, it, ok = _multistart(coefs, H, st, lt, ss, ls, tol2, max_iter)
@@ -332,8 +420,30 @@ def rpc_localize(samp, line, h, coefs, norm, init, tol_px, max_iter, out_lon, ou
 def terms_ref(L: np.ndarray, P: np.ndarray, H: np.ndarray) -> np.ndarray:
     """(20, N) matrix of RPC00B monomials."""
     one = np.ones_like(L)
-    return np.stack([one, L, P, H, L * P, L * H, P * H, L**2, P**2, H**2, P * L * H, L**3,
-                     L * P**2, L * H**2, L**2 * P, P**3, P * H**2, L**2 * H, P**2 * H, H**3])
+    return np.stack(
+        [
+            one,
+            L,
+            P,
+            H,
+            L * P,
+            L * H,
+            P * H,
+            L**2,
+            P**2,
+            H**2,
+            P * L * H,
+            L**3,
+            L * P**2,
+            L * H**2,
+            L**2 * P,
+            P**3,
+            P * H**2,
+            L**2 * H,
+            P**2 * H,
+            H**3,
+        ]
+    )
 
 
 def project_ref(lon, lat, h, coefs, norm):
@@ -401,7 +511,7 @@ def localize_ref(samp, line, h, coefs, norm, tol_px: float = 1e-9, max_iter: int
         step = np.ones(samp.shape)
         todo = ~done & np.isfinite(dlon) & np.isfinite(dlat)
         new_lon, new_lat, new_r2 = lon.copy(), lat.copy(), r2.copy()
-        for _ in range(40):                      # halve the step where it does not reduce the residual
+        for _ in range(40):  # halve the step where it does not reduce the residual
             if not todo.any():
                 break
             tl = lon - step * dlon

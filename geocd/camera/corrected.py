@@ -44,8 +44,14 @@ class CorrectedCamera(Camera):
 
     kind: ClassVar[str] = "corrected"
 
-    def __init__(self, base: Camera, shift_px: Any = (0.0, 0.0), linear: Any = None, centre_px: Any = None,
-                 provenance: dict | None = None):
+    def __init__(
+        self,
+        base: Camera,
+        shift_px: Any = (0.0, 0.0),
+        linear: Any = None,
+        centre_px: Any = None,
+        provenance: dict | None = None,
+    ):
         if not isinstance(base, Camera):
             raise CameraError(f"a corrected camera needs a geocd camera to correct, got {type(base).__name__}")
         t = np.asarray(shift_px, dtype=np.float64).reshape(2)
@@ -112,11 +118,16 @@ class CorrectedCamera(Camera):
     @property
     def cropped(self):
         """``cropped(col0, row0, width, height)``: the corrected camera of a crop (needs a croppable base)."""
-        base_crop = getattr(self.base, "cropped")   # AttributeError when the base cannot be cropped
+        base_crop = getattr(self.base, "cropped")  # AttributeError when the base cannot be cropped
 
         def crop(col0: float, row0: float, width: int | None = None, height: int | None = None) -> "CorrectedCamera":
-            return CorrectedCamera(base_crop(col0, row0, width, height), self.shift_px, self.linear,
-                                   self.centre_px - np.array([col0, row0]), self.provenance)
+            return CorrectedCamera(
+                base_crop(col0, row0, width, height),
+                self.shift_px,
+                self.linear,
+                self.centre_px - np.array([col0, row0]),
+                self.provenance,
+            )
 
         return crop
 
@@ -130,20 +141,32 @@ class CorrectedCamera(Camera):
 
     # --- serialisation -----------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return {"kind": self.kind, "base": self.base.to_dict(), "shift_px": self.shift_px.tolist(),
-                "linear": self.linear.tolist(), "centre_px": self.centre_px.tolist(),
-                "provenance": self.provenance}
+        return {
+            "kind": self.kind,
+            "base": self.base.to_dict(),
+            "shift_px": self.shift_px.tolist(),
+            "linear": self.linear.tolist(),
+            "centre_px": self.centre_px.tolist(),
+            "provenance": self.provenance,
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> "CorrectedCamera":
         if "base" not in d:
             raise CameraError("corrected camera description lacks 'base' (the camera it corrects)")
-        return cls(camera_from_dict(d["base"]), d.get("shift_px", (0.0, 0.0)), d.get("linear"), d.get("centre_px"),
-                   d.get("provenance"))
+        return cls(
+            camera_from_dict(d["base"]),
+            d.get("shift_px", (0.0, 0.0)),
+            d.get("linear"),
+            d.get("centre_px"),
+            d.get("provenance"),
+        )
 
     def __repr__(self) -> str:  # pragma: no cover - cosmetic
-        return (f"<CorrectedCamera of {self.base!r}: shift ({self.shift_px[0]:+.2f}, {self.shift_px[1]:+.2f}) px"
-                f"{'' if self.is_shift else ', affine'}>")
+        return (
+            f"<CorrectedCamera of {self.base!r}: shift ({self.shift_px[0]:+.2f}, {self.shift_px[1]:+.2f}) px"
+            f"{'' if self.is_shift else ', affine'}>"
+        )
 
 
 class CorrectedGroundProjector(GroundProjector):

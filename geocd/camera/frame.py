@@ -108,15 +108,17 @@ def _floats(value: Any, name: str, n: int, hint: str) -> tuple[float, ...]:
     try:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError, OverflowError) as exc:
-        raise FrameCameraError(f"frame camera field '{name}'={_short(value)} is not {n} finite numbers; {hint}") \
-            from exc
+        raise FrameCameraError(
+            f"frame camera field '{name}'={_short(value)} is not {n} finite numbers; {hint}"
+        ) from exc
     if arr.size != n:
         raise FrameCameraError(f"frame camera field '{name}' has {arr.size} values, it needs {n}; {hint}")
     if not np.all(np.isfinite(arr)):
         raise FrameCameraError(f"frame camera field '{name}' contains NaN/inf ({_short(value)}); {hint}")
     if np.any(np.abs(arr) > MAX_ABS_VALUE):
-        raise FrameCameraError(f"frame camera field '{name}'={_short(value)} is out of range (|value| > "
-                               f"{MAX_ABS_VALUE:g}); {hint}")
+        raise FrameCameraError(
+            f"frame camera field '{name}'={_short(value)} is out of range (|value| > {MAX_ABS_VALUE:g}); {hint}"
+        )
     return tuple(float(v) for v in arr)
 
 
@@ -284,8 +286,12 @@ class FrameCamera(Camera):
         if self.principal_point_px is None:
             pp = (self.width / 2.0, self.height / 2.0)
         else:
-            pp = _floats(self.principal_point_px, "principal_point_px", 2,
-                         "give [col, row] in pixels from the image's upper-left corner")
+            pp = _floats(
+                self.principal_point_px,
+                "principal_point_px",
+                2,
+                "give [col, row] in pixels from the image's upper-left corner",
+            )
         s(self, "principal_point_px", pp)
         s(self, "distortion", dict(zip(DISTORTION_KEYS, _distortion(self.distortion))))
         s(self, "position", _floats(self.position, "position", 3, "give [x, y, z] in the camera CRS (metres)"))
@@ -298,16 +304,28 @@ class FrameCamera(Camera):
         rot = opk_to_rotation(self.opk_deg) @ _PATB_TO_CV  # OpenCV camera → world
         s(self, "_rot", rot)
         d = self.distortion
-        params = np.concatenate([
-            [fx, fy, pp[0], pp[1], d["k1"], d["k2"], d["k3"], d["p1"], d["p2"]],
-            self.position, rot.T.reshape(-1), [K.max_radius2(d["k1"], d["k2"], d["k3"])],
-        ]).astype(np.float64)
+        params = np.concatenate(
+            [
+                [fx, fy, pp[0], pp[1], d["k1"], d["k2"], d["k3"], d["p1"], d["p2"]],
+                self.position,
+                rot.T.reshape(-1),
+                [K.max_radius2(d["k1"], d["k2"], d["k3"])],
+            ]
+        ).astype(np.float64)
         s(self, "_params", np.ascontiguousarray(params))
 
     # --- constructors --------------------------------------------------------------------
     @classmethod
-    def from_mm(cls, width: int, height: int, focal_mm: float, pixel_size_mm: Any, *,
-                principal_point_mm: Any = (0.0, 0.0), **kw: Any) -> "FrameCamera":
+    def from_mm(
+        cls,
+        width: int,
+        height: int,
+        focal_mm: float,
+        pixel_size_mm: Any,
+        *,
+        principal_point_mm: Any = (0.0, 0.0),
+        **kw: Any,
+    ) -> "FrameCamera":
         """Build from metric interior orientation.
 
         Parameters
@@ -326,33 +344,57 @@ class FrameCamera(Camera):
         if sx <= 0 or sy <= 0:
             raise FrameCameraError(f"frame camera field 'pixel_size_mm'={pixel_size_mm!r} must be positive")
         f = _floats(focal_mm, "focal_mm", 1, "give the focal length in millimetres")[0]
-        dx, dy = _floats(principal_point_mm, "principal_point_mm", 2,
-                         "give [dx, dy] in mm from the image centre (right, down)")
+        dx, dy = _floats(
+            principal_point_mm, "principal_point_mm", 2, "give [dx, dy] in mm from the image centre (right, down)"
+        )
         w, h = _size(width, "width"), _size(height, "height")
-        return cls(width=w, height=h, focal_px=(f / sx, f / sy),
-                   principal_point_px=(w / 2.0 + dx / sx, h / 2.0 + dy / sy), **kw)
+        return cls(
+            width=w,
+            height=h,
+            focal_px=(f / sx, f / sy),
+            principal_point_px=(w / 2.0 + dx / sx, h / 2.0 + dy / sy),
+            **kw,
+        )
 
     def replace(self, **changes: Any) -> "FrameCamera":
         """A copy with some fields changed (validated again)."""
-        d = {f: getattr(self, f) for f in ("width", "height", "focal_px", "position", "opk_deg", "crs",
-                                           "vertical_datum", "principal_point_px", "distortion",
-                                           "allow_geoid_substitute", "source")}
+        d = {
+            f: getattr(self, f)
+            for f in (
+                "width",
+                "height",
+                "focal_px",
+                "position",
+                "opk_deg",
+                "crs",
+                "vertical_datum",
+                "principal_point_px",
+                "distortion",
+                "allow_geoid_substitute",
+                "source",
+            )
+        }
         d.update(changes)
         return FrameCamera(**d)
 
     def cropped(self, col0: float, row0: float, width: int, height: int) -> "FrameCamera":
         """The camera of a crop whose upper-left corner is (col0, row0) of this image (exact)."""
         cx, cy = self.principal_point_px
-        return self.replace(width=width, height=height, principal_point_px=(cx - col0, cy - row0),
-                            source=f"{self.source} cropped at col={col0:g} row={row0:g}".strip())
+        return self.replace(
+            width=width,
+            height=height,
+            principal_point_px=(cx - col0, cy - row0),
+            source=f"{self.source} cropped at col={col0:g} row={row0:g}".strip(),
+        )
 
     def rescaled(self, width: int, height: int) -> "FrameCamera":
         """The camera of this image resampled to ``width`` x ``height`` pixels (exact)."""
         sx, sy = width / self.width, height / self.height
         cx, cy = self.principal_point_px
         fx, fy = self.focal_px
-        return self.replace(width=width, height=height, focal_px=(fx * sx, fy * sy),
-                            principal_point_px=(cx * sx, cy * sy))
+        return self.replace(
+            width=width, height=height, focal_px=(fx * sx, fy * sy), principal_point_px=(cx * sx, cy * sy)
+        )
 
     # --- geometry accessors ----------------------------------------------------------------
     @property
@@ -400,13 +442,15 @@ class FrameCamera(Camera):
             return np.zeros(np.broadcast(lon, lat).shape)
         ok = np.isfinite(lon) & np.isfinite(lat)
         if np.all(ok):
-            return np.asarray(geoid_undulation(lon, lat, self.vertical_datum,
-                                               allow_substitute=self.allow_geoid_substitute), float)
+            return np.asarray(
+                geoid_undulation(lon, lat, self.vertical_datum, allow_substitute=self.allow_geoid_substitute), float
+            )
         lon, lat = np.broadcast_arrays(lon, lat)
         out = np.full(lon.shape, np.nan)
         if ok.any():
-            out[ok] = geoid_undulation(lon[ok], lat[ok], self.vertical_datum,
-                                       allow_substitute=self.allow_geoid_substitute)
+            out[ok] = geoid_undulation(
+                lon[ok], lat[ok], self.vertical_datum, allow_substitute=self.allow_geoid_substitute
+            )
         return out
 
     # --- world frame (projected x, y + height z in the camera datum) -------------------------
@@ -426,8 +470,7 @@ class FrameCamera(Camera):
         K.frame_dproj_dz(x.ravel(), y.ravel(), z.ravel(), self._params, dc, dr)
         return dc.reshape(x.shape), dr.reshape(x.shape)
 
-    def undistort(self, col: Any, row: Any, *, tol: float = 1e-14, max_iter: int = 30
-                  ) -> tuple[np.ndarray, np.ndarray]:
+    def undistort(self, col: Any, row: Any, *, tol: float = 1e-14, max_iter: int = 30) -> tuple[np.ndarray, np.ndarray]:
         """Pixels → undistorted normalised camera coordinates ``(x, y)`` (NaN if not invertible)."""
         col, row = _as_f64(col, row)
         xn = np.empty(col.size)
@@ -551,9 +594,25 @@ class FrameCamera(Camera):
         """
         if not isinstance(d, Mapping):
             raise FrameCameraError(f"a frame camera description must be a mapping, got {type(d).__name__}")
-        known = {"kind", "crs", "vertical_datum", "width", "height", "focal_px", "focal_mm", "pixel_size_mm",
-                 "principal_point_px", "principal_point", "principal_point_mm", "distortion", "position",
-                 "opk_deg", "opk_rad", "allow_geoid_substitute", "source"}
+        known = {
+            "kind",
+            "crs",
+            "vertical_datum",
+            "width",
+            "height",
+            "focal_px",
+            "focal_mm",
+            "pixel_size_mm",
+            "principal_point_px",
+            "principal_point",
+            "principal_point_mm",
+            "distortion",
+            "position",
+            "opk_deg",
+            "opk_rad",
+            "allow_geoid_substitute",
+            "source",
+        }
         unknown = sorted(set(d) - known)
         if unknown:
             raise FrameCameraError(
@@ -565,7 +624,9 @@ class FrameCamera(Camera):
             raise FrameCameraError(f"frame camera field 'kind' is {kind!r}; a frame camera sidecar says kind: frame")
         for k in ("width", "height", "position", "crs"):
             if k not in d:
-                raise FrameCameraError(f"frame camera description lacks '{k}'; add it (see geocd.io.frame for the schema)")
+                raise FrameCameraError(
+                    f"frame camera description lacks '{k}'; add it (see geocd.io.frame for the schema)"
+                )
         if "opk_deg" in d and "opk_rad" in d:
             raise FrameCameraError("frame camera description has both 'opk_deg' and 'opk_rad'; keep one")
         if "opk_deg" in d:
@@ -574,19 +635,28 @@ class FrameCamera(Camera):
             opk = [math.degrees(v) for v in _floats(d["opk_rad"], "opk_rad", 3, "give [omega, phi, kappa] in radians")]
         else:
             raise FrameCameraError("frame camera description lacks 'opk_deg'; give [omega, phi, kappa] in degrees")
-        kw: dict[str, Any] = dict(position=d["position"], opk_deg=opk, crs=d["crs"],
-                                  vertical_datum=d.get("vertical_datum"), distortion=d.get("distortion"),
-                                  allow_geoid_substitute=bool(d.get("allow_geoid_substitute", False)),
-                                  source=d.get("source", ""))
+        kw: dict[str, Any] = dict(
+            position=d["position"],
+            opk_deg=opk,
+            crs=d["crs"],
+            vertical_datum=d.get("vertical_datum"),
+            distortion=d.get("distortion"),
+            allow_geoid_substitute=bool(d.get("allow_geoid_substitute", False)),
+            source=d.get("source", ""),
+        )
         pp_px = d.get("principal_point_px", d.get("principal_point"))
         if "principal_point_px" in d and "principal_point" in d:
-            raise FrameCameraError("frame camera description has both 'principal_point_px' and 'principal_point'; keep one")
+            raise FrameCameraError(
+                "frame camera description has both 'principal_point_px' and 'principal_point'; keep one"
+            )
         if "focal_px" in d:
             if "focal_mm" in d:
                 raise FrameCameraError("frame camera description has both 'focal_px' and 'focal_mm'; keep one")
             if "principal_point_mm" in d:
                 if "pixel_size_mm" not in d:
-                    raise FrameCameraError("'principal_point_mm' needs 'pixel_size_mm'; add it or give principal_point_px")
+                    raise FrameCameraError(
+                        "'principal_point_mm' needs 'pixel_size_mm'; add it or give principal_point_px"
+                    )
                 sx, sy = _pair(d["pixel_size_mm"], "pixel_size_mm", "give the pixel pitch in millimetres")
                 dx, dy = _floats(d["principal_point_mm"], "principal_point_mm", 2, "give [dx, dy] in mm")
                 w, h = _size(d["width"], "width"), _size(d["height"], "height")
@@ -600,11 +670,19 @@ class FrameCamera(Camera):
                 )
             if pp_px is not None:
                 if "principal_point_mm" in d:
-                    raise FrameCameraError("give the principal point once: 'principal_point_px' or 'principal_point_mm'")
+                    raise FrameCameraError(
+                        "give the principal point once: 'principal_point_px' or 'principal_point_mm'"
+                    )
                 cam = cls.from_mm(d["width"], d["height"], d["focal_mm"], d["pixel_size_mm"], **kw)
                 return cam.replace(principal_point_px=pp_px)
-            return cls.from_mm(d["width"], d["height"], d["focal_mm"], d["pixel_size_mm"],
-                               principal_point_mm=d.get("principal_point_mm", (0.0, 0.0)), **kw)
+            return cls.from_mm(
+                d["width"],
+                d["height"],
+                d["focal_mm"],
+                d["pixel_size_mm"],
+                principal_point_mm=d.get("principal_point_mm", (0.0, 0.0)),
+                **kw,
+            )
         raise FrameCameraError(
             "frame camera description lacks the focal length; give 'focal_px' (pixels) or 'focal_mm' with "
             "'pixel_size_mm'"
@@ -613,9 +691,11 @@ class FrameCamera(Camera):
     def __repr__(self) -> str:  # pragma: no cover - cosmetic
         x, y, z = self.position
         o, p, k = self.opk_deg
-        return (f"<FrameCamera {self.width}x{self.height} f={self.focal_px[0]:.2f}px "
-                f"at ({x:.2f}, {y:.2f}, {z:.2f} {self.vertical_datum}) opk=({o:.3f}, {p:.3f}, {k:.3f})°"
-                f"{' from ' + self.source if self.source else ''}>")
+        return (
+            f"<FrameCamera {self.width}x{self.height} f={self.focal_px[0]:.2f}px "
+            f"at ({x:.2f}, {y:.2f}, {z:.2f} {self.vertical_datum}) opk=({o:.3f}, {p:.3f}, {k:.3f})°"
+            f"{' from ' + self.source if self.source else ''}>"
+        )
 
 
 class FrameGroundProjector(GroundProjector):

@@ -28,15 +28,45 @@ from .base import Camera, register_camera
 
 #: RPC00A index for each RPC00B term: ``b[k] = a[RPC00A_FROM_B[k]]``
 #: RPC00A order: 1, L, P, H, LP, LH, PH, LPH, L², P², H², L³, L²P, L²H, LP², P³, P²H, LH², PH², H³
-_A_ORDER = ("1", "L", "P", "H", "LP", "LH", "PH", "PLH", "LL", "PP", "HH", "LLL", "LLP", "LLH",
-            "LPP", "PPP", "PPH", "LHH", "PHH", "HHH")
+_A_ORDER = (
+    "1",
+    "L",
+    "P",
+    "H",
+    "LP",
+    "LH",
+    "PH",
+    "PLH",
+    "LL",
+    "PP",
+    "HH",
+    "LLL",
+    "LLP",
+    "LLH",
+    "LPP",
+    "PPP",
+    "PPH",
+    "LHH",
+    "PHH",
+    "HHH",
+)
 RPC00A_FROM_B = np.array([_A_ORDER.index(t) for t in K.TERMS_RPC00B])
 
 #: GDAL adds this to the RPC's pixel coordinates (centre-of-first-pixel origin → corner origin)
 PIXEL_SHIFT = 0.5
 
-_NORM_FIELDS = ("line_off", "samp_off", "lat_off", "lon_off", "height_off",
-                "line_scale", "samp_scale", "lat_scale", "lon_scale", "height_scale")
+_NORM_FIELDS = (
+    "line_off",
+    "samp_off",
+    "lat_off",
+    "lon_off",
+    "height_off",
+    "line_scale",
+    "samp_scale",
+    "lat_scale",
+    "lon_scale",
+    "height_scale",
+)
 
 
 def _flat_f64(*arrays) -> tuple[tuple[int, ...], tuple[np.ndarray, ...]]:
@@ -153,8 +183,21 @@ class RPCModel(Camera):
         return cls(line_num=c[0], line_den=c[1], samp_num=c[2], samp_den=c[3], **kw)
 
     def replace(self, **changes: Any) -> "RPCModel":
-        d = {f: getattr(self, f) for f in ("line_num", "line_den", "samp_num", "samp_den", *_NORM_FIELDS,
-                                           "width", "height", "err_bias", "err_rand", "source")}
+        d = {
+            f: getattr(self, f)
+            for f in (
+                "line_num",
+                "line_den",
+                "samp_num",
+                "samp_den",
+                *_NORM_FIELDS,
+                "width",
+                "height",
+                "err_bias",
+                "err_rand",
+                "source",
+            )
+        }
         d.update(changes)
         return RPCModel(**d)
 
@@ -163,9 +206,13 @@ class RPCModel(Camera):
 
         Exact: only the pixel offsets change (``samp_off - col0``, ``line_off - row0``).
         """
-        return self.replace(samp_off=self.samp_off - col0, line_off=self.line_off - row0,
-                            width=width, height=height,
-                            source=f"{self.source} cropped at col={col0:g} row={row0:g}")
+        return self.replace(
+            samp_off=self.samp_off - col0,
+            line_off=self.line_off - row0,
+            width=width,
+            height=height,
+            source=f"{self.source} cropped at col={col0:g} row={row0:g}",
+        )
 
     def _affine_start(self) -> np.ndarray:
         """Newton start vector (see :func:`_kernels.rpc_localize`), affine part only.
@@ -208,7 +255,7 @@ class RPCModel(Camera):
         a0, a1, b0, b1 = cs[0], cl[0], cs[3], cl[3]
         for base, (cu, hu, cv, hv) in ((8, (0.0, 1.0, 0.0, 1.0)), (48, tuple(init[K.INIT_BOX]))):
             for row, (m0, m1) in ((base, (M[0, 0], M[0, 1])), (base + 20, (M[1, 0], M[1, 1]))):
-                init[row:row + 4] = [m0 * (cu - a0) + m1 * (cv - a1), m0 * hu, m1 * hv, -m0 * b0 - m1 * b1]
+                init[row : row + 4] = [m0 * (cu - a0) + m1 * (cv - a1), m0 * hu, m1 * hv, -m0 * b0 - m1 * b1]
         return init
 
     def _fit_cubic_start(self) -> None:
@@ -227,9 +274,19 @@ class RPCModel(Camera):
             lon = np.empty(n)
             lat = np.empty(n)
             its = np.empty(n, dtype=np.int32)
-            K.rpc_localize(st * self.samp_scale + self.samp_off, lt * self.line_scale + self.line_off,
-                           H * self.height_scale + self.height_off, self._coefs, self._norm, self._init,
-                           1e-10, 60, lon, lat, its)
+            K.rpc_localize(
+                st * self.samp_scale + self.samp_off,
+                lt * self.line_scale + self.line_off,
+                H * self.height_scale + self.height_off,
+                self._coefs,
+                self._norm,
+                self._init,
+                1e-10,
+                60,
+                lon,
+                lat,
+                its,
+            )
             ok = its >= 0
             if ok.sum() < 60:
                 continue  # keep the affine start there
@@ -242,8 +299,8 @@ class RPCModel(Camera):
             except np.linalg.LinAlgError:
                 continue
             if np.all(np.isfinite(cL)) and np.all(np.isfinite(cP)):
-                init[base:base + 20] = cL
-                init[base + 20:base + 40] = cP
+                init[base : base + 20] = cL
+                init[base + 20 : base + 40] = cP
         object.__setattr__(self, "_init", init)
         object.__setattr__(self, "_cubic_ready", True)
 
@@ -263,8 +320,17 @@ class RPCModel(Camera):
         K.rpc_dproj_dh(lon, lat, h, self._coefs, self._norm, ds, dl)
         return ds.reshape(shape), dl.reshape(shape)
 
-    def localize(self, col, row, h, *, tol_px: float = 1e-9, max_iter: int = 60,
-                 return_iterations: bool = False, strict: bool = False):
+    def localize(
+        self,
+        col,
+        row,
+        h,
+        *,
+        tol_px: float = 1e-9,
+        max_iter: int = 60,
+        return_iterations: bool = False,
+        strict: bool = False,
+    ):
         """Image + height → (lon, lat) by damped Newton (see :func:`_kernels.rpc_localize`).
 
         Parameters
@@ -283,8 +349,7 @@ class RPCModel(Camera):
         its = np.empty(col.size, dtype=np.int32)
         if not self._cubic_ready:
             self._fit_cubic_start()
-        K.rpc_localize(col, row, h, self._coefs, self._norm_px, self._init, float(tol_px), int(max_iter),
-                       lon, lat, its)
+        K.rpc_localize(col, row, h, self._coefs, self._norm_px, self._init, float(tol_px), int(max_iter), lon, lat, its)
         if strict:
             bad = (its < 0) & np.isfinite(col) & np.isfinite(row) & np.isfinite(h)
             if bad.any():
@@ -362,19 +427,30 @@ class RPCModel(Camera):
     def to_gdal_metadata(self) -> dict[str, str]:
         """The GDAL ``RPC`` metadata domain (what GeoTIFF/NITF RPC tags hold)."""
         md = {
-            "LINE_OFF": repr(self.line_off), "SAMP_OFF": repr(self.samp_off),
-            "LAT_OFF": repr(self.lat_off), "LONG_OFF": repr(self.lon_off),
-            "HEIGHT_OFF": repr(self.height_off), "LINE_SCALE": repr(self.line_scale),
-            "SAMP_SCALE": repr(self.samp_scale), "LAT_SCALE": repr(self.lat_scale),
-            "LONG_SCALE": repr(self.lon_scale), "HEIGHT_SCALE": repr(self.height_scale),
+            "LINE_OFF": repr(self.line_off),
+            "SAMP_OFF": repr(self.samp_off),
+            "LAT_OFF": repr(self.lat_off),
+            "LONG_OFF": repr(self.lon_off),
+            "HEIGHT_OFF": repr(self.height_off),
+            "LINE_SCALE": repr(self.line_scale),
+            "SAMP_SCALE": repr(self.samp_scale),
+            "LAT_SCALE": repr(self.lat_scale),
+            "LONG_SCALE": repr(self.lon_scale),
+            "HEIGHT_SCALE": repr(self.height_scale),
             "LINE_NUM_COEFF": " ".join(repr(float(v)) for v in self.line_num),
             "LINE_DEN_COEFF": " ".join(repr(float(v)) for v in self.line_den),
             "SAMP_NUM_COEFF": " ".join(repr(float(v)) for v in self.samp_num),
             "SAMP_DEN_COEFF": " ".join(repr(float(v)) for v in self.samp_den),
         }
         box = self.validity_box()
-        md.update({"MIN_LONG": repr(box["lon"][0]), "MAX_LONG": repr(box["lon"][1]),
-                   "MIN_LAT": repr(box["lat"][0]), "MAX_LAT": repr(box["lat"][1])})
+        md.update(
+            {
+                "MIN_LONG": repr(box["lon"][0]),
+                "MAX_LONG": repr(box["lon"][1]),
+                "MIN_LAT": repr(box["lat"][0]),
+                "MAX_LAT": repr(box["lat"][1]),
+            }
+        )
         if self.err_bias is not None:
             md["ERR_BIAS"] = repr(float(self.err_bias))
         if self.err_rand is not None:
@@ -386,28 +462,50 @@ class RPCModel(Camera):
         from rasterio.rpc import RPC
 
         return RPC(
-            height_off=self.height_off, height_scale=self.height_scale, lat_off=self.lat_off,
-            lat_scale=self.lat_scale, line_den_coeff=self.line_den.tolist(),
-            line_num_coeff=self.line_num.tolist(), line_off=self.line_off, line_scale=self.line_scale,
-            long_off=self.lon_off, long_scale=self.lon_scale, samp_den_coeff=self.samp_den.tolist(),
-            samp_num_coeff=self.samp_num.tolist(), samp_off=self.samp_off, samp_scale=self.samp_scale,
-            err_bias=self.err_bias, err_rand=self.err_rand,
+            height_off=self.height_off,
+            height_scale=self.height_scale,
+            lat_off=self.lat_off,
+            lat_scale=self.lat_scale,
+            line_den_coeff=self.line_den.tolist(),
+            line_num_coeff=self.line_num.tolist(),
+            line_off=self.line_off,
+            line_scale=self.line_scale,
+            long_off=self.lon_off,
+            long_scale=self.lon_scale,
+            samp_den_coeff=self.samp_den.tolist(),
+            samp_num_coeff=self.samp_num.tolist(),
+            samp_off=self.samp_off,
+            samp_scale=self.samp_scale,
+            err_bias=self.err_bias,
+            err_rand=self.err_rand,
         )
 
     @classmethod
     def from_rasterio(cls, rpc, **kw: Any) -> "RPCModel":
         """From a :class:`rasterio.rpc.RPC` (GeoTIFF/NITF tags read by GDAL)."""
         return cls(
-            line_num=rpc.line_num_coeff, line_den=rpc.line_den_coeff, samp_num=rpc.samp_num_coeff,
-            samp_den=rpc.samp_den_coeff, line_off=rpc.line_off, samp_off=rpc.samp_off,
-            lat_off=rpc.lat_off, lon_off=rpc.long_off, height_off=rpc.height_off,
-            line_scale=rpc.line_scale, samp_scale=rpc.samp_scale, lat_scale=rpc.lat_scale,
-            lon_scale=rpc.long_scale, height_scale=rpc.height_scale,
+            line_num=rpc.line_num_coeff,
+            line_den=rpc.line_den_coeff,
+            samp_num=rpc.samp_num_coeff,
+            samp_den=rpc.samp_den_coeff,
+            line_off=rpc.line_off,
+            samp_off=rpc.samp_off,
+            lat_off=rpc.lat_off,
+            lon_off=rpc.long_off,
+            height_off=rpc.height_off,
+            line_scale=rpc.line_scale,
+            samp_scale=rpc.samp_scale,
+            lat_scale=rpc.lat_scale,
+            lon_scale=rpc.long_scale,
+            height_scale=rpc.height_scale,
             err_bias=rpc.err_bias if rpc.err_bias not in (None, -1.0) else None,
-            err_rand=rpc.err_rand if rpc.err_rand not in (None, -1.0) else None, **kw,
+            err_rand=rpc.err_rand if rpc.err_rand not in (None, -1.0) else None,
+            **kw,
         )
 
     def __repr__(self) -> str:
         size = f"{self.width}x{self.height}" if self.width else "size unknown"
-        return (f"<RPCModel {size} lon={self.lon_off:.5f} lat={self.lat_off:.5f} "
-                f"h={self.height_off:g}±{self.height_scale:g} m{' from ' + self.source if self.source else ''}>")
+        return (
+            f"<RPCModel {size} lon={self.lon_off:.5f} lat={self.lat_off:.5f} "
+            f"h={self.height_off:g}±{self.height_scale:g} m{' from ' + self.source if self.source else ''}>"
+        )

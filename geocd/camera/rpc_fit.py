@@ -94,8 +94,9 @@ def _grid(lo: float, hi: float, n: int, shifted: bool) -> np.ndarray:
     return g
 
 
-def _ground_box(camera: Camera, h_range: tuple[float, float],
-                densify: int = 16) -> tuple[tuple[float, float], tuple[float, float]]:
+def _ground_box(
+    camera: Camera, h_range: tuple[float, float], densify: int = 16
+) -> tuple[tuple[float, float], tuple[float, float]]:
     """Bounding lon/lat box of the image footprint over the height range."""
     lons, lats = [], []
     for h in np.linspace(h_range[0], h_range[1], 3):
@@ -116,8 +117,7 @@ def _single_thread_blas():
     return threadpool_limits(limits=1, user_api="blas")
 
 
-def _solve_coordinate(T: np.ndarray, c: np.ndarray, ridge: float,
-                      n_iter: int) -> tuple[np.ndarray, np.ndarray, int]:
+def _solve_coordinate(T: np.ndarray, c: np.ndarray, ridge: float, n_iter: int) -> tuple[np.ndarray, np.ndarray, int]:
     """Fit normalised coordinate c ≈ (num·T)/(den·T), den[0] = 1, Tikhonov-regularised.
 
     Parameters
@@ -158,10 +158,21 @@ def _solve_coordinate(T: np.ndarray, c: np.ndarray, ridge: float,
     return num, den, n_iter
 
 
-def fit_rpc(camera: Camera, h_range: tuple[float, float], *, lon_range: tuple[float, float] | None = None,
-            lat_range: tuple[float, float] | None = None, n_xy: int = 21, n_h: int = 9, ridge: float = 1e-7,
-            n_iter: int = 3, width: int | None = None, height: int | None = None, source: str = "",
-            progress: Callable | None = None) -> tuple[RPCModel, RPCFitReport]:
+def fit_rpc(
+    camera: Camera,
+    h_range: tuple[float, float],
+    *,
+    lon_range: tuple[float, float] | None = None,
+    lat_range: tuple[float, float] | None = None,
+    n_xy: int = 21,
+    n_h: int = 9,
+    ridge: float = 1e-7,
+    n_iter: int = 3,
+    width: int | None = None,
+    height: int | None = None,
+    source: str = "",
+    progress: Callable | None = None,
+) -> tuple[RPCModel, RPCFitReport]:
     """Fit an RPC00B to ``camera`` over a terrain-independent 3-D grid.
 
     Parameters
@@ -220,15 +231,21 @@ def fit_rpc(camera: Camera, h_range: tuple[float, float], *, lon_range: tuple[fl
         raise ConfigError(f"RPC fit ground box lon {lon_range}, lat {lat_range} is empty")
 
     def sample(shifted: bool):
-        g = np.meshgrid(_grid(lon0, lon1, n_xy, shifted), _grid(lat0, lat1, n_xy, shifted),
-                        _grid(h0, h1, n_h, shifted), indexing="ij")
+        g = np.meshgrid(
+            _grid(lon0, lon1, n_xy, shifted),
+            _grid(lat0, lat1, n_xy, shifted),
+            _grid(h0, h1, n_h, shifted),
+            indexing="ij",
+        )
         lon, lat, h = (a.ravel() for a in g)
         col, row = camera.project(lon, lat, h)
         col, row = np.asarray(col, float), np.asarray(row, float)
         bad = ~(np.isfinite(col) & np.isfinite(row))
         if bad.any():
-            raise CameraError(f"the camera cannot project {int(bad.sum())} of {bad.size} RPC-fit grid points; "
-                              "restrict the ground box or height range to where the camera is defined")
+            raise CameraError(
+                f"the camera cannot project {int(bad.sum())} of {bad.size} RPC-fit grid points; "
+                "restrict the ground box or height range to where the camera is defined"
+            )
         return lon, lat, h, col - PIXEL_SHIFT, row - PIXEL_SHIFT
 
     lon, lat, h, samp, line = sample(False)
@@ -254,8 +271,9 @@ def fit_rpc(camera: Camera, h_range: tuple[float, float], *, lon_range: tuple[fl
         progress(0.8, "RPC fit: solved")
     w = width if width is not None else camera.width
     hgt = height if height is not None else camera.height
-    rpc = RPCModel.from_arrays(np.stack([ln, ld, sn, sd]), norm, width=w, height=hgt,
-                               source=source or f"fitted to {camera.kind} camera")
+    rpc = RPCModel.from_arrays(
+        np.stack([ln, ld, sn, sd]), norm, width=w, height=hgt, source=source or f"fitted to {camera.kind} camera"
+    )
 
     def resid(lon_, lat_, h_, s_, l_):
         c, r = rpc.project(lon_, lat_, h_)
@@ -269,19 +287,26 @@ def fit_rpc(camera: Camera, h_range: tuple[float, float], *, lon_range: tuple[fl
     dc2, dr2 = resid(clon, clat, ch, cs, cl)
     e_chk = np.hypot(dc2, dr2)
     report = RPCFitReport(
-        fit_rms_px=float(np.sqrt(np.mean(e_fit ** 2))), fit_max_px=float(e_fit.max()),
-        check_rms_px=float(np.sqrt(np.mean(e_chk ** 2))), check_max_px=float(e_chk.max()),
-        check_max_col_px=float(np.abs(dc2).max()), check_max_row_px=float(np.abs(dr2).max()),
-        n_fit=int(lon.size), n_check=int(clon.size), iterations=int(max(it_l, it_s)), ridge=float(ridge),
-        lon_range=(lon0, lon1), lat_range=(lat0, lat1), h_range=(h0, h1),
+        fit_rms_px=float(np.sqrt(np.mean(e_fit**2))),
+        fit_max_px=float(e_fit.max()),
+        check_rms_px=float(np.sqrt(np.mean(e_chk**2))),
+        check_max_px=float(e_chk.max()),
+        check_max_col_px=float(np.abs(dc2).max()),
+        check_max_row_px=float(np.abs(dr2).max()),
+        n_fit=int(lon.size),
+        n_check=int(clon.size),
+        iterations=int(max(it_l, it_s)),
+        ridge=float(ridge),
+        lon_range=(lon0, lon1),
+        lat_range=(lat0, lat1),
+        h_range=(h0, h1),
     )
     if progress is not None:
         progress(1.0, f"RPC fit: check max {report.check_max_px:.2e} px")
     return rpc, report
 
 
-def rpc_camera_difference(rpc: Camera, camera: Camera, lon: np.ndarray, lat: np.ndarray,
-                          h: np.ndarray) -> np.ndarray:
+def rpc_camera_difference(rpc: Camera, camera: Camera, lon: np.ndarray, lat: np.ndarray, h: np.ndarray) -> np.ndarray:
     """Euclidean image distance (pixels) between two cameras' projections of the same ground points."""
     c1, r1 = rpc.project(lon, lat, h)
     c2, r2 = camera.project(lon, lat, h)

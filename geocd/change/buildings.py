@@ -49,8 +49,7 @@ class BuildingParams:
     changed_part: bool = False
 
 
-def largest_parts(change_mask: np.ndarray, labels: np.ndarray, n: int,
-                  keep=None) -> tuple[np.ndarray, np.ndarray]:
+def largest_parts(change_mask: np.ndarray, labels: np.ndarray, n: int, keep=None) -> tuple[np.ndarray, np.ndarray]:
     """Each building's largest changed part: 8-connected same-sign changed cells inside it.
 
     Parameters
@@ -102,11 +101,23 @@ def _ring_median(z: np.ndarray, inside: np.ndarray, other: np.ndarray, ring_cell
     return float(np.median(v)) if v.size else float("nan")
 
 
-def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, grid, *, z_a: np.ndarray | None = None,
-                       z_b: np.ndarray | None = None, dem_m: np.ndarray | None = None,
-                       confidence: np.ndarray | None = None, params: BuildingParams = BuildingParams(),
-                       id_field: str | None = None, confidence_level: float | None = None,
-                       detect_new: bool = True, min_part_cells: int | None = None, part_keep=None):
+def classify_buildings(
+    footprints,
+    change_mask: np.ndarray,
+    dz_m: np.ndarray,
+    grid,
+    *,
+    z_a: np.ndarray | None = None,
+    z_b: np.ndarray | None = None,
+    dem_m: np.ndarray | None = None,
+    confidence: np.ndarray | None = None,
+    params: BuildingParams = BuildingParams(),
+    id_field: str | None = None,
+    confidence_level: float | None = None,
+    detect_new: bool = True,
+    min_part_cells: int | None = None,
+    part_keep=None,
+):
     """Attribute footprints with their change, and add new buildings found in the change map.
 
     Parameters
@@ -140,8 +151,14 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
 
     gdf = footprints.to_crs(grid.crs).reset_index(drop=True)
     ids = gdf[id_field].to_numpy() if id_field and id_field in gdf else np.arange(1, len(gdf) + 1)
-    labels = rasterize([(g, i + 1) for i, g in enumerate(gdf.geometry)], out_shape=grid.shape,
-                       transform=grid.transform, fill=0, dtype="int32", all_touched=False)
+    labels = rasterize(
+        [(g, i + 1) for i, g in enumerate(gdf.geometry)],
+        out_shape=grid.shape,
+        transform=grid.transform,
+        fill=0,
+        dtype="int32",
+        all_touched=False,
+    )
     any_fp = labels > 0
     use_part = params.changed_part and min_part_cells is not None
     if use_part:
@@ -156,10 +173,18 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
         area = max(float(gdf.geometry.iloc[i].area), 1e-9)
         rec = {"building_id": ids[i], "n_cells": n}
         if n == 0:
-            rec.update(frac_observed=0.0, frac_inside=0.0, frac_changed=np.nan, frac_raised=np.nan,
-                       frac_lowered=np.nan, mean_dz_m=np.nan, volume_m3=np.nan, confidence=np.nan,
-                       rule=f"unobserved: no grid cell inside the footprint (min_inside {params.min_inside:g})",
-                       **{"class": "unobserved"})
+            rec.update(
+                frac_observed=0.0,
+                frac_inside=0.0,
+                frac_changed=np.nan,
+                frac_raised=np.nan,
+                frac_lowered=np.nan,
+                mean_dz_m=np.nan,
+                volume_m3=np.nan,
+                confidence=np.nan,
+                rule=f"unobserved: no grid cell inside the footprint (min_inside {params.min_inside:g})",
+                **{"class": "unobserved"},
+            )
             rows.append(rec)
             continue
         inside_frac = min(1.0, n * cell_area / area)
@@ -179,15 +204,19 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
             cin = cin[np.isfinite(cin) & (cin > 0)]
             conf = float(np.median(cin)) if cin.size else 0.0
         cls = "unchanged"
-        rule = (f"unchanged: {100 * max(raised, lowered):.0f}% of observed cells changed at {pct}"
-                f"(< min_changed {100 * params.min_changed:g}%)")
+        rule = (
+            f"unchanged: {100 * max(raised, lowered):.0f}% of observed cells changed at {pct}"
+            f"(< min_changed {100 * params.min_changed:g}%)"
+        )
         if inside_frac < params.min_inside:
             cls = "unobserved"
             rule = f"unobserved: {100 * inside_frac:.0f}% of the footprint on the grid (< min_inside {100 * params.min_inside:g}%)"
         elif nobs < params.min_observed * n:
             cls = "unobserved"
-            rule = (f"unobserved: {100 * nobs / n:.0f}% of its cells observed in both epochs "
-                    f"(< min_observed {100 * params.min_observed:g}%)")
+            rule = (
+                f"unobserved: {100 * nobs / n:.0f}% of its cells observed in both epochs "
+                f"(< min_observed {100 * params.min_observed:g}%)"
+            )
         elif max(raised, lowered) >= params.min_changed or (use_part and part_cells[i] >= min_part_cells):
             if max(raised, lowered) >= params.min_changed:
                 up = raised >= lowered
@@ -197,10 +226,12 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
             else:
                 up = part_sign[i] > 0
                 cls = "raised" if up else "lowered"
-                rule = (f"{cls}: a {cls} part of {part_cells[i]} cells ({part_cells[i] * cell_area:.0f} m²) at {pct}"
-                        f"(≥ the change map's mapping unit, {min_part_cells} cells); "
-                        f"{100 * max(raised, lowered):.1f}% of observed cells changed (< min_changed "
-                        f"{100 * params.min_changed:g}%)")
+                rule = (
+                    f"{cls}: a {cls} part of {part_cells[i]} cells ({part_cells[i] * cell_area:.0f} m²) at {pct}"
+                    f"(≥ the change map's mapping unit, {min_part_cells} cells); "
+                    f"{100 * max(raised, lowered):.1f}% of observed cells changed (< min_changed "
+                    f"{100 * params.min_changed:g}%)"
+                )
             z = z_a if up else z_b
             if z is not None:
                 zin = z[inside]
@@ -215,12 +246,22 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
                     if above < params.ground_tol_m:
                         epoch = "A" if cls == "raised" else "B"
                         cls = "new" if cls == "raised" else "demolished"
-                        rule += (f"; at ground level in {epoch} (median {above:.1f} m above its surroundings "
-                                 f"< ground_tol {params.ground_tol_m:g} m)")
-        rec.update(frac_observed=round(fobs, 4), frac_inside=round(inside_frac, 4), frac_changed=round(raised + lowered, 4),
-                   frac_raised=round(raised, 4), frac_lowered=round(lowered, 4), mean_dz_m=mean_dz,
-                   volume_m3=float(np.nansum(dz_m[inside] * ((cm == 1) | (cm == -1))) * cell_area) if nobs else np.nan,
-                   confidence=conf, rule=rule, **{"class": cls})
+                        rule += (
+                            f"; at ground level in {epoch} (median {above:.1f} m above its surroundings "
+                            f"< ground_tol {params.ground_tol_m:g} m)"
+                        )
+        rec.update(
+            frac_observed=round(fobs, 4),
+            frac_inside=round(inside_frac, 4),
+            frac_changed=round(raised + lowered, 4),
+            frac_raised=round(raised, 4),
+            frac_lowered=round(lowered, 4),
+            mean_dz_m=mean_dz,
+            volume_m3=float(np.nansum(dz_m[inside] * ((cm == 1) | (cm == -1))) * cell_area) if nobs else np.nan,
+            confidence=conf,
+            rule=rule,
+            **{"class": cls},
+        )
         rows.append(rec)
     import geopandas as gpd
     import pandas as pd
@@ -232,9 +273,18 @@ def classify_buildings(footprints, change_mask: np.ndarray, dz_m: np.ndarray, gr
         out[f"src_{c}"] = gdf[c].values
     if detect_new and z_a is not None and z_b is not None and len(gdf):
         min_area = params.min_changed * float(np.median(gdf.geometry.area))
-        new = detect_new_buildings(change_mask, dz_m, grid, z_a=z_a, z_b=z_b, footprint_mask=any_fp,
-                                   min_area_m2=min_area, confidence=confidence, params=params,
-                                   confidence_level=confidence_level)
+        new = detect_new_buildings(
+            change_mask,
+            dz_m,
+            grid,
+            z_a=z_a,
+            z_b=z_b,
+            footprint_mask=any_fp,
+            min_area_m2=min_area,
+            confidence=confidence,
+            params=params,
+            confidence_level=confidence_level,
+        )
         if len(new):
             new = new.to_crs(out.crs)
             out = gpd.GeoDataFrame(pd.concat([out, new], ignore_index=True), geometry="geometry", crs=out.crs)
@@ -270,9 +320,19 @@ def footprint_windows(footprints, grid):
         yield i, win, sub, near
 
 
-def detect_new_buildings(change_mask: np.ndarray, dz_m: np.ndarray, grid, *, z_a: np.ndarray, z_b: np.ndarray,
-                         footprint_mask: np.ndarray, min_area_m2: float, confidence: np.ndarray | None = None,
-                         params: BuildingParams = BuildingParams(), confidence_level: float | None = None):
+def detect_new_buildings(
+    change_mask: np.ndarray,
+    dz_m: np.ndarray,
+    grid,
+    *,
+    z_a: np.ndarray,
+    z_b: np.ndarray,
+    footprint_mask: np.ndarray,
+    min_area_m2: float,
+    confidence: np.ndarray | None = None,
+    params: BuildingParams = BuildingParams(),
+    confidence_level: float | None = None,
+):
     """New buildings that no footprint knows: raised regions outside every footprint.
 
     A user has the footprints of the earlier date at best, so buildings built since must come from
@@ -327,18 +387,31 @@ def detect_new_buildings(change_mask: np.ndarray, dz_m: np.ndarray, grid, *, z_a
             cin = cin[np.isfinite(cin) & (cin > 0)]
             conf = float(np.median(cin)) if cin.size else np.nan
         n = int(sizes[rid])
-        rows.append({"n_cells": n, "frac_observed": 1.0, "frac_inside": 1.0, "frac_changed": 1.0, "frac_raised": 1.0,
-                     "frac_lowered": 0.0, "mean_dz_m": float(d.mean()) if d.size else np.nan,
-                     "volume_m3": float(d.sum() * cell_area), "confidence": conf,
-                     "rule": (f"new (detected): raised region of {n * cell_area:.0f} m² at {pct}outside every footprint "
-                              f"(≥ {min_area_m2:.1f} m² = min_changed {100 * params.min_changed:g}% of the median "
-                              f"footprint); {above_a:.1f} m above its surroundings in A (< ground_tol {params.ground_tol_m:g} m), "
-                              f"raised by {raised_by:.1f} m (median, ≥ ground_tol)"),
-                     "class": "new"})
+        rows.append(
+            {
+                "n_cells": n,
+                "frac_observed": 1.0,
+                "frac_inside": 1.0,
+                "frac_changed": 1.0,
+                "frac_raised": 1.0,
+                "frac_lowered": 0.0,
+                "mean_dz_m": float(d.mean()) if d.size else np.nan,
+                "volume_m3": float(d.sum() * cell_area),
+                "confidence": conf,
+                "rule": (
+                    f"new (detected): raised region of {n * cell_area:.0f} m² at {pct}outside every footprint "
+                    f"(≥ {min_area_m2:.1f} m² = min_changed {100 * params.min_changed:g}% of the median "
+                    f"footprint); {above_a:.1f} m above its surroundings in A (< ground_tol {params.ground_tol_m:g} m), "
+                    f"raised by {raised_by:.1f} m (median, ≥ ground_tol)"
+                ),
+                "class": "new",
+            }
+        )
         kept.append(int(rid))
     if not rows:
-        return gpd.GeoDataFrame(pd.DataFrame(columns=["building_id", "source"]), geometry=gpd.GeoSeries([], crs=grid.crs),
-                                crs=grid.crs)
+        return gpd.GeoDataFrame(
+            pd.DataFrame(columns=["building_id", "source"]), geometry=gpd.GeoSeries([], crs=grid.crs), crs=grid.crs
+        )
     keep_lab = np.where(np.isin(lab, kept), lab, 0).astype(np.int32)
     parts: dict[int, list] = {}
     for geom, val in shapes(keep_lab, mask=keep_lab > 0, connectivity=8, transform=grid.transform):
@@ -365,12 +438,20 @@ def building_scores(pred_class, truth_class) -> dict:
     r = tp / (tp + fn) if tp + fn else 1.0
     f1 = 2 * p * r / (p + r) if p + r else 0.0
     exact = np.asarray(pred_class)[truth] == np.asarray(truth_class)[truth]
-    return {"tp": tp, "fp": fp, "fn": fn, "precision": p, "recall": r, "f1": f1,
-            "class_accuracy_on_changed": float(exact.mean()) if exact.size else float("nan")}
+    return {
+        "tp": tp,
+        "fp": fp,
+        "fn": fn,
+        "precision": p,
+        "recall": r,
+        "f1": f1,
+        "class_accuracy_on_changed": float(exact.mean()) if exact.size else float("nan"),
+    }
 
 
-def score_buildings(pred, truth, *, aoi=None, id_field: str = "building_id", status_field: str = "status",
-                    min_inside: float = 0.5) -> dict:
+def score_buildings(
+    pred, truth, *, aoi=None, id_field: str = "building_id", status_field: str = "status", min_inside: float = 0.5
+) -> dict:
     """Building-level scores of a ``buildings`` layer against the truth, new buildings included.
 
     Parameters

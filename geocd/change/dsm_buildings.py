@@ -141,8 +141,9 @@ def fill_gaps(z: np.ndarray) -> np.ndarray:
     return z[tuple(idx)].astype(np.float64)
 
 
-def ground_model(dsm: np.ndarray, posting_m: float, params: DSMBuildingParams = DSMBuildingParams()
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def ground_model(
+    dsm: np.ndarray, posting_m: float, params: DSMBuildingParams = DSMBuildingParams()
+) -> tuple[np.ndarray, np.ndarray]:
     """Progressive morphological ground filter.
 
     Returns
@@ -220,8 +221,13 @@ def tree_threshold_m(best: np.ndarray, ground: np.ndarray, params: DSMBuildingPa
     return max(params.tree_residual_m, q75)
 
 
-def building_objects(dsm: np.ndarray, dtm: np.ndarray, posting_m: float,
-                     params: DSMBuildingParams = DSMBuildingParams(), ground: np.ndarray | None = None) -> np.ndarray:
+def building_objects(
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    posting_m: float,
+    params: DSMBuildingParams = DSMBuildingParams(),
+    ground: np.ndarray | None = None,
+) -> np.ndarray:
     """int32 labels (0 = none) of building objects in a DSM over a ground model (``ground``: its ground cells)."""
     from skimage.morphology import h_maxima
     from skimage.segmentation import watershed
@@ -249,8 +255,13 @@ def building_objects(dsm: np.ndarray, dtm: np.ndarray, posting_m: float,
     return lut[labels]
 
 
-def plane_rule(dsm: np.ndarray, dtm: np.ndarray, posting_m: float, params: DSMBuildingParams = DSMBuildingParams(),
-               ground: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+def plane_rule(
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    posting_m: float,
+    params: DSMBuildingParams = DSMBuildingParams(),
+    ground: np.ndarray | None = None,
+) -> tuple[np.ndarray, float]:
     """The ``"plane"`` tree rule's cell figure and threshold on a DSM: (best-of-nine plane residual (rows, cols)
     in m, :func:`tree_threshold_m` from the DSM's ground cells). An object (or a changed part) whose median
     figure exceeds the threshold is a tree. ``ground``: ground cells (default: within ``dh0_m`` + 0.5 m of
@@ -263,8 +274,14 @@ def plane_rule(dsm: np.ndarray, dtm: np.ndarray, posting_m: float, params: DSMBu
     return best, tree_threshold_m(best, ground & has_z & (zf - dtm < params.min_height_m), params)
 
 
-def tree_objects(dsm: np.ndarray, dtm: np.ndarray, labels: np.ndarray, posting_m: float,
-                 params: DSMBuildingParams = DSMBuildingParams(), ground: np.ndarray | None = None) -> np.ndarray:
+def tree_objects(
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    labels: np.ndarray,
+    posting_m: float,
+    params: DSMBuildingParams = DSMBuildingParams(),
+    ground: np.ndarray | None = None,
+) -> np.ndarray:
     """bool (n,): which of the objects ``labels`` (1 … n) ``params.tree_rule`` calls a tree (see
     :class:`DSMBuildingParams`). Only cells with a stereo height count; an object without any is a tree."""
     n = int(labels.max())
@@ -291,9 +308,11 @@ def tree_objects(dsm: np.ndarray, dtm: np.ndarray, labels: np.ndarray, posting_m
     g = ground & has_z
     floor = float(np.median(rough[g])) if g.any() else float(np.median(rough))
     lab_z = np.where(has_z, labels, 0)
-    med_rough = np.array([np.median(v) if v.size else np.inf for v in
-                          (rough[lab_z == i] for i in idx)]) if n < 5000 else \
-        np.asarray(ndi.median(rough, lab_z, index=idx))
+    med_rough = (
+        np.array([np.median(v) if v.size else np.inf for v in (rough[lab_z == i] for i in idx)])
+        if n < 5000
+        else np.asarray(ndi.median(rough, lab_z, index=idx))
+    )
     med_rough = np.where(np.bincount(lab_z.ravel(), minlength=n + 1)[1:] > 0, med_rough, np.inf)
     return med_rough > params.roughness_factor * floor
 
@@ -341,8 +360,11 @@ def outlines(labels: np.ndarray, grid, params: DSMBuildingParams = DSMBuildingPa
         if rectangularity >= params.rect_min:
             g = rect
         rows.append({"building_id": k, "rectangularity": round(float(rectangularity), 3), "geometry": g})
-    return gpd.GeoDataFrame(rows, geometry="geometry", crs=grid.crs) if rows else \
-        gpd.GeoDataFrame({"building_id": [], "rectangularity": []}, geometry=[], crs=grid.crs)
+    return (
+        gpd.GeoDataFrame(rows, geometry="geometry", crs=grid.crs)
+        if rows
+        else gpd.GeoDataFrame({"building_id": [], "rectangularity": []}, geometry=[], crs=grid.crs)
+    )
 
 
 def buildings_from_dsm(dsm: np.ndarray, grid, params: DSMBuildingParams = DSMBuildingParams()):
@@ -357,8 +379,15 @@ def buildings_from_dsm(dsm: np.ndarray, grid, params: DSMBuildingParams = DSMBui
     return outlines(labels, grid, params), dtm, labels
 
 
-def new_objects(z_a: np.ndarray, z_b: np.ndarray, dtm: np.ndarray, labels_b: np.ndarray, grid,
-                params: DSMBuildingParams = DSMBuildingParams(), labels_a: np.ndarray | None = None):
+def new_objects(
+    z_a: np.ndarray,
+    z_b: np.ndarray,
+    dtm: np.ndarray,
+    labels_b: np.ndarray,
+    grid,
+    params: DSMBuildingParams = DSMBuildingParams(),
+    labels_a: np.ndarray | None = None,
+):
     """Parts of epoch B's building objects that stand where epoch A's surface was at ground level.
 
     A building built between the dates is an object of the later DSM on cells that stand at least
@@ -433,9 +462,19 @@ def _not_a_tree(z_a: np.ndarray, z_b: np.ndarray, dtm: np.ndarray, posting_m: fl
     return keep
 
 
-def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray, dtm: np.ndarray,
-                    model=None, report_confidence: float = 99.0, params: DSMBuildingParams = DSMBuildingParams(),
-                    id_field: str | None = None):
+def classify_damage(
+    buildings,
+    result,
+    grid,
+    *,
+    z_a: np.ndarray,
+    z_b: np.ndarray,
+    dtm: np.ndarray,
+    model=None,
+    report_confidence: float = 99.0,
+    params: DSMBuildingParams = DSMBuildingParams(),
+    id_field: str | None = None,
+):
     """Damage class, confidence (percent), heights and volume ± σ of every building.
 
     Parameters
@@ -462,15 +501,33 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     if report_confidence not in levels:
         raise ValueError(f"report confidence {report_confidence} is not a tested level {levels}")
     cm = np.where(observed, result.changed_at(report_confidence), CHANGE_NODATA).astype(np.int16)
-    bp = BuildingParams(min_observed=params.min_observed, min_changed=params.min_changed,
-                        changed_part=params.changed_part)
+    bp = BuildingParams(
+        min_observed=params.min_observed, min_changed=params.min_changed, changed_part=params.changed_part
+    )
     mmu = int(result.min_region_cells)
     keep = _not_a_tree(z_a, z_b, dtm, grid.posting_m, params) if params.changed_part else None
-    base = classify_buildings(gdf, cm, result.dz_m, grid, z_a=z_a, z_b=z_b, dem_m=dtm, params=bp, id_field=id_field,
-                              confidence_level=report_confidence, detect_new=False, min_part_cells=mmu,
-                              part_keep=keep)
-    labels = rasterize([(g, i + 1) for i, g in enumerate(gdf.geometry)], out_shape=grid.shape,
-                       transform=grid.transform, fill=0, dtype="int32")
+    base = classify_buildings(
+        gdf,
+        cm,
+        result.dz_m,
+        grid,
+        z_a=z_a,
+        z_b=z_b,
+        dem_m=dtm,
+        params=bp,
+        id_field=id_field,
+        confidence_level=report_confidence,
+        detect_new=False,
+        min_part_cells=mmu,
+        part_keep=keep,
+    )
+    labels = rasterize(
+        [(g, i + 1) for i, g in enumerate(gdf.geometry)],
+        out_shape=grid.shape,
+        transform=grid.transform,
+        fill=0,
+        dtype="int32",
+    )
     n = len(gdf)
     idx = np.arange(1, n + 1)
     # highest tested level at which the building is changed
@@ -510,7 +567,7 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
             blocks = (rr // corr) * (grid.shape[1] // corr + 1) + cc // corr
             s_block = np.bincount(blocks, weights=sig[sl][obs].astype(float))
             # scale to the whole footprint like the volume
-            vsig = float(math.sqrt(float(np.sum(s_block ** 2))) * cell * n_in / max(dz.size, 1))
+            vsig = float(math.sqrt(float(np.sum(s_block**2))) * cell * n_in / max(dz.size, 1))
         cls = str(b["class"])
         rule = str(b.get("rule", ""))
         fl = float(np.nan_to_num(b["frac_lowered"]))
@@ -519,7 +576,9 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
             ratio = h_after / h_before if (np.isfinite(h_before) and h_before > 0) else np.nan
             if (np.isfinite(ratio) and ratio <= params.collapse_ratio) or (np.isfinite(h_after) and h_after < 2.5):
                 cls = "collapsed"
-                rule += f"; {h_after:.1f} m above ground after vs {h_before:.1f} m before (≤ {params.collapse_ratio:g}×)"
+                rule += (
+                    f"; {h_after:.1f} m above ground after vs {h_before:.1f} m before (≤ {params.collapse_ratio:g}×)"
+                )
             elif fl < params.most:
                 cls = "partly collapsed"
                 rule += f"; lowered on {100 * fl:.0f}% of it (< {100 * params.most:g}%)"
@@ -530,14 +589,23 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
             cls = "new"
             rule += f"; {h_before:.1f} m above ground before"
         c_pct = float(conf[i]) if cls in CHANGED else 0.0
-        rec = {"building_id": b["building_id"], "class": cls, "confidence_pct": c_pct, "rule": rule,
-               "frac_observed": b["frac_observed"], "frac_changed": b["frac_changed"], "frac_lowered": fl,
-               "frac_raised": fr, "height_before_m": round(h_before, 2), "height_after_m": round(h_after, 2),
-               "mean_dz_m": round(mean_dz, 2) if np.isfinite(mean_dz) else np.nan,
-               "volume_change_m3": round(vol, 1) if np.isfinite(vol) else np.nan,
-               "volume_sigma_m3": round(vsig, 1) if np.isfinite(vsig) else np.nan,
-               "volume_lost_m3": round(max(-vol, 0.0), 1) if np.isfinite(vol) else np.nan,
-               "area_m2": round(n_in * cell, 1)}
+        rec = {
+            "building_id": b["building_id"],
+            "class": cls,
+            "confidence_pct": c_pct,
+            "rule": rule,
+            "frac_observed": b["frac_observed"],
+            "frac_changed": b["frac_changed"],
+            "frac_lowered": fl,
+            "frac_raised": fr,
+            "height_before_m": round(h_before, 2),
+            "height_after_m": round(h_after, 2),
+            "mean_dz_m": round(mean_dz, 2) if np.isfinite(mean_dz) else np.nan,
+            "volume_change_m3": round(vol, 1) if np.isfinite(vol) else np.nan,
+            "volume_sigma_m3": round(vsig, 1) if np.isfinite(vsig) else np.nan,
+            "volume_lost_m3": round(max(-vol, 0.0), 1) if np.isfinite(vol) else np.nan,
+            "area_m2": round(n_in * cell, 1),
+        }
         out_rows.append(rec)
     import geopandas as gpd
     import pandas as pd
@@ -551,8 +619,9 @@ def classify_damage(buildings, result, grid, *, z_a: np.ndarray, z_b: np.ndarray
     return out
 
 
-def stable_false_alarms(confidence: np.ndarray, observed: np.ndarray, damage, grid, *, buffer_m: float = 0.0,
-                        levels=(90.0, 95.0, 99.0)) -> dict:
+def stable_false_alarms(
+    confidence: np.ndarray, observed: np.ndarray, damage, grid, *, buffer_m: float = 0.0, levels=(90.0, 95.0, 99.0)
+) -> dict:
     """Flagged share of the observed cells outside every changed building (grown by ``buffer_m``).
 
     ``confidence``: per-cell confidence (percent) of a change test; ``damage``: its building layer.
@@ -562,8 +631,13 @@ def stable_false_alarms(confidence: np.ndarray, observed: np.ndarray, damage, gr
 
     changed = damage[damage["class"].isin(CHANGED)]
     geoms = [g.buffer(buffer_m) if buffer_m else g for g in changed.geometry]
-    inside = (rasterize([(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform, fill=0,
-                        dtype="uint8").astype(bool) if geoms else np.zeros(grid.shape, bool))
+    inside = (
+        rasterize(
+            [(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8"
+        ).astype(bool)
+        if geoms
+        else np.zeros(grid.shape, bool)
+    )
     stable = observed & ~inside
     out: dict = {f"{c:g}": round(float((np.nan_to_num(confidence[stable]) >= c).mean()), 5) for c in levels}
     out.update(stable_cells=int(stable.sum()), buffer_m=buffer_m)

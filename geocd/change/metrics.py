@@ -33,8 +33,17 @@ def binary_scores(pred: np.ndarray, truth: np.ndarray, valid: np.ndarray | None 
     precision = tp / (tp + fp) if tp + fp else float("nan")
     recall = tp / (tp + fn) if tp + fn else float("nan")
     f1 = 2 * precision * recall / (precision + recall) if tp else 0.0
-    return {"tp": tp, "fp": fp, "fn": fn, "tn": tn, "precision": precision, "recall": recall, "f1": f1,
-            "false_alarm_rate": fp / (fp + tn) if fp + tn else float("nan"), "n": int(p.size)}
+    return {
+        "tp": tp,
+        "fp": fp,
+        "fn": fn,
+        "tn": tn,
+        "precision": precision,
+        "recall": recall,
+        "f1": f1,
+        "false_alarm_rate": fp / (fp + tn) if fp + tn else float("nan"),
+        "n": int(p.size),
+    }
 
 
 def roc_curve(score: np.ndarray, truth: np.ndarray, valid: np.ndarray | None = None, n_thresholds: int = 512):

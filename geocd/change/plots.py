@@ -27,8 +27,12 @@ def _save(fig, path: os.PathLike | str, dpi: int = 130) -> Path:
     return Path(path)
 
 
-def hillshade(height_m: np.ndarray, posting_xy_m: tuple[float, float] = (1.0, 1.0), azimuth_deg: float = 315.0,
-              altitude_deg: float = 45.0) -> np.ndarray:
+def hillshade(
+    height_m: np.ndarray,
+    posting_xy_m: tuple[float, float] = (1.0, 1.0),
+    azimuth_deg: float = 315.0,
+    altitude_deg: float = 45.0,
+) -> np.ndarray:
     """Simple hillshade (0–1) for backdrops."""
     h = np.asarray(height_m, np.float64)
     gy, gx = np.gradient(np.where(np.isfinite(h), h, np.nanmean(h)), posting_xy_m[1], posting_xy_m[0])
@@ -39,11 +43,22 @@ def hillshade(height_m: np.ndarray, posting_xy_m: tuple[float, float] = (1.0, 1.
     return np.where(np.isfinite(h), np.clip(hs, 0, 1), np.nan)
 
 
-def plot_dh_map(dz_m: np.ndarray, grid, path: os.PathLike | str, *, sign: np.ndarray | None = None,
-                backdrop_m: np.ndarray | None = None, title: str = "", vmax: float | None = None,
-                stable: np.ndarray | None = None, label: str = "Δh (m), B − A", cmap: str = "RdBu_r",
-                note: str = "", backdrop_posting_xy_m: tuple[float, float] | None = None,
-                changed_only: bool = False) -> Path:
+def plot_dh_map(
+    dz_m: np.ndarray,
+    grid,
+    path: os.PathLike | str,
+    *,
+    sign: np.ndarray | None = None,
+    backdrop_m: np.ndarray | None = None,
+    title: str = "",
+    vmax: float | None = None,
+    stable: np.ndarray | None = None,
+    label: str = "Δh (m), B − A",
+    cmap: str = "RdBu_r",
+    note: str = "",
+    backdrop_posting_xy_m: tuple[float, float] | None = None,
+    changed_only: bool = False,
+) -> Path:
     """Map of a height change (diverging colours centred on 0) with changed regions outlined.
 
     Parameters
@@ -76,25 +91,53 @@ def plot_dh_map(dz_m: np.ndarray, grid, path: os.PathLike | str, *, sign: np.nda
     vmax = max(float(vmax), 1e-3)
     if backdrop_m is not None:
         hs = hillshade(backdrop_m, backdrop_posting_xy_m or grid.posting)
-        ax.imshow(hs, cmap="Greys_r", vmin=0, vmax=1, extent=ext, interpolation="nearest",
-                  alpha=0.6 if changed_only else 1.0)
+        ax.imshow(
+            hs, cmap="Greys_r", vmin=0, vmax=1, extent=ext, interpolation="nearest", alpha=0.6 if changed_only else 1.0
+        )
     elif changed_only:
-        ax.imshow(np.where(np.isfinite(dz_m), 0.85, np.nan), cmap="Greys_r", vmin=0, vmax=1, extent=ext,
-                  interpolation="nearest")
-    im = ax.imshow(np.ma.masked_invalid(shown), cmap=cmap, vmin=-vmax, vmax=vmax, extent=ext,
-                   interpolation="nearest", alpha=0.85 if (backdrop_m is not None and not changed_only) else 1.0)
+        ax.imshow(
+            np.where(np.isfinite(dz_m), 0.85, np.nan),
+            cmap="Greys_r",
+            vmin=0,
+            vmax=1,
+            extent=ext,
+            interpolation="nearest",
+        )
+    im = ax.imshow(
+        np.ma.masked_invalid(shown),
+        cmap=cmap,
+        vmin=-vmax,
+        vmax=vmax,
+        extent=ext,
+        interpolation="nearest",
+        alpha=0.85 if (backdrop_m is not None and not changed_only) else 1.0,
+    )
     fig.colorbar(im, ax=ax, shrink=0.8, label=label + (" (changed cells)" if changed_only else ""), extend="both")
     if stable is not None and np.any(stable):
-        ax.contour(np.asarray(stable, float), levels=[0.5], colors="0.35", linewidths=0.4, linestyles=":",
-                   extent=(l, r, b, t), origin="upper")
+        ax.contour(
+            np.asarray(stable, float),
+            levels=[0.5],
+            colors="0.35",
+            linewidths=0.4,
+            linestyles=":",
+            extent=(l, r, b, t),
+            origin="upper",
+        )
     if sign is not None:
         halo = [patheffects.withStroke(linewidth=2.2, foreground="white")]
         handles = []
         for s, style, name in ((1, "solid", "raised"), (-1, "dashed", "lowered")):
             m = np.asarray(sign) == s
             if m.any():
-                cs = ax.contour(m.astype(float), levels=[0.5], colors="black", linewidths=0.9, linestyles=style,
-                                extent=(l, r, b, t), origin="upper")
+                cs = ax.contour(
+                    m.astype(float),
+                    levels=[0.5],
+                    colors="black",
+                    linewidths=0.9,
+                    linestyles=style,
+                    extent=(l, r, b, t),
+                    origin="upper",
+                )
                 for coll in getattr(cs, "collections", [cs]):
                     coll.set_path_effects(halo)
                 handles.append(Line2D([], [], color="black", lw=0.9, ls=style, label=f"{name} region"))
@@ -102,8 +145,16 @@ def plot_dh_map(dz_m: np.ndarray, grid, path: os.PathLike | str, *, sign: np.nda
             ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.8)
     ax.set_title(title, fontsize=9)
     if note:
-        ax.text(0.01, 0.01, note, transform=ax.transAxes, fontsize=7, va="bottom", ha="left",
-                bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"})
+        ax.text(
+            0.01,
+            0.01,
+            note,
+            transform=ax.transAxes,
+            fontsize=7,
+            va="bottom",
+            ha="left",
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
+        )
     geographic = bool(getattr(grid.crs, "is_geographic", False))
     ax.set_xlabel("longitude (°)" if geographic else "easting (m)")
     ax.set_ylabel("latitude (°)" if geographic else "northing (m)")
@@ -111,9 +162,16 @@ def plot_dh_map(dz_m: np.ndarray, grid, path: os.PathLike | str, *, sign: np.nda
     return _save(fig, path)
 
 
-def plot_volume_series(series: Sequence[dict[str, Any]], path: os.PathLike | str, *, title: str = "",
-                       ylabel: str = "volume (10⁶ m³)", scale: float = 1e-6, reference: Sequence[dict[str, Any]] = (),
-                       bars: Sequence[dict[str, Any]] = ()) -> Path:
+def plot_volume_series(
+    series: Sequence[dict[str, Any]],
+    path: os.PathLike | str,
+    *,
+    title: str = "",
+    ylabel: str = "volume (10⁶ m³)",
+    scale: float = 1e-6,
+    reference: Sequence[dict[str, Any]] = (),
+    bars: Sequence[dict[str, Any]] = (),
+) -> Path:
     """Volume (or any quantity) vs date with 1σ error bars, for one or more series.
 
     Parameters
@@ -129,22 +187,46 @@ def plot_volume_series(series: Sequence[dict[str, Any]], path: os.PathLike | str
         d = list(sdef["dates"])
         v = np.asarray(sdef["values"], float) * scale
         s = np.asarray(sdef.get("sigmas", np.full(len(d), np.nan)), float) * scale
-        ax.errorbar(d, v, yerr=np.where(np.isfinite(s), s, 0.0), fmt=sdef.get("style", "o-"), ms=4, capsize=2.5,
-                    lw=1.2, label=sdef["label"])
+        ax.errorbar(
+            d,
+            v,
+            yerr=np.where(np.isfinite(s), s, 0.0),
+            fmt=sdef.get("style", "o-"),
+            ms=4,
+            capsize=2.5,
+            lw=1.2,
+            label=sdef["label"],
+        )
     for rdef in reference:
         d = list(rdef["dates"])
         v = np.asarray(rdef["values"], float) * scale
         s = np.asarray(rdef.get("sigmas", np.full(len(d), np.nan)), float) * scale
-        ax.errorbar(d, v, yerr=np.where(np.isfinite(s), s, 0.0), fmt=rdef.get("style", "ks"), ms=5, capsize=2.5,
-                    mfc="none", label=rdef["label"])
+        ax.errorbar(
+            d,
+            v,
+            yerr=np.where(np.isfinite(s), s, 0.0),
+            fmt=rdef.get("style", "ks"),
+            ms=5,
+            capsize=2.5,
+            mfc="none",
+            label=rdef["label"],
+        )
     if bars:
         ax2 = ax.twinx()
         for bdef in bars:
             da, db = list(bdef["dates_a"]), list(bdef["dates"])
             v = np.asarray(bdef["values"], float) * scale
             for k, (x0, x1) in enumerate(zip(da, db)):
-                ax2.fill_between([x0, x1], [0, 0], [v[k], v[k]], step="pre", color="0.8", alpha=0.6, lw=0,
-                                 label=bdef["label"] if k == 0 else None)
+                ax2.fill_between(
+                    [x0, x1],
+                    [0, 0],
+                    [v[k], v[k]],
+                    step="pre",
+                    color="0.8",
+                    alpha=0.6,
+                    lw=0,
+                    label=bdef["label"] if k == 0 else None,
+                )
         ax2.set_ylabel(bars[0].get("ylabel", "per interval (10⁶ m³)"))
         ax2.set_zorder(ax.get_zorder() - 1)
         ax.patch.set_visible(False)
@@ -191,7 +273,9 @@ def scatter_curves_figure(model, title: str = "Self-consistency distribution"):
     h = model.hist.astype(float)
     # density per score bin (bins have equal counts by construction, except thin tails)
     h = h / np.maximum(h.sum(axis=1, keepdims=True), 1)
-    m = ax.pcolormesh(e, d, np.ma.masked_equal(h.T, 0), norm=LogNorm(vmin=1e-4, vmax=h.max()), cmap="Greys", shading="flat")
+    m = ax.pcolormesh(
+        e, d, np.ma.masked_equal(h.T, 0), norm=LogNorm(vmin=1e-4, vmax=h.max()), cmap="Greys", shading="flat"
+    )
     fig.colorbar(m, ax=ax, label="fraction of match pairs in score bin")
     colours = curve_colours(list(model.curves))
     x = model.score_centres
@@ -203,8 +287,11 @@ def scatter_curves_figure(model, title: str = "Self-consistency distribution"):
         if raw:
             ax.plot(x, model.raw_curves[k], "o", color=c, ms=3.5, mec="white", mew=0.4, gid=f"bins {k}")
         # the legend shows the curve as drawn: its smoothed line, its per-bin values as dots of its colour
-        handles.append(Line2D([], [], color=c, lw=2, marker="o" if raw else None, ms=3.5, mec="white", mew=0.4,
-                              label=f"{k}% curve"))
+        handles.append(
+            Line2D(
+                [], [], color=c, lw=2, marker="o" if raw else None, ms=3.5, mec="white", mew=0.4, label=f"{k}% curve"
+            )
+        )
     ax.set_yscale("log")
     ax.set_ylim(1e-2, max(10.0, np.nanmax([np.nanmax(v) for v in model.curves.values()]) * 2))
     ax.set_xlabel("max MDL score of the two matches (bits/pixel, lower = better)")

@@ -28,14 +28,26 @@ from ..io.vector import qml_for, write_gpkg
 from .styles import buildings_qml, write_raster_style
 
 
-def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid, *, method: str = "self-consistency",
-                          epoch_a: str = "A", epoch_b: str = "B", region_confidence: float = 99.0,
-                          model: SelfConsistencyModel | None = None, buildings=None, extra_layers: dict | None = None,
-                          extra_styles: dict | None = None,
-                          provenance: dict | None = None, prefix: str | None = None,
-                          min_region_cells: int | None = None, plots: bool = True,
-                          backdrop_m: np.ndarray | None = None,
-                          examined: np.ndarray | None = None) -> dict[str, Path]:
+def write_change_products(
+    out_dir: os.PathLike | str,
+    result: ChangeResult,
+    grid,
+    *,
+    method: str = "self-consistency",
+    epoch_a: str = "A",
+    epoch_b: str = "B",
+    region_confidence: float = 99.0,
+    model: SelfConsistencyModel | None = None,
+    buildings=None,
+    extra_layers: dict | None = None,
+    extra_styles: dict | None = None,
+    provenance: dict | None = None,
+    prefix: str | None = None,
+    min_region_cells: int | None = None,
+    plots: bool = True,
+    backdrop_m: np.ndarray | None = None,
+    examined: np.ndarray | None = None,
+) -> dict[str, Path]:
     """Write every product of one change test; returns {product name: path}.
 
     ``examined`` (bool (rows, cols), a tiered run's flagged tiles): the change mask gives the other
@@ -52,9 +64,13 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     prefix = prefix or method.replace(" ", "_").replace("-", "_")
-    tags = {"method": method, "epoch_a": epoch_a, "epoch_b": epoch_b,
-            "confidences": ",".join(f"{c:g}" for c in result.confidences),
-            "comparisons": "; ".join(result.comparisons)}
+    tags = {
+        "method": method,
+        "epoch_a": epoch_a,
+        "epoch_b": epoch_b,
+        "confidences": ",".join(f"{c:g}" for c in result.confidences),
+        "comparisons": "; ".join(result.comparisons),
+    }
     if provenance:
         import json
 
@@ -66,27 +82,41 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
     if result.dz_sigma_m is not None:
         bands["dz_sigma_m"] = result.dz_sigma_m
     tags.update(significance=result.significance, min_region_cells=str(result.min_region_cells))
-    if getattr(result, "calibration", None) is not None:   # the transfer calibration of the model, when applied
+    if getattr(result, "calibration", None) is not None:  # the transfer calibration of the model, when applied
         import json
 
         tags["model_calibration"] = json.dumps(result.calibration.to_dict())
-    paths["change"] = write_cog(out / f"{prefix}_change.tif", bands, grid, tags=tags, units=_BAND_UNITS,
-                                band_tags=[{"long_name": _BAND_DESCRIPTIONS[k]} for k in bands])
+    paths["change"] = write_cog(
+        out / f"{prefix}_change.tif",
+        bands,
+        grid,
+        tags=tags,
+        units=_BAND_UNITS,
+        band_tags=[{"long_name": _BAND_DESCRIPTIONS[k]} for k in bands],
+    )
     write_raster_style(paths["change"], qml_for("confidence"))
     # the mask is the map at the reported confidence (the level the regions, buildings and summary use)
     mask = result.changed_at(region_confidence)
     if examined is not None:
         mask = np.where(examined, mask, NOT_EXAMINED).astype(np.int8)
         tags["examined_fraction"] = f"{float(np.mean(examined)):.4f}"
-    paths["change_mask"] = write_cog(out / f"{prefix}_change_mask.tif", {"change": mask}, grid,
-                                     nodata=CHANGE_NODATA, dtype="int8",
-                                     tags={**tags, "mask_confidence_pct": f"{region_confidence:g}"},
-                                     units={"change": "class"},
-                                     band_tags=[{"long_name": f"change at {region_confidence:g} %: +1 raised, -1 lowered, "
-                                                 "0 unchanged, -128 not observed"
-                                                 + (", -127 not examined (screened out)" if examined is not None
-                                                    else "")}],
-                                     overview_resampling="nearest")
+    paths["change_mask"] = write_cog(
+        out / f"{prefix}_change_mask.tif",
+        {"change": mask},
+        grid,
+        nodata=CHANGE_NODATA,
+        dtype="int8",
+        tags={**tags, "mask_confidence_pct": f"{region_confidence:g}"},
+        units={"change": "class"},
+        band_tags=[
+            {
+                "long_name": f"change at {region_confidence:g} %: +1 raised, -1 lowered, "
+                "0 unchanged, -128 not observed"
+                + (", -127 not examined (screened out)" if examined is not None else "")
+            }
+        ],
+        overview_resampling="nearest",
+    )
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
 
     sign = np.where((mask == 1) | (mask == -1), mask, 0).astype(np.int8)
@@ -94,8 +124,18 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
     vfn = None
     if result.dz_sigma_m is not None:  # σ of the volume from the error model, correlated over one window
         vfn = correlated_volume_sigma(result.dz_sigma_m, max(result.min_region_cells, 1), grid.cell_area_m2)
-    regions = change_regions(sign, result.dz_m, grid, confidence=result.confidence, volume_sigma_fn=vfn,
-                             volume_confidence=False, method=method, epoch_a=epoch_a, epoch_b=epoch_b, min_cells=mmu)
+    regions = change_regions(
+        sign,
+        result.dz_m,
+        grid,
+        confidence=result.confidence,
+        volume_sigma_fn=vfn,
+        volume_confidence=False,
+        method=method,
+        epoch_a=epoch_a,
+        epoch_b=epoch_b,
+        min_cells=mmu,
+    )
     layers: dict[str, Any] = {"changes": regions}
     styles = {"changes": qml_for("changes")}
     if buildings is not None:
@@ -112,14 +152,26 @@ def write_change_products(out_dir: os.PathLike | str, result: ChangeResult, grid
 
         if model is not None:
             paths["scatter"] = plot_scatter_curves(model, out / f"{prefix}_scatter.png")
-        paths["quicklook"] = plot_dh_map(result.dz_m, grid, out / f"{prefix}_quicklook.png", sign=sign,
-                                         backdrop_m=backdrop_m, changed_only=True,
-                                         title=f"{method}: {epoch_a} → {epoch_b}, changed at {region_confidence:g} %")
+        paths["quicklook"] = plot_dh_map(
+            result.dz_m,
+            grid,
+            out / f"{prefix}_quicklook.png",
+            sign=sign,
+            backdrop_m=backdrop_m,
+            changed_only=True,
+            title=f"{method}: {epoch_a} → {epoch_b}, changed at {region_confidence:g} %",
+        )
     return paths
 
 
-_BAND_UNITS = {"dz_m": "m", "dtilde": "px", "score": "bit/px", "confidence": "%", "cell_confidence": "%",
-               "dz_sigma_m": "m"}
+_BAND_UNITS = {
+    "dz_m": "m",
+    "dtilde": "px",
+    "score": "bit/px",
+    "confidence": "%",
+    "cell_confidence": "%",
+    "dz_sigma_m": "m",
+}
 _BAND_DESCRIPTIONS = {
     "dz_m": "height change B - A, median over comparisons (m)",
     "dtilde": "normalized difference, pixels of disparity",

@@ -44,8 +44,20 @@ from typing import Any, Callable
 
 import numpy as np
 
-COLUMNS = ("region_id", "method", "epoch_a", "epoch_b", "sign", "n_cells", "area_m2", "mean_dz_m", "max_dz_m",
-           "volume_m3", "volume_sigma_m3", "confidence")
+COLUMNS = (
+    "region_id",
+    "method",
+    "epoch_a",
+    "epoch_b",
+    "sign",
+    "n_cells",
+    "area_m2",
+    "mean_dz_m",
+    "max_dz_m",
+    "volume_m3",
+    "volume_sigma_m3",
+    "confidence",
+)
 
 _EIGHT = np.ones((3, 3), dtype=bool)
 
@@ -55,10 +67,17 @@ def empty_regions(crs: Any = None):
     import geopandas as gpd
     import pandas as pd
 
-    df = pd.DataFrame({
-        "region_id": pd.Series(dtype="int64"), "method": pd.Series(dtype="str"), "epoch_a": pd.Series(dtype="str"),
-        "epoch_b": pd.Series(dtype="str"), "sign": pd.Series(dtype="int64"), "n_cells": pd.Series(dtype="int64"),
-        **{c: pd.Series(dtype="float64") for c in COLUMNS[6:]}})
+    df = pd.DataFrame(
+        {
+            "region_id": pd.Series(dtype="int64"),
+            "method": pd.Series(dtype="str"),
+            "epoch_a": pd.Series(dtype="str"),
+            "epoch_b": pd.Series(dtype="str"),
+            "sign": pd.Series(dtype="int64"),
+            "n_cells": pd.Series(dtype="int64"),
+            **{c: pd.Series(dtype="float64") for c in COLUMNS[6:]},
+        }
+    )
     return gpd.GeoDataFrame(df, geometry=gpd.GeoSeries([], crs=crs), crs=crs)
 
 
@@ -72,7 +91,7 @@ def _cell_area_m2(grid) -> float:
     lat = math.radians(0.5 * (b + t))
     w = 1 - e2 * math.sin(lat) ** 2
     n = a / math.sqrt(w)
-    mm = a * (1 - e2) / w ** 1.5
+    mm = a * (1 - e2) / w**1.5
     return float(math.radians(grid.posting[0]) * n * math.cos(lat) * math.radians(grid.posting[1]) * mm)
 
 
@@ -82,11 +101,21 @@ def _gauss_level(v: float, s: float) -> float:
     return 100.0 * float(math.erf(abs(v) / s / math.sqrt(2.0)))
 
 
-def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: float | np.ndarray | None = None,
-                   dz_sigma_m: float | np.ndarray | None = None,
-                   volume_sigma_fn: Callable[[np.ndarray], float] | None = None, method: str = "", epoch_a: str = "",
-                   epoch_b: str = "", min_cells: int = 4, cell_area_m2: float | None = None,
-                   volume_confidence: bool = True):
+def change_regions(
+    sign: np.ndarray,
+    dz_m: np.ndarray,
+    grid,
+    *,
+    confidence: float | np.ndarray | None = None,
+    dz_sigma_m: float | np.ndarray | None = None,
+    volume_sigma_fn: Callable[[np.ndarray], float] | None = None,
+    method: str = "",
+    epoch_a: str = "",
+    epoch_b: str = "",
+    min_cells: int = 4,
+    cell_area_m2: float | None = None,
+    volume_confidence: bool = True,
+):
     """Connected changed regions as polygons with area, volume ± σ and confidence.
 
     Parameters
@@ -183,9 +212,21 @@ def change_regions(sign: np.ndarray, dz_m: np.ndarray, grid, *, confidence: floa
             g = unary_union(parts.get(int(rid), []))
             if not g.is_valid:
                 g = g.buffer(0)
-            recs.append({"method": method, "epoch_a": epoch_a, "epoch_b": epoch_b, "sign": sgn,
-                         "n_cells": int(sizes[rid]), "area_m2": float(sizes[rid] * cell), "mean_dz_m": mean,
-                         "max_dz_m": mx, "volume_m3": vol, "volume_sigma_m3": vs, "confidence": cf})
+            recs.append(
+                {
+                    "method": method,
+                    "epoch_a": epoch_a,
+                    "epoch_b": epoch_b,
+                    "sign": sgn,
+                    "n_cells": int(sizes[rid]),
+                    "area_m2": float(sizes[rid] * cell),
+                    "mean_dz_m": mean,
+                    "max_dz_m": mx,
+                    "volume_m3": vol,
+                    "volume_sigma_m3": vs,
+                    "confidence": cf,
+                }
+            )
             geoms.append(g)
     if not recs:
         return empty_regions(grid.crs)

@@ -24,8 +24,8 @@ BUILDING_CLASSES = {
 
 
 def _symbol(i: int, fill: str, outline: str = "#323232", fill_alpha: int = 200, style: str = "solid") -> str:
-    r, g, b = (int(fill[k:k + 2], 16) for k in (1, 3, 5))
-    ro, go, bo = (int(outline[k:k + 2], 16) for k in (1, 3, 5))
+    r, g, b = (int(fill[k : k + 2], 16) for k in (1, 3, 5))
+    ro, go, bo = (int(outline[k : k + 2], 16) for k in (1, 3, 5))
     return f"""      <symbol type="fill" name="{i}" alpha="1" clip_to_extent="1" force_rhr="0">
         <layer class="SimpleFill" enabled="1" locked="0" pass="0">
           <Option type="Map">
@@ -87,7 +87,9 @@ def categorized_polygon_qml(attribute: str, categories: dict, label_field: str |
     cats = []
     syms = []
     for i, (value, (colour, label)) in enumerate(categories.items()):
-        cats.append(f'      <category render="true" symbol="{i}" value={quoteattr(str(value))} label={quoteattr(label)}/>')
+        cats.append(
+            f'      <category render="true" symbol="{i}" value={quoteattr(str(value))} label={quoteattr(label)}/>'
+        )
         style = "no" if colour.lower() == "#ffffff" else "solid"
         syms.append(_symbol(i, colour, style=style))
     labeling = ""
@@ -108,7 +110,7 @@ def categorized_polygon_qml(attribute: str, categories: dict, label_field: str |
 {chr(10).join(cats)}
     </categories>
     <symbols>
-{''.join(syms)}    </symbols>
+{"".join(syms)}    </symbols>
   </renderer-v2>
 {labeling}  <blendMode>0</blendMode>
   <featureBlendMode>0</featureBlendMode>

@@ -31,14 +31,34 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..consistency import (CHANGE_NODATA, ChangeParams, ChangeResult, DEMAsEpoch, SelfConsistencyModel, change_test,
-                           PairCalibration, _comparison_arrays, apply_offsets, fit_pair_calibration, model_learned_on,
-                           vertical_offsets)
+from ..consistency import (
+    CHANGE_NODATA,
+    ChangeParams,
+    ChangeResult,
+    DEMAsEpoch,
+    SelfConsistencyModel,
+    change_test,
+    PairCalibration,
+    _comparison_arrays,
+    apply_offsets,
+    fit_pair_calibration,
+    model_learned_on,
+    vertical_offsets,
+)
 from ..errors import ConfigError, GridError, UnsupportedFormatError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
-from ..tiling import (WORK_DIR, RasterProduct, RasterSource, TileGrid, TileOutput, open_engine, remove_work,
-                      run_tiled, write_product)
+from ..tiling import (
+    WORK_DIR,
+    RasterProduct,
+    RasterSource,
+    TileGrid,
+    TileOutput,
+    open_engine,
+    remove_work,
+    run_tiled,
+    write_product,
+)
 from ..tiling.writer import check_assembly_room
 
 
@@ -66,8 +86,14 @@ class Reconstruction:
         import os
 
         st = os.stat(self.path)
-        return {"path": os.path.abspath(self.path), "size": st.st_size, "mtime_ns": st.st_mtime_ns,
-                "kind": self.kind, "name": self.name, "datum": self.vertical_datum}
+        return {
+            "path": os.path.abspath(self.path),
+            "size": st.st_size,
+            "mtime_ns": st.st_mtime_ns,
+            "kind": self.kind,
+            "name": self.name,
+            "datum": self.vertical_datum,
+        }
 
     def read(self, grid: AOIGrid, window: tuple[int, int, int, int]):
         """The reconstruction on ``window`` (row0, col0, h, w) of ``grid``: what ``read_pair_dem`` /
@@ -90,15 +116,30 @@ class Reconstruction:
             arrs = {n: ds.read(i, window=Window(c0, r0, w, h)).astype(np.float32) for n, i in self.bands}
         valid = arrs.get("valid", np.isfinite(arrs["z"]).astype(np.float32)) > 0.5
         flags = arrs.get("flags")
-        return PairDEM(z_m=arrs["z"], score=arrs.get("score", np.full((h, w), np.nan, np.float32)),
-                       g_px_per_m=arrs["g"], valid=valid & np.isfinite(arrs["z"]), grid=sub, name=self.name,
-                       camera_names=self.cameras, ncc=arrs.get("ncc"), ssd=arrs.get("ssd"),
-                       flags=None if flags is None else np.nan_to_num(flags).astype(np.uint8), epoch=self.epoch,
-                       meta=self.meta)
+        return PairDEM(
+            z_m=arrs["z"],
+            score=arrs.get("score", np.full((h, w), np.nan, np.float32)),
+            g_px_per_m=arrs["g"],
+            valid=valid & np.isfinite(arrs["z"]),
+            grid=sub,
+            name=self.name,
+            camera_names=self.cameras,
+            ncc=arrs.get("ncc"),
+            ssd=arrs.get("ssd"),
+            flags=None if flags is None else np.nan_to_num(flags).astype(np.uint8),
+            epoch=self.epoch,
+            meta=self.meta,
+        )
 
 
-def open_reconstruction(path, *, kind: str | None = None, name: str | None = None, epoch: str | None = None,
-                        vertical_datum: str | None = None) -> tuple[Reconstruction, AOIGrid]:
+def open_reconstruction(
+    path,
+    *,
+    kind: str | None = None,
+    name: str | None = None,
+    epoch: str | None = None,
+    vertical_datum: str | None = None,
+) -> tuple[Reconstruction, AOIGrid]:
     """A :class:`Reconstruction` from its file's metadata (no pixels read), with its grid."""
     from ..io.raster import _open
 
@@ -110,12 +151,19 @@ def open_reconstruction(path, *, kind: str | None = None, name: str | None = Non
     kind = kind or ("pair" if is_pair else "dem")
     if kind == "pair":
         if not is_pair:
-            raise UnsupportedFormatError(f"{path} is not a geocd stereo pair-DEM (bands z, score, g, valid, ...); "
-                                         "make it with `geocd stereo`")
+            raise UnsupportedFormatError(
+                f"{path} is not a geocd stereo pair-DEM (bands z, score, g, valid, ...); make it with `geocd stereo`"
+            )
         cams = tuple(json.loads(tags.get("cameras", '["a", "b"]')))
-        return Reconstruction(str(path), "pair", name or tags.get("pair", Path(path).stem), epoch or tags.get("epoch", ""),
-                              tuple((n, i + 1) for i, n in enumerate(names) if n), tags.get("meta", "{}") or "{}",
-                              cams if len(cams) == 2 else ("a", "b")), grid
+        return Reconstruction(
+            str(path),
+            "pair",
+            name or tags.get("pair", Path(path).stem),
+            epoch or tags.get("epoch", ""),
+            tuple((n, i + 1) for i, n in enumerate(names) if n),
+            tags.get("meta", "{}") or "{}",
+            cams if len(cams) == 2 else ("a", "b"),
+        ), grid
     return Reconstruction(str(path), "dem", name or Path(path).stem, epoch or "", vertical_datum=vertical_datum), grid
 
 
@@ -133,10 +181,16 @@ class _Job:
     calibration: PairCalibration | None = None
 
     def cache_key(self) -> dict:
-        return {"a": [r.identity() for r in self.a], "b": [r.identity() for r in self.b],
-                "model": self.model.to_dict(), "params": self.params, "offsets": self.offsets,
-                "fraction": self.fraction, "fp": self.footprints,
-                "calibration": self.calibration.to_dict() if self.calibration is not None else None}
+        return {
+            "a": [r.identity() for r in self.a],
+            "b": [r.identity() for r in self.b],
+            "model": self.model.to_dict(),
+            "params": self.params,
+            "offsets": self.offsets,
+            "fraction": self.fraction,
+            "fp": self.footprints,
+            "calibration": self.calibration.to_dict() if self.calibration is not None else None,
+        }
 
 
 class _Cells:
@@ -172,9 +226,14 @@ def _t_offsets(arrays, ctx):
     for r in recs:
         anyv |= np.asarray(r.valid, bool) & np.isfinite(r.z_m)
     rr, cc, idx = _sampled_core_cells(anyv, ctx)
-    return TileOutput(small={"idx": idx, **{f"{r.name}|z": np.asarray(r.z_m)[rr, cc] for r in recs},
-                             **{f"{r.name}|s": np.asarray(r.score)[rr, cc] for r in recs},
-                             **{f"{r.name}|v": np.asarray(r.valid)[rr, cc] for r in recs}})
+    return TileOutput(
+        small={
+            "idx": idx,
+            **{f"{r.name}|z": np.asarray(r.z_m)[rr, cc] for r in recs},
+            **{f"{r.name}|s": np.asarray(r.score)[rr, cc] for r in recs},
+            **{f"{r.name}|v": np.asarray(r.valid)[rr, cc] for r in recs},
+        }
+    )
 
 
 def _t_calibration(arrays, ctx):
@@ -202,11 +261,21 @@ def _t_change(arrays, ctx):
     a = [r.read(J.grid, ctx.tile.read) for r in J.a]
     b = [r.read(J.grid, ctx.tile.read) for r in J.b]
     res = change_test(a, b, J.model, J.params, offsets=J.offsets, calibration=J.calibration)
-    out = {"dz_m": res.dz_m, "dtilde": res.dtilde, "score": res.score, "confidence": res.confidence,
-           "change": res.change, "nobs": res.n_comparisons, "cell_confidence": res.cell_confidence,
-           "dz_sigma_m": res.dz_sigma_m}
-    small: dict[str, Any] = {"mmu": res.min_region_cells, "significance": res.significance,
-                             "comparisons": res.comparisons}
+    out = {
+        "dz_m": res.dz_m,
+        "dtilde": res.dtilde,
+        "score": res.score,
+        "confidence": res.confidence,
+        "change": res.change,
+        "nobs": res.n_comparisons,
+        "cell_confidence": res.cell_confidence,
+        "dz_sigma_m": res.dz_sigma_m,
+    }
+    small: dict[str, Any] = {
+        "mmu": res.min_region_cells,
+        "significance": res.significance,
+        "comparisons": res.comparisons,
+    }
     core = ctx.core
     if J.significance == "region":
         # candidate cells of the whole-scene clustering: p < α0 with the cell's sign
@@ -241,8 +310,9 @@ def _t_region_conf(arrays, ctx):
         pos = np.clip(pos, 0, max(keys.size - 1, 0))
         hit = (lab != 0) & (keys.size > 0) & (keys[pos] == lab) if keys.size else np.zeros(lab.shape, bool)
         conf = np.where(hit & observed, vals[pos] if keys.size else 0.0, conf).astype(np.float32)
-    change = np.where(observed, np.where(np.nan_to_num(conf) >= level0, np.sign(np.nan_to_num(dz)), 0),
-                      CHANGE_NODATA).astype(np.int8)
+    change = np.where(
+        observed, np.where(np.nan_to_num(conf) >= level0, np.sign(np.nan_to_num(dz)), 0), CHANGE_NODATA
+    ).astype(np.int8)
     return {"confidence": conf, "change": change}
 
 
@@ -266,11 +336,22 @@ class TiledChangeResult:
 CHANGE_BANDS = ("dz_m", "dtilde", "score", "confidence", "cell_confidence", "dz_sigma_m")
 
 
-def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsistencyModel, out_dir, *,
-                      params: ChangeParams = ChangeParams(), tiling=None, footprints=None,
-                      method: str = "self-consistency", epoch_names: tuple[str, str] | None = None,
-                      region_confidence: float = 99.0, prefix: str = "sc", plots: bool = True,
-                      progress: Progress | None = None) -> TiledChangeResult:
+def change_test_tiled(
+    epoch_a: Sequence,
+    epoch_b: Sequence,
+    model: SelfConsistencyModel,
+    out_dir,
+    *,
+    params: ChangeParams = ChangeParams(),
+    tiling=None,
+    footprints=None,
+    method: str = "self-consistency",
+    epoch_names: tuple[str, str] | None = None,
+    region_confidence: float = 99.0,
+    prefix: str = "sc",
+    plots: bool = True,
+    progress: Progress | None = None,
+) -> TiledChangeResult:
     """:func:`geocd.consistency.change_test` + :func:`geocd.change.products.write_change_products`, tile by tile.
 
     Parameters
@@ -311,8 +392,9 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
     if len(set(names)) != len(names):
         raise ConfigError(f"reconstructions must have distinct names, got {names}")
     # the transfer calibration is a whole-scene fit: gathered over every tile below, then given to each tile
-    calibrate = params.calibration == "pair" or (params.calibration == "auto"
-                                                 and not model_learned_on(model, recs_a + recs_b))
+    calibrate = params.calibration == "pair" or (
+        params.calibration == "auto" and not model_learned_on(model, recs_a + recs_b)
+    )
     params = replace(params, calibration="none")
     significance = params.significance
     if significance == "region" and not model.has_region_test:
@@ -328,16 +410,30 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
     eb = epoch_names[1] if epoch_names else (recs_b[0].epoch or "B")
     tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), 0)
     if H * W > tiling.exact_grid_cells:  # its largest product is assembled last: refuse now, not after the tiles
-        check_assembly_room(RasterProduct(str(out / f"{prefix}_change.tif"), CHANGE_BANDS), grid.shape,
-                            out / WORK_DIR, out / f"{prefix}_change.tif")
+        check_assembly_room(
+            RasterProduct(str(out / f"{prefix}_change.tif"), CHANGE_BANDS),
+            grid.shape,
+            out / WORK_DIR,
+            out / f"{prefix}_change.tif",
+        )
     passes = resumed = 0
     with open_engine(tiling.scheduler, n_workers=tiling.n_workers, memory_limit=tiling.memory_limit) as eng:
+
         def run(func, stage, params_, overlap, inputs=None, products=None, f=(0.0, 1.0)):
             nonlocal passes, resumed
             passes += 1
-            r = run_tiled(func, tg.with_overlap(overlap), inputs or {}, params=params_, out=out,
-                          stage=f"change-{passes:02d}-{stage}", key=None, products=products, scheduler=eng,
-                          progress=sub_progress(prog, f[0], f[1], f"{stage}: "))
+            r = run_tiled(
+                func,
+                tg.with_overlap(overlap),
+                inputs or {},
+                params=params_,
+                out=out,
+                stage=f"change-{passes:02d}-{stage}",
+                key=None,
+                products=products,
+                scheduler=eng,
+                progress=sub_progress(prog, f[0], f[1], f"{stage}: "),
+            )
             resumed += r.n_resumed
             return r
 
@@ -355,8 +451,14 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
                 if rec.kind == "dem":
                     cells.append(DEMAsEpoch(z, None, rec.name))
                 else:
-                    cells.append(_Cells(rec.name, z, np.concatenate([s[f"{rec.name}|s"] for s in parts])[order],
-                                        np.concatenate([s[f"{rec.name}|v"] for s in parts])[order]))
+                    cells.append(
+                        _Cells(
+                            rec.name,
+                            z,
+                            np.concatenate([s[f"{rec.name}|s"] for s in parts])[order],
+                            np.concatenate([s[f"{rec.name}|v"] for s in parts])[order],
+                        )
+                    )
             offsets = vertical_offsets(cells, mode=params.align)
         job = _Job(grid, tuple(recs_a), tuple(recs_b), model, params, offsets, frac, significance, fp is not None)
         calibration = None
@@ -370,16 +472,22 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
                 order = np.argsort(np.concatenate([s[f"{c}|idx"] for s in parts]), kind="stable")
                 for k in cols:
                     cols[k].append(np.concatenate([s[f"{c}|{k}"] for s in parts])[order])
-            calibration = fit_pair_calibration(model, *(np.concatenate(cols[k]) for k in ("dt", "sc", "slope", "mpu")),
-                                               fit_edge=True)
+            calibration = fit_pair_calibration(
+                model, *(np.concatenate(cols[k]) for k in ("dt", "sc", "slope", "mpu")), fit_edge=True
+            )
             job = replace(job, calibration=calibration)
         # 2. the test on every tile
         mmu0 = int(params.min_region_cells) if params.min_region_cells is not None else 1
         probe = [rec.read(grid, (0, 0, 1, 1)) for rec in recs_a + recs_b]
         from ..consistency import window_cells
 
-        mmu = mmu0 if params.min_region_cells is not None else (
-            int(model.region_null.get("min_region_cells", 1)) if significance == "region" else window_cells(probe))
+        mmu = (
+            mmu0
+            if params.min_region_cells is not None
+            else (
+                int(model.region_null.get("min_region_cells", 1)) if significance == "region" else window_cells(probe)
+            )
+        )
         ov = max(mmu - 1, 0) if significance == "cell" else 0
         if calibration is not None:
             ov = max(ov, 1)  # the slope of a tile's border cells needs their neighbours
@@ -402,42 +510,97 @@ def change_test_tiled(epoch_a: Sequence, epoch_b: Sequence, model: SelfConsisten
             for ti, v in by_tile.items():
                 v = sorted(v)
                 table[ti] = (np.array([x for x, _ in v], np.int64), np.array([c for _, c in v], np.float32))
-            r2 = run(_t_region_conf, "regions", (table, levels[0]), 0,
-                     inputs={"cand_labels": store.source("cand_labels"), "nobs": store.source("nobs"),
-                             "dz_m": store.source("dz_m")}, f=(0.75, 0.85))
+            r2 = run(
+                _t_region_conf,
+                "regions",
+                (table, levels[0]),
+                0,
+                inputs={
+                    "cand_labels": store.source("cand_labels"),
+                    "nobs": store.source("nobs"),
+                    "dz_m": store.source("dz_m"),
+                },
+                f=(0.75, 0.85),
+            )
             conf_store = r2.store
         prog(0.86, "products")
-        res_meta = dict(grid=grid, confidences=tuple(levels), comparisons=comparisons, vertical_offsets_m=offsets,
-                        min_region_cells=mmu, significance=significance, calibration=calibration)
+        res_meta = dict(
+            grid=grid,
+            confidences=tuple(levels),
+            comparisons=comparisons,
+            vertical_offsets_m=offsets,
+            min_region_cells=mmu,
+            significance=significance,
+            calibration=calibration,
+        )
         if H * W <= tiling.exact_grid_cells:
-            outputs = _write_exact(store, conf_store, tg, res_meta, out, model=model, fp=fp, method=method, ea=ea,
-                                   eb=eb, region_confidence=region_confidence, prefix=prefix, plots=plots)
+            outputs = _write_exact(
+                store,
+                conf_store,
+                tg,
+                res_meta,
+                out,
+                model=model,
+                fp=fp,
+                method=method,
+                ea=ea,
+                eb=eb,
+                region_confidence=region_confidence,
+                prefix=prefix,
+                plots=plots,
+            )
             exact = frac >= 1.0
         else:
-            outputs = _write_large(store, conf_store, tg, res_meta, out, model=model, fp=fp, method=method, ea=ea,
-                                   eb=eb, region_confidence=region_confidence, prefix=prefix, plots=plots, run=run)
+            outputs = _write_large(
+                store,
+                conf_store,
+                tg,
+                res_meta,
+                out,
+                model=model,
+                fp=fp,
+                method=method,
+                ea=ea,
+                eb=eb,
+                region_confidence=region_confidence,
+                prefix=prefix,
+                plots=plots,
+                run=run,
+            )
             exact = False
     if not tiling.keep_work:
         remove_work(out)
     prog(1.0, "done")
-    res = TiledChangeResult(outputs, grid, comparisons, offsets, mmu, significance, exact, passes=passes,
-                            tiles_resumed=resumed)
-    res.summary = {"wall_s": time.perf_counter() - t0, "sample_fraction": frac,
-                   "calibration": calibration.to_dict() if calibration is not None else "none"}
+    res = TiledChangeResult(
+        outputs, grid, comparisons, offsets, mmu, significance, exact, passes=passes, tiles_resumed=resumed
+    )
+    res.summary = {
+        "wall_s": time.perf_counter() - t0,
+        "sample_fraction": frac,
+        "calibration": calibration.to_dict() if calibration is not None else "none",
+    }
     return res
 
 
 def _gathered_result(store, conf_store, tg: TileGrid, meta: dict) -> ChangeResult:
     g = tg.grid
     win = (0, 0, g.height, g.width)
-    return ChangeResult(store.read("dz_m", win), store.read("dtilde", win), store.read("score", win),
-                        conf_store.read("confidence", win), conf_store.read("change", win), store.read("nobs", win),
-                        cell_confidence=store.read("cell_confidence", win), dz_sigma_m=store.read("dz_sigma_m", win),
-                        **meta)
+    return ChangeResult(
+        store.read("dz_m", win),
+        store.read("dtilde", win),
+        store.read("score", win),
+        conf_store.read("confidence", win),
+        conf_store.read("change", win),
+        store.read("nobs", win),
+        cell_confidence=store.read("cell_confidence", win),
+        dz_sigma_m=store.read("dz_sigma_m", win),
+        **meta,
+    )
 
 
-def _write_exact(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb, region_confidence, prefix,
-                 plots) -> dict:
+def _write_exact(
+    store, conf_store, tg, meta, out, *, model, fp, method, ea, eb, region_confidence, prefix, plots
+) -> dict:
     """Small grids: the whole result gathered, written by :func:`write_change_products`."""
     from .products import write_change_products
 
@@ -449,13 +612,30 @@ def _write_exact(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
 
         win = (0, 0, g.height, g.width)
         id_field = next((c for c in ("building_id", "id", "fid") if c in fp.columns), None)
-        buildings = classify_buildings(fp, res.changed_at(region_confidence), res.dz_m, g,
-                                       z_a=store.read("z_a", win), z_b=store.read("z_b", win),
-                                       confidence=res.confidence, id_field=id_field,
-                                       confidence_level=region_confidence)
-    return write_change_products(out, res, g, method=method, epoch_a=ea, epoch_b=eb,
-                                 region_confidence=region_confidence, model=model, buildings=buildings, prefix=prefix,
-                                 plots=plots)
+        buildings = classify_buildings(
+            fp,
+            res.changed_at(region_confidence),
+            res.dz_m,
+            g,
+            z_a=store.read("z_a", win),
+            z_b=store.read("z_b", win),
+            confidence=res.confidence,
+            id_field=id_field,
+            confidence_level=region_confidence,
+        )
+    return write_change_products(
+        out,
+        res,
+        g,
+        method=method,
+        epoch_a=ea,
+        epoch_b=eb,
+        region_confidence=region_confidence,
+        model=model,
+        buildings=buildings,
+        prefix=prefix,
+        plots=plots,
+    )
 
 
 def _t_mask(arrays, ctx):
@@ -486,8 +666,9 @@ def _t_mask(arrays, ctx):
     return TileOutput(arrays={"mask": mask, "labels": labels}, small=tr)
 
 
-def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb, region_confidence, prefix, plots,
-                 run) -> dict:
+def _write_large(
+    store, conf_store, tg, meta, out, *, model, fp, method, ea, eb, region_confidence, prefix, plots, run
+) -> dict:
     """Large grids: rasters tile by tile, regions of the mask merged across seams."""
     from ..io.vector import qml_for, write_gpkg
     from ..tiling.regions import merge_regions, region_mask_window, regions_layer
@@ -495,10 +676,15 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
     from .styles import buildings_qml, write_raster_style
 
     g = tg.grid
-    tags = {"method": method, "epoch_a": ea, "epoch_b": eb,
-            "confidences": ",".join(f"{c:g}" for c in meta["confidences"]),
-            "comparisons": "; ".join(meta["comparisons"]), "significance": meta["significance"],
-            "min_region_cells": str(meta["min_region_cells"])}
+    tags = {
+        "method": method,
+        "epoch_a": ea,
+        "epoch_b": eb,
+        "confidences": ",".join(f"{c:g}" for c in meta["confidences"]),
+        "comparisons": "; ".join(meta["comparisons"]),
+        "significance": meta["significance"],
+        "min_region_cells": str(meta["min_region_cells"]),
+    }
     if meta.get("calibration") is not None:
         tags["model_calibration"] = json.dumps(meta["calibration"].to_dict())
     names = CHANGE_BANDS
@@ -506,23 +692,45 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
     srcs["nobs"] = store.source("nobs")
     mmu = int(meta["min_region_cells"])
     products = {
-        "change": RasterProduct(str(out / f"{prefix}_change.tif"), names, tags=tags,
-                                units=tuple(_BAND_UNITS[n] for n in names),
-                                band_tags=[{"long_name": _BAND_DESCRIPTIONS[n]} for n in names]),
-        "change_mask": RasterProduct(str(out / f"{prefix}_change_mask.tif"), ("mask",), dtype="int8",
-                                     nodata=CHANGE_NODATA, descriptions=("change",), units=("class",),
-                                     tags={**tags, "mask_confidence_pct": f"{region_confidence:g}"},
-                                     band_tags=[{"long_name": f"change at {region_confidence:g} %: +1 raised, -1 "
-                                                 "lowered, 0 unchanged, -128 not observed"}],
-                                     overview_resampling="nearest"),
+        "change": RasterProduct(
+            str(out / f"{prefix}_change.tif"),
+            names,
+            tags=tags,
+            units=tuple(_BAND_UNITS[n] for n in names),
+            band_tags=[{"long_name": _BAND_DESCRIPTIONS[n]} for n in names],
+        ),
+        "change_mask": RasterProduct(
+            str(out / f"{prefix}_change_mask.tif"),
+            ("mask",),
+            dtype="int8",
+            nodata=CHANGE_NODATA,
+            descriptions=("change",),
+            units=("class",),
+            tags={**tags, "mask_confidence_pct": f"{region_confidence:g}"},
+            band_tags=[
+                {
+                    "long_name": f"change at {region_confidence:g} %: +1 raised, -1 "
+                    "lowered, 0 unchanged, -128 not observed"
+                }
+            ],
+            overview_resampling="nearest",
+        ),
     }
 
-    rm = run(_t_mask, "mask", (region_confidence, mmu),
-             0, inputs={k: srcs[k] for k in ("confidence", "nobs", "dz_m", "dz_sigma_m")},
-             products={"change_mask": products["change_mask"]}, f=(0.86, 0.9))
+    rm = run(
+        _t_mask,
+        "mask",
+        (region_confidence, mmu),
+        0,
+        inputs={k: srcs[k] for k in ("confidence", "nobs", "dz_m", "dz_sigma_m")},
+        products={"change_mask": products["change_mask"]},
+        f=(0.86, 0.9),
+    )
     # the change raster straight from the test's (and the region pass's) tiles: no copy of six bands
-    paths = {"change": write_product(store, products["change"], g, store.tile_grid,
-                                     band_stores={"confidence": conf_store}), **rm.products}
+    paths = {
+        "change": write_product(store, products["change"], g, store.tile_grid, band_stores={"confidence": conf_store}),
+        **rm.products,
+    }
     write_raster_style(paths["change"], qml_for("confidence"))
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
     merged = merge_regions([s for _, s in rm.smalls()], tg, mmu)
@@ -541,8 +749,9 @@ def _write_large(store, conf_store, tg, meta, out, *, model, fp, method, ea, eb,
         c = c[np.isfinite(c)]
         return float(np.median(c)) if c.size else float("nan")
 
-    layer = regions_layer(merged, g, cell_area_m2=cell, method=method, epoch_a=ea, epoch_b=eb, volume_sigma=None,
-                          confidence=conf_of)
+    layer = regions_layer(
+        merged, g, cell_area_m2=cell, method=method, epoch_a=ea, epoch_b=eb, volume_sigma=None, confidence=conf_of
+    )
     if len(layer):
         layer["volume_sigma_m3"] = [vol_sigma(k) for k in range(len(merged))]
     layers: dict[str, Any] = {"changes": layer}
@@ -572,10 +781,17 @@ def _buildings(fp, store, conf_store, mask_store, tg: TileGrid, level: float):
     id_field = next((c for c in ("building_id", "id", "fid") if c in gdf.columns), None)
     rows = []
     for i, win, sub, near in footprint_windows(gdf, g):
-        o = classify_buildings(gdf.iloc[near], mask_store.read("mask", win), store.read("dz_m", win), sub,
-                               z_a=store.read("z_a", win), z_b=store.read("z_b", win),
-                               confidence=conf_store.read("confidence", win), id_field=id_field,
-                               confidence_level=level)
+        o = classify_buildings(
+            gdf.iloc[near],
+            mask_store.read("mask", win),
+            store.read("dz_m", win),
+            sub,
+            z_a=store.read("z_a", win),
+            z_b=store.read("z_b", win),
+            confidence=conf_store.read("confidence", win),
+            id_field=id_field,
+            confidence_level=level,
+        )
         rec = o.iloc[int(np.nonzero(near == i)[0][0])].copy()
         if id_field is None:
             rec["building_id"] = i + 1

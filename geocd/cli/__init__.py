@@ -138,11 +138,17 @@ class LazyGroup(click.Group):
                 close_sessions(ok=False, exc=exc)
                 if debug():
                     raise
-                what = ("interrupted (Ctrl-C)" if type(exc) is KeyboardInterrupt
-                        else f"stopped by {signal_name(exc.signum)}")
-                report("CancelledError", f"{what}; partial files were removed and the products already written are "
-                                         "listed as interrupted in the output folder's geocd_products.json; run the "
-                                         "command again to complete them")
+                what = (
+                    "interrupted (Ctrl-C)"
+                    if type(exc) is KeyboardInterrupt
+                    else f"stopped by {signal_name(exc.signum)}"
+                )
+                report(
+                    "CancelledError",
+                    f"{what}; partial files were removed and the products already written are "
+                    "listed as interrupted in the output folder's geocd_products.json; run the "
+                    "command again to complete them",
+                )
                 ctx.exit(exit_code_for_interrupt(exc))
             except Exception as exc:  # noqa: BLE001 - the single error path: everything becomes a GeoCDError
                 close_sessions(ok=False, exc=exc)
@@ -174,10 +180,14 @@ def _restore_unraisablehook(hook):
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="geocd")
-@click.option("--progress", type=click.Choice(["auto", "bar", "lines", "json", "none"]), default="auto",
-              show_default=True,
-              help="How to report progress on stderr: auto (a bar on a terminal, plain lines otherwise), bar, "
-                   "lines, json (JSON lines, for the QGIS plugin) or none. Also accepted after the command.")
+@click.option(
+    "--progress",
+    type=click.Choice(["auto", "bar", "lines", "json", "none"]),
+    default="auto",
+    show_default=True,
+    help="How to report progress on stderr: auto (a bar on a terminal, plain lines otherwise), bar, "
+    "lines, json (JSON lines, for the QGIS plugin) or none. Also accepted after the command.",
+)
 @click.option("--debug", is_flag=True, help="Show full tracebacks.")
 @click.pass_context
 def main(ctx: click.Context, progress: str, debug: bool) -> None:

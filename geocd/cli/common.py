@@ -54,29 +54,49 @@ MIN_CONFIDENCE_PCT = 50.0
 # options every command shares
 # ---------------------------------------------------------------------------------------------------------------
 
+
 def dask_options(cmd: Callable) -> Callable:
     """``--scheduler``, ``--workers``, ``--memory-limit``: where a tiled run's tiles go (one wording for every command)."""
-    for opt in reversed((
-            click.option("--scheduler", default=None, metavar="SCHEDULER",
-                         help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the "
-                              "machine, the default) | ADDRESS of a running dask.distributed scheduler "
-                              "(tcp://host:8786)."),
-            click.option("--workers", type=click.IntRange(1, None), default=None,
-                         help="Tiled runs: local worker processes [one per core]."),
-            click.option("--memory-limit", default=None, help="Tiled runs: memory limit per local worker, e.g. 2GB."))):
+    for opt in reversed(
+        (
+            click.option(
+                "--scheduler",
+                default=None,
+                metavar="SCHEDULER",
+                help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the "
+                "machine, the default) | ADDRESS of a running dask.distributed scheduler "
+                "(tcp://host:8786).",
+            ),
+            click.option(
+                "--workers",
+                type=click.IntRange(1, None),
+                default=None,
+                help="Tiled runs: local worker processes [one per core].",
+            ),
+            click.option("--memory-limit", default=None, help="Tiled runs: memory limit per local worker, e.g. 2GB."),
+        )
+    ):
         cmd = opt(cmd)
     return cmd
 
 
 def _progress_option() -> click.Option:
-    return click.Option(["--progress", "_geocd_progress"], type=click.Choice(PROGRESS_MODES), default=None,
-                        help="How to report progress on stderr: auto (a bar on a terminal, plain lines otherwise), "
-                             "bar, lines, json (JSON lines, for the QGIS plugin) or none.")
+    return click.Option(
+        ["--progress", "_geocd_progress"],
+        type=click.Choice(PROGRESS_MODES),
+        default=None,
+        help="How to report progress on stderr: auto (a bar on a terminal, plain lines otherwise), "
+        "bar, lines, json (JSON lines, for the QGIS plugin) or none.",
+    )
 
 
 def _json_option() -> click.Option:
-    return click.Option(["--json", "_geocd_json"], is_flag=True, default=False,
-                        help="Print the result (products, summary, notes) as one JSON document on stdout.")
+    return click.Option(
+        ["--json", "_geocd_json"],
+        is_flag=True,
+        default=False,
+        help="Print the result (products, summary, notes) as one JSON document on stdout.",
+    )
 
 
 def _debug_option() -> click.Option:
@@ -86,8 +106,14 @@ def _debug_option() -> click.Option:
             root.ensure_object(dict)
             root.obj["debug"] = True
 
-    return click.Option(["--debug", "_geocd_debug"], is_flag=True, default=False, expose_value=False,
-                        callback=remember, help="Show full tracebacks (also accepted before the command).")
+    return click.Option(
+        ["--debug", "_geocd_debug"],
+        is_flag=True,
+        default=False,
+        expose_value=False,
+        callback=remember,
+        help="Show full tracebacks (also accepted before the command).",
+    )
 
 
 def add_common_options(cmd: click.Command) -> click.Command:
@@ -147,7 +173,7 @@ def refuse_special_paths(cmd: click.Command, values: dict) -> None:
             continue
         v = values[prm.name]
         what = max(prm.opts, key=len) if isinstance(prm, click.Option) else "input"
-        for item in (v if isinstance(v, (tuple, list)) else (v,)):
+        for item in v if isinstance(v, (tuple, list)) else (v,):
             if item is not None:
                 refuse_special_file(item, what)
 
@@ -167,6 +193,7 @@ def session(ctx: click.Context | None = None) -> "Session":
 # ---------------------------------------------------------------------------------------------------------------
 # inputs, outputs, units
 # ---------------------------------------------------------------------------------------------------------------
+
 
 def require_inputs(*paths: Optional[os.PathLike | str], what: str = "input") -> None:
     """Raise :class:`InputFileNotFoundError` for the first path that does not exist (None entries are skipped),
@@ -201,8 +228,11 @@ def resolve_out_dir(out_dir: Optional[os.PathLike | str], name: str, *, create: 
     """
     explicit = out_dir is not None
     out = Path(out_dir) if explicit else default_out_dir(name)
-    hint = "give another --out" if explicit else \
-        f"the default output folder is under the current directory ({Path.cwd()}); give --out DIR"
+    hint = (
+        "give another --out"
+        if explicit
+        else f"the default output folder is under the current directory ({Path.cwd()}); give --out DIR"
+    )
     if out.exists() and not out.is_dir():
         raise OutputError(f"output folder {out} is a file; {hint}")
     if create:
@@ -230,8 +260,9 @@ def check_confidence_value(v: float, what: str = "confidence") -> float:
     if 0 < v < 1:
         raise ConfigError(f"{what} is a percentage: did you mean {_pct_hint(v)}? (got {v:g}; 99 means 99 %)")
     if not MIN_CONFIDENCE_PCT <= v < 100:
-        raise ConfigError(f"{what} {v:g} is outside [{MIN_CONFIDENCE_PCT:g}, 100): give a percentage such as "
-                          "90, 95 or 99")
+        raise ConfigError(
+            f"{what} {v:g} is outside [{MIN_CONFIDENCE_PCT:g}, 100): give a percentage such as 90, 95 or 99"
+        )
     return v
 
 
@@ -249,6 +280,7 @@ def check_confidence(ctx: click.Context, param: click.Parameter, value):
 # ---------------------------------------------------------------------------------------------------------------
 # the session
 # ---------------------------------------------------------------------------------------------------------------
+
 
 class Session:
     """Streams, progress and log file of one command invocation (see the module docstring)."""
@@ -427,14 +459,23 @@ class Session:
             self._log_line(f"OUTPUT {k}: {v}")
         self._log_line(f"done in {elapsed:.1f} s")
         if self.mode == "json" and self.outputs:
-            self._json_event({"type": "result", "outputs": self.outputs,
-                              **({"log": str(self.log_path)} if self.log_path else {})})
+            self._json_event(
+                {"type": "result", "outputs": self.outputs, **({"log": str(self.log_path)} if self.log_path else {})}
+            )
         if self.stdout_done:
             pass
         elif self.as_json:
-            doc = {"command": self.command, "status": "ok", "outputs": self.outputs, "summary": self.summary,
-                   "text": self.summary_lines, "notes": self.notes, "warnings": self.warnings,
-                   "log": str(self.log_path) if self.log_path else None, "elapsed_s": round(elapsed, 3)}
+            doc = {
+                "command": self.command,
+                "status": "ok",
+                "outputs": self.outputs,
+                "summary": self.summary,
+                "text": self.summary_lines,
+                "notes": self.notes,
+                "warnings": self.warnings,
+                "log": str(self.log_path) if self.log_path else None,
+                "elapsed_s": round(elapsed, 3),
+            }
             click.echo(json.dumps(doc, indent=1, default=_json_default))
         else:
             for line in self.summary_lines:
@@ -453,7 +494,9 @@ class Session:
             return
         self._finished = True
         self._close_bars()
-        if isinstance(exc, (SystemExit, click.exceptions.Exit)) and getattr(exc, "code", getattr(exc, "exit_code", 1)) in (0, None):
+        if isinstance(exc, (SystemExit, click.exceptions.Exit)) and getattr(
+            exc, "code", getattr(exc, "exit_code", 1)
+        ) in (0, None):
             self._close()
             return
         if isinstance(exc, GeoCDError):
@@ -479,9 +522,12 @@ class Session:
         except ImportError:  # pragma: no cover
             return True
         folder = self.log_path.parent.resolve()
-        mine = [s for s in active_sessions()
-                if (s.folder is not None and s.folder.resolve() == folder)
-                or any(Path(f).resolve().parent == folder for f in s.files)]
+        mine = [
+            s
+            for s in active_sessions()
+            if (s.folder is not None and s.folder.resolve() == folder)
+            or any(Path(f).resolve().parent == folder for f in s.files)
+        ]
         return not mine or any(s.written for s in mine)
 
     def _forget_log(self) -> None:

@@ -29,13 +29,16 @@ def _use_tiles(ents, tiled: bool | None, tiling_opts: dict, base) -> bool:
         return False
     if len(ents) != 2:
         if asked:
-            raise ConfigError("tiled processing compares two DEMs; a time series runs untiled (drop --tiled and the "
-                              "tiling options)")
+            raise ConfigError(
+                "tiled processing compares two DEMs; a time series runs untiled (drop --tiled and the tiling options)"
+            )
         return False
     if any(Path(p).suffix.lower() == ".e00" for p, *_ in ents):
         if asked:
-            raise ConfigError("tiled processing reads GDAL rasters; convert the .e00 DEM to GeoTIFF first "
-                              "(the base DEM may stay an .e00)")
+            raise ConfigError(
+                "tiled processing reads GDAL rasters; convert the .e00 DEM to GeoTIFF first "
+                "(the base DEM may stay an .e00)"
+            )
         return False
     if asked:
         return True
@@ -45,8 +48,23 @@ def _use_tiles(ents, tiled: bool | None, tiling_opts: dict, base) -> bool:
         return ds.width * ds.height > TILED_ABOVE_CELLS
 
 
-def _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable_mask, mask_is, footprints, datum_a,
-                   datum_b, base, no_plots, nodata) -> None:
+def _demdiff_tiled(
+    ctx,
+    sess,
+    ents,
+    out_dir,
+    prefix,
+    params,
+    tiling_opts,
+    stable_mask,
+    mask_is,
+    footprints,
+    datum_a,
+    datum_b,
+    base,
+    no_plots,
+    nodata,
+) -> None:
     """Two DEMs tile by tile (geocd.demdiff.tiled): the same products as the untiled run."""
     from ..demdiff.tiled import TilingParams, dem_difference_tiled
     from . import emit_result, make_progress
@@ -55,13 +73,30 @@ def _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable
     progress = make_progress(ctx, "demdiff")
     try:
         (pa, _, na, va), (pb, _, nb, vb) = ents
-        sess.note(f"tiled run: tiles of {tiling.tile_size} cells, scheduler {tiling.scheduler}; a killed run "
-                  "restarted with the same command resumes")
-        res = dem_difference_tiled(pa, pb, out_dir, params=params, tiling=tiling, stable_mask=stable_mask,
-                                   mask_is=mask_is, footprints=footprints, epoch_a=na, epoch_b=nb,
-                                   datum_a=va or datum_a, datum_b=vb or datum_b, base=base, prefix=prefix,
-                                   plots=not no_plots, progress=progress, nodata=nodata,
-                                   provenance={"dem_a": pa, "dem_b": pb, "stable_mask": stable_mask, "base": base})
+        sess.note(
+            f"tiled run: tiles of {tiling.tile_size} cells, scheduler {tiling.scheduler}; a killed run "
+            "restarted with the same command resumes"
+        )
+        res = dem_difference_tiled(
+            pa,
+            pb,
+            out_dir,
+            params=params,
+            tiling=tiling,
+            stable_mask=stable_mask,
+            mask_is=mask_is,
+            footprints=footprints,
+            epoch_a=na,
+            epoch_b=nb,
+            datum_a=va or datum_a,
+            datum_b=vb or datum_b,
+            base=base,
+            prefix=prefix,
+            plots=not no_plots,
+            progress=progress,
+            nodata=nodata,
+            provenance={"dem_a": pa, "dem_b": pb, "stable_mask": stable_mask, "base": base},
+        )
     finally:
         if hasattr(progress, "close"):
             progress.close()
@@ -72,17 +107,40 @@ def _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable
     for w in res.warnings:
         sess.warn(w)
     sess.say(res.coreg.summary())
-    credible = "" if res.status != "degenerate_stable_terrain" else " — NOT CREDIBLE: degenerate stable " \
-        "terrain, see the warning"
-    sess.say(f"stable NMAD {s['stable_nmad_m']:.2f} m on {s['n_stable']} cells; changed at "
-             f"{params.confidence:g}%: {s['changed_area_m2'] / 1e6:.4f} km², volume "
-             f"{s['volume_changed_m3'] / 1e6:+.4f} ± {s['volume_changed_sigma_m3'] / 1e6:.4f} Mm³ (1σ)" + credible)
-    sess.say(f"tiled: {res.passes} passes, {res.tiles_resumed} tile results resumed, "
-             f"{'exact (every cell in every statistic)' if res.exact else 'whole-scene statistics on a fixed subsample'}")
-    sess.data(status=res.status, tiled=True, passes=res.passes, tiles_resumed=res.tiles_resumed,
-              **{k: s[k] for k in ("stable_nmad_m", "n_stable", "changed_area_m2", "volume_changed_m3",
-                                   "volume_changed_sigma_m3", "shift_applied_m", "stable_identical_fraction",
-                                   "wall_s") if k in s})
+    credible = (
+        ""
+        if res.status != "degenerate_stable_terrain"
+        else " — NOT CREDIBLE: degenerate stable terrain, see the warning"
+    )
+    sess.say(
+        f"stable NMAD {s['stable_nmad_m']:.2f} m on {s['n_stable']} cells; changed at "
+        f"{params.confidence:g}%: {s['changed_area_m2'] / 1e6:.4f} km², volume "
+        f"{s['volume_changed_m3'] / 1e6:+.4f} ± {s['volume_changed_sigma_m3'] / 1e6:.4f} Mm³ (1σ)" + credible
+    )
+    sess.say(
+        f"tiled: {res.passes} passes, {res.tiles_resumed} tile results resumed, "
+        f"{'exact (every cell in every statistic)' if res.exact else 'whole-scene statistics on a fixed subsample'}"
+    )
+    sess.data(
+        status=res.status,
+        tiled=True,
+        passes=res.passes,
+        tiles_resumed=res.tiles_resumed,
+        **{
+            k: s[k]
+            for k in (
+                "stable_nmad_m",
+                "n_stable",
+                "changed_area_m2",
+                "volume_changed_m3",
+                "volume_changed_sigma_m3",
+                "shift_applied_m",
+                "stable_identical_fraction",
+                "wall_s",
+            )
+            if k in s
+        },
+    )
     emit_result(ctx, res.outputs)
 
 
@@ -168,60 +226,148 @@ def _check_dates_in_order(ents, where: str) -> None:
 
     for (p0, d0, n0, _), (p1, d1, n1, _) in zip(ents, ents[1:]):
         if d0 is not None and d1 is not None and d1 < d0:
-            raise ConfigError(f"{where}: {n1} ({d1}) is listed after {n0} ({d0}) but dated before it; list the "
-                              "DEMs from oldest to newest (change is measured from each DEM to the next)")
+            raise ConfigError(
+                f"{where}: {n1} ({d1}) is listed after {n0} ({d0}) but dated before it; list the "
+                "DEMs from oldest to newest (change is measured from each DEM to the next)"
+            )
 
 
-@click.command("demdiff", help="Height change between DEMs, with co-registration and honest uncertainty.\n\n"
-               + DEM_LIST_HELP)
+@click.command(
+    "demdiff", help="Height change between DEMs, with co-registration and honest uncertainty.\n\n" + DEM_LIST_HELP
+)
 @click.argument("dems", nargs=-1, required=True, type=click.Path(path_type=str))
-@click.option("--out", "out_dir", type=click.Path(path_type=str), default=None,
-              help="Output folder (default: ./geocd_out/<A>__<B>, or ./geocd_out/<list name> for a series).")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Output folder (default: ./geocd_out/<A>__<B>, or ./geocd_out/<list name> for a series).",
+)
 @click.option("--prefix", default="demdiff", show_default=True, help="Prefix of the output file names.")
-@click.option("--stable-mask", type=click.Path(path_type=str), default=None,
-              help="Stable terrain: a raster (non-zero = inside) or polygons (inside). Default: automatic.")
-@click.option("--mask-is", type=click.Choice(["stable", "unstable"]), default="stable", show_default=True,
-              help="Whether --stable-mask marks stable terrain or unstable areas (e.g. glacier outlines).")
-@click.option("--footprints", type=click.Path(path_type=str), default=None,
-              help="Building footprints: excluded from stable terrain and attributed (layer `buildings`).")
-@click.option("--confidence", type=float, default=95.0, show_default=True, callback=check_confidence,
-              help="Confidence level in percent at which cells are called changed.")
-@click.option("--datum-a", default=None, help="Vertical datum of DEM A when its file does not say (ellipsoid, egm96, egm2008).")
+@click.option(
+    "--stable-mask",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Stable terrain: a raster (non-zero = inside) or polygons (inside). Default: automatic.",
+)
+@click.option(
+    "--mask-is",
+    type=click.Choice(["stable", "unstable"]),
+    default="stable",
+    show_default=True,
+    help="Whether --stable-mask marks stable terrain or unstable areas (e.g. glacier outlines).",
+)
+@click.option(
+    "--footprints",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Building footprints: excluded from stable terrain and attributed (layer `buildings`).",
+)
+@click.option(
+    "--confidence",
+    type=float,
+    default=95.0,
+    show_default=True,
+    callback=check_confidence,
+    help="Confidence level in percent at which cells are called changed.",
+)
+@click.option(
+    "--datum-a", default=None, help="Vertical datum of DEM A when its file does not say (ellipsoid, egm96, egm2008)."
+)
 @click.option("--datum-b", default=None, help="Vertical datum of DEM B (and of every series DEM after the first).")
-@click.option("--resampling", type=click.Choice(["nearest", "bilinear", "cubic", "average"]), default="bilinear",
-              show_default=True, help="How DEM B is resampled onto A's grid.")
+@click.option(
+    "--resampling",
+    type=click.Choice(["nearest", "bilinear", "cubic", "average"]),
+    default="bilinear",
+    show_default=True,
+    help="How DEM B is resampled onto A's grid.",
+)
 @click.option("--no-coreg", is_flag=True, help="Do not co-register (compare the DEMs as they are).")
 @click.option("--tilt", is_flag=True, help="Also remove a planar vertical tilt after the shift.")
-@click.option("--on-underconstrained", type=click.Choice(["vertical_only", "apply", "none", "raise"]),
-              default="vertical_only", show_default=True,
-              help="What to do when the co-registration fit is under-constrained.")
+@click.option(
+    "--on-underconstrained",
+    type=click.Choice(["vertical_only", "apply", "none", "raise"]),
+    default="vertical_only",
+    show_default=True,
+    help="What to do when the co-registration fit is under-constrained.",
+)
 @click.option("--min-region-cells", type=int, default=4, show_default=True, help="Smallest changed region kept.")
-@click.option("--region-test", type=click.Choice(["noise", "off"]), default="noise", show_default=True,
-              help="noise: keep a changed region only when its combined evidence beats the regions that noise alone "
-                   "forms (simulated from the fitted error model and variogram) at --confidence; off: every region.")
-@click.option("--fallback-threshold", type=float, default=None,
-              help="|dh| (m) that marks change when no stable terrain exists (no significance then).")
-@click.option("--base", type=click.Path(path_type=str), default=None,
-              help="Base DEM the DEMs were merged onto (e.g. an .e00): each epoch's survey is where it differs from "
-                   "the base; comparisons use only the shared survey area (two DEMs or a series); a series also gets "
-                   "base → epoch volumes.")
+@click.option(
+    "--region-test",
+    type=click.Choice(["noise", "off"]),
+    default="noise",
+    show_default=True,
+    help="noise: keep a changed region only when its combined evidence beats the regions that noise alone "
+    "forms (simulated from the fitted error model and variogram) at --confidence; off: every region.",
+)
+@click.option(
+    "--fallback-threshold",
+    type=float,
+    default=None,
+    help="|dh| (m) that marks change when no stable terrain exists (no significance then).",
+)
+@click.option(
+    "--base",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Base DEM the DEMs were merged onto (e.g. an .e00): each epoch's survey is where it differs from "
+    "the base; comparisons use only the shared survey area (two DEMs or a series); a series also gets "
+    "base → epoch volumes.",
+)
 @click.option("--dates", default=None, help="Comma-separated dates (YYYY-MM-DD) of the DEMs given as arguments.")
 @click.option("--names", default=None, help="Comma-separated epoch names of the DEMs given as arguments.")
 @click.option("--pair-products", is_flag=True, help="For a series, also write every interval's rasters and layers.")
 @click.option("--no-plots", is_flag=True, help="Do not draw PNG plots.")
-@click.option("--tiled/--untiled", default=None,
-              help="Process two DEMs tile by tile (bounded memory, resumable after a kill, on Dask). Default: tiled "
-                   f"when the grid has more than {TILED_ABOVE_CELLS // 1_000_000} million cells or a tiling option "
-                   "below is given.")
-@click.option("--tile-size", type=click.IntRange(64, None), default=None, help="Tiled runs: cells per tile side [1024].")
-@click.option("--nodata", type=float, default=None, metavar="VALUE",
-              help="The DEMs' nodata value where the files do not declare it (e.g. -9999). A DEM holding an "
-                   "undeclared nodata value is refused without it.")
+@click.option(
+    "--tiled/--untiled",
+    default=None,
+    help="Process two DEMs tile by tile (bounded memory, resumable after a kill, on Dask). Default: tiled "
+    f"when the grid has more than {TILED_ABOVE_CELLS // 1_000_000} million cells or a tiling option "
+    "below is given.",
+)
+@click.option(
+    "--tile-size", type=click.IntRange(64, None), default=None, help="Tiled runs: cells per tile side [1024]."
+)
+@click.option(
+    "--nodata",
+    type=float,
+    default=None,
+    metavar="VALUE",
+    help="The DEMs' nodata value where the files do not declare it (e.g. -9999). A DEM holding an "
+    "undeclared nodata value is refused without it.",
+)
 @dask_options
 @click.pass_context
-def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, footprints, confidence, datum_a, datum_b,
-            resampling, no_coreg, tilt, on_underconstrained, min_region_cells, region_test, fallback_threshold, base,
-            dates, names, pair_products, no_plots, tiled, tile_size, nodata, scheduler, workers, memory_limit) -> None:
+def demdiff(
+    ctx: click.Context,
+    dems,
+    out_dir,
+    prefix,
+    stable_mask,
+    mask_is,
+    footprints,
+    confidence,
+    datum_a,
+    datum_b,
+    resampling,
+    no_coreg,
+    tilt,
+    on_underconstrained,
+    min_region_cells,
+    region_test,
+    fallback_threshold,
+    base,
+    dates,
+    names,
+    pair_products,
+    no_plots,
+    tiled,
+    tile_size,
+    nodata,
+    scheduler,
+    workers,
+    memory_limit,
+) -> None:
     from .common import require_inputs, resolve_out_dir, session
 
     require_inputs(*dems, stable_mask, footprints, base)
@@ -240,19 +386,51 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
     from . import emit_result, make_progress
 
     check_prefix(prefix)
-    open_outputs(out_dir, inputs=[*dems, *[e[0] for e in ents], stable_mask, footprints, base],
-                 products=(f"{prefix}_*", f"*__*/{prefix}_*"), prefix=prefix)
+    open_outputs(
+        out_dir,
+        inputs=[*dems, *[e[0] for e in ents], stable_mask, footprints, base],
+        products=(f"{prefix}_*", f"*__*/{prefix}_*"),
+        prefix=prefix,
+    )
     sess = session(ctx)
     sess.open_log(out)
-    params = DEMDiffParams(coreg=CoregParams(tilt=tilt, on_underconstrained=on_underconstrained),
-                           coregister=not no_coreg, confidence=confidence, min_region_cells=min_region_cells,
-                           region_test=region_test,
-                           resampling=resampling, fallback_threshold_m=fallback_threshold)
-    tiling_opts = {k: v for k, v in (("scheduler", scheduler), ("tile_size", tile_size), ("n_workers", workers),
-                                     ("memory_limit", memory_limit)) if v is not None}
+    params = DEMDiffParams(
+        coreg=CoregParams(tilt=tilt, on_underconstrained=on_underconstrained),
+        coregister=not no_coreg,
+        confidence=confidence,
+        min_region_cells=min_region_cells,
+        region_test=region_test,
+        resampling=resampling,
+        fallback_threshold_m=fallback_threshold,
+    )
+    tiling_opts = {
+        k: v
+        for k, v in (
+            ("scheduler", scheduler),
+            ("tile_size", tile_size),
+            ("n_workers", workers),
+            ("memory_limit", memory_limit),
+        )
+        if v is not None
+    }
     if _use_tiles(ents, tiled, tiling_opts, base):
-        _demdiff_tiled(ctx, sess, ents, out_dir, prefix, params, tiling_opts, stable_mask, mask_is, footprints,
-                       datum_a, datum_b, base, no_plots, nodata)
+        _demdiff_tiled(
+            ctx,
+            sess,
+            ents,
+            out_dir,
+            prefix,
+            params,
+            tiling_opts,
+            stable_mask,
+            mask_is,
+            footprints,
+            datum_a,
+            datum_b,
+            base,
+            no_plots,
+            nodata,
+        )
         return
     fp = None
     loaded = []
@@ -274,14 +452,37 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
                 pair = align_dems(a.dem, b.dem, a.dem.grid, resampling=resampling, crop=False)
                 bh = align_dems(a.dem, base_ep.dem, a.dem.grid, crop=False).height_b_m
                 obs = survey_footprint(pair.height_a_m, bh) & survey_footprint(pair.height_b_m, bh)
-                res = dem_difference(pair, observed=obs, stable_mask=stable_mask, mask_is=mask_is, footprints=fp,
-                                     params=params, epoch_a=a.name, epoch_b=b.name, progress=progress)
+                res = dem_difference(
+                    pair,
+                    observed=obs,
+                    stable_mask=stable_mask,
+                    mask_is=mask_is,
+                    footprints=fp,
+                    params=params,
+                    epoch_a=a.name,
+                    epoch_b=b.name,
+                    progress=progress,
+                )
             else:
-                res = dem_difference(a.dem, b.dem, stable_mask=stable_mask, mask_is=mask_is, footprints=fp,
-                                     params=params, epoch_a=a.name, epoch_b=b.name, progress=progress)
-            outputs = write_demdiff_products(out_dir, res, footprints=fp, prefix=prefix, plots=not no_plots,
-                                             provenance={"dem_a": ents[0][0], "dem_b": ents[1][0],
-                                                         "stable_mask": stable_mask, "base": base})
+                res = dem_difference(
+                    a.dem,
+                    b.dem,
+                    stable_mask=stable_mask,
+                    mask_is=mask_is,
+                    footprints=fp,
+                    params=params,
+                    epoch_a=a.name,
+                    epoch_b=b.name,
+                    progress=progress,
+                )
+            outputs = write_demdiff_products(
+                out_dir,
+                res,
+                footprints=fp,
+                prefix=prefix,
+                plots=not no_plots,
+                provenance={"dem_a": ents[0][0], "dem_b": ents[1][0], "stable_mask": stable_mask, "base": base},
+            )
             s = res.summary
             progress.close()
             for n in res.notes:
@@ -290,18 +491,42 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
             for w in res.warnings:
                 sess.warn(w)
             sess.say(res.coreg.summary())
-            credible = "" if res.status != "degenerate_stable_terrain" else " — NOT CREDIBLE: degenerate stable " \
-                "terrain, see the warning"
-            sess.say(f"stable NMAD {s['stable_nmad_m']:.2f} m on {s['n_stable']} cells; changed at "
-                     f"{res.level:g}%: {s['changed_area_m2'] / 1e6:.4f} km², volume "
-                     f"{s['volume_changed_m3'] / 1e6:+.4f} ± {s['volume_changed_sigma_m3'] / 1e6:.4f} Mm³ (1σ)"
-                     + credible)
-            sess.data(status=res.status, **{k: s[k] for k in (
-                "stable_nmad_m", "n_stable", "changed_area_m2", "volume_changed_m3", "volume_changed_sigma_m3",
-                "shift_applied_m", "stable_identical_fraction") if k in s})
+            credible = (
+                ""
+                if res.status != "degenerate_stable_terrain"
+                else " — NOT CREDIBLE: degenerate stable terrain, see the warning"
+            )
+            sess.say(
+                f"stable NMAD {s['stable_nmad_m']:.2f} m on {s['n_stable']} cells; changed at "
+                f"{res.level:g}%: {s['changed_area_m2'] / 1e6:.4f} km², volume "
+                f"{s['volume_changed_m3'] / 1e6:+.4f} ± {s['volume_changed_sigma_m3'] / 1e6:.4f} Mm³ (1σ)" + credible
+            )
+            sess.data(
+                status=res.status,
+                **{
+                    k: s[k]
+                    for k in (
+                        "stable_nmad_m",
+                        "n_stable",
+                        "changed_area_m2",
+                        "volume_changed_m3",
+                        "volume_changed_sigma_m3",
+                        "shift_applied_m",
+                        "stable_identical_fraction",
+                    )
+                    if k in s
+                },
+            )
         else:
-            ts = dem_time_series(loaded, base=base_ep, params=params, stable_mask=stable_mask, mask_is=mask_is,
-                                 keep_arrays=pair_products, progress=progress)
+            ts = dem_time_series(
+                loaded,
+                base=base_ep,
+                params=params,
+                stable_mask=stable_mask,
+                mask_is=mask_is,
+                keep_arrays=pair_products,
+                progress=progress,
+            )
             outputs = write_timeseries_products(out_dir, ts, prefix=prefix, plots=not no_plots)
             if pair_products:
                 for r in ts.intervals + ts.vs_base:
@@ -314,12 +539,16 @@ def demdiff(ctx: click.Context, dems, out_dir, prefix, stable_mask, mask_is, foo
             iv = [r for r in ts.table if r.get("kind") == "interval" and "cumulative_net_m3" in r]
             if iv:
                 last = iv[-1]
-                sess.say(f"{len(loaded)} DEMs, {len(ts.intervals)} intervals compared; cumulative net volume "
-                         f"{iv[0]['epoch_a']} → {last['epoch_b']}: "
-                         f"{last['cumulative_net_m3'] / 1e6:+.3f} ± {last.get('cumulative_net_sigma_m3', float('nan')) / 1e6:.3f}"
-                         " Mm³ (1σ)")
-                sess.data(cumulative_net_m3=last["cumulative_net_m3"],
-                          cumulative_net_sigma_m3=last.get("cumulative_net_sigma_m3"))
+                sess.say(
+                    f"{len(loaded)} DEMs, {len(ts.intervals)} intervals compared; cumulative net volume "
+                    f"{iv[0]['epoch_a']} → {last['epoch_b']}: "
+                    f"{last['cumulative_net_m3'] / 1e6:+.3f} ± {last.get('cumulative_net_sigma_m3', float('nan')) / 1e6:.3f}"
+                    " Mm³ (1σ)"
+                )
+                sess.data(
+                    cumulative_net_m3=last["cumulative_net_m3"],
+                    cumulative_net_sigma_m3=last.get("cumulative_net_sigma_m3"),
+                )
             outputs["notes"] = write_json(Path(out_dir) / f"{prefix}_notes.json", ts.notes) if ts.notes else None
             outputs = {k: v for k, v in outputs.items() if v is not None}
     finally:

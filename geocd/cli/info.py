@@ -18,10 +18,14 @@ def _fmt_camera(c: dict | None, indent: str = "  ") -> list[str]:
         lines.append(f"{indent}  RPC height range: {lo:.1f} .. {hi:.1f} m (ellipsoidal)")
     if "centre_lonlat" in c:
         lines.append(f"{indent}  ground centre (lon, lat): {c['centre_lonlat'][0]:.6f}, {c['centre_lonlat'][1]:.6f}")
-        lines.append(f"{indent}  footprint: {c['footprint_area_km2']} km2  GSD (col,row): {c['gsd_m'][0]} / {c['gsd_m'][1]} m"
-                     f"  off-nadir ~{c['off_nadir_deg']} deg (ground at {c['ground_height_m']:g} m)")
-        lines.append(f"{indent}  footprint (lon/lat WKT): {c['footprint_lonlat_wkt'][:160]}"
-                     + ("..." if len(c['footprint_lonlat_wkt']) > 160 else ""))
+        lines.append(
+            f"{indent}  footprint: {c['footprint_area_km2']} km2  GSD (col,row): {c['gsd_m'][0]} / {c['gsd_m'][1]} m"
+            f"  off-nadir ~{c['off_nadir_deg']} deg (ground at {c['ground_height_m']:g} m)"
+        )
+        lines.append(
+            f"{indent}  footprint (lon/lat WKT): {c['footprint_lonlat_wkt'][:160]}"
+            + ("..." if len(c["footprint_lonlat_wkt"]) > 160 else "")
+        )
     if "footprint_error" in c:
         lines.append(f"{indent}  footprint: unavailable ({c['footprint_error']})")
     return lines
@@ -31,9 +35,14 @@ def format_info(d: dict) -> str:
     t = d["type"]
     out = []
     if t == "raster":
-        out.append(f"{d['path']}: raster ({d['driver']}) {d['width']} x {d['height']} x {d['bands']} {d['dtype']}"
-                   f", {d['bit_depth']}-bit")
-        out.append(f"  CRS: {d.get('crs', 'none')}" + (f"  vertical datum: {d['vertical_datum']}" if d.get("vertical_datum") else ""))
+        out.append(
+            f"{d['path']}: raster ({d['driver']}) {d['width']} x {d['height']} x {d['bands']} {d['dtype']}"
+            f", {d['bit_depth']}-bit"
+        )
+        out.append(
+            f"  CRS: {d.get('crs', 'none')}"
+            + (f"  vertical datum: {d['vertical_datum']}" if d.get("vertical_datum") else "")
+        )
         if "bounds" in d:
             out.append(f"  bounds: {d['bounds']}  resolution: {d['resolution']}")
         if "geotransform" in d:
@@ -52,17 +61,23 @@ def format_info(d: dict) -> str:
     elif t == "vector":
         out.append(f"{d['path']}: vector")
         for l in d["layers"]:
-            out.append(f"  layer {l['layer']}: {l['features']} {l['geometry'] or 'table'} features, CRS {l['crs']}, "
-                       f"fields {l['fields']}")
+            out.append(
+                f"  layer {l['layer']}: {l['features']} {l['geometry'] or 'table'} features, CRS {l['crs']}, "
+                f"fields {l['fields']}"
+            )
     elif t == "products":
         word = "whole" if d["valid"] else "NOT whole"
         out.append(f"{d['path']}: geocd output folder, products {word}")
         for r in d["runs"]:
-            out.append(f"  run {r['id']}: {r['command']}, {r['status']}, {r['products']} product(s)"
-                       + (f", {len(r['changed_or_missing'])} changed or missing" if r["changed_or_missing"] else ""))
+            out.append(
+                f"  run {r['id']}: {r['command']}, {r['status']}, {r['products']} product(s)"
+                + (f", {len(r['changed_or_missing'])} changed or missing" if r["changed_or_missing"] else "")
+            )
         out += [f"  problem: {x}" for x in d["problems"]]
     elif t == "manifest":
-        out.append(f"{d['path']}: scene {d['name']!r}" + (f" (class {d['scene_class']})" if d.get("scene_class") else ""))
+        out.append(
+            f"{d['path']}: scene {d['name']!r}" + (f" (class {d['scene_class']})" if d.get("scene_class") else "")
+        )
         if d.get("aoi"):
             out.append(f"  AOI: {d['aoi']}")
         if d.get("dem"):
@@ -71,8 +86,10 @@ def format_info(d: dict) -> str:
             out.append(f"  footprints: {d['footprints']}")
         out.append(f"  output: {d['output']}")
         for e in d["epochs"]:
-            out.append(f"  epoch {e['name']} ({e['date'] or 'no date'}{', ' + e['sensor'] if e['sensor'] else ''}): "
-                       f"{len(e['images'])} images" + (f", DEM {e['dem']}" if e.get("dem") else ""))
+            out.append(
+                f"  epoch {e['name']} ({e['date'] or 'no date'}{', ' + e['sensor'] if e['sensor'] else ''}): "
+                f"{len(e['images'])} images" + (f", DEM {e['dem']}" if e.get("dem") else "")
+            )
             for im in e["images"]:
                 out.append(f"    {im['name']}: {im['path']}")
                 out += _fmt_camera(im["camera"], indent="      ")

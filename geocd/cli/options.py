@@ -87,13 +87,14 @@ RULES: dict[str, tuple[Rule, ...]] = {
     "min_region_cells": (Rule("a number of cells", **_COUNT, example="4"),),
     "gamma_3d": (Rule("a prior weight", low=0.0, example="1"),),
     "prior": (Rule("a prior probability", low=0.0, high=1.0, low_open=True, high_open=True, example="0.5"),),
-    "prior_change": (Rule("a prior probability", low=0.0, high=1.0, low_open=True, high_open=True,
-                          example="0.5"),),
+    "prior_change": (Rule("a prior probability", low=0.0, high=1.0, low_open=True, high_open=True, example="0.5"),),
     "sigma": (Rule("a standard deviation", low=0.0, low_open=True, example="1"),),
     "sigma_prime": (Rule("a standard deviation", low=0.0, low_open=True, example="1"),),
     "fallback_threshold": (Rule("a height difference in metres", low=0.0, low_open=True, example="2"),),
-    "sun": (Rule("a sun azimuth in degrees", low=0.0, high=360.0, example="135"),
-            Rule("a sun elevation in degrees", low=0.0, high=90.0, low_open=True, example="45")),
+    "sun": (
+        Rule("a sun azimuth in degrees", low=0.0, high=360.0, example="135"),
+        Rule("a sun elevation in degrees", low=0.0, high=90.0, low_open=True, example="45"),
+    ),
     # map coordinates: |x| beyond 1e8 is on no planet in any CRS geocd reads (degrees or metres)
     "bounds": (Rule("a map coordinate", low=-1e8, high=1e8),) * 4,
 }
@@ -115,19 +116,20 @@ def _check_number(param: click.Parameter, v: Any, rule: Optional[Rule]) -> None:
         raise click.BadParameter(f"{v} is not a finite number", param=param)
     if rule is not None and not rule.accepts(v):
         hint = f" (e.g. {flag} {rule.example})" if rule.example else ""
-        raise click.BadParameter(f"{_num(v)} is not {rule.what}: give a value {rule.range_text()}{hint}",
-                                 param=param)
+        raise click.BadParameter(f"{_num(v)} is not {rule.what}: give a value {rule.range_text()}{hint}", param=param)
 
 
 def _check_ordered(param: click.Parameter, values: tuple) -> None:
     if param.name == "bounds" and len(values) == 4:
         l, b, r, t = values
         if not (l < r and b < t):
-            raise click.BadParameter(f"{l:g} {b:g} {r:g} {t:g} is not LEFT BOTTOM RIGHT TOP with "
-                                     "left < right and bottom < top", param=param)
+            raise click.BadParameter(
+                f"{l:g} {b:g} {r:g} {t:g} is not LEFT BOTTOM RIGHT TOP with left < right and bottom < top", param=param
+            )
     elif len(values) == 2 and not values[0] < values[1]:
-        raise click.BadParameter(f"{values[0]:g} {values[1]:g} is not {ORDERED[param.name]} with "
-                                 "the first below the second", param=param)
+        raise click.BadParameter(
+            f"{values[0]:g} {values[1]:g} is not {ORDERED[param.name]} with the first below the second", param=param
+        )
 
 
 def check_value(param: click.Parameter, value: Any) -> Any:

@@ -23,8 +23,7 @@ import click
 PLUGIN_NAME = "geocd_qgis"
 _SKIP_DIRS = {"__pycache__", ".pytest_cache", ".mypy_cache"}
 _SKIP_SUFFIXES = {".pyc", ".pyo", ".orig", ".rej", ".swp"}
-_REQUIRED_METADATA = ("name", "qgisMinimumVersion", "description", "about", "version", "author", "email",
-                      "repository")
+_REQUIRED_METADATA = ("name", "qgisMinimumVersion", "description", "about", "version", "author", "email", "repository")
 
 
 def plugin_source_dir() -> Path:
@@ -38,7 +37,8 @@ def plugin_source_dir() -> Path:
             return cand
     raise InputFileNotFoundError(
         "the QGIS plugin sources (qgis_plugin/geocd_qgis) are not beside this geocd installation; "
-        "run `geocd plugin-zip` from a geocd source checkout installed with `pip install -e .`")
+        "run `geocd plugin-zip` from a geocd source checkout installed with `pip install -e .`"
+    )
 
 
 def read_metadata(plugin_dir: Path) -> dict[str, str]:
@@ -104,12 +104,18 @@ def build_plugin_zip(out: str | Path | None = None, *, environment_hint: bool = 
         raise ConfigError(f"{src / 'metadata.txt'} must say hasProcessingProvider=yes")
     version = meta["version"]
     if version != __version__:
-        raise ConfigError(f"plugin version {version} (metadata.txt) differs from geocd {__version__}; "
-                          "bump both together")
+        raise ConfigError(
+            f"plugin version {version} (metadata.txt) differs from geocd {__version__}; bump both together"
+        )
     out_path = zip_path(out, version)
-    files = sorted(p for p in src.rglob("*")
-                   if p.is_file() and not (set(p.relative_to(src).parts) & _SKIP_DIRS)
-                   and p.suffix not in _SKIP_SUFFIXES and p.name != "environment.json")
+    files = sorted(
+        p
+        for p in src.rglob("*")
+        if p.is_file()
+        and not (set(p.relative_to(src).parts) & _SKIP_DIRS)
+        and p.suffix not in _SKIP_SUFFIXES
+        and p.name != "environment.json"
+    )
     with atomic_path(out_path) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
             for p in files:
@@ -132,21 +138,36 @@ def repository_xml(zip_path: Path, meta: dict[str, str], download_url: str) -> s
     version = meta["version"]
     today = _dt.date.today().isoformat()
     fields = {
-        "description": meta.get("description", ""), "about": meta.get("about", ""), "version": version,
+        "description": meta.get("description", ""),
+        "about": meta.get("about", ""),
+        "version": version,
         "qgis_minimum_version": meta.get("qgisMinimumVersion", "3.22"),
         "qgis_maximum_version": meta.get("qgisMaximumVersion", "3.99"),
-        "homepage": meta.get("homepage", ""), "file_name": repository_file_name(zip_path, version),
-        "icon": "", "author_name": meta.get("author", ""), "download_url": download_url,
-        "uploaded_by": meta.get("author", ""), "create_date": today, "update_date": today,
-        "experimental": meta.get("experimental", "False"), "deprecated": meta.get("deprecated", "False"),
-        "tracker": meta.get("tracker", ""), "repository": meta.get("repository", ""), "tags": meta.get("tags", ""),
-        "downloads": "0", "average_vote": "0", "rating_votes": "0", "external_dependencies": "",
+        "homepage": meta.get("homepage", ""),
+        "file_name": repository_file_name(zip_path, version),
+        "icon": "",
+        "author_name": meta.get("author", ""),
+        "download_url": download_url,
+        "uploaded_by": meta.get("author", ""),
+        "create_date": today,
+        "update_date": today,
+        "experimental": meta.get("experimental", "False"),
+        "deprecated": meta.get("deprecated", "False"),
+        "tracker": meta.get("tracker", ""),
+        "repository": meta.get("repository", ""),
+        "tags": meta.get("tags", ""),
+        "downloads": "0",
+        "average_vote": "0",
+        "rating_votes": "0",
+        "external_dependencies": "",
         "server": meta.get("server", "False"),
     }
     body = "\n".join(f"    <{k}>{escape(' '.join(str(v).split()))}</{k}>" for k, v in fields.items())
-    return ('<?xml version="1.0" encoding="UTF-8"?>\n<plugins>\n'
-            f'  <pyqgis_plugin name="{escape(meta.get("name", PLUGIN_NAME))}" version="{escape(version)}" '
-            f'plugin_id="{PLUGIN_NAME}">\n{body}\n  </pyqgis_plugin>\n</plugins>\n')
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n<plugins>\n'
+        f'  <pyqgis_plugin name="{escape(meta.get("name", PLUGIN_NAME))}" version="{escape(version)}" '
+        f'plugin_id="{PLUGIN_NAME}">\n{body}\n  </pyqgis_plugin>\n</plugins>\n'
+    )
 
 
 def write_repository(zip_path: Path, url: str | None = None) -> Path:
@@ -174,18 +195,31 @@ def _is_plugin_repository(p: Path) -> bool:
 
 
 @click.command("plugin-zip")
-@click.option("--out", "out", type=click.Path(path_type=str), default=None,
-              help="Zip file or folder to write (default: dist/geocd_qgis.VERSION.zip).")
-@click.option("--url", default=None,
-              help="URL the zip's folder will be served from (e.g. https://example.org/qgis/): the download URL in "
-                   "plugins.xml (default: the zip's file:// URL, for a repository on this machine or a shared disk).")
-@click.option("--no-environment-hint", is_flag=True,
-              help="Do not record this environment's geocd in the zip (for zips shared with other machines).")
-@click.option("--overwrite", is_flag=True,
-              help="Replace an existing zip or plugins.xml even when geocd did not write it.")
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Zip file or folder to write (default: dist/geocd_qgis.VERSION.zip).",
+)
+@click.option(
+    "--url",
+    default=None,
+    help="URL the zip's folder will be served from (e.g. https://example.org/qgis/): the download URL in "
+    "plugins.xml (default: the zip's file:// URL, for a repository on this machine or a shared disk).",
+)
+@click.option(
+    "--no-environment-hint",
+    is_flag=True,
+    help="Do not record this environment's geocd in the zip (for zips shared with other machines).",
+)
+@click.option(
+    "--overwrite", is_flag=True, help="Replace an existing zip or plugins.xml even when geocd did not write it."
+)
 @click.pass_context
-def plugin_zip(ctx: click.Context, out: str | None, url: str | None, no_environment_hint: bool,
-               overwrite: bool) -> None:
+def plugin_zip(
+    ctx: click.Context, out: str | None, url: str | None, no_environment_hint: bool, overwrite: bool
+) -> None:
     """Build the QGIS plugin zip and a plugin repository file (plugins.xml) beside it.
 
     Install from ZIP: Plugins ▸ Manage and Install Plugins ▸ Install from ZIP. Install from repository: add
@@ -202,13 +236,19 @@ def plugin_zip(ctx: click.Context, out: str | None, url: str | None, no_environm
     zp = zip_path(out, read_metadata(plugin_source_dir()).get("version", ""))
     open_outputs(None, files=[zp, zp.parent / REPOSITORY_FILE])
     refuse_foreign_files([zp], _is_plugin_zip, what=f"a {PLUGIN_NAME} plugin zip", force=overwrite)
-    refuse_foreign_files([zp.parent / REPOSITORY_FILE], _is_plugin_repository,
-                         what=f"a plugin repository offering {PLUGIN_NAME}", force=overwrite)
+    refuse_foreign_files(
+        [zp.parent / REPOSITORY_FILE],
+        _is_plugin_repository,
+        what=f"a plugin repository offering {PLUGIN_NAME}",
+        force=overwrite,
+    )
     path = build_plugin_zip(out, environment_hint=not no_environment_hint)
     repo = write_repository(path, url)
     where = repo.resolve().as_uri() if not url else url.rstrip("/") + "/" + REPOSITORY_FILE
-    sess.say(f"QGIS plugin {PLUGIN_NAME} {read_metadata(plugin_source_dir())['version']}: install from ZIP, or add the "
-             f"repository {where} in QGIS (or run `geocd plugin-install`)")
+    sess.say(
+        f"QGIS plugin {PLUGIN_NAME} {read_metadata(plugin_source_dir())['version']}: install from ZIP, or add the "
+        f"repository {where} in QGIS (or run `geocd plugin-install`)"
+    )
     emit_result(ctx, {"plugin_zip": path, "repository": repo})
 
 
@@ -223,8 +263,9 @@ def _repository_url(repository: str | None, built: Path | None) -> str:
     from ..errors import InputFileNotFoundError
 
     if not p.is_file():
-        raise InputFileNotFoundError(f"{p} does not exist; give a plugins.xml written by `geocd plugin-zip`, its "
-                                     "folder, or a URL")
+        raise InputFileNotFoundError(
+            f"{p} does not exist; give a plugins.xml written by `geocd plugin-zip`, its folder, or a URL"
+        )
     return p.resolve().as_uri()
 
 
@@ -237,16 +278,25 @@ def _system_python() -> str:
 
 @click.command("plugin-install")
 @click.argument("repository", required=False, type=str)
-@click.option("--profile", type=click.Path(file_okay=False, path_type=str), default=None,
-              help="QGIS configuration folder to install into (as QGIS_CUSTOM_CONFIG_PATH; default: QGIS's default "
-                   "profile, e.g. ~/.local/share/QGIS/QGIS3/profiles/default).")
-@click.option("--qgis-python", default=None,
-              help="Python interpreter that has PyQGIS (default: $GEOCD_QGIS_PYTHON, else /usr/bin/python3).")
-@click.option("--timeout", "timeout_s", type=float, default=300.0, show_default=True,
-              help="Give up after this many seconds.")
+@click.option(
+    "--profile",
+    type=click.Path(file_okay=False, path_type=str),
+    default=None,
+    help="QGIS configuration folder to install into (as QGIS_CUSTOM_CONFIG_PATH; default: QGIS's default "
+    "profile, e.g. ~/.local/share/QGIS/QGIS3/profiles/default).",
+)
+@click.option(
+    "--qgis-python",
+    default=None,
+    help="Python interpreter that has PyQGIS (default: $GEOCD_QGIS_PYTHON, else /usr/bin/python3).",
+)
+@click.option(
+    "--timeout", "timeout_s", type=float, default=300.0, show_default=True, help="Give up after this many seconds."
+)
 @click.pass_context
-def plugin_install(ctx: click.Context, repository: str | None, profile: str | None, qgis_python: str | None,
-                   timeout_s: float) -> None:
+def plugin_install(
+    ctx: click.Context, repository: str | None, profile: str | None, qgis_python: str | None, timeout_s: float
+) -> None:
     """Install the geocd QGIS plugin headless from a plugin repository (QGIS's own installer), and enable it.
 
     REPOSITORY: a plugins.xml (or its folder, or its URL) written by `geocd plugin-zip`; default: build the zip
@@ -276,8 +326,14 @@ def plugin_install(ctx: click.Context, repository: str | None, profile: str | No
         env["QGIS_CUSTOM_CONFIG_PATH"] = str(Path(profile).resolve())
     sess.log(f"running {py} {script} {url} {PLUGIN_NAME}")
     try:
-        r = subprocess.run([py, str(script), url, PLUGIN_NAME], env=env, capture_output=True, text=True,
-                           timeout=timeout_s, stdin=subprocess.DEVNULL)
+        r = subprocess.run(
+            [py, str(script), url, PLUGIN_NAME],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout_s,
+            stdin=subprocess.DEVNULL,
+        )
     except FileNotFoundError:
         raise ProcessingError(f"{py} not found: give the Python that has PyQGIS with --qgis-python") from None
     except subprocess.TimeoutExpired:
@@ -291,7 +347,9 @@ def plugin_install(ctx: click.Context, repository: str | None, profile: str | No
     if not rep.get("ok"):
         msg = rep.get("error") or f"the QGIS installer exited with status {r.returncode}: {r.stderr.strip()[-800:]}"
         raise ProcessingError(msg)
-    sess.say(f"installed QGIS plugin {rep['plugin']} {rep['version']} from {url} into {rep['path']} and enabled it; "
-             "restart QGIS, or check with: qgis_process plugins")
+    sess.say(
+        f"installed QGIS plugin {rep['plugin']} {rep['version']} from {url} into {rep['path']} and enabled it; "
+        "restart QGIS, or check with: qgis_process plugins"
+    )
     sess.data(**rep)
     emit_result(ctx, {"plugin": rep["path"]})

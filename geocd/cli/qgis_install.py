@@ -80,8 +80,11 @@ def install(url: str, plugin_id: str, repo_name: str = "geocd", timeout_s: float
     offered = {p["id"]: p for p in plugins.repoCache.get(repo_name, [])}
     plugin = offered.get(plugin_id)
     if plugin is None:
-        return {"ok": False, "error": f"the repository {url} does not offer a plugin {plugin_id!r} compatible with "
-                                      f"this QGIS (it offers {sorted(offered)})"}
+        return {
+            "ok": False,
+            "error": f"the repository {url} does not offer a plugin {plugin_id!r} compatible with "
+            f"this QGIS (it offers {sorted(offered)})",
+        }
     stable = not plugin.get("experimental")
     dlg = QgsPluginInstallerInstallingDialog(None, plugin, stable=stable)
     dlg.exec_()
@@ -95,8 +98,15 @@ def install(url: str, plugin_id: str, repo_name: str = "geocd", timeout_s: float
     version = plugin.get("version_available")
     experimental = bool(plugin.get("experimental"))
     app.exitQgis()
-    return {"ok": True, "plugin": plugin_id, "version": version, "path": installed, "profile": settings_dir,
-            "repository": url, "experimental": experimental}
+    return {
+        "ok": True,
+        "plugin": plugin_id,
+        "version": version,
+        "path": installed,
+        "profile": settings_dir,
+        "repository": url,
+        "experimental": experimental,
+    }
 
 
 def main(argv: list[str]) -> int:
@@ -106,8 +116,11 @@ def main(argv: list[str]) -> int:
     try:
         res = install(argv[0], argv[1], *(argv[2:3]))
     except ImportError as exc:
-        res = {"ok": False, "error": f"PyQGIS is not importable by {sys.executable} ({exc}); install QGIS's Python "
-                                     "bindings (Debian: apt-get install python3-qgis) or pass --qgis-python"}
+        res = {
+            "ok": False,
+            "error": f"PyQGIS is not importable by {sys.executable} ({exc}); install QGIS's Python "
+            "bindings (Debian: apt-get install python3-qgis) or pass --qgis-python",
+        }
     _report(**res)
     return 0 if res.get("ok") else 1
 

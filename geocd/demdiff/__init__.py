@@ -22,9 +22,19 @@ from .pipeline import CHANGE_NODATA, DEMDiffParams, DEMDiffResult, dem_differenc
 from .significance import SignificanceModel, change_sign, fit_significance, significance_map
 from .stable import StableInfo, StableParams, auto_stable_mask, mask_from_user, nmad, stable_terrain
 from .timeseries import Epoch, TimeSeriesResult, dem_time_series, survey_footprint
-from .uncertainty import (ErrorModel, ErrorParams, Uncertainty, VariogramModel, correlated_sum_variance,
-                          empirical_variogram, estimate_uncertainty, fit_error_model, fit_variogram, n_effective,
-                          variogram_fft)
+from .uncertainty import (
+    ErrorModel,
+    ErrorParams,
+    Uncertainty,
+    VariogramModel,
+    correlated_sum_variance,
+    empirical_variogram,
+    estimate_uncertainty,
+    fit_error_model,
+    fit_variogram,
+    n_effective,
+    variogram_fft,
+)
 
 
 def write_demdiff_products(*args, **kwargs):
@@ -35,13 +45,43 @@ def write_demdiff_products(*args, **kwargs):
 
 
 __all__ = [
-    "AlignedPair", "align_dems", "crop_to_overlap", "metric_posting",
-    "CoregParams", "CoregResult", "apply_shift", "nuth_kaab",
-    "CHANGE_NODATA", "DEMDiffParams", "DEMDiffResult", "dem_difference", "summary_table",
-    "SignificanceModel", "change_sign", "fit_significance", "significance_map",
-    "StableInfo", "StableParams", "auto_stable_mask", "mask_from_user", "nmad", "stable_terrain",
-    "Epoch", "TimeSeriesResult", "dem_time_series", "survey_footprint",
-    "ErrorModel", "ErrorParams", "Uncertainty", "VariogramModel", "correlated_sum_variance", "empirical_variogram",
-    "estimate_uncertainty", "fit_error_model", "fit_variogram", "n_effective", "variogram_fft",
+    "AlignedPair",
+    "align_dems",
+    "crop_to_overlap",
+    "metric_posting",
+    "CoregParams",
+    "CoregResult",
+    "apply_shift",
+    "nuth_kaab",
+    "CHANGE_NODATA",
+    "DEMDiffParams",
+    "DEMDiffResult",
+    "dem_difference",
+    "summary_table",
+    "SignificanceModel",
+    "change_sign",
+    "fit_significance",
+    "significance_map",
+    "StableInfo",
+    "StableParams",
+    "auto_stable_mask",
+    "mask_from_user",
+    "nmad",
+    "stable_terrain",
+    "Epoch",
+    "TimeSeriesResult",
+    "dem_time_series",
+    "survey_footprint",
+    "ErrorModel",
+    "ErrorParams",
+    "Uncertainty",
+    "VariogramModel",
+    "correlated_sum_variance",
+    "empirical_variogram",
+    "estimate_uncertainty",
+    "fit_error_model",
+    "fit_variogram",
+    "n_effective",
+    "variogram_fft",
     "write_demdiff_products",
 ]

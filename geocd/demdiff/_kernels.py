@@ -110,24 +110,35 @@ def terrain_attributes_ref(height_m: np.ndarray, posting_xy_m: tuple[float, floa
     nr, nc = h.shape
     pad = np.full((nr + 2, nc + 2), np.nan)
     pad[1:-1, 1:-1] = h
-    z = {k: pad[1 + dr:nr + 1 + dr, 1 + dc:nc + 1 + dc]
-         for k, (dr, dc) in {1: (-1, -1), 2: (-1, 0), 3: (-1, 1), 4: (0, -1), 5: (0, 0), 6: (0, 1),
-                             7: (1, -1), 8: (1, 0), 9: (1, 1)}.items()}
+    z = {
+        k: pad[1 + dr : nr + 1 + dr, 1 + dc : nc + 1 + dc]
+        for k, (dr, dc) in {
+            1: (-1, -1),
+            2: (-1, 0),
+            3: (-1, 1),
+            4: (0, -1),
+            5: (0, 0),
+            6: (0, 1),
+            7: (1, -1),
+            8: (1, 0),
+            9: (1, 1),
+        }.items()
+    }
     with np.errstate(invalid="ignore", divide="ignore"):
         dzdx = ((z[3] + 2 * z[6] + z[9]) - (z[1] + 2 * z[4] + z[7])) / (8 * px)
         dzdy = ((z[1] + 2 * z[2] + z[3]) - (z[7] + 2 * z[8] + z[9])) / (8 * py)
         slope = np.arctan(np.hypot(dzdx, dzdy))
         aspect = np.mod(np.arctan2(-dzdx, -dzdy), 2 * np.pi)
-        d = ((z[4] + z[6]) / 2 - z[5]) / px ** 2
-        e = ((z[2] + z[8]) / 2 - z[5]) / py ** 2
+        d = ((z[4] + z[6]) / 2 - z[5]) / px**2
+        e = ((z[2] + z[8]) / 2 - z[5]) / py**2
         f = (-z[1] + z[3] + z[7] - z[9]) / (4 * px * py)
         gx = (z[6] - z[4]) / (2 * px)
         hy = (z[2] - z[8]) / (2 * py)
-        p2 = gx ** 2 + hy ** 2
+        p2 = gx**2 + hy**2
         flat = p2 <= 1e-12
         p2s = np.where(flat, 1.0, p2)
-        prof = np.where(flat, -2 * (d + e), -2 * (d * gx ** 2 + e * hy ** 2 + f * gx * hy) / p2s)
-        plan = np.where(flat, -2 * (d + e), 2 * (d * hy ** 2 + e * gx ** 2 - f * gx * hy) / p2s)
+        prof = np.where(flat, -2 * (d + e), -2 * (d * gx**2 + e * hy**2 + f * gx * hy) / p2s)
+        plan = np.where(flat, -2 * (d + e), 2 * (d * hy**2 + e * gx**2 - f * gx * hy) / p2s)
         maxc = 100 * np.maximum(np.abs(prof), np.abs(plan))
         stack = np.stack([z[k] for k in range(1, 10)])
         rough = stack.max(axis=0) - stack.min(axis=0)
@@ -146,9 +157,9 @@ def _keys(t):  # pragma: no cover - numba
     a = -0.5
     t = abs(t)
     if t <= 1.0:
-        return (a + 2.0) * t ** 3 - (a + 3.0) * t ** 2 + 1.0
+        return (a + 2.0) * t**3 - (a + 3.0) * t**2 + 1.0
     if t < 2.0:
-        return a * t ** 3 - 5.0 * a * t ** 2 + 8.0 * a * t - 4.0 * a
+        return a * t**3 - 5.0 * a * t**2 + 8.0 * a * t - 4.0 * a
     return 0.0
 
 
@@ -273,8 +284,14 @@ def _shift_window_kernel(h, r0, c0, nr, nc, dcol, drow, cubic, out):  # pragma: 
     return enough
 
 
-def shift_window(height_m: np.ndarray, origin: tuple[int, int], full_shape: tuple[int, int], shift_col_px: float,
-                 shift_row_px: float, method: str = "bilinear") -> np.ndarray:
+def shift_window(
+    height_m: np.ndarray,
+    origin: tuple[int, int],
+    full_shape: tuple[int, int],
+    shift_col_px: float,
+    shift_row_px: float,
+    method: str = "bilinear",
+) -> np.ndarray:
     """:func:`shift_grid` on a window of a larger grid, with the whole grid's arithmetic and borders.
 
     ``height_m`` is the window of a grid of ``full_shape`` whose first cell is ``origin`` (row, col).
@@ -286,8 +303,17 @@ def shift_window(height_m: np.ndarray, origin: tuple[int, int], full_shape: tupl
         raise ValueError(f"method must be 'bilinear' or 'cubic', got {method!r}")
     h = np.ascontiguousarray(height_m, dtype=np.float64)
     out = np.empty_like(h)
-    _shift_window_kernel(h, int(origin[0]), int(origin[1]), int(full_shape[0]), int(full_shape[1]),
-                         float(shift_col_px), float(shift_row_px), method == "cubic", out)
+    _shift_window_kernel(
+        h,
+        int(origin[0]),
+        int(origin[1]),
+        int(full_shape[0]),
+        int(full_shape[1]),
+        float(shift_col_px),
+        float(shift_row_px),
+        method == "cubic",
+        out,
+    )
     return out
 
 
@@ -348,9 +374,17 @@ def _shift_points_kernel(patches, pr0, pc0, rows, cols, nr, nc, dcol, drow, cubi
     return enough
 
 
-def shift_points(patches: np.ndarray, patch_rows: np.ndarray, patch_cols: np.ndarray, rows: np.ndarray,
-                 cols: np.ndarray, full_shape: tuple[int, int], shift_col_px: float, shift_row_px: float,
-                 method: str = "bilinear") -> tuple[np.ndarray, bool]:
+def shift_points(
+    patches: np.ndarray,
+    patch_rows: np.ndarray,
+    patch_cols: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    full_shape: tuple[int, int],
+    shift_col_px: float,
+    shift_row_px: float,
+    method: str = "bilinear",
+) -> tuple[np.ndarray, bool]:
     """:func:`shift_grid` at chosen cells of a grid known only on a patch around each cell.
 
     Parameters
@@ -369,10 +403,19 @@ def shift_points(patches: np.ndarray, patch_rows: np.ndarray, patch_cols: np.nda
         raise ValueError(f"method must be 'bilinear' or 'cubic', got {method!r}")
     pa = np.ascontiguousarray(patches, dtype=np.float64)
     out = np.empty(pa.shape[0], np.float64)
-    ok = _shift_points_kernel(pa, np.ascontiguousarray(patch_rows, np.int64), np.ascontiguousarray(patch_cols, np.int64),
-                              np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(cols, np.int64),
-                              int(full_shape[0]), int(full_shape[1]), float(shift_col_px), float(shift_row_px),
-                              method == "cubic", out)
+    ok = _shift_points_kernel(
+        pa,
+        np.ascontiguousarray(patch_rows, np.int64),
+        np.ascontiguousarray(patch_cols, np.int64),
+        np.ascontiguousarray(rows, np.int64),
+        np.ascontiguousarray(cols, np.int64),
+        int(full_shape[0]),
+        int(full_shape[1]),
+        float(shift_col_px),
+        float(shift_row_px),
+        method == "cubic",
+        out,
+    )
     return out, bool(ok)
 
 
@@ -388,13 +431,18 @@ def _weights_ref(f: np.ndarray, cubic: bool) -> list[tuple[int, np.ndarray]]:
     out = []
     for k in range(-1, 3):
         t = np.abs(k - f)
-        w = np.where(t <= 1, (a + 2) * t ** 3 - (a + 3) * t ** 2 + 1,
-                     np.where(t < 2, a * t ** 3 - 5 * a * t ** 2 + 8 * a * t - 4 * a, 0.0))
+        w = np.where(
+            t <= 1,
+            (a + 2) * t**3 - (a + 3) * t**2 + 1,
+            np.where(t < 2, a * t**3 - 5 * a * t**2 + 8 * a * t - 4 * a, 0.0),
+        )
         out.append((k, w))
     return out
 
 
-def shift_grid_ref(height_m: np.ndarray, shift_col_px: float, shift_row_px: float, method: str = "bilinear") -> np.ndarray:
+def shift_grid_ref(
+    height_m: np.ndarray, shift_col_px: float, shift_row_px: float, method: str = "bilinear"
+) -> np.ndarray:
     """Pure-numpy reference of :func:`shift_grid`."""
     h = np.asarray(height_m, np.float64)
     nr, nc = h.shape
@@ -457,7 +505,9 @@ def _variogram_kernel(x, y, z, edges, sums, counts):  # pragma: no cover - numba
             counts[lo] += 1
 
 
-def variogram_bins(x_m: np.ndarray, y_m: np.ndarray, values: np.ndarray, edges_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def variogram_bins(
+    x_m: np.ndarray, y_m: np.ndarray, values: np.ndarray, edges_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Empirical semivariance of all sample pairs, binned by distance.
 
     Parameters
@@ -473,8 +523,14 @@ def variogram_bins(x_m: np.ndarray, y_m: np.ndarray, values: np.ndarray, edges_m
     edges = np.ascontiguousarray(edges_m, np.float64)
     sums = np.zeros(edges.size - 1)
     counts = np.zeros(edges.size - 1, np.int64)
-    _variogram_kernel(np.ascontiguousarray(x_m, np.float64), np.ascontiguousarray(y_m, np.float64),
-                      np.ascontiguousarray(values, np.float64), edges, sums, counts)
+    _variogram_kernel(
+        np.ascontiguousarray(x_m, np.float64),
+        np.ascontiguousarray(y_m, np.float64),
+        np.ascontiguousarray(values, np.float64),
+        edges,
+        sums,
+        counts,
+    )
     with np.errstate(invalid="ignore", divide="ignore"):
         gamma = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
     return gamma, counts

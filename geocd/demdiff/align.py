@@ -109,7 +109,8 @@ def _resample(dem: DEM, grid: AOIGrid, resampling: str) -> np.ndarray:
         return np.asarray(dem.height_m, np.float32)
     # the same grid cropped: slice instead of resampling
     if dem.grid.crs.equals(grid.crs, ignore_axis_order=True) and np.allclose(
-            np.array(dem.grid.transform)[[0, 1, 3, 4]], np.array(grid.transform)[[0, 1, 3, 4]]):
+        np.array(dem.grid.transform)[[0, 1, 3, 4]], np.array(grid.transform)[[0, 1, 3, 4]]
+    ):
         inv = ~dem.grid.transform
         c, r = inv @ (grid.transform.c, grid.transform.f)
         if abs(c - round(c)) < 1e-6 and abs(r - round(r)) < 1e-6:
@@ -118,13 +119,20 @@ def _resample(dem: DEM, grid: AOIGrid, resampling: str) -> np.ndarray:
             rs0, cs0 = max(r, 0), max(c, 0)
             rs1, cs1 = min(r + grid.height, dem.grid.height), min(c + grid.width, dem.grid.width)
             if rs1 > rs0 and cs1 > cs0:
-                out[rs0 - r:rs1 - r, cs0 - c:cs1 - c] = dem.height_m[rs0:rs1, cs0:cs1]
+                out[rs0 - r : rs1 - r, cs0 - c : cs1 - c] = dem.height_m[rs0:rs1, cs0:cs1]
             return out
     return reproject_array(np.asarray(dem.height_m, np.float32), dem.grid, grid, resampling)
 
 
-def align_dems(dem_a: DEM, dem_b: DEM, grid: AOIGrid | None = None, *, resampling: str = "bilinear",
-               allow_geoid_substitute: bool = False, crop: bool = True) -> AlignedPair:
+def align_dems(
+    dem_a: DEM,
+    dem_b: DEM,
+    grid: AOIGrid | None = None,
+    *,
+    resampling: str = "bilinear",
+    allow_geoid_substitute: bool = False,
+    crop: bool = True,
+) -> AlignedPair:
     """Put B (and A if needed) on one grid and one vertical datum.
 
     Parameters
@@ -149,7 +157,8 @@ def align_dems(dem_a: DEM, dem_b: DEM, grid: AOIGrid | None = None, *, resamplin
         raise VerticalDatumError(
             f"DEM A's vertical datum is {da or 'unknown'} and DEM B's is {db or 'unknown'}: geocd will not guess. "
             f"Declare DEM {which}'s vertical datum (--datum-{which.lower()} ellipsoid|egm96|egm2008, or "
-            f"vertical_datum= in Python); if both are in the same datum, declare it for both")
+            f"vertical_datum= in Python); if both are in the same datum, declare it for both"
+        )
     target = grid or dem_a.grid
     target = crop_to_overlap(target, dem_b.grid) if crop else target
     if grid is not None and crop:
@@ -167,6 +176,8 @@ def align_dems(dem_a: DEM, dem_b: DEM, grid: AOIGrid | None = None, *, resamplin
         notes.append(f"B resampled onto the {'AOI' if grid is not None else 'reference'} grid ({resampling})")
     both = np.isfinite(ha) & np.isfinite(hb)
     if not both.any():
-        raise EmptyDataError("the DEMs share no cell with heights in both (their valid areas do not overlap); "
-                             "check nodata values and that they cover the same area")
+        raise EmptyDataError(
+            "the DEMs share no cell with heights in both (their valid areas do not overlap); "
+            "check nodata values and that they cover the same area"
+        )
     return AlignedPair(ha.astype(np.float32), hb.astype(np.float32), target, vd, metric_posting(target), notes)

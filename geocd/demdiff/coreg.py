@@ -90,7 +90,9 @@ class CoregParams:
 
     def __post_init__(self) -> None:
         if self.on_underconstrained not in UNDERCONSTRAINED_ACTIONS:
-            raise ConfigError(f"on_underconstrained must be one of {UNDERCONSTRAINED_ACTIONS}, got {self.on_underconstrained!r}")
+            raise ConfigError(
+                f"on_underconstrained must be one of {UNDERCONSTRAINED_ACTIONS}, got {self.on_underconstrained!r}"
+            )
         if self.resampling not in ("bilinear", "cubic"):
             raise ConfigError(f"resampling must be 'bilinear' or 'cubic', got {self.resampling!r}")
         if self.max_iterations < 1 or self.tolerance_px <= 0 or self.aspect_bins < 8:
@@ -155,16 +157,24 @@ class CoregResult:
     def summary(self) -> str:
         e, n, z = self.fitted_shift_m
         se, sn, sz = self.shift_sigma_m
-        s = (f"Nuth–Kääb: fitted shift (E {e:+.2f} ± {se:.2f}, N {n:+.2f} ± {sn:.2f}, Z {z:+.2f} ± {sz:.2f}) m "
-             f"on {self.n_fit} stable cells ({self.octants}/8 aspect octants), {self.iterations} iterations; "
-             f"status {self.status}, applied {self.applied}")
+        s = (
+            f"Nuth–Kääb: fitted shift (E {e:+.2f} ± {se:.2f}, N {n:+.2f} ± {sn:.2f}, Z {z:+.2f} ± {sz:.2f}) m "
+            f"on {self.n_fit} stable cells ({self.octants}/8 aspect octants), {self.iterations} iterations; "
+            f"status {self.status}, applied {self.applied}"
+        )
         if self.reasons:
             s += " (" + "; ".join(self.reasons) + ")"
         return s
 
 
-def apply_shift(height_m: np.ndarray, shift_m: tuple[float, float, float], posting_xy_m: tuple[float, float], *,
-                tilt: tuple[float, float] | None = None, resampling: str = "bilinear") -> np.ndarray:
+def apply_shift(
+    height_m: np.ndarray,
+    shift_m: tuple[float, float, float],
+    posting_xy_m: tuple[float, float],
+    *,
+    tilt: tuple[float, float] | None = None,
+    resampling: str = "bilinear",
+) -> np.ndarray:
     """Translate a DEM by ``shift_m`` = (east, north, up) metres (and add an optional plane).
 
     ``out(x, y) = h(x − t_e, y − t_n) + t_z [+ a (x − x_c) + b (y − y_c)]`` on a north-up
@@ -210,7 +220,7 @@ def _fit_bins(y: np.ndarray, aspect: np.ndarray, nbins: int, min_cells: int) -> 
     cnt = np.diff(bounds)
     for k in range(nbins):
         if cnt[k] >= min_cells:
-            med[k] = np.median(y_s[bounds[k]:bounds[k + 1]])
+            med[k] = np.median(y_s[bounds[k] : bounds[k + 1]])
     ok = np.isfinite(med)
     if ok.sum() < 4:
         return None
@@ -225,8 +235,15 @@ def _octants(aspect: np.ndarray, min_cells: int) -> int:
     return int(np.sum(np.bincount(o, minlength=8) >= min_cells))
 
 
-def _jackknife(dh: np.ndarray, tan_a: np.ndarray, aspect: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-               block_px: int, min_blocks: int) -> tuple[np.ndarray, np.ndarray, int]:
+def _jackknife(
+    dh: np.ndarray,
+    tan_a: np.ndarray,
+    aspect: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    block_px: int,
+    min_blocks: int,
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Block-jackknife of the linearized shift model; returns (beta, sigma, n_blocks)."""
     X = np.column_stack([tan_a * np.sin(aspect), tan_a * np.cos(aspect), np.ones_like(dh)])
     ncb = int(cols.max()) // block_px + 1 if cols.size else 1
@@ -299,8 +316,13 @@ class CoregPlan:
     plane: tuple[float, float] | None
     resampling: str = "bilinear"
 
-    def apply(self, tba_m: np.ndarray, posting_xy_m: tuple[float, float], origin: tuple[int, int] = (0, 0),
-              full_shape: tuple[int, int] | None = None) -> np.ndarray:
+    def apply(
+        self,
+        tba_m: np.ndarray,
+        posting_xy_m: tuple[float, float],
+        origin: tuple[int, int] = (0, 0),
+        full_shape: tuple[int, int] | None = None,
+    ) -> np.ndarray:
         """B co-registered (float32) on a window of the grid starting at ``origin`` (whole grid by default).
 
         A window's cells get exactly the values they get on the whole grid as long as the
@@ -322,16 +344,29 @@ class CoregPlan:
 class GridCoregData:
     """:func:`coregister_cells`' access to two whole grids (what :func:`nuth_kaab` uses)."""
 
-    def __init__(self, A: np.ndarray, B: np.ndarray, stable: np.ndarray, posting_xy_m: tuple[float, float],
-                 resampling: str = "bilinear"):
+    def __init__(
+        self,
+        A: np.ndarray,
+        B: np.ndarray,
+        stable: np.ndarray,
+        posting_xy_m: tuple[float, float],
+        resampling: str = "bilinear",
+    ):
         self.A = A
         self.B = B
         self.resampling = resampling
         rows, cols = np.nonzero(stable)
         terr = terrain_attributes(A, posting_xy_m)
-        self.cells = StableCells(rows, cols, A[rows, cols], B[rows, cols],
-                                 terr["slope_rad"][rows, cols].astype(np.float64),
-                                 terr["aspect_rad"][rows, cols].astype(np.float64), A.shape, int(rows.size))
+        self.cells = StableCells(
+            rows,
+            cols,
+            A[rows, cols],
+            B[rows, cols],
+            terr["slope_rad"][rows, cols].astype(np.float64),
+            terr["aspect_rad"][rows, cols].astype(np.float64),
+            A.shape,
+            int(rows.size),
+        )
 
     def sample_b(self, idx: np.ndarray, dcol: float, drow: float) -> np.ndarray:
         """B shifted by (dcol, drow) px at the table's cells ``idx``."""
@@ -344,9 +379,15 @@ class GridCoregData:
         return Bs[self.cells.rows, self.cells.cols]
 
 
-def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_xy_m: tuple[float, float],
-              params: CoregParams = CoregParams(), progress: Progress | None = None,
-              initial_shift_m: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, CoregResult]:
+def nuth_kaab(
+    ref_m: np.ndarray,
+    tba_m: np.ndarray,
+    stable: np.ndarray,
+    posting_xy_m: tuple[float, float],
+    params: CoregParams = CoregParams(),
+    progress: Progress | None = None,
+    initial_shift_m: tuple[float, float] = (0.0, 0.0),
+) -> tuple[np.ndarray, CoregResult]:
     """Co-register ``tba_m`` (B) onto ``ref_m`` (A) on stable terrain.
 
     Parameters
@@ -371,9 +412,13 @@ def nuth_kaab(ref_m: np.ndarray, tba_m: np.ndarray, stable: np.ndarray, posting_
     return plan.apply(B, posting_xy_m), res
 
 
-def coregister_cells(data, posting_xy_m: tuple[float, float], params: CoregParams = CoregParams(),
-                     progress: Progress | None = None,
-                     initial_shift_m: tuple[float, float] = (0.0, 0.0)) -> tuple[CoregResult, CoregPlan]:
+def coregister_cells(
+    data,
+    posting_xy_m: tuple[float, float],
+    params: CoregParams = CoregParams(),
+    progress: Progress | None = None,
+    initial_shift_m: tuple[float, float] = (0.0, 0.0),
+) -> tuple[CoregResult, CoregPlan]:
     """Nuth & Kääb on a table of stable cells (see the module docstring).
 
     Parameters
@@ -402,20 +447,23 @@ def coregister_cells(data, posting_xy_m: tuple[float, float], params: CoregParam
     inf3 = (math.inf, math.inf, math.inf)
     nothing = CoregPlan(None, 0.0, None, p.resampling)
     if not (p.horizontal or p.vertical or p.tilt):
-        return CoregResult(zero, zero, inf3, "disabled", "none", **base, median_after_m=med0,
-                           nmad_after_m=nm0), nothing
+        return CoregResult(zero, zero, inf3, "disabled", "none", **base, median_after_m=med0, nmad_after_m=nm0), nothing
     if n_stable < max(p.min_vertical_cells, 3):
-        reason = (f"no stable terrain ({n_stable} stable cells with heights in both DEMs, "
-                  f"at least {max(p.min_vertical_cells, 3)} needed)")
+        reason = (
+            f"no stable terrain ({n_stable} stable cells with heights in both DEMs, "
+            f"at least {max(p.min_vertical_cells, 3)} needed)"
+        )
         if p.on_underconstrained == "raise":
             raise ProcessingError(reason + "; give a stable-terrain mask (--stable-mask) or disable co-registration")
-        return CoregResult(zero, zero, inf3, "no_stable_terrain", "none", (reason,), **base, median_after_m=med0,
-                           nmad_after_m=nm0), nothing
+        return CoregResult(
+            zero, zero, inf3, "no_stable_terrain", "none", (reason,), **base, median_after_m=med0, nmad_after_m=nm0
+        ), nothing
 
     slope = c.slope_rad
     aspect = c.aspect_rad
-    fidx = np.nonzero(np.isfinite(slope) & (slope >= math.radians(p.min_slope_deg))
-                      & (slope <= math.radians(p.max_slope_deg)))[0]
+    fidx = np.nonzero(
+        np.isfinite(slope) & (slope >= math.radians(p.min_slope_deg)) & (slope <= math.radians(p.max_slope_deg))
+    )[0]
     if p.max_fit_cells and fidx.size > p.max_fit_cells:
         # a fixed random subsample (as xDEM's): the fit and its jackknife stay fast on large DEMs
         pick = np.sort(np.random.default_rng(0).choice(fidx.size, p.max_fit_cells, replace=False))
@@ -467,8 +515,10 @@ def coregister_cells(data, posting_xy_m: tuple[float, float], params: CoregParam
         if not converged and not reasons:
             reasons.append(f"no convergence to {p.tolerance_px} px in {p.max_iterations} iterations")
     if p.horizontal and n_fit < p.min_cells:
-        reasons.append(f"only {n_fit} stable cells with slope in [{p.min_slope_deg}, {p.max_slope_deg}]° "
-                       f"(at least {p.min_cells} needed)")
+        reasons.append(
+            f"only {n_fit} stable cells with slope in [{p.min_slope_deg}, {p.max_slope_deg}]° "
+            f"(at least {p.min_cells} needed)"
+        )
 
     # Gauss–Newton polish on the linearized model (the estimator whose jackknife σ is reported)
     if p.horizontal and converged and n_fit >= 20:
@@ -480,8 +530,9 @@ def coregister_cells(data, posting_xy_m: tuple[float, float], params: CoregParam
                 break
             m, s_ = float(np.median(d[ok])), nmad(d[ok])
             keep = ok & (np.abs(np.where(ok, d, m) - m) <= max(p.outlier_nmad * s_, 1e-6))
-            X = np.column_stack([tan_a[keep] * np.sin(asp[keep]), tan_a[keep] * np.cos(asp[keep]),
-                                 np.ones(int(keep.sum()))])
+            X = np.column_stack(
+                [tan_a[keep] * np.sin(asp[keep]), tan_a[keep] * np.cos(asp[keep]), np.ones(int(keep.sum()))]
+            )
             beta, *_ = np.linalg.lstsq(X, d[keep], rcond=None)
             te -= float(beta[0])
             tn -= float(beta[1])
@@ -514,8 +565,17 @@ def coregister_cells(data, posting_xy_m: tuple[float, float], params: CoregParam
             n_fit = int(keep.sum())
             dk = d[keep]
             yk = (dk - np.median(dk)) / tan_a[keep]
-            se, sn, nblk = _nk_jackknife(yk, asp[keep], rows[keep], cols[keep], p.aspect_bins, p.min_bin_cells,
-                                         p.block_px, p.jackknife_groups, p.min_blocks)
+            se, sn, nblk = _nk_jackknife(
+                yk,
+                asp[keep],
+                rows[keep],
+                cols[keep],
+                p.aspect_bins,
+                p.min_bin_cells,
+                p.block_px,
+                p.jackknife_groups,
+                p.min_blocks,
+            )
             # cross-check: the least-squares shift still seen at the Nuth–Kääb solution. The two estimators
             # weight slopes differently; where the pure-translation model does not hold they disagree,
             # and half the disagreement is added to the σ (honest about model error).
@@ -536,14 +596,22 @@ def coregister_cells(data, posting_xy_m: tuple[float, float], params: CoregParam
             reasons.append(f"stable slopes face only {octs} of 8 aspect octants (at least {p.min_octants} needed)")
         hs = math.hypot(sig[0] / px, sig[1] / py)
         if not math.isfinite(hs):
-            reasons.append(f"horizontal uncertainty unknown (stable cells in {nblk} blocks of {p.block_px} px, "
-                           f"at least {p.min_blocks} needed)")
+            reasons.append(
+                f"horizontal uncertainty unknown (stable cells in {nblk} blocks of {p.block_px} px, "
+                f"at least {p.min_blocks} needed)"
+            )
         elif hs > p.max_sigma_px:
             reasons.append(f"horizontal shift 1σ {hs:.2f} px exceeds {p.max_sigma_px} px")
     reasons = list(dict.fromkeys(reasons))
-    status = "ok" if not reasons else ("not_converged" if (p.horizontal and not converged and len(reasons) == 1
-                                                           and reasons[0].startswith("no convergence"))
-                                       else "underconstrained")
+    status = (
+        "ok"
+        if not reasons
+        else (
+            "not_converged"
+            if (p.horizontal and not converged and len(reasons) == 1 and reasons[0].startswith("no convergence"))
+            else "underconstrained"
+        )
+    )
     # a well-constrained shift must also make the stable terrain agree better (NMAD is blind to the
     # vertical offset, so this compares B moved horizontally with B as it is, on the same cells)
     nm_shift = nm_raw = float("nan")
@@ -558,14 +626,19 @@ def coregister_cells(data, posting_xy_m: tuple[float, float], params: CoregParam
             nm_shift, nm_raw = nmad(d1), nmad(d0)
             if nm_shift > nm_raw * (1.0 - p.min_improvement):
                 status = "not_improving"
-                reasons.append(f"the horizontal shift does not improve the stable terrain (NMAD {nm_shift:.2f} m with "
-                               f"it, {nm_raw:.2f} m without): B is not simply A translated")
+                reasons.append(
+                    f"the horizontal shift does not improve the stable terrain (NMAD {nm_shift:.2f} m with "
+                    f"it, {nm_raw:.2f} m without): B is not simply A translated"
+                )
     fitted = (te, tn, tz)
     trusted = status == "ok"
     action = p.on_underconstrained
     if not trusted and action == "raise":
-        raise ProcessingError("co-registration is under-constrained: " + "; ".join(reasons)
-                              + "; give a better stable-terrain mask or pass on_underconstrained='vertical_only'")
+        raise ProcessingError(
+            "co-registration is under-constrained: "
+            + "; ".join(reasons)
+            + "; give a better stable-terrain mask or pass on_underconstrained='vertical_only'"
+        )
     apply_h = p.horizontal and (trusted or action == "apply")
     apply_v = p.vertical and (trusted or action in ("apply", "vertical_only")) and st1.sum() >= p.min_vertical_cells
     bout = bh if apply_h else c.b_m
@@ -581,23 +654,48 @@ def coregister_cells(data, posting_xy_m: tuple[float, float], params: CoregParam
         plane = _fit_plane_cells(c.rows[fin], c.cols[fin], dd[fin], shape, (px, py))
         out = out - plane_at_cells(c.rows, c.cols, shape, (px, py), plane)
         tilt = (-plane[0], -plane[1])
-    applied = "horizontal+vertical" if (apply_h and apply_v) else ("horizontal" if apply_h else
-                                                                    ("vertical" if apply_v else "none"))
+    applied = (
+        "horizontal+vertical"
+        if (apply_h and apply_v)
+        else ("horizontal" if apply_h else ("vertical" if apply_v else "none"))
+    )
     dh_after = out - c.a_m
     sa = np.isfinite(dh_after)
     prog(1.0, "co-registration done")
     res = CoregResult(
-        shift_m=(te if apply_h else 0.0, tn if apply_h else 0.0, tz_applied), fitted_shift_m=fitted,
-        shift_sigma_m=tuple(float(v) for v in sig), status=status, applied=applied, reasons=tuple(reasons), tilt=tilt,
-        iterations=it, converged=converged, n_fit=n_fit, octants=octs, n_blocks=nblk, model_disagreement_m=disagree,
+        shift_m=(te if apply_h else 0.0, tn if apply_h else 0.0, tz_applied),
+        fitted_shift_m=fitted,
+        shift_sigma_m=tuple(float(v) for v in sig),
+        status=status,
+        applied=applied,
+        reasons=tuple(reasons),
+        tilt=tilt,
+        iterations=it,
+        converged=converged,
+        n_fit=n_fit,
+        octants=octs,
+        n_blocks=nblk,
+        model_disagreement_m=disagree,
         median_after_m=float(np.median(dh_after[sa])) if sa.any() else float("nan"),
-        nmad_after_m=nmad(dh_after[sa]) if sa.any() else float("nan"), history_m=tuple(history), **base)
+        nmad_after_m=nmad(dh_after[sa]) if sa.any() else float("nan"),
+        history_m=tuple(history),
+        **base,
+    )
     shift = (te / px, -tn / py) if (apply_h and (te or tn)) else None
     return res, CoregPlan(shift, tz_applied, plane, p.resampling)
 
 
-def _nk_jackknife(y: np.ndarray, aspect: np.ndarray, rows: np.ndarray, cols: np.ndarray, nbins: int,
-                  min_cells: int, block_px: int, groups: int, min_blocks: int) -> tuple[float, float, int]:
+def _nk_jackknife(
+    y: np.ndarray,
+    aspect: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    nbins: int,
+    min_cells: int,
+    block_px: int,
+    groups: int,
+    min_blocks: int,
+) -> tuple[float, float, int]:
     """Delete-a-group block jackknife of the Nuth–Kääb bin fit → 1σ of (d_e, d_n) and the block count.
 
     Cells are grouped in ``block_px`` blocks; blocks are dealt (seeded shuffle) into ``groups``
@@ -649,8 +747,9 @@ def _block_sigma_of_median(d: np.ndarray, rows: np.ndarray, cols: np.ndarray, bl
     return float(1.2533 * math.sqrt((K - 1) / K * np.sum((loo - loo.mean()) ** 2)))
 
 
-def _plane_at(d: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape, posting_xy_m,
-              use: np.ndarray | None = None) -> np.ndarray:
+def _plane_at(
+    d: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape, posting_xy_m, use: np.ndarray | None = None
+) -> np.ndarray:
     """A robust plane fitted to values ``d`` at cells (rows, cols), evaluated there (intercept excluded)."""
     nr, nc = shape
     x = (cols - (nc - 1) / 2.0) * posting_xy_m[0]
@@ -662,7 +761,7 @@ def _plane_at(d: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape, posting_
         coef, *_ = np.linalg.lstsq(X, d[keep], rcond=None)
         res = d - (coef[0] * x + coef[1] * y + coef[2])
         s = nmad(res[keep])
-        new = (np.abs(res - np.median(res[keep])) <= 3 * max(s, 1e-9))
+        new = np.abs(res - np.median(res[keep])) <= 3 * max(s, 1e-9)
         if use is not None:
             new &= use
         if np.array_equal(new, keep) or new.sum() < 10:

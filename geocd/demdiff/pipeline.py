@@ -45,8 +45,14 @@ from ..progress import Progress, ensure_progress, sub_progress
 from ._kernels import terrain_attributes
 from .align import AlignedPair, align_dems
 from .coreg import CoregParams, CoregResult, apply_shift, nuth_kaab
-from .significance import (SignificanceModel, change_sign, fit_significance, noise_region_filter, noise_region_null,
-                           significance_map)
+from .significance import (
+    SignificanceModel,
+    change_sign,
+    fit_significance,
+    noise_region_filter,
+    noise_region_null,
+    significance_map,
+)
 from .stable import StableInfo, StableParams, nmad, stable_terrain
 from .uncertainty import ErrorParams, Uncertainty, estimate_uncertainty
 
@@ -81,8 +87,10 @@ class DEMDiffParams:
 
     def __post_init__(self) -> None:
         if 0 < self.confidence < 1:
-            raise ConfigError(f"confidence is a percentage: did you mean {100 * self.confidence:g}? "
-                              f"(got {self.confidence:g}; 95 means 95 %)")
+            raise ConfigError(
+                f"confidence is a percentage: did you mean {100 * self.confidence:g}? "
+                f"(got {self.confidence:g}; 95 means 95 %)"
+            )
         if not 50 <= self.confidence < 100:
             raise ConfigError(f"confidence {self.confidence:g} is outside [50, 100): give a percentage such as 95")
         if not 0 < self.max_identical_fraction <= 1:
@@ -144,10 +152,19 @@ class DEMDiffResult:
         return (self.sign == 1) | (self.sign == -1)
 
     def to_dict(self) -> dict[str, Any]:
-        d = {"epoch_a": self.epoch_a, "epoch_b": self.epoch_b, "status": self.status, "confidence_level_pct": self.level,
-             "grid": self.grid.to_dict(), "posting_xy_m": list(self.posting_xy_m), "notes": list(self.notes),
-             "warnings": list(self.warnings),
-             "summary": self.summary, "stable": self.stable_info.to_dict(), "coreg": self.coreg.to_dict()}
+        d = {
+            "epoch_a": self.epoch_a,
+            "epoch_b": self.epoch_b,
+            "status": self.status,
+            "confidence_level_pct": self.level,
+            "grid": self.grid.to_dict(),
+            "posting_xy_m": list(self.posting_xy_m),
+            "notes": list(self.notes),
+            "warnings": list(self.warnings),
+            "summary": self.summary,
+            "stable": self.stable_info.to_dict(),
+            "coreg": self.coreg.to_dict(),
+        }
         if self.uncertainty is not None:
             d["uncertainty"] = self.uncertainty.to_dict()
         if self.significance is not None:
@@ -163,10 +180,21 @@ def _as_pair(dem_a, dem_b, grid, resampling) -> AlignedPair:
     raise ConfigError("dem_difference takes two geocd.io.raster.DEM objects (or an AlignedPair)")
 
 
-def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: AOIGrid | None = None,
-                   observed: np.ndarray | None = None, stable_mask: Any = None, mask_is: str = "stable",
-                   footprints: Any = None, params: DEMDiffParams = DEMDiffParams(), epoch_a: str = "A",
-                   epoch_b: str = "B", method: str = "demdiff", progress: Progress | None = None) -> DEMDiffResult:
+def dem_difference(
+    dem_a: DEM | AlignedPair,
+    dem_b: DEM | None = None,
+    *,
+    grid: AOIGrid | None = None,
+    observed: np.ndarray | None = None,
+    stable_mask: Any = None,
+    mask_is: str = "stable",
+    footprints: Any = None,
+    params: DEMDiffParams = DEMDiffParams(),
+    epoch_a: str = "A",
+    epoch_b: str = "B",
+    method: str = "demdiff",
+    progress: Progress | None = None,
+) -> DEMDiffResult:
     """Change between two DEMs with co-registration and honest uncertainty (see module docstring).
 
     Parameters
@@ -211,19 +239,33 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
         creg = nuth_kaab(A, B, valid, post, replace(p.coreg, horizontal=False, vertical=False, tilt=False))[1]
         Bc = B
     elif stable_mask is not None:
-        st0, _ = stable_terrain(dh_raw, valid, g, user_mask=stable_mask, mask_is=mask_is, footprints=footprints,
-                                slope_rad=slope, params=loose)
+        st0, _ = stable_terrain(
+            dh_raw,
+            valid,
+            g,
+            user_mask=stable_mask,
+            mask_is=mask_is,
+            footprints=footprints,
+            slope_rad=slope,
+            params=loose,
+        )
         Bc, creg = nuth_kaab(A, Bv, st0, post, p.coreg, progress=sub_progress(prog, 0.05, 0.4, "co-registration: "))
     else:
         st_all, _ = stable_terrain(dh_raw, valid, g, user_mask=valid, footprints=footprints, params=loose)
         B1, c1 = nuth_kaab(A, Bv, st_all, post, p.coreg, progress=sub_progress(prog, 0.05, 0.2, "co-registration 1: "))
         trusted1 = c1.status == "ok"
         dh1 = np.where(valid, (B1 if trusted1 else Bv) - A, np.nan)
-        st0, _ = stable_terrain(dh1, valid & np.isfinite(dh1), g, footprints=footprints, slope_rad=slope,
-                                params=loose)
+        st0, _ = stable_terrain(dh1, valid & np.isfinite(dh1), g, footprints=footprints, slope_rad=slope, params=loose)
         init = c1.fitted_shift_m[:2] if trusted1 else (0.0, 0.0)
-        Bc, creg = nuth_kaab(A, Bv, st0, post, p.coreg, progress=sub_progress(prog, 0.2, 0.4, "co-registration 2: "),
-                             initial_shift_m=init)
+        Bc, creg = nuth_kaab(
+            A,
+            Bv,
+            st0,
+            post,
+            p.coreg,
+            progress=sub_progress(prog, 0.2, 0.4, "co-registration 2: "),
+            initial_shift_m=init,
+        )
     Bc = np.asarray(Bc, np.float64)
     if creg.status != "ok":
         notes.append(creg.summary())
@@ -232,20 +274,57 @@ def dem_difference(dem_a: DEM | AlignedPair, dem_b: DEM | None = None, *, grid: 
 
     # --- final stable terrain ------------------------------------------------------------------
     prog(0.45, "stable terrain")
-    st, info = stable_terrain(dh, obs, g, user_mask=stable_mask, mask_is=mask_is, footprints=footprints,
-                              slope_rad=slope, params=p.stable)
-    res = finish_difference(g, post, A, B, Bc, dh, dh_raw, obs, st, info, creg, slope, q, notes, p, epoch_a=epoch_a,
-                            epoch_b=epoch_b, method=method, progress=prog)
+    st, info = stable_terrain(
+        dh, obs, g, user_mask=stable_mask, mask_is=mask_is, footprints=footprints, slope_rad=slope, params=p.stable
+    )
+    res = finish_difference(
+        g,
+        post,
+        A,
+        B,
+        Bc,
+        dh,
+        dh_raw,
+        obs,
+        st,
+        info,
+        creg,
+        slope,
+        q,
+        notes,
+        p,
+        epoch_a=epoch_a,
+        epoch_b=epoch_b,
+        method=method,
+        progress=prog,
+    )
     res.summary["wall_s"] = time.perf_counter() - t0
     prog(1.0, "done")
     return res
 
 
-def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: np.ndarray, Bc: np.ndarray,
-                      dh: np.ndarray, dh_raw: np.ndarray, obs: np.ndarray, st: np.ndarray, info: StableInfo,
-                      creg: CoregResult, slope: np.ndarray, q: np.ndarray | None, notes: list[str],
-                      p: DEMDiffParams, *, epoch_a: str = "A", epoch_b: str = "B", method: str = "demdiff",
-                      progress: Progress | None = None) -> DEMDiffResult:
+def finish_difference(
+    g: AOIGrid,
+    post: tuple[float, float],
+    A: np.ndarray,
+    B: np.ndarray,
+    Bc: np.ndarray,
+    dh: np.ndarray,
+    dh_raw: np.ndarray,
+    obs: np.ndarray,
+    st: np.ndarray,
+    info: StableInfo,
+    creg: CoregResult,
+    slope: np.ndarray,
+    q: np.ndarray | None,
+    notes: list[str],
+    p: DEMDiffParams,
+    *,
+    epoch_a: str = "A",
+    epoch_b: str = "B",
+    method: str = "demdiff",
+    progress: Progress | None = None,
+) -> DEMDiffResult:
     """The steps of :func:`dem_difference` after the final stable terrain (whole grids; float64 A, B
     as read, Bc co-registered, dh = Bc − A on ``obs``): error model, significance, change map,
     regions and the summary (without ``wall_s``)."""
@@ -260,18 +339,22 @@ def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: n
     center = 0.0
     if info.n_cells < p.min_stable_cells:
         status = "no_stable_terrain"
-        notes.append(f"no usable stable terrain ({info.n_cells} cells, at least {p.min_stable_cells} needed): "
-                     "no co-registration shift was invented, and σ and confidence are unknown; give a stable-terrain "
-                     "mask (--stable-mask) to test significance")
+        notes.append(
+            f"no usable stable terrain ({info.n_cells} cells, at least {p.min_stable_cells} needed): "
+            "no co-registration shift was invented, and σ and confidence are unknown; give a stable-terrain "
+            "mask (--stable-mask) to test significance"
+        )
     else:
         prog(0.5, "error model and variogram")
         rs_, cs_ = np.nonzero(st)
         nblk = len(np.unique((rs_ // p.coreg.block_px) * (g.width // p.coreg.block_px + 1) + cs_ // p.coreg.block_px))
         if info.n_cells < p.reliable_stable_cells or nblk < p.reliable_stable_blocks:
             status = "uncertainty_indicative"
-            notes.append(f"σ learned from only {info.n_cells} stable cells in {nblk} blocks of {p.coreg.block_px} px "
-                         f"(reliable from {p.reliable_stable_cells} cells in {p.reliable_stable_blocks} blocks): "
-                         "the error model and variogram are indicative only")
+            notes.append(
+                f"σ learned from only {info.n_cells} stable cells in {nblk} blocks of {p.coreg.block_px} px "
+                f"(reliable from {p.reliable_stable_cells} cells in {p.reliable_stable_blocks} blocks): "
+                "the error model and variogram are indicative only"
+            )
         unc = estimate_uncertainty(dh, st, slope, q, post, p.error)
         sigma = np.where(obs, unc.sigma_m, np.nan).astype(np.float32)
         sig_model = fit_significance(dh, sigma, st)
@@ -281,8 +364,10 @@ def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: n
         z, conf = significance_map(dh, sigma, sig_model)
         conf = (100.0 * conf).astype(np.float32)
         if p.confidence > 100.0 * sig_model.max_level():
-            notes.append(f"{sig_model.n} stable cells support confidences up to {100 * sig_model.max_level():.2f}% "
-                         f"only; nothing can be significant at {p.confidence:g}%")
+            notes.append(
+                f"{sig_model.n} stable cells support confidences up to {100 * sig_model.max_level():.2f}% "
+                f"only; nothing can be significant at {p.confidence:g}%"
+            )
     warns: list[str] = []
     degenerate = {}
     if info.n_cells >= p.min_stable_cells:
@@ -298,7 +383,9 @@ def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: n
     if sig_model is not None:
         raw_sign = change_sign(dh, conf / 100.0, p.confidence / 100.0, center)
     elif p.fallback_threshold_m is not None:
-        raw_sign = np.where(np.abs(np.nan_to_num(dh)) > p.fallback_threshold_m, np.sign(np.nan_to_num(dh)), 0).astype(np.int8)
+        raw_sign = np.where(np.abs(np.nan_to_num(dh)) > p.fallback_threshold_m, np.sign(np.nan_to_num(dh)), 0).astype(
+            np.int8
+        )
         notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m (no significance test)")
     else:
         raw_sign = np.zeros(g.shape, np.int8)
@@ -310,15 +397,46 @@ def finish_difference(g: AOIGrid, post: tuple[float, float], A: np.ndarray, B: n
     cell = float(post[0] * post[1])
     vfn = unc.volume_sigma_fn(cell) if unc is not None else None
     # per-cell confidence in percent, as change_regions takes it
-    regions = change_regions(raw_sign, dh, g, confidence=conf if sig_model is not None else None,
-                             volume_sigma_fn=vfn, method=method, epoch_a=epoch_a, epoch_b=epoch_b,
-                             min_cells=p.min_region_cells, cell_area_m2=cell)
+    regions = change_regions(
+        raw_sign,
+        dh,
+        g,
+        confidence=conf if sig_model is not None else None,
+        volume_sigma_fn=vfn,
+        method=method,
+        epoch_a=epoch_a,
+        epoch_b=epoch_b,
+        min_cells=p.min_region_cells,
+        cell_area_m2=cell,
+    )
     sign = _sign_in_regions(raw_sign, p.min_region_cells)
     sign = np.where(obs, sign, CHANGE_NODATA).astype(np.int8)
 
-    res = DEMDiffResult(g, post, A.astype(np.float32), Bc.astype(np.float32), dh.astype(np.float32),
-                        dh_raw.astype(np.float32), obs, st, info, creg, unc, sig_model, sigma, z, conf, sign, regions,
-                        epoch_a, epoch_b, p.confidence, status, notes, warnings=warns)
+    res = DEMDiffResult(
+        g,
+        post,
+        A.astype(np.float32),
+        Bc.astype(np.float32),
+        dh.astype(np.float32),
+        dh_raw.astype(np.float32),
+        obs,
+        st,
+        info,
+        creg,
+        unc,
+        sig_model,
+        sigma,
+        z,
+        conf,
+        sign,
+        regions,
+        epoch_a,
+        epoch_b,
+        p.confidence,
+        status,
+        notes,
+        warnings=warns,
+    )
     res.summary = _summary(res, B, p)
     res.summary.update(degenerate)
     if region_info is not None:
@@ -331,10 +449,13 @@ def region_null_of(vg, posting_xy_m, level_pct: float, min_cells: int) -> np.nda
     return noise_region_null(vg, (float(posting_xy_m[0]), float(posting_xy_m[1])), level_pct, min_cells)
 
 
-
-def degenerate_stable_terrain(height_a_m: np.ndarray, height_b_m: np.ndarray, dh_m: np.ndarray,
-                              stable: np.ndarray, params: DEMDiffParams = DEMDiffParams()
-                              ) -> tuple[dict[str, float], str | None]:
+def degenerate_stable_terrain(
+    height_a_m: np.ndarray,
+    height_b_m: np.ndarray,
+    dh_m: np.ndarray,
+    stable: np.ndarray,
+    params: DEMDiffParams = DEMDiffParams(),
+) -> tuple[dict[str, float], str | None]:
     """Is the stable terrain degenerate (identical heights, NMAD ≈ 0)? → (figures, warning or None).
 
     Parameters
@@ -360,8 +481,9 @@ def degenerate_stable_terrain(height_a_m: np.ndarray, height_b_m: np.ndarray, dh
     return degenerate_message(n, ident, nm, hmax, params)
 
 
-def degenerate_message(n: int, identical: int, nmad_m: float, hmax_m: float,
-                       params: DEMDiffParams = DEMDiffParams()) -> tuple[dict[str, float], str | None]:
+def degenerate_message(
+    n: int, identical: int, nmad_m: float, hmax_m: float, params: DEMDiffParams = DEMDiffParams()
+) -> tuple[dict[str, float], str | None]:
     """:func:`degenerate_stable_terrain` from its counts: ``n`` stable cells, ``identical`` of them with the
     same height in both DEMs, their dh NMAD and the largest |height| (for the float32 rounding floor)."""
     if n == 0:
@@ -372,13 +494,18 @@ def degenerate_message(n: int, identical: int, nmad_m: float, hmax_m: float,
     figures = {"stable_identical_fraction": round(frac, 5), "stable_nmad_floor_m": floor}
     if frac < params.max_identical_fraction and not (nm <= floor):
         return figures, None
-    what = (f"{100 * frac:.1f}% of the {n} stable cells have exactly the same height in both DEMs"
-            if frac >= params.max_identical_fraction else f"the stable terrain's NMAD is {nm:.2g} m")
-    msg = (f"degenerate stable terrain: {what} (NMAD {nm:.2g} m): the DEMs share data there (e.g. both were merged "
-           "onto a common base DEM, or one was filled from the other) or are noise-free, so σ, the confidence and "
-           "the volume ± σ are not an error estimate. If the DEMs were merged onto a base DEM, give it (--base "
-           "BASE; QGIS: 'Base DEM') to compare only where both epochs were surveyed; otherwise give stable terrain "
-           "where the DEMs are independent (--stable-mask).")
+    what = (
+        f"{100 * frac:.1f}% of the {n} stable cells have exactly the same height in both DEMs"
+        if frac >= params.max_identical_fraction
+        else f"the stable terrain's NMAD is {nm:.2g} m"
+    )
+    msg = (
+        f"degenerate stable terrain: {what} (NMAD {nm:.2g} m): the DEMs share data there (e.g. both were merged "
+        "onto a common base DEM, or one was filled from the other) or are noise-free, so σ, the confidence and "
+        "the volume ± σ are not an error estimate. If the DEMs were merged onto a base DEM, give it (--base "
+        "BASE; QGIS: 'Base DEM') to compare only where both epochs were surveyed; otherwise give stable terrain "
+        "where the DEMs are independent (--stable-mask)."
+    )
     return figures, msg
 
 
@@ -404,24 +531,41 @@ def _summary(res: DEMDiffResult, B_raw: np.ndarray, p: DEMDiffParams) -> dict[st
     obs = res.observed
     ch = res.changed
     s: dict[str, Any] = {
-        "epoch_a": res.epoch_a, "epoch_b": res.epoch_b, "status": res.status, "coreg_status": res.coreg.status,
-        "coreg_applied": res.coreg.applied, "shift_applied_m": list(res.coreg.shift_m),
-        "shift_fitted_m": list(res.coreg.fitted_shift_m), "shift_sigma_m": list(res.coreg.shift_sigma_m),
-        "coreg_n_fit": res.coreg.n_fit, "n_observed": int(obs.sum()), "observed_area_m2": float(obs.sum() * cell),
+        "epoch_a": res.epoch_a,
+        "epoch_b": res.epoch_b,
+        "status": res.status,
+        "coreg_status": res.coreg.status,
+        "coreg_applied": res.coreg.applied,
+        "shift_applied_m": list(res.coreg.shift_m),
+        "shift_fitted_m": list(res.coreg.fitted_shift_m),
+        "shift_sigma_m": list(res.coreg.shift_sigma_m),
+        "coreg_n_fit": res.coreg.n_fit,
+        "n_observed": int(obs.sum()),
+        "observed_area_m2": float(obs.sum() * cell),
         "n_stable": int(res.stable.sum()),
         "stable_median_m": float(np.median(dh[res.stable])) if res.stable.any() else float("nan"),
         "stable_nmad_m": nmad(dh[res.stable]) if res.stable.any() else float("nan"),
         "stable_nmad_before_coreg_m": res.coreg.nmad_before_m,
-        "changed_cells": int(ch.sum()), "changed_area_m2": float(ch.sum() * cell),
-        "raised_area_m2": float((res.sign == 1).sum() * cell), "lowered_area_m2": float((res.sign == -1).sum() * cell),
+        "changed_cells": int(ch.sum()),
+        "changed_area_m2": float(ch.sum() * cell),
+        "raised_area_m2": float((res.sign == 1).sum() * cell),
+        "lowered_area_m2": float((res.sign == -1).sum() * cell),
         "volume_changed_m3": float(np.nansum(dh[ch]) * cell),
         "volume_raised_m3": float(np.nansum(dh[res.sign == 1]) * cell),
         "volume_lowered_m3": float(np.nansum(dh[res.sign == -1]) * cell),
         "volume_net_observed_m3": float(np.nansum(dh[obs]) * cell),
     }
     nan = float("nan")
-    s.update(volume_changed_sigma_m3=nan, volume_changed_sigma_random_m3=nan, volume_net_observed_sigma_m3=nan,
-             n_eff_changed=nan, variogram_ranges_m=[], variogram_sills=[], variogram_nugget=nan, bias_sigma_m=nan)
+    s.update(
+        volume_changed_sigma_m3=nan,
+        volume_changed_sigma_random_m3=nan,
+        volume_net_observed_sigma_m3=nan,
+        n_eff_changed=nan,
+        variogram_ranges_m=[],
+        variogram_sills=[],
+        variogram_nugget=nan,
+        bias_sigma_m=nan,
+    )
     u = res.uncertainty
     if u is not None:
         s["variogram_ranges_m"] = list(u.variogram.ranges_m)
@@ -457,13 +601,30 @@ def summary_table(results) -> list[dict[str, Any]]:
         e, n, z = s["shift_applied_m"]
         fe, fn, fz = s["shift_fitted_m"]
         se, sn, sz = s["shift_sigma_m"]
-        rows.append({
-            "epoch_a": r.epoch_a, "epoch_b": r.epoch_b, "status": s["status"], "coreg_status": s["coreg_status"],
-            "coreg_applied": s["coreg_applied"], "shift_e_m": e, "shift_n_m": n, "shift_z_m": z,
-            "fitted_e_m": fe, "fitted_n_m": fn, "fitted_z_m": fz, "sigma_e_m": se, "sigma_n_m": sn, "sigma_z_m": sz,
-            "n_stable": s["n_stable"], "stable_nmad_m": s["stable_nmad_m"], "observed_area_m2": s["observed_area_m2"],
-            "changed_area_m2": s["changed_area_m2"], "volume_changed_m3": s["volume_changed_m3"],
-            "volume_changed_sigma_m3": s["volume_changed_sigma_m3"],
-            "volume_net_observed_m3": s["volume_net_observed_m3"],
-            "volume_net_observed_sigma_m3": s["volume_net_observed_sigma_m3"]})
+        rows.append(
+            {
+                "epoch_a": r.epoch_a,
+                "epoch_b": r.epoch_b,
+                "status": s["status"],
+                "coreg_status": s["coreg_status"],
+                "coreg_applied": s["coreg_applied"],
+                "shift_e_m": e,
+                "shift_n_m": n,
+                "shift_z_m": z,
+                "fitted_e_m": fe,
+                "fitted_n_m": fn,
+                "fitted_z_m": fz,
+                "sigma_e_m": se,
+                "sigma_n_m": sn,
+                "sigma_z_m": sz,
+                "n_stable": s["n_stable"],
+                "stable_nmad_m": s["stable_nmad_m"],
+                "observed_area_m2": s["observed_area_m2"],
+                "changed_area_m2": s["changed_area_m2"],
+                "volume_changed_m3": s["volume_changed_m3"],
+                "volume_changed_sigma_m3": s["volume_changed_sigma_m3"],
+                "volume_net_observed_m3": s["volume_net_observed_m3"],
+                "volume_net_observed_sigma_m3": s["volume_net_observed_sigma_m3"],
+            }
+        )
     return rows

@@ -33,8 +33,15 @@ from ..io.raster import write_cog
 from ..io.vector import qml_for, write_gpkg
 from .pipeline import CHANGE_NODATA, DEMDiffResult, summary_table
 
-_STOPS = ((-1.0, "#2166ac"), (-0.6, "#67a9cf"), (-0.25, "#d1e5f0"), (0.0, "#f7f7f7"), (0.25, "#fddbc7"),
-          (0.6, "#ef8a62"), (1.0, "#b2182b"))
+_STOPS = (
+    (-1.0, "#2166ac"),
+    (-0.6, "#67a9cf"),
+    (-0.25, "#d1e5f0"),
+    (0.0, "#f7f7f7"),
+    (0.25, "#fddbc7"),
+    (0.6, "#ef8a62"),
+    (1.0, "#b2182b"),
+)
 
 
 def nice_limit(v: float) -> float:
@@ -43,8 +50,8 @@ def nice_limit(v: float) -> float:
         return 1.0
     k = math.floor(math.log10(v))
     for m in (1, 2, 2.5, 5, 10):
-        if m * 10 ** k >= v:
-            return float(m * 10 ** k)
+        if m * 10**k >= v:
+            return float(m * 10**k)
     return float(10 ** (k + 1))
 
 
@@ -64,7 +71,7 @@ def dh_qml(vmax: float) -> str:
     for f, c in _STOPS:
         lab = fmt(f * v) + (" m (lowered)" if f == -1 else " m (raised)" if f == 1 else "")
         items.append(f'          <item value="{fmt(f * v)}" color="{c}" alpha="255" label="{lab}"/>')
-    q = re.sub(r'( *<item [^\n]*\n)+', "\n".join(items) + "\n", q, count=1)
+    q = re.sub(r"( *<item [^\n]*\n)+", "\n".join(items) + "\n", q, count=1)
     return q
 
 
@@ -109,44 +116,80 @@ def tables(result: DEMDiffResult) -> dict[str, Any]:
     out: dict[str, Any] = {"summary": pd.DataFrame(summary_table([result]))}
     u = result.uncertainty
     if u is not None:
-        em = pd.DataFrame(list(u.error_model.table)) if u.error_model.table else pd.DataFrame(
-            {"slope_lo_deg": [], "slope_hi_deg": [], "q_lo": [], "q_hi": [], "n": [], "nmad_m": [], "model_m": []})
+        em = (
+            pd.DataFrame(list(u.error_model.table))
+            if u.error_model.table
+            else pd.DataFrame(
+                {"slope_lo_deg": [], "slope_hi_deg": [], "q_lo": [], "q_hi": [], "n": [], "nmad_m": [], "model_m": []}
+            )
+        )
         out["error_model"] = em
         vg = u.variogram
         lags = np.asarray(vg.lags_m, float)
-        out["variogram"] = pd.DataFrame({"lag_m": lags, "gamma": np.asarray(vg.gamma, float),
-                                         "pairs": np.asarray(vg.counts, np.int64),
-                                         "model": vg.semivariance(lags) if lags.size else lags})
+        out["variogram"] = pd.DataFrame(
+            {
+                "lag_m": lags,
+                "gamma": np.asarray(vg.gamma, float),
+                "pairs": np.asarray(vg.counts, np.int64),
+                "model": vg.semivariance(lags) if lags.size else lags,
+            }
+        )
     return out
 
 
-def write_demdiff_products(out_dir: os.PathLike | str, result: DEMDiffResult, *, footprints=None,
-                           prefix: str = "demdiff", plots: bool = True, extra_layers: dict | None = None,
-                           provenance: dict | None = None, overwrite: bool = True) -> dict[str, Path]:
+def write_demdiff_products(
+    out_dir: os.PathLike | str,
+    result: DEMDiffResult,
+    *,
+    footprints=None,
+    prefix: str = "demdiff",
+    plots: bool = True,
+    extra_layers: dict | None = None,
+    provenance: dict | None = None,
+    overwrite: bool = True,
+) -> dict[str, Path]:
     """Write every product of one DEM pair; returns {product name: path}."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     g = result.grid
-    tags = {"method": "demdiff", "epoch_a": result.epoch_a, "epoch_b": result.epoch_b, "units": "m",
-            "confidence_level_pct": f"{result.level:g}", "coreg": result.coreg.summary()}
+    tags = {
+        "method": "demdiff",
+        "epoch_a": result.epoch_a,
+        "epoch_b": result.epoch_b,
+        "units": "m",
+        "confidence_level_pct": f"{result.level:g}",
+        "coreg": result.coreg.summary(),
+    }
     if provenance:
         tags["provenance"] = json.dumps(_clean(provenance), default=_jsonable)
     paths: dict[str, Path] = {}
-    paths["dh"] = write_cog(out / f"{prefix}_dh.tif", {"dh_m": result.dh_m.astype(np.float32)}, g, tags=tags,
-                            overwrite=overwrite)
+    paths["dh"] = write_cog(
+        out / f"{prefix}_dh.tif", {"dh_m": result.dh_m.astype(np.float32)}, g, tags=tags, overwrite=overwrite
+    )
     fin = np.isfinite(result.dh_m)
     vmax = nice_limit(float(np.nanpercentile(np.abs(result.dh_m[fin]), 98)) if fin.any() else 1.0)
     from ..change.styles import write_raster_style
 
     write_raster_style(paths["dh"], dh_qml(vmax))
     conf_pct = np.where(np.isfinite(result.confidence), result.confidence, np.nan).astype(np.float32)
-    paths["significance"] = write_cog(out / f"{prefix}_significance.tif",
-                                      {"confidence_pct": conf_pct, "sigma_m": result.sigma_m.astype(np.float32),
-                                       "z": result.z.astype(np.float32)}, g, tags=tags, overwrite=overwrite)
+    paths["significance"] = write_cog(
+        out / f"{prefix}_significance.tif",
+        {"confidence_pct": conf_pct, "sigma_m": result.sigma_m.astype(np.float32), "z": result.z.astype(np.float32)},
+        g,
+        tags=tags,
+        overwrite=overwrite,
+    )
     write_raster_style(paths["significance"], significance_qml())
-    paths["change_mask"] = write_cog(out / f"{prefix}_change_mask.tif", result.sign.astype(np.int8), g,
-                                     nodata=CHANGE_NODATA, dtype="int8", tags=tags, overview_resampling="nearest",
-                                     overwrite=overwrite)
+    paths["change_mask"] = write_cog(
+        out / f"{prefix}_change_mask.tif",
+        result.sign.astype(np.int8),
+        g,
+        nodata=CHANGE_NODATA,
+        dtype="int8",
+        tags=tags,
+        overview_resampling="nearest",
+        overwrite=overwrite,
+    )
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
 
     layers: dict[str, Any] = {"changes": result.regions}
@@ -155,8 +198,15 @@ def write_demdiff_products(out_dir: os.PathLike | str, result: DEMDiffResult, *,
         from ..change.buildings import classify_buildings
         from ..change.styles import buildings_qml
 
-        b = classify_buildings(footprints, result.sign, result.dh_m, g, z_a=result.height_a_m,
-                               z_b=result.height_b_m, confidence=result.confidence)
+        b = classify_buildings(
+            footprints,
+            result.sign,
+            result.dh_m,
+            g,
+            z_a=result.height_a_m,
+            z_b=result.height_b_m,
+            confidence=result.confidence,
+        )
         layers["buildings"] = b
         styles["buildings"] = buildings_qml()
     layers.update(tables(result))
@@ -171,12 +221,21 @@ def write_demdiff_products(out_dir: os.PathLike | str, result: DEMDiffResult, *,
         if result.status == "degenerate_stable_terrain":
             note += "\nWARNING: degenerate stable terrain (DEMs identical there): σ is not credible"
         if math.isfinite(s.get("volume_changed_sigma_m3", float("nan"))):
-            note += (f"\nchanged {s['changed_area_m2'] / 1e6:.3f} km², "
-                     f"{s['volume_changed_m3'] / 1e6:+.3f} ± {s['volume_changed_sigma_m3'] / 1e6:.3f} Mm³ (1σ)")
-        paths["dh_png"] = plot_dh_map(result.dh_m, g, out / f"{prefix}_dh.png", sign=result.sign,
-                                      backdrop_m=result.height_a_m, backdrop_posting_xy_m=result.posting_xy_m,
-                                      title=f"{result.epoch_a} → {result.epoch_b}: Δh after co-registration, "
-                                            f"changed at {result.level:g}%", vmax=vmax, note=note)
+            note += (
+                f"\nchanged {s['changed_area_m2'] / 1e6:.3f} km², "
+                f"{s['volume_changed_m3'] / 1e6:+.3f} ± {s['volume_changed_sigma_m3'] / 1e6:.3f} Mm³ (1σ)"
+            )
+        paths["dh_png"] = plot_dh_map(
+            result.dh_m,
+            g,
+            out / f"{prefix}_dh.png",
+            sign=result.sign,
+            backdrop_m=result.height_a_m,
+            backdrop_posting_xy_m=result.posting_xy_m,
+            title=f"{result.epoch_a} → {result.epoch_b}: Δh after co-registration, changed at {result.level:g}%",
+            vmax=vmax,
+            note=note,
+        )
     rep = result.to_dict()
     if provenance:
         rep["provenance"] = provenance
@@ -196,21 +255,45 @@ def series_for_plot(ts) -> tuple[list[dict], list[dict]]:
     series, bars = [], []
     if iv:
         first = d(iv[0]["date_a"])
-        series.append({"label": "chained intervals, cumulative net volume (common survey areas)",
-                       "dates": [first] + [d(r["date_b"]) for r in iv],
-                       "values": [0.0] + [r["cumulative_net_m3"] for r in iv],
-                       "sigmas": [0.0] + [r["cumulative_net_sigma_m3"] for r in iv], "style": "o-"})
-        bars.append({"label": "per-interval net volume", "dates_a": [d(r["date_a"]) for r in iv],
-                     "dates": [d(r["date_b"]) for r in iv], "values": [r["volume_net_m3"] for r in iv]})
+        series.append(
+            {
+                "label": "chained intervals, cumulative net volume (common survey areas)",
+                "dates": [first] + [d(r["date_b"]) for r in iv],
+                "values": [0.0] + [r["cumulative_net_m3"] for r in iv],
+                "sigmas": [0.0] + [r["cumulative_net_sigma_m3"] for r in iv],
+                "style": "o-",
+            }
+        )
+        bars.append(
+            {
+                "label": "per-interval net volume",
+                "dates_a": [d(r["date_a"]) for r in iv],
+                "dates": [d(r["date_b"]) for r in iv],
+                "values": [r["volume_net_m3"] for r in iv],
+            }
+        )
     if vb:
-        series.append({"label": f"net volume vs base ({vb[0]['epoch_a']}) over each survey area",
-                       "dates": [d(r["date_b"]) for r in vb], "values": [r["volume_net_m3"] for r in vb],
-                       "sigmas": [r.get("volume_net_sigma_m3", float("nan")) for r in vb], "style": "s--"})
+        series.append(
+            {
+                "label": f"net volume vs base ({vb[0]['epoch_a']}) over each survey area",
+                "dates": [d(r["date_b"]) for r in vb],
+                "values": [r["volume_net_m3"] for r in vb],
+                "sigmas": [r.get("volume_net_sigma_m3", float("nan")) for r in vb],
+                "style": "s--",
+            }
+        )
     return series, bars
 
 
-def write_timeseries_products(out_dir: os.PathLike | str, ts, *, prefix: str = "demdiff", title: str = "",
-                              plots: bool = True, reference: list | None = None) -> dict[str, Path]:
+def write_timeseries_products(
+    out_dir: os.PathLike | str,
+    ts,
+    *,
+    prefix: str = "demdiff",
+    title: str = "",
+    plots: bool = True,
+    reference: list | None = None,
+) -> dict[str, Path]:
     """Table (CSV + GeoPackage layer ``timeseries``), volume plot (PNG) and JSON of a time series."""
     import pandas as pd
 
@@ -228,7 +311,11 @@ def write_timeseries_products(out_dir: os.PathLike | str, ts, *, prefix: str = "
 
         series, bars = series_for_plot(ts)
         if series:
-            paths["timeseries_png"] = plot_volume_series(series, out / f"{prefix}_timeseries.png",
-                                                         title=title or "Volume change (1σ error bars)",
-                                                         reference=reference or (), bars=bars)
+            paths["timeseries_png"] = plot_volume_series(
+                series,
+                out / f"{prefix}_timeseries.png",
+                title=title or "Volume change (1σ error bars)",
+                reference=reference or (),
+                bars=bars,
+            )
     return paths

@@ -81,13 +81,15 @@ class SignificanceModel:
         """Threshold |dh| (m) vs slope for each level, at predictor value ``q``."""
         s = np.arange(0, 61, 5.0) if slopes_deg is None else np.asarray(slopes_deg, float)
         sig = error_model.sigma(np.radians(s), np.full(s.shape, q))
-        return {"slope_deg": s.tolist(),
-                **{f"{lv:g}": (self.threshold_z(lv) * sig).tolist() for lv in levels}}
+        return {"slope_deg": s.tolist(), **{f"{lv:g}": (self.threshold_z(lv) * sig).tolist() for lv in levels}}
 
     def to_dict(self) -> dict[str, Any]:
         qs = [0.5, 0.68, 0.9, 0.95, 0.99, 0.999]
-        return {"n_stable": self.n, "center_m": self.center_m,
-                "abs_z_quantiles": {f"{q:g}": self.threshold_z(q) for q in qs if q < self.max_level()}}
+        return {
+            "n_stable": self.n,
+            "center_m": self.center_m,
+            "abs_z_quantiles": {f"{q:g}": self.threshold_z(q) for q in qs if q < self.max_level()},
+        }
 
 
 def fit_significance(dh_m: np.ndarray, sigma_m: np.ndarray, stable: np.ndarray) -> SignificanceModel:
@@ -108,8 +110,14 @@ def significance_map(dh_m: np.ndarray, sigma_m: np.ndarray, model: SignificanceM
     return z.astype(np.float32), model.confidence_of_z(z).astype(np.float32)
 
 
-def change_sign(dh_m: np.ndarray, confidence: np.ndarray, level: float, center_m: float = 0.0,
-                observed: np.ndarray | None = None, nodata: int | None = None) -> np.ndarray:
+def change_sign(
+    dh_m: np.ndarray,
+    confidence: np.ndarray,
+    level: float,
+    center_m: float = 0.0,
+    observed: np.ndarray | None = None,
+    nodata: int | None = None,
+) -> np.ndarray:
     """int8 +1 raised / −1 lowered / 0 unchanged at ``level``; ``nodata`` (e.g. −128) where not observed.
 
     ``nodata=None`` writes 0 there (the form :func:`geocd.change.regions.change_regions` takes).
@@ -131,8 +139,9 @@ def _torus_spectrum(vg, posting_xy_m: tuple[float, float], size: int) -> np.ndar
     return np.maximum(lam, 0.0)  # circulant embedding: ranges beyond the torus clip a little
 
 
-def _torus_field(vg, posting_xy_m: tuple[float, float], size: int, rng: np.random.Generator,
-                 lam: np.ndarray | None = None) -> np.ndarray:
+def _torus_field(
+    vg, posting_xy_m: tuple[float, float], size: int, rng: np.random.Generator, lam: np.ndarray | None = None
+) -> np.ndarray:
     """One ``size``² field of unit variance with the variogram's correlation (FFT on a 2·size torus).
 
     ``lam``: :func:`_torus_spectrum` of the same arguments, when the caller draws many fields.
@@ -145,8 +154,17 @@ def _torus_field(vg, posting_xy_m: tuple[float, float], size: int, rng: np.rando
     return f / np.sqrt(np.mean(lam))
 
 
-def noise_region_null(vg, posting_xy_m: tuple[float, float], level_pct: float, min_cells: int = 1, *,
-                      size: int = 512, min_regions: int = 2000, max_fields: int = 48, seed: int = 0) -> np.ndarray:
+def noise_region_null(
+    vg,
+    posting_xy_m: tuple[float, float],
+    level_pct: float,
+    min_cells: int = 1,
+    *,
+    size: int = 512,
+    min_regions: int = 2000,
+    max_fields: int = 48,
+    seed: int = 0,
+) -> np.ndarray:
     """Sorted cluster masses of the regions noise alone forms at ``level_pct`` (see module docstring).
 
     Parameters
@@ -162,9 +180,19 @@ def noise_region_null(vg, posting_xy_m: tuple[float, float], level_pct: float, m
     The null depends on these arguments only; the last few are kept (a process that differences
     several DEM pairs with the same error model simulates it once). The array returned is read-only.
     """
-    key = (float(vg.nugget), tuple(map(float, vg.ranges_m)), tuple(map(float, vg.sills)),
-           float(posting_xy_m[0]), float(posting_xy_m[1]), float(level_pct), int(min_cells), int(size),
-           int(min_regions), int(max_fields), int(seed))
+    key = (
+        float(vg.nugget),
+        tuple(map(float, vg.ranges_m)),
+        tuple(map(float, vg.sills)),
+        float(posting_xy_m[0]),
+        float(posting_xy_m[1]),
+        float(level_pct),
+        int(min_cells),
+        int(size),
+        int(min_regions),
+        int(max_fields),
+        int(seed),
+    )
     hit = _NULL_CACHE.get(key)
     if hit is not None:
         return hit
@@ -195,8 +223,9 @@ def noise_region_null(vg, posting_xy_m: tuple[float, float], level_pct: float, m
 _NULL_CACHE: dict[tuple, np.ndarray] = {}
 
 
-def noise_region_filter(sign: np.ndarray, confidence_pct: np.ndarray, level_pct: float, null_masses: np.ndarray,
-                        min_cells: int = 1) -> tuple[np.ndarray, dict[str, Any]]:
+def noise_region_filter(
+    sign: np.ndarray, confidence_pct: np.ndarray, level_pct: float, null_masses: np.ndarray, min_cells: int = 1
+) -> tuple[np.ndarray, dict[str, Any]]:
     """Drop the regions of ``sign`` whose combined evidence noise alone reaches (see module docstring).
 
     Parameters
@@ -231,9 +260,13 @@ def noise_region_filter(sign: np.ndarray, confidence_pct: np.ndarray, level_pct:
         dropped += int(drop.sum())
         dropped_cells += int(size[drop].sum())
         out[drop[lab]] = 0
-    return out, {"regions_tested": tested, "regions_dropped": dropped, "cells_dropped": dropped_cells,
-                 "null_regions": int(np.asarray(null_masses).size),
-                 "mass_needed": noise_mass_needed(null_masses, level_pct)}
+    return out, {
+        "regions_tested": tested,
+        "regions_dropped": dropped,
+        "cells_dropped": dropped_cells,
+        "null_regions": int(np.asarray(null_masses).size),
+        "mass_needed": noise_mass_needed(null_masses, level_pct),
+    }
 
 
 def resolvable(null_masses: np.ndarray, level_pct: float) -> bool:

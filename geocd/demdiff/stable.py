@@ -82,13 +82,26 @@ class StableInfo:
     notes: tuple[str, ...] = field(default_factory=tuple)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"source": self.source, "n_cells": self.n_cells, "iterations": self.iterations,
-                "median_m": self.median_m, "nmad_m": self.nmad_m,
-                "excluded_change_cells": self.excluded_change_cells, "notes": list(self.notes)}
+        return {
+            "source": self.source,
+            "n_cells": self.n_cells,
+            "iterations": self.iterations,
+            "median_m": self.median_m,
+            "nmad_m": self.nmad_m,
+            "excluded_change_cells": self.excluded_change_cells,
+            "notes": list(self.notes),
+        }
 
 
-def coherent_change(dh_m: np.ndarray, valid: np.ndarray, center_m: float, threshold_m: float,
-                    min_region_cells: int, dilate_cells: int, grow_threshold_m: float | None = None) -> np.ndarray:
+def coherent_change(
+    dh_m: np.ndarray,
+    valid: np.ndarray,
+    center_m: float,
+    threshold_m: float,
+    min_region_cells: int,
+    dilate_cells: int,
+    grow_threshold_m: float | None = None,
+) -> np.ndarray:
     """Cells of coherent change around ``center_m``.
 
     Groups (8-connected) of at least ``min_region_cells`` cells with |dh − center| >
@@ -118,8 +131,13 @@ def coherent_change(dh_m: np.ndarray, valid: np.ndarray, center_m: float, thresh
     return out
 
 
-def auto_stable_mask(dh_m: np.ndarray, valid: np.ndarray | None = None, slope_rad: np.ndarray | None = None,
-                     exclude: np.ndarray | None = None, params: StableParams = StableParams()) -> tuple[np.ndarray, StableInfo]:
+def auto_stable_mask(
+    dh_m: np.ndarray,
+    valid: np.ndarray | None = None,
+    slope_rad: np.ndarray | None = None,
+    exclude: np.ndarray | None = None,
+    params: StableParams = StableParams(),
+) -> tuple[np.ndarray, StableInfo]:
     """Automatic stable terrain (see module docstring).
 
     Parameters
@@ -175,8 +193,9 @@ class _GridStable:
         return self.dh[new], int(new.sum()), excluded, toggled
 
 
-def stable_state_mask(dh_m: np.ndarray, ok: np.ndarray, base: np.ndarray, state: Any,
-                      params: StableParams = StableParams()) -> np.ndarray:
+def stable_state_mask(
+    dh_m: np.ndarray, ok: np.ndarray, base: np.ndarray, state: Any, params: StableParams = StableParams()
+) -> np.ndarray:
     """The stable mask that :func:`select_stable`'s ``state`` stands for, on any window.
 
     ``None`` = every base cell; :data:`REJECTED` = none; ``(median, threshold, grow threshold)``
@@ -188,8 +207,9 @@ def stable_state_mask(dh_m: np.ndarray, ok: np.ndarray, base: np.ndarray, state:
     if state == REJECTED:
         return np.zeros(np.shape(base), bool)
     med, thr, grow = state
-    change = coherent_change(np.asarray(dh_m, np.float64), ok, med, thr, params.min_region_cells,
-                             params.dilate_cells, grow)
+    change = coherent_change(
+        np.asarray(dh_m, np.float64), ok, med, thr, params.min_region_cells, params.dilate_cells, grow
+    )
     return np.asarray(base, bool) & ~change
 
 
@@ -201,8 +221,10 @@ def stable_overlap(params: StableParams = StableParams()) -> int:
     hysteresis growth (``grow_factor``) is not local and cannot be tiled.
     """
     if params.grow_factor is not None:
-        raise ConfigError("the automatic stable terrain with grow_factor (hysteresis) cannot be computed tile by "
-                          "tile; leave grow_factor unset for tiled runs")
+        raise ConfigError(
+            "the automatic stable terrain with grow_factor (hysteresis) cannot be computed tile by "
+            "tile; leave grow_factor unset for tiled runs"
+        )
     return int(params.min_region_cells - 1 + params.dilate_cells)
 
 
@@ -246,9 +268,11 @@ def select_stable(data, params: StableParams = StableParams()) -> tuple[Any, Sta
         med = float(np.median(vals))
         nm = nmad(vals)
     if params.max_nmad_m is not None and np.isfinite(nm) and nm > params.max_nmad_m:
-        notes.append(f"no stable terrain found: the least-changed population of cells still has an NMAD of {nm:.1f} m "
-                     f"(> {params.max_nmad_m:g} m, the most DEM errors can plausibly reach on unchanged terrain), "
-                     "so most of the common area changed; give a stable-terrain mask")
+        notes.append(
+            f"no stable terrain found: the least-changed population of cells still has an NMAD of {nm:.1f} m "
+            f"(> {params.max_nmad_m:g} m, the most DEM errors can plausibly reach on unchanged terrain), "
+            "so most of the common area changed; give a stable-terrain mask"
+        )
         return REJECTED, StableInfo("automatic (rejected)", 0, it, med, nm, excluded, tuple(notes))
     return state, StableInfo("automatic", int(n_cur), it, med, nm, excluded, tuple(notes))
 
@@ -313,9 +337,17 @@ def buffered(mask: np.ndarray, cells: int) -> np.ndarray:
     return ndimage.binary_dilation(m, structure=_EIGHT, iterations=cells)
 
 
-def stable_terrain(dh_m: np.ndarray, valid: np.ndarray, grid=None, *, user_mask: Any = None, mask_is: str = "stable",
-                   footprints: Any = None, slope_rad: np.ndarray | None = None,
-                   params: StableParams = StableParams()) -> tuple[np.ndarray, StableInfo]:
+def stable_terrain(
+    dh_m: np.ndarray,
+    valid: np.ndarray,
+    grid=None,
+    *,
+    user_mask: Any = None,
+    mask_is: str = "stable",
+    footprints: Any = None,
+    slope_rad: np.ndarray | None = None,
+    params: StableParams = StableParams(),
+) -> tuple[np.ndarray, StableInfo]:
     """Stable terrain from a user mask, footprints and/or the automatic selection.
 
     With a user mask, the stable cells are the mask's stable cells that are valid and
@@ -339,8 +371,11 @@ def stable_terrain(dh_m: np.ndarray, valid: np.ndarray, grid=None, *, user_mask:
     if user_mask is not None:
         if grid is None and not isinstance(user_mask, np.ndarray):
             raise ConfigError("a vector or file mask needs the grid to be rasterized")
-        st = mask_from_user(user_mask, grid, mask_is=mask_is) if grid is not None else \
-            (np.asarray(user_mask) != 0 if mask_is == "stable" else np.asarray(user_mask) == 0)
+        st = (
+            mask_from_user(user_mask, grid, mask_is=mask_is)
+            if grid is not None
+            else (np.asarray(user_mask) != 0 if mask_is == "stable" else np.asarray(user_mask) == 0)
+        )
         n_user = int(st.sum())
         st = st & valid
         if exclude is not None:
@@ -349,11 +384,21 @@ def stable_terrain(dh_m: np.ndarray, valid: np.ndarray, grid=None, *, user_mask:
             raise EmptyDataError(
                 f"the stable-terrain mask selects {n_user} cells but none of them holds valid heights in both DEMs "
                 "(all NaN); check that the mask covers the DEMs' common area, or omit it to select stable terrain "
-                "automatically")
+                "automatically"
+            )
         dh = np.asarray(dh_m, np.float64)[st]
-        return st, StableInfo(f"user mask ({mask_is})", int(st.sum()), 0, float(np.median(dh)), nmad(dh), 0, tuple(notes))
+        return st, StableInfo(
+            f"user mask ({mask_is})", int(st.sum()), 0, float(np.median(dh)), nmad(dh), 0, tuple(notes)
+        )
     m, info = auto_stable_mask(dh_m, valid, slope_rad, exclude, params)
     if notes:
-        info = StableInfo(info.source, info.n_cells, info.iterations, info.median_m, info.nmad_m,
-                          info.excluded_change_cells, tuple(notes) + info.notes)
+        info = StableInfo(
+            info.source,
+            info.n_cells,
+            info.iterations,
+            info.median_m,
+            info.nmad_m,
+            info.excluded_change_cells,
+            tuple(notes) + info.notes,
+        )
     return m, info

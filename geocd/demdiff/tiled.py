@@ -62,10 +62,17 @@ from .coreg import CoregPlan, CoregResult, StableCells, coregister_cells
 from .pipeline import CHANGE_NODATA, DEMDiffParams
 from .products import write_demdiff_products
 from .significance import SignificanceModel
-from .stable import (StableInfo, StableParams, buffered, nmad, select_stable, stable_overlap,
-                     stable_state_mask)
-from .uncertainty import (ErrorModel, Uncertainty, VariogramModel, VariogramPlan, fit_error_model,
-                          fit_variogram, variogram_from_plan, variogram_plan)
+from .stable import StableInfo, StableParams, buffered, nmad, select_stable, stable_overlap, stable_state_mask
+from .uncertainty import (
+    ErrorModel,
+    Uncertainty,
+    VariogramModel,
+    VariogramPlan,
+    fit_error_model,
+    fit_variogram,
+    variogram_from_plan,
+    variogram_plan,
+)
 
 
 # ------------------------------------------------------------------------------------------
@@ -119,8 +126,7 @@ def keep_cells(rows: np.ndarray, cols: np.ndarray, width: int, fraction: float) 
     if fraction >= 1.0:
         return np.ones(np.shape(rows), bool)
     with np.errstate(over="ignore"):
-        z = (np.asarray(rows, np.uint64) * np.uint64(width) + np.asarray(cols, np.uint64)
-             + np.uint64(0x9E3779B97F4A7C15))
+        z = np.asarray(rows, np.uint64) * np.uint64(width) + np.asarray(cols, np.uint64) + np.uint64(0x9E3779B97F4A7C15)
         z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
         z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
         z = z ^ (z >> np.uint64(31))
@@ -316,8 +322,16 @@ def _t_table(arrays, ctx):
     w = _Win(arrays, ctx, S)
     st = w.stable(sd) & np.isfinite(w.A) & np.isfinite(w.B)
     idx, rr, cc = _core_cells(st, ctx, S)
-    return TileOutput(small={"n": _count_core(st, ctx), "idx": idx, "a": w.a32[rr, cc], "b": w.b32[rr, cc],
-                             "slope": w.terrain["slope_rad"][rr, cc], "aspect": w.terrain["aspect_rad"][rr, cc]})
+    return TileOutput(
+        small={
+            "n": _count_core(st, ctx),
+            "idx": idx,
+            "a": w.a32[rr, cc],
+            "b": w.b32[rr, cc],
+            "slope": w.terrain["slope_rad"][rr, cc],
+            "aspect": w.terrain["aspect_rad"][rr, cc],
+        }
+    )
 
 
 def _t_patches(arrays, ctx):
@@ -364,9 +378,14 @@ def _t_stable(arrays, ctx):
     m_new = stable_state_mask(dh, ok, base, new, sp)
     idx, rr, cc = _core_cells(m_new, ctx, S)
     core = ctx.core
-    return TileOutput(small={"v": dh[rr, cc], "n": _count_core(m_new, ctx),
-                             "excluded": int(np.count_nonzero((base & ~m_new)[core])),
-                             "toggled": int(np.count_nonzero((m_new != m_prev)[core]))})
+    return TileOutput(
+        small={
+            "v": dh[rr, cc],
+            "n": _count_core(m_new, ctx),
+            "excluded": int(np.count_nonzero((base & ~m_new)[core])),
+            "toggled": int(np.count_nonzero((m_new != m_prev)[core])),
+        }
+    )
 
 
 def _t_errtable(arrays, ctx):
@@ -384,11 +403,23 @@ def _t_errtable(arrays, ctx):
     bp = S.params.coreg.block_px
     ncb = S.grid.width // bp + 1
     blocks = np.unique(((r_all + R0) // bp) * ncb + (c_all + C0) // bp) if r_all.size else np.zeros(0, np.int64)
-    bbox = ((int(r_all.min() + R0), int(c_all.min() + C0), int(r_all.max() + R0), int(c_all.max() + C0))
-            if r_all.size else None)
-    return TileOutput(small={"n": int(r_all.size), "idx": idx, "dh": dh[rr, cc], "slope": w.slope[rr, cc],
-                             "q": q[rr, cc] if q is not None else None, "blocks": blocks, "bbox": bbox,
-                             "fp_n": _count_core(w.footprint, ctx) if w.footprint is not None else 0})
+    bbox = (
+        (int(r_all.min() + R0), int(c_all.min() + C0), int(r_all.max() + R0), int(c_all.max() + C0))
+        if r_all.size
+        else None
+    )
+    return TileOutput(
+        small={
+            "n": int(r_all.size),
+            "idx": idx,
+            "dh": dh[rr, cc],
+            "slope": w.slope[rr, cc],
+            "q": q[rr, cc] if q is not None else None,
+            "blocks": blocks,
+            "bbox": bbox,
+            "fp_n": _count_core(w.footprint, ctx) if w.footprint is not None else 0,
+        }
+    )
 
 
 def _sigma_window(w: _Win, em: ErrorModel, dh: np.ndarray) -> np.ndarray:
@@ -414,8 +445,7 @@ def _t_zgrids(arrays, ctx):
     out = {}
     fin = np.isfinite(z[ctx.core])
     rr, cc = np.nonzero(fin)
-    out["bbox"] = ((int(rr.min() + r0), int(cc.min() + c0), int(rr.max() + r0), int(cc.max() + c0))
-                   if rr.size else None)
+    out["bbox"] = (int(rr.min() + r0), int(cc.min() + c0), int(rr.max() + r0), int(cc.max() + c0)) if rr.size else None
 
     def piece(win):  # intersection of the core with a window (row0, col0, h, w) of the grid
         a0, b0, ah, aw = win
@@ -423,7 +453,7 @@ def _t_zgrids(arrays, ctx):
         i1, j1 = min(a0 + ah, r0 + h), min(b0 + aw, c0 + wd)
         if i1 <= i0 or j1 <= j0:
             return None
-        return (i0 - a0, j0 - b0, z[i0 - R0:i1 - R0, j0 - C0:j1 - C0].copy())
+        return (i0 - a0, j0 - b0, z[i0 - R0 : i1 - R0, j0 - C0 : j1 - C0].copy())
 
     if vplan.step == 1:
         out["box"] = piece(vplan.bbox)
@@ -436,7 +466,7 @@ def _t_zgrids(arrays, ctx):
         i_last = min(r0 + h, a0 + ah) - 1
         j_last = min(c0 + wd, b0 + aw) - 1
         if i_first <= i_last and j_first <= j_last:
-            blk = z[i_first - R0:i_last - R0 + 1:st_, j_first - C0:j_last - C0 + 1:st_]
+            blk = z[i_first - R0 : i_last - R0 + 1 : st_, j_first - C0 : j_last - C0 + 1 : st_]
             out["sub"] = ((i_first - a0) // st_, (j_first - b0) // st_, blk.copy())
         else:
             out["sub"] = None
@@ -483,8 +513,10 @@ class _RegionSigma:
         from .uncertainty import _window_variance
 
         h, w = wv.shape
-        kw = k_local.astype(np.float64) + self.KC[np.arange(r0, r0 + h) // self.block][:, np.arange(c0, c0 + w)
-                                                                                      // self.block]
+        kw = (
+            k_local.astype(np.float64)
+            + self.KC[np.arange(r0, r0 + h) // self.block][:, np.arange(c0, c0 + w) // self.block]
+        )
         V = _window_variance(wv, self.vg, self.posting)
         return math.sqrt(self.var(V, int(np.count_nonzero(wv)), float(np.sum(wv * kw)))) * self.cell
 
@@ -499,10 +531,10 @@ def _tile_region_sigmas(tr, sigma, k_local, ctx, rs: "_RegionSigma") -> None:
         for j, (r0, c0, r1, c1) in enumerate(st_["bbox"]):
             if r0 <= cr0 or c0 <= cc0 or r1 >= cr0 + h or c1 >= cc0 + w:
                 continue
-            m = tr.labels[r0 - cr0:r1 - cr0, c0 - cc0:c1 - cc0] == s_ * (j + 1)
-            sg = sigma[r0 - R0:r1 - R0, c0 - C0:c1 - C0].astype(np.float64)
+            m = tr.labels[r0 - cr0 : r1 - cr0, c0 - cc0 : c1 - cc0] == s_ * (j + 1)
+            sg = sigma[r0 - R0 : r1 - R0, c0 - C0 : c1 - C0].astype(np.float64)
             m &= np.isfinite(sg)
-            vs[j] = rs.window(np.where(m, sg, 0.0), k_local[r0 - R0:r1 - R0, c0 - C0:c1 - C0], int(r0), int(c0))
+            vs[j] = rs.window(np.where(m, sg, 0.0), k_local[r0 - R0 : r1 - R0, c0 - C0 : c1 - C0], int(r0), int(c0))
         st_["vsig"] = vs
 
 
@@ -529,8 +561,9 @@ def _t_products(arrays, ctx):
         z = np.full(dh.shape, np.nan, np.float32)
         conf = np.full(dh.shape, np.nan, np.float32)
         if p.fallback_threshold_m is not None:
-            raw = np.where(np.abs(np.nan_to_num(dh)) > p.fallback_threshold_m, np.sign(np.nan_to_num(dh)),
-                           0).astype(np.int8)
+            raw = np.where(np.abs(np.nan_to_num(dh)) > p.fallback_threshold_m, np.sign(np.nan_to_num(dh)), 0).astype(
+                np.int8
+            )
         else:
             raw = np.zeros(dh.shape, np.int8)
     raw = np.where(obs, raw, 0).astype(np.int8)
@@ -560,10 +593,15 @@ def _t_products(arrays, ctx):
         tr.labels = None  # a tile array, not a small result
         return TileOutput(arrays={"labels": labels}, small={"regions": tr})
     small: dict[str, Any] = {
-        "n_obs": int(obc.sum()), "n_stable": int(stc.sum()), "n_changed": int(ch.sum()),
-        "n_raised": int((sc == 1).sum()), "n_lowered": int((sc == -1).sum()),
-        "sum_changed": float(np.nansum(dhc[ch])), "sum_raised": float(np.nansum(dhc[sc == 1])),
-        "sum_lowered": float(np.nansum(dhc[sc == -1])), "sum_obs": float(np.nansum(dhc[obc])),
+        "n_obs": int(obc.sum()),
+        "n_stable": int(stc.sum()),
+        "n_changed": int(ch.sum()),
+        "n_raised": int((sc == 1).sum()),
+        "n_lowered": int((sc == -1).sum()),
+        "sum_changed": float(np.nansum(dhc[ch])),
+        "sum_raised": float(np.nansum(dhc[sc == 1])),
+        "sum_lowered": float(np.nansum(dhc[sc == -1])),
+        "sum_obs": float(np.nansum(dhc[obc])),
         # degenerate stable terrain: identical raw heights, the largest |A| (float32 rounding floor)
         "n_identical": int(np.count_nonzero(stc & (w.a32 == w.b32_raw)[core])),
         "hmax_stable": float(np.max(np.abs(w.A[core][stc]))) if stc.any() else 0.0,
@@ -603,11 +641,20 @@ def _t_products(arrays, ctx):
     labels = tr.labels
     tr.labels = None
     small["regions"] = tr
-    out = {"dh_m": dh32, "confidence_pct": conf_pct, "sigma_m": sigma, "z": z.astype(np.float32), "sign": sign,
-           "labels": labels}
+    out = {
+        "dh_m": dh32,
+        "confidence_pct": conf_pct,
+        "sigma_m": sigma,
+        "z": z.astype(np.float32),
+        "sign": sign,
+        "labels": labels,
+    }
     if S.footprints is not None:
-        out.update(a32=w.a32, bc32=w.b_moved(plan).astype(np.float32) if plan is not None else w.b32_raw,
-                   conf=conf.astype(np.float32))
+        out.update(
+            a32=w.a32,
+            bc32=w.b_moved(plan).astype(np.float32) if plan is not None else w.b32_raw,
+            conf=conf.astype(np.float32),
+        )
     return TileOutput(arrays=out, small=small)
 
 
@@ -630,8 +677,9 @@ def _dropped_cells(labels: np.ndarray, origin: tuple[int, int], tile_shape: tupl
             sub = lab[r0:r1, c0:c1].astype(np.int64)
             # labels beyond a table's end are kept: index a trailing False there
             dp, dn = (np.append(x, False) for x in t)
-            out[r0:r1, c0:c1] = np.where(sub > 0, dp[np.clip(sub, 0, dp.size - 1)],
-                                         np.where(sub < 0, dn[np.clip(-sub, 0, dn.size - 1)], False))
+            out[r0:r1, c0:c1] = np.where(
+                sub > 0, dp[np.clip(sub, 0, dp.size - 1)], np.where(sub < 0, dn[np.clip(-sub, 0, dn.size - 1)], False)
+            )
     return out
 
 
@@ -693,9 +741,15 @@ def _t_blocks(arrays, ctx):
     ws = wS[core]
     # the local K field: short-range part + the nugget on the stable cells themselves
     k_local = (kS + split.nugget * wS)[core].astype(np.float32)
-    return TileOutput(arrays={"k_local": k_local},
-                      small={"blocks": _block_sums(ctx, split.block, {"w": ws}), "n": _count_core(m, ctx),
-                             "q": float(np.sum(ws * ws)), "v_short": float(np.sum(ws * kS[core]))})
+    return TileOutput(
+        arrays={"k_local": k_local},
+        small={
+            "blocks": _block_sums(ctx, split.block, {"w": ws}),
+            "n": _count_core(m, ctx),
+            "q": float(np.sum(ws * ws)),
+            "v_short": float(np.sum(ws * kS[core])),
+        },
+    )
 
 
 def _block_sums(ctx, block: int, fields: dict[str, np.ndarray]) -> dict:
@@ -721,8 +775,9 @@ def _coarse(parts: list[dict], key: str, shape: tuple[int, int]) -> np.ndarray:
 # ------------------------------------------------------------------------------------------
 # coarse correlated sums (large grids)
 # ------------------------------------------------------------------------------------------
-def block_covariance(model: VariogramModel, block: int, posting_xy_m: tuple[float, float], shape: tuple[int, int],
-                     near: int = 3) -> np.ndarray:
+def block_covariance(
+    model: VariogramModel, block: int, posting_xy_m: tuple[float, float], shape: tuple[int, int], near: int = 3
+) -> np.ndarray:
     """Average covariance between the cells of two ``block``² blocks, for every block lag, without the nugget.
 
     Returns the (2H−1, 2W−1) kernel over block lags (H, W = ``shape`` in blocks), centred,
@@ -832,11 +887,18 @@ class _Runner:
         self.passes += 1
         f0 = min(self.passes - 1, self.est_passes - 1) / self.est_passes
         f1 = min(self.passes, self.est_passes) / self.est_passes
-        r = run_tiled(func, self.tg.with_overlap(overlap), {**self.sources, **(inputs or {})}, params=params,
-                      out=self.out,
-                      stage=f"demdiff-{self.passes:02d}-{stage}", key=self.S.ident, products=products,
-                      scheduler=self.eng, progress=sub_progress(self.prog, 0.02 + 0.9 * f0, 0.02 + 0.9 * f1,
-                                                                f"{stage}: "))
+        r = run_tiled(
+            func,
+            self.tg.with_overlap(overlap),
+            {**self.sources, **(inputs or {})},
+            params=params,
+            out=self.out,
+            stage=f"demdiff-{self.passes:02d}-{stage}",
+            key=self.S.ident,
+            products=products,
+            scheduler=self.eng,
+            progress=sub_progress(self.prog, 0.02 + 0.9 * f0, 0.02 + 0.9 * f1, f"{stage}: "),
+        )
         self.resumed += r.n_resumed
         return r
 
@@ -852,8 +914,16 @@ class _Runner:
         def cat(k, dt):
             return np.concatenate([s[k] for s in parts])[order].astype(dt)
 
-        return StableCells(idx // W, idx % W, cat("a", np.float64), cat("b", np.float64), cat("slope", np.float64),
-                           cat("aspect", np.float64), self.S.shape, int(sum(s["n"] for s in parts)))
+        return StableCells(
+            idx // W,
+            idx % W,
+            cat("a", np.float64),
+            cat("b", np.float64),
+            cat("slope", np.float64),
+            cat("aspect", np.float64),
+            self.S.shape,
+            int(sum(s["n"] for s in parts)),
+        )
 
 
 class _TiledCoregData:
@@ -863,15 +933,14 @@ class _TiledCoregData:
         self.runner = runner
         self.cells = cells
         self.stage = stage
-        self._patch = None   # (idx positions, centre offset, patches, pr, pc)
+        self._patch = None  # (idx positions, centre offset, patches, pr, pc)
 
     def _gather_patches(self, idx: np.ndarray, orow: int, ocol: int) -> None:
         R = self.runner
         M = R.tiling.patch_radius
         W = R.S.grid.width
         lin = self.cells.rows[idx] * W + self.cells.cols[idx]
-        r = R.run(_t_patches, f"{self.stage}-patches", (R.S, lin, (orow, ocol), M),
-                  M + max(abs(orow), abs(ocol)) + 1)
+        r = R.run(_t_patches, f"{self.stage}-patches", (R.S, lin, (orow, ocol), M), M + max(abs(orow), abs(ocol)) + 1)
         n = lin.size
         P = 2 * M + 1
         patches = np.full((n, P, P), np.nan, np.float32)
@@ -889,12 +958,14 @@ class _TiledCoregData:
         centre = (int(round(-drow)), int(round(-dcol)))
         if self._patch is None or not np.array_equal(self._patch[0], idx):
             self._gather_patches(idx, *centre)
-        v, ok = shift_points(self._patch[2], self._patch[3], self._patch[4], rows, cols, self.cells.shape, dcol, drow,
-                             method)
+        v, ok = shift_points(
+            self._patch[2], self._patch[3], self._patch[4], rows, cols, self.cells.shape, dcol, drow, method
+        )
         if not ok:
             self._gather_patches(idx, *centre)
-            v, ok = shift_points(self._patch[2], self._patch[3], self._patch[4], rows, cols, self.cells.shape, dcol,
-                                 drow, method)
+            v, ok = shift_points(
+                self._patch[2], self._patch[3], self._patch[4], rows, cols, self.cells.shape, dcol, drow, method
+            )
             if not ok:
                 raise ProcessingError("co-registration: patches too small for the shift (raise patch_radius)")
         return v
@@ -903,8 +974,12 @@ class _TiledCoregData:
         R = self.runner
         W = R.S.grid.width
         lin = self.cells.rows * W + self.cells.cols
-        r = R.run(_t_shifted, f"{self.stage}-shifted", (R.S, lin, dcol, drow),
-                  shift_margin(dcol, drow, R.S.params.coreg.resampling))
+        r = R.run(
+            _t_shifted,
+            f"{self.stage}-shifted",
+            (R.S, lin, dcol, drow),
+            shift_margin(dcol, drow, R.S.params.coreg.resampling),
+        )
         v = np.full(lin.size, np.nan)
         for _, s in r.smalls():
             v[s["pos"]] = s["v"]
@@ -934,12 +1009,17 @@ class _TiledStable:
 
     def step(self, state):
         self.k += 1
-        r = self.R.run(_t_stable, f"{self.stage}-{self.k}", (self.R.S, self.plan, self.params, self.prev, state, False),
-                       self._ov())
+        r = self.R.run(
+            _t_stable, f"{self.stage}-{self.k}", (self.R.S, self.plan, self.params, self.prev, state, False), self._ov()
+        )
         self.prev = state
         parts = [s for _, s in r.smalls()]
-        return (np.concatenate([s["v"] for s in parts]), int(sum(s["n"] for s in parts)),
-                int(sum(s["excluded"] for s in parts)), int(sum(s["toggled"] for s in parts)))
+        return (
+            np.concatenate([s["v"] for s in parts]),
+            int(sum(s["n"] for s in parts)),
+            int(sum(s["excluded"] for s in parts)),
+            int(sum(s["toggled"] for s in parts)),
+        )
 
 
 def _source_identity(src: RasterSource) -> dict:
@@ -958,8 +1038,20 @@ def _gdf_key(gdf) -> str | None:
     return h.hexdigest()
 
 
-def _setup(path_a, path_b, *, datum_a, datum_b, params: DEMDiffParams, stable_mask, mask_is, footprints,
-           tiling: TilingParams, base=None, nodata: float | None = None) -> tuple[_Setup, list[str]]:
+def _setup(
+    path_a,
+    path_b,
+    *,
+    datum_a,
+    datum_b,
+    params: DEMDiffParams,
+    stable_mask,
+    mask_is,
+    footprints,
+    tiling: TilingParams,
+    base=None,
+    nodata: float | None = None,
+) -> tuple[_Setup, list[str]]:
     from ..errors import VerticalDatumError
     from ..io.raster import _open, check_dem_file
     from .align import crop_to_overlap, metric_posting
@@ -984,7 +1076,8 @@ def _setup(path_a, path_b, *, datum_a, datum_b, params: DEMDiffParams, stable_ma
         raise VerticalDatumError(
             f"DEM A's vertical datum is {va or 'unknown'} and DEM B's is {vb or 'unknown'}: geocd will not guess. "
             f"Declare DEM {which}'s vertical datum (--datum-{which.lower()} ellipsoid|egm96|egm2008, or "
-            f"vertical_datum= in Python); if both are in the same datum, declare it for both")
+            f"vertical_datum= in Python); if both are in the same datum, declare it for both"
+        )
     # with a base DEM the comparison keeps A's whole grid (the survey footprints decide what is compared)
     target = crop_to_overlap(ga, gb) if base is None else ga
     conv_a = conv_b = None
@@ -1026,14 +1119,38 @@ def _setup(path_a, path_b, *, datum_a, datum_b, params: DEMDiffParams, stable_ma
     if base is not None:
         base_src = _base_source(base, target, va)
     frac = min(1.0, tiling.sample_cells / float(target.width * target.height))
-    ident = {"a": src_a.identity(), "b": src_b.identity(), "datums": [conv_a, conv_b], "params": params,
-             "grid": target.to_dict(), "fp": _gdf_key(fp), "mask": _gdf_key(um), "mask_is": mask_is,
-             "frac": frac, "patch": tiling.patch_radius, "exact": tiling.exact_grid_cells,
-             "coarse": tiling.coarse_cells, "base": base_src.identity() if base_src is not None else None}
+    ident = {
+        "a": src_a.identity(),
+        "b": src_b.identity(),
+        "datums": [conv_a, conv_b],
+        "params": params,
+        "grid": target.to_dict(),
+        "fp": _gdf_key(fp),
+        "mask": _gdf_key(um),
+        "mask_is": mask_is,
+        "frac": frac,
+        "patch": tiling.patch_radius,
+        "exact": tiling.exact_grid_cells,
+        "coarse": tiling.coarse_cells,
+        "base": base_src.identity() if base_src is not None else None,
+    }
     from ..tiling import make_key
 
-    S = _Setup(target, metric_posting(target), src_a, src_b, conv_a, conv_b, params, fp, um, mask_is, frac,
-               make_key(ident), base_src)
+    S = _Setup(
+        target,
+        metric_posting(target),
+        src_a,
+        src_b,
+        conv_a,
+        conv_b,
+        params,
+        fp,
+        um,
+        mask_is,
+        frac,
+        make_key(ident),
+        base_src,
+    )
     return S, notes
 
 
@@ -1050,8 +1167,10 @@ def _base_source(base, grid: AOIGrid, datum_a: str | None):
 
             base = read_e00_dem(base, vertical_datum=datum_a)
         if normalize_datum_name(base.vertical_datum) != datum_a:
-            raise VerticalDatumError(f"the base DEM's vertical datum ({base.vertical_datum}) is not DEM A's "
-                                     f"({datum_a}); declare it or convert the base first")
+            raise VerticalDatumError(
+                f"the base DEM's vertical datum ({base.vertical_datum}) is not DEM A's "
+                f"({datum_a}); declare it or convert the base first"
+            )
         return ArraySource(_resample(base, grid, "bilinear").astype(np.float32))
     with rasterio_open(base) as ds:
         vb = vertical_datum_of(ds.crs)
@@ -1066,12 +1185,28 @@ def rasterio_open(path):
     return _open(path)
 
 
-def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDiffParams(),
-                         tiling: TilingParams = TilingParams(), stable_mask: Any = None, mask_is: str = "stable",
-                         footprints: Any = None, epoch_a: str = "A", epoch_b: str = "B", datum_a: str | None = None,
-                         datum_b: str | None = None, base: Any = None, method: str = "demdiff",
-                         prefix: str = "demdiff", plots: bool = True, provenance: dict | None = None,
-                         progress: Progress | None = None, nodata: float | None = None) -> TiledDEMDiffResult:
+def dem_difference_tiled(
+    dem_a,
+    dem_b,
+    out_dir,
+    *,
+    params: DEMDiffParams = DEMDiffParams(),
+    tiling: TilingParams = TilingParams(),
+    stable_mask: Any = None,
+    mask_is: str = "stable",
+    footprints: Any = None,
+    epoch_a: str = "A",
+    epoch_b: str = "B",
+    datum_a: str | None = None,
+    datum_b: str | None = None,
+    base: Any = None,
+    method: str = "demdiff",
+    prefix: str = "demdiff",
+    plots: bool = True,
+    provenance: dict | None = None,
+    progress: Progress | None = None,
+    nodata: float | None = None,
+) -> TiledDEMDiffResult:
     """DEM differencing of two DEM files on tiles, products written to ``out_dir`` (see module docstring).
 
     Parameters
@@ -1099,8 +1234,19 @@ def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDi
     from ..io.atomic import protect_inputs
 
     protect_inputs(dem_a, dem_b)
-    S, notes = _setup(dem_a, dem_b, datum_a=datum_a, datum_b=datum_b, params=p, stable_mask=stable_mask,
-                      mask_is=mask_is, footprints=footprints, tiling=tiling, base=base, nodata=nodata)
+    S, notes = _setup(
+        dem_a,
+        dem_b,
+        datum_a=datum_a,
+        datum_b=datum_b,
+        params=p,
+        stable_mask=stable_mask,
+        mask_is=mask_is,
+        footprints=footprints,
+        tiling=tiling,
+        base=base,
+        nodata=nodata,
+    )
     g = S.grid
     timings: dict[str, float] = {}
     prog(0.01, f"{g.height}×{g.width} cells in tiles of {tiling.tile_size}")
@@ -1113,12 +1259,24 @@ def dem_difference_tiled(dem_a, dem_b, out_dir, *, params: DEMDiffParams = DEMDi
             dr.summary["wall_s"] = time.perf_counter() - t0
             timings["model_s"] = time.perf_counter() - tt
             tt = time.perf_counter()
-            outputs = write_demdiff_products(out, dr, footprints=S.footprints, prefix=prefix, plots=plots,
-                                             provenance=provenance)
+            outputs = write_demdiff_products(
+                out, dr, footprints=S.footprints, prefix=prefix, plots=plots, provenance=provenance
+            )
             u = dr.uncertainty
-            res = TiledDEMDiffResult(outputs, dr.summary, dr.coreg, dr.stable_info, dr.status, dr.notes,
-                                     u.error_model if u else None, u.variogram if u else None, dr.significance,
-                                     S.fraction >= 1.0, g, warnings=dr.warnings)
+            res = TiledDEMDiffResult(
+                outputs,
+                dr.summary,
+                dr.coreg,
+                dr.stable_info,
+                dr.status,
+                dr.notes,
+                u.error_model if u else None,
+                u.variogram if u else None,
+                dr.significance,
+                S.fraction >= 1.0,
+                g,
+                warnings=dr.warnings,
+            )
         else:
             model = _model_large(R, S, st, notes)
             timings["model_s"] = time.perf_counter() - tt
@@ -1148,8 +1306,9 @@ class _State:
     method: str
 
 
-def _coregister_and_select(R: _Runner, S: _Setup, p: DEMDiffParams, notes: list[str], timings: dict, epochs,
-                           method) -> _State:
+def _coregister_and_select(
+    R: _Runner, S: _Setup, p: DEMDiffParams, notes: list[str], timings: dict, epochs, method
+) -> _State:
     """:func:`dem_difference`'s co-registration and final stable terrain, pass by pass."""
     tt = time.perf_counter()
     loose = replace(p.stable, nmad_factor=p.stable.nmad_factor * p.coreg_stable_factor)
@@ -1158,15 +1317,19 @@ def _coregister_and_select(R: _Runner, S: _Setup, p: DEMDiffParams, notes: list[
         cells = R.table(_StableDef("valid", exclude=False), None, 0, "table")
         if cells.n_total == 0:
             raise EmptyDataError("no cell is observed in both DEMs (check the observed/survey masks)")
-        creg, plan = coregister_cells(_TiledCoregData(R, cells, "coreg"), S.posting,
-                                      replace(p.coreg, horizontal=False, vertical=False, tilt=False))
+        creg, plan = coregister_cells(
+            _TiledCoregData(R, cells, "coreg"),
+            S.posting,
+            replace(p.coreg, horizontal=False, vertical=False, tilt=False),
+        )
         plan = None
     elif S.user_mask is not None:
         cells = R.table(_StableDef("user", None), None, 0, "table-user")
         if cells.n_total == 0:
             raise EmptyDataError(
                 "the stable-terrain mask selects no cell with valid heights in both DEMs (all NaN); check that the "
-                "mask covers the DEMs' common area, or omit it to select stable terrain automatically")
+                "mask covers the DEMs' common area, or omit it to select stable terrain automatically"
+            )
         creg, plan = coregister_cells(_TiledCoregData(R, cells, "coreg"), S.posting, p.coreg)
     else:
         cells = R.table(_StableDef("valid"), None, 0, "table-1")
@@ -1198,17 +1361,22 @@ def _coregister_and_select(R: _Runner, S: _Setup, p: DEMDiffParams, notes: list[
 def _stable_info(S: _Setup, st: _State, n_st: int, dh_st: np.ndarray, fp_cells: int) -> StableInfo:
     """The StableInfo :func:`stable_terrain` reports (user mask: from the stable cells' dh)."""
     p = S.params
-    fp_note = ((f"footprints excluded ({fp_cells} cells + {p.stable.footprint_buffer_cells}-cell buffer)",)
-               if S.footprints is not None else ())
+    fp_note = (
+        (f"footprints excluded ({fp_cells} cells + {p.stable.footprint_buffer_cells}-cell buffer)",)
+        if S.footprints is not None
+        else ()
+    )
     if st.sd.kind == "user":
         if n_st == 0:
             raise EmptyDataError(
                 "the stable-terrain mask selects no cell with valid heights in both DEMs (all NaN); check that the "
-                "mask covers the DEMs' common area, or omit it to select stable terrain automatically")
+                "mask covers the DEMs' common area, or omit it to select stable terrain automatically"
+            )
         return StableInfo(f"user mask ({S.mask_is})", n_st, 0, float(np.median(dh_st)), nmad(dh_st), 0, fp_note)
     i = st.info_auto
-    return StableInfo(i.source, i.n_cells, i.iterations, i.median_m, i.nmad_m, i.excluded_change_cells,
-                      fp_note + i.notes)
+    return StableInfo(
+        i.source, i.n_cells, i.iterations, i.median_m, i.nmad_m, i.excluded_change_cells, fp_note + i.notes
+    )
 
 
 def _finish_exact(R: _Runner, S: _Setup, st: _State, notes: list[str]):
@@ -1230,8 +1398,26 @@ def _finish_exact(R: _Runner, S: _Setup, st: _State, notes: list[str]):
     info = _stable_info(S, st, int(stable.sum()), dh[stable], fp_cells)
     dh_raw = np.where(valid, Braw - A, np.nan)
     ea, eb = st.epochs
-    return finish_difference(S.grid, S.posting, A, Braw, Bc, dh, dh_raw, obs, stable, info, st.creg, slope, q, notes,
-                             p, epoch_a=ea, epoch_b=eb, method=st.method)
+    return finish_difference(
+        S.grid,
+        S.posting,
+        A,
+        Braw,
+        Bc,
+        dh,
+        dh_raw,
+        obs,
+        stable,
+        info,
+        st.creg,
+        slope,
+        q,
+        notes,
+        p,
+        epoch_a=ea,
+        epoch_b=eb,
+        method=st.method,
+    )
 
 
 def _variogram_tiles(R: _Runner, S: _Setup, plan, sd, em, med, vplan: VariogramPlan, ccs: int):
@@ -1248,7 +1434,7 @@ def _variogram_tiles(R: _Runner, S: _Setup, plan, sd, em, med, vplan: VariogramP
             pc = s.get(key)
             if pc is not None:
                 i, j, blk = pc
-                arr[i:i + blk.shape[0], j:j + blk.shape[1]] = blk
+                arr[i : i + blk.shape[0], j : j + blk.shape[1]] = blk
         return arr
 
     if vplan.step == 1:
@@ -1289,8 +1475,7 @@ def _model_large(R: _Runner, S: _Setup, st: _State, notes: list[str]) -> _Model:
     order = np.argsort(idx, kind="stable")
     dh_t = np.concatenate([s_["dh"] for s_ in parts])[order]
     slope_t = np.concatenate([s_["slope"] for s_ in parts])[order].astype(np.float64)
-    q_t = (np.concatenate([s_["q"] for s_ in parts])[order].astype(np.float64)
-           if p.error.predictor != "none" else None)
+    q_t = np.concatenate([s_["q"] for s_ in parts])[order].astype(np.float64) if p.error.predictor != "none" else None
     blocks = np.unique(np.concatenate([s_["blocks"] for s_ in parts])) if parts else np.zeros(0)
     bbs = [s_["bbox"] for s_ in parts if s_["bbox"] is not None]
     info = _stable_info(S, st, n_st, dh_t, int(sum(s_["fp_n"] for s_ in parts)))
@@ -1298,16 +1483,20 @@ def _model_large(R: _Runner, S: _Setup, st: _State, notes: list[str]) -> _Model:
     m = _Model(info, "ok")
     if info.n_cells < p.min_stable_cells:
         m.status = "no_stable_terrain"
-        notes.append(f"no usable stable terrain ({info.n_cells} cells, at least {p.min_stable_cells} needed): "
-                     "no co-registration shift was invented, and σ and confidence are unknown; give a stable-terrain "
-                     "mask (--stable-mask) to test significance")
+        notes.append(
+            f"no usable stable terrain ({info.n_cells} cells, at least {p.min_stable_cells} needed): "
+            "no co-registration shift was invented, and σ and confidence are unknown; give a stable-terrain "
+            "mask (--stable-mask) to test significance"
+        )
         return m
     nblk = int(blocks.size)
     if info.n_cells < p.reliable_stable_cells or nblk < p.reliable_stable_blocks:
         m.status = "uncertainty_indicative"
-        notes.append(f"σ learned from only {info.n_cells} stable cells in {nblk} blocks of {p.coreg.block_px} px "
-                     f"(reliable from {p.reliable_stable_cells} cells in {p.reliable_stable_blocks} blocks): "
-                     "the error model and variogram are indicative only")
+        notes.append(
+            f"σ learned from only {info.n_cells} stable cells in {nblk} blocks of {p.coreg.block_px} px "
+            f"(reliable from {p.reliable_stable_cells} cells in {p.reliable_stable_blocks} blocks): "
+            "the error model and variogram are indicative only"
+        )
     em = fit_error_model(dh_t, np.ones(dh_t.size, bool), slope_t, q_t, p.error)
     sig_t = em.sigma(slope_t, q_t if em.predictor != "none" else None)
     fill = float(math.sqrt(em.coef[0]) * em.scale)
@@ -1328,13 +1517,16 @@ def _model_large(R: _Runner, S: _Setup, st: _State, notes: list[str]) -> _Model:
     m.em, m.sig = em, sig
     m.vg = fit_variogram(lags, gam, cnt, p.error.n_components, max_range_m=ext)
     if p.confidence > 100.0 * sig.max_level():
-        notes.append(f"{sig.n} stable cells support confidences up to {100 * sig.max_level():.2f}% "
-                     f"only; nothing can be significant at {p.confidence:g}%")
+        notes.append(
+            f"{sig.n} stable cells support confidences up to {100 * sig.max_level():.2f}% "
+            f"only; nothing can be significant at {p.confidence:g}%"
+        )
     return m
 
 
-def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, notes: list[str], *, prefix, plots,
-                 provenance) -> TiledDEMDiffResult:
+def _write_large(
+    R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, notes: list[str], *, prefix, plots, provenance
+) -> TiledDEMDiffResult:
     """Large grids: products tile by tile, correlated sums on a coarse grid, regions merged across seams."""
     import json as _json
 
@@ -1360,8 +1552,7 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
     KC = Cb = Cfull = None
     if em is not None:
         split = CovSplit.of(vg, post, block, max_radius=min(256, R.tiling.tile_size // 4))
-        rb = R.run(_t_blocks, "stable-blocks", (S, plan, sd, em, split),
-                   R.overlap(plan, st.ccs + split.radius))
+        rb = R.run(_t_blocks, "stable-blocks", (S, plan, sd, em, split), R.overlap(plan, st.ccs + split.radius))
         parts = [s_ for _, s_ in rb.smalls()]
         Wc = _coarse([s_["blocks"] for s_ in parts], "w", cshape)
         nst = int(sum(s_["n"] for s_ in parts))
@@ -1383,26 +1574,47 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
 
     c = st.creg
     fe, fn, fz = c.fitted_shift_m
-    fitted_plan = (CoregPlan((fe / post[0], -fn / post[1]), fz, None, p.coreg.resampling)
-                   if (fe or fn) and c.applied in ("vertical", "none") else None)
+    fitted_plan = (
+        CoregPlan((fe / post[0], -fn / post[1]), fz, None, p.coreg.resampling)
+        if (fe or fn) and c.applied in ("vertical", "none")
+        else None
+    )
     ov = R.overlap(plan, max(st.ccs, p.min_region_cells - 1) + (split.radius if split is not None else 0))
     if fitted_plan is not None:
         ov = max(ov, R.overlap(fitted_plan, 0))
-    tags = {"method": "demdiff", "epoch_a": ea, "epoch_b": eb, "units": "m",
-            "confidence_level_pct": f"{p.confidence:g}", "coreg": c.summary()}
+    tags = {
+        "method": "demdiff",
+        "epoch_a": ea,
+        "epoch_b": eb,
+        "units": "m",
+        "confidence_level_pct": f"{p.confidence:g}",
+        "coreg": c.summary(),
+    }
     if provenance:
         tags["provenance"] = _json.dumps(_clean(provenance), default=_jsonable)
     products = {
         "dh": RasterProduct(str(out / f"{prefix}_dh.tif"), ("dh_m",), tags=tags),
-        "significance": RasterProduct(str(out / f"{prefix}_significance.tif"), ("confidence_pct", "sigma_m", "z"),
-                                      tags=tags),
-        "change_mask": RasterProduct(str(out / f"{prefix}_change_mask.tif"), ("sign",), dtype="int8",
-                                     nodata=CHANGE_NODATA, tags=tags, overview_resampling="nearest",
-                                     descriptions=(None,)),
+        "significance": RasterProduct(
+            str(out / f"{prefix}_significance.tif"), ("confidence_pct", "sigma_m", "z"), tags=tags
+        ),
+        "change_mask": RasterProduct(
+            str(out / f"{prefix}_change_mask.tif"),
+            ("sign",),
+            dtype="int8",
+            nodata=CHANGE_NODATA,
+            tags=tags,
+            overview_resampling="nearest",
+            descriptions=(None,),
+        ),
     }
     center = sig.center_m if sig is not None else 0.0
-    rsig = (_RegionSigma(vg, (float(post[0]), float(post[1])), unc.bias_sigma_m, unc.n_stable, unc.offset_m, KC,
-                         block, cell) if unc is not None else None)
+    rsig = (
+        _RegionSigma(
+            vg, (float(post[0]), float(post[1])), unc.bias_sigma_m, unc.n_stable, unc.offset_m, KC, block, cell
+        )
+        if unc is not None
+        else None
+    )
     kin = {"k_local": kstore.source("k_local")} if unc is not None else {}
     rtest = None
     region_info = None
@@ -1412,12 +1624,32 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         from .pipeline import region_null_of
         from .significance import noise_mass_needed, region_noise_confidence, resolvable
 
-        r1 = R.run(_t_products, "regions", (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan, None,
-                                            {"alpha": 1.0 - p.confidence / 100.0}), ov, inputs=kin or None)
+        r1 = R.run(
+            _t_products,
+            "regions",
+            (
+                S,
+                plan,
+                sd,
+                em,
+                sig,
+                p.confidence,
+                center,
+                split,
+                fitted_plan,
+                None,
+                {"alpha": 1.0 - p.confidence / 100.0},
+            ),
+            ov,
+            inputs=kin or None,
+        )
         m1 = merge_regions([s_["regions"] for _, s_ in r1.smalls()], R.tg, p.min_region_cells)
         null = region_null_of(vg, post, p.confidence, p.min_region_cells)
-        drop = (region_noise_confidence(m1.extra["mass"], null) < p.confidence if len(m1) and resolvable(null, p.confidence)
-                else np.zeros(len(m1), bool))
+        drop = (
+            region_noise_confidence(m1.extra["mass"], null) < p.confidence
+            if len(m1) and resolvable(null, p.confidence)
+            else np.zeros(len(m1), bool)
+        )
         ks = np.nonzero(drop)[0]
         table: dict = {}
         if ks.size:
@@ -1430,18 +1662,40 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
                 dp[lp] = True
                 dn[ln] = True
                 table[key] = (dp, dn)
-        region_info = {"regions_tested": int(len(m1)), "regions_dropped": int(ks.size),
-                       "cells_dropped": int(np.sum(m1.n[ks])), "null_regions": int(null.size),
-                       "mass_needed": noise_mass_needed(null, p.confidence)}
+        region_info = {
+            "regions_tested": int(len(m1)),
+            "regions_dropped": int(ks.size),
+            "cells_dropped": int(np.sum(m1.n[ks])),
+            "null_regions": int(null.size),
+            "mass_needed": noise_mass_needed(null, p.confidence),
+        }
         del m1
         rtest = {"drop": (tuple(R.tg.tile_size), table)}
         kin["labels_first"] = r1.store.source("labels")
-    rp = R.run(_t_products, "products", (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan, rsig, rtest),
-               ov, products=products, inputs=kin or None)
+    rp = R.run(
+        _t_products,
+        "products",
+        (S, plan, sd, em, sig, p.confidence, center, split, fitted_plan, rsig, rtest),
+        ov,
+        products=products,
+        inputs=kin or None,
+    )
     sm = [s_ for _, s_ in rp.smalls()]
-    tot = {k: sum(s_[k] for s_ in sm) for k in ("n_obs", "n_stable", "n_changed", "n_raised", "n_lowered",
-                                                 "sum_changed", "sum_raised", "sum_lowered", "sum_obs",
-                                                 "n_identical")}
+    tot = {
+        k: sum(s_[k] for s_ in sm)
+        for k in (
+            "n_obs",
+            "n_stable",
+            "n_changed",
+            "n_raised",
+            "n_lowered",
+            "sum_changed",
+            "sum_raised",
+            "sum_lowered",
+            "sum_obs",
+            "n_identical",
+        )
+    }
     stable_dh = np.concatenate([s_["stable_dh"] for s_ in sm]).astype(np.float64)
     abs_dh = np.concatenate([s_["abs_dh"] for s_ in sm])
     # degenerate stable terrain (identical heights, NMAD at the float32 floor): from the tiles' counts
@@ -1451,14 +1705,14 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         from .pipeline import degenerate_message
 
         hmax = max((s_["hmax_stable"] for s_ in sm), default=0.0)
-        degenerate, warn = degenerate_message(int(tot["n_stable"]), int(tot["n_identical"]),
-                                              nmad(stable_dh) if stable_dh.size else float("nan"), hmax, p)
+        degenerate, warn = degenerate_message(
+            int(tot["n_stable"]), int(tot["n_identical"]), nmad(stable_dh) if stable_dh.size else float("nan"), hmax, p
+        )
         if warn:
             status = "degenerate_stable_terrain"
             warns.append(warn)
     if sig is None and p.fallback_threshold_m is not None:
-        notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m "
-                     "(no significance test)")
+        notes.append(f"changed cells from the fixed threshold |dh| > {p.fallback_threshold_m} m (no significance test)")
     # --- regions -----------------------------------------------------------------------------------
     # no more tiles: a LocalCluster's workers give their memory back before the client merges the regions
     R.eng.release_local()
@@ -1475,7 +1729,7 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
 
         vs = merged.extra.get("vsig")
         if vs is not None and merged.members.counts[k] == 1 and np.isfinite(vs[k]):
-            return float(vs[k])          # wholly inside one tile: computed there
+            return float(vs[k])  # wholly inside one tile: computed there
         r0, c0, r1, c1 = (int(v) for v in merged.bbox[k])
         if (r1 - r0) * (c1 - c0) <= R.tiling.exact_grid_cells:
             m, sl = region_mask_window(merged, k, lambda t: store.tile_array(t, "labels"), R.tg)
@@ -1490,28 +1744,52 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         return math.sqrt(var_terms(V, n, cross)) * cell
 
     # written batch by batch: the polygons of millions of regions are never all held at once
-    layer = regions_layer_batches(merged, g, cell_area_m2=cell, method=st.method, epoch_a=ea, epoch_b=eb,
-                                  volume_sigma=region_sigma if unc is not None else None)
+    layer = regions_layer_batches(
+        merged,
+        g,
+        cell_area_m2=cell,
+        method=st.method,
+        epoch_a=ea,
+        epoch_b=eb,
+        volume_sigma=region_sigma if unc is not None else None,
+    )
     # --- summary -----------------------------------------------------------------------------------
     s = {
-        "epoch_a": ea, "epoch_b": eb, "status": status, "coreg_status": c.status,
-        "coreg_applied": c.applied, "shift_applied_m": list(c.shift_m),
-        "shift_fitted_m": list(c.fitted_shift_m), "shift_sigma_m": list(c.shift_sigma_m),
-        "coreg_n_fit": c.n_fit, "n_observed": int(tot["n_obs"]), "observed_area_m2": float(tot["n_obs"] * cell),
+        "epoch_a": ea,
+        "epoch_b": eb,
+        "status": status,
+        "coreg_status": c.status,
+        "coreg_applied": c.applied,
+        "shift_applied_m": list(c.shift_m),
+        "shift_fitted_m": list(c.fitted_shift_m),
+        "shift_sigma_m": list(c.shift_sigma_m),
+        "coreg_n_fit": c.n_fit,
+        "n_observed": int(tot["n_obs"]),
+        "observed_area_m2": float(tot["n_obs"] * cell),
         "n_stable": int(tot["n_stable"]),
         "stable_median_m": float(np.median(stable_dh)) if stable_dh.size else float("nan"),
         "stable_nmad_m": nmad(stable_dh) if stable_dh.size else float("nan"),
         "stable_nmad_before_coreg_m": c.nmad_before_m,
-        "changed_cells": int(tot["n_changed"]), "changed_area_m2": float(tot["n_changed"] * cell),
-        "raised_area_m2": float(tot["n_raised"] * cell), "lowered_area_m2": float(tot["n_lowered"] * cell),
+        "changed_cells": int(tot["n_changed"]),
+        "changed_area_m2": float(tot["n_changed"] * cell),
+        "raised_area_m2": float(tot["n_raised"] * cell),
+        "lowered_area_m2": float(tot["n_lowered"] * cell),
         "volume_changed_m3": float(tot["sum_changed"] * cell),
         "volume_raised_m3": float(tot["sum_raised"] * cell),
         "volume_lowered_m3": float(tot["sum_lowered"] * cell),
         "volume_net_observed_m3": float(tot["sum_obs"] * cell),
     }
     nan = float("nan")
-    s.update(volume_changed_sigma_m3=nan, volume_changed_sigma_random_m3=nan, volume_net_observed_sigma_m3=nan,
-             n_eff_changed=nan, variogram_ranges_m=[], variogram_sills=[], variogram_nugget=nan, bias_sigma_m=nan)
+    s.update(
+        volume_changed_sigma_m3=nan,
+        volume_changed_sigma_random_m3=nan,
+        volume_net_observed_sigma_m3=nan,
+        n_eff_changed=nan,
+        variogram_ranges_m=[],
+        variogram_sills=[],
+        variogram_nugget=nan,
+        bias_sigma_m=nan,
+    )
     if unc is not None:
         s["variogram_ranges_m"] = list(vg.ranges_m)
         s["variogram_sills"] = list(vg.sills)
@@ -1522,8 +1800,12 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
         s["error_model_scale"] = em.scale
         blk = [s_["blocks"] for s_ in sm if "blocks" in s_]
         q = {k: float(sum(s_.get(k, 0.0) for s_ in sm)) for k in ("q_obs", "q_changed", "q_obs_st", "q_changed_st")}
-        q.update({k: float(sum(s_.get(k, 0.0) for s_ in sm)) for k in ("v_short_obs", "v_short_changed",
-                                                                        "x_short_obs", "x_short_changed")})
+        q.update(
+            {
+                k: float(sum(s_.get(k, 0.0) for s_ in sm))
+                for k in ("v_short_obs", "v_short_changed", "x_short_obs", "x_short_changed")
+            }
+        )
         So = _coarse(blk, "obs", cshape)
         Sc = _coarse(blk, "changed", cshape)
         Vo = max(split.nugget * q["q_obs"] + q["v_short_obs"] + long_sum(So), 0.0)
@@ -1544,16 +1826,44 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
     if region_info is not None:
         s["region_test"] = region_info
     s["wall_s"] = time.perf_counter() - R.t0
-    s["tiled"] = {"exact": False, "sample_fraction": S.fraction, "coarse_block_cells": block,
-                  "tile_size": R.tiling.tile_size, "short_range_cells": split.radius if split is not None else 0}
+    s["tiled"] = {
+        "exact": False,
+        "sample_fraction": S.fraction,
+        "coarse_block_cells": block,
+        "tile_size": R.tiling.tile_size,
+        "short_range_cells": split.radius if split is not None else 0,
+    }
     # --- writing -----------------------------------------------------------------------------------
     paths: dict[str, Path] = dict(rp.products)
     vmax = nice_limit(float(np.nanpercentile(abs_dh, 98)) if abs_dh.size else 1.0)
     write_raster_style(paths["dh"], dh_qml(vmax))
     write_raster_style(paths["significance"], significance_qml())
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
-    dr = DEMDiffResult(g, post, None, None, None, None, None, None, model.info, c, unc, sig, None, None, None,
-                       None, None, ea, eb, p.confidence, status, notes, warnings=warns)
+    dr = DEMDiffResult(
+        g,
+        post,
+        None,
+        None,
+        None,
+        None,
+        None,
+        None,
+        model.info,
+        c,
+        unc,
+        sig,
+        None,
+        None,
+        None,
+        None,
+        None,
+        ea,
+        eb,
+        p.confidence,
+        status,
+        notes,
+        warnings=warns,
+    )
     dr.summary = s
     layers: dict[str, Any] = {"changes": layer}
     styles = {"changes": qml_for("changes")}
@@ -1565,8 +1875,7 @@ def _write_large(R: _Runner, S: _Setup, st: _State, model: _Model, out: Path, no
     layers.update(tables(dr))
     paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", layers, styles=styles)
     if plots:
-        paths["dh_png"] = _plot_large(S, paths, out / f"{prefix}_dh.png", s, c, vmax, ea, eb, p.confidence,
-                                      status)
+        paths["dh_png"] = _plot_large(S, paths, out / f"{prefix}_dh.png", s, c, vmax, ea, eb, p.confidence, status)
     rep = dr.to_dict()
     if provenance:
         rep["provenance"] = provenance
@@ -1607,9 +1916,15 @@ def _buildings_windows(footprints, store, tg: TileGrid, g: AOIGrid):
     rows = []
     for i, win, sub, near in footprint_windows(gdf, g):
         fp = gdf.iloc[near]
-        out = classify_buildings(fp, store.read("sign", win), store.read("dh_m", win), sub,
-                                 z_a=store.read("a32", win), z_b=store.read("bc32", win),
-                                 confidence=store.read("conf", win))
+        out = classify_buildings(
+            fp,
+            store.read("sign", win),
+            store.read("dh_m", win),
+            sub,
+            z_a=store.read("a32", win),
+            z_b=store.read("bc32", win),
+            confidence=store.read("conf", win),
+        )
         rec = out.iloc[int(np.nonzero(near == i)[0][0])].copy()
         rec["building_id"] = i + 1
         rows.append(rec)
@@ -1638,17 +1953,30 @@ def _plot_large(S: _Setup, paths, png: Path, s, c, vmax, ea, eb, level, status) 
 
         with rasterio.open(S.a.path) as ds:
             win = from_bounds(*g.bounds, transform=ds.transform)
-            back = ds.read(1, window=win, out_shape=(h, w), resampling=Resampling.average, masked=True,
-                           boundless=True).filled(np.nan).astype(np.float32)
+            back = (
+                ds.read(1, window=win, out_shape=(h, w), resampling=Resampling.average, masked=True, boundless=True)
+                .filled(np.nan)
+                .astype(np.float32)
+            )
     except Exception:  # noqa: BLE001 - a backdrop is optional
         back = None
     note = f"stable NMAD {s['stable_nmad_m']:.2f} m; coreg {c.status} ({c.applied})"
     if status == "degenerate_stable_terrain":
         note += "\nWARNING: degenerate stable terrain (DEMs identical there): σ is not credible"
     if math.isfinite(s.get("volume_changed_sigma_m3", float("nan"))):
-        note += (f"\nchanged {s['changed_area_m2'] / 1e6:.3f} km², "
-                 f"{s['volume_changed_m3'] / 1e6:+.3f} ± {s['volume_changed_sigma_m3'] / 1e6:.3f} Mm³ (1σ)")
+        note += (
+            f"\nchanged {s['changed_area_m2'] / 1e6:.3f} km², "
+            f"{s['volume_changed_m3'] / 1e6:+.3f} ± {s['volume_changed_sigma_m3'] / 1e6:.3f} Mm³ (1σ)"
+        )
     post = (S.posting[0] * g.width / w, S.posting[1] * g.height / h)
-    return plot_dh_map(dh, small, png, sign=sign, backdrop_m=back, backdrop_posting_xy_m=post,
-                       title=f"{ea} → {eb}: Δh after co-registration, changed at {level:g}% (1:{f} overview)",
-                       vmax=vmax, note=note)
+    return plot_dh_map(
+        dh,
+        small,
+        png,
+        sign=sign,
+        backdrop_m=back,
+        backdrop_posting_xy_m=post,
+        title=f"{ea} → {eb}: Δh after co-registration, changed at {level:g}% (1:{f} overview)",
+        vmax=vmax,
+        note=note,
+    )

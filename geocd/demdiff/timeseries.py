@@ -78,19 +78,35 @@ class TimeSeriesResult:
 
 
 def _row(kind: str, a: Epoch, b: Epoch, r: DEMDiffResult | None, err: str = "") -> dict[str, Any]:
-    row: dict[str, Any] = {"kind": kind, "epoch_a": a.name, "epoch_b": b.name,
-                           "date_a": a.date.isoformat() if a.date else "", "date_b": b.date.isoformat() if b.date else ""}
+    row: dict[str, Any] = {
+        "kind": kind,
+        "epoch_a": a.name,
+        "epoch_b": b.name,
+        "date_a": a.date.isoformat() if a.date else "",
+        "date_b": b.date.isoformat() if b.date else "",
+    }
     if r is None:
         row.update(status=f"failed: {err}")
         return row
     s = r.summary
-    row.update(status=s["status"], coreg_status=s["coreg_status"], coreg_applied=s["coreg_applied"],
-               shift_e_m=s["shift_applied_m"][0], shift_n_m=s["shift_applied_m"][1], shift_z_m=s["shift_applied_m"][2],
-               n_stable=s["n_stable"], stable_nmad_m=s["stable_nmad_m"], observed_area_m2=s["observed_area_m2"],
-               volume_net_m3=s["volume_net_observed_m3"], volume_net_sigma_m3=s["volume_net_observed_sigma_m3"],
-               changed_area_m2=s["changed_area_m2"], volume_changed_m3=s["volume_changed_m3"],
-               volume_changed_sigma_m3=s["volume_changed_sigma_m3"], volume_raised_m3=s["volume_raised_m3"],
-               volume_lowered_m3=s["volume_lowered_m3"])
+    row.update(
+        status=s["status"],
+        coreg_status=s["coreg_status"],
+        coreg_applied=s["coreg_applied"],
+        shift_e_m=s["shift_applied_m"][0],
+        shift_n_m=s["shift_applied_m"][1],
+        shift_z_m=s["shift_applied_m"][2],
+        n_stable=s["n_stable"],
+        stable_nmad_m=s["stable_nmad_m"],
+        observed_area_m2=s["observed_area_m2"],
+        volume_net_m3=s["volume_net_observed_m3"],
+        volume_net_sigma_m3=s["volume_net_observed_sigma_m3"],
+        changed_area_m2=s["changed_area_m2"],
+        volume_changed_m3=s["volume_changed_m3"],
+        volume_changed_sigma_m3=s["volume_changed_sigma_m3"],
+        volume_raised_m3=s["volume_raised_m3"],
+        volume_lowered_m3=s["volume_lowered_m3"],
+    )
     return row
 
 
@@ -101,10 +117,18 @@ def _light(r: DEMDiffResult) -> DEMDiffResult:
     return r
 
 
-def dem_time_series(epochs: Sequence[Epoch], *, base: Epoch | None = None, merged_with_base: bool = True,
-                    params: DEMDiffParams = DEMDiffParams(), base_params: DEMDiffParams | None = None,
-                    stable_mask: Any = None, mask_is: str = "stable",
-                    keep_arrays: bool = False, progress: Progress | None = None) -> TimeSeriesResult:
+def dem_time_series(
+    epochs: Sequence[Epoch],
+    *,
+    base: Epoch | None = None,
+    merged_with_base: bool = True,
+    params: DEMDiffParams = DEMDiffParams(),
+    base_params: DEMDiffParams | None = None,
+    stable_mask: Any = None,
+    mask_is: str = "stable",
+    keep_arrays: bool = False,
+    progress: Progress | None = None,
+) -> TimeSeriesResult:
     """Volume change through a series of DEMs (see module docstring).
 
     Parameters
@@ -141,6 +165,7 @@ def dem_time_series(epochs: Sequence[Epoch], *, base: Epoch | None = None, merge
             h = align_dems(eps[0].dem, e.dem, grid, crop=False).height_b_m
             fps[e.name] = survey_footprint(h, base_h)
         return fps[e.name]
+
     jobs: list[tuple[str, Epoch, Epoch]] = [("interval", eps[k - 1], eps[k]) for k in range(1, len(eps))]
     if base is not None:
         jobs += [("vs_base", base, e) for e in eps]
@@ -160,9 +185,16 @@ def dem_time_series(epochs: Sequence[Epoch], *, base: Epoch | None = None, merge
                 continue
         try:
             pair = align_dems(a.dem, b.dem, grid, resampling=params.resampling, crop=False)
-            r = dem_difference(pair, observed=obs, stable_mask=stable_mask, mask_is=mask_is,
-                               params=params if kind == "interval" else bparams, epoch_a=a.name, epoch_b=b.name,
-                               progress=sub)
+            r = dem_difference(
+                pair,
+                observed=obs,
+                stable_mask=stable_mask,
+                mask_is=mask_is,
+                params=params if kind == "interval" else bparams,
+                epoch_a=a.name,
+                epoch_b=b.name,
+                progress=sub,
+            )
         except GeoCDError as exc:
             table.append(_row(kind, a, b, None, str(exc)))
             notes.append(f"{a.name} → {b.name}: {exc}")

@@ -42,7 +42,7 @@ from .stable import nmad
 class ErrorParams:
     """Parameters of the error model (heteroscedasticity + variogram)."""
 
-    predictor: str = "max_curvature"      # or "roughness_m", or "none" (slope only)
+    predictor: str = "max_curvature"  # or "roughness_m", or "none" (slope only)
     slope_bins: int = 8
     predictor_bins: int = 4
     min_bin_cells: int = 30
@@ -96,8 +96,13 @@ def _quantile_edges(v: np.ndarray, n: int) -> np.ndarray:
     return e
 
 
-def fit_error_model(dh_m: np.ndarray, stable: np.ndarray, slope_rad: np.ndarray, q: np.ndarray | None = None,
-                    params: ErrorParams = ErrorParams()) -> ErrorModel:
+def fit_error_model(
+    dh_m: np.ndarray,
+    stable: np.ndarray,
+    slope_rad: np.ndarray,
+    q: np.ndarray | None = None,
+    params: ErrorParams = ErrorParams(),
+) -> ErrorModel:
     """Learn σ(slope, q) from the stable cells (see module docstring).
 
     Raises
@@ -111,8 +116,10 @@ def fit_error_model(dh_m: np.ndarray, stable: np.ndarray, slope_rad: np.ndarray,
     if use_q:
         m &= np.isfinite(q)
     if m.sum() < 10:
-        raise EmptyDataError(f"only {int(m.sum())} stable cells with slope: too few to learn the error model; "
-                             "give a larger stable-terrain mask")
+        raise EmptyDataError(
+            f"only {int(m.sum())} stable cells with slope: too few to learn the error model; "
+            "give a larger stable-terrain mask"
+        )
     d = np.asarray(dh_m, np.float64)[m]
     d = d - np.median(d)
     s = np.asarray(slope_rad, np.float64)[m]
@@ -131,9 +138,16 @@ def fit_error_model(dh_m: np.ndarray, stable: np.ndarray, slope_rad: np.ndarray,
             nm = nmad(d[sel])
             t2 = float(np.median(np.tan(s[sel]) ** 2))
             q2 = float(np.median(qq[sel] ** 2)) if use_q else 0.0
-            rows.append({"slope_lo_deg": math.degrees(se[a]), "slope_hi_deg": math.degrees(se[a + 1]),
-                         "q_lo": float(qe[b]) if use_q else float("nan"), "q_hi": float(qe[b + 1]) if use_q else float("nan"),
-                         "n": n, "nmad_m": nm})
+            rows.append(
+                {
+                    "slope_lo_deg": math.degrees(se[a]),
+                    "slope_hi_deg": math.degrees(se[a + 1]),
+                    "q_lo": float(qe[b]) if use_q else float("nan"),
+                    "q_hi": float(qe[b + 1]) if use_q else float("nan"),
+                    "n": n,
+                    "nmad_m": nm,
+                }
+            )
             feats.append((1.0, t2, q2))
             w.append(math.sqrt(n))
     if len(rows) >= 3:
@@ -171,7 +185,7 @@ def _fft_autocorr(a: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
     c = fft.irfft2(np.conj(fa) * fb, sh)
     # lags 0..h-1 then negative lags at the end
     c = np.roll(np.roll(c, h - 1, axis=0), w - 1, axis=1)
-    return c[:2 * h - 1, :2 * w - 1]
+    return c[: 2 * h - 1, : 2 * w - 1]
 
 
 def _lag_distance(shape_full: tuple[int, int], posting_xy_m: tuple[float, float]) -> np.ndarray:
@@ -182,8 +196,9 @@ def _lag_distance(shape_full: tuple[int, int], posting_xy_m: tuple[float, float]
     return np.hypot(ly[:, None], lx[None, :])
 
 
-def variogram_fft(values: np.ndarray, mask: np.ndarray, posting_xy_m: tuple[float, float],
-                  edges_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def variogram_fft(
+    values: np.ndarray, mask: np.ndarray, posting_xy_m: tuple[float, float], edges_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Exact empirical semivariogram of all pairs of masked cells, by FFT (Marcotte 1996).
 
     Returns (gamma, pair counts) per distance bin (each unordered pair counted once).
@@ -199,10 +214,10 @@ def variogram_fft(values: np.ndarray, mask: np.ndarray, posting_xy_m: tuple[floa
     z = np.where(ms, values[sl], 0.0).astype(np.float64)
     z = np.where(ms, z - z[ms].mean(), 0.0)
     n = _fft_autocorr(mm)
-    z1 = _fft_autocorr(mm, z * z)        # Σ m(x) m(x+l) z(x+l)²
-    z2 = _fft_autocorr(z * z, mm)        # Σ m(x) z(x)² m(x+l)
-    zz = _fft_autocorr(z)                # Σ z(x) z(x+l)
-    sq = z1 + z2 - 2.0 * zz              # Σ m m (z(x+l) − z(x))²
+    z1 = _fft_autocorr(mm, z * z)  # Σ m(x) m(x+l) z(x+l)²
+    z2 = _fft_autocorr(z * z, mm)  # Σ m(x) z(x)² m(x+l)
+    zz = _fft_autocorr(z)  # Σ z(x) z(x+l)
+    sq = z1 + z2 - 2.0 * zz  # Σ m m (z(x+l) − z(x))²
     dist = _lag_distance(n.shape, posting_xy_m)
     cnt = np.rint(n).astype(np.int64)
     edges = np.asarray(edges_m, np.float64)
@@ -230,7 +245,7 @@ def default_lag_edges(posting_m: float, max_lag_m: float, n_log: int = 30) -> np
 def spherical(d: np.ndarray, range_m: float, sill: float) -> np.ndarray:
     """Spherical variogram component (0 at d = 0, ``sill`` beyond ``range_m``)."""
     x = np.minimum(np.asarray(d, np.float64) / max(range_m, 1e-12), 1.0)
-    return sill * (1.5 * x - 0.5 * x ** 3)
+    return sill * (1.5 * x - 0.5 * x**3)
 
 
 @dataclass(frozen=True)
@@ -270,12 +285,19 @@ class VariogramModel:
         return self.covariance(d) / self.total_sill
 
     def to_dict(self) -> dict[str, Any]:
-        return {"nugget": self.nugget, "ranges_m": list(self.ranges_m), "sills": list(self.sills),
-                "lags_m": list(self.lags_m), "gamma": list(self.gamma), "counts": list(self.counts)}
+        return {
+            "nugget": self.nugget,
+            "ranges_m": list(self.ranges_m),
+            "sills": list(self.sills),
+            "lags_m": list(self.lags_m),
+            "gamma": list(self.gamma),
+            "counts": list(self.counts),
+        }
 
 
-def fit_variogram(lags_m: np.ndarray, gamma: np.ndarray, counts: np.ndarray, n_components: int = 2,
-                  max_range_m: float | None = None) -> VariogramModel:
+def fit_variogram(
+    lags_m: np.ndarray, gamma: np.ndarray, counts: np.ndarray, n_components: int = 2, max_range_m: float | None = None
+) -> VariogramModel:
     """Weighted least-squares fit of nugget + 1 or 2 spherical components.
 
     Weights ∝ sqrt(pair count); ranges are constrained to (0, max_range_m] and ordered.
@@ -289,7 +311,7 @@ def fit_variogram(lags_m: np.ndarray, gamma: np.ndarray, counts: np.ndarray, n_c
     if x.size < 3:
         raise EmptyDataError("too few lags with pairs to fit a variogram; the stable terrain is too small")
     rmax = float(max_range_m or x.max())
-    sill = float(np.median(y[-max(3, x.size // 4):]))
+    sill = float(np.median(y[-max(3, x.size // 4) :]))
     first = float(y[0])
     sig = 1.0 / np.sqrt(cnt)
 
@@ -303,18 +325,37 @@ def fit_variogram(lags_m: np.ndarray, gamma: np.ndarray, counts: np.ndarray, n_c
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
-            p1, _ = curve_fit(f1, x, y, p0=[max(first * 0.3, 1e-6), min(5 * x[0], rmax), max(sill * 0.7, 1e-6)],
-                              sigma=sig, bounds=([0, 1e-6, 0], [np.inf, rmax, np.inf]), maxfev=20000)
+            p1, _ = curve_fit(
+                f1,
+                x,
+                y,
+                p0=[max(first * 0.3, 1e-6), min(5 * x[0], rmax), max(sill * 0.7, 1e-6)],
+                sigma=sig,
+                bounds=([0, 1e-6, 0], [np.inf, rmax, np.inf]),
+                maxfev=20000,
+            )
             best = VariogramModel(float(p1[0]), (float(p1[1]),), (float(p1[2]),))
             cost1 = float(np.sum(((f1(x, *p1) - y) / sig) ** 2))
         except (RuntimeError, ValueError):
             cost1 = np.inf
         if n_components == 2:
             try:
-                p0 = [max(first * 0.3, 1e-6), min(3 * x[0], rmax / 4), max(sill * 0.5, 1e-6), rmax / 3,
-                      max(sill * 0.3, 1e-6)]
-                p2, _ = curve_fit(f2, x, y, p0=p0, sigma=sig,
-                                  bounds=([0, 1e-6, 0, 1e-6, 0], [np.inf, rmax, np.inf, rmax, np.inf]), maxfev=40000)
+                p0 = [
+                    max(first * 0.3, 1e-6),
+                    min(3 * x[0], rmax / 4),
+                    max(sill * 0.5, 1e-6),
+                    rmax / 3,
+                    max(sill * 0.3, 1e-6),
+                ]
+                p2, _ = curve_fit(
+                    f2,
+                    x,
+                    y,
+                    p0=p0,
+                    sigma=sig,
+                    bounds=([0, 1e-6, 0, 1e-6, 0], [np.inf, rmax, np.inf, rmax, np.inf]),
+                    maxfev=40000,
+                )
                 cost2 = float(np.sum(((f2(x, *p2) - y) / sig) ** 2))
                 if cost2 < cost1 * 0.98 or best is None:
                     r2 = min(p2[1] + p2[3], rmax)
@@ -323,11 +364,19 @@ def fit_variogram(lags_m: np.ndarray, gamma: np.ndarray, counts: np.ndarray, n_c
                 pass
     if best is None:
         best = VariogramModel(max(sill, 1e-12), (float(x[0]),), (0.0,))
-    return VariogramModel(best.nugget, best.ranges_m, best.sills, tuple(map(float, lags_m)),
-                          tuple(float(g) for g in gamma), tuple(int(c) for c in counts))
+    return VariogramModel(
+        best.nugget,
+        best.ranges_m,
+        best.sills,
+        tuple(map(float, lags_m)),
+        tuple(float(g) for g in gamma),
+        tuple(int(c) for c in counts),
+    )
 
 
-def standardized_residuals(dh_m: np.ndarray, sigma_m: np.ndarray, stable: np.ndarray, clip_z: float = 4.0) -> np.ndarray:
+def standardized_residuals(
+    dh_m: np.ndarray, sigma_m: np.ndarray, stable: np.ndarray, clip_z: float = 4.0
+) -> np.ndarray:
     """z = (dh − median_stable)/σ, NaN outside stable cells, winsorized at ±clip_z."""
     m = np.asarray(stable, bool) & np.isfinite(dh_m) & np.isfinite(sigma_m) & (sigma_m > 0)
     z = np.full(np.shape(dh_m), np.nan)
@@ -356,8 +405,9 @@ class VariogramPlan:
     window: tuple[int, int, int, int] | None
 
 
-def variogram_plan(bbox: tuple[int, int, int, int], posting_xy_m: tuple[float, float],
-                   params: ErrorParams = ErrorParams()) -> VariogramPlan:
+def variogram_plan(
+    bbox: tuple[int, int, int, int], posting_xy_m: tuple[float, float], params: ErrorParams = ErrorParams()
+) -> VariogramPlan:
     """The :class:`VariogramPlan` for finite cells in ``bbox`` (row0, col0, rows, cols)."""
     r0, c0, hh, ww = bbox
     pm = 0.5 * (posting_xy_m[0] + posting_xy_m[1])
@@ -376,9 +426,13 @@ def variogram_plan(bbox: tuple[int, int, int, int], posting_xy_m: tuple[float, f
     return VariogramPlan(edges, (r0, c0, hh, ww), step, win)
 
 
-def variogram_from_plan(plan: VariogramPlan, posting_xy_m: tuple[float, float], box: np.ndarray | None = None,
-                        sub: np.ndarray | None = None, window: np.ndarray | None = None
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def variogram_from_plan(
+    plan: VariogramPlan,
+    posting_xy_m: tuple[float, float],
+    box: np.ndarray | None = None,
+    sub: np.ndarray | None = None,
+    window: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The binned variogram from the plan's grids: ``box`` (step 1), or ``sub`` (the box
     decimated by ``step``) and ``window``. Returns (lag centres m, gamma, pair counts)."""
     edges = plan.edges
@@ -397,8 +451,9 @@ def variogram_from_plan(plan: VariogramPlan, posting_xy_m: tuple[float, float], 
     return centres, g, n
 
 
-def empirical_variogram(z: np.ndarray, posting_xy_m: tuple[float, float], params: ErrorParams = ErrorParams()
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def empirical_variogram(
+    z: np.ndarray, posting_xy_m: tuple[float, float], params: ErrorParams = ErrorParams()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Binned empirical variogram of the finite cells of ``z`` (FFT over their bounding box).
 
     For very large boxes (> ``max_fft_cells``) the grid is decimated by an integer factor
@@ -409,22 +464,25 @@ def empirical_variogram(z: np.ndarray, posting_xy_m: tuple[float, float], params
     r, c = np.nonzero(m)
     if r.size < 10:
         raise EmptyDataError("fewer than 10 stable cells: cannot estimate a variogram")
-    plan = variogram_plan((int(r.min()), int(c.min()), int(r.max() - r.min() + 1), int(c.max() - c.min() + 1)),
-                          posting_xy_m, params)
+    plan = variogram_plan(
+        (int(r.min()), int(c.min()), int(r.max() - r.min() + 1), int(c.max() - c.min() + 1)), posting_xy_m, params
+    )
     r0, c0, hh, ww = plan.bbox
-    zz = z[r0:r0 + hh, c0:c0 + ww]
+    zz = z[r0 : r0 + hh, c0 : c0 + ww]
     if plan.step == 1:
         return variogram_from_plan(plan, posting_xy_m, box=zz)
     wr0, wc0, wh, wwd = plan.window
-    return variogram_from_plan(plan, posting_xy_m, sub=zz[::plan.step, ::plan.step],
-                               window=z[wr0:wr0 + wh, wc0:wc0 + wwd])
+    return variogram_from_plan(
+        plan, posting_xy_m, sub=zz[:: plan.step, :: plan.step], window=z[wr0 : wr0 + wh, wc0 : wc0 + wwd]
+    )
 
 
 # ------------------------------------------------------------------------------------------
 # correlated sums, effective samples, volume σ
 # ------------------------------------------------------------------------------------------
-def correlated_sum_variance(sigma_m: np.ndarray, mask: np.ndarray, model: VariogramModel,
-                            posting_xy_m: tuple[float, float]) -> float:
+def correlated_sum_variance(
+    sigma_m: np.ndarray, mask: np.ndarray, model: VariogramModel, posting_xy_m: tuple[float, float]
+) -> float:
     """Var(Σ_{i∈R} dh_i) = Σ_i Σ_j σ_i σ_j C(d_ij) over the cells of ``mask`` (exact, FFT)."""
     m = np.asarray(mask, bool) & np.isfinite(sigma_m)
     r, c = np.nonzero(m)
@@ -451,8 +509,9 @@ def _window_variance(w: np.ndarray, model: VariogramModel, posting_xy_m: tuple[f
     return float(max(np.sum(ac * cov), 0.0))
 
 
-def correlated_sum_variance_ref(sigma_m: np.ndarray, mask: np.ndarray, model: VariogramModel,
-                                posting_xy_m: tuple[float, float]) -> float:
+def correlated_sum_variance_ref(
+    sigma_m: np.ndarray, mask: np.ndarray, model: VariogramModel, posting_xy_m: tuple[float, float]
+) -> float:
     """Brute-force double sum (reference for tests; small masks only)."""
     m = np.asarray(mask, bool) & np.isfinite(sigma_m)
     r, c = np.nonzero(m)
@@ -463,7 +522,9 @@ def correlated_sum_variance_ref(sigma_m: np.ndarray, mask: np.ndarray, model: Va
     return float(np.sum(s[:, None] * s[None, :] * model.covariance(d)))
 
 
-def n_effective(sigma_m: np.ndarray, mask: np.ndarray, model: VariogramModel, posting_xy_m: tuple[float, float]) -> float:
+def n_effective(
+    sigma_m: np.ndarray, mask: np.ndarray, model: VariogramModel, posting_xy_m: tuple[float, float]
+) -> float:
     """Number of effective samples of the cells in ``mask`` (N when uncorrelated, 1 when fully correlated)."""
     m = np.asarray(mask, bool) & np.isfinite(sigma_m)
     var = correlated_sum_variance(sigma_m, m, model, posting_xy_m)
@@ -489,13 +550,13 @@ class Uncertainty:
 
     error_model: ErrorModel
     variogram: VariogramModel
-    sigma_m: np.ndarray                    # per-cell 1σ (m), float32 (rows, cols)
+    sigma_m: np.ndarray  # per-cell 1σ (m), float32 (rows, cols)
     posting_xy_m: tuple[float, float]
-    bias_sigma_m: float = 0.0              # σ of the stable-terrain mean
+    bias_sigma_m: float = 0.0  # σ of the stable-terrain mean
     n_eff_stable: float = float("nan")
     n_stable: int = 0
-    k_field: np.ndarray | None = None      # Σ_{j∈S} σ_j C(d_ij), float64 (rows, cols)
-    offset_m: float = 0.0                  # median dh left on stable terrain (not removed): systematic
+    k_field: np.ndarray | None = None  # Σ_{j∈S} σ_j C(d_ij), float64 (rows, cols)
+    offset_m: float = 0.0  # median dh left on stable terrain (not removed): systematic
 
     def with_offset(self, offset_m: float) -> "Uncertainty":
         from dataclasses import replace
@@ -544,8 +605,12 @@ class Uncertainty:
         return VolumeSigma(self, cell_area_m2, include_bias)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"error_model": self.error_model.to_dict(), "variogram": self.variogram.to_dict(),
-                "bias_sigma_m": self.bias_sigma_m, "n_eff_stable": self.n_eff_stable}
+        return {
+            "error_model": self.error_model.to_dict(),
+            "variogram": self.variogram.to_dict(),
+            "bias_sigma_m": self.bias_sigma_m,
+            "n_eff_stable": self.n_eff_stable,
+        }
 
 
 class VolumeSigma:
@@ -564,8 +629,14 @@ class VolumeSigma:
         return self.unc._window_sigma(mask_window, slices, self.include_bias) * self.cell_area_m2
 
 
-def estimate_uncertainty(dh_m: np.ndarray, stable: np.ndarray, slope_rad: np.ndarray, q: np.ndarray | None,
-                         posting_xy_m: tuple[float, float], params: ErrorParams = ErrorParams()) -> Uncertainty:
+def estimate_uncertainty(
+    dh_m: np.ndarray,
+    stable: np.ndarray,
+    slope_rad: np.ndarray,
+    q: np.ndarray | None,
+    posting_xy_m: tuple[float, float],
+    params: ErrorParams = ErrorParams(),
+) -> Uncertainty:
     """Heteroscedastic error model + variogram + stable-mean σ from the stable cells."""
     em = fit_error_model(dh_m, stable, slope_rad, q, params)
     sigma = em.sigma(slope_rad, q if em.predictor != "none" else None)

@@ -143,11 +143,15 @@ def _write_error(exc: BaseException, target: Path, tmp: Path | None = None) -> G
         size = _largest_size(tmp)
         free = free_bytes(target.parent)
         if soft not in (None, getattr(resource, "RLIM_INFINITY", None)) and size >= soft - 65536:
-            err = DiskFullError(f"file size limit reached writing {target} ({soft / 1e6:,.2f} MB, a shell `ulimit -f` "
-                                "or a quota); raise the limit or write to another folder (--out)")
+            err = DiskFullError(
+                f"file size limit reached writing {target} ({soft / 1e6:,.2f} MB, a shell `ulimit -f` "
+                "or a quota); raise the limit or write to another folder (--out)"
+            )
         elif free is not None and free < 1 << 20:
-            err = DiskFullError(f"no space left on device writing {target} ({free / 1e3:,.0f} kB free there); free "
-                                "some space or choose an output folder on another disk (--out)")
+            err = DiskFullError(
+                f"no space left on device writing {target} ({free / 1e3:,.0f} kB free there); free "
+                "some space or choose an output folder on another disk (--out)"
+            )
     if err is None and isinstance(exc, OSError):
         err = translate(exc, target=target)
     if err is not None:
@@ -159,8 +163,9 @@ def check_output_path(path: os.PathLike | str, overwrite: bool = True) -> Path:
     """Validate an output path: parent exists (created), not a protected input."""
     p = Path(path)
     if protected_input(p):
-        raise OutputError(f"refusing to overwrite the input file {p}; choose another output folder (--out) or "
-                          "another output name")
+        raise OutputError(
+            f"refusing to overwrite the input file {p}; choose another output folder (--out) or another output name"
+        )
     if p.exists() and p.is_dir():
         raise OutputError(f"output path {p} is a folder; give a file name")
     if p.exists() and not overwrite:
@@ -168,10 +173,14 @@ def check_output_path(path: os.PathLike | str, overwrite: bool = True) -> Path:
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
     except FileExistsError as exc:
-        raise OutputError(f"cannot create the output folder {p.parent}: a file of that name is in the way; "
-                          "choose another output folder") from exc
+        raise OutputError(
+            f"cannot create the output folder {p.parent}: a file of that name is in the way; "
+            "choose another output folder"
+        ) from exc
     except OSError as exc:
-        raise (_write_error(exc, p.parent) or OutputError(f"cannot create the output folder {p.parent}: {exc}")) from exc
+        raise (
+            _write_error(exc, p.parent) or OutputError(f"cannot create the output folder {p.parent}: {exc}")
+        ) from exc
     for hook in BEFORE_WRITE:
         hook(p)
     return p
@@ -239,8 +248,9 @@ def atomic_dir(path: os.PathLike | str) -> Iterator[Path]:
     """
     target = Path(path)
     if protected_input(target) or protected_inputs_under(target):
-        raise OutputError(f"refusing to replace the folder {target}: it holds input files of this run; choose "
-                          "another output folder")
+        raise OutputError(
+            f"refusing to replace the folder {target}: it holds input files of this run; choose another output folder"
+        )
     if target.exists() and not target.is_dir():
         raise OutputError(f"output path {target} is a file; give a folder")
     try:
@@ -293,8 +303,19 @@ def refuse_special_file(path: os.PathLike | str, what: str = "input") -> None:
         mode = os.stat(path).st_mode
     except (OSError, ValueError):
         return
-    kind = ("a named pipe (FIFO)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
-            else "a character device" if stat.S_ISCHR(mode) else "a block device" if stat.S_ISBLK(mode) else None)
+    kind = (
+        "a named pipe (FIFO)"
+        if stat.S_ISFIFO(mode)
+        else "a socket"
+        if stat.S_ISSOCK(mode)
+        else "a character device"
+        if stat.S_ISCHR(mode)
+        else "a block device"
+        if stat.S_ISBLK(mode)
+        else None
+    )
     if kind is not None:
-        raise UnsupportedFormatError(f"{what} {path} is {kind}, not a regular file; geocd reads files only: save the "
-                                     "data to a file and give that path")
+        raise UnsupportedFormatError(
+            f"{what} {path} is {kind}, not a regular file; geocd reads files only: save the "
+            "data to a file and give that path"
+        )

@@ -34,8 +34,11 @@ def _with_size(cam: Camera, width: int | None, height: int | None) -> Camera:
         # scale the interior orientation, never just relabel the size
         import warnings
 
-        warnings.warn(f"camera was calibrated for {cam.width}x{cam.height} px but the image is {width}x{height} px; "
-                      "rescaling its interior orientation to the image", stacklevel=3)
+        warnings.warn(
+            f"camera was calibrated for {cam.width}x{cam.height} px but the image is {width}x{height} px; "
+            "rescaling its interior orientation to the image",
+            stacklevel=3,
+        )
         return cam.rescaled(width, height)
     d = cam.to_dict()
     d["width"], d["height"] = width, height
@@ -62,7 +65,7 @@ def read_camera_file(path: os.PathLike | str, image_path: os.PathLike | str | No
         except YAMLLimitError as exc:
             raise RPCParseError(f"camera file {p}: {exc}") from None
         except Exception:
-            d = None   # not JSON/YAML: the RPC reader below names what is wrong
+            d = None  # not JSON/YAML: the RPC reader below names what is wrong
         if isinstance(d, dict) and d.get("kind") == "frame":
             from .frame import read_frame_sidecar
 
@@ -73,8 +76,10 @@ def read_camera_file(path: os.PathLike | str, image_path: os.PathLike | str | No
             except (TypeError, ValueError, KeyError, OverflowError) as exc:
                 if isinstance(exc, GeoCDError):
                     raise type(exc)(f"camera file {p}: {exc}") from None
-                raise CameraError(f"camera file {p}: invalid camera description ({type(exc).__name__}: "
-                                  f"{str(exc)[:160]}); re-export it with geocd") from None
+                raise CameraError(
+                    f"camera file {p}: invalid camera description ({type(exc).__name__}: "
+                    f"{str(exc)[:160]}); re-export it with geocd"
+                ) from None
             return check_camera_plausible(cam, p)
     from .rpc import read_rpc
 

@@ -77,7 +77,7 @@ def _fixed_width(line: str, width: int) -> list[float]:
     s = line.rstrip("\r\n")
     out = []
     for k in range(0, len(s), width):
-        tok = s[k:k + width].strip()
+        tok = s[k : k + width].strip()
         if tok:
             out.append(float(tok.replace("D", "E")))
     return out
@@ -92,11 +92,14 @@ def parse_e00_grid(text: str, source: str = "<text>") -> E00Grid:
     if len(head) > 1 and head[1] == "1":
         raise UnsupportedFormatError(
             f"{source} is a compressed .e00 export; decompress it first (e.g. with the e00conv tool or "
-            "avcimport) or convert it to GeoTIFF with a GDAL build that has the E00GRID driver")
+            "avcimport) or convert it to GeoTIFF with a GDAL build that has the E00GRID driver"
+        )
     try:
         g = next(i for i, ln in enumerate(lines) if ln.startswith("GRD "))
     except StopIteration:
-        raise UnsupportedFormatError(f"{source} holds no grid (no 'GRD' section); only ArcInfo grid exports are read") from None
+        raise UnsupportedFormatError(
+            f"{source} holds no grid (no 'GRD' section); only ArcInfo grid exports are read"
+        ) from None
     precision = lines[g].split()[1] if len(lines[g].split()) > 1 else "2"
     try:
         hdr = lines[g + 1]
@@ -107,7 +110,9 @@ def parse_e00_grid(text: str, source: str = "<text>") -> E00Grid:
         x0, y0 = _numbers(lines[g + 3])[:2]
         x1, y1 = _numbers(lines[g + 4])[:2]
     except (ValueError, IndexError) as exc:
-        raise UnsupportedFormatError(f"{source}: cannot parse the GRD header ({exc}); the file may be truncated") from exc
+        raise UnsupportedFormatError(
+            f"{source}: cannot parse the GRD header ({exc}); the file may be truncated"
+        ) from exc
     if ncols <= 0 or nrows <= 0 or csx <= 0 or csy <= 0:
         raise UnsupportedFormatError(f"{source}: invalid grid header ({ncols}x{nrows}, cell {csx}x{csy})")
     if vtype == 1:
@@ -119,10 +124,11 @@ def parse_e00_grid(text: str, source: str = "<text>") -> E00Grid:
     lines_per_row = -(-ncols // per_line)
     start = g + 5
     end = start + nrows * lines_per_row
-    if end > len(lines) or not any(ln.startswith("EOG") for ln in lines[end:end + 2]):
+    if end > len(lines) or not any(ln.startswith("EOG") for ln in lines[end : end + 2]):
         raise UnsupportedFormatError(
             f"{source}: expected {nrows} rows of {lines_per_row} lines ending with 'EOG'; the file is truncated "
-            "or not a plain grid export")
+            "or not a plain grid export"
+        )
     vals = np.empty((nrows, ncols), dtype=np.float64)
     k = start
     for r in range(nrows):
@@ -145,7 +151,7 @@ def _parse_prj(lines: list[str]) -> dict:
     except StopIteration:
         return {}
     out: dict = {}
-    for ln in lines[p + 1:]:
+    for ln in lines[p + 1 :]:
         if ln.startswith("EOP"):
             break
         s = ln.strip()
@@ -183,8 +189,10 @@ def crs_from_prj(prj: dict):
         return as_crs(f"+proj=utm +zone={zone}{' +south' if south else ''} +ellps={ell} +units=m +no_defs")
     if proj == "GEOGRAPHIC":
         return as_crs({"NAD83": "EPSG:4269", "NAD27": "EPSG:4267"}.get(datum, "EPSG:4326"))
-    raise CRSError(f"ArcInfo projection {proj or '(none)'} is not supported by geocd's .e00 reader; "
-                   "convert the grid with GDAL (E00GRID driver) or pass crs= explicitly")
+    raise CRSError(
+        f"ArcInfo projection {proj or '(none)'} is not supported by geocd's .e00 reader; "
+        "convert the grid with GDAL (E00GRID driver) or pass crs= explicitly"
+    )
 
 
 def read_e00_grid(path: os.PathLike | str) -> E00Grid:

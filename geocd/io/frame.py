@@ -129,16 +129,18 @@ def read_frame_sidecar(path: os.PathLike | str) -> FrameCamera:
         raise FrameCameraError(f"{p}: {exc}") from exc
     except GeoCDError:
         raise
-    except (TypeError, ValueError, ArithmeticError) as exc:   # a value no field check foresaw
-        raise FrameCameraError(f"{p}: invalid frame camera ({type(exc).__name__}: {str(exc)[:160]}); see "
-                               "geocd.io.frame for the schema") from None
+    except (TypeError, ValueError, ArithmeticError) as exc:  # a value no field check foresaw
+        raise FrameCameraError(
+            f"{p}: invalid frame camera ({type(exc).__name__}: {str(exc)[:160]}); see geocd.io.frame for the schema"
+        ) from None
     if not cam.source:
         cam = cam.replace(source=str(p))
     return cam
 
 
-def write_frame_sidecar(path: os.PathLike | str, camera: FrameCamera, *, fmt: str | None = None,
-                        overwrite: bool = True) -> Path:
+def write_frame_sidecar(
+    path: os.PathLike | str, camera: FrameCamera, *, fmt: str | None = None, overwrite: bool = True
+) -> Path:
     """Write a frame camera as a geocd sidecar (atomically).
 
     Parameters
@@ -200,7 +202,9 @@ def orthority_interior_to_kw(params: Mapping[str, Any], *, where: str = "interio
         im_size = p.pop("im_size")
         focal = p.pop("focal_len")
     except KeyError as exc:
-        raise FrameCameraError(f"{where}: missing {exc}; orthority interior parameters need im_size and focal_len") from exc
+        raise FrameCameraError(
+            f"{where}: missing {exc}; orthority interior parameters need im_size and focal_len"
+        ) from exc
     sensor = p.pop("sensor_size", None)
     cx = float(p.pop("cx", 0.0) or 0.0)
     cy = float(p.pop("cy", 0.0) or 0.0)
@@ -228,8 +232,13 @@ def orthority_interior_to_kw(params: Mapping[str, Any], *, where: str = "interio
             "undistort the images first"
         )
     m = max(w, h)
-    return dict(width=w, height=h, focal_px=(fx, fy), principal_point_px=(w / 2.0 + m * cx, h / 2.0 + m * cy),
-                distortion=dist or None)
+    return dict(
+        width=w,
+        height=h,
+        focal_px=(fx, fy),
+        principal_point_px=(w / 2.0 + m * cx, h / 2.0 + m * cy),
+        distortion=dist or None,
+    )
 
 
 def read_orthority_int_param(path: os.PathLike | str) -> dict[str, dict]:
@@ -277,7 +286,7 @@ def _csv_dialect(lines: list[str]) -> tuple[str, str]:
             key = (min(counts) in (7, 8), n_quotes, -order)
             if best is None or key > best[0]:
                 best = (key, delim, quote)
-    if best is None:        # let the row check below name the problem
+    if best is None:  # let the row check below name the problem
         first = lines[0]
         return ("," if "," in first else ("\t" if "\t" in first else " ")), '"'
     return best[1], best[2]
@@ -316,8 +325,15 @@ def _read_ext_csv(p: Path) -> list[dict]:
                 return cols.index(n)
         raise FrameCameraError(f"{p}: no column named {' or '.join(names)}; columns are {cols}")
 
-    ix = {"filename": col(("filename",)), "x": col(_X_NAMES), "y": col(_Y_NAMES), "z": col(_Z_NAMES),
-          "omega": col(("omega",)), "phi": col(("phi",)), "kappa": col(("kappa",))}
+    ix = {
+        "filename": col(("filename",)),
+        "x": col(_X_NAMES),
+        "y": col(_Y_NAMES),
+        "z": col(_Z_NAMES),
+        "omega": col(("omega",)),
+        "phi": col(("phi",)),
+        "kappa": col(("kappa",)),
+    }
     icam = cols.index("camera") if "camera" in cols else None
     out = []
     for k, r in enumerate(data, start=2 if data is not rows else 1):
@@ -326,9 +342,14 @@ def _read_ext_csv(p: Path) -> list[dict]:
             name = r[ix["filename"]]
         except (IndexError, ValueError) as exc:
             raise FrameCameraError(f"{p} row {k}: {r} does not give filename x y z omega phi kappa as numbers") from exc
-        out.append({"filename": name, "xyz": (vals["x"], vals["y"], vals["z"]),
-                    "opk_deg": (vals["omega"], vals["phi"], vals["kappa"]),
-                    "camera": r[icam] if icam is not None and icam < len(r) else None})
+        out.append(
+            {
+                "filename": name,
+                "xyz": (vals["x"], vals["y"], vals["z"]),
+                "opk_deg": (vals["omega"], vals["phi"], vals["kappa"]),
+                "camera": r[icam] if icam is not None and icam < len(r) else None,
+            }
+        )
     return out
 
 
@@ -381,9 +402,14 @@ def read_orthority_ext_param(path: os.PathLike | str, crs: Any = None) -> tuple[
     return rows, use
 
 
-def read_orthority_cameras(int_param_path: os.PathLike | str, ext_param_path: os.PathLike | str, *,
-                           crs: Any = None, vertical_datum: str | None = None,
-                           allow_geoid_substitute: bool = False) -> dict[str, FrameCamera]:
+def read_orthority_cameras(
+    int_param_path: os.PathLike | str,
+    ext_param_path: os.PathLike | str,
+    *,
+    crs: Any = None,
+    vertical_datum: str | None = None,
+    allow_geoid_substitute: bool = False,
+) -> dict[str, FrameCamera]:
     """orthority/ngi interior + exterior files → ``{image name: FrameCamera}``.
 
     Parameters
@@ -418,9 +444,14 @@ def read_orthority_cameras(int_param_path: os.PathLike | str, ext_param_path: os
             )
         try:
             out[r["filename"]] = FrameCamera(
-                position=r["xyz"], opk_deg=r["opk_deg"], crs=use_crs, vertical_datum=vertical_datum,
+                position=r["xyz"],
+                opk_deg=r["opk_deg"],
+                crs=use_crs,
+                vertical_datum=vertical_datum,
                 allow_geoid_substitute=allow_geoid_substitute,
-                source=f"orthority {Path(int_param_path).name} + {Path(ext_param_path).name}", **cams[cid])
+                source=f"orthority {Path(int_param_path).name} + {Path(ext_param_path).name}",
+                **cams[cid],
+            )
         except FrameCameraError as exc:
             raise FrameCameraError(f"{ext_param_path} image {r['filename']!r}: {exc}") from exc
     return out

@@ -234,8 +234,13 @@ class _List(_Spec):
 
 
 class _Map(_Spec):
-    def __init__(self, fields: dict[str, _Spec] | None = None, required: Sequence[str] = (), free: bool = False,
-                 what: str = "a mapping") -> None:
+    def __init__(
+        self,
+        fields: dict[str, _Spec] | None = None,
+        required: Sequence[str] = (),
+        free: bool = False,
+        what: str = "a mapping",
+    ) -> None:
         self.fields, self.required, self.free, self.what = dict(fields or {}), tuple(required), free, what
 
     def check(self, v, where, errs):
@@ -249,8 +254,9 @@ class _Map(_Spec):
             w = f"{where}.{k}" if where else str(k)
             spec = self.fields.get(k)
             if spec is None:
-                errs.append(f"{w}: unknown key{_did_you_mean(str(k), self.fields)} (allowed here: "
-                            f"{', '.join(self.fields)})")
+                errs.append(
+                    f"{w}: unknown key{_did_you_mean(str(k), self.fields)} (allowed here: {', '.join(self.fields)})"
+                )
                 continue
             out[k] = None if x is None else spec.check(x, w, errs)
         for k in self.required:
@@ -287,7 +293,7 @@ class _OnOffOr(_Spec):
         if isinstance(v, dict):
             n = len(errs)
             out = self.mapping.check(v, where, errs)
-            if len(errs) == n:   # the keys are right: check the values where they are defined
+            if len(errs) == n:  # the keys are right: check the values where they are defined
                 from ..errors import ConfigError
                 from ..orientation.params import OrientationParams
 
@@ -332,41 +338,72 @@ def _did_you_mean(word: str, options) -> str:
 
 
 VERTICAL_DATUMS = ("ellipsoid", "egm96", "egm2008")
-ORIENTATION_KEYS = ("enabled", "model", "gauge", "prior_shift_px", "prior_linear_px", "max_offset_m", "height_span_m",
-                    "patch_px", "block_px", "min_ncc", "min_points", "min_spread", "min_correction_px", "reject_k",
-                    "max_ortho_px")
-_DEM_MAP = _Map({"path": _Path(), "vertical_datum": _Str(what="a vertical datum name"), "layer": _Scalar()},
-                required=("path",), what="a mapping with 'path'")
+ORIENTATION_KEYS = (
+    "enabled",
+    "model",
+    "gauge",
+    "prior_shift_px",
+    "prior_linear_px",
+    "max_offset_m",
+    "height_span_m",
+    "patch_px",
+    "block_px",
+    "min_ncc",
+    "min_points",
+    "min_spread",
+    "min_correction_px",
+    "reject_k",
+    "max_ortho_px",
+)
+_DEM_MAP = _Map(
+    {"path": _Path(), "vertical_datum": _Str(what="a vertical datum name"), "layer": _Scalar()},
+    required=("path",),
+    what="a mapping with 'path'",
+)
 _VECTOR_MAP = _Map({"path": _Path(), "layer": _Scalar()}, required=("path",), what="a mapping with 'path'")
-_IMAGE = _Either(_Path(), _Map({"path": _Path(), "camera": _Path(), "name": _Scalar()}, required=("path",),
-                               what="a mapping with 'path'"))
+_IMAGE = _Either(
+    _Path(),
+    _Map({"path": _Path(), "camera": _Path(), "name": _Scalar()}, required=("path",), what="a mapping with 'path'"),
+)
 
 #: every key a manifest may hold (see the module docstring for their meaning)
-SCHEMA = _Map({
-    "geocd_manifest": _Num(integer=True),
-    "name": _Scalar(),
-    "description": _Scalar(),
-    "scene_class": _Scalar(),
-    "aoi": _Map({
-        "crs": _Scalar(),
-        "bounds": _List(_Num(), length=4, what="[left, bottom, right, top] (4 numbers)"),
-        "posting_m": _Num(positive=True, unit="metres"),
-        "vector": _Path(),
-    }),
-    "output": _Path(),
-    "dem": _Either(_Path(), _DEM_MAP),
-    "footprints": _Either(_Path(), _VECTOR_MAP),
-    "epochs": _List(_Map({
+SCHEMA = _Map(
+    {
+        "geocd_manifest": _Num(integer=True),
         "name": _Scalar(),
-        "date": _Date(),
-        "sensor": _Scalar(),
-        "images": _List(_IMAGE),
+        "description": _Scalar(),
+        "scene_class": _Scalar(),
+        "aoi": _Map(
+            {
+                "crs": _Scalar(),
+                "bounds": _List(_Num(), length=4, what="[left, bottom, right, top] (4 numbers)"),
+                "posting_m": _Num(positive=True, unit="metres"),
+                "vector": _Path(),
+            }
+        ),
+        "output": _Path(),
         "dem": _Either(_Path(), _DEM_MAP),
-    }, what="a mapping with name, date, images")),
-    "truth": _Map(free=True),
-    # cross-image relative orientation (geocd.orientation.OrientationParams fields)
-    "orientation": _OnOffOr(_Map({k: _Scalar() for k in ORIENTATION_KEYS}, what="a mapping of orientation settings")),
-}, what="a mapping")
+        "footprints": _Either(_Path(), _VECTOR_MAP),
+        "epochs": _List(
+            _Map(
+                {
+                    "name": _Scalar(),
+                    "date": _Date(),
+                    "sensor": _Scalar(),
+                    "images": _List(_IMAGE),
+                    "dem": _Either(_Path(), _DEM_MAP),
+                },
+                what="a mapping with name, date, images",
+            )
+        ),
+        "truth": _Map(free=True),
+        # cross-image relative orientation (geocd.orientation.OrientationParams fields)
+        "orientation": _OnOffOr(
+            _Map({k: _Scalar() for k in ORIENTATION_KEYS}, what="a mapping of orientation settings")
+        ),
+    },
+    what="a mapping",
+)
 
 
 def validate_manifest_data(data: Any, path: Path | None = None) -> dict:
@@ -396,7 +433,9 @@ def _path(root: Path, value: Any, where: str, must_exist: bool = True) -> Path:
     p = Path(value)
     p = p if p.is_absolute() else root / p
     if must_exist and not p.exists():
-        raise _err(where, f"file {p} does not exist; fix the path (relative paths are relative to the manifest's folder)")
+        raise _err(
+            where, f"file {p} does not exist; fix the path (relative paths are relative to the manifest's folder)"
+        )
     try:
         refuse_special_file(p, "file")
     except UnsupportedFormatError as exc:
@@ -424,8 +463,11 @@ def _datum(value: Any, where: str) -> str | None:
 
     n = normalize_datum_name(str(value))
     if n not in VERTICAL_DATUMS:
-        raise _err(where, f"unknown vertical datum {_r(value)}; use one of {', '.join(VERTICAL_DATUMS)}"
-                          f"{_did_you_mean(str(value).lower(), VERTICAL_DATUMS)}")
+        raise _err(
+            where,
+            f"unknown vertical datum {_r(value)}; use one of {', '.join(VERTICAL_DATUMS)}"
+            f"{_did_you_mean(str(value).lower(), VERTICAL_DATUMS)}",
+        )
     return str(value)
 
 
@@ -434,13 +476,25 @@ def _dem_spec(root: Path, value: Any, where: str) -> DEMSpec | None:
         return None
     if isinstance(value, (str, os.PathLike)):
         return DEMSpec(_path(root, value, where))
-    return DEMSpec(_path(root, value["path"], f"{where}.path"), _datum(value.get("vertical_datum"),
-                                                                       f"{where}.vertical_datum"),
-                   None if value.get("layer") is None else str(value["layer"]))
+    return DEMSpec(
+        _path(root, value["path"], f"{where}.path"),
+        _datum(value.get("vertical_datum"), f"{where}.vertical_datum"),
+        None if value.get("layer") is None else str(value["layer"]),
+    )
 
 
-_MODELLED_TOP = {"geocd_manifest", "name", "description", "scene_class", "aoi", "output", "dem", "footprints",
-                 "epochs", "truth"}
+_MODELLED_TOP = {
+    "geocd_manifest",
+    "name",
+    "description",
+    "scene_class",
+    "aoi",
+    "output",
+    "dem",
+    "footprints",
+    "epochs",
+    "truth",
+}
 _MODELLED_EPOCH = {"name", "date", "sensor", "images", "dem"}
 
 
@@ -473,8 +527,16 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
         if not imgs and dem is None:
             raise _err(where, "has neither images nor a DEM; give at least one")
         extras = {k: v for k, v in e.items() if k not in _MODELLED_EPOCH}
-        epochs.append(Epoch(name, _date(e.get("date"), f"{where}.date"), tuple(imgs),
-                            str(e.get("sensor") if e.get("sensor") is not None else ""), dem, extras))
+        epochs.append(
+            Epoch(
+                name,
+                _date(e.get("date"), f"{where}.date"),
+                tuple(imgs),
+                str(e.get("sensor") if e.get("sensor") is not None else ""),
+                dem,
+                extras,
+            )
+        )
     _check_epoch_order(epochs)
     _check_unique_images(epochs)
     aoi = None
@@ -495,17 +557,23 @@ def parse_manifest(data: Any, root: Path, path: Path | None = None) -> Manifest:
             try:
                 as_crs(crs)
             except (CRSError, ValueError, TypeError) as exc:
-                raise _err("aoi.crs", f"{_r(crs)} is not a coordinate reference system ({exc}); use e.g. EPSG:32631")\
-                    from None
+                raise _err(
+                    "aoi.crs", f"{_r(crs)} is not a coordinate reference system ({exc}); use e.g. EPSG:32631"
+                ) from None
         aoi = AOISpec(None if crs is None else str(crs), bounds, float(posting) if posting is not None else None, vec)
     output = data.get("output")
     out = (root / output) if output else None
     fp = data.get("footprints")
     return Manifest(
-        path=path, name=str(data.get("name") if data.get("name") is not None else root.name), epochs=tuple(epochs),
-        aoi=aoi, output=None if out is None else (out if out.is_absolute() else out.resolve()), dem=_dem_spec(root, data.get("dem"), "dem"),
+        path=path,
+        name=str(data.get("name") if data.get("name") is not None else root.name),
+        epochs=tuple(epochs),
+        aoi=aoi,
+        output=None if out is None else (out if out.is_absolute() else out.resolve()),
+        dem=_dem_spec(root, data.get("dem"), "dem"),
         footprints=_dem_spec(root, fp, "footprints"),
-        scene_class=str(data.get("scene_class") or ""), truth=dict(data.get("truth") or {}),
+        scene_class=str(data.get("scene_class") or ""),
+        truth=dict(data.get("truth") or {}),
         extras={k: v for k, v in data.items() if k not in _MODELLED_TOP},
     )
 
@@ -517,7 +585,8 @@ def _check_epoch_order(epochs: Sequence[Epoch]) -> None:
         if nxt.date < prev.date:
             raise ManifestError(
                 f"manifest epochs: {nxt.name!r} ({nxt.date}) is listed after {prev.name!r} ({prev.date}) but dated "
-                "before it; list the epochs in date order (earliest first), or fix the dates")
+                "before it; list the epochs in date order (earliest first), or fix the dates"
+            )
 
 
 def _check_unique_images(epochs: Sequence[Epoch]) -> None:
@@ -532,13 +601,15 @@ def _check_unique_images(epochs: Sequence[Epoch]) -> None:
             if im.name in names:
                 raise ManifestError(
                     f"manifest: {where} and {names[im.name]} of epoch {e.name!r} have the same image name "
-                    f"{_r(im.name)}; products are named after the images, so give each a distinct 'name:'")
+                    f"{_r(im.name)}; products are named after the images, so give each a distinct 'name:'"
+                )
             names[im.name] = where
             key = _file_key(im.path)
             if key in files:
                 raise ManifestError(
                     f"manifest: {where} and {files[key]} are the same file {im.path}; list each image once (an "
-                    "image compared with itself shows no change)")
+                    "image compared with itself shows no change)"
+                )
             files[key] = f"epochs[{i}].images[{j}]"
 
 
@@ -574,8 +645,10 @@ def load_manifest(path: os.PathLike | str) -> Manifest:
         return discover_manifest(p)
     raw = p.read_bytes()
     if b"\x00" in raw[:4096]:
-        raise ManifestError(f"{p} is not a manifest: it is a binary file (an image?); give a scene manifest "
-                            "(scene.yaml) or a folder of images")
+        raise ManifestError(
+            f"{p} is not a manifest: it is a binary file (an image?); give a scene manifest "
+            "(scene.yaml) or a folder of images"
+        )
     text = raw.decode("utf-8", errors="replace")
     try:
         data = load_json(text) if p.suffix.lower() == ".json" else load_yaml(text)
@@ -605,8 +678,11 @@ def discover_manifest(folder: os.PathLike | str) -> Manifest:
 
     epochs = []
     # a folder of geocd products (an earlier run's output) is not an epoch of images
-    for sub in sorted(d for d in root.iterdir() if d.is_dir() and not d.name.startswith(".")
-                      and not (d / "geocd_products.json").exists()):
+    for sub in sorted(
+        d
+        for d in root.iterdir()
+        if d.is_dir() and not d.name.startswith(".") and not (d / "geocd_products.json").exists()
+    ):
         imgs = images_in(sub)
         if imgs:
             date = None
@@ -655,8 +731,16 @@ def manifest_to_dict(m: Manifest) -> dict:
     if m.scene_class:
         d["scene_class"] = m.scene_class
     if m.aoi is not None:
-        a = {k: v for k, v in (("crs", m.aoi.crs), ("bounds", list(m.aoi.bounds) if m.aoi.bounds else None),
-                                 ("posting_m", m.aoi.posting_m), ("vector", rel(m.aoi.vector))) if v is not None}
+        a = {
+            k: v
+            for k, v in (
+                ("crs", m.aoi.crs),
+                ("bounds", list(m.aoi.bounds) if m.aoi.bounds else None),
+                ("posting_m", m.aoi.posting_m),
+                ("vector", rel(m.aoi.vector)),
+            )
+            if v is not None
+        }
         d["aoi"] = a
     if m.output is not None:
         d["output"] = rel(m.output)
@@ -671,8 +755,9 @@ def manifest_to_dict(m: Manifest) -> dict:
             ed["date"] = e.date.isoformat()
         if e.sensor:
             ed["sensor"] = e.sensor
-        ed["images"] = [({"path": rel(i.path), "camera": rel(i.camera)} if i.camera else {"path": rel(i.path)})
-                        for i in e.images]
+        ed["images"] = [
+            ({"path": rel(i.path), "camera": rel(i.camera)} if i.camera else {"path": rel(i.path)}) for i in e.images
+        ]
         if e.dem is not None:
             ed["dem"] = dem(e.dem)
         d["epochs"].append(ed)

@@ -88,7 +88,7 @@ def _grid_rotation(crs, reference) -> np.ndarray:
     """3×3 rotation taking topocentric axes to the projected CRS's grid axes at the reference point."""
     x0, y0, _ = topocentric_to(crs, 0.0, 0.0, 0.0, reference)
     xe, ye, _ = topocentric_to(crs, 100.0, 0.0, 0.0, reference)
-    a = math.atan2(float(ye - y0), float(xe - x0))      # direction of east on the grid
+    a = math.atan2(float(ye - y0), float(xe - x0))  # direction of east on the grid
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
@@ -103,8 +103,13 @@ def opensfm_camera_to_kw(cam: Mapping[str, Any], *, where: str) -> dict:
     size = max(w, h)
     if ptype == "perspective":
         f = float(cam["focal"]) * size
-        return dict(width=w, height=h, focal_px=(f, f), principal_point_px=(w / 2.0, h / 2.0),
-                    distortion={"k1": float(cam.get("k1", 0.0)), "k2": float(cam.get("k2", 0.0))})
+        return dict(
+            width=w,
+            height=h,
+            focal_px=(f, f),
+            principal_point_px=(w / 2.0, h / 2.0),
+            distortion={"k1": float(cam.get("k1", 0.0)), "k2": float(cam.get("k2", 0.0))},
+        )
     if ptype == "brown":
         fx = float(cam["focal_x"]) * size
         fy = float(cam.get("focal_y", cam["focal_x"])) * size
@@ -114,7 +119,8 @@ def opensfm_camera_to_kw(cam: Mapping[str, Any], *, where: str) -> dict:
     raise FrameCameraError(
         f"{where}: projection type {ptype!r} is not supported (geocd frame cameras are pinhole with Brown–Conrady "
         "distortion: OpenSfM 'perspective' and 'brown'); use the undistorted images and their reconstruction "
-        "(ODM: opensfm/undistorted/reconstruction.json)")
+        "(ODM: opensfm/undistorted/reconstruction.json)"
+    )
 
 
 def _reference(doc: Mapping, path: Path, reference_lla: Any) -> tuple[float, float, float]:
@@ -127,7 +133,8 @@ def _reference(doc: Mapping, path: Path, reference_lla: Any) -> tuple[float, flo
         raise FrameCameraError(
             f"{path} has no 'reference_lla' and no reference_lla.json beside it: its coordinates are relative to "
             "an unknown point; pass reference_lla=(lon, lat, h) (--reference LON LAT H) or use ODM's "
-            "opensfm folder, which holds reference_lla.json")
+            "opensfm folder, which holds reference_lla.json"
+        )
     if isinstance(ref, Mapping):
         try:
             return float(ref["longitude"]), float(ref["latitude"]), float(ref.get("altitude", 0.0))
@@ -137,8 +144,9 @@ def _reference(doc: Mapping, path: Path, reference_lla: Any) -> tuple[float, flo
     return lon, lat, h
 
 
-def read_opensfm_cameras(path: os.PathLike | str, *, crs: Any = None, reference_lla: Any = None,
-                         vertical_datum: str = "ellipsoid") -> dict[str, FrameCamera]:
+def read_opensfm_cameras(
+    path: os.PathLike | str, *, crs: Any = None, reference_lla: Any = None, vertical_datum: str = "ellipsoid"
+) -> dict[str, FrameCamera]:
     """An OpenSfM/ODM ``reconstruction.json`` → ``{image name: FrameCamera}``.
 
     Parameters
@@ -155,8 +163,9 @@ def read_opensfm_cameras(path: os.PathLike | str, *, crs: Any = None, reference_
     """
     p = Path(path)
     if not p.is_file():
-        raise InputFileNotFoundError(f"OpenSfM reconstruction {p} does not exist; check the path "
-                                     "(ODM: <project>/opensfm/reconstruction.json)")
+        raise InputFileNotFoundError(
+            f"OpenSfM reconstruction {p} does not exist; check the path (ODM: <project>/opensfm/reconstruction.json)"
+        )
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -173,15 +182,22 @@ def read_opensfm_cameras(path: os.PathLike | str, *, crs: Any = None, reference_
         for name, shot in rec["shots"].items():
             cid = shot.get("camera")
             if cid not in intr:
-                raise FrameCameraError(f"{p}: shot {name!r} uses camera {cid!r}, which the reconstruction does "
-                                       f"not define (it has {sorted(intr)})")
+                raise FrameCameraError(
+                    f"{p}: shot {name!r} uses camera {cid!r}, which the reconstruction does "
+                    f"not define (it has {sorted(intr)})"
+                )
             r = rodrigues(shot.get("rotation", (0.0, 0.0, 0.0)))
             t = np.asarray(shot.get("translation", (0.0, 0.0, 0.0)), float)
-            centre = -r.T @ t                                   # topocentric
+            centre = -r.T @ t  # topocentric
             x, y, h = topocentric_to(use_crs, *centre, ref)
-            z = float(h)                                        # in the datum of the reference altitude
-            rot_patb = g @ r.T @ _CV_TO_PATB                    # camera (PATB axes) → grid
-            out[name] = FrameCamera(position=(float(x), float(y), z), opk_deg=rotation_to_opk(rot_patb),
-                                    crs=use_crs, vertical_datum=vertical_datum,
-                                    source=f"OpenSfM {p.name} reconstruction {i} shot {name}", **intr[cid])
+            z = float(h)  # in the datum of the reference altitude
+            rot_patb = g @ r.T @ _CV_TO_PATB  # camera (PATB axes) → grid
+            out[name] = FrameCamera(
+                position=(float(x), float(y), z),
+                opk_deg=rotation_to_opk(rot_patb),
+                crs=use_crs,
+                vertical_datum=vertical_datum,
+                source=f"OpenSfM {p.name} reconstruction {i} shot {name}",
+                **intr[cid],
+            )
     return out

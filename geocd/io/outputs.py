@@ -127,11 +127,21 @@ def check_prefix(prefix: str | None, option: str = "--prefix") -> str | None:
     if prefix is None:
         return None
     p = str(prefix)
-    bad = (not p.strip() or "/" in p or "\\" in p or p.startswith(".") or ".." in p or "\x00" in p
-           or any(ord(c) < 32 for c in p) or (len(p) > 1 and p[1] == ":"))
+    bad = (
+        not p.strip()
+        or "/" in p
+        or "\\" in p
+        or p.startswith(".")
+        or ".." in p
+        or "\x00" in p
+        or any(ord(c) < 32 for c in p)
+        or (len(p) > 1 and p[1] == ":")
+    )
     if bad:
-        raise ConfigError(f"{option} {p!r} is not a plain file-name prefix; products are written inside --out, so "
-                          "use letters, digits, '_' or '-' (e.g. 'site1'), and choose the folder with --out")
+        raise ConfigError(
+            f"{option} {p!r} is not a plain file-name prefix; products are written inside --out, so "
+            "use letters, digits, '_' or '-' (e.g. 'site1'), and choose the folder with --out"
+        )
     return p
 
 
@@ -169,12 +179,17 @@ class FolderLock:
                 os.close(fd)
                 raise OutputLockedError(
                     f"{self.what} is in use by {_describe_holder(self.path)}; wait for that run to finish, or "
-                    "choose another output folder (--out)") from None
+                    "choose another output folder (--out)"
+                ) from None
             except OSError:
                 # file systems without locks (some network shares): go on unlocked rather than refuse all work
                 os.close(fd)
-                warnings.warn(f"cannot lock {self.path} on this file system; do not run two geocd commands into "
-                              f"{self.what} at once", OutputFolderWarning, stacklevel=3)
+                warnings.warn(
+                    f"cannot lock {self.path} on this file system; do not run two geocd commands into "
+                    f"{self.what} at once",
+                    OutputFolderWarning,
+                    stacklevel=3,
+                )
                 return
             # the file we locked must still be the one at the path (a releasing run unlinks it)
             try:
@@ -249,7 +264,9 @@ else:
 # =====================================================================================================
 # litter of killed runs
 # =====================================================================================================
-def clean_litter(folder: os.PathLike | str, *, recursive: bool = True, names: Iterable[str] | None = None) -> list[Path]:
+def clean_litter(
+    folder: os.PathLike | str, *, recursive: bool = True, names: Iterable[str] | None = None
+) -> list[Path]:
     """Remove partial files/folders of interrupted geocd writes under ``folder``; return what was removed.
 
     A model folder half-swapped by a kill (``.NAME.old`` without ``NAME``) is renamed back to ``NAME``.
@@ -360,8 +377,10 @@ def check_product_set(folder: os.PathLike | str) -> dict[str, Any]:
     problems: list[str] = []
     runs = []
     if not (root / MANIFEST_NAME).is_file():
-        problems.append(f"{root} has no product manifest ({MANIFEST_NAME}): it was not written by geocd, or by a "
-                        "run that wrote nothing")
+        problems.append(
+            f"{root} has no product manifest ({MANIFEST_NAME}): it was not written by geocd, or by a "
+            "run that wrote nothing"
+        )
     held = lock_is_held(root / LOCK_NAME)
     for r in doc["runs"]:
         files = r.get("files") or {}
@@ -371,20 +390,33 @@ def check_product_set(folder: os.PathLike | str) -> dict[str, Any]:
         if status == "running" and not held:
             status = "killed"
         cmd = " ".join(r.get("argv", [])[:4]) or r.get("command", "geocd")
-        runs.append({"id": r.get("id"), "command": r.get("command"), "status": status, "products": len(files),
-                     "changed_or_missing": bad})
+        runs.append(
+            {
+                "id": r.get("id"),
+                "command": r.get("command"),
+                "status": status,
+                "products": len(files),
+                "changed_or_missing": bad,
+            }
+        )
         if status != "complete":
-            problems.append(f"run `{cmd}` ({r.get('started')}) is {status} after writing {len(files)} product(s): "
-                            "they are not a whole set; run the command again to complete the folder")
+            problems.append(
+                f"run `{cmd}` ({r.get('started')}) is {status} after writing {len(files)} product(s): "
+                "they are not a whole set; run the command again to complete the folder"
+            )
         if bad:
-            problems.append(f"{len(bad)} product(s) of run `{cmd}` changed or went missing since it wrote them: "
-                            + ", ".join(bad[:5]) + (" ..." if len(bad) > 5 else ""))
+            problems.append(
+                f"{len(bad)} product(s) of run `{cmd}` changed or went missing since it wrote them: "
+                + ", ".join(bad[:5])
+                + (" ..." if len(bad) > 5 else "")
+            )
     litter = [p for p in root.rglob("*") if PART_RE.match(p.name)] if root.is_dir() else []
     if litter:
         problems.append(f"{len(litter)} partial file(s) of an interrupted run are in the folder")
     if (root / PREV_DIR).is_dir() and not held:
-        problems.append(f"files a stopped run replaced are kept in {PREV_DIR}: the next geocd run into this folder "
-                        "puts them back")
+        problems.append(
+            f"files a stopped run replaced are kept in {PREV_DIR}: the next geocd run into this folder puts them back"
+        )
     return {"valid": not problems, "runs": runs, "problems": problems}
 
 
@@ -402,8 +434,10 @@ def _on_before_write(target: Path) -> None:
     owner = next((s for s in reversed(_ACTIVE) if s.covers(t)), None)
     if owner is None:
         roots = ", ".join(str(r) for s in _ACTIVE for r in s.roots())
-        raise OutputError(f"refusing to write {target}: it is outside this run's output ({roots}); check --out, "
-                          "--prefix and output file names")
+        raise OutputError(
+            f"refusing to write {target}: it is outside this run's output ({roots}); check --out, "
+            "--prefix and output file names"
+        )
     owner.keep_previous(t)
 
 
@@ -456,8 +490,10 @@ class OutputSession:
         ``model.joblib``, ``x.qml`` beside ``x.tif``)."""
         if self.folder is not None and _within(path, self.folder):
             return True
-        return any(_within(path, f) or (path.parent == f.parent and path.name.startswith((f"{f.stem}.", f"{f.stem}_")))
-                   for f in self.files)
+        return any(
+            _within(path, f) or (path.parent == f.parent and path.name.startswith((f"{f.stem}.", f"{f.stem}_")))
+            for f in self.files
+        )
 
     def _rel(self, path: Path) -> str:
         if self.folder is not None and _within(path, self.folder):
@@ -515,11 +551,20 @@ class OutputSession:
     def _entry(self, status: str) -> dict:
         from .. import __version__
 
-        return {"id": self.id, "command": self.command, "argv": list(self.argv), "geocd": __version__,
-                "pid": os.getpid(), "host": socket.gethostname(), "started": self._started,
-                "finished": None if status == "running" else _now(), "status": status,
-                "products": list(self.products), "inputs": [str(p) for p in self.inputs],
-                "files": {k: v for k, v in self.written.items() if not k.startswith("/")}}
+        return {
+            "id": self.id,
+            "command": self.command,
+            "argv": list(self.argv),
+            "geocd": __version__,
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "started": self._started,
+            "finished": None if status == "running" else _now(),
+            "status": status,
+            "products": list(self.products),
+            "inputs": [str(p) for p in self.inputs],
+            "files": {k: v for k, v in self.written.items() if not k.startswith("/")},
+        }
 
     def _save(self, status: str, doc: dict | None = None) -> None:
         if self.folder is None:
@@ -582,12 +627,18 @@ class OutputSession:
                 else:
                     kept_changed.append(rel)
         if retired:
-            self._note(f"removed {len(retired)} product(s) of an older run that this run replaces: "
-                       + ", ".join(retired[:6]) + (" ..." if len(retired) > 6 else ""))
+            self._note(
+                f"removed {len(retired)} product(s) of an older run that this run replaces: "
+                + ", ".join(retired[:6])
+                + (" ..." if len(retired) > 6 else "")
+            )
         if kept_changed:
-            self._note(f"kept {len(kept_changed)} file(s) of an older run that changed since geocd wrote them (or "
-                       "are inputs of this run); they are not part of this run's products: "
-                       + ", ".join(kept_changed[:6]) + (" ..." if len(kept_changed) > 6 else ""))
+            self._note(
+                f"kept {len(kept_changed)} file(s) of an older run that changed since geocd wrote them (or "
+                "are inputs of this run); they are not part of this run's products: "
+                + ", ".join(kept_changed[:6])
+                + (" ..." if len(kept_changed) > 6 else "")
+            )
         doc["runs"] = keep
         self._save("complete", doc)
         _drop_previous(self.folder, self.id)
@@ -599,8 +650,10 @@ class OutputSession:
         for rel in restored:
             self.written.pop(rel, None)
         if restored:
-            self._note(f"put back {len(restored)} file(s) of an earlier run that this run had replaced before it "
-                       "stopped: " + ", ".join(restored[:6]) + (" ..." if len(restored) > 6 else ""))
+            self._note(
+                f"put back {len(restored)} file(s) of an earlier run that this run had replaced before it "
+                "stopped: " + ", ".join(restored[:6]) + (" ..." if len(restored) > 6 else "")
+            )
         doc = read_products_manifest(self.folder)
         if not self.written:
             # nothing of this run is in the folder: leave it as it was
@@ -681,9 +734,15 @@ def _command_and_argv(command: str | None) -> tuple[str, tuple[str, ...]]:
     return name or (Path(argv[0]).name if argv else "python"), argv
 
 
-def open_outputs(out: os.PathLike | str | None = None, *, inputs: Iterable[os.PathLike | str | None] = (),
-                 products: Sequence[str] = ("*",), files: Iterable[os.PathLike | str | None] = (),
-                 prefix: str | None = None, command: str | None = None) -> OutputSession:
+def open_outputs(
+    out: os.PathLike | str | None = None,
+    *,
+    inputs: Iterable[os.PathLike | str | None] = (),
+    products: Sequence[str] = ("*",),
+    files: Iterable[os.PathLike | str | None] = (),
+    prefix: str | None = None,
+    command: str | None = None,
+) -> OutputSession:
     """Open the output session of a command (see the module docstring); returns it (a context manager).
 
     Parameters
@@ -709,18 +768,38 @@ def open_outputs(out: os.PathLike | str | None = None, *, inputs: Iterable[os.Pa
     # a second session on the same folder in this process (a command calling a pipeline that opens its own)
     for s in _ACTIVE:
         if folder is not None and s.folder == folder and s.parent is None:
-            child = OutputSession(folder=folder, files=outs, inputs=ins, products=tuple(products), command=cmd,
-                                  argv=argv, parent=s, id=s.id)
+            child = OutputSession(
+                folder=folder,
+                files=outs,
+                inputs=ins,
+                products=tuple(products),
+                command=cmd,
+                argv=argv,
+                parent=s,
+                id=s.id,
+            )
             _check_inputs_vs_outputs(child)
             child._protected = atomic.protect_inputs(*ins)
             _ACTIVE.append(child)
             return child
-    sess = OutputSession(folder=folder, files=outs, inputs=ins, products=tuple(products), command=cmd, argv=argv,
-                         id=f"{_dt.datetime.now(_dt.timezone.utc).strftime('%Y%m%dT%H%M%S.%fZ')}-{os.getpid()}",
-                         _started=_now())
+    sess = OutputSession(
+        folder=folder,
+        files=outs,
+        inputs=ins,
+        products=tuple(products),
+        command=cmd,
+        argv=argv,
+        id=f"{_dt.datetime.now(_dt.timezone.utc).strftime('%Y%m%dT%H%M%S.%fZ')}-{os.getpid()}",
+        _started=_now(),
+    )
     _check_inputs_vs_outputs(sess)
-    info = {"pid": os.getpid(), "host": socket.gethostname(), "started": sess._started, "command": cmd,
-            "argv": list(argv)}
+    info = {
+        "pid": os.getpid(),
+        "host": socket.gethostname(),
+        "started": sess._started,
+        "command": cmd,
+        "argv": list(argv),
+    }
     try:
         if folder is not None:
             if folder.exists() and not folder.is_dir():
@@ -753,8 +832,11 @@ def open_outputs(out: os.PathLike | str | None = None, *, inputs: Iterable[os.Pa
         stem_names = {f.name, f.stem}
         litter += clean_litter(f.parent, recursive=False, names=stem_names)
     if litter:
-        sess._note(f"removed {len(litter)} partial file(s) left by an interrupted geocd run: "
-                   + ", ".join(p.name for p in litter[:5]) + (" ..." if len(litter) > 5 else ""))
+        sess._note(
+            f"removed {len(litter)} partial file(s) left by an interrupted geocd run: "
+            + ", ".join(p.name for p in litter[:5])
+            + (" ..." if len(litter) > 5 else "")
+        )
     if folder is not None:
         doc = read_products_manifest(folder)
         changed = False
@@ -769,15 +851,20 @@ def open_outputs(out: os.PathLike | str | None = None, *, inputs: Iterable[os.Pa
                         (r.get("files") or {}).pop(rel, None)
                     changed = True
             if restored:
-                sess._note(f"put back {len(restored)} file(s) of an earlier run that a killed run had replaced: "
-                           + ", ".join(restored[:6]) + (" ..." if len(restored) > 6 else ""))
+                sess._note(
+                    f"put back {len(restored)} file(s) of an earlier run that a killed run had replaced: "
+                    + ", ".join(restored[:6])
+                    + (" ..." if len(restored) > 6 else "")
+                )
         for r in doc["runs"]:
             if r.get("status") == "running":
                 r["status"] = "killed"
                 changed = True
-                sess._note(f"the previous run into {folder} (`{' '.join(r.get('argv', [])[:6])}`, started "
-                           f"{r.get('started')}) was killed after writing {len(r.get('files') or {})} product(s); "
-                           "they are incomplete as a set and are replaced by this run's products")
+                sess._note(
+                    f"the previous run into {folder} (`{' '.join(r.get('argv', [])[:6])}`, started "
+                    f"{r.get('started')}) was killed after writing {len(r.get('files') or {})} product(s); "
+                    "they are incomplete as a set and are replaced by this run's products"
+                )
         if changed:
             _write_manifest(folder, doc)
     sess._protected = atomic.protect_inputs(*ins)
@@ -789,16 +876,19 @@ def _mkdir(folder: Path) -> None:
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except FileExistsError as exc:
-        raise OutputError(f"cannot create the output folder {folder}: a file is in the way; choose another folder "
-                          "(--out)") from exc
+        raise OutputError(
+            f"cannot create the output folder {folder}: a file is in the way; choose another folder (--out)"
+        ) from exc
     except OSError as exc:
         from ..faults import disk_full_error
 
         err = disk_full_error(exc, folder)
         if err is not None:
             raise err from exc
-        raise OutputError(f"cannot create the output folder {folder} ({exc.strerror or exc}); choose a folder on a "
-                          "writable disk that you may write to (--out)") from exc
+        raise OutputError(
+            f"cannot create the output folder {folder} ({exc.strerror or exc}); choose a folder on a "
+            "writable disk that you may write to (--out)"
+        ) from exc
     if not os.access(folder, os.W_OK | os.X_OK):
         ro = False
         with contextlib.suppress(OSError, AttributeError):
@@ -812,8 +902,9 @@ def _check_parent_free(path: Path) -> None:
     for d in path.parents:
         lk = d / LOCK_NAME
         if lk.exists() and lock_is_held(lk) and not any(s.folder == d for s in _ACTIVE):
-            raise OutputLockedError(f"{d} is in use by {_describe_holder(lk)}; wait for that run to finish, or write "
-                                    "elsewhere")
+            raise OutputLockedError(
+                f"{d} is in use by {_describe_holder(lk)}; wait for that run to finish, or write elsewhere"
+            )
 
 
 def _check_inputs_vs_outputs(s: OutputSession) -> None:
@@ -824,8 +915,10 @@ def _check_inputs_vs_outputs(s: OutputSession) -> None:
             if i.exists() and f.exists():
                 with contextlib.suppress(OSError):
                     if os.path.samefile(i, f):
-                        raise OutputError(f"the output {f} is the input {i} (another name of the same file); choose "
-                                          "another output path")
+                        raise OutputError(
+                            f"the output {f} is the input {i} (another name of the same file); choose "
+                            "another output path"
+                        )
         if s.folder is None:
             continue
         if i == s.folder:
@@ -838,12 +931,14 @@ def _check_inputs_vs_outputs(s: OutputSession) -> None:
             if hit is not None:
                 raise OutputError(
                     f"the input {i} is where this command writes its products ({s.folder}/{hit}); it would be "
-                    "overwritten. Move or copy the input out of the output folder, or choose another --out")
+                    "overwritten. Move or copy the input out of the output folder, or choose another --out"
+                )
         elif _within(i, s.folder) and i.is_dir():
             rel = i.relative_to(s.folder).as_posix()
             if any(fnmatch.fnmatchcase(rel + "/x", pat) for pat in s.products):
-                raise OutputError(f"the input folder {i} lies where this command writes its products; choose another "
-                                  "--out")
+                raise OutputError(
+                    f"the input folder {i} lies where this command writes its products; choose another --out"
+                )
 
 
 def close_sessions(ok: bool = True, exc: BaseException | None = None) -> None:
@@ -879,8 +974,10 @@ def available_memory_bytes() -> int | None:
     if avail is None:
         with contextlib.suppress(ValueError, OSError, AttributeError):
             avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    for lim, cur in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
-                     ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+    for lim, cur in (
+        ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+        ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"),
+    ):
         try:
             raw = Path(lim).read_text().strip()
             if raw != "max" and int(raw) < 1 << 60:
@@ -911,15 +1008,27 @@ def _gib(n: float) -> str:
     return f"{n / 2**30:,.1f} GiB" if n >= 2**30 else f"{n / 2**20:,.0f} MiB"
 
 
-def grid_job_bytes(cells: int, *, memory_per_cell: float, disk_per_cell: float = 0.0,
-                   largest_file_per_cell: float = 0.0) -> dict[str, int]:
+def grid_job_bytes(
+    cells: int, *, memory_per_cell: float, disk_per_cell: float = 0.0, largest_file_per_cell: float = 0.0
+) -> dict[str, int]:
     """Memory and disk (uncompressed) of a job on ``cells`` grid cells, from per-cell byte counts."""
-    return {"memory": int(cells * memory_per_cell), "disk": int(cells * disk_per_cell),
-            "largest_file": int(cells * largest_file_per_cell)}
+    return {
+        "memory": int(cells * memory_per_cell),
+        "disk": int(cells * disk_per_cell),
+        "largest_file": int(cells * largest_file_per_cell),
+    }
 
 
-def check_resources(what: str, *, memory_bytes: int = 0, disk_bytes: int = 0, largest_file_bytes: int = 0,
-                    out: os.PathLike | str | None = None, fix: str = "", compression: float = 4.0) -> None:
+def check_resources(
+    what: str,
+    *,
+    memory_bytes: int = 0,
+    disk_bytes: int = 0,
+    largest_file_bytes: int = 0,
+    out: os.PathLike | str | None = None,
+    fix: str = "",
+    compression: float = 4.0,
+) -> None:
     """Refuse a job that cannot fit, before its heavy step.
 
     Parameters
@@ -942,35 +1051,65 @@ def check_resources(what: str, *, memory_bytes: int = 0, disk_bytes: int = 0, la
     tail = f"; {fix}" if fix else ""
     avail = available_memory_bytes()
     if memory_bytes and avail is not None and memory_bytes > avail:
-        raise ResourceError(f"{what} needs about {_gib(memory_bytes)} of memory, {_gib(max(avail, 0))} is available"
-                            f"{tail}")
+        raise ResourceError(
+            f"{what} needs about {_gib(memory_bytes)} of memory, {_gib(max(avail, 0))} is available{tail}"
+        )
     if out is not None and disk_bytes:
         free = free_bytes(out)
         if free is not None and disk_bytes / compression > free:
-            raise DiskFullError(f"no space left on device for {what}: about {disk_bytes / compression / 1e6:,.0f} MB "
-                                f"needed (compressed; {disk_bytes / 1e6:,.0f} MB uncompressed), {free / 1e6:,.0f} MB "
-                                f"free on {out}{tail or '; free some space or choose another --out'}")
+            raise DiskFullError(
+                f"no space left on device for {what}: about {disk_bytes / compression / 1e6:,.0f} MB "
+                f"needed (compressed; {disk_bytes / 1e6:,.0f} MB uncompressed), {free / 1e6:,.0f} MB "
+                f"free on {out}{tail or '; free some space or choose another --out'}"
+            )
         if free is not None and disk_bytes > free:
-            warnings.warn(f"{what}: the products may need up to {disk_bytes / 1e6:,.0f} MB (uncompressed) and "
-                          f"{free / 1e6:,.0f} MB are free on {out}", OutputFolderWarning, stacklevel=2)
+            warnings.warn(
+                f"{what}: the products may need up to {disk_bytes / 1e6:,.0f} MB (uncompressed) and "
+                f"{free / 1e6:,.0f} MB are free on {out}",
+                OutputFolderWarning,
+                stacklevel=2,
+            )
     lim = _file_size_limit()
     if lim is not None and largest_file_bytes and largest_file_bytes / compression > lim:
-        raise DiskFullError(f"{what}: the largest product needs about {largest_file_bytes / compression / 1e6:,.1f} MB "
-                            f"but the file-size limit (ulimit -f) is {lim / 1e6:,.1f} MB; raise the limit or use a "
-                            "coarser posting")
+        raise DiskFullError(
+            f"{what}: the largest product needs about {largest_file_bytes / compression / 1e6:,.1f} MB "
+            f"but the file-size limit (ulimit -f) is {lim / 1e6:,.1f} MB; raise the limit or use a "
+            "coarser posting"
+        )
 
 
-__all__ = ["open_outputs", "OutputSession", "close_sessions", "check_prefix", "clean_litter", "verify_products",
-           "check_product_set",
-           "read_products_manifest", "check_resources", "grid_job_bytes", "available_memory_bytes", "sha256_file",
-           "MANIFEST_NAME", "LOCK_NAME", "OutputFolderWarning", "lock_is_held", "active_sessions"]
+__all__ = [
+    "open_outputs",
+    "OutputSession",
+    "close_sessions",
+    "check_prefix",
+    "clean_litter",
+    "verify_products",
+    "check_product_set",
+    "read_products_manifest",
+    "check_resources",
+    "grid_job_bytes",
+    "available_memory_bytes",
+    "sha256_file",
+    "MANIFEST_NAME",
+    "LOCK_NAME",
+    "OutputFolderWarning",
+    "lock_is_held",
+    "active_sessions",
+]
 
 
 # ---------------------------------------------------------------------------------------------------------------
 # output FILES named by the user (--out x.tif, --out model.json): never replace a file geocd did not write
 # ---------------------------------------------------------------------------------------------------------------
-def refuse_foreign_files(files: Iterable[os.PathLike | str | None], recognise: Callable[[Path], bool], *, what: str,
-                         force: bool = False, option: str = "--out") -> None:
+def refuse_foreign_files(
+    files: Iterable[os.PathLike | str | None],
+    recognise: Callable[[Path], bool],
+    *,
+    what: str,
+    force: bool = False,
+    option: str = "--out",
+) -> None:
     """Refuse to replace an existing output file that geocd did not write (a user's own file at that name).
 
     Call before any heavy work. A file counts as geocd's when ``recognise(path)`` is true (it carries the
@@ -1002,8 +1141,10 @@ def refuse_foreign_files(files: Iterable[os.PathLike | str | None], recognise: C
         except Exception:  # noqa: BLE001 - unreadable as our product: then it is not ours
             ours = False
         if not ours:
-            raise OutputError(f"{p} exists and geocd did not write it (it is not {what}); refusing to replace it. "
-                              f"Choose another {option}, move the file away, or pass --overwrite to replace it")
+            raise OutputError(
+                f"{p} exists and geocd did not write it (it is not {what}); refusing to replace it. "
+                f"Choose another {option}, move the file away, or pass --overwrite to replace it"
+            )
 
 
 def geotiff_tag_startswith(path: Path, tag: str, prefix: str) -> bool:

@@ -15,8 +15,14 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ..errors import (CRSError, EmptyDataError, InputFileNotFoundError, OutputError, UnsupportedFormatError,
-                      VerticalDatumError)
+from ..errors import (
+    CRSError,
+    EmptyDataError,
+    InputFileNotFoundError,
+    OutputError,
+    UnsupportedFormatError,
+    VerticalDatumError,
+)
 from ..geodesy import EGM96, EGM2008, ELLIPSOID, AOIGrid, as_crs, normalize_datum_name, vertical_datum_of
 from .atomic import atomic_path, refuse_special_file
 
@@ -27,8 +33,21 @@ VERTICAL_DATUMS = (ELLIPSOID, EGM96, EGM2008)
 HEIGHT_RANGE_M = (-11_500.0, 9_500.0)
 _HEIGHT_BAND_NAMES = ("z", "z_m", "height", "height_m", "elevation", "dem", "dsm", "dtm", "h", "alt", "altitude")
 #: values DEM producers write for "no data" without always declaring it (ESRI, SRTM, USGS, GDAL's float extremes)
-KNOWN_SENTINELS = (-9999.0, -99999.0, -32768.0, -32767.0, 32767.0, 65535.0, -1e10, -1e20, 1e20, -1e30, 1e30,
-                   float(np.finfo(np.float32).min), float(np.finfo(np.float32).max))
+KNOWN_SENTINELS = (
+    -9999.0,
+    -99999.0,
+    -32768.0,
+    -32767.0,
+    32767.0,
+    65535.0,
+    -1e10,
+    -1e20,
+    1e20,
+    -1e30,
+    1e30,
+    float(np.finfo(np.float32).min),
+    float(np.finfo(np.float32).max),
+)
 #: an undeclared nodata value stands this far (m) beyond every other value of the DEM: real terrain, sampled densely,
 #: leaves no empty kilometre in its height histogram beside its lowest or highest value (checked on every DEM in
 #: ../shared/data, tests/io/test_dem_checks.py)
@@ -44,13 +63,34 @@ CHECK_CELLS = 4_000_000
 
 
 #: band units (GDAL's unit type) of heights that are not metres → the factor to metres
-_NON_METRE_UNITS = {"ft": 0.3048, "feet": 0.3048, "foot": 0.3048, "international foot": 0.3048,
-                    "us-ft": 0.3048006096, "ftus": 0.3048006096, "us survey foot": 0.3048006096,
-                    "us_survey_foot": 0.3048006096, "cm": 0.01, "centimetre": 0.01, "centimeter": 0.01,
-                    "centimetres": 0.01, "centimeters": 0.01, "mm": 0.001, "millimetre": 0.001, "millimeter": 0.001,
-                    "dm": 0.1, "decimetre": 0.1, "decimeter": 0.1}
-_UNIT_NAMES = {0.3048: "feet", 0.3048006096: "US survey feet", 0.01: "centimetres", 0.001: "millimetres",
-               0.1: "decimetres"}
+_NON_METRE_UNITS = {
+    "ft": 0.3048,
+    "feet": 0.3048,
+    "foot": 0.3048,
+    "international foot": 0.3048,
+    "us-ft": 0.3048006096,
+    "ftus": 0.3048006096,
+    "us survey foot": 0.3048006096,
+    "us_survey_foot": 0.3048006096,
+    "cm": 0.01,
+    "centimetre": 0.01,
+    "centimeter": 0.01,
+    "centimetres": 0.01,
+    "centimeters": 0.01,
+    "mm": 0.001,
+    "millimetre": 0.001,
+    "millimeter": 0.001,
+    "dm": 0.1,
+    "decimetre": 0.1,
+    "decimeter": 0.1,
+}
+_UNIT_NAMES = {
+    0.3048: "feet",
+    0.3048006096: "US survey feet",
+    0.01: "centimetres",
+    0.001: "millimetres",
+    0.1: "decimetres",
+}
 
 
 class DEMValueWarning(UserWarning):
@@ -70,19 +110,24 @@ def check_vertical_datum(name: str | None, where: str = "vertical datum") -> str
     if n not in VERTICAL_DATUMS:
         import difflib
 
-        close = difflib.get_close_matches(str(name).lower(), ["ellipsoid", "ellipsoidal", "wgs84", "egm96", "egm2008"],
-                                          n=1, cutoff=0.5)
+        close = difflib.get_close_matches(
+            str(name).lower(), ["ellipsoid", "ellipsoidal", "wgs84", "egm96", "egm2008"], n=1, cutoff=0.5
+        )
         hint = f"; did you mean {close[0]!r}?" if close else ""
-        raise VerticalDatumError(f"{where}: unknown vertical datum {name!r}; use ellipsoid (WGS84 ellipsoidal "
-                                 f"heights), egm96 or egm2008{hint}")
+        raise VerticalDatumError(
+            f"{where}: unknown vertical datum {name!r}; use ellipsoid (WGS84 ellipsoidal "
+            f"heights), egm96 or egm2008{hint}"
+        )
     return n
 
 
 def _read_failure(path, exc: Exception) -> UnsupportedFormatError:
     """A rasterio/GDAL failure while reading pixels: the file is truncated or corrupt."""
     msg = " ".join(str(exc).split())[:200]
-    return UnsupportedFormatError(f"cannot read the pixels of {path} ({msg}); the file is truncated or corrupt: "
-                                  "copy or export it again")
+    return UnsupportedFormatError(
+        f"cannot read the pixels of {path} ({msg}); the file is truncated or corrupt: copy or export it again"
+    )
+
 
 RESAMPLING = ("nearest", "bilinear", "cubic", "average", "min", "max", "med")
 
@@ -105,11 +150,15 @@ def _open(path: os.PathLike | str):
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             return rasterio.open(p)
     except RasterioIOError as exc:
-        raise UnsupportedFormatError(f"cannot read {p} as a raster ({exc}); give a GeoTIFF or another GDAL format") from exc
+        raise UnsupportedFormatError(
+            f"cannot read {p} as a raster ({exc}); give a GeoTIFF or another GDAL format"
+        ) from exc
     except (RasterioError, UnicodeError, ValueError, OverflowError) as exc:
         # a corrupt header: rasterio fails decoding a CRS citation, a tag, a metadata string
-        raise UnsupportedFormatError(f"cannot read {p} as a raster: its header is corrupt ({type(exc).__name__}: "
-                                     f"{' '.join(str(exc).split())[:120]}); copy or export the file again") from exc
+        raise UnsupportedFormatError(
+            f"cannot read {p} as a raster: its header is corrupt ({type(exc).__name__}: "
+            f"{' '.join(str(exc).split())[:120]}); copy or export the file again"
+        ) from exc
 
 
 @dataclass
@@ -247,7 +296,9 @@ def undeclared_nodata(values: np.ndarray) -> list[tuple[float, int, float]]:
                 break
             i, j = (lo, lo + 1) if end == "low" else (hi, hi - 1)
             c, gap = float(u[i]), abs(float(u[j] - u[i]))
-            if gap > SENTINEL_GAP_M and (float(np.float32(c)) in known or counts[i] >= max(2, SENTINEL_MIN_SHARE * v.size)):
+            if gap > SENTINEL_GAP_M and (
+                float(np.float32(c)) in known or counts[i] >= max(2, SENTINEL_MIN_SHARE * v.size)
+            ):
                 found.append((c, int(counts[i]), gap))
                 lo, hi = (lo + 1, hi) if end == "low" else (lo, hi - 1)
                 progressed = True
@@ -281,7 +332,8 @@ def _check_dem_values(ds, path, band: int, nodata: float | None) -> None:
     if factor is not None:
         raise UnsupportedFormatError(
             f"DEM {path}: its band unit is {unit!r} ({_UNIT_NAMES.get(factor, unit)}); geocd needs heights in metres: "
-            f"convert it (gdal_calc.py -A {path} --calc 'A*{factor:g}' --outfile dem_m.tif) and give that file")
+            f"convert it (gdal_calc.py -A {path} --calc 'A*{factor:g}' --outfile dem_m.tif) and give that file"
+        )
     # the file's own values at full resolution: a decimated read would take an overview, whose averages hide an
     # exact sentinel. A large DEM is read as evenly spaced strips of whole rows (every column is seen).
     rows_wanted = max(1, CHECK_CELLS // max(ds.width, 1))
@@ -298,8 +350,12 @@ def _check_dem_values(ds, path, band: int, nodata: float | None) -> None:
     except RasterioError as exc:
         raise _read_failure(path, exc) from exc
     with np.errstate(invalid="ignore"):  # a garbled file's masked values may not cast cleanly: they are masked
-        h = np.concatenate([(np.ma.filled(a.astype(np.float64), np.nan) if np.ma.isMaskedArray(a)
-                             else a.astype(np.float64)) for a in parts])
+        h = np.concatenate(
+            [
+                (np.ma.filled(a.astype(np.float64), np.nan) if np.ma.isMaskedArray(a) else a.astype(np.float64))
+                for a in parts
+            ]
+        )
     if nodata is not None:  # compared as the file stores it (a float32 file holds float32(-3.4028235e38))
         h[h == (float(np.float32(nodata)) if ds.dtypes[band - 1] == "float32" else float(nodata))] = np.nan
     sample = "" if step == 1 else f" (checked on strips of whole rows, 1 row in {step})"
@@ -307,14 +363,18 @@ def _check_dem_values(ds, path, band: int, nodata: float | None) -> None:
     if sentinels:
         finite = np.isfinite(h).sum()
         dt = ds.dtypes[band - 1]
-        said = "; ".join(f"{_fmt_value(c, dt)} in {100 * k / max(finite, 1):.2g} % of its cells ({gap:,.0f} m beyond "
-                         "every other value)" for c, k, gap in sentinels)
+        said = "; ".join(
+            f"{_fmt_value(c, dt)} in {100 * k / max(finite, 1):.2g} % of its cells ({gap:,.0f} m beyond "
+            "every other value)"
+            for c, k, gap in sentinels
+        )
         v0 = _fmt_value(sentinels[0][0], dt)
         declared = f" (its declared nodata is {_fmt_value(ds.nodata, dt)})" if ds.nodata is not None else ""
         raise UnsupportedFormatError(
             f"DEM {path} holds undeclared nodata values, not heights{declared}: {said}{sample}. Declare the "
             f"value in the file (gdal_edit.py -a_nodata {v0} {path}), or with geocd demdiff: --nodata {v0} "
-            "(nodata= in Python)")
+            "(nodata= in Python)"
+        )
     valid = ~np.isnan(h)
     lo, hi = HEIGHT_RANGE_M
     with np.errstate(invalid="ignore"):
@@ -326,10 +386,15 @@ def _check_dem_values(ds, path, band: int, nodata: float | None) -> None:
         raise UnsupportedFormatError(
             f"DEM {path}: {100 * share:.0f}% of its values lie outside {lo:g}..{hi:g} m or are infinite{rng}"
             f"{sample}; these are not terrain heights in metres (feet? centimetres? an undeclared nodata value?): "
-            "convert the DEM to metres or declare its nodata value (--nodata)")
+            "convert the DEM to metres or declare its nodata value (--nodata)"
+        )
     if bad.any():
-        warnings.warn(f"DEM {path}: {int(bad.sum())} value(s) ({100 * share:.2g} % of its cells{sample}) lie outside "
-                      f"{lo:g}..{hi:g} m or are infinite; they are read as nodata", DEMValueWarning, stacklevel=3)
+        warnings.warn(
+            f"DEM {path}: {int(bad.sum())} value(s) ({100 * share:.2g} % of its cells{sample}) lie outside "
+            f"{lo:g}..{hi:g} m or are infinite; they are read as nodata",
+            DEMValueWarning,
+            stacklevel=3,
+        )
 
 
 def check_dem_file(path: os.PathLike | str, band: int = 1, nodata: float | None = None) -> int:
@@ -360,8 +425,14 @@ def blank_non_heights(h: np.ndarray, nodata: float | None = None) -> np.ndarray:
     return h
 
 
-def read_dem(path: os.PathLike | str, grid: AOIGrid | None = None, resampling: str = "bilinear",
-             vertical_datum: str | None = None, band: int = 1, nodata: float | None = None) -> DEM:
+def read_dem(
+    path: os.PathLike | str,
+    grid: AOIGrid | None = None,
+    resampling: str = "bilinear",
+    vertical_datum: str | None = None,
+    band: int = 1,
+    nodata: float | None = None,
+) -> DEM:
     """Read a DEM: float32 heights, nodata → NaN, optionally resampled onto ``grid``.
 
     Parameters
@@ -433,7 +504,8 @@ def _check_dem_like(ds, path, band: int) -> int:
         raise UnsupportedFormatError(
             f"{path} is not a DEM: it holds {looks}"
             f"{' (' + '/'.join(c.name for c in interp[:4]) + ')' if interp else ''}, an image rather than heights. "
-            "Give a single-band elevation raster (float or 16/32-bit integer heights in metres)")
+            "Give a single-band elevation raster (float or 16/32-bit integer heights in metres)"
+        )
     if any(d.startswith("complex") for d in dtypes):
         raise UnsupportedFormatError(f"{path} holds complex values ({looks}); a DEM holds real heights in metres")
     if ds.count > 1:
@@ -442,7 +514,8 @@ def _check_dem_like(ds, path, band: int) -> int:
             raise UnsupportedFormatError(
                 f"DEM {path} has {ds.count} bands and band {band} is not named as heights "
                 f"({names[band - 1] or 'no description'}); a DEM has one band of heights: extract it first "
-                "(gdal_translate -b N in.tif dem.tif)")
+                "(gdal_translate -b N in.tif dem.tif)"
+            )
     return band
 
 
@@ -478,11 +551,13 @@ def _check_dem_covers(ds, path, grid: AOIGrid) -> None:
         raise NoOverlapError(
             f"DEM {path} does not cover the AOI: it ends {d / 1000:.1f} km from it (DEM bounds "
             f"{tuple(round(x, 1) for x in (l, b, r, t))}, AOI {tuple(round(x, 1) for x in grid.bounds)} in the AOI's "
-            "CRS); give a DEM of this area, or check the AOI (aoi.bounds / aoi.crs)")
+            "CRS); give a DEM of this area, or check the AOI (aoi.bounds / aoi.crs)"
+        )
 
 
-def reproject_band(ds, band: int, grid: AOIGrid, resampling: str = "bilinear",
-                   nodata: float | None = None, heights: bool = False) -> np.ndarray:
+def reproject_band(
+    ds, band: int, grid: AOIGrid, resampling: str = "bilinear", nodata: float | None = None, heights: bool = False
+) -> np.ndarray:
     """Reproject one band of an open dataset onto ``grid`` (float32, NaN outside/nodata; ``nodata`` overrides
     the file's nodata value; ``heights``: values that are not heights are nodata too, before they are resampled
     into their neighbours)."""
@@ -499,31 +574,55 @@ def reproject_band(ds, band: int, grid: AOIGrid, resampling: str = "bilinear",
         blank_non_heights(src, nodata)
     elif nodata is not None and np.isfinite(nodata):
         src[src == np.float32(nodata)] = np.nan
-    reproject(src, out, src_transform=ds.transform, src_crs=ds.crs, src_nodata=np.nan,
-              dst_transform=grid.transform, dst_crs=RioCRS.from_wkt(grid.crs.to_wkt()), dst_nodata=np.nan,
-              resampling=getattr(Resampling, resampling))
+    reproject(
+        src,
+        out,
+        src_transform=ds.transform,
+        src_crs=ds.crs,
+        src_nodata=np.nan,
+        dst_transform=grid.transform,
+        dst_crs=RioCRS.from_wkt(grid.crs.to_wkt()),
+        dst_nodata=np.nan,
+        resampling=getattr(Resampling, resampling),
+    )
     return out
 
 
-def reproject_array(array: np.ndarray, src_grid: AOIGrid, dst_grid: AOIGrid, resampling: str = "bilinear") -> np.ndarray:
+def reproject_array(
+    array: np.ndarray, src_grid: AOIGrid, dst_grid: AOIGrid, resampling: str = "bilinear"
+) -> np.ndarray:
     """Reproject a float array from one grid to another (NaN = nodata)."""
     from rasterio.crs import CRS as RioCRS
     from rasterio.enums import Resampling
     from rasterio.warp import reproject
 
     out = np.full(dst_grid.shape, np.nan, dtype=np.float32)
-    reproject(array.astype(np.float32), out, src_transform=src_grid.transform,
-              src_crs=RioCRS.from_wkt(src_grid.crs.to_wkt()), src_nodata=np.nan,
-              dst_transform=dst_grid.transform, dst_crs=RioCRS.from_wkt(dst_grid.crs.to_wkt()),
-              dst_nodata=np.nan, resampling=getattr(Resampling, resampling))
+    reproject(
+        array.astype(np.float32),
+        out,
+        src_transform=src_grid.transform,
+        src_crs=RioCRS.from_wkt(src_grid.crs.to_wkt()),
+        src_nodata=np.nan,
+        dst_transform=dst_grid.transform,
+        dst_crs=RioCRS.from_wkt(dst_grid.crs.to_wkt()),
+        dst_nodata=np.nan,
+        resampling=getattr(Resampling, resampling),
+    )
     return out
 
 
 def band_unit(name: str) -> str:
     """The unit a band name says by geocd's naming convention ("" when it says none)."""
     n = name.lower()
-    for suffix, unit in (("_m3", "m3"), ("_m2", "m2"), ("_m", "m"), ("_px", "px"), ("_deg", "degree"),
-                         ("_pct", "%"), ("_s", "s")):
+    for suffix, unit in (
+        ("_m3", "m3"),
+        ("_m2", "m2"),
+        ("_m", "m"),
+        ("_px", "px"),
+        ("_deg", "degree"),
+        ("_pct", "%"),
+        ("_s", "s"),
+    ):
         if n.endswith(suffix):
             return unit
     if "confidence" in n:
@@ -533,12 +632,22 @@ def band_unit(name: str) -> str:
     return ""
 
 
-def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarray], grid: AOIGrid, *,
-              nodata: float | int | None = None, dtype: str | None = None, tags: Mapping[str, Any] | None = None,
-              band_tags: Sequence[Mapping[str, Any]] | None = None, overwrite: bool = True,
-              compress: str = "deflate", colormap: Mapping[int, tuple] | None = None,
-              overview_resampling: str = "average", mask: np.ndarray | None = None,
-              units: Mapping[str, str] | Sequence[str] | None = None) -> Path:
+def write_cog(
+    path: os.PathLike | str,
+    bands: np.ndarray | Mapping[str, np.ndarray],
+    grid: AOIGrid,
+    *,
+    nodata: float | int | None = None,
+    dtype: str | None = None,
+    tags: Mapping[str, Any] | None = None,
+    band_tags: Sequence[Mapping[str, Any]] | None = None,
+    overwrite: bool = True,
+    compress: str = "deflate",
+    colormap: Mapping[int, tuple] | None = None,
+    overview_resampling: str = "average",
+    mask: np.ndarray | None = None,
+    units: Mapping[str, str] | Sequence[str] | None = None,
+) -> Path:
     """Write a Cloud-Optimized GeoTIFF atomically.
 
     Every band gets a description (what QGIS shows as its name) and, where known, a unit
@@ -582,8 +691,13 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
     for i, bt in enumerate(band_tags or []):  # a "units" band tag (stereo products) is the unit too
         if i < len(unit_list) and not unit_list[i] and bt and bt.get("units"):
             unit_list[i] = str(bt["units"])
-    if (len(unit_list) == 1 and not unit_list[0] and tags and tags.get("units")
-            and np.issubdtype(np.dtype(dtype or arr.dtype), np.floating)):  # one float band: the dataset's unit
+    if (
+        len(unit_list) == 1
+        and not unit_list[0]
+        and tags
+        and tags.get("units")
+        and np.issubdtype(np.dtype(dtype or arr.dtype), np.floating)
+    ):  # one float band: the dataset's unit
         unit_list[0] = {"metre": "m", "meter": "m", "metres": "m"}.get(str(tags["units"]), str(tags["units"]))
     if arr.shape[1:] != grid.shape:
         raise OutputError(f"array shape {arr.shape[1:]} does not match the grid {grid.shape}")
@@ -615,14 +729,29 @@ def write_cog(path: os.PathLike | str, bands: np.ndarray | Mapping[str, np.ndarr
                     from rasterio.enums import Resampling
 
                     dst.build_overviews(ov, getattr(Resampling, overview_resampling))
-            rio_copy(mem.open(), str(tmp), driver="COG", compress=compress.upper(),
-                     overview_resampling=overview_resampling.upper() if overview_resampling != "average" else "AVERAGE")
+            rio_copy(
+                mem.open(),
+                str(tmp),
+                driver="COG",
+                compress=compress.upper(),
+                overview_resampling=overview_resampling.upper() if overview_resampling != "average" else "AVERAGE",
+            )
     return Path(path)
 
 
-def write_image(path: os.PathLike | str, data: np.ndarray, *, rpc=None, crs: Any = None, transform: Any = None,
-                nodata: float | int | None = None, nbits: int | None = None, tags: Mapping[str, Any] | None = None,
-                overwrite: bool = True, photometric: str | None = None) -> Path:
+def write_image(
+    path: os.PathLike | str,
+    data: np.ndarray,
+    *,
+    rpc=None,
+    crs: Any = None,
+    transform: Any = None,
+    nodata: float | int | None = None,
+    nbits: int | None = None,
+    tags: Mapping[str, Any] | None = None,
+    overwrite: bool = True,
+    photometric: str | None = None,
+) -> Path:
     """Write a (bands, rows, cols) image as GeoTIFF atomically, optionally with RPC tags.
 
     Parameters
@@ -637,9 +766,17 @@ def write_image(path: os.PathLike | str, data: np.ndarray, *, rpc=None, crs: Any
     arr = np.asarray(data)
     if arr.ndim == 2:
         arr = arr[None]
-    profile: dict[str, Any] = {"driver": "GTiff", "width": arr.shape[2], "height": arr.shape[1],
-                               "count": arr.shape[0], "dtype": str(arr.dtype), "compress": "deflate",
-                               "tiled": True, "blockxsize": 256, "blockysize": 256}
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": arr.shape[2],
+        "height": arr.shape[1],
+        "count": arr.shape[0],
+        "dtype": str(arr.dtype),
+        "compress": "deflate",
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+    }
     if nodata is not None:
         profile["nodata"] = nodata
     if crs is not None:

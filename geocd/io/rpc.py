@@ -38,23 +38,48 @@ from xml.etree import ElementTree as ET
 import numpy as np
 
 from ..camera.rpc import RPCModel, rpc00a_to_rpc00b
-from ..errors import (GeoCDError, InputFileNotFoundError, RPCNotFoundError, RPCParseError,
-                      UnsupportedFormatError)
+from ..errors import GeoCDError, InputFileNotFoundError, RPCNotFoundError, RPCParseError, UnsupportedFormatError
 from .safe_yaml import YAMLLimitError, load_json, load_yaml
 
-__all__ = ["read_rpc", "find_rpc_sidecar", "load_rpc_for_image", "detect_rpc_format", "SIDECAR_PATTERNS",
-           "check_rpc_plausible"]
+__all__ = [
+    "read_rpc",
+    "find_rpc_sidecar",
+    "load_rpc_for_image",
+    "detect_rpc_format",
+    "SIDECAR_PATTERNS",
+    "check_rpc_plausible",
+]
 
 #: sidecar names tried next to an image, in this order ({stem} = image name without extension)
 SIDECAR_PATTERNS = (
-    "{stem}_rpc.txt", "{stem}.rpb", "{stem}_rpc.rpb", "{stem}.geom", "{stem}.rpc.json", "{stem}.rpc.yaml",
-    "{stem}.rpc.yml", "{stem}.rpc", "{stem}.xml", "{stem}.json", "rpc_{base}.xml", "RPC_*.XML (unique)",
+    "{stem}_rpc.txt",
+    "{stem}.rpb",
+    "{stem}_rpc.rpb",
+    "{stem}.geom",
+    "{stem}.rpc.json",
+    "{stem}.rpc.yaml",
+    "{stem}.rpc.yml",
+    "{stem}.rpc",
+    "{stem}.xml",
+    "{stem}.json",
+    "rpc_{base}.xml",
+    "RPC_*.XML (unique)",
     "*rpc*.yaml (orthority, with an entry for the image)",
 )
 
 _COEF_NAMES = ("line_num", "line_den", "samp_num", "samp_den")
-_SCALAR_NAMES = ("line_off", "samp_off", "lat_off", "lon_off", "height_off",
-                 "line_scale", "samp_scale", "lat_scale", "lon_scale", "height_scale")
+_SCALAR_NAMES = (
+    "line_off",
+    "samp_off",
+    "lat_off",
+    "lon_off",
+    "height_off",
+    "line_scale",
+    "samp_scale",
+    "lat_scale",
+    "lon_scale",
+    "height_scale",
+)
 #: normalised key (lower case, only letters and digits) → canonical field
 _ALIASES: dict[str, str] = {}
 for _canon, _names in {
@@ -79,16 +104,36 @@ for _canon, _names in {
         _ALIASES[_n] = _canon
 _INDEXED = re.compile(r"^(line|samp|row|col)(num|den)coef+(\d+)$")
 _VENDOR_KEY = {  # how each format spells the fields, for error messages
-    "line_off": "LINE_OFF", "samp_off": "SAMP_OFF", "lat_off": "LAT_OFF", "lon_off": "LONG_OFF",
-    "height_off": "HEIGHT_OFF", "line_scale": "LINE_SCALE", "samp_scale": "SAMP_SCALE",
-    "lat_scale": "LAT_SCALE", "lon_scale": "LONG_SCALE", "height_scale": "HEIGHT_SCALE",
-    "line_num": "LINE_NUM_COEFF", "line_den": "LINE_DEN_COEFF", "samp_num": "SAMP_NUM_COEFF",
+    "line_off": "LINE_OFF",
+    "samp_off": "SAMP_OFF",
+    "lat_off": "LAT_OFF",
+    "lon_off": "LONG_OFF",
+    "height_off": "HEIGHT_OFF",
+    "line_scale": "LINE_SCALE",
+    "samp_scale": "SAMP_SCALE",
+    "lat_scale": "LAT_SCALE",
+    "lon_scale": "LONG_SCALE",
+    "height_scale": "HEIGHT_SCALE",
+    "line_num": "LINE_NUM_COEFF",
+    "line_den": "LINE_DEN_COEFF",
+    "samp_num": "SAMP_NUM_COEFF",
     "samp_den": "SAMP_DEN_COEFF",
 }
 # what a parser may raise on malformed input; turned into RPCParseError naming the file
 _PARSE_FAILURES: tuple[type[BaseException], ...] = (
-    KeyError, IndexError, ValueError, TypeError, AttributeError, OverflowError, ZeroDivisionError,
-    ArithmeticError, RecursionError, ET.ParseError, UnicodeError, np.linalg.LinAlgError, LookupError,
+    KeyError,
+    IndexError,
+    ValueError,
+    TypeError,
+    AttributeError,
+    OverflowError,
+    ZeroDivisionError,
+    ArithmeticError,
+    RecursionError,
+    ET.ParseError,
+    UnicodeError,
+    np.linalg.LinAlgError,
+    LookupError,
 )
 
 
@@ -156,8 +201,10 @@ class _Fields:
             want = range(self.index_base, self.index_base + 20)
             lost = [i for i in want if i not in idx]
             if lost:
-                missing.append(f"{_VENDOR_KEY[name]}_{{{','.join(map(str, lost))}}}"
-                               f" (indices {self.index_base}..{self.index_base + 19})")
+                missing.append(
+                    f"{_VENDOR_KEY[name]}_{{{','.join(map(str, lost))}}}"
+                    f" (indices {self.index_base}..{self.index_base + 19})"
+                )
                 continue
             vals = [self._float(f"{_VENDOR_KEY[name]}_{i}", idx[i]) for i in want]
             if all(v is not None for v in vals):
@@ -278,8 +325,9 @@ def _field_problems(get: Callable[[str], Any]) -> list[str]:
         c = np.asarray(get(name), float).reshape(-1)
         if (np.abs(c) > MAX_ABS_COEFFICIENT).any():
             k = int(np.argmax(np.abs(c)))
-            bad.append(f"{_VENDOR_KEY[name]}_{k + 1}={c[k]:g} is not a plausible coefficient "
-                       f"(|c| > {MAX_ABS_COEFFICIENT:g})")
+            bad.append(
+                f"{_VENDOR_KEY[name]}_{k + 1}={c[k]:g} is not a plausible coefficient (|c| > {MAX_ABS_COEFFICIENT:g})"
+            )
     return bad
 
 
@@ -299,14 +347,26 @@ def _start_failure_cause(kw: dict[str, Any]) -> list[str]:
 
 
 def _implausible(where: str, bad: list[str]) -> RPCParseError:
-    return RPCParseError(f"{where}implausible RPC: {'; '.join(bad[:4])}"
-                         f"{f'; and {len(bad) - 4} more' if len(bad) > 4 else ''}. The file is corrupt or not this "
-                         "image's camera; re-export it from the original product")
+    return RPCParseError(
+        f"{where}implausible RPC: {'; '.join(bad[:4])}"
+        f"{f'; and {len(bad) - 4} more' if len(bad) > 4 else ''}. The file is corrupt or not this "
+        "image's camera; re-export it from the original product"
+    )
 
 
 #: NITF RPC00A/RPC00B TRE layout (STDI-0002): field widths after SUCCESS, ERR_BIAS, ERR_RAND
-_TRE_FIELDS = (("LINE_OFF", 6), ("SAMP_OFF", 5), ("LAT_OFF", 8), ("LONG_OFF", 9), ("HEIGHT_OFF", 5),
-               ("LINE_SCALE", 6), ("SAMP_SCALE", 5), ("LAT_SCALE", 8), ("LONG_SCALE", 9), ("HEIGHT_SCALE", 5))
+_TRE_FIELDS = (
+    ("LINE_OFF", 6),
+    ("SAMP_OFF", 5),
+    ("LAT_OFF", 8),
+    ("LONG_OFF", 9),
+    ("HEIGHT_OFF", 5),
+    ("LINE_SCALE", 6),
+    ("SAMP_SCALE", 5),
+    ("LAT_SCALE", 8),
+    ("LONG_SCALE", 9),
+    ("HEIGHT_SCALE", 5),
+)
 
 
 def _check_nitf_tre(path: Path, tres: Mapping[str, Any]) -> None:
@@ -317,14 +377,14 @@ def _check_nitf_tre(path: Path, tres: Mapping[str, Any]) -> None:
             continue
         pos, bad = 15, []
         for name, width in _TRE_FIELDS:
-            txt = raw[pos:pos + width]
+            txt = raw[pos : pos + width]
             pos += width
             try:
                 float(txt)
             except ValueError:
                 bad.append(f"{name}={txt!r}")
         for k in range(80):
-            txt = raw[pos:pos + 12]
+            txt = raw[pos : pos + 12]
             pos += 12
             try:
                 float(txt)
@@ -332,9 +392,11 @@ def _check_nitf_tre(path: Path, tres: Mapping[str, Any]) -> None:
                 poly = ("LINE_NUM_COEFF", "LINE_DEN_COEFF", "SAMP_NUM_COEFF", "SAMP_DEN_COEFF")[k // 20]
                 bad.append(f"{poly}_{k % 20 + 1}={txt!r}")
         if bad:
-            raise RPCParseError(f"{path}: the {key} TRE holds non-numeric fields ({', '.join(bad[:4])}"
-                                f"{f' and {len(bad) - 4} more' if len(bad) > 4 else ''}); GDAL would read them as 0. "
-                                "The file is corrupt: re-export it from the original product")
+            raise RPCParseError(
+                f"{path}: the {key} TRE holds non-numeric fields ({', '.join(bad[:4])}"
+                f"{f' and {len(bad) - 4} more' if len(bad) > 4 else ''}); GDAL would read them as 0. "
+                "The file is corrupt: re-export it from the original product"
+            )
 
 
 def _check_raw_rpc_strings(path: Path, raw: Mapping[str, Any]) -> None:
@@ -352,8 +414,10 @@ def _check_raw_rpc_strings(path: Path, raw: Mapping[str, Any]) -> None:
         if canon in _COEF_NAMES and len(vals) != 20:
             bad.append(f"{key} has {len(vals)} values instead of 20")
     if bad:
-        raise RPCParseError(f"{path}: the RPC metadata holds non-numeric values ({'; '.join(bad[:4])}); GDAL would "
-                            "read them as 0. Re-export the RPC from the original product")
+        raise RPCParseError(
+            f"{path}: the RPC metadata holds non-numeric values ({'; '.join(bad[:4])}); GDAL would "
+            "read them as 0. Re-export the RPC from the original product"
+        )
 
 
 def _short(v: Any, n: int = 40) -> str:
@@ -374,7 +438,7 @@ def _to_float(v: Any) -> float:
         return _to_float(v[0])
     if not isinstance(v, str):
         raise TypeError(f"{type(v).__name__} is not a number")
-    s = v.strip().strip('"\'').strip()
+    s = v.strip().strip("\"'").strip()
     m = _UNIT_TAIL.match(s)
     if not m:
         raise ValueError("empty value")
@@ -422,9 +486,20 @@ _RE_RPB = re.compile(r"(?im)^\s*(lineoffset|linenumcoef|begin_group)\s*=")
 _RE_GEOM = re.compile(r"(?m)^\s*([\w.]+\.)?(line_num_coeff?_\d\d|polynomial_format)\s*:")
 _RE_TXT = re.compile(r"(?m)^\s*(LINE_OFF|LINE_NUM_COEFF(_\d+)?|SAMP_OFF)\s*:")
 _EXT_FALLBACK = {
-    ".rpb": "rpb", ".geom": "geom", ".txt": "txt", ".xml": "xml", ".json": "json", ".yaml": "yaml",
-    ".yml": "yaml", ".tif": "gdal", ".tiff": "gdal", ".ntf": "gdal", ".nitf": "gdal", ".r0": "gdal",
-    ".jp2": "gdal", ".rpc": "txt",
+    ".rpb": "rpb",
+    ".geom": "geom",
+    ".txt": "txt",
+    ".xml": "xml",
+    ".json": "json",
+    ".yaml": "yaml",
+    ".yml": "yaml",
+    ".tif": "gdal",
+    ".tiff": "gdal",
+    ".ntf": "gdal",
+    ".nitf": "gdal",
+    ".r0": "gdal",
+    ".jp2": "gdal",
+    ".rpc": "txt",
 }
 _MAX_TEXT_BYTES = 64 * 2**20
 
@@ -474,8 +549,12 @@ def detect_rpc_format(path: os.PathLike | str) -> str:
     if _RE_TXT.search(txt):
         return "txt"
     first = next((ln for ln in txt.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
-    if (first == "---" or re.match(r"^(kind|rpc|im_size)\s*:", first)
-            or re.search(r"(?m)^[^\s:#][^:]*:\s*$", txt) or re.search(r"(?m)^\s*-\s+\S", txt)):
+    if (
+        first == "---"
+        or re.match(r"^(kind|rpc|im_size)\s*:", first)
+        or re.search(r"(?m)^[^\s:#][^:]*:\s*$", txt)
+        or re.search(r"(?m)^\s*-\s+\S", txt)
+    ):
         return "yaml"  # YAML with nested mappings or lists (orthority, geocd)
     return _EXT_FALLBACK.get(p.suffix.lower(), "")
 
@@ -550,16 +629,30 @@ def _read_gdal(path: Path, image_path: Path | None, *, own_metadata_only: bool =
         else:
             label = f"{ds.driver} RPC metadata"
         if not own_metadata_only:
-            label = (f"RPC found by GDAL's metadata readers in {', '.join(Path(s).name for s in sidecars)}"
-                     if sidecars else label)
+            label = (
+                f"RPC found by GDAL's metadata readers in {', '.join(Path(s).name for s in sidecars)}"
+                if sidecars
+                else label
+            )
         try:
             kw = dict(
-                line_num=rpc.line_num_coeff, line_den=rpc.line_den_coeff, samp_num=rpc.samp_num_coeff,
-                samp_den=rpc.samp_den_coeff, line_off=rpc.line_off, samp_off=rpc.samp_off,
-                lat_off=rpc.lat_off, lon_off=rpc.long_off, height_off=rpc.height_off,
-                line_scale=rpc.line_scale, samp_scale=rpc.samp_scale, lat_scale=rpc.lat_scale,
-                lon_scale=rpc.long_scale, height_scale=rpc.height_scale,
-                width=int(ds.width), height=int(ds.height), source=f"{path} [{label}]",
+                line_num=rpc.line_num_coeff,
+                line_den=rpc.line_den_coeff,
+                samp_num=rpc.samp_num_coeff,
+                samp_den=rpc.samp_den_coeff,
+                line_off=rpc.line_off,
+                samp_off=rpc.samp_off,
+                lat_off=rpc.lat_off,
+                lon_off=rpc.long_off,
+                height_off=rpc.height_off,
+                line_scale=rpc.line_scale,
+                samp_scale=rpc.samp_scale,
+                lat_scale=rpc.lat_scale,
+                lon_scale=rpc.long_scale,
+                height_scale=rpc.height_scale,
+                width=int(ds.width),
+                height=int(ds.height),
+                source=f"{path} [{label}]",
             )
             for ours, theirs in (("err_bias", rpc.err_bias), ("err_rand", rpc.err_rand)):
                 if theirs is not None and np.isfinite(theirs) and theirs >= 0:
@@ -608,12 +701,16 @@ def _read_xml(path: Path, image_path: Path | None) -> RPCModel:
         root = ET.fromstring(text)
     except ET.ParseError as exc:
         raise RPCParseError(f"{path}: not well-formed XML ({exc}); the file is truncated or garbled") from None
-    if _local(root.tag) == "Dimap_Document" or root.find(".//Global_RFM") is not None or any(
-            _local(e.tag) == "Global_RFM" for e in root.iter()):
+    if (
+        _local(root.tag) == "Dimap_Document"
+        or root.find(".//Global_RFM") is not None
+        or any(_local(e.tag) == "Global_RFM" for e in root.iter())
+    ):
         return _read_dimap(path, root)
     for el in root.iter():
-        if _local(el.tag).upper() == "IMAGE" and any(_local(c.tag).upper() in ("LINEOFFSET", "LINENUMCOEFLIST")
-                                                      for c in el):
+        if _local(el.tag).upper() == "IMAGE" and any(
+            _local(c.tag).upper() in ("LINEOFFSET", "LINENUMCOEFLIST") for c in el
+        ):
             return _read_dg_xml(path, root, el)
     if _local(root.tag).upper() == "IMAGE":
         return _read_dg_xml(path, root, root)
@@ -664,8 +761,10 @@ def _read_dimap(path: Path, root: ET.Element) -> RPCModel:
     val = next((e for e in root.iter() if _local(e.tag) == "RFM_Validity"), None)
     missing = [n for n, e in (("Global_RFM/Inverse_Model", inv), ("Global_RFM/RFM_Validity", val)) if e is None]
     if missing:
-        raise RPCParseError(f"{path}: this DIMAP XML lacks {', '.join(missing)}; it is truncated or not an RPC_*.XML "
-                            "(give the RPC_*.XML of the product, not DIM_*.XML)")
+        raise RPCParseError(
+            f"{path}: this DIMAP XML lacks {', '.join(missing)}; it is truncated or not an RPC_*.XML "
+            "(give the RPC_*.XML of the product, not DIM_*.XML)"
+        )
     for child in inv:
         f.put(_local(child.tag), _text(child))
     for child in val:
@@ -728,7 +827,10 @@ def _from_mapping(path: Path, d: Mapping[str, Any], label: str, *, width: Any = 
         f.put(k, v)
     spec = next((str(v) for k, v in d.items() if _normkey(k) in ("specid", "polynomialformat", "format")), "B")
     f.order = "A" if spec.strip().upper().endswith("A") else "B"
-    f.width, f.height = width if width is not None else d.get("width"), height if height is not None else d.get("height")
+    f.width, f.height = (
+        width if width is not None else d.get("width"),
+        height if height is not None else d.get("height"),
+    )
     return f.build()
 
 
@@ -804,16 +906,22 @@ def _read_yaml(path: Path, image_path: Path | None) -> RPCModel:
 
 
 _READERS: dict[str, Callable[[Path, Path | None], RPCModel]] = {
-    "gdal": _read_gdal, "txt": _read_txt, "rpb": _read_rpb, "xml": _read_xml, "geom": _read_geom,
-    "json": _read_json, "yaml": _read_yaml,
+    "gdal": _read_gdal,
+    "txt": _read_txt,
+    "rpb": _read_rpb,
+    "xml": _read_xml,
+    "geom": _read_geom,
+    "json": _read_json,
+    "yaml": _read_yaml,
 }
 
 
 # =====================================================================================
 # public API
 # =====================================================================================
-def read_rpc(path: os.PathLike | str, image_path: os.PathLike | str | None = None, *,
-             apply_crop: bool = True) -> RPCModel:
+def read_rpc(
+    path: os.PathLike | str, image_path: os.PathLike | str | None = None, *, apply_crop: bool = True
+) -> RPCModel:
     """Read an RPC camera model from any supported vendor format.
 
     Parameters
@@ -887,7 +995,9 @@ def _image_geometry(image: Path) -> tuple[int, int, Any, Any]:
         with _open_raster(image) as ds:
             return ds.width, ds.height, ds.transform, ds.crs
     except RasterioError as exc:
-        raise UnsupportedFormatError(f"cannot open image {image} ({exc}); give a GeoTIFF or another GDAL raster") from None
+        raise UnsupportedFormatError(
+            f"cannot open image {image} ({exc}); give a GeoTIFF or another GDAL raster"
+        ) from None
 
 
 def crop_offset_of(transform: Any, crs: Any) -> tuple[float, float] | None:
@@ -905,7 +1015,8 @@ def _fit_to_image(model: RPCModel, image: Path, *, apply_crop: bool) -> RPCModel
     off = crop_offset_of(transform, crs) if apply_crop else None
     if off is not None:
         return model.cropped(off[0], off[1], width=width, height=height).replace(
-            source=f"{model.source} cropped at col={off[0]:g} row={off[1]:g} (geotransform of {image.name})")
+            source=f"{model.source} cropped at col={off[0]:g} row={off[1]:g} (geotransform of {image.name})"
+        )
     return model.replace(width=width, height=height)
 
 
@@ -993,7 +1104,9 @@ def load_rpc_for_image(image_path: os.PathLike | str) -> RPCModel:
                 warnings.simplefilter("ignore")
                 has_tags = ds.rpcs is not None
     except RasterioError as exc:
-        raise UnsupportedFormatError(f"cannot open image {image} ({exc}); give a GeoTIFF or another GDAL raster") from None
+        raise UnsupportedFormatError(
+            f"cannot open image {image} ({exc}); give a GeoTIFF or another GDAL raster"
+        ) from None
     except _PARSE_FAILURES as exc:
         raise RPCParseError(f"{image}: its RPC tags are unreadable ({exc})") from None
     if has_tags:

@@ -41,7 +41,8 @@ class _StrictLoader(yaml.SafeLoader):
                 mark = self.peek_event().start_mark
                 raise YAMLLimitError(
                     f"more than {MAX_ALIASES} YAML aliases (*name), line {mark.line + 1}; write the values out "
-                    "instead of repeating anchors")
+                    "instead of repeating anchors"
+                )
         return super().compose_node(parent, index)
 
     def construct_mapping(self, node, deep=False):  # type: ignore[override]
@@ -53,13 +54,14 @@ class _StrictLoader(yaml.SafeLoader):
                 key = self.construct_object(key_node, deep=True)
                 try:
                     first = seen.get(key)
-                except TypeError:   # an unhashable key: SafeConstructor names it
+                except TypeError:  # an unhashable key: SafeConstructor names it
                     continue
                 line = key_node.start_mark.line + 1
                 if first is not None:
                     raise YAMLLimitError(
                         f"duplicate key {_short(key)} at line {line} (first at line {first}); keep one of them "
-                        "(YAML would silently keep only the last)")
+                        "(YAML would silently keep only the last)"
+                    )
                 seen[key] = line
         return super().construct_mapping(node, deep=deep)
 
@@ -80,8 +82,9 @@ def _expanded_size(root: yaml.Node) -> int:
         if k in memo:
             return memo[k]
         if k in active:
-            raise YAMLLimitError(f"a recursive YAML anchor (line {node.start_mark.line + 1}) refers to itself; "
-                                 "remove the alias")
+            raise YAMLLimitError(
+                f"a recursive YAML anchor (line {node.start_mark.line + 1}) refers to itself; remove the alias"
+            )
         if isinstance(node, yaml.ScalarNode):
             return 1
         active.add(k)
@@ -117,7 +120,8 @@ def load_yaml(text: str) -> Any:
             if n > MAX_EXPANDED_NODES:
                 raise YAMLLimitError(
                     f"its aliases expand to more than {MAX_EXPANDED_NODES} values (a 'billion laughs' document?); "
-                    "write the values out instead of nesting anchors")
+                    "write the values out instead of nesting anchors"
+                )
         return loader.construct_document(node)
     finally:
         loader.dispose()

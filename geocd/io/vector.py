@@ -20,8 +20,12 @@ from ..geodesy import as_crs
 from .atomic import atomic_path
 
 
-def read_footprints(path: os.PathLike | str, crs: Any = None, layer: str | int | None = None,
-                    bbox: tuple[float, float, float, float] | None = None):
+def read_footprints(
+    path: os.PathLike | str,
+    crs: Any = None,
+    layer: str | int | None = None,
+    bbox: tuple[float, float, float, float] | None = None,
+):
     """Read building footprints (or any polygons) into a GeoDataFrame.
 
     Parameters
@@ -43,7 +47,9 @@ def read_footprints(path: os.PathLike | str, crs: Any = None, layer: str | int |
     try:
         gdf = gpd.read_file(p, layer=layer, bbox=bbox, engine="pyogrio")
     except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError) as exc:
-        raise UnsupportedFormatError(f"cannot read {p} as a vector layer ({exc}); give a GeoPackage, GeoJSON or shapefile") from exc
+        raise UnsupportedFormatError(
+            f"cannot read {p} as a vector layer ({exc}); give a GeoPackage, GeoJSON or shapefile"
+        ) from exc
     if gdf.crs is None:
         raise CRSError(f"footprints {p} have no CRS; set one (e.g. ogr2ogr -a_srs EPSG:...) before using them")
     gdf = gdf[gdf.geometry.notna() & ~gdf.geometry.is_empty]
@@ -78,7 +84,8 @@ def check_footprints_file(path: os.PathLike | str, layer: str | int | None = Non
         what = "a raster" if _is_raster(p) else "not a vector layer"
         raise UnsupportedFormatError(
             f"footprints {p} is {what} ({' '.join(str(exc).split())[:160]}); footprints are building polygons: "
-            "give a GeoPackage, GeoJSON or shapefile") from None
+            "give a GeoPackage, GeoJSON or shapefile"
+        ) from None
     gtype = str(info.get("geometry_type") or "")
     if not gtype:
         raise EmptyDataError(f"footprints {p} hold a table without geometries; give a layer of building polygons")
@@ -110,17 +117,32 @@ def _styles_frame(styles: Mapping[str, str], geometry_columns: Mapping[str, str]
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
     rows = []
     for layer, qml in styles.items():
-        rows.append({
-            "f_table_catalog": "", "f_table_schema": "", "f_table_name": layer,
-            "f_geometry_column": geometry_columns.get(layer, "geom"), "styleName": layer, "styleQML": qml,
-            "styleSLD": "", "useAsDefault": True, "description": "geocd default style", "owner": "geocd",
-            "ui": None, "update_time": now,
-        })
+        rows.append(
+            {
+                "f_table_catalog": "",
+                "f_table_schema": "",
+                "f_table_name": layer,
+                "f_geometry_column": geometry_columns.get(layer, "geom"),
+                "styleName": layer,
+                "styleQML": qml,
+                "styleSLD": "",
+                "useAsDefault": True,
+                "description": "geocd default style",
+                "owner": "geocd",
+                "ui": None,
+                "update_time": now,
+            }
+        )
     return pd.DataFrame(rows)
 
 
-def write_gpkg(path: os.PathLike | str, layers: Mapping[str, Any], *, styles: Mapping[str, str] | None = None,
-               overwrite: bool = True) -> Path:
+def write_gpkg(
+    path: os.PathLike | str,
+    layers: Mapping[str, Any],
+    *,
+    styles: Mapping[str, str] | None = None,
+    overwrite: bool = True,
+) -> Path:
     """Write several layers into one GeoPackage atomically.
 
     Parameters
@@ -158,8 +180,9 @@ def write_gpkg(path: os.PathLike | str, layers: Mapping[str, Any], *, styles: Ma
             else:
                 pyogrio.write_dataframe(df, tmp, layer=name, driver="GPKG", **_GPKG_OPTS)
         if styles:
-            pyogrio.write_dataframe(_styles_frame(styles, geom_cols), tmp, layer="layer_styles", driver="GPKG",
-                                    **_GPKG_OPTS)
+            pyogrio.write_dataframe(
+                _styles_frame(styles, geom_cols), tmp, layer="layer_styles", driver="GPKG", **_GPKG_OPTS
+            )
     return Path(path)
 
 

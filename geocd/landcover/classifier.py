@@ -75,8 +75,9 @@ class LandcoverModel:
         if name is None:
             if len(self.classes) == 2:
                 return 1
-            raise ConfigError(f"the model has {len(self.classes)} classes {self.classes}; say which one to map "
-                              "(--class NAME)")
+            raise ConfigError(
+                f"the model has {len(self.classes)} classes {self.classes}; say which one to map (--class NAME)"
+            )
         if str(name) not in self.classes:
             raise ConfigError(f"class {name!r} is not one of the model's classes {self.classes}")
         return self.classes.index(str(name))
@@ -92,8 +93,9 @@ def make_estimator(method: str, seed: int = 0, n_jobs: int = 1):
     from sklearn.svm import SVC
 
     if method == "rf":
-        return RandomForestClassifier(n_estimators=100, min_samples_leaf=3, class_weight="balanced",
-                                      random_state=seed, n_jobs=n_jobs)
+        return RandomForestClassifier(
+            n_estimators=100, min_samples_leaf=3, class_weight="balanced", random_state=seed, n_jobs=n_jobs
+        )
     if method == "logreg":
         return make_pipeline(StandardScaler(), LogisticRegression(max_iter=2000, class_weight="balanced"))
     if method == "svm":
@@ -107,15 +109,21 @@ def check_training_set(X: np.ndarray, y: np.ndarray, classes: list) -> None:
     n, d = X.shape
     present = np.unique(y)
     if n == 0:
-        raise LabelError("no labelled pixel falls inside any image; draw the polygons over the images "
-                         "(same CRS, or pixel coordinates of the image) and check the layer's CRS")
+        raise LabelError(
+            "no labelled pixel falls inside any image; draw the polygons over the images "
+            "(same CRS, or pixel coordinates of the image) and check the layer's CRS"
+        )
     if present.size < 2:
         only = classes[int(present[0])] if present.size else "?"
-        raise LabelError(f"the labels hold a single class ({only!r}) inside the images; draw polygons of at least "
-                         "two classes (e.g. the condition and 'other')")
+        raise LabelError(
+            f"the labels hold a single class ({only!r}) inside the images; draw polygons of at least "
+            "two classes (e.g. the condition and 'other')"
+        )
     if n < d:
-        raise LabelError(f"only {n} labelled pixels for {d} features; draw larger or more polygons "
-                         f"(at least {d} pixels, better hundreds per class)")
+        raise LabelError(
+            f"only {n} labelled pixels for {d} features; draw larger or more polygons "
+            f"(at least {d} pixels, better hundreds per class)"
+        )
     counts = np.bincount(y, minlength=len(classes))
     small = [classes[k] for k in present if counts[k] < 2]
     if small:
@@ -147,8 +155,15 @@ def fit_estimator(X: np.ndarray, y: np.ndarray, method: str, seed: int = 0, n_jo
     return est
 
 
-def compare_methods(X: np.ndarray, y: np.ndarray, groups: np.ndarray, methods=METHODS, n_splits: int = 5,
-                    seed: int = 0, positive: int | None = None) -> dict:
+def compare_methods(
+    X: np.ndarray,
+    y: np.ndarray,
+    groups: np.ndarray,
+    methods=METHODS,
+    n_splits: int = 5,
+    seed: int = 0,
+    positive: int | None = None,
+) -> dict:
     """Cross-validated scores of each method, holding out whole polygons (``groups``).
 
     Returns ``{method: {"f1": ..., "accuracy": ..., "folds": k}}``; F1 of the ``positive`` class
@@ -180,14 +195,29 @@ def compare_methods(X: np.ndarray, y: np.ndarray, groups: np.ndarray, methods=ME
             f1 = f1_score(y[done], preds[done], pos_label=pos, zero_division=0)
         else:
             f1 = f1_score(y[done], preds[done], average="macro", zero_division=0)
-        out[m] = {"f1": round(float(f1), 4), "accuracy": round(float(accuracy_score(y[done], preds[done])), 4),
-                  "folds": k, "samples": int(done.sum())}
+        out[m] = {
+            "f1": round(float(f1), 4),
+            "accuracy": round(float(accuracy_score(y[done], preds[done])), 4),
+            "folds": k,
+            "samples": int(done.sum()),
+        }
     return out
 
 
-def train(X: np.ndarray, y: np.ndarray, classes: list, spec: FeatureSpec, n_bands: int, *, method: str = "rf",
-          seed: int = 0, groups: np.ndarray | None = None, compare: bool = False, gsd_m: float | None = None,
-          n_jobs: int = 1) -> LandcoverModel:
+def train(
+    X: np.ndarray,
+    y: np.ndarray,
+    classes: list,
+    spec: FeatureSpec,
+    n_bands: int,
+    *,
+    method: str = "rf",
+    seed: int = 0,
+    groups: np.ndarray | None = None,
+    compare: bool = False,
+    gsd_m: float | None = None,
+    n_jobs: int = 1,
+) -> LandcoverModel:
     """Train a pixel classifier.
 
     Parameters
@@ -211,12 +241,19 @@ def train(X: np.ndarray, y: np.ndarray, classes: list, spec: FeatureSpec, n_band
         report["feature_importance"] = {n: round(float(v), 4) for n, v in zip(names, est.feature_importances_)}
     if compare and groups is not None:
         report["comparison"] = compare_methods(X, y, np.asarray(groups), seed=seed)
-    return LandcoverModel(estimator=est, method=method, classes=[str(c) for c in classes], spec=spec,
-                          n_bands=int(n_bands), feature_names=names, gsd_m=gsd_m, report=report)
+    return LandcoverModel(
+        estimator=est,
+        method=method,
+        classes=[str(c) for c in classes],
+        spec=spec,
+        n_bands=int(n_bands),
+        feature_names=names,
+        gsd_m=gsd_m,
+        report=report,
+    )
 
 
-def predict_proba(model: LandcoverModel, features: np.ndarray, valid: np.ndarray,
-                  batch: int = 200_000) -> np.ndarray:
+def predict_proba(model: LandcoverModel, features: np.ndarray, valid: np.ndarray, batch: int = 200_000) -> np.ndarray:
     """Class probabilities of every valid pixel.
 
     Parameters
@@ -237,7 +274,7 @@ def predict_proba(model: LandcoverModel, features: np.ndarray, valid: np.ndarray
     flat = F.reshape(F.shape[0], -1)
     col_of = {int(c): k for k, c in enumerate(model.estimator.classes_)}
     for s in range(0, idx.size, batch):
-        sel = idx[s:s + batch]
+        sel = idx[s : s + batch]
         p = model.estimator.predict_proba(np.ascontiguousarray(flat[:, sel].T))
         full = np.zeros((sel.size, len(model.classes)), np.float32)
         for c, k in col_of.items():
@@ -254,10 +291,18 @@ def save_model(model: LandcoverModel, path: os.PathLike | str, overwrite: bool =
     """Write the model with joblib (atomically) and add it to this user's trusted-model list."""
     import joblib
 
-    payload = {"geocd_landcover_model": MODEL_FORMAT, "geocd_version": __version__, "method": model.method,
-               "classes": list(model.classes), "spec": model.spec.to_dict(), "n_bands": model.n_bands,
-               "feature_names": list(model.feature_names), "gsd_m": model.gsd_m, "report": model.report,
-               "estimator": model.estimator}
+    payload = {
+        "geocd_landcover_model": MODEL_FORMAT,
+        "geocd_version": __version__,
+        "method": model.method,
+        "classes": list(model.classes),
+        "spec": model.spec.to_dict(),
+        "n_bands": model.n_bands,
+        "feature_names": list(model.feature_names),
+        "gsd_m": model.gsd_m,
+        "report": model.report,
+        "estimator": model.estimator,
+    }
     with atomic_path(path, overwrite=overwrite) as tmp:
         joblib.dump(payload, tmp, compress=3)
     record_trusted(path)
@@ -283,7 +328,7 @@ def load_model(path: os.PathLike | str, *, trust: bool = False) -> LandcoverMode
     p = Path(path)
     if not p.exists():
         raise InputFileNotFoundError(f"model {p} does not exist; train one with 'geocd landcover train'")
-    data = p.read_bytes()   # hashed and unpickled from the same bytes: the file cannot change in between
+    data = p.read_bytes()  # hashed and unpickled from the same bytes: the file cannot change in between
     check_trusted(p, sha256_of(data), trust)
     try:
         d = joblib.load(io.BytesIO(data))
@@ -294,22 +339,33 @@ def load_model(path: os.PathLike | str, *, trust: bool = False) -> LandcoverMode
     if d["geocd_landcover_model"] != MODEL_FORMAT:
         raise UnsupportedFormatError(
             f"{p} is a land-cover model of format {d['geocd_landcover_model']} (written by geocd "
-            f"{d.get('geocd_version')}); this geocd reads format {MODEL_FORMAT}: retrain it")
+            f"{d.get('geocd_version')}); this geocd reads format {MODEL_FORMAT}: retrain it"
+        )
     try:
         spec = FeatureSpec.from_dict(d["spec"])
         names = spec.names(int(d["n_bands"]))
         method, classes = str(d["method"]), [str(c) for c in d["classes"]]
         stored_names = list(d["feature_names"])
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise UnsupportedFormatError(f"{p} is a damaged geocd land-cover model ({type(exc).__name__}: {exc}); "
-                                     "retrain it with 'geocd landcover train'") from exc
+        raise UnsupportedFormatError(
+            f"{p} is a damaged geocd land-cover model ({type(exc).__name__}: {exc}); "
+            "retrain it with 'geocd landcover train'"
+        ) from exc
     est = d.get("estimator")
     if not (hasattr(est, "predict_proba") and hasattr(est, "classes_")):
         raise UnsupportedFormatError(f"{p} holds no fitted classifier; retrain it with 'geocd landcover train'")
     if names != stored_names:
         raise UnsupportedFormatError(
             f"{p}: the model's feature list {stored_names} differs from what this geocd computes for its "
-            f"feature specification ({names}); retrain the model with this version")
-    return LandcoverModel(estimator=est, method=method, classes=classes, spec=spec,
-                          n_bands=int(d["n_bands"]), feature_names=names, gsd_m=d.get("gsd_m"),
-                          report=d.get("report", {}))
+            f"feature specification ({names}); retrain the model with this version"
+        )
+    return LandcoverModel(
+        estimator=est,
+        method=method,
+        classes=classes,
+        spec=spec,
+        n_bands=int(d["n_bands"]),
+        feature_names=names,
+        gsd_m=d.get("gsd_m"),
+        report=d.get("report", {}),
+    )

@@ -108,8 +108,12 @@ def _box_mean(a: np.ndarray, ok: np.ndarray, size: int) -> np.ndarray:
         return np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
 
 
-def pixel_features(data: np.ndarray, valid: np.ndarray, spec: FeatureSpec = FeatureSpec(),
-                   height_above_ground_m: np.ndarray | None = None) -> np.ndarray:
+def pixel_features(
+    data: np.ndarray,
+    valid: np.ndarray,
+    spec: FeatureSpec = FeatureSpec(),
+    height_above_ground_m: np.ndarray | None = None,
+) -> np.ndarray:
     """Feature stack of an image.
 
     Parameters
@@ -151,13 +155,22 @@ def pixel_features(data: np.ndarray, valid: np.ndarray, spec: FeatureSpec = Feat
     m2 = _box_mean(grey * grey, ok, spec.patch_px)
     feats += [m, np.maximum(m2 - m * m, 0.0)]
     for s in spec.texture_sigmas_px:
-        f = multiscale_basic_features(grey.astype(np.float64), intensity=True, edges=True, texture=True,
-                                      sigma_min=float(s), sigma_max=float(s), num_sigma=1)
+        f = multiscale_basic_features(
+            grey.astype(np.float64),
+            intensity=True,
+            edges=True,
+            texture=True,
+            sigma_min=float(s),
+            sigma_max=float(s),
+            num_sigma=1,
+        )
         feats += [f[..., k] for k in range(f.shape[-1])]
     if spec.height_above_ground:
         if height_above_ground_m is None:
-            raise ConfigError("this feature set uses the height above ground: give a DSM and a DEM (or a model "
-                              "trained without --height-above-ground)")
+            raise ConfigError(
+                "this feature set uses the height above ground: give a DSM and a DEM (or a model "
+                "trained without --height-above-ground)"
+            )
         h = np.asarray(height_above_ground_m, np.float32)
         if h.shape != ok.shape:
             raise ConfigError(f"height-above-ground shape {h.shape} does not match the image {ok.shape}")

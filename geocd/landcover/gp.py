@@ -163,13 +163,20 @@ class GPHyper:
         return (np.asarray(X, np.float64) - self.x_mean) / (self.x_std * self.length_scales)
 
     def to_dict(self) -> dict:
-        comps = [{"inputs": [self.names[i] if i < len(self.names) else f"x{i}" for i in g],
-                  "signal_sd": float(np.sqrt(v))} for g, v in self.components()]
-        return {"inputs": list(self.names), "components": comps,
-                "length_scales": {n: float(v) for n, v in zip(self.names, self.length_scales_units())},
-                "length_scales_std_units": {n: float(v) for n, v in zip(self.names, self.length_scales)},
-                "signal_sd": float(np.sqrt(self.prior_var)), "noise_sd": float(np.sqrt(self.noise_var)),
-                "mean": float(self.y_mean), "log_marginal_likelihood": float(self.log_marginal_likelihood)}
+        comps = [
+            {"inputs": [self.names[i] if i < len(self.names) else f"x{i}" for i in g], "signal_sd": float(np.sqrt(v))}
+            for g, v in self.components()
+        ]
+        return {
+            "inputs": list(self.names),
+            "components": comps,
+            "length_scales": {n: float(v) for n, v in zip(self.names, self.length_scales_units())},
+            "length_scales_std_units": {n: float(v) for n, v in zip(self.names, self.length_scales)},
+            "signal_sd": float(np.sqrt(self.prior_var)),
+            "noise_sd": float(np.sqrt(self.noise_var)),
+            "mean": float(self.y_mean),
+            "log_marginal_likelihood": float(self.log_marginal_likelihood),
+        }
 
 
 def _check_xy(X: np.ndarray, y: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
@@ -187,8 +194,9 @@ def _check_xy(X: np.ndarray, y: np.ndarray | None = None) -> tuple[np.ndarray, n
     return X, y
 
 
-def fit_hyperparameters(X: np.ndarray, y: np.ndarray, params: GPParams = GPParams(),
-                        names: list | None = None) -> GPHyper:
+def fit_hyperparameters(
+    X: np.ndarray, y: np.ndarray, params: GPParams = GPParams(), names: list | None = None
+) -> GPHyper:
     """Exact-GP marginal-likelihood fit of the kernel on a random subsample of (X, y).
 
     Parameters
@@ -200,8 +208,10 @@ def fit_hyperparameters(X: np.ndarray, y: np.ndarray, params: GPParams = GPParam
     X, y = _check_xy(X, y)
     n, d = X.shape
     if n < max(10, d + 2):
-        raise EmptyDataError(f"only {n} observed cells for a GP with {d} inputs; the detailed views must observe "
-                             "more of the area (or use a finer grid)")
+        raise EmptyDataError(
+            f"only {n} observed cells for a GP with {d} inputs; the detailed views must observe "
+            "more of the area (or use a finer grid)"
+        )
     names = list(names) if names is not None else [f"x{i}" for i in range(d)]
     x_mean = X.mean(axis=0)
     x_std = X.std(axis=0)
@@ -218,10 +228,19 @@ def fit_hyperparameters(X: np.ndarray, y: np.ndarray, params: GPParams = GPParam
     groups = [spatial, other] if params.kernel == "additive" and spatial and other else [list(range(d))]
     ls, sv, nv, lml = _fit_ml(Xs, ys, groups, params.restarts, rng)
     ls = np.where(const, 1e3, ls)  # a constant input carries no information
-    sv = [v * y_sd ** 2 for v in sv]
-    return GPHyper(length_scales=ls, signal_var=float(sum(sv)), noise_var=float(nv) * y_sd ** 2, x_mean=x_mean,
-                   x_std=x_std, y_mean=y_mean, names=names, log_marginal_likelihood=float(lml),
-                   groups=groups if len(groups) > 1 else None, signal_vars=sv if len(groups) > 1 else None)
+    sv = [v * y_sd**2 for v in sv]
+    return GPHyper(
+        length_scales=ls,
+        signal_var=float(sum(sv)),
+        noise_var=float(nv) * y_sd**2,
+        x_mean=x_mean,
+        x_std=x_std,
+        y_mean=y_mean,
+        names=names,
+        log_marginal_likelihood=float(lml),
+        groups=groups if len(groups) > 1 else None,
+        signal_vars=sv if len(groups) > 1 else None,
+    )
 
 
 #: bounds of the log hyperparameters (standardised inputs and target)
@@ -238,7 +257,7 @@ def _nll(theta: np.ndarray, X: np.ndarray, y: np.ndarray, groups: list) -> tuple
     n, d = X.shape
     G = len(groups)
     ls = np.exp(theta[:d])
-    sv = np.exp(theta[d:d + G])
+    sv = np.exp(theta[d : d + G])
     nv = float(np.exp(theta[-1]))
     S = X / ls
     comps = []
@@ -282,7 +301,7 @@ def _fit_ml(X: np.ndarray, y: np.ndarray, groups: list, restarts: int, rng) -> t
         if best is None or r.fun < best.fun:
             best = r
     th = best.x
-    return np.exp(th[:d]), list(np.exp(th[d:d + G])), float(np.exp(th[-1])), -float(best.fun)
+    return np.exp(th[:d]), list(np.exp(th[d : d + G])), float(np.exp(th[-1])), -float(best.fun)
 
 
 def _sqexp(A: np.ndarray, B: np.ndarray, signal_var: float) -> np.ndarray:
@@ -347,9 +366,9 @@ class SparseGP:
         n = X.shape[0]
         yc = y - h.y_mean
         for s in range(0, n, batch):
-            T = solve_triangular(self.L, h.kernel(self.Zs, h.scale(X[s:s + batch])), lower=True)
+            T = solve_triangular(self.L, h.kernel(self.Zs, h.scale(X[s : s + batch])), lower=True)
             AAT += T @ T.T
-            r += T @ yc[s:s + batch]
+            r += T @ yc[s : s + batch]
             prog(min(1.0, (s + batch) / n), f"sparse GP: {min(n, s + batch)}/{n} training cells")
         B = AAT / h.noise_var + np.eye(m)
         self.LB = cholesky(0.5 * (B + B.T), lower=True)
@@ -373,17 +392,18 @@ class SparseGP:
         mean = np.empty(n)
         var = np.empty(n)
         for s in range(0, n, batch):
-            Kms = h.kernel(self.Zs, h.scale(X[s:s + batch]))
+            Kms = h.kernel(self.Zs, h.scale(X[s : s + batch]))
             t1 = solve_triangular(self.L, Kms, lower=True)
             t2 = solve_triangular(self.LB, t1, lower=True)
-            mean[s:s + batch] = t2.T @ self.c + h.y_mean
-            var[s:s + batch] = h.prior_var - (t1 * t1).sum(0) + (t2 * t2).sum(0)
+            mean[s : s + batch] = t2.T @ self.c + h.y_mean
+            var[s : s + batch] = h.prior_var - (t1 * t1).sum(0) + (t2 * t2).sum(0)
             prog(min(1.0, (s + batch) / n), f"sparse GP: {min(n, s + batch)}/{n} cells predicted")
         return mean, np.sqrt(np.maximum(var, 0.0))
 
 
-def exact_gp(X: np.ndarray, y: np.ndarray, Xs: np.ndarray, hyper: GPHyper,
-             batch: int = 5000) -> tuple[np.ndarray, np.ndarray]:
+def exact_gp(
+    X: np.ndarray, y: np.ndarray, Xs: np.ndarray, hyper: GPHyper, batch: int = 5000
+) -> tuple[np.ndarray, np.ndarray]:
     """Exact GP prediction with fixed hyperparameters (numpy/scipy Cholesky; O(n²) memory, O(n³) time).
 
     The reference the sparse approximation is checked and benchmarked against.
@@ -400,10 +420,10 @@ def exact_gp(X: np.ndarray, y: np.ndarray, Xs: np.ndarray, hyper: GPHyper,
     mean = np.empty(Xs.shape[0])
     var = np.empty(Xs.shape[0])
     for s in range(0, Xs.shape[0], batch):
-        Ks = hyper.kernel(S, hyper.scale(Xs[s:s + batch]))
-        mean[s:s + batch] = Ks.T @ alpha + hyper.y_mean
+        Ks = hyper.kernel(S, hyper.scale(Xs[s : s + batch]))
+        mean[s : s + batch] = Ks.T @ alpha + hyper.y_mean
         v = solve_triangular(L, Ks, lower=True)
-        var[s:s + batch] = hyper.prior_var - (v * v).sum(0)
+        var[s : s + batch] = hyper.prior_var - (v * v).sum(0)
     return mean, np.sqrt(np.maximum(var, 0.0))
 
 
@@ -440,8 +460,9 @@ def _stack(inputs: dict, shape: tuple | None = None) -> tuple[list, np.ndarray, 
     return names, stack, have
 
 
-def fit_integrator(target: np.ndarray, inputs: dict, params: GPParams = GPParams(),
-                   progress=None) -> tuple[SparseGP, dict]:
+def fit_integrator(
+    target: np.ndarray, inputs: dict, params: GPParams = GPParams(), progress=None
+) -> tuple[SparseGP, dict]:
     """Fit the GP on the observed cells of one grid (or window): hyperparameters, inducing points, DTC terms.
 
     Returns the fitted :class:`SparseGP` (its ``hyper.names`` are the input names, in order) and a report.
@@ -481,8 +502,9 @@ def fit_integrator(target: np.ndarray, inputs: dict, params: GPParams = GPParams
     return gp, rep
 
 
-def predict_window(gp: SparseGP, inputs: dict, batch: int = 20000,
-                   progress=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def predict_window(
+    gp: SparseGP, inputs: dict, batch: int = 20000, progress=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Predictive mean, latent sd and observation sd (float32 (rows, cols), NaN where an input is missing)
     of a fitted GP on any window of the inputs (same names as the fit)."""
     names, stack, have = _stack(inputs)
@@ -560,12 +582,16 @@ def heldout_sigma_scale(target: np.ndarray, inputs: dict, hyper: GPHyper, params
         Z = choose_inducing(Xtr, hyper, params.n_inducing, params.seed)
         gp = SparseGP(hyper, Z).fit(Xtr, ytr, params.batch)
         mu, sd = gp.predict(X[te], params.batch)
-        z.append((y[te] - mu) / np.sqrt(sd ** 2 + hyper.noise_var))
+        z.append((y[te] - mu) / np.sqrt(sd**2 + hyper.noise_var))
     if not z:
         return 1.0, {"note": "too few observed cells to calibrate"}
     az = np.abs(np.concatenate(z))
     scale = float(max(np.quantile(az, 0.6827), 1e-6))
-    return scale, {"folds": k, "held_out_cells": int(az.size), "scale": round(scale, 4),
-                   "inside_1sigma_before": round(float(np.mean(az <= 1)), 4),
-                   "inside_2sigma_before": round(float(np.mean(az <= 2)), 4),
-                   "inside_2sigma_after": round(float(np.mean(az <= 2 * scale)), 4)}
+    return scale, {
+        "folds": k,
+        "held_out_cells": int(az.size),
+        "scale": round(scale, 4),
+        "inside_1sigma_before": round(float(np.mean(az <= 1)), 4),
+        "inside_2sigma_before": round(float(np.mean(az <= 2)), 4),
+        "inside_2sigma_after": round(float(np.mean(az <= 2 * scale)), 4),
+    }

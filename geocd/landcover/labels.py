@@ -43,8 +43,9 @@ def read_labels(path: os.PathLike | str, layer: str | int | None = None, class_f
     try:
         gdf = gpd.read_file(p, layer=layer, engine="pyogrio")
     except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError) as exc:
-        raise UnsupportedFormatError(f"cannot read {p} as a vector layer ({exc}); give a GeoPackage, GeoJSON or "
-                                     "shapefile of polygons") from exc
+        raise UnsupportedFormatError(
+            f"cannot read {p} as a vector layer ({exc}); give a GeoPackage, GeoJSON or shapefile of polygons"
+        ) from exc
     gdf = gdf[gdf.geometry.notna() & ~gdf.geometry.is_empty]
     gdf = gdf[gdf.geometry.geom_type.isin(["Polygon", "MultiPolygon"])]
     if gdf.empty:
@@ -53,11 +54,14 @@ def read_labels(path: os.PathLike | str, layer: str | int | None = None, class_f
         lower = {c.lower(): c for c in gdf.columns}
         class_field = next((lower[c] for c in CLASS_FIELDS if c in lower), None)
         if class_field is None:
-            raise ConfigError(f"{p} has no class attribute (tried {list(CLASS_FIELDS)}); name it with --class-field "
-                              f"(attributes: {[c for c in gdf.columns if c != 'geometry']})")
+            raise ConfigError(
+                f"{p} has no class attribute (tried {list(CLASS_FIELDS)}); name it with --class-field "
+                f"(attributes: {[c for c in gdf.columns if c != 'geometry']})"
+            )
     elif class_field not in gdf.columns:
-        raise ConfigError(f"{p} has no attribute {class_field!r}; attributes: "
-                          f"{[c for c in gdf.columns if c != 'geometry']}")
+        raise ConfigError(
+            f"{p} has no attribute {class_field!r}; attributes: {[c for c in gdf.columns if c != 'geometry']}"
+        )
     gdf = gdf[gdf[class_field].notna()].copy()
     if gdf.empty:
         raise LabelError(f"every polygon of {p} has an empty {class_field!r}; give each polygon its class")
@@ -114,14 +118,23 @@ def rasterize_labels(gdf, shape: tuple[int, int], transform, classes: list[str])
         sub = gdf[gdf["label"] == c]
         if sub.empty:
             continue
-        m = rasterize([(g, 1) for g in sub.geometry], out_shape=shape, transform=transform, fill=0,
-                      dtype="uint8").astype(bool)
+        m = rasterize(
+            [(g, 1) for g in sub.geometry], out_shape=shape, transform=transform, fill=0, dtype="uint8"
+        ).astype(bool)
         cls[m] = idx[c]
         seen += m.astype(np.int16)
     conflict = seen > 1
     cls[conflict] = -1
-    pid_r = rasterize([(g, int(i) + 1) for g, i in zip(gdf.geometry, gdf["polygon_id"])], out_shape=shape,
-                      transform=transform, fill=0, dtype="int32") - 1
+    pid_r = (
+        rasterize(
+            [(g, int(i) + 1) for g, i in zip(gdf.geometry, gdf["polygon_id"])],
+            out_shape=shape,
+            transform=transform,
+            fill=0,
+            dtype="int32",
+        )
+        - 1
+    )
     pid[:] = np.where(cls >= 0, pid_r, -1)
     return cls, pid
 

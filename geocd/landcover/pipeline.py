@@ -56,9 +56,18 @@ class Scene:
         return (self.surface_m - self.dem_m).astype(np.float32)
 
 
-def load_scene(*, manifest=None, dem: str | None = None, dem_datum: str | None = None, footprints: str | None = None,
-               dsm: str | None = None, height_field: str | None = None, bounds: Sequence[float] | None = None,
-               posting_m: float | None = None, crs: Any = None) -> Scene:
+def load_scene(
+    *,
+    manifest=None,
+    dem: str | None = None,
+    dem_datum: str | None = None,
+    footprints: str | None = None,
+    dsm: str | None = None,
+    height_field: str | None = None,
+    bounds: Sequence[float] | None = None,
+    posting_m: float | None = None,
+    crs: Any = None,
+) -> Scene:
     """Build the :class:`Scene` from a manifest and/or explicit files (explicit files win)."""
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import _open, read_dem
@@ -166,8 +175,9 @@ def _image_hag(im: LoadedImage, scene: Scene | None, geometry=None) -> np.ndarra
         g = AOIGrid(as_crs(im.crs), im.transform, im.shape[1], im.shape[0])
         return reproject_array(scene.height_above_ground_m, scene.grid, g, "nearest")
     rows, cols, obs = cell_pixels(im.camera, scene.grid, scene.surface_m, im.shape, geometry)
-    return grid_to_image(scene.height_above_ground_m, rows, cols, obs, im.shape,
-                         max_gap_px=3.0 * max(1.0, _px_per_cell(im, scene)))
+    return grid_to_image(
+        scene.height_above_ground_m, rows, cols, obs, im.shape, max_gap_px=3.0 * max(1.0, _px_per_cell(im, scene))
+    )
 
 
 def _px_per_cell(im: LoadedImage, scene: Scene) -> float:
@@ -181,8 +191,9 @@ def image_features(im: LoadedImage, spec: FeatureSpec, scene: Scene | None = Non
     hag = None
     if spec.height_above_ground:
         if scene is None or not scene.has_dsm and not scene.occupancy.any():
-            raise ConfigError("the feature set uses the height above ground: give a DSM (--dsm) or footprints "
-                              "with heights, and a DEM")
+            raise ConfigError(
+                "the feature set uses the height above ground: give a DSM (--dsm) or footprints with heights, and a DEM"
+            )
         hag = _image_hag(im, scene)
     return pixel_features(im.data, im.valid, spec, hag)
 
@@ -206,8 +217,10 @@ def label_pixels(labels, im: LoadedImage, classes: list[str], scene: Scene | Non
         sub = labels.to_crs(as_crs(im.crs))
         return rasterize_labels(sub, im.shape, im.transform, classes)
     if scene is None:
-        raise ConfigError(f"labels drawn on the map reach {im.name} through its camera: give the terrain (--dem or a "
-                          "manifest) so geocd knows where the ground is")
+        raise ConfigError(
+            f"labels drawn on the map reach {im.name} through its camera: give the terrain (--dem or a "
+            "manifest) so geocd knows where the ground is"
+        )
     sub = labels.to_crs(scene.grid.crs)
     g_cls, g_pid = rasterize_labels(sub, scene.grid.shape, scene.grid.transform, classes)
     cls = np.full(im.shape, -1, np.int16)
@@ -231,8 +244,14 @@ def label_pixels(labels, im: LoadedImage, classes: list[str], scene: Scene | Non
     return cls, pid
 
 
-def training_set(labels, images: Sequence[LoadedImage], classes: list[str], spec: FeatureSpec,
-                 scene: Scene | None = None, progress=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+def training_set(
+    labels,
+    images: Sequence[LoadedImage],
+    classes: list[str],
+    spec: FeatureSpec,
+    scene: Scene | None = None,
+    progress=None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Samples (X, y, polygon id) from every image's labelled valid pixels, and a per-image count."""
     prog = ensure_progress(progress)
     Xs, ys, gs = [], [], []
@@ -249,17 +268,30 @@ def training_set(labels, images: Sequence[LoadedImage], classes: list[str], spec
         ys.append(cls[sel].astype(np.int64))
         gs.append(pid[sel].astype(np.int64))
     if not Xs:
-        raise LabelError(f"none of the {len(labels)} label polygons falls on a valid pixel of any image "
-                         f"({', '.join(im.name for im in images)}); draw them over the images (check the layer's "
-                         "CRS, or the image attribute of pixel-coordinate labels)")
+        raise LabelError(
+            f"none of the {len(labels)} label polygons falls on a valid pixel of any image "
+            f"({', '.join(im.name for im in images)}); draw them over the images (check the layer's "
+            "CRS, or the image attribute of pixel-coordinate labels)"
+        )
     return np.concatenate(Xs), np.concatenate(ys), np.concatenate(gs), per_image
 
 
-def train_from_files(labels_path: os.PathLike | str, image_paths: Sequence[str], out_path: os.PathLike | str, *,
-                     cameras: Sequence[str | None] | None = None, layer: str | None = None,
-                     class_field: str | None = None, positive: str | None = None, method: str = "rf",
-                     spec: FeatureSpec = FeatureSpec(), scene: Scene | None = None, compare: bool = False,
-                     seed: int = 0, progress=None) -> dict:
+def train_from_files(
+    labels_path: os.PathLike | str,
+    image_paths: Sequence[str],
+    out_path: os.PathLike | str,
+    *,
+    cameras: Sequence[str | None] | None = None,
+    layer: str | None = None,
+    class_field: str | None = None,
+    positive: str | None = None,
+    method: str = "rf",
+    spec: FeatureSpec = FeatureSpec(),
+    scene: Scene | None = None,
+    compare: bool = False,
+    seed: int = 0,
+    progress=None,
+) -> dict:
     """Train a pixel classifier from label polygons over images; write the model (+ a JSON report)."""
     from ..io.atomic import protect_inputs, write_text_atomic
 
@@ -270,8 +302,10 @@ def train_from_files(labels_path: os.PathLike | str, image_paths: Sequence[str],
     labels = read_labels(labels_path, layer, class_field)
     classes = class_list(labels, positive)
     if len(classes) < 2:
-        raise LabelError(f"the labels hold a single class ({classes[0]!r}); draw polygons of at least two classes "
-                         "(e.g. the condition and 'other')")
+        raise LabelError(
+            f"the labels hold a single class ({classes[0]!r}); draw polygons of at least two classes "
+            "(e.g. the condition and 'other')"
+        )
     cams = list(cameras) if cameras else [None] * len(image_paths)
     images = [load_image(p, c) for p, c in zip(image_paths, cams)]
     bands = {im.data.shape[0] for im in images}
@@ -285,15 +319,27 @@ def train_from_files(labels_path: os.PathLike | str, image_paths: Sequence[str],
     gsd = float(np.nanmedian(gsds)) if gsds else None
     prog(0.55, f"training ({method}) on {len(y)} labelled pixels")
     t0 = time.perf_counter()
-    model = train(X, y, classes, spec, images[0].data.shape[0], method=method, seed=seed, groups=g,
-                  compare=compare, gsd_m=gsd)
+    model = train(
+        X, y, classes, spec, images[0].data.shape[0], method=method, seed=seed, groups=g, compare=compare, gsd_m=gsd
+    )
     model.report["train_s"] = round(time.perf_counter() - t0, 2)
     model.report["labelled_pixels_per_image"] = per_image
     model.report["polygons"] = int(len(labels))
     out = save_model(model, out_path)
     rep_path = Path(out).with_suffix(".json")
-    write_text_atomic(rep_path, json.dumps({"classes": model.classes, "features": model.feature_names,
-                                            "spec": spec.to_dict(), "gsd_m": gsd, **model.report}, indent=2))
+    write_text_atomic(
+        rep_path,
+        json.dumps(
+            {
+                "classes": model.classes,
+                "features": model.feature_names,
+                "spec": spec.to_dict(),
+                "gsd_m": gsd,
+                **model.report,
+            },
+            indent=2,
+        ),
+    )
     prog(1.0, "model written")
     return {"outputs": {"model": out, "report": rep_path}, "model": model}
 
@@ -308,14 +354,18 @@ def predict_image(model: LandcoverModel, im: LoadedImage, scene: Scene | None = 
     if model.gsd_m and im.camera is not None and scene is not None:
         g = image_gsd_m(im.camera, im.shape, float(np.nanmedian(scene.dem_m)))
         if np.isfinite(g) and not (model.gsd_m / 1.5 <= g <= model.gsd_m * 1.5):
-            warnings.warn(f"{im.name}: ground sampling {g:.2f} m differs from the training images' "
-                          f"{model.gsd_m:.2f} m by more than 1.5×; texture features change with scale", stacklevel=2)
+            warnings.warn(
+                f"{im.name}: ground sampling {g:.2f} m differs from the training images' "
+                f"{model.gsd_m:.2f} m by more than 1.5×; texture features change with scale",
+                stacklevel=2,
+            )
     F = image_features(im, model.spec, scene)
     return predict_proba(model, F, im.valid)
 
 
-def project_probability(prob: np.ndarray, im: LoadedImage, scene: Scene, name: str = "",
-                        window: tuple[int, int, int, int] | None = None) -> ProjectedView:
+def project_probability(
+    prob: np.ndarray, im: LoadedImage, scene: Scene, name: str = "", window: tuple[int, int, int, int] | None = None
+) -> ProjectedView:
     """One image's probability band on the scene grid (camera + surface with occlusion, or an orthoimage's
     geotransform)."""
     if im.is_ortho:
@@ -330,17 +380,25 @@ def project_probability(prob: np.ndarray, im: LoadedImage, scene: Scene, name: s
     return project_view(prob, im.camera, scene.grid, scene.surface_m, window=window, name=name or im.name)
 
 
-def write_probability_image(path: os.PathLike | str, prob: np.ndarray, model: LandcoverModel,
-                           im: LoadedImage) -> Path:
+def write_probability_image(path: os.PathLike | str, prob: np.ndarray, model: LandcoverModel, im: LoadedImage) -> Path:
     """Image-geometry probability map (float32, one band per class), keeping the image's georeference/RPC."""
     import rasterio
 
     from ..io.atomic import atomic_path
 
     arr = np.asarray(prob, np.float32)
-    profile = {"driver": "GTiff", "width": arr.shape[2], "height": arr.shape[1], "count": arr.shape[0],
-               "dtype": "float32", "compress": "deflate", "tiled": True, "blockxsize": 256, "blockysize": 256,
-               "nodata": float("nan")}
+    profile = {
+        "driver": "GTiff",
+        "width": arr.shape[2],
+        "height": arr.shape[1],
+        "count": arr.shape[0],
+        "dtype": "float32",
+        "compress": "deflate",
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "nodata": float("nan"),
+    }
     rpcs = None
     with rasterio.open(im.path) as src:
         if src.crs is not None:
@@ -355,8 +413,12 @@ def write_probability_image(path: os.PathLike | str, prob: np.ndarray, model: La
                 dst.write(arr)
                 for i, c in enumerate(model.classes, start=1):
                     dst.set_band_description(i, f"p_{c}")
-                dst.update_tags(content="class probabilities (geocd landcover)", method=model.method,
-                                classes=",".join(model.classes), source_image=str(im.path))
+                dst.update_tags(
+                    content="class probabilities (geocd landcover)",
+                    method=model.method,
+                    classes=",".join(model.classes),
+                    source_image=str(im.path),
+                )
     side = im.path.with_suffix(".camera.json")
     if im.camera is not None and im.camera.kind == "frame" and side.exists():
         import shutil
@@ -365,10 +427,18 @@ def write_probability_image(path: os.PathLike | str, prob: np.ndarray, model: La
     return Path(path)
 
 
-def predict_files(model_path: os.PathLike | str, image_paths: Sequence[str], out_dir: os.PathLike | str, *,
-                  cameras: Sequence[str | None] | None = None, scene: Scene | None = None,
-                  class_name: str | None = None, prefix: str = "landcover", progress=None,
-                  trust: bool = False) -> dict:
+def predict_files(
+    model_path: os.PathLike | str,
+    image_paths: Sequence[str],
+    out_dir: os.PathLike | str,
+    *,
+    cameras: Sequence[str | None] | None = None,
+    scene: Scene | None = None,
+    class_name: str | None = None,
+    prefix: str = "landcover",
+    progress=None,
+    trust: bool = False,
+) -> dict:
     """Probability maps of images (image geometry), and — with a scene — on the grid, combined.
 
     ``trust``: load a model file that is not on this user's trusted-model list (see :func:`load_model`).
@@ -400,12 +470,16 @@ def predict_files(model_path: os.PathLike | str, image_paths: Sequence[str], out
         summary["images"][im.name] = s
     if views:
         mean, weight, count = combine_views(views)
-        outputs["ground"] = write_cog(out / f"{prefix}_ground.tif",
-                                      {f"p_{model.classes[ci]}": mean, "weight": weight,
-                                       "views": count.astype(np.float32)}, scene.grid,
-                                      tags={"content": f"probability of {model.classes[ci]!r} projected on the grid "
-                                                       "(weighted mean over the views; NaN = unobserved)",
-                                            "method": "geocd landcover predict"})
+        outputs["ground"] = write_cog(
+            out / f"{prefix}_ground.tif",
+            {f"p_{model.classes[ci]}": mean, "weight": weight, "views": count.astype(np.float32)},
+            scene.grid,
+            tags={
+                "content": f"probability of {model.classes[ci]!r} projected on the grid "
+                "(weighted mean over the views; NaN = unobserved)",
+                "method": "geocd landcover predict",
+            },
+        )
         summary["observed_fraction"] = round(float(np.isfinite(mean).mean()), 4)
     outputs["summary"] = write_text_atomic(out / f"{prefix}_predict.json", json.dumps(summary, indent=2))
     prog(1.0, "done")
@@ -445,8 +519,10 @@ def read_on_grid(path: os.PathLike | str, grid: AOIGrid, band: int = 1) -> np.nd
 
     with _open(path) as ds:
         if ds.crs is None:
-            raise GridError(f"{path} has no CRS; give a georeferenced probability map (geocd landcover predict "
-                            "writes one: *_ground.tif)")
+            raise GridError(
+                f"{path} has no CRS; give a georeferenced probability map (geocd landcover predict "
+                "writes one: *_ground.tif)"
+            )
         resampling = "average" if abs(ds.transform.a) < grid.posting_m * 0.75 else "bilinear"
         return reproject_band(ds, band, grid, resampling)
 
@@ -456,27 +532,49 @@ def write_integration(out: Path, prefix: str, scene: Scene, res, detailed: np.nd
 
     outputs: dict[str, Path] = {}
     p = np.clip(res.mean, 0.0, 1.0)
-    tags = {"method": "geocd landcover integrate (GP, ARD kernel, sparse inducing-point prediction)",
-            "hyperparameters": json.dumps(res.hyper.to_dict())}
-    outputs["probability"] = write_cog(out / f"{prefix}_probability.tif", {f"p_{class_name}": p}, scene.grid,
-                                       tags={**tags, "content": f"GP predictive mean of p({class_name}), clipped to "
-                                                                "[0, 1]"})
+    tags = {
+        "method": "geocd landcover integrate (GP, ARD kernel, sparse inducing-point prediction)",
+        "hyperparameters": json.dumps(res.hyper.to_dict()),
+    }
+    outputs["probability"] = write_cog(
+        out / f"{prefix}_probability.tif",
+        {f"p_{class_name}": p},
+        scene.grid,
+        tags={**tags, "content": f"GP predictive mean of p({class_name}), clipped to [0, 1]"},
+    )
     bands = {"sigma": res.sd, "sigma_obs": res.sd_obs}
     if res.sd_cal is not None:
         bands["sigma_calibrated"] = res.sd_cal
     bands.update({"mean_unclipped": res.mean, "detailed": detailed.astype(np.float32)})
-    outputs["sigma"] = write_cog(out / f"{prefix}_sigma.tif", bands, scene.grid,
-                                 tags={**tags, "content": "GP predictive sd of the latent probability (sigma), of a "
-                                                          "new observation (sigma_obs) and the latter scaled by "
-                                                          "spatial-block cross-validation (sigma_calibrated)"})
+    outputs["sigma"] = write_cog(
+        out / f"{prefix}_sigma.tif",
+        bands,
+        scene.grid,
+        tags={
+            **tags,
+            "content": "GP predictive sd of the latent probability (sigma), of a "
+            "new observation (sigma_obs) and the latter scaled by "
+            "spatial-block cross-validation (sigma_calibrated)",
+        },
+    )
     return outputs
 
 
-def integrate_files(detailed_path: os.PathLike | str, scene: Scene, out_dir: os.PathLike | str, *,
-                    coarse_path: os.PathLike | str | None = None, use: Sequence[str] | None = None,
-                    params=None, class_name: str = "condition", truth_path: os.PathLike | str | None = None,
-                    truth_values: Sequence[float] | None = None, exclude_path: os.PathLike | str | None = None,
-                    prefix: str = "landcover", progress=None) -> dict:
+def integrate_files(
+    detailed_path: os.PathLike | str,
+    scene: Scene,
+    out_dir: os.PathLike | str,
+    *,
+    coarse_path: os.PathLike | str | None = None,
+    use: Sequence[str] | None = None,
+    params=None,
+    class_name: str = "condition",
+    truth_path: os.PathLike | str | None = None,
+    truth_values: Sequence[float] | None = None,
+    exclude_path: os.PathLike | str | None = None,
+    prefix: str = "landcover",
+    progress=None,
+) -> dict:
     """GP integration of a projected detailed probability (+ a coarse one) over the scene grid; COG products.
 
     With ``truth_path`` (a raster whose cells equal to one of ``truth_values`` — default: nonzero — hold the
@@ -496,13 +594,19 @@ def integrate_files(detailed_path: os.PathLike | str, scene: Scene, out_dir: os.
     det = read_on_grid(detailed_path, scene.grid)
     coarse = read_on_grid(coarse_path, scene.grid) if coarse_path is not None else None
     if use is None:
-        use = tuple(u for u in INPUTS if (u != "coarse" or coarse is not None)
-                    and (u != "buildings" or scene.occupancy.any()))
+        use = tuple(
+            u for u in INPUTS if (u != "coarse" or coarse is not None) and (u != "buildings" or scene.occupancy.any())
+        )
     t0 = time.perf_counter()
     res = integrate(det, gp_inputs(scene, coarse, use), params, progress=sub_progress(prog, 0.0, 0.6))
     outputs = write_integration(out, prefix, scene, res, det, class_name)
-    summary: dict = {"class": class_name, "inputs": list(use), "params": params.to_dict(),
-                     "seconds": round(time.perf_counter() - t0, 2), **res.report}
+    summary: dict = {
+        "class": class_name,
+        "inputs": list(use),
+        "params": params.to_dict(),
+        "seconds": round(time.perf_counter() - t0, 2),
+        **res.report,
+    }
     if truth_path is not None:
         prog(0.65, "ablation against the truth map")
         # the condition is decided on the truth's own grid, then averaged: a class raster is never resampled
@@ -510,20 +614,26 @@ def integrate_files(detailed_path: os.PathLike | str, scene: Scene, out_dir: os.
 
         tr0, tgrid = read_band(truth_path)
         hit = np.isin(np.rint(tr0), np.asarray(truth_values, float)) if truth_values else np.nan_to_num(tr0) > 0.5
-        frac = reproject_array(np.where(np.isfinite(tr0), hit, np.nan).astype(np.float32), tgrid, scene.grid,
-                               "average" if tgrid.posting_m < 0.75 * scene.grid.posting_m else "nearest")
+        frac = reproject_array(
+            np.where(np.isfinite(tr0), hit, np.nan).astype(np.float32),
+            tgrid,
+            scene.grid,
+            "average" if tgrid.posting_m < 0.75 * scene.grid.posting_m else "nearest",
+        )
         truth = np.nan_to_num(frac) >= 0.5
         exclude = None
         if exclude_path is not None:
             lab = read_labels(exclude_path)
             if lab.crs is not None:
-                cls, _ = rasterize_labels(lab.to_crs(scene.grid.crs), scene.grid.shape, scene.grid.transform,
-                                          class_list(lab))
+                cls, _ = rasterize_labels(
+                    lab.to_crs(scene.grid.crs), scene.grid.shape, scene.grid.transform, class_list(lab)
+                )
                 exclude = cls >= 0
         no_truth = ~np.isfinite(frac)
         exclude = no_truth if exclude is None else (exclude | no_truth)
-        scores, results = ablation(det, coarse, lambda u: gp_inputs(scene, coarse, u), truth, truth_value=frac,
-                                   exclude=exclude, params=params)
+        scores, results = ablation(
+            det, coarse, lambda u: gp_inputs(scene, coarse, u), truth, truth_value=frac, exclude=exclude, params=params
+        )
         ev = np.ones(truth.shape, bool) if exclude is None else ~exclude
         curves = {}
         if coarse is not None:
@@ -535,8 +645,9 @@ def integrate_files(detailed_path: os.PathLike | str, scene: Scene, out_dir: os.
         outputs["ablation_png"] = out / f"{prefix}_ablation.png"
         pr_figure(outputs["ablation_png"], curves, scores, f"{class_name}: ablation")
         outputs["ablation"] = write_text_atomic(out / f"{prefix}_ablation.json", json.dumps(scores, indent=2))
-        summary["ablation"] = {k: v.get("f1_at_recall") for k, v in scores.items()
-                               if isinstance(v, dict) and "f1_at_recall" in v}
+        summary["ablation"] = {
+            k: v.get("f1_at_recall") for k, v in scores.items() if isinstance(v, dict) and "f1_at_recall" in v
+        }
     outputs["summary"] = write_text_atomic(out / f"{prefix}_integrate.json", json.dumps(summary, indent=2))
     prog(1.0, "done")
     return {"outputs": outputs, "summary": summary, "result": res}

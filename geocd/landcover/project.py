@@ -30,8 +30,9 @@ from ..ortho import OrthoParams, orthorectify, view_geometry
 HEIGHT_FIELDS = ("height_m", "height", "HEIGHT", "hgt", "building_height", "bldg_h")
 
 
-def building_surface(dem_m: np.ndarray, grid: AOIGrid, footprints=None,
-                     height_field: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+def building_surface(
+    dem_m: np.ndarray, grid: AOIGrid, footprints=None, height_field: str | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """DEM with footprints extruded to their height, and the building occupancy (fraction of each cell).
 
     Parameters
@@ -61,20 +62,32 @@ def building_surface(dem_m: np.ndarray, grid: AOIGrid, footprints=None,
     t = grid.transform
     from affine import Affine
 
-    fine = rasterize([(g, 1) for g in fp.geometry], out_shape=(grid.height * k, grid.width * k),
-                     transform=t @ Affine.scale(1.0 / k), fill=0, dtype="uint8")
+    fine = rasterize(
+        [(g, 1) for g in fp.geometry],
+        out_shape=(grid.height * k, grid.width * k),
+        transform=t @ Affine.scale(1.0 / k),
+        fill=0,
+        dtype="uint8",
+    )
     occ = fine.reshape(grid.height, k, grid.width, k).mean(axis=(1, 3)).astype(np.float32)
     if height_field is None:
         height_field = next((h for h in HEIGHT_FIELDS if h in fp.columns), None)
     elif height_field not in fp.columns:
-        raise ConfigError(f"footprints have no attribute {height_field!r}; attributes: "
-                          f"{[c for c in fp.columns if c != 'geometry']}")
+        raise ConfigError(
+            f"footprints have no attribute {height_field!r}; attributes: {[c for c in fp.columns if c != 'geometry']}"
+        )
     if height_field is not None:
         h = fp[height_field].astype(float).to_numpy()
         ok = np.isfinite(h) & (h > 0)
         if ok.any():
-            hag = rasterize([(g, float(v)) for g, v in zip(fp.geometry[ok], h[ok])], out_shape=grid.shape,
-                            transform=t, fill=0.0, dtype="float32", all_touched=False)
+            hag = rasterize(
+                [(g, float(v)) for g, v in zip(fp.geometry[ok], h[ok])],
+                out_shape=grid.shape,
+                transform=t,
+                fill=0.0,
+                dtype="float32",
+                all_touched=False,
+            )
             surface = np.where(hag > 0, dem + hag, dem)
     return surface, occ
 
@@ -107,9 +120,17 @@ def view_weight(result) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def project_view(probability: np.ndarray, camera: Camera, grid: AOIGrid, surface_m: np.ndarray, *,
-                 window: tuple[int, int, int, int] | None = None, geometry=None, name: str = "",
-                 params: OrthoParams = OrthoParams()) -> ProjectedView:
+def project_view(
+    probability: np.ndarray,
+    camera: Camera,
+    grid: AOIGrid,
+    surface_m: np.ndarray,
+    *,
+    window: tuple[int, int, int, int] | None = None,
+    geometry=None,
+    name: str = "",
+    params: OrthoParams = OrthoParams(),
+) -> ProjectedView:
     """Orthorectify one probability map (image geometry) onto the grid with occlusion.
 
     Parameters
@@ -125,7 +146,7 @@ def project_view(probability: np.ndarray, camera: Camera, grid: AOIGrid, surface
     col0 = row0 = 0
     if window is not None:
         r0, c0, h, w = (int(v) for v in window)
-        p = p[r0:r0 + h, c0:c0 + w]
+        p = p[r0 : r0 + h, c0 : c0 + w]
         row0, col0 = r0, c0
     res = orthorectify(p, camera, grid, surface_m, col0=col0, row0=row0, params=params, geometry=geometry)
     vals = res.values[0].astype(np.float32)
@@ -159,8 +180,9 @@ def combine_views(views: list[ProjectedView]) -> tuple[np.ndarray, np.ndarray, n
     return mean, den.astype(np.float32), np.minimum(cnt, 255).astype(np.uint8)
 
 
-def cell_pixels(camera: Camera, grid: AOIGrid, surface_m: np.ndarray, image_shape: tuple[int, int],
-                geometry=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def cell_pixels(
+    camera: Camera, grid: AOIGrid, surface_m: np.ndarray, image_shape: tuple[int, int], geometry=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The image pixel each grid cell is seen in: (row, col) int arrays (−1 where unobserved), observed mask.
 
     Used to carry labels drawn on the map into an image, and a grid quantity (height above ground)
@@ -169,8 +191,9 @@ def cell_pixels(camera: Camera, grid: AOIGrid, surface_m: np.ndarray, image_shap
     H, W = image_shape
     index = np.arange(H * W, dtype=np.float64).reshape(H, W)
     geo = geometry if geometry is not None else view_geometry(camera, grid, surface_m)
-    res = orthorectify(index, camera, grid, surface_m, params=OrthoParams(resampling="nearest", antialias=False),
-                       geometry=geo)
+    res = orthorectify(
+        index, camera, grid, surface_m, params=OrthoParams(resampling="nearest", antialias=False), geometry=geo
+    )
     obs = res.observed & np.isfinite(res.values[0])
     flat = np.where(obs, res.values[0], -1).astype(np.int64)
     rows = np.where(obs, flat // W, -1)
@@ -178,8 +201,14 @@ def cell_pixels(camera: Camera, grid: AOIGrid, surface_m: np.ndarray, image_shap
     return rows, cols, obs
 
 
-def grid_to_image(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, observed: np.ndarray,
-                  image_shape: tuple[int, int], max_gap_px: float = 3.0) -> np.ndarray:
+def grid_to_image(
+    values: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    observed: np.ndarray,
+    image_shape: tuple[int, int],
+    max_gap_px: float = 3.0,
+) -> np.ndarray:
     """Carry a grid quantity into image space: each observed cell paints the pixel it is seen in, and
     pixels within ``max_gap_px`` of a painted pixel take the nearest painted value (NaN beyond)."""
     from scipy import ndimage

@@ -18,11 +18,15 @@ from .gp import GPParams, GPResult, integrate
 
 #: the thesis's ablation: input sets of the GP (names of :data:`geocd.landcover.pipeline.INPUTS`), and the
 #: kernel (None: the one in the GP parameters)
-ABLATION = {"GP: detailed + xy": (("xy",), None),
-            "GP: detailed + coarse + xy": (("xy", "coarse"), None),
-            "GP, thesis product kernel: detailed + coarse + xy + DEM + buildings":
-                (("xy", "coarse", "dem", "buildings"), "product"),
-            "GP: detailed + coarse + xy + DEM + buildings": (("xy", "coarse", "dem", "buildings"), None)}
+ABLATION = {
+    "GP: detailed + xy": (("xy",), None),
+    "GP: detailed + coarse + xy": (("xy", "coarse"), None),
+    "GP, thesis product kernel: detailed + coarse + xy + DEM + buildings": (
+        ("xy", "coarse", "dem", "buildings"),
+        "product",
+    ),
+    "GP: detailed + coarse + xy + DEM + buildings": (("xy", "coarse", "dem", "buildings"), None),
+}
 
 
 def f1_at_recall(truth: np.ndarray, score: np.ndarray, recall: float = 0.5) -> dict:
@@ -38,9 +42,13 @@ def f1_at_recall(truth: np.ndarray, score: np.ndarray, recall: float = 0.5) -> d
         return {"cells": int(t.size), "note": "needs cells of both classes"}
     p, r, _ = precision_recall_curve(t, s)
     prec = float(np.max(p[r >= recall]))
-    return {"precision_at_recall": round(prec, 4), "f1_at_recall": round(2 * prec * recall / (prec + recall), 4),
-            "average_precision": round(float(average_precision_score(t, s)), 4), "cells": int(t.size),
-            "positive_rate": round(float(t.mean()), 4)}
+    return {
+        "precision_at_recall": round(prec, 4),
+        "f1_at_recall": round(2 * prec * recall / (prec + recall), 4),
+        "average_precision": round(float(average_precision_score(t, s)), 4),
+        "cells": int(t.size),
+        "positive_rate": round(float(t.mean()), 4),
+    }
 
 
 def sigma_calibration(truth: np.ndarray, res: GPResult, cells: np.ndarray) -> dict:
@@ -49,20 +57,29 @@ def sigma_calibration(truth: np.ndarray, res: GPResult, cells: np.ndarray) -> di
     if not ok.any():
         return {"cells": 0}
     err = np.abs(truth[ok] - res.mean[ok])
-    out: dict = {"cells": int(ok.sum()), "rmse": round(float(np.sqrt(np.mean(err ** 2))), 4)}
+    out: dict = {"cells": int(ok.sum()), "rmse": round(float(np.sqrt(np.mean(err**2))), 4)}
     sds = [("sigma", res.sd[ok]), ("sigma_obs", res.sd_obs[ok])]
     if res.sd_cal is not None:
         sds.append(("sigma_calibrated", res.sd_cal[ok]))
     for name, sd in sds:
-        out[name] = {"inside_1sigma": round(float(np.mean(err <= sd)), 4),
-                     "inside_2sigma": round(float(np.mean(err <= 2 * sd)), 4),
-                     "median": round(float(np.median(sd)), 4)}
+        out[name] = {
+            "inside_1sigma": round(float(np.mean(err <= sd)), 4),
+            "inside_2sigma": round(float(np.mean(err <= 2 * sd)), 4),
+            "median": round(float(np.median(sd)), 4),
+        }
     return out
 
 
-def ablation(detailed: np.ndarray, coarse: np.ndarray | None, inputs_for, truth: np.ndarray,
-             truth_value: np.ndarray | None = None, exclude: np.ndarray | None = None,
-             params: GPParams = GPParams(), configs: dict | None = None) -> tuple[dict, dict]:
+def ablation(
+    detailed: np.ndarray,
+    coarse: np.ndarray | None,
+    inputs_for,
+    truth: np.ndarray,
+    truth_value: np.ndarray | None = None,
+    exclude: np.ndarray | None = None,
+    params: GPParams = GPParams(),
+    configs: dict | None = None,
+) -> tuple[dict, dict]:
     """Run the ablation.
 
     Parameters
@@ -90,8 +107,11 @@ def ablation(detailed: np.ndarray, coarse: np.ndarray | None, inputs_for, truth:
         if (ev & ~obs).any():
             scores["coarse alone (unobserved cells)"] = f1_at_recall(t[ev & ~obs], coarse[ev & ~obs])
     scores["detailed alone (observed cells)"] = f1_at_recall(t[ev & obs], detailed[ev & obs])
-    configs = configs if configs is not None else {k: v for k, v in ABLATION.items()
-                                                    if coarse is not None or "coarse" not in v[0]}
+    configs = (
+        configs
+        if configs is not None
+        else {k: v for k, v in ABLATION.items() if coarse is not None or "coarse" not in v[0]}
+    )
     results: dict = {}
     for name, (use, kernel) in configs.items():
         p = params if kernel is None else params.replace(kernel=kernel)

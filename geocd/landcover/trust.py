@@ -64,8 +64,11 @@ def record_trusted(path: os.PathLike | str) -> bool:
         finally:
             os.close(fd)
     except OSError as exc:
-        warnings.warn(f"could not add {p} to the trusted-model list {lst} ({exc}); 'geocd landcover predict' "
-                      "will ask for --trust-model with it", stacklevel=2)
+        warnings.warn(
+            f"could not add {p} to the trusted-model list {lst} ({exc}); 'geocd landcover predict' "
+            "will ask for --trust-model with it",
+            stacklevel=2,
+        )
         return False
     return True
 
@@ -82,13 +85,17 @@ def check_trusted(path: os.PathLike | str, digest: str, trust: bool = False) -> 
         return
     risk = "a model file is a pickle, and loading it runs whatever code its author put in it"
     if trust:
-        warnings.warn(f"loading the model {path}, which geocd did not write here, because it is trusted "
-                      f"explicitly (--trust-model): {risk}", stacklevel=2)
+        warnings.warn(
+            f"loading the model {path}, which geocd did not write here, because it is trusted "
+            f"explicitly (--trust-model): {risk}",
+            stacklevel=2,
+        )
         return
     raise UntrustedFileError(
         f"the model {path} was not written by 'geocd landcover train' for this user (its sha256 is not on the "
         f"trusted-model list {trust_list_path()}); {risk}: retrain it with 'geocd landcover train', or pass "
-        "--trust-model (Python: trust=True) only if you trust whoever made the file")
+        "--trust-model (Python: trust=True) only if you trust whoever made the file"
+    )
 
 
 def check_model_file(path: os.PathLike | str, trust: bool = False) -> None:

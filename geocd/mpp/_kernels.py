@@ -17,8 +17,20 @@ import numpy as np
 from numba import njit
 
 #: columns of the raw object features (per rectangle and image)
-F_GRADIENT, F_KURTOSIS, F_COMPLETE, F_COLOUR_IN, F_COLOUR_OUT, F_SHADOW_IN, F_SHADOW_OUT, F_RAISED_IN, \
-    F_RAISED_OUT, F_VALID, F_AREA, F_GRADIENT_SIDES = range(12)
+(
+    F_GRADIENT,
+    F_KURTOSIS,
+    F_COMPLETE,
+    F_COLOUR_IN,
+    F_COLOUR_OUT,
+    F_SHADOW_IN,
+    F_SHADOW_OUT,
+    F_RAISED_IN,
+    F_RAISED_OUT,
+    F_VALID,
+    F_AREA,
+    F_GRADIENT_SIDES,
+) = range(12)
 N_FEATURES = 12
 
 
@@ -57,7 +69,7 @@ def _kurt(n, s1, s2, s3, s4):
     v = s2 / n - m * m
     if v <= 1e-12:
         return np.nan
-    m4 = s4 / n - 4 * m * s3 / n + 6 * m * m * s2 / n - 3 * m ** 4
+    m4 = s4 / n - 4 * m * s3 / n + 6 * m * m * s2 / n - 3 * m**4
     return m4 / (v * v)
 
 
@@ -74,8 +86,28 @@ def _pooled_var(mom, k):
 
 
 @njit(cache=True)
-def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, min_h, edge_w, ring_w,
-                  shadow_w, flood_tol, flood_spread, grad_gate, ring_in, core_in, out):
+def rect_features(
+    rects,
+    grey,
+    valid,
+    mag,
+    ori,
+    colour,
+    shadow,
+    sdx,
+    sdy,
+    ndsm,
+    min_h,
+    edge_w,
+    ring_w,
+    shadow_w,
+    flood_tol,
+    flood_spread,
+    grad_gate,
+    ring_in,
+    core_in,
+    out,
+):
     """Raw object features of every rectangle on one image (see ``F_*``).
 
     Parameters
@@ -220,8 +252,9 @@ def rect_features(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, 
             out[r, F_KURTOSIS] = np.nan
             out[r, F_COMPLETE] = np.nan
         else:
-            _homogeneity(grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spread, mom, x0, i0, i1, j0,
-                         j1, out[r])
+            _homogeneity(
+                grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spread, mom, x0, i0, i1, j0, j1, out[r]
+            )
         nv = max(n_in_valid, 1)
         out[r, F_COLOUR_IN] = col_in / nv if has_c else np.nan
         out[r, F_COLOUR_OUT] = (col_out / ring_n if ring_n > 0 else 0.0) if has_c else np.nan
@@ -246,8 +279,9 @@ def _homogeneity(grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spr
     k0 = _kurt(mom[0, 0], mom[0, 1], mom[0, 2], mom[0, 3], mom[0, 4])
     k1 = _kurt(mom[1, 0], mom[1, 1], mom[1, 2], mom[1, 3], mom[1, 4])
     out[F_KURTOSIS] = min(k0, k1) if (k0 == k0 and k1 == k1) else np.nan
-    out[F_COMPLETE] = _completeness(grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spread, mom, x0,
-                                    split_v, i0, i1, j0, j1)
+    out[F_COMPLETE] = _completeness(
+        grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spread, mom, x0, split_v, i0, i1, j0, j1
+    )
 
 
 @njit(cache=True)
@@ -381,7 +415,7 @@ def rect_steps(rects, height, step_min, step_frac, edge_w, ring_w, seg_len, out)
         nL = max(1, int(eL / seg_len))
         nl = max(1, int(el / seg_len))
         nmax = max(nL, nl)
-        acc = np.zeros((4, nmax, 4))     # side, segment, (sum in, n in, sum out, n out)
+        acc = np.zeros((4, nmax, 4))  # side, segment, (sum in, n in, sum out, n out)
         pad = edge_w + ring_w + 1.0
         rad = math.sqrt(hL * hL + hl * hl) + pad
         i0 = max(int(math.floor(cy - rad)), 0)
@@ -480,7 +514,7 @@ def death_pass(order, indptr, nbr, w, energy, alive, beta, delta, gamma, rand):
             if alive[nbr[p]]:
                 inter += w[p]
         dphi = -energy[u] - gamma * inter
-        x = beta * dphi - math.log(delta)          # δa = exp(−x)
+        x = beta * dphi - math.log(delta)  # δa = exp(−x)
         if x > 700.0:
             d = 0.0
         elif x < -700.0:
@@ -500,8 +534,8 @@ def _rect_grid(rect, shape, pad):
     rad = np.hypot(eL / 2, el / 2) + pad
     i0, i1 = max(int(np.floor(cy - rad)), 0), min(int(np.ceil(cy + rad)), H - 1)
     j0, j1 = max(int(np.floor(cx - rad)), 0), min(int(np.ceil(cx + rad)), W - 1)
-    i1, j1 = max(i1, i0 - 1), max(j1, j0 - 1)        # a rectangle wholly off the grid: no cells
-    ii, jj = np.mgrid[i0:i1 + 1, j0:j1 + 1].astype(np.float64)
+    i1, j1 = max(i1, i0 - 1), max(j1, j0 - 1)  # a rectangle wholly off the grid: no cells
+    ii, jj = np.mgrid[i0 : i1 + 1, j0 : j1 + 1].astype(np.float64)
     c, s = np.cos(th), np.sin(th)
     dx, dy = jj - cx, ii - cy
     return (slice(i0, i1 + 1), slice(j0, j1 + 1)), dx * c - dy * s, dx * s + dy * c, (i0, i1, j0, j1)
@@ -514,11 +548,30 @@ def _kurt_ref(x):
     v = np.mean((x - m) ** 2)
     if v <= 1e-12:
         return np.nan
-    return float(np.mean((x - m) ** 4) / v ** 2)
+    return float(np.mean((x - m) ** 4) / v**2)
 
 
-def rect_features_ref(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, ndsm, min_h, edge_w, ring_w,
-                      shadow_w, flood_tol, flood_spread, grad_gate=-np.inf, ring_in=None, core_in=0.0) -> np.ndarray:
+def rect_features_ref(
+    rects,
+    grey,
+    valid,
+    mag,
+    ori,
+    colour,
+    shadow,
+    sdx,
+    sdy,
+    ndsm,
+    min_h,
+    edge_w,
+    ring_w,
+    shadow_w,
+    flood_tol,
+    flood_spread,
+    grad_gate=-np.inf,
+    ring_in=None,
+    core_in=0.0,
+) -> np.ndarray:
     """numpy reference of :func:`rect_features` (``ring_in`` None: ``edge_w``)."""
     from scipy import ndimage
 
@@ -540,8 +593,12 @@ def rect_features_ref(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, nd
         wgt = np.where(vside, np.abs(np.sin(d)), np.abs(np.cos(d)))
         out[r, F_GRADIENT] = float(np.sum((mag[sl] * wgt)[edge]) / edge.sum()) if edge.any() else 0.0
         side = np.where(vside, 2 + (v < 0), (u < 0).astype(int))
-        sm = [float(np.sum((mag[sl] * wgt)[edge & (side == q)]) / (edge & (side == q)).sum())
-              if (edge & (side == q)).any() else 0.0 for q in range(4)]
+        sm = [
+            float(np.sum((mag[sl] * wgt)[edge & (side == q)]) / (edge & (side == q)).sum())
+            if (edge & (side == q)).any()
+            else 0.0
+            for q in range(4)
+        ]
         out[r, F_GRADIENT_SIDES] = min(sm)
         inn = inside & ok
         nv = max(int(inn.sum()), 1)
@@ -551,8 +608,16 @@ def rect_features_ref(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, nd
 
         def pooled(h):
             n = core.sum()
-            return sum(((g[core & (h == x)] - g[core & (h == x)].mean()) ** 2).sum()
-                       for x in (False, True) if (core & (h == x)).any()) / n if n else np.inf
+            return (
+                sum(
+                    ((g[core & (h == x)] - g[core & (h == x)].mean()) ** 2).sum()
+                    for x in (False, True)
+                    if (core & (h == x)).any()
+                )
+                / n
+                if n
+                else np.inf
+            )
 
         half = (v < 0) if pooled(v < 0) <= pooled(u < 0) else (u < 0)
         ks = [_kurt_ref(g[core & (half == h)]) for h in (False, True)]
@@ -590,7 +655,7 @@ def rect_features_ref(rects, grey, valid, mag, ori, colour, shadow, sdx, sdy, nd
         if has_s:
             sh = shadow[sl].astype(np.float64)
             out[r, F_SHADOW_IN] = (1 - sh[inn]).sum() / nv
-            ii, jj = np.mgrid[i0:i1 + 1, j0:j1 + 1].astype(np.float64)
+            ii, jj = np.mgrid[i0 : i1 + 1, j0 : j1 + 1].astype(np.float64)
             hit = np.zeros(u.shape, bool)
             c, s = np.cos(th), np.sin(th)
             for t in range(1, int(np.ceil(shadow_w)) + 1):
@@ -675,8 +740,8 @@ def death_pass_ref(order, indptr, nbr, w, energy, alive, beta, delta, gamma, ran
     for u in order:
         if not alive[u]:
             continue
-        nb = nbr[indptr[u]:indptr[u + 1]]
-        dphi = -energy[u] - gamma * float(np.sum(w[indptr[u]:indptr[u + 1]][alive[nb]]))
+        nb = nbr[indptr[u] : indptr[u + 1]]
+        dphi = -energy[u] - gamma * float(np.sum(w[indptr[u] : indptr[u + 1]][alive[nb]]))
         x = beta * dphi - np.log(delta)
         d = 0.0 if x > 700 else (1.0 if x < -700 else 1.0 / (1.0 + np.exp(x)))
         if rand[u] < d:
@@ -704,7 +769,7 @@ def snap_rects(rects, mag, ori, thresh, smin, smax):
         for ax in range(2):
             dc = c if ax == 0 else s
             dr = -s if ax == 0 else c
-            ang = th if ax == 0 else th + 0.5 * math.pi       # map-sense direction of the march
+            ang = th if ax == 0 else th + 0.5 * math.pi  # map-sense direction of the march
             ends = np.zeros(2)
             found = 0
             for k in range(2):
@@ -917,7 +982,9 @@ def refine_sides_ref(rects, mag, ori, reach, n_along) -> np.ndarray:
                 j = np.round(cx + p * n_[0] + f * half_len * t_[0]).astype(int)
                 i = np.round(cy + p * n_[1] + f * half_len * t_[1]).astype(int)
                 ok = (i >= 0) & (i < H) & (j >= 0) & (j < W)
-                scores.append(np.mean(mag[i[ok], j[ok]] * np.abs(np.cos(ori[i[ok], j[ok]] - ang))) if ok.any() else -np.inf)
+                scores.append(
+                    np.mean(mag[i[ok], j[ok]] * np.abs(np.cos(ori[i[ok], j[ok]] - ang))) if ok.any() else -np.inf
+                )
             scores = np.array(scores)
             best, best_d = -1.0, 0.0
             for d, sc in zip(offs, scores):
@@ -948,7 +1015,7 @@ def _bilinear(a, y, x):
     i, j, i1, j1, fy, fx = _stencil(a.shape[0], a.shape[1], y, x)
     if i < 0:
         return np.nan
-    return ((1 - fy) * ((1 - fx) * a[i, j] + fx * a[i, j1]) + fy * ((1 - fx) * a[i1, j] + fx * a[i1, j1]))
+    return (1 - fy) * ((1 - fx) * a[i, j] + fx * a[i, j1]) + fy * ((1 - fx) * a[i1, j] + fx * a[i1, j1])
 
 
 @njit(cache=True, inline="always")
@@ -1012,7 +1079,7 @@ def fit_sides(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, gate_i
         pos = np.array([0.5 * eL, -0.5 * eL, 0.5 * el, -0.5 * el])
         new = pos.copy()
         for side in range(4):
-            sg = 1.0 if side % 2 == 0 else -1.0      # outward along the normal
+            sg = 1.0 if side % 2 == 0 else -1.0  # outward along the normal
             if side < 2:
                 nc, nr, tc, tr, half_len, ang = c, -s, s, c, 0.5 * el, th
             else:
@@ -1022,7 +1089,7 @@ def fit_sides(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, gate_i
             best_d = 0.0
             for q in range(2 * nstep + 1):
                 d = step * ((q + 1) // 2) * (1.0 if q % 2 == 1 else -1.0)
-                p = pos[side] + sg * d            # d > 0 moves the side outwards
+                p = pos[side] + sg * d  # d > 0 moves the side outwards
                 acc = 0.0
                 tot = 0
                 passed = 0
@@ -1083,8 +1150,9 @@ def _bilinear_ref(a, y, x):
     return np.where(inside, v, np.nan)
 
 
-def fit_sides_ref(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, gate_in, gate_out, smin,
-                  smax) -> np.ndarray:
+def fit_sides_ref(
+    rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, gate_in, gate_out, smin, smax
+) -> np.ndarray:
     """numpy reference of :func:`fit_sides` (returns a fitted copy)."""
     out = rects.copy()
     m, H, W = mags.shape
@@ -1127,7 +1195,10 @@ def fit_sides_ref(rects, use, mags, oris, ndsms, has_dsm, min_h, reach, step, ga
                 for k, lev in zip(ks, levels):
                     # the across-side component at the four neighbours, then bilinear (as the kernel)
                     inside, i, j, i1, j1, fy, fx = _stencil_ref(H, W, y, x)
-                    gc = [mags[k][a, b] * np.abs(np.cos(oris[k][a, b] - ang)) for a, b in ((i, j), (i, j1), (i1, j), (i1, j1))]
+                    gc = [
+                        mags[k][a, b] * np.abs(np.cos(oris[k][a, b] - ang))
+                        for a, b in ((i, j), (i, j1), (i1, j), (i1, j1))
+                    ]
                     g = (1 - fy) * ((1 - fx) * gc[0] + fx * gc[1]) + fy * ((1 - fx) * gc[2] + fx * gc[3])
                     g = np.where(inside, g, np.nan)
                     have = np.isfinite(g)
@@ -1228,7 +1299,7 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, valley, grew):
                 sg = 1.0 if kk == 0 else -1.0
                 t = 0.5
                 last = 0.0
-                low = np.full(m, np.inf)        # the lowest strip median so far, per date
+                low = np.full(m, np.inf)  # the lowest strip median so far, per date
                 low_t = np.zeros(m)
                 strip = np.empty((m, na))
                 while sizes[ax] + ext[ax, 0] + ext[ax, 1] + t + 0.5 <= smax:
@@ -1274,9 +1345,8 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, valley, grew):
                     for k in range(m):
                         if not use[r, k] or nh[k] == 0:
                             continue
-                        h = np.median(strip[k, :nh[k]])
-                        if (valley[k] == valley[k] and h > low[k] + valley[k]
-                                and low[k] < medians[k] - valley[k]):
+                        h = np.median(strip[k, : nh[k]])
+                        if valley[k] == valley[k] and h > low[k] + valley[k] and low[k] < medians[k] - valley[k]:
                             valley_at = max(valley_at, low_t[k])
                         if h < low[k]:
                             low[k] = h
@@ -1523,8 +1593,10 @@ def carve_corners(rects, use, mags, oris, hmaps, valids, min_h, edge_w, smin, d_
                         # 2 edge_w holds an edge at several cut positions, these lines only at the edge
                         m1 = _box(SV[a], q0, q1, cut_u - 1, cut_u + 1)
                         m2 = _box(SV[a], cut_v - 1, cut_v + 1, p0, p1)
-                        score += ((_box(SGU[a], q0, q1, cut_u - 1, cut_u + 1)
-                                   + _box(SGV[a], cut_v - 1, cut_v + 1, p0, p1)) / max(m1 + m2, 1.0)) / d_grad[ks[a]]
+                        score += (
+                            (_box(SGU[a], q0, q1, cut_u - 1, cut_u + 1) + _box(SGV[a], cut_v - 1, cut_v + 1, p0, p1))
+                            / max(m1 + m2, 1.0)
+                        ) / d_grad[ks[a]]
                     if ok and score > best:
                         best = score
                         out[r, 0] = su
@@ -1564,9 +1636,13 @@ def carve_corners_ref(rects, use, mags, oris, hmaps, valids, min_h, edge_w, smin
             h = np.where(on, hmaps[k][ic, jc], np.nan)
             val = on & valids[k][ic, jc]
             d = oris[k][ic, jc] - th
-            lat[k] = (np.isfinite(h), np.isfinite(h) & (h > min_h), val,
-                      np.where(val, mags[k][ic, jc] * np.abs(np.cos(d)), 0.0),
-                      np.where(val, mags[k][ic, jc] * np.abs(np.sin(d)), 0.0))
+            lat[k] = (
+                np.isfinite(h),
+                np.isfinite(h) & (h > min_h),
+                val,
+                np.where(val, mags[k][ic, jc] * np.abs(np.cos(d)), 0.0),
+                np.where(val, mags[k][ic, jc] * np.abs(np.sin(d)), 0.0),
+            )
         P, Q_ = np.meshgrid(np.arange(nu), np.arange(nv))
         best = -1.0
         for corner in range(4):

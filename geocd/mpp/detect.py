@@ -24,8 +24,15 @@ import numpy as np
 
 from ..errors import ConfigError, GridError
 from ..progress import Progress, ensure_progress, sub_progress
-from .features import (ImageFeatures, fill_roof_holes, ground_from_dsm, height_similarity, image_features,
-                       side_max_from_dsm, texture_change)
+from .features import (
+    ImageFeatures,
+    fill_roof_holes,
+    ground_from_dsm,
+    height_similarity,
+    image_features,
+    side_max_from_dsm,
+    texture_change,
+)
 from .model import BOTH, ONLY_1, ONLY_2, EnergyModel, MPPResult, optimize, sd_combine
 from .params import MPPParams
 
@@ -57,23 +64,41 @@ class Detection:
 def context_m(params: MPPParams = MPPParams()) -> float:
     """Margin (m) a tile needs on each side: half the largest rectangle's diagonal, its outer rings and half
     the orientation window (objects centred in the tile core see all their data)."""
-    return (0.5 * math.sqrt(2.0) * params.side_max_m + max(params.ring_m, params.shadow_ring_m)
-            + params.edge_width_m + 0.5 * params.window)
+    return (
+        0.5 * math.sqrt(2.0) * params.side_max_m
+        + max(params.ring_m, params.shadow_ring_m)
+        + params.edge_width_m
+        + 0.5 * params.window
+    )
 
 
 def _check(a: np.ndarray, b: np.ndarray) -> None:
     sa = np.shape(a)[-2:]
     sb = np.shape(b)[-2:]
     if sa != sb:
-        raise GridError(f"the two images are on different grids ({sa[0]}×{sa[1]} and {sb[0]}×{sb[1]} cells); "
-                        "orthorectify both onto one AOI grid (geocd ortho) or resample one onto the other's grid")
+        raise GridError(
+            f"the two images are on different grids ({sa[0]}×{sa[1]} and {sb[0]}×{sb[1]} cells); "
+            "orthorectify both onto one AOI grid (geocd ortho) or resample one onto the other's grid"
+        )
 
 
-def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: MPPParams = MPPParams(), *,
-           method: str = "ED", valid_a: np.ndarray | None = None, valid_b: np.ndarray | None = None,
-           dsm_a: np.ndarray | None = None, dsm_b: np.ndarray | None = None, ground_m: np.ndarray | None = None,
-           filled_a: np.ndarray | None = None, filled_b: np.ndarray | None = None,
-           change_prior: np.ndarray | None = None, progress: Progress | None = None) -> Detection:
+def detect(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    posting_m: float,
+    params: MPPParams = MPPParams(),
+    *,
+    method: str = "ED",
+    valid_a: np.ndarray | None = None,
+    valid_b: np.ndarray | None = None,
+    dsm_a: np.ndarray | None = None,
+    dsm_b: np.ndarray | None = None,
+    ground_m: np.ndarray | None = None,
+    filled_a: np.ndarray | None = None,
+    filled_b: np.ndarray | None = None,
+    change_prior: np.ndarray | None = None,
+    progress: Progress | None = None,
+) -> Detection:
     """Buildings of two dates and their changes from two images on one grid.
 
     Parameters
@@ -108,26 +133,37 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
     prog(0.0, "features")
     if use_h:
         shape = np.shape(image_a)[-2:]
-        for what, arr in (("DSM A", dsm_a), ("DSM B", dsm_b), ("ground", ground_m), ("filled A", filled_a),
-                          ("filled B", filled_b)):
+        for what, arr in (
+            ("DSM A", dsm_a),
+            ("DSM B", dsm_b),
+            ("ground", ground_m),
+            ("filled A", filled_a),
+            ("filled B", filled_b),
+        ):
             if arr is not None and np.shape(arr) != shape:
-                raise ConfigError(f"{what} shape {np.shape(arr)} does not match the images {shape}; "
-                                  "put both on the grid")
+                raise ConfigError(
+                    f"{what} shape {np.shape(arr)} does not match the images {shape}; put both on the grid"
+                )
         grounds, dsms, filled = [], [], []
         for d, fl in ((dsm_a, filled_a), (dsm_b, filled_b)):
             d = np.asarray(d, np.float64)
-            g = ground_m if ground_m is not None else ground_from_dsm(
-                d, 2 * int(math.ceil(params.side_max_m / posting_m)) + 1)
+            g = (
+                ground_m
+                if ground_m is not None
+                else ground_from_dsm(d, 2 * int(math.ceil(params.side_max_m / posting_m)) + 1)
+            )
             d, roof, unknown = fill_roof_holes(d, g, params.min_height_m, fl)
             grounds.append(g)
             dsms.append(d)
             filled.append((int(roof.sum()), int(unknown.sum())))
         dsm_a, dsm_b = dsms
         if any(sum(x) for x in filled):
-            notes.append("DSM holes (no height, or the terrain its producer put there) inside raised surfaces, "
-                         "roofs the stereo could not match, take the surface's height: "
-                         f"{filled[0][0]} cells on date A, {filled[1][0]} on date B; holes half on a raised "
-                         f"surface, half beside it, are unknown: {filled[0][1]} and {filled[1][1]} cells")
+            notes.append(
+                "DSM holes (no height, or the terrain its producer put there) inside raised surfaces, "
+                "roofs the stereo could not match, take the surface's height: "
+                f"{filled[0][0]} cells on date A, {filled[1][0]} on date B; holes half on a raised "
+                f"surface, half beside it, are unknown: {filled[0][1]} and {filled[1][1]} cells"
+            )
     if use_h and params.side_max_from_dsm:
         found = []
         for d, g in zip((dsm_a, dsm_b), grounds):
@@ -135,20 +171,30 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
                 found.append(side_max_from_dsm(d - g, posting_m, params))
         smax = max([x for x in found if np.isfinite(x)], default=params.side_max_m)
         if smax > params.side_max_m:
-            notes.append(f"largest rectangle side {smax:.1f} m: 0.9 quantile of the raised segments' long sides "
-                         f"(instead of {params.side_max_m:g} m)")
+            notes.append(
+                f"largest rectangle side {smax:.1f} m: 0.9 quantile of the raised segments' long sides "
+                f"(instead of {params.side_max_m:g} m)"
+            )
             params = params.replace(side_max_m=round(smax, 1))
-    fa = image_features(image_a, posting_m, params, valid=valid_a, dsm_m=dsm_a if use_h else None,
-                        ground_m=ground_m if use_h else None)
-    fb = image_features(image_b, posting_m, params, valid=valid_b, dsm_m=dsm_b if use_h else None,
-                        ground_m=ground_m if use_h else None)
+    fa = image_features(
+        image_a, posting_m, params, valid=valid_a, dsm_m=dsm_a if use_h else None, ground_m=ground_m if use_h else None
+    )
+    fb = image_features(
+        image_b, posting_m, params, valid=valid_b, dsm_m=dsm_b if use_h else None, ground_m=ground_m if use_h else None
+    )
     for tag, f in (("image A", fa), ("image B", fb)):
         notes += [f"{tag}: {n}" for n in f.notes]
     flat = [tag for tag, f in (("image A", fa), ("image B", fb)) if not f.birth.any()]
     if flat:
-        notes.append(f"{' and '.join(flat)}: no gradient at all (flat): no building can be seen there"
-                     + ("" if len(flat) == 2 else "; every building of the other date will read as a change "
-                        "(check for cloud, nodata or a wrong band)"))
+        notes.append(
+            f"{' and '.join(flat)}: no gradient at all (flat): no building can be seen there"
+            + (
+                ""
+                if len(flat) == 2
+                else "; every building of the other date will read as a change "
+                "(check for cloud, nodata or a wrong band)"
+            )
+        )
     b0 = float("nan")
     if method == "SD":
         ma = EnergyModel([fa], posting_m, params)
@@ -168,19 +214,25 @@ def detect(image_a: np.ndarray, image_b: np.ndarray, posting_m: float, params: M
             Bh = height_similarity(fa, fb, params.min_height_m, B)
             B = Bh if ev == "height" else (0.5 * (B + Bh)).astype(np.float32)
             standing = f"a cell changed when it stands over {params.min_height_m:g} m above the ground on one date only"
-            notes.append(f"change evidence (ξ): the DSMs: {standing}" if ev == "height" else
-                         f"change evidence (ξ): the mean of the DSMs' and the texture's: {standing} "
-                         "(or the orientation texture differs)")
-        model = EnergyModel([fa, fb], posting_m, params, similarity=B,
-                            change_prior=change_prior if params.gamma_3d > 0 else None)
+            notes.append(
+                f"change evidence (ξ): the DSMs: {standing}"
+                if ev == "height"
+                else f"change evidence (ξ): the mean of the DSMs' and the texture's: {standing} "
+                "(or the orientation texture differs)"
+            )
+        model = EnergyModel(
+            [fa, fb], posting_m, params, similarity=B, change_prior=change_prior if params.gamma_3d > 0 else None
+        )
         res = optimize(model, params, progress=sub_progress(prog, 0.1, 1.0))
         notes += res.notes
         thr = [_thr(t) for t in model.terms]
     if len(res) == 0 and not flat:
         notes.append(_why_empty(params, (fa, fb)))
     if not res.converged:
-        notes.append(f"multiple birth and death stopped at the iteration cap ({params.max_iter}) before the "
-                     "convergence test passed")
+        notes.append(
+            f"multiple birth and death stopped at the iteration cap ({params.max_iter}) before the "
+            "convergence test passed"
+        )
     prog(1.0, f"{len(res)} rectangles")
     return Detection(res, method, (fa, fb), b0, thr, notes)
 
@@ -194,17 +246,24 @@ def _why_empty(params: MPPParams, feats) -> str:
             if ok.any():
                 raised.append(float(np.mean(f.ndsm[ok] > params.min_height_m)))
     if raised and max(raised) > 0.5:
-        return (f"no building found: {max(raised):.0%} of the cells stand more than {params.min_height_m:g} m above "
-                "the ground estimated from the DSM, so no rectangle is a raised block with lower surroundings "
-                "(dense blocks larger than the largest rectangle, or a ground model that is too low: give the "
-                "terrain DEM, or try without the height term)")
-    return (f"no building found: no rectangle of {params.side_min_m:g}–{params.side_max_m:g} m fits the image "
-            "cues; check the side bounds against the buildings' size")
+        return (
+            f"no building found: {max(raised):.0%} of the cells stand more than {params.min_height_m:g} m above "
+            "the ground estimated from the DSM, so no rectangle is a raised block with lower surroundings "
+            "(dense blocks larger than the largest rectangle, or a ground model that is too low: give the "
+            "terrain DEM, or try without the height term)"
+        )
+    return (
+        f"no building found: no rectangle of {params.side_min_m:g}–{params.side_max_m:g} m fits the image "
+        "cues; check the side bounds against the buildings' size"
+    )
 
 
 def _thr(term) -> dict[str, Any]:
-    return {"d_gradient": round(term.d_gradient, 4), "D_gradient": round(term.D_gradient, 4),
-            "prototypes": " | ".join(" + ".join(p) for p in term.prototypes)}
+    return {
+        "d_gradient": round(term.d_gradient, 4),
+        "D_gradient": round(term.D_gradient, 4),
+        "prototypes": " | ".join(" + ".join(p) for p in term.prototypes),
+    }
 
 
 def _sd_result(ra: MPPResult, rb: MPPResult, rects: np.ndarray, xi: np.ndarray) -> MPPResult:
@@ -221,10 +280,18 @@ def _sd_result(ra: MPPResult, rb: MPPResult, rects: np.ndarray, xi: np.ndarray) 
     phi[:n1, 0] = ra.phi[:, 0]
     phi[n1:, 1] = rb.phi[sel_b, 0]
     conf = np.concatenate([ra.confidence, rb.confidence[sel_b]])
-    return MPPResult(rects=rects, xi=xi.astype(np.int8), energy=energy, phi=phi, confidence=conf,
-                     xi_confidence=np.full(len(rects), np.nan), iterations=max(ra.iterations, rb.iterations),
-                     converged=ra.converged and rb.converged, births=ra.births + rb.births,
-                     energy_total=ra.energy_total + rb.energy_total)
+    return MPPResult(
+        rects=rects,
+        xi=xi.astype(np.int8),
+        energy=energy,
+        phi=phi,
+        confidence=conf,
+        xi_confidence=np.full(len(rects), np.nan),
+        iterations=max(ra.iterations, rb.iterations),
+        converged=ra.converged and rb.converged,
+        births=ra.births + rb.births,
+        energy_total=ra.energy_total + rb.energy_total,
+    )
 
 
 __all__ = ["BOTH", "ONLY_1", "ONLY_2", "METHODS", "Detection", "context_m", "detect", "ImageFeatures"]

@@ -71,8 +71,13 @@ def _components(mask: np.ndarray, min_cells: int = 1) -> list[np.ndarray]:
     return out
 
 
-def table2(masks: dict[str, np.ndarray], truth_objects: list[dict], truth_1: np.ndarray, truth_2: np.ndarray,
-           observed: np.ndarray | None = None) -> dict:
+def table2(
+    masks: dict[str, np.ndarray],
+    truth_objects: list[dict],
+    truth_1: np.ndarray,
+    truth_2: np.ndarray,
+    observed: np.ndarray | None = None,
+) -> dict:
     """Table 2 on a scene with building truth of both dates.
 
     Parameters
@@ -86,8 +91,11 @@ def table2(masks: dict[str, np.ndarray], truth_objects: list[dict], truth_1: np.
     """
     obs = np.ones(truth_1.shape, bool) if observed is None else observed
     scored = [t for t in truth_objects if t.get("scored", True)]
-    ho = sum(1 for t in scored
-             if not any(_cover(masks["date1" if d == 1 else "date2"], t["mask"]) >= 0.5 for d in t["dates"]))
+    ho = sum(
+        1
+        for t in scored
+        if not any(_cover(masks["date1" if d == 1 else "date2"], t["mask"]) >= 0.5 for d in t["dates"])
+    )
     truth_any = truth_1 | truth_2
     det = _components(masks["any"] & obs)
     fo = sum(1 for m in det if _cover(truth_any, m) < 0.5)
@@ -114,10 +122,20 @@ def table2(masks: dict[str, np.ndarray], truth_objects: list[dict], truth_1: np.
     dch = (masks["new"] | masks["demolished"]) & obs
     cf = _f(int((dch & tch).sum()), int((dch & ~tch).sum()), int((~dch & tch & obs).sum()))
     dp = _f(tp, fp, fn)
-    return {"objects": len(scored), "changes": sum(1 for t in changes if t.get("scored", True)),
-            "detected_objects": len(det),
-            "detected_changes": n_det_changes, "HO": ho, "FO": fo, "HV": hv, "FV": int(fv), "DP": dp["f"],
-            "DP_precision": dp["precision"], "DP_recall": dp["recall"], "change_f": cf["f"]}
+    return {
+        "objects": len(scored),
+        "changes": sum(1 for t in changes if t.get("scored", True)),
+        "detected_objects": len(det),
+        "detected_changes": n_det_changes,
+        "HO": ho,
+        "FO": fo,
+        "HV": hv,
+        "FV": int(fv),
+        "DP": dp["f"],
+        "DP_precision": dp["precision"],
+        "DP_recall": dp["recall"],
+        "change_f": cf["f"],
+    }
 
 
 def table2_change_only(masks: dict[str, np.ndarray], change_label: np.ndarray, min_cells: int = 40) -> dict:
@@ -130,13 +148,24 @@ def table2_change_only(masks: dict[str, np.ndarray], change_label: np.ndarray, m
     tl = change_label.astype(bool)
     fv = sum(1 for m in det if _cover(tl, m) < 0.5)
     cf = _f(int((dch & tl).sum()), int((dch & ~tl).sum()), int((~dch & tl).sum()))
-    return {"objects": None, "changes": len(truth), "detected_changes": len(det), "HO": None, "FO": None,
-            "HV": hv, "FV": fv, "DP": None, "change_f": cf["f"], "change_precision": cf["precision"],
-            "change_recall": cf["recall"]}
+    return {
+        "objects": None,
+        "changes": len(truth),
+        "detected_changes": len(det),
+        "HO": None,
+        "FO": None,
+        "HV": hv,
+        "FV": fv,
+        "DP": None,
+        "change_f": cf["f"],
+        "change_precision": cf["precision"],
+        "change_recall": cf["recall"],
+    }
 
 
-def sample_truth(footprints_all, grid, min_in_aoi: float = 0.5, cut_buildings: str = "masks"
-                 ) -> tuple[list[dict], np.ndarray, np.ndarray]:
+def sample_truth(
+    footprints_all, grid, min_in_aoi: float = 0.5, cut_buildings: str = "masks"
+) -> tuple[list[dict], np.ndarray, np.ndarray]:
     """Truth objects and date masks from a geocd synth ``footprints_all`` layer (``status`` per building).
 
     Parameters
@@ -164,7 +193,7 @@ def sample_truth(footprints_all, grid, min_in_aoi: float = 0.5, cut_buildings: s
         if on_grid <= 0 or (not whole and cut_buildings == "drop"):
             continue
         m = rasterize([(geom, 1)], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8") > 0
-        if not whole and not m.any():     # a corner on the grid too small to hold a cell centre
+        if not whole and not m.any():  # a corner on the grid too small to hold a cell centre
             continue
         dates = (1,) if status == "demolished" else (2,) if status == "new" else (1, 2)
         change = status if status in ("new", "demolished") else None

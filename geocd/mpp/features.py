@@ -85,8 +85,9 @@ def _bands(image: np.ndarray) -> np.ndarray:
     return a.astype(np.float32)
 
 
-def orientation_density(grad_mag: np.ndarray, grad_ori: np.ndarray, valid: np.ndarray, window_cells: int,
-                        bins: int, kernel_deg: float) -> np.ndarray:
+def orientation_density(
+    grad_mag: np.ndarray, grad_ori: np.ndarray, valid: np.ndarray, window_cells: int, bins: int, kernel_deg: float
+) -> np.ndarray:
     """λ_s(ϑ): magnitude-weighted density of gradient orientations over the l×l window around each cell.
 
     Uniform kernel of half-width ``kernel_deg`` in orientation (circular over 180°), uniform window in
@@ -119,14 +120,14 @@ def bimodal_fit(density: np.ndarray, spread_deg: float) -> tuple[np.ndarray, np.
     """
     bins = density.shape[0]
     step = 180.0 / bins
-    d = (np.arange(bins) * step + 90.0) % 180.0 - 90.0                # signed offsets, periodic
+    d = (np.arange(bins) * step + 90.0) % 180.0 - 90.0  # signed offsets, periodic
     g = np.exp(-0.5 * (d / spread_deg) ** 2)
-    g /= g.sum() * step                                              # density per degree
+    g /= g.sum() * step  # density per degree
     # circular correlation along the orientation axis: c[m] = Σ_j λ_j g(j − m)
     F = np.fft.rfft(density, axis=0) * np.conj(np.fft.rfft(g))[:, None, None]
     c = np.fft.irfft(F, n=bins, axis=0) * step
     half = bins // 2
-    a2 = 0.5 * (c[:half] + c[half:2 * half])                          # modes at m and m + 90°
+    a2 = 0.5 * (c[:half] + c[half : 2 * half])  # modes at m and m + 90°
     idx = np.argmax(a2, axis=0)
     alpha = np.take_along_axis(a2, idx[None], axis=0)[0].astype(np.float32)
     centres = np.arange(half) * step - 90.0 + 0.5 * step
@@ -147,14 +148,16 @@ def colour_masks(bands: np.ndarray, valid: np.ndarray, grey: np.ndarray) -> tupl
     mn = np.minimum(np.minimum(R, G), B)
     with np.errstate(invalid="ignore", divide="ignore"):
         sat = np.where(mx > 0, (mx - mn) / mx, 0.0)
-        hue = np.degrees(np.arctan2(math.sqrt(3) * (G - B), 2 * R - G - B))     # 0 = red
+        hue = np.degrees(np.arctan2(math.sqrt(3) * (G - B), 2 * R - G - B))  # 0 = red
     mu_c = (np.abs(hue) <= 25.0) & (sat >= 0.25) & (mx >= 0.15) & valid
     med = float(np.median(grey[valid]))
     mu_sh = (grey < 0.5 * med) & (b >= r) & valid
     return mu_c.astype(np.uint8), mu_sh.astype(np.uint8)
 
 
-def shadow_direction(shadow: np.ndarray, alpha: np.ndarray, reach_cells: float, n_dirs: int = 36) -> tuple[float, float] | None:
+def shadow_direction(
+    shadow: np.ndarray, alpha: np.ndarray, reach_cells: float, n_dirs: int = 36
+) -> tuple[float, float] | None:
     """Direction (dcol, drow) from buildings to their shadows: the one along which shadow cells have the most
     building-like texture (α) on their sun side, i.e. at ``p − reach · dir``. None when too few shadow cells."""
     ii, jj = np.nonzero(shadow)
@@ -188,8 +191,9 @@ def ground_from_dsm(dsm_m: np.ndarray, width_cells: int) -> np.ndarray:
     return ndimage.uniform_filter(g, size=w, mode="nearest")
 
 
-def fill_roof_holes(dsm_m: np.ndarray, ground_m: np.ndarray, min_height_m: float,
-                    filled: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fill_roof_holes(
+    dsm_m: np.ndarray, ground_m: np.ndarray, min_height_m: float, filled: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Holes of a DSM inside a raised surface take the surface's height; holes half on it become unknown.
 
     A stereo DSM has no height where matching failed, and that happens on plain roofs as well as on the ground
@@ -245,18 +249,18 @@ def fill_roof_holes(dsm_m: np.ndarray, ground_m: np.ndarray, min_height_m: float
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     raised_q = np.zeros(n + 1, bool)
     has = np.flatnonzero(counts > 0)
-    pos = starts[has] + 0.25 * (counts[has] - 1)          # np.percentile's linear interpolation
+    pos = starts[has] + 0.25 * (counts[has] - 1)  # np.percentile's linear interpolation
     lo = np.floor(pos).astype(np.int64)
     hi = np.minimum(lo + 1, starts[has] + counts[has] - 1)
     raised_q[has] = vals[lo] + (pos - lo) * (vals[hi] - vals[lo]) > min_height_m
-    low = ~hole & ~(nd > min_height_m)                     # ground, or no terrain height to tell
+    low = ~hole & ~(nd > min_height_m)  # ground, or no terrain height to tell
     edge = np.zeros(d.shape, bool)
     edge[[0, -1], :] = True
     edge[:, [0, -1]] = True
     touches = np.zeros(n + 1, bool)
     touches[lab[hole & (ndimage.binary_dilation(low, eight) | edge)]] = True
     roof = hole & (raised_q & ~touches)[lab]
-    unknown = hole & (raised_q & touches)[lab] & np.isfinite(d)       # NaN cells are unknown already
+    unknown = hole & (raised_q & touches)[lab] & np.isfinite(d)  # NaN cells are unknown already
     if roof.any():
         # the nearest cell with a height to a cell of an enclosed hole lies on that hole's raised rim
         idx = ndimage.distance_transform_edt(hole, return_distances=False, return_indices=True)
@@ -279,18 +283,19 @@ def plane_residual(dsm_m: np.ndarray, posting_m: float = 1.0) -> np.ndarray:
     full = ndimage.uniform_filter(ok.astype(np.float64), 3, mode="nearest") > 1.0 - 1e-9
     m1 = ndimage.uniform_filter(z, 3, mode="nearest")
     m2 = ndimage.uniform_filter(z * z, 3, mode="nearest")
-    kx = np.array([[-1.0, 0.0, 1.0]] * 3) / 6.0            # LS slope per cell along columns (Σx² = 6)
+    kx = np.array([[-1.0, 0.0, 1.0]] * 3) / 6.0  # LS slope per cell along columns (Σx² = 6)
     sx = ndimage.correlate(z, kx, mode="nearest")
     sy = ndimage.correlate(z, kx.T, mode="nearest")
     # residual variance of the plane fit: var(z) − slope² var(x) − slope² var(y), var(x) = var(y) = 2/3
     var = m2 - m1 * m1 - (sx * sx + sy * sy) * (2.0 / 3.0)
-    res = np.sqrt(np.maximum(var, 0.0) * 9.0 / 6.0)          # unbiased: 9 cells, 3 plane parameters
+    res = np.sqrt(np.maximum(var, 0.0) * 9.0 / 6.0)  # unbiased: 9 cells, 3 plane parameters
     res /= np.sqrt(1.0 + (sx * sx + sy * sy) / (posting_m * posting_m))
     return np.where(full, res, np.nan).astype(np.float32)
 
 
-def planar_cells(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_height_m: float,
-                 posting_m: float = 1.0) -> tuple[np.ndarray, float]:
+def planar_cells(
+    dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_height_m: float, posting_m: float = 1.0
+) -> tuple[np.ndarray, float]:
     """Which cells of a DSM lie on a locally planar patch, with the tolerance measured on the DSM itself.
 
     The tolerance is the noise of one 3 × 3 plane fit on the ground cells (less than ``min_height_m`` above
@@ -303,7 +308,7 @@ def planar_cells(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_hei
     res = plane_residual(dsm_m, posting_m)
     has = np.isfinite(res) & valid & np.isfinite(ndsm)
     gnd = has & (ndsm < min_height_m)
-    if gnd.sum() < 100:                       # almost no ground: every observed cell (the median is robust)
+    if gnd.sum() < 100:  # almost no ground: every observed cell (the median is robust)
         gnd = has
     if not gnd.any():
         return np.full(res.shape, np.nan, np.float32), float("nan")
@@ -315,8 +320,9 @@ def planar_cells(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_hei
     return planar, tol
 
 
-def dsm_noise_m(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_height_m: float,
-                posting_m: float = 1.0) -> float:
+def dsm_noise_m(
+    dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_height_m: float, posting_m: float = 1.0
+) -> float:
     """The DSM's height noise σ_z (m) per cell: the median RMS residual of the 3 × 3 plane fits on the ground
     cells (as in :func:`planar_cells`; a planar patch leaves only the noise, and the median ignores the
     walls, cars and bushes among the ground cells). NaN without ground."""
@@ -328,9 +334,18 @@ def dsm_noise_m(dsm_m: np.ndarray, ndsm: np.ndarray, valid: np.ndarray, min_heig
     return float(np.median(res[gnd])) if gnd.any() else float("nan")
 
 
-def wall_blur_m(ndsm: np.ndarray, grad_mag: np.ndarray, grad_ori: np.ndarray, valid: np.ndarray,
-                edge_level: float, posting_m: float, min_height_m: float, side_min_m: float,
-                level: float = 0.1, max_cells: int = 20000) -> dict:
+def wall_blur_m(
+    ndsm: np.ndarray,
+    grad_mag: np.ndarray,
+    grad_ori: np.ndarray,
+    valid: np.ndarray,
+    edge_level: float,
+    posting_m: float,
+    min_height_m: float,
+    side_min_m: float,
+    level: float = 0.1,
+    max_cells: int = 20000,
+) -> dict:
     """How far a DSM's walls spill outside the image's edges, measured on the scene itself (no truth).
 
     The image's strong edges (gradient ≥ ``edge_level``, the top decile, and a local maximum across the edge)
@@ -348,23 +363,35 @@ def wall_blur_m(ndsm: np.ndarray, grad_mag: np.ndarray, grad_ori: np.ndarray, va
     Returns a dict: ``out_m`` (m, ≥ 0; NaN when fewer than 50 wall cells are found), ``rise_m``, ``half_m``,
     ``walls`` (the number of edge cells used).
     """
-    res = {"out_m": float("nan"), "ground_m": float("nan"), "in_m": float("nan"), "rise_m": float("nan"),
-           "half_m": float("nan"), "walls": 0}
+    res = {
+        "out_m": float("nan"),
+        "ground_m": float("nan"),
+        "in_m": float("nan"),
+        "rise_m": float("nan"),
+        "half_m": float("nan"),
+        "walls": 0,
+    }
     nd = np.asarray(ndsm, np.float64)
     H, W = nd.shape
     has = np.isfinite(nd)
     if not has.any():
         return res
     ndf = np.where(has, nd, 0.0)
-    dc = np.cos(grad_ori).astype(np.float64)            # the gradient's direction in (col, row): (cos, −sin)
+    dc = np.cos(grad_ori).astype(np.float64)  # the gradient's direction in (col, row): (cos, −sin)
     dr = -np.sin(grad_ori).astype(np.float64)
     cand = valid & (grad_mag >= edge_level) & (grad_mag > 0)
     ii, jj = np.nonzero(cand)
     if ii.size == 0:
         return res
     # a local maximum across the edge (nearest cells one step either way along the gradient)
-    a = np.clip(np.round(ii + dr[ii, jj]).astype(int), 0, H - 1), np.clip(np.round(jj + dc[ii, jj]).astype(int), 0, W - 1)
-    b = np.clip(np.round(ii - dr[ii, jj]).astype(int), 0, H - 1), np.clip(np.round(jj - dc[ii, jj]).astype(int), 0, W - 1)
+    a = (
+        np.clip(np.round(ii + dr[ii, jj]).astype(int), 0, H - 1),
+        np.clip(np.round(jj + dc[ii, jj]).astype(int), 0, W - 1),
+    )
+    b = (
+        np.clip(np.round(ii - dr[ii, jj]).astype(int), 0, H - 1),
+        np.clip(np.round(jj - dc[ii, jj]).astype(int), 0, W - 1),
+    )
     g = grad_mag[ii, jj]
     keep = (g >= grad_mag[a]) & (g >= grad_mag[b])
     ii, jj = ii[keep], jj[keep]
@@ -373,10 +400,10 @@ def wall_blur_m(ndsm: np.ndarray, grad_mag: np.ndarray, grad_ori: np.ndarray, va
         ii, jj = ii[np.sort(sel)], jj[np.sort(sel)]
     step = 0.25
     reach_out = side_min_m / posting_m
-    t = np.arange(-reach_out, 0.5 * reach_out + 1e-9, step)          # cells; + towards the high side
+    t = np.arange(-reach_out, 0.5 * reach_out + 1e-9, step)  # cells; + towards the high side
     hasf = has.astype(np.float64)
 
-    def profiles(i, j, sign):     # the nDSM at offsets t along sign × the normal (NaN where a sample lacks a height)
+    def profiles(i, j, sign):  # the nDSM at offsets t along sign × the normal (NaN where a sample lacks a height)
         ci = i[:, None] + sign * dr[i, j][:, None] * t[None]
         cj = j[:, None] + sign * dc[i, j][:, None] * t[None]
         at = [ci.ravel(), cj.ravel()]
@@ -395,16 +422,16 @@ def wall_blur_m(ndsm: np.ndarray, grad_mag: np.ndarray, grad_ori: np.ndarray, va
         warnings.simplefilter("ignore", RuntimeWarning)
         low = np.nanmin(prof[:, t <= 0], axis=1)
         high = np.nanmax(prof[:, t >= 0], axis=1)
-        wall = (np.all(np.isfinite(prof), axis=1) & (low < min_height_m) & (high - low > min_height_m))
+        wall = np.all(np.isfinite(prof), axis=1) & (low < min_height_m) & (high - low > min_height_m)
         if wall.sum() < 50:
             res["walls"] = int(wall.sum())
             return res
         norm = (prof[wall] - low[wall, None]) / (high[wall] - low[wall])[:, None]
         med = np.median(norm, axis=0)
 
-    def crossing(lv):            # from the edge (t = 0) outwards: the first fall below the level
+    def crossing(lv):  # from the edge (t = 0) outwards: the first fall below the level
         k0 = int(np.argmin(np.abs(t)))
-        if med[k0] < lv:         # already below at the edge: the wall lies inside the image edge
+        if med[k0] < lv:  # already below at the edge: the wall lies inside the image edge
             for k in range(k0, t.size - 1):
                 if med[k] < lv <= med[k + 1]:
                     return float(t[k] + (lv - med[k]) / (med[k + 1] - med[k]) * step)
@@ -418,10 +445,14 @@ def wall_blur_m(ndsm: np.ndarray, grad_mag: np.ndarray, grad_ori: np.ndarray, va
     # the level of the ground test (nDSM ≤ min_height_m) on the median wall's scale
     lv_g = float(np.median((min_height_m - low[wall]) / (high[wall] - low[wall])))
     c_g = crossing(lv_g) if 0.0 < lv_g < 1.0 else float("nan")
-    res.update(out_m=max(0.0, -c_lo * posting_m) if np.isfinite(c_lo) else float("nan"),
-               ground_m=max(0.0, -c_g * posting_m) if np.isfinite(c_g) else float("nan"),
-               in_m=max(0.0, c_hi * posting_m) if np.isfinite(c_hi) else float("nan"),
-               rise_m=(c_hi - c_lo) * posting_m, half_m=c_half * posting_m, walls=int(wall.sum()))
+    res.update(
+        out_m=max(0.0, -c_lo * posting_m) if np.isfinite(c_lo) else float("nan"),
+        ground_m=max(0.0, -c_g * posting_m) if np.isfinite(c_g) else float("nan"),
+        in_m=max(0.0, c_hi * posting_m) if np.isfinite(c_hi) else float("nan"),
+        rise_m=(c_hi - c_lo) * posting_m,
+        half_m=c_half * posting_m,
+        walls=int(wall.sum()),
+    )
     return res
 
 
@@ -452,12 +483,13 @@ def segment_sides_m(ndsm: np.ndarray, posting_m: float, min_height_m: float, sid
     disc = np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
     l1, l2 = 0.5 * tr + disc, np.maximum(0.5 * tr - disc, 0.0)
     sides = np.sqrt(12.0) * np.column_stack([np.sqrt(l1), np.sqrt(l2)]) * posting_m
-    keep = cnt * posting_m ** 2 >= side_min_m ** 2
+    keep = cnt * posting_m**2 >= side_min_m**2
     return sides[keep]
 
 
-def side_max_from_dsm(ndsm: np.ndarray, posting_m: float, params: MPPParams = MPPParams(),
-                      quantile: float = 0.9) -> float:
+def side_max_from_dsm(
+    ndsm: np.ndarray, posting_m: float, params: MPPParams = MPPParams(), quantile: float = 0.9
+) -> float:
     """The largest rectangle side the scene needs: the ``quantile`` of its raised segments' long sides
     (:func:`segment_sides_m`), never below ``params.side_max_m``. Larger buildings are still unions of
     rectangles, as in the paper; NaN when the nDSM has no raised segment."""
@@ -467,9 +499,16 @@ def side_max_from_dsm(ndsm: np.ndarray, posting_m: float, params: MPPParams = MP
     return max(params.side_max_m, float(np.quantile(sides[:, 0], quantile)))
 
 
-def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPParams(), *,
-                   valid: np.ndarray | None = None, dsm_m: np.ndarray | None = None,
-                   ground_m: np.ndarray | None = None, use_colour: bool = True) -> ImageFeatures:
+def image_features(
+    image: np.ndarray,
+    posting_m: float,
+    params: MPPParams = MPPParams(),
+    *,
+    valid: np.ndarray | None = None,
+    dsm_m: np.ndarray | None = None,
+    ground_m: np.ndarray | None = None,
+    use_colour: bool = True,
+) -> ImageFeatures:
     """Features of one orthoimage on the AOI grid.
 
     Parameters
@@ -495,10 +534,10 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
     if not np.isfinite(sigma) or sigma <= 0:
         sigma = float(1.4826 * np.median(np.abs(grey[ok] - med))) * 0.01 or 1e-6
     sm = ndimage.gaussian_filter(grey.astype(np.float64), 1.0)
-    gx = ndimage.sobel(sm, axis=1) / 8.0                    # per cell, towards +col (east)
-    gy = -ndimage.sobel(sm, axis=0) / 8.0                   # towards north
+    gx = ndimage.sobel(sm, axis=1) / 8.0  # per cell, towards +col (east)
+    gy = -ndimage.sobel(sm, axis=0) / 8.0  # towards north
     mag = np.hypot(gx, gy).astype(np.float32)
-    mag[~ndimage.binary_erosion(ok, iterations=2, border_value=1)] = 0.0   # no edges at nodata borders
+    mag[~ndimage.binary_erosion(ok, iterations=2, border_value=1)] = 0.0  # no edges at nodata borders
     ori = np.arctan2(gy, gx)
     ori = ((ori + np.pi / 2) % np.pi - np.pi / 2).astype(np.float32)
     win = max(3, int(round(params.window / posting_m)) | 1)
@@ -517,9 +556,11 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         largest = int(np.bincount(lab.ravel())[1:].max()) if nlab else 0
         smallest = int(math.ceil((params.side_min_m / posting_m) ** 2))
         if largest < smallest:
-            notes.append(f"the roof-colour mask covers {colour[ok].mean():.1%} of the cells in patches of at most "
-                         f"{largest} cells, none the size of a building ({smallest} cells): colour and shadow "
-                         "terms dropped, grey-image model")
+            notes.append(
+                f"the roof-colour mask covers {colour[ok].mean():.1%} of the cells in patches of at most "
+                f"{largest} cells, none the size of a building ({smallest} cells): colour and shadow "
+                "terms dropped, grey-image model"
+            )
             colour = shadow = None
     if colour is not None:
         gam = ndimage.uniform_filter(colour.astype(np.float32), size=win, mode="constant")
@@ -531,23 +572,31 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
             frac = float(near[ok].mean())
             if frac > 0:
                 births.append(np.where(near, 1.0 / frac, 0.1).astype(np.float32))
-            notes.append(f"shadows fall towards azimuth {math.degrees(math.atan2(sdir[0], -sdir[1])) % 360:.0f}° "
-                         "(estimated from the image)")
+            notes.append(
+                f"shadows fall towards azimuth {math.degrees(math.atan2(sdir[0], -sdir[1])) % 360:.0f}° "
+                "(estimated from the image)"
+            )
         else:
             notes.append("too few shadow cells: shadow term dropped")
             shadow = None
     elif bands.shape[0] < 3 or not use_colour:
-        notes.append("grey image: colour and shadow terms dropped" if bands.shape[0] < 3 else
-                     "colour and shadow terms switched off")
-    edge_level = float(np.percentile(mag[ok], 90))         # what a strong edge is (births' snapping, walls)
+        notes.append(
+            "grey image: colour and shadow terms dropped"
+            if bands.shape[0] < 3
+            else "colour and shadow terms switched off"
+        )
+    edge_level = float(np.percentile(mag[ok], 90))  # what a strong edge is (births' snapping, walls)
     ndsm = planar = None
     planar_tol = step_min = wall_out = wall_ground = wall_in = float("nan")
     if dsm_m is not None:
         d = np.asarray(dsm_m, np.float64)
         if d.shape != grey.shape:
             raise ConfigError(f"DSM shape {d.shape} does not match the image {grey.shape}; put both on the grid")
-        gr = np.asarray(ground_m, np.float64) if ground_m is not None else \
-            ground_from_dsm(d, 2 * int(math.ceil(params.side_max_m / posting_m)) + 1)
+        gr = (
+            np.asarray(ground_m, np.float64)
+            if ground_m is not None
+            else ground_from_dsm(d, 2 * int(math.ceil(params.side_max_m / posting_m)) + 1)
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             ndsm = (d - gr).astype(np.float32)
@@ -559,36 +608,63 @@ def image_features(image: np.ndarray, posting_m: float, params: MPPParams = MPPP
         ndsm = np.where(has, med, np.nan).astype(np.float32)
         planar, planar_tol = planar_cells(d, ndsm, ok, params.min_height_m, posting_m)
         if np.isfinite(planar_tol):
-            notes.append(f"DSM planarity: a cell is rough above a plane-fit residual of {planar_tol:.2f} m "
-                         "(the noise of one 3 × 3 plane fit on the ground cells)")
+            notes.append(
+                f"DSM planarity: a cell is rough above a plane-fit residual of {planar_tol:.2f} m "
+                "(the noise of one 3 × 3 plane fit on the ground cells)"
+            )
         sigma_z = dsm_noise_m(d, ndsm, ok, params.min_height_m, posting_m)
         if np.isfinite(sigma_z):
             # a step between the mean heights just inside and just outside a side, each as noisy as one cell
             # (stereo DSM errors are correlated over a few cells), is significant at 3 σ of a difference
             step_min = 3.0 * math.sqrt(2.0) * sigma_z
-            notes.append(f"DSM steps: an outline steps down where inside − outside ≥ {step_min:.2f} m "
-                         f"(3 √2 σ_z, σ_z = {sigma_z:.3f} m on the ground cells)")
+            notes.append(
+                f"DSM steps: an outline steps down where inside − outside ≥ {step_min:.2f} m "
+                f"(3 √2 σ_z, σ_z = {sigma_z:.3f} m on the ground cells)"
+            )
         blur = wall_blur_m(ndsm, mag, ori, ok, edge_level, posting_m, params.min_height_m, params.side_min_m)
         wall_out, wall_ground, wall_in = blur["out_m"], blur["ground_m"], blur["in_m"]
         if np.isfinite(wall_out):
-            notes.append(f"DSM walls: they rise from 10 % of their height {wall_out:.2f} m outside the image's edges "
-                         f"to 90 % {wall_in:.2f} m inside, "
-                         f"below {params.min_height_m:g} m {wall_ground:.2f} m outside (half height "
-                         f"{-blur['half_m']:+.2f} m outside, 10–90 % rise {blur['rise_m']:.2f} m; median over "
-                         f"{blur['walls']} wall cells)")
-        raised = ndimage.uniform_filter((np.nan_to_num(ndsm, nan=0.0) > params.min_height_m).astype(np.float32),
-                                        size=max(3, win // 2) | 1, mode="constant")
+            notes.append(
+                f"DSM walls: they rise from 10 % of their height {wall_out:.2f} m outside the image's edges "
+                f"to 90 % {wall_in:.2f} m inside, "
+                f"below {params.min_height_m:g} m {wall_ground:.2f} m outside (half height "
+                f"{-blur['half_m']:+.2f} m outside, 10–90 % rise {blur['rise_m']:.2f} m; median over "
+                f"{blur['walls']} wall cells)"
+            )
+        raised = ndimage.uniform_filter(
+            (np.nan_to_num(ndsm, nan=0.0) > params.min_height_m).astype(np.float32),
+            size=max(3, win // 2) | 1,
+            mode="constant",
+        )
         if raised[ok].mean() > 0:
             births.append(raised / float(raised[ok].mean()))
     birth = np.max(np.stack(births), axis=0)
     birth = np.where(ok, birth, 0.0)
     mb = float(birth[ok].mean())
     birth = (birth / mb if mb > 0 else birth).astype(np.float32)
-    return ImageFeatures(grey=grey, valid=ok, grad_mag=mag, grad_ori=ori, density=dens, alpha=alpha,
-                         mode_deg=mode, birth=birth, colour_mask=colour, shadow_mask=shadow, shadow_dir=sdir,
-                         ndsm=ndsm, planar=planar, planar_tol_m=planar_tol, step_min_m=step_min, wall_out_m=wall_out,
-                         wall_ground_m=wall_ground, wall_in_m=wall_in, noise_sigma=float(sigma), edge_level=edge_level,
-                         notes=notes)
+    return ImageFeatures(
+        grey=grey,
+        valid=ok,
+        grad_mag=mag,
+        grad_ori=ori,
+        density=dens,
+        alpha=alpha,
+        mode_deg=mode,
+        birth=birth,
+        colour_mask=colour,
+        shadow_mask=shadow,
+        shadow_dir=sdir,
+        ndsm=ndsm,
+        planar=planar,
+        planar_tol_m=planar_tol,
+        step_min_m=step_min,
+        wall_out_m=wall_out,
+        wall_ground_m=wall_ground,
+        wall_in_m=wall_in,
+        noise_sigma=float(sigma),
+        edge_level=edge_level,
+        notes=notes,
+    )
 
 
 def _beside_shadow(shadow: np.ndarray, sdir: tuple[float, float], reach: float) -> np.ndarray:
@@ -627,12 +703,11 @@ def texture_change(f1: ImageFeatures, f2: ImageFeatures) -> tuple[np.ndarray, np
     both = f1.valid & f2.valid
     b0 = max(otsu_threshold(b[both]), 1e-3) if both.any() else 1e-3
     B = (b <= b0).astype(np.float32)
-    B[~both] = 0.5                                   # no evidence either way
+    B[~both] = 0.5  # no evidence either way
     return b, B, b0
 
 
-def height_similarity(f1: ImageFeatures, f2: ImageFeatures, min_height_m: float,
-                      texture: np.ndarray) -> np.ndarray:
+def height_similarity(f1: ImageFeatures, f2: ImageFeatures, min_height_m: float, texture: np.ndarray) -> np.ndarray:
     """The ξ term's similarity B read from the two DSMs instead of the texture (beyond the paper).
 
     A cell is unchanged (B = 1) when it stands more than ``min_height_m`` above the ground on both dates or

@@ -88,7 +88,7 @@ def auto_prototypes(f: ImageFeatures, params: MPPParams) -> list[list[str]]:
         # a building: trees are raised but neither outlined by straight edges nor homogeneous); the raised
         # block must also be planar (roof facets), which a tree crown is not
         hp = ["height", "planarity"] if "planarity" in have else ["height"]
-        if "step" in have:     # … with steep edges: the surface steps down along most of the outline
+        if "step" in have:  # … with steep edges: the surface steps down along most of the outline
             hp = hp + ["step"]
         protos = [p + hp for p in protos] + [["gradient"] + hp, ["homogeneity"] + hp]
     out = []
@@ -99,14 +99,16 @@ def auto_prototypes(f: ImageFeatures, params: MPPParams) -> list[list[str]]:
     return out or [["gradient"]]
 
 
-def random_rectangles(f: ImageFeatures, n: int, smin: float, smax: float, sigma_theta_deg: float,
-                      rng: np.random.Generator) -> np.ndarray:
+def random_rectangles(
+    f: ImageFeatures, n: int, smin: float, smax: float, sigma_theta_deg: float, rng: np.random.Generator
+) -> np.ndarray:
     """Rectangles drawn like births but uniformly over the valid cells (the data thresholds' reference)."""
     ii, jj = np.nonzero(f.valid)
     k = rng.integers(0, ii.size, n)
     th = np.radians(f.mode_deg[ii[k], jj[k]] + rng.normal(0.0, sigma_theta_deg, n))
-    return np.column_stack([jj[k].astype(float), ii[k].astype(float), rng.uniform(smin, smax, n),
-                            rng.uniform(smin, smax, n), th])
+    return np.column_stack(
+        [jj[k].astype(float), ii[k].astype(float), rng.uniform(smin, smax, n), rng.uniform(smin, smax, n), th]
+    )
 
 
 class EnergyModel:
@@ -120,16 +122,25 @@ class EnergyModel:
     change_prior : 3-D change evidence c ∈ [0, 1] on the grid (optional)
     """
 
-    def __init__(self, features: Sequence[ImageFeatures], posting_m: float, params: MPPParams = MPPParams(), *,
-                 similarity: np.ndarray | None = None, change_prior: np.ndarray | None = None,
-                 prototypes: Sequence[list[list[str]]] | None = None):
+    def __init__(
+        self,
+        features: Sequence[ImageFeatures],
+        posting_m: float,
+        params: MPPParams = MPPParams(),
+        *,
+        similarity: np.ndarray | None = None,
+        change_prior: np.ndarray | None = None,
+        prototypes: Sequence[list[list[str]]] | None = None,
+    ):
         if not 1 <= len(features) <= 2:
             raise ConfigError("the model takes one or two images")
         shape = features[0].grey.shape
         for f in features:
             if f.grey.shape != shape:
-                raise GridError(f"images on different grids: {[x.grey.shape for x in features]}; orthorectify or "
-                                "resample them onto one AOI grid first")
+                raise GridError(
+                    f"images on different grids: {[x.grey.shape for x in features]}; orthorectify or "
+                    "resample them onto one AOI grid first"
+                )
         self.shape = shape
         self.params = params
         self.posting_m = float(posting_m)
@@ -192,18 +203,41 @@ class EnergyModel:
         empty_u8 = np.zeros((0, 0), np.uint8)
         out = np.empty((rects.shape[0], K.N_FEATURES))
         sdx, sdy = f.shadow_dir if f.shadow_dir is not None else (0.0, 0.0)
-        K.rect_features(np.ascontiguousarray(rects, np.float64), f.grey, f.valid, f.grad_mag, f.grad_ori,
-                        f.colour_mask if f.colour_mask is not None else empty_u8,
-                        f.shadow_mask if f.shadow_mask is not None else empty_u8, float(sdx), float(sdy),
-                        self._height_map(f),
-                        float(self.params.min_height_m), float(self.edge_w), float(self.ring_w),
-                        float(self.shadow_w), float(3.0 * f.noise_sigma), float(self.params.flood_spread), float(gate),
-                        float(self.ring_in(f)), float(self.core_in(f)), out)
+        K.rect_features(
+            np.ascontiguousarray(rects, np.float64),
+            f.grey,
+            f.valid,
+            f.grad_mag,
+            f.grad_ori,
+            f.colour_mask if f.colour_mask is not None else empty_u8,
+            f.shadow_mask if f.shadow_mask is not None else empty_u8,
+            float(sdx),
+            float(sdy),
+            self._height_map(f),
+            float(self.params.min_height_m),
+            float(self.edge_w),
+            float(self.ring_w),
+            float(self.shadow_w),
+            float(3.0 * f.noise_sigma),
+            float(self.params.flood_spread),
+            float(gate),
+            float(self.ring_in(f)),
+            float(self.core_in(f)),
+            out,
+        )
         out = np.column_stack([out, np.full((rects.shape[0], N_RAW - K.N_FEATURES), np.nan)])
         if f.ndsm is not None and self.params.step != "off" and math.isfinite(f.step_min_m) and rects.shape[0]:
             st = np.empty(rects.shape[0])
-            K.rect_steps(np.ascontiguousarray(rects, np.float64), f.ndsm, float(f.step_min_m), 0.5, float(self.edge_w),
-                         float(self.ring_w), float(self.ring_w), st)
+            K.rect_steps(
+                np.ascontiguousarray(rects, np.float64),
+                f.ndsm,
+                float(f.step_min_m),
+                0.5,
+                float(self.edge_w),
+                float(self.ring_w),
+                float(self.ring_w),
+                st,
+            )
             out[:, F_STEP] = st
         if f.planar is not None and rects.shape[0]:
             # the core of the rectangle, clear of the walls' edge band (where a DSM's walls are never planar)
@@ -216,8 +250,9 @@ class EnergyModel:
             key = ("standing", id(f))
             if key not in self._hcache:
                 with np.errstate(invalid="ignore"):
-                    self._hcache[key] = np.where(np.isfinite(f.ndsm), f.ndsm > self.params.min_height_m,
-                                                 np.nan).astype(np.float32)
+                    self._hcache[key] = np.where(np.isfinite(f.ndsm), f.ndsm > self.params.min_height_m, np.nan).astype(
+                        np.float32
+                    )
             m = np.empty(rects.shape[0])
             K.rect_means(np.ascontiguousarray(rects, np.float64), self._hcache[key], m)
             out[:, F_STANDING] = m
@@ -244,8 +279,9 @@ class EnergyModel:
         p = self.params
         e = {
             "gradient": Q(raw[:, self.gradient_column], t.d_gradient, t.D_gradient),
-            "homogeneity": np.maximum(Q(raw[:, K.F_KURTOSIS], p.kurtosis_threshold, 0.5),
-                                      Q(raw[:, K.F_COMPLETE], 0.5, 0.25)),
+            "homogeneity": np.maximum(
+                Q(raw[:, K.F_KURTOSIS], p.kurtosis_threshold, 0.5), Q(raw[:, K.F_COMPLETE], 0.5, 0.25)
+            ),
             "colour": np.maximum(Q(raw[:, K.F_COLOUR_IN], 0.5, 0.25), Q(raw[:, K.F_COLOUR_OUT], 0.5, 0.25)),
             "shadow": np.maximum(Q(raw[:, K.F_SHADOW_IN], 0.5, 0.25), Q(raw[:, K.F_SHADOW_OUT], 0.5, 0.25)),
             "height": np.maximum(Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25)),
@@ -254,15 +290,17 @@ class EnergyModel:
         }
         if p.step == "ring" and np.isfinite(raw[:, F_STEP]).any():
             # raised inside, and outside either ground or a step down (a block among raised neighbours)
-            e["height"] = np.maximum(Q(raw[:, K.F_RAISED_IN], 0.5, 0.25),
-                                     np.minimum(Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25), e["step"]))
+            e["height"] = np.maximum(
+                Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), np.minimum(Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25), e["step"])
+            )
         return e
 
     def phi(self, k: int, raw: np.ndarray) -> np.ndarray:
         """φ^k(u): AND (max) within a prototype, OR (min) across prototypes; +1 when under half is observed."""
         e = self.feature_energy(k, raw)
-        ph = np.min(np.stack([np.max(np.stack([e[f] for f in proto]), axis=0)
-                              for proto in self.terms[k].prototypes]), axis=0)
+        ph = np.min(
+            np.stack([np.max(np.stack([e[f] for f in proto]), axis=0) for proto in self.terms[k].prototypes]), axis=0
+        )
         return np.where(raw[:, K.F_VALID] >= 0.5, ph, 1.0)
 
     def data_energy(self, raw: dict[str, np.ndarray], xi: np.ndarray) -> np.ndarray:
@@ -357,8 +395,13 @@ def _csr(n: int, pi: np.ndarray, pj: np.ndarray, w: np.ndarray):
     return np.cumsum(indptr), b.astype(np.int64), ww.astype(np.float64)
 
 
-def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi: Sequence[int] | None = None,
-             progress: Progress | None = None) -> MPPResult:
+def optimize(
+    model: EnergyModel,
+    params: MPPParams = MPPParams(),
+    *,
+    allowed_xi: Sequence[int] | None = None,
+    progress: Progress | None = None,
+) -> MPPResult:
     """Multiple birth and death with annealing (paper §5), then a greedy clean-up of objects that do not
     lower the energy (the target is argmin Φ_D).
 
@@ -368,8 +411,9 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
     """
     prog = ensure_progress(progress)
     two = len(model.terms) == 2
-    allowed = np.array(allowed_xi if allowed_xi is not None else ((BOTH, ONLY_1, ONLY_2) if two else (ONLY_1,)),
-                       np.int8)
+    allowed = np.array(
+        allowed_xi if allowed_xi is not None else ((BOTH, ONLY_1, ONLY_2) if two else (ONLY_1,)), np.int8
+    )
     rng = np.random.default_rng(params.seed)
     H, W = model.shape
     f = [t.features for t in model.terms]
@@ -388,7 +432,7 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
     energy = np.zeros(cap)
     phis = np.zeros((cap, len(model.terms)))
     areas = np.zeros(cap)
-    cell = np.zeros(cap, np.int64)                # the cell each object was born on (one object per cell)
+    cell = np.zeros(cap, np.int64)  # the cell each object was born on (one object per cell)
     alive = np.zeros(cap, bool)
     centred = np.zeros((H, W), bool)
     n = 0
@@ -404,15 +448,15 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
         # --- birth -------------------------------------------------------------------------
         draw_xi = allowed[rng.integers(0, allowed.size, H * W)].reshape(H, W)
         u = rng.random((H, W))
-        pb = np.select([draw_xi == BOTH, draw_xi == ONLY_1], [births_map[BOTH], births_map[ONLY_1]],
-                       births_map[ONLY_2])
+        pb = np.select([draw_xi == BOTH, draw_xi == ONLY_1], [births_map[BOTH], births_map[ONLY_1]], births_map[ONLY_2])
         born = (u < delta * base_rate * pb) & valid & ~centred
         bi, bj = np.nonzero(born)
         nb = bi.size
         sides = rng.uniform(model.smin, model.smax, (nb, 2))
         dx = draw_xi[bi, bj]
-        m_deg = np.select([dx == BOTH, dx == ONLY_1], [mode_map[BOTH][bi, bj], mode_map[ONLY_1][bi, bj]],
-                          mode_map[ONLY_2][bi, bj])
+        m_deg = np.select(
+            [dx == BOTH, dx == ONLY_1], [mode_map[BOTH][bi, bj], mode_map[ONLY_1][bi, bj]], mode_map[ONLY_2][bi, bj]
+        )
         theta = np.radians(m_deg + rng.normal(0.0, params.sigma_theta_deg, nb))
         theta = (theta + np.pi / 2) % np.pi - np.pi / 2
         new_rects = np.column_stack([bj.astype(float), bi.astype(float), sides[:, 0], sides[:, 1], theta])
@@ -427,13 +471,15 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
                     if fk.ndsm is not None:
                         # extents from the height map, then each side onto the image's strongest edge within
                         # the width of a stereo DSM's blurred walls (the outer ring, 2 m)
-                        K.snap_rects_height(sub, fk.ndsm, float(params.min_height_m), float(model.smin),
-                                            float(model.smax))
+                        K.snap_rects_height(
+                            sub, fk.ndsm, float(params.min_height_m), float(model.smin), float(model.smax)
+                        )
                         K.refine_sides(sub, fk.grad_mag, fk.grad_ori, float(model.ring_w), 9)
                         sub[:, 2:4] = np.clip(sub[:, 2:4], model.smin, model.smax)
                     else:
-                        K.snap_rects(sub, fk.grad_mag, fk.grad_ori, float(fk.edge_level), float(model.smin),
-                                     float(model.smax))
+                        K.snap_rects(
+                            sub, fk.grad_mag, fk.grad_ori, float(fk.edge_level), float(model.smin), float(model.smax)
+                        )
                     new_rects[sel] = sub
         if params.perturb_births and n:
             par = np.flatnonzero(alive[:n])
@@ -488,19 +534,28 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
         w_all = np.concatenate([w_all[keep_old], w[w > 0]])
         # --- death --------------------------------------------------------------------------
         live = np.flatnonzero(alive[:n])
-        order = live[np.lexsort((live, -energy[live]))]            # A_D decreasing, ties by index
+        order = live[np.lexsort((live, -energy[live]))]  # A_D decreasing, ties by index
         indptr, nbr, ww = _csr(n, pi_all, pj_all, w_all)
         before = alive[:n].copy()
         rand = rng.random(n)
-        K.death_pass(order, indptr, nbr, ww, energy[:n], alive[:n], float(beta), float(delta),
-                     float(params.gamma_overlap), rand)
+        K.death_pass(
+            order, indptr, nbr, ww, energy[:n], alive[:n], float(beta), float(delta), float(params.gamma_overlap), rand
+        )
         died = before & ~alive[:n]
         centred.ravel()[cell[:n][died]] = False
         newborn = np.zeros(n, bool)
         newborn[idx] = True
         n_alive = int(alive[:n].sum())
-        history.append({"iteration": it, "beta": beta, "delta": delta, "births": int(nb),
-                        "deaths": int(died.sum()), "objects": n_alive})
+        history.append(
+            {
+                "iteration": it,
+                "beta": beta,
+                "delta": delta,
+                "births": int(nb),
+                "deaths": int(died.sum()),
+                "objects": n_alive,
+            }
+        )
         prog(min(it / params.max_iter, 0.99), f"iteration {it}: {n_alive} objects")
         if it >= params.min_iter and nb > 0 and np.array_equal(died, newborn):
             converged = True
@@ -525,18 +580,23 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
     fit_counts = (0, 0)
     fit_notes = []
     with_dsm = all(t.features.ndsm is not None for t in model.terms)
-    if params.edge_fit == "image" or (params.edge_fit == "joint" and with_dsm):   # "joint" needs the DSMs
+    if params.edge_fit == "image" or (params.edge_fit == "joint" and with_dsm):  # "joint" needs the DSMs
         live = np.flatnonzero(alive[:n])
         if live.size:
             got = fit_edges(model, rects[live], xi[live], energy[live], params)
             fitted = int(got["accepted"].sum())
             fit_counts = (int(got["moved"].sum()), int(got["energy_not_worse"].sum()))
-            fit_notes.append(f"edge fit ({params.edge_fit}): {fit_counts[0]} objects refitted after the "
-                             f"annealing, {fitted} kept (sides and turns: edge evidence not weaker, still attractive"
-                             + (f"; {int(got['grown'].sum())} of them grown over the raised block, still attractive"
-                                if params.edge_fit_grow and params.edge_fit == "joint" else "")
-                             + (f"; {int(got['turned'].sum())} of them turned" if params.edge_fit_rotate else "")
-                             + f"); A_D not raised for {fit_counts[1]}")
+            fit_notes.append(
+                f"edge fit ({params.edge_fit}): {fit_counts[0]} objects refitted after the "
+                f"annealing, {fitted} kept (sides and turns: edge evidence not weaker, still attractive"
+                + (
+                    f"; {int(got['grown'].sum())} of them grown over the raised block, still attractive"
+                    if params.edge_fit_grow and params.edge_fit == "joint"
+                    else ""
+                )
+                + (f"; {int(got['turned'].sum())} of them turned" if params.edge_fit_rotate else "")
+                + f"); A_D not raised for {fit_counts[1]}"
+            )
             if fitted:
                 sel = live[got["accepted"]]
                 rects[sel] = got["rects"][got["accepted"]]
@@ -588,12 +648,25 @@ def optimize(model: EnergyModel, params: MPPParams = MPPParams(), *, allowed_xi:
         out_rects, obj = carve_notches(model, out_rects, xi[keep])
         n_cut = int(out_rects.shape[0] - keep.size)
         object_id = obj
-        fit_notes.append(f"corner notch: {n_cut} of {keep.size} objects cut into an L (two rectangles; notch "
-                         "not raised and edged on every date the object exists on)")
-    return MPPResult(rects=out_rects, xi=xi[keep][obj].copy(), energy=energy[keep][obj].copy(),
-                     phi=phis[keep][obj].copy(), confidence=conf[obj], xi_confidence=xi_conf[obj], iterations=it,
-                     converged=converged, births=total_births, energy_total=energy_total, history=history,
-                     notes=fit_notes, object_id=object_id)
+        fit_notes.append(
+            f"corner notch: {n_cut} of {keep.size} objects cut into an L (two rectangles; notch "
+            "not raised and edged on every date the object exists on)"
+        )
+    return MPPResult(
+        rects=out_rects,
+        xi=xi[keep][obj].copy(),
+        energy=energy[keep][obj].copy(),
+        phi=phis[keep][obj].copy(),
+        confidence=conf[obj],
+        xi_confidence=xi_conf[obj],
+        iterations=it,
+        converged=converged,
+        births=total_births,
+        energy_total=energy_total,
+        history=history,
+        notes=fit_notes,
+        object_id=object_id,
+    )
 
 
 def l_pieces(rect: np.ndarray, su: float, sv: float, a: float, b: float) -> np.ndarray:
@@ -609,9 +682,9 @@ def l_pieces(rect: np.ndarray, su: float, sv: float, a: float, b: float) -> np.n
     """
     cx, cy, eL, el, th = (float(x) for x in rect)
     c, s = math.cos(th), math.sin(th)
-    if b >= a:      # arms: the whole e_L side × (e_l − b), and (e_L − a) × b
+    if b >= a:  # arms: the whole e_L side × (e_l − b), and (e_L − a) × b
         pieces = [(0.0, -sv * 0.5 * b, eL, el - b), (-su * 0.5 * a, sv * 0.5 * (el - b), eL - a, b)]
-    else:           # arms: (e_L − a) × the whole e_l side, and a × (e_l − b)
+    else:  # arms: (e_L − a) × the whole e_l side, and a × (e_l − b)
         pieces = [(-su * 0.5 * a, 0.0, eL - a, el), (su * 0.5 * (eL - a), -sv * 0.5 * b, a, el - b)]
     # (u, v) → (dx, dy): the inverse rotation of the kernels' u = dx c − dy s, v = dx s + dy c
     return np.array([(cx + c * u + s * v, cy - s * u + c * v, L, l, th) for u, v, L, l in pieces])
@@ -636,13 +709,19 @@ def carve_notches(model: EnergyModel, rects: np.ndarray, xi: np.ndarray) -> tupl
         use[:, 0] = xi != ONLY_2
         use[:, 1] = xi != ONLY_1
     out = np.empty((rects.shape[0], 5))
-    K.carve_corners(np.ascontiguousarray(rects, np.float64), use,
-                    np.stack([f.grad_mag for f in feats]).astype(np.float32),
-                    np.stack([f.grad_ori for f in feats]).astype(np.float32),
-                    np.stack([model._height_map(f) for f in feats]).astype(np.float32),
-                    np.stack([f.valid for f in feats]).astype(np.bool_),
-                    float(model.params.min_height_m), float(model.edge_w), float(model.smin),
-                    np.array([t.d_gradient for t in model.terms], np.float64), out)
+    K.carve_corners(
+        np.ascontiguousarray(rects, np.float64),
+        use,
+        np.stack([f.grad_mag for f in feats]).astype(np.float32),
+        np.stack([f.grad_ori for f in feats]).astype(np.float32),
+        np.stack([model._height_map(f) for f in feats]).astype(np.float32),
+        np.stack([f.valid for f in feats]).astype(np.bool_),
+        float(model.params.min_height_m),
+        float(model.edge_w),
+        float(model.smin),
+        np.array([t.d_gradient for t in model.terms], np.float64),
+        out,
+    )
     rows, ids = [], []
     for r in range(rects.shape[0]):
         if out[r, 0] != 0.0:
@@ -656,8 +735,9 @@ def carve_notches(model: EnergyModel, rects: np.ndarray, xi: np.ndarray) -> tupl
     return np.concatenate(rows), np.array(ids, np.int64)
 
 
-def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.ndarray,
-              params: MPPParams) -> dict[str, np.ndarray]:
+def fit_edges(
+    model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.ndarray, params: MPPParams
+) -> dict[str, np.ndarray]:
     """Sub-cell placement of rectangles on the walls: first the sides are moved (see ``MPPParams.edge_fit``
     and :func:`_kernels.fit_sides`), then, with ``MPPParams.edge_fit_grow`` and DSMs, each rectangle's sides
     are pushed out over the raised block it stands on (:func:`_kernels.grow_sides`) and fitted again onto the
@@ -689,8 +769,9 @@ def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.
     has_dsm = params.edge_fit == "joint" and all(f.ndsm is not None for f in feats)
     mags = np.stack([f.grad_mag for f in feats]).astype(np.float32)
     oris = np.stack([f.grad_ori for f in feats]).astype(np.float32)
-    ndsms = (np.stack([f.ndsm for f in feats]).astype(np.float32) if has_dsm
-             else np.zeros((len(feats), 1, 1), np.float32))
+    ndsms = (
+        np.stack([f.ndsm for f in feats]).astype(np.float32) if has_dsm else np.zeros((len(feats), 1, 1), np.float32)
+    )
     base = np.ascontiguousarray(rects, np.float64).copy()
     raw0 = model.raw(base)
 
@@ -706,12 +787,25 @@ def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.
             ok &= ~use[:, k] | (g_new <= g_old + 1e-12)
         return ok
 
-    def pick(sel, raw_a, raw_b):       # rows of raw_a where sel, of raw_b elsewhere (features are per rectangle)
+    def pick(sel, raw_a, raw_b):  # rows of raw_a where sel, of raw_b elsewhere (features are per rectangle)
         return {k: np.where(sel.reshape((-1,) + (1,) * (v.ndim - 1)), v, raw_b[k]) for k, v in raw_a.items()}
 
     proposed = base.copy()
-    K.fit_sides(proposed, use, mags, oris, ndsms, has_dsm, float(params.min_height_m), float(model.ring_w), 0.25,
-                float(model.edge_w), float(model.edge_w + model.ring_w), float(model.smin), float(model.smax))
+    K.fit_sides(
+        proposed,
+        use,
+        mags,
+        oris,
+        ndsms,
+        has_dsm,
+        float(params.min_height_m),
+        float(model.ring_w),
+        0.25,
+        float(model.edge_w),
+        float(model.edge_w + model.ring_w),
+        float(model.smin),
+        float(model.smax),
+    )
     raw_p = model.raw(proposed)
     sides = keep(proposed, raw_p, raw0)
     base = np.where(sides[:, None], proposed, base)
@@ -722,14 +816,26 @@ def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.
         # object stays attractive (the fractions of A_D cannot reward covering more of the roof)
         big = base.copy()
         grew = np.zeros(base.shape[0], bool)
-        valley = np.array([f.step_min_m for f in feats], np.float64)      # 3 √2 σ_z: a significant step
+        valley = np.array([f.step_min_m for f in feats], np.float64)  # 3 √2 σ_z: a significant step
         K.grow_sides(big, use, ndsms, float(params.min_height_m), float(model.smax), 0.5, valley, grew)
         g = np.flatnonzero(grew)
-        if g.size:          # only the grown rectangles are refitted and scored again
+        if g.size:  # only the grown rectangles are refitted and scored again
             sub = np.ascontiguousarray(big[g])
-            K.fit_sides(sub, np.ascontiguousarray(use[g]), mags, oris, ndsms, has_dsm, float(params.min_height_m),
-                        float(model.ring_w), 0.25, float(model.edge_w), float(model.edge_w + model.ring_w),
-                        float(model.smin), float(model.smax))
+            K.fit_sides(
+                sub,
+                np.ascontiguousarray(use[g]),
+                mags,
+                oris,
+                ndsms,
+                has_dsm,
+                float(params.min_height_m),
+                float(model.ring_w),
+                0.25,
+                float(model.edge_w),
+                float(model.edge_w + model.ring_w),
+                float(model.smin),
+                float(model.smax),
+            )
             raw_g = model.raw(sub)
             keep_g = model.data_energy(raw_g, xi[g]) < 0.0
             grown[g[keep_g]] = True
@@ -750,13 +856,21 @@ def fit_edges(model: EnergyModel, rects: np.ndarray, xi: np.ndarray, energy: np.
     phi = np.column_stack([model.phi(k, raw[f"img{k}"]) for k in range(len(model.terms))])
     moved = np.any(proposed != rects, axis=1) | np.any(rot != rects, axis=1)
     accepted = turned | sides | grown
-    return {"rects": new, "proposed": proposed, "energy": e_new, "phi": phi, "area": raw["img0"][:, K.F_AREA],
-            "accepted": accepted, "turned": turned, "grown": grown, "moved": moved | grown,
-            "energy_not_worse": moved & (e_new <= energy + 1e-12)}
+    return {
+        "rects": new,
+        "proposed": proposed,
+        "energy": e_new,
+        "phi": phi,
+        "area": raw["img0"][:, K.F_AREA],
+        "accepted": accepted,
+        "turned": turned,
+        "grown": grown,
+        "moved": moved | grown,
+        "energy_not_worse": moved & (e_new <= energy + 1e-12),
+    }
 
 
-def fit_rotation(model: EnergyModel, rects: np.ndarray, use: np.ndarray, max_turn: float = math.pi / 4
-                 ) -> np.ndarray:
+def fit_rotation(model: EnergyModel, rects: np.ndarray, use: np.ndarray, max_turn: float = math.pi / 4) -> np.ndarray:
     """Each rectangle turned about its centre to the angle where the images' edge evidence along its outline is
     strongest: the gradient energy summed over the dates it exists on (``use``), searched within ±``max_turn``
     of its angle in steps that move the end of the largest side by a quarter cell (the sub-cell step of the
@@ -779,7 +893,7 @@ def fit_rotation(model: EnergyModel, rects: np.ndarray, use: np.ndarray, max_tur
         return out
     step = math.atan(0.25 / (0.5 * model.smax))
     k = np.arange(-int(min(max_turn, math.pi / 4) / step), int(min(max_turn, math.pi / 4) / step) + 1)
-    deltas = step * k[np.argsort(np.abs(k), kind="stable")]     # 0 first: ties go to the smallest turn
+    deltas = step * k[np.argsort(np.abs(k), kind="stable")]  # 0 first: ties go to the smallest turn
     nd = deltas.size
     cand = np.repeat(out, nd, axis=0)
     cand[:, 4] += np.tile(deltas, out.shape[0])
@@ -795,13 +909,16 @@ def fit_rotation(model: EnergyModel, rects: np.ndarray, use: np.ndarray, max_tur
     return out
 
 
-def sd_combine(r1: MPPResult, r2: MPPResult, shape: tuple[int, int], min_cover: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def sd_combine(
+    r1: MPPResult, r2: MPPResult, shape: tuple[int, int], min_cover: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
     """Sequential detection (SD, the paper's baseline): buildings found on each image alone, then compared.
 
     A date-1 rectangle covered at least ``min_cover`` by date-2 rectangles is unchanged (ξ = *), else
     demolished; a date-2 rectangle not so covered by date-1 rectangles is new (covered ones are the same
     buildings, already kept). Returns (rects, xi).
     """
+
     def union(rects):
         m = np.zeros(shape, bool)
         for r in rects:

@@ -242,7 +242,7 @@ class MPPParams(ParamsMixin):
 
 
 def parse_prototypes(text: str) -> list[list[str]]:
-    """"gradient+shadow|colour" → [["gradient", "shadow"], ["colour"]]."""
+    """ "gradient+shadow|colour" → [["gradient", "shadow"], ["colour"]]."""
     protos = []
     for part in text.split("|"):
         feats = [f.strip() for f in part.split("+") if f.strip()]

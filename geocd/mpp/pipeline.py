@@ -70,7 +70,7 @@ def dsm_smoothing(path: os.PathLike | str) -> int | None:
     if "surface_median_cells" in tags:
         return int(tags["surface_median_cells"])
     try:
-        prm = (json.loads(tags.get("meta", "{}") or "{}").get("params") or {})
+        prm = json.loads(tags.get("meta", "{}") or "{}").get("params") or {}
     except ValueError:
         return None
     return surface_median_cells(prm) if prm else None
@@ -96,21 +96,35 @@ def _warn_smoothed(paths) -> list[str]:
             continue
         k = dsm_smoothing(path)
         if k is not None and k > 1:
-            msg = (f"DSM {Path(path).name} was made with a {k}-cell surface median: the height cues take their "
-                   "tolerances from the DSM's own noise, which the median smooths away (docs/mpp.md, 'The DSM's "
-                   "surface median'); make it with geocd stereo --surface-median 1, or give geocd mpp the manifest and "
-                   "let it make the DSMs")
+            msg = (
+                f"DSM {Path(path).name} was made with a {k}-cell surface median: the height cues take their "
+                "tolerances from the DSM's own noise, which the median smooths away (docs/mpp.md, 'The DSM's "
+                "surface median'); make it with geocd stereo --surface-median 1, or give geocd mpp the manifest and "
+                "let it make the DSMs"
+            )
             warnings.warn(msg, UserWarning, stacklevel=3)
             notes.append(msg)
     return notes
 
 
-def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoch_a: str | None = None,
-                     epoch_b: str | None = None, view_a: str | None = None, view_b: str | None = None,
-                     dsm: dict | None = None, method: str = "ED", params: MPPParams = MPPParams(),
-                     height: str = "auto", change_prior: os.PathLike | str | None = None,
-                     posting_m: float | None = None, overwrite: bool = True, stereo_params=None,
-                     progress: Progress | None = None) -> dict[str, Any]:
+def run_mpp_manifest(
+    manifest,
+    *,
+    out_dir: os.PathLike | str | None = None,
+    epoch_a: str | None = None,
+    epoch_b: str | None = None,
+    view_a: str | None = None,
+    view_b: str | None = None,
+    dsm: dict | None = None,
+    method: str = "ED",
+    params: MPPParams = MPPParams(),
+    height: str = "auto",
+    change_prior: os.PathLike | str | None = None,
+    posting_m: float | None = None,
+    overwrite: bool = True,
+    stereo_params=None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Orthos of one view per epoch (geocd ortho, stereo DSMs) → marked point process → layers.
 
     ``stereo_params`` (a :class:`geocd.stereo.StereoParams`) make the DSMs when none is given. Default: geocd
@@ -132,8 +146,9 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
     ims = {e.name: load_epoch_images(m, e) for e in (ea, eb)}
     dem_median = None
     if m.dem is not None:
-        dem_median = float(np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum)
-                                        .to_ellipsoidal().height_m))
+        dem_median = float(
+            np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m)
+        )
     grid = default_aoi_grid(m, ims, posting_m=posting_m, dem_median=dem_median, params=StereoParams())
     if dem_median is None:
         rng_h = ims[ea.name][0].camera.height_range() or (0.0, 0.0)
@@ -143,21 +158,33 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
         if want:
             found = [im for im in ims[e.name] if im.name == want]
             if not found:
-                raise ConfigError(f"view {want!r} is not an image of epoch {e.name!r}; its images are "
-                                  f"{[im.name for im in ims[e.name]]}")
+                raise ConfigError(
+                    f"view {want!r} is not an image of epoch {e.name!r}; its images are "
+                    f"{[im.name for im in ims[e.name]]}"
+                )
             chosen[e.name] = found[0]
         else:
             chosen[e.name] = choose_view(ims[e.name], grid, dem_median)
     prog(0.02, f"views: {chosen[ea.name].name}, {chosen[eb.name].name}")
     use_h = height == "on" or (height == "auto" and (dsm or all(len(e.images) >= 2 for e in (ea, eb))))
-    orth = run_ortho(m, epochs=[ea.name, eb.name], images=[chosen[ea.name].name, chosen[eb.name].name],
-                     out_dir=out, dsm=dsm, grid=grid, params=OrthoParams(), overwrite=overwrite,
-                     stereo_params=stereo_params if stereo_params is not None else _run_stereo_params(),
-                     progress=sub_progress(prog, 0.02, 0.5, "ortho: "))
+    orth = run_ortho(
+        m,
+        epochs=[ea.name, eb.name],
+        images=[chosen[ea.name].name, chosen[eb.name].name],
+        out_dir=out,
+        dsm=dsm,
+        grid=grid,
+        params=OrthoParams(),
+        overwrite=overwrite,
+        stereo_params=stereo_params if stereo_params is not None else _run_stereo_params(),
+        progress=sub_progress(prog, 0.02, 0.5, "ortho: "),
+    )
     ra = orth["results"][f"{ea.name}/{chosen[ea.name].name}"]
     rb = orth["results"][f"{eb.name}/{chosen[eb.name].name}"]
-    notes = [f"views: {chosen[ea.name].name} (epoch {ea.name}), {chosen[eb.name].name} (epoch {eb.name})",
-             f"DSMs: {orth['dsm_source']}"]
+    notes = [
+        f"views: {chosen[ea.name].name} (epoch {ea.name}), {chosen[eb.name].name} (epoch {eb.name})",
+        f"DSMs: {orth['dsm_source']}",
+    ]
     dsm_a = dsm_b = ground = filled_a = filled_b = None
     if use_h:
         dsm_a, _ = read_band(orth["outputs"][f"{ea.name}/dsm"], 1)
@@ -177,17 +204,39 @@ def run_mpp_manifest(manifest, *, out_dir: os.PathLike | str | None = None, epoc
         if p.gamma_3d <= 0:
             p = p.replace(gamma_3d=1.0)
         notes.append(f"3-D change prior: {change_prior}")
-    det = detect(ra.values, rb.values, grid.posting_m, p, method=method, valid_a=ra.observed, valid_b=rb.observed,
-                 dsm_a=dsm_a, dsm_b=dsm_b, ground_m=ground, filled_a=filled_a, filled_b=filled_b, change_prior=cp,
-                 progress=sub_progress(prog, 0.5, 0.95, "mpp: "))
+    det = detect(
+        ra.values,
+        rb.values,
+        grid.posting_m,
+        p,
+        method=method,
+        valid_a=ra.observed,
+        valid_b=rb.observed,
+        dsm_a=dsm_a,
+        dsm_b=dsm_b,
+        ground_m=ground,
+        filled_a=filled_a,
+        filled_b=filled_b,
+        change_prior=cp,
+        progress=sub_progress(prog, 0.5, 0.95, "mpp: "),
+    )
     if dsm and use_h:
         notes += _warn_smoothed(dsm.values() if isinstance(dsm, dict) else [dsm])
     det.notes = notes + det.notes
-    paths = write_mpp_products(out / "mpp", det, grid, epoch_a=ea.name, epoch_b=eb.name,
-                               images=(ra.values, rb.values, ra.observed, rb.observed),
-                               provenance={"manifest": str(m.path or m.root), "params": p.to_dict(),
-                                           "views": {ea.name: chosen[ea.name].name, eb.name: chosen[eb.name].name}},
-                               overwrite=overwrite)
+    paths = write_mpp_products(
+        out / "mpp",
+        det,
+        grid,
+        epoch_a=ea.name,
+        epoch_b=eb.name,
+        images=(ra.values, rb.values, ra.observed, rb.observed),
+        provenance={
+            "manifest": str(m.path or m.root),
+            "params": p.to_dict(),
+            "views": {ea.name: chosen[ea.name].name, eb.name: chosen[eb.name].name},
+        },
+        overwrite=overwrite,
+    )
     paths.update({f"ortho:{k}": v for k, v in orth["outputs"].items()})
     prog(1.0, "done")
     return {"outputs": paths, "detection": det, "grid": grid, "params": p}
@@ -214,7 +263,9 @@ def read_pair(image_a: os.PathLike | str, image_b: os.PathLike | str, posting_m:
         img = read_image(path)
         with _open(path) as ds:
             if ds.crs is None:
-                raise ConfigError(f"{path} has no georeference; give orthoimages (geocd ortho) or georeferenced rasters")
+                raise ConfigError(
+                    f"{path} has no georeference; give orthoimages (geocd ortho) or georeferenced rasters"
+                )
             same = AOIGrid.from_raster(ds) == grid
             src_t, src_crs = ds.transform, ds.crs
         if same:
@@ -223,9 +274,17 @@ def read_pair(image_a: os.PathLike | str, image_b: os.PathLike | str, posting_m:
         data = np.full((img.bands,) + grid.shape, np.nan, np.float32)
         src = np.where(img.valid[None], img.data.astype(np.float32), np.nan)
         for k in range(img.bands):
-            reproject(src[k], data[k], src_transform=src_t, src_crs=src_crs, src_nodata=np.nan,
-                      dst_transform=grid.transform, dst_crs=RioCRS.from_wkt(grid.crs.to_wkt()), dst_nodata=np.nan,
-                      resampling=Resampling.bilinear)
+            reproject(
+                src[k],
+                data[k],
+                src_transform=src_t,
+                src_crs=src_crs,
+                src_nodata=np.nan,
+                dst_transform=grid.transform,
+                dst_crs=RioCRS.from_wkt(grid.crs.to_wkt()),
+                dst_nodata=np.nan,
+                resampling=Resampling.bilinear,
+            )
         valid = np.all(np.isfinite(data), axis=0)
         if not valid.any():
             raise NoOverlapError(f"{path} does not overlap {image_a}; the two images must cover the same area")
@@ -236,12 +295,22 @@ def read_pair(image_a: os.PathLike | str, image_b: os.PathLike | str, posting_m:
     return out[0], out[1], out[2], out[3], grid, notes
 
 
-def run_mpp_images(image_a: os.PathLike | str, image_b: os.PathLike | str, *, out_dir: os.PathLike | str,
-                   dsm_a: os.PathLike | str | None = None, dsm_b: os.PathLike | str | None = None,
-                   ground: os.PathLike | str | None = None, method: str = "ED", params: MPPParams = MPPParams(),
-                   change_prior: os.PathLike | str | None = None, posting_m: float | None = None,
-                   epoch_names: tuple[str, str] = ("A", "B"), overwrite: bool = True,
-                   progress: Progress | None = None) -> dict[str, Any]:
+def run_mpp_images(
+    image_a: os.PathLike | str,
+    image_b: os.PathLike | str,
+    *,
+    out_dir: os.PathLike | str,
+    dsm_a: os.PathLike | str | None = None,
+    dsm_b: os.PathLike | str | None = None,
+    ground: os.PathLike | str | None = None,
+    method: str = "ED",
+    params: MPPParams = MPPParams(),
+    change_prior: os.PathLike | str | None = None,
+    posting_m: float | None = None,
+    epoch_names: tuple[str, str] = ("A", "B"),
+    overwrite: bool = True,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Two georeferenced images (e.g. orthos) → marked point process → layers."""
     from ..io.atomic import protect_inputs
     from ..io.raster import read_dem
@@ -265,13 +334,33 @@ def run_mpp_images(image_a: os.PathLike | str, image_b: os.PathLike | str, *, ou
             p = p.replace(gamma_3d=1.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        det = detect(a, b, grid.posting_m, p, method=method, valid_a=va, valid_b=vb, dsm_a=da, dsm_b=db,
-                     ground_m=gr, filled_a=fa, filled_b=fb, change_prior=cp, progress=progress)
+        det = detect(
+            a,
+            b,
+            grid.posting_m,
+            p,
+            method=method,
+            valid_a=va,
+            valid_b=vb,
+            dsm_a=da,
+            dsm_b=db,
+            ground_m=gr,
+            filled_a=fa,
+            filled_b=fb,
+            change_prior=cp,
+            progress=progress,
+        )
     if dsm_a is not None:
         notes += _warn_smoothed([dsm_a, dsm_b])
     det.notes = notes + det.notes
-    paths = write_mpp_products(out_dir, det, grid, epoch_a=epoch_names[0], epoch_b=epoch_names[1],
-                               images=(a, b, va, vb),
-                               provenance={"image_a": str(image_a), "image_b": str(image_b), "params": p.to_dict()},
-                               overwrite=overwrite)
+    paths = write_mpp_products(
+        out_dir,
+        det,
+        grid,
+        epoch_a=epoch_names[0],
+        epoch_b=epoch_names[1],
+        images=(a, b, va, vb),
+        provenance={"image_a": str(image_a), "image_b": str(image_b), "params": p.to_dict()},
+        overwrite=overwrite,
+    )
     return {"outputs": paths, "detection": det, "grid": grid, "params": p}

@@ -56,29 +56,33 @@ def rectangles_frame(detection, grid: AOIGrid, epoch_a: str = "A", epoch_b: str 
     r = detection.result
     t = grid.transform
     corners = rect_corners(r.rects)
-    xs = t.c + t.a * (corners[..., 0] + 0.5)          # north-up grid: cell centres at integer + 0.5
+    xs = t.c + t.a * (corners[..., 0] + 0.5)  # north-up grid: cell centres at integer + 0.5
     ys = t.f + t.e * (corners[..., 1] + 0.5)
     polys = [Polygon(np.column_stack([x, y])) for x, y in zip(xs, ys)]
     px = grid.posting_m
     xi = np.asarray(r.xi)
-    df = gpd.GeoDataFrame({
-        "rect_id": np.arange(len(r), dtype=np.int32),
-        # the annealed object: the two rectangles of an L cut from one object share it
-        "object_id": (np.arange(len(r)) if r.object_id is None else np.asarray(r.object_id)).astype(np.int32),
-        "change": [XI_NAMES[int(x)] for x in xi],
-        "xi": ["*" if x == BOTH else str(int(x)) for x in xi],
-        f"present_{epoch_a}": xi != ONLY_2,
-        f"present_{epoch_b}": xi != ONLY_1,
-        "length_m": np.round(r.rects[:, 2] * px, 2),
-        "width_m": np.round(r.rects[:, 3] * px, 2),
-        "orientation_deg": np.round(np.degrees(r.rects[:, 4]), 1),
-        "area_m2": np.round(r.rects[:, 2] * r.rects[:, 3] * px * px, 1),
-        "energy": np.round(r.energy, 4),
-        f"phi_{epoch_a}": np.round(r.phi[:, 0], 4) if r.phi.size else np.zeros(len(r)),
-        f"phi_{epoch_b}": np.round(r.phi[:, 1], 4) if r.phi.shape[1] > 1 else np.full(len(r), np.nan),
-        "confidence": np.round(r.confidence, 1),
-        "change_confidence": np.round(r.xi_confidence, 1),
-    }, geometry=polys, crs=grid.crs)
+    df = gpd.GeoDataFrame(
+        {
+            "rect_id": np.arange(len(r), dtype=np.int32),
+            # the annealed object: the two rectangles of an L cut from one object share it
+            "object_id": (np.arange(len(r)) if r.object_id is None else np.asarray(r.object_id)).astype(np.int32),
+            "change": [XI_NAMES[int(x)] for x in xi],
+            "xi": ["*" if x == BOTH else str(int(x)) for x in xi],
+            f"present_{epoch_a}": xi != ONLY_2,
+            f"present_{epoch_b}": xi != ONLY_1,
+            "length_m": np.round(r.rects[:, 2] * px, 2),
+            "width_m": np.round(r.rects[:, 3] * px, 2),
+            "orientation_deg": np.round(np.degrees(r.rects[:, 4]), 1),
+            "area_m2": np.round(r.rects[:, 2] * r.rects[:, 3] * px * px, 1),
+            "energy": np.round(r.energy, 4),
+            f"phi_{epoch_a}": np.round(r.phi[:, 0], 4) if r.phi.size else np.zeros(len(r)),
+            f"phi_{epoch_b}": np.round(r.phi[:, 1], 4) if r.phi.shape[1] > 1 else np.full(len(r), np.nan),
+            "confidence": np.round(r.confidence, 1),
+            "change_confidence": np.round(r.xi_confidence, 1),
+        },
+        geometry=polys,
+        crs=grid.crs,
+    )
     return df
 
 
@@ -93,8 +97,9 @@ def buildings_frame(rects_df):
         return gpd.GeoDataFrame({c: [] for c in cols}, geometry=[], crs=rects_df.crs)
     merged = unary_union(list(rects_df.geometry.buffer(1e-6)))
     parts = list(merged.geoms) if hasattr(merged, "geoms") else [merged]
-    parts_df = gpd.GeoDataFrame({"building_id": np.arange(len(parts), dtype=np.int32)}, geometry=parts,
-                                crs=rects_df.crs)
+    parts_df = gpd.GeoDataFrame(
+        {"building_id": np.arange(len(parts), dtype=np.int32)}, geometry=parts, crs=rects_df.crs
+    )
     joined = gpd.sjoin(rects_df[["rect_id", "geometry"]], parts_df, how="left", predicate="intersects")
     bid = joined.groupby("rect_id")["building_id"].first()
     rects_df["building_id"] = rects_df["rect_id"].map(bid).astype(np.int32)
@@ -103,11 +108,18 @@ def buildings_frame(rects_df):
         sub = rects_df[rects_df["building_id"] == k]
         ch = set(sub["change"])
         w = sub["area_m2"].to_numpy(float)
-        rows.append({"building_id": k, "change": ch.pop() if len(ch) == 1 else "modified",
-                     "n_rectangles": int(len(sub)), "area_m2": round(float(part.area), 1),
-                     "confidence": round(float(np.average(sub["confidence"], weights=w)), 1),
-                     "change_confidence": round(float(np.nanmean(sub["change_confidence"])), 1)
-                     if np.isfinite(sub["change_confidence"]).any() else np.nan})
+        rows.append(
+            {
+                "building_id": k,
+                "change": ch.pop() if len(ch) == 1 else "modified",
+                "n_rectangles": int(len(sub)),
+                "area_m2": round(float(part.area), 1),
+                "confidence": round(float(np.average(sub["confidence"], weights=w)), 1),
+                "change_confidence": round(float(np.nanmean(sub["change_confidence"])), 1)
+                if np.isfinite(sub["change_confidence"]).any()
+                else np.nan,
+            }
+        )
     return gpd.GeoDataFrame(rows, geometry=parts, crs=rects_df.crs)
 
 
@@ -121,8 +133,16 @@ def class_raster(detection, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def quicklook(path: os.PathLike | str, image_a: np.ndarray, image_b: np.ndarray, detection, *,
-              titles: tuple[str, str] = ("date A", "date B"), valid_a=None, valid_b=None) -> Path:
+def quicklook(
+    path: os.PathLike | str,
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    detection,
+    *,
+    titles: tuple[str, str] = ("date A", "date B"),
+    valid_a=None,
+    valid_b=None,
+) -> Path:
     """PNG: the two images side by side with the rectangles present on each (colour = change class)."""
     import matplotlib
 
@@ -159,9 +179,18 @@ def quicklook(path: os.PathLike | str, image_a: np.ndarray, image_b: np.ndarray,
     return Path(path)
 
 
-def write_mpp_products(out_dir: os.PathLike | str, detection, grid: AOIGrid, *, prefix: str = "mpp",
-                       epoch_a: str = "A", epoch_b: str = "B", images: tuple | None = None,
-                       provenance: dict[str, Any] | None = None, overwrite: bool = True) -> dict[str, Path]:
+def write_mpp_products(
+    out_dir: os.PathLike | str,
+    detection,
+    grid: AOIGrid,
+    *,
+    prefix: str = "mpp",
+    epoch_a: str = "A",
+    epoch_b: str = "B",
+    images: tuple | None = None,
+    provenance: dict[str, Any] | None = None,
+    overwrite: bool = True,
+) -> dict[str, Path]:
     """Write the GeoPackage, the class raster, a quick-look and a JSON summary; returns {product: path}."""
     from ..change.styles import categorized_polygon_qml, write_raster_style
     from ..io.atomic import write_text_atomic
@@ -174,29 +203,60 @@ def write_mpp_products(out_dir: os.PathLike | str, detection, grid: AOIGrid, *, 
     bld = buildings_frame(rects)
     qml = categorized_polygon_qml("change", MPP_CLASSES)
     paths: dict[str, Path] = {}
-    paths["buildings"] = write_gpkg(out / f"{prefix}_buildings.gpkg", {"buildings": bld, "rectangles": rects},
-                                    styles={"buildings": qml, "rectangles": qml}, overwrite=overwrite)
-    tags = {"method": f"geocd mpp ({detection.method})", "classes": json.dumps({str(v): k for k, v in RASTER_CODES.items()}),
-            "epoch_a": epoch_a, "epoch_b": epoch_b}
-    paths["classes"] = write_cog(out / f"{prefix}_buildings.tif", class_raster(detection, grid.shape), grid,
-                                 dtype="uint8", nodata=None, tags=tags, colormap=RASTER_COLOURS,
-                                 overview_resampling="nearest", overwrite=overwrite)
+    paths["buildings"] = write_gpkg(
+        out / f"{prefix}_buildings.gpkg",
+        {"buildings": bld, "rectangles": rects},
+        styles={"buildings": qml, "rectangles": qml},
+        overwrite=overwrite,
+    )
+    tags = {
+        "method": f"geocd mpp ({detection.method})",
+        "classes": json.dumps({str(v): k for k, v in RASTER_CODES.items()}),
+        "epoch_a": epoch_a,
+        "epoch_b": epoch_b,
+    }
+    paths["classes"] = write_cog(
+        out / f"{prefix}_buildings.tif",
+        class_raster(detection, grid.shape),
+        grid,
+        dtype="uint8",
+        nodata=None,
+        tags=tags,
+        colormap=RASTER_COLOURS,
+        overview_resampling="nearest",
+        overwrite=overwrite,
+    )
     write_raster_style(paths["classes"], _classes_qml())
     if images is not None:
-        paths["quicklook"] = quicklook(out / f"{prefix}_quicklook.png", images[0], images[1], detection,
-                                       titles=(f"{epoch_a}", f"{epoch_b}"),
-                                       valid_a=images[2] if len(images) > 2 else None,
-                                       valid_b=images[3] if len(images) > 3 else None)
+        paths["quicklook"] = quicklook(
+            out / f"{prefix}_quicklook.png",
+            images[0],
+            images[1],
+            detection,
+            titles=(f"{epoch_a}", f"{epoch_b}"),
+            valid_a=images[2] if len(images) > 2 else None,
+            valid_b=images[3] if len(images) > 3 else None,
+        )
     r = detection.result
     summary = {
-        "geocd_mpp": 1, "method": detection.method, "epoch_a": epoch_a, "epoch_b": epoch_b,
-        "rectangles": int(len(r)), "buildings": int(len(bld)),
+        "geocd_mpp": 1,
+        "method": detection.method,
+        "epoch_a": epoch_a,
+        "epoch_b": epoch_b,
+        "rectangles": int(len(r)),
+        "buildings": int(len(bld)),
         "by_change": {k: int(v) for k, v in bld["change"].value_counts().items()} if len(bld) else {},
-        "iterations": r.iterations, "converged": r.converged, "births": r.births,
-        "energy": round(r.energy_total, 4), "texture_change_b0": None if not np.isfinite(detection.b0) else round(detection.b0, 5),
-        "thresholds": detection.thresholds, "notes": detection.notes, "grid": grid.to_dict(),
+        "iterations": r.iterations,
+        "converged": r.converged,
+        "births": r.births,
+        "energy": round(r.energy_total, 4),
+        "texture_change_b0": None if not np.isfinite(detection.b0) else round(detection.b0, 5),
+        "thresholds": detection.thresholds,
+        "notes": detection.notes,
+        "grid": grid.to_dict(),
         "confidence": "percent: Gibbs probability of each object given the others at unit temperature (model-based)",
-        "provenance": provenance or {}, "outputs": {k: str(v) for k, v in paths.items()},
+        "provenance": provenance or {},
+        "outputs": {k: str(v) for k, v in paths.items()},
     }
     paths["summary"] = write_text_atomic(out / f"{prefix}_summary.json", json.dumps(summary, indent=2, default=str))
     return paths
@@ -206,8 +266,13 @@ def _classes_qml() -> str:
     from ..ortho.pipeline import _QML_HEAD, _QML_TAIL
 
     labels = {0: "no building", 1: "unchanged building", 2: "demolished", 3: "new"}
-    entries = "\n".join(f'        <paletteEntry value="{k}" color="#{c[0]:02x}{c[1]:02x}{c[2]:02x}" alpha="{c[3]}" '
-                        f'label="{labels[k]}"/>' for k, c in RASTER_COLOURS.items())
-    return (_QML_HEAD + '    <rasterrenderer type="paletted" band="1" opacity="1" alphaBand="-1" nodataColor="">\n'
-            '      <rasterTransparency/>\n      <colorPalette>\n' + entries + "\n      </colorPalette>\n"
-            '      <colorramp type="randomcolors" name="[source]"/>\n    </rasterrenderer>\n' + _QML_TAIL)
+    entries = "\n".join(
+        f'        <paletteEntry value="{k}" color="#{c[0]:02x}{c[1]:02x}{c[2]:02x}" alpha="{c[3]}" '
+        f'label="{labels[k]}"/>'
+        for k, c in RASTER_COLOURS.items()
+    )
+    return (
+        _QML_HEAD + '    <rasterrenderer type="paletted" band="1" opacity="1" alphaBand="-1" nodataColor="">\n'
+        "      <rasterTransparency/>\n      <colorPalette>\n" + entries + "\n      </colorPalette>\n"
+        '      <colorramp type="randomcolors" name="[source]"/>\n    </rasterrenderer>\n' + _QML_TAIL
+    )

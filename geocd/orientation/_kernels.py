@@ -138,8 +138,8 @@ def ncc_at_offsets_ref(ref, oth, pts, centres, offsets, P):
         H, W = oth.shape
         if ci - P < 0 or cj - P < 0 or ci + P + 1 > H or cj + P + 1 > W:
             return -2.0
-        a = ref[i - P:i + P + 1, j - P:j + P + 1].astype(np.float64)
-        b = oth[ci - P:ci + P + 1, cj - P:cj + P + 1].astype(np.float64)
+        a = ref[i - P : i + P + 1, j - P : j + P + 1].astype(np.float64)
+        b = oth[ci - P : ci + P + 1, cj - P : cj + P + 1].astype(np.float64)
         if not (np.isfinite(a).all() and np.isfinite(b).all()):
             return -2.0
         a = a - a.mean()

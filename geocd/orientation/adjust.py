@@ -37,7 +37,7 @@ from ..geodesy import to_lonlat
 from .params import OrientationParams
 from .tiepoints import TiePoints
 
-_LIN = 1000.0   # linear part in px per this many px
+_LIN = 1000.0  # linear part in px per this many px
 
 
 def _centres(cams: Sequence[Camera]) -> np.ndarray:
@@ -73,7 +73,7 @@ class _Problem:
     tp: TiePoints
     n_par: int
     free_params: bool
-    prior: np.ndarray          # (n_par,) a-priori sigma per parameter
+    prior: np.ndarray  # (n_par,) a-priori sigma per parameter
     gauge: str
     centres: np.ndarray
 
@@ -83,8 +83,8 @@ class _Problem:
 
     def split(self, z: np.ndarray, p_fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         nt = self.tp.n_tracks
-        X = z[:3 * nt].reshape(nt, 3)
-        p = z[3 * nt:].reshape(self.n_img, self.n_par) if self.free_params else p_fixed
+        X = z[: 3 * nt].reshape(nt, 3)
+        p = z[3 * nt :].reshape(self.n_img, self.n_par) if self.free_params else p_fixed
         return X, p
 
     def residuals(self, z: np.ndarray, p_fixed: np.ndarray) -> np.ndarray:
@@ -114,7 +114,7 @@ class _Problem:
             Xs = X.copy()
             Xs[:, a] += step
             dU[:, :, a] = (_project(self.cams, tp, Xs) - u) / step
-        if p.shape[1] == 6:   # (I + M/1000) applied to the point derivatives
+        if p.shape[1] == 6:  # (I + M/1000) applied to the point derivatives
             m = p[tp.image, 2:] / _LIN
             g = dU.copy()
             g[:, 0, :] += m[:, 0, None] * dU[:, 0, :] + m[:, 1, None] * dU[:, 1, :]
@@ -162,18 +162,38 @@ class _Problem:
             n_rows = r1 + self.n_par
         else:
             n_rows = 2 * n_obs
-        return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                                 shape=(n_rows, n_cols))
+        return sparse.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_rows, n_cols)
+        )
 
 
-def _solve(cams, tp: TiePoints, X0: np.ndarray, p0: np.ndarray, params: OrientationParams, free_params: bool,
-           max_nfev: int = 50) -> tuple[np.ndarray, np.ndarray]:
+def _solve(
+    cams,
+    tp: TiePoints,
+    X0: np.ndarray,
+    p0: np.ndarray,
+    params: OrientationParams,
+    free_params: bool,
+    max_nfev: int = 50,
+) -> tuple[np.ndarray, np.ndarray]:
     n_par = p0.shape[1]
     prior = np.array([params.prior_shift_px] * 2 + [params.prior_linear_px] * (n_par - 2))
     pr = _Problem(cams, tp, n_par, free_params, prior, params.gauge, _centres(cams))
     z0 = np.concatenate([X0.ravel(), p0.ravel()]) if free_params else X0.ravel()
-    res = least_squares(pr.residuals, z0, jac=pr.jacobian, args=(p0,), method="trf", loss="soft_l1", f_scale=1.0,
-                        x_scale="jac", tr_solver="lsmr", max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
+    res = least_squares(
+        pr.residuals,
+        z0,
+        jac=pr.jacobian,
+        args=(p0,),
+        method="trf",
+        loss="soft_l1",
+        f_scale=1.0,
+        x_scale="jac",
+        tr_solver="lsmr",
+        max_nfev=max_nfev,
+        xtol=1e-10,
+        ftol=1e-10,
+    )
     return pr.split(res.x, p0)
 
 
@@ -186,8 +206,12 @@ def residual_norms(cams, tp: TiePoints, X: np.ndarray, p: np.ndarray) -> np.ndar
 def _stats(r: np.ndarray) -> dict:
     if r.size == 0:
         return {"n": 0}
-    return {"n": int(r.size), "median_px": round(float(np.median(r)), 3), "rms_px": round(float(np.sqrt(np.mean(r * r))), 3),
-            "p90_px": round(float(np.percentile(r, 90)), 3)}
+    return {
+        "n": int(r.size),
+        "median_px": round(float(np.median(r)), 3),
+        "rms_px": round(float(np.sqrt(np.mean(r * r))), 3),
+        "p90_px": round(float(np.percentile(r, 90)), 3),
+    }
 
 
 def _cross_epoch_obs(tp: TiePoints) -> np.ndarray:
@@ -234,9 +258,15 @@ class OrientationResult:
         for k, cam in enumerate(cams):
             p = self.corrections[k]
             lin = None if p.size == 2 else np.array([[p[2], p[3]], [p[4], p[5]]]) / _LIN
-            out.append(CorrectedCamera(cam, p[:2], lin, centres[k],
-                                       provenance={"method": "tie-point bias compensation",
-                                                   "images": self.names, "image": self.names[k]}))
+            out.append(
+                CorrectedCamera(
+                    cam,
+                    p[:2],
+                    lin,
+                    centres[k],
+                    provenance={"method": "tie-point bias compensation", "images": self.names, "image": self.names[k]},
+                )
+            )
         return out
 
 
@@ -248,14 +278,29 @@ def _hull_fraction(xy: np.ndarray, area_m2: float) -> float:
     return float(MultiPoint([tuple(v) for v in xy]).convex_hull.area / area_m2)
 
 
-def adjust(cams: Sequence[Camera], tp: TiePoints, params: OrientationParams = OrientationParams(), *,
-           aoi_area_m2: float, folds: int = 5, seed: int = 0) -> OrientationResult:
+def adjust(
+    cams: Sequence[Camera],
+    tp: TiePoints,
+    params: OrientationParams = OrientationParams(),
+    *,
+    aoi_area_m2: float,
+    folds: int = 5,
+    seed: int = 0,
+) -> OrientationResult:
     """Estimate per-image corrections from tie points (see the module docstring)."""
     n_img, n_par = len(cams), params.n_params
     zero = np.zeros((n_img, n_par))
     if tp.n_tracks == 0:
-        return OrientationResult(tp.names, tp.epochs, zero, False, "no tie point was found between the images",
-                                 {"tracks": 0, "status": "insufficient"}, tp, np.zeros(0, bool))
+        return OrientationResult(
+            tp.names,
+            tp.epochs,
+            zero,
+            False,
+            "no tie point was found between the images",
+            {"tracks": 0, "status": "insufficient"},
+            tp,
+            np.zeros(0, bool),
+        )
     X0 = np.column_stack([tp.xy0, np.full(tp.n_tracks, tp.h0_m)])
     X, _ = _solve(cams, tp, X0, zero, params, free_params=False)
     cur = tp
@@ -287,13 +332,23 @@ def adjust(cams: Sequence[Camera], tp: TiePoints, params: OrientationParams = Or
     r_after = residual_norms(cams, inl, X, p)
     cross = _cross_epoch_obs(inl)
     report: dict = {
-        "model": params.model, "gauge": params.gauge, "h0_m": round(tp.h0_m, 2),
-        "tracks": int(inl.n_tracks), "observations": int(inl.image.size),
-        "candidates_matched": int(tp.n_tracks), "observations_rejected": int(tp.image.size - inl.image.size),
-        "before": {"all": _stats(r_before), "cross_epoch": _stats(r_before[cross]),
-                   "within_epoch_only_tracks": _stats(r_before[~cross])},
-        "after": {"all": _stats(r_after), "cross_epoch": _stats(r_after[cross]),
-                  "within_epoch_only_tracks": _stats(r_after[~cross])},
+        "model": params.model,
+        "gauge": params.gauge,
+        "h0_m": round(tp.h0_m, 2),
+        "tracks": int(inl.n_tracks),
+        "observations": int(inl.image.size),
+        "candidates_matched": int(tp.n_tracks),
+        "observations_rejected": int(tp.image.size - inl.image.size),
+        "before": {
+            "all": _stats(r_before),
+            "cross_epoch": _stats(r_before[cross]),
+            "within_epoch_only_tracks": _stats(r_before[~cross]),
+        },
+        "after": {
+            "all": _stats(r_after),
+            "cross_epoch": _stats(r_after[cross]),
+            "within_epoch_only_tracks": _stats(r_after[~cross]),
+        },
         "pairs": tp.pair_stats,
     }
     # per image counts and spread
@@ -303,18 +358,24 @@ def adjust(cams: Sequence[Camera], tp: TiePoints, params: OrientationParams = Or
         sel = inl.image == k
         xy = inl.xy0[inl.track[sel]]
         spread = _hull_fraction(xy, aoi_area_m2)
-        per_image[name] = {"observations": int(sel.sum()), "hull_fraction": round(spread, 3),
-                           "correction": [round(float(v), 3) for v in p[k]],
-                           "residual_after": _stats(r_after[sel]), "residual_before": _stats(r_before[sel])}
+        per_image[name] = {
+            "observations": int(sel.sum()),
+            "hull_fraction": round(spread, 3),
+            "correction": [round(float(v), 3) for v in p[k]],
+            "residual_after": _stats(r_after[sel]),
+            "residual_before": _stats(r_before[sel]),
+        }
         if sel.sum() < params.min_points:
             reasons.append(f"{name}: {int(sel.sum())} tie-point observations (fewer than {params.min_points})")
         elif spread < params.min_spread:
-            reasons.append(f"{name}: tie points cover {100 * spread:.0f}% of the AOI (less than "
-                           f"{100 * params.min_spread:.0f}%)")
+            reasons.append(
+                f"{name}: tie points cover {100 * spread:.0f}% of the AOI (less than {100 * params.min_spread:.0f}%)"
+            )
     report["images"] = per_image
     if len(set(tp.epochs)) > 1 and int(np.unique(inl.track[cross]).size) < params.min_points:
-        reasons.append(f"only {int(np.unique(inl.track[cross]).size)} tie points link the epochs (fewer than "
-                       f"{params.min_points})")
+        reasons.append(
+            f"only {int(np.unique(inl.track[cross]).size)} tie points link the epochs (fewer than {params.min_points})"
+        )
     # held-out check: corrections without a fold of tracks, residuals of that fold
     if not reasons and folds >= 2 and inl.n_tracks >= 5 * folds:
         rng = np.random.default_rng(seed)
@@ -332,16 +393,22 @@ def adjust(cams: Sequence[Camera], tp: TiePoints, params: OrientationParams = Or
             rt = residual_norms(cams, te, Xt, pf)
             held.append(rt)
             held_cross.append(rt[_cross_epoch_obs(te)])
-        report["held_out"] = {"folds": folds, "all": _stats(np.concatenate(held)),
-                              "cross_epoch": _stats(np.concatenate(held_cross))}
+        report["held_out"] = {
+            "folds": folds,
+            "all": _stats(np.concatenate(held)),
+            "cross_epoch": _stats(np.concatenate(held_cross)),
+        }
     status = "insufficient" if reasons else "applied"
     largest = float(np.max(np.hypot(p[:, 0], p[:, 1]))) if p.size else 0.0
     if not reasons and largest < params.min_correction_px:
         status = "not needed"
-        reasons.append(f"the largest correction, {largest:.2f} px, is below {params.min_correction_px:g} px: "
-                       "the cameras already agree")
+        reasons.append(
+            f"the largest correction, {largest:.2f} px, is below {params.min_correction_px:g} px: "
+            "the cameras already agree"
+        )
     report["status"] = status
     report["largest_correction_px"] = round(largest, 3)
     applied = status == "applied"
-    return OrientationResult(tp.names, tp.epochs, p if applied else zero, applied, "; ".join(reasons), report,
-                             tp, keep_all)
+    return OrientationResult(
+        tp.names, tp.epochs, p if applied else zero, applied, "; ".join(reasons), report, tp, keep_all
+    )

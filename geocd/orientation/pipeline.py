@@ -77,8 +77,13 @@ def _ortho_grid(grid: AOIGrid, max_px: int) -> AOIGrid:
     return AOIGrid.from_bounds(l, b, r, t, grid.posting_m * f, grid.crs)
 
 
-def orient_images(images: list, grid: AOIGrid, h0_m: float, params: OrientationParams = OrientationParams(),
-                  progress: Progress | None = None) -> OrientationResult:
+def orient_images(
+    images: list,
+    grid: AOIGrid,
+    h0_m: float,
+    params: OrientationParams = OrientationParams(),
+    progress: Progress | None = None,
+) -> OrientationResult:
     """Tie points and adjustment for ``images``: a list of (epoch name, EpochImage)."""
     from rasterio.windows import Window
 
@@ -112,9 +117,15 @@ def orient_images(images: list, grid: AOIGrid, h0_m: float, params: OrientationP
     return res
 
 
-def orient_manifest(manifest, *, out_dir: os.PathLike | str, params: OrientationParams | None = None,
-                    grid: AOIGrid | None = None, progress: Progress | None = None,
-                    stereo_params: Any = None) -> tuple[Any, dict | None]:
+def orient_manifest(
+    manifest,
+    *,
+    out_dir: os.PathLike | str,
+    params: OrientationParams | None = None,
+    grid: AOIGrid | None = None,
+    progress: Progress | None = None,
+    stereo_params: Any = None,
+) -> tuple[Any, dict | None]:
     """Correct the manifest's cameras when its settings ask for it.
 
     Returns
@@ -168,19 +179,32 @@ def orient_manifest(manifest, *, out_dir: os.PathLike | str, params: Orientation
         files = {}
         if res.applied:
             for (ep, im), cam in zip(images, cams):
-                path = write_text_atomic(out / f"{im.name}.camera.json", json.dumps(cam.to_dict(), indent=1, default=str))
+                path = write_text_atomic(
+                    out / f"{im.name}.camera.json", json.dumps(cam.to_dict(), indent=1, default=str)
+                )
                 files[im.name] = str(path)
-        report = {"geocd_orientation": 1, "signature": sig, "applied": res.applied, "reason": res.reason,
-                  "params": p.to_dict(), "images": [im.name for _, im in images],
-                  "epochs": [ep for ep, _ in images], "corrections": res.corrections.round(4).tolist(),
-                  "camera_files": files, **res.report}
+        report = {
+            "geocd_orientation": 1,
+            "signature": sig,
+            "applied": res.applied,
+            "reason": res.reason,
+            "params": p.to_dict(),
+            "images": [im.name for _, im in images],
+            "epochs": [ep for ep, _ in images],
+            "corrections": res.corrections.round(4).tolist(),
+            "camera_files": files,
+            **res.report,
+        }
         write_text_atomic(report_path, json.dumps(report, indent=2, default=str))
         _write_tie_points(out / "tie_points.gpkg", res, grid)
     if not report["applied"]:
         if report.get("status") == "not needed":
             return manifest, report
-        warnings.warn(f"cross-image orientation not applied: {report['reason']}; the cameras are used as given",
-                      OrientationWarning, stacklevel=2)
+        warnings.warn(
+            f"cross-image orientation not applied: {report['reason']}; the cameras are used as given",
+            OrientationWarning,
+            stacklevel=2,
+        )
         return manifest, report
     m2 = corrected_manifest(manifest, report)
     _write_oriented_manifest(out / "scene.oriented.yaml", m2)
@@ -200,14 +224,20 @@ def _write_oriented_manifest(path: Path, m) -> None:
         return None if p is None else str(Path(p).resolve())
 
     for e_d, e in zip(d["epochs"], m.epochs):
-        e_d["images"] = [{"path": ab(i.path), "name": i.name, **({"camera": ab(i.camera)} if i.camera else {})}
-                         for i in e.images]
+        e_d["images"] = [
+            {"path": ab(i.path), "name": i.name, **({"camera": ab(i.camera)} if i.camera else {})} for i in e.images
+        ]
         if e.dem is not None:
-            e_d["dem"] = {"path": ab(e.dem.path), **({"vertical_datum": e.dem.vertical_datum} if e.dem.vertical_datum else {})}
+            e_d["dem"] = {
+                "path": ab(e.dem.path),
+                **({"vertical_datum": e.dem.vertical_datum} if e.dem.vertical_datum else {}),
+            }
     for k, spec in (("dem", m.dem), ("footprints", m.footprints)):
         if spec is not None:
-            d[k] = {"path": ab(spec.path), **({"vertical_datum": spec.vertical_datum}
-                                                if getattr(spec, "vertical_datum", None) else {})}
+            d[k] = {
+                "path": ab(spec.path),
+                **({"vertical_datum": spec.vertical_datum} if getattr(spec, "vertical_datum", None) else {}),
+            }
     d.pop("output", None)
     d["orientation"] = False
     d["description"] = f"{m.name} with the cameras corrected by geocd's relative orientation (orientation.json)"
@@ -229,20 +259,23 @@ def check_epoch_overlap(by_epoch: dict, crs, h_m: float, aoi_bounds=None) -> Non
     fps = {e: unary_union([_footprint_xy(im.camera, h_m, crs) for im in ims]) for e, ims in by_epoch.items() if ims}
     names = list(fps)
     for i, a in enumerate(names):
-        for b in names[i + 1:]:
+        for b in names[i + 1 :]:
             inter = fps[a].intersection(fps[b])
             if inter.is_empty or inter.area <= 0:
                 ca, cb = fps[a].centroid, fps[b].centroid
                 raise NoOverlapError(
                     f"epochs {a!r} and {b!r} do not overlap on the ground (at {h_m:.0f} m their footprints are "
                     f"{ca.distance(cb) / 1000:.1f} km apart, centres ({ca.x:.0f}, {ca.y:.0f}) and ({cb.x:.0f}, "
-                    f"{cb.y:.0f}) in {getattr(crs, 'name', crs)}); list images of the same place in both epochs")
+                    f"{cb.y:.0f}) in {getattr(crs, 'name', crs)}); list images of the same place in both epochs"
+                )
     if aoi_bounds is not None:
         aoi = box(*aoi_bounds)
         for e, f in fps.items():
             if not f.intersects(aoi):
-                raise NoOverlapError(f"the images of epoch {e!r} do not reach the AOI {tuple(aoi_bounds)}; fix the "
-                                     "AOI or the images of that epoch")
+                raise NoOverlapError(
+                    f"the images of epoch {e!r} do not reach the AOI {tuple(aoi_bounds)}; fix the "
+                    "AOI or the images of that epoch"
+                )
 
 
 def corrected_manifest(manifest, report: dict):
@@ -250,8 +283,9 @@ def corrected_manifest(manifest, report: dict):
     files = report.get("camera_files", {})
     epochs = []
     for e in manifest.epochs:
-        imgs = tuple(dataclasses.replace(im, camera=Path(files[im.name])) if im.name in files else im
-                     for im in e.images)
+        imgs = tuple(
+            dataclasses.replace(im, camera=Path(files[im.name])) if im.name in files else im for im in e.images
+        )
         epochs.append(dataclasses.replace(e, images=imgs))
     return dataclasses.replace(manifest, epochs=tuple(epochs))
 
@@ -270,7 +304,15 @@ def _write_tie_points(path: Path, res: OrientationResult, grid: AOIGrid) -> None
     n_obs = np.bincount(tp.track, minlength=tp.n_tracks)
     n_in = np.bincount(tp.track[inl], minlength=tp.n_tracks)
     epochs = [sorted({tp.epochs[k] for k in tp.image[tp.track == t]}) for t in range(tp.n_tracks)]
-    gdf = gpd.GeoDataFrame({"track": np.arange(tp.n_tracks), "observations": n_obs, "inlier_observations": n_in,
-                            "epochs": [",".join(e) for e in epochs], "inlier": n_in >= 2},
-                           geometry=[Point(x, y) for x, y in tp.xy0], crs=grid.crs)
+    gdf = gpd.GeoDataFrame(
+        {
+            "track": np.arange(tp.n_tracks),
+            "observations": n_obs,
+            "inlier_observations": n_in,
+            "epochs": [",".join(e) for e in epochs],
+            "inlier": n_in >= 2,
+        },
+        geometry=[Point(x, y) for x, y in tp.xy0],
+        crs=grid.crs,
+    )
     write_gpkg(path, {"tie_points": gdf})

@@ -44,7 +44,7 @@ class OrthoView:
     epoch: str
     camera: Camera
     ortho: np.ndarray
-    relief_px_per_m: np.ndarray   # (2,) displacement (drow, dcol) in ortho pixels per metre above h0
+    relief_px_per_m: np.ndarray  # (2,) displacement (drow, dcol) in ortho pixels per metre above h0
 
 
 @dataclass
@@ -84,8 +84,18 @@ class TiePoints:
         used = np.unique(self.track[keep])
         remap = -np.ones(self.n_tracks, dtype=np.int64)
         remap[used] = np.arange(used.size)
-        return TiePoints(self.names, self.epochs, self.image[keep], remap[self.track[keep]], self.colrow[keep],
-                         self.xy0[used], self.h0_m, self.crs, self.ncc[keep], self.pair_stats)
+        return TiePoints(
+            self.names,
+            self.epochs,
+            self.image[keep],
+            remap[self.track[keep]],
+            self.colrow[keep],
+            self.xy0[used],
+            self.h0_m,
+            self.crs,
+            self.ncc[keep],
+            self.pair_stats,
+        )
 
 
 def ortho_at_height(image: np.ndarray, col0: int, row0: int, camera: Camera, grid: AOIGrid, h_m: float) -> np.ndarray:
@@ -95,8 +105,9 @@ def ortho_at_height(image: np.ndarray, col0: int, row0: int, camera: Camera, gri
     """
     x, y = grid.xy()
     c, r = camera.ground_projector(x, y, grid.crs).project(np.float64(h_m))
-    out = map_coordinates(np.asarray(image, dtype=np.float32), [r - 0.5 - row0, c - 0.5 - col0], order=1,
-                          cval=np.nan, prefilter=False)
+    out = map_coordinates(
+        np.asarray(image, dtype=np.float32), [r - 0.5 - row0, c - 0.5 - col0], order=1, cval=np.nan, prefilter=False
+    )
     return out.astype(np.float32)
 
 
@@ -112,7 +123,7 @@ def relief_displacement(camera: Camera, grid: AOIGrid, h_m: float) -> np.ndarray
     J = np.array([[c[1] - c[0], c[2] - c[0]], [rw[1] - rw[0], rw[2] - rw[0]]]) / d
     dc, dr = camera.ground_projector(np.array([x]), np.array([y]), grid.crs).dproj_dh(np.array([h_m]))
     # the ortho pixel X' shows at h0 what X shows at h0 + dh: J (X' − X) = ∂u/∂h · dh
-    axy = np.linalg.solve(J, np.array([float(dc[0]), float(dr[0])]))   # metres (x, y) per metre of height
+    axy = np.linalg.solve(J, np.array([float(dc[0]), float(dr[0])]))  # metres (x, y) per metre of height
     return np.array([-axy[1], axy[0]]) / grid.posting_m
 
 
@@ -143,7 +154,7 @@ def corner_candidates(ortho: np.ndarray, block: int, border: int, rel: float = 0
     out = []
     for i in range(0, H, block):
         for j in range(0, W, block):
-            sub = R[i:i + block, j:j + block]
+            sub = R[i : i + block, j : j + block]
             k = int(np.argmax(sub))
             a, b = divmod(k, sub.shape[1])
             if sub[a, b] > thr:
@@ -168,14 +179,20 @@ def band_offsets(along: np.ndarray, along_half: float, cross_half: float) -> np.
     return sq[keep].astype(np.int64)
 
 
-def match_points(ref: np.ndarray, oth: np.ndarray, pts: np.ndarray, centres: np.ndarray, offsets: np.ndarray,
-                 P: int) -> np.ndarray:
+def match_points(
+    ref: np.ndarray, oth: np.ndarray, pts: np.ndarray, centres: np.ndarray, offsets: np.ndarray, P: int
+) -> np.ndarray:
     """(n, 3) sub-pixel (row, col, ncc) of each point's best match (NaN rows where none); numba kernel."""
     if len(pts) == 0:
         return np.zeros((0, 3))
-    return ncc_at_offsets(np.ascontiguousarray(ref, dtype=np.float32), np.ascontiguousarray(oth, dtype=np.float32),
-                          np.ascontiguousarray(pts, dtype=np.int64), np.ascontiguousarray(centres, dtype=np.int64),
-                          np.ascontiguousarray(offsets, dtype=np.int64), int(P))
+    return ncc_at_offsets(
+        np.ascontiguousarray(ref, dtype=np.float32),
+        np.ascontiguousarray(oth, dtype=np.float32),
+        np.ascontiguousarray(pts, dtype=np.int64),
+        np.ascontiguousarray(centres, dtype=np.int64),
+        np.ascontiguousarray(offsets, dtype=np.int64),
+        int(P),
+    )
 
 
 def _epipolar_frame(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -209,8 +226,13 @@ def _coarse_offset(ref: OrthoView, oth: OrthoView, posting_m: float, params: Ori
     return c0 * n + a0 * u
 
 
-def find_tie_points(views: Sequence[OrthoView], grid: AOIGrid, h0_m: float, params: OrientationParams = OrientationParams(),
-                    progress: Progress | None = None) -> TiePoints:
+def find_tie_points(
+    views: Sequence[OrthoView],
+    grid: AOIGrid,
+    h0_m: float,
+    params: OrientationParams = OrientationParams(),
+    progress: Progress | None = None,
+) -> TiePoints:
     """Tie points between the first view and every other (see the module docstring).
 
     Parameters
@@ -253,14 +275,18 @@ def find_tie_points(views: Sequence[OrthoView], grid: AOIGrid, h0_m: float, para
             c0 = np.median(cross[ok])
             mad = 1.4826 * np.median(np.abs(cross[ok] - c0))
             keep &= np.abs(cross - c0) <= max(3.0 * mad, 1.0)
-            if norm < 1e-6:   # the same direction of view: the along component is constant too
+            if norm < 1e-6:  # the same direction of view: the along component is constant too
                 a0 = np.median(along[ok])
                 mad_a = 1.4826 * np.median(np.abs(along[ok] - a0))
                 keep &= np.abs(along - a0) <= max(3.0 * mad_a, 1.0)
         found[~keep] = np.nan
         peak[~keep] = np.nan
-        pair_stats[oth.name] = {"coarse_offset_px": [round(float(v), 2) for v in d0], "matches": int(ok.sum()),
-                                "inliers": int(keep.sum()), "epipolar_px_per_m": round(norm, 4)}
+        pair_stats[oth.name] = {
+            "coarse_offset_px": [round(float(v), 2) for v in d0],
+            "matches": int(ok.sum()),
+            "inliers": int(keep.sum()),
+            "epipolar_px_per_m": round(norm, 4),
+        }
         pos[k], ncc[k] = found, peak
     prog(1.0, "tie points done")
     # tracks: candidates matched in at least one other view
@@ -291,7 +317,15 @@ def find_tie_points(views: Sequence[OrthoView], grid: AOIGrid, h0_m: float, para
     def cat(xs, shape):
         return np.concatenate(xs) if xs else np.zeros(shape)
 
-    return TiePoints(names=[v.name for v in views], epochs=[v.epoch for v in views],
-                     image=cat(images, (0,)).astype(np.int64), track=cat(tracks, (0,)).astype(np.int64),
-                     colrow=cat(colrow, (0, 2)), xy0=xy0.reshape(-1, 2), h0_m=float(h0_m), crs=grid.crs,
-                     ncc=cat(peaks, (0,)), pair_stats=pair_stats)
+    return TiePoints(
+        names=[v.name for v in views],
+        epochs=[v.epoch for v in views],
+        image=cat(images, (0,)).astype(np.int64),
+        track=cat(tracks, (0,)).astype(np.int64),
+        colrow=cat(colrow, (0, 2)),
+        xy0=xy0.reshape(-1, 2),
+        h0_m=float(h0_m),
+        crs=grid.crs,
+        ncc=cat(peaks, (0,)),
+        pair_stats=pair_stats,
+    )

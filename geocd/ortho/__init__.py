@@ -9,12 +9,37 @@
 """
 
 from .core import (
-    NO_HEIGHT, OCCLUDED, OUTSIDE_IMAGE, SEEN, SEEN_FILLED_HEIGHT, STATUS_LABELS, STATUS_NAMES, OrthoParams, OrthoResult,
-    ViewGeometry, dsm_noise_m, fill_dsm_holes, occlusion_margin_cells, orthorectify, view_geometry,
+    NO_HEIGHT,
+    OCCLUDED,
+    OUTSIDE_IMAGE,
+    SEEN,
+    SEEN_FILLED_HEIGHT,
+    STATUS_LABELS,
+    STATUS_NAMES,
+    OrthoParams,
+    OrthoResult,
+    ViewGeometry,
+    dsm_noise_m,
+    fill_dsm_holes,
+    occlusion_margin_cells,
+    orthorectify,
+    view_geometry,
 )
 
 __all__ = [
-    "NO_HEIGHT", "OCCLUDED", "OUTSIDE_IMAGE", "SEEN", "SEEN_FILLED_HEIGHT", "STATUS_LABELS", "STATUS_NAMES",
-    "OrthoParams", "OrthoResult", "ViewGeometry", "dsm_noise_m", "fill_dsm_holes", "occlusion_margin_cells",
-    "orthorectify", "view_geometry",
+    "NO_HEIGHT",
+    "OCCLUDED",
+    "OUTSIDE_IMAGE",
+    "SEEN",
+    "SEEN_FILLED_HEIGHT",
+    "STATUS_LABELS",
+    "STATUS_NAMES",
+    "OrthoParams",
+    "OrthoResult",
+    "ViewGeometry",
+    "dsm_noise_m",
+    "fill_dsm_holes",
+    "occlusion_margin_cells",
+    "orthorectify",
+    "view_geometry",
 ]

@@ -47,7 +47,7 @@ def sample_image(img, valid, col, row, mode, out, ok):
         for j in range(w):
             c = col[i, j]
             r = row[i, j]
-            good = c >= 0.0 and r >= 0.0 and c < W and r < H      # False for NaN
+            good = c >= 0.0 and r >= 0.0 and c < W and r < H  # False for NaN
             if good and mode == NEAREST:
                 jj = int(c)
                 ii = int(r)
@@ -69,8 +69,12 @@ def sample_image(img, valid, col, row, mode, out, ok):
                 w01 = fx * (1.0 - fy)
                 w10 = (1.0 - fx) * fy
                 w11 = fx * fy
-                if ((w00 > 0.0 and valid[i0, j0] == 0) or (w01 > 0.0 and valid[i0, j1] == 0)
-                        or (w10 > 0.0 and valid[i1, j0] == 0) or (w11 > 0.0 and valid[i1, j1] == 0)):
+                if (
+                    (w00 > 0.0 and valid[i0, j0] == 0)
+                    or (w01 > 0.0 and valid[i0, j1] == 0)
+                    or (w10 > 0.0 and valid[i1, j0] == 0)
+                    or (w11 > 0.0 and valid[i1, j1] == 0)
+                ):
                     good = False
                 else:
                     for b in range(B):
@@ -90,8 +94,9 @@ def sample_image(img, valid, col, row, mode, out, ok):
                     out[b, i, j] = 0.0
 
 
-def sample_image_ref(img: np.ndarray, valid: np.ndarray, col: np.ndarray, row: np.ndarray,
-                     mode: int) -> tuple[np.ndarray, np.ndarray]:
+def sample_image_ref(
+    img: np.ndarray, valid: np.ndarray, col: np.ndarray, row: np.ndarray, mode: int
+) -> tuple[np.ndarray, np.ndarray]:
     """numpy reference of :func:`sample_image` → (out, ok)."""
     B, H, W = img.shape
     inside = (col >= 0) & (row >= 0) & (col < W) & (row < H)
@@ -134,8 +139,9 @@ def _dsm_at(dsm, y, x):
     fy = y - i0
     j1 = min(j0 + 1, W - 1)
     i1 = min(i0 + 1, H - 1)
-    return ((dsm[i0, j0] * (1.0 - fx) + dsm[i0, j1] * fx) * (1.0 - fy)
-            + (dsm[i1, j0] * (1.0 - fx) + dsm[i1, j1] * fx) * fy)
+    return (dsm[i0, j0] * (1.0 - fx) + dsm[i0, j1] * fx) * (1.0 - fy) + (
+        dsm[i1, j0] * (1.0 - fx) + dsm[i1, j1] * fx
+    ) * fy
 
 
 @njit(cache=True, parallel=True)
@@ -173,10 +179,10 @@ def occlusion_march(dsm, ray_j, ray_i, tol_m, step_cells, out):
             vi = ray_i[i, j]
             if not (np.isfinite(z0) and np.isfinite(vj) and np.isfinite(vi)):
                 continue
-            d = np.sqrt(vj * vj + vi * vi)          # cells per metre of height
+            d = np.sqrt(vj * vj + vi * vi)  # cells per metre of height
             if d < 1e-12:
                 continue
-            tmax = (zmax - tol_m - z0) * d           # beyond this the ray clears every surface
+            tmax = (zmax - tol_m - z0) * d  # beyond this the ray clears every surface
             uj = vj / d
             ui = vi / d
             t = step_cells
@@ -186,14 +192,15 @@ def occlusion_march(dsm, ray_j, ray_i, tol_m, step_cells, out):
                 if x < 0.0 or y < 0.0 or x > W - 1 or y > H - 1:
                     break
                 zs = _dsm_at(dsm, y, x)
-                if zs > z0 + t / d + tol_m:          # False for NaN
+                if zs > z0 + t / d + tol_m:  # False for NaN
                     out[i, j] = True
                     break
                 t += step_cells
 
 
-def occlusion_march_ref(dsm: np.ndarray, ray_j: np.ndarray, ray_i: np.ndarray, tol_m: float,
-                        step_cells: float) -> np.ndarray:
+def occlusion_march_ref(
+    dsm: np.ndarray, ray_j: np.ndarray, ray_i: np.ndarray, tol_m: float, step_cells: float
+) -> np.ndarray:
     """numpy reference of :func:`occlusion_march` (all cells advance together, one step at a time)."""
     H, W = dsm.shape
     zmax = np.nanmax(dsm)
@@ -220,7 +227,7 @@ def occlusion_march_ref(dsm: np.ndarray, ray_j: np.ndarray, ray_i: np.ndarray, t
         i0 = np.minimum(ys.astype(np.int64), max(H - 2, 0))
         fx, fy = xs - j0, ys - i0
         j1, i1 = np.minimum(j0 + 1, W - 1), np.minimum(i0 + 1, H - 1)
-        zs = ((dsm[i0, j0] * (1 - fx) + dsm[i0, j1] * fx) * (1 - fy) + (dsm[i1, j0] * (1 - fx) + dsm[i1, j1] * fx) * fy)
+        zs = (dsm[i0, j0] * (1 - fx) + dsm[i0, j1] * fx) * (1 - fy) + (dsm[i1, j0] * (1 - fx) + dsm[i1, j1] * fx) * fy
         with np.errstate(invalid="ignore"):
             hit = active & (zs > np.where(test, dsm, 0.0) + t / dd + tol_m)
         out |= hit

@@ -40,8 +40,13 @@ OCCLUDED = 2
 OUTSIDE_IMAGE = 3
 NO_HEIGHT = 4
 #: short names of the status codes (JSON keys, band category labels)
-STATUS_NAMES = {SEEN: "seen", SEEN_FILLED_HEIGHT: "seen_filled_height", OCCLUDED: "occluded",
-                OUTSIDE_IMAGE: "outside_image", NO_HEIGHT: "no_height"}
+STATUS_NAMES = {
+    SEEN: "seen",
+    SEEN_FILLED_HEIGHT: "seen_filled_height",
+    OCCLUDED: "occluded",
+    OUTSIDE_IMAGE: "outside_image",
+    NO_HEIGHT: "no_height",
+}
 STATUS_LABELS = {
     SEEN: "seen",
     SEEN_FILLED_HEIGHT: "seen (height filled in a DSM hole)",
@@ -123,8 +128,13 @@ class ViewGeometry:
     def weights(self) -> dict[str, np.ndarray]:
         """Per-cell weights for fusing views: the angles, the sampling, and ``cos_incidence`` (0 when back-facing)."""
         cos_inc = np.clip(np.cos(np.radians(self.incidence_deg.astype(np.float64))), 0.0, 1.0).astype(np.float32)
-        return {"view_zenith_deg": self.view_zenith_deg, "view_azimuth_deg": self.view_azimuth_deg,
-                "incidence_deg": self.incidence_deg, "px_per_cell": self.px_per_cell, "cos_incidence": cos_inc}
+        return {
+            "view_zenith_deg": self.view_zenith_deg,
+            "view_azimuth_deg": self.view_azimuth_deg,
+            "incidence_deg": self.incidence_deg,
+            "px_per_cell": self.px_per_cell,
+            "cos_incidence": cos_inc,
+        }
 
 
 @dataclass
@@ -177,24 +187,29 @@ def view_geometry(camera: Camera, grid: AOIGrid, dsm_m: np.ndarray) -> ViewGeome
     """
     dsm = np.asarray(dsm_m, np.float64)
     if dsm.shape != grid.shape:
-        raise GridError(f"DSM shape {dsm.shape} does not match the grid {grid.shape}; resample it onto the grid "
-                        "(geocd.io.raster.read_dem(path, grid=grid))")
+        raise GridError(
+            f"DSM shape {dsm.shape} does not match the grid {grid.shape}; resample it onto the grid "
+            "(geocd.io.raster.read_dem(path, grid=grid))"
+        )
     ok = np.isfinite(dsm)
     if not ok.any():
         raise EmptyDataError("the DSM has no valid height on the grid; give a DSM that covers the AOI")
     z = np.where(ok, dsm, float(np.median(dsm[ok])))
     x, y = grid.xy()
-    px, py = grid.posting                      # CRS units per cell
+    px, py = grid.posting  # CRS units per cell
     dx, dy = 0.5 * px, 0.5 * py
-    pr = camera.ground_projector(np.concatenate([x.ravel(), x.ravel() + dx, x.ravel()]),
-                                 np.concatenate([y.ravel(), y.ravel(), y.ravel() - dy]), grid.crs)
+    pr = camera.ground_projector(
+        np.concatenate([x.ravel(), x.ravel() + dx, x.ravel()]),
+        np.concatenate([y.ravel(), y.ravel(), y.ravel() - dy]),
+        grid.crs,
+    )
     zz = np.concatenate([z.ravel()] * 3)
     c, r = pr.project(zz)
     n = x.size
     dc_dh, dr_dh = camera.ground_projector(x.ravel(), y.ravel(), grid.crs).dproj_dh(z.ravel())
     c0, r0 = c[:n], r[:n]
-    cj, rj = (c[n:2 * n] - c0) / 0.5, (r[n:2 * n] - r0) / 0.5       # per grid column (east)
-    ci, ri = (c[2 * n:] - c0) / 0.5, (r[2 * n:] - r0) / 0.5         # per grid row (south)
+    cj, rj = (c[n : 2 * n] - c0) / 0.5, (r[n : 2 * n] - r0) / 0.5  # per grid column (east)
+    ci, ri = (c[2 * n :] - c0) / 0.5, (r[2 * n :] - r0) / 0.5  # per grid row (south)
     det = cj * ri - ci * rj
     with np.errstate(invalid="ignore", divide="ignore"):
         vj = -(ri * dc_dh - ci * dr_dh) / det
@@ -202,18 +217,19 @@ def view_geometry(camera: Camera, grid: AOIGrid, dsm_m: np.ndarray) -> ViewGeome
         px_per_cell = np.sqrt(np.abs(det))
     shape = grid.shape
     m_per_unit = grid_metres_per_unit(grid)
-    east = vj * px * m_per_unit                 # metres east per metre up the ray
+    east = vj * px * m_per_unit  # metres east per metre up the ray
     north = -vi * py * m_per_unit
     zen = np.degrees(np.arctan(np.hypot(east, north)))
     az = np.degrees(np.arctan2(east, north)) % 360.0
     # incidence on the DSM surface: normal (−∂z/∂e, −∂z/∂n, 1) against the ray (e, n, 1)
     with np.errstate(invalid="ignore"):
-        gi, gj = np.gradient(dsm, py * m_per_unit, px * m_per_unit)        # ∂z/∂(row = −north), ∂z/∂(col = east)
+        gi, gj = np.gradient(dsm, py * m_per_unit, px * m_per_unit)  # ∂z/∂(row = −north), ∂z/∂(col = east)
         dz_de, dz_dn = gj, -gi
         e2, n2 = east.reshape(shape), north.reshape(shape)
         dot = -dz_de * e2 - dz_dn * n2 + 1.0
-        inc = np.degrees(np.arccos(np.clip(dot / (np.sqrt(dz_de ** 2 + dz_dn ** 2 + 1.0) * np.sqrt(e2 ** 2 + n2 ** 2 + 1.0)),
-                                           -1.0, 1.0)))
+        inc = np.degrees(
+            np.arccos(np.clip(dot / (np.sqrt(dz_de**2 + dz_dn**2 + 1.0) * np.sqrt(e2**2 + n2**2 + 1.0)), -1.0, 1.0))
+        )
     bad = ~ok
 
     def f(a: np.ndarray, dtype=np.float64) -> np.ndarray:
@@ -221,9 +237,16 @@ def view_geometry(camera: Camera, grid: AOIGrid, dsm_m: np.ndarray) -> ViewGeome
         a[bad] = np.nan
         return a
 
-    return ViewGeometry(col=f(c0), row=f(r0), ray_j=f(vj), ray_i=f(vi), view_zenith_deg=f(zen, np.float32),
-                        view_azimuth_deg=f(az, np.float32), incidence_deg=f(inc, np.float32),
-                        px_per_cell=f(px_per_cell, np.float32))
+    return ViewGeometry(
+        col=f(c0),
+        row=f(r0),
+        ray_j=f(vj),
+        ray_i=f(vi),
+        view_zenith_deg=f(zen, np.float32),
+        view_azimuth_deg=f(az, np.float32),
+        incidence_deg=f(inc, np.float32),
+        px_per_cell=f(px_per_cell, np.float32),
+    )
 
 
 def dsm_noise_m(dsm_m: np.ndarray) -> float:
@@ -239,8 +262,12 @@ def dsm_noise_m(dsm_m: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(res - np.median(res))))
 
 
-def occlusion_margin_cells(dsm_m: np.ndarray, geometry: ViewGeometry | None = None,
-                           max_view_zenith_deg: float | None = None, posting_m: float = 1.0) -> int:
+def occlusion_margin_cells(
+    dsm_m: np.ndarray,
+    geometry: ViewGeometry | None = None,
+    max_view_zenith_deg: float | None = None,
+    posting_m: float = 1.0,
+) -> int:
     """Context (grid cells) a tile needs on each side for its occlusion test to see every occluder.
 
     ``(max − min DSM height) · tan(max view zenith) / posting``, rounded up: the
@@ -261,8 +288,9 @@ def occlusion_margin_cells(dsm_m: np.ndarray, geometry: ViewGeometry | None = No
     return int(math.ceil(relief * math.tan(math.radians(max_view_zenith_deg)) / posting_m)) + 1
 
 
-def fill_dsm_holes(dsm_m: np.ndarray, prior_m: np.ndarray | None = None,
-                   low_band_m: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def fill_dsm_holes(
+    dsm_m: np.ndarray, prior_m: np.ndarray | None = None, low_band_m: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Fill NaN holes of a DSM for orthorectification → (filled, was_hole).
 
     Holes of a stereo DSM are mostly ground that one view could not see (beside
@@ -286,7 +314,7 @@ def fill_dsm_holes(dsm_m: np.ndarray, prior_m: np.ndarray | None = None,
     if not todo.any() or not np.isfinite(d).any():
         return d, hole
     lab, n = ndimage.label(todo, structure=np.ones((3, 3)))
-    rim_of = ndimage.grey_dilation(lab, size=3) * np.isfinite(d)       # valid cells touching a hole, by label
+    rim_of = ndimage.grey_dilation(lab, size=3) * np.isfinite(d)  # valid cells touching a hole, by label
     seed = np.zeros(d.shape, bool)
     for k, sl in enumerate(ndimage.find_objects(rim_of), start=1):
         if sl is None:
@@ -328,10 +356,19 @@ def _as_bands(image: Any) -> np.ndarray:
     return a
 
 
-def orthorectify(image: np.ndarray, camera: Camera, grid: AOIGrid, dsm_m: np.ndarray, *,
-                 valid: np.ndarray | None = None, col0: float = 0.0, row0: float = 0.0,
-                 params: OrthoParams = OrthoParams(), dsm_filled: np.ndarray | None = None,
-                 geometry: ViewGeometry | None = None) -> OrthoResult:
+def orthorectify(
+    image: np.ndarray,
+    camera: Camera,
+    grid: AOIGrid,
+    dsm_m: np.ndarray,
+    *,
+    valid: np.ndarray | None = None,
+    col0: float = 0.0,
+    row0: float = 0.0,
+    params: OrthoParams = OrthoParams(),
+    dsm_filled: np.ndarray | None = None,
+    geometry: ViewGeometry | None = None,
+) -> OrthoResult:
     """Orthorectify an image-space array onto an AOI grid with a DSM (true ortho).
 
     Parameters
@@ -397,8 +434,14 @@ def orthorectify(image: np.ndarray, camera: Camera, grid: AOIGrid, dsm_m: np.nda
     if params.occlusion:
         tol = params.occlusion_tol_m if params.occlusion_tol_m is not None else max(0.5, 3.0 * dsm_noise_m(dsm))
         occ = np.empty(grid.shape, bool)
-        K.occlusion_march(np.ascontiguousarray(np.where(has_h, dsm, np.nan)), np.ascontiguousarray(geo.ray_j),
-                          np.ascontiguousarray(geo.ray_i), float(tol), float(params.step_cells), occ)
+        K.occlusion_march(
+            np.ascontiguousarray(np.where(has_h, dsm, np.nan)),
+            np.ascontiguousarray(geo.ray_j),
+            np.ascontiguousarray(geo.ray_i),
+            float(tol),
+            float(params.step_cells),
+            occ,
+        )
         status[occ & ok] = OCCLUDED
     status[~has_h] = NO_HEIGHT
     observed = status <= SEEN_FILLED_HEIGHT
@@ -411,5 +454,4 @@ def orthorectify(image: np.ndarray, camera: Camera, grid: AOIGrid, dsm_m: np.nda
         values = np.where(observed[None], vals, fill).astype(out_dtype)
     else:
         values = np.where(observed[None], vals, np.nan).astype(out_dtype)
-    return OrthoResult(values=values, observed=observed, status=status, geometry=geo, occlusion_tol_m=tol,
-                       notes=notes)
+    return OrthoResult(values=values, observed=observed, status=status, geometry=geo, occlusion_tol_m=tol, notes=notes)

@@ -30,18 +30,34 @@ from ..errors import ConfigError, NoOverlapError
 from ..geodesy import AOIGrid
 from ..io.raster import write_cog
 from ..progress import Progress, ensure_progress, sub_progress
-from .core import (NO_HEIGHT, OCCLUDED, OUTSIDE_IMAGE, SEEN, SEEN_FILLED_HEIGHT, STATUS_LABELS, OrthoParams,
-                   OrthoResult, fill_dsm_holes, orthorectify)
+from .core import (
+    NO_HEIGHT,
+    OCCLUDED,
+    OUTSIDE_IMAGE,
+    SEEN,
+    SEEN_FILLED_HEIGHT,
+    STATUS_LABELS,
+    OrthoParams,
+    OrthoResult,
+    fill_dsm_holes,
+    orthorectify,
+)
 
-STATUS_COLOURS = {SEEN: "#1a9641", SEEN_FILLED_HEIGHT: "#a6d96a", OCCLUDED: "#d7191c", OUTSIDE_IMAGE: "#bdbdbd",
-                  NO_HEIGHT: "#404040"}
+STATUS_COLOURS = {
+    SEEN: "#1a9641",
+    SEEN_FILLED_HEIGHT: "#a6d96a",
+    OCCLUDED: "#d7191c",
+    OUTSIDE_IMAGE: "#bdbdbd",
+    NO_HEIGHT: "#404040",
+}
 
 
 # ---------------------------------------------------------------------------------------------
 # reading
 # ---------------------------------------------------------------------------------------------
-def read_image_for_grid(path: os.PathLike | str, camera: Camera, grid: AOIGrid, lo_m: float, hi_m: float,
-                        margin_px: int = 8):
+def read_image_for_grid(
+    path: os.PathLike | str, camera: Camera, grid: AOIGrid, lo_m: float, hi_m: float, margin_px: int = 8
+):
     """Read the window of an image that the grid sees between two heights.
 
     Returns
@@ -59,11 +75,15 @@ def read_image_for_grid(path: os.PathLike | str, camera: Camera, grid: AOIGrid, 
         interp = [ci.name for ci in ds.colorinterp]
     box = image_window_for_grid(camera, grid, lo_m, hi_m, margin_px, W, H)
     if box is None:
-        raise NoOverlapError(f"image {path} does not see the AOI {grid.bounds} ({grid.crs.name}) at heights "
-                             f"{lo_m:.0f}..{hi_m:.0f} m; check the AOI, the image's camera and the DSM")
+        raise NoOverlapError(
+            f"image {path} does not see the AOI {grid.bounds} ({grid.crs.name}) at heights "
+            f"{lo_m:.0f}..{hi_m:.0f} m; check the AOI, the image's camera and the DSM"
+        )
     c0, r0, c1, r1 = box
     img = read_image(path, window=Window(c0, r0, c1 - c0, r1 - r0))
-    names = [d if d else (i if i not in ("undefined", "gray") or img.bands > 1 else "gray") for d, i in zip(desc, interp)]
+    names = [
+        d if d else (i if i not in ("undefined", "gray") or img.bands > 1 else "gray") for d, i in zip(desc, interp)
+    ]
     names = [n if n != "undefined" else f"b{k + 1}" for k, n in enumerate(names)]
     return img.data, img.valid, c0, r0, names
 
@@ -108,23 +128,35 @@ def _stretch(band: np.ndarray, observed: np.ndarray) -> tuple[float, float]:
 
 def ortho_qml(values: np.ndarray, observed: np.ndarray) -> str:
     """Grey (1 band) or RGB (first three bands) style, stretched on the 2–98 % of the observed values."""
+
     def ce(tag: str, band: int, lo: float, hi: float) -> str:
         # QGIS reads minValue/maxValue/algorithm as direct children of the band's element (what it writes itself);
         # nested one level deeper they are ignored and a 16-bit image opens black (0–65535, no stretch)
-        return (f"      <{tag}>\n        <minValue>{lo:g}</minValue>\n        <maxValue>{hi:g}</maxValue>\n"
-                f"        <algorithm>StretchToMinimumMaximum</algorithm>\n      </{tag}>\n")
+        return (
+            f"      <{tag}>\n        <minValue>{lo:g}</minValue>\n        <maxValue>{hi:g}</maxValue>\n"
+            f"        <algorithm>StretchToMinimumMaximum</algorithm>\n      </{tag}>\n"
+        )
 
     if values.shape[0] >= 3:
         st = [_stretch(values[k], observed) for k in range(3)]
-        body = ('    <rasterrenderer type="multibandcolor" redBand="1" greenBand="2" blueBand="3" opacity="1" '
-                'alphaBand="-1" nodataColor="">\n      <rasterTransparency/>\n' + _MINMAX
-                + ce("redContrastEnhancement", 1, *st[0]) + ce("greenContrastEnhancement", 2, *st[1])
-                + ce("blueContrastEnhancement", 3, *st[2]) + "    </rasterrenderer>\n")
+        body = (
+            '    <rasterrenderer type="multibandcolor" redBand="1" greenBand="2" blueBand="3" opacity="1" '
+            'alphaBand="-1" nodataColor="">\n      <rasterTransparency/>\n'
+            + _MINMAX
+            + ce("redContrastEnhancement", 1, *st[0])
+            + ce("greenContrastEnhancement", 2, *st[1])
+            + ce("blueContrastEnhancement", 3, *st[2])
+            + "    </rasterrenderer>\n"
+        )
     else:
         lo, hi = _stretch(values[0], observed)
-        body = ('    <rasterrenderer type="singlebandgray" grayBand="1" gradient="BlackToWhite" opacity="1" '
-                'alphaBand="-1" nodataColor="">\n      <rasterTransparency/>\n' + _MINMAX
-                + ce("contrastEnhancement", 1, lo, hi) + "    </rasterrenderer>\n")
+        body = (
+            '    <rasterrenderer type="singlebandgray" grayBand="1" gradient="BlackToWhite" opacity="1" '
+            'alphaBand="-1" nodataColor="">\n      <rasterTransparency/>\n'
+            + _MINMAX
+            + ce("contrastEnhancement", 1, lo, hi)
+            + "    </rasterrenderer>\n"
+        )
     return _QML_HEAD + body + _QML_TAIL
 
 
@@ -132,18 +164,30 @@ def status_qml() -> str:
     """Paletted style of the status band (seen cells transparent-ish green, occluded red)."""
     entries = "\n".join(
         f'        <paletteEntry value="{k}" color="{STATUS_COLOURS[k]}" alpha="{90 if k == SEEN else 255}" '
-        f'label="{STATUS_LABELS[k]}"/>' for k in STATUS_LABELS)
-    body = ('    <rasterrenderer type="paletted" band="1" opacity="1" alphaBand="-1" nodataColor="">\n'
-            '      <rasterTransparency/>\n      <colorPalette>\n' + entries + "\n      </colorPalette>\n"
-            '      <colorramp type="randomcolors" name="[source]"/>\n    </rasterrenderer>\n')
+        f'label="{STATUS_LABELS[k]}"/>'
+        for k in STATUS_LABELS
+    )
+    body = (
+        '    <rasterrenderer type="paletted" band="1" opacity="1" alphaBand="-1" nodataColor="">\n'
+        "      <rasterTransparency/>\n      <colorPalette>\n" + entries + "\n      </colorPalette>\n"
+        '      <colorramp type="randomcolors" name="[source]"/>\n    </rasterrenderer>\n'
+    )
     return _QML_HEAD + body + _QML_TAIL
 
 
 # ---------------------------------------------------------------------------------------------
 # writing
 # ---------------------------------------------------------------------------------------------
-def write_ortho(path: os.PathLike | str, result: OrthoResult, grid: AOIGrid, *, band_names: Sequence[str] | None = None,
-                tags: Mapping[str, Any] | None = None, view_bands: bool = False, overwrite: bool = True) -> dict[str, Path]:
+def write_ortho(
+    path: os.PathLike | str,
+    result: OrthoResult,
+    grid: AOIGrid,
+    *,
+    band_names: Sequence[str] | None = None,
+    tags: Mapping[str, Any] | None = None,
+    view_bands: bool = False,
+    overwrite: bool = True,
+) -> dict[str, Path]:
     """Write an orthoimage, its status band and (optionally) its view geometry; returns {product: path}."""
     from ..change.styles import write_raster_style
 
@@ -152,8 +196,11 @@ def write_ortho(path: os.PathLike | str, result: OrthoResult, grid: AOIGrid, *, 
     names = list(band_names) if band_names else [f"b{k + 1}" for k in range(vals.shape[0])]
     if len(names) != vals.shape[0]:
         names = [f"b{k + 1}" for k in range(vals.shape[0])]
-    t = {"method": "geocd ortho (true ortho)", "occlusion_tol_m": f"{result.occlusion_tol_m:.3f}",
-         "status_fractions": json.dumps(result.fractions())}
+    t = {
+        "method": "geocd ortho (true ortho)",
+        "occlusion_tol_m": f"{result.occlusion_tol_m:.3f}",
+        "status_fractions": json.dumps(result.fractions()),
+    }
     if result.notes:
         t["notes"] = "; ".join(result.notes)
     t.update(tags or {})
@@ -161,24 +208,46 @@ def write_ortho(path: os.PathLike | str, result: OrthoResult, grid: AOIGrid, *, 
     paths["ortho"] = write_cog(p, dict(zip(names, vals)), grid, tags=t, mask=result.observed, overwrite=overwrite)
     write_raster_style(paths["ortho"], ortho_qml(vals, result.observed))
     stem = p.with_suffix("")
-    paths["status"] = write_cog(f"{stem}_status.tif", {"status": result.status}, grid, dtype="uint8",
-                                tags={**t, "categories": json.dumps({str(k): v for k, v in STATUS_LABELS.items()})},
-                                overview_resampling="nearest", overwrite=overwrite)
+    paths["status"] = write_cog(
+        f"{stem}_status.tif",
+        {"status": result.status},
+        grid,
+        dtype="uint8",
+        tags={**t, "categories": json.dumps({str(k): v for k, v in STATUS_LABELS.items()})},
+        overview_resampling="nearest",
+        overwrite=overwrite,
+    )
     write_raster_style(paths["status"], status_qml())
     if view_bands:
         g = result.geometry
-        paths["view"] = write_cog(f"{stem}_view.tif", {"view_zenith_deg": g.view_zenith_deg,
-                                                       "view_azimuth_deg": g.view_azimuth_deg,
-                                                       "incidence_deg": g.incidence_deg,
-                                                       "px_per_cell": g.px_per_cell}, grid, tags=t,
-                                  overwrite=overwrite)
+        paths["view"] = write_cog(
+            f"{stem}_view.tif",
+            {
+                "view_zenith_deg": g.view_zenith_deg,
+                "view_azimuth_deg": g.view_azimuth_deg,
+                "incidence_deg": g.incidence_deg,
+                "px_per_cell": g.px_per_cell,
+            },
+            grid,
+            tags=t,
+            overwrite=overwrite,
+        )
     return paths
 
 
-def ortho_image(image_path: os.PathLike | str, camera: Camera, grid: AOIGrid, dsm_m: np.ndarray,
-                out_path: os.PathLike | str, *, params: OrthoParams = OrthoParams(),
-                dsm_filled: np.ndarray | None = None, view_bands: bool = False, overwrite: bool = True,
-                tags: Mapping[str, Any] | None = None) -> tuple[dict[str, Path], OrthoResult]:
+def ortho_image(
+    image_path: os.PathLike | str,
+    camera: Camera,
+    grid: AOIGrid,
+    dsm_m: np.ndarray,
+    out_path: os.PathLike | str,
+    *,
+    params: OrthoParams = OrthoParams(),
+    dsm_filled: np.ndarray | None = None,
+    view_bands: bool = False,
+    overwrite: bool = True,
+    tags: Mapping[str, Any] | None = None,
+) -> tuple[dict[str, Path], OrthoResult]:
     """Orthorectify one image file onto the grid and write its products."""
     from ..io.atomic import protect_inputs
 
@@ -188,8 +257,7 @@ def ortho_image(image_path: os.PathLike | str, camera: Camera, grid: AOIGrid, ds
         raise ConfigError("the DSM has no valid height on the grid")
     lo, hi = float(np.nanmin(dsm_m)), float(np.nanmax(dsm_m))
     data, valid, c0, r0, names = read_image_for_grid(image_path, camera, grid, lo, hi)
-    res = orthorectify(data, camera, grid, dsm_m, valid=valid, col0=c0, row0=r0, params=params,
-                       dsm_filled=dsm_filled)
+    res = orthorectify(data, camera, grid, dsm_m, valid=valid, col0=c0, row0=r0, params=params, dsm_filled=dsm_filled)
     t = {"source_image": str(image_path), "params": params.to_json()}
     t.update(tags or {})
     paths = write_ortho(out_path, res, grid, band_names=names, tags=t, view_bands=view_bands, overwrite=overwrite)
@@ -206,11 +274,22 @@ def stereo_epoch_dsm(pairs: Sequence[Any]) -> np.ndarray:
         return np.nanmedian(np.stack([np.where(p.valid, p.z_m, np.nan) for p in pairs]), axis=0).astype(np.float32)
 
 
-def run_ortho(manifest, *, epochs: Sequence[str] | None = None, images: Sequence[str] | None = None,
-              out_dir: os.PathLike | str | None = None, dsm: os.PathLike | str | Mapping[str, Any] | None = None,
-              dsm_source: str = "auto", grid: AOIGrid | None = None, posting_m: float | None = None,
-              params: OrthoParams = OrthoParams(), view_bands: bool = False, overwrite: bool = True,
-              stereo_params=None, progress: Progress | None = None) -> dict[str, Any]:
+def run_ortho(
+    manifest,
+    *,
+    epochs: Sequence[str] | None = None,
+    images: Sequence[str] | None = None,
+    out_dir: os.PathLike | str | None = None,
+    dsm: os.PathLike | str | Mapping[str, Any] | None = None,
+    dsm_source: str = "auto",
+    grid: AOIGrid | None = None,
+    posting_m: float | None = None,
+    params: OrthoParams = OrthoParams(),
+    view_bands: bool = False,
+    overwrite: bool = True,
+    stereo_params=None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Orthoimages of a manifest's images, one DSM per epoch.
 
     Parameters
@@ -242,15 +321,18 @@ def run_ortho(manifest, *, epochs: Sequence[str] | None = None, images: Sequence
     if images:
         missing = set(images) - {im.name for v in ims.values() for im in v}
         if missing:
-            raise ConfigError(f"images {sorted(missing)} are not in the selected epochs of the manifest; "
-                              f"images are {[im.name for v in ims.values() for im in v]}")
+            raise ConfigError(
+                f"images {sorted(missing)} are not in the selected epochs of the manifest; "
+                f"images are {[im.name for v in ims.values() for im in v]}"
+            )
     ims = {k: v for k, v in ims.items() if v}
     sp = stereo_params or StereoParams()
     if grid is None:
         dem_median = None
         if m.dem is not None:
-            dem_median = float(np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum)
-                                            .to_ellipsoidal().height_m))
+            dem_median = float(
+                np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m)
+            )
         grid = default_aoi_grid(m, ims, posting_m=posting_m, dem_median=dem_median, params=sp)
     prior = None
     if m.dem is not None:
@@ -258,7 +340,7 @@ def run_ortho(manifest, *, epochs: Sequence[str] | None = None, images: Sequence
     outputs: dict[str, Path] = {}
     results: dict[str, OrthoResult] = {}
     sources: dict[str, str] = {}
-    smoothing: dict[str, int] = {}   # the stereo's surface median (cells) behind each epoch's DSM
+    smoothing: dict[str, int] = {}  # the stereo's surface median (cells) behind each epoch's DSM
     n_total = sum(len(v) for v in ims.values())
     done = 0
     for e in sel:
@@ -271,39 +353,71 @@ def run_ortho(manifest, *, epochs: Sequence[str] | None = None, images: Sequence
             sources[e.name] = f"given: {given}"
         elif dsm_source in ("auto", "stereo") and len(e.images) >= 2:
             f0 = done / max(n_total, 1)
-            st = run_stereo(m, epochs=[e.name], out_dir=out, params=sp, grid=grid, keep_arrays=True,
-                            pairs="same-kind", overwrite=overwrite,
-                            progress=sub_progress(prog, f0, f0 + 0.5 * len(ims[e.name]) / max(n_total, 1),
-                                                  f"{e.name} stereo: "))
+            st = run_stereo(
+                m,
+                epochs=[e.name],
+                out_dir=out,
+                params=sp,
+                grid=grid,
+                keep_arrays=True,
+                pairs="same-kind",
+                overwrite=overwrite,
+                progress=sub_progress(prog, f0, f0 + 0.5 * len(ims[e.name]) / max(n_total, 1), f"{e.name} stereo: "),
+            )
             h = stereo_epoch_dsm(list(st["pairs"].values()))
             sources[e.name] = f"geocd stereo: median of {len(st['pairs'])} pair-DEMs"
             smoothing[e.name] = sp.median_size
         else:
             spec = e.dem or m.dem
             if spec is None:
-                raise ConfigError(f"no DSM for epoch {e.name!r}: give one (--dsm), or two images for geocd stereo, "
-                                  "or a DEM in the manifest")
+                raise ConfigError(
+                    f"no DSM for epoch {e.name!r}: give one (--dsm), or two images for geocd stereo, "
+                    "or a DEM in the manifest"
+                )
             h = read_dem(spec.path, grid=grid, vertical_datum=spec.vertical_datum).to_ellipsoidal().height_m
             sources[e.name] = f"DEM: {spec.path}"
             if spec is m.dem:
-                warnings.warn(f"epoch {e.name}: orthorectified on the terrain DEM {spec.path}, not a surface model: "
-                              "buildings lean and occlusions are not found (a classic, not a true ortho)", stacklevel=2)
+                warnings.warn(
+                    f"epoch {e.name}: orthorectified on the terrain DEM {spec.path}, not a surface model: "
+                    "buildings lean and occlusions are not found (a classic, not a true ortho)",
+                    stacklevel=2,
+                )
         filled_h, hole = fill_dsm_holes(h, prior)
-        dsm_path = write_cog(out / "ortho" / e.name / f"dsm_{e.name}.tif",
-                             {"height_m": filled_h.astype(np.float32), "filled": hole.astype(np.float32)}, grid,
-                             tags={"source": sources[e.name], "vertical_datum": "ellipsoid",
-                                   **({"surface_median_cells": str(smoothing[e.name])} if e.name in smoothing else {})},
-                             overwrite=overwrite)
+        dsm_path = write_cog(
+            out / "ortho" / e.name / f"dsm_{e.name}.tif",
+            {"height_m": filled_h.astype(np.float32), "filled": hole.astype(np.float32)},
+            grid,
+            tags={
+                "source": sources[e.name],
+                "vertical_datum": "ellipsoid",
+                **({"surface_median_cells": str(smoothing[e.name])} if e.name in smoothing else {}),
+            },
+            overwrite=overwrite,
+        )
         outputs[f"{e.name}/dsm"] = dsm_path
         for im in ims[e.name]:
             f0 = done / max(n_total, 1)
             prog(f0, f"ortho {e.name}/{im.name}")
-            paths, res = ortho_image(im.path, im.camera, grid, filled_h, out / "ortho" / e.name / f"{im.name}.tif",
-                                     params=params, dsm_filled=hole, view_bands=view_bands, overwrite=overwrite,
-                                     tags={"epoch": e.name, "dsm": sources[e.name]})
+            paths, res = ortho_image(
+                im.path,
+                im.camera,
+                grid,
+                filled_h,
+                out / "ortho" / e.name / f"{im.name}.tif",
+                params=params,
+                dsm_filled=hole,
+                view_bands=view_bands,
+                overwrite=overwrite,
+                tags={"epoch": e.name, "dsm": sources[e.name]},
+            )
             outputs[f"{e.name}/{im.name}"] = paths["ortho"]
             results[f"{e.name}/{im.name}"] = res
             done += 1
     prog(1.0, "ortho done")
-    return {"outputs": outputs, "grid": grid, "dsm_source": sources, "results": results,
-            "fractions": {k: r.fractions() for k, r in results.items()}}
+    return {
+        "outputs": outputs,
+        "grid": grid,
+        "dsm_source": sources,
+        "results": results,
+        "fractions": {k: r.fractions() for k, r in results.items()},
+    }

@@ -24,8 +24,15 @@ Public API
 
 from .engine import View, make_pairs, make_view  # noqa: E402
 from .keyframe import KeyFrameResult, detect_keyframe, ray_hypotheses  # noqa: E402
-from .likelihood import (NoiseModel, change_log_likelihood_ratio, change_probability_direct,  # noqa: E402
-                         depth_log_prob, fit_half_laplace, posterior_change, uniform_range)
+from .likelihood import (
+    NoiseModel,
+    change_log_likelihood_ratio,
+    change_probability_direct,  # noqa: E402
+    depth_log_prob,
+    fit_half_laplace,
+    posterior_change,
+    uniform_range,
+)
 from .objectspace import ProbChangeResult, detect_objectspace  # noqa: E402
 from .params import ProbChangeParams  # noqa: E402
 
@@ -43,8 +50,24 @@ def __getattr__(name):  # lazy: products and the pipeline import I/O
 
 
 __all__ = [
-    "KeyFrameResult", "NoiseModel", "ProbChangeParams", "ProbChangeResult", "View", "change_log_likelihood_ratio",
-    "change_probability_direct", "depth_log_prob", "detect_keyframe", "detect_objectspace", "fit_half_laplace",
-    "make_pairs", "make_view", "posterior_change", "ray_hypotheses", "uniform_range", "write_probchange_products",
-    "write_keyframe_products", "run_probchange", "load_views",
+    "KeyFrameResult",
+    "NoiseModel",
+    "ProbChangeParams",
+    "ProbChangeResult",
+    "View",
+    "change_log_likelihood_ratio",
+    "change_probability_direct",
+    "depth_log_prob",
+    "detect_keyframe",
+    "detect_objectspace",
+    "fit_half_laplace",
+    "make_pairs",
+    "make_view",
+    "posterior_change",
+    "ray_hypotheses",
+    "uniform_range",
+    "write_probchange_products",
+    "write_keyframe_products",
+    "run_probchange",
+    "load_views",
 ]

@@ -107,8 +107,8 @@ def patch_mad_ref(stack: np.ndarray, ia, ib, r: int, min_count: int) -> np.ndarr
     vp = np.pad(valid.astype(float), r)
     for di in range(2 * r + 1):
         for dj in range(2 * r + 1):
-            s += dp[di:di + h, dj:dj + w]
-            c += vp[di:di + h, dj:dj + w]
+            s += dp[di : di + h, dj : dj + w]
+            c += vp[di : di + h, dj : dj + w]
     with np.errstate(invalid="ignore", divide="ignore"):
         out = s / (c * nb)
     out[c < min_count] = np.nan
@@ -192,8 +192,9 @@ def depth_logprob(vol, inv_sigma, log_s_over_sigma, log_none, log_1m_none, out, 
                     out[d, i, j] = -np.inf
 
 
-def depth_logprob_ref(vol: np.ndarray, sigma: float, s_range: float = 1.0,
-                      none_prior: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def depth_logprob_ref(
+    vol: np.ndarray, sigma: float, s_range: float = 1.0, none_prior: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """numpy reference of :func:`depth_logprob`: (log p (n, h, w), argmax (h, w), log p(∅) (h, w))."""
     v = vol.astype(np.float64)
     P = v.shape[0]
@@ -285,11 +286,12 @@ def change_llr(logp, vol, inv_sigma, log_s_over_sigma, log_eps, log_1meps, llr, 
             coverage[i, j] = cov[j] / (Q * tot[j]) if Q > 0 and tot[j] > 0.0 else 0.0
 
 
-def change_llr_ref(logp: np.ndarray, vol: np.ndarray, sigma: float, s_range: float,
-                   eps: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def change_llr_ref(
+    logp: np.ndarray, vol: np.ndarray, sigma: float, s_range: float, eps: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """numpy reference of :func:`change_llr` (probability domain where safe, float64)."""
-    p = np.exp(logp.astype(np.float64))                         # (n, h, w)
-    s = vol.astype(np.float64)                                  # (Q, n, h, w)
+    p = np.exp(logp.astype(np.float64))  # (n, h, w)
+    s = vol.astype(np.float64)  # (Q, n, h, w)
     U = 1.0 / s_range
     L = (1.0 - eps) * np.exp(-s / sigma) / sigma + eps * U
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -330,8 +332,9 @@ def lattice_to_pixels(lat, step, out):
             b0 = min(int(fb), Lb - 2) if Lb > 1 else 0
             tb = fb - b0 if Lb > 1 else 0.0
             b1 = b0 + 1 if Lb > 1 else 0
-            out[i, j] = ((lat[a0, b0] * (1.0 - tb) + lat[a0, b1] * tb) * (1.0 - ta)
-                         + (lat[a1, b0] * (1.0 - tb) + lat[a1, b1] * tb) * ta)
+            out[i, j] = (lat[a0, b0] * (1.0 - tb) + lat[a0, b1] * tb) * (1.0 - ta) + (
+                lat[a1, b0] * (1.0 - tb) + lat[a1, b1] * tb
+            ) * ta
 
 
 def lattice_to_pixels_ref(lat: np.ndarray, step: int, shape: tuple[int, int]) -> np.ndarray:
@@ -396,8 +399,9 @@ def splat_bilinear(fcol, frow, value, sum_w, sum_v):
                 sum_v[ii, jj] += wgt * v
 
 
-def splat_bilinear_ref(fcol: np.ndarray, frow: np.ndarray, value: np.ndarray,
-                       shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def splat_bilinear_ref(
+    fcol: np.ndarray, frow: np.ndarray, value: np.ndarray, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """numpy reference of :func:`splat_bilinear` (np.add.at)."""
     H, W = shape
     sw = np.zeros(shape)
@@ -462,8 +466,9 @@ def zbuffer_test(col, row, z, buf, tol, out):
             out[t] = True
 
 
-def zbuffer_ref(col: np.ndarray, row: np.ndarray, z: np.ndarray, shape: tuple[int, int], tol: float
-                ) -> tuple[np.ndarray, np.ndarray]:
+def zbuffer_ref(
+    col: np.ndarray, row: np.ndarray, z: np.ndarray, shape: tuple[int, int], tol: float
+) -> tuple[np.ndarray, np.ndarray]:
     """numpy reference of :func:`zbuffer_max` + :func:`zbuffer_test` (no dilation): (buffer, occluded)."""
     H, W = shape
     ok = np.isfinite(col) & np.isfinite(row) & np.isfinite(z) & (col >= 0) & (row >= 0)

@@ -24,12 +24,19 @@ from ..errors import ConfigError
 from ..progress import Progress, ensure_progress
 from ..stereo.sweep import ImageChip, Tile, prepare_chip
 from . import _kernels as K
-from .likelihood import (NoiseModel, TileEvidence, TileResult, estimate_noise_model, evaluate_tile, pair_minima,
-                         subsample)
+from .likelihood import (
+    NoiseModel,
+    TileEvidence,
+    TileResult,
+    estimate_noise_model,
+    evaluate_tile,
+    pair_minima,
+    subsample,
+)
 from .params import ProbChangeParams
 
 #: bytes of sampling-pass volumes kept for the main pass (recomputed beyond that)
-CACHE_BUDGET_BYTES = 384 * 2 ** 20
+CACHE_BUDGET_BYTES = 384 * 2**20
 
 
 @dataclass(frozen=True)
@@ -52,8 +59,17 @@ class View:
         return len(self.chips)
 
 
-def make_view(data: np.ndarray, camera: Camera, *, valid: np.ndarray | None = None, name: str = "",
-              col0: int = 0, row0: int = 0, bands: str = "all", block_px: int = 256) -> View:
+def make_view(
+    data: np.ndarray,
+    camera: Camera,
+    *,
+    valid: np.ndarray | None = None,
+    name: str = "",
+    col0: int = 0,
+    row0: int = 0,
+    bands: str = "all",
+    block_px: int = 256,
+) -> View:
     """A :class:`View` from raw image data (any dtype: 8-bit, 11-bit in uint16, float; 1 or more bands).
 
     Each band is locally normalized to 0–255 (:func:`geocd.stereo.prepare_chip`);
@@ -66,8 +82,10 @@ def make_view(data: np.ndarray, camera: Camera, *, valid: np.ndarray | None = No
     """
     a = np.asarray(data)
     if a.ndim == 3 and a.shape[0] > 1 and bands == "all":
-        chips = tuple(prepare_chip(a[b], valid, col0=col0, row0=row0, name=f"{name}:b{b + 1}", block_px=block_px)
-                      for b in range(a.shape[0]))
+        chips = tuple(
+            prepare_chip(a[b], valid, col0=col0, row0=row0, name=f"{name}:b{b + 1}", block_px=block_px)
+            for b in range(a.shape[0])
+        )
     else:
         chips = (prepare_chip(a, valid, col0=col0, row0=row0, name=name, block_px=block_px),)
     return View(name, chips, camera)
@@ -79,8 +97,11 @@ def as_gray(view: View) -> View:
         return view
     data = np.mean(np.stack([c.data for c in view.chips]), axis=0).astype(np.float32)
     c0 = view.chips[0]
-    return View(view.name, (ImageChip(np.ascontiguousarray(data), c0.col0, c0.row0, view.name, c0.noise_sigma,
-                                      c0.shift),), view.camera)
+    return View(
+        view.name,
+        (ImageChip(np.ascontiguousarray(data), c0.col0, c0.row0, view.name, c0.noise_sigma, c0.shift),),
+        view.camera,
+    )
 
 
 def harmonize_bands(views: Sequence[View], bands: str) -> list[View]:
@@ -178,7 +199,8 @@ def check_epochs(views_a: Sequence[View], views_b: Sequence[View], label_a: str 
             raise ConfigError(
                 f"epoch {lab!r} has {len(vs)} image(s) ({names}); probabilistic change detection compares patches "
                 "only between images of the same epoch, so each epoch needs at least two images that overlap. Add an "
-                "image of that epoch (or use DEM differencing, which accepts one DEM per epoch)")
+                "image of that epoch (or use DEM differencing, which accepts one DEM per epoch)"
+            )
         names = [v.name for v in vs]
         if len(set(names)) != len(names):
             raise ConfigError(f"epoch {lab!r} lists the same image twice ({names}); give distinct images")
@@ -199,8 +221,13 @@ class StackLayout:
     n_a: int
 
     @classmethod
-    def build(cls, views_a: Sequence[View], views_b: Sequence[View], pairs_a: Sequence[tuple[int, int]],
-              pairs_b: Sequence[tuple[int, int]]) -> "StackLayout":
+    def build(
+        cls,
+        views_a: Sequence[View],
+        views_b: Sequence[View],
+        pairs_a: Sequence[tuple[int, int]],
+        pairs_b: Sequence[tuple[int, int]],
+    ) -> "StackLayout":
         views = tuple(views_a) + tuple(views_b)
         idx, k = [], 0
         for v in views:
@@ -238,8 +265,9 @@ class PairMAD:
         L = self.layout
         for vol, pairs in ((vol_a, L.pairs_a), (vol_b, L.pairs_b)):
             for p, (i, j) in enumerate(pairs):
-                K.patch_mad(stack, L.band_index[i], L.band_index[j], self.r, self.min_count, vol[p, d], self.hs,
-                            self.hc)
+                K.patch_mad(
+                    stack, L.band_index[i], L.band_index[j], self.r, self.min_count, vol[p, d], self.hs, self.hc
+                )
 
 
 def _sample_tiles(tiles: Sequence[Tile], max_px: int) -> list[Tile]:
@@ -251,12 +279,18 @@ def _sample_tiles(tiles: Sequence[Tile], max_px: int) -> list[Tile]:
     return [tiles[i] for i in idx]
 
 
-def run_tiles(tiles: Sequence[Tile], volumes: Callable[[Tile], TileEvidence | None],
-              store: Callable[[Tile, TileEvidence, TileResult], None], params: ProbChangeParams,
-              progress: Progress | None = None, seed: int = 0, *,
-              map_store: Callable[[Tile, TileEvidence], None] | None = None,
-              between: Callable[[NoiseModel], None] | None = None,
-              mask: Callable[[Tile, TileEvidence], TileEvidence] | None = None) -> tuple[NoiseModel, dict]:
+def run_tiles(
+    tiles: Sequence[Tile],
+    volumes: Callable[[Tile], TileEvidence | None],
+    store: Callable[[Tile, TileEvidence, TileResult], None],
+    params: ProbChangeParams,
+    progress: Progress | None = None,
+    seed: int = 0,
+    *,
+    map_store: Callable[[Tile, TileEvidence], None] | None = None,
+    between: Callable[[NoiseModel], None] | None = None,
+    mask: Callable[[Tile, TileEvidence], TileEvidence] | None = None,
+) -> tuple[NoiseModel, dict]:
     """Two-pass driver: estimate the noise model (and optionally map both epochs), then evaluate every tile.
 
     ``volumes(tile)`` returns the tile's :class:`TileEvidence` (None: nothing to do
@@ -305,11 +339,18 @@ def run_tiles(tiles: Sequence[Tile], volumes: Callable[[Tile], TileEvidence | No
             used += nbytes
     if need:
         noise = estimate_noise_model(a_min, b_min, a_all, b_all, params)
-        diag = {"a_min": np.concatenate(a_min) if a_min else np.empty(0),
-                "b_min": np.concatenate(b_min) if b_min else np.empty(0)}
+        diag = {
+            "a_min": np.concatenate(a_min) if a_min else np.empty(0),
+            "b_min": np.concatenate(b_min) if b_min else np.empty(0),
+        }
     else:
-        noise = NoiseModel(float(params.sigma), float(params.sigma_prime), float(params.uniform_range),
-                           float(params.uniform_range), "given")
+        noise = NoiseModel(
+            float(params.sigma),
+            float(params.sigma_prime),
+            float(params.uniform_range),
+            float(params.uniform_range),
+            "given",
+        )
     if between is not None:
         between(noise)
     for t in tiles:
@@ -339,7 +380,7 @@ def map_summary(ev: TileEvidence) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for vol in (ev.s_a, ev.s_b):
-            m = np.nanmean(vol, axis=0)                       # (n, h, w)
+            m = np.nanmean(vol, axis=0)  # (n, h, w)
             ok = np.isfinite(m).any(axis=0)
             k = np.where(ok, np.argmin(np.where(np.isfinite(m), m, np.inf), axis=0), -1).astype(np.int32)
             smin = np.where(ok, np.nanmin(m, axis=0), np.nan).astype(np.float32)
@@ -347,8 +388,9 @@ def map_summary(ev: TileEvidence) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     return out[0][0], out[1][0], out[0][1], out[1][1]
 
 
-def confident_surface(h: np.ndarray, s_min: np.ndarray, sigma: float, max_sigmas: float = 3.0,
-                      median_px: int = 3) -> np.ndarray:
+def confident_surface(
+    h: np.ndarray, s_min: np.ndarray, sigma: float, max_sigmas: float = 3.0, median_px: int = 3
+) -> np.ndarray:
     """Most probable heights kept only where the match is good (mean s ≤ max_sigmas · σ), median-filtered.
 
     The visibility z-buffer uses these: a noisy or unmatched "most probable"
@@ -364,8 +406,9 @@ def confident_surface(h: np.ndarray, s_min: np.ndarray, sigma: float, max_sigmas
     return np.where(ok, h, np.nan)
 
 
-def occluded_in_view(camera: Camera, chip: ImageChip, lon: np.ndarray, lat: np.ndarray, h: np.ndarray,
-                     tol_m: float, dilate_px: int = 1) -> np.ndarray:
+def occluded_in_view(
+    camera: Camera, chip: ImageChip, lon: np.ndarray, lat: np.ndarray, h: np.ndarray, tol_m: float, dilate_px: int = 1
+) -> np.ndarray:
     """Points (lon, lat, h) hidden in a view behind higher points of the same set (height z-buffer).
 
     Every point is projected into the view; each image pixel keeps the highest
@@ -414,8 +457,11 @@ class VisibilityMasks:
         self.never = set(never)
         self.occ: dict[int, np.ndarray] = {}
 
-    def compute(self, surf_a: tuple[np.ndarray, np.ndarray, np.ndarray],
-                surf_b: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> None:
+    def compute(
+        self,
+        surf_a: tuple[np.ndarray, np.ndarray, np.ndarray],
+        surf_b: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    ) -> None:
         """``surf_x = (lon, lat, h)`` of each epoch's most probable surface at every reference pixel.
 
         Heights NaN where the surface is not trusted (:func:`confident_surface`): such

@@ -40,8 +40,19 @@ from ..geodesy import AOIGrid, from_lonlat
 from ..progress import Progress
 from ..stereo.sweep import Tile, iter_tiles
 from . import _kernels as K
-from .engine import (PairMAD, StackLayout, View, VisibilityMasks, align_views, check_epochs, confident_surface,
-                     harmonize_bands, make_pairs, map_summary, run_tiles)
+from .engine import (
+    PairMAD,
+    StackLayout,
+    View,
+    VisibilityMasks,
+    align_views,
+    check_epochs,
+    confident_surface,
+    harmonize_bands,
+    make_pairs,
+    map_summary,
+    run_tiles,
+)
 from .likelihood import TileEvidence, TileResult
 from .objectspace import ProbChangeResult
 from .params import ProbChangeParams
@@ -71,8 +82,9 @@ class DEMSampler:
     def __call__(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
         x, y = from_lonlat(lon, lat, self.grid.crs)
         r, c = self.grid.rowcol(x, y)
-        v = ndimage.map_coordinates(self.h, [np.ravel(r) - 0.5, np.ravel(c) - 0.5], order=1, mode="constant",
-                                    cval=np.nan, prefilter=False)
+        v = ndimage.map_coordinates(
+            self.h, [np.ravel(r) - 0.5, np.ravel(c) - 0.5], order=1, mode="constant", cval=np.nan, prefilter=False
+        )
         return v.reshape(np.shape(lon))
 
     def range(self) -> tuple[float, float]:
@@ -82,8 +94,9 @@ class DEMSampler:
         return float(self.h[ok].min()), float(self.h[ok].max())
 
 
-def global_height_range(cameras: Sequence[Camera], dem: DEMSampler | None, params: ProbChangeParams
-                        ) -> tuple[float, float]:
+def global_height_range(
+    cameras: Sequence[Camera], dem: DEMSampler | None, params: ProbChangeParams
+) -> tuple[float, float]:
     """The height range every ray is searched within (ellipsoidal m)."""
     if params.height_range_m is not None:
         return params.height_range_m
@@ -93,17 +106,26 @@ def global_height_range(cameras: Sequence[Camera], dem: DEMSampler | None, param
     ranges = [c.height_range() for c in cameras]
     ranges = [r for r in ranges if r is not None]
     if not ranges:
-        raise ConfigError("no height range for the hypotheses: the cameras give none (frame cameras) and no prior DEM "
-                          "was given; pass a DEM or --height-range MIN MAX (ellipsoidal m)")
+        raise ConfigError(
+            "no height range for the hypotheses: the cameras give none (frame cameras) and no prior DEM "
+            "was given; pass a DEM or --height-range MIN MAX (ellipsoidal m)"
+        )
     lo, hi = max(r[0] for r in ranges), min(r[1] for r in ranges)
     if not hi > lo:
         raise ConfigError(f"the cameras' height ranges {ranges} do not overlap; pass --height-range MIN MAX")
     return float(lo), float(hi)
 
 
-def ray_height_range(key: Camera, col: np.ndarray, row: np.ndarray, lo_g: float, hi_g: float,
-                     dem: DEMSampler | None, params: ProbChangeParams, n_knots: int = 17
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def ray_height_range(
+    key: Camera,
+    col: np.ndarray,
+    row: np.ndarray,
+    lo_g: float,
+    hi_g: float,
+    dem: DEMSampler | None,
+    params: ProbChangeParams,
+    n_knots: int = 17,
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-ray range: the DEM's min/max along the ray within [lo_g, hi_g], − below / + above."""
     m = np.size(col)
     lo = np.full(m, lo_g)
@@ -126,8 +148,16 @@ def ray_height_range(key: Camera, col: np.ndarray, row: np.ndarray, lo_g: float,
     return lo, hi
 
 
-def ray_hypotheses(key: Camera, ref_cameras: Sequence[Camera], col: np.ndarray, row: np.ndarray,
-                   lo_m: np.ndarray, hi_m: np.ndarray, n_bins: int, n_knots: int = 33) -> np.ndarray:
+def ray_hypotheses(
+    key: Camera,
+    ref_cameras: Sequence[Camera],
+    col: np.ndarray,
+    row: np.ndarray,
+    lo_m: np.ndarray,
+    hi_m: np.ndarray,
+    n_bins: int,
+    n_knots: int = 33,
+) -> np.ndarray:
     """Heights of n hypotheses along the rays of key pixels, uniform in disparity.
 
     Parameters
@@ -149,7 +179,7 @@ def ray_hypotheses(key: Camera, ref_cameras: Sequence[Camera], col: np.ndarray, 
     lo = np.ravel(np.broadcast_to(np.asarray(lo_m, np.float64), shape))
     hi = np.ravel(np.broadcast_to(np.asarray(hi_m, np.float64), shape))
     t = np.linspace(0.0, 1.0, n_knots)[:, None]
-    H = lo[None] + t * (hi - lo)[None]                                   # (K, m)
+    H = lo[None] + t * (hi - lo)[None]  # (K, m)
     lon, lat = key.localize(np.broadcast_to(c, H.shape), np.broadcast_to(r, H.shape), H)
     motion = np.zeros((n_knots - 1, c.size))
     count = np.zeros((n_knots - 1, c.size))
@@ -163,7 +193,8 @@ def ray_hypotheses(key: Camera, ref_cameras: Sequence[Camera], col: np.ndarray, 
         motion = motion / count
     with np.errstate(all="ignore"):
         seg_mean = np.nansum(np.where(np.isfinite(motion), motion, 0.0), axis=0) / np.maximum(
-            np.isfinite(motion).sum(axis=0), 1)
+            np.isfinite(motion).sum(axis=0), 1
+        )
     seg_mean = np.where(np.isfinite(seg_mean) & (seg_mean > 0), seg_mean, 1.0)
     motion = np.where(np.isfinite(motion) & (motion > 0), motion, seg_mean[None])
     cum = np.vstack([np.zeros((1, c.size)), np.cumsum(motion, axis=0)])
@@ -220,9 +251,18 @@ class KeyFrameResult(ProbChangeResult):
             with np.errstate(invalid="ignore", divide="ignore"):
                 out[name] = np.where(sw >= min_weight, sv / sw, np.nan).astype(np.float32)
         cov = np.nan_to_num(out["coverage"], nan=0.0)
-        return ProbChangeResult(out["probability"], out["log_odds"], cov, out["height_a_m"], out["height_b_m"],
-                                self.noise, self.pairs, self.params, grid,
-                                {**self.diagnostics, "from_key_frame": self.key_name})
+        return ProbChangeResult(
+            out["probability"],
+            out["log_odds"],
+            cov,
+            out["height_a_m"],
+            out["height_b_m"],
+            self.noise,
+            self.pairs,
+            self.params,
+            grid,
+            {**self.diagnostics, "from_key_frame": self.key_name},
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -243,11 +283,13 @@ def _check_overlap(key: View, others: Sequence[View], lo: float, hi: float) -> N
             raise NoOverlapError(
                 f"image {v.name!r} does not overlap the key frame {key.name!r} (window {w}x{h} px at "
                 f"({ox:.0f}, {oy:.0f})) at any height in {lo:.0f}..{hi:.0f} m; drop it from its epoch, or check its "
-                "camera and the height range")
+                "camera and the height range"
+            )
 
 
-def _alignment_points(key: View, dem: DEMSampler | None, lo: float, hi: float, n: int = 160
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _alignment_points(
+    key: View, dem: DEMSampler | None, lo: float, hi: float, n: int = 160
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ground points for the radiometric alignment: key-pixel rays meeting the prior DEM (else mid-range)."""
     c0 = key.chips[0]
     h, w = c0.shape
@@ -268,8 +310,17 @@ def _alignment_points(key: View, dem: DEMSampler | None, lo: float, hi: float, n
 class _KeySweep:
     """Warps every view onto a tile of key pixels for each hypothesis, via an exact lattice."""
 
-    def __init__(self, key: View, layout: StackLayout, ref_cams: Sequence[Camera], dem: DEMSampler | None,
-                 lo_g: float, hi_g: float, params: ProbChangeParams, step: int):
+    def __init__(
+        self,
+        key: View,
+        layout: StackLayout,
+        ref_cams: Sequence[Camera],
+        dem: DEMSampler | None,
+        lo_g: float,
+        hi_g: float,
+        params: ProbChangeParams,
+        step: int,
+    ):
         self.key = key
         self.layout = layout
         self.ref_cams = list(ref_cams)
@@ -294,8 +345,9 @@ class _KeySweep:
         """Hypothesis heights on the tile's lattice: float64 (n, La, Lb)."""
         C, R = self.nodes(tile)
         lo, hi = ray_height_range(self.key.camera, C, R, self.lo_g, self.hi_g, self.dem, self.params)
-        return ray_hypotheses(self.key.camera, self.ref_cams, C, R, lo.reshape(C.shape), hi.reshape(C.shape),
-                              self.params.n_bins)
+        return ray_hypotheses(
+            self.key.camera, self.ref_cams, C, R, lo.reshape(C.shape), hi.reshape(C.shape), self.params.n_bins
+        )
 
     def node_projections(self, C: np.ndarray, R: np.ndarray, Hd: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         lon, lat = self.key.camera.localize(C, R, Hd)
@@ -342,7 +394,7 @@ class _KeySweep:
         Hn = self.heights(tile)
         C, R = self.nodes(tile)
         stack = np.empty((L.n_chips, *shape), np.float32)
-        for b, chip in enumerate(self.key.chips):        # the key frame itself: the same for every d
+        for b, chip in enumerate(self.key.chips):  # the key frame itself: the same for every d
             stack[L.band_index[0][b]] = chip.data[tile.outer]
         pa, pb = len(L.pairs_a), len(L.pairs_b)
         s_a = np.empty((pa, n, *shape), np.float32)
@@ -361,9 +413,15 @@ class _KeySweep:
         return TileEvidence(s_a, s_b, 0, Hn)
 
 
-def detect_keyframe(key: View, others_a: Sequence[View], views_b: Sequence[View], *, dem: Any = None,
-                    params: ProbChangeParams = ProbChangeParams(), progress: Progress | None = None
-                    ) -> KeyFrameResult:
+def detect_keyframe(
+    key: View,
+    others_a: Sequence[View],
+    views_b: Sequence[View],
+    *,
+    dem: Any = None,
+    params: ProbChangeParams = ProbChangeParams(),
+    progress: Progress | None = None,
+) -> KeyFrameResult:
     """Probability of a 3-D change at every pixel of a key frame (thesis §5.3), any camera kind.
 
     Parameters
@@ -410,8 +468,10 @@ def detect_keyframe(key: View, others_a: Sequence[View], views_b: Sequence[View]
         if step == 1 or ks.max_interp_error(probe, ks.heights(probe)) <= params.interp_tol_px:
             break
         step = max(1, step // 2)
-    out = {k: np.full(shape, np.nan, np.float32) for k in ("probability", "log_odds", "coverage", "height_a_m",
-                                                          "height_b_m")}
+    out = {
+        k: np.full(shape, np.nan, np.float32)
+        for k in ("probability", "log_odds", "coverage", "height_a_m", "height_b_m")
+    }
     out["coverage"][:] = 0.0
 
     def heights_at(tile: Tile, Hn: np.ndarray, k: np.ndarray) -> np.ndarray:
@@ -444,8 +504,9 @@ def detect_keyframe(key: View, others_a: Sequence[View], views_b: Sequence[View]
 
         def between(noise) -> None:
             h_, w_ = shape
-            cc, rr = np.meshgrid(np.arange(w_) + 0.5 + key.chips[0].origin[0],
-                                 np.arange(h_) + 0.5 + key.chips[0].origin[1])
+            cc, rr = np.meshgrid(
+                np.arange(w_) + 0.5 + key.chips[0].origin[0], np.arange(h_) + 0.5 + key.chips[0].origin[1]
+            )
             surf = []
             for key_h, s_key, sig in (("a", "sa", noise.sigma), ("b", "sb", noise.sigma_prime)):
                 hh = confident_surface(hmap[key_h], hmap[s_key], sig)
@@ -456,8 +517,25 @@ def detect_keyframe(key: View, others_a: Sequence[View], views_b: Sequence[View]
         kw = {"map_store": map_store, "between": between, "mask": lambda tile, ev: vis.apply(ev, tile.outer)}
     noise, diag = run_tiles(tiles, ks.volumes, store, params, progress, **kw)
     ox, oy = key.chips[0].origin
-    return KeyFrameResult(out["probability"], out["log_odds"], out["coverage"], out["height_a_m"],
-                          out["height_b_m"], noise, layout.pair_names(), params, None,
-                          {"sigma_samples": diag, "height_range_m": (lo_g, hi_g), "radiometric_fits": fits,
-                           "hidden_fraction": vis.fraction_hidden() if vis is not None else {}},
-                          key_camera=key.camera, key_name=key.name, col0=ox, row0=oy, lattice_px=step)
+    return KeyFrameResult(
+        out["probability"],
+        out["log_odds"],
+        out["coverage"],
+        out["height_a_m"],
+        out["height_b_m"],
+        noise,
+        layout.pair_names(),
+        params,
+        None,
+        {
+            "sigma_samples": diag,
+            "height_range_m": (lo_g, hi_g),
+            "radiometric_fits": fits,
+            "hidden_fraction": vis.fraction_hidden() if vis is not None else {},
+        },
+        key_camera=key.camera,
+        key_name=key.name,
+        col0=ox,
+        row0=oy,
+        lattice_px=step,
+    )

@@ -66,9 +66,11 @@ def fit_half_laplace(samples: np.ndarray, quantile: float = 0.95) -> float:
     s = np.asarray(samples, np.float64)
     s = s[np.isfinite(s) & (s >= 0)]
     if s.size < 50:
-        raise ProcessingError(f"only {s.size} patch dissimilarities to estimate σ from (≥ 50 needed): the images of "
-                              "the epoch hardly overlap over the area; check the AOI/key frame or give sigma "
-                              "explicitly")
+        raise ProcessingError(
+            f"only {s.size} patch dissimilarities to estimate σ from (≥ 50 needed): the images of "
+            "the epoch hardly overlap over the area; check the AOI/key frame or give sigma "
+            "explicitly"
+        )
     c = 1.0
     if quantile < 1.0:
         s = s[s <= np.quantile(s, quantile)]
@@ -81,8 +83,9 @@ def uniform_range(samples: np.ndarray, quantile: float = 0.99) -> float:
     s = np.asarray(samples, np.float64)
     s = s[np.isfinite(s)]
     if s.size < 50:
-        raise ProcessingError("too few patch dissimilarities to estimate the uniform range; give uniform_range "
-                              "explicitly")
+        raise ProcessingError(
+            "too few patch dissimilarities to estimate the uniform range; give uniform_range explicitly"
+        )
     return float(max(np.quantile(s, quantile), 1e-3))
 
 
@@ -102,8 +105,14 @@ class NoiseModel:
     n_samples: int = 0
 
     def to_dict(self) -> dict:
-        return {"sigma": self.sigma, "sigma_prime": self.sigma_prime, "uniform_range": self.s_range,
-                "uniform_range_prime": self.s_range_prime, "source": self.source, "n_samples": self.n_samples}
+        return {
+            "sigma": self.sigma,
+            "sigma_prime": self.sigma_prime,
+            "uniform_range": self.s_range,
+            "uniform_range_prime": self.s_range_prime,
+            "source": self.source,
+            "n_samples": self.n_samples,
+        }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -118,8 +127,9 @@ def _volume(v: np.ndarray, name: str) -> np.ndarray:
     return np.ascontiguousarray(a, np.float32)
 
 
-def depth_log_prob(s_depth: np.ndarray, sigma: float, s_range: float = 1.0, none_prior: float = 0.0
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def depth_log_prob(
+    s_depth: np.ndarray, sigma: float, s_range: float = 1.0, none_prior: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """log p(d) (eq. 5.2) from one or several pairs of the depth epoch.
 
     Parameters
@@ -145,13 +155,22 @@ def depth_log_prob(s_depth: np.ndarray, sigma: float, s_range: float = 1.0, none
     out = np.empty((n, h, w), np.float32)
     kb = np.empty((h, w), np.int32)
     ln = np.empty((h, w), np.float32)
-    K.depth_logprob(v, 1.0 / float(sigma), math.log(float(s_range) / float(sigma)),
-                    math.log(none_prior) if none_prior > 0 else -math.inf, math.log1p(-none_prior), out, kb, ln)
+    K.depth_logprob(
+        v,
+        1.0 / float(sigma),
+        math.log(float(s_range) / float(sigma)),
+        math.log(none_prior) if none_prior > 0 else -math.inf,
+        math.log1p(-none_prior),
+        out,
+        kb,
+        ln,
+    )
     return out, kb, ln
 
 
-def change_log_likelihood_ratio(logp: np.ndarray, s_obs: np.ndarray, sigma_prime: float, s_range: float,
-                                outlier_fraction: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def change_log_likelihood_ratio(
+    logp: np.ndarray, s_obs: np.ndarray, sigma_prime: float, s_range: float, outlier_fraction: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """``Σ_pairs Σ_d log[p(s'_d|c=0)/p(s'_d|c=1)]`` (eqs. 5.7–5.11), float64.
 
     Parameters
@@ -178,8 +197,16 @@ def change_log_likelihood_ratio(logp: np.ndarray, s_obs: np.ndarray, sigma_prime
     cov = np.empty((h, w), np.float32)
     eps = float(outlier_fraction)
     log_eps = math.log(eps) if eps > 0 else -math.inf
-    K.change_llr(lp, v, 1.0 / float(sigma_prime), math.log(float(s_range) / float(sigma_prime)), log_eps,
-                 math.log1p(-eps), llr, cov)
+    K.change_llr(
+        lp,
+        v,
+        1.0 / float(sigma_prime),
+        math.log(float(s_range) / float(sigma_prime)),
+        log_eps,
+        math.log1p(-eps),
+        llr,
+        cov,
+    )
     return llr, cov
 
 
@@ -198,8 +225,9 @@ def posterior_change(llr: np.ndarray, prior_change: float = 0.5) -> tuple[np.nda
     return prob.astype(np.float32), lo.astype(np.float32)
 
 
-def change_probability_direct(s_depth: np.ndarray, s_obs: np.ndarray, sigma: float, sigma_prime: float,
-                              s_range: float, prior_change: float = 0.5) -> np.ndarray:
+def change_probability_direct(
+    s_depth: np.ndarray, s_obs: np.ndarray, sigma: float, sigma_prime: float, s_range: float, prior_change: float = 0.5
+) -> np.ndarray:
     """A literal, probability-domain evaluation of eqs. 5.2–5.11 for ONE pair per epoch (reference only).
 
     Products over d are computed as products, so they underflow for long rays
@@ -215,8 +243,8 @@ def change_probability_direct(s_depth: np.ndarray, s_obs: np.ndarray, sigma: flo
     p = e / e.sum(axis=0)
     U = 1.0 / s_range
     L = np.exp(-sp / sigma_prime) / sigma_prime
-    p_c0 = np.prod(p * L + (1 - p) * U, axis=0)         # p(s'_1..n | c=0)   (5.7b with 5.8)
-    p_c1 = np.prod(np.full_like(p, U), axis=0)           # p(s'_1..n | c=1)   (5.7a with 5.11)
+    p_c0 = np.prod(p * L + (1 - p) * U, axis=0)  # p(s'_1..n | c=0)   (5.7b with 5.8)
+    p_c1 = np.prod(np.full_like(p, U), axis=0)  # p(s'_1..n | c=1)   (5.7a with 5.11)
     num = p_c1 * prior_change
     return num / (num + p_c0 * (1 - prior_change))
 
@@ -228,9 +256,9 @@ def change_probability_direct(s_depth: np.ndarray, s_obs: np.ndarray, sigma: flo
 class TileEvidence:
     """Dissimilarity volumes of one tile: ``s_a`` (depth-epoch pairs) and ``s_b`` (other-epoch pairs)."""
 
-    s_a: np.ndarray   # float32 (PA, n, h, w)
-    s_b: np.ndarray   # float32 (PB, n, h, w)
-    k0: int = 0       # index of the first hypothesis (object space: plane index)
+    s_a: np.ndarray  # float32 (PA, n, h, w)
+    s_b: np.ndarray  # float32 (PB, n, h, w)
+    k0: int = 0  # index of the first hypothesis (object space: plane index)
     extra: Any = None  # variant-specific data (key frame: hypothesis heights on the lattice)
     s_b_obs: np.ndarray | None = None  # s_b as observations of A's depth (visibility-masked); None: s_b
     s_a_obs: np.ndarray | None = None  # s_a as observations of B's depth (symmetric test); None: s_a
@@ -243,9 +271,9 @@ class TileResult:
     prob: np.ndarray
     log_odds: np.ndarray
     coverage: np.ndarray
-    k_a: np.ndarray        # int32, MAP hypothesis of the depth epoch (−1: none)
-    k_b: np.ndarray        # int32, MAP hypothesis of the other epoch
-    llr_ab: np.ndarray     # float64
+    k_a: np.ndarray  # int32, MAP hypothesis of the depth epoch (−1: none)
+    k_b: np.ndarray  # int32, MAP hypothesis of the other epoch
+    llr_ab: np.ndarray  # float64
     llr_ba: np.ndarray | None = None
 
 
@@ -255,15 +283,15 @@ def evaluate_tile(ev: TileEvidence, noise: NoiseModel, params: ProbChangeParams)
     logp_b, k_b, none_b = depth_log_prob(ev.s_b, noise.sigma_prime, noise.s_range_prime, params.no_depth_prior)
     obs_b = ev.s_b if ev.s_b_obs is None else ev.s_b_obs
     obs_a = ev.s_a if ev.s_a_obs is None else ev.s_a_obs
-    llr_ab, cov = change_log_likelihood_ratio(logp_a, obs_b, noise.sigma_prime, noise.s_range_prime,
-                                              params.outlier_fraction)
+    llr_ab, cov = change_log_likelihood_ratio(
+        logp_a, obs_b, noise.sigma_prime, noise.s_range_prime, params.outlier_fraction
+    )
     # coverage: the share of the depth epoch's probability (with "no consistent depth") the other epoch observes
     cov = cov * (1.0 - np.exp(none_a))
     llr = llr_ab
     llr_ba = None
     if params.symmetric:
-        llr_ba, cov_b = change_log_likelihood_ratio(logp_b, obs_a, noise.sigma, noise.s_range,
-                                                    params.outlier_fraction)
+        llr_ba, cov_b = change_log_likelihood_ratio(logp_b, obs_a, noise.sigma, noise.s_range, params.outlier_fraction)
         llr = llr_ab + llr_ba
         cov = np.maximum(cov, cov_b * (1.0 - np.exp(none_b)))
     prob, lo = posterior_change(llr, params.prior_change)
@@ -279,9 +307,13 @@ def pair_minima(vol: np.ndarray) -> np.ndarray:
         return np.nanmin(vol, axis=1)
 
 
-def estimate_noise_model(samples_a_min: Sequence[np.ndarray], samples_b_min: Sequence[np.ndarray],
-                         samples_a_all: Sequence[np.ndarray], samples_b_all: Sequence[np.ndarray],
-                         params: ProbChangeParams) -> NoiseModel:
+def estimate_noise_model(
+    samples_a_min: Sequence[np.ndarray],
+    samples_b_min: Sequence[np.ndarray],
+    samples_a_all: Sequence[np.ndarray],
+    samples_b_all: Sequence[np.ndarray],
+    params: ProbChangeParams,
+) -> NoiseModel:
     """σ, σ' (§5.3.5) and S, S' from sampled dissimilarities (parameters given explicitly win)."""
     cat = lambda xs: np.concatenate([np.asarray(x, np.float64).ravel() for x in xs]) if xs else np.empty(0)  # noqa: E731
     a_min, b_min = cat(samples_a_min), cat(samples_b_min)
@@ -293,8 +325,14 @@ def estimate_noise_model(samples_a_min: Sequence[np.ndarray], samples_b_min: Seq
         S = uniform_range(cat(samples_a_all), params.uniform_quantile)
         Sp = uniform_range(cat(samples_b_all), params.uniform_quantile)
     given = params.sigma is not None and params.sigma_prime is not None and params.uniform_range is not None
-    return NoiseModel(float(sig), float(sigp), float(S), float(Sp), "given" if given else "estimated (§5.3.5)",
-                      int(np.isfinite(a_min).sum() + np.isfinite(b_min).sum()))
+    return NoiseModel(
+        float(sig),
+        float(sigp),
+        float(S),
+        float(Sp),
+        "given" if given else "estimated (§5.3.5)",
+        int(np.isfinite(a_min).sum() + np.isfinite(b_min).sum()),
+    )
 
 
 def subsample(values: np.ndarray, max_n: int, rng: np.random.Generator) -> np.ndarray:

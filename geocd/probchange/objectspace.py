@@ -24,8 +24,19 @@ from ..errors import ConfigError, EmptyDataError, NoOverlapError
 from ..geodesy import AOIGrid
 from ..progress import Progress
 from ..stereo.sweep import HeightSearch, PlaneSweep, chip_valid_at, sample_cells
-from .engine import (PairMAD, StackLayout, View, VisibilityMasks, align_views, check_epochs, harmonize_bands,
-                     make_pairs, confident_surface, map_summary, run_tiles)
+from .engine import (
+    PairMAD,
+    StackLayout,
+    View,
+    VisibilityMasks,
+    align_views,
+    check_epochs,
+    harmonize_bands,
+    make_pairs,
+    confident_surface,
+    map_summary,
+    run_tiles,
+)
 from .likelihood import NoiseModel, TileEvidence, TileResult
 from .params import ProbChangeParams
 
@@ -83,8 +94,9 @@ class ProbChangeResult:
         return np.where(self.observed, np.where(ch, sign, 0), nodata).astype(np.int8)
 
 
-def object_height_bounds(grid: AOIGrid, cameras: Sequence[Camera], dem: Any, params: ProbChangeParams
-                         ) -> tuple[np.ndarray, np.ndarray, str]:
+def object_height_bounds(
+    grid: AOIGrid, cameras: Sequence[Camera], dem: Any, params: ProbChangeParams
+) -> tuple[np.ndarray, np.ndarray, str]:
     """Per-cell hypothesis range (ellipsoidal m) and its source.
 
     ``params.height_range_m`` wins; else a prior DEM (array on ``grid`` or a
@@ -107,8 +119,10 @@ def object_height_bounds(grid: AOIGrid, cameras: Sequence[Camera], dem: Any, par
         d = dem_on_grid(dem, grid)
         ok = np.isfinite(d)
         if not ok.any():
-            raise EmptyDataError("the prior DEM has no valid height over the AOI grid; check that it covers the AOI, "
-                                 "its vertical datum, or pass a height range (--height-range MIN MAX)")
+            raise EmptyDataError(
+                "the prior DEM has no valid height over the AOI grid; check that it covers the AOI, "
+                "its vertical datum, or pass a height range (--height-range MIN MAX)"
+            )
         if not ok.all():
             idx = ndimage.distance_transform_edt(~ok, return_distances=False, return_indices=True)
             d = d[tuple(idx)]
@@ -119,8 +133,10 @@ def object_height_bounds(grid: AOIGrid, cameras: Sequence[Camera], dem: Any, par
     ranges = [c.height_range() for c in cameras]
     ranges = [r for r in ranges if r is not None]
     if not ranges:
-        raise ConfigError("no height range for the hypotheses: the cameras give none (frame cameras) and no prior "
-                          "DEM was given; add 'dem:' to the manifest or pass --height-range MIN MAX (ellipsoidal m)")
+        raise ConfigError(
+            "no height range for the hypotheses: the cameras give none (frame cameras) and no prior "
+            "DEM was given; add 'dem:' to the manifest or pass --height-range MIN MAX (ellipsoidal m)"
+        )
     lo_v = max(float(r[0]) for r in ranges)
     hi_v = min(float(r[1]) for r in ranges)
     if not hi_v > lo_v:
@@ -139,13 +155,16 @@ def _check_overlap(grid: AOIGrid, layout: StackLayout, lo: np.ndarray, hi: np.nd
             c, r = pr.project(h)
             seen |= chip_valid_at(v.chips[0], c, r)
         if not seen.any():
-            raise NoOverlapError(f"image {v.name!r} does not see the AOI {tuple(round(b, 1) for b in grid.bounds)} at "
-                                 f"any hypothesis height ({float(np.min(lo)):.0f}..{float(np.max(hi)):.0f} m); drop it "
-                                 "from the epoch, or check its camera, the AOI and the height range")
+            raise NoOverlapError(
+                f"image {v.name!r} does not see the AOI {tuple(round(b, 1) for b in grid.bounds)} at "
+                f"any hypothesis height ({float(np.min(lo)):.0f}..{float(np.max(hi)):.0f} m); drop it "
+                "from the epoch, or check its camera, the AOI and the height range"
+            )
 
 
-def _alignment_points(grid: AOIGrid, dem: Any, lo: np.ndarray, hi: np.ndarray, max_points: int = 40_000
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _alignment_points(
+    grid: AOIGrid, dem: Any, lo: np.ndarray, hi: np.ndarray, max_points: int = 40_000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ground points for the radiometric alignment: a lattice of cells on the prior DEM (else mid-range)."""
     from ..geodesy import to_lonlat
     from ..stereo.match import dem_on_grid
@@ -162,9 +181,15 @@ def _alignment_points(grid: AOIGrid, dem: Any, lo: np.ndarray, hi: np.ndarray, m
     return lon, lat, h
 
 
-def detect_objectspace(views_a: Sequence[View], views_b: Sequence[View], grid: AOIGrid, *, dem: Any = None,
-                       params: ProbChangeParams = ProbChangeParams(), progress: Progress | None = None
-                       ) -> ProbChangeResult:
+def detect_objectspace(
+    views_a: Sequence[View],
+    views_b: Sequence[View],
+    grid: AOIGrid,
+    *,
+    dem: Any = None,
+    params: ProbChangeParams = ProbChangeParams(),
+    progress: Progress | None = None,
+) -> ProbChangeResult:
     """Probability of a 3-D change at every AOI cell, without reconstructing either epoch.
 
     Parameters
@@ -203,11 +228,20 @@ def detect_objectspace(views_a: Sequence[View], views_b: Sequence[View], grid: A
     search = HeightSearch(np.asarray(lo, np.float64), np.asarray(hi, np.float64), step)
     _check_overlap(grid, layout, lo, hi)
     r = params.radius
-    sweep = PlaneSweep(grid, layout.chips(), layout.chip_cameras(), search, tile_size=params.tile_size, margin=r,
-                       interp_tol_px=min(params.interp_tol_px, 0.05))
+    sweep = PlaneSweep(
+        grid,
+        layout.chips(),
+        layout.chip_cameras(),
+        search,
+        tile_size=params.tile_size,
+        margin=r,
+        interp_tol_px=min(params.interp_tol_px, 0.05),
+    )
     H, W = grid.shape
-    out = {k: np.full((H, W), np.nan, np.float32) for k in ("probability", "log_odds", "coverage", "height_a_m",
-                                                           "height_b_m")}
+    out = {
+        k: np.full((H, W), np.nan, np.float32)
+        for k in ("probability", "log_odds", "coverage", "height_a_m", "height_b_m")
+    }
     out["coverage"][:] = 0.0
     pa, pb = len(layout.pairs_a), len(layout.pairs_b)
 
@@ -262,8 +296,21 @@ def detect_objectspace(views_a: Sequence[View], views_b: Sequence[View], grid: A
 
         kw = {"map_store": map_store, "between": between, "mask": lambda tile, ev: vis.apply(ev, tile.outer)}
     noise, diag = run_tiles(sweep.tiles(), volumes, store, params, progress, **kw)
-    return ProbChangeResult(out["probability"], out["log_odds"], out["coverage"], out["height_a_m"],
-                            out["height_b_m"], noise, layout.pair_names(), params, grid,
-                            {"sigma_samples": diag, "height_step_m": step, "n_planes": search.n_planes(),
-                             "radiometric_fits": fits,
-                             "hidden_fraction": vis.fraction_hidden() if vis is not None else {}})
+    return ProbChangeResult(
+        out["probability"],
+        out["log_odds"],
+        out["coverage"],
+        out["height_a_m"],
+        out["height_b_m"],
+        noise,
+        layout.pair_names(),
+        params,
+        grid,
+        {
+            "sigma_samples": diag,
+            "height_step_m": step,
+            "n_planes": search.n_planes(),
+            "radiometric_fits": fits,
+            "hidden_fraction": vis.fraction_hidden() if vis is not None else {},
+        },
+    )

@@ -168,8 +168,9 @@ class ProbChangeParams(ParamsMixin):
         if self.height_range_m is not None:
             lo, hi = (float(v) for v in self.height_range_m)
             if not hi > lo:
-                raise ConfigError(f"height range {self.height_range_m} is empty; give (min, max) with max > min "
-                                  "(metres)")
+                raise ConfigError(
+                    f"height range {self.height_range_m} is empty; give (min, max) with max > min (metres)"
+                )
             object.__setattr__(self, "height_range_m", (lo, hi))
         if self.height_below_m < 0 or self.height_above_m < 0 or self.height_below_m + self.height_above_m <= 0:
             raise ConfigError("height_below_m and height_above_m must be ≥ 0 and not both 0")
@@ -193,7 +194,7 @@ class ProbChangeParams(ParamsMixin):
         base.update(changes)
         return cls(**base)
 
-    _kind = "probchange"   # names the parameter set in ConfigError messages
+    _kind = "probchange"  # names the parameter set in ConfigError messages
 
     @property
     def radius(self) -> int:
@@ -202,4 +203,4 @@ class ProbChangeParams(ParamsMixin):
     @property
     def min_count(self) -> int:
         """Valid pixels a patch needs (at least 1)."""
-        return max(1, int(math.ceil(self.min_valid_fraction * self.window ** 2)))
+        return max(1, int(math.ceil(self.min_valid_fraction * self.window**2)))

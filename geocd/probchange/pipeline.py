@@ -49,8 +49,16 @@ def read_view(image, box: tuple[int, int, int, int], params: ProbChangeParams) -
 
     c0, r0, c1, r1 = box
     img = read_image(image.path, window=Window(c0, r0, c1 - c0, r1 - r0))
-    return make_view(img.data, image.camera, valid=img.valid, name=image.name, col0=c0, row0=r0,
-                     bands=params.bands, block_px=params.norm_block_px)
+    return make_view(
+        img.data,
+        image.camera,
+        valid=img.valid,
+        name=image.name,
+        col0=c0,
+        row0=r0,
+        bands=params.bands,
+        block_px=params.norm_block_px,
+    )
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -60,8 +68,9 @@ def _image_size(path: Path) -> tuple[int, int]:
         return ds.width, ds.height
 
 
-def _box_from_points(col: np.ndarray, row: np.ndarray, margin: int, width: int, height: int
-                     ) -> tuple[int, int, int, int] | None:
+def _box_from_points(
+    col: np.ndarray, row: np.ndarray, margin: int, width: int, height: int
+) -> tuple[int, int, int, int] | None:
     ok = np.isfinite(col) & np.isfinite(row)
     if not ok.any():
         return None
@@ -74,8 +83,9 @@ def _box_from_points(col: np.ndarray, row: np.ndarray, margin: int, width: int, 
     return c0, r0, c1, r1
 
 
-def key_window_boxes(key_cam: Camera, key_box: tuple[int, int, int, int], others: Sequence[Any], lo: float,
-                     hi: float, margin: int) -> dict[str, tuple[int, int, int, int]]:
+def key_window_boxes(
+    key_cam: Camera, key_box: tuple[int, int, int, int], others: Sequence[Any], lo: float, hi: float, margin: int
+) -> dict[str, tuple[int, int, int, int]]:
     """Image windows of the other views that the key window's rays reach between two heights."""
     c0, r0, c1, r1 = key_box
     cc, rr = np.meshgrid(np.linspace(c0, c1, 24), np.linspace(r0, r1, 24))
@@ -90,8 +100,10 @@ def key_window_boxes(key_cam: Camera, key_box: tuple[int, int, int, int], others
             rows.append(r.ravel())
         box = _box_from_points(np.concatenate(cols), np.concatenate(rows), margin, W, H)
         if box is None:
-            raise NoOverlapError(f"image {im.name!r} does not overlap the key frame's window {key_box} at heights "
-                                 f"{lo:.0f}..{hi:.0f} m; drop it from its epoch or check its camera")
+            raise NoOverlapError(
+                f"image {im.name!r} does not overlap the key frame's window {key_box} at heights "
+                f"{lo:.0f}..{hi:.0f} m; drop it from its epoch or check its camera"
+            )
         out[im.name] = box
     return out
 
@@ -101,12 +113,23 @@ def _swap_epoch_roles(res: ProbChangeResult) -> ProbChangeResult:
     return dataclasses.replace(res, height_a_m=res.height_b_m, height_b_m=res.height_a_m)
 
 
-def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = None, epoch_a: str | None = None,
-                   epoch_b: str | None = None, images_a: Sequence[str] | None = None,
-                   images_b: Sequence[str] | None = None, out_dir: os.PathLike | str | None = None,
-                   params: ProbChangeParams = ProbChangeParams(), grid: AOIGrid | None = None,
-                   posting_m: float | None = None, write: bool = True, prefix: str | None = None,
-                   progress: Progress | None = None) -> dict[str, Any]:
+def run_probchange(
+    manifest,
+    *,
+    variant: str = "objectspace",
+    key: str | None = None,
+    epoch_a: str | None = None,
+    epoch_b: str | None = None,
+    images_a: Sequence[str] | None = None,
+    images_b: Sequence[str] | None = None,
+    out_dir: os.PathLike | str | None = None,
+    params: ProbChangeParams = ProbChangeParams(),
+    grid: AOIGrid | None = None,
+    posting_m: float | None = None,
+    write: bool = True,
+    prefix: str | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Probabilistic change detection between two epochs of a manifest.
 
     Parameters
@@ -140,11 +163,14 @@ def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = 
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     from ..orientation import orient_manifest
 
-    m, _ = orient_manifest(m, out_dir=Path(out_dir) if out_dir is not None else Path(m.output or m.root / "out"),
-                           grid=grid)
+    m, _ = orient_manifest(
+        m, out_dir=Path(out_dir) if out_dir is not None else Path(m.output or m.root / "out"), grid=grid
+    )
     ea, eb = pick_epochs(m, epoch_a, epoch_b)
-    ims = {ea.name: _select(load_epoch_images(m, ea), images_a, ea.name),
-           eb.name: _select(load_epoch_images(m, eb), images_b, eb.name)}
+    ims = {
+        ea.name: _select(load_epoch_images(m, ea), images_a, ea.name),
+        eb.name: _select(load_epoch_images(m, eb), images_b, eb.name),
+    }
     protect_inputs(*[im.path for v in ims.values() for im in v])
     dem_obj = None
     dem_median = None
@@ -171,19 +197,29 @@ def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = 
                 W, H = _image_size(im.path)
                 box = image_window_for_grid(im.camera, grid, lo_v, hi_v, margin, W, H)
                 if box is None:
-                    raise NoOverlapError(f"image {im.name!r} of epoch {e!r} does not see the AOI {grid.bounds} at "
-                                         f"heights {lo_v:.0f}..{hi_v:.0f} m; drop it "
-                                         f"(--images-{'a' if e == ea.name else 'b'}) "
-                                         "or check its camera")
+                    raise NoOverlapError(
+                        f"image {im.name!r} of epoch {e!r} does not see the AOI {grid.bounds} at "
+                        f"heights {lo_v:.0f}..{hi_v:.0f} m; drop it "
+                        f"(--images-{'a' if e == ea.name else 'b'}) "
+                        "or check its camera"
+                    )
                 views[e].append(read_view(im, box, params))
-        res = detect_objectspace(views[ea.name], views[eb.name], grid, dem=dem_grid, params=params,
-                                 progress=sub_progress(prog, 0.05, 0.9, "probchange: "))
+        res = detect_objectspace(
+            views[ea.name],
+            views[eb.name],
+            grid,
+            dem=dem_grid,
+            params=params,
+            progress=sub_progress(prog, 0.05, 0.9, "probchange: "),
+        )
     else:
         key_name = key or ims[ea.name][0].name
         depth, other = (ea, eb) if key_name in {im.name for im in ims[ea.name]} else (eb, ea)
         if key_name not in {im.name for im in ims[depth.name]}:
-            raise ConfigError(f"key frame {key_name!r} is not among the selected images of epochs {ea.name!r} and "
-                              f"{eb.name!r}: {[im.name for v in ims.values() for im in v]}")
+            raise ConfigError(
+                f"key frame {key_name!r} is not among the selected images of epochs {ea.name!r} and "
+                f"{eb.name!r}: {[im.name for v in ims.values() for im in v]}"
+            )
         swapped = depth.name != ea.name
         key_im = next(im for im in ims[depth.name] if im.name == key_name)
         others_a = [im for im in ims[depth.name] if im.name != key_name]
@@ -197,8 +233,9 @@ def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = 
         key_view = read_view(key_im, key_box, params)
         va = [read_view(im, boxes[im.name], params) for im in others_a]
         vb = [read_view(im, boxes[im.name], params) for im in ims[other.name]]
-        key_res = detect_keyframe(key_view, va, vb, dem=dem_s, params=params,
-                                  progress=sub_progress(prog, 0.05, 0.85, "probchange: "))
+        key_res = detect_keyframe(
+            key_view, va, vb, dem=dem_s, params=params, progress=sub_progress(prog, 0.05, 0.85, "probchange: ")
+        )
         res = key_res.to_grid(grid)
         if swapped:
             key_res = _swap_epoch_roles(key_res)
@@ -207,30 +244,45 @@ def run_probchange(manifest, *, variant: str = "objectspace", key: str | None = 
     outputs: dict[str, Path] = {}
     pairs = res.pairs
     summary = {
-        "geocd_probchange": 1, "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "manifest": str(m.path or m.root), "variant": variant, "epoch_a": ea.name, "epoch_b": eb.name,
-        "depth_epoch": (eb.name if swapped else ea.name), "key_frame": key_res.key_name if key_res else None,
-        "images": {e: [im.name for im in v] for e, v in ims.items()}, "pairs": pairs,
-        "noise_model": res.noise.to_dict(), "grid": grid.to_dict(), "params": params.to_dict(),
+        "geocd_probchange": 1,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "manifest": str(m.path or m.root),
+        "variant": variant,
+        "epoch_a": ea.name,
+        "epoch_b": eb.name,
+        "depth_epoch": (eb.name if swapped else ea.name),
+        "key_frame": key_res.key_name if key_res else None,
+        "images": {e: [im.name for im in v] for e, v in ims.items()},
+        "pairs": pairs,
+        "noise_model": res.noise.to_dict(),
+        "grid": grid.to_dict(),
+        "params": params.to_dict(),
         "observed_fraction": round(float(res.observed.mean()), 4),
         "changed_fraction": round(float(res.changed().mean()), 5),
         "seconds": round(time.perf_counter() - t_start, 2),
     }
     if key_res is not None:
-        summary["key_window"] = {"col0": key_res.col0, "row0": key_res.row0, "shape": list(key_res.probability.shape),
-                                 "lattice_px": key_res.lattice_px}
+        summary["key_window"] = {
+            "col0": key_res.col0,
+            "row0": key_res.row0,
+            "shape": list(key_res.probability.shape),
+            "lattice_px": key_res.lattice_px,
+        }
     if write:
         out = Path(out_dir) if out_dir is not None else m.output_dir()
         out.mkdir(parents=True, exist_ok=True)
         prefix = prefix or "probchange"
         prov = {"manifest": str(m.path or m.root), "variant": variant}
-        outputs.update(write_probchange_products(out, res, epoch_a=ea.name, epoch_b=eb.name, prefix=prefix,
-                                                 provenance=prov))
+        outputs.update(
+            write_probchange_products(out, res, epoch_a=ea.name, epoch_b=eb.name, prefix=prefix, provenance=prov)
+        )
         if key_res is not None:
-            outputs.update(write_keyframe_products(out, key_res, epoch_a=ea.name, epoch_b=eb.name, prefix=prefix,
-                                                   provenance=prov))
+            outputs.update(
+                write_keyframe_products(out, key_res, epoch_a=ea.name, epoch_b=eb.name, prefix=prefix, provenance=prov)
+            )
         summary["outputs"] = {k: str(v) for k, v in outputs.items()}
-        outputs["summary"] = write_text_atomic(out / f"{prefix}_summary.json", json.dumps(summary, indent=2,
-                                                                                       default=str))
+        outputs["summary"] = write_text_atomic(
+            out / f"{prefix}_summary.json", json.dumps(summary, indent=2, default=str)
+        )
     prog(1.0, "done")
     return {"result": res, "key_result": key_res, "grid": grid, "outputs": outputs, "summary": summary}

@@ -15,15 +15,45 @@ slower 3-D methods where to look (``geocd run --screen``).
   through :mod:`geocd.tiling`, products in the shared change layers (``geocd screen``).
 """
 
-from .core import (EXCL_SHADOW, EXCL_VEGETATION, ScreenParams, ScreenResult, normalise_image, screen_pair,
-                   segment_mean, shadow_mask, shift_image, spread_to_pixels, superpixels, vegetation_mask)
-from .features import (FEATURES, CNNFeature, DaisyFeature, FeatureSpec, GridFeature, PatchFeature,
-                       RandomBankFeature)
+from .core import (
+    EXCL_SHADOW,
+    EXCL_VEGETATION,
+    ScreenParams,
+    ScreenResult,
+    normalise_image,
+    screen_pair,
+    segment_mean,
+    shadow_mask,
+    shift_image,
+    spread_to_pixels,
+    superpixels,
+    vegetation_mask,
+)
+from .features import FEATURES, CNNFeature, DaisyFeature, FeatureSpec, GridFeature, PatchFeature, RandomBankFeature
 from .threshold import NullDistribution, f1_scores, threshold_best_f1, threshold_from_nochange
 
 __all__ = [
-    "CNNFeature", "DaisyFeature", "EXCL_SHADOW", "EXCL_VEGETATION", "FEATURES", "FeatureSpec", "GridFeature",
-    "NullDistribution", "PatchFeature", "RandomBankFeature", "ScreenParams", "ScreenResult", "f1_scores",
-    "normalise_image", "screen_pair", "segment_mean", "shadow_mask", "shift_image", "spread_to_pixels",
-    "superpixels", "threshold_best_f1", "threshold_from_nochange", "vegetation_mask",
+    "CNNFeature",
+    "DaisyFeature",
+    "EXCL_SHADOW",
+    "EXCL_VEGETATION",
+    "FEATURES",
+    "FeatureSpec",
+    "GridFeature",
+    "NullDistribution",
+    "PatchFeature",
+    "RandomBankFeature",
+    "ScreenParams",
+    "ScreenResult",
+    "f1_scores",
+    "normalise_image",
+    "screen_pair",
+    "segment_mean",
+    "shadow_mask",
+    "shift_image",
+    "spread_to_pixels",
+    "superpixels",
+    "threshold_best_f1",
+    "threshold_from_nochange",
+    "vegetation_mask",
 ]

@@ -65,15 +65,26 @@ RESNET_CFGS: dict[str, tuple[str, list[int]]] = {
 }
 #: EfficientNet-Lite's stages at width and depth 1 (TensorFlow's efficientnet_lite_builder): repeats, kernel,
 #: stride, expansion, input and output channels
-EFFNET_LITE_STAGES = ((1, 3, 1, 1, 32, 16), (2, 3, 2, 6, 16, 24), (2, 5, 2, 6, 24, 40), (3, 3, 2, 6, 40, 80),
-                      (3, 5, 1, 6, 80, 112), (4, 5, 2, 6, 112, 192), (1, 3, 1, 6, 192, 320))
+EFFNET_LITE_STAGES = (
+    (1, 3, 1, 1, 32, 16),
+    (2, 3, 2, 6, 16, 24),
+    (2, 5, 2, 6, 24, 40),
+    (3, 3, 2, 6, 40, 80),
+    (3, 5, 1, 6, 80, 112),
+    (4, 5, 2, 6, 112, 192),
+    (1, 3, 1, 6, 192, 320),
+)
 #: (width, depth) coefficients of each EfficientNet-Lite
-EFFNET_LITE_CFGS = {"efficientnet_lite0": (1.0, 1.0), "efficientnet_lite1": (1.0, 1.1),
-                    "efficientnet_lite2": (1.1, 1.2), "efficientnet_lite3": (1.2, 1.4),
-                    "efficientnet_lite4": (1.4, 1.8)}
+EFFNET_LITE_CFGS = {
+    "efficientnet_lite0": (1.0, 1.0),
+    "efficientnet_lite1": (1.0, 1.1),
+    "efficientnet_lite2": (1.1, 1.2),
+    "efficientnet_lite3": (1.2, 1.4),
+    "efficientnet_lite4": (1.4, 1.8),
+}
 BACKBONES = ("vgg", *VGG_CFGS, *(k + "_bn" for k in VGG_CFGS), "resnet", *RESNET_CFGS, *EFFNET_LITE_CFGS)
 BN_EPS = 1e-5
-BN_EPS_TF = 1e-3   # TensorFlow's models (EfficientNet-Lite)
+BN_EPS_TF = 1e-3  # TensorFlow's models (EfficientNet-Lite)
 #: TensorFlow's EfficientNet input scaling, (255 x − 127) / 128, as a mean and standard deviation of x in 0–1
 TF_MEAN = (127 / 255,) * 3
 TF_STD = (128 / 255,) * 3
@@ -86,8 +97,10 @@ def load_weights(path: str | Path) -> dict[str, np.ndarray]:
     """A ``state_dict`` as {name: float32 array} from an ``.npz`` or a PyTorch ``.pt``/``.pth`` file."""
     p = Path(path)
     if not p.exists():
-        raise InputFileNotFoundError(f"weights file {p} does not exist (geocd never downloads weights: export a "
-                                     "state_dict to .npz or .pt and name it)")
+        raise InputFileNotFoundError(
+            f"weights file {p} does not exist (geocd never downloads weights: export a "
+            "state_dict to .npz or .pt and name it)"
+        )
     if p.suffix.lower() == ".npz":
         try:
             with np.load(p, allow_pickle=False) as z:
@@ -107,15 +120,18 @@ def load_weights(path: str | Path) -> dict[str, np.ndarray]:
             try:
                 obj = read_torch_file(p)
             except (TorchFileError, OSError) as exc:
-                raise WeightsMismatchError(f"cannot read the PyTorch weights {p} without PyTorch: {exc}; install "
-                                           "the optional extra (pip install 'geocd[cnn]') or export the state_dict "
-                                           "to .npz") from exc
+                raise WeightsMismatchError(
+                    f"cannot read the PyTorch weights {p} without PyTorch: {exc}; install "
+                    "the optional extra (pip install 'geocd[cnn]') or export the state_dict "
+                    "to .npz"
+                ) from exc
         for k in ("state_dict", "model", "model_state_dict"):
             if isinstance(obj, Mapping) and k in obj and isinstance(obj[k], Mapping):
                 obj = obj[k]
         if not isinstance(obj, Mapping):
-            raise WeightsMismatchError(f"{p} holds a {type(obj).__name__}, not a state_dict; save "
-                                       "model.state_dict() instead of the model")
+            raise WeightsMismatchError(
+                f"{p} holds a {type(obj).__name__}, not a state_dict; save model.state_dict() instead of the model"
+            )
         sd = {k: v for k, v in obj.items() if isinstance(v, np.ndarray)}
     else:
         raise ConfigError(f"weights file {p}: use .npz (numpy) or .pt/.pth (PyTorch state_dict)")
@@ -137,11 +153,11 @@ def _tensors_to_numpy(obj: Any) -> Any:
 # ---------------------------------------------------------------------------------------------
 @dataclass
 class Conv:
-    w: np.ndarray            # (out, in, kh, kw) float32 — (channels, 1, kh, kw) if depthwise — batch norm folded in
-    b: np.ndarray            # (out,)
+    w: np.ndarray  # (out, in, kh, kw) float32 — (channels, 1, kh, kw) if depthwise — batch norm folded in
+    b: np.ndarray  # (out,)
     stride: int = 1
     pad: int = 0
-    same: bool = False       # TensorFlow's "same" padding (asymmetric at stride 2) instead of ``pad``
+    same: bool = False  # TensorFlow's "same" padding (asymmetric at stride 2) instead of ``pad``
     depthwise: bool = False  # one kh × kw filter per channel (groups = channels)
 
 
@@ -173,7 +189,7 @@ class Network:
     stages: list[list[Any]] = field(default_factory=list)
     head: Conv | None = None
     in_channels: int = 3
-    mean: tuple = IMAGENET_MEAN   # input scaling the weights expect (image in 0–1)
+    mean: tuple = IMAGENET_MEAN  # input scaling the weights expect (image in 0–1)
     std: tuple = IMAGENET_STD
 
     @property
@@ -234,8 +250,9 @@ class Network:
 
     def _check_layer(self, layer: str) -> None:
         if layer not in self.layer_names:
-            raise ConfigError(f"layer {layer!r} is not a layer of the {self.name} backbone; its layers are "
-                              f"{self.layer_names}")
+            raise ConfigError(
+                f"layer {layer!r} is not a layer of the {self.name} backbone; its layers are {self.layer_names}"
+            )
 
 
 def _need(sd: Mapping[str, np.ndarray], key: str, shape: tuple | None, backbone: str, guess: str) -> np.ndarray:
@@ -243,22 +260,28 @@ def _need(sd: Mapping[str, np.ndarray], key: str, shape: tuple | None, backbone:
         near = sorted(k for k in sd if k.split(".")[0] == key.split(".")[0])[:4]
         raise WeightsMismatchError(
             f"the weights file does not fit the {backbone} backbone: parameter {key!r} is missing"
-            + (f" (the file has e.g. {near})" if near else f" (the file's parameters start with "
-                                                            f"{sorted({k.split('.')[0] for k in sd})[:6]})")
-            + f"; the file looks like {guess}")
+            + (
+                f" (the file has e.g. {near})"
+                if near
+                else f" (the file's parameters start with {sorted({k.split('.')[0] for k in sd})[:6]})"
+            )
+            + f"; the file looks like {guess}"
+        )
     a = sd[key]
     if shape is not None and tuple(a.shape) != tuple(shape):
         raise WeightsMismatchError(
             f"the weights file does not fit the {backbone} backbone: {key!r} has shape {tuple(a.shape)} in the "
-            f"file but {backbone} expects {tuple(shape)}; the file looks like {guess}")
+            f"file but {backbone} expects {tuple(shape)}; the file looks like {guess}"
+        )
     return a
 
 
 def describe_weights(sd: Mapping[str, np.ndarray]) -> str:
     """What backbone a state_dict looks like (for error messages)."""
     if any(k.startswith("features.") for k in sd):
-        convs = sorted(int(k.split(".")[1]) for k in sd if re.fullmatch(r"features\.\d+\.weight", k)
-                       and sd[k].ndim == 4)
+        convs = sorted(
+            int(k.split(".")[1]) for k in sd if re.fullmatch(r"features\.\d+\.weight", k) and sd[k].ndim == 4
+        )
         bn = any(k.endswith("running_mean") for k in sd)
         for name, cfg in VGG_CFGS.items():
             if sum(1 for x in cfg if x != "M") == len(convs):
@@ -279,8 +302,10 @@ def describe_weights(sd: Mapping[str, np.ndarray]) -> str:
             if not se and sum(r for r, *_ in _lite_stages(name)) == n:
                 return f"{name} ({n} blocks)"
         return f"an EfficientNet-style network ({n} blocks{', with squeeze-excitation' if se else ''})"
-    return ("no known backbone (neither torchvision VGG 'features.*', ResNet 'conv1/layer1.*' nor EfficientNet "
-            "'_conv_stem/_blocks.*' names)")
+    return (
+        "no known backbone (neither torchvision VGG 'features.*', ResNet 'conv1/layer1.*' nor EfficientNet "
+        "'_conv_stem/_blocks.*' names)"
+    )
 
 
 def _fold_bn(w: np.ndarray, b: np.ndarray | None, sd, prefix: str, backbone: str, guess: str, eps: float = BN_EPS):
@@ -298,11 +323,12 @@ def _vgg_from_state(sd, backbone: str) -> Network:
     bn = backbone.endswith("_bn")
     base = backbone[:-3] if bn else backbone
     if base == "vgg":  # read the layer list from the file
-        idx = sorted(int(k.split(".")[1]) for k in sd if re.fullmatch(r"features\.\d+\.weight", k)
-                     and sd[k].ndim == 4)
+        idx = sorted(int(k.split(".")[1]) for k in sd if re.fullmatch(r"features\.\d+\.weight", k) and sd[k].ndim == 4)
         if not idx:
-            raise WeightsMismatchError(f"the weights file does not fit a VGG backbone: no 'features.<i>.weight' "
-                                       f"convolutions; the file looks like {guess}")
+            raise WeightsMismatchError(
+                f"the weights file does not fit a VGG backbone: no 'features.<i>.weight' "
+                f"convolutions; the file looks like {guess}"
+            )
         bn = any(k.startswith("features.") and k.endswith("running_mean") for k in sd)
         per = 3 if bn else 2  # conv, [bn], relu
         cfg: list = []
@@ -339,16 +365,20 @@ def _resnet_from_state(sd, backbone: str) -> Network:
         blocks = [len({k.split(".")[1] for k in sd if k.startswith(f"layer{i}.")}) for i in range(1, 5)]
         blocks = [b for b in blocks if b]
         if not blocks:
-            raise WeightsMismatchError(f"the weights file does not fit a ResNet backbone: no 'layer1.*' "
-                                       f"parameters; the file looks like {guess}")
+            raise WeightsMismatchError(
+                f"the weights file does not fit a ResNet backbone: no 'layer1.*' "
+                f"parameters; the file looks like {guess}"
+            )
     elif backbone in RESNET_CFGS:
         kind, blocks = RESNET_CFGS[backbone]
     else:
         raise ConfigError(f"unknown backbone {backbone!r}; known: {', '.join(BACKBONES)}")
     w1 = _need(sd, "conv1.weight", None, backbone, guess)
     if w1.ndim != 4 or w1.shape[1] != 3:
-        raise WeightsMismatchError(f"the weights file does not fit the {backbone} backbone: 'conv1.weight' has "
-                                   f"shape {tuple(w1.shape)}, expected (C, 3, k, k); the file looks like {guess}")
+        raise WeightsMismatchError(
+            f"the weights file does not fit the {backbone} backbone: 'conv1.weight' has "
+            f"shape {tuple(w1.shape)}, expected (C, 3, k, k); the file looks like {guess}"
+        )
     w, b = _fold_bn(w1, None, sd, "bn1", backbone, guess)
     stem = Conv(w, b, 2, w1.shape[2] // 2)
     width = w1.shape[0]
@@ -364,7 +394,7 @@ def _resnet_from_state(sd, backbone: str) -> Network:
             c1 = _need(sd, f"{p}.conv1.weight", None, backbone, guess)
             if planes is None:
                 planes = c1.shape[0]
-                if planes != width * 2 ** si:
+                if planes != width * 2**si:
                     # widths need not be torchvision's; only the chain of shapes must be consistent
                     pass
             convs = []
@@ -392,8 +422,10 @@ def _resnet_from_state(sd, backbone: str) -> Network:
         stages.append(stage)
     extra = [k for k in sd if k.startswith(f"layer{len(blocks) + 1}.")]
     if extra:
-        raise WeightsMismatchError(f"the weights file does not fit the {backbone} backbone: it has a stage "
-                                   f"layer{len(blocks) + 1} ({extra[0]!r}); the file looks like {guess}")
+        raise WeightsMismatchError(
+            f"the weights file does not fit the {backbone} backbone: it has a stage "
+            f"layer{len(blocks) + 1} ({extra[0]!r}); the file looks like {guess}"
+        )
     return Network("resnet", backbone, stem=stem, stages=stages)
 
 
@@ -412,8 +444,16 @@ def _lite_stages(backbone: str) -> list[tuple[int, int, int, int, int, int]]:
     out = []
     for i, (r, k, s, e, cin, cout) in enumerate(EFFNET_LITE_STAGES):
         last = i in (0, len(EFFNET_LITE_STAGES) - 1)
-        out.append((r if last else int(math.ceil(depth * r)), k, s, e,
-                    32 if i == 0 else _round_filters(cin, width), _round_filters(cout, width)))
+        out.append(
+            (
+                r if last else int(math.ceil(depth * r)),
+                k,
+                s,
+                e,
+                32 if i == 0 else _round_filters(cin, width),
+                _round_filters(cout, width),
+            )
+        )
     return out
 
 
@@ -433,8 +473,10 @@ def _effnet_from_state(sd, backbone: str) -> Network:
     if backbone not in EFFNET_LITE_CFGS:
         raise ConfigError(f"unknown backbone {backbone!r}; known: {', '.join(BACKBONES)}")
     if any("_se_reduce" in k for k in sd):
-        raise WeightsMismatchError(f"the weights file does not fit the {backbone} backbone: it has squeeze-excitation "
-                                   f"layers (an EfficientNet-B, not -Lite); the file looks like {guess}")
+        raise WeightsMismatchError(
+            f"the weights file does not fit the {backbone} backbone: it has squeeze-excitation "
+            f"layers (an EfficientNet-B, not -Lite); the file looks like {guess}"
+        )
 
     def conv_bn(prefix: str, bn: str, shape: tuple, stride: int = 1, depthwise: bool = False) -> Conv:
         w = _need(sd, f"{prefix}.weight", shape, backbone, guess)
@@ -453,8 +495,10 @@ def _effnet_from_state(sd, backbone: str) -> Network:
         n = i + 1
     extra = sorted({int(key.split(".")[1]) for key in sd if key.startswith("_blocks.")} - set(range(n)))
     if extra:
-        raise WeightsMismatchError(f"the weights file does not fit the {backbone} backbone: it has more blocks "
-                                   f"('_blocks.{extra[0]}' is not part of {backbone}); the file looks like {guess}")
+        raise WeightsMismatchError(
+            f"the weights file does not fit the {backbone} backbone: it has more blocks "
+            f"('_blocks.{extra[0]}' is not part of {backbone}); the file looks like {guess}"
+        )
     head = conv_bn("_conv_head", "_bn1", (1280, stages[-1][-1].project.w.shape[0], 1, 1))
     return Network("efficientnet", backbone, stem=stem, stages=stages, head=head, mean=TF_MEAN, std=TF_STD)
 
@@ -487,7 +531,8 @@ def build_network(backbone: str, weights: str | Path | Mapping[str, np.ndarray])
             if extra:
                 raise WeightsMismatchError(
                     f"the weights file does not fit the {backbone} backbone: it has more layers ({extra[0]!r} is "
-                    f"not part of {backbone}); the file looks like {describe_weights(sd)}")
+                    f"not part of {backbone}); the file looks like {describe_weights(sd)}"
+                )
     return net
 
 
@@ -502,8 +547,10 @@ def _used_keys(net: Network, sd) -> set[str]:
                 continue
             used |= {f"features.{i}.weight", f"features.{i}.bias"}
             if bn:
-                used |= {f"features.{i + 1}.{s}" for s in ("weight", "bias", "running_mean", "running_var",
-                                                          "num_batches_tracked")}
+                used |= {
+                    f"features.{i + 1}.{s}"
+                    for s in ("weight", "bias", "running_mean", "running_var", "num_batches_tracked")
+                }
             i += 3 if bn else 2
     return used
 
@@ -511,8 +558,9 @@ def _used_keys(net: Network, sd) -> set[str]:
 # ---------------------------------------------------------------------------------------------
 # forward passes
 # ---------------------------------------------------------------------------------------------
-def prepare_input(image: np.ndarray, normalize: bool = True, mean: tuple = IMAGENET_MEAN,
-                  std: tuple = IMAGENET_STD) -> np.ndarray:
+def prepare_input(
+    image: np.ndarray, normalize: bool = True, mean: tuple = IMAGENET_MEAN, std: tuple = IMAGENET_STD
+) -> np.ndarray:
     """(bands, rows, cols) float 0–1 → (3, rows, cols) float32 network input (``mean``, ``std``: per band)."""
     x = np.asarray(image, np.float32)
     if x.ndim == 2:
@@ -546,8 +594,9 @@ def _depthwise_np(x: np.ndarray, c: Conv) -> np.ndarray:
     """Depthwise convolution: channel i with its own kh × kw filter (zero padding ``c.pad``)."""
     C, H, W = x.shape
     if c.w.shape[0] != C:
-        raise WeightsMismatchError(f"a depthwise convolution expects {c.w.shape[0]} channels, the previous layer "
-                                   f"gives {C}")
+        raise WeightsMismatchError(
+            f"a depthwise convolution expects {c.w.shape[0]} channels, the previous layer gives {C}"
+        )
     _, _, kh, kw = c.w.shape
     p, s = c.pad, c.stride
     xp = np.pad(x, ((0, 0), (p, p), (p, p))) if p else x
@@ -556,7 +605,7 @@ def _depthwise_np(x: np.ndarray, c: Conv) -> np.ndarray:
     out = np.zeros((C, Ho, Wo), np.float32)
     for i in range(kh):
         for j in range(kw):
-            out += xp[:, i: i + s * (Ho - 1) + 1: s, j: j + s * (Wo - 1) + 1: s] * c.w[:, 0, i, j][:, None, None]
+            out += xp[:, i : i + s * (Ho - 1) + 1 : s, j : j + s * (Wo - 1) + 1 : s] * c.w[:, 0, i, j][:, None, None]
     out += c.b[:, None, None]
     return out
 
@@ -567,11 +616,12 @@ def conv2d_np(x: np.ndarray, c: Conv, max_bytes: int = 64 << 20) -> np.ndarray:
     cout, cin_w, kh, kw = c.w.shape
     if c.same:
         t, bt, lf, rt = _same_pads(H, W, c)
-        return conv2d_np(np.pad(x, ((0, 0), (t, bt), (lf, rt))),
-                         Conv(c.w, c.b, c.stride, 0, depthwise=c.depthwise), max_bytes)
+        return conv2d_np(
+            np.pad(x, ((0, 0), (t, bt), (lf, rt))), Conv(c.w, c.b, c.stride, 0, depthwise=c.depthwise), max_bytes
+        )
     if c.depthwise:
         return _depthwise_np(x, c)
-    if kh == kw == 1 and c.stride == 1 and c.pad == 0 and cin == cin_w:   # pointwise: one matrix product
+    if kh == kw == 1 and c.stride == 1 and c.pad == 0 and cin == cin_w:  # pointwise: one matrix product
         out = (c.w.reshape(cout, cin) @ x.reshape(cin, -1)).reshape(cout, H, W)
         return out + c.b[:, None, None]
     if cin != cin_w:
@@ -586,7 +636,7 @@ def conv2d_np(x: np.ndarray, c: Conv, max_bytes: int = 64 << 20) -> np.ndarray:
     rows = max(1, int(max_bytes // max(per_row, 1)))
     for r0 in range(0, Ho, rows):
         r1 = min(Ho, r0 + rows)
-        sl = xp[:, r0 * s: (r1 - 1) * s + kh, :]
+        sl = xp[:, r0 * s : (r1 - 1) * s + kh, :]
         win = np.lib.stride_tricks.sliding_window_view(sl, (kh, kw), axis=(1, 2))[:, ::s, ::s]
         win = win[:, : r1 - r0, :Wo]  # (C, h, Wo, kh, kw)
         cols = np.ascontiguousarray(win.transpose(0, 3, 4, 1, 2)).reshape(cin * kh * kw, -1)
@@ -678,8 +728,14 @@ def forward_torch(net: Network, x: np.ndarray, layers: list[str]) -> dict[str, n
         if c.same:
             tp, bt, lf, rt = _same_pads(t.shape[-2], t.shape[-1], c)
             t = F.pad(t, [lf, rt, tp, bt])
-        return F.conv2d(t, torch.from_numpy(c.w), torch.from_numpy(c.b), stride=c.stride,
-                        padding=0 if c.same else c.pad, groups=c.w.shape[0] if c.depthwise else 1)
+        return F.conv2d(
+            t,
+            torch.from_numpy(c.w),
+            torch.from_numpy(c.b),
+            stride=c.stride,
+            padding=0 if c.same else c.pad,
+            groups=c.w.shape[0] if c.depthwise else 1,
+        )
 
     out: dict[str, np.ndarray] = {}
     with torch.inference_mode():
@@ -730,8 +786,9 @@ def forward_torch(net: Network, x: np.ndarray, layers: list[str]) -> dict[str, n
     return out
 
 
-def forward(net: Network, image: np.ndarray, layers: list[str], *, engine: str = "auto",
-            normalize: bool = True) -> dict[str, np.ndarray]:
+def forward(
+    net: Network, image: np.ndarray, layers: list[str], *, engine: str = "auto", normalize: bool = True
+) -> dict[str, np.ndarray]:
     """Feature maps at ``layers`` of an image (bands, rows, cols) in 0–1.
 
     engine : "numpy", "torch" or "auto" (torch when installed, else numpy)
@@ -805,7 +862,7 @@ def random_state_dict(backbone: str, seed: int = 0, widths: list | None = None) 
     cin = base
     exp = 4 if kind == "bottleneck" else 1
     for si, nb in enumerate(blocks):
-        planes = base * 2 ** si
+        planes = base * 2**si
         for bi in range(nb):
             p = f"layer{si + 1}.{bi}"
             stride = 2 if (si > 0 and bi == 0) else 1

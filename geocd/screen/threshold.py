@@ -38,8 +38,10 @@ class NullDistribution:
         v = np.asarray(d, np.float64).ravel()
         v = v[np.isfinite(v)]
         if v.size < 100:
-            raise EmptyDataError(f"the no-change pair {source or ''} has {v.size} valid values; at least 100 are "
-                                 "needed for a threshold (is the pair on the same grid and overlapping?)")
+            raise EmptyDataError(
+                f"the no-change pair {source or ''} has {v.size} valid values; at least 100 are "
+                "needed for a threshold (is the pair on the same grid and overlapping?)"
+            )
         if v.size > max_n:
             v = np.random.default_rng(seed).choice(v, max_n, replace=False)
         return cls(np.sort(v).astype(np.float32), source)
@@ -57,12 +59,16 @@ class NullDistribution:
 
     def to_dict(self) -> dict:
         q = np.quantile(self.values, [0.5, 0.9, 0.95, 0.99, 0.999])
-        return {"source": self.source, "n": int(self.values.size),
-                "quantiles": {k: round(float(v), 4) for k, v in zip(("50", "90", "95", "99", "99.9"), q)}}
+        return {
+            "source": self.source,
+            "n": int(self.values.size),
+            "quantiles": {k: round(float(v), 4) for k, v in zip(("50", "90", "95", "99", "99.9"), q)},
+        }
 
 
-def threshold_from_nochange(d_nochange: np.ndarray, false_alarm_pct: float = 1.0, source: str = "",
-                            d_test: np.ndarray | None = None) -> float:
+def threshold_from_nochange(
+    d_nochange: np.ndarray, false_alarm_pct: float = 1.0, source: str = "", d_test: np.ndarray | None = None
+) -> float:
     """The ``100 − false_alarm_pct`` percentile of a no-change pair's dissimilarities; with ``d_test``,
     raised to Otsu's split of the screened pair's values above it (:func:`split_above`)."""
     t = NullDistribution.from_values(d_nochange, source).threshold(false_alarm_pct)

@@ -51,7 +51,7 @@ class Flagged:
     """Tiles the screen flagged (the 3-D stage runs on these tiles only)."""
 
     tile_cells: int
-    tiles: np.ndarray                       # bool (tile rows, tile cols)
+    tiles: np.ndarray  # bool (tile rows, tile cols)
 
     @property
     def tile_fraction(self) -> float:
@@ -61,7 +61,7 @@ class Flagged:
         """bool (rows, cols): the cells of the flagged tiles' cores."""
         t = self.tile_cells
         m = np.repeat(np.repeat(self.tiles, t, axis=0), t, axis=1)
-        return np.ascontiguousarray(m[:shape[0], :shape[1]])
+        return np.ascontiguousarray(m[: shape[0], : shape[1]])
 
     def cell_fraction(self, shape: tuple[int, int]) -> float:
         return float(self.examined(shape).mean())
@@ -108,14 +108,21 @@ def flag_threshold(d_screened: np.ndarray, null, false_alarm_pct: float = 1.0) -
     t_own = float(np.quantile(v, q)) if v.size >= 100 else float("inf")
     t_null = float(null.threshold(false_alarm_pct)) if null is not None else float("inf")
     if not np.isfinite(min(t_own, t_null)):
-        raise EmptyDataError("the tiered run's flag threshold needs a no-change pair or at least 100 valid screened "
-                             "values: give a second view in one epoch, or check that the views overlap the AOI")
+        raise EmptyDataError(
+            "the tiered run's flag threshold needs a no-change pair or at least 100 valid screened "
+            "values: give a second view in one epoch, or check that the views overlap the AOI"
+        )
     t = min(t_own, t_null)
     which = "the screened pair's own" if t_own <= t_null else f"the no-change pair's ({null.source})"
-    rule = (f"min of the no-change pair's and the screened pair's own {100 * q:g} % quantiles "
-            f"({t_null:.3f}, {t_own:.3f}): {which}; unchanged cells above it ≤ about {2 * false_alarm_pct:g} %")
-    return t, rule, {"null_quantile": round(t_null, 4), "own_quantile": round(t_own, 4),
-                     "false_alarm_pct": float(false_alarm_pct)}
+    rule = (
+        f"min of the no-change pair's and the screened pair's own {100 * q:g} % quantiles "
+        f"({t_null:.3f}, {t_own:.3f}): {which}; unchanged cells above it ≤ about {2 * false_alarm_pct:g} %"
+    )
+    return (
+        t,
+        rule,
+        {"null_quantile": round(t_null, 4), "own_quantile": round(t_own, 4), "false_alarm_pct": float(false_alarm_pct)},
+    )
 
 
 def chance_cells(n_units: np.ndarray, rate: float, tile_false_alarm: float) -> np.ndarray:
@@ -127,8 +134,14 @@ def chance_cells(n_units: np.ndarray, rate: float, tile_false_alarm: float) -> n
     return np.where(n > 0, binom.isf(tile_false_alarm, np.maximum(n, 1), rate), 0.0)
 
 
-def flag_tiles_by_chance(changed: np.ndarray, valid: np.ndarray, tile_cells: int, unit_cells: int, rate: float,
-                         tile_false_alarm: float | None = None) -> tuple[Flagged, dict]:
+def flag_tiles_by_chance(
+    changed: np.ndarray,
+    valid: np.ndarray,
+    tile_cells: int,
+    unit_cells: int,
+    rate: float,
+    tile_false_alarm: float | None = None,
+) -> tuple[Flagged, dict]:
     """Tiles whose changed area exceeds what chance gives, plus the tiles a flagged tile's changes reach into.
 
     ``changed`` marks the screen's cells above :func:`flag_threshold` (regions already filtered by
@@ -158,12 +171,15 @@ def flag_tiles_by_chance(changed: np.ndarray, valid: np.ndarray, tile_cells: int
         reach[np.unique(lab[core & (lab > 0)])] = True
         reach[0] = False
         tiles = tiles | (tile_sums(reach[lab], T) > 0)
-    info = {"rule": f"a tile is flagged when its changed area exceeds the upper {100 * tfa:g} % quantile of a "
-                    f"Binomial(n, {rate:g}) count of {unit_cells}-cell units (n = its valid units), or when a "
-                    "changed region of a flagged tile reaches into it",
-            "units_per_full_tile": round(float(T * T / u), 1),
-            "chance_units_full_tile": float(chance_cells(np.array([T * T / u]), rate, tfa)[0]),
-            "tiles_by_chance_rule": by_chance, "tiles_added_by_reach": int(tiles.sum()) - by_chance}
+    info = {
+        "rule": f"a tile is flagged when its changed area exceeds the upper {100 * tfa:g} % quantile of a "
+        f"Binomial(n, {rate:g}) count of {unit_cells}-cell units (n = its valid units), or when a "
+        "changed region of a flagged tile reaches into it",
+        "units_per_full_tile": round(float(T * T / u), 1),
+        "chance_units_full_tile": float(chance_cells(np.array([T * T / u]), rate, tfa)[0]),
+        "tiles_by_chance_rule": by_chance,
+        "tiles_added_by_reach": int(tiles.sum()) - by_chance,
+    }
     return Flagged(T, tiles), info
 
 
@@ -171,10 +187,10 @@ def flag_tiles_by_chance(changed: np.ndarray, valid: np.ndarray, tile_cells: int
 class StereoPlan:
     """How a tiered run's 3-D stage covers the flagged tiles (:func:`plan_stereo`)."""
 
-    tile_cells: int                         # side of the stereo's tiles (a multiple of the screen's)
-    tiles: np.ndarray                       # bool (tile rows, tile cols) of those tiles: the ones matched
-    whole_grid: bool                        # True: one untiled match of the whole grid (as the full run)
-    read_cells: int                         # cells the windows would read (margins included)
+    tile_cells: int  # side of the stereo's tiles (a multiple of the screen's)
+    tiles: np.ndarray  # bool (tile rows, tile cols) of those tiles: the ones matched
+    whole_grid: bool  # True: one untiled match of the whole grid (as the full run)
+    read_cells: int  # cells the windows would read (margins included)
     grid_cells: int
 
     def examined(self, shape: tuple[int, int]) -> np.ndarray:
@@ -183,9 +199,13 @@ class StereoPlan:
         return Flagged(self.tile_cells, self.tiles).examined(shape)
 
     def to_dict(self) -> dict:
-        return {"stereo_tile_cells": int(self.tile_cells), "stereo_tiles": int(self.tiles.sum()),
-                "stereo_tiles_in_grid": int(self.tiles.size), "whole_grid": bool(self.whole_grid),
-                "window_read_fraction": round(self.read_cells / max(self.grid_cells, 1), 4)}
+        return {
+            "stereo_tile_cells": int(self.tile_cells),
+            "stereo_tiles": int(self.tiles.sum()),
+            "stereo_tiles_in_grid": int(self.tiles.size),
+            "whole_grid": bool(self.whole_grid),
+            "window_read_fraction": round(self.read_cells / max(self.grid_cells, 1), 4),
+        }
 
 
 def plan_stereo(flagged: Flagged, shape: tuple[int, int], min_window_cells: int, margin_cells: int) -> StereoPlan:
@@ -220,8 +240,9 @@ def plan_stereo(flagged: Flagged, shape: tuple[int, int], min_window_cells: int,
     return StereoPlan(T, tiles, bool(tiles.any()) and read >= H * W, int(read), int(H * W))
 
 
-def calibration_cells(dissimilarity: np.ndarray, level: float, changed: np.ndarray, examined: np.ndarray,
-                      buffer_cells: int) -> np.ndarray:
+def calibration_cells(
+    dissimilarity: np.ndarray, level: float, changed: np.ndarray, examined: np.ndarray, buffer_cells: int
+) -> np.ndarray:
     """bool (rows, cols): the examined cells the screen calls unchanged — where a tiered run fits its transfer calibration.
 
     The flagged tiles were flagged *because* they hold change, so their cells are enriched in it; a
@@ -253,8 +274,13 @@ def fit_calibration_on(epoch_a, epoch_b, model, params, cells: np.ndarray):
     with ``auto``, or ``none``) or when the selection holds too few cells (the change test then
     fits on all its cells, as without a screen). Pass both to the change test.
     """
-    from ..consistency import (_comparison_arrays, apply_offsets, fit_pair_calibration, model_learned_on,
-                               vertical_offsets)
+    from ..consistency import (
+        _comparison_arrays,
+        apply_offsets,
+        fit_pair_calibration,
+        model_learned_on,
+        vertical_offsets,
+    )
     from ..errors import ProcessingError
 
     recs = list(epoch_a) + list(epoch_b)
@@ -282,11 +308,25 @@ def fit_calibration_on(epoch_a, epoch_b, model, params, cells: np.ndarray):
     return cal, offsets
 
 
-def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, epochs: list[str], pairs: str,
-                        posting_m: float | None = None, epoch_a: str | None = None, epoch_b: str | None = None,
-                        tile_cells: int = 128, min_region_m2: float = 4.0, scheduler: str = "sync",
-                        stereo_plan: str = "auto", flag_rule: str = "chance", false_alarm_pct: float = 1.0,
-                        progress: Progress | None = None) -> dict[str, Any]:
+def run_stereo_screened(
+    manifest,
+    *,
+    out: Path,
+    stereo_params,
+    screen_params,
+    epochs: list[str],
+    pairs: str,
+    posting_m: float | None = None,
+    epoch_a: str | None = None,
+    epoch_b: str | None = None,
+    tile_cells: int = 128,
+    min_region_m2: float = 4.0,
+    scheduler: str = "sync",
+    stereo_plan: str = "auto",
+    flag_rule: str = "chance",
+    false_alarm_pct: float = 1.0,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """The screen, then geocd stereo on the flagged tiles only.
 
     ``flag_rule``: "chance" (a cell counts above :func:`flag_threshold`, the lower of the no-change pair's
@@ -320,12 +360,20 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
     images = {e: load_epoch_images(m, m.epoch(e)) for e in epochs}
     dem_median = None
     if m.dem is not None:
-        dem_median = float(np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum)
-                                        .to_ellipsoidal().height_m))
+        dem_median = float(
+            np.nanmedian(read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m)
+        )
     grid = default_aoi_grid(m, images, posting_m=posting_m, dem_median=dem_median, params=stereo_params)
     t0 = time.perf_counter()
-    sc = run_screen_manifest(m, out=out / "screen", params=screen_params, grid=grid, epoch_a=epoch_a,
-                             epoch_b=epoch_b, progress=sub_progress(prog, 0.0, 0.2, "screen: "))
+    sc = run_screen_manifest(
+        m,
+        out=out / "screen",
+        params=screen_params,
+        grid=grid,
+        epoch_a=epoch_a,
+        epoch_b=epoch_b,
+        progress=sub_progress(prog, 0.0, 0.2, "screen: "),
+    )
     t_screen = time.perf_counter() - t0
     sr = sc["run"]
     null = sc.get("null")
@@ -343,8 +391,7 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
         keep[0] = False
         changed = keep[lab]
     if flag_rule == "chance":
-        fl, tile_info = flag_tiles_by_chance(changed, sr.valid, tile_cells, sr.cell_px,
-                                             false_alarm_pct / 100.0)
+        fl, tile_info = flag_tiles_by_chance(changed, sr.valid, tile_cells, sr.cell_px, false_alarm_pct / 100.0)
     else:
         fl = flag_tiles(changed, tile_cells)
         tile_info = {"rule": f"a tile is flagged when it holds a changed region of at least {min_region_m2:g} m²"}
@@ -352,44 +399,86 @@ def run_stereo_screened(manifest, *, out: Path, stereo_params, screen_params, ep
     level = float(np.median(null.values)) if null is not None else float(sc["threshold"])
     t1 = time.perf_counter()
     if stereo_plan == "auto":
-        needs = [stereo_window_needs(m, grid, a, b, stereo_params) for e in epochs
-                 for a, b in itertools.combinations(images[e], 2) if pairs == "all" or a.camera.kind == b.camera.kind]
+        needs = [
+            stereo_window_needs(m, grid, a, b, stereo_params)
+            for e in epochs
+            for a, b in itertools.combinations(images[e], 2)
+            if pairs == "all" or a.camera.kind == b.camera.kind
+        ]
         plan = plan_stereo(fl, grid.shape, max(n[1] for n in needs), max(n[0] for n in needs))
-    else:   # the screen's own tiles, each matched with its margin
+    else:  # the screen's own tiles, each matched with its margin
         plan = StereoPlan(tile_cells, fl.tiles, False, 0, int(np.prod(grid.shape)))
     if plan.whole_grid:
-        st = run_stereo(m, epochs=epochs, out_dir=out, params=stereo_params, grid=grid, keep_arrays=True,
-                        pairs=pairs, orient=False, progress=sub_progress(prog, 0.2, 1.0, "stereo (whole grid): "))
+        st = run_stereo(
+            m,
+            epochs=epochs,
+            out_dir=out,
+            params=stereo_params,
+            grid=grid,
+            keep_arrays=True,
+            pairs=pairs,
+            orient=False,
+            progress=sub_progress(prog, 0.2, 1.0, "stereo (whole grid): "),
+        )
         st.setdefault("margins", {})
     else:
         tiling = TilingParams(tile_size=plan.tile_cells, scheduler=scheduler)
-        st = run_stereo_tiled(m, out_dir=out, epochs=epochs, params=stereo_params, grid=grid, pairs=pairs,
-                              tiling=tiling, tiles=plan.tiles,
-                              progress=sub_progress(prog, 0.2, 1.0, "stereo on flagged tiles: "))
+        st = run_stereo_tiled(
+            m,
+            out_dir=out,
+            epochs=epochs,
+            params=stereo_params,
+            grid=grid,
+            pairs=pairs,
+            tiling=tiling,
+            tiles=plan.tiles,
+            progress=sub_progress(prog, 0.2, 1.0, "stereo on flagged tiles: "),
+        )
     t_3d = time.perf_counter() - t1
     # the 3-D stage examined what it matched (the whole grid, or the stereo tiles holding flagged tiles)
     examined = plan.examined(grid.shape)
     # the calibration's bias comes from examining change-rich tiles only; the whole grid examined is no selection,
     # and the change test then fits on every cell as the full run does
-    cal_cells = (None if plan.whole_grid
-                 else calibration_cells(sr.dissimilarity, level, changed, examined, sr.cell_px))
+    cal_cells = None if plan.whole_grid else calibration_cells(sr.dissimilarity, level, changed, examined, sr.cell_px)
     kept = st.get("pairs") or {key: read_pair_dem(p) for key, p in st["outputs"].items()}
-    info = {"threshold": round(float(sc["threshold"]), 4), "rule": sc["rule"], "feature": screen_params.feature.label,
-            "flag_threshold": round(float(t_flag), 4), "flag_rule": flag_rule_text, **flag_info,
-            "tile_rule": tile_info,
-            "pair": list(sc["pair"]), "tile_cells": tile_cells, "stereo_margin_cells": st["margins"],
-            "flagged_tiles": int(fl.tiles.sum()), "tiles": int(fl.tiles.size),
-            "flagged_tile_fraction": round(fl.tile_fraction, 4),
-            "flagged": [[int(i), int(j)] for i, j in zip(*np.nonzero(fl.tiles))],
-            "screen_flagged_cell_fraction": round(fl.cell_fraction(grid.shape), 4),
-            "stereo_plan": plan.to_dict(),
-            "stereo_cell_fraction": round(float(examined.mean()), 4),
-            "calibration_cells": ("all (the whole grid was examined)" if cal_cells is None else
-                                  {"fraction": round(float(cal_cells.mean()), 4), "dissimilarity_at_most": round(level, 4),
-                                   "level": "no-change pair's median" if null is not None else "threshold",
-                                   "buffer_cells": int(sr.cell_px)}),
-            "screen_seconds": round(t_screen, 2), "stereo_seconds": round(t_3d, 2)}
+    info = {
+        "threshold": round(float(sc["threshold"]), 4),
+        "rule": sc["rule"],
+        "feature": screen_params.feature.label,
+        "flag_threshold": round(float(t_flag), 4),
+        "flag_rule": flag_rule_text,
+        **flag_info,
+        "tile_rule": tile_info,
+        "pair": list(sc["pair"]),
+        "tile_cells": tile_cells,
+        "stereo_margin_cells": st["margins"],
+        "flagged_tiles": int(fl.tiles.sum()),
+        "tiles": int(fl.tiles.size),
+        "flagged_tile_fraction": round(fl.tile_fraction, 4),
+        "flagged": [[int(i), int(j)] for i, j in zip(*np.nonzero(fl.tiles))],
+        "screen_flagged_cell_fraction": round(fl.cell_fraction(grid.shape), 4),
+        "stereo_plan": plan.to_dict(),
+        "stereo_cell_fraction": round(float(examined.mean()), 4),
+        "calibration_cells": (
+            "all (the whole grid was examined)"
+            if cal_cells is None
+            else {
+                "fraction": round(float(cal_cells.mean()), 4),
+                "dissimilarity_at_most": round(level, 4),
+                "level": "no-change pair's median" if null is not None else "threshold",
+                "buffer_cells": int(sr.cell_px),
+            }
+        ),
+        "screen_seconds": round(t_screen, 2),
+        "stereo_seconds": round(t_3d, 2),
+    }
     prog(1.0, "screened stereo done")
-    return {"outputs": st["outputs"], "grid": grid, "pairs": kept, "screen": info, "examined": examined,
-            "calibration_cells": cal_cells,
-            "screen_outputs": {f"screen:{k}": v for k, v in sc["outputs"].items() if not k.startswith("view:")}}
+    return {
+        "outputs": st["outputs"],
+        "grid": grid,
+        "pairs": kept,
+        "screen": info,
+        "examined": examined,
+        "calibration_cells": cal_cells,
+        "screen_outputs": {f"screen:{k}": v for k, v in sc["outputs"].items() if not k.startswith("view:")},
+    }

@@ -27,10 +27,16 @@ from ..errors import UnsupportedFormatError
 
 #: torch storage classes → numpy dtypes
 _STORAGE_DTYPES = {
-    "FloatStorage": np.float32, "DoubleStorage": np.float64, "HalfStorage": np.float16,
+    "FloatStorage": np.float32,
+    "DoubleStorage": np.float64,
+    "HalfStorage": np.float16,
     "BFloat16Storage": None,  # no numpy dtype: refused with a clear message
-    "LongStorage": np.int64, "IntStorage": np.int32, "ShortStorage": np.int16, "CharStorage": np.int8,
-    "ByteStorage": np.uint8, "BoolStorage": np.bool_,
+    "LongStorage": np.int64,
+    "IntStorage": np.int32,
+    "ShortStorage": np.int16,
+    "CharStorage": np.int8,
+    "ByteStorage": np.uint8,
+    "BoolStorage": np.bool_,
 }
 _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 
@@ -54,8 +60,9 @@ class _Storage(_Sealed):
 
 def _index_tuple(v: Any, what: str) -> tuple[int, ...]:
     """``v`` as a tuple of non-negative ints (a tensor's size or stride), else TorchFileError."""
-    if not isinstance(v, (tuple, list)) or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0
-                                                   for n in v):
+    if not isinstance(v, (tuple, list)) or not all(
+        isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in v
+    ):
         raise TorchFileError(f"a tensor's {what} is {v!r:.60}, not a tuple of non-negative integers")
     return tuple(v)
 
@@ -84,8 +91,9 @@ class _LazyTensor(_Sealed):
             raise TorchFileError(f"a tensor of shape {self.size} does not fit its storage ({d.size} elements)")
         if not self.size:
             return np.array(d[self.offset])
-        return np.lib.stride_tricks.as_strided(d[self.offset:], shape=self.size,
-                                               strides=tuple(s * item for s in self.stride)).copy()
+        return np.lib.stride_tricks.as_strided(
+            d[self.offset :], shape=self.size, strides=tuple(s * item for s in self.stride)
+        ).copy()
 
 
 def _rebuild_tensor(storage, storage_offset, size, stride, *_rest):
@@ -103,8 +111,10 @@ class _PlainUnpickler(pickle.Unpickler):
     """Plain data only (numbers, strings, containers): every global and persistent id is refused."""
 
     def find_class(self, module: str, name: str) -> Any:
-        raise TorchFileError(f"the file asks for {module}.{name} where a torch.save file holds plain data, "
-                             "which is refused without being run: not a weights file")
+        raise TorchFileError(
+            f"the file asks for {module}.{name} where a torch.save file holds plain data, "
+            "which is refused without being run: not a weights file"
+        )
 
     def persistent_load(self, pid: Any) -> Any:
         raise TorchFileError("the file holds a persistent id where a torch.save file holds plain data")
@@ -129,8 +139,10 @@ class _Unpickler(pickle.Unpickler):
             return _Marker(name)
         if module == "torch" and name == "Size":
             return tuple
-        raise TorchFileError(f"the file asks for {module}.{name}, which is refused without being run: a weights "
-                             "file must hold a state_dict of tensors only (save model.state_dict(), not the model)")
+        raise TorchFileError(
+            f"the file asks for {module}.{name}, which is refused without being run: a weights "
+            "file must hold a state_dict of tensors only (save model.state_dict(), not the model)"
+        )
 
     def persistent_load(self, pid) -> _Storage:
         if not (isinstance(pid, tuple) and len(pid) >= 3 and pid[0] == "storage"):
@@ -235,8 +247,22 @@ def read_torch_file(path: str | Path) -> Any:
         return _read_zip(p) if zipfile.is_zipfile(p) else _read_legacy(p)
     except (TorchFileError, OSError):
         raise
-    except (pickle.UnpicklingError, zipfile.BadZipFile, EOFError, ValueError, TypeError, KeyError, IndexError,
-            AttributeError, struct.error, RecursionError, MemoryError, OverflowError, NotImplementedError,
-            zlib.error, lzma.LZMAError) as exc:
+    except (
+        pickle.UnpicklingError,
+        zipfile.BadZipFile,
+        EOFError,
+        ValueError,
+        TypeError,
+        KeyError,
+        IndexError,
+        AttributeError,
+        struct.error,
+        RecursionError,
+        MemoryError,
+        OverflowError,
+        NotImplementedError,
+        zlib.error,
+        lzma.LZMAError,
+    ) as exc:
         # a garbled pickle, archive or storage: the same user error, never an internal one
         raise TorchFileError(f"{p} is not a readable torch.save file ({type(exc).__name__}: {exc})") from exc

@@ -14,8 +14,16 @@ Public API
   :func:`ncc_from_stats`, :func:`ssd_from_stats`.
 """
 
-from .match import (StereoGeometryWarning, height_bounds, local_projection, match_pair, occlusion_mask, pair_geometry,
-                    subwindow_mdl, sweep_ncc)
+from .match import (
+    StereoGeometryWarning,
+    height_bounds,
+    local_projection,
+    match_pair,
+    occlusion_mask,
+    pair_geometry,
+    subwindow_mdl,
+    sweep_ncc,
+)
 from .params import StereoParams
 from .products import BANDS, FLAGS, PairDEM, read_pair_dem, write_pair_dem
 from .scores import mdl_from_stats, mdl_score_ref, ncc_from_stats, ssd_from_stats
@@ -31,8 +39,35 @@ def __getattr__(name):  # lazy: the pipeline imports I/O
 
 
 __all__ = [
-    "BANDS", "FLAGS", "HeightSearch", "ImageChip", "PairDEM", "PlaneSweep", "StereoGeometryWarning", "StereoParams",
-    "SweepSlice", "Tile", "height_bounds", "iter_tiles", "match_pair", "mdl_from_stats", "mdl_score_ref",
-    "ncc_from_stats", "occlusion_mask", "pair_geometry", "prepare_chip", "read_pair_dem", "ssd_from_stats",
-    "subwindow_mdl", "local_projection", "sweep_ncc", "window_mean", "write_pair_dem", "run_stereo", "read_chip", "default_aoi_grid", "pair_path", "load_epoch_images",
+    "BANDS",
+    "FLAGS",
+    "HeightSearch",
+    "ImageChip",
+    "PairDEM",
+    "PlaneSweep",
+    "StereoGeometryWarning",
+    "StereoParams",
+    "SweepSlice",
+    "Tile",
+    "height_bounds",
+    "iter_tiles",
+    "match_pair",
+    "mdl_from_stats",
+    "mdl_score_ref",
+    "ncc_from_stats",
+    "occlusion_mask",
+    "pair_geometry",
+    "prepare_chip",
+    "read_pair_dem",
+    "ssd_from_stats",
+    "subwindow_mdl",
+    "local_projection",
+    "sweep_ncc",
+    "window_mean",
+    "write_pair_dem",
+    "run_stereo",
+    "read_chip",
+    "default_aoi_grid",
+    "pair_path",
+    "load_epoch_images",
 ]

@@ -83,7 +83,7 @@ def warp_bilinear_ref(img: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.n
     fy = ys - i0
     j1 = np.minimum(j0 + 1, W - 1)
     i1 = np.minimum(i0 + 1, H - 1)
-    v = ((img[i0, j0] * (1 - fx) + img[i0, j1] * fx) * (1 - fy) + (img[i1, j0] * (1 - fx) + img[i1, j1] * fx) * fy)
+    v = (img[i0, j0] * (1 - fx) + img[i0, j1] * fx) * (1 - fy) + (img[i1, j0] * (1 - fx) + img[i1, j1] * fx) * fy
     v = v.astype(np.float32)
     v[~inside] = np.nan
     if W < 2 or H < 2:
@@ -294,8 +294,25 @@ def box_mean_ref(x: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
 # ---------------------------------------------------------------------------------------------
 
 #: state planes
-PREV1, PREV2, BEST_C, BEST_K, BEST_CM, BEST_CP, BEST_VA, BEST_VB, BEST_COV, BEST_N, SEC_C, SEC_K, \
-    PREV_VA, PREV_VB, PREV_COV, PREV_N, NFINITE = range(17)
+(
+    PREV1,
+    PREV2,
+    BEST_C,
+    BEST_K,
+    BEST_CM,
+    BEST_CP,
+    BEST_VA,
+    BEST_VB,
+    BEST_COV,
+    BEST_N,
+    SEC_C,
+    SEC_K,
+    PREV_VA,
+    PREV_VB,
+    PREV_COV,
+    PREV_N,
+    NFINITE,
+) = range(17)
 NSTATE = 17
 
 
@@ -367,8 +384,20 @@ def _fold_cell(st, i, j, k, kmin_ij, kmax_ij, n, sa, sb, saa, sbb, sab, min_n, e
     p1 = st[PREV1, i, j]
     p2 = st[PREV2, i, j]
     if p1 < p2 and p1 <= c:
-        _insert_min(st, i, j, p1, k - 1.0, p2, c, st[PREV_VA, i, j], st[PREV_VB, i, j],
-                    st[PREV_COV, i, j], st[PREV_N, i, j], excl)
+        _insert_min(
+            st,
+            i,
+            j,
+            p1,
+            k - 1.0,
+            p2,
+            c,
+            st[PREV_VA, i, j],
+            st[PREV_VB, i, j],
+            st[PREV_COV, i, j],
+            st[PREV_N, i, j],
+            excl,
+        )
     st[PREV2, i, j] = p1
     st[PREV1, i, j] = c
     st[PREV_VA, i, j] = va
@@ -401,8 +430,23 @@ def sweep_update(mom, k, kmin, kmax, min_n, eps, excl, st):
     h, w = kmax.shape
     for i in prange(h):
         for j in range(w):
-            _fold_cell(st, i, j, k, kmin[i, j], kmax[i, j], mom[0, i, j], mom[1, i, j], mom[2, i, j], mom[3, i, j],
-                       mom[4, i, j], mom[5, i, j], min_n, eps, excl)
+            _fold_cell(
+                st,
+                i,
+                j,
+                k,
+                kmin[i, j],
+                kmax[i, j],
+                mom[0, i, j],
+                mom[1, i, j],
+                mom[2, i, j],
+                mom[3, i, j],
+                mom[4, i, j],
+                mom[5, i, j],
+                min_n,
+                eps,
+                excl,
+            )
 
 
 @njit(cache=True, parallel=True)
@@ -415,8 +459,20 @@ def sweep_finish(k_end, excl, st):
             p1 = st[PREV1, i, j]
             p2 = st[PREV2, i, j]
             if p1 < p2 and p1 < np.inf:
-                _insert_min(st, i, j, p1, k_end - 1.0, p2, np.inf, st[PREV_VA, i, j], st[PREV_VB, i, j],
-                            st[PREV_COV, i, j], st[PREV_N, i, j], excl)
+                _insert_min(
+                    st,
+                    i,
+                    j,
+                    p1,
+                    k_end - 1.0,
+                    p2,
+                    np.inf,
+                    st[PREV_VA, i, j],
+                    st[PREV_VB, i, j],
+                    st[PREV_COV, i, j],
+                    st[PREV_N, i, j],
+                    excl,
+                )
             st[PREV2, i, j] = p1
             st[PREV1, i, j] = np.inf
 
@@ -453,8 +509,23 @@ def sweep_step(a, b, r, k, kmin, kmax, min_n, eps, excl, st, work):
                     acc[c, jj] = v
             for jj in range(nb):
                 j = j0 + jj
-                _fold_cell(st, i, j, k, kmin[i, j], kmax[i, j], acc[0, jj], acc[1, jj], acc[2, jj], acc[3, jj],
-                           acc[4, jj], acc[5, jj], min_n, eps, excl)
+                _fold_cell(
+                    st,
+                    i,
+                    j,
+                    k,
+                    kmin[i, j],
+                    kmax[i, j],
+                    acc[0, jj],
+                    acc[1, jj],
+                    acc[2, jj],
+                    acc[3, jj],
+                    acc[4, jj],
+                    acc[5, jj],
+                    min_n,
+                    eps,
+                    excl,
+                )
 
 
 def ncc_cost_ref(mom: np.ndarray, min_n: float, eps: float) -> tuple[np.ndarray, ...]:
@@ -504,8 +575,7 @@ def sweep_ref(costs: np.ndarray, excl: float) -> dict[str, np.ndarray]:
         best_k = np.where(better, kk, best_k)
         best_cm = np.where(better, cm, best_cm)
         best_cp = np.where(better, cp, best_cp)
-    return {"best_c": best_c, "best_k": best_k, "best_cm": best_cm, "best_cp": best_cp,
-            "sec_c": sec_c, "sec_k": sec_k}
+    return {"best_c": best_c, "best_k": best_k, "best_cm": best_cm, "best_cp": best_cp, "sec_c": sec_c, "sec_k": sec_k}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -563,7 +633,7 @@ def subwindow_mdl(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2, out):
                     yb = geo_b[1, i, j] + v * geo_b[3, i, j] + u * geo_b[5, i, j] - 0.5
                     wa[u + r, v + r] = _bilinear(img_a, xa, ya)
                     wb[u + r, v + r] = _bilinear(img_b, xb, yb)
-            worst = -1.0                # largest 2^(2·score) so far (ratios are > 0)
+            worst = -1.0  # largest 2^(2·score) so far (ratios are > 0)
             for p in range(m):
                 for t in range(m):
                     n = 0.0
@@ -612,8 +682,8 @@ def subwindow_mdl_ref(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2) -> n
     scores = []
     for cu in centres:
         for cv in centres:
-            a = A[cu - q + r:cu + q + r + 1, cv - q + r:cv + q + r + 1].reshape(-1, *A.shape[2:])
-            b = B[cu - q + r:cu + q + r + 1, cv - q + r:cv + q + r + 1].reshape(-1, *B.shape[2:])
+            a = A[cu - q + r : cu + q + r + 1, cv - q + r : cv + q + r + 1].reshape(-1, *A.shape[2:])
+            b = B[cu - q + r : cu + q + r + 1, cv - q + r : cv + q + r + 1].reshape(-1, *B.shape[2:])
             ok = np.isfinite(a) & np.isfinite(b)
             a0 = np.where(ok, a, 0.0)
             b0 = np.where(ok, b, 0.0)
@@ -690,7 +760,7 @@ def zbuffer_occluded_ref(col, row, z, cost, tol_m, c0, r0, W, H) -> np.ndarray:
     inside = ok & (ii >= 0) & (ii < H) & (jj >= 0) & (jj < W)
     idx = np.flatnonzero(inside)
     pix = ii[idx] * W + jj[idx]
-    order = np.lexsort((idx, cost[idx], pix))     # by pixel, then cost, then position
+    order = np.lexsort((idx, cost[idx], pix))  # by pixel, then cost, then position
     first = np.ones(order.size, bool)
     first[1:] = pix[order][1:] != pix[order][:-1]
     owner_z = np.full(H * W, np.nan)
@@ -757,7 +827,7 @@ def valid_median(z, r, out):
                         n += 1
             h = n // 2
             m = _select(buf, n, h)
-            if n % 2 == 0:      # the largest of the lower half
+            if n % 2 == 0:  # the largest of the lower half
                 lo = buf[0]
                 for q in range(1, h):
                     if buf[q] > lo:
@@ -771,6 +841,6 @@ def valid_median_ref(z: np.ndarray, r: int) -> np.ndarray:
     w = 2 * r + 1
     p = np.pad(np.asarray(z, np.float64), r, constant_values=np.nan)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)     # all-NaN windows
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
         med = np.nanmedian(sliding_window_view(p, (w, w)).reshape(*z.shape, -1), axis=-1)
     return np.where(np.isfinite(z), med, np.nan)

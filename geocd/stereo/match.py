@@ -36,8 +36,17 @@ from .pointing import relative_pointing
 from .products import FLAGS, PairDEM
 from .scores import mdl_from_stats, ncc_from_stats, ssd_from_stats
 from .surface import fill_narrow_holes, surface_median
-from .sweep import (HeightSearch, ImageChip, PlaneSweep, chip_valid_at, coarse_grid, image_sampling_px_per_m,
-                    sample_cells, sweep_progress, upsample_nearest)
+from .sweep import (
+    HeightSearch,
+    ImageChip,
+    PlaneSweep,
+    chip_valid_at,
+    coarse_grid,
+    image_sampling_px_per_m,
+    sample_cells,
+    sweep_progress,
+    upsample_nearest,
+)
 
 
 class StereoGeometryWarning(UserWarning):
@@ -69,13 +78,16 @@ def dem_on_grid(dem: Any, grid: AOIGrid) -> np.ndarray:
         return np.asarray(h, np.float64)
     a = np.asarray(dem, np.float64)
     if a.shape != grid.shape:
-        raise ConfigError(f"prior DEM array has shape {a.shape}, the AOI grid {grid.shape}; resample it onto the "
-                          "grid (geocd.io.raster.read_dem(path, grid=grid)) first")
+        raise ConfigError(
+            f"prior DEM array has shape {a.shape}, the AOI grid {grid.shape}; resample it onto the "
+            "grid (geocd.io.raster.read_dem(path, grid=grid)) first"
+        )
     return a
 
 
-def height_bounds(grid: AOIGrid, cameras: Sequence[Camera], dem: Any = None,
-                  params: StereoParams = StereoParams()) -> tuple[np.ndarray, np.ndarray, str]:
+def height_bounds(
+    grid: AOIGrid, cameras: Sequence[Camera], dem: Any = None, params: StereoParams = StereoParams()
+) -> tuple[np.ndarray, np.ndarray, str]:
     """Per-cell ellipsoidal search bounds ``(lo, hi)`` and where they came from.
 
     A prior DEM gives ``[min − margin, max + margin]`` of the DEM over a
@@ -93,8 +105,10 @@ def height_bounds(grid: AOIGrid, cameras: Sequence[Camera], dem: Any = None,
     if dem is not None:
         d = dem_on_grid(dem, grid)
         if not np.isfinite(d).any():
-            raise EmptyDataError("the prior DEM has no valid height over the AOI grid; check that it covers the AOI "
-                                 "or drop it (the cameras' height range is then used)")
+            raise EmptyDataError(
+                "the prior DEM has no valid height over the AOI grid; check that it covers the AOI "
+                "or drop it (the cameras' height range is then used)"
+            )
         d = _fill_nearest(d)
         w = max(1, int(params.dem_window))
         lo = ndimage.minimum_filter(d, size=w, mode="nearest") - params.dem_margin_m
@@ -103,8 +117,10 @@ def height_bounds(grid: AOIGrid, cameras: Sequence[Camera], dem: Any = None,
             lo = np.maximum(lo, params.height_range_m[0])
             hi = np.minimum(hi, params.height_range_m[1])
             if np.any(hi <= lo):
-                raise ConfigError(f"the prior DEM ± {params.dem_margin_m} m lies outside the height range "
-                                  f"{params.height_range_m}; widen the range or check the DEM's vertical datum")
+                raise ConfigError(
+                    f"the prior DEM ± {params.dem_margin_m} m lies outside the height range "
+                    f"{params.height_range_m}; widen the range or check the DEM's vertical datum"
+                )
         return lo, hi, "dem"
     if params.height_range_m is not None:
         lo_v, hi_v = params.height_range_m
@@ -120,16 +136,24 @@ def height_bounds(grid: AOIGrid, cameras: Sequence[Camera], dem: Any = None,
     lo_v = max(float(r[0]) for r in ranges)
     hi_v = min(float(r[1]) for r in ranges)
     if not hi_v > lo_v:
-        raise ConfigError(f"the cameras' height ranges {ranges} do not overlap, so no height is valid for both; "
-                          "check the camera files or pass --height-range MIN MAX")
+        raise ConfigError(
+            f"the cameras' height ranges {ranges} do not overlap, so no height is valid for both; "
+            "check the camera files or pass --height-range MIN MAX"
+        )
     return np.full(grid.shape, lo_v), np.full(grid.shape, hi_v), "cameras"
 
 
 # ---------------------------------------------------------------------------------------------
 # pair geometry on sample cells
 # ---------------------------------------------------------------------------------------------
-def pair_geometry(grid: AOIGrid, cameras: Sequence[Camera], chips: Sequence[ImageChip], lo: np.ndarray,
-                  hi: np.ndarray, n_sample: int = 48) -> dict[str, Any]:
+def pair_geometry(
+    grid: AOIGrid,
+    cameras: Sequence[Camera],
+    chips: Sequence[ImageChip],
+    lo: np.ndarray,
+    hi: np.ndarray,
+    n_sample: int = 48,
+) -> dict[str, Any]:
     """Overlap test and geometry summary of a pair on sample cells.
 
     Returns a dict with ``jmax`` (largest |∂u/∂z| in either image, px/m), ``g``
@@ -173,24 +197,50 @@ def pair_geometry(grid: AOIGrid, cameras: Sequence[Camera], chips: Sequence[Imag
         dc, dr = pr.dproj_dh(mid_s)
         J.append(np.stack([dc, dr]))
     g = np.where(seen, np.hypot(*(J[0] - J[1])), np.nan)
-    rho = [float(np.nanmedian(image_sampling_px_per_m(cam, grid, rows[seen], cols[seen], mid_s[seen])))
-           for cam in cameras]
-    return {"jmax": jmax, "g": g, "rho": rho, "base_height": g / np.mean(rho), "overlap": float(seen.mean()),
-            "seen": seen}
+    rho = [
+        float(np.nanmedian(image_sampling_px_per_m(cam, grid, rows[seen], cols[seen], mid_s[seen]))) for cam in cameras
+    ]
+    return {
+        "jmax": jmax,
+        "g": g,
+        "rho": rho,
+        "base_height": g / np.mean(rho),
+        "overlap": float(seen.mean()),
+        "seen": seen,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
 # one level of the sweep
 # ---------------------------------------------------------------------------------------------
-_PLANES = {"best_c": K.BEST_C, "best_k": K.BEST_K, "best_cm": K.BEST_CM, "best_cp": K.BEST_CP,
-           "va": K.BEST_VA, "vb": K.BEST_VB, "cov": K.BEST_COV, "n": K.BEST_N, "sec_c": K.SEC_C,
-           "sec_k": K.SEC_K, "nfinite": K.NFINITE}
+_PLANES = {
+    "best_c": K.BEST_C,
+    "best_k": K.BEST_K,
+    "best_cm": K.BEST_CM,
+    "best_cp": K.BEST_CP,
+    "va": K.BEST_VA,
+    "vb": K.BEST_VB,
+    "cov": K.BEST_COV,
+    "n": K.BEST_N,
+    "sec_c": K.SEC_C,
+    "sec_k": K.SEC_K,
+    "nfinite": K.NFINITE,
+}
 
 
-def sweep_ncc(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camera], search: HeightSearch,
-              params: StereoParams, *, noise_sigma: float, excl_steps: float,
-              progress: Progress | None = None, prefix: str = "",
-              lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict[str, np.ndarray], int]:
+def sweep_ncc(
+    grid: AOIGrid,
+    chips: Sequence[ImageChip],
+    cameras: Sequence[Camera],
+    search: HeightSearch,
+    params: StereoParams,
+    *,
+    noise_sigma: float,
+    excl_steps: float,
+    progress: Progress | None = None,
+    prefix: str = "",
+    lonlat: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[dict[str, np.ndarray], int]:
     """Sweep the heights of ``search`` and keep, per cell, the best NCC match.
 
     Returns
@@ -203,7 +253,7 @@ def sweep_ncc(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camer
         Cell × height evaluations (core cells).
     """
     r = params.radius
-    min_n = float(math.ceil(params.min_valid_fraction * params.window ** 2))
+    min_n = float(math.ceil(params.min_valid_fraction * params.window**2))
     eps = float(noise_sigma) ** 2
     sweep = PlaneSweep(grid, chips[:2], cameras[:2], search, tile_size=params.tile_size, margin=r, lonlat=lonlat)
     out = {k: np.full(grid.shape, np.nan) for k in _PLANES}
@@ -249,8 +299,8 @@ def coherent_neighbours(z: np.ndarray, tol_m: float, radius: int = 2) -> np.ndar
             for dj in range(-radius, radius + 1):
                 if di == 0 and dj == 0:
                     continue
-                nb = pad[radius + di:radius + di + H, radius + dj:radius + dj + W]
-                n += (np.abs(nb - z) <= tol_m)
+                nb = pad[radius + di : radius + di + H, radius + dj : radius + dj + W]
+                n += np.abs(nb - z) <= tol_m
     return n
 
 
@@ -273,8 +323,9 @@ def surface_slope(z: np.ndarray, good: np.ndarray, posting_m: float, q: float = 
     return float(np.percentile(d, q)) / posting_m if d.size else 0.0
 
 
-def interval_margin_m(planes: dict[str, np.ndarray], good: np.ndarray, posting_m: float, step_m: float,
-                      radius: int) -> float:
+def interval_margin_m(
+    planes: dict[str, np.ndarray], good: np.ndarray, posting_m: float, step_m: float, radius: int
+) -> float:
     """How far the surface may lie beyond the heights a coarse level matched (m).
 
     A coarse match is the height of a fronto-parallel window ``2·radius + 1`` coarse
@@ -294,8 +345,16 @@ def poisson_threshold(lam: float, alpha: float = 1e-3) -> int:
     return int(poisson.isf(alpha, max(lam, 1e-12))) + 1
 
 
-def _occupied_bins(z: np.ndarray, good: np.ndarray, glo: float, bin_m: float, nb: int, alpha: float,
-                   lam: float | None = None, strong_n: int | None = None) -> tuple[float, int, int, np.ndarray]:
+def _occupied_bins(
+    z: np.ndarray,
+    good: np.ndarray,
+    glo: float,
+    bin_m: float,
+    nb: int,
+    alpha: float,
+    lam: float | None = None,
+    strong_n: int | None = None,
+) -> tuple[float, int, int, np.ndarray]:
     """Background rate, first and last occupied bin grown from the fullest one, and the bin edges.
 
     Bins with at least ``strong_n`` matches are kept wherever they are (a flat roof high above
@@ -317,9 +376,17 @@ def _occupied_bins(z: np.ndarray, good: np.ndarray, glo: float, bin_m: float, nb
     return lam, i0, i1, e
 
 
-def robust_height_interval(planes: dict[str, np.ndarray], lo: np.ndarray, hi: np.ndarray, bin_m: float,
-                           min_ncc: float = 0.7, margin_m: float | None = None, alpha: float = 1e-3,
-                           window: int | None = None, info: dict | None = None) -> tuple[float, float] | None:
+def robust_height_interval(
+    planes: dict[str, np.ndarray],
+    lo: np.ndarray,
+    hi: np.ndarray,
+    bin_m: float,
+    min_ncc: float = 0.7,
+    margin_m: float | None = None,
+    alpha: float = 1e-3,
+    window: int | None = None,
+    info: dict | None = None,
+) -> tuple[float, float] | None:
     """Height interval of the scene from a coarse level's confident matches, or None.
 
     Right matches pile up at the scene's heights, wrong ones scatter. Histogram
@@ -402,8 +469,17 @@ def _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
 
     def run(grid_, search, off, pfx):
         cb = blurred[1].shifted(*(off * normal)) if off else blurred[1]
-        return sweep_ncc(grid_, [blurred[0], cb], cams, search, params, noise_sigma=sig, excl_steps=excl_steps,
-                         progress=progress, prefix=pfx)
+        return sweep_ncc(
+            grid_,
+            [blurred[0], cb],
+            cams,
+            search,
+            params,
+            noise_sigma=sig,
+            excl_steps=excl_steps,
+            progress=progress,
+            prefix=pfx,
+        )
 
     search = HeightSearch(lo_l, hi_l, step_l)
     off = 0.0
@@ -413,8 +489,12 @@ def _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
         n = 96
         r0, c0 = max(0, (H - n) // 2), max(0, (W - n) // 2)
         sg = g_l.subgrid(r0, c0, min(n, H), min(n, W))
-        ss = HeightSearch(lo_l[r0:r0 + sg.height, c0:c0 + sg.width], hi_l[r0:r0 + sg.height, c0:c0 + sg.width], step_l,
-                          search.origin_m)
+        ss = HeightSearch(
+            lo_l[r0 : r0 + sg.height, c0 : c0 + sg.width],
+            hi_l[r0 : r0 + sg.height, c0 : c0 + sg.width],
+            step_l,
+            search.origin_m,
+        )
         best = None
         scores = []
         for o in offsets:
@@ -455,8 +535,12 @@ def _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
             return np.where(bad, a_, lo_n), np.where(bad, b_, hi_n)
 
         lo_n, hi_n = narrowed(a, b)
-        planes, ev = run(g_l, HeightSearch(_block_reduce(lo_n, f, np.min), _block_reduce(hi_n, f, np.max), step_l,
-                                           search.origin_m), float(off), f"{prefix}narrowed ")
+        planes, ev = run(
+            g_l,
+            HeightSearch(_block_reduce(lo_n, f, np.min), _block_reduce(hi_n, f, np.max), step_l, search.origin_m),
+            float(off),
+            f"{prefix}narrowed ",
+        )
         evaluations += ev
         # re-search beyond each bound that cut the range: a surface there (a peak whose coarse matches were
         # too few to show in the histogram) matches better beyond the bound than inside it
@@ -471,8 +555,12 @@ def _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
                 lo_b = np.maximum(lo_l, band[0])
                 hi_b = np.minimum(hi_l, band[1])
                 ok_b = hi_b > lo_b
-                pb, ev = run(g_l, HeightSearch(np.where(ok_b, lo_b, np.nan), np.where(ok_b, hi_b, np.nan), step_l,
-                                               search.origin_m), float(off), f"{prefix}beyond {band[0]:.0f}..{band[1]:.0f} m ")
+                pb, ev = run(
+                    g_l,
+                    HeightSearch(np.where(ok_b, lo_b, np.nan), np.where(ok_b, hi_b, np.nan), step_l, search.origin_m),
+                    float(off),
+                    f"{prefix}beyond {band[0]:.0f}..{band[1]:.0f} m ",
+                )
                 evaluations += ev
                 inside_c = np.where(np.isfinite(planes["best_c"]), planes["best_c"], np.inf)
                 with np.errstate(invalid="ignore"):
@@ -480,15 +568,22 @@ def _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig,
                 # the scene's interval with these cells' better heights: does the surface go on past the bound?
                 comb = {k: np.where(better, pb[k], planes[k]) for k in ("z_raw", "best_c")}
                 good_c = confident_coherent(comb, bin_m)
-                _, i0, i1, e = _occupied_bins(comb["z_raw"], good_c, glo, bin_m, nb, 1e-3, stats["background_per_bin"],
-                                              strong_n)
-                new = (min(float(e[i1 + 1]) + margin, ghi) if side > 0 else max(float(e[i0]) - margin, glo))
+                _, i0, i1, e = _occupied_bins(
+                    comb["z_raw"], good_c, glo, bin_m, nb, 1e-3, stats["background_per_bin"], strong_n
+                )
+                new = min(float(e[i1 + 1]) + margin, ghi) if side > 0 else max(float(e[i0]) - margin, glo)
                 if (new - bound) * side > step_l:
                     a, b = (a, new) if side > 0 else (new, b)
                     extended.append([float(band[0]), float(band[1]), round(new, 2)])
                     lo_n, hi_n = narrowed(a, b)
-                    planes, ev = run(g_l, HeightSearch(_block_reduce(lo_n, f, np.min), _block_reduce(hi_n, f, np.max),
-                                                       step_l, search.origin_m), float(off), f"{prefix}extended ")
+                    planes, ev = run(
+                        g_l,
+                        HeightSearch(
+                            _block_reduce(lo_n, f, np.min), _block_reduce(hi_n, f, np.max), step_l, search.origin_m
+                        ),
+                        float(off),
+                        f"{prefix}extended ",
+                    )
                     evaluations += ev
                     continue
                 # confident surface patches beyond the bound that do not move it (too few, or apart from the
@@ -528,8 +623,15 @@ def _block_reduce(a: np.ndarray, f: int, fn) -> np.ndarray:
     return fn(fn(pad.reshape(Hc, f, Wc, f), axis=3), axis=1)
 
 
-def refine_search(planes: dict[str, np.ndarray], lo_f: np.ndarray, hi_f: np.ndarray, factor: int,
-                  step_coarse: float, step_fine: float, params: StereoParams) -> HeightSearch:
+def refine_search(
+    planes: dict[str, np.ndarray],
+    lo_f: np.ndarray,
+    hi_f: np.ndarray,
+    factor: int,
+    step_coarse: float,
+    step_fine: float,
+    params: StereoParams,
+) -> HeightSearch:
     """Narrow the fine level's search around a coarse level's heights (5×5 min/max ± margin)."""
     z = planes["z_raw"]
     m = params.refine_margin_steps * step_coarse
@@ -558,30 +660,55 @@ def pad_grid(grid: AOIGrid, pad: int) -> AOIGrid:
 
     if pad <= 0:
         return grid
-    return AOIGrid(grid.crs, grid.transform @ Affine.translation(-pad, -pad), grid.width + 2 * pad,
-                   grid.height + 2 * pad)
+    return AOIGrid(
+        grid.crs, grid.transform @ Affine.translation(-pad, -pad), grid.width + 2 * pad, grid.height + 2 * pad
+    )
 
 
 def _crop(a: np.ndarray, pad: int) -> np.ndarray:
-    return a[pad:a.shape[0] - pad, pad:a.shape[1] - pad] if pad > 0 else a
+    return a[pad : a.shape[0] - pad, pad : a.shape[1] - pad] if pad > 0 else a
 
 
 def _check_grid(grid: AOIGrid) -> None:
     if grid.crs.is_geographic:
-        raise CRSError("the stereo AOI grid must be in a projected CRS in metres (e.g. UTM: geocd.geodesy.utm_crs_for)"
-                       f", got {grid.crs.name}")
+        raise CRSError(
+            "the stereo AOI grid must be in a projected CRS in metres (e.g. UTM: geocd.geodesy.utm_crs_for)"
+            f", got {grid.crs.name}"
+        )
 
 
 def _empty_pair(grid, name, names, epoch, g, flags_value, meta) -> PairDEM:
     nan = np.full(grid.shape, np.nan, np.float32)
-    return PairDEM(z_m=nan.copy(), score=nan.copy(), g_px_per_m=g.astype(np.float32), valid=np.zeros(grid.shape, bool),
-                   grid=grid, name=name, camera_names=names, ncc=nan.copy(), ssd=nan.copy(),
-                   flags=np.full(grid.shape, flags_value, np.uint8), z_raw_m=nan.copy(), epoch=epoch, meta=meta)
+    return PairDEM(
+        z_m=nan.copy(),
+        score=nan.copy(),
+        g_px_per_m=g.astype(np.float32),
+        valid=np.zeros(grid.shape, bool),
+        grid=grid,
+        name=name,
+        camera_names=names,
+        ncc=nan.copy(),
+        ssd=nan.copy(),
+        flags=np.full(grid.shape, flags_value, np.uint8),
+        z_raw_m=nan.copy(),
+        epoch=epoch,
+        meta=meta,
+    )
 
 
-def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b: Camera, grid: AOIGrid, *,
-               dem: Any = None, params: StereoParams = StereoParams(), name: str | None = None, epoch: str = "",
-               progress: Progress | None = None) -> PairDEM:
+def match_pair(
+    chip_a: ImageChip,
+    chip_b: ImageChip,
+    camera_a: Camera,
+    camera_b: Camera,
+    grid: AOIGrid,
+    *,
+    dem: Any = None,
+    params: StereoParams = StereoParams(),
+    name: str | None = None,
+    epoch: str = "",
+    progress: Progress | None = None,
+) -> PairDEM:
     """Dense heights of one image pair on an AOI grid (object-space sweep).
 
     Parameters
@@ -624,8 +751,9 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
     cams = [camera_a, camera_b]
     for i, c in enumerate(chips):
         if not np.isfinite(c.data).any():
-            raise EmptyDataError(f"image {c.name or i + 1} is entirely nodata; check its nodata value and that it "
-                                 "covers the AOI")
+            raise EmptyDataError(
+                f"image {c.name or i + 1} is entirely nodata; check its nodata value and that it covers the AOI"
+            )
     names = (chip_a.name or "a", chip_b.name or "b")
     name = name or f"{names[0]}__{names[1]}"
     # match on the grid padded by the window radius, so border cells get whole windows
@@ -636,37 +764,51 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
         dem = np.pad(dem_on_grid(dem, out_grid), pad, mode="edge")
     lo, hi, source = height_bounds(grid, cams, dem, params)
     geo = pair_geometry(grid, cams, chips, lo, hi)
-    lonlat = grid.lonlat()          # one CRS transform of the (padded) grid for the whole match
+    lonlat = grid.lonlat()  # one CRS transform of the (padded) grid for the whole match
     sig = params.noise_sigma
     if sig is None:
         s = [c.noise_sigma for c in chips if np.isfinite(c.noise_sigma)]
         sig = float(np.sqrt(np.mean(np.square(s)))) if s else 1.0
     sig = max(float(sig), 0.5)
     bh_med = float(np.nanmedian(geo["base_height"]))
-    meta: dict[str, Any] = {"score_kind": params.score, "noise_sigma": sig, "height_source": source,
-                            "base_height_median": bh_med, "g_median_px_per_m": float(np.nanmedian(geo["g"])),
-                            "jmax_px_per_m": geo["jmax"], "rho_px_per_m": geo["rho"], "overlap": geo["overlap"],
-                            "params": params.to_dict()}
+    meta: dict[str, Any] = {
+        "score_kind": params.score,
+        "noise_sigma": sig,
+        "height_source": source,
+        "base_height_median": bh_med,
+        "g_median_px_per_m": float(np.nanmedian(geo["g"])),
+        "jmax_px_per_m": geo["jmax"],
+        "rho_px_per_m": geo["rho"],
+        "overlap": geo["overlap"],
+        "params": params.to_dict(),
+    }
     # --- degenerate geometry: warn, and skip the sweep when hopeless everywhere
     bh_seen = geo["base_height"][np.isfinite(geo["base_height"])]
     if geo["jmax"] < 1e-6 or np.all(bh_seen < params.min_base_height):
-        warnings.warn(f"pair {name}: base/height ratio ≈ {bh_med:.3f} is below {params.min_base_height} everywhere "
-                      "(the two views are nearly the same): its heights would be noise, so every cell is invalid; "
-                      "use a pair with a wider base", StereoGeometryWarning, stacklevel=2)
+        warnings.warn(
+            f"pair {name}: base/height ratio ≈ {bh_med:.3f} is below {params.min_base_height} everywhere "
+            "(the two views are nearly the same): its heights would be noise, so every cell is invalid; "
+            "use a pair with a wider base",
+            StereoGeometryWarning,
+            stacklevel=2,
+        )
         g = _g_field(out_grid, cams, _crop(0.5 * (lo + hi), pad))[0]
         meta.update(step_m=float("nan"), levels=0, evaluations=0, wall_s=time.perf_counter() - t_start)
         return _empty_pair(out_grid, name, names, epoch, g, FLAGS["weak_geometry"], meta)
     if bh_med < params.min_base_height:
-        warnings.warn(f"pair {name}: median base/height ratio ≈ {bh_med:.3f} is below {params.min_base_height}; cells "
-                      "with too weak a geometry are invalidated", StereoGeometryWarning, stacklevel=2)
+        warnings.warn(
+            f"pair {name}: median base/height ratio ≈ {bh_med:.3f} is below {params.min_base_height}; cells "
+            "with too weak a geometry are invalidated",
+            StereoGeometryWarning,
+            stacklevel=2,
+        )
     step0 = params.max_step_px / geo["jmax"]
     g_med = max(float(np.nanmedian(geo["g"])), 1e-9)
     excl_steps = max(1.0, params.uniqueness_exclusion_px / (g_med * step0))
     # --- levels: coarse-to-fine while the range needs too many heights
     k0 = float(np.nanmax(hi - lo)) / step0
     level = 0
-    while (k0 / 2 ** level > params.max_heights
-           and min(grid.shape) / 2 ** (level + 1) >= 4 * params.window):
+    while k0 / 2**level > params.max_heights and min(grid.shape) / 2 ** (level + 1) >= 4 * params.window:
         level += 1
     if params.pointing_correction and level < 2:
         # the pointing correction needs an approximate surface: a coarse pass gives it. Its heights also
@@ -674,14 +816,15 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
         # more false minima win — on sample_aoi's widest-base pair completeness fell from 93% to 81%.
         while level < 2 and min(grid.shape) / 2 ** (level + 1) >= 4 * params.window:
             level += 1
-    if k0 / 2 ** level > params.max_coarse_heights:
+    if k0 / 2**level > params.max_coarse_heights:
         raise ConfigError(
             f"pair {name}: the height range [{float(np.nanmin(lo)):.0f}, {float(np.nanmax(hi)):.0f}] m needs "
             f"{k0:.0f} height planes of {step0:.3g} m (the images move up to {geo['jmax']:.3g} px per metre of "
             f"height over the AOI) and the {grid.width} × {grid.height}-cell AOI allows only {level} coarser "
-            f"level(s), so {k0 / 2 ** level:.0f} planes per cell at the coarsest, more than the "
+            f"level(s), so {k0 / 2**level:.0f} planes per cell at the coarsest, more than the "
             f"{params.max_coarse_heights} allowed; narrow the range (--height-range MIN MAX, ellipsoidal metres), "
-            "give a prior DEM ('dem:' in the manifest), or match a larger AOI")
+            "give a prior DEM ('dem:' in the manifest), or match a larger AOI"
+        )
     order = list(range(level, -1, -1))
     pointing: dict[str, Any] = {"applied": False}
     evaluations = 0
@@ -689,7 +832,7 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
     beyond_fine = None
     n_levels = len(order)
     for i, L in enumerate(order):
-        f = 2 ** L
+        f = 2**L
         g_l = coarse_grid(grid, f)
         step_l = step0 * f
         lo_l = _block_reduce(lo, f, np.min)
@@ -698,8 +841,9 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
         sub = sub_progress(prog, 0.9 * i / n_levels, 0.9 * (i + 1) / n_levels)
         prefix = f"{name}: level {L} ({g_l.posting_m:g} m) "
         if i == 0 and L > 0:
-            planes, lo, hi, ev, info, beyond = _coarsest_pass(g_l, grid, f, chips, cams, lo, hi, step_l, blur,
-                                                              params, sig, excl_steps, sub, prefix)
+            planes, lo, hi, ev, info, beyond = _coarsest_pass(
+                g_l, grid, f, chips, cams, lo, hi, step_l, blur, params, sig, excl_steps, sub, prefix
+            )
             beyond_fine = upsample_nearest(beyond, f, grid.shape)
             evaluations += ev
             meta.update(info)
@@ -713,30 +857,54 @@ def match_pair(chip_a: ImageChip, chip_b: ImageChip, camera_a: Camera, camera_b:
                     chips[1] = chips[1].shifted(pointing["dcol"], pointing["drow"])
                 pointing["total_shift_px"] = list(chips[1].shift)
                 moved = float(np.hypot(chips[1].shift[0] - chip_b0.shift[0], chips[1].shift[1] - chip_b0.shift[1]))
-                if moved < params.min_pointing_px:   # below the estimator's own bias: leave b where its camera puts it
+                if moved < params.min_pointing_px:  # below the estimator's own bias: leave b where its camera puts it
                     chips[1] = chip_b0
-                    pointing.update(applied=False, not_applied="below min_pointing_px", estimated_shift_px=moved,
-                                    total_shift_px=list(chip_b0.shift))
+                    pointing.update(
+                        applied=False,
+                        not_applied="below min_pointing_px",
+                        estimated_shift_px=moved,
+                        total_shift_px=list(chip_b0.shift),
+                    )
             continue
-        search = (HeightSearch(lo_l, hi_l, step_l) if planes is None
-                  else refine_search(planes, lo_l, hi_l, 2, step_l * 2, step_l, params))
+        search = (
+            HeightSearch(lo_l, hi_l, step_l)
+            if planes is None
+            else refine_search(planes, lo_l, hi_l, 2, step_l * 2, step_l, params)
+        )
         chips_l = [c.blurred(b) for c, b in zip(chips, blur)]
-        planes, ev = sweep_ncc(g_l, chips_l, cams, search, params, noise_sigma=sig, excl_steps=excl_steps,
-                               progress=sub, prefix=prefix, lonlat=lonlat if L == 0 else None)
+        planes, ev = sweep_ncc(
+            g_l,
+            chips_l,
+            cams,
+            search,
+            params,
+            noise_sigma=sig,
+            excl_steps=excl_steps,
+            progress=sub,
+            prefix=prefix,
+            lonlat=lonlat if L == 0 else None,
+        )
         evaluations += ev
     prog(0.92, f"{name}: scores and checks")
     # chips_l: the images as the finest level matched them (same boxes and shifts as chips)
     out = _finalize(grid, cams, chips_l, planes, search, params, sig, geo, lo, hi, lonlat, beyond_fine)
     out = {k: _crop(v, pad) for k, v in out.items()}
     grid = out_grid
-    meta.update(step_m=step0, levels=n_levels, evaluations=evaluations, excl_steps=excl_steps, pointing=pointing,
-                wall_s=time.perf_counter() - t_start)
+    meta.update(
+        step_m=step0,
+        levels=n_levels,
+        evaluations=evaluations,
+        excl_steps=excl_steps,
+        pointing=pointing,
+        wall_s=time.perf_counter() - t_start,
+    )
     prog(1.0, f"{name}: done")
     return PairDEM(grid=grid, name=name, camera_names=names, epoch=epoch, meta=meta, **out)
 
 
-def _g_field(grid: AOIGrid, cams: Sequence[Camera], z: np.ndarray,
-             lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+def _g_field(
+    grid: AOIGrid, cams: Sequence[Camera], z: np.ndarray, lonlat: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """g = ‖J_a − J_b‖ on the grid at heights z, and |J| per camera (px/m)."""
     lon, lat = lonlat if lonlat is not None else grid.lonlat()
     J = []
@@ -747,9 +915,15 @@ def _g_field(grid: AOIGrid, cams: Sequence[Camera], z: np.ndarray,
     return g, [np.hypot(*j) for j in J]
 
 
-def occlusion_mask(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageChip], z: np.ndarray,
-                   cost: np.ndarray, tol_m: Sequence[np.ndarray],
-                   lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def occlusion_mask(
+    grid: AOIGrid,
+    cams: Sequence[Camera],
+    chips: Sequence[ImageChip],
+    z: np.ndarray,
+    cost: np.ndarray,
+    tol_m: Sequence[np.ndarray],
+    lonlat: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """Cells that lose an image pixel to a better-matched cell at another height (see ``zbuffer_occluded``)."""
     ok = np.isfinite(z)
     occ = np.zeros(grid.shape, bool)
@@ -764,14 +938,25 @@ def occlusion_mask(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageC
         r = r + chip.shift[1]
         c0, r0, c1, r1 = chip.box
         o = np.zeros(zs.shape, bool)
-        K.zbuffer_occluded(np.ascontiguousarray(c, np.float64), np.ascontiguousarray(r, np.float64), zs, cs,
-                           np.ascontiguousarray(tol[ok], np.float64), c0, r0, c1 - c0, r1 - r0, o)
+        K.zbuffer_occluded(
+            np.ascontiguousarray(c, np.float64),
+            np.ascontiguousarray(r, np.float64),
+            zs,
+            cs,
+            np.ascontiguousarray(tol[ok], np.float64),
+            c0,
+            r0,
+            c1 - c0,
+            r1 - r0,
+            o,
+        )
         occ[ok] |= o
     return occ
 
 
-def local_projection(grid: AOIGrid, cam: Camera, chip: ImageChip, z: np.ndarray,
-                     lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def local_projection(
+    grid: AOIGrid, cam: Camera, chip: ImageChip, z: np.ndarray, lonlat: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray:
     """Where each grid cell lands in a chip at height ``z``, and how that moves per grid column and row.
 
     Returns float64 ``(6, rows, cols)``: col, row (relative to the chip's data, pixel-corner
@@ -800,9 +985,15 @@ def local_projection(grid: AOIGrid, cam: Camera, chip: ImageChip, z: np.ndarray,
     return out
 
 
-def subwindow_mdl(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageChip], z: np.ndarray,
-                  params: StereoParams, noise_sigma: float,
-                  lonlat: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def subwindow_mdl(
+    grid: AOIGrid,
+    cams: Sequence[Camera],
+    chips: Sequence[ImageChip],
+    z: np.ndarray,
+    params: StereoParams,
+    noise_sigma: float,
+    lonlat: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """The MDL score of each cell's match as the worst of its sub-windows' scores (bits/pixel).
 
     Each cell's ``window``² matching window is sampled in both images at the cell's
@@ -827,13 +1018,24 @@ def subwindow_mdl(grid: AOIGrid, cams: Sequence[Camera], chips: Sequence[ImageCh
     geo_ab = [local_projection(grid, cam, chip, z, lonlat) for cam, chip in zip(cams[:2], chips[:2])]
     min_n = float(math.ceil(params.min_valid_fraction * (2 * min(q, r) + 1) ** 2))
     out = np.empty(z.shape)
-    K.subwindow_mdl(chips[0].data, chips[1].data, geo_ab[0], geo_ab[1], r, q, K.subwindow_centres(r, q), min_n,
-                    float(noise_sigma) ** 2, out)
+    K.subwindow_mdl(
+        chips[0].data,
+        chips[1].data,
+        geo_ab[0],
+        geo_ab[1],
+        r,
+        q,
+        K.subwindow_centres(r, q),
+        min_n,
+        float(noise_sigma) ** 2,
+        out,
+    )
     return out
 
 
-def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: float, geo, lo, hi,
-              lonlat=None, beyond=None) -> dict[str, Any]:
+def _finalize(
+    grid, cams, chips, planes, search, params: StereoParams, sig: float, geo, lo, hi, lonlat=None, beyond=None
+) -> dict[str, Any]:
     k = planes["best_k"]
     has = k >= 0
     z_raw = planes["z_raw"]
@@ -853,7 +1055,7 @@ def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: floa
         sec = planes["sec_c"]
         flags[has & np.isfinite(sec) & (planes["best_c"] > params.uniqueness_ratio * sec)] |= FLAGS["not_unique"]
         flags[has & ~(np.isfinite(planes["best_cm"]) & np.isfinite(planes["best_cp"]))] |= FLAGS["range_limit"]
-        if beyond is not None:   # the coarse level matched these cells better outside the narrowed range
+        if beyond is not None:  # the coarse level matched these cells better outside the narrowed range
             flags[has & beyond] |= FLAGS["range_limit"]
         # a cell that left an image (or met nodata) over part of its final range was not searched there
         flags[incomplete_search(planes)] |= FLAGS["range_limit"]
@@ -880,6 +1082,14 @@ def _finalize(grid, cams, chips, planes, search, params: StereoParams, sig: floa
         z_out, filled = fill_narrow_holes(z_out, valid, params.radius)
         flags[filled] |= FLAGS["filled"]
     f32 = np.float32
-    return {"z_m": z_out.astype(f32), "score": score.astype(f32),
-            "g_px_per_m": g.astype(f32), "valid": valid, "ncc": ncc.astype(f32), "ssd": ssd.astype(f32),
-            "flags": flags, "z_raw_m": z_raw.astype(f32), "mdl_window": mdl_window.astype(f32)}
+    return {
+        "z_m": z_out.astype(f32),
+        "score": score.astype(f32),
+        "g_px_per_m": g.astype(f32),
+        "valid": valid,
+        "ncc": ncc.astype(f32),
+        "ssd": ssd.astype(f32),
+        "flags": flags,
+        "z_raw_m": z_raw.astype(f32),
+        "mdl_window": mdl_window.astype(f32),
+    }

@@ -9,7 +9,6 @@ from ..params import ParamsMixin
 from .scores import SCORES
 
 
-
 @dataclass(frozen=True)
 class StereoParams(ParamsMixin):
     """Everything that tunes :func:`geocd.stereo.match_pair`.
@@ -131,15 +130,18 @@ class StereoParams(ParamsMixin):
         if self.height_range_m is not None:
             lo, hi = (float(v) for v in self.height_range_m)
             if not hi > lo:
-                raise ConfigError(f"height range {self.height_range_m} is empty; give (min, max) with max > min (metres)")
+                raise ConfigError(
+                    f"height range {self.height_range_m} is empty; give (min, max) with max > min (metres)"
+                )
             object.__setattr__(self, "height_range_m", (lo, hi))
         if self.dem_margin_m < 0:
             raise ConfigError(f"dem_margin_m must be ≥ 0, got {self.dem_margin_m}")
         if self.max_heights < 8:
             raise ConfigError(f"max_heights must be ≥ 8, got {self.max_heights}")
         if self.max_coarse_heights < self.max_heights:
-            raise ConfigError(f"max_coarse_heights must be ≥ max_heights ({self.max_heights}), "
-                              f"got {self.max_coarse_heights}")
+            raise ConfigError(
+                f"max_coarse_heights must be ≥ max_heights ({self.max_heights}), got {self.max_coarse_heights}"
+            )
         if not (0.0 < self.min_valid_fraction <= 1.0):
             raise ConfigError(f"min_valid_fraction must be in (0, 1], got {self.min_valid_fraction}")
         if self.score not in SCORES:
@@ -151,14 +153,16 @@ class StereoParams(ParamsMixin):
         if self.score_subwindow < 3 or self.score_subwindow % 2 == 0:
             raise ConfigError(f"score_subwindow must be an odd number ≥ 3 of cells, got {self.score_subwindow}")
         if self.surface_median is not None and (self.surface_median < 1 or self.surface_median % 2 == 0):
-            raise ConfigError(f"surface_median must be an odd number ≥ 1 of cells (1 = off; None = the window), "
-                              f"got {self.surface_median}")
+            raise ConfigError(
+                f"surface_median must be an odd number ≥ 1 of cells (1 = off; None = the window), "
+                f"got {self.surface_median}"
+            )
         if self.tile_size < 32:
             raise ConfigError(f"tile_size must be ≥ 32 cells, got {self.tile_size}")
         if self.noise_sigma is not None and not self.noise_sigma > 0:
             raise ConfigError(f"noise_sigma must be positive, got {self.noise_sigma}")
 
-    _kind = "stereo"   # names the parameter set in ConfigError messages
+    _kind = "stereo"  # names the parameter set in ConfigError messages
 
     @property
     def radius(self) -> int:

@@ -42,8 +42,9 @@ def to_gray(data: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     return g
 
 
-def local_normalize(gray: np.ndarray, block_px: int = 256, percentiles: tuple[float, float] = (0.5, 99.5),
-                    max_stretch: float = 4.0) -> np.ndarray:
+def local_normalize(
+    gray: np.ndarray, block_px: int = 256, percentiles: tuple[float, float] = (0.5, 99.5), max_stretch: float = 4.0
+) -> np.ndarray:
     """Map each region's pixel-value range to 0–255 (SRI Appendix B), smoothly.
 
     Parameters
@@ -68,8 +69,9 @@ def local_normalize(gray: np.ndarray, block_px: int = 256, percentiles: tuple[fl
     """
     ok = np.isfinite(gray)
     if not ok.any():
-        raise EmptyDataError("the image has no valid pixel over the area to match; check its nodata value and "
-                             "that it covers the AOI")
+        raise EmptyDataError(
+            "the image has no valid pixel over the area to match; check its nodata value and that it covers the AOI"
+        )
     g_lo, g_hi = np.percentile(gray[ok], percentiles)
     g_rng = max(float(g_hi - g_lo), 1e-6)
     H, W = gray.shape
@@ -81,7 +83,7 @@ def local_normalize(gray: np.ndarray, block_px: int = 256, percentiles: tuple[fl
     ce = np.linspace(0, W, nb_c + 1).astype(int)
     for bi in range(nb_r):
         for bj in range(nb_c):
-            blk = gray[re[bi]:re[bi + 1], ce[bj]:ce[bj + 1]]
+            blk = gray[re[bi] : re[bi + 1], ce[bj] : ce[bj + 1]]
             v = blk[np.isfinite(blk)]
             if v.size >= 64:
                 lo[bi, bj], hi[bi, bj] = np.percentile(v, percentiles)
@@ -125,9 +127,9 @@ def estimate_noise_sigma(img: np.ndarray, block: int = 32, quantile: float = 25.
     est = []
     for i in range(0, H - block + 1, block):
         for j in range(0, W - block + 1, block):
-            m = ok3[i:i + block, j:j + block]
+            m = ok3[i : i + block, j : j + block]
             if m.mean() > 0.9:
-                est.append(np.median(resp[i:i + block, j:j + block][m]))
+                est.append(np.median(resp[i : i + block, j : j + block][m]))
     if len(est) >= 4:
         return float(np.percentile(est, quantile) / 0.6745 / 6.0)
     v = resp[ok3]

@@ -68,8 +68,9 @@ def grid_outline_xy(grid: AOIGrid, n: int = 32) -> tuple[np.ndarray, np.ndarray]
     return X.ravel(), Y.ravel()
 
 
-def image_window_for_grid(camera: Camera, grid: AOIGrid, lo_m: float, hi_m: float, margin_px: int,
-                          width: int, height: int) -> tuple[int, int, int, int] | None:
+def image_window_for_grid(
+    camera: Camera, grid: AOIGrid, lo_m: float, hi_m: float, margin_px: int, width: int, height: int
+) -> tuple[int, int, int, int] | None:
     """(col0, row0, col1, row1) of the image pixels the grid can project to; None when outside."""
     x, y = grid_outline_xy(grid)
     pr = camera.ground_projector(x, y, grid.crs)
@@ -92,8 +93,17 @@ def image_window_for_grid(camera: Camera, grid: AOIGrid, lo_m: float, hi_m: floa
     return c0, r0, c1, r1
 
 
-def read_chip(path: os.PathLike | str, camera: Camera, grid: AOIGrid, lo_m: float, hi_m: float, *,
-              name: str = "", margin_px: int = 16, block_px: int = 256) -> ImageChip:
+def read_chip(
+    path: os.PathLike | str,
+    camera: Camera,
+    grid: AOIGrid,
+    lo_m: float,
+    hi_m: float,
+    *,
+    name: str = "",
+    margin_px: int = 16,
+    block_px: int = 256,
+) -> ImageChip:
     """Read and normalize the window of an image that the AOI grid sees between two heights.
 
     Raises
@@ -111,8 +121,10 @@ def read_chip(path: os.PathLike | str, camera: Camera, grid: AOIGrid, lo_m: floa
         W, H = ds.width, ds.height
     box = image_window_for_grid(camera, grid, lo_m, hi_m, margin_px, W, H)
     if box is None:
-        raise NoOverlapError(f"image {path} does not see the AOI {grid.bounds} ({grid.crs.name}) at heights "
-                             f"{lo_m:.0f}..{hi_m:.0f} m; check the AOI, the image's camera and the height range")
+        raise NoOverlapError(
+            f"image {path} does not see the AOI {grid.bounds} ({grid.crs.name}) at heights "
+            f"{lo_m:.0f}..{hi_m:.0f} m; check the AOI, the image's camera and the height range"
+        )
     c0, r0, c1, r1 = box
     img = read_image(path, window=Window(c0, r0, c1 - c0, r1 - r0))
     return prepare_chip(img.data, img.valid, col0=c0, row0=r0, name=name or Path(path).stem, block_px=block_px)
@@ -138,8 +150,9 @@ WORK_MEMORY_PER_CELL = 150
 PAIR_FILE_PER_CELL = 37
 
 
-def check_stereo_resources(grid: AOIGrid, n_pairs: int, out: os.PathLike | str | None, *,
-                           keep_arrays: bool = False) -> None:
+def check_stereo_resources(
+    grid: AOIGrid, n_pairs: int, out: os.PathLike | str | None, *, keep_arrays: bool = False
+) -> None:
     """Refuse stereo on a grid that cannot fit in memory or on disk, before any matching (see
     :func:`geocd.io.outputs.check_resources`)."""
     from ..io.outputs import available_memory_bytes, check_resources
@@ -150,11 +163,15 @@ def check_stereo_resources(grid: AOIGrid, n_pairs: int, out: os.PathLike | str |
     fit = ""
     if avail and mem > avail:
         fit = f" (about --posting {grid.posting_m * math.sqrt(mem / avail) * 1.1:.2g} would fit)"
-    check_resources(f"stereo on a {grid.width} x {grid.height} grid at {grid.posting_m:g} m ({n_pairs} pair(s))",
-                    memory_bytes=mem, disk_bytes=cells * PAIR_FILE_PER_CELL * n_pairs,
-                    largest_file_bytes=cells * PAIR_FILE_PER_CELL, out=out,
-                    fix=f"match tile by tile with bounded memory (`geocd stereo --tiled`), or use a coarser "
-                        f"posting{fit}, a smaller AOI (aoi.bounds), or fewer images")
+    check_resources(
+        f"stereo on a {grid.width} x {grid.height} grid at {grid.posting_m:g} m ({n_pairs} pair(s))",
+        memory_bytes=mem,
+        disk_bytes=cells * PAIR_FILE_PER_CELL * n_pairs,
+        largest_file_bytes=cells * PAIR_FILE_PER_CELL,
+        out=out,
+        fix=f"match tile by tile with bounded memory (`geocd stereo --tiled`), or use a coarser "
+        f"posting{fit}, a smaller AOI (aoi.bounds), or fewer images",
+    )
 
 
 def early_resource_check(m, grid: AOIGrid | None, posting_m: float | None, out) -> None:
@@ -188,11 +205,11 @@ def _check_aoi_sees_images(bounds, crs, images: Sequence[EpochImage], dem_median
         raise NoOverlapError(
             f"the AOI {tuple(round(float(v), 1) for v in bounds)} (aoi.bounds in {crs.to_string()}) is "
             f"{d / 1000:.1f} km from what the images see {tuple(round(float(v), 1) for v in seen.bounds)}; fix the "
-            "manifest's aoi.bounds / aoi.crs (or leave the AOI out to use the images' overlap)")
+            "manifest's aoi.bounds / aoi.crs (or leave the AOI out to use the images' overlap)"
+        )
 
 
-def _ground_height_hint(images: Sequence[EpochImage], crs, dem_median: float | None,
-                        params: StereoParams) -> float:
+def _ground_height_hint(images: Sequence[EpochImage], crs, dem_median: float | None, params: StereoParams) -> float:
     """A typical ground height of the scene: the prior DEM's median, else a coarse match of the first pair."""
     if dem_median is not None and np.isfinite(dem_median):
         return float(dem_median)
@@ -203,8 +220,10 @@ def _ground_height_hint(images: Sequence[EpochImage], crs, dem_median: float | N
     elif ranges:
         lo, hi = max(r[0] for r in ranges), min(r[1] for r in ranges)
     else:
-        raise ConfigError("no height range to place the AOI: the cameras give none and no DEM was given; add "
-                          "'dem:' or 'aoi:' to the manifest, or pass --height-range MIN MAX")
+        raise ConfigError(
+            "no height range to place the AOI: the cameras give none and no DEM was given; add "
+            "'dem:' or 'aoi:' to the manifest, or pass --height-range MIN MAX"
+        )
     mid = 0.5 * (lo + hi)
     if len(images) < 2:
         return mid
@@ -244,8 +263,14 @@ def _hint_from_match(pd: PairDEM, lo: float, hi: float, fallback: float) -> floa
     return float(np.median(z)) if z.size >= 10 else fallback
 
 
-def default_aoi_grid(manifest, images_by_epoch: dict[str, list[EpochImage]], *, posting_m: float | None = None,
-                     dem_median: float | None = None, params: StereoParams = StereoParams()) -> AOIGrid:
+def default_aoi_grid(
+    manifest,
+    images_by_epoch: dict[str, list[EpochImage]],
+    *,
+    posting_m: float | None = None,
+    dem_median: float | None = None,
+    params: StereoParams = StereoParams(),
+) -> AOIGrid:
     """The AOI grid of a manifest: its ``aoi`` when given, else what every image sees.
 
     Default extent: the intersection of all images' ground footprints (at the
@@ -292,8 +317,11 @@ def default_aoi_grid(manifest, images_by_epoch: dict[str, list[EpochImage]], *, 
             if not parts:
                 raise NoOverlapError("no two images of the manifest overlap on the ground; there is nothing to match")
             inter = unary_union(parts)
-            warnings.warn("the images have no area in common; the AOI is the union of the pairwise overlaps, so "
-                          "pair-DEMs cover different parts of it", stacklevel=2)
+            warnings.warn(
+                "the images have no area in common; the AOI is the union of the pairwise overlaps, so "
+                "pair-DEMs cover different parts of it",
+                stacklevel=2,
+            )
         bounds = inter.bounds
     if posting_m is None and spec is not None and spec.posting_m:
         posting_m = spec.posting_m
@@ -310,10 +338,20 @@ def default_aoi_grid(manifest, images_by_epoch: dict[str, list[EpochImage]], *, 
 # ---------------------------------------------------------------------------------------------
 # the run
 # ---------------------------------------------------------------------------------------------
-def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.PathLike | str | None = None,
-               params: StereoParams = StereoParams(), grid: AOIGrid | None = None, posting_m: float | None = None,
-               overwrite: bool = True, progress: Progress | None = None,
-               keep_arrays: bool = False, pairs: str = "all", orient: bool = True) -> dict[str, Any]:
+def run_stereo(
+    manifest,
+    *,
+    epochs: Sequence[str] | None = None,
+    out_dir: os.PathLike | str | None = None,
+    params: StereoParams = StereoParams(),
+    grid: AOIGrid | None = None,
+    posting_m: float | None = None,
+    overwrite: bool = True,
+    progress: Progress | None = None,
+    keep_arrays: bool = False,
+    pairs: str = "all",
+    orient: bool = True,
+) -> dict[str, Any]:
     """Match every pair of images of the selected epochs and write their pair-DEMs.
 
     Parameters
@@ -347,8 +385,10 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
     prog = ensure_progress(progress)
     selected = [m.epoch(e) for e in epochs] if epochs else [e for e in m.epochs if len(e.images) >= 2]
     if not selected:
-        raise ConfigError("no epoch of the manifest has two images or more, so there is no stereo pair to match; "
-                          "add images or name an epoch with --epoch")
+        raise ConfigError(
+            "no epoch of the manifest has two images or more, so there is no stereo pair to match; "
+            "add images or name an epoch with --epoch"
+        )
     for e in selected:
         if len(e.images) < 2:
             raise ConfigError(f"epoch {e.name!r} has {len(e.images)} image(s); stereo needs at least two")
@@ -369,11 +409,17 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
         grid = default_aoi_grid(m, images, posting_m=posting_m, dem_median=dem_median, params=params)
     if pairs not in ("all", "same-kind"):
         raise ConfigError(f"pairs must be 'all' or 'same-kind', got {pairs!r}")
-    pairs = [(e, a, b) for e in selected for a, b in itertools.combinations(images[e.name], 2)
-             if pairs == "all" or _sensor_kind(a.camera) == _sensor_kind(b.camera)]
+    pairs = [
+        (e, a, b)
+        for e in selected
+        for a, b in itertools.combinations(images[e.name], 2)
+        if pairs == "all" or _sensor_kind(a.camera) == _sensor_kind(b.camera)
+    ]
     if not pairs:
-        raise ConfigError("no image pair left to match (with pairs='same-kind', each epoch needs two images whose "
-                          "cameras are of the same kind); use pairs='all'")
+        raise ConfigError(
+            "no image pair left to match (with pairs='same-kind', each epoch needs two images whose "
+            "cameras are of the same kind); use pairs='all'"
+        )
     check_stereo_resources(grid, len(pairs), out, keep_arrays=keep_arrays)
     dem = None
     if m.dem is not None:
@@ -391,18 +437,37 @@ def run_stereo(manifest, *, epochs: Sequence[str] | None = None, out_dir: os.Pat
             span[k] = (min(old[0], float(np.min(lo))), max(old[1], float(np.max(hi))))
     for i, (e, a, b) in enumerate(pairs):
         key = f"{e.name}/{a.name}__{b.name}"
-        for k in [k for k in chips if k[0] != e.name]:   # one epoch's images in memory at a time
+        for k in [k for k in chips if k[0] != e.name]:  # one epoch's images in memory at a time
             del chips[k]
         p = sub_progress(prog, i / len(pairs), (i + 1) / len(pairs), prefix=f"pair {i + 1}/{len(pairs)} ")
         for im in (a, b):
             if (e.name, im.name) not in chips:
-                chips[(e.name, im.name)] = read_chip(im.path, im.camera, grid, *span[(e.name, im.name)],
-                                                     name=im.name, margin_px=16 + 2 * params.window,
-                                                     block_px=params.norm_block_px)
-        pd = match_pair(chips[(e.name, a.name)], chips[(e.name, b.name)], a.camera, b.camera, grid, dem=dem,
-                        params=params, epoch=e.name, progress=p)
-        path = write_pair_dem(pair_path(out, e.name, a.name, b.name), pd, overwrite=overwrite,
-                              tags={"images": [str(a.path), str(b.path)], "manifest": str(m.path or "")})
+                chips[(e.name, im.name)] = read_chip(
+                    im.path,
+                    im.camera,
+                    grid,
+                    *span[(e.name, im.name)],
+                    name=im.name,
+                    margin_px=16 + 2 * params.window,
+                    block_px=params.norm_block_px,
+                )
+        pd = match_pair(
+            chips[(e.name, a.name)],
+            chips[(e.name, b.name)],
+            a.camera,
+            b.camera,
+            grid,
+            dem=dem,
+            params=params,
+            epoch=e.name,
+            progress=p,
+        )
+        path = write_pair_dem(
+            pair_path(out, e.name, a.name, b.name),
+            pd,
+            overwrite=overwrite,
+            tags={"images": [str(a.path), str(b.path)], "manifest": str(m.path or "")},
+        )
         outputs[key] = path
         if keep_arrays:
             kept[key] = pd

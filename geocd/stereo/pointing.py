@@ -31,7 +31,9 @@ from ..geodesy import AOIGrid
 from .sweep import ImageChip
 
 
-def _jacobians(cam: Camera, grid: AOIGrid, x: float, y: float, h: float, d: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def _jacobians(
+    cam: Camera, grid: AOIGrid, x: float, y: float, h: float, d: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
     """∂u/∂(x, y) (2×2, px per m) and ∂u/∂z (2,) at one ground point."""
     pr = cam.ground_projector(np.array([x, x + d, x]), np.array([y, y, y + d]), grid.crs)
     c, r = pr.project(np.full(3, h))
@@ -53,7 +55,7 @@ def _ncc_shift(a: np.ndarray, b: np.ndarray, max_shift: int) -> tuple[float, flo
     if na <= 0:
         return np.nan, np.nan, np.nan
     bb = np.nan_to_num(b - np.nanmean(b))
-    num = signal.fftconvolve(bb, ta[::-1, ::-1], mode="valid")          # (2M+1, 2M+1)
+    num = signal.fftconvolve(bb, ta[::-1, ::-1], mode="valid")  # (2M+1, 2M+1)
     ones = np.ones_like(ta)
     s1 = signal.fftconvolve(bb, ones, mode="valid")
     s2 = signal.fftconvolve(bb * bb, ones, mode="valid")
@@ -73,9 +75,17 @@ def _ncc_shift(a: np.ndarray, b: np.ndarray, max_shift: int) -> tuple[float, flo
     return float(i + di - M), float(j + dj - M), peak
 
 
-def relative_pointing(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camera], surface_m: np.ndarray,
-                      *, patch: int = 48, max_shift: int = 12, min_peak: float = 0.5,
-                      min_patches: int = 4) -> dict[str, Any]:
+def relative_pointing(
+    grid: AOIGrid,
+    chips: Sequence[ImageChip],
+    cameras: Sequence[Camera],
+    surface_m: np.ndarray,
+    *,
+    patch: int = 48,
+    max_shift: int = 12,
+    min_peak: float = 0.5,
+    min_patches: int = 4,
+) -> dict[str, Any]:
     """Relative pointing error of image b against image a, across the epipolar direction.
 
     Parameters
@@ -104,33 +114,38 @@ def relative_pointing(grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequen
     h0 = float(np.nanmedian(z))
     Ja_xy, Ja = _jacobians(cameras[0], grid, float(xc[0]), float(yc[0]), h0)
     Jb_xy, Jb = _jacobians(cameras[1], grid, float(xc[0]), float(yc[0]), h0)
-    d = np.linalg.solve(Ja_xy, Ja) - np.linalg.solve(Jb_xy, Jb)       # ground m per m of height
+    d = np.linalg.solve(Ja_xy, Ja) - np.linalg.solve(Jb_xy, Jb)  # ground m per m of height
     out = {"dcol": 0.0, "drow": 0.0, "cross_px": 0.0, "n_patches": 0, "spread_px": float("nan"), "applied": False}
     nd = np.linalg.norm(d)
     if not nd > 1e-9:
         return out
-    dperp = np.array([-d[1], d[0]]) / nd                                # unit, ground (x east, y north)
+    dperp = np.array([-d[1], d[0]]) / nd  # unit, ground (x east, y north)
     px, py = grid.posting
     M = max_shift
     vals = []
     for r0 in range(M, H - patch - M + 1, patch):
         for c0 in range(M, W - patch - M + 1, patch):
-            a = wa[r0:r0 + patch, c0:c0 + patch]
-            b = wb[r0 - M:r0 + patch + M, c0 - M:c0 + patch + M]
+            a = wa[r0 : r0 + patch, c0 : c0 + patch]
+            b = wb[r0 - M : r0 + patch + M, c0 - M : c0 + patch + M]
             if np.isfinite(a).mean() < 0.9 or np.isfinite(b).mean() < 0.9:
                 continue
             dr, dc, peak = _ncc_shift(a, b, M)
             if not (np.isfinite(dr) and peak >= min_peak):
                 continue
-            s = np.array([dc * px, -dr * py])                               # ground metres
+            s = np.array([dc * px, -dr * py])  # ground metres
             vals.append(float(s @ dperp))
     out["n_patches"] = len(vals)
     if len(vals) < min_patches:
         return out
     v = np.asarray(vals)
     s_perp = float(np.median(v))
-    beta = Jb_xy @ (s_perp * dperp)                                      # pixels of image b
+    beta = Jb_xy @ (s_perp * dperp)  # pixels of image b
     rho_b = float(np.sqrt(abs(np.linalg.det(Jb_xy))))
-    out.update(dcol=float(beta[0]), drow=float(beta[1]), cross_px=float(np.hypot(*beta)),
-               spread_px=float(1.4826 * np.median(np.abs(v - s_perp)) * rho_b), applied=True)
+    out.update(
+        dcol=float(beta[0]),
+        drow=float(beta[1]),
+        cross_px=float(np.hypot(*beta)),
+        spread_px=float(1.4826 * np.median(np.abs(v - s_perp)) * rho_b),
+        applied=True,
+    )
     return out

@@ -32,15 +32,15 @@ from ..geodesy import AOIGrid
 
 #: reasons a cell is invalid (bit values of the ``flags`` band)
 FLAGS = {
-    "out_of_image": 1,      # no valid window in one image at any candidate height
-    "low_texture": 2,       # a window's standard deviation < texture_min_snr · σ_n
-    "not_unique": 4,        # another height matches almost as well (uniqueness test)
-    "occluded": 8,          # loses its image pixel to a better match at another height (occlusion / left-right)
-    "range_limit": 16,      # best height at the edge of the search range (or next to an invalid one)
-    "low_ncc": 32,          # NCC below min_ncc
-    "weak_geometry": 64,    # base/height ratio too small: height unreliable
-    "filled": 128,          # invalid (other bits say why), but z holds a height interpolated from the valid
-                            # heights around: a hole narrower than the matching window (StereoParams.fill_holes)
+    "out_of_image": 1,  # no valid window in one image at any candidate height
+    "low_texture": 2,  # a window's standard deviation < texture_min_snr · σ_n
+    "not_unique": 4,  # another height matches almost as well (uniqueness test)
+    "occluded": 8,  # loses its image pixel to a better match at another height (occlusion / left-right)
+    "range_limit": 16,  # best height at the edge of the search range (or next to an invalid one)
+    "low_ncc": 32,  # NCC below min_ncc
+    "weak_geometry": 64,  # base/height ratio too small: height unreliable
+    "filled": 128,  # invalid (other bits say why), but z holds a height interpolated from the valid
+    # heights around: a hole narrower than the matching window (StereoParams.fill_holes)
 }
 
 #: ``flags`` value (not a bit: every bit set) of a cell a tiered run did not match (geocd run --screen: its
@@ -49,10 +49,12 @@ FLAGS_NOT_EXAMINED = 255
 
 BANDS = ("z", "score", "g", "valid", "ncc", "ssd", "flags")
 
-SCORE_DEFINITION = ("MDL score (reconstruction, see geocd.stereo.scores): (L_match - L_ind)/n bits/pixel, "
-                    "L_ind = sum_j n/2 log2(s_j^2 + sigma_n^2), L_match = n/2 log2(s_t^2 + sigma_n^2) + "
-                    "(k-1) n/2 log2(v + sigma_n^2), k=2, the worst (largest) over the score_subwindow-cell "
-                    "sub-windows tiling the matching window; lower = better")
+SCORE_DEFINITION = (
+    "MDL score (reconstruction, see geocd.stereo.scores): (L_match - L_ind)/n bits/pixel, "
+    "L_ind = sum_j n/2 log2(s_j^2 + sigma_n^2), L_match = n/2 log2(s_t^2 + sigma_n^2) + "
+    "(k-1) n/2 log2(v + sigma_n^2), k=2, the worst (largest) over the score_subwindow-cell "
+    "sub-windows tiling the matching window; lower = better"
+)
 
 
 @dataclass
@@ -119,8 +121,9 @@ def _nan(a: np.ndarray | None, shape) -> np.ndarray:
     return np.full(shape, np.nan, np.float32) if a is None else np.asarray(a, np.float32)
 
 
-def write_pair_dem(path: os.PathLike | str, pair: PairDEM, *, tags: dict[str, Any] | None = None,
-                   overwrite: bool = True) -> Path:
+def write_pair_dem(
+    path: os.PathLike | str, pair: PairDEM, *, tags: dict[str, Any] | None = None, overwrite: bool = True
+) -> Path:
     """Write a pair-DEM as a COG (bands :data:`BANDS`) atomically."""
     from ..io.raster import write_cog
 
@@ -134,9 +137,15 @@ def write_pair_dem(path: os.PathLike | str, pair: PairDEM, *, tags: dict[str, An
         "ssd": _nan(pair.ssd, shape),
         "flags": (np.zeros(shape, np.float32) if pair.flags is None else np.asarray(pair.flags, np.float32)),
     }
-    units = {"z": "m (WGS84 ellipsoidal)", "score": f"{pair.meta.get('score_kind', 'mdl')} (lower = better)",
-             "g": "px/m", "valid": "1 valid, 0 invalid", "ncc": "1", "ssd": "DN^2 (normalized 8-bit)",
-             "flags": json.dumps(FLAGS)}
+    units = {
+        "z": "m (WGS84 ellipsoidal)",
+        "score": f"{pair.meta.get('score_kind', 'mdl')} (lower = better)",
+        "g": "px/m",
+        "valid": "1 valid, 0 invalid",
+        "ncc": "1",
+        "ssd": "DN^2 (normalized 8-bit)",
+        "flags": json.dumps(FLAGS),
+    }
     t = {
         "geocd_product": "stereo_pair",
         "pair": pair.name,
@@ -147,10 +156,15 @@ def write_pair_dem(path: os.PathLike | str, pair: PairDEM, *, tags: dict[str, An
         "meta": json.dumps(pair.meta, default=_json_default),
     }
     if tags:
-        t.update({k: (json.dumps(v, default=_json_default) if isinstance(v, (dict, list, tuple)) else v)
-                  for k, v in tags.items()})
-    return write_cog(path, bands, pair.grid, tags=t, band_tags=[{"units": units[b]} for b in BANDS],
-                     overwrite=overwrite)
+        t.update(
+            {
+                k: (json.dumps(v, default=_json_default) if isinstance(v, (dict, list, tuple)) else v)
+                for k, v in tags.items()
+            }
+        )
+    return write_cog(
+        path, bands, pair.grid, tags=t, band_tags=[{"units": units[b]} for b in BANDS], overwrite=overwrite
+    )
 
 
 def _json_default(o: Any):
@@ -171,8 +185,9 @@ def read_pair_dem(path: os.PathLike | str) -> PairDEM:
     with _open(path) as ds:
         names = ds.descriptions
         if not names or "z" not in names or "g" not in names:
-            raise UnsupportedFormatError(f"{path} is not a geocd stereo pair-DEM (bands z, score, g, valid, ...); "
-                                         "make it with `geocd stereo`")
+            raise UnsupportedFormatError(
+                f"{path} is not a geocd stereo pair-DEM (bands z, score, g, valid, ...); make it with `geocd stereo`"
+            )
         arrs = {n: ds.read(i + 1).astype(np.float32) for i, n in enumerate(names) if n}
         grid = AOIGrid(as_crs(ds.crs), ds.transform, ds.width, ds.height)
         tags = ds.tags()
@@ -181,9 +196,16 @@ def read_pair_dem(path: os.PathLike | str) -> PairDEM:
     valid = arrs.get("valid", np.isfinite(arrs["z"]).astype(np.float32)) > 0.5
     flags = arrs.get("flags")
     return PairDEM(
-        z_m=arrs["z"], score=arrs.get("score", np.full(grid.shape, np.nan, np.float32)), g_px_per_m=arrs["g"],
-        valid=valid & np.isfinite(arrs["z"]), grid=grid, name=tags.get("pair", Path(path).stem),
-        camera_names=cams if len(cams) == 2 else ("a", "b"), ncc=arrs.get("ncc"), ssd=arrs.get("ssd"),
-        flags=None if flags is None else np.nan_to_num(flags).astype(np.uint8), epoch=tags.get("epoch", ""),
+        z_m=arrs["z"],
+        score=arrs.get("score", np.full(grid.shape, np.nan, np.float32)),
+        g_px_per_m=arrs["g"],
+        valid=valid & np.isfinite(arrs["z"]),
+        grid=grid,
+        name=tags.get("pair", Path(path).stem),
+        camera_names=cams if len(cams) == 2 else ("a", "b"),
+        ncc=arrs.get("ncc"),
+        ssd=arrs.get("ssd"),
+        flags=None if flags is None else np.nan_to_num(flags).astype(np.uint8),
+        epoch=tags.get("epoch", ""),
         meta=meta,
     )

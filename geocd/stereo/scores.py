@@ -86,8 +86,9 @@ def ncc_from_stats(var_a: np.ndarray, var_b: np.ndarray, cov: np.ndarray) -> np.
 
 def ssd_from_stats(var_a: np.ndarray, var_b: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """Mean squared difference of the zero-mean windows (8-bit units²)."""
-    return np.maximum(np.asarray(var_a, np.float64) + np.asarray(var_b, np.float64) - 2.0 * np.asarray(cov, np.float64),
-                      0.0)
+    return np.maximum(
+        np.asarray(var_a, np.float64) + np.asarray(var_b, np.float64) - 2.0 * np.asarray(cov, np.float64), 0.0
+    )
 
 
 def mdl_score_ref(windows: np.ndarray, noise_sigma: float) -> float:
@@ -101,7 +102,7 @@ def mdl_score_ref(windows: np.ndarray, noise_sigma: float) -> float:
     L_ind = sum(n / 2.0 * np.log2(w[j].var() + s2) for j in range(k))
     t = w.mean(axis=0)
     resid = (w - w.mean(axis=1, keepdims=True)) - (t - t.mean())
-    v = float((resid ** 2).sum()) / ((k - 1) * n)
+    v = float((resid**2).sum()) / ((k - 1) * n)
     L_match = n / 2.0 * np.log2(t.var() + s2) + (k - 1) * n / 2.0 * np.log2(v + s2)
     return float((L_match - L_ind) / n)
 

@@ -88,8 +88,7 @@ def fill_narrow_holes(z_m: np.ndarray, valid: np.ndarray, radius: int) -> tuple[
     # tells them apart in one pass (only cells under ``mask`` feed the interpolation).
     sentinel = np.float32(np.finfo(np.float32).min)
     src = np.where(valid, z, sentinel).astype(np.float32)
-    f = fillnodata(src, mask=valid.astype(np.uint8), max_search_distance=float(2 * radius + 1),
-                   smoothing_iterations=0)
+    f = fillnodata(src, mask=valid.astype(np.uint8), max_search_distance=float(2 * radius + 1), smoothing_iterations=0)
     got = f != sentinel
     filled = target & got
     z[filled] = f[filled]

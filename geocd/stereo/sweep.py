@@ -112,8 +112,15 @@ class ImageChip:
         return replace(self, data=box_blur_nan(self.data, int(size)))
 
 
-def prepare_chip(data: np.ndarray, valid: np.ndarray | None = None, *, col0: int = 0, row0: int = 0,
-                 name: str = "", block_px: int = 256) -> ImageChip:
+def prepare_chip(
+    data: np.ndarray,
+    valid: np.ndarray | None = None,
+    *,
+    col0: int = 0,
+    row0: int = 0,
+    name: str = "",
+    block_px: int = 256,
+) -> ImageChip:
     """Gray, locally normalized chip from raw image data (any dtype, 1 or more bands).
 
     Parameters
@@ -129,8 +136,10 @@ def prepare_chip(data: np.ndarray, valid: np.ndarray | None = None, *, col0: int
     """
     g = to_gray(data, valid)
     if not np.isfinite(g).any():
-        raise EmptyDataError(f"image {name or ''} is entirely nodata over the area to match; check its nodata "
-                             "value and that it covers the AOI")
+        raise EmptyDataError(
+            f"image {name or ''} is entirely nodata over the area to match; check its nodata "
+            "value and that it covers the AOI"
+        )
     norm = local_normalize(g, block_px=block_px)
     sigma = estimate_noise_sigma(norm)
     return ImageChip(np.ascontiguousarray(norm, np.float32), int(col0), int(row0), name, sigma)
@@ -237,8 +246,15 @@ def iter_tiles(shape: tuple[int, int], tile_size: int, margin: int) -> list[Tile
             r1, c1 = min(r0 + tile_size, H), min(c0 + tile_size, W)
             R0, C0 = max(r0 - margin, 0), max(c0 - margin, 0)
             R1, C1 = min(r1 + margin, H), min(c1 + margin, W)
-            out.append(Tile(len(out), n, (slice(r0, r1), slice(c0, c1)), (slice(R0, R1), slice(C0, C1)),
-                            (slice(r0 - R0, r1 - R0), slice(c0 - C0, c1 - C0))))
+            out.append(
+                Tile(
+                    len(out),
+                    n,
+                    (slice(r0, r1), slice(c0, c1)),
+                    (slice(R0, R1), slice(C0, C1)),
+                    (slice(r0 - R0, r1 - R0), slice(c0 - C0, c1 - C0)),
+                )
+            )
     return out
 
 
@@ -246,12 +262,18 @@ def _tile(index: int, count: int, shape: tuple[int, int], r0: int, r1: int, c0: 
     H, W = shape
     R0, C0 = max(r0 - margin, 0), max(c0 - margin, 0)
     R1, C1 = min(r1 + margin, H), min(c1 + margin, W)
-    return Tile(index, count, (slice(r0, r1), slice(c0, c1)), (slice(R0, R1), slice(C0, C1)),
-                (slice(r0 - R0, r1 - R0), slice(c0 - C0, c1 - C0)))
+    return Tile(
+        index,
+        count,
+        (slice(r0, r1), slice(c0, c1)),
+        (slice(R0, R1), slice(C0, C1)),
+        (slice(r0 - R0, r1 - R0), slice(c0 - C0, c1 - C0)),
+    )
 
 
-def adaptive_tiles(shape: tuple[int, int], tile_size: int, margin: int, kmin: np.ndarray, kmax: np.ndarray,
-                   min_size: int = 16) -> list[Tile]:
+def adaptive_tiles(
+    shape: tuple[int, int], tile_size: int, margin: int, kmin: np.ndarray, kmax: np.ndarray, min_size: int = 16
+) -> list[Tile]:
     """Tiles of at most ``tile_size`` cells, split further where that cuts the planes swept.
 
     A tile sweeps every plane any of its cells needs (window sums need the neighbours at
@@ -329,9 +351,19 @@ class PlaneSweep:
         planes swept follow each cell's own range (default); False: a regular grid of tiles.
     """
 
-    def __init__(self, grid: AOIGrid, chips: Sequence[ImageChip], cameras: Sequence[Camera], search: HeightSearch,
-                 *, tile_size: int = 256, margin: int = 0, interp_tol_px: float = 0.01,
-                 lonlat: tuple[np.ndarray, np.ndarray] | None = None, adaptive: bool = True):
+    def __init__(
+        self,
+        grid: AOIGrid,
+        chips: Sequence[ImageChip],
+        cameras: Sequence[Camera],
+        search: HeightSearch,
+        *,
+        tile_size: int = 256,
+        margin: int = 0,
+        interp_tol_px: float = 0.01,
+        lonlat: tuple[np.ndarray, np.ndarray] | None = None,
+        adaptive: bool = True,
+    ):
         if len(chips) != len(cameras) or not chips:
             raise ValueError("PlaneSweep needs one camera per image chip, and at least one")
         if search.shape != grid.shape:
@@ -345,8 +377,11 @@ class PlaneSweep:
         self.interp_tol_px = float(interp_tol_px)
         self._kmin = search.kmin()
         self._kmax = search.kmax()
-        self._tiles = (adaptive_tiles(grid.shape, self.tile_size, self.margin, self._kmin, self._kmax) if adaptive
-                       else iter_tiles(grid.shape, self.tile_size, self.margin))
+        self._tiles = (
+            adaptive_tiles(grid.shape, self.tile_size, self.margin, self._kmin, self._kmax)
+            if adaptive
+            else iter_tiles(grid.shape, self.tile_size, self.margin)
+        )
         if lonlat is None:
             lonlat = grid.lonlat()
         if lonlat[0].shape != grid.shape:
@@ -401,7 +436,7 @@ class PlaneSweep:
                     cb, rb = pr.project(hb)
                     dev = np.abs(np.concatenate([np.ravel(0.5 * (ca + cb) - cm), np.ravel(0.5 * (ra + rb) - rm)]))
                     dev = dev[np.isfinite(dev)]
-                    err = float(dev.max()) if dev.size else 0.0    # nowhere in an image: nothing to interpolate
+                    err = float(dev.max()) if dev.size else 0.0  # nowhere in an image: nothing to interpolate
                     if not err < self.interp_tol_px:
                         ok = False
                         break
@@ -487,16 +522,17 @@ def sample_cells(shape: tuple[int, int], n: int = 24) -> tuple[np.ndarray, np.nd
     return R.ravel(), C.ravel()
 
 
-def image_sampling_px_per_m(camera: Camera, grid: AOIGrid, rows: np.ndarray, cols: np.ndarray,
-                            height_m: np.ndarray | float, d_m: float = 1.0) -> np.ndarray:
+def image_sampling_px_per_m(
+    camera: Camera, grid: AOIGrid, rows: np.ndarray, cols: np.ndarray, height_m: np.ndarray | float, d_m: float = 1.0
+) -> np.ndarray:
     """Image pixels per ground metre at grid cells: sqrt(|det ∂(col,row)/∂(x,y)|) (x, y metres)."""
     x, y = grid.xy(rows, cols)
     h = np.broadcast_to(np.asarray(height_m, float), x.shape)
     pr = camera.ground_projector(np.concatenate([x, x + d_m, x]), np.concatenate([y, y, y + d_m]), grid.crs)
     c, r = pr.project(np.concatenate([h, h, h]))
     n = x.size
-    dcx, drx = (c[n:2 * n] - c[:n]) / d_m, (r[n:2 * n] - r[:n]) / d_m
-    dcy, dry = (c[2 * n:] - c[:n]) / d_m, (r[2 * n:] - r[:n]) / d_m
+    dcx, drx = (c[n : 2 * n] - c[:n]) / d_m, (r[n : 2 * n] - r[:n]) / d_m
+    dcy, dry = (c[2 * n :] - c[:n]) / d_m, (r[2 * n :] - r[:n]) / d_m
     return np.sqrt(np.abs(dcx * dry - dcy * drx))
 
 
@@ -521,8 +557,7 @@ def coarse_grid(grid: AOIGrid, factor: int) -> AOIGrid:
 
     if factor == 1:
         return grid
-    return AOIGrid(grid.crs, grid.transform @ Affine.scale(factor), -(-grid.width // factor),
-                   -(-grid.height // factor))
+    return AOIGrid(grid.crs, grid.transform @ Affine.scale(factor), -(-grid.width // factor), -(-grid.height // factor))
 
 
 def upsample_nearest(a: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:

@@ -37,8 +37,17 @@ import numpy as np
 from ..errors import ConfigError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
-from ..tiling import (WORK_DIR, RasterProduct, RasterSource, TileGrid, TileOutput, make_key, open_engine,
-                      remove_work, run_tiled)
+from ..tiling import (
+    WORK_DIR,
+    RasterProduct,
+    RasterSource,
+    TileGrid,
+    TileOutput,
+    make_key,
+    open_engine,
+    remove_work,
+    run_tiled,
+)
 from ..tiling.writer import check_assembly_room, write_product
 from .params import StereoParams
 
@@ -46,11 +55,11 @@ from .params import StereoParams
 @dataclass(frozen=True)
 class _PairJob:
     epoch: str
-    a: Any          # EpochImage
+    a: Any  # EpochImage
     b: Any
     params: StereoParams
     dem_datum: str | None
-    pointing_px: tuple[float, float] = (0.0, 0.0)   # the pair's relative pointing correction (image b)
+    pointing_px: tuple[float, float] = (0.0, 0.0)  # the pair's relative pointing correction (image b)
 
     def cache_key(self) -> dict:
         import os
@@ -59,9 +68,14 @@ class _PairJob:
             st = os.stat(p)
             return [str(p), st.st_size, st.st_mtime_ns]
 
-        return {"epoch": self.epoch, "a": [self.a.name, ident(self.a.path), repr(self.a.camera)],
-                "b": [self.b.name, ident(self.b.path), repr(self.b.camera)], "params": self.params.to_dict(),
-                "datum": self.dem_datum, "pointing": list(self.pointing_px)}
+        return {
+            "epoch": self.epoch,
+            "a": [self.a.name, ident(self.a.path), repr(self.a.camera)],
+            "b": [self.b.name, ident(self.b.path), repr(self.b.camera)],
+            "params": self.params.to_dict(),
+            "datum": self.dem_datum,
+            "pointing": list(self.pointing_px),
+        }
 
 
 def stereo_margin_cells(grid: AOIGrid, cams: Sequence, lo_m: float, hi_m: float, params: StereoParams) -> int:
@@ -83,7 +97,7 @@ def stereo_margin_cells(grid: AOIGrid, cams: Sequence, lo_m: float, hi_m: float,
             reach = max(reach, (hi_m - lo_m) * px_per_m_height / px_per_m_ground)
             jmax = max(jmax, px_per_m_height)
     levels = _coarse_levels(jmax, lo_m, hi_m, params)
-    return int(math.ceil(reach / grid.posting_m)) + int(params.radius * 2 ** levels) + 2
+    return int(math.ceil(reach / grid.posting_m)) + int(params.radius * 2**levels) + 2
 
 
 def _coarse_levels(jmax_px_per_m: float, lo_m: float, hi_m: float, params: StereoParams) -> int:
@@ -126,8 +140,9 @@ def _pair_height_range(m, grid: AOIGrid, a, b, params: StereoParams) -> tuple[fl
     if m.dem is not None:
         d = read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
         return float(np.nanmin(d)) - params.dem_margin_m, float(np.nanmax(d)) + params.dem_margin_m
-    lo, hi, _ = height_bounds(grid.subgrid(0, 0, min(grid.height, 64), min(grid.width, 64)),
-                              [a.camera, b.camera], None, params)
+    lo, hi, _ = height_bounds(
+        grid.subgrid(0, 0, min(grid.height, 64), min(grid.width, 64)), [a.camera, b.camera], None, params
+    )
     return float(np.min(lo)), float(np.max(hi))
 
 
@@ -144,15 +159,30 @@ def _t_pair(arrays, ctx):
     except NoOverlapError:
         shape = ctx.read_grid.shape
         nan = np.full(shape, np.nan, f32)
-        arr = {"z": nan, "score": nan, "g": nan, "valid": np.zeros(shape, f32), "ncc": nan, "ssd": nan,
-               "flags": np.full(shape, FLAGS["out_of_image"], f32)}
+        arr = {
+            "z": nan,
+            "score": nan,
+            "g": nan,
+            "valid": np.zeros(shape, f32),
+            "ncc": nan,
+            "ssd": nan,
+            "flags": np.full(shape, FLAGS["out_of_image"], f32),
+        }
         return TileOutput(arrays=arr, small={"meta": None, "valid": 0, "cells": int(nan[ctx.core].size)})
-    arr = {"z": pd.z_m.astype(f32), "score": pd.score.astype(f32), "g": pd.g_px_per_m.astype(f32),
-           "valid": np.asarray(pd.valid, f32), "ncc": pd.ncc.astype(f32), "ssd": pd.ssd.astype(f32),
-           "flags": np.asarray(pd.flags, f32)}
+    arr = {
+        "z": pd.z_m.astype(f32),
+        "score": pd.score.astype(f32),
+        "g": pd.g_px_per_m.astype(f32),
+        "valid": np.asarray(pd.valid, f32),
+        "ncc": pd.ncc.astype(f32),
+        "ssd": pd.ssd.astype(f32),
+        "flags": np.asarray(pd.flags, f32),
+    }
     core = ctx.core
-    return TileOutput(arrays=arr, small={"meta": pd.meta, "valid": int(np.count_nonzero(pd.valid[core])),
-                                         "cells": int(pd.valid[core].size)})
+    return TileOutput(
+        arrays=arr,
+        small={"meta": pd.meta, "valid": int(np.count_nonzero(pd.valid[core])), "cells": int(pd.valid[core].size)},
+    )
 
 
 def _match_window(J: "_PairJob", sub: AOIGrid, dem_window: np.ndarray | None):
@@ -171,12 +201,17 @@ def _match_window(J: "_PairJob", sub: AOIGrid, dem_window: np.ndarray | None):
     cams = [J.a.camera, J.b.camera]
     lo, hi, _ = height_bounds(sub, cams, dem, p)
     lo_m, hi_m = float(np.min(lo)), float(np.max(hi))
-    chips = [read_chip(im.path, im.camera, sub, lo_m, hi_m, name=im.name, margin_px=16 + 2 * p.window,
-                       block_px=p.norm_block_px) for im in (J.a, J.b)]
+    chips = [
+        read_chip(
+            im.path, im.camera, sub, lo_m, hi_m, name=im.name, margin_px=16 + 2 * p.window, block_px=p.norm_block_px
+        )
+        for im in (J.a, J.b)
+    ]
     if J.pointing_px != (0.0, 0.0):
         chips[1] = chips[1].shifted(*J.pointing_px)
-    return match_pair(chips[0], chips[1], cams[0], cams[1], sub, dem=dem, params=p, epoch=J.epoch,
-                      name=f"{J.a.name}__{J.b.name}")
+    return match_pair(
+        chips[0], chips[1], cams[0], cams[1], sub, dem=dem, params=p, epoch=J.epoch, name=f"{J.a.name}__{J.b.name}"
+    )
 
 
 def _pair_job(epoch: str, a, b, params: StereoParams, datum, grid: AOIGrid, tiling, dem_src) -> _PairJob:
@@ -201,14 +236,25 @@ def _pair_job(epoch: str, a, b, params: StereoParams, datum, grid: AOIGrid, tili
     pt = probe.meta.get("pointing") or {}
     shift = tuple(float(v) for v in pt.get("total_shift_px", (0.0, 0.0))) if pt.get("applied") else (0.0, 0.0)
     # the tiles match with that shift and that noise level, and estimate no pointing of their own
-    p = dataclasses.replace(params, noise_sigma=params.noise_sigma or float(probe.meta["noise_sigma"]),
-                            min_pointing_px=1e9)
+    p = dataclasses.replace(
+        params, noise_sigma=params.noise_sigma or float(probe.meta["noise_sigma"]), min_pointing_px=1e9
+    )
     return _PairJob(epoch, a, b, p, datum, shift)
 
 
-def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, params: StereoParams = StereoParams(),
-                     grid: AOIGrid | None = None, posting_m: float | None = None, pairs: str = "all", tiling=None,
-                     tiles: np.ndarray | None = None, progress: Progress | None = None) -> dict[str, Any]:
+def run_stereo_tiled(
+    manifest,
+    *,
+    out_dir,
+    epochs: Sequence[str] | None = None,
+    params: StereoParams = StereoParams(),
+    grid: AOIGrid | None = None,
+    posting_m: float | None = None,
+    pairs: str = "all",
+    tiling=None,
+    tiles: np.ndarray | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """:func:`geocd.stereo.pipeline.run_stereo` tile by tile (see module docstring).
 
     ``tiles`` (bool (tile rows, tile cols) of the ``tiling.tile_size`` tiling, optional) matches only
@@ -240,8 +286,12 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
         dem_median = float(np.nanmedian(d0.height_m))
     if grid is None:
         grid = default_aoi_grid(m, images, posting_m=posting_m, dem_median=dem_median, params=params)
-    todo = [(e, a, b) for e in selected for a, b in itertools.combinations(images[e.name], 2)
-            if pairs == "all" or a.camera.kind == b.camera.kind]
+    todo = [
+        (e, a, b)
+        for e in selected
+        for a, b in itertools.combinations(images[e.name], 2)
+        if pairs == "all" or a.camera.kind == b.camera.kind
+    ]
     if not todo:
         raise ConfigError("no image pair left to match")
     inputs = {}
@@ -252,8 +302,15 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
     outputs: dict[str, Path] = {}
     margins: dict[str, int] = {}
     complete: dict[str, float] = {}
-    units = {"z": "m (WGS84 ellipsoidal)", "score": f"{params.score} (lower = better)", "g": "px/m",
-             "valid": "1 valid, 0 invalid", "ncc": "1", "ssd": "DN^2 (normalized 8-bit)", "flags": json.dumps(FLAGS)}
+    units = {
+        "z": "m (WGS84 ellipsoidal)",
+        "score": f"{params.score} (lower = better)",
+        "g": "px/m",
+        "valid": "1 valid, 0 invalid",
+        "ncc": "1",
+        "ssd": "DN^2 (normalized 8-bit)",
+        "flags": json.dumps(FLAGS),
+    }
     with open_engine(tiling.scheduler, n_workers=tiling.n_workers, memory_limit=tiling.memory_limit) as eng:
         for i, (e, a, b) in enumerate(todo):
             key = f"{e.name}/{a.name}__{b.name}"
@@ -261,9 +318,15 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
             ov = min(stereo_margin_cells(grid, [a.camera, b.camera], lo_m, hi_m, params), tiling.tile_size // 2)
             margins[key] = ov
             target = pair_path(out, e.name, a.name, b.name)
-            pair_key = make_key("stereo-pair", _PairJob(e.name, a, b, params, datum), grid.to_dict(),
-                                tiling.tile_size, ov, None if tiles is None else np.asarray(tiles, bool),
-                                {k: s.identity() for k, s in inputs.items()})
+            pair_key = make_key(
+                "stereo-pair",
+                _PairJob(e.name, a, b, params, datum),
+                grid.to_dict(),
+                tiling.tile_size,
+                ov,
+                None if tiles is None else np.asarray(tiles, bool),
+                {k: s.identity() for k, s in inputs.items()},
+            )
             done = _finished_pair(out, target, pair_key)
             if done is not None:  # a resumed run: this pair's DEM was written and its tiles removed
                 outputs[key], complete[key] = target, done
@@ -274,25 +337,52 @@ def run_stereo_tiled(manifest, *, out_dir, epochs: Sequence[str] | None = None, 
             job = _pair_job(e.name, a, b, params, datum, grid, tiling, inputs.get("dem"))
             # a selection: runs of neighbouring selected tiles along a tile row are matched as one window
             tg = TileGrid(grid, (tiling.tile_size, tiling.tile_size), ov, tiles, merge_runs=tiles is not None)
-            r = run_tiled(_t_pair, tg, inputs, params=job, out=out, stage=f"stereo-{e.name}-{a.name}__{b.name}",
-                          scheduler=eng, progress=sub_progress(prog, i / len(todo), (i + 1) / len(todo),
-                                                                f"pair {i + 1}/{len(todo)} "))
+            r = run_tiled(
+                _t_pair,
+                tg,
+                inputs,
+                params=job,
+                out=out,
+                stage=f"stereo-{e.name}-{a.name}__{b.name}",
+                scheduler=eng,
+                progress=sub_progress(prog, i / len(todo), (i + 1) / len(todo), f"pair {i + 1}/{len(todo)} "),
+            )
             smalls = [s for _, s in r.smalls()]
             metas = [s["meta"] for s in smalls if s["meta"] is not None]
             meta = dict(metas[0]) if metas else {}
-            meta["pointing"] = {"applied": job.pointing_px != (0.0, 0.0), "total_shift_px": list(job.pointing_px),
-                                "estimated_on": "central window"}
+            meta["pointing"] = {
+                "applied": job.pointing_px != (0.0, 0.0),
+                "total_shift_px": list(job.pointing_px),
+                "estimated_on": "central window",
+            }
             meta["noise_sigma"] = job.params.noise_sigma
-            meta["tiled"] = {"tile_size": tiling.tile_size, "margin_cells": ov, "units": len(smalls),
-                             "tiles": int(tg.selection_mask().sum()), "tiles_in_grid": len(list(tg.all_tiles()))}
+            meta["tiled"] = {
+                "tile_size": tiling.tile_size,
+                "margin_cells": ov,
+                "units": len(smalls),
+                "tiles": int(tg.selection_mask().sum()),
+                "tiles_in_grid": len(list(tg.all_tiles())),
+            }
             complete[key] = sum(s["valid"] for s in smalls) / max(sum(s["cells"] for s in smalls), 1)
-            tags = {"geocd_product": "stereo_pair", "pair": f"{a.name}__{b.name}",
-                    "cameras": json.dumps([a.name, b.name]), "epoch": e.name, "score_definition": SCORE_DEFINITION,
-                    "vertical_datum": "ellipsoid", "meta": json.dumps(meta, default=_json_default),
-                    "images": json.dumps([str(a.path), str(b.path)]), "manifest": str(m.path or ""),
-                    RESUME_TAG: json.dumps({"key": pair_key, "completeness": complete[key]})}
-            prod = RasterProduct(str(target), tuple(BANDS), tags=tags, band_tags=[{"units": units[bn]} for bn in BANDS],
-                                 fill={"valid": 0.0, "flags": float(FLAGS_NOT_EXAMINED)})
+            tags = {
+                "geocd_product": "stereo_pair",
+                "pair": f"{a.name}__{b.name}",
+                "cameras": json.dumps([a.name, b.name]),
+                "epoch": e.name,
+                "score_definition": SCORE_DEFINITION,
+                "vertical_datum": "ellipsoid",
+                "meta": json.dumps(meta, default=_json_default),
+                "images": json.dumps([str(a.path), str(b.path)]),
+                "manifest": str(m.path or ""),
+                RESUME_TAG: json.dumps({"key": pair_key, "completeness": complete[key]}),
+            }
+            prod = RasterProduct(
+                str(target),
+                tuple(BANDS),
+                tags=tags,
+                band_tags=[{"units": units[bn]} for bn in BANDS],
+                fill={"valid": 0.0, "flags": float(FLAGS_NOT_EXAMINED)},
+            )
             outputs[key] = write_product(r.store, prod, grid, tg)
             if not tiling.keep_work:
                 # the pair's DEM holds everything later stages read: its tiles go now, not at the stage's end

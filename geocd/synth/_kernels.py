@@ -28,26 +28,29 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-SceneArrays = namedtuple("SceneArrays", [
-    "terr",        # (ny, nx) float64 heights
-    "terr_meta",   # (5,) x0, y0, step, hmin, hmax
-    "kind",        # (n,) int64: 0 polyhedron, 1 ellipsoid
-    "cls",         # (n,) int64: 1 building, 2 car, 3 tree
-    "planes",      # (n, 8, 4) float64: n·p <= d
-    "nplanes",     # (n,) int64
-    "ell",         # (n, 5) float64: cx, cy, cz, r, rz
-    "rgb",         # (n, 3) primary colour (roof, car, tree tint)
-    "rgb2",        # (n, 3) secondary colour (walls)
-    "par",         # (n, 4): ground_m, storey_m, role (0 flat roof, 1 gabled, 2 car body, 3 car cabin, 4 tree), seed
-    "grid_meta",   # (5,) gx0, gy0, gsize, gnx, gny
-    "grid_start",  # (gnx*gny + 1,) int64
-    "grid_items",  # (m,) int64
-    "zrange",      # (2,) min and max z of all objects
-    "streets",     # (ns, 7): x0, y0, ux, uy, length, half_width, sidewalk
-    "patches",     # (np, 6): cx, cy, half_len, half_wid, angle, material
-    "colours",     # (9, 3): grass, vegetation multiplier, asphalt, pavement, soil, marking, glass, tree base,
-                   #   near-infrared albedo of (grass, trees, unused)
-])
+SceneArrays = namedtuple(
+    "SceneArrays",
+    [
+        "terr",  # (ny, nx) float64 heights
+        "terr_meta",  # (5,) x0, y0, step, hmin, hmax
+        "kind",  # (n,) int64: 0 polyhedron, 1 ellipsoid
+        "cls",  # (n,) int64: 1 building, 2 car, 3 tree
+        "planes",  # (n, 8, 4) float64: n·p <= d
+        "nplanes",  # (n,) int64
+        "ell",  # (n, 5) float64: cx, cy, cz, r, rz
+        "rgb",  # (n, 3) primary colour (roof, car, tree tint)
+        "rgb2",  # (n, 3) secondary colour (walls)
+        "par",  # (n, 4): ground_m, storey_m, role (0 flat roof, 1 gabled, 2 car body, 3 car cabin, 4 tree), seed
+        "grid_meta",  # (5,) gx0, gy0, gsize, gnx, gny
+        "grid_start",  # (gnx*gny + 1,) int64
+        "grid_items",  # (m,) int64
+        "zrange",  # (2,) min and max z of all objects
+        "streets",  # (ns, 7): x0, y0, ux, uy, length, half_width, sidewalk
+        "patches",  # (np, 6): cx, cy, half_len, half_wid, angle, material
+        "colours",  # (9, 3): grass, vegetation multiplier, asphalt, pavement, soil, marking, glass, tree base,
+        #   near-infrared albedo of (grass, trees, unused)
+    ],
+)
 
 M_GRASS, M_ASPHALT, M_PAVEMENT, M_SOIL, M_MARKING = 0, 1, 2, 3, 10
 INF = np.inf
@@ -430,8 +433,28 @@ def _cubic_map(coef, scale, h0, e, n, u):
     a = e / scale
     b = n / scale
     c = u / scale
-    T = (1.0, a, b, c, a * a, b * b, c * c, a * b, a * c, b * c,
-         a * a * a, b * b * b, c * c * c, a * a * b, a * a * c, b * b * a, b * b * c, c * c * a, c * c * b, a * b * c)
+    T = (
+        1.0,
+        a,
+        b,
+        c,
+        a * a,
+        b * b,
+        c * c,
+        a * b,
+        a * c,
+        b * c,
+        a * a * a,
+        b * b * b,
+        c * c * c,
+        a * a * b,
+        a * a * c,
+        b * b * a,
+        b * b * c,
+        c * c * a,
+        c * c * b,
+        a * b * c,
+    )
     x = 0.0
     y = 0.0
     z = 0.0
@@ -535,9 +558,14 @@ def albedo(S, obj, face, x, y, z, nx, ny, nz):
     role = np.int64(S.par[obj, 2])
     seed = np.int64(S.par[obj, 3])
     if role == 4:  # tree crown
-        t = (0.45 + 1.1 * fbm(x / 0.7, y / 0.7, z / 0.7, seed, 3))
-        return (C[7, 0] * C[1, 0] * S.rgb[obj, 0] * t, C[7, 1] * C[1, 1] * S.rgb[obj, 1] * t,
-                C[7, 2] * C[1, 2] * S.rgb[obj, 2] * t, C[8, 1] * S.rgb[obj, 0] * t, 0.6)
+        t = 0.45 + 1.1 * fbm(x / 0.7, y / 0.7, z / 0.7, seed, 3)
+        return (
+            C[7, 0] * C[1, 0] * S.rgb[obj, 0] * t,
+            C[7, 1] * C[1, 1] * S.rgb[obj, 1] * t,
+            C[7, 2] * C[1, 2] * S.rgb[obj, 2] * t,
+            C[8, 1] * S.rgb[obj, 0] * t,
+            0.6,
+        )
     if role == 2 or role == 3:  # car body / cabin
         if role == 3 and nz < 0.5:
             return _grey(C[6, 0], C[6, 1], C[6, 2], 0.0)
@@ -546,8 +574,9 @@ def albedo(S, obj, face, x, y, z, nx, ny, nz):
     # building: roof or wall
     if nz > 0.3:
         if role == 1:  # tiles
-            t = ((0.78 + 0.40 * fbm(x / 0.9, y / 0.9, z / 0.9, seed, 3))
-                 * (0.85 + 0.3 * vnoise(x / 4.0, y / 4.0, z, seed + 7)))
+            t = (0.78 + 0.40 * fbm(x / 0.9, y / 0.9, z / 0.9, seed, 3)) * (
+                0.85 + 0.3 * vnoise(x / 4.0, y / 4.0, z, seed + 7)
+            )
         else:  # gravel / membrane with equipment
             t = 0.74 + 0.48 * fbm(x / 1.1, y / 1.1, 0.0, seed, 3)
             if vnoise(x / 2.2, y / 2.2, 3.0, seed + 5) > 0.78:
@@ -614,8 +643,9 @@ def render_rays(orig, dirs, t_max, sun, light, S, out_rgb, out_t, out_obj):
     out_rgb: (N, 4) radiance in R, G, B and near-infrared; out_t, out_obj: the first hit.
     """
     for i in prange(orig.shape[0]):
-        r, g, b, nir, t, k = shade_one(S, orig[i, 0], orig[i, 1], orig[i, 2], dirs[i, 0], dirs[i, 1], dirs[i, 2],
-                                       t_max[i], sun, light)
+        r, g, b, nir, t, k = shade_one(
+            S, orig[i, 0], orig[i, 1], orig[i, 2], dirs[i, 0], dirs[i, 1], dirs[i, 2], t_max[i], sun, light
+        )
         out_rgb[i, 0] = r
         out_rgb[i, 1] = g
         out_rgb[i, 2] = b
@@ -660,8 +690,9 @@ def vnoise_ref(x, y, z, seed):
     return lerp(e, f, sz)
 
 
-def first_hit_ref(S: SceneArrays, orig: np.ndarray, dirs: np.ndarray, t_max: np.ndarray,
-                  terrain_step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+def first_hit_ref(
+    S: SceneArrays, orig: np.ndarray, dirs: np.ndarray, t_max: np.ndarray, terrain_step: float = 0.01
+) -> tuple[np.ndarray, np.ndarray]:
     """Brute force: every object for every ray, terrain by fine sampling (accuracy ~1e-4 m).
 
     Returns (t, obj) like :func:`trace_first_hit`.
@@ -832,8 +863,9 @@ def _normal_ref(S: SceneArrays, obj: int, p: np.ndarray, d: np.ndarray) -> np.nd
     return g / np.linalg.norm(g)
 
 
-def shade_ref(S: SceneArrays, orig: np.ndarray, dirs: np.ndarray, t_max: np.ndarray, sun: np.ndarray,
-              light: np.ndarray) -> np.ndarray:
+def shade_ref(
+    S: SceneArrays, orig: np.ndarray, dirs: np.ndarray, t_max: np.ndarray, sun: np.ndarray, light: np.ndarray
+) -> np.ndarray:
     """Plain re-implementation of :func:`render_rays` (brute-force hits, shadows by brute force too)."""
     t, obj = first_hit_ref(S, orig, dirs, t_max, terrain_step=0.002)
     out = np.zeros((orig.shape[0], 4))
@@ -870,8 +902,9 @@ def shade_ref(S: SceneArrays, orig: np.ndarray, dirs: np.ndarray, t_max: np.ndar
 # large DEM pairs (geocd.synth.bigdem): procedural terrain, DEM errors and changes per window
 # ------------------------------------------------------------------------------------------
 @njit(cache=True, nogil=True)
-def dem_window(x0, y0, post, row0, col0, nr, nc, de, dn, dz, seed, scales, amps, err_scale, err_corr,
-               err_white, objects, out):  # pragma: no cover - numba
+def dem_window(
+    x0, y0, post, row0, col0, nr, nc, de, dn, dz, seed, scales, amps, err_scale, err_corr, err_white, objects, out
+):  # pragma: no cover - numba
     """Heights of one window of a procedural DEM (see :func:`geocd.synth.bigdem.dem_window_ref`).
 
     Cell (r, c) of the window is cell (row0 + r, col0 + c) of the whole grid whose corner
@@ -952,8 +985,9 @@ REFINE_STEPS = 6
 
 
 @njit(cache=True, nogil=True)
-def march_dsm(ax, ay, bx, by, h_top, h_bot, z_start, z_end, step_m, dsm, gx0, gy0, gs,
-              out_x, out_y, out_z, out_slope):  # pragma: no cover - numba
+def march_dsm(
+    ax, ay, bx, by, h_top, h_bot, z_start, z_end, step_m, dsm, gx0, gy0, gs, out_x, out_y, out_z, out_slope
+):  # pragma: no cover - numba
     """First crossing of each ray with a DSM window (see :func:`march_dsm_ref`).
 
     Ray k passes through (ax[k], ay[k]) at height ``h_top`` and (bx[k], by[k]) at ``h_bot``
@@ -966,7 +1000,7 @@ def march_dsm(ax, ay, bx, by, h_top, h_bot, z_start, z_end, step_m, dsm, gx0, gy
     n = ax.shape[0]
     inv = 1.0 / (h_top - h_bot)
     for k in range(n):
-        ux = (bx[k] - ax[k]) * inv   # map shift per metre of descent
+        ux = (bx[k] - ax[k]) * inv  # map shift per metre of descent
         uy = (by[k] - ay[k]) * inv
         t = np.sqrt(ux * ux + uy * uy)
         dz = 2.0
@@ -1067,7 +1101,11 @@ def big_albedo(x, y, z, bid, slope, seed, out):  # pragma: no cover - numba
             continue
         b = bid[k]
         if b <= 0:
-            a = 0.12 + 0.30 * fbm(x[k] / 6.0, y[k] / 6.0, 0.5, seed, 4) + 0.10 * vnoise(x[k] / 0.9, y[k] / 0.9, 0.5, seed + 11)
+            a = (
+                0.12
+                + 0.30 * fbm(x[k] / 6.0, y[k] / 6.0, 0.5, seed, 4)
+                + 0.10 * vnoise(x[k] / 0.9, y[k] / 0.9, 0.5, seed + 11)
+            )
         else:
             tone = 0.15 + 0.55 * _hash3(b, 7, 3, seed)
             if slope[k] > 3.0:  # wall: darker, banded by height
@@ -1079,6 +1117,7 @@ def big_albedo(x, y, z, bid, slope, seed, out):  # pragma: no cover - numba
 
 def big_albedo_ref(x, y, z, bid, slope, seed):
     """Pure-numpy reference of :func:`big_albedo`."""
+
     def fbm_(xs, ys, s, octaves):
         return fbm_ref(xs, ys, np.full(xs.shape, 0.5), s, octaves)
 

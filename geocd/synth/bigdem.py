@@ -71,8 +71,8 @@ def make_objects(p: DEMPairParams) -> np.ndarray:
     """The changes (rows: kind, cx, cy, a, b, h) drawn from ``p.seed``."""
     rng = np.random.default_rng(p.seed + 17)
     side_km = p.size * p.posting_m / 1000.0
-    n = int(round(p.changes_per_km2 * side_km ** 2))
-    nv = int(round(p.voids_per_km2 * side_km ** 2))
+    n = int(round(p.changes_per_km2 * side_km**2))
+    nv = int(round(p.voids_per_km2 * side_km**2))
     L = p.size * p.posting_m
     rows = []
     margin = 60.0 * p.posting_m
@@ -104,15 +104,13 @@ def dem_window(p: DEMPairParams, which: str, window: tuple[int, int, int, int], 
     nil = np.zeros(0)
     g = (p.x0, p.y0, p.posting_m, r0, c0, h, w)
     if which == "a":
-        K.dem_window(*g, 0.0, 0.0, 0.0, p.seed, SCALES_M, AMPS_M, p.err_scale_m, p.err_corr_m, p.err_white_m,
-                     none, out)
+        K.dem_window(*g, 0.0, 0.0, 0.0, p.seed, SCALES_M, AMPS_M, p.err_scale_m, p.err_corr_m, p.err_white_m, none, out)
     elif which == "b":
         de, dn, dz = p.shift_m
         K.dem_window(*g, de, dn, dz, p.seed, SCALES_M, AMPS_M, p.err_scale_m, 0.0, 0.0, objects, out)
         err = np.empty((h, w), np.float64)
         # B's errors are its own (another seed)
-        K.dem_window(*g, 0.0, 0.0, 0.0, p.seed + 5000, nil, nil, p.err_scale_m, p.err_corr_m, p.err_white_m,
-                     none, err)
+        K.dem_window(*g, 0.0, 0.0, 0.0, p.seed + 5000, nil, nil, p.err_scale_m, p.err_corr_m, p.err_white_m, none, err)
         out += err
     elif which == "truth":
         K.dem_window(*g, 0.0, 0.0, 0.0, p.seed, nil, nil, 1.0, 0.0, 0.0, objects, out)
@@ -126,7 +124,7 @@ def dem_window(p: DEMPairParams, which: str, window: tuple[int, int, int, int], 
 def dem_window_ref(p: DEMPairParams, which: str, window: tuple[int, int, int, int], objects: np.ndarray) -> np.ndarray:
     """Pure-numpy reference of :func:`dem_window`."""
     r0, c0, h, w = window
-    rr, cc = np.mgrid[r0:r0 + h, c0:c0 + w]
+    rr, cc = np.mgrid[r0 : r0 + h, c0 : c0 + w]
     x = p.x0 + (cc + 0.5) * p.posting_m
     y = p.y0 - (rr + 0.5) * p.posting_m
 
@@ -137,8 +135,9 @@ def dem_window_ref(p: DEMPairParams, which: str, window: tuple[int, int, int, in
         return z
 
     def errors(seed):
-        e = p.err_corr_m * (2.0 * K.vnoise_ref(x / p.err_scale_m, y / p.err_scale_m, np.full(x.shape, 0.5),
-                                               seed + 1000) - 1.0)
+        e = p.err_corr_m * (
+            2.0 * K.vnoise_ref(x / p.err_scale_m, y / p.err_scale_m, np.full(x.shape, 0.5), seed + 1000) - 1.0
+        )
         u1 = K._hash3_ref(rr, cc, 1, seed + 2000)
         u2 = K._hash3_ref(rr, cc, 2, seed + 2000)
         return e + p.err_white_m * np.sqrt(-2.0 * np.log(1.0 - u1)) * np.cos(2.0 * np.pi * u2)
@@ -172,11 +171,16 @@ def _pair_tile(arrays, ctx):
     sel = _objects_near(objects, p, ctx.tile.core)
     t = dem_window(p, "truth", (r0, c0, h, w), sel)
     fin = np.isfinite(t)
-    small = {"changed_cells": int(np.count_nonzero(fin & (t != 0))), "void_cells": int(np.count_nonzero(~fin)),
-             "raised": float(np.sum(t[fin & (t > 0)], dtype=np.float64)),
-             "lowered": float(np.sum(t[fin & (t < 0)], dtype=np.float64))}
-    return TileOutput(arrays={"a": dem_window(p, "a", (r0, c0, h, w), sel), "b": dem_window(p, "b", (r0, c0, h, w), sel),
-                              "truth": t}, small=small)
+    small = {
+        "changed_cells": int(np.count_nonzero(fin & (t != 0))),
+        "void_cells": int(np.count_nonzero(~fin)),
+        "raised": float(np.sum(t[fin & (t > 0)], dtype=np.float64)),
+        "lowered": float(np.sum(t[fin & (t < 0)], dtype=np.float64)),
+    }
+    return TileOutput(
+        arrays={"a": dem_window(p, "a", (r0, c0, h, w), sel), "b": dem_window(p, "b", (r0, c0, h, w), sel), "truth": t},
+        small=small,
+    )
 
 
 def _objects_near(objects: np.ndarray, p: DEMPairParams, window) -> np.ndarray:
@@ -188,8 +192,12 @@ def _objects_near(objects: np.ndarray, p: DEMPairParams, window) -> np.ndarray:
     xr = p.x0 + (c0 + w) * p.posting_m
     yt = p.y0 - r0 * p.posting_m
     yb = p.y0 - (r0 + h) * p.posting_m
-    keep = ((objects[:, 1] + ext >= xl) & (objects[:, 1] - ext <= xr) & (objects[:, 2] + ext >= yb)
-            & (objects[:, 2] - ext <= yt))
+    keep = (
+        (objects[:, 1] + ext >= xl)
+        & (objects[:, 1] - ext <= xr)
+        & (objects[:, 2] + ext >= yb)
+        & (objects[:, 2] - ext <= yt)
+    )
     return np.ascontiguousarray(objects[keep])
 
 
@@ -206,16 +214,32 @@ def object_volumes(p: DEMPairParams, objects: np.ndarray) -> list[dict[str, Any]
         t = dem_window(p, "truth", (r0, c0, r1 - r0, c1 - c0), o[None, :])
         fin = np.isfinite(t)
         nz = fin & (t != 0)
-        out.append({"change_id": k + 1, "kind": KINDS[int(o[0])], "cx": float(o[1]), "cy": float(o[2]),
-                    "a_m": float(o[3]), "b_m": float(o[4]), "height_m": float(o[5]), "n_cells": int(nz.sum()),
-                    "void_cells": int((~fin).sum()),
-                    "volume_m3": float(np.sum(t[nz], dtype=np.float64) * p.posting_m ** 2),
-                    "bounds": (float(o[1] - o[3]), float(o[2] - o[4]), float(o[1] + o[3]), float(o[2] + o[4]))})
+        out.append(
+            {
+                "change_id": k + 1,
+                "kind": KINDS[int(o[0])],
+                "cx": float(o[1]),
+                "cy": float(o[2]),
+                "a_m": float(o[3]),
+                "b_m": float(o[4]),
+                "height_m": float(o[5]),
+                "n_cells": int(nz.sum()),
+                "void_cells": int((~fin).sum()),
+                "volume_m3": float(np.sum(t[nz], dtype=np.float64) * p.posting_m**2),
+                "bounds": (float(o[1] - o[3]), float(o[2] - o[4]), float(o[1] + o[3]), float(o[2] + o[4])),
+            }
+        )
     return out
 
 
-def make_dem_pair(out_dir: os.PathLike | str, params: DEMPairParams = DEMPairParams(), *, tile_size: int = 2048,
-                  scheduler: Any = "auto", progress: Progress | None = None) -> dict[str, Path]:
+def make_dem_pair(
+    out_dir: os.PathLike | str,
+    params: DEMPairParams = DEMPairParams(),
+    *,
+    tile_size: int = 2048,
+    scheduler: Any = "auto",
+    progress: Progress | None = None,
+) -> dict[str, Path]:
     """Write ``dem_a.tif``, ``dem_b.tif``, ``truth_dh.tif`` (COGs), ``objects.gpkg`` and ``truth.json``.
 
     Returns name → path.
@@ -238,8 +262,18 @@ def make_dem_pair(out_dir: os.PathLike | str, params: DEMPairParams = DEMPairPar
         "dem_b": RasterProduct(str(out / "dem_b.tif"), ("b",), tags=tags | {"epoch": "B"}, descriptions=("height_m",)),
         "truth_dh": RasterProduct(str(out / "truth_dh.tif"), ("truth",), tags=tags, descriptions=("dh_m",)),
     }
-    run = run_tiled(_pair_tile, g, {}, tile_size=tile_size, params=(p, objects), out=out, stage="bigdem",
-                    products=prods, scheduler=scheduler, progress=progress)
+    run = run_tiled(
+        _pair_tile,
+        g,
+        {},
+        tile_size=tile_size,
+        params=(p, objects),
+        out=out,
+        stage="bigdem",
+        products=prods,
+        scheduler=scheduler,
+        progress=progress,
+    )
     vols = object_volumes(p, objects)
     geoms = [box(*v["bounds"]) if v["kind"] == "box" else Point(v["cx"], v["cy"]).buffer(v["a_m"], 32) for v in vols]
     gdf = gpd.GeoDataFrame([{k: v for k, v in d.items() if k != "bounds"} for d in vols], geometry=geoms, crs=g.crs)
@@ -247,12 +281,19 @@ def make_dem_pair(out_dir: os.PathLike | str, params: DEMPairParams = DEMPairPar
     paths["objects"] = write_gpkg(out / "objects.gpkg", {"changes": gdf})
     ch = [v for v in vols if v["kind"] != "void"]
     tot = {k: sum(s[k] for _, s in run.smalls()) for k in ("changed_cells", "void_cells", "raised", "lowered")}
-    cell = p.posting_m ** 2
+    cell = p.posting_m**2
     # totals from the truth raster (overlapping changes counted once, voids excluded)
-    truth = {"params": asdict(p), "grid": g.to_dict(), "n_changes": len(ch), "n_voids": len(vols) - len(ch),
-             "changed_cells": int(tot["changed_cells"]), "void_cells": int(tot["void_cells"]),
-             "volume_raised_m3": tot["raised"] * cell, "volume_lowered_m3": tot["lowered"] * cell,
-             "wall_s": run.wall_s}
+    truth = {
+        "params": asdict(p),
+        "grid": g.to_dict(),
+        "n_changes": len(ch),
+        "n_voids": len(vols) - len(ch),
+        "changed_cells": int(tot["changed_cells"]),
+        "void_cells": int(tot["void_cells"]),
+        "volume_raised_m3": tot["raised"] * cell,
+        "volume_lowered_m3": tot["lowered"] * cell,
+        "wall_s": run.wall_s,
+    }
     paths["truth"] = write_text_atomic(out / "truth.json", json.dumps(truth, indent=1))
     remove_work(out)
     return paths

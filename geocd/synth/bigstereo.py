@@ -92,8 +92,9 @@ class StereoSceneParams:
         if self.event_radius_m is not None and not (math.isfinite(self.event_radius_m) and self.event_radius_m > 0):
             raise ConfigError(f"event_radius_m must be a positive number of metres or None, got {self.event_radius_m}")
         if len(self.event_centre_m) != 2 or not all(math.isfinite(float(v)) for v in self.event_centre_m):
-            raise ConfigError(f"event_centre_m must be (east, north) metres from the AOI centre, got "
-                              f"{self.event_centre_m}")
+            raise ConfigError(
+                f"event_centre_m must be (east, north) metres from the AOI centre, got {self.event_centre_m}"
+            )
         if len(self.views_a) < 2 or len(self.views_b) < 2:
             raise ConfigError("each epoch needs two views or more (a stereo pair)")
 
@@ -146,7 +147,7 @@ def make_buildings(p: StereoSceneParams) -> np.ndarray:
             cy = y0 - (j + 0.5) * SLOT_M + jy
             built = u[0] < p.built_fraction
             if p.event_radius_m is not None and math.hypot(cx - ex, cy - ey) > p.event_radius_m:
-                in_a = in_b = built                          # outside the event: nothing changes
+                in_a = in_b = built  # outside the event: nothing changes
             elif built:
                 in_a, in_b = True, not (u[1] < p.demolished_fraction)
             else:
@@ -181,16 +182,42 @@ def _near(objects: np.ndarray, xl: float, xr: float, yb: float, yt: float) -> np
     return np.ascontiguousarray(objects[keep])
 
 
-def surface_window(p: StereoSceneParams, objects: np.ndarray, x0: float, y0: float, post: float,
-                   window: tuple[int, int, int, int], *, terrain: bool = True) -> np.ndarray:
+def surface_window(
+    p: StereoSceneParams,
+    objects: np.ndarray,
+    x0: float,
+    y0: float,
+    post: float,
+    window: tuple[int, int, int, int],
+    *,
+    terrain: bool = True,
+) -> np.ndarray:
     """float64 heights (terrain + ``objects``) on ``window`` (row0, col0, h, w) of the grid with corner
     (x0, y0) and square cells of ``post`` m. ``terrain=False``: the objects alone (e.g. ids)."""
     r0, c0, h, w = window
     out = np.empty((h, w), np.float64)
     sel = _near(objects, x0 + c0 * post, x0 + (c0 + w) * post, y0 - (r0 + h) * post, y0 - r0 * post)
     nil = np.zeros(0)
-    K.dem_window(x0, y0, post, r0, c0, h, w, 0.0, 0.0, 0.0, p.seed, SCALES_M if terrain else nil,
-                 AMPS_M if terrain else nil, 30.0, 0.0, 0.0, sel, out)
+    K.dem_window(
+        x0,
+        y0,
+        post,
+        r0,
+        c0,
+        h,
+        w,
+        0.0,
+        0.0,
+        0.0,
+        p.seed,
+        SCALES_M if terrain else nil,
+        AMPS_M if terrain else nil,
+        30.0,
+        0.0,
+        0.0,
+        sel,
+        out,
+    )
     if terrain:
         out += p.base_m
     return out
@@ -224,9 +251,19 @@ def make_cameras(p: StereoSceneParams) -> dict[str, Any]:
     for ep, views in (("A", p.views_a), ("B", p.views_b)):
         for k, (along, across) in enumerate(views):
             name = f"{ep}_sat{k + 1}"
-            cams[name] = make_pushbroom(float(lonc), float(latc), p.base_m, along_deg=along, across_deg=across,
-                                        heading_deg=p.heading_deg, altitude_m=p.altitude_m, gsd_m=p.posting_m,
-                                        cover_lonlath=cover, margin_px=8, name=name)
+            cams[name] = make_pushbroom(
+                float(lonc),
+                float(latc),
+                p.base_m,
+                along_deg=along,
+                across_deg=across,
+                heading_deg=p.heading_deg,
+                altitude_m=p.altitude_m,
+                gsd_m=p.posting_m,
+                cover_lonlath=cover,
+                margin_px=8,
+                name=name,
+            )
     return cams
 
 
@@ -266,8 +303,9 @@ def block_rays(view: _View, band: tuple[float, float], r0: int, c0: int, nr: int
     return tuple(map_coordinates(a, [fr, fc], order=1, mode="nearest") for a in out)
 
 
-def render_block(p: StereoSceneParams, view: _View, objects: np.ndarray, ids: np.ndarray, r0: int, c0: int, nr: int,
-                 nc: int) -> tuple[np.ndarray, dict]:
+def render_block(
+    p: StereoSceneParams, view: _View, objects: np.ndarray, ids: np.ndarray, r0: int, c0: int, nr: int, nc: int
+) -> tuple[np.ndarray, dict]:
     """uint16 counts (nr, nc) of an image block (rendered with a halo for the PSF, then cropped)."""
     from .render import SensorRadiometry, to_sensor_counts
 
@@ -278,7 +316,7 @@ def render_block(p: StereoSceneParams, view: _View, objects: np.ndarray, ids: np
     ok = np.isfinite(ax) & np.isfinite(bx)
     g = p.grid()
     gx0, gy0 = g.transform.c, g.transform.f
-    fs = 0.5 * p.posting_m                                   # DSM sampling of the renderer: half a cell
+    fs = 0.5 * p.posting_m  # DSM sampling of the renderer: half a cell
     xs = np.concatenate([ax[ok], bx[ok]])
     ys = np.concatenate([ay[ok], by[ok]])
     counts = np.zeros((nr, nc), np.uint16)
@@ -291,32 +329,55 @@ def render_block(p: StereoSceneParams, view: _View, objects: np.ndarray, ids: np
     win = (r_lo, c_lo, r_hi - r_lo, c_hi - c_lo)
     dsm = surface_window(p, objects, gx0, gy0, fs, win)
     bid = surface_window(p, ids, gx0, gy0, fs, win, terrain=False)
-    wx0 = gx0 + (c_lo + 0.5) * fs                            # the window's first cell centre
+    wx0 = gx0 + (c_lo + 0.5) * fs  # the window's first cell centre
     wy0 = gy0 - (r_lo + 0.5) * fs
     n = ax.size
     hx, hy, hz, sl = (np.empty(n) for _ in range(4))
     A = [np.ascontiguousarray(np.where(ok, a, 0.0).ravel()) for a in (ax, ay, bx, by)]
-    K.march_dsm(*A, band[1], band[0], float(dsm.max()) + 0.5, float(dsm.min()) - 0.5, 0.5 * fs, dsm, wx0, wy0, fs,
-                hx, hy, hz, sl)
+    K.march_dsm(
+        *A,
+        band[1],
+        band[0],
+        float(dsm.max()) + 0.5,
+        float(dsm.min()) - 0.5,
+        0.5 * fs,
+        dsm,
+        wx0,
+        wy0,
+        fs,
+        hx,
+        hy,
+        hz,
+        sl,
+    )
     hz[~ok.ravel()] = np.nan
     # the building seen: the largest id among the 4 DSM samples around the hit (a wall hit lies on the
     # steep face between a roof sample and a ground sample)
     fc = np.clip((np.nan_to_num(hx) - wx0) / fs, 0, bid.shape[1] - 1.000001)
     fr = np.clip((wy0 - np.nan_to_num(hy)) / fs, 0, bid.shape[0] - 1.000001)
     ci, ri = fc.astype(np.int64), fr.astype(np.int64)
-    b_at = np.rint(np.maximum(np.maximum(bid[ri, ci], bid[ri, ci + 1]),
-                              np.maximum(bid[ri + 1, ci], bid[ri + 1, ci + 1]))).astype(np.int64)
-    roofish = sl <= 3.0                                      # on a roof or the ground: the nearest sample decides
+    b_at = np.rint(
+        np.maximum(np.maximum(bid[ri, ci], bid[ri, ci + 1]), np.maximum(bid[ri + 1, ci], bid[ri + 1, ci + 1]))
+    ).astype(np.int64)
+    roofish = sl <= 3.0  # on a roof or the ground: the nearest sample decides
     b_near = np.rint(bid[np.rint(fr).astype(np.int64), np.rint(fc).astype(np.int64)]).astype(np.int64)
     b_at = np.where(roofish, b_near, b_at)
     alb = np.empty(n)
     K.big_albedo(hx, hy, hz, b_at, sl, int(p.seed), alb)
     rad = alb.reshape(NR, NC)
-    radio = SensorRadiometry(nbits=11, gain=view.gain, dark=view.dark, haze=view.haze, psf_sigma_px=0.5,
-                             electrons_per_count=8.0, read_noise=2.0, bands="pan")
+    radio = SensorRadiometry(
+        nbits=11,
+        gain=view.gain,
+        dark=view.dark,
+        haze=view.haze,
+        psf_sigma_px=0.5,
+        electrons_per_count=8.0,
+        read_noise=2.0,
+        bands="pan",
+    )
     rng = np.random.default_rng([p.seed, 99, view.index, r0, c0])
     img = to_sensor_counts(np.broadcast_to(rad, (4, NR, NC)), radio, rng)[0]
-    counts[:] = img[H:H + nr, H:H + nc]
+    counts[:] = img[H : H + nr, H : H + nc]
     return counts, {"hit": float(np.isfinite(hz).mean())}
 
 
@@ -327,15 +388,36 @@ def _part(path: Path) -> Path:
     return path.with_name(f".{path.name}.part.tif")
 
 
-def _write_view(p: StereoSceneParams, view: _View, rpc, path: Path, objects: np.ndarray, ids: np.ndarray,
-                block: int, workers: int, prog, tags: dict) -> dict:
+def _write_view(
+    p: StereoSceneParams,
+    view: _View,
+    rpc,
+    path: Path,
+    objects: np.ndarray,
+    ids: np.ndarray,
+    block: int,
+    workers: int,
+    prog,
+    tags: dict,
+) -> dict:
     import rasterio
     from rasterio.windows import Window
 
     cam = view.camera
     W, Hh = int(cam.width), int(cam.height)
-    prof = {"driver": "GTiff", "width": W, "height": Hh, "count": 1, "dtype": "uint16", "tiled": True,
-            "blockxsize": 256, "blockysize": 256, "nbits": 11, "rpcs": rpc.to_rasterio(), "BIGTIFF": "IF_SAFER"}
+    prof = {
+        "driver": "GTiff",
+        "width": W,
+        "height": Hh,
+        "count": 1,
+        "dtype": "uint16",
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "nbits": 11,
+        "rpcs": rpc.to_rasterio(),
+        "BIGTIFF": "IF_SAFER",
+    }
     tmp = _part(path)
     jobs = [(r, c, min(block, Hh - r), min(block, W - c)) for r in range(0, Hh, block) for c in range(0, W, block)]
     hits = []
@@ -365,15 +447,28 @@ def _write_view(p: StereoSceneParams, view: _View, rpc, path: Path, objects: np.
     return {"width": W, "height": Hh, "blocks": len(jobs), "hit_fraction": round(float(np.mean(hits)), 5)}
 
 
-def _write_raster(path: Path, grid: AOIGrid, dtype: str, func, *, nodata=None, tags=None, strip: int = 1024,
-                  overview: bool = False) -> Path:
+def _write_raster(
+    path: Path, grid: AOIGrid, dtype: str, func, *, nodata=None, tags=None, strip: int = 1024, overview: bool = False
+) -> Path:
     """A tiled GeoTIFF written strip by strip: ``func(row0, rows)`` gives each strip."""
     import rasterio
     from rasterio.windows import Window
 
-    prof = {"driver": "GTiff", "width": grid.width, "height": grid.height, "count": 1, "dtype": dtype,
-            "crs": grid.crs, "transform": grid.transform, "tiled": True, "blockxsize": 256, "blockysize": 256,
-            "compress": "deflate", "BIGTIFF": "IF_SAFER", **({"nodata": nodata} if nodata is not None else {})}
+    prof = {
+        "driver": "GTiff",
+        "width": grid.width,
+        "height": grid.height,
+        "count": 1,
+        "dtype": dtype,
+        "crs": grid.crs,
+        "transform": grid.transform,
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "compress": "deflate",
+        "BIGTIFF": "IF_SAFER",
+        **({"nodata": nodata} if nodata is not None else {}),
+    }
     tmp = _part(path)
     with rasterio.open(tmp, "w", **prof) as ds:
         ds.update_tags(**(tags or {}))
@@ -384,8 +479,14 @@ def _write_raster(path: Path, grid: AOIGrid, dtype: str, func, *, nodata=None, t
     return path
 
 
-def make_stereo_scene(out_dir: os.PathLike | str, params: StereoSceneParams = StereoSceneParams(), *,
-                      block: int = 512, workers: int | None = None, progress: Progress | None = None) -> dict[str, Any]:
+def make_stereo_scene(
+    out_dir: os.PathLike | str,
+    params: StereoSceneParams = StereoSceneParams(),
+    *,
+    block: int = 512,
+    workers: int | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Write the scene (module docstring) into ``out_dir``; returns {"manifest", "truth", "report"}."""
     import geopandas as gpd
     import yaml
@@ -415,27 +516,49 @@ def make_stereo_scene(out_dir: os.PathLike | str, params: StereoSceneParams = St
     t0 = time.perf_counter()
     T = out / "truth"
     for e in "AB":
-        _write_raster(T / f"dsm_{e}.tif", g, "float32",
-                      lambda r, h, e=e: surface_window(p, obj[e], gx0, gy0, p.posting_m, (r, 0, h, g.width)),
-                      tags={**tags, **ell, "content": f"truth DSM epoch {e} at cell centres"})
+        _write_raster(
+            T / f"dsm_{e}.tif",
+            g,
+            "float32",
+            lambda r, h, e=e: surface_window(p, obj[e], gx0, gy0, p.posting_m, (r, 0, h, g.width)),
+            tags={**tags, **ell, "content": f"truth DSM epoch {e} at cell centres"},
+        )
 
     def dh(r, h):
-        return (surface_window(p, obj["B"], gx0, gy0, p.posting_m, (r, 0, h, g.width))
-                - surface_window(p, obj["A"], gx0, gy0, p.posting_m, (r, 0, h, g.width)))
+        return surface_window(p, obj["B"], gx0, gy0, p.posting_m, (r, 0, h, g.width)) - surface_window(
+            p, obj["A"], gx0, gy0, p.posting_m, (r, 0, h, g.width)
+        )
 
     _write_raster(T / "dh.tif", g, "float32", dh, tags={**tags, "units": "metre", "content": "DSM_B - DSM_A"})
-    _write_raster(T / "change_mask.tif", g, "uint8", lambda r, h: np.abs(dh(r, h)) > p.change_threshold_m,
-                  tags={**tags, "content": f"1 where |DSM_B - DSM_A| > {p.change_threshold_m} m"})
-    f = 4                                                     # the prior: bare terrain at 4 cells (2 m at 0.5 m)
+    _write_raster(
+        T / "change_mask.tif",
+        g,
+        "uint8",
+        lambda r, h: np.abs(dh(r, h)) > p.change_threshold_m,
+        tags={**tags, "content": f"1 where |DSM_B - DSM_A| > {p.change_threshold_m} m"},
+    )
+    f = 4  # the prior: bare terrain at 4 cells (2 m at 0.5 m)
     g2 = AOIGrid(g.crs, Affine(p.posting_m * f, 0.0, gx0, 0.0, -p.posting_m * f, gy0), g.width // f, g.height // f)
     none = np.zeros((0, 6))
-    _write_raster(T / "dem_prior.tif", g2, "float32",
-                  lambda r, h: surface_window(p, none, gx0, gy0, p.posting_m * f, (r, 0, h, g2.width)),
-                  tags={**tags, **ell, "content": "bare terrain (no buildings) at 4 cells: the stereo search prior"})
+    _write_raster(
+        T / "dem_prior.tif",
+        g2,
+        "float32",
+        lambda r, h: surface_window(p, none, gx0, gy0, p.posting_m * f, (r, 0, h, g2.width)),
+        tags={**tags, **ell, "content": "bare terrain (no buildings) at 4 cells: the stereo search prior"},
+    )
     status = np.where((bl[:, 6] > 0.5) & (bl[:, 7] > 0.5), "unchanged", np.where(bl[:, 6] > 0.5, "demolished", "new"))
-    gdf = gpd.GeoDataFrame({"building_id": bl[:, 0].astype(int), "height_m": bl[:, 5], "status": status,
-                            "in_A": bl[:, 6] > 0.5, "in_B": bl[:, 7] > 0.5},
-                           geometry=[box(b[1] - b[3], b[2] - b[4], b[1] + b[3], b[2] + b[4]) for b in bl], crs=g.crs)
+    gdf = gpd.GeoDataFrame(
+        {
+            "building_id": bl[:, 0].astype(int),
+            "height_m": bl[:, 5],
+            "status": status,
+            "in_A": bl[:, 6] > 0.5,
+            "in_B": bl[:, 7] > 0.5,
+        },
+        geometry=[box(b[1] - b[3], b[2] - b[4], b[1] + b[3], b[2] + b[4]) for b in bl],
+        crs=g.crs,
+    )
     write_gpkg(T / "buildings.gpkg", {"buildings": gdf})
     rep["timings"]["truth_s"] = round(time.perf_counter() - t0, 2)
     rep["buildings"] = {s: int((status == s).sum()) for s in ("unchanged", "demolished", "new")}
@@ -452,17 +575,41 @@ def make_stereo_scene(out_dir: os.PathLike | str, params: StereoSceneParams = St
         t0 = time.perf_counter()
         ep = name[0]
         rng = np.random.default_rng([p.seed, 7, k])
-        v = _View(name, ep, cam, g.crs, gain=float(1500.0 * (1.0 if ep == "A" else 0.9) * rng.uniform(0.95, 1.05)),
-                  dark=float(rng.uniform(30, 50)), haze=float(0.02 + rng.uniform(0, 0.01)), index=k)
+        v = _View(
+            name,
+            ep,
+            cam,
+            g.crs,
+            gain=float(1500.0 * (1.0 if ep == "A" else 0.9) * rng.uniform(0.95, 1.05)),
+            dark=float(rng.uniform(30, 50)),
+            haze=float(0.02 + rng.uniform(0, 0.01)),
+            index=k,
+        )
         rpc, fit = fit_rpc(cam, rpc_h, source=f"geocd bigstereo: RPC00B fitted to the pushbroom model of {name}")
         path = out / "images" / f"{name}.tif"
         lo_p, hi_p = 0.05 + 0.95 * k / nv, 0.05 + 0.95 * (k + 1) / nv
-        info = _write_view(p, v, rpc, path, obj[ep], ids[ep], block, workers,
-                           lambda fr, msg: prog(lo_p + (hi_p - lo_p) * fr, msg),
-                           {**tags, "epoch": ep, "GEOCD_SYNTH": f"bigstereo seed={p.seed}"})
-        views.append({"name": name, "epoch": ep, **{k2: cam.info[k2] for k2 in ("along_deg", "across_deg",
-                                                                                  "off_nadir_deg")},
-                      "rpc_fit_check_max_px": fit.check_max_px, **info, "seconds": round(time.perf_counter() - t0, 1)})
+        info = _write_view(
+            p,
+            v,
+            rpc,
+            path,
+            obj[ep],
+            ids[ep],
+            block,
+            workers,
+            lambda fr, msg: prog(lo_p + (hi_p - lo_p) * fr, msg),
+            {**tags, "epoch": ep, "GEOCD_SYNTH": f"bigstereo seed={p.seed}"},
+        )
+        views.append(
+            {
+                "name": name,
+                "epoch": ep,
+                **{k2: cam.info[k2] for k2 in ("along_deg", "across_deg", "off_nadir_deg")},
+                "rpc_fit_check_max_px": fit.check_max_px,
+                **info,
+                "seconds": round(time.perf_counter() - t0, 1),
+            }
+        )
         (T / f"{name}.camera.json").write_text(json.dumps(cam.to_dict(), indent=1), encoding="utf-8")
         imgs[ep].append({"path": f"images/{name}.tif", "name": name})
     rep["views"] = views
@@ -471,20 +618,30 @@ def make_stereo_scene(out_dir: os.PathLike | str, params: StereoSceneParams = St
     # --- manifest -------------------------------------------------------------------------------------
     if p.event_radius_m is not None:
         ex, ey = event_centre_xy(p)
-        rep["event"] = {"centre_xy": [ex, ey], "radius_m": float(p.event_radius_m),
-                        "area_fraction_of_aoi": round(_disc_fraction(g, ex, ey, float(p.event_radius_m)), 4)}
+        rep["event"] = {
+            "centre_xy": [ex, ey],
+            "radius_m": float(p.event_radius_m),
+            "area_fraction_of_aoi": round(_disc_fraction(g, ex, ey, float(p.event_radius_m)), 4),
+        }
     b = g.bounds
-    man = {"geocd_manifest": 1, "name": f"bigstereo_{p.cells}_s{p.seed}",
-           "description": f"geocd.synth.bigstereo scene: {p.cells}² cells of {p.posting_m} m, two epochs, known "
-                          "demolished and new buildings (truth/)",
-           "scene_class": "synthetic-blocks",
-           "aoi": {"crs": f"EPSG:{g.crs.to_epsg()}", "bounds": [float(v) for v in b],
-                   "posting_m": p.posting_m},
-           "dem": {"path": "truth/dem_prior.tif", "vertical_datum": "ellipsoid"},
-           "orientation": False,
-           "epochs": [{"name": "A", "images": imgs["A"]}, {"name": "B", "images": imgs["B"]}],
-           "truth": {"dsm_A": "truth/dsm_A.tif", "dsm_B": "truth/dsm_B.tif", "dh": "truth/dh.tif",
-                     "change_mask": "truth/change_mask.tif", "buildings": "truth/buildings.gpkg"}}
+    man = {
+        "geocd_manifest": 1,
+        "name": f"bigstereo_{p.cells}_s{p.seed}",
+        "description": f"geocd.synth.bigstereo scene: {p.cells}² cells of {p.posting_m} m, two epochs, known "
+        "demolished and new buildings (truth/)",
+        "scene_class": "synthetic-blocks",
+        "aoi": {"crs": f"EPSG:{g.crs.to_epsg()}", "bounds": [float(v) for v in b], "posting_m": p.posting_m},
+        "dem": {"path": "truth/dem_prior.tif", "vertical_datum": "ellipsoid"},
+        "orientation": False,
+        "epochs": [{"name": "A", "images": imgs["A"]}, {"name": "B", "images": imgs["B"]}],
+        "truth": {
+            "dsm_A": "truth/dsm_A.tif",
+            "dsm_B": "truth/dsm_B.tif",
+            "dh": "truth/dh.tif",
+            "change_mask": "truth/change_mask.tif",
+            "buildings": "truth/buildings.gpkg",
+        },
+    }
     manifest = write_text_atomic(out / "scene.yaml", yaml.safe_dump(man, sort_keys=False))
     rep["timings"]["total_s"] = round(time.perf_counter() - t_all, 2)
     truth = write_text_atomic(T / "truth.json", json.dumps(rep, indent=1, default=str))

@@ -111,8 +111,10 @@ class SynthParams(ParamsMixin):
         if self.n_sat_a + self.n_aerial < 1 or self.n_sat_b < 1:
             raise ConfigError("each epoch needs at least one image (n_sat_a + n_aerial ≥ 1, n_sat_b ≥ 1)")
         if not (0.05 <= self.gsd_m <= 10 and 0.05 <= self.posting_m <= 10 and 0.02 <= self.aerial_gsd_m <= 2):
-            raise ConfigError(f"GSD/posting out of range: gsd_m={self.gsd_m}, posting_m={self.posting_m}, "
-                              f"aerial_gsd_m={self.aerial_gsd_m}")
+            raise ConfigError(
+                f"GSD/posting out of range: gsd_m={self.gsd_m}, posting_m={self.posting_m}, "
+                f"aerial_gsd_m={self.aerial_gsd_m}"
+            )
         for v in (*self.along_a_deg, *self.along_b_deg, self.across_a_deg, self.across_b_deg):
             if abs(v) > 45:
                 raise ConfigError(f"view angles must be within ±45°, got {v}")
@@ -122,7 +124,7 @@ class SynthParams(ParamsMixin):
             except ValueError as exc:
                 raise ConfigError(f"date {d!r} is not ISO 8601 (YYYY-MM-DDTHH:MM:SS, UTC)") from exc
         TownParams(size_m=self.size_m, changes=tuple(self.changes))  # validates size and change names
-        k = self.supersample   # checked here, before anything is rendered (RenderParams checks it late)
+        k = self.supersample  # checked here, before anything is rendered (RenderParams checks it late)
         if isinstance(k, bool) or not isinstance(k, numbers.Integral) or not 1 <= k <= 8:
             raise ConfigError(f"supersample must be a whole number within 1..8 (k × k rays per pixel), got {k!r}")
 
@@ -131,20 +133,45 @@ class SynthParams(ParamsMixin):
         return self.margin_m if self.margin_m is not None else float(min(40.0, max(12.0, self.size_m / 4.0)))
 
     def town_params(self) -> TownParams:
-        return TownParams(seed=self.seed, size_m=self.size_m, margin_m=self.margin, center_lon=self.center_lon,
-                          center_lat=self.center_lat, base_height_m=self.base_height_m, n_buildings=self.n_buildings,
-                          n_new=self.n_new, n_demolished=self.n_demolished, n_raised=self.n_raised,
-                          n_lowered=self.n_lowered, n_cars_moved=self.n_cars_moved,
-                          n_trees_changed=self.n_trees_changed, n_repainted=self.n_repainted,
-                          season="season" in self.changes, changes=tuple(self.changes))
+        return TownParams(
+            seed=self.seed,
+            size_m=self.size_m,
+            margin_m=self.margin,
+            center_lon=self.center_lon,
+            center_lat=self.center_lat,
+            base_height_m=self.base_height_m,
+            n_buildings=self.n_buildings,
+            n_new=self.n_new,
+            n_demolished=self.n_demolished,
+            n_raised=self.n_raised,
+            n_lowered=self.n_lowered,
+            n_cars_moved=self.n_cars_moved,
+            n_trees_changed=self.n_trees_changed,
+            n_repainted=self.n_repainted,
+            season="season" in self.changes,
+            changes=tuple(self.changes),
+        )
 
-    _kind = "synth"   # names the parameter set in ConfigError messages
+    _kind = "synth"  # names the parameter set in ConfigError messages
 
     @classmethod
     def tiny(cls, **kw: Any) -> "SynthParams":
         """A 64 m × 64 m scene with 2+2 satellite views and 2 aerial frames (for tests)."""
-        base = dict(size_m=64.0, n_sat_a=2, n_sat_b=2, n_aerial=2, n_buildings=4, n_new=1, n_demolished=1,
-                    n_raised=1, n_lowered=0, n_cars_moved=1, n_trees_changed=1, n_repainted=1, name="tiny")
+        base = dict(
+            size_m=64.0,
+            n_sat_a=2,
+            n_sat_b=2,
+            n_aerial=2,
+            n_buildings=4,
+            n_new=1,
+            n_demolished=1,
+            n_raised=1,
+            n_lowered=0,
+            n_cars_moved=1,
+            n_trees_changed=1,
+            n_repainted=1,
+            name="tiny",
+        )
         base.update(kw)
         return cls(**base)
 
@@ -161,8 +188,10 @@ class SynthResult:
 def _views(p: SynthParams) -> list[dict]:
     """Satellite view list: name, epoch, along, across."""
     out = []
-    for ep, n, (a0, a1), ac in (("A", p.n_sat_a, p.along_a_deg, p.across_a_deg),
-                                ("B", p.n_sat_b, p.along_b_deg, p.across_b_deg)):
+    for ep, n, (a0, a1), ac in (
+        ("A", p.n_sat_a, p.along_a_deg, p.across_a_deg),
+        ("B", p.n_sat_b, p.along_b_deg, p.across_b_deg),
+    ):
         alongs = [0.5 * (a0 + a1)] if n == 1 else list(np.linspace(a0, a1, n))
         for i, a in enumerate(alongs):
             out.append({"name": f"{ep}_sat{i + 1}", "epoch": ep, "along_deg": round(float(a), 4), "across_deg": ac})
@@ -201,9 +230,19 @@ def make_satellite_cameras(p: SynthParams, town: Town) -> dict:
     cover = _cover_points(town)
     cams = {}
     for v in _views(p):
-        cams[v["name"]] = make_pushbroom(fr.lon0, fr.lat0, fr.h0, along_deg=v["along_deg"], across_deg=v["across_deg"],
-                                         heading_deg=HEADING_DEG, altitude_m=p.altitude_m, gsd_m=p.gsd_m,
-                                         cover_lonlath=cover, margin_px=8, name=v["name"])
+        cams[v["name"]] = make_pushbroom(
+            fr.lon0,
+            fr.lat0,
+            fr.h0,
+            along_deg=v["along_deg"],
+            across_deg=v["across_deg"],
+            heading_deg=HEADING_DEG,
+            altitude_m=p.altitude_m,
+            gsd_m=p.gsd_m,
+            cover_lonlath=cover,
+            margin_px=8,
+            name=v["name"],
+        )
     return cams
 
 
@@ -233,25 +272,48 @@ def make_aerial_cameras(p: SynthParams, town: Town) -> dict:
         omega, phi = rng.normal(0.0, 1.0, 2)
         kappa = rng.normal(0.0, 0.5)
         pos = (fr.e0 + x, fr.n0 + rng.normal(0.0, 2.0), ground + p.aerial_height_m)
-        cams[f"A_air{i + 1}"] = FrameCamera(width=w_px, height=h_px, focal_px=f_px, position=pos,
-                                           opk_deg=(float(omega), float(phi), float(kappa)), crs=fr.crs,
-                                           vertical_datum="ellipsoid", source=f"geocd synth aerial frame {i + 1}")
+        cams[f"A_air{i + 1}"] = FrameCamera(
+            width=w_px,
+            height=h_px,
+            focal_px=f_px,
+            position=pos,
+            opk_deg=(float(omega), float(phi), float(kappa)),
+            crs=fr.crs,
+            vertical_datum="ellipsoid",
+            source=f"geocd synth aerial frame {i + 1}",
+        )
     return cams
 
 
 def _sat_radiometry(p: SynthParams, rng: np.random.Generator, off_nadir: float):
     from .render import SensorRadiometry
 
-    return SensorRadiometry(nbits=11, gain=float(1500.0 * rng.uniform(0.94, 1.06)), dark=float(rng.uniform(30, 50)),
-                            haze=float(0.015 + 0.02 * (off_nadir / 30.0) + rng.uniform(0, 0.01)), psf_sigma_px=0.5,
-                            electrons_per_count=8.0, read_noise=2.0, bands="pan")
+    return SensorRadiometry(
+        nbits=11,
+        gain=float(1500.0 * rng.uniform(0.94, 1.06)),
+        dark=float(rng.uniform(30, 50)),
+        haze=float(0.015 + 0.02 * (off_nadir / 30.0) + rng.uniform(0, 0.01)),
+        psf_sigma_px=0.5,
+        electrons_per_count=8.0,
+        read_noise=2.0,
+        bands="pan",
+    )
 
 
 def _aerial_radiometry(rng: np.random.Generator):
     from .render import SensorRadiometry
 
-    return SensorRadiometry(nbits=8, gain=float(215.0 * rng.uniform(0.97, 1.03)), dark=4.0, haze=0.01,
-                            psf_sigma_px=0.4, electrons_per_count=25.0, read_noise=0.8, gamma=2.2, bands="rgb")
+    return SensorRadiometry(
+        nbits=8,
+        gain=float(215.0 * rng.uniform(0.97, 1.03)),
+        dark=4.0,
+        haze=0.01,
+        psf_sigma_px=0.4,
+        electrons_per_count=25.0,
+        read_noise=0.8,
+        gamma=2.2,
+        bands="rgb",
+    )
 
 
 def _write_truth_raster(path: Path, arr: np.ndarray, grid, *, dtype: str, nodata=None, tags=None, names=None) -> None:
@@ -277,8 +339,9 @@ def _prior_dem(bare: np.ndarray, grid, factor: int = 4):
     return coarse.astype(np.float32), g2
 
 
-def generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: bool = False,
-             progress: Callable | None = None) -> SynthResult:
+def generate(
+    params: SynthParams, out_dir: os.PathLike | str, *, overwrite: bool = False, progress: Callable | None = None
+) -> SynthResult:
     """Build the town, render every view, fit and write RPCs, write truth and the manifest.
 
     Parameters
@@ -306,16 +369,28 @@ def generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: bool
         return _generate(params, out_dir, overwrite=overwrite, progress=progress)
 
 
-def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: bool = False,
-              progress: Callable | None = None) -> SynthResult:
+def _generate(
+    params: SynthParams, out_dir: os.PathLike | str, *, overwrite: bool = False, progress: Callable | None = None
+) -> SynthResult:
     from ..camera.rpc_fit import fit_rpc
     from ..errors import OutputError
     from ..io.atomic import write_text_atomic
     from ..io.raster import write_image
     from ..io.vector import write_gpkg
     from .render import RenderParams, pack_scene, render_view, to_sensor_counts
-    from .truth import (bare_dem, change_products, corner_check, dsm, footprints_all, footprints_frame,
-                        image_change_mask, non3d_mask, objects_frame, truth_grid, write_cover_truth)
+    from .truth import (
+        bare_dem,
+        change_products,
+        corner_check,
+        dsm,
+        footprints_all,
+        footprints_frame,
+        image_change_mask,
+        non3d_mask,
+        objects_frame,
+        truth_grid,
+        write_cover_truth,
+    )
 
     prog = ensure_progress(progress)
     out = Path(out_dir)
@@ -349,35 +424,83 @@ def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: boo
     n3d = non3d_mask(town, scenes["A"], scenes["B"], grid, mask)
     ell = {"vertical_datum": "ellipsoid", "units": "metre", "heights": "WGS84 ellipsoidal"}
     tdir = out / "truth"
-    _write_truth_raster(tdir / "dsm_A.tif", dsm_a.astype(np.float32), grid, dtype="float32",
-                        tags={**ell, "content": "truth DSM epoch A (first surface from above at cell centres)"})
-    _write_truth_raster(tdir / "dsm_B.tif", dsm_b.astype(np.float32), grid, dtype="float32",
-                        tags={**ell, "content": "truth DSM epoch B"})
-    _write_truth_raster(tdir / "dem_bare.tif", bare.astype(np.float32), grid, dtype="float32",
-                        tags={**ell, "content": "bare-earth terrain (truth)"})
+    _write_truth_raster(
+        tdir / "dsm_A.tif",
+        dsm_a.astype(np.float32),
+        grid,
+        dtype="float32",
+        tags={**ell, "content": "truth DSM epoch A (first surface from above at cell centres)"},
+    )
+    _write_truth_raster(
+        tdir / "dsm_B.tif",
+        dsm_b.astype(np.float32),
+        grid,
+        dtype="float32",
+        tags={**ell, "content": "truth DSM epoch B"},
+    )
+    _write_truth_raster(
+        tdir / "dem_bare.tif",
+        bare.astype(np.float32),
+        grid,
+        dtype="float32",
+        tags={**ell, "content": "bare-earth terrain (truth)"},
+    )
     prior, g2 = _prior_dem(bare, grid)
-    _write_truth_raster(tdir / "dem_prior.tif", prior, g2, dtype="float32",
-                        tags={**ell, "content": "smoothed 2 m terrain prior (Gaussian 4 m, block mean), no buildings"})
-    _write_truth_raster(tdir / "dsm_diff.tif", (dsm_b - dsm_a).astype(np.float32), grid, dtype="float32",
-                        tags={"units": "metre", "content": "DSM_B - DSM_A"})
-    thr_doc = (f"1 where |DSM_B - DSM_A| > {params.change_threshold_m} m on exact (noise-free) DSMs sampled at cell "
-               f"centres; connected regions < 1 m2 removed; 0 elsewhere")
-    _write_truth_raster(tdir / "change_mask.tif", mask, grid, dtype="uint8",
-                        tags={"content": thr_doc, "threshold_m": params.change_threshold_m})
-    _write_truth_raster(tdir / "change_class.tif", ccls, grid, dtype="uint8",
-                        tags={"content": "class of the changed object: 0 none, 1 building, 2 car, 3 tree"})
-    _write_truth_raster(tdir / "change_sign.tif", sign, grid, dtype="int8",
-                        tags={"content": "+1 raised, -1 lowered, 0 no 3-D change"})
-    _write_truth_raster(tdir / "non3d_mask.tif", n3d, grid, dtype="uint8",
-                        tags={"content": "appearance change without 3-D change: 1 repainted roof, 2 vegetation season"})
+    _write_truth_raster(
+        tdir / "dem_prior.tif",
+        prior,
+        g2,
+        dtype="float32",
+        tags={**ell, "content": "smoothed 2 m terrain prior (Gaussian 4 m, block mean), no buildings"},
+    )
+    _write_truth_raster(
+        tdir / "dsm_diff.tif",
+        (dsm_b - dsm_a).astype(np.float32),
+        grid,
+        dtype="float32",
+        tags={"units": "metre", "content": "DSM_B - DSM_A"},
+    )
+    thr_doc = (
+        f"1 where |DSM_B - DSM_A| > {params.change_threshold_m} m on exact (noise-free) DSMs sampled at cell "
+        f"centres; connected regions < 1 m2 removed; 0 elsewhere"
+    )
+    _write_truth_raster(
+        tdir / "change_mask.tif",
+        mask,
+        grid,
+        dtype="uint8",
+        tags={"content": thr_doc, "threshold_m": params.change_threshold_m},
+    )
+    _write_truth_raster(
+        tdir / "change_class.tif",
+        ccls,
+        grid,
+        dtype="uint8",
+        tags={"content": "class of the changed object: 0 none, 1 building, 2 car, 3 tree"},
+    )
+    _write_truth_raster(
+        tdir / "change_sign.tif", sign, grid, dtype="int8", tags={"content": "+1 raised, -1 lowered, 0 no 3-D change"}
+    )
+    _write_truth_raster(
+        tdir / "non3d_mask.tif",
+        n3d,
+        grid,
+        dtype="uint8",
+        tags={"content": "appearance change without 3-D change: 1 repainted roof, 2 vegetation season"},
+    )
     write_cover_truth(tdir, town, scenes, grid)
     write_gpkg(tdir / "footprints_A.gpkg", {"footprints": footprints_frame(town, "A")})
     write_gpkg(tdir / "footprints_B.gpkg", {"footprints": footprints_frame(town, "B")})
     write_gpkg(tdir / "footprints_all.gpkg", {"footprints": footprints_all(town)})
-    write_gpkg(tdir / "objects.gpkg", {"trees_A": objects_frame(town, "A", "trees"),
-                                       "trees_B": objects_frame(town, "B", "trees"),
-                                       "cars_A": objects_frame(town, "A", "cars"),
-                                       "cars_B": objects_frame(town, "B", "cars")})
+    write_gpkg(
+        tdir / "objects.gpkg",
+        {
+            "trees_A": objects_frame(town, "A", "trees"),
+            "trees_B": objects_frame(town, "B", "trees"),
+            "cars_A": objects_frame(town, "A", "cars"),
+            "cars_B": objects_frame(town, "B", "cars"),
+        },
+    )
     timings["truth_rasters_s"] = time.perf_counter() - t0
     prog(0.06, "truth rasters written")
 
@@ -401,31 +524,62 @@ def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: boo
         name, cam, ep = v["name"], v["camera"], v["epoch"]
         vp = sub_progress(prog, 0.08 + 0.9 * iv / nv, 0.08 + 0.9 * (iv + 1) / nv, f"{name}: ")
         rng = np.random.default_rng(np.random.SeedSequence([params.seed, order[ep], iv, 77]))
-        vr: dict[str, Any] = {"name": name, "epoch": ep, "kind": v["kind"], "width": cam.width, "height": cam.height,
-                              "sun": suns[ep].to_dict()}
+        vr: dict[str, Any] = {
+            "name": name,
+            "epoch": ep,
+            "kind": v["kind"],
+            "width": cam.width,
+            "height": cam.height,
+            "sun": suns[ep].to_dict(),
+        }
         t0 = time.perf_counter()
-        res = render_view(town, ep, cam, suns[ep].direction_enu(), rparams, scene=scenes[ep],
-                          progress=sub_progress(vp, 0.0, 0.7))
+        res = render_view(
+            town, ep, cam, suns[ep].direction_enu(), rparams, scene=scenes[ep], progress=sub_progress(vp, 0.0, 0.7)
+        )
         vr["render_s"] = round(time.perf_counter() - t0, 3)
         vr["pixels_per_s"] = round(cam.width * cam.height / max(res.seconds, 1e-9), 1)
         img_path = out / "images" / f"{name}.tif"
         acq = params.date_a if ep == "A" else params.date_b
-        tags = {"GEOCD_SYNTH": f"seed={params.seed}", "ACQUISITION_DATETIME": acq,
-                "SUN_AZIMUTH": f"{suns[ep].azimuth_deg:.4f}", "SUN_ELEVATION": f"{suns[ep].elevation_deg:.4f}"}
+        tags = {
+            "GEOCD_SYNTH": f"seed={params.seed}",
+            "ACQUISITION_DATETIME": acq,
+            "SUN_AZIMUTH": f"{suns[ep].azimuth_deg:.4f}",
+            "SUN_ELEVATION": f"{suns[ep].elevation_deg:.4f}",
+        }
         if v["kind"] == "satellite":
             info = cam.info
-            vr.update({k: info[k] for k in ("along_deg", "across_deg", "off_nadir_deg", "incidence_deg",
-                                             "view_azimuth_deg", "slant_range_m")})
+            vr.update(
+                {
+                    k: info[k]
+                    for k in (
+                        "along_deg",
+                        "across_deg",
+                        "off_nadir_deg",
+                        "incidence_deg",
+                        "view_azimuth_deg",
+                        "slant_range_m",
+                    )
+                }
+            )
             radio = _sat_radiometry(params, rng, float(info["off_nadir_deg"]))
             counts = to_sensor_counts(res.radiance, radio, rng)
             t0 = time.perf_counter()
-            rpc, fit = fit_rpc(cam, rpc_h, n_xy=params.rpc_n_xy, n_h=params.rpc_n_h,
-                               source=f"geocd synth: RPC00B fitted to the physical pushbroom model of {name}")
+            rpc, fit = fit_rpc(
+                cam,
+                rpc_h,
+                n_xy=params.rpc_n_xy,
+                n_h=params.rpc_n_h,
+                source=f"geocd synth: RPC00B fitted to the physical pushbroom model of {name}",
+            )
             vr["rpc_fit_s"] = round(time.perf_counter() - t0, 3)
             vr["rpc_fit"] = fit.to_dict()
             vr["rpc_vs_physical_aoi"] = _aoi_difference(town, cam, rpc, (h_lo, h_hi))
-            tags.update({"SATELLITE_VIEW_OFF_NADIR": f"{info['off_nadir_deg']:.4f}",
-                         "SATELLITE_VIEW_AZIMUTH": f"{info['view_azimuth_deg']:.4f}"})
+            tags.update(
+                {
+                    "SATELLITE_VIEW_OFF_NADIR": f"{info['off_nadir_deg']:.4f}",
+                    "SATELLITE_VIEW_AZIMUTH": f"{info['view_azimuth_deg']:.4f}",
+                }
+            )
             write_image(img_path, counts, rpc=rpc, nbits=11, tags=tags)
             geo_model = rpc
         else:
@@ -439,12 +593,18 @@ def _generate(params: SynthParams, out_dir: os.PathLike | str, *, overwrite: boo
         vr["radiometry"] = radio.to_dict()
         (tdir / "cameras" / f"{name}.json").write_text(json.dumps(cam.to_dict(), indent=1), encoding="utf-8")
         vp(0.8, "truth mask")
-        m, frac = image_change_mask(town, cam, scenes["A"], scenes["B"], threshold_m=params.change_threshold_m,
-                                    supersample=params.supersample)
-        write_image(tdir / "image_masks" / f"{name}.tif", np.stack([m, np.rint(frac * 100).astype(np.uint8)]),
-                    tags={"content": f"band 1: 1 where the pixel sees a 3-D change (surfaces > "
-                                     f"{params.change_threshold_m} m apart between epochs for >= half of its "
-                                     f"{params.supersample ** 2} samples); band 2: percent of such samples"})
+        m, frac = image_change_mask(
+            town, cam, scenes["A"], scenes["B"], threshold_m=params.change_threshold_m, supersample=params.supersample
+        )
+        write_image(
+            tdir / "image_masks" / f"{name}.tif",
+            np.stack([m, np.rint(frac * 100).astype(np.uint8)]),
+            tags={
+                "content": f"band 1: 1 where the pixel sees a 3-D change (surfaces > "
+                f"{params.change_threshold_m} m apart between epochs for >= half of its "
+                f"{params.supersample**2} samples); band 2: percent of such samples"
+            },
+        )
         vr["changed_pixel_fraction"] = round(float(m.mean()), 5)
         vr["corner_check"] = corner_check(town, ep, scenes[ep], cam, geo_model)
         view_reports.append(vr)
@@ -479,8 +639,12 @@ def _aoi_difference(town: Town, cam, rpc, h_range: tuple[float, float], n: int =
     c1, r1 = cam.project(lon, lat, Z.ravel())
     c2, r2 = rpc.project(lon, lat, Z.ravel())
     e = np.hypot(c1 - c2, r1 - r2)
-    return {"max_px": float(e.max()), "rms_px": float(np.sqrt(np.mean(e ** 2))), "n_points": int(e.size),
-            "h_range_m": [float(h_range[0]), float(h_range[1])]}
+    return {
+        "max_px": float(e.max()),
+        "rms_px": float(np.sqrt(np.mean(e**2))),
+        "n_points": int(e.size),
+        "h_range_m": [float(h_range[0]), float(h_range[1])],
+    }
 
 
 def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dict]) -> Path:
@@ -502,12 +666,19 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
     sens_b = f"pushbroom-sim {p.gsd_m:g} m pan 11-bit"
     sens_a = sens_b + (f" + frame-sim {p.aerial_gsd_m:g} m RGB" if p.n_aerial else "")
     truth = {
-        "dsm_A": "truth/dsm_A.tif", "dsm_B": "truth/dsm_B.tif", "dem_bare": "truth/dem_bare.tif",
-        "dem_prior": "truth/dem_prior.tif", "dsm_diff": "truth/dsm_diff.tif",
-        "footprints_A": "truth/footprints_A.gpkg", "footprints_B": "truth/footprints_B.gpkg",
-        "footprints_all": "truth/footprints_all.gpkg", "objects": "truth/objects.gpkg",
-        "change_mask": "truth/change_mask.tif", "change_class": "truth/change_class.tif",
-        "change_sign": "truth/change_sign.tif", "non3d_mask": "truth/non3d_mask.tif",
+        "dsm_A": "truth/dsm_A.tif",
+        "dsm_B": "truth/dsm_B.tif",
+        "dem_bare": "truth/dem_bare.tif",
+        "dem_prior": "truth/dem_prior.tif",
+        "dsm_diff": "truth/dsm_diff.tif",
+        "footprints_A": "truth/footprints_A.gpkg",
+        "footprints_B": "truth/footprints_B.gpkg",
+        "footprints_all": "truth/footprints_all.gpkg",
+        "objects": "truth/objects.gpkg",
+        "change_mask": "truth/change_mask.tif",
+        "change_class": "truth/change_class.tif",
+        "change_sign": "truth/change_sign.tif",
+        "non3d_mask": "truth/non3d_mask.tif",
         "change_threshold_m": p.change_threshold_m,
         "image_masks": {v["name"]: f"truth/image_masks/{v['name']}.tif" for v in views},
         "cameras": {v["name"]: f"truth/cameras/{v['name']}.json" for v in views},
@@ -519,10 +690,12 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
     doc = {
         "geocd_manifest": 1,
         "name": p.name,
-        "description": (f"geocd synthetic town (seed {p.seed}): {p.size_m:g} m x {p.size_m:g} m, two epochs with known "
-                        "3-D changes (new, demolished, raised, lowered buildings, cars, trees) and non-3-D changes "
-                        "(repainted roofs, season, sun). Regenerate with: geocd synth --out DIR --seed "
-                        f"{p.seed}" + (" (see truth/scene_truth.json for all parameters)")),
+        "description": (
+            f"geocd synthetic town (seed {p.seed}): {p.size_m:g} m x {p.size_m:g} m, two epochs with known "
+            "3-D changes (new, demolished, raised, lowered buildings, cars, trees) and non-3-D changes "
+            "(repainted roofs, season, sun). Regenerate with: geocd synth --out DIR --seed "
+            f"{p.seed}" + (" (see truth/scene_truth.json for all parameters)")
+        ),
         "scene_class": "suburban",
         "aoi": {"crs": f"EPSG:{town.frame.epsg}", "bounds": [float(b) for b in grid.bounds], "posting_m": p.posting_m},
         "dem": {"path": "truth/dem_prior.tif", "vertical_datum": "ellipsoid"},
@@ -545,8 +718,12 @@ def _versions() -> dict:
     import numba
     import rasterio
 
-    return {"numpy": np.__version__, "numba": numba.__version__, "rasterio": rasterio.__version__,
-            "gdal": rasterio.__gdal_version__}
+    return {
+        "numpy": np.__version__,
+        "numba": numba.__version__,
+        "rasterio": rasterio.__version__,
+        "gdal": rasterio.__gdal_version__,
+    }
 
 
 def _json_default(o):

@@ -61,8 +61,11 @@ def write_pictures(scene_dir: os.PathLike | str, out_dir: os.PathLike | str, pre
             else:
                 ax.imshow(np.moveaxis(a, 0, 2), interpolation="nearest")
                 kind = "aerial RGB frame"
-            ax.set_title(f"{im.name} ({kind})\nsun az {float(tags.get('SUN_AZIMUTH', 'nan')):.0f}°, "
-                         f"el {float(tags.get('SUN_ELEVATION', 'nan')):.0f}°", fontsize=10)
+            ax.set_title(
+                f"{im.name} ({kind})\nsun az {float(tags.get('SUN_AZIMUTH', 'nan')):.0f}°, "
+                f"el {float(tags.get('SUN_ELEVATION', 'nan')):.0f}°",
+                fontsize=10,
+            )
             ax.set_axis_off()
         fig.suptitle(f"{m.name}: epoch {ep.name} ({ep.date}), {len(ep.images)} images", fontsize=12)
         fig.tight_layout()
@@ -100,11 +103,17 @@ def write_pictures(scene_dir: os.PathLike | str, out_dir: os.PathLike | str, pre
     fig, ax = plt.subplots(figsize=(10.5, 7.6))
     ax.imshow(img, extent=ext, interpolation="nearest")
     fp = read_footprints(m.truth_path("footprints_all"))
-    style = {"new": "#d62728", "demolished": "#9467bd", "raised": "#ff7f0e", "lowered": "#17becf",
-             "unchanged": "#444444"}
+    style = {
+        "new": "#d62728",
+        "demolished": "#9467bd",
+        "raised": "#ff7f0e",
+        "lowered": "#17becf",
+        "unchanged": "#444444",
+    }
     for st, g in fp.groupby("status"):
-        g.boundary.plot(ax=ax, color=style.get(st, "k"), linewidth=1.6 if st != "unchanged" else 0.6,
-                        label=f"{st} ({len(g)})")
+        g.boundary.plot(
+            ax=ax, color=style.get(st, "k"), linewidth=1.6 if st != "unchanged" else 0.6, label=f"{st} ({len(g)})"
+        )
     ax.set_xlim(ext[0], ext[1])
     ax.set_ylim(ext[2], ext[3])
     ax.ticklabel_format(useOffset=False, style="plain")
@@ -112,10 +121,12 @@ def write_pictures(scene_dir: os.PathLike | str, out_dir: os.PathLike | str, pre
     from matplotlib.patches import Patch
 
     handles = ax.get_legend_handles_labels()[0] + [
-        Patch(color=colours[1], label="3-D change: building"), Patch(color=colours[2], label="3-D change: car"),
+        Patch(color=colours[1], label="3-D change: building"),
+        Patch(color=colours[2], label="3-D change: car"),
         Patch(color=colours[3], label="3-D change: tree"),
         Patch(color=(0.75, 0.75, 1.0), label="repainted roof (not 3-D)"),
-        Patch(color=(0.88, 0.95, 0.85), label="vegetation season (not 3-D)")]
+        Patch(color=(0.88, 0.95, 0.85), label="vegetation season (not 3-D)"),
+    ]
     ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     thr = m.truth.get("change_threshold_m", 1.0)
     ax.set_title(f"truth change mask |ΔDSM| > {thr} m, footprints by status", fontsize=10)

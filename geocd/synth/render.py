@@ -34,7 +34,7 @@ from ..camera.base import Camera
 from ..errors import ConfigError
 from ..progress import ensure_progress
 from . import _kernels as K
-from .scene import (C_BUILDING, C_CAR, C_TREE, K_ELLIPSOID, K_POLY, Epoch, Town)
+from .scene import C_BUILDING, C_CAR, C_TREE, K_ELLIPSOID, K_POLY, Epoch, Town
 
 #: bin size of the acceleration grid (metres)
 GRID_BIN_M = 4.0
@@ -47,9 +47,14 @@ def _box_planes(rect, z_lo: float, z_hi: float) -> list[list[float]]:
     u, v = rect.axes
     c = np.array([rect.cx, rect.cy])
     L, W = rect.half_len, rect.half_wid
-    return [[u[0], u[1], 0.0, float(u @ c + L)], [-u[0], -u[1], 0.0, float(-u @ c + L)],
-            [v[0], v[1], 0.0, float(v @ c + W)], [-v[0], -v[1], 0.0, float(-v @ c + W)],
-            [0.0, 0.0, -1.0, -z_lo], [0.0, 0.0, 1.0, z_hi]]
+    return [
+        [u[0], u[1], 0.0, float(u @ c + L)],
+        [-u[0], -u[1], 0.0, float(-u @ c + L)],
+        [v[0], v[1], 0.0, float(v @ c + W)],
+        [-v[0], -v[1], 0.0, float(-v @ c + W)],
+        [0.0, 0.0, -1.0, -z_lo],
+        [0.0, 0.0, 1.0, z_hi],
+    ]
 
 
 def _gable_planes(rect, z_lo: float, eave: float, top: float) -> list[list[float]]:
@@ -99,24 +104,54 @@ def pack_scene(town: Town, epoch: Epoch | str) -> K.SceneArrays:
             else:
                 pl = _box_planes(part, z_lo, b.eave_m)
                 role = 0.0
-            add(K_POLY, C_BUILDING, pl, None, b.roof_rgb, b.wall_rgb,
+            add(
+                K_POLY,
+                C_BUILDING,
+                pl,
+                None,
+                b.roof_rgb,
+                b.wall_rgb,
                 [b.ground_m, 3.0, role, 1000 + b.building_id],
-                [xs.min(), ys.min(), z_lo, xs.max(), ys.max(), b.top_m])
+                [xs.min(), ys.min(), z_lo, xs.max(), ys.max(), b.top_m],
+            )
     for c in ep.cars:
         body = c.body
         u, _ = body.axes
         xs, ys = body.corners()[:, 0], body.corners()[:, 1]
         g = c.ground_m
-        add(K_POLY, C_CAR, _box_planes(body, g - 0.3, g + 0.95), None, c.rgb, c.rgb, [g, 3.0, 2.0, 50000 + c.car_id],
-            [xs.min(), ys.min(), g - 0.3, xs.max(), ys.max(), g + 0.95])
+        add(
+            K_POLY,
+            C_CAR,
+            _box_planes(body, g - 0.3, g + 0.95),
+            None,
+            c.rgb,
+            c.rgb,
+            [g, 3.0, 2.0, 50000 + c.car_id],
+            [xs.min(), ys.min(), g - 0.3, xs.max(), ys.max(), g + 0.95],
+        )
         cab = type(body)(body.cx - 0.25 * u[0], body.cy - 0.25 * u[1], 1.15, 0.78, body.angle)
-        add(K_POLY, C_CAR, _box_planes(cab, g + 0.5, g + c.height_m), None, c.rgb, c.rgb,
-            [g, 3.0, 3.0, 50000 + c.car_id], [xs.min(), ys.min(), g + 0.5, xs.max(), ys.max(), g + c.height_m])
+        add(
+            K_POLY,
+            C_CAR,
+            _box_planes(cab, g + 0.5, g + c.height_m),
+            None,
+            c.rgb,
+            c.rgb,
+            [g, 3.0, 3.0, 50000 + c.car_id],
+            [xs.min(), ys.min(), g + 0.5, xs.max(), ys.max(), g + c.height_m],
+        )
     for t in ep.trees:
         e = [t.cx, t.cy, t.crown_cz, t.crown_r, t.crown_rz]
-        add(K_ELLIPSOID, C_TREE, [], e, (t.tint, t.tint, t.tint), (0.0, 0.0, 0.0),
+        add(
+            K_ELLIPSOID,
+            C_TREE,
+            [],
+            e,
+            (t.tint, t.tint, t.tint),
+            (0.0, 0.0, 0.0),
             [t.ground_m, 3.0, 4.0, 90000 + t.tree_id],
-            [t.cx - t.crown_r, t.cy - t.crown_r, t.crown_cz - t.crown_rz, t.cx + t.crown_r, t.cy + t.crown_r, t.top_m])
+            [t.cx - t.crown_r, t.cy - t.crown_r, t.crown_cz - t.crown_rz, t.cx + t.crown_r, t.cy + t.crown_r, t.top_m],
+        )
     n = len(kinds)
     if n == 0:  # a dummy object far below the terrain keeps the arrays non-empty
         add(K_POLY, C_BUILDING, [], None, (0, 0, 0), (0, 0, 0), [0, 3, 0, 0], [0, 0, -1e6, 0, 0, -1e6])
@@ -138,22 +173,58 @@ def pack_scene(town: Town, epoch: Epoch | str) -> K.SceneArrays:
     start = np.zeros(gnx * gny + 1, dtype=np.int64)
     start[1:] = np.cumsum([len(c) for c in cells])
     items = np.array([k for c in cells for k in c], dtype=np.int64)
-    streets = np.array([[s.x0, s.y0, (s.x1 - s.x0) / math.hypot(s.x1 - s.x0, s.y1 - s.y0),
-                         (s.y1 - s.y0) / math.hypot(s.x1 - s.x0, s.y1 - s.y0), math.hypot(s.x1 - s.x0, s.y1 - s.y0),
-                         s.half_width, s.sidewalk_m] for s in town.streets], dtype=np.float64).reshape(-1, 7)
-    patches = np.array([[p.rect.cx, p.rect.cy, p.rect.half_len, p.rect.half_wid, p.rect.angle, p.material]
-                        for p in ep.patches], dtype=np.float64).reshape(-1, 6)
-    colours = np.array([ep.grass_rgb, ep.vegetation_rgb, (0.13, 0.13, 0.14), (0.36, 0.35, 0.33),
-                        (0.42, 0.34, 0.25), (0.80, 0.80, 0.78), (0.05, 0.06, 0.08), (0.16, 0.27, 0.09),
-                        (ep.vegetation_nir[0], ep.vegetation_nir[1], 0.0)], dtype=np.float64)
+    streets = np.array(
+        [
+            [
+                s.x0,
+                s.y0,
+                (s.x1 - s.x0) / math.hypot(s.x1 - s.x0, s.y1 - s.y0),
+                (s.y1 - s.y0) / math.hypot(s.x1 - s.x0, s.y1 - s.y0),
+                math.hypot(s.x1 - s.x0, s.y1 - s.y0),
+                s.half_width,
+                s.sidewalk_m,
+            ]
+            for s in town.streets
+        ],
+        dtype=np.float64,
+    ).reshape(-1, 7)
+    patches = np.array(
+        [[p.rect.cx, p.rect.cy, p.rect.half_len, p.rect.half_wid, p.rect.angle, p.material] for p in ep.patches],
+        dtype=np.float64,
+    ).reshape(-1, 6)
+    colours = np.array(
+        [
+            ep.grass_rgb,
+            ep.vegetation_rgb,
+            (0.13, 0.13, 0.14),
+            (0.36, 0.35, 0.33),
+            (0.42, 0.34, 0.25),
+            (0.80, 0.80, 0.78),
+            (0.05, 0.06, 0.08),
+            (0.16, 0.27, 0.09),
+            (ep.vegetation_nir[0], ep.vegetation_nir[1], 0.0),
+        ],
+        dtype=np.float64,
+    )
     zr = np.array([bbox[:, 2].min(), bbox[:, 5].max()])
     return K.SceneArrays(
-        terr=terr, terr_meta=terr_meta, kind=np.array(kinds, np.int64), cls=np.array(clss, np.int64),
-        planes=np.ascontiguousarray(np.array(planes, np.float64)), nplanes=np.array(npl, np.int64),
-        ell=np.array(ell, np.float64), rgb=np.array(rgb, np.float64), rgb2=np.array(rgb2, np.float64),
-        par=np.array(par, np.float64), grid_meta=np.array([gx0, gy0, gs, gnx, gny], np.float64),
-        grid_start=start, grid_items=items if items.size else np.zeros(1, np.int64), zrange=zr,
-        streets=streets, patches=patches, colours=colours,
+        terr=terr,
+        terr_meta=terr_meta,
+        kind=np.array(kinds, np.int64),
+        cls=np.array(clss, np.int64),
+        planes=np.ascontiguousarray(np.array(planes, np.float64)),
+        nplanes=np.array(npl, np.int64),
+        ell=np.array(ell, np.float64),
+        rgb=np.array(rgb, np.float64),
+        rgb2=np.array(rgb2, np.float64),
+        par=np.array(par, np.float64),
+        grid_meta=np.array([gx0, gy0, gs, gnx, gny], np.float64),
+        grid_start=start,
+        grid_items=items if items.size else np.zeros(1, np.int64),
+        zrange=zr,
+        streets=streets,
+        patches=patches,
+        colours=colours,
     )
 
 
@@ -167,8 +238,9 @@ def scene_z_band(S: K.SceneArrays, margin_m: float = 2.0) -> tuple[float, float]
 # ------------------------------------------------------------------------------------------
 # rays
 # ------------------------------------------------------------------------------------------
-def camera_rays(town: Town, camera: Camera, col: np.ndarray, row: np.ndarray,
-                z_band: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def camera_rays(
+    town: Town, camera: Camera, col: np.ndarray, row: np.ndarray, z_band: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays of image points in map space, clipped to the scene's height band.
 
     Returns
@@ -189,11 +261,24 @@ def camera_rays(town: Town, camera: Camera, col: np.ndarray, row: np.ndarray,
         A = np.empty((col.size, 3))
         D = np.empty((col.size, 3))
         L = np.empty(col.size)
-        K.enu_rays_to_map(np.ascontiguousarray(o), np.ascontiguousarray(d), z_top + 1.0 - fr.h0, z_bot - 1.0 - fr.h0,
-                          np.ascontiguousarray(coef), float(scale[0]), h0, A, D, L)
+        K.enu_rays_to_map(
+            np.ascontiguousarray(o),
+            np.ascontiguousarray(d),
+            z_top + 1.0 - fr.h0,
+            z_bot - 1.0 - fr.h0,
+            np.ascontiguousarray(coef),
+            float(scale[0]),
+            h0,
+            A,
+            D,
+            L,
+        )
         return A, D, L
-    elif (kind == "frame" and getattr(camera, "vertical_datum", None) == "ellipsoid"
-          and camera.crs.equals(fr.crs, ignore_axis_order=True)):
+    elif (
+        kind == "frame"
+        and getattr(camera, "vertical_datum", None) == "ellipsoid"
+        and camera.crs.equals(fr.crs, ignore_axis_order=True)
+    ):
         d = camera.rays_world(col, row).T  # (N, 3) map-space directions, z-component < 0 looking down
         P = np.array(camera.position, float) - np.array([fr.e0, fr.n0, 0.0])
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -268,9 +353,17 @@ class RenderResult:
     seconds: float = 0.0
 
 
-def render_view(town: Town, epoch: str, camera: Camera, sun_enu: np.ndarray, params: RenderParams = RenderParams(),
-                *, scene: K.SceneArrays | None = None, window: tuple[int, int, int, int] | None = None,
-                progress: Callable | None = None) -> RenderResult:
+def render_view(
+    town: Town,
+    epoch: str,
+    camera: Camera,
+    sun_enu: np.ndarray,
+    params: RenderParams = RenderParams(),
+    *,
+    scene: K.SceneArrays | None = None,
+    window: tuple[int, int, int, int] | None = None,
+    progress: Callable | None = None,
+) -> RenderResult:
     """Render the radiance an ideal sensor would integrate over each pixel of ``camera``.
 
     Parameters
@@ -320,8 +413,14 @@ def render_view(town: Town, epoch: str, camera: Camera, sun_enu: np.ndarray, par
     return RenderResult(out, k * k, time.perf_counter() - t_start)
 
 
-def trace_view(town: Town, camera: Camera, scene: K.SceneArrays, cols: np.ndarray, rows: np.ndarray,
-               z_band: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def trace_view(
+    town: Town,
+    camera: Camera,
+    scene: K.SceneArrays,
+    cols: np.ndarray,
+    rows: np.ndarray,
+    z_band: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """First hits (map-space points (N, 3), object index (N,)) of the rays through image points."""
     band = z_band or scene_z_band(scene)
     o, d, tm = camera_rays(town, camera, cols, rows, band)
@@ -335,8 +434,9 @@ def trace_view(town: Town, camera: Camera, scene: K.SceneArrays, cols: np.ndarra
     return p, ob
 
 
-def surface_height(scene: K.SceneArrays, x: np.ndarray, y: np.ndarray,
-                   return_object: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+def surface_height(
+    scene: K.SceneArrays, x: np.ndarray, y: np.ndarray, return_object: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Height of the first surface seen from straight above at map points (x, y): the DSM.
 
     With ``return_object`` also the object index hit (−1 = terrain).
@@ -411,8 +511,8 @@ def to_sensor_counts(radiance: np.ndarray, radiometry: SensorRadiometry, rng: np
     if r.gamma != 1.0:
         img = np.clip(img, 0, None) ** (1.0 / r.gamma)
     counts = r.gain * img + r.dark
-    sigma = np.sqrt(np.clip(counts, 0, None) / r.electrons_per_count + r.read_noise ** 2)
+    sigma = np.sqrt(np.clip(counts, 0, None) / r.electrons_per_count + r.read_noise**2)
     counts = counts + sigma * rng.standard_normal(counts.shape)
-    top = 2 ** r.nbits - 1
+    top = 2**r.nbits - 1
     out = np.clip(np.rint(counts), 0, top)
     return out.astype(np.uint8 if r.nbits <= 8 else np.uint16)

@@ -134,9 +134,30 @@ class SceneFrame:
 
 def _cubic_terms(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     one = np.ones_like(a)
-    return np.stack([one, a, b, c, a * a, b * b, c * c, a * b, a * c, b * c,
-                     a ** 3, b ** 3, c ** 3, a * a * b, a * a * c, b * b * a, b * b * c, c * c * a, c * c * b,
-                     a * b * c])
+    return np.stack(
+        [
+            one,
+            a,
+            b,
+            c,
+            a * a,
+            b * b,
+            c * c,
+            a * b,
+            a * c,
+            b * c,
+            a**3,
+            b**3,
+            c**3,
+            a * a * b,
+            a * a * c,
+            b * b * a,
+            b * b * c,
+            c * c * a,
+            c * c * b,
+            a * b * c,
+        ]
+    )
 
 
 # ------------------------------------------------------------------------------------------
@@ -296,8 +317,12 @@ class Terrain:
         a = fj - j
         b = fi - i
         H = self.height_m
-        return ((1 - a) * (1 - b) * H[i, j] + a * (1 - b) * H[i, j + 1] + (1 - a) * b * H[i + 1, j]
-                + a * b * H[i + 1, j + 1])
+        return (
+            (1 - a) * (1 - b) * H[i, j]
+            + a * (1 - b) * H[i, j + 1]
+            + (1 - a) * b * H[i + 1, j]
+            + a * b * H[i + 1, j + 1]
+        )
 
 
 @dataclass(frozen=True)
@@ -426,11 +451,26 @@ class Town:
 # ------------------------------------------------------------------------------------------
 # generation
 # ------------------------------------------------------------------------------------------
-_ROOF_COLOURS = [(0.62, 0.30, 0.22), (0.55, 0.26, 0.20), (0.40, 0.40, 0.42), (0.30, 0.31, 0.34),
-                 (0.70, 0.68, 0.62), (0.50, 0.47, 0.44), (0.25, 0.22, 0.22), (0.58, 0.52, 0.40)]
+_ROOF_COLOURS = [
+    (0.62, 0.30, 0.22),
+    (0.55, 0.26, 0.20),
+    (0.40, 0.40, 0.42),
+    (0.30, 0.31, 0.34),
+    (0.70, 0.68, 0.62),
+    (0.50, 0.47, 0.44),
+    (0.25, 0.22, 0.22),
+    (0.58, 0.52, 0.40),
+]
 _WALL_COLOURS = [(0.78, 0.74, 0.66), (0.85, 0.82, 0.76), (0.70, 0.62, 0.52), (0.66, 0.66, 0.66), (0.80, 0.70, 0.60)]
-_CAR_COLOURS = [(0.80, 0.80, 0.82), (0.08, 0.08, 0.09), (0.55, 0.08, 0.07), (0.12, 0.20, 0.45), (0.45, 0.46, 0.48),
-                (0.85, 0.85, 0.80), (0.20, 0.30, 0.22)]
+_CAR_COLOURS = [
+    (0.80, 0.80, 0.82),
+    (0.08, 0.08, 0.09),
+    (0.55, 0.08, 0.07),
+    (0.12, 0.20, 0.45),
+    (0.45, 0.46, 0.48),
+    (0.85, 0.85, 0.80),
+    (0.20, 0.30, 0.22),
+]
 
 
 def _terrain(rng: np.random.Generator, extent, step: float, relief: float, base: float) -> Terrain:
@@ -497,8 +537,9 @@ def build_town(p: TownParams) -> Town:
     m = p.margin_m
     extent = (-half - m, -half - m, half + m, half + m)
     frame = SceneFrame.at(p.center_lon, p.center_lat, p.base_height_m)
-    terrain = _terrain(rng, (extent[0] - 40, extent[1] - 40, extent[2] + 40, extent[3] + 40), 0.5, p.relief_m,
-                       p.base_height_m)
+    terrain = _terrain(
+        rng, (extent[0] - 40, extent[1] - 40, extent[2] + 40, extent[3] + 40), 0.5, p.relief_m, p.base_height_m
+    )
 
     # --- streets and lots -------------------------------------------------------------------
     angle = math.radians(rng.uniform(8.0, 25.0))
@@ -550,8 +591,11 @@ def build_town(p: TownParams) -> Town:
             if along:
                 parts = (Rect(float(c[0]), float(c[1]), L, W, lot.angle),)
             else:
-                parts = (Rect(float(c[0]), float(c[1]), L, W, lot.angle + math.pi / 2),) if W <= Lmax and L <= Wmax \
+                parts = (
+                    (Rect(float(c[0]), float(c[1]), L, W, lot.angle + math.pi / 2),)
+                    if W <= Lmax and L <= Wmax
                     else (Rect(float(c[0]), float(c[1]), L, W, lot.angle),)
+                )
             storeys = int(rng.integers(1, 3))
             roof, rise = "gabled", float(rng.uniform(2.2, 3.6))
         elif k == "block":
@@ -653,8 +697,11 @@ def build_town(p: TownParams) -> Town:
             parking += sp
             bid += 1
     # --- trees ---------------------------------------------------------------------------------
-    occupied = unary_union([b.polygon().buffer(1.5) for b in buildings] + [road_union.buffer(-sw + 0.5)]
-                           + [q.rect.polygon().buffer(0.5) for q in patches_a])
+    occupied = unary_union(
+        [b.polygon().buffer(1.5) for b in buildings]
+        + [road_union.buffer(-sw + 0.5)]
+        + [q.rect.polygon().buffer(0.5) for q in patches_a]
+    )
     trees: list[Tree] = []
     n_trees = int(round(140 * ((p.size_m + 2 * m) / 380.0) ** 2))
     tid = 1
@@ -677,8 +724,18 @@ def build_town(p: TownParams) -> Town:
         if any(math.hypot(t.cx - x, t.cy - y) < t.crown_r + r + 0.5 for t in trees):
             continue
         rz = float(r * rng.uniform(0.9, 1.4))
-        trees.append(Tree(tid, float(x), float(y), r, rz, float(rng.uniform(1.5, 3.5)),
-                          float(terrain.at(x, y)), float(rng.uniform(0.85, 1.15))))
+        trees.append(
+            Tree(
+                tid,
+                float(x),
+                float(y),
+                r,
+                rz,
+                float(rng.uniform(1.5, 3.5)),
+                float(terrain.at(x, y)),
+                float(rng.uniform(0.85, 1.15)),
+            )
+        )
         tid += 1
     # --- cars: parked along the kerbs ----------------------------------------------------------
     cars: list[Car] = []
@@ -744,8 +801,9 @@ def build_town(p: TownParams) -> Town:
             b_list = [x for x in b_list if x.building_id != b.building_id]
             changes.append(Change("demolished", b.building_id, True, -(b.top_m - b.ground_m)))
             for part in b.parts:
-                patches_b.insert(0, Patch(Rect(part.cx, part.cy, part.half_len + 0.8, part.half_wid + 0.8, part.angle),
-                                          M_SOIL))
+                patches_b.insert(
+                    0, Patch(Rect(part.cx, part.cy, part.half_len + 0.8, part.half_wid + 0.8, part.angle), M_SOIL)
+                )
     if "raised" in p.changes:
         for b in pick(lambda b: b.storeys <= 5, p.n_raised):
             k = int(rng.integers(1, 3))
@@ -802,8 +860,9 @@ def build_town(p: TownParams) -> Town:
                 d = rng.choice([-1, 1]) * rng.uniform(5.5, 9.0)
                 nc = np.array([c.body.cx, c.body.cy]) + d * u_
                 body = replace(c.body, cx=float(nc[0]), cy=float(nc[1]))
-                if (any(body.polygon().buffer(0.4).intersects(o.body.polygon()) for o in cars_b if o.car_id != c.car_id)
-                        or any(body.polygon().buffer(0.5).intersects(bb.polygon()) for bb in b_list)):
+                if any(
+                    body.polygon().buffer(0.4).intersects(o.body.polygon()) for o in cars_b if o.car_id != c.car_id
+                ) or any(body.polygon().buffer(0.5).intersects(bb.polygon()) for bb in b_list):
                     cars_b.remove(c)
                     changes.append(Change("car_removed", c.car_id, True, -c.height_m))
                     continue
@@ -812,9 +871,14 @@ def build_town(p: TownParams) -> Town:
             else:
                 # replaced by another car of another colour at the same place
                 col = _CAR_COLOURS[(int(rng.integers(len(_CAR_COLOURS))))]
-                cars_b[cars_b.index(c)] = replace(c, car_id=cid, rgb=tuple(map(float, col)),
-                                                  body=replace(c.body, cx=c.body.cx + 0.6 * math.cos(c.body.angle),
-                                                               cy=c.body.cy + 0.6 * math.sin(c.body.angle)))
+                cars_b[cars_b.index(c)] = replace(
+                    c,
+                    car_id=cid,
+                    rgb=tuple(map(float, col)),
+                    body=replace(
+                        c.body, cx=c.body.cx + 0.6 * math.cos(c.body.angle), cy=c.body.cy + 0.6 * math.sin(c.body.angle)
+                    ),
+                )
                 changes.append(Change("car_replaced", cid, True, 0.0, f"car {c.car_id} replaced by {cid}"))
                 cid += 1
     if "trees" in p.changes:
@@ -833,8 +897,9 @@ def build_town(p: TownParams) -> Town:
             x, y = rng.uniform(aoi[0] + 8, aoi[2] - 8), rng.uniform(aoi[1] + 8, aoi[3] - 8)
             r = float(rng.uniform(2.5, 3.5))
             disk = Point(x, y).buffer(r)
-            if occupied_b.intersects(disk) or any(math.hypot(t.cx - x, t.cy - y) < t.crown_r + r + 1.0
-                                                  for t in trees_b + list(trees)):
+            if occupied_b.intersects(disk) or any(
+                math.hypot(t.cx - x, t.cy - y) < t.crown_r + r + 1.0 for t in trees_b + list(trees)
+            ):
                 continue
             nt = Tree(tid, float(x), float(y), r, r * 1.2, 2.5, float(terrain.at(x, y)), 1.0)
             trees_b.append(nt)

@@ -58,10 +58,22 @@ def sun_position(lon: float, lat: float, when_utc: _dt.datetime) -> tuple[float,
     doy = when_utc.timetuple().tm_yday
     hour = when_utc.hour + when_utc.minute / 60.0 + when_utc.second / 3600.0
     g = 2.0 * math.pi / 365.0 * (doy - 1 + (hour - 12.0) / 24.0)
-    eqtime = 229.18 * (0.000075 + 0.001868 * math.cos(g) - 0.032077 * math.sin(g)
-                       - 0.014615 * math.cos(2 * g) - 0.040849 * math.sin(2 * g))
-    decl = (0.006918 - 0.399912 * math.cos(g) + 0.070257 * math.sin(g) - 0.006758 * math.cos(2 * g)
-            + 0.000907 * math.sin(2 * g) - 0.002697 * math.cos(3 * g) + 0.00148 * math.sin(3 * g))
+    eqtime = 229.18 * (
+        0.000075
+        + 0.001868 * math.cos(g)
+        - 0.032077 * math.sin(g)
+        - 0.014615 * math.cos(2 * g)
+        - 0.040849 * math.sin(2 * g)
+    )
+    decl = (
+        0.006918
+        - 0.399912 * math.cos(g)
+        + 0.070257 * math.sin(g)
+        - 0.006758 * math.cos(2 * g)
+        + 0.000907 * math.sin(2 * g)
+        - 0.002697 * math.cos(3 * g)
+        + 0.00148 * math.sin(3 * g)
+    )
     tst = hour * 60.0 + eqtime + 4.0 * lon  # true solar time, minutes
     ha = math.radians(tst / 4.0 - 180.0)
     phi = math.radians(lat)
@@ -230,9 +242,13 @@ class PushbroomCamera(Camera):
         g_fr = LocalFrame(lon, lat, h)
         se, sn, su = g_fr.to_enu(float(lon_s), float(lat_s), float(h_s))
         az = math.degrees(math.atan2(float(se), float(sn))) % 360.0
-        return {"off_nadir_deg": off, "incidence_deg": inc, "view_azimuth_deg": az,
-                "satellite_height_m": float(h_s),
-                "slant_range_m": float(np.linalg.norm(o - np.array([e, n, u]).ravel()))}
+        return {
+            "off_nadir_deg": off,
+            "incidence_deg": inc,
+            "view_azimuth_deg": az,
+            "satellite_height_m": float(h_s),
+            "slant_range_m": float(np.linalg.norm(o - np.array([e, n, u]).ravel())),
+        }
 
     # --- serialisation ----------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -246,8 +262,20 @@ class PushbroomCamera(Camera):
 
     @classmethod
     def from_dict(cls, d: dict) -> "PushbroomCamera":
-        keys = ("lon0", "lat0", "h0", "p0_enu", "velocity_enu", "x_axis", "y_axis", "z_axis", "ifov_rad",
-                "line_period_s", "col0", "row0")
+        keys = (
+            "lon0",
+            "lat0",
+            "h0",
+            "p0_enu",
+            "velocity_enu",
+            "x_axis",
+            "y_axis",
+            "z_axis",
+            "ifov_rad",
+            "line_period_s",
+            "col0",
+            "row0",
+        )
         missing = [k for k in keys if k not in d]
         if missing:
             raise CameraError(f"pushbroom camera description lacks {missing}")
@@ -255,8 +283,7 @@ class PushbroomCamera(Camera):
 
     def __repr__(self) -> str:  # pragma: no cover - cosmetic
         i = self.info
-        return (f"<PushbroomCamera {self.width}x{self.height} along={i.get('along_deg')} "
-                f"across={i.get('across_deg')}>")
+        return f"<PushbroomCamera {self.width}x{self.height} along={i.get('along_deg')} across={i.get('across_deg')}>"
 
 
 def _up_in_frame(fr: LocalFrame, lon: float, lat: float) -> np.ndarray:
@@ -266,9 +293,20 @@ def _up_in_frame(fr: LocalFrame, lon: float, lat: float) -> np.ndarray:
     return fr._rot @ up_ecef
 
 
-def make_pushbroom(lon0: float, lat0: float, h0: float, *, along_deg: float, across_deg: float,
-                   heading_deg: float = 192.0, altitude_m: float = 620e3, gsd_m: float = 0.5,
-                   cover_lonlath: np.ndarray | None = None, margin_px: int = 8, name: str = "") -> PushbroomCamera:
+def make_pushbroom(
+    lon0: float,
+    lat0: float,
+    h0: float,
+    *,
+    along_deg: float,
+    across_deg: float,
+    heading_deg: float = 192.0,
+    altitude_m: float = 620e3,
+    gsd_m: float = 0.5,
+    cover_lonlath: np.ndarray | None = None,
+    margin_px: int = 8,
+    name: str = "",
+) -> PushbroomCamera:
     """Build a pushbroom view of the point (lon0, lat0, h0).
 
     Parameters
@@ -352,8 +390,15 @@ def make_pushbroom(lon0: float, lat0: float, h0: float, *, along_deg: float, acr
         cmin, cmax = math.floor(cc.min()) - margin_px, math.ceil(cc.max()) + margin_px
         rmin, rmax = math.floor(rr.min()) - margin_px, math.ceil(rr.max()) + margin_px
         c0, r0, w, hgt = -float(cmin), -float(rmin), int(cmax - cmin), int(rmax - rmin)
-    info = {"name": name, "along_deg": along_deg, "across_deg": across_deg, "heading_deg": heading_deg,
-            "altitude_m": altitude_m, "gsd_m": gsd_m, "orbit_speed_m_s": v}
+    info = {
+        "name": name,
+        "along_deg": along_deg,
+        "across_deg": across_deg,
+        "heading_deg": heading_deg,
+        "altitude_m": altitude_m,
+        "gsd_m": gsd_m,
+        "orbit_speed_m_s": v,
+    }
     cam = PushbroomCamera(lon0, lat0, h0, S, V, x, y, z, ifov, dt, c0, r0, w, hgt, info)
     ang = cam.view_angles(lon0, lat0, h0)
     info.update({k: round(v_, 6) for k, v_ in ang.items()})

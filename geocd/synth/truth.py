@@ -29,8 +29,7 @@ from ..camera.base import Camera
 from ..geodesy import AOIGrid
 from . import _kernels as K
 from .render import camera_rays, scene_z_band, surface_height
-from .scene import (C_BUILDING, C_CAR, C_TREE, M_ASPHALT, M_GRASS, M_MARKING, M_PAVEMENT, M_SOIL, Town,
-                    building_status)
+from .scene import C_BUILDING, C_CAR, C_TREE, M_ASPHALT, M_GRASS, M_MARKING, M_PAVEMENT, M_SOIL, Town, building_status
 
 #: change-mask threshold on |ΔDSM| (metres) and minimum region area (m²), unless given
 CHANGE_THRESHOLD_M = 1.0
@@ -99,8 +98,14 @@ def write_cover_truth(truth_dir, town: Town, scenes: dict, grid: AOIGrid) -> lis
     out = []
     for ep, sc in scenes.items():
         p = Path(truth_dir) / f"cover_{ep}.tif"
-        write_cog(p, surface_cover(town, sc, grid), grid, dtype="uint8", nodata=0,
-                  tags={"content": f"surface cover seen from above, epoch {ep}: {legend}; vegetation = grass or tree"})
+        write_cog(
+            p,
+            surface_cover(town, sc, grid),
+            grid,
+            dtype="uint8",
+            nodata=0,
+            tags={"content": f"surface cover seen from above, epoch {ep}: {legend}; vegetation = grass or tree"},
+        )
         out.append(p)
     return out
 
@@ -111,9 +116,15 @@ def bare_dem(town: Town, grid: AOIGrid) -> np.ndarray:
     return town.terrain.at(x, y)
 
 
-def change_products(dsm_a: np.ndarray, dsm_b: np.ndarray, cls_a: np.ndarray, cls_b: np.ndarray, posting_m: float,
-                    threshold_m: float = CHANGE_THRESHOLD_M,
-                    min_area_m2: float = MIN_CHANGE_AREA_M2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def change_products(
+    dsm_a: np.ndarray,
+    dsm_b: np.ndarray,
+    cls_a: np.ndarray,
+    cls_b: np.ndarray,
+    posting_m: float,
+    threshold_m: float = CHANGE_THRESHOLD_M,
+    min_area_m2: float = MIN_CHANGE_AREA_M2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """3-D change mask from two exact DSMs.
 
     Returns
@@ -139,8 +150,9 @@ def change_products(dsm_a: np.ndarray, dsm_b: np.ndarray, cls_a: np.ndarray, cls
     return m.astype(np.uint8), cls, sign
 
 
-def non3d_mask(town: Town, scene_a: K.SceneArrays, scene_b: K.SceneArrays, grid: AOIGrid,
-               change_mask: np.ndarray) -> np.ndarray:
+def non3d_mask(
+    town: Town, scene_a: K.SceneArrays, scene_b: K.SceneArrays, grid: AOIGrid, change_mask: np.ndarray
+) -> np.ndarray:
     """Cells whose appearance changes with no 3-D change: 1 repainted roof, 2 vegetation (season)."""
     x, y = _grid_xy(town, grid)
     _, ob_a = surface_height(scene_a, x, y, return_object=True)
@@ -151,8 +163,12 @@ def non3d_mask(town: Town, scene_a: K.SceneArrays, scene_b: K.SceneArrays, grid:
         mat = np.empty(x.size, np.int64)
         K.ground_material_many(scene_a, np.ascontiguousarray(x.ravel()), np.ascontiguousarray(y.ravel()), mat)
         grass = (ob_a == -1) & (ob_b == -1) & (mat.reshape(x.shape) == M_GRASS)
-        trees = ((ob_a >= 0) & (scene_a.cls[np.maximum(ob_a, 0)] == C_TREE)
-                 & (ob_b >= 0) & (scene_b.cls[np.maximum(ob_b, 0)] == C_TREE))
+        trees = (
+            (ob_a >= 0)
+            & (scene_a.cls[np.maximum(ob_a, 0)] == C_TREE)
+            & (ob_b >= 0)
+            & (scene_b.cls[np.maximum(ob_b, 0)] == C_TREE)
+        )
         out[grass | trees] = NON3D_CODES["vegetation_season"]
     if repainted:
         bid_a = np.where(ob_a >= 0, scene_a.par[np.maximum(ob_a, 0), 3] - 1000, -1)
@@ -163,9 +179,16 @@ def non3d_mask(town: Town, scene_a: K.SceneArrays, scene_b: K.SceneArrays, grid:
     return out
 
 
-def image_change_mask(town: Town, camera: Camera, scene_a: K.SceneArrays, scene_b: K.SceneArrays, *,
-                      threshold_m: float = CHANGE_THRESHOLD_M, supersample: int = 2,
-                      block_rows: int = 128) -> tuple[np.ndarray, np.ndarray]:
+def image_change_mask(
+    town: Town,
+    camera: Camera,
+    scene_a: K.SceneArrays,
+    scene_b: K.SceneArrays,
+    *,
+    threshold_m: float = CHANGE_THRESHOLD_M,
+    supersample: int = 2,
+    block_rows: int = 128,
+) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of ``camera``'s image that see a 3-D change between the two epochs.
 
     Returns
@@ -211,13 +234,22 @@ def footprints_frame(town: Town, epoch: str):
     rows = []
     for b in town.epochs[epoch].buildings:
         poly = translate(b.polygon(), town.frame.e0, town.frame.n0)
-        rows.append({
-            "building_id": int(b.building_id), "status": status[b.building_id], "kind": b.kind, "roof": b.roof,
-            "storeys": int(b.storeys), "ground_m": round(b.ground_m, 3), "eave_m": round(b.eave_m, 3),
-            "top_m": round(b.top_m, 3), "height_m": round(b.top_m - b.ground_m, 3),
-            "dz_m": round(float(dz.get(b.building_id, 0.0)), 3), "repainted": int(b.building_id in repainted),
-            "geometry": poly,
-        })
+        rows.append(
+            {
+                "building_id": int(b.building_id),
+                "status": status[b.building_id],
+                "kind": b.kind,
+                "roof": b.roof,
+                "storeys": int(b.storeys),
+                "ground_m": round(b.ground_m, 3),
+                "eave_m": round(b.eave_m, 3),
+                "top_m": round(b.top_m, 3),
+                "height_m": round(b.top_m - b.ground_m, 3),
+                "dz_m": round(float(dz.get(b.building_id, 0.0)), 3),
+                "repainted": int(b.building_id in repainted),
+                "geometry": poly,
+            }
+        )
     return gpd.GeoDataFrame(rows, geometry="geometry", crs=town.frame.crs.to_wkt())
 
 
@@ -244,12 +276,23 @@ def objects_frame(town: Town, epoch: str, what: str):
     rows = []
     if what == "trees":
         for t in ep.trees:
-            rows.append({"tree_id": t.tree_id, "crown_r_m": round(t.crown_r, 3), "top_m": round(t.top_m, 3),
-                         "geometry": translate(Point(t.cx, t.cy).buffer(t.crown_r, 16), town.frame.e0, town.frame.n0)})
+            rows.append(
+                {
+                    "tree_id": t.tree_id,
+                    "crown_r_m": round(t.crown_r, 3),
+                    "top_m": round(t.top_m, 3),
+                    "geometry": translate(Point(t.cx, t.cy).buffer(t.crown_r, 16), town.frame.e0, town.frame.n0),
+                }
+            )
     elif what == "cars":
         for c in ep.cars:
-            rows.append({"car_id": c.car_id, "height_m": c.height_m,
-                         "geometry": translate(c.body.polygon(), town.frame.e0, town.frame.n0)})
+            rows.append(
+                {
+                    "car_id": c.car_id,
+                    "height_m": c.height_m,
+                    "geometry": translate(c.body.polygon(), town.frame.e0, town.frame.n0),
+                }
+            )
     else:
         raise ValueError(f"what must be 'trees' or 'cars', got {what!r}")
     return gpd.GeoDataFrame(rows, geometry="geometry", crs=town.frame.crs.to_wkt())
@@ -262,8 +305,9 @@ def building_corners_lonlath(town: Town, epoch: str) -> tuple[np.ndarray, np.nda
     return pts, lon, lat, pts[:, 2]
 
 
-def corner_check(town: Town, epoch: str, scene: K.SceneArrays, camera: Camera, model: Camera,
-                 tol_m: float = 0.01) -> dict:
+def corner_check(
+    town: Town, epoch: str, scene: K.SceneArrays, camera: Camera, model: Camera, tol_m: float = 0.01
+) -> dict:
     """Truth building corners through ``model`` (e.g. the written RPC) vs where the renderer drew them.
 
     For every roof corner X (eave corners and ridge ends), the renderer's own
@@ -293,8 +337,9 @@ def corner_check(town: Town, epoch: str, scene: K.SceneArrays, camera: Camera, m
     mc, mr = model.project(lon[vis], lat[vis], h[vis])
     err = np.hypot(mc - col[vis], mr - row[vis])
     return {
-        "n_corners": int(inside.sum()), "n_visible": int(vis.sum()),
+        "n_corners": int(inside.sum()),
+        "n_visible": int(vis.sum()),
         "max_px": float(err.max()) if err.size else float("nan"),
-        "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else float("nan"),
+        "rms_px": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
         "max_ray_miss_m": float(miss[vis].max()) if vis.any() else float("nan"),
     }

@@ -27,8 +27,9 @@ from typing import Any, Callable, Iterable, Iterator
 from ..errors import CancelledError, ConfigError, ProcessingError, SchedulerError
 
 LOCAL_KINDS = ("sync", "threads", "processes", "auto")
-SCHEDULER_HELP = ("sync | threads | processes | auto | ADDRESS of a running dask.distributed scheduler "
-                  "(e.g. tcp://127.0.0.1:8786)")
+SCHEDULER_HELP = (
+    "sync | threads | processes | auto | ADDRESS of a running dask.distributed scheduler (e.g. tcp://127.0.0.1:8786)"
+)
 
 
 def usable_cores() -> int:
@@ -82,8 +83,15 @@ class Engine:
             return "sync (this process)"
         return f"{self.kind}: {self.n_workers} worker(s) at {self.client.scheduler.address}"
 
-    def map_unordered(self, fn: Callable[..., Any], items: Iterable[Any], *, shared: Any = None,
-                      max_in_flight: int | None = None, key_prefix: str = "geocd-tile") -> Iterator[tuple[Any, Any]]:
+    def map_unordered(
+        self,
+        fn: Callable[..., Any],
+        items: Iterable[Any],
+        *,
+        shared: Any = None,
+        max_in_flight: int | None = None,
+        key_prefix: str = "geocd-tile",
+    ) -> Iterator[tuple[Any, Any]]:
         """Yield ``(item, fn(item, shared))`` as tasks finish (in order for ``sync``).
 
         ``shared`` (e.g. a whole-scene model) is sent to the workers once, not with every task.
@@ -129,7 +137,8 @@ class Engine:
                     if isinstance(exc, KilledWorker):
                         raise ProcessingError(
                             f"a worker died while processing a tile ({exc}); it probably ran out of memory: give "
-                            "workers more memory (--memory-limit) or use smaller tiles (--tile-size)") from exc
+                            "workers more memory (--memory-limit) or use smaller tiles (--tile-size)"
+                        ) from exc
                     raise
                 finally:
                     f.release()
@@ -153,8 +162,9 @@ class Engine:
 
 
 @contextlib.contextmanager
-def open_engine(scheduler: "str | Engine | None" = "auto", *, n_workers: int | None = None,
-                memory_limit: str | int | None = None) -> Iterator[Engine]:
+def open_engine(
+    scheduler: "str | Engine | None" = "auto", *, n_workers: int | None = None, memory_limit: str | int | None = None
+) -> Iterator[Engine]:
     """An :class:`Engine` for ``scheduler`` (see module docstring); an Engine passes through unchanged."""
     if isinstance(scheduler, Engine):
         yield scheduler
@@ -175,9 +185,11 @@ def open_engine(scheduler: "str | Engine | None" = "auto", *, n_workers: int | N
             try:
                 client = Client(s, timeout="15s")
             except (OSError, TimeoutError) as exc:
-                raise SchedulerError(f"cannot reach the dask scheduler at {s} ({exc}); start it with "
-                                     f"`dask scheduler` and workers with `dask worker {s}`, or use "
-                                     "--scheduler processes for this machine only") from exc
+                raise SchedulerError(
+                    f"cannot reach the dask scheduler at {s} ({exc}); start it with "
+                    f"`dask scheduler` and workers with `dask worker {s}`, or use "
+                    "--scheduler processes for this machine only"
+                ) from exc
             nw = len(client.scheduler_info().get("workers", {}))
             if nw == 0:
                 client.wait_for_workers(1, timeout=60)
@@ -194,13 +206,25 @@ def open_engine(scheduler: "str | Engine | None" = "auto", *, n_workers: int | N
             mem = parse_memory(memory_limit)
             if s == "threads":
                 mem = mem or int(0.8 * MEMORY_LIMIT)
-                cluster = LocalCluster(n_workers=1, threads_per_worker=nw, processes=False, memory_limit=mem,
-                                       dashboard_address=None, silence_logs=logging.ERROR)
+                cluster = LocalCluster(
+                    n_workers=1,
+                    threads_per_worker=nw,
+                    processes=False,
+                    memory_limit=mem,
+                    dashboard_address=None,
+                    silence_logs=logging.ERROR,
+                )
                 kind = "threads"
             else:
                 mem = mem or int(0.8 * MEMORY_LIMIT / nw)
-                cluster = LocalCluster(n_workers=nw, threads_per_worker=1, processes=True, memory_limit=mem,
-                                       dashboard_address=None, silence_logs=logging.ERROR)
+                cluster = LocalCluster(
+                    n_workers=nw,
+                    threads_per_worker=1,
+                    processes=True,
+                    memory_limit=mem,
+                    dashboard_address=None,
+                    silence_logs=logging.ERROR,
+                )
                 kind = "processes"
             client = Client(cluster)
             eng = Engine(kind, nw, client, cluster)
@@ -234,9 +258,19 @@ def _check_versions(client) -> None:
         return
     bad = {w: v for w, v in vs.items() if v != __version__}
     if bad:
-        raise SchedulerError(f"the dask workers run geocd {sorted(set(map(str, bad.values())))} but this is geocd "
-                             f"{__version__}; install the same geocd on every worker")
+        raise SchedulerError(
+            f"the dask workers run geocd {sorted(set(map(str, bad.values())))} but this is geocd "
+            f"{__version__}; install the same geocd on every worker"
+        )
 
 
-__all__ = ["Engine", "open_engine", "usable_cores", "parse_memory", "is_address", "LOCAL_KINDS", "SCHEDULER_HELP",
-           "CancelledError"]
+__all__ = [
+    "Engine",
+    "open_engine",
+    "usable_cores",
+    "parse_memory",
+    "is_address",
+    "LOCAL_KINDS",
+    "SCHEDULER_HELP",
+    "CancelledError",
+]

@@ -200,8 +200,11 @@ class TileGrid:
         r0, c0, h, w = window
         if self.selected is None or not self.merge_runs:
             return [t for t in self.tiles_in(window) if self.is_selected(t)]
-        return [t for t in self.units() if t.core[0] < r0 + h and r0 < t.core[0] + t.core[2]
-                and t.core[1] < c0 + w and c0 < t.core[1] + t.core[3]]
+        return [
+            t
+            for t in self.units()
+            if t.core[0] < r0 + h and r0 < t.core[0] + t.core[2] and t.core[1] < c0 + w and c0 < t.core[1] + t.core[3]
+        ]
 
     def tiles_in(self, window: tuple[int, int, int, int]) -> Iterator[Tile]:
         """Tiles whose core intersects ``window`` (row0, col0, height, width), selected or not."""

@@ -39,9 +39,17 @@ class TileRegions:
     labels: np.ndarray | None = None
 
 
-def tile_regions(sign: np.ndarray, dz_m: np.ndarray, tile: Tile, grid: AOIGrid, *, sigma: np.ndarray | None = None,
-                 confidence: np.ndarray | None = None, polygons: bool = True,
-                 sums: dict[str, np.ndarray] | None = None) -> TileRegions:
+def tile_regions(
+    sign: np.ndarray,
+    dz_m: np.ndarray,
+    tile: Tile,
+    grid: AOIGrid,
+    *,
+    sigma: np.ndarray | None = None,
+    confidence: np.ndarray | None = None,
+    polygons: bool = True,
+    sums: dict[str, np.ndarray] | None = None,
+) -> TileRegions:
     """Label the +1 and −1 regions of a tile's core (``sign`` and ``dz_m`` on the core) and summarise them.
 
     ``sums``: further per-cell values (on the core) summed per region (added up across seams)."""
@@ -52,7 +60,7 @@ def tile_regions(sign: np.ndarray, dz_m: np.ndarray, tile: Tile, grid: AOIGrid, 
     dz = np.asarray(dz_m, np.float64)
     fin = np.isfinite(dz)
     dzf = np.where(fin, dz, 0.0)
-    lin = (np.arange(r0, r0 + h, dtype=np.int64)[:, None] * grid.width + np.arange(c0, c0 + w)[None, :])
+    lin = np.arange(r0, r0 + h, dtype=np.int64)[:, None] * grid.width + np.arange(c0, c0 + w)[None, :]
     core_grid = grid.subgrid(r0, c0, h, w)
     out.labels = np.zeros((h, w), np.int32)
     for s in (1, -1):
@@ -63,9 +71,11 @@ def tile_regions(sign: np.ndarray, dz_m: np.ndarray, tile: Tile, grid: AOIGrid, 
         li = lab.ravel()
         k = n + 1
         cnt = np.bincount(li, minlength=k)
-        st = {"n": cnt[1:].astype(np.int64),
-              "sum": np.bincount(li, weights=dzf.ravel(), minlength=k)[1:],
-              "nfin": np.bincount(li, weights=fin.ravel().astype(np.float64), minlength=k)[1:].astype(np.int64)}
+        st = {
+            "n": cnt[1:].astype(np.int64),
+            "sum": np.bincount(li, weights=dzf.ravel(), minlength=k)[1:],
+            "nfin": np.bincount(li, weights=fin.ravel().astype(np.float64), minlength=k)[1:].astype(np.int64),
+        }
         mx = np.full(k, -np.inf)
         mn = np.full(k, np.inf)
         np.maximum.at(mx, li[fin.ravel()], dz.ravel()[fin.ravel()])
@@ -76,8 +86,9 @@ def tile_regions(sign: np.ndarray, dz_m: np.ndarray, tile: Tile, grid: AOIGrid, 
         np.minimum.at(first, li, lin.ravel())
         st["first"] = first[1:]
         objs = ndimage.find_objects(lab)
-        st["bbox"] = np.array([(o[0].start + r0, o[1].start + c0, o[0].stop + r0, o[1].stop + c0) for o in objs],
-                              np.int64)
+        st["bbox"] = np.array(
+            [(o[0].start + r0, o[1].start + c0, o[0].stop + r0, o[1].stop + c0) for o in objs], np.int64
+        )
         if sigma is not None:
             sg = np.where(np.isfinite(sigma), sigma, 0.0).astype(np.float64)
             st["sum_sigma"] = np.bincount(li, weights=sg.ravel(), minlength=k)[1:]
@@ -87,8 +98,12 @@ def tile_regions(sign: np.ndarray, dz_m: np.ndarray, tile: Tile, grid: AOIGrid, 
         for key, v in (sums or {}).items():
             st[key] = np.bincount(li, weights=np.asarray(v, np.float64).ravel(), minlength=k)[1:]
         out.stats[s] = st
-        out.edges[s] = {"top": lab[0].copy(), "bottom": lab[-1].copy(), "left": lab[:, 0].copy(),
-                        "right": lab[:, -1].copy()}
+        out.edges[s] = {
+            "top": lab[0].copy(),
+            "bottom": lab[-1].copy(),
+            "left": lab[:, 0].copy(),
+            "right": lab[:, -1].copy(),
+        }
         if polygons:
             from rasterio.features import shapes
             from shapely.geometry import shape
@@ -123,8 +138,15 @@ class _UF:
 class _Members:
     """Per region, its (tile index, sign, local label) pieces — built on demand, not held as Python lists."""
 
-    def __init__(self, tiles: np.ndarray, signs: np.ndarray, labels: np.ndarray, perm: np.ndarray,
-                 starts: np.ndarray, groups: np.ndarray):
+    def __init__(
+        self,
+        tiles: np.ndarray,
+        signs: np.ndarray,
+        labels: np.ndarray,
+        perm: np.ndarray,
+        starts: np.ndarray,
+        groups: np.ndarray,
+    ):
         self._t, self._s, self._l = tiles, signs, labels
         self._perm, self._starts, self._groups = perm, starts, groups
         #: number of pieces per region
@@ -132,7 +154,7 @@ class _Members:
 
     def units(self, k: int) -> np.ndarray:
         g = int(self._groups[k])
-        return self._perm[self._starts[g]:self._starts[g + 1]]
+        return self._perm[self._starts[g] : self._starts[g + 1]]
 
     def __len__(self) -> int:
         return int(self._groups.size)
@@ -289,8 +311,17 @@ def merge_regions(parts: Sequence[TileRegions], tile_grid: TileGrid, min_cells: 
                 uf.union(oa + e["bottom"][0] - 1, offset[((i + 1, j - 1), s)] + q.edges[s]["top"][-1] - 1)
     if total == 0:
         e = np.zeros(0)
-        return MergedRegions(np.zeros(0, np.int8), np.zeros(0, np.int64), e, np.zeros(0, np.int64), e,
-                             np.zeros(0, np.int64), np.zeros((0, 4), np.int64), [], [])
+        return MergedRegions(
+            np.zeros(0, np.int8),
+            np.zeros(0, np.int64),
+            e,
+            np.zeros(0, np.int64),
+            e,
+            np.zeros(0, np.int64),
+            np.zeros((0, 4), np.int64),
+            [],
+            [],
+        )
     # roots of every piece (vectorized path halving until fixed)
     roots = uf.p.copy()
     while True:
@@ -308,9 +339,9 @@ def merge_regions(parts: Sequence[TileRegions], tile_grid: TileGrid, min_cells: 
         for s, st in p.stats.items():
             o = offset[(p.tile_index, s)]
             k_ = st["n"].size
-            u_tile[o:o + k_] = p.tile_index
-            u_sign[o:o + k_] = s
-            u_lab[o:o + k_] = np.arange(1, k_ + 1)
+            u_tile[o : o + k_] = p.tile_index
+            u_sign[o : o + k_] = s
+            u_lab[o : o + k_] = np.arange(1, k_ + 1)
             for k in cat:
                 cat[k].append(st[k])
             extra_keys |= {k for k in st if k not in cat}
@@ -350,14 +381,31 @@ def merge_regions(parts: Sequence[TileRegions], tile_grid: TileGrid, min_cells: 
     starts = np.searchsorted(inv[perm], np.arange(m + 1))
     members = _Members(u_tile, u_sign, u_lab, perm, starts, order)
     have_polys = all(s in p.polygons for p in parts for s in p.stats)
-    polys = ([pp for p in parts for s in p.stats for pp in p.polygons[s]] if have_polys else None)
-    return MergedRegions(sgn[order].astype(np.int8), n[order], sm[order], nf[order], ext[order], first[order],
-                         bb[order], _Geometries(members, polys), members, {k: v[order] for k, v in extra.items()})
+    polys = [pp for p in parts for s in p.stats for pp in p.polygons[s]] if have_polys else None
+    return MergedRegions(
+        sgn[order].astype(np.int8),
+        n[order],
+        sm[order],
+        nf[order],
+        ext[order],
+        first[order],
+        bb[order],
+        _Geometries(members, polys),
+        members,
+        {k: v[order] for k, v in extra.items()},
+    )
 
 
-def regions_columns(merged: MergedRegions, *, cell_area_m2: float, method: str = "", epoch_a: str = "",
-                    epoch_b: str = "", volume_sigma: Callable[[int], float] | None = None,
-                    confidence: Callable[[int], float] | None = None):
+def regions_columns(
+    merged: MergedRegions,
+    *,
+    cell_area_m2: float,
+    method: str = "",
+    epoch_a: str = "",
+    epoch_b: str = "",
+    volume_sigma: Callable[[int], float] | None = None,
+    confidence: Callable[[int], float] | None = None,
+):
     """The attribute columns of the ``changes`` layer (a DataFrame, no geometry)."""
     import math
 
@@ -381,18 +429,35 @@ def regions_columns(merged: MergedRegions, *, cell_area_m2: float, method: str =
             cf[k] = _gauss_level(float(vol[k]), v)
         elif confidence is not None:
             cf[k] = float(confidence(k))
-    return pd.DataFrame({
-        "region_id": np.arange(1, n + 1, dtype=np.int64), "method": method, "epoch_a": epoch_a,
-        "epoch_b": epoch_b, "sign": np.asarray(merged.sign).astype("int64"),
-        "n_cells": np.asarray(merged.n).astype("int64"),
-        "area_m2": np.asarray(merged.n, np.float64) * cell_area_m2, "mean_dz_m": mean,
-        "max_dz_m": np.asarray(merged.extreme, np.float64), "volume_m3": vol, "volume_sigma_m3": vs,
-        "confidence": cf})
+    return pd.DataFrame(
+        {
+            "region_id": np.arange(1, n + 1, dtype=np.int64),
+            "method": method,
+            "epoch_a": epoch_a,
+            "epoch_b": epoch_b,
+            "sign": np.asarray(merged.sign).astype("int64"),
+            "n_cells": np.asarray(merged.n).astype("int64"),
+            "area_m2": np.asarray(merged.n, np.float64) * cell_area_m2,
+            "mean_dz_m": mean,
+            "max_dz_m": np.asarray(merged.extreme, np.float64),
+            "volume_m3": vol,
+            "volume_sigma_m3": vs,
+            "confidence": cf,
+        }
+    )
 
 
-def regions_layer(merged: MergedRegions, grid: AOIGrid, *, cell_area_m2: float, method: str = "", epoch_a: str = "",
-                  epoch_b: str = "", volume_sigma: Callable[[int], float] | None = None,
-                  confidence: Callable[[int], float] | None = None):
+def regions_layer(
+    merged: MergedRegions,
+    grid: AOIGrid,
+    *,
+    cell_area_m2: float,
+    method: str = "",
+    epoch_a: str = "",
+    epoch_b: str = "",
+    volume_sigma: Callable[[int], float] | None = None,
+    confidence: Callable[[int], float] | None = None,
+):
     """The ``changes`` layer (:data:`geocd.change.regions.COLUMNS`) of merged regions.
 
     ``volume_sigma(k)`` gives region k's volume σ (m³); without it the confidence is
@@ -405,8 +470,15 @@ def regions_layer(merged: MergedRegions, grid: AOIGrid, *, cell_area_m2: float, 
 
     if len(merged) == 0:
         return empty_regions(grid.crs)
-    df = regions_columns(merged, cell_area_m2=cell_area_m2, method=method, epoch_a=epoch_a, epoch_b=epoch_b,
-                         volume_sigma=volume_sigma, confidence=confidence)
+    df = regions_columns(
+        merged,
+        cell_area_m2=cell_area_m2,
+        method=method,
+        epoch_a=epoch_a,
+        epoch_b=epoch_b,
+        volume_sigma=volume_sigma,
+        confidence=confidence,
+    )
     return gpd.GeoDataFrame(df, geometry=list(merged.geometry), crs=grid.crs)
 
 
@@ -440,8 +512,9 @@ class RegionBatches:
                 types |= set(shapely.get_type_id(g).tolist())
             names = {3: "Polygon", 6: "MultiPolygon"}
             found = {names.get(t, "Unknown") for t in types}
-            self._gtype = found.pop() if len(found) == 1 else ("MultiPolygon" if found <= set(names.values())
-                                                                else "Unknown")
+            self._gtype = (
+                found.pop() if len(found) == 1 else ("MultiPolygon" if found <= set(names.values()) else "Unknown")
+            )
         return self._gtype
 
     def __iter__(self):
@@ -450,25 +523,43 @@ class RegionBatches:
         for a in range(0, len(self), self.batch):
             b = min(a + self.batch, len(self))
             geom = self.merged.geometry.batch(a, b)
-            yield gpd.GeoDataFrame(self.columns.iloc[a:b].reset_index(drop=True), geometry=list(geom),
-                                   crs=self.grid.crs)
+            yield gpd.GeoDataFrame(
+                self.columns.iloc[a:b].reset_index(drop=True), geometry=list(geom), crs=self.grid.crs
+            )
 
 
-def regions_layer_batches(merged: MergedRegions, grid: AOIGrid, *, cell_area_m2: float, method: str = "",
-                          epoch_a: str = "", epoch_b: str = "", volume_sigma: Callable[[int], float] | None = None,
-                          confidence: Callable[[int], float] | None = None, batch: int = 50_000):
+def regions_layer_batches(
+    merged: MergedRegions,
+    grid: AOIGrid,
+    *,
+    cell_area_m2: float,
+    method: str = "",
+    epoch_a: str = "",
+    epoch_b: str = "",
+    volume_sigma: Callable[[int], float] | None = None,
+    confidence: Callable[[int], float] | None = None,
+    batch: int = 50_000,
+):
     """:func:`regions_layer` as a :class:`RegionBatches` (an empty layer stays a GeoDataFrame)."""
     from ..change.regions import empty_regions
 
     if len(merged) == 0:
         return empty_regions(grid.crs)
-    df = regions_columns(merged, cell_area_m2=cell_area_m2, method=method, epoch_a=epoch_a, epoch_b=epoch_b,
-                         volume_sigma=volume_sigma, confidence=confidence)
+    df = regions_columns(
+        merged,
+        cell_area_m2=cell_area_m2,
+        method=method,
+        epoch_a=epoch_a,
+        epoch_b=epoch_b,
+        volume_sigma=volume_sigma,
+        confidence=confidence,
+    )
     return RegionBatches(merged, grid, df, batch)
 
 
-def region_mask_window(merged: MergedRegions, k: int, label_reader: Callable[[Tile], np.ndarray],
-                       tile_grid: TileGrid) -> tuple[np.ndarray, tuple[slice, slice]]:
+def region_mask_window(
+    merged: MergedRegions, k: int, label_reader: Callable[[Tile], np.ndarray], tile_grid: TileGrid
+) -> tuple[np.ndarray, tuple[slice, slice]]:
     """Region ``k``'s cells as a bool window over its bounding box, from the tiles' label rasters.
 
     ``label_reader(tile)`` returns the tile's core label raster (+label for raised, −label for lowered).
@@ -486,6 +577,6 @@ def region_mask_window(merged: MergedRegions, k: int, label_reader: Callable[[Ti
         i1, j1 = min(r1, tr0 + th), min(c1, tc0 + tw)
         if i1 <= i0 or j1 <= j0:
             continue
-        sub = a[i0 - tr0:i1 - tr0, j0 - tc0:j1 - tc0]
-        out[i0 - r0:i1 - r0, j0 - c0:j1 - c0] |= np.isin(sub, labs)
+        sub = a[i0 - tr0 : i1 - tr0, j0 - tc0 : j1 - tc0]
+        out[i0 - r0 : i1 - r0, j0 - c0 : j1 - c0] |= np.isin(sub, labs)
     return out, (slice(r0, r1), slice(c0, c1))

@@ -125,8 +125,10 @@ def _run_tile(job: _Job, params: Any = None) -> TileOutput:
         if a.shape[-2:] == read_shape:
             a = a[(...,) + t.core_in_read]
         elif a.shape[-2:] != core_shape:
-            raise ProcessingError(f"tile array {name!r} has shape {a.shape}; expected the read window "
-                                  f"{read_shape} or the core {core_shape}")
+            raise ProcessingError(
+                f"tile array {name!r} has shape {a.shape}; expected the read window "
+                f"{read_shape} or the core {core_shape}"
+            )
         kept[name] = np.ascontiguousarray(a)
     out.arrays = kept
     out.vectors = _keep_by_centre(out.vectors, t, job.grid)
@@ -185,12 +187,25 @@ def work_root(out: str | Path | None) -> Path:
     return Path(out) / WORK_DIR
 
 
-def run_tiled(func: Callable[[dict, TileContext], Any], grid: AOIGrid | TileGrid, inputs: Mapping[str, Any], *,
-              overlap_cells: int = 0, tile_size: int | tuple[int, int] = 1024, params: Any = None,
-              out: str | Path | None = None, work: str | Path | None = None, stage: str = "tiled",
-              key: Any = None, products: Mapping[str, RasterProduct] | None = None,
-              scheduler: "str | Engine" = "sync", n_workers: int | None = None, memory_limit: str | int | None = None,
-              max_in_flight: int | None = None, progress: Progress | None = None) -> TiledRun:
+def run_tiled(
+    func: Callable[[dict, TileContext], Any],
+    grid: AOIGrid | TileGrid,
+    inputs: Mapping[str, Any],
+    *,
+    overlap_cells: int = 0,
+    tile_size: int | tuple[int, int] = 1024,
+    params: Any = None,
+    out: str | Path | None = None,
+    work: str | Path | None = None,
+    stage: str = "tiled",
+    key: Any = None,
+    products: Mapping[str, RasterProduct] | None = None,
+    scheduler: "str | Engine" = "sync",
+    n_workers: int | None = None,
+    memory_limit: str | int | None = None,
+    max_in_flight: int | None = None,
+    progress: Progress | None = None,
+) -> TiledRun:
     """Run ``func`` on every tile of ``grid`` with ``overlap_cells`` of context; resume finished tiles.
 
     Parameters
@@ -217,8 +232,11 @@ def run_tiled(func: Callable[[dict, TileContext], Any], grid: AOIGrid | TileGrid
     """
     t0 = time.perf_counter()
     prog = ensure_progress(progress)
-    tg = grid if isinstance(grid, TileGrid) else TileGrid(grid, tile_size if not isinstance(tile_size, int)
-                                                          else (tile_size, tile_size), int(overlap_cells))
+    tg = (
+        grid
+        if isinstance(grid, TileGrid)
+        else TileGrid(grid, tile_size if not isinstance(tile_size, int) else (tile_size, tile_size), int(overlap_cells))
+    )
     if isinstance(grid, TileGrid) and overlap_cells and overlap_cells != grid.overlap:
         tg = grid.with_overlap(int(overlap_cells))
     g = tg.grid
@@ -227,8 +245,17 @@ def run_tiled(func: Callable[[dict, TileContext], Any], grid: AOIGrid | TileGrid
     ident = {k: (src.identity() if hasattr(src, "identity") else repr(src)) for k, src in inputs.items()}
     fname = f"{getattr(func, '__module__', '')}.{getattr(func, '__qualname__', repr(func))}"
     sel = sorted(tg.selected) if tg.selected is not None else None
-    full_key = make_key(stage, fname, params, ident, g.to_dict(), list(tg.tile_size), tg.overlap, key,
-                        *([sel, tg.merge_runs] if sel is not None else []))
+    full_key = make_key(
+        stage,
+        fname,
+        params,
+        ident,
+        g.to_dict(),
+        list(tg.tile_size),
+        tg.overlap,
+        key,
+        *([sel, tg.merge_runs] if sel is not None else []),
+    )
     root = Path(work) if work is not None else work_root(out)
     store = TileStore(root, stage, full_key, tg)
     tiles = list(tg)
@@ -240,8 +267,9 @@ def run_tiled(func: Callable[[dict, TileContext], Any], grid: AOIGrid | TileGrid
     if todo:
         jobs = (_Job(func, t, g, dict(inputs)) for t in todo)
         with open_engine(scheduler, n_workers=n_workers, memory_limit=memory_limit) as eng:
-            it = eng.map_unordered(_run_tile, jobs, shared=params, max_in_flight=max_in_flight,
-                                   key_prefix=f"geocd-{stage}")
+            it = eng.map_unordered(
+                _run_tile, jobs, shared=params, max_in_flight=max_in_flight, key_prefix=f"geocd-{stage}"
+            )
             with contextlib.closing(it):
                 for job, res in it:
                     store.save(job.tile, res.arrays, (res.small, res.vectors))

@@ -80,8 +80,12 @@ class RasterSource:
                 from rasterio.enums import MaskFlags
 
                 win = Window(c0 + off[1], r0 + off[0], w, h)
-                inside = (off[0] + r0 >= 0 and off[1] + c0 >= 0 and off[0] + r0 + h <= ds.height
-                          and off[1] + c0 + w <= ds.width)
+                inside = (
+                    off[0] + r0 >= 0
+                    and off[1] + c0 >= 0
+                    and off[0] + r0 + h <= ds.height
+                    and off[1] + c0 + w <= ds.width
+                )
                 flags = set(ds.mask_flag_enums[self.band - 1])
                 if inside and flags <= {MaskFlags.nodata, MaskFlags.all_valid}:
                     # the mask is the nodata value (handled below) or nothing: a plain read, half the work
@@ -110,16 +114,31 @@ class RasterSource:
         r0, c0, h, w = window
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            with WarpedVRT(ds, crs=RioCRS.from_wkt(grid.crs.to_wkt()), transform=grid.transform, width=grid.width,
-                           height=grid.height, resampling=getattr(Resampling, self.resampling),
-                           src_nodata=nodata, nodata=np.nan, dtype="float32") as vrt:
+            with WarpedVRT(
+                ds,
+                crs=RioCRS.from_wkt(grid.crs.to_wkt()),
+                transform=grid.transform,
+                width=grid.width,
+                height=grid.height,
+                resampling=getattr(Resampling, self.resampling),
+                src_nodata=nodata,
+                nodata=np.nan,
+                dtype="float32",
+            ) as vrt:
                 return vrt.read(self.band, window=Window(c0, r0, w, h)).astype(np.float32)
 
     def identity(self) -> dict[str, Any]:
         """What makes this input this input (for the resume key): path, size, mtime, band."""
         st = os.stat(self.path)
-        return {"path": os.path.abspath(self.path), "size": st.st_size, "mtime_ns": st.st_mtime_ns,
-                "band": self.band, "resampling": self.resampling, "dem": self.dem, "nodata": self.nodata}
+        return {
+            "path": os.path.abspath(self.path),
+            "size": st.st_size,
+            "mtime_ns": st.st_mtime_ns,
+            "band": self.band,
+            "resampling": self.resampling,
+            "dem": self.dem,
+            "nodata": self.nodata,
+        }
 
 
 @dataclass(frozen=True)
@@ -136,7 +155,7 @@ class ArraySource:
         r0, c0, h, w = window
         if self.array.shape[-2:] != grid.shape:
             raise ConfigError(f"array {self.array.shape} is not on the processing grid {grid.shape}")
-        return np.array(self.array[..., r0:r0 + h, c0:c0 + w])
+        return np.array(self.array[..., r0 : r0 + h, c0 : c0 + w])
 
     def identity(self) -> dict[str, Any]:
         import hashlib

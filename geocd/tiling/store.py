@@ -71,7 +71,7 @@ def _work_key() -> bytes:
             with os.fdopen(fd, "wb") as f:
                 f.write(secrets.token_bytes(_MAC_BYTES))
         except FileExistsError:
-            pass   # another process made it (or a short one is there: read below)
+            pass  # another process made it (or a short one is there: read below)
         except OSError:
             pass
         try:
@@ -79,7 +79,7 @@ def _work_key() -> bytes:
         except OSError:
             key = b""
         if len(key) < _MAC_BYTES:
-            key = secrets.token_bytes(_MAC_BYTES)   # this process only
+            key = secrets.token_bytes(_MAC_BYTES)  # this process only
     _KEYS[str(path)] = key
     return key
 
@@ -93,7 +93,7 @@ def _verified_payload(raw: bytes) -> bytes | None:
     head = len(_MAC_MAGIC)
     if len(raw) < head + _MAC_BYTES or not raw.startswith(_MAC_MAGIC):
         return None
-    mac, payload = raw[head:head + _MAC_BYTES], raw[head + _MAC_BYTES:]
+    mac, payload = raw[head : head + _MAC_BYTES], raw[head + _MAC_BYTES :]
     if not hmac.compare_digest(mac, hmac.new(_work_key(), payload, hashlib.sha256).digest()):
         return None
     return payload
@@ -107,8 +107,11 @@ def _canon(o: Any) -> Any:
     if isinstance(o, (list, tuple)):
         return [_canon(v) for v in o]
     if isinstance(o, np.ndarray):
-        return {"ndarray_sha1": hashlib.sha1(np.ascontiguousarray(o).view(np.uint8)).hexdigest(),
-                "shape": list(o.shape), "dtype": str(o.dtype)}
+        return {
+            "ndarray_sha1": hashlib.sha1(np.ascontiguousarray(o).view(np.uint8)).hexdigest(),
+            "shape": list(o.shape),
+            "dtype": str(o.dtype),
+        }
     if isinstance(o, (np.floating, np.integer, np.bool_)):
         return o.item()
     if isinstance(o, float):
@@ -163,8 +166,17 @@ class TileStore:
         meta = self.path / "run.json"
         if not meta.exists():
             tmp = meta.with_suffix(".json.part")
-            tmp.write_text(json.dumps({"stage": stage, "key": key, "grid": tile_grid.grid.to_dict(),
-                                       "tile_size": list(tile_grid.tile_size)}, indent=1))
+            tmp.write_text(
+                json.dumps(
+                    {
+                        "stage": stage,
+                        "key": key,
+                        "grid": tile_grid.grid.to_dict(),
+                        "tile_size": list(tile_grid.tile_size),
+                    },
+                    indent=1,
+                )
+            )
             _replace_atomic(tmp, meta)
         # stale temporaries of a killed run
         for part in self.path.glob("*.part*"):
@@ -184,7 +196,7 @@ class TileStore:
             return False
         if _verified_payload(raw) is None:
             with contextlib.suppress(OSError):
-                p.unlink()   # not written by geocd for this user: the tile is computed again
+                p.unlink()  # not written by geocd for this user: the tile is computed again
             return False
         return True
 
@@ -209,8 +221,10 @@ class TileStore:
         p = self._done_path(tile)
         payload = _verified_payload(p.read_bytes())
         if payload is None:
-            raise ProcessingError(f"the journal entry {p} was not written by geocd for this user (or is damaged) "
-                                  "and is not read; delete the work folder and run the command again")
+            raise ProcessingError(
+                f"the journal entry {p} was not written by geocd for this user (or is damaged) "
+                "and is not read; delete the work folder and run the command again"
+            )
         return pickle.loads(payload)
 
     # --- arrays ---------------------------------------------------------------------------
@@ -239,7 +253,7 @@ class TileStore:
                 if skipped:
                     ok = np.issubdtype(a.dtype, np.floating) or np.isfinite(fill)
                     out[...] = fill if ok else 0
-            out[..., rr0 - r0:rr1 - r0, cc0 - c0:cc1 - c0] = a[..., rr0 - tr0:rr1 - tr0, cc0 - tc0:cc1 - tc0]
+            out[..., rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0] = a[..., rr0 - tr0 : rr1 - tr0, cc0 - tc0 : cc1 - tc0]
         if out is None:
             if skipped:  # only unprocessed tiles under the window
                 return np.full((h, w), fill, np.float32)

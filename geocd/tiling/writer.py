@@ -85,8 +85,9 @@ def _device(path: Path) -> int | None:
     return None
 
 
-def check_assembly_room(product: RasterProduct, shape: tuple[int, int], work: Path, target: Path,
-                        compression: float = 4.0) -> None:
+def check_assembly_room(
+    product: RasterProduct, shape: tuple[int, int], work: Path, target: Path, compression: float = 4.0
+) -> None:
     """Refuse to assemble ``product`` when the disk cannot hold it, before a byte is written.
 
     The assembly needs its uncompressed GeoTIFF in ``work`` and then the COG beside ``target``
@@ -98,8 +99,11 @@ def check_assembly_room(product: RasterProduct, shape: tuple[int, int], work: Pa
     work, target = Path(work), Path(target)
     dev = _device(work)
     same = dev is not None and dev == _device(target.parent)
-    needs = ([(work, raw + raw / compression, raw + raw)] if same
-             else [(work, raw, raw), (target.parent, raw / compression, raw)])
+    needs = (
+        [(work, raw + raw / compression, raw + raw)]
+        if same
+        else [(work, raw, raw), (target.parent, raw / compression, raw)]
+    )
     gb = 1e9
     for where, low, high in needs:
         free = free_bytes(where)
@@ -111,15 +115,24 @@ def check_assembly_room(product: RasterProduct, shape: tuple[int, int], work: Pa
                 f"{where} (an uncompressed {len(product.bands)}-band {np.dtype(product.dtype).name} raster of "
                 f"{shape[1]} x {shape[0]} cells with overviews while its COG is written), {free / gb:,.1f} GB are "
                 f"free. The finished tiles are kept in {work.parent}: free some space and run the same command "
-                "again; it resumes and only assembles the products")
+                "again; it resumes and only assembles the products"
+            )
         if free < high:
-            warnings.warn(f"assembling {target.name} may need up to {high / gb:,.1f} GB on the disk of {where} "
-                          f"(if it compresses poorly); {free / gb:,.1f} GB are free", OutputFolderWarning,
-                          stacklevel=3)
+            warnings.warn(
+                f"assembling {target.name} may need up to {high / gb:,.1f} GB on the disk of {where} "
+                f"(if it compresses poorly); {free / gb:,.1f} GB are free",
+                OutputFolderWarning,
+                stacklevel=3,
+            )
 
 
-def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None = None,
-                  tile_grid: TileGrid | None = None, band_stores: Mapping[str, TileStore] | None = None) -> Path:
+def write_product(
+    store: TileStore,
+    product: RasterProduct,
+    grid: AOIGrid | None = None,
+    tile_grid: TileGrid | None = None,
+    band_stores: Mapping[str, TileStore] | None = None,
+) -> Path:
     """Assemble ``product`` from the tiles of ``store`` and write it as a COG (atomic).
 
     ``band_stores`` (band name → store) takes a band from another pass's store, read on each tile's
@@ -144,8 +157,9 @@ def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None
     names = list(product.descriptions or product.bands)
     if any(n is None for n in names):
         stem = target.stem
-        names = [n if n is not None else (stem if len(names) == 1 else f"{stem}_{i}")
-                 for i, n in enumerate(names, start=1)]
+        names = [
+            n if n is not None else (stem if len(names) == 1 else f"{stem}_{i}") for i, n in enumerate(names, start=1)
+        ]
     units = list(product.units) if product.units is not None else [band_unit(n) for n in names]
     for i, bt in enumerate(product.band_tags or []):  # a "units" band tag is the unit too (as write_cog)
         if i < len(units) and not units[i] and bt and bt.get("units"):
@@ -187,8 +201,14 @@ def write_product(store: TileStore, product: RasterProduct, grid: AOIGrid | None
                     dst.build_overviews(ov, getattr(Resampling, product.overview_resampling))
             ovr = product.overview_resampling
             with atomic_path(target) as tmp:
-                rio_copy(str(tmp_tif), str(tmp), driver="COG", compress=product.compress.upper(),
-                         overview_resampling=ovr.upper() if ovr != "average" else "AVERAGE", BIGTIFF="IF_SAFER")
+                rio_copy(
+                    str(tmp_tif),
+                    str(tmp),
+                    driver="COG",
+                    compress=product.compress.upper(),
+                    overview_resampling=ovr.upper() if ovr != "average" else "AVERAGE",
+                    BIGTIFF="IF_SAFER",
+                )
     finally:
         with contextlib.suppress(OSError):
             tmp_tif.unlink()

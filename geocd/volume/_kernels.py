@@ -307,8 +307,22 @@ def seglen_rays(orig, dirs, obs, lo, hi, geo, block_root, child, acc_len, acc_ob
         t0, t1 = clip_ray(orig[r, 0], orig[r, 1], orig[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], lo, hi)
         if t1 <= t0:
             continue
-        n = trace_ray(orig[r, 0], orig[r, 1], orig[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], t0, t1, geo,
-                      block_root, child, seg_cell, seg_len, seg_t)
+        n = trace_ray(
+            orig[r, 0],
+            orig[r, 1],
+            orig[r, 2],
+            dirs[r, 0],
+            dirs[r, 1],
+            dirs[r, 2],
+            t0,
+            t1,
+            geo,
+            block_root,
+            child,
+            seg_cell,
+            seg_len,
+            seg_t,
+        )
         total += n
         for i in range(n):
             acc_len[seg_cell[i]] += seg_len[i]
@@ -317,9 +331,33 @@ def seglen_rays(orig, dirs, obs, lo, hi, geo, block_root, child, acc_len, acc_ob
 
 
 @njit(cache=True)
-def update_rays(orig, dirs, obs, cell_obs, lo, hi, geo, block_root, child, alpha, app, b, p_bg, w0,
-                acc_len, acc_log, acc_obs, acc_vis,
-                seg_cell, seg_len, seg_t, s_vis, s_pq, s_pa, s_pre):
+def update_rays(
+    orig,
+    dirs,
+    obs,
+    cell_obs,
+    lo,
+    hi,
+    geo,
+    block_root,
+    child,
+    alpha,
+    app,
+    b,
+    p_bg,
+    w0,
+    acc_len,
+    acc_log,
+    acc_obs,
+    acc_vis,
+    seg_cell,
+    seg_len,
+    seg_t,
+    s_vis,
+    s_pq,
+    s_pa,
+    s_pre,
+):
     """Accumulate, per cell, the statistics of eqs. 20–25 over the rays of one image.
 
     For each ray with a finite observation ``obs[r]`` (intensity in [0, 1]):
@@ -384,8 +422,21 @@ def update_rays(orig, dirs, obs, cell_obs, lo, hi, geo, block_root, child, alpha
 
 
 @njit(cache=True)
-def finalize_update(acc_len, acc_log, acc_obs, acc_vis, alpha, app, b, alpha_min, alpha_max,
-                    sigma_init, sigma_min, match_sigmas, min_obs_weight):
+def finalize_update(
+    acc_len,
+    acc_log,
+    acc_obs,
+    acc_vis,
+    alpha,
+    app,
+    b,
+    alpha_min,
+    alpha_max,
+    sigma_init,
+    sigma_min,
+    match_sigmas,
+    min_obs_weight,
+):
     """Per cell seen by the image: α ← -Σ log(1 - P(Q_k|D)) / Σ ℓ_k (eq. 25), clamped;
     appearance ← mixture update with the length-weighted mean observation, weighted by the
     length-weighted mean visibility. Returns the number of cells updated."""
@@ -412,8 +463,32 @@ def finalize_update(acc_len, acc_log, acc_obs, acc_vis, alpha, app, b, alpha_min
 # rendering and change detection (paper §VI)
 # ------------------------------------------------------------------------------------------
 @njit(cache=True)
-def render_rays(orig, dirs, obs, lo, hi, geo, block_root, child, alpha, app, b, p_bg, mean_bg, w0,
-                map_a, map_b, map_s, out_density, out_expected, out_visinf, out_tmed, seg_cell, seg_len, seg_t):
+def render_rays(
+    orig,
+    dirs,
+    obs,
+    lo,
+    hi,
+    geo,
+    block_root,
+    child,
+    alpha,
+    app,
+    b,
+    p_bg,
+    mean_bg,
+    w0,
+    map_a,
+    map_b,
+    map_s,
+    out_density,
+    out_expected,
+    out_visinf,
+    out_tmed,
+    seg_cell,
+    seg_len,
+    seg_t,
+):
     """Per ray: density of ``obs[r]`` (eq. 27, + vis_∞ p_bg; NaN when obs is NaN),
     expected intensity ``Σ vis_i P(Q_i) E[p_i] + vis_∞ mean_bg``, ``vis_∞`` and the
     distance where visibility falls to 0.5 (NaN if it never does).
@@ -471,8 +546,31 @@ def render_rays(orig, dirs, obs, lo, hi, geo, block_root, child, alpha, app, b, 
 
 
 @njit(cache=True)
-def density_nxn(orig, dirs, img, width, half, lo, hi, geo, block_root, child, alpha, app, b, p_bg, w0,
-                map_a, map_b, map_s, out_max, seg_cell, seg_len, seg_t, s_w):
+def density_nxn(
+    orig,
+    dirs,
+    img,
+    width,
+    half,
+    lo,
+    hi,
+    geo,
+    block_root,
+    child,
+    alpha,
+    app,
+    b,
+    p_bg,
+    w0,
+    map_a,
+    map_b,
+    map_s,
+    out_max,
+    seg_cell,
+    seg_len,
+    seg_t,
+    s_w,
+):
     """n×n change variant: ``out_max[q]`` = max over the rays of q's (2·half+1)² neighbours of
     the density of q's intensity. Rays are row-major over an image of ``width`` columns
     (``orig.shape[0] == rows * width``); ``out_max`` must start at 0. Returns segments traced."""
@@ -725,8 +823,9 @@ def _transmittance(ox, oy, oz, dx, dy, dz, skip, lo, hi, geo, block_root, child,
 
 
 @njit(cache=True)
-def sun_visibility(cells, centers, sizes, sun_dir, skip_cells, lo, hi, geo, block_root, child, alpha, out,
-                   seg_cell, seg_len, seg_t):
+def sun_visibility(
+    cells, centers, sizes, sun_dir, skip_cells, lo, hi, geo, block_root, child, alpha, out, seg_cell, seg_len, seg_t
+):
     """``out[j] = exp(-Σ α ℓ)`` along the ray towards the sun from the centre of the top face of
     ``cells[j]`` (the surface a cell of the visible top layer offers to the sun), ignoring the
     first ``skip_cells`` cell edges of the path (neighbours of the same surface layer).
@@ -741,15 +840,17 @@ def sun_visibility(cells, centers, sizes, sun_dir, skip_cells, lo, hi, geo, bloc
         oy = centers[c, 1]
         oz = centers[c, 2] + 0.5 * sizes[c]
         skip = skip_cells * sizes[c]
-        out[j], n = _transmittance(ox, oy, oz, dx, dy, dz, skip, lo, hi, geo, block_root, child, alpha,
-                                   seg_cell, seg_len, seg_t)
+        out[j], n = _transmittance(
+            ox, oy, oz, dx, dy, dz, skip, lo, hi, geo, block_root, child, alpha, seg_cell, seg_len, seg_t
+        )
         total += n
     return total
 
 
 @njit(cache=True)
-def ray_cell_average(orig, dirs, lo, hi, geo, block_root, child, alpha, values, out, out_wsum,
-                     seg_cell, seg_len, seg_t):
+def ray_cell_average(
+    orig, dirs, lo, hi, geo, block_root, child, alpha, values, out, out_wsum, seg_cell, seg_len, seg_t
+):
     """Per ray, the average of per-cell ``values[cell, :]`` weighted by ``vis_i (1 - e^{-α_i ℓ_i})``
     (what the ray sees), and the total weight ``1 - vis_∞``. NaN where the weight is 0."""
     nv = values.shape[1]
@@ -761,8 +862,22 @@ def ray_cell_average(orig, dirs, lo, hi, geo, block_root, child, alpha, values, 
         if math.isfinite(orig[r, 0]) and math.isfinite(dirs[r, 0]):
             t0, t1 = clip_ray(orig[r, 0], orig[r, 1], orig[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], lo, hi)
             if t1 > t0:
-                n = trace_ray(orig[r, 0], orig[r, 1], orig[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], t0, t1, geo,
-                              block_root, child, seg_cell, seg_len, seg_t)
+                n = trace_ray(
+                    orig[r, 0],
+                    orig[r, 1],
+                    orig[r, 2],
+                    dirs[r, 0],
+                    dirs[r, 1],
+                    dirs[r, 2],
+                    t0,
+                    t1,
+                    geo,
+                    block_root,
+                    child,
+                    seg_cell,
+                    seg_len,
+                    seg_t,
+                )
         total += n
         vis = 1.0
         for i in range(n):
@@ -877,8 +992,9 @@ def compact_order(block_root, child):
 
 
 @njit(cache=True)
-def surface_sun(orig, dirs, tmed, sun_dir, lift, skip, lo, hi, geo, block_root, child, alpha, out,
-                seg_cell, seg_len, seg_t):
+def surface_sun(
+    orig, dirs, tmed, sun_dir, lift, skip, lo, hi, geo, block_root, child, alpha, out, seg_cell, seg_len, seg_t
+):
     """Sun visibility of the median visible surface point of each ray: from
     ``o + tmed d`` lifted by ``lift`` metres, ``exp(-Σ α ℓ)`` towards the sun beyond ``skip``
     metres (1 where ``tmed`` is NaN). Returns the number of segments traced."""
@@ -894,7 +1010,8 @@ def surface_sun(orig, dirs, tmed, sun_dir, lift, skip, lo, hi, geo, block_root, 
         ox = orig[r, 0] + t * dirs[r, 0]
         oy = orig[r, 1] + t * dirs[r, 1]
         oz = orig[r, 2] + t * dirs[r, 2] + lift
-        out[r], n = _transmittance(ox, oy, oz, dx, dy, dz, skip, lo, hi, geo, block_root, child, alpha,
-                                   seg_cell, seg_len, seg_t)
+        out[r], n = _transmittance(
+            ox, oy, oz, dx, dy, dz, skip, lo, hi, geo, block_root, child, alpha, seg_cell, seg_len, seg_t
+        )
         total += n
     return total

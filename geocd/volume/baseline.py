@@ -37,14 +37,20 @@ def sample_grid(values: np.ndarray, grid: AOIGrid, lon: np.ndarray, lat: np.ndar
     r, c = grid.rowcol(x, y)
     v = np.where(np.isfinite(values), values, np.nanmedian(values))
     out = map_coordinates(v, [np.ravel(r) - 0.5, np.ravel(c) - 0.5], order=order, mode="nearest")
-    bad = ~np.isfinite(np.ravel(r)) | (np.ravel(r) < 0) | (np.ravel(c) < 0) | (np.ravel(r) > grid.height) | (
-        np.ravel(c) > grid.width)
+    bad = (
+        ~np.isfinite(np.ravel(r))
+        | (np.ravel(r) < 0)
+        | (np.ravel(c) < 0)
+        | (np.ravel(r) > grid.height)
+        | (np.ravel(c) > grid.width)
+    )
     out[bad] = np.nan
     return out.reshape(np.shape(lon))
 
 
-def ground_on_dem(camera: Any, cols: np.ndarray, rows: np.ndarray, dem_m: np.ndarray, grid: AOIGrid,
-                  iters: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ground_on_dem(
+    camera: Any, cols: np.ndarray, rows: np.ndarray, dem_m: np.ndarray, grid: AOIGrid, iters: int = 6
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the pixels' rays meet a DEM (fixed-point iteration on the height; ellipsoidal metres)."""
     h = np.full(np.shape(cols), float(np.nanmedian(dem_m)))
     lon = lat = None
@@ -55,8 +61,14 @@ def ground_on_dem(camera: Any, cols: np.ndarray, rows: np.ndarray, dem_m: np.nda
     return lon, lat, h
 
 
-def warp_reference(test_camera: Any, shape: tuple[int, int], ref_intensity: np.ndarray, ref_camera: Any,
-                   dem_m: np.ndarray, grid: AOIGrid) -> np.ndarray:
+def warp_reference(
+    test_camera: Any,
+    shape: tuple[int, int],
+    ref_intensity: np.ndarray,
+    ref_camera: Any,
+    dem_m: np.ndarray,
+    grid: AOIGrid,
+) -> np.ndarray:
     """The reference image resampled (bilinear) into the test image's pixels through the DEM."""
     from scipy.ndimage import map_coordinates
 
@@ -66,8 +78,9 @@ def warp_reference(test_camera: Any, shape: tuple[int, int], ref_intensity: np.n
     c, r = ref_camera.project(lon, lat, h)
     img = np.where(np.isfinite(ref_intensity), ref_intensity, 0.0)
     out = map_coordinates(img, [r - 0.5, c - 0.5], order=1, mode="constant", cval=np.nan)
-    valid = map_coordinates(np.isfinite(ref_intensity).astype(float), [r - 0.5, c - 0.5], order=1, mode="constant",
-                            cval=0.0)
+    valid = map_coordinates(
+        np.isfinite(ref_intensity).astype(float), [r - 0.5, c - 0.5], order=1, mode="constant", cval=0.0
+    )
     out[(valid < 0.99) | ~np.isfinite(c)] = np.nan
     return out.reshape(shape)
 
@@ -87,7 +100,7 @@ def carlotto_score(test: np.ndarray, ref_warped: np.ndarray, bins: int = 64) -> 
     s2 = np.bincount(k[ok], weights=test[ok] ** 2, minlength=bins)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = s1 / n
-        sd = np.sqrt(np.maximum(s2 / n - mean ** 2, 0.0))
+        sd = np.sqrt(np.maximum(s2 / n - mean**2, 0.0))
     gm = float(np.mean(test[ok]))
     gsd = float(np.std(test[ok]))
     mean = np.where(n >= 20, mean, gm)
@@ -117,8 +130,14 @@ def nearest_view(test_camera: Any, test_shape: tuple[int, int], candidates: list
     return best
 
 
-def first_surface_height(camera: Any, shape: tuple[int, int], dsm_m: np.ndarray, grid: AOIGrid,
-                         geometry: VolumeGeometry, step_m: float = 0.25) -> np.ndarray:
+def first_surface_height(
+    camera: Any,
+    shape: tuple[int, int],
+    dsm_m: np.ndarray,
+    grid: AOIGrid,
+    geometry: VolumeGeometry,
+    step_m: float = 0.25,
+) -> np.ndarray:
     """Height (ellipsoidal m) of the first DSM surface each pixel's ray meets (ray marching; NaN = none).
 
     Used to find building edges and occlusion boundaries in image geometry for the evaluation.

@@ -103,10 +103,17 @@ def change_probability(density: np.ndarray, prior: float = 0.5, fg_density: floa
     return (num / (num + (1.0 - prior) * d)).astype(np.float32)
 
 
-def detect_change(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun: tuple[float, float] | None = None,
-                  params: DetectParams | None = None, name: str = "the image",
-                  shadow_dsm: tuple[np.ndarray, Any] | None = None,
-                  progress: Optional[Progress] = None) -> ChangeResult:
+def detect_change(
+    model: VolumeModel,
+    intensity: np.ndarray,
+    camera: Any,
+    *,
+    sun: tuple[float, float] | None = None,
+    params: DetectParams | None = None,
+    name: str = "the image",
+    shadow_dsm: tuple[np.ndarray, Any] | None = None,
+    progress: Optional[Progress] = None,
+) -> ChangeResult:
     """Per-pixel change probability of a new image against the model.
 
     Parameters
@@ -136,21 +143,43 @@ def detect_change(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun
     offset = model.sun_bin_distance_deg(sun, b)
     mapping, info = None, None
     f0 = 0.0
-    if (params.relight and sun is not None and offset > model.params.sun_bin_tolerance_deg
-            and np.isfinite(model.sun_bins[b][0])):
+    if (
+        params.relight
+        and sun is not None
+        and offset > model.params.sun_bin_tolerance_deg
+        and np.isfinite(model.sun_bins[b][0])
+    ):
         from .relight import relight_mapping
 
-        mapping, info = relight_mapping(model, img, camera, b, (model.sun_bins[b][0], model.sun_bins[b][1]), sun,
-                                        shadow_dsm=shadow_dsm, progress=sub_progress(prog, 0.0, 0.4, "relight: "))
+        mapping, info = relight_mapping(
+            model,
+            img,
+            camera,
+            b,
+            (model.sun_bins[b][0], model.sun_bins[b][1]),
+            sun,
+            shadow_dsm=shadow_dsm,
+            progress=sub_progress(prog, 0.0, 0.4, "relight: "),
+        )
         f0 = 0.4
     f1 = f0 + (1.0 - f0) * (0.5 if params.neighborhood > 1 else 1.0)
-    rr = render_image(model, camera, (rows, cols), intensity=img, sun=sun, name=name, app_bin=b, mapping=mapping,
-                      progress=sub_progress(prog, f0, f1, "rays: "))
+    rr = render_image(
+        model,
+        camera,
+        (rows, cols),
+        intensity=img,
+        sun=sun,
+        name=name,
+        app_bin=b,
+        mapping=mapping,
+        progress=sub_progress(prog, f0, f1, "rays: "),
+    )
     density = rr.density
     segs = rr.segments
     if params.neighborhood > 1:
-        density, s2 = _density_nxn(model, img, camera, b, mapping, params.neighborhood // 2,
-                                   sub_progress(prog, f1, 1.0))
+        density, s2 = _density_nxn(
+            model, img, camera, b, mapping, params.neighborhood // 2, sub_progress(prog, f1, 1.0)
+        )
         segs += s2
     unknown = ~np.isfinite(img) | ~np.isfinite(rr.vis_inf) | (rr.vis_inf > params.vis_unknown)
     prob = change_probability(density, params.prior, params.fg_density)
@@ -158,8 +187,9 @@ def detect_change(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun
     return ChangeResult(prob, density.astype(np.float32), rr.vis_inf, unknown, rr.expected, b, offset, segs, info)
 
 
-def _density_nxn(model: VolumeModel, img: np.ndarray, camera: Any, b: int, mapping, half: int,
-                 prog: Progress) -> tuple[np.ndarray, int]:
+def _density_nxn(
+    model: VolumeModel, img: np.ndarray, camera: Any, b: int, mapping, half: int, prog: Progress
+) -> tuple[np.ndarray, int]:
     rows, cols = img.shape
     geom = model.geometry
     geo = geom.geo_array()
@@ -177,9 +207,31 @@ def _density_nxn(model: VolumeModel, img: np.ndarray, camera: Any, b: int, mappi
         else:
             ma, mb, ms = (np.ascontiguousarray(m_[rr, cc], dtype=np.float64) for m_ in mapping)
         tile = np.zeros((a1 - a0, cols))
-        segs += K.density_nxn(o, d, img[a0:a1], cols, half, geom.box_lo, geom.box_hi, geo, model.block_root,
-                              model.child, model.alpha, model.app, b, P_BACKGROUND, model.params.appearance_prior_weight, ma, mb, ms, tile, sc.seg_cell, sc.seg_len,
-                              sc.seg_t, sc.a)
+        segs += K.density_nxn(
+            o,
+            d,
+            img[a0:a1],
+            cols,
+            half,
+            geom.box_lo,
+            geom.box_hi,
+            geo,
+            model.block_root,
+            model.child,
+            model.alpha,
+            model.app,
+            b,
+            P_BACKGROUND,
+            model.params.appearance_prior_weight,
+            ma,
+            mb,
+            ms,
+            tile,
+            sc.seg_cell,
+            sc.seg_len,
+            sc.seg_t,
+            sc.a,
+        )
         # only rows r0..r1 have all their neighbours' rays in this tile... except at the halo rows of the
         # neighbouring tiles: combine by max over overlapping tiles
         out[a0:a1] = np.maximum(out[a0:a1], tile)

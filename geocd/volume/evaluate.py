@@ -35,10 +35,17 @@ from ..change.metrics import roc_curve
 from ..geodesy import AOIGrid
 from ..io.manifest import load_manifest
 from ..io.raster import read_dem, read_image
-from . import (DetectParams, VolumeModel, VolumeParams, detect_change, expected_height_map, expected_image,
-               save_model, update_model)
-from .baseline import (carlotto_score, difference_score, edge_zone, first_surface_height, nearest_view,
-                       warp_reference)
+from . import (
+    DetectParams,
+    VolumeModel,
+    VolumeParams,
+    detect_change,
+    expected_height_map,
+    expected_image,
+    save_model,
+    update_model,
+)
+from .baseline import carlotto_score, difference_score, edge_zone, first_surface_height, nearest_view, warp_reference
 from .detect import aggregate_log_odds
 from .io import geometry_from_manifest, read_shadow_dsm, read_view
 from .prior import DEMPrior, roof_surface, seed_from_dem
@@ -60,28 +67,39 @@ class TrainConfig:
     seed: int = 0
 
 
-def train(views: list, geom, grid: AOIGrid, dem_m: np.ndarray | None, cfg: TrainConfig, *, fixed_grid: bool = False,
-          footprints: np.ndarray | None = None, log=print) -> tuple[VolumeModel, dict]:
+def train(
+    views: list,
+    geom,
+    grid: AOIGrid,
+    dem_m: np.ndarray | None,
+    cfg: TrainConfig,
+    *,
+    fixed_grid: bool = False,
+    footprints: np.ndarray | None = None,
+    log=print,
+) -> tuple[VolumeModel, dict]:
     """Train a model on ``views`` (several passes in random order); returns it with timing figures."""
     params = VolumeParams(refine=not fixed_grid)
     model = VolumeModel.create(geom, params, init_depth=geom.max_depth if fixed_grid else cfg.init_depth)
     info: dict = {}
     if cfg.dem_prior and dem_m is not None:
-        prior = DEMPrior(ground_band_m=cfg.ground_band_m, ground_band_top_m=cfg.ground_band_top_m,
-                         ground_p_max=cfg.ground_p_max)
+        prior = DEMPrior(
+            ground_band_m=cfg.ground_band_m, ground_band_top_m=cfg.ground_band_top_m, ground_p_max=cfg.ground_p_max
+        )
         roof = None
         if cfg.footprints and footprints is not None and footprints.any():
             t0 = time.perf_counter()
             roof, ri = roof_surface(views, footprints, dem_m, grid, prior, step_m=geom.finest_cell_m)
             info = {"footprints": ri["footprints"], "roofs": ri["roofs"], "roof_sweep_s": time.perf_counter() - t0}
-            log(f"  roofs from footprints: {ri['roofs']} of {ri['footprints']} footprints, "
-                f"{info['roof_sweep_s']:.0f} s")
+            log(
+                f"  roofs from footprints: {ri['roofs']} of {ri['footprints']} footprints, {info['roof_sweep_s']:.0f} s"
+            )
         seed_from_dem(model, dem_m, grid, prior, roof_m=roof)
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
     segs = 0
     n_upd = 0
-    rays: list[dict] = [{} for _ in views]         # each view's rays, computed on its first update
+    rays: list[dict] = [{} for _ in views]  # each view's rays, computed on its first update
     for p in range(cfg.passes):
         for i in rng.permutation(len(views)):
             v = views[i]
@@ -89,8 +107,10 @@ def train(views: list, geom, grid: AOIGrid, dem_m: np.ndarray | None, cfg: Train
             segs += st.segments
             n_upd += 1
         r = model.size_report()
-        log(f"  pass {p + 1}/{cfg.passes}: {r['leaves']:,} leaves, {r['bytes'] / 2**20:.1f} MiB, "
-            f"{time.perf_counter() - t0:.0f} s")
+        log(
+            f"  pass {p + 1}/{cfg.passes}: {r['leaves']:,} leaves, {r['bytes'] / 2**20:.1f} MiB, "
+            f"{time.perf_counter() - t0:.0f} s"
+        )
     secs = time.perf_counter() - t0
     return model, {"train_s": secs, "updates": n_upd, "segments": int(segs), "segments_per_s": segs / secs, **info}
 
@@ -112,13 +132,27 @@ def fa_at_tpr(score: np.ndarray, truth: np.ndarray, valid: np.ndarray, zone: np.
     neg = valid & ~truth
     fa_in = float(np.mean(score[neg & zone] >= thr)) if (neg & zone).any() else float("nan")
     fa_out = float(np.mean(score[neg & ~zone] >= thr)) if (neg & ~zone).any() else float("nan")
-    return {"threshold": thr, "fa_edges": fa_in, "fa_elsewhere": fa_out,
-            "edge_share_of_false_alarms": float(np.sum(score[neg & zone] >= thr) / max(np.sum(score[neg] >= thr), 1))}
+    return {
+        "threshold": thr,
+        "fa_edges": fa_in,
+        "fa_elsewhere": fa_out,
+        "edge_share_of_false_alarms": float(np.sum(score[neg & zone] >= thr) / max(np.sum(score[neg] >= thr), 1)),
+    }
 
 
-def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3", cfg: TrainConfig | None = None,
-             subarea_m: float = 150.0, aggregate_px: int = 9, do_grid: bool = True,
-             shadow_dsm_path: str | None = None, log=print) -> dict:
+def evaluate(
+    scene: str,
+    out_dir: str,
+    work_dir: str,
+    *,
+    holdout: str = "A_sat3",
+    cfg: TrainConfig | None = None,
+    subarea_m: float = 150.0,
+    aggregate_px: int = 9,
+    do_grid: bool = True,
+    shadow_dsm_path: str | None = None,
+    log=print,
+) -> dict:
     """The docs/volume.md evaluation of one scene with truth (module doc). ``shadow_dsm_path``: a DSM of
     epoch A (e.g. ``geocd ortho``'s ``dsm_A.tif``) whose cast shadows the relit detections use."""
     cfg = cfg or TrainConfig()
@@ -127,19 +161,27 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
     out.mkdir(parents=True, exist_ok=True)
     work.mkdir(parents=True, exist_ok=True)
     man = load_manifest(scene)
-    geom, grid = geometry_from_manifest(man, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth,
-                                        above_m=cfg.above_m)
+    geom, grid = geometry_from_manifest(
+        man, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth, above_m=cfg.above_m
+    )
     dem = read_dem(man.dem.path, grid=grid, vertical_datum=man.dem.vertical_datum).to_ellipsoidal().height_m
     views_a = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("A").images]
     views_b = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("B").images if "sat" in s.name]
     train_views = [v for v in views_a if v.name != holdout]
     held = [v for v in views_a if v.name == holdout]
-    res: dict[str, Any] = {"scene": str(scene), "config": cfg.__dict__, "holdout": holdout,
-                           "train_views": [v.name for v in train_views], "geometry": geom.to_dict(),
-                           "shadow_dsm": shadow_dsm_path}
+    res: dict[str, Any] = {
+        "scene": str(scene),
+        "config": cfg.__dict__,
+        "holdout": holdout,
+        "train_views": [v.name for v in train_views],
+        "geometry": geom.to_dict(),
+        "shadow_dsm": shadow_dsm_path,
+    }
     shadow = read_shadow_dsm(shadow_dsm_path, grid) if shadow_dsm_path else None
-    log(f"octree model: {geom.n_blocks} blocks of {geom.block_size_m} m, finest {geom.finest_cell_m} m; "
-        f"training on {[v.name for v in train_views]}")
+    log(
+        f"octree model: {geom.n_blocks} blocks of {geom.block_size_m} m, finest {geom.finest_cell_m} m; "
+        f"training on {[v.name for v in train_views]}"
+    )
     fp = footprint_mask(man, grid)
     model, tr = train(train_views, geom, grid, dem, cfg, footprints=fp, log=log)
     res["octree_training"] = tr
@@ -155,28 +197,39 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
         v = held[0]
         r = expected_image(model, v.camera, v.intensity.shape, sun=v.sun)
         known = np.isfinite(v.intensity) & (r.vis_inf <= 0.2)
-        res["heldout"] = {"name": v.name, "psnr_db": psnr(r.expected, v.intensity, known),
-                          "known_fraction": float(known.mean())}
+        res["heldout"] = {
+            "name": v.name,
+            "psnr_db": psnr(r.expected, v.intensity, known),
+            "known_fraction": float(known.mean()),
+        }
         # the same for a training view, to separate fit from prediction
         vt = train_views[0]
         rt = expected_image(model, vt.camera, vt.intensity.shape, sun=vt.sun)
         kt = np.isfinite(vt.intensity) & (rt.vis_inf <= 0.2)
         res["training_view_psnr_db"] = {"name": vt.name, "psnr_db": psnr(rt.expected, vt.intensity, kt)}
         figs["expected"] = (v.intensity, r.expected, known)
-        log(f"held-out {v.name}: PSNR {res['heldout']['psnr_db']:.2f} dB (training view {vt.name}: "
-            f"{res['training_view_psnr_db']['psnr_db']:.2f} dB)")
+        log(
+            f"held-out {v.name}: PSNR {res['heldout']['psnr_db']:.2f} dB (training view {vt.name}: "
+            f"{res['training_view_psnr_db']['psnr_db']:.2f} dB)"
+        )
 
     # --- height map ----------------------------------------------------------------------------
     h, hg = expected_height_map(model, grid)
     dsm_a = read_dem(man.truth_path("dsm_A"), grid=grid).height_m
     dz = h - dsm_a
     ok = np.isfinite(dz)
-    res["height_map"] = {"median_abs_dz_m": float(np.median(np.abs(dz[ok]))), "nmad_m": float(
-        1.4826 * np.median(np.abs(dz[ok] - np.median(dz[ok])))), "within_1m": float(np.mean(np.abs(dz[ok]) < 1.0)),
-        "bias_m": float(np.median(dz[ok])), "coverage": float(ok.mean())}
+    res["height_map"] = {
+        "median_abs_dz_m": float(np.median(np.abs(dz[ok]))),
+        "nmad_m": float(1.4826 * np.median(np.abs(dz[ok] - np.median(dz[ok])))),
+        "within_1m": float(np.mean(np.abs(dz[ok]) < 1.0)),
+        "bias_m": float(np.median(dz[ok])),
+        "coverage": float(ok.mean()),
+    }
     figs["height"] = (h, dsm_a)
-    log(f"height map: median |dz| {res['height_map']['median_abs_dz_m']:.2f} m, "
-        f"{100 * res['height_map']['within_1m']:.0f}% within 1 m")
+    log(
+        f"height map: median |dz| {res['height_map']['median_abs_dz_m']:.2f} m, "
+        f"{100 * res['height_map']['within_1m']:.0f}% within 1 m"
+    )
 
     # --- change detection on epoch B --------------------------------------------------------
     dsm_b = read_dem(man.truth_path("dsm_B"), grid=grid).height_m
@@ -186,13 +239,16 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
     for v in views_b:
         truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
         t0 = time.perf_counter()
-        det = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
-                            params=DetectParams(neighborhood=1), shadow_dsm=shadow)
+        det = detect_change(
+            model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=1), shadow_dsm=shadow
+        )
         t_det = time.perf_counter() - t0
-        det_plain = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
-                                  params=DetectParams(relight=False, neighborhood=1))
-        det_nxn = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
-                                params=DetectParams(neighborhood=3), shadow_dsm=shadow)
+        det_plain = detect_change(
+            model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(relight=False, neighborhood=1)
+        )
+        det_nxn = detect_change(
+            model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=3), shadow_dsm=shadow
+        )
         k = nearest_view(v.camera, v.intensity.shape, ref_pool, geom)
         ref = ref_pool[k]
         warped = warp_reference(v.camera, v.intensity.shape, ref.intensity, ref.camera, dem, grid)
@@ -209,9 +265,16 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
             "2-D DEM warp + difference": diff,
             "2-D Carlotto joint histogram": carl,
         }
-        entry = {"name": v.name, "reference_view": ref.name, "valid_fraction": float(valid.mean()),
-                 "changed_fraction": float(truth[valid].mean()), "edge_zone_fraction": float(zone[valid].mean()),
-                 "detect_s": t_det, "relight": det.relight, "methods": {}}
+        entry = {
+            "name": v.name,
+            "reference_view": ref.name,
+            "valid_fraction": float(valid.mean()),
+            "changed_fraction": float(truth[valid].mean()),
+            "edge_zone_fraction": float(zone[valid].mean()),
+            "detect_s": t_det,
+            "relight": det.relight,
+            "methods": {},
+        }
         for name, sc in scores.items():
             agg = aggregate_log_odds(_to_prob(sc, valid), aggregate_px)
             r1 = _roc(sc, truth, valid)
@@ -221,10 +284,12 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
             pooled.setdefault(name, []).append((sc[valid], agg[valid], truth[valid], zone[valid]))
         per_image.append(entry)
         figs.setdefault("maps", (v, truth, det.probability, carl, zone, det.expected))
-        log(f"{v.name}: AUC 3-D {entry['methods']['3-D octree (relit)']['auc']:.3f} "
+        log(
+            f"{v.name}: AUC 3-D {entry['methods']['3-D octree (relit)']['auc']:.3f} "
             f"(agg {entry['methods']['3-D octree (relit)'][f'auc_agg{aggregate_px}']:.3f}), "
             f"Carlotto {entry['methods']['2-D Carlotto joint histogram']['auc']:.3f} "
-            f"(agg {entry['methods']['2-D Carlotto joint histogram'][f'auc_agg{aggregate_px}']:.3f})")
+            f"(agg {entry['methods']['2-D Carlotto joint histogram'][f'auc_agg{aggregate_px}']:.3f})"
+        )
     res["change"] = per_image
     res["change_pooled"] = {}
     curves = {}
@@ -237,9 +302,12 @@ def evaluate(scene: str, out_dir: str, work_dir: str, *, holdout: str = "A_sat3"
         r1 = _roc(s1, t, allv)
         r9 = _roc(s9, t, allv)
         curves[name] = (r1, r9)
-        res["change_pooled"][name] = {"auc": r1["auc"], f"auc_agg{aggregate_px}": r9["auc"],
-                                      "fa_at_tpr50": fa_at_tpr(s1, t, allv, z),
-                                      f"fa_at_tpr50_agg{aggregate_px}": fa_at_tpr(s9, t, allv, z)}
+        res["change_pooled"][name] = {
+            "auc": r1["auc"],
+            f"auc_agg{aggregate_px}": r9["auc"],
+            "fa_at_tpr50": fa_at_tpr(s1, t, allv, z),
+            f"fa_at_tpr50_agg{aggregate_px}": fa_at_tpr(s9, t, allv, z),
+        }
 
     # --- octree vs fixed grid ---------------------------------------------------------------------
     if do_grid:
@@ -271,36 +339,57 @@ def _grid_comparison(man, grid, dem, train_views, views_b, cfg, subarea_m, work,
     sub = AOIGrid.from_bounds(cx - half, cy - half, cx + half, cy + half, grid.posting_m, grid.crs)
     z0 = float(np.nanmin(dem)) - 3.0
     z1 = float(np.nanmax(dem)) + cfg.above_m
-    geom_full, _ = geometry_from_manifest(man, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth,
-                                          above_m=cfg.above_m)
-    geom = geometry_for_aoi(sub, z_min_m=z0, z_max_m=z1, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth,
-                            frame=geom_full.frame)
+    geom_full, _ = geometry_from_manifest(
+        man, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth, above_m=cfg.above_m
+    )
+    geom = geometry_for_aoi(
+        sub, z_min_m=z0, z_max_m=z1, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth, frame=geom_full.frame
+    )
     out: dict[str, Any] = {"subarea_bounds": list(sub.bounds), "subarea_m": subarea_m}
     models = {}
     for kind in ("octree", "fixed grid"):
         log(f"sub-area {subarea_m:.0f} m, {kind}:")
-        m, tr = train(train_views, geom, sub, dem_sub(dem, grid, sub), cfg, fixed_grid=(kind == "fixed grid"),
-                      footprints=None if fp is None else dem_sub(fp, grid, sub), log=log)
+        m, tr = train(
+            train_views,
+            geom,
+            sub,
+            dem_sub(dem, grid, sub),
+            cfg,
+            fixed_grid=(kind == "fixed grid"),
+            footprints=None if fp is None else dem_sub(fp, grid, sub),
+            log=log,
+        )
         models[kind] = m
         out[kind] = {"bytes": m.nbytes(), "nodes": m.n_nodes, "leaves": m.n_leaves, **tr}
     out["storage_ratio"] = out["fixed grid"]["bytes"] / out["octree"]["bytes"]
     aucs = {"octree": [], "fixed grid": []}
     for v in views_b:
         truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
-        dets = {k: detect_change(m, v.intensity, v.camera, sun=v.sun, name=v.name,
-                                 params=DetectParams(neighborhood=1)) for k, m in models.items()}
+        dets = {
+            k: detect_change(m, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=1))
+            for k, m in models.items()
+        }
         valid = ~dets["octree"].unknown & ~dets["fixed grid"].unknown
         for k, d in dets.items():
             aucs[k].append(roc_curve(d.probability, truth, valid)[3])
     out["auc_per_image"] = aucs
     out["auc_mean"] = {k: float(np.mean(v)) for k, v in aucs.items()}
-    log(f"sub-area: storage ratio {out['storage_ratio']:.1f}x, AUC octree {out['auc_mean']['octree']:.3f}, "
-        f"fixed grid {out['auc_mean']['fixed grid']:.3f}")
+    log(
+        f"sub-area: storage ratio {out['storage_ratio']:.1f}x, AUC octree {out['auc_mean']['octree']:.3f}, "
+        f"fixed grid {out['auc_mean']['fixed grid']:.3f}"
+    )
     return out
 
 
-def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdout: str = "A_sat3",
-                 cfg: TrainConfig | None = None, shadow_dsm_path: str | None = None, log=print) -> dict:
+def subarea_aucs(
+    scene: str,
+    bounds: tuple[float, float, float, float],
+    *,
+    holdout: str = "A_sat3",
+    cfg: TrainConfig | None = None,
+    shadow_dsm_path: str | None = None,
+    log=print,
+) -> dict:
     """Pooled per-pixel AUCs of the octree (plain eq. 27 and the default detection) and both 2-D baselines on a sub-area.
 
     The octree is trained on ``bounds`` (AOI CRS) only, so this is a fast, reduced version of
@@ -309,30 +398,48 @@ def subarea_aucs(scene: str, bounds: tuple[float, float, float, float], *, holdo
     """
     cfg = cfg or TrainConfig()
     man = load_manifest(scene)
-    geom_full, grid = geometry_from_manifest(man, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth,
-                                             above_m=cfg.above_m)
+    geom_full, grid = geometry_from_manifest(
+        man, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth, above_m=cfg.above_m
+    )
     dem = read_dem(man.dem.path, grid=grid, vertical_datum=man.dem.vertical_datum).to_ellipsoidal().height_m
     sub = AOIGrid.from_bounds(*bounds, grid.posting_m, grid.crs)
-    geom = geometry_for_aoi(sub, z_min_m=float(np.nanmin(dem)) - 3.0, z_max_m=float(np.nanmax(dem)) + cfg.above_m,
-                            finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth, frame=geom_full.frame)
+    geom = geometry_for_aoi(
+        sub,
+        z_min_m=float(np.nanmin(dem)) - 3.0,
+        z_max_m=float(np.nanmax(dem)) + cfg.above_m,
+        finest_cell_m=cfg.finest_cell_m,
+        max_depth=cfg.max_depth,
+        frame=geom_full.frame,
+    )
     views_a = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("A").images]
     views_b = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("B").images if "sat" in s.name]
     fp = footprint_mask(man, grid)
     shadow = read_shadow_dsm(shadow_dsm_path, sub) if shadow_dsm_path else None
-    model, _ = train([v for v in views_a if v.name != holdout], geom, sub, dem_sub(dem, grid, sub), cfg,
-                     footprints=None if fp is None else dem_sub(fp, grid, sub), log=log)
+    model, _ = train(
+        [v for v in views_a if v.name != holdout],
+        geom,
+        sub,
+        dem_sub(dem, grid, sub),
+        cfg,
+        footprints=None if fp is None else dem_sub(fp, grid, sub),
+        log=log,
+    )
     ref_pool = [v for v in views_a if "sat" in v.name and v.name != holdout]
     pooled: dict[str, list] = {}
     for v in views_b:
         truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
-        d1 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=1),
-                           shadow_dsm=shadow)
-        d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, shadow_dsm=shadow)   # 3×3: default
+        d1 = detect_change(
+            model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=1), shadow_dsm=shadow
+        )
+        d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, shadow_dsm=shadow)  # 3×3: default
         ref = ref_pool[nearest_view(v.camera, v.intensity.shape, ref_pool, geom)]
         warped = warp_reference(v.camera, v.intensity.shape, ref.intensity, ref.camera, dem, grid)
-        scores = {"3-D octree (relit)": d1.probability, "3-D octree 3×3 (relit)": d3.probability,
-                  "2-D DEM warp + difference": difference_score(v.intensity, warped),
-                  "2-D Carlotto joint histogram": carlotto_score(v.intensity, warped)}
+        scores = {
+            "3-D octree (relit)": d1.probability,
+            "3-D octree 3×3 (relit)": d3.probability,
+            "2-D DEM warp + difference": difference_score(v.intensity, warped),
+            "2-D Carlotto joint histogram": carlotto_score(v.intensity, warped),
+        }
         valid = ~d1.unknown & np.all([np.isfinite(sc) for sc in scores.values()], axis=0)
         for k, sc in scores.items():
             pooled.setdefault(k, []).append((sc[valid], truth[valid]))
@@ -351,14 +458,16 @@ def footprint_mask(man, grid: AOIGrid) -> np.ndarray | None:
         return None
     from ..io.vector import polygons_to_mask, read_footprints
 
-    return polygons_to_mask(read_footprints(man.footprints.path, crs=grid.crs, layer=man.footprints.layer),
-                            grid).astype(bool)
+    return polygons_to_mask(
+        read_footprints(man.footprints.path, crs=grid.crs, layer=man.footprints.layer), grid
+    ).astype(bool)
 
 
 def dem_sub(dem: np.ndarray, grid: AOIGrid, sub: AOIGrid) -> np.ndarray:
-    r0, c0 = (int(round(v)) for v in grid.rowcol(sub.transform.c + 0.5 * sub.posting_m,
-                                                   sub.transform.f - 0.5 * sub.posting_m))
-    return dem[r0:r0 + sub.height, c0:c0 + sub.width]
+    r0, c0 = (
+        int(round(v)) for v in grid.rowcol(sub.transform.c + 0.5 * sub.posting_m, sub.transform.f - 0.5 * sub.posting_m)
+    )
+    return dem[r0 : r0 + sub.height, c0 : c0 + sub.width]
 
 
 def _json(o):
@@ -391,9 +500,13 @@ def _figures(out: Path, figs: dict, curves: dict, res: dict, agg: int) -> None:
 
     # ROC
     fig, axes = plt.subplots(1, 2, figsize=(12, 5.2))
-    styles = {"3-D octree (relit)": ("C0", "-"), "3-D octree (nearest sun bin)": ("C0", ":"),
-              "3-D octree 3×3 (relit)": ("C2", "-"), "2-D DEM warp + difference": ("C3", "--"),
-              "2-D Carlotto joint histogram": ("C1", "--")}
+    styles = {
+        "3-D octree (relit)": ("C0", "-"),
+        "3-D octree (nearest sun bin)": ("C0", ":"),
+        "3-D octree 3×3 (relit)": ("C2", "-"),
+        "2-D DEM warp + difference": ("C3", "--"),
+        "2-D Carlotto joint histogram": ("C1", "--"),
+    }
     for ax, which, title in ((axes[0], 0, "per pixel (eq. 27)"), (axes[1], 1, f"{agg}×{agg} log-odds aggregation")):
         for name, rr in curves.items():
             c, ls = styles.get(name, ("k", "-"))
@@ -462,24 +575,48 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--subarea", type=float, default=150.0, help="side of the octree/grid comparison area (m)")
     ap.add_argument("--no-grid", action="store_true")
     ap.add_argument("--no-dem-prior", action="store_true")
-    ap.add_argument("--footprints", action="store_true",
-                    help="DEM prior: roof heights swept from the manifest's footprints (see docs/volume.md)")
+    ap.add_argument(
+        "--footprints",
+        action="store_true",
+        help="DEM prior: roof heights swept from the manifest's footprints (see docs/volume.md)",
+    )
     ap.add_argument("--ground-band", type=float, default=0.5, help="DEM prior: ground band half-height (m)")
-    ap.add_argument("--ground-band-top", type=float, default=0.0,
-                    help="DEM prior: top of the ground band above the DEM (m)")
-    ap.add_argument("--ground-p-max", type=float, default=0.9,
-                    help="DEM prior: cap of a ground-band cell's occlusion probability")
-    ap.add_argument("--shadow-dsm", default=None,
-                    help="a DSM of epoch A (e.g. geocd ortho's dsm_A.tif): the relighting casts its shadows")
+    ap.add_argument(
+        "--ground-band-top", type=float, default=0.0, help="DEM prior: top of the ground band above the DEM (m)"
+    )
+    ap.add_argument(
+        "--ground-p-max", type=float, default=0.9, help="DEM prior: cap of a ground-band cell's occlusion probability"
+    )
+    ap.add_argument(
+        "--shadow-dsm",
+        default=None,
+        help="a DSM of epoch A (e.g. geocd ortho's dsm_A.tif): the relighting casts its shadows",
+    )
     a = ap.parse_args(argv)
-    cfg = TrainConfig(passes=a.passes, finest_cell_m=a.finest, dem_prior=not a.no_dem_prior,
-                      ground_band_m=a.ground_band, ground_band_top_m=a.ground_band_top,
-                      ground_p_max=a.ground_p_max, footprints=a.footprints)
+    cfg = TrainConfig(
+        passes=a.passes,
+        finest_cell_m=a.finest,
+        dem_prior=not a.no_dem_prior,
+        ground_band_m=a.ground_band,
+        ground_band_top_m=a.ground_band_top,
+        ground_p_max=a.ground_p_max,
+        footprints=a.footprints,
+    )
     t0 = time.perf_counter()
-    res = evaluate(a.scene, a.out, a.work, holdout=a.holdout, cfg=cfg, subarea_m=a.subarea, do_grid=not a.no_grid,
-                   shadow_dsm_path=a.shadow_dsm, log=lambda m: print(m, flush=True))
-    print(json.dumps({k: res[k] for k in ("heldout", "height_map", "change_pooled") if k in res}, indent=1,
-                     default=_json))
+    res = evaluate(
+        a.scene,
+        a.out,
+        a.work,
+        holdout=a.holdout,
+        cfg=cfg,
+        subarea_m=a.subarea,
+        do_grid=not a.no_grid,
+        shadow_dsm_path=a.shadow_dsm,
+        log=lambda m: print(m, flush=True),
+    )
+    print(
+        json.dumps({k: res[k] for k in ("heldout", "height_map", "change_pooled") if k in res}, indent=1, default=_json)
+    )
     print(f"total {time.perf_counter() - t0:.0f} s")
 
 

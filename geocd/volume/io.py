@@ -40,9 +40,12 @@ def save_model(model: VolumeModel, path: os.PathLike | str) -> Path:
     if target.exists() and not (target.is_dir() and (target / "model.json").is_file()):
         raise OutputError(f"{target} exists and is not a geocd volume model; choose another output path")
     meta = {
-        "format": FORMAT, "version": VERSION,
-        "geometry": model.geometry.to_dict(), "params": model.params.to_dict(),
-        "sun_bins": model.sun_bins, "history": model.history,
+        "format": FORMAT,
+        "version": VERSION,
+        "geometry": model.geometry.to_dict(),
+        "params": model.params.to_dict(),
+        "sun_bins": model.sun_bins,
+        "history": model.history,
         "arrays": {k: {"shape": list(getattr(model, k).shape), "dtype": str(getattr(model, k).dtype)} for k in ARRAYS},
         "size": model.size_report(),
     }
@@ -87,8 +90,9 @@ def load_model(path: os.PathLike | str, mmap: bool = False) -> VolumeModel:
     p = Path(path)
     meta_path = p / "model.json"
     if not meta_path.is_file():
-        raise InputFileNotFoundError(f"no volume model at {p} (model.json missing); create one with "
-                                     "'geocd volume update --create'")
+        raise InputFileNotFoundError(
+            f"no volume model at {p} (model.json missing); create one with 'geocd volume update --create'"
+        )
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
@@ -104,8 +108,10 @@ def load_model(path: os.PathLike | str, mmap: bool = False) -> VolumeModel:
         sun_bins = [list(b) for b in meta.get("sun_bins", [])]
         history = list(meta.get("history", []))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise UnsupportedFormatError(f"{meta_path} is damaged ({type(exc).__name__}: {exc}); rebuild the model "
-                                     "with 'geocd volume update --create'") from exc
+        raise UnsupportedFormatError(
+            f"{meta_path} is damaged ({type(exc).__name__}: {exc}); rebuild the model "
+            "with 'geocd volume update --create'"
+        ) from exc
     if version > VERSION:
         raise UnsupportedFormatError(f"{p} was written by a newer geocd (version {meta['version']}); upgrade geocd")
     _check_geometry(meta_path, geom)
@@ -116,26 +122,46 @@ def load_model(path: os.PathLike | str, mmap: bool = False) -> VolumeModel:
             raise UnsupportedFormatError(f"{p} lacks {k}.npy; the model is incomplete")
         a = _load_npy(f, mmap)
         want = wanted[k]
-        if not isinstance(want, dict) or list(a.shape) != list(want.get("shape", [])) \
-                or str(a.dtype) != want.get("dtype"):
-            raise UnsupportedFormatError(f"{f} has shape {a.shape} {a.dtype}, model.json says {want}; the model is "
-                                         "damaged")
+        if (
+            not isinstance(want, dict)
+            or list(a.shape) != list(want.get("shape", []))
+            or str(a.dtype) != want.get("dtype")
+        ):
+            raise UnsupportedFormatError(
+                f"{f} has shape {a.shape} {a.dtype}, model.json says {want}; the model is damaged"
+            )
         arrays[k] = a if mmap else np.ascontiguousarray(a)
     _check_arrays(p, geom, params, arrays, sun_bins, history)
-    return VolumeModel(geom, params, arrays["block_root"], arrays["child"], arrays["level"], arrays["alpha"],
-                       arrays["app"], sun_bins, history)
+    return VolumeModel(
+        geom,
+        params,
+        arrays["block_root"],
+        arrays["child"],
+        arrays["level"],
+        arrays["alpha"],
+        arrays["app"],
+        sun_bins,
+        history,
+    )
 
 
 #: the dtype and number of dimensions of each array (the kernels' types)
-_ARRAY_TYPES = {"block_root": (np.int32, 3), "child": (np.int32, 1), "level": (np.uint8, 1),
-                "alpha": (np.float32, 1), "app": (np.float32, 4)}
+_ARRAY_TYPES = {
+    "block_root": (np.int32, 3),
+    "child": (np.int32, 1),
+    "level": (np.uint8, 1),
+    "alpha": (np.float32, 1),
+    "app": (np.float32, 4),
+}
 #: nodes checked per step (bounds the memory of the checks on a large model)
 _CHUNK = 1 << 20
 
 
 def _damaged(path: Path, what: str) -> UnsupportedFormatError:
-    return UnsupportedFormatError(f"the volume model {path} is damaged: {what}; rebuild it with "
-                                  "'geocd volume update --create' (or restore a copy)")
+    return UnsupportedFormatError(
+        f"the volume model {path} is damaged: {what}; rebuild it with "
+        "'geocd volume update --create' (or restore a copy)"
+    )
 
 
 def _load_npy(f: Path, mmap: bool) -> np.ndarray:
@@ -154,9 +180,11 @@ def _load_npy(f: Path, mmap: bool) -> np.ndarray:
             raise ValueError(f"its header promises {need_b} bytes of {dtype} {tuple(shape)} but it holds {data_b}")
         return np.load(f, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (ValueError, OSError, EOFError, TypeError) as exc:
-        raise UnsupportedFormatError(f"{f} is truncated or not a valid .npy file ({exc}); the volume model is "
-                                     "damaged: rebuild it with 'geocd volume update --create' (or restore a "
-                                     "copy)") from exc
+        raise UnsupportedFormatError(
+            f"{f} is truncated or not a valid .npy file ({exc}); the volume model is "
+            "damaged: rebuild it with 'geocd volume update --create' (or restore a "
+            "copy)"
+        ) from exc
 
 
 def _check_geometry(meta_path: Path, geom: VolumeGeometry) -> None:
@@ -170,8 +198,9 @@ def _check_geometry(meta_path: Path, geom: VolumeGeometry) -> None:
         raise _damaged(meta_path, f"the ENU origin (lon {geom.frame.lon0}, lat {geom.frame.lat0}) is off the Earth")
 
 
-def _check_arrays(p: Path, geom: VolumeGeometry, params: VolumeParams, arrays: dict, sun_bins: list,
-                  history: list) -> None:
+def _check_arrays(
+    p: Path, geom: VolumeGeometry, params: VolumeParams, arrays: dict, sun_bins: list, history: list
+) -> None:
     """The arrays form a tree the kernels can walk, with finite values (see :func:`load_model`)."""
     from .scene import N_FIELDS, N_MODES, NOBS, SIGMA, WEIGHT
 
@@ -186,13 +215,16 @@ def _check_arrays(p: Path, geom: VolumeGeometry, params: VolumeParams, arrays: d
     if tuple(root.shape) != tuple(geom.n_blocks):
         raise _damaged(p / "block_root.npy", f"its shape {root.shape} is not n_blocks {geom.n_blocks}")
     if tuple(app.shape[1:]) != (params.n_bins, N_MODES, N_FIELDS):
-        raise _damaged(p / "app.npy", f"its shape {app.shape} is not (cells, {params.n_bins} illumination bins, "
-                                      f"{N_MODES}, {N_FIELDS})")
-    if len(sun_bins) > params.n_bins or any(len(b) != 3 or not all(isinstance(v, (int, float))
-                                                                    and not isinstance(v, bool) for v in b)
-                                            for b in sun_bins):
-        raise _damaged(p / "model.json", f"sun_bins {sun_bins} are not up to {params.n_bins} (azimuth, elevation, "
-                                         "count) triples")
+        raise _damaged(
+            p / "app.npy",
+            f"its shape {app.shape} is not (cells, {params.n_bins} illumination bins, {N_MODES}, {N_FIELDS})",
+        )
+    if len(sun_bins) > params.n_bins or any(
+        len(b) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in b) for b in sun_bins
+    ):
+        raise _damaged(
+            p / "model.json", f"sun_bins {sun_bins} are not up to {params.n_bins} (azimuth, elevation, count) triples"
+        )
     if not all(isinstance(h, dict) for h in history):
         raise _damaged(p / "model.json", "its history is not a list of records")
     # block roots: distinct nodes of level 0
@@ -204,21 +236,25 @@ def _check_arrays(p: Path, geom: VolumeGeometry, params: VolumeParams, arrays: d
     if np.any(level[roots] != 0):
         raise _damaged(p / "level.npy", "a block root is not at level 0")
     if int(level.max()) > geom.max_depth:
-        raise _damaged(p / "level.npy", f"a node is at level {int(level.max())}, deeper than max_depth "
-                                        f"{geom.max_depth}")
+        raise _damaged(
+            p / "level.npy", f"a node is at level {int(level.max())}, deeper than max_depth {geom.max_depth}"
+        )
     # child pointers: -1, or the first of 8 nodes after the parent (the format builds children after their parent,
     # so this rules out cycles); the 8 are one level deeper, and no node has two parents
     starts = []
     for s in range(0, n, _CHUNK):
-        c = child[s:s + _CHUNK].astype(np.int64)
+        c = child[s : s + _CHUNK].astype(np.int64)
         node = np.arange(s, s + c.size, dtype=np.int64)
         inner = c >= 0
         bad = (c < -1) | (inner & ((c <= node) | (c + 8 > n)))
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise _damaged(p / "child.npy", f"node {s + i} points to child {int(c[i])}, which is neither -1 nor the "
-                                            f"first of 8 nodes after it among the {n}")
-        lv = level[s:s + c.size][inner]
+            raise _damaged(
+                p / "child.npy",
+                f"node {s + i} points to child {int(c[i])}, which is neither -1 nor the "
+                f"first of 8 nodes after it among the {n}",
+            )
+        lv = level[s : s + c.size][inner]
         if np.any(lv >= geom.max_depth):
             raise _damaged(p / "child.npy", f"a node at level max_depth {geom.max_depth} has children")
         ci = c[inner]
@@ -235,10 +271,10 @@ def _check_arrays(p: Path, geom: VolumeGeometry, params: VolumeParams, arrays: d
             raise _damaged(p / "block_root.npy", "a block root is also a child node")
     # values: finite; densities, spreads, weights and counts not negative
     for s in range(0, n, _CHUNK):
-        a = alpha[s:s + _CHUNK]
+        a = alpha[s : s + _CHUNK]
         if not np.all(np.isfinite(a)) or np.any(a < 0):
             raise _damaged(p / "alpha.npy", "it holds non-finite or negative occlusion densities")
-        ap = app[s:s + _CHUNK]
+        ap = app[s : s + _CHUNK]
         if not np.all(np.isfinite(ap)):
             raise _damaged(p / "app.npy", "it holds non-finite appearance values")
         if np.any(ap[..., [SIGMA, WEIGHT, NOBS]] < 0):
@@ -266,8 +302,11 @@ class View:
 
 
 #: image metadata keys holding the sun position (geocd synth; DigitalGlobe IMD names as GDAL exposes them)
-SUN_TAGS = (("SUN_AZIMUTH", "SUN_ELEVATION"), ("MEANSUNAZ", "MEANSUNEL"), ("IMD_IMAGE_1_MEANSUNAZ",
-                                                                          "IMD_IMAGE_1_MEANSUNEL"))
+SUN_TAGS = (
+    ("SUN_AZIMUTH", "SUN_ELEVATION"),
+    ("MEANSUNAZ", "MEANSUNEL"),
+    ("IMD_IMAGE_1_MEANSUNAZ", "IMD_IMAGE_1_MEANSUNEL"),
+)
 
 
 def sun_from_tags(tags: dict) -> tuple[float, float] | None:
@@ -281,8 +320,14 @@ def sun_from_tags(tags: dict) -> tuple[float, float] | None:
     return None
 
 
-def read_view(image_path: os.PathLike | str, camera_path: os.PathLike | str | None = None, *, name: str = "",
-              sun: tuple[float, float] | None = None, normalize: str = "equalize") -> View:
+def read_view(
+    image_path: os.PathLike | str,
+    camera_path: os.PathLike | str | None = None,
+    *,
+    name: str = "",
+    sun: tuple[float, float] | None = None,
+    normalize: str = "equalize",
+) -> View:
     """Read an image, its camera (any kind, via :func:`geocd.io.load_camera`) and its sun position.
 
     Parameters
@@ -317,8 +362,13 @@ def read_view(image_path: os.PathLike | str, camera_path: os.PathLike | str | No
     except Exception:  # pragma: no cover - read_image already opened it
         pass
     s = sun if sun is not None else sun_from_tags(tags)
-    return View(name or Path(image_path).stem, image_intensity(img.data, img.valid, img.bit_depth, normalize), cam, s,
-                str(image_path))
+    return View(
+        name or Path(image_path).stem,
+        image_intensity(img.data, img.valid, img.bit_depth, normalize),
+        cam,
+        s,
+        str(image_path),
+    )
 
 
 def read_shadow_dsm(path: os.PathLike | str, grid: Any) -> tuple[np.ndarray, Any]:
@@ -334,8 +384,15 @@ def disk_bytes(path: os.PathLike | str) -> int:
     return sum(f.stat().st_size for f in Path(path).iterdir() if f.is_file())
 
 
-def geometry_from_manifest(manifest: Any, *, finest_cell_m: float = 0.5, max_depth: int = 3,
-                           above_m: float = 30.0, below_m: float = 3.0, posting_m: float | None = None):
+def geometry_from_manifest(
+    manifest: Any,
+    *,
+    finest_cell_m: float = 0.5,
+    max_depth: int = 3,
+    above_m: float = 30.0,
+    below_m: float = 3.0,
+    posting_m: float | None = None,
+):
     """The volume box of a manifest's AOI: from the prior DEM's range (``below_m`` under its
     minimum to ``above_m`` over its maximum, ellipsoidal), or from the images' RPC height
     range when the manifest has no DEM.
@@ -351,8 +408,9 @@ def geometry_from_manifest(manifest: Any, *, finest_cell_m: float = 0.5, max_dep
 
     a = manifest.aoi
     if a is None or a.bounds is None or a.crs is None:
-        raise ManifestError("the volume model needs the manifest's AOI (aoi: crs, bounds, posting_m); add it to "
-                            "scene.yaml")
+        raise ManifestError(
+            "the volume model needs the manifest's AOI (aoi: crs, bounds, posting_m); add it to scene.yaml"
+        )
     grid = AOIGrid.from_bounds(*a.bounds, posting_m or a.posting_m or finest_cell_m, a.crs)
     if manifest.dem is not None:
         dem = read_dem(manifest.dem.path, grid=grid, vertical_datum=manifest.dem.vertical_datum)
@@ -372,6 +430,7 @@ def geometry_from_manifest(manifest: Any, *, finest_cell_m: float = 0.5, max_dep
         z0 = float(np.median([s[0] for s in spans]))
         z1 = float(np.median([s[1] for s in spans]))
         above_m = 0.0
-    geom = geometry_for_aoi(grid, z_min_m=z0 - below_m, z_max_m=z1 + above_m, finest_cell_m=finest_cell_m,
-                            max_depth=max_depth)
+    geom = geometry_for_aoi(
+        grid, z_min_m=z0 - below_m, z_max_m=z1 + above_m, finest_cell_m=finest_cell_m, max_depth=max_depth
+    )
     return geom, grid

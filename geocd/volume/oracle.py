@@ -62,8 +62,13 @@ from .io import geometry_from_manifest, load_model, read_shadow_dsm, read_view, 
 from .relight import CLASSES, robust_line
 
 CHANGE_KINDS = ("building height", "building new or gone", "car", "tree", "other (occlusion, mixed pixel)")
-PERFECT_ROWS = ("perfect A, A's sun, one line", "perfect A, A's sun, exact class lines", "perfect A, B's sun, one line",
-                "perfect A, A's sun, exact class lines, 3×3", "perfect A, B's sun, one line, 3×3")
+PERFECT_ROWS = (
+    "perfect A, A's sun, one line",
+    "perfect A, A's sun, exact class lines",
+    "perfect A, B's sun, one line",
+    "perfect A, A's sun, exact class lines, 3×3",
+    "perfect A, B's sun, one line, 3×3",
+)
 BASELINE_ROWS = ("2-D Carlotto joint histogram", "2-D DEM warp + difference")
 
 
@@ -103,8 +108,9 @@ def change_kind(town, camera, scene_a, scene_b, shape: tuple[int, int]) -> np.nd
     return kind.reshape(shape)
 
 
-def neg_log_density(c: np.ndarray, e: np.ndarray, klass: np.ndarray, fit_on: np.ndarray,
-                    half: int = 0) -> tuple[np.ndarray, dict]:
+def neg_log_density(
+    c: np.ndarray, e: np.ndarray, klass: np.ndarray, fit_on: np.ndarray, half: int = 0
+) -> tuple[np.ndarray, dict]:
     """−log N(c; a_k + b_k e, σ_k), one robust line per class k fitted on the pixels ``fit_on``.
 
     Parameters
@@ -128,22 +134,33 @@ def neg_log_density(c: np.ndarray, e: np.ndarray, klass: np.ndarray, fit_on: np.
             sel = fit_on
         a, b, s = robust_line(e[sel], c[sel])
         par[k] = a, b, max(s, 1e-3)
-        lines[int(k)] = {"a": round(a, 4), "b": round(b, 4), "sigma": round(float(par[k, 2]), 4),
-                         "pixels": int(sel.sum())}
+        lines[int(k)] = {
+            "a": round(a, 4),
+            "b": round(b, 4),
+            "sigma": round(float(par[k, 2]), 4),
+            "pixels": int(sel.sum()),
+        }
     out = np.full(c.shape, np.inf)
     pe = np.pad(e, half, mode="edge")
     pk = np.pad(klass, half, mode="edge")
     rows, cols = c.shape
     for dr in range(2 * half + 1):
         for dc in range(2 * half + 1):
-            en, kn = pe[dr:dr + rows, dc:dc + cols], pk[dr:dr + rows, dc:dc + cols]
+            en, kn = pe[dr : dr + rows, dc : dc + cols], pk[dr : dr + rows, dc : dc + cols]
             a, b, s = par[kn, 0], par[kn, 1], par[kn, 2]
             out = np.minimum(out, 0.5 * ((c - a - b * en) / s) ** 2 + np.log(s))
     return out, lines
 
 
-def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, octree_work: str | Path | None = None,
-                       shadow_dsm_path: str | Path | None = None, blur_px: float = 0.5, log=print) -> dict[str, Any]:
+def perfect_model_aucs(
+    scene: str | Path,
+    *,
+    views: list[str] | None = None,
+    octree_work: str | Path | None = None,
+    shadow_dsm_path: str | Path | None = None,
+    blur_px: float = 0.5,
+    log=print,
+) -> dict[str, Any]:
     """Per-pixel AUCs of a perfect epoch-A model, the 2-D baselines and optionally the octree (module doc).
 
     Parameters
@@ -163,8 +180,10 @@ def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, oct
     root = Path(scene)
     truth_file = root / "truth" / "scene_truth.json"
     if not truth_file.is_file():
-        raise ManifestError(f"{root} has no truth/scene_truth.json: the perfect model needs a scene made by "
-                            "geocd synth (give such a folder)")
+        raise ManifestError(
+            f"{root} has no truth/scene_truth.json: the perfect model needs a scene made by "
+            "geocd synth (give such a folder)"
+        )
     man = load_manifest(str(root / "scene.yaml"))
     names_b = [s.name for s in man.epoch("B").images if "sat" in s.name and (views is None or s.name in views)]
     if not names_b:
@@ -172,12 +191,13 @@ def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, oct
     truth = json.loads(truth_file.read_text())
     sp = SynthParams.from_dict(truth["params"])
     town = synth_scene.build_town(sp.town_params())
-    suns = {ep: Sun(**truth["sun"][ep]) for ep in ("A", "B")}     # the suns the generator rendered with
+    suns = {ep: Sun(**truth["sun"][ep]) for ep in ("A", "B")}  # the suns the generator rendered with
     cams = make_satellite_cameras(sp, town)
     scene_a, scene_b = pack_scene(town, "A"), pack_scene(town, "B")
     cfg = TrainConfig()
-    geom, grid = geometry_from_manifest(man, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth,
-                                        above_m=cfg.above_m)
+    geom, grid = geometry_from_manifest(
+        man, finest_cell_m=cfg.finest_cell_m, max_depth=cfg.max_depth, above_m=cfg.above_m
+    )
     dem = read_dem(man.dem.path, grid=grid, vertical_datum=man.dem.vertical_datum).to_ellipsoidal().height_m
     dsm_b = read_dem(man.truth_path("dsm_B"), grid=grid).height_m
     views_a = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("A").images]
@@ -190,8 +210,15 @@ def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, oct
         if (work / "volume_octree").exists():
             model = load_model(work / "volume_octree")
         else:
-            model, _ = train([v for v in views_a if v.name != "A_sat3"], geom, grid, dem, cfg,
-                             footprints=footprint_mask(man, grid) if cfg.footprints else None, log=log)
+            model, _ = train(
+                [v for v in views_a if v.name != "A_sat3"],
+                geom,
+                grid,
+                dem,
+                cfg,
+                footprints=footprint_mask(man, grid) if cfg.footprints else None,
+                log=log,
+            )
             save_model(model, work / "volume_octree")
         shadow = read_shadow_dsm(shadow_dsm_path, grid) if shadow_dsm_path else None
         rows_out += ("3-D octree 3×3 (relit, " + ("DSM shadows)" if shadow is not None else "model's shadows)"),)
@@ -204,13 +231,14 @@ def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, oct
         changed = read_image(root / man.truth["image_masks"][v.name]).data[0] > 0
 
         def render(sun_epoch: str, **kw) -> np.ndarray:
-            return render_view(town, "A", cam, suns[sun_epoch].direction_enu(), RenderParams(**kw),
-                               scene=scene_a).radiance
+            return render_view(
+                town, "A", cam, suns[sun_epoch].direction_enu(), RenderParams(**kw), scene=scene_a
+            ).radiance
 
         e_a = equalize(pan(render("A", supersample=2), blur_px))
         e_ab = equalize(pan(render("B", supersample=2), blur_px))
         lit = [render(ep, supersample=1, sky_irradiance=0.0).sum(axis=0) > 0 for ep in ("A", "B")]
-        klass = (~lit[0]).astype(int) * 2 + (~lit[1]).astype(int)      # the order of relight.CLASSES
+        klass = (~lit[0]).astype(int) * 2 + (~lit[1]).astype(int)  # the order of relight.CLASSES
         ref = ref_pool[nearest_view(v.camera, shape, ref_pool, geom)]
         warped = warp_reference(v.camera, shape, ref.intensity, ref.camera, dem, grid)
         diff = difference_score(v.intensity, warped)
@@ -228,14 +256,29 @@ def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, oct
         s_ab3, _ = neg_log_density(c, e_ab, one, valid, half=1)
         scores = dict(zip(rows_out, (s_one, s_cls, s_ab, s_cls3, s_ab3, carl, diff)))
         if model is not None:
-            det = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name,
-                                params=DetectParams(neighborhood=3), shadow_dsm=shadow)
+            det = detect_change(
+                model,
+                v.intensity,
+                v.camera,
+                sun=v.sun,
+                name=v.name,
+                params=DetectParams(neighborhood=3),
+                shadow_dsm=shadow,
+            )
             valid &= ~det.unknown
             scores[rows_out[-1]] = det.probability
-        entry = {"name": v.name, "pixels": int(valid.sum()), "changed_fraction": round(float(changed[valid].mean()), 4),
-                 "class_fraction": {CLASSES[k]: round(float((klass[valid] == k).mean()), 4) for k in range(4)},
-                 "class_lines": {CLASSES[k]: line for k, line in l_cls.items()}, "line_A_sun": l_one[0],
-                 "line_B_sun": l_ab[0], "auc": {}, "auc_edge_zone": {}, "auc_outside_edge_zone": {}}
+        entry = {
+            "name": v.name,
+            "pixels": int(valid.sum()),
+            "changed_fraction": round(float(changed[valid].mean()), 4),
+            "class_fraction": {CLASSES[k]: round(float((klass[valid] == k).mean()), 4) for k in range(4)},
+            "class_lines": {CLASSES[k]: line for k, line in l_cls.items()},
+            "line_A_sun": l_one[0],
+            "line_B_sun": l_ab[0],
+            "auc": {},
+            "auc_edge_zone": {},
+            "auc_outside_edge_zone": {},
+        }
         for name, sc in scores.items():
             entry["auc"][name] = round(_roc(sc, changed, valid)["auc"], 4)
             entry["auc_edge_zone"][name] = round(_roc(sc, changed, valid & zone)["auc"], 4)
@@ -244,22 +287,32 @@ def perfect_model_aucs(scene: str | Path, *, views: list[str] | None = None, oct
         entry["seconds"] = round(time.perf_counter() - t0, 1)
         per_view.append(entry)
         log(f"{v.name}: " + ", ".join(f"{k} {a:.3f}" for k, a in entry["auc"].items()))
-    res: dict[str, Any] = {"scene": str(root), "suns": {ep: [round(suns[ep].azimuth_deg, 1),
-                                                             round(suns[ep].elevation_deg, 1)] for ep in ("A", "B")},
-                           "shadow_dsm": None if shadow_dsm_path is None else str(shadow_dsm_path),
-                           "views": per_view, "pooled": {}}
+    res: dict[str, Any] = {
+        "scene": str(root),
+        "suns": {ep: [round(suns[ep].azimuth_deg, 1), round(suns[ep].elevation_deg, 1)] for ep in ("A", "B")},
+        "shadow_dsm": None if shadow_dsm_path is None else str(shadow_dsm_path),
+        "views": per_view,
+        "pooled": {},
+    }
     for name, parts in pooled.items():
         s, t, z, k, ck = (np.concatenate([p[i] for p in parts]) for i in range(5))
-        entry = {"auc": round(_roc(s, t, np.ones(t.size, bool))["auc"], 4), "edge_zone": round(_roc(s, t, z)["auc"], 4),
-                 "outside_edge_zone": round(_roc(s, t, ~z)["auc"], 4)}
+        entry = {
+            "auc": round(_roc(s, t, np.ones(t.size, bool))["auc"], 4),
+            "edge_zone": round(_roc(s, t, z)["auc"], 4),
+            "outside_edge_zone": round(_roc(s, t, ~z)["auc"], 4),
+        }
         entry.update({CLASSES[i]: round(_roc(s, t, k == i)["auc"], 4) for i in range(4) if (t & (k == i)).any()})
         # what an image can show: every changed pixel but the roofs whose height changed
         entry["without roofs whose height changed"] = round(_roc(s, t, ~t | (ck != 0))["auc"], 4)
         # the changed pixels of one kind against every unchanged pixel
         entry["by change kind"] = {
-            CHANGE_KINDS[j]: {"share_of_changed": round(float((t & (ck == j)).sum() / t.sum()), 3),
-                              "auc": round(_roc(s, t, ~t | (ck == j))["auc"], 4)}
-            for j in range(len(CHANGE_KINDS)) if (t & (ck == j)).any()}
+            CHANGE_KINDS[j]: {
+                "share_of_changed": round(float((t & (ck == j)).sum() / t.sum()), 3),
+                "auc": round(_roc(s, t, ~t | (ck == j))["auc"], 4),
+            }
+            for j in range(len(CHANGE_KINDS))
+            if (t & (ck == j)).any()
+        }
         res["pooled"][name] = entry
     res["seconds"] = round(time.perf_counter() - t_all, 1)
     return res
@@ -270,14 +323,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("scene", help="a folder written by geocd synth")
     ap.add_argument("out", help="JSON file to write")
     ap.add_argument("--view", action="append", default=None, help="an epoch-B satellite view (repeatable; default all)")
-    ap.add_argument("--octree", default=None, metavar="WORK",
-                    help="add the octree model's 3×3 detection (trained into WORK/volume_octree unless it is there)")
-    ap.add_argument("--shadow-dsm", default=None,
-                    help="a DSM of epoch A whose cast shadows the octree's relighting uses")
+    ap.add_argument(
+        "--octree",
+        default=None,
+        metavar="WORK",
+        help="add the octree model's 3×3 detection (trained into WORK/volume_octree unless it is there)",
+    )
+    ap.add_argument(
+        "--shadow-dsm", default=None, help="a DSM of epoch A whose cast shadows the octree's relighting uses"
+    )
     ap.add_argument("--blur-px", type=float, default=0.5, help="the sensor's PSF σ in pixels")
     a = ap.parse_args(argv)
-    res = perfect_model_aucs(a.scene, views=a.view, octree_work=a.octree, shadow_dsm_path=a.shadow_dsm,
-                             blur_px=a.blur_px, log=lambda m: print(m, flush=True))
+    res = perfect_model_aucs(
+        a.scene,
+        views=a.view,
+        octree_work=a.octree,
+        shadow_dsm_path=a.shadow_dsm,
+        blur_px=a.blur_px,
+        log=lambda m: print(m, flush=True),
+    )
     write_text_atomic(Path(a.out), json.dumps(res, indent=1) + "\n")
     print(json.dumps({k: v["auc"] for k, v in res["pooled"].items()}, indent=1))
     return 0

@@ -60,8 +60,9 @@ class DEMPrior:
             raise ConfigError(f"air_p must be in (0, 1), got {self.air_p}")
 
 
-def band_occlusion(z_lo: np.ndarray, z_hi: np.ndarray, band_lo: np.ndarray, band_hi: np.ndarray,
-                   p_max: float) -> np.ndarray:
+def band_occlusion(
+    z_lo: np.ndarray, z_hi: np.ndarray, band_lo: np.ndarray, band_hi: np.ndarray, p_max: float
+) -> np.ndarray:
     """Occlusion probability of cells ``[z_lo, z_hi]`` under a surface uniform in ``[band_lo, band_hi]``.
 
     ``P = 1 - F(z_lo) / F(z_hi)`` with ``F`` the CDF of the surface height (the visibility
@@ -90,8 +91,14 @@ def _leaf_heights(model: VolumeModel, dem_m: np.ndarray, grid: AOIGrid):
     return leaves, c[:, 2], sizes[leaves], z_dem
 
 
-def seed_from_dem(model: VolumeModel, dem_m: np.ndarray, grid: AOIGrid, prior: DEMPrior | None = None, *,
-                  roof_m: np.ndarray | None = None) -> dict:
+def seed_from_dem(
+    model: VolumeModel,
+    dem_m: np.ndarray,
+    grid: AOIGrid,
+    prior: DEMPrior | None = None,
+    *,
+    roof_m: np.ndarray | None = None,
+) -> dict:
     """Refine the ground band and set the initial α from the DEM (in place; call on a fresh model).
 
     Parameters
@@ -125,8 +132,9 @@ def seed_from_dem(model: VolumeModel, dem_m: np.ndarray, grid: AOIGrid, prior: D
             break
     leaves, z, size, z_dem = _leaf_heights(model, dem_m, grid)
     known = np.isfinite(z_dem)
-    p_band = band_occlusion(z - 0.5 * size, z + 0.5 * size, z_dem - prior.ground_band_m,
-                            z_dem + prior.ground_band_top_m, prior.ground_p_max)
+    p_band = band_occlusion(
+        z - 0.5 * size, z + 0.5 * size, z_dem - prior.ground_band_m, z_dem + prior.ground_band_top_m, prior.ground_p_max
+    )
     ground = known & np.isfinite(p_band) & (p_band > model.params.p_init)
     air = known & (z - 0.5 * size > z_dem + prior.max_object_m)
     # α is a density: the cell's probability over its own size (band cells are finest cells after the split)
@@ -135,9 +143,16 @@ def seed_from_dem(model: VolumeModel, dem_m: np.ndarray, grid: AOIGrid, prior: D
     return {"ground_cells": int(ground.sum()), "air_cells": int(air.sum()), "leaves_split": int(split_total)}
 
 
-
-def footprint_roof_heights(views: list, labels: np.ndarray, dem_m: np.ndarray, grid: AOIGrid, *,
-                           max_height_m: float = 25.0, step_m: float = 0.5, min_cells: int = 8) -> dict:
+def footprint_roof_heights(
+    views: list,
+    labels: np.ndarray,
+    dem_m: np.ndarray,
+    grid: AOIGrid,
+    *,
+    max_height_m: float = 25.0,
+    step_m: float = 0.5,
+    min_cells: int = 8,
+) -> dict:
     """Roof height of each footprint from the training views, by a plane sweep of the whole footprint.
 
     Over a uniform roof the per-cell update cannot tell the roof from the ground below it
@@ -177,10 +192,15 @@ def footprint_roof_heights(views: list, labels: np.ndarray, dem_m: np.ndarray, g
     curve = np.full((heights.size, n_lab), np.nan)
     nv = len(views)
     if nv < 2 or k.size == 0:
-        return {"height_m": np.full(n_lab, np.nan), "score": np.full(n_lab, np.nan), "curve": curve,
-                "heights_m": heights}
-    imgs = [(np.where(np.isfinite(v.intensity), v.intensity, 0.0), np.isfinite(v.intensity).astype(float))
-            for v in views]
+        return {
+            "height_m": np.full(n_lab, np.nan),
+            "score": np.full(n_lab, np.nan),
+            "curve": curve,
+            "heights_m": heights,
+        }
+    imgs = [
+        (np.where(np.isfinite(v.intensity), v.intensity, 0.0), np.isfinite(v.intensity).astype(float)) for v in views
+    ]
     total = np.bincount(k, minlength=n_lab).astype(float)
 
     def sample(h: float) -> np.ndarray:
@@ -202,18 +222,19 @@ def footprint_roof_heights(views: list, labels: np.ndarray, dem_m: np.ndarray, g
     for ih, h in enumerate(heights):
         z = sample(h)
         with np.errstate(invalid="ignore", divide="ignore"):
-            for iv in range(nv):   # standardise each view over each footprint; views not taking part give 0
+            for iv in range(nv):  # standardise each view over each footprint; views not taking part give 0
                 ok = np.isfinite(z[iv])
                 n = np.bincount(k[ok], minlength=n_lab).astype(float)
                 m1 = np.bincount(k[ok], z[iv][ok], minlength=n_lab) / n
                 m2 = np.bincount(k[ok], z[iv][ok] ** 2, minlength=n_lab) / n
-                sd = np.sqrt(np.maximum(m2 - m1 ** 2, 0.0))
+                sd = np.sqrt(np.maximum(m2 - m1**2, 0.0))
                 zi = (z[iv] - m1[k]) / np.maximum(sd[k], 1e-6)
                 z[iv] = np.where(ok & use[iv][k], zi, 0.0)
             s = z.sum(axis=0)
-            q = (z ** 2).sum(axis=0)
-            pair = (np.bincount(k, s ** 2, minlength=n_lab) - np.bincount(k, q, minlength=n_lab)) / (
-                n_views * (n_views - 1) * total)
+            q = (z**2).sum(axis=0)
+            pair = (np.bincount(k, s**2, minlength=n_lab) - np.bincount(k, q, minlength=n_lab)) / (
+                n_views * (n_views - 1) * total
+            )
         pair[(total < min_cells) | (n_views < 2)] = np.nan
         curve[ih] = pair
     best = np.full(n_lab, np.nan)
@@ -226,8 +247,15 @@ def footprint_roof_heights(views: list, labels: np.ndarray, dem_m: np.ndarray, g
     return {"height_m": best, "score": score, "curve": curve, "heights_m": heights}
 
 
-def roof_surface(views: list, footprints_mask: np.ndarray, dem_m: np.ndarray, grid: AOIGrid,
-                 prior: DEMPrior | None = None, *, step_m: float = 0.5) -> tuple[np.ndarray, dict]:
+def roof_surface(
+    views: list,
+    footprints_mask: np.ndarray,
+    dem_m: np.ndarray,
+    grid: AOIGrid,
+    prior: DEMPrior | None = None,
+    *,
+    step_m: float = 0.5,
+) -> tuple[np.ndarray, dict]:
     """Ellipsoidal roof heights on ``grid`` for :func:`seed_from_dem` (NaN outside footprints or where no
     roof was found), from a footprint mask and the training views (:func:`footprint_roof_heights`; each
     connected part of the mask is one footprint; ``step_m``: the model's finest cell)."""
@@ -235,11 +263,13 @@ def roof_surface(views: list, footprints_mask: np.ndarray, dem_m: np.ndarray, gr
 
     prior = prior or DEMPrior()
     lab, n = label(np.asarray(footprints_mask, dtype=bool))
-    r = footprint_roof_heights(views, lab, dem_m, grid, max_height_m=prior.max_object_m,
-                               step_m=step_m)
+    r = footprint_roof_heights(views, lab, dem_m, grid, max_height_m=prior.max_object_m, step_m=step_m)
     h = r["height_m"]
-    h = np.where(h > 0, h, np.nan)            # h = 0: the views agree best on the ground
+    h = np.where(h > 0, h, np.nan)  # h = 0: the views agree best on the ground
     roof = np.where(lab > 0, dem_m + h[lab], np.nan)
-    return roof, {"footprints": int(n), "roofs": int(np.isfinite(h[1:]).sum()), "height_m": h[1:],
-                  "score": r["score"][1:]}
-
+    return roof, {
+        "footprints": int(n),
+        "roofs": int(np.isfinite(h[1:]).sum()),
+        "height_m": h[1:],
+        "score": r["score"][1:],
+    }

@@ -21,8 +21,9 @@ from .scene import VolumeGeometry
 RAY_MARGIN_M = 2.0
 
 
-def pixel_rays(camera: Any, geometry: VolumeGeometry, cols: np.ndarray, rows: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
+def pixel_rays(
+    camera: Any, geometry: VolumeGeometry, cols: np.ndarray, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Rays through image points ``(col, row)`` (continuous pixels, GDAL convention).
 
     Parameters
@@ -57,8 +58,9 @@ def pixel_rays(camera: Any, geometry: VolumeGeometry, cols: np.ndarray, rows: np
     return np.ascontiguousarray(a), np.ascontiguousarray(d)
 
 
-def image_rays(camera: Any, geometry: VolumeGeometry, row0: int, row1: int, width: int, stride: int = 1,
-               supersample: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def image_rays(
+    camera: Any, geometry: VolumeGeometry, row0: int, row1: int, width: int, stride: int = 1, supersample: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rays of the pixel centres of image rows ``row0:row1`` (every ``stride``-th pixel).
 
     With ``supersample = k > 1``, each pixel gets k×k rays on a regular sub-pixel
@@ -82,8 +84,9 @@ def image_rays(camera: Any, geometry: VolumeGeometry, row0: int, row1: int, widt
     return o, d, np.repeat(R, k * k), np.repeat(C, k * k)
 
 
-def check_camera_sees_volume(camera: Any, geometry: VolumeGeometry, width: int, height: int,
-                             name: str = "the image") -> None:
+def check_camera_sees_volume(
+    camera: Any, geometry: VolumeGeometry, width: int, height: int, name: str = "the image"
+) -> None:
     """Clear errors for a camera that gives no rays (NaN parameters) or misses the volume.
 
     Raises
@@ -105,7 +108,8 @@ def check_camera_sees_volume(camera: Any, geometry: VolumeGeometry, width: int, 
     if not ok.any():
         raise CameraError(
             f"the camera of {name} gives no finite viewing ray (NaN or degenerate parameters?); check the camera "
-            "file (RPC coefficients, frame position/orientation)")
+            "file (RPC coefficients, frame position/orientation)"
+        )
     lo, hi = geometry.box_lo, geometry.box_hi
     hit = _rays_hit_box(o[ok], d[ok], lo, hi)
     if not hit.any():
@@ -114,7 +118,8 @@ def check_camera_sees_volume(camera: Any, geometry: VolumeGeometry, width: int, 
             raise NoOverlapError(
                 f"{name} does not see the volume (no viewing ray crosses the model's box "
                 f"{np.round(lo, 1).tolist()}–{np.round(hi, 1).tolist()} m ENU); check that the image covers the "
-                "model's AOI and that its camera is right")
+                "model's AOI and that its camera is right"
+            )
 
 
 def _rays_hit_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -124,7 +129,7 @@ def _rays_hit_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) 
         tb = (hi - o) * inv
     tmin = np.nanmax(np.minimum(ta, tb), axis=1)
     tmax = np.nanmin(np.maximum(ta, tb), axis=1)
-    return (tmax > np.maximum(tmin, 0.0))
+    return tmax > np.maximum(tmin, 0.0)
 
 
 def _box_projects_into_image(camera: Any, geometry: VolumeGeometry, width: int, height: int) -> bool:

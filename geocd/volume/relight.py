@@ -72,8 +72,13 @@ def occupied_leaves(model: VolumeModel, occupied_p: float = 0.02) -> np.ndarray:
     return np.nonzero((model.child < 0) & (p > occupied_p))[0]
 
 
-def cell_sun_visibility(model: VolumeModel, sun: tuple[float, float], cells: np.ndarray | None = None,
-                        skip_cells: float = 1.0, boxes: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def cell_sun_visibility(
+    model: VolumeModel,
+    sun: tuple[float, float],
+    cells: np.ndarray | None = None,
+    skip_cells: float = 1.0,
+    boxes: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """Sun visibility (0..1) from the top face of every node in ``cells`` (default: occupied leaves); 1 elsewhere."""
     if cells is None:
         cells = occupied_leaves(model)
@@ -83,8 +88,23 @@ def cell_sun_visibility(model: VolumeModel, sun: tuple[float, float], cells: np.
     sc = RayScratch(geo)
     vis = np.ones(model.n_nodes)
     out = np.empty(cells.size)
-    K.sun_visibility(cells.astype(np.int64), centers, sizes, sun_vector_enu(sun), float(skip_cells), g.box_lo,
-                     g.box_hi, geo, model.block_root, model.child, model.alpha, out, sc.seg_cell, sc.seg_len, sc.seg_t)
+    K.sun_visibility(
+        cells.astype(np.int64),
+        centers,
+        sizes,
+        sun_vector_enu(sun),
+        float(skip_cells),
+        g.box_lo,
+        g.box_hi,
+        geo,
+        model.block_root,
+        model.child,
+        model.alpha,
+        out,
+        sc.seg_cell,
+        sc.seg_len,
+        sc.seg_t,
+    )
     vis[cells] = out
     return vis
 
@@ -109,8 +129,15 @@ class RelightFit:
     count: np.ndarray = field(default_factory=lambda: np.zeros(4, dtype=np.int64))
 
     def to_dict(self) -> dict:
-        return {c: {"a": float(self.a[i]), "b": float(self.b[i]), "sigma": float(self.sigma[i]),
-                    "pixels": int(self.count[i])} for i, c in enumerate(CLASSES)}
+        return {
+            c: {
+                "a": float(self.a[i]),
+                "b": float(self.b[i]),
+                "sigma": float(self.sigma[i]),
+                "pixels": int(self.count[i]),
+            }
+            for i, c in enumerate(CLASSES)
+        }
 
 
 def robust_line(x: np.ndarray, y: np.ndarray, iters: int = 8) -> tuple[float, float, float]:
@@ -129,8 +156,13 @@ def robust_line(x: np.ndarray, y: np.ndarray, iters: int = 8) -> tuple[float, fl
     return float(coef[0]), float(coef[1]), float(1.4826 * np.median(np.abs(r)))
 
 
-def fit_classes(expected: np.ndarray, observed: np.ndarray, klass: np.ndarray, min_pixels: int = 200,
-                lit_expected: np.ndarray | None = None) -> RelightFit:
+def fit_classes(
+    expected: np.ndarray,
+    observed: np.ndarray,
+    klass: np.ndarray,
+    min_pixels: int = 200,
+    lit_expected: np.ndarray | None = None,
+) -> RelightFit:
     """Per-class robust lines ``observed ≈ a + b expected`` (classes 0..3, see :data:`CLASSES`).
 
     ``lit_expected``: optional expectation for the lit → lit class alone (a shading model's); a class too
@@ -163,8 +195,9 @@ def _surface_rays(model: VolumeModel, camera: Any, depth_m: np.ndarray):
         yield rr, cc, o, d, depth_m[rr, cc].astype(np.float64)
 
 
-def surface_sun_visibility(model: VolumeModel, camera: Any, depth_m: np.ndarray, sun: tuple[float, float]
-                           ) -> np.ndarray:
+def surface_sun_visibility(
+    model: VolumeModel, camera: Any, depth_m: np.ndarray, sun: tuple[float, float]
+) -> np.ndarray:
     """Sun visibility (rows, cols) of each pixel's median visible surface point (1 where there is none)."""
     g = model.geometry
     geo = g.geo_array()
@@ -173,14 +206,31 @@ def surface_sun_visibility(model: VolumeModel, camera: Any, depth_m: np.ndarray,
     f = g.finest_cell_m
     for rr, cc, o, d, t in _surface_rays(model, camera, depth_m):
         s = np.empty(rr.size)
-        K.surface_sun(o, d, t, sun_vector_enu(sun), 0.5 * f, 1.0 * f, g.box_lo, g.box_hi, geo, model.block_root,
-                      model.child, model.alpha, s, sc.seg_cell, sc.seg_len, sc.seg_t)
+        K.surface_sun(
+            o,
+            d,
+            t,
+            sun_vector_enu(sun),
+            0.5 * f,
+            1.0 * f,
+            g.box_lo,
+            g.box_hi,
+            geo,
+            model.block_root,
+            model.child,
+            model.alpha,
+            s,
+            sc.seg_cell,
+            sc.seg_len,
+            sc.seg_t,
+        )
         out[rr, cc] = s
     return out
 
 
-def dsm_shadow_height(dsm_m: np.ndarray, posting_m: float, sun: tuple[float, float], *,
-                      step_cells: float = 0.5) -> np.ndarray:
+def dsm_shadow_height(
+    dsm_m: np.ndarray, posting_m: float, sun: tuple[float, float], *, step_cells: float = 0.5
+) -> np.ndarray:
     """Height below which a point of each cell lies in the DSM's cast shadow (same datum as the DSM).
 
     ``h(p) = max_k dsm(p + k·step·ŝ) − k·step·posting·tan(elevation)``: the highest line towards the sun
@@ -213,7 +263,7 @@ def dsm_shadow_height(dsm_m: np.ndarray, posting_m: float, sun: tuple[float, flo
     rise = float(z[ok].max()) - lo
     step_m = step_cells * posting_m
     n = int(np.ceil(rise / np.tan(el) / step_m)) if rise > 0 else 0
-    rows, cols = np.mgrid[0:z.shape[0], 0:z.shape[1]].astype(np.float64)
+    rows, cols = np.mgrid[0 : z.shape[0], 0 : z.shape[1]].astype(np.float64)
     out = np.full(z.shape, -np.inf)
     dr, dc = -np.cos(az) * step_cells, np.sin(az) * step_cells
     for k in range(1, n + 1):
@@ -222,8 +272,9 @@ def dsm_shadow_height(dsm_m: np.ndarray, posting_m: float, sun: tuple[float, flo
     return out
 
 
-def surface_dsm_sample(model: VolumeModel, camera: Any, depth_m: np.ndarray, maps: list[np.ndarray],
-                       grid: AOIGrid) -> tuple[list[np.ndarray], np.ndarray]:
+def surface_dsm_sample(
+    model: VolumeModel, camera: Any, depth_m: np.ndarray, maps: list[np.ndarray], grid: AOIGrid
+) -> tuple[list[np.ndarray], np.ndarray]:
     """Each map on ``grid`` (the model's CRS) sampled at each pixel's median visible surface point.
 
     Returns
@@ -244,13 +295,14 @@ def surface_dsm_sample(model: VolumeModel, camera: Any, depth_m: np.ndarray, map
     return out, height
 
 
-def surface_dsm_sun_visibility(model: VolumeModel, camera: Any, depth_m: np.ndarray,
-                               shadow_heights_m: list[np.ndarray], grid: AOIGrid) -> list[np.ndarray]:
+def surface_dsm_sun_visibility(
+    model: VolumeModel, camera: Any, depth_m: np.ndarray, shadow_heights_m: list[np.ndarray], grid: AOIGrid
+) -> list[np.ndarray]:
     """1 (lit) or 0 (shadow) for each pixel's median visible surface point, lifted by half a finest cell,
     against each :func:`dsm_shadow_height` map (ellipsoidal metres on ``grid``); 1 where there is no point.
     The surface points are computed once for all the maps."""
     lift = 0.5 * model.geometry.finest_cell_m
-    maps = [np.clip(h, -1e9, 1e9) for h in shadow_heights_m]   # ±inf (nothing reaches / sun below the horizon)
+    maps = [np.clip(h, -1e9, 1e9) for h in shadow_heights_m]  # ±inf (nothing reaches / sun below the horizon)
     hz, h = surface_dsm_sample(model, camera, depth_m, maps, grid)
     with np.errstate(invalid="ignore"):
         return [np.where(np.isfinite(h) & np.isfinite(z) & (h + lift < z), 0.0, 1.0) for z in hz]
@@ -271,11 +323,19 @@ def check_shadow_dsm(model: VolumeModel, shadow_dsm: tuple[np.ndarray, AOIGrid])
     return dsm, grid
 
 
-def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: int, sun_from: tuple[float, float],
-                    sun_to: tuple[float, float], *, vis_known: float = 0.2,
-                    shadow_dsm: tuple[np.ndarray, AOIGrid] | None = None,
-                    lit_scale: Callable[[np.ndarray], np.ndarray] | None = None,
-                    progress: Optional[Progress] = None) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], dict]:
+def relight_mapping(
+    model: VolumeModel,
+    intensity: np.ndarray,
+    camera: Any,
+    b: int,
+    sun_from: tuple[float, float],
+    sun_to: tuple[float, float],
+    *,
+    vis_known: float = 0.2,
+    shadow_dsm: tuple[np.ndarray, AOIGrid] | None = None,
+    lit_scale: Callable[[np.ndarray], np.ndarray] | None = None,
+    progress: Optional[Progress] = None,
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], dict]:
     """Per-pixel mixture map ``(a, b, σ_extra)`` for an image under ``sun_to`` against bin ``b`` (see module doc).
 
     ``shadow_dsm``: optional (height_m, grid) of the training epoch's surface (ellipsoidal metres, the
@@ -302,8 +362,12 @@ def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: i
     else:
         dsm, grid = check_shadow_dsm(model, shadow_dsm)
         s_from, s_to = surface_dsm_sun_visibility(
-            model, camera, base.depth_m, [dsm_shadow_height(dsm, grid.posting_m, sun) for sun in (sun_from, sun_to)],
-            grid)
+            model,
+            camera,
+            base.depth_m,
+            [dsm_shadow_height(dsm, grid.posting_m, sun) for sun in (sun_from, sun_to)],
+            grid,
+        )
     prog(0.8, "fit")
     klass = (s_from < 0.5).astype(int) * 2 + (s_to < 0.5).astype(int)
     scale = np.ones((rows, cols))
@@ -311,13 +375,21 @@ def relight_mapping(model: VolumeModel, intensity: np.ndarray, camera: Any, b: i
         r = np.asarray(lit_scale(base.depth_m), dtype=np.float64)
         scale = np.where((klass == 0) & np.isfinite(r), r, 1.0)
     ok = np.isfinite(intensity) & np.isfinite(base.expected) & (base.vis_inf <= vis_known)
-    fit = fit_classes(base.expected[ok].astype(np.float64), intensity[ok], klass[ok],
-                      lit_expected=None if lit_scale is None else (base.expected * scale)[ok].astype(np.float64))
-    extra = np.sqrt(np.maximum(fit.sigma ** 2 - fit.sigma[0] ** 2, 0.0))
+    fit = fit_classes(
+        base.expected[ok].astype(np.float64),
+        intensity[ok],
+        klass[ok],
+        lit_expected=None if lit_scale is None else (base.expected * scale)[ok].astype(np.float64),
+    )
+    extra = np.sqrt(np.maximum(fit.sigma**2 - fit.sigma[0] ** 2, 0.0))
     mapping = (fit.a[klass], fit.b[klass] * scale, extra[klass])
     frac = {c: float(np.mean(klass[ok] == i)) for i, c in enumerate(CLASSES)}
-    info = {"from_sun": [float(sun_from[0]), float(sun_from[1])], "to_sun": [float(sun_to[0]), float(sun_to[1])],
-            "shadows": "model density" if shadow_dsm is None else "DSM",
-            "fit": fit.to_dict(), "class_fraction": frac}
+    info = {
+        "from_sun": [float(sun_from[0]), float(sun_from[1])],
+        "to_sun": [float(sun_to[0]), float(sun_to[1])],
+        "shadows": "model density" if shadow_dsm is None else "DSM",
+        "fit": fit.to_dict(),
+        "class_fraction": frac,
+    }
     prog(1.0, "relit")
     return mapping, info

@@ -61,11 +61,20 @@ def appearance_bin(model: VolumeModel, sun: tuple[float, float] | None) -> int:
     return trained[int(np.argmin(d))]
 
 
-def render_image(model: VolumeModel, camera: Any, shape: tuple[int, int], *, intensity: np.ndarray | None = None,
-                 sun: tuple[float, float] | None = None, stride: int = 1, name: str = "the view",
-                 app: np.ndarray | None = None, app_bin: int | None = None,
-                 mapping: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                 progress: Optional[Progress] = None) -> RenderResult:
+def render_image(
+    model: VolumeModel,
+    camera: Any,
+    shape: tuple[int, int],
+    *,
+    intensity: np.ndarray | None = None,
+    sun: tuple[float, float] | None = None,
+    stride: int = 1,
+    name: str = "the view",
+    app: np.ndarray | None = None,
+    app_bin: int | None = None,
+    mapping: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    progress: Optional[Progress] = None,
+) -> RenderResult:
     """Trace every pixel ray of a view (every ``stride``-th pixel; others NaN).
 
     Parameters
@@ -102,10 +111,32 @@ def render_image(model: VolumeModel, camera: Any, shape: tuple[int, int], *, int
             ma = mb = ms = np.zeros(0)
         else:
             ma, mb, ms = (np.ascontiguousarray(m_[rr, cc], dtype=np.float64) for m_ in mapping)
-        n_segs += K.render_rays(o, d, obs, lo, hi, geo, model.block_root, model.child, model.alpha, app_arr, b,
-                                P_BACKGROUND, MEAN_BACKGROUND, model.params.appearance_prior_weight, ma, mb, ms,
-                                dens, expv, vinf, tmed, sc.seg_cell, sc.seg_len,
-                                sc.seg_t)
+        n_segs += K.render_rays(
+            o,
+            d,
+            obs,
+            lo,
+            hi,
+            geo,
+            model.block_root,
+            model.child,
+            model.alpha,
+            app_arr,
+            b,
+            P_BACKGROUND,
+            MEAN_BACKGROUND,
+            model.params.appearance_prior_weight,
+            ma,
+            mb,
+            ms,
+            dens,
+            expv,
+            vinf,
+            tmed,
+            sc.seg_cell,
+            sc.seg_len,
+            sc.seg_t,
+        )
         bad = ~np.isfinite(o[:, 0])
         for arr in (dens, expv, vinf, tmed):
             arr[bad] = np.nan
@@ -117,15 +148,26 @@ def render_image(model: VolumeModel, camera: Any, shape: tuple[int, int], *, int
     return RenderResult(out["expected"], out["vis_inf"], out["density"], out["depth_m"], b, int(n_segs))
 
 
-def expected_image(model: VolumeModel, camera: Any, shape: tuple[int, int], *,
-                   sun: tuple[float, float] | None = None, stride: int = 1,
-                   progress: Optional[Progress] = None) -> RenderResult:
+def expected_image(
+    model: VolumeModel,
+    camera: Any,
+    shape: tuple[int, int],
+    *,
+    sun: tuple[float, float] | None = None,
+    stride: int = 1,
+    progress: Optional[Progress] = None,
+) -> RenderResult:
     """Expected image of a view (paper Fig. 8); see :func:`render_image`."""
     return render_image(model, camera, shape, sun=sun, stride=stride, progress=progress)
 
 
-def expected_height_map(model: VolumeModel, grid: AOIGrid | None = None, *, posting_m: float | None = None,
-                        progress: Optional[Progress] = None) -> tuple[np.ndarray, AOIGrid]:
+def expected_height_map(
+    model: VolumeModel,
+    grid: AOIGrid | None = None,
+    *,
+    posting_m: float | None = None,
+    progress: Optional[Progress] = None,
+) -> tuple[np.ndarray, AOIGrid]:
     """Height of the median visible surface from above, on an AOI grid.
 
     Parameters
@@ -160,10 +202,32 @@ def expected_height_map(model: VolumeModel, grid: AOIGrid | None = None, *, post
     step = 262144
     for s in range(0, N, step):
         sl = slice(s, min(N, s + step))
-        K.render_rays(o[sl], d[sl], np.full(sl.stop - sl.start, np.nan), geom.box_lo, geom.box_hi, geo,
-                      model.block_root, model.child, model.alpha, model.app, -1, P_BACKGROUND, MEAN_BACKGROUND, 0.0,
-                      _E, _E, _E,
-                      dens[sl], expv[sl], vinf[sl], tmed[sl], sc.seg_cell, sc.seg_len, sc.seg_t)
+        K.render_rays(
+            o[sl],
+            d[sl],
+            np.full(sl.stop - sl.start, np.nan),
+            geom.box_lo,
+            geom.box_hi,
+            geo,
+            model.block_root,
+            model.child,
+            model.alpha,
+            model.app,
+            -1,
+            P_BACKGROUND,
+            MEAN_BACKGROUND,
+            0.0,
+            _E,
+            _E,
+            _E,
+            dens[sl],
+            expv[sl],
+            vinf[sl],
+            tmed[sl],
+            sc.seg_cell,
+            sc.seg_len,
+            sc.seg_t,
+        )
         prog(sl.stop / N, "height map")
     u = o[:, 2] - tmed
     ok = np.isfinite(u)
@@ -172,8 +236,9 @@ def expected_height_map(model: VolumeModel, grid: AOIGrid | None = None, *, post
         _, _, hh = fr.from_enu(e[ok], n[ok], u[ok])
         h[ok] = hh
     if not ok.any():
-        raise ProcessingError("the model has no surface yet (visibility from above never drops to 0.5); update it "
-                              "with more images")
+        raise ProcessingError(
+            "the model has no surface yet (visibility from above never drops to 0.5); update it with more images"
+        )
     return h.reshape(grid.shape).astype(np.float32), grid
 
 
@@ -193,5 +258,4 @@ def orthorectify(values: np.ndarray, camera: Any, height_m: np.ndarray, grid: AO
     return out
 
 
-__all__ = ["RenderResult", "render_image", "expected_image", "expected_height_map", "orthorectify",
-           "appearance_bin"]
+__all__ = ["RenderResult", "render_image", "expected_image", "expected_height_map", "orthorectify", "appearance_bin"]

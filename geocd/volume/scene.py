@@ -199,21 +199,40 @@ class VolumeGeometry:
             )
 
     def to_dict(self) -> dict:
-        return {"frame": self.frame.to_dict(), "origin_enu": list(self.origin_enu),
-                "block_size_m": self.block_size_m, "n_blocks": list(self.n_blocks), "max_depth": int(self.max_depth),
-                "crs": self.crs, "aoi_bounds": list(self.aoi_bounds)}
+        return {
+            "frame": self.frame.to_dict(),
+            "origin_enu": list(self.origin_enu),
+            "block_size_m": self.block_size_m,
+            "n_blocks": list(self.n_blocks),
+            "max_depth": int(self.max_depth),
+            "crs": self.crs,
+            "aoi_bounds": list(self.aoi_bounds),
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> "VolumeGeometry":
         f = d["frame"]
-        return cls(LocalFrame(float(f["lon0"]), float(f["lat0"]), float(f.get("h0", 0.0))),
-                   tuple(d["origin_enu"]), float(d["block_size_m"]), tuple(d["n_blocks"]), int(d["max_depth"]),
-                   str(d["crs"]), tuple(d["aoi_bounds"]))
+        return cls(
+            LocalFrame(float(f["lon0"]), float(f["lat0"]), float(f.get("h0", 0.0))),
+            tuple(d["origin_enu"]),
+            float(d["block_size_m"]),
+            tuple(d["n_blocks"]),
+            int(d["max_depth"]),
+            str(d["crs"]),
+            tuple(d["aoi_bounds"]),
+        )
 
 
-def geometry_for_aoi(grid_or_bounds: Any, crs: Any = None, *, z_min_m: float, z_max_m: float,
-                     finest_cell_m: float = 0.5, max_depth: int = 4,
-                     frame: LocalFrame | None = None) -> VolumeGeometry:
+def geometry_for_aoi(
+    grid_or_bounds: Any,
+    crs: Any = None,
+    *,
+    z_min_m: float,
+    z_max_m: float,
+    finest_cell_m: float = 0.5,
+    max_depth: int = 4,
+    frame: LocalFrame | None = None,
+) -> VolumeGeometry:
     """The volume box covering an AOI between two ellipsoidal heights.
 
     Parameters
@@ -257,8 +276,15 @@ def geometry_for_aoi(grid_or_bounds: Any, crs: Any = None, *, z_min_m: float, z_
     # snap the box to whole finest cells, then to whole blocks
     lo = np.floor(lo / finest_cell_m) * finest_cell_m
     nb = np.maximum(1, np.ceil((hi - lo) / bs - 1e-9)).astype(int)
-    return VolumeGeometry(frame, tuple(lo), bs, tuple(int(v) for v in nb), int(max_depth),
-                          crs.to_string() if crs.to_epsg() else crs.to_wkt(), tuple(bounds))
+    return VolumeGeometry(
+        frame,
+        tuple(lo),
+        bs,
+        tuple(int(v) for v in nb),
+        int(max_depth),
+        crs.to_string() if crs.to_epsg() else crs.to_wkt(),
+        tuple(bounds),
+    )
 
 
 @dataclass
@@ -280,8 +306,9 @@ class VolumeModel:
 
     # --- construction ------------------------------------------------------------------------
     @classmethod
-    def create(cls, geometry: VolumeGeometry, params: VolumeParams | None = None, *,
-               init_depth: int = 0) -> "VolumeModel":
+    def create(
+        cls, geometry: VolumeGeometry, params: VolumeParams | None = None, *, init_depth: int = 0
+    ) -> "VolumeModel":
         """A fresh model: every block refined to ``init_depth`` levels, α at its prior.
 
         ``init_depth = geometry.max_depth`` with ``params.refine = False`` is the fixed grid.
@@ -291,24 +318,25 @@ class VolumeModel:
         if not (0 <= d <= geometry.max_depth):
             raise ConfigError(f"init_depth must be between 0 and max_depth={geometry.max_depth}, got {init_depth}")
         nb = int(np.prod(geometry.n_blocks))
-        per_block = sum(8 ** k for k in range(d + 1))
+        per_block = sum(8**k for k in range(d + 1))
         n = nb * per_block
         est_bytes = n * node_bytes(params.n_bins)
         if est_bytes > 12 * 2**30:
             raise ConfigError(
                 f"a volume of {n:,} cells needs {est_bytes / 2**30:.1f} GiB; use a coarser init_depth, a smaller "
-                "AOI or a larger finest cell")
+                "AOI or a larger finest cell"
+            )
         child = np.full(n, -1, dtype=np.int32)
         level = np.zeros(n, dtype=np.uint8)
         # per block, nodes in breadth-first order: root, its 8 children, their 64 children, ...
         base = np.arange(nb, dtype=np.int64) * per_block
         for k in range(d + 1):
-            cnt = 8 ** k
-            first = sum(8 ** j for j in range(k))
+            cnt = 8**k
+            first = sum(8**j for j in range(k))
             idx = base[:, None] + first + np.arange(cnt)[None, :]
             level[idx.ravel()] = k
             if k < d:
-                nxt = sum(8 ** j for j in range(k + 1))
+                nxt = sum(8**j for j in range(k + 1))
                 child[idx.ravel()] = (base[:, None] + nxt + 8 * np.arange(cnt)[None, :]).ravel()
         block_root = base.astype(np.int32).reshape(geometry.n_blocks)
         a0 = -math.log1p(-params.p_init) / geometry.finest_cell_m
@@ -331,8 +359,7 @@ class VolumeModel:
 
     def nbytes(self) -> int:
         """Bytes of the model's arrays (what is held in memory and written to disk)."""
-        return int(self.block_root.nbytes + self.child.nbytes + self.level.nbytes + self.alpha.nbytes
-                   + self.app.nbytes)
+        return int(self.block_root.nbytes + self.child.nbytes + self.level.nbytes + self.alpha.nbytes + self.app.nbytes)
 
     def fixed_grid_nbytes(self) -> int:
         """Bytes a plain regular grid at the finest level would need (leaf data only, no tree)."""
@@ -345,11 +372,15 @@ class VolumeModel:
         counts = np.bincount(lv, minlength=self.geometry.max_depth + 1)
         fg = self.fixed_grid_nbytes()
         return {
-            "nodes": self.n_nodes, "leaves": self.n_leaves,
+            "nodes": self.n_nodes,
+            "leaves": self.n_leaves,
             "leaves_per_level": {int(k): int(v) for k, v in enumerate(counts)},
-            "finest_cell_m": self.geometry.finest_cell_m, "block_size_m": self.geometry.block_size_m,
-            "n_blocks": list(self.geometry.n_blocks), "bytes": self.nbytes(),
-            "fixed_grid_cells": int(np.prod(self.geometry.finest_shape())), "fixed_grid_bytes": fg,
+            "finest_cell_m": self.geometry.finest_cell_m,
+            "block_size_m": self.geometry.block_size_m,
+            "n_blocks": list(self.geometry.n_blocks),
+            "bytes": self.nbytes(),
+            "fixed_grid_cells": int(np.prod(self.geometry.finest_shape())),
+            "fixed_grid_bytes": fg,
             "fixed_grid_ratio": fg / max(self.nbytes(), 1),
         }
 
@@ -386,7 +417,8 @@ class VolumeModel:
             raise ConfigError(
                 f"the sun position (az {az:.1f}°, el {el:.1f}°) is {best_ang:.1f}° from every illumination bin and all "
                 f"{self.params.n_bins} bins are used; build the model with more bins (n_bins) or a larger "
-                "sun_bin_tolerance_deg")
+                "sun_bin_tolerance_deg"
+            )
         self.sun_bins.append([az, el, 0])
         return len(self.sun_bins) - 1
 
@@ -399,9 +431,17 @@ class VolumeModel:
         return [i for i, b in enumerate(self.sun_bins) if b[2] > 0]
 
     def copy(self) -> "VolumeModel":
-        return VolumeModel(self.geometry, self.params, self.block_root.copy(), self.child.copy(), self.level.copy(),
-                           self.alpha.copy(), self.app.copy(), [list(b) for b in self.sun_bins],
-                           [dict(h) for h in self.history])
+        return VolumeModel(
+            self.geometry,
+            self.params,
+            self.block_root.copy(),
+            self.child.copy(),
+            self.level.copy(),
+            self.alpha.copy(),
+            self.app.copy(),
+            [list(b) for b in self.sun_bins],
+            [dict(h) for h in self.history],
+        )
 
     def check_overlap(self, lon: np.ndarray, lat: np.ndarray, what: str) -> None:
         """Raise :class:`NoOverlapError` when no point falls in the volume's footprint."""

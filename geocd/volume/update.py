@@ -57,8 +57,9 @@ class UpdateStats:
 NORMALIZATIONS = ("scale", "percentile", "equalize")
 
 
-def image_intensity(data: np.ndarray, valid: np.ndarray | None = None, bit_depth: int = 8,
-                    normalize: str = "scale") -> np.ndarray:
+def image_intensity(
+    data: np.ndarray, valid: np.ndarray | None = None, bit_depth: int = 8, normalize: str = "scale"
+) -> np.ndarray:
     """Image samples → float64 gray intensity in [0, 1] (NaN where invalid).
 
     Parameters
@@ -112,7 +113,8 @@ def _check_image(model: VolumeModel, intensity: np.ndarray, camera: Any, name: s
     if w is not None and h is not None and (int(w), int(h)) != (img.shape[1], img.shape[0]):
         raise CameraError(
             f"{name} is {img.shape[1]}x{img.shape[0]} pixels but its camera is for {w}x{h}; give the camera of this "
-            "image (a crop needs camera.cropped(...))")
+            "image (a crop needs camera.cropped(...))"
+        )
     return img
 
 
@@ -130,10 +132,20 @@ class RayScratch:
         self.d = np.empty(n, dtype=np.float64)
 
 
-def update_model(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun: tuple[float, float] | None = None,
-                 name: str = "", stride: int = 1, supersample: int = 1, cell_mean: bool = True,
-                 refine: bool | None = None, ray_cache: dict | None = None,
-                 progress: Optional[Progress] = None) -> UpdateStats:
+def update_model(
+    model: VolumeModel,
+    intensity: np.ndarray,
+    camera: Any,
+    *,
+    sun: tuple[float, float] | None = None,
+    name: str = "",
+    stride: int = 1,
+    supersample: int = 1,
+    cell_mean: bool = True,
+    refine: bool | None = None,
+    ray_cache: dict | None = None,
+    progress: Optional[Progress] = None,
+) -> UpdateStats:
     """Update ``model`` in place with one image.
 
     Parameters
@@ -201,9 +213,19 @@ def update_model(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun:
         tiles = list(range(0, rows, tile_rows))
         n_rays_image = len(range(0, rows, stride)) * len(range(0, cols, stride)) * ss * ss
         if ray_cache is None and cell_mean and n_rays_image <= RAY_CACHE_MAX_RAYS:
-            ray_cache = {}                        # shared by this call's two passes
-        key = (id(camera), geom.frame.lon0, geom.frame.lat0, geom.frame.h0, tuple(geom.z_range_enu), rows, cols, stride, ss,
-               tile_rows)
+            ray_cache = {}  # shared by this call's two passes
+        key = (
+            id(camera),
+            geom.frame.lon0,
+            geom.frame.lat0,
+            geom.frame.h0,
+            tuple(geom.z_range_enu),
+            rows,
+            cols,
+            stride,
+            ss,
+            tile_rows,
+        )
         if ray_cache is not None and ray_cache.get("key") != key:
             ray_cache.clear()
             ray_cache["key"] = key
@@ -229,13 +251,50 @@ def update_model(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun:
                 ok = np.isfinite(obs) & np.isfinite(o[:, 0])
                 obs = np.where(ok, obs, np.nan)
                 if which == "mean":
-                    n_segs += K.seglen_rays(o, d, obs, lo, hi, geo, model.block_root, model.child, acc_len, acc_obs,
-                                            sc.seg_cell, sc.seg_len, sc.seg_t)
+                    n_segs += K.seglen_rays(
+                        o,
+                        d,
+                        obs,
+                        lo,
+                        hi,
+                        geo,
+                        model.block_root,
+                        model.child,
+                        acc_len,
+                        acc_obs,
+                        sc.seg_cell,
+                        sc.seg_len,
+                        sc.seg_t,
+                    )
                 else:
                     n_rays += int(ok.sum())
-                    n_segs += K.update_rays(o, d, obs, cell_obs, lo, hi, geo, model.block_root, model.child,
-                                            model.alpha, model.app, b, P_BACKGROUND, model.params.appearance_prior_weight, acc_len, acc_log, acc_obs,
-                                            acc_vis, sc.seg_cell, sc.seg_len, sc.seg_t, sc.a, sc.b, sc.c, sc.d)
+                    n_segs += K.update_rays(
+                        o,
+                        d,
+                        obs,
+                        cell_obs,
+                        lo,
+                        hi,
+                        geo,
+                        model.block_root,
+                        model.child,
+                        model.alpha,
+                        model.app,
+                        b,
+                        P_BACKGROUND,
+                        model.params.appearance_prior_weight,
+                        acc_len,
+                        acc_log,
+                        acc_obs,
+                        acc_vis,
+                        sc.seg_cell,
+                        sc.seg_len,
+                        sc.seg_t,
+                        sc.a,
+                        sc.b,
+                        sc.c,
+                        sc.d,
+                    )
                 step += 1
                 prog(0.9 * step / n_steps, f"update {name}: {which} pass, rows {r1}/{rows}")
     except BaseException:
@@ -244,17 +303,39 @@ def update_model(model: VolumeModel, intensity: np.ndarray, camera: Any, *, sun:
         raise
     p = model.params
     # from here on the model changes; nothing below calls back into user code
-    n_upd = K.finalize_update(acc_len, acc_log, acc_obs, acc_vis, model.alpha, model.app, b, p.alpha_min,
-                              p.alpha_max, p.sigma_init, p.sigma_min, p.match_sigmas, p.min_obs_weight)
+    n_upd = K.finalize_update(
+        acc_len,
+        acc_log,
+        acc_obs,
+        acc_vis,
+        model.alpha,
+        model.app,
+        b,
+        p.alpha_min,
+        p.alpha_max,
+        p.sigma_init,
+        p.sigma_min,
+        p.match_sigmas,
+        p.min_obs_weight,
+    )
     model.sun_bins[b][2] += 1
     split = 0
     merged = 0
-    if (p.refine if refine is None else refine):
+    if p.refine if refine is None else refine:
         if p.coarsen:
             merged = coarsen_model(model)
         split = refine_model(model)
-    stats = UpdateStats(name=name, sun_bin=b, rays=n_rays, segments=int(n_segs), cells_updated=int(n_upd),
-                        leaves_split=split, leaves_merged=merged, nodes_after=model.n_nodes, seconds=time.perf_counter() - t_start)
+    stats = UpdateStats(
+        name=name,
+        sun_bin=b,
+        rays=n_rays,
+        segments=int(n_segs),
+        cells_updated=int(n_upd),
+        leaves_split=split,
+        leaves_merged=merged,
+        nodes_after=model.n_nodes,
+        seconds=time.perf_counter() - t_start,
+    )
     entry = stats.to_dict()
     entry["time_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     if sun is not None:

@@ -97,8 +97,13 @@ class StylePostProcessor(QgsProcessingLayerPostProcessorInterface):
 
 def apply_ramp(layer, kind: str) -> bool:
     """A pseudocolour renderer on band 1: 0–1 for ``probability``, the band's range for ``height``."""
-    from qgis.core import (QgsColorRampShader, QgsRasterBandStats, QgsRasterShader,
-                           QgsSingleBandPseudoColorRenderer, QgsStyle)
+    from qgis.core import (
+        QgsColorRampShader,
+        QgsRasterBandStats,
+        QgsRasterShader,
+        QgsSingleBandPseudoColorRenderer,
+        QgsStyle,
+    )
 
     if not isinstance(layer, QgsRasterLayer):
         return False
@@ -154,7 +159,10 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
 
     def shortHelpString(self):  # noqa: N802
         cmd = " ".join(["geocd", *self.spec.command])
-        return tr(self.spec.short_help) + f"\n\nRuns `{cmd}` in geocd's own Python environment (see the provider's settings)."
+        return (
+            tr(self.spec.short_help)
+            + f"\n\nRuns `{cmd}` in geocd's own Python environment (see the provider's settings)."
+        )
 
     def tags(self):
         return ["geocd", *self.spec.tags]
@@ -217,12 +225,19 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
             return QgsProcessingParameterFeatureSource(p.name, label, [_GEOMETRY[p.geometry]], optional=p.optional)
         if p.kind == "file":
             # QGIS accepts only names ending in `extension` when one is set: a filter alone keeps .yml/.json open
-            return QgsProcessingParameterFile(p.name, label, QgsProcessingParameterFile.File,
-                                              "" if p.file_filter else p.extension, p.default, p.optional,
-                                              p.file_filter)
+            return QgsProcessingParameterFile(
+                p.name,
+                label,
+                QgsProcessingParameterFile.File,
+                "" if p.file_filter else p.extension,
+                p.default,
+                p.optional,
+                p.file_filter,
+            )
         if p.kind == "folder":
-            return QgsProcessingParameterFile(p.name, label, QgsProcessingParameterFile.Folder,
-                                              defaultValue=p.default, optional=p.optional)
+            return QgsProcessingParameterFile(
+                p.name, label, QgsProcessingParameterFile.Folder, defaultValue=p.default, optional=p.optional
+            )
         if p.kind in ("number", "int"):
             t = QgsProcessingParameterNumber.Double if p.kind == "number" else QgsProcessingParameterNumber.Integer
             d = QgsProcessingParameterNumber(p.name, label, t, p.default, p.optional)
@@ -232,11 +247,13 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
                 d.setMaximum(p.max)
             return d
         if p.kind == "range":
-            return QgsProcessingParameterRange(p.name, label, QgsProcessingParameterNumber.Double, p.default,
-                                               p.optional)
+            return QgsProcessingParameterRange(
+                p.name, label, QgsProcessingParameterNumber.Double, p.default, p.optional
+            )
         if p.kind == "enum":
-            return QgsProcessingParameterEnum(p.name, label, [tr(o[0]) for o in p.options], False, p.default,
-                                              p.optional)
+            return QgsProcessingParameterEnum(
+                p.name, label, [tr(o[0]) for o in p.options], False, p.default, p.optional
+            )
         if p.kind == "bool":
             return QgsProcessingParameterBoolean(p.name, label, bool(p.default), p.optional)
         if p.kind == "string":
@@ -251,8 +268,11 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
     def _raster_path(self, layer, p: Param) -> str:
         if layer.providerType() != "gdal":
             raise QgsProcessingException(
-                tr(f"{p.label}: geocd reads raster files; layer {layer.name()!r} comes from the "
-                   f"{layer.providerType()!r} provider. Save it as a GeoTIFF first."))
+                tr(
+                    f"{p.label}: geocd reads raster files; layer {layer.name()!r} comes from the "
+                    f"{layer.providerType()!r} provider. Save it as a GeoTIFF first."
+                )
+            )
         return _abs(layer.source())
 
     def _values(self, parameters, context, feedback) -> dict:
@@ -273,12 +293,19 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
             elif k == "vector":
                 if p.manifest:  # the manifest takes {path, layer}: a GeoPackage layer need not be copied
                     path, layer_name = self.parameterAsCompatibleSourceLayerPathAndLayerName(
-                        parameters, p.name, context, ["gpkg", "shp", "geojson", "fgb"], "gpkg", feedback)
+                        parameters, p.name, context, ["gpkg", "shp", "geojson", "fgb"], "gpkg", feedback
+                    )
                     vals[p.name] = _abs(f"{path}|layername={layer_name}" if layer_name else path) or None
                 else:  # the CLI takes a file (its first layer): selections, memory layers, other formats and a
                     # named layer of a GeoPackage are exported to a temporary GeoPackage by QGIS
-                    vals[p.name] = _abs(self.parameterAsCompatibleSourceLayerPath(
-                        parameters, p.name, context, ["gpkg", "shp", "geojson", "fgb"], "gpkg", feedback)) or None
+                    vals[p.name] = (
+                        _abs(
+                            self.parameterAsCompatibleSourceLayerPath(
+                                parameters, p.name, context, ["gpkg", "shp", "geojson", "fgb"], "gpkg", feedback
+                            )
+                        )
+                        or None
+                    )
             elif k in ("file", "folder"):
                 vals[p.name] = _abs(self.parameterAsFile(parameters, p.name, context)) or None
             elif k == "number":
@@ -305,8 +332,13 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
                 elif not crs.isValid():
                     raise QgsProcessingException(tr(f"{p.label}: the extent has no CRS; pick it on a map or a layer"))
                 else:
-                    vals[p.name] = (rect.xMinimum(), rect.yMinimum(), rect.xMaximum(), rect.yMaximum(),
-                                    crs.authid() or crs.toWkt())
+                    vals[p.name] = (
+                        rect.xMinimum(),
+                        rect.yMinimum(),
+                        rect.xMaximum(),
+                        rect.yMaximum(),
+                        crs.authid() or crs.toWkt(),
+                    )
             elif k == "folder_destination":
                 path = self.parameterAsString(parameters, p.name, context)
                 if not path or path == QgsProcessing.TEMPORARY_OUTPUT:
@@ -366,16 +398,27 @@ class GeocdAlgorithm(QgsProcessingAlgorithm):
 
         cwd = out_dir or (watched[0] if watched else None)
         res = runner.run_geocd(
-            cmd, on_progress=on_progress, on_info=feedback.pushInfo, on_warning=feedback.pushWarning,
-            on_console=feedback.pushConsoleInfo, is_cancelled=feedback.isCanceled,
+            cmd,
+            on_progress=on_progress,
+            on_info=feedback.pushInfo,
+            on_warning=feedback.pushWarning,
+            on_console=feedback.pushConsoleInfo,
+            is_cancelled=feedback.isCanceled,
             on_start=lambda pid: feedback.pushDebugInfo(f"geocd child process id {pid}"),
-            env=locate.child_env(), cwd=cwd)
+            env=locate.child_env(),
+            cwd=cwd,
+        )
         if res.cancelled:
-            removed = [f for d in watched for f in runner.remove_new_files(d, before[d])
-                       if d == out_dir or any(Path(f).name == Path(o).name or Path(f).name.startswith(f".{Path(o).stem}.")
-                                              for o in file_outs)]
-            feedback.pushInfo(tr(f"cancelled: geocd (pid {res.pid}) stopped; removed {len(removed)} partial "
-                                 f"output file(s)"))
+            removed = [
+                f
+                for d in watched
+                for f in runner.remove_new_files(d, before[d])
+                if d == out_dir
+                or any(Path(f).name == Path(o).name or Path(f).name.startswith(f".{Path(o).stem}.") for o in file_outs)
+            ]
+            feedback.pushInfo(
+                tr(f"cancelled: geocd (pid {res.pid}) stopped; removed {len(removed)} partial output file(s)")
+            )
             raise QgsProcessingException(tr(res.failure_message()))
         if res.returncode != 0:
             raise QgsProcessingException(res.failure_message())

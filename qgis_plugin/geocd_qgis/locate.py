@@ -34,7 +34,7 @@ INSTALL_HELP = (
     "Install geocd into a Python environment of its own, e.g.\n"
     "    python3 -m venv ~/.venvs/geocd && ~/.venvs/geocd/bin/pip install geocd\n"
     "(or `pip install -e .` in a geocd checkout), then either put its `geocd` on PATH, set the environment "
-    "variable GEOCD_EXECUTABLE, or set Processing ▸ Options ▸ Providers ▸ geocd ▸ \"geocd executable\" to the "
+    'variable GEOCD_EXECUTABLE, or set Processing ▸ Options ▸ Providers ▸ geocd ▸ "geocd executable" to the '
     "path of `geocd` (or of that environment's python)."
 )
 
@@ -79,8 +79,13 @@ def candidates(configured: Optional[str] = None) -> list[tuple[str, Path]]:
     home = Path.home()
     # the plugin inside a geocd checkout: <repo>/qgis_plugin/geocd_qgis
     repo = PLUGIN_DIR.parent.parent
-    venvs = [repo / ".venv", repo / "venv", home / ".venvs" / "geocd", home / "geocd" / ".venv",
-             home / "venvs" / "geocd"]
+    venvs = [
+        repo / ".venv",
+        repo / "venv",
+        home / ".venvs" / "geocd",
+        home / "geocd" / ".venv",
+        home / "venvs" / "geocd",
+    ]
     for conda in ("miniconda3", "miniforge3", "mambaforge", "anaconda3", ".conda"):
         venvs.append(home / conda / "envs" / "geocd")
     for v in venvs:
@@ -107,8 +112,18 @@ def child_env(base: Optional[dict] = None) -> dict:
     builds); geocd's wheels bring their own data, and a different version's proj.db breaks them.
     """
     env = dict(os.environ if base is None else base)
-    for k in ("PYTHONPATH", "PYTHONHOME", "PYTHONSTARTUP", "PYTHONEXECUTABLE", "PYTHONNOUSERSITE",
-              "GDAL_DATA", "GDAL_DRIVER_PATH", "PROJ_LIB", "PROJ_DATA", "QGIS_PREFIX_PATH"):
+    for k in (
+        "PYTHONPATH",
+        "PYTHONHOME",
+        "PYTHONSTARTUP",
+        "PYTHONEXECUTABLE",
+        "PYTHONNOUSERSITE",
+        "GDAL_DATA",
+        "GDAL_DRIVER_PATH",
+        "PROJ_LIB",
+        "PROJ_DATA",
+        "QGIS_PREFIX_PATH",
+    ):
         env.pop(k, None)
     env["PYTHONUNBUFFERED"] = "1"
     env["PYTHONIOENCODING"] = "utf-8"
@@ -123,8 +138,14 @@ def geocd_version(argv: list[str], timeout_s: float = 60.0) -> Optional[str]:
     key = tuple(argv)
     if key not in _VERSION_CACHE:
         try:
-            r = subprocess.run([*argv, "--version"], capture_output=True, text=True, timeout=timeout_s,
-                               env=child_env(), stdin=subprocess.DEVNULL)
+            r = subprocess.run(
+                [*argv, "--version"],
+                capture_output=True,
+                text=True,
+                timeout=timeout_s,
+                env=child_env(),
+                stdin=subprocess.DEVNULL,
+            )
             text = (r.stdout or r.stderr).strip()
             _VERSION_CACHE[key] = text.split()[-1] if r.returncode == 0 and text else None
         except (OSError, subprocess.SubprocessError):
@@ -147,12 +168,16 @@ def check_geocd(configured: Optional[str] = None) -> tuple[Optional[list[str]], 
         explicit = [(s, p) for s, p in candidates(configured)[:2] if s == "Processing settings" or s.startswith("$")]
         if explicit:
             s, p = explicit[0]
-            return None, (f"the geocd executable set in {s} ({p}) does not exist or is not executable; "
-                          f"fix the path, or clear it to let the plugin search. " + INSTALL_HELP)
+            return None, (
+                f"the geocd executable set in {s} ({p}) does not exist or is not executable; "
+                f"fix the path, or clear it to let the plugin search. " + INSTALL_HELP
+            )
         return None, "geocd was not found. " + INSTALL_HELP
     argv, source = found
     version = geocd_version(argv)
     if version is None:
-        return None, (f"{' '.join(argv)} (found via {source}) does not run (`--version` failed); "
-                      f"check that environment. " + INSTALL_HELP)
+        return None, (
+            f"{' '.join(argv)} (found via {source}) does not run (`--version` failed); "
+            f"check that environment. " + INSTALL_HELP
+        )
     return argv, f"geocd {version} ({' '.join(argv)}, via {source})"

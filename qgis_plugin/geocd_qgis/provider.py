@@ -51,10 +51,16 @@ class GeocdProvider(QgsProcessingProvider):
             from processing.core.ProcessingConfig import ProcessingConfig, Setting
 
             ProcessingConfig.settingIcons[self.name()] = self.icon()
-            ProcessingConfig.addSetting(Setting(
-                self.name(), SETTING_EXECUTABLE,
-                "geocd executable (the geocd script, or its environment's python; empty = search PATH and known "
-                "virtual environments)", "", valuetype=Setting.FILE))
+            ProcessingConfig.addSetting(
+                Setting(
+                    self.name(),
+                    SETTING_EXECUTABLE,
+                    "geocd executable (the geocd script, or its environment's python; empty = search PATH and known "
+                    "virtual environments)",
+                    "",
+                    valuetype=Setting.FILE,
+                )
+            )
             ProcessingConfig.readSettings()
         except ImportError:  # Processing's Python side absent
             pass

@@ -58,11 +58,15 @@ class RunResult:
         tail = [l for l in self.stderr_tail if l.strip()]
         if any(l.startswith("Traceback (most recent call last)") for l in tail):
             last = summarize_traceback(tail)
-            return (f"geocd stopped unexpectedly ({last}). This is a bug or a broken installation: run the same "
-                    "command with --debug in a terminal (the log above has it) and report the output")
+            return (
+                f"geocd stopped unexpectedly ({last}). This is a bug or a broken installation: run the same "
+                "command with --debug in a terminal (the log above has it) and report the output"
+            )
         if self.returncode is not None and self.returncode < 0:
-            return (f"geocd was killed by signal {-self.returncode} (out of memory, or stopped by the system); "
-                    "try a coarser posting or a smaller extent")
+            return (
+                f"geocd was killed by signal {-self.returncode} (out of memory, or stopped by the system); "
+                "try a coarser posting or a smaller extent"
+            )
         if tail:
             return f"geocd exited with status {self.returncode}:\n" + "\n".join(tail[-15:])
         return f"geocd exited with status {self.returncode} without a message"
@@ -94,8 +98,10 @@ def describe_exception(exc: BaseException) -> str:
     if isinstance(exc, MemoryError):
         return "out of memory; use a coarser posting or a smaller extent"
     msg = " ".join(str(exc).split())[:300]
-    return (f"the geocd plugin failed ({type(exc).__name__}: {msg}); this is a bug: please report it with the "
-            "log of this run")
+    return (
+        f"the geocd plugin failed ({type(exc).__name__}: {msg}); this is a bug: please report it with the "
+        "log of this run"
+    )
 
 
 def _reader(stream, tag: str, q: "queue.Queue") -> None:
@@ -128,11 +134,20 @@ def _kill(proc: subprocess.Popen) -> None:
         pass
 
 
-def run_geocd(argv: list[str], *, on_progress: Callable[[Optional[float], str, str], None] = lambda f, m, s: None,
-              on_info: Callable[[str], None] = lambda m: None, on_warning: Callable[[str], None] = lambda m: None,
-              on_console: Callable[[str], None] = lambda m: None, on_start: Callable[[int], None] = lambda pid: None,
-              is_cancelled: Callable[[], bool] = lambda: False, env: Optional[dict] = None,
-              cwd: Optional[str] = None, poll_s: float = 0.1, grace_s: float = 3.0) -> RunResult:
+def run_geocd(
+    argv: list[str],
+    *,
+    on_progress: Callable[[Optional[float], str, str], None] = lambda f, m, s: None,
+    on_info: Callable[[str], None] = lambda m: None,
+    on_warning: Callable[[str], None] = lambda m: None,
+    on_console: Callable[[str], None] = lambda m: None,
+    on_start: Callable[[int], None] = lambda pid: None,
+    is_cancelled: Callable[[], bool] = lambda: False,
+    env: Optional[dict] = None,
+    cwd: Optional[str] = None,
+    poll_s: float = 0.1,
+    grace_s: float = 3.0,
+) -> RunResult:
     """Run ``argv`` (a full geocd command line with ``--progress json``) and stream its events.
 
     Callbacks run in the calling thread. Returns when the child has exited (or been killed).
@@ -142,13 +157,26 @@ def run_geocd(argv: list[str], *, on_progress: Callable[[Optional[float], str, s
         kw["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP  # type: ignore[attr-defined]
     else:
         kw["start_new_session"] = True  # own process group: a cancel reaches its workers too
-    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, encoding="utf-8", errors="replace", bufsize=1, env=env, cwd=cwd, **kw)
+    proc = subprocess.Popen(
+        argv,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        encoding="utf-8",
+        errors="replace",
+        bufsize=1,
+        env=env,
+        cwd=cwd,
+        **kw,
+    )
     res = RunResult(returncode=None, pid=proc.pid)
     on_start(proc.pid)
     q: "queue.Queue" = queue.Queue()
-    threads = [threading.Thread(target=_reader, args=(proc.stdout, "out", q), daemon=True),
-               threading.Thread(target=_reader, args=(proc.stderr, "err", q), daemon=True)]
+    threads = [
+        threading.Thread(target=_reader, args=(proc.stdout, "out", q), daemon=True),
+        threading.Thread(target=_reader, args=(proc.stderr, "err", q), daemon=True),
+    ]
     for t in threads:
         t.start()
     open_streams = 2
@@ -187,7 +215,7 @@ def run_geocd(argv: list[str], *, on_progress: Callable[[Optional[float], str, s
         if not isinstance(event, dict) or "type" not in event:
             tail = (tail + [line])[-50:]
             if s.startswith("geocd: error:") and res.error is None:
-                res.error = s[len("geocd: error:"):].strip()
+                res.error = s[len("geocd: error:") :].strip()
             on_console(line)
             continue
         kind = event.get("type")
@@ -210,8 +238,9 @@ def run_geocd(argv: list[str], *, on_progress: Callable[[Optional[float], str, s
             outs = event.get("outputs") or {}
             if isinstance(outs, dict):
                 base = Path(cwd) if cwd else Path.cwd()
-                res.outputs.update({str(k): str(base / str(v)) if not Path(str(v)).is_absolute() else str(v)
-                                    for k, v in outs.items()})
+                res.outputs.update(
+                    {str(k): str(base / str(v)) if not Path(str(v)).is_absolute() else str(v) for k, v in outs.items()}
+                )
         else:
             on_console(line)
     for t in threads:
@@ -250,8 +279,9 @@ def remove_new_files(folder: Optional[str], before: set) -> list[str]:
     if not root.exists():
         return []
     removed = []
-    paths = sorted((p for p in [root, *root.rglob("*")] if str(p) not in before),
-                   key=lambda p: len(p.parts), reverse=True)
+    paths = sorted(
+        (p for p in [root, *root.rglob("*")] if str(p) not in before), key=lambda p: len(p.parts), reverse=True
+    )
     for p in paths:
         try:
             if p.is_dir() and not p.is_symlink():

@@ -74,8 +74,13 @@ def load_scene() -> Scene:
         crs = ds.crs  # orthority takes the EO CRS from the images ("Lo25 WGS84")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        cams = read_orthority_cameras(root / "io/ngi_int_param.yaml", root / "ngi/camera_pos_ori.txt", crs=crs,
-                                      vertical_datum="egm2008", allow_geoid_substitute=True)
+        cams = read_orthority_cameras(
+            root / "io/ngi_int_param.yaml",
+            root / "ngi/camera_pos_ori.txt",
+            crs=crs,
+            vertical_datum="egm2008",
+            allow_geoid_substitute=True,
+        )
         dem = read_dem(root / "ngi/dem.tif")
         dem_e = dem.to_ellipsoidal(allow_substitute=True)
     images = {}
@@ -160,7 +165,7 @@ def ncc_surface_ref(tpl: np.ndarray, big: np.ndarray) -> np.ndarray:
     out = np.empty((p, k, k))
     for dy in range(k):
         for dx in range(k):
-            b = big[:, dy:dy + n, dx:dx + n]
+            b = big[:, dy : dy + n, dx : dx + n]
             b = b - b.mean(axis=(1, 2), keepdims=True)
             out[:, dy, dx] = (a * b).sum(axis=(1, 2)) / (an * np.sqrt((b * b).sum(axis=(1, 2))))
     return out
@@ -196,16 +201,32 @@ class Matches:
     ok: np.ndarray  # textured, interior peak, NCC above the threshold
 
 
-def match_ortho(sc: Scene, cam_a, img_a, cam_b, img_b, x0, y0, *, post_m: float = 5.0, half: int = 12,
-                search: int = 6, min_ncc: float = 0.7, min_std: float = 3.0) -> Matches:
+def match_ortho(
+    sc: Scene,
+    cam_a,
+    img_a,
+    cam_b,
+    img_b,
+    x0,
+    y0,
+    *,
+    post_m: float = 5.0,
+    half: int = 12,
+    search: int = 6,
+    min_ncc: float = 0.7,
+    min_std: float = 3.0,
+) -> Matches:
     off = np.arange(-half - search, half + search + 1) * post_m
     X = np.broadcast_to(x0[:, None, None] + off[None, None, :], (x0.size, off.size, off.size))
     Y = np.broadcast_to(y0[:, None, None] - off[None, :, None], (x0.size, off.size, off.size))
     big = ortho(sc, cam_b, img_b, X, Y)
     core = (slice(None), slice(search, -search), slice(search, -search))
     tpl = ortho(sc, cam_a, img_a, X[core], Y[core])
-    usable = (np.all(np.isfinite(tpl), axis=(1, 2)) & np.all(np.isfinite(big), axis=(1, 2))
-              & (np.std(tpl, axis=(1, 2)) > min_std))
+    usable = (
+        np.all(np.isfinite(tpl), axis=(1, 2))
+        & np.all(np.isfinite(big), axis=(1, 2))
+        & (np.std(tpl, axis=(1, 2)) > min_std)
+    )
     dy, dx, peak, interior = subcell_peak(ncc_surface(tpl[usable], big[usable]))
     ok = interior & (peak >= min_ncc)
     return Matches(x0[usable], y0[usable], dx * post_m, -dy * post_m, peak, ok)
@@ -248,8 +269,9 @@ def qb2_frame_shifts(sc: Scene, rpc: RPCModel, step: int, names=None) -> np.ndar
     for n in names or sorted(sc.cams):
         cam = sc.cams[n]
         sel = inside(sc, cam, xs, ys) & inside(sc, rpc, xs, ys)
-        m = match_ortho(sc, rpc, sc.qb2, cam, sc.images[n], xs[sel], ys[sel], post_m=5.0, half=12, search=8,
-                        min_ncc=0.6)
+        m = match_ortho(
+            sc, rpc, sc.qb2, cam, sc.images[n], xs[sel], ys[sel], post_m=5.0, half=12, search=8, min_ncc=0.6
+        )
         out.append(np.column_stack([m.shift_x[m.ok], m.shift_y[m.ok]]))
     return np.concatenate(out)
 
@@ -263,8 +285,10 @@ def rpc_bias_ground_m(sc: Scene, bias_px: np.ndarray) -> np.ndarray:
     c, r = sc.rpc.project([lon, lon + d, lon], [lat, lat, lat + d], h)
     x, y = from_lonlat([lon, lon + d, lon], [lat, lat, lat + d], sc.dem_grid.crs)
     # Jacobian d(col, row)/d(x, y) in the DEM's projected CRS
-    J = np.linalg.solve(np.array([[x[1] - x[0], x[2] - x[0]], [y[1] - y[0], y[2] - y[0]]]).T,
-                        np.array([[c[1] - c[0], c[2] - c[0]], [r[1] - r[0], r[2] - r[0]]]).T).T
+    J = np.linalg.solve(
+        np.array([[x[1] - x[0], x[2] - x[0]], [y[1] - y[0], y[2] - y[0]]]).T,
+        np.array([[c[1] - c[0], c[2] - c[0]], [r[1] - r[0], r[2] - r[0]]]).T,
+    ).T
     return np.linalg.solve(J, bias_px)
 
 
@@ -297,7 +321,9 @@ def test_frames_agree_across_overlaps(scene):
     res = frame_pair_residuals(scene, step=4)  # every 4th DEM post (96 m); the report uses every 3rd
     pooled = np.concatenate(list(res.values()))
     for pair, r in res.items():
-        print(f"{pair[0][-8:]}-{pair[1][-8:]}: n={r.size} median={np.median(r):.2f} px p90={np.percentile(r, 90):.2f} px")
+        print(
+            f"{pair[0][-8:]}-{pair[1][-8:]}: n={r.size} median={np.median(r):.2f} px p90={np.percentile(r, 90):.2f} px"
+        )
         assert r.size >= 60, pair
         assert np.median(r) < 0.5, pair
     print(f"pooled: n={pooled.size} median={np.median(pooled):.2f} px p90={np.percentile(pooled, 90):.2f} px")
@@ -320,8 +346,10 @@ def test_frame_check_detects_a_one_pixel_error(scene):
 def test_qb2_rpc_against_gcps(scene):
     d = gcp_residuals(scene)
     mean, sd = d.mean(axis=0), d.std(axis=0)
-    print(f"QB2 RPC − GCP: mean ({mean[0]:.2f}, {mean[1]:.2f}) px, |mean| {np.hypot(*mean):.2f} px, "
-          f"sd ({sd[0]:.2f}, {sd[1]:.2f}) px, n={len(d)}")
+    print(
+        f"QB2 RPC − GCP: mean ({mean[0]:.2f}, {mean[1]:.2f}) px, |mean| {np.hypot(*mean):.2f} px, "
+        f"sd ({sd[0]:.2f}, {sd[1]:.2f}) px, n={len(d)}"
+    )
     # a pure bias of ~3.6 px: the RPC is not refined; the scatter about it is small
     assert 3.0 < np.hypot(*mean) < 4.5
     assert np.all(sd < 0.2)
@@ -337,10 +365,14 @@ def test_qb2_and_frames_agree_on_the_ground(scene):
     cor = qb2_frame_shifts(scene, corrected_rpc, step=6, names=sorted(scene.cams)[::3])
     med_cor = np.median(cor, axis=0)
     mag = np.hypot(cor[:, 0], cor[:, 1])
-    print(f"QB2 vs frames raw: median shift ({med_raw[0]:.1f}, {med_raw[1]:.1f}) m (n={len(raw)}); "
-          f"GCP bias predicts ({expected[0]:.1f}, {expected[1]:.1f}) m")
-    print(f"QB2 (GCP-bias corrected) vs frames: median shift ({med_cor[0]:.2f}, {med_cor[1]:.2f}) m, "
-          f"|shift| median {np.median(mag):.2f} m, p90 {np.percentile(mag, 90):.2f} m (n={len(cor)})")
+    print(
+        f"QB2 vs frames raw: median shift ({med_raw[0]:.1f}, {med_raw[1]:.1f}) m (n={len(raw)}); "
+        f"GCP bias predicts ({expected[0]:.1f}, {expected[1]:.1f}) m"
+    )
+    print(
+        f"QB2 (GCP-bias corrected) vs frames: median shift ({med_cor[0]:.2f}, {med_cor[1]:.2f}) m, "
+        f"|shift| median {np.median(mag):.2f} m, p90 {np.percentile(mag, 90):.2f} m (n={len(cor)})"
+    )
     assert len(raw) > 300 and len(cor) > 300
     # the frames (NGI aerial triangulation) and the GCPs measure the same RPC bias, within 3 m
     assert np.hypot(*(med_raw - expected)) < 3.0
@@ -358,8 +390,10 @@ def report() -> None:  # pragma: no cover - manual
     print(f"DEM datum {sc.dem_datum} → ellipsoidal with the EGM96 substitute (EGM2008 grid absent)")
     res = frame_pair_residuals(sc, step=3)
     for (a, b), r in res.items():
-        print(f"frames {a[-8:]} / {b[-8:]}: n={r.size:5d}  median {np.median(r):.2f} px  "
-              f"p90 {np.percentile(r, 90):.2f} px")
+        print(
+            f"frames {a[-8:]} / {b[-8:]}: n={r.size:5d}  median {np.median(r):.2f} px  "
+            f"p90 {np.percentile(r, 90):.2f} px"
+        )
     pooled = np.concatenate(list(res.values()))
     print(f"frames pooled: n={pooled.size}  median {np.median(pooled):.2f} px  p90 {np.percentile(pooled, 90):.2f} px")
     d = gcp_residuals(sc)
@@ -375,16 +409,22 @@ def report() -> None:  # pragma: no cover - manual
     c1, r1 = sc.rpc.project(lon, lat, h)
     c0, r0 = sc.rpc.project(lon, lat, h - n_geoid)
     shift = np.hypot(c1 - c0, r1 - r0)
-    print(f"datum: N = {n_geoid:.2f} m (EGM96); ignoring it would move QB2 projections by a median "
-          f"{np.nanmedian(shift):.2f} px; frame heights share the datum of the camera z")
+    print(
+        f"datum: N = {n_geoid:.2f} m (EGM96); ignoring it would move QB2 projections by a median "
+        f"{np.nanmedian(shift):.2f} px; frame heights share the datum of the camera z"
+    )
     print(f"GCP bias ({bias[0]:.2f}, {bias[1]:.2f}) px = {rpc_bias_ground_m(sc, bias).round(1)} m on the ground")
-    for label, rpc in (("raw RPC", sc.rpc),
-                       ("GCP-bias-corrected RPC", sc.rpc.cropped(bias[0], bias[1], sc.rpc.width, sc.rpc.height))):
+    for label, rpc in (
+        ("raw RPC", sc.rpc),
+        ("GCP-bias-corrected RPC", sc.rpc.cropped(bias[0], bias[1], sc.rpc.width, sc.rpc.height)),
+    ):
         v = qb2_frame_shifts(sc, rpc, step=3)
         mag = np.hypot(v[:, 0], v[:, 1])
         med = np.median(v, axis=0)
-        print(f"QB2 ({label}) vs 4 frames: n={len(v)}  median shift ({med[0]:.2f}, {med[1]:.2f}) m  "
-              f"|shift| median {np.median(mag):.2f} m  p90 {np.percentile(mag, 90):.2f} m")
+        print(
+            f"QB2 ({label}) vs 4 frames: n={len(v)}  median shift ({med[0]:.2f}, {med[1]:.2f}) m  "
+            f"|shift| median {np.median(mag):.2f} m  p90 {np.percentile(mag, 90):.2f} m"
+        )
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -62,7 +62,7 @@ def test_crop_and_rpc_export(rpc):
     crop = cam.cropped(100, 40, 200, 200)
     cc, rc = crop.project(lon, lat, h)
     assert np.allclose(cc, c - 100, atol=1e-9) and np.allclose(rc, r - 40, atol=1e-9)
-    folded = cam.to_rasterio()   # a shift folds into the RPC offsets exactly
+    folded = cam.to_rasterio()  # a shift folds into the RPC offsets exactly
     assert folded.samp_off == pytest.approx(rpc.samp_off + 1.5)
     assert folded.line_off == pytest.approx(rpc.line_off - 0.75)
     aff = CorrectedCamera(rpc, (1.5, -0.75), [[1e-3, 0], [0, 0]])

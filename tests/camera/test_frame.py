@@ -32,9 +32,17 @@ needs_egm96 = pytest.mark.skipif(find_geoid_grid("egm96") is None, reason="EGM96
 
 
 def make_cam(**kw) -> FrameCamera:
-    d = dict(width=1000, height=800, focal_px=(1500.0, 1502.0), principal_point_px=(503.2, 396.7),
-             position=(X0, Y0, 3000.0), opk_deg=(2.0, -3.0, 30.0), crs=UTM35S, vertical_datum="ellipsoid",
-             distortion=DIST)
+    d = dict(
+        width=1000,
+        height=800,
+        focal_px=(1500.0, 1502.0),
+        principal_point_px=(503.2, 396.7),
+        position=(X0, Y0, 3000.0),
+        opk_deg=(2.0, -3.0, 30.0),
+        crs=UTM35S,
+        vertical_datum="ellipsoid",
+        distortion=DIST,
+    )
     d.update(kw)
     return FrameCamera(**d)
 
@@ -77,14 +85,20 @@ def test_matches_orthority_pinhole_formula():
     # the Baviaans DMC camera with an off-centre principal point and an oblique attitude
     opk = (math.radians(1.3), math.radians(-2.1), math.radians(-179.0))
     pos = (-55094.5, -3727407.0, 5258.3)
-    cam = FrameCamera(width=640, height=1152, focal_px=(120 * 640 / 92.16, 120 * 1152 / 165.888),
-                      principal_point_px=(320 + 1152 * 0.01, 576 - 1152 * 0.02), position=pos,
-                      opk_deg=tuple(math.degrees(a) for a in opk),
-                      crs="+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m",
-                      vertical_datum="ellipsoid")
+    cam = FrameCamera(
+        width=640,
+        height=1152,
+        focal_px=(120 * 640 / 92.16, 120 * 1152 / 165.888),
+        principal_point_px=(320 + 1152 * 0.01, 576 - 1152 * 0.02),
+        position=pos,
+        opk_deg=tuple(math.degrees(a) for a in opk),
+        crs="+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m",
+        vertical_datum="ellipsoid",
+    )
     rng = np.random.default_rng(1)
-    xyz = np.stack([pos[0] + rng.uniform(-2500, 2500, 50), pos[1] + rng.uniform(-4000, 4000, 50),
-                    rng.uniform(100, 800, 50)])
+    xyz = np.stack(
+        [pos[0] + rng.uniform(-2500, 2500, 50), pos[1] + rng.uniform(-4000, 4000, 50), rng.uniform(100, 800, 50)]
+    )
     ji = orthority_world_to_pixel(xyz, (640, 1152), 120.0, (92.16, 165.888), 0.01, -0.02, pos, opk)
     col, row = cam.project_world(*xyz)
     np.testing.assert_allclose(col, ji[0] + 0.5, atol=1e-9)
@@ -255,9 +269,19 @@ def test_cropped_and_rescaled_are_exact():
 # construction, validation, serialisation
 # ------------------------------------------------------------------------------------------
 def test_from_mm_and_dict_round_trip():
-    cam = FrameCamera.from_mm(640, 1152, 120.0, 0.144, principal_point_mm=(0.0144, -0.288),
-                              position=(X0, Y0, 5000.0), opk_deg=(0.1, 0.2, 0.3), crs=UTM35S,
-                              vertical_datum="egm2008", allow_geoid_substitute=True, distortion={"k1": 1e-3})
+    cam = FrameCamera.from_mm(
+        640,
+        1152,
+        120.0,
+        0.144,
+        principal_point_mm=(0.0144, -0.288),
+        position=(X0, Y0, 5000.0),
+        opk_deg=(0.1, 0.2, 0.3),
+        crs=UTM35S,
+        vertical_datum="egm2008",
+        allow_geoid_substitute=True,
+        distortion={"k1": 1e-3},
+    )
     assert cam.focal_px == pytest.approx((833.3333333, 833.3333333))
     assert cam.principal_point_px == pytest.approx((320.1, 574.0))
     d = cam.to_dict()
@@ -279,34 +303,40 @@ def test_compound_crs_gives_vertical_datum():
     assert cam.crs.to_epsg() == 32735
 
 
-@pytest.mark.parametrize("change, field", [
-    (dict(vertical_datum=None), "vertical_datum"),
-    (dict(vertical_datum="navd88"), "vertical_datum"),
-    (dict(crs="EPSG:4326"), "crs"),
-    (dict(crs="EPSG:2263"), "crs"),  # US survey feet
-    (dict(crs=None), "crs"),
-    (dict(focal_px=-3.0), "focal_px"),
-    (dict(focal_px="wide"), "focal_px"),
-    (dict(width=0), "width"),
-    (dict(height=10.5), "height"),
-    (dict(position=(1.0, 2.0)), "position"),
-    (dict(opk_deg=(0.0, float("nan"), 0.0)), "opk_deg"),
-    (dict(distortion={"k4": 0.1}), "distortion"),
-    (dict(distortion=[0.1, 0.0, 0.0, 0.0, 0.0]), "distortion"),
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        (dict(vertical_datum=None), "vertical_datum"),
+        (dict(vertical_datum="navd88"), "vertical_datum"),
+        (dict(crs="EPSG:4326"), "crs"),
+        (dict(crs="EPSG:2263"), "crs"),  # US survey feet
+        (dict(crs=None), "crs"),
+        (dict(focal_px=-3.0), "focal_px"),
+        (dict(focal_px="wide"), "focal_px"),
+        (dict(width=0), "width"),
+        (dict(height=10.5), "height"),
+        (dict(position=(1.0, 2.0)), "position"),
+        (dict(opk_deg=(0.0, float("nan"), 0.0)), "opk_deg"),
+        (dict(distortion={"k4": 0.1}), "distortion"),
+        (dict(distortion=[0.1, 0.0, 0.0, 0.0, 0.0]), "distortion"),
+    ],
+)
 def test_invalid_fields_name_the_field(change, field):
     with pytest.raises(FrameCameraError, match=field):
         make_cam(**change)
 
 
-@pytest.mark.parametrize("edit, word", [
-    (lambda d: d.pop("focal_px"), "focal"),
-    (lambda d: d.pop("position"), "position"),
-    (lambda d: d.pop("opk_deg"), "opk_deg"),
-    (lambda d: d.update(foo=1), "unknown fields"),
-    (lambda d: d.update(kind="rpc"), "kind"),
-    (lambda d: (d.pop("focal_px"), d.update(focal_mm=100.0)), "pixel_size_mm"),
-])
+@pytest.mark.parametrize(
+    "edit, word",
+    [
+        (lambda d: d.pop("focal_px"), "focal"),
+        (lambda d: d.pop("position"), "position"),
+        (lambda d: d.pop("opk_deg"), "opk_deg"),
+        (lambda d: d.update(foo=1), "unknown fields"),
+        (lambda d: d.update(kind="rpc"), "kind"),
+        (lambda d: (d.pop("focal_px"), d.update(focal_mm=100.0)), "pixel_size_mm"),
+    ],
+)
 def test_from_dict_errors(edit, word):
     d = make_cam().to_dict()
     edit(d)
@@ -385,21 +415,37 @@ My Camera:
 def test_orthority_readers(tmp_path):
     (tmp_path / "int.yaml").write_text(INT_YAML)
     (tmp_path / "ext.csv").write_text(
-        "filename,easting,northing,altitude,omega,phi,kappa,camera\n"
-        f"a,{X0},{Y0},3000,1.0,2.0,3.0,My Camera\n"
+        f"filename,easting,northing,altitude,omega,phi,kappa,camera\na,{X0},{Y0},3000,1.0,2.0,3.0,My Camera\n"
     )
     (tmp_path / "ext.prj").write_text("EPSG:32735")
     (tmp_path / "pos.txt").write_text(f"a {X0} {Y0} 3000 1.0 2.0 3.0\n")
-    (tmp_path / "ext.geojson").write_text(json.dumps({
-        "type": "FeatureCollection", "world_crs": "EPSG:32735",
-        "features": [{"type": "Feature", "properties": {"filename": "a", "camera": "My Camera",
-                                                        "xyz": [X0, Y0, 3000],
-                                                        "opk": [math.radians(v) for v in (1.0, 2.0, 3.0)]},
-                      "geometry": {"type": "Point", "coordinates": [LON0, LAT0, 3000]}}]}))
-    cams = [read_orthority_cameras(tmp_path / "int.yaml", tmp_path / "ext.csv", vertical_datum="ellipsoid")["a"],
-            read_orthority_cameras(tmp_path / "int.yaml", tmp_path / "pos.txt", crs=UTM35S,
-                                   vertical_datum="ellipsoid")["a"],
-            read_orthority_cameras(tmp_path / "int.yaml", tmp_path / "ext.geojson", vertical_datum="ellipsoid")["a"]]
+    (tmp_path / "ext.geojson").write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "world_crs": "EPSG:32735",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {
+                            "filename": "a",
+                            "camera": "My Camera",
+                            "xyz": [X0, Y0, 3000],
+                            "opk": [math.radians(v) for v in (1.0, 2.0, 3.0)],
+                        },
+                        "geometry": {"type": "Point", "coordinates": [LON0, LAT0, 3000]},
+                    }
+                ],
+            }
+        )
+    )
+    cams = [
+        read_orthority_cameras(tmp_path / "int.yaml", tmp_path / "ext.csv", vertical_datum="ellipsoid")["a"],
+        read_orthority_cameras(tmp_path / "int.yaml", tmp_path / "pos.txt", crs=UTM35S, vertical_datum="ellipsoid")[
+            "a"
+        ],
+        read_orthority_cameras(tmp_path / "int.yaml", tmp_path / "ext.geojson", vertical_datum="ellipsoid")["a"],
+    ]
     c0 = cams[0]
     assert c0.focal_px == pytest.approx((1200.0, 1200.0))
     assert c0.principal_point_px == pytest.approx((500 + 10.0, 400 - 20.0))

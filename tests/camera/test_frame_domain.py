@@ -17,21 +17,29 @@ X0, Y0 = (float(v) for v in from_lonlat(LON0, LAT0, UTM35S))
 
 
 def drone(k1=-0.26, k2=0.0, k3=0.0, p1=0.0, p2=0.0, focal=480.0) -> FrameCamera:
-    return FrameCamera(width=480, height=360, focal_px=focal, position=(X0, Y0, 60.0), opk_deg=(0.0, 0.0, 0.0),
-                       crs=UTM35S, vertical_datum="ellipsoid", distortion=dict(k1=k1, k2=k2, k3=k3, p1=p1, p2=p2))
+    return FrameCamera(
+        width=480,
+        height=360,
+        focal_px=focal,
+        position=(X0, Y0, 60.0),
+        opk_deg=(0.0, 0.0, 0.0),
+        crs=UTM35S,
+        vertical_datum="ellipsoid",
+        distortion=dict(k1=k1, k2=k2, k3=k3, p1=p1, p2=p2),
+    )
 
 
 def test_max_radius_is_the_first_fold_of_the_radial_polynomial():
     assert K.max_radius2(0.0, 0.0, 0.0) == math.inf
-    assert K.max_radius2(0.05, 0.01, 0.0) == math.inf           # pincushion never folds
+    assert K.max_radius2(0.05, 0.01, 0.0) == math.inf  # pincushion never folds
     assert K.max_radius2(-0.26, 0.0, 0.0) == pytest.approx(1.0 / (3 * 0.26))
     for k in [(-0.3, 0.05, -0.01), (-0.12, -0.02, 0.003)]:
         u = K.max_radius2(*k)
         r = np.sqrt(np.linspace(0.0, u, 2001))
         rd = r * (1 + k[0] * r**2 + k[1] * r**4 + k[2] * r**6)
-        assert np.all(np.diff(rd) > 0)                               # monotonic up to it
+        assert np.all(np.diff(rd) > 0)  # monotonic up to it
         r2 = np.sqrt(u) * 1.01
-        assert r2 * (1 + k[0] * r2**2 + k[1] * r2**4 + k[2] * r2**6) < rd[-1]   # and not beyond
+        assert r2 * (1 + k[0] * r2**2 + k[1] * r2**4 + k[2] * r2**6) < rd[-1]  # and not beyond
     assert drone().max_field_angle_deg == pytest.approx(math.degrees(math.atan(math.sqrt(1 / 0.78))))
 
 
@@ -71,7 +79,7 @@ def test_pixels_beyond_the_reachable_radius_do_not_localize():
     # with a short focal length the image corners lie beyond what the polynomial can reach
     cam = drone(focal=300.0)
     xn, yn = cam.undistort([240.0, 0.0, 240.0], [180.0, 0.0, 0.0])
-    assert np.isfinite(xn[0]) and np.isnan(xn[1])                  # centre ok, corner (r_d = 1.0 > 0.755) refused
+    assert np.isfinite(xn[0]) and np.isnan(xn[1])  # centre ok, corner (r_d = 1.0 > 0.755) refused
     r2 = np.asarray(xn) ** 2 + np.asarray(yn) ** 2
     assert np.all(~(r2 >= K.max_radius2(-0.26, 0.0, 0.0)))
     xr, yr = K.undistort_ref([240.0, 0.0], [180.0, 0.0], cam.params, n_iter=200)
@@ -80,7 +88,7 @@ def test_pixels_beyond_the_reachable_radius_do_not_localize():
 
 def test_tangential_distortion_domain_uses_the_jacobian():
     cam = drone(k1=0.0, p1=0.2)
-    x = np.array([0.0, 0.5, -0.5, 3.0, -3.0])   # det = 1 − 4 p1² x² < 0 beyond |x| = 2.5
+    x = np.array([0.0, 0.5, -0.5, 3.0, -3.0])  # det = 1 − 4 p1² x² < 0 beyond |x| = 2.5
     y = np.zeros_like(x)
     ok = K.in_domain_ref(x, y, cam.params)
     col, _ = cam.project_world(X0 + 60 * x, Y0 - 60 * y, np.zeros_like(x))

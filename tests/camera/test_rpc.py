@@ -35,10 +35,25 @@ def synthetic_rpc(seed: int = 0, width: int = 2000, height: int = 1600, **kw) ->
     line_den = np.r_[1.0, rng.normal(0, 5e-4, 3), rng.normal(0, 2e-5, 16)]
     samp_den = np.r_[1.0, rng.normal(0, 5e-4, 3), rng.normal(0, 2e-5, 16)]
     params = dict(
-        line_num=line_num, line_den=line_den, samp_num=samp_num, samp_den=samp_den,
-        line_off=height / 2 - 0.5, samp_off=width / 2 - 0.5, lat_off=43.52, lon_off=5.31, height_off=400.0,
-        line_scale=height / 2, samp_scale=width / 2, lat_scale=0.006, lon_scale=0.009, height_scale=600.0,
-        width=width, height=height, err_bias=2.5, err_rand=0.1, source="synthetic",
+        line_num=line_num,
+        line_den=line_den,
+        samp_num=samp_num,
+        samp_den=samp_den,
+        line_off=height / 2 - 0.5,
+        samp_off=width / 2 - 0.5,
+        lat_off=43.52,
+        lon_off=5.31,
+        height_off=400.0,
+        line_scale=height / 2,
+        samp_scale=width / 2,
+        lat_scale=0.006,
+        lon_scale=0.009,
+        height_scale=600.0,
+        width=width,
+        height=height,
+        err_bias=2.5,
+        err_rand=0.1,
+        source="synthetic",
     )
     params.update(kw)
     return RPCModel(**params)
@@ -111,8 +126,28 @@ def test_terms_ref_order_is_rpc00b():
 
 def test_rpc00a_to_rpc00b_reorders_terms():
     # a polynomial given in RPC00A order evaluates the same after conversion to RPC00B order
-    a_order = ("1", "L", "P", "H", "LP", "LH", "PH", "PLH", "LL", "PP", "HH", "LLL", "LLP", "LLH",
-               "LPP", "PPP", "PPH", "LHH", "PHH", "HHH")
+    a_order = (
+        "1",
+        "L",
+        "P",
+        "H",
+        "LP",
+        "LH",
+        "PH",
+        "PLH",
+        "LL",
+        "PP",
+        "HH",
+        "LLL",
+        "LLP",
+        "LLH",
+        "LPP",
+        "PPP",
+        "PPH",
+        "LHH",
+        "PHH",
+        "HHH",
+    )
     rng = np.random.default_rng(3)
     coef_a = rng.normal(size=20)
     L, P, H = rng.uniform(-1, 1, (3, 50))
@@ -193,8 +228,14 @@ def test_dict_and_rasterio_roundtrip(rpc):
 
 def test_corrupt_models_raise_parse_error(rpc):
     d = rpc.to_dict()
-    for bad in ({"line_den": [0.0] * 20}, {"samp_scale": 0.0}, {"lat_off": float("nan")},
-                {"line_num": [1.0] * 19}, {"samp_num": ["x"] * 20}, {"samp_num": [0.0] * 20, "line_num": [0.0] * 20}):
+    for bad in (
+        {"line_den": [0.0] * 20},
+        {"samp_scale": 0.0},
+        {"lat_off": float("nan")},
+        {"line_num": [1.0] * 19},
+        {"samp_num": ["x"] * 20},
+        {"samp_num": [0.0] * 20, "line_num": [0.0] * 20},
+    ):
         with pytest.raises(RPCParseError):
             RPCModel.from_dict({**d, **bad})
 
@@ -252,8 +293,10 @@ def gdal_stats() -> dict:
     if stats:
         print("\nsample | max |geocd - GDAL| px | round trip max px (ground grid, image grid) | max iterations")
         for k, v in stats.items():
-            print(f"{k} | {v.get('gdal', float('nan')):.1e} | {v.get('rt_ground', float('nan')):.1e}, "
-                  f"{v.get('rt_image', float('nan')):.1e} | {v.get('iters', '-')}")
+            print(
+                f"{k} | {v.get('gdal', float('nan')):.1e} | {v.get('rt_ground', float('nan')):.1e}, "
+                f"{v.get('rt_image', float('nan')):.1e} | {v.get('iters', '-')}"
+            )
 
 
 @pytest.mark.realdata
@@ -321,8 +364,7 @@ def test_real_s2p_rpc_matches_gdal_on_image_tags():
 def _crop_far_from_centre(rpc):
     """A 300² crop whose corner lies ~0.8 of the validity box's half-width from its centre, as a
     vendor crop of a large scene (WorldView-3 tiles in NITF) has it."""
-    return rpc.cropped(rpc.samp_off + 0.8 * rpc.samp_scale - 300, rpc.line_off + 0.8 * rpc.line_scale - 300,
-                       300, 300)
+    return rpc.cropped(rpc.samp_off + 0.8 * rpc.samp_scale - 300, rpc.line_off + 0.8 * rpc.line_scale - 300, 300, 300)
 
 
 def test_reference_localizer_converges_on_a_crop_far_from_the_box_centre(rpc):
@@ -345,7 +387,6 @@ def test_info_footprint_of_worldview3_crops_in_nitf():
     localizer of `geocd info` reaches every corner and agrees with the kernels (was: "footprint: unavailable")."""
     from geocd.info import camera_summary
     from geocd.io.cameras import load_camera
-
 
     for name in ("wv3_20.NTF", "wv3_30.NTF"):
         cam = load_camera(shared_data("rpc_samples", "shareloc", name))

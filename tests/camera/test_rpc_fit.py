@@ -50,8 +50,15 @@ def test_fit_pinhole_is_exact():
     """A pinhole is a ratio of linear polynomials of (x, y, z): the RPC reproduces it to rounding."""
     crs = utm_crs_for(LON0, LAT0)
     e, n = from_lonlat(LON0, LAT0, crs)
-    cam = FrameCamera(width=800, height=600, focal_px=3000.0, position=(float(e) + 20, float(n) - 30, H0 + 900.0),
-                      opk_deg=(2.0, -3.0, 10.0), crs=crs, vertical_datum="ellipsoid")
+    cam = FrameCamera(
+        width=800,
+        height=600,
+        focal_px=3000.0,
+        position=(float(e) + 20, float(n) - 30, H0 + 900.0),
+        opk_deg=(2.0, -3.0, 10.0),
+        crs=crs,
+        vertical_datum="ellipsoid",
+    )
     rpc, rep = fit_rpc(cam, (180.0, 240.0))
     # UTM is not exactly linear in lon/lat: still far below a thousandth of a pixel
     assert rep.check_max_px < 1e-4
@@ -83,8 +90,14 @@ def test_written_tags_reproduce_the_fit(tmp_path):
 
 def test_explicit_box_and_report_dict():
     cam = make_pushbroom(LON0, LAT0, H0, along_deg=5.0, across_deg=5.0, cover_lonlath=_cover())
-    rpc, rep = fit_rpc(cam, (190.0, 230.0), lon_range=(LON0 - 0.001, LON0 + 0.001),
-                       lat_range=(LAT0 - 0.001, LAT0 + 0.001), n_xy=9, n_h=5)
+    rpc, rep = fit_rpc(
+        cam,
+        (190.0, 230.0),
+        lon_range=(LON0 - 0.001, LON0 + 0.001),
+        lat_range=(LAT0 - 0.001, LAT0 + 0.001),
+        n_xy=9,
+        n_h=5,
+    )
     d = rep.to_dict()
     assert d["h_range"] == [190.0, 230.0] and d["lon_range"][0] == pytest.approx(LON0 - 0.001)
     assert rpc.height_range() == pytest.approx((190.0, 230.0))
@@ -136,7 +149,9 @@ class _Jittered(Camera):
         c, r = self.cam.project(lon, lat, h)
         rng = np.random.default_rng(self.seed)
         c = np.asarray(c, float)
-        return c + self.eps_px * rng.standard_normal(c.shape), np.asarray(r, float) + self.eps_px * rng.standard_normal(c.shape)
+        return c + self.eps_px * rng.standard_normal(c.shape), np.asarray(r, float) + self.eps_px * rng.standard_normal(
+            c.shape
+        )
 
     def footprint(self, h, densify=16):
         return self.cam.footprint(h, densify=densify)

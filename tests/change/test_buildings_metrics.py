@@ -17,13 +17,17 @@ def test_classify_buildings(grid):
     import geopandas as gpd
 
     l, b, r, t = grid.bounds
-    fps = gpd.GeoDataFrame({"bid": [1, 2, 3, 4, 5]}, geometry=[
-        box(l + 2, b + 2, l + 12, b + 12),     # new: ground in A, +8 m in B
-        box(l + 20, b + 2, l + 30, b + 12),    # demolished: 9 m in A, ground in B
-        box(l + 40, b + 2, l + 50, b + 12),    # raised: 6 m → 9 m
-        box(l + 2, b + 30, l + 12, b + 40),    # unchanged 6 m
-        box(l + 30, b + 30, l + 40, b + 40),   # unobserved
-    ], crs=grid.crs)
+    fps = gpd.GeoDataFrame(
+        {"bid": [1, 2, 3, 4, 5]},
+        geometry=[
+            box(l + 2, b + 2, l + 12, b + 12),  # new: ground in A, +8 m in B
+            box(l + 20, b + 2, l + 30, b + 12),  # demolished: 9 m in A, ground in B
+            box(l + 40, b + 2, l + 50, b + 12),  # raised: 6 m → 9 m
+            box(l + 2, b + 30, l + 12, b + 40),  # unchanged 6 m
+            box(l + 30, b + 30, l + 40, b + 40),  # unobserved
+        ],
+        crs=grid.crs,
+    )
     from geocd.io.vector import polygons_to_mask
 
     def burn(i):
@@ -91,18 +95,28 @@ def test_unobserved_building_from_a_change_result_says_why(grid):
         valid = np.ones(shape, bool)
         if hide is not None:
             valid[hide] = False
-        return Rec(np.where(valid, z, np.nan).astype(np.float32), rng.uniform(0, 1, shape).astype(np.float32),
-                   np.ones(shape, np.float32), valid, grid, name)
+        return Rec(
+            np.where(valid, z, np.nan).astype(np.float32),
+            rng.uniform(0, 1, shape).astype(np.float32),
+            np.ones(shape, np.float32),
+            valid,
+            grid,
+            name,
+        )
 
     hide = (slice(10, 50), slice(10, 50))  # rows 10..49, cols 10..49: x l+5..l+25, y t-25..t-5
     A = [rec(f"A{i}") for i in range(3)]
     B = [rec(f"B{i}", hide) for i in range(3)]
     res = change_test(A, B, learn_self_consistency([A]))
-    fps = gpd.GeoDataFrame({"building_id": [1, 2, 3]}, geometry=[
-        box(l + 8, t - 22, l + 22, t - 8),     # entirely in the hole
-        box(l + 20, t - 22, l + 34, t - 8),    # 5/14 of it in the hole: observed on 64%
-        box(l + 40, b + 5, l + 50, b + 15)],   # fully observed
-        crs=grid.crs)
+    fps = gpd.GeoDataFrame(
+        {"building_id": [1, 2, 3]},
+        geometry=[
+            box(l + 8, t - 22, l + 22, t - 8),  # entirely in the hole
+            box(l + 20, t - 22, l + 34, t - 8),  # 5/14 of it in the hole: observed on 64%
+            box(l + 40, b + 5, l + 50, b + 15),
+        ],  # fully observed
+        crs=grid.crs,
+    )
     out = classify_buildings(fps, res.changed_at(99), res.dz_m, grid, id_field="building_id", confidence_level=99)
     assert list(out["class"]) == ["unobserved", "unchanged", "unchanged"]
     assert out.loc[0, "frac_observed"] == 0.0 and "min_observed" in out.loc[0, "rule"]
@@ -124,14 +138,17 @@ def test_new_buildings_come_from_detection_not_from_footprints(grid):
     from geocd.io.vector import polygons_to_mask
 
     l, b, r, t = grid.bounds
-    known = gpd.GeoDataFrame({"building_id": [1, 2]}, geometry=[box(l + 2, b + 2, l + 12, b + 12),
-                                                                  box(l + 20, b + 2, l + 30, b + 12)], crs=grid.crs)
+    known = gpd.GeoDataFrame(
+        {"building_id": [1, 2]},
+        geometry=[box(l + 2, b + 2, l + 12, b + 12), box(l + 20, b + 2, l + 30, b + 12)],
+        crs=grid.crs,
+    )
     za = np.zeros(grid.shape, np.float32)
     za[polygons_to_mask(known, grid).astype(bool)] = 6.0
     zb = za.copy()
-    new_fp = box(l + 35, b + 35, l + 47, b + 45)                 # 120 m², built between the dates
-    blob = box(l + 5, t - 8, l + 7, t - 6)                      # 4 m² < 0.15 × median footprint (15 m²)
-    car = box(l + 30, t - 12, l + 35, t - 7)                    # 25 m² but raised by 1.2 m only
+    new_fp = box(l + 35, b + 35, l + 47, b + 45)  # 120 m², built between the dates
+    blob = box(l + 5, t - 8, l + 7, t - 6)  # 4 m² < 0.15 × median footprint (15 m²)
+    car = box(l + 30, t - 12, l + 35, t - 7)  # 25 m² but raised by 1.2 m only
     for g, h in ((new_fp, 9.0), (blob, 5.0), (car, 1.2)):
         zb[polygons_to_mask(gpd.GeoDataFrame(geometry=[g], crs=grid.crs), grid).astype(bool)] = h
     dz = zb - za
@@ -139,10 +156,15 @@ def test_new_buildings_come_from_detection_not_from_footprints(grid):
     out = classify_buildings(known, mask, dz, grid, z_a=za, z_b=zb, id_field="building_id", confidence_level=99)
     det = out[out["source"] == "detected"]
     assert len(det) == 1 and det.iloc[0]["class"] == "new" and det.iloc[0]["building_id"] == -1
-    assert det.iloc[0].geometry.area == pytest.approx(120, rel=0.05) and "outside every footprint" in det.iloc[0]["rule"]
+    assert (
+        det.iloc[0].geometry.area == pytest.approx(120, rel=0.05) and "outside every footprint" in det.iloc[0]["rule"]
+    )
     assert list(out.loc[out["source"] == "footprint", "class"]) == ["unchanged", "unchanged"]
-    truth = gpd.GeoDataFrame({"building_id": [1, 2, 3], "status": ["unchanged", "unchanged", "new"]},
-                             geometry=[*known.geometry, new_fp], crs=grid.crs)
+    truth = gpd.GeoDataFrame(
+        {"building_id": [1, 2, 3], "status": ["unchanged", "unchanged", "new"]},
+        geometry=[*known.geometry, new_fp],
+        crs=grid.crs,
+    )
     s = score_buildings(out, truth, aoi=box(*grid.bounds))
     assert (s["tp"], s["fp"], s["fn"], s["f1"]) == (1, 0, 0, 1.0)
     # not detected → the new building is a false negative, not silently absent from the score
@@ -159,19 +181,23 @@ def test_a_building_with_a_changed_part_is_changed(grid):
     import geopandas as gpd
 
     l, b, r, t = grid.bounds
-    fps = gpd.GeoDataFrame(geometry=[box(l + 2, b + 2, l + 22, b + 22),      # a 4 × 4 m part lowered
-                                     box(l + 30, b + 2, l + 50, b + 22),     # 64 scattered lowered cells
-                                     box(l + 2, b + 30, l + 22, b + 50),     # a 3 × 3 m part raised
-                                     box(l + 30, b + 30, l + 50, b + 50)],   # nothing
-                           crs=grid.crs)
+    fps = gpd.GeoDataFrame(
+        geometry=[
+            box(l + 2, b + 2, l + 22, b + 22),  # a 4 × 4 m part lowered
+            box(l + 30, b + 2, l + 50, b + 22),  # 64 scattered lowered cells
+            box(l + 2, b + 30, l + 22, b + 50),  # a 3 × 3 m part raised
+            box(l + 30, b + 30, l + 50, b + 50),
+        ],  # nothing
+        crs=grid.crs,
+    )
     from geocd.io.vector import polygons_to_mask
 
-    z = np.where(polygons_to_mask(fps, grid).astype(bool), 9.0, 0.0).astype(np.float32)   # 9 m blocks
+    z = np.where(polygons_to_mask(fps, grid).astype(bool), 9.0, 0.0).astype(np.float32)  # 9 m blocks
     mask = np.zeros(grid.shape, np.int8)
     # footprints in rows/cols (0.5 m cells, north up): building 0 spans rows 76–115, cols 4–43
-    mask[80:88, 10:18] = -1                                   # 64 cells = 16 m², 4 % of 1600
-    mask[80:112:4, 64:96:4] = -1                              # 8 × 8 = 64 isolated cells
-    mask[30:36, 10:16] = 1                                    # 36 cells
+    mask[80:88, 10:18] = -1  # 64 cells = 16 m², 4 % of 1600
+    mask[80:112:4, 64:96:4] = -1  # 8 × 8 = 64 isolated cells
+    mask[30:36, 10:16] = 1  # 36 cells
     dz = mask.astype(np.float32) * 3.0
     from geocd.change.buildings import BuildingParams
 
@@ -196,7 +222,7 @@ def test_largest_parts_matches_a_brute_force_count():
     rng = np.random.default_rng(4)
     labels = np.zeros((60, 80), np.int32)
     labels[5:30, 5:40] = 1
-    labels[5:30, 40:75] = 2                                  # touches building 1
+    labels[5:30, 40:75] = 2  # touches building 1
     labels[35:55, 10:30] = 3
     cm = rng.choice(np.array([-1, 0, 1], np.int8), size=labels.shape, p=[0.25, 0.45, 0.3])
     cm[0, 0] = -128
@@ -209,4 +235,4 @@ def test_largest_parts_matches_a_brute_force_count():
             if m > best:
                 best, bs = m, s
         assert (cells[k - 1], sign[k - 1]) == (best, bs)
-    assert (cells[3], sign[3]) == (0, 0)                      # building 4 is not on the grid
+    assert (cells[3], sign[3]) == (0, 0)  # building 4 is not on the grid

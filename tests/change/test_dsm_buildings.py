@@ -13,16 +13,21 @@ GRID = AOIGrid.from_bounds(500000.0, 4000000.0, 500150.0, 4000150.0, 0.5, "EPSG:
 def _scene(rng):
     H, W = GRID.shape
     r, c = np.mgrid[0:H, 0:W]
-    ground = 700.0 + 0.02 * c * 0.5 + 0.01 * r * 0.5           # sloping terrain (2 % and 1 %)
+    ground = 700.0 + 0.02 * c * 0.5 + 0.01 * r * 0.5  # sloping terrain (2 % and 1 %)
     z = ground + rng.normal(0, 0.15, (H, W))
-    boxes = {1: (20, 60, 20, 80, 15.0), 2: (20, 60, 84, 130, 24.0),   # two touching blocks of different height
-             3: (120, 170, 30, 70, 12.0), 4: (200, 260, 150, 200, 18.0), 5: (150, 200, 220, 280, 9.0)}
+    boxes = {
+        1: (20, 60, 20, 80, 15.0),
+        2: (20, 60, 84, 130, 24.0),  # two touching blocks of different height
+        3: (120, 170, 30, 70, 12.0),
+        4: (200, 260, 150, 200, 18.0),
+        5: (150, 200, 220, 280, 9.0),
+    }
     for _, (r0, r1, c0, c1, h) in boxes.items():
         z[r0:r1, c0:c1] = ground[r0:r1, c0:c1] + h + rng.normal(0, 0.1, (r1 - r0, c1 - c0))
     # a tree: rough blob
-    tr = (r - 80) ** 2 + (c - 250) ** 2 < 12 ** 2
+    tr = (r - 80) ** 2 + (c - 250) ** 2 < 12**2
     z[tr] = ground[tr] + 6 + rng.normal(0, 1.8, tr.sum())
-    z[rng.random(z.shape) < 0.1] = np.nan                       # stereo gaps
+    z[rng.random(z.shape) < 0.1] = np.nan  # stereo gaps
     return z, ground, boxes
 
 
@@ -31,11 +36,11 @@ def test_ground_and_objects():
     z, ground, boxes = _scene(rng)
     bld, dtm, labels = buildings_from_dsm(z, GRID)
     off = np.ones(z.shape, bool)
-    for (r0, r1, c0, c1, _) in boxes.values():
-        off[max(r0 - 6, 0):r1 + 6, max(c0 - 6, 0):c1 + 6] = False
+    for r0, r1, c0, c1, _ in boxes.values():
+        off[max(r0 - 6, 0) : r1 + 6, max(c0 - 6, 0) : c1 + 6] = False
     assert np.median(np.abs(dtm - ground)[off]) < 0.3
-    assert np.abs(dtm - ground).max() < 2.0                       # under buildings too
-    assert len(bld) == 5, bld                                      # touching blocks split, tree dropped
+    assert np.abs(dtm - ground).max() < 2.0  # under buildings too
+    assert len(bld) == 5, bld  # touching blocks split, tree dropped
     areas = sorted(bld.geometry.area)
     want = sorted((r1 - r0) * (c1 - c0) * 0.25 for (r0, r1, c0, c1, _) in boxes.values())
     assert np.allclose(areas, want, rtol=0.15)
@@ -49,8 +54,9 @@ def _result(z_a, z_b, changed_lower, changed_upper):
     ch = np.sign(np.nan_to_num(dz)).astype(np.int8) * (conf > 0)
     obs = np.isfinite(dz)
     conf[~obs] = np.nan
-    return ChangeResult(dz, dz / 2.0, np.zeros_like(dz), conf, ch.astype(np.int8), obs.astype(np.int16), GRID,
-                        (90.0, 95.0, 99.0))
+    return ChangeResult(
+        dz, dz / 2.0, np.zeros_like(dz), conf, ch.astype(np.int8), obs.astype(np.int16), GRID, (90.0, 95.0, 99.0)
+    )
 
 
 def test_damage_classes():
@@ -58,12 +64,12 @@ def test_damage_classes():
     z_a, ground, boxes = _scene(rng)
     z_b = z_a.copy()
     r0, r1, c0, c1, _ = boxes[1]
-    z_b[r0:r1, c0:c1] = ground[r0:r1, c0:c1] + 1.0                  # collapsed (rubble 1 m)
+    z_b[r0:r1, c0:c1] = ground[r0:r1, c0:c1] + 1.0  # collapsed (rubble 1 m)
     r0, r1, c0, c1, _ = boxes[2]
-    z_b[r0:r1, c0:c0 + 15] = ground[r0:r1, c0:c0 + 15] + 3.0          # part of the block gone
+    z_b[r0:r1, c0 : c0 + 15] = ground[r0:r1, c0 : c0 + 15] + 3.0  # part of the block gone
     r0, r1, c0, c1, _ = boxes[3]
-    z_b[r0:r1, c0:c1] -= 3.0                                          # top storey gone everywhere
-    z_b[60:100, 170:210] = ground[60:100, 170:210] + 10.0            # a new building on open ground
+    z_b[r0:r1, c0:c1] -= 3.0  # top storey gone everywhere
+    z_b[60:100, 170:210] = ground[60:100, 170:210] + 10.0  # a new building on open ground
     low = np.nan_to_num(z_b - z_a) < -2
     up = np.nan_to_num(z_b - z_a) > 2
     res = _result(z_a, z_b, low, up)
@@ -78,8 +84,10 @@ def test_damage_classes():
     for _, row in out.iterrows():
         c = row.geometry.centroid
         cls[(round((4000150 - c.y) / 0.5), round((c.x - 500000) / 0.5))] = row
+
     def at(r, c):
         return min(cls.items(), key=lambda kv: (kv[0][0] - r) ** 2 + (kv[0][1] - c) ** 2)[1]
+
     assert at(40, 50)["class"] == "collapsed"
     assert at(40, 107)["class"] == "partly collapsed"
     assert at(145, 50)["class"] == "lowered"
@@ -104,11 +112,11 @@ def test_a_new_building_joined_to_a_standing_one_is_found():
     z_a, ground, boxes = _scene(rng)
     z_b = z_a.copy()
     r0, r1, c0, c1, h = boxes[4]
-    z_b[r0:r1, c1:c1 + 40] = ground[r0:r1, c1:c1 + 40] + h + rng.normal(0, 0.1, (r1 - r0, 40))
+    z_b[r0:r1, c1 : c1 + 40] = ground[r0:r1, c1 : c1 + 40] + h + rng.normal(0, 0.1, (r1 - r0, 40))
     bld, dtm, lab_a = buildings_from_dsm(z_a, GRID)
     post, _, lab_b = buildings_from_dsm(z_b, GRID)
     merged = [g for g in post.geometry if g.area > 1.3 * (r1 - r0) * (c1 - c0) * 0.25]
-    assert merged and merged[0].intersection(bld.union_all()).area > 0.3 * merged[0].area   # the old rule drops it
+    assert merged and merged[0].intersection(bld.union_all()).area > 0.3 * merged[0].area  # the old rule drops it
     new = new_objects(z_a, z_b, dtm, lab_b, GRID, labels_a=lab_a)
     assert len(new) == 1
     assert new.geometry.iloc[0].area == pytest.approx((r1 - r0) * 40 * 0.25, rel=0.15)
@@ -137,15 +145,14 @@ def _house_block_crown(seed, ground_sigma, roof_sigma, crown_sigma, crown_col_m,
     r, c = np.mgrid[0:H, 0:W] * 0.5
     z = 500.0 + rng.normal(0, ground_sigma, (H, W))
     house = (r >= 10) & (r < 18) & (c >= 8) & (c < 22)
-    z[house] = (506.0 + np.tan(np.radians(35)) * (4.0 - np.abs(r[house] - 14.0))
-                + rng.normal(0, roof_sigma, house.sum()))
+    z[house] = 506.0 + np.tan(np.radians(35)) * (4.0 - np.abs(r[house] - 14.0)) + rng.normal(0, roof_sigma, house.sum())
     blk = None
     if block:
         blk = (r >= 36) & (r < 50) & (c >= 6) & (c < 20)
         z[blk] = 509.0 + rng.normal(0, roof_sigma, blk.sum())
     d2 = (r - 40) ** 2 + (c - crown_col_m) ** 2
-    crown = d2 < 4.5 ** 2
-    z[crown] = 503.0 + np.sqrt(4.5 ** 2 - d2[crown]) + rng.normal(0, crown_sigma, crown.sum())
+    crown = d2 < 4.5**2
+    z[crown] = 503.0 + np.sqrt(4.5**2 - d2[crown]) + rng.normal(0, crown_sigma, crown.sum())
     return z, house, blk, crown
 
 
@@ -167,7 +174,7 @@ def test_planarity_rule_keeps_a_gabled_house_and_drops_a_tree(seed):
     _, _, lab_old = buildings_from_dsm(z, GRID_SMALL, DSMBuildingParams(tree_rule="roughness"))
     assert not (lab_old[house] > 0).any()
     _, _, lab_off = buildings_from_dsm(z, GRID_SMALL, DSMBuildingParams(tree_rule="off"))
-    assert (lab_off[crown] > 0).mean() > 0.5                      # the crown is an object until a rule drops it
+    assert (lab_off[crown] > 0).mean() > 0.5  # the crown is an object until a rule drops it
 
 
 def test_unknown_tree_rule_is_a_config_error():
@@ -198,7 +205,7 @@ def test_plane_rule_keeps_roofs_noisier_than_smooth_ground(seed):
     assert not (lab[crown] > 0).any()
     best = best_plane_residual(z, 0.5)
     ground = (z - dtm) < 1.0
-    assert tree_threshold_m(best, ground) == DSMBuildingParams().tree_residual_m     # smooth ground: the floor
+    assert tree_threshold_m(best, ground) == DSMBuildingParams().tree_residual_m  # smooth ground: the floor
     assert 0.01 < np.nanmedian(best[ground]) < 0.03
     _, _, lab_old = buildings_from_dsm(z, GRID_SMALL, DSMBuildingParams(tree_rule="roughness"))
     assert not (lab_old[house] > 0).any() and not (lab_old[block] > 0).any()
@@ -245,29 +252,35 @@ def test_a_lowered_part_makes_a_building_partly_collapsed():
     rng = np.random.default_rng(3)
     z_a, ground, boxes = _scene(rng)
     z_b = z_a.copy()
-    r0, r1, c0, c1, _ = boxes[3]                                     # 50 × 40 cells, 12 m
-    z_b[r0:r0 + 8, c0:c0 + 8] -= 6.0                                 # 64 cells: 3.2 % of the block
+    r0, r1, c0, c1, _ = boxes[3]  # 50 × 40 cells, 12 m
+    z_b[r0 : r0 + 8, c0 : c0 + 8] -= 6.0  # 64 cells: 3.2 % of the block
     res = _result(z_a, z_b, np.nan_to_num(z_b - z_a) < -2, np.zeros(z_a.shape, bool))
     bld, dtm, _ = buildings_from_dsm(z_a, GRID)
 
     def block3(out):
-        d = [(row.geometry.centroid.y - (4000150 - 145 * 0.5)) ** 2 + (row.geometry.centroid.x - 500025) ** 2
-             for _, row in out.iterrows()]
+        d = [
+            (row.geometry.centroid.y - (4000150 - 145 * 0.5)) ** 2 + (row.geometry.centroid.x - 500025) ** 2
+            for _, row in out.iterrows()
+        ]
         return out.iloc[int(np.argmin(d))]
 
     on = DSMBuildingParams(changed_part=True)
-    for mmu, params, want, conf in ((49, on, "partly collapsed", 99.0),
-                                    (49, DSMBuildingParams(), "unchanged", 0.0),       # the default: off
-                                    (65, on, "unchanged", 0.0)):
-        out = classify_damage(bld, dataclasses.replace(res, min_region_cells=mmu), GRID, z_a=z_a, z_b=z_b, dtm=dtm,
-                              params=params)
+    for mmu, params, want, conf in (
+        (49, on, "partly collapsed", 99.0),
+        (49, DSMBuildingParams(), "unchanged", 0.0),  # the default: off
+        (65, on, "unchanged", 0.0),
+    ):
+        out = classify_damage(
+            bld, dataclasses.replace(res, min_region_cells=mmu), GRID, z_a=z_a, z_b=z_b, dtm=dtm, params=params
+        )
         b = block3(out)
         assert (b["class"], b["confidence_pct"]) == (want, conf), (mmu, params.changed_part, b["rule"])
         assert b["frac_lowered"] < 0.05
     # a crown standing on the corner before (rough to the plane tree rule) and felled: not building damage
     z_t = z_a.copy()
-    z_t[r0:r0 + 8, c0:c0 + 8] += rng.normal(0, 1.0, (8, 8))
+    z_t[r0 : r0 + 8, c0 : c0 + 8] += rng.normal(0, 1.0, (8, 8))
     res_t = _result(z_t, z_b, np.nan_to_num(z_b - z_t) < -2, np.zeros(z_a.shape, bool))
-    out = classify_damage(bld, dataclasses.replace(res_t, min_region_cells=49), GRID, z_a=z_t, z_b=z_b, dtm=dtm,
-                          params=on)
+    out = classify_damage(
+        bld, dataclasses.replace(res_t, min_region_cells=49), GRID, z_a=z_t, z_b=z_b, dtm=dtm, params=on
+    )
     assert block3(out)["class"] == "unchanged"

@@ -28,12 +28,19 @@ def test_layers_and_orientation(kahra_run):
     s = json.loads((out / "run_summary.json").read_text())
     assert s["orientation"]["applied"] is True
     assert s["orientation"]["after"]["cross_epoch"]["median_px"] < 0.3
-    for name in ("sc_change.tif", "sc_change_mask.tif", "sc_changes.gpkg", "sc_ground_model.tif",
-                 "orientation/orientation.json", "orientation/scene.oriented.yaml"):
+    for name in (
+        "sc_change.tif",
+        "sc_change_mask.tif",
+        "sc_changes.gpkg",
+        "sc_ground_model.tif",
+        "orientation/orientation.json",
+        "orientation/scene.oriented.yaml",
+    ):
         assert (out / name).exists(), name
     dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
-    assert {"class", "confidence_pct", "height_before_m", "height_after_m", "volume_lost_m3",
-            "volume_sigma_m3"} <= set(dmg.columns)
+    assert {"class", "confidence_pct", "height_before_m", "height_after_m", "volume_lost_m3", "volume_sigma_m3"} <= set(
+        dmg.columns
+    )
     assert set(dmg["confidence_pct"].unique()) <= {0.0, 90.0, 95.0, 99.0}
 
 
@@ -66,14 +73,14 @@ def test_headline_figures(kahra_run):
     assert cal.scale / cal.ref_scale == pytest.approx(2.46, abs=0.35)
     assert cal.edge_sigma_m == pytest.approx(0.90, abs=0.2) and cal.ref_edge_sigma_m == pytest.approx(0.393, abs=0.01)
     flagged = float((r.changed_at(99.0) != 0)[r.observed].mean())
-    assert 0.066 < flagged < 0.0745        # 0.0715; 90 % map: 0.0763
+    assert 0.066 < flagged < 0.0745  # 0.0715; 90 % map: 0.0763
     # the mask the run wrote is the 99 % map (the one the buildings and the summary use)
     with rasterio.open(out / "sc_change_mask.tif") as ds:
         assert ds.tags()["mask_confidence_pct"] == "99"
         mask = ds.read(1)
     assert float((mask != 0)[r.observed].mean()) == pytest.approx(flagged, abs=1e-6)
     fa = stable_false_alarms(r.confidence, r.observed, dmg, res["grid"])
-    assert 0.027 < fa["99"] < 0.037        # 0.032 (roughness tree rule: 0.040)
+    assert 0.027 < fa["99"] < 0.037  # 0.032 (roughness tree rule: 0.040)
     assert fa["90"] > fa["99"]
 
 
@@ -89,8 +96,9 @@ def test_the_model_as_learned_flags_twice_as_much_stable_ground(kahra_run):
     pairs = res["pairs"]
     r0 = change_test(pairs["pre_event"], pairs["post_event"], res["model"], ChangeParams(calibration="none"))
     assert r0.calibration is None
-    dmg0, _ = _building_damage(None, r0, res["grid"], pairs["pre_event"], pairs["post_event"], res["model"], 99.0,
-                               "pre_event", "post_event")
+    dmg0, _ = _building_damage(
+        None, r0, res["grid"], pairs["pre_event"], pairs["post_event"], res["model"], 99.0, "pre_event", "post_event"
+    )
     fa0 = stable_false_alarms(r0.confidence, r0.observed, dmg0, res["grid"])["99"]
     dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
     fa = stable_false_alarms(res["result"].confidence, res["result"].observed, dmg, res["grid"])["99"]
@@ -115,8 +123,9 @@ def test_what_the_stable_false_alarms_are(kahra_run):
     dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage").to_crs(grid.crs)
 
     def mask(geoms):
-        return rasterize([(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform, fill=0,
-                         dtype="uint8").astype(bool)
+        return rasterize(
+            [(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8"
+        ).astype(bool)
 
     flag = r.observed & ~mask(dmg[dmg["class"].isin(CHANGED)].geometry) & (np.nan_to_num(r.confidence) >= 99.0)
     allb = mask(dmg.geometry)
@@ -131,10 +140,10 @@ def test_what_the_stable_false_alarms_are(kahra_run):
     def share(m):
         return float((m & flag).sum() / n)
 
-    assert 0.52 < share(allb) < 0.68                          # 0.603
-    assert 0.22 < share(~allb & trees) < 0.36                 # 0.294
-    assert 0.05 < share(~allb & ~trees & up) < 0.15           # 0.092
-    assert share(~allb & ~trees & ~up) < 0.03                 # 0.012: ground
+    assert 0.52 < share(allb) < 0.68  # 0.603
+    assert 0.22 < share(~allb & trees) < 0.36  # 0.294
+    assert 0.05 < share(~allb & ~trees & up) < 0.15  # 0.092
+    assert share(~allb & ~trees & ~up) < 0.03  # 0.012: ground
 
 
 def test_the_changed_part_option(kahra_run):
@@ -147,13 +156,23 @@ def test_the_changed_part_option(kahra_run):
     from geocd.pipeline import _building_damage
 
     r, pairs, grid = res["result"], res["pairs"], res["grid"]
-    dmg, _ = _building_damage(None, r, grid, pairs["pre_event"], pairs["post_event"], res["model"], 99.0,
-                              "pre_event", "post_event", DSMBuildingParams(changed_part=True))
+    dmg, _ = _building_damage(
+        None,
+        r,
+        grid,
+        pairs["pre_event"],
+        pairs["post_event"],
+        res["model"],
+        99.0,
+        "pre_event",
+        "post_event",
+        DSMBuildingParams(changed_part=True),
+    )
     fa = stable_false_alarms(r.confidence, r.observed, dmg, grid)
     cls = dmg["class"].value_counts()
-    assert 0.016 < fa["99"] < 0.023                         # 0.0193
-    assert 11 <= cls.get("partly collapsed", 0) <= 17       # 14
-    assert 470_000 < fa["stable_cells"] < 540_000           # 505,564
+    assert 0.016 < fa["99"] < 0.023  # 0.0193
+    assert 11 <= cls.get("partly collapsed", 0) <= 17  # 14
+    assert 470_000 < fa["stable_cells"] < 540_000  # 505,564
     assert dmg["rule"].str.contains("part of").sum() >= 10
 
 
@@ -174,4 +193,4 @@ def test_the_floor_under_the_goal(kahra_run):
     assert f["tree_objects"] == pytest.approx(0.0095, abs=0.002)
     assert f["by_eye_parts"]["trees or roadworks"] == pytest.approx(0.0094, abs=0.002)
     assert f["floor_tree_objects_and_by_eye_trees"] > 0.015
-    assert f["floor"] > 0.018                                   # 0.0219: twice the goal
+    assert f["floor"] > 0.018  # 0.0219: twice the goal

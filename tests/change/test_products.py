@@ -34,11 +34,16 @@ def test_products_are_readable_and_styled(tmp_path, result):
 
     res, model, grid = result
     l, b, r, t = grid.bounds
-    fps = gpd.GeoDataFrame({"building_id": [7, 8]}, geometry=[box(l + 10, t - 25, l + 25, t - 10), box(l + 40, b + 5, l + 50, b + 15)],
-                           crs=grid.crs)
+    fps = gpd.GeoDataFrame(
+        {"building_id": [7, 8]},
+        geometry=[box(l + 10, t - 25, l + 25, t - 10), box(l + 40, b + 5, l + 50, b + 15)],
+        crs=grid.crs,
+    )
     from geocd.change.buildings import classify_buildings
 
-    bld = classify_buildings(fps, res.changed_at(95), res.dz_m, grid, z_a=np.zeros(SHAPE, np.float32), id_field="building_id")
+    bld = classify_buildings(
+        fps, res.changed_at(95), res.dz_m, grid, z_a=np.zeros(SHAPE, np.float32), id_field="building_id"
+    )
     paths = write_change_products(tmp_path, res, grid, model=model, buildings=bld, region_confidence=95, prefix="sc")
     with rasterio.open(paths["change"]) as ds:
         assert ds.descriptions == ("dz_m", "dtilde", "score", "confidence", "cell_confidence", "dz_sigma_m")

@@ -39,7 +39,7 @@ def test_eight_connectivity_and_min_cells(grid):
     sign = np.zeros(grid.shape, np.int8)
     for k in range(5):
         sign[k, k] = 1  # a diagonal line: one 8-connected region
-    sign[15, 25] = 1     # single cell
+    sign[15, 25] = 1  # single cell
     reg = change_regions(sign, sign.astype(float), grid, min_cells=4)
     assert len(reg) == 1 and reg.iloc[0].n_cells == 5
     assert reg.iloc[0].geometry.is_valid

@@ -33,8 +33,16 @@ def _pair(truth, rng, name, epoch, offset=0.0):
     g = np.full(SHAPE, 1.3, np.float32)
     z = truth + err / g + offset
     valid = rng.random(SHAPE) > 0.05
-    return PairDEM(np.where(valid, z, np.nan).astype(np.float32), score, g, valid, GRID, name=name, epoch=epoch,
-                   meta={"params": {"window": 2}})
+    return PairDEM(
+        np.where(valid, z, np.nan).astype(np.float32),
+        score,
+        g,
+        valid,
+        GRID,
+        name=name,
+        epoch=epoch,
+        meta={"params": {"window": 2}},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -43,9 +51,9 @@ def recs(tmp_path_factory):
     rng = np.random.default_rng(7)
     ta = np.zeros(SHAPE, np.float32)
     tb = ta.copy()
-    tb[20:55, 30:70] += 9.0      # a new building across a tile seam
-    tb[90:130, 60:100] -= 6.0    # a lowered one
-    tb[5:8, 5:120] += 4.0        # a long thin change through many tiles
+    tb[20:55, 30:70] += 9.0  # a new building across a tile seam
+    tb[90:130, 60:100] -= 6.0  # a lowered one
+    tb[5:8, 5:120] += 4.0  # a long thin change through many tiles
     A = [_pair(ta, rng, f"A{i}", "A", offset=0.3 * i) for i in range(3)]
     B = [_pair(tb, rng, f"B{i}", "B", offset=-0.2 * i) for i in range(2)]
     model = learn_self_consistency([A, B], ConsistencyParams(n_score_bins=8, min_bin_count=300))
@@ -62,26 +70,49 @@ def test_change_test_tiled_equals_untiled(recs, tmp_path, significance):
     B = [read_pair_dem(p) for p in pb]
     res = change_test(A, B, model, params)
     assert res.significance == significance and (res.change == 1).sum() > 500
-    write_change_products(tmp_path / "untiled", res, GRID, epoch_a="A", epoch_b="B", model=model, prefix="sc",
-                          plots=False)
-    t = change_test_tiled(pa, pb, model, tmp_path / "tiled", params=params, epoch_names=("A", "B"), plots=False,
-                          tiling=TilingParams(tile_size=64, scheduler="sync"))
+    write_change_products(
+        tmp_path / "untiled", res, GRID, epoch_a="A", epoch_b="B", model=model, prefix="sc", plots=False
+    )
+    t = change_test_tiled(
+        pa,
+        pb,
+        model,
+        tmp_path / "tiled",
+        params=params,
+        epoch_names=("A", "B"),
+        plots=False,
+        tiling=TilingParams(tile_size=64, scheduler="sync"),
+    )
     assert t.exact and t.vertical_offsets_m == res.vertical_offsets_m
     for name in ("sc_change", "sc_change_mask"):
-        with rasterio.open(tmp_path / "untiled" / f"{name}.tif") as a, rasterio.open(tmp_path / "tiled" / f"{name}.tif") as b:
+        with (
+            rasterio.open(tmp_path / "untiled" / f"{name}.tif") as a,
+            rasterio.open(tmp_path / "tiled" / f"{name}.tif") as b,
+        ):
             np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
             assert a.descriptions == b.descriptions and a.units == b.units and a.tags() == b.tags()
     a = gpd.read_file(tmp_path / "untiled" / "sc_changes.gpkg", layer="changes")
     b = gpd.read_file(tmp_path / "tiled" / "sc_changes.gpkg", layer="changes")
     assert a.equals(b)
     # the large-grid path: rasters and regions written tile by tile, regions merged across seams
-    t2 = change_test_tiled(pa, pb, model, tmp_path / "large", params=params, epoch_names=("A", "B"), plots=False,
-                           tiling=TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=1000))
+    t2 = change_test_tiled(
+        pa,
+        pb,
+        model,
+        tmp_path / "large",
+        params=params,
+        epoch_names=("A", "B"),
+        plots=False,
+        tiling=TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=1000),
+    )
     # one pass more than the exact path (the mask's); the change raster is assembled from the test's own
     # tiles, not from a pass that copies its six bands (a second copy on disk: 9 GB at 20 000² cells)
     assert t2.passes == t.passes + 1
     for name in ("sc_change", "sc_change_mask"):
-        with rasterio.open(tmp_path / "untiled" / f"{name}.tif") as x, rasterio.open(tmp_path / "large" / f"{name}.tif") as y:
+        with (
+            rasterio.open(tmp_path / "untiled" / f"{name}.tif") as x,
+            rasterio.open(tmp_path / "large" / f"{name}.tif") as y,
+        ):
             np.testing.assert_array_equal(x.read(), y.read(), err_msg=name)
             assert x.descriptions == y.descriptions and x.units == y.units
     c = gpd.read_file(tmp_path / "large" / "sc_changes.gpkg", layer="changes")
@@ -99,16 +130,28 @@ def test_tiled_calibration_of_a_transferred_model_equals_untiled(recs, tmp_path)
 
     d, pa, pb, model = recs
     foreign = copy.deepcopy(model)
-    foreign.provenance["comparisons"] = ["other_a vs other_b"]   # learned elsewhere: auto calibrates
+    foreign.provenance["comparisons"] = ["other_a vs other_b"]  # learned elsewhere: auto calibrates
     params = ChangeParams(confidences=(90.0, 95.0, 99.0))
     res = change_test([read_pair_dem(p) for p in pa], [read_pair_dem(p) for p in pb], foreign, params)
     assert res.calibration is not None
-    write_change_products(tmp_path / "untiled", res, GRID, epoch_a="A", epoch_b="B", model=foreign, prefix="sc",
-                          plots=False)
-    t = change_test_tiled(pa, pb, foreign, tmp_path / "tiled", params=params, epoch_names=("A", "B"), plots=False,
-                          tiling=TilingParams(tile_size=64, scheduler="sync"))
+    write_change_products(
+        tmp_path / "untiled", res, GRID, epoch_a="A", epoch_b="B", model=foreign, prefix="sc", plots=False
+    )
+    t = change_test_tiled(
+        pa,
+        pb,
+        foreign,
+        tmp_path / "tiled",
+        params=params,
+        epoch_names=("A", "B"),
+        plots=False,
+        tiling=TilingParams(tile_size=64, scheduler="sync"),
+    )
     assert t.exact and t.summary["calibration"] == res.calibration.to_dict()
     for name in ("sc_change", "sc_change_mask"):
-        with rasterio.open(tmp_path / "untiled" / f"{name}.tif") as a, rasterio.open(tmp_path / "tiled" / f"{name}.tif") as b:
+        with (
+            rasterio.open(tmp_path / "untiled" / f"{name}.tif") as a,
+            rasterio.open(tmp_path / "tiled" / f"{name}.tif") as b,
+        ):
             np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
             assert a.tags() == b.tags() and "model_calibration" in a.tags()

@@ -41,13 +41,16 @@ def test_info_rpc_image(rpc_image):
 
 
 @pytest.mark.realdata
-@pytest.mark.parametrize("rel", [
-    ("cnes_pleiades_ventoux", "left_image.tif"),
-    ("rpc_samples", "rpcm", "rpc_IKONOS.txt"),
-    ("rpc_samples", "shareloc", "wv3_20.NTF"),
-    ("orthority_baviaans_aerial_qb2", "ngi", "dem.tif"),
-    ("spacenet_atlanta_footprints", "geotiff_labels.geojson"),
-])
+@pytest.mark.parametrize(
+    "rel",
+    [
+        ("cnes_pleiades_ventoux", "left_image.tif"),
+        ("rpc_samples", "rpcm", "rpc_IKONOS.txt"),
+        ("rpc_samples", "shareloc", "wv3_20.NTF"),
+        ("orthority_baviaans_aerial_qb2", "ngi", "dem.tif"),
+        ("spacenet_atlanta_footprints", "geotiff_labels.geojson"),
+    ],
+)
 def test_info_real_inputs(rel):
     r = run("info", "--json", str(shared_data(*rel)))
     assert r.exit_code == 0, r.output
@@ -83,8 +86,11 @@ def test_image_without_camera_or_georeference(tmp_path):
 
 
 def test_json_progress_error_line(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "geocd", "--progress", "json", "info", str(tmp_path / "x.tif")],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "geocd", "--progress", "json", "info", str(tmp_path / "x.tif")],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2
     first = json.loads(proc.stderr.splitlines()[0])
     assert first["type"] == "error" and first["error"] == "InputFileNotFoundError"

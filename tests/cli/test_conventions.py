@@ -58,8 +58,14 @@ def test_every_command_takes_progress_and_json_after_its_name(path):
 
 def test_confidence_options_exist_where_expected():
     got = {(" ".join(p), o) for p, o in CONFIDENCE_OPTIONS}
-    for need in [("run", "--confidence"), ("run", "--report-confidence"), ("change", "--confidence"),
-                 ("change", "--report-confidence"), ("consistency", "--confidence"), ("demdiff", "--confidence")]:
+    for need in [
+        ("run", "--confidence"),
+        ("run", "--report-confidence"),
+        ("change", "--confidence"),
+        ("change", "--report-confidence"),
+        ("consistency", "--confidence"),
+        ("demdiff", "--confidence"),
+    ]:
         assert need in got, sorted(got)
 
 
@@ -77,21 +83,30 @@ def test_cli_rejects_the_0_to_1_convention(path, opt):
 def test_docs_table_lists_every_confidence_option():
     """docs/cli.md's table of confidence-carrying options and fields covers every CLI option (all in percent)."""
     text = (REPO / "docs" / "cli.md").read_text(encoding="utf-8")
-    section = text[text.index("## Confidence is a percentage"):]
-    section = section[:section.index("\n## ", 5)] if "\n## " in section[5:] else section
+    section = text[text.index("## Confidence is a percentage") :]
+    section = section[: section.index("\n## ", 5)] if "\n## " in section[5:] else section
     for path, opt in CONFIDENCE_OPTIONS:
         assert re.search(rf"`geocd {' '.join(path)}[^`]*{re.escape(opt)}", section), f"geocd {' '.join(path)} {opt}"
-    for field in ("sc_change.tif", "demdiff_significance.tif", "buildings", "changes", "CONFIDENCE",
-                  "REPORT_CONFIDENCE", "CONFIDENCES"):
+    for field in (
+        "sc_change.tif",
+        "demdiff_significance.tif",
+        "buildings",
+        "changes",
+        "CONFIDENCE",
+        "REPORT_CONFIDENCE",
+        "CONFIDENCES",
+    ):
         assert field in section, field
 
 
 def test_missing_input_fails_before_heavy_imports(tmp_path):
     """`geocd run nonexistent` says so without importing numba, rasterio or the pipeline."""
-    code = ("import sys\nfrom geocd.cli import main\n"
-            "try:\n    main(['run', 'nonexistent_scene'], standalone_mode=True)\nexcept SystemExit as e:\n    code = e.code\n"
-            "heavy = [m for m in ('numba', 'rasterio', 'geocd.pipeline', 'geocd.stereo') if m in sys.modules]\n"
-            "print('EXIT', code, 'HEAVY', heavy)\n")
+    code = (
+        "import sys\nfrom geocd.cli import main\n"
+        "try:\n    main(['run', 'nonexistent_scene'], standalone_mode=True)\nexcept SystemExit as e:\n    code = e.code\n"
+        "heavy = [m for m in ('numba', 'rasterio', 'geocd.pipeline', 'geocd.stereo') if m in sys.modules]\n"
+        "print('EXIT', code, 'HEAVY', heavy)\n"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120)
     assert "EXIT 2 HEAVY []" in r.stdout, r.stdout + r.stderr
     assert "geocd: error: nonexistent_scene does not exist" in r.stderr
@@ -111,8 +126,15 @@ def _dems(tmp_path: Path) -> tuple[Path, Path]:
 def _geocd(*args, cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
     exe = Path(sys.executable).parent / "geocd"
     argv = [str(exe)] if exe.is_file() else [sys.executable, "-m", "geocd"]
-    return subprocess.run([*argv, *args], capture_output=True, text=True, cwd=cwd, timeout=600,
-                          env={**os.environ, **(env or {})}, stdin=subprocess.DEVNULL)
+    return subprocess.run(
+        [*argv, *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=600,
+        env={**os.environ, **(env or {})},
+        stdin=subprocess.DEVNULL,
+    )
 
 
 @pytest.mark.slow
@@ -185,7 +207,9 @@ def test_degenerate_stable_terrain_warns(tmp_path):
     write_cog(tmp_path / "b2.tif", b2.height_m.astype(np.float32), b2.grid)
     r = _geocd("demdiff", "a2.tif", "b2.tif", "--out", "o2", "--no-plots", "--json", cwd=tmp_path)
     doc = json.loads(r.stdout)
-    assert doc["summary"]["status"] != "degenerate_stable_terrain" and not any("degenerate" in w for w in doc["warnings"]), doc
+    assert doc["summary"]["status"] != "degenerate_stable_terrain" and not any(
+        "degenerate" in w for w in doc["warnings"]
+    ), doc
 
 
 def test_unwritable_default_output_folder_says_give_out(tmp_path):

@@ -37,8 +37,9 @@ def test_refuse_foreign_files(tmp_path):
 
     def broken(p):
         raise ValueError("unreadable")
+
     with pytest.raises(OutputError):
-        refuse_foreign_files([mine], broken, what="x")   # a file we cannot recognise is not ours
+        refuse_foreign_files([mine], broken, what="x")  # a file we cannot recognise is not ours
 
 
 def test_qgis_style_recogniser(tmp_path):
@@ -61,7 +62,7 @@ def test_ortho_replaces_its_own_output_and_a_foreign_one_only_with_overwrite(sce
     img, dem = scene.root / "images" / "A_0.tif", scene.root / "dem.tif"
     out = tmp_path / "x.tif"
     assert _cli("ortho", img, "--dsm", dem, "--out", out).exit_code == 0
-    assert _cli("ortho", img, "--dsm", dem, "--out", out).exit_code == 0      # its own product: replaced
+    assert _cli("ortho", img, "--dsm", dem, "--out", out).exit_code == 0  # its own product: replaced
     foreign = tmp_path / "y.tif"
     foreign.write_text("mine")
     r = _cli("ortho", img, "--dsm", dem, "--out", foreign)

@@ -42,14 +42,17 @@ class _Tty:
         return 2
 
 
-@pytest.mark.parametrize("size,env,fits", [
-    ((0, 0), {}, False),            # a pty of size 0x0
-    ((0, 40), {}, False),           # stty cols 0
-    ((120, 40), {"COLUMNS": "0"}, False),
-    ((120, 0), {}, False),
-    ((120, 40), {}, True),
-    ((120, 40), {"COLUMNS": "100"}, True),
-])
+@pytest.mark.parametrize(
+    "size,env,fits",
+    [
+        ((0, 0), {}, False),  # a pty of size 0x0
+        ((0, 40), {}, False),  # stty cols 0
+        ((120, 40), {"COLUMNS": "0"}, False),
+        ((120, 0), {}, False),
+        ((120, 40), {}, True),
+        ((120, 40), {"COLUMNS": "100"}, True),
+    ],
+)
 def test_a_bar_needs_a_terminal_of_known_size(monkeypatch, size, env, fits):
     monkeypatch.setattr(common.os, "get_terminal_size", lambda fd=None: os.terminal_size(size))
     monkeypatch.delenv("COLUMNS", raising=False)
@@ -109,9 +112,14 @@ def test_real_pty_of_size_zero_gets_progress_lines(tmp_path):
     fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 0, 0, 0, 0))
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
     try:
-        proc = subprocess.Popen([sys.executable, "-m", "geocd", "demdiff", pa.name, pb.name, "--no-plots"],
-                                cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=slave,
-                                env=env)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "geocd", "demdiff", pa.name, pb.name, "--no-plots"],
+            cwd=tmp_path,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=slave,
+            env=env,
+        )
         os.close(slave)
         err = _read_all(master, proc)
         proc.wait(timeout=300)

@@ -27,7 +27,9 @@ def test_change_prior_accepts_fractions_and_percent(tmp_path):
 
 def test_change_prior_refusals(tmp_path):
     with pytest.raises(ConfigError, match=r"values -5..200; it must be a 0–1 or 0–100"):
-        check_change_prior(_prior(tmp_path / "h.tif", np.linspace(-5, 200, GRID.shape[0] * GRID.shape[1]).reshape(GRID.shape)))
+        check_change_prior(
+            _prior(tmp_path / "h.tif", np.linspace(-5, 200, GRID.shape[0] * GRID.shape[1]).reshape(GRID.shape))
+        )
     with pytest.raises(EmptyDataError, match="no valid value"):
         check_change_prior(_prior(tmp_path / "n.tif", np.full(GRID.shape, np.nan)))
     (tmp_path / "g.tif").write_bytes(b"\x01\x02garbage" * 200)
@@ -57,8 +59,9 @@ def test_mpp_refuses_a_ground_it_would_not_use(tmp_path):
 
     sc = make_scene(tmp_path / "scene")
     a, _ = write_dem_pair(tmp_path / "d")
-    r = CliRunner().invoke(main, ["--progress", "none", "mpp", str(sc.manifest), "--ground", str(a), "--out",
-                                  str(tmp_path / "O")])
+    r = CliRunner().invoke(
+        main, ["--progress", "none", "mpp", str(sc.manifest), "--ground", str(a), "--out", str(tmp_path / "O")]
+    )
     assert r.exit_code == 2, r.output
     assert "--ground is the terrain for --image-a/--image-b" in error_lines(r.stderr)[0]
     assert not (tmp_path / "O").exists()

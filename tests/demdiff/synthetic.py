@@ -9,8 +9,14 @@ from geocd.geodesy import AOIGrid
 from geocd.io.raster import DEM
 
 
-def grid(n_rows: int = 160, n_cols: int = 180, posting: float = 10.0, crs: str = "EPSG:32610",
-         x0: float = 500000.0, y0: float = 5100000.0) -> AOIGrid:
+def grid(
+    n_rows: int = 160,
+    n_cols: int = 180,
+    posting: float = 10.0,
+    crs: str = "EPSG:32610",
+    x0: float = 500000.0,
+    y0: float = 5100000.0,
+) -> AOIGrid:
     return AOIGrid(crs, Affine(posting, 0, x0, 0, -posting, y0), n_cols, n_rows)
 
 
@@ -41,8 +47,15 @@ def correlated_noise(shape, sigma: float, corr_px: float, rng, white: float = 0.
     return f
 
 
-def pair(shift_m=(0.0, 0.0, 0.0), noise_m: float = 0.3, bump_m: float = 0.0, seed: int = 1, g: AOIGrid | None = None,
-         bump_centre=(0.5, 0.5), bump_radius_px: float = 12.0):
+def pair(
+    shift_m=(0.0, 0.0, 0.0),
+    noise_m: float = 0.3,
+    bump_m: float = 0.0,
+    seed: int = 1,
+    g: AOIGrid | None = None,
+    bump_centre=(0.5, 0.5),
+    bump_radius_px: float = 12.0,
+):
     """DEM A, and B = A displaced by shift_m (B(x) = A(x − d) + dz) plus noise and an optional bump.
 
     Returns (dem_a, dem_b, info) where info["volume_m3"] is the bump's true volume on B's grid cells.
@@ -57,8 +70,8 @@ def pair(shift_m=(0.0, 0.0, 0.0), noise_m: float = 0.3, bump_m: float = 0.0, see
     if bump_m:
         r0 = bump_centre[0] * g.height
         c0 = bump_centre[1] * g.width
-        rr, cc = np.mgrid[0:g.height, 0:g.width]
-        d2 = ((rr + 0.5 - r0) ** 2 + (cc + 0.5 - c0) ** 2) / bump_radius_px ** 2
+        rr, cc = np.mgrid[0 : g.height, 0 : g.width]
+        d2 = ((rr + 0.5 - r0) ** 2 + (cc + 0.5 - c0) ** 2) / bump_radius_px**2
         bump = np.where(d2 < 1, bump_m * (1 - d2), 0.0)
         zb = zb + bump
         info["volume_m3"] = float(bump.sum() * g.cell_area_m2)

@@ -27,16 +27,40 @@ def test_cli_pair_products(tmp_path):
 
     l, bt, r, t = a.grid.bounds
     cx, cy = 0.5 * (l + r), 0.5 * (bt + t)
-    fp = gpd.GeoDataFrame({"name": ["on bump", "elsewhere"]},
-                          geometry=[box(cx - 40, cy - 40, cx + 40, cy + 40), box(l + 100, bt + 100, l + 160, bt + 160)],
-                          crs=a.grid.crs)
+    fp = gpd.GeoDataFrame(
+        {"name": ["on bump", "elsewhere"]},
+        geometry=[box(cx - 40, cy - 40, cx + 40, cy + 40), box(l + 100, bt + 100, l + 160, bt + 160)],
+        crs=a.grid.crs,
+    )
     fp.to_file(tmp_path / "fp.gpkg")
     out = tmp_path / "out"
-    res = CliRunner().invoke(main, ["--progress", "none", "demdiff", str(pa), str(pb), "--out", str(out),
-                                    "--footprints", str(tmp_path / "fp.gpkg"), "--confidence", "99"])
+    res = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "demdiff",
+            str(pa),
+            str(pb),
+            "--out",
+            str(out),
+            "--footprints",
+            str(tmp_path / "fp.gpkg"),
+            "--confidence",
+            "99",
+        ],
+    )
     assert res.exit_code == 0, res.output
-    for name in ("dh.tif", "dh.qml", "significance.tif", "significance.qml", "change_mask.tif", "changes.gpkg",
-                 "dh.png", "report.json"):
+    for name in (
+        "dh.tif",
+        "dh.qml",
+        "significance.tif",
+        "significance.qml",
+        "change_mask.tif",
+        "changes.gpkg",
+        "dh.png",
+        "report.json",
+    ):
         assert (out / f"demdiff_{name}").is_file(), name
     with rasterio.open(out / "demdiff_dh.tif") as ds:
         assert ds.descriptions == ("dh_m",) and ds.crs.to_epsg() == 32610
@@ -67,7 +91,7 @@ def test_cli_series_from_list(tmp_path):
     g = grid(80, 80)
     base, _, _ = pair(g=g, noise_m=0.0)
     rr, cc = np.mgrid[0:80, 0:80]
-    dome = np.exp(-((rr - 40) ** 2 + (cc - 40) ** 2) / (2 * 6.0 ** 2))
+    dome = np.exp(-((rr - 40) ** 2 + (cc - 40) ** 2) / (2 * 6.0**2))
     rng = np.random.default_rng(0)
     lines = []
     for k, amp in enumerate([0, 10, 25]):

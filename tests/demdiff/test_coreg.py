@@ -46,7 +46,7 @@ def test_apply_shift_convention():
 def test_tilt_term_removed():
     g = grid()
     a, b, _ = pair((0.0, 0.0, 0.0), noise_m=0.1)
-    rr, cc = np.mgrid[0:g.height, 0:g.width]
+    rr, cc = np.mgrid[0 : g.height, 0 : g.width]
     hb = b.height_m + (0.002 * (cc - g.width / 2) * 10 - 0.001 * (rr - g.height / 2) * 10).astype(np.float32)
     out, res = nuth_kaab(a.height_m, hb, np.ones(g.shape, bool), POST, CoregParams(tilt=True))
     assert res.tilt is not None
@@ -88,8 +88,7 @@ def test_no_stable_terrain_invents_nothing():
     assert res.shift_m == (0.0, 0.0, 0.0)
     np.testing.assert_array_equal(out, b.height_m)
     with pytest.raises(ProcessingError, match="stable"):
-        nuth_kaab(a.height_m, b.height_m, np.zeros(a.grid.shape, bool), POST,
-                  CoregParams(on_underconstrained="raise"))
+        nuth_kaab(a.height_m, b.height_m, np.zeros(a.grid.shape, bool), POST, CoregParams(on_underconstrained="raise"))
 
 
 def test_params_are_validated():

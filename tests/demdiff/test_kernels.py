@@ -3,8 +3,14 @@ import math
 import numpy as np
 import pytest
 
-from geocd.demdiff._kernels import (shift_grid, shift_grid_ref, terrain_attributes, terrain_attributes_ref,
-                                    variogram_bins, variogram_bins_ref)
+from geocd.demdiff._kernels import (
+    shift_grid,
+    shift_grid_ref,
+    terrain_attributes,
+    terrain_attributes_ref,
+    variogram_bins,
+    variogram_bins_ref,
+)
 from geocd.demdiff.uncertainty import variogram_fft
 
 
@@ -62,7 +68,7 @@ def test_shift_zero_is_identity_and_integer_shift_moves_cells(dem):
 
 def test_cubic_shift_reproduces_a_quadratic_surface():
     rr, cc = np.mgrid[0:20, 0:20].astype(float)
-    h = 0.3 * cc ** 2 - 0.2 * rr * cc + rr
+    h = 0.3 * cc**2 - 0.2 * rr * cc + rr
     s = shift_grid(h, 0.4, -0.3, method="cubic")
     exp = 0.3 * (cc - 0.4) ** 2 - 0.2 * (rr + 0.3) * (cc - 0.4) + (rr + 0.3)
     ok = np.isfinite(s)
@@ -106,21 +112,23 @@ def test_shift_window_and_points_equal_shift_grid(method):
         r0, c0, r1, c1 = 20, 10, 70, 60
         R0, C0, R1, C1 = max(0, r0 - m), max(0, c0 - m), min(90, r1 + m), min(80, c1 + m)
         win = shift_window(h[R0:R1, C0:C1], (R0, C0), h.shape, dc, dr, method)
-        np.testing.assert_array_equal(win[r0 - R0:r1 - R0, c0 - C0:c1 - C0], ref[r0:r1, c0:c1])
+        np.testing.assert_array_equal(win[r0 - R0 : r1 - R0, c0 - C0 : c1 - C0], ref[r0:r1, c0:c1])
         # a window at the grid's corner sees the grid's border
-        np.testing.assert_array_equal(shift_window(h[:40, :40], (0, 0), h.shape, dc, dr, method)[:40 - m, :40 - m],
-                                      ref[:40 - m, :40 - m])
+        np.testing.assert_array_equal(
+            shift_window(h[:40, :40], (0, 0), h.shape, dc, dr, method)[: 40 - m, : 40 - m], ref[: 40 - m, : 40 - m]
+        )
         # points from patches
         rows = rng.integers(0, 90, 300)
         cols = rng.integers(0, 80, 300)
         R = m + 1
         pr, pc = rows - R, cols - R
         pad = np.pad(h, R + 1, constant_values=np.nan)
-        patches = np.stack([pad[r + 1:r + 1 + 2 * R + 1, c + 1:c + 1 + 2 * R + 1] for r, c in zip(pr + R, pc + R)])
+        patches = np.stack([pad[r + 1 : r + 1 + 2 * R + 1, c + 1 : c + 1 + 2 * R + 1] for r, c in zip(pr + R, pc + R)])
         v, ok = shift_points(patches, pr, pc, rows, cols, h.shape, dc, dr, method)
         assert ok
         np.testing.assert_array_equal(v, ref[rows, cols])
         # patches too small are reported
-        _, ok2 = shift_points(patches[:, R - 1:R + 1, R - 1:R + 1], rows - 1, cols - 1, rows, cols, h.shape, dc, dr,
-                              method)
+        _, ok2 = shift_points(
+            patches[:, R - 1 : R + 1, R - 1 : R + 1], rows - 1, cols - 1, rows, cols, h.shape, dc, dr, method
+        )
         assert not ok2

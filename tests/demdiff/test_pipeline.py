@@ -26,8 +26,20 @@ def test_known_shift_and_volume_recovered():
     assert s["stable_nmad_m"] < 1.0
     # one raised region over the bump, with the shared schema
     reg = r.regions
-    assert list(reg.columns[:12]) == ["region_id", "method", "epoch_a", "epoch_b", "sign", "n_cells", "area_m2",
-                                      "mean_dz_m", "max_dz_m", "volume_m3", "volume_sigma_m3", "confidence"]
+    assert list(reg.columns[:12]) == [
+        "region_id",
+        "method",
+        "epoch_a",
+        "epoch_b",
+        "sign",
+        "n_cells",
+        "area_m2",
+        "mean_dz_m",
+        "max_dz_m",
+        "volume_m3",
+        "volume_sigma_m3",
+        "confidence",
+    ]
     big = reg.sort_values("n_cells").iloc[-1]
     assert big["sign"] == 1 and big["confidence"] > 0.99 and big["max_dz_m"] > 25
     assert r.changed[info["bump"]].mean() > 0.7
@@ -86,7 +98,7 @@ def test_datums_converted_when_the_grid_exists():
 def test_no_stable_terrain_is_reported_not_invented():
     a, _, _ = pair()
     g = a.grid
-    rr = np.mgrid[0:g.height, 0:g.width][0]
+    rr = np.mgrid[0 : g.height, 0 : g.width][0]
     b = DEM((a.height_m + 2.0 * rr).astype(np.float32), g, None, "B")  # everything changed, smoothly
     r = dem_difference(a, b)
     assert r.status == "no_stable_terrain"
@@ -128,7 +140,7 @@ def test_time_series_over_common_survey_areas():
     rr, cc = np.mgrid[0:100, 0:100]
     # a compact dome: each survey keeps a wide stable ring (the sub-threshold tails of smooth change
     # otherwise bias the stable median, a documented limitation of automatic stable terrain)
-    dome = np.exp(-((rr - 50) ** 2 + (cc - 50) ** 2) / (2 * 5 ** 2))
+    dome = np.exp(-((rr - 50) ** 2 + (cc - 50) ** 2) / (2 * 5**2))
     for k, (amp, half) in enumerate([(10, 30), (20, 35), (35, 40)]):
         h = base.height_m + amp * dome
         surveyed = (np.abs(rr - 50) < half) & (np.abs(cc - 50) < half)

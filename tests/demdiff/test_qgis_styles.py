@@ -16,7 +16,7 @@ pytestmark = pytest.mark.qgis
 
 SYSTEM_PYTHON = Path(os.environ.get("GEOCD_QGIS_PYTHON", "/usr/bin/python3"))
 
-SCRIPT = r'''
+SCRIPT = r"""
 import json, sys
 from qgis.core import QgsApplication, QgsVectorLayer, QgsRasterLayer
 QgsApplication.setPrefixPath("/usr", True)
@@ -35,7 +35,7 @@ m = QgsRasterLayer(f"{d}/demdiff_change_mask.tif", "m"); m.loadDefaultStyle()
 s = QgsRasterLayer(f"{d}/demdiff_significance.tif", "s"); s.loadDefaultStyle()
 out["others"] = [m.renderer().type(), s.renderer().type(), s.renderer().usesBands()]
 print(json.dumps(out))
-'''
+"""
 
 
 @pytest.mark.slow
@@ -49,12 +49,20 @@ def test_layers_open_styled_in_qgis(tmp_path):
     r = dem_difference(a, b)
     write_demdiff_products(tmp_path, r, plots=False)
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
-    env.update(QT_QPA_PLATFORM="offscreen", QGIS_CUSTOM_CONFIG_PATH=str(tmp_path / "profile"),
-               XDG_RUNTIME_DIR=str(tmp_path / "xdg"))
+    env.update(
+        QT_QPA_PLATFORM="offscreen",
+        QGIS_CUSTOM_CONFIG_PATH=str(tmp_path / "profile"),
+        XDG_RUNTIME_DIR=str(tmp_path / "xdg"),
+    )
     (tmp_path / "xdg").mkdir(mode=0o700)
     (tmp_path / "q.py").write_text(SCRIPT)
-    p = subprocess.run([str(SYSTEM_PYTHON), str(tmp_path / "q.py"), str(tmp_path)], capture_output=True, text=True,
-                       env=env, timeout=300)
+    p = subprocess.run(
+        [str(SYSTEM_PYTHON), str(tmp_path / "q.py"), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     out = json.loads(p.stdout.strip().splitlines()[-1])
     valid, kind, cats = out["changes"]

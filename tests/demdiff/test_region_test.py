@@ -79,7 +79,9 @@ def test_the_mapping_unit_grows_with_the_correlation_range():
     long_ = noise_mass_needed(noise_region_null(VariogramModel(0.0, (20.0,), (1.0,)), (1.0, 1.0), 99.0, 1), 99.0)
     assert long_ > 5 * short
     # deterministic: the same model gives the same null
-    np.testing.assert_array_equal(noise_region_null(VG, (1.0, 1.0), 95.0, 1), noise_region_null(VG, (1.0, 1.0), 95.0, 1))
+    np.testing.assert_array_equal(
+        noise_region_null(VG, (1.0, 1.0), 95.0, 1), noise_region_null(VG, (1.0, 1.0), 95.0, 1)
+    )
 
 
 @pytest.mark.slow
@@ -95,7 +97,7 @@ def test_demdiff_region_test_keeps_the_real_change_and_drops_noise_regions():
     assert ri["regions_dropped"] == 20 and ri["cells_dropped"] == 91 and len(on.regions) == 8
     # the bump (the largest region) is kept whole; only cells of dropped regions changed
     assert on.regions["n_cells"].iloc[0] == off.regions["n_cells"].iloc[0] > 400
-    changed = (on.sign != off.sign)
+    changed = on.sign != off.sign
     assert changed.sum() == 91 and np.all(on.sign[changed] == 0)
     with pytest.raises(ConfigError):
         DEMDiffParams(region_test="yes")

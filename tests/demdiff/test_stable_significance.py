@@ -1,8 +1,15 @@
 import numpy as np
 import pytest
 
-from geocd.demdiff import (StableParams, auto_stable_mask, change_sign, fit_significance, nmad, significance_map,
-                           stable_terrain)
+from geocd.demdiff import (
+    StableParams,
+    auto_stable_mask,
+    change_sign,
+    fit_significance,
+    nmad,
+    significance_map,
+    stable_terrain,
+)
 from geocd.errors import ConfigError, EmptyDataError
 
 from .synthetic import grid
@@ -17,8 +24,8 @@ def test_nmad_of_gaussian():
 def test_auto_stable_excludes_coherent_change_but_keeps_isolated_outliers():
     rng = np.random.default_rng(1)
     dh = rng.normal(scale=0.5, size=(100, 100))
-    dh[30:50, 30:50] += 10.0           # a coherent change
-    dh[80, 80] = 9.0                   # an isolated blunder: part of the error distribution
+    dh[30:50, 30:50] += 10.0  # a coherent change
+    dh[80, 80] = 9.0  # an isolated blunder: part of the error distribution
     m, info = auto_stable_mask(dh)
     assert not m[30:50, 30:50].any() and not m[29, 30]  # change and its 1-cell buffer excluded
     assert m[80, 80]

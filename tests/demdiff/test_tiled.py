@@ -27,8 +27,13 @@ def assert_same_products(d1: Path, d2: Path, prefix: str = "demdiff") -> None:
         with rasterio.open(d1 / f"{prefix}_{name}.tif") as a, rasterio.open(d2 / f"{prefix}_{name}.tif") as b:
             np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
             assert a.units == b.units
-            assert a.tags() == b.tags() and a.descriptions == b.descriptions and a.nodata is b.nodata or \
-                (np.isnan(a.nodata) and np.isnan(b.nodata)) or a.nodata == b.nodata
+            assert (
+                a.tags() == b.tags()
+                and a.descriptions == b.descriptions
+                and a.nodata is b.nodata
+                or (np.isnan(a.nodata) and np.isnan(b.nodata))
+                or a.nodata == b.nodata
+            )
             assert a.profile["blockxsize"] == b.profile["blockxsize"] and a.overviews(1) == b.overviews(1)
         assert (d1 / f"{prefix}_{name}.qml").read_text() == (d2 / f"{prefix}_{name}.qml").read_text()
     r1 = json.loads((d1 / f"{prefix}_report.json").read_text())
@@ -64,8 +69,9 @@ def test_tiled_equals_untiled_bitwise(shifted_pair, tmp_path, case):
     assert res.coreg.status == "ok" and abs(res.coreg.shift_m[0] + 4.0) < 0.1 and res.summary["changed_cells"] > 100
     write_demdiff_products(tmp_path / "untiled", res)
     # 3 × 3 tiles of 64 cells; every whole-scene step gathers every cell (exact)
-    t = dem_difference_tiled(d / "a.tif", d / "b.tif", tmp_path / "tiled", params=params,
-                             tiling=TilingParams(tile_size=64, scheduler="sync"))
+    t = dem_difference_tiled(
+        d / "a.tif", d / "b.tif", tmp_path / "tiled", params=params, tiling=TilingParams(tile_size=64, scheduler="sync")
+    )
     assert t.exact and t.passes >= 8
     assert_same_products(tmp_path / "untiled", tmp_path / "tiled")
     assert not (tmp_path / "tiled" / ".geocd-work").exists()
@@ -82,8 +88,13 @@ def test_tiled_threads_and_user_mask(shifted_pair, tmp_path):
     poly.to_file(tmp_path / "mask.gpkg")
     res = dem_difference(a, read_dem(d / "b.tif"), stable_mask=poly)
     write_demdiff_products(tmp_path / "untiled", res)
-    dem_difference_tiled(d / "a.tif", d / "b.tif", tmp_path / "tiled", stable_mask=tmp_path / "mask.gpkg",
-                         tiling=TilingParams(tile_size=64, scheduler="threads", n_workers=2))
+    dem_difference_tiled(
+        d / "a.tif",
+        d / "b.tif",
+        tmp_path / "tiled",
+        stable_mask=tmp_path / "mask.gpkg",
+        tiling=TilingParams(tile_size=64, scheduler="threads", n_workers=2),
+    )
     assert_same_products(tmp_path / "untiled", tmp_path / "tiled")
 
 
@@ -124,13 +135,18 @@ def test_large_path_equals_untiled(shifted_pair, tmp_path):
     d = shifted_pair
     res = dem_difference(read_dem(d / "a.tif"), read_dem(d / "b.tif"))
     write_demdiff_products(tmp_path / "untiled", res)
-    t = dem_difference_tiled(d / "a.tif", d / "b.tif", tmp_path / "tiled",
-                             tiling=TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=5000,
-                                                 coarse_cells=2000))
+    t = dem_difference_tiled(
+        d / "a.tif",
+        d / "b.tif",
+        tmp_path / "tiled",
+        tiling=TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=5000, coarse_cells=2000),
+    )
     assert not t.exact
     for name in RASTERS:
-        with rasterio.open(tmp_path / "untiled" / f"demdiff_{name}.tif") as a, \
-                rasterio.open(tmp_path / "tiled" / f"demdiff_{name}.tif") as b:
+        with (
+            rasterio.open(tmp_path / "untiled" / f"demdiff_{name}.tif") as a,
+            rasterio.open(tmp_path / "tiled" / f"demdiff_{name}.tif") as b,
+        ):
             np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
             assert a.descriptions == b.descriptions and a.units == b.units
     u = res.summary
@@ -158,16 +174,21 @@ def test_region_test_tiled_equals_untiled(shifted_pair, tmp_path, exact):
     res = dem_difference(read_dem(d / "a.tif"), read_dem(d / "b.tif"), params=params)
     assert res.summary["region_test"]["regions_dropped"] > 0
     write_demdiff_products(tmp_path / "untiled", res)
-    tiling = (TilingParams(tile_size=64, scheduler="sync") if exact else
-              TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=5000, coarse_cells=2000))
+    tiling = (
+        TilingParams(tile_size=64, scheduler="sync")
+        if exact
+        else TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=5000, coarse_cells=2000)
+    )
     t = dem_difference_tiled(d / "a.tif", d / "b.tif", tmp_path / "tiled", params=params, tiling=tiling)
     assert t.exact is exact
     if exact:
         assert_same_products(tmp_path / "untiled", tmp_path / "tiled")
         return
     for name in RASTERS:
-        with rasterio.open(tmp_path / "untiled" / f"demdiff_{name}.tif") as a, \
-                rasterio.open(tmp_path / "tiled" / f"demdiff_{name}.tif") as b:
+        with (
+            rasterio.open(tmp_path / "untiled" / f"demdiff_{name}.tif") as a,
+            rasterio.open(tmp_path / "tiled" / f"demdiff_{name}.tif") as b,
+        ):
             np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
     assert t.summary["region_test"] == res.summary["region_test"]
     for k in ("changed_cells", "volume_changed_m3", "volume_changed_sigma_m3"):

@@ -3,8 +3,15 @@ import math
 import numpy as np
 import pytest
 
-from geocd.demdiff import (ErrorParams, VariogramModel, correlated_sum_variance, estimate_uncertainty,
-                           fit_error_model, fit_variogram, n_effective)
+from geocd.demdiff import (
+    ErrorParams,
+    VariogramModel,
+    correlated_sum_variance,
+    estimate_uncertainty,
+    fit_error_model,
+    fit_variogram,
+    n_effective,
+)
 from geocd.demdiff._kernels import terrain_attributes
 from geocd.demdiff.uncertainty import correlated_sum_variance_ref, default_lag_edges, variogram_fft
 from geocd.errors import EmptyDataError
@@ -43,7 +50,8 @@ def test_variogram_fit_recovers_a_spherical_model():
     fit = fit_variogram(c, g, np.full(c.size, 1000))
     assert fit.total_sill == pytest.approx(MODEL.total_sill, rel=0.02)
     assert fit.semivariance(np.array([15.0, 60.0, 150.0])) == pytest.approx(
-        MODEL.semivariance(np.array([15.0, 60.0, 150.0])), rel=0.05)
+        MODEL.semivariance(np.array([15.0, 60.0, 150.0])), rel=0.05
+    )
 
 
 def test_variogram_of_simulated_correlated_noise():
@@ -92,7 +100,7 @@ def test_heteroscedastic_model_learns_slope_dependence():
     att = terrain_attributes(h, POST)
     s = att["slope_rad"].astype(float)
     rng = np.random.default_rng(4)
-    true_sig = np.sqrt(0.5 ** 2 + (3.0 * np.tan(np.nan_to_num(s))) ** 2)
+    true_sig = np.sqrt(0.5**2 + (3.0 * np.tan(np.nan_to_num(s))) ** 2)
     dh = rng.normal(size=h.shape) * true_sig
     em = fit_error_model(dh, np.isfinite(s), s, None, ErrorParams(predictor="none"))
     for deg in (3.0, 15.0, 30.0):

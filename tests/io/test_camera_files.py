@@ -29,14 +29,17 @@ def _rpc_json(model: RPCModel, path, **override):
     return path
 
 
-@pytest.mark.parametrize("field, value, needle", [
-    ("lat_scale", 1e308, "LAT_SCALE=1e+308 is outside"),
-    ("lon_scale", 500.0, "LONG_SCALE=500 is outside"),
-    ("lat_off", 95.0, "LAT_OFF=95 is not a latitude"),
-    ("line_scale", -540.0, "LINE_SCALE=-540 is negative"),
-    ("samp_scale", 1e9, "SAMP_SCALE=1e+09 is outside"),
-    ("height_scale", -500.0, "HEIGHT_SCALE=-500 is negative"),
-])
+@pytest.mark.parametrize(
+    "field, value, needle",
+    [
+        ("lat_scale", 1e308, "LAT_SCALE=1e+308 is outside"),
+        ("lon_scale", 500.0, "LONG_SCALE=500 is outside"),
+        ("lat_off", 95.0, "LAT_OFF=95 is not a latitude"),
+        ("line_scale", -540.0, "LINE_SCALE=-540 is negative"),
+        ("samp_scale", 1e9, "SAMP_SCALE=1e+09 is outside"),
+        ("height_scale", -500.0, "HEIGHT_SCALE=-500 is negative"),
+    ],
+)
 def test_explicit_geocd_rpc_json_is_checked(model, tmp_path, field, value, needle):
     p = _rpc_json(model, tmp_path / "x.rpc.json", **{field: value})
     with pytest.raises(RPCParseError, match="implausible RPC") as ei:
@@ -80,18 +83,29 @@ def test_camera_file_with_duplicate_keys(model, tmp_path):
         read_camera_file(p)
 
 
-FRAME = {"kind": "frame", "crs": "EPSG:32631", "width": 400, "height": 300, "focal_px": 1000.0,
-         "position": [500000.0, 4000000.0, 1500.0], "opk_deg": [0.0, 0.0, 0.0], "vertical_datum": "ellipsoid"}
+FRAME = {
+    "kind": "frame",
+    "crs": "EPSG:32631",
+    "width": 400,
+    "height": 300,
+    "focal_px": 1000.0,
+    "position": [500000.0, 4000000.0, 1500.0],
+    "opk_deg": [0.0, 0.0, 0.0],
+    "vertical_datum": "ellipsoid",
+}
 
 
-@pytest.mark.parametrize("field, value, needle", [
-    ("width", 10**400, "'width'=1000"),
-    ("width", 10**7, "whole number of pixels in 1..1000000"),
-    ("height", True, "'height'=True"),
-    ("focal_px", 10**400, "'focal_px'"),
-    ("position", [1e300, 0.0, 0.0], "out of range"),
-    ("opk_deg", [0.0, 1e12, 0.0], "out of range"),
-])
+@pytest.mark.parametrize(
+    "field, value, needle",
+    [
+        ("width", 10**400, "'width'=1000"),
+        ("width", 10**7, "whole number of pixels in 1..1000000"),
+        ("height", True, "'height'=True"),
+        ("focal_px", 10**400, "'focal_px'"),
+        ("position", [1e300, 0.0, 0.0], "out of range"),
+        ("opk_deg", [0.0, 1e12, 0.0], "out of range"),
+    ],
+)
 def test_frame_sidecar_out_of_range(tmp_path, field, value, needle):
     p = tmp_path / "a.camera.json"
     p.write_text(json.dumps({**FRAME, field: value}))

@@ -27,15 +27,18 @@ def _write(tmp_path, h, name="dem.tif", **kw):
     return write_cog(tmp_path / name, h, grid(*h.shape), **kw)
 
 
-@pytest.mark.parametrize("value,cells", [
-    (-9999.0, "columns"),        # 1/15 of the columns: the DEM
-    (-9999.0, "scattered"),      # 0.5 % of the cells
-    (-9999.0, "one"),            # a single cell still poisons its neighbours when resampled
-    (-32768.0, "scattered"),
-    (float(np.finfo(np.float32).min), "columns"),
-    (1e30, "half"),
-    (0.0, "scattered"),          # zeros as nodata in a mountain DEM (1,500 m)
-])
+@pytest.mark.parametrize(
+    "value,cells",
+    [
+        (-9999.0, "columns"),  # 1/15 of the columns: the DEM
+        (-9999.0, "scattered"),  # 0.5 % of the cells
+        (-9999.0, "one"),  # a single cell still poisons its neighbours when resampled
+        (-32768.0, "scattered"),
+        (float(np.finfo(np.float32).min), "columns"),
+        (1e30, "half"),
+        (0.0, "scattered"),  # zeros as nodata in a mountain DEM (1,500 m)
+    ],
+)
 def test_undeclared_nodata_is_refused_with_the_fix(tmp_path, value, cells):
     h = _terrain(base=1500.0 if value == 0 else 300.0)
     if cells == "columns":
@@ -97,8 +100,9 @@ def test_infinite_or_out_of_range_values_are_reported_or_refused(tmp_path, share
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
         d = read_dem(p)
-    assert any(issubclass(x.category, DEMValueWarning) and f"{idx.size} value(s)" in str(x.message) for x in w), \
-        [str(x.message) for x in w]
+    assert any(issubclass(x.category, DEMValueWarning) and f"{idx.size} value(s)" in str(x.message) for x in w), [
+        str(x.message) for x in w
+    ]
     assert np.isnan(d.height_m.flat[idx]).all()
 
 
@@ -149,8 +153,10 @@ def test_demdiff_refuses_undeclared_nodata_and_runs_with_it_declared(dem_pair, t
     assert abs(vd["stable_nmad_m"] - vc["stable_nmad_m"]) < 0.05, (vc, vd)
 
 
-@pytest.mark.parametrize("kind,needle", [("rgb", "is not a DEM"), ("complex", "holds complex values"),
-                                         ("two_bands", "is not named as heights")])
+@pytest.mark.parametrize(
+    "kind,needle",
+    [("rgb", "is not a DEM"), ("complex", "holds complex values"), ("two_bands", "is not named as heights")],
+)
 def test_tiled_demdiff_makes_every_dem_check(dem_pair, tmp_path, kind, needle):
     import rasterio
 
@@ -180,11 +186,17 @@ def test_tiled_demdiff_makes_every_dem_check(dem_pair, tmp_path, kind, needle):
 # ---------------------------------------------------------------------------------------------------------------
 # every real DEM of ../shared/data passes (the constants were checked on them)
 # ---------------------------------------------------------------------------------------------------------------
-_REAL = ["usgs_msh_dome_dems/geotiff_utm10n/2.tif", "usgs_msh_dome_dems/geotiff_utm10n/27.tif",
-         "cnes_demcompare_srtm/srtm_ref.tif", "cnes_demcompare_srtm/srtm_blurred_and_shifted.tif",
-         "cnes_demcompare_srtm/Copernicus_DSM_10_N45_00_E005_00_DEM.tif", "cnes_pleiades_ventoux/srtm/N44E005.hgt",
-         "s2p_pleiades/expected_output/pair/dsm.tif", "s2p_pleiades/expected_output/triplet/dsm.tif",
-         "orthority_baviaans_aerial_qb2/ngi/dem.tif"]
+_REAL = [
+    "usgs_msh_dome_dems/geotiff_utm10n/2.tif",
+    "usgs_msh_dome_dems/geotiff_utm10n/27.tif",
+    "cnes_demcompare_srtm/srtm_ref.tif",
+    "cnes_demcompare_srtm/srtm_blurred_and_shifted.tif",
+    "cnes_demcompare_srtm/Copernicus_DSM_10_N45_00_E005_00_DEM.tif",
+    "cnes_pleiades_ventoux/srtm/N44E005.hgt",
+    "s2p_pleiades/expected_output/pair/dsm.tif",
+    "s2p_pleiades/expected_output/triplet/dsm.tif",
+    "orthority_baviaans_aerial_qb2/ngi/dem.tif",
+]
 
 
 @pytest.mark.realdata

@@ -11,19 +11,36 @@ NODATA = "-0.34028234663853E+39"
 
 def _e00(values: np.ndarray, cell=10.0, ll=(561195.0, 5115055.0), pad_last=True, prj=True) -> str:
     nrows, ncols = values.shape
-    lines = ["EXP  0 D:\\TEST.E00", "GRD  2", f"{ncols:10d}{nrows:10d} 2{NODATA}",
-             f"{cell:21.14E}{cell:21.14E}",
-             f"{ll[0]:21.14E}{ll[1]:21.14E}", f"{ll[0] + ncols * cell:21.14E}{ll[1] + nrows * cell:21.14E}"]
+    lines = [
+        "EXP  0 D:\\TEST.E00",
+        "GRD  2",
+        f"{ncols:10d}{nrows:10d} 2{NODATA}",
+        f"{cell:21.14E}{cell:21.14E}",
+        f"{ll[0]:21.14E}{ll[1]:21.14E}",
+        f"{ll[0] + ncols * cell:21.14E}{ll[1] + nrows * cell:21.14E}",
+    ]
     for r in range(nrows):
         row = ["-0.3402823E+39" if np.isnan(v) else f"{v:14.7E}" for v in values[r]]
         while pad_last and len(row) % 5:
             row.append(row[len(row) - 5])  # stale values, as ArcInfo writes them
         for k in range(0, len(row), 5):
-            lines.append("".join(row[k:k + 5]))
+            lines.append("".join(row[k : k + 5]))
     lines.append("EOG")
     if prj:
-        lines += ["PRJ  2", "Projection    UTM", "~", "Zone          10", "~", "Datum         NAD83", "~",
-                  "Units         METERS", "~", "Spheroid      GRS1980", "~", "EOP"]
+        lines += [
+            "PRJ  2",
+            "Projection    UTM",
+            "~",
+            "Zone          10",
+            "~",
+            "Datum         NAD83",
+            "~",
+            "Units         METERS",
+            "~",
+            "Spheroid      GRS1980",
+            "~",
+            "EOP",
+        ]
     lines.append("EOS")
     return "\r\n".join(lines) + "\r\n"
 

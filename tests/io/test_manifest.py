@@ -24,13 +24,21 @@ def write(tmp_path, data):
 
 
 def test_valid_manifest_round_trip(scene):
-    p = write(scene, {
-        "name": "t", "aoi": {"crs": "EPSG:32631", "bounds": [0, 0, 10, 10], "posting_m": 0.5},
-        "epochs": [
-            {"name": "A", "date": "2020-01-02", "images": ["img/a1.tif", {"path": "img/a2.tif", "camera": "cam.json"}]},
-            {"name": "B", "date": dt.date(2021, 3, 4), "images": [{"path": "img/b1.tif"}]},
-        ],
-    })
+    p = write(
+        scene,
+        {
+            "name": "t",
+            "aoi": {"crs": "EPSG:32631", "bounds": [0, 0, 10, 10], "posting_m": 0.5},
+            "epochs": [
+                {
+                    "name": "A",
+                    "date": "2020-01-02",
+                    "images": ["img/a1.tif", {"path": "img/a2.tif", "camera": "cam.json"}],
+                },
+                {"name": "B", "date": dt.date(2021, 3, 4), "images": [{"path": "img/b1.tif"}]},
+            ],
+        },
+    )
     m = load_manifest(p)
     assert [e.name for e in m.epochs] == ["A", "B"]
     assert m.epochs[0].date == dt.date(2020, 1, 2)
@@ -44,16 +52,22 @@ def test_valid_manifest_round_trip(scene):
     assert load_manifest(write(scene, d)).epochs == m.epochs
 
 
-@pytest.mark.parametrize("data, fragment", [
-    ({"epochs": []}, "non-empty list"),
-    ({"epochs": [{"name": "A", "images": ["img/missing.tif"]}]}, "epochs[0].images[0].path: file"),
-    ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}, {"name": "A", "images": ["img/a2.tif"]}]}, "duplicate epoch"),
-    ({"epochs": [{"name": "A", "date": "yesterday", "images": ["img/a1.tif"]}]}, "ISO 8601"),
-    ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "aoi": {"bounds": [1, 1, 0, 0]}}, "is empty"),
-    ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "colour": 1}, "colour: unknown key"),
-    ({"epochs": [{"name": "A"}]}, "neither images nor a DEM"),
-    ({"geocd_manifest": 7, "epochs": [{"name": "A", "images": ["img/a1.tif"]}]}, "version"),
-])
+@pytest.mark.parametrize(
+    "data, fragment",
+    [
+        ({"epochs": []}, "non-empty list"),
+        ({"epochs": [{"name": "A", "images": ["img/missing.tif"]}]}, "epochs[0].images[0].path: file"),
+        (
+            {"epochs": [{"name": "A", "images": ["img/a1.tif"]}, {"name": "A", "images": ["img/a2.tif"]}]},
+            "duplicate epoch",
+        ),
+        ({"epochs": [{"name": "A", "date": "yesterday", "images": ["img/a1.tif"]}]}, "ISO 8601"),
+        ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "aoi": {"bounds": [1, 1, 0, 0]}}, "is empty"),
+        ({"epochs": [{"name": "A", "images": ["img/a1.tif"]}], "colour": 1}, "colour: unknown key"),
+        ({"epochs": [{"name": "A"}]}, "neither images nor a DEM"),
+        ({"geocd_manifest": 7, "epochs": [{"name": "A", "images": ["img/a1.tif"]}]}, "version"),
+    ],
+)
 def test_invalid_manifest_errors(scene, data, fragment):
     with pytest.raises(ManifestError) as ei:
         load_manifest(write(scene, data))
@@ -116,10 +130,19 @@ def test_huge_value_is_not_expanded_into_the_message(scene):
 
 
 def test_duplicate_image_name_in_an_epoch(scene):
-    p = write(scene, {"epochs": [{"name": "A", "images": [{"path": "img/a1.tif", "name": "x"},
-                                                          {"path": "img/a2.tif", "name": "x"}]}]})
-    with pytest.raises(ManifestError, match=r"epochs\[0\].images\[1\] \(a2.tif\) and epochs\[0\].images\[0\] "
-                                            r"\(a1.tif\) of epoch 'A' have the same image name 'x'"):
+    p = write(
+        scene,
+        {
+            "epochs": [
+                {"name": "A", "images": [{"path": "img/a1.tif", "name": "x"}, {"path": "img/a2.tif", "name": "x"}]}
+            ]
+        },
+    )
+    with pytest.raises(
+        ManifestError,
+        match=r"epochs\[0\].images\[1\] \(a2.tif\) and epochs\[0\].images\[0\] "
+        r"\(a1.tif\) of epoch 'A' have the same image name 'x'",
+    ):
         load_manifest(p)
     # the same stem in two folders of one epoch: the default names collide too
     (scene / "img2").mkdir()
@@ -131,8 +154,9 @@ def test_duplicate_image_name_in_an_epoch(scene):
 def test_same_image_name_in_two_epochs_is_fine(scene):
     (scene / "img2").mkdir()
     (scene / "img2" / "a1.tif").write_bytes(b"x")
-    m = load_manifest(write(scene, {"epochs": [{"name": "A", "images": ["img/a1.tif"]},
-                                               {"name": "B", "images": ["img2/a1.tif"]}]}))
+    m = load_manifest(
+        write(scene, {"epochs": [{"name": "A", "images": ["img/a1.tif"]}, {"name": "B", "images": ["img2/a1.tif"]}]})
+    )
     assert [e.images[0].name for e in m.epochs] == ["a1", "a1"]
 
 
@@ -142,10 +166,20 @@ def test_same_file_listed_twice(scene, second):
 
     (scene / "link.tif").symlink_to(scene / "img" / "a1.tif")
     os.link(scene / "img" / "a1.tif", scene / "hard.tif")
-    p = write(scene, {"epochs": [{"name": "A", "images": ["img/a1.tif"]},
-                                 {"name": "B", "images": [{"path": second, "name": "other"}]}]})
-    with pytest.raises(ManifestError, match=r"epochs\[1\].images\[0\] \(.*\) and epochs\[0\].images\[0\] are the "
-                                            "same file"):
+    p = write(
+        scene,
+        {
+            "epochs": [
+                {"name": "A", "images": ["img/a1.tif"]},
+                {"name": "B", "images": [{"path": second, "name": "other"}]},
+            ]
+        },
+    )
+    with pytest.raises(
+        ManifestError,
+        match=r"epochs\[1\].images\[0\] \(.*\) and epochs\[0\].images\[0\] are the "
+        "same file",
+    ):
         load_manifest(p)
 
 

@@ -95,11 +95,17 @@ def test_gpkg_layers_and_styles(tmp_path, grid):
     from shapely.geometry import box
 
     l, b, r, t = grid.bounds
-    gdf = gpd.GeoDataFrame({"building_id": [1, 2]}, geometry=[box(l + 1, b + 1, l + 5, b + 5), box(l + 10, b + 10, l + 20, b + 20)],
-                           crs=grid.crs)
+    gdf = gpd.GeoDataFrame(
+        {"building_id": [1, 2]},
+        geometry=[box(l + 1, b + 1, l + 5, b + 5), box(l + 10, b + 10, l + 20, b + 20)],
+        crs=grid.crs,
+    )
     curves = pd.DataFrame({"score": [0.1, 0.2], "q99": [1.0, 2.0]})
-    p = write_gpkg(tmp_path / "o.gpkg", {"buildings": gdf, "curves": curves},
-                   styles={"buildings": "<qgis><renderer-v2 type='singleSymbol'/></qgis>"})
+    p = write_gpkg(
+        tmp_path / "o.gpkg",
+        {"buildings": gdf, "curves": curves},
+        styles={"buildings": "<qgis><renderer-v2 type='singleSymbol'/></qgis>"},
+    )
     names = [n for n, _ in pyogrio.list_layers(p)]
     assert set(names) == {"buildings", "curves", "layer_styles"}
     con = sqlite3.connect(p)
@@ -130,11 +136,15 @@ def test_gpkg_mixed_polygons_get_one_declared_type(tmp_path, grid):
     from shapely.geometry import MultiPolygon, box
 
     l, b, _, _ = grid.bounds
-    mixed = gpd.GeoDataFrame({"id": [1, 2]}, geometry=[box(l + 1, b + 1, l + 5, b + 5),
-                                                      MultiPolygon([box(l + 10, b + 10, l + 12, b + 12),
-                                                                    box(l + 14, b + 14, l + 16, b + 16)])],
-                             crs=grid.crs)
+    mixed = gpd.GeoDataFrame(
+        {"id": [1, 2]},
+        geometry=[
+            box(l + 1, b + 1, l + 5, b + 5),
+            MultiPolygon([box(l + 10, b + 10, l + 12, b + 12), box(l + 14, b + 14, l + 16, b + 16)]),
+        ],
+        crs=grid.crs,
+    )
     pure = gpd.GeoDataFrame({"id": [1]}, geometry=[box(l + 1, b + 1, l + 5, b + 5)], crs=grid.crs)
     p = write_gpkg(tmp_path / "m.gpkg", {"changes": mixed, "buildings": pure})
     assert pyogrio.read_info(p, layer="changes")["geometry_type"] == "MultiPolygon"
-    assert pyogrio.read_info(p, layer="buildings")["geometry_type"] == "Polygon"   # footprints keep their type
+    assert pyogrio.read_info(p, layer="buildings")["geometry_type"] == "Polygon"  # footprints keep their type

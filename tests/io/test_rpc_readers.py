@@ -30,9 +30,18 @@ _B_FROM_A = np.argsort(RPC00A_FROM_B)  # a[j] = b[_B_FROM_A[j]]
 # writers: one synthetic model in every vendor format
 # ---------------------------------------------------------------------------------------
 _COEFS = (("LINE_NUM", "line_num"), ("LINE_DEN", "line_den"), ("SAMP_NUM", "samp_num"), ("SAMP_DEN", "samp_den"))
-_NORMS = (("LINE_OFF", "line_off"), ("SAMP_OFF", "samp_off"), ("LAT_OFF", "lat_off"), ("LONG_OFF", "lon_off"),
-          ("HEIGHT_OFF", "height_off"), ("LINE_SCALE", "line_scale"), ("SAMP_SCALE", "samp_scale"),
-          ("LAT_SCALE", "lat_scale"), ("LONG_SCALE", "lon_scale"), ("HEIGHT_SCALE", "height_scale"))
+_NORMS = (
+    ("LINE_OFF", "line_off"),
+    ("SAMP_OFF", "samp_off"),
+    ("LAT_OFF", "lat_off"),
+    ("LONG_OFF", "lon_off"),
+    ("HEIGHT_OFF", "height_off"),
+    ("LINE_SCALE", "line_scale"),
+    ("SAMP_SCALE", "samp_scale"),
+    ("LAT_SCALE", "lat_scale"),
+    ("LONG_SCALE", "lon_scale"),
+    ("HEIGHT_SCALE", "height_scale"),
+)
 _UNITS = {"LINE": "pixels", "SAMP": "pixels", "LAT_": "degrees", "LONG": "degrees", "HEIG": "meters"}
 
 
@@ -51,14 +60,33 @@ def write_ikonos(m: RPCModel, path: Path) -> Path:
 
 
 def write_rpb(m: RPCModel, path: Path, order: str = "B") -> Path:
-    names = {"line_off": "lineOffset", "samp_off": "sampOffset", "lat_off": "latOffset", "lon_off": "longOffset",
-             "height_off": "heightOffset", "line_scale": "lineScale", "samp_scale": "sampScale",
-             "lat_scale": "latScale", "lon_scale": "longScale", "height_scale": "heightScale"}
-    out = ['satId = "WV02";', 'bandId = "P";', f'SpecId = "RPC00{order}";', "BEGIN_GROUP = IMAGE",
-           "\terrBias =   2.50;", "\terrRand =    0.10;"]
+    names = {
+        "line_off": "lineOffset",
+        "samp_off": "sampOffset",
+        "lat_off": "latOffset",
+        "lon_off": "longOffset",
+        "height_off": "heightOffset",
+        "line_scale": "lineScale",
+        "samp_scale": "sampScale",
+        "lat_scale": "latScale",
+        "lon_scale": "longScale",
+        "height_scale": "heightScale",
+    }
+    out = [
+        'satId = "WV02";',
+        'bandId = "P";',
+        f'SpecId = "RPC00{order}";',
+        "BEGIN_GROUP = IMAGE",
+        "\terrBias =   2.50;",
+        "\terrRand =    0.10;",
+    ]
     out += [f"\t{names[a]} = {getattr(m, a)!r};" for _, a in _NORMS]
-    for k, a in (("lineNumCoef", "line_num"), ("lineDenCoef", "line_den"), ("sampNumCoef", "samp_num"),
-                 ("sampDenCoef", "samp_den")):
+    for k, a in (
+        ("lineNumCoef", "line_num"),
+        ("lineDenCoef", "line_den"),
+        ("sampNumCoef", "samp_num"),
+        ("sampDenCoef", "samp_den"),
+    ):
         vals = ",\n\t\t\t".join(f"{v:+.15E}" for v in _coef(m, a, order))
         out.append(f"\t{k} = (\n\t\t\t{vals});")
     out += ["END_GROUP = IMAGE", "END;"]
@@ -67,67 +95,127 @@ def write_rpb(m: RPCModel, path: Path, order: str = "B") -> Path:
 
 
 def write_dg_xml(m: RPCModel, path: Path, *, one_list: bool = True, order: str = "B") -> Path:
-    tags = {"line_off": "LINEOFFSET", "samp_off": "SAMPOFFSET", "lat_off": "LATOFFSET", "lon_off": "LONGOFFSET",
-            "height_off": "HEIGHTOFFSET", "line_scale": "LINESCALE", "samp_scale": "SAMPSCALE",
-            "lat_scale": "LATSCALE", "lon_scale": "LONGSCALE", "height_scale": "HEIGHTSCALE"}
+    tags = {
+        "line_off": "LINEOFFSET",
+        "samp_off": "SAMPOFFSET",
+        "lat_off": "LATOFFSET",
+        "lon_off": "LONGOFFSET",
+        "height_off": "HEIGHTOFFSET",
+        "line_scale": "LINESCALE",
+        "samp_scale": "SAMPSCALE",
+        "lat_scale": "LATSCALE",
+        "lon_scale": "LONGSCALE",
+        "height_scale": "HEIGHTSCALE",
+    }
     body = [f"<{t}>{getattr(m, a)!r}</{t}>" for a, t in tags.items()]
-    for k, a in (("LINENUMCOEF", "line_num"), ("LINEDENCOEF", "line_den"), ("SAMPNUMCOEF", "samp_num"),
-                 ("SAMPDENCOEF", "samp_den")):
+    for k, a in (
+        ("LINENUMCOEF", "line_num"),
+        ("LINEDENCOEF", "line_den"),
+        ("SAMPNUMCOEF", "samp_num"),
+        ("SAMPDENCOEF", "samp_den"),
+    ):
         c = _coef(m, a, order)
-        inner = (f"<{k}>{' '.join(repr(float(v)) for v in c)}</{k}>" if one_list
-                 else "".join(f"<{k}>{float(v)!r}</{k}>" for v in c))
+        inner = (
+            f"<{k}>{' '.join(repr(float(v)) for v in c)}</{k}>"
+            if one_list
+            else "".join(f"<{k}>{float(v)!r}</{k}>" for v in c)
+        )
         body.append(f"<{k}List>{inner}</{k}List>")
-    xml = (f'<?xml version="1.0" encoding="UTF-8"?>\n<isd><IMD><NUMROWS>{m.height}</NUMROWS>'
-           f"<NUMCOLUMNS>{m.width}</NUMCOLUMNS><IMAGE><SATID>WV02</SATID></IMAGE></IMD>"
-           f"<RPB><SATID>WV02</SATID><SPECID>RPC00{order}</SPECID><IMAGE><ERRBIAS>2.5</ERRBIAS>"
-           f"<ERRRAND>0.1</ERRRAND>{''.join(body)}</IMAGE></RPB></isd>\n")
+    xml = (
+        f'<?xml version="1.0" encoding="UTF-8"?>\n<isd><IMD><NUMROWS>{m.height}</NUMROWS>'
+        f"<NUMCOLUMNS>{m.width}</NUMCOLUMNS><IMAGE><SATID>WV02</SATID></IMAGE></IMD>"
+        f"<RPB><SATID>WV02</SATID><SPECID>RPC00{order}</SPECID><IMAGE><ERRBIAS>2.5</ERRBIAS>"
+        f"<ERRRAND>0.1</ERRRAND>{''.join(body)}</IMAGE></RPB></isd>\n"
+    )
     path.write_text(xml)
     return path
 
 
 def write_dimap(m: RPCModel, path: Path) -> Path:
     """DIMAP v2 RPC_*.XML: 1-based pixel offsets; the Direct_Model is a dummy (not read)."""
+
     def block(order_names):
-        return "".join(f"<{k}_COEFF_{i + 1}>{float(v)!r}</{k}_COEFF_{i + 1}>"
-                       for k, a in order_names for i, v in enumerate(getattr(m, a)))
-    inv = block([("SAMP_NUM", "samp_num"), ("SAMP_DEN", "samp_den"), ("LINE_NUM", "line_num"), ("LINE_DEN", "line_den")])
-    val = (f"<LONG_SCALE>{m.lon_scale!r}</LONG_SCALE><LONG_OFF>{m.lon_off!r}</LONG_OFF>"
-           f"<LAT_SCALE>{m.lat_scale!r}</LAT_SCALE><LAT_OFF>{m.lat_off!r}</LAT_OFF>"
-           f"<HEIGHT_SCALE>{m.height_scale!r}</HEIGHT_SCALE><HEIGHT_OFF>{m.height_off!r}</HEIGHT_OFF>"
-           f"<SAMP_SCALE>{m.samp_scale!r}</SAMP_SCALE><SAMP_OFF>{m.samp_off + 1!r}</SAMP_OFF>"
-           f"<LINE_SCALE>{m.line_scale!r}</LINE_SCALE><LINE_OFF>{m.line_off + 1!r}</LINE_OFF>")
-    xml = ('<?xml version="1.0" encoding="UTF-8" standalone="no"?>\n<Dimap_Document><Metadata_Identification>'
-           '<METADATA_FORMAT version="2.15">DIMAP</METADATA_FORMAT><METADATA_PROFILE>PHR_SENSOR</METADATA_PROFILE>'
-           "</Metadata_Identification><Rational_Function_Model><Resource_Reference><RESOURCE_ID>RPC00B</RESOURCE_ID>"
-           "</Resource_Reference><Global_RFM><Direct_Model><SAMP_NUM_COEFF_1>0</SAMP_NUM_COEFF_1></Direct_Model>"
-           f"<Inverse_Model>{inv}<ERR_BIAS_ROW>0.001</ERR_BIAS_ROW></Inverse_Model><RFM_Validity>"
-           f"<Direct_Model_Validity_Domain><FIRST_ROW>1</FIRST_ROW><FIRST_COL>1</FIRST_COL>"
-           f"<LAST_ROW>{m.height}</LAST_ROW><LAST_COL>{m.width}</LAST_COL></Direct_Model_Validity_Domain>"
-           f"{val}</RFM_Validity></Global_RFM></Rational_Function_Model></Dimap_Document>\n")
+        return "".join(
+            f"<{k}_COEFF_{i + 1}>{float(v)!r}</{k}_COEFF_{i + 1}>"
+            for k, a in order_names
+            for i, v in enumerate(getattr(m, a))
+        )
+
+    inv = block(
+        [("SAMP_NUM", "samp_num"), ("SAMP_DEN", "samp_den"), ("LINE_NUM", "line_num"), ("LINE_DEN", "line_den")]
+    )
+    val = (
+        f"<LONG_SCALE>{m.lon_scale!r}</LONG_SCALE><LONG_OFF>{m.lon_off!r}</LONG_OFF>"
+        f"<LAT_SCALE>{m.lat_scale!r}</LAT_SCALE><LAT_OFF>{m.lat_off!r}</LAT_OFF>"
+        f"<HEIGHT_SCALE>{m.height_scale!r}</HEIGHT_SCALE><HEIGHT_OFF>{m.height_off!r}</HEIGHT_OFF>"
+        f"<SAMP_SCALE>{m.samp_scale!r}</SAMP_SCALE><SAMP_OFF>{m.samp_off + 1!r}</SAMP_OFF>"
+        f"<LINE_SCALE>{m.line_scale!r}</LINE_SCALE><LINE_OFF>{m.line_off + 1!r}</LINE_OFF>"
+    )
+    xml = (
+        '<?xml version="1.0" encoding="UTF-8" standalone="no"?>\n<Dimap_Document><Metadata_Identification>'
+        '<METADATA_FORMAT version="2.15">DIMAP</METADATA_FORMAT><METADATA_PROFILE>PHR_SENSOR</METADATA_PROFILE>'
+        "</Metadata_Identification><Rational_Function_Model><Resource_Reference><RESOURCE_ID>RPC00B</RESOURCE_ID>"
+        "</Resource_Reference><Global_RFM><Direct_Model><SAMP_NUM_COEFF_1>0</SAMP_NUM_COEFF_1></Direct_Model>"
+        f"<Inverse_Model>{inv}<ERR_BIAS_ROW>0.001</ERR_BIAS_ROW></Inverse_Model><RFM_Validity>"
+        f"<Direct_Model_Validity_Domain><FIRST_ROW>1</FIRST_ROW><FIRST_COL>1</FIRST_COL>"
+        f"<LAST_ROW>{m.height}</LAST_ROW><LAST_COL>{m.width}</LAST_COL></Direct_Model_Validity_Domain>"
+        f"{val}</RFM_Validity></Global_RFM></Rational_Function_Model></Dimap_Document>\n"
+    )
     path.write_text(xml)
     return path
 
 
 def write_geom(m: RPCModel, path: Path, order: str = "B") -> Path:
-    lines = ["adjustment_0.adj_param_0.center:  0", "bias_error:  2.5", f"height_off:  {m.height_off!r}",
-             f"height_scale:  {m.height_scale!r}", f"lat_off:  {m.lat_off!r}", f"lat_scale:  {m.lat_scale!r}"]
-    for k, a in (("line_den_coeff", "line_den"), ("line_num_coeff", "line_num"), ("samp_den_coeff", "samp_den"),
-                 ("samp_num_coeff", "samp_num")):
+    lines = [
+        "adjustment_0.adj_param_0.center:  0",
+        "bias_error:  2.5",
+        f"height_off:  {m.height_off!r}",
+        f"height_scale:  {m.height_scale!r}",
+        f"lat_off:  {m.lat_off!r}",
+        f"lat_scale:  {m.lat_scale!r}",
+    ]
+    for k, a in (
+        ("line_den_coeff", "line_den"),
+        ("line_num_coeff", "line_num"),
+        ("samp_den_coeff", "samp_den"),
+        ("samp_num_coeff", "samp_num"),
+    ):
         lines += [f"{k}_{i:02d}:  {float(v)!r}" for i, v in enumerate(_coef(m, a, order))]
-    lines += [f"line_off:  {m.line_off!r}", f"line_scale:  {m.line_scale!r}", f"long_off:  {m.lon_off!r}",
-              f"long_scale:  {m.lon_scale!r}", f"number_lines:  {m.height}", f"number_samples:  {m.width}",
-              f"polynomial_format:  {order}", "rand_error:  0.1", f"samp_off:  {m.samp_off!r}",
-              f"samp_scale:  {m.samp_scale!r}", 'support_data.band_name_list:  """P """', "type:  ossimPleiadesModel"]
+    lines += [
+        f"line_off:  {m.line_off!r}",
+        f"line_scale:  {m.line_scale!r}",
+        f"long_off:  {m.lon_off!r}",
+        f"long_scale:  {m.lon_scale!r}",
+        f"number_lines:  {m.height}",
+        f"number_samples:  {m.width}",
+        f"polynomial_format:  {order}",
+        "rand_error:  0.1",
+        f"samp_off:  {m.samp_off!r}",
+        f"samp_scale:  {m.samp_scale!r}",
+        'support_data.band_name_list:  """P """',
+        "type:  ossimPleiadesModel",
+    ]
     path.write_text("\n".join(lines) + "\n")
     return path
 
 
 def write_satnerf(m: RPCModel, path: Path) -> Path:
-    rpc = {"row_offset": m.line_off, "col_offset": m.samp_off, "lat_offset": m.lat_off, "lon_offset": m.lon_off,
-           "alt_offset": m.height_off, "row_scale": m.line_scale, "col_scale": m.samp_scale,
-           "lat_scale": m.lat_scale, "lon_scale": m.lon_scale, "alt_scale": m.height_scale,
-           "row_num": m.line_num.tolist(), "row_den": m.line_den.tolist(), "col_num": m.samp_num.tolist(),
-           "col_den": m.samp_den.tolist()}
+    rpc = {
+        "row_offset": m.line_off,
+        "col_offset": m.samp_off,
+        "lat_offset": m.lat_off,
+        "lon_offset": m.lon_off,
+        "alt_offset": m.height_off,
+        "row_scale": m.line_scale,
+        "col_scale": m.samp_scale,
+        "lat_scale": m.lat_scale,
+        "lon_scale": m.lon_scale,
+        "alt_scale": m.height_scale,
+        "row_num": m.line_num.tolist(),
+        "row_den": m.line_den.tolist(),
+        "col_num": m.samp_num.tolist(),
+        "col_den": m.samp_den.tolist(),
+    }
     path.write_text(json.dumps({"img": "x.tif", "height": m.height, "width": m.width, "rpc": rpc, "min_alt": 0}))
     return path
 
@@ -135,11 +223,24 @@ def write_satnerf(m: RPCModel, path: Path) -> Path:
 def write_orthority(m: RPCModel, path: Path, names=("a.tif", "b.tif")) -> Path:
     import yaml
 
-    rpc = {"height_off": m.height_off, "height_scale": m.height_scale, "lat_off": m.lat_off,
-           "lat_scale": m.lat_scale, "line_den_coeff": m.line_den.tolist(), "line_num_coeff": m.line_num.tolist(),
-           "line_off": m.line_off, "line_scale": m.line_scale, "long_off": m.lon_off, "long_scale": m.lon_scale,
-           "samp_den_coeff": m.samp_den.tolist(), "samp_num_coeff": m.samp_num.tolist(), "samp_off": m.samp_off,
-           "samp_scale": m.samp_scale, "err_bias": 2.5, "err_rand": 0.1}
+    rpc = {
+        "height_off": m.height_off,
+        "height_scale": m.height_scale,
+        "lat_off": m.lat_off,
+        "lat_scale": m.lat_scale,
+        "line_den_coeff": m.line_den.tolist(),
+        "line_num_coeff": m.line_num.tolist(),
+        "line_off": m.line_off,
+        "line_scale": m.line_scale,
+        "long_off": m.lon_off,
+        "long_scale": m.lon_scale,
+        "samp_den_coeff": m.samp_den.tolist(),
+        "samp_num_coeff": m.samp_num.tolist(),
+        "samp_off": m.samp_off,
+        "samp_scale": m.samp_scale,
+        "err_bias": 2.5,
+        "err_rand": 0.1,
+    }
     doc = {}
     for k, name in enumerate(names):
         r = dict(rpc, line_off=m.line_off + 100 * k)  # entries differ so the selection is visible
@@ -197,11 +298,20 @@ WRITERS = {
     "tags.tif": write_tif,
 }
 EXPECTED_FORMAT = {
-    "ikonos_rpc.txt": "RPC text", "wv.RPB": "DigitalGlobe RPB", "wv_a.RPB": "RPC00A reordered",
-    "dg.XML": "DigitalGlobe XML", "dg_elements.XML": "DigitalGlobe XML", "dg_a.XML": "RPC00A reordered",
-    "RPC_PHR1A_TEST.XML": "DIMAP", "scene.geom": "polynomial_format B", "scene_a.geom": "polynomial_format A",
-    "satnerf.json": "Sat-NeRF", "rpc_param.yaml": "orthority YAML", "model.rpc.json": "geocd JSON",
-    "model.rpc.yaml": "geocd YAML", "tags.tif": "GeoTIFF RPC tags",
+    "ikonos_rpc.txt": "RPC text",
+    "wv.RPB": "DigitalGlobe RPB",
+    "wv_a.RPB": "RPC00A reordered",
+    "dg.XML": "DigitalGlobe XML",
+    "dg_elements.XML": "DigitalGlobe XML",
+    "dg_a.XML": "RPC00A reordered",
+    "RPC_PHR1A_TEST.XML": "DIMAP",
+    "scene.geom": "polynomial_format B",
+    "scene_a.geom": "polynomial_format A",
+    "satnerf.json": "Sat-NeRF",
+    "rpc_param.yaml": "orthority YAML",
+    "model.rpc.json": "geocd JSON",
+    "model.rpc.yaml": "geocd YAML",
+    "tags.tif": "GeoTIFF RPC tags",
 }
 
 
@@ -436,18 +546,21 @@ def test_an_implausible_coefficient_is_named_even_when_the_model_cannot_be_built
     _expect_parse_error(written["ikonos_rpc.txt"], "singular affine part")
 
 
-@pytest.mark.parametrize("content,needle", [
-    ("", "not an RPC file"),
-    ("hello world\n", "not an RPC file"),
-    ("<Dimap_Document><Rational_Function_Model/></Dimap_Document>", "lacks"),
-    ("<isd><IMD/></isd>", "XML file without an RPC"),
-    ("<isd><RPB><IMAGE><LINEOFFSET>1</LINEOFFSET>", "not well-formed XML"),
-    ("[1, 2, 3]", "not an RPC description"),
-    ('{"rpc": {"row_offset": 1}}', "lacks"),
-    ("{\"rpc\": ", "not valid JSON"),
-    ("polynomial_format:  C\nline_num_coeff_00: 1\n", "polynomial_format"),
-    ("a:\n  - [1, 2\n", "not valid YAML"),
-])
+@pytest.mark.parametrize(
+    "content,needle",
+    [
+        ("", "not an RPC file"),
+        ("hello world\n", "not an RPC file"),
+        ("<Dimap_Document><Rational_Function_Model/></Dimap_Document>", "lacks"),
+        ("<isd><IMD/></isd>", "XML file without an RPC"),
+        ("<isd><RPB><IMAGE><LINEOFFSET>1</LINEOFFSET>", "not well-formed XML"),
+        ("[1, 2, 3]", "not an RPC description"),
+        ('{"rpc": {"row_offset": 1}}', "lacks"),
+        ('{"rpc": ', "not valid JSON"),
+        ("polynomial_format:  C\nline_num_coeff_00: 1\n", "polynomial_format"),
+        ("a:\n  - [1, 2\n", "not valid YAML"),
+    ],
+)
 def test_garbled_inputs(content, needle, tmp_path):
     p = tmp_path / "weird.dat"
     p.write_text(content)
@@ -471,7 +584,7 @@ def _mutate(data: bytes, how: str, pos: float, payload: bytes, count: int, rnd: 
     if how == "insert":
         return data[:i] + payload + data[i:]
     if how == "delete":
-        return data[:i] + data[i + count:]
+        return data[:i] + data[i + count :]
     # flip `count` random bytes
     b = bytearray(data)
     for j in rnd.integers(0, max(n, 1), size=count):
@@ -539,8 +652,16 @@ def test_property_corrupted_real_text_files(which, mutation, tmp_path_factory):
 
 @pytest.mark.realdata
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(which=st.sampled_from([w for w in _REAL_BINARY if w[1] in ("wv3_20.NTF", "qb2_basic1b.tif")
-                              or w[0] in ("rpc_samples/shareloc", "s2p_pleiades/input_pair")]), mutation=_mutations)
+@given(
+    which=st.sampled_from(
+        [
+            w
+            for w in _REAL_BINARY
+            if w[1] in ("wv3_20.NTF", "qb2_basic1b.tif") or w[0] in ("rpc_samples/shareloc", "s2p_pleiades/input_pair")
+        ]
+    ),
+    mutation=_mutations,
+)
 def test_property_corrupted_real_rasters(which, mutation, tmp_path_factory):
     _check_mutation(shared_data(*which), tmp_path_factory.mktemp("mut"), mutation, binary=True)
 
@@ -549,8 +670,13 @@ def test_property_corrupted_real_rasters(which, mutation, tmp_path_factory):
 # real samples
 # ---------------------------------------------------------------------------------------
 _REAL_FORMAT = {
-    ".TXT": "RPC text", ".txt": "RPC text", ".json": "Sat-NeRF/DFC2019 JSON", ".geom": "OSSIM .geom",
-    ".tif": "GeoTIFF RPC tags", ".NTF": "NITF RPC00B TRE", ".yaml": "orthority YAML",
+    ".TXT": "RPC text",
+    ".txt": "RPC text",
+    ".json": "Sat-NeRF/DFC2019 JSON",
+    ".geom": "OSSIM .geom",
+    ".tif": "GeoTIFF RPC tags",
+    ".NTF": "NITF RPC00B TRE",
+    ".yaml": "orthority YAML",
 }
 
 
@@ -635,12 +761,18 @@ def test_real_ventoux_geom_crop_matches_dimap():
 
 
 @pytest.mark.realdata
-@pytest.mark.parametrize("folder,name", [
-    ("s2p_pleiades/input_pair", "img_01.tif"), ("s2p_pleiades/input_pair", "img_02.tif"),
-    ("s2p_pleiades/input_triplet", "img_01.tif"), ("s2p_pleiades/input_triplet", "img_02.tif"),
-    ("s2p_pleiades/input_triplet", "img_03.tif"), ("rpc_samples/shareloc", "wv3_20.NTF"),
-    ("orthority_baviaans_aerial_qb2/rpc", "qb2_basic1b.tif"),
-])
+@pytest.mark.parametrize(
+    "folder,name",
+    [
+        ("s2p_pleiades/input_pair", "img_01.tif"),
+        ("s2p_pleiades/input_pair", "img_02.tif"),
+        ("s2p_pleiades/input_triplet", "img_01.tif"),
+        ("s2p_pleiades/input_triplet", "img_02.tif"),
+        ("s2p_pleiades/input_triplet", "img_03.tif"),
+        ("rpc_samples/shareloc", "wv3_20.NTF"),
+        ("orthority_baviaans_aerial_qb2/rpc", "qb2_basic1b.tif"),
+    ],
+)
 def test_real_images_load_their_tags(folder, name):
     import rasterio
 

@@ -41,7 +41,7 @@ def test_patch_mean_variance_reference():
     F = pixel_features(img, np.ones((15, 17), bool), spec)
     g = (img[0] - img.min()) / (img.max() - img.min())
     for r, c in [(5, 5), (7, 9), (2, 2)]:
-        w = g[r - 2:r + 3, c - 2:c + 3]
+        w = g[r - 2 : r + 3, c - 2 : c + 3]
         assert F[1, r, c] == pytest.approx(w.mean(), abs=1e-5)
         assert F[2, r, c] == pytest.approx(w.var(), abs=1e-5)
 
@@ -82,11 +82,12 @@ def test_model_roundtrip_and_spec_check(tmp_path):
     path = save_model(m, tmp_path / "m.joblib")
     m2 = load_model(path)
     assert m2.classes == ["other", "vegetation"] and m2.feature_names == m.feature_names
-    np.testing.assert_array_equal(predict_proba(m, F, np.ones(y.shape, bool)),
-                                  predict_proba(m2, F, np.ones(y.shape, bool)))
+    np.testing.assert_array_equal(
+        predict_proba(m, F, np.ones(y.shape, bool)), predict_proba(m2, F, np.ones(y.shape, bool))
+    )
     d = joblib.load(path)
     d["feature_names"] = d["feature_names"][:-1]
-    joblib.dump(d, tmp_path / "bad.joblib")   # files geocd did not write: loaded only when trusted
+    joblib.dump(d, tmp_path / "bad.joblib")  # files geocd did not write: loaded only when trusted
     with pytest.raises(UnsupportedFormatError, match="feature list"), pytest.warns(UserWarning, match="trust"):
         load_model(tmp_path / "bad.joblib", trust=True)
     d["geocd_landcover_model"] = 99
@@ -120,7 +121,7 @@ def test_a_model_geocd_did_not_write_is_not_unpickled(tmp_path, monkeypatch):
     path = save_model(m, tmp_path / "m.joblib")
     assert trust.sha256_of(path.read_bytes()) in trust.trusted_digests()
     with warnings.catch_warnings():
-        warnings.simplefilter("error")   # a model geocd wrote loads without a word
+        warnings.simplefilter("error")  # a model geocd wrote loads without a word
         assert load_model(path).classes == m.classes
     marker = tmp_path / "pwned"
     evil = tmp_path / "evil.joblib"
@@ -176,8 +177,9 @@ def test_labels_pixel_coordinates_qgis_sign(tmp_path):
     from affine import Affine
     from shapely.geometry import box
 
-    down = gpd.GeoDataFrame({"label": ["a", "b"], "polygon_id": [0, 1]},
-                            geometry=[box(2, 3, 6, 8), box(10, 10, 14, 12)])
+    down = gpd.GeoDataFrame(
+        {"label": ["a", "b"], "polygon_id": [0, 1]}, geometry=[box(2, 3, 6, 8), box(10, 10, 14, 12)]
+    )
     up = down.copy()
     up["geometry"] = [box(2, -8, 6, -3), box(10, -12, 14, -10)]  # as QGIS shows an un-georeferenced raster
     c1, p1 = rasterize_labels(pixel_layer_rows(down, (16, 16)), (16, 16), Affine.identity(), ["a", "b"])
@@ -192,8 +194,9 @@ def test_read_labels_fields(tmp_path):
     from shapely.geometry import box
 
     p = tmp_path / "l.gpkg"
-    gpd.GeoDataFrame({"KIND": ["veg", "road"]}, geometry=[box(0, 0, 1, 1), box(2, 2, 3, 3)],
-                     crs="EPSG:32631").to_file(p)
+    gpd.GeoDataFrame({"KIND": ["veg", "road"]}, geometry=[box(0, 0, 1, 1), box(2, 2, 3, 3)], crs="EPSG:32631").to_file(
+        p
+    )
     with pytest.raises(ConfigError, match="no class attribute"):
         read_labels(p)
     g = read_labels(p, class_field="KIND")
@@ -222,8 +225,9 @@ def test_labels_outside_every_image(tmp_path):
 
     paths = write_scene(tmp_path)
     far = tmp_path / "far.gpkg"
-    gpd.GeoDataFrame({"class": ["vegetation", "other"]},
-                     geometry=[box(0, 0, 10, 10), box(20, 20, 30, 30)], crs="EPSG:32631").to_file(far)
+    gpd.GeoDataFrame(
+        {"class": ["vegetation", "other"]}, geometry=[box(0, 0, 10, 10), box(20, 20, 30, 30)], crs="EPSG:32631"
+    ).to_file(far)
     lab = read_labels(far)
     with pytest.raises(LabelError, match="none of the 2 label polygons falls on a valid pixel"):
         training_set(lab, [load_image(paths["image"])], class_list(lab), FeatureSpec())

@@ -23,8 +23,20 @@ def trained(tmp_path_factory):
     d = tmp_path_factory.mktemp("lc")
     paths = write_scene(d)
     model = d / "model.joblib"
-    r = _run(["landcover", "train", "--labels", str(paths["labels"]), "--image", str(paths["image"]),
-              "--positive", "vegetation", "--out", str(model)])
+    r = _run(
+        [
+            "landcover",
+            "train",
+            "--labels",
+            str(paths["labels"]),
+            "--image",
+            str(paths["image"]),
+            "--positive",
+            "vegetation",
+            "--out",
+            str(model),
+        ]
+    )
     assert r.exit_code == 0, r.output
     return d, paths, model
 
@@ -41,8 +53,20 @@ def test_train_writes_model_and_report(trained):
 def test_predict_and_integrate(trained):
     d, paths, model = trained
     out = d / "pred"
-    r = _run(["landcover", "predict", "--model", str(model), "--image", str(paths["image"]), "--dem",
-              str(paths["dem"]), "--out", str(out)])
+    r = _run(
+        [
+            "landcover",
+            "predict",
+            "--model",
+            str(model),
+            "--image",
+            str(paths["image"]),
+            "--dem",
+            str(paths["dem"]),
+            "--out",
+            str(out),
+        ]
+    )
     assert r.exit_code == 0, r.output
     with rasterio.open(out / "landcover_ortho_proba.tif") as ds:
         assert ds.count == 2 and ds.descriptions == ("p_other", "p_vegetation")
@@ -61,11 +85,34 @@ def test_predict_and_integrate(trained):
         with rasterio.open(d / name, "w", **{**profile, "count": 1}) as ds:
             ds.write(a, 1)
     out2 = d / "gp"
-    r = _run(["landcover", "integrate", "--detailed", str(d / "det.tif"), "--coarse", str(d / "coarse.tif"),
-              "--dem", str(paths["dem"]), "--n-fit", "200", "--inducing", "150", "--class-name", "vegetation",
-              "--calibrate-folds", "3",
-              "--truth", str(paths["truth"]), "--truth-values", "1", "--exclude-labels", str(paths["labels"]),
-              "--out", str(out2)])
+    r = _run(
+        [
+            "landcover",
+            "integrate",
+            "--detailed",
+            str(d / "det.tif"),
+            "--coarse",
+            str(d / "coarse.tif"),
+            "--dem",
+            str(paths["dem"]),
+            "--n-fit",
+            "200",
+            "--inducing",
+            "150",
+            "--class-name",
+            "vegetation",
+            "--calibrate-folds",
+            "3",
+            "--truth",
+            str(paths["truth"]),
+            "--truth-values",
+            "1",
+            "--exclude-labels",
+            str(paths["labels"]),
+            "--out",
+            str(out2),
+        ]
+    )
     assert r.exit_code == 0, r.output
     with rasterio.open(out2 / "landcover_probability.tif") as ds:
         assert ds.descriptions == ("p_vegetation",)
@@ -79,8 +126,10 @@ def test_predict_and_integrate(trained):
     assert np.median(sd[:, 80:]) > np.median(sd[:, :60])
     ab = json.loads((out2 / "landcover_ablation.json").read_text())
     assert ab["coarse alone (all cells)"]["f1_at_recall"] > 0.6
-    assert ab["GP: detailed + coarse + xy (all cells)"]["f1_at_recall"] >= ab["coarse alone (all cells)"][
-        "f1_at_recall"] - 0.02
+    assert (
+        ab["GP: detailed + coarse + xy (all cells)"]["f1_at_recall"]
+        >= ab["coarse alone (all cells)"]["f1_at_recall"] - 0.02
+    )
     assert 0 < ab["observed_fraction"] < 1
     assert (out2 / "landcover_ablation.png").stat().st_size > 1000
 
@@ -92,19 +141,52 @@ def test_bad_inputs_are_clear_errors(trained, tmp_path):
     d, paths, model = trained
     one = tmp_path / "one.gpkg"
     gpd.GeoDataFrame({"class": ["vegetation"]}, geometry=[box(500005, 4799910, 500015, 4799930)], crs=CRS).to_file(one)
-    r = _run(["landcover", "train", "--labels", str(one), "--image", str(paths["image"]), "--out",
-              str(tmp_path / "m.joblib")])
+    r = _run(
+        [
+            "landcover",
+            "train",
+            "--labels",
+            str(one),
+            "--image",
+            str(paths["image"]),
+            "--out",
+            str(tmp_path / "m.joblib"),
+        ]
+    )
     assert r.exit_code == 2 and "single class" in r.output
     far = tmp_path / "far.gpkg"
     gpd.GeoDataFrame({"class": ["a", "b"]}, geometry=[box(0, 0, 5, 5), box(10, 10, 20, 20)], crs=CRS).to_file(far)
-    r = _run(["landcover", "train", "--labels", str(far), "--image", str(paths["image"]), "--out",
-              str(tmp_path / "m.joblib")])
+    r = _run(
+        [
+            "landcover",
+            "train",
+            "--labels",
+            str(far),
+            "--image",
+            str(paths["image"]),
+            "--out",
+            str(tmp_path / "m.joblib"),
+        ]
+    )
     assert r.exit_code == 2 and "falls on a valid pixel of any image" in r.output
     tiny = tmp_path / "tiny.gpkg"
-    gpd.GeoDataFrame({"class": ["a", "b"]}, geometry=[box(500005, 4799990, 500007, 4799992),
-                                                      box(500060, 4799990, 500062, 4799992)], crs=CRS).to_file(tiny)
-    r = _run(["landcover", "train", "--labels", str(tiny), "--image", str(paths["image"]), "--out",
-              str(tmp_path / "m.joblib")])
+    gpd.GeoDataFrame(
+        {"class": ["a", "b"]},
+        geometry=[box(500005, 4799990, 500007, 4799992), box(500060, 4799990, 500062, 4799992)],
+        crs=CRS,
+    ).to_file(tiny)
+    r = _run(
+        [
+            "landcover",
+            "train",
+            "--labels",
+            str(tiny),
+            "--image",
+            str(paths["image"]),
+            "--out",
+            str(tmp_path / "m.joblib"),
+        ]
+    )
     assert r.exit_code == 2 and "labelled pixels for 17 features" in r.output
     assert not (tmp_path / "m.joblib").exists()
     r = _run(["landcover", "integrate", "--detailed", str(paths["image"]), "--out", str(tmp_path / "o")])

@@ -10,8 +10,15 @@ from geocd.landcover.gp import GPHyper, GPParams, SparseGP, choose_inducing, exa
 
 
 def _hyper(d=3):
-    return GPHyper(length_scales=np.array([0.8, 1.5, 3.0][:d]), signal_var=0.09, noise_var=0.004,
-                   x_mean=np.zeros(d), x_std=np.ones(d), y_mean=0.4, names=[f"x{i}" for i in range(d)])
+    return GPHyper(
+        length_scales=np.array([0.8, 1.5, 3.0][:d]),
+        signal_var=0.09,
+        noise_var=0.004,
+        x_mean=np.zeros(d),
+        x_std=np.ones(d),
+        y_mean=0.4,
+        names=[f"x{i}" for i in range(d)],
+    )
 
 
 def _data(n=300, d=3, seed=0):
@@ -118,8 +125,11 @@ def test_marginal_likelihood_fit_matches_scikit_learn():
     g = GaussianProcessRegressor(k, n_restarts_optimizer=2, random_state=0).fit(Xs, ys)
     ours = h.log_marginal_likelihood
     assert ours >= g.log_marginal_likelihood_value_ - 0.05
-    np.testing.assert_allclose(g.log_marginal_likelihood(np.log(np.r_[h.signal_var / y.var(), h.length_scales,
-                                                                      h.noise_var / y.var()])), ours, atol=1e-6)
+    np.testing.assert_allclose(
+        g.log_marginal_likelihood(np.log(np.r_[h.signal_var / y.var(), h.length_scales, h.noise_var / y.var()])),
+        ours,
+        atol=1e-6,
+    )
 
 
 def test_nll_gradient_is_exact():
@@ -135,9 +145,17 @@ def test_nll_gradient_is_exact():
 
 
 def _additive_hyper():
-    return GPHyper(length_scales=np.array([0.5, 0.5, 0.3]), signal_var=0.09, noise_var=0.002, x_mean=np.zeros(3),
-                   x_std=np.ones(3), y_mean=0.5, names=["x", "y", "coarse"], groups=[[0, 1], [2]],
-                   signal_vars=[0.03, 0.06])
+    return GPHyper(
+        length_scales=np.array([0.5, 0.5, 0.3]),
+        signal_var=0.09,
+        noise_var=0.002,
+        x_mean=np.zeros(3),
+        x_std=np.ones(3),
+        y_mean=0.5,
+        names=["x", "y", "coarse"],
+        groups=[[0, 1], [2]],
+        signal_vars=[0.03, 0.06],
+    )
 
 
 def test_additive_sparse_with_all_points_is_exact():

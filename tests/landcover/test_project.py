@@ -6,8 +6,14 @@ import numpy as np
 import pytest
 
 from geocd.geodesy import AOIGrid
-from geocd.landcover.project import (ProjectedView, building_surface, cell_pixels, combine_views, grid_to_image,
-                                     project_view)
+from geocd.landcover.project import (
+    ProjectedView,
+    building_surface,
+    cell_pixels,
+    combine_views,
+    grid_to_image,
+    project_view,
+)
 
 CRS = "EPSG:32631"
 E0, N0 = 500000.0, 4800000.0
@@ -43,8 +49,15 @@ def test_rays_meet_the_building_not_the_ground_behind():
     dem = np.full(g.shape, 100.0)
     surf, _ = building_surface(dem, g, _building())
     # camera 40 m above ground, 60 m east of the block's centre, looking west-down (about 56° off nadir)
-    cam = FrameCamera(width=400, height=400, focal_px=300.0, position=(E0 + 90.0, N0 + 30.0, 140.0),
-                      opk_deg=(0.0, 56.0, 0.0), crs=CRS, vertical_datum="ellipsoid")
+    cam = FrameCamera(
+        width=400,
+        height=400,
+        focal_px=300.0,
+        position=(E0 + 90.0, N0 + 30.0, 140.0),
+        opk_deg=(0.0, 56.0, 0.0),
+        crs=CRS,
+        vertical_datum="ellipsoid",
+    )
     prob = np.full((400, 400), 0.7, np.float32)
     v = project_view(prob, cam, g, surf, name="oblique")
     rows, cols = np.indices(g.shape)
@@ -65,10 +78,16 @@ def test_rays_meet_the_building_not_the_ground_behind():
 
 
 def test_combine_views_weighted():
-    a = ProjectedView(values=np.array([[0.2, np.nan]], np.float32), observed=np.array([[True, False]]),
-                      weight=np.array([[1.0, 0.0]], np.float32))
-    b = ProjectedView(values=np.array([[0.8, np.nan]], np.float32), observed=np.array([[True, False]]),
-                      weight=np.array([[3.0, 0.0]], np.float32))
+    a = ProjectedView(
+        values=np.array([[0.2, np.nan]], np.float32),
+        observed=np.array([[True, False]]),
+        weight=np.array([[1.0, 0.0]], np.float32),
+    )
+    b = ProjectedView(
+        values=np.array([[0.8, np.nan]], np.float32),
+        observed=np.array([[True, False]]),
+        weight=np.array([[3.0, 0.0]], np.float32),
+    )
     m, w, n = combine_views([a, b])
     assert m[0, 0] == pytest.approx(0.65) and np.isnan(m[0, 1])
     assert w[0, 0] == 4.0 and n.tolist() == [[2, 0]]
@@ -79,8 +98,15 @@ def test_cell_pixels_and_back():
 
     g = _grid()
     dem = np.full(g.shape, 100.0)
-    cam = FrameCamera(width=120, height=120, focal_px=1000.0, position=(E0 + 30.0, N0 + 30.0, 600.0),
-                      opk_deg=(0.0, 0.0, 0.0), crs=CRS, vertical_datum="ellipsoid")
+    cam = FrameCamera(
+        width=120,
+        height=120,
+        focal_px=1000.0,
+        position=(E0 + 30.0, N0 + 30.0, 600.0),
+        opk_deg=(0.0, 0.0, 0.0),
+        crs=CRS,
+        vertical_datum="ellipsoid",
+    )
     rows, cols, obs = cell_pixels(cam, g, dem, (120, 120))
     assert obs.all()
     # nadir, 0.5 m pixels, north up: cell (r, c) is seen near pixel (2r + 1, 2c + 1)

@@ -21,15 +21,22 @@ def run(sample_aoi_path) -> dict:
     from geocd.landcover.features import FeatureSpec
     from geocd.landcover.gp import GPParams, integrate
     from geocd.landcover.labels import class_list, rasterize_labels, read_labels
-    from geocd.landcover.pipeline import gp_inputs, load_image, load_scene, predict_image, project_probability, \
-        training_set
+    from geocd.landcover.pipeline import (
+        gp_inputs,
+        load_image,
+        load_scene,
+        predict_image,
+        project_probability,
+        training_set,
+    )
     from geocd.landcover.report import f1_at_recall
     from geocd.synth.truth import VEGETATION_CODES
 
     warnings.simplefilter("ignore")
     root = sample_aoi_path
-    scene = load_scene(manifest=root / "scene.yaml", footprints=str(root / "truth" / "footprints_A.gpkg"),
-                       posting_m=1.0)
+    scene = load_scene(
+        manifest=root / "scene.yaml", footprints=str(root / "truth" / "footprints_A.gpkg"), posting_m=1.0
+    )
     g = scene.grid
     cover, g05 = read_band(root / "truth" / "cover_A.tif")
     truth = reproject_array(np.isin(cover, VEGETATION_CODES).astype(np.float32), g05, g, "average")
@@ -50,7 +57,7 @@ def run(sample_aoi_path) -> dict:
         maps[name] = v.values
     # the detailed view sees the western 40 % of the AOI only
     det = maps["A_air2"].copy()
-    det[:, int(0.4 * g.width):] = np.nan
+    det[:, int(0.4 * g.width) :] = np.nan
     unobs = ev & ~np.isfinite(det)
     p = GPParams(n_fit=200, n_inducing=200)
     for key, use in (("gp_xy", ("xy",)), ("gp_all", ("xy", "coarse", "dem", "buildings"))):

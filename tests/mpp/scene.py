@@ -9,7 +9,7 @@ POSTING = 0.5
 
 
 def _rect_mask(shape, cx, cy, L, l, th):
-    ii, jj = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    ii, jj = np.mgrid[0 : shape[0], 0 : shape[1]].astype(float)
     c, s = np.cos(th), np.sin(th)
     u = (jj - cx) * c - (ii - cy) * s
     v = (jj - cx) * s + (ii - cy) * c
@@ -32,8 +32,14 @@ def make_pair(seed: int = 0, size: int = 200, colour: bool = False, trees: bool 
     """
     rng = np.random.default_rng(seed)
     shape = (size, size)
-    blds = [(45, 50, 26, 18, 0.2), (140, 45, 30, 20, 0.2), (60, 140, 22, 22, 0.25), (150, 135, 34, 18, 0.2),
-            (100, 95, 20, 16, 0.22), (100, 170, 28, 18, 0.2)]
+    blds = [
+        (45, 50, 26, 18, 0.2),
+        (140, 45, 30, 20, 0.2),
+        (60, 140, 22, 22, 0.25),
+        (150, 135, 34, 18, 0.2),
+        (100, 95, 20, 16, 0.22),
+        (100, 170, 28, 18, 0.2),
+    ]
     ground = 100.0 + 0.01 * np.arange(size)[None, :] + np.zeros(shape)
     tex = ndimage.gaussian_filter(rng.normal(0, 1, shape), 1.5)
     tex = 110 + 25 * tex / tex.std()
@@ -52,15 +58,15 @@ def make_pair(seed: int = 0, size: int = 200, colour: bool = False, trees: bool 
         crowns = np.zeros(shape, bool)
         if trees:
             ii, jj = np.mgrid[0:size, 0:size].astype(float)
-            trng = np.random.default_rng(100 + seed)          # the same trees on both dates
+            trng = np.random.default_rng(100 + seed)  # the same trees on both dates
             for cx, cy, r in TREES:
-                d2 = ((jj - cx) ** 2 + (ii - cy) ** 2) / r ** 2
+                d2 = ((jj - cx) ** 2 + (ii - cy) ** 2) / r**2
                 m = d2 <= 1.0
                 crowns |= m
                 shadow |= (ndimage.shift(m.astype(float), sun, order=0) > 0.5) & ~m
             tree_h = np.zeros(shape)
             for cx, cy, r in TREES:
-                d2 = ((jj - cx) ** 2 + (ii - cy) ** 2) / r ** 2
+                d2 = ((jj - cx) ** 2 + (ii - cy) ** 2) / r**2
                 tree_h = np.maximum(tree_h, np.where(d2 <= 1.0, 6.0 * np.sqrt(np.clip(1 - d2, 0, 1)) + 2.0, 0.0))
             tree_h += np.where(crowns, trng.normal(0.0, 1.0, shape), 0.0)
             leaf = 80 + 30 * trng.random(shape)
@@ -99,7 +105,7 @@ def make_mound(seed: int = 0, size: int = 160):
     img[b & (v >= 0)] = 200
     img[b & (v < 0)] = 165
     ii, jj = np.mgrid[0:size, 0:size].astype(float)
-    d = np.maximum(np.maximum(np.abs(jj - 108) - 12, np.abs(ii - 108) - 9), 0.0)   # cells from a 24 × 18 top
+    d = np.maximum(np.maximum(np.abs(jj - 108) - 12, np.abs(ii - 108) - 9), 0.0)  # cells from a 24 × 18 top
     mound = np.clip(5.0 - 0.3 * POSTING * d, 0.0, None)
     dsm += mound
     img[mound > 2.0] = 185

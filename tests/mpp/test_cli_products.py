@@ -37,9 +37,28 @@ def test_cli_two_images(tmp_path):
     s = make_pair(0)
     pa, pb, da, db = _write(tmp_path, s)
     out = tmp_path / "out"
-    r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pb),
-                                  "--dsm-a", str(da), "--dsm-b", str(db), "--out", str(out), "--max-iter", "60",
-                                  "--seed", "2"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "mpp",
+            "--image-a",
+            str(pa),
+            "--image-b",
+            str(pb),
+            "--dsm-a",
+            str(da),
+            "--dsm-b",
+            str(db),
+            "--out",
+            str(out),
+            "--max-iter",
+            "60",
+            "--seed",
+            "2",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert "resampled" in r.output and "grey image" in r.output
     layers = [x[0] for x in pyogrio.list_layers(out / "mpp_buildings.gpkg")]
@@ -61,13 +80,34 @@ def test_cli_two_images(tmp_path):
     assert "categorizedSymbol" in styles["styleQML"].iloc[0]
     # the same seed gives the same rectangles
     out2 = tmp_path / "out2"
-    r2 = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pb),
-                                   "--dsm-a", str(da), "--dsm-b", str(db), "--out", str(out2), "--max-iter", "60",
-                                   "--seed", "2"])
+    r2 = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "mpp",
+            "--image-a",
+            str(pa),
+            "--image-b",
+            str(pb),
+            "--dsm-a",
+            str(da),
+            "--dsm-b",
+            str(db),
+            "--out",
+            str(out2),
+            "--max-iter",
+            "60",
+            "--seed",
+            "2",
+        ],
+    )
     assert r2.exit_code == 0, r2.output
     rects2 = pyogrio.read_dataframe(out2 / "mpp_buildings.gpkg", layer="rectangles")
-    np.testing.assert_allclose(rects2[["length_m", "width_m", "orientation_deg"]].to_numpy(),
-                               rects[["length_m", "width_m", "orientation_deg"]].to_numpy())
+    np.testing.assert_allclose(
+        rects2[["length_m", "width_m", "orientation_deg"]].to_numpy(),
+        rects[["length_m", "width_m", "orientation_deg"]].to_numpy(),
+    )
 
 
 def test_cli_bad_inputs(tmp_path):
@@ -75,13 +115,28 @@ def test_cli_bad_inputs(tmp_path):
     pa, pb, da, db = _write(tmp_path, s)
     r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa)])
     assert r.exit_code != 0 and "--image-b" in r.output
-    r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pb),
-                                  "--dsm-a", str(da), "--out", str(tmp_path / "o")])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "mpp",
+            "--image-a",
+            str(pa),
+            "--image-b",
+            str(pb),
+            "--dsm-a",
+            str(da),
+            "--out",
+            str(tmp_path / "o"),
+        ],
+    )
     assert r.exit_code != 0 and "both dates" in r.output
     far = AOIGrid("EPSG:32631", Affine(POSTING, 0, 300000.0, 0, -POSTING, 4000000.0), 50, 50)
     pf = write_cog(tmp_path / "far.tif", np.ones((50, 50), np.float32), far)
-    r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pf),
-                                  "--out", str(tmp_path / "o")])
+    r = CliRunner().invoke(
+        main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pf), "--out", str(tmp_path / "o")]
+    )
     assert r.exit_code != 0 and "overlap" in r.output
 
 
@@ -94,8 +149,17 @@ def test_a_smoothed_dsm_is_named_in_a_warning(tmp_path):
 
     def dsm(name, tags):
         p = tmp_path / name
-        with rasterio.open(p, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32", crs="EPSG:32631",
-                           transform=from_origin(500000, 4800000, 0.5, 0.5)) as ds:
+        with rasterio.open(
+            p,
+            "w",
+            driver="GTiff",
+            width=4,
+            height=4,
+            count=1,
+            dtype="float32",
+            crs="EPSG:32631",
+            transform=from_origin(500000, 4800000, 0.5, 0.5),
+        ) as ds:
             ds.write(np.zeros((1, 4, 4), np.float32))
             ds.update_tags(**tags)
         return p
@@ -105,9 +169,11 @@ def test_a_smoothed_dsm_is_named_in_a_warning(tmp_path):
     pair_window = dsm("pair_w.tif", {"meta": json.dumps({"params": {"window": 7, "surface_median": None}})})
     pair_off = dsm("pair_1.tif", {"meta": json.dumps({"params": {"window": 7, "surface_median": 1}})})
     other = dsm("other.tif", {})
-    pair_old = dsm("pair_old.tif", {"meta": json.dumps({"params": {"window": 7}})})   # before the median existed
+    pair_old = dsm("pair_old.tif", {"meta": json.dumps({"params": {"window": 7}})})  # before the median existed
     assert [dsm_smoothing(p) for p in (ortho7, ortho1, pair_window, pair_off, other, pair_old)] == [7, 1, 7, 1, None, 1]
-    with pytest.warns(UserWarning, match=r"ortho7\.tif was made with a 7-cell surface median.*geocd stereo --surface-median 1"):
+    with pytest.warns(
+        UserWarning, match=r"ortho7\.tif was made with a 7-cell surface median.*geocd stereo --surface-median 1"
+    ):
         notes = _warn_smoothed([ortho7, ortho1, other, None])
     assert len(notes) == 1
 
@@ -124,19 +190,41 @@ def test_the_filled_band_of_a_given_dsm_is_read(tmp_path):
     grid = AOIGrid("EPSG:32631", Affine(POSTING, 0, 374000.0, 0, -POSTING, 4824000.0), 200, 200)
     cx, cy = s["buildings"][3][:2]
     filled = np.zeros((200, 200), bool)
-    filled[cy - 5:cy + 5, cx - 4:cx + 6] = True
+    filled[cy - 5 : cy + 5, cx - 4 : cx + 6] = True
     paths = []
     for k in ("a", "b"):
         h = s[f"dsm_{k}"].copy()
         h[filled] = s["ground"][filled]
-        paths.append(write_cog(tmp_path / f"ortho_dsm_{k}.tif", {"height_m": h.astype(np.float32),
-                                                              "filled": filled.astype(np.float32)}, grid))
+        paths.append(
+            write_cog(
+                tmp_path / f"ortho_dsm_{k}.tif",
+                {"height_m": h.astype(np.float32), "filled": filled.astype(np.float32)},
+                grid,
+            )
+        )
     assert np.array_equal(_filled_band(paths[0], grid), filled)
     assert _filled_band(da, grid) is None
     out = tmp_path / "o"
-    r = CliRunner().invoke(main, ["--progress", "none", "mpp", "--image-a", str(pa), "--image-b", str(pb),
-                                  "--dsm-a", str(paths[0]), "--dsm-b", str(paths[1]), "--out", str(out),
-                                  "--max-iter", "60"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "mpp",
+            "--image-a",
+            str(pa),
+            "--image-b",
+            str(pb),
+            "--dsm-a",
+            str(paths[0]),
+            "--dsm-b",
+            str(paths[1]),
+            "--out",
+            str(out),
+            "--max-iter",
+            "60",
+        ],
+    )
     assert r.exit_code == 0, r.output
     notes = json.loads((out / "mpp_summary.json").read_text())["notes"]
     assert any("inside raised surfaces" in n and f"{filled.sum()} cells on date A" in n for n in notes), notes
@@ -154,8 +242,15 @@ def test_the_two_rectangles_of_an_l_are_one_building():
     ell = l_pieces(box, 1.0, 1.0, 16.0, 12.0)
     rects = np.vstack([ell, [[150.0, 150.0, 20.0, 20.0, 0.0]]])
     n = len(rects)
-    res = MPPResult(rects=rects, xi=np.zeros(n, np.int8), energy=np.full(n, -0.5), phi=np.full((n, 2), -0.5),
-                    confidence=np.full(n, 60.0), xi_confidence=np.full(n, 90.0), object_id=np.array([0, 0, 1]))
+    res = MPPResult(
+        rects=rects,
+        xi=np.zeros(n, np.int8),
+        energy=np.full(n, -0.5),
+        phi=np.full((n, 2), -0.5),
+        confidence=np.full(n, 60.0),
+        xi_confidence=np.full(n, 90.0),
+        object_id=np.array([0, 0, 1]),
+    )
     df = rectangles_frame(Detection(res, "ED", ()), grid)
     assert df["object_id"].tolist() == [0, 0, 1]
     bld = buildings_frame(df)

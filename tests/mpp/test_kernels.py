@@ -11,7 +11,7 @@ def _scene(seed=0, with_layers=True):
     H, W = 70, 80
     grey = (100 + rng.normal(0, 3, (H, W))).astype(np.float32)
     grey[20:40, 25:55] = 180 + rng.normal(0, 3, (20, 30))
-    grey[20:40, 40:55] = 150 + rng.normal(0, 3, (20, 15))            # a gabled roof: two halves
+    grey[20:40, 40:55] = 150 + rng.normal(0, 3, (20, 15))  # a gabled roof: two halves
     valid = np.ones((H, W), bool)
     valid[:, :3] = False
     gy, gx = np.gradient(grey.astype(np.float64))
@@ -29,8 +29,16 @@ def _scene(seed=0, with_layers=True):
     else:
         colour = shadow = np.zeros((0, 0), np.uint8)
         ndsm = np.zeros((0, 0), np.float32)
-    rects = np.array([[39.5, 29.5, 30, 20, 0.0], [39.5, 29.5, 20, 30, np.pi / 2], [40, 30, 26, 14, 0.3],
-                      [10, 60, 12, 9, -0.7], [77, 5, 20, 10, 1.2], [50, 50, 8, 8, 0.0]])
+    rects = np.array(
+        [
+            [39.5, 29.5, 30, 20, 0.0],
+            [39.5, 29.5, 20, 30, np.pi / 2],
+            [40, 30, 26, 14, 0.3],
+            [10, 60, 12, 9, -0.7],
+            [77, 5, 20, 10, 1.2],
+            [50, 50, 8, 8, 0.0],
+        ]
+    )
     return rects, grey, valid, mag, ori, colour, shadow, ndsm
 
 
@@ -41,7 +49,7 @@ def test_rect_features_match_reference(with_layers, ring_in, core_in):
     out = np.empty((rects.shape[0], K.N_FEATURES))
     K.rect_features(rects, *args, ring_in, core_in, out)
     ref = K.rect_features_ref(rects, *args, ring_in, core_in)
-    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-9)      # kurtosis: raw vs central moments
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-9)  # kurtosis: raw vs central moments
     # the aligned rectangle outlines the block; its shadow ring is shadow; it is raised with low surroundings
     if with_layers:
         assert out[0, K.F_SHADOW_OUT] > 0.9 and out[0, K.F_RAISED_IN] > 0.95 and out[0, K.F_RAISED_OUT] > 0.8
@@ -52,8 +60,15 @@ def test_rect_features_match_reference(with_layers, ring_in, core_in):
 def test_overlaps_and_death_pass_match_references():
     rng = np.random.default_rng(1)
     n = 40
-    rects = np.column_stack([rng.uniform(0, 60, n), rng.uniform(0, 50, n), rng.uniform(4, 20, n),
-                             rng.uniform(4, 20, n), rng.uniform(-1.5, 1.5, n)])
+    rects = np.column_stack(
+        [
+            rng.uniform(0, 60, n),
+            rng.uniform(0, 50, n),
+            rng.uniform(4, 20, n),
+            rng.uniform(4, 20, n),
+            rng.uniform(-1.5, 1.5, n),
+        ]
+    )
     areas = np.array([K.rect_mask_ref(r, (50, 60)).sum() for r in rects], float)
     pi, pj = np.triu_indices(n, 1)
     out = np.empty(pi.size)
@@ -84,15 +99,27 @@ def test_rect_steps_match_reference():
     rng = np.random.default_rng(2)
     H, W = 70, 80
     h = rng.normal(0.0, 0.2, (H, W)).astype(np.float32)
-    h[20:40, 25:55] += 6.0                                  # a block with walls
+    h[20:40, 25:55] += 6.0  # a block with walls
     ii, jj = np.mgrid[0:H, 0:W]
-    h += np.clip(4.0 - 0.2 * np.hypot(jj - 15, ii - 55), 0.0, None).astype(np.float32)   # a cone: slopes
+    h += np.clip(4.0 - 0.2 * np.hypot(jj - 15, ii - 55), 0.0, None).astype(np.float32)  # a cone: slopes
     h[5:10, 5:10] = np.nan
     n = 80
-    rects = np.column_stack([rng.uniform(0, 80, n), rng.uniform(0, 70, n), rng.uniform(4, 40, n),
-                             rng.uniform(4, 40, n), rng.uniform(-1.5, 1.5, n)])
-    fitted = [[39.5, 29.5, 30, 20, 0.0], [39.5, 29.5, 20, 30, np.pi / 2], [39.5, 29.5, 22, 12, 0.0],
-              [39.5, 29.5, 50, 40, 0.0], [15, 55, 12, 12, 0.0]]
+    rects = np.column_stack(
+        [
+            rng.uniform(0, 80, n),
+            rng.uniform(0, 70, n),
+            rng.uniform(4, 40, n),
+            rng.uniform(4, 40, n),
+            rng.uniform(-1.5, 1.5, n),
+        ]
+    )
+    fitted = [
+        [39.5, 29.5, 30, 20, 0.0],
+        [39.5, 29.5, 20, 30, np.pi / 2],
+        [39.5, 29.5, 22, 12, 0.0],
+        [39.5, 29.5, 50, 40, 0.0],
+        [15, 55, 12, 12, 0.0],
+    ]
     rects = np.vstack([fitted, rects])
     out = np.empty(len(rects))
     K.rect_steps(rects, h, 0.8, 0.5, 2.0, 4.0, 4.0, out)

@@ -34,8 +34,16 @@ def joint(scene):
 
 @pytest.fixture(scope="module")
 def height(scene):
-    return detect(scene["image_a"], scene["image_b"], POSTING, MPPParams(seed=3, height="and"), method="ED",
-                  dsm_a=scene["dsm_a"], dsm_b=scene["dsm_b"], ground_m=scene["ground"])
+    return detect(
+        scene["image_a"],
+        scene["image_b"],
+        POSTING,
+        MPPParams(seed=3, height="and"),
+        method="ED",
+        dsm_a=scene["dsm_a"],
+        dsm_b=scene["dsm_b"],
+        ground_m=scene["ground"],
+    )
 
 
 def _truth_objects(scene):
@@ -79,9 +87,10 @@ def test_same_seed_same_objects(scene, joint):
 @pytest.mark.slow
 def test_sd_and_edge_only_run(scene):
     """The baselines work, worse than the joint model (edge-only verification keeps shadow and road outlines)."""
-    for method, floor in (("SD", 0.88), ("EV", 0.15)):   # measured 0.929 and 0.221
-        d = detect(scene["image_a"], scene["image_b"], POSTING, MPPParams(seed=1, max_iter=60, min_iter=20),
-                   method=method)
+    for method, floor in (("SD", 0.88), ("EV", 0.15)):  # measured 0.929 and 0.221
+        d = detect(
+            scene["image_a"], scene["image_b"], POSTING, MPPParams(seed=1, max_iter=60, min_iter=20), method=method
+        )
         m = rect_masks(d.result.rects, d.result.xi, scene["truth_a"].shape)
         assert _f(m["date1"], scene["truth_a"]) > floor, method
 
@@ -94,7 +103,7 @@ def test_flat_image_no_objects_and_bad_inputs(scene):
     with pytest.raises(GridError):
         detect(scene["image_a"], scene["image_b"][:, :150], POSTING)
     with pytest.raises(ConfigError):
-        detect(scene["image_a"], scene["image_b"], POSTING, MPPParams(height="and"))   # no DSMs
+        detect(scene["image_a"], scene["image_b"], POSTING, MPPParams(height="and"))  # no DSMs
     with pytest.raises(ConfigError):
         MPPParams(prototypes="gradient+sunshine")
     assert context_m() > 25.0
@@ -112,8 +121,15 @@ def test_one_flat_date_runs_and_says_so(scene):
 def test_nothing_found_says_why(scene):
     """Every cell raised (a ground model 10 m too low): no isolated raised block, no building, and a note
     that says so instead of a silent empty layer."""
-    d = detect(scene["image_a"], scene["image_b"], POSTING, MPPParams(height="and", max_iter=20, min_iter=5),
-               dsm_a=scene["dsm_a"], dsm_b=scene["dsm_b"], ground_m=scene["ground"] - 10.0)
+    d = detect(
+        scene["image_a"],
+        scene["image_b"],
+        POSTING,
+        MPPParams(height="and", max_iter=20, min_iter=5),
+        dsm_a=scene["dsm_a"],
+        dsm_b=scene["dsm_b"],
+        ground_m=scene["ground"] - 10.0,
+    )
     assert len(d.result) == 0
     assert any(n.startswith("no building found: 100% of the cells stand more than 2.5 m") for n in d.notes), d.notes
 
@@ -121,7 +137,7 @@ def test_nothing_found_says_why(scene):
 def test_colour_image_uses_colour_and_shadow_terms():
     s = make_pair(1, colour=True)
     img = s["image_a"].copy()
-    img[:, s["truth_a"]] = np.array([190.0, 60.0, 40.0])[:, None]          # red roofs
+    img[:, s["truth_a"]] = np.array([190.0, 60.0, 40.0])[:, None]  # red roofs
     f = image_features(img, POSTING, MPPParams())
     assert f.colour_mask is not None
     fa = image_features(img, POSTING, MPPParams(), use_colour=False)
@@ -143,8 +159,15 @@ def test_snap_kernels_match_references():
     p = MPPParams()
     f = image_features(s["image_a"], POSTING, p, dsm_m=s["dsm_a"], ground_m=s["ground"])
     rng = np.random.default_rng(0)
-    rects = np.column_stack([rng.uniform(20, 180, 200), rng.uniform(20, 180, 200), rng.uniform(8, 60, 200),
-                             rng.uniform(8, 60, 200), rng.uniform(-1.5, 1.5, 200)])
+    rects = np.column_stack(
+        [
+            rng.uniform(20, 180, 200),
+            rng.uniform(20, 180, 200),
+            rng.uniform(8, 60, 200),
+            rng.uniform(8, 60, 200),
+            rng.uniform(-1.5, 1.5, 200),
+        ]
+    )
     a = rects.copy()
     K.snap_rects(a, f.grad_mag, f.grad_ori, float(f.edge_level), 8.0, 60.0)
     np.testing.assert_allclose(a, K.snap_rects_ref(rects, f.grad_mag, f.grad_ori, float(f.edge_level), 8.0, 60.0))
@@ -170,18 +193,26 @@ def test_planarity_keeps_tree_crowns_out():
     truth = s["truth_a"] | s["truth_b"]
 
     def run(**kw):
-        d = detect(s["image_a"], s["image_b"], POSTING, MPPParams(seed=3, height="and", **kw),
-                   method="ED", dsm_a=s["dsm_a"], dsm_b=s["dsm_b"], ground_m=s["ground"])
+        d = detect(
+            s["image_a"],
+            s["image_b"],
+            POSTING,
+            MPPParams(seed=3, height="and", **kw),
+            method="ED",
+            dsm_a=s["dsm_a"],
+            dsm_b=s["dsm_b"],
+            ground_m=s["ground"],
+        )
         m = rect_masks(d.result.rects, d.result.xi, truth.shape)
         u = m["date1"] | m["date2"]
         return int((u & ~truth).sum()), (u & truth).sum() / max(u.sum(), 1), (u & truth).sum() / truth.sum(), d
 
-    false_on, p_on, r_on, d = run(change_evidence="texture")           # planarity "both" (its default)
+    false_on, p_on, r_on, d = run(change_evidence="texture")  # planarity "both" (its default)
     assert false_on < 60 and p_on > 0.98 and r_on > 0.75, (false_on, p_on, r_on)
     assert any("DSM planarity" in n for n in d.notes)
     false_off, p_off, _, _ = run(change_evidence="texture", planarity="off")
     assert false_off > 400 and p_off < 0.85, (false_off, p_off)
-    false_h, p_h, r_h, _ = run()                                        # the defaults
+    false_h, p_h, r_h, _ = run()  # the defaults
     assert 150 < false_h < 350 and 0.9 < p_h < 0.95 and r_h > 0.75, (false_h, p_h, r_h)
 
 
@@ -193,7 +224,7 @@ def test_plane_residual_is_the_normal_distance_to_the_fitted_plane():
     yy, xx = np.mgrid[-1:2, -1:2]
     a = np.column_stack([np.ones(9), xx.ravel(), yy.ravel()])
     coef, rss, *_ = np.linalg.lstsq(a, z[1:4, 1:4].ravel(), rcond=None)
-    slope2 = (coef[1] ** 2 + coef[2] ** 2) / 0.5 ** 2
+    slope2 = (coef[1] ** 2 + coef[2] ** 2) / 0.5**2
     assert plane_residual(z, 0.5)[2, 2] == pytest.approx(np.sqrt(rss[0] / 6 / (1 + slope2)), rel=1e-5)
     # a tilted plane is planar at any tilt; a rough dome is not
     ii, jj = np.mgrid[0:60, 0:60].astype(float)
@@ -223,10 +254,10 @@ def test_side_max_from_the_dsm_segments():
     from geocd.mpp.features import segment_sides_m, side_max_from_dsm
 
     nd = np.zeros((400, 400), np.float32)
-    for k in range(6):                                  # 6 blocks, 100 × 32 cells at 0.5 m, 18 m high
-        nd[20 + 60 * k: 52 + 60 * k, 40:140] = 18.0
-    for k in range(4):                                  # 4 houses 10 m × 10 m
-        nd[30 + 90 * k: 50 + 90 * k, 300:320] = 6.0
+    for k in range(6):  # 6 blocks, 100 × 32 cells at 0.5 m, 18 m high
+        nd[20 + 60 * k : 52 + 60 * k, 40:140] = 18.0
+    for k in range(4):  # 4 houses 10 m × 10 m
+        nd[30 + 90 * k : 50 + 90 * k, 300:320] = 6.0
     sides = segment_sides_m(nd, 0.5, 2.5, 6.0)
     assert sides.shape == (10, 2)
     np.testing.assert_allclose(np.sort(sides[:, 0])[-6:], 50.0, atol=0.5)
@@ -245,8 +276,16 @@ def test_step_term_keeps_a_sloped_mound_out():
     img, dsm, ground, bld, mound = make_mound(0)
     cover = {}
     for step in ("and", "off"):
-        det = detect(img, img, POSTING, MPPParams(seed=3, height="and", step=step), method="ED", dsm_a=dsm,
-                     dsm_b=dsm, ground_m=ground)
+        det = detect(
+            img,
+            img,
+            POSTING,
+            MPPParams(seed=3, height="and", step=step),
+            method="ED",
+            dsm_a=dsm,
+            dsm_b=dsm,
+            ground_m=ground,
+        )
         m = rect_masks(det.result.rects, det.result.xi, img.shape[1:])["date1"]
         cover[step] = (m[bld].mean(), m[mound].mean())
     # measured: with the step term building 0.76, mound 0.00; without (default): building 0.80, mound 1.00
@@ -296,17 +335,17 @@ def test_edge_fit_moves_sides_off_by_a_metre_onto_the_walls(mode):
     p = MPPParams(height="and", edge_fit=mode)
     f = image_features(img, POSTING, p, dsm_m=dsm, ground_m=ground)
     model = EnergyModel([f], POSTING, p)
-    off = np.array([[bld[0], bld[1], bld[2] + 4.0, bld[3] + 4.0, bld[4]]])        # 2 cells = 1 m out
+    off = np.array([[bld[0], bld[1], bld[2] + 4.0, bld[3] + 4.0, bld[4]]])  # 2 cells = 1 m out
     e0 = model.data_energy(model.raw(off), np.array([1], np.int8))
     got = fit_edges(model, off, np.array([1], np.int8), e0, p)
     assert got["accepted"][0]
     r = got["rects"][0]
-    assert np.abs(r[:2] - np.array(bld[:2])).max() <= 0.5, r       # ¼ m = 0.5 cell
+    assert np.abs(r[:2] - np.array(bld[:2])).max() <= 0.5, r  # ¼ m = 0.5 cell
     assert np.abs(r[2:4] - np.array(bld[2:4])).max() <= 0.5, r
     assert not got["energy_not_worse"][0] and -1.0 < got["energy"][0] < 0.0
     g = [model.feature_energy(0, model.raw(x)["img0"])["gradient"][0] for x in (off, got["rects"])]
     assert g[1] < g[0] - 0.05, g
-    inward = np.array([[bld[0] + 1.0, bld[1] - 1.0, bld[2] - 3.0, bld[3] - 3.0, bld[4]]])   # too small, shifted
+    inward = np.array([[bld[0] + 1.0, bld[1] - 1.0, bld[2] - 3.0, bld[3] - 3.0, bld[4]]])  # too small, shifted
     e1 = model.data_energy(model.raw(inward), np.array([1], np.int8))
     r = fit_edges(model, inward, np.array([1], np.int8), e1, p)["rects"][0]
     assert np.abs(r[:4] - np.array(bld[:4])).max() <= 0.5, r
@@ -322,10 +361,10 @@ def test_edge_fit_joint_needs_the_dsm_to_agree():
     from .scene import _rect_mask
 
     shape = img.shape[1:]
-    far, _ = _rect_mask(shape, 60.0, 58.0, 32.0 + 8, 22.0 + 8, 0.1)     # tarmac from 2 m outside the walls
+    far, _ = _rect_mask(shape, 60.0, 58.0, 32.0 + 8, 22.0 + 8, 0.1)  # tarmac from 2 m outside the walls
     img2 = img.copy()
     img2[0][far & ~_rect_mask(shape, 60.0, 58.0, 32.0 + 2, 22.0 + 2, 0.1)[0]] = 110.0
-    img2[0][~far] = 10.0                                                   # dark tarmac beyond: a strong edge
+    img2[0][~far] = 10.0  # dark tarmac beyond: a strong edge
     out = {}
     for mode in ("joint", "image"):
         p = MPPParams(height="and", edge_fit=mode)
@@ -334,7 +373,7 @@ def test_edge_fit_joint_needs_the_dsm_to_agree():
         f = image_features(img2, POSTING, p, dsm_m=dsm0, ground_m=ground)
         model = EnergyModel([f], POSTING, p)
         start = np.array([[bld[0], bld[1], bld[2] + 2.0, bld[3] + 2.0, bld[4]]])
-        e0 = np.array([np.inf])            # this checks where the sides go, kept or not
+        e0 = np.array([np.inf])  # this checks where the sides go, kept or not
         out[mode] = fit_edges(model, start, np.array([1], np.int8), e0, p)["proposed"][0]
     assert np.abs(out["joint"][2:4] - np.array(bld[2:4])).max() <= 0.5, out["joint"]
     assert (out["image"][2:4] - np.array(bld[2:4])).max() >= 3.0, out["image"]
@@ -355,7 +394,7 @@ def test_fit_rotation_turns_a_rectangle_onto_the_walls():
     start = np.array([[bld[0], bld[1], bld[2], bld[3], bld[4] + np.radians(d)] for d in (7.0, -12.0, 30.0, 0.0)])
     got = fit_rotation(model, start, np.ones((4, 1), bool))
     err = np.degrees((got[:, 4] - bld[4] + np.pi / 4) % (np.pi / 2) - np.pi / 4)
-    assert np.all(np.abs(err[:3]) <= step), err          # measured: −0.16°, −0.06°, −0.08°
+    assert np.all(np.abs(err[:3]) <= step), err  # measured: −0.16°, −0.06°, −0.08°
     np.testing.assert_array_equal(got[3], start[3])
     np.testing.assert_array_equal(got[:, :4], start[:, :4])
     # a rectangle not on any date (use all False) has no edge evidence to follow: it is not turned
@@ -374,14 +413,14 @@ def test_edge_fit_grows_a_half_roof_onto_the_whole_block():
 
     bld, img, dsm, ground = _fattened_block(2)
     c, s = np.cos(bld[4]), np.sin(bld[4])
-    half = np.array([[bld[0] + 5.5 * s, bld[1] + 5.5 * c, bld[2], bld[3] / 2, bld[4]], list(bld)])   # v ≥ 0 facet
+    half = np.array([[bld[0] + 5.5 * s, bld[1] + 5.5 * c, bld[2], bld[3] / 2, bld[4]], list(bld)])  # v ≥ 0 facet
     one = np.ones(2, np.int8)
     got = {}
     for grow in (True, False):
         p = MPPParams(height="and", edge_fit_grow=grow)
         model = EnergyModel([image_features(img, POSTING, p, dsm_m=dsm, ground_m=ground)], POSTING, p)
-        for k in range(2):         # one at a time: each would stop the other's growth
-            r = half[k:k + 1]
+        for k in range(2):  # one at a time: each would stop the other's growth
+            r = half[k : k + 1]
             got[grow, k] = fit_edges(model, r, one[:1], model.data_energy(model.raw(r), one[:1]), p)
     g = got[True, 0]
     assert g["grown"][0] and g["accepted"][0]
@@ -401,8 +440,8 @@ def test_growth_stops_in_the_valley_between_two_buildings():
     from .scene import _rect_mask
 
     shape = (100, 120)
-    one, _ = _rect_mask(shape, 40.0, 50.0, 30.0, 24.0, 0.0)        # e_L along columns, cells 25.5–54.5
-    two, _ = _rect_mask(shape, 72.0, 50.0, 30.0, 24.0, 0.0)        # 2 cells of gap
+    one, _ = _rect_mask(shape, 40.0, 50.0, 30.0, 24.0, 0.0)  # e_L along columns, cells 25.5–54.5
+    two, _ = _rect_mask(shape, 72.0, 50.0, 30.0, 24.0, 0.0)  # 2 cells of gap
     rng = np.random.default_rng(3)
     ndsm = ndimage.uniform_filter(np.where(one | two, 8.0, 0.0), 5) + rng.normal(0, 0.1, shape)
     start = np.array([[40.0, 50.0, 30.0, 24.0, 0.0]])
@@ -415,15 +454,15 @@ def test_growth_stops_in_the_valley_between_two_buildings():
         ref, _ = K.grow_sides_ref(start, use, ndsm[None].astype(np.float32), 2.5, 200.0, 0.5, np.array([valley]))
         np.testing.assert_allclose(r, ref, atol=1e-9)
         got[name] = r[0]
-    right = lambda r: r[0] + r[2] / 2         # noqa: E731  the side towards the second block
-    assert right(got["none"]) > 80.0, got      # across the gap, onto the second block
-    assert 54.0 <= right(got["valley"]) <= 58.0, got      # in the gap (cells 55–56)
+    right = lambda r: r[0] + r[2] / 2  # noqa: E731  the side towards the second block
+    assert right(got["none"]) > 80.0, got  # across the gap, onto the second block
+    assert 54.0 <= right(got["valley"]) <= 58.0, got  # in the gap (cells 55–56)
     # one building (the second block alone) whose right half falls from its ridge at 8 m to an eave at 5 m:
     # a rectangle on its flat left half grows over the falling facet to the far wall (no rise, no valley)
     x = np.arange(shape[1], dtype=float)[None, :]
     roof = np.where(two, np.where(x < 72, 8.0, 8.0 - 3.0 * (x - 72) / 15.0), 0.0)
     ndsm2 = (ndimage.uniform_filter(roof, 5) + rng.normal(0, 0.1, shape)).astype(np.float32)
-    r = np.array([[64.0, 50.0, 15.0, 24.0, 0.0]])          # columns 56.5–71.5
+    r = np.array([[64.0, 50.0, 15.0, 24.0, 0.0]])  # columns 56.5–71.5
     K.grow_sides(r, use, ndsm2[None], 2.5, 200.0, 0.5, np.array([3 * np.sqrt(2) * 0.1]), np.zeros(1, bool))
     assert right(r[0]) >= 86.5, r
 
@@ -442,13 +481,19 @@ def test_grow_sides_kernel_matches_reference():
     rng = np.random.default_rng(2)
     blds = np.array(s["buildings"], float)
     k = rng.integers(0, len(blds), 60)
-    rects = blds[k] * [1, 1, 0.5, 0.6, 1] + np.column_stack([rng.normal(0, 2, 60), rng.normal(0, 2, 60),
-                                                             rng.normal(0, 1, 60), rng.normal(0, 1, 60),
-                                                             rng.normal(0, 0.05, 60)])
+    rects = blds[k] * [1, 1, 0.5, 0.6, 1] + np.column_stack(
+        [
+            rng.normal(0, 2, 60),
+            rng.normal(0, 2, 60),
+            rng.normal(0, 1, 60),
+            rng.normal(0, 1, 60),
+            rng.normal(0, 0.05, 60),
+        ]
+    )
     rects[:, 2:4] = np.maximum(rects[:, 2:4], 4.0)
     use = rng.random((rects.shape[0], 2)) < 0.75
     ndsms = np.stack([fa.ndsm, fb.ndsm])
-    for sel in (np.arange(60), np.arange(0, 60, 7)):       # crowded (neighbours stop the growth) and sparse
+    for sel in (np.arange(60), np.arange(0, 60, 7)):  # crowded (neighbours stop the growth) and sparse
         for valley in ((0.3, np.nan), (np.nan, np.nan)):
             a = rects[sel].copy()
             grew = np.zeros(sel.size, bool)
@@ -465,11 +510,29 @@ def test_fit_sides_kernel_matches_reference():
     rng = np.random.default_rng(1)
     blds = np.array(s["buildings"], float)
     k = rng.integers(0, len(blds), 120)
-    rects = blds[k] + np.column_stack([rng.normal(0, 2, 120), rng.normal(0, 2, 120), rng.normal(0, 3, 120),
-                                       rng.normal(0, 3, 120), rng.normal(0, 0.05, 120)])
-    rects = np.concatenate([rects, np.column_stack([rng.uniform(5, 195, 40), rng.uniform(5, 195, 40),
-                                                    rng.uniform(8, 60, 40), rng.uniform(8, 60, 40),
-                                                    rng.uniform(-1.5, 1.5, 40)])])
+    rects = blds[k] + np.column_stack(
+        [
+            rng.normal(0, 2, 120),
+            rng.normal(0, 2, 120),
+            rng.normal(0, 3, 120),
+            rng.normal(0, 3, 120),
+            rng.normal(0, 0.05, 120),
+        ]
+    )
+    rects = np.concatenate(
+        [
+            rects,
+            np.column_stack(
+                [
+                    rng.uniform(5, 195, 40),
+                    rng.uniform(5, 195, 40),
+                    rng.uniform(8, 60, 40),
+                    rng.uniform(8, 60, 40),
+                    rng.uniform(-1.5, 1.5, 40),
+                ]
+            ),
+        ]
+    )
     use = rng.random((rects.shape[0], 2)) < 0.75
     mags = np.stack([fa.grad_mag, fb.grad_mag])
     oris = np.stack([fa.grad_ori, fb.grad_ori])
@@ -491,8 +554,9 @@ def test_default_run_puts_the_sides_on_the_walls_of_a_fattened_dsm():
     truth = rect_masks(np.array([bld]), np.array([0], np.int8), img.shape[1:])["date1"]
 
     def run(**kw):
-        d = detect(img, img, POSTING, MPPParams(seed=1, height="and", **kw), method="ED", dsm_a=dsm, dsm_b=dsm,
-                   ground_m=ground)
+        d = detect(
+            img, img, POSTING, MPPParams(seed=1, height="and", **kw), method="ED", dsm_a=dsm, dsm_b=dsm, ground_m=ground
+        )
         m = rect_masks(d.result.rects, d.result.xi, truth.shape)["date1"]
         return d, m
 
@@ -515,7 +579,7 @@ def test_default_run_puts_the_sides_on_the_walls_of_a_fattened_dsm():
     assert turn_err(d.result.rects[0]) < 1.0 and turn_err(d_still.result.rects[0]) > 5.0
     assert any("1 of them turned" in n for n in d.notes), d.notes
     assert f_fit > 0.98 and f_fit > _f(m_still, truth) + 0.03 and f_fit > f_off + 0.08, (f_fit, f_off)
-    again, _ = run()                                      # the fit is deterministic: same seed, same objects
+    again, _ = run()  # the fit is deterministic: same seed, same objects
     np.testing.assert_array_equal(again.result.rects, d.result.rects)
 
 
@@ -562,8 +626,13 @@ def test_measured_wall_band_lets_the_annealing_find_the_true_walls(seed):
     p = MPPParams(height="and", wall_blur="measured")
     f = image_features(img, POSTING, p, dsm_m=dsm, ground_m=ground)
     model = EnergyModel([f], POSTING, p)
-    true_fat_in = np.array([list(bld), [bld[0], bld[1], bld[2] + 4.0, bld[3] + 4.0, bld[4]],
-                            [bld[0], bld[1], bld[2] - 4.0, bld[3] - 4.0, bld[4]]])
+    true_fat_in = np.array(
+        [
+            list(bld),
+            [bld[0], bld[1], bld[2] + 4.0, bld[3] + 4.0, bld[4]],
+            [bld[0], bld[1], bld[2] - 4.0, bld[3] - 4.0, bld[4]],
+        ]
+    )
     e = model.data_energy(model.raw(true_fat_in), np.array([1, 1, 1], np.int8))
     # measured: −0.865 (true walls), −0.863 (1 m out), −0.711 (1 m in: its ring still sees the roof);
     # with wall_blur="off" −0.707, −0.860, −0.232
@@ -589,18 +658,23 @@ def test_absence_term_needs_ground_under_a_change_on_the_other_date():
         _, B, _ = texture_change(fa, fb)
         model = EnergyModel([fa, fb], POSTING, p, similarity=B)
         cx, cy, r = TREES[3]
-        rects = np.array([[cx, cy, 2.0 * r, 2.0 * r, 0.0],           # the crown, on both dates
-                          list(s["buildings"][5]),                      # new
-                          list(s["buildings"][0])], float)              # demolished
+        rects = np.array(
+            [
+                [cx, cy, 2.0 * r, 2.0 * r, 0.0],  # the crown, on both dates
+                list(s["buildings"][5]),  # new
+                list(s["buildings"][0]),
+            ],
+            float,
+        )  # demolished
         raw = model.raw(rects)
         e[ab] = {x: model.data_energy(raw, np.full(3, x, np.int8)) for x in (BOTH, ONLY_1, ONLY_2)}
     m = rect_masks(rects[:1], np.zeros(1, np.int8), s["ground"].shape)["any"]
-    standing_a = float((fa.ndsm[m] > 2.5).mean())             # the nDSM the height term reads (median-filtered)
+    standing_a = float((fa.ndsm[m] > 2.5).mean())  # the nDSM the height term reads (median-filtered)
     assert standing_a > 0.6, standing_a
     extra = e["height"][ONLY_2] - e["off"][ONLY_2]
     np.testing.assert_allclose(extra[0], 2.0 * standing_a - 1.0, atol=0.01)
-    assert extra[1] == 0.0                                   # the new building: bare ground on date A
-    assert e["height"][ONLY_1][2] == e["off"][ONLY_1][2]     # the demolished one: bare ground on date B
+    assert extra[1] == 0.0  # the new building: bare ground on date A
+    assert e["height"][ONLY_1][2] == e["off"][ONLY_1][2]  # the demolished one: bare ground on date B
     np.testing.assert_array_equal(e["height"][BOTH], e["off"][BOTH])
     with pytest.raises(ConfigError):
         MPPParams(absence="yes")
@@ -632,18 +706,19 @@ def test_a_demolished_block_the_texture_calls_unchanged_is_found_by_the_dsms():
     and labelled demolished, and no other object changes."""
     s = make_pair(0)
     dsm_b = s["dsm_a"].copy()
-    gone = s["truth_a"] & ~s["truth_b"]                       # building 0 (demolished in the scene)
+    gone = s["truth_a"] & ~s["truth_b"]  # building 0 (demolished in the scene)
     dsm_b[gone] = s["ground"][gone]
     got = {}
     for ev in ("texture", "height"):
         p = MPPParams(seed=3, height="and") if ev == "height" else MPPParams(seed=3, height="and", change_evidence=ev)
-        d = detect(s["image_a"], s["image_a"], POSTING, p, method="ED", dsm_a=s["dsm_a"], dsm_b=dsm_b,
-                   ground_m=s["ground"])
+        d = detect(
+            s["image_a"], s["image_a"], POSTING, p, method="ED", dsm_a=s["dsm_a"], dsm_b=dsm_b, ground_m=s["ground"]
+        )
         m = rect_masks(d.result.rects, d.result.xi, gone.shape)
         got[ev] = (float(m["demolished"][gone].mean()), int((m["demolished"] & ~gone).sum()), d.notes)
     assert got["texture"][0] < 0.1, got["texture"][:2]
     assert got["height"][0] > 0.8, got["height"][:2]
-    assert got["height"][1] < 0.1 * gone.sum(), got["height"][:2]       # nothing else labelled demolished
+    assert got["height"][1] < 0.1 * gone.sum(), got["height"][:2]  # nothing else labelled demolished
     assert any("change evidence (ξ): the DSMs" in n for n in got["height"][2])
 
 
@@ -660,14 +735,16 @@ def test_a_building_cut_by_the_border_is_scored_by_its_pixels_only():
     from geocd.mpp.evaluate import sample_truth
 
     grid = SimpleNamespace(bounds=(0.0, 0.0, 20.0, 20.0), shape=(40, 40), transform=from_origin(0.0, 20.0, 0.5, 0.5))  # noqa: E501
-    fa = gpd.GeoDataFrame({"status": ["unchanged", "unchanged", "new"]},
-                          geometry=[box(2, 2, 8, 8), box(16, 10, 28, 16), box(-10, 14, 4, 19)])
+    fa = gpd.GeoDataFrame(
+        {"status": ["unchanged", "unchanged", "new"]},
+        geometry=[box(2, 2, 8, 8), box(16, 10, 28, 16), box(-10, 14, 4, 19)],
+    )
     objs, t1, t2 = sample_truth(fa, grid)
     assert [o["scored"] for o in objs] == [True, False, False]
-    assert t1.sum() == 12 * 12 + 8 * 12 and t2.sum() == t1.sum() + 8 * 10    # cut parts on the grid only
+    assert t1.sum() == 12 * 12 + 8 * 12 and t2.sum() == t1.sum() + 8 * 10  # cut parts on the grid only
     det = np.zeros((40, 40), bool)
-    det[24:36, 4:16] = True           # building 1 (rows from the top: y 2..8 → rows 24..36)
-    det[8:20, 32:40] = True           # the cut building 2 on the grid
+    det[24:36, 4:16] = True  # building 1 (rows from the top: y 2..8 → rows 24..36)
+    det[8:20, 32:40] = True  # the cut building 2 on the grid
     empty = np.zeros_like(det)
     masks = {"date1": det, "date2": det, "any": det, "new": empty, "demolished": empty}
     t = table2(masks, objs, t1, t2)
@@ -691,29 +768,29 @@ def test_fill_roof_holes_takes_back_the_terrain_put_into_a_roof():
     ground = np.full((60, 60), 100.0)
     dsm = ground.copy()
     dsm[10:40, 10:50] = 107.0
-    dsm[10:40, 10:25] += 0.01 * np.arange(15)          # a gentle slope: each hole cell takes its nearest rim
+    dsm[10:40, 10:25] += 0.01 * np.arange(15)  # a gentle slope: each hole cell takes its nearest rim
     filled = np.zeros(dsm.shape, bool)
-    filled[15:20, 15:22] = True                         # terrain in a roof hole (geocd ortho's fill)
+    filled[15:20, 15:22] = True  # terrain in a roof hole (geocd ortho's fill)
     dsm[filled] = 100.0
-    dsm[33:35, 15:18] = np.nan                          # a NaN hole in the roof
+    dsm[33:35, 15:18] = np.nan  # a NaN hole in the roof
     mixed = np.zeros(dsm.shape, bool)
-    mixed[15:35, 35:49] = True                          # a large roof hole ...
-    mixed[25, 49:51] = True                             # ... that reaches the ground east of the wall
+    mixed[15:35, 35:49] = True  # a large roof hole ...
+    mixed[25, 49:51] = True  # ... that reaches the ground east of the wall
     filled |= mixed
     dsm[mixed] = 100.0
-    filled[8:12, 20:30] = True                          # a hole across the north wall: half of it is ground
+    filled[8:12, 20:30] = True  # a hole across the north wall: half of it is ground
     dsm[8:12, 20:30] = 100.0
-    dsm[45:48, 5:9] = np.nan                            # a hole on the ground
-    dsm[0:4, 52:57] = 107.0                             # a roof at the border with a hole reaching the border
+    dsm[45:48, 5:9] = np.nan  # a hole on the ground
+    dsm[0:4, 52:57] = 107.0  # a roof at the border with a hole reaching the border
     dsm[0:2, 53:55] = np.nan
     out, roof, unknown = fill_roof_holes(dsm, ground, 2.5, filled)
     want = np.zeros(dsm.shape, bool)
     want[15:20, 15:22] = want[33:35, 15:18] = True
     assert (roof == want).all() and (unknown == mixed).all()
     assert np.all(np.abs(out[15:20, 15:22] - 107.0) < 0.2) and np.all(np.abs(out[33:35, 15:18] - 107.0) < 0.2)
-    assert out[17, 15] == dsm[17, 14] and out[17, 21] == dsm[17, 22]      # the nearest rim cell's height
+    assert out[17, 15] == dsm[17, 14] and out[17, 21] == dsm[17, 22]  # the nearest rim cell's height
     assert np.isnan(out[mixed]).all()
-    assert np.all(out[8:12, 20:30] == 100.0)            # the producer's fill is kept across the wall
+    assert np.all(out[8:12, 20:30] == 100.0)  # the producer's fill is kept across the wall
     assert np.isnan(out[45:48, 5:9]).all() and np.isnan(out[0:2, 53:55]).all()
     unchanged = ~want & ~mixed & np.isfinite(dsm)
     assert np.array_equal(out[unchanged], dsm[unchanged])
@@ -732,28 +809,46 @@ def test_a_roof_the_stereo_could_not_match_is_not_a_pit():
     s = make_pair(0)
     cx, cy = s["buildings"][3][:2]
     filled = np.zeros(s["ground"].shape, bool)
-    filled[cy - 5:cy + 5, cx - 4:cx + 6] = True
+    filled[cy - 5 : cy + 5, cx - 4 : cx + 6] = True
     dsm_a, dsm_b = s["dsm_a"].copy(), s["dsm_b"].copy()
     dsm_a[filled] = s["ground"][filled]
     dsm_b[filled] = s["ground"][filled]
     b3 = s["truth_a"] & s["truth_b"]
-    b3[:, :cx - 30] = False
-    b3[cy + 25:] = False
-    b3[:cy - 25] = False
+    b3[:, : cx - 30] = False
+    b3[cy + 25 :] = False
+    b3[: cy - 25] = False
     got = {}
     for with_mask in (False, True):
         kw = {"filled_a": filled, "filled_b": filled} if with_mask else {}
-        d = detect(s["image_a"], s["image_b"], POSTING, MPPParams(seed=1, height="and"), method="ED",
-                   dsm_a=dsm_a, dsm_b=dsm_b, ground_m=s["ground"], **kw)
+        d = detect(
+            s["image_a"],
+            s["image_b"],
+            POSTING,
+            MPPParams(seed=1, height="and"),
+            method="ED",
+            dsm_a=dsm_a,
+            dsm_b=dsm_b,
+            ground_m=s["ground"],
+            **kw,
+        )
         m = rect_masks(d.result.rects, d.result.xi, b3.shape)
         got[with_mask] = (float(m["date1"][b3].mean()), float(m["date2"][b3].mean()), d.notes)
     assert max(got[False][:2]) < 0.85, got[False][:2]
     assert min(got[True][:2]) > 0.95, got[True][:2]
-    assert any("inside raised surfaces" in n and f"{filled.sum()} cells on date A" in n
-               for n in got[True][2]), got[True][2]
+    assert any("inside raised surfaces" in n and f"{filled.sum()} cells on date A" in n for n in got[True][2]), got[
+        True
+    ][2]
     with pytest.raises(ConfigError, match="filled A shape"):
-        detect(s["image_a"], s["image_b"], POSTING, MPPParams(seed=1, height="and"), dsm_a=dsm_a, dsm_b=dsm_b,
-               ground_m=s["ground"], filled_a=filled[:-1])
+        detect(
+            s["image_a"],
+            s["image_b"],
+            POSTING,
+            MPPParams(seed=1, height="and"),
+            dsm_a=dsm_a,
+            dsm_b=dsm_b,
+            ground_m=s["ground"],
+            filled_a=filled[:-1],
+        )
 
 
 def _l_building(notch_edges: bool = True, notch_raised: bool = False, size: int = 120):
@@ -797,7 +892,7 @@ def test_a_corner_notch_is_cut_from_an_l_shaped_building():
     assert rects.shape == (2, 5) and obj.tolist() == [0, 0]
     got = rect_masks(rects, np.zeros(2, np.int8), ell.shape)["date1"]
     iou = (got & ell).sum() / (got | ell).sum()
-    assert iou >= 0.95, iou                                  # measured 1.00
+    assert iou >= 0.95, iou  # measured 1.00
     assert (got & notch).sum() <= 0.1 * notch.sum(), (got & notch).sum()
     # without the cut, one rectangle: the notch is a false part of the building
     assert (rect_masks(np.array([box]), np.zeros(1, np.int8), ell.shape)["date1"] & notch).sum() == notch.sum()
@@ -823,8 +918,15 @@ def test_carve_corners_matches_its_reference():
     n_cut = 0
     for trial in range(6):
         n = 8
-        rects = np.column_stack([rng.uniform(5, 75, n), rng.uniform(5, 75, n), rng.uniform(6, 45, n),
-                                 rng.uniform(6, 45, n), rng.uniform(-1.5, 1.5, n)])
+        rects = np.column_stack(
+            [
+                rng.uniform(5, 75, n),
+                rng.uniform(5, 75, n),
+                rng.uniform(6, 45, n),
+                rng.uniform(6, 45, n),
+                rng.uniform(-1.5, 1.5, n),
+            ]
+        )
         m = 1 + trial % 2
         use = rng.random((n, m)) < 0.8
         hm = np.where(rng.random((m, H, W)) < 0.05, np.nan, rng.uniform(0, 5.5, (m, H, W))).astype(np.float32)
@@ -840,7 +942,7 @@ def test_carve_corners_matches_its_reference():
         n_cut += int(cut.sum())
         assert np.all(out[cut, 2] <= rects[cut, 2] - 12.0 + 1e-9) and np.all(out[cut, 3] <= rects[cut, 3] - 12.0 + 1e-9)
         assert np.all(out[cut, 2:4] >= 4.0 - 1e-9) and np.all(out[~cut, 4] == -1.0)
-    assert n_cut >= 5, n_cut             # both outcomes are exercised
+    assert n_cut >= 5, n_cut  # both outcomes are exercised
 
 
 def test_a_rectangle_wholly_off_the_grid_has_no_cells():
@@ -848,7 +950,7 @@ def test_a_rectangle_wholly_off_the_grid_has_no_cells():
     empty, not an error, and the rectangles on the grid keep theirs."""
     rects = np.array([[613.0, 18.6, 12.9, 13.3, -1.03], [-30.0, -40.0, 10.0, 10.0, 0.2], [5.0, 5.0, 10.0, 10.0, 0.0]])
     m = rect_masks(rects, np.zeros(3, np.int8), (600, 600))
-    assert m["any"].sum() == m["date1"].sum() == 121            # the third one's 11 × 11 cells only
+    assert m["any"].sum() == m["date1"].sum() == 121  # the third one's 11 × 11 cells only
     assert m["label"][5, 5] == 2 and (m["label"] >= 0).sum() == 121
 
 

@@ -16,22 +16,32 @@ from geocd.stereo.params import StereoParams
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("stereo, want, want_drop", [
-    # geocd mpp's default: no surface median (0.8998 / 0.8824, precision 0.9063, before the corner notches cut L
-    # shapes; 0.8822 / 0.8727 before the DSM's holes inside roofs took the roof's height; 0.8625 / 0.848 with the
-    # texture as the change label's evidence, before the DSMs'; 0.839 / 0.824 before the edge fit grew the
-    # rectangles over the raised blocks, 0.835 / 0.820 before it turned them)
-    (None, {"DP": 0.9117, "DP_precision": 0.9307, "HO": 1, "FO": 1, "HV": 1, "FV": 1, "DP_precision_gain": 0.0345},
-     {"DP": 0.8943, "FO": 4}),
-    # geocd stereo's product DSM (0.751 / 0.7557 before the notches, 0.7388 / 0.742 before the roof holes, 0.709 /
-    # 0.7135 with the texture evidence, 0.686 / 0.691 before the growth, 0.681 / 0.686 before the turn)
-    ("window", {"DP": 0.7616, "DP_precision": 0.9527, "HO": 11, "FO": 0, "HV": 2, "FV": 0, "DP_precision_gain": 0.0144},
-     {"DP": 0.7667, "FO": 1}),
-], ids=["default", "window-median"])
+@pytest.mark.parametrize(
+    "stereo, want, want_drop",
+    [
+        # geocd mpp's default: no surface median (0.8998 / 0.8824, precision 0.9063, before the corner notches cut L
+        # shapes; 0.8822 / 0.8727 before the DSM's holes inside roofs took the roof's height; 0.8625 / 0.848 with the
+        # texture as the change label's evidence, before the DSMs'; 0.839 / 0.824 before the edge fit grew the
+        # rectangles over the raised blocks, 0.835 / 0.820 before it turned them)
+        (
+            None,
+            {"DP": 0.9117, "DP_precision": 0.9307, "HO": 1, "FO": 1, "HV": 1, "FV": 1, "DP_precision_gain": 0.0345},
+            {"DP": 0.8943, "FO": 4},
+        ),
+        # geocd stereo's product DSM (0.751 / 0.7557 before the notches, 0.7388 / 0.742 before the roof holes, 0.709 /
+        # 0.7135 with the texture evidence, 0.686 / 0.691 before the growth, 0.681 / 0.686 before the turn)
+        (
+            "window",
+            {"DP": 0.7616, "DP_precision": 0.9527, "HO": 11, "FO": 0, "HV": 2, "FV": 0, "DP_precision_gain": 0.0144},
+            {"DP": 0.7667, "FO": 1},
+        ),
+    ],
+    ids=["default", "window-median"],
+)
 def test_sample_aoi_table2_through_geocd_mpp(sample_aoi, tmp_path, stereo, want, want_drop):
     """``want``: the scoring with the five buildings the border cuts in the truth masks (the default);
     ``want_drop``: with them left out, the scoring of the earlier figures."""
-    sp = None if stereo is None else StereoParams()   # StereoParams(): surface median over the matching window
+    sp = None if stereo is None else StereoParams()  # StereoParams(): surface median over the matching window
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         r = run_mpp_manifest(sample_aoi, out_dir=tmp_path / "mpp", stereo_params=sp)

@@ -15,7 +15,7 @@ def test_cross_epoch_residuals_before_and_after(tmp_path):
     shared_data("cnes_picanteo_kahramanmaras", "post_event_img2.geom")
     m = load_manifest(REPO / "examples" / "kahramanmaras" / "scene.yaml")
     with warnings.catch_warnings():
-        warnings.simplefilter("error")   # no OrientationWarning: the correction is applied
+        warnings.simplefilter("error")  # no OrientationWarning: the correction is applied
         m2, rep = orient_manifest(m, out_dir=tmp_path)
     assert rep["applied"] and rep["status"] == "applied"
     # measured: before median 0.59 px / RMS 0.72; after 0.23 / 0.34; held out 0.23 / 0.34 (1714 observations)
@@ -42,9 +42,13 @@ def test_epochs_that_do_not_overlap_are_a_clear_error(tmp_path):
 
     d = shared_data("cnes_picanteo_kahramanmaras")
     reu = shared_data("s2p_pleiades", "input_pair")
-    doc = {"geocd_manifest": 1, "epochs": [
-        {"name": "pre", "images": [str(d / "pre_event_img1.tif"), str(d / "pre_event_img2.tif")]},
-        {"name": "post", "images": [str(reu / "img_01.tif"), str(reu / "img_02.tif")]}]}
+    doc = {
+        "geocd_manifest": 1,
+        "epochs": [
+            {"name": "pre", "images": [str(d / "pre_event_img1.tif"), str(d / "pre_event_img2.tif")]},
+            {"name": "post", "images": [str(reu / "img_01.tif"), str(reu / "img_02.tif")]},
+        ],
+    }
     p = tmp_path / "scene.yaml"
     p.write_text(yaml.safe_dump(doc))
     with pytest.raises(NoOverlapError, match="do not overlap on the ground"):

@@ -1,6 +1,5 @@
 """Cross-epoch relative orientation: NCC kernel, recovery of known biases, refusal on poor tie points."""
 
-
 import numpy as np
 import pytest
 import yaml
@@ -46,7 +45,13 @@ def test_band_offsets_follow_the_direction():
     assert (np.abs(o @ u) > 8).any()
 
 
-SHIFTS = {"A_sat1": (0.0, 0.0), "A_sat2": (0.0, 0.0), "A_air1": (1.0, 1.0), "B_sat1": (2.0, -1.5), "B_sat2": (2.0, -1.5)}
+SHIFTS = {
+    "A_sat1": (0.0, 0.0),
+    "A_sat2": (0.0, 0.0),
+    "A_air1": (1.0, 1.0),
+    "B_sat1": (2.0, -1.5),
+    "B_sat2": (2.0, -1.5),
+}
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +83,7 @@ def test_recovers_known_biases_rpc_and_frame(biased_images):
     q = np.concatenate([p[k] + SHIFTS[name] for k, name in enumerate(names)])
     dX, *_ = np.linalg.lstsq(np.concatenate(J), q, rcond=None)
     assert np.abs(np.concatenate(J) @ dX - q).max() < 0.15, (q, np.concatenate(J) @ dX)
-    assert abs(p[:, 0].mean()) < 1e-3 and abs(p[:, 1].mean()) < 1e-3   # gauge: mean held at zero
+    assert abs(p[:, 0].mean()) < 1e-3 and abs(p[:, 1].mean()) < 1e-3  # gauge: mean held at zero
     rep = res.report
     print(rep["before"], rep["after"], rep.get("held_out"))
     assert rep["before"]["cross_epoch"]["median_px"] > 0.6
@@ -100,8 +105,17 @@ def test_too_few_or_clustered_tie_points_are_refused(biased_images):
         obs_img.append(np.full(40, k))
         obs_trk.append(np.arange(40))
         colrow.append(np.column_stack([c, r]) + rng.normal(0, 0.1, (40, 2)))
-    tp = TiePoints(["a", "b", "c"], ["A", "A", "B"], np.concatenate(obs_img), np.concatenate(obs_trk),
-                   np.concatenate(colrow), xy, 205.0, "EPSG:32631", np.ones(120))
+    tp = TiePoints(
+        ["a", "b", "c"],
+        ["A", "A", "B"],
+        np.concatenate(obs_img),
+        np.concatenate(obs_trk),
+        np.concatenate(colrow),
+        xy,
+        205.0,
+        "EPSG:32631",
+        np.ones(120),
+    )
     res = adjust(cams, tp, OrientationParams(), aoi_area_m2=150.0 * 150.0)
     assert not res.applied and "cover" in res.reason
     assert not np.any(res.corrections)
@@ -112,16 +126,32 @@ def test_too_few_or_clustered_tie_points_are_refused(biased_images):
 
 def test_manifest_key(tmp_path, sample_aoi):
     doc = yaml.safe_load((sample_aoi / "scene.yaml").read_text())
-    assert doc["orientation"] is False   # simulated cameras are exact
-    for value, ok in (({"model": "affine"}, True), ("auto", True), ({"modle": "shift"}, False),
-                      ({"model": "spline"}, False), ("yes please", False)):
+    assert doc["orientation"] is False  # simulated cameras are exact
+    for value, ok in (
+        ({"model": "affine"}, True),
+        ("auto", True),
+        ({"modle": "shift"}, False),
+        ({"model": "spline"}, False),
+        ("yes please", False),
+    ):
         d = dict(doc, orientation=value)
         p = tmp_path / "scene.yaml"
         for k in ("dem", "footprints"):
             d[k] = str(sample_aoi / (d[k]["path"] if isinstance(d[k], dict) else d[k]))
-        d["epochs"] = [dict(e, images=[dict(i, path=str(sample_aoi / i["path"]),
-                                            **({"camera": str(sample_aoi / i["camera"])} if "camera" in i else {}))
-                                       for i in e["images"]]) for e in d["epochs"]]
+        d["epochs"] = [
+            dict(
+                e,
+                images=[
+                    dict(
+                        i,
+                        path=str(sample_aoi / i["path"]),
+                        **({"camera": str(sample_aoi / i["camera"])} if "camera" in i else {}),
+                    )
+                    for i in e["images"]
+                ],
+            )
+            for e in d["epochs"]
+        ]
         d.pop("truth")
         p.write_text(yaml.safe_dump(d))
         if ok:
@@ -148,7 +178,9 @@ def test_exact_cameras_and_refusal_through_the_manifest(tmp_path, sample_aoi):
     m = dataclasses.replace(m0, extras={**m0.extras, "orientation": {"enabled": True, "min_points": 100000}})
     with pytest.warns(OrientationWarning, match="not applied"):
         m2, rep = orient_manifest(m, out_dir=tmp_path / "b")
-    assert m2 is m and rep["applied"] is False and rep["status"] == "insufficient" and "fewer than 100000" in rep["reason"]
+    assert (
+        m2 is m and rep["applied"] is False and rep["status"] == "insufficient" and "fewer than 100000" in rep["reason"]
+    )
     assert (tmp_path / "b" / "orientation" / "orientation.json").is_file()
 
 

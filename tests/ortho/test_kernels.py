@@ -15,7 +15,7 @@ def test_sample_image_matches_reference(mode, dtype):
     col = rng.uniform(-2, 44, (25, 30))
     row = rng.uniform(-2, 40, (25, 30))
     col[0, :3] = np.nan
-    col[1, 0], row[1, 1] = 0.25, 36.9          # half-pixel border zone (edge pixel repeated)
+    col[1, 0], row[1, 1] = 0.25, 36.9  # half-pixel border zone (edge pixel repeated)
     out = np.empty((3, 25, 30), dtype)
     ok = np.empty((25, 30), bool)
     K.sample_image(img, valid, col, row, mode, out, ok)
@@ -47,7 +47,7 @@ def test_occlusion_march_matches_reference():
     ray_j = np.full(dsm.shape, 0.9) + rng.normal(0, 0.05, dsm.shape)
     ray_i = np.full(dsm.shape, -0.4)
     ray_i[:, 60:] = 0.0
-    ray_j[:, 60:] = 0.0                          # vertical rays: never occluded
+    ray_j[:, 60:] = 0.0  # vertical rays: never occluded
     out = np.empty(dsm.shape, bool)
     K.occlusion_march(dsm, ray_j, ray_i, 0.5, 0.5, out)
     ref = K.occlusion_march_ref(dsm, ray_j, ray_i, 0.5, 0.5)

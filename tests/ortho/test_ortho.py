@@ -9,8 +9,17 @@ import rasterio
 from geocd.camera import FrameCamera
 from geocd.errors import ConfigError, GridError
 from geocd.geodesy import AOIGrid
-from geocd.ortho import (NO_HEIGHT, OCCLUDED, OUTSIDE_IMAGE, SEEN, OrthoParams, fill_dsm_holes,
-                         occlusion_margin_cells, orthorectify, view_geometry)
+from geocd.ortho import (
+    NO_HEIGHT,
+    OCCLUDED,
+    OUTSIDE_IMAGE,
+    SEEN,
+    OrthoParams,
+    fill_dsm_holes,
+    occlusion_margin_cells,
+    orthorectify,
+    view_geometry,
+)
 
 CRS = "EPSG:32631"
 X0, Y0 = 374200.0, 4824300.0
@@ -22,8 +31,16 @@ def _scene():
     grid = AOIGrid.from_bounds(X0, Y0, X0 + 100, Y0 + 100, 1.0, CRS)
     dsm = np.full(grid.shape, 100.0)
     dsm[40:60, 40:60] = 110.0
-    cam = FrameCamera(width=2600, height=600, focal_px=1000.0, position=(X0 + 50 - 1000.0, Y0 + 50, 1100.0),
-                      opk_deg=(0, 0, 0), crs=CRS, vertical_datum="ellipsoid", principal_point_px=(1300.0, 300.0))
+    cam = FrameCamera(
+        width=2600,
+        height=600,
+        focal_px=1000.0,
+        position=(X0 + 50 - 1000.0, Y0 + 50, 1100.0),
+        opk_deg=(0, 0, 0),
+        crs=CRS,
+        vertical_datum="ellipsoid",
+        principal_point_px=(1300.0, 300.0),
+    )
     return grid, dsm, cam
 
 
@@ -81,8 +98,9 @@ def test_classic_ortho_smears_and_true_ortho_does_not():
     grid, dsm, cam = _scene()
     # the image of a bright block on dark ground, rendered by projecting the DSM surface densely
     img = np.zeros((cam.height, cam.width), np.float32)
-    r_geo = orthorectify(np.zeros((cam.height, cam.width), np.float32), cam, grid, dsm,
-                         params=OrthoParams(occlusion=False))
+    r_geo = orthorectify(
+        np.zeros((cam.height, cam.width), np.float32), cam, grid, dsm, params=OrthoParams(occlusion=False)
+    )
     roof = dsm > 100
     c, rr = r_geo.geometry.col[roof], r_geo.geometry.row[roof]
     cc, rc = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
@@ -92,10 +110,10 @@ def test_classic_ortho_smears_and_true_ortho_does_not():
     true = orthorectify(img, cam, grid, dsm, params=OrthoParams(antialias=False))
     hidden = true.status == OCCLUDED
     assert hidden.sum() > 150
-    assert np.nanmean(classic.values[0][hidden]) > 0.9          # the roof smeared onto the street behind it
+    assert np.nanmean(classic.values[0][hidden]) > 0.9  # the roof smeared onto the street behind it
     assert np.all(np.isnan(true.values[0][hidden]))
     ground = ~roof & ~hidden
-    ground[38:62, 38:75] = False                                # keep clear of the roof edge blur
+    ground[38:62, 38:75] = False  # keep clear of the roof edge blur
     assert np.nanmax(true.values[0][ground]) < 0.05
 
 
@@ -147,7 +165,7 @@ def test_nodata_heights_image_and_bad_inputs():
     img = np.ones((cam.height, cam.width), np.float32)
     valid = np.ones(img.shape, bool)
     r0 = orthorectify(img, cam, grid, d)
-    valid[:, :int(np.nanmax(r0.geometry.col)) - 20] = False      # most of the image is nodata
+    valid[:, : int(np.nanmax(r0.geometry.col)) - 20] = False  # most of the image is nodata
     r = orthorectify(img, cam, grid, d, valid=valid)
     assert np.all(r.status[:5] == NO_HEIGHT)
     assert (r.status == OUTSIDE_IMAGE).sum() > 0.5 * r.status.size
@@ -162,7 +180,7 @@ def test_nodata_heights_image_and_bad_inputs():
 def test_fill_dsm_holes_uses_the_low_side():
     d = np.full((20, 20), 100.0)
     d[5:15, 5:10] = 112.0
-    d[5:15, 10:13] = np.nan           # a hole between a roof and the ground
+    d[5:15, 10:13] = np.nan  # a hole between a roof and the ground
     filled, hole = fill_dsm_holes(d)
     assert np.all(filled[hole] == 100.0)
     prior = np.full((20, 20), 99.0)
@@ -176,14 +194,25 @@ def test_cli_single_image_and_manifest(tmp_path, sample_aoi):
 
     from geocd.cli import main
 
-    r = CliRunner().invoke(main, ["--progress", "none", "ortho", str(sample_aoi / "images" / "B_sat2.tif"),
-                                  "--dsm", str(sample_aoi / "truth" / "dsm_B.tif"), "--out", str(tmp_path / "b2.tif"),
-                                  "--view-bands"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "ortho",
+            str(sample_aoi / "images" / "B_sat2.tif"),
+            "--dsm",
+            str(sample_aoi / "truth" / "dsm_B.tif"),
+            "--out",
+            str(tmp_path / "b2.tif"),
+            "--view-bands",
+        ],
+    )
     assert r.exit_code == 0, r.output
     with rasterio.open(tmp_path / "b2.tif") as ds:
         assert ds.dtypes[0] == "uint16" and ds.count == 1
         m = ds.read_masks(1)
-        assert 0.01 < (m == 0).mean() < 0.04               # occluded cells are masked
+        assert 0.01 < (m == 0).mean() < 0.04  # occluded cells are masked
         assert ds.driver == "GTiff" and ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
     with rasterio.open(tmp_path / "b2_status.tif") as ds:
         st = ds.read(1)
@@ -192,15 +221,39 @@ def test_cli_single_image_and_manifest(tmp_path, sample_aoi):
         assert ds.descriptions[0] == "view_zenith_deg"
     assert (tmp_path / "b2.qml").exists() and (tmp_path / "b2_status.qml").exists()
     # manifest mode, one image, a given DSM per epoch (no stereo run)
-    r = CliRunner().invoke(main, ["--progress", "none", "ortho", str(sample_aoi / "scene.yaml"), "--image", "A_air2",
-                                  "--dsm", f"A={sample_aoi / 'truth' / 'dsm_A.tif'}", "--out", str(tmp_path / "run")])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "ortho",
+            str(sample_aoi / "scene.yaml"),
+            "--image",
+            "A_air2",
+            "--dsm",
+            f"A={sample_aoi / 'truth' / 'dsm_A.tif'}",
+            "--out",
+            str(tmp_path / "run"),
+        ],
+    )
     assert r.exit_code == 0, r.output
     with rasterio.open(tmp_path / "run" / "ortho" / "A" / "A_air2.tif") as ds:
         assert ds.count == 3 and ds.dtypes[0] == "uint8"
     # refusing to overwrite, and a missing DSM
-    r = CliRunner().invoke(main, ["--progress", "none", "ortho", str(sample_aoi / "images" / "B_sat2.tif"),
-                                  "--dsm", str(sample_aoi / "truth" / "dsm_B.tif"), "--out", str(tmp_path / "b2.tif"),
-                                  "--no-overwrite"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "ortho",
+            str(sample_aoi / "images" / "B_sat2.tif"),
+            "--dsm",
+            str(sample_aoi / "truth" / "dsm_B.tif"),
+            "--out",
+            str(tmp_path / "b2.tif"),
+            "--no-overwrite",
+        ],
+    )
     assert r.exit_code != 0 and "exist" in r.output
     r = CliRunner().invoke(main, ["--progress", "none", "ortho", str(sample_aoi / "images" / "B_sat2.tif")])
     assert r.exit_code != 0 and "--dsm" in r.output

@@ -18,7 +18,7 @@ from ..qgis.qgis_env import SYSTEM_PYTHON, qgis_env, require_qgis
 
 pytestmark = pytest.mark.qgis
 
-SCRIPT = r'''
+SCRIPT = r"""
 import json, os, sys
 from qgis.core import QgsApplication, QgsRasterLayer
 QgsApplication.setPrefixPath("/usr", True)
@@ -33,7 +33,7 @@ for name in sys.argv[1:]:
                             for c in ces]]
 print(json.dumps(out))
 os._exit(0)
-'''
+"""
 
 
 def _write(path, values, grid):
@@ -48,14 +48,19 @@ def test_orthos_open_stretched_in_qgis(tmp_path):
     require_qgis()
     grid = AOIGrid.from_bounds(374200.0, 4824300.0, 374260.0, 4824340.0, 1.0, "EPSG:32631")
     rng = np.random.default_rng(3)
-    grey = rng.integers(400, 1400, (1, *grid.shape)).astype(np.uint16)      # Pléiades-like 12-bit values
+    grey = rng.integers(400, 1400, (1, *grid.shape)).astype(np.uint16)  # Pléiades-like 12-bit values
     rgb = rng.integers(20, 220, (3, *grid.shape)).astype(np.uint8)
     p_grey, st_grey = _write(tmp_path / "grey.tif", grey, grid)
     p_rgb, st_rgb = _write(tmp_path / "rgb.tif", rgb, grid)
     env = qgis_env(tmp_path / "profile")
     (tmp_path / "q.py").write_text(SCRIPT)
-    p = subprocess.run([str(SYSTEM_PYTHON), str(tmp_path / "q.py"), str(p_grey), str(p_rgb)], capture_output=True,
-                       text=True, env=env, timeout=300)
+    p = subprocess.run(
+        [str(SYSTEM_PYTHON), str(tmp_path / "q.py"), str(p_grey), str(p_rgb)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     out = json.loads(p.stdout.strip().splitlines()[-1])
     kind, ces = out[str(p_grey)]

@@ -18,8 +18,10 @@ def _shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     def par(m, z, p):
         return 0.5 * (m - p) / (m - 2 * z + p)
 
-    return (i + par(c[i - 1, j], c[i, j], c[i + 1, j]) - c.shape[0] // 2,
-            j + par(c[i, j - 1], c[i, j], c[i, j + 1]) - c.shape[1] // 2)
+    return (
+        i + par(c[i - 1, j], c[i, j], c[i + 1, j]) - c.shape[0] // 2,
+        j + par(c[i, j - 1], c[i, j], c[i, j + 1]) - c.shape[1] // 2,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +34,9 @@ def orthos(sample_aoi):
         img = read_image(p)
         out[name] = orthorectify(img.data, cam, d.grid, d.height_m, valid=img.valid)
         if name == "A_sat4":
-            out["A_sat4_classic"] = orthorectify(img.data, cam, d.grid, d.height_m, valid=img.valid,
-                                                 params=OrthoParams(occlusion=False))
+            out["A_sat4_classic"] = orthorectify(
+                img.data, cam, d.grid, d.height_m, valid=img.valid, params=OrthoParams(occlusion=False)
+            )
     return out
 
 

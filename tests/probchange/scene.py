@@ -38,10 +38,25 @@ def affine_rpc(gsd_m: float, parallax_px_per_m: tuple[float, float], width: int,
     line[3] = parallax_px_per_m[1] * s_h
     den = z.copy()
     den[0] = 1.0
-    return RPCModel(line_num=line, line_den=den, samp_num=samp, samp_den=den.copy(), line_off=cy - 0.5,
-                    samp_off=cx - 0.5, lat_off=LAT0, lon_off=LON0, height_off=H0, line_scale=1.0, samp_scale=1.0,
-                    lat_scale=s_lat, lon_scale=s_lon, height_scale=s_h, width=width, height=height,
-                    source="probchange test affine RPC")
+    return RPCModel(
+        line_num=line,
+        line_den=den,
+        samp_num=samp,
+        samp_den=den.copy(),
+        line_off=cy - 0.5,
+        samp_off=cx - 0.5,
+        lat_off=LAT0,
+        lon_off=LON0,
+        height_off=H0,
+        line_scale=1.0,
+        samp_scale=1.0,
+        lat_scale=s_lat,
+        lon_scale=s_lon,
+        height_scale=s_h,
+        width=width,
+        height=height,
+        source="probchange test affine RPC",
+    )
 
 
 def local_xy(lon, lat):
@@ -49,10 +64,16 @@ def local_xy(lon, lat):
 
 
 # boxes: (x0, x1, y0, y1, height above ground) in local metres
-BOXES_A = {"demolished": (-16.0, -6.0, 4.0, 14.0, 8.0), "raised": (4.0, 14.0, -14.0, -4.0, 5.0),
-           "unchanged": (-17.0, -9.0, -17.0, -9.0, 6.0)}
-BOXES_B = {"raised": (4.0, 14.0, -14.0, -4.0, 10.0), "new": (6.0, 15.0, 6.0, 15.0, 7.0),
-           "unchanged": (-17.0, -9.0, -17.0, -9.0, 6.0)}
+BOXES_A = {
+    "demolished": (-16.0, -6.0, 4.0, 14.0, 8.0),
+    "raised": (4.0, 14.0, -14.0, -4.0, 5.0),
+    "unchanged": (-17.0, -9.0, -17.0, -9.0, 6.0),
+}
+BOXES_B = {
+    "raised": (4.0, 14.0, -14.0, -4.0, 10.0),
+    "new": (6.0, 15.0, 6.0, 15.0, 7.0),
+    "unchanged": (-17.0, -9.0, -17.0, -9.0, 6.0),
+}
 
 
 def ground(x, y):
@@ -115,30 +136,48 @@ def render(cam, epoch: str, tex: Texture):
     return tex(hx, hy) + 0.03 * (hit - H0), hit
 
 
-def frame_camera(x_m: float, y_m: float, width: int, height: int, altitude_m: float = 150.0, gsd_m: float = 0.5,
-                 opk=(0.0, 0.0, 0.0)):
+def frame_camera(
+    x_m: float, y_m: float, width: int, height: int, altitude_m: float = 150.0, gsd_m: float = 0.5, opk=(0.0, 0.0, 0.0)
+):
     from geocd.camera.frame import FrameCamera
 
     crs = utm_crs_for(LON0, LAT0)
     lon, lat = LON0 + x_m / M_PER_DEG_LON, LAT0 + y_m / M_PER_DEG_LAT
     e, n = from_lonlat(lon, lat, crs)
-    return FrameCamera(width=width, height=height, focal_px=altitude_m / gsd_m, position=(float(e), float(n),
-                       H0 + altitude_m), opk_deg=opk, crs=crs, vertical_datum="ellipsoid", source="probchange test")
+    return FrameCamera(
+        width=width,
+        height=height,
+        focal_px=altitude_m / gsd_m,
+        position=(float(e), float(n), H0 + altitude_m),
+        opk_deg=opk,
+        crs=crs,
+        vertical_datum="ellipsoid",
+        source="probchange test",
+    )
 
 
 @dataclass
 class Scene:
     grid: AOIGrid
-    images: dict          # epoch → list of raw image arrays
-    cameras: dict         # epoch → list of cameras
-    names: dict           # epoch → list of names
-    dsm: dict             # epoch → DSM on the grid
-    truth: np.ndarray     # |ΔDSM| > 1 m on the grid
-    hits: dict            # epoch → list of hit-height images (truth in image geometry)
+    images: dict  # epoch → list of raw image arrays
+    cameras: dict  # epoch → list of cameras
+    names: dict  # epoch → list of names
+    dsm: dict  # epoch → DSM on the grid
+    truth: np.ndarray  # |ΔDSM| > 1 m on the grid
+    hits: dict  # epoch → list of hit-height images (truth in image geometry)
 
 
-def make_scene(*, kind: str = "rpc", size_m: float = 44.0, gsd_m: float = 0.5, seed: int = 0,
-               illumination_b: str = "other", noise: float = 0.03, n_a: int = 3, n_b: int = 3) -> Scene:
+def make_scene(
+    *,
+    kind: str = "rpc",
+    size_m: float = 44.0,
+    gsd_m: float = 0.5,
+    seed: int = 0,
+    illumination_b: str = "other",
+    noise: float = 0.03,
+    n_a: int = 3,
+    n_b: int = 3,
+) -> Scene:
     """Build the scene.
 
     kind : "rpc" (affine RPC views) or "frame" (nadir frame cameras along a strip)
@@ -146,8 +185,9 @@ def make_scene(*, kind: str = "rpc", size_m: float = 44.0, gsd_m: float = 0.5, s
     """
     crs = utm_crs_for(LON0, LAT0)
     xc, yc = from_lonlat(LON0, LAT0, crs)
-    grid = AOIGrid.from_bounds(float(xc) - size_m / 2, float(yc) - size_m / 2, float(xc) + size_m / 2,
-                               float(yc) + size_m / 2, 0.5, crs)
+    grid = AOIGrid.from_bounds(
+        float(xc) - size_m / 2, float(yc) - size_m / 2, float(xc) + size_m / 2, float(yc) + size_m / 2, 0.5, crs
+    )
     lon, lat = grid.lonlat()
     gx, gy = local_xy(lon, lat)
     dsm_g = {e: dsm(gx, gy, e) for e in ("A", "B")}
@@ -156,15 +196,24 @@ def make_scene(*, kind: str = "rpc", size_m: float = 44.0, gsd_m: float = 0.5, s
     rng = np.random.default_rng(seed + 1)
     npx = int(size_m / gsd_m) + 40
     if kind == "rpc":
-        par = {"A": [(0.0, 0.02), (0.55, 0.05), (-0.5, 0.03), (0.3, -0.45)][:n_a],
-               "B": [(0.05, -0.1), (-0.45, 0.02), (0.5, 0.1), (-0.2, 0.4)][:n_b]}
+        par = {
+            "A": [(0.0, 0.02), (0.55, 0.05), (-0.5, 0.03), (0.3, -0.45)][:n_a],
+            "B": [(0.05, -0.1), (-0.45, 0.02), (0.5, 0.1), (-0.2, 0.4)][:n_b],
+        }
         cams = {e: [affine_rpc(gsd_m, p, npx, npx) for p in par[e]] for e in ("A", "B")}
     elif kind == "frame":
         npx = int(size_m / gsd_m) + 100
-        offs = {"A": [(0.0, 0.0), (22.0, 1.0), (-22.0, -1.0), (0.0, 22.0)][:n_a],
-                "B": [(2.0, -20.0), (-20.0, 3.0), (20.0, 2.0), (0.0, 20.0)][:n_b]}
-        cams = {e: [frame_camera(x, y, npx, npx, gsd_m=gsd_m, opk=(rng.normal(0, 0.3), rng.normal(0, 0.3), 0.0))
-                    for x, y in offs[e]] for e in ("A", "B")}
+        offs = {
+            "A": [(0.0, 0.0), (22.0, 1.0), (-22.0, -1.0), (0.0, 22.0)][:n_a],
+            "B": [(2.0, -20.0), (-20.0, 3.0), (20.0, 2.0), (0.0, 20.0)][:n_b],
+        }
+        cams = {
+            e: [
+                frame_camera(x, y, npx, npx, gsd_m=gsd_m, opk=(rng.normal(0, 0.3), rng.normal(0, 0.3), 0.0))
+                for x, y in offs[e]
+            ]
+            for e in ("A", "B")
+        }
     else:
         raise ValueError(kind)
     images, hits, names = {}, {}, {}

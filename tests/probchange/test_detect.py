@@ -12,8 +12,7 @@ RANGE = (196.0, 214.0)
 
 
 def _views(scene, epoch):
-    return [make_view(im, c, name=n) for im, c, n in zip(scene.images[epoch], scene.cameras[epoch],
-                                                         scene.names[epoch])]
+    return [make_view(im, c, name=n) for im, c, n in zip(scene.images[epoch], scene.cameras[epoch], scene.names[epoch])]
 
 
 @pytest.fixture(scope="module")
@@ -68,8 +67,9 @@ def test_illumination_change_between_epochs_adds_no_false_alarms(rpc_scene):
     same = make_scene(kind="rpc", illumination_b="same")
     out = {}
     for name, sc in (("same", same), ("other", rpc_scene)):
-        r = detect_objectspace(_views(sc, "A"), _views(sc, "B"), sc.grid,
-                               params=ProbChangeParams(n_bins=64, height_range_m=RANGE))
+        r = detect_objectspace(
+            _views(sc, "A"), _views(sc, "B"), sc.grid, params=ProbChangeParams(n_bins=64, height_range_m=RANGE)
+        )
         out[name] = binary_scores(r.changed(), sc.truth)
     assert out["other"]["false_alarm_rate"] <= out["same"]["false_alarm_rate"] + 0.01, out
     assert out["other"]["f1"] >= out["same"]["f1"] - 0.05, out
@@ -80,9 +80,10 @@ def test_keyframe_frame_cameras_inverse_depth():
     scene = make_scene(kind="frame")
     va, vb = _views(scene, "A"), _views(scene, "B")
     truth = image_truth(scene, "A", 0)
-    for p in (ProbChangeParams(n_bins=64, height_range_m=RANGE), ProbChangeParams.robust(n_bins=64,
-                                                                                        height_range_m=RANGE,
-                                                                                        symmetric=True)):
+    for p in (
+        ProbChangeParams(n_bins=64, height_range_m=RANGE),
+        ProbChangeParams.robust(n_bins=64, height_range_m=RANGE, symmetric=True),
+    ):
         k = detect_keyframe(va[0], va[1:], vb, params=p)
         sc = binary_scores(k.changed(), truth, valid=k.observed)
         assert sc["f1"] > 0.65, sc
@@ -102,7 +103,7 @@ def test_single_image_epoch_is_a_clear_error(rpc_scene, rpc_views):
 def test_non_overlapping_camera_is_a_clear_error(rpc_scene, rpc_views):
     va, vb = rpc_views
     far_cam = affine_rpc(0.5, (-0.45, 0.02), vb[1].camera.width, vb[1].camera.height)
-    far_cam = far_cam.replace(samp_off=far_cam.samp_off + 3000.0)      # looks 1.5 km away
+    far_cam = far_cam.replace(samp_off=far_cam.samp_off + 3000.0)  # looks 1.5 km away
     far = vb[1].__class__(vb[1].name + "_far", vb[1].chips, far_cam)
     with pytest.raises(NoOverlapError, match="does not overlap the key frame"):
         detect_keyframe(va[0], va[1:], [vb[0], far], params=ProbChangeParams(height_range_m=RANGE))

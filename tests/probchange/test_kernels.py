@@ -33,13 +33,21 @@ def test_depth_logprob(none_prior):
     rng = np.random.default_rng(1)
     vol = rng.uniform(0, 60, (3, 17, 9, 11)).astype(np.float32)
     vol[rng.random(vol.shape) < 0.1] = np.nan
-    vol[:, :, 0, 0] = np.nan          # a pixel with nothing observed
+    vol[:, :, 0, 0] = np.nan  # a pixel with nothing observed
     sigma, S = 4.0, 90.0
     out = np.empty(vol.shape[1:], np.float32)
     kb = np.empty(vol.shape[2:], np.int32)
     ln = np.empty(vol.shape[2:], np.float32)
-    K.depth_logprob(vol, 1 / sigma, math.log(S / sigma), math.log(none_prior) if none_prior else -math.inf,
-                    math.log1p(-none_prior), out, kb, ln)
+    K.depth_logprob(
+        vol,
+        1 / sigma,
+        math.log(S / sigma),
+        math.log(none_prior) if none_prior else -math.inf,
+        math.log1p(-none_prior),
+        out,
+        kb,
+        ln,
+    )
     ref, kref, lnref = K.depth_logprob_ref(vol, sigma, S, none_prior)
     fin = np.isfinite(ref)
     assert np.array_equal(fin, np.isfinite(out))
@@ -63,8 +71,9 @@ def test_change_llr(eps):
     sigma, S = 5.0, 80.0
     llr = np.empty((h, w))
     cov = np.empty((h, w), np.float32)
-    K.change_llr(logp, vol, 1 / sigma, math.log(S / sigma), math.log(eps) if eps else -math.inf, math.log1p(-eps),
-                 llr, cov)
+    K.change_llr(
+        logp, vol, 1 / sigma, math.log(S / sigma), math.log(eps) if eps else -math.inf, math.log1p(-eps), llr, cov
+    )
     ref, cref = K.change_llr_ref(logp, vol, sigma, S, eps)
     np.testing.assert_allclose(llr, ref, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(cov, cref, rtol=1e-5, atol=1e-6)

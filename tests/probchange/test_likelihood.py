@@ -6,13 +6,20 @@ import numpy as np
 import pytest
 
 from geocd.errors import ConfigError, ProcessingError
-from geocd.probchange import (ProbChangeParams, change_log_likelihood_ratio, change_probability_direct,
-                              depth_log_prob, fit_half_laplace, posterior_change, ray_hypotheses)
+from geocd.probchange import (
+    ProbChangeParams,
+    change_log_likelihood_ratio,
+    change_probability_direct,
+    depth_log_prob,
+    fit_half_laplace,
+    posterior_change,
+    ray_hypotheses,
+)
 
 
 def _rays(rng, n, m=50):
     s = rng.uniform(20, 60, (n, m))
-    s[rng.integers(0, n, m), np.arange(m)] = rng.uniform(0, 5, m)     # a good match somewhere
+    s[rng.integers(0, n, m), np.arange(m)] = rng.uniform(0, 5, m)  # a good match somewhere
     sp = rng.uniform(0, 60, (n, m))
     return s, sp
 
@@ -99,8 +106,8 @@ def test_fit_half_laplace_recovers_sigma():
         x = rng.exponential(sigma, 200_000)
         assert fit_half_laplace(x, 0.95) == pytest.approx(sigma, rel=0.02)
         assert fit_half_laplace(x, 1.0) == pytest.approx(sigma, rel=0.02)
-        x[:5000] = rng.uniform(50, 200, 5000)        # 2.5 % occlusion outliers in the tail
-        assert fit_half_laplace(x, 0.95) == pytest.approx(sigma, rel=0.10)   # the plain mean is off by > 30 %
+        x[:5000] = rng.uniform(50, 200, 5000)  # 2.5 % occlusion outliers in the tail
+        assert fit_half_laplace(x, 0.95) == pytest.approx(sigma, rel=0.10)  # the plain mean is off by > 30 %
         assert np.mean(x) > 1.3 * sigma
     with pytest.raises(ProcessingError, match="overlap"):
         fit_half_laplace(np.full(10, np.nan))

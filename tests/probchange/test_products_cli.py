@@ -27,9 +27,13 @@ def manifest(tmp_path_factory):
             ims.append({"path": f"images/{name}.tif", "name": name})
         epochs.append({"name": e, "date": "2020-01-01" if e == "A" else "2021-01-01", "images": ims})
     write_cog(root / "change_mask.tif", sc.truth.astype(np.uint8), sc.grid, dtype="uint8")
-    doc = {"geocd_manifest": 1, "name": "pc_tiny",
-           "aoi": {"crs": sc.grid.crs.to_string(), "bounds": list(sc.grid.bounds), "posting_m": 0.5},
-           "epochs": epochs, "output": "out"}
+    doc = {
+        "geocd_manifest": 1,
+        "name": "pc_tiny",
+        "aoi": {"crs": sc.grid.crs.to_string(), "bounds": list(sc.grid.bounds), "posting_m": 0.5},
+        "epochs": epochs,
+        "output": "out",
+    }
     (root / "scene.yaml").write_text(yaml.safe_dump(doc), encoding="utf-8")
     return root, sc
 
@@ -43,8 +47,22 @@ def test_cli_objectspace_products(manifest, tmp_path):
 
     root, sc = manifest
     out = tmp_path / "o"
-    res = CliRunner().invoke(main, ["--progress", "json", "probchange", str(root / "scene.yaml"), "--out", str(out),
-                                    "--bins", "48", "--height-range", "196", "214"])
+    res = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "json",
+            "probchange",
+            str(root / "scene.yaml"),
+            "--out",
+            str(out),
+            "--bins",
+            "48",
+            "--height-range",
+            "196",
+            "214",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert '"type": "result"' in res.output
     with rasterio.open(out / "probchange_probability.tif") as ds:
@@ -75,13 +93,32 @@ def test_cli_keyframe_products(manifest, tmp_path):
 
     root, sc = manifest
     out = tmp_path / "k"
-    res = CliRunner().invoke(main, ["--progress", "none", "probchange", str(root / "scene.yaml"), "--variant",
-                                    "keyframe", "--key", "B1", "--model", "thesis", "--out", str(out), "--bins",
-                                    "48", "--height-range", "196", "214"])
+    res = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "probchange",
+            str(root / "scene.yaml"),
+            "--variant",
+            "keyframe",
+            "--key",
+            "B1",
+            "--model",
+            "thesis",
+            "--out",
+            str(out),
+            "--bins",
+            "48",
+            "--height-range",
+            "196",
+            "214",
+        ],
+    )
     assert res.exit_code == 0, res.output
     kf = out / "probchange_keyframe_B1.tif"
     with rasterio.open(kf) as ds:
-        assert ds.count == 4 and ds.rpcs is not None          # the key camera, cropped to the window
+        assert ds.count == 4 and ds.rpcs is not None  # the key camera, cropped to the window
         tags = ds.tags()
         prob = ds.read(1)
     assert tags["key_image"] == "B1"
@@ -99,10 +136,26 @@ def test_cli_keyframe_products(manifest, tmp_path):
 @pytest.mark.slow
 def test_cli_single_image_epoch_one_line_error(manifest, tmp_path):
     root, _ = manifest
-    res = CliRunner().invoke(main, ["--progress", "none", "probchange", str(root / "scene.yaml"), "--images-b", "B2",
-                                    "--out", str(tmp_path), "--height-range", "196", "214"])
+    res = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "probchange",
+            str(root / "scene.yaml"),
+            "--images-b",
+            "B2",
+            "--out",
+            str(tmp_path),
+            "--height-range",
+            "196",
+            "214",
+        ],
+    )
     assert res.exit_code != 0
     assert "epoch 'B' has 1 image" in res.output and "Traceback" not in res.output
-    res = CliRunner().invoke(main, ["--progress", "none", "probchange", str(root / "scene.yaml"), "--images-a",
-                                    "A1,A9", "--out", str(tmp_path)])
+    res = CliRunner().invoke(
+        main,
+        ["--progress", "none", "probchange", str(root / "scene.yaml"), "--images-a", "A1,A9", "--out", str(tmp_path)],
+    )
     assert res.exit_code != 0 and "are not in epoch 'A'" in res.output

@@ -8,15 +8,28 @@ from pathlib import Path
 import numpy as np
 
 #: keys whose values legitimately differ between two runs (clock, absolute paths of the two output folders)
-VOLATILE_KEYS = {"created", "update_time", "elapsed_s", "seconds", "timings", "output", "manifest", "provenance", "pair_dems",
-                 "path"}
+VOLATILE_KEYS = {
+    "created",
+    "update_time",
+    "elapsed_s",
+    "seconds",
+    "timings",
+    "output",
+    "manifest",
+    "provenance",
+    "pair_dems",
+    "path",
+}
 RASTER_EXT = {".tif", ".tiff"}
 VECTOR_EXT = {".gpkg"}
 
 
 def files(root: Path, ignore: tuple = ()) -> set[str]:
-    return {p.relative_to(root).as_posix() for p in root.rglob("*")
-            if p.is_file() and not any(p.name.startswith(i) or p.name.endswith(i) for i in ignore)}
+    return {
+        p.relative_to(root).as_posix()
+        for p in root.rglob("*")
+        if p.is_file() and not any(p.name.startswith(i) or p.name.endswith(i) for i in ignore)
+    }
 
 
 def _strip(d, a_root: str, b_root: str):
@@ -37,7 +50,9 @@ def compare_raster(a: Path, b: Path) -> list[str]:
     with rasterio.open(a) as da, rasterio.open(b) as db:
         for attr in ("count", "width", "height", "dtypes", "nodata", "crs", "transform", "descriptions"):
             va, vb = getattr(da, attr), getattr(db, attr)
-            if va != vb and not (attr == "nodata" and va is not None and vb is not None and np.isnan(va) and np.isnan(vb)):
+            if va != vb and not (
+                attr == "nodata" and va is not None and vb is not None and np.isnan(va) and np.isnan(vb)
+            ):
                 diffs.append(f"{a.name}: {attr} {va} != {vb}")
         if not diffs:
             xa, xb = da.read(), db.read()
@@ -64,8 +79,10 @@ def compare_vector(a: Path, b: Path) -> list[str]:
             continue
         for c in fa.columns:
             if c == "geometry":
-                if not all((ga is None and gb is None) or (ga is not None and ga.equals_exact(gb, 1e-9))
-                           for ga, gb in zip(fa.geometry, fb.geometry)):
+                if not all(
+                    (ga is None and gb is None) or (ga is not None and ga.equals_exact(gb, 1e-9))
+                    for ga, gb in zip(fa.geometry, fb.geometry)
+                ):
                     diffs.append(f"{a.name}:{name}: geometries differ")
             elif not fa[c].equals(fb[c]):
                 diffs.append(f"{a.name}:{name}: column {c} differs")
@@ -97,7 +114,9 @@ def compare_trees(a: Path, b: Path, ignore: tuple = ()) -> list[str]:
         elif ext in (".json", ".yaml", ".yml"):
             import yaml
 
-            load = (lambda p: json.loads(p.read_text())) if ext == ".json" else (lambda p: yaml.safe_load(p.read_text()))
+            load = (
+                (lambda p: json.loads(p.read_text())) if ext == ".json" else (lambda p: yaml.safe_load(p.read_text()))
+            )
             if _strip(load(pa), str(a), str(b)) != _strip(load(pb), str(a), str(b)):
                 diffs.append(f"{rel}: contents differ")
         elif ext == ".log":

@@ -18,8 +18,13 @@ import time
 
 
 def main(argv: list[str]) -> dict:
-    from qgis.core import (QgsApplication, QgsProcessingContext, QgsProcessingException, QgsProcessingFeedback,
-                           QgsProject)
+    from qgis.core import (
+        QgsApplication,
+        QgsProcessingContext,
+        QgsProcessingException,
+        QgsProcessingFeedback,
+        QgsProject,
+    )
 
     QgsApplication.setPrefixPath("/usr", True)
     app = QgsApplication([], False)
@@ -104,8 +109,11 @@ def load_queued(context) -> list[dict]:
     out = []
     for uri, details in context.layersToLoadOnCompletion().items():
         hint = details.layerTypeHint
-        layer = (QgsRasterLayer(uri, details.name) if hint == details.layerTypeHint.Raster
-                 else QgsVectorLayer(uri, details.name, "ogr"))
+        layer = (
+            QgsRasterLayer(uri, details.name)
+            if hint == details.layerTypeHint.Raster
+            else QgsVectorLayer(uri, details.name, "ogr")
+        )
         QgsProject.instance().addMapLayer(layer)
         pp = details.postProcessor()
         if pp is not None:

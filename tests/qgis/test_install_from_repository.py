@@ -22,8 +22,15 @@ pytestmark = pytest.mark.qgis
 
 def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     env = {**os.environ, "GDAL_PAM_ENABLED": "NO"}
-    return subprocess.run([geocd_executable(), *args], capture_output=True, text=True, cwd=cwd, timeout=900, env=env,
-                          stdin=subprocess.DEVNULL)
+    return subprocess.run(
+        [geocd_executable(), *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=900,
+        env=env,
+        stdin=subprocess.DEVNULL,
+    )
 
 
 def _dems(folder: Path, n: int = 3) -> list[Path]:
@@ -49,8 +56,11 @@ def test_install_from_repository_then_run_three_algorithms(tmp_path):
     assert r.returncode == 0, r.stderr
     xml = repo / "plugins.xml"
     doc = xml.read_text(encoding="utf-8")
-    assert "<pyqgis_plugin" in doc and "<file_name>geocd_qgis.0.1.0.zip</file_name>" in doc \
+    assert (
+        "<pyqgis_plugin" in doc
+        and "<file_name>geocd_qgis.0.1.0.zip</file_name>" in doc
         and (repo / "geocd_qgis.0.1.0.zip").as_uri() in doc
+    )
     # 2. headless install with QGIS's installer into a fresh profile (one command)
     profile = tmp_path / "profile"
     r = _cli("plugin-install", str(xml), "--profile", str(profile), "--json")
@@ -67,8 +77,15 @@ def test_install_from_repository_then_run_three_algorithms(tmp_path):
     env["HOME"] = str(tmp_path)
 
     def qp(*args, timeout=600):
-        return subprocess.run([str(QGIS_PROCESS), *args], env=env, capture_output=True, text=True, timeout=timeout,
-                              cwd=tmp_path, stdin=subprocess.DEVNULL)
+        return subprocess.run(
+            [str(QGIS_PROCESS), *args],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            cwd=tmp_path,
+            stdin=subprocess.DEVNULL,
+        )
 
     r = qp("plugins")
     assert "* geocd_qgis" in r.stdout, r.stdout  # "*" = enabled
@@ -83,19 +100,29 @@ def test_install_from_repository_then_run_three_algorithms(tmp_path):
 
     dems = _dems(tmp_path)
     out = tmp_path / "demdiff"
-    r = qp("--json", "run", "geocd:demdiff", "--", f"DEM_A={dems[0]}", f"DEM_B={dems[1]}", f"OUTPUT={out}",
-           "CONFIDENCE=99")
+    r = qp(
+        "--json", "run", "geocd:demdiff", "--", f"DEM_A={dems[0]}", f"DEM_B={dems[1]}", f"OUTPUT={out}", "CONFIDENCE=99"
+    )
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    res = json.loads(r.stdout[r.stdout.index("{"):])["results"]
+    res = json.loads(r.stdout[r.stdout.index("{") :])["results"]
     assert Path(res["DH"]).is_file() and Path(res["CHANGES"].split("|")[0]).is_file()
     assert json.loads((out / "demdiff_report.json").read_text())["confidence_level_pct"] == 99.0
     assert (out / "geocd_demdiff.log").is_file()
 
     out = tmp_path / "series"
-    r = qp("--json", "run", "geocd:demseries", "--", f"DEMS={dems[0]}", f"DEMS={dems[1]}", f"DEMS={dems[2]}",
-           "DATES=2020-01-01,2021-01-01,2022-01-01", f"OUTPUT={out}")
+    r = qp(
+        "--json",
+        "run",
+        "geocd:demseries",
+        "--",
+        f"DEMS={dems[0]}",
+        f"DEMS={dems[1]}",
+        f"DEMS={dems[2]}",
+        "DATES=2020-01-01,2021-01-01,2022-01-01",
+        f"OUTPUT={out}",
+    )
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    res = json.loads(r.stdout[r.stdout.index("{"):])["results"]
+    res = json.loads(r.stdout[r.stdout.index("{") :])["results"]
     assert Path(res["TABLE"]).is_file()
     rows = Path(res["TABLE"]).read_text().splitlines()
     assert len(rows) >= 3  # header + two intervals

@@ -48,17 +48,23 @@ def test_spec_matches_cli(alg):
     assert cmd is not None, f"geocd has no command {' '.join(alg.command)!r} but the plugin offers geocd:{alg.name}"
     opts = {o: prm for prm in cmd.params if isinstance(prm, click.Option) for o in prm.opts + prm.secondary_opts}
     args = [prm for prm in cmd.params if isinstance(prm, click.Argument)]
-    positional = [p for p in alg.params if p.cli is None and not p.manifest
-                  and p.kind not in ("folder_destination", "file_destination")]
+    positional = [
+        p
+        for p in alg.params
+        if p.cli is None and not p.manifest and p.kind not in ("folder_destination", "file_destination")
+    ]
     if alg.writes_manifest:
         assert len(args) == 1 and not positional, f"{alg.name}: the manifest must be the only positional argument"
     else:
-        assert len(positional) <= len(args) or (args and args[-1].nargs == -1), \
+        assert len(positional) <= len(args) or (args and args[-1].nargs == -1), (
             f"{alg.name}: {len(positional)} positional parameters for {len(args)} CLI arguments"
+        )
     for p in alg.params:
         if p.cli is None:
             continue
-        assert p.cli in opts, f"geocd {' '.join(alg.command)} has no option {p.cli} (plugin parameter {alg.name}.{p.name})"
+        assert p.cli in opts, (
+            f"geocd {' '.join(alg.command)} has no option {p.cli} (plugin parameter {alg.name}.{p.name})"
+        )
         o = opts[p.cli]
         if p.kind == "enum" and isinstance(o.type, click.Choice):
             values = [v for _, v in p.options if v != ""]
@@ -72,14 +78,17 @@ def test_spec_matches_cli(alg):
         if p.cli_default and p.default is not None and p.kind != "bool":
             default = (p.options[p.default][1] or None) if p.kind == "enum" else p.default
             cli_default = o.get_default(click.Context(cmd))
-            assert cli_default == default, \
+            assert cli_default == default, (
                 f"{alg.name}.{p.name}: plugin default {default!r} differs from the CLI's {cli_default!r}"
+            )
 
 
 def test_pending_algorithms_stay_pending_only_while_the_command_is_missing():
     landed = [a.name for a in specs.ALGORITHMS if a.pending and _command(*a.command) is not None]
-    assert not landed, (f"geocd now has the command(s) of pending plugin algorithm(s) {landed}: check their "
-                        "parameters against `geocd CMD --help` and set pending=False in qgis_plugin/geocd_qgis/specs.py")
+    assert not landed, (
+        f"geocd now has the command(s) of pending plugin algorithm(s) {landed}: check their "
+        "parameters against `geocd CMD --help` and set pending=False in qgis_plugin/geocd_qgis/specs.py"
+    )
 
 
 def test_metadata_and_versions():
@@ -118,25 +127,93 @@ def test_plugin_imports_only_qgis_and_the_standard_library():
 
 def test_build_args_stereo():
     alg = specs.spec("stereo")
-    args = specs.build_args(alg, {"MANIFEST": "/d/-scene.yaml", "EPOCHS": "A, B", "OUTPUT": "/o", "POSTING": 0.5,
-                                  "WINDOW": 7, "HEIGHT_RANGE": (10.0, 80.5), "SCORE": 1, "TILE_SIZE": None})
-    assert args == ["stereo", "--epoch", "A", "--epoch", "B", "--out", "/o", "--posting", "0.5", "--window", "7",
-                    "--height-range", "10", "80.5", "--score", "ncc", "--", "/d/-scene.yaml"]
+    args = specs.build_args(
+        alg,
+        {
+            "MANIFEST": "/d/-scene.yaml",
+            "EPOCHS": "A, B",
+            "OUTPUT": "/o",
+            "POSTING": 0.5,
+            "WINDOW": 7,
+            "HEIGHT_RANGE": (10.0, 80.5),
+            "SCORE": 1,
+            "TILE_SIZE": None,
+        },
+    )
+    assert args == [
+        "stereo",
+        "--epoch",
+        "A",
+        "--epoch",
+        "B",
+        "--out",
+        "/o",
+        "--posting",
+        "0.5",
+        "--window",
+        "7",
+        "--height-range",
+        "10",
+        "80.5",
+        "--score",
+        "ncc",
+        "--",
+        "/d/-scene.yaml",
+    ]
 
 
 def test_build_args_defaults_and_repeats():
     alg = specs.spec("change")
-    args = specs.build_args(alg, {"EPOCH_A": ["/a1.tif", "/a2.tif"], "EPOCH_B": ["/b1.tif"], "DEM_DATUM": 0,
-                                  "MODEL": "/m.json", "OUTPUT": "/o", "CONFIDENCES": "95;99.5",
-                                  "REPORT_CONFIDENCE": 99.0, "COMBINE": 0})
-    assert args == ["change", "--epoch-a", "/a1.tif", "--epoch-a", "/a2.tif", "--epoch-b", "/b1.tif",
-                    "--model", "/m.json", "--out", "/o", "--confidence", "95", "--confidence", "99.5"]
+    args = specs.build_args(
+        alg,
+        {
+            "EPOCH_A": ["/a1.tif", "/a2.tif"],
+            "EPOCH_B": ["/b1.tif"],
+            "DEM_DATUM": 0,
+            "MODEL": "/m.json",
+            "OUTPUT": "/o",
+            "CONFIDENCES": "95;99.5",
+            "REPORT_CONFIDENCE": 99.0,
+            "COMBINE": 0,
+        },
+    )
+    assert args == [
+        "change",
+        "--epoch-a",
+        "/a1.tif",
+        "--epoch-a",
+        "/a2.tif",
+        "--epoch-b",
+        "/b1.tif",
+        "--model",
+        "/m.json",
+        "--out",
+        "/o",
+        "--confidence",
+        "95",
+        "--confidence",
+        "99.5",
+    ]
     with pytest.raises(ValueError, match="numbers"):
         specs.build_args(alg, {"CONFIDENCES": "ninety"})
-    upd = specs.build_args(specs.spec("volumeupdate"), {"MODEL": "/m", "IMAGES": ["/a.tif"], "PASSES": 5,
-                                                        "SUN": "135, 40.5", "NORMALIZE": 1, "FOOTPRINTS": True})
-    assert upd == ["volume", "update", "--image", "/a.tif", "--footprints", "--normalize", "percentile", "--sun",
-                   "135", "40.5", "--", "/m"]
+    upd = specs.build_args(
+        specs.spec("volumeupdate"),
+        {"MODEL": "/m", "IMAGES": ["/a.tif"], "PASSES": 5, "SUN": "135, 40.5", "NORMALIZE": 1, "FOOTPRINTS": True},
+    )
+    assert upd == [
+        "volume",
+        "update",
+        "--image",
+        "/a.tif",
+        "--footprints",
+        "--normalize",
+        "percentile",
+        "--sun",
+        "135",
+        "40.5",
+        "--",
+        "/m",
+    ]
     with pytest.raises(ValueError, match="two numbers"):
         specs.build_args(specs.spec("volumedetect"), {"MODEL": "/m", "IMAGE": "/i.tif", "SUN": "135"})
     syn = specs.build_args(specs.spec("synth"), {"OUTPUT": "/s", "SEED": 3, "TINY": True, "SIZE_M": 300.0})
@@ -149,10 +226,16 @@ def test_manifest_from_layers_loads_in_geocd(tmp_path):
     for name in ("a1.tif", "a2.tif", "b1.tif", "b2.tif", "dem.tif", "fp.gpkg"):
         (tmp_path / name).write_bytes(b"")
     alg = specs.spec("runlayers")
-    vals = {"IMAGES_A": [str(tmp_path / "a1.tif"), str(tmp_path / "a2.tif")],
-            "IMAGES_B": [str(tmp_path / "b1.tif"), str(tmp_path / "b2.tif")], "DEM": str(tmp_path / "dem.tif"),
-            "DEM_DATUM": 2, "FOOTPRINTS": f"{tmp_path / 'fp.gpkg'}|layername=buildings",
-            "AOI": (500000.0, 6000000.0, 500300.0, 6000300.0, "EPSG:32735"), "POSTING": 0.5, "SCENE_CLASS": "urban"}
+    vals = {
+        "IMAGES_A": [str(tmp_path / "a1.tif"), str(tmp_path / "a2.tif")],
+        "IMAGES_B": [str(tmp_path / "b1.tif"), str(tmp_path / "b2.tif")],
+        "DEM": str(tmp_path / "dem.tif"),
+        "DEM_DATUM": 2,
+        "FOOTPRINTS": f"{tmp_path / 'fp.gpkg'}|layername=buildings",
+        "AOI": (500000.0, 6000000.0, 500300.0, 6000300.0, "EPSG:32735"),
+        "POSTING": 0.5,
+        "SCENE_CLASS": "urban",
+    }
     m = specs.build_manifest(alg, vals, output=str(tmp_path / "out"))
     path = tmp_path / "scene.json"
     path.write_text(json.dumps(m))
@@ -165,8 +248,9 @@ def test_manifest_from_layers_loads_in_geocd(tmp_path):
     args = specs.build_args(alg, {**vals, "OUTPUT": "/o"}, manifest_path=str(path))
     assert args == ["run", "--out", "/o", "--", str(path)]
     # an image pair: one epoch
-    pair = specs.build_manifest(specs.spec("stereopair"), {"IMAGE_A": str(tmp_path / "a1.tif"),
-                                                          "IMAGE_B": str(tmp_path / "a1.tif")})
+    pair = specs.build_manifest(
+        specs.spec("stereopair"), {"IMAGE_A": str(tmp_path / "a1.tif"), "IMAGE_B": str(tmp_path / "a1.tif")}
+    )
     assert [im["name"] for im in pair["epochs"][0]["images"]] == ["a1_1", "a1_2"]
     with pytest.raises(ValueError, match="at least one epoch"):
         specs.build_manifest(alg, {})
@@ -179,8 +263,9 @@ def test_runner_streams_and_reports_errors(tmp_path):
     bad = tmp_path / "scene.yaml"
     bad.write_text("epochs: [unclosed\n")
     events = []
-    res = runner.run_geocd([*GEOCD, "--progress", "json", "info", str(bad)], on_console=events.append,
-                           env=locate.child_env())
+    res = runner.run_geocd(
+        [*GEOCD, "--progress", "json", "info", str(bad)], on_console=events.append, env=locate.child_env()
+    )
     assert res.returncode != 0 and not res.ok
     assert "not valid YAML" in res.error and str(bad) in res.error
     assert res.failure_message() == res.error
@@ -199,9 +284,13 @@ def test_runner_cancel_kills_child_and_cleanup_leaves_nothing(tmp_path):
             return True
         return False
 
-    res = runner.run_geocd([*GEOCD, "--progress", "json", "synth", "--tiny", "--supersample", "8", "--out", str(out)],
-                           on_progress=lambda f, m, s: progress.append((f, m, s)), is_cancelled=cancelled,
-                           env=locate.child_env(), grace_s=3.0)
+    res = runner.run_geocd(
+        [*GEOCD, "--progress", "json", "synth", "--tiny", "--supersample", "8", "--out", str(out)],
+        on_progress=lambda f, m, s: progress.append((f, m, s)),
+        is_cancelled=cancelled,
+        env=locate.child_env(),
+        grace_s=3.0,
+    )
     stopped_s = time.monotonic() - t_cancel["t"]
     assert res.cancelled and res.returncode != 0 and "cancelled" in res.failure_message()
     assert stopped_s < 5.0
@@ -213,7 +302,9 @@ def test_runner_cancel_kills_child_and_cleanup_leaves_nothing(tmp_path):
 
 def test_runner_resolves_relative_outputs(tmp_path):
     script = tmp_path / "fake.py"
-    script.write_text("import json,sys; sys.stderr.write(json.dumps({'type':'result','outputs':{'x':'a/b.tif'}})+'\\n')")
+    script.write_text(
+        "import json,sys; sys.stderr.write(json.dumps({'type':'result','outputs':{'x':'a/b.tif'}})+'\\n')"
+    )
     res = runner.run_geocd([sys.executable, str(script)], cwd=str(tmp_path))
     assert res.ok and res.outputs == {"x": str(tmp_path / "a" / "b.tif")}
 
@@ -248,8 +339,17 @@ def test_plugin_zip(tmp_path):
     with zipfile.ZipFile(out) as zf:
         names = zf.namelist()
         assert all(n.startswith("geocd_qgis/") for n in names)
-        for need in ("__init__.py", "metadata.txt", "provider.py", "algorithm.py", "runner.py", "specs.py",
-                     "locate.py", "icons/geocd.svg", "environment.json"):
+        for need in (
+            "__init__.py",
+            "metadata.txt",
+            "provider.py",
+            "algorithm.py",
+            "runner.py",
+            "specs.py",
+            "locate.py",
+            "icons/geocd.svg",
+            "environment.json",
+        ):
             assert f"geocd_qgis/{need}" in names
         assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc")]
         hint = json.loads(zf.read("geocd_qgis/environment.json"))

@@ -64,11 +64,24 @@ def test_help_prints_parameters(qgis, alg):
 def test_run_in_qgis_matches_cli(qgis, tmp_path):
     """`qgis_process run geocd:synth` writes the same products as `geocd synth` with the same options."""
     cli_out, qgis_out = tmp_path / "cli", tmp_path / "qgis"
-    r = _cli("--progress", "none", "synth", "--tiny", "--seed", "3", "--supersample", "1", "--n-aerial", "0",
-             "--out", str(cli_out))
+    r = _cli(
+        "--progress",
+        "none",
+        "synth",
+        "--tiny",
+        "--seed",
+        "3",
+        "--supersample",
+        "1",
+        "--n-aerial",
+        "0",
+        "--out",
+        str(cli_out),
+    )
     assert r.returncode == 0, r.stderr
-    r, doc = qgis.run_json("geocd:synth", {"TINY": "true", "SEED": 3, "SUPERSAMPLE": 1, "N_AERIAL": 0,
-                                           "OUTPUT": str(qgis_out)})
+    r, doc = qgis.run_json(
+        "geocd:synth", {"TINY": "true", "SEED": 3, "SUPERSAMPLE": 1, "N_AERIAL": 0, "OUTPUT": str(qgis_out)}
+    )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     res = doc["results"]
     assert res["OUTPUT"] == str(qgis_out)
@@ -128,8 +141,20 @@ def test_executable_from_processing_settings(tmp_path):
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("tiny") / "scene"
-    r = _cli("--progress", "none", "synth", "--tiny", "--seed", "5", "--supersample", "1", "--n-aerial", "0",
-             "--out", str(out))
+    r = _cli(
+        "--progress",
+        "none",
+        "synth",
+        "--tiny",
+        "--seed",
+        "5",
+        "--supersample",
+        "1",
+        "--n-aerial",
+        "0",
+        "--out",
+        str(out),
+    )
     assert r.returncode == 0, r.stderr
     return out / "scene.yaml"
 
@@ -158,7 +183,7 @@ def test_error_carries_geocds_message(qgis, tmp_path):
     bad.write_text("epochs: [unclosed\n")
     r = _cli("stereo", str(bad), "--out", str(tmp_path / "cli"))
     assert r.returncode != 0
-    cli_message = r.stderr[r.stderr.index("geocd: error: ") + len("geocd: error: "):].strip()
+    cli_message = r.stderr[r.stderr.index("geocd: error: ") + len("geocd: error: ") :].strip()
     rep = qgis.pyqgis("error", "geocd:stereo", f"MANIFEST={bad}", f"OUTPUT={tmp_path / 'qgis'}")
     assert rep.get("exception") == "QgsProcessingException", rep
     assert rep["message"] == cli_message
@@ -208,11 +233,15 @@ def test_change_from_layers_on_sample_aoi_matches_cli(qgis, tmp_path, sample_aoi
     manifest the plugin writes, run by `geocd run`, gives the same layers; QGIS loads them styled."""
     img = sample_aoi / "images"
     qgis_out, cli_out = tmp_path / "qgis", tmp_path / "cli"
-    params = [*(f"IMAGES_A={img / f'A_sat{k}.tif'}" for k in (1, 2, 3)),
-              *(f"IMAGES_B={img / f'B_sat{k}.tif'}" for k in (1, 2, 3)),
-              f"DEM={sample_aoi / 'truth' / 'dem_prior.tif'}", "DEM_DATUM=1",
-              f"FOOTPRINTS={sample_aoi / 'truth' / 'footprints_all.gpkg'}",
-              "AOI=374364,374424,4824264,4824324 [EPSG:32631]", f"OUTPUT={qgis_out}"]
+    params = [
+        *(f"IMAGES_A={img / f'A_sat{k}.tif'}" for k in (1, 2, 3)),
+        *(f"IMAGES_B={img / f'B_sat{k}.tif'}" for k in (1, 2, 3)),
+        f"DEM={sample_aoi / 'truth' / 'dem_prior.tif'}",
+        "DEM_DATUM=1",
+        f"FOOTPRINTS={sample_aoi / 'truth' / 'footprints_all.gpkg'}",
+        "AOI=374364,374424,4824264,4824324 [EPSG:32631]",
+        f"OUTPUT={qgis_out}",
+    ]
     rep = qgis.pyqgis("run", "geocd:runlayers", *params)
     assert rep.get("ok"), rep
     manifest = qgis_out / "scene_from_qgis.json"

@@ -42,7 +42,7 @@ def mutate_bytes(data: bytes, mutation) -> bytes:
     if how == "insert":
         return data[:i] + payload + data[i:]
     if how == "delete":
-        return data[:i] + data[i + count:]
+        return data[:i] + data[i + count :]
     b = bytearray(data)
     for j in rnd.integers(0, max(span, 1), size=count):
         if n:
@@ -62,15 +62,38 @@ def _outcome(fn, *a, **kw) -> str:
 # manifests: structural mutations of a valid document, and byte mutations of its YAML text
 # ------------------------------------------------------------------------------------------------------------
 _VALUES = st.one_of(
-    st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True),
-    st.text(max_size=12), st.sampled_from(["", "fine", "a", "2024-13-45", "2023-06-01", "EPSG:32631", "EPSG:99999",
-                                           "images/A_0.tif", "../../nope", "dem.tif", "egm96", "wgs1234", "1e3"]),
+    st.none(),
+    st.booleans(),
+    st.integers(-(10**6), 10**6),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12),
+    st.sampled_from(
+        [
+            "",
+            "fine",
+            "a",
+            "2024-13-45",
+            "2023-06-01",
+            "EPSG:32631",
+            "EPSG:99999",
+            "images/A_0.tif",
+            "../../nope",
+            "dem.tif",
+            "egm96",
+            "wgs1234",
+            "1e3",
+        ]
+    ),
     st.lists(st.one_of(st.integers(-5, 5), st.floats(-1e6, 1e6), st.text(max_size=3)), max_size=5),
-    st.dictionaries(st.sampled_from(["path", "name", "x", "images", "date", "layer"]), st.text(max_size=6),
-                    max_size=3),
+    st.dictionaries(st.sampled_from(["path", "name", "x", "images", "date", "layer"]), st.text(max_size=6), max_size=3),
 )
-tree_ops = st.lists(st.tuples(st.sampled_from(["replace", "rename", "delete", "add"]), st.integers(0, 10**6),
-                              _VALUES, st.integers(0, 10**6)), min_size=1, max_size=4)
+tree_ops = st.lists(
+    st.tuples(
+        st.sampled_from(["replace", "rename", "delete", "add"]), st.integers(0, 10**6), _VALUES, st.integers(0, 10**6)
+    ),
+    min_size=1,
+    max_size=4,
+)
 
 
 def _slots(node: Any, out: list) -> list:
@@ -91,10 +114,10 @@ def _typo(key: str, r: int) -> str:
     i = r % len(key)
     k = r % 3
     if k == 0:
-        return key[:i] + key[i + 1:] or "x"           # drop a letter (camra)
+        return key[:i] + key[i + 1 :] or "x"  # drop a letter (camra)
     if k == 1:
-        return key[:i] + key[i] + key[i:]              # double a letter
-    return key + "z"                                   # imagez
+        return key[:i] + key[i] + key[i:]  # double a letter
+    return key + "z"  # imagez
 
 
 def mutate_tree(doc: dict, ops) -> dict:
@@ -147,14 +170,43 @@ def check_dem_bytes(data: bytes, mutation, folder: Path) -> str:
 # ------------------------------------------------------------------------------------------------------------
 # RPC metadata values (GDAL's RPC domain, here in an .aux.xml beside an image without RPC tags)
 # ------------------------------------------------------------------------------------------------------------
-RPC_SCALARS = ("LINE_OFF", "SAMP_OFF", "LAT_OFF", "LONG_OFF", "HEIGHT_OFF", "LINE_SCALE", "SAMP_SCALE", "LAT_SCALE",
-               "LONG_SCALE", "HEIGHT_SCALE")
+RPC_SCALARS = (
+    "LINE_OFF",
+    "SAMP_OFF",
+    "LAT_OFF",
+    "LONG_OFF",
+    "HEIGHT_OFF",
+    "LINE_SCALE",
+    "SAMP_SCALE",
+    "LAT_SCALE",
+    "LONG_SCALE",
+    "HEIGHT_SCALE",
+)
 RPC_LISTS = ("LINE_NUM_COEFF", "LINE_DEN_COEFF", "SAMP_NUM_COEFF", "SAMP_DEN_COEFF")
 _NUM_TEXT = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True).map(repr),
     st.floats(-1e4, 1e4).map(lambda v: f"{v:.6g}"),
-    st.sampled_from(["abc", "", " ", "1e308", "-1e308", "95", "400", "1e300", "0", "12 pixels", "1,5", "0x10",
-                     "nan", "inf", "+", "1e", "١٢"]),
+    st.sampled_from(
+        [
+            "abc",
+            "",
+            " ",
+            "1e308",
+            "-1e308",
+            "95",
+            "400",
+            "1e300",
+            "0",
+            "12 pixels",
+            "1,5",
+            "0x10",
+            "nan",
+            "inf",
+            "+",
+            "1e",
+            "١٢",
+        ]
+    ),
     st.text(max_size=8),
 )
 rpc_tag_edits = st.dictionaries(st.sampled_from(RPC_SCALARS + RPC_LISTS), _NUM_TEXT, min_size=1, max_size=4)
@@ -180,8 +232,9 @@ def check_rpc_tags(image: Path, tags: dict[str, str], edits: dict[str, str]) -> 
         else:
             t[k] = v
     items = "".join(f'<MDI key="{escape(k)}">{escape(v)}</MDI>' for k, v in t.items())
-    Path(f"{image}.aux.xml").write_text(f'<PAMDataset><Metadata domain="RPC">{items}</Metadata></PAMDataset>',
-                                        encoding="utf-8")
+    Path(f"{image}.aux.xml").write_text(
+        f'<PAMDataset><Metadata domain="RPC">{items}</Metadata></PAMDataset>', encoding="utf-8"
+    )
     try:
         m = load_rpc_for_image(image)
     except GeoCDError as exc:

@@ -74,8 +74,11 @@ def write_footprints(path: Path, dem: Path) -> Path:
         l, b, r, t = ds.bounds
         crs = ds.crs
     cx, cy = 0.5 * (l + r), 0.5 * (b + t)
-    gdf = gpd.GeoDataFrame({"building_id": [1, 2]}, geometry=[box(cx - 30, cy - 30, cx + 30, cy + 30),
-                                                              box(l + 20, b + 20, l + 60, b + 60)], crs=crs)
+    gdf = gpd.GeoDataFrame(
+        {"building_id": [1, 2]},
+        geometry=[box(cx - 30, cy - 30, cx + 30, cy + 30), box(l + 20, b + 20, l + 60, b + 60)],
+        crs=crs,
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     gdf.to_file(path)
     return path
@@ -123,8 +126,10 @@ def make_scene(root: Path, size_m: float = 40.0) -> Scene:
     rng = np.random.default_rng(3)
     epochs = []
     files = []
-    for ep, date, pars in (("A", "2023-06-01", ((0.55, 0.05), (-0.45, 0.02))),
-                           ("B", "2024-06-01", ((0.50, 0.04), (-0.40, 0.03)))):
+    for ep, date, pars in (
+        ("A", "2023-06-01", ((0.55, 0.05), (-0.45, 0.02))),
+        ("B", "2024-06-01", ((0.50, 0.04), (-0.40, 0.03))),
+    ):
         imgs = []
         for k, par in enumerate(pars):
             cam = affine_rpc(0.5, par, npx, npx)
@@ -134,14 +139,17 @@ def make_scene(root: Path, size_m: float = 40.0) -> Scene:
             imgs.append({"path": f"images/{p.name}", "name": p.stem})
         epochs.append({"name": ep, "date": date, "images": imgs})
     g = AOIGrid.from_bounds(bounds[0] - 40, bounds[1] - 40, bounds[2] + 40, bounds[3] + 40, 2.0, crs)
-    dem = write_cog(root / "dem.tif", np.full(g.shape, 200.0, np.float32), g,
-                    tags={"vertical_datum": "ellipsoid"})
+    dem = write_cog(root / "dem.tif", np.full(g.shape, 200.0, np.float32), g, tags={"vertical_datum": "ellipsoid"})
     fp = write_footprints(root / "footprints.gpkg", dem)
     files += [dem, fp]
-    doc = {"geocd_manifest": 1, "name": "faults",
-           "aoi": {"crs": crs.to_string(), "bounds": [float(v) for v in bounds], "posting_m": 1.0},
-           "dem": {"path": "dem.tif", "vertical_datum": "ellipsoid"}, "footprints": "footprints.gpkg",
-           "epochs": epochs}
+    doc = {
+        "geocd_manifest": 1,
+        "name": "faults",
+        "aoi": {"crs": crs.to_string(), "bounds": [float(v) for v in bounds], "posting_m": 1.0},
+        "dem": {"path": "dem.tif", "vertical_datum": "ellipsoid"},
+        "footprints": "footprints.gpkg",
+        "epochs": epochs,
+    }
     sc = Scene(root, root / "scene.yaml", doc, bounds, crs.to_string(), files)
     sc.write()
     files.append(sc.manifest)
@@ -154,14 +162,27 @@ def make_scene(root: Path, size_m: float = 40.0) -> Scene:
 def rpc_txt(path: Path, **override) -> Path:
     """An IKONOS-style ``_rpc.txt`` of the synthetic affine camera, with fields overridden (as text)."""
     cam = affine_rpc(0.5, (0.5, 0.05), 120, 120)
-    vals = {"LINE_OFF": cam.line_off, "SAMP_OFF": cam.samp_off, "LAT_OFF": cam.lat_off, "LONG_OFF": cam.lon_off,
-            "HEIGHT_OFF": cam.height_off, "LINE_SCALE": cam.line_scale, "SAMP_SCALE": cam.samp_scale,
-            "LAT_SCALE": cam.lat_scale, "LONG_SCALE": cam.lon_scale, "HEIGHT_SCALE": cam.height_scale}
+    vals = {
+        "LINE_OFF": cam.line_off,
+        "SAMP_OFF": cam.samp_off,
+        "LAT_OFF": cam.lat_off,
+        "LONG_OFF": cam.lon_off,
+        "HEIGHT_OFF": cam.height_off,
+        "LINE_SCALE": cam.line_scale,
+        "SAMP_SCALE": cam.samp_scale,
+        "LAT_SCALE": cam.lat_scale,
+        "LONG_SCALE": cam.lon_scale,
+        "HEIGHT_SCALE": cam.height_scale,
+    }
     lines = []
     for k, v in vals.items():
         lines.append(f"{k}: {override.get(k, repr(float(v)))}")
-    for name, arr in (("LINE_NUM_COEFF", cam.line_num), ("LINE_DEN_COEFF", cam.line_den),
-                      ("SAMP_NUM_COEFF", cam.samp_num), ("SAMP_DEN_COEFF", cam.samp_den)):
+    for name, arr in (
+        ("LINE_NUM_COEFF", cam.line_num),
+        ("LINE_DEN_COEFF", cam.line_den),
+        ("SAMP_NUM_COEFF", cam.samp_num),
+        ("SAMP_DEN_COEFF", cam.samp_den),
+    ):
         for i, c in enumerate(arr, start=1):
             key = f"{name}_{i}"
             lines.append(f"{key}: {override.get(key, repr(float(c)))}")
@@ -185,6 +206,7 @@ class Cases(dict):
         def reg(fn):
             self[name] = fn
             return fn
+
         return reg
 
 

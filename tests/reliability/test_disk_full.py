@@ -99,8 +99,10 @@ def test_read_only_file_system(dems, tmp_path, namespaces):
     mnt = tmp_path / "mnt"
     mnt.mkdir()
     geocd = " ".join(shlex.quote(str(c)) for c in [*GEOCD, "demdiff", *dems, "--no-plots", "--out"])
-    script = (f"mkdir {mnt}/existing && mount -o remount,ro {mnt} && "
-              f"{geocd} {mnt}/new/out; echo rc=$?; {geocd} {mnt}/existing; echo rc=$?")
+    script = (
+        f"mkdir {mnt}/existing && mount -o remount,ro {mnt} && "
+        f"{geocd} {mnt}/new/out; echo rc=$?; {geocd} {mnt}/existing; echo rc=$?"
+    )
     r = _in_tmpfs(mnt, "1m", script)
     errs = error_lines(r.stderr)
     assert r.stdout.split() == ["rc=2", "rc=2"], r.stdout + r.stderr

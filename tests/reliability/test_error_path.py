@@ -30,9 +30,11 @@ def _rasterio_error():
 def _rasterio_free_space_error():
     from rasterio.errors import RasterioIOError
 
-    return RasterioIOError("demdiff_significance.assemble.part.tif: Free disk space available is 4683780096 bytes, "
-                           "whereas 4908122112 are at least necessary. You can disable this check by defining the "
-                           "CHECK_DISK_FREE_SPACE configuration option to FALSE.")
+    return RasterioIOError(
+        "demdiff_significance.assemble.part.tif: Free disk space available is 4683780096 bytes, "
+        "whereas 4908122112 are at least necessary. You can disable this check by defining the "
+        "CHECK_DISK_FREE_SPACE configuration option to FALSE."
+    )
 
 
 def _pyogrio_error():
@@ -41,23 +43,32 @@ def _pyogrio_error():
     return DataSourceError("Failed to commit transaction")
 
 
-@pytest.mark.parametrize("make, cls, needle", [
-    (lambda: MemoryError(), E.ResourceError, "coarser posting"),
-    (lambda: OSError(errno.ENOSPC, "No space left on device", "/data/out/x.tif"), E.DiskFullError,
-     "no space left on device"),
-    (lambda: OSError(errno.EFBIG, "File too large", "/data/out/x.tif"), E.DiskFullError, "file size limit"),
-    (lambda: OSError(errno.EROFS, "Read-only file system", "/mnt/ro"), E.OutputError, "read-only file system"),
-    (lambda: PermissionError(errno.EACCES, "Permission denied", "/root/x"), E.OutputError, "permission denied"),
-    (lambda: FileExistsError(errno.EEXIST, "File exists", "/data/out"), E.OutputError, "already exists"),
-    (lambda: FileNotFoundError(errno.ENOENT, "No such file", "/data/in.tif"), E.InputFileNotFoundError,
-     "does not exist"),
-    (lambda: b"\xff\xfe\x00".decode("utf-8"), E.UnsupportedFormatError, "binary or not UTF-8"),
-    (_rasterio_error, E.UnsupportedFormatError, "GDAL (rasterio)"),
-    (_rasterio_free_space_error, E.DiskFullError, "about 4,908 MB needed, 4,684 MB free"),
-    (_pyogrio_error, E.UnsupportedFormatError, "OGR (pyogrio)"),
-    (lambda: ValueError("operands could not be broadcast"), E.InternalError, "this is a bug in geocd"),
-    (lambda: KeyError("x"), E.InternalError, "rerun with --debug"),
-])
+@pytest.mark.parametrize(
+    "make, cls, needle",
+    [
+        (lambda: MemoryError(), E.ResourceError, "coarser posting"),
+        (
+            lambda: OSError(errno.ENOSPC, "No space left on device", "/data/out/x.tif"),
+            E.DiskFullError,
+            "no space left on device",
+        ),
+        (lambda: OSError(errno.EFBIG, "File too large", "/data/out/x.tif"), E.DiskFullError, "file size limit"),
+        (lambda: OSError(errno.EROFS, "Read-only file system", "/mnt/ro"), E.OutputError, "read-only file system"),
+        (lambda: PermissionError(errno.EACCES, "Permission denied", "/root/x"), E.OutputError, "permission denied"),
+        (lambda: FileExistsError(errno.EEXIST, "File exists", "/data/out"), E.OutputError, "already exists"),
+        (
+            lambda: FileNotFoundError(errno.ENOENT, "No such file", "/data/in.tif"),
+            E.InputFileNotFoundError,
+            "does not exist",
+        ),
+        (lambda: b"\xff\xfe\x00".decode("utf-8"), E.UnsupportedFormatError, "binary or not UTF-8"),
+        (_rasterio_error, E.UnsupportedFormatError, "GDAL (rasterio)"),
+        (_rasterio_free_space_error, E.DiskFullError, "about 4,908 MB needed, 4,684 MB free"),
+        (_pyogrio_error, E.UnsupportedFormatError, "OGR (pyogrio)"),
+        (lambda: ValueError("operands could not be broadcast"), E.InternalError, "this is a bug in geocd"),
+        (lambda: KeyError("x"), E.InternalError, "rerun with --debug"),
+    ],
+)
 def test_translate(make, cls, needle):
     try:
         exc = make()
@@ -76,8 +87,14 @@ def test_a_geocd_error_is_kept():
     assert translate(e) is e
 
 
-@pytest.mark.parametrize("exc, cls", [(ValueError("boom"), "InternalError"), (MemoryError(), "ResourceError"),
-                                      (OSError(errno.ENOSPC, "No space left on device"), "DiskFullError")])
+@pytest.mark.parametrize(
+    "exc, cls",
+    [
+        (ValueError("boom"), "InternalError"),
+        (MemoryError(), "ResourceError"),
+        (OSError(errno.ENOSPC, "No space left on device"), "DiskFullError"),
+    ],
+)
 def test_cli_turns_any_exception_into_one_line(monkeypatch, tmp_path, exc, cls):
     import geocd.info
 
@@ -109,13 +126,17 @@ def test_ctrl_c_exits_130_without_traceback(monkeypatch, tmp_path):
 
 def test_internal_error_in_a_real_process(tmp_path):
     """A bug (here: a command that divides by zero) still reaches the user as one line, exit 2."""
-    code = ("import click\nimport geocd.cli as c\n"
-            "@click.command('boom')\ndef boom():\n    1 / 0\n"
-            "c.SUBCOMMANDS['boom'] = '__main__:boom'\nc.main(['boom'])\n")
+    code = (
+        "import click\nimport geocd.cli as c\n"
+        "@click.command('boom')\ndef boom():\n    1 / 0\n"
+        "c.SUBCOMMANDS['boom'] = '__main__:boom'\nc.main(['boom'])\n"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
-    assert error_lines(r.stderr) == ["geocd: error: internal error (ZeroDivisionError: division by zero); this is a "
-                                     "bug in geocd: rerun with --debug and report the traceback"]
+    assert error_lines(r.stderr) == [
+        "geocd: error: internal error (ZeroDivisionError: division by zero); this is a "
+        "bug in geocd: rerun with --debug and report the traceback"
+    ]
     assert "Traceback" not in r.stderr
 
 
@@ -196,8 +217,20 @@ def test_plugin_summarises_a_crashed_child(runner_mod, tmp_path):
 
 
 def test_plugin_carries_geocds_one_line(runner_mod, tmp_path):
-    res = runner_mod.run_geocd([sys.executable, "-m", "geocd", "--progress", "json", "demdiff", str(tmp_path / "a.tif"),
-                                str(tmp_path / "b.tif"), "--out", str(tmp_path / "O")])
+    res = runner_mod.run_geocd(
+        [
+            sys.executable,
+            "-m",
+            "geocd",
+            "--progress",
+            "json",
+            "demdiff",
+            str(tmp_path / "a.tif"),
+            str(tmp_path / "b.tif"),
+            "--out",
+            str(tmp_path / "O"),
+        ]
+    )
     assert res.returncode == 2 and res.error_type == "InputFileNotFoundError"
     msg = res.failure_message()
     assert "a.tif does not exist; check the" in msg and "\n" not in msg

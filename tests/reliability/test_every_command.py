@@ -46,8 +46,9 @@ def fx(tmp_path_factory):
     truth = np.zeros(SHAPE, np.float32)
     pa = write_pair_dem(root / "pairs" / "A0.tif", _pair(truth, rng, "A0", "A"))
     pb = write_pair_dem(root / "pairs" / "B0.tif", _pair(truth, rng, "B0", "B"))
-    return SimpleNamespace(root=root, a=a, b=b, fp=fp, labels=root / "dems" / "labels.gpkg", pa=pa, pb=pb,
-                           scene=make_scene(root / "scene"))
+    return SimpleNamespace(
+        root=root, a=a, b=b, fp=fp, labels=root / "dems" / "labels.gpkg", pa=pa, pb=pb, scene=make_scene(root / "scene")
+    )
 
 
 # command → (base arguments with "{X}" where the bad file goes, the slot's name); {O} is a fresh output path.
@@ -65,14 +66,32 @@ SLOTS: dict[str, tuple[list[str], str]] = {
     "change --dem-a": (["change", "--dem-a", "{X}", "-b", "{pb}", "--model", "{model}", "--out", "{O}"], "--dem-a"),
     "change --dem-b": (["change", "-a", "{pa}", "--dem-b", "{X}", "--model", "{model}", "--out", "{O}"], "--dem-b"),
     "change --model": (["change", "-a", "{pa}", "-b", "{pb}", "--model", "{X}", "--out", "{O}"], "--model"),
-    "change --footprints": (["change", "-a", "{pa}", "-b", "{pb}", "--model", "{model}", "--out", "{O}",
-                             "--footprints", "{X}"], "--footprints"),
+    "change --footprints": (
+        ["change", "-a", "{pa}", "-b", "{pb}", "--model", "{model}", "--out", "{O}", "--footprints", "{X}"],
+        "--footprints",
+    ),
     "run MANIFEST": (["run", "{X}", "--out", "{O}"], "MANIFEST"),
     "run --model": (["run", "{m}", "--out", "{O}", "--model", "{X}"], "--model"),
     "run --config": (["run", "{m}", "--out", "{O}", "--model", "{model}", "--config", "{X}"], "--config"),
     "run --footprints": (["run", "{m}", "--out", "{O}", "--model", "{model}", "--footprints", "{X}"], "--footprints"),
-    "run --screen-weights": (["run", "{m}", "--out", "{O}", "--model", "{model}", "--screen", "--screen-feature", "cnn",
-                              "--screen-backbone", "efficientnet_lite0", "--screen-weights", "{X}"], "--screen-weights"),
+    "run --screen-weights": (
+        [
+            "run",
+            "{m}",
+            "--out",
+            "{O}",
+            "--model",
+            "{model}",
+            "--screen",
+            "--screen-feature",
+            "cnn",
+            "--screen-backbone",
+            "efficientnet_lite0",
+            "--screen-weights",
+            "{X}",
+        ],
+        "--screen-weights",
+    ),
     "stereo INPUTS": (["stereo", "{X}", "--out", "{O}"], "INPUTS"),
     "probchange MANIFEST": (["probchange", "{X}", "--out", "{O}"], "MANIFEST"),
     "mpp MANIFEST": (["mpp", "{X}", "--out", "{O}"], "MANIFEST"),
@@ -80,27 +99,66 @@ SLOTS: dict[str, tuple[list[str], str]] = {
     "mpp --image-b": (["mpp", "--image-a", "{a}", "--image-b", "{X}", "--out", "{O}"], "--image-b"),
     "mpp --dsm-a": (["mpp", "{m}", "--dsm-a", "{X}", "--dsm-b", "{sdem}", "--out", "{O}"], "--dsm-a"),
     "mpp --dsm-b": (["mpp", "{m}", "--dsm-a", "{sdem}", "--dsm-b", "{X}", "--out", "{O}"], "--dsm-b"),
-    "mpp --ground": (["mpp", "--image-a", "{a}", "--image-b", "{b}", "--dsm-a", "{a}", "--dsm-b", "{b}", "--ground", "{X}", "--out",
-                      "{O}"],
-                     "--ground"),
+    "mpp --ground": (
+        [
+            "mpp",
+            "--image-a",
+            "{a}",
+            "--image-b",
+            "{b}",
+            "--dsm-a",
+            "{a}",
+            "--dsm-b",
+            "{b}",
+            "--ground",
+            "{X}",
+            "--out",
+            "{O}",
+        ],
+        "--ground",
+    ),
     "mpp --change-prior": (["mpp", "{m}", "--change-prior", "{X}", "--out", "{O}"], "--change-prior"),
     "ortho SOURCE": (["ortho", "{X}", "--dsm", "{sdem}", "--out", "{O}"], "SOURCE"),
     "ortho --camera": (["ortho", "{img}", "--dsm", "{sdem}", "--camera", "{X}", "--out", "{O}"], "--camera"),
     "screen A": (["screen", "{X}", "{b}", "--out", "{O}"], "SOURCES"),
     "screen B": (["screen", "{a}", "{X}", "--out", "{O}"], "SOURCES"),
-    "screen --weights": (["screen", "{a}", "{b}", "--feature", "cnn", "--backbone", "efficientnet_lite0",
-                          "--weights", "{X}", "--out", "{O}"], "--weights"),
-    "screen --nochange": (["screen", "{a}", "{b}", "--nochange", "{X}", "--nochange", "{a}", "--out", "{O}"],
-                          "--nochange"),
+    "screen --weights": (
+        [
+            "screen",
+            "{a}",
+            "{b}",
+            "--feature",
+            "cnn",
+            "--backbone",
+            "efficientnet_lite0",
+            "--weights",
+            "{X}",
+            "--out",
+            "{O}",
+        ],
+        "--weights",
+    ),
+    "screen --nochange": (
+        ["screen", "{a}", "{b}", "--nochange", "{X}", "--nochange", "{a}", "--out", "{O}"],
+        "--nochange",
+    ),
     "import-cameras SOURCES": (["import-cameras", "{X}", "--out", "{O}"], "SOURCES"),
-    "landcover train --labels": (["landcover", "train", "--labels", "{X}", "--image", "{img}", "--out",
-                                  "{O}/m.joblib"], "--labels"),
-    "landcover train --image": (["landcover", "train", "--labels", "{labels}", "--image", "{X}", "--out",
-                                 "{O}/m.joblib"], "--image"),
-    "landcover predict --model": (["landcover", "predict", "--model", "{X}", "--image", "{img}", "--out", "{O}"],
-                                  "--model"),
-    "landcover integrate --detailed": (["landcover", "integrate", "--detailed", "{X}", "--manifest", "{m}", "--out", "{O}"],
-                                       "--detailed"),
+    "landcover train --labels": (
+        ["landcover", "train", "--labels", "{X}", "--image", "{img}", "--out", "{O}/m.joblib"],
+        "--labels",
+    ),
+    "landcover train --image": (
+        ["landcover", "train", "--labels", "{labels}", "--image", "{X}", "--out", "{O}/m.joblib"],
+        "--image",
+    ),
+    "landcover predict --model": (
+        ["landcover", "predict", "--model", "{X}", "--image", "{img}", "--out", "{O}"],
+        "--model",
+    ),
+    "landcover integrate --detailed": (
+        ["landcover", "integrate", "--detailed", "{X}", "--manifest", "{m}", "--out", "{O}"],
+        "--detailed",
+    ),
     "volume update MODEL_DIR --manifest": (["volume", "update", "{O}/model", "--manifest", "{X}"], "--manifest"),
     "volume detect MODEL_DIR": (["volume", "detect", "{X}", "{img}", "--out", "{O}"], "MODEL_DIR"),
     "volume render MODEL_DIR": (["volume", "render", "{X}", "--image", "{img}", "--out", "{O}"], "MODEL_DIR"),
@@ -109,8 +167,16 @@ SLOTS: dict[str, tuple[list[str], str]] = {
 
 #: slots where a folder is a valid input (a scene folder, a model folder): the folder case expects a refusal of
 #: its content (an empty folder), still one clean error
-FOLDER_OK = {"info PATH", "run MANIFEST", "stereo INPUTS", "probchange MANIFEST", "mpp MANIFEST",
-             "import-cameras SOURCES", "volume detect MODEL_DIR", "volume render MODEL_DIR"}
+FOLDER_OK = {
+    "info PATH",
+    "run MANIFEST",
+    "stereo INPUTS",
+    "probchange MANIFEST",
+    "mpp MANIFEST",
+    "import-cameras SOURCES",
+    "volume detect MODEL_DIR",
+    "volume render MODEL_DIR",
+}
 
 
 class _Hang(Exception):
@@ -118,9 +184,19 @@ class _Hang(Exception):
 
 
 def _bad_file(kind: str, folder: Path, slot: str) -> Path:
-    name = {"PATH": "x.tif", "MANIFEST": "scene.yaml", "--config": "run_config.json", "--model": "model.json",
-            "--params": "params.json", "--camera": "x_rpc.txt", "--weights": "w.pth", "--screen-weights": "w.pth",
-            "--labels": "labels.gpkg", "--footprints": "fp.gpkg", "SOURCES": "x.tif"}.get(slot, "x.tif")
+    name = {
+        "PATH": "x.tif",
+        "MANIFEST": "scene.yaml",
+        "--config": "run_config.json",
+        "--model": "model.json",
+        "--params": "params.json",
+        "--camera": "x_rpc.txt",
+        "--weights": "w.pth",
+        "--screen-weights": "w.pth",
+        "--labels": "labels.gpkg",
+        "--footprints": "fp.gpkg",
+        "SOURCES": "x.tif",
+    }.get(slot, "x.tif")
     if slot == "MODEL_DIR" and kind != "folder":
         name = "model"
     p = folder / f"bad_{kind}" / name
@@ -159,9 +235,20 @@ def test_every_command_refuses_a_bad_file(slot, kind, fx, tmp_path):
     template, name = SLOTS[slot]
     bad = _bad_file(kind, tmp_path, name)
     out = tmp_path / "O"
-    values = {"X": bad, "O": out, "a": fx.a, "b": fx.b, "m": fx.scene.manifest, "fp": fx.fp,
-              "img": fx.scene.files[0], "sdem": fx.scene.root / "dem.tif", "pa": fx.pa, "pb": fx.pb,
-              "labels": fx.labels, "model": REPO / "examples/kahramanmaras/marseille_urban_model.json"}
+    values = {
+        "X": bad,
+        "O": out,
+        "a": fx.a,
+        "b": fx.b,
+        "m": fx.scene.manifest,
+        "fp": fx.fp,
+        "img": fx.scene.files[0],
+        "sdem": fx.scene.root / "dem.tif",
+        "pa": fx.pa,
+        "pb": fx.pb,
+        "labels": fx.labels,
+        "model": REPO / "examples/kahramanmaras/marseille_urban_model.json",
+    }
     args = [a.format(**values) for a in template]
     before = sha256_tree([fx.root])
 
@@ -182,7 +269,9 @@ def test_every_command_refuses_a_bad_file(slot, kind, fx, tmp_path):
     assert got == "clean error", f"{got}:\n{r.output}"
     err = error_lines(r.stderr)[0]
     # the error is about the bad input: it names the file (or, for a folder input, its folder)
-    assert bad.name in err or str(bad) in err or str(bad.parent) in err or kind == "missing" and "does not exist" in err, err
+    assert (
+        bad.name in err or str(bad) in err or str(bad.parent) in err or kind == "missing" and "does not exist" in err
+    ), err
     assert not part_files(tmp_path) and sha256_tree([fx.root]) == before
     if out.exists():
         left = [p for p in out.rglob("*") if p.is_file() and not p.name.startswith(("geocd_", ".geocd"))]
@@ -195,8 +284,10 @@ def test_every_file_input_is_listed():
 
     outputs = {"--out", "--plot", "--pictures", "--profile", "--images"}
     ctx = click.Context(main)
-    named = {(s.split()[0] if not s.startswith(("volume", "landcover")) else " ".join(s.split()[:2]), n)
-             for s, (_, n) in SLOTS.items()}
+    named = {
+        (s.split()[0] if not s.startswith(("volume", "landcover")) else " ".join(s.split()[:2]), n)
+        for s, (_, n) in SLOTS.items()
+    }
     missing = []
     from geocd.cli import SUBCOMMANDS
 
@@ -212,17 +303,37 @@ def test_every_file_input_is_listed():
             if flag in outputs or flag.startswith("--labelled") or flag in ("-a", "-b") and path != ["change"]:
                 continue
             if (" ".join(path), flag) not in named and not any(
-                    (" ".join(path), f) in named for f in getattr(p, "opts", [])):
+                (" ".join(path), f) in named for f in getattr(p, "opts", [])
+            ):
                 missing.append(f"{' '.join(path)} {flag}")
 
     for n in sorted(SUBCOMMANDS):
         walk(main.get_command(ctx, n), [n])
     # inputs deliberately not in the matrix: a second copy of a slot's check, or an optional extra of a method
-    extra_ok = {"landcover predict --image", "landcover predict --manifest", "landcover predict --dem", "landcover predict --footprints",
-                "landcover predict --dsm", "landcover train --manifest", "landcover train --dem",
-                "landcover train --footprints", "landcover train --dsm", "landcover integrate --manifest",
-                "landcover integrate --dem", "landcover integrate --footprints", "landcover integrate --dsm",
-                "landcover integrate --coarse", "landcover integrate --truth", "landcover integrate --exclude-labels",
-                "volume update MODEL_DIR", "volume update --image", "volume detect --camera",
-                "volume detect --shadow-dsm", "volume detect IMAGE", "volume render --image", "volume detect --out", "volume render --out"}
+    extra_ok = {
+        "landcover predict --image",
+        "landcover predict --manifest",
+        "landcover predict --dem",
+        "landcover predict --footprints",
+        "landcover predict --dsm",
+        "landcover train --manifest",
+        "landcover train --dem",
+        "landcover train --footprints",
+        "landcover train --dsm",
+        "landcover integrate --manifest",
+        "landcover integrate --dem",
+        "landcover integrate --footprints",
+        "landcover integrate --dsm",
+        "landcover integrate --coarse",
+        "landcover integrate --truth",
+        "landcover integrate --exclude-labels",
+        "volume update MODEL_DIR",
+        "volume update --image",
+        "volume detect --camera",
+        "volume detect --shadow-dsm",
+        "volume detect IMAGE",
+        "volume render --image",
+        "volume detect --out",
+        "volume render --out",
+    }
     assert set(missing) <= extra_ok, sorted(set(missing) - extra_ok)

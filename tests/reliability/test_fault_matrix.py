@@ -25,9 +25,14 @@ from .scenes import Cases, make_scene, rpc_txt, run_case, write_dem_pair, write_
 def fx(tmp_path_factory):
     root = tmp_path_factory.mktemp("faults_in")
     a, b = write_dem_pair(root / "dems")
-    return SimpleNamespace(root=root, a=a, b=b, rgb=write_rgb(root / "dems", a),
-                           fp=write_footprints(root / "dems" / "footprints.gpkg", a),
-                           scene=make_scene(root / "scene"))
+    return SimpleNamespace(
+        root=root,
+        a=a,
+        b=b,
+        rgb=write_rgb(root / "dems", a),
+        fp=write_footprints(root / "dems" / "footprints.gpkg", a),
+        scene=make_scene(root / "scene"),
+    )
 
 
 CASES = Cases()
@@ -48,8 +53,12 @@ def _(fx, tmp):
     out = tmp / "O"
     out.mkdir()
     fp = shutil.copy(fx.fp, out / "sc_changes.gpkg")
-    return dict(args=["run", fx.scene.manifest, "--out", out, "--footprints", fp], inputs=[fp], out=out,
-                first="is where this command writes its products")
+    return dict(
+        args=["run", fx.scene.manifest, "--out", out, "--footprints", fp],
+        inputs=[fp],
+        out=out,
+        first="is where this command writes its products",
+    )
 
 
 @case("run: --model is a product of --out")
@@ -58,8 +67,12 @@ def _(fx, tmp):
     out.mkdir()
     model = out / "self_consistency_model.json"
     model.write_text("{}")
-    return dict(args=["run", fx.scene.manifest, "--out", out, "--model", model], inputs=[model], out=out,
-                first="is where this command writes its products")
+    return dict(
+        args=["run", fx.scene.manifest, "--out", out, "--model", model],
+        inputs=[model],
+        out=out,
+        first="is where this command writes its products",
+    )
 
 
 @case("demdiff: --footprints is a product of --out")
@@ -67,8 +80,12 @@ def _(fx, tmp):
     out = tmp / "O"
     out.mkdir()
     fp = shutil.copy(fx.fp, out / "demdiff_changes.gpkg")
-    return dict(args=["demdiff", fx.a, fx.b, "--out", out, "--footprints", fp], inputs=[fp], out=out,
-                first="is where this command writes its products")
+    return dict(
+        args=["demdiff", fx.a, fx.b, "--out", out, "--footprints", fp],
+        inputs=[fp],
+        out=out,
+        first="is where this command writes its products",
+    )
 
 
 @case("demdiff: a DEM is a product of --out")
@@ -76,8 +93,9 @@ def _(fx, tmp):
     out = tmp / "O"
     out.mkdir()
     a = shutil.copy(fx.a, out / "demdiff_dh.tif")
-    return dict(args=["demdiff", a, fx.b, "--out", out], inputs=[a], out=out,
-                first="is where this command writes its products")
+    return dict(
+        args=["demdiff", a, fx.b, "--out", out], inputs=[a], out=out, first="is where this command writes its products"
+    )
 
 
 @case("demdiff: a product name is a hard link to an input")
@@ -86,8 +104,12 @@ def _(fx, tmp):
     out.mkdir()
     a = Path(shutil.copy(fx.a, tmp / "a.tif"))
     os.link(a, out / "demdiff_dh.tif")
-    return dict(args=["demdiff", a, fx.b, "--out", out, "--no-plots"], inputs=[a, out / "demdiff_dh.tif"], out=out,
-                first="refusing to overwrite the input file")
+    return dict(
+        args=["demdiff", a, fx.b, "--out", out, "--no-plots"],
+        inputs=[a, out / "demdiff_dh.tif"],
+        out=out,
+        first="refusing to overwrite the input file",
+    )
 
 
 @case("demdiff: a product name is a symlink to an input")
@@ -95,8 +117,12 @@ def _(fx, tmp):
     out = tmp / "O"
     out.mkdir()
     (out / "demdiff_dh.tif").symlink_to(fx.b)
-    return dict(args=["demdiff", fx.a, fx.b, "--out", out, "--no-plots"], inputs=[], out=out,
-                first="refusing to overwrite the input file")
+    return dict(
+        args=["demdiff", fx.a, fx.b, "--out", out, "--no-plots"],
+        inputs=[],
+        out=out,
+        first="refusing to overwrite the input file",
+    )
 
 
 @case("consistency: --out is an input")
@@ -122,21 +148,30 @@ def _(fx, tmp):
 
 @case("demdiff: --out cannot be created (permission)")
 def _(fx, tmp):
-    return dict(args=["demdiff", fx.a, fx.b, "--out", "/sys/geocd_faults/out"], out=None,
-                first="cannot create the output folder /sys/geocd_faults/out")
+    return dict(
+        args=["demdiff", fx.a, fx.b, "--out", "/sys/geocd_faults/out"],
+        out=None,
+        first="cannot create the output folder /sys/geocd_faults/out",
+    )
 
 
 @case("demdiff: --prefix escapes --out")
 def _(fx, tmp):
     out = tmp / "sub" / "O"
-    return dict(args=["demdiff", fx.a, fx.b, "--out", out, "--prefix", "../../x"], out=tmp,
-                first="is not a plain file-name prefix")
+    return dict(
+        args=["demdiff", fx.a, fx.b, "--out", out, "--prefix", "../../x"],
+        out=tmp,
+        first="is not a plain file-name prefix",
+    )
 
 
 @case("probchange: --prefix escapes --out")
 def _(fx, tmp):
-    return dict(args=["probchange", fx.scene.manifest, "--out", tmp / "O", "--prefix", "../x"], out=tmp,
-                first="is not a plain file-name prefix")
+    return dict(
+        args=["probchange", fx.scene.manifest, "--out", tmp / "O", "--prefix", "../x"],
+        out=tmp,
+        first="is not a plain file-name prefix",
+    )
 
 
 # --- 4. tracebacks become messages ----------------------------------------------------------------------------
@@ -149,8 +184,9 @@ def _(fx, tmp):
 @case("manifest: posting_m: fine")
 def _(fx, tmp):
     m = fx.scene.write("m_posting.yaml", aoi={**_aoi(fx), "posting_m": "fine"})
-    return dict(args=["stereo", m, "--out", tmp / "O"], out=tmp,
-                first="aoi.posting_m: expected a number (metres), got 'fine'")
+    return dict(
+        args=["stereo", m, "--out", tmp / "O"], out=tmp, first="aoi.posting_m: expected a number (metres), got 'fine'"
+    )
 
 
 @case("manifest: a binary file given as the manifest")
@@ -187,14 +223,18 @@ def _(fx, tmp):
 
 @case("run: a binary --model")
 def _(fx, tmp):
-    return dict(args=["run", fx.scene.manifest, "--out", tmp / "O", "--model", fx.rgb], out=tmp,
-                first="is not a self-consistency model")
+    return dict(
+        args=["run", fx.scene.manifest, "--out", tmp / "O", "--model", fx.rgb],
+        out=tmp,
+        first="is not a self-consistency model",
+    )
 
 
 @case("run: a binary --config")
 def _(fx, tmp):
-    return dict(args=["run", fx.scene.manifest, "--out", tmp / "O", "--config", fx.rgb], out=tmp,
-                first="run configuration")
+    return dict(
+        args=["run", fx.scene.manifest, "--out", tmp / "O", "--config", fx.rgb], out=tmp, first="run configuration"
+    )
 
 
 @case("run: a 100 km AOI at 0.5 m")
@@ -215,9 +255,23 @@ def _(fx, tmp):
     from rasterio.transform import from_origin
 
     p = tmp / "huge.tif"
-    with rasterio.open(p, "w", driver="GTiff", width=200_000, height=200_000, count=1, dtype="float32",
-                       crs="EPSG:32610", transform=from_origin(500000, 5100000, 0.5, 0.5), tiled=True,
-                       blockxsize=1024, blockysize=1024, sparse_ok=True, BIGTIFF="YES", nodata=-9999):
+    with rasterio.open(
+        p,
+        "w",
+        driver="GTiff",
+        width=200_000,
+        height=200_000,
+        count=1,
+        dtype="float32",
+        crs="EPSG:32610",
+        transform=from_origin(500000, 5100000, 0.5, 0.5),
+        tiled=True,
+        blockxsize=1024,
+        blockysize=1024,
+        sparse_ok=True,
+        BIGTIFF="YES",
+        nodata=-9999,
+    ):
         pass
     # (tiled, the default for a grid this large, reads it window by window)
     return dict(args=["demdiff", p, fx.b, "--out", tmp / "O", "--untiled"], inputs=[p], out=tmp, first="of memory")
@@ -225,13 +279,14 @@ def _(fx, tmp):
 
 # --- 5. implausible input is refused ----------------------------------------------------------------------------
 for _name, _override, _first in (
-        ("RPC latitude offset 95", {"LAT_OFF": "95.0"}, "LAT_OFF=95 is not a latitude"),
-        ("RPC longitude offset 400", {"LONG_OFF": "400.0"}, "LONG_OFF=400 is not a longitude"),
-        ("RPC height offset 1e308", {"HEIGHT_OFF": "1e308"}, "HEIGHT_OFF=1e+308 is not a ground height"),
-        ("RPC coefficient 1e300", {"SAMP_NUM_COEFF_2": "1e300"}, "is not a plausible coefficient"),
-        ("RPC non-numeric LINE_OFF", {"LINE_OFF": "abc"}, "LINE_OFF='abc' is not a number"),
-        ("RPC height scale 0", {"HEIGHT_SCALE": "0"}, "height_scale is 0"),
+    ("RPC latitude offset 95", {"LAT_OFF": "95.0"}, "LAT_OFF=95 is not a latitude"),
+    ("RPC longitude offset 400", {"LONG_OFF": "400.0"}, "LONG_OFF=400 is not a longitude"),
+    ("RPC height offset 1e308", {"HEIGHT_OFF": "1e308"}, "HEIGHT_OFF=1e+308 is not a ground height"),
+    ("RPC coefficient 1e300", {"SAMP_NUM_COEFF_2": "1e300"}, "is not a plausible coefficient"),
+    ("RPC non-numeric LINE_OFF", {"LINE_OFF": "abc"}, "LINE_OFF='abc' is not a number"),
+    ("RPC height scale 0", {"HEIGHT_SCALE": "0"}, "height_scale is 0"),
 ):
+
     def _make(fx, tmp, _o=_override, _f=_first):
         p = rpc_txt(tmp / "cam_rpc.txt", **_o)
         return dict(args=["info", p], inputs=[p], out=None, first=_f)
@@ -244,9 +299,9 @@ def _(fx, tmp):
     src = shared_data("rpc_samples", "shareloc", "wv3_20.NTF")
     data = src.read_bytes()
     i = data.find(b"RPC00B") + 6 + 5  # tag, length field
-    assert data[i:i + 15].startswith(b"1"), "unexpected TRE layout"
+    assert data[i : i + 15].startswith(b"1"), "unexpected TRE layout"
     p = tmp / "wv3_bad.NTF"
-    p.write_bytes(data[: i + 15] + b"abcdef" + data[i + 21:])
+    p.write_bytes(data[: i + 15] + b"abcdef" + data[i + 21 :])
     return dict(args=["info", p], inputs=[p], out=None, first="LINE_OFF='abcdef'")
 
 
@@ -257,8 +312,11 @@ def _(fx, tmp):
 
 @case("demdiff: --datum-a wgs1234")
 def _(fx, tmp):
-    return dict(args=["demdiff", fx.a, fx.b, "--out", tmp / "O", "--datum-a", "wgs1234"], out=tmp,
-                first="unknown vertical datum 'wgs1234'")
+    return dict(
+        args=["demdiff", fx.a, fx.b, "--out", tmp / "O", "--datum-a", "wgs1234"],
+        out=tmp,
+        first="unknown vertical datum 'wgs1234'",
+    )
 
 
 @case("demdiff: DEM B 100 km away from A")
@@ -298,8 +356,11 @@ def _(fx, tmp):
 
 @case("run: --epoch-a dated after --epoch-b")
 def _(fx, tmp):
-    return dict(args=["run", fx.scene.manifest, "--out", tmp / "O", "--epoch-a", "B", "--epoch-b", "A"], out=tmp,
-                first="is dated after epoch_b")
+    return dict(
+        args=["run", fx.scene.manifest, "--out", tmp / "O", "--epoch-a", "B", "--epoch-b", "A"],
+        out=tmp,
+        first="is dated after epoch_b",
+    )
 
 
 @case("run: the AOI is 100 km from the images")
@@ -325,8 +386,23 @@ def test_matrix_is_complete():
     """The issue's failures, all present (a case dropped by mistake fails here)."""
     assert len(CASES) >= 38
     text = " ".join(CASES)
-    for needle in ("--footprints is a product", "existing file", "truncated", "binary --model", "100 km AOI",
-                   "latitude offset 95", "longitude offset 400", "height offset 1e308", "coefficient 1e300",
-                   "non-numeric LINE_OFF", "RGB photo", "wgs1234", "camra", "out of order", "--prefix escapes",
-                   "AOI is 100 km", "permission"):
+    for needle in (
+        "--footprints is a product",
+        "existing file",
+        "truncated",
+        "binary --model",
+        "100 km AOI",
+        "latitude offset 95",
+        "longitude offset 400",
+        "height offset 1e308",
+        "coefficient 1e300",
+        "non-numeric LINE_OFF",
+        "RGB photo",
+        "wgs1234",
+        "camra",
+        "out of order",
+        "--prefix escapes",
+        "AOI is 100 km",
+        "permission",
+    ):
         assert needle in text, needle

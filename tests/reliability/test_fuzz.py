@@ -13,12 +13,22 @@ import pytest
 import yaml
 from hypothesis import HealthCheck, example, given, settings
 
-from .fuzz_targets import (byte_mutations, check_dem_bytes, check_manifest_text, check_manifest_tree, check_rpc_tags,
-                           dump_yaml, rpc_tag_edits, rpc_tags_of, tree_ops)
+from .fuzz_targets import (
+    byte_mutations,
+    check_dem_bytes,
+    check_manifest_text,
+    check_manifest_tree,
+    check_rpc_tags,
+    dump_yaml,
+    rpc_tag_edits,
+    rpc_tags_of,
+    tree_ops,
+)
 from .scenes import make_scene, write_dem_pair
 
-_FAST = dict(deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
-             database=None)
+_FAST = dict(
+    deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow], database=None
+)
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +94,11 @@ def test_fuzz_rpc_tag_values(rpc_image, edits):
 
 def test_implausible_tag_values_are_refused(rpc_image):
     """What the fuzzer must never see accepted (the issue's cases, through GDAL's RPC domain)."""
-    for edits in ({"LAT_OFF": "95"}, {"LONG_OFF": "400"}, {"HEIGHT_OFF": "1e308"}, {"LINE_OFF": "abc"},
-                  {"SAMP_NUM_COEFF": "1e300"}):
+    for edits in (
+        {"LAT_OFF": "95"},
+        {"LONG_OFF": "400"},
+        {"HEIGHT_OFF": "1e308"},
+        {"LINE_OFF": "abc"},
+        {"SAMP_NUM_COEFF": "1e300"},
+    ):
         assert check_rpc_tags(*rpc_image, edits) == "RPCParseError", edits

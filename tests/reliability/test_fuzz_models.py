@@ -17,12 +17,20 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from .fuzz_targets import (byte_mutations, check_frame_sidecar, check_model_bytes, check_model_tree,
-                           check_rpc_file, check_torch_bytes, tree_ops)
+from .fuzz_targets import (
+    byte_mutations,
+    check_frame_sidecar,
+    check_model_bytes,
+    check_model_tree,
+    check_rpc_file,
+    check_torch_bytes,
+    tree_ops,
+)
 
 REPO = Path(__file__).resolve().parents[2]
-_FAST = dict(deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
-             database=None)
+_FAST = dict(
+    deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow], database=None
+)
 
 
 @pytest.fixture(scope="module")
@@ -47,9 +55,15 @@ def rpc_files(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("fuzz_rpc_files")
     m = synthetic_rpc(0)
-    return {name: Path(w(m, d / name)).read_bytes()
-            for name, w in (("img_rpc.txt", write_ikonos), ("img.RPB", write_rpb), ("img.geom", write_geom),
-                            ("img.rpc.json", write_geocd_json))}
+    return {
+        name: Path(w(m, d / name)).read_bytes()
+        for name, w in (
+            ("img_rpc.txt", write_ikonos),
+            ("img.RPB", write_rpb),
+            ("img.geom", write_geom),
+            ("img.rpc.json", write_geocd_json),
+        )
+    }
 
 
 def test_unmutated_files_are_accepted(model_doc, sidecar_doc, rpc_files, tmp_path):
@@ -59,18 +73,21 @@ def test_unmutated_files_are_accepted(model_doc, sidecar_doc, rpc_files, tmp_pat
         assert check_rpc_file(name, data, ("truncate", 1.0, b"x", 1, 0, False), tmp_path) == "ok", name
 
 
-@pytest.mark.parametrize("edit,needle", [
-    (lambda d: d.update(hist=d["hist"][:-1]), "'hist' has shape"),
-    (lambda d: d.update(score_edges=d["score_edges"][::-1]), "increasing"),
-    (lambda d: d["hist"][0].__setitem__(0, -5), "counts"),
-    (lambda d: d.update(hist=[[0] * len(r) for r in d["hist"]]), "empty"),
-    (lambda d: d["curves"].update({"99": [1.0, 2.0]}), "one threshold"),
-    (lambda d: d["curves"].update({"150": d["curves"]["99"]}), "outside (0, 100)"),
-    (lambda d: d["region_null"]["masses"][0].__setitem__(0, "x"), "masses"),
-    (lambda d: d["region_null"].update(cluster_confidence=0), "cluster_confidence"),
-    (lambda d: d["reference_law"].update(scale=0.0), "scale > 0"),
-    (lambda d: d.pop("score_edges"), "'score_edges' is missing"),
-])
+@pytest.mark.parametrize(
+    "edit,needle",
+    [
+        (lambda d: d.update(hist=d["hist"][:-1]), "'hist' has shape"),
+        (lambda d: d.update(score_edges=d["score_edges"][::-1]), "increasing"),
+        (lambda d: d["hist"][0].__setitem__(0, -5), "counts"),
+        (lambda d: d.update(hist=[[0] * len(r) for r in d["hist"]]), "empty"),
+        (lambda d: d["curves"].update({"99": [1.0, 2.0]}), "one threshold"),
+        (lambda d: d["curves"].update({"150": d["curves"]["99"]}), "outside (0, 100)"),
+        (lambda d: d["region_null"]["masses"][0].__setitem__(0, "x"), "masses"),
+        (lambda d: d["region_null"].update(cluster_confidence=0), "cluster_confidence"),
+        (lambda d: d["reference_law"].update(scale=0.0), "scale > 0"),
+        (lambda d: d.pop("score_edges"), "'score_edges' is missing"),
+    ],
+)
 def test_a_damaged_model_is_named(model_doc, tmp_path, edit, needle):
     import copy
 
@@ -155,11 +172,19 @@ def volume_model(tmp_path_factory):
     return save_model(m, tmp_path_factory.mktemp("fuzz_vol") / "model")
 
 
-_ARRAY_EDITS = st.lists(st.tuples(st.sampled_from(["child", "level", "block_root", "alpha", "app"]),
-                                  st.integers(0, 10**6),
-                                  st.one_of(st.integers(-10**9, 10**9), st.sampled_from([-1, 0, 1, 7, 8, 10**8]),
-                                            st.floats(allow_nan=True, allow_infinity=True))),
-                        min_size=1, max_size=3)
+_ARRAY_EDITS = st.lists(
+    st.tuples(
+        st.sampled_from(["child", "level", "block_root", "alpha", "app"]),
+        st.integers(0, 10**6),
+        st.one_of(
+            st.integers(-(10**9), 10**9),
+            st.sampled_from([-1, 0, 1, 7, 8, 10**8]),
+            st.floats(allow_nan=True, allow_infinity=True),
+        ),
+    ),
+    min_size=1,
+    max_size=3,
+)
 
 
 @settings(max_examples=60, **_FAST)

@@ -22,9 +22,14 @@ from .scenes import Cases, make_scene, run_case, write_dem_pair, write_footprint
 def fx(tmp_path_factory):
     root = tmp_path_factory.mktemp("inputs_in")
     a, b = write_dem_pair(root / "dems")
-    return SimpleNamespace(root=root, a=a, b=b, rgb=write_rgb(root / "dems", a),
-                           fp=write_footprints(root / "dems" / "footprints.gpkg", a),
-                           scene=make_scene(root / "scene"))
+    return SimpleNamespace(
+        root=root,
+        a=a,
+        b=b,
+        rgb=write_rgb(root / "dems", a),
+        fp=write_footprints(root / "dems" / "footprints.gpkg", a),
+        scene=make_scene(root / "scene"),
+    )
 
 
 CASES = Cases()
@@ -94,16 +99,32 @@ def _(fx, tmp):
     cam = _cam_json(fx, tmp / "x.rpc.json", lat_scale=1e308)
     out = tmp / "O"
     out.mkdir()
-    return dict(args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif",
-                      "--camera", cam, "--out", out / "x_ortho.tif"], inputs=[cam], out=out,
-                first="LAT_SCALE=1e+308 is outside")
+    return dict(
+        args=[
+            "ortho",
+            fx.scene.root / "images" / "A_0.tif",
+            "--dsm",
+            fx.scene.root / "dem.tif",
+            "--camera",
+            cam,
+            "--out",
+            out / "x_ortho.tif",
+        ],
+        inputs=[cam],
+        out=out,
+        first="LAT_SCALE=1e+308 is outside",
+    )
 
 
 @case("manifest: camera: an RPC JSON with LAT_SCALE 1e308")
 def _(fx, tmp):
     cam = _cam_json(fx, tmp / "x.rpc.json", lat_scale=1e308)
-    return dict(args=["run", _with_camera(fx, "m_cam308.yaml", cam), "--out", tmp / "O"], inputs=[cam], out=tmp,
-                first="LAT_SCALE=1e+308 is outside")
+    return dict(
+        args=["run", _with_camera(fx, "m_cam308.yaml", cam), "--out", tmp / "O"],
+        inputs=[cam],
+        out=tmp,
+        first="LAT_SCALE=1e+308 is outside",
+    )
 
 
 @case("manifest: camera: an RPC text with a negative LINE_SCALE")
@@ -111,17 +132,36 @@ def _(fx, tmp):
     from .scenes import rpc_txt
 
     cam = rpc_txt(tmp / "neg_rpc.txt", LINE_SCALE="-60.0")
-    return dict(args=["run", _with_camera(fx, "m_negscale.yaml", cam), "--out", tmp / "O"], inputs=[cam], out=tmp,
-                first="LINE_SCALE=-60 is negative")
+    return dict(
+        args=["run", _with_camera(fx, "m_negscale.yaml", cam), "--out", tmp / "O"],
+        inputs=[cam],
+        out=tmp,
+        first="LINE_SCALE=-60 is negative",
+    )
 
 
 @case("manifest: camera: a frame sidecar of width 10**400")
 def _(fx, tmp):
     cam = tmp / "huge.camera.json"
-    cam.write_text(json.dumps({"kind": "frame", "crs": fx.scene.crs, "width": 10**400, "height": 100,
-                               "focal_px": 1000.0, "position": [0.0, 0.0, 1000.0], "opk_deg": [0.0, 0.0, 0.0]}))
-    return dict(args=["run", _with_camera(fx, "m_frame400.yaml", cam), "--out", tmp / "O"], inputs=[cam], out=tmp,
-                first="'width'=1000")
+    cam.write_text(
+        json.dumps(
+            {
+                "kind": "frame",
+                "crs": fx.scene.crs,
+                "width": 10**400,
+                "height": 100,
+                "focal_px": 1000.0,
+                "position": [0.0, 0.0, 1000.0],
+                "opk_deg": [0.0, 0.0, 0.0],
+            }
+        )
+    )
+    return dict(
+        args=["run", _with_camera(fx, "m_frame400.yaml", cam), "--out", tmp / "O"],
+        inputs=[cam],
+        out=tmp,
+        first="'width'=1000",
+    )
 
 
 @case("ortho: a garbled .rpc.json sidecar next to the image")
@@ -131,8 +171,12 @@ def _(fx, tmp):
     img = Path(shutil.copy(fx.rgb, tmp / "photo.tif"))
     side = tmp / "photo.rpc.json"
     side.write_text('{"kind": "rpc", "line_num": [1, 2')
-    return dict(args=["ortho", img, "--dsm", fx.a, "--out", tmp / "O" / "photo_ortho.tif"], inputs=[img, side],
-                out=tmp, first="photo.rpc.json: not valid JSON")
+    return dict(
+        args=["ortho", img, "--dsm", fx.a, "--out", tmp / "O" / "photo_ortho.tif"],
+        inputs=[img, side],
+        out=tmp,
+        first="photo.rpc.json: not valid JSON",
+    )
 
 
 # --- 4. --out FILE names a user's own file ---------------------------------------------------------------------
@@ -145,8 +189,12 @@ def _notes(tmp: Path, name: str = "notes.txt") -> Path:
 @case("ortho: --out names a user's text file")
 def _(fx, tmp):
     f = _notes(tmp, "notes.tif")
-    return dict(args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif",
-                      "--out", f], inputs=[f], out=tmp, first="exists and geocd did not write it")
+    return dict(
+        args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif", "--out", f],
+        inputs=[f],
+        out=tmp,
+        first="exists and geocd did not write it",
+    )
 
 
 @case("ortho: --out names a GeoTIFF geocd ortho did not write")
@@ -154,22 +202,38 @@ def _(fx, tmp):
     import shutil
 
     f = Path(shutil.copy(fx.a, tmp / "mine.tif"))
-    return dict(args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif",
-                      "--out", f], inputs=[f], out=tmp, first="it is not a geocd ortho GeoTIFF")
+    return dict(
+        args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif", "--out", f],
+        inputs=[f],
+        out=tmp,
+        first="it is not a geocd ortho GeoTIFF",
+    )
 
 
 @case("ortho: the status raster beside --out is a user's file")
 def _(fx, tmp):
     f = _notes(tmp, "x_status.tif")
-    return dict(args=["ortho", fx.scene.root / "images" / "A_0.tif", "--dsm", fx.scene.root / "dem.tif",
-                      "--out", tmp / "x.tif"], inputs=[f], out=tmp, first="x_status.tif exists and geocd did not")
+    return dict(
+        args=[
+            "ortho",
+            fx.scene.root / "images" / "A_0.tif",
+            "--dsm",
+            fx.scene.root / "dem.tif",
+            "--out",
+            tmp / "x.tif",
+        ],
+        inputs=[f],
+        out=tmp,
+        first="x_status.tif exists and geocd did not",
+    )
 
 
 @case("consistency: --out names a user's text file")
 def _(fx, tmp):
     f = _notes(tmp, "model.json")
-    return dict(args=["consistency", fx.a, "--out", f], inputs=[f], out=tmp,
-                first="it is not a geocd self-consistency model")
+    return dict(
+        args=["consistency", fx.a, "--out", f], inputs=[f], out=tmp, first="it is not a geocd self-consistency model"
+    )
 
 
 @case("plugin-zip: --out names a user's zip")
@@ -186,8 +250,12 @@ def _(fx, tmp):
 def _(fx, tmp):
     f = tmp / "plugins.xml"
     f.write_text('<?xml version="1.0"?>\n<plugins><pyqgis_plugin plugin_id="other"/></plugins>\n')
-    return dict(args=["plugin-zip", "--out", tmp / "p.zip"], inputs=[f], out=tmp,
-                first="plugins.xml exists and geocd did not write it")
+    return dict(
+        args=["plugin-zip", "--out", tmp / "p.zip"],
+        inputs=[f],
+        out=tmp,
+        first="plugins.xml exists and geocd did not write it",
+    )
 
 
 # --- 5. inputs checked before any work or output -----------------------------------------------------------
@@ -195,8 +263,9 @@ def _(fx, tmp):
 def _(fx, tmp):
     out = tmp / "O"
     out.mkdir()
-    return dict(args=["run", fx.scene.manifest, "--out", out, "--footprints", fx.rgb], out=out,
-                first="is a raster", max_s=5.0)
+    return dict(
+        args=["run", fx.scene.manifest, "--out", out, "--footprints", fx.rgb], out=out, first="is a raster", max_s=5.0
+    )
 
 
 @case("run: the manifest's footprints hold points")
@@ -217,23 +286,36 @@ def _(fx, tmp):
     g.write_bytes(bytes(range(256)) * 40)
     out = tmp / "O"
     out.mkdir()
-    return dict(args=["mpp", fx.scene.manifest, "--out", out, "--change-prior", g], inputs=[g], out=out,
-                first="garbage.tif", max_s=5.0)
+    return dict(
+        args=["mpp", fx.scene.manifest, "--out", out, "--change-prior", g],
+        inputs=[g],
+        out=out,
+        first="garbage.tif",
+        max_s=5.0,
+    )
 
 
 @case("mpp: --change-prior is a DEM (heights, not 0-100)")
 def _(fx, tmp):
     out = tmp / "O"
     out.mkdir()
-    return dict(args=["mpp", fx.scene.manifest, "--out", out, "--change-prior", fx.scene.root / "dem.tif"], out=out,
-                first="it must be a 0–1 or 0–100", max_s=5.0)
+    return dict(
+        args=["mpp", fx.scene.manifest, "--out", out, "--change-prior", fx.scene.root / "dem.tif"],
+        out=out,
+        first="it must be a 0–1 or 0–100",
+        max_s=5.0,
+    )
 
 
 @case("synth: --supersample 0")
 def _(fx, tmp):
     out = tmp / "S"
-    return dict(args=["synth", "--tiny", "--out", out, "--supersample", "0"], out=tmp, first="0 is not a supersampling factor",
-                max_s=5.0)
+    return dict(
+        args=["synth", "--tiny", "--out", out, "--supersample", "0"],
+        out=tmp,
+        first="0 is not a supersampling factor",
+        max_s=5.0,
+    )
 
 
 @pytest.mark.parametrize("name", sorted(CASES))

@@ -13,13 +13,16 @@ from geocd.faults import translate
 from .scenes import error_lines, write_dem_pair
 
 
-@pytest.mark.parametrize("exc", [
-    MemoryError(),
-    ImportError("libfoo.so: failed to map segment from shared object"),
-    OSError(errno.ENOMEM, "Cannot allocate memory"),
-    RasterioIOError("Out of memory allocating 1048576000 bytes"),
-    RuntimeError("std::bad_alloc"),
-])
+@pytest.mark.parametrize(
+    "exc",
+    [
+        MemoryError(),
+        ImportError("libfoo.so: failed to map segment from shared object"),
+        OSError(errno.ENOMEM, "Cannot allocate memory"),
+        RasterioIOError("Out of memory allocating 1048576000 bytes"),
+        RuntimeError("std::bad_alloc"),
+    ],
+)
 def test_every_failed_allocation_is_a_resource_error(exc):
     err = translate(exc)
     assert isinstance(err, ResourceError), err

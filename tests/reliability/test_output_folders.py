@@ -36,17 +36,24 @@ def _demdiff(a, b, out, *extra):
 
 def _products(out: Path) -> set[str]:
     """Files in ``out`` but the product manifest and the command's log file (not products)."""
-    return {p.relative_to(out).as_posix() for p in out.rglob("*")
-            if p.is_file() and not (p.name.startswith("geocd_") and p.suffix == ".log")} - {MANIFEST_NAME}
+    return {
+        p.relative_to(out).as_posix()
+        for p in out.rglob("*")
+        if p.is_file() and not (p.name.startswith("geocd_") and p.suffix == ".log")
+    } - {MANIFEST_NAME}
 
 
 def _start_paused(tmp: Path, args: list[str], nth: int = 1, tag: str = "p", hangup=signal.SIG_DFL):
     """``hangup``: the SIGHUP disposition the run starts with: the default, as from a terminal, whatever the
     test session inherited (under nohup it inherits SIG_IGN, which geocd keeps on purpose)."""
     flag, go = tmp / f"{tag}.paused", tmp / f"{tag}.go"
-    proc = subprocess.Popen([sys.executable, str(DRIVER), str(flag), str(go), str(nth), "--progress", "none", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGHUP, hangup))
+    proc = subprocess.Popen(
+        [sys.executable, str(DRIVER), str(flag), str(go), str(nth), "--progress", "none", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, hangup),
+    )
     t0 = time.monotonic()
     while not flag.exists():
         if proc.poll() is not None:
@@ -131,10 +138,17 @@ def test_an_output_folder_is_not_read_as_an_epoch(dems, tmp_path):
 @pytest.mark.slow
 def test_a_locked_folder_is_refused_and_freed_when_the_holder_dies(dems, tmp_path):
     out = tmp_path / "O"
-    holder = subprocess.Popen([sys.executable, "-c",
-                               "import sys, time\nfrom geocd.io.outputs import open_outputs\n"
-                               f"open_outputs({str(out)!r}, command='geocd run')\nprint('locked', flush=True)\n"
-                               "time.sleep(120)\n"], stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\nfrom geocd.io.outputs import open_outputs\n"
+            f"open_outputs({str(out)!r}, command='geocd run')\nprint('locked', flush=True)\n"
+            "time.sleep(120)\n",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "locked"
         before = sha256_tree(dems)
@@ -158,8 +172,26 @@ def test_concurrent_runs_never_mix(dems, tmp_path):
     first, part, go = _start_paused(tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots"], nth=2)
     try:
         assert part.exists() and part.parent == out
-        r = subprocess.run([sys.executable, "-m", "geocd", "--progress", "none", "demdiff", a, b, "--out", str(out),
-                            "--no-plots", "--confidence", "99"], capture_output=True, text=True, timeout=300)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "geocd",
+                "--progress",
+                "none",
+                "demdiff",
+                a,
+                b,
+                "--out",
+                str(out),
+                "--no-plots",
+                "--confidence",
+                "99",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert r.returncode == 2, r.stderr
         assert "is in use by" in error_lines(r.stderr)[0] and "Traceback" not in r.stderr
     finally:
@@ -179,9 +211,29 @@ def test_two_runs_started_together(dems, tmp_path):
     """Unsynchronised: each run either completes or is refused; the folder holds one complete set."""
     out = tmp_path / "O"
     a, b = map(str, dems)
-    procs = [subprocess.Popen([sys.executable, "-m", "geocd", "--progress", "none", "demdiff", a, b, "--out", str(out),
-                               "--no-plots", "--confidence", c], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True) for c in ("95", "99")]
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "geocd",
+                "--progress",
+                "none",
+                "demdiff",
+                a,
+                b,
+                "--out",
+                str(out),
+                "--no-plots",
+                "--confidence",
+                c,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for c in ("95", "99")
+    ]
     results = [(p.wait(timeout=300), p.communicate()[1]) for p in procs]
     assert all(rc in (0, 2) for rc, _ in results) and any(rc == 0 for rc, _ in results), results
     for rc, err in results:
@@ -198,9 +250,14 @@ def test_two_runs_started_together(dems, tmp_path):
 # --------------------------------------------------------------------------------------------------------------
 # signals and kills
 # --------------------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("sig, code, word", [(signal.SIGTERM, 143, "stopped by SIGTERM"),
-                                             (signal.SIGINT, 130, "interrupted (Ctrl-C)"),
-                                             (signal.SIGHUP, 129, "stopped by SIGHUP")])
+@pytest.mark.parametrize(
+    "sig, code, word",
+    [
+        (signal.SIGTERM, 143, "stopped by SIGTERM"),
+        (signal.SIGINT, 130, "interrupted (Ctrl-C)"),
+        (signal.SIGHUP, 129, "stopped by SIGHUP"),
+    ],
+)
 @pytest.mark.slow
 def test_signal_mid_write_cleans_up(dems, tmp_path, sig, code, word):
     out = tmp_path / "O"
@@ -226,8 +283,9 @@ def test_a_run_started_with_nohup_ignores_a_hangup(dems, tmp_path):
     """A run started with SIGHUP ignored (nohup) keeps ignoring it and completes."""
     out = tmp_path / "O"
     a, b = map(str, dems)
-    proc, part, go = _start_paused(tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots"], nth=2,
-                                   hangup=signal.SIG_IGN)
+    proc, part, go = _start_paused(
+        tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots"], nth=2, hangup=signal.SIG_IGN
+    )
     proc.send_signal(signal.SIGHUP)
     time.sleep(0.5)
     assert proc.poll() is None, proc.communicate()[1]
@@ -273,8 +331,11 @@ def test_a_half_swapped_model_folder_is_put_back(tmp_path):
 # --------------------------------------------------------------------------------------------------------------
 def _files(out: Path) -> dict[str, str]:
     """sha256 of the products (not the manifest, the log or the lock)."""
-    return {k: v for k, v in sha256_tree([out]).items()
-            if Path(k).name not in (MANIFEST_NAME, LOCK_NAME) and not Path(k).name.endswith(".log")}
+    return {
+        k: v
+        for k, v in sha256_tree([out]).items()
+        if Path(k).name not in (MANIFEST_NAME, LOCK_NAME) and not Path(k).name.endswith(".log")
+    }
 
 
 @pytest.mark.slow
@@ -285,8 +346,9 @@ def test_an_interrupted_rerun_puts_the_earlier_set_back(dems, tmp_path):
     a, b = map(str, dems)
     assert _demdiff(a, b, out, "--no-plots").exit_code == 0
     first = _files(out)
-    proc, part, go = _start_paused(tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots", "--confidence",
-                                              "99"], nth=3)
+    proc, part, go = _start_paused(
+        tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots", "--confidence", "99"], nth=3
+    )
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 143, err
@@ -306,8 +368,9 @@ def test_a_killed_rerun_is_never_called_whole_and_the_next_run_mends_it(dems, tm
     a, b = map(str, dems)
     assert _demdiff(a, b, out, "--no-plots").exit_code == 0
     first = _files(out)
-    proc, part, go = _start_paused(tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots", "--confidence",
-                                              "99"], nth=3)
+    proc, part, go = _start_paused(
+        tmp_path, ["demdiff", a, b, "--out", str(out), "--no-plots", "--confidence", "99"], nth=3
+    )
     proc.kill()
     proc.wait()
     # each file alone matches the run that wrote it, but the folder mixes two runs: not whole

@@ -98,8 +98,20 @@ def bad_two_bands(fx, tmp):
     return _like_b(fx, tmp / "b_2bands.tif", np.stack([h, h])), "is not named as heights"
 
 
-BAD_DEMS = {f.__name__[4:]: f for f in (bad_sentinel, bad_int16_sentinel, bad_inf, bad_huge, bad_centimetres,
-                                         bad_feet_unit, bad_rgb, bad_complex, bad_two_bands)}
+BAD_DEMS = {
+    f.__name__[4:]: f
+    for f in (
+        bad_sentinel,
+        bad_int16_sentinel,
+        bad_inf,
+        bad_huge,
+        bad_centimetres,
+        bad_feet_unit,
+        bad_rgb,
+        bad_complex,
+        bad_two_bands,
+    )
+}
 
 CASES = Cases()
 case = CASES.case
@@ -107,11 +119,16 @@ case = CASES.case
 
 def _register_bad_dem(key, maker):
     for mode in ("", "--tiled"):
+
         @case(f"demdiff {mode or '--untiled'}: DEM B {key.replace('_', ' ')}")
         def _(fx, tmp, maker=maker, mode=mode):
             p, first = maker(fx, tmp)
-            return dict(args=["demdiff", fx.a, p, "--out", tmp / "O", "--no-plots", *([mode] if mode else [])],
-                        inputs=[p], out=tmp, first=first)
+            return dict(
+                args=["demdiff", fx.a, p, "--out", tmp / "O", "--no-plots", *([mode] if mode else [])],
+                inputs=[p],
+                out=tmp,
+                first=first,
+            )
 
 
 for _k, _m in BAD_DEMS.items():
@@ -123,14 +140,19 @@ def _(fx, tmp):
     h = _b(fx)
     h[:, -3:] = -9999.0
     p = _like_b(fx, tmp / "a_9999.tif", h)
-    return dict(args=["demdiff", p, fx.b, "--out", tmp / "O", "--tile-size", "64"], inputs=[p], out=tmp,
-                first="geocd demdiff: --nodata -9999")
+    return dict(
+        args=["demdiff", p, fx.b, "--out", tmp / "O", "--tile-size", "64"],
+        inputs=[p],
+        out=tmp,
+        first="geocd demdiff: --nodata -9999",
+    )
 
 
 @case("demdiff: --nodata inf")
 def _(fx, tmp):
-    return dict(args=["demdiff", fx.a, fx.b, "--out", tmp / "O", "--nodata", "inf"], out=tmp,
-                first="is not a finite number")
+    return dict(
+        args=["demdiff", fx.a, fx.b, "--out", tmp / "O", "--nodata", "inf"], out=tmp, first="is not a finite number"
+    )
 
 
 # --- non-regular files ---------------------------------------------------------------------------------------
@@ -141,46 +163,75 @@ def _fifo(path: Path) -> Path:
 
 @case("demdiff: DEM B is a FIFO")
 def _(fx, tmp):
-    return dict(args=["demdiff", fx.a, _fifo(tmp / "b.tif"), "--out", tmp / "O"], out=tmp,
-                first="is a named pipe (FIFO), not a regular file", fifos=[tmp / "b.tif"])
+    return dict(
+        args=["demdiff", fx.a, _fifo(tmp / "b.tif"), "--out", tmp / "O"],
+        out=tmp,
+        first="is a named pipe (FIFO), not a regular file",
+        fifos=[tmp / "b.tif"],
+    )
 
 
 @case("demdiff --tiled: --base is a FIFO")
 def _(fx, tmp):
-    return dict(args=["demdiff", fx.a, fx.b, "--base", _fifo(tmp / "base.tif"), "--tiled", "--out", tmp / "O"],
-                out=tmp, first="is a named pipe (FIFO)", fifos=[tmp / "base.tif"])
+    return dict(
+        args=["demdiff", fx.a, fx.b, "--base", _fifo(tmp / "base.tif"), "--tiled", "--out", tmp / "O"],
+        out=tmp,
+        first="is a named pipe (FIFO)",
+        fifos=[tmp / "base.tif"],
+    )
 
 
 @case("demdiff: the DEM list is a FIFO")
 def _(fx, tmp):
-    return dict(args=["demdiff", _fifo(tmp / "dems.txt"), "--out", tmp / "O"], out=tmp,
-                first="is a named pipe (FIFO)", fifos=[tmp / "dems.txt"])
+    return dict(
+        args=["demdiff", _fifo(tmp / "dems.txt"), "--out", tmp / "O"],
+        out=tmp,
+        first="is a named pipe (FIFO)",
+        fifos=[tmp / "dems.txt"],
+    )
 
 
 @case("run: the manifest is a FIFO")
 def _(fx, tmp):
-    return dict(args=["run", _fifo(tmp / "scene.yaml"), "--out", tmp / "O"], out=tmp,
-                first="is a named pipe (FIFO)", fifos=[tmp / "scene.yaml"])
+    return dict(
+        args=["run", _fifo(tmp / "scene.yaml"), "--out", tmp / "O"],
+        out=tmp,
+        first="is a named pipe (FIFO)",
+        fifos=[tmp / "scene.yaml"],
+    )
 
 
 @case("change: --dem-b is a FIFO")
 def _(fx, tmp):
     model = tmp / "model.json"
     model.write_text("{}")
-    return dict(args=["change", "--dem-a", fx.a, "--dem-b", _fifo(tmp / "b.tif"), "--model", model, "--out",
-                      tmp / "O"], inputs=[model], out=tmp, first="--dem-b", fifos=[tmp / "b.tif"])
+    return dict(
+        args=["change", "--dem-a", fx.a, "--dem-b", _fifo(tmp / "b.tif"), "--model", model, "--out", tmp / "O"],
+        inputs=[model],
+        out=tmp,
+        first="--dem-b",
+        fifos=[tmp / "b.tif"],
+    )
 
 
 @case("ortho: the DSM is a FIFO")
 def _(fx, tmp):
-    return dict(args=["ortho", fx.scene.manifest, "--dsm", _fifo(tmp / "dsm.tif"), "--out", tmp / "O"], out=tmp,
-                first="is a named pipe (FIFO)", fifos=[tmp / "dsm.tif"])
+    return dict(
+        args=["ortho", fx.scene.manifest, "--dsm", _fifo(tmp / "dsm.tif"), "--out", tmp / "O"],
+        out=tmp,
+        first="is a named pipe (FIFO)",
+        fifos=[tmp / "dsm.tif"],
+    )
 
 
 @case("stereo: the manifest is a FIFO")
 def _(fx, tmp):
-    return dict(args=["stereo", _fifo(tmp / "scene.yaml"), "--out", tmp / "O"], out=tmp,
-                first="is a named pipe (FIFO)", fifos=[tmp / "scene.yaml"])
+    return dict(
+        args=["stereo", _fifo(tmp / "scene.yaml"), "--out", tmp / "O"],
+        out=tmp,
+        first="is a named pipe (FIFO)",
+        fifos=[tmp / "scene.yaml"],
+    )
 
 
 @case("run: an image of the manifest is a FIFO")
@@ -189,8 +240,9 @@ def _(fx, tmp):
     fifo = _fifo(tmp / "A_0.tif")
     doc["epochs"][0]["images"][0]["path"] = str(fifo)
     m = fx.scene.write("fifo_image.yaml", epochs=doc["epochs"])
-    return dict(args=["run", m, "--out", tmp / "O"], out=tmp, first="is a named pipe (FIFO), not a regular file",
-                fifos=[fifo])
+    return dict(
+        args=["run", m, "--out", tmp / "O"], out=tmp, first="is a named pipe (FIFO), not a regular file", fifos=[fifo]
+    )
 
 
 @case("run: the manifest's DEM is a FIFO")
@@ -244,8 +296,20 @@ def test_tiled_and_untiled_refuse_a_bad_dem_alike(key, fx, tmp_path):
     p, _ = BAD_DEMS[key](fx, tmp_path)
     lines = []
     for mode in ("--untiled", "--tiled"):
-        r = CliRunner().invoke(main, ["--progress", "none", "demdiff", str(fx.a), str(p), "--out",
-                                      str(tmp_path / mode.strip("-")), "--no-plots", mode])
+        r = CliRunner().invoke(
+            main,
+            [
+                "--progress",
+                "none",
+                "demdiff",
+                str(fx.a),
+                str(p),
+                "--out",
+                str(tmp_path / mode.strip("-")),
+                "--no-plots",
+                mode,
+            ],
+        )
         assert r.exit_code == 2, r.output
         lines.append(error_lines(r.stderr))
     assert lines[0] == lines[1] and len(lines[0]) == 1, lines
@@ -266,8 +330,9 @@ def test_nodata_option_makes_the_sentinel_cells_nodata(fx, tmp_path, mode):
     res = {}
     for name, p, extra in (("opt", untagged, ["--nodata", "-9999"]), ("tag", tagged, [])):
         out = tmp_path / name
-        r = CliRunner().invoke(main, ["--progress", "none", "demdiff", str(fx.a), str(p), "--out", str(out),
-                                      "--no-plots", mode, *extra])
+        r = CliRunner().invoke(
+            main, ["--progress", "none", "demdiff", str(fx.a), str(p), "--out", str(out), "--no-plots", mode, *extra]
+        )
         assert r.exit_code == 0, r.output
         res[name] = _summary(out)
     for k in ("n_observed", "changed_area_m2", "volume_changed_m3", "stable_nmad_m"):

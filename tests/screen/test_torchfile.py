@@ -45,7 +45,7 @@ def _legacy_parts(path: Path) -> list[bytes]:
     for i in range(5):
         (_Unpickler(f, {}) if i == 3 else _PlainUnpickler(f)).load()
         cuts.append(f.tell())
-    return [raw[a:b] for a, b in zip(cuts, cuts[1:])] + [raw[cuts[-1]:]]
+    return [raw[a:b] for a, b in zip(cuts, cuts[1:])] + [raw[cuts[-1] :]]
 
 
 def test_the_legacy_file_cuts_into_five_pickles():
@@ -55,8 +55,10 @@ def test_the_legacy_file_cuts_into_five_pickles():
 
 
 @pytest.mark.parametrize("how", ["open", "system", "eval"])
-@pytest.mark.parametrize("where", ["zip data.pkl", "legacy magic", "legacy protocol", "legacy sys info",
-                                   "legacy object", "legacy storage keys"])
+@pytest.mark.parametrize(
+    "where",
+    ["zip data.pkl", "legacy magic", "legacy protocol", "legacy sys info", "legacy object", "legacy storage keys"],
+)
 def test_a_pickle_that_would_run_code_is_refused_before_it_runs(tmp_path, where, how):
     marker = tmp_path / "pwned"
     evil = pickle.dumps(_payloads(marker)[how], protocol=2)
@@ -99,7 +101,7 @@ def _i(n: int) -> bytes:
 def _tensor_pickle(offset: int, size: tuple, stride: tuple, key: str = "0") -> bytes:
     """{"w": _rebuild_tensor_v2(storage key, offset, size, stride)} as torch writes it (protocol 2)."""
     pid = b"(" + _s("storage") + b"ctorch\nFloatStorage\n" + _s(key) + _s("cpu") + _i(4) + b"tQ"
-    tup = lambda xs: b"(" + b"".join(_i(x) for x in xs) + b"t"   # noqa: E731
+    tup = lambda xs: b"(" + b"".join(_i(x) for x in xs) + b"t"  # noqa: E731
     tensor = b"ctorch._utils\n_rebuild_tensor_v2\n(" + pid + _i(offset) + tup(size) + tup(stride) + b"\x89tR"
     return b"\x80\x02}" + _s("w") + tensor + b"s."
 
@@ -116,14 +118,17 @@ def test_the_hand_made_tensor_pickle_reads(tmp_path):
     assert np.array_equal(got["w"], np.arange(4, dtype=np.float32).reshape(2, 2).T)
 
 
-@pytest.mark.parametrize("offset,size,stride,match", [
-    (0, (2, 2), (-1, 2), "stride"),           # negative strides would read before the storage
-    (-3, (2,), (1,), "offset"),
-    (3, (2,), (1,), "does not fit"),
-    (0, (2, 2), (1000, 1), "does not fit"),   # reads past the end
-    (0, (2, 2), (1,), "size .* but stride"),
-    (4, (), (), "does not fit"),
-])
+@pytest.mark.parametrize(
+    "offset,size,stride,match",
+    [
+        (0, (2, 2), (-1, 2), "stride"),  # negative strides would read before the storage
+        (-3, (2,), (1,), "offset"),
+        (3, (2,), (1,), "does not fit"),
+        (0, (2, 2), (1000, 1), "does not fit"),  # reads past the end
+        (0, (2, 2), (1,), "size .* but stride"),
+        (4, (), (), "does not fit"),
+    ],
+)
 def test_a_tensor_outside_its_storage_is_refused(tmp_path, offset, size, stride, match):
     with pytest.raises(TorchFileError, match=match):
         read_torch_file(_zip(tmp_path / "bad.pth", _tensor_pickle(offset, size, stride)))

@@ -12,9 +12,11 @@ from pathlib import Path
 import numpy as np
 
 #: the small networks of the reference file: (name, geocd backbone, layer list / ResNet spec)
-NETS = (("vgg_small", "vgg", [8, 8, "M", 16, "M", 16, "M"]),
-        ("vgg_small_bn", "vgg", [8, "M", 16, "M", 16, "M"]),
-        ("resnet_small", "resnet", [8, 1, 1, 1]))
+NETS = (
+    ("vgg_small", "vgg", [8, 8, "M", 16, "M", 16, "M"]),
+    ("vgg_small_bn", "vgg", [8, "M", 16, "M", 16, "M"]),
+    ("resnet_small", "resnet", [8, 1, 1, 1]),
+)
 REF = Path(__file__).parent / "data" / "cnn_reference.npz"
 #: EfficientNet-Lite0 (random weights, seed 3) through the efficientnet_lite_pytorch port, every stage and the head
 EFFNET_REF = Path(__file__).parent / "data" / "effnet_reference.npz"
@@ -79,7 +81,7 @@ def resnet_module(base: int, blocks):
     m.maxpool = nn.MaxPool2d(3, 2, 1)
     cin = base
     for i, nb in enumerate(blocks):
-        planes = base * 2 ** i
+        planes = base * 2**i
         seq = []
         for j in range(nb):
             seq.append(Basic(cin, planes, 2 if (i > 0 and j == 0) else 1))
@@ -126,8 +128,9 @@ def make(path: Path = REF) -> None:
     image = rng.random((3, 45, 53)).astype(np.float32)  # odd sizes: floor-mode pooling and padding edges
     out = {"image": image}
     for name, bb, spec in NETS:
-        sd = random_state_dict("vgg11_bn" if name.endswith("_bn") else ("vgg19" if bb == "vgg" else "resnet"),
-                               seed=3, widths=spec)
+        sd = random_state_dict(
+            "vgg11_bn" if name.endswith("_bn") else ("vgg19" if bb == "vgg" else "resnet"), seed=3, widths=spec
+        )
         for k, v in sd.items():
             out[f"{name}/sd/{k}"] = v
         for i, f in enumerate(reference_features(name, spec, sd, image)):
@@ -145,10 +148,12 @@ def make_effnet(path: Path = EFFNET_REF) -> None:
     from geocd.screen.cnn import TF_MEAN, TF_STD, _lite_stages, prepare_input, random_state_dict
 
     sd = random_state_dict("efficientnet_lite0", seed=3)
-    m = EfficientNet.from_name("efficientnet-lite0", image_size=None)   # None: padding from each input's size
+    m = EfficientNet.from_name("efficientnet-lite0", image_size=None)  # None: padding from each input's size
     full = m.state_dict()
-    m.load_state_dict({**{k: v for k, v in full.items() if k.startswith("_fc")},
-                       **{k: torch.from_numpy(v) for k, v in sd.items()}}, strict=True)
+    m.load_state_dict(
+        {**{k: v for k, v in full.items() if k.startswith("_fc")}, **{k: torch.from_numpy(v) for k, v in sd.items()}},
+        strict=True,
+    )
     m.eval()
     image = np.random.default_rng(7).random((3, 45, 53)).astype(np.float32)
     x = torch.from_numpy(prepare_input(image, True, TF_MEAN, TF_STD))[None]
@@ -170,16 +175,18 @@ def make_pth() -> None:
 
     sd = tiny_state_dict()
     t = {k: torch.from_numpy(v) for k, v in sd.items()}
-    t["features.0.weight_t"] = torch.from_numpy(sd["features.0.weight"]).transpose(0, 1)   # a non-contiguous view
+    t["features.0.weight_t"] = torch.from_numpy(sd["features.0.weight"]).transpose(0, 1)  # a non-contiguous view
     torch.save({"state_dict": t}, PTH_ZIP)
     torch.save(t, PTH_LEGACY, _use_new_zipfile_serialization=False)
 
 
 def tiny_state_dict() -> dict[str, np.ndarray]:
     rng = np.random.default_rng(2)
-    return {"features.0.weight": rng.standard_normal((4, 3, 3, 3)).astype(np.float32),
-            "features.0.bias": rng.standard_normal(4).astype(np.float32),
-            "bn.num_batches_tracked": np.array(7, np.int64)}
+    return {
+        "features.0.weight": rng.standard_normal((4, 3, 3, 3)).astype(np.float32),
+        "features.0.bias": rng.standard_normal(4).astype(np.float32),
+        "bn.num_batches_tracked": np.array(7, np.int64),
+    }
 
 
 if __name__ == "__main__":

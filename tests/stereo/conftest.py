@@ -26,5 +26,11 @@ def pair_dem(scene, chips):
     """The pair matched with default parameters over a ±20 m range (the RPC's ±500 m range is tested elsewhere)."""
     from geocd.stereo import StereoParams, match_pair
 
-    return match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid,
-                      params=StereoParams(height_range_m=(185.0, 225.0)))
+    return match_pair(
+        chips[0],
+        chips[1],
+        scene.cameras[0],
+        scene.cameras[1],
+        scene.grid,
+        params=StereoParams(height_range_m=(185.0, 225.0)),
+    )

@@ -21,9 +21,17 @@ M_PER_DEG_LAT = 111_132.0
 M_PER_DEG_LON = 111_320.0 * np.cos(np.radians(LAT0))
 
 
-def affine_rpc(gsd_m: float, parallax_px_per_m: tuple[float, float], width: int, height: int,
-               centre_px: tuple[float, float] | None = None, lon0: float = LON0, lat0: float = LAT0,
-               h0: float = H0, height_scale_m: float = 500.0) -> RPCModel:
+def affine_rpc(
+    gsd_m: float,
+    parallax_px_per_m: tuple[float, float],
+    width: int,
+    height: int,
+    centre_px: tuple[float, float] | None = None,
+    lon0: float = LON0,
+    lat0: float = LAT0,
+    h0: float = H0,
+    height_scale_m: float = 500.0,
+) -> RPCModel:
     """An RPC that is exactly ``col = cx + Δlon/dlon + pc·(h−h0)``, ``row = cy − Δlat/dlat + pr·(h−h0)``."""
     cx, cy = centre_px if centre_px is not None else (width / 2.0, height / 2.0)
     s_lon = s_lat = 0.01
@@ -39,10 +47,25 @@ def affine_rpc(gsd_m: float, parallax_px_per_m: tuple[float, float], width: int,
     line_num[3] = parallax_px_per_m[1] * s_h
     den = z.copy()
     den[0] = 1.0
-    cam = RPCModel(line_num=line_num, line_den=den, samp_num=samp_num, samp_den=den.copy(),
-                    line_off=cy - 0.5, samp_off=cx - 0.5, lat_off=lat0, lon_off=lon0, height_off=h0,
-                    line_scale=1.0, samp_scale=1.0, lat_scale=s_lat, lon_scale=s_lon, height_scale=s_h,
-                    width=width, height=height, source="synthetic affine")
+    cam = RPCModel(
+        line_num=line_num,
+        line_den=den,
+        samp_num=samp_num,
+        samp_den=den.copy(),
+        line_off=cy - 0.5,
+        samp_off=cx - 0.5,
+        lat_off=lat0,
+        lon_off=lon0,
+        height_off=h0,
+        line_scale=1.0,
+        samp_scale=1.0,
+        lat_scale=s_lat,
+        lon_scale=s_lon,
+        height_scale=s_h,
+        width=width,
+        height=height,
+        source="synthetic affine",
+    )
     _AFFINE[id(cam)] = (cx, cy, dlon_px, dlat_px, parallax_px_per_m, lon0, lat0, h0, cam)
     return cam
 
@@ -61,11 +84,11 @@ def localize_affine(cam, col, row, h):
 @dataclass
 class Scene:
     grid: AOIGrid
-    truth: np.ndarray          # ellipsoidal DSM on the grid (m)
-    images: list               # raw image arrays (native dtype)
+    truth: np.ndarray  # ellipsoidal DSM on the grid (m)
+    images: list  # raw image arrays (native dtype)
     cameras: list
     names: list
-    visible: np.ndarray        # cells seen by both images (not occluded)
+    visible: np.ndarray  # cells seen by both images (not occluded)
 
 
 def _local_xy(lon, lat):
@@ -92,7 +115,7 @@ class Texture:
         a = ndimage.gaussian_filter(rng.normal(size=(n, n)), 2.0)
         a += 0.5 * ndimage.gaussian_filter(rng.normal(size=(n, n)), 6.0)
         for sigma, weight in octaves:
-            f = max(1, int(sigma // 4))           # coarse structure: filter a coarser grid, then interpolate
+            f = max(1, int(sigma // 4))  # coarse structure: filter a coarser grid, then interpolate
             m = -(-n // f) + 1
             o = ndimage.gaussian_filter(rng.normal(size=(m, m)), sigma / f)
             o = ndimage.zoom(o, f, order=1)[:n, :n]
@@ -133,14 +156,22 @@ def render(cam: RPCModel, tex: Texture, h_lo: float = H0 - 6.0, h_hi: float = H0
     return inten, hit_h
 
 
-def make_scene(seed: int = 0, size_m: float = 48.0, posting_m: float = 0.5, gsd_m: float = 0.5,
-               parallax_a=(0.55, 0.05), parallax_b=(-0.45, 0.02), noise: float = 0.02) -> Scene:
+def make_scene(
+    seed: int = 0,
+    size_m: float = 48.0,
+    posting_m: float = 0.5,
+    gsd_m: float = 0.5,
+    parallax_a=(0.55, 0.05),
+    parallax_b=(-0.45, 0.02),
+    noise: float = 0.02,
+) -> Scene:
     crs = utm_crs_for(LON0, LAT0)
     from geocd.geodesy import from_lonlat
 
     xc, yc = from_lonlat(LON0, LAT0, crs)
-    grid = AOIGrid.from_bounds(float(xc) - size_m / 2, float(yc) - size_m / 2, float(xc) + size_m / 2,
-                               float(yc) + size_m / 2, posting_m, crs)
+    grid = AOIGrid.from_bounds(
+        float(xc) - size_m / 2, float(yc) - size_m / 2, float(xc) + size_m / 2, float(yc) + size_m / 2, posting_m, crs
+    )
     lon, lat = grid.lonlat()
     truth = dsm_local(*_local_xy(lon, lat))
     npx = int(size_m / gsd_m) + 40
@@ -151,9 +182,9 @@ def make_scene(seed: int = 0, size_m: float = 48.0, posting_m: float = 0.5, gsd_
         cam = affine_rpc(gsd_m, par, npx, npx)
         inten, _ = render(cam, tex)
         inten = inten + noise * rng.normal(size=inten.shape)
-        if k == 0:   # 11-bit in uint16, gain and offset
+        if k == 0:  # 11-bit in uint16, gain and offset
             img = np.clip(600 + 150 * inten, 0, 2047).astype(np.uint16)
-        else:        # 8-bit RGB, another gain/offset
+        else:  # 8-bit RGB, another gain/offset
             g = np.clip(110 + 30 * inten, 0, 255)
             img = np.stack([g, 0.9 * g, 0.8 * g]).astype(np.uint8)
         cams.append(cam)
@@ -189,8 +220,9 @@ def render_at(cam, cols, rows, h_lo=H0 - 6.0, h_hi=H0 + 16.0, dh=0.04):
 # ---------------------------------------------------------------------------------------------
 # any surface, any camera: a tall structure on a plateau
 # ---------------------------------------------------------------------------------------------
-def render_surface(cam, tex: Texture, dsm_fn, h_lo: float, h_hi: float, dh: float = 2.0, n_bisect: int = 12,
-                   cols=None, rows=None):
+def render_surface(
+    cam, tex: Texture, dsm_fn, h_lo: float, h_hi: float, dh: float = 2.0, n_bisect: int = 12, cols=None, rows=None
+):
     """Ray-march the lines of sight of pixel centres (or of given points) down through ``dsm_fn``.
 
     ``dsm_fn(x, y)`` gives heights (m) at local metres east/north of (LON0, LAT0). Steps of
@@ -243,14 +275,21 @@ def render_surface(cam, tex: Texture, dsm_fn, h_lo: float, h_hi: float, dh: floa
     return inten.reshape(shape), hit.reshape(shape)
 
 
-def pyramid_dsm(height_m: float = 150.0, half_base_m: float = 75.0, centre=(0.0, 0.0), plateau_m: float = H0,
-                steps: int = 0, tower=None):
+def pyramid_dsm(
+    height_m: float = 150.0,
+    half_base_m: float = 75.0,
+    centre=(0.0, 0.0),
+    plateau_m: float = H0,
+    steps: int = 0,
+    tower=None,
+):
     """A square pyramid on a gently rolling plateau (and, optionally, a tower ``(x, y, half_side, height)``).
 
     ``steps > 0`` makes it a stepped pyramid (ziggurat) of that many flat terraces above the
     plateau, each ``height_m / steps`` high; the top terrace is ``half_base_m / (steps + 1)``
     from the centre to its edge.
     """
+
     def f(x, y):
         x = np.asarray(x, float)
         y = np.asarray(y, float)
@@ -265,25 +304,38 @@ def pyramid_dsm(height_m: float = 150.0, half_base_m: float = 75.0, centre=(0.0,
             tx, ty, ts, th = tower
             z = np.where((np.abs(x - tx) <= ts) & (np.abs(y - ty) <= ts), plateau_m + th, z)
         return z
+
     return f
 
 
-def make_surface_scene(dsm_fn, *, seed: int = 0, size_m: float = 300.0, posting_m: float = 1.0, gsd_m: float = 1.0,
-                       parallax_a=(0.33, 0.06), parallax_b=(-0.31, 0.03), noise: float = 0.02,
-                       h_range=(H0 - 10.0, H0 + 170.0), height_scale_m: float = 500.0) -> Scene:
+def make_surface_scene(
+    dsm_fn,
+    *,
+    seed: int = 0,
+    size_m: float = 300.0,
+    posting_m: float = 1.0,
+    gsd_m: float = 1.0,
+    parallax_a=(0.33, 0.06),
+    parallax_b=(-0.31, 0.03),
+    noise: float = 0.02,
+    h_range=(H0 - 10.0, H0 + 170.0),
+    height_scale_m: float = 500.0,
+) -> Scene:
     """Two affine RPC views of an arbitrary surface ``dsm_fn`` (heights in m over local metres)."""
     from geocd.geodesy import from_lonlat
 
     crs = utm_crs_for(LON0, LAT0)
     xc, yc = from_lonlat(LON0, LAT0, crs)
-    grid = AOIGrid.from_bounds(float(xc) - size_m / 2, float(yc) - size_m / 2, float(xc) + size_m / 2,
-                               float(yc) + size_m / 2, posting_m, crs)
+    grid = AOIGrid.from_bounds(
+        float(xc) - size_m / 2, float(yc) - size_m / 2, float(xc) + size_m / 2, float(yc) + size_m / 2, posting_m, crs
+    )
     lon, lat = grid.lonlat()
     truth = dsm_fn(*_local_xy(lon, lat))
     relief_px = max(abs(v) for p in (parallax_a, parallax_b) for v in p) * (h_range[1] - H0)
     npx = int(size_m / gsd_m + 2 * relief_px) + 40
-    tex = Texture(seed, extent_m=size_m / 2 + 2 * (h_range[1] - H0) + 20.0, step_m=0.5 * gsd_m,
-                  octaves=((16.0, 0.6), (48.0, 0.5)))
+    tex = Texture(
+        seed, extent_m=size_m / 2 + 2 * (h_range[1] - H0) + 20.0, step_m=0.5 * gsd_m, octaves=((16.0, 0.6), (48.0, 0.5))
+    )
     rng = np.random.default_rng(seed + 1)
     cams, imgs = [], []
     for par in (parallax_a, parallax_b):
@@ -300,22 +352,47 @@ def make_surface_scene(dsm_fn, *, seed: int = 0, size_m: float = 300.0, posting_
     return Scene(grid, truth, imgs, cams, ["img_a", "img_b"], vis)
 
 
-def frame_camera(position_xy, altitude_m: float, *, width: int = 480, height: int = 360, focal_px: float = 300.0,
-                 k1: float = -0.26, k2: float = 0.0, opk_deg=(0.0, 0.0, 0.0)):
+def frame_camera(
+    position_xy,
+    altitude_m: float,
+    *,
+    width: int = 480,
+    height: int = 360,
+    focal_px: float = 300.0,
+    k1: float = -0.26,
+    k2: float = 0.0,
+    opk_deg=(0.0, 0.0, 0.0),
+):
     """A nadir drone frame camera (Brown distortion) ``altitude_m`` above H0 at local metres ``position_xy``."""
     from geocd.camera import FrameCamera
     from geocd.geodesy import from_lonlat
 
     crs = utm_crs_for(LON0, LAT0)
     x0, y0 = from_lonlat(LON0, LAT0, crs)
-    return FrameCamera(width=width, height=height, focal_px=focal_px, crs=crs, vertical_datum="ellipsoid",
-                       position=(float(x0) + position_xy[0], float(y0) + position_xy[1], H0 + altitude_m),
-                       opk_deg=opk_deg, distortion={"k1": k1, "k2": k2})
+    return FrameCamera(
+        width=width,
+        height=height,
+        focal_px=focal_px,
+        crs=crs,
+        vertical_datum="ellipsoid",
+        position=(float(x0) + position_xy[0], float(y0) + position_xy[1], H0 + altitude_m),
+        opk_deg=opk_deg,
+        distortion={"k1": k1, "k2": k2},
+    )
 
 
-def make_frame_scene(dsm_fn=None, *, seed: int = 3, k1: float = -0.26, altitude_m: float = 60.0,
-                     base_m: float = 24.0, aoi_m: float = 200.0, posting_m: float = 0.5, noise: float = 0.02,
-                     h_range=(H0 - 10.0, H0 + 20.0)) -> Scene:
+def make_frame_scene(
+    dsm_fn=None,
+    *,
+    seed: int = 3,
+    k1: float = -0.26,
+    altitude_m: float = 60.0,
+    base_m: float = 24.0,
+    aoi_m: float = 200.0,
+    posting_m: float = 0.5,
+    noise: float = 0.02,
+    h_range=(H0 - 10.0, H0 + 20.0),
+) -> Scene:
     """Two nadir drone frames with strong barrel distortion over ``dsm_fn`` (default: the two-building scene).
 
     The AOI grid (``aoi_m`` square) is far larger than the frames' footprints, so most of its cells
@@ -326,8 +403,9 @@ def make_frame_scene(dsm_fn=None, *, seed: int = 3, k1: float = -0.26, altitude_
     f = dsm_fn or (lambda x, y: dsm_local(x, y))
     crs = utm_crs_for(LON0, LAT0)
     xc, yc = from_lonlat(LON0, LAT0, crs)
-    grid = AOIGrid.from_bounds(float(xc) - aoi_m / 2, float(yc) - aoi_m / 2, float(xc) + aoi_m / 2,
-                               float(yc) + aoi_m / 2, posting_m, crs)
+    grid = AOIGrid.from_bounds(
+        float(xc) - aoi_m / 2, float(yc) - aoi_m / 2, float(xc) + aoi_m / 2, float(yc) + aoi_m / 2, posting_m, crs
+    )
     cams = [frame_camera((-base_m / 2, 0.0), altitude_m, k1=k1), frame_camera((base_m / 2, 0.0), altitude_m, k1=k1)]
     tex = Texture(seed, extent_m=110.0, step_m=0.25)
     rng = np.random.default_rng(seed + 1)

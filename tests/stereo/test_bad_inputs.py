@@ -1,6 +1,5 @@
 """Bad inputs give clear errors or warnings, never silent garbage."""
 
-
 import numpy as np
 import pytest
 from synthetic import affine_rpc
@@ -38,8 +37,9 @@ class NoRangeCamera(Camera):
 
 
 def test_non_overlapping_pair(scene, chips):
-    far = affine_rpc(0.5, (-0.45, 0.02), scene.cameras[1].width, scene.cameras[1].height,
-                     centre_px=(3000.0, 3000.0))   # looks 1.5 km away
+    far = affine_rpc(
+        0.5, (-0.45, 0.02), scene.cameras[1].width, scene.cameras[1].height, centre_px=(3000.0, 3000.0)
+    )  # looks 1.5 km away
     with pytest.raises(NoOverlapError, match="do not overlap"):
         match_pair(chips[0], chips[1], scene.cameras[0], far, scene.grid)
 
@@ -49,8 +49,9 @@ def test_no_height_range(scene, chips):
     with pytest.raises(ConfigError, match="no height search range"):
         match_pair(chips[0], chips[1], cams[0], cams[1], scene.grid)
     # a DEM or an explicit range fixes it
-    pd = match_pair(chips[0], chips[1], cams[0], cams[1], scene.grid,
-                    params=StereoParams(height_range_m=(190.0, 220.0)))
+    pd = match_pair(
+        chips[0], chips[1], cams[0], cams[1], scene.grid, params=StereoParams(height_range_m=(190.0, 220.0))
+    )
     assert pd.completeness > 0.8
 
 
@@ -84,8 +85,9 @@ def test_degenerate_base_warns_and_invalidates(scene, chips):
 def test_weak_geometry_partially(scene, chips):
     """A base/height threshold above the pair's invalidates with a warning (g-based)."""
     with pytest.warns(StereoGeometryWarning):
-        pd = match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid,
-                        params=StereoParams(min_base_height=0.6))
+        pd = match_pair(
+            chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid, params=StereoParams(min_base_height=0.6)
+        )
     assert not pd.valid.any()
 
 

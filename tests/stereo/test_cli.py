@@ -18,16 +18,31 @@ def scene_dir(tmp_path, scene):
     for img, cam, name in zip(scene.images, scene.cameras, scene.names):
         write_image(tmp_path / f"{name}.tif", img, rpc=cam, nbits=11 if img.dtype == np.uint16 else None)
     l, b, r, t = scene.grid.bounds
-    m = {"geocd_manifest": 1, "name": "synthetic",
-         "aoi": {"crs": scene.grid.crs.to_string(), "bounds": [l, b, r, t], "posting_m": scene.grid.posting_m},
-         "epochs": [{"name": "A", "images": [f"{n}.tif" for n in scene.names]}]}
+    m = {
+        "geocd_manifest": 1,
+        "name": "synthetic",
+        "aoi": {"crs": scene.grid.crs.to_string(), "bounds": [l, b, r, t], "posting_m": scene.grid.posting_m},
+        "epochs": [{"name": "A", "images": [f"{n}.tif" for n in scene.names]}],
+    }
     (tmp_path / "scene.yaml").write_text(yaml.safe_dump(m))
     return tmp_path
 
 
 def test_cli_writes_pair_dems(scene_dir, scene):
-    res = CliRunner().invoke(main, ["--progress", "json", "stereo", str(scene_dir / "scene.yaml"),
-                                    "--out", str(scene_dir / "out"), "--height-range", "180", "230"])
+    res = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "json",
+            "stereo",
+            str(scene_dir / "scene.yaml"),
+            "--out",
+            str(scene_dir / "out"),
+            "--height-range",
+            "180",
+            "230",
+        ],
+    )
     assert res.exit_code == 0, res.output
     lines = [json.loads(x) for x in res.stderr.splitlines() if x.startswith("{")] if hasattr(res, "stderr") else []
     p = scene_dir / "out" / "stereo" / "A" / "img_a__img_b.tif"

@@ -21,8 +21,14 @@ def test_distorted_frames_match_in_the_images_only(drone_pair):
     from synthetic import H0
 
     sc, chips = drone_pair
-    pd = match_pair(chips[0], chips[1], sc.cameras[0], sc.cameras[1], sc.grid,
-                    params=StereoParams(height_range_m=(H0 - 20.0, H0 + 30.0)))
+    pd = match_pair(
+        chips[0],
+        chips[1],
+        sc.cameras[0],
+        sc.cameras[1],
+        sc.grid,
+        params=StereoParams(height_range_m=(H0 - 20.0, H0 + 30.0)),
+    )
     # the plane count comes from cells inside the images (≈ 2.2 px/m each here); cells beyond the fold
     # (thousands of px/m without the domain check) made the sweep run for hours
     assert pd.meta["jmax_px_per_m"] < 5.0
@@ -32,7 +38,7 @@ def test_distorted_frames_match_in_the_images_only(drone_pair):
     for cam in sc.cameras:
         c, r = cam.project(lon, lat, np.where(pd.valid, pd.z_m, sc.truth))
         inside &= cam.in_image(c, r)
-    assert not np.any(pd.valid & ~inside)                      # every valid cell lands in both frames
+    assert not np.any(pd.valid & ~inside)  # every valid cell lands in both frames
     assert pd.flag_counts()["out_of_image"] > 0.5 * (~inside).sum()
     v = pd.valid & sc.visible
     assert v.sum() > 0.8 * sc.visible.sum()
@@ -41,6 +47,6 @@ def test_distorted_frames_match_in_the_images_only(drone_pair):
 
 
 def test_plane_count_has_a_hard_cap(scene, chips):
-    p = StereoParams(height_range_m=(-300.0, 700.0), max_coarse_heights=256)   # ~1100 planes of 0.9 m, 1 level
+    p = StereoParams(height_range_m=(-300.0, 700.0), max_coarse_heights=256)  # ~1100 planes of 0.9 m, 1 level
     with pytest.raises(ConfigError, match="height planes"):
         match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid, params=p)

@@ -17,7 +17,7 @@ def test_warp_bilinear_matches_reference(rng):
     img[5, 7] = np.nan
     col = rng.uniform(-2, 53, size=(30, 31))
     row = rng.uniform(-2, 43, size=(30, 31))
-    col[0, :5] = [0.5, 49.5, 0.49, 49.51, 7.5]   # exact edges
+    col[0, :5] = [0.5, 49.5, 0.49, 49.51, 7.5]  # exact edges
     row[0, :5] = [0.5, 39.5, 3.0, 3.0, 5.5]
     out = np.empty(col.shape, np.float32)
     K.warp_bilinear(img, col, row, out)
@@ -149,13 +149,13 @@ def test_mdl_score_orders_matches():
     unrelated = mdl_score_ref(np.stack([a, rng.normal(0, 20, 49)]), 1.0)
     flat = mdl_score_ref(np.stack([rng.normal(0, 1, 49), rng.normal(0, 1, 49)]), 1.0)
     assert perfect < noisy < unrelated < 0.1
-    assert abs(flat) < 0.5        # textureless: little evidence either way
+    assert abs(flat) < 0.5  # textureless: little evidence either way
     # three windows work in the reference too
     assert mdl_score_ref(np.stack([a, a, a]), 1.0) < mdl_score_ref(np.stack([a, a, rng.normal(0, 20, 49)]), 1.0)
 
 
 def test_fused_sweep_step_equals_moments_then_update(rng):
-    K_, shape = 25, (33, 70)       # > 32 columns: several column blocks
+    K_, shape = 25, (33, 70)  # > 32 columns: several column blocks
     r, min_n, eps, excl = 2, 12.0, 4.0, 2.0
     kmin = rng.integers(0, 4, size=shape).astype(np.int32)
     kmax = rng.integers(15, K_, size=shape).astype(np.int32)
@@ -200,8 +200,8 @@ def test_window_mean_matches_reference(rng, dtype):
 
 def _affine_geo(rng, shape, img_shape, shift=(0.0, 0.0)):
     """Per-cell (col, row, ∂col/∂j, ∂row/∂j, ∂col/∂i, ∂row/∂i) of a slightly rotated, scaled grid."""
-    ii, jj = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
-    a, b, c, d = 1.3, 0.2, -0.15, 1.1          # ∂col/∂j, ∂row/∂j, ∂col/∂i, ∂row/∂i
+    ii, jj = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    a, b, c, d = 1.3, 0.2, -0.15, 1.1  # ∂col/∂j, ∂row/∂j, ∂col/∂i, ∂row/∂i
     geo = np.empty((6, *shape))
     geo[0] = 4.0 + a * jj + c * ii + shift[0]
     geo[1] = 5.0 + b * jj + d * ii + shift[1]
@@ -216,8 +216,8 @@ def test_subwindow_mdl_matches_reference(rng, r, q):
     img_a[10, 12] = np.nan
     geo_a = _affine_geo(rng, (26, 29), img_a.shape)
     geo_b = _affine_geo(rng, (26, 29), img_b.shape, shift=(0.3, -0.2))
-    geo_b[:2] += rng.normal(0, 0.5, size=geo_b[:2].shape)          # per-cell height errors
-    geo_a[0, 3, 4] = np.nan                                       # a cell without a match
+    geo_b[:2] += rng.normal(0, 0.5, size=geo_b[:2].shape)  # per-cell height errors
+    geo_a[0, 3, 4] = np.nan  # a cell without a match
     centres = K.subwindow_centres(r, q)
     out = np.empty(geo_a.shape[1:])
     K.subwindow_mdl(img_a, img_b, geo_a, geo_b, r, q, centres, 6.0, 4.0, out)
@@ -245,14 +245,14 @@ def test_subwindow_mdl_sees_a_window_explained_only_in_part(rng):
     base = rng.normal(0, 25, size=(40, 40))
     img_a = base.astype(np.float32)
     img_b = base.copy()
-    img_b[:, 20:] = np.roll(base, 3, axis=1)[:, 20:]       # right part of the scene at another height
+    img_b[:, 20:] = np.roll(base, 3, axis=1)[:, 20:]  # right part of the scene at another height
     img_b = (img_b + rng.normal(0, 1, size=base.shape)).astype(np.float32)
     geo = np.zeros((6, 1, 1))
-    geo[:, 0, 0] = [19.5, 20.5, 1.0, 0.0, 0.0, 1.0]        # window columns 16…22: 4 matched, 3 not
+    geo[:, 0, 0] = [19.5, 20.5, 1.0, 0.0, 0.0, 1.0]  # window columns 16…22: 4 matched, 3 not
     out_sub = np.empty((1, 1))
     K.subwindow_mdl(img_a, img_b, geo, geo, 3, 1, K.subwindow_centres(3, 1), 6.0, 1.0, out_sub)
     whole = mdl_score_ref(np.stack([img_a[17:24, 16:23].ravel(), img_b[17:24, 16:23].ravel()]).astype(float), 1.0)
     good = mdl_score_ref(np.stack([img_a[17:24, 10:17].ravel(), img_b[17:24, 10:17].ravel()]).astype(float), 1.0)
-    assert good < -3.0 and good < whole < -0.8     # the whole window still reads as a (weaker) match ...
+    assert good < -3.0 and good < whole < -0.8  # the whole window still reads as a (weaker) match ...
     # ... its worst 3 × 3 part scores like two unrelated windows (≈ −½ bit/pixel, scores.py)
     assert out_sub[0, 0] > whole + 0.3 and out_sub[0, 0] > -0.7

@@ -12,7 +12,7 @@ def test_heights_match_truth(scene, pair_dem):
     pd = pair_dem
     dz = pd.z_m - scene.truth
     ok = pd.valid
-    assert np.median(np.abs(dz[ok])) < 0.15            # 0.3 px of disparity at g = 1 px/m
+    assert np.median(np.abs(dz[ok])) < 0.15  # 0.3 px of disparity at g = 1 px/m
     assert np.percentile(np.abs(dz[ok]), 90) < 0.6
     # completeness over the cells both images see
     assert pd.valid[scene.visible].mean() > 0.85
@@ -36,7 +36,7 @@ def test_score_predicts_errors(scene, pair_dem):
     s = pd.score[ok]
     q = np.quantile(s, [0.5])
     assert err[s > q[0]].mean() > 2 * err[s <= q[0]].mean()
-    assert np.nanmedian(pd.score[pd.valid]) < -0.5       # textured correct matches explain the data
+    assert np.nanmedian(pd.score[pd.valid]) < -0.5  # textured correct matches explain the data
     # alternative scores present
     assert np.nanmedian(pd.ncc[pd.valid]) > 0.8
     assert np.isfinite(pd.ssd[pd.valid]).all()
@@ -59,8 +59,9 @@ def test_occlusions_are_flagged(scene, pair_dem):
 def test_tiling_does_not_change_results(scene, chips):
     p = StereoParams(height_range_m=(190.0, 220.0), pointing_correction=False)
     big = match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid, params=p)
-    small = match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid,
-                       params=p.replace(tile_size=32))
+    small = match_pair(
+        chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid, params=p.replace(tile_size=32)
+    )
     both = np.isfinite(small.z_raw_m) & np.isfinite(big.z_raw_m)
     assert both.mean() > 0.95
     np.testing.assert_allclose(small.z_raw_m[both], big.z_raw_m[both], atol=1e-3)
@@ -70,9 +71,16 @@ def test_tiling_does_not_change_results(scene, chips):
 def test_dem_prior_and_progress(scene, chips):
     calls = []
     dem = np.full(scene.grid.shape, np.median(scene.truth))
-    pd = match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid, dem=dem,
-                    params=StereoParams(dem_margin_m=15.0, pointing_correction=False),
-                    progress=lambda f, m="": calls.append(f))
+    pd = match_pair(
+        chips[0],
+        chips[1],
+        scene.cameras[0],
+        scene.cameras[1],
+        scene.grid,
+        dem=dem,
+        params=StereoParams(dem_margin_m=15.0, pointing_correction=False),
+        progress=lambda f, m="": calls.append(f),
+    )
     assert pd.meta["height_source"] == "dem" and pd.meta["levels"] == 1
     ok = pd.valid
     assert np.median(np.abs(pd.z_m - scene.truth)[ok]) < 0.15
@@ -117,16 +125,16 @@ def test_relative_pointing_error_is_corrected(scene, chips, pair_dem):
     from synthetic import affine_rpc
 
     cam = scene.cameras[1]
-    biased = affine_rpc(0.5, (-0.45, 0.02), cam.width, cam.height,
-                        centre_px=(cam.width / 2.0, cam.height / 2.0 + 2.5))
+    biased = affine_rpc(0.5, (-0.45, 0.02), cam.width, cam.height, centre_px=(cam.width / 2.0, cam.height / 2.0 + 2.5))
     pd = match_pair(chips[0], chips[1], scene.cameras[0], biased, scene.grid)
     shift = pd.meta["pointing"]["total_shift_px"]
     assert abs(shift[1] - (-2.5)) < 0.3 and abs(shift[0]) < 0.5
     ok = pd.valid
     assert np.median(np.abs(pd.z_m - scene.truth)[ok]) < 0.2
     assert pd.valid[scene.visible].mean() > 0.85
-    off = match_pair(chips[0], chips[1], scene.cameras[0], biased, scene.grid,
-                     params=StereoParams(pointing_correction=False))
+    off = match_pair(
+        chips[0], chips[1], scene.cameras[0], biased, scene.grid, params=StereoParams(pointing_correction=False)
+    )
     assert off.valid[scene.visible].mean() < pd.valid[scene.visible].mean() - 0.1
 
 
@@ -149,9 +157,15 @@ def test_score_is_the_worst_subwindow_mdl(scene, chips, pair_dem):
     pd = pair_dem
     ok = pd.valid
     assert np.isfinite(pd.score[ok]).all() and np.isfinite(pd.mdl_window[ok]).all()
-    assert np.median(pd.score[ok]) > np.median(pd.mdl_window[ok])        # a worst part scores worse than the whole
-    whole = match_pair(chips[0], chips[1], scene.cameras[0], scene.cameras[1], scene.grid,
-                       params=StereoParams(height_range_m=(185.0, 225.0), score_subwindow=7))
+    assert np.median(pd.score[ok]) > np.median(pd.mdl_window[ok])  # a worst part scores worse than the whole
+    whole = match_pair(
+        chips[0],
+        chips[1],
+        scene.cameras[0],
+        scene.cameras[1],
+        scene.grid,
+        params=StereoParams(height_range_m=(185.0, 225.0), score_subwindow=7),
+    )
     np.testing.assert_array_equal(whole.score, whole.mdl_window)
     np.testing.assert_allclose(whole.mdl_window[ok], pd.mdl_window[ok], atol=1e-6)
     with pytest.raises(ConfigError, match="score_subwindow"):
@@ -168,8 +182,8 @@ def test_local_projection_is_the_projection_of_the_next_cells(scene):
     geo = local_projection(grid, cam, chip, z)
     lon, lat = grid.lonlat()
     i, j = 10, 12
-    c0, r0 = cam.ground_projector(lon[i, j + 1:j + 2], lat[i, j + 1:j + 2], None).project(np.array([z[i, j]]))
-    c1, r1 = cam.ground_projector(lon[i + 1:i + 2, j], lat[i + 1:i + 2, j], None).project(np.array([z[i, j]]))
+    c0, r0 = cam.ground_projector(lon[i, j + 1 : j + 2], lat[i, j + 1 : j + 2], None).project(np.array([z[i, j]]))
+    c1, r1 = cam.ground_projector(lon[i + 1 : i + 2, j], lat[i + 1 : i + 2, j], None).project(np.array([z[i, j]]))
     assert geo[0, i, j] + geo[2, i, j] == pytest.approx(c0[0] - chip.origin[0], abs=1e-6)
     assert geo[1, i, j] + geo[3, i, j] == pytest.approx(r0[0] - chip.origin[1], abs=1e-6)
     assert geo[0, i, j] + geo[4, i, j] == pytest.approx(c1[0] - chip.origin[0], abs=1e-6)

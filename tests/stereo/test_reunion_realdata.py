@@ -28,8 +28,11 @@ def _vs_s2p(z, grid, ref, ref_grid) -> dict:
     both = have & np.isfinite(zz)
     e = (zz - ref)[both]
     e = e - np.median(e)
-    return {"nmad": float(1.4826 * np.median(np.abs(e - np.median(e)))), "completeness": float(both.sum() / have.sum()),
-            "within_1m": float(np.mean(np.abs(e) < 1.0))}
+    return {
+        "nmad": float(1.4826 * np.median(np.abs(e - np.median(e)))),
+        "completeness": float(both.sum() / have.sum()),
+        "within_1m": float(np.mean(np.abs(e) < 1.0)),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -40,9 +43,17 @@ def reunion(tmp_path_factory):
     with rasterio.open(root / "expected_output" / "pair" / "dsm.tif") as ds:
         ref_grid = AOIGrid.from_raster(ds)
         ref = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
-    m = parse_manifest({"epochs": [{"name": "pair", "images": [str(root / "input_pair" / "img_01.tif"),
-                                                               str(root / "input_pair" / "img_02.tif")]}]},
-                       root / "input_pair")
+    m = parse_manifest(
+        {
+            "epochs": [
+                {
+                    "name": "pair",
+                    "images": [str(root / "input_pair" / "img_01.tif"), str(root / "input_pair" / "img_02.tif")],
+                }
+            ]
+        },
+        root / "input_pair",
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = run_stereo(m, out_dir=tmp_path_factory.mktemp("reunion"), keep_arrays=True)
@@ -59,7 +70,7 @@ def test_default_aoi_covers_s2ps_dsm(reunion):
 def test_valid_heights_match_s2p_as_well_as_cars(reunion):
     pd, ref, ref_grid = reunion
     v = _vs_s2p(np.where(pd.valid, pd.z_m, np.nan), pd.grid, ref, ref_grid)
-    assert v["nmad"] == pytest.approx(0.355, abs=0.008), v          # CARS 1.3: 0.366 m
+    assert v["nmad"] == pytest.approx(0.355, abs=0.008), v  # CARS 1.3: 0.366 m
     assert v["nmad"] <= 0.366, v
     assert v["completeness"] == pytest.approx(0.9455, abs=0.008), v
     assert v["within_1m"] == pytest.approx(0.953, abs=0.01), v
@@ -69,7 +80,7 @@ def test_with_filled_cells_complete_as_cars(reunion):
     pd, ref, ref_grid = reunion
     filled = (pd.flags & FLAGS["filled"]) > 0
     assert not pd.valid[filled].any() and np.isfinite(pd.z_m[filled]).all()
-    v = _vs_s2p(pd.z_m, pd.grid, ref, ref_grid)                         # valid + filled heights
+    v = _vs_s2p(pd.z_m, pd.grid, ref, ref_grid)  # valid + filled heights
     assert v["completeness"] >= 0.98, v
     assert v["completeness"] == pytest.approx(0.9915, abs=0.004), v
     assert v["nmad"] == pytest.approx(0.366, abs=0.008), v

@@ -6,7 +6,7 @@ import rasterio
 
 from tests.conftest import shared_data
 
-from geocd.stereo import (BANDS, HeightSearch, PlaneSweep, iter_tiles, read_pair_dem, write_pair_dem)
+from geocd.stereo import BANDS, HeightSearch, PlaneSweep, iter_tiles, read_pair_dem, write_pair_dem
 
 
 def test_tiles_cover_the_grid_once():
@@ -29,8 +29,9 @@ def test_plane_sweep_warps_each_image_at_each_plane(scene, chips):
             assert sl.stack.shape == (2, *tile.outer_shape)
             if sl.k == 3:
                 full = sweep.warp_at(np.full(scene.grid.shape, sl.height_m))
-                np.testing.assert_allclose(sl.stack[:, tile.inner[0], tile.inner[1]], full[:, tile.core[0], tile.core[1]],
-                                           atol=1e-3)
+                np.testing.assert_allclose(
+                    sl.stack[:, tile.inner[0], tile.inner[1]], full[:, tile.core[0], tile.core[1]], atol=1e-3
+                )
             seen.append((tile.index, sl.k, sl.height_m))
     assert {h for _, _, h in seen} == {195.0, 196.0, 197.0, 198.0, 199.0, 200.0}
     assert sweep.n_evaluations() == scene.grid.width * scene.grid.height * 6
@@ -93,4 +94,4 @@ def test_projection_interpolation_is_within_tolerance():
     assert fast.interval(proj, *fast.k_range(t)) == 16
     for a, b in zip(fast.slices(t), exact.slices(t)):
         d = np.abs(a.stack - b.stack)
-        assert np.nanmax(d) < 0.05 * np.nanstd(img)   # a hundredth of a pixel of shift
+        assert np.nanmax(d) < 0.05 * np.nanstd(img)  # a hundredth of a pixel of shift

@@ -25,7 +25,9 @@ def _one_pair_manifest(sample_aoi, tmp_path):
             m[k] = str(sample_aoi / m[k])
     m.pop("truth", None)
     ep = [e for e in m["epochs"] if e["name"] == "B"][0]
-    ep["images"] = [dict(i, path=str(sample_aoi / i["path"])) for i in ep["images"] if i["name"] in ("B_sat1", "B_sat3")]
+    ep["images"] = [
+        dict(i, path=str(sample_aoi / i["path"])) for i in ep["images"] if i["name"] in ("B_sat1", "B_sat3")
+    ]
     m["epochs"] = [ep]
     p = tmp_path / "scene.yaml"
     p.write_text(yaml.safe_dump(m))
@@ -105,7 +107,7 @@ def test_a_finished_pairs_tiles_go_at_once_and_a_resumed_run_reuses_its_dem(tmp_
     seen.clear()
     res = run_stereo_tiled(man, out_dir=out, tiling=tiling, progress=lambda f, m="": seen.append(m))
     assert any(m.startswith("pair 1/2 resumed") for m in seen)
-    assert not any(m.startswith("pair 1/2 stereo-A") for m in seen)   # pair 1 not matched again
+    assert not any(m.startswith("pair 1/2 stereo-A") for m in seen)  # pair 1 not matched again
     assert any("(2 resumed)" in m for m in seen if m.startswith("pair 2/2"))
     assert res["completeness"] == pytest.approx(ref["completeness"], abs=0)
     for k in ref["outputs"]:
@@ -134,8 +136,22 @@ def test_geocd_stereo_tiled_is_the_tiled_run(tmp_path):
     man = scene / "scene.yaml"
     ref = run_stereo_tiled(man, out_dir=tmp_path / "ref", tiling=TilingParams(tile_size=64, scheduler="sync"))
     out = tmp_path / "cli"
-    r = CliRunner().invoke(main, ["--progress", "none", "stereo", str(man), "--tiled", "--scheduler", "sync",
-                                  "--tile-size", "64", "--out", str(out)])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "stereo",
+            str(man),
+            "--tiled",
+            "--scheduler",
+            "sync",
+            "--tile-size",
+            "64",
+            "--out",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert "tiled stereo: margins" in r.output
     for k, p in ref["outputs"].items():

@@ -9,14 +9,20 @@ from scipy.ndimage import map_coordinates
 
 from geocd.errors import ConfigError
 from geocd.synth import _kernels as K
-from geocd.synth.bigstereo import (StereoSceneParams, _objects, height_band, make_buildings, make_stereo_scene,
-                                   surface_window)
+from geocd.synth.bigstereo import (
+    StereoSceneParams,
+    _objects,
+    height_band,
+    make_buildings,
+    make_stereo_scene,
+    surface_window,
+)
 
 
 def _rays(rng, n, lo, hi, x0, y0, span):
     ax = x0 + rng.uniform(12, span - 12, n)
     ay = y0 - rng.uniform(12, span - 12, n)
-    tilt = rng.uniform(-0.12, 0.12, (2, n))   # the rays stay inside the window
+    tilt = rng.uniform(-0.12, 0.12, (2, n))  # the rays stay inside the window
     return ax, ay, ax + tilt[0] * (hi - lo), ay + tilt[1] * (hi - lo)
 
 
@@ -32,10 +38,12 @@ def test_march_and_albedo_kernels_match_references():
     ax, ay, bx, by = _rays(rng, 3000, lo, hi, x0, y0, 64.0)
     wx0, wy0 = x0 + 0.5 * fs, y0 - 0.5 * fs
     out = [np.empty(ax.size) for _ in range(4)]
-    K.march_dsm(ax, ay, bx, by, hi, lo, float(dsm.max()) + 0.5, float(dsm.min()) - 0.5, 0.5 * fs, dsm, wx0, wy0, fs,
-                *out)
-    ref = K.march_dsm_ref(ax, ay, bx, by, hi, lo, float(dsm.max()) + 0.5, float(dsm.min()) - 0.5, 0.5 * fs, dsm, wx0,
-                          wy0, fs)
+    K.march_dsm(
+        ax, ay, bx, by, hi, lo, float(dsm.max()) + 0.5, float(dsm.min()) - 0.5, 0.5 * fs, dsm, wx0, wy0, fs, *out
+    )
+    ref = K.march_dsm_ref(
+        ax, ay, bx, by, hi, lo, float(dsm.max()) + 0.5, float(dsm.min()) - 0.5, 0.5 * fs, dsm, wx0, wy0, fs
+    )
     assert np.isfinite(out[2]).mean() > 0.99
     for a, b in zip(out, ref):
         np.testing.assert_allclose(a, b, atol=1e-9, equal_nan=True)
@@ -120,7 +128,7 @@ def test_ground_points_project_where_their_texture_is(tiny_scene):
     g = p.grid()
     with rasterio.open(out / "truth" / "dsm_A.tif") as ds:
         dsm = ds.read(1).astype(float)
-    flat = (maximum_filter(dsm, 9) - minimum_filter(dsm, 9)) < 0.5     # no wall within 2 m
+    flat = (maximum_filter(dsm, 9) - minimum_filter(dsm, 9)) < 0.5  # no wall within 2 m
     flat[:12], flat[-12:], flat[:, :12], flat[:, -12:] = False, False, False, False
     rr, cc = np.nonzero(flat)
     k = np.random.default_rng(0).choice(rr.size, 3000, replace=False)
@@ -132,11 +140,25 @@ def test_ground_points_project_where_their_texture_is(tiny_scene):
     s2 = _sample(out / "images" / "A_sat2.tif", (lon, lat, z))
     w1 = _sample(out / "images" / "A_sat1.tif", (lon, lat, z + 3.0))
     w2 = _sample(out / "images" / "A_sat2.tif", (lon, lat, z + 3.0))
-    ids = surface_window(p, _objects(make_buildings(p), "A", "id"), g.transform.c, g.transform.f, p.posting_m,
-                         (0, 0, g.height, g.width), terrain=False)[rr, cc]
+    ids = surface_window(
+        p,
+        _objects(make_buildings(p), "A", "id"),
+        g.transform.c,
+        g.transform.f,
+        p.posting_m,
+        (0, 0, g.height, g.width),
+        terrain=False,
+    )[rr, cc]
     alb = np.empty(rr.size)
-    K.big_albedo(np.asarray(x, float), np.asarray(y, float), z, np.rint(ids).astype(np.int64), np.zeros(rr.size),
-                 int(p.seed), alb)
+    K.big_albedo(
+        np.asarray(x, float),
+        np.asarray(y, float),
+        z,
+        np.rint(ids).astype(np.int64),
+        np.zeros(rr.size),
+        int(p.seed),
+        alb,
+    )
     right = np.corrcoef(s1, s2)[0, 1]
     wrong = np.corrcoef(w1, w2)[0, 1]
     assert right > 0.9, right
@@ -182,11 +204,12 @@ def test_local_event_changes_only_buildings_inside_the_region():
     assert key(everywhere[ein & (everywhere[:, 6] != everywhere[:, 7])]) == key(local[changed])
     x0, y0 = g.transform.c, g.transform.f
     win = (0, 0, g.height, g.width)
-    dh = (surface_window(p, _objects(local, "B"), x0, y0, p.posting_m, win)
-          - surface_window(p, _objects(local, "A"), x0, y0, p.posting_m, win))
+    dh = surface_window(p, _objects(local, "B"), x0, y0, p.posting_m, win) - surface_window(
+        p, _objects(local, "A"), x0, y0, p.posting_m, win
+    )
     X, Y = g.xy(*np.meshgrid(np.arange(g.height), np.arange(g.width), indexing="ij"))
     far = np.hypot(np.asarray(X) - ex, np.asarray(Y) - ey) > 45.0 + 12.0 * np.sqrt(2) + 1.0
     assert far.mean() > 0.5 and np.all(dh[far] == 0.0)
-    assert (np.abs(dh) > 1.0).sum() > 1000                     # the event itself is there
+    assert (np.abs(dh) > 1.0).sum() > 1000  # the event itself is there
     with pytest.raises(ConfigError):
         StereoSceneParams(event_radius_m=-1.0)

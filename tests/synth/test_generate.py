@@ -88,8 +88,14 @@ def test_truth_corners_through_written_rpcs(tiny_scene_dir, tiny_params):
 def test_regeneration_is_deterministic(tiny_scene_dir, tiny_params, tmp_path):
     again = generate(tiny_params, tmp_path / "again")
     r1, r2 = tiny_scene_dir.out_dir, again.out_dir
-    for sub in ("images/A_sat1.tif", "images/A_air1.tif", "images/B_sat2.tif", "truth/dsm_B.tif",
-                "truth/change_mask.tif", "truth/image_masks/B_sat1.tif"):
+    for sub in (
+        "images/A_sat1.tif",
+        "images/A_air1.tif",
+        "images/B_sat2.tif",
+        "truth/dsm_B.tif",
+        "truth/change_mask.tif",
+        "truth/image_masks/B_sat1.tif",
+    ):
         a1, t1, _, _ = _read(r1 / sub)
         a2, t2, _, _ = _read(r2 / sub)
         np.testing.assert_array_equal(a1, a2, err_msg=sub)
@@ -127,8 +133,27 @@ def test_cli_tiny(tmp_path):
     from geocd.cli import main
 
     out = tmp_path / "cli"
-    r = CliRunner().invoke(main, ["--progress", "none", "synth", "--out", str(out), "--tiny", "--seed", "3",
-                                  "--n-sat-a", "1", "--n-sat-b", "1", "--n-aerial", "1", "--changes", "new,raised"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "synth",
+            "--out",
+            str(out),
+            "--tiny",
+            "--seed",
+            "3",
+            "--n-sat-a",
+            "1",
+            "--n-sat-b",
+            "1",
+            "--n-aerial",
+            "1",
+            "--changes",
+            "new,raised",
+        ],
+    )
     assert r.exit_code == 0, r.output
     m = load_manifest(out)
     assert m.name == "tiny" and [len(e.images) for e in m.epochs] == [2, 1]

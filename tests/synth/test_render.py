@@ -10,8 +10,16 @@ import pytest
 from geocd.camera.base import Camera
 from geocd.synth import _kernels as K
 from geocd.synth.generate import make_aerial_cameras, make_satellite_cameras
-from geocd.synth.render import (RenderParams, SensorRadiometry, camera_rays, render_view, scene_z_band,
-                                sun_direction_map, to_sensor_counts, trace_view)
+from geocd.synth.render import (
+    RenderParams,
+    SensorRadiometry,
+    camera_rays,
+    render_view,
+    scene_z_band,
+    sun_direction_map,
+    to_sensor_counts,
+    trace_view,
+)
 from geocd.synth.sensors import sun_direction_enu
 
 SUN = sun_direction_enu(137.0, 62.0)
@@ -68,8 +76,9 @@ def test_pixel_is_the_mean_of_its_samples(tiny_town, tiny_scenes, cams):
     """render_view's pixel (i, j) integrates rays at (j + 0.5 ± 0.25, i + 0.5 ± 0.25): geocd's pixel convention."""
     cam = cams["A_sat1"]
     S = tiny_scenes["A"]
-    res = render_view(tiny_town, "A", cam, SUN, RenderParams(supersample=2, block_rows=7), scene=S,
-                      window=(40, 30, 20, 25))
+    res = render_view(
+        tiny_town, "A", cam, SUN, RenderParams(supersample=2, block_rows=7), scene=S, window=(40, 30, 20, 25)
+    )
     sun = sun_direction_map(tiny_town, SUN)
     for i, j in ((0, 0), (13, 21), (19, 24), (7, 3)):
         r, c = 40 + i, 30 + j

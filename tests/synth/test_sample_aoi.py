@@ -107,8 +107,11 @@ def _rpc_agreement(path_a, path_b, fit_report: dict) -> tuple[float, float]:
     for p in (path_a, path_b):
         with rasterio.open(p) as ds:
             models.append(RPCModel.from_rasterio(ds.rpcs, width=ds.width, height=ds.height))
-    g = np.meshgrid(np.linspace(*fit_report["lon_range"], 41), np.linspace(*fit_report["lat_range"], 41),
-                    np.linspace(*fit_report["h_range"], 11))
+    g = np.meshgrid(
+        np.linspace(*fit_report["lon_range"], 41),
+        np.linspace(*fit_report["lat_range"], 41),
+        np.linspace(*fit_report["h_range"], 11),
+    )
     d = rpc_camera_difference(models[0], models[1], *(x.ravel() for x in g))
     return float(d.max()), float(np.abs(models[0]._coefs - models[1]._coefs).max())
 
@@ -169,7 +172,7 @@ def test_regenerates_to_the_last_unit(sample_aoi, sample, tmp_path):
             assert x.shape == y.shape and x.dtype == y.dtype, str(f)
             if x.dtype.kind == "f":
                 np.testing.assert_allclose(x, y, rtol=0, atol=1e-6, equal_nan=True, err_msg=str(f))
-            elif "images" not in f.relative_to(sample_aoi).parts:     # truth masks and classes: exact
+            elif "images" not in f.relative_to(sample_aoi).parts:  # truth masks and classes: exact
                 np.testing.assert_array_equal(x, y, err_msg=str(f))
             else:
                 d = np.abs(x.astype(np.int64) - y.astype(np.int64))

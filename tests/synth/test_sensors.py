@@ -17,8 +17,14 @@ LON0, LAT0, H0 = 1.4440, 43.5620, 196.0
 
 @pytest.fixture(scope="module")
 def cam():
-    cover = np.array([[LON0 - 0.0015, LAT0 - 0.0012, 190.0], [LON0 + 0.0015, LAT0 + 0.0012, 230.0],
-                      [LON0 - 0.0015, LAT0 + 0.0012, 230.0], [LON0 + 0.0015, LAT0 - 0.0012, 190.0]])
+    cover = np.array(
+        [
+            [LON0 - 0.0015, LAT0 - 0.0012, 190.0],
+            [LON0 + 0.0015, LAT0 + 0.0012, 230.0],
+            [LON0 - 0.0015, LAT0 + 0.0012, 230.0],
+            [LON0 + 0.0015, LAT0 - 0.0012, 190.0],
+        ]
+    )
     return make_pushbroom(LON0, LAT0, H0, along_deg=-20.0, across_deg=8.0, cover_lonlath=cover, gsd_m=0.5)
 
 

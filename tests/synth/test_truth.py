@@ -7,8 +7,15 @@ import pytest
 
 from geocd.errors import ConfigError
 from geocd.synth.scene import STOREY_M, TownParams, build_town, building_status
-from geocd.synth.truth import (change_products, dsm, footprints_all, footprints_frame, image_change_mask,
-                               non3d_mask, truth_grid)
+from geocd.synth.truth import (
+    change_products,
+    dsm,
+    footprints_all,
+    footprints_frame,
+    image_change_mask,
+    non3d_mask,
+    truth_grid,
+)
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import rasterio
 
-SCRIPT = textwrap.dedent('''
+SCRIPT = textwrap.dedent("""
     import os, sys, time
     import numpy as np
     from affine import Affine
@@ -32,7 +32,7 @@ SCRIPT = textwrap.dedent('''
     run = run_tiled(slow_tile, g, {"x": ArraySource(x)}, tile_size=40, out=out, stage="slow",
               products={"y": RasterProduct(out + "/y.tif", ("y",))}, scheduler="sync")
     print("resumed", run.n_resumed)
-''')
+""")
 
 
 @pytest.mark.slow
@@ -42,8 +42,9 @@ def test_sigkill_then_resume(tmp_path):
     out = tmp_path / "out"
     env = dict(os.environ)
     # 20 tiles of 0.3 s: killed once 8 are journalled
-    p = subprocess.Popen([sys.executable, str(script), str(out)], env=dict(env, SLOW_TILE_S="0.3"),
-                         start_new_session=True)
+    p = subprocess.Popen(
+        [sys.executable, str(script), str(out)], env=dict(env, SLOW_TILE_S="0.3"), start_new_session=True
+    )
     work = out / ".geocd-work"
     t0 = time.time()
     while time.time() - t0 < 120:

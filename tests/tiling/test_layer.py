@@ -14,7 +14,7 @@ from scipy import ndimage
 from geocd.errors import CancelledError, ConfigError
 from geocd.geodesy import AOIGrid
 from geocd.io.raster import write_cog
-from geocd.tiling import (ArraySource, RasterProduct, RasterSource, TileGrid, TileOutput, overlap_cells, run_tiled)
+from geocd.tiling import ArraySource, RasterProduct, RasterSource, TileGrid, TileOutput, overlap_cells, run_tiled
 from geocd.tiling.store import WORK_DIR
 
 # tile functions defined here travel by value to dask worker processes
@@ -46,7 +46,7 @@ def focal(a: np.ndarray) -> np.ndarray:
     s = np.zeros((h, w))
     for dr in range(2 * RADIUS + 1):
         for dc in range(2 * RADIUS + 1):
-            s += pad[dr:dr + h, dc:dc + w]
+            s += pad[dr : dr + h, dc : dc + w]
     return (s / (2 * RADIUS + 1) ** 2).astype(np.float32)
 
 
@@ -77,14 +77,30 @@ def test_focal_filter_tiled_equals_untiled(tmp_path, scheduler):
     g = _grid()
     a = _field(g)
     ref = focal(a)
-    run = run_tiled(focal_tile, g, {"x": ArraySource(a)}, overlap_cells=RADIUS, tile_size=(48, 40),
-                    out=tmp_path, stage="focal", scheduler=scheduler)
+    run = run_tiled(
+        focal_tile,
+        g,
+        {"x": ArraySource(a)},
+        overlap_cells=RADIUS,
+        tile_size=(48, 40),
+        out=tmp_path,
+        stage="focal",
+        scheduler=scheduler,
+    )
     np.testing.assert_array_equal(run.read("f"), ref)
     n = sum(s[0] for _, s in run.smalls())
     assert n == int(np.isfinite(ref).sum())
     # the declared overlap matters: one cell too few is wrong at the seams
-    bad = run_tiled(focal_tile, g, {"x": ArraySource(a)}, overlap_cells=RADIUS - 1, tile_size=(48, 40),
-                    out=tmp_path, stage="focal-short", scheduler="sync")
+    bad = run_tiled(
+        focal_tile,
+        g,
+        {"x": ArraySource(a)},
+        overlap_cells=RADIUS - 1,
+        tile_size=(48, 40),
+        out=tmp_path,
+        stage="focal-short",
+        scheduler="sync",
+    )
     diff = ~np.isclose(bad.read("f"), ref, equal_nan=True)
     assert diff.any()
 
@@ -96,13 +112,23 @@ def test_products_from_files_match_write_cog(tmp_path):
     write_cog(src, a, g)
     ref_path = write_cog(tmp_path / "ref.tif", focal(a), g, tags={"units": "m"})
     prod = RasterProduct(str(tmp_path / "out" / "f.tif"), bands=("f",), tags={"units": "m"})
-    run = run_tiled(focal_tile, g, {"x": RasterSource(str(src))}, overlap_cells=RADIUS, tile_size=64,
-                    out=tmp_path / "out", stage="focal", products={"f": prod}, scheduler="sync")
+    run = run_tiled(
+        focal_tile,
+        g,
+        {"x": RasterSource(str(src))},
+        overlap_cells=RADIUS,
+        tile_size=64,
+        out=tmp_path / "out",
+        stage="focal",
+        products={"f": prod},
+        scheduler="sync",
+    )
     with rasterio.open(run.products["f"]) as d1, rasterio.open(ref_path) as d2:
         np.testing.assert_array_equal(d1.read(), d2.read())
         assert d1.overviews(1) == d2.overviews(1)
-        np.testing.assert_array_equal(d1.read(1, out_shape=(g.height // 2, g.width // 2)),
-                                      d2.read(1, out_shape=(g.height // 2, g.width // 2)))
+        np.testing.assert_array_equal(
+            d1.read(1, out_shape=(g.height // 2, g.width // 2)), d2.read(1, out_shape=(g.height // 2, g.width // 2))
+        )
         assert d1.tags()["units"] == "m" and d1.profile["blockxsize"] == d2.profile["blockxsize"]
         assert d1.descriptions == ("f",)
     # nothing partial or temporary next to the product
@@ -127,8 +153,9 @@ def test_cancel_then_resume_redoes_only_unfinished_tiles(tmp_path, scheduler):
     kw = dict(overlap_cells=RADIUS, tile_size=(48, 40), out=tmp_path, stage="focal")
     prod = {"f": RasterProduct(str(tmp_path / "f.tif"), ("f",))}
     with pytest.raises(CancelledError):
-        run_tiled(focal_tile, g, {"x": ArraySource(a)}, progress=_StopAfter(6), scheduler=scheduler, products=prod,
-                  **kw)
+        run_tiled(
+            focal_tile, g, {"x": ArraySource(a)}, progress=_StopAfter(6), scheduler=scheduler, products=prod, **kw
+        )
     assert not (tmp_path / "f.tif").exists()
     run = run_tiled(focal_tile, g, {"x": ArraySource(a)}, scheduler="sync", products=prod, **kw)
     # the tiles finished when the cancel came are kept (6 of 20 in order; threads: those that had finished)
@@ -162,15 +189,26 @@ def test_vectors_kept_by_centre_once(tmp_path):
     rng = np.random.default_rng(3)
     centres = rng.integers(3, 157, size=(40, 2))
     for r, c in centres:
-        a[r - 2:r + 3, c - 2:c + 3] = 2.0
+        a[r - 2 : r + 3, c - 2 : c + 3] = 2.0
     whole = blobs_tile({"x": a}, type("C", (), {"read_grid": g, "grid": g})())
-    run = run_tiled(blobs_tile, g, {"x": ArraySource(a)}, overlap_cells=8, tile_size=50, out=tmp_path,
-                    stage="blobs", scheduler="sync")
+    run = run_tiled(
+        blobs_tile,
+        g,
+        {"x": ArraySource(a)},
+        overlap_cells=8,
+        tile_size=50,
+        out=tmp_path,
+        stage="blobs",
+        scheduler="sync",
+    )
     merged = run.vectors()
     assert len(merged) == len(whole.vectors)
 
     def key(gdf):
-        return sorted((round(b[0], 3), round(b[1], 3), round(b[2], 3), round(b[3], 3)) for b in gdf.geometry.bounds.to_numpy())
+        return sorted(
+            (round(b[0], 3), round(b[1], 3), round(b[2], 3), round(b[3], 3)) for b in gdf.geometry.bounds.to_numpy()
+        )
+
     assert key(merged) == key(whole.vectors)
 
 
@@ -178,8 +216,18 @@ def test_vectors_kept_by_centre_once(tmp_path):
 def test_processes_scheduler_same_result(tmp_path):
     g = _grid()
     a = _field(g)
-    run = run_tiled(focal_tile, g, {"x": ArraySource(a)}, overlap_cells=RADIUS, tile_size=(64, 64),
-                    out=tmp_path, stage="focal", scheduler="processes", n_workers=2, memory_limit="1GB")
+    run = run_tiled(
+        focal_tile,
+        g,
+        {"x": ArraySource(a)},
+        overlap_cells=RADIUS,
+        tile_size=(64, 64),
+        out=tmp_path,
+        stage="focal",
+        scheduler="processes",
+        n_workers=2,
+        memory_limit="1GB",
+    )
     np.testing.assert_array_equal(run.read("f"), focal(a))
 
 
@@ -202,9 +250,15 @@ def test_a_selection_of_tiles_runs_only_those_and_fills_the_rest(tmp_path, merge
         assert [t.read for t in tg] == [(61, 47, 70, 106), (189, 97, 14, 56)]
     seen = []
     out = tmp_path / "sel"
-    run = run_tiled(focal_tile, tg, {"x": ArraySource(x)}, out=out, stage="focal-sel",
-                    products={"f": RasterProduct(str(out / "f.tif"), ("f",), fill={"f": -9.0}, nodata=-9999.0)},
-                    progress=lambda f, m: seen.append(m))
+    run = run_tiled(
+        focal_tile,
+        tg,
+        {"x": ArraySource(x)},
+        out=out,
+        stage="focal-sel",
+        products={"f": RasterProduct(str(out / "f.tif"), ("f",), fill={"f": -9.0}, nodata=-9999.0)},
+        progress=lambda f, m: seen.append(m),
+    )
     assert run.n_tiles == n_units and seen[-1].endswith(f"{n_units}/{n_units} tiles")
     assert len(list(run.smalls())) == n_units
     with rasterio.open(run.products["f"]) as ds:

@@ -80,8 +80,11 @@ def test_regions_written_in_batches_equal_the_whole_layer(tmp_path):
     assert batches.geometry_type == "MultiPolygon"
     a = write_gpkg(tmp_path / "a.gpkg", {"changes": whole})
     b = write_gpkg(tmp_path / "b.gpkg", {"changes": batches})
-    assert pyogrio.read_info(a, layer="changes")["geometry_type"] == pyogrio.read_info(b, layer="changes")[
-        "geometry_type"] == "MultiPolygon"
+    assert (
+        pyogrio.read_info(a, layer="changes")["geometry_type"]
+        == pyogrio.read_info(b, layer="changes")["geometry_type"]
+        == "MultiPolygon"
+    )
     ra = pyogrio.read_dataframe(a, layer="changes")
     rb = pyogrio.read_dataframe(b, layer="changes")
     assert ra.drop(columns="geometry").equals(rb.drop(columns="geometry"))

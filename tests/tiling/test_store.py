@@ -61,7 +61,7 @@ def test_a_planted_entry_is_not_unpickled(tmp_path, kind, monkeypatch):
         p.write_bytes(good[: -len(pickle.dumps(1))] + evil)
     with pytest.raises(ProcessingError, match="not written by geocd for this user"):
         store.small(t)
-    assert not store.done(t) and not p.exists()   # the tile counts as not finished: it is computed again
+    assert not store.done(t) and not p.exists()  # the tile counts as not finished: it is computed again
     assert not marker.exists()
 
 

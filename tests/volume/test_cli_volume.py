@@ -34,10 +34,13 @@ def scene(tmp_path_factory):
     write_frame_sidecar(pb, toy.test_camera)
     grid = T.aoi_grid(1.0)
     write_cog(root / "dem.tif", np.full(grid.shape, T.H0, dtype=np.float32), grid)
-    man = {"geocd_manifest": 1, "name": "toy",
-           "aoi": {"crs": T.CRS, "bounds": list(grid.bounds), "posting_m": 0.5},
-           "dem": {"path": "dem.tif", "vertical_datum": "ellipsoid"},
-           "epochs": [{"name": "A", "images": imgs_a}, {"name": "B", "images": [{"path": "images/B_test.tif"}]}]}
+    man = {
+        "geocd_manifest": 1,
+        "name": "toy",
+        "aoi": {"crs": T.CRS, "bounds": list(grid.bounds), "posting_m": 0.5},
+        "dem": {"path": "dem.tif", "vertical_datum": "ellipsoid"},
+        "epochs": [{"name": "A", "images": imgs_a}, {"name": "B", "images": [{"path": "images/B_test.tif"}]}],
+    }
     (root / "scene.yaml").write_text(yaml.safe_dump(man), encoding="utf-8")
     return root
 
@@ -45,15 +48,42 @@ def scene(tmp_path_factory):
 def test_update_detect_render(scene, tmp_path):
     r = CliRunner()
     model = tmp_path / "model"
-    res = r.invoke(main, ["--progress", "none", "volume", "update", str(model), "--manifest", str(scene / "scene.yaml"),
-                          "--passes", "2", "--above", "10"])
+    res = r.invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "volume",
+            "update",
+            str(model),
+            "--manifest",
+            str(scene / "scene.yaml"),
+            "--passes",
+            "2",
+            "--above",
+            "10",
+        ],
+    )
     assert res.exit_code == 0, res.output
     meta = json.loads((model / "model.json").read_text())
     assert meta["geometry"]["crs"] == T.CRS
     assert len(meta["history"]) == 12 and meta["sun_bins"][0][:2] == [135.0, 60.0]
     out = tmp_path / "det"
-    res = r.invoke(main, ["--progress", "json", "volume", "detect", str(model), str(scene / "images" / "B_test.tif"),
-                          "--out", str(out), "--neighborhood", "3"])
+    res = r.invoke(
+        main,
+        [
+            "--progress",
+            "json",
+            "volume",
+            "detect",
+            str(model),
+            str(scene / "images" / "B_test.tif"),
+            "--out",
+            str(out),
+            "--neighborhood",
+            "3",
+        ],
+    )
     assert res.exit_code == 0, res.output
     with rasterio.open(out / "B_test_change_prob.tif") as ds:
         assert ds.count == 3 and ds.descriptions[0] == "change_probability"
@@ -64,22 +94,62 @@ def test_update_detect_render(scene, tmp_path):
     summary = json.loads((out / "B_test_change.json").read_text())
     assert summary["sun_bin"] == 0
     # under another sun, with the shadows cast from a DSM of epoch A (the flat DEM here: nothing is shaded)
-    res = r.invoke(main, ["--progress", "none", "volume", "detect", str(model), str(scene / "images" / "B_test.tif"),
-                          "--out", str(tmp_path / "det_dsm"), "--sun", "160", "30", "--shadow-dsm",
-                          str(scene / "dem.tif")])
+    res = r.invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "volume",
+            "detect",
+            str(model),
+            str(scene / "images" / "B_test.tif"),
+            "--out",
+            str(tmp_path / "det_dsm"),
+            "--sun",
+            "160",
+            "30",
+            "--shadow-dsm",
+            str(scene / "dem.tif"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     relit = json.loads((tmp_path / "det_dsm" / "B_test_change.json").read_text())["relight"]
     assert relit["shadows"] == "DSM" and relit["class_fraction"]["lit>lit"] == 1.0, relit
-    res = r.invoke(main, ["--progress", "none", "volume", "render", str(model), "--image",
-                          str(scene / "images" / "A_0.tif"), "--height-map", "--out", str(tmp_path / "ren")])
+    res = r.invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "volume",
+            "render",
+            str(model),
+            "--image",
+            str(scene / "images" / "A_0.tif"),
+            "--height-map",
+            "--out",
+            str(tmp_path / "ren"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     with rasterio.open(tmp_path / "ren" / "expected_height_map.tif") as ds:
         h = ds.read(1)
     assert abs(np.nanmedian(h) - T.H0) < 1.0  # mostly ground
     assert (tmp_path / "ren" / "A_0_expected.tif").is_file()
     # incremental update of the saved model
-    res = r.invoke(main, ["--progress", "none", "volume", "update", str(model), "--image",
-                          str(scene / "images" / "A_0.tif"), "--passes", "1"])
+    res = r.invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "volume",
+            "update",
+            str(model),
+            "--image",
+            str(scene / "images" / "A_0.tif"),
+            "--passes",
+            "1",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert len(json.loads((model / "model.json").read_text())["history"]) == 13
 
@@ -87,9 +157,32 @@ def test_update_detect_render(scene, tmp_path):
 def test_cli_errors_are_one_line(scene, tmp_path):
     r = CliRunner()
     model = tmp_path / "model"
-    res = r.invoke(main, ["--progress", "none", "volume", "update", str(model), "--manifest", str(scene / "scene.yaml"),
-                          "--passes", "1", "--above", "10", "--exclude", "A_1", "--exclude", "A_2", "--exclude", "A_3",
-                          "--exclude", "A_4", "--exclude", "A_5"])
+    res = r.invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "volume",
+            "update",
+            str(model),
+            "--manifest",
+            str(scene / "scene.yaml"),
+            "--passes",
+            "1",
+            "--above",
+            "10",
+            "--exclude",
+            "A_1",
+            "--exclude",
+            "A_2",
+            "--exclude",
+            "A_3",
+            "--exclude",
+            "A_4",
+            "--exclude",
+            "A_5",
+        ],
+    )
     assert res.exit_code == 0, res.output
     # the same model with a manifest in another CRS
     man = yaml.safe_load((scene / "scene.yaml").read_text())
@@ -100,12 +193,33 @@ def test_cli_errors_are_one_line(scene, tmp_path):
     assert res.exit_code == 2
     assert "was built in" in res.output and "Traceback" not in res.output
     # no model there and nothing to define one
-    res = r.invoke(main, ["--progress", "none", "volume", "update", str(tmp_path / "none"), "--image",
-                          str(scene / "images" / "A_0.tif")])
+    res = r.invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "volume",
+            "update",
+            str(tmp_path / "none"),
+            "--image",
+            str(scene / "images" / "A_0.tif"),
+        ],
+    )
     assert res.exit_code == 2 and "holds no model" in res.output
     # a folder that is not a model
-    res = r.invoke(main, ["--progress", "none", "volume", "detect", str(scene / "images"),
-                          str(scene / "images" / "B_test.tif"), "--out", str(tmp_path / "x")])
+    res = r.invoke(
+        main,
+        [
+            "--progress",
+            "none",
+            "volume",
+            "detect",
+            str(scene / "images"),
+            str(scene / "images" / "B_test.tif"),
+            "--out",
+            str(tmp_path / "x"),
+        ],
+    )
     assert res.exit_code == 2 and "no volume model" in res.output
 
 
@@ -129,7 +243,20 @@ def test_update_with_roofs_from_footprints(scene, tmp_path):
     man = yaml.safe_load((root / "scene.yaml").read_text())
     man["footprints"] = "footprints.gpkg"
     (root / "scene.yaml").write_text(yaml.safe_dump(man), encoding="utf-8")
-    res = CliRunner().invoke(main, ["volume", "update", str(tmp_path / "m"), "--manifest", str(root / "scene.yaml"),
-                                    "--passes", "1", "--above", "10", "--footprints"])
+    res = CliRunner().invoke(
+        main,
+        [
+            "volume",
+            "update",
+            str(tmp_path / "m"),
+            "--manifest",
+            str(root / "scene.yaml"),
+            "--passes",
+            "1",
+            "--above",
+            "10",
+            "--footprints",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "roof heights from the footprints: 3 of 3 footprints" in res.output, res.output

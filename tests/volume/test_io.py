@@ -19,7 +19,7 @@ from . import toyscene as T
 def saved(tmp_path_factory):
     """A tiny model with refined cells (children appended after the breadth-first ones), saved."""
     m = VolumeModel.create(T.volume_geometry(finest_cell_m=1.0, max_depth=2), init_depth=1)
-    m.alpha[np.flatnonzero(m.child < 0)[:40]] = 50.0   # dense leaves: refine splits them
+    m.alpha[np.flatnonzero(m.child < 0)[:40]] = 50.0  # dense leaves: refine splits them
     refine_model(m)
     assert m.n_nodes > VolumeModel.create(m.geometry, init_depth=1).n_nodes
     return save_model(m, tmp_path_factory.mktemp("vol") / "model")
@@ -44,6 +44,7 @@ def _set(idx, value):
         a = a.copy()
         a[idx] = value
         return a
+
     return fn
 
 
@@ -51,7 +52,7 @@ def test_a_sound_model_loads_and_is_checked(saved):
     m = load_model(saved)
     assert (m.child >= 0).any() and int(m.level.max()) == 2
     inner = np.flatnonzero(m.child >= 0)
-    assert np.all(m.child[inner] > inner)   # the format's invariant the loader relies on
+    assert np.all(m.child[inner] > inner)  # the format's invariant the loader relies on
     assert load_model(saved, mmap=True).n_nodes == m.n_nodes
 
 
@@ -67,26 +68,32 @@ def _leaf(saved, k=0):
 
 DAMAGES = {
     # the reported crash: every child pointer far outside the arrays
-    "child pointers 1e8": lambda s: ("child", lambda a: np.where(a >= 0, 100_000_000, a).astype(np.int32),
-                                     "child.npy"),
+    "child pointers 1e8": lambda s: ("child", lambda a: np.where(a >= 0, 100_000_000, a).astype(np.int32), "child.npy"),
     # one bad pointer: past the end, or with no room for 8 children
     "one pointer past the end": lambda s: ("child", _set(_inner(s), 10**6), "child.npy"),
-    "one pointer without room for 8": lambda s: ("child", _set(_inner(s), np.load(s / "child.npy").size - 3),
-                                                 "child.npy"),
+    "one pointer without room for 8": lambda s: (
+        "child",
+        _set(_inner(s), np.load(s / "child.npy").size - 3),
+        "child.npy",
+    ),
     "a node its own child (a cycle)": lambda s: ("child", _set(_inner(s, 3), _inner(s, 3)), "child.npy"),
     "a pointer back to the root": lambda s: ("child", _set(_inner(s, 5), 0), "child.npy"),
     "a pointer below -1": lambda s: ("child", _set(_leaf(s), -7), "child.npy"),
-    "two nodes share children": lambda s: ("child", _set(_leaf(s, -1), np.load(s / "child.npy")[_inner(s, -1)]),
-                                           "child.npy"),
+    "two nodes share children": lambda s: (
+        "child",
+        _set(_leaf(s, -1), np.load(s / "child.npy")[_inner(s, -1)]),
+        "child.npy",
+    ),
     "a leaf at max_depth gets children": lambda s: (
-        "child", _set(int(np.flatnonzero(np.load(s / "level.npy") == 2)[0]), np.load(s / "child.npy").size - 8),
-        "child.npy"),
+        "child",
+        _set(int(np.flatnonzero(np.load(s / "level.npy") == 2)[0]), np.load(s / "child.npy").size - 8),
+        "child.npy",
+    ),
     "a block root out of range": lambda s: ("block_root", _set((0, 0, 0), 10**7), "block_root.npy"),
     "a negative block root": lambda s: ("block_root", _set((0, 0, 0), -2), "block_root.npy"),
     "two blocks share a root": lambda s: ("block_root", lambda a: np.zeros_like(a), "block_root.npy"),
     "a level deeper than max_depth": lambda s: ("level", _set(_leaf(s), 9), "level.npy"),
-    "children on the wrong level": lambda s: ("level", _set(int(np.load(s / "child.npy")[_inner(s)]), 0),
-                                              "level.npy"),
+    "children on the wrong level": lambda s: ("level", _set(int(np.load(s / "child.npy")[_inner(s)]), 0), "level.npy"),
     "a NaN density": lambda s: ("alpha", _set(_leaf(s), np.nan), "alpha.npy"),
     "a negative density": lambda s: ("alpha", _set(_leaf(s), -1.0), "alpha.npy"),
     "an infinite appearance": lambda s: ("app", _set((_leaf(s), 0, 0, 0), np.inf), "app.npy"),
@@ -117,7 +124,7 @@ def test_a_truncated_or_garbled_npy_is_refused_naming_it(saved, tmp_path, name):
         load_model(p)
     with pytest.raises(UnsupportedFormatError, match=rf"{name}\.npy is truncated"):
         load_model(p, mmap=True)
-    f.write_bytes(raw[:20])   # inside the header
+    f.write_bytes(raw[:20])  # inside the header
     with pytest.raises(UnsupportedFormatError, match=rf"{name}\.npy"):
         load_model(p)
     f.write_bytes(b"\x93NUMPY\x01\x00" + bytes(range(256)))
@@ -130,8 +137,18 @@ def test_a_truncated_or_garbled_npy_is_refused_naming_it(saved, tmp_path, name):
         load_model(p)
 
 
-@pytest.mark.parametrize("change", ["no arrays entry", "geometry NaN", "inverted AOI", "sun bins of 2",
-                                    "history of strings", "not a dict", "n_blocks mismatch"])
+@pytest.mark.parametrize(
+    "change",
+    [
+        "no arrays entry",
+        "geometry NaN",
+        "inverted AOI",
+        "sun bins of 2",
+        "history of strings",
+        "not a dict",
+        "n_blocks mismatch",
+    ],
+)
 def test_damaged_metadata_is_refused(saved, tmp_path, change):
     p = _copy(saved, tmp_path)
     meta = json.loads((p / "model.json").read_text())

@@ -14,8 +14,9 @@ E = np.zeros(0)
 
 
 def _random_model(seed=0, n_bins=2):
-    geom = VolumeGeometry(LocalFrame(10.0, 45.0, 100.0), (-6.0, -4.0, -2.0), 4.0, (3, 2, 2), 3, "EPSG:32632",
-                          (0, 0, 1, 1))
+    geom = VolumeGeometry(
+        LocalFrame(10.0, 45.0, 100.0), (-6.0, -4.0, -2.0), 4.0, (3, 2, 2), 3, "EPSG:32632", (0, 0, 1, 1)
+    )
     m = VolumeModel.create(geom, VolumeParams(n_bins=n_bins), init_depth=1)
     rng = np.random.default_rng(seed)
     for _ in range(2):  # random refinement down to the finest level in places
@@ -40,10 +41,10 @@ def _random_rays(geom, n, seed=1):
     d = rng.normal(size=(n, 3))
     d[:, 2] = -np.abs(d[:, 2]) - 0.2
     d[: n // 8] = [0.0, 0.0, -1.0]  # axis-aligned rays along cell faces' normals
-    d[n // 8: n // 4, :2] = np.round(d[n // 8: n // 4, :2])  # rays in axis planes
+    d[n // 8 : n // 4, :2] = np.round(d[n // 8 : n // 4, :2])  # rays in axis planes
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     o = target - 30.0 * d
-    o[n // 8: n // 4 - 4] = np.round(o[n // 8: n // 4 - 4] * 2) / 2  # some start on cell faces
+    o[n // 8 : n // 4 - 4] = np.round(o[n // 8 : n // 4 - 4] * 2) / 2  # some start on cell faces
     return o, d
 
 
@@ -108,8 +109,33 @@ def test_update_rays_matches_reference(b, cell_mean):
     cell_obs = np.random.default_rng(11).uniform(0, 1, n) if cell_mean else np.zeros(0)
     acc = np.zeros((4, n))
     sc = RayScratch(geo)
-    K.update_rays(o, d, obs, cell_obs, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, b, 1.0, 0.7, acc[0], acc[1], acc[2],
-                  acc[3], sc.seg_cell, sc.seg_len, sc.seg_t, sc.a, sc.b, sc.c, sc.d)
+    K.update_rays(
+        o,
+        d,
+        obs,
+        cell_obs,
+        lo,
+        hi,
+        geo,
+        m.block_root,
+        m.child,
+        m.alpha,
+        m.app,
+        b,
+        1.0,
+        0.7,
+        acc[0],
+        acc[1],
+        acc[2],
+        acc[3],
+        sc.seg_cell,
+        sc.seg_len,
+        sc.seg_t,
+        sc.a,
+        sc.b,
+        sc.c,
+        sc.d,
+    )
     ref = K.update_rays_ref(o, d, obs, cell_obs, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, b, 1.0, 0.7, n)
     np.testing.assert_allclose(acc, ref, rtol=1e-6, atol=1e-6)
 
@@ -124,8 +150,9 @@ def test_seglen_rays_matches_reference():
     acc = np.zeros((2, m.n_nodes))
     sc = RayScratch(geo)
     K.seglen_rays(o, d, obs, lo, hi, geo, m.block_root, m.child, acc[0], acc[1], sc.seg_cell, sc.seg_len, sc.seg_t)
-    ref = K.update_rays_ref(o, d, obs, np.zeros(0), lo, hi, geo, m.block_root, m.child, m.alpha, m.app, -1, 1.0, 0.7,
-                            m.n_nodes)
+    ref = K.update_rays_ref(
+        o, d, obs, np.zeros(0), lo, hi, geo, m.block_root, m.child, m.alpha, m.app, -1, 1.0, 0.7, m.n_nodes
+    )
     np.testing.assert_allclose(acc, ref[[0, 2]], rtol=1e-9, atol=1e-9)
 
 
@@ -138,9 +165,32 @@ def test_render_rays_matches_reference():
     obs[::5] = np.nan
     out = np.zeros((4, len(o)))
     sc = RayScratch(geo)
-    K.render_rays(o, d, obs, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.5, 0.7, E, E, E,
-                  out[0], out[1],
-                  out[2], out[3], sc.seg_cell, sc.seg_len, sc.seg_t)
+    K.render_rays(
+        o,
+        d,
+        obs,
+        lo,
+        hi,
+        geo,
+        m.block_root,
+        m.child,
+        m.alpha,
+        m.app,
+        0,
+        1.0,
+        0.5,
+        0.7,
+        E,
+        E,
+        E,
+        out[0],
+        out[1],
+        out[2],
+        out[3],
+        sc.seg_cell,
+        sc.seg_len,
+        sc.seg_t,
+    )
     ref = K.render_rays_ref(o, d, obs, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.5, 0.7)
     np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-6, equal_nan=True)
 
@@ -155,8 +205,31 @@ def test_density_nxn_matches_brute_force():
     img[1, 2] = np.nan
     out = np.zeros((rows, cols))
     sc = RayScratch(geo)
-    K.density_nxn(o, d, img, cols, 1, lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.7, E, E, E, out,
-                  sc.seg_cell, sc.seg_len, sc.seg_t, sc.a)
+    K.density_nxn(
+        o,
+        d,
+        img,
+        cols,
+        1,
+        lo,
+        hi,
+        geo,
+        m.block_root,
+        m.child,
+        m.alpha,
+        m.app,
+        0,
+        1.0,
+        0.7,
+        E,
+        E,
+        E,
+        out,
+        sc.seg_cell,
+        sc.seg_len,
+        sc.seg_t,
+        sc.a,
+    )
     ref = np.zeros((rows, cols))
     for i in range(rows):
         for j in range(cols):
@@ -168,8 +241,22 @@ def test_density_nxn_matches_brute_force():
                     a, bb = i + di, j + dj
                     if 0 <= a < rows and 0 <= bb < cols:
                         r = a * cols + bb
-                        v = K.render_rays_ref(o[r:r + 1], d[r:r + 1], np.array([img[i, j]]), lo, hi, geo,
-                                              m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.5, 0.7)[0, 0]
+                        v = K.render_rays_ref(
+                            o[r : r + 1],
+                            d[r : r + 1],
+                            np.array([img[i, j]]),
+                            lo,
+                            hi,
+                            geo,
+                            m.block_root,
+                            m.child,
+                            m.alpha,
+                            m.app,
+                            0,
+                            1.0,
+                            0.5,
+                            0.7,
+                        )[0, 0]
                         best = max(best, v)
             ref[i, j] = best
     np.testing.assert_allclose(out, ref, rtol=1e-7, atol=1e-12)
@@ -228,8 +315,9 @@ def test_sun_visibility_matches_reference():
     sun = sun_vector_enu((140.0, 50.0))
     out = np.empty(cells.size)
     sc = RayScratch(geo)
-    K.sun_visibility(cells, c, s, sun, 1.0, lo, hi, geo, m.block_root, m.child, m.alpha, out, sc.seg_cell, sc.seg_len,
-                     sc.seg_t)
+    K.sun_visibility(
+        cells, c, s, sun, 1.0, lo, hi, geo, m.block_root, m.child, m.alpha, out, sc.seg_cell, sc.seg_len, sc.seg_t
+    )
     ref = K.sun_visibility_ref(cells, c, s, sun, 1.0, lo, hi, geo, m.block_root, m.child, m.alpha)
     np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-9)
 
@@ -243,8 +331,9 @@ def test_ray_cell_average_matches_reference():
     out = np.empty((len(o), 2))
     ws = np.empty(len(o))
     sc = RayScratch(geo)
-    K.ray_cell_average(o, d, lo, hi, geo, m.block_root, m.child, m.alpha, vals, out, ws, sc.seg_cell, sc.seg_len,
-                       sc.seg_t)
+    K.ray_cell_average(
+        o, d, lo, hi, geo, m.block_root, m.child, m.alpha, vals, out, ws, sc.seg_cell, sc.seg_len, sc.seg_t
+    )
     for r in range(len(o)):
         cells, lens, _ = K.trace_ray_ref(o[r], d[r], geo, m.block_root, m.child, lo, hi)
         pq = 1 - np.exp(-m.alpha[cells].astype(float) * lens)
@@ -267,9 +356,32 @@ def test_compaction_and_coarsening_keep_rays_consistent():
     def render(mm):
         out = np.zeros((4, len(o)))
         sc = RayScratch(geo)
-        K.render_rays(o, d, obs, lo, hi, geo, mm.block_root, mm.child, mm.alpha, mm.app, 0, 1.0, 0.5, 0.7, E, E, E,
-                      out[0],
-                      out[1], out[2], out[3], sc.seg_cell, sc.seg_len, sc.seg_t)
+        K.render_rays(
+            o,
+            d,
+            obs,
+            lo,
+            hi,
+            geo,
+            mm.block_root,
+            mm.child,
+            mm.alpha,
+            mm.app,
+            0,
+            1.0,
+            0.5,
+            0.7,
+            E,
+            E,
+            E,
+            out[0],
+            out[1],
+            out[2],
+            out[3],
+            sc.seg_cell,
+            sc.seg_len,
+            sc.seg_t,
+        )
         return out
 
     before = render(m)
@@ -311,14 +423,39 @@ def test_surface_sun_matches_reference():
     o, d = _random_rays(m.geometry, 50, seed=20)
     out = np.zeros((4, len(o)))
     sc = RayScratch(geo)
-    K.render_rays(o, d, np.full(len(o), np.nan), lo, hi, geo, m.block_root, m.child, m.alpha, m.app, 0, 1.0, 0.5, 0.7,
-                  E, E, E, out[0], out[1], out[2], out[3], sc.seg_cell, sc.seg_len, sc.seg_t)
+    K.render_rays(
+        o,
+        d,
+        np.full(len(o), np.nan),
+        lo,
+        hi,
+        geo,
+        m.block_root,
+        m.child,
+        m.alpha,
+        m.app,
+        0,
+        1.0,
+        0.5,
+        0.7,
+        E,
+        E,
+        E,
+        out[0],
+        out[1],
+        out[2],
+        out[3],
+        sc.seg_cell,
+        sc.seg_len,
+        sc.seg_t,
+    )
     from geocd.volume.relight import sun_vector_enu
 
     sun = sun_vector_enu((150.0, 45.0))
     s = np.empty(len(o))
-    K.surface_sun(o, d, out[3], sun, 0.25, 0.5, lo, hi, geo, m.block_root, m.child, m.alpha, s, sc.seg_cell,
-                  sc.seg_len, sc.seg_t)
+    K.surface_sun(
+        o, d, out[3], sun, 0.25, 0.5, lo, hi, geo, m.block_root, m.child, m.alpha, s, sc.seg_cell, sc.seg_len, sc.seg_t
+    )
     for r in range(len(o)):
         if not np.isfinite(out[3, r]):
             assert s[r] == 1.0

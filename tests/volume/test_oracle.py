@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[2]
 def test_equalize_is_geocds_equalisation():
     rng = np.random.default_rng(3)
     g = rng.gamma(2.0, 1.0, (40, 50))
-    g[3, 4] = g[5, 6]                       # ties share their mean rank
+    g[3, 4] = g[5, 6]  # ties share their mean rank
     np.testing.assert_allclose(equalize(g), image_intensity(g, normalize="equalize"), atol=1e-12)
 
 
@@ -36,7 +36,7 @@ def test_neighbourhood_score_is_the_lowest_over_the_neighbours():
                 rr, qq = min(max(r + dr, 0), 29), min(max(q + dq, 0), 39)
                 a, b, s = par[int(klass[rr, qq])]
                 best = min(best, 0.5 * ((c[r, q] - a - b * e[rr, qq]) / s) ** 2 + np.log(s))
-        assert got[r, q] == pytest.approx(best, abs=1e-3)      # the lines are rounded to 4 decimals
+        assert got[r, q] == pytest.approx(best, abs=1e-3)  # the lines are rounded to 4 decimals
     assert np.all(got <= plain + 1e-12)
     # the lines follow the data they were drawn from
     assert all(abs(v["b"] - 0.8) < 0.05 and abs(v["a"] - 0.1) < 0.03 for v in lines.values())
@@ -73,8 +73,13 @@ def test_the_octree_beats_both_baselines_on_what_an_image_can_show(tmp_path):
     needs no stereo; docs/volume.md uses geocd stereo's DSM). Measured: every changed pixel but the roofs whose
     height changed 0.870 against Carlotto 0.836 and DEM warp 0.847; over all changed pixels 0.866; on those
     roofs 0.854, above the perfect model's 0.663 (docs/volume.md, "The ceiling"). Pinned at ±0.01."""
-    res = perfect_model_aucs(REPO / "sample_aoi", views=["B_sat1"], octree_work=tmp_path,
-                             shadow_dsm_path=REPO / "sample_aoi" / "truth" / "dsm_A.tif", log=lambda m: None)
+    res = perfect_model_aucs(
+        REPO / "sample_aoi",
+        views=["B_sat1"],
+        octree_work=tmp_path,
+        shadow_dsm_path=REPO / "sample_aoi" / "truth" / "dsm_A.tif",
+        log=lambda m: None,
+    )
     p = res["pooled"]
     octree = p["3-D octree 3×3 (relit, DSM shadows)"]
     visible = "without roofs whose height changed"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -17,10 +19,10 @@ def test_band_occlusion_is_the_surface_height_cdf():
     # surface uniform in [-0.5, 0.5]; cells of 0.5 m on its faces
     z_lo = np.array([0.5, 0.0, -0.5, -1.0])
     p = band_occlusion(z_lo, z_lo + 0.5, -0.5, 0.5, 0.9)
-    assert p[0] == 0.0                      # above the band: nothing
-    assert p[1] == pytest.approx(0.5)       # F 0.5 -> 1: half the rays stop in the upper half
-    assert p[2] == pytest.approx(0.9)       # F 0 -> 0.5: all the rest, capped
-    assert np.isnan(p[3])                   # below the band: left to p_init
+    assert p[0] == 0.0  # above the band: nothing
+    assert p[1] == pytest.approx(0.5)  # F 0.5 -> 1: half the rays stop in the upper half
+    assert p[2] == pytest.approx(0.9)  # F 0 -> 0.5: all the rest, capped
+    assert np.isnan(p[3])  # below the band: left to p_init
     # the visibility from above through the band's cells is F at every cell face
     z_lo = np.array([0.25, -0.25])
     p = band_occlusion(z_lo, z_lo + 0.5, -0.5, 0.5, 0.999)
@@ -34,7 +36,7 @@ def test_band_occlusion_is_the_surface_height_cdf():
 def test_the_default_band_ends_at_the_dem():
     """No prior occlusion above the DEM: the cells wholly above it keep p_init, the one holding it only the
     share of the band below the DEM."""
-    geom = _flat_geometry(0.2)   # cell faces 0.3 m above and 0.2 m below the DEM
+    geom = _flat_geometry(0.2)  # cell faces 0.3 m above and 0.2 m below the DEM
     grid = T.aoi_grid(0.5)
     m = VolumeModel.create(geom, VolumeParams(), init_depth=1)
     seed_from_dem(m, np.full(grid.shape, T.H0), grid)
@@ -42,20 +44,21 @@ def test_the_default_band_ends_at_the_dem():
 
     c, s = node_boxes(m)
     leaf = m.child < 0
-    z = c[:, 2] + geom.frame.h0 - T.H0      # cell centre relative to the DEM
+    z = c[:, 2] + geom.frame.h0 - T.H0  # cell centre relative to the DEM
     col = leaf & (np.abs(c[:, 0] - 0.25) < 0.01) & (np.abs(c[:, 1] - 0.25) < 0.01) & (np.abs(z) < 1.5)
     p = {round(float(zz), 2): float(1 - np.exp(-a * ss)) for zz, a, ss in zip(z[col], m.alpha[col], s[col])}
     p_init = m.params.p_init
-    assert p[0.55] == pytest.approx(p_init, rel=1e-3)       # [0.3, 0.8]: above the DEM
-    assert p[0.05] == pytest.approx(0.4, abs=1e-3)          # [-0.2, 0.3]: F 0.6 -> 1 (the DEM at 0)
-    assert p[-0.45] == pytest.approx(0.9, abs=1e-3)         # [-0.7, -0.2]: F 0 -> 0.6, capped
+    assert p[0.55] == pytest.approx(p_init, rel=1e-3)  # [0.3, 0.8]: above the DEM
+    assert p[0.05] == pytest.approx(0.4, abs=1e-3)  # [-0.2, 0.3]: F 0.6 -> 1 (the DEM at 0)
+    assert p[-0.45] == pytest.approx(0.9, abs=1e-3)  # [-0.7, -0.2]: F 0 -> 0.6, capped
 
 
 def _flat_geometry(offset_m: float):
     """The toy AOI with its cell faces ``offset_m`` (mod 0.5 m) above the plane at ``T.H0``."""
     frame = LocalFrame(T.LON0, T.LAT0, T.H0 - offset_m)
-    return geometry_for_aoi(T.aoi_grid(), z_min_m=T.H0 - 1.0, z_max_m=T.H0 + 11.0, finest_cell_m=0.5, max_depth=3,
-                            frame=frame)
+    return geometry_for_aoi(
+        T.aoi_grid(), z_min_m=T.H0 - 1.0, z_max_m=T.H0 + 11.0, finest_cell_m=0.5, max_depth=3, frame=frame
+    )
 
 
 def _centre(grid):
@@ -97,7 +100,7 @@ def test_height_map_is_exact_for_a_known_density_layer(offset_m):
     from geocd.volume.relight import node_boxes
 
     c, s = node_boxes(m)
-    z_top = geom.box_lo[2] + 2.0          # a cell face 2 m above the box bottom (frame up)
+    z_top = geom.box_lo[2] + 2.0  # a cell face 2 m above the box bottom (frame up)
     m.alpha[:] = m.params.alpha_min
     m.alpha[np.abs(c[:, 2] - (z_top - 0.25)) < 0.01] = -np.log(0.6) / 0.5
     m.alpha[np.abs(c[:, 2] - (z_top - 0.75)) < 0.01] = -np.log(0.1) / 0.5
@@ -122,8 +125,9 @@ def _box_labels(grid):
 
 def _uniform_roof_views(size=48):
     cams = [T.look_at_camera(z, a, size=size) for z, a in T.TRAIN_VIEWS]
-    return [T.SimpleNamespace(camera=c, intensity=T.render(c, (size, size), seed=i, stripes=0.0))
-            for i, c in enumerate(cams)]
+    return [
+        SimpleNamespace(camera=c, intensity=T.render(c, (size, size), seed=i, stripes=0.0)) for i, c in enumerate(cams)
+    ]
 
 
 def test_the_footprint_sweep_finds_the_height_of_uniform_roofs():
@@ -133,8 +137,9 @@ def test_the_footprint_sweep_finds_the_height_of_uniform_roofs():
     from geocd.volume.prior import footprint_roof_heights
 
     grid = T.aoi_grid(0.5)
-    r = footprint_roof_heights(_uniform_roof_views(), _box_labels(grid), np.full(grid.shape, T.H0), grid,
-                               max_height_m=10.0, step_m=0.5)
+    r = footprint_roof_heights(
+        _uniform_roof_views(), _box_labels(grid), np.full(grid.shape, T.H0), grid, max_height_m=10.0, step_m=0.5
+    )
     truth = np.array([b[4] for b in T.BOXES_A])
     assert np.all(np.abs(r["height_m"][1:] - truth) <= 1.0), r["height_m"]
     assert np.all(r["score"][1:] > r["curve"][0, 1:] + 0.2), (r["score"], r["curve"][0])

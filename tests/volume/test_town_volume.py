@@ -74,8 +74,12 @@ def test_shadows_cast_from_a_dsm_lift_the_octree_under_a_turned_sun(town_sun_tur
 
     bounds = (374290.0, 4824254.0, 374410.0, 4824374.0)
     own = subarea_aucs(str(town_sun_turned), bounds, log=lambda *a, **k: None)
-    dsm = subarea_aucs(str(town_sun_turned), bounds, log=lambda *a, **k: None,
-                       shadow_dsm_path=str(town_sun_turned / "truth" / "dsm_A.tif"))
+    dsm = subarea_aucs(
+        str(town_sun_turned),
+        bounds,
+        log=lambda *a, **k: None,
+        shadow_dsm_path=str(town_sun_turned / "truth" / "dsm_A.tif"),
+    )
     assert own["n_pixels"] > 150_000 and 0.02 < own["changed_fraction"] < 0.04, own
     assert own["3-D octree (relit)"] == pytest.approx(0.759, abs=0.01), own
     assert own["3-D octree 3×3 (relit)"] == pytest.approx(0.772, abs=0.01), own

@@ -10,8 +10,17 @@ import pytest
 from geocd.change.metrics import roc_curve
 from geocd.errors import CameraError, CancelledError, CRSError, NoOverlapError, ProcessingError
 from geocd.geodesy import AOIGrid, to_lonlat
-from geocd.volume import (DetectParams, VolumeModel, VolumeParams, detect_change, expected_height_map,
-                          expected_image, load_model, save_model, update_model)
+from geocd.volume import (
+    DetectParams,
+    VolumeModel,
+    VolumeParams,
+    detect_change,
+    expected_height_map,
+    expected_image,
+    load_model,
+    save_model,
+    update_model,
+)
 
 from geocd.volume.prior import seed_from_dem
 
@@ -207,8 +216,7 @@ def test_sun_bins_and_relighting(toy):
     assert set(res.relight["fit"]) == {"lit>lit", "lit>shadow", "shadow>lit", "shadow>shadow"}
     ok = ~res.unknown
     assert roc_curve(res.probability, toy.change_mask_b, ok)[3] > 0.85
-    plain = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 45.0),
-                          params=DetectParams(relight=False))
+    plain = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 45.0), params=DetectParams(relight=False))
     assert plain.relight is None
 
 
@@ -219,16 +227,16 @@ def test_dsm_shadow_height_of_a_block_under_a_southern_sun():
     from geocd.volume.relight import dsm_shadow_height
 
     z = np.zeros((80, 40))
-    z[50:60, 15:25] = 10.0                     # rows 50..59 (north wall at row 50), columns 15..24
+    z[50:60, 15:25] = 10.0  # rows 50..59 (north wall at row 50), columns 15..24
     h = dsm_shadow_height(z, 0.5, (180.0, 45.0))
-    north = np.arange(30, 50)                  # 10 m north of the wall: rows 30..49
-    expect = 10.0 - (50 - north - 0.0) * 0.5    # distance to the first block cell along the ray
-    np.testing.assert_allclose(h[north, 20], expect, atol=0.26)      # within half a step (bilinear at the wall)
+    north = np.arange(30, 50)  # 10 m north of the wall: rows 30..49
+    expect = 10.0 - (50 - north - 0.0) * 0.5  # distance to the first block cell along the ray
+    np.testing.assert_allclose(h[north, 20], expect, atol=0.26)  # within half a step (bilinear at the wall)
     assert np.all(h[north, 20] > 0) and np.all(h[:28, 20] <= 0.0)
     assert np.all(h[62:, 20] <= 0.0) and np.all(h[30:50, :13] <= 0.0)
     assert np.all(np.isinf(dsm_shadow_height(z, 0.5, (180.0, 0.0))))
     nan = z.copy()
-    nan[50:60, 15:25] = np.nan                 # holes cast nothing
+    nan[50:60, 15:25] = np.nan  # holes cast nothing
     assert np.all(dsm_shadow_height(nan, 0.5, (180.0, 45.0))[north, 20] <= 0.0)
 
 
@@ -258,6 +266,7 @@ def test_a_shading_scale_enters_the_lit_class_fit_and_mapping(toy):
     np.testing.assert_allclose(a2, a0, atol=1e-9)
     # the DSM sampled at the pixels' surface points: most pixels have one, and the samples are the DSM's values
     from geocd.volume.render import render_image
+
     depth = render_image(m, toy.test_camera, toy.test_image_b.shape, app_bin=0).depth_m
     (z,), h = surface_dsm_sample(m, toy.test_camera, depth, [dsm], grid)
     ok = np.isfinite(z) & np.isfinite(h)
@@ -280,15 +289,16 @@ def test_relighting_with_the_shadows_of_a_dsm(toy):
     res = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0), shadow_dsm=(dsm, grid))
     assert res.relight["shadows"] == "DSM"
     frac = res.relight["class_fraction"]
-    assert frac["lit>shadow"] > 0.02 and frac["lit>lit"] > 0.5, frac     # the boxes shade the ground north
+    assert frac["lit>shadow"] > 0.02 and frac["lit>lit"] > 0.5, frac  # the boxes shade the ground north
     assert roc_curve(res.probability, toy.change_mask_b, ~res.unknown)[3] > 0.85
     own = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0))
     assert own.relight["shadows"] == "model density"
     with pytest.raises(ConfigError, match="shape"):
         detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0), shadow_dsm=(dsm[:-1], grid))
     with pytest.raises(ConfigError, match="no valid height"):
-        detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0),
-                      shadow_dsm=(np.full(dsm.shape, np.nan), grid))
+        detect_change(
+            m, toy.test_image_b, toy.test_camera, sun=(160.0, 30.0), shadow_dsm=(np.full(dsm.shape, np.nan), grid)
+        )
     cx, cy = 500000.0, 4980000.0
     other = AOIGrid.from_bounds(cx, cy, cx + 32, cy + 32, 0.5, "EPSG:32633")
     with pytest.raises(CRSError):

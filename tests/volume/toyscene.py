@@ -77,8 +77,9 @@ def render(camera, shape, boxes=BOXES_A, noise=0.01, seed=0, stripes: float = 0.
     return np.clip(out, 0, 1).reshape(rows, cols)
 
 
-def look_at_camera(off_nadir_deg: float, azimuth_deg: float, *, altitude_m: float = 300.0, size: int = 56,
-                   gsd_m: float = 0.8) -> FrameCamera:
+def look_at_camera(
+    off_nadir_deg: float, azimuth_deg: float, *, altitude_m: float = 300.0, size: int = 56, gsd_m: float = 0.8
+) -> FrameCamera:
     """A frame camera looking at the scene centre from ``off_nadir_deg`` towards ``azimuth_deg``."""
     a, z = math.radians(azimuth_deg), math.radians(off_nadir_deg)
     dist = altitude_m / math.cos(z)
@@ -98,8 +99,15 @@ def look_at_camera(off_nadir_deg: float, azimuth_deg: float, *, altitude_m: floa
     r_cv = np.column_stack([xr, yd, fwd])
     opk = rotation_to_opk(r_cv @ np.diag([1.0, -1.0, -1.0]))
     f = dist / gsd_m
-    return FrameCamera(width=size, height=size, focal_px=f, position=(float(x), float(y), float(h)), opk_deg=opk,
-                       crs=CRS, vertical_datum="ellipsoid")
+    return FrameCamera(
+        width=size,
+        height=size,
+        focal_px=f,
+        position=(float(x), float(y), float(h)),
+        opk_deg=opk,
+        crs=CRS,
+        vertical_datum="ellipsoid",
+    )
 
 
 def aoi_grid(posting_m: float = 0.5) -> AOIGrid:
@@ -108,8 +116,9 @@ def aoi_grid(posting_m: float = 0.5) -> AOIGrid:
 
 
 def volume_geometry(finest_cell_m: float = 0.5, max_depth: int = 3):
-    return geometry_for_aoi(aoi_grid(), z_min_m=H0 - 1.0, z_max_m=H0 + 11.0, finest_cell_m=finest_cell_m,
-                            max_depth=max_depth, frame=FRAME)
+    return geometry_for_aoi(
+        aoi_grid(), z_min_m=H0 - 1.0, z_max_m=H0 + 11.0, finest_cell_m=finest_cell_m, max_depth=max_depth, frame=FRAME
+    )
 
 
 TRAIN_VIEWS = [(0, 0), (20, 0), (20, 90), (20, 180), (20, 270), (30, 45), (30, 225), (30, 135), (30, 315)]
