@@ -422,6 +422,8 @@ def _run(m, out: Path, config: RunConfig, prog: Progress, footprints) -> dict[st
 
     for e in m.epochs:  # the images' cameras first: a damaged camera file is the first thing said
         load_epoch_images(m, e)
+    early_resource_check(m, None, config.posting_m, out)  # a job too large for the machine stops before any step
+    _check_epochs_overlap(m)  # footprints only: epochs of two different places are said before any step
     if model is None and not any(len(e.images) >= 3 for e in m.epochs):
         # learning the model needs two pair-DEMs of one epoch: three views; say so before hours of stereo
         raise ConfigError(
@@ -431,14 +433,10 @@ def _run(m, out: Path, config: RunConfig, prog: Progress, footprints) -> dict[st
             "is one for urban Pléiades scenes), or add a third image to an epoch"
         )
 
-    early_resource_check(m, None, config.posting_m, out)  # a job too large for the machine stops before any step
-
     prog(0.0, "relative orientation")
     m, orientation = orient_manifest(
         m, out_dir=out, stereo_params=config.stereo, progress=sub_progress(prog, 0.0, 0.1, "orientation: ")
     )
-    if orientation is None:
-        _check_epochs_overlap(m)
     prog(0.1, "stereo")
     if config.screen is not None:  # tiered: the 2-D screen, then stereo on the flagged tiles only
         from .screen.tiered import run_stereo_screened
