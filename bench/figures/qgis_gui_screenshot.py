@@ -12,7 +12,7 @@ runs it there and grabs the dialog with geocd's progress in its log.
     GEOCD_SHOT_BACKDROP=$D/27.tif \\
     GEOCD_SHOT_DIR=docs GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd QGIS_PLUGINPATH=$PWD/qgis_plugin GDAL_PAM_ENABLED=NO \\
     QGIS_CUSTOM_CONFIG_PATH=$(mktemp -d) xvfb-run -a -s "-screen 0 1600x1000x24" \\
-        /usr/bin/qgis.bin --nologo --noversioncheck --code docs/qgis_gui_screenshot.py
+        /usr/bin/qgis.bin --nologo --noversioncheck --code bench/figures/qgis_gui_screenshot.py
 
 (GDAL_PAM_ENABLED=NO: QGIS computes statistics of the input layers, which GDAL would otherwise store beside
 them as .aux.xml.) Writes ``$GEOCD_SHOT_DIR/qgis_toolbox.png`` and ``$GEOCD_SHOT_DIR/qgis_dialog.png``; QGIS quits when done.

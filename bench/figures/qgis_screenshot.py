@@ -6,7 +6,7 @@ does), and renders them with QgsMapSettings + QgsMapRendererParallelJob, with a 
 
 Run it with the system Python that has PyQGIS (not geocd's venv), e.g.::
 
-    QT_QPA_PLATFORM=offscreen GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd /usr/bin/python3 docs/qgis_screenshot.py \\
+    QT_QPA_PLATFORM=offscreen GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd /usr/bin/python3 bench/figures/qgis_screenshot.py \\
         --alg geocd:demdiff --param DEM_A=../shared/data/usgs_msh_dome_dems/geotiff_utm10n/2.tif \\
         --param DEM_B=../shared/data/usgs_msh_dome_dems/geotiff_utm10n/27.tif \\
         --backdrop ../shared/data/usgs_msh_dome_dems/geotiff_utm10n/27.tif \\
@@ -15,7 +15,7 @@ Run it with the system Python that has PyQGIS (not geocd's venv), e.g.::
 
     # sample_aoi, a 100 m crop with three images per epoch (the full AOI works the same, with geocd:run):
     S=sample_aoi; QT_QPA_PLATFORM=offscreen GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd /usr/bin/python3 \\
-        docs/qgis_screenshot.py --alg geocd:runlayers \\
+        bench/figures/qgis_screenshot.py --alg geocd:runlayers \\
         --param IMAGES_A=$S/images/A_sat1.tif --param IMAGES_A=$S/images/A_sat2.tif --param IMAGES_A=$S/images/A_sat3.tif \\
         --param IMAGES_B=$S/images/B_sat1.tif --param IMAGES_B=$S/images/B_sat2.tif --param IMAGES_B=$S/images/B_sat3.tif \\
         --param DEM=$S/truth/dem_prior.tif --param DEM_DATUM=1 --param FOOTPRINTS=$S/truth/footprints_all.gpkg \\
@@ -24,7 +24,7 @@ Run it with the system Python that has PyQGIS (not geocd's venv), e.g.::
         --title "sample_aoi, 100 m crop: 3-D change A → B (geocd:runlayers run in QGIS)" --out docs/qgis_sample_aoi_change.png
 
     # sample_aoi, the whole AOI through the manifest (docs/qgis_sample_aoi_full.png):
-    QT_QPA_PLATFORM=offscreen GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd /usr/bin/python3 docs/qgis_screenshot.py \\
+    QT_QPA_PLATFORM=offscreen GEOCD_EXECUTABLE=$PWD/.venv/bin/geocd /usr/bin/python3 bench/figures/qgis_screenshot.py \\
         --alg geocd:run --param MANIFEST=sample_aoi/scene.yaml --hide "Change mask (raised / lowered / unchanged)" \\
         --title "sample_aoi: 3-D change A → B (geocd:run in QGIS)" --out docs/qgis_sample_aoi_full.png
 
@@ -39,7 +39,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def parse_args(argv=None):

@@ -5,47 +5,47 @@ Usage (from the repository root)::
     # a generated town (sample_aoi, or `geocd synth --seed N --out DIR`): orthos + stereo DSMs once (geocd mpp
     # makes them without the stereo's surface median, as docs/mpp.md's figures need), then every variant on them
     .venv/bin/geocd --progress none mpp sample_aoi --out /tmp/ortho_run
-    .venv/bin/python docs/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
+    .venv/bin/python bench/figures/mpp_show.py town sample_aoi /tmp/ortho_run [--sc /tmp/run/sc_change.tif] \
         [--seeds 0,1,2] [--only ED,SD,EV,EH,EHP]     # EH: ED + height, EHP: + 3-D prior,
         # EHS: ED + height with the step term (--step and), EHR: the step term in the height ring,
         # EHF / EHI: ED + height with the sub-cell edge fit (--edge-fit joint / image)
         # EHWF: the same with the height term reading the DSM's measured wall blur (--wall-blur measured)
         # EHFA: ED + height + edge fit with the absence term (--absence height)
-    .venv/bin/python docs/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
-    .venv/bin/python docs/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
-    .venv/bin/python docs/mpp_show.py ceiling sample_aoi /tmp/ortho_run 0 --json docs/mpp_ceiling.json   # outlines vs detection
-    .venv/bin/python docs/mpp_show.py evidence sample_aoi=sample_aoi=/tmp/ortho_run [town1=T1=O1 …] \
-        --json docs/mpp_change_evidence.json   # the change label's evidence: texture / DSMs / both
-    .venv/bin/python docs/mpp_show.py holes sample_aoi=sample_aoi=/tmp/ortho_run [town1=T1=O1 …] \
-        --json docs/mpp_holes.json --png docs/mpp_holes.png   # the DSMs' holes: terrain on roofs, given back
-    .venv/bin/python docs/mpp_show.py chains sample_aoi /tmp/ortho_run 0,1,2,3,4 [--variant JSON] [--planar-tol-x 2] \
-        --json docs/mpp_chains.json   # DP and the energy reached per seed
-    .venv/bin/python docs/mpp_show.py roof-dsm sample_aoi /tmp/ortho_run --json docs/mpp_roof_dsm.json   # DSM on roofs
-    .venv/bin/python docs/mpp_show.py turn-compare MPP_TURNED MPP_NOT /tmp/kahra2 --json docs/mpp_turn_kahramanmaras.json KEY
-    .venv/bin/python docs/mpp_show.py grow-compare MPP_GROWN MPP_NOT /tmp/kahra2 [--png docs/mpp_grow_kahramanmaras.png] \
-        --json docs/mpp_grow_kahramanmaras.json KEY     # the growth over the raised block, no truth
-    .venv/bin/python docs/mpp_show.py notches MPP_OUT /tmp/kahra2 [--png docs/mpp_notches_kahramanmaras.png] \
-        --json docs/mpp_notches.json kahramanmaras     # the corner notches (L-shaped outlines), no truth
-    .venv/bin/python docs/mpp_show.py notches-town TOWN ORTHO_DIR 0,1,2,3,4 [--png PNG] \
-        --json docs/mpp_notches.json KEY               # the notches on a generated town, against its truth
-    .venv/bin/python docs/mpp_show.py false sample_aoi /tmp/ortho_run 0,1,2 [absence]   # what the false objects are
-    .venv/bin/python docs/mpp_show.py missed-changes sample_aoi /tmp/ortho_run 0   # each change, absence off / on
-    .venv/bin/python docs/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
-    .venv/bin/python docs/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
-    .venv/bin/python docs/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
-    .venv/bin/python docs/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
-    .venv/bin/python docs/mpp_show.py tables              # the markdown tables of docs/mpp.md
+    .venv/bin/python bench/figures/mpp_show.py recall sample_aoi /tmp/ortho_run 0 off [joint]   # where recall is lost
+    .venv/bin/python bench/figures/mpp_show.py edges sample_aoi /tmp/ortho_run   # the DSM's and the ortho's walls vs truth
+    .venv/bin/python bench/figures/mpp_show.py ceiling sample_aoi /tmp/ortho_run 0 --json bench/results/mpp_ceiling.json   # outlines vs detection
+    .venv/bin/python bench/figures/mpp_show.py evidence sample_aoi=sample_aoi=/tmp/ortho_run [town1=T1=O1 …] \
+        --json bench/results/mpp_change_evidence.json   # the change label's evidence: texture / DSMs / both
+    .venv/bin/python bench/figures/mpp_show.py holes sample_aoi=sample_aoi=/tmp/ortho_run [town1=T1=O1 …] \
+        --json bench/results/mpp_holes.json --png docs/mpp_holes.png   # the DSMs' holes: terrain on roofs, given back
+    .venv/bin/python bench/figures/mpp_show.py chains sample_aoi /tmp/ortho_run 0,1,2,3,4 [--variant JSON] [--planar-tol-x 2] \
+        --json bench/results/mpp_chains.json   # DP and the energy reached per seed
+    .venv/bin/python bench/figures/mpp_show.py roof-dsm sample_aoi /tmp/ortho_run --json bench/results/mpp_roof_dsm.json   # DSM on roofs
+    .venv/bin/python bench/figures/mpp_show.py turn-compare MPP_TURNED MPP_NOT /tmp/kahra2 --json bench/results/mpp_turn_kahramanmaras.json KEY
+    .venv/bin/python bench/figures/mpp_show.py grow-compare MPP_GROWN MPP_NOT /tmp/kahra2 [--png docs/mpp_grow_kahramanmaras.png] \
+        --json bench/results/mpp_grow_kahramanmaras.json KEY     # the growth over the raised block, no truth
+    .venv/bin/python bench/figures/mpp_show.py notches MPP_OUT /tmp/kahra2 [--png docs/mpp_notches_kahramanmaras.png] \
+        --json bench/results/mpp_notches.json kahramanmaras     # the corner notches (L-shaped outlines), no truth
+    .venv/bin/python bench/figures/mpp_show.py notches-town TOWN ORTHO_DIR 0,1,2,3,4 [--png PNG] \
+        --json bench/results/mpp_notches.json KEY               # the notches on a generated town, against its truth
+    .venv/bin/python bench/figures/mpp_show.py false sample_aoi /tmp/ortho_run 0,1,2 [absence]   # what the false objects are
+    .venv/bin/python bench/figures/mpp_show.py missed-changes sample_aoi /tmp/ortho_run 0   # each change, absence off / on
+    .venv/bin/python bench/figures/mpp_show.py walls sample_aoi /tmp/ortho_run   # the DSM's wall blur measured without truth
+    .venv/bin/python bench/figures/mpp_show.py levir               # the five LEVIR-CD pairs (2-D only)
+    .venv/bin/python bench/figures/mpp_show.py levir --prototypes gradient+homogeneity   # the grey-image model
+    .venv/bin/python bench/figures/mpp_show.py levir-diagnose      # feature energies of the labelled new buildings
+    .venv/bin/python bench/figures/mpp_show.py tables              # the markdown tables of docs/mpp.md
     # geocd mpp's defaults on each scene, scored with the buildings the border cuts in the truth masks (now
-    # evaluate.sample_truth's default) and left out (the earlier scoring) → docs/mpp_scoring.json
-    .venv/bin/python docs/mpp_show.py scoring /tmp/mpp_scoring sample_aoi=sample_aoi town1=T1 …
-    .venv/bin/python docs/mpp_show.py scoring /tmp/mpp_scoring_abs sample_aoi=sample_aoi … \
-        --variant '{"absence": "height"}' --tag _absence     # → docs/mpp_scoring_absence.json
+    # evaluate.sample_truth's default) and left out (the earlier scoring) → bench/results/mpp_scoring.json
+    .venv/bin/python bench/figures/mpp_show.py scoring /tmp/mpp_scoring sample_aoi=sample_aoi town1=T1 …
+    .venv/bin/python bench/figures/mpp_show.py scoring /tmp/mpp_scoring_abs sample_aoi=sample_aoi … \
+        --variant '{"absence": "height"}' --tag _absence     # → bench/results/mpp_scoring_absence.json
     # Kahramanmaraş: after `geocd mpp --image-a … --out OUT` (docs/mpp.md), the figures against geocd's own
     # building damage layer (no truth exists)
-    .venv/bin/python docs/mpp_show.py kahra OUT /tmp/kahra2
-    .venv/bin/python docs/mpp_show.py kahra-outlines /tmp/kahra2 [and|ring|off]   # energies of the collapsed outlines
+    .venv/bin/python bench/figures/mpp_show.py kahra OUT /tmp/kahra2
+    .venv/bin/python bench/figures/mpp_show.py kahra-outlines /tmp/kahra2 [and|ring|off]   # energies of the collapsed outlines
 
-Writes ``docs/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read in place from ../shared/data.
+Writes ``bench/results/mpp_<name>.json`` and ``docs/mpp_<name>.png``. Real data are read in place from ../shared/data.
 """
 
 from __future__ import annotations
@@ -59,9 +59,10 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data"
-DOCS = REPO / "docs"
+DOCS = REPO / "docs"            # the pictures the pages show
+RESULTS = REPO / "bench" / "results"  # the figures behind them
 sys.path.insert(0, str(REPO))
 
 from geocd.mpp.detect import detect  # noqa: E402
@@ -194,7 +195,7 @@ def town(name: Path, ortho_dir: Path, sc: Path | None = None, seeds=(0,), only=N
                                     and np.array_equal(again.result.xi, best.result.xi))
         out["deterministic_variant"] = best_label
         print("same seed, same objects:", out["deterministic"], f"({best_label})", flush=True)
-    path = DOCS / f"mpp_{Path(name).name}.json"
+    path = REPO / "bench" / "results" / f"mpp_{Path(name).name}.json"
     if only is not None and path.exists():   # a partial run updates the rows it measured
         old = json.loads(path.read_text())
         for label, rs in rows.items():   # same seed: replaced; other seeds kept
@@ -429,7 +430,7 @@ def false_objects(name: Path, ortho_dir: Path, seeds=(0,), variant: dict | None 
         for f in fvs:
             print("  FV", json.dumps(f), flush=True)
         out["runs"].append(run)
-    path = DOCS / f"mpp_false_{Path(name).name}{tag}.json"
+    path = REPO / "bench" / "results" / f"mpp_false_{Path(name).name}{tag}.json"
     path.write_text(json.dumps(out, indent=1, default=str))
     return out
 
@@ -569,7 +570,7 @@ def edges(name: Path, ortho_dir: Path) -> dict:
         out[f"date{date}"] = res
         print(f"date {date}:", json.dumps({s: {k: v for k, v in r.items() if k != "profile"} for s, r in res.items()}),
               flush=True)
-    (DOCS / f"mpp_edges_{Path(name).name}.json").write_text(json.dumps(out, indent=1))
+    (REPO / "bench" / "results" / f"mpp_edges_{Path(name).name}.json").write_text(json.dumps(out, indent=1))
     _edges_plot(out, Path(name).name)
     return out
 
@@ -799,7 +800,7 @@ def ceiling(name: Path, ortho_dir: Path, seed: int = 0, variant: dict | None = N
                                 "share_more_than_4_cells_short": round(float(np.mean(np.array(side_err) < -4)), 3)}
            if side_err else None, "variant": variant or {},
            "missed_the_model_accepts": sum(m["model_accepts_it"] for m in missed),
-           "command": f"docs/mpp_show.py ceiling {name} {ortho_dir} {seed}"
+           "command": f"bench/figures/mpp_show.py ceiling {name} {ortho_dir} {seed}"
                       + (f" --variant '{json.dumps(variant)}'" if variant else "")}
     print(json.dumps(out), flush=True)
     return out
@@ -845,7 +846,7 @@ def chains(name: Path, ortho_dir: Path, seeds=(0, 1, 2, 3, 4), variant: dict | N
     best = min(rows, key=lambda r: r["energy_total"])
     out = {"scene": str(name), "variant": variant or {}, "planar_tol_x": planar_tol_x, "chains": rows,
            "mean_DP": round(float(np.mean([r["DP"] for r in rows])), 4), "lowest_energy_DP": best["DP"],
-           "command": f"docs/mpp_show.py chains {name} {ortho_dir} {','.join(map(str, seeds))}"
+           "command": f"bench/figures/mpp_show.py chains {name} {ortho_dir} {','.join(map(str, seeds))}"
                       + (f" --variant '{json.dumps(variant)}'" if variant else "")
                       + (f" --planar-tol-x {planar_tol_x:g}" if planar_tol_x != 1.0 else "")}
     return out
@@ -864,7 +865,7 @@ def roof_dsm(name: Path, ortho_dir: Path) -> dict:
 
     inp = _town_inputs(name, ortho_dir)
     grid = inp["grid"]
-    out = {"scene": str(name), "command": f"docs/mpp_show.py roof-dsm {name} {ortho_dir}"}
+    out = {"scene": str(name), "command": f"bench/figures/mpp_show.py roof-dsm {name} {ortho_dir}"}
     for e, key in (("A", "a"), ("B", "b")):
         with rasterio.open(name / "truth" / f"dsm_{e}.tif") as ds:
             tdsm = ds.read(1, out_shape=grid.shape).astype(np.float64)
@@ -906,7 +907,7 @@ def turn_compare(turned: Path, still: Path, run_dir: Path) -> dict:
            "turn_deg": {"median": round(float(np.median(turn)), 2), "p90": round(float(np.percentile(turn, 90)), 2),
                         "max": round(float(turn.max()), 2), "more_than_5": int((turn > 5).sum())},
            "damage_objects_covered_by_half": cover, "damage_objects": len(dmg),
-           "command": f"docs/mpp_show.py turn-compare {turned} {still} {run_dir}"}
+           "command": f"bench/figures/mpp_show.py turn-compare {turned} {still} {run_dir}"}
     print(json.dumps(out), flush=True)
     return out
 
@@ -964,7 +965,7 @@ def grow_compare(grown: Path, still: Path, run_dir: Path, png: Path | None = Non
                           "more_than_1.5": int((ratio > 1.5).sum()), "more_than_2": int((ratio > 2).sum())},
            "overlap_m2": {"grown": overlap(a), "not_grown": overlap(b)},
            "damage_layer": {"grown": _damage_cover(a, dmg), "not_grown": _damage_cover(b, dmg)},
-           "damage_objects": len(dmg), "command": f"docs/mpp_show.py grow-compare {grown} {still} {run_dir}"}
+           "damage_objects": len(dmg), "command": f"bench/figures/mpp_show.py grow-compare {grown} {still} {run_dir}"}
     if png is not None:
         import matplotlib
 
@@ -1031,7 +1032,7 @@ def notches(mpp_dir: Path, run_dir: Path, png: Path | None = None, n_show: int =
                             "max": round(float(share.max()), 3)} if rows else None),
            "notch_m2": ({"median": round(float(np.median(area)), 1), "p90": round(float(np.percentile(area, 90)), 1),
                          "max": round(float(area.max()), 1)} if rows else None),
-           "command": f"docs/mpp_show.py notches {mpp_dir} {run_dir}"}
+           "command": f"bench/figures/mpp_show.py notches {mpp_dir} {run_dir}"}
     if png is not None and rows:
         import matplotlib
 
@@ -1159,7 +1160,7 @@ def town_notches(name: Path, ortho_dir: Path, seeds=(0,), png: Path | None = Non
             fig.savefig(png, dpi=64)
             plt.close(fig)
     out = {"scene": str(name), "runs": runs, "png": str(png) if png else None,
-           "command": f"docs/mpp_show.py notches-town {name} {ortho_dir} {','.join(map(str, seeds))}"}
+           "command": f"bench/figures/mpp_show.py notches-town {name} {ortho_dir} {','.join(map(str, seeds))}"}
     return out
 
 
@@ -1245,7 +1246,7 @@ def levir_diagnose(pairs=("test_7_0256_0512", "val_27_0000_0256")) -> None:
 
 def tables() -> None:
     """Print the markdown tables of docs/mpp.md from the JSON files."""
-    for f in sorted(DOCS.glob("mpp_*.json")):
+    for f in sorted(RESULTS.glob("mpp_*.json")):
         d = json.loads(f.read_text())
         print(f"### {f.name}\n")
         print(_levir_table(d) if "levir" in f.name else _town_table(d))
@@ -1254,7 +1255,7 @@ def tables() -> None:
 
 def levir(prototypes: str = "auto") -> dict:
     """The five LEVIR-CD pairs; ``prototypes`` as in MPPParams ("auto": the colour model, gradient + shadow |
-    colour, for RGB images); another choice writes ``docs/mpp_levir_<prototypes>.json``."""
+    colour, for RGB images); another choice writes ``bench/results/mpp_levir_<prototypes>.json``."""
     import rasterio
     from rasterio.errors import NotGeoreferencedWarning
 
@@ -1291,7 +1292,7 @@ def levir(prototypes: str = "auto") -> dict:
     out["prototypes"] = prototypes
     if first is not None:
         quicklook(DOCS / f"mpp_levir{tag}.png", first[0], first[1], first[2], titles=(f"{first[3]} A", f"{first[3]} B"))
-    (DOCS / f"mpp_levir{tag}.json").write_text(json.dumps(out, indent=2, default=str))
+    (REPO / "bench" / "results" / f"mpp_levir{tag}.json").write_text(json.dumps(out, indent=2, default=str))
     return out
 
 
@@ -1302,7 +1303,7 @@ KAHRA_GONE_BY_EYE = [(60, 520), (490, 560), (470, 710), (760, 730), (720, 950), 
 def kahra(mpp_dir: Path, run_dir: Path, name: str = "mpp_kahramanmaras") -> dict:
     """Kahramanmaraş: what ``geocd mpp`` found, and how it relates to geocd's own building damage layer
     (``sc_changes.gpkg``, layer ``building_damage``) — no truth exists for this city. Writes
-    ``docs/<name>.png`` and ``docs/<name>.json``."""
+    ``docs/<name>.png`` and ``bench/results/<name>.json``."""
     import geopandas as gpd
     import matplotlib
 
@@ -1373,7 +1374,7 @@ def kahra(mpp_dir: Path, run_dir: Path, name: str = "mpp_kahramanmaras") -> dict
         ax.axis("off")
     plt.tight_layout()
     plt.savefig(DOCS / f"{name}.png", dpi=70)
-    (DOCS / f"{name}.json").write_text(json.dumps(out, indent=2, default=str))
+    (REPO / "bench" / "results" / f"{name}.json").write_text(json.dumps(out, indent=2, default=str))
     return out
 
 
@@ -1441,7 +1442,7 @@ def scoring(work: Path, scenes: list[tuple[str, Path]], variant: dict | None = N
     from geocd.mpp.pipeline import run_mpp_manifest
 
     keys = ("objects", "changes", "HO", "FO", "HV", "FV", "DP", "DP_precision", "DP_recall", "change_f")
-    out = {"command": "docs/mpp_show.py scoring " + " ".join([str(work)] + [f"{n}={p}" for n, p in scenes])
+    out = {"command": "bench/figures/mpp_show.py scoring " + " ".join([str(work)] + [f"{n}={p}" for n, p in scenes])
            + (f" --variant {json.dumps(variant)}" if variant else ""), "variant": variant or {}, "scenes": {}}
     for name, scene in scenes:
         with warnings.catch_warnings():
@@ -1458,7 +1459,7 @@ def scoring(work: Path, scenes: list[tuple[str, Path]], variant: dict | None = N
             row[cut]["buildings_cut_by_the_border"] = sum(1 for o in objs if not o["scored"])
         out["scenes"][name] = row
         print(name, json.dumps(row), flush=True)
-    (DOCS / f"mpp_scoring{tag}.json").write_text(json.dumps(out, indent=1))
+    (REPO / "bench" / "results" / f"mpp_scoring{tag}.json").write_text(json.dumps(out, indent=1))
     return out
 
 

@@ -1,6 +1,6 @@
 """Slope shading in the octree's relighting, measured: a Lambertian ratio on the lit → lit pixels.
 
-Runs ``docs/volume_categories.py`` (the 3×3 detection with a DSM's shadows, and Carlotto's baseline, split by
+Runs ``bench/figures/volume_categories.py`` (the 3×3 detection with a DSM's shadows, and Carlotto's baseline, split by
 pixel category) with the relighting's lit → lit pixels scaled by the ratio of each surface point's direct
 irradiance under the image's sun to that under the trained sun, from the normals of the shadow DSM::
 
@@ -19,7 +19,7 @@ relighting").
 
 Usage::
 
-    .venv/bin/python docs/volume_shading.py --normals window-ground [--sky 0] [--on-surface M] [--damp fit] SCENE WORK DSM OUT.json
+    .venv/bin/python bench/figures/volume_shading.py --normals window-ground [--sky 0] [--on-surface M] [--damp fit] SCENE WORK DSM OUT.json
 """
 import argparse
 import runpy

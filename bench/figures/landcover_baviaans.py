@@ -1,8 +1,8 @@
 """Real case: vegetation over the Baviaans site from two aerial frames (2015, RGB) and the QuickBird-2 image
 (Nov 2003, pan), integrated by the GP on a 20 m grid.
 
-    python docs/landcover_baviaans.py      # needs ../shared/data/orthority_baviaans_aerial_qb2
-                                           # → docs/landcover_baviaans.json, docs/landcover_baviaans.png
+    python bench/figures/landcover_baviaans.py      # needs ../shared/data/orthority_baviaans_aerial_qb2
+                                           # → bench/results/landcover_baviaans.json, docs/landcover_baviaans.png
 
 Labels: examples/baviaans_vegetation_labels.gpkg, 10 squares (5 vegetation, 5 bare) drawn by hand on an
 orthomosaic of the 2015 frames; the same polygons train the aerial model (4 frames) and the QB2 model.
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data" / "orthority_baviaans_aerial_qb2"
 DETAILED = ("3324c_2015_1004_05_0182_RGB", "3324c_2015_1004_06_0251_RGB")
 POSTING_M = 20.0
@@ -111,7 +111,7 @@ def main() -> None:
            "hyper": res.hyper.to_dict(), "gp_report": {k: v for k, v in res.report.items() if k != "hyper"},
            "timings_s": {"train": round(t_train, 1), "classify_and_project": round(t_proj, 1),
                          "two_gp_integrations": round(t_gp, 1), "total": round(time.perf_counter() - t_all, 1)}}
-    (ROOT / "docs" / "landcover_baviaans.json").write_text(json.dumps(rep, indent=1))
+    (ROOT / "bench" / "results" / "landcover_baviaans.json").write_text(json.dumps(rep, indent=1))
     print(json.dumps(rep["vs_held_out_frames"], indent=1), json.dumps(rep["agreement_at_0.5"]))
     figure(frames, scene, coarse, det, res, labels, in_qb)
 

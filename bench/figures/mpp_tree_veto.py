@@ -8,9 +8,9 @@ scored with Table 2 against the run itself (the same rectangles, rasterised; no 
 
 Usage::
 
-    .venv/bin/python docs/mpp_tree_veto.py NAME=SCENE=WORK [...] [--json docs/mpp_tree_veto.json]
+    .venv/bin/python bench/figures/mpp_tree_veto.py NAME=SCENE=WORK [...] [--json bench/results/mpp_tree_veto.json]
 
-``WORK``: the output folder of ``docs/mpp_show.py scoring`` for that scene (``mpp/mpp_buildings.gpkg`` and
+``WORK``: the output folder of ``bench/figures/mpp_show.py scoring`` for that scene (``mpp/mpp_buildings.gpkg`` and
 ``ortho/{A,B}/dsm_*.tif``).
 """
 import json
@@ -88,5 +88,5 @@ for spec in args:
     res[name] = row
     print(name, json.dumps(row), flush=True)
 if out_json:
-    Path(out_json).write_text(json.dumps({"command": "docs/mpp_tree_veto.py " + " ".join(sys.argv[1:]),
+    Path(out_json).write_text(json.dumps({"command": "bench/figures/mpp_tree_veto.py " + " ".join(sys.argv[1:]),
                                           "scenes": res}, indent=1))

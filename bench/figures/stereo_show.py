@@ -2,12 +2,12 @@
 
 Usage (from the repository root)::
 
-    .venv/bin/python docs/stereo_show.py s2p        # Réunion pair + Marseille triplet vs s2p's DSMs
-    .venv/bin/python docs/stereo_show.py ventoux    # Pléiades Ventoux pair vs SRTM
-    .venv/bin/python docs/stereo_show.py sample     # sample_aoi pairs vs the truth DSM
-    .venv/bin/python docs/stereo_show.py all
+    .venv/bin/python bench/figures/stereo_show.py s2p        # Réunion pair + Marseille triplet vs s2p's DSMs
+    .venv/bin/python bench/figures/stereo_show.py ventoux    # Pléiades Ventoux pair vs SRTM
+    .venv/bin/python bench/figures/stereo_show.py sample     # sample_aoi pairs vs the truth DSM
+    .venv/bin/python bench/figures/stereo_show.py all
 
-Each writes ``docs/stereo_<name>.json`` (numbers) and ``docs/stereo_<name>*.png``.
+Each writes ``bench/results/stereo_<name>.json`` (numbers) and ``docs/stereo_<name>*.png``.
 Real data are read in place from ../shared/data.
 """
 
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data"
 DOCS = REPO / "docs"
 sys.path.insert(0, str(REPO))
@@ -142,7 +142,7 @@ def s2p(params: StereoParams = StereoParams()) -> dict:
                 ("geocd − s2p − offset (m)", d, {"vmin": -2, "vmax": 2, "cmap": "RdBu_r"}),
                 ("MDL score (bits/px)", pd.score, {"vmin": -3, "vmax": 0, "cmap": "viridis_r"}),
             ], f"s2p {key} {a}/{b}: median |dz| {c['median_abs_m']:.2f} m, completeness {c['completeness_on_ref']:.1%}")
-    (DOCS / "stereo_s2p.json").write_text(json.dumps(res, indent=1))
+    (REPO / "bench" / "results" / "stereo_s2p.json").write_text(json.dumps(res, indent=1))
     return res
 
 
@@ -205,7 +205,7 @@ def ventoux(params: StereoParams = StereoParams()) -> dict:
                 ("geocd z 2013 (valid cells)", np.where(inside, pd.z_m, np.nan), {"vmin": lo_v, "vmax": hi_v, "cmap": "terrain"}),
                 ("geocd − SRTM (m)", np.where(inside, pd.z_m - ref, np.nan), {"vmin": -20, "vmax": 20, "cmap": "RdBu_r"}),
             ], f"Ventoux: median dz {r_['median_dz_m']:.1f} m, NMAD {r_['nmad_m']:.1f} m (SRTM is 90 m, 2000)")
-    (DOCS / "stereo_ventoux.json").write_text(json.dumps(res, indent=1))
+    (REPO / "bench" / "results" / "stereo_ventoux.json").write_text(json.dumps(res, indent=1))
     return res
 
 
@@ -325,7 +325,7 @@ def sample(params: StereoParams = StereoParams()) -> dict:
     res["score_informativeness"] = table
     res["pooled_matches"] = int(P.shape[1])
     _score_plot(table, DOCS / "stereo_sample_scores.png")
-    (DOCS / "stereo_sample.json").write_text(json.dumps(res, indent=1))
+    (REPO / "bench" / "results" / "stereo_sample.json").write_text(json.dumps(res, indent=1))
     return res
 
 
@@ -364,6 +364,6 @@ if __name__ == "__main__":
         ventoux()
     if what in ("sample", "all"):
         sample()
-    if what == "score-plot":        # redraw the score figure from docs/stereo_sample.json
-        _score_plot(json.loads((DOCS / "stereo_sample.json").read_text())["score_informativeness"],
+    if what == "score-plot":        # redraw the score figure from bench/results/stereo_sample.json
+        _score_plot(json.loads((REPO / "bench" / "results" / "stereo_sample.json").read_text())["score_informativeness"],
                     DOCS / "stereo_sample_scores.png")

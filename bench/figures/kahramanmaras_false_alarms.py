@@ -10,7 +10,7 @@ drops as trees in either epoch's DSM (green: felled, planted or standing trees, 
 
 Usage::
 
-    .venv/bin/python docs/kahramanmaras_false_alarms.py --run /tmp/kahra4/run --cars-work /tmp/kahra_cars \
+    .venv/bin/python bench/figures/kahramanmaras_false_alarms.py --run /tmp/kahra4/run --cars-work /tmp/kahra_cars \
         [--png docs/kahramanmaras_false_alarms.png]
 """
 
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 

@@ -4,11 +4,11 @@ Vectors are GeoPackage layers (QGIS applies the default style stored in the GeoP
 rasters are GeoTIFFs (QGIS applies the ``.qml`` sidecar). The first layer given is drawn on top. Run with the
 system Python that has PyQGIS::
 
-    QT_QPA_PLATFORM=offscreen /usr/bin/python3 docs/qgis_layers_screenshot.py \\
+    QT_QPA_PLATFORM=offscreen /usr/bin/python3 bench/figures/qgis_layers_screenshot.py \\
         --layer "/tmp/kahra2/sc_changes.gpkg|layername=building_damage" \\
         --layer /tmp/kahra2/orthos_ground/post_event_img1.tif \\
         --out /tmp/qgis_map.png
-    .venv/bin/python docs/qgis_layers_screenshot.py --legend /tmp/qgis_map.png docs/qgis_kahramanmaras.png \\
+    .venv/bin/python bench/figures/qgis_layers_screenshot.py --legend /tmp/qgis_map.png docs/qgis_kahramanmaras.png \\
         --title "Kahramanmaraş: building damage (geocd run, styled layers rendered by QGIS 3.22)"
 """
 

@@ -8,7 +8,7 @@ class: ``c ≈ a + b E`` and its spread). docs/volume.md, "Where the octree lose
 
 Usage::
 
-    .venv/bin/python docs/volume_categories.py SCENE WORK DSM OUT.json
+    .venv/bin/python bench/figures/volume_categories.py SCENE WORK DSM OUT.json
 """
 import json
 import sys
@@ -59,5 +59,5 @@ for n, m in cats.items():
               "octree": round(_roc(P["oct"][m], t, np.ones(t.size, bool))["auc"], 3),
               "carlotto": round(_roc(P["carl"][m], t, np.ones(t.size, bool))["auc"], 3)}
     print(n, out[n], flush=True)
-Path(sys.argv[4]).write_text(json.dumps({"command": "docs/volume_categories.py " + " ".join(sys.argv[1:]),
+Path(sys.argv[4]).write_text(json.dumps({"command": "bench/figures/volume_categories.py " + " ".join(sys.argv[1:]),
                                          "categories": out, "relight_fits": fits}, indent=1))

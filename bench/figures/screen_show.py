@@ -1,7 +1,7 @@
 """Quick-look of the 2-D screen on sample_aoi: the two views, the dissimilarity, the change mask against truth.
 
     .venv/bin/geocd screen sample_aoi --out /tmp/scr
-    .venv/bin/python docs/screen_show.py /tmp/scr            # → docs/screen_sample_aoi.png
+    .venv/bin/python bench/figures/screen_show.py /tmp/scr            # → docs/screen_sample_aoi.png
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import rasterio  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from geocd.geodesy import AOIGrid  # noqa: E402

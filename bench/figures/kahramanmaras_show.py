@@ -5,11 +5,11 @@ Reads a finished ``geocd run examples/kahramanmaras/scene.yaml --model ... --out
 * true orthos of the first view of each epoch (through the corrected cameras, on each epoch's own DSM):
   ``RUN/orthos/<image>.tif`` (what the marked-point-process work reads);
 * ``docs/kahramanmaras_quicklook.png``: pre | post | detected buildings (classes over the post ortho);
-* ``docs/kahramanmaras_show.json``: orientation residuals, building classes, stable-ground false alarms.
+* ``bench/results/kahramanmaras_show.json``: orientation residuals, building classes, stable-ground false alarms.
 
 Usage::
 
-    .venv/bin/python docs/kahramanmaras_show.py --run RUN [--out docs]
+    .venv/bin/python bench/figures/kahramanmaras_show.py --run RUN [--out docs]
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 
@@ -148,7 +148,7 @@ def main(argv=None) -> int:
     pre[~o["pre_event_img1"].observed] = np.nan
     post[~o["post_event_img1"].observed] = np.nan
     quicklook(pre, post, damage, grid, out / "kahramanmaras_quicklook.png")
-    (out / "kahramanmaras_show.json").write_text(json.dumps(res, indent=1, default=str))
+    (REPO / "bench" / "results" / "kahramanmaras_show.json").write_text(json.dumps(res, indent=1, default=str))
     print(json.dumps(res, indent=1, default=str))
     return 0
 

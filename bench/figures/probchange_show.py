@@ -12,7 +12,7 @@ from geocd.consistency, the metrics from geocd.change.metrics):
   any prior follows from the log-odds at 0.5: logit p = logit p₀.₅ + logit π);
 * illumination: the same town with epoch B under a different sun vs under A's sun;
 * figures: docs/probchange_sample_aoi.png, docs/probchange_sigma.png; numbers:
-  docs/probchange_show.json.
+  bench/results/probchange_show.json.
 
 Scenes: sample_aoi (committed) and, generated into --work when missing,
 ``geocd synth --n-aerial 0 --out W/sun_other``, ``... --same-sun --out W/sun_same``
@@ -20,7 +20,7 @@ and ``... --seed 1 --out W/seed1``. Only the satellite views are used (4 in A, 3
 
 Usage::
 
-    .venv/bin/python docs/probchange_show.py [--work /tmp/probchange_show] [--scenes sample_aoi,sun_other,...]
+    .venv/bin/python bench/figures/probchange_show.py [--work /tmp/probchange_show] [--scenes sample_aoi,sun_other,...]
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -275,7 +275,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/probchange_show"))
     ap.add_argument("--scenes", default="sample_aoi,sun_same,sun_other,seed1")
     ap.add_argument("--key", default="A_sat2", help="key frame of the key-frame variant (sample_aoi)")
-    ap.add_argument("--json", type=Path, default=REPO / "docs" / "probchange_show.json")
+    ap.add_argument("--json", type=Path, default=REPO / "bench" / "results" / "probchange_show.json")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     all_res: dict = {}
@@ -291,7 +291,7 @@ def main() -> None:
         if name == "sample_aoi":
             figures(keep, path, REPO / "docs" / "probchange_sample_aoi.png", REPO / "docs" / "probchange_sigma.png",
                     res)
-        a.json.write_text(json.dumps({"command": "docs/probchange_show.py " + " ".join(sys.argv[1:]),
+        a.json.write_text(json.dumps({"command": "bench/figures/probchange_show.py " + " ".join(sys.argv[1:]),
                                       "scenes": all_res}, indent=1, default=str))
     print(markdown(all_res))
     if "sun_same" in all_res and "sun_other" in all_res:

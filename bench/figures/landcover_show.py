@@ -1,7 +1,7 @@
 """Land-cover integration on sample_aoi: vegetation from aerial-frame windows (sparse, detailed) and the
 satellite views (coarse, full cover), fused by the GP; the thesis's ablation, F1 vs number of views, σ calibration.
 
-    python docs/landcover_show.py            # writes docs/landcover_show.json and docs/landcover_*.png
+    python bench/figures/landcover_show.py            # writes bench/results/landcover_show.json and docs/landcover_*.png
 
 Training labels: the 10 polygons of examples/sample_aoi_vegetation_labels.gpkg, drawn by hand on an aerial
 orthomosaic (5 vegetation, 5 other). Their cells are excluded from every score. Truth: truth/cover_A.tif
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
 
 
@@ -41,7 +41,7 @@ def main() -> None:
     ap.add_argument("--n-fit", type=int, default=300)
     ap.add_argument("--only", choices=["calibration"], default=None,
                     help="calibration: only the σ calibration with held-out spatial blocks "
-                         "(docs/landcover_calibration.json)")
+                         "(bench/results/landcover_calibration.json)")
     args = ap.parse_args()
     import warnings
 
@@ -183,7 +183,7 @@ def main() -> None:
         out = {"truth_on_unobserved_cells": sigma_calibration(truth1, res, unobs),
                "heldout_blocks": res.report["calibration"], "seconds": round(time.perf_counter() - t0, 1),
                "headline_views": [int(v) for v in headline], "n_fit": args.n_fit}
-        (DOCS / "landcover_calibration.json").write_text(json.dumps(out, indent=1))
+        (ROOT / "bench" / "results" / "landcover_calibration.json").write_text(json.dumps(out, indent=1))
         print(json.dumps(out, indent=1))
         return
     scores, results = ablation(det, coarse1, inputs_for, y1, truth_value=truth1, exclude=labelled1,
@@ -227,7 +227,7 @@ def main() -> None:
     timings["views_s"] = round(time.perf_counter() - t0, 1)
     timings["total_s"] = round(time.perf_counter() - t_all, 1)
     report["timings"] = timings
-    (DOCS / "landcover_show.json").write_text(json.dumps(report, indent=1))
+    (ROOT / "bench" / "results" / "landcover_show.json").write_text(json.dumps(report, indent=1))
     figures(by_n, work, args.headline_views)
 
 

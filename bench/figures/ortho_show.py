@@ -3,9 +3,9 @@
 Usage (from the repository root)::
 
     .venv/bin/geocd --progress none ortho sample_aoi --out /tmp/ortho_run      # stereo DSMs + every ortho (~1–4 min)
-    .venv/bin/python docs/ortho_show.py /tmp/ortho_run
+    .venv/bin/python bench/figures/ortho_show.py /tmp/ortho_run
 
-Writes ``docs/ortho_sample_aoi.json`` and ``docs/ortho_sample_aoi.png``: the orthos made on geocd stereo's
+Writes ``bench/results/ortho_sample_aoi.json`` and ``docs/ortho_sample_aoi.png``: the orthos made on geocd stereo's
 DSMs against the same views orthorectified on the truth DSMs, registration between views (RPC and frame),
 and what a classic ortho puts on the cells a true ortho masks.
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from geocd.io.cameras import load_camera  # noqa: E402
@@ -101,7 +101,7 @@ def main(run: Path) -> None:
         "corr_with_A_sat1_on_hidden_cells_classic": round(float(np.corrcoef(grey(s1.values)[occ], grey(classic.values)[occ])[0, 1]), 3),
         "corr_with_A_sat1_on_seen_cells": round(float(np.corrcoef(grey(s1.values)[seen], grey(s4.values)[seen])[0, 1]), 3),
     }
-    (REPO / "docs" / "ortho_sample_aoi.json").write_text(json.dumps(out, indent=2))
+    (REPO / "bench" / "results" / "ortho_sample_aoi.json").write_text(json.dumps(out, indent=2))
     print(json.dumps(out, indent=2))
 
     # figure: classic vs true ortho of A_sat4 (stereo DSM run for the true one), and A_air2 (frame) true ortho

@@ -6,11 +6,11 @@ the change test flags at 99 % (blue raised, red lowered). What an analyst would 
 
 Usage::
 
-    .venv/bin/python docs/kahramanmaras_changed_part.py --run RUN --default A.gpkg --option B.gpkg \
+    .venv/bin/python bench/figures/kahramanmaras_changed_part.py --run RUN --default A.gpkg --option B.gpkg \
         [--out docs/kahramanmaras_changed_part.png]
 
 ``RUN``: a folder with ``sc_change.tif`` and ``orthos_ground/{pre,post}_event_img1.tif`` (the ``--rerun`` folder
-of ``eval_kahramanmaras.py`` after ``docs/kahramanmaras_show.py``).
+of ``eval_kahramanmaras.py`` after ``bench/figures/kahramanmaras_show.py``).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def main(argv=None) -> int:
