@@ -14,7 +14,7 @@ describes); nothing of theirs is imported here. Two stages:
 Usage::
 
     .venv/bin/python bench/bench_kahramanmaras_cars.py cars --work /tmp/kahra_cars
-    .venv/bin/python bench/bench_kahramanmaras_cars.py compare --work /tmp/kahra_cars --run /tmp/kahra --json docs/kahramanmaras_bench.json
+    .venv/bin/python bench/bench_kahramanmaras_cars.py compare --work /tmp/kahra_cars --run /tmp/kahra --json bench/results/kahramanmaras_bench.json
 """
 
 from __future__ import annotations

@@ -249,7 +249,7 @@ def main() -> None:
         print(f.stem, runs[f.stem], flush=True)
     res["levir"] = runs
     if a.town:
-        sys.path.insert(0, str(REPO / "docs"))
+        sys.path.insert(0, str(REPO / "bench" / "figures"))
         from mpp_show import _town_inputs  # noqa: E402
 
         inp = _town_inputs(Path(a.town[0]), Path(a.town[1]))

@@ -13,10 +13,10 @@
 
 Usage::
 
-    nice -n 10 .venv/bin/python bench/bench_screen.py features --out docs/screen_bench.json
-    nice -n 10 .venv/bin/python bench/bench_screen.py tiered sample_aoi --out docs/screen_bench.json
+    nice -n 10 .venv/bin/python bench/bench_screen.py features --out bench/results/screen_bench.json
+    nice -n 10 .venv/bin/python bench/bench_screen.py tiered sample_aoi --out bench/results/screen_bench.json
     nice -n 10 .venv/bin/python bench/bench_screen.py tiered examples/kahramanmaras/scene.yaml \\
-        --model examples/kahramanmaras/marseille_urban_model.json --full-dir /tmp/kahra2 --out docs/screen_bench.json
+        --model examples/kahramanmaras/marseille_urban_model.json --full-dir /tmp/kahra2 --out bench/results/screen_bench.json
     nice -n 10 .venv/bin/python bench/bench_screen.py stereo-overhead sample_aoi --epoch B --tiered-dir T
 """
 
@@ -843,7 +843,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=1024, help="features: side of the benchmark pair (px)")
     ap.add_argument("--features", default=None, help="features: comma-separated label prefixes (default all)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/geocd_bench_screen"))
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "screen_bench.json")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "screen_bench.json")
     a = ap.parse_args(argv)
     doc = json.loads(a.out.read_text()) if a.out.exists() else {}
     if a.what == "features":

@@ -38,7 +38,7 @@ ratios within a run), and in-process figures are the best of ``--repeat`` runs.
 Usage::
 
     .venv/bin/python bench/bench_stereo.py [--crop 160] [--planes 48] [--repeat 3] [--whole]
-        [--cars /work/peers/cars-venv/bin/cars] [--json docs/stereo_bench.json]
+        [--cars /work/peers/cars-venv/bin/cars] [--json bench/results/stereo_bench.json]
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ defaults:
 
 Usage::
 
-    .venv/bin/python bench/eval_constants.py --scene sample_aoi=sample_aoi:/tmp/run0 ... --json docs/towns_constants.json
+    .venv/bin/python bench/eval_constants.py --scene sample_aoi=sample_aoi:/tmp/run0 ... --json bench/results/towns_constants.json
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ model, and as learned in Marseille), derives the buildings from the pre-event DS
 Usage::
 
     .venv/bin/python bench/eval_kahramanmaras.py --run /tmp/kahra --model examples/kahramanmaras/marseille_urban_model.json \
-        [--json docs/kahramanmaras_eval.json] [--out DIR] [--picanteo-flag /tmp/kahra_cars/picanteo_flag.npy]
+        [--json bench/results/kahramanmaras_eval.json] [--out DIR] [--picanteo-flag /tmp/kahra_cars/picanteo_flag.npy]
 """
 
 from __future__ import annotations

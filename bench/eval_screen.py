@@ -19,7 +19,7 @@ is the thesis's own rule, best F1 on the evaluation data, shown only to compare 
 
 Usage::
 
-    nice -n 10 .venv/bin/python bench/eval_screen.py --views /tmp/screen_views --out docs/screen_table.json
+    nice -n 10 .venv/bin/python bench/eval_screen.py --views /tmp/screen_views --out bench/results/screen_table.json
     # --quick: fewer features (CI-sized); --sets levir,sample_aoi
 
 ``--views`` is a folder holding the sample_aoi views on the grid (made by ``geocd screen sample_aoi --out``
@@ -406,7 +406,7 @@ def render(doc: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=Path, default=Path("/tmp/screen_views"))
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "screen_table.json")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "screen_table.json")
     ap.add_argument("--sets", default="levir,sample_aoi")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--features", default=None, help="comma-separated labels to run (default all)")

@@ -15,7 +15,7 @@ Usage::
     .venv/bin/python bench/eval_towns.py \\
         --scene sample_aoi=sample_aoi:/tmp/run0 --scene town_seed1=/tmp/town_s1:/tmp/run_s1 ... \\
         [--volume sample_aoi=/tmp/vol_s0/volume_results.json ...] [--no-probchange] \\
-        --json docs/towns.json --markdown docs/towns_table.md
+        --json bench/results/towns.json --markdown docs/towns_table.md
 
 ``NAME=SCENE[:RUN_DIR]``: ``RUN_DIR`` reuses the pair-DEMs of a finished ``geocd run SCENE --out RUN_DIR``
 (``RUN_DIR/stereo``); without it the stereo is run here (into a temporary folder).

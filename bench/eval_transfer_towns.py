@@ -7,7 +7,7 @@ Cells at 99 % (region test) are scored against the town's truth change mask (P /
 cells without 3-D change). Usage::
 
     .venv/bin/python bench/eval_transfer_towns.py --source R1 --target town_seed3=T3:R3 --target town_seed2_sun=T2:R2 \\
-        [--json docs/transfer_towns.json]
+        [--json bench/results/transfer_towns.json]
 """
 
 from __future__ import annotations

@@ -107,7 +107,7 @@ def test_the_model_as_learned_flags_twice_as_much_stable_ground(kahra_run):
 
 
 def test_what_the_stable_false_alarms_are(kahra_run):
-    """docs/kahramanmaras.md section 2, "What the stable-ground false alarms at 99 % are": they lie in building
+    """docs/kahramanmaras.md, "What the stable-ground false alarms at 99 % are": they lie in building
     objects the layer calls unchanged (raised or lowered parts) and in non-building objects — the trees the
     tree rule drops, felled or planted, and smaller objects —, almost none on ground. This fresh run: of 19,821
     flagged stable cells 60.3 % inside unchanged building objects, 29.4 % in tree objects of either epoch's
@@ -184,7 +184,7 @@ def test_the_floor_under_the_goal(kahra_run):
     import importlib.util
 
     out, _ = kahra_run
-    spec = importlib.util.spec_from_file_location("kahramanmaras_floor", REPO / "docs" / "kahramanmaras_floor.py")
+    spec = importlib.util.spec_from_file_location("kahramanmaras_floor", REPO / "bench" / "figures" / "kahramanmaras_floor.py")
     floor = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(floor)
     f = floor.floor_figures(out)

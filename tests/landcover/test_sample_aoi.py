@@ -2,7 +2,7 @@
 examples/sample_aoi_vegetation_labels.gpkg (hand-drawn; their cells are never scored), truth from cover_A.tif.
 
 Pins the classifier + projection quality and the GP ordering measured by ``python -m tests.landcover.test_sample_aoi``
-(docs/landcover.md has the full-scale figures from docs/landcover_show.py).
+(docs/landcover.md has the full-scale figures from bench/figures/landcover_show.py).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A coarse-to-fine change once let the full-resolution sweep run over the whole height range; false minima then
 cost this pair 12 points of completeness at unchanged accuracy (docs/stereo.md). Thresholds sit below the
-measured 91.2% / 0.051 m / 5.1% (docs/stereo_sample.json), far above what that regression gave (≈ 80%).
+measured 91.2% / 0.051 m / 5.1% (bench/results/stereo_sample.json), far above what that regression gave (≈ 80%).
 """
 
 import warnings
