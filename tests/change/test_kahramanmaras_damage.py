@@ -184,7 +184,9 @@ def test_the_floor_under_the_goal(kahra_run):
     import importlib.util
 
     out, _ = kahra_run
-    spec = importlib.util.spec_from_file_location("kahramanmaras_floor", REPO / "bench" / "figures" / "kahramanmaras_floor.py")
+    spec = importlib.util.spec_from_file_location(
+        "kahramanmaras_floor", REPO / "bench" / "figures" / "kahramanmaras_floor.py"
+    )
     floor = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(floor)
     f = floor.floor_figures(out)
