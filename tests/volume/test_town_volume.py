@@ -1,6 +1,6 @@
 """The octree model against its 2-D baselines on a second, generated town (not sample_aoi).
 
-The town is generated in the fixture (``geocd synth --seed 1 --size-m 120``: 50 s) and the model trained on its
+The town is generated in the fixture (``geocd synth --seed 1 --size 120``: 50 s) and the model trained on its
 whole AOI (5 passes, A_sat3 held out: 60 s on the shared 2-core machine at load average 8).
 """
 
