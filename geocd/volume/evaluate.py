@@ -453,18 +453,10 @@ def subarea_aucs_by_shadow(
             "2-D Carlotto joint histogram": carlotto_score(v.intensity, warped),
         }
         for shadow, pool in zip(shadows, pooled):
-            d1 = detect_change(
-                model,
-                v.intensity,
-                v.camera,
-                sun=v.sun,
-                name=v.name,
-                params=DetectParams(neighborhood=1),
-                shadow_dsm=shadow,
-            )
-            d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, shadow_dsm=shadow)  # 3×3: default
-            scores = {"3-D octree (relit)": d1.probability, "3-D octree 3×3 (relit)": d3.probability, **baselines}
-            valid = ~d1.unknown & np.all([np.isfinite(sc) for sc in scores.values()], axis=0)
+            # the default 3×3 detection; its plain per-pixel probability comes from the same ray pass
+            d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, shadow_dsm=shadow)
+            scores = {"3-D octree (relit)": d3.probability_1x1, "3-D octree 3×3 (relit)": d3.probability, **baselines}
+            valid = ~d3.unknown & np.all([np.isfinite(sc) for sc in scores.values()], axis=0)
             for k, sc in scores.items():
                 pool.setdefault(k, []).append((sc[valid], truth[valid]))
     res = []
