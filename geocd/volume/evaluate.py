@@ -2,7 +2,7 @@
 
 Run::
 
-    python -m geocd.volume.evaluate sample_aoi --out docs --work /tmp/volume_eval
+    python -m geocd.volume.evaluate sample_aoi --out geocd_out/volume_eval
 
 It trains the octree model on epoch A (all satellite and aerial views but one
 held-out satellite view), then reports
@@ -17,7 +17,9 @@ held-out satellite view), then reports
 * the expected image of the held-out view (PSNR) and the expected height map
   against the truth DSM (median |Δz|).
 
-Figures ``volume_*.png`` and ``volume_results.json`` go to ``--out``.
+Figures ``volume_*.png`` and ``volume_results.json`` go to ``--out`` (default
+``./geocd_out/volume_eval``); the trained model goes to ``--work`` (default
+``OUT/work``), as ``volume_octree``.
 """
 
 from __future__ import annotations
@@ -586,8 +588,8 @@ def _figures(out: Path, figs: dict, curves: dict, res: dict, agg: int) -> None:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene", help="manifest or scene folder with truth (e.g. sample_aoi)")
-    ap.add_argument("--out", default="docs", help="folder for volume_*.png and volume_results.json")
-    ap.add_argument("--work", default="/tmp/geocd_volume_eval", help="folder for the trained model")
+    ap.add_argument("--out", default="./geocd_out/volume_eval", help="folder for volume_*.png and volume_results.json")
+    ap.add_argument("--work", default=None, help="folder for the trained model (default: OUT/work)")
     ap.add_argument("--holdout", default="A_sat3")
     ap.add_argument("--passes", type=int, default=5)
     ap.add_argument("--finest", type=float, default=0.5)
@@ -625,7 +627,7 @@ def main(argv: list[str] | None = None) -> None:
     res = evaluate(
         a.scene,
         a.out,
-        a.work,
+        a.work if a.work is not None else str(Path(a.out) / "work"),
         holdout=a.holdout,
         cfg=cfg,
         subarea_m=a.subarea,
