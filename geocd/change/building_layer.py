@@ -257,6 +257,18 @@ def summary_line(entry: dict | None) -> str:
     return f"buildings ({entry['source']}): {counts}" + (f"; {lost:,.0f} m³ lost" if lost else "")
 
 
+def read_building_layer(gpkg, layer: str | None = None):
+    """A run's building layer from its GeoPackage: ``layer``, else ``buildings``, else — a run folder written
+    before the one building layer — its ``building_damage`` (the same classes and confidences)."""
+    import geopandas as gpd
+    import pyogrio
+
+    if layer is None:
+        names = [str(n) for n, _ in pyogrio.list_layers(gpkg)]
+        layer = "building_damage" if "building_damage" in names else "buildings"
+    return gpd.read_file(gpkg, layer=layer)
+
+
 def buildings_qml() -> str:
     """QGIS style of the building layer (categorized on ``class``)."""
     return categorized_polygon_qml("class", CLASSES)
