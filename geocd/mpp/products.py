@@ -106,9 +106,9 @@ def buildings_frame(rects_df, source: str | None = None):
     ``building_id``, ``source`` (default "A and B images"), ``class`` (mpp's ``demolished`` → ``collapsed``; a
     building whose rectangles disagree: ``partly collapsed`` when one is gone, else ``raised``) and
     ``confidence_pct`` (a changed building: the model's probability, percent, of its rectangles' change labels —
-    their existence probability where the method gives none; 0 for an unchanged one). Then mpp's own:
-    ``change`` (the rectangles' label, ``modified`` when they disagree), ``n_rectangles``, ``area_m2``,
-    ``confidence`` and ``change_confidence`` (area-weighted / mean over the rectangles, percent).
+    their existence probability where the method gives none; 0 for an unchanged one), ``area_m2`` (the
+    polygon's). Then mpp's own: ``change`` (the rectangles' label, ``modified`` when they disagree),
+    ``n_rectangles``, ``confidence`` and ``change_confidence`` (area-weighted / mean over the rectangles, percent).
     """
     import geopandas as gpd
     from shapely.ops import unary_union

@@ -132,6 +132,20 @@ def test_the_check_names_each_break_of_the_schema():
     assert summary_line({"source": "A DSM", "classes": {}}) == "buildings (A DSM): none found"
 
 
+def test_an_empty_layer_is_written_and_read_in_the_schema(tmp_path):
+    """A DSM without a building object still gives the run its one (empty) building layer."""
+    import geopandas as gpd
+
+    from geocd.change.building_layer import empty_layer
+    from geocd.io.vector import write_gpkg
+
+    p = write_gpkg(tmp_path / "e.gpkg", {"buildings": empty_layer(GRID.crs)})
+    back = gpd.read_file(p, layer="buildings")
+    assert len(back) == 0 and tuple(back.columns[: len(NAMES)]) == NAMES
+    check_building_layer(back)
+    assert summary_line(summarize(back, "A DSM")) == "buildings (A DSM): none found"
+
+
 def test_the_products_page_documents_every_column_and_class():
     """docs/reference/products.md: the building layer's table lists every column, in order, with its unit;
     every class is named."""

@@ -73,7 +73,7 @@ def test_cli_two_images(tmp_path):
     from geocd.change.building_layer import check_building_layer
 
     check_building_layer(bld, shared_only=True)
-    assert (bld["source"] == "A and B images").all() and list(bld.columns[4:6]) == ["change", "n_rectangles"]
+    assert (bld["source"] == "A and B images").all() and list(bld.columns[4:7]) == ["area_m2", "change", "n_rectangles"]
     word = {"unchanged": "unchanged", "new": "new", "demolished": "collapsed"}
     one = bld["change"] != "modified"
     assert (bld.loc[one, "class"] == bld.loc[one, "change"].map(word)).all()
