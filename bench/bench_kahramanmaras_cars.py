@@ -195,7 +195,7 @@ def _dsm_stats(a: np.ndarray, ref: np.ndarray) -> dict:
 
 
 def stage_compare(work: Path, run_dir: Path) -> dict:
-    import geopandas as gpd
+    from geocd.change.building_layer import read_building_layer
     from scipy import ndimage as ndi
 
     from geocd.stereo import read_pair_dem
@@ -212,7 +212,9 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
         for ep in EPOCHS:
             cars.setdefault(ep, {})
     summary = json.loads((run_dir / "run_summary.json").read_text())
-    out: dict = {"geocd_run": {k: summary.get(k) for k in ("orientation", "building_damage", "changed_fraction")}}
+    out: dict = {
+        "geocd_run": {k: summary.get(k) for k in ("orientation", "buildings", "building_damage", "changed_fraction")}
+    }
     from geocd.pipeline import run_orientation
 
     out["geocd_run"]["orientation"] = run_orientation(run_dir, summary)
@@ -258,7 +260,7 @@ def stage_compare(work: Path, run_dir: Path) -> dict:
             "observed_fraction": round(float(observed.mean()), 4),
         }
         # both change maps on the same building objects (geocd's damage layer geometry)
-        dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+        dmg = read_building_layer(run_dir / "sc_changes.gpkg")
         from rasterio.features import rasterize
 
         lab = rasterize(

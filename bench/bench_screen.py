@@ -188,21 +188,23 @@ def _regions(out: Path):
 
 def _changed_and_lost(full: Path, tier: Path):
     """(full run's changed buildings, tiered run's changed buildings, full's changed buildings no tiered
-    changed building overlaps), or None when the runs have no ``building_damage`` layer."""
-    import geopandas as gpd
+    changed building overlaps), or None when the runs have no building layer."""
     import pyogrio
 
-    if "building_damage" not in [str(n) for n, _ in pyogrio.list_layers(full / "sc_changes.gpkg")]:
+    from geocd.change.building_layer import read_building_layer
+
+    names = [str(n) for n, _ in pyogrio.list_layers(full / "sc_changes.gpkg")]
+    if "building_damage" not in names and "buildings" not in names:
         return None
     quiet = ("unchanged", "unobserved", "not examined")
-    a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
-    b = gpd.read_file(tier / "sc_changes.gpkg", layer="building_damage")
+    a = read_building_layer(full / "sc_changes.gpkg")
+    b = read_building_layer(tier / "sc_changes.gpkg")
     a, b = a[~a["class"].isin(quiet)], b[~b["class"].isin(quiet)]
     return a, b, (a[~a.geometry.intersects(b.unary_union)] if len(b) else a)
 
 
 def _damaged_buildings(full: Path, tier: Path, examined=None, grid=None) -> dict | None:
-    """Buildings of the full run's ``building_damage`` layer in a changed class (not unchanged/unobserved) that
+    """Buildings of the full run's building layer in a changed class (not unchanged/unobserved) that
     no changed building of the tiered run overlaps (the building outlines come from each run's own DSM), split
     into those wholly or partly outside the examined (flagged) tiles — the screen missed them — and those
     inside — the 3-D stage on the tiles gave another answer."""
@@ -270,20 +272,20 @@ def _lost_vs_threshold_rule(full: Path, tier: Path, grid) -> dict | None:
 
 
 def screen_losses(full: Path, screens: list[Path], tile_cells: int = 128, min_region_m2: float = 4.0) -> dict:
-    """What each screen alone would lose: the full run's changed buildings (``building_damage``, changed
+    """What each screen alone would lose: the full run's changed buildings (its building layer, changed
     classes) lying mostly (≥ 50 % of their cells) outside the tiles the screen flags, and how many of those
     the screen sees below its own no-change 99 % quantile. For comparing screens (e.g. the views on the
     terrain or on a DSM), independent of how the 3-D stage then covers the tiles."""
-    import geopandas as gpd
     import rasterio
     from rasterio.features import rasterize
     from scipy import ndimage as ndi
 
+    from geocd.change.building_layer import read_building_layer
     from geocd.geodesy import AOIGrid
     from geocd.pipeline import mark_not_examined
     from geocd.screen.tiered import flag_tiles
 
-    a = gpd.read_file(full / "sc_changes.gpkg", layer="building_damage")
+    a = read_building_layer(full / "sc_changes.gpkg")
     a = a[~a["class"].isin(("unchanged", "unobserved", "not examined"))]
     out = {"full_dir": str(full), "changed_full": int(len(a)), "tile_cells": tile_cells, "screens": {}}
     for sd in screens:

@@ -57,7 +57,7 @@ def run_scene(scene: Path, run_dir: Path | None) -> dict:
         cells = _round(binary_scores((mk == 1) | (mk == -1), truth, res.observed))
         b = classify_buildings(fa, mk, res.dz_m, grid, z_a=za, z_b=zb, params=cfg.buildings, id_field="building_id")
         sb = _round(score_buildings(b, fall, aoi=box(*grid.bounds)))
-        fp = b[(b["source"] == "footprint") & (b["class"] != "unobserved")]
+        fp = b[(b["source"] == "footprints") & (b["class"] != "unobserved")]
         changed = np.array([status.get(i) not in (None, "unchanged") for i in fp["building_id"]])
         fr = fp["frac_changed"].to_numpy(float)
         margins = {

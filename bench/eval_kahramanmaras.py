@@ -233,7 +233,7 @@ def evaluate(
 ) -> tuple[dict, object, object, np.ndarray]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import DSMBuildingParams, stable_false_alarms
-    from geocd.pipeline import _building_damage
+    from geocd.pipeline import _building_layer
 
     recs = recs or _recs(run)
     model = SelfConsistencyModel.load(model_path)
@@ -242,7 +242,7 @@ def evaluate(
     )
     grid = recs["pre_event"][0].grid
     bp = DSMBuildingParams(tree_rule=tree_rule or DSMBuildingParams().tree_rule, changed_part=changed_part)
-    damage, dtm = _building_damage(
+    damage, dtm = _building_layer(
         None, res, grid, recs["pre_event"], recs["post_event"], model, 99.0, "pre_event", "post_event", bp
     )
     obs = res.observed
@@ -406,9 +406,9 @@ def picanteo_figures(flag_path: Path, res, damage, grid) -> dict:
     return out
 
 
-def probchange_figures(pc_dir: Path, damage_gpkg: Path, layer: str = "building_damage") -> dict:
+def probchange_figures(pc_dir: Path, damage_gpkg: Path, layer: str | None = None) -> dict:
     """probchange (p > 0.5) on the same grid: flagged share, outside changed buildings, per building class."""
-    import geopandas as gpd
+    from geocd.change.building_layer import read_building_layer
     import rasterio
     from rasterio.features import rasterize
     from scipy import ndimage as ndi
@@ -422,7 +422,7 @@ def probchange_figures(pc_dir: Path, damage_gpkg: Path, layer: str = "building_d
         grid = AOIGrid.from_raster(ds)
     observed = mask != nod if nod is not None else np.isfinite(mask)
     flagged = observed & (mask > 0)
-    dmg = gpd.read_file(damage_gpkg, layer=layer)
+    dmg = read_building_layer(damage_gpkg, layer)
     conf = np.where(flagged, 99.0, 0.0)
     fa = stable_false_alarms(conf, observed, dmg, grid, levels=(99.0,))
     lab = rasterize(
@@ -445,9 +445,9 @@ def probchange_figures(pc_dir: Path, damage_gpkg: Path, layer: str = "building_d
     }
 
 
-def volume_figures(prob_ortho: Path, damage_gpkg: Path, layer: str = "building_damage") -> dict:
+def volume_figures(prob_ortho: Path, damage_gpkg: Path, layer: str | None = None) -> dict:
     """Octree-model change probability (orthorectified) against geocd's building classes on the same cells."""
-    import geopandas as gpd
+    from geocd.change.building_layer import read_building_layer
     import rasterio
     from rasterio.features import rasterize
 
@@ -456,7 +456,7 @@ def volume_figures(prob_ortho: Path, damage_gpkg: Path, layer: str = "building_d
     with rasterio.open(prob_ortho) as ds:
         p = ds.read(1).astype(float)
         tr, shape = ds.transform, (ds.height, ds.width)
-    dmg = gpd.read_file(damage_gpkg, layer=layer).to_crs(ds.crs)
+    dmg = read_building_layer(damage_gpkg, layer).to_crs(ds.crs)
     cls_code = {"collapsed": 1, "partly collapsed": 2, "unchanged": 3}
     lab = rasterize(
         [(g, cls_code[c]) for g, c in zip(dmg.geometry, dmg["class"]) if c in cls_code],
@@ -525,7 +525,7 @@ def main(argv=None) -> int:
     results = {}
     if args.rerun:
         s = rerun(Path(args.run), Path(args.rerun), Path(args.model))
-        print(json.dumps({k: s[k] for k in ("changed_fraction", "model", "building_damage") if k in s}, indent=1))
+        print(json.dumps({k: s[k] for k in ("changed_fraction", "model", "buildings") if k in s}, indent=1))
     if args.volume:
         results["volume"] = volume_figures(Path(args.volume), Path(args.run) / "sc_changes.gpkg")
         print(json.dumps(results["volume"], indent=1))
@@ -559,7 +559,7 @@ def main(argv=None) -> int:
             print(key, json.dumps({k: v for k, v in r.items() if k != "collapsed"}, indent=1))
             out = Path(args.out or args.run)
             out.mkdir(parents=True, exist_ok=True)
-            dmg.to_file(out / f"eval_building_damage_{key}.gpkg", driver="GPKG")
+            dmg.to_file(out / f"eval_buildings_{key}.gpkg", driver="GPKG")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1, default=str))
     return 0

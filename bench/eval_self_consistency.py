@@ -105,7 +105,7 @@ def building_eval(mask, res, grid, A, B, scene_manifest, level=None):
     status = dict(zip(fall["building_id"], fall["status"]))
     conf = {}
     for _, row in b.iterrows():
-        t = status.get(row["building_id"], "detected") if row["source"] == "footprint" else "detected"
+        t = status.get(row["building_id"], "detected") if row["source"] == "footprints" else "detected"
         conf.setdefault(t, {}).setdefault(row["class"], 0)
         conf[t][row["class"]] += 1
     return s, conf

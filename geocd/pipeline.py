@@ -84,8 +84,9 @@ class RunConfig:
     pairs : str
         "same-kind" (default: satellite–satellite and aerial–aerial pairs) or "all".
     derive_buildings : bool
-        Without footprints, derive building objects from epoch A's DSM (and new ones from epoch B's) and
-        classify their damage (:mod:`geocd.change.dsm_buildings`); with footprints, the damage layer uses them.
+        Without footprints, derive building objects from epoch A's DSM (and new ones from epoch B's) for the
+        ``buildings`` layer (:mod:`geocd.change.dsm_buildings`); with footprints, the layer holds them (and the new
+        buildings of the change map outside them) whatever this says.
     screen : ScreenParams, optional
         Run the 2-D screen first and the stereo only on the tiles it flags (:mod:`geocd.screen.tiered`).
     screen_tile_cells : int
@@ -189,55 +190,36 @@ def _median_surface(recs: Sequence[Any]) -> np.ndarray:
     return nanmedian_stack(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs])).astype(np.float32)
 
 
-def _building_damage(
-    footprints, res, grid, recs_a, recs_b, model, report_confidence: float, name_a: str, name_b: str, params=None
+def _building_layer(
+    footprints,
+    res,
+    grid,
+    recs_a,
+    recs_b,
+    model,
+    report_confidence: float,
+    name_a: str,
+    name_b: str,
+    params=None,
+    building_params: BuildingParams | None = None,
 ):
-    """Damage layer: footprints when given, else building objects of epoch A's DSM plus the parts of epoch B's
-    objects that stand where A's surface was ground (new buildings, :func:`~geocd.change.dsm_buildings.new_objects`)."""
-    import pandas as pd
+    """The run's building layer and the ground model under it, from the epochs' reconstructions: their median
+    surfaces into :func:`geocd.change.dsm_buildings.building_layer`."""
+    from .change.dsm_buildings import building_layer
 
-    from .change.dsm_buildings import (
-        DSMBuildingParams,
-        buildings_from_dsm,
-        classify_damage,
-        fill_gaps,
-        ground_model,
-        new_objects,
-    )
-
-    params = params or DSMBuildingParams()
-    z_a, z_b = _median_surface(recs_a), _median_surface(recs_b)
-    if not (np.isfinite(z_a).any() and np.isfinite(z_b).any()) or report_confidence not in res.confidences:
-        return None, None
-    if footprints is not None:
-        dtm, _ = ground_model(z_a, grid.posting_m, params)
-        bld = footprints.to_crs(grid.crs)
-        bld = bld.assign(source="footprints")
-    else:
-        bld, dtm, lab_a = buildings_from_dsm(z_a, grid, params)
-        bld = bld.assign(source=f"{name_a} DSM")
-        # new buildings: the parts of B's objects standing where A's surface was ground
-        post = new_objects(z_a, z_b, dtm, buildings_from_dsm(z_b, grid, params)[2], grid, params, labels_a=lab_a)
-        if len(post):
-            post = post.assign(source=f"{name_b} DSM (ground in {name_a})")
-            post["building_id"] = np.arange(len(bld) + 1, len(bld) + 1 + len(post))
-            bld = pd.concat([bld, post], ignore_index=True)
-    if not len(bld):
-        return None, None
-    dtm = fill_gaps(dtm)
-    dmg = classify_damage(
-        bld,
+    return building_layer(
+        footprints,
         res,
         grid,
-        z_a=z_a,
-        z_b=z_b,
-        dtm=dtm,
+        z_a=_median_surface(recs_a),
+        z_b=_median_surface(recs_b),
         model=model,
-        params=params,
         report_confidence=report_confidence,
-        id_field="building_id" if "building_id" in bld else None,
+        epoch_a=name_a,
+        epoch_b=name_b,
+        params=params,
+        building_params=building_params,
     )
-    return dmg, dtm
 
 
 def mark_not_examined(buildings, grid, examined: np.ndarray | None):
@@ -273,7 +255,9 @@ def mark_not_examined(buildings, grid, examined: np.ndarray | None):
             out.loc[hit, "rule"] = [
                 f"not examined: {100 * (1 - f):.0f}% of its cells in tiles the screen did not flag" for f in frac[hit]
             ]
-    return out
+    from .change.building_layer import order_columns
+
+    return order_columns(out)
 
 
 def _check_epochs_overlap(m) -> None:
@@ -337,7 +321,7 @@ def run(
     progress : callable, optional
         ``progress(fraction, message)``; it may raise :class:`~geocd.errors.CancelledError` to stop the run.
     footprints : path, optional
-        Building footprints (a vector file) for the per-building damage layer.
+        Building footprints (a vector file) for the ``buildings`` layer (default: the manifest's).
     log_file : bool
         Write the run's log, ``geocd_run.log``, into ``out_dir`` (the one ``geocd run`` writes: parameters,
         progress, warnings, products, the error if it fails). The CLI writes its own and passes False.
@@ -525,7 +509,6 @@ def run_change(
         one) on these cells only — a tiered run's examined cells that the screen calls unchanged, since
         its examined tiles were chosen for their change (:func:`geocd.screen.tiered.fit_calibration_on`)
     """
-    from .change.buildings import classify_buildings
     from .change.products import write_change_products
     from .io.atomic import write_text_atomic
     from .io.vector import read_footprints
@@ -581,35 +564,20 @@ def run_change(
         offsets=offsets if cal is not None else None,
         calibration=cal,
     )
-    buildings = None
+    buildings = ground_path = None
     fp_path = footprints or (m.footprints.path if m.footprints is not None else None)
-    if fp_path is not None:
-        fps = read_footprints(
-            fp_path, crs=grid.crs, layer=m.footprints.layer if (m.footprints and not footprints) else None
-        )
-        id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
-        buildings = classify_buildings(
-            fps,
-            res.changed_at(config.region_confidence),
-            res.dz_m,
-            grid,
-            z_a=_median_surface(recs_a),
-            z_b=_median_surface(recs_b),
-            confidence=res.confidence,
-            params=config.buildings,
-            id_field=id_field,
-            confidence_level=config.region_confidence,
-            min_part_cells=res.min_region_cells,
-        )
-        buildings = mark_not_examined(buildings, grid, examined)
-    damage = ground_path = None
-    extra, extra_styles = {}, {}
-    if config.derive_buildings or fp_path is not None:
-        prog(0.7, "building damage")
+    if fp_path is not None or config.derive_buildings:
+        prog(0.7, "buildings")
         from .change.dsm_buildings import DSMBuildingParams
 
-        damage, ground = _building_damage(
-            fps if fp_path is not None else None,
+        fps = None
+        if fp_path is not None:
+            fps = read_footprints(
+                fp_path, crs=grid.crs, layer=m.footprints.layer if (m.footprints and not footprints) else None
+            )
+        bp = config.buildings
+        buildings, ground = _building_layer(
+            fps,
             res,
             grid,
             recs_a,
@@ -618,9 +586,10 @@ def run_change(
             config.region_confidence,
             ea.name,
             eb.name,
-            DSMBuildingParams(changed_part=config.buildings.changed_part),
+            DSMBuildingParams(min_observed=bp.min_observed, min_changed=bp.min_changed, changed_part=bp.changed_part),
+            building_params=bp,
         )
-        damage = mark_not_examined(damage, grid, examined)
+        buildings = mark_not_examined(buildings, grid, examined)
         if ground is not None:
             from .io.raster import write_cog
 
@@ -633,11 +602,6 @@ def run_change(
                     "vertical_datum": "ellipsoid",
                 },
             )
-        if damage is not None:
-            from .change.dsm_buildings import damage_qml
-
-            extra["building_damage"] = damage
-            extra_styles["building_damage"] = damage_qml()
     prog(0.8, "writing products")
     paths = write_change_products(
         out,
@@ -649,8 +613,6 @@ def run_change(
         region_confidence=config.region_confidence,
         model=model,
         buildings=buildings,
-        extra_layers=extra or None,
-        extra_styles=extra_styles or None,
         provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
         prefix="sc",
         backdrop_m=_median_surface(recs_b),
@@ -686,15 +648,22 @@ def run_change(
         "outputs": {k: str(v) for k, v in paths.items()},
     }
     if buildings is not None:
-        summary["buildings"] = buildings["class"].value_counts().to_dict()
+        from .change.building_layer import SOURCE_FOOTPRINTS, source_dsm, summarize
+
+        summary["buildings"] = summarize(buildings, SOURCE_FOOTPRINTS if fp_path is not None else source_dsm(ea.name))
+    else:
+        summary["buildings"] = {
+            "source": None,
+            "classes": {},
+            "volume_lost_m3": None,
+            "reason": (
+                "no footprints and derive_buildings is off"
+                if fp_path is None and not config.derive_buildings
+                else "an epoch has no height to derive buildings from"
+            ),
+        }
     if orientation is not None:
         summary["orientation"] = orientation_summary(orientation)
-    if damage is not None:
-        summary["building_damage"] = {
-            "source": "footprints" if fp_path is not None else f"{ea.name} DSM (+ new objects of {eb.name})",
-            "classes": damage["class"].value_counts().to_dict(),
-            "volume_lost_m3": round(float(np.nansum(damage["volume_lost_m3"])), 1),
-        }
     write_text_atomic(out / "run_summary.json", json.dumps(summary, indent=2, default=str))
     paths["config"] = cfg_path
     paths["summary"] = out / "run_summary.json"

@@ -85,11 +85,17 @@ def test_run_on_a_tiny_scene(tmp_path):
     for k in ("change", "change_mask"):
         with rasterio.open(out[k]) as ds:
             assert ds.crs is not None and ds.width > 50
-    assert {"changes", "buildings", "curves", "layer_styles"} <= {n for n, _ in pyogrio.list_layers(out["changes"])}
+    layers = {n for n, _ in pyogrio.list_layers(out["changes"])}
+    assert {"changes", "buildings", "curves", "layer_styles"} <= layers
+    assert [n for n in layers if "build" in n] == ["buildings"]  # one building layer
+    from geocd.change.building_layer import check_building_layer
+
+    check_building_layer(pyogrio.read_dataframe(out["changes"], layer="buildings"))
     cfg = RunConfig.load(out["config"])
     assert cfg.to_dict()["region_confidence"] == 99.0
     s = json.loads(out["summary"].read_text())
     assert s["epoch_a"] == "A" and s["model"]["learned_here"]
+    assert set(s["buildings"]) >= {"source", "classes", "volume_lost_m3"} and "building_damage" not in s
 
 
 @pytest.mark.slow
@@ -111,7 +117,7 @@ def test_sample_aoi_end_to_end(tmp_path, sample_aoi):
     assert s["false_alarm_rate"] < 0.015, s
     assert s["recall"] > 0.45, s
     b = res["buildings"]  # epoch-A footprints (the manifest's) + new buildings detected in the change map
-    assert set(b.loc[b["source"] == "footprint", "building_id"]) == set(
+    assert set(b.loc[b["source"] == "footprints", "building_id"]) == set(
         read_footprints(sample_aoi / "truth" / "footprints_A.gpkg")["building_id"]
     )
     fps = read_footprints(sample_aoi / "truth" / "footprints_all.gpkg", crs=grid.crs)
@@ -202,8 +208,9 @@ def test_sample_aoi_region_test_figures(sample_pairs, sample_run):
     # changed cells do not form a region significant at 99 %; the per-cell test below finds it)
     assert (b["tp"], b["fp"], b["fn"]) == (7, 0, 1), b
     bl = sample_run["buildings"]
-    assert (bl["source"] == "detected").sum() == 3 and (bl.loc[bl["source"] == "detected", "class"] == "new").all()
-    fr = bl.loc[bl["class"].isin(["raised", "lowered", "demolished"]), "frac_changed"]
+    new = bl["source"] == "change map"
+    assert new.sum() == 3 and (bl.loc[new, "class"] == "new").all()
+    fr = bl.loc[bl["class"].isin(["raised", "lowered", "partly collapsed", "collapsed"]), "frac_changed"]
     assert fr.min() == pytest.approx(0.576, abs=0.05)  # the region test flags most of a changed building
     assert bl.loc[bl["class"] == "unchanged", "frac_changed"].max() < 0.05
     unobs = bl[bl["class"] == "unobserved"]
@@ -224,7 +231,48 @@ def test_sample_aoi_products_say_the_reported_level(sample_run):
     assert np.isfinite(ch["volume_sigma_m3"]).all() and (ch["volume_sigma_m3"] > 0).all()
     assert (ch["confidence"] >= 99).all() and (ch["confidence"] <= 100).all()  # percent
     s = sample_run["summary"]
-    assert s["buildings"] == {"unchanged": 23, "unobserved": 9, "new": 3, "raised": 2, "demolished": 1, "lowered": 1}
+    # the building 31 the footprint rule calls demolished (at ground level after) is "collapsed" in the layer
+    assert s["buildings"]["source"] == "footprints + change map"
+    assert s["buildings"]["classes"] == {
+        "collapsed": 1,
+        "lowered": 1,
+        "raised": 2,
+        "new": 3,
+        "unchanged": 23,
+        "unobserved": 9,
+    }
+    assert s["buildings"]["volume_lost_m3"] == pytest.approx(1562, abs=150)  # 1562.4: 22, 31, 32 and noise
+
+
+@pytest.mark.slow
+def test_sample_aoi_run_writes_one_building_layer_with_the_new_buildings(sample_pairs, sample_run):
+    """One building layer in the GeoPackage, in the one schema; with the manifest's epoch-A footprints it holds
+    the 3 buildings built between the dates (truth ``footprints_all``, status new), found in the change map
+    outside every footprint: each matches a distinct new building of the truth."""
+    import geopandas as gpd
+    import pyogrio
+
+    from geocd.change.building_layer import check_building_layer
+    from geocd.io.vector import read_footprints
+
+    m, _, grid = sample_pairs
+    gpkg = sample_run["outputs"]["changes"]
+    names = [str(n) for n, _ in pyogrio.list_layers(gpkg)]
+    assert [n for n in names if "build" in n] == ["buildings"], names
+    b = gpd.read_file(gpkg, layer="buildings")
+    check_building_layer(b)
+    assert (b["confidence_pct"][b["class"] == "unchanged"] == 0).all()
+    assert b.loc[b["class"] == "unobserved", "confidence_pct"].isna().all()
+    truth = read_footprints(m.truth_path("footprints_all"), crs=grid.crs)
+    truth_new = truth[truth["status"] == "new"]
+    assert len(truth_new) == 3
+    new = b[b["source"] == "change map"].to_crs(grid.crs)
+    assert len(new) == 3 and (new["class"] == "new").all() and (new["confidence_pct"] == 99).all()
+    hits = [int(truth_new.geometry.intersection(g).area.to_numpy().argmax()) for g in new.geometry]
+    assert sorted(hits) == [0, 1, 2]
+    for g, k in zip(new.geometry, hits):
+        assert g.intersection(truth_new.geometry.iloc[k]).area > 0.5 * g.area
+    assert (new["height_before_m"] < 1.0).all() and (new["height_after_m"] > 3.5).all()
 
 
 @pytest.mark.slow
@@ -250,8 +298,9 @@ def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run, sample_run_c
     bl = sample_run_cell["buildings"].set_index("building_id")
     # changed buildings flagged on 34 % and 37 % of their cells: min_changed 0.5 would lose them
     assert bl.loc[11, "frac_changed"] == pytest.approx(0.344, abs=0.05) and bl.loc[11, "class"] == "raised"
-    assert bl.loc[22, "frac_changed"] == pytest.approx(0.367, abs=0.05) and bl.loc[22, "class"] == "demolished"
-    assert bl.loc[31, "frac_changed"] == pytest.approx(0.512, abs=0.05) and bl.loc[31, "class"] == "demolished"
+    # the footprint rule's "demolished" (at ground level after): "collapsed" in the building layer
+    assert bl.loc[22, "frac_changed"] == pytest.approx(0.367, abs=0.05) and bl.loc[22, "class"] == "collapsed"
+    assert bl.loc[31, "frac_changed"] == pytest.approx(0.512, abs=0.05) and bl.loc[31, "class"] == "collapsed"
     for bid in (11, 22, 31):  # the fraction rule classes them
         assert "≥ min_changed 15%" in bl.loc[bid, "rule"], bl.loc[bid, "rule"]
     # the changed-part rule (an option) moves no class here, in either test (docs/towns.md: nor on towns 1-3)

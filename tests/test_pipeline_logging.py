@@ -105,23 +105,33 @@ def test_cli_run_writes_one_log(sample_aoi, tmp_path, monkeypatch):
 
 
 def test_cli_run_prints_building_counts_per_class(sample_aoi, tmp_path, monkeypatch):
-    """The summary on stdout names the building counts per class of both layers (footprints and damage)."""
+    """The summary on stdout names the building layer's source and its counts per class, on every run that has
+    one, and says why when a run has none (no footprints, derivation off)."""
     from geocd.cli import main
 
     fake = _fake_run()
+    entry = {}
 
     def with_buildings(m, out, config, prog, footprints):
         res = fake(m, out, config, prog, footprints)
-        res["summary"]["buildings"] = {"unchanged": 41, "demolished": 3, "new": 2}
-        res["summary"]["building_damage"] = {
-            "source": "footprints",
-            "classes": {"unchanged": 40, "collapsed": 3},
-            "volume_lost_m3": 1234.5,
-        }
+        res["summary"]["buildings"] = entry
         return res
 
     monkeypatch.setattr(pipeline, "_run", with_buildings)
+    entry.update(
+        source="footprints + change map",
+        classes={"collapsed": 3, "new": 2, "unchanged": 41},
+        volume_lost_m3=1234.5,
+    )
     r = CliRunner().invoke(main, ["run", str(sample_aoi), "--out", str(tmp_path / "out"), "--progress", "none"])
     assert r.exit_code == 0, r.output
-    assert "buildings: 41 unchanged, 3 demolished, 2 new" in r.stdout
-    assert "building damage (footprints): 40 unchanged, 3 collapsed" in r.stdout
+    assert "buildings (footprints + change map): 3 collapsed, 2 new, 41 unchanged; 1,234 m³ lost" in r.stdout
+    assert "building damage" not in r.stdout
+    entry.clear()
+    entry.update(source="A DSM", classes={}, volume_lost_m3=0.0)
+    r = CliRunner().invoke(main, ["run", str(sample_aoi), "--out", str(tmp_path / "out2"), "--progress", "none"])
+    assert "buildings (A DSM): none found" in r.stdout
+    entry.clear()
+    entry.update(source=None, classes={}, volume_lost_m3=None, reason="no footprints and derive_buildings is off")
+    r = CliRunner().invoke(main, ["run", str(sample_aoi), "--out", str(tmp_path / "out3"), "--progress", "none"])
+    assert "buildings: no building layer (no footprints and derive_buildings is off)" in r.stdout

@@ -1,6 +1,6 @@
 """Where the Kahramanmaraş "stable-ground false alarms" are, and whether an independent reconstruction sees them.
 
-Reads the layers of a run (``RUN/sc_change.tif``, ``RUN/sc_changes.gpkg`` layer ``building_damage``,
+Reads the layers of a run (``RUN/sc_change.tif``, ``RUN/sc_changes.gpkg`` layer ``buildings``,
 ``RUN/orthos/post_event_img1.tif``, the pair-DEMs ``RUN/stereo/<epoch>/*.tif``) and CARS's two DSMs (``bench_kahramanmaras_cars.py cars --work WORK``) and
 draws, over the post-event ortho, the cells flagged at 99 % outside every changed building (the issue's
 "stable" cells): in colour where CARS's own two DSMs differ there by more than 3 × their NMAD too (a change
@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 
 def main(argv=None) -> int:
-    import geopandas as gpd
+    from geocd.change.building_layer import read_building_layer
     import matplotlib
 
     matplotlib.use("Agg")
@@ -53,7 +53,7 @@ def main(argv=None) -> int:
         grid = AOIGrid.from_raster(ds)
     with rasterio.open(run / "orthos" / "post_event_img1.tif") as ds:
         img = ds.read(1).astype(float)
-    dmg = gpd.read_file(run / "sc_changes.gpkg", layer="building_damage").to_crs(grid.crs)
+    dmg = read_building_layer(run / "sc_changes.gpkg").to_crs(grid.crs)
     ch = dmg[dmg["class"].isin(CHANGED)]
     inside = (
         rasterize(

@@ -116,7 +116,7 @@ def quicklook(pre: np.ndarray, post: np.ndarray, damage, grid, path: Path) -> No
 
 
 def main(argv=None) -> int:
-    import geopandas as gpd
+    from geocd.change.building_layer import read_building_layer
     import rasterio
 
     from geocd.geodesy import AOIGrid
@@ -131,14 +131,14 @@ def main(argv=None) -> int:
     with rasterio.open(run / "sc_change.tif") as ds:
         grid = AOIGrid.from_raster(ds)
     ap_layer = run / "sc_changes.gpkg"
-    damage = gpd.read_file(ap_layer, layer="building_damage")
+    damage = read_building_layer(ap_layer)
     summary = json.loads((run / "run_summary.json").read_text())
     from geocd.pipeline import run_orientation
 
     orientation = run_orientation(run, summary)
     res = {
         "orientation": orientation,
-        "building_damage": summary.get("building_damage"),
+        "buildings": summary.get("buildings") if "building_damage" not in summary else summary["building_damage"],
         "changed_fraction": summary.get("changed_fraction"),
         "stable_false_alarms": stable_false_alarms(run, damage, grid),
         "stable_false_alarms_3m": stable_false_alarms(run, damage, grid, buffer_m=3.0),

@@ -65,6 +65,7 @@ DOCS = REPO / "docs"  # the pictures the pages show
 RESULTS = REPO / "bench" / "results"  # the figures behind them
 sys.path.insert(0, str(REPO))
 
+from geocd.change.building_layer import read_building_layer  # noqa: E402
 from geocd.mpp.detect import detect  # noqa: E402
 from geocd.mpp.evaluate import rect_masks, sample_truth, table2, table2_change_only  # noqa: E402
 from geocd.mpp.model import XI_NAMES  # noqa: E402
@@ -1139,8 +1140,7 @@ def turn_compare(turned: Path, still: Path, run_dir: Path) -> dict:
     """Two ``geocd mpp`` outputs of the same inputs, with and without the turn of the rectangles (no truth:
     Kahramanmaraş): how far each rectangle turned (angle of its minimum rotated rectangle, modulo 90°, against
     the rectangle with the nearest centre in the other output) and how many objects of geocd's damage layer
-    (``run_dir/sc_changes.gpkg``, layer ``building_damage``) each output covers by at least half."""
-    import geopandas as gpd
+    (``run_dir/sc_changes.gpkg``, layer ``buildings``) each output covers by at least half."""
 
     def angle(g):
         p = np.asarray(g.minimum_rotated_rectangle.exterior.coords)
@@ -1148,7 +1148,7 @@ def turn_compare(turned: Path, still: Path, run_dir: Path) -> dict:
 
     a, b, near = _nearest_rectangles(turned, still)
     turn = np.array([abs((angle(g) - angle(h) + 45.0) % 90.0 - 45.0) for g, h in near])
-    dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+    dmg = read_building_layer(run_dir / "sc_changes.gpkg")
     cover = {tag: _damage_cover(r, dmg)["covered"] for tag, r in (("turned", a), ("not_turned", b))}
     out = {
         "rectangles": {"turned": len(a), "not_turned": len(b)},
@@ -1205,9 +1205,8 @@ def grow_compare(grown: Path, still: Path, run_dir: Path, png: Path | None = Non
     """Two ``geocd mpp`` outputs of the same inputs, with and without the growth of the rectangles over the
     raised block (``--edge-fit-grow on|off``; no truth: Kahramanmaraş): the area of each rectangle against
     the one with the nearest centre in the other output, the rectangles' overlaps, and the damage layer's
-    coverage (``run_dir/sc_changes.gpkg``, layer ``building_damage``). ``png``: the 12 largest growths, pre-event
+    coverage (``run_dir/sc_changes.gpkg``, layer ``buildings``). ``png``: the 12 largest growths, pre-event
     ortho and DSM of ``run_dir`` with the outline before (cyan) and after (red)."""
-    import geopandas as gpd
     import rasterio
 
     a, b, near = _nearest_rectangles(grown, still)
@@ -1218,7 +1217,7 @@ def grow_compare(grown: Path, still: Path, run_dir: Path, png: Path | None = Non
         g = list(r.geometry)
         return round(sum(g[i].intersection(g[j]).area for i in range(len(g)) for j in range(i + 1, len(g))), 1)
 
-    dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+    dmg = read_building_layer(run_dir / "sc_changes.gpkg")
     out = {
         "rectangles": {"grown": len(a), "not_grown": len(b)},
         "area_ratio": {
@@ -1629,7 +1628,7 @@ KAHRA_GONE_BY_EYE = [(60, 520), (490, 560), (470, 710), (760, 730), (720, 950), 
 
 def kahra(mpp_dir: Path, run_dir: Path, name: str = "mpp_kahramanmaras") -> dict:
     """Kahramanmaraş: what ``geocd mpp`` found, and how it relates to geocd's own building damage layer
-    (``sc_changes.gpkg``, layer ``building_damage``) — no truth exists for this city. Writes
+    (``sc_changes.gpkg``, layer ``buildings``) — no truth exists for this city. Writes
     ``docs/<name>.png`` and ``bench/results/<name>.json``."""
     import geopandas as gpd
     import matplotlib
@@ -1645,7 +1644,7 @@ def kahra(mpp_dir: Path, run_dir: Path, name: str = "mpp_kahramanmaras") -> dict
     summary = json.loads((mpp_dir / "mpp_summary.json").read_text())
     rects = gpd.read_file(mpp_dir / "mpp_buildings.gpkg", layer="rectangles")
     blds = gpd.read_file(mpp_dir / "mpp_buildings.gpkg", layer="buildings")
-    dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+    dmg = read_building_layer(run_dir / "sc_changes.gpkg")
     date1 = np.isin(lab, (1, 2))
     demol = lab == 2
     out = {
@@ -1724,7 +1723,6 @@ def kahra_outlines(run_dir: Path, step: str = "and") -> list[dict]:
     """Kahramanmaraş: the pre-event features and energies of a rectangle fitted to each of geocd's collapsed
     buildings (minimum rotated rectangle of its outline), with the parameters of the documented run (DSM-only
     prototype added, largest side from this DSM): why each one is, or is not, an attractive object."""
-    import geopandas as gpd
     import rasterio
 
     from geocd.io.raster import read_band
@@ -1746,7 +1744,7 @@ def kahra_outlines(run_dir: Path, step: str = "and") -> list[dict]:
         p = p.replace(side_max_m=float(smax))
         f = image_features(a, posting, p, valid=va, dsm_m=dsm, ground_m=gr)
         m = EnergyModel([f], posting, p)
-    dmg = gpd.read_file(run_dir / "sc_changes.gpkg", layer="building_damage")
+    dmg = read_building_layer(run_dir / "sc_changes.gpkg")
     rects = []
     for geom in dmg.geometry[dmg["class"] == "collapsed"]:
         xy = np.asarray(geom.minimum_rotated_rectangle.exterior.coords)[:4]

@@ -5,7 +5,7 @@ rasters are GeoTIFFs (QGIS applies the ``.qml`` sidecar). The first layer given 
 system Python that has PyQGIS::
 
     QT_QPA_PLATFORM=offscreen /usr/bin/python3 bench/figures/qgis_layers_screenshot.py \\
-        --layer "/tmp/kahra2/sc_changes.gpkg|layername=building_damage" \\
+        --layer "/tmp/kahra2/sc_changes.gpkg|layername=buildings" \\
         --layer /tmp/kahra2/orthos_ground/post_event_img1.tif \\
         --out /tmp/qgis_map.png
     .venv/bin/python bench/figures/qgis_layers_screenshot.py --legend /tmp/qgis_map.png docs/qgis_kahramanmaras.png \\
@@ -40,7 +40,7 @@ def add_legend(map_png: str, out_png: str, title: str) -> None:
     fig.legend(
         handles=[Patch(facecolor=c, edgecolor="#323232", label=l) for c, l in DAMAGE_CLASSES.values()],
         loc="center right",
-        title="building_damage (class)",
+        title="buildings (class)",
         fontsize=9,
         frameon=False,
     )

@@ -1,5 +1,10 @@
 """Building-level change: attribute input footprints from a per-cell change map.
 
+The footprint rule below is the first step of every building layer: :func:`geocd.change.dsm_buildings.classify_damage`
+turns its classes into the layer's (``demolished`` → ``collapsed``, ``lowered`` → ``collapsed`` / ``partly
+collapsed`` / ``lowered`` by the heights) and writes the one schema of :mod:`geocd.change.building_layer`.
+:func:`classify_buildings`' own frame is an intermediate result, not a layer.
+
 For each footprint, with the signed change mask at the chosen confidence and
 the two epochs' surfaces:
 
@@ -35,8 +40,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .building_layer import CHANGED, SOURCE_CHANGE_MAP, SOURCE_FOOTPRINTS
+
+#: the footprint rule's classes (:func:`classify_buildings`; the layer's are :data:`~geocd.change.building_layer.CLASSES`)
 CLASSES = ("new", "raised", "demolished", "lowered", "unchanged", "unobserved")
 CHANGED_CLASSES = ("new", "raised", "demolished", "lowered")
+#: the footprint rule's and a truth's class words → the building layer's, for comparing classes
+_LAYER_CLASS = {"demolished": "collapsed"}
 
 
 @dataclass(frozen=True)
@@ -246,8 +256,9 @@ def classify_buildings(
                     if above < params.ground_tol_m:
                         epoch = "A" if cls == "raised" else "B"
                         cls = "new" if cls == "raised" else "demolished"
+                        ref = "the ground model" if dem_m is not None else "its surroundings"
                         rule += (
-                            f"; at ground level in {epoch} (median {above:.1f} m above its surroundings "
+                            f"; at ground level in {epoch} (median {above:.1f} m above {ref} "
                             f"< ground_tol {params.ground_tol_m:g} m)"
                         )
         rec.update(
@@ -267,7 +278,7 @@ def classify_buildings(
     import pandas as pd
 
     out = gpd.GeoDataFrame(pd.DataFrame(rows), geometry=gdf.geometry.values, crs=gdf.crs)
-    out.insert(1, "source", "footprint")
+    out.insert(1, "source", SOURCE_FOOTPRINTS)
     keep = [c for c in gdf.columns if c not in out.columns and c != gdf.geometry.name]
     for c in keep:
         out[f"src_{c}"] = gdf[c].values
@@ -349,7 +360,7 @@ def detect_new_buildings(
     Returns
     -------
     GeoDataFrame (the grid's CRS) with the columns of :func:`classify_buildings`, ``class`` "new",
-    ``source`` "detected", negative ``building_id`` (−1, −2, … by decreasing area) and the region's
+    ``source`` "change map", negative ``building_id`` (−1, −2, … by decreasing area) and the region's
     polygon as geometry; empty when there is none.
     """
     import geopandas as gpd
@@ -419,25 +430,34 @@ def detect_new_buildings(
     geoms = [unary_union(parts[r]) for r in kept]
     df = pd.DataFrame(rows)
     df.insert(0, "building_id", -np.arange(1, len(df) + 1))
-    df.insert(1, "source", "detected")
+    df.insert(1, "source", SOURCE_CHANGE_MAP)
     return gpd.GeoDataFrame(df, geometry=geoms, crs=grid.crs)
 
 
-def building_scores(pred_class, truth_class) -> dict:
-    """Building-level precision/recall/F1 of "changed" (any of new/raised/demolished/lowered).
+def _coarse(c: str) -> str:
+    """A class for comparing with a truth: the layer's word, ``partly collapsed`` counted as ``lowered``."""
+    c = _LAYER_CLASS.get(str(c), str(c))
+    return "lowered" if c == "partly collapsed" else c
 
-    Unobserved predictions count as "not changed". Also reports class accuracy
-    on the buildings that truly changed.
+
+def building_scores(pred_class, truth_class) -> dict:
+    """Building-level precision/recall/F1 of "changed" (a changed class of the building layer or of the
+    footprint rule: new, raised, collapsed / demolished, partly collapsed, lowered).
+
+    Unobserved predictions count as "not changed". Also reports class accuracy on the buildings that truly
+    changed, in the building layer's words (``demolished`` = ``collapsed``; ``partly collapsed`` counts as
+    ``lowered``).
     """
-    pred = np.asarray([c in CHANGED_CLASSES for c in pred_class])
-    truth = np.asarray([c in CHANGED_CLASSES for c in truth_class])
+    changed = set(CHANGED_CLASSES) | set(CHANGED)
+    pred = np.asarray([c in changed for c in pred_class])
+    truth = np.asarray([c in changed for c in truth_class])
     tp = int(np.sum(pred & truth))
     fp = int(np.sum(pred & ~truth))
     fn = int(np.sum(~pred & truth))
     p = tp / (tp + fp) if tp + fp else 1.0
     r = tp / (tp + fn) if tp + fn else 1.0
     f1 = 2 * p * r / (p + r) if p + r else 0.0
-    exact = np.asarray(pred_class)[truth] == np.asarray(truth_class)[truth]
+    exact = np.asarray([_coarse(a) == _coarse(b) for a, b in zip(pred_class, truth_class)], bool)[truth]
     return {
         "tp": tp,
         "fp": fp,
@@ -456,8 +476,9 @@ def score_buildings(
 
     Parameters
     ----------
-    pred : GeoDataFrame from :func:`classify_buildings` (``source`` "footprint" rows carry the given
-        footprints' ids; "detected" rows are new buildings found in the change map)
+    pred : a building layer (:func:`geocd.change.dsm_buildings.footprint_layer`) or the frame of
+        :func:`classify_buildings`: ``source`` "footprints" rows carry the given footprints' ids, the other rows
+        are new buildings found in the change map
     truth : GeoDataFrame of every building of either date with its ``status`` (new, demolished, raised,
         lowered, unchanged) and the ids of the footprints given
     aoi : optional polygon (truth's CRS); truth buildings absent from the given footprints count only
@@ -472,9 +493,9 @@ def score_buildings(
     """
     truth = truth.to_crs(pred.crs) if truth.crs is not None and pred.crs is not None else truth
     status = dict(zip(truth[id_field], truth[status_field]))
-    src = pred["source"] if "source" in pred else np.full(len(pred), "footprint")
-    fp_rows = pred[np.asarray(src) == "footprint"]
-    det = pred[np.asarray(src) == "detected"]
+    src = np.asarray(pred["source"] if "source" in pred else np.full(len(pred), SOURCE_FOOTPRINTS))
+    fp_rows = pred[src == SOURCE_FOOTPRINTS]
+    det = pred[src != SOURCE_FOOTPRINTS]
     pred_cls = list(fp_rows["class"])
     truth_cls = [status.get(i, "unchanged") for i in fp_rows[id_field]]
     known = set(fp_rows[id_field])

@@ -24,7 +24,8 @@ For a city without a cadastre (disaster response), the pre-event DSM itself says
    its minimum rotated rectangle when that covers it well (rectangularity ≥ ``rect_min``).
 
 :func:`classify_damage` then labels every building — from the DSM or from any OGR footprint layer — with
-the per-cell result of a change test (the self-consistency test's ``ChangeResult``):
+the per-cell result of a change test (the self-consistency test's ``ChangeResult``), in the one schema of
+every building layer (:mod:`geocd.change.building_layer`):
 
 * ``unobserved`` — too little of it observed in both epochs (as :mod:`geocd.change.buildings`);
 * ``collapsed`` — mostly lowered (≥ ``min_changed`` of its observed cells at the report level) and its
@@ -38,12 +39,12 @@ the per-cell result of a change test (the self-consistency test's ``ChangeResult
 * ``unchanged`` — otherwise.
 
 Every building carries the confidence (percent, the team's convention) at which it changed — the highest
-tested level at which its changed fraction reaches ``min_changed`` or it holds a changed part (0: unchanged at
-every level) —, its
-heights above the ground before and after (medians), Δz and the volume change ± σ. σ comes from the
-self-consistency model: a cell's σ(Δz) is its 68.3 % curve value (pixels of disparity, at its score) times
-its pixel-to-metre factor |Δz/Δ̃|; cells within one matching window are treated as fully correlated,
-windows as independent.
+tested level at which its changed fraction reaches ``min_changed`` or it holds a changed part; 0 for a building
+not changed at the report level, empty (NaN) for an unobserved one —, its heights above the ground before and
+after (medians), Δz and the volume change ± σ. σ comes from the self-consistency model: a cell's σ(Δz) is its
+68.3 % curve value (pixels of disparity, at its score) times its pixel-to-metre factor |Δz/Δ̃|; cells within one
+matching window are treated as fully correlated, windows as independent. :func:`footprint_layer` adds to given
+footprints the new buildings of the change map that stand outside all of them.
 """
 
 from __future__ import annotations
@@ -57,20 +58,20 @@ from scipy import ndimage as ndi
 
 from ..errors import ConfigError
 from ..mpp.features import planar_cells, plane_residual
+from .building_layer import (
+    CHANGED,
+    CLASSES,
+    NOT_OBSERVED,
+    SOURCE_CHANGE_MAP,
+    SOURCE_FOOTPRINTS,
+    code_unobserved,
+    empty_layer,
+    order_columns,
+)
 from .buildings import BuildingParams, classify_buildings, largest_parts
-from .styles import categorized_polygon_qml
 
-DAMAGE_CLASSES = {
-    "collapsed": ("#67000d", "collapsed"),
-    "partly collapsed": ("#ef3b2c", "partly collapsed"),
-    "lowered": ("#fc9272", "lowered"),
-    "raised": ("#fdae61", "raised"),
-    "new": ("#2c7bb6", "new"),
-    "unchanged": ("#bdbdbd", "unchanged"),
-    "unobserved": ("#ffffff", "unobserved"),
-    "not examined": ("#737373", "not examined (screened out)"),
-}
-CHANGED = ("collapsed", "partly collapsed", "lowered", "raised", "new")
+#: the building layer's classes (:data:`geocd.change.building_layer.CLASSES`)
+DAMAGE_CLASSES = CLASSES
 #: how :func:`building_objects` tells a tree from a building (see :class:`DSMBuildingParams`)
 TREE_RULES = ("plane", "roughness", "planarity", "off")
 
@@ -469,43 +470,58 @@ def classify_damage(
     *,
     z_a: np.ndarray,
     z_b: np.ndarray,
-    dtm: np.ndarray,
+    dtm: np.ndarray | None = None,
     model=None,
     report_confidence: float = 99.0,
     params: DSMBuildingParams = DSMBuildingParams(),
     id_field: str | None = None,
+    building_params: BuildingParams | None = None,
+    sigma_dz_m: np.ndarray | None = None,
 ):
-    """Damage class, confidence (percent), heights and volume ± σ of every building.
+    """The building layer (:mod:`geocd.change.building_layer`): class, confidence (percent), heights and volume ± σ
+    of every building.
 
     Parameters
     ----------
-    buildings : GeoDataFrame of polygons (from :func:`buildings_from_dsm` or any OGR footprint layer)
-    result : geocd.consistency.ChangeResult on ``grid``
+    buildings : GeoDataFrame of polygons (from :func:`buildings_from_dsm` or any OGR footprint layer); its
+        ``source`` column, if any, is kept (default :data:`~geocd.change.building_layer.SOURCE_FOOTPRINTS`)
+    result : geocd.consistency.ChangeResult on ``grid``, or any object with ``dz_m``, ``observed``,
+        ``confidences``, ``changed_at(level)`` and ``min_region_cells`` (:class:`LevelMasks`)
     z_a, z_b : float (rows, cols), the two epochs' surfaces (m)
-    dtm : float (rows, cols), ground model (m) for the heights above ground
+    dtm : float (rows, cols), optional
+        Ground model (m) for the heights above ground and the ground-level tests; None: the median of a
+        ``ring_m`` ring around each building (outside every building), per epoch.
     model : SelfConsistencyModel, optional (for σ of the volume)
+    building_params : BuildingParams, optional
+        The footprint rules' parameters (``min_observed``, ``min_changed``, ``min_inside``, ``ground_tol_m``,
+        ``ring_m``, ``changed_part``); default: ``params``' ``min_observed``, ``min_changed`` and ``changed_part``.
+    sigma_dz_m : float (rows, cols), optional
+        Per-cell 1σ of Δz (m) for the volume's σ instead of the model's.
 
     Returns
     -------
-    GeoDataFrame: building_id, class, confidence_pct, frac_observed, frac_changed, frac_lowered, frac_raised,
-    height_before_m, height_after_m, mean_dz_m, volume_change_m3, volume_sigma_m3, volume_lost_m3, area_m2,
-    geometry (+ the source's attributes as ``src_*``).
+    GeoDataFrame with the columns of :data:`geocd.change.building_layer.NAMES` (+ the source's attributes as
+    ``src_*``), geometry.
     """
+    import geopandas as gpd
+    import pandas as pd
     from rasterio.features import rasterize
 
     from ..consistency import CHANGE_NODATA
 
     gdf = buildings.to_crs(grid.crs).reset_index(drop=True)
-    observed = result.observed
+    if not len(gdf):
+        return empty_layer(grid.crs)
+    observed = np.asarray(result.observed, bool)
     levels = sorted(result.confidences)
     if report_confidence not in levels:
         raise ValueError(f"report confidence {report_confidence} is not a tested level {levels}")
     cm = np.where(observed, result.changed_at(report_confidence), CHANGE_NODATA).astype(np.int16)
-    bp = BuildingParams(
+    bp = building_params or BuildingParams(
         min_observed=params.min_observed, min_changed=params.min_changed, changed_part=params.changed_part
     )
     mmu = int(result.min_region_cells)
-    keep = _not_a_tree(z_a, z_b, dtm, grid.posting_m, params) if params.changed_part else None
+    keep = _not_a_tree(z_a, z_b, dtm, grid.posting_m, params) if (bp.changed_part and dtm is not None) else None
     base = classify_buildings(
         gdf,
         cm,
@@ -535,16 +551,21 @@ def classify_damage(
     n_obs = ndi.sum(observed, labels, idx)
     for c in levels:
         signed = np.where(observed, result.changed_at(c), 0)
-        frac = np.asarray(ndi.sum(signed != 0, labels, idx)) / np.maximum(n_obs, 1)
-        hit = frac >= params.min_changed
-        if params.changed_part:
+        frac = np.asarray(ndi.sum((signed == 1) | (signed == -1), labels, idx)) / np.maximum(n_obs, 1)
+        hit = frac >= bp.min_changed
+        if bp.changed_part:
             hit |= largest_parts(signed, labels, n, keep=keep)[0] >= mmu
         conf = np.where(hit, c, conf)
-    sig = _sigma_dz(result, model) if model is not None else None
+    if sigma_dz_m is not None:
+        sig = np.asarray(sigma_dz_m, np.float32)
+    else:
+        sig = _sigma_dz(result, model) if model is not None else None
     cell = grid.cell_area_m2
     corr = max(1, int(round(params.correlation_m / grid.posting_m)))
-    ha = np.asarray(z_a, float) - dtm
-    hb = np.asarray(z_b, float) - dtm
+    ring = max(1, int(round(bp.ring_m / grid.posting_m)))
+    za, zb = np.asarray(z_a, float), np.asarray(z_b, float)
+    if dtm is not None:
+        ha, hb = za - dtm, zb - dtm
     out_rows = []
     slices = ndi.find_objects(labels, max_label=n)
     empty = (slice(0, 0), slice(0, 0))
@@ -553,9 +574,10 @@ def classify_damage(
         inside = labels[sl] == (i + 1)
         b = base.iloc[i]
         obs = inside & observed[sl]
-        hai, hbi = ha[sl][inside], hb[sl][inside]
-        h_before = float(np.nanmedian(hai)) if np.isfinite(hai).any() else np.nan
-        h_after = float(np.nanmedian(hbi)) if np.isfinite(hbi).any() else np.nan
+        if dtm is not None:
+            h_before, h_after = _median(ha[sl][inside]), _median(hb[sl][inside])
+        else:
+            h_before, h_after = _ring_heights(labels, i + 1, sl, ring, za, zb)
         dz = result.dz_m[sl][obs]
         n_in = int(inside.sum())
         # volume: observed cells' Δz, the unobserved cells of the footprint at the observed mean
@@ -565,7 +587,8 @@ def classify_damage(
         if sig is not None and dz.size:
             rr, cc = np.nonzero(obs)
             blocks = (rr // corr) * (grid.shape[1] // corr + 1) + cc // corr
-            s_block = np.bincount(blocks, weights=sig[sl][obs].astype(float))
+            s = sig[sl][obs].astype(float)
+            s_block = np.bincount(blocks, weights=np.where(np.isfinite(s), s, 0.0))
             # scale to the whole footprint like the volume
             vsig = float(math.sqrt(float(np.sum(s_block**2))) * cell * n_in / max(dz.size, 1))
         cls = str(b["class"])
@@ -574,7 +597,9 @@ def classify_damage(
         fr = float(np.nan_to_num(b["frac_raised"]))
         if cls in ("lowered", "demolished"):
             ratio = h_after / h_before if (np.isfinite(h_before) and h_before > 0) else np.nan
-            if (np.isfinite(ratio) and ratio <= params.collapse_ratio) or (np.isfinite(h_after) and h_after < 2.5):
+            if cls == "demolished" and not np.isfinite(h_after):
+                cls = "collapsed"  # at ground level after by the ground test, no height to say otherwise
+            elif (np.isfinite(ratio) and ratio <= params.collapse_ratio) or (np.isfinite(h_after) and h_after < 2.5):
                 cls = "collapsed"
                 rule += (
                     f"; {h_after:.1f} m above ground after vs {h_before:.1f} m before (≤ {params.collapse_ratio:g}×)"
@@ -588,9 +613,10 @@ def classify_damage(
         elif cls == "raised" and np.isfinite(h_before) and h_before < 2.5:
             cls = "new"
             rule += f"; {h_before:.1f} m above ground before"
-        c_pct = float(conf[i]) if cls in CHANGED else 0.0
+        c_pct = float(conf[i]) if cls in CHANGED else (np.nan if cls in NOT_OBSERVED else 0.0)
         rec = {
             "building_id": b["building_id"],
+            "source": str(gdf["source"].iloc[i]) if "source" in gdf.columns else SOURCE_FOOTPRINTS,
             "class": cls,
             "confidence_pct": c_pct,
             "rule": rule,
@@ -607,16 +633,242 @@ def classify_damage(
             "area_m2": round(n_in * cell, 1),
         }
         out_rows.append(rec)
-    import geopandas as gpd
-    import pandas as pd
-
     out = gpd.GeoDataFrame(pd.DataFrame(out_rows), geometry=gdf.geometry.values, crs=gdf.crs)
-    if "source" in gdf.columns:
-        out.insert(1, "source", gdf["source"].values)
     for c in gdf.columns:
         if c not in out.columns and c != gdf.geometry.name:
             out[f"src_{c}"] = gdf[c].values
-    return out
+    return order_columns(code_unobserved(out))
+
+
+def _median(v: np.ndarray) -> float:
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else np.nan
+
+
+def _ring_heights(labels: np.ndarray, k: int, sl, ring: int, z_a: np.ndarray, z_b: np.ndarray) -> tuple[float, float]:
+    """Building ``k``'s median height in each epoch above the median of a ``ring``-cell ring around it (outside
+    every building), on the window ``sl`` grown by the ring."""
+    if sl[0].stop <= sl[0].start:
+        return np.nan, np.nan
+    H, W = labels.shape
+    g = (
+        slice(max(0, sl[0].start - ring - 1), min(H, sl[0].stop + ring + 1)),
+        slice(max(0, sl[1].start - ring - 1), min(W, sl[1].stop + ring + 1)),
+    )
+    lab = labels[g]
+    inside = lab == k
+    around = ndi.binary_dilation(inside, iterations=ring) & (lab == 0)
+    out = []
+    for z in (z_a, z_b):
+        zz = z[g]
+        out.append(_median(zz[inside]) - _median(zz[around]))
+    return out[0], out[1]
+
+
+@dataclass(frozen=True)
+class LevelMasks:
+    """A change test seen by :func:`classify_damage` through its signed change masks, one per tested level.
+
+    For methods without a :class:`~geocd.consistency.ChangeResult` (``geocd demdiff``): ``masks`` maps a level
+    (percent) to an int8 mask (+1 raised, −1 lowered, 0 unchanged, any other value unobserved).
+    """
+
+    dz_m: np.ndarray
+    masks: dict
+    min_region_cells: int = 1
+
+    @property
+    def confidences(self) -> tuple:
+        return tuple(sorted(self.masks))
+
+    @property
+    def observed(self) -> np.ndarray:
+        m = np.asarray(next(iter(self.masks.values())))
+        return (m >= -1) & (m <= 1)
+
+    def changed_at(self, level: float) -> np.ndarray:
+        return self.masks[level]
+
+
+def footprint_layer(
+    footprints,
+    result,
+    grid,
+    *,
+    z_a: np.ndarray,
+    z_b: np.ndarray,
+    dtm: np.ndarray | None = None,
+    model=None,
+    report_confidence: float = 99.0,
+    params: DSMBuildingParams = DSMBuildingParams(),
+    building_params: BuildingParams | None = None,
+    id_field: str | None = None,
+    detect_new: bool = True,
+    sigma_dz_m: np.ndarray | None = None,
+):
+    """The building layer of footprints: every footprint, and the new buildings of the later epoch that stand
+    outside every footprint, classified by :func:`classify_damage`.
+
+    Footprints are those of the earlier date at best, so a building built since is found in the change map
+    (:func:`geocd.change.buildings.detect_new_buildings`: a raised region at the reported level outside every
+    footprint, at ground level before, of at least ``min_changed`` × the median footprint area); its ``source``
+    is :data:`~geocd.change.building_layer.SOURCE_CHANGE_MAP` and its ``building_id`` −1, −2, … by decreasing area.
+
+    Parameters
+    ----------
+    footprints : GeoDataFrame of polygons (any CRS)
+    id_field : the footprints' id attribute (default: their 1-based row)
+    detect_new : add the new buildings of the change map
+    (others: as :func:`classify_damage`)
+
+    Returns
+    -------
+    GeoDataFrame: the building layer (footprints first, in their order, then the new buildings).
+    """
+    import geopandas as gpd
+    import pandas as pd
+    from rasterio.features import rasterize
+
+    from .buildings import detect_new_buildings
+
+    fp = footprints.to_crs(grid.crs).reset_index(drop=True)
+    ids = fp[id_field].to_numpy() if id_field and id_field in fp else np.arange(1, len(fp) + 1)
+    fp = fp.drop(columns=[c for c in ("building_id", "source") if c in fp.columns and c != id_field])
+    if id_field != "building_id":
+        fp.insert(0, "building_id", ids)
+    fp.insert(1, "source", SOURCE_FOOTPRINTS)
+    bp = building_params or BuildingParams(
+        min_observed=params.min_observed, min_changed=params.min_changed, changed_part=params.changed_part
+    )
+    new = ()
+    if detect_new and len(fp):
+        any_fp = (
+            rasterize(
+                [(g, 1) for g in fp.geometry], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8"
+            )
+            > 0
+        )
+        new = detect_new_buildings(
+            result.changed_at(report_confidence),
+            result.dz_m,
+            grid,
+            z_a=z_a,
+            z_b=z_b,
+            footprint_mask=any_fp,
+            min_area_m2=bp.min_changed * float(np.median(fp.geometry.area)),
+            params=bp,
+            confidence_level=report_confidence,
+        )
+    kw = dict(
+        z_a=z_a,
+        z_b=z_b,
+        dtm=dtm,
+        model=model,
+        report_confidence=report_confidence,
+        params=params,
+        id_field="building_id",
+        building_params=bp,
+        sigma_dz_m=sigma_dz_m,
+    )
+    if not (detect_new and len(new)):
+        return classify_damage(fp, result, grid, **kw)
+    new = gpd.GeoDataFrame(
+        {"building_id": new["building_id"].to_numpy(), "source": SOURCE_CHANGE_MAP},
+        geometry=new.geometry.values,
+        crs=new.crs,
+    ).to_crs(fp.crs)
+    both = gpd.GeoDataFrame(pd.concat([fp, new], ignore_index=True), geometry=fp.geometry.name, crs=fp.crs)
+    if dtm is not None:
+        return classify_damage(both, result, grid, **kw)
+    # heights above a ring: a footprint's ring is the footprints' (as the change map's new buildings are found),
+    # and a new building's ring leaves the footprints out
+    layer = pd.concat(
+        [classify_damage(fp, result, grid, **kw), classify_damage(both, result, grid, **kw).iloc[len(fp) :]],
+        ignore_index=True,
+    )
+    return order_columns(gpd.GeoDataFrame(layer, geometry="geometry", crs=fp.crs))
+
+
+def building_layer(
+    footprints,
+    result,
+    grid,
+    *,
+    z_a: np.ndarray,
+    z_b: np.ndarray,
+    model=None,
+    report_confidence: float = 99.0,
+    epoch_a: str = "A",
+    epoch_b: str = "B",
+    params: DSMBuildingParams | None = None,
+    building_params: BuildingParams | None = None,
+):
+    """The building layer of a change test (:mod:`geocd.change.building_layer`) and the ground model under it.
+
+    With footprints: every footprint and the new buildings of the change map standing outside all of them
+    (:func:`footprint_layer`); without: the building objects of epoch A's DSM plus the parts of epoch B's
+    objects that stand where A's surface was ground (new buildings, :func:`new_objects`). Heights are above the
+    ground model of A's DSM (:func:`ground_model`, gaps filled).
+
+    Parameters
+    ----------
+    footprints : GeoDataFrame or None
+    result : geocd.consistency.ChangeResult on ``grid``
+    z_a, z_b : float (rows, cols), the epochs' surfaces (m; NaN where unobserved)
+    epoch_a, epoch_b : the epochs' names (in the ``source`` of DSM objects)
+
+    Returns
+    -------
+    (GeoDataFrame, dtm) — the layer (with no row when the DSM holds no building object), or (None, None) when
+    an epoch has no height at all or ``report_confidence`` was not tested.
+    """
+    import pandas as pd
+
+    from .building_layer import source_dsm, source_new_dsm
+
+    params = params or DSMBuildingParams()
+    if not (np.isfinite(z_a).any() and np.isfinite(z_b).any()) or report_confidence not in result.confidences:
+        return None, None
+    if footprints is not None:
+        dtm = fill_gaps(ground_model(z_a, grid.posting_m, params)[0])
+        id_field = next((c for c in ("building_id", "id", "fid") if c in footprints.columns), None)
+        layer = footprint_layer(
+            footprints,
+            result,
+            grid,
+            z_a=z_a,
+            z_b=z_b,
+            dtm=dtm,
+            model=model,
+            report_confidence=report_confidence,
+            params=params,
+            building_params=building_params,
+            id_field=id_field,
+        )
+        return layer, dtm
+    bld, dtm, lab_a = buildings_from_dsm(z_a, grid, params)
+    bld = bld.assign(source=source_dsm(epoch_a))
+    # new buildings: the parts of B's objects standing where A's surface was ground
+    post = new_objects(z_a, z_b, dtm, buildings_from_dsm(z_b, grid, params)[2], grid, params, labels_a=lab_a)
+    if len(post):
+        post = post.assign(source=source_new_dsm(epoch_b, epoch_a))
+        post["building_id"] = np.arange(len(bld) + 1, len(bld) + 1 + len(post))
+        bld = pd.concat([bld, post], ignore_index=True)
+    dtm = fill_gaps(dtm)
+    layer = classify_damage(
+        bld,
+        result,
+        grid,
+        z_a=z_a,
+        z_b=z_b,
+        dtm=dtm,
+        model=model,
+        params=params,
+        report_confidence=report_confidence,
+        id_field="building_id",
+        building_params=building_params,
+    )
+    return layer, dtm
 
 
 def stable_false_alarms(
@@ -642,8 +894,3 @@ def stable_false_alarms(
     out: dict = {f"{c:g}": round(float((np.nan_to_num(confidence[stable]) >= c).mean()), 5) for c in levels}
     out.update(stable_cells=int(stable.sum()), buffer_m=buffer_m)
     return out
-
-
-def damage_qml() -> str:
-    """QGIS style of the damage layer (categorized on ``class``, labelled with the confidence)."""
-    return categorized_polygon_qml("class", DAMAGE_CLASSES)

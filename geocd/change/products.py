@@ -8,8 +8,9 @@ Layout of an output folder (``prefix`` defaults to the method name)::
                                +1 raised, −1 lowered, 0 unchanged, −128 nodata (not observable),
                                −127 not examined (a tiered run's screen did not flag the tile)
     <prefix>_change_mask.qml   QGIS style sidecar (paletted)
-    <prefix>_changes.gpkg      layers: changes (polygons), buildings (attributed footprints),
-                               curves (significance curves table), layer_styles
+    <prefix>_changes.gpkg      layers: changes (polygons), buildings (the one building layer of
+                               :mod:`geocd.change.building_layer`), curves (significance curves
+                               table), layer_styles
     <prefix>_scatter.png       score × |Δ̃| with significance curves (when a model is given)
     <prefix>_quicklook.png     map of Δz with changed regions outlined
 """
@@ -25,7 +26,8 @@ import numpy as np
 from ..consistency import CHANGE_NODATA, NOT_EXAMINED, ChangeResult, SelfConsistencyModel
 from ..io.raster import write_cog
 from ..io.vector import qml_for, write_gpkg
-from .styles import buildings_qml, write_raster_style
+from .building_layer import buildings_qml, check_building_layer
+from .styles import write_raster_style
 
 
 def write_change_products(
@@ -49,6 +51,10 @@ def write_change_products(
     examined: np.ndarray | None = None,
 ) -> dict[str, Path]:
     """Write every product of one change test; returns {product name: path}.
+
+    ``buildings``: the building layer (:func:`geocd.change.dsm_buildings.classify_damage` or
+    :func:`~geocd.change.dsm_buildings.footprint_layer`); it must follow the schema of
+    :mod:`geocd.change.building_layer` (ValueError otherwise).
 
     ``examined`` (bool (rows, cols), a tiered run's flagged tiles): the change mask gives the other
     cells :data:`geocd.consistency.NOT_EXAMINED` (−127, "not examined"), never 0 ("unchanged").
@@ -139,6 +145,7 @@ def write_change_products(
     layers: dict[str, Any] = {"changes": regions}
     styles = {"changes": qml_for("changes")}
     if buildings is not None:
+        check_building_layer(buildings)
         layers["buildings"] = buildings
         styles["buildings"] = buildings_qml()
     if model is not None:

@@ -11,17 +11,6 @@ from __future__ import annotations
 
 from xml.sax.saxutils import quoteattr
 
-#: building classes → (fill colour, label)
-BUILDING_CLASSES = {
-    "new": ("#d7191c", "new"),
-    "raised": ("#fdae61", "raised"),
-    "demolished": ("#2c7bb6", "demolished"),
-    "lowered": ("#abd9e9", "lowered"),
-    "unchanged": ("#bdbdbd", "unchanged"),
-    "unobserved": ("#ffffff", "unobserved"),
-    "not examined": ("#737373", "not examined (screened out)"),
-}
-
 
 def _symbol(i: int, fill: str, outline: str = "#323232", fill_alpha: int = 200, style: str = "solid") -> str:
     r, g, b = (int(fill[k : k + 2], 16) for k in (1, 3, 5))
@@ -117,10 +106,6 @@ def categorized_polygon_qml(attribute: str, categories: dict, label_field: str |
   <layerOpacity>1</layerOpacity>
 </qgis>
 """
-
-
-def buildings_qml() -> str:
-    return categorized_polygon_qml("class", BUILDING_CLASSES)
 
 
 def write_raster_style(raster_path, qml: str):

@@ -582,9 +582,10 @@ def change_test_tiled(
     return res
 
 
-def _gathered_result(store, conf_store, tg: TileGrid, meta: dict) -> ChangeResult:
+def _gathered_result(store, conf_store, tg: TileGrid, meta: dict, win=None) -> ChangeResult:
+    """The test's result on ``win`` (row0, col0, rows, cols; default the whole grid) from the stored arrays."""
     g = tg.grid
-    win = (0, 0, g.height, g.width)
+    win = win or (0, 0, g.height, g.width)
     return ChangeResult(
         store.read("dz_m", win),
         store.read("dtilde", win),
@@ -608,20 +609,19 @@ def _write_exact(
     g = tg.grid
     buildings = None
     if fp is not None:
-        from .buildings import classify_buildings
+        from .dsm_buildings import building_layer
 
         win = (0, 0, g.height, g.width)
-        id_field = next((c for c in ("building_id", "id", "fid") if c in fp.columns), None)
-        buildings = classify_buildings(
+        buildings, _ = building_layer(
             fp,
-            res.changed_at(region_confidence),
-            res.dz_m,
+            res,
             g,
             z_a=store.read("z_a", win),
             z_b=store.read("z_b", win),
-            confidence=res.confidence,
-            id_field=id_field,
-            confidence_level=region_confidence,
+            model=model,
+            report_confidence=region_confidence,
+            epoch_a=ea,
+            epoch_b=eb,
         )
     return write_change_products(
         out,
@@ -673,7 +673,8 @@ def _write_large(
     from ..io.vector import qml_for, write_gpkg
     from ..tiling.regions import merge_regions, region_mask_window, regions_layer
     from .products import _BAND_DESCRIPTIONS, _BAND_UNITS
-    from .styles import buildings_qml, write_raster_style
+    from .building_layer import buildings_qml
+    from .styles import write_raster_style
 
     g = tg.grid
     tags = {
@@ -757,7 +758,7 @@ def _write_large(
     layers: dict[str, Any] = {"changes": layer}
     styles = {"changes": qml_for("changes")}
     if fp is not None:
-        layers["buildings"] = _buildings(fp, store, conf_store, rm.store, tg, region_confidence)
+        layers["buildings"] = _buildings(fp, store, conf_store, tg, meta, model, region_confidence)
         styles["buildings"] = buildings_qml()
     if model is not None:
         layers["curves"] = model.curves_table()
@@ -769,31 +770,37 @@ def _write_large(
     return paths
 
 
-def _buildings(fp, store, conf_store, mask_store, tg: TileGrid, level: float):
-    """:func:`classify_buildings` footprint by footprint on windows of the stored arrays."""
+def _buildings(fp, store, conf_store, tg: TileGrid, meta: dict, model, level: float):
+    """The building layer footprint by footprint (:func:`~geocd.change.dsm_buildings.classify_damage` on each
+    footprint's window of the stored arrays). No whole-scene ground model here: heights and the ground-level
+    tests use the median of a ring around each footprint, and no new building is searched outside them."""
     import geopandas as gpd
     import pandas as pd
 
-    from .buildings import classify_buildings, footprint_windows
+    from .building_layer import empty_layer, order_columns
+    from .buildings import footprint_windows
+    from .dsm_buildings import classify_damage
 
     g = tg.grid
     gdf = fp.to_crs(g.crs).reset_index(drop=True)
+    if not len(gdf):
+        return empty_layer(g.crs)
     id_field = next((c for c in ("building_id", "id", "fid") if c in gdf.columns), None)
+    gdf = gdf.drop(columns=[c for c in ("building_id", "source") if c in gdf.columns and c != id_field])
+    if id_field != "building_id":
+        gdf.insert(0, "building_id", gdf[id_field].to_numpy() if id_field else np.arange(1, len(gdf) + 1))
     rows = []
     for i, win, sub, near in footprint_windows(gdf, g):
-        o = classify_buildings(
+        o = classify_damage(
             gdf.iloc[near],
-            mask_store.read("mask", win),
-            store.read("dz_m", win),
+            _gathered_result(store, conf_store, tg, {**meta, "grid": sub}, win),
             sub,
             z_a=store.read("z_a", win),
             z_b=store.read("z_b", win),
-            confidence=conf_store.read("confidence", win),
-            id_field=id_field,
-            confidence_level=level,
+            model=model,
+            report_confidence=level,
+            id_field="building_id",
         )
-        rec = o.iloc[int(np.nonzero(near == i)[0][0])].copy()
-        if id_field is None:
-            rec["building_id"] = i + 1
-        rows.append(rec)
-    return gpd.GeoDataFrame(pd.DataFrame(rows).reset_index(drop=True), geometry="geometry", crs=gdf.crs)
+        rows.append(o.iloc[int(np.nonzero(near == i)[0][0])].copy())
+    out = gpd.GeoDataFrame(pd.DataFrame(rows).reset_index(drop=True), geometry="geometry", crs=gdf.crs)
+    return order_columns(out)

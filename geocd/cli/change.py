@@ -208,14 +208,9 @@ def run(
         f"observed {100 * s['observed_fraction']:.1f}% of cells; changed: "
         + ", ".join(f"{100 * v:.2f}% at {k}%" for k, v in s["changed_fraction"].items())
     )
-    if "buildings" in s:
-        sess.say("buildings: " + ", ".join(f"{n} {k}" for k, n in s["buildings"].items()))
-    if "building_damage" in s:
-        bd = s["building_damage"]
-        sess.say(
-            f"building damage ({bd['source']}): "
-            + (", ".join(f"{n} {k}" for k, n in bd["classes"].items()) or "no building object")
-        )
+    from ..change.building_layer import summary_line
+
+    sess.say(summary_line(s.get("buildings")))
     if "screen" in s:
         sc = s["screen"]
         sess.say(
@@ -224,11 +219,7 @@ def run(
             f"stereo {sc['stereo_seconds']:.1f} s"
         )
     sess.data(
-        **{
-            k: s[k]
-            for k in ("epoch_a", "epoch_b", "observed_fraction", "changed_fraction", "buildings", "building_damage")
-            if k in s
-        }
+        **{k: s[k] for k in ("epoch_a", "epoch_b", "observed_fraction", "changed_fraction", "buildings") if k in s}
     )
     n_pairs = sum(1 for k in res["outputs"] if k.startswith("stereo:"))
     if n_pairs:
@@ -459,14 +450,12 @@ def change(
     calibration,
 ):
     """Stage 2: test cross-epoch pair-DEMs (or a DEM standing for an epoch) against a self-consistency model."""
-    from ..change.buildings import classify_buildings
     from ..change.products import write_change_products
     from ..consistency import ChangeParams, DEMAsEpoch, SelfConsistencyModel, change_test
     from ..errors import ConfigError
     from ..io.raster import read_dem
     from ..io.vector import read_footprints
     from ..io.outputs import open_outputs
-    from ..pipeline import _median_surface
     from . import emit_result, make_progress
     from .common import resolve_out_dir, session
 
@@ -557,18 +546,10 @@ def change(
         progress.close()
     buildings = None
     if footprints:
-        fps = read_footprints(footprints, crs=grid.crs)
-        id_field = next((c for c in ("building_id", "id", "fid") if c in fps.columns), None)
-        buildings = classify_buildings(
-            fps,
-            res.changed_at(report_confidence),
-            res.dz_m,
-            grid,
-            z_a=_median_surface(A),
-            z_b=_median_surface(B),
-            confidence=res.confidence,
-            id_field=id_field,
-            confidence_level=report_confidence,
+        from ..pipeline import _building_layer
+
+        buildings, _ = _building_layer(
+            read_footprints(footprints, crs=grid.crs), res, grid, A, B, model, report_confidence, "A", "B"
         )
     paths = write_change_products(
         out_dir,

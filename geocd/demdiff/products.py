@@ -8,7 +8,9 @@ Layout of an output folder (``prefix`` defaults to ``demdiff``)::
     <prefix>_significance.qml   confidence classes (90/95/99 %)
     <prefix>_change_mask.tif    COG int8: +1 raised, −1 lowered, 0 unchanged, −128 not compared
     <prefix>_change_mask.qml
-    <prefix>_changes.gpkg       layers changes (regions), buildings (with footprints), summary,
+    <prefix>_changes.gpkg       layers changes (regions), buildings (with footprints: the building layer of
+                                :mod:`geocd.change.building_layer`, heights above a ring around each
+                                footprint, no volume σ), summary,
                                 error_model, variogram (+ timeseries for series), layer_styles
     <prefix>_dh.png             dh map with regions outlined
     <prefix>_report.json        every figure, the co-registration and the error model
@@ -195,19 +197,18 @@ def write_demdiff_products(
     layers: dict[str, Any] = {"changes": result.regions}
     styles = {"changes": qml_for("changes")}
     if footprints is not None:
-        from ..change.buildings import classify_buildings
-        from ..change.styles import buildings_qml
+        from ..change.building_layer import buildings_qml
+        from ..change.dsm_buildings import LevelMasks, footprint_layer
 
-        b = classify_buildings(
+        layers["buildings"] = footprint_layer(
             footprints,
-            result.sign,
-            result.dh_m,
+            LevelMasks(result.dh_m, {float(result.level): result.sign}),
             g,
             z_a=result.height_a_m,
             z_b=result.height_b_m,
-            confidence=result.confidence,
+            report_confidence=float(result.level),
+            id_field=next((c for c in ("building_id", "id", "fid") if c in footprints.columns), None),
         )
-        layers["buildings"] = b
         styles["buildings"] = buildings_qml()
     layers.update(tables(result))
     if extra_layers:

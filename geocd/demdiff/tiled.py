@@ -1868,9 +1868,9 @@ def _write_large(
     layers: dict[str, Any] = {"changes": layer}
     styles = {"changes": qml_for("changes")}
     if footprints is not None:
-        from ..change.styles import buildings_qml
+        from ..change.building_layer import buildings_qml
 
-        layers["buildings"] = _buildings_windows(footprints, store, R.tg, g)
+        layers["buildings"] = _buildings_windows(footprints, store, R.tg, g, p.confidence)
         styles["buildings"] = buildings_qml()
     layers.update(tables(dr))
     paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", layers, styles=styles)
@@ -1905,31 +1905,38 @@ def _region_coarse(merged, k: int, store, tg: TileGrid, block: int, cshape) -> n
     return out, q
 
 
-def _buildings_windows(footprints, store, tg: TileGrid, g: AOIGrid):
-    """:func:`geocd.change.buildings.classify_buildings` footprint by footprint on windows of the tile arrays."""
+def _buildings_windows(footprints, store, tg: TileGrid, g: AOIGrid, level: float):
+    """The building layer (:func:`geocd.change.dsm_buildings.classify_damage`) footprint by footprint on windows
+    of the tile arrays: the change mask at ``level`` (percent), heights above a ring around each footprint; no new
+    building is searched outside the footprints."""
     import pandas as pd
     import geopandas as gpd
 
-    from ..change.buildings import classify_buildings, footprint_windows
+    from ..change.building_layer import empty_layer, order_columns
+    from ..change.buildings import footprint_windows
+    from ..change.dsm_buildings import LevelMasks, classify_damage
 
     gdf = footprints.to_crs(g.crs).reset_index(drop=True)
+    if not len(gdf):
+        return empty_layer(g.crs)
+    id_field = next((c for c in ("building_id", "id", "fid") if c in gdf.columns), None)
+    gdf = gdf.drop(columns=[c for c in ("building_id", "source") if c in gdf.columns and c != id_field])
+    if id_field != "building_id":
+        gdf.insert(0, "building_id", gdf[id_field].to_numpy() if id_field else np.arange(1, len(gdf) + 1))
     rows = []
     for i, win, sub, near in footprint_windows(gdf, g):
-        fp = gdf.iloc[near]
-        out = classify_buildings(
-            fp,
-            store.read("sign", win),
-            store.read("dh_m", win),
+        out = classify_damage(
+            gdf.iloc[near],
+            LevelMasks(store.read("dh_m", win), {float(level): store.read("sign", win)}),
             sub,
             z_a=store.read("a32", win),
             z_b=store.read("bc32", win),
-            confidence=store.read("conf", win),
+            report_confidence=float(level),
+            id_field="building_id",
         )
-        rec = out.iloc[int(np.nonzero(near == i)[0][0])].copy()
-        rec["building_id"] = i + 1
-        rows.append(rec)
+        rows.append(out.iloc[int(np.nonzero(near == i)[0][0])].copy())
     res = gpd.GeoDataFrame(pd.DataFrame(rows).reset_index(drop=True), geometry="geometry", crs=gdf.crs)
-    return res
+    return order_columns(res)
 
 
 def _plot_large(S: _Setup, paths, png: Path, s, c, vmax, ea, eb, level, status) -> Path:

@@ -5,9 +5,10 @@
 * ``rectangles`` — every rectangle: ``change`` (unchanged / demolished / new), ``xi`` (*, 1, 2),
   presence per date, sides (m), orientation (degrees, map sense), area, data energy A_D, φ per date,
   ``confidence`` (%), ``change_confidence`` (%), ``building_id``;
-* ``buildings`` — per building, the union of its overlapping or touching rectangles: ``change`` (the
-  rectangles' label, ``modified`` when they disagree: a building extended or partly demolished), area,
-  rectangle count, area-weighted confidences.
+* ``buildings`` — per building, the union of its overlapping or touching rectangles: first the columns every
+  building layer shares (:mod:`geocd.change.building_layer`: ``building_id``, ``source``, ``class``,
+  ``confidence_pct``), then ``change`` (the rectangles' label, ``modified`` when they disagree: a building
+  extended or partly demolished), area, rectangle count, area-weighted confidences (:func:`buildings_frame`).
 
 ``<prefix>_buildings.tif`` (COG uint8, paletted): 0 none, 1 unchanged building, 2 demolished, 3 new;
 ``<prefix>_quicklook.png``: both images with the rectangles; ``<prefix>_summary.json``.
@@ -86,12 +87,46 @@ def rectangles_frame(detection, grid: AOIGrid, epoch_a: str = "A", epoch_b: str 
     return df
 
 
-def buildings_frame(rects_df):
-    """Union of touching or overlapping rectangles → one polygon per building (ids written back)."""
+def _layer_class(changes: set) -> str:
+    """The building layer's class of a building whose rectangles carry ``changes`` (mpp's labels)."""
+    if changes == {"unchanged"}:
+        return "unchanged"
+    if changes == {"new"}:
+        return "new"
+    if changes == {"demolished"}:
+        return "collapsed"
+    # rectangles that disagree: a part gone is partly collapsed, a part added (an extension) raised
+    return "partly collapsed" if "demolished" in changes else "raised"
+
+
+def buildings_frame(rects_df, source: str | None = None):
+    """Union of touching or overlapping rectangles → one polygon per building (ids written back).
+
+    The columns start with the building layer's shared ones (:data:`geocd.change.building_layer.SHARED`):
+    ``building_id``, ``source`` (default "A and B images"), ``class`` (mpp's ``demolished`` → ``collapsed``; a
+    building whose rectangles disagree: ``partly collapsed`` when one is gone, else ``raised``) and
+    ``confidence_pct`` (a changed building: the model's probability, percent, of its rectangles' change labels —
+    their existence probability where the method gives none; 0 for an unchanged one), ``area_m2`` (the
+    polygon's). Then mpp's own: ``change`` (the rectangles' label, ``modified`` when they disagree),
+    ``n_rectangles``, ``confidence`` and ``change_confidence`` (area-weighted / mean over the rectangles, percent).
+    """
     import geopandas as gpd
     from shapely.ops import unary_union
 
-    cols = ["building_id", "change", "n_rectangles", "area_m2", "confidence", "change_confidence"]
+    from ..change.building_layer import order_columns, source_images
+
+    source = source or source_images("A", "B")
+    cols = [
+        "building_id",
+        "source",
+        "class",
+        "confidence_pct",
+        "change",
+        "n_rectangles",
+        "area_m2",
+        "confidence",
+        "change_confidence",
+    ]
     if rects_df.empty:
         rects_df["building_id"] = np.zeros(0, np.int32)
         return gpd.GeoDataFrame({c: [] for c in cols}, geometry=[], crs=rects_df.crs)
@@ -108,10 +143,20 @@ def buildings_frame(rects_df):
         sub = rects_df[rects_df["building_id"] == k]
         ch = set(sub["change"])
         w = sub["area_m2"].to_numpy(float)
+        cls = _layer_class(ch)
+        conf_pct = 0.0
+        if cls != "unchanged":
+            moved = sub[sub["change"] != "unchanged"]
+            cc = moved["change_confidence"].to_numpy(float)
+            cc = cc[np.isfinite(cc)]
+            conf_pct = round(float(np.mean(cc) if cc.size else np.mean(moved["confidence"])), 1)
         rows.append(
             {
                 "building_id": k,
-                "change": ch.pop() if len(ch) == 1 else "modified",
+                "source": source,
+                "class": cls,
+                "confidence_pct": conf_pct,
+                "change": next(iter(ch)) if len(ch) == 1 else "modified",
                 "n_rectangles": int(len(sub)),
                 "area_m2": round(float(part.area), 1),
                 "confidence": round(float(np.average(sub["confidence"], weights=w)), 1),
@@ -120,7 +165,7 @@ def buildings_frame(rects_df):
                 else np.nan,
             }
         )
-    return gpd.GeoDataFrame(rows, geometry=parts, crs=rects_df.crs)
+    return order_columns(gpd.GeoDataFrame(rows, geometry=parts, crs=rects_df.crs))
 
 
 def class_raster(detection, shape: tuple[int, int]) -> np.ndarray:
@@ -192,6 +237,7 @@ def write_mpp_products(
     overwrite: bool = True,
 ) -> dict[str, Path]:
     """Write the GeoPackage, the class raster, a quick-look and a JSON summary; returns {product: path}."""
+    from ..change.building_layer import buildings_qml, source_images
     from ..change.styles import categorized_polygon_qml, write_raster_style
     from ..io.atomic import write_text_atomic
     from ..io.raster import write_cog
@@ -200,13 +246,13 @@ def write_mpp_products(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rects = rectangles_frame(detection, grid, epoch_a, epoch_b)
-    bld = buildings_frame(rects)
+    bld = buildings_frame(rects, source_images(epoch_a, epoch_b))
     qml = categorized_polygon_qml("change", MPP_CLASSES)
     paths: dict[str, Path] = {}
     paths["buildings"] = write_gpkg(
         out / f"{prefix}_buildings.gpkg",
         {"buildings": bld, "rectangles": rects},
-        styles={"buildings": qml, "rectangles": qml},
+        styles={"buildings": buildings_qml(), "rectangles": qml},
         overwrite=overwrite,
     )
     tags = {
@@ -246,6 +292,7 @@ def write_mpp_products(
         "rectangles": int(len(r)),
         "buildings": int(len(bld)),
         "by_change": {k: int(v) for k, v in bld["change"].value_counts().items()} if len(bld) else {},
+        "by_class": {k: int(v) for k, v in bld["class"].value_counts().items()} if len(bld) else {},
         "iterations": r.iterations,
         "converged": r.converged,
         "births": r.births,

@@ -975,9 +975,10 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
         command=("change",),
         short_help="Stage 2: tests the pair-DEMs of two epochs against a self-consistency model and maps where the "
         "3-D shape changed, at the chosen confidence levels. A DEM may stand for either epoch (e.g. a "
-        "lidar DEM before, stereo after). With building footprints, each building is classed new, "
-        "raised, demolished, lowered, unchanged or unobserved. Loads the change raster, the change "
-        "mask and the changes/buildings layers, styled.",
+        "lidar DEM before, stereo after). With building footprints, the buildings layer classes each "
+        "building collapsed, partly collapsed, lowered, raised, new, unchanged or unobserved (new buildings "
+        "outside the footprints too), with its confidence %. Loads the change raster, the change mask and "
+        "the changes/buildings layers, styled.",
         params=(
             Param("EPOCH_A", "rasters", "Pair-DEMs, earlier epoch", cli="--pair-dem-a", optional=True),
             Param("EPOCH_B", "rasters", "Pair-DEMs, later epoch", cli="--pair-dem-b", optional=True),
@@ -1048,7 +1049,9 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
         command=("run",),
         short_help="The whole pipeline on a scene manifest: stereo pair-DEMs → self-consistency baseline (learned "
         "here, or a scene-class model) → cross-epoch change test → change raster, change mask, changed "
-        "regions and attributed buildings, loaded styled. Also writes run_config.json and "
+        "regions and one buildings layer (the footprints, or without them the building objects of the "
+        "earlier DSM, and the new buildings: collapsed / partly collapsed / lowered / raised / new / "
+        "unchanged / unobserved, confidence %), loaded styled. Also writes run_config.json and "
         "run_summary.json for reproducibility.",
         params=(
             _MANIFEST,

@@ -4,7 +4,8 @@ from shapely.geometry import box
 
 from geocd.change.buildings import building_scores, classify_buildings
 from geocd.change.metrics import best_threshold_f1, binary_scores, roc_curve
-from geocd.change.styles import buildings_qml, categorized_polygon_qml
+from geocd.change.building_layer import buildings_qml
+from geocd.change.styles import categorized_polygon_qml
 from geocd.geodesy import AOIGrid
 
 
@@ -154,12 +155,12 @@ def test_new_buildings_come_from_detection_not_from_footprints(grid):
     dz = zb - za
     mask = np.where(np.abs(dz) > 1.0, np.sign(dz), 0).astype(np.int8)
     out = classify_buildings(known, mask, dz, grid, z_a=za, z_b=zb, id_field="building_id", confidence_level=99)
-    det = out[out["source"] == "detected"]
+    det = out[out["source"] == "change map"]
     assert len(det) == 1 and det.iloc[0]["class"] == "new" and det.iloc[0]["building_id"] == -1
     assert (
         det.iloc[0].geometry.area == pytest.approx(120, rel=0.05) and "outside every footprint" in det.iloc[0]["rule"]
     )
-    assert list(out.loc[out["source"] == "footprint", "class"]) == ["unchanged", "unchanged"]
+    assert list(out.loc[out["source"] == "footprints", "class"]) == ["unchanged", "unchanged"]
     truth = gpd.GeoDataFrame(
         {"building_id": [1, 2, 3], "status": ["unchanged", "unchanged", "new"]},
         geometry=[*known.geometry, new_fp],
@@ -168,10 +169,10 @@ def test_new_buildings_come_from_detection_not_from_footprints(grid):
     s = score_buildings(out, truth, aoi=box(*grid.bounds))
     assert (s["tp"], s["fp"], s["fn"], s["f1"]) == (1, 0, 0, 1.0)
     # not detected → the new building is a false negative, not silently absent from the score
-    s0 = score_buildings(out[out["source"] == "footprint"], truth, aoi=box(*grid.bounds))
+    s0 = score_buildings(out[out["source"] == "footprints"], truth, aoi=box(*grid.bounds))
     assert (s0["tp"], s0["fn"]) == (0, 1)
     none = classify_buildings(known, mask, dz, grid, z_a=za, z_b=zb, id_field="building_id", detect_new=False)
-    assert (none["source"] == "footprint").all()
+    assert (none["source"] == "footprints").all()
 
 
 def test_a_building_with_a_changed_part_is_changed(grid):

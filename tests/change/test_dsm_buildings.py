@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from geocd.change.building_layer import check_building_layer
 from geocd.change.dsm_buildings import DSMBuildingParams, buildings_from_dsm, classify_damage, ground_model
 from geocd.consistency import ChangeResult
 from geocd.geodesy import AOIGrid
@@ -80,6 +81,12 @@ def test_damage_classes():
     new = post[[g.intersection(bld.union_all()).area < 0.3 * g.area for g in post.geometry]]
     allb = pd.concat([bld, new], ignore_index=True)
     out = classify_damage(allb, res, GRID, z_a=z_a, z_b=z_b, dtm=dtm)
+    check_building_layer(out)
+    # without a ground model (tiled runs, demdiff) heights are taken above a ring around each building
+    ring = classify_damage(allb, res, GRID, z_a=z_a, z_b=z_b)
+    check_building_layer(ring)
+    assert list(ring["class"]) == list(out["class"])
+    assert np.abs(ring["height_before_m"] - out["height_before_m"]).max() < 1.0
     cls = {}
     for _, row in out.iterrows():
         c = row.geometry.centroid
@@ -106,7 +113,7 @@ def test_a_new_building_joined_to_a_standing_one_is_found():
     from types import SimpleNamespace
 
     from geocd.change.dsm_buildings import new_objects
-    from geocd.pipeline import _building_damage
+    from geocd.pipeline import _building_layer
 
     rng = np.random.default_rng(3)
     z_a, ground, boxes = _scene(rng)
@@ -126,7 +133,7 @@ def test_a_new_building_joined_to_a_standing_one_is_found():
     def rec(z):
         return SimpleNamespace(z_m=z, valid=np.isfinite(z))
 
-    dmg, _ = _building_damage(None, res, GRID, [rec(z_a)], [rec(z_b)], None, 99.0, "A", "B")
+    dmg, _ = _building_layer(None, res, GRID, [rec(z_a)], [rec(z_b)], None, 99.0, "A", "B")
     hit = dmg[dmg["class"] == "new"]
     assert len(hit) == 1 and hit["source"].iloc[0] == "B DSM (ground in A)"
     assert hit["height_after_m"].iloc[0] == pytest.approx(h, abs=1.0)

@@ -37,11 +37,23 @@ def test_layers_and_orientation(kahra_run):
         "orientation/scene.oriented.yaml",
     ):
         assert (out / name).exists(), name
-    dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
-    assert {"class", "confidence_pct", "height_before_m", "height_after_m", "volume_lost_m3", "volume_sigma_m3"} <= set(
-        dmg.columns
+    import pyogrio
+
+    from geocd.change.building_layer import check_building_layer
+
+    names = [str(n) for n, _ in pyogrio.list_layers(out / "sc_changes.gpkg")]
+    assert [n for n in names if "build" in n] == ["buildings"], names  # one building layer, no footprints here
+    dmg = gpd.read_file(out / "sc_changes.gpkg", layer="buildings")
+    check_building_layer(dmg)
+    assert set(dmg["source"]) == {"pre_event DSM", "post_event DSM (ground in pre_event)"}
+    conf = dmg["confidence_pct"]
+    assert set(conf[conf.notna()].unique()) <= {0.0, 90.0, 95.0, 99.0}
+    assert conf[dmg["class"] == "unobserved"].isna().all()
+    s = json.loads((out / "run_summary.json").read_text())
+    assert (
+        s["buildings"]["classes"] == {k: int(v) for k, v in dmg["class"].value_counts().items()}
+        and "building_damage" not in s
     )
-    assert set(dmg["confidence_pct"].unique()) <= {0.0, 90.0, 95.0, 99.0}
 
 
 def test_headline_figures(kahra_run):
@@ -57,7 +69,7 @@ def test_headline_figures(kahra_run):
     out, res = kahra_run
     from geocd.change.dsm_buildings import stable_false_alarms
 
-    dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
+    dmg = gpd.read_file(out / "sc_changes.gpkg", layer="buildings")
     cls = dmg["class"].value_counts()
     assert 200 <= len(dmg) <= 240
     assert 12 <= cls.get("collapsed", 0) <= 17
@@ -91,16 +103,16 @@ def test_the_model_as_learned_flags_twice_as_much_stable_ground(kahra_run):
     out, res = kahra_run
     from geocd.change.dsm_buildings import stable_false_alarms
     from geocd.consistency import ChangeParams, change_test
-    from geocd.pipeline import _building_damage
+    from geocd.pipeline import _building_layer
 
     pairs = res["pairs"]
     r0 = change_test(pairs["pre_event"], pairs["post_event"], res["model"], ChangeParams(calibration="none"))
     assert r0.calibration is None
-    dmg0, _ = _building_damage(
+    dmg0, _ = _building_layer(
         None, r0, res["grid"], pairs["pre_event"], pairs["post_event"], res["model"], 99.0, "pre_event", "post_event"
     )
     fa0 = stable_false_alarms(r0.confidence, r0.observed, dmg0, res["grid"])["99"]
-    dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage")
+    dmg = gpd.read_file(out / "sc_changes.gpkg", layer="buildings")
     fa = stable_false_alarms(res["result"].confidence, res["result"].observed, dmg, res["grid"])["99"]
     assert 0.058 < fa0 < 0.080
     assert fa < 0.6 * fa0
@@ -120,7 +132,7 @@ def test_what_the_stable_false_alarms_are(kahra_run):
     from geocd.pipeline import _median_surface
 
     r, grid, pairs = res["result"], res["grid"], res["pairs"]
-    dmg = gpd.read_file(out / "sc_changes.gpkg", layer="building_damage").to_crs(grid.crs)
+    dmg = gpd.read_file(out / "sc_changes.gpkg", layer="buildings").to_crs(grid.crs)
 
     def mask(geoms):
         return rasterize(
@@ -153,10 +165,10 @@ def test_the_changed_part_option(kahra_run):
     parts it adds are felled trees and roadworks inside the DSM objects' outlines, so it is off by default."""
     out, res = kahra_run
     from geocd.change.dsm_buildings import DSMBuildingParams, stable_false_alarms
-    from geocd.pipeline import _building_damage
+    from geocd.pipeline import _building_layer
 
     r, pairs, grid = res["result"], res["pairs"], res["grid"]
-    dmg, _ = _building_damage(
+    dmg, _ = _building_layer(
         None,
         r,
         grid,

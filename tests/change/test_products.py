@@ -39,11 +39,18 @@ def test_products_are_readable_and_styled(tmp_path, result):
         geometry=[box(l + 10, t - 25, l + 25, t - 10), box(l + 40, b + 5, l + 50, b + 15)],
         crs=grid.crs,
     )
+    from geocd.change.building_layer import check_building_layer
     from geocd.change.buildings import classify_buildings
+    from geocd.change.dsm_buildings import footprint_layer
 
-    bld = classify_buildings(
-        fps, res.changed_at(95), res.dz_m, grid, z_a=np.zeros(SHAPE, np.float32), id_field="building_id"
+    za = np.zeros(SHAPE, np.float32)
+    bld = footprint_layer(
+        fps, res, grid, z_a=za, z_b=za + res.dz_m, report_confidence=95, model=model, id_field="building_id"
     )
+    # only the building layer's schema is written
+    raw = classify_buildings(fps, res.changed_at(95), res.dz_m, grid, z_a=za, id_field="building_id")
+    with pytest.raises(ValueError, match="does not follow the schema"):
+        write_change_products(tmp_path / "raw", res, grid, buildings=raw, region_confidence=95, plots=False)
     paths = write_change_products(tmp_path, res, grid, model=model, buildings=bld, region_confidence=95, prefix="sc")
     with rasterio.open(paths["change"]) as ds:
         assert ds.descriptions == ("dz_m", "dtilde", "score", "confidence", "cell_confidence", "dz_sigma_m")
@@ -70,7 +77,8 @@ def test_products_are_readable_and_styled(tmp_path, result):
     assert np.isfinite(ch["volume_sigma_m3"]).all() and (ch["volume_sigma_m3"] > 0).all()
     assert big["volume_sigma_m3"] < 0.2 * abs(big["volume_m3"])
     b = gpd.read_file(paths["changes"], layer="buildings")
-    assert list(b["class"]) == ["new", "unchanged"]
+    check_building_layer(b)
+    assert list(b["class"]) == ["new", "unchanged"] and list(b["confidence_pct"]) == [99.0, 0.0]
     styles = sqlite3.connect(paths["changes"]).execute("select f_table_name from layer_styles").fetchall()
     assert {s[0] for s in styles} == {"changes", "buildings"}
     assert paths["scatter"].stat().st_size > 10_000 and paths["quicklook"].stat().st_size > 10_000

@@ -155,3 +155,83 @@ def test_tiled_calibration_of_a_transferred_model_equals_untiled(recs, tmp_path)
         ):
             np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
             assert a.tags() == b.tags() and "model_calibration" in a.tags()
+
+
+def test_tiled_building_layer_follows_the_schema(recs, tmp_path):
+    """`geocd change --tiled --footprints` writes the one building layer: on the exact path the in-memory layer
+    (footprints and the new buildings of the change map outside them), on the large-grid path footprint by
+    footprint (heights above a ring around each footprint; no search for new buildings) with the same classes."""
+    from shapely.geometry import box
+
+    from geocd.change.building_layer import check_building_layer
+    from geocd.change.dsm_buildings import building_layer
+    from geocd.pipeline import _median_surface
+
+    d, pa, pb, model = recs
+    t = GRID.transform
+
+    def cells(r0, r1, c0, c1):
+        return box(t.c + c0 * 0.5, t.f - r1 * 0.5, t.c + c1 * 0.5, t.f - r0 * 0.5)
+
+    fps = gpd.GeoDataFrame(
+        {"id": [5, 6]}, geometry=[cells(92, 128, 62, 98), cells(60, 85, 100, 130)], crs=GRID.crs
+    )  # the lowered block, a static one
+    fp_path = tmp_path / "fp.gpkg"
+    fps.to_file(fp_path, driver="GPKG")
+    params = ChangeParams(confidences=(90.0, 95.0, 99.0))
+    A, B = [read_pair_dem(p) for p in pa], [read_pair_dem(p) for p in pb]
+    res = change_test(A, B, model, params)
+    mem, _ = building_layer(fps, res, GRID, z_a=_median_surface(A), z_b=_median_surface(B), model=model)
+    layers = {}
+    for name, cells_max in (("exact", None), ("large", 1000)):
+        tiling = TilingParams(tile_size=64, scheduler="sync", **({"exact_grid_cells": cells_max} if cells_max else {}))
+        change_test_tiled(
+            pa,
+            pb,
+            model,
+            tmp_path / name,
+            params=params,
+            epoch_names=("A", "B"),
+            plots=False,
+            tiling=tiling,
+            footprints=str(fp_path),
+        )
+        layers[name] = gpd.read_file(tmp_path / name / "sc_changes.gpkg", layer="buildings")
+        check_building_layer(layers[name])
+    ex, lg = layers["exact"], layers["large"]
+    assert list(ex["class"]) == list(mem["class"]) and list(ex["building_id"]) == list(mem["building_id"])
+    np.testing.assert_allclose(ex["volume_change_m3"], mem["volume_change_m3"])
+    # the new building and the thin raised strip stand outside both footprints
+    assert list(ex["source"]) == ["footprints", "footprints", "change map", "change map"]
+    assert list(ex["class"]) == ["collapsed", "unchanged", "new", "new"]  # the block sank 6 m below the ground
+    assert ex["area_m2"].iloc[2] == pytest.approx(35 * 40 * 0.25, rel=0.1)
+    assert list(lg["building_id"]) == [5, 6] and list(lg["class"]) == list(ex["class"][:2])
+    assert list(lg["confidence_pct"]) == list(ex["confidence_pct"][:2])
+    assert lg["height_before_m"].iloc[0] == pytest.approx(0, abs=1) and lg["height_after_m"].iloc[0] < -4
+
+
+def test_cli_change_footprints_writes_the_building_layer(recs, tmp_path):
+    """`geocd change --footprints` in memory: the same building layer as the tiled exact path."""
+    from click.testing import CliRunner
+    from shapely.geometry import box
+
+    from geocd.change.building_layer import check_building_layer
+    from geocd.cli import main
+
+    d, pa, pb, model = recs
+    t = GRID.transform
+    fps = gpd.GeoDataFrame(
+        {"id": [5]}, geometry=[box(t.c + 62 * 0.5, t.f - 128 * 0.5, t.c + 98 * 0.5, t.f - 92 * 0.5)], crs=GRID.crs
+    )
+    fps.to_file(tmp_path / "fp.gpkg", driver="GPKG")
+    mp = model.save(tmp_path / "model.json")
+    out = {}
+    for name, extra in (("mem", []), ("tiled", ["--tiled", "--tile-size", "64", "--scheduler", "sync"])):
+        args = ["change", *sum((["-a", str(p)] for p in pa), []), *sum((["-b", str(p)] for p in pb), [])]
+        args += ["--model", str(mp), "--footprints", str(tmp_path / "fp.gpkg"), "--out", str(tmp_path / name)]
+        r = CliRunner().invoke(main, [*args, *extra])
+        assert r.exit_code == 0, r.output
+        out[name] = gpd.read_file(tmp_path / name / "sc_changes.gpkg", layer="buildings")
+        check_building_layer(out[name])
+    assert list(out["mem"]["class"]) == list(out["tiled"]["class"]) == ["collapsed", "new", "new"]
+    np.testing.assert_allclose(out["mem"]["volume_change_m3"], out["tiled"]["volume_change_m3"])

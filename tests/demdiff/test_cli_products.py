@@ -76,8 +76,13 @@ def test_cli_pair_products(tmp_path):
     assert set(st.f_table_name) == {"changes", "buildings"}
     assert "categorizedSymbol" in st[st.f_table_name == "changes"].styleQML.iloc[0]
     bl = pyogrio.read_dataframe(out / "demdiff_changes.gpkg", layer="buildings")
-    assert {"building_id", "frac_changed", "mean_dz_m", "volume_m3", "class", "confidence"} <= set(bl.columns)
+    from geocd.change.building_layer import check_building_layer
+
+    check_building_layer(bl)  # the one building layer's schema (no volume σ: no per-cell error model here)
+    assert list(bl["src_name"][:2]) == ["on bump", "elsewhere"] and (bl["source"][:2] == "footprints").all()
     assert bl["class"].iloc[0] in ("new", "raised") and bl["class"].iloc[1] == "unchanged"
+    assert bl["confidence_pct"].iloc[0] == 99.0 and bl["confidence_pct"].iloc[1] == 0.0
+    assert bl["volume_sigma_m3"].isna().all() and bl["volume_change_m3"].iloc[0] > 0
     ch = pyogrio.read_dataframe(out / "demdiff_changes.gpkg", layer="changes")
     assert (ch["sign"] == 1).any() and ch["volume_sigma_m3"].notna().all()
     rep = json.loads((out / "demdiff_report.json").read_text())

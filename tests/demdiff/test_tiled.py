@@ -77,6 +77,44 @@ def test_tiled_equals_untiled_bitwise(shifted_pair, tmp_path, case):
     assert not (tmp_path / "tiled" / ".geocd-work").exists()
 
 
+def test_tiled_building_layer_equals_untiled(shifted_pair, tmp_path):
+    """With footprints both paths write the one building layer; footprint by footprint on windows (tiled) the
+    rows of the footprints are the untiled ones (heights above a ring around each footprint in both); only the
+    untiled layer searches the change map for new buildings outside them."""
+    from shapely.geometry import box
+
+    from geocd.change.building_layer import check_building_layer
+
+    d = shifted_pair
+    a, b = read_dem(d / "a.tif"), read_dem(d / "b.tif")
+    l, bt, r, t = a.grid.bounds
+    cx, cy = (l + r) / 2, (bt + t) / 2
+    fp = gpd.GeoDataFrame(
+        {"id": [3, 4]},
+        geometry=[box(cx - 30, cy - 30, cx + 30, cy + 30), box(l + 20, bt + 20, l + 60, bt + 60)],
+        crs=a.grid.crs,
+    )
+    res = dem_difference(a, b)
+    write_demdiff_products(tmp_path / "untiled", res, footprints=fp, plots=False)
+    dem_difference_tiled(
+        d / "a.tif",
+        d / "b.tif",
+        tmp_path / "tiled",
+        footprints=fp,
+        plots=False,
+        tiling=TilingParams(tile_size=64, scheduler="sync", exact_grid_cells=1000),
+    )
+    u = gpd.read_file(tmp_path / "untiled" / "demdiff_changes.gpkg", layer="buildings")
+    tl = gpd.read_file(tmp_path / "tiled" / "demdiff_changes.gpkg", layer="buildings")
+    check_building_layer(u)
+    check_building_layer(tl)
+    fpu = u[u["source"] == "footprints"].reset_index(drop=True)
+    assert list(fpu["building_id"]) == list(tl["building_id"]) == [3, 4]
+    assert list(fpu["class"]) == list(tl["class"])
+    for c in ("confidence_pct", "frac_changed", "height_before_m", "height_after_m", "volume_change_m3"):
+        np.testing.assert_allclose(fpu[c], tl[c], err_msg=c)
+
+
 @pytest.mark.slow
 def test_tiled_threads_and_user_mask(shifted_pair, tmp_path):
     from shapely.geometry import box

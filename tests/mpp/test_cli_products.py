@@ -69,6 +69,14 @@ def test_cli_two_images(tmp_path):
     assert rects["confidence"].between(0, 100).all() and rects["confidence"].max() > 50
     assert set(rects["change"]) <= {"unchanged", "new", "demolished"}
     assert set(bld["change"]) <= {"unchanged", "new", "demolished", "modified"}
+    # the columns every building layer shares first, in its vocabulary (mpp's demolished: collapsed)
+    from geocd.change.building_layer import check_building_layer
+
+    check_building_layer(bld, shared_only=True)
+    assert (bld["source"] == "A and B images").all() and list(bld.columns[4:7]) == ["area_m2", "change", "n_rectangles"]
+    word = {"unchanged": "unchanged", "new": "new", "demolished": "collapsed"}
+    one = bld["change"] != "modified"
+    assert (bld.loc[one, "class"] == bld.loc[one, "change"].map(word)).all()
     assert rects["building_id"].isin(bld["building_id"]).all()
     with rasterio.open(out / "mpp_buildings.tif") as ds:
         cls = ds.read(1)
@@ -254,8 +262,51 @@ def test_the_two_rectangles_of_an_l_are_one_building():
     df = rectangles_frame(Detection(res, "ED", ()), grid)
     assert df["object_id"].tolist() == [0, 0, 1]
     bld = buildings_frame(df)
-    assert len(bld) == 2
+    assert len(bld) == 2 and (bld["class"] == "unchanged").all() and (bld["confidence_pct"] == 0).all()
     big = bld.loc[bld["n_rectangles"] == 2].iloc[0]
     # 40 × 30 cells less the 16 × 12 notch, at 0.25 m² a cell
     assert big["area_m2"] == pytest.approx((40 * 30 - 16 * 12) * 0.25, abs=0.2)
     assert big.geometry.geom_type == "Polygon" and len(big.geometry.exterior.coords) - 1 >= 6
+
+
+def test_building_classes_and_confidence_in_the_shared_vocabulary():
+    """mpp's labels in the building layer's words: a building only on date A is collapsed, only on date B new;
+    one whose rectangles disagree is partly collapsed when a part is gone, raised when a part was added; a
+    changed building's confidence_pct is its changed rectangles' label probability, an unchanged one's 0."""
+    from geocd.change.building_layer import check_building_layer
+    from geocd.mpp.detect import Detection
+    from geocd.mpp.model import MPPResult
+    from geocd.mpp.products import buildings_frame, rectangles_frame
+
+    grid = AOIGrid("EPSG:32631", Affine(0.5, 0, 500000.0, 0, -0.5, 4800000.0), 300, 300)
+    rects = np.array(
+        [
+            [40.0, 40.0, 20.0, 20.0, 0.0],  # unchanged
+            [55.0, 40.0, 20.0, 20.0, 0.0],  # + a part gone: one building
+            [150.0, 40.0, 20.0, 20.0, 0.0],  # unchanged
+            [165.0, 40.0, 20.0, 20.0, 0.0],  # + a part added: one building
+            [40.0, 200.0, 20.0, 20.0, 0.0],  # only on date A
+            [200.0, 200.0, 20.0, 20.0, 0.0],  # only on date B
+        ]
+    )
+    n = len(rects)
+    res = MPPResult(
+        rects=rects,
+        xi=np.array([0, 1, 0, 2, 1, 2], np.int8),
+        energy=np.full(n, -0.5),
+        phi=np.full((n, 2), -0.5),
+        confidence=np.full(n, 60.0),
+        xi_confidence=np.array([90.0, 80.0, 90.0, 70.0, 95.0, 85.0]),
+    )
+    bld = buildings_frame(rectangles_frame(Detection(res, "ED", ()), grid, "pre", "post"), "pre and post images")
+    check_building_layer(bld, shared_only=True)
+    got = {(r["change"], r["class"], r["confidence_pct"]) for _, r in bld.iterrows()}
+    assert got == {
+        ("modified", "partly collapsed", 80.0),
+        ("modified", "raised", 70.0),
+        ("demolished", "collapsed", 95.0),
+        ("new", "new", 85.0),
+    }
+    res.xi[:] = 0
+    bld = buildings_frame(rectangles_frame(Detection(res, "ED", ()), grid))
+    assert (bld["class"] == "unchanged").all() and (bld["confidence_pct"] == 0).all()

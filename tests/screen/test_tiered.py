@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from geocd.change.building_layer import CHANGED
 from geocd.screen.tiered import flag_tiles
 
 
@@ -122,7 +123,7 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
     b = rt["buildings"]
     if b is not None and len(b):
         outside = b["frac_examined"] == 0
-        assert not b.loc[outside, "class"].isin(["unchanged", "raised", "lowered", "new", "demolished"]).any()
+        assert not b.loc[outside, "class"].isin(["unchanged", *CHANGED]).any()
 
 
 @pytest.mark.slow
