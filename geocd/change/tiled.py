@@ -607,18 +607,20 @@ def _write_exact(
     res = _gathered_result(store, conf_store, tg, meta)
     g = tg.grid
     buildings = None
+    surfaces = (None, None)  # the epochs' surfaces are kept with footprints only
     if fp is not None:
         from .buildings import classify_buildings
 
         win = (0, 0, g.height, g.width)
+        surfaces = (store.read("z_a", win), store.read("z_b", win))
         id_field = next((c for c in ("building_id", "id", "fid") if c in fp.columns), None)
         buildings = classify_buildings(
             fp,
             res.changed_at(region_confidence),
             res.dz_m,
             g,
-            z_a=store.read("z_a", win),
-            z_b=store.read("z_b", win),
+            z_a=surfaces[0],
+            z_b=surfaces[1],
             confidence=res.confidence,
             id_field=id_field,
             confidence_level=region_confidence,
@@ -635,6 +637,8 @@ def _write_exact(
         buildings=buildings,
         prefix=prefix,
         plots=plots,
+        backdrop_a_m=surfaces[0],
+        backdrop_m=surfaces[1],
     )
 
 
