@@ -189,6 +189,16 @@ def quicklook_buildings(layers: dict[str, Any]):
     return None
 
 
+def read_building_layer(gpkg: os.PathLike | str):
+    """The building layer of a run's GeoPackage, as :func:`quicklook_buildings` picks it (None: there is none)."""
+    import geopandas as gpd
+    import pyogrio
+
+    names = {str(n) for n, _ in pyogrio.list_layers(gpkg)}
+    layers = {n: gpd.read_file(gpkg, layer=n) for n in ("buildings", "building_damage") if n in names}
+    return quicklook_buildings(layers)
+
+
 _BAND_UNITS = {
     "dz_m": "m",
     "dtilde": "px",
