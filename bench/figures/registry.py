@@ -388,7 +388,8 @@ ENTRIES: tuple[Entry, ...] = (
         data=("cnes_picanteo_kahramanmaras",),
         needs=("kahramanmaras_orthos",),
         cost="long",
-        minutes=20.0,
+        minutes=4.6,
+        measured=True,
     ),
     # ------------------------------------------------------------------ DEM differencing
     Entry(
