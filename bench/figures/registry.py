@@ -437,7 +437,8 @@ ENTRIES: tuple[Entry, ...] = (
         (_cmd("{python} bench/figures/stereo_show.py ventoux"),),
         data=("cnes_pleiades_ventoux",),
         cost="long",
-        minutes=5.0,
+        minutes=0.4,
+        measured=True,
     ),
     Entry(
         "sc_marseille_scatter",
@@ -502,7 +503,8 @@ ENTRIES: tuple[Entry, ...] = (
             _cmd("{python} bench/figures/ortho_show.py {work}/ortho/run"),
         ),
         cost="long",
-        minutes=6.0,
+        minutes=2.6,
+        measured=True,
     ),
     Entry(
         "probchange",
@@ -586,7 +588,8 @@ ENTRIES: tuple[Entry, ...] = (
             ("copy", "{work}/landcover_cli/gp/landcover_ablation.png", "{docs}/landcover_cli_ablation.png"),
         ),
         cost="long",
-        minutes=14.0,
+        minutes=3.7,
+        measured=True,
     ),
     Entry(
         "landcover_baviaans",
