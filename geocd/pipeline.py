@@ -207,13 +207,12 @@ def _quicklook_view(manifest, epoch, grid, surface_m: np.ndarray | None):
     from .change.dsm_buildings import fill_gaps
     from .change.plots import QuickLookView
     from .geodesy import AOIGrid
-
-    if surface_m is None or not np.isfinite(surface_m).any() or not epoch.images:
-        return QuickLookView(surface_m=surface_m)
     from .ortho import OrthoParams, orthorectify
     from .ortho.pipeline import read_image_for_grid
     from .stereo.pipeline import load_epoch_images
 
+    if surface_m is None or not np.isfinite(surface_m).any() or not epoch.images:
+        return QuickLookView(surface_m=surface_m)
     H, W = grid.shape
     k = max(1, math.ceil(max(H, W) / QUICKLOOK_MAX_CELLS))
     Hc, Wc = math.ceil(H / k), math.ceil(W / k)

@@ -191,6 +191,9 @@ def print_list(out=sys.stdout) -> None:
     for r in rows:
         print("  ".join(c.ljust(w[i]) for i, c in enumerate(r[:-1])) + "  " + r[-1], file=out)
     print(f"\n{len(pictures())} pictures in {len(ENTRIES)} entries; data from {data_root()}", file=out)
+    for e in ENTRIES:
+        if e.note:
+            print(f"note on {e.name}: {e.note}", file=out)
 
 
 def select(only: list[str], quick: bool) -> list[Entry]:
@@ -272,6 +275,8 @@ def main(argv=None) -> int:
         for name, r in done.items():
             if "seconds" in r and r["status"] == "done":
                 rec[name] = {"seconds": r["seconds"], "date": today, "pictures": r.get("pictures", [])}
+                if by_name()[name].note:
+                    rec[name]["note"] = by_name()[name].note
         RESULTS.write_text(json.dumps(dict(sorted(rec.items())), indent=1) + "\n")
     log("\nsummary:")
     for name, r in done.items():

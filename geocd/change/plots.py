@@ -187,8 +187,9 @@ class QuickLookView:
 
     Attributes
     ----------
-    image : float (rows, cols) on the grid, NaN where not seen, optional
-        A grey image of the epoch (e.g. an orthoimage of one of its views); drawn with a 1–99 % stretch.
+    image : float (rows, cols), NaN where not seen, optional
+        A grey image of the epoch (e.g. an orthoimage of one of its views) covering the grid's bounds, on the
+        grid or on a coarser grid of the same bounds; drawn with a 1–99 % stretch.
     surface_m : float (rows, cols) on the grid, NaN where no height, optional
         The epoch's surface; drawn as a hillshade when there is no image.
     label : str
