@@ -16,8 +16,8 @@ from bench.figures.stamp import FOOTER_PX, is_stamped, stamp
 
 REPO = Path(__file__).resolve().parents[1]
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
-#: an image a page shows, ![caption](path.png), or a picture of docs/ it points to in its text (docs/NAME.png)
-IMAGE = re.compile(r"!\[[^\]]*\]\(([^)\s]+\.png)\)|\bdocs/([a-z0-9_]+\.png)")
+#: a picture a page shows, ![caption](path.png), links to, [text](path.png), or names as docs/NAME.png
+IMAGE = re.compile(r"\]\(([^)\s]+\.png)\)|\bdocs/([a-z0-9_]+\.png)")
 
 
 def shown_pictures() -> dict[str, list[str]]:

@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from .common import check_confidence
+from .vocabulary import vertical_datum_option
 
 
 def _confidences(values) -> tuple[float, ...]:
@@ -269,9 +270,9 @@ def _is_consistency_model(p: Path) -> bool:
 @click.option(
     "--out",
     "out_path",
-    required=True,
+    default=None,
     type=click.Path(dir_okay=False, path_type=str),
-    help="Scene-class model to write (JSON).",
+    help="Scene-class model to write (JSON; default: ./geocd_out/consistency/self_consistency_model.json).",
 )
 @click.option(
     "--group-by",
@@ -309,8 +310,10 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
     from ..consistency import ConsistencyParams, learn_self_consistency
     from ..io.outputs import open_outputs, refuse_foreign_files
     from . import emit_result, make_progress
-    from .common import session
+    from .common import resolve_out_dir, session
 
+    if out_path is None:
+        out_path = str(resolve_out_dir(None, "consistency", create=False) / "self_consistency_model.json")
     open_outputs(None, files=[out_path, plot_path], inputs=pair_dems)
     refuse_foreign_files(
         [out_path], _is_consistency_model, what="a geocd self-consistency model (JSON)", force=overwrite
@@ -345,16 +348,14 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
 
 @click.command("change")
 @click.option(
-    "-a",
-    "--epoch-a",
+    "--pair-dem-a",
     "a_paths",
     multiple=True,
     type=click.Path(exists=True, dir_okay=False, path_type=str),
     help="Pair-DEM GeoTIFF of the earlier epoch (repeatable).",
 )
 @click.option(
-    "-b",
-    "--epoch-b",
+    "--pair-dem-b",
     "b_paths",
     multiple=True,
     type=click.Path(exists=True, dir_okay=False, path_type=str),
@@ -372,8 +373,9 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
     default=None,
     help="A DEM standing for the later epoch.",
 )
-@click.option(
-    "--dem-vertical-datum", default=None, help="Vertical datum of --dem-a/--dem-b (ellipsoid, egm96, egm2008)."
+@vertical_datum_option(
+    "Vertical datum of --dem-a/--dem-b when their files do not say (ellipsoid, egm96, egm2008).",
+    dest="dem_vertical_datum",
 )
 @click.option(
     "--model",
@@ -385,7 +387,13 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
 @click.option(
     "--footprints", type=click.Path(exists=True, path_type=str), default=None, help="Footprints to attribute."
 )
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str), help="Output folder.")
+@click.option(
+    "--out",
+    "out_dir",
+    default=None,
+    type=click.Path(file_okay=False, path_type=str),
+    help="Output folder (default: ./geocd_out/change).",
+)
 @click.option(
     "--confidence",
     "confidences",
@@ -411,7 +419,10 @@ def consistency(ctx, pair_dems, out_path, group_by, confidences, scene_class, se
 @click.option(
     "--scheduler",
     default=None,
-    help="Tiled runs: sync | threads | processes | auto | a Dask scheduler address (implies --tiled).",
+    metavar="SCHEDULER",
+    help="Tiled runs (implies --tiled): sync | threads | processes | auto (a local Dask cluster sized to the "
+    "machine, the default; this process when there is one tile) | ADDRESS of a running dask.distributed "
+    "scheduler (tcp://host:8786).",
 )
 @click.option(
     "--tile-size",
@@ -457,8 +468,9 @@ def change(
     from ..io.outputs import open_outputs
     from ..pipeline import _median_surface
     from . import emit_result, make_progress
-    from .common import session
+    from .common import resolve_out_dir, session
 
+    out_dir = str(resolve_out_dir(out_dir, "change", create=False))
     if tiled or scheduler or tile_size:
         from ..io.raster import check_dem_file
 
@@ -508,7 +520,7 @@ def change(
     A, B = _read_pairs(a_paths), _read_pairs(b_paths)
     if not (A or B):
         raise ConfigError(
-            "give pair-DEMs of both epochs (-a ... -b ...), or one epoch's pair-DEMs and a DEM for the other"
+            "give pair-DEMs of both epochs (--pair-dem-a ... --pair-dem-b ...), or one epoch's pair-DEMs and a DEM for the other"
         )
     grid = (A or B)[0].grid
     for p in A + B:
@@ -529,7 +541,9 @@ def change(
             )
         )
     if not A or not B:
-        raise ConfigError("each epoch needs at least one pair-DEM or a DEM (--dem-a/--dem-b)")
+        raise ConfigError(
+            "each epoch needs at least one pair-DEM (--pair-dem-a/--pair-dem-b) or a DEM (--dem-a/--dem-b)"
+        )
     model = SelfConsistencyModel.load(model_path)
     params = ChangeParams(
         confidences=tuple(sorted({*_confidences(confidences), float(report_confidence)})),

@@ -44,6 +44,7 @@ from ..errors import ConfigError, GeoCDError, InputFileNotFoundError, OutputErro
 from ..io.atomic import refuse_special_file
 from ..runlog import RunLog, log_file_name
 from .options import harden_options
+from .vocabulary import install_legacy_names
 
 PROGRESS_MODES = ("auto", "bar", "lines", "json", "none")
 #: lowest confidence (percent) an option accepts: below it a "change" is as likely noise as not
@@ -64,8 +65,8 @@ def dask_options(cmd: Callable) -> Callable:
                 default=None,
                 metavar="SCHEDULER",
                 help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the "
-                "machine, the default) | ADDRESS of a running dask.distributed scheduler "
-                "(tcp://host:8786).",
+                "machine, the default; this process when there is one tile) | ADDRESS of a running "
+                "dask.distributed scheduler (tcp://host:8786).",
             ),
             click.option(
                 "--workers",
@@ -116,19 +117,23 @@ def _debug_option() -> click.Option:
     )
 
 
-def add_common_options(cmd: click.Command) -> click.Command:
+def add_common_options(cmd: click.Command, path: str | None = None) -> click.Command:
     """Give ``cmd`` (and, for a group, each subcommand) ``--progress``, ``--json`` and ``--debug``, the shared
-    checks of numeric options (:func:`geocd.cli.options.harden_options`), and run it in a Session.
+    checks of numeric options (:func:`geocd.cli.options.harden_options`), its old option names
+    (:mod:`geocd.cli.vocabulary`; ``path`` is the command's path without ``geocd``, default its name), and run it
+    in a Session.
 
     Idempotent; the command group applies it to every command it loads, so a new command needs nothing
     beyond its line in ``SUBCOMMANDS``.
     """
+    path = path or cmd.name or ""
     if isinstance(cmd, click.Group):
-        for sub in cmd.commands.values():
-            add_common_options(sub)
+        for name, sub in cmd.commands.items():
+            add_common_options(sub, f"{path} {name}")
         return cmd
     if getattr(cmd, "_geocd_common", False) or cmd.callback is None:
         return cmd
+    install_legacy_names(cmd, path)
     names = {p.name for p in cmd.params}
     if "_geocd_progress" not in names:
         cmd.params.append(_progress_option())

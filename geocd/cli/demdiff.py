@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from .common import check_confidence, dask_options
+from .vocabulary import vertical_datum_option
 
 DEM_LIST_HELP = """DEMS: two DEM files (A = reference/earlier, B = later), three or more (a time series, in date
 order or with --dates), or ONE list file (.txt/.csv: one `path[,date[,name]]` per line, # comments) or geocd manifest
@@ -271,10 +272,14 @@ def _check_dates_in_order(ents, where: str) -> None:
     callback=check_confidence,
     help="Confidence level in percent at which cells are called changed.",
 )
-@click.option(
-    "--datum-a", default=None, help="Vertical datum of DEM A when its file does not say (ellipsoid, egm96, egm2008)."
+@vertical_datum_option(
+    "Vertical datum of DEMs whose files do not say (ellipsoid, egm96, egm2008): once for every DEM, or twice: "
+    "DEM A's, then DEM B's (and every later series DEM's); 'file' keeps what a DEM's file says "
+    "(--vertical-datum file --vertical-datum egm96: B only).",
+    multiple=True,
 )
-@click.option("--datum-b", default=None, help="Vertical datum of DEM B (and of every series DEM after the first).")
+@click.option("--datum-a", default=None, hidden=True, help="Old spelling of the first --vertical-datum.")
+@click.option("--datum-b", default=None, hidden=True, help="Old spelling of the second --vertical-datum.")
 @click.option(
     "--resampling",
     type=click.Choice(["nearest", "bilinear", "cubic", "average"]),
@@ -347,6 +352,7 @@ def demdiff(
     mask_is,
     footprints,
     confidence,
+    vertical_datum,
     datum_a,
     datum_b,
     resampling,
@@ -368,8 +374,21 @@ def demdiff(
     workers,
     memory_limit,
 ) -> None:
+    from ..errors import ConfigError
     from .common import require_inputs, resolve_out_dir, session
 
+    if len(vertical_datum) > 2:
+        raise ConfigError(
+            f"--vertical-datum given {len(vertical_datum)} times; give it once (every DEM) or twice (DEM A, DEM B)"
+        )
+    for old, new in (("--datum-a", datum_a), ("--datum-b", datum_b)):
+        if new is not None:
+            session(ctx).note(
+                f"{old} is now spelled --vertical-datum (DEM A's, then DEM B's); the old name still works"
+            )
+    if vertical_datum:
+        datum_a, datum_b = datum_a or vertical_datum[0], datum_b or vertical_datum[-1]
+    datum_a, datum_b = (None if d is not None and d.strip().lower() == "file" else d for d in (datum_a, datum_b))
     require_inputs(*dems, stable_mask, footprints, base)
     ents = _entries(tuple(dems), dates, names)
     require_inputs(*[e[0] for e in ents])

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+from .vocabulary import vertical_datum_option
 
 _IMAGE_SUFFIXES = (".tif", ".tiff", ".jpg", ".jpeg", ".png", ".jp2")
 
@@ -22,7 +23,7 @@ def _image_index(folder: Path) -> dict[str, Path]:
 @click.command("import-cameras")
 @click.argument("sources", nargs=-1, required=True, type=click.Path(path_type=str))
 @click.option(
-    "--images",
+    "--image-dir",
     "images_dir",
     type=click.Path(path_type=str, file_okay=False),
     default=None,
@@ -41,12 +42,9 @@ def _image_index(folder: Path) -> dict[str, Path]:
     help="Projected CRS of the cameras: orthority x, y (default from the file's .prj "
     "or GeoJSON); for OpenSfM, the CRS to express them in (default: transverse Mercator at the reference).",
 )
-@click.option(
-    "--vertical-datum",
-    type=click.Choice(["ellipsoid", "egm96", "egm2008"]),
-    default=None,
-    help="Datum of the camera heights (orthority: required unless the CRS is compound; OpenSfM: that of "
-    "its reference altitude, default ellipsoid).",
+@vertical_datum_option(
+    "Datum of the camera heights: ellipsoid, egm96 or egm2008 (orthority: required unless the CRS is compound; "
+    "OpenSfM: that of its reference altitude, default ellipsoid)."
 )
 @click.option(
     "--reference",
@@ -80,7 +78,7 @@ def import_cameras(
 
     \b
     Example (ODM project):
-      geocd import-cameras odm/opensfm/reconstruction.json --images odm/images
+      geocd import-cameras odm/opensfm/reconstruction.json --image-dir odm/images
     """
     from ..errors import ConfigError, InputFileNotFoundError
     from ..io.frame import read_orthority_cameras, write_frame_sidecar
@@ -109,7 +107,7 @@ def import_cameras(
     if images_dir is not None:
         folder = Path(images_dir)
         if not folder.is_dir():
-            raise InputFileNotFoundError(f"image folder {folder} does not exist; check --images")
+            raise InputFileNotFoundError(f"image folder {folder} does not exist; check --image-dir")
         index = _image_index(folder)
     default_dir = Path(out_dir) if out_dir is not None else (Path(images_dir) if images_dir else paths[-1].parent)
     outputs, missing = {}, []

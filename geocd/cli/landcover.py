@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import click
 
+from .vocabulary import vertical_datum_option
+
 
 def _progress(ctx, stage):
     from . import make_progress
@@ -32,11 +34,8 @@ def _scene_options(f):
             default=None,
             help="Terrain DEM (any CRS/datum; its grid is the default AOI grid).",
         ),
-        click.option(
-            "--dem-datum",
-            type=click.Choice(["ellipsoid", "egm96", "egm2008"]),
-            default=None,
-            help="Vertical datum of the DEM when its file does not say.",
+        vertical_datum_option(
+            "Vertical datum of the DEM when its file does not say (ellipsoid, egm96, egm2008).", dest="dem_datum"
         ),
         click.option(
             "--footprints",
@@ -144,9 +143,10 @@ def landcover() -> None:
 @click.option(
     "--out",
     "out_path",
-    required=True,
+    default=None,
     type=click.Path(dir_okay=False, path_type=str),
-    help="Model file to write (.joblib; a .json report is written beside it).",
+    help="Model file to write (.joblib; a .json report is written beside it; default: "
+    "./geocd_out/landcover/landcover_model.joblib).",
 )
 @click.option("--seed", type=int, default=0, show_default=True)
 @_scene_options
@@ -180,9 +180,11 @@ def train_cmd(
     from pathlib import Path
 
     from ..io.outputs import open_outputs
-    from .common import require_inputs, session
+    from .common import require_inputs, resolve_out_dir, session
 
     require_inputs(labels_path, *images, what="input")
+    if out_path is None:
+        out_path = str(resolve_out_dir(None, "landcover", create=False) / "landcover_model.joblib")
     open_outputs(
         None,
         inputs=[labels_path, *images, manifest_path, dem, footprints, dsm],

@@ -52,13 +52,15 @@ def check_change_prior(path: str | Path) -> None:
     "--image-a",
     type=click.Path(path_type=str),
     default=None,
-    help="Instead of a manifest: the earlier image, georeferenced (e.g. a geocd ortho).",
+    help="The earlier image. With a manifest: an image name of epoch A (default: the most vertical view); "
+    "without: a georeferenced image file (e.g. a geocd ortho).",
 )
 @click.option(
     "--image-b",
     type=click.Path(path_type=str),
     default=None,
-    help="Instead of a manifest: the later image (resampled onto the earlier one's grid if needed).",
+    help="The later image. With a manifest: an image name of epoch B (default: the most vertical view); "
+    "without: a georeferenced image file (resampled onto the earlier one's grid if needed).",
 )
 @click.option(
     "--dsm-a",
@@ -76,8 +78,6 @@ def check_change_prior(path: str | Path) -> None:
 )
 @click.option("--epoch-a", default=None, help="Manifest: earlier epoch (default the first).")
 @click.option("--epoch-b", default=None, help="Manifest: later epoch (default the last).")
-@click.option("--view-a", default=None, help="Manifest: image of epoch A to use (default: the most vertical view).")
-@click.option("--view-b", default=None, help="Manifest: image of epoch B to use (default: the most vertical view).")
 @click.option(
     "--method",
     type=click.Choice(["ED", "SD", "EV"]),
@@ -227,8 +227,6 @@ def mpp(
     ground,
     epoch_a,
     epoch_b,
-    view_a,
-    view_b,
     method,
     height,
     step,
@@ -255,7 +253,8 @@ def mpp(
     point process of rectangles optimised by multiple birth and death (Benedek, Descombes & Zerubia), with
     geocd's height term from the DSMs.
 
-    Give a MANIFEST (one view per epoch is orthorectified on geocd stereo's DSM) or --image-a/--image-b.
+    Give a MANIFEST (one view per epoch, --image-a/--image-b by name, is orthorectified on geocd stereo's DSM) or
+    two image files with --image-a/--image-b.
     Writes mpp_buildings.gpkg (layers buildings and rectangles, styled, confidence in %), mpp_buildings.tif,
     a quick-look PNG and mpp_summary.json.
     """
@@ -265,12 +264,13 @@ def mpp(
     from .common import require_inputs, resolve_out_dir, session
 
     sess = session(ctx)
-    if (image_a is None) != (image_b is None):
+    view_a = view_b = None
+    if manifest is not None:  # the images are names of the manifest's views
+        view_a, view_b, image_a, image_b = image_a, image_b, None, None
+    elif (image_a is None) != (image_b is None):
         raise ConfigError("give both --image-a and --image-b, or a manifest")
     if manifest is None and image_a is None:
         raise ConfigError("give a scene manifest, or two images with --image-a and --image-b")
-    if manifest is not None and image_a is not None:
-        raise ConfigError("give either a manifest or --image-a/--image-b, not both")
     if surface_median is not None and manifest is None:
         raise ConfigError(
             "--surface-median applies to the stereo DSMs of a manifest; with --image-a/--image-b give --dsm-a/--dsm-b"

@@ -19,8 +19,12 @@ import click
 )
 @click.option("--epoch-a", default=None, help="First epoch (default: the earliest).")
 @click.option("--epoch-b", default=None, help="Second epoch (default: the latest).")
-@click.option("--images-a", default=None, help="Comma-separated image names of epoch A to use (default: all).")
-@click.option("--images-b", default=None, help="Comma-separated image names of epoch B to use (default: all).")
+@click.option(
+    "--image-a", "images_a", multiple=True, help="An image of epoch A to use, by name (repeatable; default: all)."
+)
+@click.option(
+    "--image-b", "images_b", multiple=True, help="An image of epoch B to use, by name (repeatable; default: all)."
+)
 @click.option(
     "--out",
     "out_dir",
@@ -29,7 +33,8 @@ import click
     help="Output folder (default: the manifest's 'output:' if it names one, else ./geocd_out/<scene name>).",
 )
 @click.option(
-    "--model",
+    "--formulation",
+    "model",
     type=click.Choice(["robust", "thesis"]),
     default="robust",
     show_default=True,
@@ -75,8 +80,8 @@ def probchange(
     key: str | None,
     epoch_a: str | None,
     epoch_b: str | None,
-    images_a: str | None,
-    images_b: str | None,
+    images_a: tuple[str, ...],
+    images_b: tuple[str, ...],
     out_dir: str | None,
     model: str,
     prior_change: float | None,
@@ -127,7 +132,6 @@ def probchange(
     if height_range:
         kw["height_range_m"] = tuple(height_range)
     params = ProbChangeParams.robust(**kw) if model == "robust" else ProbChangeParams(**kw)
-    split = lambda s: [x.strip() for x in s.split(",") if x.strip()] if s else None  # noqa: E731
     progress = make_progress(ctx, "probchange")
     try:
         res = run_probchange(
@@ -136,8 +140,8 @@ def probchange(
             key=key,
             epoch_a=epoch_a,
             epoch_b=epoch_b,
-            images_a=split(images_a),
-            images_b=split(images_b),
+            images_a=list(images_a) or None,
+            images_b=list(images_b) or None,
             out_dir=out,
             params=params,
             posting_m=posting_m,

@@ -129,12 +129,12 @@ def screen_params(feature, cell_px, backbone, weights, layer, superpixels, segme
     help="A labelled pair (another place or date): the threshold of its best F1.",
 )
 @click.option(
-    "--pair",
-    nargs=2,
+    "--image-a",
     default=None,
-    metavar="IMAGE_A IMAGE_B",
-    help="Manifest: the images to compare (default: the closest views of the same sensor kind).",
+    help="Manifest: the image of epoch A to compare, by name (with --image-b; default: the closest views of the "
+    "same sensor kind).",
 )
+@click.option("--image-b", default=None, help="Manifest: the image of epoch B to compare, by name (with --image-a).")
 @click.option(
     "--dsm",
     "dsm",
@@ -147,9 +147,10 @@ def screen_params(feature, cell_px, backbone, weights, layer, superpixels, segme
 @click.option("--tile-size", type=int, default=1024, show_default=True, help="Tile side (cells).")
 @click.option(
     "--scheduler",
-    default="sync",
-    show_default=True,
-    help="sync | threads | processes | auto | a dask.distributed scheduler address.",
+    default=None,
+    metavar="SCHEDULER",
+    help="Tiled runs: sync | threads | processes | auto (a local Dask cluster sized to the machine, the default; "
+    "this process when there is one tile) | ADDRESS of a running dask.distributed scheduler (tcp://host:8786).",
 )
 @click.option(
     "--out",
@@ -176,7 +177,8 @@ def screen(
     confidence,
     nochange,
     labelled,
-    pair,
+    image_a,
+    image_b,
     dsm,
     epoch_a,
     epoch_b,
@@ -197,6 +199,10 @@ def screen(
     from .common import require_inputs, resolve_out_dir, session
 
     require_inputs(*sources, weights, what="input")
+    scheduler = scheduler or "auto"
+    if (image_a is None) != (image_b is None):
+        raise ConfigError("give both --image-a and --image-b (names of the manifest's images), or neither")
+    pair = (image_a, image_b) if image_a is not None else None
     if nochange and len(nochange) != 2:
         raise ConfigError(f"--nochange is given twice (two rasters of one date), got {len(nochange)}")
     sess = session(ctx)
@@ -253,7 +259,7 @@ def screen(
             from ..screen.pipeline import PRODUCTS_GLOBS, run_screen_files
 
             if pair or dsm:
-                raise ConfigError("--pair and --dsm are for a manifest")
+                raise ConfigError("--image-a/--image-b and --dsm are for a manifest")
             out = resolve_out_dir(out_dir, Path(sources[0]).stem, create=False)
             open_outputs(out, inputs=[*sources, *(nochange or ()), *(labelled or ()), weights], products=PRODUCTS_GLOBS)
             sess.open_log(out)

@@ -14,14 +14,18 @@ from . import emit_result, make_progress
 @click.option(
     "--out",
     "out_dir",
-    required=True,
+    default=None,
     type=click.Path(file_okay=False, path_type=Path),
-    help="Folder to write (must be empty unless --overwrite).",
+    help="Folder to write (must be empty unless --overwrite; default: ./geocd_out/<scene name>).",
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed (0 reproduces sample_aoi/).")
-@click.option("--size-m", type=float, default=300.0, show_default=True, help="Side of the square AOI, metres.")
-@click.option("--gsd-m", type=float, default=0.5, show_default=True, help="Satellite ground sampling distance, metres.")
-@click.option("--posting-m", type=float, default=0.5, show_default=True, help="Truth/AOI grid posting, metres.")
+@click.option("--size", "size_m", type=float, default=300.0, show_default=True, help="Side of the square AOI, metres.")
+@click.option(
+    "--gsd", "gsd_m", type=float, default=0.5, show_default=True, help="Satellite ground sampling distance, metres."
+)
+@click.option(
+    "--posting", "posting_m", type=float, default=0.5, show_default=True, help="Truth/AOI grid posting, metres."
+)
 @click.option("--n-sat-a", type=int, default=4, show_default=True, help="Satellite views of epoch A.")
 @click.option("--n-sat-b", type=int, default=3, show_default=True, help="Satellite views of epoch B.")
 @click.option("--n-aerial", type=int, default=3, show_default=True, help="Aerial RGB frames of epoch A.")
@@ -54,7 +58,7 @@ from . import emit_result, make_progress
 @click.pass_context
 def synth(
     ctx: click.Context,
-    out_dir: Path,
+    out_dir: Path | None,
     seed: int,
     size_m: float,
     gsd_m: float,
@@ -74,7 +78,7 @@ def synth(
     """Generate a synthetic town with two epochs, satellite (RPC) and aerial (frame) views, and exact truth.
 
     The result is a scene folder (scene.yaml + images + truth) that every geocd command accepts. With the
-    defaults, `geocd synth --out DIR` regenerates the committed sample_aoi/ (same pixels and truth on the same
+    defaults, `geocd synth` regenerates the committed sample_aoi/ (same pixels and truth on the same
     platform; see truth/scene_truth.json for the recorded parameters and checks).
     """
     from ..errors import ConfigError
@@ -135,6 +139,10 @@ def synth(
             if k not in given and not (k == "name" and name is not None):
                 kw[k] = tiny_defaults[k]
     params = SynthParams.from_dict(kw)  # every value checked before the output folder is touched
+    if out_dir is None:
+        from .common import resolve_out_dir
+
+        out_dir = resolve_out_dir(None, params.name or "synth", create=False)
     open_outputs(out_dir, inputs=[params_file], files=[pictures])
     prog = make_progress(ctx, "synth")
     try:

@@ -76,7 +76,7 @@ def volume() -> None:
     help="New model: do not seed the occlusion density from the manifest's DEM (ground band occupied, high air empty).",
 )
 @click.option(
-    "--footprints",
+    "--roofs-from-footprints",
     "use_footprints",
     is_flag=True,
     help="New model: put the DEM prior's surface band at "
@@ -234,7 +234,13 @@ def update(
     default=None,
     help="Camera file of the image (default: found next to it).",
 )
-@click.option("--out", "out_dir", type=click.Path(path_type=str), required=True, help="Output folder.")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Output folder (default: ./geocd_out/volume_detect).",
+)
 @click.option(
     "--neighborhood",
     type=int,
@@ -280,9 +286,9 @@ def detect(
     from ..volume import DetectParams, detect_change, expected_height_map, load_model, orthorectify
     from ..volume.io import read_shadow_dsm, read_view
 
-    from .common import session
+    from .common import resolve_out_dir, session
 
-    out = Path(out_dir)
+    out = out_dir = resolve_out_dir(out_dir, "volume_detect", create=False)
     model = load_model(model_dir)  # checked (a damaged model is refused) before the output folder is touched
     open_outputs(
         out_dir, inputs=[model_dir, image, camera_path, shadow_dsm], products=("*_change_prob*", "*_change.json")
@@ -406,7 +412,13 @@ def _write_image_geometry(path: Path, bands, source_image: str, names) -> None:
 )
 @click.option("--height-map", is_flag=True, help="Write the expected height map (ellipsoidal DEM, COG).")
 @click.option("--posting", "posting_m", type=float, default=None, help="Height-map posting, metres.")
-@click.option("--out", "out_dir", type=click.Path(path_type=str), required=True, help="Output folder.")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(path_type=str),
+    default=None,
+    help="Output folder (default: ./geocd_out/volume_render).",
+)
 @click.pass_context
 def render(ctx, model_dir, images, height_map, posting_m, out_dir):
     """Expected images of views and/or the expected height map of the model."""
@@ -418,11 +430,11 @@ def render(ctx, model_dir, images, height_map, posting_m, out_dir):
     from ..volume.io import read_view
 
     from ..io.outputs import open_outputs
-    from .common import session
+    from .common import resolve_out_dir, session
 
     if not images and not height_map:
         raise ConfigError("nothing to render: give --image and/or --height-map")
-    out = Path(out_dir)
+    out = out_dir = resolve_out_dir(out_dir, "volume_render", create=False)
     model = load_model(model_dir)  # checked (a damaged model is refused) before the output folder is touched
     open_outputs(out_dir, inputs=[model_dir, *images], products=("*_expected.tif", "expected_height_map.tif"))
     session(ctx).open_log(out)

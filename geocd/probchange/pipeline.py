@@ -200,7 +200,7 @@ def run_probchange(
                     raise NoOverlapError(
                         f"image {im.name!r} of epoch {e!r} does not see the AOI {grid.bounds} at "
                         f"heights {lo_v:.0f}..{hi_v:.0f} m; drop it "
-                        f"(--images-{'a' if e == ea.name else 'b'}) "
+                        f"(--image-{'a' if e == ea.name else 'b'}) "
                         "or check its camera"
                     )
                 views[e].append(read_view(im, box, params))

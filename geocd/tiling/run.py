@@ -223,7 +223,8 @@ def run_tiled(
     stage, key : the pass's name and whatever else its results depend on; together with
         the function, params, inputs and tiling they make the resume key
     products : name → :class:`~geocd.tiling.writer.RasterProduct`, written as COGs once every tile is done
-    scheduler : ``sync`` | ``threads`` | ``processes`` | ``auto`` | a scheduler address, or an open Engine
+    scheduler : ``sync`` | ``threads`` | ``processes`` | ``auto`` (``sync`` when one tile is left to do) | a
+        scheduler address, or an open Engine
     progress : ``progress(fraction, message)``; may raise CancelledError (in-flight tiles are cancelled)
 
     Returns
@@ -266,6 +267,8 @@ def run_tiled(
     prog(done / n if n else 1.0, f"{stage}: {done}/{n} tiles" + (f" ({n_res} resumed)" if n_res else ""))
     if todo:
         jobs = (_Job(func, t, g, dict(inputs)) for t in todo)
+        if isinstance(scheduler, str) and scheduler.strip() == "auto" and len(todo) < 2:
+            scheduler = "sync"  # one tile: a cluster would only add its start-up
         with open_engine(scheduler, n_workers=n_workers, memory_limit=memory_limit) as eng:
             it = eng.map_unordered(
                 _run_tile, jobs, shared=params, max_in_flight=max_in_flight, key_prefix=f"geocd-{stage}"

@@ -83,6 +83,8 @@ class ChangeResult:
     unknown : bool, True where too little information (vis_inf > vis_unknown) or invalid pixel
     expected : expected intensity (for display)
     sun_bin : illumination bin used; sun_offset_deg its distance from the image's sun
+    probability_1x1 : with ``neighborhood > 1``, the plain per-pixel P(change) (what ``neighborhood=1`` gives,
+        NaN where unknown), a by-product of the same ray pass; None otherwise
     """
 
     probability: np.ndarray
@@ -94,6 +96,7 @@ class ChangeResult:
     sun_offset_deg: float
     segments: int
     relight: dict | None = None
+    probability_1x1: np.ndarray | None = None
 
 
 def change_probability(density: np.ndarray, prior: float = 0.5, fg_density: float = 1.0) -> np.ndarray:
@@ -184,7 +187,13 @@ def detect_change(
     unknown = ~np.isfinite(img) | ~np.isfinite(rr.vis_inf) | (rr.vis_inf > params.vis_unknown)
     prob = change_probability(density, params.prior, params.fg_density)
     prob[unknown] = np.nan
-    return ChangeResult(prob, density.astype(np.float32), rr.vis_inf, unknown, rr.expected, b, offset, segs, info)
+    prob_1x1 = None
+    if params.neighborhood > 1:
+        prob_1x1 = change_probability(rr.density, params.prior, params.fg_density)
+        prob_1x1[unknown] = np.nan
+    return ChangeResult(
+        prob, density.astype(np.float32), rr.vis_inf, unknown, rr.expected, b, offset, segs, info, prob_1x1
+    )
 
 
 def _density_nxn(

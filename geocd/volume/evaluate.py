@@ -2,7 +2,7 @@
 
 Run::
 
-    python -m geocd.volume.evaluate sample_aoi --out docs --work /tmp/volume_eval
+    python -m geocd.volume.evaluate sample_aoi --out geocd_out/volume_eval
 
 It trains the octree model on epoch A (all satellite and aerial views but one
 held-out satellite view), then reports
@@ -17,7 +17,9 @@ held-out satellite view), then reports
 * the expected image of the held-out view (PSNR) and the expected height map
   against the truth DSM (median |Δz|).
 
-Figures ``volume_*.png`` and ``volume_results.json`` go to ``--out``.
+Figures ``volume_*.png`` and ``volume_results.json`` go to ``--out`` (default
+``./geocd_out/volume_eval``); the trained model goes to ``--work`` (default
+``OUT/work``), as ``volume_octree``.
 """
 
 from __future__ import annotations
@@ -396,6 +398,24 @@ def subarea_aucs(
     :func:`evaluate` for tests; every method is scored on the same pixels (known to the model,
     defined for the baselines) of every epoch-B satellite image.
     """
+    return subarea_aucs_by_shadow(scene, bounds, [shadow_dsm_path], holdout=holdout, cfg=cfg, log=log)[0]
+
+
+def subarea_aucs_by_shadow(
+    scene: str,
+    bounds: tuple[float, float, float, float],
+    shadow_dsm_paths: list[str | None],
+    *,
+    holdout: str = "A_sat3",
+    cfg: TrainConfig | None = None,
+    log=print,
+) -> list[dict]:
+    """:func:`subarea_aucs` for each of ``shadow_dsm_paths`` (None: the model's own shadows), one dict each.
+
+    The model is trained once (training does not depend on the shadow DSM, which only the relit detections use)
+    and the 2-D baselines are computed once per image, so each dict equals what :func:`subarea_aucs` gives with
+    that ``shadow_dsm_path``.
+    """
     cfg = cfg or TrainConfig()
     man = load_manifest(scene)
     geom_full, grid = geometry_from_manifest(
@@ -414,7 +434,7 @@ def subarea_aucs(
     views_a = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("A").images]
     views_b = [read_view(s.path, s.camera, name=s.name) for s in man.epoch("B").images if "sat" in s.name]
     fp = footprint_mask(man, grid)
-    shadow = read_shadow_dsm(shadow_dsm_path, sub) if shadow_dsm_path else None
+    shadows = [read_shadow_dsm(p, sub) if p else None for p in shadow_dsm_paths]
     model, _ = train(
         [v for v in views_a if v.name != holdout],
         geom,
@@ -425,31 +445,32 @@ def subarea_aucs(
         log=log,
     )
     ref_pool = [v for v in views_a if "sat" in v.name and v.name != holdout]
-    pooled: dict[str, list] = {}
+    pooled: list[dict[str, list]] = [{} for _ in shadows]
     for v in views_b:
         truth = read_image(man.root / man.truth["image_masks"][v.name]).data[0] > 0
-        d1 = detect_change(
-            model, v.intensity, v.camera, sun=v.sun, name=v.name, params=DetectParams(neighborhood=1), shadow_dsm=shadow
-        )
-        d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, shadow_dsm=shadow)  # 3×3: default
         ref = ref_pool[nearest_view(v.camera, v.intensity.shape, ref_pool, geom)]
         warped = warp_reference(v.camera, v.intensity.shape, ref.intensity, ref.camera, dem, grid)
-        scores = {
-            "3-D octree (relit)": d1.probability,
-            "3-D octree 3×3 (relit)": d3.probability,
+        baselines = {
             "2-D DEM warp + difference": difference_score(v.intensity, warped),
             "2-D Carlotto joint histogram": carlotto_score(v.intensity, warped),
         }
-        valid = ~d1.unknown & np.all([np.isfinite(sc) for sc in scores.values()], axis=0)
-        for k, sc in scores.items():
-            pooled.setdefault(k, []).append((sc[valid], truth[valid]))
-    out = {}
-    for k, parts in pooled.items():
-        t = np.concatenate([p[1] for p in parts])
-        out[k] = _roc(np.concatenate([p[0] for p in parts]), t, np.ones(t.size, bool))["auc"]
-    out["n_pixels"] = int(t.size)
-    out["changed_fraction"] = float(t.mean())
-    return out
+        for shadow, pool in zip(shadows, pooled):
+            # the default 3×3 detection; its plain per-pixel probability comes from the same ray pass
+            d3 = detect_change(model, v.intensity, v.camera, sun=v.sun, name=v.name, shadow_dsm=shadow)
+            scores = {"3-D octree (relit)": d3.probability_1x1, "3-D octree 3×3 (relit)": d3.probability, **baselines}
+            valid = ~d3.unknown & np.all([np.isfinite(sc) for sc in scores.values()], axis=0)
+            for k, sc in scores.items():
+                pool.setdefault(k, []).append((sc[valid], truth[valid]))
+    res = []
+    for pool in pooled:
+        out = {}
+        for k, parts in pool.items():
+            t = np.concatenate([p[1] for p in parts])
+            out[k] = _roc(np.concatenate([p[0] for p in parts]), t, np.ones(t.size, bool))["auc"]
+        out["n_pixels"] = int(t.size)
+        out["changed_fraction"] = float(t.mean())
+        res.append(out)
+    return res
 
 
 def footprint_mask(man, grid: AOIGrid) -> np.ndarray | None:
@@ -567,8 +588,8 @@ def _figures(out: Path, figs: dict, curves: dict, res: dict, agg: int) -> None:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene", help="manifest or scene folder with truth (e.g. sample_aoi)")
-    ap.add_argument("--out", default="docs", help="folder for volume_*.png and volume_results.json")
-    ap.add_argument("--work", default="/tmp/geocd_volume_eval", help="folder for the trained model")
+    ap.add_argument("--out", default="./geocd_out/volume_eval", help="folder for volume_*.png and volume_results.json")
+    ap.add_argument("--work", default=None, help="folder for the trained model (default: OUT/work)")
     ap.add_argument("--holdout", default="A_sat3")
     ap.add_argument("--passes", type=int, default=5)
     ap.add_argument("--finest", type=float, default=0.5)
@@ -606,7 +627,7 @@ def main(argv: list[str] | None = None) -> None:
     res = evaluate(
         a.scene,
         a.out,
-        a.work,
+        a.work if a.work is not None else str(Path(a.out) / "work"),
         holdout=a.holdout,
         cfg=cfg,
         subarea_m=a.subarea,

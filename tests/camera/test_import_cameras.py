@@ -24,7 +24,7 @@ def test_import_opensfm_writes_sidecars_beside_the_images(tmp_path):
     names = sorted(doc["shots"])
     for n in names[:2]:
         (images / n).write_bytes(b"")  # the images (contents not needed to read the cameras)
-    res = CliRunner().invoke(main, ["--progress", "none", "import-cameras", str(p), "--images", str(images)])
+    res = CliRunner().invoke(main, ["--progress", "none", "import-cameras", str(p), "--image-dir", str(images)])
     assert res.exit_code == 0, res.output
     assert "not found" in res.output and names[2] in res.output  # the third image is missing: named
     cams = read_opensfm_cameras(p)
@@ -37,7 +37,7 @@ def test_import_opensfm_writes_sidecars_beside_the_images(tmp_path):
             np.testing.assert_allclose(load_camera(images / n, side).params, cams[n].params, atol=1e-9)
     # no overwrite asked: refuses, and leaves the sidecars as they were
     before = (images / names[0].replace(".JPG", ".camera.json")).read_text()
-    res = CliRunner().invoke(main, ["import-cameras", str(p), "--images", str(images), "--no-overwrite"])
+    res = CliRunner().invoke(main, ["import-cameras", str(p), "--image-dir", str(images), "--no-overwrite"])
     assert res.exit_code != 0 and "geocd: error:" in res.output
     assert (images / names[0].replace(".JPG", ".camera.json")).read_text() == before
 

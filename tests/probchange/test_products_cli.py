@@ -143,7 +143,7 @@ def test_cli_single_image_epoch_one_line_error(manifest, tmp_path):
             "none",
             "probchange",
             str(root / "scene.yaml"),
-            "--images-b",
+            "--image-b",
             "B2",
             "--out",
             str(tmp_path),
@@ -156,6 +156,17 @@ def test_cli_single_image_epoch_one_line_error(manifest, tmp_path):
     assert "epoch 'B' has 1 image" in res.output and "Traceback" not in res.output
     res = CliRunner().invoke(
         main,
-        ["--progress", "none", "probchange", str(root / "scene.yaml"), "--images-a", "A1,A9", "--out", str(tmp_path)],
+        [
+            "--progress",
+            "none",
+            "probchange",
+            str(root / "scene.yaml"),
+            "--image-a",
+            "A1",
+            "--image-a",
+            "A9",
+            "--out",
+            str(tmp_path),
+        ],
     )
     assert res.exit_code != 0 and "are not in epoch 'A'" in res.output

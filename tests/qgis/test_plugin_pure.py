@@ -179,11 +179,11 @@ def test_build_args_defaults_and_repeats():
     )
     assert args == [
         "change",
-        "--epoch-a",
+        "--pair-dem-a",
         "/a1.tif",
-        "--epoch-a",
+        "--pair-dem-a",
         "/a2.tif",
-        "--epoch-b",
+        "--pair-dem-b",
         "/b1.tif",
         "--model",
         "/m.json",
@@ -205,7 +205,7 @@ def test_build_args_defaults_and_repeats():
         "update",
         "--image",
         "/a.tif",
-        "--footprints",
+        "--roofs-from-footprints",
         "--normalize",
         "percentile",
         "--sun",

@@ -61,13 +61,40 @@ SLOTS: dict[str, tuple[list[str], str]] = {
     "demdiff --footprints": (["demdiff", "{a}", "{b}", "--out", "{O}", "--footprints", "{X}"], "--footprints"),
     "demdiff --base": (["demdiff", "{a}", "{b}", "--out", "{O}", "--base", "{X}"], "--base"),
     "consistency PAIR_DEMS": (["consistency", "{X}", "{pa}", "--out", "{O}/m.json"], "PAIR_DEMS"),
-    "change -a": (["change", "-a", "{X}", "-b", "{pb}", "--model", "{model}", "--out", "{O}"], "-a"),
-    "change -b": (["change", "-a", "{pa}", "-b", "{X}", "--model", "{model}", "--out", "{O}"], "-b"),
-    "change --dem-a": (["change", "--dem-a", "{X}", "-b", "{pb}", "--model", "{model}", "--out", "{O}"], "--dem-a"),
-    "change --dem-b": (["change", "-a", "{pa}", "--dem-b", "{X}", "--model", "{model}", "--out", "{O}"], "--dem-b"),
-    "change --model": (["change", "-a", "{pa}", "-b", "{pb}", "--model", "{X}", "--out", "{O}"], "--model"),
+    "change --pair-dem-a": (
+        ["change", "--pair-dem-a", "{X}", "--pair-dem-b", "{pb}", "--model", "{model}", "--out", "{O}"],
+        "--pair-dem-a",
+    ),
+    "change --pair-dem-b": (
+        ["change", "--pair-dem-a", "{pa}", "--pair-dem-b", "{X}", "--model", "{model}", "--out", "{O}"],
+        "--pair-dem-b",
+    ),
+    "change --dem-a": (
+        ["change", "--dem-a", "{X}", "--pair-dem-b", "{pb}", "--model", "{model}", "--out", "{O}"],
+        "--dem-a",
+    ),
+    "change --dem-b": (
+        ["change", "--pair-dem-a", "{pa}", "--dem-b", "{X}", "--model", "{model}", "--out", "{O}"],
+        "--dem-b",
+    ),
+    "change --model": (
+        ["change", "--pair-dem-a", "{pa}", "--pair-dem-b", "{pb}", "--model", "{X}", "--out", "{O}"],
+        "--model",
+    ),
     "change --footprints": (
-        ["change", "-a", "{pa}", "-b", "{pb}", "--model", "{model}", "--out", "{O}", "--footprints", "{X}"],
+        [
+            "change",
+            "--pair-dem-a",
+            "{pa}",
+            "--pair-dem-b",
+            "{pb}",
+            "--model",
+            "{model}",
+            "--out",
+            "{O}",
+            "--footprints",
+            "{X}",
+        ],
         "--footprints",
     ),
     "run MANIFEST": (["run", "{X}", "--out", "{O}"], "MANIFEST"),
@@ -282,7 +309,7 @@ def test_every_file_input_is_listed():
     """Each command's path arguments and input path options have a slot (outputs excepted)."""
     import click
 
-    outputs = {"--out", "--plot", "--pictures", "--profile", "--images"}
+    outputs = {"--out", "--plot", "--pictures", "--profile", "--image-dir"}
     ctx = click.Context(main)
     named = {
         (s.split()[0] if not s.startswith(("volume", "landcover")) else " ".join(s.split()[:2]), n)
@@ -300,7 +327,7 @@ def test_every_file_input_is_listed():
             if not isinstance(p.type, click.Path):
                 continue
             flag = p.opts[0] if isinstance(p, click.Option) else p.human_readable_name
-            if flag in outputs or flag.startswith("--labelled") or flag in ("-a", "-b") and path != ["change"]:
+            if flag in outputs or flag.startswith("--labelled"):
                 continue
             if (" ".join(path), flag) not in named and not any(
                 (" ".join(path), f) in named for f in getattr(p, "opts", [])

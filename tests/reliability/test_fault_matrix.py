@@ -313,7 +313,7 @@ def _(fx, tmp):
 @case("demdiff: --datum-a wgs1234")
 def _(fx, tmp):
     return dict(
-        args=["demdiff", fx.a, fx.b, "--out", tmp / "O", "--datum-a", "wgs1234"],
+        args=["demdiff", fx.a, fx.b, "--out", tmp / "O", "--vertical-datum", "wgs1234"],
         out=tmp,
         first="unknown vertical datum 'wgs1234'",
     )

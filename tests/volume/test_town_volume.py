@@ -1,6 +1,6 @@
 """The octree model against its 2-D baselines on a second, generated town (not sample_aoi).
 
-The town is generated in the fixture (``geocd synth --seed 1 --size-m 120``: 50 s) and the model trained on its
+The town is generated in the fixture (``geocd synth --seed 1 --size 120``: 50 s) and the model trained on its
 whole AOI (5 passes, A_sat3 held out: 60 s on the shared 2-core machine at load average 8).
 """
 
@@ -70,15 +70,15 @@ def test_shadows_cast_from_a_dsm_lift_the_octree_under_a_turned_sun(town_sun_tur
     model's own density plain eq. 27 0.759 / 3x3 0.772; with the shadows cast from epoch A's DSM (the truth DSM
     here, so that the test needs no stereo; geocd stereo's gives 0.798 / 0.810, docs/volume.md)
     0.798 / 0.809; Carlotto 0.822, DEM warp 0.607. Pinned at +-0.01, and the DSM's gain at >= 0.025 on both."""
-    from geocd.volume.evaluate import subarea_aucs
+    from geocd.volume.evaluate import subarea_aucs_by_shadow
 
     bounds = (374290.0, 4824254.0, 374410.0, 4824374.0)
-    own = subarea_aucs(str(town_sun_turned), bounds, log=lambda *a, **k: None)
-    dsm = subarea_aucs(
+    # one model (training does not depend on the shadow DSM), detected with both shadows
+    own, dsm = subarea_aucs_by_shadow(
         str(town_sun_turned),
         bounds,
+        [None, str(town_sun_turned / "truth" / "dsm_A.tif")],
         log=lambda *a, **k: None,
-        shadow_dsm_path=str(town_sun_turned / "truth" / "dsm_A.tif"),
     )
     assert own["n_pixels"] > 150_000 and 0.02 < own["changed_fraction"] < 0.04, own
     assert own["3-D octree (relit)"] == pytest.approx(0.759, abs=0.01), own

@@ -84,9 +84,13 @@ def test_change_detection_finds_the_new_building(toy, trained):
     assert np.nanmedian(res_a.probability) < np.nanmedian(res.probability[toy.change_mask_b & ok])
     # the n×n variant tolerates misregistration: a 1-pixel shift hurts it less than the plain density
     shifted = np.roll(toy.test_image_a, 1, axis=1)
-    p1 = detect_change(trained, shifted, toy.test_camera, params=DetectParams(neighborhood=1)).probability
-    p3 = detect_change(trained, shifted, toy.test_camera).probability  # the default is the 3×3 variant
+    r1 = detect_change(trained, shifted, toy.test_camera, params=DetectParams(neighborhood=1))
+    r3 = detect_change(trained, shifted, toy.test_camera)  # the default is the 3×3 variant
+    p1, p3 = r1.probability, r3.probability
     assert DetectParams().neighborhood == 3 and np.nanmean(p3) < np.nanmean(p1)
+    # the n×n result carries the plain per-pixel probability of its own ray pass, equal to the 1×1 detection's
+    np.testing.assert_array_equal(r3.probability_1x1, p1)
+    assert r1.probability_1x1 is None
 
 
 def test_fixed_grid_mode_never_refines(toy):
@@ -216,6 +220,8 @@ def test_sun_bins_and_relighting(toy):
     assert set(res.relight["fit"]) == {"lit>lit", "lit>shadow", "shadow>lit", "shadow>shadow"}
     ok = ~res.unknown
     assert roc_curve(res.probability, toy.change_mask_b, ok)[3] > 0.85
+    one = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 45.0), params=DetectParams(neighborhood=1))
+    np.testing.assert_array_equal(res.probability_1x1, one.probability)  # relit: the same mapping, the same pass
     plain = detect_change(m, toy.test_image_b, toy.test_camera, sun=(160.0, 45.0), params=DetectParams(relight=False))
     assert plain.relight is None
 
