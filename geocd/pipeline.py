@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import json
+import math
 import os
 import time
 import traceback
@@ -188,6 +189,54 @@ def _dem_epoch(spec, grid, name: str) -> DEMAsEpoch:
 
 def _median_surface(recs: Sequence[Any]) -> np.ndarray:
     return nanmedian_stack(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs])).astype(np.float32)
+
+
+#: the quick-look's orthos are computed on at most this many cells per side (a panel is ~540 pixels wide)
+QUICKLOOK_MAX_CELLS = 800
+
+
+def _quicklook_view(manifest, epoch, grid, surface_m: np.ndarray | None):
+    """What the run's quick-look shows of one epoch: an ortho of its first image on its surface, else the surface.
+
+    The ortho is a classic one (no occlusion test: every cell takes the pixel the camera sees there) on the
+    epoch's median surface with its holes filled by the nearest height, through the run's (corrected) camera,
+    on a grid of the same bounds with at most :data:`QUICKLOOK_MAX_CELLS` cells per side. An epoch without
+    images, or whose image cannot be orthorectified, is shown by its surface (a hillshade).
+    """
+    from affine import Affine
+
+    from .change.dsm_buildings import fill_gaps
+    from .change.plots import QuickLookView
+    from .geodesy import AOIGrid
+    from .ortho import OrthoParams, orthorectify
+    from .ortho.pipeline import read_image_for_grid
+    from .stereo.pipeline import load_epoch_images
+
+    if surface_m is None or not np.isfinite(surface_m).any() or not epoch.images:
+        return QuickLookView(surface_m=surface_m)
+    H, W = grid.shape
+    k = max(1, math.ceil(max(H, W) / QUICKLOOK_MAX_CELLS))
+    Hc, Wc = math.ceil(H / k), math.ceil(W / k)
+    coarse = AOIGrid(grid.crs, grid.transform @ Affine.scale(W / Wc, H / Hc), Wc, Hc)
+    rows = np.minimum(((np.arange(Hc) + 0.5) * H / Hc).astype(int), H - 1)
+    cols = np.minimum(((np.arange(Wc) + 0.5) * W / Wc).astype(int), W - 1)
+    dsm = fill_gaps(np.asarray(surface_m, np.float64)[np.ix_(rows, cols)])
+    try:
+        im = load_epoch_images(manifest, epoch)[0]
+        lo, hi = float(dsm.min()), float(dsm.max())
+        data, valid, c0, r0, _ = read_image_for_grid(im.path, im.camera, coarse, lo, hi)
+        res = orthorectify(
+            data, im.camera, coarse, dsm, valid=valid, col0=c0, row0=r0, params=OrthoParams(occlusion=False)
+        )
+    except (GeoCDError, OSError, ValueError) as exc:
+        logger.info("quick-look: no ortho of %s (%s); its surface is shown", epoch.name, exc)
+        return QuickLookView(surface_m=surface_m)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        grey = np.nanmean(np.asarray(res.values, np.float32), axis=0)
+    grey[~res.observed] = np.nan
+    when = f", {epoch.date.isoformat()}" if getattr(epoch, "date", None) else ""
+    return QuickLookView(image=grey, surface_m=surface_m, label=f"ortho of {im.name}{when}")
 
 
 def _building_layer(
@@ -603,6 +652,7 @@ def run_change(
                 },
             )
     prog(0.8, "writing products")
+    surface_a, surface_b = _median_surface(recs_a), _median_surface(recs_b)
     paths = write_change_products(
         out,
         res,
@@ -615,7 +665,9 @@ def run_change(
         buildings=buildings,
         provenance={"manifest": str(m.path or m.root), "config": "run_config.json"},
         prefix="sc",
-        backdrop_m=_median_surface(recs_b),
+        backdrop_m=surface_b,
+        backdrop_a_m=surface_a,
+        quicklook_views=(_quicklook_view(m, ea, grid, surface_a), _quicklook_view(m, eb, grid, surface_b)),
         examined=examined,
     )
     paths["model"] = model_path

@@ -334,3 +334,25 @@ def test_run_orientation_reads_a_linked_runs_orientation_folder(tmp_path):
     (tmp_path / "orientation").mkdir()
     (tmp_path / "orientation" / "orientation.json").write_text(_json.dumps({"applied": True, "reason": "ok", "x": 1}))
     assert run_orientation(tmp_path, {"orientation": None}) == {"applied": True, "reason": "ok", "corrections_px": {}}
+
+
+def test_quicklook_views_are_orthos_of_each_epochs_first_image(sample_aoi):
+    """The run's quick-look shows an ortho of each epoch's first image on the epoch's surface (fast: one view)."""
+    from types import SimpleNamespace
+
+    from geocd.geodesy import AOIGrid
+    from geocd.io.manifest import load_manifest
+    from geocd.io.raster import read_dem
+    from geocd.pipeline import _quicklook_view
+
+    m = load_manifest(sample_aoi)
+    a = m.epoch("A")
+    grid = AOIGrid.from_bounds(*m.aoi.bounds, m.aoi.posting_m, m.aoi.crs)
+    dsm = read_dem(sample_aoi / "truth" / "dsm_A.tif", grid=grid).height_m.astype(np.float32)
+    dsm[100:120, 100:120] = np.nan  # a hole: filled for the ortho
+    v = _quicklook_view(m, a, grid, dsm)
+    assert v.label == "ortho of A_sat1, 2023-07-18"
+    assert v.image.shape == grid.shape and np.isfinite(v.image).mean() > 0.95
+    # an epoch without images (a DEM standing for it) is shown by its surface
+    v = _quicklook_view(m, SimpleNamespace(name="dem", images=[], date=None), grid, dsm)
+    assert v.image is None and v.surface_m is dsm

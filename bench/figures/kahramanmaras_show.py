@@ -2,14 +2,18 @@
 
 Reads a finished ``geocd run examples/kahramanmaras/scene.yaml --model ... --out RUN`` and writes
 
-* true orthos of the first view of each epoch (through the corrected cameras, on each epoch's own DSM):
-  ``RUN/orthos/<image>.tif`` (what the marked-point-process work reads);
-* ``docs/kahramanmaras_quicklook.png``: pre | post | detected buildings (classes over the post ortho);
+* true orthos of each view (through the corrected cameras, on each epoch's own DSM): ``RUN/orthos/<image>.tif``
+  (what the marked-point-process work and the QGIS picture read), and orthos on the pre-event ground model
+  (no holes, buildings lean): ``RUN/orthos_ground/<image>.tif``;
 * ``bench/results/kahramanmaras_show.json``: orientation residuals, building classes, stable-ground false alarms.
+
+The page's quick-look (``docs/kahramanmaras_quicklook.png``) is the run's own ``sc_quicklook.png``
+(``python -m bench.figures --only kahramanmaras_run``). The building layer is ``buildings`` (the merged layer),
+else ``building_damage``.
 
 Usage::
 
-    .venv/bin/python bench/figures/kahramanmaras_show.py --run RUN [--out docs]
+    .venv/bin/python bench/figures/kahramanmaras_show.py --run RUN
 """
 
 from __future__ import annotations
@@ -64,74 +68,21 @@ def orthos(run: Path, manifest, grid, ground=None, sub: str = "orthos"):
     return out
 
 
-def quicklook(pre: np.ndarray, post: np.ndarray, damage, grid, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
-
-    from geocd.change.dsm_buildings import DAMAGE_CLASSES
-
-    def stretch(a):
-        v = a[np.isfinite(a)]
-        lo, hi = np.percentile(v, [1, 99]) if v.size else (0, 1)
-        return np.clip((a - lo) / max(hi - lo, 1e-9), 0, 1)
-
-    l, b, r, t = grid.bounds
-    ext = (0, r - l, 0, t - b)
-    fig, ax = plt.subplots(1, 3, figsize=(18, 6.4))
-    ax[0].imshow(stretch(pre), cmap="gray", extent=ext)
-    ax[0].set_title("pre-event (pre_event_img1, ortho on the ground model)")
-    ax[1].imshow(stretch(post), cmap="gray", extent=ext)
-    ax[1].set_title("post-event 2023-04-15 (post_event_img1, ortho on the ground model)")
-    ax[2].imshow(stretch(post), cmap="gray", extent=ext, alpha=0.55)
-    for _, row in damage.iterrows():
-        colour = DAMAGE_CLASSES[row["class"]][0]
-        geoms = getattr(row.geometry, "geoms", [row.geometry])
-        for g in geoms:
-            x, y = g.exterior.xy
-            x, y = np.asarray(x) - l, np.asarray(y) - b
-            if row["class"] in ("unchanged", "unobserved"):
-                ax[2].plot(x, y, color="#6a6a6a" if row["class"] == "unchanged" else "#ffffff", lw=0.6)
-            else:
-                ax[2].fill(x, y, color=colour, alpha=0.75, lw=1.0, ec="k")
-    counts = damage["class"].value_counts().to_dict()
-    ax[2].legend(
-        handles=[
-            Patch(color=DAMAGE_CLASSES[c][0], label=f"{c} ({counts.get(c, 0)})")
-            for c in DAMAGE_CLASSES
-            if c != "unobserved"
-        ],
-        loc="lower left",
-        fontsize=8,
-        framealpha=0.85,
-    )
-    ax[2].set_title("geocd: buildings from the pre-event DSM, damage at 99 %")
-    for a in ax:
-        a.set_xlabel("m")
-    fig.tight_layout()
-    fig.savefig(path, dpi=48)
-    plt.close(fig)
-
-
 def main(argv=None) -> int:
-    from geocd.change.building_layer import read_building_layer
     import rasterio
 
+    from geocd.change.building_layer import read_building_layer
     from geocd.geodesy import AOIGrid
     from geocd.io.manifest import load_manifest
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", default="/tmp/kahra")
     ap.add_argument("--manifest", default=str(REPO / "examples" / "kahramanmaras" / "scene.yaml"))
-    ap.add_argument("--out", default=str(REPO / "docs"))
     args = ap.parse_args(argv)
-    run, out = Path(args.run), Path(args.out)
+    run = Path(args.run)
     with rasterio.open(run / "sc_change.tif") as ds:
         grid = AOIGrid.from_raster(ds)
-    ap_layer = run / "sc_changes.gpkg"
-    damage = read_building_layer(ap_layer)
+    damage = read_building_layer(run / "sc_changes.gpkg")
     summary = json.loads((run / "run_summary.json").read_text())
     from geocd.pipeline import run_orientation
 
@@ -156,12 +107,7 @@ def main(argv=None) -> int:
     orthos(run, m, grid)  # true orthos (for later work on this case)
     pd = read_pair_dem(sorted((run / "stereo" / m.epochs[0].name).glob("*.tif"))[0])
     ground, _ = ground_model(np.where(pd.valid, pd.z_m, np.nan), grid.posting_m)
-    o = orthos(run, m, grid, ground=ground.astype(np.float64), sub="orthos_ground")
-    pre = o["pre_event_img1"].values[0].astype(float)
-    post = o["post_event_img1"].values[0].astype(float)
-    pre[~o["pre_event_img1"].observed] = np.nan
-    post[~o["post_event_img1"].observed] = np.nan
-    quicklook(pre, post, damage, grid, out / "kahramanmaras_quicklook.png")
+    orthos(run, m, grid, ground=ground.astype(np.float64), sub="orthos_ground")
     (REPO / "bench" / "results" / "kahramanmaras_show.json").write_text(json.dumps(res, indent=1, default=str))
     print(json.dumps(res, indent=1, default=str))
     return 0

@@ -9,7 +9,7 @@ system Python that has PyQGIS::
         --layer /tmp/kahra2/orthos_ground/post_event_img1.tif \\
         --out /tmp/qgis_map.png
     .venv/bin/python bench/figures/qgis_layers_screenshot.py --legend /tmp/qgis_map.png docs/qgis_kahramanmaras.png \\
-        --title "Kahramanmaraş: building damage (geocd run, styled layers rendered by QGIS 3.22)"
+        --counts /tmp/kahra2/sc_changes.gpkg --title "Kahramanmaraş: building damage (geocd run, styled layers rendered by QGIS 3.22)"
 """
 
 from __future__ import annotations
@@ -20,17 +20,36 @@ import sys
 from pathlib import Path
 
 
-def add_legend(map_png: str, out_png: str, title: str) -> None:
-    """Title and the damage classes' legend around a QGIS map image (geocd's venv: matplotlib)."""
+def add_legend(map_png: str, out_png: str, title: str, gpkg: str | None = None) -> None:
+    """Title and the damage classes' legend around a QGIS map image (geocd's venv: matplotlib).
+
+    ``gpkg``: a run's GeoPackage; the legend then lists the classes its building layer holds (``buildings``, else
+    ``building_damage``) with the count of each, and is titled with that layer's name.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.image as mpimg
     import matplotlib.pyplot as plt
+    import pyogrio
     from matplotlib.patches import Patch
 
     from geocd.change.dsm_buildings import DAMAGE_CLASSES
+    from geocd.change.plots import QUICKLOOK_CLASSES
+    from geocd.change.building_layer import read_building_layer
 
+    entries = [(c, lab) for c, lab in DAMAGE_CLASSES.values()]
+    layer_title = "buildings (class)"
+    if gpkg is not None:
+        layer = read_building_layer(gpkg)
+        counts = layer["class"].value_counts().to_dict()
+        entries = [
+            (QUICKLOOK_CLASSES[k][0], f"{QUICKLOOK_CLASSES[k][1]} ({counts[k]})")
+            for k in QUICKLOOK_CLASSES
+            if k in counts
+        ]
+        names = {str(n) for n, _ in pyogrio.list_layers(gpkg)}
+        layer_title = f"{'buildings' if 'buildings' in names else 'building_damage'}: class (count)"
     img = mpimg.imread(map_png)
     h, w = img.shape[:2]
     fig = plt.figure(figsize=(w / 100 + 2.6, h / 100 + 0.5), dpi=100)
@@ -38,9 +57,9 @@ def add_legend(map_png: str, out_png: str, title: str) -> None:
     ax.imshow(img)
     ax.axis("off")
     fig.legend(
-        handles=[Patch(facecolor=c, edgecolor="#323232", label=l) for c, l in DAMAGE_CLASSES.values()],
+        handles=[Patch(facecolor=c, edgecolor="#323232", label=lab) for c, lab in entries],
         loc="center right",
-        title="buildings (class)",
+        title=layer_title,
         fontsize=9,
         frameon=False,
     )
@@ -53,8 +72,9 @@ def main(argv=None) -> int:
         ap = argparse.ArgumentParser()
         ap.add_argument("--legend", nargs=2)
         ap.add_argument("--title", default="")
+        ap.add_argument("--counts", default=None, help="the run's sc_changes.gpkg: count the classes of its buildings")
         a = ap.parse_args()
-        add_legend(a.legend[0], a.legend[1], a.title)
+        add_legend(a.legend[0], a.legend[1], a.title, a.counts)
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--layer", action="append", required=True, help="GeoTIFF, or 'file.gpkg|layername=NAME'")
@@ -84,6 +104,9 @@ def main(argv=None) -> int:
     for uri in args.layer:
         name = uri.split("layername=")[-1] if "layername=" in uri else Path(uri).stem
         layer = QgsVectorLayer(uri, name, "ogr") if ".gpkg" in uri else QgsRasterLayer(uri, name)
+        if not layer.isValid() and uri.endswith("layername=buildings"):  # a run before the layers were merged
+            uri, name = uri.replace("layername=buildings", "layername=building_damage"), "building_damage"
+            layer = QgsVectorLayer(uri, name, "ogr")
         if not layer.isValid():
             raise SystemExit(f"cannot load {uri}")
         project.addMapLayer(layer)

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+from scipy import ndimage as ndi
+
+from .dsm_buildings import DAMAGE_CLASSES
+from .styles import BUILDING_CLASSES
 
 
 def _plt():
@@ -160,6 +166,272 @@ def plot_dh_map(
     ax.set_ylabel("latitude (°)" if geographic else "northing (m)")
     ax.ticklabel_format(useOffset=False, style="plain")
     return _save(fig, path)
+
+
+#: the quick-look's class colours and labels, in the legend's order: the damage vocabulary, with the classes of a
+#: footprint layer that it lacks ("demolished": a dark red beside "collapsed", not the footprint style's blue,
+#: which is "new" here)
+QUICKLOOK_CLASSES = {
+    "collapsed": DAMAGE_CLASSES["collapsed"],
+    "demolished": ("#a50f15", "demolished"),
+    **DAMAGE_CLASSES,
+    **{k: v for k, v in BUILDING_CLASSES.items() if k not in DAMAGE_CLASSES and k != "demolished"},
+}
+#: classes drawn as outlines with a light fill under the changed ones (the rest: filled)
+_QUIET_CLASSES = ("unchanged", "unobserved", "not examined")
+
+
+@dataclass
+class QuickLookView:
+    """What one of the quick-look's first two panels shows.
+
+    Attributes
+    ----------
+    image : float (rows, cols), NaN where not seen, optional
+        A grey image of the epoch (e.g. an orthoimage of one of its views) covering the grid's bounds, on the
+        grid or on a coarser grid of the same bounds; drawn with a 1–99 % stretch.
+    surface_m : float (rows, cols) on the grid, NaN where no height, optional
+        The epoch's surface; drawn as a hillshade when there is no image.
+    label : str
+        What the image is (e.g. ``"ortho of pre_event_img1"``); the panel's title says it after the epoch.
+    """
+
+    image: np.ndarray | None = None
+    surface_m: np.ndarray | None = None
+    label: str = ""
+
+
+def _plain(text: str) -> str:
+    """Text matplotlib draws as it is: a ``$`` would start mathtext (slow to parse, and not what was meant)."""
+    return str(text).replace("$", r"\$")
+
+
+def _stretch(a: np.ndarray) -> np.ndarray:
+    """Linear 1–99 % stretch to 0–1 (NaN kept)."""
+    a = np.asarray(a, np.float64)
+    v = a[np.isfinite(a)]
+    if not v.size:
+        return a
+    lo, hi = np.percentile(v, [1, 99])
+    return np.clip((a - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+
+
+def _view_grey(view: QuickLookView | None, posting_xy_m) -> tuple[np.ndarray | None, str]:
+    """The grey array (0–1, NaN = no data) of a view and what it is."""
+    if view is None:
+        return None, "nothing to show"
+    if view.image is not None:
+        return _stretch(view.image), view.label or "image"
+    if view.surface_m is not None:
+        return hillshade(view.surface_m, posting_xy_m), "hillshade of its surface (DSM)"
+    return None, "nothing to show"
+
+
+def _polygon_path(geom):
+    """A matplotlib Path of a (multi)polygon, holes included, or None when empty."""
+    from matplotlib.path import Path as MPath
+
+    verts, codes = [], []
+    for poly in getattr(geom, "geoms", [geom]):
+        if poly is None or poly.is_empty or not hasattr(poly, "exterior"):
+            continue
+        for ring in (poly.exterior, *poly.interiors):
+            xy = np.asarray(ring.coords)[:, :2]
+            if len(xy) < 3:
+                continue
+            verts.append(xy)
+            codes.append(np.r_[MPath.MOVETO, np.full(len(xy) - 2, MPath.LINETO), MPath.CLOSEPOLY])
+    if not verts:
+        return None
+    return MPath(np.concatenate(verts), np.concatenate(codes).astype(np.uint8))
+
+
+def _scale_bar(ax, grid) -> None:
+    """A scale bar of a round length (about a fifth of the panel) in the lower left corner (projected grids)."""
+    if bool(getattr(grid.crs, "is_geographic", False)):
+        return
+    l, b, r, t = grid.bounds
+    width = r - l
+    raw = width / 5.0
+    mag = 10 ** math.floor(math.log10(raw)) if raw > 0 else 1.0
+    length = max(k * mag for k in (1, 2, 5) if k * mag <= raw) if raw >= mag else mag
+    x0, y0 = l + 0.04 * width, b + 0.05 * (t - b)
+    ax.plot([x0, x0 + length], [y0, y0], color="black", lw=3, solid_capstyle="butt")
+    ax.plot([x0, x0 + length], [y0, y0], color="white", lw=1.2, solid_capstyle="butt")
+    ax.text(
+        x0 + length / 2,
+        y0 + 0.015 * (t - b),
+        f"{length:g} m",
+        ha="center",
+        va="bottom",
+        fontsize=8,
+        bbox={"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1},
+    )
+
+
+def change_quicklook_figure(
+    grid,
+    view_a: QuickLookView | None,
+    view_b: QuickLookView | None,
+    *,
+    buildings=None,
+    dz_m: np.ndarray | None = None,
+    sign: np.ndarray | None = None,
+    regions=None,
+    epoch_a: str = "A",
+    epoch_b: str = "B",
+    confidence: float = 99.0,
+    method: str = "self-consistency",
+):
+    """The quick-look of a change run: epoch A | epoch B | what changed, with a legend that counts it.
+
+    Parameters
+    ----------
+    grid : AOIGrid
+        The grid of every array (and the CRS of ``buildings``).
+    view_a, view_b : QuickLookView or None
+        What the first two panels show (an image of the epoch, else a hillshade of its surface).
+    buildings : GeoDataFrame with a ``class`` column, optional
+        The building layer: the third panel draws each building in its class's colour
+        (:data:`QUICKLOOK_CLASSES`, i.e. :data:`geocd.change.dsm_buildings.DAMAGE_CLASSES` first) over epoch B,
+        and the legend gives the count of each class.
+    dz_m, sign : float and int8 (rows, cols), optional
+        Without ``buildings``: the third panel colours Δz on the cells whose ``sign`` is ±1 (changed at
+        ``confidence``), and the legend counts the raised and lowered regions: those of ``regions`` (the
+        ``changes`` layer, :func:`geocd.change.regions.change_regions`: columns ``sign`` and ``area_m2``) when
+        given, else the 8-connected parts of ``sign``.
+    epoch_a, epoch_b, confidence, method : the title's words (confidence in percent)
+
+    Returns
+    -------
+    figure : matplotlib Figure (three image axes; a colour bar axis too in the Δz case)
+    counts : {legend entry: count}, as the legend writes them (building classes, or ``"raised regions"`` /
+        ``"lowered regions"``)
+    """
+    from matplotlib.collections import PathCollection
+    from matplotlib.colors import to_rgba
+    from matplotlib.patches import Patch
+
+    plt = _plt()
+    l, b, r, t = grid.bounds
+    ext = (l, r, b, t)
+    aspect = (t - b) / max(r - l, 1e-9)
+    panel_w = 5.4
+    fig, axes = plt.subplots(
+        1, 3, figsize=(3 * panel_w + 2.6, panel_w * min(max(aspect, 0.5), 1.6) + 1.2), layout="constrained"
+    )
+    posting = grid.posting
+    greys = []
+    for ax, view, epoch in ((axes[0], view_a, epoch_a), (axes[1], view_b, epoch_b)):
+        grey, what = _view_grey(view, posting)
+        greys.append(grey)
+        cmap = plt.get_cmap("gray").with_extremes(bad="#fbe3c8")
+        if grey is not None:
+            ax.imshow(np.ma.masked_invalid(grey), cmap=cmap, vmin=0, vmax=1, extent=ext, interpolation="antialiased")
+        else:
+            ax.text(0.5, 0.5, "no image or surface", ha="center", va="center", transform=ax.transAxes)
+        ax.set_title(_plain(f"{epoch}: {what}"), fontsize=10)
+    ax = axes[2]
+    back = greys[1] if greys[1] is not None else greys[0]
+    if back is not None:
+        ax.imshow(np.ma.masked_invalid(back), cmap="gray", vmin=-0.6, vmax=1.4, extent=ext, interpolation="antialiased")
+    counts: dict[str, int] = {}
+    handles = []
+    if buildings is not None:
+        cls = buildings["class"].astype(str)
+        vc = cls.value_counts().to_dict()
+        order = [c for c in QUICKLOOK_CLASSES if c in vc] + sorted(c for c in vc if c not in QUICKLOOK_CLASSES)
+        # quiet classes first, so the changed buildings are drawn over them
+        for c in sorted(order, key=lambda c: c not in _QUIET_CLASSES):
+            colour, label = QUICKLOOK_CLASSES.get(c, ("#984ea3", c))
+            paths = [p for p in (_polygon_path(g) for g in buildings.geometry[cls == c]) if p is not None]
+            quiet = c in _QUIET_CLASSES
+            style = {
+                "facecolor": to_rgba(colour, 0.3 if quiet else 0.9),
+                "edgecolor": "#303030" if quiet else "black",
+                "linewidths": 0.5 if quiet else 0.7,
+            }
+            if paths:
+                ax.add_collection(PathCollection(paths, **style))
+        for c in order:
+            colour, label = QUICKLOOK_CLASSES.get(c, ("#984ea3", c))
+            counts[c] = int(vc[c])
+            face = to_rgba(colour, 0.3 if c in _QUIET_CLASSES else 0.9)
+            handles.append(Patch(facecolor=face, edgecolor="black", lw=0.5, label=_plain(f"{label}: {vc[c]}")))
+        title = f"buildings by class ({len(buildings)}), over {epoch_b}"
+        legend_title = f"building class at {confidence:g} %"
+    else:
+        title = f"height change of the cells changed at {confidence:g} %, over {epoch_b}"
+        legend_title = f"changed at {confidence:g} %"
+        if dz_m is not None and sign is not None:
+            sg = np.asarray(sign)
+            shown = np.where((sg == 1) | (sg == -1), np.asarray(dz_m, float), np.nan)
+            fin = np.isfinite(shown)
+            vmax = max(float(np.nanpercentile(np.abs(shown[fin]), 98)) if fin.any() else 1.0, 1e-3)
+            cmap = plt.get_cmap("RdBu_r")
+            im = ax.imshow(
+                np.ma.masked_invalid(shown), cmap=cmap, vmin=-vmax, vmax=vmax, extent=ext, interpolation="nearest"
+            )
+            cax = ax.inset_axes([0.08, -0.075, 0.84, 0.035])
+            cb = fig.colorbar(im, cax=cax, orientation="horizontal", extend="both")
+            cb.set_label(_plain(f"height change (m), {epoch_b} − {epoch_a}, changed cells"), fontsize=9)
+            eight = np.ones((3, 3), bool)
+            for s, name, tone in ((1, "raised", 0.9), (-1, "lowered", 0.1)):
+                m = sg == s
+                if regions is not None:
+                    mine = regions[regions["sign"] == s]
+                    n, area = len(mine), float(mine["area_m2"].sum())
+                else:
+                    n = int(ndi.label(m, structure=eight)[1]) if m.any() else 0
+                    area = float(m.sum()) * grid.cell_area_m2
+                counts[f"{name} regions"] = n
+                handles.append(
+                    Patch(
+                        facecolor=cmap(tone),
+                        edgecolor="black",
+                        lw=0.5,
+                        label=f"{name}: {n} region{'s' if n != 1 else ''}, {area:,.0f} m²",
+                    )
+                )
+    if handles:
+        ax.legend(
+            handles=handles,
+            title=_plain(legend_title),
+            loc="upper left",
+            bbox_to_anchor=(1.02, 1.0),
+            fontsize=9,
+            title_fontsize=9,
+            frameon=False,
+        )
+    else:
+        ax.text(
+            0.5,
+            0.5,
+            "no building" if buildings is not None else "no change",
+            ha="center",
+            va="center",
+            transform=ax.transAxes,
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
+        )
+    ax.set_title(_plain(title), fontsize=10)
+    for a in axes:
+        a.set_xlim(l, r)
+        a.set_ylim(b, t)
+        a.set_aspect("equal")
+        a.set_xticks([])
+        a.set_yticks([])
+    _scale_bar(axes[0], grid)
+    fig.suptitle(
+        _plain(f"{method}: {epoch_a} → {epoch_b}, change reported at {confidence:g} % confidence"),
+        fontsize=12,
+    )
+    return fig, counts
+
+
+def plot_change_quicklook(path: os.PathLike | str, grid, view_a, view_b, **kwargs) -> Path:
+    """Write :func:`change_quicklook_figure` to a PNG (atomically); keyword arguments as that function's."""
+    fig, _ = change_quicklook_figure(grid, view_a, view_b, **kwargs)
+    return _save(fig, path, dpi=100)
 
 
 def plot_volume_series(

@@ -12,7 +12,8 @@ Layout of an output folder (``prefix`` defaults to the method name)::
                                :mod:`geocd.change.building_layer`), curves (significance curves
                                table), layer_styles
     <prefix>_scatter.png       score × |Δ̃| with significance curves (when a model is given)
-    <prefix>_quicklook.png     map of Δz with changed regions outlined
+    <prefix>_quicklook.png     epoch A | epoch B | the buildings by class over B, with the count of each class
+                               (without a building layer: Δz of the changed cells, with the count of regions)
 """
 
 from __future__ import annotations
@@ -49,6 +50,8 @@ def write_change_products(
     plots: bool = True,
     backdrop_m: np.ndarray | None = None,
     examined: np.ndarray | None = None,
+    backdrop_a_m: np.ndarray | None = None,
+    quicklook_views: tuple | None = None,
 ) -> dict[str, Path]:
     """Write every product of one change test; returns {product name: path}.
 
@@ -62,8 +65,12 @@ def write_change_products(
     ``min_region_cells`` (default: the result's minimum mapping unit) is the smallest polygon of
     the ``changes`` layer; its ``confidence`` is the test's (percent), ``volume_sigma_m3`` comes
     from the error model (:func:`geocd.change.regions.correlated_volume_sigma`).
-    ``backdrop_m`` (a surface on the grid, e.g. the later epoch's) is drawn as a hillshade under
-    the quick-look, which colours the changed cells only.
+    The quick-look (``<prefix>_quicklook.png``, :func:`geocd.change.plots.change_quicklook_figure`) shows
+    epoch A | epoch B | the building layer by class over B, its legend counting each class — the layer
+    :func:`quicklook_buildings` picks among the GeoPackage's layers —, or without one the Δz of the
+    changed cells with the count of raised and lowered regions. Its first two panels show
+    ``quicklook_views`` (two :class:`geocd.change.plots.QuickLookView`, e.g. an orthoimage of each epoch),
+    else hillshades of ``backdrop_a_m`` (epoch A's surface on the grid) and ``backdrop_m`` (epoch B's).
     """
     from .regions import change_regions, correlated_volume_sigma
 
@@ -155,20 +162,38 @@ def write_change_products(
         styles.update(extra_styles or {})
     paths["changes"] = write_gpkg(out / f"{prefix}_changes.gpkg", layers, styles=styles)
     if plots:
-        from .plots import plot_dh_map, plot_scatter_curves
+        from .plots import QuickLookView, plot_change_quicklook, plot_scatter_curves
 
         if model is not None:
             paths["scatter"] = plot_scatter_curves(model, out / f"{prefix}_scatter.png")
-        paths["quicklook"] = plot_dh_map(
-            result.dz_m,
-            grid,
+        views = quicklook_views or (QuickLookView(surface_m=backdrop_a_m), QuickLookView(surface_m=backdrop_m))
+        paths["quicklook"] = plot_change_quicklook(
             out / f"{prefix}_quicklook.png",
+            grid,
+            *views,
+            buildings=quicklook_buildings(layers),
+            dz_m=result.dz_m,
             sign=sign,
-            backdrop_m=backdrop_m,
-            changed_only=True,
-            title=f"{method}: {epoch_a} → {epoch_b}, changed at {region_confidence:g} %",
+            regions=regions,
+            epoch_a=epoch_a,
+            epoch_b=epoch_b,
+            confidence=region_confidence,
+            method=method,
         )
     return paths
+
+
+def quicklook_buildings(layers: dict[str, Any]):
+    """The building layer the quick-look draws, from a GeoPackage's layers ({name: GeoDataFrame}).
+
+    ``buildings`` when it has a ``class`` column, else ``building_damage`` (the damage layer of a run
+    without footprints), else None.
+    """
+    for name in ("buildings", "building_damage"):
+        gdf = layers.get(name)
+        if gdf is not None and "class" in getattr(gdf, "columns", ()):
+            return gdf
+    return None
 
 
 _BAND_UNITS = {

@@ -608,16 +608,18 @@ def _write_exact(
     res = _gathered_result(store, conf_store, tg, meta)
     g = tg.grid
     buildings = None
+    surfaces = (None, None)  # the epochs' surfaces are kept with footprints only
     if fp is not None:
         from .dsm_buildings import building_layer
 
         win = (0, 0, g.height, g.width)
+        surfaces = (store.read("z_a", win), store.read("z_b", win))
         buildings, _ = building_layer(
             fp,
             res,
             g,
-            z_a=store.read("z_a", win),
-            z_b=store.read("z_b", win),
+            z_a=surfaces[0],
+            z_b=surfaces[1],
             model=model,
             report_confidence=region_confidence,
             epoch_a=ea,
@@ -635,6 +637,8 @@ def _write_exact(
         buildings=buildings,
         prefix=prefix,
         plots=plots,
+        backdrop_a_m=surfaces[0],
+        backdrop_m=surfaces[1],
     )
 
 

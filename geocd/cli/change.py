@@ -562,5 +562,7 @@ def change(
         model=model,
         buildings=buildings,
         prefix="sc",
+        backdrop_a_m=_median_surface(A),
+        backdrop_m=_median_surface(B),
     )
     emit_result(ctx, paths)
