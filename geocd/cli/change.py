@@ -551,6 +551,8 @@ def change(
         buildings, _ = _building_layer(
             read_footprints(footprints, crs=grid.crs), res, grid, A, B, model, report_confidence, "A", "B"
         )
+    from ..pipeline import _median_surface
+
     paths = write_change_products(
         out_dir,
         res,
