@@ -11,8 +11,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import ndimage as ndi
 
-from .dsm_buildings import DAMAGE_CLASSES
-from .styles import BUILDING_CLASSES
+from .building_layer import CLASSES as DAMAGE_CLASSES
 
 
 def _plt():
@@ -168,14 +167,12 @@ def plot_dh_map(
     return _save(fig, path)
 
 
-#: the quick-look's class colours and labels, in the legend's order: the damage vocabulary, with the classes of a
-#: footprint layer that it lacks ("demolished": a dark red beside "collapsed", not the footprint style's blue,
-#: which is "new" here)
+#: the quick-look's class colours and labels, in the legend's order: the building layer's classes, and the
+#: "demolished" of run folders written before the one building layer (a dark red beside "collapsed")
 QUICKLOOK_CLASSES = {
     "collapsed": DAMAGE_CLASSES["collapsed"],
     "demolished": ("#a50f15", "demolished"),
     **DAMAGE_CLASSES,
-    **{k: v for k, v in BUILDING_CLASSES.items() if k not in DAMAGE_CLASSES and k != "demolished"},
 }
 #: classes drawn as outlines with a light fill under the changed ones (the rest: filled)
 _QUIET_CLASSES = ("unchanged", "unobserved", "not examined")
