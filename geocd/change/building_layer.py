@@ -182,6 +182,22 @@ def empty_layer(crs=None, extra: tuple[str, ...] = ()):
     return gpd.GeoDataFrame(df, geometry=gpd.GeoSeries([], crs=crs), crs=crs)
 
 
+def footprint_id_field(footprints) -> str | None:
+    """The footprints' id attribute: ``building_id``, ``id`` or ``fid``, the first present (None: none)."""
+    return next((c for c in ("building_id", "id", "fid") if c in footprints.columns), None)
+
+
+def footprints_with_ids(footprints, crs, id_field: str | None = None):
+    """Footprints in ``crs`` (index reset) whose ``building_id`` is their ``id_field`` (default: their 1-based
+    row); a ``building_id`` or ``source`` column of the file that is not the id is dropped (the layer sets both)."""
+    fp = footprints.to_crs(crs).reset_index(drop=True)
+    ids = fp[id_field].to_numpy() if id_field and id_field in fp else np.arange(1, len(fp) + 1)
+    fp = fp.drop(columns=[c for c in ("building_id", "source") if c in fp.columns and c != id_field])
+    if id_field != "building_id":
+        fp.insert(0, "building_id", ids)
+    return fp
+
+
 def building_layer_problems(layer, *, shared_only: bool = False) -> list[str]:
     """What in ``layer`` breaks the schema (empty list: it follows it).
 

@@ -66,6 +66,7 @@ from .building_layer import (
     SOURCE_FOOTPRINTS,
     code_unobserved,
     empty_layer,
+    footprints_with_ids,
     order_columns,
 )
 from .buildings import BuildingParams, classify_buildings, largest_parts
@@ -731,11 +732,7 @@ def footprint_layer(
 
     from .buildings import detect_new_buildings
 
-    fp = footprints.to_crs(grid.crs).reset_index(drop=True)
-    ids = fp[id_field].to_numpy() if id_field and id_field in fp else np.arange(1, len(fp) + 1)
-    fp = fp.drop(columns=[c for c in ("building_id", "source") if c in fp.columns and c != id_field])
-    if id_field != "building_id":
-        fp.insert(0, "building_id", ids)
+    fp = footprints_with_ids(footprints, grid.crs, id_field)
     fp.insert(1, "source", SOURCE_FOOTPRINTS)
     bp = building_params or BuildingParams(
         min_observed=params.min_observed, min_changed=params.min_changed, changed_part=params.changed_part

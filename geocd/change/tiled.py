@@ -781,18 +781,14 @@ def _buildings(fp, store, conf_store, tg: TileGrid, meta: dict, model, level: fl
     import geopandas as gpd
     import pandas as pd
 
-    from .building_layer import empty_layer, order_columns
+    from .building_layer import empty_layer, footprint_id_field, footprints_with_ids, order_columns
     from .buildings import footprint_windows
     from .dsm_buildings import classify_damage
 
     g = tg.grid
-    gdf = fp.to_crs(g.crs).reset_index(drop=True)
-    if not len(gdf):
+    if not len(fp):
         return empty_layer(g.crs)
-    id_field = next((c for c in ("building_id", "id", "fid") if c in gdf.columns), None)
-    gdf = gdf.drop(columns=[c for c in ("building_id", "source") if c in gdf.columns and c != id_field])
-    if id_field != "building_id":
-        gdf.insert(0, "building_id", gdf[id_field].to_numpy() if id_field else np.arange(1, len(gdf) + 1))
+    gdf = footprints_with_ids(fp, g.crs, footprint_id_field(fp))
     rows = []
     for i, win, sub, near in footprint_windows(gdf, g):
         o = classify_damage(

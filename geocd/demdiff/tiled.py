@@ -1912,17 +1912,13 @@ def _buildings_windows(footprints, store, tg: TileGrid, g: AOIGrid, level: float
     import pandas as pd
     import geopandas as gpd
 
-    from ..change.building_layer import empty_layer, order_columns
+    from ..change.building_layer import empty_layer, footprint_id_field, footprints_with_ids, order_columns
     from ..change.buildings import footprint_windows
     from ..change.dsm_buildings import LevelMasks, classify_damage
 
-    gdf = footprints.to_crs(g.crs).reset_index(drop=True)
-    if not len(gdf):
+    if not len(footprints):
         return empty_layer(g.crs)
-    id_field = next((c for c in ("building_id", "id", "fid") if c in gdf.columns), None)
-    gdf = gdf.drop(columns=[c for c in ("building_id", "source") if c in gdf.columns and c != id_field])
-    if id_field != "building_id":
-        gdf.insert(0, "building_id", gdf[id_field].to_numpy() if id_field else np.arange(1, len(gdf) + 1))
+    gdf = footprints_with_ids(footprints, g.crs, footprint_id_field(footprints))
     rows = []
     for i, win, sub, near in footprint_windows(gdf, g):
         out = classify_damage(
