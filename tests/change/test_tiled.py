@@ -227,7 +227,11 @@ def test_cli_change_footprints_writes_the_building_layer(recs, tmp_path):
     mp = model.save(tmp_path / "model.json")
     out = {}
     for name, extra in (("mem", []), ("tiled", ["--tiled", "--tile-size", "64", "--scheduler", "sync"])):
-        args = ["change", *sum((["--pair-dem-a", str(p)] for p in pa), []), *sum((["--pair-dem-b", str(p)] for p in pb), [])]
+        args = [
+            "change",
+            *sum((["--pair-dem-a", str(p)] for p in pa), []),
+            *sum((["--pair-dem-b", str(p)] for p in pb), []),
+        ]
         args += ["--model", str(mp), "--footprints", str(tmp_path / "fp.gpkg"), "--out", str(tmp_path / name)]
         r = CliRunner().invoke(main, [*args, *extra])
         assert r.exit_code == 0, r.output
