@@ -217,7 +217,12 @@ def main(argv=None) -> int:
     ap.add_argument("--list", action="store_true", help="list the entries and whether each can run here")
     ap.add_argument("--only", nargs="+", default=[], metavar="NAME", help="entries (or pictures) to make")
     ap.add_argument("--quick", action="store_true", help="only the quick entries (of --only, if given)")
-    ap.add_argument("--work", type=Path, default=Path("/tmp/geocd_figures"), help="work folder of the runs")
+    ap.add_argument(
+        "--work",
+        type=Path,
+        default=Path("geocd_out/figures"),
+        help="work folder of the runs (default: ./geocd_out/figures)",
+    )
     ap.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
     ap.add_argument(
         "--reuse",
