@@ -7,6 +7,7 @@ which skips with a clear reason when the folder (or the file) is absent.
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -72,3 +73,41 @@ def _work_key_file(tmp_path_factory):
     from geocd.tiling.store import WORK_KEY_ENV
 
     yield from _session_env(WORK_KEY_ENV, str(tmp_path_factory.mktemp("workkey") / "work_key"))
+
+
+# --- longest files first -------------------------------------------------------------------------------------
+# pytest-xdist hands whole files to its workers (``--dist loadfile``) in collection order
+# (``--no-loadscope-reorder``): starting with the files that take longest keeps both workers busy to the end
+# instead of leaving one of them alone with a long file. The seconds per file come from a full run with
+# GEOCD_STORE_DURATIONS=1 (``tests/durations.json``); a file it does not name keeps its place after them.
+DURATIONS_FILE = REPO / "tests" / "durations.json"
+_seconds_per_file: dict[str, float] = {}
+
+
+def _file_of(nodeid: str) -> str:
+    return nodeid.split("::", 1)[0]
+
+
+def pytest_collection_modifyitems(config, items):
+    try:
+        seconds = json.loads(DURATIONS_FILE.read_text())
+    except (OSError, ValueError):
+        return
+    items.sort(key=lambda item: -float(seconds.get(_file_of(item.nodeid), 0.0)))  # stable: a file's order kept
+
+
+def pytest_runtest_logreport(report):
+    if os.environ.get("GEOCD_STORE_DURATIONS") and not os.environ.get("PYTEST_XDIST_WORKER"):
+        f = _file_of(report.nodeid)
+        _seconds_per_file[f] = _seconds_per_file.get(f, 0.0) + float(report.duration)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _seconds_per_file and not os.environ.get("PYTEST_XDIST_WORKER"):
+        try:
+            known = json.loads(DURATIONS_FILE.read_text())
+        except (OSError, ValueError):
+            known = {}
+        known.update({f: round(s, 1) for f, s in _seconds_per_file.items()})
+        ordered = dict(sorted(known.items(), key=lambda kv: -kv[1]))
+        DURATIONS_FILE.write_text(json.dumps(ordered, indent=1) + "\n")

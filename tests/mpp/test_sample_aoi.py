@@ -1,70 +1,24 @@
-"""sample_aoi's Table 2 row through `geocd mpp`'s own pipeline (orthos and stereo DSMs made by it): docs/mpp.md,
-"The DSM's surface median". Both DSMs are pinned: the default (each cell's own match, surface median 1) and geocd
-stereo's product DSM (a median over the matching window), whose difference is the largest effect on these
-figures measured so far."""
+"""sample_aoi's Table 2 row through `geocd mpp`'s own pipeline with its default DSMs (docs/mpp.md, "The DSM's
+surface median"); the product DSM's row is in test_sample_aoi_window.py, a file of its own so that pytest-xdist
+runs the two side by side."""
 
 from __future__ import annotations
 
-import warnings
-
-import geopandas as gpd
 import pytest
 
-from geocd.mpp.evaluate import rect_masks, sample_truth, table2
-from geocd.mpp.pipeline import dsm_smoothing, run_mpp_manifest
-from geocd.stereo.params import StereoParams
+from tests.mpp.sample_aoi_table2 import check_table2
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "stereo, want, want_drop",
-    [
-        # geocd mpp's default: no surface median (0.8998 / 0.8824, precision 0.9063, before the corner notches cut L
-        # shapes; 0.8822 / 0.8727 before the DSM's holes inside roofs took the roof's height; 0.8625 / 0.848 with the
-        # texture as the change label's evidence, before the DSMs'; 0.839 / 0.824 before the edge fit grew the
-        # rectangles over the raised blocks, 0.835 / 0.820 before it turned them)
-        (
-            None,
-            {"DP": 0.9117, "DP_precision": 0.9307, "HO": 1, "FO": 1, "HV": 1, "FV": 1, "DP_precision_gain": 0.0345},
-            {"DP": 0.8943, "FO": 4},
-        ),
-        # geocd stereo's product DSM (0.751 / 0.7557 before the notches, 0.7388 / 0.742 before the roof holes, 0.709 /
-        # 0.7135 with the texture evidence, 0.686 / 0.691 before the growth, 0.681 / 0.686 before the turn)
-        (
-            "window",
-            {"DP": 0.7616, "DP_precision": 0.9527, "HO": 11, "FO": 0, "HV": 2, "FV": 0, "DP_precision_gain": 0.0144},
-            {"DP": 0.7667, "FO": 1},
-        ),
-    ],
-    ids=["default", "window-median"],
-)
-def test_sample_aoi_table2_through_geocd_mpp(sample_aoi, tmp_path, stereo, want, want_drop):
-    """``want``: the scoring with the five buildings the border cuts in the truth masks (the default);
-    ``want_drop``: with them left out, the scoring of the earlier figures."""
-    sp = None if stereo is None else StereoParams()  # StereoParams(): surface median over the matching window
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        r = run_mpp_manifest(sample_aoi, out_dir=tmp_path / "mpp", stereo_params=sp)
-    det, grid = r["detection"], r["grid"]
-    assert r["params"].height == "and" and r["params"].edge_fit == "joint" and r["params"].seed == 0
-    footprints = gpd.read_file(sample_aoi / "truth" / "footprints_all.gpkg")
-    masks = rect_masks(det.result.rects, det.result.xi, grid.shape)
-    objs, t1, t2 = sample_truth(footprints, grid)
-    t = table2(masks, objs, t1, t2)
-    assert (t["objects"], t["changes"]) == (30, 5)
-    assert sum(not o["scored"] for o in objs) == 5
-    assert t["DP"] == pytest.approx(want["DP"], abs=0.01), t
-    assert t["DP_precision"] == pytest.approx(want["DP_precision"], abs=0.01), t
-    for k in ("HO", "FO", "HV", "FV"):
-        assert abs(t[k] - want[k]) <= 2, (k, t)
-    objs_d, d1, d2 = sample_truth(footprints, grid, cut_buildings="drop")
-    td = table2(masks, objs_d, d1, d2)
-    assert td["DP"] == pytest.approx(want_drop["DP"], abs=0.01), td
-    assert abs(td["FO"] - want_drop["FO"]) <= 2, td
-    # a pinned gap between the two scorings: a detection on a cut building is not false pixels
-    assert t["DP_precision"] - td["DP_precision"] == pytest.approx(want["DP_precision_gain"], abs=0.005), (t, td)
-    assert (tmp_path / "mpp" / "mpp" / "mpp_buildings.gpkg").is_file()
-    # the DSMs say which surface median made them (what geocd mpp --dsm-a/--dsm-b warns about)
-    assert dsm_smoothing(tmp_path / "mpp" / "ortho" / "A" / "dsm_A.tif") == (1 if stereo is None else 7)
-    # the terrain geocd ortho put into the stereo's holes on roofs is given back to the roofs
-    assert any("inside raised surfaces" in n for n in det.notes), det.notes
+def test_sample_aoi_table2_through_geocd_mpp_default(sample_aoi, tmp_path):
+    """geocd mpp's default: no surface median (0.8998 / 0.8824, precision 0.9063, before the corner notches cut L
+    shapes; 0.8822 / 0.8727 before the DSM's holes inside roofs took the roof's height; 0.8625 / 0.848 with the
+    texture as the change label's evidence, before the DSMs'; 0.839 / 0.824 before the edge fit grew the
+    rectangles over the raised blocks, 0.835 / 0.820 before it turned them)."""
+    check_table2(
+        sample_aoi,
+        tmp_path,
+        None,
+        {"DP": 0.9117, "DP_precision": 0.9307, "HO": 1, "FO": 1, "HV": 1, "FV": 1, "DP_precision_gain": 0.0345},
+        {"DP": 0.8943, "FO": 4},
+    )
