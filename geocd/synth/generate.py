@@ -33,6 +33,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any, Callable
 
 import numpy as np
@@ -340,7 +341,12 @@ def _prior_dem(bare: np.ndarray, grid, factor: int = 4):
 
 
 def generate(
-    params: SynthParams, out_dir: os.PathLike | str, *, overwrite: bool = False, progress: Callable | None = None
+    params: SynthParams,
+    out_dir: os.PathLike | str,
+    *,
+    overwrite: bool = False,
+    progress: Callable | None = None,
+    only_views: Sequence[str] | None = None,
 ) -> SynthResult:
     """Build the town, render every view, fit and write RPCs, write truth and the manifest.
 
@@ -349,6 +355,9 @@ def generate(
     params : SynthParams
     out_dir : folder to write (created; must be empty unless ``overwrite``)
     overwrite : replace the files of an existing scene folder
+    only_views : render and write only these views (names such as ``"B_sat1"``; default: every view). Each one
+        is the image a full run writes, pixel for pixel: the other views' cameras and noise streams are still
+        drawn. For tests and benchmarks that need a few views of a large town.
 
     Returns
     -------
@@ -366,11 +375,16 @@ def generate(
     from ..camera.rpc_fit import _single_thread_blas
 
     with _single_thread_blas():  # numba does the parallel work; BLAS threads would only contend with it
-        return _generate(params, out_dir, overwrite=overwrite, progress=progress)
+        return _generate(params, out_dir, overwrite=overwrite, progress=progress, only_views=only_views)
 
 
 def _generate(
-    params: SynthParams, out_dir: os.PathLike | str, *, overwrite: bool = False, progress: Callable | None = None
+    params: SynthParams,
+    out_dir: os.PathLike | str,
+    *,
+    overwrite: bool = False,
+    progress: Callable | None = None,
+    only_views: Sequence[str] | None = None,
 ) -> SynthResult:
     from ..camera.rpc_fit import fit_rpc
     from ..errors import OutputError
@@ -514,14 +528,21 @@ def _generate(
         views.append({"name": name, "epoch": "A", "kind": "aerial", "camera": cam})
     order = {"A": 0, "B": 1}
     views.sort(key=lambda v: (order[v["epoch"]], v["kind"] != "satellite", v["name"]))
+    unknown = sorted(set(only_views or ()) - {v["name"] for v in views})
+    if unknown:
+        raise ConfigError(
+            f"only_views names no view of this scene: {unknown}; its views are {[v['name'] for v in views]}"
+        )
 
     h_lo, h_hi = town.aoi_height_range()
     rpc_h = (math.floor(h_lo - 10.0), math.ceil(h_hi + 15.0))
     rparams = RenderParams(supersample=params.supersample)
     view_reports = []
     nv = len(views)
-    for iv, v in enumerate(views):
+    for iv, v in enumerate(views):  # iv seeds the view's noise: the same with or without only_views
         name, cam, ep = v["name"], v["camera"], v["epoch"]
+        if only_views is not None and name not in only_views:
+            continue
         vp = sub_progress(prog, 0.08 + 0.9 * iv / nv, 0.08 + 0.9 * (iv + 1) / nv, f"{name}: ")
         rng = np.random.default_rng(np.random.SeedSequence([params.seed, order[ep], iv, 77]))
         vr: dict[str, Any] = {
@@ -626,6 +647,8 @@ def _generate(
     report["timings"] = {k: round(v, 3) for k, v in timings.items()}
     report["software"] = _versions()
     write_text_atomic(tdir / "scene_truth.json", json.dumps(report, indent=1, default=_json_default))
+    if only_views is not None:
+        views = [v for v in views if v["name"] in only_views]
     manifest = _write_manifest(out, params, town, grid, views)
     prog(1.0, "done")
     return SynthResult(out, manifest, report)

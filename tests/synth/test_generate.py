@@ -164,3 +164,8 @@ def test_cli_tiny(tmp_path):
     assert r.exit_code != 0 and "not empty" in r.output
     r = CliRunner().invoke(main, ["synth", "--out", str(tmp_path / "x"), "--changes", "earthquake"])
     assert r.exit_code != 0 and "unknown change types" in r.output
+
+
+def test_only_views_names_must_be_views(tmp_path):
+    with pytest.raises(ConfigError, match="only_views names no view"):
+        generate(SynthParams.tiny(seed=1), tmp_path / "s", only_views=["A_sat1", "C_sat9"])
