@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import os
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -102,7 +104,61 @@ def pytest_runtest_logreport(report):
         _seconds_per_file[f] = _seconds_per_file.get(f, 0.0) + float(report.duration)
 
 
+# --- numba compile time (with GEOCD_STORE_DURATIONS=1) --------------------------------------------------------
+# How much of a run is numba compiling kernels (a fresh clone compiles every kernel the tests call once, into
+# numba's cache). Counted once numba is imported, so that tests that check a command never imports it still can.
+_compile = {"seconds": 0.0, "kernels": 0}
+
+
+def _count_numba_compiles() -> None:
+    from numba.core import event
+
+    class _Timer(event.Listener):
+        depth, t0 = 0, 0.0
+
+        def on_start(self, ev):
+            if self.depth == 0:
+                self.t0 = time.perf_counter()
+            self.depth += 1
+
+        def on_end(self, ev):
+            self.depth -= 1
+            if self.depth == 0:
+                _compile["seconds"] += time.perf_counter() - self.t0
+                _compile["kernels"] += 1
+
+    event.register("numba:compile", _Timer())
+
+
+if os.environ.get("GEOCD_STORE_DURATIONS"):
+    from geocd._jit import _AfterNumbaImport
+
+    sys.meta_path.insert(0, _AfterNumbaImport(_count_numba_compiles))
+
+
+def _compile_report_dir(config) -> Path:
+    base = config._tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    if not os.environ.get("GEOCD_STORE_DURATIONS"):
+        return
+    parts = [json.loads(f.read_text()) for f in sorted(_compile_report_dir(config).glob("numba_compile_*.json"))]
+    if not parts and _compile["kernels"]:
+        parts = [{"worker": "main", **_compile}]
+    if parts:
+        total = sum(p["seconds"] for p in parts)
+        each = ", ".join(f"{p['worker']} {p['kernels']} in {p['seconds']:.0f} s" for p in parts)
+        terminalreporter.write_line(f"numba compiled kernels (cache misses) for {total:.0f} s of worker time: {each}")
+
+
 def pytest_sessionfinish(session, exitstatus):
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker and os.environ.get("GEOCD_STORE_DURATIONS"):
+        (_compile_report_dir(session.config) / f"numba_compile_{worker}.json").write_text(
+            json.dumps({"worker": worker, "seconds": round(_compile["seconds"], 1), "kernels": _compile["kernels"]})
+        )
     if _seconds_per_file and not os.environ.get("PYTEST_XDIST_WORKER"):
         try:
             known = json.loads(DURATIONS_FILE.read_text())
