@@ -290,7 +290,7 @@ def kahra(run: Path, chips: Path | None) -> dict:
     import rasterio
 
     from geocd.change.dsm_buildings import DSMBuildingParams, fill_gaps, ground_model
-    from geocd.pipeline import _median_surface
+    from geocd.stereo.surface import epoch_surface
     from geocd.stereo import read_pair_dem
 
     recs = {
@@ -300,7 +300,7 @@ def kahra(run: Path, chips: Path | None) -> dict:
     grid = recs["pre_event"][0].grid
     out = {}
     for ep in ("pre_event", "post_event"):
-        z = _median_surface(recs[ep])
+        z = epoch_surface(recs[ep])
         dtm, ground = ground_model(z, grid.posting_m)
         rows, lab, info = object_table(z, grid.posting_m, dtm, ground)
         fac = DSMBuildingParams().roughness_factor

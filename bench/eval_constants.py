@@ -40,7 +40,8 @@ def run_scene(scene: Path, run_dir: Path | None) -> dict:
     from geocd.consistency import ChangeParams, change_test, learn_self_consistency
     from geocd.io.raster import read_on_grid
     from geocd.io.vector import read_footprints
-    from geocd.pipeline import RunConfig, _median_surface
+    from geocd.pipeline import RunConfig
+    from geocd.stereo.surface import epoch_surface
 
     m, by = _pairs(scene, run_dir)
     A, B = by["A"], by["B"]
@@ -49,7 +50,7 @@ def run_scene(scene: Path, run_dir: Path | None) -> dict:
     fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
     fall = read_footprints(m.truth_path("footprints_all"), crs=grid.crs)
     status = dict(zip(fall["building_id"], fall["status"]))
-    za, zb = _median_surface(A), _median_surface(B)
+    za, zb = epoch_surface(A), epoch_surface(B)
     cfg = RunConfig()
 
     def figures(res, level=99.0):

@@ -47,9 +47,9 @@ def _recs(run: Path) -> dict:
 def _surface(recs) -> np.ndarray:
     """An epoch's surface as ``geocd run``'s building extraction sees it: the median of its pair-DEMs' valid
     heights (a pair-DEM may hold heights at cells it marks invalid)."""
-    from geocd.pipeline import _median_surface
+    from geocd.stereo.surface import epoch_surface
 
-    return _median_surface(recs)
+    return epoch_surface(recs)
 
 
 def _mask(geoms, grid) -> np.ndarray:

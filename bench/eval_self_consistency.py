@@ -86,7 +86,7 @@ def building_eval(mask, res, grid, A, B, scene_manifest, level=None):
 
     from geocd.change.buildings import classify_buildings, score_buildings
     from geocd.io.vector import read_footprints
-    from geocd.pipeline import _median_surface
+    from geocd.stereo.surface import epoch_surface
 
     fa = read_footprints(scene_manifest.truth_path("footprints_A"), crs=grid.crs)
     fall = read_footprints(scene_manifest.truth_path("footprints_all"), crs=grid.crs)
@@ -95,8 +95,8 @@ def building_eval(mask, res, grid, A, B, scene_manifest, level=None):
         mask,
         res.dz_m,
         grid,
-        z_a=_median_surface(A),
-        z_b=_median_surface(B),
+        z_a=epoch_surface(A),
+        z_b=epoch_surface(B),
         confidence=res.confidence,
         id_field="building_id",
         confidence_level=level,

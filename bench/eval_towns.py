@@ -69,7 +69,8 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
     from geocd.consistency import change_test, learn_self_consistency
     from geocd.io.raster import read_on_grid
     from geocd.io.vector import read_footprints
-    from geocd.pipeline import RunConfig, _median_surface
+    from geocd.pipeline import RunConfig
+    from geocd.stereo.surface import epoch_surface
 
     m, by = _pairs(scene, run_dir)
     A, B = by["A"], by["B"]
@@ -84,7 +85,7 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
     }
     fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
     fall = read_footprints(m.truth_path("footprints_all"), crs=grid.crs)
-    za, zb = _median_surface(A), _median_surface(B)
+    za, zb = epoch_surface(A), epoch_surface(B)
     for mode in ("region", "cell"):
         res = change_test(A, B, model, dataclasses.replace(cfg.change, significance=mode))
         cells = {}

@@ -49,6 +49,7 @@ import numpy as np
 
 from .errors import ConfigError, GridError, ProcessingError
 from .progress import Progress, ensure_progress
+from .stereo.surface import nanmedian_stack
 
 ALIGN_MODES = ("vertical", "none")
 
@@ -1179,33 +1180,6 @@ class ChangeResult:
 CHANGE_NODATA = -128
 #: change-mask code of a cell the 3-D test did not examine (a tiered run: the screen did not flag its tile)
 NOT_EXAMINED = -127
-
-
-def nanmedian_stack(stack: np.ndarray) -> np.ndarray:
-    """Median over axis 0 ignoring NaN, NaN where a cell has no value: ``np.nanmedian(stack, axis=0)``, same values.
-
-    numpy's ``nanmedian`` along a short axis warns once per all-NaN cell in a Python loop (~1 µs each): on
-    a grid mostly not observed (a tiered run's unexamined tiles: 6 M cells at 2 500²) that loop cost tens
-    of CPU seconds per call. Here only the cells holding a value are passed to it.
-
-    Parameters
-    ----------
-    stack : float (n, rows, cols)
-
-    Returns
-    -------
-    float (rows, cols), the dtype ``np.nanmedian`` gives
-    """
-    a = np.asarray(stack)
-    has = ~np.isnan(a).all(axis=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        if has.all():
-            return np.nanmedian(a, axis=0)
-        out = np.full(a.shape[1:], np.nan, dtype=np.nanmedian(a[:, :0], axis=0).dtype)
-        if has.any():
-            out[has] = np.nanmedian(a[:, has], axis=0)
-    return out
 
 
 def combine_pvalues(pvalues: np.ndarray, signs: np.ndarray, sign: np.ndarray, combine: str = "majority") -> np.ndarray:

@@ -23,7 +23,7 @@ import traceback
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -35,31 +35,17 @@ from .consistency import (
     SelfConsistencyModel,
     change_test,
     learn_self_consistency,
-    nanmedian_stack,
 )
 from .errors import ConfigError, GeoCDError
+from .io.manifest import pick_epochs
 from .progress import Progress, ensure_progress, sub_progress
 from .runlog import LoggedProgress, RunLog, log_file_name, logger
+from .stereo.params import change_stereo_params
+from .stereo.surface import epoch_surface
 
 
 #: what ``geocd run`` writes into its output folder (globs, relative to it): see geocd.io.outputs.open_outputs
 PRODUCTS = ("sc_*", "stereo/*", "screen/*", "self_consistency_model.json", "run_config.json", "run_summary.json")
-
-
-def _stereo_params_cls():
-    from .stereo import StereoParams
-
-    return StereoParams
-
-
-#: the change test reads each cell's own match: its self-consistency model and region null describe the error
-#: of one match, and a median over the matching window mixes neighbours' errors (measured on sample_aoi:
-#: region-test precision 0.79 -> 0.72 with it), so the run's stereo leaves it out unless a config sets it
-RUN_STEREO_DEFAULTS = {"surface_median": 1}
-
-
-def _run_stereo_params(d: dict | None = None):
-    return _stereo_params_cls().from_dict({**RUN_STEREO_DEFAULTS, **(d or {})})
 
 
 @dataclass(frozen=True)
@@ -70,7 +56,7 @@ class RunConfig:
     ----------
     stereo : StereoParams
         As :class:`geocd.stereo.StereoParams` except ``surface_median`` = 1 (off) unless given
-        (:data:`RUN_STEREO_DEFAULTS`).
+        (:data:`geocd.stereo.params.RUN_STEREO_DEFAULTS`).
     consistency : ConsistencyParams
     change : ChangeParams
     buildings : BuildingParams
@@ -94,7 +80,7 @@ class RunConfig:
         Side of the screen's tiles (cells).
     """
 
-    stereo: Any = field(default_factory=_run_stereo_params)
+    stereo: Any = field(default_factory=change_stereo_params)
     consistency: ConsistencyParams = ConsistencyParams()
     change: ChangeParams = ChangeParams()
     buildings: BuildingParams = BuildingParams()
@@ -124,7 +110,7 @@ class RunConfig:
             raise ConfigError(f"unknown run configuration keys {sorted(unknown)}; known: {sorted(known)}")
         kw = dict(d)
         if "stereo" in kw:
-            kw["stereo"] = _run_stereo_params(kw["stereo"])
+            kw["stereo"] = change_stereo_params(kw["stereo"])
         if kw.get("screen") is not None:
             from .screen import ScreenParams
 
@@ -161,34 +147,11 @@ class RunConfig:
         return cls.from_dict(d)
 
 
-def pick_epochs(manifest, epoch_a: str | None = None, epoch_b: str | None = None):
-    """The two epochs to compare (explicit, else first and last by date/order)."""
-    eps = list(manifest.epochs)
-    if len(eps) < 2 and not (epoch_a and epoch_b):
-        raise ConfigError(f"change detection needs two epochs; the manifest has {len(eps)}")
-    if all(e.date for e in eps):
-        eps = sorted(eps, key=lambda e: e.date)
-    a = manifest.epoch(epoch_a) if epoch_a else eps[0]
-    b = manifest.epoch(epoch_b) if epoch_b else eps[-1]
-    if a.name == b.name:
-        raise ConfigError(f"epoch_a and epoch_b are both {a.name!r}; pick two different epochs")
-    if a.date is not None and b.date is not None and a.date > b.date:
-        raise ConfigError(
-            f"epoch_a {a.name!r} ({a.date}) is dated after epoch_b {b.name!r} ({b.date}): the change "
-            "would be computed backwards; swap --epoch-a and --epoch-b, or fix the dates"
-        )
-    return a, b
-
-
 def _dem_epoch(spec, grid, name: str) -> DEMAsEpoch:
     from .io.raster import read_dem
 
     dem = read_dem(spec.path, grid=grid, vertical_datum=spec.vertical_datum).to_ellipsoidal()
     return DEMAsEpoch(dem.height_m, grid, name=f"{name}:dem")
-
-
-def _median_surface(recs: Sequence[Any]) -> np.ndarray:
-    return nanmedian_stack(np.stack([np.where(r.valid, r.z_m, np.nan) for r in recs])).astype(np.float32)
 
 
 #: the quick-look's orthos are computed on at most this many cells per side (a panel is ~540 pixels wide)
@@ -260,8 +223,8 @@ def _building_layer(
         footprints,
         res,
         grid,
-        z_a=_median_surface(recs_a),
-        z_b=_median_surface(recs_b),
+        z_a=epoch_surface(recs_a),
+        z_b=epoch_surface(recs_b),
         model=model,
         report_confidence=report_confidence,
         epoch_a=name_a,
@@ -652,7 +615,7 @@ def run_change(
                 },
             )
     prog(0.8, "writing products")
-    surface_a, surface_b = _median_surface(recs_a), _median_surface(recs_b)
+    surface_a, surface_b = epoch_surface(recs_a), epoch_surface(recs_b)
     paths = write_change_products(
         out,
         res,

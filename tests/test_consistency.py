@@ -289,7 +289,7 @@ def test_nanmedian_stack_equals_numpy(dtype):
     """Same values and dtype as ``np.nanmedian(stack, axis=0)`` — cells with 0 to n values, all-NaN grids, no NaN."""
     import warnings
 
-    from geocd.consistency import nanmedian_stack
+    from geocd.stereo.surface import nanmedian_stack
 
     rng = np.random.default_rng(4)
     for n in (1, 2, 3, 4):

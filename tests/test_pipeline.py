@@ -7,7 +7,8 @@ import pytest
 import yaml
 
 from geocd.errors import ConfigError
-from geocd.pipeline import RunConfig, pick_epochs, run
+from geocd.io.manifest import pick_epochs
+from geocd.pipeline import RunConfig, run
 
 
 def test_config_round_trip(tmp_path):
@@ -306,14 +307,14 @@ def test_sample_aoi_per_cell_test_figures(sample_pairs, sample_run, sample_run_c
     # the changed-part rule (an option) moves no class here, in either test (docs/towns.md: nor on towns 1-3)
     from geocd.change.buildings import BuildingParams, classify_buildings
     from geocd.io.vector import read_footprints
-    from geocd.pipeline import _median_surface
+    from geocd.stereo.surface import epoch_surface
 
     fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
     for one_run in (sample_run, sample_run_cell):
         r = one_run["result"]
         kw = dict(
-            z_a=_median_surface(by["A"]),
-            z_b=_median_surface(by["B"]),
+            z_a=epoch_surface(by["A"]),
+            z_b=epoch_surface(by["B"]),
             id_field="building_id",
             min_part_cells=r.min_region_cells,
             detect_new=False,

@@ -254,7 +254,7 @@ def _t_calibration(arrays, ctx):
 
 def _t_change(arrays, ctx):
     """The change test on a tile with the whole-scene offsets and model."""
-    from ..pipeline import _median_surface
+    from ..stereo.surface import epoch_surface
     from ..tiling.regions import tile_regions
 
     J = ctx.params
@@ -289,8 +289,8 @@ def _t_change(arrays, ctx):
         tr.labels = None
         small["cand"] = tr
     if J.footprints:
-        out["z_a"] = _median_surface(a)
-        out["z_b"] = _median_surface(b)
+        out["z_a"] = epoch_surface(a)
+        out["z_b"] = epoch_surface(b)
     return TileOutput(arrays=out, small=small)
 
 

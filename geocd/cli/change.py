@@ -551,7 +551,7 @@ def change(
         buildings, _ = _building_layer(
             read_footprints(footprints, crs=grid.crs), res, grid, A, B, model, report_confidence, "A", "B"
         )
-    from ..pipeline import _median_surface
+    from ..stereo.surface import epoch_surface
 
     paths = write_change_products(
         out_dir,
@@ -564,7 +564,7 @@ def change(
         model=model,
         buildings=buildings,
         prefix="sc",
-        backdrop_a_m=_median_surface(A),
-        backdrop_m=_median_surface(B),
+        backdrop_a_m=epoch_surface(A),
+        backdrop_m=epoch_surface(B),
     )
     emit_result(ctx, paths)

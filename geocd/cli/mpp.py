@@ -318,7 +318,7 @@ def mpp(
         if manifest is not None:
             from ..io.manifest import load_manifest
             from ..mpp.pipeline import run_mpp_manifest
-            from ..pipeline import pick_epochs
+            from ..io.manifest import pick_epochs
 
             m = load_manifest(manifest)
             out_dir = Path(out) if out else m.output_dir()

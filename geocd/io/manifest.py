@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from ..errors import InputFileNotFoundError, ManifestError, UnsupportedFormatError
+from ..errors import ConfigError, InputFileNotFoundError, ManifestError, UnsupportedFormatError
 from .atomic import refuse_special_file
 from .safe_yaml import YAMLLimitError, load_json, load_yaml
 
@@ -764,3 +764,22 @@ def manifest_to_dict(m: Manifest) -> dict:
     if m.truth:
         d["truth"] = m.truth
     return d
+
+
+def pick_epochs(manifest, epoch_a: str | None = None, epoch_b: str | None = None):
+    """The two epochs to compare (explicit, else first and last by date/order)."""
+    eps = list(manifest.epochs)
+    if len(eps) < 2 and not (epoch_a and epoch_b):
+        raise ConfigError(f"change detection needs two epochs; the manifest has {len(eps)}")
+    if all(e.date for e in eps):
+        eps = sorted(eps, key=lambda e: e.date)
+    a = manifest.epoch(epoch_a) if epoch_a else eps[0]
+    b = manifest.epoch(epoch_b) if epoch_b else eps[-1]
+    if a.name == b.name:
+        raise ConfigError(f"epoch_a and epoch_b are both {a.name!r}; pick two different epochs")
+    if a.date is not None and b.date is not None and a.date > b.date:
+        raise ConfigError(
+            f"epoch_a {a.name!r} ({a.date}) is dated after epoch_b {b.name!r} ({b.date}): the change "
+            "would be computed backwards; swap --epoch-a and --epoch-b, or fix the dates"
+        )
+    return a, b

@@ -135,7 +135,8 @@ def run_mpp_manifest(
     from ..io.raster import read_band, read_dem
     from ..ortho import OrthoParams
     from ..ortho.pipeline import run_ortho
-    from ..pipeline import _run_stereo_params, pick_epochs
+    from ..io.manifest import pick_epochs
+    from ..stereo.params import change_stereo_params
     from ..stereo.params import StereoParams
     from ..stereo.pipeline import default_aoi_grid, load_epoch_images
 
@@ -176,7 +177,7 @@ def run_mpp_manifest(
         grid=grid,
         params=OrthoParams(),
         overwrite=overwrite,
-        stereo_params=stereo_params if stereo_params is not None else _run_stereo_params(),
+        stereo_params=stereo_params if stereo_params is not None else change_stereo_params(),
         progress=sub_progress(prog, 0.02, 0.5, "ortho: "),
     )
     ra = orth["results"][f"{ea.name}/{chosen[ea.name].name}"]

@@ -30,6 +30,7 @@ from ..errors import ConfigError, NoOverlapError
 from ..geodesy import AOIGrid
 from ..io.raster import write_cog
 from ..progress import Progress, ensure_progress, sub_progress
+from ..stereo.surface import epoch_surface
 from .core import (
     NO_HEIGHT,
     OCCLUDED,
@@ -267,13 +268,6 @@ def ortho_image(
 # ---------------------------------------------------------------------------------------------
 # epoch DSMs and the manifest run
 # ---------------------------------------------------------------------------------------------
-def stereo_epoch_dsm(pairs: Sequence[Any]) -> np.ndarray:
-    """One DSM per epoch from geocd stereo: the median of its pair-DEMs' valid heights (NaN where none)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmedian(np.stack([np.where(p.valid, p.z_m, np.nan) for p in pairs]), axis=0).astype(np.float32)
-
-
 def run_ortho(
     manifest,
     *,
@@ -364,7 +358,7 @@ def run_ortho(
                 overwrite=overwrite,
                 progress=sub_progress(prog, f0, f0 + 0.5 * len(ims[e.name]) / max(n_total, 1), f"{e.name} stereo: "),
             )
-            h = stereo_epoch_dsm(list(st["pairs"].values()))
+            h = epoch_surface(list(st["pairs"].values()))
             sources[e.name] = f"geocd stereo: median of {len(st['pairs'])} pair-DEMs"
             smoothing[e.name] = sp.median_size
         else:

@@ -152,7 +152,7 @@ def run_probchange(
     from ..io.atomic import protect_inputs, write_text_atomic
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import read_dem
-    from ..pipeline import pick_epochs
+    from ..io.manifest import pick_epochs
     from ..stereo.pipeline import default_aoi_grid, image_window_for_grid, load_epoch_images
     from .products import write_keyframe_products, write_probchange_products
 

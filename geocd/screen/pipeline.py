@@ -728,7 +728,7 @@ def run_screen_manifest(
     """Screen a manifest: its views on the AOI grid, the closest cross-epoch pair, a within-epoch no-change pair."""
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import read_dem
-    from ..pipeline import pick_epochs
+    from ..io.manifest import pick_epochs
     from ..stereo.pipeline import default_aoi_grid, load_epoch_images
 
     prog = ensure_progress(progress)

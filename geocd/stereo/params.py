@@ -179,3 +179,15 @@ def surface_median_cells(params: dict) -> int:
     key is absent (made before the median existed), the matching window when it is None (the default)."""
     sm = params.get("surface_median", 1)
     return int(params.get("window", StereoParams.window)) if sm is None else int(sm)
+
+
+#: the change test reads each cell's own match: its self-consistency model and region null describe the error
+#: of one match, and a median over the matching window mixes neighbours' errors (measured on sample_aoi:
+#: region-test precision 0.79 -> 0.72 with it), so a change run's stereo leaves it out unless a config sets it
+RUN_STEREO_DEFAULTS = {"surface_median": 1}
+
+
+def change_stereo_params(d: dict | None = None) -> "StereoParams":
+    """The stereo parameters of a change run (``geocd run``, ``geocd mpp``): :class:`StereoParams` with
+    :data:`RUN_STEREO_DEFAULTS`, then ``d`` (a config's ``stereo`` section) over them."""
+    return StereoParams.from_dict({**RUN_STEREO_DEFAULTS, **(d or {})})

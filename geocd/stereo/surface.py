@@ -5,6 +5,10 @@ Arrays in, arrays out (heights in metres on the AOI grid, NaN = no height).
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
 from scipy import ndimage
 
@@ -93,3 +97,44 @@ def fill_narrow_holes(z_m: np.ndarray, valid: np.ndarray, radius: int) -> tuple[
     filled = target & got
     z[filled] = f[filled]
     return z, filled
+
+
+def nanmedian_stack(stack: np.ndarray) -> np.ndarray:
+    """Median over axis 0 ignoring NaN, NaN where a cell has no value: ``np.nanmedian(stack, axis=0)``, same values.
+
+    numpy's ``nanmedian`` along a short axis warns once per all-NaN cell in a Python loop (~1 µs each): on
+    a grid mostly not observed (a tiered run's unexamined tiles: 6 M cells at 2 500²) that loop cost tens
+    of CPU seconds per call. Here only the cells holding a value are passed to it.
+
+    Parameters
+    ----------
+    stack : float (n, rows, cols)
+
+    Returns
+    -------
+    float (rows, cols), the dtype ``np.nanmedian`` gives
+    """
+    a = np.asarray(stack)
+    has = ~np.isnan(a).all(axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        if has.all():
+            return np.nanmedian(a, axis=0)
+        out = np.full(a.shape[1:], np.nan, dtype=np.nanmedian(a[:, :0], axis=0).dtype)
+        if has.any():
+            out[has] = np.nanmedian(a[:, has], axis=0)
+    return out
+
+
+def epoch_surface(pair_dems: Sequence[Any]) -> np.ndarray:
+    """One surface per epoch from its pair-DEMs: the median of their valid heights, NaN where none has one.
+
+    Parameters
+    ----------
+    pair_dems : objects with ``z_m`` (float (rows, cols), m) and ``valid`` (bool (rows, cols)) on one grid
+
+    Returns
+    -------
+    float32 (rows, cols), m
+    """
+    return nanmedian_stack(np.stack([np.where(p.valid, p.z_m, np.nan) for p in pair_dems])).astype(np.float32)

@@ -129,7 +129,7 @@ def test_what_the_stable_false_alarms_are(kahra_run):
     from rasterio.features import rasterize
 
     from geocd.change.dsm_buildings import CHANGED, tree_cells
-    from geocd.pipeline import _median_surface
+    from geocd.stereo.surface import epoch_surface
 
     r, grid, pairs = res["result"], res["grid"], res["pairs"]
     dmg = gpd.read_file(out / "sc_changes.gpkg", layer="buildings").to_crs(grid.crs)
@@ -141,7 +141,7 @@ def test_what_the_stable_false_alarms_are(kahra_run):
 
     flag = r.observed & ~mask(dmg[dmg["class"].isin(CHANGED)].geometry) & (np.nan_to_num(r.confidence) >= 99.0)
     allb = mask(dmg.geometry)
-    za, zb = _median_surface(pairs["pre_event"]), _median_surface(pairs["post_event"])
+    za, zb = epoch_surface(pairs["pre_event"]), epoch_surface(pairs["post_event"])
     trees = tree_cells(za, grid.posting_m) | tree_cells(zb, grid.posting_m)
     with rasterio.open(out / "sc_ground_model.tif") as ds:
         dtm = ds.read(1)

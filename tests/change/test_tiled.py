@@ -165,7 +165,7 @@ def test_tiled_building_layer_follows_the_schema(recs, tmp_path):
 
     from geocd.change.building_layer import check_building_layer
     from geocd.change.dsm_buildings import building_layer
-    from geocd.pipeline import _median_surface
+    from geocd.stereo.surface import epoch_surface
 
     d, pa, pb, model = recs
     t = GRID.transform
@@ -181,7 +181,7 @@ def test_tiled_building_layer_follows_the_schema(recs, tmp_path):
     params = ChangeParams(confidences=(90.0, 95.0, 99.0))
     A, B = [read_pair_dem(p) for p in pa], [read_pair_dem(p) for p in pb]
     res = change_test(A, B, model, params)
-    mem, _ = building_layer(fps, res, GRID, z_a=_median_surface(A), z_b=_median_surface(B), model=model)
+    mem, _ = building_layer(fps, res, GRID, z_a=epoch_surface(A), z_b=epoch_surface(B), model=model)
     layers = {}
     for name, cells_max in (("exact", None), ("large", 1000)):
         tiling = TilingParams(tile_size=64, scheduler="sync", **({"exact_grid_cells": cells_max} if cells_max else {}))
