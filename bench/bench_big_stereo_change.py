@@ -76,7 +76,7 @@ class _Load:
 
 def cmd_model(a) -> None:
     from geocd.consistency import ConsistencyParams, learn_self_consistency
-    from geocd.demdiff.tiled import TilingParams
+    from geocd.tiling.params import TilingParams
     from geocd.stereo.products import read_pair_dem
     from geocd.stereo.tiled import run_stereo_tiled
 
@@ -156,7 +156,7 @@ def evaluate(scene: Path, mask_path: Path, hit_share: float) -> dict:
 def cmd_run(a) -> None:
     from geocd.change.tiled import change_test_tiled
     from geocd.consistency import ChangeParams, SelfConsistencyModel
-    from geocd.demdiff.tiled import TilingParams
+    from geocd.tiling.params import TilingParams
     from geocd.stereo.tiled import run_stereo_tiled
 
     scene = Path(a.scene)

@@ -747,7 +747,7 @@ def stereo_overhead(scene: str, tier: Path, epoch: str, work: Path) -> dict:
     in this process (CPU seconds of all threads), plus the pairs' central-window probes."""
     import shutil
 
-    from geocd.demdiff.tiled import TilingParams
+    from geocd.tiling.params import TilingParams
     from geocd.io.manifest import load_manifest
     from geocd.pipeline import RunConfig
     from geocd.stereo import read_pair_dem

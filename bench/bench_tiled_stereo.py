@@ -81,7 +81,7 @@ def compare(u_path: Path, t_path: Path, ref_path: Path, offset: bool) -> dict:
 
 
 def main() -> None:
-    from geocd.demdiff.tiled import TilingParams
+    from geocd.tiling.params import TilingParams
     from geocd.stereo.pipeline import run_stereo
     from geocd.stereo.tiled import run_stereo_tiled
 

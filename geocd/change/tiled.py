@@ -207,7 +207,7 @@ def _sampled_core_cells(mask: np.ndarray, ctx) -> tuple[np.ndarray, np.ndarray, 
     core = ctx.core
     rr, cc = np.nonzero(mask[core])
     if J.fraction < 1.0:
-        from ..demdiff.tiled import keep_cells
+        from ..tiling.params import keep_cells
 
         T0, U0 = ctx.tile.core[:2]
         keep = keep_cells(rr + T0, cc + U0, J.grid.width, J.fraction)
@@ -364,7 +364,7 @@ def change_test_tiled(
     tiling : :class:`geocd.demdiff.tiled.TilingParams`
     footprints : optional building polygons (GeoDataFrame or file) attributed at ``region_confidence``
     """
-    from ..demdiff.tiled import TilingParams
+    from ..tiling.params import TilingParams
 
     t0 = time.perf_counter()
     tiling = tiling or TilingParams()

@@ -470,7 +470,7 @@ def change(
     session(ctx).open_log(out_dir)
     if tiled or scheduler or tile_size:
         from ..change.tiled import change_test_tiled, open_reconstruction
-        from ..demdiff.tiled import TilingParams
+        from ..tiling.params import TilingParams
 
         A = list(a_paths) + (
             [open_reconstruction(dem_a, kind="dem", name="dem_a", vertical_datum=dem_vertical_datum)[0]]

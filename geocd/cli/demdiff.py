@@ -67,7 +67,8 @@ def _demdiff_tiled(
     nodata,
 ) -> None:
     """Two DEMs tile by tile (geocd.demdiff.tiled): the same products as the untiled run."""
-    from ..demdiff.tiled import TilingParams, dem_difference_tiled
+    from ..demdiff.tiled import dem_difference_tiled
+    from ..tiling.params import TilingParams
     from . import emit_result, make_progress
 
     tiling = TilingParams(**tiling_opts)

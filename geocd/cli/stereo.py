@@ -233,7 +233,7 @@ def stereo(
 def _stereo_tiled(m, epochs, out, params, posting_m, progress, tiling_opts: dict):
     """The tiled door: the manifest's cross-image orientation as the untiled run applies it, then
     :func:`geocd.stereo.tiled.run_stereo_tiled`."""
-    from ..demdiff.tiled import TilingParams
+    from ..tiling.params import TilingParams
     from ..io.atomic import protect_inputs
     from ..orientation import orient_manifest
     from ..stereo.tiled import run_stereo_tiled

@@ -347,7 +347,7 @@ def run_stereo_screened(
     """
     from scipy import ndimage
 
-    from ..demdiff.tiled import TilingParams
+    from ..tiling.params import TilingParams
     from ..io.raster import read_dem
     from ..stereo import read_pair_dem
     from ..stereo.pipeline import default_aoi_grid, load_epoch_images

@@ -266,7 +266,7 @@ def run_stereo_tiled(
     Returns dict with ``outputs`` ({"<epoch>/<a>__<b>": path}), ``grid``, ``margins`` (cells per pair)
     and ``completeness`` per pair (over the matched tiles).
     """
-    from ..demdiff.tiled import TilingParams
+    from ..tiling.params import TilingParams
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import read_dem
     from .pipeline import default_aoi_grid, load_epoch_images, pair_path

@@ -11,7 +11,7 @@ from affine import Affine
 from geocd.change.products import write_change_products
 from geocd.change.tiled import change_test_tiled
 from geocd.consistency import ChangeParams, ConsistencyParams, change_test, learn_self_consistency
-from geocd.demdiff.tiled import TilingParams
+from geocd.tiling.params import TilingParams
 from geocd.geodesy import AOIGrid
 from geocd.stereo.products import PairDEM, read_pair_dem, write_pair_dem
 

@@ -11,7 +11,8 @@ import pytest
 import rasterio
 
 from geocd.demdiff import CoregParams, DEMDiffParams, dem_difference, write_demdiff_products
-from geocd.demdiff.tiled import TilingParams, dem_difference_tiled, keep_cells
+from geocd.demdiff.tiled import dem_difference_tiled
+from geocd.tiling.params import TilingParams, keep_cells
 from geocd.io.raster import read_dem, write_cog
 
 from ..conftest import shared_data

@@ -62,7 +62,7 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
     import rasterio
 
     from geocd.consistency import NOT_EXAMINED
-    from geocd.demdiff.tiled import TilingParams
+    from geocd.tiling.params import TilingParams
     from geocd.pipeline import RunConfig, run_change
     from geocd.screen.tiered import Flagged
     from geocd.stereo import read_pair_dem

@@ -9,7 +9,7 @@ import pytest
 import rasterio
 import yaml
 
-from geocd.demdiff.tiled import TilingParams
+from geocd.tiling.params import TilingParams
 from geocd.io.raster import read_dem
 from geocd.stereo.pipeline import run_stereo
 from geocd.stereo.products import read_pair_dem
