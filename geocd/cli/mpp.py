@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import tempfile
 from pathlib import Path
 
 import click
@@ -200,6 +202,15 @@ def check_change_prior(path: str | Path) -> None:
 @click.option("--max-iter", type=int, default=None, help="Iteration cap of multiple birth and death (default 250).")
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting in metres.")
 @click.option(
+    "--pixel-size",
+    "pixel_size",
+    type=float,
+    default=None,
+    metavar="METRES",
+    help="--image-a/--image-b without georeference (PNG tiles, ...): the ground size of a pixel. The two are "
+    "compared cell for cell on a local grid in metres (so must be one size); the products carry that local CRS.",
+)
+@click.option(
     "--surface-median",
     "surface_median",
     type=int,
@@ -245,6 +256,7 @@ def mpp(
     seed,
     max_iter,
     posting_m,
+    pixel_size,
     surface_median,
     out,
     no_overwrite,
@@ -261,6 +273,7 @@ def mpp(
     from ..errors import ConfigError
     from ..mpp.params import MPPParams
     from . import emit_result, make_progress
+    from ..io.plain import plain_images_on_a_grid
     from .common import require_inputs, resolve_out_dir, session
 
     sess = session(ctx)
@@ -275,6 +288,8 @@ def mpp(
         raise ConfigError(
             "--surface-median applies to the stereo DSMs of a manifest; with --image-a/--image-b give --dsm-a/--dsm-b"
         )
+    if pixel_size is not None and manifest is not None:
+        raise ConfigError("--pixel-size is for two plain images (--image-a/--image-b); a manifest's views have cameras")
     if height == "on" and image_a is not None and dsm_a is None:
         raise ConfigError("--height on needs --dsm-a and --dsm-b with --image-a/--image-b")
     require_inputs(manifest, image_a, image_b, dsm_a, dsm_b, ground, change_prior)
@@ -357,23 +372,33 @@ def mpp(
         else:
             from ..mpp.pipeline import run_mpp_images
 
-            out_dir = resolve_out_dir(out, Path(image_a).stem + "_mpp")
-            open_outputs(out_dir, inputs=[image_a, image_b, dsm_a, dsm_b, ground, change_prior], products=("mpp_*",))
-            sess.open_log(out_dir)
-            res = run_mpp_images(
-                image_a,
-                image_b,
-                out_dir=out_dir,
-                dsm_a=dsm_a if height != "off" else None,
-                dsm_b=dsm_b if height != "off" else None,
-                ground=ground,
-                method=method,
-                params=params,
-                change_prior=change_prior,
-                posting_m=posting_m,
-                overwrite=not no_overwrite,
-                progress=progress,
-            )
+            plain = contextlib.ExitStack()
+            grid_a, grid_b = image_a, image_b
+            if pixel_size is not None:  # plain images: read cell for cell on a local grid
+                folder = plain.enter_context(tempfile.TemporaryDirectory(prefix="geocd_plain_"))
+                grid_a, grid_b = plain_images_on_a_grid([image_a, image_b], pixel_size, folder)
+            with plain:
+                out_dir = resolve_out_dir(out, Path(image_a).stem + "_mpp")
+                open_outputs(
+                    out_dir, inputs=[image_a, image_b, dsm_a, dsm_b, ground, change_prior], products=("mpp_*",)
+                )
+                sess.open_log(out_dir)
+                if pixel_size is not None:
+                    sess.note(f"plain images on a local grid of {pixel_size:g} m pixels (no map CRS)")
+                res = run_mpp_images(
+                    grid_a,
+                    grid_b,
+                    out_dir=out_dir,
+                    dsm_a=dsm_a if height != "off" else None,
+                    dsm_b=dsm_b if height != "off" else None,
+                    ground=ground,
+                    method=method,
+                    params=params,
+                    change_prior=change_prior,
+                    posting_m=posting_m,
+                    overwrite=not no_overwrite,
+                    progress=progress,
+                )
     finally:
         if hasattr(progress, "close"):
             progress.close()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import tempfile
 from pathlib import Path
 
 import click
@@ -159,6 +161,15 @@ def screen_params(feature, cell_px, backbone, weights, layer, superpixels, segme
     type=click.Path(file_okay=False, path_type=str),
     help="Output folder (default: ./geocd_out/<scene or image A>).",
 )
+@click.option(
+    "--pixel-size",
+    "pixel_size",
+    type=float,
+    default=None,
+    metavar="METRES",
+    help="Two rasters without georeference (PNG tiles, ...): the ground size of a pixel. Both are compared cell "
+    "for cell on a local grid in metres (so must be one size); the products carry that local CRS.",
+)
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
 @click.pass_context
 def screen(
@@ -185,16 +196,18 @@ def screen(
     tile_size,
     scheduler,
     out_dir,
+    pixel_size,
     no_overwrite,
 ):
     """Fast 2-D change screening: compare two images cell by cell with grid features, refine with superpixels.
 
     SOURCES is a manifest (its views on the AOI grid; the threshold from a within-epoch pair of views) or two
     georeferenced rasters A B (orthoimages; B is resampled onto A's grid; different band counts are compared in
-    grey). Writes screen_dissimilarity.tif, screen_change_mask.tif, screen_changes.gpkg (the shared changes
+    grey), or two plain images of one size with --pixel-size. Writes screen_dissimilarity.tif, screen_change_mask.tif, screen_changes.gpkg (the shared changes
     layer) and screen_summary.json.
     """
     from ..errors import ConfigError
+    from ..io.plain import check_pixel_size, plain_images_on_a_grid
     from . import emit_result, make_progress
     from .common import require_inputs, resolve_out_dir, session
 
@@ -213,6 +226,8 @@ def screen(
 
     try:
         if len(sources) == 1 and _is_manifest(Path(sources[0])):
+            if pixel_size is not None:
+                raise ConfigError("--pixel-size is for two plain images A B; a manifest's views have cameras")
             from ..io.manifest import load_manifest
             from ..screen.pipeline import PRODUCTS_GLOBS, run_screen_manifest
 
@@ -260,23 +275,40 @@ def screen(
 
             if pair or dsm:
                 raise ConfigError("--image-a/--image-b and --dsm are for a manifest")
-            out = resolve_out_dir(out_dir, Path(sources[0]).stem, create=False)
-            open_outputs(out, inputs=[*sources, *(nochange or ()), *(labelled or ()), weights], products=PRODUCTS_GLOBS)
-            sess.open_log(out)
-            res = run_screen_files(
-                sources[0],
-                sources[1],
-                out=out,
-                params=params,
-                threshold=threshold,
-                nochange=tuple(nochange) if nochange else None,
-                labelled=tuple(labelled) if labelled else None,
-                false_alarm_pct=fa_pct,
-                tile_size=tile_size,
-                scheduler=scheduler,
-                overwrite=not no_overwrite,
-                progress=progress,
-            )
+            if pixel_size is not None:
+                check_pixel_size(pixel_size)
+            if threshold is None and not nochange and not labelled:  # said before any image is read
+                raise ConfigError(
+                    "the screen of two rasters needs a threshold rule: a no-change pair (--nochange A2 B2), a "
+                    "labelled pair (--labelled A B TRUTH) or --threshold VALUE"
+                )
+            plain = contextlib.ExitStack()
+            rasters = (list(sources), list(nochange or ()), list(labelled or ()))
+            if pixel_size is not None:  # plain images: each group read cell for cell on a local grid
+                folder = plain.enter_context(tempfile.TemporaryDirectory(prefix="geocd_plain_"))
+                rasters = tuple(plain_images_on_a_grid(g, pixel_size, folder) if g else g for g in rasters)
+            with plain:
+                out = resolve_out_dir(out_dir, Path(sources[0]).stem, create=False)
+                open_outputs(
+                    out, inputs=[*sources, *(nochange or ()), *(labelled or ()), weights], products=PRODUCTS_GLOBS
+                )
+                sess.open_log(out)
+                if pixel_size is not None:
+                    sess.note(f"plain images on a local grid of {pixel_size:g} m pixels (no map CRS)")
+                res = run_screen_files(
+                    str(rasters[0][0]),
+                    str(rasters[0][1]),
+                    out=out,
+                    params=params,
+                    threshold=threshold,
+                    nochange=tuple(map(str, rasters[1])) if nochange else None,
+                    labelled=tuple(map(str, rasters[2])) if labelled else None,
+                    false_alarm_pct=fa_pct,
+                    tile_size=tile_size,
+                    scheduler=scheduler,
+                    overwrite=not no_overwrite,
+                    progress=progress,
+                )
         else:
             raise ConfigError("give a manifest, or two rasters A B")
     finally:

@@ -255,7 +255,9 @@ def read_pair(image_a: os.PathLike | str, image_b: os.PathLike | str, posting_m:
     notes = []
     with _open(image_a) as ds:
         if ds.crs is None:
-            raise ConfigError(f"{image_a} has no georeference; give orthoimages (geocd ortho) or georeferenced rasters")
+            raise ConfigError(
+                f"{image_a} has no georeference; give orthoimages (geocd ortho) or georeferenced rasters, or --pixel-size METRES for two plain images of one place"
+            )
         grid = AOIGrid.from_raster(ds)
     if posting_m is not None and abs(posting_m - grid.posting_m) > 1e-9:
         grid = AOIGrid.from_bounds(*grid.bounds, posting_m, grid.crs)
@@ -265,7 +267,7 @@ def read_pair(image_a: os.PathLike | str, image_b: os.PathLike | str, posting_m:
         with _open(path) as ds:
             if ds.crs is None:
                 raise ConfigError(
-                    f"{path} has no georeference; give orthoimages (geocd ortho) or georeferenced rasters"
+                    f"{path} has no georeference; give orthoimages (geocd ortho) or georeferenced rasters, or --pixel-size METRES for two plain images of one place"
                 )
             same = AOIGrid.from_raster(ds) == grid
             src_t, src_crs = ds.transform, ds.crs

@@ -75,8 +75,8 @@ class RasterImage:
         with _open(p) as ds:
             if ds.crs is None:
                 raise CRSError(
-                    f"{p} has no CRS: the screen compares images on a map grid; orthorectify it first "
-                    "(geocd ortho IMAGE --dsm DSM) or give a manifest"
+                    f"{p} has no CRS: the screen compares images on a map grid; orthorectify it first (geocd ortho "
+                    "IMAGE --dsm DSM), give a manifest, or give two plain images of one place with --pixel-size METRES"
                 )
             names = []
             for k, (d, ci) in enumerate(zip(ds.descriptions, ds.colorinterp)):
