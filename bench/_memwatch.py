@@ -123,7 +123,9 @@ def run_process(cmd: list[str], env: dict | None = None, cwd=None, interval_s: f
     -------
     dict
         ``wall_s``; ``cpu_s`` (user + system of the tree: the kernel's account of the waited-for descendants, or
-        the sampled one when larger — a process left running by the command is only in the latter);
+        the sampled one when larger — a process left running by the command, or one whose parent exits without
+        waiting for it (a multiprocessing fork server's workers), is only in the latter; both are given too:
+        ``cpu_s_rusage``, ``cpu_s_sampled``);
         ``peak_rss_mb`` (peak of the summed RSS of the tree, sampled); ``returncode``; ``error_tail`` (the last
         1500 characters of the output) when it failed; ``compile_notice`` (lines of stderr that mention compiling).
     """
@@ -138,6 +140,8 @@ def run_process(cmd: list[str], env: dict | None = None, cwd=None, interval_s: f
     out = {
         "wall_s": wall,
         "cpu_s": max(cpu, mem.cpu_s),
+        "cpu_s_rusage": cpu,
+        "cpu_s_sampled": mem.cpu_s,
         "peak_rss_mb": mem.peak / 2**20,
         "returncode": p.returncode,
         "stdout_tail": stdout[-4000:],

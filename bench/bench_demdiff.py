@@ -2,11 +2,12 @@
 
 Run from the repository root::
 
-    .venv/bin/python bench/bench_demdiff.py [--xdem-python /work/peers/xdem-venv/bin/python] [--repeat 3]
+    .venv/bin/python bench/bench_demdiff.py [--xdem-python PEERS/xdem/bin/python] [--repeat 3]
 
-xDEM runs in its own virtual environment (never a geocd dependency)::
+xDEM runs in its own virtual environment (never a geocd dependency), by default the one ``python -m bench.peers
+--install --no-measure`` makes under ``~/.cache/geocd/peers`` (``$GEOCD_PEERS``)::
 
-    python3 -m venv /work/peers/xdem-venv && /work/peers/xdem-venv/bin/pip install xdem==0.2.3 scikit-gstat
+    python3 -m venv PEERS/xdem && PEERS/xdem/bin/pip install xdem scikit-gstat
 
 Both tools get, per case, the same two DEMs restricted to the survey area both epochs
 share (cells where each GeoTIFF differs from the 2000 base grid ``raw_e00/1_msh00_83.e00``),
@@ -49,6 +50,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench._memwatch import geocd_command, geocd_env, run_process  # noqa: E402
+from bench.peers.install import PEERS, executable, peers_dir  # noqa: E402
 
 DATA = Path(os.environ.get("GEOCD_SHARED_DATA", REPO.parent / "shared" / "data")) / "usgs_msh_dome_dems"
 
@@ -462,7 +464,7 @@ def figures(out: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--xdem-python", default="/work/peers/xdem-venv/bin/python")
+    ap.add_argument("--xdem-python", default=str(executable(PEERS["xdem"], peers_dir())))
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument(
         "--figures",

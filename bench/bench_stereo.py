@@ -35,10 +35,10 @@ Sections 1–3 warm numba before timing; section 4 measures the cold start on pu
 machine is shared: the load average is printed with the figures (compare CPU seconds and
 ratios within a run), and in-process figures are the best of ``--repeat`` runs.
 
-Usage::
+Usage (``PEERS``: the peers' folder of ``python -m bench.peers --install``, ``~/.cache/geocd/peers``)::
 
     .venv/bin/python bench/bench_stereo.py [--crop 160] [--planes 48] [--repeat 3] [--whole]
-        [--cars /work/peers/cars-venv/bin/cars] [--json bench/results/stereo_bench.json]
+        [--cars PEERS/cars-1.3/bin/cars] [--json bench/results/stereo_bench.json]
 """
 
 from __future__ import annotations

@@ -85,6 +85,7 @@ def test_a_row_without_its_peer_says_why_and_has_no_figure():
         "date": "2000-01-01",
         "machine": {"cores": 2, "loadavg_start": [1.0, 1.0, 1.0]},
         "repeat": 3,
+        "command": "python -m bench.peers",
     }
     rec["verdict"] = verdict(row, rec)
     assert rec["verdict"] == "blocked"

@@ -636,7 +636,7 @@ ENTRIES: tuple[Entry, ...] = (
         data=("s2p_pleiades", "usgs_msh_dome_dems"),
         tables=("README.md 'Results on real data', from bench/results/peers.json",),
         cost="long",
-        minutes=60.0,
+        minutes=38.0,
         note="CARS 1.3 and xDEM are installed once (pip) in venvs of their own under ~/.cache/geocd/peers "
         "($GEOCD_PEERS); a peer that cannot be installed or run leaves its rows with the reason, no figure",
     ),

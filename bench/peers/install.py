@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 
@@ -62,8 +63,9 @@ def executable(peer: Peer, root: Path) -> Path:
     return root / peer.venv / "bin" / peer.exe
 
 
+@lru_cache(maxsize=None)
 def version(peer: Peer, root: Path) -> str | None:
-    """The installed version of the peer's package, None when the venv does not have it."""
+    """The installed version of the peer's package, None when the venv does not have it (cached: ask once)."""
     py = root / peer.venv / "bin" / "python"
     if not py.exists():
         return None
@@ -114,6 +116,7 @@ def install(peer: Peer, root: Path, log=print) -> dict:
         if r.returncode != 0:
             tail = (r.stdout + r.stderr).strip()[-1500:]
             return {"status": f"failed (exit {r.returncode}): {tail}", "seconds": time.perf_counter() - t}
+    version.cache_clear()
     why = status(peer, root)
     return {
         "status": "installed" if why is None else f"failed: {why}",

@@ -24,7 +24,7 @@ from bench import bench_demdiff, bench_rpc, bench_stereo
 from bench._memwatch import REPO, geocd_command, geocd_env, run_process
 
 from .install import PEERS, executable, status, version
-from .report import ratio, series
+from .report import ratio, series, verdict
 from .rows import PAIR, Row, by_name, rows_of
 
 #: points of the RPC rows
@@ -67,18 +67,6 @@ class Context:
         return shlex.join(out)
 
 
-def verdict(row: Row, rec: dict) -> str:
-    """``goal met``, ``short``, ``no goal`` or ``blocked`` (no peer figure: the row's ``reason`` says why)."""
-    if rec.get("ratio") is None:
-        return "blocked"
-    if row.op is None:
-        return "no goal"
-    r = rec["ratio"]["cpu"]
-    speed = r >= row.target if row.op == ">=" else r <= row.target
-    acc = rec.get("accuracy", {}).get("ok")
-    return "goal met" if speed and acc is not False else "short"
-
-
 def record(row: Row, ctx: Context, geocd: dict, peer: dict | None, reason: str | None, accuracy: dict, **extra) -> dict:
     """A row's record: its figures, the peer's (or why there is none), the ratio, the goal and the verdict."""
     if row.peer is None:  # cold / warm: the ratio is cold over warm
@@ -106,6 +94,10 @@ def record(row: Row, ctx: Context, geocd: dict, peer: dict | None, reason: str |
         )
     rec["verdict"] = verdict(row, rec)
     return rec
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f} %"
 
 
 def _fresh(path: Path) -> Path:
@@ -165,13 +157,13 @@ def measure_stereo(ctx: Context) -> dict[str, dict]:
         a["ok"] = w["vs_s2p_with_filled"]["nmad_m"] <= k["nmad_m"]
     if w:
         a["geocd_text"] = (
-            f"NMAD {w['vs_s2p_with_filled']['nmad_m']:.3f} m at {w['vs_s2p_with_filled']['completeness_on_s2p']:.1%}"
-            f" (valid cells {w['vs_s2p']['nmad_m']:.3f} m at {w['vs_s2p']['completeness_on_s2p']:.1%})"
+            f"NMAD {w['vs_s2p_with_filled']['nmad_m']:.3f} m at {_pct(w['vs_s2p_with_filled']['completeness_on_s2p'])}"
+            f" (valid cells {w['vs_s2p']['nmad_m']:.3f} m at {_pct(w['vs_s2p']['completeness_on_s2p'])})"
         )
     if k:
-        a["peer_text"] = f"NMAD {k['nmad_m']:.3f} m at {k['completeness_on_s2p']:.1%}"
+        a["peer_text"] = f"NMAD {k['nmad_m']:.3f} m at {_pct(k['completeness_on_s2p'])}"
     row = by_name()["stereo_cars"]
-    out[row.name] = record(row, ctx, g_warm, c, why, a)
+    out[row.name] = record(row, ctx, g_warm, c, why, a, ratio_to_geocd_cold=ratio(c, g_cold))
     same = [x["vs_s2p_with_filled"]["nmad_m"] for x in acc["cold"] + acc["warm"]]
     a2 = {"ok": bool(same) and max(same) - min(same) < 1e-6, "nmad_m": same}
     a2["geocd_text"] = (
@@ -386,10 +378,10 @@ def measure_rpc(ctx: Context) -> dict[str, dict]:
                 err[label] = max(err.get(label, 0.0), e)
                 err[label + "_converged"] = float(ok.mean())
             runs[label].append(r)
-            ctx.log(f"  {tool} {label} {i + 1}/{ctx.repeat}: {_brief(r)}")
+            ctx.log(f"  {label if tool == 'gdal' else 'geocd ' + label} {i + 1}/{ctx.repeat}: {_brief(r)}")
         shutil.rmtree(cache, ignore_errors=True)
     shutil.rmtree(work, ignore_errors=True)
-    gd = series(runs["gdal"], f"GDAL ({versions.get('gdal', 'rasterio')}, default options)")
+    gd = series(runs["gdal"], "GDAL " + versions.get("gdal", "").rpartition("GDAL ")[2])
     out = {}
     for name, label in (("rpc_cold", "cold"), ("rpc_warm", "warm")):
         a = {"ok": None, "max_error_px": {k: v for k, v in err.items() if k in (label, "gdal")}}
@@ -398,7 +390,7 @@ def measure_rpc(ctx: Context) -> dict[str, dict]:
         if "gdal" in err:
             a["peer_text"] = f"max error {_px(err['gdal'])}"
         row = by_name()[name]
-        out[name] = record(row, ctx, series(runs[label], f"geocd {label}"), gd, None, a)
+        out[name] = record(row, ctx, series(runs[label], f"geocd {label}"), gd, None, a, versions=versions)
     return out
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from bench._memwatch import REPO
 
-from .rows import ROWS, by_name
+from .rows import ROWS, Row, by_name
 
 JSON = REPO / "bench" / "results" / "peers.json"
 README = REPO / "README.md"
@@ -77,7 +77,7 @@ def series(runs: list[dict], label: str) -> dict:
     """A series of runs of one contender: min and median CPU and wall seconds of the runs that succeeded, peak RSS."""
     ok = [r for r in runs if r.get("returncode", 0) == 0]
     rss = [r["peak_rss_mb"] for r in ok if r.get("peak_rss_mb")]
-    keep = ("wall_s", "cpu_s", "peak_rss_mb", "returncode", "error_tail", "localize_s")
+    keep = ("wall_s", "cpu_s", "cpu_s_rusage", "cpu_s_sampled", "peak_rss_mb", "returncode", "error_tail", "localize_s")
     return {
         "label": label,
         "n": len(ok),
@@ -99,6 +99,27 @@ def ratio(num: dict | None, den: dict | None) -> dict | None:
     }
 
 
+def short_of(row: Row, rec: dict) -> list[str]:
+    """What a row with a ratio falls short of: ``speed`` (the ratio against the goal), ``accuracy``."""
+    out = []
+    r = rec.get("ratio")
+    if r is not None and row.op is not None:
+        if not (r["cpu"] >= row.target if row.op == ">=" else r["cpu"] <= row.target):
+            out.append("speed")
+    if (rec.get("accuracy") or {}).get("ok") is False:
+        out.append("accuracy")
+    return out
+
+
+def verdict(row: Row, rec: dict) -> str:
+    """``goal met``, ``short``, ``no goal`` or ``blocked`` (no peer figure: the row's ``reason`` says why)."""
+    if rec.get("ratio") is None:
+        return "blocked"
+    if row.op is None:
+        return "no goal"
+    return "short" if short_of(row, rec) else "goal met"
+
+
 # ---------------------------------------------------------------------------------------------------- formatting
 def secs(x: float) -> str:
     """Seconds with 2–3 significant digits."""
@@ -116,6 +137,11 @@ def times(s: dict | None) -> str:
     if not s or not s.get("cpu_s"):
         return "—"
     rss = f", {s['peak_rss_mb'] / 1024:.2f} GB" if s.get("peak_rss_mb") else ""
+    # the kernel counts only the descendants that were waited for (not a fork server's workers): say so when the
+    # sampled tree's CPU is well above that account
+    ru = [r["cpu_s_rusage"] for r in s.get("runs", []) if r.get("returncode", 0) == 0 and "cpu_s_rusage" in r]
+    if ru and s["cpu_s"]["median"] > 1.2 * statistics.median(ru):
+        rss += f"; {secs(statistics.median(ru))} s of it in the processes it waits for"
     return f"{secs(s['cpu_s']['median'])} s CPU ({secs(s['wall_s']['median'])} s wall{rss})"
 
 
@@ -146,7 +172,8 @@ def goal_cell(rec: dict) -> str:
     v = rec["verdict"]
     if v == "no goal":
         return "—"
-    return f"{rec['goal']}: **{v}**"
+    why = short_of(by_name()[rec["name"]], rec) if v == "short" else []
+    return f"{rec['goal']}: **{v}**" + (f" ({' and '.join(why)})" if why else "")
 
 
 # ---------------------------------------------------------------------------------------------------- console
@@ -170,6 +197,9 @@ def console(records: list[dict]) -> str:
         r = rec.get("ratio")
         rt = f"ratio {r['cpu']:.3g}× CPU, {r['wall']:.3g}× wall ({rec['ratio_of']})" if r else "ratio —"
         lines.append(f"    {rt}; goal {rec['goal']}: {rec['verdict'].upper()}")
+        rc = rec.get("ratio_to_geocd_cold")
+        if rc:
+            lines.append(f"    against geocd cold: {rc['cpu']:.3g}× CPU, {rc['wall']:.3g}× wall")
         lines.append(f"    accuracy: {accuracy_cell(rec)}")
     return "\n".join(lines)
 
@@ -184,12 +214,14 @@ def render(doc: dict) -> str:
     loads = [r["machine"]["loadavg_start"][0] for r in recs]
     cores = sorted({r["machine"]["cores"] for r in recs})
     repeats = sorted({r["repeat"] for r in recs})
+    cmds = sorted({r["command"] for r in recs})
     head = (
-        f"Measured by `python -m bench.peers` in one run per date ({', '.join(dates)}; "
+        f"Measured by {' and '.join(f'`{c}`' for c in cmds)} ({', '.join(dates)}; "
         f"{'/'.join(map(str, cores))} cores shared with other work, load {min(loads):.1f}–{max(loads):.1f} at the "
-        f"start of each row), geocd and the peer in turn, {'/'.join(map(str, repeats))} runs each: median CPU seconds "
-        "of the whole process tree (in-process rows: of the computation), the peer's figure from the same run beside "
-        "it; min, median, wall, peak memory and command lines in `bench/results/peers.json`."
+        f"start of each group): geocd and the peer in turn, {'/'.join(map(str, repeats))} runs each; median CPU "
+        "seconds of the whole process tree (in-process rows: of the computation), with wall time and peak memory; "
+        "the ratio is of median CPU seconds against the peer measured in the same run. Min, median, every run and "
+        "the command lines: `bench/results/peers.json`."
     )
     out = [head, "", "| what | geocd | peer (same run) | ratio | goal | accuracy |", "|---|---|---|---|---|---|"]
     for rec in recs:

@@ -36,7 +36,8 @@ class Row:
     data : tuple of str
         Files it reads, relative to the shared data folder (``../shared/data``).
     minutes : float
-        Wall minutes of its group with ``--repeat 3`` on the 2-core development host (rough).
+        Wall minutes of its group with ``--repeat 3`` on the 2-core development host (the first row of a group
+        carries the group's; as a full run took them).
     """
 
     name: str
@@ -71,7 +72,7 @@ ROWS: tuple[Row, ...] = (
         10.0,
         "NMAD vs s2p's DSM of geocd's DSM as written (valid + filled cells, like CARS's filled DSM) ≤ CARS's",
         (*PAIR, S2P_DSM),
-        45.0,
+        25.0,
     ),
     Row(
         "stereo_cold",
@@ -95,7 +96,7 @@ ROWS: tuple[Row, ...] = (
         1.5,
         "the same run_summary.json figures cold and warm",
         (),
-        20.0,
+        10.0,
     ),
     Row(
         "demdiff_26_27",
@@ -107,7 +108,7 @@ ROWS: tuple[Row, ...] = (
         5.0,
         "|volume geocd − xDEM| ≤ 1σ (combined; geocd's σ alone when xDEM has none)",
         _msh(26, 27),
-        4.0,
+        1.6,
     ),
     Row(
         "demdiff_26_27_process",
@@ -131,7 +132,7 @@ ROWS: tuple[Row, ...] = (
         5.0,
         "|volume geocd − xDEM| ≤ 1σ (combined; geocd's σ alone when xDEM has none)",
         _msh(2, 27),
-        3.0,
+        0.7,
     ),
     Row(
         "demdiff_2_27_process",
@@ -155,7 +156,7 @@ ROWS: tuple[Row, ...] = (
         1.0,
         "",
         (PAIR[0],),
-        4.0,
+        1.6,
     ),
     Row(
         "rpc_warm",
