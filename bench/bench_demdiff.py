@@ -2,11 +2,12 @@
 
 Run from the repository root::
 
-    .venv/bin/python bench/bench_demdiff.py [--xdem-python /work/peers/xdem-venv/bin/python] [--repeat 3]
+    .venv/bin/python bench/bench_demdiff.py [--xdem-python PEERS/xdem/bin/python] [--repeat 3]
 
-xDEM runs in its own virtual environment (never a geocd dependency)::
+xDEM runs in its own virtual environment (never a geocd dependency), by default the one ``python -m bench.peers
+--install --no-measure`` makes under ``~/.cache/geocd/peers`` (``$GEOCD_PEERS``)::
 
-    python3 -m venv /work/peers/xdem-venv && /work/peers/xdem-venv/bin/pip install xdem==0.2.3 scikit-gstat
+    python3 -m venv PEERS/xdem && PEERS/xdem/bin/pip install xdem scikit-gstat
 
 Both tools get, per case, the same two DEMs restricted to the survey area both epochs
 share (cells where each GeoTIFF differs from the 2000 base grid ``raw_e00/1_msh00_83.e00``),
@@ -28,7 +29,7 @@ regions, volume σ) + the volume σ over the same changed cells.
 Prints wall times, their ratio (goal: geocd ≥ 5× faster), and the shift, stable
 NMAD, changed area, volume ± σ of both tools side by side. Both ratios are printed: in
 process (warm, imports excluded, the stable mask given) and whole process against whole
-process — ``geocd demdiff A.tif B.tif`` as a user runs it (its own stable terrain; cold:
+process — ``geocd demdiff A.tif B.tif --base BASE`` as a user runs it (its own stable terrain; cold:
 an empty numba cache, then warm) against xDEM's whole worker process (imports included). Without the xDEM venv it
 says "xdem not available" and prints geocd's figures only.
 """
@@ -38,8 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
-import subprocess
 import sys
 import tempfile
 import time
@@ -48,6 +47,11 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench._memwatch import geocd_command, geocd_env, run_process  # noqa: E402
+from bench.peers.install import PEERS, executable, peers_dir  # noqa: E402
+
 DATA = Path(os.environ.get("GEOCD_SHARED_DATA", REPO.parent / "shared" / "data")) / "usgs_msh_dome_dems"
 
 XDEM_WORKER = r"""
@@ -68,8 +72,8 @@ tr = Affine(*meta["transform"])
 crs = CRS.from_wkt(meta["crs"])
 A, B = d["a"], d["b"]
 stable, changed = d["stable"].astype(bool), d["changed"].astype(bool)
-out = {"import_s": t_imp}
-t0 = time.perf_counter()
+out = {"import_s": t_imp, "xdem_version": xdem.__version__}
+t0, c0 = time.perf_counter(), time.process_time()
 ref = xdem.DEM.from_array(np.where(np.isfinite(A), A, -9999.0).astype("float32"), tr, crs, nodata=-9999.0)
 tba = xdem.DEM.from_array(np.where(np.isfinite(B), B, -9999.0).astype("float32"), tr, crs, nodata=-9999.0)
 nk = xdem.coreg.NuthKaab()
@@ -108,14 +112,14 @@ if params is not None:
         se = xdem.spatialstats.spatial_error_propagation(areas=[gdf], errors=errors, params_variogram_model=params)[0]
     except Exception as exc:
         out["failed"].append(f"propagation: {exc}")
-t4 = time.perf_counter()
+t4, c4 = time.perf_counter(), time.process_time()
 cell = abs(tr.a * tr.e)
 n = int(ch.sum())
 out.update(n_changed=n, changed_area_m2=n * cell, volume_m3=float(np.nansum(dha[ch]) * cell),
            volume_sigma_m3=float(se * n * cell), mean_sigma_m=float(se),
            variogram=params[["model", "range", "psill"]].to_dict("list") if params is not None else None,
            wall_s={"coreg": t1 - t0, "heteroscedasticity": t2 - t1, "variogram": t3 - t2, "propagation": t4 - t3,
-                   "total": t4 - t0})
+                   "total": t4 - t0}, cpu_s=c4 - c0)
 print(json.dumps(out))
 """
 
@@ -149,15 +153,16 @@ def run_geocd(da, db, obs, stable, changed, repeat: int):
 
     B = DEM(np.where(obs, db.height_m, np.nan).astype(np.float32), db.grid, db.vertical_datum)
     A = DEM(np.where(obs, da.height_m, np.nan).astype(np.float32), da.grid, da.vertical_datum)
-    best, r = np.inf, None
+    best = best_cpu = np.inf
+    r = None
     for _ in range(repeat):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         r = dem_difference(A, B, stable_mask=stable, epoch_a="a", epoch_b="b")
         cell = r.posting_xy_m[0] * r.posting_xy_m[1]
         same = changed & np.isfinite(r.dh_m)
         vs = r.uncertainty.volume_sigma_m3(same, cell) if r.uncertainty is not None else float("nan")
         vs_random = r.uncertainty.volume_sigma_m3(same, cell, include_bias=False) if r.uncertainty else float("nan")
-        best = min(best, time.perf_counter() - t)
+        best, best_cpu = min(best, time.perf_counter() - t), min(best_cpu, time.process_time() - c)
     s = r.summary
     out = {
         "shift_m": s["shift_applied_m"],
@@ -176,6 +181,7 @@ def run_geocd(da, db, obs, stable, changed, repeat: int):
         "own_volume_m3": s["volume_changed_m3"],
         "own_volume_sigma_m3": s["volume_changed_sigma_m3"],
         "wall_s": best,
+        "cpu_s": best_cpu,
         "notes": list(r.notes),
         "variogram": {
             "nugget": r.uncertainty.variogram.nugget,
@@ -195,69 +201,80 @@ def run_geocd(da, db, obs, stable, changed, repeat: int):
     return out
 
 
-def run_xdem(python: str, da, db, obs, stable, changed) -> dict | None:
-    if not python or not Path(python).exists():
-        return None
-    with tempfile.TemporaryDirectory() as td:
-        npz = Path(td) / "in.npz"
-        meta = {"transform": list(da.grid.transform)[:6], "crs": da.grid.crs.to_wkt()}
-        np.savez(
-            npz,
-            a=np.where(obs, da.height_m, np.nan),
-            b=np.where(obs, db.height_m, np.nan),
-            stable=stable,
-            changed=changed,
-            meta=json.dumps(meta),
-        )
-        worker = Path(td) / "xdem_worker.py"
-        worker.write_text(XDEM_WORKER)
-        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        t = time.perf_counter()
-        p = subprocess.run([python, str(worker), str(npz)], capture_output=True, text=True)
-        wall = time.perf_counter() - t
-        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if p.returncode != 0:
-        print(f"  xdem failed: {p.stderr.strip().splitlines()[-1] if p.stderr.strip() else p.returncode}")
-        return None
-    out = json.loads(p.stdout.strip().splitlines()[-1])
-    out["process_s"] = wall
-    out["process_cpu_s"] = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+def xdem_inputs(npz: Path, da, db, obs, stable, changed) -> Path:
+    """The xDEM worker's input file: both DEMs restricted to the common survey area, the masks, the grid."""
+    meta = {"transform": list(da.grid.transform)[:6], "crs": da.grid.crs.to_wkt()}
+    np.savez(
+        npz,
+        a=np.where(obs, da.height_m, np.nan),
+        b=np.where(obs, db.height_m, np.nan),
+        stable=stable,
+        changed=changed,
+        meta=json.dumps(meta),
+    )
+    return npz
+
+
+def xdem_process(python: str, npz: Path) -> dict:
+    """One xDEM worker process on ``npz``: its figures, or ``error`` (why it failed).
+
+    ``process_s`` / ``process_cpu_s`` / ``peak_rss_mb``: the whole process (imports included); ``wall_s`` and
+    ``cpu_s``: its chain in process (imports excluded).
+    """
+    worker = npz.with_name("xdem_worker.py")
+    worker.write_text(XDEM_WORKER)
+    p = run_process([python, str(worker), str(npz)])
+    if p["returncode"] != 0:
+        tail = p.get("error_tail", "").strip().splitlines()
+        return {"error": tail[-1] if tail else f"exit {p['returncode']}", "command": [python, str(worker), str(npz)]}
+    out = json.loads(p["stdout_tail"].strip().splitlines()[-1])
+    out.update(
+        process_s=p["wall_s"],
+        process_cpu_s=p["cpu_s"],
+        peak_rss_mb=p["peak_rss_mb"],
+        command=[python, "xdem_worker.py", "in.npz"],
+    )
     return out
 
 
+def run_xdem(python: str, da, db, obs, stable, changed) -> dict | None:
+    """xDEM's chain on the case in its own process (None: no xDEM venv or it failed)."""
+    if not python or not Path(python).exists():
+        return None
+    with tempfile.TemporaryDirectory() as td:
+        out = xdem_process(python, xdem_inputs(Path(td) / "in.npz", da, db, obs, stable, changed))
+    if "error" in out:
+        print(f"  xdem failed: {out['error']}")
+        return None
+    return out
+
+
+def demdiff_command(a: int, b: int, out: Path) -> list[str]:
+    """``geocd demdiff A.tif B.tif --base BASE --out OUT`` on two MSH epochs.
+
+    ``--base``: both GeoTIFFs are the 2000 DEM with each survey pasted over its footprint; without the base geocd
+    finds the shared cells as stable terrain of zero noise and calls its answer not credible.
+    """
+    return [
+        *geocd_command(),
+        "demdiff",
+        str(DATA / "geotiff_utm10n" / f"{a}.tif"),
+        str(DATA / "geotiff_utm10n" / f"{b}.tif"),
+        "--base",
+        str(DATA / "raw_e00" / "1_msh00_83.e00"),
+        "--out",
+        str(out),
+    ]
+
+
 def geocd_process(a: int, b: int) -> dict:
-    """``geocd demdiff A.tif B.tif`` as a user runs it, whole process: cold (empty numba cache), then warm."""
-    exe = str(Path(sys.executable).with_name("geocd"))
+    """``geocd demdiff A.tif B.tif --base BASE`` as a user runs it, whole process: cold (empty numba cache), then
+    warm."""
     res = {}
     with tempfile.TemporaryDirectory() as td:
-        env = dict(os.environ, NUMBA_CACHE_DIR=str(Path(td) / "numba_cache"))
+        env = geocd_env(Path(td) / "numba_cache")
         for label in ("cold", "warm"):
-            r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-            t = time.perf_counter()
-            p = subprocess.run(
-                [
-                    exe,
-                    "--progress",
-                    "none",
-                    "demdiff",
-                    str(DATA / "geotiff_utm10n" / f"{a}.tif"),
-                    str(DATA / "geotiff_utm10n" / f"{b}.tif"),
-                    "--out",
-                    str(Path(td) / label),
-                ],
-                capture_output=True,
-                text=True,
-                env=env,
-            )
-            wall = time.perf_counter() - t
-            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-            res[label] = {
-                "wall_s": wall,
-                "cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
-                "returncode": p.returncode,
-            }
-            if p.returncode:
-                res[label]["error_tail"] = (p.stdout + p.stderr)[-800:]
+            res[label] = run_process(demdiff_command(a, b, Path(td) / label), env=env)
     return res
 
 
@@ -447,7 +464,7 @@ def figures(out: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--xdem-python", default="/work/peers/xdem-venv/bin/python")
+    ap.add_argument("--xdem-python", default=str(executable(PEERS["xdem"], peers_dir())))
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument(
         "--figures",
@@ -549,7 +566,7 @@ def main() -> None:
                 c = gp[lab]
                 rows.append(
                     (
-                        f"whole process, geocd {lab} (`geocd demdiff A.tif B.tif`, own stable terrain)",
+                        f"whole process, geocd {lab} (`geocd demdiff A.tif B.tif --base BASE`, own stable terrain)",
                         f"{c['wall_s']:.2f} s wall, {c['cpu_s']:.2f} s CPU"
                         + ("" if c["returncode"] == 0 else f" FAILED {c.get('error_tail', '')[-200:]}"),
                         f"xDEM process {x['process_s']:.2f} s wall, {x['process_cpu_s']:.2f} s CPU → "

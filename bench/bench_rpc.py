@@ -15,14 +15,21 @@ best of ``--repeat`` runs, the contenders taking turns within each repeat (other
 load then hits them alike). geocd is timed with 1 thread and with all threads
 (``numba.set_num_threads``); GDAL's transformer is single-threaded.
 
+The first localization of a process (``--first geocd|gdal --points IN.npz --out OUT.npz``): one process that
+imports its tool, reads the image's RPC and localizes the points of ``IN.npz`` (``col``, ``row``, ``h``, from
+:func:`sample_points`) once, writing ``lon``, ``lat`` to ``OUT.npz`` and its own timings as one JSON line.
+``python -m bench.peers`` runs it with an empty numba cache (cold) and a filled one (warm), GDAL beside.
+
 Usage::
 
     .venv/bin/python bench/bench_rpc.py [--n 1000000] [--repeat 5] [--image PATH]
+    .venv/bin/python bench/bench_rpc.py --first geocd --points IN.npz --out OUT.npz [--image PATH]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -31,7 +38,68 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_IMAGE = REPO.parent / "shared" / "data" / "s2p_pleiades" / "input_pair" / "img_01.tif"
+DEFAULT_IMAGE = (
+    Path(os.environ.get("GEOCD_SHARED_DATA", REPO.parent / "shared" / "data"))
+    / "s2p_pleiades"
+    / "input_pair"
+    / "img_01.tif"
+)
+
+
+def sample_points(model, n: int, seed: int = 0) -> tuple[np.ndarray, ...]:
+    """``n`` points drawn uniformly in the RPC's validity box: ``lon, lat, h`` and their pixel ``col, row``."""
+    box = model.validity_box()
+    rng = np.random.default_rng(seed)
+    lon = rng.uniform(*box["lon"], n)
+    lat = rng.uniform(*box["lat"], n)
+    h = rng.uniform(*box["h"], n)
+    col, row = model.project(lon, lat, h)
+    return lon, lat, h, col, row
+
+
+def first_localization(tool: str, image: Path, points: Path, out: Path) -> dict:
+    """Import ``tool`` (``geocd`` or ``gdal``: rasterio's RPC transformer, default options), read the image's RPC
+    and localize the points once (the process's first localization); ``lon``, ``lat`` go to ``out``.
+
+    Returns
+    -------
+    dict
+        ``import_s``, ``load_s``, ``localize_s`` (wall) and ``localize_cpu_s``, ``tool_version``, ``n``.
+    """
+    d = np.load(points)
+    col, row, h = d["col"], d["row"], d["h"]
+    t0 = time.perf_counter()
+    if tool == "geocd":
+        import geocd
+        from geocd.io.rpc import load_rpc_for_image
+
+        t1 = time.perf_counter()
+        model = load_rpc_for_image(image)
+        t2, c2 = time.perf_counter(), time.process_time()
+        x, y = model.localize(col, row, h)
+        version = geocd.__version__
+    else:
+        import rasterio
+        from rasterio.transform import RPCTransformer
+
+        t1 = time.perf_counter()
+        with rasterio.open(image) as ds:
+            rpcs = ds.rpcs
+        t2, c2 = time.perf_counter(), time.process_time()
+        with RPCTransformer(rpcs) as tr:
+            x, y = tr.xy(row, col, h, offset="ul")
+        version = f"rasterio {rasterio.__version__}, GDAL {rasterio.__gdal_version__}"
+    t3, c3 = time.perf_counter(), time.process_time()
+    np.savez(out, lon=np.asarray(x, np.float64), lat=np.asarray(y, np.float64))
+    return {
+        "tool": tool,
+        "tool_version": version,
+        "n": int(col.size),
+        "import_s": t1 - t0,
+        "load_s": t2 - t1,
+        "localize_s": t3 - t2,
+        "localize_cpu_s": c3 - c2,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -40,7 +108,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=5, help="timings per figure; the best is kept")
     ap.add_argument("--image", type=Path, default=DEFAULT_IMAGE, help="image with RPC (default s2p img_01)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--first", choices=("geocd", "gdal"), default=None, help="one first localization (see above)")
+    ap.add_argument("--points", type=Path, default=None, help="with --first: the points (.npz: col, row, h)")
+    ap.add_argument("--out", type=Path, default=None, help="with --first: where lon, lat go (.npz)")
     args = ap.parse_args(argv)
+    if args.first:
+        print(json.dumps(first_localization(args.first, args.image, args.points, args.out)))
+        return 0
 
     import numba
     import rasterio
@@ -53,18 +127,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     model = load_rpc_for_image(args.image)
     rpc = model.to_rasterio()
-    box = model.validity_box()
-    rng = np.random.default_rng(args.seed)
     n = args.n
-    lon = rng.uniform(*box["lon"], n)
-    lat = rng.uniform(*box["lat"], n)
-    h = rng.uniform(*box["h"], n)
-
     # warm-up: numba kernels compiled or loaded from cache, cubic Newton start fitted
-    col, row = model.project(lon[:1000], lat[:1000], h[:1000])
-    model.localize(col, row, h[:1000])
+    lon, lat, h, col, row = sample_points(model, 1000, args.seed)
+    model.localize(col, row, h)
     model.dproj_dh(lon[:10], lat[:10], h[:10])
-    col, row = model.project(lon, lat, h)
+    lon, lat, h, col, row = sample_points(model, n, args.seed)
 
     max_threads = numba.config.NUMBA_NUM_THREADS
     print(f"# geocd RPC benchmark: {n:.0e} points in the validity box of {args.image.name}")

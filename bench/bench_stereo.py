@@ -35,10 +35,10 @@ Sections 1–3 warm numba before timing; section 4 measures the cold start on pu
 machine is shared: the load average is printed with the figures (compare CPU seconds and
 ratios within a run), and in-process figures are the best of ``--repeat`` runs.
 
-Usage::
+Usage (``PEERS``: the peers' folder of ``python -m bench.peers --install``, ``~/.cache/geocd/peers``)::
 
     .venv/bin/python bench/bench_stereo.py [--crop 160] [--planes 48] [--repeat 3] [--whole]
-        [--cars /work/peers/cars-venv/bin/cars] [--json bench/results/stereo_bench.json]
+        [--cars PEERS/cars-1.3/bin/cars] [--json bench/results/stereo_bench.json]
 """
 
 from __future__ import annotations
@@ -46,9 +46,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -57,22 +55,28 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "s2p_pleiades"
+DATA = Path(os.environ.get("GEOCD_SHARED_DATA", REPO.parent / "shared" / "data")) / "s2p_pleiades"
 sys.path.insert(0, str(REPO))
 
 import geocd  # noqa: E402,F401  (first: sets OMP_WAIT_POLICY before numba starts its threads)
+import rasterio  # noqa: E402
+from geocd.geodesy import AOIGrid  # noqa: E402
+from geocd.stereo import FLAGS, read_pair_dem  # noqa: E402
+
+from bench._memwatch import geocd_command, geocd_env, run_process  # noqa: E402
+
+
+def load_s2p_dsm() -> tuple[np.ndarray, AOIGrid]:
+    """s2p's DSM of the pair (NaN where it has no height) and its grid."""
+    with rasterio.open(DATA / "expected_output" / "pair" / "dsm.tif") as ds:
+        return ds.read(1, masked=True).astype(np.float64).filled(np.nan), AOIGrid.from_raster(ds)
 
 
 def load_pair():
-    import rasterio
-
-    from geocd.geodesy import AOIGrid
     from geocd.io.cameras import load_camera
     from geocd.stereo.pipeline import read_chip
 
-    with rasterio.open(DATA / "expected_output" / "pair" / "dsm.tif") as ds:
-        grid = AOIGrid.from_raster(ds)
-        ref = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+    ref, grid = load_s2p_dsm()
     cams, chips = [], []
     for n in ("img_01", "img_02"):
         p = DATA / "input_pair" / f"{n}.tif"
@@ -294,26 +298,9 @@ def area_bench(repeat: int = 1, fractions=(0.25, 0.5, 1.0)) -> dict:
     return out
 
 
-def run_process(cmd: list[str], env: dict | None = None, cwd: Path | None = None) -> dict:
-    """Wall and CPU seconds (user + system, the whole process tree) of one command."""
-    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t = time.perf_counter()
-    p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=cwd)
-    wall = time.perf_counter() - t
-    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
-    out = {"wall_s": wall, "cpu_s": cpu, "returncode": p.returncode}
-    if p.returncode != 0:
-        out["error_tail"] = (p.stdout + p.stderr)[-1500:]
-    notice = [ln for ln in p.stderr.splitlines() if "compil" in ln]
-    if notice:
-        out["compile_notice"] = notice
-    return out
-
-
 def cold_warm(cmd: list[str], cache: Path, cwd: Path | None = None, prepare=None) -> dict:
     """The command with an empty numba cache (cold), then again with the cache it filled (warm)."""
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    env = geocd_env(cache)
     res = {}
     for label in ("cold", "warm"):
         if prepare is not None:
@@ -380,69 +367,78 @@ def cars_config(work: Path, h: float) -> Path:
     return work / "config.json"
 
 
+PAIR_IMAGES = ("input_pair/img_01.tif", "input_pair/img_02.tif")
+
+
+def pair_manifest(work: Path) -> Path:
+    """A manifest of the Réunion pair (one epoch, both images; default AOI: the whole overlap) under ``work``."""
+    man = work / "pair.yaml"
+    man.write_text(
+        json.dumps(
+            {
+                "geocd_manifest": 1,
+                "name": "reunion_pair",
+                "epochs": [{"name": "pair", "images": [str(DATA / p) for p in PAIR_IMAGES]}],
+            }
+        )
+    )
+    return man
+
+
+def stereo_command(man: Path, out: Path) -> list[str]:
+    """``geocd stereo MANIFEST --out OUT``."""
+    return [*geocd_command(), "stereo", str(man), "--out", str(out)]
+
+
+def stereo_accuracy(out: Path, ref: np.ndarray, ref_grid) -> dict:
+    """geocd's pair-DEM under ``out`` against s2p's DSM: valid cells, and the z band as written (valid + filled)."""
+    pd = read_pair_dem(out / "stereo" / "pair" / "img_01__img_02.tif")
+    return {
+        "grid": f"{pd.grid.width}x{pd.grid.height} at {pd.grid.posting_m} m",
+        "vs_s2p": compare_to_s2p(np.where(pd.valid, pd.z_m, np.nan), pd.grid, ref, ref_grid),
+        # the z band as written: valid heights + those interpolated in narrow holes (flag `filled`), what
+        # compares with CARS's filled dsm/dsm.tif
+        "vs_s2p_with_filled": compare_to_s2p(pd.z_m, pd.grid, ref, ref_grid),
+        "filled_cells": int(np.count_nonzero(pd.flags & FLAGS["filled"])),
+    }
+
+
+def run_cars(cars: str, cw: Path, ref: np.ndarray, ref_grid) -> dict:
+    """CARS's whole process on the pair in the new folder ``cw`` and its final ``dsm/dsm.tif`` against s2p's."""
+    cw.mkdir(parents=True)
+    cfg = cars_config(cw, float(np.nanmedian(ref)))
+    c = run_process([cars, str(cfg)], cwd=cw)
+    c["command"] = [cars, str(cfg)]
+    final = cw / "out" / "dsm" / "dsm.tif"
+    c["dsm"] = "out/dsm/dsm.tif"
+    if c["returncode"] == 0 and final.is_file():
+        with rasterio.open(final) as ds:
+            g = AOIGrid.from_raster(ds)
+            a = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+        c["dsm_grid"] = f"{g.width}x{g.height} at {g.posting_m:g} m"
+        c["vs_s2p"] = compare_to_s2p(a, g, ref, ref_grid)
+    else:
+        c["error_tail"] = c.get("error_tail", "") or f"no {final}"
+    return c
+
+
 def whole_process_bench(ref: np.ndarray, ref_grid, cars: str | None, skip_run: bool = False) -> dict:
     """geocd's CLI (cold and warm) and CARS, each a whole process, and their final DSMs vs s2p's."""
-    import rasterio
-
-    from geocd.geodesy import AOIGrid
-    from geocd.stereo import FLAGS, read_pair_dem
-
-    geocd_exe = str(Path(sys.executable).with_name("geocd"))
     work = Path(tempfile.mkdtemp(prefix="geocd_bench_"))
     res: dict = {}
     try:
-        res["info"] = cold_warm([geocd_exe, "info", str(DATA / "input_pair" / "img_01.tif")], work / "cache_info")
-        man = work / "pair.yaml"
-        man.write_text(
-            json.dumps(
-                {
-                    "geocd_manifest": 1,
-                    "name": "reunion_pair",
-                    "epochs": [
-                        {
-                            "name": "pair",
-                            "images": [
-                                str(DATA / "input_pair" / "img_01.tif"),
-                                str(DATA / "input_pair" / "img_02.tif"),
-                            ],
-                        }
-                    ],
-                }
-            )
-        )
+        res["info"] = cold_warm([*geocd_command(), "info", str(DATA / PAIR_IMAGES[0])], work / "cache_info")
         out = work / "st"
-        res["stereo"] = cold_warm(
-            [geocd_exe, "--progress", "none", "stereo", str(man), "--out", str(out)], work / "cache_stereo"
-        )
-        pd = read_pair_dem(out / "stereo" / "pair" / "img_01__img_02.tif")
-        res["stereo"]["grid"] = f"{pd.grid.width}x{pd.grid.height} at {pd.grid.posting_m} m"
-        res["stereo"]["vs_s2p"] = compare_to_s2p(np.where(pd.valid, pd.z_m, np.nan), pd.grid, ref, ref_grid)
-        # the z band as written: valid heights + those interpolated in narrow holes (flag `filled`), what
-        # compares with CARS's filled dsm/dsm.tif
-        res["stereo"]["vs_s2p_with_filled"] = compare_to_s2p(pd.z_m, pd.grid, ref, ref_grid)
-        res["stereo"]["filled_cells"] = int(np.count_nonzero(pd.flags & FLAGS["filled"]))
+        res["stereo"] = cold_warm(stereo_command(pair_manifest(work), out), work / "cache_stereo")
+        res["stereo"].update(stereo_accuracy(out, ref, ref_grid))
         if not skip_run:
             res["run_sample_aoi"] = cold_warm(
-                [geocd_exe, "--progress", "none", "run", str(REPO / "sample_aoi"), "--out", str(work / "run")],
+                [*geocd_command(), "run", str(REPO / "sample_aoi"), "--out", str(work / "run")],
                 work / "cache_run",
                 prepare=lambda: shutil.rmtree(work / "run", ignore_errors=True),
             )
         if cars:
-            cw = work / "cars"
-            cw.mkdir()
-            cfg = cars_config(cw, float(np.nanmedian(ref)))
-            c = run_process([cars, str(cfg)], cwd=cw)
-            final = cw / "out" / "dsm" / "dsm.tif"
-            c["dsm"] = "out/dsm/dsm.tif"
-            if c["returncode"] == 0 and final.is_file():
-                with rasterio.open(final) as ds:
-                    g = AOIGrid.from_raster(ds)
-                    a = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
-                c["dsm_grid"] = f"{g.width}x{g.height} at {g.posting_m:g} m"
-                c["vs_s2p"] = compare_to_s2p(a, g, ref, ref_grid)
-            else:
-                c["error_tail"] = c.get("error_tail", "") or f"no {final}"
-            res["cars"] = c
+            res["cars"] = run_cars(cars, work / "cars", ref, ref_grid)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return res

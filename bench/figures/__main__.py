@@ -180,7 +180,7 @@ def print_list(out=sys.stdout) -> None:
         rows.append(
             (
                 e.name,
-                ", ".join(e.pictures) or "(a run others need)",
+                ", ".join(e.pictures) or "; ".join(e.tables) or "(a run others need)",
                 e.script or "NO SCRIPT",
                 e.cost,
                 took,
@@ -259,7 +259,7 @@ def main(argv=None) -> int:
             done[e.name] = {"status": "skipped: " + "; ".join(why)}
             log(f"[{e.name}] {done[e.name]['status']}")
             return done[e.name]
-        log(f"[{e.name}] {', '.join(e.pictures) or '(run)'}")
+        log(f"[{e.name}] {', '.join(e.pictures) or '; '.join(e.tables) or '(run)'}")
         if args.dry_run:
             for s in e.steps:
                 if s[0] == "copy":

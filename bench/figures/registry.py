@@ -58,6 +58,8 @@ class Entry:
         Environment variables for its steps.
     note : str
         Anything the list should say about it.
+    tables : tuple of str
+        Generated tables it rewrites instead of pictures (where, from what), e.g. the README's table against peers.
     """
 
     name: str
@@ -73,6 +75,7 @@ class Entry:
     measured: bool = False
     env: dict = field(default_factory=dict)
     note: str = ""
+    tables: tuple[str, ...] = ()
 
 
 def _cmd(line: str) -> Step:
@@ -621,6 +624,21 @@ ENTRIES: tuple[Entry, ...] = (
         ),
         cost="slow",
         minutes=120.0,
+    ),
+    # ------------------------------------------------------------------ tables (no picture)
+    Entry(
+        "peers",
+        (),
+        "the README's table of results against peers: geocd and CARS, xDEM, GDAL measured in turn in one run "
+        "(CPU seconds, ratio, goal, accuracy beside)",
+        "bench/peers/__main__.py",
+        (_cmd("{python} -m bench.peers --install --repeat 3 --work {work}/peers --readme"),),
+        data=("s2p_pleiades", "usgs_msh_dome_dems"),
+        tables=("README.md 'Results on real data', from bench/results/peers.json",),
+        cost="long",
+        minutes=38.0,
+        note="CARS 1.3 and xDEM are installed once (pip) in venvs of their own under ~/.cache/geocd/peers "
+        "($GEOCD_PEERS); a peer that cannot be installed or run leaves its rows with the reason, no figure",
     ),
 )
 
