@@ -31,13 +31,13 @@ def camera_summary(cam, ground_h_m: float | None = None) -> dict[str, Any]:
     if getattr(cam, "source", ""):
         d["source"] = cam.source
     try:
-        fp = cam.footprint(h0, reference=True)  # numpy paths: a summary needs no compile
+        fp = cam.footprint(h0, reference=True)  # numpy path; the methods' localizer where it misses
         d["footprint_lonlat_wkt"] = fp.wkt
         c = fp.centroid
         d["centre_lonlat"] = [round(c.x, 7), round(c.y, 7)]
         # GSD: ground distance between neighbouring pixels at the image centre
         cc = cam.image_corners().mean(axis=0)
-        lon, lat = cam.localize_reference([cc[0], cc[0] + 1, cc[0]], [cc[1], cc[1], cc[1] + 1], [h0] * 3)
+        lon, lat = cam.localize_summary([cc[0], cc[0] + 1, cc[0]], [cc[1], cc[1], cc[1] + 1], [h0] * 3)
         f = LocalFrame(float(lon[0]), float(lat[0]), h0)
         e, n, _ = f.to_enu(lon, lat, [h0] * 3)
         d["gsd_m"] = [

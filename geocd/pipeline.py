@@ -37,6 +37,7 @@ from .consistency import (
     learn_self_consistency,
 )
 from .errors import ConfigError, GeoCDError
+from .io.atomic import write_text_atomic
 from .io.manifest import pick_epochs
 from .progress import Progress, ensure_progress, sub_progress
 from .runlog import LoggedProgress, RunLog, log_file_name, logger
@@ -480,12 +481,13 @@ def _run(m, out: Path, config: RunConfig, prog: Progress, footprints) -> dict[st
         calibration_cells=st.get("calibration_cells"),
     )
     if "screen" in st:
-        from .io.atomic import write_text_atomic
-
         res["summary"]["screen"] = st["screen"]
         res["outputs"].update(st["screen_outputs"])
         res["summary"]["outputs"].update({k: str(v) for k, v in st["screen_outputs"].items()})
-        write_text_atomic(out / "run_summary.json", json.dumps(res["summary"], indent=2, default=str))
+    # the stereo step's completeness warnings and the pairs it left out (also on screen and in the log)
+    res["summary"]["warnings"] = list(st.get("warnings", []))
+    res["summary"]["notes"] = list(st.get("notes", []))
+    write_text_atomic(out / "run_summary.json", json.dumps(res["summary"], indent=2, default=str))
     return res
 
 

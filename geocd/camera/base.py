@@ -116,6 +116,21 @@ class Camera(ABC):
         """:meth:`dproj_dh` by a plain numpy path (see :meth:`localize_reference`)."""
         return self.dproj_dh(lon, lat, h)
 
+    def localize_summary(self, col: ArrayLike, row: ArrayLike, h: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`localize` for summaries: the numpy path first, the methods' localizer where it did not converge.
+
+        The numpy path (:meth:`localize_reference`) needs no kernel compile; where it leaves a point
+        NaN, :meth:`localize` (the localizer every method uses; it compiles its kernels then) decides,
+        so a summary reaches every point the methods reach, with the same result (the two agree to
+        ~1e-10 deg where both converge).
+        """
+        col, row, h = (np.asarray(a, dtype=np.float64) for a in np.broadcast_arrays(col, row, h))
+        lon, lat = (np.array(a, dtype=np.float64) for a in self.localize_reference(col, row, h))
+        bad = ~(np.isfinite(lon) & np.isfinite(lat)) & np.isfinite(col) & np.isfinite(row) & np.isfinite(h)
+        if bad.any():
+            lon[bad], lat[bad] = self.localize(col[bad], row[bad], h[bad])
+        return lon, lat
+
     # --- derived helpers (shared by all kinds) ---------------------------------------
     def height_range(self) -> tuple[float, float] | None:
         """Ellipsoidal height range the model is valid for (None when unbounded)."""
@@ -144,7 +159,8 @@ class Camera(ABC):
     def footprint(self, h: float, densify: int = 8, *, reference: bool = False):
         """Ground footprint (shapely Polygon in lon/lat) of the image at height ``h``.
 
-        ``reference``: localize by the numpy path (:meth:`localize_reference`; no kernel compile).
+        ``reference``: localize by the numpy path (:meth:`localize_summary`: no kernel compile unless
+        the numpy path misses a point the methods' localizer reaches).
         """
         from shapely.geometry import Polygon
 
@@ -155,7 +171,7 @@ class Camera(ABC):
             for t in np.linspace(0.0, 1.0, densify, endpoint=False):
                 pts.append(a + t * (b - a))
         pts = np.array(pts)
-        loc = self.localize_reference if reference else self.localize
+        loc = self.localize_summary if reference else self.localize
         lon, lat = loc(pts[:, 0], pts[:, 1], np.full(len(pts), h))
         if not np.all(np.isfinite(lon)):
             raise CameraError(f"image corners of this {self.kind} camera do not reach height {h} m")

@@ -397,7 +397,8 @@ class Session:
         def _show(message, category, filename, lineno, file=None, line=None):
             name = category.__name__
             text = str(message)
-            if name == "OutputFolderWarning":  # what the output session did (removed litter, retired a run)
+            # what the output session did (removed litter, retired a run), what a step decided (a pair left out)
+            if name == "OutputFolderWarning" or getattr(category, "is_note", False):
                 self.note(text)
             else:
                 self.warn(text if name == "UserWarning" else f"{name}: {text}")

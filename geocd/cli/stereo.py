@@ -226,7 +226,12 @@ def stereo(
         progress.close()
     g = res["grid"]
     sess.say(f"{len(res['outputs'])} pair-DEM(s) on a {g.width}x{g.height} grid at {g.posting_m:g} m ({g.crs})")
-    sess.data(grid=g.to_dict(), pairs=sorted(res["outputs"]))
+    sess.data(
+        grid=g.to_dict(),
+        pairs=sorted(res["outputs"]),
+        pair_warnings=list(res.get("warnings", [])),
+        skipped_pairs=list(res.get("notes", [])),
+    )
     emit_result(ctx, res["outputs"])
 
 

@@ -23,8 +23,26 @@ from ..geodesy import AOIGrid, as_crs, from_lonlat, utm_crs_for
 from ..progress import Progress, ensure_progress, sub_progress
 from .match import height_bounds, match_pair
 from .params import StereoParams
-from .products import FLAGS, PairDEM, write_pair_dem
+from .products import FLAGS, FLAGS_NOT_EXAMINED, PairDEM, write_pair_dem
 from .sweep import ImageChip, image_sampling_px_per_m, prepare_chip
+
+
+#: completeness (valid share of the AOI cells a pair's two images both see) below which a pair-DEM is reported
+#: as incomplete: the issue's figure ("a low completeness (< 70 % of the AOI) is a warning")
+LOW_COMPLETENESS = 0.70
+
+#: share of the AOI outside a pair's common footprint above which the AOI is reported as mostly unseen by the pair
+AOI_UNSEEN_SHARE = 0.5
+
+
+class StereoCompletenessWarning(UserWarning):
+    """A pair-DEM holds heights on too small a share of the AOI (see :func:`pair_dem_warnings`)."""
+
+
+class StereoPairNote(UserWarning):
+    """What the stereo step decided on its own (a pair left out); the CLI prints it as a note, not a warning."""
+
+    is_note = True
 
 
 @dataclass(frozen=True)
@@ -246,6 +264,36 @@ def _ground_height_hint(images: Sequence[EpochImage], crs, dem_median: float | N
         return mid
 
 
+def _pairs_seeing_the_aoi(pairs: list, grid: AOIGrid, dem, params: StereoParams) -> tuple[list, list[str]]:
+    """The pairs whose two images see some of the AOI together, and a note per pair left out.
+
+    Raises
+    ------
+    NoOverlapError
+        No pair is left.
+    """
+    kept, notes = [], []
+    for e, a, b in pairs:
+        lo, hi, _ = height_bounds(grid, [a.camera, b.camera], dem, params)
+        lo, hi = float(np.nanmin(lo)), float(np.nanmax(hi))
+        if pair_overlaps_aoi(a.camera, b.camera, grid, (lo, 0.5 * (lo + hi), hi)):
+            kept.append((e, a, b))
+            continue
+        note = (
+            f"pair {e.name}/{a.name}__{b.name} skipped: the two images see none of the AOI together "
+            f"(footprints at {lo:.0f}..{hi:.0f} m)"
+        )
+        notes.append(note)
+        warnings.warn(note, StereoPairNote, stacklevel=3)
+    if not kept:
+        raise NoOverlapError(
+            f"no image pair sees any of the AOI {tuple(round(float(v), 1) for v in grid.bounds)} "
+            f"({grid.crs.to_string()}) together ({len(pairs)} pair(s) tried), so there is nothing to match; check "
+            "the cameras (positions, orientation, --height-range) and the AOI (aoi.bounds), or add images that overlap"
+        )
+    return kept, notes
+
+
 def _hint_from_match(pd: PairDEM, lo: float, hi: float, fallback: float) -> float:
     """The median matched height of a coarse match over the cameras' whole height range.
 
@@ -270,14 +318,22 @@ def default_aoi_grid(
     posting_m: float | None = None,
     dem_median: float | None = None,
     params: StereoParams = StereoParams(),
+    info: dict | None = None,
 ) -> AOIGrid:
     """The AOI grid of a manifest: its ``aoi`` when given, else what every image sees.
 
     Default extent: the intersection of all images' ground footprints (at the
     scene's typical height), so every pair-DEM of every epoch lives on one grid;
     when that is empty, the union of the pairwise overlaps within epochs.
-    Default CRS: the UTM zone of the centre; default posting: the images' median
-    ground sampling distance (rounded to 5 cm).
+    Frame cameras (drone or aerial strips, where the first and the last frames need not overlap): the union of
+    the areas at least two views of an epoch see. Default CRS: the UTM zone of the centre; default posting: the
+    images' median ground sampling distance (rounded to 5 cm), sampled where their projection is finite.
+    ``info``, when given, gets ``union`` (True when the AOI is a union of pairwise overlaps).
+
+    Raises
+    ------
+    NoOverlapError
+        No two images of an epoch overlap on the ground (no AOI given).
     """
     from shapely.ops import unary_union
 
@@ -304,35 +360,128 @@ def default_aoi_grid(
     h = _ground_height_hint(all_images, crs, dem_median, params)
     if bounds is None:
         fps = {im.name: _footprint_xy(im.camera, h, crs) for im in all_images}
+        all_frames = all(_sensor_kind(im.camera) == "frame" for im in all_images)
         inter = None
         for f in fps.values():
             inter = f if inter is None else inter.intersection(f)
-        if inter is None or inter.is_empty or inter.area <= 0:
+        if all_frames or inter is None or inter.is_empty or inter.area <= 0:
             parts = []
             for ims in images_by_epoch.values():
                 for a, b in itertools.combinations(ims, 2):
                     o = fps[a.name].intersection(fps[b.name])
-                    if not o.is_empty:
+                    if not o.is_empty and o.area > 0:
                         parts.append(o)
             if not parts:
-                raise NoOverlapError("no two images of the manifest overlap on the ground; there is nothing to match")
+                raise NoOverlapError(
+                    f"no two images of an epoch overlap on the ground (footprints at {h:.0f} m: "
+                    + ", ".join(f"{k} {tuple(round(float(v)) for v in f.bounds)}" for k, f in fps.items())
+                    + f" in {crs.to_string()}), so there is no stereo pair to match; check the cameras (positions, "
+                    "orientation, the height range: --height-range) or give the AOI the images see (aoi.bounds)"
+                )
             inter = unary_union(parts)
-            warnings.warn(
-                "the images have no area in common; the AOI is the union of the pairwise overlaps, so "
-                "pair-DEMs cover different parts of it",
-                stacklevel=2,
-            )
+            if info is not None:
+                info["union"] = True
+            if not all_frames:
+                warnings.warn(
+                    "the images have no area in common; the AOI is the union of the pairwise overlaps, so "
+                    "pair-DEMs cover different parts of it",
+                    stacklevel=2,
+                )
         bounds = inter.bounds
     if posting_m is None and spec is not None and spec.posting_m:
         posting_m = spec.posting_m
     if posting_m is None:
-        l, b, r, t = bounds
-        probe = AOIGrid.from_bounds(l, b, r, t, max((r - l), (t - b)) / 8.0, crs)
-        rows, cols = np.array([probe.height // 2]), np.array([probe.width // 2])
-        gsd = [1.0 / float(image_sampling_px_per_m(im.camera, probe, rows, cols, h)[0]) for im in all_images]
-        posting_m = max(0.05, round(float(np.median(gsd)) / 0.05) * 0.05)
+        posting_m = _default_posting(all_images, bounds, crs, h)
     l, b, r, t = bounds
     return AOIGrid.from_bounds(l, b, r, t, float(posting_m), crs)
+
+
+def _default_posting(images: Sequence[EpochImage], bounds, crs, h: float) -> float:
+    """The images' median ground sampling distance over the AOI, rounded to 5 cm.
+
+    Sampled on a 9 × 9 lattice of the AOI, each image only where its projection is finite and inside the image
+    (a frame camera projects ground far outside its view to NaN or to points off its sensor).
+    """
+    l, b, r, t = bounds
+    probe = AOIGrid.from_bounds(l, b, r, t, max((r - l), (t - b)) / 8.0, crs)
+    rows, cols = (a.ravel() for a in np.meshgrid(np.arange(probe.height), np.arange(probe.width), indexing="ij"))
+    x, y = probe.xy(rows, cols)
+    gsd = []
+    for im in images:
+        with np.errstate(all="ignore"):
+            s = image_sampling_px_per_m(im.camera, probe, rows, cols, h)
+            c, rr = im.camera.ground_projector(x, y, crs).project(np.full(x.shape, h))
+        ok = np.isfinite(s) & (s > 0) & im.camera.in_image(c, rr)
+        if ok.any():
+            gsd.append(float(np.median(1.0 / s[ok])))
+    if not gsd:
+        raise NoOverlapError(
+            f"no image sees the AOI {tuple(round(float(v), 1) for v in bounds)} ({crs.to_string()}) at {h:.0f} m, "
+            "so its ground sampling distance is unknown; check the cameras and the height range (--height-range), "
+            "or give the AOI and its posting (aoi.bounds, --posting)"
+        )
+    return max(0.05, round(float(np.median(gsd)) / 0.05) * 0.05)
+
+
+def pair_overlaps_aoi(a: Camera, b: Camera, grid: AOIGrid, heights: Sequence[float]) -> bool:
+    """Whether the two cameras' ground footprints share some of the AOI at one of ``heights`` at least.
+
+    A camera without a footprint (its corners do not reach the ground) counts as overlapping: the matcher decides.
+    """
+    from shapely.geometry import box
+
+    aoi = box(*grid.bounds)
+    for h in heights:
+        try:
+            o = _footprint_xy(a, float(h), grid.crs).intersection(_footprint_xy(b, float(h), grid.crs))
+        except Exception:  # noqa: BLE001 - no footprint at this height: leave it to the matcher
+            return True
+        if o.intersects(aoi) and o.intersection(aoi).area > 0:
+            return True
+    return False
+
+
+def pair_dem_warnings(
+    key: str, pd: PairDEM, *, min_completeness: float = LOW_COMPLETENESS, aoi_unseen: bool = True
+) -> list[str]:
+    """What a user must hear about a pair-DEM: a low completeness, an AOI mostly outside the pair's view.
+
+    Completeness here is the valid share of the AOI cells both images see (cells not flagged ``out_of_image``;
+    cells a tiered run did not examine are left out); below ``min_completeness`` (70 %, :data:`LOW_COMPLETENESS`)
+    the warning names the main reasons from the flags band (cells per flag). An AOI more than half outside the
+    pair's common footprint (:data:`AOI_UNSEEN_SHARE`) is a warning of its own (``aoi_unseen``; off when the AOI
+    is by construction the union of several pairs' overlaps).
+    """
+    valid = np.asarray(pd.valid, bool)
+    flags = np.asarray(pd.flags) if pd.flags is not None else np.zeros(valid.shape, np.uint8)
+    examined = flags != FLAGS_NOT_EXAMINED
+    seen = examined & ((flags & FLAGS["out_of_image"]) == 0)
+    n_exam, n_seen = int(examined.sum()), int(seen.sum())
+    out = []
+    if aoi_unseen and n_exam and (n_exam - n_seen) / n_exam > AOI_UNSEEN_SHARE:
+        out.append(
+            f"pair-DEM {key}: {(n_exam - n_seen) / n_exam:.0%} of the AOI is outside what both images see "
+            "(flag out_of_image), so the pair-DEM covers only a part of it; give an AOI inside the images' overlap "
+            "(aoi.bounds) or leave the AOI out to use the overlap"
+        )
+    if n_seen:
+        comp = float((valid & seen).sum()) / n_seen
+        if comp < min_completeness:
+            bad = seen & ~valid
+            counts = [
+                (name, int((bad & ((flags & bit) != 0)).sum()))
+                for name, bit in FLAGS.items()
+                if name not in ("out_of_image", "filled")
+            ]
+            counts = sorted((c for c in counts if c[1]), key=lambda c: -c[1])[:3]
+            reasons = ", ".join(f"{n} {c} cells ({c / n_seen:.0%})" for n, c in counts) or "none flagged"
+            out.append(
+                f"pair-DEM {key}: completeness {comp:.0%} of the {n_seen} AOI cells both images see, below "
+                f"{min_completeness:.0%} (the share under which geocd calls a pair-DEM incomplete); main reasons "
+                f"(flags band): {reasons}. Heights are missing there and no change can be tested there: check the "
+                "height range (--height-range or the DEM), the images' overlap, dates and lighting, or add a view"
+            )
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -369,13 +518,16 @@ def run_stereo(
 
     Returns
     -------
-    dict with ``outputs`` ({"<epoch>/<a>__<b>": path}), ``grid`` and, with
-    ``keep_arrays``, ``pairs`` ({key: PairDEM}).
+    dict with ``outputs`` ({"<epoch>/<a>__<b>": path}), ``grid``, ``warnings`` (the pair-DEMs' completeness
+    warnings, :func:`pair_dem_warnings`), ``notes`` (pairs left out because they see none of the AOI together)
+    and, with ``keep_arrays``, ``pairs`` ({key: PairDEM}).
 
     Raises
     ------
     ConfigError
         A selected epoch has fewer than two images.
+    NoOverlapError
+        No pair of images sees any of the AOI together (before any matching).
     """
     from ..io.atomic import protect_inputs
     from ..io.manifest import Manifest, load_manifest
@@ -405,8 +557,9 @@ def run_stereo(
     if grid is None and m.dem is not None:
         d0 = read_dem(m.dem.path, vertical_datum=m.dem.vertical_datum).to_ellipsoidal()
         dem_median = float(np.nanmedian(d0.height_m))
+    aoi_info: dict = {}
     if grid is None:
-        grid = default_aoi_grid(m, images, posting_m=posting_m, dem_median=dem_median, params=params)
+        grid = default_aoi_grid(m, images, posting_m=posting_m, dem_median=dem_median, params=params, info=aoi_info)
     if pairs not in ("all", "same-kind"):
         raise ConfigError(f"pairs must be 'all' or 'same-kind', got {pairs!r}")
     pairs = [
@@ -420,10 +573,12 @@ def run_stereo(
             "no image pair left to match (with pairs='same-kind', each epoch needs two images whose "
             "cameras are of the same kind); use pairs='all'"
         )
-    check_stereo_resources(grid, len(pairs), out, keep_arrays=keep_arrays)
     dem = None
     if m.dem is not None:
         dem = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
+    pairs, notes = _pairs_seeing_the_aoi(pairs, grid, dem, params)
+    check_stereo_resources(grid, len(pairs), out, keep_arrays=keep_arrays)
+    quality: list[str] = []
     outputs: dict[str, Path] = {}
     kept: dict[str, PairDEM] = {}
     chips: dict[tuple[str, str], ImageChip] = {}
@@ -469,10 +624,13 @@ def run_stereo(
             tags={"images": [str(a.path), str(b.path)], "manifest": str(m.path or "")},
         )
         outputs[key] = path
+        for w in pair_dem_warnings(key, pd, aoi_unseen=not aoi_info.get("union", False)):
+            quality.append(w)
+            warnings.warn(w, StereoCompletenessWarning, stacklevel=2)
         if keep_arrays:
             kept[key] = pd
     prog(1.0, "stereo done")
-    res: dict[str, Any] = {"outputs": outputs, "grid": grid}
+    res: dict[str, Any] = {"outputs": outputs, "grid": grid, "warnings": quality, "notes": notes}
     if keep_arrays:
         res["pairs"] = kept
     return res

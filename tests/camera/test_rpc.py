@@ -398,3 +398,50 @@ def test_info_footprint_of_worldview3_crops_in_nitf():
         d = camera_summary(cam)
         assert "footprint_error" not in d, d
         assert 0.02 < d["footprint_area_km2"] < 0.04 and 0.3 < min(d["gsd_m"]) < 0.4
+
+
+def test_summary_localizer_falls_back_on_the_methods_localizer(rpc, monkeypatch):
+    """Where the numpy path does not converge, `geocd info`'s footprint takes the methods' localizer
+    (the footprint and the GSD never say "unavailable" where the methods localize)."""
+    from geocd.info import camera_summary
+
+    crop = _crop_far_from_centre(rpc)
+    real_ref = RPCModel.localize_reference
+
+    def missing_half(self, col, row, h):  # a numpy path that misses every other point
+        lon, lat = real_ref(self, col, row, h)
+        lon, lat = np.array(lon, float), np.array(lat, float)
+        lon.reshape(-1)[::2] = np.nan
+        lat.reshape(-1)[::2] = np.nan
+        return lon, lat
+
+    monkeypatch.setattr(RPCModel, "localize_reference", missing_half)
+    h0 = float(np.mean(crop.height_range()))
+    a, b = crop.footprint(h0, reference=True), crop.footprint(h0)
+    assert a.symmetric_difference(b).area < 1e-6 * b.area
+    d = camera_summary(crop)
+    assert "footprint_error" not in d and d["footprint_area_km2"] > 0
+
+
+@pytest.mark.realdata
+def test_info_footprint_of_a_worldview3_crop_with_large_offsets():
+    """A 500² crop of the WorldView-3 RPC far from its scene (sample offset 30864, line offset 124505; GeoTIFF
+    RPC tags as a vendor crop carries them): the numpy path alone misses corners the kernels reach; `geocd info`'s
+    footprint is the kernels' footprint (was: "footprint: unavailable (image corners ... do not reach height)")."""
+    from geocd.info import camera_summary
+    from geocd.io.cameras import load_camera
+
+    cam = load_camera(shared_data("rpc_samples", "shareloc", "wv3_20.NTF"))
+    crop = cam.cropped(-10115, -107010, 500, 500)
+    c = crop.image_corners()
+    h = np.full(4, crop.height_off)
+    lon_ref, _ = crop.localize_reference(c[:, 0], c[:, 1], h)
+    lon, lat = crop.localize(c[:, 0], c[:, 1], h)
+    assert np.all(np.isfinite(lon)) and not np.all(np.isfinite(lon_ref))  # the case of the issue
+    lon_s, lat_s = crop.localize_summary(c[:, 0], c[:, 1], h)
+    np.testing.assert_allclose(lon_s, lon, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(lat_s, lat, rtol=0, atol=1e-9)
+    a, b = crop.footprint(crop.height_off, reference=True), crop.footprint(crop.height_off)
+    assert a.symmetric_difference(b).area < 1e-6 * b.area
+    d = camera_summary(crop)
+    assert "footprint_error" not in d, d

@@ -63,3 +63,29 @@ def test_cli_errors_are_one_line(scene_dir):
     assert "Traceback" not in res.output
     res = CliRunner().invoke(main, ["stereo", str(scene_dir / "scene.yaml"), "--window", "4"])
     assert res.exit_code != 0 and "odd" in res.output
+
+
+@pytest.mark.parametrize("height_range, warned", [(("180", "230"), False), (("150", "192"), True)])
+def test_cli_warns_of_a_low_completeness(scene_dir, height_range, warned):
+    """A pair-DEM whose heights lie outside the searched range holds few heights: a warning on screen and in the
+    summary naming the pair, the share and the flags; a good pair-DEM none."""
+    res = CliRunner().invoke(
+        main,
+        [
+            "stereo",
+            "--json",
+            str(scene_dir / "scene.yaml"),
+            "--out",
+            str(scene_dir / "out"),
+            "--height-range",
+            *height_range,
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    w = doc["summary"]["pair_warnings"]
+    if warned:
+        assert len(w) == 1 and "A/img_a__img_b" in w[0] and "below 70%" in w[0] and "range_limit" in w[0]
+        assert any("completeness" in x for x in doc["warnings"])
+    else:
+        assert w == [] and not any("completeness" in x for x in doc["warnings"])
