@@ -295,7 +295,10 @@ def main(argv=None) -> int:
     if a.resume and a.json.exists():
         rows = json.loads(a.json.read_text()).get("pairs", [])
     done = {(r["method"], r["set"], r["pair"]) for r in rows}
-    cmdline = "python bench/eval_building_change.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    args = list(argv if argv is not None else sys.argv[1:])
+    if "--work" in args:  # where the products went does not change a figure
+        del args[args.index("--work") : args.index("--work") + 2]
+    cmdline = "python bench/eval_building_change.py " + " ".join(args)
     doc = {
         "command": cmdline.strip(),
         "sets": {s: {"folder": str(SETS[s][0].relative_to(DATA.parent.parent)), "pixel_m": SETS[s][1]} for s in sets},
