@@ -310,10 +310,9 @@ def main() -> None:
     prev = json.loads(Path(args.json).read_text()) if args.json and Path(args.json).is_file() else {}
     results: dict = prev.get("scenes", {})
     vols = dict(v.split("=", 1) for v in args.volume)
-    if args.volume_only:
-        prev_cmd = prev.get("command")
-        if prev_cmd:
-            prev.setdefault("earlier_commands", []).append(prev_cmd)
+    prev_cmd = prev.get("command")
+    if prev_cmd:  # the figures this run does not replace (octree, probchange) keep their command
+        prev.setdefault("earlier_commands", []).append(prev_cmd)
     for spec in [] if args.volume_only else args.scene:
         name, rest = spec.split("=", 1)
         scene, _, run = rest.partition(":")
