@@ -10,6 +10,11 @@ defaults:
 * with ``--probchange P1,P2``: probchange's ``no_depth_prior`` π∅ at these values (robust model, object space,
   satellite views): pixel F1.
 
+Buildings are those of the building layer ``geocd run`` writes (:func:`geocd.pipeline.run_building_layer`,
+the manifest's epoch-A footprints, new buildings detected in the change map), scored as in
+``bench/eval_towns.py`` (:func:`geocd.change.buildings.score_buildings`: collapsed / partly collapsed /
+lowered / raised / new count as changed; unchanged and unobserved as not changed; ``unobserved`` is their count).
+
 Usage::
 
     .venv/bin/python bench/eval_constants.py --scene sample_aoi=sample_aoi:/tmp/run0 ... --json bench/results/towns_constants.json
@@ -35,30 +40,28 @@ def run_scene(scene: Path, run_dir: Path | None) -> dict:
     from shapely.geometry import box
 
     from eval_towns import _pairs, _round
-    from geocd.change.buildings import classify_buildings, score_buildings
+    from geocd.change.buildings import score_buildings
     from geocd.change.metrics import binary_scores
     from geocd.consistency import ChangeParams, change_test, learn_self_consistency
     from geocd.io.raster import read_on_grid
     from geocd.io.vector import read_footprints
-    from geocd.pipeline import RunConfig
-    from geocd.stereo.surface import epoch_surface
+    from geocd.pipeline import RunConfig, run_building_layer
 
     m, by = _pairs(scene, run_dir)
     A, B = by["A"], by["B"]
     grid = A[0].grid
     truth = read_on_grid(m.truth_path("change_mask"), grid) > 0.5
-    fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
+    fa = read_footprints(m.footprints.path, crs=grid.crs, layer=m.footprints.layer)  # as geocd run: epoch A's
     fall = read_footprints(m.truth_path("footprints_all"), crs=grid.crs)
     status = dict(zip(fall["building_id"], fall["status"]))
-    za, zb = epoch_surface(A), epoch_surface(B)
     cfg = RunConfig()
 
-    def figures(res, level=99.0):
+    def figures(res, model, level=99.0):
         mk = res.changed_at(level)
         cells = _round(binary_scores((mk == 1) | (mk == -1), truth, res.observed))
-        b = classify_buildings(fa, mk, res.dz_m, grid, z_a=za, z_b=zb, params=cfg.buildings, id_field="building_id")
+        b, _ = run_building_layer(fa, res, grid, A, B, model, cfg)  # the layer geocd run writes
         sb = _round(score_buildings(b, fall, aoi=box(*grid.bounds)))
-        fp = b[(b["source"] == "footprints") & (b["class"] != "unobserved")]
+        fp = b[(b["source"] == "footprints") & ~b["class"].isin(["unobserved", "not examined"])]
         changed = np.array([status.get(i) not in (None, "unchanged") for i in fp["building_id"]])
         fr = fp["frac_changed"].to_numpy(float)
         margins = {
@@ -70,18 +73,19 @@ def run_scene(scene: Path, run_dir: Path | None) -> dict:
             "cells_false_alarms": cells["false_alarm_rate"],
             "buildings_f1": sb["f1"],
             "buildings": [sb["tp"], sb["fp"], sb["fn"]],
+            "unobserved": int(b["class"].isin(["unobserved", "not examined"]).sum()),
             **margins,
         }
 
     out: dict = {"cluster_confidence": {}, "per_cell_mapping_unit": {}}
     for cc in (90.0, 95.0, 99.0):
         model = learn_self_consistency([A, B], dataclasses.replace(cfg.consistency, cluster_confidence=cc))
-        out["cluster_confidence"][f"{cc:g}"] = figures(change_test(A, B, model, cfg.change))
+        out["cluster_confidence"][f"{cc:g}"] = figures(change_test(A, B, model, cfg.change), model)
         if cc == cfg.consistency.cluster_confidence:
             base = model
     for mmu in (4, None):
         res = change_test(A, B, base, ChangeParams(significance="cell", min_region_cells=mmu))
-        out["per_cell_mapping_unit"][str(res.min_region_cells)] = figures(res)
+        out["per_cell_mapping_unit"][str(res.min_region_cells)] = figures(res, base)
     return out
 
 

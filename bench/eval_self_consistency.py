@@ -5,8 +5,12 @@ Prints, for the run on sample_aoi:
 * cell-level precision / recall / F1 / false-alarm rate (cells with no 3-D change that are flagged)
   for the self-consistency test at 90/95/99% and for the paper's naive thresholds |Δ̃| > 3 and > 6
   (its Fig. 1 c, d), plus |Δz| thresholds in metres;
-* building-level F1 with the epoch-A footprints only (new buildings must be detected) against every
-  building's truth status;
+* building-level F1 of the building layer ``geocd run`` writes (:func:`geocd.pipeline.run_building_layer`)
+  from the epoch-A footprints only (new buildings must be detected) against every building's truth status
+  (:func:`geocd.change.buildings.score_buildings`: collapsed / partly collapsed / lowered / raised / new count
+  as changed, unchanged and unobserved as not changed; the unobserved count is printed beside). For the other
+  maps of the table (other levels, per-cell test, naive thresholds) the same layer is made from that map as the
+  reported one (:class:`geocd.change.dsm_buildings.LevelMasks`);
 * the one-pair-per-epoch case with a curve learned on another sample scene (``--other-scene``).
 
 Usage::
@@ -80,28 +84,25 @@ def print_rows(title, rows):
         )
 
 
-def building_eval(mask, res, grid, A, B, scene_manifest, level=None):
-    """Buildings from the epoch-A footprints (new ones detected), scored against every building's status."""
+def building_eval(mask, res, grid, A, B, scene_manifest, model=None):
+    """The building layer of ``geocd run`` from the epoch-A footprints (new ones detected), scored against every
+    building's status. ``mask``: None for ``res`` itself at the reported 99 %, else a signed change map the
+    layer is made from instead (as its reported level)."""
     from shapely.geometry import box
 
-    from geocd.change.buildings import classify_buildings, score_buildings
+    from geocd.change.buildings import score_buildings
+    from geocd.change.dsm_buildings import LevelMasks
     from geocd.io.vector import read_footprints
-    from geocd.stereo.surface import epoch_surface
+    from geocd.pipeline import RunConfig, run_building_layer
 
+    cfg = RunConfig()
     fa = read_footprints(scene_manifest.truth_path("footprints_A"), crs=grid.crs)
     fall = read_footprints(scene_manifest.truth_path("footprints_all"), crs=grid.crs)
-    b = classify_buildings(
-        fa,
-        mask,
-        res.dz_m,
-        grid,
-        z_a=epoch_surface(A),
-        z_b=epoch_surface(B),
-        confidence=res.confidence,
-        id_field="building_id",
-        confidence_level=level,
-    )
+    if mask is not None:
+        res = LevelMasks(res.dz_m, {cfg.region_confidence: mask}, res.min_region_cells)
+    b, _ = run_building_layer(fa, res, grid, A, B, model if mask is None else None, cfg)
     s = score_buildings(b, fall, aoi=box(*grid.bounds))
+    s["unobserved"] = int(b["class"].isin(["unobserved", "not examined"]).sum())
     status = dict(zip(fall["building_id"], fall["status"]))
     conf = {}
     for _, row in b.iterrows():
@@ -142,14 +143,15 @@ def main() -> None:
     print_rows(f"{m.name}, all pairs (A: {len(A)} pair-DEMs, B: {len(B)}), cells observed in both epochs", rows)
     out["cells_all_pairs"] = {n: s for n, s in rows}
     print("\nbuildings (epoch-A footprints; new buildings detected outside them; truth: every building's status)")
-    print(f"{'method':28s} {'precision':>9s} {'recall':>7s} {'F1':>6s} {'class acc.':>10s}  tp fp fn")
+    print(f"{'method':28s} {'precision':>9s} {'recall':>7s} {'F1':>6s} {'class acc.':>10s}  tp fp fn unobserved")
     out["buildings"] = {}
     for name, mk in masks.items():
-        s, conf = building_eval(mk, res, grid, A, B, m)
+        reported = name == "self-consistency 99%"
+        s, conf = building_eval(None if reported else mk, res, grid, A, B, m, model=model)
         out["buildings"][name] = s
         print(
             f"{name:28s} {s['precision']:9.3f} {s['recall']:7.3f} {s['f1']:6.3f} {s['class_accuracy_on_changed']:10.3f}"
-            f"  {s['tp']:2d} {s['fp']:2d} {s['fn']:2d}"
+            f"  {s['tp']:2d} {s['fp']:2d} {s['fn']:2d} {s['unobserved']:2d}"
         )
         if name == "self-consistency 99%":
             out["buildings_confusion_99"] = conf
@@ -172,7 +174,7 @@ def main() -> None:
         )
         res1, rows1, masks1 = cell_table(A1, B1, model2, truth)
         print_rows(f"one pair per epoch ({A1[0].name} vs {B1[0].name}), model learned on {args.other_scene}", rows1)
-        s1, conf1 = building_eval(masks1["self-consistency 99%"], res1, grid, A1, B1, m)
+        s1, conf1 = building_eval(None, res1, grid, A1, B1, m, model=model2)
         print(
             f"buildings at 99% (one pair per epoch, other-scene model): F1 {s1['f1']:.3f} "
             f"precision {s1['precision']:.3f} recall {s1['recall']:.3f}"

@@ -3,9 +3,29 @@
 For each scene (a ``geocd synth`` folder with truth):
 
 * self-consistency (``geocd run``'s defaults): cells precision / recall / F1 / false alarms at 90, 95 and 99 %
-  against ``truth/change_mask.tif`` (region test, the default, and the SRI per-cell test), buildings F1 at the
-  reported 99 % with the **epoch-A footprints only** (new buildings must be detected; truth: every building's
-  status, :func:`geocd.change.buildings.score_buildings`);
+  against ``truth/change_mask.tif`` (region test, the default, and the SRI per-cell test), and buildings F1 of
+  **the building layer ``geocd run`` writes** (layer ``buildings`` of ``sc_changes.gpkg``, made here by the same
+  function, :func:`geocd.pipeline.run_building_layer`, at the reported 99 %) from the scene's footprints — the
+  **epoch-A footprints only** (``truth/footprints_A.gpkg``, the manifest's), so new buildings must be detected.
+
+How the layer is scored (:func:`geocd.change.buildings.score_buildings`, truth: every building's ``status`` in
+``truth/footprints_all.gpkg``): a building counts as *changed* when the layer calls it ``collapsed``, ``partly
+collapsed`` or ``lowered`` (truth ``demolished`` or ``lowered``), ``raised`` (truth ``raised``) or ``new`` (truth
+``new``); ``unchanged``, ``unobserved`` and ``not examined`` count as *not changed*. A footprint row is a true
+positive when both the layer and the truth call it changed (whatever the class; the class agreement is
+``class_accuracy_on_changed``), a false positive when only the layer does, a false negative when only the truth
+does. A new building of the layer (``source`` "change map") is a true positive when it overlaps a truth building
+absent from the footprints (inside the AOI), else a false positive; such a truth building that no new building
+overlaps is a false negative. So an **unobserved** footprint is a false negative when its building changed and
+counts nowhere when it did not: the layer's unobserved count is reported beside the scores (``unobserved``,
+``unobserved_changed_in_truth``), and every building scored wrong is listed with its truth status, the layer's
+class, ``rule`` and ``source`` (``mistakes``).
+
+``buildings_footprint_rule`` (a second column, JSON only) scores the footprint rule alone
+(:func:`geocd.change.buildings.classify_buildings`, the intermediate the layer starts from), as this script
+measured before the layer existed; ``buildings_changed_part_on`` the layer with the changed-part rule on.
+When ``RUN_DIR/sc_changes.gpkg`` exists, the layer made here is compared class by class with the run's
+(``same_classes_as_run``).
 * probchange (robust model, object space, satellite views; ``ProbChangeParams.robust()``): pixel F1;
 * the octree volume model against its two 2-D baselines, per-pixel AUC pooled over the epoch-B satellite images,
   read from the ``volume_results.json`` that ``python -m geocd.volume.evaluate SCENE --out DIR`` writes.
@@ -61,6 +81,50 @@ def _round(d: dict) -> dict:
     return {k: (round(float(v), 4) if isinstance(v, (float, np.floating)) else v) for k, v in d.items()}
 
 
+def layer_mistakes(layer, truth, aoi) -> list[dict]:
+    """The buildings the layer gets wrong (changed vs not changed), for reading: footprint rows whose truth
+    status and layer class disagree, new buildings of the layer overlapping no truth building absent from the
+    footprints, and such truth buildings no new building overlaps."""
+    from geocd.change.building_layer import CHANGED, SOURCE_FOOTPRINTS
+
+    truth = truth.to_crs(layer.crs)
+    status = dict(zip(truth["building_id"], truth["status"]))
+    out = []
+
+    def rec(row, st):
+        return {
+            "building_id": int(row["building_id"]),
+            "truth": st,
+            "class": str(row["class"]),
+            "source": str(row["source"]),
+            "rule": str(row["rule"]),
+            "frac_observed": _r(row["frac_observed"]),
+            "frac_changed": _r(row["frac_changed"]),
+            "mean_dz_m": _r(row["mean_dz_m"]),
+        }
+
+    fp = layer[layer["source"] == SOURCE_FOOTPRINTS]
+    for _, row in fp.iterrows():
+        st = status.get(row["building_id"], "unchanged")
+        if (st != "unchanged") != (row["class"] in CHANGED):
+            out.append(rec(row, st))
+    unknown = truth[~truth["building_id"].isin(set(fp["building_id"]))]
+    unknown = unknown[(unknown.geometry.intersection(aoi).area / unknown.geometry.area).to_numpy() >= 0.5]
+    det = layer[layer["source"] != SOURCE_FOOTPRINTS]
+    for _, row in det.iterrows():
+        if not (unknown.geometry.intersection(row.geometry).area > 0).any():
+            out.append(rec(row, "none (no truth building absent from the footprints here)"))
+    for _, t in unknown.iterrows():
+        if not (det.geometry.intersection(t.geometry).area > 0).any():
+            out.append({"building_id": int(t["building_id"]), "truth": str(t["status"]), "class": "not detected"})
+    return out
+
+
+def _r(v):
+    v = float(v)
+    return round(v, 3) if np.isfinite(v) else None
+
+
 def self_consistency(scene: Path, run_dir: Path | None) -> dict:
     from shapely.geometry import box
 
@@ -69,12 +133,13 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
     from geocd.consistency import change_test, learn_self_consistency
     from geocd.io.raster import read_on_grid
     from geocd.io.vector import read_footprints
-    from geocd.pipeline import RunConfig
+    from geocd.pipeline import RunConfig, run_building_layer
     from geocd.stereo.surface import epoch_surface
 
     m, by = _pairs(scene, run_dir)
     A, B = by["A"], by["B"]
     grid = A[0].grid
+    aoi = box(*grid.bounds)
     truth = read_on_grid(m.truth_path("change_mask"), grid) > 0.5
     cfg = RunConfig()
     t = time.perf_counter()
@@ -82,18 +147,49 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
     out: dict = {
         "pairs": {k: [p.name for p in v] for k, v in by.items()},
         "mapping_unit_cells": model.region_null.get("min_region_cells"),
+        "footprints": Path(m.footprints.path).name,
     }
-    fa = read_footprints(m.truth_path("footprints_A"), crs=grid.crs)
+    # the footprints as geocd run reads them (the manifest's: the epoch-A footprints)
+    fa = read_footprints(m.footprints.path, crs=grid.crs, layer=m.footprints.layer)
     fall = read_footprints(m.truth_path("footprints_all"), crs=grid.crs)
     za, zb = epoch_surface(A), epoch_surface(B)
+    run_layer = None
+    if run_dir is not None and (run_dir / "sc_changes.gpkg").is_file():
+        import geopandas as gpd
+
+        run_layer = gpd.read_file(run_dir / "sc_changes.gpkg", layer="buildings")
     for mode in ("region", "cell"):
-        res = change_test(A, B, model, dataclasses.replace(cfg.change, significance=mode))
+        change = dataclasses.replace(cfg.change, significance=mode)
+        if cfg.region_confidence not in change.confidences:
+            change = dataclasses.replace(
+                change, confidences=tuple(sorted({*change.confidences, cfg.region_confidence}))
+            )
+        res = change_test(A, B, model, change)
         cells = {}
         for lev in LEVELS:
             mk = res.changed_at(lev)
             cells[f"{lev:g}"] = _round(binary_scores((mk == 1) | (mk == -1), truth, res.observed))
+        layer, _ = run_building_layer(fa, res, grid, A, B, model, cfg)
+        cp = dataclasses.replace(cfg, buildings=dataclasses.replace(cfg.buildings, changed_part=True))
+        layer1, _ = run_building_layer(fa, res, grid, A, B, model, cp)
+        moved = [int(i) for i, c, c1 in zip(layer["building_id"], layer["class"], layer1["class"]) if c != c1]
+        sb = _round(score_buildings(layer, fall, aoi=aoi))
+        unobs = layer[layer["class"].isin(["unobserved", "not examined"])]
+        status = dict(zip(fall["building_id"], fall["status"]))
+        sb["unobserved"] = int(len(unobs))
+        sb["unobserved_changed_in_truth"] = [
+            int(i) for i in unobs["building_id"] if status.get(i, "unchanged") != "unchanged"
+        ]
+        sb["classes"] = {str(k): int(v) for k, v in layer["class"].value_counts().items()}
+        sb["mistakes"] = layer_mistakes(layer, fall, aoi)
+        # the footprint rule alone (the intermediate this script scored before the layer): a second column
         mk = res.changed_at(cfg.region_confidence)
-        kw = dict(
+        old = classify_buildings(
+            fa,
+            mk,
+            res.dz_m,
+            grid,
+            params=cfg.buildings,
             z_a=za,
             z_b=zb,
             confidence=res.confidence,
@@ -101,19 +197,18 @@ def self_consistency(scene: Path, run_dir: Path | None) -> dict:
             confidence_level=cfg.region_confidence,
             min_part_cells=res.min_region_cells,
         )
-        b = classify_buildings(fa, mk, res.dz_m, grid, params=cfg.buildings, **kw)
-        # the same with the changed-part rule (an option): which classes it moves
-        b1 = classify_buildings(
-            fa, mk, res.dz_m, grid, params=dataclasses.replace(cfg.buildings, changed_part=True), **kw
-        )
-        moved = [int(i) for i, c, c1 in zip(b["building_id"], b["class"], b1["class"]) if c != c1]
         out[mode] = {
             "cells": cells,
-            "buildings": _round(score_buildings(b, fall, aoi=box(*grid.bounds))),
-            "buildings_changed_part_on": _round(score_buildings(b1, fall, aoi=box(*grid.bounds))),
+            "buildings": sb,
+            "buildings_footprint_rule": _round(score_buildings(old, fall, aoi=aoi)),
+            "buildings_changed_part_on": _round(score_buildings(layer1, fall, aoi=aoi)),
             "classes_moved_by_changed_part": moved,
             "min_region_cells": res.min_region_cells,
         }
+        if mode == "region" and run_layer is not None:
+            a = dict(zip(layer["building_id"], layer["class"]))
+            b = dict(zip(run_layer["building_id"], run_layer["class"]))
+            out[mode]["same_classes_as_run"] = a == b
     out["seconds"] = round(time.perf_counter() - t, 1)
     return out
 
@@ -163,10 +258,13 @@ def markdown(results: dict, tuned: dict) -> str:
         lines.append(f"| {label} | " + " | ".join(vals) + " |")
 
     row(
-        "buildings F1 at 99 %, epoch-A footprints (tp/fp/fn)",
-        lambda r: "{f1:.3f} ({tp}/{fp}/{fn})".format(**r["sc"]["region"]["buildings"]),
+        "buildings F1 of the building layer, epoch-A footprints (tp/fp/fn; unobserved)",
+        lambda r: "{f1:.3f} ({tp}/{fp}/{fn}; {unobserved})".format(**r["sc"]["region"]["buildings"]),
     )
-    row("same, SRI per-cell test", lambda r: "{f1:.3f} ({tp}/{fp}/{fn})".format(**r["sc"]["cell"]["buildings"]))
+    row(
+        "same, SRI per-cell test",
+        lambda r: "{f1:.3f} ({tp}/{fp}/{fn}; {unobserved})".format(**r["sc"]["cell"]["buildings"]),
+    )
     for lev in ("90", "95", "99"):
         row(
             f"cells {lev} %: P / R / F1 / false alarms",
@@ -213,10 +311,9 @@ def main() -> None:
     prev = json.loads(Path(args.json).read_text()) if args.json and Path(args.json).is_file() else {}
     results: dict = prev.get("scenes", {})
     vols = dict(v.split("=", 1) for v in args.volume)
-    if args.volume_only:
-        prev_cmd = prev.get("command")
-        if prev_cmd:
-            prev.setdefault("earlier_commands", []).append(prev_cmd)
+    prev_cmd = prev.get("command")
+    if prev_cmd:  # the figures this run does not replace (octree, probchange) keep their command
+        prev.setdefault("earlier_commands", []).append(prev_cmd)
     for spec in [] if args.volume_only else args.scene:
         name, rest = spec.split("=", 1)
         scene, _, run = rest.partition(":")

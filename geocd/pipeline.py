@@ -235,6 +235,55 @@ def _building_layer(
     )
 
 
+def run_building_layer(
+    footprints,
+    res,
+    grid,
+    recs_a,
+    recs_b,
+    model,
+    config: RunConfig = RunConfig(),
+    name_a: str = "A",
+    name_b: str = "B",
+):
+    """The building layer ``geocd run`` writes (layer ``buildings`` of ``sc_changes.gpkg``) and the ground model
+    under it, from a change test's result with the run's parameters.
+
+    Parameters
+    ----------
+    footprints : GeoDataFrame or None
+        The footprints (``geocd run`` reads the manifest's, or ``--footprints``, in the grid's CRS); None:
+        buildings derived from the DSMs.
+    res : geocd.consistency.ChangeResult on ``grid`` (``config.region_confidence`` among its levels)
+    recs_a, recs_b : the epochs' pair-DEMs (their median surfaces are the epochs' surfaces)
+    model : SelfConsistencyModel (for the volumes' σ)
+    config : RunConfig
+        ``region_confidence`` (the reported level) and ``buildings`` (the footprint rules) are used.
+    name_a, name_b : the epochs' names
+
+    Returns
+    -------
+    (GeoDataFrame, dtm) as :func:`geocd.change.dsm_buildings.building_layer` (before a tiered run's
+    :func:`mark_not_examined`).
+    """
+    from .change.dsm_buildings import DSMBuildingParams
+
+    bp = config.buildings
+    return _building_layer(
+        footprints,
+        res,
+        grid,
+        recs_a,
+        recs_b,
+        model,
+        config.region_confidence,
+        name_a,
+        name_b,
+        DSMBuildingParams(min_observed=bp.min_observed, min_changed=bp.min_changed, changed_part=bp.changed_part),
+        building_params=bp,
+    )
+
+
 def mark_not_examined(buildings, grid, examined: np.ndarray | None):
     """Buildings classed ``unobserved`` with cells the 3-D stage did not examine → class ``not examined``.
 
@@ -582,27 +631,12 @@ def run_change(
     fp_path = footprints or (m.footprints.path if m.footprints is not None else None)
     if fp_path is not None or config.derive_buildings:
         prog(0.7, "buildings")
-        from .change.dsm_buildings import DSMBuildingParams
-
         fps = None
         if fp_path is not None:
             fps = read_footprints(
                 fp_path, crs=grid.crs, layer=m.footprints.layer if (m.footprints and not footprints) else None
             )
-        bp = config.buildings
-        buildings, ground = _building_layer(
-            fps,
-            res,
-            grid,
-            recs_a,
-            recs_b,
-            model,
-            config.region_confidence,
-            ea.name,
-            eb.name,
-            DSMBuildingParams(min_observed=bp.min_observed, min_changed=bp.min_changed, changed_part=bp.changed_part),
-            building_params=bp,
-        )
+        buildings, ground = run_building_layer(fps, res, grid, recs_a, recs_b, model, config, ea.name, eb.name)
         buildings = mark_not_examined(buildings, grid, examined)
         if ground is not None:
             from .io.raster import write_cog
