@@ -81,6 +81,20 @@ def dask_options(cmd: Callable) -> Callable:
     return cmd
 
 
+def pixel_size_option(images: str) -> Callable:
+    """``--pixel-size METRES``: the ground size of a pixel of ``images`` when they have no georeference
+    (:mod:`geocd.io.plain`)."""
+    return click.option(
+        "--pixel-size",
+        "pixel_size",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help=f"{images} without georeference (PNG tiles, ...): the ground size of a pixel. They are compared cell "
+        "for cell on a local grid in metres (so must be one size); the products carry that local CRS.",
+    )
+
+
 def _progress_option() -> click.Option:
     return click.Option(
         ["--progress", "_geocd_progress"],

@@ -9,6 +9,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from .common import pixel_size_option
+
 
 def check_change_prior(path: str | Path) -> None:
     """Check a ``--change-prior`` raster up front (before any stereo or ortho): a georeferenced raster whose
@@ -201,15 +203,7 @@ def check_change_prior(path: str | Path) -> None:
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed: same seed, same objects.")
 @click.option("--max-iter", type=int, default=None, help="Iteration cap of multiple birth and death (default 250).")
 @click.option("--posting", "posting_m", type=float, default=None, help="Grid posting in metres.")
-@click.option(
-    "--pixel-size",
-    "pixel_size",
-    type=float,
-    default=None,
-    metavar="METRES",
-    help="--image-a/--image-b without georeference (PNG tiles, ...): the ground size of a pixel. The two are "
-    "compared cell for cell on a local grid in metres (so must be one size); the products carry that local CRS.",
-)
+@pixel_size_option("--image-a/--image-b")
 @click.option(
     "--surface-median",
     "surface_median",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .common import check_confidence
+from .common import check_confidence, pixel_size_option
 
 
 def _is_manifest(p: Path) -> bool:
@@ -161,15 +161,7 @@ def screen_params(feature, cell_px, backbone, weights, layer, superpixels, segme
     type=click.Path(file_okay=False, path_type=str),
     help="Output folder (default: ./geocd_out/<scene or image A>).",
 )
-@click.option(
-    "--pixel-size",
-    "pixel_size",
-    type=float,
-    default=None,
-    metavar="METRES",
-    help="Two rasters without georeference (PNG tiles, ...): the ground size of a pixel. Both are compared cell "
-    "for cell on a local grid in metres (so must be one size); the products carry that local CRS.",
-)
+@pixel_size_option("Two rasters A B")
 @click.option("--no-overwrite", is_flag=True, help="Fail instead of replacing existing outputs.")
 @click.pass_context
 def screen(
