@@ -263,23 +263,29 @@ def screen(
                 )
             )
         elif len(sources) == 2:
-            from ..screen.pipeline import PRODUCTS_GLOBS, run_screen_files
+            from ..screen.cnn import load_weights
+            from ..screen.pipeline import PRODUCTS_GLOBS, RasterImage, run_screen_files
 
             if pair or dsm:
                 raise ConfigError("--image-a/--image-b and --dsm are for a manifest")
             if pixel_size is not None:
                 check_pixel_size(pixel_size)
-            if threshold is None and not nochange and not labelled:  # said before any image is read
-                raise ConfigError(
-                    "the screen of two rasters needs a threshold rule: a no-change pair (--nochange A2 B2), a "
-                    "labelled pair (--labelled A B TRUTH) or --threshold VALUE"
-                )
             plain = contextlib.ExitStack()
             rasters = (list(sources), list(nochange or ()), list(labelled or ()))
             if pixel_size is not None:  # plain images: each group read cell for cell on a local grid
                 folder = plain.enter_context(tempfile.TemporaryDirectory(prefix="geocd_plain_"))
                 rasters = tuple(plain_images_on_a_grid(g, pixel_size, folder) if g else g for g in rasters)
             with plain:
+                # the inputs' own problems first (headers and weights: cheap), then the missing rule, then the work
+                for r in rasters[0]:
+                    RasterImage.open(r)
+                if weights is not None:
+                    load_weights(weights)
+                if threshold is None and not nochange and not labelled:
+                    raise ConfigError(
+                        "the screen of two rasters needs a threshold rule: a no-change pair (--nochange A2 B2), a "
+                        "labelled pair (--labelled A B TRUTH) or --threshold VALUE"
+                    )
                 out = resolve_out_dir(out_dir, Path(sources[0]).stem, create=False)
                 open_outputs(
                     out, inputs=[*sources, *(nochange or ()), *(labelled or ()), weights], products=PRODUCTS_GLOBS
