@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import tempfile
 from pathlib import Path
 
 import click
@@ -267,7 +265,7 @@ def mpp(
     from ..errors import ConfigError
     from ..mpp.params import MPPParams
     from . import emit_result, make_progress
-    from ..io.plain import plain_images_on_a_grid
+    from ..io.plain import on_local_grid
     from .common import require_inputs, resolve_out_dir, session
 
     sess = session(ctx)
@@ -366,12 +364,7 @@ def mpp(
         else:
             from ..mpp.pipeline import run_mpp_images
 
-            plain = contextlib.ExitStack()
-            grid_a, grid_b = image_a, image_b
-            if pixel_size is not None:  # plain images: read cell for cell on a local grid
-                folder = plain.enter_context(tempfile.TemporaryDirectory(prefix="geocd_plain_"))
-                grid_a, grid_b = plain_images_on_a_grid([image_a, image_b], pixel_size, folder)
-            with plain:
+            with on_local_grid([[image_a, image_b]], pixel_size) as ((grid_a, grid_b),):
                 out_dir = resolve_out_dir(out, Path(image_a).stem + "_mpp")
                 open_outputs(
                     out_dir, inputs=[image_a, image_b, dsm_a, dsm_b, ground, change_prior], products=("mpp_*",)

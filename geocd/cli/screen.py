@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import tempfile
 from pathlib import Path
 
 import click
@@ -199,7 +197,7 @@ def screen(
     layer) and screen_summary.json.
     """
     from ..errors import ConfigError
-    from ..io.plain import check_pixel_size, plain_images_on_a_grid
+    from ..io.plain import check_pixel_size, on_local_grid
     from . import emit_result, make_progress
     from .common import require_inputs, resolve_out_dir, session
 
@@ -270,12 +268,7 @@ def screen(
                 raise ConfigError("--image-a/--image-b and --dsm are for a manifest")
             if pixel_size is not None:
                 check_pixel_size(pixel_size)
-            plain = contextlib.ExitStack()
-            rasters = (list(sources), list(nochange or ()), list(labelled or ()))
-            if pixel_size is not None:  # plain images: each group read cell for cell on a local grid
-                folder = plain.enter_context(tempfile.TemporaryDirectory(prefix="geocd_plain_"))
-                rasters = tuple(plain_images_on_a_grid(g, pixel_size, folder) if g else g for g in rasters)
-            with plain:
+            with on_local_grid([sources, nochange or (), labelled or ()], pixel_size) as rasters:
                 # the inputs' own problems first (headers and weights: cheap), then the missing rule, then the work
                 for r in rasters[0]:
                     RasterImage.open(r)

@@ -10,10 +10,12 @@ carry that CRS: QGIS opens them with "unknown CRS", on top of each other and of 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import os
-from collections.abc import Sequence
+import tempfile
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 import warnings
 from xml.sax.saxutils import escape
@@ -119,3 +121,25 @@ def plain_images_on_a_grid(
             "Crop them to one extent first, or georeference them"
         )
     return [plain_image_vrt(p, pixel_size_m, folder) for p in paths]
+
+
+@contextlib.contextmanager
+def on_local_grid(groups: Sequence[Sequence[os.PathLike | str]], pixel_size_m: float | None) -> Iterator[list[list]]:
+    """The rasters of ``groups`` as the methods read them: unchanged without a pixel size; with one, each group
+    through :func:`plain_images_on_a_grid` (VRTs in a temporary folder that lasts as long as the ``with``).
+
+    Parameters
+    ----------
+    groups : groups of images that must be compared cell for cell (an A/B pair, a no-change pair, ...); an
+        empty group stays empty
+    pixel_size_m : ground size of a pixel, m (``--pixel-size``), or None for georeferenced rasters
+
+    Yields
+    ------
+    list of lists of paths, group for group
+    """
+    if pixel_size_m is None:
+        yield [list(g) for g in groups]
+        return
+    with tempfile.TemporaryDirectory(prefix="geocd_plain_") as folder:
+        yield [plain_images_on_a_grid(g, pixel_size_m, folder) if g else [] for g in groups]

@@ -16,7 +16,7 @@ from ..params import ParamsMixin
 # ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class TilingParams(ParamsMixin):
-    """How a scene is tiled and scheduled (see :mod:`geocd.tiling`).
+    """How a scene is tiled and scheduled (see :mod:`geocd.tiling`; where the defaults come from: docs/tiling.md).
 
     Attributes
     ----------
