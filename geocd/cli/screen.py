@@ -193,11 +193,11 @@ def screen(
 
     SOURCES is a manifest (its views on the AOI grid; the threshold from a within-epoch pair of views) or two
     georeferenced rasters A B (orthoimages; B is resampled onto A's grid; different band counts are compared in
-    grey), or two plain images of one size with --pixel-size. Writes screen_dissimilarity.tif, screen_change_mask.tif, screen_changes.gpkg (the shared changes
-    layer) and screen_summary.json.
+    grey), or two plain images of one size with --pixel-size. Writes screen_dissimilarity.tif,
+    screen_change_mask.tif, screen_changes.gpkg (the shared changes layer) and screen_summary.json.
     """
     from ..errors import ConfigError
-    from ..io.plain import check_pixel_size, on_local_grid
+    from ..io.plain import on_local_grid
     from . import emit_result, make_progress
     from .common import require_inputs, resolve_out_dir, session
 
@@ -266,8 +266,6 @@ def screen(
 
             if pair or dsm:
                 raise ConfigError("--image-a/--image-b and --dsm are for a manifest")
-            if pixel_size is not None:
-                check_pixel_size(pixel_size)
             with on_local_grid([sources, nochange or (), labelled or ()], pixel_size) as rasters:
                 # the inputs' own problems first (headers and weights: cheap), then the missing rule, then the work
                 for r in rasters[0]:

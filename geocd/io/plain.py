@@ -15,9 +15,9 @@ import hashlib
 import math
 import os
 import tempfile
+import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-import warnings
 from xml.sax.saxutils import escape
 
 from rasterio.errors import NotGeoreferencedWarning
