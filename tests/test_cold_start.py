@@ -63,3 +63,42 @@ def test_compile_notice_is_said_once():
     assert _jit._state["kernels"] >= n0 + 2 and _jit.compile_seconds() > s0
     if fresh:
         assert buf.getvalue().count("compiling numerical kernels") == 1
+
+
+_PARALLEL_PROBE = """
+import json, sys
+import numpy as np
+from numba import prange
+from geocd._jit import parallel_njit
+
+@parallel_njit(error_model="numpy")
+def row_sums(a):
+    out = np.empty(a.shape[0])
+    for i in prange(a.shape[0]):
+        out[i] = a[i].sum()
+    return out
+
+a = np.arange(12.0).reshape(4, 3)
+print(json.dumps({"sums": row_sums(a).tolist(), "parallel": bool(row_sums.targetoptions.get("parallel")),
+                  "qualname": row_sums.py_func.__qualname__}))
+"""
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_parallel_kernels_compile_serial_where_numba_runs_one_thread(tmp_path, threads):
+    """One thread: the kernel is compiled serial (a third of the compile time) and cached under its own name;
+    more threads: parallel=True. Both give the same answer."""
+    import json
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), NUMBA_NUM_THREADS=str(threads))
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+    probe = tmp_path / "probe.py"  # numba caches kernels of files only
+    probe.write_text(_PARALLEL_PROBE)
+    p = subprocess.run([sys.executable, str(probe)], capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    assert got["sums"] == [3.0, 12.0, 21.0, 30.0]
+    assert got["parallel"] == (threads > 1)
+    name = "row_sums" if threads > 1 else "row_sums__serial"
+    assert got["qualname"] == name
+    assert [f.name.split("-")[0] for f in (tmp_path / "cache").rglob("*.nbi")] == [f"probe.{name}"]

@@ -43,6 +43,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from .._jit import parallel_njit
+
 N_PARAMS = 22
 
 
@@ -96,7 +98,7 @@ def _to_camera(x, y, z, tx, ty, tz, m):
     return (m[0] * dx + m[1] * dy + m[2] * dz, m[3] * dx + m[4] * dy + m[5] * dz, m[6] * dx + m[7] * dy + m[8] * dz)
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def frame_project(x, y, z, params, out_col, out_row):
     """World (x, y, z) flat float64 arrays → (col, row) pixels; NaN behind the camera."""
     fx, fy, cx, cy = params[0], params[1], params[2], params[3]
@@ -115,7 +117,7 @@ def frame_project(x, y, z, params, out_col, out_row):
         out_row[i] = fy * yd + cy
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def frame_dproj_dz(x, y, z, params, out_dcol, out_drow):
     """∂(col, row)/∂z at fixed (x, y) (pixels per metre), analytic chain rule."""
     fx, fy = params[0], params[1]
@@ -139,7 +141,7 @@ def frame_dproj_dz(x, y, z, params, out_dcol, out_drow):
         out_drow[i] = fy * (c * dxn + d * dyn)
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def frame_undistort(col, row, params, tol, max_iter, out_x, out_y):
     """(col, row) pixels → undistorted normalised camera coordinates (x, y).
 

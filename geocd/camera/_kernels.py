@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from .._jit import parallel_njit
+
 # RPC00B term order: 1, L, P, H, LP, LH, PH, L², P², H², PLH, L³, LP², LH², L²P, P³, PH², L²H, P²H, H³
 TERMS_RPC00B = (
     "1",
@@ -151,7 +153,7 @@ def _dot_dH(c, L, P, H, t):
     )
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract", "arcp"})
+@parallel_njit(error_model="numpy", fastmath={"contract", "arcp"})
 def rpc_project(lon, lat, h, coefs, norm, out_samp, out_line):
     """Ground (flat float64 arrays) → RPC (samp, line), RPC pixel convention."""
     ln_c, ld_c, sn_c, sd_c = coefs[0], coefs[1], coefs[2], coefs[3]
@@ -164,7 +166,7 @@ def rpc_project(lon, lat, h, coefs, norm, out_samp, out_line):
         out_samp[i] = _dot(sn_c, t) / _dot(sd_c, t) * norm[6] + norm[1]
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract", "arcp"})
+@parallel_njit(error_model="numpy", fastmath={"contract", "arcp"})
 def rpc_dproj_dh(lon, lat, h, coefs, norm, out_dsamp, out_dline):
     """∂(samp, line)/∂h (pixels per metre) at fixed lon/lat."""
     ln_c, ld_c, sn_c, sd_c = coefs[0], coefs[1], coefs[2], coefs[3]
@@ -319,7 +321,7 @@ def _multistart(coefs, H, st, lt, ss, ls, tol2, max_iter):  # returns (L, P, ite
 _REDO = -2
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract", "arcp"})
+@parallel_njit(error_model="numpy", fastmath={"contract", "arcp"})
 def _localize_fast(samp, line, h, coefs, norm, init, tol2, out_lon, out_lat, out_iter):
     """One full Newton step from the cubic start, without branches (the loop vectorizes).
 
@@ -349,7 +351,7 @@ def _localize_fast(samp, line, h, coefs, norm, init, tol2, out_lon, out_lat, out
         out_iter[i] = 1 if ok else _REDO
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract", "arcp"})
+@parallel_njit(error_model="numpy", fastmath={"contract", "arcp"})
 def _localize_robust(samp, line, h, coefs, norm, init, tol2, max_iter, out_lon, out_lat, out_iter):
     """Damped Newton (with the multi-start fallback) for the samples marked by the fast pass."""
     ss, ls = norm[6], norm[5]

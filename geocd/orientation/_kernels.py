@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from .._jit import parallel_njit
+
 
 @njit(cache=True)
 def _integrals(a):
@@ -56,7 +58,7 @@ def _ncc_one(ref, oth, s1, s2, sn, i, j, ci, cj, P, ma, va):
     return sab / np.sqrt(va * vb)
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def ncc_at_offsets(ref, oth, pts, centres, offsets, P):
     """Best NCC of each point's template over a set of integer offsets around its centre in ``oth``.
 

@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from .._jit import parallel_njit
+
 NEAREST = 0
 BILINEAR = 1
 
@@ -23,7 +25,7 @@ BILINEAR = 1
 # ---------------------------------------------------------------------------------------------
 # sampling an image at projected positions
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def sample_image(img, valid, col, row, mode, out, ok):
     """Sample a multi-band image at continuous ``(col, row)``.
 
@@ -144,7 +146,7 @@ def _dsm_at(dsm, y, x):
     ) * fy
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def occlusion_march(dsm, ray_j, ray_i, tol_m, step_cells, out):
     """Cells whose line of sight to the camera passes below the DSM (hidden: true-ortho occlusion).
 

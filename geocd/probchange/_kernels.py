@@ -19,6 +19,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .._jit import parallel_njit
+
 NEG_INF = -np.inf
 #: log p(d) below which a hypothesis's term in the log-likelihood ratio is negligible (skipped)
 LOGP_NEGLIGIBLE = -40.0
@@ -27,7 +29,7 @@ LOGP_NEGLIGIBLE = -40.0
 # ---------------------------------------------------------------------------------------------
 # patch mean absolute difference (eq. 5.1)
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def patch_mad(stack, ia, ib, r, min_count, out, hs, hc):
     """Mean absolute difference of ``(2r+1)²`` patches between two images of a stack, over bands.
 
@@ -118,7 +120,7 @@ def patch_mad_ref(stack: np.ndarray, ia, ib, r: int, min_count: int) -> np.ndarr
 # ---------------------------------------------------------------------------------------------
 # depth density p(d) ∝ exp(−s_d / σ) (eq. 5.2), several pairs as independent observations
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def depth_logprob(vol, inv_sigma, log_s_over_sigma, log_none, log_1m_none, out, kbest, none_out):
     """log p(d) from the dissimilarities of P pairs, with an optional "no consistent depth" hypothesis.
 
@@ -236,7 +238,7 @@ def _log1mexp(x):
     return math.log1p(-math.exp(x))
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def change_llr(logp, vol, inv_sigma, log_s_over_sigma, log_eps, log_1meps, llr, coverage):
     """Σ_pairs Σ_d log[p(s'_d | c=0) / p(s'_d | c=1)] with the thesis's models.
 
@@ -307,7 +309,7 @@ def change_llr_ref(
 # ---------------------------------------------------------------------------------------------
 # lattice → pixels (key-frame hypotheses are projected exactly on a lattice only)
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def lattice_to_pixels(lat, step, out):
     """Bilinear interpolation of lattice values onto every pixel.
 

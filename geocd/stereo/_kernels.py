@@ -23,6 +23,8 @@ import numpy as np
 from numba import njit, prange
 from numpy.lib.stride_tricks import sliding_window_view
 
+from .._jit import parallel_njit
+
 # ---------------------------------------------------------------------------------------------
 # bilinear warp
 # ---------------------------------------------------------------------------------------------
@@ -51,7 +53,7 @@ def _bilinear(img, x, y):
     return (v00 * (1.0 - fx) + v01 * fx) * (1.0 - fy) + (v10 * (1.0 - fx) + v11 * fx) * fy
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def warp_bilinear(img, col, row, out):
     """Sample ``img`` at continuous ``(col, row)`` (pixel-corner convention), bilinear.
 
@@ -91,7 +93,7 @@ def warp_bilinear_ref(img: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.n
     return v
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def warp_bilinear_lerp(img, col_a, row_a, col_b, row_b, t, col0, row0, out):
     """:func:`warp_bilinear` at coordinates interpolated between two projections.
 
@@ -165,7 +167,7 @@ def _row_moments(a, b, r, i, work):
         work[5, i, j] = s5
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def box_moments(a, b, r, out, work):
     """Window moments of two images over ``(2r+1)²`` windows, both-valid pixels only.
 
@@ -225,7 +227,7 @@ def box_moments_ref(a: np.ndarray, b: np.ndarray, r: int) -> np.ndarray:
     return out
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def box_mean(x, r, out, count, work):
     """Mean of the valid (finite) values of ``x`` over ``(2r+1)²`` windows, by running sums.
 
@@ -406,7 +408,7 @@ def _fold_cell(st, i, j, k, kmin_ij, kmax_ij, n, sa, sb, saa, sbb, sab, min_n, e
     st[PREV_N, i, j] = n
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def sweep_update(mom, k, kmin, kmax, min_n, eps, excl, st):
     """Fold height index ``k`` into the sweep state.
 
@@ -449,7 +451,7 @@ def sweep_update(mom, k, kmin, kmax, min_n, eps, excl, st):
             )
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def sweep_finish(k_end, excl, st):
     """Close the sweep after the last index ``k_end − 1`` (a minimum there has ``c+ = inf``)."""
     h = st.shape[1]
@@ -477,7 +479,7 @@ def sweep_finish(k_end, excl, st):
             st[PREV1, i, j] = np.inf
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def sweep_step(a, b, r, k, kmin, kmax, min_n, eps, excl, st, work):
     """:func:`box_moments` followed by :func:`sweep_update`, fused (the moments are never stored).
 
@@ -593,7 +595,7 @@ def _mdl_ratio(va, vb, cov, s2):
     return (st2 + s2) * (v + s2) / ((va + s2) * (vb + s2))
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def subwindow_mdl(img_a, img_b, geo_a, geo_b, r, q, centres, min_n, s2, out):
     """Worst MDL score over the sub-windows of each cell's matching window, at the cell's height.
 
@@ -803,7 +805,7 @@ def _select(buf, n, k):
     return buf[k]
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def valid_median(z, r, out):
     """Median of the finite values of ``z`` in the ``(2r+1)²`` window around each cell with a finite ``z``.
 

@@ -28,6 +28,8 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
+from .._jit import parallel_njit
+
 SceneArrays = namedtuple(
     "SceneArrays",
     [
@@ -120,7 +122,7 @@ def fbm(x, y, z, seed, octaves):
     return s / tot
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def vnoise_many(x, y, z, seed, out):
     for i in prange(x.shape[0]):
         out[i] = vnoise(x[i], y[i], z[i], seed)
@@ -418,7 +420,7 @@ def surface_normal(S, obj, face, x, y, z):
     return gx / n, gy / n, gz / n
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def trace_first_hit(orig, dirs, t_max, S, out_t, out_obj, out_face):
     """First hit of many rays (geometry only). orig, dirs: (N, 3); t_max: (N,)."""
     for i in prange(orig.shape[0]):
@@ -465,7 +467,7 @@ def _cubic_map(coef, scale, h0, e, n, u):
     return x, y, z + h0
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def enu_rays_to_map(o, d, u_top, u_bot, coef, scale, h0, out_o, out_d, out_len):
     """ENU rays (origin, unit direction) → map-space chords between the ENU heights u_top and u_bot.
 
@@ -522,7 +524,7 @@ def ground_material(S, x, y):
     return mat
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def ground_material_many(S, x, y, out):
     for i in prange(x.shape[0]):
         out[i] = ground_material(S, x[i], y[i])
@@ -636,7 +638,7 @@ def shade_one(S, ox, oy, oz, dx, dy, dz, t_max, sun, light):
     return ar * e, ag * e, ab * e, an * e, t, k
 
 
-@njit(cache=True, parallel=True)
+@parallel_njit()
 def render_rays(orig, dirs, t_max, sun, light, S, out_rgb, out_t, out_obj):
     """Shade many rays. orig, dirs: (N, 3) map space; sun: (3,) unit; light: (E_sun, E_sky).
 
