@@ -120,8 +120,8 @@ def _install(stream, json_lines: bool) -> None:
 def parallel_njit(**options):
     """``numba.njit(cache=True, parallel=True, **options)``, compiled serial where numba runs one thread.
 
-    With ``NUMBA_NUM_THREADS=1`` (one process per core: Dask's process workers, pytest-xdist workers) the
-    parallel build runs on one thread anyway, and costs about three times the compile time of the same kernel
+    With ``NUMBA_NUM_THREADS=1`` (set for one process per core, as the test suite does for its pytest-xdist
+    workers) the parallel build runs on one thread anyway, and costs about three times the compile time of the same kernel
     compiled serial (71.6 against 23.3 CPU-s for the stereo and probchange kernels, measured here). There the
     kernel is compiled without ``parallel`` (``prange`` is then ``range``, the same loop in order) and cached
     under its own name (``<name>__serial``), so that the two builds never replace each other in numba's cache.
