@@ -858,14 +858,22 @@ def learn_self_consistency(
     return model
 
 
-def _comparison_arrays(p: PairDEMLike, q: PairDEMLike, posting_m: float | None):
-    """Δ̃, score, Δz, both, metres per unit of Δ̃ and the slope of the surface common to both (min of the two)."""
+def _comparison_arrays(p: PairDEMLike, q: PairDEMLike, posting_m: float | None, slopes: dict | None = None):
+    """Δ̃, score, Δz, both, metres per unit of Δ̃ and the slope of the surface common to both (min of the two).
+
+    ``slopes``: {id(pair-DEM): its local slope}, filled here, when the caller compares each pair-DEM several
+    times (its slope is computed once)."""
     dt, sc, dz, both = match_pairs(p, q)
     with np.errstate(divide="ignore", invalid="ignore"):
         mpu = np.sqrt(1.0 / np.asarray(p.g_px_per_m, np.float64) ** 2 + 1.0 / np.asarray(q.g_px_per_m, np.float64) ** 2)
     mpu = np.broadcast_to(mpu, dt.shape)
     if posting_m:
-        slope = np.fmin(local_slope(p.z_m, posting_m), local_slope(q.z_m, posting_m))
+        if slopes is None:
+            slopes = {}
+        for r in (p, q):
+            if id(r) not in slopes:
+                slopes[id(r)] = local_slope(r.z_m, posting_m)
+        slope = np.fmin(slopes[id(p)], slopes[id(q)])
     else:
         slope = np.zeros(dt.shape)
     return dt, sc, dz, both, mpu, slope
@@ -874,7 +882,8 @@ def _comparison_arrays(p: PairDEMLike, q: PairDEMLike, posting_m: float | None):
 def reference_law(model: "SelfConsistencyModel", comps: Sequence[tuple[PairDEMLike, PairDEMLike]]) -> dict:
     """The calibration law fitted to the model's own static comparisons ({} when it cannot be fitted)."""
     posting = getattr(getattr(comps[0][0], "grid", None), "posting_m", None) if comps else None
-    arrays = [_comparison_arrays(p, q, posting) for p, q in comps]
+    slopes: dict = {}  # each pair-DEM's slope once (it is in several comparisons); comps keeps them alive
+    arrays = [_comparison_arrays(p, q, posting, slopes) for p, q in comps]
     try:
         cal = fit_pair_calibration(
             model,
@@ -1283,7 +1292,8 @@ def change_test(
     # without a grid posting there is no slope: the calibration fits the scale alone
     posting = getattr(getattr(epoch_a[0], "grid", None), "posting_m", None)
     need_slope = calibration is not None or mode == "pair"
-    per_comp = [_comparison_arrays(p, q, posting if need_slope else None) for p, q in comps]
+    slopes: dict = {}  # each pair-DEM's slope once (it is in several comparisons); comps keeps them alive
+    per_comp = [_comparison_arrays(p, q, posting if need_slope else None, slopes) for p, q in comps]
     if calibration is None and mode == "pair":
         calibration = fit_pair_calibration(
             model, *(np.concatenate([c[k][c[3]] for c in per_comp]) for k in (0, 1, 5, 4)), fit_edge=bool(posting)

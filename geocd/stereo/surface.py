@@ -102,9 +102,10 @@ def fill_narrow_holes(z_m: np.ndarray, valid: np.ndarray, radius: int) -> tuple[
 def nanmedian_stack(stack: np.ndarray) -> np.ndarray:
     """Median over axis 0 ignoring NaN, NaN where a cell has no value: ``np.nanmedian(stack, axis=0)``, same values.
 
-    numpy's ``nanmedian`` along a short axis warns once per all-NaN cell in a Python loop (~1 µs each): on
-    a grid mostly not observed (a tiered run's unexamined tiles: 6 M cells at 2 500²) that loop cost tens
-    of CPU seconds per call. Here only the cells holding a value are passed to it.
+    numpy's ``nanmedian`` along a short axis goes through masked arrays (about 0.5 s per 400 k cells of a
+    few layers) and warns once per all-NaN cell in a Python loop. Here each cell's values are sorted (NaN
+    last) and the middle one, or the mean of the middle two, is taken as numpy takes it: ``(low + high) / 2``
+    in the stack's dtype.
 
     Parameters
     ----------
@@ -115,15 +116,20 @@ def nanmedian_stack(stack: np.ndarray) -> np.ndarray:
     float (rows, cols), the dtype ``np.nanmedian`` gives
     """
     a = np.asarray(stack)
-    has = ~np.isnan(a).all(axis=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        if has.all():
+    if a.dtype.kind != "f" or a.ndim < 1 or a.shape[0] == 0:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
             return np.nanmedian(a, axis=0)
-        out = np.full(a.shape[1:], np.nan, dtype=np.nanmedian(a[:, :0], axis=0).dtype)
-        if has.any():
-            out[has] = np.nanmedian(a[:, has], axis=0)
-    return out
+    n = a.shape[0]
+    s = np.sort(a.reshape(n, -1).T, axis=1)  # (cells, n): each cell's values ascending, NaN last
+    count = n - np.isnan(s).sum(axis=1)
+    high = count // 2
+    low = np.where(count % 2 == 1, high, high - 1)
+    cells = np.arange(s.shape[0])
+    with np.errstate(invalid="ignore", over="ignore"):
+        out = (s[cells, np.maximum(low, 0)] + s[cells, np.minimum(high, n - 1)]) / a.dtype.type(2)
+    out[count == 0] = np.nan
+    return out.reshape(a.shape[1:])
 
 
 def epoch_surface(pair_dems: Sequence[Any]) -> np.ndarray:

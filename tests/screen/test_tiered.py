@@ -53,8 +53,20 @@ def _flag_most_changed_tiles(m, grid, tile, k):
     return sel
 
 
+@pytest.fixture(scope="module")
+def full_run(request, tmp_path_factory):
+    """sample_aoi's cached pair-DEMs and the full (untiered) change run on them, without the building
+    derivation: (manifest, {epoch: [PairDEM]}, grid, run_change's answer), shared by the tests below."""
+    from geocd.pipeline import RunConfig, run_change
+    from tests.sample_aoi_cache import sample_aoi_pairs
+
+    m, full, grid = sample_aoi_pairs(request.config.cache.mkdir("geocd_sample_aoi_stereo"))
+    rf = run_change(m, full, grid, out_dir=tmp_path_factory.mktemp("full"), config=RunConfig(derive_buildings=False))
+    return m, full, grid, rf
+
+
 @pytest.mark.slow
-def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path, request):
+def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path, full_run):
     """sample_aoi, two flagged 128-cell tiles of 25: stereo matches only those tiles (tile count, the
     flags value 255 and no height elsewhere), their heights equal the full run's within the tiled
     stereo's tolerance, and the change mask codes every other cell −127 "not examined" while the
@@ -68,9 +80,8 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
     from geocd.stereo import read_pair_dem
     from geocd.stereo.products import FLAGS_NOT_EXAMINED
     from geocd.stereo.tiled import run_stereo_tiled
-    from tests.sample_aoi_cache import sample_aoi_pairs
 
-    m, full, grid = sample_aoi_pairs(request.config.cache.mkdir("geocd_sample_aoi_stereo"))
+    m, full, grid, rf = full_run
     tile = 128
     sel = _flag_most_changed_tiles(m, grid, tile, 2)
     fl = Flagged(tile, sel)
@@ -102,7 +113,6 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
         assert abs(t.valid[ex].mean() - f.valid[ex].mean()) <= 0.02, name
     # the change test and products with the examined mask
     cfg = RunConfig(derive_buildings=False)
-    rf = run_change(m, full, grid, out_dir=tmp_path / "full", config=cfg)
     rt = run_change(
         m, {"A": full["A"], "B": list(tiered.values())}, grid, out_dir=tmp_path / "tier", config=cfg, examined=ex
     )
@@ -127,7 +137,7 @@ def test_tiered_stereo_and_change_run_only_on_flagged_tiles(sample_aoi, tmp_path
 
 
 @pytest.mark.slow
-def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, request):
+def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, full_run):
     """The change products of a tiered run on the full run's pair-DEMs: inside the flagged tiles the mask is
     the full run's, bit for bit; every other cell is −127 "not examined" (never 0); unobserved buildings
     reaching into unflagged tiles are "not examined"; the summary says how much was examined."""
@@ -136,14 +146,12 @@ def test_unflagged_cells_are_not_examined_never_unchanged(sample_aoi, tmp_path, 
     from geocd.consistency import NOT_EXAMINED, SelfConsistencyModel
     from geocd.pipeline import RunConfig, run_change
     from geocd.screen.tiered import Flagged
-    from tests.sample_aoi_cache import sample_aoi_pairs
 
-    m, full, grid = sample_aoi_pairs(request.config.cache.mkdir("geocd_sample_aoi_stereo"))
+    m, full, grid, rf = full_run
     sel = np.zeros((5, 5), bool)
     sel[1:3, 1:4] = True
     ex = Flagged(128, sel).examined(grid.shape)
     cfg = RunConfig(derive_buildings=False)
-    rf = run_change(m, full, grid, out_dir=tmp_path / "full", config=cfg)
     # the model the full run learned on these pair-DEMs (learning it again gives the same model)
     model = SelfConsistencyModel.load(rf["outputs"]["model"])
     rt = run_change(m, full, grid, out_dir=tmp_path / "tier", config=cfg, examined=ex, model=model)
