@@ -49,10 +49,20 @@ def binary_scores(pred: np.ndarray, truth: np.ndarray, valid: np.ndarray | None 
 def roc_curve(score: np.ndarray, truth: np.ndarray, valid: np.ndarray | None = None, n_thresholds: int = 512):
     """ROC of a continuous change score (higher = more likely change).
 
+    The same curve and AUC as scikit-learn's ``roc_curve(..., drop_intermediate=True)`` and ``roc_auc_score``,
+    bit for bit, from one sort of the scores (scikit-learn sorts twice and validates its inputs each time).
+
+    Parameters
+    ----------
+    score : float array (any shape), NaN where undefined
+    truth : bool-like array of the same shape (non-zero = change)
+    valid : optional bool array; only these cells count
+    n_thresholds : the curve is thinned to about this many points (the AUC uses every point)
+
     Returns
     -------
     fpr, tpr, thresholds : 1-D arrays (fpr increasing)
-    auc : float (trapezoidal)
+    auc : float (trapezoidal); NaN when only one class is present
     """
     s = np.asarray(score, float)
     t = np.asarray(truth) != 0
@@ -62,14 +72,26 @@ def roc_curve(score: np.ndarray, truth: np.ndarray, valid: np.ndarray | None = N
     s, t = s[ok], t[ok]
     if t.all() or not t.any():
         return np.array([0.0, 1.0]), np.array([0.0, 1.0]), np.array([np.inf, -np.inf]), float("nan")
-    from sklearn.metrics import roc_auc_score
-    from sklearn.metrics import roc_curve as _roc
+    from scipy.integrate import trapezoid
 
-    fpr, tpr, thr = _roc(t, s, drop_intermediate=True)
+    # scores in decreasing order; the order within ties does not change the counts at the thresholds
+    order = np.argsort(s, kind="stable")[::-1]
+    s, t = s[order], t[order]
+    idx = np.r_[np.nonzero(np.diff(s))[0], t.size - 1]  # the last sample of each distinct score
+    tps = np.cumsum(t, dtype=np.float64)[idx]
+    fps = 1 + idx.astype(np.float64) - tps
+    thr = s[idx]
+    if fps.size > 2:  # drop the points inside straight runs of the curve (scikit-learn's drop_intermediate)
+        keep = np.nonzero(np.r_[True, np.logical_or(np.diff(fps, 2), np.diff(tps, 2)), True])[0]
+        fps, tps, thr = fps[keep], tps[keep], thr[keep]
+    fpr = np.r_[0.0, fps] / fps[-1]
+    tpr = np.r_[0.0, tps] / tps[-1]
+    thr = np.r_[np.inf, thr]
+    auc = float(trapezoid(tpr, fpr))
     if fpr.size > n_thresholds:
         idx = np.unique(np.linspace(0, fpr.size - 1, n_thresholds).astype(int))
         fpr, tpr, thr = fpr[idx], tpr[idx], thr[idx]
-    return fpr, tpr, thr, float(roc_auc_score(t, s))
+    return fpr, tpr, thr, auc
 
 
 def best_threshold_f1(score: np.ndarray, truth: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, dict]:

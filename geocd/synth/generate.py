@@ -347,6 +347,7 @@ def generate(
     overwrite: bool = False,
     progress: Callable | None = None,
     only_views: Sequence[str] | None = None,
+    mask_views: Sequence[str] | None = None,
 ) -> SynthResult:
     """Build the town, render every view, fit and write RPCs, write truth and the manifest.
 
@@ -358,6 +359,9 @@ def generate(
     only_views : render and write only these views (names such as ``"B_sat1"``; default: every view). Each one
         is the image a full run writes, pixel for pixel: the other views' cameras and noise streams are still
         drawn. For tests and benchmarks that need a few views of a large town.
+    mask_views : write the per-image change masks (``truth/image_masks``) of only these views (default: every
+        written view). A mask traces every pixel's rays into both epochs (about half the time of rendering the
+        view); an evaluation that scores only some views (the epoch-B ones) needs only theirs.
 
     Returns
     -------
@@ -375,7 +379,9 @@ def generate(
     from ..camera.rpc_fit import _single_thread_blas
 
     with _single_thread_blas():  # numba does the parallel work; BLAS threads would only contend with it
-        return _generate(params, out_dir, overwrite=overwrite, progress=progress, only_views=only_views)
+        return _generate(
+            params, out_dir, overwrite=overwrite, progress=progress, only_views=only_views, mask_views=mask_views
+        )
 
 
 def _generate(
@@ -385,6 +391,7 @@ def _generate(
     overwrite: bool = False,
     progress: Callable | None = None,
     only_views: Sequence[str] | None = None,
+    mask_views: Sequence[str] | None = None,
 ) -> SynthResult:
     from ..camera.rpc_fit import fit_rpc
     from ..errors import OutputError
@@ -528,11 +535,12 @@ def _generate(
         views.append({"name": name, "epoch": "A", "kind": "aerial", "camera": cam})
     order = {"A": 0, "B": 1}
     views.sort(key=lambda v: (order[v["epoch"]], v["kind"] != "satellite", v["name"]))
-    unknown = sorted(set(only_views or ()) - {v["name"] for v in views})
-    if unknown:
-        raise ConfigError(
-            f"only_views names no view of this scene: {unknown}; its views are {[v['name'] for v in views]}"
-        )
+    for arg, names in (("only_views", only_views), ("mask_views", mask_views)):
+        unknown = sorted(set(names or ()) - {v["name"] for v in views})
+        if unknown:
+            raise ConfigError(
+                f"{arg} names no view of this scene: {unknown}; its views are {[v['name'] for v in views]}"
+            )
 
     h_lo, h_hi = town.aoi_height_range()
     rpc_h = (math.floor(h_lo - 10.0), math.ceil(h_hi + 15.0))
@@ -613,20 +621,26 @@ def _generate(
             geo_model = cam
         vr["radiometry"] = radio.to_dict()
         (tdir / "cameras" / f"{name}.json").write_text(json.dumps(cam.to_dict(), indent=1), encoding="utf-8")
-        vp(0.8, "truth mask")
-        m, frac = image_change_mask(
-            town, cam, scenes["A"], scenes["B"], threshold_m=params.change_threshold_m, supersample=params.supersample
-        )
-        write_image(
-            tdir / "image_masks" / f"{name}.tif",
-            np.stack([m, np.rint(frac * 100).astype(np.uint8)]),
-            tags={
-                "content": f"band 1: 1 where the pixel sees a 3-D change (surfaces > "
-                f"{params.change_threshold_m} m apart between epochs for >= half of its "
-                f"{params.supersample**2} samples); band 2: percent of such samples"
-            },
-        )
-        vr["changed_pixel_fraction"] = round(float(m.mean()), 5)
+        if mask_views is None or name in mask_views:
+            vp(0.8, "truth mask")
+            m, frac = image_change_mask(
+                town,
+                cam,
+                scenes["A"],
+                scenes["B"],
+                threshold_m=params.change_threshold_m,
+                supersample=params.supersample,
+            )
+            write_image(
+                tdir / "image_masks" / f"{name}.tif",
+                np.stack([m, np.rint(frac * 100).astype(np.uint8)]),
+                tags={
+                    "content": f"band 1: 1 where the pixel sees a 3-D change (surfaces > "
+                    f"{params.change_threshold_m} m apart between epochs for >= half of its "
+                    f"{params.supersample**2} samples); band 2: percent of such samples"
+                },
+            )
+            vr["changed_pixel_fraction"] = round(float(m.mean()), 5)
         vr["corner_check"] = corner_check(town, ep, scenes[ep], cam, geo_model)
         view_reports.append(vr)
         vp(1.0, "done")
@@ -649,7 +663,8 @@ def _generate(
     write_text_atomic(tdir / "scene_truth.json", json.dumps(report, indent=1, default=_json_default))
     if only_views is not None:
         views = [v for v in views if v["name"] in only_views]
-    manifest = _write_manifest(out, params, town, grid, views)
+    masked = [v["name"] for v in views if mask_views is None or v["name"] in mask_views]
+    manifest = _write_manifest(out, params, town, grid, views, masked)
     prog(1.0, "done")
     return SynthResult(out, manifest, report)
 
@@ -670,7 +685,7 @@ def _aoi_difference(town: Town, cam, rpc, h_range: tuple[float, float], n: int =
     }
 
 
-def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dict]) -> Path:
+def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dict], masked: list[str]) -> Path:
     import yaml
 
     from ..io.atomic import write_text_atomic
@@ -703,7 +718,7 @@ def _write_manifest(out: Path, p: SynthParams, town: Town, grid, views: list[dic
         "change_sign": "truth/change_sign.tif",
         "non3d_mask": "truth/non3d_mask.tif",
         "change_threshold_m": p.change_threshold_m,
-        "image_masks": {v["name"]: f"truth/image_masks/{v['name']}.tif" for v in views},
+        "image_masks": {name: f"truth/image_masks/{name}.tif" for name in masked},
         "cameras": {v["name"]: f"truth/cameras/{v['name']}.json" for v in views},
         "report": "truth/scene_truth.json",
         "satellite_images": [v["name"] for v in views if v["kind"] == "satellite"],

@@ -169,3 +169,21 @@ def test_cli_tiny(tmp_path):
 def test_only_views_names_must_be_views(tmp_path):
     with pytest.raises(ConfigError, match="only_views names no view"):
         generate(SynthParams.tiny(seed=1), tmp_path / "s", only_views=["A_sat1", "C_sat9"])
+
+
+def test_mask_views_must_be_views(tmp_path):
+    with pytest.raises(ConfigError, match="mask_views names no view"):
+        generate(SynthParams.tiny(seed=1), tmp_path / "s", mask_views=["B_sat7"])
+
+
+@pytest.mark.slow
+def test_mask_views_writes_only_those_masks_and_the_same_ones(tmp_path, tiny_scene_dir, tiny_params):
+    """``mask_views``: the other views are rendered as in a full run, only the listed views get a mask, the same."""
+    out = tmp_path / "s"
+    generate(tiny_params, out, only_views=["A_sat1", "B_sat1"], mask_views=["B_sat1"])
+    m = load_manifest(out)
+    assert set(m.truth["image_masks"]) == {"B_sat1"}
+    assert not (out / "truth/image_masks/A_sat1.tif").exists()
+    full = tiny_scene_dir.out_dir
+    for rel in ("images/A_sat1.tif", "images/B_sat1.tif", "truth/image_masks/B_sat1.tif"):
+        np.testing.assert_array_equal(_read(out / rel)[0], _read(full / rel)[0])

@@ -8,13 +8,19 @@ from __future__ import annotations
 
 import pytest
 
+# subarea_aucs trains on epoch A but its holdout A_sat3 and scores the epoch-B satellite views
+TRAINED = ["A_sat1", "A_sat2", "A_sat4", "A_air1", "A_air2", "A_air3"]
+SCORED = ["B_sat1", "B_sat2", "B_sat3"]
+
 
 @pytest.fixture(scope="module")
 def town120(tmp_path_factory):
     from geocd.synth.generate import SynthParams, generate
 
     out = tmp_path_factory.mktemp("volume_town") / "town_seed1_120m"
-    generate(SynthParams(seed=1, size_m=120.0), out)
+    # the views subarea_aucs reads (its holdout A_sat3 is never read), each the image a full run writes, and the
+    # change masks of the scored epoch-B views only
+    generate(SynthParams(seed=1, size_m=120.0), out, only_views=TRAINED + SCORED, mask_views=SCORED)
     return out
 
 

@@ -7,6 +7,10 @@ from __future__ import annotations
 
 import pytest
 
+# subarea_aucs_by_shadow trains on epoch A but its holdout A_sat3 and scores the epoch-B satellite views
+TRAINED = ["A_sat1", "A_sat2", "A_sat4", "A_air1", "A_air2", "A_air3"]
+SCORED = ["B_sat1", "B_sat2", "B_sat3"]
+
 
 @pytest.fixture(scope="module")
 def town_sun_turned(tmp_path_factory):
@@ -15,7 +19,14 @@ def town_sun_turned(tmp_path_factory):
     from geocd.synth.generate import SynthParams, generate
 
     out = tmp_path_factory.mktemp("volume_town_sun") / "town_seed11"
-    generate(SynthParams(seed=11, date_a="2023-04-12T10:00:00", date_b="2024-09-03T13:30:00"), out)
+    # the views the evaluation reads (its holdout A_sat3 is never read), each the image a full run writes, and the
+    # change masks of the scored epoch-B views only
+    generate(
+        SynthParams(seed=11, date_a="2023-04-12T10:00:00", date_b="2024-09-03T13:30:00"),
+        out,
+        only_views=TRAINED + SCORED,
+        mask_views=SCORED,
+    )
     return out
 
 
