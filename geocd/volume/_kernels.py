@@ -209,6 +209,13 @@ def mog_density_mapped(app, cell, b, x, w0, ma, mb, ms):
 
 
 @njit(cache=True)
+def mog_density_cells(app, b, x, w0, out):
+    """``out[cell] = mog_density(app, cell, b, x[cell], w0)`` for every cell (``x``, ``out``: (n_cells,))."""
+    for cell in range(x.shape[0]):
+        out[cell] = mog_density(app, cell, b, x[cell], w0)
+
+
+@njit(cache=True)
 def mog_mean(app, cell, b, w0):
     """Mean intensity of the cell's blended density in bin ``b`` (0.5 when empty; see :func:`mog_density`)."""
     if b < 0:
@@ -335,7 +342,7 @@ def update_rays(
     orig,
     dirs,
     obs,
-    cell_obs,
+    cell_pa,
     lo,
     hi,
     geo,
@@ -368,15 +375,17 @@ def update_rays(
     * ``acc_len[cell] += ℓ_i``, ``acc_log[cell] += log(1 - P(Q_i|D))`` (eq. 25),
     * ``acc_obs[cell] += ℓ_i c``, ``acc_vis[cell] += ℓ_i vis_i`` (appearance).
 
-    ``c_i`` is the pixel's intensity when ``cell_obs`` is empty (the paper's
-    eq. 20), else ``cell_obs[cell]``, the cell's mean observation in this image
-    (boxm2's practice: a large cell's mixture, which learns mean observations,
-    is compared with the mean, so coarse cells on a textured surface still gain
-    occlusion density and get refined).
+    ``p_i(c_i)`` is the cell's density (:func:`mog_density`) at the pixel's
+    intensity when ``cell_pa`` is empty (the paper's eq. 20), else ``cell_pa[cell]``,
+    its density at the cell's mean observation in this image (boxm2's practice: a
+    large cell's mixture, which learns mean observations, is compared with the
+    mean, so coarse cells on a textured surface still gain occlusion density and
+    get refined). That density depends on the cell alone, so the caller computes
+    it once per cell (:func:`mog_density_cells`) rather than once per segment.
 
     Returns the number of segments traced.
     """
-    use_cell = cell_obs.shape[0] > 0
+    use_cell = cell_pa.shape[0] > 0
     total = 0
     for r in range(orig.shape[0]):
         c = obs[r]
@@ -398,7 +407,7 @@ def update_rays(
         for i in range(n):
             cell = seg_cell[i]
             pq = 1.0 - math.exp(-alpha[cell] * seg_len[i])
-            pa = mog_density(app, cell, b, cell_obs[cell] if use_cell else c, w0)
+            pa = cell_pa[cell] if use_cell else mog_density(app, cell, b, c, w0)
             s_vis[i] = vis
             s_pq[i] = pq
             s_pa[i] = pa
@@ -679,6 +688,11 @@ def mog_density_ref(app, cell, b, x, w0):
     n = float(m[ok, 3].sum())
     p = float(np.sum(w[ok] * np.exp(-0.5 * ((x - mu) / s) ** 2) / s) * INV_SQRT_2PI / w.sum())
     return (n * p + w0) / (n + w0)
+
+
+def mog_density_cells_ref(app, b, x, w0):
+    """Reference of :func:`mog_density_cells`: the densities as a new (n_cells,) array."""
+    return np.array([mog_density_ref(app, k, b, x[k], w0) for k in range(len(x))])
 
 
 def mog_mean_ref(app, cell, b, w0):

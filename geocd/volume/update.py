@@ -231,12 +231,15 @@ def update_model(
             ray_cache["key"] = key
         n_steps = 2 * len(tiles) if cell_mean else len(tiles)
         step = 0
-        cell_obs = np.zeros(0)
+        cell_pa = np.zeros(0)
         passes = ("mean", "bayes") if cell_mean else ("bayes",)
         for which in passes:
             if which == "bayes" and cell_mean:
                 with np.errstate(invalid="ignore", divide="ignore"):
                     cell_obs = np.where(acc_len > 0, acc_obs / acc_len, np.nan)
+                # each cell's density at its mean observation, once per cell rather than per ray segment
+                cell_pa = np.empty(n)
+                K.mog_density_cells(model.app, b, cell_obs, model.params.appearance_prior_weight, cell_pa)
                 acc_len[:] = 0.0
                 acc_obs[:] = 0.0
             for r0 in tiles:
@@ -272,7 +275,7 @@ def update_model(
                         o,
                         d,
                         obs,
-                        cell_obs,
+                        cell_pa,
                         lo,
                         hi,
                         geo,

@@ -107,13 +107,16 @@ def test_update_rays_matches_reference(b, cell_mean):
     obs[::17] = np.nan
     n = m.n_nodes
     cell_obs = np.random.default_rng(11).uniform(0, 1, n) if cell_mean else np.zeros(0)
+    cell_pa = np.zeros(n) if cell_mean else np.zeros(0)
+    if cell_mean:
+        K.mog_density_cells(m.app, b, cell_obs, 0.7, cell_pa)
     acc = np.zeros((4, n))
     sc = RayScratch(geo)
     K.update_rays(
         o,
         d,
         obs,
-        cell_obs,
+        cell_pa,
         lo,
         hi,
         geo,
@@ -288,6 +291,19 @@ def test_mog_density_and_mean_match_reference():
         for b in (0, 1, -1):
             assert abs(K.mog_density(m.app, c, b, x, 0.7) - K.mog_density_ref(m.app, c, b, x, 0.7)) < 1e-6
             assert abs(K.mog_mean(m.app, c, b, 0.7) - K.mog_mean_ref(m.app, c, b, 0.7)) < 1e-6
+
+
+@pytest.mark.parametrize("b", [0, 1, -1])
+def test_mog_density_cells_matches_reference_and_per_cell_density(b):
+    m = _random_model()
+    x = np.random.default_rng(14).uniform(0, 1, m.n_nodes)
+    x[::9] = np.nan  # cells no ray crossed have no mean observation
+    out = np.zeros(m.n_nodes)
+    K.mog_density_cells(m.app, b, x, 0.7, out)
+    np.testing.assert_allclose(out, K.mog_density_cells_ref(m.app, b, x, 0.7), rtol=1e-6, atol=1e-6)
+    # the very same figure as the per-cell kernel update_rays used to call for each segment
+    per_cell = np.array([K.mog_density(m.app, c, b, x[c], 0.7) for c in range(m.n_nodes)])
+    assert np.array_equal(out, per_cell, equal_nan=True)
 
 
 def test_node_boxes_contain_their_rays_points():
