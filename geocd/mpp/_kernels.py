@@ -289,10 +289,12 @@ def _completeness(grey, valid, cx, cy, c, s, hL, hl, ring_w, tol, spread, mom, x
     """1 − leak of the flood fill from the roof halves into the end (NH) and side (NV) neighbourhoods.
 
     A half fills the 4-connected cells within ``max(tol, spread × the half's own standard deviation)`` of its
-    mean grey level: a textured surface (grass, asphalt) floods wide and leaks; a roof stops at its edges."""
+    mean grey level: a textured surface (grass, asphalt) floods wide and leaks; a roof stops at its edges.
+    ``seen`` holds which half's fill reached a cell (1, 2; 0: none): the cells either half filled are its
+    non-zero cells. Rows are scanned over the columns that can meet the rectangle's core or rings only
+    (:func:`_row_span`, 1e-6 cells wider; every cell is then tested)."""
     h = i1 - i0 + 1
     w = j1 - j0 + 1
-    filled = np.zeros((h, w), np.uint8)
     seen = np.zeros((h, w), np.uint8)
     stack_i = np.empty(h * w, np.int64)
     stack_j = np.empty(h * w, np.int64)
@@ -302,15 +304,16 @@ def _completeness(grey, valid, cx, cy, c, s, hL, hl, ring_w, tol, spread, mom, x
         ref = mom[half, 1] / mom[half, 0] + x0
         var = mom[half, 2] / mom[half, 0] - (mom[half, 1] / mom[half, 0]) ** 2
         tol_h = max(tol, spread * math.sqrt(max(var, 0.0)))
-        seen[:, :] = 0
+        stamp = half + 1
         top = 0
         for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
+            ja, jb = _row_span(i, cx, cy, c, s, hL - 1.0 + 1e-6, hl - 1.0 + 1e-6, j0, j1)
+            for j in range(ja, jb + 1):
                 u, v = _uv(i, j, cx, cy, c, s)
                 if abs(u) <= hL - 1.0 and abs(v) <= hl - 1.0 and valid[i, j]:
                     hh = (1 if v < 0.0 else 0) if split_v else (1 if u < 0.0 else 0)
-                    if hh == half and abs(grey[i, j] - ref) <= tol_h and seen[i - i0, j - j0] == 0:
-                        seen[i - i0, j - j0] = 1
+                    if hh == half and abs(grey[i, j] - ref) <= tol_h and seen[i - i0, j - j0] != stamp:
+                        seen[i - i0, j - j0] = stamp
                         stack_i[top] = i
                         stack_j[top] = j
                         top += 1
@@ -323,35 +326,32 @@ def _completeness(grey, valid, cx, cy, c, s, hL, hl, ring_w, tol, spread, mom, x
                 jj = j + (1 if k == 2 else (-1 if k == 3 else 0))
                 if ii < i0 or ii > i1 or jj < j0 or jj > j1:
                     continue
-                if seen[ii - i0, jj - j0] or not valid[ii, jj]:
+                if seen[ii - i0, jj - j0] == stamp or not valid[ii, jj]:
                     continue
                 u, v = _uv(ii, jj, cx, cy, c, s)
                 if abs(u) > hL + ring_w or abs(v) > hl + ring_w:
                     continue
                 if abs(grey[ii, jj] - ref) <= tol_h:
-                    seen[ii - i0, jj - j0] = 1
+                    seen[ii - i0, jj - j0] = stamp
                     stack_i[top] = ii
                     stack_j[top] = jj
                     top += 1
-        for i in range(h):
-            for j in range(w):
-                if seen[i, j]:
-                    filled[i, j] = 1
     nh = 0
     fh = 0
     nv = 0
     fv = 0
     for i in range(i0, i1 + 1):
-        for j in range(j0, j1 + 1):
+        ja, jb = _row_span(i, cx, cy, c, s, hL + ring_w + 1e-6, hl + ring_w + 1e-6, j0, j1)
+        for j in range(ja, jb + 1):
             u, v = _uv(i, j, cx, cy, c, s)
             au = abs(u)
             av = abs(v)
             if hL < au <= hL + ring_w and av <= hl:
                 nh += 1
-                fh += filled[i - i0, j - j0]
+                fh += seen[i - i0, j - j0] != 0
             elif hl < av <= hl + ring_w and au <= hL:
                 nv += 1
-                fv += filled[i - i0, j - j0]
+                fv += seen[i - i0, j - j0] != 0
     leak = 0.0
     if nh > 0:
         leak = max(leak, fh / nh)
@@ -373,8 +373,11 @@ def rect_means(rects, field, out):
         rad = math.sqrt(hL * hL + hl * hl) + 1.0
         acc = 0.0
         n = 0
+        j0 = max(int(math.floor(cx - rad)), 0)
+        j1 = min(int(math.ceil(cx + rad)), W - 1)
         for i in range(max(int(math.floor(cy - rad)), 0), min(int(math.ceil(cy + rad)), H - 1) + 1):
-            for j in range(max(int(math.floor(cx - rad)), 0), min(int(math.ceil(cx + rad)), W - 1) + 1):
+            ja, jb = _row_span(i, cx, cy, c, s, hL + 1e-6, hl + 1e-6, j0, j1)  # then every cell is tested
+            for j in range(ja, jb + 1):
                 u, v = _uv(i, j, cx, cy, c, s)
                 if abs(u) <= hL and abs(v) <= hl:
                     x = field[i, j]
@@ -490,7 +493,14 @@ def pair_overlaps(rects, pi, pj, areas, H, W, out):
         j1 = min(int(math.ceil(min(rects[a, 0] + ra, rects[b, 0] + rb))), W - 1)
         inter = 0
         for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
+            # the columns of this row that can be in both (a few 1e-6 cells wider; every cell is then tested)
+            ja, jb = _row_span(
+                i, rects[a, 0], rects[a, 1], ca, sa, 0.5 * rects[a, 2] + 1e-6, 0.5 * rects[a, 3] + 1e-6, j0, j1
+            )
+            ka, kb = _row_span(
+                i, rects[b, 0], rects[b, 1], cb, sb, 0.5 * rects[b, 2] + 1e-6, 0.5 * rects[b, 3] + 1e-6, ja, jb
+            )
+            for j in range(max(ja, ka), min(jb, kb) + 1):
                 u, v = _uv(i, j, rects[a, 0], rects[a, 1], ca, sa)
                 if abs(u) <= 0.5 * rects[a, 2] and abs(v) <= 0.5 * rects[a, 3]:
                     u, v = _uv(i, j, rects[b, 0], rects[b, 1], cb, sb)

@@ -158,7 +158,7 @@ class EnergyModel:
         for k, f in enumerate(features):
             protos = list(prototypes[k]) if prototypes is not None else auto_prototypes(f, params)
             ref = random_rectangles(f, 3000, self.smin, self.smax, params.sigma_theta_deg, rng)
-            lam = self._raw_one(f, ref, -np.inf)[:, self.gradient_column]
+            lam = self._raw_one(f, ref, np.inf)[:, self.gradient_column]  # the gradient only: no homogeneity
             d = float(np.quantile(lam, params.gradient_quantile))
             D = float(np.quantile(lam, 0.99)) - d
             self.terms.append(ImageTerm(f, protos, d, max(D, 0.1 * d, 1e-9)))
@@ -258,9 +258,16 @@ class EnergyModel:
             out[:, F_STANDING] = m
         return out
 
-    def raw(self, rects: np.ndarray) -> dict[str, np.ndarray]:
-        """Raw features of rectangles: per image (``img0``, ``img1``) and over the pair (``change``, ``c3d``)."""
-        out = {f"img{k}": self._raw_one(t.features, rects, self.gates[k]) for k, t in enumerate(self.terms)}
+    def raw(self, rects: np.ndarray, *, for_energy: bool = False) -> dict[str, np.ndarray]:
+        """Raw features of rectangles: per image (``img0``, ``img1``) and over the pair (``change``, ``c3d``).
+
+        ``for_energy``: the homogeneity features (the roof halves' flood fill, most of the kernel's time) only
+        of the rectangles whose φ they can change (:meth:`_raw_lazy`), NaN for the others: φ and
+        A_D are the same, only the homogeneity columns themselves differ."""
+        if for_energy:
+            out = {f"img{k}": self._raw_lazy(k, rects) for k in range(len(self.terms))}
+        else:
+            out = {f"img{k}": self._raw_one(t.features, rects, self.gates[k]) for k, t in enumerate(self.terms)}
         r = np.ascontiguousarray(rects, np.float64)
         if self.similarity is not None:
             m = np.empty(rects.shape[0])
@@ -270,6 +277,28 @@ class EnergyModel:
             m = np.empty(rects.shape[0])
             K.rect_means(r, self.change_prior, m)
             out["c3d"] = np.where(np.isfinite(m), m, 0.5)
+        return out
+
+    def _raw_lazy(self, k: int, rects: np.ndarray) -> np.ndarray:
+        """:meth:`_raw_one` of image ``k`` with the homogeneity features computed only where they can change φ.
+
+        When a prototype without homogeneity exists, φ often does not depend on it: φ = min over prototypes of
+        the max of their energies, so φ is non-decreasing in the homogeneity energy (in [−1, 1]), and when φ is
+        the same with −1 and with +1 it is the same with any value. Those rectangles keep NaN (energy +1)."""
+        t = self.terms[k]
+        if all("homogeneity" in proto for proto in t.prototypes):  # then φ depends on it almost everywhere
+            return self._raw_one(t.features, rects, self.gates[k])
+        out = self._raw_one(t.features, rects, np.inf)  # an infinite gate: no homogeneity
+        if not any("homogeneity" in proto for proto in t.prototypes):
+            return out
+        lo = out.copy()
+        lo[:, K.F_KURTOSIS] = 1e300  # far above both thresholds: the homogeneity energy's lowest value, −1
+        lo[:, K.F_COMPLETE] = 1e300
+        need = np.flatnonzero(self.phi(k, lo) != self.phi(k, out))
+        if need.size:
+            sub = self._raw_one(t.features, rects[need], self.gates[k])
+            out[need, K.F_KURTOSIS] = sub[:, K.F_KURTOSIS]
+            out[need, K.F_COMPLETE] = sub[:, K.F_COMPLETE]
         return out
 
     # --- energies ------------------------------------------------------------------------------
@@ -511,7 +540,7 @@ def optimize(
             cap += grow
         idx = np.arange(n, n + nb)
         if nb:
-            raw = model.raw(new_rects)
+            raw = model.raw(new_rects, for_energy=True)
             rects[idx] = new_rects
             xi[idx] = new_xi
             energy[idx] = model.data_energy(raw, new_xi)
