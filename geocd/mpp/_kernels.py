@@ -34,14 +34,14 @@ from numba import njit
 N_FEATURES = 12
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _uv(i, j, cx, cy, c, s):
     dx = j - cx
     dy = i - cy
     return dx * c - dy * s, dx * s + dy * c
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _row_span(i, cx, cy, c, s, au, av, j0, j1):
     """Columns of row ``i`` (within [j0, j1]) that can satisfy |u| ≤ au and |v| ≤ av."""
     dy = i - cy
@@ -1008,7 +1008,7 @@ def refine_sides_ref(rects, mag, ori, reach, n_along) -> np.ndarray:
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _stencil(H, W, y, x):
     """The bilinear stencil at (row y, col x) of an H × W grid (cell centres at integers):
     (i, j, i1, j1, fy, fx), with i = -1 off the grid."""
@@ -1019,7 +1019,7 @@ def _stencil(H, W, y, x):
     return i, j, min(i + 1, H - 1), min(j + 1, W - 1), y - i, x - j
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _bilinear(a, y, x):
     """Bilinear value of ``a`` at (row y, col x) (cell centres at integers); NaN off the grid."""
     i, j, i1, j1, fy, fx = _stencil(a.shape[0], a.shape[1], y, x)
@@ -1028,7 +1028,7 @@ def _bilinear(a, y, x):
     return (1 - fy) * ((1 - fx) * a[i, j] + fx * a[i, j1]) + fy * ((1 - fx) * a[i1, j] + fx * a[i1, j1])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _bilinear_across(mag, ori, y, x, ang):
     """Bilinear gradient component across a side of map direction ``ang`` (|∇| |cos(ϑ − ang)|); NaN off the grid."""
     i, j, i1, j1, fy, fx = _stencil(mag.shape[0], mag.shape[1], y, x)
@@ -1455,7 +1455,7 @@ def grow_sides_ref(rects, use, ndsms, min_h, smax, frac, valley) -> tuple[np.nda
     return out, grew
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _box(S, q0, q1, p0, p1):
     """Sum of the cells [q0, q1) × [p0, p1) of the array whose integral image is ``S``."""
     return S[q1, p1] - S[q0, p1] - S[q1, p0] + S[q0, p0]
@@ -1471,7 +1471,7 @@ def _integral(a):
     return S
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _notch_span(n, k, sign, ew):
     """On one lattice axis of ``n`` points, a notch of ``k`` points at the ``sign`` end: its range [a, b), the
     cut (the boundary between the notch and the rest: points cut − 1 and cut lie on either side of it), and
