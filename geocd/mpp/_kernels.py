@@ -274,8 +274,9 @@ def _homogeneity(grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spr
     # the symmetry axis: the split whose halves are the more homogeneous (least pooled variance)
     split_v = _pooled_var(mom, 0) <= _pooled_var(mom, 2)
     if not split_v:
-        mom[0] = mom[2]
-        mom[1] = mom[3]
+        for q in range(5):  # element by element: a row assignment compiles numba's broadcasting machinery
+            mom[0, q] = mom[2, q]
+            mom[1, q] = mom[3, q]
     k0 = _kurt(mom[0, 0], mom[0, 1], mom[0, 2], mom[0, 3], mom[0, 4])
     k1 = _kurt(mom[1, 0], mom[1, 1], mom[1, 2], mom[1, 3], mom[1, 4])
     out[F_KURTOSIS] = min(k0, k1) if (k0 == k0 and k1 == k1) else np.nan
@@ -1462,13 +1463,12 @@ def _box(S, q0, q1, p0, p1):
 
 
 @njit(cache=True)
-def _integral(a):
+def _integral(a, S):
+    """The integral image of ``a`` (nv, nu) into ``S`` (nv + 1, nu + 1), zero on its first row and column."""
     nv, nu = a.shape
-    S = np.zeros((nv + 1, nu + 1))
     for q in range(nv):
         for p in range(nu):
             S[q + 1, p + 1] = a[q, p] + S[q, p + 1] + S[q + 1, p] - S[q, p]
-    return S
 
 
 @njit(cache=True)
@@ -1569,11 +1569,11 @@ def carve_corners(rects, use, mags, oris, hmaps, valids, min_h, edge_w, smin, d_
                         d = oris[k, i, j] - th
                         GU[q, p] = mags[k, i, j] * abs(math.cos(d))
                         GV[q, p] = mags[k, i, j] * abs(math.sin(d))
-            SR[a] = _integral(R)
-            SF[a] = _integral(F)
-            SGU[a] = _integral(GU)
-            SGV[a] = _integral(GV)
-            SV[a] = _integral(V)
+            _integral(R, SR[a])  # in place: assigning an array to SR[a] compiles numba's broadcasting
+            _integral(F, SF[a])
+            _integral(GU, SGU[a])
+            _integral(GV, SGV[a])
+            _integral(V, SV[a])
         best = -1.0
         for corner in range(4):
             su = 1 if corner % 2 == 0 else -1
