@@ -1235,6 +1235,49 @@ def fit_sides_ref(
 
 
 @njit(cache=True)
+def _median(a):
+    """``np.median`` of a 1-D float array without NaN: its middle value, or the mean of the two middle ones.
+
+    Quickselect on a copy; numba's ``np.median`` takes seconds to compile."""
+    n = a.shape[0]
+    t = np.empty(n)
+    for q in range(n):
+        t[q] = a[q]
+    h = n // 2
+    lo = 0
+    hi = n - 1
+    while lo < hi:  # t[h] becomes the value of rank h, every value before it ≤ it
+        pivot = t[(lo + hi) // 2]
+        i = lo
+        j = hi
+        while i <= j:
+            while t[i] < pivot:
+                i += 1
+            while t[j] > pivot:
+                j -= 1
+            if i <= j:
+                x = t[i]
+                t[i] = t[j]
+                t[j] = x
+                i += 1
+                j -= 1
+        if h <= j:
+            hi = j
+        elif h >= i:
+            lo = i
+        else:
+            break
+    m = t[h]
+    if n % 2 == 0:  # and the value of rank h − 1: the largest before it
+        below = t[0]
+        for q in range(1, h):
+            if t[q] > below:
+                below = t[q]
+        m = (below + m) / 2
+    return m
+
+
+@njit(cache=True)
 def grow_sides(rects, use, ndsms, min_h, smax, frac, valley, grew):
     """Push each side of each rectangle outward over the raised surface it stands on (in place).
 
@@ -1293,7 +1336,7 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, valley, grew):
                             vals[nv] = x
                             nv += 1
             if nv > 0:
-                medians[k] = np.median(vals[:nv])
+                medians[k] = _median(vals[:nv])
                 levels[k] = max(min_h, 0.5 * medians[k])
         if n_use == 0:
             continue
@@ -1356,7 +1399,7 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, valley, grew):
                     for k in range(m):
                         if not use[r, k] or nh[k] == 0:
                             continue
-                        h = np.median(strip[k, : nh[k]])
+                        h = _median(strip[k, : nh[k]])
                         if valley[k] == valley[k] and h > low[k] + valley[k] and low[k] < medians[k] - valley[k]:
                             valley_at = max(valley_at, low_t[k])
                         if h < low[k]:
