@@ -1197,34 +1197,34 @@ def fit_sides_ref(
                 n_, t_, half_len, ang = (s, c), (c, -s), 0.5 * eL, th + np.pi / 2
             n_along = max(3, int(1.6 * half_len) + 1)
             f = -0.8 + 1.6 * np.arange(n_along) / (n_along - 1)
+            # every offset at once: row q of x, y is the side moved by offs[q]
+            p = pos[side] + sg * offs[:, None]
+            x = cx + p * n_[0] + f * half_len * t_[0]
+            y = cy + p * n_[1] + f * half_len * t_[1]
+            acc, tot, passed = np.zeros(offs.size), np.zeros(offs.size, int), np.zeros(offs.size, int)
+            for k, lev in zip(ks, levels):
+                # the across-side component at the four neighbours, then bilinear (as the kernel)
+                inside, i, j, i1, j1, fy, fx = _stencil_ref(H, W, y, x)
+                gc = [
+                    mags[k][a, b] * np.abs(np.cos(oris[k][a, b] - ang)) for a, b in ((i, j), (i, j1), (i1, j), (i1, j1))
+                ]
+                g = (1 - fy) * ((1 - fx) * gc[0] + fx * gc[1]) + fy * ((1 - fx) * gc[2] + fx * gc[3])
+                g = np.where(inside, g, np.nan)
+                have = np.isfinite(g)
+                tot += have.sum(axis=1)
+                if has_dsm:
+                    h_in = _bilinear_ref(ndsms[k], y - sg * gate_in * n_[1], x - sg * gate_in * n_[0])
+                    h_out = _bilinear_ref(ndsms[k], y + sg * gate_out * n_[1], x + sg * gate_out * n_[0])
+                    with np.errstate(invalid="ignore"):
+                        have &= (h_in > lev) & (h_out < lev)
+                acc += [float(gq[hq].sum()) for gq, hq in zip(g, have)]
+                passed += have.sum(axis=1)
             best, best_d = -1.0, 0.0
-            for d in offs:
-                p = pos[side] + sg * d
-                x = cx + p * n_[0] + f * half_len * t_[0]
-                y = cy + p * n_[1] + f * half_len * t_[1]
-                acc, tot, passed = 0.0, 0, 0
-                for k, lev in zip(ks, levels):
-                    # the across-side component at the four neighbours, then bilinear (as the kernel)
-                    inside, i, j, i1, j1, fy, fx = _stencil_ref(H, W, y, x)
-                    gc = [
-                        mags[k][a, b] * np.abs(np.cos(oris[k][a, b] - ang))
-                        for a, b in ((i, j), (i, j1), (i1, j), (i1, j1))
-                    ]
-                    g = (1 - fy) * ((1 - fx) * gc[0] + fx * gc[1]) + fy * ((1 - fx) * gc[2] + fx * gc[3])
-                    g = np.where(inside, g, np.nan)
-                    have = np.isfinite(g)
-                    tot += int(have.sum())
-                    if has_dsm:
-                        h_in = _bilinear_ref(ndsms[k], y - sg * gate_in * n_[1], x - sg * gate_in * n_[0])
-                        h_out = _bilinear_ref(ndsms[k], y + sg * gate_out * n_[1], x + sg * gate_out * n_[0])
-                        with np.errstate(invalid="ignore"):
-                            have &= (h_in > lev) & (h_out < lev)
-                    acc += float(g[have].sum())
-                    passed += int(have.sum())
-                if tot == 0 or 2 * passed < tot:
+            for q, d in enumerate(offs):
+                if tot[q] == 0 or 2 * passed[q] < tot[q]:
                     continue
-                if acc / tot > best + 1e-12:
-                    best, best_d = acc / tot, d
+                if acc[q] / tot[q] > best + 1e-12:
+                    best, best_d = acc[q] / tot[q], d
             new[side] = pos[side] + sg * best_d
         a_size, b_size = new[0] - new[1], new[2] - new[3]
         if not (smin <= a_size <= smax and smin <= b_size <= smax) or np.array_equal(new, pos):
