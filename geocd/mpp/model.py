@@ -302,41 +302,47 @@ class EnergyModel:
         return out
 
     # --- energies ------------------------------------------------------------------------------
-    def feature_energy(self, k: int, raw: np.ndarray) -> dict[str, np.ndarray]:
-        """φ of every feature of image ``k`` (before combination)."""
+    def feature_energy(self, k: int, raw: np.ndarray, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+        """φ of every feature of image ``k`` (before combination); of the features ``names`` only when given."""
         t = self.terms[k]
         p = self.params
-        e = {
-            "gradient": Q(raw[:, self.gradient_column], t.d_gradient, t.D_gradient),
-            "homogeneity": np.maximum(
+        terms = {
+            "gradient": lambda: Q(raw[:, self.gradient_column], t.d_gradient, t.D_gradient),
+            "homogeneity": lambda: np.maximum(
                 Q(raw[:, K.F_KURTOSIS], p.kurtosis_threshold, 0.5), Q(raw[:, K.F_COMPLETE], 0.5, 0.25)
             ),
-            "colour": np.maximum(Q(raw[:, K.F_COLOUR_IN], 0.5, 0.25), Q(raw[:, K.F_COLOUR_OUT], 0.5, 0.25)),
-            "shadow": np.maximum(Q(raw[:, K.F_SHADOW_IN], 0.5, 0.25), Q(raw[:, K.F_SHADOW_OUT], 0.5, 0.25)),
-            "height": np.maximum(Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25)),
-            "planarity": Q(raw[:, F_PLANAR], 0.5, 0.25),
-            "step": Q(raw[:, F_STEP], 0.5, 0.25),
+            "colour": lambda: np.maximum(Q(raw[:, K.F_COLOUR_IN], 0.5, 0.25), Q(raw[:, K.F_COLOUR_OUT], 0.5, 0.25)),
+            "shadow": lambda: np.maximum(Q(raw[:, K.F_SHADOW_IN], 0.5, 0.25), Q(raw[:, K.F_SHADOW_OUT], 0.5, 0.25)),
+            "height": lambda: np.maximum(Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25)),
+            "planarity": lambda: Q(raw[:, F_PLANAR], 0.5, 0.25),
+            "step": lambda: Q(raw[:, F_STEP], 0.5, 0.25),
         }
-        if p.step == "ring" and np.isfinite(raw[:, F_STEP]).any():
+        e = {name: f() for name, f in terms.items() if names is None or name in names}
+        if "height" in e and p.step == "ring" and np.isfinite(raw[:, F_STEP]).any():
             # raised inside, and outside either ground or a step down (a block among raised neighbours)
             e["height"] = np.maximum(
-                Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), np.minimum(Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25), e["step"])
+                Q(raw[:, K.F_RAISED_IN], 0.5, 0.25),
+                np.minimum(Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25), e["step"] if "step" in e else terms["step"]()),
             )
         return e
 
     def phi(self, k: int, raw: np.ndarray) -> np.ndarray:
         """φ^k(u): AND (max) within a prototype, OR (min) across prototypes; +1 when under half is observed."""
-        e = self.feature_energy(k, raw)
+        e = self.feature_energy(k, raw, {f for proto in self.terms[k].prototypes for f in proto})
         ph = np.min(
             np.stack([np.max(np.stack([e[f] for f in proto]), axis=0) for proto in self.terms[k].prototypes]), axis=0
         )
         return np.where(raw[:, K.F_VALID] >= 0.5, ph, 1.0)
 
-    def data_energy(self, raw: dict[str, np.ndarray], xi: np.ndarray) -> np.ndarray:
-        """A_D(u) for labels ``xi`` (0 = both, 1 = image 1 only, 2 = image 2 only)."""
+    def data_energy(
+        self, raw: dict[str, np.ndarray], xi: np.ndarray, phis: Sequence[np.ndarray] | None = None
+    ) -> np.ndarray:
+        """A_D(u) for labels ``xi`` (0 = both, 1 = image 1 only, 2 = image 2 only); ``phis``: the images' φ of
+        ``raw`` when already computed."""
         xi = np.asarray(xi)
         p = self.params
-        phis = [self.phi(k, raw[f"img{k}"]) for k in range(len(self.terms))]
+        if phis is None:
+            phis = [self.phi(k, raw[f"img{k}"]) for k in range(len(self.terms))]
         if len(phis) == 1:
             return phis[0]
         a = np.where(xi != ONLY_2, phis[0], 0.0) + np.where(xi != ONLY_1, phis[1], 0.0)
@@ -543,8 +549,9 @@ def optimize(
             raw = model.raw(new_rects, for_energy=True)
             rects[idx] = new_rects
             xi[idx] = new_xi
-            energy[idx] = model.data_energy(raw, new_xi)
-            phis[idx] = np.column_stack([model.phi(k, raw[f"img{k}"]) for k in range(len(model.terms))])
+            ph = [model.phi(k, raw[f"img{k}"]) for k in range(len(model.terms))]
+            energy[idx] = model.data_energy(raw, new_xi, ph)
+            phis[idx] = np.column_stack(ph)
             areas[idx] = raw["img0"][:, K.F_AREA]
             cell[idx] = bi * W + bj
             alive[idx] = True
