@@ -34,14 +34,14 @@ from numba import njit
 N_FEATURES = 12
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _uv(i, j, cx, cy, c, s):
     dx = j - cx
     dy = i - cy
     return dx * c - dy * s, dx * s + dy * c
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _row_span(i, cx, cy, c, s, au, av, j0, j1):
     """Columns of row ``i`` (within [j0, j1]) that can satisfy |u| ≤ au and |v| ≤ av."""
     dy = i - cy
@@ -274,8 +274,9 @@ def _homogeneity(grey, valid, cx, cy, c, s, hL, hl, ring_w, flood_tol, flood_spr
     # the symmetry axis: the split whose halves are the more homogeneous (least pooled variance)
     split_v = _pooled_var(mom, 0) <= _pooled_var(mom, 2)
     if not split_v:
-        mom[0] = mom[2]
-        mom[1] = mom[3]
+        for q in range(5):  # element by element: a row assignment compiles numba's broadcasting machinery
+            mom[0, q] = mom[2, q]
+            mom[1, q] = mom[3, q]
     k0 = _kurt(mom[0, 0], mom[0, 1], mom[0, 2], mom[0, 3], mom[0, 4])
     k1 = _kurt(mom[1, 0], mom[1, 1], mom[1, 2], mom[1, 3], mom[1, 4])
     out[F_KURTOSIS] = min(k0, k1) if (k0 == k0 and k1 == k1) else np.nan
@@ -289,10 +290,12 @@ def _completeness(grey, valid, cx, cy, c, s, hL, hl, ring_w, tol, spread, mom, x
     """1 − leak of the flood fill from the roof halves into the end (NH) and side (NV) neighbourhoods.
 
     A half fills the 4-connected cells within ``max(tol, spread × the half's own standard deviation)`` of its
-    mean grey level: a textured surface (grass, asphalt) floods wide and leaks; a roof stops at its edges."""
+    mean grey level: a textured surface (grass, asphalt) floods wide and leaks; a roof stops at its edges.
+    ``seen`` holds which half's fill reached a cell (1, 2; 0: none): the cells either half filled are its
+    non-zero cells. Rows are scanned over the columns that can meet the rectangle's core or rings only
+    (:func:`_row_span`, 1e-6 cells wider; every cell is then tested)."""
     h = i1 - i0 + 1
     w = j1 - j0 + 1
-    filled = np.zeros((h, w), np.uint8)
     seen = np.zeros((h, w), np.uint8)
     stack_i = np.empty(h * w, np.int64)
     stack_j = np.empty(h * w, np.int64)
@@ -302,15 +305,16 @@ def _completeness(grey, valid, cx, cy, c, s, hL, hl, ring_w, tol, spread, mom, x
         ref = mom[half, 1] / mom[half, 0] + x0
         var = mom[half, 2] / mom[half, 0] - (mom[half, 1] / mom[half, 0]) ** 2
         tol_h = max(tol, spread * math.sqrt(max(var, 0.0)))
-        seen[:, :] = 0
+        stamp = half + 1
         top = 0
         for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
+            ja, jb = _row_span(i, cx, cy, c, s, hL - 1.0 + 1e-6, hl - 1.0 + 1e-6, j0, j1)
+            for j in range(ja, jb + 1):
                 u, v = _uv(i, j, cx, cy, c, s)
                 if abs(u) <= hL - 1.0 and abs(v) <= hl - 1.0 and valid[i, j]:
                     hh = (1 if v < 0.0 else 0) if split_v else (1 if u < 0.0 else 0)
-                    if hh == half and abs(grey[i, j] - ref) <= tol_h and seen[i - i0, j - j0] == 0:
-                        seen[i - i0, j - j0] = 1
+                    if hh == half and abs(grey[i, j] - ref) <= tol_h and seen[i - i0, j - j0] != stamp:
+                        seen[i - i0, j - j0] = stamp
                         stack_i[top] = i
                         stack_j[top] = j
                         top += 1
@@ -323,35 +327,32 @@ def _completeness(grey, valid, cx, cy, c, s, hL, hl, ring_w, tol, spread, mom, x
                 jj = j + (1 if k == 2 else (-1 if k == 3 else 0))
                 if ii < i0 or ii > i1 or jj < j0 or jj > j1:
                     continue
-                if seen[ii - i0, jj - j0] or not valid[ii, jj]:
+                if seen[ii - i0, jj - j0] == stamp or not valid[ii, jj]:
                     continue
                 u, v = _uv(ii, jj, cx, cy, c, s)
                 if abs(u) > hL + ring_w or abs(v) > hl + ring_w:
                     continue
                 if abs(grey[ii, jj] - ref) <= tol_h:
-                    seen[ii - i0, jj - j0] = 1
+                    seen[ii - i0, jj - j0] = stamp
                     stack_i[top] = ii
                     stack_j[top] = jj
                     top += 1
-        for i in range(h):
-            for j in range(w):
-                if seen[i, j]:
-                    filled[i, j] = 1
     nh = 0
     fh = 0
     nv = 0
     fv = 0
     for i in range(i0, i1 + 1):
-        for j in range(j0, j1 + 1):
+        ja, jb = _row_span(i, cx, cy, c, s, hL + ring_w + 1e-6, hl + ring_w + 1e-6, j0, j1)
+        for j in range(ja, jb + 1):
             u, v = _uv(i, j, cx, cy, c, s)
             au = abs(u)
             av = abs(v)
             if hL < au <= hL + ring_w and av <= hl:
                 nh += 1
-                fh += filled[i - i0, j - j0]
+                fh += seen[i - i0, j - j0] != 0
             elif hl < av <= hl + ring_w and au <= hL:
                 nv += 1
-                fv += filled[i - i0, j - j0]
+                fv += seen[i - i0, j - j0] != 0
     leak = 0.0
     if nh > 0:
         leak = max(leak, fh / nh)
@@ -373,8 +374,11 @@ def rect_means(rects, field, out):
         rad = math.sqrt(hL * hL + hl * hl) + 1.0
         acc = 0.0
         n = 0
+        j0 = max(int(math.floor(cx - rad)), 0)
+        j1 = min(int(math.ceil(cx + rad)), W - 1)
         for i in range(max(int(math.floor(cy - rad)), 0), min(int(math.ceil(cy + rad)), H - 1) + 1):
-            for j in range(max(int(math.floor(cx - rad)), 0), min(int(math.ceil(cx + rad)), W - 1) + 1):
+            ja, jb = _row_span(i, cx, cy, c, s, hL + 1e-6, hl + 1e-6, j0, j1)  # then every cell is tested
+            for j in range(ja, jb + 1):
                 u, v = _uv(i, j, cx, cy, c, s)
                 if abs(u) <= hL and abs(v) <= hl:
                     x = field[i, j]
@@ -490,7 +494,14 @@ def pair_overlaps(rects, pi, pj, areas, H, W, out):
         j1 = min(int(math.ceil(min(rects[a, 0] + ra, rects[b, 0] + rb))), W - 1)
         inter = 0
         for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
+            # the columns of this row that can be in both (a few 1e-6 cells wider; every cell is then tested)
+            ja, jb = _row_span(
+                i, rects[a, 0], rects[a, 1], ca, sa, 0.5 * rects[a, 2] + 1e-6, 0.5 * rects[a, 3] + 1e-6, j0, j1
+            )
+            ka, kb = _row_span(
+                i, rects[b, 0], rects[b, 1], cb, sb, 0.5 * rects[b, 2] + 1e-6, 0.5 * rects[b, 3] + 1e-6, ja, jb
+            )
+            for j in range(max(ja, ka), min(jb, kb) + 1):
                 u, v = _uv(i, j, rects[a, 0], rects[a, 1], ca, sa)
                 if abs(u) <= 0.5 * rects[a, 2] and abs(v) <= 0.5 * rects[a, 3]:
                     u, v = _uv(i, j, rects[b, 0], rects[b, 1], cb, sb)
@@ -998,7 +1009,7 @@ def refine_sides_ref(rects, mag, ori, reach, n_along) -> np.ndarray:
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _stencil(H, W, y, x):
     """The bilinear stencil at (row y, col x) of an H × W grid (cell centres at integers):
     (i, j, i1, j1, fy, fx), with i = -1 off the grid."""
@@ -1009,7 +1020,7 @@ def _stencil(H, W, y, x):
     return i, j, min(i + 1, H - 1), min(j + 1, W - 1), y - i, x - j
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _bilinear(a, y, x):
     """Bilinear value of ``a`` at (row y, col x) (cell centres at integers); NaN off the grid."""
     i, j, i1, j1, fy, fx = _stencil(a.shape[0], a.shape[1], y, x)
@@ -1018,7 +1029,7 @@ def _bilinear(a, y, x):
     return (1 - fy) * ((1 - fx) * a[i, j] + fx * a[i, j1]) + fy * ((1 - fx) * a[i1, j] + fx * a[i1, j1])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _bilinear_across(mag, ori, y, x, ang):
     """Bilinear gradient component across a side of map direction ``ang`` (|∇| |cos(ϑ − ang)|); NaN off the grid."""
     i, j, i1, j1, fy, fx = _stencil(mag.shape[0], mag.shape[1], y, x)
@@ -1186,34 +1197,34 @@ def fit_sides_ref(
                 n_, t_, half_len, ang = (s, c), (c, -s), 0.5 * eL, th + np.pi / 2
             n_along = max(3, int(1.6 * half_len) + 1)
             f = -0.8 + 1.6 * np.arange(n_along) / (n_along - 1)
+            # every offset at once: row q of x, y is the side moved by offs[q]
+            p = pos[side] + sg * offs[:, None]
+            x = cx + p * n_[0] + f * half_len * t_[0]
+            y = cy + p * n_[1] + f * half_len * t_[1]
+            acc, tot, passed = np.zeros(offs.size), np.zeros(offs.size, int), np.zeros(offs.size, int)
+            for k, lev in zip(ks, levels):
+                # the across-side component at the four neighbours, then bilinear (as the kernel)
+                inside, i, j, i1, j1, fy, fx = _stencil_ref(H, W, y, x)
+                gc = [
+                    mags[k][a, b] * np.abs(np.cos(oris[k][a, b] - ang)) for a, b in ((i, j), (i, j1), (i1, j), (i1, j1))
+                ]
+                g = (1 - fy) * ((1 - fx) * gc[0] + fx * gc[1]) + fy * ((1 - fx) * gc[2] + fx * gc[3])
+                g = np.where(inside, g, np.nan)
+                have = np.isfinite(g)
+                tot += have.sum(axis=1)
+                if has_dsm:
+                    h_in = _bilinear_ref(ndsms[k], y - sg * gate_in * n_[1], x - sg * gate_in * n_[0])
+                    h_out = _bilinear_ref(ndsms[k], y + sg * gate_out * n_[1], x + sg * gate_out * n_[0])
+                    with np.errstate(invalid="ignore"):
+                        have &= (h_in > lev) & (h_out < lev)
+                acc += [float(gq[hq].sum()) for gq, hq in zip(g, have)]
+                passed += have.sum(axis=1)
             best, best_d = -1.0, 0.0
-            for d in offs:
-                p = pos[side] + sg * d
-                x = cx + p * n_[0] + f * half_len * t_[0]
-                y = cy + p * n_[1] + f * half_len * t_[1]
-                acc, tot, passed = 0.0, 0, 0
-                for k, lev in zip(ks, levels):
-                    # the across-side component at the four neighbours, then bilinear (as the kernel)
-                    inside, i, j, i1, j1, fy, fx = _stencil_ref(H, W, y, x)
-                    gc = [
-                        mags[k][a, b] * np.abs(np.cos(oris[k][a, b] - ang))
-                        for a, b in ((i, j), (i, j1), (i1, j), (i1, j1))
-                    ]
-                    g = (1 - fy) * ((1 - fx) * gc[0] + fx * gc[1]) + fy * ((1 - fx) * gc[2] + fx * gc[3])
-                    g = np.where(inside, g, np.nan)
-                    have = np.isfinite(g)
-                    tot += int(have.sum())
-                    if has_dsm:
-                        h_in = _bilinear_ref(ndsms[k], y - sg * gate_in * n_[1], x - sg * gate_in * n_[0])
-                        h_out = _bilinear_ref(ndsms[k], y + sg * gate_out * n_[1], x + sg * gate_out * n_[0])
-                        with np.errstate(invalid="ignore"):
-                            have &= (h_in > lev) & (h_out < lev)
-                    acc += float(g[have].sum())
-                    passed += int(have.sum())
-                if tot == 0 or 2 * passed < tot:
+            for q, d in enumerate(offs):
+                if tot[q] == 0 or 2 * passed[q] < tot[q]:
                     continue
-                if acc / tot > best + 1e-12:
-                    best, best_d = acc / tot, d
+                if acc[q] / tot[q] > best + 1e-12:
+                    best, best_d = acc[q] / tot[q], d
             new[side] = pos[side] + sg * best_d
         a_size, b_size = new[0] - new[1], new[2] - new[3]
         if not (smin <= a_size <= smax and smin <= b_size <= smax) or np.array_equal(new, pos):
@@ -1221,6 +1232,49 @@ def fit_sides_ref(
         mu, mv = 0.5 * (new[0] + new[1]), 0.5 * (new[2] + new[3])
         out[r] = cx + mu * c + mv * s, cy - mu * s + mv * c, a_size, b_size, th
     return out
+
+
+@njit(cache=True)
+def _median(a):
+    """``np.median`` of a 1-D float array without NaN: its middle value, or the mean of the two middle ones.
+
+    Quickselect on a copy; numba's ``np.median`` takes seconds to compile."""
+    n = a.shape[0]
+    t = np.empty(n)
+    for q in range(n):
+        t[q] = a[q]
+    h = n // 2
+    lo = 0
+    hi = n - 1
+    while lo < hi:  # t[h] becomes the value of rank h, every value before it ≤ it
+        pivot = t[(lo + hi) // 2]
+        i = lo
+        j = hi
+        while i <= j:
+            while t[i] < pivot:
+                i += 1
+            while t[j] > pivot:
+                j -= 1
+            if i <= j:
+                x = t[i]
+                t[i] = t[j]
+                t[j] = x
+                i += 1
+                j -= 1
+        if h <= j:
+            hi = j
+        elif h >= i:
+            lo = i
+        else:
+            break
+    m = t[h]
+    if n % 2 == 0:  # and the value of rank h − 1: the largest before it
+        below = t[0]
+        for q in range(1, h):
+            if t[q] > below:
+                below = t[q]
+        m = (below + m) / 2
+    return m
 
 
 @njit(cache=True)
@@ -1282,7 +1336,7 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, valley, grew):
                             vals[nv] = x
                             nv += 1
             if nv > 0:
-                medians[k] = np.median(vals[:nv])
+                medians[k] = _median(vals[:nv])
                 levels[k] = max(min_h, 0.5 * medians[k])
         if n_use == 0:
             continue
@@ -1345,7 +1399,7 @@ def grow_sides(rects, use, ndsms, min_h, smax, frac, valley, grew):
                     for k in range(m):
                         if not use[r, k] or nh[k] == 0:
                             continue
-                        h = np.median(strip[k, : nh[k]])
+                        h = _median(strip[k, : nh[k]])
                         if valley[k] == valley[k] and h > low[k] + valley[k] and low[k] < medians[k] - valley[k]:
                             valley_at = max(valley_at, low_t[k])
                         if h < low[k]:
@@ -1445,23 +1499,22 @@ def grow_sides_ref(rects, use, ndsms, min_h, smax, frac, valley) -> tuple[np.nda
     return out, grew
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _box(S, q0, q1, p0, p1):
     """Sum of the cells [q0, q1) × [p0, p1) of the array whose integral image is ``S``."""
     return S[q1, p1] - S[q0, p1] - S[q1, p0] + S[q0, p0]
 
 
 @njit(cache=True)
-def _integral(a):
+def _integral(a, S):
+    """The integral image of ``a`` (nv, nu) into ``S`` (nv + 1, nu + 1), zero on its first row and column."""
     nv, nu = a.shape
-    S = np.zeros((nv + 1, nu + 1))
     for q in range(nv):
         for p in range(nu):
             S[q + 1, p + 1] = a[q, p] + S[q, p + 1] + S[q + 1, p] - S[q, p]
-    return S
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _notch_span(n, k, sign, ew):
     """On one lattice axis of ``n`` points, a notch of ``k`` points at the ``sign`` end: its range [a, b), the
     cut (the boundary between the notch and the rest: points cut − 1 and cut lie on either side of it), and
@@ -1559,11 +1612,11 @@ def carve_corners(rects, use, mags, oris, hmaps, valids, min_h, edge_w, smin, d_
                         d = oris[k, i, j] - th
                         GU[q, p] = mags[k, i, j] * abs(math.cos(d))
                         GV[q, p] = mags[k, i, j] * abs(math.sin(d))
-            SR[a] = _integral(R)
-            SF[a] = _integral(F)
-            SGU[a] = _integral(GU)
-            SGV[a] = _integral(GV)
-            SV[a] = _integral(V)
+            _integral(R, SR[a])  # in place: assigning an array to SR[a] compiles numba's broadcasting
+            _integral(F, SF[a])
+            _integral(GU, SGU[a])
+            _integral(GV, SGV[a])
+            _integral(V, SV[a])
         best = -1.0
         for corner in range(4):
             su = 1 if corner % 2 == 0 else -1

@@ -158,7 +158,7 @@ class EnergyModel:
         for k, f in enumerate(features):
             protos = list(prototypes[k]) if prototypes is not None else auto_prototypes(f, params)
             ref = random_rectangles(f, 3000, self.smin, self.smax, params.sigma_theta_deg, rng)
-            lam = self._raw_one(f, ref, -np.inf)[:, self.gradient_column]
+            lam = self._raw_one(f, ref, np.inf)[:, self.gradient_column]  # the gradient only: no homogeneity
             d = float(np.quantile(lam, params.gradient_quantile))
             D = float(np.quantile(lam, 0.99)) - d
             self.terms.append(ImageTerm(f, protos, d, max(D, 0.1 * d, 1e-9)))
@@ -258,9 +258,16 @@ class EnergyModel:
             out[:, F_STANDING] = m
         return out
 
-    def raw(self, rects: np.ndarray) -> dict[str, np.ndarray]:
-        """Raw features of rectangles: per image (``img0``, ``img1``) and over the pair (``change``, ``c3d``)."""
-        out = {f"img{k}": self._raw_one(t.features, rects, self.gates[k]) for k, t in enumerate(self.terms)}
+    def raw(self, rects: np.ndarray, *, for_energy: bool = False) -> dict[str, np.ndarray]:
+        """Raw features of rectangles: per image (``img0``, ``img1``) and over the pair (``change``, ``c3d``).
+
+        ``for_energy``: the homogeneity features (the roof halves' flood fill, most of the kernel's time) only
+        of the rectangles whose φ they can change (:meth:`_raw_lazy`), NaN for the others: φ and
+        A_D are the same, only the homogeneity columns themselves differ."""
+        if for_energy:
+            out = {f"img{k}": self._raw_lazy(k, rects) for k in range(len(self.terms))}
+        else:
+            out = {f"img{k}": self._raw_one(t.features, rects, self.gates[k]) for k, t in enumerate(self.terms)}
         r = np.ascontiguousarray(rects, np.float64)
         if self.similarity is not None:
             m = np.empty(rects.shape[0])
@@ -272,42 +279,70 @@ class EnergyModel:
             out["c3d"] = np.where(np.isfinite(m), m, 0.5)
         return out
 
+    def _raw_lazy(self, k: int, rects: np.ndarray) -> np.ndarray:
+        """:meth:`_raw_one` of image ``k`` with the homogeneity features computed only where they can change φ.
+
+        When a prototype without homogeneity exists, φ often does not depend on it: φ = min over prototypes of
+        the max of their energies, so φ is non-decreasing in the homogeneity energy (in [−1, 1]), and when φ is
+        the same with −1 and with +1 it is the same with any value. Those rectangles keep NaN (energy +1)."""
+        t = self.terms[k]
+        if all("homogeneity" in proto for proto in t.prototypes):  # then φ depends on it almost everywhere
+            return self._raw_one(t.features, rects, self.gates[k])
+        out = self._raw_one(t.features, rects, np.inf)  # an infinite gate: no homogeneity
+        if not any("homogeneity" in proto for proto in t.prototypes):
+            return out
+        lo = out.copy()
+        lo[:, K.F_KURTOSIS] = 1e300  # far above both thresholds: the homogeneity energy's lowest value, −1
+        lo[:, K.F_COMPLETE] = 1e300
+        need = np.flatnonzero(self.phi(k, lo) != self.phi(k, out))
+        if need.size:
+            sub = self._raw_one(t.features, rects[need], self.gates[k])
+            out[need, K.F_KURTOSIS] = sub[:, K.F_KURTOSIS]
+            out[need, K.F_COMPLETE] = sub[:, K.F_COMPLETE]
+        return out
+
     # --- energies ------------------------------------------------------------------------------
-    def feature_energy(self, k: int, raw: np.ndarray) -> dict[str, np.ndarray]:
-        """φ of every feature of image ``k`` (before combination)."""
+    def feature_energy(self, k: int, raw: np.ndarray, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+        """φ of every feature of image ``k`` (before combination); of the features ``names`` only when given."""
         t = self.terms[k]
         p = self.params
-        e = {
-            "gradient": Q(raw[:, self.gradient_column], t.d_gradient, t.D_gradient),
-            "homogeneity": np.maximum(
+        terms = {
+            "gradient": lambda: Q(raw[:, self.gradient_column], t.d_gradient, t.D_gradient),
+            "homogeneity": lambda: np.maximum(
                 Q(raw[:, K.F_KURTOSIS], p.kurtosis_threshold, 0.5), Q(raw[:, K.F_COMPLETE], 0.5, 0.25)
             ),
-            "colour": np.maximum(Q(raw[:, K.F_COLOUR_IN], 0.5, 0.25), Q(raw[:, K.F_COLOUR_OUT], 0.5, 0.25)),
-            "shadow": np.maximum(Q(raw[:, K.F_SHADOW_IN], 0.5, 0.25), Q(raw[:, K.F_SHADOW_OUT], 0.5, 0.25)),
-            "height": np.maximum(Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25)),
-            "planarity": Q(raw[:, F_PLANAR], 0.5, 0.25),
-            "step": Q(raw[:, F_STEP], 0.5, 0.25),
+            "colour": lambda: np.maximum(Q(raw[:, K.F_COLOUR_IN], 0.5, 0.25), Q(raw[:, K.F_COLOUR_OUT], 0.5, 0.25)),
+            "shadow": lambda: np.maximum(Q(raw[:, K.F_SHADOW_IN], 0.5, 0.25), Q(raw[:, K.F_SHADOW_OUT], 0.5, 0.25)),
+            "height": lambda: np.maximum(Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25)),
+            "planarity": lambda: Q(raw[:, F_PLANAR], 0.5, 0.25),
+            "step": lambda: Q(raw[:, F_STEP], 0.5, 0.25),
         }
-        if p.step == "ring" and np.isfinite(raw[:, F_STEP]).any():
+        e = {name: f() for name, f in terms.items() if names is None or name in names}
+        if "height" in e and p.step == "ring" and np.isfinite(raw[:, F_STEP]).any():
             # raised inside, and outside either ground or a step down (a block among raised neighbours)
             e["height"] = np.maximum(
-                Q(raw[:, K.F_RAISED_IN], 0.5, 0.25), np.minimum(Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25), e["step"])
+                Q(raw[:, K.F_RAISED_IN], 0.5, 0.25),
+                np.minimum(Q(raw[:, K.F_RAISED_OUT], 0.5, 0.25), e["step"] if "step" in e else terms["step"]()),
             )
         return e
 
     def phi(self, k: int, raw: np.ndarray) -> np.ndarray:
         """φ^k(u): AND (max) within a prototype, OR (min) across prototypes; +1 when under half is observed."""
-        e = self.feature_energy(k, raw)
+        e = self.feature_energy(k, raw, {f for proto in self.terms[k].prototypes for f in proto})
         ph = np.min(
             np.stack([np.max(np.stack([e[f] for f in proto]), axis=0) for proto in self.terms[k].prototypes]), axis=0
         )
         return np.where(raw[:, K.F_VALID] >= 0.5, ph, 1.0)
 
-    def data_energy(self, raw: dict[str, np.ndarray], xi: np.ndarray) -> np.ndarray:
-        """A_D(u) for labels ``xi`` (0 = both, 1 = image 1 only, 2 = image 2 only)."""
+    def data_energy(
+        self, raw: dict[str, np.ndarray], xi: np.ndarray, phis: Sequence[np.ndarray] | None = None
+    ) -> np.ndarray:
+        """A_D(u) for labels ``xi`` (0 = both, 1 = image 1 only, 2 = image 2 only); ``phis``: the images' φ of
+        ``raw`` when already computed."""
         xi = np.asarray(xi)
         p = self.params
-        phis = [self.phi(k, raw[f"img{k}"]) for k in range(len(self.terms))]
+        if phis is None:
+            phis = [self.phi(k, raw[f"img{k}"]) for k in range(len(self.terms))]
         if len(phis) == 1:
             return phis[0]
         a = np.where(xi != ONLY_2, phis[0], 0.0) + np.where(xi != ONLY_1, phis[1], 0.0)
@@ -511,11 +546,12 @@ def optimize(
             cap += grow
         idx = np.arange(n, n + nb)
         if nb:
-            raw = model.raw(new_rects)
+            raw = model.raw(new_rects, for_energy=True)
             rects[idx] = new_rects
             xi[idx] = new_xi
-            energy[idx] = model.data_energy(raw, new_xi)
-            phis[idx] = np.column_stack([model.phi(k, raw[f"img{k}"]) for k in range(len(model.terms))])
+            ph = [model.phi(k, raw[f"img{k}"]) for k in range(len(model.terms))]
+            energy[idx] = model.data_energy(raw, new_xi, ph)
+            phis[idx] = np.column_stack(ph)
             areas[idx] = raw["img0"][:, K.F_AREA]
             cell[idx] = bi * W + bj
             alive[idx] = True

@@ -12,7 +12,7 @@ import json
 import os
 import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -123,6 +123,7 @@ def run_mpp_manifest(
     posting_m: float | None = None,
     overwrite: bool = True,
     stereo_params=None,
+    pair_dems: Mapping[str, Sequence[Any]] | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Orthos of one view per epoch (geocd ortho, stereo DSMs) → marked point process → layers.
@@ -130,7 +131,11 @@ def run_mpp_manifest(
     ``stereo_params`` (a :class:`geocd.stereo.StereoParams`) make the DSMs when none is given. Default: geocd
     stereo's with each cell's own match (no surface median, as ``geocd run``): the height cues measure the DSM's
     noise on the DSM itself (plane-fit residuals of its ground cells), and a median over the matching window
-    smooths that noise away (docs/mpp.md, "The DSM's surface median")."""
+    smooths that noise away (docs/mpp.md, "The DSM's surface median").
+
+    ``pair_dems`` ({epoch: [PairDEM or file, ...]}): an epoch's pair-DEMs from an earlier geocd stereo or geocd
+    run on this run's AOI grid (``geocd run``'s are those of the default ``stereo_params``); its DSM is their
+    median without matching its images again (:func:`geocd.ortho.pipeline.run_ortho`)."""
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import read_band, read_dem
     from ..ortho import OrthoParams
@@ -178,6 +183,7 @@ def run_mpp_manifest(
         params=OrthoParams(),
         overwrite=overwrite,
         stereo_params=stereo_params if stereo_params is not None else change_stereo_params(),
+        pair_dems=pair_dems,
         progress=sub_progress(prog, 0.02, 0.5, "ortho: "),
     )
     ra = orth["results"][f"{ea.name}/{chosen[ea.name].name}"]

@@ -10,8 +10,8 @@ Per image ``<name>``::
     <name>_view.tif     COG float32 (optional): view_zenith_deg, view_azimuth_deg, incidence_deg, px_per_cell
 
 :func:`run_ortho` does every image of a manifest's epochs with one DSM per
-epoch: given (``dsm=``), else geocd stereo's (median of the epoch's pair-DEMs),
-else the epoch's or the manifest's DEM (a terrain DEM gives a classic ortho, not
+epoch: given (``dsm=``), else geocd stereo's (median of the epoch's pair-DEMs, matched here or
+given as ``pair_dems=`` from an earlier geocd stereo or geocd run), else the epoch's or the manifest's DEM (a terrain DEM gives a classic ortho, not
 a true one: buildings lean; a warning says so).
 """
 
@@ -26,10 +26,12 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..camera import Camera
-from ..errors import ConfigError, NoOverlapError
+from ..errors import ConfigError, GridError, NoOverlapError
 from ..geodesy import AOIGrid
 from ..io.raster import write_cog
 from ..progress import Progress, ensure_progress, sub_progress
+from ..stereo.params import surface_median_cells
+from ..stereo.products import PairDEM, read_pair_dem
 from ..stereo.surface import epoch_surface
 from .core import (
     NO_HEIGHT,
@@ -268,6 +270,20 @@ def ortho_image(
 # ---------------------------------------------------------------------------------------------
 # epoch DSMs and the manifest run
 # ---------------------------------------------------------------------------------------------
+def _given_pair_dems(items: Sequence[Any], grid: AOIGrid, epoch: str) -> list:
+    """Pair-DEMs (objects or files, read here) of one epoch, each checked to be on ``grid``."""
+    pds = [p if isinstance(p, PairDEM) else read_pair_dem(p) for p in items]
+    for p in pds:
+        if p.grid != grid:
+            raise GridError(
+                f"pair-DEM {p.name or '?'} of epoch {epoch!r} is on a {p.grid.width} × {p.grid.height}-cell grid at "
+                f"{p.grid.transform.c:.2f}, {p.grid.transform.f:.2f} ({p.grid.posting_m:g} m), not the run's "
+                f"{grid.width} × {grid.height} cells at {grid.transform.c:.2f}, {grid.transform.f:.2f} "
+                f"({grid.posting_m:g} m); give pair-DEMs matched on the run's AOI grid, or none"
+            )
+    return pds
+
+
 def run_ortho(
     manifest,
     *,
@@ -282,6 +298,7 @@ def run_ortho(
     view_bands: bool = False,
     overwrite: bool = True,
     stereo_params=None,
+    pair_dems: Mapping[str, Sequence[Any]] | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Orthoimages of a manifest's images, one DSM per epoch.
@@ -294,6 +311,11 @@ def run_ortho(
     dsm_source : "auto" (the given DSM, else geocd stereo when the epoch has two images, else the
         epoch's or the manifest's DEM), "stereo", or "dem"
     grid : AOI grid (default: the manifest's AOI, as geocd stereo makes it)
+    pair_dems : {epoch: [PairDEM or pair-DEM file, ...]}, optional
+        An epoch's pair-DEMs from an earlier geocd stereo or geocd run on ``grid`` (e.g. its
+        ``stereo/<epoch>/*.tif``): with ``dsm_source`` "auto" or "stereo" and no given DSM, the epoch's
+        DSM is their median, as if matched here, without matching its images again. The DSM's
+        ``surface_median_cells`` tag is the largest surface median their parameters name.
 
     Returns
     -------
@@ -345,6 +367,13 @@ def run_ortho(
         if given is not None and dsm_source in ("auto", "dem"):
             h = read_dem(given, grid=grid).to_ellipsoidal().height_m
             sources[e.name] = f"given: {given}"
+        elif dsm_source in ("auto", "stereo") and pair_dems and pair_dems.get(e.name):
+            pds = _given_pair_dems(pair_dems[e.name], grid, e.name)
+            h = epoch_surface(pds)
+            sources[e.name] = f"geocd stereo: median of {len(pds)} given pair-DEMs"
+            known = [surface_median_cells(p.meta["params"]) for p in pds if p.meta.get("params")]
+            if known:
+                smoothing[e.name] = max(known)
         elif dsm_source in ("auto", "stereo") and len(e.images) >= 2:
             f0 = done / max(n_total, 1)
             st = run_stereo(

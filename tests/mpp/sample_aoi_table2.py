@@ -11,16 +11,23 @@ import pytest
 
 from geocd.mpp.evaluate import rect_masks, sample_truth, table2
 from geocd.mpp.pipeline import dsm_smoothing, run_mpp_manifest
-from geocd.stereo.params import StereoParams
+from geocd.stereo.params import StereoParams, change_stereo_params
 
 
-def check_table2(sample_aoi, tmp_path, stereo, want, want_drop):
+def check_table2(sample_aoi, tmp_path, stereo, want, want_drop, pair_dems=None):
     """``want``: the scoring with the five buildings the border cuts in the truth masks (the default);
-    ``want_drop``: with them left out, the scoring of the earlier figures."""
+    ``want_drop``: with them left out, the scoring of the earlier figures. ``pair_dems``: the epochs' pair-DEMs
+    of geocd mpp's default stereo, made earlier (tests/sample_aoi_cache.py), instead of matching here."""
     sp = None if stereo is None else StereoParams()  # StereoParams(): surface median over the matching window
+    if pair_dems is not None:
+        # the very pair-DEMs geocd mpp's default stereo makes: its parameters (run_ortho checks the grid)
+        assert stereo is None
+        assert all(
+            StereoParams.from_dict(p.meta["params"]) == change_stereo_params() for v in pair_dems.values() for p in v
+        )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        r = run_mpp_manifest(sample_aoi, out_dir=tmp_path / "mpp", stereo_params=sp)
+        r = run_mpp_manifest(sample_aoi, out_dir=tmp_path / "mpp", stereo_params=sp, pair_dems=pair_dems)
     det, grid = r["detection"], r["grid"]
     assert r["params"].height == "and" and r["params"].edge_fit == "joint" and r["params"].seed == 0
     footprints = gpd.read_file(sample_aoi / "truth" / "footprints_all.gpkg")

@@ -130,3 +130,11 @@ def test_rect_steps_match_reference():
     assert out[0] == out[1] == 1.0
     assert out[2] < 0.5 and out[3] < 0.5 and out[4] < 0.5
     assert 5 < (out > 0).sum() < len(rects) - 5
+
+
+def test_median_kernel_is_numpys_median():
+    """The grow kernel's median (quickselect) is ``np.median``: odd and even counts, ties, one value."""
+    rng = np.random.default_rng(3)
+    for n in [1, 2, 3, 4, 5, 8, 33, 200, 201]:
+        for a in (rng.normal(size=n), rng.integers(0, 4, n).astype(float), np.round(rng.normal(size=n), 1)):
+            assert K._median(a) == np.median(a), a

@@ -476,6 +476,34 @@ def _pair_features():
     return s, fa, fb
 
 
+def test_energies_need_the_homogeneity_only_where_it_can_change_phi():
+    """The births' features (``raw(for_energy=True)``) leave out the roof homogeneity where φ is the same with
+    any homogeneity energy: φ and A_D of every label are those of the full features, bit for bit, on random
+    rectangles and the buildings, with the height prototypes (homogeneity skipped for most) and without them
+    (the grey image's one prototype needs it wherever its gradient gate lets it)."""
+    from geocd.mpp.model import EnergyModel
+
+    s, fa, fb = _pair_features()
+    rng = np.random.default_rng(4)
+    rects = np.column_stack(
+        [rng.uniform(0, 200, 400), rng.uniform(0, 200, 400), rng.uniform(12, 60, (400, 2)), rng.uniform(-1.5, 1.5, 400)]
+    )
+    rects = np.concatenate([rects, np.array(s["buildings"], float)])
+    _, B, _ = texture_change(fa, fb)
+    skipped = []
+    for p in (MPPParams(height="and"), MPPParams()):
+        model = EnergyModel([fa, fb], POSTING, p, similarity=B)
+        full, lazy = model.raw(rects), model.raw(rects, for_energy=True)
+        for k in range(2):
+            np.testing.assert_array_equal(model.phi(k, lazy[f"img{k}"]), model.phi(k, full[f"img{k}"]))
+        for x in (0, 1, 2):
+            e = np.full(rects.shape[0], x, np.int8)
+            np.testing.assert_array_equal(model.data_energy(lazy, e), model.data_energy(full, e))
+        skipped.append([np.isnan(r["img0"][:, K.F_COMPLETE]).mean() for r in (lazy, full)])
+    # the grey image's prototype gates the homogeneity by the gradient in both (MPPParams' default)
+    assert skipped[0][0] > skipped[0][1] + 0.5 and skipped[1][0] == skipped[1][1], skipped
+
+
 def test_grow_sides_kernel_matches_reference():
     s, fa, fb = _pair_features()
     rng = np.random.default_rng(2)

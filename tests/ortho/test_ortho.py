@@ -257,3 +257,49 @@ def test_cli_single_image_and_manifest(tmp_path, sample_aoi):
     assert r.exit_code != 0 and "exist" in r.output
     r = CliRunner().invoke(main, ["--progress", "none", "ortho", str(sample_aoi / "images" / "B_sat2.tif")])
     assert r.exit_code != 0 and "--dsm" in r.output
+
+
+def test_manifest_run_on_given_pair_dems(tmp_path, sample_aoi):
+    """An epoch's pair-DEMs from an earlier stereo run make its DSM without matching: their median, the largest
+    surface median they name in its tag; pair-DEMs on another grid are refused before any ortho."""
+    from geocd.io.raster import read_dem
+    from geocd.ortho.pipeline import run_ortho
+    from geocd.stereo.params import StereoParams
+    from geocd.stereo.products import PairDEM
+
+    truth = read_dem(sample_aoi / "truth" / "dsm_A.tif")
+    grid, z = truth.grid, truth.height_m.astype(np.float32)
+    rng = np.random.default_rng(0)
+
+    def pair(dz, k, g=grid, zz=z):
+        valid = rng.random(zz.shape) > 0.2
+        return PairDEM(
+            z_m=np.where(valid, zz + dz, np.nan).astype(np.float32),
+            score=np.zeros(zz.shape, np.float32),
+            g_px_per_m=np.ones(zz.shape, np.float32),
+            valid=valid,
+            grid=g,
+            name=f"p{k}",
+            meta={"params": StereoParams(surface_median=k).to_dict()},
+        )
+
+    pds = [pair(-1.0, 1), pair(0.0, 7), pair(2.0, 1)]
+    got = run_ortho(sample_aoi, epochs=["A"], images=["A_air2"], out_dir=tmp_path, grid=grid, pair_dems={"A": pds})
+    want = np.nanmedian(np.stack([np.where(p.valid, p.z_m, np.nan) for p in pds]), axis=0)
+    with rasterio.open(got["outputs"]["A/dsm"]) as ds:
+        h, filled = ds.read(1), ds.read(2) > 0.5
+        assert ds.tags()["surface_median_cells"] == "7"
+    has = np.isfinite(want)
+    assert np.array_equal(filled, ~has) and np.array_equal(h[has], want[has].astype(np.float32))
+    assert got["dsm_source"]["A"] == "geocd stereo: median of 3 given pair-DEMs" and "A/A_air2" in got["results"]
+    crop = AOIGrid.from_bounds(*grid.bounds[:2], grid.bounds[2] - 10.0, grid.bounds[3], grid.posting_m, grid.crs)
+    with pytest.raises(GridError, match="not the run's"):
+        run_ortho(
+            sample_aoi,
+            epochs=["A"],
+            images=["A_air2"],
+            out_dir=tmp_path / "x",
+            grid=grid,
+            pair_dems={"A": [pair(0.0, 1, crop, z[:, :-20])]},
+        )
+    assert not (tmp_path / "x" / "ortho").exists()
