@@ -16,6 +16,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .._select import select_kth
+
 #: columns of the raw object features (per rectangle and image)
 (
     F_GRADIENT,
@@ -1244,30 +1246,7 @@ def _median(a):
     for q in range(n):
         t[q] = a[q]
     h = n // 2
-    lo = 0
-    hi = n - 1
-    while lo < hi:  # t[h] becomes the value of rank h, every value before it ≤ it
-        pivot = t[(lo + hi) // 2]
-        i = lo
-        j = hi
-        while i <= j:
-            while t[i] < pivot:
-                i += 1
-            while t[j] > pivot:
-                j -= 1
-            if i <= j:
-                x = t[i]
-                t[i] = t[j]
-                t[j] = x
-                i += 1
-                j -= 1
-        if h <= j:
-            hi = j
-        elif h >= i:
-            lo = i
-        else:
-            break
-    m = t[h]
+    m = select_kth(t, n, h)  # every value before rank h is ≤ it
     if n % 2 == 0:  # and the value of rank h − 1: the largest before it
         below = t[0]
         for q in range(1, h):

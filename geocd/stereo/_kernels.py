@@ -24,6 +24,7 @@ from numba import njit, prange
 from numpy.lib.stride_tricks import sliding_window_view
 
 from .._jit import parallel_njit
+from .._select import select_kth as _select
 
 # ---------------------------------------------------------------------------------------------
 # bilinear warp
@@ -775,36 +776,6 @@ def zbuffer_occluded_ref(col, row, z, cost, tol_m, c0, r0, W, H) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # the median of the valid heights around each valid cell
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True, inline="always")
-def _select(buf, n, k):
-    """The k-th smallest of ``buf[:n]`` (0-based), partially reordering it (Wirth's selection); afterwards
-    ``buf[:k]`` holds values ≤ it."""
-    lo = 0
-    hi = n - 1
-    while lo < hi:
-        x = buf[k]
-        i = lo
-        j = hi
-        while True:
-            while buf[i] < x:
-                i += 1
-            while x < buf[j]:
-                j -= 1
-            if i <= j:
-                t = buf[i]
-                buf[i] = buf[j]
-                buf[j] = t
-                i += 1
-                j -= 1
-            if i > j:
-                break
-        if j < k:
-            lo = i
-        if k < i:
-            hi = j
-    return buf[k]
-
-
 @parallel_njit()
 def valid_median(z, r, out):
     """Median of the finite values of ``z`` in the ``(2r+1)²`` window around each cell with a finite ``z``.
