@@ -11,8 +11,9 @@ Per image ``<name>``::
 
 :func:`run_ortho` does every image of a manifest's epochs with one DSM per
 epoch: given (``dsm=``), else geocd stereo's (median of the epoch's pair-DEMs, matched here or
-given as ``pair_dems=`` from an earlier geocd stereo or geocd run), else the epoch's or the manifest's DEM (a terrain DEM gives a classic ortho, not
-a true one: buildings lean; a warning says so).
+given as ``pair_dems=`` from an earlier geocd stereo or geocd run), else the epoch's or the
+manifest's DEM (a terrain DEM gives a classic ortho, not a true one: buildings lean; a warning
+says so).
 """
 
 from __future__ import annotations
