@@ -45,7 +45,7 @@ TERMS_RPC00B = (
 # NaN/inf semantics are kept ("nnan"/"ninf" are not set): the localization relies on them.
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
+@njit(cache=True, forceinline=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _monomials(L, P, H):
     """The 20 RPC00B monomials (and the products the derivatives reuse)."""
     LP = L * P
@@ -77,7 +77,7 @@ def _monomials(L, P, H):
     )
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
+@njit(cache=True, forceinline=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _dot(c, t):
     """c · (1, t...) for the 20-term RPC00B polynomial with monomials ``t`` from :func:`_monomials`."""
     return (
@@ -104,7 +104,7 @@ def _dot(c, t):
     )
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
+@njit(cache=True, forceinline=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _dot_dL(c, L, P, H, t):
     # d/dL of (1, L, P, H, LP, LH, PH, LL, PP, HH, PLH, LLL, LPP, LHH, LLP, PPP, PHH, LLH, PPH, HHH)
     return (
@@ -121,7 +121,7 @@ def _dot_dL(c, L, P, H, t):
     )
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
+@njit(cache=True, forceinline=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _dot_dP(c, L, P, H, t):
     return (
         c[2]
@@ -137,7 +137,7 @@ def _dot_dP(c, L, P, H, t):
     )
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
+@njit(cache=True, forceinline=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _dot_dH(c, L, P, H, t):
     return (
         c[3]
@@ -183,7 +183,7 @@ def rpc_dproj_dh(lon, lat, h, coefs, norm, out_dsamp, out_dline):
         out_dsamp[i] = (_dot_dH(sn_c, L, P, H, t) * d - n * _dot_dH(sd_c, L, P, H, t)) / (d * d) * norm[6] / norm[9]
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
+@njit(cache=True, forceinline=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _residual(coefs, L, P, H, st, lt, ss, ls):
     """Image residual (pixels) of the normalised model at (L, P, H) against targets st, lt."""
     t = _monomials(L, P, H)
@@ -192,7 +192,7 @@ def _residual(coefs, L, P, H, st, lt, ss, ls):
     return rs, rl
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath={"contract", "arcp"})
+@njit(cache=True, forceinline=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _residual_and_jacobian(coefs, L, P, H, st, lt, ss, ls):
     """Residual (pixels) of the normalised model against targets st, lt, and its Jacobian."""
     ln_c, ld_c, sn_c, sd_c = coefs[0], coefs[1], coefs[2], coefs[3]
