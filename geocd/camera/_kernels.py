@@ -351,11 +351,12 @@ def _localize_fast(samp, line, h, coefs, norm, init, tol2, out_lon, out_lat, out
         out_iter[i] = 1 if ok else _REDO
 
 
-@parallel_njit(error_model="numpy", fastmath={"contract", "arcp"})
+# serial: it runs for the few samples the fast pass leaves, and a parallel build costs twice the compile time
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp"})
 def _localize_robust(samp, line, h, coefs, norm, init, tol2, max_iter, out_lon, out_lat, out_iter):
     """Damped Newton (with the multi-start fallback) for the samples marked by the fast pass."""
     ss, ls = norm[6], norm[5]
-    for i in prange(samp.shape[0]):
+    for i in range(samp.shape[0]):
         if out_iter[i] != _REDO:
             continue
         st = (samp[i] - norm[1]) / ss
