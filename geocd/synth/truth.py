@@ -295,6 +295,9 @@ def objects_frame(town: Town, epoch: str, what: str):
             )
     else:
         raise ValueError(f"what must be 'trees' or 'cars', got {what!r}")
+    if not rows:  # a small town may have no cars or trees: an empty layer with the same columns
+        cols = ["tree_id", "crown_r_m", "top_m"] if what == "trees" else ["car_id", "height_m"]
+        return gpd.GeoDataFrame({c: [] for c in cols}, geometry=[], crs=town.frame.crs.to_wkt())
     return gpd.GeoDataFrame(rows, geometry="geometry", crs=town.frame.crs.to_wkt())
 
 

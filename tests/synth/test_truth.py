@@ -132,3 +132,17 @@ def test_image_change_mask_sees_new_building(tiny_params, tiny_town, tiny_scenes
     # identical epochs: nothing changes
     m0, _ = image_change_mask(tiny_town, cam, tiny_scenes["A"], tiny_scenes["A"])
     assert not m0.any()
+
+
+def test_a_town_without_cars_gives_empty_layers_with_their_columns():
+    """A small town may hold no car or tree: its truth layers are empty, not an error."""
+    from geocd.synth.truth import objects_frame
+
+    from geocd.synth.generate import SynthParams
+
+    t = build_town(SynthParams(seed=3, size_m=60.0).town_params())
+    for what, cols in (("cars", {"car_id", "height_m"}), ("trees", {"tree_id", "crown_r_m", "top_m"})):
+        for epoch in ("A", "B"):
+            f = objects_frame(t, epoch, what)
+            assert cols | {"geometry"} <= set(f.columns) and f.crs is not None
+    assert len(objects_frame(t, "A", "cars")) == 0  # the case this guards (seed 3, 60 m: no car)
