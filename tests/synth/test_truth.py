@@ -145,4 +145,4 @@ def test_a_town_without_cars_gives_empty_layers_with_their_columns():
         for epoch in ("A", "B"):
             f = objects_frame(t, epoch, what)
             assert cols | {"geometry"} <= set(f.columns) and f.crs is not None
-    assert len(objects_frame(t, "A", "cars")) == 0  # the case this guards (seed 3, 60 m: no car)
+    assert len(objects_frame(t, "B", "cars")) == 0  # the case this guards (seed 3, 60 m: no car in epoch B)
