@@ -32,12 +32,12 @@ def _integrals(a):
     return s1, s2, sn
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, forceinline=True)
 def _box(s, i0, j0, i1, j1):
     return s[i1, j1] - s[i0, j1] - s[i1, j0] + s[i0, j0]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, forceinline=True)
 def _ncc_one(ref, oth, s1, s2, sn, i, j, ci, cj, P, ma, va):
     """NCC between ref's (2P+1)² window at (i, j) (mean ma, centred sum of squares va) and oth's at (ci, cj)."""
     H, W = oth.shape

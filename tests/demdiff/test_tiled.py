@@ -62,7 +62,8 @@ def shifted_pair(tmp_path_factory):
     return d
 
 
-@pytest.mark.parametrize("case", ["default", pytest.param("tilt", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["default", "tilt"])
 def test_tiled_equals_untiled_bitwise(shifted_pair, tmp_path, case):
     params = DEMDiffParams() if case == "default" else DEMDiffParams(coreg=CoregParams(tilt=True))
     d = shifted_pair

@@ -215,6 +215,7 @@ def test_files_of_other_bands_grids_and_places(files, tmp_path):
         screen_rasters(p["a"], tmp_path / "nocrs.tif")
 
 
+@pytest.mark.slow
 def test_views_without_a_dem_sit_on_the_matched_ground_height(sample_aoi):
     """Without a DEM the views go on a plane at the ground height of a coarse match of two views of one epoch
     (a plane at the cameras' mid height can be hundreds of metres off and misplace every view by its parallax)."""

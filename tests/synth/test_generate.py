@@ -63,6 +63,7 @@ def test_scene_folder_layout_and_manifest(tiny_scene_dir, tiny_params):
             assert 5.0 <= v["off_nadir_deg"] <= 30.0
 
 
+@pytest.mark.slow
 def test_truth_corners_through_written_rpcs(tiny_scene_dir, tiny_params):
     """Building corners through the RPCs read back from the GeoTIFFs land where the renderer drew them."""
     m = load_manifest(tiny_scene_dir.out_dir)
