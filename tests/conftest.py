@@ -21,6 +21,11 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(_var, "1")
 
+# pytest caches its assertion-rewritten test modules (and Python the package's bytecode) in __pycache__, which
+# PYTHONDONTWRITEBYTECODE (set in some containers) forbids: every later run then rewrites ~230 modules again,
+# about 9 s per process. The test run writes them, as it writes numba's cache there.
+sys.dont_write_bytecode = False
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("GEOCD_SHARED_DATA", REPO.parent / "shared" / "data"))
 

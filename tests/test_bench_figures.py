@@ -6,6 +6,8 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+
+import pytest
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +57,7 @@ def test_entries_are_well_formed():
     assert all(e.cost != "quick" or e.minutes <= 5 for e in ENTRIES)
 
 
+@pytest.mark.slow
 def test_list_runs_and_names_every_entry():
     r = subprocess.run(
         [sys.executable, "-m", "bench.figures", "--list"], cwd=REPO, capture_output=True, text=True, timeout=120

@@ -157,6 +157,7 @@ def test_tiled_calibration_of_a_transferred_model_equals_untiled(recs, tmp_path)
             assert a.tags() == b.tags() and "model_calibration" in a.tags()
 
 
+@pytest.mark.slow
 def test_tiled_building_layer_follows_the_schema(recs, tmp_path):
     """`geocd change --tiled --footprints` writes the one building layer: on the exact path the in-memory layer
     (footprints and the new buildings of the change map outside them), on the large-grid path footprint by
@@ -210,6 +211,7 @@ def test_tiled_building_layer_follows_the_schema(recs, tmp_path):
     assert lg["height_before_m"].iloc[0] == pytest.approx(0, abs=1) and lg["height_after_m"].iloc[0] < -4
 
 
+@pytest.mark.slow
 def test_cli_change_footprints_writes_the_building_layer(recs, tmp_path):
     """`geocd change --footprints` in memory: the same building layer as the tiled exact path."""
     from click.testing import CliRunner

@@ -58,6 +58,7 @@ def _params():
     return StereoParams(height_range_m=(H0 - 10.0, H0 + 20.0))
 
 
+@pytest.mark.slow
 def test_strip_runs_and_skips_the_pair_that_does_not_overlap(tmp_path):
     d = _frames_dir(tmp_path, [0.0, 40.0, 80.0, 120.0])
     res = CliRunner().invoke(
