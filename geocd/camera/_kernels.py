@@ -43,6 +43,11 @@ TERMS_RPC00B = (
 # so the loops have no hidden branches and vectorize) and fastmath "contract" + "arcp" (FMA, and
 # divisions may become multiplications by a reciprocal: ~1 ulp, about twice the throughput).
 # NaN/inf semantics are kept ("nnan"/"ninf" are not set): the localization relies on them.
+#
+# The small helpers below are inlined by LLVM (forceinline), not by numba's IR inliner (inline="always"), which
+# type-infers and lowers every inlined copy anew: the localization and projection kernels took 51 s of CPU to
+# compile cold that way, 12 s now. The price: parallel (prange) loops over them are no longer SIMD-vectorized
+# (1e6 localizations on 2 threads: 25 ms then, 75 ms now; serial builds got faster, 160 -> 115 ms).
 
 
 @njit(cache=True, forceinline=True, error_model="numpy", fastmath={"contract", "arcp"})
@@ -323,7 +328,7 @@ _REDO = -2
 
 @parallel_njit(error_model="numpy", fastmath={"contract", "arcp"})
 def _localize_fast(samp, line, h, coefs, norm, init, tol2, out_lon, out_lat, out_iter):
-    """One full Newton step from the cubic start, without branches (the loop vectorizes).
+    """One full Newton step from the cubic start, without branches.
 
     Samples whose residual after the step is not below the tolerance get ``out_iter = -2``.
     """
@@ -402,7 +407,7 @@ def rpc_localize(samp, line, h, coefs, norm, init, tol_px, max_iter, out_lon, ou
     the image of the validity cube, in u = (sn - init[88]) / init[89],
     v = (ln - init[90]) / init[91], used where |u|, |v| <= 1.25.
 
-    Two passes. The fast pass (:func:`_localize_fast`, vectorized) takes one full Newton
+    Two passes. The fast pass (:func:`_localize_fast`) takes one full Newton
     step from the cubic start and keeps it when the image residual is below ``tol_px``
     pixels (nearly every sample: the cubic start is within ~1e-3 px). The robust pass
     (:func:`_localize_robust`) redoes the others with damped Newton: a step that does not
