@@ -197,3 +197,15 @@ def test_pointing_correction_below_its_bias_is_not_applied(pair_dem):
     p = pair_dem.meta["pointing"]
     assert p["total_shift_px"] == [0.0, 0.0]
     assert p["applied"] is False and p["estimated_shift_px"] < StereoParams().min_pointing_px
+
+
+def test_pointing_correlation_is_scipys_fftconvolve_bit_for_bit():
+    """The patch correlation of the pointing estimate: scipy.signal.fftconvolve's 'valid' result, exactly."""
+    from scipy import signal
+
+    from geocd.stereo.pointing import _correlate_valid
+
+    rng = np.random.default_rng(0)
+    for shape_a, shape_k in (((41, 41), (25, 25)), ((57, 63), (31, 29)), ((9, 9), (9, 9))):
+        a, k = rng.normal(size=shape_a), rng.normal(size=shape_k)
+        np.testing.assert_array_equal(_correlate_valid(a, k), signal.fftconvolve(a, k, mode="valid"))
