@@ -305,3 +305,30 @@ def test_nanmedian_stack_equals_numpy(dtype):
         full = np.nan_to_num(a)
         np.testing.assert_array_equal(nanmedian_stack(full), np.median(full, axis=0))
         assert np.isnan(nanmedian_stack(np.full_like(a, np.nan))).all()
+
+
+def test_isotonic_fit_equals_scikit_learns_to_rounding():
+    """Pool-adjacent-violators with weights; gaps (NaN, zero weight) on the line between their fitted neighbours,
+    the ends held, as ``IsotonicRegression(out_of_bounds="clip")`` predicts them."""
+    from sklearn.isotonic import IsotonicRegression
+
+    from geocd.consistency import _isotonic
+
+    rng = np.random.default_rng(1)
+    for t in range(300):
+        n = int(rng.integers(1, 60))
+        y = np.cumsum(rng.normal(0.2, 1.0, n)) if t % 2 else rng.normal(size=n)
+        w = rng.integers(0, 50, n).astype(float)
+        if t % 3 == 0:
+            y[rng.random(n) < 0.2] = np.nan
+        if t % 5 == 0:
+            y = np.round(y, 1)  # ties
+        ok = np.isfinite(y) & (w > 0)
+        got = _isotonic(y, w)
+        if not ok.any():
+            assert np.isnan(got).all()
+            continue
+        x = np.arange(n, dtype=float)
+        want = IsotonicRegression(out_of_bounds="clip").fit(x[ok], y[ok], sample_weight=w[ok]).predict(x)
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
+        assert np.all(np.diff(got) >= -1e-12)
