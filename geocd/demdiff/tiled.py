@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from .._fft import fftconvolve
 from ..errors import ConfigError, EmptyDataError, ProcessingError
 from ..geodesy import AOIGrid, ELLIPSOID, normalize_datum_name, vertical_datum_of
 from ..progress import Progress, ensure_progress, sub_progress
@@ -664,9 +665,7 @@ def _short_conv(a: np.ndarray, split: CovSplit, posting_xy_m) -> np.ndarray:
     """Σ_j a_j C_short(|x − x_j|) on a window (exact where the window holds the radius around x)."""
     if split.short is None:
         return np.zeros(a.shape)
-    from scipy.signal import fftconvolve
-
-    return fftconvolve(a, split.short_kernel(posting_xy_m), mode="same")
+    return fftconvolve(a, split.short_kernel(posting_xy_m), "same")
 
 
 def _t_blocks(arrays, ctx):
@@ -758,9 +757,7 @@ def coarse_sum_variance(S: np.ndarray, Q: float, model: VariogramModel, kernel: 
 
 
 def _coarse_conv(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    from scipy.signal import fftconvolve
-
-    return fftconvolve(a, kernel, mode="same")
+    return fftconvolve(a, kernel, "same")
 
 
 # ------------------------------------------------------------------------------------------

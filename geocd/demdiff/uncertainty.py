@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from .._fft import fftconvolve
 from ..errors import ConfigError, EmptyDataError
 from .stable import nmad
 
@@ -660,8 +661,6 @@ def estimate_uncertainty(
 
 def _k_field(w: np.ndarray, model: VariogramModel, posting_xy_m: tuple[float, float]) -> np.ndarray:
     """K(x) = Σ_j w_j C(|x − x_j|) on the whole grid (FFT convolution with the covariance kernel)."""
-    from scipy.signal import fftconvolve
-
     h, wd = w.shape
     cov = model.covariance(_lag_distance((2 * h - 1, 2 * wd - 1), posting_xy_m))
-    return fftconvolve(w, cov, mode="same")
+    return fftconvolve(w, cov, "same")

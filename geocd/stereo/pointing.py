@@ -24,8 +24,8 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 import numpy as np
-from scipy import fft as sp_fft
 
+from .._fft import fftconvolve
 from ..camera import Camera
 from ..geodesy import AOIGrid
 from .sweep import ImageChip
@@ -42,19 +42,6 @@ def _jacobians(
     return Jxy, np.array([float(dc[0]), float(dr[0])])
 
 
-def _correlate_valid(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """``a`` convolved with ``kernel`` where the kernel lies wholly inside ``a``: (A - K + 1) per axis.
-
-    The same FFT products, padded to the same fast lengths, as ``scipy.signal.fftconvolve(a, kernel, "valid")``
-    (equal to it bit for bit), without importing ``scipy.signal`` (1.5 s of start-up, most of it scipy.stats).
-    """
-    full = [n + k - 1 for n, k in zip(a.shape, kernel.shape)]
-    fshape = [sp_fft.next_fast_len(n, True) for n in full]
-    axes = tuple(range(a.ndim))
-    ret = sp_fft.irfftn(sp_fft.rfftn(a, fshape, axes=axes) * sp_fft.rfftn(kernel, fshape, axes=axes), fshape, axes=axes)
-    return ret[tuple(slice(k - 1, n) for n, k in zip(a.shape, kernel.shape))]
-
-
 def _ncc_shift(a: np.ndarray, b: np.ndarray, max_shift: int) -> tuple[float, float, float]:
     """Shift (drow, dcol) such that b[i + drow, j + dcol] ≈ a[i, j] over the patch, and its NCC peak.
 
@@ -68,10 +55,10 @@ def _ncc_shift(a: np.ndarray, b: np.ndarray, max_shift: int) -> tuple[float, flo
     if na <= 0:
         return np.nan, np.nan, np.nan
     bb = np.nan_to_num(b - np.nanmean(b))
-    num = _correlate_valid(bb, ta[::-1, ::-1])  # (2M+1, 2M+1)
+    num = fftconvolve(bb, ta[::-1, ::-1], "valid")  # (2M+1, 2M+1)
     ones = np.ones_like(ta)
-    s1 = _correlate_valid(bb, ones)
-    s2 = _correlate_valid(bb * bb, ones)
+    s1 = fftconvolve(bb, ones, "valid")
+    s2 = fftconvolve(bb * bb, ones, "valid")
     var = np.maximum(s2 - s1 * s1 / ones.size, 1e-9)
     ncc = num / (na * np.sqrt(var))
     i, j = np.unravel_index(np.argmax(ncc), ncc.shape)

@@ -199,13 +199,11 @@ def test_pointing_correction_below_its_bias_is_not_applied(pair_dem):
     assert p["applied"] is False and p["estimated_shift_px"] < StereoParams().min_pointing_px
 
 
-def test_pointing_correlation_is_scipys_fftconvolve_bit_for_bit():
-    """The patch correlation of the pointing estimate: scipy.signal.fftconvolve's 'valid' result, exactly."""
-    from scipy import signal
+def test_poisson_threshold_is_scipy_stats_isf_plus_one():
+    from scipy.stats import poisson
 
-    from geocd.stereo.pointing import _correlate_valid
+    from geocd.stereo.match import poisson_threshold
 
-    rng = np.random.default_rng(0)
-    for shape_a, shape_k in (((41, 41), (25, 25)), ((57, 63), (31, 29)), ((9, 9), (9, 9))):
-        a, k = rng.normal(size=shape_a), rng.normal(size=shape_k)
-        np.testing.assert_array_equal(_correlate_valid(a, k), signal.fftconvolve(a, k, mode="valid"))
+    for lam in (0.0, 1e-12, 0.01, 0.3, 1.0, 2.5, 7.0, 30.0, 123.4, 1e4):
+        for alpha in (1e-6, 1e-3, 1e-2, 0.05, 0.5):
+            assert poisson_threshold(lam, alpha) == int(poisson.isf(alpha, max(lam, 1e-12))) + 1, (lam, alpha)
