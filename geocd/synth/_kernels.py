@@ -500,6 +500,12 @@ def ground_material(S, x, y):
     """Material of the ground at (x, y): patches, then streets/sidewalks/markings, else grass."""
     for q in range(S.patches.shape[0]):
         pa = S.patches[q]
+        # outside the patch's circumscribed circle (padded far beyond rounding): the rotated test below would
+        # say outside too, without its cosine and sine
+        dx = x - pa[0]
+        dy = y - pa[1]
+        if dx * dx + dy * dy > (pa[2] * pa[2] + pa[3] * pa[3]) * 1.000001 + 1e-6:
+            continue
         c = np.cos(pa[4])
         s = np.sin(pa[4])
         u = (x - pa[0]) * c + (y - pa[1]) * s
