@@ -35,6 +35,7 @@ SceneArrays = namedtuple(
     [
         "terr",  # (ny, nx) float64 heights
         "terr_meta",  # (5,) x0, y0, step, hmin, hmax
+        "terr_block_max",  # (by, bx) the highest of the terrain's posts under each block of TERR_BLOCK cells
         "kind",  # (n,) int64: 0 polyhedron, 1 ellipsoid
         "cls",  # (n,) int64: 1 building, 2 car, 3 tree
         "planes",  # (n, 8, 4) float64: n·p <= d
@@ -56,6 +57,7 @@ SceneArrays = namedtuple(
 
 M_GRASS, M_ASPHALT, M_PAVEMENT, M_SOIL, M_MARKING = 0, 1, 2, 3, 10
 INF = np.inf
+TERR_BLOCK = 8  # terrain cells a side of one block of ``terr_block_max``
 
 
 # ------------------------------------------------------------------------------------------
@@ -165,9 +167,46 @@ def _terrain_f(terr, meta, ox, oy, oz, dx, dy, dz, t):
     return oz + t * dz - h
 
 
+def terrain_block_max(terr: np.ndarray, block: int = TERR_BLOCK) -> np.ndarray:
+    """The highest post of each block of ``block`` × ``block`` terrain cells, its far edges included: (by, bx).
+
+    The bilinear surface of a cell lies between its four posts, so it stays below its block's value."""
+    ny, nx = terr.shape
+    by = (ny - 2) // block + 1
+    bx = (nx - 2) // block + 1
+    out = np.empty((by, bx))
+    for i in range(by):
+        for j in range(bx):
+            out[i, j] = terr[i * block : i * block + block + 1, j * block : j * block + block + 1].max()
+    return out
+
+
 @njit(cache=True)
-def terrain_hit(terr, meta, ox, oy, oz, dx, dy, dz, t0, t1):
-    """First t in [t0, t1] where the ray meets the terrain (inf when it does not)."""
+def _above_block(terr, meta, bmax, x, y, z):
+    """True when z is surely above the terrain at (x, y): above the highest post of its cell's block."""
+    ny, nx = terr.shape
+    fj = (x - meta[0]) / meta[2]
+    fi = (y - meta[1]) / meta[2]
+    if fj < 0.0:
+        fj = 0.0
+    if fj > nx - 1.000001:
+        fj = nx - 1.000001
+    if fi < 0.0:
+        fi = 0.0
+    if fi > ny - 1.000001:
+        fi = ny - 1.000001
+    # 1e-6 m: far above the rounding of the bilinear sum (~1e-13 m at these heights)
+    return z - bmax[np.int64(fi) // TERR_BLOCK, np.int64(fj) // TERR_BLOCK] > 1e-6
+
+
+@njit(cache=True)
+def terrain_hit(terr, meta, bmax, ox, oy, oz, dx, dy, dz, t0, t1):
+    """First t in [t0, t1] where the ray meets the terrain (inf when it does not).
+
+    The ray is marched in steps of at most 1 m of travel in x, y or z, and the first step that ends at or below
+    the surface is refined by regula falsi. A step end surely above its block's highest post (``bmax``,
+    :func:`terrain_block_max`) is passed without evaluating the surface: the same steps, the same answer.
+    """
     hmin = meta[3] - 0.01
     hmax = meta[4] + 0.01
     ta = t0
@@ -186,13 +225,24 @@ def terrain_hit(terr, meta, ox, oy, oz, dx, dy, dz, t0, t1):
     if dz != 0.0:
         step = min(step, 1.0 / abs(dz))
     t = ta
-    f = _terrain_f(terr, meta, ox, oy, oz, dx, dy, dz, t)
-    if f <= 0.0:
-        return t
+    # f at the start of the march: the regula falsi below starts from it whichever step brackets the surface (as
+    # it always has: the committed sample_aoi's pixels depend on it to the last bit); evaluated when needed
+    f = 1.0
+    known = False
+    if not _above_block(terr, meta, bmax, ox + t * dx, oy + t * dy, oz + t * dz):
+        f = _terrain_f(terr, meta, ox, oy, oz, dx, dy, dz, t)
+        known = True
+        if f <= 0.0:
+            return t
     while t < tb:
         tn = min(t + step, tb)
+        if _above_block(terr, meta, bmax, ox + tn * dx, oy + tn * dy, oz + tn * dz):
+            t = tn
+            continue
         fn = _terrain_f(terr, meta, ox, oy, oz, dx, dy, dz, tn)
         if fn <= 0.0:
+            if not known:
+                f = _terrain_f(terr, meta, ox, oy, oz, dx, dy, dz, ta)
             # Illinois (modified regula falsi): f > 0 at lo, f <= 0 at hi
             lo = t
             hi = tn
@@ -393,7 +443,7 @@ def objects_hit(S, ox, oy, oz, dx, dy, dz, t0, t1):
 @njit(cache=True)
 def first_hit(S, ox, oy, oz, dx, dy, dz, t0, t1):
     """First surface along the ray: (t, obj, face) with obj −1 = terrain, −2 = nothing."""
-    tt = terrain_hit(S.terr, S.terr_meta, ox, oy, oz, dx, dy, dz, t0, t1)
+    tt = terrain_hit(S.terr, S.terr_meta, S.terr_block_max, ox, oy, oz, dx, dy, dz, t0, t1)
     tb = tt if tt < t1 else t1
     t, k, f = objects_hit(S, ox, oy, oz, dx, dy, dz, t0, tb)
     if k >= 0 and t <= tb:
@@ -607,7 +657,7 @@ def in_shadow(S, x, y, z, nx, ny, nz, sx, sy, sz):
     ox = x + 2e-3 * nx + 1e-4 * sx
     oy = y + 2e-3 * ny + 1e-4 * sy
     oz = z + 2e-3 * nz + 1e-4 * sz
-    if terrain_hit(S.terr, S.terr_meta, ox, oy, oz, sx, sy, sz, 0.0, INF) < INF:
+    if terrain_hit(S.terr, S.terr_meta, S.terr_block_max, ox, oy, oz, sx, sy, sz, 0.0, INF) < INF:
         return True
     t, k, f = objects_hit(S, ox, oy, oz, sx, sy, sz, 0.0, INF)
     return k >= 0

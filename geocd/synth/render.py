@@ -210,6 +210,7 @@ def pack_scene(town: Town, epoch: Epoch | str) -> K.SceneArrays:
     return K.SceneArrays(
         terr=terr,
         terr_meta=terr_meta,
+        terr_block_max=K.terrain_block_max(terr),
         kind=np.array(kinds, np.int64),
         cls=np.array(clss, np.int64),
         planes=np.ascontiguousarray(np.array(planes, np.float64)),

@@ -64,9 +64,29 @@ def test_terrain_hit_lands_on_the_surface(tiny_town, tiny_scenes):
     rng = np.random.default_rng(2)
     o, d, tm = _random_rays(tiny_town, 500, rng, steep=False)
     for i in range(500):
-        t = K.terrain_hit(S.terr, S.terr_meta, *o[i], *d[i], 0.0, tm[i])
+        t = K.terrain_hit(S.terr, S.terr_meta, S.terr_block_max, *o[i], *d[i], 0.0, tm[i])
         p = o[i] + t * d[i]
         assert abs(p[2] - tiny_town.terrain.at(p[0], p[1])) < 1e-6
+
+
+def test_terrain_block_max_bounds_the_surface_and_skipping_keeps_every_hit(tiny_town, tiny_scenes):
+    """The block maxima lie above the bilinear terrain everywhere (posts on the far edges included), and the march
+    that passes the steps surely above them finds the very t of the march that evaluates every step."""
+    S = tiny_scenes["A"]
+    rng = np.random.default_rng(5)
+    x0, y0, step = S.terr_meta[:3]
+    ny, nx = S.terr.shape
+    xs = rng.uniform(x0 - 5, x0 + step * (nx - 1) + 5, 5000)  # beyond the edges too (clamped)
+    ys = rng.uniform(y0 - 5, y0 + step * (ny - 1) + 5, 5000)
+    for x, y in zip(xs, ys):
+        h, _, _ = K.terrain_at(S.terr, S.terr_meta, x, y)
+        assert not K._above_block(S.terr, S.terr_meta, S.terr_block_max, x, y, h)
+    flat_top = np.full((1, 1), np.inf)  # no step is ever surely above: every step evaluated
+    o, d, tm = _random_rays(tiny_town, 300, rng, steep=False)
+    for i in range(300):
+        assert K.terrain_hit(S.terr, S.terr_meta, S.terr_block_max, *o[i], *d[i], 0.0, tm[i]) == K.terrain_hit(
+            S.terr, S.terr_meta, np.broadcast_to(flat_top, S.terr_block_max.shape).copy(), *o[i], *d[i], 0.0, tm[i]
+        )
 
 
 def test_vertical_rays_give_object_tops(tiny_town, tiny_scenes):

@@ -102,7 +102,7 @@ def test_tall_building_hides_what_is_behind_it(tiny_town, tiny_scenes, cams):
     c, r = cam.project(lon, lat, b.eave_m)
     o, d, tm = camera_rays(tiny_town, cam, np.atleast_1d(c), np.atleast_1d(r), scene_z_band(S))
     # where that ray would meet the bare terrain
-    tg = K.terrain_hit(S.terr, S.terr_meta, *o[0], *d[0], 0.0, tm[0])
+    tg = K.terrain_hit(S.terr, S.terr_meta, S.terr_block_max, *o[0], *d[0], 0.0, tm[0])
     ground = o[0] + tg * d[0]
     glon, glat = tiny_town.frame.to_lonlat(ground[0], ground[1])
     gc, gr = cam.project(glon, glat, ground[2])
