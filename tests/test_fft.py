@@ -2,13 +2,14 @@
 
 import numpy as np
 import pytest
-from scipy import signal
 
 from geocd._fft import fftconvolve
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int32])
 def test_equals_scipy_signal_bit_for_bit(dtype):
+    from scipy import signal  # here, not at the top: 1.5 s of every pytest worker's collection
+
     rng = np.random.default_rng(0)
     # kernels smaller than the array (pointing's patch correlation) and larger (demdiff's covariance kernel)
     for shape_a, shape_k in (((41, 41), (25, 25)), ((57, 63), (31, 29)), ((9, 9), (9, 9)), ((30, 20), (59, 39))):

@@ -2,14 +2,16 @@
 
 import numpy as np
 import pytest
-from sklearn.metrics import roc_auc_score
-from sklearn.metrics import roc_curve as sk_roc_curve
 
 from geocd.change.metrics import roc_curve
 
 
 @pytest.mark.parametrize("levels", [None, 7, 300])
 def test_roc_curve_is_scikit_learns_bit_for_bit(levels):
+    # here, not at the top: scikit-learn is 2 s of every pytest worker's collection
+    from sklearn.metrics import roc_auc_score
+    from sklearn.metrics import roc_curve as sk_roc_curve
+
     rng = np.random.default_rng(5)
     n = 20_000
     truth = rng.random(n) < 0.1
