@@ -27,6 +27,14 @@ from typing import Any, Callable, Iterable, Iterator
 from ..errors import CancelledError, ConfigError, ProcessingError, SchedulerError
 
 LOCAL_KINDS = ("sync", "threads", "processes", "auto")
+#: the environment of the local worker processes: one process per core, so each runs its numba kernels (and any
+#: BLAS) on one thread; with numba's default of one thread per core, n workers would run n² threads on n cores
+ONE_THREAD_PER_PROCESS = {
+    "NUMBA_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+}
 SCHEDULER_HELP = (
     "sync | threads | processes | auto | ADDRESS of a running dask.distributed scheduler (e.g. tcp://127.0.0.1:8786)"
 )
@@ -224,6 +232,7 @@ def open_engine(
                     memory_limit=mem,
                     dashboard_address=None,
                     silence_logs=logging.ERROR,
+                    env=dict(ONE_THREAD_PER_PROCESS),
                 )
                 kind = "processes"
             client = Client(cluster)

@@ -212,8 +212,22 @@ def test_vectors_kept_by_centre_once(tmp_path):
     assert key(merged) == key(whole.vectors)
 
 
+def _worker_threads(_):
+    import os
+
+    import numba
+
+    return os.environ.get("NUMBA_NUM_THREADS"), numba.config.NUMBA_NUM_THREADS
+
+
 @pytest.mark.slow
-def test_processes_scheduler_same_result(tmp_path):
+def test_processes_scheduler_same_result(tmp_path, monkeypatch):
+    """Also: each local worker process runs numba on one thread (whatever this process's setting)."""
+    from geocd.tiling.engine import open_engine
+
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "2")  # what a user's process has on a 2-core machine
+    with open_engine("processes", n_workers=1, memory_limit="1GB") as eng:
+        assert eng.client.submit(_worker_threads, 0).result() == ("1", 1)
     g = _grid()
     a = _field(g)
     run = run_tiled(
