@@ -751,7 +751,8 @@ def stereo_overhead(scene: str, tier: Path, epoch: str, work: Path) -> dict:
     from geocd.io.manifest import load_manifest
     from geocd.pipeline import RunConfig
     from geocd.stereo import read_pair_dem
-    from geocd.stereo.pipeline import load_epoch_images, run_stereo
+    from geocd.stereo.pipeline import run_stereo
+    from geocd.stereo.scene import load_epoch_images
     from geocd.stereo.tiled import _pair_job, run_stereo_tiled
 
     m = load_manifest(scene)

@@ -74,7 +74,7 @@ def load_s2p_dsm() -> tuple[np.ndarray, AOIGrid]:
 
 def load_pair():
     from geocd.io.cameras import load_camera
-    from geocd.stereo.pipeline import read_chip
+    from geocd.stereo.scene import read_chip
 
     ref, grid = load_s2p_dsm()
     cams, chips = [], []
@@ -246,7 +246,7 @@ def pair_bench(grid, ref, cams, chips, repeat: int = 1) -> dict:
 
 def _overlap_images():
     from geocd.io.manifest import parse_manifest
-    from geocd.stereo.pipeline import load_epoch_images
+    from geocd.stereo.scene import load_epoch_images
 
     m = parse_manifest(
         {
@@ -265,7 +265,7 @@ def _overlap_images():
 def area_bench(repeat: int = 1, fractions=(0.25, 0.5, 1.0)) -> dict:
     """The pair on centred sub-grids of the whole overlap (the CLI's default AOI): work per cell vs area."""
     from geocd.stereo import match_pair
-    from geocd.stereo.pipeline import default_aoi_grid, read_chip
+    from geocd.stereo.scene import default_aoi_grid, read_chip
 
     m, ims = _overlap_images()
     t = time.perf_counter()

@@ -174,7 +174,7 @@ def _quicklook_view(manifest, epoch, grid, surface_m: np.ndarray | None):
     from .geodesy import AOIGrid
     from .ortho import OrthoParams, orthorectify
     from .ortho.pipeline import read_image_for_grid
-    from .stereo.pipeline import load_epoch_images
+    from .stereo.scene import load_epoch_images
 
     if surface_m is None or not np.isfinite(surface_m).any() or not epoch.images:
         return QuickLookView(surface_m=surface_m)
@@ -326,7 +326,7 @@ def _check_epochs_overlap(m) -> None:
     """Epochs whose images cover different places cannot be compared: a clear error before any stereo."""
     from .geodesy import as_crs, utm_crs_for
     from .orientation.pipeline import check_epoch_overlap
-    from .stereo.pipeline import load_epoch_images
+    from .stereo.scene import load_epoch_images
 
     by_epoch = {e.name: load_epoch_images(m, e) for e in m.epochs if e.images}
     if len(by_epoch) < 2:
@@ -464,7 +464,8 @@ def _run(m, out: Path, config: RunConfig, prog: Progress, footprints) -> dict[st
             )
     stereo_epochs = [e.name for e in m.epochs if len(e.images) >= 2]
     from .orientation import orient_manifest
-    from .stereo.pipeline import early_resource_check, load_epoch_images
+    from .stereo.pipeline import early_resource_check
+    from .stereo.scene import load_epoch_images
 
     for e in m.epochs:  # the images' cameras first: a damaged camera file is the first thing said
         load_epoch_images(m, e)

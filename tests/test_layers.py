@@ -59,3 +59,64 @@ def test_the_check_sees_relative_and_local_imports():
     names = _imported(PACKAGE / "mpp" / "pipeline.py")
     assert {"geocd.io.manifest.pick_epochs", "geocd.errors.ConfigError"} <= names
     assert _is_door("geocd.pipeline") and _is_door("geocd.cli.common") and not _is_door("geocd.pipelines")
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """geocd's modules and the geocd modules each imports (function-local imports included; a name imported from
+    a module counts as that module)."""
+    mods = {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+    graph: dict[str, set[str]] = {}
+    for m, p in mods.items():
+        graph[m] = set()
+        for name in _imported(p):
+            while name and name not in mods:
+                name = name.rpartition(".")[0]
+            if name and name != m and not m.startswith(name + "."):  # a module's own packages: imported first anyway
+                graph[m].add(name)
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_cycles():
+    """No two geocd modules import each other, directly or through others, even inside functions: a cycle makes
+    the import order matter and hides which layer a module belongs to."""
+    assert _cycles(_import_graph()) == []
+
+
+def test_the_cycle_check_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []

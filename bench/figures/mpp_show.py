@@ -114,7 +114,7 @@ def _town_inputs(town: Path, ortho_dir: Path, fill_holes: bool = True):
     from geocd.io.raster import read_band, read_dem
     from geocd.mpp.features import fill_roof_holes
     from geocd.mpp.pipeline import _filled_band, choose_view
-    from geocd.stereo.pipeline import load_epoch_images
+    from geocd.stereo.scene import load_epoch_images
 
     m = load_manifest(town / "scene.yaml")
     dsm_a, grid = read_band(ortho_dir / "ortho" / "A" / "dsm_A.tif", 1)

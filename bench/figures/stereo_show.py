@@ -29,7 +29,7 @@ sys.path.insert(0, str(REPO))
 
 from geocd.geodesy import AOIGrid  # noqa: E402
 from geocd.stereo import StereoParams, match_pair  # noqa: E402
-from geocd.stereo.pipeline import read_chip  # noqa: E402
+from geocd.stereo.scene import read_chip  # noqa: E402
 
 
 def nmad(x: np.ndarray) -> float:
@@ -320,7 +320,7 @@ def sample(params: StereoParams = StereoParams()) -> dict:
     """sample_aoi: every pair of every epoch vs the truth DSM of its epoch."""
     from geocd.io.manifest import load_manifest
     from geocd.io.raster import read_dem
-    from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images
+    from geocd.stereo.scene import default_aoi_grid, load_epoch_images
 
     m = load_manifest(REPO / "sample_aoi" / "scene.yaml")
     images = {e.name: load_epoch_images(m, e) for e in m.epochs}

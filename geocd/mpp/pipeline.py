@@ -143,7 +143,7 @@ def run_mpp_manifest(
     from ..io.manifest import pick_epochs
     from ..stereo.params import change_stereo_params
     from ..stereo.params import StereoParams
-    from ..stereo.pipeline import default_aoi_grid, load_epoch_images
+    from ..stereo.scene import default_aoi_grid, load_epoch_images
 
     prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)

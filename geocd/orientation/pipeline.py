@@ -26,6 +26,8 @@ import numpy as np
 from ..errors import ConfigError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
+from ..stereo.params import StereoParams
+from ..stereo.scene import default_aoi_grid, footprint_xy, ground_height_hint, image_window_for_grid, load_epoch_images
 from .adjust import OrientationResult, adjust
 from .params import OrientationParams
 from .tiepoints import OrthoView, find_tie_points, ortho_at_height, relief_displacement
@@ -88,7 +90,6 @@ def orient_images(
     from rasterio.windows import Window
 
     from ..io.raster import read_image
-    from ..stereo.pipeline import image_window_for_grid
 
     prog = ensure_progress(progress)
     g = _ortho_grid(grid, params.max_ortho_px)
@@ -133,8 +134,6 @@ def orient_manifest(
     (manifest, report) — the manifest with corrected cameras (or unchanged), and the report dict
     (None when orientation is off).
     """
-    from ..stereo import StereoParams
-    from ..stereo.pipeline import _ground_height_hint, default_aoi_grid, load_epoch_images
     from ..geodesy import as_crs
     from ..io.atomic import write_text_atomic
 
@@ -155,7 +154,7 @@ def orient_manifest(
 
             c = images[0][1].camera.footprint(float(np.mean(images[0][1].camera.height_range() or (0.0, 0.0)))).centroid
             crs0 = utm_crs_for(c.x, c.y)
-        h0 = _ground_height_hint([im for _, im in images], crs0, None, sp)
+        h0 = ground_height_hint([im for _, im in images], crs0, None, sp)
         check_epoch_overlap(by_epoch, crs0, h0, manifest.aoi.bounds if manifest.aoi is not None else None)
         grid = default_aoi_grid(manifest, by_epoch, params=sp, dem_median=h0)
     out = Path(out_dir) / "orientation"
@@ -172,7 +171,7 @@ def orient_manifest(
     if report is None:
         prog(0.0, "relative orientation")
         if h0 is None:
-            h0 = _ground_height_hint([im for _, im in images], as_crs(grid.crs), None, sp)
+            h0 = ground_height_hint([im for _, im in images], as_crs(grid.crs), None, sp)
         res = orient_images(images, grid, h0, p, progress=sub_progress(prog, 0.0, 1.0))
         out.mkdir(parents=True, exist_ok=True)
         cams = res.corrected_cameras([im.camera for _, im in images])
@@ -254,9 +253,8 @@ def check_epoch_overlap(by_epoch: dict, crs, h_m: float, aoi_bounds=None) -> Non
     from shapely.ops import unary_union
 
     from ..errors import NoOverlapError
-    from ..stereo.pipeline import _footprint_xy
 
-    fps = {e: unary_union([_footprint_xy(im.camera, h_m, crs) for im in ims]) for e, ims in by_epoch.items() if ims}
+    fps = {e: unary_union([footprint_xy(im.camera, h_m, crs) for im in ims]) for e, ims in by_epoch.items() if ims}
     names = list(fps)
     for i, a in enumerate(names):
         for b in names[i + 1 :]:

@@ -71,7 +71,7 @@ def read_image_for_grid(
     from rasterio.windows import Window
 
     from ..io.raster import _open, read_image
-    from ..stereo.pipeline import image_window_for_grid
+    from ..stereo.scene import image_window_for_grid
 
     with _open(path) as ds:
         W, H = ds.width, ds.height
@@ -326,7 +326,8 @@ def run_ortho(
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import read_dem
     from ..stereo.params import StereoParams
-    from ..stereo.pipeline import default_aoi_grid, load_epoch_images, run_stereo
+    from ..stereo.pipeline import run_stereo
+    from ..stereo.scene import default_aoi_grid, load_epoch_images
 
     if dsm_source not in ("auto", "stereo", "dem"):
         raise ConfigError(f"dsm_source must be auto, stereo or dem, got {dsm_source!r}")

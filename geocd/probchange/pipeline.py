@@ -2,7 +2,7 @@
 
 The only part of :mod:`geocd.probchange` that touches files (with
 :mod:`geocd.probchange.products`). The AOI grid, epoch choice, image loading and
-image windows come from :mod:`geocd.stereo.pipeline` and :mod:`geocd.pipeline`,
+image windows come from :mod:`geocd.stereo.scene` and :mod:`geocd.pipeline`,
 so every method works on the same grid.
 """
 
@@ -141,7 +141,7 @@ def run_probchange(
     images_a, images_b : names of the images to use in each epoch (default: all); for the object-space
         variant the first one is the reference of "star" pairs
     out_dir : output folder (default: the manifest's output)
-    grid : AOI grid (default: :func:`geocd.stereo.pipeline.default_aoi_grid`)
+    grid : AOI grid (default: :func:`geocd.stereo.scene.default_aoi_grid`)
     write : write the products
 
     Returns
@@ -153,7 +153,7 @@ def run_probchange(
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import read_dem
     from ..io.manifest import pick_epochs
-    from ..stereo.pipeline import default_aoi_grid, image_window_for_grid, load_epoch_images
+    from ..stereo.scene import default_aoi_grid, image_window_for_grid, load_epoch_images
     from .products import write_keyframe_products, write_probchange_products
 
     if variant not in VARIANTS:

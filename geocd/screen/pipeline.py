@@ -598,7 +598,7 @@ def pick_pairs(
     views_a: Sequence[Any], views_b: Sequence[Any], grid: AOIGrid, h: float, pair: tuple[str, str] | None = None
 ) -> tuple[tuple[Any, Any], tuple[Any, Any] | None]:
     """The cross-epoch pair (same sensor kind, closest view directions) and a within-epoch no-change pair."""
-    from ..stereo.pipeline import _sensor_kind
+    from ..stereo.scene import sensor_kind
 
     dirs = {v.name: _view_direction(v.camera, grid, h) for v in [*views_a, *views_b]}
 
@@ -615,15 +615,15 @@ def pick_pairs(
             ) from None
     else:
         cands = [
-            (ang(u, w) + (0 if _sensor_kind(u.camera) == _sensor_kind(w.camera) else 1000), u, w)
+            (ang(u, w) + (0 if sensor_kind(u.camera) == sensor_kind(w.camera) else 1000), u, w)
             for u in views_a
             for w in views_b
         ]
         cross = min(cands, key=lambda x: x[0])[1:]
-    kind = _sensor_kind(cross[0].camera)
+    kind = sensor_kind(cross[0].camera)
     within = []
     for vs in (views_a, views_b):
-        same = [v for v in vs if _sensor_kind(v.camera) == kind]
+        same = [v for v in vs if sensor_kind(v.camera) == kind]
         for i in range(len(same)):
             for j in range(i + 1, len(same)):
                 within.append((ang(same[i], same[j]), same[i], same[j]))
@@ -640,14 +640,14 @@ def flat_ground_height(names: Sequence[tuple[str, Any]], grid: AOIGrid) -> float
     off (an RPC's height range spans its whole scene): every view is then displaced by its parallax and even a
     no-change pair looks unrelated."""
     from ..stereo.params import StereoParams
-    from ..stereo.pipeline import _ground_height_hint
+    from ..stereo.scene import ground_height_hint
 
     by_epoch: dict[str, list] = {}
     for e, v in names:
         by_epoch.setdefault(e, []).append(v)
     two = [vs for vs in by_epoch.values() if len(vs) >= 2]
     views = two[0] if two else [v for _, v in names]
-    return float(_ground_height_hint(views, grid.crs, None, StereoParams()))
+    return float(ground_height_hint(views, grid.crs, None, StereoParams()))
 
 
 def views_on_grid(
@@ -729,7 +729,7 @@ def run_screen_manifest(
     from ..io.manifest import Manifest, load_manifest
     from ..io.raster import read_dem
     from ..io.manifest import pick_epochs
-    from ..stereo.pipeline import default_aoi_grid, load_epoch_images
+    from ..stereo.scene import default_aoi_grid, load_epoch_images
 
     prog = ensure_progress(progress)
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)

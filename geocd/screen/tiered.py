@@ -350,7 +350,7 @@ def run_stereo_screened(
     from ..tiling.params import TilingParams
     from ..io.raster import read_dem
     from ..stereo import read_pair_dem
-    from ..stereo.pipeline import default_aoi_grid, load_epoch_images
+    from ..stereo.scene import default_aoi_grid, load_epoch_images
     from ..stereo.pipeline import run_stereo
     from ..stereo.tiled import run_stereo_tiled, stereo_window_needs
     from .pipeline import run_screen_manifest

@@ -30,11 +30,15 @@ from .scores import mdl_from_stats, mdl_score_ref, ncc_from_stats, ssd_from_stat
 from .sweep import HeightSearch, ImageChip, PlaneSweep, SweepSlice, Tile, iter_tiles, prepare_chip, window_mean
 
 
-def __getattr__(name):  # lazy: the pipeline imports I/O
-    if name in ("run_stereo", "read_chip", "default_aoi_grid", "pair_path", "load_epoch_images"):
+def __getattr__(name):  # lazy: these read and write files
+    if name in ("run_stereo", "pair_path"):
         from . import pipeline
 
         return getattr(pipeline, name)
+    if name in ("read_chip", "default_aoi_grid", "load_epoch_images"):
+        from . import scene
+
+        return getattr(scene, name)
     raise AttributeError(name)
 
 

@@ -13,7 +13,7 @@ from geocd.orientation import OrientationParams, OrientationWarning, orient_imag
 from geocd.orientation._kernels import ncc_at_offsets, ncc_at_offsets_ref
 from geocd.orientation.adjust import adjust
 from geocd.orientation.tiepoints import TiePoints, band_offsets, square_offsets
-from geocd.stereo.pipeline import EpochImage
+from geocd.stereo.scene import EpochImage
 
 
 def test_ncc_kernel_matches_reference():

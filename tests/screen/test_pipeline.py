@@ -222,7 +222,7 @@ def test_views_without_a_dem_sit_on_the_matched_ground_height(sample_aoi):
     from geocd.io.manifest import load_manifest
     from geocd.io.raster import read_dem
     from geocd.screen.pipeline import flat_ground_height
-    from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images
+    from geocd.stereo.scene import default_aoi_grid, load_epoch_images
 
     m = load_manifest(sample_aoi)
     vb = load_epoch_images(m, m.epoch("B"))

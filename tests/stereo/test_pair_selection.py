@@ -13,7 +13,7 @@ from geocd.cli import main
 from geocd.errors import NoOverlapError
 from geocd.io.manifest import load_manifest
 from geocd.io.raster import write_image
-from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images
+from geocd.stereo.scene import default_aoi_grid, load_epoch_images
 
 
 def _frames_dir(tmp_path, xs, *, altitude_m=60.0, k1=0.0):

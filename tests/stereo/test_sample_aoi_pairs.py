@@ -14,7 +14,7 @@ from scipy.stats import mannwhitneyu
 from geocd.io.manifest import load_manifest
 from geocd.io.raster import read_dem
 from geocd.stereo import match_pair
-from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images, read_chip
+from geocd.stereo.scene import default_aoi_grid, load_epoch_images, read_chip
 
 
 @pytest.fixture(scope="module")

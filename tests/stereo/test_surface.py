@@ -131,7 +131,7 @@ def test_ground_height_hint_uses_matches_flagged_only_for_an_incomplete_search()
     still reads their heights, but not those at the range's ends nor cells failing another test."""
     from geocd.geodesy import AOIGrid, as_crs
     from geocd.stereo import PairDEM
-    from geocd.stereo.pipeline import _hint_from_match
+    from geocd.stereo.scene import _hint_from_match
 
     grid = AOIGrid.from_bounds(500000.0, 4000000.0, 500020.0, 4000020.0, 1.0, as_crs("EPSG:32631"))
     z_raw = np.full(grid.shape, 2300.0, np.float32)

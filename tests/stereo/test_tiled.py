@@ -59,7 +59,7 @@ def test_stereo_tiled_matches_untiled_accuracy(sample_aoi, tmp_path):
 def test_stereo_margin_grows_with_height_range_and_window(sample_aoi):
     from geocd.io.manifest import load_manifest
     from geocd.stereo.params import StereoParams
-    from geocd.stereo.pipeline import default_aoi_grid, load_epoch_images
+    from geocd.stereo.scene import default_aoi_grid, load_epoch_images
 
     m = load_manifest(sample_aoi / "scene.yaml")
     ims = load_epoch_images(m, m.epoch("B"))

@@ -81,7 +81,7 @@ def test_tiny_scene_truth_and_manifest(tiny_scene):
     import geopandas as gpd
 
     from geocd.io.manifest import load_manifest
-    from geocd.stereo.pipeline import load_epoch_images
+    from geocd.stereo.scene import load_epoch_images
 
     out, p, r = tiny_scene
     b = gpd.read_file(out / "truth" / "buildings.gpkg")
