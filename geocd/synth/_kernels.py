@@ -133,9 +133,9 @@ def vnoise_many(x, y, z, seed, out):
 # ------------------------------------------------------------------------------------------
 # geometry
 # ------------------------------------------------------------------------------------------
-@njit(cache=True)
-def terrain_at(terr, meta, x, y):
-    """Bilinear height and its gradient (clamped at the grid edges)."""
+@njit(cache=True, inline="always")
+def _terrain_cell(terr, meta, x, y):
+    """(row, col) of (x, y) in the terrain's posts, fractional, clamped inside the last cell."""
     ny, nx = terr.shape
     fj = (x - meta[0]) / meta[2]
     fi = (y - meta[1]) / meta[2]
@@ -147,6 +147,13 @@ def terrain_at(terr, meta, x, y):
         fi = 0.0
     if fi > ny - 1.000001:
         fi = ny - 1.000001
+    return fi, fj
+
+
+@njit(cache=True)
+def terrain_at(terr, meta, x, y):
+    """Bilinear height and its gradient (clamped at the grid edges)."""
+    fi, fj = _terrain_cell(terr, meta, x, y)
     j = np.int64(np.floor(fj))
     i = np.int64(np.floor(fi))
     a = fj - j
@@ -184,17 +191,7 @@ def terrain_block_max(terr: np.ndarray, block: int = TERR_BLOCK) -> np.ndarray:
 @njit(cache=True)
 def _above_block(terr, meta, bmax, x, y, z):
     """True when z is surely above the terrain at (x, y): above the highest post of its cell's block."""
-    ny, nx = terr.shape
-    fj = (x - meta[0]) / meta[2]
-    fi = (y - meta[1]) / meta[2]
-    if fj < 0.0:
-        fj = 0.0
-    if fj > nx - 1.000001:
-        fj = nx - 1.000001
-    if fi < 0.0:
-        fi = 0.0
-    if fi > ny - 1.000001:
-        fi = ny - 1.000001
+    fi, fj = _terrain_cell(terr, meta, x, y)
     # 1e-6 m: far above the rounding of the bilinear sum (~1e-13 m at these heights)
     return z - bmax[np.int64(fi) // TERR_BLOCK, np.int64(fj) // TERR_BLOCK] > 1e-6
 
