@@ -27,7 +27,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..camera import Camera
-from ..errors import ConfigError, GridError, NoOverlapError
+from ..errors import ConfigError, GridError
 from ..geodesy import AOIGrid
 from ..io.raster import write_cog
 from ..progress import Progress, ensure_progress, sub_progress
@@ -68,23 +68,14 @@ def read_image_for_grid(
     -------
     data (bands, rows, cols) native dtype, valid bool (rows, cols), col0, row0, band names (list of str)
     """
-    from rasterio.windows import Window
-
-    from ..io.raster import _open, read_image
-    from ..stereo.scene import image_window_for_grid
+    from ..io.raster import _open
+    from ..stereo.scene import read_grid_window
 
     with _open(path) as ds:
         W, H = ds.width, ds.height
         desc = list(ds.descriptions)
         interp = [ci.name for ci in ds.colorinterp]
-    box = image_window_for_grid(camera, grid, lo_m, hi_m, margin_px, W, H)
-    if box is None:
-        raise NoOverlapError(
-            f"image {path} does not see the AOI {grid.bounds} ({grid.crs.name}) at heights "
-            f"{lo_m:.0f}..{hi_m:.0f} m; check the AOI, the image's camera and the DSM"
-        )
-    c0, r0, c1, r1 = box
-    img = read_image(path, window=Window(c0, r0, c1 - c0, r1 - r0))
+    img, c0, r0 = read_grid_window(path, camera, grid, lo_m, hi_m, W, H, margin_px=margin_px, check="the DSM")
     names = [
         d if d else (i if i not in ("undefined", "gray") or img.bands > 1 else "gray") for d, i in zip(desc, interp)
     ]

@@ -90,6 +90,40 @@ def image_window_for_grid(
     return c0, r0, c1, r1
 
 
+def read_grid_window(
+    path: os.PathLike | str,
+    camera: Camera,
+    grid: AOIGrid,
+    lo_m: float,
+    hi_m: float,
+    width: int,
+    height: int,
+    *,
+    margin_px: int,
+    check: str,
+):
+    """Read the window of a ``width`` × ``height`` image that the grid sees between two heights.
+
+    Returns
+    -------
+    (RasterImage of the window, col0, row0)
+
+    Raises
+    ------
+    NoOverlapError
+        The image does not see the AOI at any height in [lo_m, hi_m]; the message ends with ``check``, what to
+        check besides the AOI and the camera.
+    """
+    box = image_window_for_grid(camera, grid, lo_m, hi_m, margin_px, width, height)
+    if box is None:
+        raise NoOverlapError(
+            f"image {path} does not see the AOI {grid.bounds} ({grid.crs.name}) at heights "
+            f"{lo_m:.0f}..{hi_m:.0f} m; check the AOI, the image's camera and {check}"
+        )
+    c0, r0, c1, r1 = box
+    return read_image(path, window=Window(c0, r0, c1 - c0, r1 - r0)), c0, r0
+
+
 def read_chip(
     path: os.PathLike | str,
     camera: Camera,
@@ -112,14 +146,7 @@ def read_chip(
     """
     with _open(path) as ds:
         W, H = ds.width, ds.height
-    box = image_window_for_grid(camera, grid, lo_m, hi_m, margin_px, W, H)
-    if box is None:
-        raise NoOverlapError(
-            f"image {path} does not see the AOI {grid.bounds} ({grid.crs.name}) at heights "
-            f"{lo_m:.0f}..{hi_m:.0f} m; check the AOI, the image's camera and the height range"
-        )
-    c0, r0, c1, r1 = box
-    img = read_image(path, window=Window(c0, r0, c1 - c0, r1 - r0))
+    img, c0, r0 = read_grid_window(path, camera, grid, lo_m, hi_m, W, H, margin_px=margin_px, check="the height range")
     return prepare_chip(img.data, img.valid, col0=c0, row0=r0, name=name or Path(path).stem, block_px=block_px)
 
 
