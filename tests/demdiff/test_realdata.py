@@ -59,6 +59,8 @@ def test_msh_2_27_no_stable_terrain_and_underconstrained_mask():
     da, db, obs = _msh(2, 27)
     r = dem_difference(da, db, observed=obs)
     assert r.status == "no_stable_terrain" and r.coreg.shift_m == (0.0, 0.0, 0.0)
+    # the README's whole-process row (`geocd demdiff 2.tif 27.tif --base …`): net +20.551 Mm³ over the common area
+    assert r.summary["volume_net_observed_m3"] == pytest.approx(20.551e6, abs=0.05e6)
     # a user mask of the 93 cells with |dh| < 5 m: xDEM's Nuth–Kääb fits 79 of them and applies the shift;
     # geocd reports the fit as under-constrained and does not move the DEM horizontally
     dh = db.height_m.astype(float) - da.height_m
