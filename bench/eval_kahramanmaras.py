@@ -230,6 +230,7 @@ def evaluate(
     cars: tuple | None = None,
     tree_rule: str | None = None,
     changed_part: bool = False,
+    split_changed: bool = True,
 ) -> tuple[dict, object, object, np.ndarray]:
     from geocd.consistency import ChangeParams, SelfConsistencyModel, change_test
     from geocd.change.dsm_buildings import DSMBuildingParams, stable_false_alarms
@@ -241,7 +242,9 @@ def evaluate(
         recs["pre_event"], recs["post_event"], model, ChangeParams(significance=significance, calibration=calibration)
     )
     grid = recs["pre_event"][0].grid
-    bp = DSMBuildingParams(tree_rule=tree_rule or DSMBuildingParams().tree_rule, changed_part=changed_part)
+    bp = DSMBuildingParams(
+        tree_rule=tree_rule or DSMBuildingParams().tree_rule, changed_part=changed_part, split_changed=split_changed
+    )
     damage, dtm = _building_layer(
         None, res, grid, recs["pre_event"], recs["post_event"], model, 99.0, "pre_event", "post_event", bp
     )

@@ -279,7 +279,12 @@ def run_building_layer(
         config.region_confidence,
         name_a,
         name_b,
-        DSMBuildingParams(min_observed=bp.min_observed, min_changed=bp.min_changed, changed_part=bp.changed_part),
+        DSMBuildingParams(
+            min_observed=bp.min_observed,
+            min_changed=bp.min_changed,
+            changed_part=bp.changed_part,
+            split_changed=bp.split_changed,
+        ),
         building_params=bp,
     )
 

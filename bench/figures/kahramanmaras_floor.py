@@ -10,7 +10,8 @@ This script splits those cells (region test, calibrated: the default) into
   change map's mapping unit), grouped by what they were judged to be **by eye** on the pre | post orthos
   (docs/kahramanmaras.md, "The changed-part rule", and its picture ``kahramanmaras_changed_part.png``): the 18
   objects the changed-part option moves plus the 4 parts its tree test removed. The labels were made before
-  this count, for that section, and no constant depends on them.
+  this count, for that section, and no constant depends on them. They name objects of the layer made without
+cutting changed parts out of merged objects (``split_changed=False``), so the split is made on that layer.
 
 A perfect building layer (every demolished, rebuilt or raised building its own changed object, exact
 outlines) would still leave the first group and the by-eye trees and roadworks in "stable": that sum is the
@@ -61,7 +62,7 @@ def _part_cells(labels: np.ndarray, sign: np.ndarray, ids, mmu: int) -> int:
 def floor_figures(run: Path) -> dict:
     """The split of the stable cells flagged at 99 % (shares of the stable cells; module doc)."""
     recs = E._recs(run)
-    _, damage, res, dtm = E.evaluate(run, run / "self_consistency_model.json", "region", recs=recs)
+    _, damage, res, dtm = E.evaluate(run, run / "self_consistency_model.json", "region", recs=recs, split_changed=False)
     grid = recs["pre_event"][0].grid
     m = E.false_alarm_masks(res, damage, grid, recs, dtm)
     stable, flag, in_building, trees = m["stable"], m["flag"], m["in_building"], m["trees"]

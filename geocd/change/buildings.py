@@ -28,6 +28,8 @@ reports inside a building does not leave it "unchanged"; the class follows the p
 **Off by default** (``changed_part``): on the generated towns it moves no class, and on the
 real Kahramanmaraş pair, with building objects from a DSM, most of the parts it adds are
 felled trees and roadworks inside the objects' outlines (docs/kahramanmaras.md).
+Buildings derived from a DSM instead have their building-sized changed parts cut out into buildings of their
+own (``split_changed``, on: :func:`geocd.change.dsm_buildings.split_changed_parts`).
 The ground-level test uses a ring of cells ``ring_m`` wide around the
 footprint (minus other footprints), so no bare-earth DEM is needed; a given
 DEM is used instead when provided.
@@ -57,6 +59,9 @@ class BuildingParams:
     ground_tol_m: float = 1.5
     ring_m: float = 4.0
     changed_part: bool = False
+    #: buildings derived from a DSM (no footprints): cut building-sized changed parts out of merged objects
+    #: (:func:`geocd.change.dsm_buildings.split_changed_parts`)
+    split_changed: bool = True
 
 
 def largest_parts(change_mask: np.ndarray, labels: np.ndarray, n: int, keep=None) -> tuple[np.ndarray, np.ndarray]:

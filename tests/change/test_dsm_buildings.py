@@ -140,6 +140,46 @@ def test_a_new_building_joined_to_a_standing_one_is_found():
     assert (dmg[dmg["source"] == "A DSM"]["class"] == "unchanged").all()
 
 
+def test_a_cleared_building_in_a_block_of_touching_ones_is_one_cleared_building():
+    """Three buildings of one height wall to wall make one DSM object (no neck for the watershed to split).
+    The middle one is cleared: it comes out as one collapsed building of its own size, and its two neighbours
+    — apart now — as two unchanged buildings, not as one merged object a third changed."""
+    from types import SimpleNamespace
+
+    from geocd.pipeline import _building_layer
+
+    rng = np.random.default_rng(4)
+    H, W = GRID.shape
+    r, c = np.mgrid[0:H, 0:W]
+    ground = 700.0 + 0.02 * c * 0.5
+    z_a = ground + rng.normal(0, 0.15, (H, W))
+    r0, r1 = 100, 140  # 20 m deep
+    cols = [(60, 92), (92, 124), (124, 156)]  # three 16 m wide buildings, wall to wall
+    for c0, c1 in cols:
+        z_a[r0:r1, c0:c1] = ground[r0:r1, c0:c1] + 15.0 + rng.normal(0, 0.1, (r1 - r0, c1 - c0))
+    z_a[rng.random(z_a.shape) < 0.05] = np.nan
+    bld, _, _ = buildings_from_dsm(z_a, GRID)
+    assert len(bld) == 1  # the block is one object of the DSM
+    z_b = z_a.copy()
+    c0, c1 = cols[1]
+    z_b[r0:r1, c0:c1] = ground[r0:r1, c0:c1] + 0.5 + rng.normal(0, 0.15, (r1 - r0, c1 - c0))  # cleared
+    low = np.nan_to_num(z_b - z_a) < -2
+    res = _result(z_a, z_b, low, np.zeros_like(low))
+
+    def rec(z):
+        return SimpleNamespace(z_m=z, valid=np.isfinite(z))
+
+    dmg, _ = _building_layer(None, res, GRID, [rec(z_a)], [rec(z_b)], None, 99.0, "A", "B")
+    check_building_layer(dmg)
+    assert sorted(dmg["class"]) == ["collapsed", "unchanged", "unchanged"], dmg[["class", "area_m2"]]
+    gone = dmg[dmg["class"] == "collapsed"].iloc[0]
+    assert gone["area_m2"] == pytest.approx(16 * 20, rel=0.15)
+    x = 500000.0 + 0.5 * (c0 + c1) / 2
+    assert gone.geometry.bounds[0] < x < gone.geometry.bounds[2]
+    assert np.allclose(dmg[dmg["class"] == "unchanged"]["area_m2"], 16 * 20, rtol=0.2)
+    assert gone["height_before_m"] == pytest.approx(15.0, abs=0.7) and gone["height_after_m"] < 1.5
+
+
 GRID_SMALL = AOIGrid.from_bounds(500000.0, 4000000.0, 500060.0, 4000060.0, 0.5, "EPSG:32637")
 
 
