@@ -313,6 +313,23 @@ ENTRIES: tuple[Entry, ...] = (
     ),
     # ------------------------------------------------------------------ Kahramanmaraş analyses
     Entry(
+        "kahramanmaras_classes",
+        ("kahramanmaras_classes.png",),
+        "the largest buildings of each class of the run's building layer: pre | post orthos with the outline | "
+        "every object nearby in its class colour",
+        "bench/figures/kahramanmaras_classes.py",
+        (
+            _cmd(
+                "{python} bench/figures/kahramanmaras_classes.py --run "
+                + KAHRA
+                + " --per-class 2 --out {docs}/kahramanmaras_classes.png"
+            ),
+        ),
+        data=("cnes_picanteo_kahramanmaras",),
+        needs=("kahramanmaras_orthos",),
+        minutes=0.2,
+    ),
+    Entry(
         "kahramanmaras_changed_part",
         ("kahramanmaras_changed_part.png",),
         "the buildings the changed-part option moves: pre | post orthos with the outline | cells flagged at 99 %",
