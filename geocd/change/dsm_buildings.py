@@ -2,12 +2,8 @@
 
 For a city without a cadastre (disaster response), the pre-event DSM itself says where the buildings were:
 
-1. **Ground model** (:func:`ground_model`): a progressive morphological filter (Zhang et al. 2003) on the
-   gap-filled DSM: openings with square windows of growing size (2.5 … ``max_building_m``); a cell is
-   off-ground when it stands above the opening by more than ``dh0 + slope·w`` (bounded by ``dh_max``).
-   Ground cells are resampled to ``ground_block_m`` blocks (median) and interpolated back (bilinear over
-   filled blocks), which gives a smooth DTM under the buildings; twice, the cells within ``dh0 + 0.5`` m of
-   that surface join the ground and it is interpolated again (an opening sits below sloping ground).
+1. **Ground model** (:func:`ground_model`): the progressive morphological filter of :mod:`geocd.terrain` on the
+   gap-filled DSM.
 2. **Building mask**: height above the ground ``≥ min_height_m`` (one storey); tree-like objects are dropped
    (``tree_rule``, :class:`DSMBuildingParams`). The default, ``"plane"``: an object is a tree when the median of
    its cells' best-of-nine 3 × 3 plane residual exceeds 7.5 cm (or the 75th percentile of that residual on
@@ -54,7 +50,6 @@ footprints the new buildings of the change map that stand outside all of them.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -62,6 +57,8 @@ from scipy import ndimage as ndi
 
 from ..errors import ConfigError
 from ..mpp.features import planar_cells, plane_residual
+from ..terrain import fill_gaps
+from ..terrain import ground_model as terrain_ground
 from .building_layer import (
     CHANGED,
     CLASSES,
@@ -141,70 +138,17 @@ class DSMBuildingParams:
             raise ConfigError(f"tree_residual_m must be > 0 (m), got {self.tree_residual_m}")
 
 
-def fill_gaps(z: np.ndarray) -> np.ndarray:
-    """NaN cells take the value of the nearest valid cell."""
-    bad = ~np.isfinite(z)
-    if not bad.any():
-        return z.astype(np.float64)
-    if bad.all():
-        raise ValueError("the DSM has no valid cell")
-    idx = ndi.distance_transform_edt(bad, return_distances=False, return_indices=True)
-    return z[tuple(idx)].astype(np.float64)
-
-
 def ground_model(
     dsm: np.ndarray, posting_m: float, params: DSMBuildingParams = DSMBuildingParams()
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Progressive morphological ground filter.
+    """The ground under a DSM (:func:`geocd.terrain.ground_model` with the extraction's ground constants).
 
     Returns
     -------
     dtm : float32 (rows, cols), the ground height (m, same datum as the DSM)
     ground : bool (rows, cols), cells classified as ground (valid DSM cells only)
     """
-    z = fill_gaps(dsm)
-    valid = np.isfinite(dsm)
-    off = np.zeros(z.shape, dtype=bool)
-    w = 2.5
-    cur = z
-    while True:
-        k = max(3, int(round(w / posting_m)) | 1)
-        opened = ndi.maximum_filter(ndi.minimum_filter(cur, size=k), size=k)
-        dh = min(params.dh0_m + params.slope * w, params.dh_max_m)
-        off |= (z - opened) > dh
-        cur = opened
-        if w >= params.max_building_m:
-            break
-        w = min(2.0 * w, params.max_building_m)
-    ground = valid & ~off
-    dtm = _block_surface(z, ground, posting_m, params.ground_block_m)
-    # refine on sloping ground: an opening sits below a slope by up to slope × window/2, so cells near the
-    # interpolated ground are ground too, and the ground is interpolated again from them
-    for _ in range(2):
-        if not np.isfinite(dtm).any():
-            break
-        ground = valid & (np.abs(z - dtm) <= params.dh0_m + 0.5) | (ground & (z - dtm <= params.dh0_m + 0.5))
-        dtm = _block_surface(z, ground, posting_m, params.ground_block_m)
-    return dtm, ground
-
-
-def _block_surface(z: np.ndarray, ground: np.ndarray, posting_m: float, block_m: float) -> np.ndarray:
-    """Median of the ground cells per block, interpolated back to the grid (blocks without ground: nearest)."""
-    b = max(1, int(round(block_m / posting_m)))
-    H, W = z.shape
-    nb_r, nb_c = math.ceil(H / b), math.ceil(W / b)
-    pad = np.full((nb_r * b, nb_c * b), np.nan)
-    pad[:H, :W] = np.where(ground, z, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        blocks = np.nanmedian(pad.reshape(nb_r, b, nb_c, b).transpose(0, 2, 1, 3).reshape(nb_r, nb_c, -1), axis=2)
-    if not np.isfinite(blocks).any():
-        return np.full(z.shape, np.nan, np.float32)
-    blocks = fill_gaps(blocks)
-    rr = (np.arange(H) + 0.5) / b - 0.5
-    cc = (np.arange(W) + 0.5) / b - 0.5
-    R, C = np.meshgrid(np.clip(rr, 0, nb_r - 1), np.clip(cc, 0, nb_c - 1), indexing="ij")
-    return ndi.map_coordinates(blocks, [R, C], order=1, mode="nearest").astype(np.float32)
+    return terrain_ground(dsm, posting_m, params)
 
 
 def roughness(z: np.ndarray, posting_m: float) -> np.ndarray:

@@ -27,7 +27,7 @@ from ..progress import Progress, ensure_progress, sub_progress
 from .features import (
     ImageFeatures,
     fill_roof_holes,
-    ground_from_dsm,
+    dsm_ground,
     height_similarity,
     image_features,
     side_max_from_dsm,
@@ -147,11 +147,7 @@ def detect(
         grounds, dsms, filled = [], [], []
         for d, fl in ((dsm_a, filled_a), (dsm_b, filled_b)):
             d = np.asarray(d, np.float64)
-            g = (
-                ground_m
-                if ground_m is not None
-                else ground_from_dsm(d, 2 * int(math.ceil(params.side_max_m / posting_m)) + 1)
-            )
+            g = ground_m if ground_m is not None else dsm_ground(d, posting_m)
             d, roof, unknown = fill_roof_holes(d, g, params.min_height_m, fl)
             grounds.append(g)
             dsms.append(d)

@@ -16,6 +16,7 @@ from scipy import ndimage
 
 from ..errors import ConfigError, EmptyDataError
 from ..stereo.photometry import estimate_noise_sigma
+from ..terrain import fill_gaps, ground_model
 from .params import MPPParams
 
 
@@ -181,14 +182,14 @@ def shadow_direction(
     return best_dir
 
 
-def ground_from_dsm(dsm_m: np.ndarray, width_cells: int) -> np.ndarray:
-    """Terrain under a DSM: grey opening wider than any building (then smoothed) — no building survives it."""
+def dsm_ground(dsm_m: np.ndarray, posting_m: float) -> np.ndarray:
+    """Terrain under a DSM when none is given: the progressive morphological filter of :mod:`geocd.terrain`
+    (gaps filled), which follows a city on a slope where one opening wider than every building sinks to the
+    lowest street (on Kahramanmaraş 96 % of the cells stood above such a ground)."""
     d = np.asarray(dsm_m, np.float64)
-    ok = np.isfinite(d)
-    fill = np.where(ok, d, np.nanmedian(d) if ok.any() else 0.0)
-    w = int(width_cells) | 1
-    g = ndimage.grey_opening(fill, size=(w, w), mode="nearest")
-    return ndimage.uniform_filter(g, size=w, mode="nearest")
+    if not np.isfinite(d).any():
+        return np.zeros(d.shape)
+    return fill_gaps(ground_model(d, posting_m)[0]).astype(np.float64)
 
 
 def fill_roof_holes(
@@ -517,7 +518,7 @@ def image_features(
     posting_m : grid posting (m)
     valid : bool (rows, cols), optional (NaN is invalid too)
     dsm_m, ground_m : optional surface and terrain heights (m) on the grid for the height term; without
-        ``ground_m`` the terrain is a grey opening of the DSM wider than the largest building
+        ``ground_m`` the terrain is the progressive morphological filter of :mod:`geocd.terrain` on the DSM
     use_colour : False drops the colour and shadow terms even for a colour image
     """
     bands = _bands(image)
@@ -592,11 +593,7 @@ def image_features(
         d = np.asarray(dsm_m, np.float64)
         if d.shape != grey.shape:
             raise ConfigError(f"DSM shape {d.shape} does not match the image {grey.shape}; put both on the grid")
-        gr = (
-            np.asarray(ground_m, np.float64)
-            if ground_m is not None
-            else ground_from_dsm(d, 2 * int(math.ceil(params.side_max_m / posting_m)) + 1)
-        )
+        gr = np.asarray(ground_m, np.float64) if ground_m is not None else dsm_ground(d, posting_m)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             ndsm = (d - gr).astype(np.float32)

@@ -203,7 +203,7 @@ def run_mpp_manifest(
             ground = read_dem(m.dem.path, grid=grid, vertical_datum=m.dem.vertical_datum).to_ellipsoidal().height_m
             notes.append(f"ground: the manifest's DEM {m.dem.path}")
         else:
-            notes.append("ground: grey opening of each DSM wider than the largest building")
+            notes.append("ground: progressive morphological filter of each DSM (geocd.terrain)")
     p = params.replace(height="and" if use_h else "off")
     cp = None
     if change_prior is not None:
