@@ -284,6 +284,7 @@ def run_building_layer(
             min_changed=bp.min_changed,
             changed_part=bp.changed_part,
             split_changed=bp.split_changed,
+            split_steps=bp.split_steps,
         ),
         building_params=bp,
     )

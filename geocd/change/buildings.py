@@ -62,6 +62,9 @@ class BuildingParams:
     #: buildings derived from a DSM (no footprints): cut building-sized changed parts out of merged objects
     #: (:func:`geocd.change.dsm_buildings.split_changed_parts`)
     split_changed: bool = True
+    #: buildings derived from a DSM: also split objects where the surface steps by a storey (an option, off:
+    #: :func:`geocd.change.dsm_buildings.split_height_steps`)
+    split_steps: bool = False
 
 
 def largest_parts(change_mask: np.ndarray, labels: np.ndarray, n: int, keep=None) -> tuple[np.ndarray, np.ndarray]:

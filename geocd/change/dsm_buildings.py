@@ -109,6 +109,13 @@ class DSMBuildingParams:
     ``split_changed`` (on): with a change test, building-sized changed parts of epoch A's objects become
     buildings of their own and raised ones join the new building of epoch B they touch
     (:func:`split_changed_parts`); off: whole objects only (the layer as it was before the cut).
+
+    ``split_steps`` (off): objects are also split where their surface steps by a storey
+    (:func:`split_height_steps`). Measured with the cut of changed parts on (docs/kahramanmaras.md): on
+    Kahramanmaraş 253 → 381 objects (unobserved 20 → 43: slivers along walls) and one of the 79 buildings
+    marked unchanged lost — split off its block, it fell to the tree rule, and the new building beside it
+    became its nearest object; on the generated towns it finds one more new building (town 3) and changes
+    nothing else. Off until the pieces it makes pass the tree rule as their block did.
     """
 
     max_building_m: float = 60.0
@@ -130,6 +137,7 @@ class DSMBuildingParams:
     correlation_m: float = 3.5
     changed_part: bool = False
     split_changed: bool = True
+    split_steps: bool = False
 
     def __post_init__(self):
         if self.tree_rule not in TREE_RULES:
@@ -194,6 +202,10 @@ def building_objects(
     dist = ndi.distance_transform_edt(mask) * posting_m
     markers, _ = ndi.label(h_maxima(dist, params.split_h_m))
     labels = watershed(-dist, markers, mask=mask)
+    if params.split_steps:
+        labels = split_height_steps(
+            labels, fill_gaps(dsm), posting_m, params.min_height_m, int(math.ceil(params.min_area_m2 / posting_m**2))
+        )
     n = int(labels.max())
     if n == 0:
         return labels.astype(np.int32)
@@ -208,6 +220,90 @@ def building_objects(
     lut = np.zeros(labels.max() + 1, dtype=np.int32)
     lut[u] = np.arange(1, u.size + 1)
     return lut[labels]
+
+
+def split_height_steps(
+    labels: np.ndarray, z_m: np.ndarray, posting_m: float, step_m: float, min_cells: int
+) -> np.ndarray:
+    """Split objects where their surface steps by a storey or more: buildings of different heights wall to wall.
+
+    Inside each object the surface (gap-filled, 3 × 3 median) is cut into plateaus: seeds are the cells less
+    steep than 45° (a roof facet; a wall between two roofs is steeper), grown over the object by a watershed of
+    the slope. Neighbouring plateaus whose median heights differ by less than ``step_m`` join (the facets of a
+    pitched roof, a roof and its parapet), and a plateau smaller than ``min_cells`` joins the neighbour closest
+    in height; what is left is one object per height level.
+
+    Parameters
+    ----------
+    labels : int (rows, cols), objects 1 … n, 0 elsewhere
+    z_m : float (rows, cols), the surface (m, no NaN)
+    step_m : the least height step between two buildings (m; the extraction's storey, ``min_height_m``)
+    min_cells : the least building (cells)
+
+    Returns
+    -------
+    int32 (rows, cols), objects 1 … m (m ≥ n), 0 elsewhere.
+    """
+    from skimage.segmentation import watershed
+
+    labels = np.asarray(labels, np.int32)
+    inside = labels > 0
+    if not inside.any():
+        return labels
+    zs = ndi.median_filter(np.asarray(z_m, np.float64), size=3)
+    gy, gx = np.gradient(zs, posting_m)
+    slope = np.hypot(gx, gy)
+    eight = np.ones((3, 3), bool)
+    seeds, _ = ndi.label(inside & (slope < 1.0), structure=eight)
+    regions = watershed(slope, seeds, mask=inside)
+    # a region never spans two objects
+    key = regions.astype(np.int64) * (int(labels.max()) + 1) + labels
+    _, inv = np.unique(np.where(inside, key, -1), return_inverse=True)
+    regions = inv.reshape(labels.shape).astype(np.int32)  # 0 = outside (the key -1 sorts first)
+    n = int(regions.max())
+    if n <= 1:
+        return labels
+    idx = np.arange(1, n + 1)
+    med = np.concatenate([[np.nan], np.asarray(ndi.median(zs, regions, idx), float)])
+    size = np.bincount(regions.ravel(), minlength=n + 1).astype(np.int64)
+    obj = np.zeros(n + 1, np.int64)
+    obj[regions.ravel()] = labels.ravel()
+    pairs = set()
+    for a, b in ((regions[:, :-1], regions[:, 1:]), (regions[:-1, :], regions[1:, :])):
+        d = (a != b) & (a > 0) & (b > 0)
+        pairs.update(zip(a[d].tolist(), b[d].tolist()))
+    pairs = [(i, j) for i, j in pairs if obj[i] == obj[j]]
+    parent = np.arange(n + 1)
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in sorted(pairs, key=lambda p: abs(med[p[0]] - med[p[1]])):
+        if abs(med[i] - med[j]) < step_m:
+            ri, rj = find(i), find(j)
+            if ri != rj:
+                parent[rj] = ri
+    for _ in range(3):  # plateaus smaller than a building join the neighbour closest in height
+        root = np.array([find(i) for i in range(n + 1)])
+        total = np.bincount(root, weights=size, minlength=n + 1)
+        moved = False
+        for i, j in sorted(pairs, key=lambda p: abs(med[p[0]] - med[p[1]])):
+            ri, rj = find(i), find(j)
+            if ri != rj and (total[ri] < min_cells or total[rj] < min_cells):
+                parent[rj] = ri
+                total[ri] += total[rj]
+                total[rj] = total[ri]
+                moved = True
+        if not moved:
+            break
+    root = np.array([find(i) for i in range(n + 1)])
+    out = np.zeros(labels.shape, np.int32)
+    _, ids = np.unique(root[regions[inside]], return_inverse=True)
+    out[inside] = ids.ravel() + 1
+    return out
 
 
 def plane_rule(

@@ -48,6 +48,34 @@ def test_ground_and_objects():
     assert (bld.rectangularity > 0.9).all()
 
 
+def test_buildings_of_different_heights_wall_to_wall_are_two_objects():
+    """A 15 m and a 24 m block sharing a wall (no neck for the distance watershed), a gabled house (its two
+    facets one object) and a block with a 2 m parapet: the height step (``split_steps``, an option) splits the
+    first pair only."""
+    from geocd.change.dsm_buildings import building_objects
+
+    rng = np.random.default_rng(5)
+    H, W = GRID.shape
+    r, c = np.mgrid[0:H, 0:W]
+    ground = 700.0 + 0.01 * c * 0.5
+    z = ground + rng.normal(0, 0.15, (H, W))
+    z[40:80, 40:80] = ground[40:80, 40:80] + 15.0
+    z[40:80, 80:120] = ground[40:80, 80:120] + 24.0  # wall to wall, 9 m higher
+    house = (slice(150, 174), slice(40, 80))  # 12 m deep, 35° pitched roof over eaves at 6 m
+    z[house] = ground[house] + 6.0 + np.tan(np.radians(35)) * (6.0 - np.abs((r[house] - 161.5) * 0.5))
+    z[150:190, 150:200] = ground[150:190, 150:200] + 12.0
+    z[150:152, 150:200] += 2.0  # a parapet
+    z += rng.normal(0, 0.1, (H, W))
+    dtm, gr = ground_model(z, 0.5)
+    labels = building_objects(z, dtm, 0.5, DSMBuildingParams(split_steps=True), ground=gr)
+    assert labels.max() == 4, labels.max()
+    assert labels[60, 60] != labels[60, 100]
+    assert labels[155, 60] == labels[170, 60]
+    assert labels[151, 175] == labels[170, 175]
+    off = building_objects(z, dtm, 0.5, ground=gr)  # the default: no split at height steps
+    assert off.max() == 3 and off[60, 60] == off[60, 100]
+
+
 def _result(z_a, z_b, changed_lower, changed_upper):
     dz = (z_b - z_a).astype(np.float32)
     conf = np.zeros(z_a.shape, np.float32)
