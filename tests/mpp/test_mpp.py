@@ -117,21 +117,21 @@ def test_one_flat_date_runs_and_says_so(scene):
     assert any(n.startswith("image B: no gradient at all (flat)") and "read as a change" in n for n in d.notes)
 
 
-@pytest.mark.slow
-def test_nothing_found_says_why(scene):
-    """Every cell raised (a ground model 10 m too low): no isolated raised block, no building, and a note
-    that says so instead of a silent empty layer."""
-    d = detect(
-        scene["image_a"],
-        scene["image_b"],
-        POSTING,
-        MPPParams(height="and", max_iter=20, min_iter=5),
-        dsm_a=scene["dsm_a"],
-        dsm_b=scene["dsm_b"],
-        ground_m=scene["ground"] - 10.0,
-    )
-    assert len(d.result) == 0
-    assert any(n.startswith("no building found: 100% of the cells stand more than 2.5 m") for n in d.notes), d.notes
+def test_a_ground_under_everything_is_refused_before_the_annealing(scene):
+    """Every cell raised (a ground model 10 m too low): no rectangle could be an isolated raised block, so the
+    detection stops before the annealing with the reason and the fix, instead of an empty layer after it."""
+    from geocd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"100%–100% of the cells stand more than 2.5 m above the ground.*--ground"):
+        detect(
+            scene["image_a"],
+            scene["image_b"],
+            POSTING,
+            MPPParams(height="and", max_iter=20, min_iter=5),
+            dsm_a=scene["dsm_a"],
+            dsm_b=scene["dsm_b"],
+            ground_m=scene["ground"] - 10.0,
+        )
 
 
 def test_colour_image_uses_colour_and_shadow_terms():
