@@ -1026,9 +1026,11 @@ def building_layer(
     """The building layer of a change test (:mod:`geocd.change.building_layer`) and the ground model under it.
 
     With footprints: every footprint and the new buildings of the change map standing outside all of them
-    (:func:`footprint_layer`); without: the building objects of epoch A's DSM plus the parts of epoch B's
-    objects that stand where A's surface was ground (new buildings, :func:`new_objects`). Heights are above the
-    ground model of A's DSM (:func:`ground_model`, gaps filled).
+    (:func:`footprint_layer`); without: the building objects of epoch A's DSM, their building-sized changed parts
+    cut out into buildings of their own (``params.split_changed``: :func:`split_changed_parts`), plus the parts of
+    epoch B's objects that stand where A's surface was ground (new buildings, :func:`new_parts`), joined by the
+    raised parts of A's objects they touch. Heights are above the ground model of A's DSM (:func:`ground_model`,
+    gaps filled).
 
     Parameters
     ----------
