@@ -46,6 +46,8 @@ CLASSES = {
 }
 #: the classes of a changed building
 CHANGED = ("collapsed", "partly collapsed", "lowered", "raised", "new")
+#: the classes of a building lowered at the reported level: the ones whose lost volume the summary adds up
+LOWERED = ("collapsed", "partly collapsed", "lowered")
 #: the classes of a building the change test did not see: ``confidence_pct`` and the change measures are empty
 NOT_OBSERVED = ("unobserved", "not examined")
 
@@ -252,11 +254,15 @@ def check_building_layer(layer, *, shared_only: bool = False) -> None:
 
 def summarize(layer, source: str | None = None) -> dict:
     """The run summary's ``buildings`` entry: sources (joined by " + "; ``source`` when the layer has no row),
-    counts per class (vocabulary order), volume lost (m³)."""
+    counts per class (vocabulary order), volume lost (m³) by the buildings lowered at the reported level
+    (:data:`LOWERED`) — an unchanged building's Δz is the reconstructions' noise, not a loss."""
     counts = layer["class"].value_counts().to_dict()
     classes = {c: int(counts[c]) for c in CLASSES if c in counts}
     sources = list(dict.fromkeys(str(s) for s in layer["source"])) if "source" in layer else []
-    lost = float(np.nansum(layer["volume_lost_m3"].to_numpy(dtype=float))) if "volume_lost_m3" in layer else 0.0
+    lost = 0.0
+    if "volume_lost_m3" in layer:
+        lowered = layer["class"].isin(LOWERED).to_numpy()
+        lost = float(np.nansum(layer["volume_lost_m3"].to_numpy(dtype=float)[lowered]))
     return {"source": " + ".join(sources) or source, "classes": classes, "volume_lost_m3": round(lost, 1)}
 
 

@@ -94,8 +94,15 @@ def test_footprint_layer_follows_the_schema_and_holds_the_new_buildings(tmp_path
     assert s == {
         "source": "footprints + change map",
         "classes": {"collapsed": 1, "new": 1, "unchanged": 1, "unobserved": 1},
-        "volume_lost_m3": pytest.approx(float(np.nansum(layer["volume_lost_m3"])), abs=0.2),
+        "volume_lost_m3": pytest.approx(
+            float(layer.loc[layer["class"] == "collapsed", "volume_lost_m3"].sum()), abs=0.2
+        ),
     }
+    # the noise of an unchanged building is no loss
+    assert (
+        s["volume_lost_m3"] < float(np.nansum(layer["volume_lost_m3"]))
+        or not (layer.loc[layer["class"] == "unchanged", "volume_lost_m3"] > 0).any()
+    )
     line = summary_line(s)
     assert line.startswith("buildings (footprints + change map): 1 collapsed, 1 new, 1 unchanged, 1 unobserved")
     no_new = footprint_layer(fps, res, GRID, z_a=za, z_b=zb, id_field="id", detect_new=False)
@@ -157,3 +164,20 @@ def test_the_products_page_documents_every_column_and_class():
         assert dtype.strip() == col.dtype and unit.strip() == (col.unit or ""), name
     for c in CLASSES:
         assert f"`{c}`" in sec, c
+
+
+def test_the_summary_adds_up_the_loss_of_lowered_buildings_only():
+    """On a scene where nothing changed the per-building Δz is noise: the run's summary must not report it as
+    a lost volume (a Marseille pair against a pair of the same date read "37,582 m³ lost" with 0 changed)."""
+    import pandas as pd
+
+    layer = pd.DataFrame(
+        {
+            "source": "A DSM",
+            "class": ["unchanged", "unobserved", "collapsed", "partly collapsed", "raised"],
+            "volume_lost_m3": [120.0, np.nan, 3000.0, 400.0, 0.0],
+        }
+    )
+    assert summarize(layer)["volume_lost_m3"] == 3400.0
+    assert summarize(layer[layer["class"] == "unchanged"])["volume_lost_m3"] == 0.0
+    assert "m³ lost" not in summary_line(summarize(layer[layer["class"] == "unchanged"]))
