@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import json
-import math
 import os
 import time
 from pathlib import Path
@@ -23,6 +22,7 @@ from ..camera import Camera
 from ..errors import ConfigError, NoOverlapError
 from ..geodesy import AOIGrid
 from ..progress import Progress, ensure_progress, sub_progress
+from ..stereo.scene import box_from_points
 from .engine import View, make_view
 from .keyframe import DEMSampler, KeyFrameResult, detect_keyframe, global_height_range
 from .objectspace import ProbChangeResult, detect_objectspace, object_height_bounds
@@ -68,21 +68,6 @@ def _image_size(path: Path) -> tuple[int, int]:
         return ds.width, ds.height
 
 
-def _box_from_points(
-    col: np.ndarray, row: np.ndarray, margin: int, width: int, height: int
-) -> tuple[int, int, int, int] | None:
-    ok = np.isfinite(col) & np.isfinite(row)
-    if not ok.any():
-        return None
-    c0 = max(int(math.floor(col[ok].min())) - margin, 0)
-    r0 = max(int(math.floor(row[ok].min())) - margin, 0)
-    c1 = min(int(math.ceil(col[ok].max())) + margin, width)
-    r1 = min(int(math.ceil(row[ok].max())) + margin, height)
-    if c1 - c0 < 2 or r1 - r0 < 2:
-        return None
-    return c0, r0, c1, r1
-
-
 def key_window_boxes(
     key_cam: Camera, key_box: tuple[int, int, int, int], others: Sequence[Any], lo: float, hi: float, margin: int
 ) -> dict[str, tuple[int, int, int, int]]:
@@ -98,7 +83,7 @@ def key_window_boxes(
             c, r = im.camera.project(lon, lat, np.full(cc.shape, h))
             cols.append(c.ravel())
             rows.append(r.ravel())
-        box = _box_from_points(np.concatenate(cols), np.concatenate(rows), margin, W, H)
+        box = box_from_points(np.concatenate(cols), np.concatenate(rows), margin, W, H)
         if box is None:
             raise NoOverlapError(
                 f"image {im.name!r} does not overlap the key frame's window {key_box} at heights "

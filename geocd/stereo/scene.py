@@ -76,15 +76,21 @@ def image_window_for_grid(
         c, r = pr.project(np.full(x.shape, h))
         cols.append(c)
         rows.append(r)
-    c = np.concatenate(cols)
-    r = np.concatenate(rows)
-    ok = np.isfinite(c) & np.isfinite(r)
+    return box_from_points(np.concatenate(cols), np.concatenate(rows), margin_px, width, height)
+
+
+def box_from_points(
+    col: np.ndarray, row: np.ndarray, margin_px: int, width: int, height: int
+) -> tuple[int, int, int, int] | None:
+    """(col0, row0, col1, row1): the pixel box of the finite image points, grown by ``margin_px`` and clipped to a
+    ``width`` × ``height`` image; None when no point is finite or the box is under 2 pixels on a side."""
+    ok = np.isfinite(col) & np.isfinite(row)
     if not ok.any():
         return None
-    c0 = max(int(math.floor(c[ok].min())) - margin_px, 0)
-    r0 = max(int(math.floor(r[ok].min())) - margin_px, 0)
-    c1 = min(int(math.ceil(c[ok].max())) + margin_px, width)
-    r1 = min(int(math.ceil(r[ok].max())) + margin_px, height)
+    c0 = max(int(math.floor(col[ok].min())) - margin_px, 0)
+    r0 = max(int(math.floor(row[ok].min())) - margin_px, 0)
+    c1 = min(int(math.ceil(col[ok].max())) + margin_px, width)
+    r1 = min(int(math.ceil(row[ok].max())) + margin_px, height)
     if c1 - c0 < 2 or r1 - r0 < 2:
         return None
     return c0, r0, c1, r1
