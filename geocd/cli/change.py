@@ -231,7 +231,7 @@ def _read_pairs(paths):
     import warnings
 
     from ..stereo import read_pair_dem
-    from ..stereo.params import surface_median_cells
+    from ..stereo.params import isolation_cells, surface_median_cells
 
     pairs = [read_pair_dem(p) for p in paths]
     smoothed = [p.name for p in pairs if surface_median_cells(p.meta.get("params") or {}) != 1]
@@ -239,8 +239,18 @@ def _read_pairs(paths):
         warnings.warn(
             f"pair-DEM(s) {', '.join(smoothed)} were matched with a surface median: the self-consistency "
             "test models each cell's own match, and a median correlates neighbouring errors (more false "
-            "changes); for change detection make them with `geocd stereo --surface-median 1` (as geocd "
-            "run does)",
+            "changes); for change detection make them with `geocd stereo --surface-median 1 --isolation-min-cells 1` "
+            "(as geocd run does)",
+            UserWarning,
+            stacklevel=2,
+        )
+    isolated = [p.name for p in pairs if isolation_cells(p.meta.get("params") or {}) != 1]
+    if isolated:
+        warnings.warn(
+            f"pair-DEM(s) {', '.join(isolated)} were matched with the neighbour-agreement test: the "
+            "self-consistency test models each cell's own match, and a validity that depends on the "
+            "neighbours' heights made more false changes on sample_aoi; for change detection make them with "
+            "`geocd stereo --surface-median 1 --isolation-min-cells 1` (as geocd run does)",
             UserWarning,
             stacklevel=2,
         )

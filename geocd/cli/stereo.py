@@ -106,6 +106,13 @@ def scene_from_inputs(inputs: tuple[str, ...]):
     "window; 1 = off.",
 )
 @click.option(
+    "--isolation-min-cells",
+    type=int,
+    default=None,
+    help="A valid height whose surface patch (neighbours within one pixel of disparity) holds fewer cells "
+    "is invalid (flag not_unique); default: one matching window (window² cells); 1 = off.",
+)
+@click.option(
     "--no-fill",
     is_flag=True,
     help="Leave holes narrower than the matching window empty (default: z holds interpolated heights "
@@ -139,6 +146,7 @@ def stereo(
     score: str | None,
     score_subwindow: int | None,
     surface_median: int | None,
+    isolation_min_cells: int | None,
     no_fill: bool,
     tile_size: int | None,
     tiled: bool,
@@ -182,6 +190,8 @@ def stereo(
         kw["score_subwindow"] = score_subwindow
     if surface_median is not None:
         kw["surface_median"] = surface_median
+    if isolation_min_cells is not None:
+        kw["isolation_min_cells"] = isolation_min_cells
     if no_fill:
         kw["fill_holes"] = False
     if tile_size is not None and not tiled:

@@ -24,7 +24,8 @@ import warnings
 from typing import Any, Sequence
 
 import numpy as np
-from scipy import ndimage, special
+from scipy import ndimage, sparse, special
+from scipy.sparse import csgraph
 
 from ..camera import Camera
 from ..errors import ConfigError, CRSError, EmptyDataError, NoOverlapError
@@ -312,6 +313,53 @@ def confident_coherent(planes: dict[str, np.ndarray], bin_m: float, min_ncc: flo
     # right matches also agree with their neighbours (a surface); wrong ones scatter
     good &= coherent_neighbours(np.where(good, z, np.nan), tol_m=0.3 * bin_m, radius=2) >= 3
     return good
+
+
+def isolated_matches(z_m: np.ndarray, valid: np.ndarray, tol_m: np.ndarray | float, min_cells: int) -> np.ndarray:
+    """Valid cells whose surface patch is smaller than ``min_cells`` (neighbour agreement).
+
+    Valid cells are joined to their 4-neighbours when their heights differ by less than ``tol_m`` (an array:
+    the smaller of the two cells' tolerances); a connected patch of fewer than ``min_cells`` cells stands
+    alone against every neighbour — a height no surface around it supports. :func:`match_pair` gives
+    ``min_cells`` = one matching window (the smallest surface a window matcher resolves) and ``tol_m`` = one
+    pixel of disparity (``1 / g``).
+
+    Parameters
+    ----------
+    z_m : (H, W) float array
+        Heights (m); read where ``valid``.
+    valid : (H, W) bool array
+    tol_m : float or (H, W) float array
+        Largest height difference (m) between neighbours of one surface.
+    min_cells : int
+
+    Returns
+    -------
+    (H, W) bool array
+        True for valid cells in patches of fewer than ``min_cells`` cells.
+    """
+    h, w = z_m.shape
+    valid = np.asarray(valid, bool)
+    if min_cells <= 1 or not valid.any():
+        return np.zeros((h, w), bool)
+    z = np.where(valid, np.asarray(z_m, np.float64), np.nan)
+    tol = np.broadcast_to(np.asarray(tol_m, np.float64), (h, w))
+    idx = np.arange(h * w).reshape(h, w)
+    src, dst = [], []
+    with np.errstate(invalid="ignore"):
+        for sl_a, sl_b in (
+            ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+            ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+        ):
+            ok = np.abs(z[sl_a] - z[sl_b]) < np.minimum(tol[sl_a], tol[sl_b])  # False where either is NaN
+            src.append(idx[sl_a][ok])
+            dst.append(idx[sl_b][ok])
+    i = np.concatenate(src)
+    j = np.concatenate(dst)
+    graph = sparse.coo_matrix((np.ones(i.size, np.int8), (i, j)), shape=(h * w, h * w))
+    _, label = csgraph.connected_components(graph, directed=False)
+    size = np.bincount(label)[label].reshape(h, w)
+    return valid & (size < min_cells)
 
 
 def surface_slope(z: np.ndarray, good: np.ndarray, posting_m: float, q: float = 99.0) -> float:
@@ -1082,6 +1130,11 @@ def _finalize(
         cand = np.where(flags == 0, z_raw, np.nan)
         tol = [np.maximum(params.occlusion_tol_px / np.maximum(j, 1e-9), 2.0 * search.step_m) for j in jn]
         flags[occlusion_mask(grid, cams, chips, cand, planes["best_c"], tol, lonlat)] |= FLAGS["occluded"]
+    min_cells = params.isolation_cells
+    if min_cells > 1:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tol_m = np.where(g > 0, params.isolation_tol_px / g, 0.0)
+        flags[isolated_matches(z_raw, flags == 0, tol_m, min_cells)] |= FLAGS["not_unique"]
     valid = flags == 0
     z_out = np.where(valid, z_raw, np.nan)
     if params.median_size > 1 and valid.any():

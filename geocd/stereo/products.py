@@ -34,7 +34,8 @@ from ..geodesy import AOIGrid
 FLAGS = {
     "out_of_image": 1,  # no valid window in one image at any candidate height
     "low_texture": 2,  # a window's standard deviation < texture_min_snr · σ_n
-    "not_unique": 4,  # another height matches almost as well (uniqueness test)
+    "not_unique": 4,  # ambiguous: another height matches almost as well (uniqueness test), or the height
+    # stands alone — its surface patch is smaller than one matching window (neighbour agreement)
     "occluded": 8,  # loses its image pixel to a better match at another height (occlusion / left-right)
     "range_limit": 16,  # best height at the edge of the search range (or next to an invalid one)
     "low_ncc": 32,  # NCC below min_ncc

@@ -460,6 +460,19 @@ ALGORITHMS: tuple[AlgSpec, ...] = (
                 help="Default: the matching window.",
             ),
             Param(
+                "ISOLATION_MIN_CELLS",
+                "int",
+                "Smallest valid surface patch (1 = off)",
+                cli="--isolation-min-cells",
+                unit="cells",
+                optional=True,
+                min=1,
+                max=10000,
+                advanced=True,
+                help="A valid height whose patch of neighbours within one pixel of disparity holds fewer cells "
+                "is invalid (flag not_unique). Default: one matching window (window² cells).",
+            ),
+            Param(
                 "NO_FILL",
                 "bool",
                 "Leave holes narrower than the matching window empty",

@@ -130,6 +130,27 @@ class Texture:
         return ndimage.map_coordinates(self.a, [r, c], order=1, mode="reflect")
 
 
+class RepeatedTexture(Texture):
+    """:class:`Texture` with a patch of stripes of ``period_m`` along x (about the epipolar direction of
+    :func:`make_scene`'s cameras) in ``box`` = (x0, x1, y0, y1) local metres: a window there matches one
+    period away almost as well as at its own height."""
+
+    def __init__(self, seed: int = 0, period_m: float = 2.0, box=(-18.0, -4.0, -18.0, -6.0)):
+        super().__init__(seed)
+        self.period_m = period_m
+        self.box = box
+
+    def inside(self, x, y):
+        x0, x1, y0, y1 = self.box
+        x, y = np.asarray(x), np.asarray(y)
+        return (x > x0) & (x < x1) & (y > y0) & (y < y1)
+
+    def __call__(self, x, y):
+        return np.where(
+            self.inside(x, y), 1.4 * np.cos(2 * np.pi * np.asarray(x) / self.period_m), super().__call__(x, y)
+        )
+
+
 def render(cam: RPCModel, tex: Texture, h_lo: float = H0 - 6.0, h_hi: float = H0 + 16.0, dh: float = 0.04):
     """Ray-march every pixel centre down from h_hi; returns (intensity, surface height) images."""
     H, W = cam.height, cam.width
@@ -164,6 +185,7 @@ def make_scene(
     parallax_a=(0.55, 0.05),
     parallax_b=(-0.45, 0.02),
     noise: float = 0.02,
+    texture: Texture | None = None,
 ) -> Scene:
     crs = utm_crs_for(LON0, LAT0)
     from geocd.geodesy import from_lonlat
@@ -175,7 +197,7 @@ def make_scene(
     lon, lat = grid.lonlat()
     truth = dsm_local(*_local_xy(lon, lat))
     npx = int(size_m / gsd_m) + 40
-    tex = Texture(seed)
+    tex = Texture(seed) if texture is None else texture
     rng = np.random.default_rng(seed + 1)
     cams, imgs = [], []
     for k, par in enumerate((parallax_a, parallax_b)):

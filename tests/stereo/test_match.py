@@ -1,5 +1,7 @@
 """End-to-end matching on the synthetic pair (statistical tolerances)."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -207,3 +209,58 @@ def test_poisson_threshold_is_scipy_stats_isf_plus_one():
     for lam in (0.0, 1e-12, 0.01, 0.3, 1.0, 2.5, 7.0, 30.0, 123.4, 1e4):
         for alpha in (1e-6, 1e-3, 1e-2, 0.05, 0.5):
             assert poisson_threshold(lam, alpha) == int(poisson.isf(alpha, max(lam, 1e-12))) + 1, (lam, alpha)
+
+
+def test_isolated_matches_are_patches_smaller_than_the_minimum():
+    from geocd.stereo.match import isolated_matches
+
+    yy, xx = np.mgrid[0:40, 0:50]
+    z = 100.0 + 0.05 * xx + 0.02 * yy  # a gentle slope: one surface
+    valid = np.ones(z.shape, bool)
+    z[5:8, 5:8] += 12.0  # a 9-cell blunder
+    z[20:30, 20:30] += 8.0  # a 100-cell roof
+    z[2, 40] -= 0.5  # within tolerance: stays joined
+    valid[35:, 45:] = False  # invalid cells join nothing
+    iso = isolated_matches(z, valid, 1.0, 49)
+    assert iso[5:8, 5:8].all() and iso.sum() == 9
+    # the tolerance may vary per cell: the smaller of two neighbours' applies
+    tol = np.full(z.shape, 1.0)
+    tol[2, 40] = 0.25
+    assert isolated_matches(z, valid, tol, 49)[2, 40]
+    assert not isolated_matches(z, valid, 1.0, 1).any()  # 1 = off
+    # a patch cut off only by invalid cells is as isolated as one cut off by a height step
+    v2 = valid.copy()
+    v2[10:14, 40:46] = False
+    v2[11:13, 41:45] = True
+    assert isolated_matches(z, v2, 1.0, 49)[11:13, 41:45].all()
+
+
+def test_a_blunder_in_repeated_texture_comes_out_invalid():
+    """Stripes of a 2 m period (4 px of disparity) over a 14 m × 12 m patch: matches one period away score as
+    well as the right ones, and without the neighbour-agreement test 100+ of them are valid and wrong; with it,
+    none (a wrong period that forms a surface larger than a window stays valid: docs/stereo.md)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import RepeatedTexture, _local_xy, make_scene
+
+    tex = RepeatedTexture(seed=0, period_m=2.0)
+    sc = make_scene(seed=0, size_m=40.0, texture=tex)
+    chips = [prepare_chip(img, name=n) for img, n in zip(sc.images, sc.names)]
+    lon, lat = sc.grid.lonlat()
+    x, y = _local_xy(lon, lat)
+    x0, x1, y0, y1 = tex.box
+    patch = (x > x0 + 2) & (x < x1 - 2) & (y > y0 + 2) & (y < y1 - 2)
+    bad = {}
+    for iso in (1, None):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # low completeness in the striped patch
+            pd = match_pair(
+                chips[0], chips[1], sc.cameras[0], sc.cameras[1], sc.grid, params=StereoParams(isolation_min_cells=iso)
+            )
+        bad[iso] = int((pd.valid & (np.abs(pd.z_raw_m - sc.truth) > 1.0) & patch).sum())
+        if iso is None:
+            assert (pd.flags[patch & ~pd.valid] & FLAGS["not_unique"]).any()
+    assert bad[1] > 50, bad  # the blunders exist without the test
+    assert bad[None] == 0, bad

@@ -1,7 +1,9 @@
 """The Réunion Pléiades pair as `geocd stereo` makes it (default AOI: the images' overlap), against s2p's DSM.
 
-Figures pinned (docs/stereo.md, bench/bench_stereo.py --whole): valid cells NMAD 0.355 m, completeness 94.5 % on
-s2p's cells; with the cells filled in narrow holes (flag `filled`) 99.2 %, NMAD 0.366 m. CARS 1.3's final DSM:
+Figures pinned (docs/stereo.md, bench/bench_stereo.py --whole, bench/eval_stereo_validity.py): valid cells NMAD
+0.351 m, completeness 93.6 % on s2p's cells (94.5 % before the neighbour-agreement test, which takes the valid
+cells wrong by more than 5 m from 0.21 % to 0.04 %); with the cells filled in narrow holes (flag `filled`) 97.5 %,
+NMAD 0.360 m (99.2 %, 0.366 m before). CARS 1.3's final DSM:
 NMAD 0.366 m, 100 %. Without the surface median the valid NMAD is 0.423 m; without filling, 94.5 %; with the
 ground-height hint falling back on the RPCs' mid-range (1295 m) the default AOI missed 28 % of s2p's cells.
 """
@@ -32,6 +34,7 @@ def _vs_s2p(z, grid, ref, ref_grid) -> dict:
         "nmad": float(1.4826 * np.median(np.abs(e - np.median(e)))),
         "completeness": float(both.sum() / have.sum()),
         "within_1m": float(np.mean(np.abs(e) < 1.0)),
+        "wrong_5m": float(np.mean(np.abs(e) > 5.0)),
     }
 
 
@@ -70,10 +73,17 @@ def test_default_aoi_covers_s2ps_dsm(reunion):
 def test_valid_heights_match_s2p_as_well_as_cars(reunion):
     pd, ref, ref_grid = reunion
     v = _vs_s2p(np.where(pd.valid, pd.z_m, np.nan), pd.grid, ref, ref_grid)
-    assert v["nmad"] == pytest.approx(0.355, abs=0.008), v  # CARS 1.3: 0.366 m
+    assert v["nmad"] == pytest.approx(0.351, abs=0.008), v  # CARS 1.3: 0.366 m
     assert v["nmad"] <= 0.366, v
-    assert v["completeness"] == pytest.approx(0.9455, abs=0.008), v
-    assert v["within_1m"] == pytest.approx(0.953, abs=0.01), v
+    assert v["completeness"] == pytest.approx(0.936, abs=0.008), v
+    assert v["within_1m"] == pytest.approx(0.957, abs=0.01), v
+
+
+def test_few_valid_cells_are_wrong(reunion):
+    """Valid-but-wrong: valid cells more than 5 m from s2p's DSM (after the median offset) ≤ 0.1 %."""
+    pd, ref, ref_grid = reunion
+    v = _vs_s2p(np.where(pd.valid, pd.z_m, np.nan), pd.grid, ref, ref_grid)
+    assert v["wrong_5m"] <= 0.001, v  # 0.21 % without the neighbour-agreement test
 
 
 def test_with_filled_cells_complete_as_cars(reunion):
@@ -81,6 +91,8 @@ def test_with_filled_cells_complete_as_cars(reunion):
     filled = (pd.flags & FLAGS["filled"]) > 0
     assert not pd.valid[filled].any() and np.isfinite(pd.z_m[filled]).all()
     v = _vs_s2p(pd.z_m, pd.grid, ref, ref_grid)  # valid + filled heights
-    assert v["completeness"] >= 0.98, v
-    assert v["completeness"] == pytest.approx(0.9915, abs=0.004), v
-    assert v["nmad"] == pytest.approx(0.366, abs=0.008), v
+    # 99.2 % before the neighbour-agreement test: a removed patch of a window or more is wider than the holes
+    # that are filled
+    assert v["completeness"] >= 0.97, v
+    assert v["completeness"] == pytest.approx(0.975, abs=0.004), v
+    assert v["nmad"] == pytest.approx(0.360, abs=0.008), v

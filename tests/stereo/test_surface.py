@@ -96,6 +96,8 @@ def test_the_change_run_reads_each_cells_own_match():
     assert RunConfig().stereo.surface_median == 1
     assert RunConfig.from_dict({"stereo": {"window": 9}}).stereo.surface_median == 1
     assert RunConfig.from_dict({"stereo": {"surface_median": 5}}).stereo.surface_median == 5
+    # nor a validity that depends on the neighbours' heights
+    assert RunConfig().stereo.isolation_cells == 1 and StereoParams().isolation_cells == 49
 
 
 def test_change_commands_warn_about_smoothed_pair_dems(tmp_path):
@@ -108,7 +110,7 @@ def test_change_commands_warn_about_smoothed_pair_dems(tmp_path):
     grid = AOIGrid.from_bounds(500000.0, 4000000.0, 500010.0, 4000010.0, 0.5, as_crs("EPSG:32631"))
     z = np.full(grid.shape, 100.0, np.float32)
     paths = {}
-    for label, sm in (("smoothed", None), ("own", 1)):
+    for label, sm, iso in (("smoothed", None, 1), ("isolated", 1, None), ("own", 1, 1)):
         pd = PairDEM(
             z_m=z,
             score=z * 0,
@@ -116,11 +118,13 @@ def test_change_commands_warn_about_smoothed_pair_dems(tmp_path):
             valid=np.ones(grid.shape, bool),
             grid=grid,
             name=label,
-            meta={"params": StereoParams(surface_median=sm).to_dict()},
+            meta={"params": StereoParams(surface_median=sm, isolation_min_cells=iso).to_dict()},
         )
         paths[label] = write_pair_dem(tmp_path / f"{label}.tif", pd)
     with pytest.warns(UserWarning, match="surface median"):
         _read_pairs([paths["smoothed"], paths["own"]])
+    with pytest.warns(UserWarning, match=r"isolated were matched with the neighbour-agreement test"):
+        _read_pairs([paths["isolated"], paths["own"]])
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _read_pairs([paths["own"]])
