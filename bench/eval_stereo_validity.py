@@ -10,7 +10,9 @@ For each real pair, ``match_pair`` with default parameters and *no* prior DEM (t
 Reported per pair: completeness on the reference's cells, median |dz| and NMAD of valid cells after the median
 offset, the share of valid cells wrong by more than the threshold (the issue's "valid-but-wrong", goal
 ≤ 0.1 %) and of those wrong by more than it against every reference height within ±1 m (a blunder, not an edge
-placed a cell or two off), with the flags of the cells the validity rule removed.
+placed a cell or two off), with the flags of the cells the validity rule removed; the same for the ``z`` band as
+written (valid + filled cells). ``--cars``: CARS 1.3 (its own venv) on the same pairs, its final DSM scored the
+same way on the same grid.
 
 Usage::
 
@@ -18,6 +20,7 @@ Usage::
     python bench/eval_stereo_validity.py --save DIR   # also the per-cell bands (npz), to study the rule offline
     python bench/eval_stereo_validity.py --without --json bench/results/stereo_validity.json   # the docs' table
     python bench/eval_stereo_validity.py --set isolation_min_cells=1   # any StereoParams fields (JSON values)
+    python bench/eval_stereo_validity.py --only reunion marseille --cars ~/.cache/geocd/peers/cars-1.3/bin/cars
 """
 
 from __future__ import annotations
@@ -35,9 +38,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.figures.stereo_show import DATA, load_rpc_chip, nmad  # noqa: E402
-from geocd.geodesy import AOIGrid  # noqa: E402
+from geocd.geodesy import AOIGrid, to_lonlat  # noqa: E402
 from geocd.stereo import StereoParams, match_pair  # noqa: E402
 from geocd.stereo.products import FLAGS  # noqa: E402
+
+CARS_WORK = Path("geocd_out/validity_cars")
+CARS_REUSE = False
 
 
 def score_pair(pd, ref: np.ndarray, inside: np.ndarray, wrong_m: float) -> dict:
@@ -55,9 +61,19 @@ def score_pair(pd, ref: np.ndarray, inside: np.ndarray, wrong_m: float) -> dict:
     z_off = np.asarray(pd.z_m, np.float64) - off
     beyond = (z_off > ndimage.maximum_filter(rf, k) + wrong_m) | (z_off < ndimage.minimum_filter(rf, k) - wrong_m)
     blunder = beyond[both]
-    raw = np.asarray(pd.z_raw_m, np.float64) - ref - off
+    raw = np.asarray(pd.z_raw_m if pd.z_raw_m is not None else pd.z_m, np.float64) - ref - off
     removed = have & ~pd.valid & np.isfinite(raw)
-    flag_counts = {k: int(((pd.flags & v) > 0)[have].sum()) for k, v in FLAGS.items()}
+    flag_counts = {k: int(((pd.flags & v) > 0)[have].sum()) for k, v in FLAGS.items()} if pd.flags is not None else {}
+    # the z band as written: valid heights and those interpolated in narrow holes (flag `filled`), what compares
+    # with a peer's filled DSM
+    bf = np.isfinite(pd.z_m) & have
+    ef = np.asarray(pd.z_m, np.float64)[bf] - ref[bf] - off
+    with_filled = {
+        "completeness_on_ref": float(bf.sum() / max(have.sum(), 1)),
+        "nmad_m": nmad(ef) if ef.size else float("nan"),
+        "wrong_share": float(np.mean(np.abs(ef) > wrong_m)) if ef.size else float("nan"),
+        "blunder_share": float(beyond[bf].mean()) if ef.size else float("nan"),
+    }
     return {
         "offset_m": off,
         "completeness_on_ref": float(both.sum() / max(have.sum(), 1)),
@@ -74,10 +90,80 @@ def score_pair(pd, ref: np.ndarray, inside: np.ndarray, wrong_m: float) -> dict:
         "removed_cells": int(removed.sum()),
         "removed_wrong_share": float(np.mean(np.abs(raw[removed]) > wrong_m)) if removed.any() else float("nan"),
         "flags_on_ref": flag_counts,
+        "with_filled": with_filled,
     }
 
 
-def s2p_pairs(params: StereoParams, save: Path | None, only: set[str]) -> dict:
+class _PeerDSM:
+    """A peer's DSM on the reference grid as :func:`score_pair` reads a pair-DEM (valid = has a height)."""
+
+    def __init__(self, z: np.ndarray, grid: AOIGrid):
+        self.z_m, self.grid, self.valid = z, grid, np.isfinite(z)
+        self.z_raw_m = self.flags = None
+
+
+def cars_pair(
+    cars: str, work: Path, images: tuple[Path, Path], ref: np.ndarray, grid: AOIGrid, reuse: bool = False
+) -> dict:
+    """CARS's whole process on one pair (its own venv; config as ``bench/bench_stereo.py``'s: a flat initial
+    elevation at the reference's median height, the reference's posting and CRS, ellipsoidal heights, 2
+    workers), its final ``dsm/dsm.tif`` resampled (nearest) onto the reference's grid and scored like geocd's."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from bench._memwatch import run_process
+    from geocd.io.raster import reproject_array
+
+    work.mkdir(parents=True, exist_ok=True)
+    lon, lat = to_lonlat(*grid.xy(np.array([grid.height // 2]), np.array([grid.width // 2])), grid.crs)
+    dem = work / "flat_dem.tif"
+    with rasterio.open(
+        dem,
+        "w",
+        driver="GTiff",
+        width=40,
+        height=40,
+        count=1,
+        dtype="float32",
+        crs="EPSG:4326",
+        transform=from_origin(float(lon[0]) - 0.1, float(lat[0]) + 0.1, 0.005, 0.005),
+    ) as ds:
+        ds.write(np.full((1, 40, 40), float(np.nanmedian(ref)), np.float32))
+    cfg = {
+        "input": {
+            "sensors": {n: {"image": str(p), "geomodel": str(p)} for n, p in zip(("left", "right"), images)},
+            "pairing": [["left", "right"]],
+            "initial_elevation": {"dem": str(dem)},
+        },
+        "output": {
+            "directory": str(work / "out"),
+            "resolution": grid.posting_m,
+            "epsg": int(grid.crs.to_epsg()),
+            "geoid": False,
+        },
+        "orchestrator": {"mode": "multiprocessing", "nb_workers": 2},
+    }
+    final = work / "out" / "dsm" / "dsm.tif"
+    record = work / "cars_run.json"
+    if reuse and final.is_file() and record.is_file():  # a finished CARS run of the same config: score it again
+        r = json.loads(record.read_text())
+    else:
+        (work / "config.json").write_text(json.dumps(cfg, indent=1))
+        r = run_process([cars, str(work / "config.json")], cwd=work)
+        record.write_text(json.dumps({k: r[k] for k in ("wall_s", "cpu_s", "peak_rss_mb", "returncode") if k in r}))
+    out = {k: r[k] for k in ("wall_s", "cpu_s", "peak_rss_mb", "returncode") if k in r}
+    if r.get("returncode") != 0 or not final.is_file():
+        out["error"] = r.get("error_tail", f"no {final}")
+        return out
+    with rasterio.open(final) as ds:
+        g = AOIGrid.from_raster(ds)
+        a = ds.read(1, masked=True).astype(np.float32).filled(np.nan)
+    z = reproject_array(a, g, grid, "nearest").astype(np.float64)
+    out.update(score_pair(_PeerDSM(z, grid), ref, np.ones(grid.shape, bool), 5.0))
+    return out
+
+
+def s2p_pairs(params: StereoParams, save: Path | None, only: set[str], cars: str | None = None) -> dict:
     import rasterio
 
     out = {}
@@ -105,6 +191,16 @@ def s2p_pairs(params: StereoParams, save: Path | None, only: set[str]) -> dict:
             _print(f"{label}:{a}__{b}", r)
             if save:
                 _save(save / f"{label}_{a}__{b}.npz", pd, ref)
+            if cars:
+                images = tuple(DATA / "s2p_pleiades" / folder / f"{n}.tif" for n in (a, b))
+                t = time.perf_counter()
+                c = cars_pair(cars, CARS_WORK / f"{label}_{a}__{b}", images, ref, grid, CARS_REUSE)
+                c.setdefault("wall_s", time.perf_counter() - t)
+                out[f"CARS {label}:{a}__{b}"] = c
+                if "error" in c:
+                    print(f"CARS {label}:{a}__{b} failed: {c['error'][-300:]}", flush=True)
+                else:
+                    _print(f"CARS {label}:{a}__{b}", c)
     return out
 
 
@@ -163,11 +259,20 @@ def _save(path: Path, pd, ref: np.ndarray) -> None:
 
 
 def _print(name: str, r: dict) -> None:
+    r.setdefault("removed_cells", 0)
+    r.setdefault("removed_wrong_share", float("nan"))
     print(
         f"{name:28s} complete {r['completeness_on_ref']:.1%}  median|dz| {r['median_abs_m']:.2f} m  "
         f"NMAD {r['nmad_m']:.2f} m  valid wrong >{r['wrong_threshold_m']:g} m: {r['valid_wrong_cells']} "
         f"({r['valid_wrong_share']:.3%}; beyond ±1 m: {r['valid_blunder_share']:.3%})  removed {r['removed_cells']} ({r['removed_wrong_share']:.1%} wrong)  "
-        f"{r['wall_s']:.1f} s",
+        f"{r['wall_s']:.1f} s"
+        + (
+            f"\n{'':28s} z as written (valid + filled): complete {r['with_filled']['completeness_on_ref']:.1%}  "
+            f"NMAD {r['with_filled']['nmad_m']:.2f} m  wrong {r['with_filled']['wrong_share']:.3%}; "
+            f"beyond ±1 m: {r['with_filled']['blunder_share']:.3%}"
+            if "with_filled" in r
+            else ""
+        ),
         flush=True,
     )
 
@@ -179,7 +284,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--save", type=Path, default=None, help="folder for the per-cell bands (npz)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="StereoParams fields (JSON values)")
     ap.add_argument("--without", action="store_true", help="also without the neighbour-agreement test")
+    ap.add_argument("--cars", default=None, help="CARS's executable (its own venv): run it on each s2p pair too")
+    ap.add_argument("--cars-work", type=Path, default=Path("geocd_out/validity_cars"), help="CARS's work folder")
+    ap.add_argument("--cars-reuse", action="store_true", help="score CARS DSMs already in --cars-work again")
     a = ap.parse_args(argv)
+    global CARS_WORK, CARS_REUSE
+    CARS_WORK = a.cars_work.resolve()
+    CARS_REUSE = a.cars_reuse
     given = {k: json.loads(v) for k, v in (x.split("=", 1) for x in a.set)}
     runs = {"default": given}
     if a.without:
@@ -189,7 +300,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"--- {label}", flush=True)
         params = StereoParams.from_dict(d)
         r = {"params": params.to_dict()}
-        r.update(s2p_pairs(params, a.save if label == "default" else None, set(a.only)))
+        cars = a.cars if label == "default" else None
+        r.update(s2p_pairs(params, a.save if label == "default" else None, set(a.only), cars))
         if "ventoux" in a.only:
             r.update(ventoux(params, a.save if label == "default" else None))
         res[label] = r
