@@ -331,10 +331,21 @@ def compare_to_s2p(z: np.ndarray, z_grid, ref: np.ndarray, ref_grid) -> dict:
     }
 
 
-def cars_config(work: Path, h: float) -> Path:
+def cars_config(
+    work: Path,
+    h: float,
+    images: tuple[Path, Path] | None = None,
+    corner_lonlat: tuple[float, float] = (55.6, -21.2),
+    epsg: int = 32740,
+    resolution_m: float = 0.5,
+) -> Path:
+    """CARS's config for one pair in ``work`` (default: the Réunion pair): a flat initial elevation ``h`` (m) on a
+    0.2° square whose north-west corner is ``corner_lonlat`` (CARS needs a DEM and has none here), the output
+    posting and CRS, ellipsoidal heights (``geoid: false``), multiprocessing with 2 workers."""
     import rasterio
     from rasterio.transform import from_origin
 
+    images = images or tuple(DATA / p for p in PAIR_IMAGES)
     dem = work / "flat_dem.tif"
     with rasterio.open(
         dem,
@@ -345,22 +356,16 @@ def cars_config(work: Path, h: float) -> Path:
         count=1,
         dtype="float32",
         crs="EPSG:4326",
-        transform=from_origin(55.6, -21.2, 0.005, 0.005),
+        transform=from_origin(*corner_lonlat, 0.005, 0.005),
     ) as ds:
         ds.write(np.full((1, 40, 40), h, np.float32))
     cfg = {
         "input": {
-            "sensors": {
-                n: {
-                    "image": str(DATA / "input_pair" / f"img_0{i}.tif"),
-                    "geomodel": str(DATA / "input_pair" / f"img_0{i}.tif"),
-                }
-                for i, n in ((1, "left"), (2, "right"))
-            },
+            "sensors": {n: {"image": str(p), "geomodel": str(p)} for n, p in zip(("left", "right"), images)},
             "pairing": [["left", "right"]],
             "initial_elevation": {"dem": str(dem)},
         },
-        "output": {"directory": str(work / "out"), "resolution": 0.5, "epsg": 32740, "geoid": False},
+        "output": {"directory": str(work / "out"), "resolution": resolution_m, "epsg": epsg, "geoid": False},
         "orchestrator": {"mode": "multiprocessing", "nb_workers": 2},
     }
     (work / "config.json").write_text(json.dumps(cfg, indent=1))

@@ -37,7 +37,7 @@ from scipy import ndimage
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.figures.stereo_show import DATA, load_rpc_chip, nmad  # noqa: E402
+from bench.figures.stereo_show import DATA, nmad, s2p_scene  # noqa: E402
 from geocd.geodesy import AOIGrid, to_lonlat  # noqa: E402
 from geocd.stereo import StereoParams, match_pair  # noqa: E402
 from geocd.stereo.products import FLAGS  # noqa: E402
@@ -109,47 +109,27 @@ def cars_pair(
     elevation at the reference's median height, the reference's posting and CRS, ellipsoidal heights, 2
     workers), its final ``dsm/dsm.tif`` resampled (nearest) onto the reference's grid and scored like geocd's."""
     import rasterio
-    from rasterio.transform import from_origin
 
     from bench._memwatch import run_process
+    from bench.bench_stereo import cars_config
     from geocd.io.raster import reproject_array
 
     work.mkdir(parents=True, exist_ok=True)
     lon, lat = to_lonlat(*grid.xy(np.array([grid.height // 2]), np.array([grid.width // 2])), grid.crs)
-    dem = work / "flat_dem.tif"
-    with rasterio.open(
-        dem,
-        "w",
-        driver="GTiff",
-        width=40,
-        height=40,
-        count=1,
-        dtype="float32",
-        crs="EPSG:4326",
-        transform=from_origin(float(lon[0]) - 0.1, float(lat[0]) + 0.1, 0.005, 0.005),
-    ) as ds:
-        ds.write(np.full((1, 40, 40), float(np.nanmedian(ref)), np.float32))
-    cfg = {
-        "input": {
-            "sensors": {n: {"image": str(p), "geomodel": str(p)} for n, p in zip(("left", "right"), images)},
-            "pairing": [["left", "right"]],
-            "initial_elevation": {"dem": str(dem)},
-        },
-        "output": {
-            "directory": str(work / "out"),
-            "resolution": grid.posting_m,
-            "epsg": int(grid.crs.to_epsg()),
-            "geoid": False,
-        },
-        "orchestrator": {"mode": "multiprocessing", "nb_workers": 2},
-    }
+    config = cars_config(
+        work,
+        float(np.nanmedian(ref)),
+        images,
+        (float(lon[0]) - 0.1, float(lat[0]) + 0.1),
+        int(grid.crs.to_epsg()),
+        grid.posting_m,
+    )
     final = work / "out" / "dsm" / "dsm.tif"
     record = work / "cars_run.json"
     if reuse and final.is_file() and record.is_file():  # a finished CARS run of the same config: score it again
         r = json.loads(record.read_text())
     else:
-        (work / "config.json").write_text(json.dumps(cfg, indent=1))
-        r = run_process([cars, str(work / "config.json")], cwd=work)
+        r = run_process([cars, str(config)], cwd=work)
         record.write_text(json.dumps({k: r[k] for k in ("wall_s", "cpu_s", "peak_rss_mb", "returncode") if k in r}))
     out = {k: r[k] for k in ("wall_s", "cpu_s", "peak_rss_mb", "returncode") if k in r}
     if r.get("returncode") != 0 or not final.is_file():
@@ -164,7 +144,6 @@ def cars_pair(
 
 
 def s2p_pairs(params: StereoParams, save: Path | None, only: set[str], cars: str | None = None) -> dict:
-    import rasterio
 
     out = {}
     sets = {
@@ -174,13 +153,7 @@ def s2p_pairs(params: StereoParams, save: Path | None, only: set[str], cars: str
     for label, (key, folder, pairs) in sets.items():
         if label not in only:
             continue
-        with rasterio.open(DATA / "s2p_pleiades" / "expected_output" / key / "dsm.tif") as ds:
-            grid = AOIGrid.from_raster(ds)
-            ref = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
-        lo, hi = np.nanmin(ref) - 300, np.nanmax(ref) + 300  # only to size the image windows
-        cams, chips = {}, {}
-        for n in sorted({i for p in pairs for i in p}):
-            cams[n], chips[n] = load_rpc_chip(DATA / "s2p_pleiades" / folder / f"{n}.tif", grid, lo, hi, n)
+        grid, ref, cams, chips = s2p_scene(key, folder, sorted({i for p in pairs for i in p}))
         for a, b in pairs:
             t = time.perf_counter()
             pd = match_pair(chips[a], chips[b], cams[a], cams[b], grid, params=params)

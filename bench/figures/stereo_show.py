@@ -126,8 +126,22 @@ def quicklook(path: Path, panels: list[tuple[str, np.ndarray, dict]], title: str
     plt.close(fig)
 
 
-def s2p(params: StereoParams = StereoParams()) -> dict:
+def s2p_scene(key: str, folder: str, names) -> tuple:
+    """s2p's DSM ``expected_output/<key>/dsm.tif`` (its grid, heights with NaN) and the RPC cameras and chips of
+    the images ``<folder>/<name>.tif`` on that grid."""
     import rasterio
+
+    with rasterio.open(DATA / "s2p_pleiades" / "expected_output" / key / "dsm.tif") as ds:
+        grid = AOIGrid.from_raster(ds)
+        ref = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+    lo, hi = np.nanmin(ref) - 300, np.nanmax(ref) + 300  # only to size the image windows
+    cams, chips = {}, {}
+    for n in names:
+        cams[n], chips[n] = load_rpc_chip(DATA / "s2p_pleiades" / folder / f"{n}.tif", grid, lo, hi, n)
+    return grid, ref, cams, chips
+
+
+def s2p(params: StereoParams = StereoParams()) -> dict:
 
     res: dict = {"params": params.to_dict()}
     sets = {
@@ -135,13 +149,7 @@ def s2p(params: StereoParams = StereoParams()) -> dict:
         "triplet": ("input_triplet", [("img_01", "img_02"), ("img_01", "img_03"), ("img_02", "img_03")]),
     }
     for key, (folder, pairs) in sets.items():
-        with rasterio.open(DATA / "s2p_pleiades" / "expected_output" / key / "dsm.tif") as ds:
-            grid = AOIGrid.from_raster(ds)
-            ref = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
-        lo, hi = np.nanmin(ref) - 300, np.nanmax(ref) + 300  # only to size the image windows
-        cams, chips = {}, {}
-        for n in sorted({i for p in pairs for i in p}):
-            cams[n], chips[n] = load_rpc_chip(DATA / "s2p_pleiades" / folder / f"{n}.tif", grid, lo, hi, n)
+        grid, ref, cams, chips = s2p_scene(key, folder, sorted({i for p in pairs for i in p}))
         for a, b in pairs:
             t = time.perf_counter()
             pd = match_pair(chips[a], chips[b], cams[a], cams[b], grid, params=params)
