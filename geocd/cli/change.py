@@ -234,26 +234,25 @@ def _read_pairs(paths):
     from ..stereo.params import isolation_cells, surface_median_cells
 
     pairs = [read_pair_dem(p) for p in paths]
-    smoothed = [p.name for p in pairs if surface_median_cells(p.meta.get("params") or {}) != 1]
-    if smoothed:
-        warnings.warn(
-            f"pair-DEM(s) {', '.join(smoothed)} were matched with a surface median: the self-consistency "
-            "test models each cell's own match, and a median correlates neighbouring errors (more false "
-            "changes); for change detection make them with `geocd stereo --surface-median 1 --isolation-min-cells 1` "
-            "(as geocd run does)",
-            UserWarning,
-            stacklevel=2,
-        )
-    isolated = [p.name for p in pairs if isolation_cells(p.meta.get("params") or {}) != 1]
-    if isolated:
-        warnings.warn(
-            f"pair-DEM(s) {', '.join(isolated)} were matched with the neighbour-agreement test: the "
-            "self-consistency test models each cell's own match, and a validity that depends on the "
-            "neighbours' heights made more false changes on sample_aoi; for change detection make them with "
-            "`geocd stereo --surface-median 1 --isolation-min-cells 1` (as geocd run does)",
-            UserWarning,
-            stacklevel=2,
-        )
+    # the self-consistency test models each cell's own match: a pair-DEM whose heights or validity depend on its
+    # neighbours' (a surface median, the neighbour-agreement test) makes more false changes
+    for made_with, why, cells in (
+        ("a surface median", "a median correlates neighbouring errors (more false changes)", surface_median_cells),
+        (
+            "the neighbour-agreement test",
+            "a validity that depends on the neighbours' heights made more false changes on sample_aoi",
+            isolation_cells,
+        ),
+    ):
+        names = [p.name for p in pairs if cells(p.meta.get("params") or {}) != 1]
+        if names:
+            warnings.warn(
+                f"pair-DEM(s) {', '.join(names)} were matched with {made_with}: the self-consistency test models "
+                f"each cell's own match, and {why}; for change detection make them with `geocd stereo "
+                "--surface-median 1 --isolation-min-cells 1` (as geocd run does)",
+                UserWarning,
+                stacklevel=2,
+            )
     return pairs
 
 
